@@ -1,0 +1,134 @@
+// pyvf._core: the compiled kernels. The user-facing functions, with argument checks and
+// clear errors, are in pyvf/attention.py; these bindings take arrays that are already
+// checked and still refuse (TypeError) anything that is not exactly the dtype and C layout
+// asked for: .noconvert() and c_style mean no silent cast and no silent copy.
+//
+// Argument order (STYLE.md): outputs, saved buffers, inputs, then scalars. Outputs are
+// overwritten, never accumulated into.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include <stdexcept>
+
+#include "branching_attention.h"
+#include "simd.h"
+
+namespace py = pybind11;
+using namespace pyvf;
+
+namespace {
+
+template <typename T> using Arr = py::array_t<T, py::array::c_style>;
+
+AttnDims dims_of(const py::array& a) {
+    if (a.ndim() != 6) throw std::invalid_argument("pyvf._core: expected a 6-d array (R, B, H, N, L, dh)");
+    AttnDims d{a.shape(0), a.shape(1), a.shape(2), a.shape(3), a.shape(4), a.shape(5)};
+    if (d.R < 1 || d.B < 1 || d.H < 1 || d.N < 1 || d.L < 1 || d.dh < 1)
+        throw std::invalid_argument("pyvf._core: every dimension must be at least 1");
+    if (d.L > (1 << 20) || d.dh > (1 << 20))
+        throw std::invalid_argument("pyvf._core: L and dh must be below 2^20");
+    return d;
+}
+
+void same_shape(const py::array& a, const py::array& b, const char* name) {
+    bool same = a.ndim() == b.ndim();
+    for (py::ssize_t i = 0; same && i < a.ndim(); ++i) same = a.shape(i) == b.shape(i);
+    if (!same) throw std::invalid_argument(std::string("pyvf._core: ") + name + " has the wrong shape");
+}
+
+void check_lse(const py::array& lse, const AttnDims& d) {
+    const py::ssize_t want[5] = {d.R, d.B, d.H, d.N, d.L};
+    bool ok = lse.ndim() == 5;
+    for (int i = 0; ok && i < 5; ++i) ok = lse.shape(i) == want[i];
+    if (!ok) throw std::invalid_argument("pyvf._core: lse must have shape (R, B, H, N, L)");
+}
+
+void raise_status(int status) {
+    if (status == kAttnLogitOverflow)
+        throw py::value_error(
+            "branching_attention: a logit scale * (q . k) is not finite (it overflowed the dtype); "
+            "the softmax of such logits cannot be represented: rescale q or k, or use float64");
+}
+
+template <typename T, bool PLAIN>
+void forward(Arr<T> o, Arr<double> lse, Arr<T> q, Arr<T> k, Arr<T> v, double scale) {
+    const AttnDims d = dims_of(q);
+    same_shape(q, k, "k");
+    same_shape(q, v, "v");
+    same_shape(q, o, "o");
+    check_lse(lse, d);
+    T* po = o.mutable_data();
+    double* pl = lse.mutable_data();
+    const T *pq = q.data(), *pk = k.data(), *pv = v.data();
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = PLAIN ? attn_forward_plain<T>(po, pl, pq, pk, pv, d, (T)scale)
+                       : attn_forward<T>(po, pl, pq, pk, pv, d, (T)scale);
+    }
+    raise_status(status);
+}
+
+template <typename T, bool PLAIN>
+void backward(Arr<T> dq, Arr<T> dk, Arr<T> dv, Arr<double> lse, Arr<T> q, Arr<T> k, Arr<T> v,
+              Arr<T> o, Arr<T> dout, double scale) {
+    const AttnDims d = dims_of(q);
+    same_shape(q, k, "k");
+    same_shape(q, v, "v");
+    same_shape(q, o, "o");
+    same_shape(q, dout, "do");
+    same_shape(q, dq, "dq");
+    same_shape(q, dk, "dk");
+    same_shape(q, dv, "dv");
+    check_lse(lse, d);
+    T *pdq = dq.mutable_data(), *pdk = dk.mutable_data(), *pdv = dv.mutable_data();
+    const double* pl = lse.data();
+    const T *pq = q.data(), *pk = k.data(), *pv = v.data(), *po = o.data(), *pd = dout.data();
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = PLAIN ? attn_backward_plain<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale)
+                       : attn_backward<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale);
+    }
+    raise_status(status);
+}
+
+// y = exp(x) by the kernels' vectorised exp (for x <= 0), to test its accuracy.
+template <typename T> void exp_kernel(Arr<T> y, Arr<T> x) {
+    if (x.size() != y.size()) throw std::invalid_argument("pyvf._core.exp: x and y differ in size");
+    const T* px = x.data();
+    T* py_ = y.mutable_data();
+    for (py::ssize_t i = 0; i < x.size(); ++i) py_[i] = exp_scalar<T>(px[i]);
+}
+
+template <typename T> void bind_dtype(py::module_& m) {
+    m.def("attn_forward", &forward<T, false>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
+          py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
+    m.def("attn_forward_plain", &forward<T, true>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
+          py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
+    m.def("attn_backward", &backward<T, false>, py::arg("dq").noconvert(), py::arg("dk").noconvert(),
+          py::arg("dv").noconvert(), py::arg("lse").noconvert(), py::arg("q").noconvert(),
+          py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("o").noconvert(),
+          py::arg("do").noconvert(), py::arg("scale"));
+    m.def("attn_backward_plain", &backward<T, true>, py::arg("dq").noconvert(), py::arg("dk").noconvert(),
+          py::arg("dv").noconvert(), py::arg("lse").noconvert(), py::arg("q").noconvert(),
+          py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("o").noconvert(),
+          py::arg("do").noconvert(), py::arg("scale"));
+    m.def("exp", &exp_kernel<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_core, m) {
+    m.doc() = "pyvf compiled kernels (use the functions in pyvf, which check their arguments)";
+    bind_dtype<float>(m);
+    bind_dtype<double>(m);
+    m.def("num_threads", &num_threads, "threads the kernels use (OpenMP; 1 without OpenMP)");
+    m.def("set_num_threads", &set_num_threads, py::arg("n"));
+    m.attr("simd_bytes") = kVecBytes;
+#ifdef PYVF_OPENMP
+    m.attr("openmp") = true;
+#else
+    m.attr("openmp") = false;
+#endif
+}

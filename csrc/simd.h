@@ -1,0 +1,207 @@
+// simd.h: the few vector primitives pyvf's kernels are written in.
+//
+// A vector is a GCC/Clang vector extension of the widest width the build target has
+// (64 bytes with AVX-512, 32 with AVX, 16 otherwise), so the same source compiles on any
+// x86-64 or ARM machine. Arithmetic on vectors is the plain C++ operators; loads and stores
+// go through memcpy (unaligned, no aliasing trouble).
+//
+// Rounding: no -ffast-math anywhere. GCC's default -ffp-contract=fast may fuse a*b+c into one
+// fused multiply-add (one rounding instead of two), never reassociates a sum.
+//
+// Also here: the small matrix product the attention kernels are made of (gemm), and an exp
+// that vectorises (exp_vec), since std::exp does not without -ffast-math.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+
+namespace pyvf {
+
+#if defined(__AVX512F__)
+constexpr int kVecBytes = 64;
+#elif defined(__AVX__)
+constexpr int kVecBytes = 32;
+#else
+constexpr int kVecBytes = 16;
+#endif
+
+template <typename T> struct Simd;
+template <> struct Simd<float> {
+    typedef float V __attribute__((vector_size(kVecBytes)));
+    typedef int32_t I __attribute__((vector_size(kVecBytes)));
+    static constexpr int W = kVecBytes / 4;
+};
+template <> struct Simd<double> {
+    typedef double V __attribute__((vector_size(kVecBytes)));
+    typedef int64_t I __attribute__((vector_size(kVecBytes)));
+    static constexpr int W = kVecBytes / 8;
+};
+
+template <typename T> inline typename Simd<T>::V vload(const T* p) {
+    typename Simd<T>::V v;
+    std::memcpy(&v, p, sizeof v);
+    return v;
+}
+template <typename T> inline void vstore(T* p, typename Simd<T>::V v) { std::memcpy(p, &v, sizeof v); }
+template <typename T> inline typename Simd<T>::V vset1(T a) {
+    typename Simd<T>::V v = {};
+    return v + a;
+}
+template <typename T> inline typename Simd<T>::V vmax(typename Simd<T>::V a, typename Simd<T>::V b) {
+    return a > b ? a : b;
+}
+template <typename T> inline T hsum(typename Simd<T>::V v) {
+    T s = 0;
+    for (int i = 0; i < Simd<T>::W; ++i) s += v[i];
+    return s;
+}
+template <typename T> inline T hmax(typename Simd<T>::V v) {
+    T s = v[0];
+    for (int i = 1; i < Simd<T>::W; ++i) s = v[i] > s ? v[i] : s;
+    return s;
+}
+
+// ---------------------------------------------------------------------------------------
+// exp for x <= 0 (all the softmax needs: x = logit - running max), vectorised.
+// Cody-Waite range reduction x = n*ln2 + r, |r| <= ln2/2, then a polynomial (float: the
+// Cephes expf minimax polynomial, degree 6; double: the Cephes exp Pade form), then 2^n
+// built in the exponent bits. Accuracy: about 1 ulp (tests/test_attention.py measures it
+// against numpy's exp). Below the smallest normal result it returns 0 (the true value is
+// < 1.2e-38 in float32, < 2.3e-308 in float64: invisible beside the softmax's own max term,
+// which is exp(0) = 1). -inf gives 0. NaN never reaches it (the kernels check logits first).
+
+template <typename T> struct ExpConst;
+template <> struct ExpConst<float> {
+    static constexpr float lo = -87.33654f;  // exp(lo) = 2^-126, the smallest normal float
+};
+template <> struct ExpConst<double> {
+    static constexpr double lo = -708.3964185322641;  // 2^-1022
+};
+
+inline Simd<float>::V exp_vec(Simd<float>::V x) {
+    using V = Simd<float>::V;
+    using I = Simd<float>::I;
+    const V lo = vset1<float>(ExpConst<float>::lo);
+    const V xc = x > lo ? x : lo;
+    // n = round(x / ln2): adding 1.5*2^23 rounds to an integer in the mantissa
+    const V magic = vset1<float>(12582912.0f);
+    const V n = (xc * 1.44269504088896341f + magic) - magic;
+    V r = xc - n * 0.693359375f;        // ln2 split in two (Cody-Waite), hi part exact in n*hi
+    r = r - n * -2.12194440e-4f;
+    V p = vset1<float>(1.9875691500e-4f);
+    p = p * r + 1.3981999507e-3f;
+    p = p * r + 8.3334519073e-3f;
+    p = p * r + 4.1665795894e-2f;
+    p = p * r + 1.6666665459e-1f;
+    p = p * r + 5.0000001201e-1f;
+    p = p * (r * r) + r + 1.0f;
+    const I e = (__builtin_convertvector(n, I) + 127) << 23;  // 2^n, n >= -126
+    V two_n;
+    std::memcpy(&two_n, &e, sizeof e);
+    const V y = p * two_n;
+    return x < lo ? vset1<float>(0.0f) : y;
+}
+
+inline Simd<double>::V exp_vec(Simd<double>::V x) {
+    using V = Simd<double>::V;
+    using I = Simd<double>::I;
+    const V lo = vset1<double>(ExpConst<double>::lo);
+    const V xc = x > lo ? x : lo;
+    const V magic = vset1<double>(6755399441055744.0);  // 1.5*2^52
+    const V n = (xc * 1.4426950408889634073599 + magic) - magic;
+    V r = xc - n * 6.93145751953125e-1;
+    r = r - n * 1.42860682030941723212e-6;
+    // Cephes exp: e^r = 1 + 2 r P(r^2) / (Q(r^2) - r P(r^2))
+    const V rr = r * r;
+    V P = vset1<double>(1.26177193074810590878e-4);
+    P = P * rr + 3.02994407707441961300e-2;
+    P = P * rr + 9.99999999999999999910e-1;
+    V Q = vset1<double>(3.00198505138664455042e-6);
+    Q = Q * rr + 2.52448340349684104192e-3;
+    Q = Q * rr + 2.27265548208155028766e-1;
+    Q = Q * rr + 2.00000000000000000009e0;
+    const V px = r * P;
+    const V p = 1.0 + 2.0 * (px / (Q - px));
+    const I e = (__builtin_convertvector(n, I) + 1023) << 52;
+    V two_n;
+    std::memcpy(&two_n, &e, sizeof e);
+    const V y = p * two_n;
+    return x < lo ? vset1<double>(0.0) : y;
+}
+
+// exp of one scalar by the same formula (for tails shorter than a vector).
+template <typename T> inline T exp_scalar(T x) {
+    typename Simd<T>::V v = vset1<T>(x);
+    return exp_vec(v)[0];
+}
+
+// ---------------------------------------------------------------------------------------
+// gemm: C (M, N) = A (M, K) @ B (K, N)      when ACC is false (C is overwritten),
+//       C (M, N) += A (M, K) @ B (K, N)     when ACC is true.
+// Row-major, leading dimensions lda, ldb, ldc. Sizes are those of one attention block
+// (L, dh ~ 16..128): A, B stay in L1/L2. Register tile: MR rows of C times NV vectors.
+// For each k the tile does C[i, j..j+NV*W) += A[i, k] * B[k, j..j+NV*W): the sum over k runs
+// in increasing k for every element, whatever the tile, so the result does not depend on
+// the blocking (the plain loop below gives the same bits when it is not contracted to FMA).
+
+template <typename T, int MR, int NV, bool ACC>
+inline void gemm_tile(int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
+    using V = typename Simd<T>::V;
+    constexpr int W = Simd<T>::W;
+    V acc[MR][NV];
+#pragma GCC unroll 16
+    for (int i = 0; i < MR; ++i)
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) acc[i][v] = V{};
+    for (int k = 0; k < K; ++k) {
+        V b[NV];
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) b[v] = vload<T>(B + k * ldb + v * W);
+#pragma GCC unroll 16
+        for (int i = 0; i < MR; ++i) {
+            const T a = A[i * lda + k];
+#pragma GCC unroll 4
+            for (int v = 0; v < NV; ++v) acc[i][v] += a * b[v];
+        }
+    }
+#pragma GCC unroll 16
+    for (int i = 0; i < MR; ++i)
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) {
+            T* c = C + i * ldc + v * W;
+            vstore<T>(c, ACC ? vload<T>(c) + acc[i][v] : acc[i][v]);
+        }
+}
+
+template <typename T, int MR, bool ACC>
+inline void gemm_rows(int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
+    constexpr int W = Simd<T>::W;
+    int j = 0;
+    for (; j + 2 * W <= N; j += 2 * W) gemm_tile<T, MR, 2, ACC>(K, A, lda, B + j, ldb, C + j, ldc);
+    for (; j + W <= N; j += W) gemm_tile<T, MR, 1, ACC>(K, A, lda, B + j, ldb, C + j, ldc);
+    for (; j < N; ++j)  // columns past the last full vector
+        for (int i = 0; i < MR; ++i) {
+            T s = 0;
+            for (int k = 0; k < K; ++k) s += A[i * lda + k] * B[k * ldb + j];
+            C[i * ldc + j] = ACC ? C[i * ldc + j] + s : s;
+        }
+}
+
+template <typename T, bool ACC>
+inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
+    constexpr int MR = 4;
+    int i = 0;
+    for (; i + MR <= M; i += MR)
+        gemm_rows<T, MR, ACC>(N, K, A + i * lda, lda, B, ldb, C + i * ldc, ldc);
+    for (; i < M; ++i) gemm_rows<T, 1, ACC>(N, K, A + i * lda, lda, B, ldb, C + i * ldc, ldc);
+}
+
+// out (cols, rows) = in (rows, cols)^T
+template <typename T> inline void transpose(T* out, const T* in, int rows, int cols) {
+    for (int i = 0; i < rows; ++i)
+        for (int j = 0; j < cols; ++j) out[j * rows + i] = in[i * cols + j];
+}
+
+}  // namespace pyvf

@@ -1,0 +1,201 @@
+"""Branching attention (SPEC.md §2): the C++ kernel's Python face, and a dense NumPy reference.
+
+Shapes: q, k, v, o of shape (R, B, H, N, L, dh): tree row, batch, head, view, token, head width.
+Row 0 is the trunk, rows 1..R-1 the branches. Query block (r, i) (the L tokens of view i in
+row r) attends every key of
+
+    trunk blocks (0, j), j < i     and     its own block (r, i).
+
+For the trunk that is block-causal attention over views 0..i; a branch at view i sees the
+strictly earlier trunk views and itself, never another branch and never a later view. Masked
+keys are excluded before the softmax, exactly. The logit is scale * (q . k) with scale = 1 by
+default, as in the published model (SPEC.md §2: logits are not divided by sqrt(dh)).
+
+    o = branching_attention(q, k, v)                      # forward
+    dq, dk, dv = branching_attention_vjp(q, k, v, do)     # gradient of sum(o * do)
+    o, lse = branching_attention_forward(q, k, v)         # forward that keeps what backward needs
+    dq, dk, dv = branching_attention_backward(do, q, k, v, o, lse)
+
+The reference (branching_attention_reference and its _vjp) materialises the (T, T) logits of
+the flat sequence, T = R*N*L in the order [row][view][token], with branching_mask: it is the
+oracle tests and benchmarks compare the kernel against, and costs O(T^2) memory on purpose.
+"""
+
+import numpy as np
+
+from . import _core
+
+__all__ = [
+    "branching_attention",
+    "branching_attention_vjp",
+    "branching_attention_forward",
+    "branching_attention_backward",
+    "branching_mask",
+    "branching_attention_reference",
+    "branching_attention_reference_vjp",
+]
+
+_DTYPES = (np.float32, np.float64)
+
+
+# ---------------------------------------------------------------------------------------
+# argument checks: every error names the argument and says what was expected
+
+
+def _check_array(name, x, like=None):
+    """x must be a C-contiguous float32/float64 ndarray of 6 dims (like `like`, when given)."""
+    if not isinstance(x, np.ndarray):
+        raise TypeError(f"{name} must be a numpy.ndarray, got {type(x).__name__}")
+    if like is None:
+        if x.dtype not in _DTYPES:
+            raise TypeError(f"{name} must be float32 or float64, got {x.dtype} (pyvf never casts silently)")
+        if x.ndim != 6:
+            raise ValueError(f"{name} must have 6 dimensions (R, B, H, N, L, dh), got shape {x.shape}")
+        if 0 in x.shape:
+            raise ValueError(f"{name} has a zero-size dimension: shape {x.shape}")
+    else:
+        if x.dtype != like.dtype:
+            raise TypeError(f"{name} is {x.dtype} but q is {like.dtype}: all arrays must share one dtype")
+        if x.shape != like.shape:
+            raise ValueError(f"{name} has shape {x.shape} but q has shape {like.shape}")
+    if not x.flags.c_contiguous:
+        raise ValueError(f"{name} is not C-contiguous (a transposed or sliced view?): "
+                         f"pass np.ascontiguousarray({name})")
+    if not np.isfinite(x).all():
+        raise ValueError(f"{name} contains NaN or inf")
+
+
+def _check_scale(scale):
+    if isinstance(scale, (bool, np.bool_)) or not isinstance(scale, (int, float, np.floating, np.integer)):
+        raise TypeError(f"scale must be a real number, got {type(scale).__name__}")
+    scale = float(scale)
+    if not np.isfinite(scale):
+        raise ValueError(f"scale must be finite, got {scale}")
+    return scale
+
+
+def _check_qkv(q, k, v, scale):
+    _check_array("q", q)
+    _check_array("k", k, like=q)
+    _check_array("v", v, like=q)
+    return _check_scale(scale)
+
+
+def _check_finite_result(name, *arrays):
+    for a in arrays:
+        if not np.isfinite(a).all():
+            raise FloatingPointError(f"{name}: the result overflowed {a.dtype} (inputs too large for the dtype)")
+
+
+# ---------------------------------------------------------------------------------------
+# the kernel
+
+
+def branching_attention_forward(q, k, v, scale=1.0, *, plain=False):
+    """Forward that also returns what the backward needs.
+
+    q, k, v: (R, B, H, N, L, dh), float32 or float64, C-contiguous, one dtype.
+    Returns o (R, B, H, N, L, dh) of q's dtype and lse (R, B, H, N, L) float64, the log-sum-exp
+    of each query row's attended logits (float64 even for float32 inputs: with unscaled logits
+    of size 1e6 one float32 ulp of lse would be a 6% error in every recomputed probability).
+    plain=True runs the plain C++ loops (slow, double accumulators) instead of the fast kernel.
+    """
+    scale = _check_qkv(q, k, v, scale)
+    o = np.empty_like(q)
+    lse = np.empty(q.shape[:5], dtype=np.float64)
+    (_core.attn_forward_plain if plain else _core.attn_forward)(o, lse, q, k, v, scale)
+    _check_finite_result("branching_attention", o)
+    return o, lse
+
+
+def branching_attention_backward(do, q, k, v, o, lse, scale=1.0, *, plain=False):
+    """Gradient of sum(o * do) with respect to q, k, v, given the forward's o and lse.
+
+    do, o: like q; lse: (R, B, H, N, L) float64 as returned by branching_attention_forward.
+    Returns new arrays dq, dk, dv of q's shape and dtype.
+    """
+    scale = _check_qkv(q, k, v, scale)
+    _check_array("do", do, like=q)
+    _check_array("o", o, like=q)
+    if not isinstance(lse, np.ndarray) or lse.dtype != np.float64 or lse.shape != q.shape[:5]:
+        raise TypeError(f"lse must be the float64 array of shape {q.shape[:5]} that "
+                        "branching_attention_forward returned")
+    if not lse.flags.c_contiguous:
+        raise ValueError("lse is not C-contiguous: pass the array branching_attention_forward returned")
+    dq, dk, dv = np.empty_like(q), np.empty_like(q), np.empty_like(q)
+    (_core.attn_backward_plain if plain else _core.attn_backward)(dq, dk, dv, lse, q, k, v, o, do, scale)
+    _check_finite_result("branching_attention_backward", dq, dk, dv)
+    return dq, dk, dv
+
+
+def branching_attention(q, k, v, scale=1.0):
+    """o = softmax over attended keys of scale * q k^T, times v. Shapes (R, B, H, N, L, dh)."""
+    return branching_attention_forward(q, k, v, scale)[0]
+
+
+def branching_attention_vjp(q, k, v, do, scale=1.0):
+    """(dq, dk, dv): the gradient of sum(branching_attention(q, k, v) * do)."""
+    o, lse = branching_attention_forward(q, k, v, scale)
+    return branching_attention_backward(do, q, k, v, o, lse, scale)
+
+
+# ---------------------------------------------------------------------------------------
+# the dense reference
+
+
+def branching_mask(R, N, L):
+    """Boolean (T, T) mask, T = R*N*L, flat order [row][view][token]: mask[t, u] is True where
+    query token t attends key token u."""
+    for name, val in (("R", R), ("N", N), ("L", L)):
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < 1:
+            raise ValueError(f"{name} must be a positive integer, got {val!r}")
+    r = np.repeat(np.arange(R), N)  # (R*N,) row of each block
+    i = np.tile(np.arange(N), R)  # (R*N,) view of each block
+    rq, iq, rk, ik = r[:, None], i[:, None], r[None, :], i[None, :]
+    blocks = ((rk == 0) & (ik < iq)) | ((rk == rq) & (ik == iq))  # (R*N, R*N)
+    return np.kron(blocks, np.ones((L, L), dtype=bool))  # (T, T)
+
+
+def _flat(x):
+    """(R, B, H, N, L, dh) -> (B, H, T, dh), T in the order [row][view][token]."""
+    R, B, H, N, L, dh = x.shape
+    return x.transpose(1, 2, 0, 3, 4, 5).reshape(B, H, R * N * L, dh)
+
+
+def _unflat(x, shape):
+    R, B, H, N, L, dh = shape
+    return x.reshape(B, H, R, N, L, dh).transpose(2, 0, 1, 3, 4, 5)
+
+
+def _reference_probs(q, k, scale, mask):
+    s = scale * np.einsum("bhtd,bhud->bhtu", q, k)  # (B, H, T, T) logits
+    s = np.where(mask, s, -np.inf)  # exact exclusion: exp(-inf) = 0
+    s = s - s.max(axis=-1, keepdims=True)  # every row attends its own block, so the max is finite
+    p = np.exp(s)
+    return p / p.sum(axis=-1, keepdims=True)  # (B, H, T, T)
+
+
+def branching_attention_reference(q, k, v, scale=1.0):
+    """Dense NumPy reference of branching_attention: materialised (T, T) logits, masked to -inf."""
+    scale = _check_qkv(q, k, v, scale)
+    R, B, H, N, L, dh = q.shape
+    p = _reference_probs(_flat(q), _flat(k), scale, branching_mask(R, N, L))
+    return _unflat(np.einsum("bhtu,bhud->bhtd", p, _flat(v)), q.shape).copy()
+
+
+def branching_attention_reference_vjp(q, k, v, do, scale=1.0):
+    """Dense NumPy reference of branching_attention_vjp."""
+    scale = _check_qkv(q, k, v, scale)
+    _check_array("do", do, like=q)
+    R, B, H, N, L, dh = q.shape
+    qf, kf, vf, dof = _flat(q), _flat(k), _flat(v), _flat(do)
+    p = _reference_probs(qf, kf, scale, branching_mask(R, N, L))  # (B, H, T, T)
+    # forward: o = p v
+    dv = np.einsum("bhtu,bhtd->bhud", p, dof)  # dv = p^T do
+    dp = np.einsum("bhtd,bhud->bhtu", dof, vf)  # dp = do v^T
+    # forward: p = softmax(s) per row, so ds = p * (dp - rowsum(p * dp))
+    ds = p * (dp - (p * dp).sum(axis=-1, keepdims=True))
+    # forward: s = scale * q k^T
+    dq = scale * np.einsum("bhtu,bhud->bhtd", ds, kf)
+    dk = scale * np.einsum("bhtu,bhtd->bhud", ds, qf)
+    return tuple(_unflat(g, q.shape).copy() for g in (dq, dk, dv))
