@@ -10,25 +10,30 @@
 // exactly: it is never computed, not given a -1e4 logit. So the work is the attended blocks
 // only: N(N+1)/2 block pairs for the trunk and for each branch, against (R*N)^2 dense.
 //
+// Everything is computed transposed, keys as rows and queries as columns (s^T = k q^T):
+// then each query's softmax statistics live in a column and the max, exp, sum and rescale
+// are elementwise vector operations across L queries at once, with no horizontal reductions.
+//
 // Forward (attn_forward): one task per query block, an online softmax over its key blocks
-// (FlashAttention): running max m and sum l per query row, accumulator acc (L, dh) rescaled
-// by exp(m_old - m_new) at each block. Extra memory: k transposed block by block (as large
-// as k), lse, and per thread s (L, L), acc (L, dh): O(T*dh), never O(T^2), T = R*N*L.
+// (FlashAttention): running max m and sum l per query, accumulator o^T (dh, Lq) rescaled by
+// c = exp(m_old - m_new) at each block, o^T += v^T p^T. Extra memory: v transposed block by
+// block (as large as v), lse, and per thread q^T, s^T (L, L), o^T: O(T*dh), never O(T^2),
+// T = R*N*L.
 //
 // Backward (attn_backward): one task per head (b, h), so that every dk, dv, dq block is
 // written by one thread in a fixed order (bitwise reproducible, no atomics). For each key
-// block, for each query block that attends it: P^T = exp(scale*K Q^T - lse) recomputed from
-// the saved lse, dV += P^T dO, dP^T = V dO^T, dS^T = P^T * (dP^T - D) with D = rowsum(dO*O),
-// dK += scale dS^T Q, dQ += scale dS K. Extra memory: per thread q and do of one head
+// block, for each query block that attends it: p^T = exp(scale * k q^T - lse) recomputed from
+// the saved lse, dv += p^T do, dp^T = v do^T, ds^T = p^T * (dp^T - D) with D = rowsum(do * o),
+// dk += scale ds^T q, dq^T += scale k^T ds^T. Extra memory: per thread q, do and dq of one head
 // transposed, D, lse split in two, three (L, L) buffers: O(T*dh).
 //
 // Precision of the float32 path: every dot product (q.k, p.v and the backward products) is
 // accumulated in float32, in increasing index order, with FMA where the CPU has it; the
-// running max and the exp are float32; the softmax denominator l and lse are float64. lse is
-// kept in float64 because with unscaled logits of size 1e6 one float32 ulp of lse is 0.06,
-// i.e. a 6% error in every recomputed probability; the backward splits it into a float32
-// hi + lo pair so that (s - hi) - lo is exact where it matters. The error this gives is
-// measured by tools/bench_attention.py and bounded in tests/test_attention.py.
+// running max, the exp and the softmax denominator l are float32; lse is computed and kept
+// in float64 (m + log l). It is float64 because with unscaled logits of size 1e6 one float32
+// ulp of lse is 0.06, i.e. a 6% error in every recomputed probability; the backward splits
+// it into a float32 hi + lo pair so that (s - hi) - lo is exact where it matters. The error
+// this gives is measured by tools/bench_attention.py and bounded in tests/test_attention.py.
 //
 // Test: tests/test_attention.py (NumPy dense reference, torch, finite differences, the
 // plain loops below). Benchmark: python tools/bench_attention.py.
@@ -79,47 +84,65 @@ struct Layout {
     int64_t nblk() const { return R * B * H * N; }
 };
 
-// s[0:n) *= scale; returns max s; sets bad if any scaled logit is NaN or +-inf.
-template <typename T> T scale_rowmax(T* s, int64_t n, T scale, int& bad) {
-    using V = typename Simd<T>::V;
-    using I = typename Simd<T>::I;
+// Elementwise helpers on one row of n values (a vector loop and a scalar tail). In the
+// kernels a row holds one key's logits against L queries, so per-query statistics (max,
+// sum, rescale factor) are elementwise across rows: no horizontal reductions.
+
+// x[0:n) *= scale; chk += x * 0, which stays 0 for finite x and becomes NaN for inf or NaN.
+template <typename T> inline void row_scale(T* x, int64_t n, T scale, typename Simd<T>::V& chk) {
     constexpr int W = Simd<T>::W;
-    V mx = vset1<T>(-std::numeric_limits<T>::infinity());
-    I nonfinite = I{};
-    int64_t j = 0;
-    for (; j + W <= n; j += W) {
-        const V x = vload<T>(s + j) * scale;
-        vstore<T>(s + j, x);
-        mx = vmax<T>(mx, x);
-        nonfinite |= (x - x) != 0;  // inf - inf and NaN - NaN are NaN
+    int64_t c = 0;
+    for (; c + W <= n; c += W) {
+        const typename Simd<T>::V y = vload<T>(x + c) * scale;
+        vstore<T>(x + c, y);
+        chk += y * T(0);
     }
-    T m = hmax<T>(mx);
-    for (int i = 0; i < W; ++i) bad |= nonfinite[i] != 0;
-    for (; j < n; ++j) {
-        s[j] *= scale;
-        bad |= !std::isfinite(s[j]);
-        m = s[j] > m ? s[j] : m;
+    for (; c < n; ++c) {
+        x[c] *= scale;
+        chk[0] += x[c] * T(0);
     }
-    return m;
 }
 
-// s[0:n) <- exp(s - m); returns the sum (lanes summed in T, then the lanes in order).
-template <typename T> T exp_rowsum(T* s, int64_t n, T m) {
-    using V = typename Simd<T>::V;
+// m[0:n) = max(m, x)
+template <typename T> inline void row_max(T* m, const T* x, int64_t n) {
     constexpr int W = Simd<T>::W;
-    V acc = V{};
-    int64_t j = 0;
-    for (; j + W <= n; j += W) {
-        const V p = exp_vec(vload<T>(s + j) - m);
-        vstore<T>(s + j, p);
-        acc += p;
+    int64_t c = 0;
+    for (; c + W <= n; c += W) vstore<T>(m + c, vmax<T>(vload<T>(m + c), vload<T>(x + c)));
+    for (; c < n; ++c) m[c] = x[c] > m[c] ? x[c] : m[c];
+}
+
+// p[0:n) = exp((x - a) - b)   (b = nullptr: exp(x - a)); x <= a + b up to rounding
+template <typename T> inline void row_exp(T* p, const T* x, const T* a, const T* b, int64_t n) {
+    constexpr int W = Simd<T>::W;
+    int64_t c = 0;
+    for (; c + W <= n; c += W) {
+        typename Simd<T>::V y = vload<T>(x + c) - vload<T>(a + c);
+        if (b) y = y - vload<T>(b + c);
+        vstore<T>(p + c, exp_vec(y));
     }
-    T sum = hsum<T>(acc);
-    for (; j < n; ++j) {
-        s[j] = exp_scalar<T>(s[j] - m);
-        sum += s[j];
-    }
-    return sum;
+    for (; c < n; ++c) p[c] = exp_scalar<T>(b ? (x[c] - a[c]) - b[c] : x[c] - a[c]);
+}
+
+// y[0:n) += x
+template <typename T> inline void row_add(T* y, const T* x, int64_t n) {
+    constexpr int W = Simd<T>::W;
+    int64_t c = 0;
+    for (; c + W <= n; c += W) vstore<T>(y + c, vload<T>(y + c) + vload<T>(x + c));
+    for (; c < n; ++c) y[c] += x[c];
+}
+
+// y[0:n) *= x
+template <typename T> inline void row_mul(T* y, const T* x, int64_t n) {
+    constexpr int W = Simd<T>::W;
+    int64_t c = 0;
+    for (; c + W <= n; c += W) vstore<T>(y + c, vload<T>(y + c) * vload<T>(x + c));
+    for (; c < n; ++c) y[c] *= x[c];
+}
+
+template <typename T> inline bool all_finite(const typename Simd<T>::V& chk) {
+    for (int i = 0; i < Simd<T>::W; ++i)
+        if (chk[i] != 0) return false;
+    return true;
 }
 
 }  // namespace
@@ -129,21 +152,23 @@ template <typename T> T exp_rowsum(T* s, int64_t n, T m) {
 
 template <typename T>
 int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims dims, T scale) {
+    using V = typename Simd<T>::V;
     const Layout d(dims);
     const int64_t L = d.L, dh = d.dh, bs = d.bs(), N = d.N, R = d.R, H = d.H;
     const int64_t nblk = d.nblk();
 
-    // kt: every key block transposed, (dh, L), so that s = q @ kt is a row-major product.
-    std::vector<T> kt(nblk * bs);
+    // vt: every value block transposed, (dh, L), so that o^T += v^T p^T is a row-major product
+    std::vector<T> vt(nblk * bs);
 #pragma omp parallel for schedule(static)
-    for (int64_t x = 0; x < nblk; ++x) transpose(kt.data() + x * bs, k + x * bs, (int)L, (int)dh);
+    for (int64_t x = 0; x < nblk; ++x) transpose(vt.data() + x * bs, v + x * bs, (int)L, (int)dh);
 
     int status = kAttnOk;
 #pragma omp parallel
     {
-        std::vector<T> s(L * L), acc(L * dh), m(L);  // per thread
-        std::vector<double> l(L);
-        int bad = 0;
+        // per thread: q^T (dh, Lq); s^T, then p^T (Lk, Lq); o^T (dh, Lq); per query: running
+        // max m, new max mn, rescale factor c, sum l, this block's sum ls
+        std::vector<T> qt(bs), st(L * L), ot(bs), m(L), mn(L), c(L), l(L), ls(L);
+        V chk = V{};
         // one task per query block (r, b, h, i); the views with the most key blocks first
 #pragma omp for schedule(dynamic, 1)
         for (int64_t t = 0; t < nblk; ++t) {
@@ -153,37 +178,42 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
             rest /= R;
             const int64_t h = rest % H, b = rest / H;
             const int64_t qx = d.blk(r, b, h, i);
-            const T* Q = q + qx * bs;  // (L, dh)
+            transpose(qt.data(), q + qx * bs, (int)L, (int)dh);  // q^T (dh, Lq)
 
             std::fill(m.begin(), m.end(), -std::numeric_limits<T>::infinity());
-            std::fill(l.begin(), l.end(), 0.0);
-            std::fill(acc.begin(), acc.end(), T(0));
+            std::fill(l.begin(), l.end(), T(0));
+            std::fill(ot.begin(), ot.end(), T(0));
             for (int64_t j = 0; j <= i; ++j) {
                 // key blocks: trunk 0..i-1, then the query's own block (r, i)
                 const int64_t kx = j < i ? d.blk(0, b, h, j) : qx;
-                gemm<T, false>((int)L, (int)L, (int)dh, Q, dh, kt.data() + kx * bs, L, s.data(), L);  // s = q k^T (L, L)
+                // s^T = k q^T (Lk, Lq): row a holds key a's logits against every query
+                gemm<T, false>((int)L, (int)L, (int)dh, k + kx * bs, dh, qt.data(), L, st.data(), L);
+                std::copy(m.begin(), m.end(), mn.begin());
                 for (int64_t a = 0; a < L; ++a) {
-                    T* sa = s.data() + a * L;
-                    const T mx = scale_rowmax<T>(sa, L, scale, bad);  // s = scale * q.k
-                    const T mnew = std::max(m[a], mx);
-                    const T c = exp_scalar<T>(m[a] - mnew);  // 0 at the first block (m = -inf)
-                    const T rowsum = exp_rowsum<T>(sa, L, mnew);  // s <- p = exp(s - m_new)
-                    l[a] = l[a] * c + rowsum;
-                    m[a] = mnew;
-                    T* acc_a = acc.data() + a * dh;
-                    for (int64_t e = 0; e < dh; ++e) acc_a[e] *= c;
+                    row_scale<T>(st.data() + a * L, L, scale, chk);  // s = scale * q.k
+                    row_max<T>(mn.data(), st.data() + a * L, L);     // m_new = max(m, max_k s)
                 }
-                gemm<T, true>((int)L, (int)dh, (int)L, s.data(), L, v + kx * bs, dh, acc.data(), dh);  // acc += p v
+                row_exp<T>(c.data(), m.data(), mn.data(), nullptr, L);  // c = exp(m - m_new), 0 at the first block
+                std::fill(ls.begin(), ls.end(), T(0));
+                for (int64_t a = 0; a < L; ++a) {
+                    T* pa = st.data() + a * L;
+                    row_exp<T>(pa, pa, mn.data(), nullptr, L);  // p = exp(s - m_new)
+                    row_add<T>(ls.data(), pa, L);
+                }
+                row_mul<T>(l.data(), c.data(), L);  // l = l * c + sum_k p
+                row_add<T>(l.data(), ls.data(), L);
+                std::swap(m, mn);
+                for (int64_t e = 0; e < dh; ++e) row_mul<T>(ot.data() + e * L, c.data(), L);  // o^T *= c
+                gemm<T, true>((int)dh, (int)L, (int)L, vt.data() + kx * bs, L, st.data(), L, ot.data(), L);  // o^T += v^T p^T
             }
             T* O = o + qx * bs;
             double* lse_q = lse + qx * L;
             for (int64_t a = 0; a < L; ++a) {
-                const T la = (T)l[a];
-                for (int64_t e = 0; e < dh; ++e) O[a * dh + e] = acc[a * dh + e] / la;
-                lse_q[a] = (double)m[a] + std::log(l[a]);
+                for (int64_t e = 0; e < dh; ++e) O[a * dh + e] = ot[e * L + a] / l[a];  // o = o^T^T / l
+                lse_q[a] = (double)m[a] + std::log((double)l[a]);
             }
         }
-        if (bad) {
+        if (!all_finite<T>(chk)) {
 #pragma omp atomic write
             status = kAttnLogitOverflow;
         }
@@ -206,11 +236,12 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
     int status = kAttnOk;
 #pragma omp parallel
     {
-        // per thread, for one head: q and do transposed per block (dh, L); D and the lse
-        // hi/lo split per query row; s, dp, ds (L, L).
-        std::vector<T> qt(RN * bs), dot(RN * bs), D(RN * L), lhi(RN * L), llo(RN * L);
-        std::vector<T> s(L * L), dp(L * L), ds(L * L);
-        int bad = 0;
+        // per thread, for one head: q, do and the dq accumulator transposed per block (dh, L);
+        // D = rowsum(do * o) and the lse hi/lo split per query; k^T of one key block (dh, Lk);
+        // p^T, dp^T, ds^T (Lk, Lq).
+        std::vector<T> qt(RN * bs), dot(RN * bs), dqt(RN * bs), D(RN * L), lhi(RN * L), llo(RN * L);
+        std::vector<T> kt(bs), st(L * L), dpt(L * L), dst(L * L);
+        V chk = V{};
 #pragma omp for schedule(dynamic, 1)
         for (int64_t bh = 0; bh < B * H; ++bh) {
             const int64_t b = bh / H, h = bh % H;
@@ -229,44 +260,40 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                         lhi[y * L + a] = (T)lx;
                         llo[y * L + a] = (T)(lx - (double)(T)lx);
                     }
-                    std::fill(dq + x * bs, dq + (x + 1) * bs, T(0));
                 }
+            std::fill(dqt.begin(), dqt.end(), T(0));
 
             for (int64_t kr = 0; kr < R; ++kr)
                 for (int64_t j = 0; j < N; ++j) {
                     const int64_t kx = d.blk(kr, b, h, j);
-                    const T* K = k + kx * bs;   // (L, dh)
-                    const T* Vb = v + kx * bs;  // (L, dh)
+                    const T* K = k + kx * bs;   // (Lk, dh)
+                    const T* Vb = v + kx * bs;  // (Lk, dh)
                     T* dK = dk + kx * bs;
                     T* dV = dv + kx * bs;
                     std::fill(dK, dK + bs, T(0));
                     std::fill(dV, dV + bs, T(0));
+                    transpose(kt.data(), K, (int)L, (int)dh);  // k^T (dh, Lk)
 
                     // one query block (r, i) that attends key block (kr, j)
                     auto visit = [&](int64_t r, int64_t i) {
                         const int64_t x = d.blk(r, b, h, i), y = r * N + i;
                         // forward: p = exp(scale * q.k - lse); here transposed, rows = keys
-                        gemm<T, false>((int)L, (int)L, (int)dh, K, dh, qt.data() + y * bs, L, s.data(), L);  // s = k q^T (Lk, Lq)
-                        const T* hi = lhi.data() + y * L;
-                        const T* lo = llo.data() + y * L;
-                        const T* Dy = D.data() + y * L;
+                        gemm<T, false>((int)L, (int)L, (int)dh, K, dh, qt.data() + y * bs, L, st.data(), L);  // s^T = k q^T (Lk, Lq)
                         for (int64_t a = 0; a < L; ++a) {
-                            T* sa = s.data() + a * L;
-                            scale_rowmax<T>(sa, L, scale, bad);  // s = scale * k.q (same bits as the forward)
-                            int64_t c = 0;
-                            for (; c + W <= L; c += W)
-                                vstore<T>(sa + c, exp_vec((vload<T>(sa + c) - vload<T>(hi + c)) - vload<T>(lo + c)));
-                            for (; c < L; ++c) sa[c] = exp_scalar<T>((sa[c] - hi[c]) - lo[c]);
+                            T* pa = st.data() + a * L;
+                            row_scale<T>(pa, L, scale, chk);  // same bits as the forward's logits
+                            row_exp<T>(pa, pa, lhi.data() + y * L, llo.data() + y * L, L);  // p = exp((s - hi) - lo)
                         }
                         // forward: o = p v, so dv = p^T do
-                        gemm<T, true>((int)L, (int)dh, (int)L, s.data(), L, dout + x * bs, dh, dV, dh);
+                        gemm<T, true>((int)L, (int)dh, (int)L, st.data(), L, dout + x * bs, dh, dV, dh);
                         // dp = do v^T, here transposed: dp^T = v do^T (Lk, Lq)
-                        gemm<T, false>((int)L, (int)L, (int)dh, Vb, dh, dot.data() + y * bs, L, dp.data(), L);
+                        gemm<T, false>((int)L, (int)L, (int)dh, Vb, dh, dot.data() + y * bs, L, dpt.data(), L);
                         // softmax backward: ds = p * (dp - D), D = rowsum(do * o); times scale
+                        const T* Dy = D.data() + y * L;
                         for (int64_t a = 0; a < L; ++a) {
-                            const T* pa = s.data() + a * L;
-                            const T* dpa = dp.data() + a * L;
-                            T* dsa = ds.data() + a * L;
+                            const T* pa = st.data() + a * L;
+                            const T* dpa = dpt.data() + a * L;
+                            T* dsa = dst.data() + a * L;
                             int64_t c = 0;
                             for (; c + W <= L; c += W) {
                                 const V val = vload<T>(pa + c) * (vload<T>(dpa + c) - vload<T>(Dy + c));
@@ -274,10 +301,9 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                             }
                             for (; c < L; ++c) dsa[c] = pa[c] * (dpa[c] - Dy[c]) * scale;
                         }
-                        // forward: s = scale * q k^T, so dk = ds^T q and dq = ds k
-                        gemm<T, true>((int)L, (int)dh, (int)L, ds.data(), L, q + x * bs, dh, dK, dh);
-                        transpose(dp.data(), ds.data(), (int)L, (int)L);  // dp <- ds (Lq, Lk)
-                        gemm<T, true>((int)L, (int)dh, (int)L, dp.data(), L, K, dh, dq + x * bs, dh);
+                        // forward: s = scale * q k^T, so dk = ds^T q and dq^T = k^T ds^T
+                        gemm<T, true>((int)L, (int)dh, (int)L, dst.data(), L, q + x * bs, dh, dK, dh);
+                        gemm<T, true>((int)dh, (int)L, (int)L, kt.data(), L, dst.data(), L, dqt.data() + y * bs, L);
                     };
                     if (kr == 0) {  // a trunk block: trunk views i >= j, branch views i > j
                         for (int64_t i = j; i < N; ++i) visit(0, i);
@@ -287,8 +313,11 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                         visit(kr, j);
                     }
                 }
+            for (int64_t r = 0; r < R; ++r)  // dq = (dq^T)^T
+                for (int64_t i = 0; i < N; ++i)
+                    transpose(dq + d.blk(r, b, h, i) * bs, dqt.data() + (r * N + i) * bs, (int)dh, (int)L);
         }
-        if (bad) {
+        if (!all_finite<T>(chk)) {
 #pragma omp atomic write
             status = kAttnLogitOverflow;
         }

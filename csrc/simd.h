@@ -191,7 +191,7 @@ inline void gemm_rows(int N, int K, const T* A, long lda, const T* B, long ldb, 
 
 template <typename T, bool ACC>
 inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
-    constexpr int MR = 4;
+    constexpr int MR = kVecBytes >= 64 ? 8 : 4;  // 2*MR accumulators: 16 of the 32 AVX-512 registers, 8 of 16 otherwise
     int i = 0;
     for (; i + MR <= M; i += MR)
         gemm_rows<T, MR, ACC>(N, K, A + i * lda, lda, B, ldb, C + i * ldc, ldc);
