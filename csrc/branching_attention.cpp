@@ -253,9 +253,12 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                     for (int64_t a = 0; a < L; ++a) {
                         const T* oa = o + x * bs + a * dh;
                         const T* da = dout + x * bs + a * dh;
-                        double acc = 0;  // D = rowsum(do * o), a dot product of length dh
-                        for (int64_t e = 0; e < dh; ++e) acc += (double)da[e] * (double)oa[e];
-                        D[y * L + a] = (T)acc;
+                        // D = rowsum(do * o), summed in T in increasing e as the gemm sums
+                        // dp = do . v, so that dp - D cancels exactly where o == v (a one-hot
+                        // softmax row) and ds is exactly 0 there, as it is in exact arithmetic
+                        T acc = 0;
+                        for (int64_t e = 0; e < dh; ++e) acc += da[e] * oa[e];
+                        D[y * L + a] = acc;
                         const double lx = lse[x * L + a];
                         lhi[y * L + a] = (T)lx;
                         llo[y * L + a] = (T)(lx - (double)(T)lx);

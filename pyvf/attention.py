@@ -84,7 +84,8 @@ def _check_qkv(q, k, v, scale):
 def _check_finite_result(name, *arrays):
     for a in arrays:
         if not np.isfinite(a).all():
-            raise FloatingPointError(f"{name}: the result overflowed {a.dtype} (inputs too large for the dtype)")
+            raise ValueError(f"{name}: the result is not finite: it overflowed {a.dtype} "
+                             "(inputs too large for the dtype; use float64 or rescale them)")
 
 
 # ---------------------------------------------------------------------------------------
@@ -147,7 +148,9 @@ def branching_mask(R, N, L):
     """Boolean (T, T) mask, T = R*N*L, flat order [row][view][token]: mask[t, u] is True where
     query token t attends key token u."""
     for name, val in (("R", R), ("N", N), ("L", L)):
-        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < 1:
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)):
+            raise TypeError(f"{name} must be a positive integer, got {type(val).__name__} {val!r}")
+        if val < 1:
             raise ValueError(f"{name} must be a positive integer, got {val!r}")
     r = np.repeat(np.arange(R), N)  # (R*N,) row of each block
     i = np.tile(np.arange(N), R)  # (R*N,) view of each block

@@ -1,0 +1,951 @@
+"""Tests of branching attention (SPEC.md §2): the C++ kernel against a dense NumPy reference,
+PyTorch, finite differences, the defining property of the tree, hard numerical cases, argument
+checks, reproducibility, the mask, and the kernel's vectorised exp.
+
+Shapes: q, k, v, do, o (R, B, H, N, L, dh); lse (R, B, H, N, L); flat sequences (B, H, T, dh)
+with T = R*N*L in the order [row][view][token]. Query block (r, i) attends trunk blocks (0, j),
+j < i, and its own block (r, i), every token of each fully.
+
+Relative errors are normwise: max|got - want| / max|want| (conftest.assert_close). Every
+tolerance carries the reason for its size; the numbers quoted as "measured" are the largest
+seen on the development machine (AVX-512, FMA, 2 threads).
+"""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+import pyvf
+from pyvf import _core
+
+from conftest import assert_bitwise_equal, assert_close
+
+U32 = 2.0 ** -24  # float32 unit roundoff
+U64 = 2.0 ** -53  # float64 unit roundoff
+
+# float64 kernel vs float64 reference: both are O(dh + N*L) term sums of O(1) numbers in a
+# different order; measured <= 9.2e-15 (dh = 64, L = 64, scale 1). 1e-12 leaves room for larger sums
+# while any real bug (a wrong mask, a swapped operand, a missed rescale) is an O(1) error.
+RTOL64 = 1e-12
+
+# pyvf float32 vs a float64 computation on the same float32 inputs, unit-normal q, k, v, do,
+# dh <= 64, scale 1 (logits up to ~40): a logit carries a float32 rounding error of about
+# sqrt(dh) * u * |logit| ~ 2e-5 at worst, which moves each probability by that relative amount;
+# the exp adds <= 2 ulp and the sums over <= 320 keys a few ulp. Measured <= 2.4e-6 (forward
+# and every gradient); 1e-5 = 4x margin, and still 5 orders of magnitude below a real bug.
+RTOL32 = 1e-5
+
+
+# ---------------------------------------------------------------------------------------
+# independent helpers (not taken from pyvf)
+
+
+def rule_mask(R, N, L):
+    """(T, T) bool: mask[t, u] says query token t attends key token u, written from the rule in
+    SPEC.md §2 by a loop over block pairs (independent of pyvf.branching_mask)."""
+    T = R * N * L
+    mask = np.zeros((T, T), dtype=bool)
+    for r in range(R):
+        for i in range(N):
+            for kr in range(R):
+                for j in range(N):
+                    if (kr == 0 and j < i) or (kr == r and j == i):
+                        t0, u0 = (r * N + i) * L, (kr * N + j) * L
+                        mask[t0:t0 + L, u0:u0 + L] = True
+    return mask
+
+
+def flat(x):
+    """(R, B, H, N, L, dh) -> (B, H, T, dh), T in the order [row][view][token]."""
+    R, B, H, N, L, dh = x.shape
+    return np.ascontiguousarray(np.moveaxis(x, 0, 2).reshape(B, H, R * N * L, dh))
+
+
+def unflat(x, shape):
+    """(B, H, T, ...) -> (R, B, H, N, L, ...)."""
+    R, B, H, N, L = shape[:5]
+    return np.moveaxis(x.reshape((B, H, R, N, L) + x.shape[3:]), 2, 0)
+
+
+def dense_attention(q, k, v, scale, mask, sentinel=False):
+    """float64 dense attention on flat (B, H, T, dh) arrays. Returns o (B, H, T, dh) and the
+    log-sum-exp of every row's attended logits (B, H, T). sentinel=True reproduces the published
+    TF code, logits * mask - 1e4 * (1 - mask), instead of the exact exclusion."""
+    s = scale * np.einsum("bhtd,bhud->bhtu", q, k)  # (B, H, T, T)
+    if sentinel:
+        m = mask.astype(np.float64)
+        s = s * m - 1e4 * (1 - m)
+    else:
+        s = np.where(mask, s, -np.inf)
+    m = s.max(axis=-1, keepdims=True)
+    e = np.exp(s - m)
+    z = e.sum(axis=-1, keepdims=True)
+    return np.einsum("bhtu,bhud->bhtd", e / z, v), (m + np.log(z))[..., 0]
+
+
+def attended_mean(v):
+    """The output when every attended key has the same logit: the mean of the attended values.
+    (R, B, H, N, L, dh) -> same shape, by the rule written out per block."""
+    R, N = v.shape[0], v.shape[3]
+    o = np.empty_like(v)
+    for r in range(R):
+        for i in range(N):
+            if r == 0:
+                keys = v[0, :, :, :i + 1]  # (B, H, i+1, L, dh)
+            else:
+                keys = np.concatenate([v[0, :, :, :i], v[r, :, :, i:i + 1]], axis=2)
+            o[r, :, :, i] = keys.mean(axis=(2, 3))[:, :, None, :]
+    return o
+
+
+def torch_flat(x):
+    """(R, B, H, N, L, dh) tensor -> (B, H, T, dh)."""
+    R, B, H, N, L, dh = x.shape
+    return x.permute(1, 2, 0, 3, 4, 5).reshape(B, H, R * N * L, dh)
+
+
+def torch_unflat(x, shape):
+    R, B, H, N, L, dh = shape
+    return x.reshape(B, H, R, N, L, dh).permute(2, 0, 1, 3, 4, 5)
+
+
+def torch_branching_mask(R, N, L):
+    """(T, T) bool built in torch from each token's row and view."""
+    t = torch.arange(R * N * L)
+    row, view = t // (N * L), (t // L) % N
+    rq, iq, rk, ik = row[:, None], view[:, None], row[None, :], view[None, :]
+    return ((rk == 0) & (ik < iq)) | ((rk == rq) & (ik == iq))
+
+
+def torch_attention(q, k, v, scale, mask):
+    """Explicit masked softmax attention on (B, H, T, dh) tensors; masked logits are -inf."""
+    s = scale * (q @ k.transpose(-1, -2))  # (B, H, T, T)
+    s = s.masked_fill(~mask, float("-inf"))
+    return torch.softmax(s, dim=-1) @ v
+
+
+def torch_sdpa(q, k, v, scale, mask):
+    return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=scale)
+
+
+def scale_of(kind, dh):
+    return {"one": 1.0, "inv_sqrt_dh": 1.0 / np.sqrt(dh), "negative": -0.7}[kind]
+
+
+# ---------------------------------------------------------------------------------------
+# 1. kernel vs the dense NumPy reference, float64
+
+# R in {1..4}, N in {1, 2, 5}, L in {1, odd, a multiple of the SIMD width, > 2 SIMD widths},
+# dh in {5, 17, 64}; B, H > 1 in most.
+SHAPES = [
+    (1, 2, 3, 1, 1, 5),  # one key per query
+    (1, 2, 2, 5, 3, 17),  # trunk only: block-causal
+    (2, 2, 3, 2, 1, 64),  # L = 1
+    (3, 2, 2, 5, 7, 17),  # the paper's R = 3, odd L
+    (4, 3, 2, 5, 4, 5),
+    (3, 2, 2, 2, 16, 64),  # L a whole number of vectors
+    (2, 2, 1, 2, 33, 17),  # L past two float32 vectors plus a tail
+    (3, 1, 2, 5, 64, 64),  # the paper's L = 64, dh = 64
+]
+
+
+@pytest.mark.parametrize("scale_kind", ["one", "inv_sqrt_dh", "negative"])
+@pytest.mark.parametrize("shape", SHAPES, ids=lambda s: "x".join(map(str, s)))
+def test_kernel_matches_dense_reference_float64(shape, scale_kind, make_qkv):
+    q, k, v, do = make_qkv(shape)
+    scale = scale_of(scale_kind, shape[-1])
+
+    o, lse = pyvf.branching_attention_forward(q, k, v, scale)
+    assert o.dtype == np.float64 and lse.dtype == np.float64 and lse.shape == shape[:5]
+    assert_close("o", o, pyvf.branching_attention_reference(q, k, v, scale), RTOL64)
+
+    # lse against the log-sum-exp of the masked logits, computed here from the rule
+    R, N, L = shape[0], shape[3], shape[4]
+    o_indep, lse_indep = dense_attention(flat(q), flat(k), flat(v), scale, rule_mask(R, N, L))
+    assert_close("lse", lse, unflat(lse_indep, shape), RTOL64)
+    assert_close("o (independent dense)", o, unflat(o_indep, shape), RTOL64)
+
+    grads = pyvf.branching_attention_vjp(q, k, v, do, scale)
+    want = pyvf.branching_attention_reference_vjp(q, k, v, do, scale)
+    for name, g, w in zip(("dq", "dk", "dv"), grads, want):
+        assert g.dtype == np.float64 and g.shape == shape
+        assert_close(name, g, w, RTOL64)
+
+
+# ---------------------------------------------------------------------------------------
+# 2. vs PyTorch: the same math written in torch, and scaled_dot_product_attention
+
+
+TORCH_SHAPES = [(3, 2, 2, 4, 5, 17), (2, 1, 3, 5, 1, 64), (4, 2, 1, 2, 7, 5), (1, 2, 2, 5, 3, 64), (3, 1, 2, 5, 64, 64)]
+
+
+def torch_value_and_grads(impl, q, k, v, do, scale):
+    """o and (dq, dk, dv) of sum(o * do) by torch autograd in float64, as (R, B, H, N, L, dh)."""
+    R, N, L = q.shape[0], q.shape[3], q.shape[4]
+    leaves = [torch.tensor(x, dtype=torch.float64, requires_grad=True) for x in (q, k, v)]
+    o = impl(*(torch_flat(x) for x in leaves), scale, torch_branching_mask(R, N, L))
+    (o * torch_flat(torch.tensor(do, dtype=torch.float64))).sum().backward()
+    return torch_unflat(o, q.shape).detach().numpy(), tuple(x.grad.numpy() for x in leaves)
+
+
+@pytest.mark.parametrize("impl", [torch_attention, torch_sdpa], ids=["explicit", "sdpa"])
+@pytest.mark.parametrize("scale_kind", ["one", "inv_sqrt_dh", "negative"])
+@pytest.mark.parametrize("shape", TORCH_SHAPES, ids=lambda s: "x".join(map(str, s)))
+def test_matches_torch(shape, scale_kind, impl, make_qkv):
+    scale = scale_of(scale_kind, shape[-1])
+    q, k, v, do = make_qkv(shape)
+    o_t, grads_t = torch_value_and_grads(impl, q, k, v, do, scale)
+    # float64 against float64: the same sums in another order (see RTOL64)
+    assert_close("o f64", pyvf.branching_attention(q, k, v, scale), o_t, RTOL64)
+    for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_vjp(q, k, v, do, scale), grads_t):
+        assert_close(f"{name} f64", g, w, RTOL64)
+
+    # pyvf float32 against torch float64 run on the same (float32-rounded) inputs, so the
+    # difference is pyvf's float32 arithmetic only (see RTOL32)
+    q32, k32, v32, do32 = (x.astype(np.float32) for x in (q, k, v, do))
+    o_t, grads_t = torch_value_and_grads(impl, *(x.astype(np.float64) for x in (q32, k32, v32, do32)), scale)
+    o32 = pyvf.branching_attention(q32, k32, v32, scale)
+    assert o32.dtype == np.float32
+    assert_close("o f32", o32, o_t, RTOL32)
+    for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_vjp(q32, k32, v32, do32, scale), grads_t):
+        assert g.dtype == np.float32
+        assert_close(f"{name} f32", g, w, RTOL32)
+
+
+def test_dense_reference_matches_torch(make_qkv):
+    """The NumPy oracle itself, against torch: a wrong oracle would hide a wrong kernel."""
+    shape, scale = (3, 2, 2, 3, 4, 5), 0.9
+    q, k, v, do = make_qkv(shape)
+    o_t, grads_t = torch_value_and_grads(torch_attention, q, k, v, do, scale)
+    assert_close("reference o", pyvf.branching_attention_reference(q, k, v, scale), o_t, RTOL64)
+    for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_reference_vjp(q, k, v, do, scale), grads_t):
+        assert_close(f"reference {name}", g, w, RTOL64)
+
+
+# ---------------------------------------------------------------------------------------
+# 3. float64 central finite differences of f = sum(o * do)
+
+# Step: the central difference has truncation error h^2/6 |f'''| and rounding error
+# ~ eps |f| / h; with |f|, |f'''| = O(1..10) both are ~1e-10 at h = 1e-5. Measured error
+# <= 9e-11 relative to the largest directional derivative; 1e-8 is 100x that and still
+# far below any real gradient bug (O(1) relative).
+FD_STEP = 1e-5
+FD_RTOL = 1e-8
+
+
+def fd_gradient_check(q, k, v, do, scale, directions):
+    """Compare <grad, u> with (f(x + h u) - f(x - h u)) / 2h for x in (q, k, v), u in directions."""
+    f = lambda q_, k_, v_: float((pyvf.branching_attention(q_, k_, v_, scale) * do).sum())
+    grads = pyvf.branching_attention_vjp(q, k, v, do, scale)
+    for which, name in enumerate("qkv"):
+        fd, an = [], []
+        for u in directions:
+            plus, minus = [q, k, v], [q, k, v]
+            plus[which] = plus[which] + FD_STEP * u
+            minus[which] = minus[which] - FD_STEP * u
+            fd.append((f(*plus) - f(*minus)) / (2 * FD_STEP))
+            an.append(float((grads[which] * u).sum()))
+        assert_close(f"d{name} . u (finite differences)", np.array(an), np.array(fd), FD_RTOL)
+
+
+@pytest.mark.parametrize("scale", [1.0, -0.6])
+def test_finite_differences_every_element(scale, make_qkv):
+    shape = (3, 1, 1, 2, 2, 3)  # 36 elements per tensor: one direction per element
+    q, k, v, do = make_qkv(shape)
+    basis = np.eye(q.size).reshape((q.size,) + shape)
+    fd_gradient_check(q, k, v, do, scale, basis)
+
+
+def test_finite_differences_random_directions(rng, make_qkv):
+    shape = (3, 2, 2, 3, 5, 17)
+    q, k, v, do = make_qkv(shape)
+    fd_gradient_check(q, k, v, do, 1 / np.sqrt(17), rng.standard_normal((6,) + shape))
+
+
+# ---------------------------------------------------------------------------------------
+# 4. the defining property: branch r at view i is block-causal attention on
+#    [trunk views 0..i-1, branch r view i], and nothing else reaches it
+
+
+def torch_block_causal(q, k, v, L, scale):
+    """Block-causal attention on (B, H, n*L, dh) tensors: token of view i sees views 0..i."""
+    view = torch.arange(q.shape[-2]) // L
+    return torch_attention(q, k, v, scale, view[None, :] <= view[:, None])
+
+
+def test_branch_block_equals_block_causal_sequence(make_qkv):
+    shape, scale = (3, 2, 2, 4, 3, 5), 1.0
+    R, B, H, N, L, dh = shape
+    q, k, v, _ = make_qkv(shape)
+    o = pyvf.branching_attention(q, k, v, scale)
+    for r in range(R):
+        for i in range(N):
+            # the plain sequence [trunk views 0..i-1, row r view i] as a one-row tree
+            seq = [np.concatenate([x[0, :, :, :i], x[r, :, :, i:i + 1]], axis=2)[None] for x in (q, k, v)]
+            o_seq = pyvf.branching_attention(*seq, scale)  # (1, B, H, i+1, L, dh)
+            assert_close(f"branch {r} view {i} vs one-row pyvf", o[r, :, :, i], o_seq[0, :, :, i], RTOL64)
+            tq, tk, tv = (torch.tensor(x[0].reshape(B, H, (i + 1) * L, dh)) for x in seq)
+            o_torch = torch_block_causal(tq, tk, tv, L, scale)[:, :, i * L:].reshape(B, H, L, dh)
+            assert_close(f"branch {r} view {i} vs torch block-causal", o[r, :, :, i], o_torch.numpy(), RTOL64)
+
+
+def test_branch_block_sees_nothing_else(rng, make_qkv):
+    """Changing what block (r, i) must not see leaves its output unchanged, bit for bit."""
+    shape = (3, 2, 2, 4, 3, 5)
+    R, N = shape[0], shape[3]
+    q, k, v, _ = make_qkv(shape)
+    o = pyvf.branching_attention(q, k, v)
+
+    def rerun_with_changed(region):  # region: index into (R, B, H, N) selecting blocks to redraw
+        changed = []
+        for x in (q, k, v):
+            x = x.copy()
+            x[region] = rng.standard_normal(x[region].shape)
+            changed.append(x)
+        return pyvf.branching_attention(*changed)
+
+    for r in range(R):
+        for i in range(N):
+            cases = {"every later view, all rows": np.s_[:, :, :, i + 1:]}
+            if r == 0:
+                cases["every branch"] = np.s_[1:]
+            else:
+                cases["branch r's earlier views"] = np.s_[r, :, :, :i]
+                cases["the trunk at view i"] = np.s_[0, :, :, i]  # strictly earlier trunk views only
+                for other in range(1, R):
+                    if other != r:
+                        cases[f"branch {other}"] = np.s_[other]
+            for what, region in cases.items():
+                got = rerun_with_changed(region)[r, :, :, i]
+                assert_bitwise_equal(f"block ({r}, {i}) after changing {what}", got, o[r, :, :, i])
+            # and what it must see does reach it: a sanity check that the test can fail
+            seen = np.s_[0, :, :, i - 1] if i > 0 else np.s_[r, :, :, i]
+            assert not np.array_equal(rerun_with_changed(seen)[r, :, :, i], o[r, :, :, i])
+
+
+def test_gradient_reaches_only_attended_blocks(rng, make_qkv):
+    """With do nonzero only on block (r, i), dq is nonzero only there and dk, dv only on the
+    blocks it attends: trunk views < i (<= i for the trunk) and (r, i). Exact zeros elsewhere."""
+    shape = (3, 1, 2, 4, 3, 5)
+    R, N = shape[0], shape[3]
+    q, k, v, _ = make_qkv(shape)
+    for r in range(R):
+        for i in range(N):
+            do = np.zeros(shape)
+            do[r, :, :, i] = rng.standard_normal(do[r, :, :, i].shape)
+            dq, dk, dv = pyvf.branching_attention_vjp(q, k, v, do)
+            attended = np.zeros((R, N), dtype=bool)
+            attended[0, :i] = True
+            attended[r, i] = True
+            for kr in range(R):
+                for j in range(N):
+                    for name, g in (("dk", dk), ("dv", dv)):
+                        block = g[kr, :, :, j]
+                        assert np.all(block != 0) if attended[kr, j] else np.all(block == 0), \
+                            f"do on ({r}, {i}): {name} of block ({kr}, {j}) is " + \
+                            ("zero but attended" if attended[kr, j] else "nonzero but not attended")
+                    want_dq = (kr, j) == (r, i)
+                    assert np.any(dq[kr, :, :, j] != 0) == want_dq, f"do on ({r}, {i}): dq of block ({kr}, {j})"
+
+
+# ---------------------------------------------------------------------------------------
+# 5. the plain C++ loops vs the fast kernel
+
+
+@pytest.mark.parametrize("shape", [(3, 2, 2, 5, 7, 17), (2, 1, 3, 3, 16, 64), (1, 2, 1, 2, 1, 5)],
+                         ids=lambda s: "x".join(map(str, s)))
+def test_plain_loops_match_fast_kernel(shape, make_qkv):
+    q, k, v, do = make_qkv(shape)
+    scale = 1.0
+    # float64: both are float64 sums of the same terms in a different order; measured <= 2e-15
+    # (the plain loops accumulate in double too). 1e-13: tight, still well above rounding.
+    o_p, lse_p = pyvf.branching_attention_forward(q, k, v, scale, plain=True)
+    o_f, lse_f = pyvf.branching_attention_forward(q, k, v, scale)
+    assert_close("o plain vs fast", o_f, o_p, 1e-13)
+    assert_close("lse plain vs fast", lse_f, lse_p, 1e-13)
+    g_p = pyvf.branching_attention_backward(do, q, k, v, o_p, lse_p, scale, plain=True)
+    g_f = pyvf.branching_attention_backward(do, q, k, v, o_f, lse_f, scale)
+    for name, a, b in zip(("dq", "dk", "dv"), g_f, g_p):
+        assert_close(f"{name} plain vs fast", a, b, 1e-13)
+
+    # float32: the plain loops accumulate in double and round once at the end (error <= u
+    # relative per element, so 2 * u normwise); the fast kernel within RTOL32 of float64.
+    q32, k32, v32, do32 = (x.astype(np.float32) for x in (q, k, v, do))
+    as64 = [x.astype(np.float64) for x in (q32, k32, v32, do32)]
+    o_ref = pyvf.branching_attention_reference(*as64[:3], scale)
+    g_ref = pyvf.branching_attention_reference_vjp(*as64, scale)
+    o_p, lse_p = pyvf.branching_attention_forward(q32, k32, v32, scale, plain=True)
+    o_f, lse_f = pyvf.branching_attention_forward(q32, k32, v32, scale)
+    assert_close("o f32 plain vs f64 reference", o_p, o_ref, 2 * U32)
+    assert_close("o f32 fast vs f64 reference", o_f, o_ref, RTOL32)
+    # lse: float64 for float32 inputs; plain computes it in double from exact products
+    assert_close("lse f32 plain vs f64", lse_p, pyvf.branching_attention_forward(*as64[:3], scale)[1], 1e-13)
+    assert_close("lse f32 fast vs f64", lse_f, lse_p, RTOL32)
+    g_p = pyvf.branching_attention_backward(do32, q32, k32, v32, o_p, lse_p, scale, plain=True)
+    g_f = pyvf.branching_attention_backward(do32, q32, k32, v32, o_f, lse_f, scale)
+    for name, a, b, w in zip(("dq", "dk", "dv"), g_f, g_p, g_ref):
+        # plain backward takes o rounded to float32, so D = rowsum(do * o) carries u relative
+        # error and ds = p (dp - D) cancels: a few u normwise (measured 1.2e-7 = 2 u)
+        assert_close(f"{name} f32 plain vs f64 reference", b, w, 8 * U32)
+        assert_close(f"{name} f32 fast vs f64 reference", a, w, RTOL32)
+
+
+# ---------------------------------------------------------------------------------------
+# 6. hard cases
+
+
+def dyadic_large_logits(rng, shape, magnitude):
+    """q, k whose logits are magnitude + (a multiple of 1/16 of size <= dh), exactly
+    representable in float32 and float64 and computed exactly by any summation order:
+    q[..., 0] * k[..., 0] = magnitude exactly, the other entries are multiples of 1/4 in [-1, 1],
+    and every partial sum is a multiple of 1/16 below 2^20 in size (24 bits). So the kernel
+    and the reference start from the same logits, and only the softmax is being tested."""
+    a, b = {1e4: (100.0, 100.0), 1e5: (250.0, 400.0), 1e6: (1000.0, 1000.0)}[abs(magnitude)]
+    q = rng.integers(-4, 5, shape) / 4.0
+    k = rng.integers(-4, 5, shape) / 4.0
+    q[..., 0], k[..., 0] = np.sign(magnitude) * a, b
+    assert abs(magnitude) + shape[-1] < 2 ** 20
+    return q, k
+
+
+def gradient_bound(q, k, v, do, scale):
+    """Componentwise size of the terms of (dq, dk, dv), from the float64 probabilities P, in
+    units of which their rounding errors are measured: ds = P * (dp - D) is a difference of
+    dot products, each with an error ~ u |do|.|v|, and dq = scale * ds @ k is a sum whose terms
+    may cancel (they do when k[..., 0] is the same for every key: dq[..., 0] = scale k0 sum_u ds_u
+    and sum_u ds_u = 0). Returns (|scale| W @ |k|, |scale| W^T @ |q|, P^T @ |do|) with
+    W = P * (|do| @ |v|^T + |do| . |o|), each (R, B, H, N, L, dh)."""
+    R, N, L = q.shape[0], q.shape[3], q.shape[4]
+    qf, kf, vf, dof = (flat(x) for x in (q, k, v, do))
+    s = scale * np.einsum("bhtd,bhud->bhtu", qf, kf)
+    s = np.where(rule_mask(R, N, L), s, -np.inf)
+    p = np.exp(s - s.max(axis=-1, keepdims=True))
+    p /= p.sum(axis=-1, keepdims=True)  # (B, H, T, T)
+    o = p @ vf
+    w = p * (np.abs(dof) @ np.abs(vf).swapaxes(-1, -2) + (np.abs(dof) * np.abs(o)).sum(-1, keepdims=True))
+    out = (abs(scale) * w @ np.abs(kf), abs(scale) * w.swapaxes(-1, -2) @ np.abs(qf),
+           p.swapaxes(-1, -2) @ np.abs(dof))
+    return tuple(unflat(x, q.shape) for x in out)
+
+
+def assert_within_rounding(name, got, want, size, u, c):
+    """|got - want| <= c * u * size elementwise: an error bound in units of the rounding error
+    the computation can make on terms of that size (for sums that cancel, where a normwise
+    relative bound means nothing)."""
+    ratio = np.abs(np.asarray(got, np.float64) - want) / (u * size)
+    worst = np.unravel_index(np.argmax(ratio), ratio.shape)
+    assert ratio.max() <= c, (f"{name}: error reaches {ratio.max():.3g} > {c:g} times u * (size of its terms) "
+                              f"at {tuple(map(int, worst))}: got {got[worst]!r}, want {want[worst]!r}")
+
+
+@pytest.mark.parametrize("magnitude", [1e4, 1e5, 1e6, -1e6])
+def test_large_logits_exact_inputs(magnitude, rng):
+    shape = (3, 1, 2, 4, 5, 9)
+    q, k = dyadic_large_logits(rng, shape, magnitude)
+    v, do = rng.standard_normal(shape), rng.standard_normal(shape)
+
+    # float64. Forward: identical logits, so only softmax rounding remains (measured 4e-16).
+    assert_close("o f64", pyvf.branching_attention(q, k, v), pyvf.branching_attention_reference(q, k, v), RTOL64)
+    # Backward recomputes p = exp(s - lse) from the saved lse, a float64 near |magnitude| whose
+    # own rounding (|magnitude| * 2^-53, 1.1e-10 at 1e6) becomes a relative error of p. That is
+    # the float64 input's own resolution at that size (a 1-ulp change of q moves the logit
+    # as much), not a kernel bug. Measured <= 0.6 |magnitude| 2^-53; bound 2 |magnitude| 2^-53
+    # + RTOL64.
+    rtol_bwd = 2 * abs(magnitude) * U64 + RTOL64
+    grads = pyvf.branching_attention_vjp(q, k, v, do)
+    for name, g, w in zip(("dq", "dk", "dv"), grads, pyvf.branching_attention_reference_vjp(q, k, v, do)):
+        assert_close(f"{name} f64", g, w, rtol_bwd)
+
+    # float32: the inputs are exactly float32 and so are the logits (24 bits), so the float32
+    # result must be as good as float32 allows: exp <= 2 ulp, sums of <= 20 terms. Measured
+    # 1.3e-7 forward, 2e-7 dk and dv; 1e-6. A float32 lse (one ulp = 0.06 at 1e6, a 6% error
+    # in every probability) or an unstable softmax would be off by orders of magnitude.
+    q32, k32, v32, do32 = (x.astype(np.float32) for x in (q, k, v, do))
+    assert_close("o f32", pyvf.branching_attention(q32, k32, v32), pyvf.branching_attention_reference(q, k, v), 1e-6)
+    dq32, dk32, dv32 = pyvf.branching_attention_vjp(q32, k32, v32, do32)
+    dq, dk, dv = pyvf.branching_attention_reference_vjp(q, k, v, do)
+    assert_close("dk f32", dk32, dk, 1e-6)
+    assert_close("dv f32", dv32, dv, 1e-6)
+    # dq cancels (see gradient_bound): compare it componentwise against the size of its terms,
+    # |dq32 - dq| <= c u (W @ |k|), c = dh: the dot-product error constant gamma_dh ~ dh u.
+    # Measured c <= 1.5.
+    assert_within_rounding("dq f32", dq32, dq, gradient_bound(q, k, v, do, 1.0)[0], U32, shape[-1])
+
+
+def logit_rounding_bound(q, k, mask):
+    """delta = gamma_dh * max over attended (t, u) of sum_e |q_te k_ue|: the largest rounding
+    error a float32 dot product of length dh can put on a logit (gamma_n = n u / (1 - n u))."""
+    dh = q.shape[-1]
+    gamma = dh * U32 / (1 - dh * U32)
+    terms = np.abs(flat(q)) @ np.abs(flat(k)).swapaxes(-1, -2)  # (B, H, T, T)
+    return gamma * np.where(mask, terms, 0).max()
+
+
+@pytest.mark.parametrize("magnitude", [1e4, 1e5, 1e6, -1e6])
+def test_large_logits_offset_random_inputs(magnitude, rng):
+    """Logits = magnitude + O(3) from random (inexact) q, k: the rows are not one-hot, and the
+    logits' own rounding, ~|magnitude| * u, is what limits any implementation."""
+    shape = (3, 2, 2, 4, 5, 8)
+    R, B, H, N, L, dh = shape
+    q, k, v, do = (rng.standard_normal(shape) for _ in range(4))
+    q[..., 0], k[..., 0] = np.sign(magnitude) * np.sqrt(abs(magnitude)), np.sqrt(abs(magnitude))
+
+    # float64: kernel and reference round the logits differently, by a few |magnitude| 2^-53,
+    # which is the relative error of every probability; measured <= 1.2 |magnitude| 2^-53
+    # (forward and gradients), bound 4 |magnitude| 2^-53 + RTOL64.
+    rtol = 4 * abs(magnitude) * U64 + RTOL64
+    assert_close("o f64", pyvf.branching_attention(q, k, v), pyvf.branching_attention_reference(q, k, v), rtol)
+    for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_vjp(q, k, v, do),
+                          pyvf.branching_attention_reference_vjp(q, k, v, do)):
+        assert_close(f"{name} f64", g, w, rtol)
+
+    # float32 against float64 on the same float32 inputs. Conditioning: each logit carries a
+    # rounding error up to delta (logit_rounding_bound); a softmax weight p_u = e^(s_u) / Z then
+    # moves by at most a factor e^(+-2 delta), so |o32 - o| <= (e^(2 delta) - 1) max|v|, and
+    # dv = P^T do likewise by (e^(2 delta) - 1) P^T |do| (plus RTOL32 for the rest of the
+    # arithmetic). delta ~ dh u |magnitude|: 5e-3 at 1e4, 0.5 at 1e6 (where the bound is
+    # nearly vacuous). Measured error / bound <= 0.07 for o, <= 0.02 for dv.
+    q32, k32, v32, do32 = (x.astype(np.float32) for x in (q, k, v, do))
+    as64 = [x.astype(np.float64) for x in (q32, k32, v32, do32)]
+    delta = logit_rounding_bound(as64[0], as64[1], rule_mask(R, N, L))
+    assert delta < 0.6, delta  # the inputs are what the comment says they are
+    o32 = pyvf.branching_attention(q32, k32, v32)
+    assert_close("o f32 (conditioning bound)", o32, pyvf.branching_attention_reference(*as64[:3]), 0.0,
+                 atol=(np.expm1(2 * delta) + RTOL32) * np.abs(as64[2]).max())
+    grads32 = pyvf.branching_attention_vjp(q32, k32, v32, do32)
+    assert all(np.isfinite(g).all() for g in grads32)
+    dv = pyvf.branching_attention_reference_vjp(*as64)[2]
+    pt_abs_do = gradient_bound(*as64, 1.0)[2]  # P^T |do|
+    assert_close("dv f32 (conditioning bound)", grads32[2], dv, RTOL32, atol=np.expm1(2 * delta) * pt_abs_do.max())
+
+
+@pytest.mark.parametrize("magnitude", [1e4, 1e6])
+def test_large_logits_one_hot_random_inputs(magnitude, rng):
+    """Random q, k with logits of size ~magnitude: gaps between logits are ~magnitude too, so
+    a row puts all its weight on its largest logit and o is that key's value."""
+    shape = (3, 2, 2, 4, 5, 8)
+    R, B, H, N, L, dh = shape
+    a = np.sqrt(magnitude / np.sqrt(dh))  # q . k ~ a^2 sqrt(dh) = magnitude
+    q, k = a * rng.standard_normal(shape), a * rng.standard_normal(shape)
+    v, do = rng.standard_normal(shape), rng.standard_normal(shape)
+
+    # rows with a clear winner: best attended logit ahead of the second by >= 30 (the second
+    # has weight <= e^-30 ~ 1e-13), so o must be the winner's value to the dtype's precision
+    s = np.where(rule_mask(R, N, L), np.einsum("bhtd,bhud->bhtu", flat(q), flat(k)), -np.inf)
+    top2 = -np.sort(-s, axis=-1)[..., :2]
+    clear = top2[..., 0] - top2[..., 1] >= 30  # (B, H, T); a single attended key: gap inf
+    assert clear.mean() > 0.8, "the test needs rows with a clear winner"
+    winner_v = np.take_along_axis(flat(v), s.argmax(-1)[..., None], axis=2)  # (B, H, T, dh)
+
+    o = pyvf.branching_attention(q, k, v)
+    assert_close("o f64 == value of the winning key", flat(o)[clear], winner_v[clear], RTOL64)
+    # float64 vs reference, the logit rounding bound of the offset test; measured <= 2e-13
+    rtol = 4 * magnitude * U64 + RTOL64
+    assert_close("o f64", o, pyvf.branching_attention_reference(q, k, v), rtol)
+    for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_vjp(q, k, v, do),
+                          pyvf.branching_attention_reference_vjp(q, k, v, do)):
+        assert_close(f"{name} f64", g, w, rtol)
+
+    # float32: finite, and the same winners (a float32 logit error of ~dh u |q||k| is far
+    # below a gap of 30 at these sizes: ~0.5 at 1e6). o = (v_w + e^-30 ...) / (1 + e^-30 ...)
+    # rounds to v_w within an ulp or two (measured 3.5e-8 normwise); 4 u.
+    q32, k32, v32, do32 = (x.astype(np.float32) for x in (q, k, v, do))
+    o32 = pyvf.branching_attention(q32, k32, v32)
+    assert_close("o f32 == value of the winning key", flat(o32)[clear], winner_v[clear], 4 * U32)
+    assert all(np.isfinite(g).all() for g in pyvf.branching_attention_vjp(q32, k32, v32, do32))
+
+
+def test_sentinel_minus_1e4_is_wrong_where_pyvf_is_exact(rng):
+    """Attended logits all near -2e4: the published code's logits*mask - 1e4*(1-mask) gives
+    the masked keys (logit -1e4) almost all the weight; pyvf excludes them exactly."""
+    shape = (2, 1, 2, 3, 4, 5)
+    R, N, L = shape[0], shape[3], shape[4]
+    q = rng.integers(-4, 5, shape) / 4.0
+    k = rng.integers(-4, 5, shape) / 4.0
+    q[..., 0], k[..., 0] = 100.0, -200.0  # every logit = -2e4 + (a few units)
+    v = rng.standard_normal(shape)
+    mask = rule_mask(R, N, L)
+    o_exact, _ = dense_attention(flat(q), flat(k), flat(v), 1.0, mask)
+    o_sentinel, _ = dense_attention(flat(q), flat(k), flat(v), 1.0, mask, sentinel=True)
+    o = pyvf.branching_attention(q, k, v)
+    assert_close("o vs exact exclusion", o, unflat(o_exact, shape), RTOL64)
+    # every query row with a masked key (all of them but the trunk's last view) goes wrong
+    rows_with_masked = ~mask.all(axis=1)
+    err = np.abs(o_sentinel - o_exact).max(axis=-1)[..., rows_with_masked]
+    assert err.min() > 0.1, f"the sentinel should be visibly wrong, min error {err.min():.3g}"
+    # the gradient too (float64, exact logits: see test_large_logits_exact_inputs for the bound)
+    do = rng.standard_normal(shape)
+    for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_vjp(q, k, v, do),
+                          pyvf.branching_attention_reference_vjp(q, k, v, do)):
+        assert_close(name, g, w, 2 * 2e4 * U64 + RTOL64)
+
+
+def test_near_ties(rng, make_qkv):
+    """Every key of a head equal up to 1e-12: logits tie to ~1e-12, weights ~uniform."""
+    shape = (3, 2, 2, 4, 5, 17)
+    q, _, v, do = make_qkv(shape)
+    base = rng.standard_normal(shape[1:3] + (1, 1, shape[-1]))  # (B, H, 1, 1, dh) per head
+    k = base + 1e-12 * rng.standard_normal(shape)
+    o = pyvf.branching_attention(q, k, v)
+    assert_close("o", o, pyvf.branching_attention_reference(q, k, v), RTOL64)
+    # the weights differ from uniform by ~1e-12 |q| |noise| relative: 1e-10 is generous
+    assert_close("o vs mean of attended values", o, attended_mean(v), 1e-10)
+    dq, dk, dv = pyvf.branching_attention_vjp(q, k, v, do)
+    want = pyvf.branching_attention_reference_vjp(q, k, v, do)
+    assert_close("dk", dk, want[1], RTOL64)
+    assert_close("dv", dv, want[2], RTOL64)
+    # dq = sum_u ds_u k_u = base . sum_u ds_u + 1e-12 sum_u ds_u noise_u, and sum_u ds_u = 0:
+    # the true dq is ~1e-12 of its terms, below the rounding of the sum, in the kernel and the
+    # reference alike. So compare componentwise against the size of the terms (gradient_bound),
+    # c = dh as for any dot product of length dh; measured c <= 1.5.
+    assert_within_rounding("dq", dq, want[0], gradient_bound(q, k, v, do, 1.0)[0], U64, shape[-1])
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_equal_keys_give_the_mean_of_attended_values(dtype, rng, make_qkv):
+    """All keys equal: every attended logit of a query is the same, the weights are uniform,
+    o is the mean of the attended values (closed form), and dq = scale * sum_u ds_u k_u =
+    scale * c * sum_u ds_u = 0 since the softmax backward's ds sums to 0 over a row."""
+    shape = (3, 2, 2, 4, 3, 17)
+    q, v, do = make_qkv(shape, dtype, n=3)
+    k = np.tile(rng.standard_normal(shape[-1]), shape[:-1] + (1,)).astype(dtype)  # one key vector c
+    o = pyvf.branching_attention(q, k, v, 0.5)
+    # float64: mean of <= N L = 12 values, measured 1.4e-16. float32: the same (the logits of
+    # one query have identical bits for every key, so the weights are exactly uniform), and the
+    # mean rounds within a few u: measured 6e-8, bound 4 u.
+    tol = 1e-14 if dtype == np.float64 else 4 * U32
+    assert_close("o vs mean of attended values", o, attended_mean(v.astype(np.float64)), tol)
+    dq, dk, dv = pyvf.branching_attention_vjp(q, k, v, do, 0.5)
+    want = pyvf.branching_attention_reference_vjp(*(x.astype(np.float64) for x in (q, k, v, do)), 0.5)
+    assert_close("dv", dv, want[2], RTOL64 if dtype == np.float64 else RTOL32)
+    assert_close("dk", dk, want[1], RTOL64 if dtype == np.float64 else RTOL32)
+    # dq is 0 up to the rounding of sum_u ds_u, a sum of <= N L = 12 terms of the size of dk's
+    # entries each carrying a few u: bound 4 N L u max|dk| (1.1e-14 in float64, 2.9e-6 in
+    # float32); measured 3.8e-16 and 1.4e-7 (float32: D = rowsum(do * o) is rounded from
+    # double while dp = do . v is float32, see test_single_key).
+    u = U64 if dtype == np.float64 else U32
+    assert np.abs(dq).max() <= 4 * 12 * u * np.abs(want[1]).max(), \
+        f"dq should vanish, max |dq| = {np.abs(dq).max():.3g}, max |dk| = {np.abs(want[1]).max():.3g}"
+
+
+@pytest.mark.parametrize("plain", [False, True], ids=["fast", "plain"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("R", [1, 3])
+def test_single_key(R, dtype, plain, make_qkv):
+    """N = L = 1: each query attends exactly one key (its own), p = 1 exactly, so o == v and
+    dv == do bit for bit, and dq == dk == 0 exactly (ds = p (dp - D) with D = do . o = do . v)."""
+    q, k, v, do = make_qkv((R, 2, 3, 1, 1, 17), dtype)
+    o, lse = pyvf.branching_attention_forward(q, k, v, plain=plain)
+    assert_bitwise_equal("o", o, v)
+    # the lse of a single logit is the logit itself
+    assert_close("lse", lse, np.einsum("...d,...d", q.astype(np.float64), k.astype(np.float64)),
+                 1e-15 if dtype == np.float64 else 4 * 17 * U32)
+    dq, dk, dv = pyvf.branching_attention_backward(do, q, k, v, o, lse, plain=plain)
+    assert_bitwise_equal("dv", dv, do)
+    for name, g in (("dq", dq), ("dk", dk)):
+        if np.any(g != 0):
+            size = (np.linalg.norm(do, axis=-1) * np.linalg.norm(v, axis=-1) * np.linalg.norm(k, axis=-1))[..., None]
+            pytest.fail(f"{name} must be exactly 0: p = 1, so ds = p (dp - D) with dp = do . v and "
+                        f"D = do . o = do . v; got {np.count_nonzero(g)} of {g.size} entries nonzero, "
+                        f"max |{name}| = {np.abs(g).max():.3g}, max |{name}| / (|do| |v| |k|) = "
+                        f"{(np.abs(g) / size).max():.3g}")
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_overflow_only_in_unattended_pairs_is_fine(dtype, make_qkv):
+    """q of branch 1 and k of branch 2 are ~1e20: their product overflows float32, but branch 1
+    never attends branch 2, so no attended logit overflows and nothing may raise."""
+    shape = (3, 1, 2, 2, 3, 4)
+    q, k, v, do = make_qkv(shape, dtype)
+    q[1] *= 1e20
+    k[2] *= 1e20
+    o = pyvf.branching_attention(q, k, v)
+    as64 = [x.astype(np.float64) for x in (q, k, v, do)]
+    # attended logits reach ~1e20: rows are one-hot, o is exact to the dtype's rounding
+    assert_close("o", o, pyvf.branching_attention_reference(*as64[:3]), 4 * U32 if dtype == np.float32 else RTOL64)
+    assert all(np.isfinite(g).all() for g in pyvf.branching_attention_vjp(q, k, v, do))
+
+
+# ---------------------------------------------------------------------------------------
+# 7. bad input raises, naming the argument
+
+
+def _qkvdo(shape=(2, 1, 2, 2, 3, 4), dtype=np.float64):
+    rng = np.random.default_rng(7)
+    return [rng.standard_normal(shape).astype(dtype) for _ in range(4)]
+
+
+def _with(i, change):
+    """q, k, v, do with argument i replaced by change(argument i)."""
+    args = _qkvdo()
+    args[i] = change(args[i])
+    return args
+
+
+def _fwd(args, **kw):
+    return pyvf.branching_attention(*args[:3], **kw)
+
+
+def _vjp(args, **kw):
+    return pyvf.branching_attention_vjp(*args, **kw)
+
+
+BAD_INPUTS = [
+    # (id, call, exception, message must match)
+    ("q int32", lambda: _fwd(_with(0, lambda x: x.astype(np.int32))), TypeError, "^q .*float32 or float64"),
+    ("q int64", lambda: _fwd(_with(0, lambda x: x.astype(np.int64))), TypeError, "^q .*float32 or float64"),
+    ("all float16", lambda: _fwd([x.astype(np.float16) for x in _qkvdo()]), TypeError, "^q .*float32 or float64"),
+    ("k float32, q float64", lambda: _fwd(_with(1, lambda x: x.astype(np.float32))), TypeError, "^k "),
+    ("v float32, q float64", lambda: _fwd(_with(2, lambda x: x.astype(np.float32))), TypeError, "^v "),
+    ("do float32, q float64", lambda: _vjp(_with(3, lambda x: x.astype(np.float32))), TypeError, "^do "),
+    ("k other shape", lambda: _fwd(_with(1, lambda x: x[:, :, :, :1].copy())), ValueError, "^k .*shape"),
+    ("v other shape", lambda: _fwd(_with(2, lambda x: x[..., :3].copy())), ValueError, "^v .*shape"),
+    ("do other shape", lambda: _vjp(_with(3, lambda x: x[:1].copy())), ValueError, "^do .*shape"),
+    ("5 dims", lambda: _fwd([x[0] for x in _qkvdo()]), ValueError, "^q .*6 dimensions"),
+    ("7 dims", lambda: _fwd([x[None] for x in _qkvdo()]), ValueError, "^q .*6 dimensions"),
+    ("zero-size dim", lambda: _fwd([x[:, :, :, :0] for x in _qkvdo()]), ValueError, "^q .*zero-size"),
+    ("q transposed", lambda: _fwd(_with(0, lambda x: np.ascontiguousarray(x.swapaxes(4, 5)).swapaxes(4, 5))),
+     ValueError, "^q .*C-contiguous"),
+    ("q strided", lambda: _fwd([np.concatenate([x, x], -1)[..., ::2] for x in _qkvdo()]), ValueError, "^q .*C-contiguous"),
+    ("k strided", lambda: _fwd(_with(1, lambda x: np.concatenate([x, x], -1)[..., ::2])), ValueError, "^k .*C-contiguous"),
+    ("do strided", lambda: _vjp(_with(3, lambda x: np.concatenate([x, x], -1)[..., ::2])), ValueError, "^do .*C-contiguous"),
+    ("q list", lambda: _fwd(_with(0, lambda x: x.tolist())), TypeError, "^q .*numpy.ndarray"),
+    ("v list", lambda: _fwd(_with(2, lambda x: x.tolist())), TypeError, "^v .*numpy.ndarray"),
+    ("scale nan", lambda: _fwd(_qkvdo(), scale=float("nan")), ValueError, "^scale"),
+    ("scale inf", lambda: _fwd(_qkvdo(), scale=float("inf")), ValueError, "^scale"),
+    ("scale str", lambda: _fwd(_qkvdo(), scale="1"), TypeError, "^scale"),
+    ("scale bool", lambda: _fwd(_qkvdo(), scale=True), TypeError, "^scale"),
+    ("scale array", lambda: _fwd(_qkvdo(), scale=np.ones(2)), TypeError, "^scale"),
+    ("vjp scale nan", lambda: _vjp(_qkvdo(), scale=float("nan")), ValueError, "^scale"),
+]
+for _i, _name in enumerate(("q", "k", "v", "do")):
+    for _bad in (np.nan, np.inf, -np.inf):
+        def _poison(x, _bad=_bad):
+            x = x.copy()
+            x[1, 0, 1, 1, 2, 3] = _bad
+            return x
+        BAD_INPUTS.append((f"{_name} has {_bad}", (lambda _i=_i, _poison=_poison: _vjp(_with(_i, _poison))),
+                           ValueError, f"^{_name} .*NaN or inf"))
+
+
+@pytest.mark.parametrize("call, exc, match", [c[1:] for c in BAD_INPUTS], ids=[c[0] for c in BAD_INPUTS])
+def test_bad_input_raises(call, exc, match):
+    with pytest.raises(exc, match=match):
+        call()
+
+
+def test_backward_rejects_bad_lse():
+    q, k, v, do = _qkvdo()
+    o, lse = pyvf.branching_attention_forward(q, k, v)
+    bw = lambda lse_: pyvf.branching_attention_backward(do, q, k, v, o, lse_)
+    with pytest.raises(TypeError, match="lse"):
+        bw(lse.astype(np.float32))  # the float32 lse the docstring warns about
+    with pytest.raises(TypeError, match="lse"):
+        bw(lse[..., :2].copy())
+    with pytest.raises(TypeError, match="lse"):
+        bw(lse[None])
+    with pytest.raises(TypeError, match="lse"):
+        bw(lse.tolist())
+    with pytest.raises(ValueError, match="lse .*C-contiguous"):
+        bw(np.asfortranarray(lse))
+    with pytest.raises(ValueError, match="^o .*NaN or inf"):
+        pyvf.branching_attention_backward(do, q, k, v, np.where(o > 0, np.nan, o), lse)
+    with pytest.raises(TypeError, match="^o "):
+        pyvf.branching_attention_backward(do, q, k, v, o.astype(np.float32), lse)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e-30])
+def test_float32_logit_overflow_raises(scale):
+    """q, k ~ 1e20: q . k ~ 1e40 overflows float32 whatever the scale; the kernel must say
+    so instead of returning NaN or a made-up softmax."""
+    q, k, v, do = _qkvdo(dtype=np.float32)
+    q, k = q * np.float32(1e20), k * np.float32(1e20)
+    with pytest.raises(ValueError, match="not finite.*overflow"):
+        pyvf.branching_attention(q, k, v, scale)
+    with pytest.raises(ValueError, match="not finite.*overflow"):
+        pyvf.branching_attention_vjp(q, k, v, do, scale)
+    # float64 holds those logits and is fine
+    o = pyvf.branching_attention(*(x.astype(np.float64) for x in (q, k, v)), scale)
+    assert np.isfinite(o).all()
+
+
+def test_float64_logit_overflow_raises():
+    q, k, v, _ = _qkvdo()
+    with pytest.raises(ValueError, match="not finite.*overflow"):
+        pyvf.branching_attention(q * 1e160, k * 1e160, v)
+
+
+def test_core_bindings_refuse_casts_and_copies():
+    """The raw bindings take exactly the dtype and C layout (.noconvert(), c_style): a float16,
+    a mixed-dtype or a non-contiguous array is a TypeError, never a silent cast or copy."""
+    q, k, v, do = _qkvdo()
+    o, lse = np.empty_like(q), np.empty(q.shape[:5])
+    _core.attn_forward(o, lse, q, k, v, 1.0)  # the good call works
+    h = [x.astype(np.float16) for x in (q, k, v)]
+    with pytest.raises(TypeError):
+        _core.attn_forward(np.empty_like(h[0]), lse, *h, 1.0)
+    with pytest.raises(TypeError):
+        _core.attn_forward(o, lse, q, k.astype(np.float32), v, 1.0)
+    with pytest.raises(TypeError):
+        _core.attn_forward(o, lse.astype(np.float32), q, k, v, 1.0)
+    strided = np.concatenate([q, q], -1)[..., ::2]
+    with pytest.raises(TypeError):
+        _core.attn_forward(o, lse, strided, k, v, 1.0)
+    with pytest.raises(TypeError):  # a non-contiguous output would be written into a copy
+        _core.attn_forward(np.empty(q.shape[:5] + (2 * q.shape[5],))[..., ::2], lse, q, k, v, 1.0)
+    with pytest.raises(TypeError):
+        _core.attn_backward(*(np.empty_like(q) for _ in range(3)), lse, q, k, v, o, do.astype(np.float32), 1.0)
+    with pytest.raises(TypeError):
+        _core.attn_forward_plain(o, lse, q.tolist(), k, v, 1.0)
+    x = np.linspace(-3, 0, 10)
+    with pytest.raises(TypeError):
+        _core.exp(np.empty(10, np.float16), x.astype(np.float16))
+    with pytest.raises(TypeError):
+        _core.exp(np.empty(10), x.astype(np.float32))
+    with pytest.raises(TypeError):
+        _core.exp(np.empty(5), x[::2])
+
+
+# ---------------------------------------------------------------------------------------
+# 8. bitwise reproducibility
+
+
+def test_bitwise_reproducible_across_runs_and_threads(make_qkv):
+    shape = (3, 2, 2, 5, 16, 17)  # 60 query blocks, 4 heads: work to share between threads
+    saved = pyvf.num_threads()
+    results = {}
+    try:
+        for dtype in (np.float64, np.float32):
+            q, k, v, do = make_qkv(shape, dtype)
+            for threads in (2, 1, 2):
+                pyvf.set_num_threads(threads)
+                assert pyvf.num_threads() == threads or not _core.openmp
+                o, lse = pyvf.branching_attention_forward(q, k, v)
+                results.setdefault(dtype, []).append((o, lse) + pyvf.branching_attention_backward(do, q, k, v, o, lse))
+    finally:
+        pyvf.set_num_threads(saved)
+    assert pyvf.num_threads() == saved
+    names = ("o", "lse", "dq", "dk", "dv")
+    for dtype, runs in results.items():
+        for run, what in ((1, "1 thread vs 2 threads"), (2, "second run, 2 threads")):
+            for name, a, b in zip(names, runs[run], runs[0]):
+                assert_bitwise_equal(f"{np.dtype(dtype).name} {name}: {what}", a, b)
+
+
+def test_set_num_threads_rejects_bad_values():
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="n must be a positive integer"):
+            pyvf.set_num_threads(bad)
+
+
+# ---------------------------------------------------------------------------------------
+# 9. branching_mask
+
+
+def test_mask_by_hand_R2_N2():
+    # token order (row, view): (0,0) (0,1) (1,0) (1,1)
+    want = np.array([
+        [1, 0, 0, 0],  # trunk view 0: itself
+        [1, 1, 0, 0],  # trunk view 1: trunk 0, itself
+        [0, 0, 1, 0],  # branch view 0: itself only
+        [1, 0, 0, 1],  # branch view 1: trunk 0, itself
+    ], dtype=bool)
+    got = pyvf.branching_mask(2, 2, 1)
+    assert got.dtype == np.bool_
+    np.testing.assert_array_equal(got, want)
+
+
+def test_mask_by_hand_R3_N3():
+    # token order (row, view): (0,0) (0,1) (0,2) | (1,0) (1,1) (1,2) | (2,0) (2,1) (2,2)
+    want = np.array([
+        [1, 0, 0, 0, 0, 0, 0, 0, 0],
+        [1, 1, 0, 0, 0, 0, 0, 0, 0],
+        [1, 1, 1, 0, 0, 0, 0, 0, 0],
+        [0, 0, 0, 1, 0, 0, 0, 0, 0],
+        [1, 0, 0, 0, 1, 0, 0, 0, 0],
+        [1, 1, 0, 0, 0, 1, 0, 0, 0],
+        [0, 0, 0, 0, 0, 0, 1, 0, 0],
+        [1, 0, 0, 0, 0, 0, 0, 1, 0],
+        [1, 1, 0, 0, 0, 0, 0, 0, 1],
+    ], dtype=bool)
+    np.testing.assert_array_equal(pyvf.branching_mask(3, 3, 1), want)
+
+
+@pytest.mark.parametrize("R, N, L", [(1, 1, 1), (1, 4, 3), (3, 5, 4), (4, 2, 7), (3, 20, 2)])
+def test_mask_shape_and_block_counts(R, N, L):
+    m = pyvf.branching_mask(R, N, L)
+    T = R * N * L
+    assert m.shape == (T, T) and m.dtype == np.bool_
+    np.testing.assert_array_equal(m, rule_mask(R, N, L))
+    np.testing.assert_array_equal(m, torch_branching_mask(R, N, L).numpy())
+    blocks = m.reshape(R * N, L, R * N, L)
+    # every block pair is all-attended or all-masked: tokens of a block are interchangeable
+    assert np.all(blocks.all(axis=(1, 3)) == blocks.any(axis=(1, 3)))
+    pairs = blocks.any(axis=(1, 3)).reshape(R, N, R, N)  # [query row, view, key row, view]
+    assert pairs[0].sum() == N * (N + 1) // 2  # trunk: block-causal
+    for r in range(1, R):
+        assert pairs[r].sum() == N * (N - 1) // 2 + N  # branch: earlier trunk views + itself
+        for other in range(1, R):
+            assert other == r or not pairs[r, :, other].any()  # never another branch
+    assert m.sum() == L * L * (R * N * (N + 1) // 2)
+    assert np.all(np.diag(m))  # every token attends itself: no empty softmax row
+
+
+@pytest.mark.parametrize("args", [(0, 2, 2), (2, 0, 2), (2, 2, 0), (-1, 2, 2), (2.0, 2, 2), (True, 2, 2),
+                                  ("2", 2, 2), (2, None, 2), (2, 2, 1.5)])
+def test_mask_rejects_bad_arguments(args):
+    i = next(i for i, a in enumerate(args) if not (type(a) is int and a >= 1))
+    error = ValueError if type(args[i]) is int else TypeError  # a wrong type is a TypeError
+    with pytest.raises(error, match=f"^{'RNL'[i]} must be a positive integer"):
+        pyvf.branching_mask(*args)
+
+
+# ---------------------------------------------------------------------------------------
+# 10. the kernel's vectorised exp
+
+
+def test_exp_float32_accuracy():
+    # a dense grid over the range the softmax uses, x in [ln(2^-126), 0], plus its ends
+    x = np.concatenate([np.linspace(-87.3, 0, 4_000_001, dtype=np.float32),
+                        np.float32([-87.33654, -87.336, -1e-6, -1e-30, -0.0, 0.0])])
+    y = np.empty_like(x)
+    _core.exp(y, x)
+    exact = np.exp(x.astype(np.float64))  # float64 is exact to 1e-16, far below a float32 ulp
+    ulps = np.abs(y - exact) / np.spacing(exact.astype(np.float32)).astype(np.float64)
+    worst = np.argmax(ulps)
+    # Cephes' expf polynomial with Cody-Waite reduction: about 1 ulp; measured 1.002 ulp.
+    # 2 ulp is the stated bound (a sloppier reduction or polynomial shows up as tens of ulp).
+    assert ulps.max() <= 2.0, f"exp float32: {ulps.max():.3f} ulp at x = {x[worst]!r}"
+    assert np.all(y[x == 0] == 1)  # exp(0) == exp(-0) == 1 exactly
+
+
+def test_exp_float64_accuracy():
+    x = np.concatenate([np.linspace(-708.0, 0, 2_000_001), [-708.3964185322641, -1e-300, -0.0, 0.0]])
+    y = np.empty_like(x)
+    _core.exp(y, x)
+    exact = np.exp(x.astype(np.longdouble))  # 64-bit mantissa on x86: exact to ~1e-19
+    rel = (np.abs(y.astype(np.longdouble) - exact) / exact).astype(np.float64)
+    worst = np.argmax(rel)
+    # Cephes' exp (Pade form) is about 1 ulp (1 ulp <= 2.2e-16 relative); measured 2.6e-16
+    # (1.65 ulp, the ulp of numbers just above a power of 2 being 2^-52 relative). 4e-16.
+    assert rel.max() <= 4e-16, f"exp float64: relative error {rel.max():.3g} at x = {x[worst]!r}"
+    assert np.all(y[x == 0] == 1)
+
+
+@pytest.mark.parametrize("dtype, lo", [(np.float32, -87.33654), (np.float64, -708.3964185322641)])
+def test_exp_underflow_and_minus_inf_give_zero(dtype, lo):
+    """Below ln(smallest normal) the result is 0; -inf is 0; at the threshold it is >= the
+    smallest normal."""
+    lo = dtype(lo)
+    tiny = np.finfo(dtype).tiny  # smallest normal
+    below = np.array([np.nextafter(lo, dtype(-np.inf)), lo - 1, lo - 30, -1e4, -1e30, -np.finfo(dtype).max, -np.inf],
+                     dtype=dtype)
+    y = np.empty_like(below)
+    _core.exp(y, below)
+    assert np.all(y == 0), f"exp of {below[y != 0]} gave {y[y != 0]}"
+    above = np.array([lo, np.nextafter(lo, dtype(0)), lo + dtype(1e-3)], dtype=dtype)
+    y = np.empty_like(above)
+    _core.exp(y, above)
+    assert np.all(y >= tiny) and np.all(np.isfinite(y))
+    assert_close("exp just above the threshold", y, np.exp(above.astype(np.float64)), 4 * np.finfo(dtype).eps)
