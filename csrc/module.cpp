@@ -11,6 +11,7 @@
 #include <stdexcept>
 
 #include "branching_attention.h"
+#include "elementwise.h"
 #include "simd.h"
 
 namespace py = pybind11;
@@ -101,6 +102,29 @@ template <typename T> void exp_kernel(Arr<T> y, Arr<T> x) {
     for (py::ssize_t i = 0; i < x.size(); ++i) py_[i] = exp_scalar<T>(px[i]);
 }
 
+void same_size(const py::array& a, const py::array& b, const char* what) {
+    if (a.size() != b.size()) throw std::invalid_argument(std::string("pyvf._core.") + what + ": arrays differ in size");
+}
+
+template <typename T> void gelu(Arr<T> y, Arr<T> x) {
+    same_size(y, x, "gelu");
+    T* py_ = y.mutable_data();
+    const T* px = x.data();
+    const int64_t n = x.size();
+    py::gil_scoped_release nogil;
+    gelu_forward<T>(py_, px, n);
+}
+
+template <typename T> void gelu_grad(Arr<T> dx, Arr<T> dy, Arr<T> x) {
+    same_size(dx, x, "gelu_backward");
+    same_size(dy, x, "gelu_backward");
+    T* pdx = dx.mutable_data();
+    const T *pdy = dy.data(), *px = x.data();
+    const int64_t n = x.size();
+    py::gil_scoped_release nogil;
+    gelu_backward<T>(pdx, pdy, px, n);
+}
+
 template <typename T> void bind_dtype(py::module_& m) {
     m.def("attn_forward", &forward<T, false>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
           py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
@@ -115,6 +139,9 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("o").noconvert(),
           py::arg("do").noconvert(), py::arg("scale"));
     m.def("exp", &exp_kernel<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
+    m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
+    m.def("gelu_backward", &gelu_grad<T>, py::arg("dx").noconvert(), py::arg("dy").noconvert(),
+          py::arg("x").noconvert());
 }
 
 }  // namespace
