@@ -24,6 +24,7 @@ oracle tests and benchmarks compare the kernel against, and costs O(T^2) memory 
 import numpy as np
 
 from . import _core
+from .layers import linear_backward, linear_forward
 
 __all__ = [
     "branching_attention",
@@ -33,6 +34,8 @@ __all__ = [
     "branching_mask",
     "branching_attention_reference",
     "branching_attention_reference_vjp",
+    "attention_layer_forward",
+    "attention_layer_backward",
 ]
 
 _DTYPES = (np.float32, np.float64)
@@ -202,3 +205,49 @@ def branching_attention_reference_vjp(q, k, v, do, scale=1.0):
     dq = scale * np.einsum("bhtu,bhud->bhtd", ds, kf)
     dk = scale * np.einsum("bhtu,bhtd->bhud", ds, qf)
     return tuple(_unflat(g, q.shape).copy() for g in (dq, dk, dv))
+
+
+# ---------------------------------------------------------------------------------------
+# the attention layer: fused projection, heads, the kernel, output projection
+
+
+def _split_heads(t, n_head):
+    """(R, B, N, L, d) -> (R, B, H, N, L, dh), C-contiguous (head h = columns h*dh:(h+1)*dh)."""
+    R, B, N, L, d = t.shape
+    return np.ascontiguousarray(t.reshape(R, B, N, L, n_head, d // n_head).transpose(0, 1, 4, 2, 3, 5))
+
+
+def _merge_heads(t):
+    """(R, B, H, N, L, dh) -> (R, B, N, L, H*dh)."""
+    R, B, H, N, L, dh = t.shape
+    return t.transpose(0, 1, 3, 4, 2, 5).reshape(R, B, N, L, H * dh)
+
+
+def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0):
+    """Branching self-attention over the rows of the tree.
+
+    x (R, B, N, L, d); w_attn (d, 3d), b_attn (1, 3d); w_proj (d, d), b_proj (1, d) -> y (R, B, N, L, d).
+    cache: both linear caches, q, k, v, o (R, B, H, N, L, dh) and lse: the kernel's backward
+    needs them and recomputes the probabilities from lse.
+    """
+    d = x.shape[-1]
+    h, c_attn = linear_forward(x, w_attn, b_attn)  # (R, B, N, L, 3d)
+    # SPEC.md §3: the fused columns are [values | queries | keys], not GPT-2's q, k, v order
+    v = _split_heads(h[..., 0:d], n_head)  # (R, B, H, N, L, dh)
+    q = _split_heads(h[..., d:2 * d], n_head)
+    k = _split_heads(h[..., 2 * d:3 * d], n_head)
+    # SPEC.md §2: the published model does not divide the logits by sqrt(dh): scale = 1
+    o, lse = branching_attention_forward(q, k, v, scale)  # (R, B, H, N, L, dh), (R, B, H, N, L)
+    y, c_proj = linear_forward(_merge_heads(o), w_proj, b_proj)  # (R, B, N, L, d)
+    return y, (c_attn, c_proj, q, k, v, o, lse, scale)
+
+
+def attention_layer_backward(dy, cache):
+    """dy (R, B, N, L, d) -> dx, dw_attn, db_attn, dw_proj, db_proj."""
+    c_attn, c_proj, q, k, v, o, lse, scale = cache
+    n_head = q.shape[2]
+    do, dw_proj, db_proj = linear_backward(dy, c_proj)  # (R, B, N, L, d)
+    dq, dk, dv = branching_attention_backward(_split_heads(do, n_head), q, k, v, o, lse, scale)
+    dh = np.concatenate([_merge_heads(dv), _merge_heads(dq), _merge_heads(dk)], axis=-1)  # [v | q | k]
+    dx, dw_attn, db_attn = linear_backward(dh, c_attn)
+    return dx, dw_attn, db_attn, dw_proj, db_proj

@@ -1,0 +1,391 @@
+"""The ViewFormer transformer ("MIGT" in the published code), SPEC.md §3, in NumPy.
+
+One forward builds the three rows of the tree from tokens and poses, runs every block on all
+rows at once (rows meet only in the branching attention), and gives the generation logits, the
+pose predictions and both losses; backward() is the same code read in reverse.
+
+    cfg = TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2,
+                            token_image_size=4, sequence_size=5, n_loss_skip=1)
+    model = Transformer(cfg, seed=0)
+    out = model.forward(tokens, poses)      # tokens (B, N, L) ints in [0, V), poses (B, N, 7)
+    grads = model.backward()                # d out.loss / d every parameter, official names
+
+Rows (each (B, N, L, d)), E = wte[tokens], W = wpe[0:L], P = pose_embedding(poses):
+    0 trunk:        E + W + P
+    1 generation:   wte[V] + W + P        (image hidden, pose kept)
+    2 localization: E + W + wte[V + 1]    (image kept, pose replaced by the localization token)
+
+Parameters are named as in the published checkpoint (spec/official-transformer-*.json, without
+the `migt/` prefix and `:0` suffix); linear weights are (in, out), biases (1, out).
+"""
+
+import dataclasses
+import json
+
+import numpy as np
+
+from .attention import attention_layer_backward, attention_layer_forward
+from .layers import (
+    embedding_backward,
+    embedding_forward,
+    layernorm_backward,
+    layernorm_forward,
+    mlp_backward,
+    mlp_forward,
+)
+from .losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
+
+MAX_TOKENS_PER_VIEW = 256  # wpe has 256 rows: token t of every view gets row t
+
+
+@dataclasses.dataclass(frozen=True)
+class TransformerConfig:
+    n_embeddings: int  # V, the codebook size; wte has V + 2 rows: V = mask token, V + 1 = localization token
+    n_head: int  # H; the head width is d_model / n_head
+    d_model: int  # d
+    n_layer: int  # transformer blocks
+    token_image_size: int  # k: a view is k x k tokens, L = k*k (at most 256)
+    sequence_size: int  # N the model is trained on (context + queries); forward accepts any N >= 1
+    n_loss_skip: int  # the first views are pure context, never a loss target (paper: 4; tiny: 1)
+    pose_multiplier: float = 1.0  # positions are scaled by this before the pose MLP and in the loss (SM7: 0.2)
+    localization_weight: float = 1.0  # weight of the pose loss in the total loss
+    image_generation_weight: float = 1.0  # weight of the cross-entropy in the total loss
+    label_smoothing: float = 0.0  # eps: the CE target is (1 - eps) onehot + eps / V
+    attention_scale: float = 1.0  # logit = scale * q.k; the published model uses 1, not 1/sqrt(dh)
+    dtype: str = "float32"  # parameters and activations: "float32" or "float64"
+
+    def __post_init__(self):
+        for name in ("n_embeddings", "n_head", "d_model", "n_layer", "token_image_size", "sequence_size"):
+            val = getattr(self, name)
+            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
+                raise ValueError(f"TransformerConfig.{name} must be a positive integer, got {val!r}")
+        if isinstance(self.n_loss_skip, bool) or not isinstance(self.n_loss_skip, int) or self.n_loss_skip < 0:
+            raise ValueError(f"TransformerConfig.n_loss_skip must be a non-negative integer, got {self.n_loss_skip!r}")
+        if self.d_model % self.n_head:
+            raise ValueError(f"TransformerConfig: d_model={self.d_model} is not divisible by n_head={self.n_head}")
+        if self.token_image_size ** 2 > MAX_TOKENS_PER_VIEW:
+            raise ValueError(f"TransformerConfig.token_image_size={self.token_image_size} gives "
+                             f"{self.token_image_size ** 2} tokens per view; wpe has {MAX_TOKENS_PER_VIEW}")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"TransformerConfig.dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        if not 0.0 <= self.label_smoothing < 1.0:
+            raise ValueError(f"TransformerConfig.label_smoothing must be in [0, 1), got {self.label_smoothing}")
+        for name in ("pose_multiplier", "localization_weight", "image_generation_weight", "attention_scale"):
+            if not np.isfinite(getattr(self, name)):
+                raise ValueError(f"TransformerConfig.{name} must be finite")
+
+    @property
+    def L(self):
+        return self.token_image_size ** 2
+
+
+def parameter_shapes(cfg):
+    """Official name -> shape, in the published order of the blocks."""
+    V, d = cfg.n_embeddings, cfg.d_model
+    shapes = {
+        "wte/weight": (V + 2, d),
+        "wpe/embeddings": (MAX_TOKENS_PER_VIEW, d),
+        "pose_embedding/c_fc/weight": (7, 2 * d),
+        "pose_embedding/c_fc/bias": (1, 2 * d),
+        "pose_embedding/c_proj/weight": (2 * d, d),
+        "pose_embedding/c_proj/bias": (1, d),
+    }
+    for j in range(cfg.n_layer):
+        h = f"h.{j}/"
+        shapes.update({
+            h + "ln_1/gamma": (d,), h + "ln_1/beta": (d,),
+            h + "attn/c_attn/weight": (d, 3 * d), h + "attn/c_attn/bias": (1, 3 * d),
+            h + "attn/c_proj/weight": (d, d), h + "attn/c_proj/bias": (1, d),
+            h + "ln_2/gamma": (d,), h + "ln_2/beta": (d,),
+            h + "mlp/c_fc/weight": (d, 4 * d), h + "mlp/c_fc/bias": (1, 4 * d),
+            h + "mlp/c_proj/weight": (4 * d, d), h + "mlp/c_proj/bias": (1, d),
+        })
+    head = "quaternion_pose_representation/pose_classifier/"
+    shapes.update({
+        "ln_f/gamma": (d,), "ln_f/beta": (d,),
+        head + "c_fc/weight": (d, 2 * d), head + "c_fc/bias": (1, 2 * d),
+        head + "c_proj/weight": (2 * d, 7), head + "c_proj/bias": (1, 7),
+    })
+    return shapes
+
+
+def official_name(name):
+    """'migt/h.0/ln_1/gamma:0' -> 'h.0/ln_1/gamma' (the prefix and suffix are optional)."""
+    if name.startswith("migt/"):
+        name = name[len("migt/"):]
+    if name.endswith(":0"):
+        name = name[:-2]
+    return name
+
+
+@dataclasses.dataclass
+class TransformerOutput:
+    logits: np.ndarray  # (B, N, L, V) generation logits
+    pose_prediction: np.ndarray  # (B, N, L, 7) per token: xyz / pose_multiplier, unit canonical quaternion
+    ce_loss: np.ndarray  # (B,) cross-entropy over views >= n_loss_skip
+    pose_loss: np.ndarray  # (B,) pose loss over views >= n_loss_skip
+    loss: float  # batch mean of image_generation_weight * ce + localization_weight * pose
+
+
+class Transformer:
+    """The model: parameters in `self.params` (official name -> array), forward, backward."""
+
+    def __init__(self, config, seed=0):
+        if not isinstance(config, TransformerConfig):
+            raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
+        self.config = config
+        self.dtype = np.dtype(config.dtype)
+        rng = np.random.default_rng(seed)
+        self.params = {}
+        for name, shape in parameter_shapes(config).items():
+            if name.endswith("gamma"):
+                p = np.ones(shape)
+            elif name.endswith(("bias", "beta")):
+                p = np.zeros(shape)
+            else:  # GPT-2's initialisation: normal(0, 0.02)
+                p = rng.normal(0.0, 0.02, size=shape)
+            self.params[name] = p.astype(self.dtype)
+        self._cache = None
+
+    # -----------------------------------------------------------------------------------
+    # weights
+
+    def state_dict(self):
+        """Official name -> array (copies)."""
+        return {name: p.copy() for name, p in self.params.items()}
+
+    def load_official(self, weights):
+        """Load a dict name -> array named as the published checkpoint (with or without the
+        `migt/` prefix and `:0` suffix). Every name is checked: a missing or unexpected name, a
+        wrong shape, a non-float or non-finite array raises. Arrays are converted to the model's
+        dtype (config.dtype), the one conversion pyvf makes, on purpose: a float32 checkpoint
+        loads into a float64 model for a float64 check."""
+        shapes = parameter_shapes(self.config)
+        loaded = {}
+        for raw_name, arr in weights.items():
+            name = official_name(raw_name)
+            if name not in shapes:
+                raise ValueError(f"load_official: unexpected parameter {raw_name!r} (not in this configuration)")
+            if name in loaded:
+                raise ValueError(f"load_official: parameter {name!r} given twice")
+            arr = np.asarray(arr)
+            if arr.dtype.kind != "f":
+                raise TypeError(f"load_official: {raw_name!r} has dtype {arr.dtype}, expected a float array")
+            if arr.shape != shapes[name]:
+                raise ValueError(f"load_official: {raw_name!r} has shape {arr.shape}, expected {shapes[name]}")
+            if not np.isfinite(arr).all():
+                raise ValueError(f"load_official: {raw_name!r} contains NaN or inf")
+            loaded[name] = np.ascontiguousarray(arr, dtype=self.dtype)
+        missing = [n for n in shapes if n not in loaded]
+        if missing:
+            raise ValueError(f"load_official: {len(missing)} parameters missing, e.g. {missing[:3]}")
+        self.params = loaded
+
+    def save(self, path):
+        """Write the configuration and the parameters to one .npz file."""
+        np.savez(path, __config__=json.dumps(dataclasses.asdict(self.config)), **self.params)
+
+    @classmethod
+    def load(cls, path):
+        """Read a model written by save()."""
+        with np.load(path, allow_pickle=False) as f:
+            config = TransformerConfig(**json.loads(str(f["__config__"])))
+            model = cls(config)
+            model.load_official({k: f[k] for k in f.files if k != "__config__"})
+        return model
+
+    # -----------------------------------------------------------------------------------
+    # input checks
+
+    def _check_inputs(self, tokens, poses):
+        cfg = self.config
+        if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu":
+            raise TypeError(f"tokens must be an integer numpy array, got "
+                            f"{getattr(tokens, 'dtype', type(tokens).__name__)}")
+        if tokens.ndim != 3:
+            raise ValueError(f"tokens must have shape (B, N, L), got {tokens.shape}")
+        B, N, L = tokens.shape
+        if 0 in tokens.shape:
+            raise ValueError(f"tokens has a zero-size dimension: {tokens.shape}")
+        if L > MAX_TOKENS_PER_VIEW:
+            raise ValueError(f"tokens has {L} tokens per view; at most {MAX_TOKENS_PER_VIEW} (the rows of wpe)")
+        lo, hi = tokens.min(), tokens.max()
+        if lo < 0 or hi >= cfg.n_embeddings:
+            raise ValueError(f"tokens must be in [0, {cfg.n_embeddings}), got values in [{lo}, {hi}]")
+        if not isinstance(poses, np.ndarray) or poses.dtype != self.dtype:
+            raise TypeError(f"poses must be a {self.dtype} numpy array (the model's dtype), got "
+                            f"{getattr(poses, 'dtype', type(poses).__name__)}")
+        if poses.shape != (B, N, 7):
+            raise ValueError(f"poses must have shape (B, N, 7) = {(B, N, 7)} (xyz, then quaternion wxyz), "
+                             f"got {poses.shape}")
+        if not np.isfinite(poses).all():
+            raise ValueError("poses contains NaN or inf")
+        return B, N, L
+
+    # -----------------------------------------------------------------------------------
+    # the tree's input rows
+
+    def _embed_forward(self, tokens, poses):
+        """tokens (B, N, L), poses (B, N, 7) -> x (3, B, N, L, d): trunk, generation, localization."""
+        p, V, L = self.params, self.config.n_embeddings, tokens.shape[2]
+        wte = p["wte/weight"]
+        E, c_tok = embedding_forward(tokens, wte)  # (B, N, L, d)
+        W = p["wpe/embeddings"][:L]  # (L, d): token t of every view gets row t
+        pose_in = poses.copy()  # (B, N, 7)
+        pose_in[..., :3] *= self.dtype.type(self.config.pose_multiplier)  # xyz scaled, quaternion unchanged
+        P, c_pose = mlp_forward(pose_in, p["pose_embedding/c_fc/weight"], p["pose_embedding/c_fc/bias"],
+                                p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, N, d)
+        P = P[:, :, None, :]  # (B, N, 1, d), broadcast over the L tokens
+        x = np.stack(np.broadcast_arrays(E + W + P, wte[V] + W + P, E + W + wte[V + 1]))  # (3, B, N, L, d)
+        return x, (c_tok, c_pose, L)
+
+    def _embed_backward(self, dx, cache, grads):
+        c_tok, c_pose, L = cache
+        V = self.config.n_embeddings
+        dtrunk, dgen, dloc = dx  # each (B, N, L, d)
+        (dwte,) = embedding_backward(dtrunk + dloc, c_tok)  # E feeds the trunk and the localization row
+        dwte[V] += dgen.sum(axis=(0, 1, 2))  # the mask token
+        dwte[V + 1] += dloc.sum(axis=(0, 1, 2))  # the localization token
+        grads["wte/weight"] += dwte
+        grads["wpe/embeddings"][:L] += dx.sum(axis=(0, 1, 2))  # W feeds all three rows
+        dP = (dtrunk + dgen).sum(axis=2)  # (B, N, d): P feeds the trunk and the generation row
+        _, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dP, c_pose)
+        grads["pose_embedding/c_fc/weight"] += dw_fc
+        grads["pose_embedding/c_fc/bias"] += db_fc
+        grads["pose_embedding/c_proj/weight"] += dw_proj
+        grads["pose_embedding/c_proj/bias"] += db_proj
+
+    # -----------------------------------------------------------------------------------
+    # one pre-LN block: x = x + attn(ln_1(x)); x = x + mlp(ln_2(x))
+
+    def _block_forward(self, x, j):
+        p, h = self.params, f"h.{j}/"
+        a, c_ln1 = layernorm_forward(x, p[h + "ln_1/gamma"], p[h + "ln_1/beta"])
+        y, c_attn = attention_layer_forward(a, p[h + "attn/c_attn/weight"], p[h + "attn/c_attn/bias"],
+                                            p[h + "attn/c_proj/weight"], p[h + "attn/c_proj/bias"],
+                                            self.config.n_head, self.config.attention_scale)
+        x = x + y  # (R, B, N, L, d)
+        m, c_ln2 = layernorm_forward(x, p[h + "ln_2/gamma"], p[h + "ln_2/beta"])
+        f, c_mlp = mlp_forward(m, p[h + "mlp/c_fc/weight"], p[h + "mlp/c_fc/bias"],
+                               p[h + "mlp/c_proj/weight"], p[h + "mlp/c_proj/bias"])
+        return x + f, (c_ln1, c_attn, c_ln2, c_mlp)
+
+    def _block_backward(self, dx, cache, j, grads):
+        c_ln1, c_attn, c_ln2, c_mlp = cache
+        h = f"h.{j}/"
+        # forward was x2 = x1 + mlp(ln_2(x1))
+        dm, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dx, c_mlp)
+        dx1, dg2, db2 = layernorm_backward(dm, c_ln2)
+        dx = dx + dx1
+        # forward was x1 = x0 + attn(ln_1(x0))
+        da, dw_attn, db_attn, dw_aproj, db_aproj = attention_layer_backward(dx, c_attn)
+        dx0, dg1, db1 = layernorm_backward(da, c_ln1)
+        for name, g in (("ln_1/gamma", dg1), ("ln_1/beta", db1), ("attn/c_attn/weight", dw_attn),
+                        ("attn/c_attn/bias", db_attn), ("attn/c_proj/weight", dw_aproj),
+                        ("attn/c_proj/bias", db_aproj), ("ln_2/gamma", dg2), ("ln_2/beta", db2),
+                        ("mlp/c_fc/weight", dw_fc), ("mlp/c_fc/bias", db_fc),
+                        ("mlp/c_proj/weight", dw_proj), ("mlp/c_proj/bias", db_proj)):
+            grads[h + name] += g
+        return dx + dx0
+
+    # -----------------------------------------------------------------------------------
+    # the heads
+
+    def _heads_forward(self, hg, hl):
+        """hg, hl (B, N, L, d): the generation and localization rows after the last block.
+        -> logits (B, N, L, V), raw pose (B, N, L, 7)."""
+        p, V = self.params, self.config.n_embeddings
+        g, c_lng = layernorm_forward(hg, p["ln_f/gamma"], p["ln_f/beta"])  # (B, N, L, d)
+        l, c_lnl = layernorm_forward(hl, p["ln_f/gamma"], p["ln_f/beta"])
+        d = g.shape[-1]
+        logits = (g.reshape(-1, d) @ p["wte/weight"][:V].T).reshape(*g.shape[:-1], V)  # tied: first V rows of wte
+        head = "quaternion_pose_representation/pose_classifier/"
+        raw, c_head = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
+                                  p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (B, N, L, 7)
+        return logits, raw, (g, c_lng, c_lnl, c_head)
+
+    def _heads_backward(self, dlogits, draw, cache, grads):
+        g, c_lng, c_lnl, c_head = cache
+        p, V, d = self.params, self.config.n_embeddings, g.shape[-1]
+        # forward was logits = g @ wte[:V]^T
+        dl2 = dlogits.reshape(-1, V)  # (M, V)
+        dg = (dl2 @ p["wte/weight"][:V]).reshape(g.shape)  # (B, N, L, d)
+        grads["wte/weight"][:V] += dl2.T @ g.reshape(-1, d)  # (V, d)
+        dl, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(draw, c_head)
+        head = "quaternion_pose_representation/pose_classifier/"
+        grads[head + "c_fc/weight"] += dw_fc
+        grads[head + "c_fc/bias"] += db_fc
+        grads[head + "c_proj/weight"] += dw_proj
+        grads[head + "c_proj/bias"] += db_proj
+        dhg, dgf1, dbf1 = layernorm_backward(dg, c_lng)
+        dhl, dgf2, dbf2 = layernorm_backward(dl, c_lnl)
+        grads["ln_f/gamma"] += dgf1 + dgf2
+        grads["ln_f/beta"] += dbf1 + dbf2
+        return dhg, dhl
+
+    # -----------------------------------------------------------------------------------
+    # the whole model
+
+    def forward(self, tokens, poses):
+        """tokens (B, N, L) ints in [0, V), poses (B, N, 7) of the model's dtype (xyz, unit
+        quaternion wxyz, in the frame the caller chose: training data is usually made relative
+        to the first view, see geometry.make_relative) -> TransformerOutput. The loss needs at
+        least one view past n_loss_skip. Keeps what backward() needs."""
+        cfg = self.config
+        B, N, L = self._check_inputs(tokens, poses)
+        S = cfg.n_loss_skip
+        if N <= S:
+            raise ValueError(f"tokens has N={N} views but n_loss_skip={S}: no view is a loss target")
+        x, c_embed = self._embed_forward(tokens, poses)  # (3, B, N, L, d)
+        c_blocks = []
+        for j in range(cfg.n_layer):
+            x, c = self._block_forward(x, j)
+            c_blocks.append(c)
+        logits, raw, c_heads = self._heads_forward(x[1], x[2])  # (B, N, L, V), (B, N, L, 7)
+
+        # losses over the views S.. (the first S views are pure context)
+        V = cfg.n_embeddings
+        ce_tok, c_ce = cross_entropy_forward(logits[:, S:].reshape(-1, V), tokens[:, S:].reshape(-1),
+                                             cfg.label_smoothing)  # (B*(N-S)*L,)
+        ce = ce_tok.reshape(B, -1).mean(axis=1)  # (B,)
+        pl_tok, c_pl = pose_loss_forward(raw[:, S:], poses[:, S:, None, :], cfg.pose_multiplier)  # (B, N-S, L)
+        pl = pl_tok.reshape(B, -1).mean(axis=1)  # (B,)
+        loss = float(np.mean(cfg.image_generation_weight * ce + cfg.localization_weight * pl))
+
+        self._cache = (c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L))
+        return TransformerOutput(logits=logits, pose_prediction=pose_prediction(raw, cfg.pose_multiplier),
+                                 ce_loss=ce, pose_loss=pl, loss=loss)
+
+    def backward(self):
+        """Gradient of the last forward's `loss` for every parameter: official name -> array."""
+        if self._cache is None:
+            raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
+        c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L) = self._cache
+        cfg, dt = self.config, self.dtype
+        S, V = cfg.n_loss_skip, cfg.n_embeddings
+        grads = {name: np.zeros_like(p) for name, p in self.params.items()}
+        # forward was loss = mean_b(wg * mean_{i >= S, t}(ce) + wl * mean_{i >= S, t}(pose))
+        n_tok = (N - S) * L
+        dce_tok = np.full(B * n_tok, cfg.image_generation_weight / (B * n_tok), dtype=dt)
+        dpl_tok = np.full((B, N - S, L), cfg.localization_weight / (B * n_tok), dtype=dt)
+        dlogits = np.zeros((B, N, L, V), dtype=dt)
+        dlogits[:, S:] = cross_entropy_backward(dce_tok, c_ce)[0].reshape(B, N - S, L, V)
+        draw = np.zeros((B, N, L, 7), dtype=dt)
+        draw[:, S:] = pose_loss_backward(dpl_tok, c_pl)[0]
+        dhg, dhl = self._heads_backward(dlogits, draw, c_heads, grads)
+        dx = np.zeros((3, B, N, L, cfg.d_model), dtype=dt)
+        dx[1], dx[2] = dhg, dhl  # the trunk's output feeds no head
+        for j in reversed(range(cfg.n_layer)):
+            dx = self._block_backward(dx, c_blocks[j], j, grads)
+        self._embed_backward(dx, c_embed, grads)
+        return grads
+
+
+def pose_prediction(raw, pose_multiplier=1.0):
+    """raw (..., 7) from the pose head -> (..., 7): xyz_raw / pose_multiplier and the raw
+    quaternion L2-normalised (eps 1e-12, TF's convention) and sign-canonicalised (w >= 0)."""
+    from .geometry import quat_canonical, quat_normalize
+
+    xyz = raw[..., :3] / raw.dtype.type(pose_multiplier)
+    q = quat_canonical(quat_normalize(raw[..., 3:], eps=1e-12))
+    return np.concatenate([xyz, q], axis=-1)
