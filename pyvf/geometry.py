@@ -1,0 +1,360 @@
+"""Camera poses and quaternions (SPEC.md §3 poses, §6 pose metrics).
+
+A pose is 7 numbers: the camera position xyz, then its orientation as a unit quaternion
+(w, x, y, z), scalar first. Quaternions multiply by the Hamilton product (i*j = k); a unit
+quaternion q rotates a 3-vector v to vec(q * (0, v) * conj(q)).
+
+    q = quat_mul(a, b)                      # (..., 4)    Hamilton product, broadcasting
+    v2 = quat_rotate(q, v)                  # (..., 3)    v rotated by the unit quaternion q
+    rel = relative_poses(poses, ref)        # (..., 7)    poses seen from the camera ref
+    poses = absolute_poses(rel, ref)        # (..., 7)    the inverse
+    rel, ref = make_relative(poses)         # (..., N, 7) relative to view 0, the model's input
+    e_pos = position_error(p1, p2)          # (...)       Euclidean
+    e_ori = orientation_error(q1, q2)       # (...)       degrees, in [0, 180]
+    mean = average_pose(poses, axis=-2)     # a view's pose from its L token predictions
+
+Conventions (each one decided here, tested in tests/test_geometry.py):
+
+* Inputs are float32 or float64 numpy arrays; the result has the input's dtype, and two
+  arrays in one call must share it (nothing is cast). Integer arrays, a wrong last
+  dimension and NaN/inf raise TypeError/ValueError naming the argument.
+* Functions that use a quaternion as a rotation (quat_rotate, relative_poses,
+  absolute_poses, make_relative) require it to be unit: | |q|^2 - 1 | <= 1e-5 (float32) or
+  1e-9 (float64), far above the rounding of any chain of products (a few ulp) and far below
+  a quaternion that was never normalised. Anything else raises ValueError: for a non-unit q
+  the rotation formula is not a rotation (it scales by |q|^2), and quietly normalising would
+  hide a data bug. Call quat_normalize first. The published code asserts the same (its
+  `assert_normalized`, with a tighter tolerance).
+* orientation_error is scale-invariant (it uses only the direction of q1 * conj(q2)), so it
+  takes any non-zero quaternions; a zero quaternion there raises.
+* quat_normalize follows TF's l2_normalize, q / sqrt(max(|q|^2, eps)): a zero quaternion
+  maps to zero, not NaN (the published code's pose prediction and average rely on it).
+* quat_canonical multiplies by -1 where w < 0, exactly as the published code
+  (`quaternion_remove_sign`: sign = +1 where w >= 0). At w == 0 (and w == -0.0) the
+  quaternion is left unchanged, so q and -q with w == 0, the same 180-degree rotation,
+  stay different arrays. That is kept for parity: the model's pose predictions and
+  average_pose are defined by it. tie_break=True gives a unique representative instead.
+"""
+
+import numpy as np
+
+__all__ = [
+    "quat_mul",
+    "quat_conj",
+    "quat_rotate",
+    "quat_normalize",
+    "quat_canonical",
+    "relative_poses",
+    "absolute_poses",
+    "make_relative",
+    "position_error",
+    "orientation_error",
+    "average_pose",
+]
+
+_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+
+# | |q|^2 - 1 | allowed for a quaternion used as a rotation (see the module docstring)
+_UNIT_TOL = {np.dtype(np.float32): 1e-5, np.dtype(np.float64): 1e-9}
+
+
+# ---------------------------------------------------------------------------------------
+# argument checks: every error names the argument and says what was expected
+
+
+def _check(name, x, last, what, like=None, like_name=None):
+    """x: a finite float32/float64 ndarray whose last dimension is one of `last`
+    (and of like's dtype, when given)."""
+    if not isinstance(x, np.ndarray):
+        raise TypeError(f"{name} must be a numpy.ndarray, got {type(x).__name__}")
+    if x.dtype not in _DTYPES:
+        raise TypeError(f"{name} must be float32 or float64, got {x.dtype} (pyvf never casts silently)")
+    if like is not None and x.dtype != like.dtype:
+        raise TypeError(f"{name} is {x.dtype} but {like_name} is {like.dtype}: both must share one dtype")
+    if x.ndim == 0 or x.shape[-1] not in last:
+        want = " or ".join(str(n) for n in last)
+        raise ValueError(f"{name} must have last dimension {want} ({what}), got shape {x.shape}")
+    if not np.isfinite(x).all():
+        raise ValueError(f"{name} contains NaN or inf")
+    return x
+
+
+def _broadcast(name_a, a_shape, name_b, b_shape):
+    try:
+        return np.broadcast_shapes(a_shape, b_shape)
+    except ValueError:
+        raise ValueError(f"{name_a} of shape {a_shape} and {name_b} of shape {b_shape} "
+                         "do not broadcast against each other") from None
+
+
+def _check_unit(name, q):
+    """q (..., 4) must be a unit quaternion up to _UNIT_TOL."""
+    n2 = np.einsum("...i,...i->...", q, q)  # (...) |q|^2
+    dev = np.abs(n2 - 1)
+    if dev.size and dev.max() > _UNIT_TOL[q.dtype]:
+        i = np.unravel_index(np.argmax(dev), dev.shape)
+        raise ValueError(f"{name} must hold unit quaternions (| |q|^2 - 1 | <= {_UNIT_TOL[q.dtype]:g} in "
+                         f"{q.dtype}), but at index {tuple(map(int, i))} |q|^2 = {float(n2[i])!r}: "
+                         "normalise it first with quat_normalize")
+
+
+def _norm3(v):
+    """|v| over the last axis of (..., 3), by hypot: no overflow or underflow of the squares."""
+    return np.hypot(np.hypot(v[..., 0], v[..., 1]), v[..., 2])
+
+
+# ---------------------------------------------------------------------------------------
+# the quaternion algebra, unchecked: every public function checks its arguments once and
+# then composes these
+
+
+def _mul(a, b):
+    """Hamilton product a * b, (..., 4) x (..., 4) -> (..., 4), broadcasting.
+
+    The terms are grouped in pairs that cancel exactly for q * conj(q) and conj(q) * q,
+    so those products have a vector part of exactly 0 (the relative pose of the reference
+    view is the identity rotation to the bit, and orientation_error(q, q) is exactly 0)."""
+    aw, ax, ay, az = (a[..., i] for i in range(4))
+    bw, bx, by, bz = (b[..., i] for i in range(4))
+    w = aw * bw - ax * bx - ay * by - az * bz
+    x = (aw * bx + ax * bw) + (ay * bz - az * by)
+    y = (aw * by + ay * bw) + (az * bx - ax * bz)
+    z = (aw * bz + az * bw) + (ax * by - ay * bx)
+    return np.stack([w, x, y, z], axis=-1)  # (..., 4)
+
+
+def _conj(q):
+    return q * np.array([1, -1, -1, -1], dtype=q.dtype)  # (w, -x, -y, -z)
+
+
+def _rotate(q, v):
+    """vec(q * (0, v) * conj(q)) for unit q, (..., 4) x (..., 3) -> (..., 3).
+
+    Expanded: with u = vec(q), t = 2 u x v, the rotated vector is v + w t + u x t
+    (18 multiplies instead of the 32 of two Hamilton products; equal for |q| = 1)."""
+    w, u = q[..., :1], q[..., 1:]  # (..., 1), (..., 3)
+    t = 2 * np.cross(u, v)  # (..., 3)
+    return v + w * t + np.cross(u, t)  # (..., 3)
+
+
+def _normalize(q, eps):
+    # TF l2_normalize: q / sqrt(max(|q|^2, eps)). |q| by hypot, so a float32 quaternion of
+    # size 1e20 (|q|^2 overflows) or 1e-25 (|q|^2 underflows) still normalises; wherever
+    # |q|^2 is representable this is the same as TF's formula.
+    n = np.hypot(np.hypot(q[..., 0], q[..., 1]), np.hypot(q[..., 2], q[..., 3]))  # (...)
+    floor = q.dtype.type(np.sqrt(eps))
+    return q / np.maximum(n, floor)[..., None]  # (..., 4)
+
+
+def _canonical(q, tie_break=False):
+    if not tie_break:
+        # SPEC.md §3 and the published quaternion_remove_sign: flip where w < 0 only
+        # (w == 0 and w == -0.0 keep their sign)
+        return np.where(q[..., :1] < 0, -q, q)
+    # the first non-zero component of (w, x, y, z) made positive
+    nz = q != 0  # (..., 4)
+    first = np.argmax(nz, axis=-1)[..., None]  # (..., 1) index of the first non-zero (0 if none)
+    lead = np.take_along_axis(q, first, axis=-1)  # (..., 1)
+    return np.where(lead < 0, -q, q)
+
+
+# ---------------------------------------------------------------------------------------
+# quaternions
+
+
+def quat_mul(a, b):
+    """Hamilton product a * b.   a (..., 4), b (..., 4) -> (..., 4), broadcasting.
+
+    (w, x, y, z) order: 1 = (1, 0, 0, 0), i = (0, 1, 0, 0), j, k; i*j = k, j*i = -k.
+    Any quaternions (not only unit ones)."""
+    _check("a", a, (4,), "a quaternion (w, x, y, z)")
+    _check("b", b, (4,), "a quaternion (w, x, y, z)", like=a, like_name="a")
+    _broadcast("a", a.shape, "b", b.shape)
+    return _mul(a, b)
+
+
+def quat_conj(q):
+    """Conjugate (w, -x, -y, -z).   q (..., 4) -> (..., 4). The inverse of a unit quaternion."""
+    _check("q", q, (4,), "a quaternion (w, x, y, z)")
+    return _conj(q)
+
+
+def quat_rotate(q, v):
+    """Rotate 3-vectors by unit quaternions: vec(q * (0, v) * conj(q)).
+
+    q (..., 4) unit, v (..., 3), broadcasting -> (..., 3). q must be unit (see the module
+    docstring: a non-unit q raises ValueError). Argument order (q, v); the published
+    `quaternion_rotate(point, quaternion)` takes them the other way round."""
+    _check("q", q, (4,), "a quaternion (w, x, y, z)")
+    _check("v", v, (3,), "3-vectors", like=q, like_name="q")
+    _broadcast("q", q.shape[:-1], "v", v.shape[:-1])
+    _check_unit("q", q)
+    return _rotate(q, v)
+
+
+def quat_normalize(q, eps=1e-12):
+    """q / sqrt(max(|q|^2, eps)), TF's l2_normalize (SPEC.md §3: eps 1e-12).
+
+    q (..., 4) -> (..., 4). A zero quaternion gives zero (not NaN); |q| < sqrt(eps) = 1e-6
+    gives q / 1e-6, a quaternion shorter than 1, as in TF."""
+    _check("q", q, (4,), "a quaternion (w, x, y, z)")
+    if isinstance(eps, (bool, np.bool_)) or not isinstance(eps, (int, float, np.integer, np.floating)):
+        raise TypeError(f"eps must be a real number, got {type(eps).__name__}")
+    if not (np.isfinite(eps) and eps > 0):
+        raise ValueError(f"eps must be finite and > 0, got {eps!r}")
+    return _normalize(q, float(eps))
+
+
+def quat_canonical(q, *, tie_break=False):
+    """The sign representative of q: -q where w < 0, else q (SPEC.md §3, the published
+    `quaternion_remove_sign`).   q (..., 4) -> (..., 4).
+
+    q and -q are the same rotation. At w == 0 exactly (either sign of zero) q is returned
+    unchanged, as in the published code, so there q and -q stay distinct. tie_break=True
+    instead makes the first non-zero component of (w, x, y, z) positive: then q and -q give
+    the same array for every non-zero q (the zero quaternion stays zero)."""
+    _check("q", q, (4,), "a quaternion (w, x, y, z)")
+    return _canonical(q, bool(tie_break))
+
+
+# ---------------------------------------------------------------------------------------
+# poses
+
+
+def _check_pose(name, p, like=None, like_name=None):
+    _check(name, p, (7,), "a pose: xyz then the quaternion (w, x, y, z)", like=like, like_name=like_name)
+    _check_unit(f"the quaternions of {name}", p[..., 3:])
+
+
+def relative_poses(poses, ref):
+    """Poses in the frame of the camera ref (SPEC.md §3).
+
+    poses (..., 7), ref (..., 7) broadcasting against poses (e.g. poses (B, N, 7) and
+    ref (B, 1, 7)) -> (..., 7). With (t0, q0) = ref and (xyz, q) = poses:
+        xyz' = rotate(conj(q0), xyz - t0),   q' = conj(q0) * q.
+    All quaternions must be unit. The inverse is absolute_poses."""
+    _check_pose("poses", poses)
+    _check_pose("ref", ref, like=poses, like_name="poses")
+    _broadcast("poses", poses.shape, "ref", ref.shape)
+    t0, q0i = ref[..., :3], _conj(ref[..., 3:])  # (..., 3), (..., 4)
+    xyz = _rotate(q0i, poses[..., :3] - t0)  # (..., 3)
+    q = _mul(q0i, poses[..., 3:])  # (..., 4)
+    return np.concatenate([xyz, q], axis=-1)  # (..., 7)
+
+
+def absolute_poses(rel, ref):
+    """The inverse of relative_poses: xyz = rotate(q0, xyz') + t0, q = q0 * q'.
+
+    rel (..., 7), ref (..., 7) broadcasting -> (..., 7). All quaternions must be unit."""
+    _check_pose("rel", rel)
+    _check_pose("ref", ref, like=rel, like_name="rel")
+    _broadcast("rel", rel.shape, "ref", ref.shape)
+    t0, q0 = ref[..., :3], ref[..., 3:]
+    xyz = _rotate(q0, rel[..., :3]) + t0  # (..., 3)
+    q = _mul(q0, rel[..., 3:])  # (..., 4)
+    return np.concatenate([xyz, q], axis=-1)  # (..., 7)
+
+
+def make_relative(poses, *, canonical=True):
+    """A sequence of views made relative to its first view: the model's pose input.
+
+    poses (..., N, 7), e.g. (B, N, 7) -> rel (..., N, 7), ref (..., 7) = poses[..., 0, :]
+    (a copy). rel = relative_poses(poses, ref[..., None, :]), so rel[..., 0, :] is the
+    identity pose (0, 0, 0, 1, 0, 0, 0).
+
+    canonical=True then L2-normalises and sign-canonicalises the relative quaternions, as
+    the published input pipeline does (`process_batch`: quaternion_normalize, then
+    quaternion_remove_sign, after making the poses relative): the pose MLP is not
+    sign-invariant, so this is part of the model's input. absolute_poses(rel, ref) then
+    recovers the poses' rotations up to the sign of the quaternion."""
+    _check_pose("poses", poses)
+    if poses.ndim < 2 or poses.shape[-2] == 0:
+        raise ValueError(f"poses must be (..., N, 7) with N >= 1 views, got shape {poses.shape}")
+    ref = poses[..., 0, :].copy()  # (..., 7)
+    t0, q0i = ref[..., None, :3], _conj(ref[..., None, 3:])  # (..., 1, 3), (..., 1, 4)
+    xyz = _rotate(q0i, poses[..., :3] - t0)  # (..., N, 3)
+    q = _mul(q0i, poses[..., 3:])  # (..., N, 4)
+    if canonical:
+        q = _canonical(_normalize(q, 1e-12))
+    return np.concatenate([xyz, q], axis=-1), ref  # (..., N, 7), (..., 7)
+
+
+# ---------------------------------------------------------------------------------------
+# metrics (SPEC.md §6)
+
+
+def position_error(p1, p2):
+    """Euclidean distance |xyz1 - xyz2|.   p1, p2 (..., 3) positions or (..., 7) poses (only
+    xyz is used), both the same kind, broadcasting -> (...). Computed by hypot (no overflow
+    of the squares)."""
+    _check("p1", p1, (3, 7), "positions xyz, or poses")
+    _check("p2", p2, (3, 7), "positions xyz, or poses", like=p1, like_name="p1")
+    if p1.shape[-1] != p2.shape[-1]:
+        raise ValueError(f"p1 and p2 must both be positions (..., 3) or both poses (..., 7), "
+                         f"got shapes {p1.shape} and {p2.shape}")
+    _broadcast("p1", p1.shape, "p2", p2.shape)
+    return _norm3(p1[..., :3] - p2[..., :3])  # (...)
+
+
+def orientation_error(q1, q2):
+    """The angle in degrees of the rotation q1 * conj(q2), in [0, 180] (SPEC.md §6).
+
+    q1, q2 (..., 4) quaternions or (..., 7) poses (only the quaternion is used), both the
+    same kind, broadcasting -> (...).
+
+        angle = 2 * atan2(|vec(r)|, |w(r)|),   r = q1 * conj(q2).
+
+    The published metric is 2 * asin(|vec(r)|). Both are sign-invariant (q and -q give one
+    angle) and agree for unit inputs, but the asin form is NaN when rounding makes
+    |vec(r)| > 1 and loses half its digits near 180 degrees (asin is flat at 1), and the
+    2 * acos(w) form loses everything near 0 (a 1e-9 rad rotation has w = 1 in float64).
+    atan2 keeps full relative accuracy at every angle and never leaves [0, 180].
+    It depends only on the direction of r, so q1 and q2 need not be unit; zero quaternions
+    (no rotation at all) raise ValueError."""
+    _check("q1", q1, (4, 7), "quaternions (w, x, y, z), or poses")
+    _check("q2", q2, (4, 7), "quaternions (w, x, y, z), or poses", like=q1, like_name="q1")
+    if q1.shape[-1] != q2.shape[-1]:
+        raise ValueError(f"q1 and q2 must both be quaternions (..., 4) or both poses (..., 7), "
+                         f"got shapes {q1.shape} and {q2.shape}")
+    _broadcast("q1", q1.shape, "q2", q2.shape)
+    a, b = q1[..., -4:], q2[..., -4:]
+    for name, q in (("q1", a), ("q2", b)):
+        if (q == 0).all(axis=-1).any():
+            raise ValueError(f"{name} contains a zero quaternion: it is no rotation, the angle is undefined")
+    r = _mul(a, _conj(b))  # (..., 4)
+    s, c = _norm3(r[..., 1:]), np.abs(r[..., 0])  # (...) |vec(r)|, |w(r)|
+    if ((s == 0) & (c == 0)).any():
+        raise ValueError("q1 * conj(q2) underflowed to zero: the quaternions are too small "
+                         f"for {q1.dtype}; normalise them first")
+    return np.degrees(2 * np.arctan2(s, c))  # (...)
+
+
+# ---------------------------------------------------------------------------------------
+# averaging the per-token predictions of a view
+
+
+def average_pose(poses, axis=-2):
+    """The mean pose over `axis` (SPEC.md §3, the published `reduce`/`quaternion_reduce_mean`).
+
+    poses (..., 7) -> the same shape without `axis` (which must not be the last one).
+    xyz: the arithmetic mean. Quaternions: normalised (quat_normalize, eps 1e-12),
+    sign-canonicalised (quat_canonical), averaged, normalised and canonicalised again.
+    Quaternions need not be unit. If the canonicalised quaternions cancel (e.g. all zero, or
+    opposite 180-degree rotations with w == 0) the mean is the zero quaternion, not NaN, as
+    in the published code. Near w == 0 the sign choice splits nearby rotations into
+    opposite hemispheres, so this average is only meaningful for predictions that agree
+    (which is what it is used for: the L token predictions of one view)."""
+    _check("poses", poses, (7,), "a pose: xyz then the quaternion (w, x, y, z)")
+    if isinstance(axis, (bool, np.bool_)) or not isinstance(axis, (int, np.integer)):
+        raise TypeError(f"axis must be an integer, got {type(axis).__name__}")
+    nd = poses.ndim
+    if not -nd <= axis < nd or axis % nd == nd - 1:
+        raise ValueError(f"axis must name one of the leading axes of poses {poses.shape} "
+                         f"(not the last, the pose itself), got {axis}")
+    axis = int(axis) % nd
+    if poses.shape[axis] == 0:
+        raise ValueError(f"poses has no entries along axis {axis}: shape {poses.shape}")
+    xyz = poses[..., :3].mean(axis=axis)  # (..., 3)
+    q = _canonical(_normalize(poses[..., 3:], 1e-12))  # (..., 4)
+    q = _canonical(_normalize(q.mean(axis=axis), 1e-12))  # (..., 4)
+    return np.concatenate([xyz, q], axis=-1)  # (..., 7)

@@ -1,0 +1,434 @@
+"""Optimisers, the learning-rate schedule and gradient clipping (SPEC.md §4, §5).
+
+    opt = AdamW(params, lr=WarmupCosine(1e-4, 2000, 120_000), weight_decay=0.01)
+    norm = clip_grad_norm(grads, 1.0, mode="per_tensor")   # in place
+    opt.step(grads)                                          # params updated in place
+    ckpt = opt.state_dict(); opt2.load_state_dict(ckpt)      # checkpointing
+
+params and grads are dicts name -> numpy array (float32 or float64; a gradient has its
+parameter's shape and dtype). Parameters are updated in place and keep their dtype; the
+moments live in the optimiser, in the parameters' dtype. Nothing is cast.
+
+The published training (SPEC.md §5) maps to these pieces as follows. Transformer: the
+HuggingFace `AdamWeightDecay` over Keras Adam, i.e. AdamW(eps_convention="keras",
+eps=1e-8, decay=published_weight_decay) (Keras Adam without decay when weight_decay is 0),
+2000 warmup steps then cosine decay to 0 (WarmupCosine), and `tf.clip_by_norm` per tensor
+when clipping (clip_grad_norm(mode="per_tensor")). Codebook: torch Adam with betas
+(0.5, 0.9): Adam(params, 1.584e-3, betas=(0.5, 0.9)).
+"""
+
+import math
+import re
+from collections.abc import Mapping
+
+import numpy as np
+
+__all__ = [
+    "AdamW",
+    "Adam",
+    "WarmupCosine",
+    "warmup_cosine_lr",
+    "clip_grad_norm",
+    "published_weight_decay",
+]
+
+_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+# ---------------------------------------------------------------------------------------
+# argument checks: every error names the argument and says what was expected
+
+
+def _real(name, x, lo=None, hi=None, lo_open=False, hi_open=False):
+    """A finite real Python number in [lo, hi] (open ends where asked) -> float."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be a real number, got {type(x).__name__} {x!r}")
+    x = float(x)
+    ok = math.isfinite(x)
+    if ok and lo is not None:
+        ok = x > lo if lo_open else x >= lo
+    if ok and hi is not None:
+        ok = x < hi if hi_open else x <= hi
+    if not ok:
+        rng = f"{'(' if lo_open else '['}{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}{')' if hi_open else ']'}"
+        raise ValueError(f"{name} must be finite and in {rng}, got {x!r}")
+    return x
+
+
+def _int(name, x, lo):
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {type(x).__name__} {x!r}")
+    if x < lo:
+        raise ValueError(f"{name} must be >= {lo}, got {x!r}")
+    return int(x)
+
+
+def _check_array_dict(name, d, writable):
+    """d: a non-empty dict str -> float32/float64 ndarray."""
+    if not isinstance(d, Mapping):
+        raise TypeError(f"{name} must be a dict name -> numpy array, got {type(d).__name__}")
+    if not d:
+        raise ValueError(f"{name} is empty")
+    for k, a in d.items():
+        if not isinstance(k, str):
+            raise TypeError(f"{name}: keys must be str (parameter names), got {type(k).__name__} {k!r}")
+        if not isinstance(a, np.ndarray):
+            raise TypeError(f"{name}[{k!r}] must be a numpy.ndarray, got {type(a).__name__}")
+        if a.dtype not in _DTYPES:
+            raise TypeError(f"{name}[{k!r}] must be float32 or float64, got {a.dtype} (pyvf never casts silently)")
+        if writable and not a.flags.writeable:
+            raise ValueError(f"{name}[{k!r}] is read-only: it is updated in place")
+
+
+def _nonfinite_names(d):
+    return [k for k, a in d.items() if not np.isfinite(a).all()]
+
+
+# ---------------------------------------------------------------------------------------
+# which parameters get weight decay
+
+
+_PUBLISHED_NO_DECAY = re.compile("LayerNorm|layer_norm|bias")
+
+
+def published_weight_decay(name):
+    """True where the published transformer optimiser decays the parameter `name`.
+
+    The HuggingFace `AdamWeightDecay` used by ViewFormer excludes names matching the regexes
+    "LayerNorm", "layer_norm" and "bias" (re.search). With the published names that excludes
+    only the biases: the LayerNorm parameters are `h.{j}/ln_1/gamma` etc., which match none
+    of the patterns, so they are decayed (as are wte, wpe). Pass as AdamW(decay=...)."""
+    if not isinstance(name, str):
+        raise TypeError(f"name must be str, got {type(name).__name__}")
+    return _PUBLISHED_NO_DECAY.search(name) is None
+
+
+# ---------------------------------------------------------------------------------------
+# AdamW
+
+
+class AdamW:
+    """Adam with decoupled weight decay (Loshchilov & Hutter), PyTorch semantics by default.
+
+    params: dict name -> float32/float64 array, updated in place by step().
+    lr: a float, or a schedule: a callable step -> float called with the number of updates
+        already applied (0 for the first update), as Keras calls its schedules with
+        `optimizer.iterations` and torch's LambdaLR starts at lambda(0).
+    betas, eps, weight_decay: as torch.optim.AdamW (defaults 0.9, 0.999; 1e-8; 0.01).
+    decay: which parameters get weight decay: None (all), a collection of names, or a
+        predicate name -> bool (e.g. published_weight_decay).
+    eps_convention: "torch" (default) or "keras", where eps enters the update:
+
+    Update t (t = 1, 2, ...), every parameter p with gradient g, lr = lr(t - 1):
+
+        p *= 1 - lr * weight_decay                    (decayed parameters only)
+        m = b1 * m + (1 - b1) * g
+        v = b2 * v + (1 - b2) * g^2
+        torch:  p -= lr / (1 - b1^t) * m / (sqrt(v) / sqrt(1 - b2^t) + eps)
+        keras:  p -= lr * sqrt(1 - b2^t) / (1 - b1^t) * m / (sqrt(v) + eps)
+
+    torch adds eps to the bias-corrected sqrt(v_hat); Keras/TF (`ResourceApplyAdam`, which
+    the published transformer used) adds it to the raw sqrt(v) and folds the bias corrections
+    into the step size. Keras therefore equals torch with eps replaced by
+    eps / sqrt(1 - b2^t): a larger epsilon early on (31.6x at t = 1 with b2 = 0.999, 3.2x at
+    t = 100) that tends to the same one as t grows. The two agree exactly when eps is
+    negligible against sqrt(v_hat). Weight decay is decoupled in both (the published
+    `AdamWeightDecay` subtracts lr * wd * p before the Adam step, as torch multiplies by
+    1 - lr * wd); it uses the scheduled lr, not the bias-corrected step size.
+
+    All arithmetic is in the parameters' dtype; the bias corrections and step sizes are
+    Python floats (float64). state_dict()/load_state_dict() save and restore the step count
+    and the moments, so that a run that is saved, loaded and continued matches an
+    uninterrupted run bit for bit.
+    """
+
+    def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2, *,
+                 decay=None, eps_convention="torch"):
+        _check_array_dict("params", params, writable=True)
+        bad = _nonfinite_names(params)
+        if bad:
+            raise ValueError(f"params contain NaN or inf: {bad}")
+        if callable(lr):
+            self.lr = lr
+        else:
+            self.lr = _real("lr", lr, lo=0.0)
+        if not isinstance(betas, (tuple, list)) or len(betas) != 2:
+            raise TypeError(f"betas must be a pair (beta1, beta2), got {betas!r}")
+        self.betas = (_real("betas[0]", betas[0], 0.0, 1.0, hi_open=True),
+                      _real("betas[1]", betas[1], 0.0, 1.0, hi_open=True))
+        # eps > 0: with eps = 0 a parameter whose gradients have all been 0 gets 0 / 0
+        self.eps = _real("eps", eps, lo=0.0, lo_open=True)
+        self.weight_decay = _real("weight_decay", weight_decay, lo=0.0)
+        if eps_convention not in ("torch", "keras"):
+            raise ValueError(f"eps_convention must be 'torch' or 'keras', got {eps_convention!r}")
+        self.eps_convention = eps_convention
+        self.decayed = self._resolve_decay(decay, params)  # frozenset of names
+        self.params = params
+        self.step_count = 0
+        self.exp_avg = {k: np.zeros_like(p) for k, p in params.items()}
+        self.exp_avg_sq = {k: np.zeros_like(p) for k, p in params.items()}
+
+    @staticmethod
+    def _resolve_decay(decay, params):
+        if decay is None:
+            return frozenset(params)
+        if callable(decay):
+            out = set()
+            for k in params:
+                ans = decay(k)
+                if not isinstance(ans, (bool, np.bool_)):
+                    raise TypeError(f"decay({k!r}) must return a bool, got {type(ans).__name__}")
+                if ans:
+                    out.add(k)
+            return frozenset(out)
+        if isinstance(decay, str) or not isinstance(decay, (set, frozenset, list, tuple)):
+            raise TypeError("decay must be None, a collection of parameter names or a predicate "
+                            f"name -> bool, got {type(decay).__name__}")
+        unknown = sorted(set(decay) - set(params))
+        if unknown:
+            raise ValueError(f"decay names parameters that are not in params: {unknown}")
+        return frozenset(decay)
+
+    def lr_at(self, step):
+        """The learning rate of the update that follows `step` applied updates."""
+        lr = self.lr(step) if callable(self.lr) else self.lr
+        return _real(f"lr({step})", lr, lo=0.0)
+
+    def step(self, grads):
+        """Apply one update. grads: dict with exactly the parameters' names, each array of
+        its parameter's shape and dtype, finite (NaN/inf raise ValueError and nothing is
+        updated). grads are not modified. Returns the learning rate used."""
+        _check_array_dict("grads", grads, writable=False)
+        missing, extra = sorted(set(self.params) - set(grads)), sorted(set(grads) - set(self.params))
+        if missing or extra:
+            raise ValueError(f"grads must have exactly the parameters' names: missing {missing}, unknown {extra}")
+        for k, p in self.params.items():
+            g = grads[k]
+            if g.dtype != p.dtype:
+                raise TypeError(f"grads[{k!r}] is {g.dtype} but the parameter is {p.dtype}")
+            if g.shape != p.shape:
+                raise ValueError(f"grads[{k!r}] has shape {g.shape} but the parameter has shape {p.shape}")
+        bad = _nonfinite_names(grads)
+        if bad:
+            raise ValueError(f"grads contain NaN or inf in {bad}: no update applied "
+                             "(skip this step, or lower the learning rate / loss scale)")
+        lr = self.lr_at(self.step_count)
+        self.step_count += 1
+        t = self.step_count
+        b1, b2 = self.betas
+        bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t  # bias corrections
+        wd, eps = self.weight_decay, self.eps
+        for k, p in self.params.items():
+            g, m, v = grads[k], self.exp_avg[k], self.exp_avg_sq[k]
+            if wd != 0 and k in self.decayed:
+                p *= 1 - lr * wd  # decoupled decay, before the Adam step (torch and HF AdamWeightDecay)
+            m *= b1
+            m += (1 - b1) * g  # m = b1 m + (1 - b1) g
+            v *= b2
+            v += (1 - b2) * g * g  # v = b2 v + (1 - b2) g^2
+            if self.eps_convention == "torch":
+                denom = np.sqrt(v) / math.sqrt(bc2) + eps  # sqrt(v_hat) + eps
+                p -= (lr / bc1) * (m / denom)
+            else:
+                step_size = lr * math.sqrt(bc2) / bc1  # Keras lr_t
+                p -= (m * step_size) / (np.sqrt(v) + eps)  # TF ResourceApplyAdam's order
+        return lr
+
+    # -----------------------------------------------------------------------------------
+    # checkpointing
+
+    def _hyper(self):
+        return {"betas": tuple(self.betas), "eps": self.eps, "weight_decay": self.weight_decay,
+                "eps_convention": self.eps_convention, "decayed": sorted(self.decayed)}
+
+    def state_dict(self):
+        """{'step': int, 'exp_avg': {name: array}, 'exp_avg_sq': {name: array},
+        'hyperparameters': {...}}: copies, independent of later updates. The learning rate
+        (possibly a callable) is not saved: the schedule is a function of 'step'."""
+        return {
+            "step": self.step_count,
+            "exp_avg": {k: a.copy() for k, a in self.exp_avg.items()},
+            "exp_avg_sq": {k: a.copy() for k, a in self.exp_avg_sq.items()},
+            "hyperparameters": self._hyper(),
+        }
+
+    def load_state_dict(self, state):
+        """Restore a state_dict() (copied in). The parameters' names, shapes and dtypes and the
+        hyperparameters (betas, eps, weight decay and which parameters it applies to, the eps
+        convention) must be the saved ones, else ValueError: the moments mean nothing under
+        other ones. The parameters themselves are checkpointed separately."""
+        if not isinstance(state, Mapping):
+            raise TypeError(f"state must be a dict from state_dict(), got {type(state).__name__}")
+        missing = {"step", "exp_avg", "exp_avg_sq", "hyperparameters"} - set(state)
+        if missing:
+            raise ValueError(f"state lacks {sorted(missing)}: not a state_dict() of AdamW")
+        step = _int("state['step']", state["step"], 0)
+        hyper = dict(state["hyperparameters"])
+        hyper["betas"] = tuple(hyper.get("betas", ()))
+        hyper["decayed"] = sorted(hyper.get("decayed", ()))
+        if hyper != self._hyper():
+            diff = sorted(k for k in set(hyper) | set(self._hyper()) if hyper.get(k) != self._hyper().get(k))
+            raise ValueError(f"state was saved with other hyperparameters ({diff}): construct the "
+                             f"optimiser with the saved ones {hyper}")
+        new = {}
+        for key in ("exp_avg", "exp_avg_sq"):
+            d = state[key]
+            _check_array_dict(f"state[{key!r}]", d, writable=False)
+            if set(d) != set(self.params):
+                raise ValueError(f"state[{key!r}] has names {sorted(d)} but params has {sorted(self.params)}")
+            for k, p in self.params.items():
+                if d[k].dtype != p.dtype or d[k].shape != p.shape:
+                    raise ValueError(f"state[{key!r}][{k!r}] is {d[k].dtype}{d[k].shape} but the parameter "
+                                     f"is {p.dtype}{p.shape}")
+            bad = _nonfinite_names(d)
+            if bad:
+                raise ValueError(f"state[{key!r}] contains NaN or inf in {bad}")
+            new[key] = {k: np.array(d[k], copy=True) for k in self.params}
+        if any((a < 0).any() for a in new["exp_avg_sq"].values()):
+            raise ValueError("state['exp_avg_sq'] has negative entries: not a second moment")
+        self.step_count = step
+        self.exp_avg, self.exp_avg_sq = new["exp_avg"], new["exp_avg_sq"]
+
+
+class Adam(AdamW):
+    """Adam without weight decay: AdamW with weight_decay = 0 (no L2 term either; torch's
+    Adam(weight_decay=...) adds wd * p to the gradient, which this does not offer).
+    The codebook (SPEC.md §4): Adam(params, 1.584e-3, betas=(0.5, 0.9))."""
+
+    def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, *, eps_convention="torch"):
+        super().__init__(params, lr, betas, eps, 0.0, eps_convention=eps_convention)
+
+
+# ---------------------------------------------------------------------------------------
+# learning-rate schedule
+
+
+def warmup_cosine_lr(step, peak_lr, warmup_steps, total_steps, min_lr_ratio=0.0):
+    """Linear warmup then cosine decay (SPEC.md §5), as the published HuggingFace `WarmUp`
+    over Keras `CosineDecay(peak_lr, total_steps - warmup_steps, alpha=min_lr_ratio)`.
+
+    step: updates already applied (0 for the first update; see AdamW). With W = warmup_steps,
+    T = total_steps, final = peak_lr * min_lr_ratio:
+
+        step <= W:      peak_lr * step / W            (0 at step 0, peak_lr at step W exactly)
+        W < step < T:   final + (peak_lr - final) * (1 + cos(pi * (step - W) / (T - W))) / 2
+        step >= T:      final                         (exactly)
+
+    With W = 0 the schedule starts at peak_lr. The published run used W = 2000 and
+    min_lr_ratio = 0, so its first update has lr 0 (the moments still accumulate)."""
+    step = _int("step", step, 0)
+    peak_lr = _real("peak_lr", peak_lr, lo=0.0)
+    warmup_steps = _int("warmup_steps", warmup_steps, 0)
+    total_steps = _int("total_steps", total_steps, 1)
+    if total_steps <= warmup_steps:
+        raise ValueError(f"total_steps ({total_steps}) must exceed warmup_steps ({warmup_steps})")
+    min_lr_ratio = _real("min_lr_ratio", min_lr_ratio, 0.0, 1.0)
+    final = peak_lr * min_lr_ratio
+    if step <= warmup_steps and warmup_steps > 0:
+        return peak_lr * (step / warmup_steps)
+    if step >= total_steps:
+        return final
+    frac = (step - warmup_steps) / (total_steps - warmup_steps)  # in [0, 1)
+    # Keras CosineDecay: peak * ((1 - alpha) * c + alpha), c = (1 + cos(pi frac)) / 2
+    return peak_lr * ((1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * frac)) + min_lr_ratio)
+
+
+class WarmupCosine:
+    """warmup_cosine_lr as a callable step -> lr, for AdamW(lr=...). Arguments are checked
+    when constructed."""
+
+    def __init__(self, peak_lr, warmup_steps, total_steps, min_lr_ratio=0.0):
+        warmup_cosine_lr(0, peak_lr, warmup_steps, total_steps, min_lr_ratio)  # validates
+        self.peak_lr, self.warmup_steps = float(peak_lr), int(warmup_steps)
+        self.total_steps, self.min_lr_ratio = int(total_steps), float(min_lr_ratio)
+
+    def __call__(self, step):
+        return warmup_cosine_lr(step, self.peak_lr, self.warmup_steps, self.total_steps, self.min_lr_ratio)
+
+    def __repr__(self):
+        return (f"WarmupCosine(peak_lr={self.peak_lr!r}, warmup_steps={self.warmup_steps}, "
+                f"total_steps={self.total_steps}, min_lr_ratio={self.min_lr_ratio!r})")
+
+
+# ---------------------------------------------------------------------------------------
+# gradient clipping
+
+
+_TINY, _HUGE = 1e-100, 1e100  # outside this range of max|g| the squares are rescaled first
+
+
+def _norm64(g):
+    """|g|_2 accumulated in float64 (a Python float). Tensors whose largest entry is beyond
+    1e+-100 are divided by it first, so a finite float64 gradient of 1e200 or 1e-200 gets
+    its norm instead of inf or 0."""
+    x = g.astype(np.float64, copy=False).ravel()
+    if x.size == 0:
+        return 0.0
+    amax = float(np.abs(x).max())
+    if amax == 0.0:
+        return 0.0
+    if amax > _HUGE or amax < _TINY:
+        y = x / amax
+        return amax * math.sqrt(float(np.dot(y, y)))
+    return math.sqrt(float(np.dot(x, x)))
+
+
+def _hypot_all(norms):
+    """sqrt(sum n^2) of Python floats, rescaled like _norm64."""
+    amax = max(norms, default=0.0)
+    if amax == 0.0:
+        return 0.0
+    return amax * math.sqrt(math.fsum((n / amax) ** 2 for n in norms))
+
+
+def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, eps=1e-6):
+    """Clip gradients in place; returns the norm(s) before clipping, accumulated in float64.
+
+    grads: dict name -> float32/float64 array (writable).
+    mode="global": torch.nn.utils.clip_grad_norm_. total = sqrt(sum over tensors of |g|^2);
+        if total + eps > max_norm every gradient is multiplied by max_norm / (total + eps)
+        (torch's eps = 1e-6; eps=0 gives tf.clip_by_global_norm). Returns total (a float).
+    mode="per_tensor": tf.clip_by_norm on each tensor alone (Keras `clipnorm`, and what the
+        published transformer does with `gradient_clip_val`): a tensor with |g| > max_norm
+        becomes g * (max_norm / |g|); the others are left untouched (TF computes
+        (g * max_norm) / max(|g|, max_norm) for every tensor, which can move the last bit,
+        or overflow g * max_norm; this does neither).
+        Returns {name: |g|}.
+    All-zero gradients are left as they are (no 0/0). Non-finite gradients: with
+    error_if_nonfinite=True (default) ValueError naming the tensors, before anything is
+    modified; with False nothing is modified and the non-finite norm is returned (nan or
+    inf; in per_tensor mode for those tensors, the finite ones are still clipped), so that
+    the caller can skip the step. AdamW.step refuses non-finite gradients in any case."""
+    _check_array_dict("grads", grads, writable=True)
+    max_norm = _real("max_norm", max_norm, lo=0.0, lo_open=True)
+    eps = _real("eps", eps, lo=0.0)
+    if mode not in ("global", "per_tensor"):
+        raise ValueError(f"mode must be 'global' or 'per_tensor', got {mode!r}")
+    bad = _nonfinite_names(grads)
+    if bad and error_if_nonfinite:
+        raise ValueError(f"grads contain NaN or inf in {bad}: cannot clip "
+                         "(error_if_nonfinite=False returns the non-finite norm instead)")
+
+    def norm_of(g):
+        if not np.isfinite(g).all():
+            return float(np.linalg.norm(g.astype(np.float64, copy=False).ravel()))  # nan or inf
+        n = _norm64(g)
+        if not math.isfinite(n):
+            raise ValueError("a gradient norm overflows float64")
+        return n
+
+    norms = {k: norm_of(g) for k, g in grads.items()}
+    if mode == "per_tensor":
+        for k, g in grads.items():
+            n = norms[k]
+            if math.isfinite(n) and n > max_norm:
+                g *= max_norm / n  # tf.clip_by_norm: g * max_norm / |g|
+        return norms
+    if bad:
+        return math.nan if any(math.isnan(n) for n in norms.values()) else math.inf
+    total = _hypot_all(list(norms.values()))
+    if total + eps > max_norm:
+        coef = max_norm / (total + eps)  # < 1
+        for g in grads.values():
+            g *= coef
+    return total

@@ -1,0 +1,582 @@
+"""Tests of pyvf.geometry (SPEC.md §3 poses, §6 pose metrics): the quaternion algebra in closed
+form, rotations against rotation matrices built independently (Rodrigues' formula from an axis and
+an angle, and torch), relative/absolute poses (round trip, the reference view, invariance to moving
+the whole scene), the orientation error against the published asin form and closed-form angles,
+the pose average, hard cases and argument checks.
+
+Shapes: quaternions (..., 4) as (w, x, y, z); vectors (..., 3); poses (..., 7) = xyz then the
+quaternion. Relative errors are normwise (conftest.assert_close): max|got - want| / max|want|.
+"""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from pyvf import geometry as geo
+
+from conftest import assert_bitwise_equal, assert_close
+
+U32 = 2.0 ** -24  # float32 unit roundoff
+U64 = 2.0 ** -53  # float64 unit roundoff
+
+# A quaternion product or rotation is a handful of multiply-adds of O(1) numbers: a few ulp.
+# 8 ulp of headroom in float64, 16 in float32 (the float32 inputs are themselves rounded).
+RTOL64 = 8 * U64 * 4  # 3.6e-15
+RTOL32 = 16 * U32 * 4  # 3.8e-6
+
+DTYPES = [np.float64, np.float32]
+RTOL = {np.float64: RTOL64, np.float32: RTOL32}
+
+
+# ---------------------------------------------------------------------------------------
+# independent helpers (not taken from pyvf)
+
+
+def unit_quats(rng, shape, dtype=np.float64):
+    """Random unit quaternions (uniform on the sphere), normalised here in float64."""
+    q = rng.standard_normal(tuple(shape) + (4,))
+    return (q / np.linalg.norm(q, axis=-1, keepdims=True)).astype(dtype)
+
+
+def axis_angle_quat(axis, angle):
+    """q = (cos(angle/2), sin(angle/2) * axis/|axis|), float64."""
+    n = np.asarray(axis, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    return np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * n])
+
+
+def rodrigues(axis, angle):
+    """(3, 3) rotation matrix R = cos t I + sin t [n]x + (1 - cos t) n n^T, float64."""
+    n = np.asarray(axis, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    nx = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+    return math.cos(angle) * np.eye(3) + math.sin(angle) * nx + (1 - math.cos(angle)) * np.outer(n, n)
+
+
+def hamilton_left_matrix(a):
+    """(..., 4, 4) matrix L(a) with a * b = L(a) @ b, written from i^2 = j^2 = k^2 = ijk = -1."""
+    w, x, y, z = (a[..., i] for i in range(4))
+    return np.stack([
+        np.stack([w, -x, -y, -z], -1),
+        np.stack([x, w, -z, y], -1),
+        np.stack([y, z, w, -x], -1),
+        np.stack([z, -y, x, w], -1),
+    ], -2)
+
+
+def torch_quat_to_matrix(q):
+    """(..., 3, 3) rotation matrix of unit quaternions q (..., 4), the textbook formula in torch."""
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def random_poses(rng, shape, dtype=np.float64, scale=3.0):
+    xyz = scale * rng.standard_normal(tuple(shape) + (3,))
+    return np.concatenate([xyz, unit_quats(rng, shape)], -1).astype(dtype)
+
+
+def published_orientation_error(q1, q2):
+    """The published metric (viewformer/utils/metrics.py): normalise both, then
+    2 * asin(|vec(q1 * conj(q2))|), in degrees. Uses pyvf's product (tested above)."""
+    a, b = geo.quat_normalize(q1), geo.quat_normalize(q2)
+    r = geo.quat_mul(a, geo.quat_conj(b))
+    with np.errstate(invalid="ignore"):
+        return np.degrees(2 * np.arcsin(np.sqrt(np.sum(r[..., 1:] ** 2, axis=-1))))
+
+
+# ---------------------------------------------------------------------------------------
+# the quaternion algebra
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_quat_mul_closed_form_units(dtype):
+    """i*j = k, j*k = i, k*i = j, j*i = -k, i^2 = j^2 = k^2 = ijk = -1, 1 is the identity: exact."""
+    one, i, j, k = (np.eye(4, dtype=dtype)[n] for n in range(4))
+    m = geo.quat_mul
+    for got, want in [(m(i, j), k), (m(j, k), i), (m(k, i), j),
+                      (m(j, i), -k), (m(k, j), -i), (m(i, k), -j),
+                      (m(i, i), -one), (m(j, j), -one), (m(k, k), -one), (m(m(i, j), k), -one),
+                      (m(one, i), i), (m(j, one), j)]:
+        assert got.dtype == dtype
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_quat_mul_against_matrix_form_and_broadcasting(rng, dtype):
+    """Random non-unit quaternions, shapes (2, 1, 4) x (3, 4): the product equals L(a) @ b."""
+    a = rng.standard_normal((2, 1, 4)).astype(dtype)
+    b = rng.standard_normal((3, 4)).astype(dtype)
+    got = geo.quat_mul(a, b)
+    assert got.shape == (2, 3, 4) and got.dtype == dtype
+    a64, b64 = np.broadcast_arrays(a.astype(np.float64), b.astype(np.float64))
+    want = np.einsum("...ij,...j->...i", hamilton_left_matrix(a64), b64)
+    assert_close("quat_mul", got, want, rtol=RTOL[dtype])
+
+
+def test_quat_algebra_identities(rng):
+    """Associativity, |ab| = |a||b|, conj(ab) = conj(b) conj(a), q conj(q) = |q|^2 (vector part
+    exactly 0, by the pairing of terms in the product). float64, random non-unit quaternions."""
+    a, b, c = (rng.standard_normal((50, 4)) for _ in range(3))
+    m, cj = geo.quat_mul, geo.quat_conj
+    assert_close("(ab)c vs a(bc)", m(m(a, b), c), m(a, m(b, c)), rtol=RTOL64)
+    assert_close("|ab|", np.linalg.norm(m(a, b), axis=-1),
+                 np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), rtol=RTOL64)
+    assert_close("conj(ab)", cj(m(a, b)), m(cj(b), cj(a)), rtol=RTOL64)
+    for r in (m(a, cj(a)), m(cj(a), a)):
+        assert (r[:, 1:] == 0).all()
+        assert_close("q conj(q)", r[:, 0], np.sum(a * a, axis=-1), rtol=RTOL64)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_quat_rotate_against_rodrigues(rng, dtype):
+    """quat_rotate(q(axis, angle), v) = R(axis, angle) v, R from Rodrigues' formula."""
+    for _ in range(20):
+        axis, angle = rng.standard_normal(3), rng.uniform(-2 * math.pi, 2 * math.pi)
+        v = rng.standard_normal((6, 3))
+        got = geo.quat_rotate(axis_angle_quat(axis, angle).astype(dtype), v.astype(dtype))
+        assert got.dtype == dtype
+        assert_close("rotate vs Rodrigues", got, v @ rodrigues(axis, angle).T, rtol=RTOL[dtype])
+
+
+def test_quat_rotate_against_torch_matrix_and_sandwich(rng):
+    """Broadcast q (5, 1, 4) against v (1, 6, 3): equals torch's R(q) v and the Hamilton sandwich
+    vec(q (0, v) conj(q)) (the published quaternion_rotate); 90-degree rotations about the axes
+    are exact permutations."""
+    q, v = unit_quats(rng, (5, 1)), rng.standard_normal((1, 6, 3))
+    got = geo.quat_rotate(q, v)  # (5, 6, 3)
+    R = torch_quat_to_matrix(torch.from_numpy(q))  # (5, 1, 3, 3)
+    want = torch.einsum("...ij,...j->...i", R, torch.from_numpy(v)).numpy()
+    assert_close("rotate vs torch matrix", got, want, rtol=RTOL64)
+    v0 = np.concatenate([np.zeros((1, 6, 1)), v], -1)
+    sandwich = geo.quat_mul(geo.quat_mul(q, v0), geo.quat_conj(q))[..., 1:]
+    assert_close("rotate vs sandwich", got, sandwich, rtol=RTOL64)
+    s = math.sqrt(0.5)
+    qz = np.array([s, 0, 0, s])  # +90 degrees about z: x -> y, y -> -x
+    assert_close("90 deg about z", geo.quat_rotate(qz, np.eye(3)), np.array([[0, 1, 0], [-1, 0, 0], [0, 0, 1.]]),
+                 rtol=RTOL64)
+
+
+def test_quat_rotate_large_vectors(rng):
+    """|v| = 1e6: the rotation keeps full relative accuracy (and the length)."""
+    q = unit_quats(rng, (10,))
+    v = 1e6 * rng.standard_normal((10, 3))
+    got = geo.quat_rotate(q, v)
+    want = torch.einsum("nij,nj->ni", torch_quat_to_matrix(torch.from_numpy(q)), torch.from_numpy(v)).numpy()
+    assert_close("rotate 1e6", got, want, rtol=RTOL64)
+    assert_close("length kept", np.linalg.norm(got, axis=-1), np.linalg.norm(v, axis=-1), rtol=RTOL64)
+
+
+def test_quat_rotate_requires_unit(rng):
+    """A non-unit q (here 1.001 q) raises and says to normalise; a float32 quaternion normalised in
+    float32 (|q|^2 - 1 ~ 1e-7) passes."""
+    q = unit_quats(rng, (4,))
+    with pytest.raises(ValueError, match=r"^q must hold unit quaternions.*quat_normalize"):
+        geo.quat_rotate(1.001 * q, np.ones((4, 3)))
+    q32 = rng.standard_normal((1000, 4)).astype(np.float32)
+    q32 = q32 / np.sqrt(np.sum(q32 * q32, axis=-1, keepdims=True))
+    geo.quat_rotate(q32, np.ones((1000, 3), np.float32))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_quat_normalize_tf_convention(rng, dtype):
+    """q / sqrt(max(|q|^2, 1e-12)): random q as the formula; a zero quaternion gives exactly 0
+    with no warning; |q| = 1e-7 < sqrt(eps) gives q / 1e-6 (TF's floor), not a unit quaternion."""
+    q = rng.standard_normal((30, 4)).astype(dtype)
+    q64 = q.astype(np.float64)
+    want = q64 / np.sqrt(np.maximum(np.sum(q64 * q64, -1, keepdims=True), 1e-12))
+    got = geo.quat_normalize(q)
+    assert got.dtype == dtype
+    assert_close("normalize", got, want, rtol=RTOL[dtype])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        z = geo.quat_normalize(np.zeros((2, 4), dtype))
+    assert_bitwise_equal("normalize(0)", z, np.zeros((2, 4), dtype))
+    tiny = np.array([1e-7, 0, 0, 0], dtype)
+    assert_close("normalize below the floor", geo.quat_normalize(tiny), np.array([0.1, 0, 0, 0]), rtol=RTOL[dtype])
+
+
+def test_quat_normalize_no_overflow_or_underflow():
+    """float32 quaternions of size 1e20 (|q|^2 = 4e40 overflows float32: TF's formula gives 0) and
+    of size 1e-25 with eps = 1e-60 (|q|^2 = 1e-50 underflows to 0 in float32: TF's formula gives
+    0/0) both normalise to the unit quaternion."""
+    q = np.array([1e20, -1e20, 1e20, 1e20], np.float32)
+    with np.errstate(over="ignore"):
+        tf_like = q / np.sqrt(np.maximum(np.sum(q * q), np.float32(1e-12)))
+    assert (tf_like == 0).all()  # the naive formula loses it
+    assert_close("1e20 float32", geo.quat_normalize(q), np.array([0.5, -0.5, 0.5, 0.5]), rtol=RTOL32)
+    q = np.array([1e-25, 0, 0, -1e-25], np.float32)
+    assert np.sum(q * q) == 0  # the squares underflow
+    assert_close("1e-25 float32", geo.quat_normalize(q, eps=1e-60),
+                 np.array([math.sqrt(0.5), 0, 0, -math.sqrt(0.5)]), rtol=RTOL32)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_quat_canonical(rng, dtype):
+    """-q where w < 0, q where w > 0; at w == 0 (either sign of zero) q unchanged, bit for bit, as
+    the published quaternion_remove_sign. tie_break=True maps q and -q to one array for every
+    non-zero q, including w == 0 and w == x == 0; zero stays zero."""
+    q = unit_quats(rng, (20,), dtype)
+    got = geo.quat_canonical(q)
+    assert got.dtype == dtype and (got[:, 0] >= 0).all()
+    assert_bitwise_equal("canonical", got, np.where(q[:, :1] < 0, -q, q))
+    w0 = np.array([[0.0, -0.6, 0.8, 0], [-0.0, -0.6, 0.8, 0], [0, 0, -1, 0]], dtype)
+    assert_bitwise_equal("w == 0 kept", geo.quat_canonical(w0), w0)
+    assert_bitwise_equal("w == 0 kept for -q", geo.quat_canonical(-w0), -w0)
+    both = np.concatenate([q, w0, np.array([[0, 0, 0, -1.0]], dtype)])
+    a, b = geo.quat_canonical(both, tie_break=True), geo.quat_canonical(-both, tie_break=True)
+    np.testing.assert_array_equal(a, b)  # value equality: -0.0 == 0.0
+    lead = np.take_along_axis(a, np.argmax(a != 0, axis=-1)[:, None], -1)
+    assert (lead > 0).all()
+    np.testing.assert_array_equal(geo.quat_canonical(np.zeros(4, dtype), tie_break=True), np.zeros(4))
+
+
+# ---------------------------------------------------------------------------------------
+# poses
+
+
+def test_relative_poses_closed_form():
+    """ref at (1, 2, 3) turned +90 degrees about z (its x axis points along world y). A camera at
+    (1, 3, 3) (one unit along the ref's x) turned +90 + 30 degrees about z is, seen from ref, at
+    (1, 0, 0) and turned 30 degrees about z."""
+    ref = np.concatenate([[1.0, 2, 3], axis_angle_quat([0, 0, 1], math.pi / 2)])
+    pose = np.concatenate([[1.0, 3, 3], axis_angle_quat([0, 0, 1], math.pi / 2 + math.pi / 6)])
+    want = np.concatenate([[1.0, 0, 0], axis_angle_quat([0, 0, 1], math.pi / 6)])
+    assert_close("relative pose", geo.relative_poses(pose, ref), want, rtol=RTOL64)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_relative_absolute_round_trip(rng, dtype):
+    """absolute_poses(relative_poses(p, ref), ref) = p: float64 to 1e-12 (measured 1.9e-15 over
+    50 draws: a rotation there and back), float32 to 1e-5 (measured 7.4e-7: two rotations of
+    |xyz| ~ 10, a few ulp each)."""
+    poses = random_poses(rng, (4, 6), dtype)
+    ref = random_poses(rng, (4, 1), dtype)
+    rel = geo.relative_poses(poses, ref)
+    assert rel.shape == (4, 6, 7) and rel.dtype == dtype
+    back = geo.absolute_poses(rel, ref)
+    assert back.dtype == dtype
+    assert_close("round trip", back, poses, rtol=1e-12 if dtype == np.float64 else 1e-5)
+    assert_close("other way", geo.relative_poses(geo.absolute_poses(poses, ref), ref), poses,
+                 rtol=1e-12 if dtype == np.float64 else 1e-5)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_make_relative_first_view_is_identity(rng, dtype):
+    """rel[:, 0] = (0, 0, 0, 1, 0, 0, 0): the position and the quaternion's vector part exactly 0,
+    w = 1 to the ulp; ref is a copy of view 0; with canonical=True every w >= 0 and |q| = 1, and
+    absolute_poses(rel, ref) gives the poses back (rotations up to the quaternion's sign)."""
+    poses = random_poses(rng, (3, 5), dtype)
+    rel, ref = geo.make_relative(poses)
+    assert rel.shape == (3, 5, 7) and ref.shape == (3, 7) and rel.dtype == ref.dtype == dtype
+    assert_bitwise_equal("ref", ref, poses[:, 0])
+    assert not np.shares_memory(ref, poses)
+    assert (rel[:, 0, :3] == 0).all() and (rel[:, 0, 4:] == 0).all()
+    assert_close("w of view 0", rel[:, 0, 3], np.ones(3), rtol=2 * np.finfo(dtype).eps)
+    assert (rel[..., 3] >= 0).all()
+    assert_close("|q| = 1", np.linalg.norm(rel[..., 3:].astype(np.float64), axis=-1), np.ones((3, 5)),
+                 rtol=RTOL[dtype])
+    back = geo.absolute_poses(rel, ref[:, None])
+    tol = 1e-12 if dtype == np.float64 else 1e-5
+    assert_close("positions back", back[..., :3], poses[..., :3], rtol=tol)
+    sign = np.sign(np.sum(back[..., 3:] * poses[..., 3:], -1, keepdims=True))
+    assert_close("rotations back", sign * back[..., 3:], poses[..., 3:], rtol=tol)
+    plain, _ = geo.make_relative(poses, canonical=False)
+    assert_close("canonical=False is relative_poses", plain, geo.relative_poses(poses, ref[:, None]), rtol=0)
+
+
+def test_relative_poses_invariant_to_moving_the_scene(rng):
+    """Moving every camera by one rigid transform G = (t_g, g) (xyz -> g xyz + t_g, q -> g q) leaves
+    the relative poses unchanged: rel = conj(g q0) (g q) = conj(q0) q. float64, |t_g| ~ 100."""
+    poses = random_poses(rng, (2, 7))
+    G = np.concatenate([100 * rng.standard_normal((2, 1, 3)), unit_quats(rng, (2, 1))], -1)
+    moved = geo.absolute_poses(poses, G)  # exactly the rigid motion: rotate(g, xyz) + t_g, g q
+    a, _ = geo.make_relative(poses, canonical=False)
+    b, _ = geo.make_relative(moved, canonical=False)
+    # the moved positions carry rounding errors of ~1e-14 (|t_g| = 100); measured 4.2e-15 normwise
+    # over 50 draws, 1e-12 allowed (a wrong order of rotations is an O(1) error)
+    assert_close("relative poses after moving the scene", b, a, rtol=1e-12)
+
+
+def test_relative_poses_large_translations(rng):
+    """Cameras 1e6 from the origin, a few units apart: the relative positions keep the digits of
+    the offsets (differences are taken before rotating). Offsets are multiples of 1/64, so
+    xyz - t0 is exact and the answer is rotate(conj(q0), offset) to a few ulp of the offset."""
+    t0 = 1e6 * np.array([1.0, -2.0, 0.5])
+    off = np.round(64 * rng.standard_normal((6, 3))) / 64
+    q = unit_quats(rng, (6,))
+    poses = np.concatenate([t0 + off, q], -1)
+    ref = np.concatenate([t0, q[0]])
+    rel = geo.relative_poses(poses, ref)
+    want = geo.quat_rotate(geo.quat_conj(q[0]), off)
+    assert_close("relative xyz at 1e6", rel[:, :3], want, rtol=RTOL64)
+    assert_close("round trip at 1e6", geo.absolute_poses(rel, ref), poses, rtol=RTOL64)
+
+
+def test_pose_functions_require_unit_quaternions(rng):
+    """Non-unit quaternions in poses or ref raise, naming the argument; the zero quaternion too."""
+    poses, ref = random_poses(rng, (3,)), random_poses(rng, ())
+    bad = poses.copy()
+    bad[1, 3:] *= 2
+    with pytest.raises(ValueError, match="quaternions of poses must hold unit"):
+        geo.relative_poses(bad, ref)
+    zero = ref.copy()
+    zero[3:] = 0
+    with pytest.raises(ValueError, match="quaternions of ref must hold unit"):
+        geo.relative_poses(poses, zero)
+    with pytest.raises(ValueError, match="quaternions of rel must hold unit"):
+        geo.absolute_poses(bad, ref)
+    with pytest.raises(ValueError, match="quaternions of poses must hold unit"):
+        geo.make_relative(bad[None])
+
+
+# ---------------------------------------------------------------------------------------
+# metrics
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_position_error(rng, dtype):
+    """3-4-5 and 1e6-scale cases exactly; poses use their xyz only; broadcasting; float64 1e200
+    differences (squares overflow) are still exact."""
+    p1 = np.array([[0, 0, 0], [1e6, 1e6, 0]], dtype)
+    p2 = np.array([[3, 4, 0], [1e6, 1e6 + 12, 5]], dtype)
+    got = geo.position_error(p1, p2)
+    assert got.dtype == dtype
+    np.testing.assert_array_equal(got, np.array([5, 13], dtype))
+    poses = random_poses(rng, (2, 3), dtype)
+    assert_close("poses", geo.position_error(poses, poses[:1]),
+                 np.linalg.norm(poses[..., :3].astype(np.float64) - poses[:1, :, :3], axis=-1), rtol=RTOL[dtype])
+    big = geo.position_error(np.array([3e200, 0, 0]), np.array([0, -4e200, 0]))
+    assert_close("1e200", big, 5e200, rtol=RTOL64)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_orientation_error_closed_form_angles(rng, dtype):
+    """Rotations about an axis by known angles (0, tiny, 90, 180 degrees, beyond 180) against the
+    identity and against a random common rotation g (q1 = q(angle) g, q2 = g).
+
+    Against the identity the product is exact, so the angle is as accurate as the inputs'
+    sin/cos: relative error <= 4 eps (measured 1.8 eps over 200 axes), and exactly 0 at angle 0.
+    Against g the vector part of q1 conj(q2) carries an absolute rounding error of a few eps
+    whatever the angle: absolute error <= 8 eps rad (measured 3.4 eps), which at 1e-9 rad is a
+    relative 2e-6 in float64 -- the conditioning of the inputs, not of the formula."""
+    eps = float(np.finfo(dtype).eps)
+    angles = [0.0, 1e-9, 1e-7, 1e-4, 0.3, math.pi / 2, 2.0, math.pi - 1e-7, math.pi, 1.5 * math.pi]
+    ident = np.array([1.0, 0, 0, 0], dtype)
+    for _ in range(10):
+        axis, g = rng.standard_normal(3), unit_quats(rng, ())
+        for a in angles:
+            want = math.degrees(min(a, 2 * math.pi - a))  # the shorter way round
+            qa = axis_angle_quat(axis, a)
+            got = geo.orientation_error(qa.astype(dtype), ident)
+            assert got.dtype == dtype
+            assert abs(float(got) - want) <= 4 * eps * want, (a, float(got), want)
+            got_g = geo.orientation_error(geo.quat_mul(qa, g).astype(dtype), g.astype(dtype))
+            assert abs(float(got_g) - want) <= math.degrees(8 * eps), (a, float(got_g), want)
+        np.testing.assert_array_equal(geo.orientation_error(g, g), 0.0)  # exactly: q conj(q) has vec 0
+
+
+def test_orientation_error_tiny_angles_where_acos_fails():
+    """A 1e-9 rad rotation: w = cos(5e-10) rounds to exactly 1 in float64, so 2 acos(w) = 0 while
+    atan2 gives 1e-9 rad to 1 ulp; at 1e-7 rad acos is off by ~1% (w = 1 - 1.25e-15 keeps one
+    significant bit). float32: 1e-4 rad (w rounds to 1) likewise."""
+    for dtype, a in [(np.float64, 1e-9), (np.float64, 1e-7), (np.float32, 1e-4)]:
+        q = axis_angle_quat([1.0, 2.0, 2.0], a).astype(dtype)
+        ident = np.array([1, 0, 0, 0], dtype)
+        got = float(geo.orientation_error(q, ident))
+        acos_form = math.degrees(2 * math.acos(min(float(q[0]), 1.0))) if dtype == np.float64 \
+            else float(np.degrees(2 * np.arccos(q[0])))
+        want = math.degrees(a)
+        assert abs(got - want) <= 4 * np.finfo(dtype).eps * want
+        assert abs(acos_form - want) > 1e-3 * want  # acos loses it
+
+
+def test_orientation_error_vs_published_asin_form(rng):
+    """Where the asin form is well conditioned (angles < 150 degrees) the two agree to 1e-12
+    normwise (float64, random unit pairs; also non-unit inputs, which the published metric
+    normalises and atan2 ignores). Both are sign-invariant: q vs -q changes neither, bit for bit."""
+    q1, q2 = unit_quats(rng, (500,)), unit_quats(rng, (500,))
+    ours, theirs = geo.orientation_error(q1, q2), published_orientation_error(q1, q2)
+    ok = theirs < 150
+    assert ok.sum() > 300
+    assert_close("atan2 vs asin form", ours[ok], theirs[ok], rtol=1e-12)
+    assert_close("non-unit inputs", geo.orientation_error(3.0 * q1, -0.25 * q2), ours, rtol=RTOL64 * 4)
+    for a, b in [(-q1, q2), (q1, -q2), (-q1, -q2)]:
+        assert_bitwise_equal("sign invariance", geo.orientation_error(a, b), ours)
+        assert_bitwise_equal("published sign invariance", published_orientation_error(a, b), theirs)
+    assert_bitwise_equal("symmetry", geo.orientation_error(q2, q1), ours)
+    assert ((ours >= 0) & (ours <= 180)).all()
+
+
+def test_orientation_error_asin_form_nan_where_rounding_exceeds_one(rng):
+    """180-degree rotations (w = 0) with a unit vector part whose computed length rounds to
+    1 + 2^-52 (about one in four random ones): the asin form gives NaN, atan2 gives 180."""
+    for _ in range(100):
+        v = rng.standard_normal(3)
+        q = np.concatenate([[0.0], v / np.linalg.norm(v)])
+        if np.sqrt(np.sum(q[1:] ** 2)) > 1:
+            break
+    else:
+        pytest.fail("no rounding case found in 100 draws")
+    ident = np.array([1.0, 0, 0, 0])
+    assert np.isnan(published_orientation_error(q, ident))
+    assert float(geo.orientation_error(q, ident)) == 180.0
+    # near 180 degrees the asin form keeps only about half the digits
+    qa = axis_angle_quat(v, math.pi - 1e-7)
+    want = math.degrees(math.pi - 1e-7)
+    assert abs(float(geo.orientation_error(qa, ident)) - want) <= 4 * U64 * want
+    assert abs(float(published_orientation_error(qa, ident)) - want) > 1e-9
+
+
+def test_orientation_error_poses_and_zero_quaternions(rng):
+    """(..., 7) poses use their quaternion; zero quaternions raise naming the argument."""
+    p1, p2 = random_poses(rng, (4,)), random_poses(rng, (4,))
+    assert_bitwise_equal("poses", geo.orientation_error(p1, p2), geo.orientation_error(p1[:, 3:], p2[:, 3:]))
+    z = np.zeros((2, 4))
+    with pytest.raises(ValueError, match="^q2 contains a zero quaternion"):
+        geo.orientation_error(unit_quats(rng, (2,)), z)
+    with pytest.raises(ValueError, match="underflowed"):
+        geo.orientation_error(np.array([1e-200, 0, 0, 0]), np.array([1e-200, 0, 0, 0]))
+
+
+# ---------------------------------------------------------------------------------------
+# averaging
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_average_pose(rng, dtype):
+    """Against the published recipe written out step by step (normalise, canonicalise, mean,
+    normalise, canonicalise) over axis -2 of (B, N, L, 7); flipping the sign or scaling any input
+    quaternion changes nothing; the mean of copies of one pose (w > 0) is that pose."""
+    poses = random_poses(rng, (2, 3, 16), dtype)
+    poses[..., 3:] = (poses[..., 3:] + 0.1 * rng.standard_normal((2, 3, 1, 4))).astype(dtype)  # nearby, non-unit
+    got = geo.average_pose(poses, axis=-2)
+    assert got.shape == (2, 3, 7) and got.dtype == dtype
+    p = poses.astype(np.float64)
+    q = p[..., 3:] / np.linalg.norm(p[..., 3:], axis=-1, keepdims=True)
+    q = np.where(q[..., :1] < 0, -q, q).mean(axis=-2)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    q = np.where(q[..., :1] < 0, -q, q)
+    assert_close("average", got, np.concatenate([p[..., :3].mean(-2), q], -1), rtol=4 * RTOL[dtype])
+    flipped = poses.copy()
+    flipped[..., ::2, 3:] *= -3
+    assert_close("sign and scale invariance", geo.average_pose(flipped, axis=2), got, rtol=4 * RTOL[dtype])
+    one = np.repeat(random_poses(rng, (1,), dtype), 5, axis=0)
+    one[:, 3:] *= np.sign(one[:, 3:4])  # a canonical quaternion (w > 0)
+    assert_close("mean of copies", geo.average_pose(one, axis=0), one[0], rtol=RTOL[dtype])
+
+
+def test_average_pose_cancelling_quaternions_give_zero():
+    """Opposite 180-degree rotations with w == 0 (kept apart by the published sign rule) and zero
+    quaternions average to the zero quaternion, not NaN."""
+    poses = np.array([[0, 0, 0, 0, 1, 0, 0], [2, 0, 0, 0, -1, 0, 0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = geo.average_pose(poses, axis=0)
+        np.testing.assert_array_equal(got, [1, 0, 0, 0, 0, 0, 0])
+        np.testing.assert_array_equal(geo.average_pose(np.zeros((3, 7)), axis=0), np.zeros(7))
+
+
+# ---------------------------------------------------------------------------------------
+# argument checks
+
+
+def _q(dtype=np.float64, n=2):
+    return np.tile(np.array([1.0, 0, 0, 0], dtype), (n, 1))
+
+
+def _p(dtype=np.float64, n=2):
+    return np.tile(np.array([0.0, 0, 0, 1, 0, 0, 0], dtype), (n, 1))
+
+
+def _v(dtype=np.float64, n=2):
+    return np.ones((n, 3), dtype)
+
+
+# (function, good arguments by name, the last dimension each takes)
+CALLS = [
+    (geo.quat_mul, {"a": _q, "b": _q}),
+    (geo.quat_conj, {"q": _q}),
+    (geo.quat_rotate, {"q": _q, "v": _v}),
+    (geo.quat_normalize, {"q": _q}),
+    (geo.quat_canonical, {"q": _q}),
+    (geo.relative_poses, {"poses": _p, "ref": _p}),
+    (geo.absolute_poses, {"rel": _p, "ref": _p}),
+    (geo.make_relative, {"poses": _p}),
+    (geo.position_error, {"p1": _v, "p2": _v}),
+    (geo.orientation_error, {"q1": _q, "q2": _q}),
+    (geo.average_pose, {"poses": _p}),
+]
+CASES = [(f, args, name) for f, args in CALLS for name in args]
+IDS = [f"{f.__name__}-{name}" for f, _, name in CASES]
+
+
+def _call(f, args, **override):
+    kw = {k: make() for k, make in args.items()}
+    kw.update(override)
+    return f(**kw)
+
+
+@pytest.mark.parametrize("f,args,name", CASES, ids=IDS)
+def test_bad_inputs(f, args, name):
+    """For every array argument of every function: a list, an integer array, float16, a wrong
+    last dimension, NaN and inf raise, naming the argument; the good call works in both dtypes."""
+    good = args[name]()
+    for dt in (np.float32, np.float64):
+        out = _call(f, args, **{k: make(dt) for k, make in args.items()})
+        for o in (out if isinstance(out, tuple) else (out,)):
+            assert o.dtype == dt
+    with pytest.raises(TypeError, match=f"^{name} must be a numpy.ndarray"):
+        _call(f, args, **{name: good.tolist()})
+    with pytest.raises(TypeError, match=f"^{name} must be float32 or float64, got int64"):
+        _call(f, args, **{name: good.astype(np.int64)})
+    with pytest.raises(TypeError, match=f"^{name} must be float32 or float64, got float16"):
+        _call(f, args, **{name: good.astype(np.float16)})
+    with pytest.raises(ValueError, match=f"^{name} must have last dimension"):
+        _call(f, args, **{name: np.concatenate([good, good[..., :1]], -1)})
+    with pytest.raises(ValueError, match=f"^{name} must have last dimension"):
+        _call(f, args, **{name: np.ones((), good.dtype)})
+    for bad in (np.nan, np.inf):
+        x = good.copy()
+        x[0, 0] = bad
+        with pytest.raises(ValueError, match=f"^{name} contains NaN or inf"):
+            _call(f, args, **{name: x})
+
+
+@pytest.mark.parametrize("f,args", [c for c in CALLS if len(c[1]) == 2], ids=[c[0].__name__ for c in CALLS if len(c[1]) == 2])
+def test_mixed_dtypes_and_shapes_raise(f, args):
+    """Two arrays of different dtypes raise TypeError naming both; shapes that do not broadcast
+    raise ValueError naming both."""
+    (n1, m1), (n2, m2) = args.items()
+    with pytest.raises(TypeError, match=f"^{n2} is float32 but {n1} is float64"):
+        f(**{n1: m1(np.float64), n2: m2(np.float32)})
+    with pytest.raises(ValueError, match=f"{n1}.*{n2}.*do not broadcast"):
+        f(**{n1: m1(n=2), n2: m2(n=3)})
+
+
+def test_other_argument_checks():
+    """quat_normalize's eps, average_pose's axis, make_relative's need for a views axis, and
+    position/orientation errors mixing positions with poses."""
+    with pytest.raises(ValueError, match="^eps must be finite and > 0"):
+        geo.quat_normalize(_q(), eps=0.0)
+    with pytest.raises(TypeError, match="^eps must be a real number"):
+        geo.quat_normalize(_q(), eps="1e-12")
+    for axis in (-1, 1, 2, -3):
+        with pytest.raises(ValueError, match="^axis must name one of the leading axes"):
+            geo.average_pose(_p(), axis=axis)
+    with pytest.raises(TypeError, match="^axis must be an integer"):
+        geo.average_pose(_p(), axis=0.0)
+    with pytest.raises(ValueError, match="no entries along axis 0"):
+        geo.average_pose(np.zeros((0, 7)), axis=0)
+    with pytest.raises(ValueError, match=r"^poses must be \(\.\.\., N, 7\)"):
+        geo.make_relative(_p()[0])
+    with pytest.raises(ValueError, match="^p1 and p2 must both be positions"):
+        geo.position_error(_v(), _p())
+    with pytest.raises(ValueError, match="^q1 and q2 must both be quaternions"):
+        geo.orientation_error(_q(), _p())

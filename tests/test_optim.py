@@ -1,0 +1,545 @@
+"""Tests of pyvf.optim (SPEC.md §4, §5): AdamW and Adam against torch.optim in float64 over many
+steps of random gradients, the Keras epsilon convention against a hand computation, the warmup +
+cosine schedule at its key steps and driven through torch's LambdaLR, gradient clipping against
+torch.nn.utils.clip_grad_norm_ and by hand, zero and non-finite gradients, checkpoint round trips
+(save, load, continue = the uninterrupted run, bit for bit) and argument checks.
+
+params and grads are dicts name -> array. Relative errors are normwise (conftest.assert_close).
+"""
+
+import math
+import pickle
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from pyvf import optim
+
+from conftest import assert_bitwise_equal, assert_close
+
+# pyvf vs torch, float64, 20 steps: the same operations in the same order on the same numbers,
+# except that torch updates m by lerp and v by addcmul, which round differently from
+# b1*m + (1-b1)*g by an ulp; each step's update is O(lr) and the errors do not grow through
+# Adam's normalisation. Measured <= 1.9e-16 (some configurations bitwise equal); 1e-13 leaves
+# room for another CPU while a real bug (a wrong bias correction, eps in the wrong place, decay
+# after the step) is >= 1e-6.
+RTOL_TORCH64 = 1e-13
+# float32, the same with float32 roundings: measured 7.7e-8 (~1 ulp of the parameters); 1e-6
+RTOL_TORCH32 = 1e-6
+# by-hand results of one multiply by a rounded coefficient (g * (max_norm / |g|)): 1 ulp
+ULP64 = 2.0 ** -52
+
+SHAPES = {"h.0/attn/c_attn/weight": (6, 18), "h.0/attn/c_attn/bias": (1, 18),
+          "h.0/ln_1/gamma": (6,), "wte/weight": (10, 6)}
+
+
+def make_params(rng, dtype=np.float64, shapes=SHAPES):
+    return {k: rng.standard_normal(s).astype(dtype) for k, s in shapes.items()}
+
+
+def make_grads(rng, dtype=np.float64, shapes=SHAPES, scale=1.0):
+    # the gradients' scales differ per tensor, as in a model (and so that eps matters somewhere)
+    return {k: (scale * 10.0 ** rng.uniform(-4, 1) * rng.standard_normal(s)).astype(dtype)
+            for k, s in shapes.items()}
+
+
+def torch_run(params, grad_seq, opt_cls, groups=None, lr_lambda=None, **kw):
+    """Run torch opt_cls over grad_seq from copies of params; returns the final params (numpy)
+    and the torch optimiser."""
+    t = {k: torch.tensor(v.copy(), requires_grad=True) for k, v in params.items()}
+    if groups is None:
+        opt = opt_cls(list(t.values()), **kw)
+    else:
+        opt = opt_cls([{"params": [t[k] for k in names], **g} for names, g in groups], **kw)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda) if lr_lambda else None
+    for grads in grad_seq:
+        for k, p in t.items():
+            p.grad = torch.tensor(grads[k])
+        opt.step()
+        if sched:
+            sched.step()
+    return {k: p.detach().numpy() for k, p in t.items()}, opt
+
+
+def pyvf_run(params, grad_seq, opt_cls, **kw):
+    p = {k: v.copy() for k, v in params.items()}
+    opt = opt_cls(p, **kw)
+    lrs = [opt.step(g) for g in grad_seq]
+    return p, opt, lrs
+
+
+def assert_params_close(got, want, rtol):
+    assert got.keys() == want.keys()
+    for k in got:
+        assert got[k].dtype == want[k].dtype, k
+        assert_close(k, got[k], want[k], rtol=rtol)
+
+
+# ---------------------------------------------------------------------------------------
+# AdamW and Adam against torch
+
+
+@pytest.mark.parametrize("lr,wd,betas,eps", [
+    (1e-3, 0.01, (0.9, 0.999), 1e-8),
+    (3e-2, 0.05, (0.9, 0.98), 1e-8),
+    (1e-1, 0.0, (0.5, 0.9), 1e-6),
+    (5e-4, 0.3, (0.8, 0.999), 1e-3),  # eps large enough to matter for the small-gradient tensors
+])
+def test_adamw_matches_torch(rng, lr, wd, betas, eps):
+    """20 steps, fresh random gradients each step (float64): parameters, both moments and the
+    step count equal torch.optim.AdamW's to 1e-13."""
+    params = make_params(rng)
+    grad_seq = [make_grads(rng) for _ in range(20)]
+    got, opt, _ = pyvf_run(params, grad_seq, optim.AdamW, lr=lr, betas=betas, eps=eps, weight_decay=wd)
+    want, topt = torch_run(params, grad_seq, torch.optim.AdamW, lr=lr, betas=betas, eps=eps, weight_decay=wd)
+    assert_params_close(got, want, RTOL_TORCH64)
+    tp = dict(zip(params, topt.param_groups[0]["params"]))
+    for k in params:
+        st = topt.state[tp[k]]
+        assert_close(f"m {k}", opt.exp_avg[k], st["exp_avg"].numpy(), rtol=RTOL_TORCH64)
+        assert_close(f"v {k}", opt.exp_avg_sq[k], st["exp_avg_sq"].numpy(), rtol=RTOL_TORCH64)
+        assert int(st["step"]) == opt.step_count == 20
+
+
+def test_adamw_float32_matches_torch(rng):
+    """float32 parameters stay float32 (and so do the moments), and follow torch's float32 AdamW."""
+    params = make_params(rng, np.float32)
+    grad_seq = [make_grads(rng, np.float32) for _ in range(20)]
+    got, opt, _ = pyvf_run(params, grad_seq, optim.AdamW, lr=1e-2, weight_decay=0.1)
+    want, _ = torch_run(params, grad_seq, torch.optim.AdamW, lr=1e-2, weight_decay=0.1)
+    assert_params_close(got, want, RTOL_TORCH32)
+    assert all(a.dtype == np.float32 for a in (*opt.exp_avg.values(), *opt.exp_avg_sq.values()))
+
+
+@pytest.mark.parametrize("decay", ["names", "predicate"])
+def test_adamw_decay_subset_matches_torch_param_groups(rng, decay):
+    """Weight decay only on some parameters (a set of names, or published_weight_decay: all but
+    the biases) = torch with two param groups, weight_decay 0 on the other."""
+    params = make_params(rng)
+    grad_seq = [make_grads(rng) for _ in range(10)]
+    decayed = [k for k in params if optim.published_weight_decay(k)]
+    assert decayed == ["h.0/attn/c_attn/weight", "h.0/ln_1/gamma", "wte/weight"]  # LayerNorm is decayed
+    rest = [k for k in params if k not in decayed]
+    arg = set(decayed) if decay == "names" else optim.published_weight_decay
+    got, opt, _ = pyvf_run(params, grad_seq, optim.AdamW, lr=1e-2, weight_decay=0.2, decay=arg)
+    assert opt.decayed == frozenset(decayed)
+    want, _ = torch_run(params, grad_seq, torch.optim.AdamW, lr=1e-2,
+                        groups=[(decayed, {"weight_decay": 0.2}), (rest, {"weight_decay": 0.0})])
+    assert_params_close(got, want, RTOL_TORCH64)
+
+
+def test_adam_matches_torch_codebook_betas(rng):
+    """Adam (no decay) with the codebook's betas (0.5, 0.9) and lr = torch.optim.Adam."""
+    params = make_params(rng)
+    grad_seq = [make_grads(rng) for _ in range(20)]
+    got, opt, _ = pyvf_run(params, grad_seq, optim.Adam, lr=1.584e-3, betas=(0.5, 0.9))
+    assert isinstance(opt, optim.AdamW) and opt.weight_decay == 0.0
+    want, _ = torch_run(params, grad_seq, torch.optim.Adam, lr=1.584e-3, betas=(0.5, 0.9))
+    assert_params_close(got, want, RTOL_TORCH64)
+
+
+def test_schedule_as_lr_matches_torch_lambda_lr(rng):
+    """lr = WarmupCosine(...) is called with the number of updates already applied, as torch's
+    LambdaLR (lambda(0) for the first step): 30 steps through warmup (5), cosine and the floor
+    (total 25), against torch AdamW + LambdaLR(schedule / peak)."""
+    sched = optim.WarmupCosine(peak_lr=0.05, warmup_steps=5, total_steps=25, min_lr_ratio=0.1)
+    params = make_params(rng)
+    grad_seq = [make_grads(rng) for _ in range(30)]
+    got, _, lrs = pyvf_run(params, grad_seq, optim.AdamW, lr=sched, weight_decay=0.1)
+    assert lrs == [sched(s) for s in range(30)] and lrs[0] == 0.0 and lrs[5] == 0.05
+    want, _ = torch_run(params, grad_seq, torch.optim.AdamW, lr=0.05, weight_decay=0.1,
+                        lr_lambda=lambda s: sched(s) / 0.05)
+    # torch multiplies the base lr by the lambda, so its lr differs from ours by an ulp: 1e-13
+    assert_params_close(got, want, RTOL_TORCH64)
+
+
+# ---------------------------------------------------------------------------------------
+# the Keras epsilon convention
+
+
+def test_keras_convention_first_step_closed_form():
+    """After one step m = (1-b1) g, v = (1-b2) g^2, so the two conventions are, in closed form,
+        torch: p1 = p0 (1 - lr wd) - lr g / (|g| + eps)
+        keras: p1 = p0 (1 - lr wd) - lr g / (|g| + eps / sqrt(1 - b2)).
+    With |g| = 1e-7 ~ eps / sqrt(1 - b2) = 3.2e-7 the Keras step is about 2.6x smaller."""
+    lr, wd, b1, b2, eps = 0.1, 0.01, 0.9, 0.999, 1e-8
+    p0, g = np.array([0.5, -2.0, 3.0]), np.array([1e-7, -1.0, 0.0])
+    for conv, eps_eff in (("torch", eps), ("keras", eps / math.sqrt(1 - b2))):
+        p = {"w": p0.copy()}
+        optim.AdamW(p, lr=lr, betas=(b1, b2), eps=eps, weight_decay=wd, eps_convention=conv).step({"w": g})
+        want = p0 * (1 - lr * wd) - lr * g / (np.abs(g) + eps_eff)
+        assert_close(f"{conv} step 1", p["w"], want, rtol=1e-15)
+    small_torch = lr * 1e-7 / (1e-7 + eps)
+    small_keras = lr * 1e-7 / (1e-7 + eps / math.sqrt(1 - b2))
+    assert small_torch / small_keras > 2.5
+
+
+def test_keras_convention_against_hand_computation(rng):
+    """Five steps on scalars, written out with Python floats as the Keras/TF update
+    (lr_t = lr sqrt(1 - b2^t) / (1 - b1^t); p -= lr_t m / (sqrt(v) + eps)), with decoupled decay
+    and a schedule; and Keras(eps) = torch(eps / sqrt(1 - b2^t)) at every step t."""
+    lr_of = [0.0, 0.02, 0.04, 0.03, 0.01].__getitem__
+    b1, b2, eps, wd = 0.9, 0.99, 1e-3, 0.05
+    p0 = rng.standard_normal(4)
+    grads = [1e-3 * rng.standard_normal(4) for _ in range(5)]
+    p = {"w": p0.copy()}
+    opt = optim.AdamW(p, lr=lr_of, betas=(b1, b2), eps=eps, weight_decay=wd, eps_convention="keras")
+    for i, g in enumerate(grads):
+        opt.step({"w": g})
+        want = []
+        for j in range(4):  # every coordinate by hand
+            pj, m, v = p0[j], 0.0, 0.0
+            for t in range(1, i + 2):
+                gj, lr = grads[t - 1][j], lr_of(t - 1)
+                pj -= lr * wd * pj
+                m = b1 * m + (1 - b1) * gj
+                v = b2 * v + (1 - b2) * gj * gj
+                lr_t = lr * math.sqrt(1 - b2 ** t) / (1 - b1 ** t)
+                pj -= lr_t * m / (math.sqrt(v) + eps)
+            want.append(pj)
+        # a handful of roundings per step on O(1) numbers: 1e-15
+        assert_close(f"keras step {i + 1}", p["w"], np.array(want), rtol=1e-15)
+    # equivalence with torch's convention under eps_t = eps / sqrt(1 - b2^t): from the same state
+    # (the Keras run's, loaded into a torch-convention optimiser), step t gives the same parameters
+    pk = {"w": p0.copy()}
+    ok = optim.AdamW(pk, lr=0.03, betas=(b1, b2), eps=eps, weight_decay=wd, eps_convention="keras")
+    for t, g in enumerate(grads, start=1):
+        eps_t = eps / math.sqrt(1 - b2 ** t)
+        pt, sd = {"w": pk["w"].copy()}, ok.state_dict()
+        ot = optim.AdamW(pt, lr=0.03, betas=(b1, b2), eps=eps_t, weight_decay=wd)
+        ot.load_state_dict({**sd, "hyperparameters": {**sd["hyperparameters"], "eps": eps_t,
+                                                      "eps_convention": "torch"}})
+        ok.step({"w": g})
+        ot.step({"w": g})
+        assert_close(f"keras = torch with eps_t, step {t}", pt["w"], pk["w"], rtol=1e-15)
+
+
+# ---------------------------------------------------------------------------------------
+# the schedule
+
+
+def test_warmup_cosine_key_steps():
+    """W = 2000, T = 120000 (the SM7 run), peak 1e-4, floor ratio 0.1: 0 at step 0, linear
+    (peak/2 at W/2), peak exactly at W, half way between peak and floor at (W + T)/2, the floor
+    exactly at T and after. W = 0 starts at the peak. The published run (ratio 0) ends at 0."""
+    f = optim.warmup_cosine_lr
+    kw = dict(peak_lr=1e-4, warmup_steps=2000, total_steps=120_000, min_lr_ratio=0.1)
+    assert f(0, **kw) == 0.0
+    assert f(1, **kw) == 1e-4 / 2000
+    assert f(1000, **kw) == 5e-5
+    assert f(2000, **kw) == 1e-4
+    assert abs(f(61_000, **kw) - 0.55e-4) <= 1e-16 * 1e-4
+    q = 2000 + 118_000 // 4  # a quarter into the decay: cos(pi/4)
+    assert abs(f(q, **kw) - (1e-5 + 0.9e-4 * (1 + math.sqrt(0.5)) / 2)) <= 1e-15 * 1e-4
+    assert f(120_000, **kw) == 1e-4 * 0.1 and f(10 ** 9, **kw) == 1e-4 * 0.1
+    assert f(0, 1e-3, 0, 100) == 1e-3 and f(100, 1e-3, 0, 100) == 0.0
+    assert f(119_999, 1e-4, 2000, 120_000) > 0
+    sched = optim.WarmupCosine(1e-4, 2000, 120_000, 0.1)
+    assert [sched(s) for s in (0, 2000, 61_000, 120_000)] == [f(s, **kw) for s in (0, 2000, 61_000, 120_000)]
+    lrs = np.array([f(s, **kw) for s in range(2000, 120_001, 500)])
+    assert (np.diff(lrs) <= 0).all()  # monotone decay
+
+
+def test_schedule_argument_checks():
+    f = optim.warmup_cosine_lr
+    with pytest.raises(ValueError, match=r"^total_steps \(100\) must exceed warmup_steps \(100\)"):
+        f(0, 1e-3, 100, 100)
+    with pytest.raises(TypeError, match="^step must be an integer"):
+        f(1.0, 1e-3, 10, 100)
+    with pytest.raises(ValueError, match="^step must be >= 0"):
+        f(-1, 1e-3, 10, 100)
+    with pytest.raises(ValueError, match="^min_lr_ratio must be finite and in"):
+        f(0, 1e-3, 10, 100, 1.5)
+    with pytest.raises(ValueError, match="^peak_lr must be finite"):
+        optim.WarmupCosine(float("nan"), 10, 100)
+    with pytest.raises(TypeError, match="^warmup_steps must be an integer"):
+        optim.WarmupCosine(1e-3, True, 100)
+
+
+# ---------------------------------------------------------------------------------------
+# gradient clipping
+
+
+def _copy(d):
+    return {k: v.copy() for k, v in d.items()}
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("max_norm", [0.5, 1e3])  # clipping, and not
+def test_clip_global_matches_torch(rng, dtype, max_norm):
+    """The returned total norm and the clipped gradients equal torch.nn.utils.clip_grad_norm_'s
+    (float64: 1e-15, a sum of squares in another order, measured 2.6e-16; float32: the norm
+    here is accumulated in float64, torch's in float32, measured 1.4e-7, 1e-6)."""
+    grads = make_grads(rng, dtype, scale=1.0)
+    mine = _copy(grads)
+    total = optim.clip_grad_norm(mine, max_norm)
+    ps = [torch.zeros(g.shape, dtype=torch.float64 if dtype == np.float64 else torch.float32)
+          for g in grads.values()]
+    for p, g in zip(ps, grads.values()):
+        p.grad = torch.tensor(g)
+    ttotal = torch.nn.utils.clip_grad_norm_(ps, max_norm)
+    rtol = 1e-15 if dtype == np.float64 else 1e-6
+    assert isinstance(total, float)
+    assert_close("total norm", total, float(ttotal), rtol=rtol)
+    exact = math.sqrt(math.fsum(float(np.sum(g.astype(np.float64) ** 2)) for g in grads.values()))
+    assert_close("total norm vs fsum", total, exact, rtol=1e-15)
+    for (k, g), p in zip(mine.items(), ps):
+        assert g.dtype == dtype
+        assert_close(k, g, p.grad.numpy(), rtol=rtol)
+    if max_norm > total:
+        for k in grads:
+            assert_bitwise_equal(f"untouched {k}", mine[k], grads[k])
+    else:
+        assert_close("clipped norm", math.sqrt(sum(float(np.sum(g.astype(np.float64) ** 2)) for g in mine.values())),
+                     max_norm * total / (total + 1e-6), rtol=1e-6 if dtype == np.float32 else 1e-14)
+
+
+def test_clip_per_tensor_by_hand():
+    """tf.clip_by_norm per tensor, max_norm 1: (3, 4) (norm 5) -> (0.6, 0.8); a tensor of norm
+    0.5 and an all-zero tensor are left untouched bit for bit; returns each tensor's norm. In
+    global mode the same gradients (total sqrt(25 + 0.25)) scale together."""
+    grads = {"a": np.array([3.0, 4.0]), "b": np.array([[0.3], [-0.4]]), "z": np.zeros(3),
+             "f": np.array([[0.0, -6.0], [8.0, 0.0]], np.float32)}
+    orig = _copy(grads)
+    norms = optim.clip_grad_norm(grads, 1.0, mode="per_tensor")
+    assert norms == {"a": 5.0, "b": 0.5, "z": 0.0, "f": 10.0}
+    assert_close("a", grads["a"], [0.6, 0.8], rtol=ULP64)
+    assert_close("f", grads["f"], np.array([[0, -0.6], [0.8, 0]]), rtol=1e-7)
+    assert grads["f"].dtype == np.float32
+    assert_bitwise_equal("b", grads["b"], orig["b"])
+    assert_bitwise_equal("z", grads["z"], orig["z"])
+    g2 = _copy(orig)
+    total = optim.clip_grad_norm(g2, 1.0)
+    assert_close("global total", total, math.sqrt(25 + 0.25 + 100), rtol=ULP64)
+    c = 1.0 / (total + 1e-6)
+    for k in orig:
+        assert_close(f"global {k}", g2[k], orig[k] * c, rtol=1e-7 if k == "f" else 1e-16)
+
+
+@pytest.mark.parametrize("mode", ["global", "per_tensor"])
+def test_clip_zero_gradients(mode):
+    """All-zero gradients: norm 0, nothing changed, no warning, no NaN (even with eps = 0)."""
+    grads = {"a": np.zeros((3, 2)), "b": np.zeros(4, np.float32)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with np.errstate(all="raise"):
+            out = optim.clip_grad_norm(grads, 1.0, mode=mode, eps=0.0)
+    assert out == (0.0 if mode == "global" else {"a": 0.0, "b": 0.0})
+    assert all((g == 0).all() and not np.signbit(g).any() for g in grads.values())
+
+
+def test_clip_extreme_magnitudes():
+    """float64 gradients of 1e200 (the squares overflow) and 1e-200 (they underflow) still get
+    their norms; float32 values near the float32 maximum too (accumulated in float64)."""
+    g = {"a": np.array([3e200, 4e200]), "b": np.array([3e-200, -4e-200]),
+         "c": np.array([3e38, 4e38 / 2], np.float32)}
+    norms = optim.clip_grad_norm(_copy(g), 1.0, mode="per_tensor")
+    assert_close("1e200", norms["a"], 5e200, rtol=1e-15)
+    assert_close("1e-200", norms["b"], 5e-200, rtol=1e-15)
+    assert_close("float32 max", norms["c"], math.hypot(float(np.float32(3e38)), float(np.float32(2e38))), rtol=1e-15)
+    gg = _copy(g)
+    total = optim.clip_grad_norm(gg, 1.0)
+    assert_close("total", total, 5e200, rtol=1e-15)
+    assert_close("clipped a", gg["a"], np.array([0.6, 0.8]), rtol=1e-15)
+    assert all(np.isfinite(x).all() for x in gg.values())
+
+
+@pytest.mark.parametrize("mode", ["global", "per_tensor"])
+def test_clip_nonfinite(mode):
+    """NaN/inf gradients raise ValueError naming the tensor, and nothing is modified; with
+    error_if_nonfinite=False nothing non-finite is scaled and the non-finite norm is returned."""
+    for bad in (np.nan, np.inf):
+        grads = {"ok": np.array([30.0, 40.0]), "bad": np.array([1.0, bad])}
+        orig = _copy(grads)
+        with pytest.raises(ValueError, match=r"grads contain NaN or inf in \['bad'\]"):
+            optim.clip_grad_norm(grads, 1.0, mode=mode)
+        for k in grads:
+            assert_bitwise_equal(k, grads[k], orig[k])
+        out = optim.clip_grad_norm(grads, 1.0, mode=mode, error_if_nonfinite=False)
+        assert_bitwise_equal("bad untouched", grads["bad"], orig["bad"])
+        if mode == "global":
+            assert (math.isnan(out) if np.isnan(bad) else out == math.inf)
+            assert_bitwise_equal("ok untouched", grads["ok"], orig["ok"])
+        else:
+            assert out["ok"] == 50.0 and not math.isfinite(out["bad"])
+            assert_close("ok clipped alone", grads["ok"], [0.6, 0.8], rtol=ULP64)
+
+
+# ---------------------------------------------------------------------------------------
+# zero and non-finite gradients in the optimiser
+
+
+def test_adamw_zero_gradients(rng):
+    """Zero gradients: m = v = 0, the Adam step is exactly 0 (0 / eps), so without decay the
+    parameters are unchanged bit for bit and with decay they only shrink by 1 - lr wd. No NaN."""
+    params = make_params(rng)
+    zeros = {k: np.zeros_like(v) for k, v in params.items()}
+    p = _copy(params)
+    opt = optim.AdamW(p, lr=0.1, weight_decay=0.0)
+    with np.errstate(all="raise"):
+        for _ in range(3):
+            opt.step(zeros)
+    for k in params:
+        assert_bitwise_equal(k, p[k], params[k])
+    p = _copy(params)
+    opt = optim.AdamW(p, lr=0.1, weight_decay=0.5)
+    opt.step(zeros)
+    for k in params:
+        assert_bitwise_equal(k, p[k], params[k] * (1 - 0.1 * 0.5))
+
+
+def test_adamw_nonfinite_gradients_raise_and_change_nothing(rng):
+    """A NaN or inf in any gradient: ValueError naming it; parameters, moments and the step count
+    are untouched, so skipping the step and continuing is the same as never seeing it."""
+    params = make_params(rng)
+    p = _copy(params)
+    opt = optim.AdamW(p, lr=0.1)
+    opt.step(make_grads(rng))
+    before_p, before = _copy(p), opt.state_dict()
+    for bad in (np.nan, np.inf, -np.inf):
+        g = make_grads(rng)
+        g["h.0/ln_1/gamma"][2] = bad
+        with pytest.raises(ValueError, match=r"grads contain NaN or inf in \['h.0/ln_1/gamma'\]"):
+            opt.step(g)
+    assert opt.step_count == 1
+    for k in params:
+        assert_bitwise_equal(k, p[k], before_p[k])
+        assert_bitwise_equal(f"m {k}", opt.exp_avg[k], before["exp_avg"][k])
+        assert_bitwise_equal(f"v {k}", opt.exp_avg_sq[k], before["exp_avg_sq"][k])
+
+
+# ---------------------------------------------------------------------------------------
+# checkpointing
+
+
+@pytest.mark.parametrize("conv", ["torch", "keras"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_state_round_trip_continues_bitwise(rng, conv, dtype):
+    """Run 12 steps with a schedule; separately run 5, save (state_dict, through pickle, as a
+    checkpoint file would), build a new optimiser on the saved parameters, load, run the last 7:
+    the parameters and moments are bitwise those of the uninterrupted run."""
+    params = make_params(rng, dtype)
+    grad_seq = [make_grads(rng, dtype) for _ in range(12)]
+    kw = dict(lr=optim.WarmupCosine(0.05, 3, 10, 0.1), weight_decay=0.1, eps_convention=conv,
+              decay=optim.published_weight_decay)
+    full, opt_full, _ = pyvf_run(params, grad_seq, optim.AdamW, **kw)
+    half, opt_half, _ = pyvf_run(params, grad_seq[:5], optim.AdamW, **kw)
+    blob = pickle.dumps((half, opt_half.state_dict()))
+    for g in grad_seq[5:7]:  # the first run goes on; the checkpoint must not change
+        opt_half.step(g)
+    saved_params, saved_state = pickle.loads(blob)
+    opt = optim.AdamW(saved_params, **kw)
+    opt.load_state_dict(saved_state)
+    assert opt.step_count == 5
+    for g in grad_seq[5:]:
+        opt.step(g)
+    assert opt.step_count == 12
+    for k in params:
+        assert_bitwise_equal(k, saved_params[k], full[k])
+        assert_bitwise_equal(f"m {k}", opt.exp_avg[k], opt_full.exp_avg[k])
+        assert_bitwise_equal(f"v {k}", opt.exp_avg_sq[k], opt_full.exp_avg_sq[k])
+
+
+def test_state_dict_is_a_copy_and_load_checks(rng):
+    """state_dict() is independent of later steps, and load_state_dict copies in; loading into an
+    optimiser with other hyperparameters, names, shapes or dtypes raises ValueError."""
+    params = make_params(rng)
+    opt = optim.AdamW(_copy(params), lr=0.1)
+    opt.step(make_grads(rng))
+    sd = opt.state_dict()
+    m0 = sd["exp_avg"]["wte/weight"].copy()
+    opt.step(make_grads(rng))
+    assert_bitwise_equal("saved m unchanged", sd["exp_avg"]["wte/weight"], m0)
+    opt2 = optim.AdamW(_copy(params), lr=0.1)
+    opt2.load_state_dict(sd)
+    sd["exp_avg"]["wte/weight"][:] = 7
+    assert not (opt2.exp_avg["wte/weight"] == 7).any()
+    for kw, what in [(dict(betas=(0.9, 0.99)), "betas"), (dict(eps=1e-7), "eps"),
+                     (dict(weight_decay=0.1), "weight_decay"), (dict(eps_convention="keras"), "eps_convention"),
+                     (dict(decay={"wte/weight"}), "decayed")]:
+        with pytest.raises(ValueError, match=f"other hyperparameters.*{what}"):
+            optim.AdamW(_copy(params), lr=0.1, **kw).load_state_dict(opt.state_dict())
+    other = _copy(params)
+    other["wte/weight"] = np.zeros((11, 6))
+    with pytest.raises(ValueError, match=r"state\['exp_avg'\]\['wte/weight'\] is float64\(10, 6\)"):
+        optim.AdamW(other, lr=0.1).load_state_dict(opt.state_dict())
+    other = _copy(params)
+    del other["wte/weight"]
+    with pytest.raises(ValueError, match="has names"):
+        optim.AdamW(other, lr=0.1).load_state_dict({**opt.state_dict(), "hyperparameters": {
+            **opt.state_dict()["hyperparameters"], "decayed": sorted(other)}})
+    with pytest.raises(ValueError, match="lacks"):
+        opt2.load_state_dict({"step": 1})
+    with pytest.raises(TypeError, match=r"^state\['step'\] must be an integer"):
+        opt2.load_state_dict({**opt.state_dict(), "step": 1.5})
+
+
+# ---------------------------------------------------------------------------------------
+# argument checks
+
+
+def test_optimizer_argument_checks(rng):
+    params = make_params(rng)
+    grads = make_grads(rng)
+    with pytest.raises(TypeError, match="^params must be a dict"):
+        optim.AdamW(list(params.values()))
+    with pytest.raises(ValueError, match="^params is empty"):
+        optim.AdamW({})
+    with pytest.raises(TypeError, match=r"^params\['w'\] must be float32 or float64, got int64"):
+        optim.AdamW({"w": np.zeros(3, np.int64)})
+    with pytest.raises(TypeError, match=r"^params\['w'\] must be a numpy.ndarray"):
+        optim.AdamW({"w": [1.0, 2.0]})
+    ro = np.zeros(3)
+    ro.flags.writeable = False
+    with pytest.raises(ValueError, match=r"^params\['w'\] is read-only"):
+        optim.AdamW({"w": ro})
+    with pytest.raises(ValueError, match=r"^params contain NaN or inf: \['w'\]"):
+        optim.AdamW({"w": np.array([np.nan])})
+    for kw, exc, msg in [(dict(lr=-1.0), ValueError, "^lr must be finite"),
+                         (dict(lr="0.1"), TypeError, "^lr must be a real number"),
+                         (dict(betas=(0.9, 1.0)), ValueError, r"^betas\[1\] must be finite and in \[0.0, 1.0\)"),
+                         (dict(betas=0.9), TypeError, "^betas must be a pair"),
+                         (dict(eps=0.0), ValueError, r"^eps must be finite and in \(0.0"),
+                         (dict(weight_decay=-0.1), ValueError, "^weight_decay must be finite"),
+                         (dict(eps_convention="tf"), ValueError, "^eps_convention must be 'torch' or 'keras'"),
+                         (dict(decay={"nope"}), ValueError, r"^decay names parameters that are not in params: \['nope'\]"),
+                         (dict(decay="wte/weight"), TypeError, "^decay must be None"),
+                         (dict(decay=lambda n: 1), TypeError, "must return a bool")]:
+        with pytest.raises(exc, match=msg):
+            optim.AdamW(_copy(params), **kw)
+    opt = optim.AdamW(_copy(params))
+    g = _copy(grads)
+    del g["wte/weight"]
+    g["extra"] = np.zeros(2)
+    with pytest.raises(ValueError, match=r"missing \['wte/weight'\], unknown \['extra'\]"):
+        opt.step(g)
+    g = _copy(grads)
+    g["wte/weight"] = g["wte/weight"].astype(np.float32)
+    with pytest.raises(TypeError, match=r"^grads\['wte/weight'\] is float32 but the parameter is float64"):
+        opt.step(g)
+    g = _copy(grads)
+    g["wte/weight"] = g["wte/weight"].T.copy()
+    with pytest.raises(ValueError, match=r"^grads\['wte/weight'\] has shape \(6, 10\)"):
+        opt.step(g)
+    bad_sched = optim.AdamW(_copy(params), lr=lambda s: float("nan"))
+    with pytest.raises(ValueError, match=r"^lr\(0\) must be finite"):
+        bad_sched.step(grads)
+    assert opt.step_count == 0 and bad_sched.step_count == 0
+
+
+def test_clip_argument_checks():
+    g = {"a": np.ones(3)}
+    with pytest.raises(ValueError, match=r"^max_norm must be finite and in \(0.0"):
+        optim.clip_grad_norm(g, 0.0)
+    with pytest.raises(ValueError, match="^mode must be 'global' or 'per_tensor'"):
+        optim.clip_grad_norm(g, 1.0, mode="tensor")
+    with pytest.raises(TypeError, match=r"^grads\['a'\] must be float32 or float64"):
+        optim.clip_grad_norm({"a": np.ones(3, np.int32)}, 1.0)
+    ro = np.ones(3)
+    ro.flags.writeable = False
+    with pytest.raises(ValueError, match=r"^grads\['a'\] is read-only"):
+        optim.clip_grad_norm({"a": ro}, 1.0)
+    with pytest.raises(TypeError, match="^name must be str"):
+        optim.published_weight_decay(3)
