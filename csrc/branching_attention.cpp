@@ -84,6 +84,13 @@ struct Layout {
     int64_t nblk() const { return R * B * H * N; }
 };
 
+// Threads cost a wake-up of some microseconds per parallel region: worth it only when the
+// attended block pairs hold enough multiply-adds (here at least ~4M, a few hundred us).
+inline bool worth_threads(const Layout& d) {
+    const double pairs = (double)d.B * d.H * d.R * d.N * (d.N + 1) / 2;  // attended block pairs
+    return pairs * d.L * d.L * d.dh >= 4.0e6;
+}
+
 // Elementwise helpers on one row of n values (a vector loop and a scalar tail). In the
 // kernels a row holds one key's logits against L queries, so per-query statistics (max,
 // sum, rescale factor) are elementwise across rows: no horizontal reductions.
@@ -159,11 +166,11 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
 
     // vt: every value block transposed, (dh, L), so that o^T += v^T p^T is a row-major product
     std::vector<T> vt(nblk * bs);
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if (worth_threads(d))
     for (int64_t x = 0; x < nblk; ++x) transpose(vt.data() + x * bs, v + x * bs, (int)L, (int)dh);
 
     int status = kAttnOk;
-#pragma omp parallel
+#pragma omp parallel if (worth_threads(d))
     {
         // per thread: q^T (dh, Lq); s^T, then p^T (Lk, Lq); o^T (dh, Lq); per query: running
         // max m, new max mn, rescale factor c, sum l, this block's sum ls
@@ -234,7 +241,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
     const int64_t RN = R * N;
 
     int status = kAttnOk;
-#pragma omp parallel
+#pragma omp parallel if (worth_threads(d))
     {
         // per thread, for one head: q, do and the dq accumulator transposed per block (dh, L);
         // D = rowsum(do * o) and the lse hi/lo split per query; k^T of one key block (dh, Lk);

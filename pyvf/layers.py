@@ -43,11 +43,14 @@ def linear_backward(dy, cache):
 def layernorm_forward(x, gamma, beta, eps=1e-5):
     """y = (x - mean) / sqrt(var + eps) * gamma + beta.   x (..., d), gamma, beta (d,).
 
-    Two-pass: the mean is accumulated in float64 and rounded once, then the variance is the
-    mean square of the centred row, so a row of mean 1e4 and spread 0.1 keeps its digits and a
+    Two-pass: the mean is accumulated in float64 and rounded, the row centred twice (the second
+    time by the centred row's own residual mean), then the variance is the mean square of it, so a row of mean 1e4 and spread 0.1 keeps its digits and a
     constant row gives y = beta exactly. cache: xhat (..., d), rstd (..., 1), gamma."""
     mean = x.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (..., 1)
     xc = x - mean  # (..., d)
+    # second pass: the rounded mean can be an ulp off, which 1/sqrt(eps) = 316 would amplify on
+    # a constant row; the residual mean of xc is tiny and exact to subtract
+    xc -= xc.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)
     var = np.mean(xc * xc, axis=-1, keepdims=True)  # (..., 1)
     rstd = 1.0 / np.sqrt(var + x.dtype.type(eps))  # (..., 1)
     xhat = xc * rstd  # (..., d)
@@ -101,6 +104,10 @@ def gelu_backward(dy, cache):
 def embedding_forward(ids, table):
     """y = table[ids].   ids (...) integers in [0, len(table)), table (n, d) -> y (..., d).
     cache: ids and the table's shape."""
+    if ids.dtype.kind not in "iu":
+        raise TypeError(f"ids must be integers, got {ids.dtype}")
+    if ids.size and (ids.min() < 0 or ids.max() >= table.shape[0]):  # numpy would wrap -1 around
+        raise ValueError(f"ids must be in [0, {table.shape[0]}), got values in [{ids.min()}, {ids.max()}]")
     return table[ids], (ids, table.shape)
 
 

@@ -25,6 +25,7 @@ import json
 import numpy as np
 
 from .attention import attention_layer_backward, attention_layer_forward
+from .geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
 from .layers import (
     embedding_backward,
     embedding_forward,
@@ -236,7 +237,7 @@ class Transformer:
         P, c_pose = mlp_forward(pose_in, p["pose_embedding/c_fc/weight"], p["pose_embedding/c_fc/bias"],
                                 p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, N, d)
         P = P[:, :, None, :]  # (B, N, 1, d), broadcast over the L tokens
-        x = np.stack(np.broadcast_arrays(E + W + P, wte[V] + W + P, E + W + wte[V + 1]))  # (3, B, N, L, d)
+        x = np.stack([E + W + P, wte[V] + W + P, E + W + wte[V + 1]])  # (3, B, N, L, d)
         return x, (c_tok, c_pose, L)
 
     def _embed_backward(self, dx, cache, grads):
@@ -381,11 +382,121 @@ class Transformer:
         return grads
 
 
+    # -----------------------------------------------------------------------------------
+    # inference: only what a scene needs
+
+    def encode_scene(self, context_tokens, context_poses):
+        """Run the trunk over the context views once and keep each layer's keys and values.
+
+        context_tokens (B, Nc, L) ints, context_poses (B, Nc, 7) (any frame: they are made
+        relative to the first context view here) -> Scene, reused by render_scene and
+        localize_scene for any number of queries. Costs one trunk pass (R = 1, block-causal)."""
+        B, Nc, L = self._check_inputs(context_tokens, context_poses)
+        rel, ref = make_relative(context_poses)  # (B, Nc, 7), (B, 7)
+        x, _ = self._embed_forward(context_tokens, rel)
+        x = x[:1]  # (1, B, Nc, L, d): the trunk row only
+        keys, values = [], []
+        for j in range(self.config.n_layer):
+            x, c = self._block_forward(x, j)
+            _, _, q, k, v, _, _, _ = c[1]  # the attention layer's cache: (1, B, H, Nc, L, dh)
+            keys.append(k[0])  # (B, H, Nc, L, dh)
+            values.append(v[0])
+        return Scene(ref=ref, keys=keys, values=values, n_views=Nc, tokens_per_view=L)
+
+    def _query_forward(self, scene, x):
+        """x (M, B, L, d): one block per query view, each attending every cached context block
+        and itself -> the query rows after ln_f (M, B, L, d)."""
+        p, cfg = self.params, self.config
+        M, B, L, d = x.shape
+        H = cfg.n_head
+        dh = d // H
+        scale = self.dtype.type(cfg.attention_scale)
+        for j in range(cfg.n_layer):
+            h = f"h.{j}/"
+            a, _ = layernorm_forward(x, p[h + "ln_1/gamma"], p[h + "ln_1/beta"])
+            vqk = a @ p[h + "attn/c_attn/weight"] + p[h + "attn/c_attn/bias"][0]  # (M, B, L, 3d): [v | q | k]
+            v, q, k = (vqk[..., c * d:(c + 1) * d].reshape(M, B, L, H, dh).transpose(0, 1, 3, 2, 4)
+                       for c in range(3))  # (M, B, H, L, dh)
+            K = scene.keys[j].reshape(B, H, -1, dh)  # (B, H, Nc*L, dh)
+            Vc = scene.values[j].reshape(B, H, -1, dh)
+            s_ctx = scale * np.einsum("mbhld,bhkd->mbhlk", q, K)  # (M, B, H, L, Nc*L)
+            s_own = scale * np.einsum("mbhld,mbhkd->mbhlk", q, k)  # (M, B, H, L, L)
+            mx = np.maximum(s_ctx.max(axis=-1, keepdims=True), s_own.max(axis=-1, keepdims=True))
+            p_ctx, p_own = np.exp(s_ctx - mx), np.exp(s_own - mx)
+            denom = p_ctx.sum(axis=-1, keepdims=True) + p_own.sum(axis=-1, keepdims=True)
+            o = (np.einsum("mbhlk,bhkd->mbhld", p_ctx, Vc) + np.einsum("mbhlk,mbhkd->mbhld", p_own, v)) / denom
+            o = o.transpose(0, 1, 3, 2, 4).reshape(M, B, L, d)
+            x = x + o @ p[h + "attn/c_proj/weight"] + p[h + "attn/c_proj/bias"][0]
+            m, _ = layernorm_forward(x, p[h + "ln_2/gamma"], p[h + "ln_2/beta"])
+            f, _ = mlp_forward(m, p[h + "mlp/c_fc/weight"], p[h + "mlp/c_fc/bias"],
+                               p[h + "mlp/c_proj/weight"], p[h + "mlp/c_proj/bias"])
+            x = x + f
+        return layernorm_forward(x, p["ln_f/gamma"], p["ln_f/beta"])[0]
+
+    def render_scene(self, scene, query_poses):
+        """query_poses (B, M, 7), in the context's frame -> token logits (B, M, L, V) of each
+        query view (the generation branch: image hidden, pose given)."""
+        p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
+        B = scene.ref.shape[0]
+        if not isinstance(query_poses, np.ndarray) or query_poses.dtype != self.dtype:
+            raise TypeError(f"query_poses must be a {self.dtype} numpy array")
+        if query_poses.ndim != 3 or query_poses.shape[0] != B or query_poses.shape[2] != 7 or query_poses.shape[1] < 1:
+            raise ValueError(f"query_poses must have shape (B={B}, M, 7), got {query_poses.shape}")
+        if not np.isfinite(query_poses).all():
+            raise ValueError("query_poses contains NaN or inf")
+        rel = relative_poses(query_poses, scene.ref[:, None, :])  # (B, M, 7)
+        # as make_relative does for the context: the pose MLP is not sign-invariant
+        rel[..., 3:] = quat_canonical(quat_normalize(rel[..., 3:]))
+        pose_in = rel.copy()
+        pose_in[..., :3] *= self.dtype.type(self.config.pose_multiplier)
+        P, _ = mlp_forward(pose_in, p["pose_embedding/c_fc/weight"], p["pose_embedding/c_fc/bias"],
+                           p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, M, d)
+        x = p["wte/weight"][V] + p["wpe/embeddings"][:L] + P[:, :, None, :]  # (B, M, L, d)
+        g = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
+        return (g @ p["wte/weight"][:V].T).transpose(1, 0, 2, 3)  # (B, M, L, V)
+
+    def localize_scene(self, scene, query_tokens):
+        """query_tokens (B, M, L) ints -> one pose per query view (B, M, 7) in the context's
+        frame: the token predictions averaged (geometry.average_pose)."""
+        p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
+        B = scene.ref.shape[0]
+        if not isinstance(query_tokens, np.ndarray) or query_tokens.dtype.kind not in "iu":
+            raise TypeError("query_tokens must be an integer numpy array")
+        if query_tokens.ndim != 3 or query_tokens.shape[0] != B or query_tokens.shape[2] != L or query_tokens.shape[1] < 1:
+            raise ValueError(f"query_tokens must have shape (B={B}, M, L={L}), got {query_tokens.shape}")
+        if query_tokens.min() < 0 or query_tokens.max() >= V:
+            raise ValueError(f"query_tokens must be in [0, {V})")
+        E = p["wte/weight"][query_tokens]  # (B, M, L, d)
+        x = E + p["wpe/embeddings"][:L] + p["wte/weight"][V + 1]
+        l = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
+        head = "quaternion_pose_representation/pose_classifier/"
+        raw, _ = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
+                             p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (M, B, L, 7)
+        rel = average_pose(pose_prediction(raw, self.config.pose_multiplier), axis=2)  # (M, B, 7)
+        return absolute_poses(rel.transpose(1, 0, 2), scene.ref[:, None, :])  # (B, M, 7)
+
+    def render(self, context_tokens, context_poses, query_poses):
+        """Token logits (B, M, L, V) of M novel views: encode_scene, then render_scene."""
+        return self.render_scene(self.encode_scene(context_tokens, context_poses), query_poses)
+
+    def localize(self, context_tokens, context_poses, query_tokens):
+        """Poses (B, M, 7) of M views given their tokens: encode_scene, then localize_scene."""
+        return self.localize_scene(self.encode_scene(context_tokens, context_poses), query_tokens)
+
+
+@dataclasses.dataclass
+class Scene:
+    """A context encoded once by Transformer.encode_scene."""
+    ref: np.ndarray  # (B, 7) the first context view's pose: the frame the model sees
+    keys: list  # per layer (B, H, Nc, L, dh): the trunk's attention keys
+    values: list  # per layer (B, H, Nc, L, dh)
+    n_views: int  # Nc
+    tokens_per_view: int  # L
+
+
 def pose_prediction(raw, pose_multiplier=1.0):
     """raw (..., 7) from the pose head -> (..., 7): xyz_raw / pose_multiplier and the raw
     quaternion L2-normalised (eps 1e-12, TF's convention) and sign-canonicalised (w >= 0)."""
-    from .geometry import quat_canonical, quat_normalize
-
     xyz = raw[..., :3] / raw.dtype.type(pose_multiplier)
     q = quat_canonical(quat_normalize(raw[..., 3:], eps=1e-12))
     return np.concatenate([xyz, q], axis=-1)

@@ -47,7 +47,7 @@ def assert_close(name, got, want, rtol, atol=0.0, n_show=5):
 
 def assert_bitwise_equal(name, got, want, n_show=5):
     """Assert identical bits (same dtype, shape and every value; -0.0 and 0.0 differ)."""
-    got, want = np.asarray(got), np.asarray(want)
+    got, want = np.ascontiguousarray(got), np.ascontiguousarray(want)
     assert got.dtype == want.dtype and got.shape == want.shape, \
         f"{name}: {got.dtype}{got.shape} vs {want.dtype}{want.shape}"
     diff = got.view(np.uint8).reshape(got.shape + (-1,)) != want.view(np.uint8).reshape(want.shape + (-1,))

@@ -1,0 +1,33 @@
+"""One training step of the transformer, for a script to loop (SPEC.md §5).
+
+    model = Transformer(cfg)
+    opt = AdamW(model.params, lr=WarmupCosine(1e-4, 2000, 120_000), weight_decay=0.01)
+    for tokens, poses in batches:
+        loss, grad_norm = train_step(model, opt, tokens, poses, max_grad_norm=1.0)
+"""
+
+from .geometry import make_relative
+from .optim import clip_grad_norm
+
+
+def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
+    """forward, backward, optional clipping, optimiser step.
+
+    tokens (B, N, L) ints, poses (B, N, 7). relative=True makes the poses relative to each
+    sequence's first view first (geometry.make_relative), as the published input pipeline
+    does. max_grad_norm: clip the gradients to this norm (clip_mode "global" as
+    torch.nn.utils.clip_grad_norm_, or "per_tensor" as tf.clip_by_norm, the published choice).
+    optimizer must hold model.params (it updates them in place).
+    Returns (loss before the step, the gradient norm before clipping or None).
+    """
+    if optimizer.params is not model.params:
+        raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
+    if relative:
+        poses = make_relative(poses)[0]
+    out = model.forward(tokens, poses)
+    grads = model.backward()
+    norm = None
+    if max_grad_norm is not None:
+        norm = clip_grad_norm(grads, max_grad_norm, mode=clip_mode)
+    optimizer.step(grads)
+    return out.loss, norm
