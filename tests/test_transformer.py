@@ -1,0 +1,344 @@
+"""The whole transformer: against a torch model written independently (tests/torch_transformer.py),
+finite differences, the tree's defining property, cached inference, training, weights and bad input."""
+
+import dataclasses
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+import pyvf
+import torch_transformer
+from conftest import assert_bitwise_equal, assert_close
+
+TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5, n_loss_skip=1)
+SPEC = os.path.join(os.path.dirname(__file__), "data", "official-transformer-tiny.json")
+
+
+def random_model(cfg, rng, spread=0.3):
+    """A model whose parameters are random everywhere (gamma != 1, biases != 0): a bug in any
+    parameter's role shows in the outputs."""
+    model = pyvf.Transformer(cfg, seed=1)
+    for name, p in model.params.items():
+        model.params[name] = (p + rng.normal(0, spread, p.shape)).astype(p.dtype)
+    return model
+
+
+def random_batch(rng, B, N, L, V, dtype=np.float64):
+    tokens = rng.integers(0, V, (B, N, L))
+    poses = rng.normal(size=(B, N, 7))
+    poses[..., 3:] /= np.linalg.norm(poses[..., 3:], axis=-1, keepdims=True)
+    return tokens, poses.astype(dtype)
+
+
+def torch_run(model, tokens, poses):
+    P = {k: torch.tensor(v, requires_grad=True) for k, v in model.params.items()}
+    logits, raw, ce, pl, loss = torch_transformer.forward(P, torch.tensor(tokens), torch.tensor(poses), model.config)
+    loss.backward()
+    return logits.detach().numpy(), raw.detach().numpy(), ce.detach().numpy(), pl.detach().numpy(), \
+        loss.item(), {k: t.grad.numpy() for k, t in P.items()}
+
+
+# ---------------------------------------------------------------------------------------
+# 1. against torch, float64
+
+
+CONFIGS = {
+    "tiny": {},
+    "weights": dict(pose_multiplier=0.2, localization_weight=5.0, image_generation_weight=0.7, label_smoothing=0.1),
+    "scaled": dict(attention_scale=1 / 4, n_loss_skip=2, n_layer=3, n_head=4),
+    "no_skip": dict(n_loss_skip=0, n_head=1, d_model=24),
+}
+
+
+@pytest.mark.parametrize("variant", CONFIGS)
+def test_model_matches_torch_float64(variant, rng):
+    cfg = pyvf.TransformerConfig(**{**TINY, **CONFIGS[variant]}, dtype="float64")
+    model = random_model(cfg, rng)
+    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings)
+    out = model.forward(tokens, poses)
+    grads = model.backward()
+    logits, raw, ce, pl, loss, tgrads = torch_run(model, tokens, poses)
+    # float64 through ~40 roundings per path: measured <= 2e-14 relative; 1e-12 leaves room
+    assert_close("logits", out.logits, logits, rtol=1e-12)
+    assert_close("ce", out.ce_loss, ce, rtol=1e-12)
+    assert_close("pose loss", out.pose_loss, pl, rtol=1e-12)
+    assert abs(out.loss - loss) <= 1e-12 * abs(loss)
+    pred = pyvf.transformer.pose_prediction(raw, cfg.pose_multiplier)
+    assert_close("pose prediction", out.pose_prediction, pred, rtol=1e-12)
+    assert set(grads) == set(tgrads) == set(model.params)
+    for name in grads:
+        assert_close(f"d{name}", grads[name], tgrads[name], rtol=1e-11)
+
+
+def test_float32_model_tracks_float64(rng):
+    cfg64 = pyvf.TransformerConfig(**TINY, dtype="float64")
+    m64 = random_model(cfg64, rng)
+    m32 = pyvf.Transformer(dataclasses.replace(cfg64, dtype="float32"))
+    m32.load_official(m64.params)  # the same values, rounded to float32
+    tokens, poses = random_batch(rng, 2, 5, 16, cfg64.n_embeddings)
+    o64, g64 = m64.forward(tokens, poses), m64.backward()
+    o32, g32 = m32.forward(tokens, poses.astype(np.float32)), m32.backward()
+    assert o32.logits.dtype == np.float32 and all(g.dtype == np.float32 for g in g32.values())
+    # float32 (u = 6e-8) through two blocks, parameters rounded too: measured 1.6e-6 for the
+    # logits and <= 1.7e-5 for the gradients (the pose MLP's first layer, whose gradient sums
+    # many cancelling terms); bounds 1e-5 and 1e-4
+    assert_close("logits f32", o32.logits, o64.logits, rtol=1e-5)
+    assert abs(o32.loss - o64.loss) <= 1e-5 * o64.loss
+    for name in g64:
+        assert_close(f"d{name} f32", g32[name], g64[name], rtol=1e-4)
+
+
+# ---------------------------------------------------------------------------------------
+# 2. finite differences of the loss
+
+
+def test_finite_differences_of_the_loss(rng):
+    cfg = pyvf.TransformerConfig(n_embeddings=16, n_head=2, d_model=8, n_layer=2, token_image_size=2,
+                                 sequence_size=3, n_loss_skip=1, pose_multiplier=0.5, label_smoothing=0.1,
+                                 dtype="float64")
+    model = random_model(cfg, rng, spread=0.5)
+    tokens, poses = random_batch(rng, 2, 3, 4, cfg.n_embeddings)
+    model.forward(tokens, poses)
+    grads = model.backward()
+    base = {k: v.copy() for k, v in model.params.items()}
+    h = 1e-5  # central differences: truncation ~h^2 |f'''| ~ 1e-10, rounding ~eps/h ~ 1e-11
+    for name in base:
+        u = rng.standard_normal(base[name].shape)  # a random direction per parameter
+        vals = []
+        for sign in (1, -1):
+            model.params[name] = base[name] + sign * h * u
+            vals.append(model.forward(tokens, poses).loss)
+        model.params[name] = base[name]
+        numeric = (vals[0] - vals[1]) / (2 * h)
+        analytic = float((grads[name] * u).sum())
+        assert abs(numeric - analytic) <= 1e-7 * max(1.0, abs(analytic)), (name, numeric, analytic)
+
+
+# ---------------------------------------------------------------------------------------
+# 3. the tree's defining property, at the whole-model level
+
+
+def test_branch_equals_block_causal_run_of_its_prefix(rng):
+    """Branch r at view i after every block equals the last block of a plain block-causal run
+    (the trunk alone, R = 1) on [trunk inputs of views 0..i-1, branch r's input of view i]."""
+    cfg = pyvf.TransformerConfig(**{**TINY, "n_layer": 3}, dtype="float64")
+    model = random_model(cfg, rng)
+    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings)
+    x0, _ = model._embed_forward(tokens, poses)  # (3, B, N, L, d)
+    x = x0
+    for j in range(cfg.n_layer):
+        x, _ = model._block_forward(x, j)
+    for r in (1, 2):
+        for i in range(5):
+            seq = np.concatenate([x0[0, :, :i], x0[r, :, i:i + 1]], axis=1)[None]  # (1, B, i+1, L, d)
+            for j in range(cfg.n_layer):
+                seq, _ = model._block_forward(seq, j)
+            assert_close(f"branch {r} view {i}", x[r, :, i], seq[0, :, i], rtol=1e-13)
+
+
+def test_outputs_at_view_i_ignore_later_views(rng):
+    cfg = pyvf.TransformerConfig(**TINY, dtype="float64")
+    model = random_model(cfg, rng)
+    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings)
+    out = model.forward(tokens, poses)
+    for i in range(4):
+        t2, p2 = tokens.copy(), poses.copy()
+        t2[:, i + 1:] = rng.integers(0, cfg.n_embeddings, t2[:, i + 1:].shape)
+        p2[:, i + 1:] += 1.0
+        out2 = model.forward(t2, p2)
+        assert_bitwise_equal(f"logits at views <= {i}", out2.logits[:, :i + 1], out.logits[:, :i + 1])
+        assert_bitwise_equal(f"poses at views <= {i}", out2.pose_prediction[:, :i + 1],
+                             out.pose_prediction[:, :i + 1])
+        assert not np.array_equal(out2.logits[:, i + 1:], out.logits[:, i + 1:])  # the change did reach
+
+
+def test_generation_branch_does_not_see_its_own_image(rng):
+    """The generation row hides the image of its view: its logits at view i do not depend on the
+    tokens of view i (only on earlier views), while the localization row does."""
+    cfg = pyvf.TransformerConfig(**TINY, dtype="float64")
+    model = random_model(cfg, rng)
+    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings)
+    out = model.forward(tokens, poses)
+    t2 = tokens.copy()
+    t2[:, 4] = (t2[:, 4] + 1) % cfg.n_embeddings  # only the last view's image changes
+    out2 = model.forward(t2, poses)
+    assert_bitwise_equal("generation logits of view 4", out2.logits[:, 4], out.logits[:, 4])
+    assert not np.array_equal(out2.pose_prediction[:, 4], out.pose_prediction[:, 4])
+
+
+# ---------------------------------------------------------------------------------------
+# 4. cached inference equals the full computation
+
+
+def test_cached_inference_equals_full_tree(rng):
+    cfg = pyvf.TransformerConfig(**{**TINY, "pose_multiplier": 0.5}, dtype="float64")
+    model = random_model(cfg, rng)
+    B, Nc, M, L = 2, 4, 3, 16
+    ctx_tokens, ctx_poses = random_batch(rng, B, Nc, L, cfg.n_embeddings)
+    q_tokens, q_poses = random_batch(rng, B, M, L, cfg.n_embeddings)
+    scene = model.encode_scene(ctx_tokens, ctx_poses)
+    logits = model.render_scene(scene, q_poses)  # (B, M, L, V)
+    poses = model.localize_scene(scene, q_tokens)  # (B, M, 7)
+    assert logits.shape == (B, M, L, cfg.n_embeddings) and poses.shape == (B, M, 7)
+    assert_bitwise_equal("render", model.render(ctx_tokens, ctx_poses, q_poses), logits)
+    assert_bitwise_equal("localize", model.localize(ctx_tokens, ctx_poses, q_tokens), poses)
+    for j in range(M):  # each query is view Nc of a full tree over context + that query
+        tokens = np.concatenate([ctx_tokens, q_tokens[:, j:j + 1]], axis=1)
+        rel, ref = pyvf.make_relative(np.concatenate([ctx_poses, q_poses[:, j:j + 1]], axis=1))
+        out = model.forward(tokens, rel)
+        # the same math in another order (einsum vs the kernel): measured 1e-15
+        assert_close(f"render query {j}", logits[:, j], out.logits[:, Nc], rtol=1e-12)
+        want = pyvf.absolute_poses(pyvf.average_pose(out.pose_prediction[:, Nc], axis=1), ref)
+        assert_close(f"localize query {j}", poses[:, j], want, rtol=1e-12)
+
+
+def test_render_is_independent_of_the_other_queries(rng):
+    cfg = pyvf.TransformerConfig(**TINY, dtype="float64")
+    model = random_model(cfg, rng)
+    ctx_tokens, ctx_poses = random_batch(rng, 1, 3, 16, cfg.n_embeddings)
+    _, q_poses = random_batch(rng, 1, 4, 16, cfg.n_embeddings)
+    scene = model.encode_scene(ctx_tokens, ctx_poses)
+    all4 = model.render_scene(scene, q_poses)
+    one = model.render_scene(scene, q_poses[:, 2:3])
+    assert_close("query 2 alone", one[:, 0], all4[:, 2], rtol=1e-14)
+
+
+# ---------------------------------------------------------------------------------------
+# 5. training
+
+
+def test_tiny_model_overfits_a_fixed_batch(rng):
+    cfg = pyvf.TransformerConfig(**TINY)
+    model = pyvf.Transformer(cfg, seed=0)
+    tokens, poses = random_batch(rng, 4, 5, 16, cfg.n_embeddings, dtype=np.float32)
+    opt = pyvf.AdamW(model.params, lr=1e-2, weight_decay=0.0)
+    losses = [pyvf.train_step(model, opt, tokens, poses, max_grad_norm=1.0)[0] for _ in range(100)]
+    assert np.isfinite(losses).all()
+    assert losses[-1] <= 0.1 * losses[0], f"loss fell from {losses[0]} to {losses[-1]} only"
+
+
+def test_train_step_per_tensor_clipping_and_schedule(rng):
+    cfg = pyvf.TransformerConfig(**TINY)
+    model = pyvf.Transformer(cfg, seed=0)
+    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings, dtype=np.float32)
+    opt = pyvf.AdamW(model.params, lr=pyvf.WarmupCosine(1e-3, 2, 10), decay=pyvf.published_weight_decay)
+    before = {k: v.copy() for k, v in model.params.items()}
+    loss, norms = pyvf.train_step(model, opt, tokens, poses, max_grad_norm=0.1, clip_mode="per_tensor")
+    assert np.isfinite(loss) and isinstance(norms, dict) and set(norms) == set(model.params)
+    assert all(np.array_equal(before[k], model.params[k]) for k in before)  # warmup: lr(0) = 0
+    pyvf.train_step(model, opt, tokens, poses)
+    assert not np.array_equal(before["wte/weight"], model.params["wte/weight"])
+    with pytest.raises(ValueError, match="optimizer must be built on model.params"):
+        pyvf.train_step(model, pyvf.AdamW({k: v.copy() for k, v in model.params.items()}), tokens, poses)
+
+
+# ---------------------------------------------------------------------------------------
+# 6. weights
+
+
+def official_weights(rng, dtype=np.float32):
+    with open(SPEC) as f:
+        spec = json.load(f)
+    return {name: rng.normal(size=shape).astype(dtype) for name, shape in spec["variables"].items()}, spec["config"]
+
+
+def test_load_official_names_and_shapes(rng):
+    weights, spec_cfg = official_weights(rng)
+    cfg = pyvf.TransformerConfig(**spec_cfg, dtype="float64")
+    model = pyvf.Transformer(cfg)
+    model.load_official(weights)  # "migt/...:0" names, float32 into a float64 model
+    state = model.state_dict()
+    assert set(state) == {n[len("migt/"):-2] for n in weights}
+    for name, arr in weights.items():
+        got = state[pyvf.transformer.official_name(name)]
+        assert got.dtype == np.float64 and np.array_equal(got, arr.astype(np.float64))
+    model2 = pyvf.Transformer(cfg)
+    model2.load_official(state)  # plain names load too
+    tokens, poses = random_batch(rng, 1, 5, 16, cfg.n_embeddings)
+    assert_bitwise_equal("same weights, same logits", model2.forward(tokens, poses).logits,
+                         model.forward(tokens, poses).logits)
+
+
+def test_load_official_rejects_bad_weights(rng):
+    weights, spec_cfg = official_weights(rng)
+    model = pyvf.Transformer(pyvf.TransformerConfig(**spec_cfg))
+    missing = dict(weights)
+    missing.pop("migt/h.1/mlp/c_fc/bias:0")
+    with pytest.raises(ValueError, match="missing"):
+        model.load_official(missing)
+    with pytest.raises(ValueError, match="unexpected parameter 'migt/h.2/ln_1/gamma:0'"):
+        model.load_official({**weights, "migt/h.2/ln_1/gamma:0": np.ones(32, np.float32)})
+    bad = dict(weights)
+    bad["migt/h.0/attn/c_attn/weight:0"] = np.zeros((96, 32), np.float32)  # transposed
+    with pytest.raises(ValueError, match=r"c_attn/weight:0' has shape \(96, 32\), expected \(32, 96\)"):
+        model.load_official(bad)
+    bad = dict(weights)
+    bad["migt/ln_f/gamma:0"] = np.ones(32, np.int32)
+    with pytest.raises(TypeError, match="expected a float array"):
+        model.load_official(bad)
+    bad = dict(weights)
+    bad["migt/ln_f/gamma:0"] = np.full(32, np.nan, np.float32)
+    with pytest.raises(ValueError, match="NaN"):
+        model.load_official(bad)
+    with pytest.raises(ValueError, match="given twice"):
+        model.load_official({**weights, "ln_f/gamma": np.ones(32, np.float32)})
+
+
+def test_save_and_load_round_trip(tmp_path, rng):
+    cfg = pyvf.TransformerConfig(**{**TINY, "label_smoothing": 0.1}, dtype="float64")
+    model = random_model(cfg, rng)
+    path = tmp_path / "model.npz"
+    model.save(path)
+    loaded = pyvf.Transformer.load(path)
+    assert loaded.config == cfg
+    for name, p in model.params.items():
+        assert_bitwise_equal(name, loaded.params[name], p)
+
+
+# ---------------------------------------------------------------------------------------
+# 7. bad input
+
+
+def test_bad_input_raises(rng):
+    cfg = pyvf.TransformerConfig(**TINY)
+    model = pyvf.Transformer(cfg)
+    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings, dtype=np.float32)
+    cases = [
+        ((np.where(tokens == tokens.max(), 64, tokens), poses), ValueError, r"tokens must be in \[0, 64\)"),
+        ((tokens - 1, poses), ValueError, r"tokens must be in \[0, 64\)"),
+        ((tokens.astype(np.float32), poses), TypeError, "tokens must be an integer"),
+        ((tokens[0], poses), ValueError, r"tokens must have shape \(B, N, L\)"),
+        ((tokens, poses[..., :6]), ValueError, r"poses must have shape \(B, N, 7\)"),
+        ((tokens, poses.astype(np.float64)), TypeError, "poses must be a float32"),
+        ((tokens, np.where(np.arange(7) == 2, np.inf, poses).astype(np.float32)), ValueError, "poses contains NaN"),
+        ((tokens, np.full_like(poses, np.nan)), ValueError, "poses contains NaN"),
+        ((tokens[:, :1], poses[:, :1]), ValueError, "no view is a loss target"),
+        ((rng.integers(0, 64, (1, 2, 257)), poses[:1, :2]), ValueError, "257 tokens per view; at most 256"),
+        ((tokens.tolist(), poses), TypeError, "tokens must be an integer numpy array"),
+    ]
+    for args, exc, match in cases:
+        with pytest.raises(exc, match=match):
+            model.forward(*args)
+    with pytest.raises(RuntimeError, match="needs a forward"):
+        pyvf.Transformer(cfg).backward()
+    scene = model.encode_scene(tokens[:, :3], poses[:, :3])
+    with pytest.raises(ValueError, match=r"query_poses must have shape"):
+        model.render_scene(scene, poses[:, :2, :6])
+    with pytest.raises(ValueError, match=r"query_tokens must be in \[0, 64\)"):
+        model.localize_scene(scene, tokens[:, :2] + 64)
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("d_model", 33, "not divisible by n_head"),
+    ("token_image_size", 17, "289 tokens per view"),
+    ("n_loss_skip", -1, "non-negative"),
+    ("dtype", "float16", "'float32' or 'float64'"),
+    ("label_smoothing", 1.0, r"in \[0, 1\)"),
+    ("n_head", 0, "positive integer"),
+])
+def test_bad_config_raises(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        pyvf.TransformerConfig(**{**TINY, field: value})
