@@ -342,3 +342,45 @@ def test_bad_input_raises(rng):
 def test_bad_config_raises(field, value, match):
     with pytest.raises(ValueError, match=match):
         pyvf.TransformerConfig(**{**TINY, field: value})
+
+
+# ---------------------------------------------------------------------------------------
+# 8. the TensorFlow checkpoint converter (tools/), with a stand-in for tf.train.load_checkpoint
+
+
+def load_tool(name):
+    import importlib.util
+    path = os.path.join(os.path.dirname(__file__), "..", "tools", name + ".py")
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class FakeReader:
+    def __init__(self, tensors):
+        self.tensors = tensors
+
+    def get_variable_to_shape_map(self):
+        return {k: list(v.shape) for k, v in self.tensors.items()}
+
+    def get_tensor(self, key):
+        return self.tensors[key]
+
+
+@pytest.mark.parametrize("style", ["name", "object"])
+def test_tf_converter_maps_checkpoint_keys(style, rng, tmp_path):
+    tool = load_tool("convert_tf_transformer")
+    weights, spec_cfg = official_weights(rng)
+    suffix = "/.ATTRIBUTES/VARIABLE_VALUE" if style == "object" else ""
+    tensors = {n[:-2] + suffix: w for n, w in weights.items()}  # "migt/...:0" -> checkpoint keys
+    tensors["save_counter" + suffix] = np.array(1)
+    tensors["migt/h.0/ln_1/gamma/.OPTIMIZER_SLOT/optimizer/m" + suffix] = np.ones(32, np.float32)
+    cfg = pyvf.TransformerConfig(**spec_cfg)
+    got, skipped = tool.convert(FakeReader(tensors), cfg)
+    assert len(skipped) == 2 and set(got) == set(pyvf.transformer.parameter_shapes(cfg))
+    for name, w in weights.items():
+        assert np.array_equal(got[pyvf.transformer.official_name(name)], w)
+    del tensors["migt/wte/weight" + suffix]
+    with pytest.raises(ValueError, match="1 weights not found"):
+        tool.convert(FakeReader(tensors), cfg)
