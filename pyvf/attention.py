@@ -174,11 +174,12 @@ def _unflat(x, shape):
 
 
 def _reference_probs(q, k, scale, mask):
-    s = scale * np.einsum("bhtd,bhud->bhtu", q, k)  # (B, H, T, T) logits
+    s = scale * (q @ k.swapaxes(-1, -2))  # (B, H, T, T) logits
     s = np.where(mask, s, -np.inf)  # exact exclusion: exp(-inf) = 0
-    s = s - s.max(axis=-1, keepdims=True)  # every row attends its own block, so the max is finite
-    p = np.exp(s)
-    return p / p.sum(axis=-1, keepdims=True)  # (B, H, T, T)
+    s -= s.max(axis=-1, keepdims=True)  # every row attends its own block, so the max is finite
+    p = np.exp(s, out=s)
+    p /= p.sum(axis=-1, keepdims=True)
+    return p  # (B, H, T, T)
 
 
 def branching_attention_reference(q, k, v, scale=1.0):
@@ -186,7 +187,7 @@ def branching_attention_reference(q, k, v, scale=1.0):
     scale = _check_qkv(q, k, v, scale)
     R, B, H, N, L, dh = q.shape
     p = _reference_probs(_flat(q), _flat(k), scale, branching_mask(R, N, L))
-    return _unflat(np.einsum("bhtu,bhud->bhtd", p, _flat(v)), q.shape).copy()
+    return _unflat(p @ _flat(v), q.shape).copy()
 
 
 def branching_attention_reference_vjp(q, k, v, do, scale=1.0):
@@ -197,13 +198,13 @@ def branching_attention_reference_vjp(q, k, v, do, scale=1.0):
     qf, kf, vf, dof = _flat(q), _flat(k), _flat(v), _flat(do)
     p = _reference_probs(qf, kf, scale, branching_mask(R, N, L))  # (B, H, T, T)
     # forward: o = p v
-    dv = np.einsum("bhtu,bhtd->bhud", p, dof)  # dv = p^T do
-    dp = np.einsum("bhtd,bhud->bhtu", dof, vf)  # dp = do v^T
+    dv = p.swapaxes(-1, -2) @ dof  # dv = p^T do
+    dp = dof @ vf.swapaxes(-1, -2)  # dp = do v^T
     # forward: p = softmax(s) per row, so ds = p * (dp - rowsum(p * dp))
     ds = p * (dp - (p * dp).sum(axis=-1, keepdims=True))
     # forward: s = scale * q k^T
-    dq = scale * np.einsum("bhtu,bhud->bhtd", ds, kf)
-    dk = scale * np.einsum("bhtu,bhtd->bhud", ds, qf)
+    dq = scale * (ds @ kf)
+    dk = scale * (ds.swapaxes(-1, -2) @ qf)
     return tuple(_unflat(g, q.shape).copy() for g in (dq, dk, dv))
 
 

@@ -35,9 +35,11 @@ def layer_norm(x, P, name):
     return F.layer_norm(x, (x.shape[-1],), P[name + "/gamma"], P[name + "/beta"], eps=1e-5)
 
 
-def forward(P, tokens, poses, cfg):
+def forward(P, tokens, poses, cfg, sdpa=False):
     """P: official name -> torch tensor; tokens (B, N, L) long; poses (B, N, 7).
-    Returns logits (B, N, L, V), raw pose (B, N, L, 7), ce (B,), pose loss (B,), loss."""
+    Returns logits (B, N, L, V), raw pose (B, N, L, 7), ce (B,), pose loss (B,), loss.
+    sdpa=True uses torch's scaled_dot_product_attention with the boolean mask (the benchmark's
+    choice: the explicit softmax below keeps three (T, T) arrays per layer for autograd)."""
     V, d, H = cfg.n_embeddings, cfg.d_model, cfg.n_head
     B, N, L = tokens.shape
     R, T, dh = 3, 3 * N * L, d // H
@@ -55,9 +57,12 @@ def forward(P, tokens, poses, cfg):
         vqk = linear(a, P, h + "/attn/c_attn")
         v, q, k = vqk[..., :d], vqk[..., d:2 * d], vqk[..., 2 * d:]  # values, queries, keys
         q, k, v = (t.reshape(B, T, H, dh).transpose(1, 2) for t in (q, k, v))  # (B, H, T, dh)
-        s = cfg.attention_scale * (q @ k.transpose(-1, -2))
-        s = s.masked_fill(~mask, float("-inf"))
-        o = torch.softmax(s, dim=-1) @ v  # (B, H, T, dh)
+        if sdpa:
+            o = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=cfg.attention_scale)
+        else:
+            s = cfg.attention_scale * (q @ k.transpose(-1, -2))
+            s = s.masked_fill(~mask, float("-inf"))
+            o = torch.softmax(s, dim=-1) @ v  # (B, H, T, dh)
         x = x + linear(o.transpose(1, 2).reshape(B, T, d), P, h + "/attn/c_proj")
         x = x + mlp(layer_norm(x, P, h + "/ln_2"), P, h + "/mlp")
     x = x.reshape(B, R, N, L, d)

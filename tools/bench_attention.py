@@ -1,0 +1,584 @@
+"""Benchmark branching attention (SPEC.md §2): pyvf's C++ kernel against torch's
+scaled_dot_product_attention with the dense (T, T) mask and against the dense NumPy reference.
+
+    python tools/bench_attention.py                 # paper size R=3, B=1, H=12, N=20, L=64, dh=64
+    python tools/bench_attention.py --quick         # smaller sizes, well under a minute
+    python tools/bench_attention.py --flex          # also torch flex_attention (compiled, forward only)
+    python tools/bench_attention.py --json out.json # every number, machine-readable
+
+What it does, in order:
+1. validates: pyvf float32, torch SDPA float32 and the NumPy reference in float32 against the
+   NumPy reference in float64 on float64 copies of the same inputs (output and every gradient,
+   normwise relative error max|x - ref| / max|ref|), plus torch float64 as a check of the flat
+   layout and mask given to torch; exits with status 1 if pyvf is outside its bound;
+2. measures the extra peak memory of one call of each (pyvf.measure.peak_memory: resident
+   memory, outputs included) beside the memory expected for it;
+3. optionally (--flex) compiles torch flex_attention with a block mask built from the
+   branching rule, validates it and measures its memory;
+4. times forward and forward+backward of each (median of --repeat calls), with the useful
+   GFLOP/s (attended block pairs only) and the machine's float32 GEMM rate for scale;
+5. measures pyvf's extra peak memory as N grows, to show it grows linearly in T = R*N*L
+   while the dense logits grow as T^2.
+
+Inputs are unit-normal, scale = 1 (the published model's unscaled logits, SPEC.md §2).
+Layouts: pyvf takes (R, B, H, N, L, dh); torch and the reference's flat sequence are
+(B, H, T, dh) with T = R*N*L in the order [row][view][token].
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+try:
+    import pyvf
+except ImportError:  # run as `python tools/bench_attention.py` from a checkout built in place
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    import pyvf
+from pyvf.measure import format_bytes, median_time, memory_method, peak_memory, rel_err
+
+# The bounds pyvf must meet before anything is timed: the same as tests/test_attention.py
+# (RTOL64, RTOL32), where their reasons are written out. float64: the kernel and the reference
+# sum the same O(1) terms in another order (measured ~4e-15). float32 on unit-normal inputs with
+# scale 1 (logits up to ~40): a logit's float32 rounding, sqrt(dh) * 2^-24 * |logit| ~ 2e-5 at
+# worst, moves each probability by that relative amount; measured ~2.5e-6; a bug is O(1).
+BOUND64 = 1e-12
+BOUND32 = 1e-5
+
+PAPER = dict(R=3, B=1, H=12, N=20, L=64, dh=64)
+QUICK = dict(R=3, B=1, H=4, N=8, L=64, dh=64)
+SCALING_N = (4, 8, 16, 32, 64)
+QUICK_SCALING_N = (2, 4, 8, 16)
+
+
+# ---------------------------------------------------------------------------------------
+# problem: inputs in both layouts
+
+
+def flat(x):
+    """(R, B, H, N, L, dh) -> (B, H, T, dh), T in the order [row][view][token]."""
+    R, B, H, N, L, dh = x.shape
+    return np.ascontiguousarray(x.transpose(1, 2, 0, 3, 4, 5).reshape(B, H, R * N * L, dh))
+
+
+def unflat(x, shape):
+    """(B, H, T, dh) -> (R, B, H, N, L, dh)."""
+    R, B, H, N, L, dh = shape
+    return x.reshape(B, H, R, N, L, dh).transpose(2, 0, 1, 3, 4, 5)
+
+
+def make_inputs(R, B, H, N, L, dh, seed=0):
+    """q, k, v, do: unit-normal float32 arrays of shape (R, B, H, N, L, dh)."""
+    rng = np.random.default_rng(seed)
+    return [rng.standard_normal((R, B, H, N, L, dh), dtype=np.float32) for _ in range(4)]
+
+
+def attended_pairs(R, N):
+    """Block pairs one (b, h) attends: trunk N(N+1)/2, each branch N(N-1)/2 + N (SPEC.md §2)."""
+    return N * (N + 1) // 2 + (R - 1) * (N * (N - 1) // 2 + N)
+
+
+def useful_flops(R, B, H, N, L, dh):
+    """(forward, forward+backward) flops of the attended blocks only. Per block pair the forward
+    is two (L, L, dh) matmuls, q k^T and p v: 4 L^2 dh; the backward five more (recomputed
+    q k^T, dv, dp, dq, dk), so forward+backward is 7 matmuls = 3.5x the forward."""
+    fwd = 4 * L * L * dh * attended_pairs(R, N) * B * H
+    return fwd, 3.5 * fwd
+
+
+# ---------------------------------------------------------------------------------------
+# the memory one expects (written from csrc/branching_attention.cpp's header comment)
+
+
+def pyvf_expected_memory(R, B, H, N, L, dh, itemsize, threads):
+    """Bytes pyvf should need above its inputs: (forward, forward+backward), outputs included.
+
+    forward: o (like q) and lse (R, B, H, N, L) float64, plus workspace: v transposed (like v)
+    and per thread q^T, o^T (L, dh), s^T (L, L) and five L-vectors.
+    backward: dq, dk, dv (like q), plus per thread q^T, do^T, dq^T of one head (R*N*L, dh),
+    D and the lse hi/lo split (R*N*L each) and k^T (L, dh), three (L, L) buffers.
+    forward+backward peaks in the backward, with o and lse still alive.
+    """
+    S = R * B * H * N * L * dh * itemsize  # one array like q
+    lse = R * B * H * N * L * 8
+    fwd_thread = (2 * L * dh + L * L + 5 * L) * itemsize
+    bwd_thread = (3 * R * N * L * dh + 3 * R * N * L + L * dh + 3 * L * L) * itemsize
+    fwd = S + lse + S + threads * fwd_thread
+    fwd_bwd = S + lse + max(S + threads * fwd_thread, 3 * S + threads * bwd_thread)
+    return fwd, fwd_bwd
+
+
+def dense_logits_bytes(R, B, H, N, L, itemsize):
+    """The (B, H, T, T) logits a dense attention materialises."""
+    T = R * N * L
+    return B * H * T * T * itemsize
+
+
+# ---------------------------------------------------------------------------------------
+# the contenders: each a forward and a forward+backward closure over prepared inputs
+
+
+def pyvf_fns(q, k, v, do):
+    def fwd():
+        return pyvf.branching_attention_forward(q, k, v)[0]
+
+    def fwd_bwd():
+        o, lse = pyvf.branching_attention_forward(q, k, v)
+        return o, pyvf.branching_attention_backward(do, q, k, v, o, lse)
+
+    return fwd, fwd_bwd
+
+
+def torch_fns(q, k, v, do, mask):
+    """SDPA on the flat (B, H, T, dh) layout with the boolean (T, T) mask (True = attend),
+    scale=1.0; backward through autograd with the upstream gradient do."""
+    shape = q.shape
+    qt, kt, vt, dot = (torch.from_numpy(flat(x)) for x in (q, k, v, do))
+    leaves = [x.clone().requires_grad_(True) for x in (qt, kt, vt)]
+    maskt = torch.from_numpy(mask)
+
+    def fwd():
+        with torch.no_grad():
+            return F.scaled_dot_product_attention(qt, kt, vt, attn_mask=maskt, scale=1.0)
+
+    def fwd_bwd():  # autograd.grad rather than .backward(): no .grad left behind between calls
+        o = F.scaled_dot_product_attention(*leaves, attn_mask=maskt, scale=1.0)
+        return o.detach(), torch.autograd.grad(o, leaves, dot)
+
+    def to_pyvf(o):  # a flat torch tensor -> numpy (R, B, H, N, L, dh)
+        return unflat(o.numpy(), shape)
+
+    return fwd, fwd_bwd, to_pyvf
+
+
+def reference_fns(q, k, v, do):
+    """The dense NumPy reference. Its "forward+backward" is branching_attention_reference_vjp,
+    which recomputes the forward's probabilities (not o) and returns the gradients."""
+    def fwd():
+        return pyvf.branching_attention_reference(q, k, v)
+
+    def vjp():
+        return pyvf.branching_attention_reference_vjp(q, k, v, do)
+
+    return fwd, vjp
+
+
+def torch_backend(q, mask):
+    """The SDPA backend torch picks for these inputs (a private torch function: "unknown" if gone)."""
+    try:
+        from torch.nn.attention import SDPBackend
+
+        qt = torch.from_numpy(flat(q))
+        choice = torch._fused_sdp_choice(qt, qt, qt, attn_mask=torch.from_numpy(mask), scale=1.0)
+        return SDPBackend(choice).name
+    except Exception:  # noqa: BLE001
+        return "unknown"
+
+
+def timed(fn):
+    """fn wrapped to record its own wall time in .seconds (for a call made under peak_memory)."""
+    def call():
+        t0 = time.perf_counter()
+        out = fn()
+        call.seconds = time.perf_counter() - t0
+        return out
+
+    call.seconds = None
+    return call
+
+
+def measure_once(fn, warmup):
+    """One call of fn under peak_memory after `warmup` plain calls: (result, bytes, seconds)."""
+    for _ in range(warmup):
+        fn()
+    t = timed(fn)
+    result, extra = peak_memory(t)
+    return result, extra, t.seconds
+
+
+# ---------------------------------------------------------------------------------------
+# steps
+
+
+def gemm_fn():
+    """A float32 1024 x 1024 numpy matmul (numpy's BLAS, its default threads): the machine's
+    GEMM rate for scale, 2 * 1024^3 flops per call."""
+    a, b = np.random.default_rng(1).standard_normal((2, 1024, 1024), dtype=np.float32)
+    return lambda: a @ b
+
+
+GEMM_FLOPS = 2 * 1024 ** 3
+
+
+def consecutive_times(fns, repeat, warmup=1):
+    """Time each function in turn, `repeat` consecutive calls after `warmup`: {name: (median
+    seconds, times)}. Consecutive, not interleaved: pyvf and torch have separate OpenMP
+    runtimes (pyvf the system libgomp, torch its own copy), whose idle threads spin for a few
+    ms after each parallel region; alternating them made both up to 2x slower and noisier here."""
+    return {name: median_time(fn, repeat, warmup) for name, fn in fns.items()}
+
+
+def setup_flex(q, k, v, o_ref):
+    """torch flex_attention, compiled, with a BlockMask from the branching rule; forward only
+    (flex_attention has no CPU backward). Compiles, validates o against o_ref and measures one
+    call's memory. Returns (dict of results or of the error, the forward function or None)."""
+    R, B, H, N, L, dh = q.shape
+    T = R * N * L
+    out = {}
+    try:
+        from torch.nn.attention.flex_attention import create_block_mask, flex_attention
+
+        def mask_mod(b, h, q_idx, kv_idx):  # the rule of SPEC.md §2 on flat indices
+            q_row, q_view = q_idx // (N * L), (q_idx // L) % N
+            k_row, k_view = kv_idx // (N * L), (kv_idx // L) % N
+            return ((k_row == 0) & (k_view < q_view)) | ((k_row == q_row) & (k_view == q_view))
+
+        t0 = time.perf_counter()
+        # block size L: every (L, L) tile is then either fully attended or fully masked
+        block_mask = create_block_mask(mask_mod, B=None, H=None, Q_LEN=T, KV_LEN=T, device="cpu",
+                                       BLOCK_SIZE=L)
+        out["block_mask_seconds"] = time.perf_counter() - t0
+        out["block_mask_sparsity_percent"] = float(block_mask.sparsity())
+        flex = torch.compile(flex_attention)
+        qt, kt, vt = (torch.from_numpy(flat(x)) for x in (q, k, v))
+
+        def fwd():
+            with torch.no_grad():
+                return flex(qt, kt, vt, block_mask=block_mask, scale=1.0)
+
+        t0 = time.perf_counter()
+        fwd()  # compiles (torch's inductor cache in /tmp makes later runs' compiles shorter)
+        out["first_call_seconds"] = time.perf_counter() - t0
+        o, extra, _ = measure_once(fwd, warmup=0)
+        out["err_o"] = rel_err(unflat(o.numpy(), q.shape), o_ref)
+        out["peak_bytes"] = extra
+        return out, fwd
+    except Exception as e:  # noqa: BLE001 -- report any failure and carry on, as asked
+        out["error"] = f"{type(e).__name__}: {e}"
+        out["traceback"] = traceback.format_exc()
+        return out, None
+
+
+def run_scaling(Ns, R, B, H, L, dh, threads, calls=2):
+    """pyvf's extra peak memory (forward; forward+backward) for each N, float32: the smallest of
+    `calls` measured calls. The call's own memory is deterministic and anything else that grows
+    the process's resident memory meanwhile only adds, so the minimum is the estimate. Late in a
+    full run the calls here have read up to ~40% (<= 10 MiB) above the model in some runs, even
+    as the minimum of two, and within 1% in others; in a fresh process they were always within
+    a few %: some of the process's earlier activity (suspected: the kernel collapsing transparent
+    huge pages) grows its resident memory during the call."""
+    rows = []
+    for N in Ns:
+        q, k, v, do = make_inputs(R, B, H, N, L, dh, seed=N)
+        fwd, fwd_bwd = pyvf_fns(q, k, v, do)
+        m_fwd = [measure_once(fwd, warmup=0)[1] for _ in range(calls)]
+        m_fb = [measure_once(fwd_bwd, warmup=0)[1] for _ in range(calls)]
+        e_fwd, e_fb = pyvf_expected_memory(R, B, H, N, L, dh, 4, threads)
+        rows.append(dict(N=N, T=R * N * L, fwd_bytes=min(m_fwd), fwd_expected=e_fwd, fwd_bwd_bytes=min(m_fb),
+                         fwd_bwd_expected=e_fb, fwd_bytes_each_call=m_fwd, fwd_bwd_bytes_each_call=m_fb,
+                         dense_logits_bytes_computed=dense_logits_bytes(R, B, H, N, L, 4)))
+        del q, k, v, do
+    Ns_a = np.array([r["N"] for r in rows], dtype=np.float64)
+    fit = {}
+    for key in ("fwd_bytes", "fwd_bwd_bytes"):
+        m = np.array([r[key] for r in rows], dtype=np.float64)
+        slope, intercept = np.polyfit(Ns_a, m, 1)  # m ~ intercept + slope * N
+        resid = np.abs(m - (intercept + slope * Ns_a)) / m
+        # local growth exponents d log m / d log N between successive N: 1 for linear (below 1
+        # while the N-independent per-thread buffers still matter), 2 for quadratic
+        expo = np.diff(np.log(m)) / np.diff(np.log(Ns_a))
+        fit[key] = dict(bytes_per_N=float(slope), intercept_bytes=float(intercept),
+                        max_rel_residual=float(resid.max()), growth_exponents=[float(x) for x in expo],
+                        superlinear=bool(expo[-1] > 1.15))
+    return rows, fit
+
+
+# ---------------------------------------------------------------------------------------
+# printing
+
+
+def table(header, rows):
+    """A markdown table; every cell already a string."""
+    widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
+    line = lambda cells: "| " + " | ".join(str(c).ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
+    out = [line(header), "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
+    return "\n".join(out + [line(r) for r in rows])
+
+
+def error_table(err):
+    rows = [[name] + [f"{e[c]:.2e}" for c in ("o", "dq", "dk", "dv")] for name, e in err.items()]
+    return table(["max rel. error vs float64 ref", "o", "dq", "dk", "dv"], rows)
+
+
+def ms(sec):
+    return "-" if sec is None else f"{sec * 1e3:.1f} ms"
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    for name, val in PAPER.items():
+        p.add_argument(f"--{name}", type=int, default=None, help=f"default {val} ({QUICK[name]} with --quick)")
+    p.add_argument("--threads", type=int, default=2, help="threads for pyvf and torch (default 2)")
+    p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
+    p.add_argument("--quick", action="store_true", help="smaller sizes (H=4, N=8; scaling N up to 16)")
+    p.add_argument("--flex", action="store_true", help="also torch flex_attention (torch.compile, forward only)")
+    p.add_argument("--no-scaling", action="store_true", help="skip the memory-versus-N measurement")
+    p.add_argument("--scaling-heads", type=int, default=None, help="H for the scaling runs (default: --H)")
+    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
+    args = p.parse_args(argv)
+    base = QUICK if args.quick else PAPER
+    for name in PAPER:
+        if getattr(args, name) is None:
+            setattr(args, name, base[name])
+    if args.threads < 1:
+        p.error("--threads must be at least 1")
+    if args.repeat < 5:
+        p.error("--repeat must be at least 5 (medians of fewer calls are not worth printing)")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    t_start = time.perf_counter()
+    R, B, H, N, L, dh = (args.R, args.B, args.H, args.N, args.L, args.dh)
+    shape = (R, B, H, N, L, dh)
+    T = R * N * L
+    pyvf.set_num_threads(args.threads)
+    torch.set_num_threads(args.threads)
+
+    report = dict(
+        config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=args.threads,
+                    repeat=args.repeat, inputs="unit normal, seed 0"),
+        machine=dict(platform=platform.platform(), processor=_cpu_name(), cpu_count=os.cpu_count(),
+                     python=platform.python_version(), numpy=np.__version__, torch=torch.__version__,
+                     pyvf=pyvf.__version__, pyvf_threads=pyvf.num_threads(), torch_threads=torch.get_num_threads(),
+                     torch_cpu_capability=torch.backends.cpu.get_cpu_capability()),
+        memory_method=memory_method(),
+        bounds=dict(pyvf_float32=BOUND32, pyvf_float64=BOUND64),
+    )
+    print(f"# Branching attention benchmark: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={T}), float32, "
+          f"scale 1, {args.threads} threads")
+    print(f"machine: {report['machine']['processor']}, {os.cpu_count()} CPUs; numpy {np.__version__}, "
+          f"torch {torch.__version__}, pyvf {pyvf.__version__}")
+    print(f"memory: {memory_method()}\n")
+
+    counter = iter(range(1, 10))
+
+    def section():  # the next section's number (some sections are optional)
+        return next(counter)
+
+    q, k, v, do = make_inputs(*shape)
+    q64, k64, v64, do64 = (x.astype(np.float64) for x in (q, k, v, do))
+    mask = pyvf.branching_mask(R, N, L)  # (T, T) bool, for torch
+
+    # ---- 1. validate (and measure memory on the same calls) --------------------------------
+    print(f"## {section()}. Validation against the NumPy reference in float64 (float64 copies of the inputs)\n")
+    t0 = time.perf_counter()
+    o64 = pyvf.branching_attention_reference(q64, k64, v64)
+    g64 = pyvf.branching_attention_reference_vjp(q64, k64, v64, do64)
+    ref64_seconds = time.perf_counter() - t0
+    print(f"(float64 reference forward + vjp: {ref64_seconds:.1f} s)\n")
+
+    p_fwd, p_fb = pyvf_fns(q, k, v, do)
+    t_fwd, t_fb, t_to_np = torch_fns(q, k, v, do, mask)
+    r_fwd, r_vjp = reference_fns(q, k, v, do)
+    mem, first = {}, {}
+
+    def errors(o, grads):
+        return dict(o=rel_err(o, o64), **{n: rel_err(g, w) for n, g, w in zip(("dq", "dk", "dv"), grads, g64)})
+
+    err = {}
+    # pyvf: one warm-up call (thread pool), then one measured call of each
+    o, mem["pyvf_fwd"], first["pyvf_fwd"] = measure_once(p_fwd, warmup=1)
+    (_, grads), mem["pyvf_fwd_bwd"], first["pyvf_fwd_bwd"] = measure_once(p_fb, warmup=1)
+    err["pyvf float32"] = errors(o, grads)
+    o, grads = pyvf.branching_attention(q64, k64, v64), pyvf.branching_attention_vjp(q64, k64, v64, do64)
+    err["pyvf float64"] = errors(o, grads)
+    worst32, worst64 = max(err["pyvf float32"].values()), max(err["pyvf float64"].values())
+    ok = worst32 <= BOUND32 and worst64 <= BOUND64
+    if not ok:  # stop before spending minutes on the others
+        print(error_table(err))
+        print(f"\npyvf bounds: float32 {BOUND32:g} (worst {worst32:.2e}), float64 {BOUND64:g} (worst {worst64:.2e})")
+        report["errors"] = err
+        report["aborted"] = "pyvf error above its bound"
+        _write_json(args.json, report)
+        print("\nABORT: pyvf is outside its error bound; nothing is timed.", file=sys.stderr)
+        return 1
+    # torch
+    o, mem["torch_fwd"], first["torch_fwd"] = measure_once(t_fwd, warmup=1)
+    (_, grads), mem["torch_fwd_bwd"], first["torch_fwd_bwd"] = measure_once(t_fb, warmup=1)
+    err["torch SDPA float32"] = errors(t_to_np(o), [t_to_np(g) for g in grads])
+    t64_fwd, t64_fb, _ = torch_fns(q64, k64, v64, do64, mask)
+    o, grads = t64_fb()
+    err["torch SDPA float64 (layout check)"] = errors(t_to_np(o), [t_to_np(g) for g in grads])
+    del t64_fwd, t64_fb
+    # the NumPy reference in float32: no warm-up (a call takes seconds); these calls are its
+    # first timing sample too
+    o, mem["numpy_fwd"], first["numpy_fwd"] = measure_once(r_fwd, warmup=0)
+    grads, mem["numpy_vjp"], first["numpy_vjp"] = measure_once(r_vjp, warmup=0)
+    err["numpy reference float32"] = errors(o, grads)
+    del o, grads
+
+    print(error_table(err))
+    print("\nrelative error = max|x - ref| / max|ref| over the whole array (normwise)")
+    print(f"pyvf bounds: float32 {BOUND32:g} (worst {worst32:.2e}), float64 {BOUND64:g} (worst {worst64:.2e}): OK")
+    report["errors"] = err
+
+    # ---- 2. memory -----------------------------------------------------------------------
+    print(f"\n## {section()}. Extra peak memory of one call (inputs excluded, outputs included)\n")
+    e_fwd, e_fb = pyvf_expected_memory(*shape, 4, args.threads)
+    S = q.nbytes
+    logits = dense_logits_bytes(R, B, H, N, L, 4)
+    backend = torch_backend(q, mask)
+    mask_f = mask.size * 4  # the bool mask as an additive float32 (T, T) mask
+    if backend == "FLASH_ATTENTION":  # torch's CPU flash kernel: O(T*dh), but it converts the mask
+        t_fwd_e = (mask_f + S, "(T, T) mask as float32 + o (flash kernel: no logits)")
+        t_fb_e = (mask_f + 4 * S, "(T, T) mask as float32 + o, dq, dk, dv; torch's backward workspace not modelled")
+    else:  # the math path materialises the logits, and keeps the probabilities for backward
+        t_fwd_e = (logits + S, "dense logits B*H*T^2*4 + o (math path)")
+        t_fb_e = (2 * logits + 4 * S, "logits + probabilities saved for backward + o, dq, dk, dv")
+    expected = {
+        "pyvf_fwd": (e_fwd, "o + lse + v^T + per-thread tiles: O(T*dh)"),
+        "pyvf_fwd_bwd": (e_fb, "o, lse, dq, dk, dv + per-thread head buffers: O(T*dh)"),
+        "torch_fwd": t_fwd_e,
+        "torch_fwd_bwd": t_fb_e,
+        # branching_attention_reference keeps s, p = exp(s) and p / sum(p) alive at once; its vjp
+        # p, dp and one (dp - rowsum) temporary: 3 dense (B, H, T, T) arrays each
+        "numpy_fwd": (3 * logits + S, "3 dense (B, H, T, T) arrays at once + o"),
+        "numpy_vjp": (3 * logits + 3 * S, "3 dense (B, H, T, T) arrays at once + dq, dk, dv"),
+    }
+    rows = [[name, format_bytes(mem[name]), format_bytes(expected[name][0]),
+             f"{mem[name] / expected[name][0]:.2f}", expected[name][1]] for name in mem]
+    print(table(["call", "measured", "expected", "measured/expected", "expected is"], rows))
+    print(f"\ndense logits (B, H, T, T) float32 = {format_bytes(logits)}; one array like q = {format_bytes(S)}; "
+          f"mask (T, T) bool = {format_bytes(mask.nbytes)}; torch SDPA backend chosen: {backend}")
+    report["memory"] = {n: dict(measured_bytes=mem[n], expected_bytes=expected[n][0], expected_is=expected[n][1])
+                        for n in mem}
+    report["memory"]["dense_logits_bytes"] = logits
+    report["torch_sdpa_backend"] = backend
+
+    # ---- 3. flex_attention: compile, validate, memory ------------------------------------
+    flex_fwd = None
+    if args.flex:
+        print(f"\n## {section()}. torch flex_attention (torch.compile, BlockMask from the branching rule, forward only)\n")
+        fx, flex_fwd = setup_flex(q, k, v, o64)
+        report["flex"] = fx
+        if flex_fwd is None:
+            print(f"flex_attention failed: {fx['error']}\n{fx['traceback']}")
+        else:
+            print(table(["", "value"], [
+                ["create_block_mask", f"{fx['block_mask_seconds']:.2f} s (sparsity {fx['block_mask_sparsity_percent']:.1f}%)"],
+                ["first call (compiles)", f"{fx['first_call_seconds']:.1f} s"],
+                ["max rel. error of o vs float64 ref", f"{fx['err_o']:.2e}"],
+                ["extra peak memory, one call", format_bytes(fx["peak_bytes"])],
+            ]))
+            print("\n(its time is in the next table)")
+
+    # ---- 4. time -------------------------------------------------------------------------
+    print(f"\n## {section()}. Time (median of {args.repeat} consecutive calls after one warm-up call)\n")
+    fns = {"gemm": gemm_fn(), "pyvf_fwd": p_fwd, "torch_fwd": t_fwd}
+    if flex_fwd is not None:
+        fns["flex_fwd"] = flex_fwd
+    fns.update(pyvf_fwd_bwd=p_fb, torch_fwd_bwd=t_fb)
+    times = consecutive_times(fns, args.repeat, warmup=1)
+    gemm = GEMM_FLOPS / times.pop("gemm")[0] / 1e9
+    for name, fn in (("numpy_fwd", r_fwd), ("numpy_vjp", r_vjp)):  # first sample: the validation call
+        _, more = median_time(fn, args.repeat - 1, warmup=0)
+        all_t = [first[name]] + more
+        times[name] = (float(np.median(all_t)), all_t)
+    f_fwd, f_fb = useful_flops(*shape)
+    rows = []
+    for fwd_name, fb_name, label in (("pyvf_fwd", "pyvf_fwd_bwd", "pyvf (C++ kernel)"),
+                                     ("torch_fwd", "torch_fwd_bwd", "torch SDPA, dense bool mask"),
+                                     ("flex_fwd", None, "torch flex_attention (compiled)"),
+                                     ("numpy_fwd", "numpy_vjp", "NumPy dense reference")):
+        if fwd_name not in times:
+            continue
+        row = [label]
+        for name, flops in ((fwd_name, f_fwd), (fb_name, f_fb)):
+            if name is None:
+                row += ["-", "-", "-"]
+            else:
+                med, ts = times[name]
+                row += [ms(med), ms(min(ts)), f"{flops / med / 1e9:.1f}"]
+        rows.append(row)
+    print(table(["", "forward", "(min)", "GFLOP/s", "forward+backward", "(min)", "GFLOP/s"], rows))
+    print("GFLOP/s: useful flops (the same count for every row) / median time")
+    ratio_fwd = times["torch_fwd"][0] / times["pyvf_fwd"][0]
+    ratio_fb = times["torch_fwd_bwd"][0] / times["pyvf_fwd_bwd"][0]
+    print(f"\ntorch SDPA / pyvf time: forward {ratio_fwd:.2f}x, forward+backward {ratio_fb:.2f}x")
+    if "flex_fwd" in times:
+        print(f"torch flex_attention / pyvf time: forward {times['flex_fwd'][0] / times['pyvf_fwd'][0]:.2f}x")
+    print(f"NumPy reference / pyvf time: forward {times['numpy_fwd'][0] / times['pyvf_fwd'][0]:.0f}x, "
+          f"forward+backward {times['numpy_vjp'][0] / times['pyvf_fwd_bwd'][0]:.0f}x")
+    print(f"useful flops (attended block pairs only, {attended_pairs(R, N)} of {(R * N) ** 2} per head): "
+          f"forward {f_fwd / 1e9:.2f} GFLOP, forward+backward {f_fb / 1e9:.2f} GFLOP (3.5x)")
+    print(f"float32 GEMM rate, numpy matmul 1024x1024 (median, timed just before pyvf): {gemm:.1f} GFLOP/s")
+    print("NumPy reference: no warm-up call (a call takes seconds), its first sample is the validation "
+          "call; its forward+backward is branching_attention_reference_vjp (recomputes the "
+          "probabilities, not o)")
+    report["time"] = {n: dict(median_seconds=m, seconds=t) for n, (m, t) in times.items()}
+    report["useful_flops"] = dict(fwd=f_fwd, fwd_bwd=f_fb, attended_pairs_per_head=attended_pairs(R, N))
+    report["gflops"] = {n: (f_fwd if n.endswith("_fwd") else f_fb) / m / 1e9 for n, (m, _) in times.items()}
+    report["gemm_float32_gflops"] = gemm
+    report["ratio_torch_over_pyvf"] = dict(fwd=ratio_fwd, fwd_bwd=ratio_fb)
+    if "flex_fwd" in times:
+        report["ratio_torch_over_pyvf"]["flex_fwd"] = times["flex_fwd"][0] / times["pyvf_fwd"][0]
+
+    # ---- 5. memory scaling ---------------------------------------------------------------
+    if not args.no_scaling:
+        Ns = QUICK_SCALING_N if args.quick else SCALING_N
+        Hs = args.scaling_heads or H
+        print(f"\n## {section()}. pyvf extra peak memory as N grows (R={R} B={B} H={Hs} L={L} dh={dh}, float32; "
+              "smallest of 2 calls)\n")
+        srows, fit = run_scaling(Ns, R, B, Hs, L, dh, args.threads)
+        rows = [[r["N"], r["T"], format_bytes(r["fwd_bytes"]), format_bytes(r["fwd_expected"]),
+                 format_bytes(r["fwd_bwd_bytes"]), format_bytes(r["fwd_bwd_expected"]),
+                 format_bytes(r["fwd_bwd_bytes"] / r["N"]), format_bytes(r["dense_logits_bytes_computed"])]
+                for r in srows]
+        print(table(["N", "T", "fwd measured", "fwd expected", "fwd+bwd measured", "fwd+bwd expected",
+                     "fwd+bwd / N", "dense logits (computed)"], rows))
+        for key, label in (("fwd_bytes", "forward"), ("fwd_bwd_bytes", "forward+backward")):
+            f = fit[key]
+            print(f"{label}: linear fit {format_bytes(f['intercept_bytes'])} + {format_bytes(f['bytes_per_N'])} * N "
+                  f"(largest residual {100 * f['max_rel_residual']:.1f}%); growth exponents d log m / d log N: "
+                  + ", ".join(f"{x:.2f}" for x in f["growth_exponents"])
+                  + ("  ** SUPERLINEAR **" if f["superlinear"] else "  (linear: 1; dense logits: 2)"))
+        report["scaling"] = dict(heads=Hs, rows=srows, fit=fit)
+
+    total = time.perf_counter() - t_start
+    report["total_seconds"] = total
+    print(f"\ntotal {total:.0f} s")
+    _write_json(args.json, report)
+    return 0
+
+
+def _cpu_name():
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def _write_json(path, report):
+    if path:
+        with open(path, "w") as f:
+            json.dump(report, f, indent=2)
+        print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

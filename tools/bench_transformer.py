@@ -1,0 +1,178 @@
+"""Time and memory of one transformer training step (forward, backward, AdamW), pyvf against the
+same model in torch (tests/torch_transformer.py, SDPA with the tree's boolean mask), one run.
+
+    python tools/bench_transformer.py                  # tiny and paper configurations
+    python tools/bench_transformer.py --configs tiny   # just the tiny one (seconds)
+
+Each framework runs in its own worker process: in one process, numpy's and torch's thread pools
+slow each other's small matrix products down by 10x or more here. pyvf's step is split into the branching-attention kernel (forward and backward), the linear
+layers (every x @ w, forward and backward) and the rest (LayerNorm, GELU, embeddings, losses,
+the tied logits, AdamW), by timing those functions inside the step. Before timing, the first
+step's loss of pyvf and torch (same weights, same batch) are compared, and the tool stops if they differ. Memory: the measured
+peak resident memory of one step above what was resident before it (pyvf.measure.peak_memory).
+"""
+
+import argparse
+import contextlib
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, ".."))
+sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+
+import pyvf  # noqa: E402
+import pyvf.attention  # noqa: E402
+import pyvf.layers  # noqa: E402
+from pyvf.measure import format_bytes, peak_memory  # noqa: E402
+
+CONFIGS = {
+    "tiny": dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5,
+                 n_loss_skip=1, batch=8),
+    # the paper's InteriorNet model: GPT-2 base, 20 views of 8x8 tokens, B = 1
+    "paper": dict(n_embeddings=1024, n_head=12, d_model=768, n_layer=12, token_image_size=8, sequence_size=20,
+                  n_loss_skip=4, batch=1),
+}
+
+
+@contextlib.contextmanager
+def timed(totals):
+    """Accumulate the time spent in the kernel and in the linear layers into totals."""
+    patches = [(pyvf.attention, "branching_attention_forward", "attention"),
+               (pyvf.attention, "branching_attention_backward", "attention"),
+               (pyvf.attention, "linear_forward", "linear"), (pyvf.attention, "linear_backward", "linear"),
+               (pyvf.layers, "linear_forward", "linear"), (pyvf.layers, "linear_backward", "linear")]
+    saved = []
+    for module, name, key in patches:
+        fn = getattr(module, name)
+        saved.append((module, name, fn))
+
+        def wrapper(*a, _fn=fn, _key=key, **kw):
+            t = time.perf_counter()
+            try:
+                return _fn(*a, **kw)
+            finally:
+                totals[_key] += time.perf_counter() - t
+        setattr(module, name, wrapper)
+    try:
+        yield
+    finally:
+        for module, name, fn in saved:
+            setattr(module, name, fn)
+
+
+def batch(cfg, B, rng):
+    tokens = rng.integers(0, cfg.n_embeddings, (B, cfg.sequence_size, cfg.L))
+    poses = rng.normal(size=(B, cfg.sequence_size, 7))
+    poses[..., 3:] /= np.linalg.norm(poses[..., 3:], axis=-1, keepdims=True)
+    return tokens, pyvf.make_relative(poses)[0].astype(np.float32)
+
+
+def setup(name, seed=0):
+    spec = dict(CONFIGS[name])
+    B = spec.pop("batch")
+    cfg = pyvf.TransformerConfig(**spec)
+    rng = np.random.default_rng(seed)
+    tokens, poses = batch(cfg, B, rng)
+    return cfg, B, tokens, poses, pyvf.Transformer(cfg, seed=seed)
+
+
+def worker_pyvf(name, steps):
+    cfg, B, tokens, poses, model = setup(name)
+    loss = model.forward(tokens, poses).loss  # the first step's loss, for the cross-check
+    opt = pyvf.AdamW(model.params, lr=1e-4, weight_decay=0.01)
+
+    def step():
+        model.forward(tokens, poses)
+        opt.step(model.backward())
+
+    _, mem = peak_memory(step)  # also the warm-up step
+    times, shares = [], {"attention": 0.0, "linear": 0.0}
+    for _ in range(steps):
+        t = time.perf_counter()
+        with timed(shares):
+            step()
+        times.append(time.perf_counter() - t)
+    total = sum(times)
+    return dict(loss=loss, time=float(np.median(times)), memory=mem, attention=shares["attention"] / total,
+                linear=shares["linear"] / total, params=int(sum(p.size for p in model.params.values())))
+
+
+def worker_torch(name, steps):
+    import torch
+    import torch_transformer
+
+    torch.set_num_threads(pyvf.num_threads())
+    cfg, B, tokens, poses, model = setup(name)
+    P = {k: torch.tensor(v.copy(), requires_grad=True) for k, v in model.params.items()}
+    opt = torch.optim.AdamW(P.values(), lr=1e-4, weight_decay=0.01)
+    t_tokens, t_poses = torch.tensor(tokens), torch.tensor(poses)
+    with torch.no_grad():
+        loss = torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1].item()
+
+    def step():
+        opt.zero_grad()
+        torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1].backward()
+        opt.step()
+
+    _, mem = peak_memory(step)
+    times = []
+    for _ in range(steps):
+        t = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t)
+    return dict(loss=loss, time=float(np.median(times)), memory=mem)
+
+
+def run_worker(which, name, steps, threads):
+    import json
+    import subprocess
+    out = subprocess.run([sys.executable, __file__, "--worker", which, "--configs", name, "--steps", str(steps),
+                          "--threads", str(threads)], check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def bench(name, steps, threads):
+    p = run_worker("pyvf", name, steps, threads)
+    t = run_worker("torch", name, steps, threads)
+    # validate: the same first-step loss from the same weights and batch (float32 both)
+    if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
+        sys.exit(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}")
+    spec = dict(CONFIGS[name])
+    print(f"\n## {name}: d={spec['d_model']}, H={spec['n_head']}, {spec['n_layer']} layers, "
+          f"N={spec['sequence_size']}, L={spec['token_image_size'] ** 2}, V={spec['n_embeddings']}, "
+          f"B={spec['batch']}, {p['params'] / 1e6:.2f}M parameters, float32, {threads} threads, "
+          f"median of {steps} steps, each framework in its own process")
+    print(f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f}")
+    print("| | step time | peak memory of a step |")
+    print("|---|---|---|")
+    print(f"| pyvf | {p['time'] * 1e3:.1f} ms | {format_bytes(p['memory'])} |")
+    print(f"| torch (SDPA + bool mask) | {t['time'] * 1e3:.1f} ms | {format_bytes(t['memory'])} |")
+    print(f"| ratio torch / pyvf | {t['time'] / p['time']:.2f} | {t['memory'] / p['memory']:.2f} |")
+    print(f"pyvf step time shares: branching attention {p['attention']:.0%}, linear layers {p['linear']:.0%}, "
+          f"the rest {1 - p['attention'] - p['linear']:.0%}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--configs", nargs="+", default=["tiny", "paper"], choices=list(CONFIGS))
+    ap.add_argument("--steps", type=int, default=None, help="timed steps (default 20 tiny, 3 paper)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--worker", choices=["pyvf", "torch"], help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    pyvf.set_num_threads(args.threads)
+    for name in args.configs:
+        steps = args.steps or (20 if name == "tiny" else 3)
+        if args.worker:
+            import json
+            result = (worker_pyvf if args.worker == "pyvf" else worker_torch)(name, steps)
+            print(json.dumps(result))
+        else:
+            bench(name, steps, args.threads)
+
+
+if __name__ == "__main__":
+    main()
