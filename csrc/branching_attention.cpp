@@ -15,16 +15,15 @@
 // are elementwise vector operations across L queries at once, with no horizontal reductions.
 //
 // Forward (attn_forward): one task per query block, an online softmax over its key blocks
-// (FlashAttention): running max m and sum l per query, accumulator o^T (dh, Lq) rescaled by
-// c = exp(m_old - m_new) at each block, o^T += v^T p^T. Extra memory: v transposed block by
-// block (as large as v), lse, and per thread q^T, s^T (L, L), o^T: O(T*dh), never O(T^2),
-// T = R*N*L.
+// (FlashAttention): running max m and sum l per query, accumulator acc (Lq, dh) rescaled by
+// c = exp(m_old - m_new) at each block, acc += p v, with p^T read transposed by the gemm.
+// Extra memory: lse and per thread q^T, s^T (L, L), acc: O(T), never O(T^2), T = R*N*L.
 //
 // Backward (attn_backward): one task per head (b, h), so that every dk, dv, dq block is
 // written by one thread in a fixed order (bitwise reproducible, no atomics). For each key
 // block, for each query block that attends it: p^T = exp(scale * k q^T - lse) recomputed from
 // the saved lse, dv += p^T do, dp^T = v do^T, ds^T = p^T * (dp^T - D) with D = rowsum(do * o),
-// dk += scale ds^T q, dq^T += scale k^T ds^T. Extra memory: per thread q, do and dq of one head
+// dk += scale ds^T q, dq += scale (ds^T)^T k. Extra memory: per thread q and do of one head
 // transposed, D, lse split in two, three (L, L) buffers: O(T*dh).
 //
 // Precision of the float32 path: every dot product (q.k, p.v and the backward products) is
@@ -164,17 +163,12 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
     const int64_t L = d.L, dh = d.dh, bs = d.bs(), N = d.N, R = d.R, H = d.H;
     const int64_t nblk = d.nblk();
 
-    // vt: every value block transposed, (dh, L), so that o^T += v^T p^T is a row-major product
-    std::vector<T> vt(nblk * bs);
-#pragma omp parallel for schedule(static) if (worth_threads(d))
-    for (int64_t x = 0; x < nblk; ++x) transpose(vt.data() + x * bs, v + x * bs, (int)L, (int)dh);
-
     int status = kAttnOk;
 #pragma omp parallel if (worth_threads(d))
     {
-        // per thread: q^T (dh, Lq); s^T, then p^T (Lk, Lq); o^T (dh, Lq); per query: running
-        // max m, new max mn, rescale factor c, sum l, this block's sum ls
-        std::vector<T> qt(bs), st(L * L), ot(bs), m(L), mn(L), c(L), l(L), ls(L);
+        // per thread: q^T (dh, Lq); s^T, then p^T (Lk, Lq); the accumulator acc (Lq, dh); per
+        // query: running max m, new max mn, rescale factor c, sum l, this block's sum ls
+        std::vector<T> qt(bs), st(L * L), acc(bs), m(L), mn(L), c(L), l(L), ls(L);
         V chk = V{};
         // one task per query block (r, b, h, i); the views with the most key blocks first
 #pragma omp for schedule(dynamic, 1)
@@ -189,7 +183,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
 
             std::fill(m.begin(), m.end(), -std::numeric_limits<T>::infinity());
             std::fill(l.begin(), l.end(), T(0));
-            std::fill(ot.begin(), ot.end(), T(0));
+            std::fill(acc.begin(), acc.end(), T(0));
             for (int64_t j = 0; j <= i; ++j) {
                 // key blocks: trunk 0..i-1, then the query's own block (r, i)
                 const int64_t kx = j < i ? d.blk(0, b, h, j) : qx;
@@ -210,13 +204,17 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
                 row_mul<T>(l.data(), c.data(), L);  // l = l * c + sum_k p
                 row_add<T>(l.data(), ls.data(), L);
                 std::swap(m, mn);
-                for (int64_t e = 0; e < dh; ++e) row_mul<T>(ot.data() + e * L, c.data(), L);  // o^T *= c
-                gemm<T, true>((int)dh, (int)L, (int)L, vt.data() + kx * bs, L, st.data(), L, ot.data(), L);  // o^T += v^T p^T
+                for (int64_t a = 0; a < L; ++a) {  // acc *= c, row by row
+                    const T ca = c[a];
+                    for (int64_t e = 0; e < dh; ++e) acc[a * dh + e] *= ca;
+                }
+                // acc += p v = (p^T)^T v: p^T is what we hold, read transposed by the gemm
+                gemm<T, true, true>((int)L, (int)dh, (int)L, st.data(), L, v + kx * bs, dh, acc.data(), dh);
             }
             T* O = o + qx * bs;
             double* lse_q = lse + qx * L;
             for (int64_t a = 0; a < L; ++a) {
-                for (int64_t e = 0; e < dh; ++e) O[a * dh + e] = ot[e * L + a] / l[a];  // o = o^T^T / l
+                for (int64_t e = 0; e < dh; ++e) O[a * dh + e] = acc[a * dh + e] / l[a];  // o = acc / l
                 lse_q[a] = (double)m[a] + std::log((double)l[a]);
             }
         }
@@ -243,11 +241,10 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
     int status = kAttnOk;
 #pragma omp parallel if (worth_threads(d))
     {
-        // per thread, for one head: q, do and the dq accumulator transposed per block (dh, L);
-        // D = rowsum(do * o) and the lse hi/lo split per query; k^T of one key block (dh, Lk);
-        // p^T, dp^T, ds^T (Lk, Lq).
-        std::vector<T> qt(RN * bs), dot(RN * bs), dqt(RN * bs), D(RN * L), lhi(RN * L), llo(RN * L);
-        std::vector<T> kt(bs), st(L * L), dpt(L * L), dst(L * L);
+        // per thread, for one head: q and do transposed per block (dh, L); D = rowsum(do * o)
+        // and the lse hi/lo split per query; p^T, dp^T, ds^T (Lk, Lq).
+        std::vector<T> qt(RN * bs), dot(RN * bs), D(RN * L), lhi(RN * L), llo(RN * L);
+        std::vector<T> st(L * L), dpt(L * L), dst(L * L);
         V chk = V{};
 #pragma omp for schedule(dynamic, 1)
         for (int64_t bh = 0; bh < B * H; ++bh) {
@@ -270,8 +267,8 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                         lhi[y * L + a] = (T)lx;
                         llo[y * L + a] = (T)(lx - (double)(T)lx);
                     }
+                    std::fill(dq + x * bs, dq + (x + 1) * bs, T(0));
                 }
-            std::fill(dqt.begin(), dqt.end(), T(0));
 
             for (int64_t kr = 0; kr < R; ++kr)
                 for (int64_t j = 0; j < N; ++j) {
@@ -282,7 +279,6 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                     T* dV = dv + kx * bs;
                     std::fill(dK, dK + bs, T(0));
                     std::fill(dV, dV + bs, T(0));
-                    transpose(kt.data(), K, (int)L, (int)dh);  // k^T (dh, Lk)
 
                     // one query block (r, i) that attends key block (kr, j)
                     auto visit = [&](int64_t r, int64_t i) {
@@ -311,9 +307,9 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                             }
                             for (; c < L; ++c) dsa[c] = pa[c] * (dpa[c] - Dy[c]) * scale;
                         }
-                        // forward: s = scale * q k^T, so dk = ds^T q and dq^T = k^T ds^T
+                        // forward: s = scale * q k^T, so dk = ds^T q and dq = ds k = (ds^T)^T k
                         gemm<T, true>((int)L, (int)dh, (int)L, dst.data(), L, q + x * bs, dh, dK, dh);
-                        gemm<T, true>((int)dh, (int)L, (int)L, kt.data(), L, dst.data(), L, dqt.data() + y * bs, L);
+                        gemm<T, true, true>((int)L, (int)dh, (int)L, dst.data(), L, K, dh, dq + x * bs, dh);
                     };
                     if (kr == 0) {  // a trunk block: trunk views i >= j, branch views i > j
                         for (int64_t i = j; i < N; ++i) visit(0, i);
@@ -323,9 +319,6 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                         visit(kr, j);
                     }
                 }
-            for (int64_t r = 0; r < R; ++r)  // dq = (dq^T)^T
-                for (int64_t i = 0; i < N; ++i)
-                    transpose(dq + d.blk(r, b, h, i) * bs, dqt.data() + (r * N + i) * bs, (int)dh, (int)L);
         }
         if (!all_finite<T>(chk)) {
 #pragma omp atomic write

@@ -138,16 +138,18 @@ template <typename T> inline T exp_scalar(T x) {
 }
 
 // ---------------------------------------------------------------------------------------
-// gemm: C (M, N) = A (M, K) @ B (K, N)      when ACC is false (C is overwritten),
-//       C (M, N) += A (M, K) @ B (K, N)     when ACC is true.
-// Row-major, leading dimensions lda, ldb, ldc. Sizes are those of one attention block
-// (L, dh ~ 16..128): A, B stay in L1/L2. Register tile: MR rows of C times NV vectors.
-// For each k the tile does C[i, j..j+NV*W) += A[i, k] * B[k, j..j+NV*W): the sum over k runs
-// in increasing k for every element, whatever the tile, so the result does not depend on
-// the blocking (the plain loop below gives the same bits when it is not contracted to FMA).
+// gemm: C (M, N) = op(A) (M, K) @ B (K, N)      when ACC is false (C is overwritten),
+//       C (M, N) += op(A) (M, K) @ B (K, N)     when ACC is true;
+// op(A) = A, stored (M, K) with leading dimension lda, when TA is false;
+// op(A) = A^T, A stored (K, M) with leading dimension lda, when TA is true.
+// B and C row-major with ldb, ldc. Sizes are those of one attention block (L, dh ~ 16..128):
+// A, B stay in L1/L2. Register tile: MR rows of C times NV vectors. For each k the tile does
+// C[i, j..j+NV*W) += op(A)[i, k] * B[k, j..j+NV*W), one broadcast scalar times a vector, so
+// the sum over k runs in increasing k for every element whatever the tile or TA, and a
+// transposed A costs nothing (the scalar is read down a column instead of along a row).
 
 template <typename T, int MR, int NV, bool ACC>
-inline void gemm_tile(int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
+inline void gemm_tile(int K, const T* A, long sa_i, long sa_k, const T* B, long ldb, T* C, long ldc) {
     using V = typename Simd<T>::V;
     constexpr int W = Simd<T>::W;
     V acc[MR][NV];
@@ -161,7 +163,7 @@ inline void gemm_tile(int K, const T* A, long lda, const T* B, long ldb, T* C, l
         for (int v = 0; v < NV; ++v) b[v] = vload<T>(B + k * ldb + v * W);
 #pragma GCC unroll 16
         for (int i = 0; i < MR; ++i) {
-            const T a = A[i * lda + k];
+            const T a = A[i * sa_i + k * sa_k];
 #pragma GCC unroll 4
             for (int v = 0; v < NV; ++v) acc[i][v] += a * b[v];
         }
@@ -176,26 +178,27 @@ inline void gemm_tile(int K, const T* A, long lda, const T* B, long ldb, T* C, l
 }
 
 template <typename T, int MR, bool ACC>
-inline void gemm_rows(int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
+inline void gemm_rows(int N, int K, const T* A, long sa_i, long sa_k, const T* B, long ldb, T* C, long ldc) {
     constexpr int W = Simd<T>::W;
     int j = 0;
-    for (; j + 2 * W <= N; j += 2 * W) gemm_tile<T, MR, 2, ACC>(K, A, lda, B + j, ldb, C + j, ldc);
-    for (; j + W <= N; j += W) gemm_tile<T, MR, 1, ACC>(K, A, lda, B + j, ldb, C + j, ldc);
+    for (; j + 2 * W <= N; j += 2 * W) gemm_tile<T, MR, 2, ACC>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
+    for (; j + W <= N; j += W) gemm_tile<T, MR, 1, ACC>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
     for (; j < N; ++j)  // columns past the last full vector
         for (int i = 0; i < MR; ++i) {
             T s = 0;
-            for (int k = 0; k < K; ++k) s += A[i * lda + k] * B[k * ldb + j];
+            for (int k = 0; k < K; ++k) s += A[i * sa_i + k * sa_k] * B[k * ldb + j];
             C[i * ldc + j] = ACC ? C[i * ldc + j] + s : s;
         }
 }
 
-template <typename T, bool ACC>
+template <typename T, bool ACC, bool TA = false>
 inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
     constexpr int MR = kVecBytes >= 64 ? 8 : 4;  // 2*MR accumulators: 16 of the 32 AVX-512 registers, 8 of 16 otherwise
+    const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;  // where op(A)[i, k] is
     int i = 0;
     for (; i + MR <= M; i += MR)
-        gemm_rows<T, MR, ACC>(N, K, A + i * lda, lda, B, ldb, C + i * ldc, ldc);
-    for (; i < M; ++i) gemm_rows<T, 1, ACC>(N, K, A + i * lda, lda, B, ldb, C + i * ldc, ldc);
+        gemm_rows<T, MR, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
+    for (; i < M; ++i) gemm_rows<T, 1, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
 }
 
 // out (cols, rows) = in (rows, cols)^T

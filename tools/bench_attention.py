@@ -101,18 +101,18 @@ def useful_flops(R, B, H, N, L, dh):
 def pyvf_expected_memory(R, B, H, N, L, dh, itemsize, threads):
     """Bytes pyvf should need above its inputs: (forward, forward+backward), outputs included.
 
-    forward: o (like q) and lse (R, B, H, N, L) float64, plus workspace: v transposed (like v)
-    and per thread q^T, o^T (L, dh), s^T (L, L) and five L-vectors.
-    backward: dq, dk, dv (like q), plus per thread q^T, do^T, dq^T of one head (R*N*L, dh),
-    D and the lse hi/lo split (R*N*L each) and k^T (L, dh), three (L, L) buffers.
+    forward: o (like q) and lse (R, B, H, N, L) float64, plus workspace per thread: q^T and the
+    accumulator (L, dh), s^T (L, L) and five L-vectors.
+    backward: dq, dk, dv (like q), plus per thread q^T and do^T of one head (R*N*L, dh), D and the
+    lse hi/lo split (R*N*L each), three (L, L) buffers.
     forward+backward peaks in the backward, with o and lse still alive.
     """
     S = R * B * H * N * L * dh * itemsize  # one array like q
     lse = R * B * H * N * L * 8
     fwd_thread = (2 * L * dh + L * L + 5 * L) * itemsize
-    bwd_thread = (3 * R * N * L * dh + 3 * R * N * L + L * dh + 3 * L * L) * itemsize
-    fwd = S + lse + S + threads * fwd_thread
-    fwd_bwd = S + lse + max(S + threads * fwd_thread, 3 * S + threads * bwd_thread)
+    bwd_thread = (2 * R * N * L * dh + 3 * R * N * L + 3 * L * L) * itemsize
+    fwd = S + lse + threads * fwd_thread
+    fwd_bwd = S + lse + max(threads * fwd_thread, 3 * S + threads * bwd_thread)
     return fwd, fwd_bwd
 
 
@@ -447,7 +447,7 @@ def main(argv=None):
         t_fwd_e = (logits + S, "dense logits B*H*T^2*4 + o (math path)")
         t_fb_e = (2 * logits + 4 * S, "logits + probabilities saved for backward + o, dq, dk, dv")
     expected = {
-        "pyvf_fwd": (e_fwd, "o + lse + v^T + per-thread tiles: O(T*dh)"),
+        "pyvf_fwd": (e_fwd, "o + lse + per-thread tiles: O(T*dh)"),
         "pyvf_fwd_bwd": (e_fb, "o, lse, dq, dk, dv + per-thread head buffers: O(T*dh)"),
         "torch_fwd": t_fwd_e,
         "torch_fwd_bwd": t_fb_e,
