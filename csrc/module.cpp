@@ -125,6 +125,21 @@ template <typename T> void gelu_grad(Arr<T> dx, Arr<T> dy, Arr<T> x) {
     gelu_backward<T>(pdx, pdy, px, n);
 }
 
+// True when every element is finite; a scan that allocates nothing (np.isfinite(x).all()
+// would allocate a bool array as large as x).
+template <typename T> bool all_finite(Arr<T> x) {
+    const T* p = x.data();
+    const int64_t n = x.size();
+    py::gil_scoped_release nogil;
+    constexpr int W = Simd<T>::W;
+    typename Simd<T>::V acc = {};  // x * 0 is 0 for finite x, NaN for inf and NaN
+    int64_t i = 0;
+    for (; i + W <= n; i += W) acc += vload<T>(p + i) * T(0);
+    T tail = 0;
+    for (; i < n; ++i) tail += p[i] * T(0);
+    return hsum<T>(acc) + tail == 0;
+}
+
 template <typename T> void bind_dtype(py::module_& m) {
     m.def("attn_forward", &forward<T, false>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
           py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
@@ -139,6 +154,7 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("o").noconvert(),
           py::arg("do").noconvert(), py::arg("scale"));
     m.def("exp", &exp_kernel<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
+    m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
     m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("gelu_backward", &gelu_grad<T>, py::arg("dx").noconvert(), py::arg("dy").noconvert(),
           py::arg("x").noconvert());

@@ -64,7 +64,7 @@ def _check_array(name, x, like=None):
     if not x.flags.c_contiguous:
         raise ValueError(f"{name} is not C-contiguous (a transposed or sliced view?): "
                          f"pass np.ascontiguousarray({name})")
-    if not np.isfinite(x).all():
+    if not _core.all_finite(x):
         raise ValueError(f"{name} contains NaN or inf")
 
 
@@ -86,7 +86,7 @@ def _check_qkv(q, k, v, scale):
 
 def _check_finite_result(name, *arrays):
     for a in arrays:
-        if not np.isfinite(a).all():
+        if not _core.all_finite(a):
             raise ValueError(f"{name}: the result is not finite: it overflowed {a.dtype} "
                              "(inputs too large for the dtype; use float64 or rescale them)")
 
