@@ -30,11 +30,11 @@ BOUND64 = 1e-12
 BOUND32 = 1e-5
 
 # Sizes, small to the paper's (SPEC.md §1). The dense reference costs O(T^2) time and memory
-# (15 s forward, 35 s vjp in float64 at the paper size), so the largest size is checked in
+# (seconds per call in float64 at the paper size, 2 GiB), so the largest size is checked in
 # float64 on two heads only, the first and the last (heads are computed independently, so the
 # reference of those heads' inputs is exactly the reference's output for those heads), and
 # the reference is timed in one call where a call takes a second or more (the whole demo then
-# takes ~55 s on 2 cores, ~35 s of it the reference at the paper size).
+# takes ~15 s on 2 cores, most of it the reference at the paper size).
 DEMO_SIZES = {
     "small": dict(shape=dict(R=3, B=2, H=2, N=4, L=16, dh=16), ref_repeat=5, all_heads=True),
     "medium": dict(shape=dict(R=3, B=1, H=4, N=8, L=64, dh=64), ref_repeat=1, all_heads=True),
