@@ -12,6 +12,7 @@
 
 #include "branching_attention.h"
 #include "elementwise.h"
+#include "vq.h"
 #include "simd.h"
 
 namespace py = pybind11;
@@ -140,6 +141,19 @@ template <typename T> bool all_finite(Arr<T> x) {
     return hsum<T>(acc) + tail == 0;
 }
 
+template <typename T> int64_t nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T> x, Arr<T> codes) {
+    if (x.ndim() != 2 || codes.ndim() != 2 || x.shape(1) != codes.shape(1) || codes.shape(0) < 1)
+        throw std::invalid_argument("pyvf._core.vq_nearest: x (M, D) and codes (K >= 1, D)");
+    if (index.ndim() != 1 || sq_dist.ndim() != 1 || index.shape(0) != x.shape(0) || sq_dist.shape(0) != x.shape(0))
+        throw std::invalid_argument("pyvf._core.vq_nearest: index and sq_dist must be (M,)");
+    int64_t* pi = index.mutable_data();
+    T* pd = sq_dist.mutable_data();
+    const T *px = x.data(), *pc = codes.data();
+    const int64_t M = x.shape(0), K = codes.shape(0), D = x.shape(1);
+    py::gil_scoped_release nogil;
+    return vq_nearest<T>(pi, pd, px, pc, M, K, D);
+}
+
 template <typename T> void bind_dtype(py::module_& m) {
     m.def("attn_forward", &forward<T, false>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
           py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
@@ -155,6 +169,8 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("do").noconvert(), py::arg("scale"));
     m.def("exp", &exp_kernel<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
+    m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
+          py::arg("x").noconvert(), py::arg("codes").noconvert());
     m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("gelu_backward", &gelu_grad<T>, py::arg("dx").noconvert(), py::arg("dy").noconvert(),
           py::arg("x").noconvert());

@@ -1,0 +1,13 @@
+// Nearest code (vq.cpp): outputs index (M,) int64 and sq_dist (M,), inputs x (M, D), codes (K, D).
+// Returns how many exact distances were computed beyond one per row (0 when every fast score
+// certified its winner). Outputs are overwritten.
+#pragma once
+
+#include <cstdint>
+
+namespace pyvf {
+
+template <typename T>
+int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t M, int64_t K, int64_t D);
+
+}  // namespace pyvf

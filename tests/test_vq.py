@@ -1,0 +1,129 @@
+"""vq_nearest against float64 brute force: random data, the large-offset cancellation cases
+where the published |x|^2 - 2 x.e + |e|^2 formula fails, exact ties, duplicated codes, bad input."""
+
+import numpy as np
+import pytest
+
+import pyvf
+from conftest import assert_bitwise_equal
+from pyvf import _core
+from pyvf.quantizer import vq_nearest
+
+
+def brute_force(x, codes):
+    """Exact distances in float64 by direct differences; argmin takes the first minimum."""
+    d = ((x.astype(np.float64)[:, None, :] - codes.astype(np.float64)[None]) ** 2).sum(axis=-1)  # (M, K)
+    return d.argmin(axis=1), d.min(axis=1), d
+
+
+def published(x, codes):
+    """The published quantizer: -(|x|^2 - 2 x.e + |e|^2) in the input dtype, first maximum."""
+    d = (x ** 2).sum(axis=1, keepdims=True) - 2 * x @ codes.T + (codes ** 2).sum(axis=1)
+    return (-d).argmax(axis=1)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("M, K, D", [(500, 64, 16), (300, 1024, 256), (7, 5, 3), (1, 1, 1), (65, 33, 17)])
+def test_matches_brute_force(M, K, D, dtype, rng):
+    x = rng.standard_normal((M, D)).astype(dtype)
+    codes = rng.standard_normal((K, D)).astype(dtype)
+    index, sq = vq_nearest(x, codes)
+    want, want_d, _ = brute_force(x, codes)
+    assert index.dtype == np.int64 and sq.dtype == dtype
+    np.testing.assert_array_equal(index, want)
+    # the distance is the float64 one rounded to the dtype; the kernel sums the D nonnegative
+    # terms in order, numpy pairwise: they may differ by up to D * 2^-53 relative (1.2e-15
+    # measured at D = 256), plus the rounding to the dtype
+    np.testing.assert_allclose(sq, want_d.astype(dtype), rtol=4 * np.finfo(dtype).eps + D * 2.0 ** -53, atol=0)
+    assert (sq >= 0).all()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("offset", [1e2, 1e3, 1e4, 1e5])
+def test_large_offsets_stay_exact(offset, dtype, rng):
+    """Vectors far from the origin beside small gaps between codes: |x|^2, 2 x.e and |e|^2 are
+    huge and cancel. The published float32 formula picks wrong codes; vq_nearest must not."""
+    x = (rng.standard_normal((400, 32)) + offset).astype(dtype)
+    codes = (rng.standard_normal((128, 32)) + offset).astype(dtype)
+    index, sq = vq_nearest(x, codes)
+    want, want_d, _ = brute_force(x, codes)
+    np.testing.assert_array_equal(index, want)
+    np.testing.assert_allclose(sq, want_d.astype(dtype), rtol=4 * np.finfo(dtype).eps + 32 * 2.0 ** -53)
+    if dtype == np.float32 and offset >= 1e3:
+        assert (published(x, codes) != want).mean() > 0.1  # the case is a real trap
+
+
+def test_exact_ties_go_to_the_smallest_index(rng):
+    codes = rng.standard_normal((10, 8))
+    codes[7] = codes[3]  # duplicated code (the published EMA leaves unused codes equal, at 0)
+    codes[9] = codes[3]
+    index, sq = vq_nearest(codes[[3, 7, 9, 1]].copy(), codes)
+    np.testing.assert_array_equal(index, [3, 3, 3, 1])
+    assert (sq == 0).all()
+    # a point equidistant from three codes: the first of them
+    index, sq = vq_nearest(np.zeros((1, 2)), np.array([[0.0, 2.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]))
+    assert index[0] == 1 and sq[0] == 1.0
+    # every code zero (an EMA after a step where no code was used): index 0, distance |x|^2
+    x = rng.standard_normal((5, 4)).astype(np.float32)
+    index, sq = vq_nearest(x, np.zeros((6, 4), np.float32))
+    assert (index == 0).all()
+    np.testing.assert_allclose(sq, (x.astype(np.float64) ** 2).sum(1), rtol=1e-6)
+
+
+def test_near_ties_resolved_by_exact_distances(rng):
+    """Two codes whose distances differ by one part in 1e12: far below float32's resolution of
+    the fast scores; the re-rank must still pick the truly nearer one."""
+    x = rng.standard_normal((50, 16))
+    a = rng.standard_normal(16)
+    for m in range(50):
+        base = x[m] + a
+        c = np.stack([base, base])
+        c[1] = x[m] + a * (1 - 1e-12)  # very slightly nearer
+        index, _ = vq_nearest(x[m:m + 1].copy(), c)
+        assert index[0] == 1
+
+
+def test_same_result_for_any_thread_count(rng):
+    x = rng.standard_normal((3000, 64)).astype(np.float32) + 300
+    codes = rng.standard_normal((512, 64)).astype(np.float32) + 300
+    n = pyvf.num_threads()
+    try:
+        pyvf.set_num_threads(1)
+        one = vq_nearest(x, codes)
+        pyvf.set_num_threads(2)
+        two = vq_nearest(x, codes)
+    finally:
+        pyvf.set_num_threads(n)
+    assert_bitwise_equal("index", two[0], one[0])
+    assert_bitwise_equal("sq", two[1], one[1])
+
+
+def test_certified_rows_skip_the_rerank(rng):
+    """On well separated data the error bound certifies every winner: nothing re-ranked."""
+    x = rng.standard_normal((1000, 32)).astype(np.float32)
+    codes = rng.standard_normal((256, 32)).astype(np.float32)
+    index = np.empty(1000, np.int64)
+    sq = np.empty(1000, np.float32)
+    assert _core.vq_nearest(index, sq, x, codes) == 0
+
+
+@pytest.mark.parametrize("x, codes, exc, match", [
+    (np.zeros((3, 4), np.int64), np.zeros((2, 4)), TypeError, "x must be float32 or float64"),
+    (np.zeros((3, 4), np.float16), np.zeros((2, 4), np.float16), TypeError, "x must be float32"),
+    (np.zeros((3, 4)), np.zeros((2, 4), np.float32), TypeError, "codes is float32 but x is float64"),
+    (np.zeros((3, 4)), np.zeros((2, 5)), ValueError, "codes has width 5 but x has width 4"),
+    (np.zeros(4), np.zeros((2, 4)), ValueError, "x must be 2-dimensional"),
+    (np.zeros((3, 4)), np.zeros((0, 4)), ValueError, "codes is empty"),
+    (np.zeros((3, 8))[:, ::2], np.zeros((2, 4)), ValueError, "x is not C-contiguous"),
+    (np.full((3, 4), np.nan), np.zeros((2, 4)), ValueError, "x contains NaN"),
+    (np.zeros((3, 4)), np.full((2, 4), np.inf), ValueError, "codes contains NaN or inf"),
+    ([[0.0]], np.zeros((2, 1)), TypeError, "x must be a numpy.ndarray"),
+])
+def test_bad_input_raises(x, codes, exc, match):
+    with pytest.raises(exc, match=match):
+        vq_nearest(x, codes)
+
+
+def test_no_rows_gives_empty_results():
+    index, sq = vq_nearest(np.zeros((0, 4), np.float32), np.zeros((3, 4), np.float32))
+    assert index.shape == (0,) and sq.shape == (0,) and sq.dtype == np.float32
