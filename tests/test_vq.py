@@ -98,13 +98,29 @@ def test_same_result_for_any_thread_count(rng):
     assert_bitwise_equal("sq", two[1], one[1])
 
 
-def test_certified_rows_skip_the_rerank(rng):
-    """On well separated data the error bound certifies every winner: nothing re-ranked."""
-    x = rng.standard_normal((1000, 32)).astype(np.float32)
-    codes = rng.standard_normal((256, 32)).astype(np.float32)
+@pytest.mark.parametrize("offset", [0.0, 1e3, 1e5])
+def test_certified_rows_skip_the_rerank(offset, rng):
+    """On well separated data the error bound certifies every winner: nothing re-ranked, also
+    far from the origin (the kernel scores vectors shifted by the codes' centroid)."""
+    x = (rng.standard_normal((1000, 32)) + offset).astype(np.float32)
+    codes = (rng.standard_normal((256, 32)) + offset).astype(np.float32)
     index = np.empty(1000, np.int64)
     sq = np.empty(1000, np.float32)
     assert _core.vq_nearest(index, sq, x, codes) == 0
+    np.testing.assert_array_equal(index, brute_force(x, codes)[0])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("x_offset", [1e2, 1e4])
+def test_vectors_far_from_every_code(x_offset, dtype, rng):
+    """x far from the codes themselves (the shift cannot remove that): large |x'|, wide error
+    intervals, more codes re-ranked; the answer must still be exact."""
+    x = (rng.standard_normal((300, 16)) + x_offset).astype(dtype)
+    codes = rng.standard_normal((64, 16)).astype(dtype)
+    index, sq = vq_nearest(x, codes)
+    want, want_d, _ = brute_force(x, codes)
+    np.testing.assert_array_equal(index, want)
+    np.testing.assert_allclose(sq, want_d.astype(dtype), rtol=4 * np.finfo(dtype).eps + 16 * 2.0 ** -53)
 
 
 @pytest.mark.parametrize("x, codes, exc, match", [
