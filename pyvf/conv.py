@@ -1,0 +1,347 @@
+"""The codebook's image layers as forward/backward pairs (SPEC.md §4): conv2d, GroupNorm,
+swish, nearest-neighbour x2 upsampling, and the 2D attention block built from them.
+
+Every layer is two functions: `x_forward(x, *params) -> (out, cache)` and
+`x_backward(dout, cache) -> (dx, *dparams)`, gradients in the order of the forward's
+arguments. `cache` holds only what the backward needs; each says what it saves and what it
+recomputes. Arrays keep their dtype (float32 or float64) throughout; nothing is cast, and a
+parameter of another dtype than x is refused rather than converted.
+
+Shapes: images are NCHW, (B, C, Hi, Wi); conv weights are torch's (Co, C, kh, kw), biases
+(Co,), so an official `state_dict` loads as is. Co, Ho, Wo are a conv's output channels and
+size; P = Hi * Wi pixels; K = C * kh * kw the length of one im2col column.
+"""
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+_FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+# ---------------------------------------------------------------------------------------
+# argument checks (shared): name the argument, never cast
+
+
+def _check_float(name, a, like=None):
+    if not isinstance(a, np.ndarray):
+        raise TypeError(f"{name} must be a numpy array, got {type(a).__name__}")
+    if a.dtype not in _FLOATS:
+        raise TypeError(f"{name} must be float32 or float64, got {a.dtype}")
+    if like is not None and a.dtype != like.dtype:
+        raise TypeError(f"{name} is {a.dtype} but x is {like.dtype}: pyvf does not cast, convert it first")
+
+
+def _check_image(name, x):
+    _check_float(name, x)
+    if x.ndim != 4:
+        raise ValueError(f"{name} must be 4-D (B, C, Hi, Wi), got shape {x.shape}")
+
+
+def _check_vector(name, a, n, x):
+    _check_float(name, a, like=x)
+    if a.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), got {a.shape}")
+
+
+def _check_grad(name, dy, shape):
+    if not isinstance(dy, np.ndarray) or dy.shape != shape:
+        raise ValueError(f"{name} must be an array of the forward output's shape {shape}, got "
+                         f"{getattr(dy, 'shape', type(dy).__name__)}")
+
+
+def _padding4(padding):
+    """int p -> (p, p, p, p); (top, bottom, left, right) -> itself. Non-negative ints only."""
+    if isinstance(padding, (int, np.integer)) and not isinstance(padding, bool):
+        pad = (int(padding),) * 4
+    else:
+        try:
+            pad = tuple(padding)
+        except TypeError:
+            raise TypeError(f"padding must be an int or (top, bottom, left, right), got {padding!r}") from None
+        if len(pad) != 4 or not all(isinstance(p, (int, np.integer)) and not isinstance(p, bool) for p in pad):
+            raise ValueError(f"padding must be an int or 4 ints (top, bottom, left, right), got {padding!r}")
+        pad = tuple(int(p) for p in pad)
+    if min(pad) < 0:
+        raise ValueError(f"padding must be non-negative, got {padding!r}")
+    return pad
+
+
+# ---------------------------------------------------------------------------------------
+# conv2d: cross-correlation as torch.nn.functional.conv2d, any kernel, stride, padding
+
+
+def _im2col(x, kh, kw, stride, pad):
+    """x (B, C, Hi, Wi) -> cols (B, K, Ho*Wo), K = C*kh*kw in w's (c, i, j) order:
+    cols[b, (c, i, j), (u, v)] = xpad[b, c, stride*u + i, stride*v + j]. One copy (the columns);
+    the windows themselves are a strided view."""
+    pt, pb, pl, pr = pad
+    # zero padding on each side separately: np.pad's order is (before, after) per axis, here
+    # (top, bottom) for the rows and (left, right) for the columns. The Downsample's (0, 1, 0, 1)
+    # pads only after (bottom, right): the padding trap of SPEC.md §4, see conv2d_forward
+    xp = np.pad(x, ((0, 0), (0, 0), (pt, pb), (pl, pr))) if any(pad) else x  # (B, C, Hp, Wp)
+    win = sliding_window_view(xp, (kh, kw), axis=(2, 3))[:, :, ::stride, ::stride]  # (B, C, Ho, Wo, kh, kw), a view
+    B, C, Ho, Wo = win.shape[:4]
+    return win.transpose(0, 1, 4, 5, 2, 3).reshape(B, C * kh * kw, Ho * Wo)  # (B, K, Ho*Wo)
+
+
+def conv2d_forward(x, w, b, stride=1, padding=0):
+    """y = conv2d(x, w) + b, torch's cross-correlation (no kernel flip).
+
+    x (B, C, Hi, Wi), w (Co, C, kh, kw), b (Co,) -> y (B, Co, Ho, Wo),
+    Ho = (Hi + top + bottom - kh) // stride + 1, Wo likewise.
+    padding: an int (the same zeros on all four sides, torch's `padding=p`) or
+    (top, bottom, left, right).
+
+    Padding trap (SPEC.md §4): the Downsample pads only the right and the bottom, by one pixel,
+    then convolves 3x3 stride 2 with padding 0: padding=(0, 1, 0, 1) here, F.pad(x, (0, 1, 0, 1))
+    in torch (whose order is (left, right, top, bottom); with these numbers both orders agree).
+    padding=1 gives the same output size on even images but shifts every window by one pixel;
+    (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
+
+    One matmul: y_b = w2 @ cols_b, w2 = w as (Co, K), cols the im2col columns (B, K, Ho*Wo).
+    A 1x1 conv with stride 1 and no padding is a plain matmul on x itself (no columns).
+    cache: x and w (no copies), stride, padding; the columns are recomputed in the backward,
+    since they are kh*kw times the size of x and the codebook has dozens of convs."""
+    _check_image("x", x)
+    _check_float("w", w, like=x)
+    if w.ndim != 4:
+        raise ValueError(f"w must be 4-D (Co, C, kh, kw), got shape {w.shape}")
+    B, C, Hi, Wi = x.shape
+    Co, Cw, kh, kw = w.shape
+    if Cw != C:
+        raise ValueError(f"w has {Cw} input channels (w.shape[1]) but x has {C} (x.shape[1])")
+    _check_vector("b", b, Co, x)
+    if not isinstance(stride, (int, np.integer)) or isinstance(stride, bool) or stride < 1:
+        raise ValueError(f"stride must be a positive int, got {stride!r}")
+    stride = int(stride)
+    pad = _padding4(padding)
+    pt, pb, pl, pr = pad
+    Ho, Wo = (Hi + pt + pb - kh) // stride + 1, (Wi + pl + pr - kw) // stride + 1
+    if Ho < 1 or Wo < 1:
+        raise ValueError(f"kernel {kh}x{kw} does not fit the padded image {Hi + pt + pb}x{Wi + pl + pr} "
+                         f"(x {Hi}x{Wi}, padding {padding!r})")
+
+    w2 = w.reshape(Co, C * kh * kw)  # (Co, K), columns in (c, i, j) order
+    if kh == kw == 1 and stride == 1 and not any(pad):
+        y = w2 @ x.reshape(B, C, Hi * Wi)  # (B, Co, P): y[b,o,p] = sum_c w[o,c] x[b,c,p]
+    else:
+        y = w2 @ _im2col(x, kh, kw, stride, pad)  # (B, Co, Ho*Wo): y[b,o,p] = sum_k w2[o,k] cols[b,k,p]
+    y = y.reshape(B, Co, Ho, Wo)
+    y += b[:, None, None]  # (B, Co, Ho, Wo)
+    return y, (x, w, stride, pad)
+
+
+def conv2d_backward(dy, cache):
+    """-> dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,)."""
+    x, w, stride, pad = cache
+    B, C, Hi, Wi = x.shape
+    Co, _, kh, kw = w.shape
+    pt, pb, pl, pr = pad
+    Ho, Wo = (Hi + pt + pb - kh) // stride + 1, (Wi + pl + pr - kw) // stride + 1
+    _check_grad("dy", dy, (B, Co, Ho, Wo))
+    dy2 = dy.reshape(B, Co, Ho * Wo)  # (B, Co, Ho*Wo)
+    w2 = w.reshape(Co, C * kh * kw)  # (Co, K)
+    # forward was y = ... + b[o], so db[o] = sum over b, u, v of dy
+    db = dy.sum(axis=(0, 2, 3))  # (Co,)
+
+    if kh == kw == 1 and stride == 1 and not any(pad):
+        x2 = x.reshape(B, C, Hi * Wi)  # (B, C, P)
+        # forward was y_b = w2 @ x_b, so dx_b = w2^T @ dy_b and dw = sum_b dy_b @ x_b^T
+        dx = (w2.T @ dy2).reshape(x.shape)  # (B, C, Hi, Wi)
+        dw = (dy2 @ x2.transpose(0, 2, 1)).sum(axis=0).reshape(w.shape)  # (Co, C, 1, 1)
+        return dx, dw, db
+
+    cols = _im2col(x, kh, kw, stride, pad)  # (B, K, Ho*Wo), recomputed
+    # forward was y_b = w2 @ cols_b, so dw = sum_b dy_b @ cols_b^T, dcols_b = w2^T @ dy_b
+    dw = (dy2 @ cols.transpose(0, 2, 1)).sum(axis=0).reshape(w.shape)  # (Co, C, kh, kw)
+    dcols = (w2.T @ dy2).reshape(B, C, kh, kw, Ho, Wo)  # (B, C, kh, kw, Ho, Wo)
+    # col2im: forward read cols[b, (c,i,j), (u,v)] = xpad[b, c, stride*u + i, stride*v + j], so each
+    # kernel offset (i, j) scatter-adds its (Ho, Wo) slab onto a strided slice of the padded image
+    dxp = np.zeros((B, C, Hi + pt + pb, Wi + pl + pr), dtype=x.dtype)  # (B, C, Hp, Wp)
+    for i in range(kh):
+        for j in range(kw):
+            dxp[:, :, i:i + stride * (Ho - 1) + 1:stride, j:j + stride * (Wo - 1) + 1:stride] += dcols[:, :, i, j]
+    # the padding was constant zeros: its gradient is dropped; crop (top, left) to where x sits
+    dx = np.ascontiguousarray(dxp[:, :, pt:pt + Hi, pl:pl + Wi])  # (B, C, Hi, Wi)
+    return dx, dw, db
+
+
+# ---------------------------------------------------------------------------------------
+# GroupNorm (Normalize in the codebook): 32 groups of contiguous channels, eps 1e-6, affine
+
+
+def groupnorm_forward(x, gamma, beta, groups=32, eps=1e-6):
+    """y = (x - mean_g) / sqrt(var_g + eps) * gamma[c] + beta[c], statistics over each group g of
+    C/groups consecutive channels and all their pixels (torch's grouping).
+
+    x (B, C, Hi, Wi), gamma, beta (C,) -> y (B, C, Hi, Wi).
+
+    Parity trap (SPEC.md §4): the codebook's Normalize uses eps = 1e-6, not torch's
+    nn.GroupNorm / F.group_norm default 1e-5. On groups of variance ~1e-5 the two differ by
+    tens of percent.
+
+    Two-pass, as layernorm_forward: the mean is accumulated in float64 and rounded, the group
+    centred twice (the second time by the centred group's own residual mean), then the variance
+    is the mean square of it. So a group of mean 1e4 and spread 0.1 keeps its digits, and a
+    constant group gives y = beta exactly (xhat = 0 even when the rounded mean is an ulp off).
+    cache: xhat (B, C, Hi, Wi), rstd (B, groups, 1), gamma, groups."""
+    _check_image("x", x)
+    B, C, Hi, Wi = x.shape
+    _check_vector("gamma", gamma, C, x)
+    _check_vector("beta", beta, C, x)
+    if not isinstance(groups, (int, np.integer)) or isinstance(groups, bool) or groups < 1:
+        raise ValueError(f"groups must be a positive int, got {groups!r}")
+    if C % groups:
+        raise ValueError(f"groups={groups} does not divide the {C} channels of x")
+    if not eps > 0:
+        raise ValueError(f"eps must be positive, got {eps!r}")
+    G = int(groups)
+    xg = x.reshape(B, G, -1)  # (B, G, C/G * Hi * Wi): a group's channels are consecutive
+    mean = xg.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (B, G, 1)
+    xc = xg - mean  # (B, G, M)
+    # second pass: the rounded mean can be an ulp off, which 1/sqrt(eps) = 1000 would amplify on a
+    # constant group; the residual mean of xc is tiny and exact to subtract
+    xc -= xc.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)
+    var = np.mean(xc * xc, axis=-1, keepdims=True)  # (B, G, 1)
+    rstd = 1.0 / np.sqrt(var + x.dtype.type(eps))  # (B, G, 1)
+    xhat = (xc * rstd).reshape(x.shape)  # (B, C, Hi, Wi)
+    y = xhat * gamma[:, None, None] + beta[:, None, None]  # (B, C, Hi, Wi)
+    return y, (xhat, rstd, gamma, G)
+
+
+def groupnorm_backward(dy, cache):
+    """-> dx (B, C, Hi, Wi), dgamma (C,), dbeta (C,)."""
+    xhat, rstd, gamma, G = cache
+    _check_grad("dy", dy, xhat.shape)
+    B = xhat.shape[0]
+    # forward was y = xhat * gamma[c] + beta[c]
+    dgamma = (dy * xhat).sum(axis=(0, 2, 3))  # (C,)
+    dbeta = dy.sum(axis=(0, 2, 3))  # (C,)
+    dxhat = (dy * gamma[:, None, None]).reshape(B, G, -1)  # (B, G, M)
+    xh = xhat.reshape(B, G, -1)  # (B, G, M)
+    # forward was xhat = (x - mean_g(x)) * rstd, rstd = (mean_g((x - mean)^2) + eps)^(-1/2), so per group
+    # dx = rstd * (dxhat - mean_g(dxhat) - xhat * mean_g(dxhat * xhat))
+    dx = rstd * (dxhat - dxhat.mean(axis=-1, keepdims=True) - xh * (dxhat * xh).mean(axis=-1, keepdims=True))
+    return dx.reshape(xhat.shape), dgamma, dbeta
+
+
+# ---------------------------------------------------------------------------------------
+# swish(x) = x * sigmoid(x) (torch's SiLU)
+
+
+def _sigmoids(x):
+    """(sigmoid(x), sigmoid(-x)) without overflow or cancellation. z = exp(-|x|) is in (0, 1], so
+    exp never overflows; sigmoid(|x|) = 1 / (1 + z) and sigmoid(-|x|) = z / (1 + z), each assigned
+    by the sign of x. sigmoid(-x) is computed, not taken as 1 - sigmoid(x), which would cancel to
+    0 for x >~ 17 (float64) and lose the gradient's tail.
+    Call inside errstate(under='ignore'): e^-|x| underflowing to 0 or a subnormal for large |x| is
+    the correctly rounded value, not an error."""
+    z = np.exp(-np.abs(x))  # (...), in (0, 1]
+    one_z = 1 + z
+    s_pos, s_neg = 1 / one_z, z / one_z  # sigmoid(|x|), sigmoid(-|x|)
+    pos = x >= 0
+    return np.where(pos, s_pos, s_neg), np.where(pos, s_neg, s_pos)
+
+
+def swish_forward(x):
+    """y = x * sigmoid(x).   x (...) -> y (...). Finite and warning-free for any finite x
+    (x = -1000 gives -0.0, x = +1000 gives 1000). cache: x (no copy); the sigmoids are recomputed."""
+    _check_float("x", x)
+    with np.errstate(under="ignore"):  # only underflow, the correct result for large |x|; overflow still raises
+        s, _ = _sigmoids(x)
+        y = x * s
+    return y, x
+
+
+def swish_backward(dy, cache):
+    """-> dx (...)."""
+    x = cache
+    _check_grad("dy", dy, x.shape)
+    with np.errstate(under="ignore"):
+        s, sn = _sigmoids(x)  # sigmoid(x), sigmoid(-x) = 1 - sigmoid(x)
+        # forward was y = x * s, s' = s * (1 - s), so dy/dx = s + x * s * (1 - s) = s * (1 + x * sigmoid(-x))
+        dx = dy * (s * (1 + x * sn))
+    return (dx,)
+
+
+# ---------------------------------------------------------------------------------------
+# nearest-neighbour x2 upsampling (the Upsample's interpolation, F.interpolate(scale_factor=2))
+
+
+def upsample_nearest2x_forward(x):
+    """y[b, c, 2u + i, 2v + j] = x[b, c, u, v] for i, j in {0, 1}.
+    x (B, C, Hi, Wi) -> y (B, C, 2Hi, 2Wi). cache: x's shape."""
+    _check_image("x", x)
+    B, C, Hi, Wi = x.shape
+    y = np.broadcast_to(x[:, :, :, None, :, None], (B, C, Hi, 2, Wi, 2)).reshape(B, C, 2 * Hi, 2 * Wi)
+    return y, x.shape
+
+
+def upsample_nearest2x_backward(dy, cache):
+    """-> dx (B, C, Hi, Wi): forward copied each pixel to a 2x2 block, so dx sums the block."""
+    B, C, Hi, Wi = cache
+    _check_grad("dy", dy, (B, C, 2 * Hi, 2 * Wi))
+    dx = dy.reshape(B, C, Hi, 2, Wi, 2).sum(axis=(3, 5))  # (B, C, Hi, Wi)
+    return (dx,)
+
+
+# ---------------------------------------------------------------------------------------
+# AttnBlock(c): single-head attention over the Hi*Wi positions, residual (SPEC.md §4)
+
+
+def attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, groups=32, eps=1e-6):
+    """y = x + proj_out(attention(q, k, v)), q, k, v = 1x1 convs of GroupNorm(x).
+
+    x (B, C, Hi, Wi); norm_gamma, norm_beta (C,) (`norm.weight`, `norm.bias`); wq, wk, wv, wo
+    (C, C, 1, 1) and bq, bk, bv, bo (C,) (`q`, `k`, `v`, `proj_out`) -> y (B, C, Hi, Wi).
+    Attention: logits s[b, i, j] = C**-0.5 * sum_c q[b, c, i] k[b, c, j] over the P = Hi*Wi
+    positions (query i, key j), softmax over j, a[b, c, i] = sum_j p[b, i, j] v[b, c, j].
+    Unlike the transformer (SPEC.md §2), these logits ARE scaled, by C**-0.5 with C the channels.
+    cache: the children's caches, q, k, v as (B, C, P) and p (B, P, P)."""
+    _check_image("x", x)
+    B, C, Hi, Wi = x.shape
+    P = Hi * Wi
+    for name, w in (("wq", wq), ("wk", wk), ("wv", wv), ("wo", wo)):  # the children check the rest
+        if np.shape(w) != (C, C, 1, 1):
+            raise ValueError(f"{name} must have shape ({C}, {C}, 1, 1) for x of {C} channels, got {np.shape(w)}")
+    h, c_norm = groupnorm_forward(x, norm_gamma, norm_beta, groups, eps)  # (B, C, Hi, Wi)
+    q, c_q = conv2d_forward(h, wq, bq)  # (B, C, Hi, Wi)
+    k, c_k = conv2d_forward(h, wk, bk)  # (B, C, Hi, Wi)
+    v, c_v = conv2d_forward(h, wv, bv)  # (B, C, Hi, Wi)
+    q2, k2, v2 = q.reshape(B, C, P), k.reshape(B, C, P), v.reshape(B, C, P)  # (B, C, P)
+    scale = x.dtype.type(C ** -0.5)
+    s = (q2.transpose(0, 2, 1) @ k2) * scale  # (B, P, P): s[b,i,j] = scale * sum_c q[b,c,i] k[b,c,j]
+    s -= s.max(axis=-1, keepdims=True)
+    with np.errstate(under="ignore"):  # exp of very negative logits underflowing to 0 is correct
+        p = np.exp(s)  # (B, P, P)
+    p /= p.sum(axis=-1, keepdims=True)  # softmax over the keys j
+    a = v2 @ p.transpose(0, 2, 1)  # (B, C, P): a[b,c,i] = sum_j v[b,c,j] p[b,i,j]
+    o, c_o = conv2d_forward(a.reshape(B, C, Hi, Wi), wo, bo)  # (B, C, Hi, Wi)
+    y = x + o  # (B, C, Hi, Wi)
+    return y, (c_norm, c_q, c_k, c_v, c_o, q2, k2, v2, p, scale)
+
+
+def attnblock_backward(dy, cache):
+    """-> dx, dnorm_gamma, dnorm_beta, dwq, dbq, dwk, dbk, dwv, dbv, dwo, dbo."""
+    c_norm, c_q, c_k, c_v, c_o, q2, k2, v2, p, scale = cache
+    B, C, P = q2.shape
+    _check_grad("dy", dy, c_norm[0].shape)
+    # forward was y = x + o
+    da, dwo, dbo = conv2d_backward(dy, c_o)
+    da2 = da.reshape(B, C, P)  # (B, C, P)
+    # forward was a = v @ p^T, so dv = da @ p and dp = da^T @ v
+    dv2 = da2 @ p  # (B, C, P): dv[b,c,j] = sum_i da[b,c,i] p[b,i,j]
+    dp = da2.transpose(0, 2, 1) @ v2  # (B, P, P): dp[b,i,j] = sum_c da[b,c,i] v[b,c,j]
+    # forward was p = softmax_j(s), so ds = p * (dp - sum_j p * dp); s = scale * q^T k
+    ds = p * (dp - (p * dp).sum(axis=-1, keepdims=True))  # (B, P, P)
+    ds *= scale
+    dq2 = k2 @ ds.transpose(0, 2, 1)  # (B, C, P): dq[b,c,i] = sum_j k[b,c,j] ds[b,i,j]
+    dk2 = q2 @ ds  # (B, C, P): dk[b,c,j] = sum_i q[b,c,i] ds[b,i,j]
+    shape = c_norm[0].shape  # (B, C, Hi, Wi)
+    dhq, dwq, dbq = conv2d_backward(dq2.reshape(shape), c_q)
+    dhk, dwk, dbk = conv2d_backward(dk2.reshape(shape), c_k)
+    dhv, dwv, dbv = conv2d_backward(dv2.reshape(shape), c_v)
+    # forward was q, k, v = conv(h, .): h feeds all three
+    dxn, dgamma, dbeta = groupnorm_backward(dhq + dhk + dhv, c_norm)
+    dx = dy + dxn  # the residual
+    return dx, dgamma, dbeta, dwq, dbq, dwk, dbk, dwv, dbv, dwo, dbo

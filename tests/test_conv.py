@@ -1,0 +1,592 @@
+"""Tests of the codebook's image layers (SPEC.md §4): conv2d, GroupNorm, swish, nearest x2
+upsampling and the 2D attention block (pyvf/conv.py).
+
+Each layer is a pair `x_forward(...) -> (out, cache)`, `x_backward(dout, cache) -> (dx, *dparams)`.
+The tests: every layer against PyTorch in float64 under a random upstream gradient (output and
+every gradient); float32 against float64 on the same inputs; the parity traps shown to matter
+(the Downsample's (0,1,0,1) padding, GroupNorm eps 1e-6, the grouping of channels, a transposed
+kernel, upsample's summing backward); hard numerical cases (constant groups, groups of mean 1e4
+and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised, a 1x1
+image); float64 central finite differences; dtypes; strided inputs; bad arguments.
+
+Shapes: images (B, C, Hi, Wi), NCHW; conv weights torch's (Co, C, kh, kw). Channels 5 -> 7 for the
+convs (not multiples of 8, in != out), batch 3, odd and even image sides; 32 groups on 64 and 96
+channels for GroupNorm.
+
+Relative errors are normwise: max|got - want| / max|want| (conftest.assert_close). "Measured"
+numbers are the largest seen on the development machine (x86-64, numpy 2.4 with OpenBLAS,
+torch 2.13 CPU, 2 cores).
+"""
+
+import mpmath
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pyvf import conv
+
+from conftest import assert_bitwise_equal, assert_close
+
+EPS = 1e-6  # the codebook's GroupNorm eps (SPEC.md §4); torch's default is 1e-5
+G = 32  # groups of Normalize
+
+# float64 pyvf vs float64 torch: the same sums (<= 7 * 3 * 3 * 5 = 315 terms for dw, 96 * 15 for
+# GroupNorm) in another order. Measured <= 1.5e-15 over every layer, output and gradient (conv2d
+# 7.8e-16, groupnorm 3.6e-16, attnblock 1.5e-15, swish 3.6e-16, upsample 1.6e-16). 1e-13 leaves
+# room for other BLAS orders while every bug this file targets is far larger (each gap is asserted
+# below): padding on the wrong side, a transposed kernel or channels grouped wrongly are O(1)
+# errors; eps 1e-5 moves GroupNorm's y by 0.37 here; an averaging upsample backward is off by 3/4.
+RTOL64 = 1e-13
+
+# pyvf float32 vs torch float64 on the same float32 inputs: pyvf's float32 arithmetic only.
+RTOL32 = {
+    # dot products of K = C*kh*kw <= 45 terms (forward, dx), dw summed over B*Ho*Wo <= 189
+    # products, db over as many: about sqrt(n) u normwise (u = 6e-8). Measured <= 2.2e-7 (y of
+    # the odd Downsample case); 1e-6 = 4.5x margin.
+    "conv2d": 1e-6,
+    # group mean and variance over <= 3 * 15 = 45 numbers, a reciprocal square root, the backward's
+    # two group means, dgamma/dbeta summed over B*Hi*Wi. Groups of variance ~ eps are no worse
+    # conditioned (eps bounds rstd by 1000). Measured <= 1.1e-7 (y); 4e-7 = 3.6x margin.
+    "groupnorm": 4e-7,
+    # elementwise: exp, one division, a few products. Measured <= 5.6e-8 (dx); 2e-7 = 3.6x margin.
+    "swish": 2e-7,
+    # copies forward; the backward adds 4 numbers. Measured <= 6.1e-8 (dx); 2e-7 = 3.3x margin.
+    "upsample": 2e-7,
+    # GroupNorm, three 1x1 convs, a softmax over P = 15 positions, two batched products, a 1x1
+    # conv, composed; the backward through all of them. Measured <= 4.1e-7 (dwk); 2e-6 = 5x margin.
+    "attnblock": 2e-6,
+}
+
+B, CI, CO = 3, 5, 7  # conv batch, in and out channels: not multiples of 8, in != out
+
+
+# ---------------------------------------------------------------------------------------
+# the torch twins (float64 autograd), written independently of pyvf's padding convention
+
+
+def torch_conv2d(x, w, b, stride=1, padding=0):
+    if isinstance(padding, int):
+        return F.conv2d(x, w, b, stride=stride, padding=padding)  # torch's own symmetric padding
+    top, bottom, left, right = padding
+    return F.conv2d(F.pad(x, (left, right, top, bottom)), w, b, stride=stride)  # F.pad: last axis first
+
+
+def torch_groupnorm(x, gamma, beta, groups=G, eps=EPS):
+    return F.group_norm(x, groups, gamma, beta, eps=eps)
+
+
+def torch_swish(x):
+    return F.silu(x)
+
+
+def torch_upsample(x):
+    return F.interpolate(x, scale_factor=2, mode="nearest")
+
+
+def torch_attnblock(x, ng, nb, wq, bq, wk, bk, wv, bv, wo, bo, groups=G, eps=EPS):
+    """taming-transformers' AttnBlock.forward, line for line."""
+    h_ = F.group_norm(x, groups, ng, nb, eps=eps)
+    q, k, v = F.conv2d(h_, wq, bq), F.conv2d(h_, wk, bk), F.conv2d(h_, wv, bv)
+    b, c, h, w = q.shape
+    q = q.reshape(b, c, h * w).permute(0, 2, 1)  # b, hw, c
+    k = k.reshape(b, c, h * w)  # b, c, hw
+    w_ = torch.bmm(q, k) * (int(c) ** (-0.5))  # b, hw, hw
+    w_ = torch.softmax(w_, dim=2)
+    v = v.reshape(b, c, h * w)
+    h_ = torch.bmm(v, w_.permute(0, 2, 1))  # b, c, hw
+    h_ = F.conv2d(h_.reshape(b, c, h, w), wo, bo)
+    return x + h_
+
+
+LAYERS = {  # name -> (forward, backward, torch twin, gradient names in forward-argument order)
+    "conv2d": (conv.conv2d_forward, conv.conv2d_backward, torch_conv2d, ("dx", "dw", "db")),
+    "groupnorm": (conv.groupnorm_forward, conv.groupnorm_backward, torch_groupnorm, ("dx", "dgamma", "dbeta")),
+    "swish": (conv.swish_forward, conv.swish_backward, torch_swish, ("dx",)),
+    "upsample": (conv.upsample_nearest2x_forward, conv.upsample_nearest2x_backward, torch_upsample, ("dx",)),
+    "attnblock": (conv.attnblock_forward, conv.attnblock_backward, torch_attnblock,
+                  ("dx", "dnorm_gamma", "dnorm_beta", "dwq", "dbq", "dwk", "dbk", "dwv", "dbv", "dwo", "dbo")),
+}
+
+
+def group_images(rng, shape, groups=G):
+    """(B, C, Hi, Wi) images whose groups differ in scale (log-uniform in [10^-3.5, 10^0.5], so
+    some groups have var << eps = 1e-6, some ~ eps, most >> eps) and whose channels differ in
+    offset and spread within a group, so that eps and which channels share a group both matter."""
+    Bn, C = shape[:2]
+    scale = np.repeat(10.0 ** rng.uniform(-3.5, 0.5, (Bn, groups)), C // groups, axis=1)[:, :, None, None]
+    offset = rng.uniform(-2, 2, (Bn, C, 1, 1))
+    spread = rng.uniform(0.3, 3, (Bn, C, 1, 1))
+    return scale * (offset + spread * rng.standard_normal(shape))
+
+
+def build(case, rng, dtype):
+    """(name, inputs in forward-argument order, keyword arguments, random upstream gradient dy),
+    the arrays of `dtype`."""
+    name, *dims = case
+    f = lambda *shape: rng.standard_normal(shape)
+    kwargs = {}
+    if name == "conv2d":
+        (kh, kw), stride, padding, (Hi, Wi) = dims
+        inputs = [f(B, CI, Hi, Wi), f(CO, CI, kh, kw) / np.sqrt(CI * kh * kw), f(CO)]
+        kwargs = {"stride": stride, "padding": padding}
+    elif name == "groupnorm":
+        C, Hi, Wi = dims
+        inputs = [group_images(rng, (2, C, Hi, Wi)), 1 + 0.5 * f(C), f(C)]
+    elif name == "swish":
+        inputs = [6 * f(2, 4, 5, 3)]  # reaches |x| ~ 25: both tails and the curved middle
+    elif name == "upsample":
+        Hi, Wi = dims
+        inputs = [f(2, 3, Hi, Wi)]
+    elif name == "attnblock":
+        C, Hi, Wi = dims
+        lin = lambda: [f(C, C, 1, 1) / np.sqrt(C), 0.1 * f(C)]
+        inputs = [f(2, C, Hi, Wi) + f(2, C, 1, 1), 1 + 0.5 * f(C), 0.5 * f(C), *lin(), *lin(), *lin(), *lin()]
+    inputs = [a.astype(dtype) for a in inputs]
+    y, _ = LAYERS[name][0](*inputs, **kwargs)
+    return name, inputs, kwargs, f(*y.shape).astype(dtype)
+
+
+def pyvf_run(name, inputs, kwargs, dy):
+    fwd, bwd, _, _ = LAYERS[name]
+    y, cache = fwd(*inputs, **kwargs)
+    return y, bwd(dy, cache), cache
+
+
+def torch_run(name, inputs, kwargs, dy, twin=None):
+    """y and the gradients of sum(y * dy) w.r.t. every input, by torch autograd in float64
+    (float32 inputs are converted exactly)."""
+    twin = twin or LAYERS[name][2]
+    leaves = [torch.tensor(a, dtype=torch.float64, requires_grad=True) for a in inputs]
+    y = twin(*leaves, **kwargs)
+    (y * torch.tensor(dy, dtype=torch.float64)).sum().backward()
+    return y.detach().numpy(), [t.grad.numpy() for t in leaves]
+
+
+def compare(name, got_y, got_grads, want_y, want_grads, rtol, label):
+    grad_names = LAYERS[name][3]
+    assert len(got_grads) == len(want_grads) == len(grad_names), f"{name}: {len(got_grads)} gradients returned"
+    assert_close(f"{label} y", got_y, want_y, rtol)
+    for gname, g, w in zip(grad_names, got_grads, want_grads):
+        if name == "attnblock" and gname == "dbk":
+            # the key bias adds q_i . bk to every logit of query row i alike, which the softmax
+            # ignores: dbk is exactly 0 and both sides hold rounding noise. Bounded absolutely, on the
+            # scale of dwk (the other gradient that flows through k).
+            assert_close(f"{label} dbk (zero)", g, np.zeros_like(w), 0.0, atol=rtol * np.abs(want_grads[5]).max())
+            continue
+        assert_close(f"{label} {gname}", g, w, rtol)
+
+
+DOWN = (0, 1, 0, 1)  # the Downsample's padding (top, bottom, left, right): right and bottom only
+CASES = [
+    # conv2d: (kh, kw), stride, padding, (Hi, Wi)
+    ("conv2d", (1, 1), 1, 0, (7, 6)),  # the 1x1 fast path (nin_shortcut, quant_conv, q/k/v)
+    ("conv2d", (1, 1), 2, 0, (7, 6)),  # 1x1 through the im2col path: stride
+    ("conv2d", (1, 1), 1, 1, (5, 4)),  # ... and padding: the border is bias only
+    ("conv2d", (3, 3), 1, 1, (7, 6)),  # ResnetBlock conv1/conv2, conv_in/conv_out, Upsample's conv
+    ("conv2d", (3, 3), 1, 1, (8, 8)),
+    ("conv2d", (3, 3), 1, 0, (6, 9)),
+    ("conv2d", (3, 3), 2, 1, (9, 8)),
+    ("conv2d", (3, 3), 2, DOWN, (8, 8)),  # the Downsample, even sides (the real case)
+    ("conv2d", (3, 3), 2, DOWN, (7, 10)),  # ... odd and even
+    ("conv2d", (3, 3), 1, (2, 0, 1, 3), (6, 5)),  # every side different: the order of the 4-tuple
+    ("conv2d", (4, 2), 1, 0, (7, 6)),  # non-square kernel: a transposed kernel cannot even run
+    ("conv2d", (4, 2), 2, 1, (9, 7)),
+    ("conv2d", (4, 2), 2, DOWN, (8, 5)),
+    ("groupnorm", 64, 5, 3),  # 2 channels per group
+    ("groupnorm", 96, 4, 4),  # 3 channels per group
+    ("swish",),
+    ("upsample", 5, 4),
+    ("upsample", 1, 3),
+    ("attnblock", 64, 5, 3),  # P = 15 positions, C**-0.5 = 1/8
+]
+
+
+def case_id(c):
+    return "-".join("x".join(map(str, p)) if isinstance(p, tuple) else str(p) for p in c)
+
+
+# ---------------------------------------------------------------------------------------
+# 1. every layer vs torch, float64, random upstream gradient
+
+
+@pytest.mark.parametrize("case", CASES, ids=case_id)
+def test_matches_torch_float64(case, rng):
+    name, inputs, kwargs, dy = build(case, rng, np.float64)
+    y, grads, _ = pyvf_run(name, inputs, kwargs, dy)
+    y_t, grads_t = torch_run(name, inputs, kwargs, dy)
+    compare(name, y, grads, y_t, grads_t, RTOL64, f"{case_id(case)} f64")
+
+
+def gap(got, want):
+    return np.abs(got - want).max() / np.abs(want).max()
+
+
+def test_conv2d_traps_have_teeth(rng):
+    """The Downsample case (SPEC.md §4), against the mistakes that still run: symmetric padding 1
+    (same output size on even images), the pad on the top-left corner instead, a transposed 3x3
+    kernel. Each is an O(1) change of y, far outside RTOL64 (measured gaps 1.06, 1.06, 0.73)."""
+    _, (x, w, b), kwargs, _ = build(("conv2d", (3, 3), 2, DOWN, (8, 8)), rng, np.float64)
+    y, _ = conv.conv2d_forward(x, w, b, **kwargs)
+    t = [torch.tensor(a) for a in (x, w, b)]
+    wrong = {
+        "padding=1": F.conv2d(t[0], t[1], t[2], stride=2, padding=1),
+        "pad top-left": F.conv2d(F.pad(t[0], (1, 0, 1, 0)), t[1], t[2], stride=2),
+        "transposed kernel": F.conv2d(F.pad(t[0], (0, 1, 0, 1)), t[1].transpose(2, 3), t[2], stride=2),
+    }
+    for what, yt in wrong.items():
+        assert yt.shape == y.shape, what  # same shape: only the values can tell
+        assert gap(y, yt.numpy()) > 0.1, f"{what} is only {gap(y, yt.numpy()):.1e} from pyvf's Downsample"
+
+
+def test_groupnorm_traps_have_teeth(rng):
+    """eps 1e-5 (torch's default) instead of 1e-6, and channels grouped by c % groups instead of in
+    consecutive runs, both move y and dx far outside the float64 and float32 tolerances (measured:
+    eps y 0.37, dx 1.5; interleaved y 0.80, dx 1.75)."""
+    name, inputs, kwargs, dy = build(("groupnorm", 64, 5, 3), rng, np.float64)
+    y, (dx, _, _), _ = pyvf_run(name, inputs, kwargs, dy)
+    y5, g5 = torch_run(name, inputs, kwargs, dy, twin=lambda *a: torch_groupnorm(*a, eps=1e-5))
+    C = inputs[0].shape[1]
+    perm = np.arange(C).reshape(C // G, G).T.reshape(-1)  # group g gets channels g, g+G, ...
+    inv = np.argsort(perm)
+    interleaved = lambda x, g, b: torch_groupnorm(x[:, perm], g[perm], b[perm])[:, inv]
+    yi, gi = torch_run(name, inputs, kwargs, dy, twin=interleaved)
+    for what, yw, dxw in (("eps 1e-5", y5, g5[0]), ("interleaved groups", yi, gi[0])):
+        for q, got, want in (("y", y, yw), ("dx", dx, dxw)):
+            assert gap(got, want) > 1e3 * RTOL32["groupnorm"], f"{what}: {q} only {gap(got, want):.1e} away"
+
+
+def test_upsample_backward_sums_the_block():
+    """dy = 1 everywhere gives dx = 4 exactly (an averaging backward would give 1); a dy that is
+    1 on one pixel of each block picks that pixel out."""
+    x = np.arange(2 * 3 * 4 * 5, dtype=np.float64).reshape(2, 3, 4, 5)
+    y, cache = conv.upsample_nearest2x_forward(x)
+    assert_bitwise_equal("y[2u+i, 2v+j] = x[u, v]", y[:, :, 1::2, ::2], x)
+    (dx,) = conv.upsample_nearest2x_backward(np.ones_like(y), cache)
+    assert_bitwise_equal("dx of dy = 1", dx, np.full_like(x, 4))
+    dy = np.zeros_like(y)
+    dy[:, :, 1::2, ::2] = y[:, :, 1::2, ::2]
+    assert_bitwise_equal("dx of a one-pixel-per-block dy", conv.upsample_nearest2x_backward(dy, cache)[0], x)
+
+
+# ---------------------------------------------------------------------------------------
+# 2. float32 vs float64 on the same inputs; dtypes kept
+
+
+@pytest.mark.parametrize("case", CASES, ids=case_id)
+def test_float32_matches_float64(case, rng):
+    name, inputs, kwargs, dy = build(case, rng, np.float32)
+    y, grads, cache = pyvf_run(name, inputs, kwargs, dy)
+    assert y.dtype == np.float32 and all(g.dtype == np.float32 for g in grads), \
+        f"{name}: y {y.dtype}, grads {[g.dtype for g in grads]}"
+    for g, a in zip(grads, inputs):
+        assert g.shape == a.shape
+    for a in float_arrays(cache):
+        assert a.dtype == np.float32, f"{name} caches a {a.dtype} array {a.shape}: a silent upcast"
+    y_t, grads_t = torch_run(name, inputs, kwargs, dy)  # float64 on the float32 values
+    compare(name, y, grads, y_t, grads_t, RTOL32[name], f"{case_id(case)} f32")
+
+
+def float_arrays(obj):
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind == "f":
+            yield obj
+    elif isinstance(obj, (tuple, list)):
+        for o in obj:
+            yield from float_arrays(o)
+
+
+def strided(a):
+    """The same values as a view with stride 2 on the last axis."""
+    big = np.zeros(a.shape[:-1] + (2 * a.shape[-1],), dtype=a.dtype)
+    big[..., ::2] = a
+    return big[..., ::2]
+
+
+@pytest.mark.parametrize("case", [c for c in CASES if c[0] != "conv2d" or c[3] in (0, DOWN)], ids=case_id)
+def test_strided_inputs(case, rng):
+    """Non-contiguous inputs and upstream gradients give the same results (reductions may reorder)."""
+    name, inputs, kwargs, dy = build(case, rng, np.float64)
+    y, grads, _ = pyvf_run(name, inputs, kwargs, dy)
+    y_s, grads_s, _ = pyvf_run(name, [strided(a) for a in inputs], kwargs, strided(dy))
+    compare(name, y_s, grads_s, y, grads, RTOL64, f"{case_id(case)} strided")
+
+
+# ---------------------------------------------------------------------------------------
+# 3. hard cases: GroupNorm
+
+CONSTANTS = [0.0, 0.1, -7.77, 1e4 + 0.3, 123456.789]  # 0.1, 1e4+0.3, ... are not dyadic
+
+
+def constant_group_images(rng, dtype):
+    """(2, 64, 3, 4) images, groups of 2 channels; in batch 0 groups 0..4 are constant (both
+    channels, every pixel) at the CONSTANTS, the rest ordinary."""
+    x = group_images(rng, (2, 64, 3, 4))
+    for g, c in enumerate(CONSTANTS):
+        x[0, 2 * g:2 * g + 2] = c
+    return x.astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_groupnorm_constant_groups(dtype, rng):
+    """A constant group has var = 0: xhat = 0, so y == beta exactly (bitwise), and it adds exactly
+    nothing to dgamma. Its gradient is NOT zero: d var / dx = 0 there, so
+    dx = rstd * (dxhat - mean_g(dxhat)), dxhat = dy * gamma, rstd = 1/sqrt(eps) = 1000: finite.
+    Checked against that closed form, and in float64 against torch."""
+    x = constant_group_images(rng, dtype)
+    C = x.shape[1]
+    gamma, beta = (rng.standard_normal(C).astype(dtype) for _ in range(2))
+    dy = rng.standard_normal(x.shape).astype(dtype)
+    y, cache = conv.groupnorm_forward(x, gamma, beta)
+    dx, dgamma, dbeta = conv.groupnorm_backward(dy, cache)
+    assert np.isfinite(y).all() and np.isfinite(dx).all()
+    k = 2 * len(CONSTANTS)  # the constant channels of batch 0
+    want_y = np.ascontiguousarray(np.broadcast_to(beta[:k, None, None], (k,) + x.shape[2:]))
+    assert_bitwise_equal(f"y of constant groups ({dtype.__name__})", y[0, :k], want_y)
+    xhat = cache[0]
+    zero = np.zeros_like(xhat[0, :k])
+    assert_bitwise_equal("xhat of constant groups (so dgamma gets nothing)", np.abs(xhat[0, :k]), zero)
+
+    dxhat = (dy[0, :k] * gamma[:k, None, None]).astype(np.float64).reshape(len(CONSTANTS), -1)
+    want_dx = (dxhat - dxhat.mean(axis=-1, keepdims=True)) / np.sqrt(float(dtype(EPS)))
+    rtol = RTOL32["groupnorm"] if dtype == np.float32 else RTOL64
+    assert_close("dx of constant groups (closed form)", dx[0, :k].reshape(len(CONSTANTS), -1), want_dx, rtol)
+    assert np.abs(dx[0, :k]).max() > 100, "a constant group's dx is ~ 1000 |dy gamma|, not zero"
+    if dtype == np.float64:
+        # torch is not exact here: its mean of a constant group can miss by an ulp, which rstd = 1000
+        # amplifies (measured: y off by 6.3e-9 on the group of 123456.789, dgamma by 3.3e-9
+        # relative). So y only where no group is constant, and not dgamma; dx and dbeta everywhere.
+        y_t, (dx_t, _, dbeta_t) = torch_run("groupnorm", [x, gamma, beta], {}, dy)
+        assert_close("y vs torch, ordinary groups (batch 0)", y[0, k:], y_t[0, k:], RTOL64)
+        assert_close("y vs torch, ordinary groups (batch 1)", y[1], y_t[1], RTOL64)
+        assert_close("dx vs torch", dx, dx_t, RTOL64)
+        assert_close("dbeta vs torch", dbeta, dbeta_t, RTOL64)
+
+
+def groupnorm_mp(x, gamma, beta, dy, groups, eps=EPS, dps=40):
+    """y, dx, dgamma of GroupNorm and of sum(y * dy), each the float64 rounding of a `dps`-digit
+    mpmath evaluation on the exact binary values of the inputs (40 digits absorb the 5 lost to
+    x - mean at mean 1e4, spread 0.1)."""
+    Bn, C = x.shape[:2]
+    X = x.astype(np.float64).reshape(Bn, groups, -1)
+    DY = dy.astype(np.float64).reshape(Bn, groups, -1)
+    per = X.shape[-1] // (C // groups)  # pixels per channel
+    Y, DX = np.empty_like(X), np.empty_like(X)
+    dg = [mpmath.mpf(0)] * C
+    with mpmath.workdps(dps):
+        e = mpmath.mpf(float(eps))
+        for b in range(Bn):
+            for g in range(groups):
+                chan = [g * (C // groups) + m // per for m in range(X.shape[-1])]
+                xs = [mpmath.mpf(float(v)) for v in X[b, g]]
+                dys = [mpmath.mpf(float(v)) for v in DY[b, g]]
+                n = len(xs)
+                mean = mpmath.fsum(xs) / n
+                xc = [v - mean for v in xs]
+                rstd = 1 / mpmath.sqrt(mpmath.fsum(v * v for v in xc) / n + e)
+                xhat = [v * rstd for v in xc]
+                dxhat = [d * mpmath.mpf(float(gamma[c])) for d, c in zip(dys, chan)]
+                m1 = mpmath.fsum(dxhat) / n
+                m2 = mpmath.fsum(a * h for a, h in zip(dxhat, xhat)) / n
+                for j in range(n):
+                    c = chan[j]
+                    Y[b, g, j] = float(xhat[j] * mpmath.mpf(float(gamma[c])) + mpmath.mpf(float(beta[c])))
+                    DX[b, g, j] = float(rstd * (dxhat[j] - m1 - xhat[j] * m2))
+                    dg[c] += dys[j] * xhat[j]
+    return Y.reshape(x.shape), DX.reshape(x.shape), np.array([float(v) for v in dg])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_groupnorm_large_mean_small_spread(dtype, rng):
+    """Groups of mean +-1e4 and spread 0.1, against mpmath on the same (rounded) inputs.
+
+    x - mean(x) is exact here (Sterbenz: both within a factor 2), and the second centring pass
+    removes the ulp by which the rounded mean misses, so what remains is ordinary rounding on the
+    centred values: bound 10 u (u = 6e-8, 1.1e-16). Measured, in u: float32 y 1.7, dx 1.1,
+    dgamma 2.1; float64 1.5, 1.7, 3.0. The one-pass variance E[x^2] - E[x]^2 in the same
+    precision fails this by orders of magnitude (asserted below; measured 1.5e9 u and 2e10 u:
+    y off by O(1) or more)."""
+    C, groups = 64, G
+    x = 1e4 * rng.choice([-1.0, 1.0], (2, groups, 1, 1, 1)) + 0.1 * rng.standard_normal((2, groups, 2, 3, 3))
+    x = x.reshape(2, C, 3, 3).astype(dtype)
+    gamma, beta = (rng.standard_normal(C).astype(dtype) for _ in range(2))
+    dy = rng.standard_normal(x.shape).astype(dtype)
+    y, cache = conv.groupnorm_forward(x, gamma, beta)
+    dx, dgamma, _ = conv.groupnorm_backward(dy, cache)
+    want = groupnorm_mp(x, gamma, beta, dy, groups)
+    rtol = 10 * float(np.finfo(dtype).eps) / 2
+    for what, got, w in zip(("y", "dx", "dgamma"), (y, dx, dgamma), want):
+        assert got.dtype == dtype
+        assert_close(f"{what} (mean 1e4, spread 0.1, {dtype.__name__})", got, w, rtol)
+
+    # the bound has teeth: the one-pass variance in the same precision is far outside it
+    xg = x.reshape(2, groups, -1)
+    m = xg.mean(axis=-1, keepdims=True, dtype=np.float64).astype(dtype)
+    var1 = np.maximum((xg * xg).mean(axis=-1, keepdims=True) - m * m, 0)
+    y1 = ((xg - m) / np.sqrt(var1 + dtype(EPS))).reshape(x.shape) * gamma[:, None, None] + beta[:, None, None]
+    assert gap(y1, want[0]) > 100 * rtol, f"one-pass variance error {gap(y1, want[0]):.1e} is inside {rtol:.1e}"
+
+
+# ---------------------------------------------------------------------------------------
+# 3. hard cases: swish's ends, every floating-point error raised
+
+ENDS = [-1000.0, -750.0, -745.0, -104.0, -100.0, -89.0, -30.0, -17.0, -0.0, 0.0,
+        17.0, 30.0, 89.0, 100.0, 104.0, 745.0, 750.0, 1000.0]
+
+
+def swish_mp(x):
+    """(swish(x), swish'(x)) at the exact binary value of x, 40 digits."""
+    with mpmath.workdps(40):
+        X = mpmath.mpf(float(x))
+        s = 1 / (1 + mpmath.exp(-X))
+        return X * s, s * (1 + X * (1 - s))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_swish_ends_raise_nothing(dtype, rng):
+    """x up to +-1000 (exp(1000) overflows both dtypes; exp(-1000) underflows them): no overflow,
+    invalid or division warning with np.errstate(all='raise') (underflow of e^-|x| is the right
+    value and is allowed inside the layer only). Exact ends: swish(-1000) = 0, swish(1000) = 1000,
+    swish'(-1000) = 0, swish'(1000) = 1; swish(0) = 0, swish'(0) = 1/2. Everything against mpmath,
+    elementwise, within 4 ulp of the true value plus, where sigmoid(x) is subnormal, the absolute
+    step |x| * smallest_subnormal (measured <= 2.3 ulp in float64, 1.7 in float32; in the subnormal
+    range <= 0.49 of the step)."""
+    x = np.array(ENDS, dtype=dtype)
+    dy = rng.standard_normal(x.shape).astype(dtype)
+    with np.errstate(all="raise"):
+        y, cache = conv.swish_forward(x)
+        (dx,) = conv.swish_backward(dy, cache)
+        (d1,) = conv.swish_backward(np.ones_like(x), cache)
+    assert y.dtype == dx.dtype == dtype and np.isfinite(y).all() and np.isfinite(dx).all()
+    i = {v: ENDS.index(v) for v in (-1000.0, 1000.0, 0.0)}
+    assert y[i[-1000.0]] == 0 and y[i[1000.0]] == 1000 and y[i[0.0]] == 0
+    assert d1[i[-1000.0]] == 0 and d1[i[1000.0]] == 1 and d1[i[0.0]] == 0.5
+    ft = np.finfo(dtype)
+    for xi, yi, di in zip(x, y, d1):
+        for what, got, want in (("swish", yi, swish_mp(xi)[0]), ("swish'", di, swish_mp(xi)[1])):
+            ulp = float(np.spacing(dtype(abs(float(want)))))
+            bound = 4 * ulp + abs(float(xi)) * float(ft.smallest_subnormal)
+            err = float(abs(mpmath.mpf(float(got)) - want))
+            assert err <= bound, f"{what}({float(xi)!r}) = {float(got)!r}, want {float(want)!r}: {err / ulp:.1f} ulp"
+    assert_close("dx = dy * swish'", dx, dy.astype(np.float64) * d1, float(ft.eps))
+    if dtype == np.float64:  # and torch agrees on the ends too
+        _, (dx_t,) = torch_run("swish", [x], {}, dy)
+        assert_close("dx vs torch at the ends", dx, dx_t, RTOL64)
+
+
+# ---------------------------------------------------------------------------------------
+# 3. hard cases: conv on a 1x1 image
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_conv2d_one_pixel_image(dtype, rng):
+    """A 1x1 image: 3x3 pad 1 sees only the centre tap (y = w[:, :, 1, 1] @ x + b); 1x1 pad 1 gives
+    a 3x3 output that is b on the border; the Downsample's 3x3 stride 2 on the padded 2x2 image
+    does not fit and raises. Against torch, and the centre tap by hand."""
+    x = rng.standard_normal((2, CI, 1, 1)).astype(dtype)
+    rtol = RTOL32["conv2d"] if dtype == np.float32 else RTOL64
+    for (kh, kw), padding in (((3, 3), 1), ((1, 1), 1), ((4, 2), (2, 1, 0, 1))):
+        w = rng.standard_normal((CO, CI, kh, kw)).astype(dtype)
+        b = rng.standard_normal(CO).astype(dtype)
+        y, cache = conv.conv2d_forward(x, w, b, padding=padding)
+        dy = rng.standard_normal(y.shape).astype(dtype)
+        grads = conv.conv2d_backward(dy, cache)
+        y_t, grads_t = torch_run("conv2d", [x, w, b], {"padding": padding}, dy)
+        compare("conv2d", y, grads, y_t, grads_t, rtol, f"1x1 image, kernel {kh}x{kw}, padding {padding}")
+        if (kh, kw) == (3, 3):
+            assert_close("centre tap", y[:, :, 0, 0], x[:, :, 0, 0] @ w[:, :, 1, 1].T + b, rtol)
+        if (kh, kw) == (1, 1):
+            border = np.ones((3, 3), bool)
+            border[1, 1] = False
+            assert_bitwise_equal("border = b", y[:, :, border], np.broadcast_to(b[:, None], (2, CO, 8)).copy())
+    w = rng.standard_normal((CO, CI, 3, 3)).astype(dtype)
+    with pytest.raises(ValueError, match="does not fit"):
+        conv.conv2d_forward(x, w, rng.standard_normal(CO).astype(dtype), stride=2, padding=DOWN)
+
+
+# ---------------------------------------------------------------------------------------
+# 4. float64 central finite differences of f = sum(y * dy), one direction per element
+
+# conv2d is linear in each input, so the central difference has no truncation error, only
+# rounding ~ u |f| / h; GroupNorm adds h^2/6 |f'''| for groups of O(1) spread. Both ~1e-11..1e-10
+# at h = 1e-5. Measured <= 1.3e-10 relative to the largest gradient entry (conv2d 4.8e-11,
+# groupnorm 1.3e-10); 1e-8 is 75x that and still 8 orders below an O(1) gradient bug.
+FD_STEP = 1e-5
+FD_RTOL = 1e-8
+
+
+def fd_check(name, inputs, kwargs, dy):
+    fwd, bwd, _, grad_names = LAYERS[name]
+    f = lambda args: float((fwd(*args, **kwargs)[0] * dy).sum())
+    grads = bwd(dy, fwd(*inputs, **kwargs)[1])
+    for k, (gname, g) in enumerate(zip(grad_names, grads)):
+        fd = np.empty_like(inputs[k])
+        for i in range(fd.size):
+            plus, minus = [a.copy() for a in inputs], [a.copy() for a in inputs]
+            plus[k].reshape(-1)[i] += FD_STEP
+            minus[k].reshape(-1)[i] -= FD_STEP
+            fd.reshape(-1)[i] = (f(plus) - f(minus)) / (2 * FD_STEP)
+        assert_close(f"{name} {gname} (finite differences)", g, fd, FD_RTOL)
+
+
+def test_finite_differences_conv2d_downsample(rng):
+    f = rng.standard_normal
+    x, w, b = f((2, 2, 5, 4)), f((3, 2, 3, 3)), f(3)
+    y, _ = conv.conv2d_forward(x, w, b, stride=2, padding=DOWN)
+    fd_check("conv2d", [x, w, b], {"stride": 2, "padding": DOWN}, f(y.shape))
+
+
+def test_finite_differences_groupnorm(rng):
+    f = rng.standard_normal
+    x = rng.uniform(-3, 3, (2, 4, 1, 1)) + rng.uniform(0.5, 2, (2, 4, 1, 1)) * f((2, 4, 3, 2))
+    fd_check("groupnorm", [x, f(4), f(4)], {"groups": 2}, f(x.shape))
+
+
+# ---------------------------------------------------------------------------------------
+# 5. bad arguments: TypeError for a dtype, ValueError for a shape or a value, naming the argument
+
+f64 = lambda *s: np.zeros(s)
+BAD = [
+    ("x 3-D", lambda: conv.conv2d_forward(f64(5, 4, 4), f64(7, 5, 3, 3), f64(7)), ValueError, "x must be 4-D"),
+    ("w 3-D", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3), f64(7)), ValueError, "w must be 4-D"),
+    ("channels", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 4, 3, 3), f64(7)), ValueError,
+     r"w has 4 input channels \(w.shape\[1\]\) but x has 5"),
+    ("b shape", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(5)), ValueError,
+     r"b must have shape \(7,\)"),
+    ("x int", lambda: conv.conv2d_forward(np.zeros((1, 5, 4, 4), int), f64(7, 5, 3, 3), f64(7)), TypeError,
+     "x must be float32 or float64"),
+    ("w float32", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3).astype(np.float32), f64(7)), TypeError,
+     "w is float32 but x is float64"),
+    ("padding 3", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), padding=(0, 1, 0)), ValueError,
+     "padding must be"),
+    ("padding < 0", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), padding=-1), ValueError,
+     "padding must be non-negative"),
+    ("stride 0", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), stride=0), ValueError, "stride"),
+    ("no fit", lambda: conv.conv2d_forward(f64(1, 5, 2, 4), f64(7, 5, 3, 3), f64(7)), ValueError, "does not fit"),
+    ("dy shape", lambda: conv.conv2d_backward(f64(1, 7, 3, 3),
+                                              conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7))[1]),
+     ValueError, "dy must be"),
+    ("gn groups", lambda: conv.groupnorm_forward(f64(1, 48, 2, 2), f64(48), f64(48)), ValueError,
+     "groups=32 does not divide the 48 channels of x"),
+    ("gn x 2-D", lambda: conv.groupnorm_forward(f64(2, 64), f64(64), f64(64)), ValueError, "x must be 4-D"),
+    ("gn gamma", lambda: conv.groupnorm_forward(f64(1, 64, 2, 2), f64(32), f64(64)), ValueError,
+     "gamma must have shape"),
+    ("gn int", lambda: conv.groupnorm_forward(np.zeros((1, 64, 2, 2), np.int32), f64(64), f64(64)), TypeError,
+     "x must be float32 or float64"),
+    ("gn beta f32", lambda: conv.groupnorm_forward(f64(1, 64, 2, 2), f64(64), f64(64).astype(np.float32)), TypeError,
+     "beta is float32"),
+    ("attn wk shape", lambda: conv.attnblock_forward(f64(1, 64, 2, 2), f64(64), f64(64), f64(64, 64, 1, 1), f64(64),
+                                                     f64(32, 64, 1, 1), f64(32), f64(64, 64, 1, 1), f64(64),
+                                                     f64(64, 64, 1, 1), f64(64)), ValueError,
+     r"wk must have shape \(64, 64, 1, 1\)"),
+    ("swish int", lambda: conv.swish_forward(np.arange(3)), TypeError, "x must be float32 or float64"),
+    ("upsample 3-D", lambda: conv.upsample_nearest2x_forward(f64(3, 4, 4)), ValueError, "x must be 4-D"),
+    ("upsample f16", lambda: conv.upsample_nearest2x_forward(f64(1, 3, 4, 4).astype(np.float16)), TypeError,
+     "x must be float32 or float64"),
+]
+
+
+@pytest.mark.parametrize("call, exc, match", [b[1:] for b in BAD], ids=[b[0] for b in BAD])
+def test_bad_arguments(call, exc, match):
+    with pytest.raises(exc, match=match):
+        call()
