@@ -41,6 +41,7 @@ from .geometry import (
     quat_rotate,
     relative_poses,
 )
+from .quantizer import EMAQuantizer, QuantizerOutput, vq_nearest
 from .optim import Adam, AdamW, WarmupCosine, clip_grad_norm, published_weight_decay, warmup_cosine_lr
 from .train import train_step
 from .transformer import Scene, Transformer, TransformerConfig, TransformerOutput
@@ -61,6 +62,9 @@ def set_num_threads(n):
 
 
 __all__ = [
+    "EMAQuantizer",
+    "QuantizerOutput",
+    "vq_nearest",
     "Adam",
     "AdamW",
     "Scene",
