@@ -1,0 +1,396 @@
+"""The ViewFormer codebook: a VQ-VAE (taming-transformers style), SPEC.md §4, in NumPy.
+
+    cfg = CodebookConfig(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,),
+                         z_channels=32, embed_dim=32, n_embed=64, image_size=64)
+    cb = Codebook(cfg, seed=0)
+    codes = cb.encode(images)            # images (B, 3, S, S) in [-1, 1] -> (B, k, k) int64
+    images = cb.decode_code(codes)
+    out = cb.forward(images, train=True) # reconstruction, codes, rec_loss, commitment_loss, loss
+    grads = cb.backward()                # d out.loss / d every parameter, torch names
+
+Parameters use the published torch names (spec/official-codebook-*.json), conv weights
+(out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
+
+The forward records every layer it runs on a tape, (kind, parameter name, cache); the backward
+replays the tape in reverse, so it reads as the forward read backwards, whatever the
+configuration's number of levels and blocks.
+"""
+
+import dataclasses
+import json
+
+import numpy as np
+
+from .conv import (
+    attnblock_backward,
+    attnblock_forward,
+    conv2d_backward,
+    conv2d_forward,
+    groupnorm_backward,
+    groupnorm_forward,
+    swish_backward,
+    swish_forward,
+    upsample_nearest2x_backward,
+    upsample_nearest2x_forward,
+)
+from .quantizer import EMAQuantizer
+
+ATTN_PARAMS = (".norm.weight", ".norm.bias", ".q.weight", ".q.bias", ".k.weight", ".k.bias",
+               ".v.weight", ".v.bias", ".proj_out.weight", ".proj_out.bias")
+BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.ema_dw_hidden", "quantize.counter")
+
+
+@dataclasses.dataclass(frozen=True)
+class CodebookConfig:
+    ch: int  # channels of the first level
+    ch_mult: tuple  # channel multiplier per level; the image shrinks by 2^(len - 1)
+    num_res_blocks: int  # ResnetBlocks per level (the decoder has one more)
+    attn_resolutions: tuple  # resolutions at which an AttnBlock follows each ResnetBlock
+    z_channels: int  # the encoder's output channels
+    embed_dim: int  # D, the code width
+    n_embed: int  # K, the codebook size
+    image_size: int  # S, images are S x S
+    in_channels: int = 3
+    out_ch: int = 3
+    decay: float = 0.99  # EMA decay of the quantizer
+    eps: float = 1e-5  # Laplace smoothing of the EMA cluster sizes
+    codebook_weight: float = 1.0  # loss = rec_loss + codebook_weight * commitment_loss
+    dtype: str = "float32"
+
+    def __post_init__(self):
+        object.__setattr__(self, "ch_mult", tuple(self.ch_mult))
+        object.__setattr__(self, "attn_resolutions", tuple(self.attn_resolutions))
+        for name in ("ch", "num_res_blocks", "z_channels", "embed_dim", "n_embed", "image_size", "in_channels",
+                     "out_ch"):
+            val = getattr(self, name)
+            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
+                raise ValueError(f"CodebookConfig.{name} must be a positive integer, got {val!r}")
+        if not self.ch_mult or any(not isinstance(m, int) or m < 1 for m in self.ch_mult):
+            raise ValueError(f"CodebookConfig.ch_mult must be positive integers, got {self.ch_mult}")
+        if self.image_size % 2 ** (len(self.ch_mult) - 1):
+            raise ValueError(f"CodebookConfig.image_size={self.image_size} is not divisible by "
+                             f"2^{len(self.ch_mult) - 1}")
+        if any((self.ch * m) % 32 for m in self.ch_mult):
+            raise ValueError(f"CodebookConfig: every level's channels ch * ch_mult = "
+                             f"{[self.ch * m for m in self.ch_mult]} must be divisible by the 32 GroupNorm groups")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"CodebookConfig.dtype must be 'float32' or 'float64', got {self.dtype!r}")
+
+    @property
+    def token_size(self):
+        """k: a code image is k x k."""
+        return self.image_size // 2 ** (len(self.ch_mult) - 1)
+
+
+def _conv(shapes, name, cin, cout, k):
+    shapes[name + ".weight"] = (cout, cin, k, k)
+    shapes[name + ".bias"] = (cout,)
+
+
+def _norm(shapes, name, c):
+    shapes[name + ".weight"] = (c,)
+    shapes[name + ".bias"] = (c,)
+
+
+def _resblock(shapes, name, cin, cout):
+    _norm(shapes, name + ".norm1", cin)
+    _conv(shapes, name + ".conv1", cin, cout, 3)
+    _norm(shapes, name + ".norm2", cout)
+    _conv(shapes, name + ".conv2", cout, cout, 3)
+    if cin != cout:
+        _conv(shapes, name + ".nin_shortcut", cin, cout, 1)
+
+
+def _attn(shapes, name, c):
+    _norm(shapes, name + ".norm", c)
+    for p in ("q", "k", "v", "proj_out"):
+        _conv(shapes, f"{name}.{p}", c, c, 1)
+
+
+def parameter_shapes(cfg):
+    """torch name -> shape of every parameter (not the quantizer's buffers), in the published order."""
+    s = {}
+    ch, mult, nres = cfg.ch, cfg.ch_mult, cfg.num_res_blocks
+    _conv(s, "encoder.conv_in", cfg.in_channels, ch, 3)
+    res, cin = cfg.image_size, ch
+    for l, m in enumerate(mult):
+        for i in range(nres):
+            _resblock(s, f"encoder.down.{l}.block.{i}", cin, ch * m)
+            cin = ch * m
+            if res in cfg.attn_resolutions:
+                _attn(s, f"encoder.down.{l}.attn.{i}", cin)
+        if l != len(mult) - 1:
+            _conv(s, f"encoder.down.{l}.downsample.conv", cin, cin, 3)
+            res //= 2
+    _resblock(s, "encoder.mid.block_1", cin, cin)
+    _attn(s, "encoder.mid.attn_1", cin)
+    _resblock(s, "encoder.mid.block_2", cin, cin)
+    _norm(s, "encoder.norm_out", cin)
+    _conv(s, "encoder.conv_out", cin, cfg.z_channels, 3)
+    cin = ch * mult[-1]
+    _conv(s, "decoder.conv_in", cfg.z_channels, cin, 3)
+    _resblock(s, "decoder.mid.block_1", cin, cin)
+    _attn(s, "decoder.mid.attn_1", cin)
+    _resblock(s, "decoder.mid.block_2", cin, cin)
+    for l in reversed(range(len(mult))):
+        for i in range(nres + 1):
+            _resblock(s, f"decoder.up.{l}.block.{i}", cin, ch * mult[l])
+            cin = ch * mult[l]
+            if res in cfg.attn_resolutions:
+                _attn(s, f"decoder.up.{l}.attn.{i}", cin)
+        if l != 0:
+            _conv(s, f"decoder.up.{l}.upsample.conv", cin, cin, 3)
+            res *= 2
+    _norm(s, "decoder.norm_out", cin)
+    _conv(s, "decoder.conv_out", cin, cfg.out_ch, 3)
+    _conv(s, "quant_conv", cfg.z_channels, cfg.embed_dim, 1)
+    _conv(s, "post_quant_conv", cfg.embed_dim, cfg.z_channels, 1)
+    return s
+
+
+@dataclasses.dataclass
+class CodebookOutput:
+    reconstruction: np.ndarray  # (B, out_ch, S, S)
+    codes: np.ndarray  # (B, k, k) int64
+    rec_loss: float  # mean |x - x_hat|
+    commitment_loss: float  # mean (sg(e) - z)^2
+    loss: float  # rec_loss + codebook_weight * commitment_loss
+    usage: float  # fraction of codes used by the batch
+    perplexity: float
+
+
+class Codebook:
+    """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward."""
+
+    def __init__(self, config, seed=0):
+        if not isinstance(config, CodebookConfig):
+            raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
+        self.config = config
+        self.dtype = np.dtype(config.dtype)
+        rng = np.random.default_rng(seed)
+        self.params = {}
+        for name, shape in parameter_shapes(config).items():
+            if len(shape) == 4:  # conv weights: torch's default kaiming-uniform bound 1/sqrt(fan_in)
+                bound = 1.0 / np.sqrt(np.prod(shape[1:]))
+                p = rng.uniform(-bound, bound, shape)
+            elif name.endswith(".weight"):  # GroupNorm gamma
+                p = np.ones(shape)
+            else:
+                p = np.zeros(shape)
+            self.params[name] = p.astype(self.dtype)
+        self.quantizer = EMAQuantizer(config.embed_dim, config.n_embed, config.decay, config.eps,
+                                      config.dtype, seed=seed + 1)
+        self._cache = None
+
+    # -----------------------------------------------------------------------------------
+    # weights
+
+    def state_dict(self):
+        """torch name -> array, the quantizer's buffers included (copies)."""
+        state = {name: p.copy() for name, p in self.params.items()}
+        state.update({"quantize." + k: v for k, v in self.quantizer.state_dict().items()})
+        return state
+
+    def load_official(self, state_dict):
+        """Load a torch state_dict (name -> array, e.g. from tools/convert_torch_codebook.py):
+        every parameter and the four quantize.* buffers, names and shapes checked, nothing else.
+        Float arrays are converted to the model's dtype (the one conversion pyvf makes, on purpose)."""
+        shapes = parameter_shapes(self.config)
+        want = set(shapes) | set(BUFFERS)
+        unexpected = sorted(set(state_dict) - want)
+        missing = sorted(want - set(state_dict))
+        if unexpected:
+            raise ValueError(f"load_official: unexpected names, e.g. {unexpected[:3]}")
+        if missing:
+            raise ValueError(f"load_official: {len(missing)} names missing, e.g. {missing[:3]}")
+        params = {}
+        for name, shape in shapes.items():
+            a = np.asarray(state_dict[name])
+            if a.dtype.kind != "f":
+                raise TypeError(f"load_official: {name!r} has dtype {a.dtype}, expected a float array")
+            if a.shape != shape:
+                raise ValueError(f"load_official: {name!r} has shape {a.shape}, expected {shape}")
+            if not np.isfinite(a).all():
+                raise ValueError(f"load_official: {name!r} contains NaN or inf")
+            params[name] = np.ascontiguousarray(a, dtype=self.dtype)
+        self.quantizer.load_state_dict({k[len("quantize."):]: np.asarray(state_dict[k]) for k in BUFFERS})
+        self.params = params
+
+    def save(self, path):
+        np.savez(path, __config__=json.dumps(dataclasses.asdict(self.config)), **self.state_dict())
+
+    @classmethod
+    def load(cls, path):
+        with np.load(path, allow_pickle=False) as f:
+            model = cls(CodebookConfig(**json.loads(str(f["__config__"]))))
+            model.load_official({k: f[k] for k in f.files if k != "__config__"})
+        return model
+
+    # -----------------------------------------------------------------------------------
+    # the tape
+
+    def _op(self, tape, kind, name, x, **kw):
+        """Run one layer, record it on the tape, return its output."""
+        P = self.params
+        if kind == "conv":
+            y, c = conv2d_forward(x, P[name + ".weight"], P[name + ".bias"], kw.get("stride", 1), kw.get("padding", 0))
+        elif kind == "norm":
+            y, c = groupnorm_forward(x, P[name + ".weight"], P[name + ".bias"])  # 32 groups, eps 1e-6 (SPEC §4)
+        elif kind == "swish":
+            y, c = swish_forward(x)
+        elif kind == "upsample":
+            y, c = upsample_nearest2x_forward(x)
+        elif kind == "res":
+            y, c = self._resblock_forward(name, x)
+        elif kind == "attn":
+            y, c = attnblock_forward(x, *(P[name + s] for s in ATTN_PARAMS))
+        else:
+            raise AssertionError(kind)
+        tape.append((kind, name, c))
+        return y
+
+    def _backward(self, tape, dy, grads):
+        """Replay a tape in reverse: dy is the gradient of its last output; returns that of its input."""
+        for kind, name, c in reversed(tape):
+            if kind == "conv":
+                dy, dw, db = conv2d_backward(dy, c)
+                grads[name + ".weight"] += dw
+                grads[name + ".bias"] += db
+            elif kind == "norm":
+                dy, dg, db = groupnorm_backward(dy, c)
+                grads[name + ".weight"] += dg
+                grads[name + ".bias"] += db
+            elif kind == "swish":
+                (dy,) = swish_backward(dy, c)
+            elif kind == "upsample":
+                (dy,) = upsample_nearest2x_backward(dy, c)
+            elif kind == "res":
+                dy = self._resblock_backward(dy, c, grads)
+            elif kind == "attn":
+                dy, *dparams = attnblock_backward(dy, c)
+                for suffix, g in zip(ATTN_PARAMS, dparams):
+                    grads[name + suffix] += g
+        return dy
+
+    def _resblock_forward(self, name, x):
+        """ResnetBlock: norm1, swish, conv1, norm2, swish, conv2; + x (or nin_shortcut(x))."""
+        main, short = [], []
+        h = self._op(main, "norm", name + ".norm1", x)
+        h = self._op(main, "swish", None, h)
+        h = self._op(main, "conv", name + ".conv1", h, padding=1)
+        h = self._op(main, "norm", name + ".norm2", h)
+        h = self._op(main, "swish", None, h)
+        h = self._op(main, "conv", name + ".conv2", h, padding=1)
+        s = self._op(short, "conv", name + ".nin_shortcut", x) if name + ".nin_shortcut.weight" in self.params else x
+        return s + h, (main, short)
+
+    def _resblock_backward(self, dy, cache, grads):
+        main, short = cache
+        return self._backward(main, dy, grads) + self._backward(short, dy, grads)  # y = s(x) + h(x)
+
+    # -----------------------------------------------------------------------------------
+    # encoder and decoder
+
+    def _encoder(self, tape, x):
+        """x (B, in_channels, S, S) -> z (B, embed_dim, k, k), after quant_conv."""
+        cfg = self.config
+        h = self._op(tape, "conv", "encoder.conv_in", x, padding=1)
+        res = cfg.image_size
+        for l in range(len(cfg.ch_mult)):
+            for i in range(cfg.num_res_blocks):
+                h = self._op(tape, "res", f"encoder.down.{l}.block.{i}", h)
+                if res in cfg.attn_resolutions:
+                    h = self._op(tape, "attn", f"encoder.down.{l}.attn.{i}", h)
+            if l != len(cfg.ch_mult) - 1:
+                # SPEC §4 Downsample: zero-pad right and bottom by one, then 3x3 stride 2 pad 0
+                h = self._op(tape, "conv", f"encoder.down.{l}.downsample.conv", h, stride=2, padding=(0, 1, 0, 1))
+                res //= 2
+        h = self._op(tape, "res", "encoder.mid.block_1", h)
+        h = self._op(tape, "attn", "encoder.mid.attn_1", h)
+        h = self._op(tape, "res", "encoder.mid.block_2", h)
+        h = self._op(tape, "norm", "encoder.norm_out", h)
+        h = self._op(tape, "swish", None, h)
+        h = self._op(tape, "conv", "encoder.conv_out", h, padding=1)
+        return self._op(tape, "conv", "quant_conv", h)
+
+    def _decoder(self, tape, z):
+        """z (B, embed_dim, k, k) quantized -> images (B, out_ch, S, S), from post_quant_conv on."""
+        cfg = self.config
+        h = self._op(tape, "conv", "post_quant_conv", z)
+        h = self._op(tape, "conv", "decoder.conv_in", h, padding=1)
+        h = self._op(tape, "res", "decoder.mid.block_1", h)
+        h = self._op(tape, "attn", "decoder.mid.attn_1", h)
+        h = self._op(tape, "res", "decoder.mid.block_2", h)
+        res = cfg.token_size
+        for l in reversed(range(len(cfg.ch_mult))):  # decoder.up.{l} is indexed by level, run last to first
+            for i in range(cfg.num_res_blocks + 1):
+                h = self._op(tape, "res", f"decoder.up.{l}.block.{i}", h)
+                if res in cfg.attn_resolutions:
+                    h = self._op(tape, "attn", f"decoder.up.{l}.attn.{i}", h)
+            if l != 0:
+                h = self._op(tape, "upsample", None, h)
+                h = self._op(tape, "conv", f"decoder.up.{l}.upsample.conv", h, padding=1)
+                res *= 2
+        h = self._op(tape, "norm", "decoder.norm_out", h)
+        h = self._op(tape, "swish", None, h)
+        return self._op(tape, "conv", "decoder.conv_out", h, padding=1)
+
+    # -----------------------------------------------------------------------------------
+    # the model
+
+    def _check_images(self, images):
+        cfg = self.config
+        if not isinstance(images, np.ndarray) or images.dtype != self.dtype:
+            raise TypeError(f"images must be a {self.dtype} numpy array, got "
+                            f"{getattr(images, 'dtype', type(images).__name__)}")
+        S = cfg.image_size
+        if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S) or images.shape[0] < 1:
+            raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}")
+        if not np.isfinite(images).all():
+            raise ValueError("images contains NaN or inf")
+
+    def encode(self, images):
+        """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64."""
+        self._check_images(images)
+        out, _ = self.quantizer.forward(self._encoder([], images), train=False)
+        return out.codes
+
+    def decode_code(self, codes):
+        """codes (B, k, k) ints in [0, n_embed) -> images (B, out_ch, S, S)."""
+        cfg = self.config
+        if not isinstance(codes, np.ndarray) or codes.dtype.kind not in "iu":
+            raise TypeError("codes must be an integer numpy array")
+        k = cfg.token_size
+        if codes.ndim != 3 or codes.shape[1:] != (k, k):
+            raise ValueError(f"codes must have shape (B, {k}, {k}), got {codes.shape}")
+        if codes.size and (codes.min() < 0 or codes.max() >= cfg.n_embed):
+            raise ValueError(f"codes must be in [0, {cfg.n_embed})")
+        e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
+        return self._decoder([], np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
+
+    def forward(self, images, train=False):
+        """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers
+        (the output uses the codes from before the update). Keeps what backward() needs."""
+        self._check_images(images)
+        enc, dec = [], []
+        z = self._encoder(enc, images)  # (B, D, k, k)
+        q, c_q = self.quantizer.forward(z, train=train)
+        rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
+        diff = rec - images
+        rec_loss = float(np.mean(np.abs(diff)))
+        loss = rec_loss + self.config.codebook_weight * q.commitment_loss
+        self._cache = (enc, dec, c_q, np.sign(diff) / diff.size)
+        return CodebookOutput(reconstruction=rec, codes=q.codes, rec_loss=rec_loss, commitment_loss=q.commitment_loss,
+                              loss=loss, usage=q.usage, perplexity=q.perplexity)
+
+    def backward(self):
+        """Gradient of the last forward's loss for every parameter: torch name -> array."""
+        if self._cache is None:
+            raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
+        enc, dec, c_q, drec = self._cache
+        grads = {name: np.zeros_like(p) for name, p in self.params.items()}
+        # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel
+        dq = self._backward(dec, drec.astype(self.dtype), grads)
+        (dz,) = self.quantizer.backward(dq, self.config.codebook_weight, c_q)  # straight-through + commitment
+        self._backward(enc, dz, grads)
+        return grads
