@@ -1,0 +1,161 @@
+"""The whole codebook against the torch oracle written from SPEC.md §4 (tests/torch_codebook.py):
+codes, reconstructions, losses, every parameter gradient, the EMA buffers over three training
+steps; official names; encode/decode; bad input."""
+
+import dataclasses
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+import torch_codebook
+from conftest import assert_close
+from pyvf.codebook import Codebook, CodebookConfig, parameter_shapes
+
+SPEC = os.path.join(os.path.dirname(__file__), "data", "official-codebook-tiny.json")
+
+
+def tiny_config(**kw):
+    with open(SPEC) as f:
+        c = json.load(f)["config"]
+    fields = {k: c[k] for k in ("ch", "ch_mult", "num_res_blocks", "attn_resolutions", "z_channels", "embed_dim",
+                                "n_embed", "image_size")}
+    return CodebookConfig(**{**fields, **kw})
+
+
+SMALL = dict(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=8,
+             n_embed=16, image_size=16)
+
+
+def random_codebook(cfg, rng):
+    """Every parameter random (GroupNorm gammas != 1, biases != 0): a role mix-up shows."""
+    cb = Codebook(cfg, seed=1)
+    for name, p in cb.params.items():
+        if p.ndim == 1:
+            cb.params[name] = (rng.normal(1.0 if name.endswith(".weight") else 0.0, 0.2, p.shape)).astype(p.dtype)
+    return cb
+
+
+def torch_state(cb):
+    P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
+    q = cb.quantizer
+    buffers = {"quantize.embeddings": torch.tensor(q.embeddings),
+               "quantize.ema_cluster_size_hidden": torch.tensor(q.ema_cluster_size_hidden),
+               "quantize.ema_dw_hidden": torch.tensor(q.ema_dw_hidden), "quantize.counter": q.counter}
+    return P, buffers
+
+
+def test_parameter_names_and_shapes_are_the_official_ones():
+    with open(SPEC) as f:
+        want = {k: tuple(v) for k, v in json.load(f)["state_dict"].items() if not k.startswith("quantize.")}
+    cfg = tiny_config()
+    assert parameter_shapes(cfg) == want
+    assert torch_codebook.parameter_shapes(dataclasses.replace(cfg)) == want
+
+
+@pytest.mark.parametrize("config", ["small", "official tiny"])
+def test_codebook_matches_torch_over_three_training_steps(config, rng):
+    cfg = CodebookConfig(**SMALL, dtype="float64") if config == "small" else tiny_config(dtype="float64")
+    cb = random_codebook(cfg, rng)
+    P, buffers = torch_state(cb)
+    steps = 3 if config == "small" else 1
+    for step in range(steps):
+        images = rng.uniform(-1, 1, (2, cfg.in_channels, cfg.image_size, cfg.image_size))
+        out = cb.forward(images, train=True)
+        grads = cb.backward()
+        for p in P.values():
+            p.grad = None
+        ref = torch_codebook.forward(P, buffers, torch.tensor(images), cfg, cfg.codebook_weight, train=True)
+        ref["loss"].backward()
+        np.testing.assert_array_equal(out.codes, ref["codes"].numpy())
+        # float64 through ~30 layers: measured <= 1e-13; 1e-11 leaves room
+        assert_close(f"reconstruction {step}", out.reconstruction, ref["reconstruction"].detach().numpy(), rtol=1e-11)
+        assert abs(out.rec_loss - ref["rec_loss"].item()) <= 1e-12 * ref["rec_loss"].item()
+        assert abs(out.commitment_loss - ref["commitment_loss"].item()) <= 1e-11 * ref["commitment_loss"].item()
+        # a bias feeding a GroupNorm with one channel per group (32 channels, 32 groups) has an
+        # exactly zero gradient (the norm subtracts it); both sides give rounding noise there, so
+        # the bound has a floor relative to the model's largest gradient
+        scale = max(np.abs(P[n].grad.numpy()).max() for n in grads)
+        for name, g in grads.items():
+            assert_close(f"d{name} step {step}", g, P[name].grad.numpy(), rtol=1e-10, atol=1e-12 * scale)
+        buffers = ref["buffers"]
+        q = cb.quantizer
+        assert q.counter == buffers["quantize.counter"]
+        for name, mine in (("embeddings", q.embeddings), ("ema_cluster_size_hidden", q.ema_cluster_size_hidden),
+                           ("ema_dw_hidden", q.ema_dw_hidden)):
+            assert_close(f"{name} step {step}", mine, buffers["quantize." + name].numpy(), rtol=1e-12)
+
+
+def test_float32_tracks_float64(rng):
+    cb64 = random_codebook(CodebookConfig(**SMALL, dtype="float64"), rng)
+    cb32 = Codebook(CodebookConfig(**SMALL))
+    cb32.load_official(cb64.state_dict())
+    images = rng.uniform(-1, 1, (2, 3, 16, 16))
+    o64, g64 = cb64.forward(images), cb64.backward()
+    o32, g32 = cb32.forward(images.astype(np.float32)), cb32.backward()
+    assert o32.reconstruction.dtype == np.float32
+    np.testing.assert_array_equal(o32.codes, o64.codes)  # no near-tie in this draw
+    # float32 through ~20 layers: measured ~1e-6; 2e-5 and gradients 2e-4 (sums of many terms)
+    assert_close("reconstruction f32", o32.reconstruction, o64.reconstruction, rtol=2e-5)
+    scale = max(np.abs(g).max() for g in g64.values())  # zero-gradient biases: see above
+    for name in g64:
+        assert_close(f"d{name} f32", g32[name], g64[name], rtol=2e-4, atol=1e-6 * scale)
+
+
+def test_encode_decode_and_eval_leaves_buffers(rng):
+    cb = random_codebook(CodebookConfig(**SMALL, dtype="float64"), rng)
+    images = rng.uniform(-1, 1, (3, 3, 16, 16))
+    before = cb.state_dict()
+    codes = cb.encode(images)
+    assert codes.shape == (3, 8, 8) and codes.dtype == np.int64
+    out = cb.forward(images, train=False)
+    np.testing.assert_array_equal(codes, out.codes)
+    # decode_code of the codes is the forward's reconstruction (straight-through value e, up to
+    # the one rounding of z + (e - z))
+    assert_close("decode_code", cb.decode_code(codes), out.reconstruction, rtol=1e-12)
+    for name, value in cb.state_dict().items():
+        np.testing.assert_array_equal(value, before[name])
+
+
+def test_state_dict_save_load_and_bad_weights(rng, tmp_path):
+    cb = random_codebook(CodebookConfig(**SMALL), rng)
+    cb.forward(rng.uniform(-1, 1, (1, 3, 16, 16)).astype(np.float32), train=True)
+    path = tmp_path / "codebook.npz"
+    cb.save(path)
+    loaded = Codebook.load(path)
+    for name, value in cb.state_dict().items():
+        np.testing.assert_array_equal(loaded.state_dict()[name], value)
+    state = cb.state_dict()
+    bad = dict(state)
+    bad.pop("encoder.conv_in.bias")
+    with pytest.raises(ValueError, match="missing"):
+        cb.load_official(bad)
+    with pytest.raises(ValueError, match="unexpected"):
+        cb.load_official({**state, "encoder.extra.weight": np.zeros(3, np.float32)})
+    bad = dict(state)
+    bad["encoder.conv_in.weight"] = np.zeros((3, 32, 3, 3), np.float32)  # in/out swapped
+    with pytest.raises(ValueError, match=r"'encoder.conv_in.weight' has shape \(3, 32, 3, 3\), expected \(32, 3, 3, 3\)"):
+        cb.load_official(bad)
+
+
+def test_bad_input_raises(rng):
+    cb = Codebook(CodebookConfig(**SMALL))
+    x = rng.uniform(-1, 1, (1, 3, 16, 16)).astype(np.float32)
+    with pytest.raises(TypeError, match="images must be a float32"):
+        cb.forward(x.astype(np.float64))
+    with pytest.raises(ValueError, match=r"images must have shape \(B, 3, 16, 16\)"):
+        cb.forward(x[:, :, :8].copy())
+    with pytest.raises(ValueError, match="images contains NaN"):
+        cb.forward(np.full_like(x, np.nan))
+    with pytest.raises(ValueError, match=r"codes must be in \[0, 16\)"):
+        cb.decode_code(np.full((1, 8, 8), 16))
+    with pytest.raises(TypeError, match="codes must be an integer"):
+        cb.decode_code(np.zeros((1, 8, 8), np.float32))
+    with pytest.raises(RuntimeError, match="needs a forward"):
+        Codebook(CodebookConfig(**SMALL)).backward()
+    with pytest.raises(ValueError, match="divisible by the 32 GroupNorm groups"):
+        CodebookConfig(**{**SMALL, "ch": 16})
+    with pytest.raises(ValueError, match="not divisible by"):
+        CodebookConfig(**{**SMALL, "image_size": 15})
