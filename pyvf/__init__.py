@@ -41,9 +41,10 @@ from .geometry import (
     quat_rotate,
     relative_poses,
 )
+from .codebook import Codebook, CodebookConfig, CodebookOutput
 from .quantizer import EMAQuantizer, QuantizerOutput, vq_nearest
 from .optim import Adam, AdamW, WarmupCosine, clip_grad_norm, published_weight_decay, warmup_cosine_lr
-from .train import train_step
+from .train import codebook_train_step, train_step
 from .transformer import Scene, Transformer, TransformerConfig, TransformerOutput
 
 __version__ = "0.1.0"
@@ -62,6 +63,10 @@ def set_num_threads(n):
 
 
 __all__ = [
+    "Codebook",
+    "CodebookConfig",
+    "CodebookOutput",
+    "codebook_train_step",
     "EMAQuantizer",
     "QuantizerOutput",
     "vq_nearest",

@@ -159,3 +159,39 @@ def test_bad_input_raises(rng):
         CodebookConfig(**{**SMALL, "ch": 16})
     with pytest.raises(ValueError, match="not divisible by"):
         CodebookConfig(**{**SMALL, "image_size": 15})
+
+
+def test_torch_checkpoint_converter(rng, tmp_path):
+    """A model.ckpt as the published training writes it (torch.save of a dict with state_dict,
+    extra loss-network keys beside the model's) converts to an .npz that loads to the same model."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(
+        "convert_torch_codebook", os.path.join(os.path.dirname(__file__), "..", "tools", "convert_torch_codebook.py"))
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    cfg = CodebookConfig(**SMALL)
+    cb = random_codebook(cfg, rng)
+    sd = {k: torch.tensor(v) for k, v in cb.state_dict().items()}
+    sd["loss.perceptual_loss.net.lin0.weight"] = torch.zeros(3)  # not the model's: skipped
+    ckpt = tmp_path / "model.ckpt"
+    torch.save({"state_dict": sd, "epoch": 3}, ckpt)
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps(dataclasses.asdict(cfg)))
+    out = tmp_path / "codebook.npz"
+    tool.main([str(ckpt), "--config", str(config), "-o", str(out)])
+    loaded = Codebook.load(out)
+    for name, value in cb.state_dict().items():
+        np.testing.assert_array_equal(loaded.state_dict()[name], value)
+
+
+def test_training_step_fits_a_fixed_batch(rng):
+    """The published optimiser (Adam, lr 1.584e-3, betas (0.5, 0.9)) with the EMA quantizer: the
+    loss on one fixed batch falls (measured: 1.15 to ~0.15 in 30 steps; asserted: below 30%)."""
+    import pyvf
+    cb = Codebook(CodebookConfig(**SMALL), seed=0)
+    x = np.tanh(np.random.default_rng(0).standard_normal((4, 3, 16, 16))).astype(np.float32)
+    opt = pyvf.Adam(cb.params, 1.584e-3, betas=(0.5, 0.9))
+    losses = [pyvf.codebook_train_step(cb, opt, x).loss for _ in range(30)]
+    assert np.isfinite(losses).all() and np.isfinite(cb.quantizer.embeddings).all()
+    assert losses[-1] < 0.3 * losses[0], losses
+    assert cb.quantizer.counter == 30
