@@ -54,7 +54,8 @@ class CodebookConfig:
     out_ch: int = 3
     decay: float = 0.99  # EMA decay of the quantizer
     eps: float = 1e-5  # Laplace smoothing of the EMA cluster sizes
-    codebook_weight: float = 1.0  # loss = rec_loss + codebook_weight * commitment_loss
+    codebook_weight: float = 1.0  # loss = rec_loss + perceptual_weight * perceptual + codebook_weight * commitment
+    perceptual_weight: float = 0.0  # the LPIPS term (SPEC §4): needs a perceptual module, see Codebook
     dtype: str = "float32"
 
     def __post_init__(self):
@@ -154,17 +155,31 @@ class CodebookOutput:
     codes: np.ndarray  # (B, k, k) int64
     rec_loss: float  # mean |x - x_hat|
     commitment_loss: float  # mean (sg(e) - z)^2
-    loss: float  # rec_loss + codebook_weight * commitment_loss
+    loss: float  # rec_loss + perceptual_weight * perceptual_loss + codebook_weight * commitment_loss
     usage: float  # fraction of codes used by the batch
     perplexity: float
+    perceptual_loss: float = None  # mean over images of the perceptual module's loss; None when off
 
 
 class Codebook:
-    """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward."""
+    """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward.
 
-    def __init__(self, config, seed=0):
+    perceptual: the optional perceptual term (LPIPS in the paper, whose pretrained VGG weights
+    are not bundled), any object with `forward(x, x_hat) -> (loss (B,), cache)` and
+    `backward(dloss (B,), cache) -> dx_hat`; weighted by config.perceptual_weight, which must
+    then be positive. Without one, perceptual_weight must be 0: the term is never silently dropped.
+    """
+
+    def __init__(self, config, seed=0, perceptual=None):
         if not isinstance(config, CodebookConfig):
             raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
+        if (perceptual is None) != (config.perceptual_weight == 0):
+            raise ValueError(f"perceptual_weight={config.perceptual_weight} needs a perceptual module, and a "
+                             "perceptual module needs perceptual_weight > 0 (LPIPS weights are not bundled)")
+        if perceptual is not None and not (callable(getattr(perceptual, "forward", None))
+                                           and callable(getattr(perceptual, "backward", None))):
+            raise TypeError("perceptual must have forward(x, x_hat) and backward(dloss, cache)")
+        self.perceptual = perceptual
         self.config = config
         self.dtype = np.dtype(config.dtype)
         rng = np.random.default_rng(seed)
@@ -379,18 +394,27 @@ class Codebook:
         diff = rec - images
         rec_loss = float(np.mean(np.abs(diff)))
         loss = rec_loss + self.config.codebook_weight * q.commitment_loss
-        self._cache = (enc, dec, c_q, np.sign(diff) / diff.size)
+        perceptual, c_p = None, None
+        if self.perceptual is not None:
+            per_image, c_p = self.perceptual.forward(images, rec)  # (B,)
+            perceptual = float(np.mean(per_image))
+            loss += self.config.perceptual_weight * perceptual
+        self._cache = (enc, dec, c_q, np.sign(diff) / diff.size, c_p, images.shape[0])
         return CodebookOutput(reconstruction=rec, codes=q.codes, rec_loss=rec_loss, commitment_loss=q.commitment_loss,
-                              loss=loss, usage=q.usage, perplexity=q.perplexity)
+                              loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual)
 
     def backward(self):
         """Gradient of the last forward's loss for every parameter: torch name -> array."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
-        enc, dec, c_q, drec = self._cache
+        enc, dec, c_q, drec, c_p, B = self._cache
         grads = {name: np.zeros_like(p) for name, p in self.params.items()}
         # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel
-        dq = self._backward(dec, drec.astype(self.dtype), grads)
+        drec = drec.astype(self.dtype)
+        if c_p is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
+            dl = np.full(B, self.config.perceptual_weight / B, dtype=self.dtype)
+            drec = drec + self.perceptual.backward(dl, c_p)
+        dq = self._backward(dec, drec, grads)
         (dz,) = self.quantizer.backward(dq, self.config.codebook_weight, c_q)  # straight-through + commitment
         self._backward(enc, dz, grads)
         return grads

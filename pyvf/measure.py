@@ -168,3 +168,15 @@ def rel_err(x, ref):
         raise ValueError(f"shapes differ: {x.shape} vs {ref.shape}")
     scale = np.abs(ref).max()
     return float(np.abs(x - ref).max() / (scale if scale > 0 else 1.0))
+
+
+def run_worker(script, *args):
+    """Run `python script *args` in a fresh process and return the JSON object printed on its
+    last line: for benchmarks that keep each framework's thread pools in a process of its own."""
+    import json
+    import subprocess
+    import sys
+    proc = subprocess.run([sys.executable, str(script), *map(str, args)], capture_output=True, text=True)
+    if proc.returncode:
+        raise RuntimeError(f"worker {script} {' '.join(map(str, args))} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -27,7 +27,7 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 import pyvf  # noqa: E402
 import pyvf.attention  # noqa: E402
 import pyvf.layers  # noqa: E402
-from pyvf.measure import format_bytes, peak_memory  # noqa: E402
+from pyvf.measure import format_bytes, peak_memory, run_worker  # noqa: E402
 
 CONFIGS = {
     "tiny": dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5,
@@ -127,17 +127,9 @@ def worker_torch(name, steps):
     return dict(loss=loss, time=float(np.median(times)), memory=mem)
 
 
-def run_worker(which, name, steps, threads):
-    import json
-    import subprocess
-    out = subprocess.run([sys.executable, __file__, "--worker", which, "--configs", name, "--steps", str(steps),
-                          "--threads", str(threads)], check=True, capture_output=True, text=True).stdout
-    return json.loads(out.strip().splitlines()[-1])
-
-
 def bench(name, steps, threads):
-    p = run_worker("pyvf", name, steps, threads)
-    t = run_worker("torch", name, steps, threads)
+    p = run_worker(__file__, "--worker", "pyvf", "--configs", name, "--steps", steps, "--threads", threads)
+    t = run_worker(__file__, "--worker", "torch", "--configs", name, "--steps", steps, "--threads", threads)
     # validate: the same first-step loss from the same weights and batch (float32 both)
     if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
         sys.exit(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}")

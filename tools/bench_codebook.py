@@ -1,0 +1,126 @@
+"""Time of the codebook, pyvf against the same model in torch (tests/torch_codebook.py), one run.
+
+    python tools/bench_codebook.py                 # the official tiny and the paper configuration
+    python tools/bench_codebook.py --configs tiny
+
+Per configuration: encode + decode (images -> codes -> images) and one forward + backward
+(train=True, the EMA update included), medians, float32, each framework in its own process
+(their thread pools slow each other down in one). Before timing, both compute the loss of the
+same weights and batch, and the tool stops if they differ.
+"""
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, ".."))
+sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+
+import pyvf  # noqa: E402
+from pyvf.measure import run_worker  # noqa: E402
+
+CONFIGS = {
+    "tiny": dict(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=32,
+                 n_embed=64, image_size=64, batch=4),
+    "paper": dict(ch=128, ch_mult=(1, 1, 2, 2, 4), num_res_blocks=2, attn_resolutions=(16,), z_channels=256,
+                  embed_dim=256, n_embed=1024, image_size=128, batch=2),
+}
+
+
+def setup(name):
+    spec = dict(CONFIGS[name])
+    B = spec.pop("batch")
+    cfg = pyvf.CodebookConfig(**spec)
+    cb = pyvf.Codebook(cfg, seed=0)
+    images = np.tanh(np.random.default_rng(0).standard_normal((B, 3, cfg.image_size, cfg.image_size)))
+    return cfg, cb, images.astype(np.float32)
+
+
+def median(fn, repeat):
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def worker_pyvf(name, repeat):
+    cfg, cb, images = setup(name)
+    loss = cb.forward(images).loss
+    codec = median(lambda: cb.decode_code(cb.encode(images)), repeat)
+
+    def step():
+        cb.forward(images, train=True)
+        cb.backward()
+    step()
+    return dict(loss=loss, codec=codec, step=median(step, repeat))
+
+
+def worker_torch(name, repeat):
+    import torch
+    import torch_codebook
+    torch.set_num_threads(pyvf.num_threads())
+    cfg, cb, images = setup(name)
+    P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
+    q = cb.quantizer
+    buffers = {"quantize.embeddings": torch.tensor(q.embeddings),
+               "quantize.ema_cluster_size_hidden": torch.tensor(q.ema_cluster_size_hidden),
+               "quantize.ema_dw_hidden": torch.tensor(q.ema_dw_hidden), "quantize.counter": q.counter}
+    x = torch.tensor(images)
+    with torch.no_grad():
+        loss = torch_codebook.forward(P, buffers, x, cfg, train=False)["loss"].item()
+
+        def codec():
+            z = torch_codebook.encoder(x, P, cfg)
+            flat = z.permute(0, 2, 3, 1).reshape(-1, cfg.embed_dim)
+            e = buffers["quantize.embeddings"]
+            idx = ((flat[:, :, None] - e[None]) ** 2).sum(1).argmin(1)
+            zq = e.T[idx].reshape(z.shape[0], z.shape[2], z.shape[3], -1).permute(0, 3, 1, 2)
+            return torch_codebook.decoder(zq, P, cfg)
+        t_codec = median(codec, repeat)
+
+    def step():
+        for p in P.values():
+            p.grad = None
+        torch_codebook.forward(P, buffers, x, cfg, train=True)["loss"].backward()
+    step()
+    return dict(loss=loss, codec=t_codec, step=median(step, repeat))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--configs", nargs="+", default=["tiny", "paper"], choices=list(CONFIGS))
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--worker", choices=["pyvf", "torch"], help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    pyvf.set_num_threads(args.threads)
+    for name in args.configs:
+        if args.worker:
+            import json
+            print(json.dumps((worker_pyvf if args.worker == "pyvf" else worker_torch)(name, args.repeat)))
+            continue
+        common = ["--configs", name, "--repeat", args.repeat, "--threads", args.threads]
+        p = run_worker(__file__, "--worker", "pyvf", *common)
+        t = run_worker(__file__, "--worker", "torch", *common)
+        if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
+            sys.exit(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}")
+        spec = CONFIGS[name]
+        print(f"\n## {name}: ch={spec['ch']}, ch_mult={spec['ch_mult']}, {spec['num_res_blocks']} res blocks, "
+              f"{spec['image_size']}x{spec['image_size']} images, K={spec['n_embed']}, D={spec['embed_dim']}, "
+              f"B={spec['batch']}, float32, {args.threads} threads, median of {args.repeat}, each in its own process")
+        print(f"loss of the same weights and batch: pyvf {p['loss']:.6f}, torch {t['loss']:.6f}")
+        print("| | encode + decode | forward + backward (train) |")
+        print("|---|---|---|")
+        print(f"| pyvf | {p['codec'] * 1e3:.0f} ms | {p['step'] * 1e3:.0f} ms |")
+        print(f"| torch | {t['codec'] * 1e3:.0f} ms | {t['step'] * 1e3:.0f} ms |")
+        print(f"| ratio torch / pyvf | {t['codec'] / p['codec']:.2f} | {t['step'] / p['step']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
