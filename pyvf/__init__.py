@@ -6,7 +6,8 @@ Every layer has a hand-written forward and backward pass; SPEC.md is the math.
 import os
 
 # OpenMP threads that spin after a parallel region steal the cores numpy's BLAS threads need
-# (measured here: a small attention call 30x slower). Sleep instead, unless the user chose.
+# (measured on 2 cores: a tiny transformer's training step 57 ms spinning, 31.5 ms passive).
+# Sleep instead, unless the user chose.
 # Read by libgomp when _core loads it, so it must be set before the import.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 

@@ -5,7 +5,7 @@
 
 Per configuration: encode + decode (images -> codes -> images) and one forward + backward
 (train=True, the EMA update included), medians, float32, each framework in its own process
-(their thread pools slow each other down in one). Before timing, both compute the loss of the
+(so that neither's thread pool waits on the other's). Before timing, both compute the loss of the
 same weights and batch, and the tool stops if they differ.
 """
 

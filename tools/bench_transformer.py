@@ -4,12 +4,14 @@ same model in torch (tests/torch_transformer.py, SDPA with the tree's boolean ma
     python tools/bench_transformer.py                  # tiny and paper configurations
     python tools/bench_transformer.py --configs tiny   # just the tiny one (seconds)
 
-Each framework runs in its own worker process: in one process, numpy's and torch's thread pools
-slow each other's small matrix products down by 10x or more here. pyvf's step is split into the branching-attention kernel (forward and backward), the linear
+Each framework runs in its own worker process, so that neither's thread pool waits on the
+other's (harmless on a quiet machine; 10x and more on small calls when other work loads it).
+pyvf's step is split into the branching-attention kernel (forward and backward), the linear
 layers (every x @ w, forward and backward) and the rest (LayerNorm, GELU, embeddings, losses,
 the tied logits, AdamW), by timing those functions inside the step. Before timing, the first
-step's loss of pyvf and torch (same weights, same batch) are compared, and the tool stops if they differ. Memory: the measured
-peak resident memory of one step above what was resident before it (pyvf.measure.peak_memory).
+step's loss of pyvf and torch (same weights, same batch) are compared, and the tool stops if
+they differ. Memory: the measured peak resident memory of one step above what was resident
+before it (pyvf.measure.peak_memory).
 """
 
 import argparse
