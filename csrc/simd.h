@@ -57,12 +57,6 @@ template <typename T> inline T hsum(typename Simd<T>::V v) {
     for (int i = 0; i < Simd<T>::W; ++i) s += v[i];
     return s;
 }
-template <typename T> inline T hmax(typename Simd<T>::V v) {
-    T s = v[0];
-    for (int i = 1; i < Simd<T>::W; ++i) s = v[i] > s ? v[i] : s;
-    return s;
-}
-
 // ---------------------------------------------------------------------------------------
 // exp for x <= 0 (all the softmax needs: x = logit - running max), vectorised.
 // Cody-Waite range reduction x = n*ln2 + r, |r| <= ln2/2, then a polynomial (float: the

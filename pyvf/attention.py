@@ -23,7 +23,7 @@ oracle tests and benchmarks compare the kernel against, and costs O(T^2) memory 
 
 import numpy as np
 
-from . import _core
+from . import _checks, _core
 from .layers import linear_backward, linear_forward
 
 __all__ = [
@@ -38,34 +38,22 @@ __all__ = [
     "attention_layer_backward",
 ]
 
-_DTYPES = (np.float32, np.float64)
-
-
 # ---------------------------------------------------------------------------------------
 # argument checks: every error names the argument and says what was expected
 
 
 def _check_array(name, x, like=None):
-    """x must be a C-contiguous float32/float64 ndarray of 6 dims (like `like`, when given)."""
-    if not isinstance(x, np.ndarray):
-        raise TypeError(f"{name} must be a numpy.ndarray, got {type(x).__name__}")
+    """x must be a finite C-contiguous float32/float64 ndarray of 6 dims (like `like`, when given)."""
+    _checks.float_array(name, x, like, "q")
     if like is None:
-        if x.dtype not in _DTYPES:
-            raise TypeError(f"{name} must be float32 or float64, got {x.dtype} (pyvf never casts silently)")
         if x.ndim != 6:
             raise ValueError(f"{name} must have 6 dimensions (R, B, H, N, L, dh), got shape {x.shape}")
         if 0 in x.shape:
             raise ValueError(f"{name} has a zero-size dimension: shape {x.shape}")
-    else:
-        if x.dtype != like.dtype:
-            raise TypeError(f"{name} is {x.dtype} but q is {like.dtype}: all arrays must share one dtype")
-        if x.shape != like.shape:
-            raise ValueError(f"{name} has shape {x.shape} but q has shape {like.shape}")
-    if not x.flags.c_contiguous:
-        raise ValueError(f"{name} is not C-contiguous (a transposed or sliced view?): "
-                         f"pass np.ascontiguousarray({name})")
-    if not _core.all_finite(x):
-        raise ValueError(f"{name} contains NaN or inf")
+    elif x.shape != like.shape:
+        raise ValueError(f"{name} has shape {x.shape} but q has shape {like.shape}")
+    _checks.contiguous(name, x)
+    _checks.finite(name, x)
 
 
 def _check_scale(scale):
@@ -86,7 +74,7 @@ def _check_qkv(q, k, v, scale):
 
 def _check_finite_result(name, *arrays):
     for a in arrays:
-        if not _core.all_finite(a):
+        if not _checks.all_finite(a):
             raise ValueError(f"{name}: the result is not finite: it overflowed {a.dtype} "
                              "(inputs too large for the dtype; use float64 or rescale them)")
 

@@ -21,6 +21,7 @@ import json
 
 import numpy as np
 
+from . import _checks
 from .conv import (
     attnblock_backward,
     attnblock_forward,
@@ -220,14 +221,7 @@ class Codebook:
             raise ValueError(f"load_official: {len(missing)} names missing, e.g. {missing[:3]}")
         params = {}
         for name, shape in shapes.items():
-            a = np.asarray(state_dict[name])
-            if a.dtype.kind != "f":
-                raise TypeError(f"load_official: {name!r} has dtype {a.dtype}, expected a float array")
-            if a.shape != shape:
-                raise ValueError(f"load_official: {name!r} has shape {a.shape}, expected {shape}")
-            if not np.isfinite(a).all():
-                raise ValueError(f"load_official: {name!r} contains NaN or inf")
-            params[name] = np.ascontiguousarray(a, dtype=self.dtype)
+            params[name] = _checks.weight(name, state_dict[name], shape, self.dtype)
         self.quantizer.load_state_dict({k[len("quantize."):]: np.asarray(state_dict[k]) for k in BUFFERS})
         self.params = params
 
@@ -361,8 +355,7 @@ class Codebook:
         S = cfg.image_size
         if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S) or images.shape[0] < 1:
             raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}")
-        if not np.isfinite(images).all():
-            raise ValueError("images contains NaN or inf")
+        _checks.finite("images", images)
 
     def encode(self, images):
         """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64."""

@@ -15,7 +15,8 @@ size; P = Hi * Wi pixels; K = C * kh * kw the length of one im2col column.
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-_FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
+from . import _checks
+
 
 
 # ---------------------------------------------------------------------------------------
@@ -23,12 +24,7 @@ _FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 
 
 def _check_float(name, a, like=None):
-    if not isinstance(a, np.ndarray):
-        raise TypeError(f"{name} must be a numpy array, got {type(a).__name__}")
-    if a.dtype not in _FLOATS:
-        raise TypeError(f"{name} must be float32 or float64, got {a.dtype}")
-    if like is not None and a.dtype != like.dtype:
-        raise TypeError(f"{name} is {a.dtype} but x is {like.dtype}: pyvf does not cast, convert it first")
+    _checks.float_array(name, a, like, "x")
 
 
 def _check_image(name, x):

@@ -38,6 +38,8 @@ Conventions (each one decided here, tested in tests/test_geometry.py):
 
 import numpy as np
 
+from . import _checks
+
 __all__ = [
     "quat_mul",
     "quat_conj",
@@ -52,7 +54,6 @@ __all__ = [
     "average_pose",
 ]
 
-_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 # | |q|^2 - 1 | allowed for a quaternion used as a rotation (see the module docstring)
 _UNIT_TOL = {np.dtype(np.float32): 1e-5, np.dtype(np.float64): 1e-9}
@@ -65,18 +66,11 @@ _UNIT_TOL = {np.dtype(np.float32): 1e-5, np.dtype(np.float64): 1e-9}
 def _check(name, x, last, what, like=None, like_name=None):
     """x: a finite float32/float64 ndarray whose last dimension is one of `last`
     (and of like's dtype, when given)."""
-    if not isinstance(x, np.ndarray):
-        raise TypeError(f"{name} must be a numpy.ndarray, got {type(x).__name__}")
-    if x.dtype not in _DTYPES:
-        raise TypeError(f"{name} must be float32 or float64, got {x.dtype} (pyvf never casts silently)")
-    if like is not None and x.dtype != like.dtype:
-        raise TypeError(f"{name} is {x.dtype} but {like_name} is {like.dtype}: both must share one dtype")
+    _checks.float_array(name, x, like, like_name)
     if x.ndim == 0 or x.shape[-1] not in last:
         want = " or ".join(str(n) for n in last)
         raise ValueError(f"{name} must have last dimension {want} ({what}), got shape {x.shape}")
-    if not np.isfinite(x).all():
-        raise ValueError(f"{name} contains NaN or inf")
-    return x
+    return _checks.finite(name, x)
 
 
 def _broadcast(name_a, a_shape, name_b, b_shape):

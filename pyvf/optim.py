@@ -23,6 +23,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from . import _checks
+
 __all__ = [
     "AdamW",
     "Adam",
@@ -32,7 +34,6 @@ __all__ = [
     "published_weight_decay",
 ]
 
-_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 
 # ---------------------------------------------------------------------------------------
@@ -72,16 +73,13 @@ def _check_array_dict(name, d, writable):
     for k, a in d.items():
         if not isinstance(k, str):
             raise TypeError(f"{name}: keys must be str (parameter names), got {type(k).__name__} {k!r}")
-        if not isinstance(a, np.ndarray):
-            raise TypeError(f"{name}[{k!r}] must be a numpy.ndarray, got {type(a).__name__}")
-        if a.dtype not in _DTYPES:
-            raise TypeError(f"{name}[{k!r}] must be float32 or float64, got {a.dtype} (pyvf never casts silently)")
+        _checks.float_array(f"{name}[{k!r}]", a)
         if writable and not a.flags.writeable:
             raise ValueError(f"{name}[{k!r}] is read-only: it is updated in place")
 
 
 def _nonfinite_names(d):
-    return [k for k, a in d.items() if not np.isfinite(a).all()]
+    return [k for k, a in d.items() if not _checks.all_finite(a)]
 
 
 # ---------------------------------------------------------------------------------------
@@ -410,7 +408,7 @@ def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, e
                          "(error_if_nonfinite=False returns the non-finite norm instead)")
 
     def norm_of(g):
-        if not np.isfinite(g).all():
+        if not _checks.all_finite(g):
             return float(np.linalg.norm(g.astype(np.float64, copy=False).ravel()))  # nan or inf
         n = _norm64(g)
         if not math.isfinite(n):

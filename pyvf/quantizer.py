@@ -21,32 +21,26 @@ import dataclasses
 
 import numpy as np
 
-from . import _core
+from . import _checks, _core
 
 __all__ = ["vq_nearest", "EMAQuantizer", "QuantizerOutput"]
 
 
-def _check_2d(name, a, D=None, dtype=None):
-    if not isinstance(a, np.ndarray):
-        raise TypeError(f"{name} must be a numpy.ndarray, got {type(a).__name__}")
-    if a.dtype not in (np.float32, np.float64):
-        raise TypeError(f"{name} must be float32 or float64, got {a.dtype} (pyvf never casts silently)")
-    if dtype is not None and a.dtype != dtype:
-        raise TypeError(f"{name} is {a.dtype} but x is {dtype}: both must share one dtype")
+def _check_2d(name, a, like=None):
+    """a: a finite C-contiguous float (M, D) array (of like's dtype and width, when given)."""
+    _checks.float_array(name, a, like, "x")
     if a.ndim != 2:
         raise ValueError(f"{name} must be 2-dimensional, got shape {a.shape}")
-    if D is not None and a.shape[1] != D:
-        raise ValueError(f"{name} has width {a.shape[1]} but x has width {D}")
-    if not a.flags.c_contiguous:
-        raise ValueError(f"{name} is not C-contiguous: pass np.ascontiguousarray({name})")
-    if not _core.all_finite(a):
-        raise ValueError(f"{name} contains NaN or inf")
+    if like is not None and a.shape[1] != like.shape[1]:
+        raise ValueError(f"{name} has width {a.shape[1]} but x has width {like.shape[1]}")
+    _checks.contiguous(name, a)
+    _checks.finite(name, a)
 
 
 def vq_nearest(x, codes):
     """x (M, D), codes (K, D), one float dtype -> indices (M,) int64, sq_distances (M,)."""
     _check_2d("x", x)
-    _check_2d("codes", codes, D=x.shape[1], dtype=x.dtype)
+    _check_2d("codes", codes, like=x)
     if codes.shape[0] == 0:
         raise ValueError("codes is empty: there is no nearest code")
     if x.shape[1] == 0:

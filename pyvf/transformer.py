@@ -24,6 +24,7 @@ import json
 
 import numpy as np
 
+from . import _checks
 from .attention import attention_layer_backward, attention_layer_forward
 from .geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
 from .layers import (
@@ -169,14 +170,7 @@ class Transformer:
                 raise ValueError(f"load_official: unexpected parameter {raw_name!r} (not in this configuration)")
             if name in loaded:
                 raise ValueError(f"load_official: parameter {name!r} given twice")
-            arr = np.asarray(arr)
-            if arr.dtype.kind != "f":
-                raise TypeError(f"load_official: {raw_name!r} has dtype {arr.dtype}, expected a float array")
-            if arr.shape != shapes[name]:
-                raise ValueError(f"load_official: {raw_name!r} has shape {arr.shape}, expected {shapes[name]}")
-            if not np.isfinite(arr).all():
-                raise ValueError(f"load_official: {raw_name!r} contains NaN or inf")
-            loaded[name] = np.ascontiguousarray(arr, dtype=self.dtype)
+            loaded[name] = _checks.weight(raw_name, arr, shapes[name], self.dtype)
         missing = [n for n in shapes if n not in loaded]
         if missing:
             raise ValueError(f"load_official: {len(missing)} parameters missing, e.g. {missing[:3]}")
@@ -219,8 +213,7 @@ class Transformer:
         if poses.shape != (B, N, 7):
             raise ValueError(f"poses must have shape (B, N, 7) = {(B, N, 7)} (xyz, then quaternion wxyz), "
                              f"got {poses.shape}")
-        if not np.isfinite(poses).all():
-            raise ValueError("poses contains NaN or inf")
+        _checks.finite("poses", poses)
         return B, N, L
 
     # -----------------------------------------------------------------------------------
@@ -442,8 +435,7 @@ class Transformer:
             raise TypeError(f"query_poses must be a {self.dtype} numpy array")
         if query_poses.ndim != 3 or query_poses.shape[0] != B or query_poses.shape[2] != 7 or query_poses.shape[1] < 1:
             raise ValueError(f"query_poses must have shape (B={B}, M, 7), got {query_poses.shape}")
-        if not np.isfinite(query_poses).all():
-            raise ValueError("query_poses contains NaN or inf")
+        _checks.finite("query_poses", query_poses)
         rel = relative_poses(query_poses, scene.ref[:, None, :])  # (B, M, 7)
         # as make_relative does for the context: the pose MLP is not sign-invariant
         rel[..., 3:] = quat_canonical(quat_normalize(rel[..., 3:]))

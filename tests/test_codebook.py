@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import torch_codebook
-from conftest import assert_close
+from conftest import assert_close, load_tool
 from pyvf.codebook import Codebook, CodebookConfig, parameter_shapes
 
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-codebook-tiny.json")
@@ -164,11 +164,7 @@ def test_bad_input_raises(rng):
 def test_torch_checkpoint_converter(rng, tmp_path):
     """A model.ckpt as the published training writes it (torch.save of a dict with state_dict,
     extra loss-network keys beside the model's) converts to an .npz that loads to the same model."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location(
-        "convert_torch_codebook", os.path.join(os.path.dirname(__file__), "..", "tools", "convert_torch_codebook.py"))
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("convert_torch_codebook")
     cfg = CodebookConfig(**SMALL)
     cb = random_codebook(cfg, rng)
     sd = {k: torch.tensor(v) for k, v in cb.state_dict().items()}

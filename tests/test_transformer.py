@@ -11,7 +11,7 @@ import torch
 
 import pyvf
 import torch_transformer
-from conftest import assert_bitwise_equal, assert_close
+from conftest import assert_bitwise_equal, assert_close, load_tool
 
 TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5, n_loss_skip=1)
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-transformer-tiny.json")
@@ -346,15 +346,6 @@ def test_bad_config_raises(field, value, match):
 
 # ---------------------------------------------------------------------------------------
 # 8. the TensorFlow checkpoint converter (tools/), with a stand-in for tf.train.load_checkpoint
-
-
-def load_tool(name):
-    import importlib.util
-    path = os.path.join(os.path.dirname(__file__), "..", "tools", name + ".py")
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 class FakeReader:
