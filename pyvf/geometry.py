@@ -277,16 +277,22 @@ def make_relative(poses, *, canonical=True):
 # metrics (SPEC.md §6)
 
 
+def _check_pair(n1, a, n2, b, width, kind):
+    """a, b: both (..., width) arrays of one kind, or both (..., 7) poses, of one dtype, broadcasting."""
+    what = {"positions": "positions xyz, or poses", "quaternions": "quaternions (w, x, y, z), or poses"}[kind]
+    _check(n1, a, (width, 7), what)
+    _check(n2, b, (width, 7), what, like=a, like_name=n1)
+    if a.shape[-1] != b.shape[-1]:
+        raise ValueError(f"{n1} and {n2} must both be {kind} (..., {width}) or both poses (..., 7), "
+                         f"got shapes {a.shape} and {b.shape}")
+    _broadcast(n1, a.shape, n2, b.shape)
+
+
 def position_error(p1, p2):
     """Euclidean distance |xyz1 - xyz2|.   p1, p2 (..., 3) positions or (..., 7) poses (only
     xyz is used), both the same kind, broadcasting -> (...). Computed by hypot (no overflow
     of the squares)."""
-    _check("p1", p1, (3, 7), "positions xyz, or poses")
-    _check("p2", p2, (3, 7), "positions xyz, or poses", like=p1, like_name="p1")
-    if p1.shape[-1] != p2.shape[-1]:
-        raise ValueError(f"p1 and p2 must both be positions (..., 3) or both poses (..., 7), "
-                         f"got shapes {p1.shape} and {p2.shape}")
-    _broadcast("p1", p1.shape, "p2", p2.shape)
+    _check_pair("p1", p1, "p2", p2, 3, "positions")
     return _norm3(p1[..., :3] - p2[..., :3])  # (...)
 
 
@@ -305,12 +311,7 @@ def orientation_error(q1, q2):
     atan2 keeps full relative accuracy at every angle and never leaves [0, 180].
     It depends only on the direction of r, so q1 and q2 need not be unit; zero quaternions
     (no rotation at all) raise ValueError."""
-    _check("q1", q1, (4, 7), "quaternions (w, x, y, z), or poses")
-    _check("q2", q2, (4, 7), "quaternions (w, x, y, z), or poses", like=q1, like_name="q1")
-    if q1.shape[-1] != q2.shape[-1]:
-        raise ValueError(f"q1 and q2 must both be quaternions (..., 4) or both poses (..., 7), "
-                         f"got shapes {q1.shape} and {q2.shape}")
-    _broadcast("q1", q1.shape, "q2", q2.shape)
+    _check_pair("q1", q1, "q2", q2, 4, "quaternions")
     a, b = q1[..., -4:], q2[..., -4:]
     for name, q in (("q1", a), ("q2", b)):
         if (q == 0).all(axis=-1).any():
