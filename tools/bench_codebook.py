@@ -12,7 +12,6 @@ same weights and batch, and the tool stops if they differ.
 import argparse
 import os
 import sys
-import time
 
 import numpy as np
 
@@ -21,7 +20,7 @@ sys.path.insert(0, os.path.join(HERE, ".."))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
 import pyvf  # noqa: E402
-from pyvf.measure import run_worker  # noqa: E402
+from pyvf.measure import median_time, run_worker  # noqa: E402
 
 CONFIGS = {
     "tiny": dict(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=32,
@@ -41,12 +40,7 @@ def setup(name):
 
 
 def median(fn, repeat):
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return median_time(fn, repeat=repeat, warmup=0)[0]
 
 
 def worker_pyvf(name, repeat):
