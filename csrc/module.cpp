@@ -176,10 +176,31 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("x").noconvert());
 }
 
+// What this CPU (and its operating system) can run, as the compiler's runtime reads it
+// (cpuid, and xgetbv for the vector registers' state). Called from the baseline module only,
+// which runs anywhere, before any other path's module is imported.
+py::dict cpu_features() {
+    py::dict f;
+#if defined(__x86_64__) || defined(__i386__)
+    __builtin_cpu_init();
+    f["avx2"] = (bool)__builtin_cpu_supports("avx2");
+    f["fma"] = (bool)__builtin_cpu_supports("fma");
+    f["avx512f"] = (bool)__builtin_cpu_supports("avx512f");
+    f["avx512dq"] = (bool)__builtin_cpu_supports("avx512dq");
+    f["avx512bw"] = (bool)__builtin_cpu_supports("avx512bw");
+    f["avx512vl"] = (bool)__builtin_cpu_supports("avx512vl");
+#endif
+    return f;
+}
+
 }  // namespace
 
-PYBIND11_MODULE(_core, m) {
-    m.doc() = "pyvf compiled kernels (use the functions in pyvf, which check their arguments)";
+// One module per instruction-set path (CMakeLists.txt): PYVF_MODULE is _core_<path>.
+PYBIND11_MODULE(PYVF_MODULE, m) {
+    m.doc() = "pyvf compiled kernels for one instruction-set path (pyvf._core picks the module; "
+              "use the functions in pyvf, which check their arguments)";
+    m.attr("path") = PYVF_PATH_NAME;
+    m.def("cpu_features", &cpu_features, "what the CPU supports: {feature: bool} (x86-64; empty elsewhere)");
     bind_dtype<float>(m);
     bind_dtype<double>(m);
     m.def("num_threads", &num_threads, "threads the kernels use (OpenMP; 1 without OpenMP)");

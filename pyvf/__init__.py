@@ -11,13 +11,7 @@ import os
 # Read by libgomp when _core loads it, so it must be set before the import.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-try:
-    from . import _core
-except ImportError as e:  # running from a source tree that was never built
-    raise ImportError(
-        "pyvf's compiled extension pyvf._core is missing: install pyvf with `pip install .` "
-        "(it compiles csrc/), and do not run Python from inside the source tree's pyvf/ folder"
-    ) from e
+from . import _core  # the compiled kernels, on the best instruction-set path (or PYVF_ISA's)
 
 from .attention import (
     branching_attention,
@@ -63,6 +57,55 @@ def set_num_threads(n):
     _core.set_num_threads(n)
 
 
+def kernel_path():
+    """The instruction-set path every C++ kernel uses now: 'baseline', 'avx2', 'avx512' (x86-64)
+    or 'neon' (aarch64)."""
+    return _core.current_path()
+
+
+def kernel_paths():
+    """The paths this process can use, lowest first: built, run by this CPU, and not above the
+    one the environment variable PYVF_ISA names (it forces a path for the whole process)."""
+    return list(_core.available_paths())
+
+
+class use_kernel_path:
+    """Switch every kernel to `path` (one of kernel_paths()) now; as a context manager, switch
+    back on exit. For tests and benchmarks that compare paths in one process:
+
+        with pyvf.use_kernel_path("baseline"):
+            o = pyvf.branching_attention(q, k, v)
+    """
+
+    def __init__(self, path):
+        self.previous = _core.use_path(path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        _core.use_path(self.previous)
+        return False
+
+
+def show_config(file=None):
+    """Print which instruction-set path the kernels use, the paths this CPU and build offer,
+    and the threads: the first thing to include in a bug report or a benchmark."""
+    c = _core.config()
+    forced = f", forced by PYVF_ISA={c['forced_by_PYVF_ISA']}" if c["forced_by_PYVF_ISA"] else ""
+    features = ", ".join(k for k, v in c["cpu_features"].items() if v) or "-"
+    lines = [
+        f"pyvf {__version__}",
+        f"kernel path: {c['path']} ({c['path_description']}){forced}",
+        "  kernels on it: branching attention forward/backward, vq_nearest, gelu, exp, all_finite",
+        f"paths this process can use: {', '.join(c['available_paths'])}",
+        f"paths built: {', '.join(c['built_paths'])}",
+        f"cpu features: {features}",
+        f"threads: {c['threads']} (OpenMP {'on' if c['openmp'] else 'off'})",
+    ]
+    print("\n".join(lines), file=file)
+
+
 __all__ = [
     "Codebook",
     "CodebookConfig",
@@ -102,4 +145,8 @@ __all__ = [
     "branching_mask",
     "num_threads",
     "set_num_threads",
+    "kernel_path",
+    "kernel_paths",
+    "use_kernel_path",
+    "show_config",
 ]

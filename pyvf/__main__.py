@@ -164,6 +164,8 @@ def cmd_demo(args):
               file=sys.stderr)
         return 2
     t0 = time.perf_counter()
+    print(f"pyvf kernels: path {pyvf.kernel_path()} (this CPU runs {', '.join(pyvf.kernel_paths())}; "
+          "PYVF_ISA=<path> forces one; `pyvf config` for details)")
     print("pyvf demo: branching attention (SPEC.md §2), the C++ kernel against the dense NumPy reference")
     print(f"pyvf {pyvf.__version__}, numpy {np.__version__}, {pyvf.num_threads()} kernel threads; "
           "inputs unit normal, scale 1 (unscaled logits, as the published model)")
@@ -174,6 +176,12 @@ def cmd_demo(args):
     print(f"\n{'all errors within their bounds' if ok else 'ERROR BOUND EXCEEDED'}; "
           f"total {time.perf_counter() - t0:.0f} s")
     return 0 if ok else 1
+
+
+def cmd_config(args):
+    """Print pyvf.show_config(): the kernels' instruction-set path, the paths this CPU runs, threads."""
+    pyvf.show_config()
+    return 0
 
 
 # ---------------------------------------------------------------------------------------
@@ -193,6 +201,10 @@ def build_parser():
     p.add_argument("--sizes", default=",".join(DEMO_SIZES),
                    help=f"comma-separated sizes to run, from {', '.join(DEMO_SIZES)} (default: all)")
     p.set_defaults(func=cmd_demo)
+
+    p = commands.add_parser("config", help="which instruction-set path the kernels use, and the threads",
+                            description=cmd_config.__doc__)
+    p.set_defaults(func=cmd_config)
     return parser
 
 

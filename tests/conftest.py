@@ -12,6 +12,8 @@ import os
 import numpy as np
 import pytest
 
+import pyvf
+
 
 def assert_close(name, got, want, rtol, atol=0.0, n_show=5):
     """Assert |got - want| <= rtol * max|want| + atol elementwise (a normwise relative bound).
@@ -88,3 +90,13 @@ def load_tool(name):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(params=pyvf.kernel_paths(), ids=lambda p: f"path-{p}")
+def kernel_path(request):
+    """Run the test once per instruction-set path this machine can execute (baseline, avx2,
+    avx512 on x86-64), every kernel switched to it. Kernel test modules use it for all their
+    tests: `pytestmark = pytest.mark.usefixtures("kernel_path")`. CI checks (.ci/run) that
+    every path the machine runs was exercised."""
+    with pyvf.use_kernel_path(request.param):
+        yield request.param

@@ -21,6 +21,9 @@ from pyvf import _core
 
 from conftest import assert_bitwise_equal, assert_close
 
+# every test here runs once per kernel path this machine executes (conftest.kernel_path)
+pytestmark = pytest.mark.usefixtures("kernel_path")
+
 U32 = 2.0 ** -24  # float32 unit roundoff
 U64 = 2.0 ** -53  # float64 unit roundoff
 
@@ -553,11 +556,14 @@ def test_large_logits_one_hot_random_inputs(magnitude, rng):
     # exact arithmetic, and 0 in floating point only if both are rounded in the same order.
     # Which order a vector path uses (FMA or not, vector width) is not part of the contract,
     # so the bound is the dot-product error gamma_dh ~ dh u on terms of size W @ |k| and
-    # W^T @ |q| (gradient_bound), on every path; 2 dh for the two dot products. Measured on
-    # AVX2 (where the orders differ): <= 2.1.
+    # W^T @ |q| (gradient_bound), on every path: 2 dh for the two dot products, plus the
+    # relative error of each p = exp(s - lse) from the logits' own rounding, 4 |magnitude| u
+    # as in the offset test (it shows on the rows' runners-up, p ~ 1e-169, on the SSE2 path).
+    # Measured <= 2.1 (AVX2) and 1.2e4 = 0.3 x 4 |magnitude| (baseline, at 1e4).
     sizes = gradient_bound(q, k, v, do, 1.0)
-    assert_within_rounding("dq f64", dq, dq_ref, sizes[0], U64, 2 * dh)
-    assert_within_rounding("dk f64", dk, dk_ref, sizes[1], U64, 2 * dh)
+    c = 2 * dh + 4 * magnitude
+    assert_within_rounding("dq f64", dq, dq_ref, sizes[0], U64, c)
+    assert_within_rounding("dk f64", dk, dk_ref, sizes[1], U64, c)
 
     # float32: finite, and the same winners (a float32 logit error of ~dh u |q||k| is far
     # below a gap of 30 at these sizes: ~0.5 at 1e6). o = (v_w + e^-30 ...) / (1 + e^-30 ...)

@@ -28,6 +28,9 @@ from pyvf import layers
 
 from conftest import assert_bitwise_equal, assert_close
 
+# every test here runs once per kernel path this machine executes (conftest.kernel_path)
+pytestmark = pytest.mark.usefixtures("kernel_path")
+
 U32 = 2.0 ** -24  # float32 unit roundoff
 U64 = 2.0 ** -53  # float64 unit roundoff
 EPS = 1e-5  # LayerNorm eps, inside the square root (SPEC.md §3)

@@ -9,6 +9,9 @@ from conftest import assert_bitwise_equal
 from pyvf import _core
 from pyvf.quantizer import vq_nearest
 
+# every test here runs once per kernel path this machine executes (conftest.kernel_path)
+pytestmark = pytest.mark.usefixtures("kernel_path")
+
 
 def brute_force(x, codes):
     """Exact distances in float64 by direct differences; argmin takes the first minimum."""

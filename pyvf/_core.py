@@ -1,0 +1,119 @@
+"""pyvf's compiled kernels, on the instruction-set path this process uses.
+
+The C++ kernels (csrc/) are compiled once per path into separate extension modules,
+`pyvf._core_<path>` (CMakeLists.txt says why separate modules):
+
+    x86-64:   baseline (SSE2, 16-byte vectors)   avx2 (AVX2 + FMA, 32 bytes)
+              avx512 (AVX-512 F/DQ/BW/VL + FMA, 64 bytes)
+    aarch64:  neon (16 bytes)
+
+At import, the base module (which runs on any CPU of the architecture) asks the CPU what it
+supports; the best path that was built and that the CPU runs is used, unless the environment
+variable PYVF_ISA names another (a lower one, or the same): then that one, for the whole
+process. Naming a path this CPU cannot run, or one that was not built, is an ImportError, never
+a silent fall-back.
+
+Everything else in pyvf calls `_core.<kernel>(...)`; this module forwards the attribute to the
+module of the current path (PEP 562 module __getattr__), so `use_path` switches every kernel at
+once (the tests run each kernel test once per path this way).
+"""
+
+import importlib
+import importlib.util
+import os
+import platform
+
+# Paths of each architecture, lowest first; the first is the base that runs anywhere.
+_ARCH_PATHS = {"x86_64": ("baseline", "avx2", "avx512"), "aarch64": ("neon",)}
+# CPU features (cpu_features() names) each path needs.
+_NEEDS = {"avx2": ("avx2", "fma"), "avx512": ("avx512f", "avx512dq", "avx512bw", "avx512vl", "avx2", "fma")}
+_DESCRIBE = {
+    "baseline": "x86-64 baseline, SSE2, 16-byte vectors",
+    "avx2": "AVX2 + FMA, 32-byte vectors",
+    "avx512": "AVX-512 F/DQ/BW/VL + FMA, 64-byte vectors",
+    "neon": "aarch64 NEON, 16-byte vectors",
+}
+
+
+def _arch_paths():
+    machine = platform.machine().lower()
+    machine = {"amd64": "x86_64", "x64": "x86_64", "arm64": "aarch64"}.get(machine, machine)
+    return _ARCH_PATHS.get(machine, ("baseline",))
+
+
+def _built(path):
+    return importlib.util.find_spec(f"pyvf._core_{path}") is not None
+
+
+_order = _arch_paths()
+_built_paths = tuple(p for p in _order if _built(p))
+if not _built_paths:
+    raise ImportError(
+        "pyvf's compiled extension (pyvf._core_<path>) is missing: install pyvf with `pip install .` "
+        "(it compiles csrc/), and do not run Python from inside the source tree's pyvf/ folder")
+_base = importlib.import_module(f"pyvf._core_{_built_paths[0]}")
+_features = dict(_base.cpu_features())
+_runs = tuple(p for p in _built_paths if all(_features.get(f, False) for f in _NEEDS.get(p, ())))
+_modules = {_built_paths[0]: _base}
+
+_forced = os.environ.get("PYVF_ISA", "").strip() or None
+if _forced is not None:
+    if _forced not in _order:
+        raise ImportError(f"PYVF_ISA={_forced!r} is not a kernel path of this architecture; "
+                          f"choose one of {', '.join(_order)}")
+    if _forced not in _built_paths:
+        raise ImportError(f"PYVF_ISA={_forced!r}: that path was not built (the compiler could not target it); "
+                          f"built: {', '.join(_built_paths)}")
+    if _forced not in _runs:
+        raise ImportError(f"PYVF_ISA={_forced!r}: this CPU cannot run that path; it runs {', '.join(_runs)}")
+_current = _forced or _runs[-1]
+# the paths this process may use: those the CPU runs, up to the forced one
+_allowed = _runs[: _runs.index(_current) + 1] if _forced else _runs
+
+
+def _module(path):
+    if path not in _modules:
+        _modules[path] = importlib.import_module(f"pyvf._core_{path}")
+    return _modules[path]
+
+
+_impl = _module(_current)
+
+
+def available_paths():
+    """The kernel paths this process can use, lowest first: built, run by this CPU, and not
+    above PYVF_ISA when it is set."""
+    return _allowed
+
+
+def current_path():
+    return _current
+
+
+def use_path(path):
+    """Make every kernel use `path` (one of available_paths()); returns the previous path."""
+    global _current, _impl
+    if path not in _allowed:
+        raise ValueError(f"path must be one of {', '.join(_allowed)} (the kernel paths this process can use), "
+                         f"got {path!r}")
+    previous, _current, _impl = _current, path, _module(path)
+    return previous
+
+
+def config():
+    """What show_config prints, as a dict."""
+    return {
+        "path": _current,
+        "path_description": _DESCRIBE.get(_current, _current),
+        "forced_by_PYVF_ISA": _forced,
+        "available_paths": list(_allowed),
+        "built_paths": list(_built_paths),
+        "cpu_features": _features,
+        "simd_bytes": _impl.simd_bytes,
+        "openmp": bool(_impl.openmp),
+        "threads": _impl.num_threads(),
+    }
+
+
+def __getattr__(name):  # any kernel: the current path's
+    return getattr(_impl, name)
