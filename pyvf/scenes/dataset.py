@@ -1,0 +1,335 @@
+"""A Shepard-Metzler dataset on disk: .npz shards and a manifest, written atomically, verified on load.
+
+    manifest = write_dataset("data/sm7", n_scenes=2000, seed=0)   # shards, then manifest.json
+    ds = load_dataset("data/sm7")                                 # every shard checked
+    ds.images   # (S, V, H, W, 3) uint8
+    ds.poses    # (S, V, 7) float64
+
+The format (FORMAT = "pyvf-sm7-scenes", FORMAT_VERSION = 1), in one folder:
+
+* `shard-00000.npz`, `shard-00001.npz`, ...: shard k holds scenes k*shard_size onwards (the
+  last one fewer), as three arrays: `images` (n, V, H, W, 3) uint8 RGB, `poses` (n, V, 7)
+  float64 (xyz + unit quaternion (w, x, y, z), camera to world; conventions in cameras.py),
+  `scene_index` (n,) int64, the scenes' global indices (scene i is generate_scene(seed, i)).
+  A zip (deflate) of .npy files that np.load reads, written with a fixed timestamp, so the
+  same arguments give the same bytes (with the same zlib).
+* `manifest.json`, written last: format and version, seed, counts and sizes, the camera and
+  render constants, and for each shard its file name, scene range, size in bytes and sha256.
+  A folder without a manifest is an unfinished write.
+
+Every file is written to a temporary file in the same folder, flushed and fsynced, then
+renamed over its final name (os.replace, atomic on POSIX), and the folder is fsynced: a crash
+leaves either the old file or the new one, never a torn one. load_dataset checks each shard's
+size, sha256, array names, shapes, dtypes, finiteness and unit quaternions against the
+manifest and raises FileNotFoundError / ValueError naming the file and its manifest entry;
+it never returns a partly read dataset.
+"""
+
+import dataclasses
+import hashlib
+import io
+import json
+import math
+import os
+import tempfile
+import zipfile
+
+import numpy as np
+
+from . import cameras, render
+from .render import _image_shape, _nonneg_int, generate_scene
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "MANIFEST", "SceneDataset", "write_dataset", "load_dataset", "shard_name"]
+
+FORMAT = "pyvf-sm7-scenes"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+_ARRAYS = ("images", "poses", "scene_index")
+_ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # the earliest zip timestamp: the shard's bytes do not depend on the clock
+_UNIT_TOL = 1e-9  # | |q|^2 - 1 | allowed in a stored pose (pyvf.geometry's float64 tolerance)
+
+
+def shard_name(k):
+    """File name of shard k: shard-00000.npz, ..."""
+    return f"shard-{k:05d}.npz"
+
+
+@dataclasses.dataclass(eq=False)
+class SceneDataset:
+    """A loaded dataset: images (S, V, H, W, 3) uint8, poses (S, V, 7) float64, the seed that
+    generated it, its manifest (the parsed manifest.json) and the folder it came from."""
+
+    images: np.ndarray
+    poses: np.ndarray
+    seed: int
+    manifest: dict
+    path: str
+
+    def __len__(self):
+        return len(self.images)
+
+
+# ---------------------------------------------------------------------------------------
+# writing
+
+
+def _fsync_dir(folder):
+    """Make a rename in `folder` durable (POSIX); a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _atomic_write(path, data, mode):
+    """Write bytes to path atomically: a temporary file beside it, flush, fsync, os.replace."""
+    folder = os.path.dirname(path) or "."
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix="." + os.path.basename(path) + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, mode)  # mkstemp makes it 0600; give it the permissions of a normal new file
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    _fsync_dir(folder)
+
+
+def _npz_bytes(arrays):
+    """The bytes of an .npz (deflate) holding `arrays` (name -> ndarray), with fixed timestamps."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, a in arrays.items():
+            info = zipfile.ZipInfo(name + ".npy", date_time=_ZIP_TIME)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            with zf.open(info, "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.ascontiguousarray(a), allow_pickle=False)
+    return buf.getvalue()
+
+
+def _constants():
+    """The camera and render constants, recorded in the manifest."""
+    return {
+        "n_cubes": render.N_CUBES,
+        "camera_radius": cameras.CAMERA_RADIUS,
+        "tan_half_fov": cameras.TAN_HALF_FOV,
+        "fov_degrees": math.degrees(2 * math.atan(cameras.TAN_HALF_FOV)),
+        "max_elevation_degrees": cameras.MAX_ELEVATION_DEG,
+        "world_up": [0.0, -1.0, 0.0],
+        "camera_frame": "OpenCV: x right, y down, z forward (optical axis)",
+        "pose": "xyz + unit quaternion (w, x, y, z) of the camera-to-world rotation, w >= 0",
+        "light_dir": list(render.LIGHT_DIR),
+        "ambient": render.AMBIENT,
+        "diffuse": render.DIFFUSE,
+        "back": render.BACK,
+        "shading": "colour * (ambient + diffuse * max(0, n.l) + back * max(0, -n.l))",
+        "background": list(render.BACKGROUND),
+        "saturation": render.SATURATION,
+        "value": render.VALUE,
+        "rng": "numpy.random.default_rng([seed, scene_index])",
+    }
+
+
+def _check_dir_free(out_dir, overwrite):
+    """Refuse to mix a new dataset with an old one, unless overwrite: then remove the old
+    manifest first (so the folder is never a complete-looking mixture) and its shards."""
+    old = sorted(n for n in os.listdir(out_dir)
+                 if n == MANIFEST or (n.startswith("shard-") and n.endswith(".npz")))
+    if not old:
+        return
+    if not overwrite:
+        raise FileExistsError(f"{out_dir} already holds a dataset ({', '.join(old[:3])}"
+                              f"{', ...' if len(old) > 3 else ''}); pass overwrite=True (--overwrite) "
+                              "to replace it")
+    if MANIFEST in old:
+        os.remove(os.path.join(out_dir, MANIFEST))
+        _fsync_dir(out_dir)
+    for name in old:
+        if name != MANIFEST:
+            os.remove(os.path.join(out_dir, name))
+
+
+def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, progress=True, overwrite=False):
+    """Render scenes 0..n_scenes-1 of `seed` into out_dir as .npz shards plus manifest.json.
+
+    out_dir is created if needed; if it already holds a dataset (a manifest or shard files)
+    this raises FileExistsError unless overwrite=True. progress=True shows a tqdm bar.
+    Returns the manifest (a dict, as written). The format: this module's docstring."""
+    n_scenes = _nonneg_int("n_scenes", n_scenes, 1)
+    seed = _nonneg_int("seed", seed)
+    views = _nonneg_int("views", views, 1)
+    shard_size = _nonneg_int("shard_size", shard_size, 1)
+    if isinstance(size, (bool, np.bool_)) or not isinstance(size, (int, np.integer)):
+        raise TypeError(f"size must be an int (square images), got {size!r}")
+    H, W = _image_shape(size)
+    out_dir = os.fspath(out_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    _check_dir_free(out_dir, overwrite)
+    umask = os.umask(0)
+    os.umask(umask)
+    mode = 0o666 & ~umask
+
+    from tqdm.auto import tqdm  # a dependency of pyvf; imported here so that `import pyvf` stays light
+
+    shards = []
+    with tqdm(total=n_scenes, unit="scene", desc="pyvf scenes", disable=not progress) as bar:
+        for k, first in enumerate(range(0, n_scenes, shard_size)):
+            n = min(shard_size, n_scenes - first)
+            images = np.empty((n, views, H, W, 3), dtype=np.uint8)
+            poses = np.empty((n, views, 7))
+            for i in range(n):
+                images[i], poses[i] = generate_scene(seed, first + i, views, size)
+                bar.update(1)
+            data = _npz_bytes({"images": images, "poses": poses,
+                               "scene_index": np.arange(first, first + n, dtype=np.int64)})
+            _atomic_write(os.path.join(out_dir, shard_name(k)), data, mode)
+            shards.append({"file": shard_name(k), "first_scene": first, "n_scenes": n,
+                           "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
+
+    manifest = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "seed": seed,
+        "n_scenes": n_scenes,
+        "views": views,
+        "height": H,
+        "width": W,
+        "shard_size": shard_size,
+        "arrays": {
+            "images": "uint8 (scenes, views, height, width, 3) RGB",
+            "poses": "float64 (scenes, views, 7)",
+            "scene_index": "int64 (scenes,)",
+        },
+        "scene": _constants(),
+        "shards": shards,
+    }
+    _atomic_write(os.path.join(out_dir, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode(), mode)
+    return manifest
+
+
+# ---------------------------------------------------------------------------------------
+# reading
+
+
+def _manifest_int(manifest, key, where, minimum):
+    v = manifest.get(key)
+    if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+        raise ValueError(f"{where}: {key!r} must be an integer >= {minimum}, got {v!r}")
+    return v
+
+
+def _read_manifest(mpath):
+    try:
+        with open(mpath, "rb") as f:
+            manifest = json.loads(f.read().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{mpath}: not a valid JSON manifest ({e})") from None
+    if not isinstance(manifest, dict):
+        raise ValueError(f"{mpath}: not a {FORMAT} manifest (a JSON {type(manifest).__name__}, not an object)")
+    if manifest.get("format") != FORMAT:
+        raise ValueError(f"{mpath}: not a {FORMAT} manifest (format {manifest.get('format')!r})")
+    if manifest.get("version") != FORMAT_VERSION:
+        raise ValueError(f"{mpath}: format version {manifest.get('version')!r}, "
+                         f"this pyvf reads version {FORMAT_VERSION}")
+    for key, minimum in (("seed", 0), ("n_scenes", 1), ("views", 1), ("height", 8), ("width", 8)):
+        _manifest_int(manifest, key, mpath, minimum)
+    shards = manifest.get("shards")
+    if not isinstance(shards, list) or not shards:
+        raise ValueError(f"{mpath}: 'shards' must be a non-empty list")
+    expect = 0
+    for k, entry in enumerate(shards):
+        where = f"{mpath}, shard entry {k}"
+        if not isinstance(entry, dict):
+            raise ValueError(f"{where}: not an object")
+        name = entry.get("file")
+        if not isinstance(name, str) or not name or os.path.basename(name) != name or name in (".", ".."):
+            raise ValueError(f"{where}: 'file' must be a plain file name in the dataset folder, got {name!r}")
+        if _manifest_int(entry, "first_scene", where, 0) != expect:
+            raise ValueError(f"{where} ({name}): first_scene {entry['first_scene']}, "
+                             f"but the previous shards end at {expect}")
+        expect += _manifest_int(entry, "n_scenes", where, 1)
+        _manifest_int(entry, "bytes", where, 0)
+        digest = entry.get("sha256")
+        if not isinstance(digest, str) or len(digest) != 64:
+            raise ValueError(f"{where} ({name}): 'sha256' must be 64 hex digits, got {digest!r}")
+    if expect != manifest["n_scenes"]:
+        raise ValueError(f"{mpath}: the shards hold {expect} scenes but n_scenes is {manifest['n_scenes']}")
+    return manifest
+
+
+def _read_shard(path, entry, k, views, H, W):
+    """One shard's (images, poses), checked against its manifest entry k."""
+    where = f"{path} (manifest shard entry {k})"
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{where} is missing")
+    with open(path, "rb") as f:
+        data = f.read()
+    if len(data) != entry["bytes"]:
+        what = "truncated" if len(data) < entry["bytes"] else "longer than written"
+        raise ValueError(f"{where} is {what}: {len(data)} bytes, the manifest says {entry['bytes']}")
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != entry["sha256"].lower():
+        raise ValueError(f"{where} is corrupt: sha256 {digest}, the manifest says {entry['sha256']}")
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            arrays = {name: z[name] for name in z.files}
+    except Exception as e:  # a file that matches its hash but is no .npz: written by something else
+        raise ValueError(f"{where} is not a readable .npz ({type(e).__name__}: {e})") from None
+    names = {n[:-4] if n.endswith(".npy") else n for n in arrays}
+    if names != set(_ARRAYS):
+        raise ValueError(f"{where} holds arrays {sorted(names)}, expected {list(_ARRAYS)}")
+    n, first = entry["n_scenes"], entry["first_scene"]
+    want = {"images": (np.uint8, (n, views, H, W, 3)), "poses": (np.float64, (n, views, 7)),
+            "scene_index": (np.int64, (n,))}
+    for name, (dtype, shape) in want.items():
+        a = arrays[name]
+        if a.dtype != dtype or a.shape != shape:
+            raise ValueError(f"{where}: {name!r} is {a.dtype}{a.shape}, expected {np.dtype(dtype)}{shape}")
+    poses = arrays["poses"]
+    if not np.isfinite(poses).all():
+        raise ValueError(f"{where}: 'poses' contains NaN or inf")
+    q = poses[..., 3:]
+    n2 = q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1] + q[..., 2] * q[..., 2] + q[..., 3] * q[..., 3]
+    if (np.abs(n2 - 1) > _UNIT_TOL).any():
+        raise ValueError(f"{where}: 'poses' holds quaternions that are not unit")
+    if not np.array_equal(arrays["scene_index"], np.arange(first, first + n)):
+        raise ValueError(f"{where}: 'scene_index' is not {first}..{first + n - 1}")
+    return arrays["images"], poses
+
+
+def load_dataset(path):
+    """Load and verify a dataset written by write_dataset -> SceneDataset.
+
+    path: the dataset folder (or its manifest.json). Raises FileNotFoundError for a missing
+    folder, manifest or shard, ValueError for a manifest or shard that does not match (wrong
+    size, sha256, arrays, shapes, dtypes, non-finite poses), each naming the file and entry."""
+    path = os.fspath(path)
+    if os.path.basename(path) == MANIFEST and os.path.isfile(path):
+        root, mpath = os.path.dirname(path) or ".", path
+    else:
+        root, mpath = path, os.path.join(path, MANIFEST)
+    if not os.path.isdir(root):
+        raise FileNotFoundError(f"dataset folder {root} does not exist")
+    if not os.path.isfile(mpath):
+        raise FileNotFoundError(f"{mpath} is missing: not a dataset folder, or write_dataset did not finish")
+    manifest = _read_manifest(mpath)
+    S, V, H, W = (manifest[k] for k in ("n_scenes", "views", "height", "width"))
+    images = np.empty((S, V, H, W, 3), dtype=np.uint8)
+    poses = np.empty((S, V, 7))
+    for k, entry in enumerate(manifest["shards"]):
+        im, po = _read_shard(os.path.join(root, entry["file"]), entry, k, V, H, W)
+        sl = slice(entry["first_scene"], entry["first_scene"] + entry["n_scenes"])
+        images[sl], poses[sl] = im, po
+    return SceneDataset(images=images, poses=poses, seed=manifest["seed"], manifest=manifest, path=root)

@@ -1,0 +1,450 @@
+"""Tests of pyvf.scenes (SPEC.md §7): procedural Shepard-Metzler-7 scenes.
+
+Against closed-form geometry: a unit cube seen head-on from a camera on an axis covers exactly
+the pixel square its face projects to, in the Lambertian colour of that face; every camera looks
+at the origin without roll; the GQN camera form round-trips and matches the published
+conversion; the object is 7 distinct face-adjacent cells; the whole object is always in frame.
+Then determinism (bitwise, with a pinned sha256), the dataset on disk (round trip, and each way
+it can be damaged), argument checks and the command line.
+
+Shapes: images (V, H, W, 3) uint8, poses (V, 7) = xyz + unit quaternion (w, x, y, z).
+"""
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from pyvf import quat_mul, quat_rotate
+from pyvf import scenes as sc
+
+from conftest import assert_bitwise_equal, assert_close
+
+# Poses are a few exactly rounded operations on O(10) numbers: the optical axis, the unit norm
+# and the GQN round trip agree to a few ulp; 1e-12 leaves three orders of magnitude of headroom.
+TOL = 1e-12
+
+E_X, E_Y, E_Z = np.eye(3)
+
+
+def to_uint8(v):
+    """The renderer's quantisation, restated: floor(255 clip(v, 0, 1) + 0.5)."""
+    return np.floor(np.clip(np.asarray(v, dtype=np.float64), 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def face_colour(colour, normal):
+    """Closed-form colour of a face with outward normal `normal` under the module's light."""
+    nl = float(np.dot(normal, sc.LIGHT_DIR))
+    return to_uint8(np.asarray(colour) * (sc.AMBIENT + sc.DIFFUSE * max(0.0, nl) + sc.BACK * max(0.0, -nl)))
+
+
+def axis_quat(axis, angle):
+    """The unit quaternion of a rotation by `angle` about the unit `axis` (built here, not in pyvf)."""
+    return np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * np.asarray(axis, dtype=np.float64)])
+
+
+def wrap(a):
+    """An angle difference into [-pi, pi)."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+# ---------------------------------------------------------------------------------------
+# (a) a single cube seen head-on: the exact pixel square, in the face's Lambertian colour
+
+
+def axis_cameras():
+    """Cameras at distance 10 on the six half-axes, looking at the origin: (position, pose).
+    On +-x and +-z by look_at_poses; on +-y (where look_at refuses: no roll-free camera looks
+    straight down) by an explicit quaternion, a quarter turn about x."""
+    out = []
+    for p in (10 * E_X, -10 * E_X, 10 * E_Z, -10 * E_Z):
+        out.append((p, sc.look_at_poses(p)))
+    for p, angle in ((-10 * E_Y, -math.pi / 2), (10 * E_Y, math.pi / 2)):
+        out.append((p, np.concatenate([p, axis_quat(E_X, angle)])))
+    return out
+
+
+@pytest.mark.parametrize("size", [64, 33, (24, 40)])
+def test_cube_head_on_covers_the_predicted_square(size):
+    """The face at distance 9.5 with half-side 0.5 projects to |x|, |y| < f * 0.5 / 9.5 in pixels
+    from the image centre (f = (min(H, W)/2) / TAN_HALF_FOV). Pixel centres inside are the face's
+    Lambertian colour, all others the background. Size 33 puts the centre column's ray exactly
+    parallel to the cube's side faces (the slab test's d == 0 branch)."""
+    H, W = (size, size) if isinstance(size, int) else size
+    colour = np.array([[0.9, 0.35, 0.6]])
+    f = (min(H, W) / 2) / sc.TAN_HALF_FOV
+    half = f * 0.5 / (sc.CAMERA_RADIUS - 0.5)  # half-side of the projected square, in pixels
+    rows = np.abs(np.arange(H) + 0.5 - H / 2)  # distances of the pixel centres from the centre
+    cols = np.abs(np.arange(W) + 0.5 - W / 2)
+    # the test is well posed only if no pixel centre lies on the square's edge
+    assert np.abs(rows - half).min() > 1e-6 and np.abs(cols - half).min() > 1e-6
+    inside = (rows[:, None] < half) & (cols[None, :] < half)  # (H, W)
+    assert inside.sum() > 0
+    for p, pose in axis_cameras():
+        forward = quat_rotate(pose[3:], E_Z)
+        assert_close("optical axis", forward, -p / 10, rtol=TOL)
+        img = sc.render_views(np.zeros((1, 3), dtype=np.int64), colour, pose[None], size)[0]  # (H, W, 3)
+        want = np.where(inside[..., None], face_colour(colour[0], p / 10), to_uint8(sc.BACKGROUND))
+        assert_bitwise_equal(f"cube seen from {p}", img, want)
+
+
+def test_ray_on_a_face_plane_hits_the_closed_box():
+    """Boxes are closed: a ray that runs inside a cube's face plane (here the centre ray of a
+    33 x 33 image from a camera at x = 0.5, looking along +z) hits the cube, at its -z face.
+    The slab test sees 0/0 there and must not let the NaN turn the hit into a miss."""
+    colour = np.array([[0.3, 0.8, 0.5]])
+    pose = np.array([[0.5, 0.0, -10.0, 1.0, 0.0, 0.0, 0.0]])  # identity rotation: looks along +z
+    img = sc.render_views(np.zeros((1, 3), dtype=np.int64), colour, pose, 33)[0]
+    assert_bitwise_equal("centre pixel", img[16, 16], face_colour(colour[0], -E_Z))
+
+
+def test_face_shades_closed_form():
+    """face_shades() is AMBIENT + DIFFUSE max(0, n.l) + BACK max(0, -n.l) for the six normals,
+    all six different (so adjacent faces of a cube are told apart), none above 1."""
+    shades = sc.face_shades()
+    for a, n in enumerate(np.eye(3)):
+        for j, s in enumerate((1, -1)):
+            nl = s * float(np.dot(n, sc.LIGHT_DIR))
+            assert shades[a, j] == sc.AMBIENT + sc.DIFFUSE * max(0.0, nl) + sc.BACK * max(0.0, -nl)
+    assert len(set(shades.ravel().tolist())) == 6
+    assert shades.max() <= 1 and shades.min() >= sc.AMBIENT
+    assert abs(float(np.dot(sc.LIGHT_DIR, sc.LIGHT_DIR)) - 1) < TOL
+
+
+def test_straight_chain_stays_in_frame():
+    """The object farthest from its centroid (7 cubes in a line, corners at sqrt(12.75)) seen from
+    random cameras never reaches the image border: every border pixel is background."""
+    cells = np.array([[i, 0, 0] for i in range(7)])
+    colours = np.full((7, 3), 0.8)
+    rng = np.random.default_rng(0)
+    poses = sc.look_at_poses(sc.sample_camera_positions(rng, 40))
+    imgs = sc.render_views(cells, colours, poses, 64)  # (40, 64, 64, 3)
+    bg = to_uint8(sc.BACKGROUND)
+    border = np.concatenate([imgs[:, 0], imgs[:, -1], imgs[:, :, 0], imgs[:, :, -1]], axis=1)  # (40, 256, 3)
+    assert (border == bg).all()
+    assert (imgs != bg).any(axis=-1).sum(axis=(1, 2)).min() > 50  # and the object is there
+
+
+# ---------------------------------------------------------------------------------------
+# (b) cameras
+
+
+@pytest.mark.parametrize("index", [0, 1, 2])
+def test_cameras_look_at_the_origin(index):
+    """Every camera of a scene: unit sign-canonical quaternion, at distance CAMERA_RADIUS, optical
+    axis rotate(q, e_z) = -p/|p|, no roll (its x axis horizontal, its y axis pointing down),
+    elevation within MAX_ELEVATION_DEG."""
+    _, poses = sc.generate_scene(5, index, views=15, size=16)
+    p, q = poses[:, :3], poses[:, 3:]
+    assert np.abs(np.sqrt((q * q).sum(-1)) - 1).max() < TOL
+    assert (q[:, 0] >= 0).all()
+    r = np.sqrt((p * p).sum(-1))
+    assert np.abs(r - sc.CAMERA_RADIUS).max() < TOL * sc.CAMERA_RADIUS
+    assert_close("optical axis", quat_rotate(q, E_Z), -p / r[:, None], rtol=TOL)
+    assert np.abs(quat_rotate(q, E_X)[:, 1]).max() < TOL  # right is horizontal (up is -y)
+    assert (quat_rotate(q, E_Y)[:, 1] > 0).all()  # down points down
+    elevation = np.degrees(np.arcsin(-p[:, 1] / r))
+    assert np.abs(elevation).max() <= sc.MAX_ELEVATION_DEG
+
+
+def test_camera_elevations_cover_the_band():
+    """The sampler fills both hemispheres of the band, up to near its edge."""
+    pos = sc.sample_camera_positions(np.random.default_rng(1), 2000)
+    s = -pos[:, 1] / sc.CAMERA_RADIUS  # sin(elevation)
+    limit = math.sin(math.radians(sc.MAX_ELEVATION_DEG))
+    assert np.abs(s).max() <= limit + TOL
+    assert s.max() > 0.95 * limit and s.min() < -0.95 * limit
+    assert abs(s.mean()) < 0.05  # uniform on the band: mean 0, std ~ 0.5
+
+
+# ---------------------------------------------------------------------------------------
+# (c) the GQN camera form
+
+
+def random_gqn(rng, n):
+    """GQN cameras away from the poles (at pitch = +-90 degrees yaw is undefined)."""
+    xyz = rng.standard_normal((n, 3)) * 5
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    pitch = rng.uniform(-1.4, 1.4, n)
+    return np.concatenate([xyz, yaw[:, None], pitch[:, None]], axis=1)  # (n, 5)
+
+
+def test_gqn_round_trips(rng):
+    cams = random_gqn(rng, 500)
+    back = sc.pose_to_gqn(sc.gqn_to_pose(cams))
+    assert_close("gqn xyz", back[:, :3], cams[:, :3], rtol=TOL)
+    assert np.abs(wrap(back[:, 3:] - cams[:, 3:])).max() < TOL
+
+    poses = sc.look_at_poses(rng.standard_normal((500, 3)) * 5)
+    again = sc.gqn_to_pose(sc.pose_to_gqn(poses))
+    assert_close("pose", again, poses, rtol=TOL)
+
+    # vectorised over leading dimensions
+    assert sc.gqn_to_pose(cams.reshape(5, 100, 5)).shape == (5, 100, 7)
+    assert sc.pose_to_gqn(poses.reshape(2, 250, 7)).shape == (2, 250, 5)
+
+
+def test_gqn_matches_the_published_conversion(rng):
+    """gqn_to_pose is the published fix_legacy_gqn_cameras: xyz = (y, -z, -x) and
+    q = q_y(pi - yaw) * q_x(pitch) (here by pyvf's Hamilton product of axis-angle quaternions
+    built in this file), up to the quaternion's sign. Its optical axis is GQN's viewing
+    direction (cos yaw cos pitch, sin yaw cos pitch, sin pitch) written in pyvf's frame."""
+    cams = random_gqn(rng, 200)
+    poses = sc.gqn_to_pose(cams)
+    x, y, z, yaw, pitch = cams.T
+    assert_bitwise_equal("xyz", poses[:, :3], np.stack([y, -z, -x], axis=1))
+    for c, q in zip(cams, poses[:, 3:]):
+        want = quat_mul(axis_quat(E_Y, np.pi - c[3]), axis_quat(E_X, c[4]))
+        want = want if want[0] >= 0 else -want
+        assert_close("quaternion", q, want, rtol=TOL)
+    g = np.stack([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
+    assert_close("optical axis", quat_rotate(poses[:, 3:], E_Z), np.stack([g[:, 1], -g[:, 2], -g[:, 0]], axis=1),
+                 rtol=TOL)
+
+
+def test_scene_cameras_in_gqn_form_look_at_the_origin():
+    """A scene camera at GQN position c looks at the origin: yaw = atan2(-c_y, -c_x),
+    pitch = atan2(-c_z, hypot(c_x, c_y))."""
+    _, poses = sc.generate_scene(1, 0, views=15, size=16)
+    g = sc.pose_to_gqn(poses)
+    cx, cy, cz = g[:, 0], g[:, 1], g[:, 2]
+    assert np.abs(wrap(g[:, 3] - np.arctan2(-cy, -cx))).max() < TOL
+    assert np.abs(g[:, 4] - np.arctan2(-cz, np.hypot(cx, cy))).max() < TOL
+
+
+# ---------------------------------------------------------------------------------------
+# (d) the object
+
+
+@pytest.mark.parametrize("index", range(20))
+def test_object_is_a_self_avoiding_chain(index):
+    cells, colours = sc.make_object(np.random.default_rng([11, index]))
+    assert cells.shape == (sc.N_CUBES, 3) and cells.dtype == np.int64
+    assert len({tuple(c) for c in cells.tolist()}) == sc.N_CUBES  # distinct cells
+    steps = np.abs(np.diff(cells, axis=0))
+    assert (steps.sum(axis=1) == 1).all()  # each cube shares a face with the previous one
+    centres = sc.object_centres(cells)
+    assert np.abs(centres.mean(axis=0)).max() < 1e-15 * 8
+    assert_close("centre differences", np.diff(centres, axis=0), np.diff(cells, axis=0).astype(np.float64), rtol=TOL)
+    # the face two neighbours share is one float: no hairline gap between them
+    lo, hi = sc.object_boxes(cells)
+    for k in range(sc.N_CUBES - 1):
+        a = int(np.flatnonzero(cells[k + 1] != cells[k])[0])
+        shared = (hi[k, a], lo[k + 1, a]) if cells[k + 1, a] > cells[k, a] else (lo[k, a], hi[k + 1, a])
+        assert shared[0] == shared[1]
+    assert_close("box centres", (lo + hi) / 2, centres, rtol=TOL)
+    # saturated colours: HSV value 1, saturation 0.8, so max channel 1 and min channel 0.2
+    assert colours.shape == (sc.N_CUBES, 3)
+    assert_close("max channel", colours.max(axis=1), np.ones(sc.N_CUBES), rtol=TOL)
+    assert_close("min channel", colours.min(axis=1), np.full(sc.N_CUBES, 0.2), rtol=TOL)
+
+
+# ---------------------------------------------------------------------------------------
+# (e) determinism
+
+
+# sha256 of generate_scene(7, 3, views=3, size=32): its images' bytes, then its poses' bytes
+# (little-endian float64). Bitwise equality across machines is a legitimate claim here: the
+# scene's random numbers are the generator's own doubles and integers (PCG64; numpy keeps
+# Generator.random/integers streams stable in practice, though NEP 19 does not promise it), and
+# sampling, look-at and rendering use only exactly rounded IEEE operations (+ - * /, sqrt,
+# comparisons, floor), never BLAS, float reductions or SIMD transcendental functions, so every
+# CPU computes the same bits. A change of this hash means the scenes changed: bump the dataset
+# FORMAT_VERSION.
+PINNED_SHA256 = "8cc3f554d1bc7fa518289a8f44422bc0bd73b141a66ec60f2c8dee64cdadced5"
+
+
+def scene_digest(images, poses):
+    assert poses.dtype == np.float64
+    return hashlib.sha256(images.tobytes() + poses.astype("<f8").tobytes()).hexdigest()
+
+
+def test_same_seed_same_bytes_and_pinned_hash():
+    a_img, a_pose = sc.generate_scene(7, 3, views=3, size=32)
+    b_img, b_pose = sc.generate_scene(7, 3, views=3, size=32)
+    assert_bitwise_equal("images", a_img, b_img)
+    assert_bitwise_equal("poses", a_pose, b_pose)
+    assert scene_digest(a_img, a_pose) == PINNED_SHA256
+
+
+def test_scenes_differ_and_batch_equals_single():
+    img0, pose0 = sc.generate_scene(7, 0, views=4, size=16)
+    img1, pose1 = sc.generate_scene(7, 1, views=4, size=16)
+    img2, pose2 = sc.generate_scene(8, 0, views=4, size=16)
+    assert not np.array_equal(img0, img1) and not np.array_equal(pose0, pose1)
+    assert not np.array_equal(img0, img2) and not np.array_equal(pose0, pose2)
+    imgs, poses = sc.generate_scenes(7, 2, views=4, size=16, start=0)
+    assert imgs.shape == (2, 4, 16, 16, 3) and imgs.dtype == np.uint8 and poses.shape == (2, 4, 7)
+    assert_bitwise_equal("scene 1 in a batch", imgs[1], img1)
+    assert_bitwise_equal("poses 1 in a batch", poses[1], pose1)
+    imgs, _ = sc.generate_scenes(7, 1, views=4, size=16, start=1)
+    assert_bitwise_equal("scene 1 alone", imgs[0], img1)
+
+
+# ---------------------------------------------------------------------------------------
+# (f) the dataset on disk
+
+N_SCENES, VIEWS, SIZE, SHARD = 3, 4, 16, 2
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory):
+    """3 scenes of 4 views, 16x16, in 2 shards (2 + 1 scenes), written once for the module."""
+    out = tmp_path_factory.mktemp("sm7") / "ds"
+    sc.write_dataset(out, N_SCENES, seed=9, views=VIEWS, size=SIZE, shard_size=SHARD, progress=False)
+    return out
+
+
+@pytest.fixture
+def damaged(dataset_dir, tmp_path):
+    """A fresh copy of the dataset, to be damaged by the test."""
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset_dir, copy)
+    return copy
+
+
+def test_dataset_round_trip(dataset_dir, tmp_path):
+    assert sorted(os.listdir(dataset_dir)) == ["manifest.json", "shard-00000.npz", "shard-00001.npz"]  # no temp files
+    ds = sc.load_dataset(dataset_dir)
+    imgs, poses = sc.generate_scenes(9, N_SCENES, views=VIEWS, size=SIZE)
+    assert_bitwise_equal("images", ds.images, imgs)
+    assert_bitwise_equal("poses", ds.poses, poses)
+    assert ds.seed == 9 and len(ds) == N_SCENES
+    m = ds.manifest
+    assert (m["format"], m["version"], m["n_scenes"], m["views"], m["height"], m["width"]) == \
+        (sc.FORMAT, sc.FORMAT_VERSION, N_SCENES, VIEWS, SIZE, SIZE)
+    assert [(s["file"], s["first_scene"], s["n_scenes"]) for s in m["shards"]] == \
+        [("shard-00000.npz", 0, 2), ("shard-00001.npz", 2, 1)]
+    assert m["scene"]["camera_radius"] == sc.CAMERA_RADIUS and m["scene"]["tan_half_fov"] == sc.TAN_HALF_FOV
+    # the manifest path works too, and a second write gives the same bytes (fixed zip timestamps)
+    assert_bitwise_equal("via manifest.json", sc.load_dataset(dataset_dir / "manifest.json").images, imgs)
+    again = sc.write_dataset(tmp_path / "again", N_SCENES, seed=9, views=VIEWS, size=SIZE, shard_size=SHARD,
+                             progress=False)
+    assert again == m
+
+
+def test_dataset_refuses_to_overwrite(damaged):
+    with pytest.raises(FileExistsError, match="overwrite"):
+        sc.write_dataset(damaged, 1, seed=0, views=2, size=8, progress=False)
+    sc.write_dataset(damaged, 1, seed=0, views=2, size=8, progress=False, overwrite=True)
+    assert sorted(os.listdir(damaged)) == ["manifest.json", "shard-00000.npz"]  # the old shard 1 is gone
+    assert sc.load_dataset(damaged).images.shape == (1, 2, 8, 8, 3)
+
+
+def test_truncated_shard(damaged):
+    path = damaged / "shard-00001.npz"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"shard-00001\.npz.*entry 1.*truncated"):
+        sc.load_dataset(damaged)
+
+
+def test_corrupted_byte(damaged):
+    path = damaged / "shard-00000.npz"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=r"shard-00000\.npz.*entry 0.*corrupt.*sha256"):
+        sc.load_dataset(damaged)
+
+
+def test_missing_shard(damaged):
+    os.remove(damaged / "shard-00001.npz")
+    with pytest.raises(FileNotFoundError, match=r"shard-00001\.npz.*entry 1.*missing"):
+        sc.load_dataset(damaged)
+
+
+def test_missing_manifest(damaged):
+    os.remove(damaged / "manifest.json")
+    with pytest.raises(FileNotFoundError, match=r"manifest\.json"):
+        sc.load_dataset(damaged)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        sc.load_dataset(damaged / "nowhere")
+
+
+def test_manifest_inconsistent_with_shard(damaged):
+    """A shard that matches its hash but not the shape the manifest promises is refused."""
+    mpath = damaged / "manifest.json"
+    m = json.loads(mpath.read_text())
+    m["views"] = VIEWS + 1
+    mpath.write_text(json.dumps(m))
+    with pytest.raises(ValueError, match=r"shard-00000\.npz.*'images'"):
+        sc.load_dataset(damaged)
+    m["views"], m["shards"][0]["file"] = VIEWS, "../shard-00000.npz"
+    mpath.write_text(json.dumps(m))
+    with pytest.raises(ValueError, match="plain file name"):
+        sc.load_dataset(damaged)
+    mpath.write_text("{not json")
+    with pytest.raises(ValueError, match=r"manifest\.json"):
+        sc.load_dataset(damaged)
+
+
+# ---------------------------------------------------------------------------------------
+# (g) argument checks
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    (dict(n_scenes=0), "n_scenes"),
+    (dict(n_scenes=-3), "n_scenes"),
+    (dict(size=7), "size"),
+    (dict(views=0), "views"),
+    (dict(seed=-1), "seed"),
+    (dict(shard_size=0), "shard_size"),
+])
+def test_write_dataset_bad_arguments(tmp_path, kwargs, name):
+    args = dict(n_scenes=1, seed=0, views=2, size=8, shard_size=1, progress=False) | kwargs
+    with pytest.raises(ValueError, match=name):
+        sc.write_dataset(tmp_path / "ds", **args)
+    assert not (tmp_path / "ds" / "manifest.json").exists()
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda: sc.generate_scene(0, 0, views=0), "views"),
+    (lambda: sc.generate_scene(0, 0, size=4), "size"),
+    (lambda: sc.generate_scene(-1, 0), "seed"),
+    (lambda: sc.generate_scene(0, -1), "index"),
+    (lambda: sc.generate_scenes(0, 0), "n"),
+    (lambda: sc.generate_scenes(0, 1, start=-1), "start"),
+    (lambda: sc.look_at_poses(np.array([0.0, 5.0, 0.0])), "vertical"),
+    (lambda: sc.pose_to_gqn(np.array([0.0, 0, 0, 2, 0, 0, 0])), "unit"),
+    (lambda: sc.gqn_to_pose(np.zeros(4)), "cams"),
+])
+def test_bad_arguments(call, name):
+    with pytest.raises(ValueError, match=name):
+        call()
+
+
+def test_bad_argument_types():
+    with pytest.raises(TypeError, match="views"):
+        sc.generate_scene(0, 0, views=2.0)
+    with pytest.raises(TypeError, match="seed"):
+        sc.generate_scene(True, 0)
+
+
+# ---------------------------------------------------------------------------------------
+# the command line
+
+
+def test_cli_writes_dataset_and_preview(tmp_path, capsys):
+    parser = argparse.ArgumentParser(prog="pyvf")
+    sc.cli_register(parser.add_subparsers(dest="command"))
+    out, png = tmp_path / "ds", tmp_path / "preview.png"
+    args = parser.parse_args(["scenes", "--out", str(out), "--scenes", "2", "--seed", "4", "--views", "3",
+                              "--size", "16", "--shard-size", "1", "--preview", str(png), "--quiet"])
+    assert args.func(args) == 0
+    ds = sc.load_dataset(out)
+    assert ds.images.shape == (2, 3, 16, 16, 3)
+    from PIL import Image
+    with Image.open(png) as im:
+        grid = np.asarray(im.convert("RGB"))
+    want = sc.preview_grid(ds.images)
+    assert_bitwise_equal("preview", grid[::2, ::2], want)  # saved enlarged twice
+    # a bad argument: exit status 2 and the argument's name on stderr, nothing written
+    args = parser.parse_args(["scenes", "--out", str(tmp_path / "bad"), "--scenes", "0", "--seed", "1", "--quiet"])
+    assert args.func(args) == 2
+    assert "n_scenes" in capsys.readouterr().err
