@@ -41,6 +41,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <new>
 #include <vector>
 
 #ifdef PYVF_OPENMP
@@ -109,12 +110,36 @@ template <typename T> inline void row_scale(T* x, int64_t n, T scale, typename S
     }
 }
 
-// m[0:n) = max(m, x)
-template <typename T> inline void row_max(T* m, const T* x, int64_t n) {
+// x[0:n) *= scale and m[0:n) = max(m, x), in one pass (row_scale, then row_max)
+template <typename T> inline void row_scale_max(T* x, T* m, int64_t n, T scale, typename Simd<T>::V& chk) {
     constexpr int W = Simd<T>::W;
     int64_t c = 0;
-    for (; c + W <= n; c += W) vstore<T>(m + c, vmax<T>(vload<T>(m + c), vload<T>(x + c)));
-    for (; c < n; ++c) m[c] = x[c] > m[c] ? x[c] : m[c];
+    for (; c + W <= n; c += W) {
+        const typename Simd<T>::V y = vload<T>(x + c) * scale;
+        vstore<T>(x + c, y);
+        chk += y * T(0);
+        vstore<T>(m + c, vmax<T>(vload<T>(m + c), y));
+    }
+    for (; c < n; ++c) {
+        x[c] *= scale;
+        chk[0] += x[c] * T(0);
+        m[c] = x[c] > m[c] ? x[c] : m[c];
+    }
+}
+
+// p[0:n) = exp(x - a) and s[0:n) += p, in one pass (row_exp, then row_add)
+template <typename T> inline void row_exp_sum(T* p, const T* x, const T* a, T* s, int64_t n) {
+    constexpr int W = Simd<T>::W;
+    int64_t c = 0;
+    for (; c + W <= n; c += W) {
+        const typename Simd<T>::V e = exp_vec(vload<T>(x + c) - vload<T>(a + c));
+        vstore<T>(p + c, e);
+        vstore<T>(s + c, vload<T>(s + c) + e);
+    }
+    for (; c < n; ++c) {
+        p[c] = exp_scalar<T>(x[c] - a[c]);
+        s[c] += p[c];
+    }
 }
 
 // p[0:n) = exp((x - a) - b)   (b = nullptr: exp(x - a)); x <= a + b up to rounding
@@ -154,32 +179,58 @@ template <typename T> inline bool all_finite(const typename Simd<T>::V& chk) {
 }  // namespace
 
 // =========================================================================================
+// Tiles, groups, and allocation failures
+
+// A block of L tokens is processed in tiles of at most kTile queries times kTile keys, so the
+// per-thread buffers are O(kTile^2 + kTile*dh) whatever L is (an (L, L) buffer would be 64 GiB
+// at L = 131072). For L <= kTile (the model's L = 64) a tile is the whole block and the
+// arithmetic is exactly the untiled one.
+constexpr int64_t kTile = 256;
+
+// Thrown inside a parallel region by any allocation is caught there (an exception must not
+// leave an OpenMP region: the process would abort); the region records it and the kernel
+// returns kAttnOutOfMemory, which the bindings raise as MemoryError.
+#define PYVF_TRY_ALLOC(status, ...)                       \
+    try {                                                 \
+        __VA_ARGS__;                                      \
+    } catch (const std::bad_alloc&) {                     \
+        _Pragma("omp atomic write") status = kAttnOutOfMemory; \
+    }
+
+// =========================================================================================
 // Fast forward
 
 template <typename T>
 int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims dims, T scale) {
-    using V = typename Simd<T>::V;
     const Layout d(dims);
     const int64_t L = d.L, dh = d.dh, bs = d.bs(), N = d.N, R = d.R, H = d.H;
-    const int64_t nblk = d.nblk();
+    const int64_t TQ = std::min(L, kTile), TK = TQ;
+    const int64_t ntile = (L + TQ - 1) / TQ;  // query tiles per block
+    const int64_t ntask = d.nblk() * ntile;
 
     int status = kAttnOk;
 #pragma omp parallel if (worth_threads(d))
     {
-        // per thread: q^T (dh, Lq); s^T, then p^T (Lk, Lq); the accumulator acc (Lq, dh); per
-        // query: running max m, new max mn, rescale factor c, sum l, this block's sum ls
-        std::vector<T> qt(bs), st(L * L), acc(bs), m(L), mn(L), c(L), l(L), ls(L);
-        V chk = V{};
-        // one task per query block (r, b, h, i); the views with the most key blocks first
+        // per thread: q^T (dh, TQ); s^T, then p^T (TK, TQ); the accumulator acc (TQ, dh); per
+        // query: running max m, new max mn, rescale factor c, sum l, this tile's sum ls
+        std::vector<T> qt, st, acc, m, mn, c, l, ls;
+        bool ok = false;
+        PYVF_TRY_ALLOC(status, qt.resize(dh * TQ); st.resize(TK * TQ); acc.resize(TQ * dh); m.resize(TQ);
+                       mn.resize(TQ); c.resize(TQ); l.resize(TQ); ls.resize(TQ); ok = true)
+        typename Simd<T>::V chk = {};
+        // one task per query tile of a block (r, b, h, i); the views with the most key blocks first
 #pragma omp for schedule(dynamic, 1)
-        for (int64_t t = 0; t < nblk; ++t) {
-            const int64_t i = N - 1 - t % N;
-            int64_t rest = t / N;
+        for (int64_t t = 0; t < ntask; ++t) {
+            if (!ok) continue;
+            const int64_t qa = (t % ntile) * TQ, nq = std::min(TQ, L - qa);  // the tile's queries
+            int64_t rest = t / ntile;
+            const int64_t i = N - 1 - rest % N;
+            rest /= N;
             const int64_t r = rest % R;
             rest /= R;
             const int64_t h = rest % H, b = rest / H;
             const int64_t qx = d.blk(r, b, h, i);
-            transpose(qt.data(), q + qx * bs, (int)L, (int)dh);  // q^T (dh, Lq)
+            transpose(qt.data(), q + qx * bs + qa * dh, (int)nq, (int)dh);  // q^T (dh, nq)
 
             std::fill(m.begin(), m.end(), -std::numeric_limits<T>::infinity());
             std::fill(l.begin(), l.end(), T(0));
@@ -187,33 +238,35 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
             for (int64_t j = 0; j <= i; ++j) {
                 // key blocks: trunk 0..i-1, then the query's own block (r, i)
                 const int64_t kx = j < i ? d.blk(0, b, h, j) : qx;
-                // s^T = k q^T (Lk, Lq): row a holds key a's logits against every query
-                gemm<T, false>((int)L, (int)L, (int)dh, k + kx * bs, dh, qt.data(), L, st.data(), L);
-                std::copy(m.begin(), m.end(), mn.begin());
-                for (int64_t a = 0; a < L; ++a) {
-                    row_scale<T>(st.data() + a * L, L, scale, chk);  // s = scale * q.k
-                    row_max<T>(mn.data(), st.data() + a * L, L);     // m_new = max(m, max_k s)
+                for (int64_t ka = 0; ka < L; ka += TK) {
+                    const int64_t nk = std::min(TK, L - ka);
+                    const T* K = k + kx * bs + ka * dh;  // (nk, dh)
+                    // s^T = k q^T (nk, nq): row a holds key a's logits against every query
+                    gemm<T, false>((int)nk, (int)nq, (int)dh, K, dh, qt.data(), nq, st.data(), nq);
+                    std::copy(m.begin(), m.end(), mn.begin());
+                    for (int64_t a = 0; a < nk; ++a)  // s = scale * q.k; m_new = max(m, max_k s)
+                        row_scale_max<T>(st.data() + a * nq, mn.data(), nq, scale, chk);
+                    row_exp<T>(c.data(), m.data(), mn.data(), nullptr, nq);  // c = exp(m - m_new), 0 at the first tile
+                    std::fill(ls.begin(), ls.end(), T(0));
+                    for (int64_t a = 0; a < nk; ++a) {  // p = exp(s - m_new); ls = sum_k p
+                        T* pa = st.data() + a * nq;
+                        row_exp_sum<T>(pa, pa, mn.data(), ls.data(), nq);
+                    }
+                    row_mul<T>(l.data(), c.data(), nq);  // l = l * c + sum_k p
+                    row_add<T>(l.data(), ls.data(), nq);
+                    std::swap(m, mn);
+                    for (int64_t a = 0; a < nq; ++a) {  // acc *= c, row by row
+                        const T ca = c[a];
+                        for (int64_t e = 0; e < dh; ++e) acc[a * dh + e] *= ca;
+                    }
+                    // acc += p v = (p^T)^T v: p^T is what we hold, read transposed by the gemm
+                    gemm<T, true, true>((int)nq, (int)dh, (int)nk, st.data(), nq, v + kx * bs + ka * dh, dh,
+                                        acc.data(), dh);
                 }
-                row_exp<T>(c.data(), m.data(), mn.data(), nullptr, L);  // c = exp(m - m_new), 0 at the first block
-                std::fill(ls.begin(), ls.end(), T(0));
-                for (int64_t a = 0; a < L; ++a) {
-                    T* pa = st.data() + a * L;
-                    row_exp<T>(pa, pa, mn.data(), nullptr, L);  // p = exp(s - m_new)
-                    row_add<T>(ls.data(), pa, L);
-                }
-                row_mul<T>(l.data(), c.data(), L);  // l = l * c + sum_k p
-                row_add<T>(l.data(), ls.data(), L);
-                std::swap(m, mn);
-                for (int64_t a = 0; a < L; ++a) {  // acc *= c, row by row
-                    const T ca = c[a];
-                    for (int64_t e = 0; e < dh; ++e) acc[a * dh + e] *= ca;
-                }
-                // acc += p v = (p^T)^T v: p^T is what we hold, read transposed by the gemm
-                gemm<T, true, true>((int)L, (int)dh, (int)L, st.data(), L, v + kx * bs, dh, acc.data(), dh);
             }
-            T* O = o + qx * bs;
-            double* lse_q = lse + qx * L;
-            for (int64_t a = 0; a < L; ++a) {
+            T* O = o + qx * bs + qa * dh;
+            double* lse_q = lse + qx * L + qa;
+            for (int64_t a = 0; a < nq; ++a) {
                 for (int64_t e = 0; e < dh; ++e) O[a * dh + e] = acc[a * dh + e] / l[a];  // o = acc / l
                 lse_q[a] = (double)m[a] + std::log((double)l[a]);
             }
@@ -229,6 +282,39 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
 // =========================================================================================
 // Fast backward
 
+// How many groups the key blocks of one head are split into: enough tasks (B*H*G >= 16) for
+// every thread even when B*H is small, at most 8 and at most the R*N key blocks. It depends
+// on the shape only, never on the thread count, so the result stays bitwise the same for any
+// thread count. Group g > 0 accumulates its dq into a buffer of its own (one head's dq), added
+// to dq in the order g = 1, 2, ... after all groups finish: (G-1)*B*H*R*N*L*dh extra elements,
+// at most 7 times dq (and none when B*H >= 16).
+inline int64_t key_groups(const Layout& d) {
+    const int64_t bh = d.B * d.H;
+    int64_t g = bh >= 16 ? 1 : (16 + bh - 1) / bh;
+    return std::max<int64_t>(1, std::min<int64_t>({g, 8, d.R * d.N}));
+}
+
+// group[x] for each key block x = kr*N + j of a head: balanced by the number of query blocks
+// that attend it (trunk block j: (N - j) trunk + (R-1)(N-1-j) branch views; a branch block: 1),
+// largest first, each to the least loaded group (ties: the lower group).
+inline std::vector<int> assign_groups(const Layout& d, int64_t G) {
+    const int64_t nk = d.R * d.N;
+    std::vector<int64_t> cost(nk), order(nk);
+    for (int64_t kr = 0; kr < d.R; ++kr)
+        for (int64_t j = 0; j < d.N; ++j)
+            cost[kr * d.N + j] = kr == 0 ? (d.N - j) + (d.R - 1) * (d.N - 1 - j) : 1;
+    for (int64_t x = 0; x < nk; ++x) order[x] = x;
+    std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return cost[a] > cost[b]; });
+    std::vector<int64_t> load(G, 0);
+    std::vector<int> group(nk);
+    for (int64_t x : order) {
+        const int64_t g = std::min_element(load.begin(), load.end()) - load.begin();
+        group[x] = (int)g;
+        load[g] += cost[x];
+    }
+    return group;
+}
+
 template <typename T>
 int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k, const T* v,
                   const T* o, const T* dout, AttnDims dims, T scale) {
@@ -236,19 +322,39 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
     constexpr int W = Simd<T>::W;
     const Layout d(dims);
     const int64_t L = d.L, dh = d.dh, bs = d.bs(), N = d.N, R = d.R, H = d.H, B = d.B;
-    const int64_t RN = R * N;
+    const int64_t RN = R * N, head = RN * bs;  // one head's elements in q (and dq)
+    const int64_t TQ = std::min(L, kTile), TK = TQ;
+    const int64_t G = key_groups(d);
+    std::vector<int> group;
+    std::vector<T> dq_extra;  // (B*H, G-1, head): the dq of groups 1..G-1
+    try {
+        group = assign_groups(d, G);
+        dq_extra.resize((size_t)(B * H * (G - 1) * head));
+    } catch (const std::bad_alloc&) {
+        return kAttnOutOfMemory;
+    }
 
     int status = kAttnOk;
-#pragma omp parallel if (worth_threads(d))
+    const bool threads = worth_threads(d);
+#pragma omp parallel if (threads)
     {
         // per thread, for one head: q and do transposed per block (dh, L); D = rowsum(do * o)
-        // and the lse hi/lo split per query; p^T, dp^T, ds^T (Lk, Lq).
-        std::vector<T> qt(RN * bs), dot(RN * bs), D(RN * L), lhi(RN * L), llo(RN * L);
-        std::vector<T> st(L * L), dpt(L * L), dst(L * L);
+        // and the lse hi/lo split per query; p^T, dp^T, ds^T (TK, TQ).
+        std::vector<T> qt, dot, D, lhi, llo, st, dpt, dst;
+        bool ok = false;
+        PYVF_TRY_ALLOC(status, qt.resize(head); dot.resize(head); D.resize(RN * L); lhi.resize(RN * L);
+                       llo.resize(RN * L); st.resize(TK * TQ); dpt.resize(TK * TQ); dst.resize(TK * TQ); ok = true)
         V chk = V{};
+        // one task per (head, group of its key blocks)
 #pragma omp for schedule(dynamic, 1)
-        for (int64_t bh = 0; bh < B * H; ++bh) {
+        for (int64_t task = 0; task < B * H * G; ++task) {
+            if (!ok) continue;
+            const int64_t bh = task / G, g = task % G;
             const int64_t b = bh / H, h = bh % H;
+            // where this group's dq of block x = (r, b, h, i), y = r*N + i, goes: dq itself for
+            // group 0, else block y of the group's own buffer (one head, (R, N, L, dh))
+            T* extra = g == 0 ? nullptr : dq_extra.data() + (bh * (G - 1) + g - 1) * head;
+            auto dq_block = [&](int64_t x, int64_t y) { return extra ? extra + y * bs : dq + x * bs; };
             for (int64_t r = 0; r < R; ++r)
                 for (int64_t i = 0; i < N; ++i) {
                     const int64_t x = d.blk(r, b, h, i), y = r * N + i;
@@ -257,9 +363,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                     for (int64_t a = 0; a < L; ++a) {
                         const T* oa = o + x * bs + a * dh;
                         const T* da = dout + x * bs + a * dh;
-                        // D = rowsum(do * o), summed in T in increasing e as the gemm sums
-                        // dp = do . v, so that dp - D cancels exactly where o == v (a one-hot
-                        // softmax row) and ds is exactly 0 there, as it is in exact arithmetic
+                        // D = rowsum(do * o), summed in T in increasing e, as the gemm sums dp = do . v
                         T acc = 0;
                         for (int64_t e = 0; e < dh; ++e) acc += da[e] * oa[e];
                         D[y * L + a] = acc;
@@ -267,49 +371,58 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                         lhi[y * L + a] = (T)lx;
                         llo[y * L + a] = (T)(lx - (double)(T)lx);
                     }
-                    std::fill(dq + x * bs, dq + (x + 1) * bs, T(0));
+                    std::fill(dq_block(x, y), dq_block(x, y) + bs, T(0));
                 }
 
             for (int64_t kr = 0; kr < R; ++kr)
                 for (int64_t j = 0; j < N; ++j) {
+                    if (group[kr * N + j] != g) continue;
                     const int64_t kx = d.blk(kr, b, h, j);
-                    const T* K = k + kx * bs;   // (Lk, dh)
-                    const T* Vb = v + kx * bs;  // (Lk, dh)
                     T* dK = dk + kx * bs;
                     T* dV = dv + kx * bs;
                     std::fill(dK, dK + bs, T(0));
                     std::fill(dV, dV + bs, T(0));
 
-                    // one query block (r, i) that attends key block (kr, j)
+                    // one query block (r, i) that attends key block (kr, j), tile by tile
                     auto visit = [&](int64_t r, int64_t i) {
                         const int64_t x = d.blk(r, b, h, i), y = r * N + i;
-                        // forward: p = exp(scale * q.k - lse); here transposed, rows = keys
-                        gemm<T, false>((int)L, (int)L, (int)dh, K, dh, qt.data() + y * bs, L, st.data(), L);  // s^T = k q^T (Lk, Lq)
-                        for (int64_t a = 0; a < L; ++a) {
-                            T* pa = st.data() + a * L;
-                            row_scale<T>(pa, L, scale, chk);  // same bits as the forward's logits
-                            row_exp<T>(pa, pa, lhi.data() + y * L, llo.data() + y * L, L);  // p = exp((s - hi) - lo)
-                        }
-                        // forward: o = p v, so dv = p^T do
-                        gemm<T, true>((int)L, (int)dh, (int)L, st.data(), L, dout + x * bs, dh, dV, dh);
-                        // dp = do v^T, here transposed: dp^T = v do^T (Lk, Lq)
-                        gemm<T, false>((int)L, (int)L, (int)dh, Vb, dh, dot.data() + y * bs, L, dpt.data(), L);
-                        // softmax backward: ds = p * (dp - D), D = rowsum(do * o); times scale
-                        const T* Dy = D.data() + y * L;
-                        for (int64_t a = 0; a < L; ++a) {
-                            const T* pa = st.data() + a * L;
-                            const T* dpa = dpt.data() + a * L;
-                            T* dsa = dst.data() + a * L;
-                            int64_t c = 0;
-                            for (; c + W <= L; c += W) {
-                                const V val = vload<T>(pa + c) * (vload<T>(dpa + c) - vload<T>(Dy + c));
-                                vstore<T>(dsa + c, val * scale);
+                        for (int64_t ka = 0; ka < L; ka += TK)
+                            for (int64_t qa = 0; qa < L; qa += TQ) {
+                                const int64_t nk = std::min(TK, L - ka), nq = std::min(TQ, L - qa);
+                                const T* K = k + kx * bs + ka * dh;    // (nk, dh)
+                                const T* Vb = v + kx * bs + ka * dh;   // (nk, dh)
+                                const T* Qt = qt.data() + y * bs + qa;  // q^T (dh, nq), leading dimension L
+                                // forward: p = exp(scale * q.k - lse); here transposed, rows = keys
+                                gemm<T, false>((int)nk, (int)nq, (int)dh, K, dh, Qt, L, st.data(), nq);  // s^T = k q^T
+                                for (int64_t a = 0; a < nk; ++a) {
+                                    T* pa = st.data() + a * nq;
+                                    row_scale<T>(pa, nq, scale, chk);  // same bits as the forward's logits
+                                    row_exp<T>(pa, pa, lhi.data() + y * L + qa, llo.data() + y * L + qa, nq);  // p = exp((s - hi) - lo)
+                                }
+                                // forward: o = p v, so dv = p^T do
+                                gemm<T, true>((int)nk, (int)dh, (int)nq, st.data(), nq, dout + x * bs + qa * dh, dh,
+                                              dV + ka * dh, dh);
+                                // dp = do v^T, here transposed: dp^T = v do^T (nk, nq)
+                                gemm<T, false>((int)nk, (int)nq, (int)dh, Vb, dh, dot.data() + y * bs + qa, L, dpt.data(), nq);
+                                // softmax backward: ds = p * (dp - D), D = rowsum(do * o); times scale
+                                const T* Dy = D.data() + y * L + qa;
+                                for (int64_t a = 0; a < nk; ++a) {
+                                    const T* pa = st.data() + a * nq;
+                                    const T* dpa = dpt.data() + a * nq;
+                                    T* dsa = dst.data() + a * nq;
+                                    int64_t c = 0;
+                                    for (; c + W <= nq; c += W) {
+                                        const V val = vload<T>(pa + c) * (vload<T>(dpa + c) - vload<T>(Dy + c));
+                                        vstore<T>(dsa + c, val * scale);
+                                    }
+                                    for (; c < nq; ++c) dsa[c] = pa[c] * (dpa[c] - Dy[c]) * scale;
+                                }
+                                // forward: s = scale * q k^T, so dk = ds^T q and dq = ds k = (ds^T)^T k
+                                gemm<T, true>((int)nk, (int)dh, (int)nq, dst.data(), nq, q + x * bs + qa * dh, dh,
+                                              dK + ka * dh, dh);
+                                gemm<T, true, true>((int)nq, (int)dh, (int)nk, dst.data(), nq, K, dh,
+                                                    dq_block(x, y) + qa * dh, dh);
                             }
-                            for (; c < L; ++c) dsa[c] = pa[c] * (dpa[c] - Dy[c]) * scale;
-                        }
-                        // forward: s = scale * q k^T, so dk = ds^T q and dq = ds k = (ds^T)^T k
-                        gemm<T, true>((int)L, (int)dh, (int)L, dst.data(), L, q + x * bs, dh, dK, dh);
-                        gemm<T, true, true>((int)L, (int)dh, (int)L, dst.data(), L, K, dh, dq + x * bs, dh);
                     };
                     if (kr == 0) {  // a trunk block: trunk views i >= j, branch views i > j
                         for (int64_t i = j; i < N; ++i) visit(0, i);
@@ -323,6 +436,18 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
         if (!all_finite<T>(chk)) {
 #pragma omp atomic write
             status = kAttnLogitOverflow;
+        }
+        // dq += the other groups' dq, in group order; one task per (head, block), so each dq
+        // element has one writer. The barrier makes status the same for every thread here.
+#pragma omp barrier
+        if (G > 1 && status == kAttnOk) {
+#pragma omp for schedule(static)
+            for (int64_t t = 0; t < B * H * RN; ++t) {
+                const int64_t bh = t / RN, y = t % RN;
+                const int64_t b = bh / H, h = bh % H, x = d.blk(y / N, b, h, y % N);
+                for (int64_t g = 1; g < G; ++g)
+                    row_add<T>(dq + x * bs, dq_extra.data() + (bh * (G - 1) + g - 1) * head + y * bs, bs);
+            }
         }
     }
     return status;

@@ -12,7 +12,7 @@ struct AttnDims {
 };
 
 // Status codes returned by the kernels (0 = ok).
-enum AttnStatus : int { kAttnOk = 0, kAttnLogitOverflow = 1 };
+enum AttnStatus : int { kAttnOk = 0, kAttnLogitOverflow = 1, kAttnOutOfMemory = 2 };
 
 // Fast kernel: online softmax over the attended blocks only.
 //   o   (R, B, H, N, L, dh)  output, overwritten

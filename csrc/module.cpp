@@ -46,6 +46,12 @@ void check_lse(const py::array& lse, const AttnDims& d) {
 }
 
 void raise_status(int status) {
+    if (status == kAttnOutOfMemory) {
+        PyErr_SetString(PyExc_MemoryError,
+                        "branching_attention: not enough memory for the kernel's work buffers (per thread "
+                        "O(256^2 + R*N*L*dh) elements, and up to 7x dq in the backward when B*H < 16)");
+        throw py::error_already_set();
+    }
     if (status == kAttnLogitOverflow)
         throw py::value_error(
             "branching_attention: a logit scale * (q . k) is not finite (it overflowed the dtype); "

@@ -187,11 +187,16 @@ inline void gemm_rows(int N, int K, const T* A, long sa_i, long sa_k, const T* B
 
 template <typename T, bool ACC, bool TA = false>
 inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
-    constexpr int MR = kVecBytes >= 64 ? 8 : 4;  // 2*MR accumulators: 16 of the 32 AVX-512 registers, 8 of 16 otherwise
+    // 2*MR accumulators and 2 vectors of B: 16 + 2 of the 32 AVX-512 registers; with 16
+    // registers (AVX2) 12 + 2 + the broadcast; SSE2/NEON keep 4 rows.
+    constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
     const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;  // where op(A)[i, k] is
     int i = 0;
     for (; i + MR <= M; i += MR)
         gemm_rows<T, MR, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
+    if (MR > 4)
+        for (; i + 4 <= M; i += 4)
+            gemm_rows<T, 4, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
     for (; i < M; ++i) gemm_rows<T, 1, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
 }
 
