@@ -8,7 +8,9 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include <new>
 #include <stdexcept>
+#include <string>
 
 #include "branching_attention.h"
 #include "elementwise.h"
@@ -156,8 +158,16 @@ template <typename T> int64_t nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T>
     T* pd = sq_dist.mutable_data();
     const T *px = x.data(), *pc = codes.data();
     const int64_t M = x.shape(0), K = codes.shape(0), D = x.shape(1);
-    py::gil_scoped_release nogil;
-    return vq_nearest<T>(pi, pd, px, pc, M, K, D);
+    try {
+        py::gil_scoped_release nogil;
+        return vq_nearest<T>(pi, pd, px, pc, M, K, D);
+    } catch (const std::bad_alloc&) {
+        const std::string msg = "vq_nearest: not enough memory for the work buffers of codes with K = " +
+                                std::to_string(K) + ", D = " + std::to_string(D) +
+                                " (about 2 * codes.nbytes + 8 * K bytes, plus per thread 64 * (D + 2048) elements)";
+        PyErr_SetString(PyExc_MemoryError, msg.c_str());
+        throw py::error_already_set();
+    }
 }
 
 template <typename T> void bind_dtype(py::module_& m) {

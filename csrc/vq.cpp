@@ -10,22 +10,29 @@
 //   0. x and the codes are shifted by the codes' centroid c (in double, then rounded to the
 //      dtype): distances do not change, and vectors far from the origin no longer cancel;
 //   1. fast scores s_k = |e'_k|^2 - 2 x'.e'_k (d_k - |x'|^2), x'.e'_k by the blocked SIMD gemm in
-//      the input dtype, |e'_k|^2 in double;
-//   2. a rigorous bound on each score's rounding error: a dot product of D terms accumulated in
-//      order has |fl(x.e) - x.e| <= gamma_D sum |x_i e_i| <= gamma_D |x| |e_k| (Cauchy-Schwarz),
-//      gamma_D = D u / (1 - D u), u the dtype's unit roundoff; so err_k = 2 gamma_D |x'| |e'_k|,
-//      plus the double roundings, plus what rounding the shifted vectors to the dtype can move
-//      the distance (below), and a factor 2 of margin;
-//   3. every code whose interval [s_k - err_k, s_k + err_k] reaches below the smallest upper end
-//      min_j (s_j + err_j) may be the nearest: those candidates are re-ranked by their exact
-//      distances. Well separated data has one candidate (the exact distance is computed for it
-//      anyway, to return it); data far from the codes (not just from the origin) widens the
-//      intervals and more codes are re-ranked, up to all of them: slower, never wrong.
-//   The re-rank reads the original values: exactness never depends on the shift.
-// Memory: the shifted codes and their transpose, their norms, per thread a block of shifted
-// rows (MB, D) and of scores (MB, K).
+//      the input dtype on codes packed in panels of 2 vectors, |e'_k|^2 in double;
+//   2. a rigorous bound err on every score's error, one per row: a dot product of D terms
+//      accumulated in order has |fl(x.e) - x.e| <= gamma_D |x| |e| (Cauchy-Schwarz),
+//      gamma_D = D u / (1 - D u), u the dtype's unit roundoff, taken with the largest |e'_k|;
+//      plus the double roundings, what rounding the shifted vectors to the dtype can move the
+//      distance, the dtype's underflow (D smallest subnormals), and a factor 2 of margin;
+//   3. every code with s_k <= min_j s_j + 2 err may be the nearest: those candidates are
+//      re-ranked by their exact distances. Well separated data has one candidate (its exact
+//      distance is computed anyway, to return it); data far from the codes widens the window
+//      and more codes are re-ranked, up to all of them: slower, never wrong. A row whose scores
+//      overflow (NaN or inf anywhere) re-ranks every code.
+//   The re-rank reads the original values: exactness never depends on the shift. Its exact
+//   distance is sum_i (x_i - e_i)^2 in double; where the vectors' largest component is beyond
+//   2^+-400 (only float64 inputs get there) both are first multiplied by a power of two, so the
+//   comparison neither overflows nor underflows. The returned distance is that sum rounded to
+//   the dtype: inf exactly when the true distance exceeds the dtype's range (float32 vectors
+//   ~1e20 apart, float64 ~1e154), 0 when it is below the smallest subnormal.
+// Memory: the packed shifted codes (as large as the codes) and one double per code; per thread
+// a block of shifted rows (64, D), its scores against a chunk of at most 2048 codes, and each
+// row's candidates (a few on separated data; at most K in the worst case). At K = 2^22, D = 1
+// (16 MiB of codes) that is ~90 MiB, at K = 65536, D = 256 ~66 MiB (tests/test_vq.py measures).
 // Rows are split across threads; each row is computed by one thread in a fixed order, so the
-// result is the same for any thread count.
+// result is the same for any thread count. An allocation failure raises MemoryError.
 //
 // Test: tests/test_vq.py (float64 brute force, cancellation cases, exact ties, duplicated
 // codes). Benchmark: python tools/bench_vq.py.
@@ -34,6 +41,8 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <new>
+#include <utility>
 #include <vector>
 
 #include "simd.h"
@@ -55,116 +64,199 @@ template <typename T> double exact_sq_distance(const T* x, const T* e, int64_t D
     return s;
 }
 
+// The same sum with both vectors multiplied by sc (a power of two: exact, unless a component
+// falls below the smallest subnormal, far below what decides the sum), for vectors whose
+// distance would overflow or underflow double.
+template <typename T> double exact_sq_distance_scaled(const T* x, const T* e, int64_t D, double sc) {
+    double s = 0;
+    for (int64_t i = 0; i < D; ++i) {
+        const double t = (double)x[i] * sc - (double)e[i] * sc;
+        s += t * t;
+    }
+    return s;
+}
+
 }  // namespace
 
 template <typename T>
 int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t M, int64_t K, int64_t D) {
-    constexpr int64_t MB = 64;  // rows per block
+    using V = typename Simd<T>::V;
+    using VD = Simd<double>::V;
+    constexpr int W = Simd<T>::W, WD = Simd<double>::W;
+    constexpr int64_t NB = 2 * W;    // codes per packed panel (the gemm's widest tile)
+    constexpr int64_t MB = 64;       // rows per block
+    const int64_t KC = std::min<int64_t>(((K + NB - 1) / NB) * NB, 2048);  // codes per chunk, a multiple of NB
+    const int64_t npanel = (K + NB - 1) / NB, Kp = npanel * NB;
     const double u = unit_roundoff<T>();
     const double gamma = D * u / (1.0 - D * u);
     const double ud = unit_roundoff<double>();
+    const double tiny = (double)std::numeric_limits<T>::denorm_min();
 
     // the centroid of the codes: x and the codes are scored shifted by it (distances do not
-    // change), so that vectors far from the origin do not cancel in the fast scores
+    // change), so that vectors far from the origin do not cancel in the fast scores. The mean
+    // as a sum of e/K: no overflow even for codes near the dtype's largest value.
     std::vector<double> c(D, 0.0);
     for (int64_t k = 0; k < K; ++k)
-        for (int64_t i = 0; i < D; ++i) c[i] += (double)codes[k * D + i];
-    for (int64_t i = 0; i < D; ++i) c[i] /= (double)K;
+        for (int64_t i = 0; i < D; ++i) c[i] += (double)codes[k * D + i] / (double)K;
 
-    std::vector<T> cs(K * D);  // shifted codes, rounded to T
-    for (int64_t k = 0; k < K; ++k)
-        for (int64_t i = 0; i < D; ++i) cs[k * D + i] = (T)((double)codes[k * D + i] - c[i]);
-    std::vector<T> et(D * K);  // shifted codes^T (D, K)
-    transpose(et.data(), cs.data(), (int)K, (int)D);
-    std::vector<double> e2(K), en(K), esh(K);  // |e'_k|^2, |e'_k| of the rounded shifted codes; |e_k - c|
+    // the shifted codes, rounded to T, transposed and packed in panels of NB codes: panel p is
+    // (D, NB), contiguous, so the gemm streams it; codes past K are zero and never read back.
+    // Per code only |e'_k|^2 is kept; the error bound uses the largest |e'_k| and |e_k - c|.
+    std::vector<T> et(Kp * D, T(0));
+    std::vector<double> e2(Kp, 0.0);
+    double en_max = 0, e2_max = 0, esh_max = 0;
     for (int64_t k = 0; k < K; ++k) {
+        T* panel = et.data() + (k / NB) * D * NB + k % NB;
         double s = 0, t = 0;
         for (int64_t i = 0; i < D; ++i) {
-            s += (double)cs[k * D + i] * (double)cs[k * D + i];
             const double r = (double)codes[k * D + i] - c[i];
+            const T cs = (T)r;
+            panel[i * NB] = cs;
+            s += (double)cs * (double)cs;
             t += r * r;
         }
         e2[k] = s;
-        en[k] = std::sqrt(s);
-        esh[k] = std::sqrt(t);
+        e2_max = std::max(e2_max, s);
+        esh_max = std::max(esh_max, t);
     }
+    en_max = std::sqrt(e2_max);
+    esh_max = std::sqrt(esh_max);
 
     int64_t reranked = 0;  // how many exact distances were computed beyond one per row
     const int64_t nblocks = (M + MB - 1) / MB;
+    int failed = 0;
 #pragma omp parallel reduction(+ : reranked) if (M * K * D > (1 << 22))
     {
-        std::vector<T> xs(MB * D);  // a block of shifted rows
-        std::vector<T> s(MB * K);   // x'.e' for the block (MB, K)
-        std::vector<double> score(K), err(K);
-        std::vector<int64_t> cand;
-        cand.reserve(16);
+        std::vector<T> xs, s;  // a block of shifted rows (MB, D); its scores against a chunk (MB, KC)
+        std::vector<double> thr2(MB), best(MB);
+        std::vector<std::vector<std::pair<double, int64_t>>> cand(MB);  // per row: (score, k)
+        std::vector<char> wild(MB);
+        bool ok = false;
+        try {
+            xs.resize(MB * D);
+            s.resize(MB * KC);
+            ok = true;
+        } catch (const std::bad_alloc&) {
+#pragma omp atomic write
+            failed = 1;
+        }
 #pragma omp for schedule(dynamic, 1)
         for (int64_t blk = 0; blk < nblocks; ++blk) {
+            if (!ok) continue;
+            try {
             const int64_t m0 = blk * MB, mb = std::min(MB, M - m0);
-            for (int64_t r = 0; r < mb; ++r)
-                for (int64_t i = 0; i < D; ++i) xs[r * D + i] = (T)((double)x[(m0 + r) * D + i] - c[i]);
-            gemm<T, false>((int)mb, (int)K, (int)D, xs.data(), D, et.data(), K, s.data(), K);  // s = x' e'^T
             for (int64_t r = 0; r < mb; ++r) {
                 const T* xr = x + (m0 + r) * D;
                 double x2 = 0, xt = 0;  // |x'|^2 of the rounded shifted row; |x - c| exactly shifted
                 for (int64_t i = 0; i < D; ++i) {
-                    x2 += (double)xs[r * D + i] * (double)xs[r * D + i];
                     const double t = (double)xr[i] - c[i];
+                    const T xsi = (T)t;
+                    xs[r * D + i] = xsi;
+                    x2 += (double)xsi * (double)xsi;
                     xt += t * t;
                 }
                 const double xn = std::sqrt(x2);
                 xt = std::sqrt(xt);
-                const T* sr = s.data() + r * K;
                 // score_k = |e'_k|^2 - 2 x'.e'_k = d'_k - |x'|^2, d'_k the distance of the rounded
-                // shifted vectors. Its error against d_k - |x'|^2 (d_k the true distance):
-                //   the dot product: gamma |x'| |e'_k| (times 2), the double sums: (D + 2) ud (...);
-                //   the rounding of the shift: |sqrt d'_k - sqrt d_k| <= eta_k = 2 u (|x - c| + |e_k - c|)
+                // shifted vectors. Its error against d_k - |x'|^2 (d_k the true distance), with
+                // the largest code norms (one bound per row, valid for every code):
+                //   the dot product: 2 gamma |x'| |e'|, the double sums: (D + 2) ud (...);
+                //   the rounding of the shift: |sqrt d'_k - sqrt d_k| <= eta = 2 u (|x - c| + |e - c|)
                 //   (factor 2: the double subtraction before the rounding), so
-                //   |d'_k - d_k| <= eta_k (2 sqrt d_k + eta_k), and sqrt d_k <= sqrt d'_k + eta_k
-                //   <= |x'| + |e'_k| + eta_k (triangle inequality: no square root per code).
-                // Everything times 2 for margin. Vectorised over k; upper = min_k (score_k + err_k).
-                const double g2 = 2.0 * gamma * xn, cd = (D + 2) * ud, u2 = 2.0 * u;
-                using VD = Simd<double>::V;
-                constexpr int WD = Simd<double>::W;
-                VD vup = vset1<double>(std::numeric_limits<double>::infinity());
-                int64_t k = 0;
-                auto bound = [&](double e2k, double enk, double eshk, double sk, double& errk) {
-                    const double fast = g2 * enk + cd * (e2k + 2.0 * xn * enk + x2);
-                    const double eta = u2 * (xt + eshk);
-                    errk = 2.0 * (fast + eta * (2.0 * (xn + enk + eta) + eta));
-                    return sk + errk;
-                };
-                for (; k < K; ++k) score[k] = e2[k] - 2.0 * (double)sr[k];
-                for (k = 0; k + WD <= K; k += WD) {
-                    const VD e2k = vload<double>(&e2[k]), enk = vload<double>(&en[k]), eshk = vload<double>(&esh[k]);
-                    const VD fast = g2 * enk + cd * (e2k + 2.0 * xn * enk + x2);
-                    const VD eta = u2 * (xt + eshk);
-                    const VD ek = 2.0 * (fast + eta * (2.0 * (xn + enk + eta) + eta));
-                    vstore<double>(&err[k], ek);
-                    const VD up = vload<double>(&score[k]) + ek;
-                    vup = up < vup ? up : vup;
-                }
-                double upper = vup[0];
-                for (int i = 1; i < WD; ++i) upper = std::min(upper, (double)vup[i]);
-                for (; k < K; ++k) upper = std::min(upper, bound(e2[k], en[k], esh[k], score[k], err[k]));
-                cand.clear();
-                for (int64_t k = 0; k < K; ++k)
-                    if (score[k] - err[k] <= upper) cand.push_back(k);
-                int64_t best = -1;
-                double best_d = std::numeric_limits<double>::infinity();
-                for (int64_t k : cand) {  // exact distances of the original values; a tie keeps the smaller k
-                    const double dk = exact_sq_distance(xr, codes + k * D, D);
-                    if (dk < best_d) {
-                        best_d = dk;
-                        best = k;
+                //   |d'_k - d_k| <= eta (2 sqrt d_k + eta), and sqrt d_k <= |x'| + |e'| + eta.
+                // Everything times 2 for margin. The nearest code has score <= min_k score_k + err,
+                // so every code with score_k <= min + 2 err is a candidate.
+                // Underflow: each of the D products may also lose up to the dtype's smallest
+                // subnormal (absolute), and each rounded shifted component half of it.
+                const double fast = 2.0 * gamma * xn * en_max + (D + 2) * ud * (e2_max + 2.0 * xn * en_max + x2)
+                                    + 2.0 * D * tiny;
+                const double eta = 2.0 * u * (xt + esh_max) + std::sqrt((double)D) * tiny;
+                const double err = 2.0 * (fast + eta * (2.0 * (xn + en_max + eta) + eta));
+                thr2[r] = 2.0 * err;
+                best[r] = std::numeric_limits<double>::infinity();
+                cand[r].clear();
+                wild[r] = !std::isfinite(err);  // overflow: every code is a candidate
+            }
+            for (int64_t k0 = 0; k0 < K; k0 += KC) {
+                const int64_t kc = std::min(KC, K - k0), np = (kc + NB - 1) / NB;
+                for (int64_t p = 0; p < np; ++p)  // s = x' e'^T for this chunk, panel by panel
+                    gemm<T, false>((int)mb, (int)NB, (int)D, xs.data(), D, et.data() + (k0 / NB + p) * D * NB, NB,
+                                   s.data() + p * NB, KC);
+                for (int64_t r = 0; r < mb; ++r) {
+                    if (wild[r]) continue;
+                    const T* sr = s.data() + r * KC;
+                    const double* e2c = e2.data() + k0;
+                    // this chunk's smallest score; chk: NaN or inf anywhere (an overflowed product)
+                    VD vmin = vset1<double>(best[r]), chk = {};
+                    int64_t k = 0;
+                    for (; k + WD <= kc; k += WD) {
+                        VD sk;
+                        for (int l = 0; l < WD; ++l) sk[l] = (double)sr[k + l];
+                        const VD sc = vload<double>(e2c + k) - 2.0 * sk;
+                        chk += sc * 0.0;
+                        vmin = sc < vmin ? sc : vmin;
+                    }
+                    double mn = vmin[0];
+                    for (int l = 1; l < WD; ++l) mn = std::min(mn, (double)vmin[l]);
+                    double tail = 0;
+                    for (; k < kc; ++k) {
+                        const double sc = e2c[k] - 2.0 * (double)sr[k];
+                        tail += sc * 0.0;
+                        mn = std::min(mn, sc);
+                    }
+                    if (!(hsum<double>(chk) + tail == 0)) {
+                        wild[r] = 1;
+                        continue;
+                    }
+                    best[r] = mn;
+                    const double thr = mn + thr2[r];
+                    for (k = 0; k < kc; ++k) {  // candidates so far, in increasing k
+                        const double sc = e2c[k] - 2.0 * (double)sr[k];
+                        if (sc <= thr) cand[r].push_back({sc, k0 + k});
                     }
                 }
-                reranked += (int64_t)cand.size() - 1;
-                index[m0 + r] = best;
-                sq_dist[m0 + r] = (T)best_d;
+            }
+            for (int64_t r = 0; r < mb; ++r) {
+                const T* xr = x + (m0 + r) * D;
+                auto& cr = cand[r];
+                const double thr = best[r] + thr2[r];
+                int64_t n = 0;  // keep the candidates under the final threshold
+                if (!wild[r])
+                    for (const auto& sk : cr)
+                        if (sk.first <= thr) cr[n++] = sk;
+                const int64_t ncand = wild[r] ? K : n;
+                auto code_of = [&](int64_t j) { return wild[r] ? j : cr[j].second; };
+                // exact distances of the original values, in double, a tie keeps the smaller k;
+                // where they would overflow or underflow double, scaled by a power of two first
+                double mx = 0;
+                for (int64_t i = 0; i < D; ++i) mx = std::max(mx, std::fabs((double)xr[i]));
+                for (int64_t j = 0; j < ncand; ++j)
+                    for (int64_t i = 0; i < D; ++i) mx = std::max(mx, std::fabs((double)codes[code_of(j) * D + i]));
+                const int ex = mx > 0 ? std::ilogb(mx) : 0;
+                const bool scaled = ex > 400 || ex < -400;
+                const double sc = scaled ? std::ldexp(1.0, -ex) : 1.0;
+                int64_t bi = -1;
+                double bd = std::numeric_limits<double>::infinity();
+                for (int64_t j = 0; j < ncand; ++j) {
+                    const int64_t k = code_of(j);
+                    const double dk = scaled ? exact_sq_distance_scaled(xr, codes + k * D, D, sc)
+                                             : exact_sq_distance(xr, codes + k * D, D);
+                    if (bi < 0 || dk < bd) {
+                        bd = dk;
+                        bi = k;
+                    }
+                }
+                reranked += ncand - 1;
+                index[m0 + r] = bi;
+                sq_dist[m0 + r] = scaled ? (T)std::ldexp(bd, 2 * ex) : (T)bd;
+            }
+            } catch (const std::bad_alloc&) {
+#pragma omp atomic write
+                failed = 1;
             }
         }
     }
+    if (failed) throw std::bad_alloc();
     return reranked;
 }
 

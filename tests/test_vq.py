@@ -103,13 +103,16 @@ def test_same_result_for_any_thread_count(rng):
 
 @pytest.mark.parametrize("offset", [0.0, 1e3, 1e5])
 def test_certified_rows_skip_the_rerank(offset, rng):
-    """On well separated data the error bound certifies every winner: nothing re-ranked, also
-    far from the origin (the kernel scores vectors shifted by the codes' centroid)."""
+    """On well separated data the error bound certifies the winners: almost nothing re-ranked,
+    also far from the origin (the kernel scores vectors shifted by the codes' centroid). The
+    bound is one per row (the largest code norm, so the kernel keeps one number per code), so
+    a row with a near-tie is re-ranked now and then: measured 0, 1, 1 rows of 1000 at these
+    offsets. An unshifted kernel re-ranks nearly every row at 1e3 (the cancellation)."""
     x = (rng.standard_normal((1000, 32)) + offset).astype(np.float32)
     codes = (rng.standard_normal((256, 32)) + offset).astype(np.float32)
     index = np.empty(1000, np.int64)
     sq = np.empty(1000, np.float32)
-    assert _core.vq_nearest(index, sq, x, codes) == 0
+    assert _core.vq_nearest(index, sq, x, codes) <= 5
     np.testing.assert_array_equal(index, brute_force(x, codes)[0])
 
 
@@ -146,3 +149,69 @@ def test_bad_input_raises(x, codes, exc, match):
 def test_no_rows_gives_empty_results():
     index, sq = vq_nearest(np.zeros((0, 4), np.float32), np.zeros((3, 4), np.float32))
     assert index.shape == (0,) and sq.shape == (0,) and sq.dtype == np.float32
+
+
+def scaled_brute_force(x, codes, scale):
+    """Nearest codes of x / scale among codes / scale (exact scaling by a power of two), by
+    float64 brute force: the reference where the unscaled squared distances leave float64."""
+    xs, cs = x.astype(np.float64) / scale, codes.astype(np.float64) / scale
+    return ((xs[:, None, :] - cs[None]) ** 2).sum(-1).argmin(1)
+
+
+@pytest.mark.parametrize("dtype, magnitude", [
+    (np.float64, 1e200), (np.float64, 1e300), (np.float64, 1e-200), (np.float64, 1e-300),
+    (np.float32, 1e20), (np.float32, 1e35), (np.float32, 1e-30), (np.float32, 1e-40),
+])
+def test_extreme_magnitudes_give_the_true_nearest_code(dtype, magnitude, rng):
+    """Squared distances that overflow (1e200 in float64: 1e400) or underflow the dtype: the
+    index is still the true nearest code (a valid index, never -1), and the distance is inf
+    exactly when the true one exceeds the dtype's range (0 when below its smallest value)."""
+    scale = 2.0 ** np.round(np.log2(magnitude))
+    codes = (rng.standard_normal((50, 8)) * scale).astype(dtype)
+    x = (rng.standard_normal((40, 8)) * scale).astype(dtype)
+    index, sq = vq_nearest(x, codes)
+    np.testing.assert_array_equal(index, scaled_brute_force(x, codes, scale))
+    true = ((x.astype(np.float64) / scale - codes[index].astype(np.float64) / scale) ** 2).sum(-1)
+    with np.errstate(over="ignore", under="ignore"):
+        fits = true * scale * scale  # in float64 (inf or 0 where it does not fit float64 either)
+    big = np.log2(true) + 2 * np.log2(scale) > np.log2(np.finfo(dtype).max)
+    assert np.isinf(sq[big]).all() and np.isfinite(sq[~big]).all()
+    if not big.any() and np.isfinite(fits).all() and (fits > np.finfo(dtype).tiny).all():
+        np.testing.assert_allclose(sq, fits.astype(dtype), rtol=8 * np.finfo(dtype).eps)
+
+
+def test_overflowing_fast_scores_fall_back_to_the_exact_rerank(rng):
+    """float32 x at 1e20 beside codes near 0: x'.e' overflows float32 in the fast scores; the
+    row must re-rank every code rather than return a wrong or invalid index."""
+    codes = rng.standard_normal((30, 4)).astype(np.float32) * np.float32(1e19)
+    x = rng.standard_normal((10, 4)).astype(np.float32) * np.float32(1e20)
+    index, _ = vq_nearest(x, codes)
+    np.testing.assert_array_equal(index, scaled_brute_force(x, codes, 2.0 ** 66))
+
+
+MEMORY_WORKER = """
+import sys, numpy as np
+from pyvf.measure import peak_memory
+from pyvf.quantizer import vq_nearest
+K, D = int(sys.argv[1]), int(sys.argv[2])
+codes = np.random.default_rng(0).standard_normal((K, D)).astype(np.float32)
+x = np.random.default_rng(1).standard_normal((64, D)).astype(np.float32)
+vq_nearest(x[:1], codes[:2])  # thread pools and first-call allocations outside the measurement
+_, extra = peak_memory(lambda: vq_nearest(x, codes))
+print(extra)
+"""
+
+
+@pytest.mark.parametrize("K, D", [(1 << 20, 1), (16384, 256)])
+def test_extra_memory_is_bounded_by_the_codes(K, D, tmp_path):
+    """Peak extra memory of one call, measured in a fresh process: the packed codes (as large as
+    the codes), one double per code, and per thread (64, D + 2048) float32 buffers. Before the
+    rewrite: ~580 bytes per code at D = 1 (2.3 GiB at K = 2^22)."""
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(K), str(D)], cwd=tmp_path,
+                         capture_output=True, text=True, check=True).stdout
+    extra = int(out.strip().splitlines()[-1])
+    codes_bytes = K * D * 4
+    bound = 2 * codes_bytes + 8 * K + 16 * 2 ** 20
+    assert extra <= bound, f"extra {extra / 2**20:.1f} MiB > bound {bound / 2**20:.1f} MiB"
