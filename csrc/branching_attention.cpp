@@ -32,10 +32,10 @@
 // in float64 (m + log l). It is float64 because with unscaled logits of size 1e6 one float32
 // ulp of lse is 0.06, i.e. a 6% error in every recomputed probability; the backward splits
 // it into a float32 hi + lo pair so that (s - hi) - lo is exact where it matters. The error
-// this gives is measured by tools/bench_attention.py and bounded in tests/test_attention.py.
+// this gives is measured by `pyvf bench attention` and bounded in tests/test_attention.py.
 //
 // Test: tests/test_attention.py (NumPy dense reference, torch, finite differences, the
-// plain loops below). Benchmark: python tools/bench_attention.py.
+// plain loops below). Benchmark: pyvf bench attention.
 #include "branching_attention.h"
 
 #include <algorithm>

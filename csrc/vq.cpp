@@ -35,7 +35,7 @@
 // result is the same for any thread count. An allocation failure raises MemoryError.
 //
 // Test: tests/test_vq.py (float64 brute force, cancellation cases, exact ties, duplicated
-// codes). Benchmark: python tools/bench_vq.py.
+// codes). Benchmark: pyvf bench vq.
 #include "vq.h"
 
 #include <algorithm>

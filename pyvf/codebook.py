@@ -208,7 +208,7 @@ class Codebook:
         return state
 
     def load_official(self, state_dict):
-        """Load a torch state_dict (name -> array, e.g. from tools/convert_torch_codebook.py):
+        """Load a torch state_dict (name -> array, e.g. from `pyvf convert torch-codebook`):
         every parameter and the four quantize.* buffers, names and shapes checked, nothing else.
         Float arrays are converted to the model's dtype (the one conversion pyvf makes, on purpose)."""
         shapes = parameter_shapes(self.config)

@@ -1,5 +1,5 @@
-"""Time and memory of one call, measured: what the demo (python -m pyvf demo) and the
-benchmarks (tools/bench_attention.py) print. NumPy and the standard library only.
+"""Time and memory of one call, measured: what the demo (pyvf demo) and the benchmarks
+(pyvf bench ..., pyvf/bench/) print. NumPy and the standard library only.
 
     seconds, times = median_time(fn, repeat=5, warmup=1)
     result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
@@ -170,13 +170,22 @@ def rel_err(x, ref):
     return float(np.abs(x - ref).max() / (scale if scale > 0 else 1.0))
 
 
-def run_worker(script, *args):
-    """Run `python script *args` in a fresh process and return the JSON object printed on its
-    last line: for benchmarks that keep each framework's thread pools in a process of its own."""
+def run_worker(module, *args):
+    """Run `python -m module *args` in a fresh process and return the JSON object printed on its
+    last line: for benchmarks that keep each framework's thread pools in a process of its own.
+
+    The worker starts in the folder that holds this process's pyvf package, so that it imports
+    the same pyvf (`python -m` puts the working folder first on sys.path: started from a source
+    checkout, it would import the unbuilt source tree)."""
     import json
+    import os
     import subprocess
     import sys
-    proc = subprocess.run([sys.executable, str(script), *map(str, args)], capture_output=True, text=True)
+
+    import pyvf
+    holds_pyvf = os.path.dirname(os.path.dirname(os.path.abspath(pyvf.__file__)))
+    cmd = [sys.executable, "-m", module, *map(str, args)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=holds_pyvf)
     if proc.returncode:
-        raise RuntimeError(f"worker {script} {' '.join(map(str, args))} failed:\n{proc.stderr[-3000:]}")
+        raise RuntimeError(f"worker {' '.join(cmd[1:])} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -10,7 +10,7 @@ named. Every benchmark validates its own result before it times anything: agains
 float64 on the same inputs, which is itself checked here against the dense NumPy reference in
 float64 on head 0 (the reference costs O(T^2): 50 s for all 12 heads; heads are independent)
 and against the reference on every head in tests/test_attention.py.
-For side-by-side numbers with memory and the NumPy reference: python tools/bench_attention.py.
+For side-by-side numbers with memory and the NumPy reference: pyvf bench attention.
 
 Shapes: q, k, v, do (R, B, H, N, L, dh) for pyvf; (B, H, T, dh) for torch, T = R*N*L in the
 order [row][view][token]. Inputs unit normal, scale 1 (the published model's unscaled logits).

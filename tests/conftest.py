@@ -6,9 +6,6 @@ mismatches. assert_bitwise_equal is for the claims that are exact (reproducibili
 block cannot see).
 """
 
-import importlib.util
-import os
-
 import numpy as np
 import pytest
 
@@ -81,15 +78,6 @@ def make_qkv(rng):
         return tuple(rng.standard_normal(shape).astype(dtype) for _ in range(n))
 
     return make
-
-
-def load_tool(name):
-    """The module tools/<name>.py (the tools are scripts, not a package)."""
-    path = os.path.join(os.path.dirname(__file__), "..", "tools", name + ".py")
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(params=pyvf.kernel_paths(), ids=lambda p: f"path-{p}")

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-import torch_codebook
-from conftest import assert_close, load_tool
+from conftest import assert_close
 from pyvf.codebook import Codebook, CodebookConfig, parameter_shapes
+from pyvf.verify import convert_torch, torch_codebook
 
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-codebook-tiny.json")
 
@@ -164,7 +164,6 @@ def test_bad_input_raises(rng):
 def test_torch_checkpoint_converter(rng, tmp_path):
     """A model.ckpt as the published training writes it (torch.save of a dict with state_dict,
     extra loss-network keys beside the model's) converts to an .npz that loads to the same model."""
-    tool = load_tool("convert_torch_codebook")
     cfg = CodebookConfig(**SMALL)
     cb = random_codebook(cfg, rng)
     sd = {k: torch.tensor(v) for k, v in cb.state_dict().items()}
@@ -174,7 +173,7 @@ def test_torch_checkpoint_converter(rng, tmp_path):
     config = tmp_path / "config.json"
     config.write_text(json.dumps(dataclasses.asdict(cfg)))
     out = tmp_path / "codebook.npz"
-    tool.main([str(ckpt), "--config", str(config), "-o", str(out)])
+    convert_torch.convert_checkpoint(ckpt, config, out)
     loaded = Codebook.load(out)
     for name, value in cb.state_dict().items():
         np.testing.assert_array_equal(loaded.state_dict()[name], value)

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 import pyvf
-import torch_transformer
-from conftest import assert_bitwise_equal, assert_close, load_tool
+from conftest import assert_bitwise_equal, assert_close
+from pyvf.verify import convert_tf, torch_transformer
 
 TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5, n_loss_skip=1)
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-transformer-tiny.json")
@@ -345,7 +345,7 @@ def test_bad_config_raises(field, value, match):
 
 
 # ---------------------------------------------------------------------------------------
-# 8. the TensorFlow checkpoint converter (tools/), with a stand-in for tf.train.load_checkpoint
+# 8. the TensorFlow checkpoint converter (pyvf convert tf-transformer), with a stand-in for tf.train.load_checkpoint
 
 
 class FakeReader:
@@ -361,17 +361,16 @@ class FakeReader:
 
 @pytest.mark.parametrize("style", ["name", "object"])
 def test_tf_converter_maps_checkpoint_keys(style, rng, tmp_path):
-    tool = load_tool("convert_tf_transformer")
     weights, spec_cfg = official_weights(rng)
     suffix = "/.ATTRIBUTES/VARIABLE_VALUE" if style == "object" else ""
     tensors = {n[:-2] + suffix: w for n, w in weights.items()}  # "migt/...:0" -> checkpoint keys
     tensors["save_counter" + suffix] = np.array(1)
     tensors["migt/h.0/ln_1/gamma/.OPTIMIZER_SLOT/optimizer/m" + suffix] = np.ones(32, np.float32)
     cfg = pyvf.TransformerConfig(**spec_cfg)
-    got, skipped = tool.convert(FakeReader(tensors), cfg)
+    got, skipped = convert_tf.convert(FakeReader(tensors), cfg)
     assert len(skipped) == 2 and set(got) == set(pyvf.transformer.parameter_shapes(cfg))
     for name, w in weights.items():
         assert np.array_equal(got[pyvf.transformer.official_name(name)], w)
     del tensors["migt/wte/weight" + suffix]
     with pytest.raises(ValueError, match="1 weights not found"):
-        tool.convert(FakeReader(tensors), cfg)
+        convert_tf.convert(FakeReader(tensors), cfg)

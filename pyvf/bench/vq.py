@@ -1,25 +1,27 @@
 """Nearest-code lookup at the paper's size: pyvf.vq_nearest against torch (cdist + argmin, and the
 expanded |x|^2 - 2 x.e + |e|^2 matmul the published quantizer uses) and numpy, side by side.
 
-    python tools/bench_vq.py            # M = 352*64, K = 1024, D = 256, float32, 2 threads
+    pyvf bench vq            # M = 352*64, K = 1024, D = 256, float32, 2 threads
+    pyvf bench vq --quick    # M = 4096, K = 256, D = 64, median of 3: seconds
 
 Each method's answers are compared with float64 brute force (exact distances, first minimum)
 before timing: on unit-normal data, and on the cancellation cases (data offset by 1e2..1e4
 from the origin) where the expanded formula picks wrong codes. The offset cases also time pyvf,
-which re-ranks exactly every code its error bound cannot exclude.
+which re-ranks exactly every code its error bound cannot exclude. torch is imported inside the
+functions that use it.
 """
 
 import argparse
-import os
 import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import pyvf
+from pyvf.measure import median_time
+from pyvf.quantizer import vq_nearest
 
-import pyvf  # noqa: E402
-from pyvf.measure import median_time  # noqa: E402
-from pyvf.quantizer import vq_nearest  # noqa: E402
+PAPER = dict(M=352 * 64, K=1024, D=256, repeat=5, checked_rows=4096)
+QUICK = dict(M=4096, K=256, D=64, repeat=3, checked_rows=1024)
 
 
 def brute_force(x, codes, chunk=512):
@@ -52,14 +54,29 @@ def methods():
             "torch expanded matmul": torch_expanded, "numpy expanded matmul": numpy_expanded}
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--M", type=int, default=352 * 64)
-    ap.add_argument("--K", type=int, default=1024)
-    ap.add_argument("--D", type=int, default=256)
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(prog="pyvf bench vq", description=__doc__.split("\n\n")[0])
+    for name in ("M", "K", "D"):
+        ap.add_argument(f"--{name}", type=int, default=None,
+                        help=f"default {PAPER[name]} ({QUICK[name]} with --quick)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--repeat", type=int, default=5)
-    args = ap.parse_args()
+    ap.add_argument("--repeat", type=int, default=None,
+                    help=f"timed calls per median (default {PAPER['repeat']}, {QUICK['repeat']} with --quick)")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"smaller sizes, answers checked on {QUICK['checked_rows']} rows (seconds)")
+    args = ap.parse_args(argv)
+    base = QUICK if args.quick else PAPER
+    for name in ("M", "K", "D", "repeat"):
+        if getattr(args, name) is None:
+            setattr(args, name, base[name])
+    args.checked_rows = min(base["checked_rows"], args.M)
+    if args.repeat < 3:
+        ap.error("--repeat must be at least 3 (a median of fewer calls is not worth printing)")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
     import torch
     torch.set_num_threads(args.threads)
     pyvf.set_num_threads(args.threads)
@@ -72,13 +89,14 @@ def main():
     base_c = rng.standard_normal((K, D)).astype(np.float32)
     truth = {}
     for off in (0.0, 1e2, 1e3, 1e4):  # a subset of rows is enough for the disagreement rates
-        xs, cs = base_x[:4096] + np.float32(off), base_c + np.float32(off)
+        xs, cs = base_x[:args.checked_rows] + np.float32(off), base_c + np.float32(off)
         truth[off] = (xs, cs, brute_force(xs, cs))
     results = {}
     for name, fn in methods().items():
         wrong = [float((fn(xs, cs) != want).mean()) for xs, cs, want in truth.values()]
         if name.startswith("pyvf") and any(wrong):
-            sys.exit(f"pyvf disagrees with brute force: {wrong}")
+            print(f"pyvf disagrees with brute force: {wrong}", file=sys.stderr)
+            return 1
         t, _ = median_time(lambda: fn(base_x, base_c), repeat=args.repeat)
         results[name] = t
         print(f"| {name} | {t * 1e3:.1f} ms | " + " | ".join(f"{w:.2%}" for w in wrong) + " |")
@@ -90,7 +108,8 @@ def main():
         xs, cs = base_x + np.float32(off), base_c + np.float32(off)
         t, _ = median_time(lambda: vq_nearest(xs, cs), repeat=1)
         print(f"  offset {off:g}: {t * 1e3:.0f} ms")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

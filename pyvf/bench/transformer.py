@@ -1,8 +1,9 @@
 """Time and memory of one transformer training step (forward, backward, AdamW), pyvf against the
-same model in torch (tests/torch_transformer.py, SDPA with the tree's boolean mask), one run.
+same model in torch (pyvf/verify/torch_transformer.py, SDPA with the tree's boolean mask), one run.
 
-    python tools/bench_transformer.py                  # tiny and paper configurations
-    python tools/bench_transformer.py --configs tiny   # just the tiny one (seconds)
+    pyvf bench transformer                  # tiny and paper configurations
+    pyvf bench transformer --configs tiny   # just the tiny one (seconds)
+    pyvf bench transformer --quick          # the tiny one, 10 steps
 
 Each framework runs in its own worker process, so that neither's thread pool waits on the
 other's (harmless on a quiet machine; 10x and more on small calls when other work loads it).
@@ -11,25 +12,23 @@ layers (every x @ w, forward and backward) and the rest (LayerNorm, GELU, embedd
 the tied logits, AdamW), by timing those functions inside the step. Before timing, the first
 step's loss of pyvf and torch (same weights, same batch) are compared, and the tool stops if
 they differ. Memory: the measured peak resident memory of one step above what was resident
-before it (pyvf.measure.peak_memory).
+before it (pyvf.measure.peak_memory). torch is imported only in the torch worker.
 """
 
 import argparse
 import contextlib
-import os
+import json
 import sys
 import time
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, ".."))
-sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+import pyvf
+import pyvf.attention
+import pyvf.layers
+from pyvf.measure import format_bytes, peak_memory, run_worker
 
-import pyvf  # noqa: E402
-import pyvf.attention  # noqa: E402
-import pyvf.layers  # noqa: E402
-from pyvf.measure import format_bytes, peak_memory, run_worker  # noqa: E402
+WORKER = "pyvf.bench.transformer"  # this module, run as `python -m WORKER --worker ...`
 
 CONFIGS = {
     "tiny": dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5,
@@ -105,7 +104,8 @@ def worker_pyvf(name, steps):
 
 def worker_torch(name, steps):
     import torch
-    import torch_transformer
+
+    from pyvf.verify import torch_transformer
 
     torch.set_num_threads(pyvf.num_threads())
     cfg, B, tokens, poses, model = setup(name)
@@ -130,11 +130,13 @@ def worker_torch(name, steps):
 
 
 def bench(name, steps, threads):
-    p = run_worker(__file__, "--worker", "pyvf", "--configs", name, "--steps", steps, "--threads", threads)
-    t = run_worker(__file__, "--worker", "torch", "--configs", name, "--steps", steps, "--threads", threads)
+    """Run both workers on one configuration and print the table; False if their losses differ."""
+    p = run_worker(WORKER, "--worker", "pyvf", "--configs", name, "--steps", steps, "--threads", threads)
+    t = run_worker(WORKER, "--worker", "torch", "--configs", name, "--steps", steps, "--threads", threads)
     # validate: the same first-step loss from the same weights and batch (float32 both)
     if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
-        sys.exit(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}")
+        print(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}", file=sys.stderr)
+        return False
     spec = dict(CONFIGS[name])
     print(f"\n## {name}: d={spec['d_model']}, H={spec['n_head']}, {spec['n_layer']} layers, "
           f"N={spec['sequence_size']}, L={spec['token_image_size'] ** 2}, V={spec['n_embeddings']}, "
@@ -148,25 +150,40 @@ def bench(name, steps, threads):
     print(f"| ratio torch / pyvf | {t['time'] / p['time']:.2f} | {t['memory'] / p['memory']:.2f} |")
     print(f"pyvf step time shares: branching attention {p['attention']:.0%}, linear layers {p['linear']:.0%}, "
           f"the rest {1 - p['attention'] - p['linear']:.0%}")
+    return True
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--configs", nargs="+", default=["tiny", "paper"], choices=list(CONFIGS))
-    ap.add_argument("--steps", type=int, default=None, help="timed steps (default 20 tiny, 3 paper)")
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(prog="pyvf bench transformer", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--configs", nargs="+", default=None, choices=list(CONFIGS),
+                    help="default: tiny paper (tiny with --quick)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="timed steps (default 20 tiny, 3 paper; 10 with --quick)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--quick", action="store_true", help="the tiny configuration only, 10 steps (seconds)")
     ap.add_argument("--worker", choices=["pyvf", "torch"], help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.configs is None:
+        args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
+    if args.steps is None and args.quick:
+        args.steps = 10
+    if args.steps is not None and args.steps < 3:
+        ap.error("--steps must be at least 3 (a median of fewer steps is not worth printing)")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
     pyvf.set_num_threads(args.threads)
     for name in args.configs:
         steps = args.steps or (20 if name == "tiny" else 3)
         if args.worker:
-            import json
             result = (worker_pyvf if args.worker == "pyvf" else worker_torch)(name, steps)
             print(json.dumps(result))
-        else:
-            bench(name, steps, args.threads)
+        elif not bench(name, steps, args.threads):
+            return 1
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

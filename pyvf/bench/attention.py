@@ -1,10 +1,10 @@
 """Benchmark branching attention (SPEC.md §2): pyvf's C++ kernel against torch's
 scaled_dot_product_attention with the dense (T, T) mask and against the dense NumPy reference.
 
-    python tools/bench_attention.py                 # paper size R=3, B=1, H=12, N=20, L=64, dh=64
-    python tools/bench_attention.py --quick         # smaller sizes, well under a minute
-    python tools/bench_attention.py --flex          # also torch flex_attention (compiled, forward only)
-    python tools/bench_attention.py --json out.json # every number, machine-readable
+    pyvf bench attention                   # paper size R=3, B=1, H=12, N=20, L=64, dh=64
+    pyvf bench attention --quick           # smaller sizes, well under a minute
+    pyvf bench attention --flex            # also torch flex_attention (compiled, forward only)
+    pyvf bench attention --json out.json   # every number, machine-readable
 
 What it does, in order:
 1. validates: pyvf float32, torch SDPA float32 and the NumPy reference in float32 against the
@@ -23,6 +23,9 @@ What it does, in order:
 Inputs are unit-normal, scale = 1 (the published model's unscaled logits, SPEC.md §2).
 Layouts: pyvf takes (R, B, H, N, L, dh); torch and the reference's flat sequence are
 (B, H, T, dh) with T = R*N*L in the order [row][view][token].
+
+demo() is `pyvf demo`: the same check without torch, at three sizes, pyvf against the dense
+NumPy reference only (error, time, memory). torch is imported inside the functions that use it.
 """
 
 import argparse
@@ -32,17 +35,10 @@ import platform
 import sys
 import time
 import traceback
-from pathlib import Path
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 
-try:
-    import pyvf
-except ImportError:  # run as `python tools/bench_attention.py` from a checkout built in place
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    import pyvf
+import pyvf
 from pyvf.measure import format_bytes, median_time, memory_method, peak_memory, rel_err
 
 # The bounds pyvf must meet before anything is timed: the same as tests/test_attention.py
@@ -140,6 +136,9 @@ def pyvf_fns(q, k, v, do):
 def torch_fns(q, k, v, do, mask):
     """SDPA on the flat (B, H, T, dh) layout with the boolean (T, T) mask (True = attend),
     scale=1.0; backward through autograd with the upstream gradient do."""
+    import torch
+    import torch.nn.functional as F
+
     shape = q.shape
     qt, kt, vt, dot = (torch.from_numpy(flat(x)) for x in (q, k, v, do))
     leaves = [x.clone().requires_grad_(True) for x in (qt, kt, vt)]
@@ -173,6 +172,8 @@ def reference_fns(q, k, v, do):
 
 def torch_backend(q, mask):
     """The SDPA backend torch picks for these inputs (a private torch function: "unknown" if gone)."""
+    import torch
+
     try:
         from torch.nn.attention import SDPBackend
 
@@ -230,6 +231,8 @@ def setup_flex(q, k, v, o_ref):
     """torch flex_attention, compiled, with a BlockMask from the branching rule; forward only
     (flex_attention has no CPU backward). Compiles, validates o against o_ref and measures one
     call's memory. Returns (dict of results or of the error, the forward function or None)."""
+    import torch
+
     R, B, H, N, L, dh = q.shape
     T = R * N * L
     out = {}
@@ -323,7 +326,7 @@ def ms(sec):
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="pyvf bench attention", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     for name, val in PAPER.items():
         p.add_argument(f"--{name}", type=int, default=None, help=f"default {val} ({QUICK[name]} with --quick)")
@@ -347,6 +350,8 @@ def parse_args(argv=None):
 
 
 def main(argv=None):
+    import torch
+
     args = parse_args(argv)
     t_start = time.perf_counter()
     R, B, H, N, L, dh = (args.R, args.B, args.H, args.N, args.L, args.dh)
@@ -560,6 +565,158 @@ def main(argv=None):
     print(f"\ntotal {total:.0f} s")
     _write_json(args.json, report)
     return 0
+
+
+# ---------------------------------------------------------------------------------------
+# pyvf demo: the same check without torch, at three sizes, pyvf against the dense NumPy
+# reference only; BOUND64 and BOUND32 as above
+
+# Sizes, small to the paper's (SPEC.md §1). The dense reference costs O(T^2) time and memory
+# (seconds per call in float64 at the paper size, 2 GiB), so the largest size is checked in
+# float64 on two heads only, the first and the last (heads are computed independently, so the
+# reference of those heads' inputs is exactly the reference's output for those heads), and
+# the reference is timed in one call where a call takes a second or more (the whole demo then
+# takes ~15 s on 2 cores, most of it the reference at the paper size).
+DEMO_SIZES = {
+    "small": dict(shape=dict(R=3, B=2, H=2, N=4, L=16, dh=16), ref_repeat=5, all_heads=True),
+    "medium": dict(shape=dict(R=3, B=1, H=4, N=8, L=64, dh=64), ref_repeat=1, all_heads=True),
+    "paper": dict(shape=dict(R=3, B=1, H=12, N=20, L=64, dh=64), ref_repeat=1, all_heads=False),
+}
+DEMO_REPEAT = 5  # timed calls of pyvf per median
+
+
+def _errors(o, grads, o_ref, grads_ref, heads):
+    """Normwise relative errors of o and (dq, dk, dv) against the reference, on `heads` only."""
+    pick = (lambda x: x) if heads is None else (lambda x: x[:, :, heads])
+    out = {"o": rel_err(pick(o), o_ref)}
+    for name, g, w in zip(("dq", "dk", "dv"), grads, grads_ref):
+        out[name] = rel_err(pick(g), w)
+    return out
+
+
+def _measured(fn, repeat=1):
+    """repeat timed calls of fn, the first under peak_memory: (its result, its extra peak bytes,
+    the seconds of every call)."""
+    box = {}
+
+    def call():
+        t0 = time.perf_counter()
+        out = fn()
+        box["seconds"] = time.perf_counter() - t0
+        return out
+
+    result, extra = peak_memory(call)
+    times = [box["seconds"]]
+    if repeat > 1:
+        times += median_time(fn, repeat - 1, warmup=0)[1]
+    return result, extra, times
+
+
+def _times(ratio):
+    return f"{ratio:.0f}x" if ratio >= 10 else f"{ratio:.1f}x"
+
+
+def _row(cells, widths):
+    return "  ".join(str(c).rjust(w) if i else str(c).ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+
+
+def demo_size(name, shape, ref_repeat, all_heads, seed=0):
+    """Run one size; print its three tables; return True when pyvf is within its bounds.
+
+    ref_repeat: timed calls of the dense reference; all_heads: check every head against the
+    float64 reference, else only the first and the last."""
+    R, B, H, N, L, dh = (shape[x] for x in ("R", "B", "H", "N", "L", "dh"))
+    T = R * N * L
+    heads = None if all_heads else sorted({0, H - 1})  # None: every head
+    print(f"\n== {name}: R={R} B={B} H={H} N={N} L={L} dh={dh}  (T = R*N*L = {T} tokens) ==", flush=True)
+
+    rng = np.random.default_rng(seed)
+    q, k, v, do = (rng.standard_normal((R, B, H, N, L, dh), dtype=np.float32) for _ in range(4))
+    q64, k64, v64, do64 = (x.astype(np.float64) for x in (q, k, v, do))  # the same values, in float64
+
+    # the oracle: the dense reference in float64 (on the checked heads)
+    sub = [x if heads is None else np.ascontiguousarray(x[:, :, heads]) for x in (q64, k64, v64, do64)]
+    o_ref = pyvf.branching_attention_reference(*sub[:3])
+    g_ref = pyvf.branching_attention_reference_vjp(*sub)
+
+    # pyvf in float64: the same math as the reference, another summation order
+    err64 = _errors(pyvf.branching_attention(q64, k64, v64), pyvf.branching_attention_vjp(q64, k64, v64, do64),
+                    o_ref, g_ref, heads)
+
+    # pyvf in float32: one warm-up call (threads), then one measured call of each, then the medians
+    def fwd():
+        return pyvf.branching_attention_forward(q, k, v)
+
+    def fwd_bwd():
+        o, lse = pyvf.branching_attention_forward(q, k, v)
+        return o, pyvf.branching_attention_backward(do, q, k, v, o, lse)
+
+    fwd_bwd()
+    (o32, _), mem_fwd, _ = _measured(fwd)
+    (_, g32), mem_fb, _ = _measured(fwd_bwd)
+    err32 = _errors(o32, g32, o_ref, g_ref, heads)
+    ok = max(err64.values()) <= BOUND64 and max(err32.values()) <= BOUND32
+    t_fwd, _ = median_time(fwd, repeat=DEMO_REPEAT, warmup=0)
+    t_fb, _ = median_time(fwd_bwd, repeat=DEMO_REPEAT, warmup=0)
+
+    # the dense reference in float32, no warm-up (a call can take seconds): the memory-measured
+    # call is its first timing sample
+    o_np, mem_np_fwd, ts_np_fwd = _measured(lambda: pyvf.branching_attention_reference(q, k, v), ref_repeat)
+    g_np, mem_np_vjp, ts_np_vjp = _measured(lambda: pyvf.branching_attention_reference_vjp(q, k, v, do), ref_repeat)
+    err_np = _errors(o_np, g_np, o_ref, g_ref, heads)
+    del o_np, g_np
+
+    where = "all heads" if heads is None else f"heads {' and '.join(map(str, heads))} of {H}"
+    print(f"max relative error vs the dense NumPy reference in float64 ({where}; max|x - ref| / max|ref|)")
+    w = (24, 9, 9, 9, 9, 7, 8)
+    print(_row(["", "o", "dq", "dk", "dv", "bound", ""], w))
+    for label, e, bound in (("pyvf float64", err64, BOUND64), ("pyvf float32", err32, BOUND32),
+                            ("NumPy reference float32", err_np, None)):
+        verdict = "" if bound is None else ("ok" if max(e.values()) <= bound else "EXCEEDED")
+        print(_row([label] + [f"{e[c]:.1e}" for c in ("o", "dq", "dk", "dv")]
+                   + ["" if bound is None else f"{bound:g}", verdict], w))
+
+    n_np = len(ts_np_fwd)
+    print(f"time, float32 (median of {DEMO_REPEAT} calls for pyvf, {n_np} for the reference)")
+    w = (24, 12, 18, 10)
+    print(_row(["", "forward", "forward+backward", ""], w))
+    print(_row(["pyvf (C++ kernel)", f"{t_fwd * 1e3:.1f} ms", f"{t_fb * 1e3:.1f} ms", ""], w))
+    np_fwd, np_vjp = float(np.median(ts_np_fwd)), float(np.median(ts_np_vjp))
+    print(_row(["NumPy dense reference", f"{np_fwd * 1e3:.1f} ms", f"{np_vjp * 1e3:.1f} ms", "(its vjp)"], w))
+    print(_row(["reference / pyvf", _times(np_fwd / t_fwd), _times(np_vjp / t_fb), ""], w))
+
+    logits = B * H * T * T * 4
+    print("extra peak memory of one call, float32 (measured; outputs included)")
+    print(_row(["", "forward", "forward+backward", ""], w))
+    print(_row(["pyvf (C++ kernel)", format_bytes(mem_fwd), format_bytes(mem_fb), "O(T*dh)"], w))
+    print(_row(["NumPy dense reference", format_bytes(mem_np_fwd), format_bytes(mem_np_vjp), "O(T^2)"], w))
+    print(_row(["dense logits (computed)", format_bytes(logits), "", "B*H*T^2*4"], w))
+    print(_row(["one array like q", format_bytes(q.nbytes), "", "B*H*T*dh*4"], w))
+    return ok
+
+
+def demo(sizes=tuple(DEMO_SIZES), threads=None):
+    """`pyvf demo`: branching attention at the given DEMO_SIZES names, pyvf against the dense
+    NumPy reference: error, time, memory. Prints the tables; returns the exit status, 0 when
+    every error is within its bound. NumPy only (no torch)."""
+    unknown = [s for s in sizes if s not in DEMO_SIZES]
+    if unknown or not sizes:
+        raise ValueError(f"unknown size {unknown or sizes!r}; choose from {', '.join(DEMO_SIZES)}")
+    if threads is not None:
+        pyvf.set_num_threads(threads)
+    t0 = time.perf_counter()
+    print(f"pyvf kernels: path {pyvf.kernel_path()} (this CPU runs {', '.join(pyvf.kernel_paths())}; "
+          "PYVF_ISA=<path> forces one; `pyvf config` for details)")
+    print("pyvf demo: branching attention (SPEC.md §2), the C++ kernel against the dense NumPy reference")
+    print(f"pyvf {pyvf.__version__}, numpy {np.__version__}, {pyvf.num_threads()} kernel threads; "
+          "inputs unit normal, scale 1 (unscaled logits, as the published model)")
+    print(f"memory: {memory_method()}")
+    ok = True
+    for name in sizes:
+        ok &= demo_size(name, **DEMO_SIZES[name])
+    print(f"\n{'all errors within their bounds' if ok else 'ERROR BOUND EXCEEDED'}; "
+          f"total {time.perf_counter() - t0:.0f} s")
+    return 0 if ok else 1
 
 
 def _cpu_name():

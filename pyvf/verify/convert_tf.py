@@ -1,11 +1,11 @@
 """Convert a published ViewFormer transformer checkpoint (TensorFlow: model.index, model.data-*)
 into the .npz that pyvf.Transformer loads.
 
-    python tools/convert_tf_transformer.py path/to/checkpoint/model --config config.json -o model.npz
+    pyvf convert tf-transformer path/to/checkpoint/model --config config.json -o model.npz
 
 --config is a JSON file of TransformerConfig fields (n_embeddings, n_head, d_model, n_layer,
-token_image_size, sequence_size, n_loss_skip, ...). Needs tensorflow (only here: pyvf itself
-never imports it). The checkpoint's keys are matched to the official names of
+token_image_size, sequence_size, n_loss_skip, ...). Needs tensorflow (only here, inside
+convert_checkpoint: pyvf itself never imports it). The checkpoint's keys are matched to the official names of
 spec/official-transformer-*.json, whichever way TensorFlow wrote them:
 
     name-based (tf.compat.v1 Saver):   migt/h.0/attn/c_attn/weight
@@ -16,16 +16,11 @@ the step counter, the save counter) is listed and skipped. pyvf.Transformer.load
 checks names, shapes and values again.
 """
 
-import argparse
 import json
-import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-
-from pyvf.transformer import Transformer, TransformerConfig, parameter_shapes  # noqa: E402
+from pyvf.transformer import Transformer, TransformerConfig, parameter_shapes
 
 SKIP_MARKERS = ("/.OPTIMIZER_SLOT/", "optimizer/", "save_counter", "global_step", "_CHECKPOINTABLE_OBJECT_GRAPH",
                 "/m/", "/v/", "Adam")
@@ -66,24 +61,18 @@ def convert(reader, config):
     return weights, skipped
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("checkpoint", help="checkpoint prefix, e.g. path/model (beside model.index)")
-    ap.add_argument("--config", required=True, help="JSON file of TransformerConfig fields")
-    ap.add_argument("-o", "--output", required=True, help="the .npz to write")
-    args = ap.parse_args(argv)
+def convert_checkpoint(checkpoint, config_json, output):
+    """Read the TensorFlow checkpoint `checkpoint` (a prefix, beside model.index) of the
+    TransformerConfig in the JSON file `config_json`, check it and write it to `output` (.npz).
+    Returns (the number of weights written, the checkpoint keys skipped)."""
     try:
         import tensorflow as tf
     except ImportError:
-        sys.exit("convert_tf_transformer: needs tensorflow (pip install tensorflow-cpu)")
-    with open(args.config) as f:
+        raise ModuleNotFoundError("convert tf-transformer needs tensorflow (pip install tensorflow-cpu)") from None
+    with open(config_json) as f:
         config = TransformerConfig(**json.load(f))
-    weights, skipped = convert(tf.train.load_checkpoint(args.checkpoint), config)
+    weights, skipped = convert(tf.train.load_checkpoint(str(checkpoint)), config)
     model = Transformer(config)
     model.load_official(weights)  # checks everything once more
-    model.save(args.output)
-    print(f"wrote {args.output}: {len(weights)} weights; skipped {len(skipped)} other keys")
-
-
-if __name__ == "__main__":
-    main()
+    model.save(output)
+    return len(weights), skipped

@@ -1,26 +1,26 @@
-"""Time of the codebook, pyvf against the same model in torch (tests/torch_codebook.py), one run.
+"""Time of the codebook, pyvf against the same model in torch (pyvf/verify/torch_codebook.py), one run.
 
-    python tools/bench_codebook.py                 # the official tiny and the paper configuration
-    python tools/bench_codebook.py --configs tiny
+    pyvf bench codebook                 # the official tiny and the paper configuration
+    pyvf bench codebook --configs tiny
+    pyvf bench codebook --quick         # the tiny one (seconds)
 
 Per configuration: encode + decode (images -> codes -> images) and one forward + backward
 (train=True, the EMA update included), medians, float32, each framework in its own process
 (so that neither's thread pool waits on the other's). Before timing, both compute the loss of the
-same weights and batch, and the tool stops if they differ.
+same weights and batch, and the tool stops if they differ. torch is imported only in the torch
+worker.
 """
 
 import argparse
-import os
+import json
 import sys
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, ".."))
-sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+import pyvf
+from pyvf.measure import median_time, run_worker
 
-import pyvf  # noqa: E402
-from pyvf.measure import median_time, run_worker  # noqa: E402
+WORKER = "pyvf.bench.codebook"  # this module, run as `python -m WORKER --worker ...`
 
 CONFIGS = {
     "tiny": dict(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=32,
@@ -57,7 +57,8 @@ def worker_pyvf(name, repeat):
 
 def worker_torch(name, repeat):
     import torch
-    import torch_codebook
+
+    from pyvf.verify import torch_codebook
     torch.set_num_threads(pyvf.num_threads())
     cfg, cb, images = setup(name)
     P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
@@ -86,35 +87,53 @@ def worker_torch(name, repeat):
     return dict(loss=loss, codec=t_codec, step=median(step, repeat))
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--configs", nargs="+", default=["tiny", "paper"], choices=list(CONFIGS))
-    ap.add_argument("--repeat", type=int, default=3)
+def bench(name, repeat, threads):
+    """Run both workers on one configuration and print the table; False if their losses differ."""
+    common = ["--configs", name, "--repeat", repeat, "--threads", threads]
+    p = run_worker(WORKER, "--worker", "pyvf", *common)
+    t = run_worker(WORKER, "--worker", "torch", *common)
+    if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
+        print(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}", file=sys.stderr)
+        return False
+    spec = CONFIGS[name]
+    print(f"\n## {name}: ch={spec['ch']}, ch_mult={spec['ch_mult']}, {spec['num_res_blocks']} res blocks, "
+          f"{spec['image_size']}x{spec['image_size']} images, K={spec['n_embed']}, D={spec['embed_dim']}, "
+          f"B={spec['batch']}, float32, {threads} threads, median of {repeat}, each in its own process")
+    print(f"loss of the same weights and batch: pyvf {p['loss']:.6f}, torch {t['loss']:.6f}")
+    print("| | encode + decode | forward + backward (train) |")
+    print("|---|---|---|")
+    print(f"| pyvf | {p['codec'] * 1e3:.0f} ms | {p['step'] * 1e3:.0f} ms |")
+    print(f"| torch | {t['codec'] * 1e3:.0f} ms | {t['step'] * 1e3:.0f} ms |")
+    print(f"| ratio torch / pyvf | {t['codec'] / p['codec']:.2f} | {t['step'] / p['step']:.2f} |")
+    return True
+
+
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(prog="pyvf bench codebook", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--configs", nargs="+", default=None, choices=list(CONFIGS),
+                    help="default: tiny paper (tiny with --quick)")
+    ap.add_argument("--repeat", type=int, default=3, help="timed calls per median (default 3, at least 3)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--quick", action="store_true", help="the tiny configuration only (seconds)")
     ap.add_argument("--worker", choices=["pyvf", "torch"], help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.configs is None:
+        args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
+    if args.repeat < 3:
+        ap.error("--repeat must be at least 3 (a median of fewer calls is not worth printing)")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
     pyvf.set_num_threads(args.threads)
     for name in args.configs:
         if args.worker:
-            import json
             print(json.dumps((worker_pyvf if args.worker == "pyvf" else worker_torch)(name, args.repeat)))
-            continue
-        common = ["--configs", name, "--repeat", args.repeat, "--threads", args.threads]
-        p = run_worker(__file__, "--worker", "pyvf", *common)
-        t = run_worker(__file__, "--worker", "torch", *common)
-        if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
-            sys.exit(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}")
-        spec = CONFIGS[name]
-        print(f"\n## {name}: ch={spec['ch']}, ch_mult={spec['ch_mult']}, {spec['num_res_blocks']} res blocks, "
-              f"{spec['image_size']}x{spec['image_size']} images, K={spec['n_embed']}, D={spec['embed_dim']}, "
-              f"B={spec['batch']}, float32, {args.threads} threads, median of {args.repeat}, each in its own process")
-        print(f"loss of the same weights and batch: pyvf {p['loss']:.6f}, torch {t['loss']:.6f}")
-        print("| | encode + decode | forward + backward (train) |")
-        print("|---|---|---|")
-        print(f"| pyvf | {p['codec'] * 1e3:.0f} ms | {p['step'] * 1e3:.0f} ms |")
-        print(f"| torch | {t['codec'] * 1e3:.0f} ms | {t['step'] * 1e3:.0f} ms |")
-        print(f"| ratio torch / pyvf | {t['codec'] / p['codec']:.2f} | {t['step'] / p['step']:.2f} |")
+        elif not bench(name, args.repeat, args.threads):
+            return 1
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -185,36 +185,3 @@ def parameter_shapes(cfg):
     n("decoder.norm_out", cin), c("decoder.conv_out", cin, cfg.out_ch, 3)
     return S
 
-
-if __name__ == "__main__":
-    import json
-    import os
-    from types import SimpleNamespace
-
-    d = json.load(open(os.path.join(os.path.dirname(__file__), "data", "official-codebook-tiny.json")))
-    cfg = SimpleNamespace(**d["config"], decay=0.99, eps=1e-5)
-    want = {k: tuple(v) for k, v in d["state_dict"].items() if not k.startswith("quantize.")}
-    got = parameter_shapes(cfg)
-    assert got == want, (set(got) ^ set(want), [k for k in got if k in want and got[k] != want[k]])
-    g = torch.Generator().manual_seed(0)
-    P = {k: (torch.ones(s, dtype=torch.float64) if k.endswith(("norm1.weight", "norm2.weight",
-         "norm.weight", "norm_out.weight")) else 0.05 * torch.randn(s, generator=g, dtype=torch.float64)
-         ).requires_grad_() for k, s in got.items()}
-    buffers = {"quantize.embeddings": (torch.rand(cfg.embed_dim, cfg.n_embed, generator=g,
-               dtype=torch.float64) * 2 - 1) * 3 ** 0.5,
-               "quantize.ema_cluster_size_hidden": torch.zeros(cfg.n_embed, dtype=torch.float64),
-               "quantize.ema_dw_hidden": torch.zeros(cfg.embed_dim, cfg.n_embed, dtype=torch.float64),
-               "quantize.counter": 0}
-    x = torch.rand(2, 3, 64, 64, generator=g, dtype=torch.float64) * 2 - 1
-    out = forward(P, buffers, x, cfg)
-    assert out["codes"].shape == (2, 8, 8) and out["reconstruction"].shape == (2, 3, 64, 64)
-    assert out["z"].shape == (2, cfg.embed_dim, 8, 8)
-    for k in ("reconstruction", "z", "rec_loss", "commitment_loss", "loss"):
-        assert torch.isfinite(out[k]).all(), k
-    out["loss"].backward()
-    missing = [k for k, p in P.items() if p.grad is None or not torch.isfinite(p.grad).all()]
-    assert not missing, missing
-    nb = out["buffers"]
-    assert nb["quantize.counter"] == 1 and torch.isfinite(nb["quantize.embeddings"]).all()
-    print("ok:", len(P), "parameters, loss", out["loss"].item(), "codes used",
-          out["codes"].unique().numel())

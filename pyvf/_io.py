@@ -1,0 +1,140 @@
+"""Files that survive a killed process: atomic writes, and reads that name the broken file.
+
+    atomic_savez("run/checkpoint.npz", step=np.array(3), w=w)     # all or nothing
+    atomic_write_text("run/config.json", json.dumps(cfg))
+    arrays = load_npz("run/checkpoint.npz", "checkpoint", required=("step",))
+
+An atomic write goes to a temporary file in the destination's folder (same file system, so
+the rename is atomic), is flushed and fsync'ed, then os.replace'd over the destination, and
+the folder is fsync'ed so the rename itself is on disk. A process killed at any moment leaves
+either the previous file or the new one, never a mix; an exception (KeyboardInterrupt
+included) removes the temporary file. Only SIGKILL or a power cut can leave one behind:
+remove_stale_temps(path) clears those (they are named `.{name}.{pid}.{random}.tmp`).
+"""
+
+import os
+import secrets
+import zipfile
+
+import numpy as np
+
+__all__ = ["CheckpointError", "atomic_savez", "atomic_write_text", "load_npz", "remove_stale_temps"]
+
+
+class CheckpointError(ValueError):
+    """A file pyvf wrote cannot be read back: truncated, corrupt, or missing an entry.
+    The message names the file (and the entry where one is at fault)."""
+
+
+def _temp_name(path):
+    folder, name = os.path.split(os.path.abspath(path))
+    return os.path.join(folder, f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+
+
+def _fsync_dir(folder):
+    """Make a rename in `folder` durable (POSIX); a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _atomic_write(path, write):
+    """Call write(binary file object) on a temporary file, then move it over `path`."""
+    path = os.fspath(path)
+    tmp = _temp_name(path)
+    # os.open with 0o666 honours the umask, as open(path, "wb") would (mkstemp would force 0600)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    _fsync_dir(os.path.dirname(os.path.abspath(path)))
+
+
+def atomic_savez(path, **arrays):
+    """np.savez(path, **arrays), atomically; `path` is written as given (no ".npz" appended).
+
+    Every value must convert to a non-object array (a str becomes a 0-d unicode array), so
+    that the file loads with allow_pickle=False: an object array raises TypeError naming it."""
+    checked = {}
+    for key, value in arrays.items():
+        a = np.asarray(value)
+        if a.dtype.hasobject:
+            raise TypeError(f"atomic_savez: {key!r} is an object array (it would need pickle); "
+                            "store numbers, strings (e.g. JSON) or arrays of them")
+        checked[key] = a
+    _atomic_write(path, lambda f: np.savez(f, **checked))
+
+
+def atomic_write_text(path, text, encoding="utf-8"):
+    """Write the str `text` to `path`, atomically."""
+    if not isinstance(text, str):
+        raise TypeError(f"text must be a str, got {type(text).__name__}")
+    data = text.encode(encoding)
+    _atomic_write(path, lambda f: f.write(data))
+
+
+def load_npz(path, what="file", required=()):
+    """Every array of the .npz at `path`, read now (the file is closed on return): dict name -> array.
+
+    what: how the error messages call the file ("checkpoint", "codebook", ...).
+    required: entries that must be present. A missing file raises FileNotFoundError; a
+    truncated or corrupt one, or a missing entry, CheckpointError (a ValueError); both name
+    the file, and the entry being read when it broke. Opened with allow_pickle=False."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{what} {path} does not exist")
+    entry = None
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            if not isinstance(f, np.lib.npyio.NpzFile):
+                raise CheckpointError(f"{what} {path} is a single .npy array, not an .npz archive")
+            out = {}
+            for entry in f.files:
+                out[entry] = f[entry]
+    except CheckpointError:
+        raise
+    except (zipfile.BadZipFile, EOFError, ValueError, KeyError, OSError) as e:
+        where = f" (entry {entry!r})" if entry is not None else ""
+        raise CheckpointError(f"{what} {path} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
+    missing = [k for k in required if k not in out]
+    if missing:
+        raise CheckpointError(f"{what} {path} lacks the entries {missing}: not a {what} written by pyvf, "
+                              "or written by another version")
+    return out
+
+
+def remove_stale_temps(path):
+    """Remove the temporary files an atomic write of `path` left behind when its process was
+    killed outright (SIGKILL, power cut). Call it only where no other process writes `path`.
+    Returns the names removed."""
+    folder, name = os.path.split(os.path.abspath(os.fspath(path)))
+    prefix = f".{name}."
+    removed = []
+    try:
+        entries = os.listdir(folder)
+    except FileNotFoundError:
+        return removed
+    for entry in entries:
+        if entry.startswith(prefix) and entry.endswith(".tmp"):
+            try:
+                os.unlink(os.path.join(folder, entry))
+                removed.append(entry)
+            except FileNotFoundError:
+                pass
+    return removed

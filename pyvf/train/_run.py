@@ -1,0 +1,295 @@
+"""What every training loop shares: the run folder, its checkpoint, log, config and progress bar.
+
+A run folder holds
+
+    checkpoint.npz   the last checkpoint (atomic): model state, optimiser state, step, config
+    log.csv          one row per logged step; rows past the checkpoint are dropped on resume
+    config.json      the run's configuration, hyperparameters, and each call's command line (atomic)
+    <final>.npz      the trained model, loadable by Codebook.load / Transformer.load (atomic)
+
+Checkpoint layout (one .npz, allow_pickle=False):
+
+    __meta__                     JSON: kind, step, config, hyper, optimizer step and
+                                 hyperparameters, elapsed seconds
+    model/<name>                 the model's state_dict() (the codebook's EMA buffers included)
+    optimizer/exp_avg/<name>     Adam's first moments
+    optimizer/exp_avg_sq/<name>  Adam's second moments
+
+Resuming is exact because nothing else carries state between steps: every batch is a pure
+function of (seed, step) and the schedule a pure function of the optimiser's step count.
+`hyper` holds everything else the trajectory depends on (learning rate, batch size, seed,
+a fingerprint of the data...): a resume with other values raises instead of silently
+continuing another run.
+"""
+
+import csv
+import hashlib
+import io
+import json
+import os
+import time
+
+import numpy as np
+
+from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
+
+CHECKPOINT, LOG, CONFIG = "checkpoint.npz", "log.csv", "config.json"
+FORMAT_VERSION = 1
+
+
+def jsonable(x):
+    """x with tuples as lists, as it reads back from JSON (so saved and current values compare)."""
+    return json.loads(json.dumps(x))
+
+
+def fingerprint(*arrays):
+    """A short hash of the arrays' shapes, dtypes and bytes: the data a run was trained on."""
+    h = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
+
+
+def integer(name, x, lo=1):
+    """x: a Python or NumPy integer >= lo -> int. Errors name the argument."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {type(x).__name__} {x!r}")
+    if x < lo:
+        raise ValueError(f"{name} must be >= {lo}, got {x!r}")
+    return int(x)
+
+
+def positive_int(name, x):
+    return integer(name, x, 1)
+
+
+def real(name, x, lo=0.0):
+    """x: a finite real number >= lo -> float. Errors name the argument."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be a real number, got {type(x).__name__} {x!r}")
+    if not (np.isfinite(x) and x >= lo):
+        raise ValueError(f"{name} must be finite and >= {lo}, got {x!r}")
+    return float(x)
+
+
+def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed):
+    """Write the checkpoint atomically: a killed process leaves the previous one intact."""
+    opt = optimizer.state_dict()
+    meta = {"format": "pyvf-checkpoint", "version": FORMAT_VERSION, "kind": kind, "step": int(step),
+            "config": config, "hyper": hyper, "elapsed": float(elapsed),
+            "optimizer": {"step": int(opt["step"]), "hyperparameters": opt["hyperparameters"]}}
+    arrays = {"__meta__": json.dumps(meta)}
+    arrays.update({"model/" + k: v for k, v in model_state.items()})
+    for key in ("exp_avg", "exp_avg_sq"):
+        arrays.update({f"optimizer/{key}/{k}": v for k, v in opt[key].items()})
+    atomic_savez(path, **arrays)
+
+
+def read_checkpoint(path, kind):
+    """-> (meta dict, model state dict, optimizer state dict for load_state_dict)."""
+    arrays = load_npz(path, "checkpoint", required=("__meta__",))
+    try:
+        meta = json.loads(str(arrays.pop("__meta__")))
+        ok = isinstance(meta, dict) and meta.get("format") == "pyvf-checkpoint"
+    except (json.JSONDecodeError, TypeError) as e:
+        raise CheckpointError(f"checkpoint {path}: entry '__meta__' is not valid JSON ({e})") from e
+    if not ok:
+        raise CheckpointError(f"checkpoint {path}: '__meta__' is not a pyvf checkpoint's")
+    if meta.get("version") != FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {path} has format version {meta.get('version')!r}; "
+                              f"this pyvf reads version {FORMAT_VERSION}")
+    lacking = [k for k in ("kind", "step", "config", "hyper", "elapsed", "optimizer") if k not in meta]
+    if lacking:
+        raise CheckpointError(f"checkpoint {path}: '__meta__' lacks {lacking}")
+    if meta.get("kind") != kind:
+        raise ValueError(f"checkpoint {path} is a {meta.get('kind')!r} run, not a {kind!r} run: "
+                         "use another output folder")
+    model, opt = {}, {"exp_avg": {}, "exp_avg_sq": {}}
+    for name, a in arrays.items():
+        if name.startswith("model/"):
+            model[name[len("model/"):]] = a
+        elif name.startswith("optimizer/exp_avg/"):
+            opt["exp_avg"][name[len("optimizer/exp_avg/"):]] = a
+        elif name.startswith("optimizer/exp_avg_sq/"):
+            opt["exp_avg_sq"][name[len("optimizer/exp_avg_sq/"):]] = a
+        else:
+            raise CheckpointError(f"checkpoint {path}: unexpected entry {name!r}")
+    opt["step"] = meta["optimizer"]["step"]
+    opt["hyperparameters"] = meta["optimizer"]["hyperparameters"]
+    return meta, model, opt
+
+
+def _diff(saved, now):
+    return sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+
+
+class Run:
+    """The run folder of one call of a training loop.
+
+        run = Run(out_dir, "codebook", config_dict, hyper, LOG_COLUMNS, final="codebook.npz", steps=..., ...)
+        if run.resumed: run.restore("model", model.load_official, run.model_state)
+        optimizer = Adam(model.params, ...)                          # after: load_official replaces params
+        if run.resumed: run.restore("optimizer", optimizer.load_state_dict, run.optimizer_state)
+        with run:
+            for t in run.steps():              # run.start + 1 .. steps
+                ...                            # one update
+                run.log(t, {"loss": ...})      # every log_every steps and the last
+                if run.checkpoint_due(t):
+                    run.save(t, model.state_dict(), optimizer)
+        run.save_final(model.state_dict())
+
+    config and hyper are JSON-able dicts; a resume checks both against the checkpoint's.
+    """
+
+    def __init__(self, out_dir, kind, config, hyper, columns, *, final, steps, resume, progress,
+                 checkpoint_every, log_every, call=None):
+        self.steps_total = positive_int("steps", steps)
+        self.checkpoint_every = positive_int("checkpoint_every", checkpoint_every)
+        self.log_every = positive_int("log_every", log_every)
+        self.kind, self.config, self.hyper = kind, jsonable(config), jsonable(hyper)
+        self.columns = ["step", *columns, "seconds"]
+        self.progress = bool(progress)
+        self.out_dir = os.fspath(out_dir)
+        os.makedirs(self.out_dir, exist_ok=True)
+        self.ckpt_path = os.path.join(self.out_dir, CHECKPOINT)
+        self.log_path = os.path.join(self.out_dir, LOG)
+        self.config_path = os.path.join(self.out_dir, CONFIG)
+        self.final_path = os.path.join(self.out_dir, final)
+        for path in (self.ckpt_path, self.log_path, self.config_path, self.final_path):
+            remove_stale_temps(path)  # left by a process killed mid-write
+
+        self.start, self.elapsed0 = 0, 0.0
+        self.model_state = self.optimizer_state = None
+        if resume and os.path.exists(self.ckpt_path):
+            meta, self.model_state, self.optimizer_state = read_checkpoint(self.ckpt_path, kind)
+            for what, saved, now in (("configuration", meta["config"], self.config),
+                                     ("hyperparameters", meta["hyper"], self.hyper)):
+                if saved != now:
+                    raise ValueError(
+                        f"checkpoint {self.ckpt_path} was written with another {what} "
+                        f"(differs in {_diff(saved, now)}): resuming would not continue that run. "
+                        f"Pass the saved values {{{', '.join(f'{k}: {saved.get(k)!r}' for k in _diff(saved, now))}}}, "
+                        "another output folder, or resume=False (--no-resume) to start over")
+            self.start, self.elapsed0 = int(meta["step"]), float(meta["elapsed"])
+            if self.start > self.steps_total:
+                raise ValueError(f"checkpoint {self.ckpt_path} is at step {self.start}, past steps={steps}: "
+                                 "ask for at least as many steps, or start over with resume=False")
+        self.resumed = self.model_state is not None
+        if not self.resumed:
+            # starting over: an older run's checkpoint must not be resumed later, nor its model kept
+            for path in (self.ckpt_path, self.final_path):
+                if os.path.exists(path):
+                    os.remove(path)
+        self._write_config(call)
+        self._truncate_log()
+        self._log_file = self._bar = None
+        self._t0 = time.perf_counter()
+
+    def restore(self, what, load, state):
+        """load(state) (model.load_official, optimizer.load_state_dict): a state that does not
+        fit raises CheckpointError naming the checkpoint."""
+        try:
+            load(state)
+        except (ValueError, TypeError) as e:
+            raise CheckpointError(f"checkpoint {self.ckpt_path}: its {what} does not load: {e}") from e
+
+    def _write_config(self, call):
+        """config.json: the configuration, hyperparameters, and one entry per call of the run
+        (a resume appends one: its command line, steps, the step it resumed from)."""
+        calls = []
+        if self.resumed and os.path.exists(self.config_path):
+            try:
+                with open(self.config_path, encoding="utf-8") as f:
+                    calls = list(json.load(f).get("calls", []))
+            except (OSError, ValueError, AttributeError, TypeError):
+                calls = []  # unreadable: the checkpoint, not this file, is the run's state
+        calls.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "steps": self.steps_total,
+                      "resumed_from_step": self.start if self.resumed else None,
+                      "checkpoint_every": self.checkpoint_every, "log_every": self.log_every,
+                      "numpy": np.__version__, **jsonable(call or {})})
+        atomic_write_text(self.config_path, json.dumps(
+            {"kind": self.kind, "config": self.config, "hyperparameters": self.hyper, "calls": calls},
+            indent=2) + "\n")
+
+    # -----------------------------------------------------------------------------------
+    # the log
+
+    def _truncate_log(self):
+        """Keep the header and the rows up to the checkpoint's step (none on a fresh start);
+        a torn last line (a process killed mid-write) is dropped with the rows past it."""
+        kept = []
+        if self.resumed and os.path.exists(self.log_path):
+            with open(self.log_path, newline="", encoding="utf-8") as f:
+                rows = list(csv.reader(f))
+            if rows and rows[0] != self.columns:
+                raise CheckpointError(f"log {self.log_path} has the columns {rows[0]}, expected {self.columns}: "
+                                      "not this run's log")
+            for row in rows[1:]:
+                if len(row) != len(self.columns):
+                    break  # torn
+                try:
+                    step = int(row[0])
+                except ValueError:
+                    break
+                if step > self.start:
+                    break
+                kept.append(row)
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(self.columns)
+        w.writerows(kept)
+        atomic_write_text(self.log_path, buf.getvalue())
+
+    def seconds(self):
+        return self.elapsed0 + (time.perf_counter() - self._t0)
+
+    def log(self, step, values):
+        """values: column -> float. Written every log_every steps and at the last step;
+        the progress bar shows values["loss"] every step."""
+        if self._bar is not None:
+            self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
+        if step % self.log_every and step != self.steps_total:
+            return
+        # repr: floats round-trip exactly, so two runs' logs compare bit for bit
+        row = [str(step)] + [repr(float(values[c])) for c in self.columns[1:-1]] + [f"{self.seconds():.3f}"]
+        csv.writer(self._log_file, lineterminator="\n").writerow(row)
+        self._log_file.flush()
+
+    # -----------------------------------------------------------------------------------
+    # the loop
+
+    def __enter__(self):
+        self._log_file = open(self.log_path, "a", newline="", encoding="utf-8")
+        if self.progress:
+            from tqdm.auto import tqdm
+            self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}",
+                             unit="step", dynamic_ncols=True)
+        return self
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            self._bar.close()
+        self._log_file.close()
+        return False
+
+    def steps(self):
+        """The steps still to run, start + 1 .. steps; advances the progress bar."""
+        for t in range(self.start + 1, self.steps_total + 1):
+            yield t
+            if self._bar is not None:
+                self._bar.update(1)
+
+    def checkpoint_due(self, step):
+        return step % self.checkpoint_every == 0 or step == self.steps_total
+
+    def save(self, step, model_state, optimizer):
+        save_checkpoint(self.ckpt_path, kind=self.kind, step=step, config=self.config, hyper=self.hyper,
+                        model_state=model_state, optimizer=optimizer, elapsed=self.seconds())
+
+    def save_final(self, arrays):
+        """The trained model as Codebook.save / Transformer.save write it: __config__ (the
+        configuration as JSON) and the state dict. Returns its path."""
+        atomic_savez(self.final_path, __config__=json.dumps(self.config), **arrays)
+        return self.final_path

@@ -1,0 +1,175 @@
+"""The training commands of `pyvf`: argument parsing only; the work is in loops.py.
+
+    pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE]
+    pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
+    pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16]
+
+Run again with the same arguments to resume from the run folder's checkpoint (--no-resume
+starts over). --config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the
+configuration's fields, or a run's config.json (its "config" is used).
+Each handler returns an exit status: 0, or 1 after printing the error.
+"""
+
+import dataclasses
+import json
+import os
+import sys
+import zipfile
+
+from ..codebook import Codebook, CodebookConfig
+from ..transformer import TransformerConfig
+from .loops import (
+    TINY_CODEBOOK,
+    _Threads,
+    TINY_TRANSFORMER,
+    load_tokens,
+    save_tokens,
+    tokenize,
+    train_codebook,
+    train_transformer,
+)
+
+
+def _config(value, cls, tiny):
+    """--config: "tiny" or a JSON file -> a cls instance (ValueError naming the file)."""
+    if value == "tiny":
+        return tiny
+    try:
+        with open(value, encoding="utf-8") as f:
+            d = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"--config {value}: cannot read a JSON configuration ({e})") from e
+    if isinstance(d, dict) and isinstance(d.get("config"), dict):  # a run's config.json
+        d = d["config"]
+    if not isinstance(d, dict):
+        raise ValueError(f"--config {value}: expected a JSON object of {cls.__name__} fields")
+    try:
+        return cls(**d)
+    except TypeError as e:  # unknown or missing fields
+        raise ValueError(f"--config {value}: not a {cls.__name__} ({e}); its fields are "
+                         f"{[f.name for f in dataclasses.fields(cls)]}") from e
+
+
+def _load_dataset(path):
+    """pyvf.scenes.load_dataset(path): .images uint8 (scenes, views, Hi, Wi, 3), .poses (scenes, views, 7)."""
+    try:
+        from ..scenes import load_dataset  # imported here: the scenes home is optional for the other commands
+    except ImportError as e:
+        raise ValueError(f"cannot read the dataset {path}: pyvf.scenes is not available ({e})") from e
+    return load_dataset(path)
+
+
+def _record(args):
+    """The command line, for config.json."""
+    return {"argv": list(sys.argv), "args": {k: v for k, v in vars(args).items() if k != "func"}}
+
+
+def _guarded(name, work):
+    """Run work(); a ValueError, TypeError or OSError (bad arguments or files) is printed, status 1."""
+    try:
+        work()
+    except (ValueError, TypeError, OSError) as e:
+        print(f"pyvf {name}: error: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_train_codebook(args):
+    """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
+    def work():
+        config = _config(args.config, CodebookConfig, TINY_CODEBOOK)
+        data = _load_dataset(args.data)
+        train_codebook(data.images, config, args.out, steps=args.steps, batch_size=args.batch, lr=args.lr,
+                       seed=args.seed, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+                       resume=not args.no_resume, progress=not args.no_progress, threads=args.threads,
+                       command=_record(args))
+        print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
+    return _guarded("train-codebook", work)
+
+
+def cmd_tokenize(args):
+    """Encode a dataset's images into token images with a trained codebook."""
+    def work():
+        try:
+            codebook = Codebook.load(args.codebook)
+        except FileNotFoundError as e:
+            raise ValueError(f"codebook {args.codebook} does not exist") from e
+        except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
+            raise ValueError(f"codebook {args.codebook} is not a readable codebook file: "
+                             f"{type(e).__name__}: {e}") from e
+        data = _load_dataset(args.data)
+        with _Threads(args.threads):
+            tokens = tokenize(codebook, data.images, batch_size=args.batch, progress=not args.no_progress)
+        folder = os.path.dirname(os.path.abspath(args.out))
+        os.makedirs(folder, exist_ok=True)
+        save_tokens(args.out, tokens, data.poses, codebook.config.n_embed)
+        print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
+    return _guarded("tokenize", work)
+
+
+def cmd_train_transformer(args):
+    """Train the transformer on a tokenized dataset; resumable."""
+    def work():
+        config = _config(args.config, TransformerConfig, TINY_TRANSFORMER)
+        tokens, poses, n_embed = load_tokens(args.tokens)
+        if config.n_embeddings != n_embed:
+            raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {args.tokens} "
+                             f"was made by a codebook of {n_embed} codes")
+        train_transformer(tokens, poses, config, args.out, steps=args.steps, batch_size=args.batch,
+                          context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
+                          weight_decay=args.weight_decay,
+                          max_grad_norm=None if args.max_grad_norm <= 0 else args.max_grad_norm,
+                          seed=args.seed, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+                          resume=not args.no_resume, progress=not args.no_progress, threads=args.threads,
+                          command=_record(args))
+        print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
+    return _guarded("train-transformer", work)
+
+
+def _run_options(p, batch, checkpoint_every):
+    p.add_argument("--out", required=True, help="run folder: checkpoint.npz, log.csv, config.json, the final model")
+    p.add_argument("--steps", type=int, required=True, help="total updates (a resumed run continues to it)")
+    p.add_argument("--batch", type=int, default=batch, help=f"batch size (default {batch})")
+    p.add_argument("--seed", type=int, default=0, help="initialisation and batches (default 0)")
+    p.add_argument("--config", default="tiny", help='"tiny" (default) or a JSON file of the configuration')
+    p.add_argument("--checkpoint-every", type=int, default=checkpoint_every,
+                   help=f"steps between checkpoints (default {checkpoint_every}; one at the end always)")
+    p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")
+    p.add_argument("--no-resume", action="store_true", help="start over even if the run folder has a checkpoint")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--threads", type=int, default=None, help="threads for pyvf's C++ kernels")
+
+
+def cli_register(subparsers):
+    """Add train-codebook, tokenize and train-transformer to an argparse subparsers object."""
+    p = subparsers.add_parser("train-codebook", help="train the codebook (VQ-VAE) on a dataset; resumable",
+                              description=cmd_train_codebook.__doc__)
+    p.add_argument("--data", required=True, help="dataset folder (pyvf.scenes.load_dataset)")
+    _run_options(p, batch=16, checkpoint_every=200)
+    p.add_argument("--lr", type=float, default=1.584e-3, help="Adam learning rate (default 1.584e-3, published)")
+    p.set_defaults(func=cmd_train_codebook)
+
+    p = subparsers.add_parser("tokenize", help="encode a dataset into token images with a codebook",
+                              description=cmd_tokenize.__doc__)
+    p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
+    p.add_argument("--data", required=True, help="dataset folder (pyvf.scenes.load_dataset)")
+    p.add_argument("--out", required=True, help="tokens .npz to write: tokens, poses, n_embed")
+    p.add_argument("--batch", type=int, default=64, help="images per encoder call (default 64)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--threads", type=int, default=None, help="threads for pyvf's C++ kernels")
+    p.set_defaults(func=cmd_tokenize)
+
+    p = subparsers.add_parser("train-transformer", help="train the transformer on a tokens file; resumable",
+                              description=cmd_train_transformer.__doc__)
+    p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
+    _run_options(p, batch=16, checkpoint_every=200)
+    p.add_argument("--context", type=int, default=None,
+                   help="most context views per sample (default: the configuration's sequence_size - 1)")
+    p.add_argument("--lr", type=float, default=1e-4, help="peak learning rate (default 1e-4, SM7)")
+    p.add_argument("--warmup", type=int, default=None, help="warmup steps (default min(2000, total/10))")
+    p.add_argument("--total-steps", type=int, default=None,
+                   help="length of the cosine schedule (default --steps; keep it when extending a run)")
+    p.add_argument("--weight-decay", type=float, default=0.01, help="AdamW decay (default 0.01)")
+    p.add_argument("--max-grad-norm", type=float, default=1.0, help="per-tensor clipping norm; 0 turns it off")
+    p.set_defaults(func=cmd_train_transformer)
+    return subparsers

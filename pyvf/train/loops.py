@@ -1,0 +1,304 @@
+"""Training loops: the codebook on images, tokenization, the transformer on tokens (SPEC.md §4, §5).
+
+    cb = train_codebook(images, TINY_CODEBOOK, "runs/cb", steps=20_000)  # images (scenes, views, Hi, Wi, 3) uint8
+    tokens = tokenize(cb, images)                                         # (scenes, views, k, k) int16
+    tf = train_transformer(tokens, poses, TINY_TRANSFORMER, "runs/tf", steps=50_000)
+
+Each loop checkpoints its run folder atomically (see _run.py for the layout) every
+`checkpoint_every` steps and at the end, and a call with resume=True continues from the
+checkpoint to exactly the parameters, optimiser moments and EMA buffers an uninterrupted run
+reaches, bit for bit, on the same kernel path (pyvf.show_config: baseline, avx2 and avx512
+may round differently; 1 and 2 threads were measured to give the same bits). That needs
+every batch to be a pure function of (seed, step):
+`codebook_batch` and `transformer_batch` draw from np.random.default_rng([seed, step]), so
+no generator state is saved.
+"""
+
+import dataclasses
+
+import numpy as np
+
+from .._io import atomic_savez, load_npz
+from ..codebook import Codebook, CodebookConfig
+from ..optim import Adam, AdamW, WarmupCosine, published_weight_decay
+from ..transformer import Transformer, TransformerConfig
+from ._run import Run, fingerprint, integer, positive_int, real
+from .step import codebook_train_step, transformer_step
+
+# 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
+# configuration (SPEC.md §4) at a quarter of the channels, one ResnetBlock per level and no
+# attention, so that a step of batch 16 takes about 2 s on 2 cores. 256 codes: SM7 scenes have
+# few colours and one object (the paper's 1024 serve real photographs).
+TINY_CODEBOOK = CodebookConfig(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(),
+                               z_channels=64, embed_dim=64, n_embed=256, image_size=64)
+
+TINY_TRANSFORMER = TransformerConfig(
+    n_embeddings=256,  # = TINY_CODEBOOK.n_embed
+    n_head=4,  # dh = 128 / 4 = 32: half the paper's 64, four heads to keep several attention patterns
+    d_model=128,  # the low end of 128..192: a B=16 step took 2.8 s on 2 cores, d=192 3.9 s
+    n_layer=4,
+    token_image_size=8,  # = TINY_CODEBOOK.token_size: L = 64 tokens per view
+    sequence_size=6,  # SM7 in the paper: context 5, so n = 6 views per sequence
+    n_loss_skip=1,  # view 0 is pure context; every other view is a target with context 1..5
+    pose_multiplier=0.2,  # SM7: positions scaled by 0.2 (SPEC.md §5)
+)
+
+CODEBOOK_LOG = ["loss", "rec_loss", "commitment", "perplexity", "usage", "lr"]
+TRANSFORMER_LOG = ["loss", "ce_loss", "pose_loss", "grad_norm", "lr"]
+
+
+# ---------------------------------------------------------------------------------------
+# data checks and batches
+
+
+def _check_images(images, config):
+    """images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C) -> a (M, Hi, Wi, C) view."""
+    if not isinstance(images, np.ndarray) or images.dtype != np.uint8:
+        raise TypeError(f"images must be a uint8 numpy array, got {getattr(images, 'dtype', type(images).__name__)}")
+    S, C = config.image_size, config.in_channels
+    if images.ndim not in (4, 5) or images.shape[-3:] != (S, S, C) or images.size == 0:
+        raise ValueError(f"images must have shape (scenes, views, {S}, {S}, {C}) or (M, {S}, {S}, {C}) "
+                         f"for this codebook, got {images.shape}")
+    return images.reshape(-1, S, S, C)
+
+
+def _to_model_images(x, dtype):
+    """uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) of dtype in [-1, 1]: x / 127.5 - 1."""
+    x = x.transpose(0, 3, 1, 2).astype(dtype, order="C")  # (B, C, Hi, Wi)
+    x /= dtype.type(127.5)
+    x -= dtype.type(1.0)
+    return x
+
+
+def codebook_batch(images, batch_size, seed, step, dtype="float32"):
+    """Batch of step `step`: batch_size views drawn uniformly (with replacement) from the
+    (M, Hi, Wi, C) uint8 images -> (B, C, Hi, Wi) in [-1, 1]. A pure function of (seed, step)."""
+    rng = np.random.default_rng([seed, step])
+    idx = rng.integers(0, images.shape[0], size=batch_size)  # (B,)
+    return _to_model_images(images[idx], np.dtype(dtype))
+
+
+def _check_tokens_poses(tokens, poses, config):
+    if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu":
+        raise TypeError("tokens must be an integer numpy array, got "
+                        f"{getattr(tokens, 'dtype', type(tokens).__name__)}")
+    k = config.token_image_size
+    if tokens.ndim != 4 or tokens.shape[2:] != (k, k) or tokens.size == 0:
+        raise ValueError(f"tokens must have shape (scenes, views, {k}, {k}), got {tokens.shape}")
+    lo, hi = int(tokens.min()), int(tokens.max())
+    if lo < 0 or hi >= config.n_embeddings:
+        raise ValueError(f"tokens must be in [0, {config.n_embeddings}) (config.n_embeddings), got [{lo}, {hi}]")
+    if not isinstance(poses, np.ndarray) or poses.dtype.kind != "f":
+        raise TypeError(f"poses must be a float numpy array, got {getattr(poses, 'dtype', type(poses).__name__)}")
+    if poses.shape != tokens.shape[:2] + (7,):
+        raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
+    if not np.isfinite(poses).all():
+        raise ValueError("poses contain NaN or inf")
+
+
+def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="float32"):
+    """Batch of step `step`: per sample a scene drawn uniformly, then n_views distinct views
+    of it in random order. tokens (scenes, views, k, k), poses (scenes, views, 7) ->
+    tokens (B, N, L) int64, poses (B, N, 7) of dtype. A pure function of (seed, step)."""
+    rng = np.random.default_rng([seed, step])
+    n_scenes, n_avail = tokens.shape[:2]
+    scenes = rng.integers(0, n_scenes, size=batch_size)  # (B,)
+    order = rng.permuted(np.tile(np.arange(n_avail), (batch_size, 1)), axis=1)  # (B, views): a permutation per row
+    views = order[:, :n_views]  # (B, N)
+    tok = tokens[scenes[:, None], views].reshape(batch_size, n_views, -1).astype(np.int64)  # (B, N, L)
+    pos = poses[scenes[:, None], views].astype(dtype)  # (B, N, 7)
+    return tok, pos
+
+
+class _Threads:
+    """Set the kernels' thread count for a block, then put the previous one back."""
+
+    def __init__(self, n):
+        if n is not None:
+            positive_int("threads", n)
+        self.n, self.old = n, None
+
+    def __enter__(self):
+        if self.n is not None:
+            import pyvf  # at call time: pyvf is imported by then
+            self.old = pyvf.num_threads()
+            pyvf.set_num_threads(int(self.n))
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            import pyvf
+            pyvf.set_num_threads(self.old)
+        return False
+
+
+# ---------------------------------------------------------------------------------------
+# the codebook
+
+
+def train_codebook(images, config, out_dir, *, steps, batch_size=16, lr=1.584e-3, seed=0, checkpoint_every=200,
+                   log_every=10, resume=True, progress=True, threads=None, command=None):
+    """Train a Codebook with Adam(lr, betas (0.5, 0.9)) and the EMA quantizer (SPEC.md §4).
+
+    images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
+    out_dir: the run folder (created): checkpoint.npz, log.csv, config.json, and at the end
+        codebook.npz (Codebook.load reads it).
+    steps: the total number of updates; a resumed run continues to it from its checkpoint.
+    resume: continue from out_dir/checkpoint.npz when there is one (its configuration and
+        hyperparameters must be these); False starts over, overwriting the folder's files.
+    threads: the C++ kernels' thread count during the call (None: as it is).
+    command: JSON-able record of the command line, written to config.json.
+    Returns the trained Codebook."""
+    if not isinstance(config, CodebookConfig):
+        raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
+    flat = _check_images(images, config)  # (M, Hi, Wi, C)
+    batch_size = positive_int("batch_size", batch_size)
+    seed = integer("seed", seed, 0)
+    lr = real("lr", lr)
+    betas = (0.5, 0.9)  # the published codebook's Adam (SPEC.md §4)
+    hyper = {"batch_size": batch_size, "lr": lr, "betas": betas, "seed": seed,
+             "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
+    threads_set = _Threads(threads)  # checked before the run folder is touched
+    run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, final="codebook.npz",
+              steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
+              call={"command": command, "threads": threads})
+
+    model = Codebook(config, seed=seed)
+    if run.resumed:
+        run.restore("model", model.load_official, run.model_state)  # replaces model.params
+    opt = Adam(model.params, lr, betas=betas)  # after the restore: on the params it put in place
+    if run.resumed:
+        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+    with threads_set, run:
+        for t in run.steps():
+            x = codebook_batch(flat, batch_size, seed, t, config.dtype)  # (B, C, Hi, Wi)
+            lr_t = opt.lr_at(opt.step_count)
+            out = codebook_train_step(model, opt, x)
+            run.log(t, {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
+                        "perplexity": out.perplexity, "usage": out.usage, "lr": lr_t})
+            if run.checkpoint_due(t):
+                run.save(t, model.state_dict(), opt)
+    run.save_final(model.state_dict())
+    return model
+
+
+def tokenize(codebook, images, batch_size=64, progress=False):
+    """images uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C) -> codebook.encode's codes,
+    (scenes, views, k, k) or (M, k, k), as int16 (int32 when n_embed > 32768)."""
+    if not isinstance(codebook, Codebook):
+        raise TypeError(f"codebook must be a Codebook, got {type(codebook).__name__}")
+    flat = _check_images(images, codebook.config)  # (M, Hi, Wi, C)
+    batch_size = positive_int("batch_size", batch_size)
+    k = codebook.config.token_size
+    dtype = np.int16 if codebook.config.n_embed <= np.iinfo(np.int16).max + 1 else np.int32
+    out = np.empty((flat.shape[0], k, k), dtype)  # (M, k, k)
+    starts = range(0, flat.shape[0], batch_size)
+    if progress:
+        from tqdm.auto import tqdm
+        starts = tqdm(starts, desc="tokenize", unit="batch")
+    for i in starts:
+        x = _to_model_images(flat[i:i + batch_size], codebook.dtype)  # (b, C, Hi, Wi)
+        out[i:i + batch_size] = codebook.encode(x)  # int64 in [0, n_embed): fits dtype
+    return out.reshape(images.shape[:-3] + (k, k))
+
+
+def save_tokens(path, tokens, poses, n_embed):
+    """Write a tokenized dataset atomically: tokens (scenes, views, k, k) ints in [0, n_embed),
+    poses (scenes, views, 7) floats, and n_embed (the codebook size the tokens index)."""
+    n_embed = positive_int("n_embed", n_embed)
+    if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu" or tokens.ndim != 4:
+        raise TypeError("tokens must be an integer numpy array (scenes, views, k, k)")
+    if not isinstance(poses, np.ndarray) or poses.dtype.kind != "f" or poses.shape != tokens.shape[:2] + (7,):
+        raise ValueError(f"poses must be a float array of shape {tokens.shape[:2] + (7,)}, got "
+                         f"{getattr(poses, 'dtype', None)} {getattr(poses, 'shape', None)}")
+    if tokens.size and (tokens.min() < 0 or tokens.max() >= n_embed):
+        raise ValueError(f"tokens must be in [0, n_embed={n_embed})")
+    atomic_savez(path, tokens=tokens, poses=poses, n_embed=np.int64(n_embed))
+
+
+def load_tokens(path):
+    """Read save_tokens' file -> (tokens (scenes, views, k, k), poses (scenes, views, 7), n_embed)."""
+    f = load_npz(path, "tokens file", required=("tokens", "poses", "n_embed"))
+    return f["tokens"], f["poses"], int(f["n_embed"])
+
+
+# ---------------------------------------------------------------------------------------
+# the transformer
+
+
+def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, context=None, lr=1e-4, warmup=None,
+                      total_steps=None, weight_decay=0.01, max_grad_norm=1.0, clip_mode="per_tensor", seed=0,
+                      checkpoint_every=200, log_every=10, resume=True, progress=True, threads=None, command=None):
+    """Train a Transformer on token images and poses, every context size and both tasks at once
+    (the branching tree, SPEC.md §2-3), with the published optimiser (SPEC.md §5).
+
+    tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: floats (scenes,
+        views, 7), xyz and a unit quaternion wxyz, in any frame (each sample is made relative
+        to its first view).
+    context: the most context views a sample has: a sample is N = context + 1 distinct views
+        of one scene (default config.sequence_size - 1); the tree trains the contexts
+        n_loss_skip..N-1 in the same step.
+    lr, warmup, total_steps: WarmupCosine(lr, warmup, total_steps): linear warmup from 0,
+        then cosine decay to 0 at total_steps (default steps; default warmup
+        min(2000, total_steps // 10): the paper's 2000 steps, shortened for short runs). The
+        schedule is part of the run: to extend a finished run, pass its total_steps.
+    weight_decay: AdamW's decoupled decay on the parameters published_weight_decay selects
+        (all but the biases), Keras' epsilon convention as the published optimiser.
+    max_grad_norm, clip_mode: gradient clipping (None: off); "per_tensor" is the published
+        tf.clip_by_norm, "global" torch's clip_grad_norm_. The logged grad_norm is the global norm.
+    out_dir, resume, seed, threads, command: as train_codebook; the final model is
+        out_dir/transformer.npz (Transformer.load reads it).
+    Returns the trained Transformer."""
+    if not isinstance(config, TransformerConfig):
+        raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
+    _check_tokens_poses(tokens, poses, config)
+    batch_size = positive_int("batch_size", batch_size)
+    steps = positive_int("steps", steps)
+    seed = integer("seed", seed, 0)
+    lr, weight_decay = real("lr", lr), real("weight_decay", weight_decay)
+    n_views = 1 + (config.sequence_size - 1 if context is None else integer("context", context, 0))  # N
+    if n_views <= config.n_loss_skip:
+        raise ValueError(f"context={n_views - 1} leaves no loss target: a sample needs more than "
+                         f"n_loss_skip={config.n_loss_skip} views")
+    if n_views > tokens.shape[1]:
+        raise ValueError(f"context={n_views - 1} needs {n_views} distinct views per scene, "
+                         f"tokens has {tokens.shape[1]}")
+    total_steps = steps if total_steps is None else positive_int("total_steps", total_steps)
+    warmup = min(2000, total_steps // 10) if warmup is None else integer("warmup", warmup, 0)
+    schedule = WarmupCosine(lr, warmup, total_steps)  # checks lr, warmup < total_steps
+    if max_grad_norm is not None and real("max_grad_norm", max_grad_norm) == 0:
+        raise ValueError("max_grad_norm must be positive, or None for no clipping")
+    if clip_mode not in ("global", "per_tensor"):
+        raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {clip_mode!r}")
+    hyper = {"batch_size": batch_size, "views": n_views, "lr": lr, "warmup": int(warmup),
+             "total_steps": total_steps, "weight_decay": weight_decay, "eps": 1e-8, "eps_convention": "keras",
+             "max_grad_norm": None if max_grad_norm is None else float(max_grad_norm), "clip_mode": clip_mode,
+             "seed": seed, "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
+    threads_set = _Threads(threads)
+    run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
+              steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
+              call={"command": command, "threads": threads})
+
+    model = Transformer(config, seed=seed)
+    if run.resumed:
+        run.restore("model", model.load_official, run.model_state)  # replaces model.params
+    # the published optimiser (optim.py): HF AdamWeightDecay over Keras Adam
+    opt = AdamW(model.params, lr=schedule, eps=1e-8, weight_decay=weight_decay, decay=published_weight_decay,
+                eps_convention="keras")
+    if run.resumed:
+        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+    with threads_set, run:
+        for t in run.steps():
+            tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t, config.dtype)
+            # tok (B, N, L), pos (B, N, 7)
+            lr_t = opt.lr_at(opt.step_count)
+            out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=max_grad_norm, clip_mode=clip_mode,
+                                         relative=True)
+            if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
+                norm = float(np.sqrt(sum(n * n for n in norm.values())))
+            run.log(t, {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)),
+                        "pose_loss": float(np.mean(out.pose_loss)),
+                        "grad_norm": np.nan if norm is None else norm, "lr": lr_t})
+            if run.checkpoint_due(t):
+                run.save(t, model.state_dict(), opt)
+    run.save_final(model.state_dict())
+    return model

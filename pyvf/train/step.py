@@ -1,0 +1,56 @@
+"""One training step of the transformer and of the codebook, for a loop to call (SPEC.md §5).
+
+    model = Transformer(cfg)
+    opt = AdamW(model.params, lr=WarmupCosine(1e-4, 2000, 120_000), weight_decay=0.01)
+    for tokens, poses in batches:
+        loss, grad_norm = train_step(model, opt, tokens, poses, max_grad_norm=1.0)
+
+pyvf.train.loops runs these steps with checkpoints (train_transformer, train_codebook).
+"""
+
+from ..geometry import make_relative
+from ..optim import clip_grad_norm
+
+
+def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
+    """train_step, returning everything a training loop logs: (TransformerOutput of the
+    forward before the update, the gradient norm before clipping or None). See train_step."""
+    if optimizer.params is not model.params:
+        raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
+    if relative:
+        poses = make_relative(poses)[0]
+    out = model.forward(tokens, poses)
+    grads = model.backward()
+    norm = None
+    if max_grad_norm is not None:
+        norm = clip_grad_norm(grads, max_grad_norm, mode=clip_mode)
+    optimizer.step(grads)
+    return out, norm
+
+
+def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
+    """forward, backward, optional clipping, optimiser step.
+
+    tokens (B, N, L) ints, poses (B, N, 7). relative=True makes the poses relative to each
+    sequence's first view first (geometry.make_relative), as the published input pipeline
+    does. max_grad_norm: clip the gradients to this norm (clip_mode "global" as
+    torch.nn.utils.clip_grad_norm_, or "per_tensor" as tf.clip_by_norm, the published choice).
+    optimizer must hold model.params (it updates them in place).
+    Returns (loss before the step, the gradient norm before clipping or None).
+    """
+    out, norm = transformer_step(model, optimizer, tokens, poses, max_grad_norm=max_grad_norm,
+                                 clip_mode=clip_mode, relative=relative)
+    return out.loss, norm
+
+
+def codebook_train_step(codebook, optimizer, images):
+    """One codebook step: forward with the EMA update (train=True), backward, optimiser step.
+
+    The published codebook trains with Adam, lr 1.584e-3, betas (0.5, 0.9):
+    `optimizer = Adam(codebook.params, 1.584e-3, betas=(0.5, 0.9))`. The quantizer's codes are
+    not parameters: the EMA moves them. Returns the CodebookOutput of the step (before it)."""
+    if optimizer.params is not codebook.params:
+        raise ValueError("optimizer must be built on codebook.params (Adam(codebook.params, ...))")
+    out = codebook.forward(images, train=True)
+    optimizer.step(codebook.backward())
+    return out

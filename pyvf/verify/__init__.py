@@ -1,0 +1,10 @@
+"""Checking pyvf against other implementations, and bringing their weights in.
+
+    torch_transformer   the transformer written again in torch from SPEC.md §3 (the oracle)
+    torch_codebook      the VQ-VAE codebook written again in torch from SPEC.md §4 (the oracle)
+    convert_tf          a published TensorFlow transformer checkpoint -> pyvf .npz
+    convert_torch       a published torch codebook checkpoint -> pyvf .npz
+
+The torch oracles import torch when imported; this package's __init__ imports none of them, so
+`import pyvf.verify` stays NumPy only.
+"""

@@ -1,0 +1,176 @@
+"""The `pyvf` command after `pip install .`: every command runs from a folder outside the source
+tree (tmp_path), through the installed console script, each benchmark in its --quick mode.
+
+These are the user's commands exactly, run in subprocesses, so what they test is the install:
+that every module the commands need is in the package (no imports from tests/ or tools/, no
+sys.path tricks), that the benchmarks' worker processes find their module, and that `import pyvf`
+does not import torch. About a minute on 2 cores, most of it the four benchmarks.
+"""
+
+import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import pyvf
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TIMEOUT = 300  # seconds per command: a hung benchmark fails instead of stalling the run
+
+
+def clean_env(**extra):
+    """The environment without PYTHONPATH (nothing but the installed pyvf is importable), plus extra."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env.update(extra)
+    return env
+
+
+def pyvf_script():
+    path = shutil.which("pyvf")
+    if path is None:
+        pytest.fail("the `pyvf` console script is not on PATH: install the package (`pip install .`) first")
+    return path
+
+
+def run(args, cwd, env=None):
+    """Run `pyvf *args` in cwd; return the CompletedProcess (text, stdout and stderr captured)."""
+    return subprocess.run([pyvf_script(), *args], cwd=cwd, env=env or clean_env(), capture_output=True,
+                          text=True, timeout=TIMEOUT)
+
+
+def assert_ran(proc, *expected):
+    """Exit status 0 and every expected string in stdout; on failure show the output's tail."""
+    tail = f"\n--- stdout (tail) ---\n{proc.stdout[-3000:]}\n--- stderr (tail) ---\n{proc.stderr[-3000:]}"
+    assert proc.returncode == 0, f"`{' '.join(proc.args[1:])}` exited with {proc.returncode}{tail}"
+    for text in expected:
+        assert text in proc.stdout, f"`{' '.join(proc.args[1:])}` did not print {text!r}{tail}"
+
+
+def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path):
+    code = ("import sys, pyvf, pyvf.cli, pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.transformer, "
+            "pyvf.bench.codebook, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
+            "assert 'torch' not in sys.modules, 'pyvf imported torch'; print(pyvf.__file__)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
+                          text=True, timeout=TIMEOUT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    where = os.path.realpath(proc.stdout.strip())
+    assert not where.startswith(os.path.realpath(REPO) + os.sep), f"imported the source tree: {where}"
+
+
+def test_python_dash_m_pyvf(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "pyvf", "--version"], cwd=tmp_path, env=clean_env(),
+                          capture_output=True, text=True, timeout=TIMEOUT)
+    assert_ran(proc, f"pyvf {pyvf.__version__}")
+
+
+def test_config(tmp_path):
+    assert_ran(run(["config"], tmp_path), "kernel path:", "threads:")
+
+
+def test_demo_small(tmp_path):
+    assert_ran(run(["demo", "--sizes", "small"], tmp_path), "== small:", "all errors within their bounds")
+
+
+def test_demo_unknown_size(tmp_path):
+    proc = run(["demo", "--sizes", "huge"], tmp_path)
+    assert proc.returncode == 2 and "unknown size ['huge']" in proc.stderr, proc.stderr
+
+
+# benchmark -> (its quick arguments, lines it must print)
+BENCH_QUICK = {
+    "attention": (["--quick", "--no-scaling"], ["pyvf bounds:", "torch SDPA / pyvf time:"]),
+    "vq": (["--quick"], ["| pyvf.vq_nearest |", "pyvf at the cancellation offsets"]),
+    "transformer": (["--quick"], ["## tiny:", "first-step loss: pyvf", "| pyvf |"]),
+    "codebook": (["--quick"], ["## tiny:", "loss of the same weights and batch", "| pyvf |"]),
+}
+
+
+@pytest.mark.parametrize("name", BENCH_QUICK)
+def test_bench_quick(name, tmp_path):
+    args, expected = BENCH_QUICK[name]
+    assert_ran(run(["bench", name, *args], tmp_path), *expected)
+
+
+def test_bench_forwards_help(tmp_path):
+    """`pyvf bench NAME --help` is the benchmark's own help (the arguments go to its main)."""
+    assert_ran(run(["bench", "vq", "--help"], tmp_path), "usage: pyvf bench vq", "--quick")
+
+
+def test_convert_torch_codebook(tmp_path):
+    import torch
+    cfg = pyvf.CodebookConfig(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32,
+                              embed_dim=8, n_embed=16, image_size=16)
+    want = pyvf.Codebook(cfg, seed=3).state_dict()
+    sd = {"model." + k: torch.tensor(v) for k, v in want.items()}  # a leading "model." is dropped
+    sd["loss.discriminator.main.0.weight"] = torch.zeros(2)  # not the model's: skipped
+    torch.save({"state_dict": sd, "epoch": 1}, tmp_path / "model.ckpt")
+    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    proc = run(["convert", "torch-codebook", "model.ckpt", "--config", "config.json", "-o", "codebook.npz"],
+               tmp_path)
+    assert_ran(proc, f"wrote codebook.npz: {len(want)} arrays; skipped 1 other keys")
+    got = pyvf.Codebook.load(tmp_path / "codebook.npz").state_dict()
+    assert set(got) == set(want)
+    for name in want:
+        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+
+
+# A stand-in for tensorflow, enough for the converter: tf.train.load_checkpoint(prefix) reads the
+# checkpoint's keys and arrays from prefix + ".npz" (the real one reads model.index, model.data-*).
+FAKE_TENSORFLOW = '''
+import numpy as np
+
+
+class _Reader:
+    def __init__(self, prefix):
+        with np.load(prefix + ".npz") as f:
+            self.tensors = {k: f[k] for k in f.files}
+
+    def get_variable_to_shape_map(self):
+        return {k: list(v.shape) for k, v in self.tensors.items()}
+
+    def get_tensor(self, key):
+        return self.tensors[key]
+
+
+class train:
+    load_checkpoint = _Reader
+'''
+
+
+def test_convert_tf_transformer(tmp_path):
+    """The command end to end, with a stand-in tensorflow module (tensorflow itself is not a test
+    dependency): object-based checkpoint keys, an optimizer slot and the save counter skipped."""
+    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
+                                 sequence_size=5, n_loss_skip=1)
+    want = {k: v.astype(np.float32) for k, v in pyvf.Transformer(cfg, seed=3).state_dict().items()}
+    suffix = "/.ATTRIBUTES/VARIABLE_VALUE"
+    ckpt = {"model/migt/" + k + suffix: v for k, v in want.items()}
+    ckpt["save_counter" + suffix] = np.array(1)
+    ckpt["model/migt/ln_f/gamma/.OPTIMIZER_SLOT/optimizer/m" + suffix] = np.ones(32, np.float32)
+    np.savez(tmp_path / "model.npz", **ckpt)
+    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
+    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text(textwrap.dedent(FAKE_TENSORFLOW))
+    proc = run(["convert", "tf-transformer", "model", "--config", "config.json", "-o", "model_out.npz"],
+               tmp_path, env=clean_env(PYTHONPATH=str(tmp_path / "fake")))
+    assert_ran(proc, f"wrote model_out.npz: {len(want)} arrays; skipped 2 other keys")
+    got = pyvf.Transformer.load(tmp_path / "model_out.npz").state_dict()
+    assert set(got) == set(want)
+    for name in want:
+        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+
+
+def test_convert_tf_transformer_without_tensorflow(tmp_path):
+    """A clear message and exit status 1, not a traceback (tensorflow hidden by a module that fails
+    to import, so that the test runs the same whether tensorflow is installed or not)."""
+    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
+    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text("raise ImportError('no tensorflow here')\n")
+    proc = run(["convert", "tf-transformer", "model", "--config", "config.json", "-o", "out.npz"], tmp_path,
+               env=clean_env(PYTHONPATH=str(tmp_path / "fake")))
+    assert proc.returncode == 1 and "needs tensorflow" in proc.stderr, proc.stderr
