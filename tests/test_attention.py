@@ -967,3 +967,70 @@ def test_exp_underflow_and_minus_inf_give_zero(dtype, lo):
     _core.exp(y, above)
     assert np.all(y >= tiny) and np.all(np.isfinite(y))
     assert_close("exp just above the threshold", y, np.exp(above.astype(np.float64)), 4 * np.finfo(dtype).eps)
+
+
+OOM_WORKER = """
+import resource, sys, numpy as np, pyvf
+H, N, L, dh, headroom = (int(a) for a in sys.argv[1:])
+q = np.random.default_rng(0).standard_normal((1, 1, H, N, L, dh)).astype(np.float32)
+o, lse = pyvf.branching_attention_forward(q, q, q)  # threads started, first-call memory taken
+grads = [np.empty_like(q) for _ in range(3)]  # the outputs exist: only the kernel's own buffers are asked for
+vm = int([l for l in open("/proc/self/status") if l.startswith("VmSize")][0].split()[1]) * 1024
+resource.setrlimit(resource.RLIMIT_AS, (vm + headroom, resource.RLIM_INFINITY))
+try:
+    pyvf._core.attn_backward(*grads, lse, q, q, q, o, q, 1.0)
+    print("no error")
+except MemoryError as e:
+    print("MemoryError:", e)
+resource.setrlimit(resource.RLIMIT_AS, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+small = np.ascontiguousarray(q[:, :, :1, :2, :16, :8])
+print("still running:", pyvf.branching_attention(small, small, small).shape)
+"""
+
+
+@pytest.mark.parametrize("H, N, L, dh, headroom", [
+    (1, 8, 1024, 256, 24 << 20),  # B*H = 1: the backward's per-group dq buffers (7 x 8 MiB) cannot be had
+    (16, 8, 256, 64, 256 << 10),  # B*H = 16: one group; each thread's (1 MiB) buffers fail inside the OpenMP region
+])
+def test_allocation_failure_is_a_memory_error_not_an_abort(H, N, L, dh, headroom, tmp_path):
+    """An allocation that fails inside the kernel, also inside an OpenMP region, raises
+    MemoryError and the interpreter goes on (an exception escaping an OpenMP region would
+    abort the process). The address space is limited in a subprocess so that it fails."""
+    import subprocess
+    import sys
+    proc = subprocess.run([sys.executable, "-c", OOM_WORKER, str(H), str(N), str(L), str(dh), str(headroom)],
+                          cwd=tmp_path, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "MemoryError: branching_attention: not enough memory" in proc.stdout, proc.stdout
+    assert "still running: (1, 1, 1, 2, 16, 8)" in proc.stdout
+
+
+MEMORY_WORKER = """
+import sys, numpy as np, pyvf
+from pyvf.measure import peak_memory
+L = int(sys.argv[1])
+q = np.random.default_rng(0).standard_normal((1, 1, 1, 2, L, 1)).astype(np.float32)
+small = np.ascontiguousarray(q[..., :8, :])
+pyvf.branching_attention_backward(small, small, small, small, *pyvf.branching_attention_forward(small, small, small))
+(o, lse), fwd = peak_memory(lambda: pyvf.branching_attention_forward(q, q, q))
+_, bwd = peak_memory(lambda: pyvf.branching_attention_backward(q, q, q, q, o, lse))
+print(fwd, bwd)
+"""
+
+
+def test_memory_is_bounded_for_long_views(tmp_path):
+    """q of shape (1, 1, 1, 2, L, 1): a per-thread (L, L) logit buffer would be L^2 * 4 bytes
+    (64 MiB at L = 4096, 64 GiB at L = 131072); the kernel works in tiles of 256 x 256, so the
+    extra memory is the outputs plus O(threads x (256^2 + R*N*L*dh)). Measured at L = 4096:
+    0.5 MiB forward, 1.8 MiB backward."""
+    import subprocess
+    import sys
+    L = 4096
+    out = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(L)], cwd=tmp_path,
+                         capture_output=True, text=True, check=True).stdout
+    fwd, bwd = (int(x) for x in out.split())
+    outputs = 2 * L * 4 + 2 * L * 8  # o, lse
+    per_thread = 4 * (8 * 256 * 256 + 6 * 2 * L)  # tiles and per-view buffers, generously
+    bound = 3 * outputs + 4 * per_thread + (4 << 20)
+    assert fwd <= bound and bwd <= bound + 3 * 2 * L * 4, (fwd, bwd, bound)
+    assert bwd < L * L * 4 // 8  # far below one (L, L) buffer

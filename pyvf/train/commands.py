@@ -82,7 +82,7 @@ def cmd_train_codebook(args):
         train_codebook(data.images, config, args.out, steps=args.steps, batch_size=args.batch, lr=args.lr,
                        seed=args.seed, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
                        resume=not args.no_resume, progress=not args.no_progress, threads=args.threads,
-                       command=_record(args))
+                       command=_record(args), reset_dead_codes=args.reset_dead_codes)
         print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
     return _guarded("train-codebook", work)
 
@@ -147,6 +147,9 @@ def cli_register(subparsers):
     p.add_argument("--data", required=True, help="dataset folder (pyvf.scenes.load_dataset)")
     _run_options(p, batch=16, checkpoint_every=200)
     p.add_argument("--lr", type=float, default=1.584e-3, help="Adam learning rate (default 1.584e-3, published)")
+    p.add_argument("--reset-dead-codes", type=int, default=0, metavar="EVERY",
+                   help="every EVERY steps move unused codes to random encoder outputs (default 0: never, "
+                        "as published; a small codebook can collapse onto a few codes without it)")
     p.set_defaults(func=cmd_train_codebook)
 
     p = subparsers.add_parser("tokenize", help="encode a dataset into token images with a codebook",

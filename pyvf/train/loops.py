@@ -136,7 +136,7 @@ class _Threads:
 
 
 def train_codebook(images, config, out_dir, *, steps, batch_size=16, lr=1.584e-3, seed=0, checkpoint_every=200,
-                   log_every=10, resume=True, progress=True, threads=None, command=None):
+                   log_every=10, resume=True, progress=True, threads=None, command=None, reset_dead_codes=0):
     """Train a Codebook with Adam(lr, betas (0.5, 0.9)) and the EMA quantizer (SPEC.md §4).
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
@@ -147,6 +147,11 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, lr=1.584e-3
         hyperparameters must be these); False starts over, overwriting the folder's files.
     threads: the C++ kernels' thread count during the call (None: as it is).
     command: JSON-able record of the command line, written to config.json.
+    reset_dead_codes: every this many steps (0: never, the published behaviour), codes whose
+        EMA cluster size fell below 1e-3 are moved to random encoder outputs of that step's
+        batch (EMAQuantizer.reset_dead_codes, its randomness from (seed, step), so a resumed
+        run stays exact). Without it a small codebook trained from the uniform initialisation
+        can collapse onto a few codes (measured on SM7: 9 of 256 codes in use at step 80).
     Returns the trained Codebook."""
     if not isinstance(config, CodebookConfig):
         raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
@@ -155,7 +160,8 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, lr=1.584e-3
     seed = integer("seed", seed, 0)
     lr = real("lr", lr)
     betas = (0.5, 0.9)  # the published codebook's Adam (SPEC.md §4)
-    hyper = {"batch_size": batch_size, "lr": lr, "betas": betas, "seed": seed,
+    reset_dead_codes = integer("reset_dead_codes", reset_dead_codes, 0)
+    hyper = {"batch_size": batch_size, "lr": lr, "betas": betas, "seed": seed, "reset_dead_codes": reset_dead_codes,
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
     threads_set = _Threads(threads)  # checked before the run folder is touched
     run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, final="codebook.npz",
@@ -173,6 +179,9 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, lr=1.584e-3
             x = codebook_batch(flat, batch_size, seed, t, config.dtype)  # (B, C, Hi, Wi)
             lr_t = opt.lr_at(opt.step_count)
             out = codebook_train_step(model, opt, x)
+            if reset_dead_codes and t % reset_dead_codes == 0:
+                z = model._encoder([], x)  # (B, D, k, k) with the updated weights
+                model.quantizer.reset_dead_codes(z, rng=np.random.default_rng([seed, t, 1]))
             run.log(t, {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
                         "perplexity": out.perplexity, "usage": out.usage, "lr": lr_t})
             if run.checkpoint_due(t):
