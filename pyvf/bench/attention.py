@@ -308,6 +308,41 @@ def run_scaling(Ns, R, B, H, L, dh, threads, calls=2):
 # printing
 
 
+def path_times(q, k, v, do, repeat, f_fwd, f_fb, gemm):
+    """Forward and forward+backward times of pyvf on every kernel path this process can use,
+    each validated first against the current path's result (the same math, other rounding)."""
+    out = {}
+    o_ref = pyvf.branching_attention(q, k, v)
+    for path in pyvf.kernel_paths():
+        with pyvf.use_kernel_path(path):
+            fwd, fwd_bwd = pyvf_fns(q, k, v, do)
+            err = rel_err(fwd(), o_ref)
+            if err > BOUND32:
+                raise RuntimeError(f"path {path}: forward differs from the default path by {err:.2e} > {BOUND32}")
+            t_f = consecutive_times({"f": fwd}, repeat)["f"][0]
+            t_fb = consecutive_times({"fb": fwd_bwd}, repeat)["fb"][0]
+        out[path] = dict(fwd=t_f, fwd_bwd=t_fb, fwd_gflops=f_fwd / t_f / 1e9, fwd_bwd_gflops=f_fb / t_fb / 1e9,
+                         fwd_of_gemm=f_fwd / t_f / 1e9 / gemm, fwd_bwd_of_gemm=f_fb / t_fb / 1e9 / gemm)
+    return out
+
+
+def backward_thread_scaling(R, N, L, dh, threads, repeat):
+    """The backward alone at B = H = 1 on 1 thread and on `threads`: it splits one head's key
+    blocks into groups, so it uses every thread even with a single head."""
+    q, k, v, do = make_inputs(R, 1, 1, N, L, dh, seed=1)
+    o, lse = pyvf.branching_attention_forward(q, k, v)
+    bwd = lambda: pyvf.branching_attention_backward(do, q, k, v, o, lse)  # noqa: E731
+    res = {}
+    try:
+        for n in (1, threads):
+            pyvf.set_num_threads(n)
+            res[n] = consecutive_times({"b": bwd}, repeat)["b"][0]
+    finally:
+        pyvf.set_num_threads(threads)
+    groups = min(8, 16, R * N)
+    return dict(t1=res[1], tn=res[threads], speedup=res[1] / res[threads], groups=groups)
+
+
 def table(header, rows):
     """A markdown table; every cell already a string."""
     widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
@@ -539,7 +574,21 @@ def main(argv=None):
     if "flex_fwd" in times:
         report["ratio_torch_over_pyvf"]["flex_fwd"] = times["flex_fwd"][0] / times["pyvf_fwd"][0]
 
-    # ---- 5. memory scaling ---------------------------------------------------------------
+    # ---- per kernel path, and the backward's thread scaling ---------------------------------
+    print(f"\n## {section()}. pyvf on each kernel path this CPU runs (same inputs, medians of {args.repeat}), "
+          "and the backward's thread scaling at B = H = 1\n")
+    report["paths"] = paths = path_times(q, k, v, do, args.repeat, f_fwd, f_fb, gemm)
+    print(table(["path", "forward", "GFLOP/s", "% of GEMM", "forward+backward", "GFLOP/s", "% of GEMM"],
+                [[p, ms(r["fwd"]), f"{r['fwd_gflops']:.1f}", f"{r['fwd_of_gemm']:.0%}", ms(r["fwd_bwd"]),
+                  f"{r['fwd_bwd_gflops']:.1f}", f"{r['fwd_bwd_of_gemm']:.0%}"] for p, r in paths.items()]))
+    print(f"(GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s, the same for every row; "
+          "PYVF_ISA=<path> runs the whole benchmark on one path)")
+    report["backward_thread_scaling"] = sc = backward_thread_scaling(R, N, L, dh, args.threads, args.repeat)
+    print(f"backward at R={R} B=1 H=1 N={N} L={L} dh={dh}: 1 thread {ms(sc['t1'])}, {args.threads} threads "
+          f"{ms(sc['tn'])}: {sc['speedup']:.2f}x (the key blocks of one head are split into "
+          f"{sc['groups']} groups of tasks)")
+
+    # ---- memory scaling ---------------------------------------------------------------------
     if not args.no_scaling:
         Ns = QUICK_SCALING_N if args.quick else SCALING_N
         Hs = args.scaling_heads or H
