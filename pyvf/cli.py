@@ -1,9 +1,11 @@
 """pyvf's command line: the console script `pyvf <command>`, or `python -m pyvf <command>`.
 
-    pyvf demo                                   # branching attention: error, time, memory; ~1 minute
-    pyvf demo --sizes small                     # seconds
+    pyvf demo                                   # the pretrained models on held-out scenes; ~2 minutes
+    pyvf demo --quick                           # seconds
+    pyvf evaluate --scenes 200 --context 1,3,5 --out eval [--codebook F --transformer F]
     pyvf config                                 # the kernels' instruction-set path, threads
     pyvf bench attention|vq|transformer|codebook [--quick] [...]   # `pyvf bench NAME --help`
+    pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
     pyvf convert tf-transformer path/model --config config.json -o model.npz
     pyvf convert torch-codebook model.ckpt --config config.json -o codebook.npz
 
@@ -20,11 +22,13 @@ import sys
 
 import pyvf
 from pyvf.bench import attention as bench_attention
+from pyvf.evaluate import cli_register as evaluate_commands
 from pyvf.scenes import cli_register as scenes_commands
 from pyvf.train import cli_register as train_commands
 from pyvf.verify import convert_tf, convert_torch
 
 BENCHMARKS = ("attention", "vq", "transformer", "codebook")  # modules of pyvf.bench
+DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
 # name -> (the converter's module, what its checkpoint argument is, what its config is)
 CONVERTERS = {
     "tf-transformer": (convert_tf, "checkpoint prefix, e.g. path/model (beside model.index)", "TransformerConfig"),
@@ -32,12 +36,21 @@ CONVERTERS = {
 }
 
 
-def cmd_demo(args):
+def cmd_demo_attention(argv):
     """Branching attention at a few sizes: error against the dense reference, time, memory."""
+    p = argparse.ArgumentParser(prog=f"pyvf bench {DEMO_ATTENTION}", description=cmd_demo_attention.__doc__)
+    p.add_argument("--threads", type=int, default=None,
+                   help="threads for pyvf's C++ kernels (default: OpenMP's, OMP_NUM_THREADS or all cores)")
+    sizes = ", ".join(bench_attention.DEMO_SIZES)
+    p.add_argument("--sizes", default=",".join(bench_attention.DEMO_SIZES),
+                   help=f"comma-separated sizes to run, from {sizes} (default: all)")
+    args = p.parse_args(argv)
+    if args.threads is not None and args.threads < 1:
+        p.error("--threads must be a positive integer")
     names = [s.strip() for s in args.sizes.split(",") if s.strip()]
     unknown = [s for s in names if s not in bench_attention.DEMO_SIZES]
     if unknown or not names:
-        print(f"pyvf demo: unknown size {unknown or args.sizes!r}; "
+        print(f"pyvf bench {DEMO_ATTENTION}: unknown size {unknown or args.sizes!r}; "
               f"choose from {', '.join(bench_attention.DEMO_SIZES)}", file=sys.stderr)
         return 2
     return bench_attention.demo(names, threads=args.threads)
@@ -51,6 +64,8 @@ def cmd_config(args):
 
 def cmd_bench(args):
     """Run one benchmark of pyvf.bench; the arguments after its name go to its main()."""
+    if args.name == DEMO_ATTENTION:
+        return cmd_demo_attention(args.args)
     module = importlib.import_module(f"pyvf.bench.{args.name}")
     return module.main(args.args)
 
@@ -75,23 +90,16 @@ def build_parser():
         prog="pyvf", description="pyvf: a reference implementation of ViewFormer (ECCV 2022).")
     parser.add_argument("--version", action="version", version=f"pyvf {pyvf.__version__}")
     commands = parser.add_subparsers(dest="command", metavar="command")
-
-    p = commands.add_parser("demo", help="branching attention: error, time and memory against the dense reference",
-                            description=cmd_demo.__doc__)
-    p.add_argument("--threads", type=int, default=None,
-                   help="threads for pyvf's C++ kernels (default: OpenMP's, OMP_NUM_THREADS or all cores)")
-    sizes = ", ".join(bench_attention.DEMO_SIZES)
-    p.add_argument("--sizes", default=",".join(bench_attention.DEMO_SIZES),
-                   help=f"comma-separated sizes to run, from {sizes} (default: all)")
-    p.set_defaults(func=cmd_demo)
+    evaluate_commands(commands)  # demo and evaluate (pyvf/evaluate/commands.py), first in the help
 
     p = commands.add_parser("config", help="which instruction-set path the kernels use, and the threads",
                             description=cmd_config.__doc__)
     p.set_defaults(func=cmd_config)
 
-    p = commands.add_parser("bench", help="a benchmark: " + ", ".join(BENCHMARKS) + " (--quick: well under a minute)",
+    p = commands.add_parser("bench", help="a benchmark: " + ", ".join(BENCHMARKS) + " (--quick: well under a minute)"
+                            f"; {DEMO_ATTENTION}: the attention kernel's error, time and memory at a few sizes",
                             description=cmd_bench.__doc__ + " `pyvf bench NAME --help` lists its options.")
-    p.add_argument("name", choices=BENCHMARKS, help="which benchmark")
+    p.add_argument("name", choices=BENCHMARKS + (DEMO_ATTENTION,), help="which benchmark")
     p.add_argument("args", nargs=argparse.REMAINDER, help="the benchmark's own options, e.g. --quick")
     p.set_defaults(func=cmd_bench)
 

@@ -73,12 +73,15 @@ def test_config(tmp_path):
     assert_ran(run(["config"], tmp_path), "kernel path:", "threads:")
 
 
-def test_demo_small(tmp_path):
-    assert_ran(run(["demo", "--sizes", "small"], tmp_path), "== small:", "all errors within their bounds")
+def test_demo_attention_small(tmp_path):
+    """The branching-attention demo (before `pyvf demo` became the pretrained models' demo,
+    tested in test_evaluate.py)."""
+    assert_ran(run(["bench", "demo-attention", "--sizes", "small"], tmp_path), "== small:",
+               "all errors within their bounds")
 
 
-def test_demo_unknown_size(tmp_path):
-    proc = run(["demo", "--sizes", "huge"], tmp_path)
+def test_demo_attention_unknown_size(tmp_path):
+    proc = run(["bench", "demo-attention", "--sizes", "huge"], tmp_path)
     assert proc.returncode == 2 and "unknown size ['huge']" in proc.stderr, proc.stderr
 
 

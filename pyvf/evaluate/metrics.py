@@ -1,0 +1,158 @@
+"""The metrics of SPEC.md §6 and the four baselines pyvf is compared with, in NumPy.
+
+    x = to_model_images(images, np.float32)     # uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) in [-1, 1]
+    images = to_uint8(x)                        # the inverse: round((x + 1) * 127.5), clipped to 0..255
+    m = image_metrics(pred, target)             # per image: {"mae", "rmse", "psnr"}, each (...)
+    p = pose_metrics(pred, target)              # per view: {"position_error", "orientation_error_deg"}
+    nearest_view(ctx_images, ctx_poses, query_poses)         # (B, M, Hi, Wi, C) uint8
+    mean_image(ctx_images)                                   # (B, Hi, Wi, C) uint8
+    closest_image_pose(ctx_images, ctx_poses, query_images)  # (B, M, 7)
+    mean_pose(ctx_poses)                                     # (B, 7)
+
+Images here are uint8 (..., Hi, Wi, C), the form a picture is saved in: every method's
+prediction is rounded to uint8 before it is scored, so a score is that of the picture a user
+sees. Definitions (per image; the evaluation then takes the mean over images):
+
+* MAE  = mean |pred - target| over pixels and channels, on the 0..255 scale.
+* RMSE = sqrt(mean (pred - target)^2) over pixels and channels, on the 0..255 scale: per
+  image, then the mean over images (as the paper's tables), not the root of the pooled mean.
+* PSNR = 10 log10(1 / mse) with mse on the [0, 1] scale. A perfect image has mse = 0 and an
+  infinite PSNR; it is capped at psnr_cap(shape) = the PSNR of the smallest non-zero error a
+  uint8 image can have, one channel of one pixel off by one level (89.0 dB at 64x64x3), so a
+  mean over images stays finite and a perfect image scores above every imperfect one.
+* position error: Euclidean distance of the camera positions (geometry.position_error).
+* orientation error: the angle of q1 * conj(q2) in degrees (geometry.orientation_error).
+"""
+
+import numpy as np
+
+from ..geometry import average_pose, orientation_error, position_error
+
+__all__ = [
+    "to_model_images",
+    "to_uint8",
+    "psnr_cap",
+    "image_metrics",
+    "pose_metrics",
+    "nearest_view",
+    "mean_image",
+    "closest_image_pose",
+    "mean_pose",
+]
+
+
+def _uint8_images(name, x, ndim_min=3):
+    if not isinstance(x, np.ndarray) or x.dtype != np.uint8:
+        raise TypeError(f"{name} must be a uint8 numpy array, got {getattr(x, 'dtype', type(x).__name__)}")
+    if x.ndim < ndim_min or x.size == 0:
+        raise ValueError(f"{name} must be images (..., Hi, Wi, C), got shape {x.shape}")
+    return x
+
+
+# ---------------------------------------------------------------------------------------
+# between the picture (uint8, channels last) and the models' images (float, NCHW, [-1, 1])
+
+
+def to_model_images(images, dtype):
+    """uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) of dtype in [-1, 1]: x / 127.5 - 1 (as the training data)."""
+    _uint8_images("images", images, 4)
+    dtype = np.dtype(dtype)
+    x = images.transpose(0, 3, 1, 2).astype(dtype, order="C")  # (B, C, Hi, Wi)
+    x /= dtype.type(127.5)
+    x -= dtype.type(1.0)
+    return x
+
+
+def to_uint8(x):
+    """(B, C, Hi, Wi) floats in [-1, 1] -> uint8 (B, Hi, Wi, C): rint((x + 1) * 127.5) clipped to
+    0..255 (a decoder's output can leave [-1, 1]; rint rounds halves to even)."""
+    if not isinstance(x, np.ndarray) or x.dtype.kind != "f" or x.ndim != 4:
+        raise TypeError(f"x must be a float (B, C, Hi, Wi) numpy array, got "
+                        f"{getattr(x, 'dtype', type(x).__name__)} {getattr(x, 'shape', '')}")
+    v = np.rint((x.astype(np.float64) + 1.0) * 127.5)  # (B, C, Hi, Wi)
+    return np.clip(v, 0, 255).astype(np.uint8).transpose(0, 2, 3, 1).copy()  # (B, Hi, Wi, C)
+
+
+# ---------------------------------------------------------------------------------------
+# metrics
+
+
+def psnr_cap(image_shape):
+    """The PSNR in dB given to a perfect image of shape (Hi, Wi, C): that of one value off by one
+    level, 10 log10(255^2 * Hi * Wi * C)."""
+    n = int(np.prod(image_shape))
+    return float(10.0 * np.log10(255.0 ** 2 * n))
+
+
+def image_metrics(pred, target):
+    """pred, target uint8 (..., Hi, Wi, C) of one shape -> {"mae", "rmse", "psnr"}, each a float64
+    array (...) with one value per image (definitions in the module docstring)."""
+    _uint8_images("pred", pred)
+    _uint8_images("target", target)
+    if pred.shape != target.shape:
+        raise ValueError(f"pred and target must have one shape, got {pred.shape} and {target.shape}")
+    diff = pred.astype(np.float64) - target.astype(np.float64)  # (..., Hi, Wi, C) on 0..255
+    mae = np.abs(diff).mean(axis=(-3, -2, -1))  # (...)
+    mse = (diff * diff).mean(axis=(-3, -2, -1))  # (...) on 0..255
+    rmse = np.sqrt(mse)
+    with np.errstate(divide="ignore"):
+        psnr = 10.0 * np.log10(255.0 ** 2 / mse)  # (...) = 10 log10(1 / mse_[0,1]); inf where mse == 0
+    psnr = np.minimum(psnr, psnr_cap(pred.shape[-3:]))
+    return {"mae": mae, "rmse": rmse, "psnr": psnr}
+
+
+def pose_metrics(pred, target):
+    """pred, target (..., 7) float64 poses -> {"position_error", "orientation_error_deg"}, each (...)."""
+    return {"position_error": position_error(pred, target),
+            "orientation_error_deg": orientation_error(pred, target)}
+
+
+# ---------------------------------------------------------------------------------------
+# baselines: what the context alone gives, without a model
+
+
+def _context(images, poses):
+    _uint8_images("context_images", images, 5)
+    if not isinstance(poses, np.ndarray) or poses.shape != images.shape[:2] + (7,):
+        raise ValueError(f"context_poses must have shape {images.shape[:2] + (7,)} (B, C, 7), "
+                         f"got {getattr(poses, 'shape', type(poses).__name__)}")
+
+
+def nearest_view(context_images, context_poses, query_poses):
+    """The context image whose camera stands nearest (Euclidean distance of the positions) to
+    each query camera; the first such view on a tie.
+
+    context_images uint8 (B, C, Hi, Wi, 3), context_poses (B, C, 7), query_poses (B, M, 7)
+    -> uint8 (B, M, Hi, Wi, 3)."""
+    _context(context_images, context_poses)
+    d = position_error(query_poses[:, :, None, :], context_poses[:, None, :, :])  # (B, M, C)
+    idx = np.argmin(d, axis=2)  # (B, M)
+    return context_images[np.arange(idx.shape[0])[:, None], idx]  # (B, M, Hi, Wi, 3)
+
+
+def mean_image(context_images):
+    """The mean of the context images, rounded to uint8.   uint8 (B, C, Hi, Wi, 3) -> (B, Hi, Wi, 3)."""
+    _uint8_images("context_images", context_images, 5)
+    return np.rint(context_images.mean(axis=1)).astype(np.uint8)  # (B, Hi, Wi, 3)
+
+
+def closest_image_pose(context_images, context_poses, query_images):
+    """The pose of the context view whose image is closest (mean squared difference of the
+    pixels) to each query image; the first on a tie.
+
+    context_images uint8 (B, C, Hi, Wi, 3), context_poses (B, C, 7), query_images uint8
+    (B, M, Hi, Wi, 3) -> (B, M, 7)."""
+    _context(context_images, context_poses)
+    _uint8_images("query_images", query_images, 5)
+    ctx = context_images.astype(np.float64)  # (B, C, Hi, Wi, 3)
+    qry = query_images.astype(np.float64)  # (B, M, Hi, Wi, 3)
+    diff = qry[:, :, None] - ctx[:, None]  # (B, M, C, Hi, Wi, 3)
+    mse = (diff * diff).mean(axis=(-3, -2, -1))  # (B, M, C)
+    idx = np.argmin(mse, axis=2)  # (B, M)
+    return context_poses[np.arange(idx.shape[0])[:, None], idx]  # (B, M, 7)
+
+
+def mean_pose(context_poses):
+    """The mean context pose (B, C, 7) -> (B, 7): mean position; quaternions normalised,
+    sign-canonicalised, averaged, normalised and canonicalised again (geometry.average_pose)."""
+    return average_pose(context_poses, axis=1)

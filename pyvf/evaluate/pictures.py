@@ -1,0 +1,120 @@
+"""The evaluation's two pictures, drawn with Pillow (no plotting library).
+
+    save_views("views.png", picture)   # a row per scene: context | ground truth | codebook | pyvf
+    save_poses("poses.png", picture)   # a panel per scene: the cameras seen from above
+
+`picture` is what evaluate() keeps of its first scenes (P of them) at the largest context C:
+    context (P, C, S, S, 3) uint8, context_poses (P, C, 7), truth, codebook, pyvf (P, S, S, 3)
+    uint8 (the first query view), query_poses and estimated_poses (P, M, 7), and C.
+
+The views sheet is laid out like the paper's figures; tiles are enlarged by an integer factor
+with nearest-neighbour (at least 2, about 128 pixels a tile) so 64x64 pixels stay visible.
+The pose panels look down on the scene: the world's up is -y (pyvf.scenes), so the panel shows
+x to the right and z up, a view from above (not mirrored).
+"""
+
+import numpy as np
+
+__all__ = ["views_sheet", "poses_sheet", "save_views", "save_poses"]
+
+_WHITE, _BLACK, _GREY = (255, 255, 255), (0, 0, 0), (190, 190, 190)
+_CONTEXT, _TRUTH, _ESTIMATE = (40, 90, 220), (20, 150, 40), (220, 30, 30)
+_GAP, _GROUP_GAP, _LABEL_W, _HEAD_H = 4, 14, 64, 18
+
+
+def _pil():
+    from PIL import Image, ImageDraw, ImageFont  # a dependency of pyvf; imported when a picture is drawn
+
+    return Image, ImageDraw, ImageFont.load_default()
+
+
+def _centered(draw, font, text, x0, width, y):
+    w = draw.textlength(text, font=font)
+    draw.text((x0 + (width - w) / 2, y), text, fill=_BLACK, font=font)
+
+
+def views_sheet(picture):
+    """The views sheet as a PIL image (see the module docstring)."""
+    Image, ImageDraw, font = _pil()
+    ctx = picture["context"]  # (P, C, S, S, 3)
+    P, C, S = ctx.shape[0], ctx.shape[1], ctx.shape[2]
+    scale = max(2, 128 // S)
+    T = S * scale  # tile side in pixels
+    columns = [(f"context {i + 1}", ctx[:, i]) for i in range(C)]
+    columns += [("ground truth", picture["truth"]), ("codebook", picture["codebook"]), ("pyvf", picture["pyvf"])]
+    xs, x = [], _LABEL_W
+    for j in range(len(columns)):
+        if j == C:
+            x += _GROUP_GAP - _GAP  # a wider gap between the context and the query's columns
+        xs.append(x)
+        x += T + _GAP
+    caption = ("codebook: the ground truth encoded and decoded (the best a rendering can be).",
+               f"pyvf: rendered from the {C} context views and the query's pose.")
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    width = max(x, 12 + int(max(probe.textlength(c, font=font) for c in caption)))
+    height = _HEAD_H + P * (T + _GAP) + 32
+    sheet = Image.new("RGB", (width, height), _WHITE)
+    draw = ImageDraw.Draw(sheet)
+    for (label, tiles), x in zip(columns, xs):
+        _centered(draw, font, label, x, T, 3)
+        for r in range(P):
+            tile = np.repeat(np.repeat(tiles[r], scale, axis=0), scale, axis=1)  # (T, T, 3), nearest
+            sheet.paste(Image.fromarray(np.ascontiguousarray(tile)), (x, _HEAD_H + r * (T + _GAP)))
+    for r in range(P):
+        draw.text((6, _HEAD_H + r * (T + _GAP) + T // 2 - 6), f"scene {r}", fill=_BLACK, font=font)
+    for i, line in enumerate(caption):
+        draw.text((6, _HEAD_H + P * (T + _GAP) + 2 + 14 * i), line, fill=_BLACK, font=font)
+    return sheet
+
+
+def poses_sheet(picture, panel=280):
+    """The camera panels as a PIL image (see the module docstring)."""
+    Image, ImageDraw, font = _pil()
+    ctx, truth, est = picture["context_poses"], picture["query_poses"], picture["estimated_poses"]
+    P = ctx.shape[0]
+    legend = (("context cameras", _CONTEXT), ("true query cameras", _TRUTH),
+              ("estimated query cameras (line: from the truth)", _ESTIMATE), ("seen from above: x right, z up", None))
+    head, foot = 30, 8 + 14 * len(legend)
+    sheet = Image.new("RGB", (max(P * (panel + _GAP) + _GAP, 300), head + panel + foot), _WHITE)
+    draw = ImageDraw.Draw(sheet)
+    for s in range(P):
+        x0 = _GAP + s * (panel + _GAP)
+        pts = np.concatenate([ctx[s], truth[s], est[s]])[:, [0, 2]]  # (K, 2) x and z
+        R = max(float(np.abs(pts).max()) * 1.1, 1e-9)
+        half = panel / 2
+
+        def px(p, x0=x0, R=R, half=half):  # world (x, y, z, ...) -> panel pixel: x right, z up
+            return (x0 + half + p[0] / R * (half - 8), head + half - p[2] / R * (half - 8))
+
+        draw.rectangle([x0, head, x0 + panel - 1, head + panel - 1], outline=_GREY)
+        cx, cy = px((0.0, 0.0, 0.0))
+        draw.line([cx - 4, cy, cx + 4, cy], fill=_BLACK)  # the object at the origin
+        draw.line([cx, cy - 4, cx, cy + 4], fill=_BLACK)
+        draw.text((x0 + panel - 12, cy - 14), "x", fill=_GREY, font=font)
+        draw.text((cx + 4, head + 2), "z", fill=_GREY, font=font)
+        for p in ctx[s]:
+            x, y = px(p)
+            draw.ellipse([x - 4, y - 4, x + 4, y + 4], fill=_CONTEXT)
+        for p, q in zip(truth[s], est[s]):
+            (x, y), (u, v) = px(p), px(q)
+            draw.line([x, y, u, v], fill=_ESTIMATE)
+            draw.ellipse([x - 4, y - 4, x + 4, y + 4], fill=_TRUTH)
+            draw.line([u - 4, v - 4, u + 4, v + 4], fill=_ESTIMATE, width=2)
+            draw.line([u - 4, v + 4, u + 4, v - 4], fill=_ESTIMATE, width=2)
+        err = np.median(np.linalg.norm(est[s][:, :3] - truth[s][:, :3], axis=-1))
+        draw.text((x0 + 2, 2), f"scene {s}, context {picture['C']}", fill=_BLACK, font=font)
+        draw.text((x0 + 2, 15), f"median position error {err:.2f}", fill=_BLACK, font=font)
+    for i, (label, colour) in enumerate(legend):
+        y = head + panel + 5 + 14 * i
+        if colour is not None:
+            draw.ellipse([_GAP, y + 2, _GAP + 8, y + 10], fill=colour)
+        draw.text((_GAP + 14, y), label, fill=_BLACK, font=font)
+    return sheet
+
+
+def save_views(path, picture):
+    views_sheet(picture).save(path, format="PNG")
+
+
+def save_poses(path, picture):
+    poses_sheet(picture).save(path, format="PNG")

@@ -1,0 +1,387 @@
+"""evaluate(): a codebook and a transformer on held-out SM7 scenes, against four baselines.
+
+    metrics = evaluate(codebook, transformer, scenes=200, context=(1, 3, 5), seed=1000, out="eval")
+
+The protocol (SPEC.md §6 for the metrics, metrics.py for their exact definitions):
+
+* Scenes: pyvf.scenes.generate_scenes(seed, scenes, views, size=the codebook's image_size).
+  Training data uses seed 0, so the default seed 1000 gives scenes the models never saw.
+* For each scene and each context size C: the context is views 0..C-1 and the queries are
+  the last `queries` views (10..14 of SM7's 15), the same queries for every C, so the rows of
+  the tables differ only in how much the model was shown.
+* The codebook tokenizes every image used once (batched). The transformer encodes the
+  context once per (batch of scenes, C) (Transformer.encode_scene, the scene cache of SPEC.md
+  §3), then renders every query (render_scene: the logits' argmax tokens, decoded by the
+  codebook, rounded to uint8) and localizes every query from its ground-truth tokens
+  (localize_scene).
+* Methods: `pyvf` (both tasks), `codebook` (the ground-truth query encoded and decoded: the
+  best a rendering through this codebook can be; the same for every C), and the baselines
+  `nearest_view`, `mean_image` (images), `closest_image_pose`, `mean_pose` (poses).
+* Image metrics are means over all query images, pose metrics medians over all queries.
+* Timing, on the first min(scenes, timing_scenes) scenes at the largest C: one cached render /
+  localization per view (the scene already encoded) against recomputing: Transformer.render
+  (encode the context again for every query) and Transformer.forward on [context, query]
+  (the whole three-row tree; one call gives both a view's logits and its pose, so it is
+  compared with one cached render plus one cached localization).
+
+The result is a dict (JSON-able, the same as out/metrics.json):
+
+    {"context": {"C": {method: {metric: value}}},      # C as a string: "1", "3", "5"
+     "timing":  {key: value for key in TIMING_KEYS},
+     "meta":    {key: value for key in META_KEYS}}
+"""
+
+import dataclasses
+import json
+import os
+import time
+
+import numpy as np
+
+from .._io import atomic_write_text
+from ..geometry import make_relative
+from ..measure import median_time
+from ..models import check_pair
+from ..scenes import generate_scenes
+from .metrics import (
+    closest_image_pose,
+    image_metrics,
+    mean_image,
+    mean_pose,
+    nearest_view,
+    pose_metrics,
+    psnr_cap,
+    to_model_images,
+    to_uint8,
+)
+
+__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS", "evaluate", "metrics_markdown",
+           "write_metrics"]
+
+IMAGE_METRICS = ("mae", "rmse", "psnr")
+POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
+# method -> the metrics it has, in the tables' order
+METHODS = {
+    "pyvf": IMAGE_METRICS + POSE_METRICS,
+    "codebook": IMAGE_METRICS,
+    "nearest_view": IMAGE_METRICS,
+    "mean_image": IMAGE_METRICS,
+    "closest_image_pose": POSE_METRICS,
+    "mean_pose": POSE_METRICS,
+}
+TIMING_KEYS = (
+    "context",  # C of the timed scenes (the largest evaluated)
+    "scenes",  # scenes timed together (one batch)
+    "queries",  # query views per scene
+    "repeat",  # timed calls per measurement (the fastest is kept), after one warm-up call
+    "codebook_encode_s_per_image",  # over the whole evaluation
+    "codebook_decode_s_per_image",
+    "encode_scene_s_per_scene",  # Transformer.encode_scene: the trunk over the context, once per scene
+    "render_cached_s_per_view",  # render_scene on the encoded scene, per query view
+    "localize_cached_s_per_view",  # localize_scene, per query view
+    "render_reencode_s_per_view",  # Transformer.render (encode_scene again) for one query
+    "forward_full_tree_s_per_view",  # Transformer.forward on [context, query]; None when it cannot run
+    "speedup_vs_reencode",  # render_reencode / render_cached
+    "speedup_vs_full_tree",  # forward_full_tree / (render_cached + localize_cached); None when not run
+    "total_s",  # wall time of the whole evaluate() call
+)
+META_KEYS = (
+    "pyvf_version",
+    "seed",  # generate_scenes' seed
+    "scenes",
+    "views",  # per scene
+    "image_size",  # S: the codebook's, and so the scenes'
+    "context_sizes",  # the C evaluated, ascending
+    "query_views",  # the indices of the query views in every scene
+    "n_queries",  # scenes * queries: the images (and poses) each number is taken over
+    "trained_context",  # the transformer's sequence_size - 1: larger C were never trained on
+    "psnr_cap_db",  # the PSNR a perfect image is given
+    "kernel_path",  # pyvf.kernel_path() and pyvf.num_threads() during the run
+    "kernel_threads",
+    "codebook",  # the two configurations (dataclass fields)
+    "transformer",
+    "sources",  # where the models came from, as the caller said (None when not given)
+    "protocol",  # PROTOCOL: the definitions, in words
+)
+PROTOCOL = {
+    "scenes": "pyvf.scenes.generate_scenes(seed, scenes, views, size); training uses seed 0",
+    "context": "views 0..C-1 of each scene",
+    "queries": "the last views of each scene, the same for every C",
+    "images": "uint8; MAE, RMSE on 0..255 per image then the mean over images; PSNR on [0, 1] per image, "
+              "capped at psnr_cap_db for a perfect image, then the mean",
+    "poses": "medians over all queries of the Euclidean position error and the orientation error in degrees",
+    "pyvf": "render: argmax tokens of render_scene decoded by the codebook; localize: localize_scene "
+            "on the ground-truth image's tokens",
+    "codebook": "the ground-truth query image encoded and decoded (the same for every C)",
+    "nearest_view": "the context image whose camera position is nearest the query's",
+    "mean_image": "the mean of the context images",
+    "closest_image_pose": "the pose of the context view whose image has the smallest MSE to the query image",
+    "mean_pose": "mean context position; normalised, sign-canonical mean context quaternion",
+}
+SM7_VIEWS = 15
+
+
+def _progress(iterable, total, desc, enabled):
+    if not enabled:
+        return iterable
+    from tqdm.auto import tqdm
+    return tqdm(iterable, total=total, desc=desc, unit="batch")
+
+
+def _encode(codebook, images, batch):
+    """uint8 (n, Hi, Wi, 3) -> codes (n, k*k) int64, `batch` images per encoder call."""
+    k = codebook.config.token_size
+    out = np.empty((images.shape[0], k * k), np.int64)
+    for i in range(0, images.shape[0], batch):
+        codes = codebook.encode(to_model_images(images[i:i + batch], codebook.dtype))  # (b, k, k)
+        out[i:i + batch] = codes.reshape(codes.shape[0], -1)
+    return out
+
+
+def _decode(codebook, tokens, batch):
+    """codes (n, k*k) ints -> uint8 images (n, Hi, Wi, 3), `batch` per decoder call."""
+    k = codebook.config.token_size
+    S = codebook.config.image_size
+    out = np.empty((tokens.shape[0], S, S, codebook.config.out_ch), np.uint8)
+    for i in range(0, tokens.shape[0], batch):
+        t = tokens[i:i + batch].reshape(-1, k, k).astype(np.int64)
+        out[i:i + batch] = to_uint8(codebook.decode_code(t))
+    return out
+
+
+def _check_args(context, scenes, views, queries, batch):
+    for name, v in (("scenes", scenes), ("views", views), ("queries", queries), ("batch", batch)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"{name} must be a positive integer, got {v!r}")
+    if isinstance(context, (int, np.integer)):
+        context = (context,)
+    context = tuple(sorted({int(c) for c in context}))
+    if not context or context[0] < 1:
+        raise ValueError(f"context sizes must be positive integers, got {context}")
+    if context[-1] + queries > views:
+        raise ValueError(f"context {context[-1]} + {queries} queries needs {context[-1] + queries} views "
+                         f"per scene, the scenes have {views}")
+    return context
+
+
+def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000, views=None, queries=5,
+             batch=8, out=None, pictures=True, picture_scenes=4, timing_scenes=4, repeat=5, progress=True,
+             sources=None):
+    """Score the pair on `scenes` held-out scenes for every context size; return the metrics dict
+    (module docstring). views: per scene (None: 15, as SM7); queries: the last `queries` views;
+    batch: scenes per transformer call. out: a folder to write metrics.json, metrics.md and (with
+    pictures) views.png and poses.png of the first `picture_scenes` scenes at the largest C.
+    sources: JSON-able, where the models came from (e.g. their files), kept as meta["sources"]."""
+    t_start = time.perf_counter()
+    check_pair(codebook, transformer)
+    views = SM7_VIEWS if views is None else views
+    context = _check_args(context, scenes, views, queries, batch)
+    cb_cfg, tf_cfg = codebook.config, transformer.config
+    dt = transformer.dtype
+    Cmax = context[-1]
+    qidx = np.arange(views - queries, views)  # (M,) the query views
+    used = np.concatenate([np.arange(Cmax), qidx])  # the views any method looks at
+    M = queries
+
+    images, poses = generate_scenes(seed, scenes, views=views, size=cb_cfg.image_size)  # (n, V, S, S, 3), (n, V, 7)
+    n, S = scenes, cb_cfg.image_size
+
+    # tokenize every used image once
+    t0 = time.perf_counter()
+    tokens = np.zeros((n, views, tf_cfg.token_image_size ** 2), np.int64)  # (n, V, L); unused views stay 0
+    flat = np.ascontiguousarray(images[:, used]).reshape(-1, S, S, 3)
+    tokens[:, used] = _encode(codebook, flat, 4 * batch).reshape(n, len(used), -1)
+    t_encode = (time.perf_counter() - t0) / flat.shape[0]
+
+    gt = images[:, qidx]  # (n, M, S, S, 3)
+    gt_pose = poses[:, qidx]  # (n, M, 7) float64
+    per = {str(C): {m: {} for m in METHODS} for C in context}  # C -> method -> metric -> per-query list
+    decode_s, decoded = 0.0, 0
+
+    def add(C, method, values):
+        for key, v in values.items():
+            per[C][method].setdefault(key, []).append(np.asarray(v).reshape(-1))
+
+    # the codebook's reconstruction of the ground truth: independent of C
+    t0 = time.perf_counter()
+    recon = _decode(codebook, tokens[:, qidx].reshape(n * M, -1), 4 * batch).reshape(n, M, S, S, 3)
+    decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + n * M
+    rec_scores = image_metrics(recon, gt)
+
+    picture = {"context": images[:picture_scenes, :Cmax], "context_poses": poses[:picture_scenes, :Cmax],
+               "truth": gt[:picture_scenes, 0], "codebook": recon[:picture_scenes, 0],
+               "query_poses": gt_pose[:picture_scenes], "C": Cmax}
+    starts = range(0, n, batch)
+    for b0 in _progress(starts, len(starts), "evaluate", progress):
+        sl = slice(b0, min(b0 + batch, n))
+        B = sl.stop - sl.start
+        q_tok = tokens[sl][:, qidx]  # (B, M, L)
+        q_pose = poses[sl][:, qidx].astype(dt)  # (B, M, 7)
+        for C in context:
+            key = str(C)
+            ctx_img, ctx_pose = images[sl, :C], poses[sl, :C]  # (B, C, S, S, 3), (B, C, 7)
+            scene = transformer.encode_scene(tokens[sl, :C], ctx_pose.astype(dt))
+            logits = transformer.render_scene(scene, q_pose)  # (B, M, L, V)
+            t0 = time.perf_counter()
+            rendered = _decode(codebook, logits.argmax(axis=-1).reshape(B * M, -1), 4 * batch).reshape(B, M, S, S, 3)
+            decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + B * M
+            est = transformer.localize_scene(scene, q_tok).astype(np.float64)  # (B, M, 7)
+            truth, truth_pose = gt[sl], gt_pose[sl]
+            add(key, "pyvf", image_metrics(rendered, truth))
+            add(key, "pyvf", pose_metrics(est, truth_pose))
+            add(key, "codebook", {m: rec_scores[m][sl] for m in IMAGE_METRICS})
+            add(key, "nearest_view", image_metrics(nearest_view(ctx_img, ctx_pose, truth_pose), truth))
+            add(key, "mean_image", image_metrics(np.repeat(mean_image(ctx_img)[:, None], M, axis=1), truth))
+            add(key, "closest_image_pose", pose_metrics(closest_image_pose(ctx_img, ctx_pose, truth), truth_pose))
+            add(key, "mean_pose", pose_metrics(np.repeat(mean_pose(ctx_pose)[:, None], M, axis=1), truth_pose))
+            if C == Cmax and sl.start < picture_scenes:
+                k = min(picture_scenes, sl.stop) - sl.start
+                picture.setdefault("pyvf", []).append(rendered[:k, 0])
+                picture.setdefault("estimated_poses", []).append(est[:k])
+
+    results = {}
+    for C in map(str, context):
+        results[C] = {}
+        for method, names in METHODS.items():
+            vals = {k: np.concatenate(v) for k, v in per[C][method].items()}  # per query (n*M,)
+            row = {}
+            for name in names:
+                if name in IMAGE_METRICS:
+                    row[name] = float(np.mean(vals[name]))
+                elif name == "position_error_median":
+                    row[name] = float(np.median(vals["position_error"]))
+                else:
+                    row[name] = float(np.median(vals["orientation_error_deg"]))
+            results[C][method] = row
+
+    timing = _timing(transformer, tokens[:timing_scenes], poses[:timing_scenes], Cmax, qidx, repeat)
+    timing["codebook_encode_s_per_image"] = t_encode
+    timing["codebook_decode_s_per_image"] = decode_s / decoded
+    timing["total_s"] = time.perf_counter() - t_start
+    timing = {k: timing[k] for k in TIMING_KEYS}
+
+    import pyvf  # the package's version and kernel path (imported here: pyvf imports this package)
+    meta = {
+        "pyvf_version": pyvf.__version__, "seed": int(seed), "scenes": int(n), "views": int(views),
+        "image_size": int(S), "context_sizes": list(context), "query_views": [int(i) for i in qidx],
+        "n_queries": int(n * M), "trained_context": tf_cfg.sequence_size - 1,
+        "psnr_cap_db": psnr_cap((S, S, 3)), "kernel_path": pyvf.kernel_path(),
+        "kernel_threads": pyvf.num_threads(), "codebook": dataclasses.asdict(cb_cfg),
+        "transformer": dataclasses.asdict(tf_cfg), "sources": sources, "protocol": PROTOCOL,
+    }
+    # through JSON once: the dict returned is the file's content (tuples become lists), and a
+    # NaN or inf anywhere raises here instead of writing a file that strict readers reject
+    metrics = json.loads(json.dumps({"context": results, "timing": timing, "meta": meta}, allow_nan=False))
+    if out is not None:
+        write_metrics(metrics, out)
+        if pictures and picture_scenes > 0:
+            from .pictures import save_poses, save_views  # Pillow, only when pictures are written
+            picture["pyvf"] = np.concatenate(picture["pyvf"])
+            picture["estimated_poses"] = np.concatenate(picture["estimated_poses"])
+            save_views(os.path.join(out, "views.png"), picture)
+            save_poses(os.path.join(out, "poses.png"), picture)
+    return metrics
+
+
+def _timing(transformer, tokens, poses, C, qidx, repeat):
+    """Median seconds per view of the cached and the recomputing paths on these scenes.
+    tokens (B, V, L), poses (B, V, 7) float64."""
+    dt = transformer.dtype
+    B, M = tokens.shape[0], len(qidx)
+    ctx_tok, ctx_pose = tokens[:, :C], poses[:, :C].astype(dt)  # (B, C, L), (B, C, 7)
+    q_tok, q_pose = tokens[:, qidx], poses[:, qidx].astype(dt)  # (B, M, L), (B, M, 7)
+
+    def timed(fn):
+        # the fastest of `repeat` calls after a warm-up: other processes only ever add time, and
+        # on a shared machine a median can still land on a disturbed call
+        return min(median_time(fn, repeat=repeat, warmup=1)[1])
+
+    t_scene = timed(lambda: transformer.encode_scene(ctx_tok, ctx_pose))
+    scene = transformer.encode_scene(ctx_tok, ctx_pose)
+    t_render = timed(lambda: transformer.render_scene(scene, q_pose)) / (B * M)
+    t_localize = timed(lambda: transformer.localize_scene(scene, q_tok)) / (B * M)
+    # recomputing, one query (the first) per call, as a server without the cache would
+    t_reencode = timed(lambda: transformer.render(ctx_tok, ctx_pose, q_pose[:, :1])) / B
+    t_full = None
+    if C + 1 > transformer.config.n_loss_skip:  # forward needs a loss target
+        seq_tok = np.concatenate([ctx_tok, q_tok[:, :1]], axis=1)  # (B, C + 1, L)
+        seq_pose = make_relative(np.concatenate([ctx_pose, q_pose[:, :1]], axis=1))[0]  # (B, C + 1, 7)
+        t_full = timed(lambda: transformer.forward(seq_tok, seq_pose)) / B
+    return {
+        "context": int(C), "scenes": int(B), "queries": int(M), "repeat": int(repeat),
+        "encode_scene_s_per_scene": t_scene / B,
+        "render_cached_s_per_view": t_render,
+        "localize_cached_s_per_view": t_localize,
+        "render_reencode_s_per_view": t_reencode,
+        "forward_full_tree_s_per_view": t_full,
+        "speedup_vs_reencode": t_reencode / t_render,
+        "speedup_vs_full_tree": None if t_full is None else t_full / (t_render + t_localize),
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# the report
+
+_HEAD = {"mae": "MAE", "rmse": "RMSE", "psnr": "PSNR (dB)", "position_error_median": "position error (median)",
+         "orientation_error_median_deg": "orientation error (median, deg)"}
+_ALL = IMAGE_METRICS + POSE_METRICS
+
+
+def _fmt(v, digits=2):
+    return "—" if v is None else f"{v:.{digits}f}"
+
+
+def _seconds(s):
+    if s is None:
+        return "—"
+    return f"{s * 1e3:.1f} ms" if s < 1 else f"{s:.2f} s"
+
+
+def metrics_markdown(metrics):
+    """The metrics dict as markdown: a table per context size (methods x metrics), then the timings."""
+    meta, timing = metrics["meta"], metrics["timing"]
+    q = meta["query_views"]
+    lines = [f"# pyvf evaluation: {meta['scenes']} scenes (seed {meta['seed']}), {meta['image_size']}x"
+             f"{meta['image_size']}, {meta['views']} views each",
+             "",
+             f"Context: the first C views of a scene. Queries: views {q[0]}..{q[-1]} of every scene "
+             f"({meta['n_queries']} in all), the same for every C. Images: MAE and RMSE on 0..255 (per image, "
+             f"then the mean), PSNR in dB on [0, 1] (per image, a perfect image capped at "
+             f"{meta['psnr_cap_db']:.1f} dB, then the mean). Poses: medians over the queries, positions in cube "
+             f"sides (cameras stand 10 from the object), orientations in degrees. `codebook` is the ground truth "
+             f"encoded and decoded: the best any rendering through this codebook can be."]
+    for C, table in metrics["context"].items():
+        lines += ["", f"## Context {C} view{'s' if C != '1' else ''}"]
+        if int(C) > meta["trained_context"]:
+            lines += ["", f"(the transformer was trained with at most {meta['trained_context']} context views)"]
+        lines += ["", "| method | " + " | ".join(_HEAD[m] for m in _ALL) + " |",
+                  "|---|" + "---:|" * len(_ALL)]
+        for method, row in table.items():
+            lines.append(f"| {method} | " + " | ".join(_fmt(row.get(m)) for m in _ALL) + " |")
+    t = timing
+    lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} threads)", "",
+              f"Transformer: {t['scenes']} scenes at context {t['context']}, {t['queries']} queries each, "
+              f"the fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
+              "| step | time |", "|---|---:|",
+              f"| codebook: encode an image | {_seconds(t['codebook_encode_s_per_image'])} |",
+              f"| codebook: decode an image | {_seconds(t['codebook_decode_s_per_image'])} |",
+              f"| encode_scene (the context trunk, once per scene) | {_seconds(t['encode_scene_s_per_scene'])} |",
+              f"| render a view from the cached scene | {_seconds(t['render_cached_s_per_view'])} |",
+              f"| localize a view from the cached scene | {_seconds(t['localize_cached_s_per_view'])} |",
+              f"| render a view re-encoding the context (Transformer.render) | "
+              f"{_seconds(t['render_reencode_s_per_view'])} |",
+              f"| the whole tree on [context, query] (Transformer.forward) | "
+              f"{_seconds(t['forward_full_tree_s_per_view'])} |",
+              "",
+              f"Speed-up of the scene cache: {_fmt(t['speedup_vs_reencode'], 1)}x against re-encoding the context "
+              f"for every query, {_fmt(t['speedup_vs_full_tree'], 1)}x against the whole tree for every query "
+              f"(one forward gives a rendering and a pose, so it is compared with one cached render plus one "
+              f"cached localization). Whole evaluation: {t['total_s']:.1f} s."]
+    return "\n".join(lines) + "\n"
+
+
+def write_metrics(metrics, out):
+    """Write out/metrics.json and out/metrics.md atomically (out is created)."""
+    os.makedirs(out, exist_ok=True)
+    atomic_write_text(os.path.join(out, "metrics.json"), json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    atomic_write_text(os.path.join(out, "metrics.md"), metrics_markdown(metrics))

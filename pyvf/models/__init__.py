@@ -1,0 +1,86 @@
+"""The pretrained models shipped with pyvf, and the check that a codebook and a transformer fit.
+
+    codebook, transformer = load_pretrained()                       # the package's SM7 pair
+    codebook, transformer = load_pretrained("runs/cb/codebook.npz", "runs/tf/transformer.npz")
+    check_pair(codebook, transformer)                               # ValueError when they do not fit
+
+The shipped pair is two package data files beside this module, `sm7-codebook.npz`
+(Codebook.save) and `sm7-transformer.npz` (Transformer.save), trained on procedural SM7
+scenes of seed 0 (pyvf.scenes). A missing file raises FileNotFoundError naming it and saying
+how to train one (TRAIN_HINT). A transformer reads the codebook's tokens, so the pair must
+agree on the codebook size (n_embeddings == n_embed) and on the token image side
+(token_image_size == token_size); anything else raises ValueError.
+"""
+
+import importlib.resources
+import os
+
+from ..codebook import Codebook
+from ..transformer import Transformer
+
+__all__ = ["PRETRAINED", "TRAIN_HINT", "check_pair", "load_pretrained", "pretrained_path"]
+
+# kind -> file name of the shipped model (package data of pyvf.models)
+PRETRAINED = {"codebook": "sm7-codebook.npz", "transformer": "sm7-transformer.npz"}
+
+# How to make the pair yourself (the step counts of pyvf/train/loops.py's example; ~2 s a step on 2 cores).
+TRAIN_HINT = """\
+train a pair yourself (pyvf's training commands; each resumes when run again):
+    pyvf scenes --out data/sm7 --scenes 2000 --seed 0
+    pyvf train-codebook --data data/sm7 --out runs/cb --steps 20000
+    pyvf tokenize --codebook runs/cb/codebook.npz --data data/sm7 --out runs/tokens.npz
+    pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000
+then pass them: --codebook runs/cb/codebook.npz --transformer runs/tf/transformer.npz"""
+
+
+def pretrained_path(kind):
+    """The path of the shipped file of `kind` ("codebook" or "transformer"), whether it exists or not."""
+    if kind not in PRETRAINED:
+        raise ValueError(f"kind must be one of {sorted(PRETRAINED)}, got {kind!r}")
+    ref = importlib.resources.files(__name__).joinpath(PRETRAINED[kind])
+    return os.fspath(ref)  # pyvf is installed as files (scikit-build-core wheel), not zipped
+
+
+def _resolve(kind, path):
+    """path, or the shipped file when path is None -> an existing path (FileNotFoundError otherwise)."""
+    if path is None:
+        path = pretrained_path(kind)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(
+                f"the pretrained {kind} is not installed: {path} is missing "
+                f"(this build of pyvf ships without trained weights).\n{TRAIN_HINT}")
+        return path
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{kind} file {path} does not exist.\n{TRAIN_HINT}")
+    return path
+
+
+def check_pair(codebook, transformer):
+    """ValueError unless the transformer reads this codebook's tokens: the same codebook size V
+    and the same token image side k (L = k*k tokens per view)."""
+    if not isinstance(codebook, Codebook):
+        raise TypeError(f"codebook must be a Codebook, got {type(codebook).__name__}")
+    if not isinstance(transformer, Transformer):
+        raise TypeError(f"transformer must be a Transformer, got {type(transformer).__name__}")
+    cb, tf = codebook.config, transformer.config
+    if tf.n_embeddings != cb.n_embed:
+        raise ValueError(f"the transformer and the codebook do not fit: the transformer reads "
+                         f"n_embeddings={tf.n_embeddings} codes, the codebook has n_embed={cb.n_embed}")
+    if tf.token_image_size != cb.token_size:
+        raise ValueError(f"the transformer and the codebook do not fit: the transformer reads "
+                         f"{tf.token_image_size}x{tf.token_image_size} token images, the codebook makes "
+                         f"{cb.token_size}x{cb.token_size} (image_size {cb.image_size}, "
+                         f"{len(cb.ch_mult) - 1} downsamplings)")
+
+
+def load_pretrained(codebook=None, transformer=None):
+    """(Codebook, Transformer): the shipped SM7 pair, or the files given (paths of Codebook.save
+    and Transformer.save output; None takes the shipped one). FileNotFoundError for a missing
+    file (with how to train one), ValueError when the two do not fit (check_pair)."""
+    cb_path = _resolve("codebook", codebook)
+    tf_path = _resolve("transformer", transformer)
+    cb = Codebook.load(cb_path)
+    tf = Transformer.load(tf_path)
+    check_pair(cb, tf)
+    return cb, tf

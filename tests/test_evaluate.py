@@ -1,0 +1,334 @@
+"""pyvf.evaluate and pyvf.models: the metrics against closed forms, the baselines on a hand-made
+scene, the scene cache against the whole tree, a smoke run of evaluate() and its files, and the
+`pyvf demo` / `pyvf evaluate` commands of the installed package (subprocesses from tmp_path).
+
+The models are tiny and random (16x16 images, 8x8 tokens of 32 codes): what is tested is the
+protocol and the bookkeeping, not the quality of a trained model. About half a minute on 2 cores.
+"""
+
+import json
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import pyvf
+import pyvf.models
+from conftest import assert_close
+from pyvf.scenes import generate_scenes
+from pyvf.evaluate import (
+    META_KEYS,
+    METHODS,
+    TIMING_KEYS,
+    closest_image_pose,
+    evaluate,
+    image_metrics,
+    mean_image,
+    mean_pose,
+    nearest_view,
+    pose_metrics,
+    psnr_cap,
+    to_model_images,
+    to_uint8,
+)
+
+CODEBOOK = pyvf.CodebookConfig(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(), z_channels=32,
+                               embed_dim=16, n_embed=32, image_size=16)
+TRANSFORMER = dict(n_embeddings=32, n_head=2, d_model=32, n_layer=2, token_image_size=8, sequence_size=4,
+                   n_loss_skip=1, pose_multiplier=0.2)
+TIMEOUT = 300  # seconds per command
+
+
+def random_transformer(dtype="float64", seed=0, spread=0.3):
+    """Parameters random everywhere (gamma != 1, biases != 0), so that a wrong role of any of
+    them shows in the outputs."""
+    model = pyvf.Transformer(pyvf.TransformerConfig(**TRANSFORMER, dtype=dtype), seed=seed)
+    rng = np.random.default_rng(seed + 100)
+    for name, p in model.params.items():
+        model.params[name] = (p + rng.normal(0, spread, p.shape)).astype(p.dtype)
+    return model
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    """(codebook, transformer, codebook path, transformer path), float32, saved once."""
+    folder = tmp_path_factory.mktemp("models")
+    cb = pyvf.Codebook(CODEBOOK, seed=0)
+    tf = random_transformer("float32", spread=0.05)
+    cb.save(folder / "cb.npz")
+    tf.save(folder / "tf.npz")
+    return cb, tf, str(folder / "cb.npz"), str(folder / "tf.npz")
+
+
+def quat_about(axis, degrees):
+    """The unit quaternion (w, x, y, z) of a rotation by `degrees` about the unit `axis`."""
+    h = np.radians(degrees) / 2
+    return np.concatenate([[np.cos(h)], np.sin(h) * np.asarray(axis, float)])
+
+
+# ---------------------------------------------------------------------------------------
+# (b) the metrics against closed forms
+
+
+def test_image_metrics_closed_forms():
+    rng = np.random.default_rng(0)
+    target = rng.integers(20, 200, (3, 4, 5, 3)).astype(np.uint8)  # 3 images of 4x5 pixels
+    m = image_metrics(target + np.uint8(7), target)  # every value 7 levels too bright
+    np.testing.assert_allclose(m["mae"], 7.0, rtol=1e-15)
+    np.testing.assert_allclose(m["rmse"], 7.0, rtol=1e-15)
+    np.testing.assert_allclose(m["psnr"], 10 * np.log10(255.0 ** 2 / 49.0), rtol=1e-15)
+
+    pred = target.astype(np.int64)
+    pred[..., :2, :, :] += 3  # half of every image's pixels +3, the other half -5
+    pred[..., 2:, :, :] -= 5
+    m = image_metrics(pred.astype(np.uint8), target)
+    np.testing.assert_allclose(m["mae"], 4.0, rtol=1e-15)
+    np.testing.assert_allclose(m["rmse"], np.sqrt(17.0), rtol=1e-15)  # per image: sqrt((9 + 25) / 2)
+    np.testing.assert_allclose(m["psnr"], 10 * np.log10(255.0 ** 2 / 17.0), rtol=1e-15)
+
+    # a perfect image: capped at one value off by one level
+    m = image_metrics(target, target)
+    assert (m["mae"] == 0).all() and (m["rmse"] == 0).all()
+    cap = 10 * np.log10(255.0 ** 2 * 4 * 5 * 3)
+    assert psnr_cap((4, 5, 3)) == pytest.approx(cap, rel=1e-15)
+    np.testing.assert_allclose(m["psnr"], cap, rtol=1e-15)
+    one_off = target.copy()
+    one_off[:, 0, 0, 0] += 1
+    np.testing.assert_allclose(image_metrics(one_off, target)["psnr"], cap, rtol=1e-12)
+
+    # RMSE is per image, then the mean: two images off by 3 and by 4 give 3.5, not sqrt(12.5)
+    pair = np.stack([target[0] + np.uint8(3), target[0] + np.uint8(4)])
+    assert image_metrics(pair, np.stack([target[0]] * 2))["rmse"].mean() == pytest.approx(3.5, rel=1e-15)
+
+
+def test_image_conversions():
+    levels = np.arange(256, dtype=np.uint8)
+    images = np.stack([np.broadcast_to(levels.reshape(16, 16, 1), (16, 16, 3))]).copy()  # (1, 16, 16, 3)
+    for dtype in (np.float32, np.float64):
+        x = to_model_images(images, dtype)
+        assert x.dtype == dtype and x.shape == (1, 3, 16, 16)
+        assert x.min() == -1 and x.max() == 1
+        np.testing.assert_array_equal(to_uint8(x), images)  # every level comes back exactly
+    x = np.array([-3.0, -1.0, -0.999, 0.0, 0.999, 1.0, 1.5], np.float32).reshape(1, 1, 1, 7)
+    np.testing.assert_array_equal(to_uint8(x)[0, 0, :, 0], [0, 0, 0, 128, 255, 255, 255])  # 127.5 rounds to even
+    with pytest.raises(TypeError):
+        image_metrics(images.astype(np.float32), images)
+
+
+def test_pose_metrics_closed_forms():
+    a = np.array([1.0, 2.0, 3.0, *quat_about([0, 0, 1], 0)])
+    b = np.array([4.0, 6.0, 3.0, *quat_about([0, 0, 1], 30)])
+    m = pose_metrics(a[None], b[None])
+    assert m["position_error"][0] == pytest.approx(5.0, rel=1e-15)
+    assert m["orientation_error_deg"][0] == pytest.approx(30.0, rel=1e-12)
+    c = b.copy()
+    c[3:] = -c[3:]  # the same rotation
+    assert pose_metrics(a[None], c[None])["orientation_error_deg"][0] == pytest.approx(30.0, rel=1e-12)
+
+
+# ---------------------------------------------------------------------------------------
+# (a) the baselines on a hand-made scene
+
+
+def test_baselines_hand_made():
+    """Three context views of constant grey levels 10, 50, 90 at known cameras; two queries:
+    query 0 stands near camera 0 and looks like view 2, query 1 near camera 2 and looks like view 0."""
+    levels = np.array([10, 50, 90], np.uint8)
+    ctx_img = np.broadcast_to(levels[None, :, None, None, None], (1, 3, 4, 4, 3)).copy()  # (B=1, C=3, 4, 4, 3)
+    q1 = quat_about([0, 1, 0], 90)
+    ctx_pose = np.array([[[10, 0, 0, 1, 0, 0, 0], [0, 0, 10, *q1], [-10, 0, 0, 1, 0, 0, 0]]], float)  # (1, 3, 7)
+    q_pose = np.array([[[9, 0, 1, 1, 0, 0, 0], [-9, 1, 0, 1, 0, 0, 0]]], float)  # (1, M=2, 7)
+    q_img = np.broadcast_to(np.array([85, 12], np.uint8)[None, :, None, None, None], (1, 2, 4, 4, 3)).copy()
+
+    nv = nearest_view(ctx_img, ctx_pose, q_pose)  # (1, 2, 4, 4, 3)
+    np.testing.assert_array_equal(nv[0, 0], ctx_img[0, 0])  # camera 0 is nearest query 0
+    np.testing.assert_array_equal(nv[0, 1], ctx_img[0, 2])
+    np.testing.assert_array_equal(mean_image(ctx_img), np.full((1, 4, 4, 3), 50, np.uint8))
+
+    cp = closest_image_pose(ctx_img, ctx_pose, q_img)  # (1, 2, 7)
+    np.testing.assert_array_equal(cp[0, 0], ctx_pose[0, 2])  # 85 is closest to 90
+    np.testing.assert_array_equal(cp[0, 1], ctx_pose[0, 0])  # 12 is closest to 10
+
+    mp = mean_pose(ctx_pose)  # (1, 7)
+    np.testing.assert_allclose(mp[0, :3], [0, 0, 10 / 3], atol=1e-15)
+    q = np.array([1 + q1[0] + 1, 0, q1[2], 0]) / 3  # the canonical quaternions' mean, then normalised
+    np.testing.assert_allclose(mp[0, 3:], q / np.linalg.norm(q), rtol=1e-15, atol=1e-15)
+
+    # the metrics of the nearest view by hand: |85 - 10| = 75 and |12 - 90| = 78 everywhere
+    m = image_metrics(nv, q_img)
+    np.testing.assert_allclose(m["mae"], [[75, 78]], rtol=1e-15)
+    np.testing.assert_allclose(m["rmse"], [[75, 78]], rtol=1e-15)
+    np.testing.assert_allclose(m["psnr"], 10 * np.log10(255.0 ** 2 / np.array([[75.0, 78.0]]) ** 2), rtol=1e-15)
+    p = pose_metrics(cp, q_pose)
+    np.testing.assert_allclose(p["position_error"], [[np.hypot(19, 1), np.hypot(19, 1)]], rtol=1e-15)
+    np.testing.assert_allclose(p["orientation_error_deg"], [[0, 0]], atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------
+# (c) the scene cache computes what the whole tree computes
+
+
+@pytest.mark.parametrize("dtype, rtol", [("float64", 1e-12), ("float32", 1e-5)])
+def test_cached_scene_equals_the_whole_tree(dtype, rtol):
+    """render_scene's logits (and localize_scene's poses) for query m equal Transformer.forward on
+    the sequence [context views, query m]: its generation row (logits) and localization row
+    (pose) at the last view, the poses made relative to the first context view."""
+    tf = random_transformer(dtype)
+    rng = np.random.default_rng(1)
+    B, C, M, V = 2, 3, 3, TRANSFORMER["n_embeddings"]
+    _, poses = generate_scenes(7, B, views=C + M, size=8)  # real cameras (B, C + M, 7)
+    poses = poses.astype(dtype)
+    tokens = rng.integers(0, V, (B, C + M, 64))
+    scene = tf.encode_scene(tokens[:, :C], poses[:, :C])
+    logits = tf.render_scene(scene, poses[:, C:])  # (B, M, L, V)
+    located = tf.localize_scene(scene, tokens[:, C:])  # (B, M, 7)
+    for m in range(M):
+        views = list(range(C)) + [C + m]
+        rel, ref = pyvf.make_relative(poses[:, views])  # (B, C + 1, 7), (B, 7)
+        out = tf.forward(tokens[:, views], rel)
+        assert_close(f"logits of query {m}", logits[:, m], out.logits[:, C], rtol)
+        pose = pyvf.absolute_poses(pyvf.average_pose(out.pose_prediction[:, C], axis=1), ref)  # (B, 7)
+        assert_close(f"position of query {m}", located[:, m, :3], pose[:, :3], rtol)
+        assert_close(f"quaternion of query {m}", located[:, m, 3:], pose[:, 3:], rtol)
+
+
+# ---------------------------------------------------------------------------------------
+# (d) evaluate() end to end
+
+
+def test_evaluate_smoke(models, tmp_path):
+    cb, tf, _, _ = models
+    out = tmp_path / "eval"
+    metrics = evaluate(cb, tf, scenes=2, context=(3, 1), seed=5, out=str(out), progress=False, repeat=1,
+                       picture_scenes=2, batch=1)
+    with open(out / "metrics.json") as f:
+        on_disk = json.load(f)
+    assert on_disk == metrics
+    assert set(metrics) == {"context", "timing", "meta"}
+    assert list(metrics["context"]) == ["1", "3"]  # sorted
+    for C, table in metrics["context"].items():
+        assert set(table) == set(METHODS), C
+        for method, row in table.items():
+            assert list(row) == list(METHODS[method]), (C, method)
+            assert all(isinstance(v, float) and np.isfinite(v) for v in row.values()), (C, method, row)
+    assert list(metrics["timing"]) == list(TIMING_KEYS)
+    assert all(v is not None and v > 0 for v in metrics["timing"].values()), metrics["timing"]
+    assert list(metrics["meta"]) == list(META_KEYS)
+    meta = metrics["meta"]
+    assert meta["query_views"] == [10, 11, 12, 13, 14] and meta["n_queries"] == 10
+    assert meta["context_sizes"] == [1, 3] and meta["image_size"] == 16 and meta["seed"] == 5
+
+    # what follows from the definitions: the codebook's row is the same for every C, and with one
+    # context view the nearest view and the mean image are that view, the two pose baselines its pose
+    c1, c3 = metrics["context"]["1"], metrics["context"]["3"]
+    assert c1["codebook"] == c3["codebook"]
+    assert c1["nearest_view"] == c1["mean_image"]
+    assert c1["closest_image_pose"] == c1["mean_pose"]
+
+    md = (out / "metrics.md").read_text()
+    assert "## Context 1 view" in md and "## Context 3 views" in md and "| pyvf |" in md
+    for name in ("views.png", "poses.png"):
+        with Image.open(out / name) as im:
+            im.load()
+            assert im.format == "PNG" and im.size[0] > 100 and im.size[1] > 100, (name, im.size)
+
+
+def test_evaluate_rejects_bad_arguments(models):
+    cb, tf, _, _ = models
+    with pytest.raises(ValueError, match="needs 16 views"):
+        evaluate(cb, tf, scenes=1, context=(11,), progress=False)
+    with pytest.raises(ValueError, match="context sizes"):
+        evaluate(cb, tf, scenes=1, context=(0, 1), progress=False)
+
+
+# ---------------------------------------------------------------------------------------
+# pyvf.models
+
+
+def test_load_pretrained_given_files_and_mismatch(models, tmp_path):
+    cb, tf, cb_path, tf_path = models
+    cb2, tf2 = pyvf.models.load_pretrained(cb_path, tf_path)
+    assert cb2.config == cb.config and tf2.config == tf.config
+    other = pyvf.Transformer(pyvf.TransformerConfig(**{**TRANSFORMER, "n_embeddings": 64}))
+    other.save(tmp_path / "other.npz")
+    with pytest.raises(ValueError, match="n_embeddings=64 codes, the codebook has n_embed=32"):
+        pyvf.models.load_pretrained(cb_path, tmp_path / "other.npz")
+    other = pyvf.Transformer(pyvf.TransformerConfig(**{**TRANSFORMER, "token_image_size": 4}))
+    other.save(tmp_path / "other.npz")
+    with pytest.raises(ValueError, match="4x4 token images, the codebook makes 8x8"):
+        pyvf.models.load_pretrained(cb_path, tmp_path / "other.npz")
+    with pytest.raises(FileNotFoundError, match="pyvf train-codebook"):
+        pyvf.models.load_pretrained(tmp_path / "missing.npz", tf_path)
+
+
+def test_load_pretrained_missing_package_file(monkeypatch):
+    """The shipped files' absence (or, here, a name that is never shipped) says what and how."""
+    monkeypatch.setitem(pyvf.models.PRETRAINED, "codebook", "never-shipped.npz")
+    with pytest.raises(FileNotFoundError) as e:
+        pyvf.models.load_pretrained()
+    assert "pretrained codebook is not installed" in str(e.value) and "never-shipped.npz" in str(e.value)
+    assert "pyvf train-codebook" in str(e.value) and "pyvf train-transformer" in str(e.value)
+
+
+# ---------------------------------------------------------------------------------------
+# (e) the commands, as a user runs them
+
+
+def run(args, cwd):
+    script = shutil.which("pyvf")
+    if script is None:
+        pytest.fail("the `pyvf` console script is not on PATH: install the package (`pip install .`) first")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # only the installed pyvf
+    return subprocess.run([script, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=TIMEOUT)
+
+
+def show(proc):
+    return f"\n--- stdout ---\n{proc.stdout[-3000:]}\n--- stderr ---\n{proc.stderr[-3000:]}"
+
+
+def test_demo_quick_command(models, tmp_path):
+    _, _, cb_path, tf_path = models
+    proc = run(["demo", "--quick", "--codebook", cb_path, "--transformer", tf_path, "--no-progress"], tmp_path)
+    assert proc.returncode == 0, show(proc)
+    assert proc.stdout.startswith("pyvf kernels: path "), show(proc)
+    for text in ("## Context 1 view", "## Context 3 views", "| pyvf |", "docs/walkthrough.md"):
+        assert text in proc.stdout, text + show(proc)
+    for name in ("metrics.json", "metrics.md", "views.png", "poses.png"):
+        assert (tmp_path / "pyvf-demo" / name).is_file(), name
+
+
+def test_evaluate_command(models, tmp_path):
+    _, _, cb_path, tf_path = models
+    proc = run(["evaluate", "--scenes", "1", "--context", "2,1", "--seed", "3", "--out", "ev", "--codebook",
+                cb_path, "--transformer", tf_path, "--no-progress"], tmp_path)
+    assert proc.returncode == 0, show(proc)
+    with open(tmp_path / "ev" / "metrics.json") as f:
+        metrics = json.load(f)
+    assert list(metrics["context"]) == ["1", "2"] and metrics["meta"]["scenes"] == 1
+    assert metrics["meta"]["sources"] == {"codebook": cb_path, "transformer": tf_path}
+
+
+def test_demo_without_models_says_how_to_train(tmp_path):
+    proc = run(["demo", "--codebook", "missing-cb.npz", "--transformer", "missing-tf.npz"], tmp_path)
+    assert proc.returncode == 1, show(proc)
+    assert proc.stdout.startswith("pyvf kernels: path "), show(proc)
+    for text in ("codebook file missing-cb.npz does not exist", "pyvf train-codebook", "pyvf train-transformer"):
+        assert text in proc.stderr, text + show(proc)
+    assert not (tmp_path / "pyvf-demo").exists()
+
+
+def test_commands_reject_bad_context(tmp_path):
+    proc = run(["evaluate", "--context", "0,1", "--out", "x"], tmp_path)
+    assert proc.returncode == 2 and "expected positive integers" in proc.stderr, show(proc)
+
+
+def test_demo_quick_with_the_shipped_models(tmp_path):
+    """`pyvf demo --quick` as a newcomer runs it: the pretrained pair shipped in pyvf/models."""
+    if not all(os.path.isfile(pyvf.models.pretrained_path(k)) for k in pyvf.models.PRETRAINED):
+        pytest.skip("this build ships no pretrained models (pyvf/models/sm7-*.npz)")
+    proc = run(["demo", "--quick", "--no-progress"], tmp_path)
+    assert proc.returncode == 0, show(proc)
+    assert proc.stdout.startswith("pyvf kernels: path ") and "docs/walkthrough.md" in proc.stdout, show(proc)
