@@ -81,6 +81,12 @@ def atomic_savez(path, **arrays):
     _atomic_write(path, lambda f: np.savez(f, **checked))
 
 
+def atomic_write_bytes(path, data):
+    """Write the bytes `data` to `path`, atomically (e.g. a PNG encoded into a BytesIO)."""
+    data = bytes(data)
+    _atomic_write(path, lambda f: f.write(data))
+
+
 def atomic_write_text(path, text, encoding="utf-8"):
     """Write the str `text` to `path`, atomically."""
     if not isinstance(text, str):
