@@ -13,6 +13,7 @@
 #include <string>
 
 #include "branching_attention.h"
+#include "conv.h"
 #include "elementwise.h"
 #include "vq.h"
 #include "simd.h"
@@ -219,6 +220,7 @@ PYBIND11_MODULE(PYVF_MODULE, m) {
     m.def("cpu_features", &cpu_features, "what the CPU supports: {feature: bool} (x86-64; empty elsewhere)");
     bind_dtype<float>(m);
     bind_dtype<double>(m);
+    bind_conv(m);  // conv2d kernels (conv_bind.cpp)
     m.def("num_threads", &num_threads, "threads the kernels use (OpenMP; 1 without OpenMP)");
     m.def("set_num_threads", &set_num_threads, py::arg("n"));
     m.attr("simd_bytes") = kVecBytes;

@@ -52,8 +52,8 @@ def num_threads():
 
 def set_num_threads(n):
     """Set the threads the C++ kernels use, for this process."""
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"n must be a positive integer, got {n!r}")
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n < 2 ** 31:
+        raise ValueError(f"n must be a positive integer below 2^31, got {n!r}")
     _core.set_num_threads(n)
 
 

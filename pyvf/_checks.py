@@ -1,5 +1,11 @@
 """Argument checks shared by pyvf's modules: every error names the argument and says what was
-expected; nothing is cast or copied silently. Shape rules stay with the function that has them."""
+expected; nothing is cast or copied silently. Shape rules stay with the function that has them.
+Also the checks of a checkpoint's entries (weight_problem, problems_error: every wrong entry
+named in one error) and the reading of a model file (model_file) that Codebook and Transformer
+share."""
+
+import json
+import os
 
 import numpy as np
 
@@ -11,7 +17,7 @@ FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 def all_finite(a):
     """True when every element of the float array a is finite; a C-contiguous array is scanned by
     the C++ kernel, which allocates nothing (np.isfinite would allocate a bool array as large)."""
-    if a.dtype in FLOATS and a.flags.c_contiguous:
+    if isinstance(a, np.ndarray) and a.dtype in FLOATS and a.flags.c_contiguous:
         return _core.all_finite(a)
     return bool(np.isfinite(a).all())
 
@@ -41,15 +47,109 @@ def finite(name, a):
     return a
 
 
-def weight(name, a, shape, dtype):
-    """A checkpoint's array for parameter `name` -> a C-contiguous array of `dtype`: it must be a
-    float array of `shape` with finite values. The conversion to the model's dtype is the one
-    pyvf makes, on purpose (a float32 checkpoint loads into a float64 model for a float64 check)."""
-    a = np.asarray(a)
-    if a.dtype.kind != "f":
-        raise TypeError(f"load_official: {name!r} has dtype {a.dtype}, expected a float array")
+def int_array(name, a):
+    """a must be an ndarray of a signed or unsigned integer dtype (bool, float, object refused)."""
+    if not isinstance(a, np.ndarray):
+        raise TypeError(f"{name} must be a numpy.ndarray of integers, got {type(a).__name__}")
+    if a.dtype.kind not in "iu":
+        raise TypeError(f"{name} must be an integer array, got {a.dtype} (pyvf never casts silently)")
+    return a
+
+
+def real(name, x, lo=None, hi=None, lo_open=False, hi_open=False):
+    """x: a finite real number (Python or numpy scalar, not bool), in [lo, hi] (open ends where
+    asked) -> float."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be a real number, got {type(x).__name__} {x!r}")
+    x = float(x)
+    ok = np.isfinite(x)
+    if ok and lo is not None:
+        ok = x > lo if lo_open else x >= lo
+    if ok and hi is not None:
+        ok = x < hi if hi_open else x <= hi
+    if not ok:
+        rng = (f"{'(' if lo_open else '['}{lo if lo is not None else '-inf'}, "
+               f"{hi if hi is not None else 'inf'}{')' if hi_open else ']'}")
+        raise ValueError(f"{name} must be finite and in {rng}, got {x!r}")
+    return x
+
+
+def finite_result(what, a, name="the result"):
+    """Raise ValueError when `a`, computed from finite inputs, is not finite: it overflowed."""
+    if not all_finite(a):
+        raise ValueError(f"{what}: {name} is not finite: it overflowed {a.dtype} "
+                         "(inputs too large for the dtype; rescale them, or use float64)")
+    return a
+
+
+def weight_problem(name, a, shape):
+    """What is wrong with a checkpoint's array for parameter `name` (a str): None when it is a
+    finite float32/float64 array of `shape`, else (TypeError or ValueError, message). float16,
+    longdouble, integer, bool, complex and object arrays are refused: only float32 <-> float64
+    converts, on purpose (see weight)."""
+    if not isinstance(a, np.ndarray):
+        return TypeError, f"{name!r} is a {type(a).__name__}, not a numpy array"
+    if a.dtype not in FLOATS:
+        return TypeError, f"{name!r} has dtype {a.dtype}, expected a float array (float32 or float64)"
     if a.shape != tuple(shape):
-        raise ValueError(f"load_official: {name!r} has shape {a.shape}, expected {tuple(shape)}")
-    if not np.isfinite(a).all():
-        raise ValueError(f"load_official: {name!r} contains NaN or inf")
-    return np.ascontiguousarray(a, dtype=dtype)
+        return ValueError, f"{name!r} has shape {a.shape}, expected {tuple(shape)}"
+    if not all_finite(a):
+        return ValueError, f"{name!r} contains NaN or inf"
+    return None
+
+
+def problems_error(what, problems):
+    """One exception naming every problem, a list of (exception class, message): TypeError when
+    every problem is a TypeError, else ValueError."""
+    kind = TypeError if all(k is TypeError for k, _ in problems) else ValueError
+    n = len(problems)
+    return kind(f"{what}: {n} problem{'s' if n > 1 else ''}: " + "; ".join(m for _, m in problems))
+
+
+def weight(name, a, shape, dtype):
+    """A checkpoint's array for parameter `name` -> a new C-contiguous array of `dtype`: it must
+    be a float32/float64 array of `shape` with finite values. The conversion to the model's
+    dtype is the one pyvf makes, on purpose (a float32 checkpoint loads into a float64 model
+    for a float64 check). Always a copy: the caller's array is never aliased."""
+    problem = weight_problem(name, a, shape)
+    if problem is not None:
+        raise problems_error("load_official", [problem])
+    return np.array(a, dtype=dtype, order="C", copy=True)
+
+
+def model_file(path, what):
+    """The arrays and the configuration of a model file written by Codebook.save /
+    Transformer.save: (dict name -> array without __config__, dict of config fields), read now.
+
+    path: a path (str or os.PathLike, used as given: no ".npz" appended) or an open binary file.
+    A missing file raises FileNotFoundError; a truncated or corrupt one, or a missing or
+    unreadable __config__ entry, pyvf._io.CheckpointError (a ValueError) naming the file and
+    the entry."""
+    from ._io import CheckpointError, load_npz
+
+    if hasattr(path, "read"):
+        name = getattr(path, "name", repr(path))
+        entry = None
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                arrays = {}
+                for entry in f.files:
+                    arrays[entry] = f[entry]
+        except Exception as e:  # zipfile, EOF, ValueError...: all mean a bad file
+            where = f" (entry {entry!r})" if entry is not None else ""
+            raise CheckpointError(f"{what} {name} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
+        if "__config__" not in arrays:
+            raise CheckpointError(f"{what} {name} lacks the entry '__config__': not a {what} written by pyvf")
+    else:
+        name = os.fspath(path)
+        arrays = load_npz(name, what, required=("__config__",))
+    raw = arrays.pop("__config__")
+    try:
+        if raw.shape != () or raw.dtype.kind != "U":
+            raise ValueError(f"expected a JSON string, got a {raw.dtype} array of shape {raw.shape}")
+        config = json.loads(str(raw))
+        if not isinstance(config, dict):
+            raise ValueError(f"expected a JSON object, got {type(config).__name__}")
+    except ValueError as e:
+        raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
+    return arrays, config

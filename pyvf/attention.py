@@ -110,10 +110,12 @@ def branching_attention_backward(do, q, k, v, o, lse, scale=1.0, *, plain=False)
     _check_array("do", do, like=q)
     _check_array("o", o, like=q)
     if not isinstance(lse, np.ndarray) or lse.dtype != np.float64 or lse.shape != q.shape[:5]:
+        got = f"{lse.dtype} of shape {lse.shape}" if isinstance(lse, np.ndarray) else type(lse).__name__
         raise TypeError(f"lse must be the float64 array of shape {q.shape[:5]} that "
-                        "branching_attention_forward returned")
+                        f"branching_attention_forward returned, got {got}")
     if not lse.flags.c_contiguous:
         raise ValueError("lse is not C-contiguous: pass the array branching_attention_forward returned")
+    _checks.finite("lse", lse)
     dq, dk, dv = np.empty_like(q), np.empty_like(q), np.empty_like(q)
     (_core.attn_backward_plain if plain else _core.attn_backward)(dq, dk, dv, lse, q, k, v, o, do, scale)
     _check_finite_result("branching_attention_backward", dq, dk, dv)
@@ -143,11 +145,18 @@ def branching_mask(R, N, L):
             raise TypeError(f"{name} must be a positive integer, got {type(val).__name__} {val!r}")
         if val < 1:
             raise ValueError(f"{name} must be a positive integer, got {val!r}")
-    r = np.repeat(np.arange(R), N)  # (R*N,) row of each block
-    i = np.tile(np.arange(N), R)  # (R*N,) view of each block
-    rq, iq, rk, ik = r[:, None], i[:, None], r[None, :], i[None, :]
-    blocks = ((rk == 0) & (ik < iq)) | ((rk == rq) & (ik == iq))  # (R*N, R*N)
-    return np.kron(blocks, np.ones((L, L), dtype=bool))  # (T, T)
+    T = int(R) * int(N) * int(L)
+    if T * T > np.iinfo(np.intp).max:
+        raise ValueError(f"R*N*L = {T} tokens (R={R}, N={N}, L={L}): a ({T}, {T}) mask is beyond any array size")
+    try:
+        r = np.repeat(np.arange(R), N)  # (R*N,) row of each block
+        i = np.tile(np.arange(N), R)  # (R*N,) view of each block
+        rq, iq, rk, ik = r[:, None], i[:, None], r[None, :], i[None, :]
+        blocks = ((rk == 0) & (ik < iq)) | ((rk == rq) & (ik == iq))  # (R*N, R*N)
+        return np.kron(blocks, np.ones((L, L), dtype=bool))  # (T, T)
+    except MemoryError:
+        raise MemoryError(f"branching_mask: R*N*L = {T} tokens (R={R}, N={N}, L={L}) need a ({T}, {T}) mask "
+                          f"of {T * T / 2 ** 30:.3g} GiB") from None
 
 
 def _flat(x):
@@ -219,7 +228,23 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
     cache: both linear caches, q, k, v, o (R, B, H, N, L, dh) and lse: the kernel's backward
     needs them and recomputes the probabilities from lse.
     """
+    _checks.float_array("x", x)
+    if x.ndim != 5:
+        raise ValueError(f"x must have 5 dimensions (R, B, N, L, d), got shape {x.shape}")
+    if 0 in x.shape:
+        raise ValueError(f"x has a zero-size dimension: shape {x.shape}")
     d = x.shape[-1]
+    if isinstance(n_head, (bool, np.bool_)) or not isinstance(n_head, (int, np.integer)) or n_head < 1:
+        raise ValueError(f"n_head must be a positive integer, got {n_head!r}")
+    if d % n_head:
+        raise ValueError(f"n_head={n_head} does not divide the width d={d} of x")
+    for name, a, shape in (("w_attn", w_attn, (d, 3 * d)), ("b_attn", b_attn, (1, 3 * d)),
+                           ("w_proj", w_proj, (d, d)), ("b_proj", b_proj, (1, d))):
+        _checks.float_array(name, a, x, "x")
+        if a.shape != shape:
+            raise ValueError(f"{name} must have shape {shape} for x of width d={d}, got {a.shape}")
+        _checks.finite(name, a)
+    _check_scale(scale)
     h, c_attn = linear_forward(x, w_attn, b_attn)  # (R, B, N, L, 3d)
     # SPEC.md §3: the fused columns are [values | queries | keys], not GPT-2's q, k, v order
     v = _split_heads(h[..., 0:d], n_head)  # (R, B, H, N, L, dh)

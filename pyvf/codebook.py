@@ -18,10 +18,13 @@ configuration's number of levels and blocks.
 
 import dataclasses
 import json
+import os
+from collections.abc import Mapping
 
 import numpy as np
 
 from . import _checks
+from ._io import CheckpointError, atomic_savez
 from .conv import (
     attnblock_backward,
     attnblock_forward,
@@ -209,30 +212,79 @@ class Codebook:
 
     def load_official(self, state_dict):
         """Load a torch state_dict (name -> array, e.g. from `pyvf convert torch-codebook`):
-        every parameter and the four quantize.* buffers, names and shapes checked, nothing else.
-        Float arrays are converted to the model's dtype (the one conversion pyvf makes, on purpose)."""
+        every parameter and the four quantize.* buffers, nothing else.
+
+        Everything is checked before anything is assigned: names (missing, unexpected), every
+        array (a float32/float64 numpy array of the parameter's shape, finite; the counter a
+        non-negative integer). Any problem raises one ValueError naming every wrong entry
+        (TypeError when all of them are wrong types), and the model is left unchanged. Float
+        arrays are converted to the model's dtype (the one conversion pyvf makes, on purpose);
+        the model never aliases the caller's arrays."""
+        if not isinstance(state_dict, Mapping):
+            raise TypeError(f"load_official: state_dict must be a dict name -> array, got {type(state_dict).__name__}")
         shapes = parameter_shapes(self.config)
-        want = set(shapes) | set(BUFFERS)
-        unexpected = sorted(set(state_dict) - want)
-        missing = sorted(want - set(state_dict))
-        if unexpected:
-            raise ValueError(f"load_official: unexpected names, e.g. {unexpected[:3]}")
+        problems = []
+        missing = [k for k in (*shapes, *BUFFERS) if k not in state_dict]
         if missing:
-            raise ValueError(f"load_official: {len(missing)} names missing, e.g. {missing[:3]}")
+            problems.append((ValueError, f"{len(missing)} names missing: {missing}"))
+        want = set(shapes) | set(BUFFERS)
+        unexpected = sorted(repr(k) for k in state_dict if k not in want)
+        if unexpected:
+            problems.append((ValueError, f"unexpected names {', '.join(unexpected)}"))
         params = {}
         for name, shape in shapes.items():
-            params[name] = _checks.weight(name, state_dict[name], shape, self.dtype)
-        self.quantizer.load_state_dict({k[len("quantize."):]: np.asarray(state_dict[k]) for k in BUFFERS})
+            if name in state_dict:
+                a = state_dict[name]
+                problem = _checks.weight_problem(name, a, shape)
+                if problem is None:
+                    params[name] = np.array(a, dtype=self.dtype, order="C", copy=True)
+                else:
+                    problems.append(problem)
+        prefix = "quantize."
+        buffers, buffer_problems = self.quantizer.check_state(
+            {k[len(prefix):]: state_dict[k] for k in BUFFERS if k in state_dict}, prefix=prefix, require_all=False)
+        problems += buffer_problems
+        if problems:
+            raise _checks.problems_error("load_official", problems)
+        self.quantizer._assign(buffers)
         self.params = params
 
     def save(self, path):
-        np.savez(path, __config__=json.dumps(dataclasses.asdict(self.config)), **self.state_dict())
+        """Write the configuration, the parameters and the quantizer's buffers to one .npz file.
+
+        path: a str or os.PathLike; ".npz" is appended when it does not end with it, as
+        np.savez does (so `Codebook.load` needs the name with ".npz"). The file is written
+        atomically (pyvf._io.atomic_savez: a temporary file in the same folder, fsync'ed, then
+        os.replace'd): a process killed mid-save leaves the previous file intact. An open
+        binary file object is written directly (no atomicity: the caller owns it).
+        Returns the path written (or the file object)."""
+        arrays = {"__config__": json.dumps(dataclasses.asdict(self.config)), **self.state_dict()}
+        if hasattr(path, "write"):
+            np.savez(path, **arrays)
+            return path
+        path = os.fsdecode(os.fspath(path))
+        if not path.endswith(".npz"):
+            path += ".npz"
+        atomic_savez(path, **arrays)
+        return path
 
     @classmethod
     def load(cls, path):
-        with np.load(path, allow_pickle=False) as f:
-            model = cls(CodebookConfig(**json.loads(str(f["__config__"]))))
-            model.load_official({k: f[k] for k in f.files if k != "__config__"})
+        """Read a codebook written by save(): path as given (no ".npz" appended), or an open
+        binary file. A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
+        configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
+        pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
+        arrays, fields = _checks.model_file(path, "codebook")
+        name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
+        try:
+            config = CodebookConfig(**fields)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"codebook {name}: entry '__config__' is not a CodebookConfig: {e}") from e
+        model = cls(config)
+        try:
+            model.load_official(arrays)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"codebook {name}: {e}") from e
         return model
 
     # -----------------------------------------------------------------------------------
@@ -382,8 +434,14 @@ class Codebook:
         self._check_images(images)
         enc, dec = [], []
         z = self._encoder(enc, images)  # (B, D, k, k)
+        saved = {k: v.copy() for k, v in self.quantizer.state_dict().items()} if train else None
         q, c_q = self.quantizer.forward(z, train=train)
-        rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
+        try:
+            rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
+        except BaseException:  # a failed call leaves the EMA buffers as they were
+            if saved is not None:
+                self.quantizer.load_state_dict(saved)
+            raise
         diff = rec - images
         rec_loss = float(np.mean(np.abs(diff)))
         loss = rec_loss + self.config.codebook_weight * q.commitment_loss

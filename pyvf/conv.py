@@ -15,7 +15,7 @@ size; P = Hi * Wi pixels; K = C * kh * kw the length of one im2col column.
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from . import _checks
+from . import _checks, _core
 
 
 
@@ -23,8 +23,16 @@ from . import _checks
 # argument checks (shared): name the argument, never cast
 
 
-def _check_float(name, a, like=None):
-    _checks.float_array(name, a, like, "x")
+def _check_float(name, a, like=None, like_name="x"):
+    """A float32/float64 ndarray (of like's dtype), finite: NaN or inf raise naming `name`."""
+    _checks.float_array(name, a, like, like_name)
+    _checks.finite(name, a)
+
+
+def _contig(a):
+    """a itself when C-contiguous (a 0-d array stays 0-d, which np.ascontiguousarray would make
+    1-d), else a C-ordered copy: the C++ kernels take C order only."""
+    return a if a.flags.c_contiguous else np.ascontiguousarray(a)
 
 
 def _check_image(name, x):
@@ -80,24 +88,8 @@ def _im2col(x, kh, kw, stride, pad):
     return win.transpose(0, 1, 4, 5, 2, 3).reshape(B, C * kh * kw, Ho * Wo)  # (B, K, Ho*Wo)
 
 
-def conv2d_forward(x, w, b, stride=1, padding=0):
-    """y = conv2d(x, w) + b, torch's cross-correlation (no kernel flip).
-
-    x (B, C, Hi, Wi), w (Co, C, kh, kw), b (Co,) -> y (B, Co, Ho, Wo),
-    Ho = (Hi + top + bottom - kh) // stride + 1, Wo likewise.
-    padding: an int (the same zeros on all four sides, torch's `padding=p`) or
-    (top, bottom, left, right).
-
-    Padding trap (SPEC.md §4): the Downsample pads only the right and the bottom, by one pixel,
-    then convolves 3x3 stride 2 with padding 0: padding=(0, 1, 0, 1) here, F.pad(x, (0, 1, 0, 1))
-    in torch (whose order is (left, right, top, bottom); with these numbers both orders agree).
-    padding=1 gives the same output size on even images but shifts every window by one pixel;
-    (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
-
-    One matmul: y_b = w2 @ cols_b, w2 = w as (Co, K), cols the im2col columns (B, K, Ho*Wo).
-    A 1x1 conv with stride 1 and no padding is a plain matmul on x itself (no columns).
-    cache: x and w (no copies), stride, padding; the columns are recomputed in the backward,
-    since they are kh*kw times the size of x and the codebook has dozens of convs."""
+def _conv_args(x, w, b, stride, padding):
+    """Check conv2d's arguments (naming the wrong one, never casting) -> (stride, pad, Ho, Wo)."""
     _check_image("x", x)
     _check_float("w", w, like=x)
     if w.ndim != 4:
@@ -116,7 +108,76 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     if Ho < 1 or Wo < 1:
         raise ValueError(f"kernel {kh}x{kw} does not fit the padded image {Hi + pt + pb}x{Wi + pl + pr} "
                          f"(x {Hi}x{Wi}, padding {padding!r})")
+    return stride, pad, Ho, Wo
 
+
+def _conv_grad_args(dy, cache):
+    x, w, stride, pad = cache
+    B, C, Hi, Wi = x.shape
+    Co, _, kh, kw = w.shape
+    pt, pb, pl, pr = pad
+    Ho, Wo = (Hi + pt + pb - kh) // stride + 1, (Wi + pl + pr - kw) // stride + 1
+    _check_grad("dy", dy, (B, Co, Ho, Wo))
+    _check_float("dy", dy, like=x, like_name="the forward's x")
+    return x, w, stride, pad
+
+
+def conv2d_forward(x, w, b, stride=1, padding=0):
+    """y = conv2d(x, w) + b, torch's cross-correlation (no kernel flip).
+
+    x (B, C, Hi, Wi), w (Co, C, kh, kw), b (Co,) -> y (B, Co, Ho, Wo),
+    Ho = (Hi + top + bottom - kh) // stride + 1, Wo likewise.
+    padding: an int (the same zeros on all four sides, torch's `padding=p`) or
+    (top, bottom, left, right).
+
+    Padding trap (SPEC.md §4): the Downsample pads only the right and the bottom, by one pixel,
+    then convolves 3x3 stride 2 with padding 0: padding=(0, 1, 0, 1) here, F.pad(x, (0, 1, 0, 1))
+    in torch (whose order is (left, right, top, bottom); with these numbers both orders agree).
+    padding=1 gives the same output size on even images but shifts every window by one pixel;
+    (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
+
+    The C++ kernel (csrc/conv.cpp): implicit GEMM, y_b = w2 @ cols_b + b with w2 = w as (Co, K),
+    K = C*kh*kw, the im2col columns cols_b (K, Ho*Wo) built a cache-sized tile at a time and never
+    stored whole; every y element one dot product of K terms in T. conv2d_forward_numpy is the same
+    layer in NumPy (one BLAS matmul on the whole cols), kept as a second reference.
+    cache: x and w (no copies unless they were not C-contiguous), stride, padding; the columns
+    are recomputed in the backward (they are kh*kw times the size of x)."""
+    stride, pad, Ho, Wo = _conv_args(x, w, b, stride, padding)
+    x, w, b = (_contig(a) for a in (x, w, b))  # the kernel takes C order; views are copied once
+    y = np.empty((x.shape[0], w.shape[0], Ho, Wo), dtype=x.dtype)  # (B, Co, Ho, Wo)
+    _core.conv2d_forward(y, x, w, b, stride, *pad)
+    _checks.finite_result("conv2d_forward", y, "y")
+    return y, (x, w, stride, pad)
+
+
+def conv2d_backward(dy, cache):
+    """-> dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,).
+
+    forward was y_b = w2 @ cols_b + b, so dw = sum_b dy_b @ cols_b^T, dcols_b = w2^T @ dy_b
+    (scattered back onto x by col2im), db = sum of dy over b, u, v. The C++ kernel computes dx of a
+    stride-1 conv as the conv of dy with the flipped, transposed kernel (a gather, no scatter);
+    csrc/conv.cpp says how dw and db are split into tasks so that the result is the same for any
+    thread count."""
+    x, w, stride, pad = _conv_grad_args(dy, cache)
+    dy = _contig(dy)
+    dx, dw = np.empty_like(x), np.empty_like(w)  # (B, C, Hi, Wi), (Co, C, kh, kw)
+    db = np.empty(w.shape[0], dtype=x.dtype)  # (Co,)
+    _core.conv2d_backward(dx, dw, db, x, w, dy, stride, *pad)
+    for name, g in (("dx", dx), ("dw", dw), ("db", db)):
+        _checks.finite_result("conv2d_backward", g, name)
+    return dx, dw, db
+
+
+def conv2d_forward_numpy(x, w, b, stride=1, padding=0):
+    """conv2d_forward in NumPy: one BLAS matmul on the whole im2col columns. Same arguments,
+    output and cache; a second reference for the tests (and conv2d_backward_numpy takes the
+    cache of either).
+
+    One matmul: y_b = w2 @ cols_b, w2 = w as (Co, K), cols the im2col columns (B, K, Ho*Wo).
+    A 1x1 conv with stride 1 and no padding is a plain matmul on x itself (no columns)."""
+    stride, pad, Ho, Wo = _conv_args(x, w, b, stride, padding)
+    B, C, Hi, Wi = x.shape
+    Co, _, kh, kw = w.shape
     w2 = w.reshape(Co, C * kh * kw)  # (Co, K), columns in (c, i, j) order
     if kh == kw == 1 and stride == 1 and not any(pad):
         y = w2 @ x.reshape(B, C, Hi * Wi)  # (B, Co, P): y[b,o,p] = sum_c w[o,c] x[b,c,p]
@@ -127,14 +188,13 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     return y, (x, w, stride, pad)
 
 
-def conv2d_backward(dy, cache):
-    """-> dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,)."""
-    x, w, stride, pad = cache
+def conv2d_backward_numpy(dy, cache):
+    """conv2d_backward in NumPy -> dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,)."""
+    x, w, stride, pad = _conv_grad_args(dy, cache)
     B, C, Hi, Wi = x.shape
     Co, _, kh, kw = w.shape
     pt, pb, pl, pr = pad
-    Ho, Wo = (Hi + pt + pb - kh) // stride + 1, (Wi + pl + pr - kw) // stride + 1
-    _check_grad("dy", dy, (B, Co, Ho, Wo))
+    Ho, Wo = dy.shape[2:]
     dy2 = dy.reshape(B, Co, Ho * Wo)  # (B, Co, Ho*Wo)
     w2 = w.reshape(Co, C * kh * kw)  # (Co, K)
     # forward was y = ... + b[o], so db[o] = sum over b, u, v of dy
@@ -166,6 +226,44 @@ def conv2d_backward(dy, cache):
 # GroupNorm (Normalize in the codebook): 32 groups of contiguous channels, eps 1e-6, affine
 
 
+def _groupnorm_args(x, gamma, beta, groups, eps):
+    _check_image("x", x)
+    B, C, Hi, Wi = x.shape
+    _check_vector("gamma", gamma, C, x)
+    _check_vector("beta", beta, C, x)
+    if not isinstance(groups, (int, np.integer)) or isinstance(groups, bool) or groups < 1:
+        raise ValueError(f"groups must be a positive int, got {groups!r}")
+    if C % groups:
+        raise ValueError(f"groups={groups} does not divide the {C} channels of x")
+    _checks.real("eps", eps, lo=0, lo_open=True)  # finite and > 0: eps = inf would give y = beta
+    return int(groups)
+
+
+def _groupnorm_kernel(x, gamma, beta, G, eps, swish):
+    """The C++ forward (csrc/groupnorm.cpp) -> y, xhat (B, C, Hi, Wi), rstd (B, G, 1)."""
+    x, gamma, beta = (_contig(a) for a in (x, gamma, beta))
+    y, xhat = np.empty_like(x), np.empty_like(x)  # (B, C, Hi, Wi)
+    rstd = np.empty((x.shape[0], G, 1), dtype=x.dtype)  # (B, G, 1)
+    _core.groupnorm_forward(y, xhat, rstd, x, gamma, beta, G, float(eps), swish)
+    if not (rstd > 0).all():  # var = inf: a group's (x - mean)^2 overflowed float64 (|x| beyond ~1e154)
+        raise ValueError("groupnorm: the variance of a group of x overflowed float64 (values beyond ~1e154): "
+                         "rescale x (GroupNorm is scale-invariant up to eps)")
+    _checks.finite_result("groupnorm_forward", y, "y")
+    return y, xhat, rstd
+
+
+def _groupnorm_grad_kernel(dy, xhat, rstd, gamma, beta, G, swish):
+    _check_grad("dy", dy, xhat.shape)
+    _check_float("dy", dy, like=xhat, like_name="the forward's x")
+    dy = _contig(dy)
+    dx = np.empty_like(xhat)  # (B, C, Hi, Wi)
+    dgamma, dbeta = np.empty_like(gamma), np.empty_like(gamma)  # (C,)
+    _core.groupnorm_backward(dx, dgamma, dbeta, xhat, rstd, gamma, beta, dy, G, swish)
+    for name, g in (("dx", dx), ("dgamma", dgamma), ("dbeta", dbeta)):
+        _checks.finite_result("groupnorm_backward", g, name)
+    return dx, dgamma, dbeta
+
+
 def groupnorm_forward(x, gamma, beta, groups=32, eps=1e-6):
     """y = (x - mean_g) / sqrt(var_g + eps) * gamma[c] + beta[c], statistics over each group g of
     C/groups consecutive channels and all their pixels (torch's grouping).
@@ -180,18 +278,52 @@ def groupnorm_forward(x, gamma, beta, groups=32, eps=1e-6):
     centred twice (the second time by the centred group's own residual mean), then the variance
     is the mean square of it. So a group of mean 1e4 and spread 0.1 keeps its digits, and a
     constant group gives y = beta exactly (xhat = 0 even when the rounded mean is an ulp off).
+    The C++ kernel (csrc/groupnorm.cpp) does exactly this, every sum in float64;
+    groupnorm_forward_numpy is the same in NumPy, kept as a second reference.
     cache: xhat (B, C, Hi, Wi), rstd (B, groups, 1), gamma, groups."""
-    _check_image("x", x)
-    B, C, Hi, Wi = x.shape
-    _check_vector("gamma", gamma, C, x)
-    _check_vector("beta", beta, C, x)
-    if not isinstance(groups, (int, np.integer)) or isinstance(groups, bool) or groups < 1:
-        raise ValueError(f"groups must be a positive int, got {groups!r}")
-    if C % groups:
-        raise ValueError(f"groups={groups} does not divide the {C} channels of x")
-    if not eps > 0:
-        raise ValueError(f"eps must be positive, got {eps!r}")
-    G = int(groups)
+    G = _groupnorm_args(x, gamma, beta, groups, eps)
+    y, xhat, rstd = _groupnorm_kernel(x, gamma, beta, G, eps, swish=False)
+    return y, (xhat, rstd, _contig(gamma), G)
+
+
+def groupnorm_backward(dy, cache):
+    """-> dx (B, C, Hi, Wi), dgamma (C,), dbeta (C,).
+
+    forward was y = xhat * gamma[c] + beta[c], xhat = (x - mean_g(x)) * rstd, so dgamma = sum of
+    dy * xhat, dbeta = sum of dy, and per group dx = rstd * (dxhat - mean_g(dxhat) - xhat *
+    mean_g(dxhat * xhat)), dxhat = dy * gamma[c] (the C++ kernel; the sums in float64)."""
+    xhat, rstd, gamma, G = cache
+    return _groupnorm_grad_kernel(dy, xhat, rstd, gamma, gamma, G, swish=False)  # beta unused without swish
+
+
+def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6):
+    """z = swish(groupnorm(x)): the Normalize + swish pair of the codebook (ResnetBlock's norm1 and
+    norm2, and norm_out before conv_out, SPEC.md §4), in one pass of the C++ kernel.
+
+    x (B, C, Hi, Wi), gamma, beta (C,) -> z (B, C, Hi, Wi). The same numbers as
+    swish_forward(groupnorm_forward(x, gamma, beta, groups, eps)[0])[0] (bitwise: the same
+    operations), without the intermediate y. eps 1e-6: the parity trap of groupnorm_forward.
+    cache: xhat (B, C, Hi, Wi), rstd (B, groups, 1), gamma, beta, groups; y = xhat * gamma + beta
+    is recomputed in the backward (one array fewer than the unfused pair's cache)."""
+    G = _groupnorm_args(x, gamma, beta, groups, eps)
+    z, xhat, rstd = _groupnorm_kernel(x, gamma, beta, G, eps, swish=True)
+    return z, (xhat, rstd, _contig(gamma), _contig(beta), G)
+
+
+def groupnorm_swish_backward(dz, cache):
+    """-> dx (B, C, Hi, Wi), dgamma (C,), dbeta (C,).
+
+    forward was z = swish(y), y = xhat * gamma[c] + beta[c], so dy = dz * swish'(y) (y recomputed),
+    then groupnorm_backward's formulas."""
+    xhat, rstd, gamma, beta, G = cache
+    return _groupnorm_grad_kernel(dz, xhat, rstd, gamma, beta, G, swish=True)
+
+
+def groupnorm_forward_numpy(x, gamma, beta, groups=32, eps=1e-6):
+    """groupnorm_forward in NumPy (float64 means, the variance in x's dtype): same arguments, output
+    and cache; a second reference for the tests."""
+    G = _groupnorm_args(x, gamma, beta, groups, eps)
+    B = x.shape[0]
     xg = x.reshape(B, G, -1)  # (B, G, C/G * Hi * Wi): a group's channels are consecutive
     mean = xg.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (B, G, 1)
     xc = xg - mean  # (B, G, M)
@@ -205,8 +337,8 @@ def groupnorm_forward(x, gamma, beta, groups=32, eps=1e-6):
     return y, (xhat, rstd, gamma, G)
 
 
-def groupnorm_backward(dy, cache):
-    """-> dx (B, C, Hi, Wi), dgamma (C,), dbeta (C,)."""
+def groupnorm_backward_numpy(dy, cache):
+    """groupnorm_backward in NumPy -> dx (B, C, Hi, Wi), dgamma (C,), dbeta (C,)."""
     xhat, rstd, gamma, G = cache
     _check_grad("dy", dy, xhat.shape)
     B = xhat.shape[0]
@@ -225,6 +357,35 @@ def groupnorm_backward(dy, cache):
 # swish(x) = x * sigmoid(x) (torch's SiLU)
 
 
+def swish_forward(x):
+    """y = x * sigmoid(x).   x (...) -> y (...). Finite and warning-free for any finite x
+    (x = -1000 gives -0.0, x = +1000 gives 1000).
+
+    The C++ kernel (csrc/groupnorm.cpp) computes what _sigmoids does: z = exp(-|x|) in (0, 1],
+    sigmoid(|x|) = 1 / (1 + z), sigmoid(-|x|) = z / (1 + z), assigned by the sign of x; exp is a
+    vectorised one of about 1 ulp, std::exp where e^-|x| is subnormal. swish_forward_numpy is the
+    same in NumPy. cache: x (no copy unless x was not C-contiguous); the sigmoids are recomputed."""
+    _check_float("x", x)
+    x = _contig(x)
+    y = np.empty_like(x)
+    _core.swish_forward(y, x)
+    _checks.finite_result("swish_forward", y, "y")
+    return y, x
+
+
+def swish_backward(dy, cache):
+    """-> dx (...). forward was y = x * s, s' = s * (1 - s), so
+    dy/dx = s + x * s * (1 - s) = s * (1 + x * sigmoid(-x))."""
+    x = cache
+    _check_grad("dy", dy, x.shape)
+    _check_float("dy", dy, like=x, like_name="the forward's x")
+    dy = _contig(dy)
+    dx = np.empty_like(x)
+    _core.swish_backward(dx, dy, x)
+    _checks.finite_result("swish_backward", dx, "dx")
+    return (dx,)
+
+
 def _sigmoids(x):
     """(sigmoid(x), sigmoid(-x)) without overflow or cancellation. z = exp(-|x|) is in (0, 1], so
     exp never overflows; sigmoid(|x|) = 1 / (1 + z) and sigmoid(-|x|) = z / (1 + z), each assigned
@@ -239,9 +400,8 @@ def _sigmoids(x):
     return np.where(pos, s_pos, s_neg), np.where(pos, s_neg, s_pos)
 
 
-def swish_forward(x):
-    """y = x * sigmoid(x).   x (...) -> y (...). Finite and warning-free for any finite x
-    (x = -1000 gives -0.0, x = +1000 gives 1000). cache: x (no copy); the sigmoids are recomputed."""
+def swish_forward_numpy(x):
+    """swish_forward in NumPy, a second reference for the tests."""
     _check_float("x", x)
     with np.errstate(under="ignore"):  # only underflow, the correct result for large |x|; overflow still raises
         s, _ = _sigmoids(x)
@@ -249,8 +409,8 @@ def swish_forward(x):
     return y, x
 
 
-def swish_backward(dy, cache):
-    """-> dx (...)."""
+def swish_backward_numpy(dy, cache):
+    """swish_backward in NumPy -> dx (...)."""
     x = cache
     _check_grad("dy", dy, x.shape)
     with np.errstate(under="ignore"):
@@ -266,19 +426,26 @@ def swish_backward(dy, cache):
 
 def upsample_nearest2x_forward(x):
     """y[b, c, 2u + i, 2v + j] = x[b, c, u, v] for i, j in {0, 1}.
-    x (B, C, Hi, Wi) -> y (B, C, 2Hi, 2Wi). cache: x's shape."""
+    x (B, C, Hi, Wi) -> y (B, C, 2Hi, 2Wi). cache: x's shape and dtype."""
     _check_image("x", x)
     B, C, Hi, Wi = x.shape
     y = np.broadcast_to(x[:, :, :, None, :, None], (B, C, Hi, 2, Wi, 2)).reshape(B, C, 2 * Hi, 2 * Wi)
-    return y, x.shape
+    return y, (x.shape, x.dtype)
 
 
 def upsample_nearest2x_backward(dy, cache):
     """-> dx (B, C, Hi, Wi): forward copied each pixel to a 2x2 block, so dx sums the block."""
-    B, C, Hi, Wi = cache
+    (B, C, Hi, Wi), dtype = cache
     _check_grad("dy", dy, (B, C, 2 * Hi, 2 * Wi))
-    dx = dy.reshape(B, C, Hi, 2, Wi, 2).sum(axis=(3, 5))  # (B, C, Hi, Wi)
-    return (dx,)
+    _check_float("dy", dy)
+    if dy.dtype != dtype:
+        raise TypeError(f"dy is {dy.dtype} but the forward's x is {dtype}: both must share one dtype "
+                        "(pyvf never casts silently)")
+    d = dy.reshape(B, C, Hi, 2, Wi, 2)  # d[b, c, u, i, v, j] = dy[b, c, 2u + i, 2v + j]
+    # the four pixels of each block as four strided views: 15x faster than .sum(axis=(3, 5)) (a
+    # reduction over two short strided axes), which gave the same bits on random float32 dy
+    dx = (d[:, :, :, 0, :, 0] + d[:, :, :, 0, :, 1]) + (d[:, :, :, 1, :, 0] + d[:, :, :, 1, :, 1])  # (B, C, Hi, Wi)
+    return (_checks.finite_result("upsample_nearest2x_backward", dx, "dx"),)
 
 
 # ---------------------------------------------------------------------------------------

@@ -17,7 +17,8 @@ Conventions (each one decided here, tested in tests/test_geometry.py):
 
 * Inputs are float32 or float64 numpy arrays; the result has the input's dtype, and two
   arrays in one call must share it (nothing is cast). Integer arrays, a wrong last
-  dimension and NaN/inf raise TypeError/ValueError naming the argument.
+  dimension and NaN/inf raise TypeError/ValueError naming the argument; a result that
+  overflows the dtype (e.g. positions 1e308 apart) raises ValueError instead of returning inf.
 * Functions that use a quaternion as a rotation (quat_rotate, relative_poses,
   absolute_poses, make_relative) require it to be unit: | |q|^2 - 1 | <= 1e-5 (float32) or
   1e-9 (float64), far above the rounding of any chain of products (a few ulp) and far below
@@ -92,6 +93,14 @@ def _check_unit(name, q):
                          "normalise it first with quat_normalize")
 
 
+def _pow2_unit(q):
+    """q (..., 4) times a power of two per quaternion, exactly, so that its largest |component|
+    is in [0.5, 1): the same direction, and products of such quaternions neither overflow nor
+    lose digits to subnormals. A zero quaternion stays zero."""
+    k = np.frexp(np.abs(q).max(axis=-1, keepdims=True))[1]  # (..., 1)
+    return np.ldexp(q, -k).astype(q.dtype, copy=False)
+
+
 def _norm3(v):
     """|v| over the last axis of (..., 3), by hypot: no overflow or underflow of the squares."""
     return np.hypot(np.hypot(v[..., 0], v[..., 1]), v[..., 2])
@@ -164,7 +173,8 @@ def quat_mul(a, b):
     _check("a", a, (4,), "a quaternion (w, x, y, z)")
     _check("b", b, (4,), "a quaternion (w, x, y, z)", like=a, like_name="a")
     _broadcast("a", a.shape, "b", b.shape)
-    return _mul(a, b)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        return _checks.finite_result("quat_mul", _mul(a, b))
 
 
 def quat_conj(q):
@@ -183,7 +193,8 @@ def quat_rotate(q, v):
     _check("v", v, (3,), "3-vectors", like=q, like_name="q")
     _broadcast("q", q.shape[:-1], "v", v.shape[:-1])
     _check_unit("q", q)
-    return _rotate(q, v)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        return _checks.finite_result("quat_rotate", _rotate(q, v))
 
 
 def quat_normalize(q, eps=1e-12):
@@ -231,9 +242,10 @@ def relative_poses(poses, ref):
     _check_pose("ref", ref, like=poses, like_name="poses")
     _broadcast("poses", poses.shape, "ref", ref.shape)
     t0, q0i = ref[..., :3], _conj(ref[..., 3:])  # (..., 3), (..., 4)
-    xyz = _rotate(q0i, poses[..., :3] - t0)  # (..., 3)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        xyz = _rotate(q0i, poses[..., :3] - t0)  # (..., 3)
     q = _mul(q0i, poses[..., 3:])  # (..., 4)
-    return np.concatenate([xyz, q], axis=-1)  # (..., 7)
+    return _checks.finite_result("relative_poses", np.concatenate([xyz, q], axis=-1))  # (..., 7)
 
 
 def absolute_poses(rel, ref):
@@ -244,9 +256,10 @@ def absolute_poses(rel, ref):
     _check_pose("ref", ref, like=rel, like_name="rel")
     _broadcast("rel", rel.shape, "ref", ref.shape)
     t0, q0 = ref[..., :3], ref[..., 3:]
-    xyz = _rotate(q0, rel[..., :3]) + t0  # (..., 3)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        xyz = _rotate(q0, rel[..., :3]) + t0  # (..., 3)
     q = _mul(q0, rel[..., 3:])  # (..., 4)
-    return np.concatenate([xyz, q], axis=-1)  # (..., 7)
+    return _checks.finite_result("absolute_poses", np.concatenate([xyz, q], axis=-1))  # (..., 7)
 
 
 def make_relative(poses, *, canonical=True):
@@ -266,11 +279,12 @@ def make_relative(poses, *, canonical=True):
         raise ValueError(f"poses must be (..., N, 7) with N >= 1 views, got shape {poses.shape}")
     ref = poses[..., 0, :].copy()  # (..., 7)
     t0, q0i = ref[..., None, :3], _conj(ref[..., None, 3:])  # (..., 1, 3), (..., 1, 4)
-    xyz = _rotate(q0i, poses[..., :3] - t0)  # (..., N, 3)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        xyz = _rotate(q0i, poses[..., :3] - t0)  # (..., N, 3)
     q = _mul(q0i, poses[..., 3:])  # (..., N, 4)
     if canonical:
         q = _canonical(_normalize(q, 1e-12))
-    return np.concatenate([xyz, q], axis=-1), ref  # (..., N, 7), (..., 7)
+    return _checks.finite_result("make_relative", np.concatenate([xyz, q], axis=-1)), ref  # (..., N, 7), (..., 7)
 
 
 # ---------------------------------------------------------------------------------------
@@ -293,7 +307,8 @@ def position_error(p1, p2):
     xyz is used), both the same kind, broadcasting -> (...). Computed by hypot (no overflow
     of the squares)."""
     _check_pair("p1", p1, "p2", p2, 3, "positions")
-    return _norm3(p1[..., :3] - p2[..., :3])  # (...)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        return _checks.finite_result("position_error", _norm3(p1[..., :3] - p2[..., :3]))  # (...)
 
 
 def orientation_error(q1, q2):
@@ -310,17 +325,18 @@ def orientation_error(q1, q2):
     2 * acos(w) form loses everything near 0 (a 1e-9 rad rotation has w = 1 in float64).
     atan2 keeps full relative accuracy at every angle and never leaves [0, 180].
     It depends only on the direction of r, so q1 and q2 need not be unit; zero quaternions
-    (no rotation at all) raise ValueError."""
+    (no rotation at all) raise ValueError. Each quaternion is first scaled by a power of two
+    (exact: the same direction) to a largest component in [0.5, 1), so quaternions of any size,
+    1e-300 or 1e300, give the angle to full precision instead of overflowing or losing digits
+    to subnormal products."""
     _check_pair("q1", q1, "q2", q2, 4, "quaternions")
     a, b = q1[..., -4:], q2[..., -4:]
     for name, q in (("q1", a), ("q2", b)):
         if (q == 0).all(axis=-1).any():
             raise ValueError(f"{name} contains a zero quaternion: it is no rotation, the angle is undefined")
-    r = _mul(a, _conj(b))  # (..., 4)
-    s, c = _norm3(r[..., 1:]), np.abs(r[..., 0])  # (...) |vec(r)|, |w(r)|
-    if ((s == 0) & (c == 0)).any():
-        raise ValueError("q1 * conj(q2) underflowed to zero: the quaternions are too small "
-                         f"for {q1.dtype}; normalise them first")
+    with np.errstate(under="ignore"):  # components far below the largest may become subnormal: negligible
+        r = _mul(_pow2_unit(a), _conj(_pow2_unit(b)))  # (..., 4)
+    s, c = _norm3(r[..., 1:]), np.abs(r[..., 0])  # (...) |vec(r)|, |w(r)| >= 1/16 together: never 0/0
     return np.degrees(2 * np.arctan2(s, c))  # (...)
 
 
@@ -349,7 +365,8 @@ def average_pose(poses, axis=-2):
     axis = int(axis) % nd
     if poses.shape[axis] == 0:
         raise ValueError(f"poses has no entries along axis {axis}: shape {poses.shape}")
-    xyz = poses[..., :3].mean(axis=axis)  # (..., 3)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        xyz = poses[..., :3].mean(axis=axis)  # (..., 3)
     q = _canonical(_normalize(poses[..., 3:], 1e-12))  # (..., 4)
     q = _canonical(_normalize(q.mean(axis=axis), 1e-12))  # (..., 4)
-    return np.concatenate([xyz, q], axis=-1)  # (..., 7)
+    return _checks.finite_result("average_pose", np.concatenate([xyz, q], axis=-1))  # (..., 7)

@@ -6,34 +6,86 @@ arguments. `cache` holds only what the backward needs; each says what it saves. 
 their dtype (float32 or float64) throughout; nothing is cast.
 
 Shapes: `...` is any leading shape (e.g. (R, B, N, L)); d the model width.
+
+Arguments are checked as everywhere in pyvf (_checks): float32/float64 ndarrays of one dtype
+(TypeError otherwise: nothing is cast), the documented shapes and finite values (ValueError
+naming the argument); a result that overflows the dtype raises ValueError instead of handing
+inf or NaN to the next layer. Views of any layout are accepted (strided, negative strides,
+read-only); inputs are never modified.
 """
 
 import numpy as np
 
-from . import _core
+from . import _checks, _core
+
+
+def _float(name, a, like=None, like_name="x"):
+    """a: a finite float32/float64 ndarray (of like's dtype, when given)."""
+    _checks.float_array(name, a, like, like_name)
+    return _checks.finite(name, a)
+
+
+def _grad(name, dy, like, shape):
+    """dy: the upstream gradient, a finite array of the forward output's dtype and shape."""
+    _checks.float_array(name, dy, like, "the forward's input")
+    if dy.shape != tuple(shape):
+        raise ValueError(f"{name} must have the forward output's shape {tuple(shape)}, got {dy.shape}")
+    return _checks.finite(name, dy)
+
+
+def _check_linear(x, w, b, names=("x", "w", "b")):
+    """x (..., din), w (din, dout), b (1, dout): finite, one float dtype."""
+    nx, nw, nb = names
+    _float(nx, x)
+    _float(nw, w, x, nx)
+    _float(nb, b, x, nx)
+    if w.ndim != 2:
+        raise ValueError(f"{nw} must be 2-D (din, dout), got shape {w.shape}")
+    din, dout = w.shape
+    if x.ndim < 1 or x.shape[-1] != din:
+        raise ValueError(f"{nx} must have last dimension din = {din} ({nw}.shape[0]), got shape {x.shape}")
+    if b.shape != (1, dout):
+        raise ValueError(f"{nb} must have shape (1, {dout}) (dout = {nw}.shape[1]), got {b.shape}")
 
 # ---------------------------------------------------------------------------------------
 # linear, published layout: weight (din, dout), bias (1, dout)
 
 
+def _linear(x, w, b):
+    din, dout = w.shape
+    M = int(np.prod(x.shape[:-1]))  # rows; explicit rather than -1, so that din = 0 works
+    with np.errstate(over="ignore", invalid="ignore"):  # the callers check the result
+        return (x.reshape(M, din) @ w + b).reshape(*x.shape[:-1], dout)  # (..., dout)
+
+
+def _linear_backward(dy, x, w):
+    din, dout = w.shape
+    M = int(np.prod(x.shape[:-1]))
+    dy2 = dy.reshape(M, dout)  # (M, dout)
+    with np.errstate(over="ignore", invalid="ignore"):  # the callers check the results
+        # forward was y = x @ w + b
+        dx = (dy2 @ w.T).reshape(x.shape)  # dx = dy @ w^T
+        dw = x.reshape(M, din).T @ dy2  # dw = x^T @ dy
+        db = dy2.sum(axis=0, keepdims=True)  # db = sum over rows of dy
+    return dx, dw, db
+
+
 def linear_forward(x, w, b):
     """y = x @ w + b.   x (..., din), w (din, dout), b (1, dout) -> y (..., dout).
     cache: x and w (no copies)."""
-    din, dout = w.shape
-    y = (x.reshape(-1, din) @ w + b).reshape(*x.shape[:-1], dout)  # (..., dout)
+    _check_linear(x, w, b)
+    y = _checks.finite_result("linear_forward", _linear(x, w, b))
     return y, (x, w)
 
 
 def linear_backward(dy, cache):
     """-> dx (..., din), dw (din, dout), db (1, dout)."""
     x, w = cache
-    din, dout = w.shape
-    dy2 = dy.reshape(-1, dout)  # (M, dout)
-    # forward was y = x @ w + b
-    dx = (dy2 @ w.T).reshape(x.shape)  # dx = dy @ w^T
-    dw = x.reshape(-1, din).T @ dy2  # dw = x^T @ dy
-    db = dy2.sum(axis=0, keepdims=True)  # db = sum over rows of dy
-    return dx, dw, db
+    _grad("dy", dy, x, x.shape[:-1] + (w.shape[1],))
+    grads = _linear_backward(dy, x, w)
+    for name, g in zip(("dx", "dw", "db"), grads):
+        _checks.finite_result("linear_backward", g, name)
+    return grads
 
 
 # ---------------------------------------------------------------------------------------
@@ -45,30 +97,64 @@ def layernorm_forward(x, gamma, beta, eps=1e-5):
 
     Two-pass: the mean is accumulated in float64 and rounded, the row centred twice (the second
     time by the centred row's own residual mean), then the variance is the mean square of it, so a row of mean 1e4 and spread 0.1 keeps its digits and a
-    constant row gives y = beta exactly. cache: xhat (..., d), rstd (..., 1), gamma."""
-    mean = x.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (..., 1)
-    xc = x - mean  # (..., d)
-    # second pass: the rounded mean can be an ulp off, which 1/sqrt(eps) = 316 would amplify on
-    # a constant row; the residual mean of xc is tiny and exact to subtract
-    xc -= xc.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)
-    var = np.mean(xc * xc, axis=-1, keepdims=True)  # (..., 1)
+    constant row gives y = beta exactly. Rows whose squares overflow (|x - mean| beyond
+    sqrt of the dtype's largest number, 1e154 in float64) are scaled by a power of two first, so
+    they normalise too. cache: xhat (..., d), rstd (..., 1), gamma."""
+    _float("x", x)
+    if x.ndim < 1 or x.shape[-1] == 0:
+        raise ValueError(f"x must have a last dimension d >= 1 to normalise over, got shape {x.shape}")
+    d = x.shape[-1]
+    _float("gamma", gamma, x)
+    _float("beta", beta, x)
+    for name, a in (("gamma", gamma), ("beta", beta)):
+        if a.shape != (d,):
+            raise ValueError(f"{name} must have shape ({d},) for x of shape {x.shape}, got {a.shape}")
+    eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked below
+        mean = x.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (..., 1)
+        xc = x - mean  # (..., d)
+        # second pass: the rounded mean can be an ulp off, which 1/sqrt(eps) = 316 would amplify on
+        # a constant row; the residual mean of xc is tiny and exact to subtract
+        xc -= xc.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)
+    if not _checks.all_finite(xc):
+        raise ValueError(f"layernorm_forward: mean(x) or x - mean(x) overflows {x.dtype}: rescale x")
+    with np.errstate(over="ignore"):
+        var = np.mean(xc * xc, axis=-1, keepdims=True)  # (..., 1)
     rstd = 1.0 / np.sqrt(var + x.dtype.type(eps))  # (..., 1)
     xhat = xc * rstd  # (..., d)
-    y = xhat * gamma + beta  # (..., d)
+    if not _checks.all_finite(var):
+        # rows whose squares overflow (|xc| > sqrt(max)): with sc = 2^-k, max|xc| < 2^k, xs = xc sc
+        # is exact and |xs| < 1, so xhat = xs / sqrt(mean(xs^2) + eps sc^2) (eps sc^2 underflows
+        # harmlessly) and rstd = sc / sqrt(...) for the backward
+        big = ~np.isfinite(var)  # (..., 1)
+        k = np.frexp(np.abs(xc).max(axis=-1, keepdims=True))[1]  # (..., 1)
+        sc = np.ldexp(np.ones(k.shape, x.dtype), -k)  # (..., 1), powers of two
+        xs = xc * sc  # (..., d)
+        with np.errstate(under="ignore"):
+            r1 = 1.0 / np.sqrt(np.mean(xs * xs, axis=-1, keepdims=True) + x.dtype.type(eps) * sc * sc)
+            xhat = np.where(big, xs * r1, xhat)
+            rstd = np.where(big, sc * r1, rstd)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        y = xhat * gamma + beta  # (..., d)
+    _checks.finite_result("layernorm_forward", y)
     return y, (xhat, rstd, gamma)
 
 
 def layernorm_backward(dy, cache):
     """-> dx (..., d), dgamma (d,), dbeta (d,)."""
     xhat, rstd, gamma = cache
+    _grad("dy", dy, xhat, xhat.shape)
     d = xhat.shape[-1]
-    # forward was y = xhat * gamma + beta
-    dgamma = (dy * xhat).reshape(-1, d).sum(axis=0)  # (d,)
-    dbeta = dy.reshape(-1, d).sum(axis=0)  # (d,)
-    dxhat = dy * gamma  # (..., d)
-    # forward was xhat = (x - mean(x)) * rstd, rstd = (mean((x - mean)^2) + eps)^(-1/2), so
-    # dx = rstd * (dxhat - mean(dxhat) - xhat * mean(dxhat * xhat))
-    dx = rstd * (dxhat - dxhat.mean(axis=-1, keepdims=True) - xhat * (dxhat * xhat).mean(axis=-1, keepdims=True))
+    with np.errstate(over="ignore", invalid="ignore"):  # the results are checked below
+        # forward was y = xhat * gamma + beta
+        dgamma = (dy * xhat).reshape(-1, d).sum(axis=0)  # (d,)
+        dbeta = dy.reshape(-1, d).sum(axis=0)  # (d,)
+        dxhat = dy * gamma  # (..., d)
+        # forward was xhat = (x - mean(x)) * rstd, rstd = (mean((x - mean)^2) + eps)^(-1/2), so
+        # dx = rstd * (dxhat - mean(dxhat) - xhat * mean(dxhat * xhat))
+        dx = rstd * (dxhat - dxhat.mean(axis=-1, keepdims=True) - xhat * (dxhat * xhat).mean(axis=-1, keepdims=True))
+    for name, g in (("dx", dx), ("dgamma", dgamma), ("dbeta", dbeta)):
+        _checks.finite_result("layernorm_backward", g, name)
     return dx, dgamma, dbeta
 
 
@@ -77,24 +163,37 @@ def layernorm_backward(dy, cache):
 
 
 def _contig(x):
-    # the kernels take C-contiguous arrays; layer outputs already are, so this copies nothing there
-    return np.ascontiguousarray(x)
+    # the kernels take C-contiguous arrays (a layout copy, never a cast: the dtype is checked);
+    # layer outputs already are, so this copies nothing there. Not np.ascontiguousarray: it
+    # turns a 0-d array into shape (1,)
+    return x if x.flags.c_contiguous else np.array(x, order="C")
+
+
+def _gelu(x):
+    y = np.empty_like(x)
+    _core.gelu(y, x)
+    return y
 
 
 def gelu_forward(x):
-    """y = x * Phi(x).   x (...) -> y (...). cache: x."""
+    """y = x * Phi(x).   x (...) -> y (...). cache: x (C-contiguous; a copy if x was not).
+    Finite for every finite x (|gelu(x)| <= |x|)."""
+    _float("x", x)
     x = _contig(x)
-    y = np.empty_like(x)
-    _core.gelu(y, x)
-    return y, x
+    return _gelu(x), x
+
+
+def _gelu_backward(dy, x):
+    dx = np.empty_like(x)
+    _core.gelu_backward(dx, _contig(dy), x)
+    return dx
 
 
 def gelu_backward(dy, cache):
     """-> dx = dy * (Phi(x) + x * phi(x))."""
     x = cache
-    dx = np.empty_like(x)
-    _core.gelu_backward(dx, _contig(dy), x)
-    return (dx,)
+    _grad("dy", dy, x, x.shape)
+    return (_checks.finite_result("gelu_backward", _gelu_backward(dy, x), "dx"),)
 
 
 # ---------------------------------------------------------------------------------------
@@ -104,19 +203,27 @@ def gelu_backward(dy, cache):
 def embedding_forward(ids, table):
     """y = table[ids].   ids (...) integers in [0, len(table)), table (n, d) -> y (..., d).
     cache: ids and the table's shape."""
-    if ids.dtype.kind not in "iu":
-        raise TypeError(f"ids must be integers, got {ids.dtype}")
+    _checks.int_array("ids", ids)
+    _float("table", table)
+    if table.ndim != 2:
+        raise ValueError(f"table must be 2-D (n, d), got shape {table.shape}")
     if ids.size and (ids.min() < 0 or ids.max() >= table.shape[0]):  # numpy would wrap -1 around
         raise ValueError(f"ids must be in [0, {table.shape[0]}), got values in [{ids.min()}, {ids.max()}]")
-    return table[ids], (ids, table.shape)
+    return table[ids], (ids, table.shape, table.dtype)
 
 
 def embedding_backward(dy, cache):
     """-> dtable (n, d): the rows of dy scatter-added at their ids (a row used twice gets both)."""
-    ids, shape = cache
+    ids, shape, dtype = cache
+    _checks.float_array("dy", dy)
+    if dy.dtype != dtype:
+        raise TypeError(f"dy is {dy.dtype} but the table is {dtype}: both must share one dtype "
+                        "(pyvf never casts silently)")
+    _grad("dy", dy, None, ids.shape + (shape[1],))
     dtable = np.zeros(shape, dtype=dy.dtype)
-    np.add.at(dtable, ids.reshape(-1), dy.reshape(-1, shape[1]))  # forward was y = table[ids]
-    return (dtable,)
+    with np.errstate(over="ignore"):
+        np.add.at(dtable, ids.reshape(-1), dy.reshape(ids.size, shape[1]))  # forward was y = table[ids]
+    return (_checks.finite_result("embedding_backward", dtable, "dtable"),)
 
 
 # ---------------------------------------------------------------------------------------
@@ -124,17 +231,29 @@ def embedding_backward(dy, cache):
 
 
 def mlp_forward(x, w_fc, b_fc, w_proj, b_proj):
-    """y = gelu(x @ w_fc + b_fc) @ w_proj + b_proj.   x (..., din) -> y (..., dout)."""
-    h, c_fc = linear_forward(x, w_fc, b_fc)  # (..., dh)
-    a, c_act = gelu_forward(h)  # (..., dh)
-    y, c_proj = linear_forward(a, w_proj, b_proj)  # (..., dout)
-    return y, (c_fc, c_act, c_proj)
+    """y = gelu(x @ w_fc + b_fc) @ w_proj + b_proj.   x (..., din) -> y (..., dout).
+    w_fc (din, dh), b_fc (1, dh), w_proj (dh, dout), b_proj (1, dout)."""
+    _check_linear(x, w_fc, b_fc, ("x", "w_fc", "b_fc"))
+    _float("w_proj", w_proj, x)
+    if w_proj.ndim != 2 or w_proj.shape[0] != w_fc.shape[1]:
+        raise ValueError(f"w_proj must be 2-D with {w_fc.shape[1]} rows (w_fc.shape[1]), got shape {w_proj.shape}")
+    _float("b_proj", b_proj, x)
+    if b_proj.shape != (1, w_proj.shape[1]):
+        raise ValueError(f"b_proj must have shape (1, {w_proj.shape[1]}), got {b_proj.shape}")
+    h = _contig(_checks.finite_result("mlp_forward", _linear(x, w_fc, b_fc), "the hidden layer"))  # (..., dh)
+    a = _gelu(h)  # (..., dh)
+    y = _checks.finite_result("mlp_forward", _linear(a, w_proj, b_proj))  # (..., dout)
+    return y, ((x, w_fc), h, (a, w_proj))
 
 
 def mlp_backward(dy, cache):
     """-> dx, dw_fc, db_fc, dw_proj, db_proj."""
     c_fc, c_act, c_proj = cache
-    da, dw_proj, db_proj = linear_backward(dy, c_proj)
-    (dh,) = gelu_backward(da, c_act)
-    dx, dw_fc, db_fc = linear_backward(dh, c_fc)
-    return dx, dw_fc, db_fc, dw_proj, db_proj
+    _grad("dy", dy, c_proj[0], c_proj[0].shape[:-1] + (c_proj[1].shape[1],))
+    da, dw_proj, db_proj = _linear_backward(dy, *c_proj)
+    dh = _gelu_backward(da, c_act)
+    dx, dw_fc, db_fc = _linear_backward(dh, *c_fc)
+    grads = (dx, dw_fc, db_fc, dw_proj, db_proj)
+    for name, g in zip(("dx", "dw_fc", "db_fc", "dw_proj", "db_proj"), grads):
+        _checks.finite_result("mlp_backward", g, name)
+    return grads

@@ -2,9 +2,20 @@
 
 Both return a loss per row (per token); the model takes the means over views, tokens and the
 batch itself, so that what is averaged over is visible where it happens.
+
+Arguments are checked as in pyvf.layers: float32/float64 arrays of one dtype, integer targets,
+the documented shapes, finite values (TypeError/ValueError naming the argument); a loss or
+gradient that overflows the dtype raises ValueError. Inputs are never modified.
 """
 
 import numpy as np
+
+from . import _checks
+
+
+def _float(name, a, like=None, like_name="logits"):
+    _checks.float_array(name, a, like, like_name)
+    return _checks.finite(name, a)
 
 
 def cross_entropy_forward(logits, targets, label_smoothing=0.0):
@@ -13,15 +24,27 @@ def cross_entropy_forward(logits, targets, label_smoothing=0.0):
     logits (M, V) float, targets (M,) integers in [0, V) -> loss (M,).
     Target distribution t = (1 - eps) * onehot(target) + eps / V, loss = -sum_v t_v log p_v,
     log p = logits - logsumexp(logits) computed with the row max subtracted, so logits of any
-    size give a finite loss. cache: log p (M, V), targets, eps.
+    size give a finite loss. label_smoothing in [0, 1]. cache: log p (M, V), targets, eps.
     """
+    _float("logits", logits)
+    if logits.ndim != 2 or logits.shape[1] == 0:
+        raise ValueError(f"logits must be 2-D (M, V) with V >= 1 classes, got shape {logits.shape}")
     M, V = logits.shape
-    z = logits - logits.max(axis=-1, keepdims=True)  # (M, V), max 0
-    logp = z - np.log(np.exp(z).sum(axis=-1, keepdims=True))  # (M, V)
-    eps = logits.dtype.type(label_smoothing)
-    loss = -(1 - eps) * logp[np.arange(M), targets]  # (M,)
-    if label_smoothing:
-        loss = loss - eps / V * logp.sum(axis=-1)
+    _checks.int_array("targets", targets)
+    if targets.shape != (M,):
+        raise ValueError(f"targets must have shape (M,) = ({M},) (one class per row of logits), got {targets.shape}")
+    if M and (targets.min() < 0 or targets.max() >= V):  # numpy would wrap -1 around
+        raise ValueError(f"targets must be in [0, {V}) (V = logits.shape[1]), got values in "
+                         f"[{targets.min()}, {targets.max()}]")
+    label_smoothing = _checks.real("label_smoothing", label_smoothing, 0.0, 1.0)
+    with np.errstate(over="ignore", invalid="ignore"):  # logits spanning more than the dtype: checked below
+        z = logits - logits.max(axis=-1, keepdims=True)  # (M, V), max 0
+        logp = z - np.log(np.exp(z).sum(axis=-1, keepdims=True))  # (M, V)
+        eps = logits.dtype.type(label_smoothing)
+        loss = -(1 - eps) * logp[np.arange(M), targets]  # (M,)
+        if label_smoothing:
+            loss = loss - eps / V * logp.sum(axis=-1)
+    _checks.finite_result("cross_entropy_forward", loss, "the loss")
     return loss, (logp, targets, eps)
 
 
@@ -29,12 +52,16 @@ def cross_entropy_backward(dloss, cache):
     """dloss (M,) -> dlogits (M, V) = dloss * (softmax(logits) - t)."""
     logp, targets, eps = cache
     M, V = logp.shape
+    _float("dloss", dloss, logp, "the logits")
+    if dloss.shape != (M,):
+        raise ValueError(f"dloss must have shape (M,) = ({M},), got {dloss.shape}")
     dlogits = np.exp(logp)  # (M, V) softmax
     dlogits[np.arange(M), targets] -= 1 - eps
     if eps:
         dlogits -= eps / V
-    dlogits *= dloss[:, None]
-    return (dlogits,)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        dlogits *= dloss[:, None]
+    return (_checks.finite_result("cross_entropy_backward", dlogits, "dlogits"),)
 
 
 def pose_loss_forward(raw, target, pose_multiplier=1.0):
@@ -42,18 +69,37 @@ def pose_loss_forward(raw, target, pose_multiplier=1.0):
 
     raw (..., 7) = [xyz_raw, q_raw]; target (..., 7) = [xyz, q] in input units, broadcast to raw.
     loss (...) = mean over xyz of (pose_multiplier * xyz - xyz_raw)^2 + mean over wxyz of (q - q_raw)^2.
+    The loss has raw's shape without the last axis: target may broadcast to raw, never beyond.
     cache: the two residuals.
     """
-    rxyz = raw[..., :3] - raw.dtype.type(pose_multiplier) * target[..., :3]  # (..., 3)
-    rq = raw[..., 3:] - target[..., 3:]  # (..., 4)
-    loss = (rxyz * rxyz).mean(axis=-1) + (rq * rq).mean(axis=-1)  # (...)
+    _float("raw", raw, like_name="raw")
+    _float("target", target, raw, "raw")
+    for name, a in (("raw", raw), ("target", target)):
+        if a.ndim < 1 or a.shape[-1] != 7:
+            raise ValueError(f"{name} must have last dimension 7 (xyz, then the quaternion wxyz), got shape {a.shape}")
+    try:
+        shape = np.broadcast_shapes(raw.shape, target.shape)
+    except ValueError:
+        shape = None
+    if shape != raw.shape:
+        raise ValueError(f"target of shape {target.shape} does not broadcast to raw's shape {raw.shape}")
+    pose_multiplier = _checks.real("pose_multiplier", pose_multiplier)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked: overflow raises
+        rxyz = raw[..., :3] - raw.dtype.type(pose_multiplier) * target[..., :3]  # (..., 3)
+        rq = raw[..., 3:] - target[..., 3:]  # (..., 4)
+        loss = (rxyz * rxyz).mean(axis=-1) + (rq * rq).mean(axis=-1)  # (...)
+    _checks.finite_result("pose_loss_forward", loss, "the loss")
     return loss, (rxyz, rq)
 
 
 def pose_loss_backward(dloss, cache):
     """dloss (...) -> draw (..., 7)."""
     rxyz, rq = cache
+    _float("dloss", dloss, rxyz, "raw")
+    if dloss.shape != rxyz.shape[:-1]:
+        raise ValueError(f"dloss must have the loss's shape {rxyz.shape[:-1]}, got {dloss.shape}")
     # forward was loss = mean_3(rxyz^2) + mean_4(rq^2), rxyz = xyz_raw - m * xyz, rq = q_raw - q
-    draw = np.concatenate([rxyz * (2 / 3), rq * (2 / 4)], axis=-1)  # (..., 7)
-    draw *= dloss[..., None]
-    return (draw,)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked
+        draw = np.concatenate([rxyz * (2 / 3), rq * (2 / 4)], axis=-1)  # (..., 7)
+        draw *= dloss[..., None]
+    return (_checks.finite_result("pose_loss_backward", draw, "draw"),)

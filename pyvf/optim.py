@@ -156,6 +156,10 @@ class AdamW:
                       _real("betas[1]", betas[1], 0.0, 1.0, hi_open=True))
         # eps > 0: with eps = 0 a parameter whose gradients have all been 0 gets 0 / 0
         self.eps = _real("eps", eps, lo=0.0, lo_open=True)
+        for k, p in params.items():  # eps is added in the parameters' dtype: it must not round to 0 there
+            if p.dtype.type(self.eps) == 0:
+                raise ValueError(f"eps={self.eps!r} rounds to 0 in {p.dtype} (params[{k!r}]): a parameter whose "
+                                 f"gradients are all 0 would get 0/0; use eps >= {np.finfo(p.dtype).smallest_normal}")
         self.weight_decay = _real("weight_decay", weight_decay, lo=0.0)
         if eps_convention not in ("torch", "keras"):
             raise ValueError(f"eps_convention must be 'torch' or 'keras', got {eps_convention!r}")
@@ -211,25 +215,40 @@ class AdamW:
             raise ValueError(f"grads contain NaN or inf in {bad}: no update applied "
                              "(skip this step, or lower the learning rate / loss scale)")
         lr = self.lr_at(self.step_count)
-        self.step_count += 1
-        t = self.step_count
+        t = self.step_count + 1
         b1, b2 = self.betas
         bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t  # bias corrections
         wd, eps = self.weight_decay, self.eps
-        for k, p in self.params.items():
-            g, m, v = grads[k], self.exp_avg[k], self.exp_avg_sq[k]
-            if wd != 0 and k in self.decayed:
-                p *= 1 - lr * wd  # decoupled decay, before the Adam step (torch and HF AdamWeightDecay)
-            m *= b1
-            m += (1 - b1) * g  # m = b1 m + (1 - b1) g
-            v *= b2
-            v += (1 - b2) * g * g  # v = b2 v + (1 - b2) g^2
-            if self.eps_convention == "torch":
-                denom = np.sqrt(v) / math.sqrt(bc2) + eps  # sqrt(v_hat) + eps
-                p -= (lr / bc1) * (m / denom)
-            else:
-                step_size = lr * math.sqrt(bc2) / bc1  # Keras lr_t
-                p -= (m * step_size) / (np.sqrt(v) + eps)  # TF ResourceApplyAdam's order
+        # every new value is computed first and checked, then assigned: an update that would
+        # overflow (huge gradients or learning rate) raises with nothing modified
+        new = {}
+        with np.errstate(over="ignore", invalid="ignore"):  # checked below
+            for k, p in self.params.items():
+                g = grads[k]
+                m = self.exp_avg[k] * b1
+                m += (1 - b1) * g  # m = b1 m + (1 - b1) g
+                v = self.exp_avg_sq[k] * b2
+                v += (1 - b2) * g * g  # v = b2 v + (1 - b2) g^2
+                if self.eps_convention == "torch":
+                    denom = np.sqrt(v) / math.sqrt(bc2) + eps  # sqrt(v_hat) + eps
+                    upd = (lr / bc1) * (m / denom)
+                else:
+                    step_size = lr * math.sqrt(bc2) / bc1  # Keras lr_t
+                    upd = (m * step_size) / (np.sqrt(v) + eps)  # TF ResourceApplyAdam's order
+                if wd != 0 and k in self.decayed:
+                    p_new = p * (1 - lr * wd)  # decoupled decay, before the Adam step (torch and HF AdamWeightDecay)
+                    p_new -= upd
+                else:
+                    p_new = p - upd
+                new[k] = (p_new, m, v)
+        bad = [k for k, arrays in new.items() if not all(_checks.all_finite(a) for a in arrays)]
+        if bad:
+            raise ValueError(f"the update of {bad} overflows (gradients or learning rate too large for the "
+                             "dtype): no update applied")
+        for k, (p_new, m, v) in new.items():
+            np.copyto(self.params[k], p_new)  # in place: the caller's arrays are the parameters
+            self.exp_avg[k], self.exp_avg_sq[k] = m, v
+        self.step_count = t
         return lr
 
     # -----------------------------------------------------------------------------------
@@ -379,6 +398,18 @@ def _hypot_all(norms):
     return amax * math.sqrt(math.fsum((n / amax) ** 2 for n in norms))
 
 
+def _scale(g, num, den):
+    """g *= num / den in place (num / den <= 1). Where that coefficient is below the dtype's
+    normal range (a tiny max_norm over a huge norm: 1e-3 / 1e37 is subnormal in float32) it
+    would be rounded to a few bits or to 0, so g / den * num is computed in float64 instead."""
+    coef = num / den
+    if coef >= np.finfo(g.dtype).smallest_normal:
+        g *= coef
+    else:
+        with np.errstate(under="ignore"):  # results that small are correctly rounded subnormals
+            np.copyto(g, g.astype(np.float64) / den * num, casting="same_kind")
+
+
 def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, eps=1e-6):
     """Clip gradients in place; returns the norm(s) before clipping, accumulated in float64.
 
@@ -407,26 +438,25 @@ def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, e
         raise ValueError(f"grads contain NaN or inf in {bad}: cannot clip "
                          "(error_if_nonfinite=False returns the non-finite norm instead)")
 
-    def norm_of(g):
+    def norm_of(k, g):
         if not _checks.all_finite(g):
             return float(np.linalg.norm(g.astype(np.float64, copy=False).ravel()))  # nan or inf
         n = _norm64(g)
         if not math.isfinite(n):
-            raise ValueError("a gradient norm overflows float64")
+            raise ValueError(f"the norm of grads[{k!r}] overflows float64: nothing was clipped")
         return n
 
-    norms = {k: norm_of(g) for k, g in grads.items()}
+    norms = {k: norm_of(k, g) for k, g in grads.items()}
     if mode == "per_tensor":
         for k, g in grads.items():
             n = norms[k]
             if math.isfinite(n) and n > max_norm:
-                g *= max_norm / n  # tf.clip_by_norm: g * max_norm / |g|
+                _scale(g, max_norm, n)  # tf.clip_by_norm: g * max_norm / |g|
         return norms
     if bad:
         return math.nan if any(math.isnan(n) for n in norms.values()) else math.inf
     total = _hypot_all(list(norms.values()))
     if total + eps > max_norm:
-        coef = max_norm / (total + eps)  # < 1
         for g in grads.values():
-            g *= coef
+            _scale(g, max_norm, total + eps)  # coefficient max_norm / (total + eps) < 1
     return total

@@ -18,6 +18,7 @@ Note the layouts: the published quantizer stores codes as the columns of
 """
 
 import dataclasses
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -35,6 +36,21 @@ def _check_2d(name, a, like=None):
         raise ValueError(f"{name} has width {a.shape[1]} but x has width {like.shape[1]}")
     _checks.contiguous(name, a)
     _checks.finite(name, a)
+
+
+def _counter(a):
+    """An EMA update count -> int, or None when `a` is not a non-negative integral scalar
+    (a Python/numpy int, a 0-d integer array, or a 0-d float array of an integral value)."""
+    if isinstance(a, (bool, np.bool_)):
+        return None
+    if isinstance(a, (int, np.integer)):
+        return int(a) if a >= 0 else None
+    if not isinstance(a, np.ndarray) or a.shape != () or not (a.dtype.kind in "iu" or a.dtype in _checks.FLOATS):
+        return None
+    v = a.item()
+    if a.dtype.kind == "f" and not (np.isfinite(v) and v == int(v)):
+        return None
+    return int(v) if v >= 0 else None
 
 
 def vq_nearest(x, codes):
@@ -81,10 +97,8 @@ class EMAQuantizer:
         for name, val in (("embed_dim", embed_dim), ("n_embed", n_embed)):
             if isinstance(val, bool) or not isinstance(val, int) or val < 1:
                 raise ValueError(f"{name} must be a positive integer, got {val!r}")
-        if not 0.0 < decay < 1.0:
-            raise ValueError(f"decay must be in (0, 1), got {decay}")
-        if not eps > 0.0:
-            raise ValueError(f"eps must be positive, got {eps}")
+        decay = _checks.real("decay", decay, 0.0, 1.0, lo_open=True, hi_open=True)
+        eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
         if dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         self.embed_dim, self.n_embed, self.decay, self.eps = embed_dim, n_embed, decay, eps
@@ -100,43 +114,93 @@ class EMAQuantizer:
         return {"embeddings": self.embeddings.copy(), "ema_cluster_size_hidden": self.ema_cluster_size_hidden.copy(),
                 "ema_dw_hidden": self.ema_dw_hidden.copy(), "counter": np.array(self.counter, np.int64)}
 
-    def load_state_dict(self, state):
+    def check_state(self, state, prefix="", require_all=True):
+        """Validate a state_dict() without loading it -> (buffers, problems): the converted
+        buffers (new arrays of the quantizer's dtype; counter an int) and a list of
+        (exception class, message), one per missing, unexpected or wrong entry (names carry
+        `prefix`, e.g. "quantize.").
+        Arrays must be float32/float64 (converted to the quantizer's dtype), of the buffer's
+        shape and finite; counter a non-negative integer (an integer array, or a float array
+        holding an integral value, as a torch checkpoint may store it). require_all=False does
+        not report missing entries (a caller that reports them itself)."""
         want = {"embeddings": (self.embed_dim, self.n_embed), "ema_cluster_size_hidden": (self.n_embed,),
                 "ema_dw_hidden": (self.embed_dim, self.n_embed), "counter": ()}
-        if set(state) != set(want):
-            raise ValueError(f"quantizer state must have exactly {sorted(want)}, got {sorted(state)}")
+        problems, out = [], {}
+        if not isinstance(state, Mapping):
+            return out, [(TypeError, f"the quantizer state must be a dict name -> array, got {type(state).__name__}")]
+        missing = [prefix + k for k in want if k not in state]
+        unexpected = sorted(prefix + str(k) for k in state if k not in want)
+        if missing and require_all:
+            problems.append((ValueError, f"missing {missing}"))
+        if unexpected:
+            problems.append((ValueError, f"unexpected {unexpected}"))
         for name, shape in want.items():
-            a = np.asarray(state[name])
-            if a.shape != shape:
-                raise ValueError(f"quantizer state {name!r} has shape {a.shape}, expected {shape}")
-        self.embeddings = np.array(state["embeddings"], dtype=self.dtype)
-        self.ema_cluster_size_hidden = np.array(state["ema_cluster_size_hidden"], dtype=self.dtype)
-        self.ema_dw_hidden = np.array(state["ema_dw_hidden"], dtype=self.dtype)
-        self.counter = int(state["counter"])
+            if name not in state:
+                continue
+            a, full = state[name], prefix + name
+            if name == "counter":
+                c = _counter(a)
+                if c is None:
+                    problems.append((ValueError, f"{full!r} must be a non-negative integer (the number of "
+                                                 f"EMA updates), got {a!r}"))
+                else:
+                    out[name] = c
+                continue
+            problem = _checks.weight_problem(full, a, shape)
+            if problem is not None:
+                problems.append(problem)
+            else:
+                out[name] = np.array(a, dtype=self.dtype, order="C", copy=True)
+        return out, problems
+
+    def load_state_dict(self, state):
+        """Restore a state_dict() (copied in). Every entry is checked before anything is
+        assigned (see check_state): on any problem, ValueError (TypeError when only dtypes are
+        wrong) listing all of them, and the quantizer is left unchanged."""
+        buffers, problems = self.check_state(state)
+        if problems:
+            raise _checks.problems_error("quantizer state", problems)
+        self._assign(buffers)
+
+    def _assign(self, buffers):
+        self.embeddings = buffers["embeddings"]
+        self.ema_cluster_size_hidden = buffers["ema_cluster_size_hidden"]
+        self.ema_dw_hidden = buffers["ema_dw_hidden"]
+        self.counter = buffers["counter"]
 
     def forward(self, z, train=False):
-        """z (B, D, h, w) of the quantizer's dtype -> (QuantizerOutput, cache)."""
+        """z (B, D, h, w) of the quantizer's dtype -> (QuantizerOutput, cache).
+
+        train=True applies one EMA update (the output uses the codes from before it). z must be
+        finite; an update or a loss that would overflow the dtype raises ValueError, and a call
+        that raises leaves every buffer unchanged."""
         if not isinstance(z, np.ndarray) or z.dtype != self.dtype:
             raise TypeError(f"z must be a {self.dtype} numpy array, got {getattr(z, 'dtype', type(z).__name__)}")
         if z.ndim != 4 or z.shape[1] != self.embed_dim:
             raise ValueError(f"z must have shape (B, {self.embed_dim}, h, w), got {z.shape}")
         if z.size == 0:
             raise ValueError(f"z is empty: shape {z.shape}")
+        _checks.finite("z", z)
         B, D, h, w = z.shape
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, D))  # (M, D)
         idx, _ = vq_nearest(flat, np.ascontiguousarray(self.embeddings.T))  # codes are columns
         e = self.embeddings.T[idx]  # (M, D): the codes from before any update
         counts = np.bincount(idx, minlength=self.n_embed)  # (K,) N_k
-        if train:
-            self._ema_update(flat, idx, counts)
-        diff = e - flat  # (M, D)
-        commitment = float(np.mean(diff * diff))
+        update = self._ema_update(flat, idx, counts) if train else None  # computed, not yet assigned
+        with np.errstate(over="ignore", invalid="ignore"):  # checked below
+            diff = e - flat  # (M, D)
+            commitment = float(np.mean(diff * diff))
+        if not (_checks.all_finite(diff) and np.isfinite(commitment)):
+            raise ValueError(f"EMAQuantizer.forward: the commitment loss overflows {self.dtype} "
+                             "(z is too far from the codes); the buffers are unchanged")
         # straight-through: the published z + sg(e - z), whose value is e up to one rounding
         quantized = (flat + diff).reshape(B, h, w, D).transpose(0, 3, 1, 2)  # (B, D, h, w)
         p = counts[counts > 0] / counts.sum()
         out = QuantizerOutput(quantized=np.ascontiguousarray(quantized), codes=idx.reshape(B, h, w),
                               commitment_loss=commitment, usage=float((counts > 0).mean()),
                               perplexity=float(np.exp(-(p * np.log(p)).sum())))
+        if update is not None:
+            self._assign(update)
         return out, (diff, z.shape)
 
     def backward(self, dquantized, dcommitment, cache):
@@ -144,25 +208,40 @@ class EMAQuantizer:
         Forward was quantized = z + sg(e - z) (identity for the gradient) and
         commitment = mean((sg(e) - z)^2), so dz = dquantized - dcommitment * 2 (e - z) / numel."""
         diff, shape = cache
+        _checks.float_array("dquantized", dquantized, diff, "z")
+        if dquantized.shape != tuple(shape):
+            raise ValueError(f"dquantized must have z's shape {tuple(shape)}, got {dquantized.shape}")
+        _checks.finite("dquantized", dquantized)
+        dcommitment = _checks.real("dcommitment", dcommitment)
         B, D, h, w = shape
-        dflat = -2.0 * dcommitment / diff.size * diff  # (M, D)
-        dz = dquantized + dflat.reshape(B, h, w, D).transpose(0, 3, 1, 2).astype(diff.dtype)
-        return (dz,)
+        with np.errstate(over="ignore", invalid="ignore"):  # checked below
+            dflat = -2.0 * dcommitment / diff.size * diff  # (M, D)
+            dz = dquantized + dflat.reshape(B, h, w, D).transpose(0, 3, 1, 2).astype(diff.dtype)
+        return (_checks.finite_result("EMAQuantizer.backward", dz, "dz"),)
 
     def _ema_update(self, flat, idx, counts):
+        """The buffers after one EMA update, as new arrays (assigned by the caller once
+        everything succeeded). ValueError if any would not be finite."""
         K, dt = self.n_embed, self.dtype
         a = dt.type(1.0 - self.decay)
-        S = np.zeros((self.embed_dim, K), dtype=dt)  # S_k: the sum of the vectors that chose k
-        np.add.at(S.T, idx, flat)
-        self.ema_cluster_size_hidden += a * (counts.astype(dt) - self.ema_cluster_size_hidden)
-        self.ema_dw_hidden += a * (S - self.ema_dw_hidden)
-        self.counter += 1
-        debias = dt.type(1.0 - self.decay ** self.counter)
-        cs = self.ema_cluster_size_hidden / debias  # (K,)
-        dw = self.ema_dw_hidden / debias  # (D, K)
-        n = cs.sum()
-        cs = (cs + dt.type(self.eps)) / (n + K * dt.type(self.eps)) * n  # Laplace smoothing: > 0
-        self.embeddings = dw / cs  # (D, K)
+        with np.errstate(over="ignore", invalid="ignore"):  # checked below
+            S = np.zeros((self.embed_dim, K), dtype=dt)  # S_k: the sum of the vectors that chose k
+            np.add.at(S.T, idx, flat)
+            hcs = self.ema_cluster_size_hidden + a * (counts.astype(dt) - self.ema_cluster_size_hidden)
+            hdw = self.ema_dw_hidden + a * (S - self.ema_dw_hidden)
+            counter = self.counter + 1
+            debias = dt.type(1.0 - self.decay ** counter)
+            cs = hcs / debias  # (K,)
+            dw = hdw / debias  # (D, K)
+            n = cs.sum()
+            cs = (cs + dt.type(self.eps)) / (n + K * dt.type(self.eps)) * n  # Laplace smoothing: > 0
+            embeddings = dw / cs  # (D, K)
+        new = {"embeddings": embeddings, "ema_cluster_size_hidden": hcs, "ema_dw_hidden": hdw, "counter": counter}
+        bad = [k for k, v in new.items() if k != "counter" and not _checks.all_finite(v)]
+        if bad:
+            raise ValueError(f"EMAQuantizer.forward: the EMA update overflows {dt} in {bad} (z is too large "
+                             "for the dtype); the buffers are unchanged")
+        return new
 
     def reset_dead_codes(self, z, threshold=1e-3, rng=None):
         """Optional (off unless called): codes whose smoothed cluster size is below threshold are

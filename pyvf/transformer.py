@@ -21,10 +21,13 @@ the `migt/` prefix and `:0` suffix); linear weights are (in, out), biases (1, ou
 
 import dataclasses
 import json
+import os
+from collections.abc import Mapping
 
 import numpy as np
 
 from . import _checks
+from ._io import CheckpointError, atomic_savez
 from .attention import attention_layer_backward, attention_layer_forward
 from .geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
 from .layers import (
@@ -158,35 +161,76 @@ class Transformer:
 
     def load_official(self, weights):
         """Load a dict name -> array named as the published checkpoint (with or without the
-        `migt/` prefix and `:0` suffix). Every name is checked: a missing or unexpected name, a
-        wrong shape, a non-float or non-finite array raises. Arrays are converted to the model's
-        dtype (config.dtype), the one conversion pyvf makes, on purpose: a float32 checkpoint
-        loads into a float64 model for a float64 check."""
+        `migt/` prefix and `:0` suffix).
+
+        Everything is checked before anything is assigned: every name (missing, unexpected,
+        given twice) and every array (a float32/float64 numpy array of the parameter's shape,
+        finite). Any problem raises one ValueError naming every wrong entry (TypeError when all
+        of them are wrong types), and the model is left unchanged. Arrays are converted to the
+        model's dtype (config.dtype), the one conversion pyvf makes, on purpose: a float32
+        checkpoint loads into a float64 model for a float64 check. The model never aliases the
+        caller's arrays."""
+        if not isinstance(weights, Mapping):
+            raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")
         shapes = parameter_shapes(self.config)
-        loaded = {}
+        problems, loaded, given_as = [], {}, {}
         for raw_name, arr in weights.items():
-            name = official_name(raw_name)
+            name = official_name(raw_name) if isinstance(raw_name, str) else raw_name
             if name not in shapes:
-                raise ValueError(f"load_official: unexpected parameter {raw_name!r} (not in this configuration)")
-            if name in loaded:
-                raise ValueError(f"load_official: parameter {name!r} given twice")
-            loaded[name] = _checks.weight(raw_name, arr, shapes[name], self.dtype)
-        missing = [n for n in shapes if n not in loaded]
+                problems.append((ValueError, f"unexpected parameter {raw_name!r} (not in this configuration)"))
+                continue
+            if name in given_as:
+                problems.append((ValueError, f"parameter {name!r} given twice (as {given_as[name]!r} and {raw_name!r})"))
+                continue
+            given_as[name] = raw_name
+            problem = _checks.weight_problem(raw_name, arr, shapes[name])
+            if problem is None:
+                loaded[name] = np.array(arr, dtype=self.dtype, order="C", copy=True)
+            else:
+                problems.append(problem)
+        missing = [n for n in shapes if n not in given_as]
         if missing:
-            raise ValueError(f"load_official: {len(missing)} parameters missing, e.g. {missing[:3]}")
-        self.params = loaded
+            problems.append((ValueError, f"{len(missing)} parameters missing: {missing}"))
+        if problems:
+            raise _checks.problems_error("load_official", problems)
+        self.params = {name: loaded[name] for name in shapes}  # the published order
 
     def save(self, path):
-        """Write the configuration and the parameters to one .npz file."""
-        np.savez(path, __config__=json.dumps(dataclasses.asdict(self.config)), **self.params)
+        """Write the configuration and the parameters to one .npz file.
+
+        path: a str or os.PathLike; ".npz" is appended when it does not end with it, as
+        np.savez does (so `Transformer.load` needs the name with ".npz"). The file is written
+        atomically (pyvf._io.atomic_savez: a temporary file in the same folder, fsync'ed, then
+        os.replace'd): a process killed mid-save leaves the previous file intact. An open
+        binary file object is written directly (no atomicity: the caller owns it).
+        Returns the path written (or the file object)."""
+        arrays = {"__config__": json.dumps(dataclasses.asdict(self.config)), **self.params}
+        if hasattr(path, "write"):
+            np.savez(path, **arrays)
+            return path
+        path = os.fsdecode(os.fspath(path))
+        if not path.endswith(".npz"):
+            path += ".npz"
+        atomic_savez(path, **arrays)
+        return path
 
     @classmethod
     def load(cls, path):
-        """Read a model written by save()."""
-        with np.load(path, allow_pickle=False) as f:
-            config = TransformerConfig(**json.loads(str(f["__config__"])))
-            model = cls(config)
-            model.load_official({k: f[k] for k in f.files if k != "__config__"})
+        """Read a model written by save(): path as given (no ".npz" appended), or an open binary
+        file. A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
+        configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
+        pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
+        arrays, fields = _checks.model_file(path, "transformer")
+        name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
+        try:
+            config = TransformerConfig(**fields)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"transformer {name}: entry '__config__' is not a TransformerConfig: {e}") from e
+        model = cls(config)
+        try:
+            model.load_official(arrays)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"transformer {name}: {e}") from e
         return model
 
     # -----------------------------------------------------------------------------------

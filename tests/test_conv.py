@@ -7,7 +7,10 @@ every gradient); float32 against float64 on the same inputs; the parity traps sh
 (the Downsample's (0,1,0,1) padding, GroupNorm eps 1e-6, the grouping of channels, a transposed
 kernel, upsample's summing backward); hard numerical cases (constant groups, groups of mean 1e4
 and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised, a 1x1
-image); float64 central finite differences; dtypes; strided inputs; bad arguments.
+image); float64 central finite differences; dtypes; strided inputs; bad arguments. Then the C++
+kernels themselves (section 6): the fast conv2d against its plain-loop twin, NumPy and torch on
+every shape family and code path, 1 vs 2 threads bitwise, float32 against float64, sizes refused;
+the fused GroupNorm + swish.
 
 Shapes: images (B, C, Hi, Wi), NCHW; conv weights torch's (Co, C, kh, kw). Channels 5 -> 7 for the
 convs (not multiples of 8, in != out), batch 3, odd and even image sides; 32 groups on 64 and 96
@@ -24,9 +27,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from pyvf import conv
+import pyvf
+from pyvf import _core, conv
 
 from conftest import assert_bitwise_equal, assert_close
+
+# every test here runs once per kernel path this machine executes (conftest.kernel_path): conv2d,
+# GroupNorm and swish are C++ kernels (csrc/conv.cpp, csrc/groupnorm.cpp)
+pytestmark = pytest.mark.usefixtures("kernel_path")
 
 EPS = 1e-6  # the codebook's GroupNorm eps (SPEC.md §4); torch's default is 1e-5
 G = 32  # groups of Normalize
@@ -579,14 +587,278 @@ BAD = [
                                                      f64(32, 64, 1, 1), f64(32), f64(64, 64, 1, 1), f64(64),
                                                      f64(64, 64, 1, 1), f64(64)), ValueError,
      r"wk must have shape \(64, 64, 1, 1\)"),
+    ("gn eps inf", lambda: conv.groupnorm_forward(f64(1, 64, 2, 2), f64(64), f64(64), eps=float("inf")), ValueError,
+     "eps must be finite"),
     ("swish int", lambda: conv.swish_forward(np.arange(3)), TypeError, "x must be float32 or float64"),
+    ("swish dy f32", lambda: conv.swish_backward(f64(3).astype(np.float32), conv.swish_forward(f64(3))[1]), TypeError,
+     "dy is float32"),
+    ("upsample dy f32", lambda: conv.upsample_nearest2x_backward(
+        f64(1, 2, 2, 2).astype(np.float32), conv.upsample_nearest2x_forward(f64(1, 2, 1, 1))[1]), TypeError,
+     "dy is float32"),
+    ("conv dy f32", lambda: conv.conv2d_backward(f64(1, 7, 2, 2).astype(np.float32),
+                                                 conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7))[1]),
+     TypeError, "dy is float32"),
     ("upsample 3-D", lambda: conv.upsample_nearest2x_forward(f64(3, 4, 4)), ValueError, "x must be 4-D"),
     ("upsample f16", lambda: conv.upsample_nearest2x_forward(f64(1, 3, 4, 4).astype(np.float16)), TypeError,
      "x must be float32 or float64"),
 ]
 
 
+def test_swish_keeps_a_0d_array_0d():
+    """The C++ swish takes C-contiguous arrays; a 0-d one is passed as is (np.ascontiguousarray
+    would make it 1-d)."""
+    y, cache = conv.swish_forward(np.array(0.5))
+    (dx,) = conv.swish_backward(np.array(1.0), cache)
+    assert y.shape == dx.shape == ()
+    assert_close("swish(0.5)", y, np.array(0.5 / (1 + np.exp(-0.5))), RTOL64)
+
+
 @pytest.mark.parametrize("call, exc, match", [b[1:] for b in BAD], ids=[b[0] for b in BAD])
 def test_bad_arguments(call, exc, match):
     with pytest.raises(exc, match=match):
         call()
+
+
+# ---------------------------------------------------------------------------------------
+# 6. the C++ kernels: fast conv2d vs the plain loops (double sums) vs torch, every code path
+
+# (B, C, Co, (Hi, Wi), (kh, kw), stride, padding): each family of the codebook and each code path of
+# csrc/conv.cpp on every kernel path (vector widths W = 4..16). C and Co are not multiples of any
+# vector width, and C > 8 makes several channel blocks (kCB = 8) in the dw and the stride-2 dx.
+KERNEL_CASES = [
+    (3, 19, 13, (9, 67), (3, 3), 1, 1),  # 3x3 pad 1, rows of >= 4 vectors: per-row products, dw on padded rows
+    (2, 11, 13, (16, 16), (3, 3), 1, 1),  # 16x16: per-row forward (W <= 8), im2col dw
+    (2, 19, 5, (8, 8), (3, 3), 1, 1),  # 8x8: one wide product per tile, columns past each row dropped
+    (1, 5, 7, (5, 4), (3, 3), 1, 1),  # B = 1, rows shorter than a vector
+    (2, 7, 3, (1, 9), (3, 3), 1, 1),  # one row: every tap row but the centre is padding
+    (3, 19, 13, (8, 8), (3, 3), 2, DOWN),  # the Downsample: im2col, col2im for dx
+    (2, 5, 7, (9, 35), (3, 3), 2, DOWN),  # ... odd height, a width past 2 vectors
+    (3, 19, 13, (7, 37), (1, 1), 1, 0),  # 1x1: x read in place (no columns)
+    (2, 5, 7, (7, 6), (1, 1), 2, 0),  # 1x1 strided
+    (2, 5, 7, (5, 20), (1, 1), 1, 1),  # 1x1 padded: its stride-1 dx crops (negative padding)
+    (2, 9, 6, (7, 40), (2, 3), 1, (2, 0, 1, 3)),  # every side different, stride-1 dx padded (-1, 1, 1, -1)
+    (1, 6, 5, (9, 7), (4, 2), 2, (2, 1, 0, 1)),  # non-square kernel, stride 2, odd sizes
+]
+
+
+def kernel_case_id(c):
+    B, C, Co, (Hi, Wi), (kh, kw), s, p = c
+    return f"B{B}-{C}to{Co}-{Hi}x{Wi}-k{kh}x{kw}-s{s}-p{'x'.join(map(str, p)) if isinstance(p, tuple) else p}"
+
+
+def kernel_inputs(case, rng, dtype):
+    B, C, Co, (Hi, Wi), (kh, kw), stride, padding = case
+    f = rng.standard_normal
+    x, w, b = f((B, C, Hi, Wi)), f((Co, C, kh, kw)) / np.sqrt(C * kh * kw), f(Co)
+    kwargs = {"stride": stride, "padding": padding}
+    y, _ = conv.conv2d_forward_numpy(x, w, b, **kwargs)
+    return [a.astype(dtype) for a in (x, w, b)], kwargs, f(y.shape).astype(dtype)
+
+
+def plain_run(inputs, kwargs, dy):
+    """The plain loops of csrc/conv.cpp (one double sum per output element, rounded once)."""
+    x, w, b = inputs
+    pad = conv._padding4(kwargs["padding"])
+    y = np.empty(dy.shape, dy.dtype)
+    _core.conv2d_forward_plain(y, x, w, b, kwargs["stride"], *pad)
+    grads = [np.empty_like(a) for a in inputs]
+    _core.conv2d_backward_plain(*grads, x, w, dy, kwargs["stride"], *pad)
+    return y, grads
+
+
+def numpy_run(inputs, kwargs, dy):
+    y, cache = conv.conv2d_forward_numpy(*inputs, **kwargs)
+    return y, conv.conv2d_backward_numpy(dy, cache)
+
+
+@pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
+def test_conv2d_kernel_float64(case, rng):
+    """float64: fast kernel, plain loops, the NumPy path and torch agree to RTOL64 (the same sums
+    in other orders; measured <= 2.5e-15 on the baseline and avx2 paths)."""
+    inputs, kwargs, dy = kernel_inputs(case, rng, np.float64)
+    y, grads, _ = pyvf_run("conv2d", inputs, kwargs, dy)
+    runs = {"plain": plain_run(inputs, kwargs, dy), "numpy": numpy_run(inputs, kwargs, dy),
+            "torch": torch_run("conv2d", inputs, kwargs, dy)}
+    for name, (y_r, grads_r) in runs.items():
+        compare("conv2d", y, grads, y_r, grads_r, RTOL64, f"{kernel_case_id(case)} fast vs {name}")
+    compare("conv2d", *runs["plain"], *runs["torch"], RTOL64, f"{kernel_case_id(case)} plain vs torch")
+
+
+# float32 fast kernel vs the float64 plain loops on the same (float32) inputs: the kernel's float32
+# arithmetic only. y and dx are dot products of K = C*kh*kw <= 171 terms accumulated in float32
+# (FMA where the path has it); dw sums B*Ho*Wo <= 1809 products in W lanes; db sums in double.
+# About sqrt(n) u normwise; measured <= 4.7e-7 (dx of the 3x3 case on 9x67, baseline path; y 3.9e-7,
+# dw 2.7e-7, db 4.3e-8); 2e-6 leaves 4x. The plain loops in float32 measured <= 4.8e-8.
+RTOL32_KERNEL = 2e-6
+
+
+@pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
+def test_conv2d_kernel_float32(case, rng):
+    inputs, kwargs, dy = kernel_inputs(case, rng, np.float32)
+    y, grads, _ = pyvf_run("conv2d", inputs, kwargs, dy)
+    assert y.dtype == np.float32 and all(g.dtype == np.float32 for g in grads)
+    y64, grads64 = plain_run([a.astype(np.float64) for a in inputs], kwargs, dy.astype(np.float64))
+    compare("conv2d", y, grads, y64, grads64, RTOL32_KERNEL, f"{kernel_case_id(case)} f32 vs f64")
+    # the plain loops in float32 round one double sum per element: within an ulp or two of float64
+    y_p, grads_p = plain_run(inputs, kwargs, dy)
+    compare("conv2d", y_p, grads_p, y64, grads64, 2 * float(np.finfo(np.float32).eps),
+            f"{kernel_case_id(case)} f32 plain vs f64")
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
+def test_conv2d_kernel_threads_bitwise(case, dtype, rng):
+    """The tasks depend on the shapes only, each output element is summed by one task in one
+    order: 1 and 2 threads give the same bits (y, dx, dw, db)."""
+    inputs, kwargs, dy = kernel_inputs(case, rng, dtype)
+    before = pyvf.num_threads()
+    try:
+        out = {}
+        for n in (1, 2):
+            pyvf.set_num_threads(n)
+            y, grads, _ = pyvf_run("conv2d", inputs, kwargs, dy)
+            out[n] = [y, *grads]
+    finally:
+        pyvf.set_num_threads(before)
+    for name, a, b in zip(("y", "dx", "dw", "db"), out[1], out[2]):
+        assert_bitwise_equal(f"{kernel_case_id(case)} {name}, 1 vs 2 threads", a, b)
+
+
+def test_conv2d_kernel_padding_trap(rng):
+    """The kernel itself on the Downsample (SPEC.md §4): padding=(0, 1, 0, 1) against 1 (same
+    output size on even images) and (1, 0, 1, 0) (the wrong corner): O(1) apart, while each
+    matches torch's own version of it."""
+    inputs, kwargs, dy = kernel_inputs((2, 5, 7, (8, 8), (3, 3), 2, DOWN), rng, np.float64)
+    y, _ = conv.conv2d_forward(*inputs, stride=2, padding=DOWN)
+    for wrong in (1, (1, 0, 1, 0)):
+        y_w, _ = conv.conv2d_forward(*inputs, stride=2, padding=wrong)
+        assert y_w.shape == y.shape
+        assert gap(y, y_w) > 0.1, f"padding {wrong} is only {gap(y, y_w):.1e} from (0, 1, 0, 1)"
+        y_t, _ = torch_run("conv2d", inputs, {"stride": 2, "padding": wrong}, dy)
+        assert_close(f"padding {wrong} vs torch", y_w, y_t, RTOL64)
+
+
+def test_conv2d_empty_batch():
+    """B = 0: an empty y, and zero dw, db (a sum of nothing)."""
+    x, w, b = np.zeros((0, 5, 6, 7)), np.ones((4, 5, 3, 3)), np.ones(4)
+    y, cache = conv.conv2d_forward(x, w, b, padding=1)
+    assert y.shape == (0, 4, 6, 7)
+    dx, dw, db = conv.conv2d_backward(y, cache)
+    assert dx.shape == x.shape
+    assert_bitwise_equal("dw of no images", dw, np.zeros_like(w))
+    assert_bitwise_equal("db of no images", db, np.zeros_like(b))
+
+
+BIG = [  # sizes past the kernels' int indexing, on arrays with no elements (B = 0 or Co = 0)
+    ("x", dict(x=(0, 1, 50_000, 50_000), w=(1, 1, 1, 1), padding=0), r"x: Hi\*Wi = 2500000000"),
+    ("w", dict(x=(0, 2 ** 28, 1, 1), w=(0, 2 ** 28, 3, 3), padding=1), r"w: C\*kh\*kw = 2415919104"),
+    ("padding", dict(x=(0, 1, 1, 1), w=(1, 1, 1, 1), padding=2 ** 16), r"padding: Ho\*Wo"),
+]
+
+
+@pytest.mark.parametrize("what, sizes, match", BIG, ids=[b[0] for b in BIG])
+def test_conv2d_refuses_int_overflow(what, sizes, match):
+    x, w = np.zeros(sizes["x"], np.float32), np.zeros(sizes["w"], np.float32)
+    with pytest.raises(ValueError, match=match):
+        conv.conv2d_forward(x, w, np.zeros(w.shape[0], np.float32), padding=sizes["padding"])
+
+
+def test_conv2d_bindings_refuse_bad_arrays(rng):
+    """The bindings (pyvf._core) check again: a wrong output shape is a ValueError, a wrong dtype
+    or a non-C-contiguous array a TypeError (never a silent copy or cast)."""
+    x, w, b = rng.standard_normal((2, 3, 5, 5)), rng.standard_normal((4, 3, 3, 3)), rng.standard_normal(4)
+    with pytest.raises(ValueError, match="y must have shape"):
+        _core.conv2d_forward(np.empty((2, 4, 5, 4)), x, w, b, 1, 1, 1, 1, 1)
+    with pytest.raises(TypeError):
+        _core.conv2d_forward(np.empty((2, 4, 5, 5)), x[:, :, :, ::-1], w, b, 1, 1, 1, 1, 1)
+    with pytest.raises(TypeError):
+        _core.conv2d_forward(np.empty((2, 4, 5, 5)), x.astype(np.float32), w, b, 1, 1, 1, 1, 1)
+    with pytest.raises(ValueError, match="dw must have shape"):
+        _core.conv2d_backward(np.empty_like(x), np.empty((4, 3, 3, 2)), np.empty(4), x, w,
+                              np.empty((2, 4, 5, 5)), 1, 1, 1, 1, 1)
+
+
+# ---------------------------------------------------------------------------------------
+# 7. GroupNorm + swish, fused (ResnetBlock's norm1/norm2 + swish, norm_out + swish)
+
+
+def torch_groupnorm_swish(x, gamma, beta, groups=G, eps=EPS):
+    return F.silu(F.group_norm(x, groups, gamma, beta, eps=eps))
+
+
+LAYERS["groupnorm_swish"] = (conv.groupnorm_swish_forward, conv.groupnorm_swish_backward, torch_groupnorm_swish,
+                             ("dx", "dgamma", "dbeta"))
+RTOL32["groupnorm_swish"] = RTOL32["groupnorm"]  # swish adds a few ulp elementwise; measured <= 1.7e-7
+GN_CASES = [(64, 5, 3), (96, 4, 4), (32, 9, 37)]  # 2, 3, 1 channels per group; pixels not a vector multiple
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("C, Hi, Wi", GN_CASES)
+def test_groupnorm_swish_fused(C, Hi, Wi, dtype, rng):
+    """The fused pair against torch (F.silu(F.group_norm)) in float64 on the same inputs, and
+    bitwise against the unfused pyvf pair (the same operations), forward and backward."""
+    _, inputs, _, dy = build(("groupnorm", C, Hi, Wi), rng, dtype)
+    z, grads, cache = pyvf_run("groupnorm_swish", inputs, {}, dy)
+    assert z.dtype == dtype and len(cache) == 5
+    z_t, grads_t = torch_run("groupnorm_swish", inputs, {}, dy)
+    rtol = RTOL64 if dtype == np.float64 else RTOL32["groupnorm_swish"]
+    compare("groupnorm_swish", z, grads, z_t, grads_t, rtol, f"groupnorm+swish {C}x{Hi}x{Wi} vs torch")
+    y, c_gn = conv.groupnorm_forward(*inputs)
+    z2, c_sw = conv.swish_forward(y)
+    (dy2,) = conv.swish_backward(dy, c_sw)
+    grads2 = conv.groupnorm_backward(dy2, c_gn)
+    assert_bitwise_equal("fused z vs swish(groupnorm)", z, z2)
+    for name, a, b in zip(("dx", "dgamma", "dbeta"), grads, grads2):
+        assert_bitwise_equal(f"fused {name} vs the unfused pair", a, b)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_groupnorm_swish_constant_groups(dtype, rng):
+    """A constant group normalises to exactly beta, so the fused output there is exactly
+    swish(beta), whatever the constant (1e4 + 0.3, 123456.789: not dyadic)."""
+    x = constant_group_images(rng, dtype)
+    C = x.shape[1]
+    gamma, beta = (rng.standard_normal(C).astype(dtype) for _ in range(2))
+    z, _ = conv.groupnorm_swish_forward(x, gamma, beta)
+    k = 2 * len(CONSTANTS)
+    want = conv.swish_forward(np.ascontiguousarray(np.broadcast_to(beta[:k, None, None], (k,) + x.shape[2:])))[0]
+    assert_bitwise_equal(f"z of constant groups ({dtype.__name__})", z[0, :k], want)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_groupnorm_swish_kernels_vs_numpy(dtype, rng):
+    """The C++ GroupNorm and swish against the NumPy versions kept in pyvf/conv.py (the same
+    formulas; C++ sums in float64 where NumPy sums pairwise in the dtype): within the float32
+    tolerances of section 2, RTOL64 in float64."""
+    _, inputs, _, dy = build(("groupnorm", 96, 4, 4), rng, dtype)
+    rtol = RTOL64 if dtype == np.float64 else RTOL32["groupnorm"]
+    y, c = conv.groupnorm_forward(*inputs)
+    y_n, c_n = conv.groupnorm_forward_numpy(*inputs)
+    assert_close("groupnorm y vs numpy", y, y_n, rtol)
+    for name, a, b in zip(("dx", "dgamma", "dbeta"), conv.groupnorm_backward(dy, c), conv.groupnorm_backward_numpy(dy, c_n)):
+        assert_close(f"groupnorm {name} vs numpy", a, b, rtol)
+    x, ds = ((6 * rng.standard_normal((2, 4, 5, 3))).astype(dtype) for _ in range(2))
+    rtol = RTOL64 if dtype == np.float64 else RTOL32["swish"]
+    s, c = conv.swish_forward(x)
+    assert_close("swish vs numpy", s, conv.swish_forward_numpy(x)[0], rtol)
+    assert_close("swish' vs numpy", conv.swish_backward(ds, c)[0], conv.swish_backward_numpy(ds, c)[0], rtol)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_groupnorm_swish_threads_bitwise(dtype, rng):
+    """GroupNorm (+ swish) and swish: 1 and 2 threads give the same bits (tasks per (image, group),
+    dgamma/dbeta summed per image, then over images in order)."""
+    _, inputs, _, dy = build(("groupnorm", 64, 24, 24), rng, dtype)  # 73728 elements: threads start
+    before = pyvf.num_threads()
+    try:
+        out = {}
+        for n in (1, 2):
+            pyvf.set_num_threads(n)
+            z, grads, _ = pyvf_run("groupnorm_swish", inputs, {}, dy)
+            y, c = conv.groupnorm_forward(*inputs)
+            s, c_s = conv.swish_forward(y)
+            out[n] = [z, *grads, y, *conv.groupnorm_backward(dy, c), s, *conv.swish_backward(dy, c_s)]
+    finally:
+        pyvf.set_num_threads(before)
+    for i, (a, b) in enumerate(zip(out[1], out[2])):
+        assert_bitwise_equal(f"output {i}, 1 vs 2 threads", a, b)

@@ -327,8 +327,13 @@ def test_commands_reject_bad_context(tmp_path):
 
 def test_demo_quick_with_the_shipped_models(tmp_path):
     """`pyvf demo --quick` as a newcomer runs it: the pretrained pair shipped in pyvf/models."""
-    if not all(os.path.isfile(pyvf.models.pretrained_path(k)) for k in pyvf.models.PRETRAINED):
-        pytest.skip("this build ships no pretrained models (pyvf/models/sm7-*.npz)")
     proc = run(["demo", "--quick", "--no-progress"], tmp_path)
+    if not all(os.path.isfile(pyvf.models.pretrained_path(k)) for k in pyvf.models.PRETRAINED):
+        # no pair shipped yet: the demo says so, prints how to train one, runs the attention demo
+        assert proc.returncode == 0, show(proc)
+        assert proc.stdout.startswith("pyvf kernels: path "), show(proc)
+        assert "pretrained SM7 models are not in this package yet" in proc.stdout, show(proc)
+        assert "pyvf train-codebook" in proc.stdout and "all errors within their bounds" in proc.stdout, show(proc)
+        return
     assert proc.returncode == 0, show(proc)
     assert proc.stdout.startswith("pyvf kernels: path ") and "docs/walkthrough.md" in proc.stdout, show(proc)

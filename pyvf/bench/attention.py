@@ -744,7 +744,7 @@ def demo_size(name, shape, ref_repeat, all_heads, seed=0):
     return ok
 
 
-def demo(sizes=tuple(DEMO_SIZES), threads=None):
+def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
     """`pyvf demo`: branching attention at the given DEMO_SIZES names, pyvf against the dense
     NumPy reference: error, time, memory. Prints the tables; returns the exit status, 0 when
     every error is within its bound. NumPy only (no torch)."""
@@ -754,8 +754,9 @@ def demo(sizes=tuple(DEMO_SIZES), threads=None):
     if threads is not None:
         pyvf.set_num_threads(threads)
     t0 = time.perf_counter()
-    print(f"pyvf kernels: path {pyvf.kernel_path()} (this CPU runs {', '.join(pyvf.kernel_paths())}; "
-          "PYVF_ISA=<path> forces one; `pyvf config` for details)")
+    if kernel_line:  # (the caller printed it already otherwise)
+        print(f"pyvf kernels: path {pyvf.kernel_path()} (this CPU runs {', '.join(pyvf.kernel_paths())}; "
+              "PYVF_ISA=<path> forces one; `pyvf config` for details)")
     print("pyvf demo: branching attention (SPEC.md §2), the C++ kernel against the dense NumPy reference")
     print(f"pyvf {pyvf.__version__}, numpy {np.__version__}, {pyvf.num_threads()} kernel threads; "
           "inputs unit normal, scale 1 (unscaled logits, as the published model)")

@@ -8,12 +8,15 @@ Per configuration: encode + decode (images -> codes -> images) and one forward +
 (train=True, the EMA update included), medians, float32, each framework in its own process
 (so that neither's thread pool waits on the other's). Before timing, both compute the loss of the
 same weights and batch, and the tool stops if they differ. torch is imported only in the torch
-worker.
+worker. Then, for pyvf, where one forward + backward spends its time: the exclusive time of each
+layer type (layer_times), from one more step with every layer function of pyvf.conv wrapped in
+a timer.
 """
 
 import argparse
 import json
 import sys
+import time
 
 import numpy as np
 
@@ -39,6 +42,89 @@ def setup(name):
     return cfg, cb, images.astype(np.float32)
 
 
+# pyvf.conv's layer functions -> the layer type they are timed under. An AttnBlock's time is its
+# own work only (softmax, products): its GroupNorm and 1x1 convs count under their own types.
+LAYER_FUNCS = {
+    "conv2d_forward": "conv", "conv2d_backward": "conv",
+    "groupnorm_swish_forward": "groupnorm+swish", "groupnorm_swish_backward": "groupnorm+swish",
+    "groupnorm_forward": "groupnorm", "groupnorm_backward": "groupnorm",
+    "swish_forward": "swish", "swish_backward": "swish",
+    "upsample_nearest2x_forward": "upsample", "upsample_nearest2x_backward": "upsample",
+    "attnblock_forward": "attention", "attnblock_backward": "attention",
+}
+
+
+def _conv_kind(w, stride):
+    kh, kw = w.shape[2:]
+    return f"conv {kh}x{kw}" + (f" stride {stride}" if stride != 1 else "")
+
+
+def _layer_key(name, args, kwargs):
+    """(layer type, 'forward' | 'backward') of one call; convs split by kernel and stride."""
+    kind = LAYER_FUNCS[name]
+    if name == "conv2d_forward":
+        kind = _conv_kind(args[1], kwargs.get("stride", args[3] if len(args) > 3 else 1))
+    elif name == "conv2d_backward":
+        _, w, stride, _ = args[1]
+        kind = _conv_kind(w, stride)
+    return kind, "forward" if name.endswith("_forward") else "backward"
+
+
+def layer_times(fn, clock=time.perf_counter):
+    """Run fn() once with every function of LAYER_FUNCS wrapped in a timer, wherever pyvf bound
+    it (pyvf.conv and the modules that imported it by name). Returns ({(type, direction): seconds
+    of exclusive time}, total seconds of fn()); exclusive: a layer called inside another (the
+    AttnBlock's convs) counts under its own type only. clock: wall time by default;
+    time.process_time (CPU time of the whole process) is steadier on a busy machine when the
+    kernels run on one thread."""
+    from pyvf import conv
+    originals = {name: getattr(conv, name) for name in LAYER_FUNCS if hasattr(conv, name)}
+    times, stack = {}, []
+
+    def wrap(name, f):
+        def timed(*args, **kwargs):
+            stack.append(0.0)  # time spent in the layers this one calls
+            t0 = clock()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                elapsed = clock() - t0
+                inner = stack.pop()
+                key = _layer_key(name, args, kwargs)
+                times[key] = times.get(key, 0.0) + elapsed - inner
+                if stack:
+                    stack[-1] += elapsed
+        return timed
+
+    patched = []
+    for mod in [m for n, m in list(sys.modules.items()) if n == "pyvf" or n.startswith("pyvf.")]:
+        for name, f in originals.items():
+            if getattr(mod, name, None) is f:
+                patched.append((mod, name, f))
+                setattr(mod, name, wrap(name, f))
+    try:
+        t0 = clock()
+        fn()
+        total = clock() - t0
+    finally:
+        for mod, name, f in patched:
+            setattr(mod, name, f)
+    return times, total
+
+
+def print_layer_times(times, total):
+    """The table of layer_times' result: per layer type forward and backward ms and share of the step."""
+    kinds = sorted({k for k, _ in times}, key=lambda k: -sum(times.get((k, d), 0.0) for d in ("forward", "backward")))
+    print(f"pyvf, one forward + backward ({total * 1e3:.0f} ms), exclusive time per layer type:")
+    print("| layer type | forward | backward | share of the step |")
+    print("|---|---|---|---|")
+    for k in kinds:
+        f, b = times.get((k, "forward"), 0.0), times.get((k, "backward"), 0.0)
+        print(f"| {k} | {f * 1e3:.1f} ms | {b * 1e3:.1f} ms | {(f + b) / total:.0%} |")
+    rest = total - sum(times.values())
+    print(f"| everything else (quantizer, loss, residual adds, Python) | | | {rest / total:.0%} ({rest * 1e3:.0f} ms) |")
+
+
 def median(fn, repeat):
     return median_time(fn, repeat=repeat, warmup=0)[0]
 
@@ -52,7 +138,11 @@ def worker_pyvf(name, repeat):
         cb.forward(images, train=True)
         cb.backward()
     step()
-    return dict(loss=loss, codec=codec, step=median(step, repeat))
+    result = dict(loss=loss, codec=codec, step=median(step, repeat))
+    times, total = layer_times(step)
+    result["layers"] = [[k, d, t] for (k, d), t in times.items()]
+    result["layers_total"] = total
+    return result
 
 
 def worker_torch(name, repeat):
@@ -105,6 +195,8 @@ def bench(name, repeat, threads):
     print(f"| pyvf | {p['codec'] * 1e3:.0f} ms | {p['step'] * 1e3:.0f} ms |")
     print(f"| torch | {t['codec'] * 1e3:.0f} ms | {t['step'] * 1e3:.0f} ms |")
     print(f"| ratio torch / pyvf | {t['codec'] / p['codec']:.2f} | {t['step'] / p['step']:.2f} |")
+    print()
+    print_layer_times({(k, d): sec for k, d, sec in p["layers"]}, p["layers_total"])
     return True
 
 

@@ -1,0 +1,757 @@
+// conv2d, forward and backward, float32 and float64: torch's cross-correlation with any kernel,
+// stride and per-side zero padding (the codebook's: 3x3 stride 1 pad 1, the Downsample's 3x3
+// stride 2 padded (0, 1, 0, 1), 1x1), SPEC.md §4.
+//
+// Shapes (conv.h, ConvDims): x (B, C, Hi, Wi), w (Co, C, kh, kw), b (Co,), y (B, Co, Ho, Wo);
+// K = C*kh*kw, P = Ho*Wo. w is read as the matrix w2 (Co, K), columns in (c, i, j) order, and
+// cols_b (K, P), cols_b[(c,i,j), (u,v)] = xpad[b, c, stride*u + i, stride*v + j], is the im2col
+// matrix of image b, xpad x with its zero padding.
+//
+// Algorithm: implicit GEMM, never BLAS, never Winograd or FFT (which change the rounding): every
+// y and dx element is one dot product accumulated in T in increasing (c, i, j) order (FMA where
+// the path has it); every dw element a sum over pixels in W vector lanes, the lanes added at the
+// end. cols is never stored whole.
+//   forward   y_b = w2 @ cols_b + b, by tasks (image, tile of output pixels), each writing its own
+//             columns of y:
+//             stride 1 (conv_rows): the R + kh - 1 input rows that R output rows read are copied
+//             once, zero padded, into a (C, R + kh - 1, Wo + kw - 1) tile; each cols row is then a
+//             shifted window of it, read in place through a table of row offsets (tab_gemm, the
+//             register tile of simd.h's gemm with B's rows found through the table). 1x the input
+//             copied instead of kh*kw x, and the tile stays in L1/L2. Rows of >= 2 vectors: one
+//             product per output row, straight into y; narrower (8x8): one product over the tile
+//             taken as rows of Wo + kw - 1 pixels, the kw - 1 extra columns dropped.
+//             stride > 1: im2col tiles of about kTileBytes (L2) in a per-thread buffer, gemm_mr
+//             (simd.h's gemm) straight into y's slab. 1x1, stride 1, unpadded: x itself is cols.
+//   dx        stride 1: the transposed conv is itself a stride-1 conv: dx = conv(dy, wf) with
+//             wf[c, o, i, j] = w[o, c, kh-1-i, kw-1-j] and padding (kh-1-pt, kh-1-pb, kw-1-pl,
+//             kw-1-pr) (a negative one crops), so it runs the forward's conv_rows: each dx element
+//             is one dot product of Co*kh*kw terms, a gather, no scatter.
+//             stride > 1 (the Downsample): dcols (K_blk, np) = w2[:, blk]^T @ dy tile, then col2im
+//             adds each row onto its strided slab of dx. Task = (image, block of kCB channels),
+//             its tiles in order, so no two tasks write the same dx element.
+//   dw        dw2[o, k] = sum over images and pixels p of dy_b[o, p] cols_b[k, p]: dot products
+//             along the pixels of two row-major operands (dot_lanes: MR rows of cols times 4 rows
+//             of dy per register tile), so neither is transposed and dy is read in place. Task =
+//             (block of kCB input channels, block of output channels): it owns those entries of
+//             dw and sums every image's every tile into one vector of lane sums per entry, in a
+//             fixed order. Its rows of cols are read from a padded-row tile as in the forward
+//             (stride 1, rows of >= 4 vectors) or built as im2col tiles (otherwise).
+//   db        sum over images and pixels of dy, in double, per output channel.
+// Determinism: the tiles depend only on the shapes; every output element is computed by one
+// task in one fixed order (the dw's output-channel blocks follow the thread count, but a pair
+// (k, o)'s sums are the same in any block): bitwise the same results for any number of threads
+// (tests/test_conv.py checks 1 and 2). Gradients are written, never accumulated.
+//
+// Plain loops beside it (conv2d_*_plain): one double accumulator per output element, the
+// obviously-correct oracle of the tests.
+//
+// Measured (AMD EPYC, AVX2, one thread's CPU time, B = 16, 32 -> 32 channels, 64x64, 3x3 pad 1,
+// float32): forward 15.1 ms (80 GFLOP/s), backward 31 ms; torch 2.13 15 ms and 70 ms for both.
+//
+// Test: pytest tests/test_conv.py (fast vs plain vs NumPy vs torch float64, every shape family
+// and code path, the padding trap, 1 vs 2 threads bitwise, float32 vs float64, sizes refused).
+// Benchmark: pyvf bench codebook --quick (the time per layer type).
+#include "conv.h"
+
+#include <algorithm>
+#include <new>
+#include <vector>
+
+#ifdef PYVF_OPENMP
+#include <omp.h>
+#endif
+
+#include "simd.h"
+
+namespace pyvf {
+
+namespace {
+
+// Tile sizes and path choices, measured on the codebook's shapes (AMD EPYC, AVX2, 32 KiB L1d and
+// 512 KiB L2 per core; tests/test_conv.py's shapes run every path):
+// the im2col column tile of the forward and of the stride > 1 dx, bytes (64..256 KiB within 5%);
+constexpr int64_t kTileBytes = 128 << 10;
+// the dw's column tile or padded-row tile, bytes (32..128 KiB within 5%);
+constexpr int64_t kDwTileBytes = 128 << 10;
+// the stride-1 forward's padded-row tile, bytes;
+constexpr int64_t kRowTileBytes = 64 << 10;
+// the forward's padded-row tile is multiplied one output row at a time when a row has at least
+// kRowsMinVectors vectors, else as one wide product (8x8 images: 25% faster than im2col, which
+// was 35% slower than the per-row products on 16x16); the dw reads the padded-row tile when a row
+// has at least kDwRowsMinVectors vectors, else im2col tiles (25% faster on 16x16 and 8x8 rows).
+constexpr int64_t kRowsMinVectors = 2, kDwRowsMinVectors = 4;
+// Channels per task of the dw and stride > 1 dx loops.
+constexpr int64_t kCB = 8;
+// Below this many multiply-adds (about 50 us on one core) a call runs on one thread: starting the
+// team costs microseconds on a quiet machine, and on a busy one each parallel region can wait a
+// scheduler time slice for a descheduled thread.
+constexpr int64_t kParallelFlops = 1 << 20;
+
+// An exception must not leave an OpenMP region (the process would abort): allocations inside
+// one are caught, recorded, and the kernel returns kConvOutOfMemory.
+#define PYVF_CONV_TRY_ALLOC(status, ...)                        \
+    try {                                                       \
+        __VA_ARGS__;                                            \
+    } catch (const std::bad_alloc&) {                           \
+        _Pragma("omp atomic write") status = kConvOutOfMemory;  \
+    }
+
+template <typename T> constexpr int64_t kW = Simd<T>::W;
+
+// Work buffers start on a cache line (the column rows' vector stores are then aligned; malloc
+// gives 16 bytes). Allocation failure throws std::bad_alloc, as std::vector's does.
+template <typename T> struct Aligned64 {
+    typedef T value_type;
+    Aligned64() = default;
+    template <typename U> Aligned64(const Aligned64<U>&) {}
+    T* allocate(size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
+    void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
+    template <typename U> bool operator==(const Aligned64<U>&) const { return true; }
+    template <typename U> bool operator!=(const Aligned64<U>&) const { return false; }
+};
+template <typename T> using Buf = std::vector<T, Aligned64<T>>;
+
+inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
+
+inline int64_t threads() {
+#ifdef PYVF_OPENMP
+    return omp_get_max_threads();
+#else
+    return 1;
+#endif
+}
+inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
+
+// Pixels per tile for a tile of `rows` rows: about kTileBytes, a multiple of gemm's widest
+// column tile (2 vectors), at most P. Depends on the shape only.
+// The tiles of P pixels are balanced: ceil(P / np) tiles of about equal size (a last tile of a
+// few pixels would run at a fraction of the speed).
+template <typename T> int64_t tile_pixels(int64_t rows, int64_t P, int64_t bytes = kTileBytes) {
+    const int64_t step = 2 * kW<T>;
+    if (P <= 0) return 1;
+    const int64_t most = std::max(step, bytes / (std::max<int64_t>(rows, 1) * (int64_t)sizeof(T)) / step * step);
+    const int64_t np = round_up(ceil_div(P, ceil_div(P, most)), step);
+    return std::min(np, std::max<int64_t>(P, 1));
+}
+
+// gemm of simd.h with the rows past the last full MR block done as one block of M % MR rows
+// (simd.h's gemm does them 4 and 1 at a time, which for Co = 32 on AVX2 leaves two rows at a
+// quarter of the FMA rate). Each element of C is the same sum in the same order whatever block
+// its row falls in, so this changes no result, only the speed.
+template <typename T, bool ACC, bool TA = false>
+void gemm_mr(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
+    constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
+    const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;
+    int i = 0;
+    for (; i + MR <= M; i += MR) gemm_rows<T, MR, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
+    A += i * sa_i;
+    C += i * ldc;
+    switch (M - i) {
+        case 0: break;
+        case 1: gemm_rows<T, 1, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 2: gemm_rows<T, 2, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 3: gemm_rows<T, 3, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 4: if constexpr (MR > 4) gemm_rows<T, 4, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 5: if constexpr (MR > 5) gemm_rows<T, 5, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 6: if constexpr (MR > 6) gemm_rows<T, 6, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 7: if constexpr (MR > 7) gemm_rows<T, 7, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+    }
+}
+
+// out[q] = 0 for q < lo and hi <= q < m, src[q - lo] for lo <= q < hi.
+// Inline vector copy: the rows are short (an image row), a memcpy call costs more than the copy;
+// the last partial vector is stored overlapping the one before (same values, no scalar tail).
+// (Aligning the stores instead, with scalar edges, measured 20% slower.)
+template <typename T> inline void copy_between_zeros(T* out, const T* src, int64_t lo, int64_t hi, int64_t m) {
+    constexpr int64_t W = kW<T>;
+    std::fill(out, out + lo, T(0));
+    T* dst = out + lo;
+    const int64_t n = hi - lo;
+    if (n < W) {
+        for (int64_t q = 0; q < n; ++q) dst[q] = src[q];
+    } else {
+        int64_t q = 0;
+        for (; q + W <= n; q += W) vstore<T>(dst + q, vload<T>(src + q));
+        if (q < n) vstore<T>(dst + n - W, vload<T>(src + n - W));  // overlaps the previous vector
+    }
+    std::fill(out + hi, out + m, T(0));
+}
+
+// C (M, N) = A (M, K) @ Bt (K, N), where row k of the implicit matrix Bt starts at B + boff[k]:
+// rows of a zero-padded image tile, shifted per kernel tap, so that Bt is the im2col matrix of
+// one output row without ever being written. Otherwise simd.h's gemm_tile/gemm_rows: the same
+// sums in the same order, so the result is bitwise the one im2col + gemm gives.
+template <typename T, int MR, int NV>
+inline void tab_tile(int K, const T* A, long lda, const T* B, const int64_t* boff, T* C, long ldc) {
+    using V = typename Simd<T>::V;
+    constexpr int W = Simd<T>::W;
+    V acc[MR][NV];
+#pragma GCC unroll 16
+    for (int i = 0; i < MR; ++i)
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) acc[i][v] = V{};
+    for (int k = 0; k < K; ++k) {
+        const T* bk = B + boff[k];
+        V bv[NV];
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) bv[v] = vload<T>(bk + v * W);
+#pragma GCC unroll 16
+        for (int i = 0; i < MR; ++i) {
+            const T a = A[i * lda + k];
+#pragma GCC unroll 4
+            for (int v = 0; v < NV; ++v) acc[i][v] += a * bv[v];
+        }
+    }
+#pragma GCC unroll 16
+    for (int i = 0; i < MR; ++i)
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) vstore<T>(C + i * ldc + v * W, acc[i][v]);
+}
+
+template <typename T, int MR>
+inline void tab_rows(int N, int K, const T* A, long lda, const T* B, const int64_t* boff, T* C, long ldc) {
+    constexpr int W = Simd<T>::W;
+    int j = 0;
+    for (; j + 2 * W <= N; j += 2 * W) tab_tile<T, MR, 2>(K, A, lda, B + j, boff, C + j, ldc);
+    for (; j + W <= N; j += W) tab_tile<T, MR, 1>(K, A, lda, B + j, boff, C + j, ldc);
+    for (; j < N; ++j)  // columns past the last full vector
+        for (int i = 0; i < MR; ++i) {
+            T s = 0;
+            for (int k = 0; k < K; ++k) s += A[i * lda + k] * B[boff[k] + j];
+            C[i * ldc + j] = s;
+        }
+}
+
+template <typename T>
+void tab_gemm(int M, int N, int K, const T* A, long lda, const T* B, const int64_t* boff, T* C, long ldc) {
+    constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
+    int i = 0;
+    for (; i + MR <= M; i += MR) tab_rows<T, MR>(N, K, A + i * lda, lda, B, boff, C + i * ldc, ldc);
+    A += i * lda;
+    C += i * ldc;
+    switch (M - i) {
+        case 0: break;
+        case 1: tab_rows<T, 1>(N, K, A, lda, B, boff, C, ldc); break;
+        case 2: tab_rows<T, 2>(N, K, A, lda, B, boff, C, ldc); break;
+        case 3: tab_rows<T, 3>(N, K, A, lda, B, boff, C, ldc); break;
+        case 4: if constexpr (MR > 4) tab_rows<T, 4>(N, K, A, lda, B, boff, C, ldc); break;
+        case 5: if constexpr (MR > 5) tab_rows<T, 5>(N, K, A, lda, B, boff, C, ldc); break;
+        case 6: if constexpr (MR > 6) tab_rows<T, 6>(N, K, A, lda, B, boff, C, ldc); break;
+        case 7: if constexpr (MR > 7) tab_rows<T, 7>(N, K, A, lda, B, boff, C, ldc); break;
+    }
+}
+
+// acc[(i, o), :] += lane sums of A_i[r, 0:w] * D[o, r, 0:w] over r < nr, for i < M, o < N: per
+// pair one vector accumulator, lane l summing the products at p = l mod W of each row r (a row's
+// last w % W pixels are read through zero-padded copies: 0 * finite adds exactly 0).
+// Row r of A_i starts at A + aoff[i] + r * ars (im2col rows: aoff[i] = i * lda, nr = 1; a padded
+// image tile: aoff[i] the kernel tap's shift, ars its row length); row r of D_o at
+// D + o * ldd + r * drs. acc is (M, ldacc, W).
+// Register tile: MR rows of A times NO rows of D, MR + NO vector loads per MR * NO FMAs, both
+// operands read along their rows, so neither is transposed.
+template <typename T, int MR, int NO>
+inline void dot_tile(int64_t nr, int64_t w, const T* A, const int64_t* aoff, int64_t ars, const T* D, int64_t ldd,
+                     int64_t drs, T* acc, int64_t ldacc) {
+    using V = typename Simd<T>::V;
+    constexpr int W = Simd<T>::W;
+    V s[MR][NO];
+#pragma GCC unroll 8
+    for (int i = 0; i < MR; ++i)
+#pragma GCC unroll 8
+        for (int o = 0; o < NO; ++o) s[i][o] = V{};
+    const T* Ai[MR];
+    for (int i = 0; i < MR; ++i) Ai[i] = A + aoff[i];
+    const int64_t wv = w - w % W;  // the whole vectors of a row
+    for (int64_t r = 0; r < nr; ++r)
+        for (int64_t p = 0; p < wv; p += W) {
+            V a[MR];
+#pragma GCC unroll 8
+            for (int i = 0; i < MR; ++i) a[i] = vload<T>(Ai[i] + r * ars + p);
+#pragma GCC unroll 8
+            for (int o = 0; o < NO; ++o) {
+                const V b = vload<T>(D + o * ldd + r * drs + p);
+#pragma GCC unroll 8
+                for (int i = 0; i < MR; ++i) s[i][o] += a[i] * b;
+            }
+        }
+    // the rows' last w - wv < W pixels, zero-padded; a separate loop, so that the one above keeps
+    // its accumulators in registers from row to row (with the tail inside it they were spilled)
+    if (wv < w)
+        for (int64_t r = 0; r < nr; ++r) {
+            const int64_t p = wv;
+            T ta[MR][W] = {}, tb[W] = {};
+            for (int i = 0; i < MR; ++i)
+                for (int64_t q = p; q < w; ++q) ta[i][q - p] = Ai[i][r * ars + q];
+            for (int o = 0; o < NO; ++o) {
+                for (int64_t q = p; q < w; ++q) tb[q - p] = D[o * ldd + r * drs + q];
+                const V b = vload<T>(tb);
+                for (int i = 0; i < MR; ++i) s[i][o] += vload<T>(ta[i]) * b;
+            }
+        }
+#pragma GCC unroll 8
+    for (int i = 0; i < MR; ++i)
+#pragma GCC unroll 8
+        for (int o = 0; o < NO; ++o) {
+            T* q = acc + (i * ldacc + o) * W;
+            vstore<T>(q, vload<T>(q) + s[i][o]);
+        }
+}
+
+template <typename T, int MR>
+inline void dot_rows(int64_t N, int64_t nr, int64_t w, const T* A, const int64_t* aoff, int64_t ars, const T* D,
+                     int64_t ldd, int64_t drs, T* acc, int64_t ldacc) {
+    constexpr int W = Simd<T>::W;
+    int64_t o = 0;
+    for (; o + 4 <= N; o += 4) dot_tile<T, MR, 4>(nr, w, A, aoff, ars, D + o * ldd, ldd, drs, acc + o * W, ldacc);
+    switch (N - o) {
+        case 0: break;
+        case 1: dot_tile<T, MR, 1>(nr, w, A, aoff, ars, D + o * ldd, ldd, drs, acc + o * W, ldacc); break;
+        case 2: dot_tile<T, MR, 2>(nr, w, A, aoff, ars, D + o * ldd, ldd, drs, acc + o * W, ldacc); break;
+        case 3: dot_tile<T, MR, 3>(nr, w, A, aoff, ars, D + o * ldd, ldd, drs, acc + o * W, ldacc); break;
+    }
+}
+
+// Every (row of A, row of D) pair: M rows of A in blocks of MR (3 with 16 vector registers: 12
+// accumulators + 3 + 1; 4 with AVX-512's 32), N rows of D in blocks of 4. Which block a pair falls
+// in changes no result: each pair's lanes are the same sums in the same order.
+template <typename T>
+void dot_lanes(int64_t M, int64_t N, int64_t nr, int64_t w, const T* A, const int64_t* aoff, int64_t ars,
+               const T* D, int64_t ldd, int64_t drs, T* acc, int64_t ldacc) {
+    constexpr int W = Simd<T>::W;
+    constexpr int MR = kVecBytes >= 64 ? 4 : 3;
+    int64_t i = 0;
+    for (; i + MR <= M; i += MR)
+        dot_rows<T, MR>(N, nr, w, A, aoff + i, ars, D, ldd, drs, acc + i * ldacc * W, ldacc);
+    aoff += i;
+    acc += i * ldacc * W;
+    switch (M - i) {
+        case 0: break;
+        case 1: dot_rows<T, 1>(N, nr, w, A, aoff, ars, D, ldd, drs, acc, ldacc); break;
+        case 2: dot_rows<T, 2>(N, nr, w, A, aoff, ars, D, ldd, drs, acc, ldacc); break;
+        case 3: if constexpr (MR > 3) dot_rows<T, 3>(N, nr, w, A, aoff, ars, D, ldd, drs, acc, ldacc); break;
+    }
+}
+
+// tile[c, rr, cc] = x[c0 + c, u0 + rr - pt, cc - pl] for c < nc, rr < nrr, cc < Wp, 0 outside x:
+// the zero-padded input rows that output rows u0.. of a stride-1 conv read. tile is (nc, Rp, Wp).
+template <typename T>
+void pad_rows(T* tile, const T* x, const ConvDims& d, int64_t c0, int64_t nc, int64_t u0, int64_t nrr, int64_t Rp,
+              int64_t Wp) {
+    const int64_t HWi = d.Hi * d.Wi;
+    const int64_t lo = std::clamp<int64_t>(d.pl, 0, Wp), hi = std::clamp<int64_t>(d.pl + d.Wi, lo, Wp);
+    for (int64_t c = 0; c < nc; ++c)
+        for (int64_t rr = 0; rr < nrr; ++rr) {
+            T* out = tile + (c * Rp + rr) * Wp;
+            const int64_t yi = u0 + rr - d.pt;
+            if (yi < 0 || yi >= d.Hi)
+                std::fill(out, out + Wp, T(0));
+            else
+                copy_between_zeros(out, x + (c0 + c) * HWi + yi * d.Wi + (lo - d.pl), lo, hi, Wp);
+        }
+}
+
+// The output columns v + q, 0 <= q < m, whose tap j reads inside x: xi = s*(v + q) + j - pl in
+// [0, Wi) for exactly lo <= q < hi (0 <= lo <= hi <= m).
+inline void inside(const ConvDims& d, int64_t s, int64_t j, int64_t v, int64_t m, int64_t& lo, int64_t& hi) {
+    const int64_t a = d.pl - j, e = d.Wi - 1 + d.pl - j;  // a <= s*(v + q) <= e
+    const int64_t first = a <= 0 ? 0 : ceil_div(a, s);    // smallest v + q with s*(v + q) >= a
+    const int64_t last = e < 0 ? -1 : e / s;              // largest v + q with s*(v + q) <= e
+    lo = std::clamp<int64_t>(first - v, 0, m);
+    hi = std::clamp<int64_t>(last + 1 - v, lo, m);
+}
+
+// cols (nc*kh*kw, n), rows ld apart: the im2col rows of channels [c0, c0 + nc) of one image x (C, Hi, Wi), for
+// the n output pixels p0 .. p0 + n (p = u*Wo + v):
+//     cols[(c - c0, i, j), p - p0] = x[c, stride*u + i - pt, stride*v + j - pl], 0 outside x.
+// Works for negative padding too (the stride-1 dx conv's, which crops).
+template <typename T>
+void im2col(T* cols, const T* x, const ConvDims& d, int64_t c0, int64_t nc, int64_t p0, int64_t n, int64_t ld) {
+    const int64_t s = d.stride, HWi = d.Hi * d.Wi, u0 = p0 / d.Wo, v0 = p0 % d.Wo;
+    for (int64_t c = 0; c < nc; ++c)
+        for (int64_t i = 0; i < d.kh; ++i)
+            for (int64_t j = 0; j < d.kw; ++j) {
+                T* row = cols + ((c * d.kh + i) * d.kw + j) * ld;
+                const T* xc = x + (c0 + c) * HWi;
+                // one segment of output row u per step (no division in the loop: it would cost
+                // more than a segment's copy)
+                for (int64_t p = p0, u = u0, v = v0; p < p0 + n; p += d.Wo - v, v = 0, ++u) {
+                    const int64_t m = std::min(d.Wo - v, p0 + n - p);
+                    T* out = row + (p - p0);
+                    const int64_t yi = s * u + i - d.pt;
+                    if (yi < 0 || yi >= d.Hi) {
+                        std::fill(out, out + m, T(0));
+                    } else {
+                        // xi = s*(v + q) + j - pl is inside x for lo <= q < hi
+                        int64_t lo, hi;
+                        inside(d, s, j, v, m, lo, hi);
+                        const T* xr = xc + yi * d.Wi + (s * (v + lo) + j - d.pl);
+                        if (s == 1) {  // one copy between two runs of zeros
+                            copy_between_zeros(out, xr, lo, hi, m);
+                        } else {
+                            std::fill(out, out + lo, T(0));
+                            for (int64_t q = lo; q < hi; ++q) out[q] = xr[s * (q - lo)];
+                            std::fill(out + hi, out + m, T(0));
+                        }
+                    }
+                }
+            }
+}
+
+// The inverse scatter: dx[c0 + c, stride*u + i - pt, stride*v + j - pl] += dcols[(c, i, j), p - p0]
+// for every in-image position, rows in (c, i, j) order, pixels in order.
+template <typename T>
+void col2im_add(T* dx, const T* dcols, const ConvDims& d, int64_t c0, int64_t nc, int64_t p0, int64_t n) {
+    const int64_t s = d.stride, HWi = d.Hi * d.Wi, u0 = p0 / d.Wo, v0 = p0 % d.Wo;
+    for (int64_t c = 0; c < nc; ++c)
+        for (int64_t i = 0; i < d.kh; ++i)
+            for (int64_t j = 0; j < d.kw; ++j) {
+                const T* row = dcols + ((c * d.kh + i) * d.kw + j) * n;
+                T* dxc = dx + (c0 + c) * HWi;
+                for (int64_t p = p0, u = u0, v = v0; p < p0 + n; p += d.Wo - v, v = 0, ++u) {
+                    const int64_t m = std::min(d.Wo - v, p0 + n - p);
+                    const int64_t yi = s * u + i - d.pt;
+                    if (yi >= 0 && yi < d.Hi) {
+                        int64_t lo, hi;
+                        inside(d, s, j, v, m, lo, hi);
+                        T* dr = dxc + yi * d.Wi + (s * (v + lo) + j - d.pl);
+                        const T* in = row + (p - p0);
+                        for (int64_t q = lo; q < hi; ++q) dr[s * (q - lo)] += in[q];
+                    }
+                }
+            }
+}
+
+bool worth_threads(const ConvDims& d) {
+    return d.B * d.Co * d.Ho * d.Wo * d.C * d.kh * d.kw >= kParallelFlops;
+}
+
+// y[o, 0:n] += b[o] for the Co rows of y (leading dimension ld)
+template <typename T> inline void add_bias_rows(T* y, const T* b, int64_t Co, int64_t ld, int64_t n) {
+    for (int64_t o = 0; o < Co; ++o) {
+        T* r = y + o * ld;
+        const T bo = b[o];
+        for (int64_t q = 0; q < n; ++q) r[q] += bo;
+    }
+}
+
+// Stride 1 (the codebook's 3x3 pad 1, and every stride-1 dx): per task (image, tile of R output
+// rows) the R + kh - 1 input rows it reads are copied once, zero padded, into a (C, R + kh - 1, Wp)
+// tile, Wp = Wo + kw - 1, and w2 (Co, K) @ Bt is computed with Bt[(c,i,j), (r,v)] =
+// tile[c, r + i, v + j] read in place by tab_gemm: 1x the input copied instead of kh*kw x for
+// im2col, and the tile stays in L1/L2.
+//   rows of at least kRowsMinVectors vectors: one tab_gemm per output row, N = Wo, straight into y;
+//   narrower rows (8x8 images): one tab_gemm over the whole tile taken as rows of Wp pixels,
+//   N = (nr - 1)*Wp + Wo rounded up to whole vectors: the kw - 1 columns past each row's end (and
+//   the rounding) are computed and dropped, and the Wo real ones copied into y. The tile has W
+//   elements of slack so that those columns read inside it.
+template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
+    constexpr int64_t W = kW<T>;
+    const int64_t K = d.C * d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi, Wp = d.Wo + d.kw - 1;
+    const int64_t R = std::clamp<int64_t>(kRowTileBytes / (std::max<int64_t>(d.C, 1) * Wp * (int64_t)sizeof(T)) -
+                                              (d.kh - 1), 1, d.Ho);
+    const int64_t Rp = R + d.kh - 1, ntile = ceil_div(d.Ho, R), ntask = d.B * ntile;
+    const bool wide = d.Wo < kRowsMinVectors * W;
+    const int64_t nwide = round_up((R - 1) * Wp + d.Wo, W);  // columns of the widest wide product
+    int status = kConvOk;
+    std::vector<int64_t> boff;  // row k = (c, i, j) of Bt starts at tile + boff[k] (+ r*Wp for row r)
+    try {
+        boff.resize(K);
+    } catch (const std::bad_alloc&) {
+        return kConvOutOfMemory;
+    }
+    for (int64_t c = 0; c < d.C; ++c)
+        for (int64_t i = 0; i < d.kh; ++i)
+            for (int64_t j = 0; j < d.kw; ++j) boff[(c * d.kh + i) * d.kw + j] = (c * Rp + i) * Wp + j;
+#pragma omp parallel if (worth_threads(d))
+    {
+        Buf<T> tile, out;  // (C, Rp, Wp) + W slack; wide: the product (Co, nwide)
+        bool ok = false;
+        PYVF_CONV_TRY_ALLOC(status, tile.resize(d.C * Rp * Wp + W); if (wide) out.resize(d.Co * nwide); ok = true)
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t t = 0; t < ntask; ++t) {
+            if (!ok) continue;
+            const int64_t bi = t / ntile, u0 = (t % ntile) * R, nr = std::min(R, d.Ho - u0);
+            pad_rows(tile.data(), x + bi * d.C * HWi, d, 0, d.C, u0, nr + d.kh - 1, Rp, Wp);
+            T* yb = y + bi * d.Co * P;
+            if (wide) {
+                const int64_t n = round_up((nr - 1) * Wp + d.Wo, W);
+                tab_gemm<T>((int)d.Co, (int)n, (int)K, w, K, tile.data(), boff.data(), out.data(), n);
+                for (int64_t o = 0; o < d.Co; ++o)
+                    for (int64_t r = 0; r < nr; ++r)
+                        std::copy_n(out.data() + o * n + r * Wp, d.Wo, yb + o * P + (u0 + r) * d.Wo);
+            } else {
+                for (int64_t r = 0; r < nr; ++r)  // y_b[:, u0 + r, :] = w2 @ Bt(row r)
+                    tab_gemm<T>((int)d.Co, (int)d.Wo, (int)K, w, K, tile.data() + r * Wp, boff.data(),
+                                yb + (u0 + r) * d.Wo, P);
+            }
+            if (b) add_bias_rows(yb + u0 * d.Wo, b, d.Co, P, nr * d.Wo);
+        }
+    }
+    return status;
+}
+
+// y = conv(x, w) (+ b when b is not null): the forward, and the stride-1 dx with the flipped
+// weights. Tasks: (image, tile of output pixels), each writing its own columns of y.
+template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
+    const int64_t K = d.C * d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
+    const bool direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
+    if (!direct && d.stride == 1) return conv_rows(y, x, w, b, d);
+    const int64_t np = tile_pixels<T>(K, P), ntile = ceil_div(P, np), ntask = d.B * ntile;
+    int status = kConvOk;
+#pragma omp parallel if (worth_threads(d))
+    {
+        Buf<T> cols;  // (K, np), this thread's column tile
+        bool ok = false;
+        PYVF_CONV_TRY_ALLOC(status, if (!direct) cols.resize(K * np); ok = true)
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t t = 0; t < ntask; ++t) {
+            if (!ok) continue;
+            const int64_t bi = t / ntile, p0 = (t % ntile) * np, n = std::min(np, P - p0);
+            const T* xb = x + bi * d.C * HWi;  // (C, Hi, Wi)
+            T* yb = y + bi * d.Co * P + p0;    // (Co, n) of (Co, P)
+            const T* src = xb + p0;            // direct: the columns are x_b's own pixels
+            int64_t ldb = P;
+            if (!direct) {
+                im2col(cols.data(), xb, d, 0, d.C, p0, n, n);
+                src = cols.data();
+                ldb = n;
+            }
+            // y_b[:, p0:p0+n] = w2 (Co, K) @ cols (K, n)
+            gemm_mr<T, false>((int)d.Co, (int)n, (int)K, w, K, src, ldb, yb, P);
+            if (b) add_bias_rows(yb, b, d.Co, P, n);
+        }
+    }
+    return status;
+}
+
+}  // namespace
+
+// =========================================================================================
+// Fast kernels
+
+template <typename T> int conv2d_forward(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
+    return conv_gemm<T>(y, x, w, b, d);
+}
+
+template <typename T>
+int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d) {
+    const int64_t K = d.C * d.kh * d.kw, khw = d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
+    int status = kConvOk;
+
+    // ---- dx
+    if (d.stride == 1) {
+        // forward was y[o, u, v] = sum w[o, c, i, j] x[c, u + i - pt, v + j - pl], so
+        // dx[c, yy, xx] = sum over o, i, j of w[o, c, i, j] dy[o, yy + pt - i, xx + pl - j]
+        //              = conv(dy, wf)[c, yy, xx], wf[c, o, i', j'] = w[o, c, kh-1-i', kw-1-j'],
+        // padded (kh-1-pt, kh-1-pb, kw-1-pl, kw-1-pr): dy's rows yy + i' - (kh-1-pt).
+        std::vector<T> wf;  // (C, Co, kh, kw)
+        try {
+            wf.resize(d.C * d.Co * khw);
+        } catch (const std::bad_alloc&) {
+            return kConvOutOfMemory;
+        }
+        for (int64_t o = 0; o < d.Co; ++o)
+            for (int64_t c = 0; c < d.C; ++c)
+                for (int64_t i = 0; i < d.kh; ++i)
+                    for (int64_t j = 0; j < d.kw; ++j)
+                        wf[((c * d.Co + o) * d.kh + (d.kh - 1 - i)) * d.kw + (d.kw - 1 - j)] =
+                            w[((o * d.C + c) * d.kh + i) * d.kw + j];
+        const ConvDims t{d.B,  d.Co, d.Ho, d.Wo, d.C, d.kh, d.kw, 1, d.kh - 1 - d.pt, d.kh - 1 - d.pb,
+                         d.kw - 1 - d.pl, d.kw - 1 - d.pr, d.Hi, d.Wi};
+        status = conv_gemm<T>(dx, dy, wf.data(), nullptr, t);
+        if (status != kConvOk) return status;
+    } else {
+        // forward was y_b = w2 @ cols_b, so dcols_b = w2^T @ dy_b, scattered back by col2im
+        const int64_t ncb = ceil_div(d.C, kCB), ntask = d.B * ncb;
+        const int64_t np = tile_pixels<T>(std::min(d.C, kCB) * khw, P), ntile = ceil_div(P, np);
+#pragma omp parallel if (worth_threads(d))
+        {
+            Buf<T> dcols;  // (kCB*kh*kw, np)
+            bool ok = false;
+            PYVF_CONV_TRY_ALLOC(status, dcols.resize(std::min(d.C, kCB) * khw * np); ok = true)
+#pragma omp for schedule(dynamic, 1)
+            for (int64_t t = 0; t < ntask; ++t) {
+                if (!ok) continue;
+                const int64_t bi = t / ncb, c0 = (t % ncb) * kCB, nc = std::min(kCB, d.C - c0);
+                T* dxb = dx + bi * d.C * HWi;
+                std::fill(dxb + c0 * HWi, dxb + (c0 + nc) * HWi, T(0));
+                for (int64_t tile = 0; tile < ntile; ++tile) {
+                    const int64_t p0 = tile * np, n = std::min(np, P - p0);
+                    // dcols (nc*kh*kw, n) = w2[:, c0*khw : (c0+nc)*khw]^T @ dy_b[:, p0:p0+n]
+                    gemm_mr<T, false, true>((int)(nc * khw), (int)n, (int)d.Co, w + c0 * khw, K,
+                                            dy + bi * d.Co * P + p0, P, dcols.data(), n);
+                    col2im_add(dxb, dcols.data(), d, c0, nc, p0, n);
+                }
+            }
+        }
+        if (status != kConvOk) return status;
+    }
+
+    // ---- dw: forward was y_b = w2 @ cols_b, so dw2[o, k] = sum over b, p of dy_b[o, p] cols_b[k, p]:
+    // dot products along the pixels of two row-major operands, dy read in place
+    const int64_t ncb = ceil_div(d.C, kCB);
+    // output-channel blocks: at least two tasks per thread where the input channels alone do not
+    // make that many (each block re-reads its rows of cols), blocks of at least 4 and at most 64
+    // channels (the lane accumulators, kb * ow vectors, stay in L2). The blocks may depend on the
+    // thread count: a pair (k, o)'s lane sums are the same whatever block o falls in.
+    const int64_t nob_want = std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, 4), ceil_div(2 * threads(), ncb)));
+    const int64_t ow = ceil_div(d.Co, std::max<int64_t>(nob_want, 1)), nob = ceil_div(d.Co, std::max<int64_t>(ow, 1));
+    // how a task reads its rows of cols: x itself (1x1, stride 1, unpadded); a zero-padded tile of
+    // R + kh - 1 input rows per R output rows (stride 1, rows of at least two vectors), each tap's
+    // row a shifted window of it; else im2col tiles of np pixels
+    const bool direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
+    const bool rows = !direct && d.stride == 1 && d.Wo >= kDwRowsMinVectors * kW<T>;
+    const int64_t nc_max = std::min(d.C, kCB), kb_max = nc_max * khw, Wp = d.Wo + d.kw - 1;
+    const int64_t R = std::clamp<int64_t>(kDwTileBytes / (std::max<int64_t>(nc_max, 1) * Wp * (int64_t)sizeof(T)) -
+                                              (d.kh - 1), 1, d.Ho);
+    const int64_t Rp = R + d.kh - 1;
+    const int64_t np = rows ? R * d.Wo : tile_pixels<T>(direct ? 0 : kb_max, P, kDwTileBytes);
+    const int64_t ntile = rows ? ceil_div(d.Ho, R) : ceil_div(P, np);
+#pragma omp parallel if (worth_threads(d))
+    {
+        // buf: the cols tile (kb, np) or the padded rows (nc, Rp, Wp); aoff: where each row of cols
+        // starts in it; acc (kb, ow, W): per (k, o) one vector of lane sums, lane l summing the
+        // pixels p = l mod W of every tile row, added up lane by lane at the end
+        Buf<T> buf, acc;
+        std::vector<int64_t> aoff;
+        bool ok = false;
+        PYVF_CONV_TRY_ALLOC(status, buf.resize(direct ? 0 : rows ? nc_max * Rp * Wp : kb_max * np);
+                            acc.resize(kb_max * ow * kW<T>); aoff.resize(kb_max); ok = true)
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t t = 0; t < ncb * nob; ++t) {
+            if (!ok) continue;
+            const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
+            const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
+            for (int64_t c = 0; c < nc; ++c)
+                for (int64_t i = 0; i < d.kh; ++i)
+                    for (int64_t j = 0; j < d.kw; ++j)
+                        aoff[(c * d.kh + i) * d.kw + j] = direct ? c * HWi
+                                                          : rows ? (c * Rp + i) * Wp + j
+                                                                 : ((c * d.kh + i) * d.kw + j) * np;
+            std::fill(acc.begin(), acc.end(), T(0));
+            for (int64_t bi = 0; bi < d.B; ++bi)
+                for (int64_t tile = 0; tile < ntile; ++tile) {
+                    const T* xb = x + bi * d.C * HWi;
+                    const T* dyb = dy + (bi * d.Co + o0) * P;
+                    // acc[k, o, :] += lanes of cols[k, p] * dy_b[o0 + o, p] over the tile's pixels p
+                    if (rows) {
+                        const int64_t u0 = tile * R, nr = std::min(R, d.Ho - u0);
+                        pad_rows(buf.data(), xb, d, c0, nc, u0, nr + d.kh - 1, Rp, Wp);
+                        dot_lanes<T>(kb, no, nr, d.Wo, buf.data(), aoff.data(), Wp, dyb + u0 * d.Wo, P, d.Wo,
+                                     acc.data(), ow);
+                    } else {
+                        const int64_t p0 = tile * np, n = std::min(np, P - p0);
+                        const T* A = xb + c0 * HWi + p0;
+                        if (!direct) {
+                            im2col(buf.data(), xb, d, c0, nc, p0, n, np);
+                            A = buf.data();
+                        }
+                        dot_lanes<T>(kb, no, 1, n, A, aoff.data(), 0, dyb + p0, P, 0, acc.data(), ow);
+                    }
+                }
+            for (int64_t o = 0; o < no; ++o)
+                for (int64_t r = 0; r < kb; ++r)
+                    dw[(o0 + o) * K + c0 * khw + r] = hsum<T>(vload<T>(acc.data() + (r * ow + o) * kW<T>));
+        }
+
+        // ---- db: forward was y = ... + b[o], so db[o] = sum over b, u, v of dy[b, o, u, v]
+#pragma omp for schedule(static)
+        for (int64_t o = 0; o < d.Co; ++o) {
+            using VD = Simd<double>::V;
+            constexpr int WD = Simd<double>::W;
+            VD a0 = {}, a1 = {};
+            double tail = 0;
+            for (int64_t bi = 0; bi < d.B; ++bi) {
+                const T* r = dy + (bi * d.Co + o) * P;
+                int64_t p = 0;
+                for (; p + 2 * WD <= P; p += 2 * WD) {
+                    VD v0 = {}, v1 = {};  // filled lane by lane below
+                    for (int l = 0; l < WD; ++l) {
+                        v0[l] = (double)r[p + l];
+                        v1[l] = (double)r[p + WD + l];
+                    }
+                    a0 += v0;
+                    a1 += v1;
+                }
+                for (; p < P; ++p) tail += (double)r[p];
+            }
+            db[o] = (T)(hsum<double>(a0 + a1) + tail);
+        }
+    }
+    return status;
+}
+
+// =========================================================================================
+// Plain loops: the oracle. y[b, o, u, v] = b[o] + sum over c, i, j of w[o, c, i, j] *
+// x[b, c, s*u + i - pt, s*v + j - pl] (terms outside x are the zero padding), in double.
+
+template <typename T>
+int conv2d_forward_plain(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
+    for (int64_t bi = 0; bi < d.B; ++bi)
+        for (int64_t o = 0; o < d.Co; ++o)
+            for (int64_t u = 0; u < d.Ho; ++u)
+                for (int64_t v = 0; v < d.Wo; ++v) {
+                    double s = b[o];
+                    for (int64_t c = 0; c < d.C; ++c)
+                        for (int64_t i = 0; i < d.kh; ++i)
+                            for (int64_t j = 0; j < d.kw; ++j) {
+                                const int64_t yi = d.stride * u + i - d.pt, xi = d.stride * v + j - d.pl;
+                                if (yi < 0 || yi >= d.Hi || xi < 0 || xi >= d.Wi) continue;
+                                s += (double)w[((o * d.C + c) * d.kh + i) * d.kw + j] *
+                                     (double)x[((bi * d.C + c) * d.Hi + yi) * d.Wi + xi];
+                            }
+                    y[((bi * d.Co + o) * d.Ho + u) * d.Wo + v] = (T)s;
+                }
+    return kConvOk;
+}
+
+// The same loops, each term's derivative: dy[b, o, u, v] * w[o, c, i, j] goes to dx, * x to dw,
+// dy itself to db; accumulated in double, rounded once.
+template <typename T>
+int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d) {
+    std::vector<double> gx, gw, gb;
+    try {
+        gx.assign(d.B * d.C * d.Hi * d.Wi, 0.0);
+        gw.assign(d.Co * d.C * d.kh * d.kw, 0.0);
+        gb.assign(d.Co, 0.0);
+    } catch (const std::bad_alloc&) {
+        return kConvOutOfMemory;
+    }
+    for (int64_t bi = 0; bi < d.B; ++bi)
+        for (int64_t o = 0; o < d.Co; ++o)
+            for (int64_t u = 0; u < d.Ho; ++u)
+                for (int64_t v = 0; v < d.Wo; ++v) {
+                    const double g = dy[((bi * d.Co + o) * d.Ho + u) * d.Wo + v];
+                    gb[o] += g;
+                    for (int64_t c = 0; c < d.C; ++c)
+                        for (int64_t i = 0; i < d.kh; ++i)
+                            for (int64_t j = 0; j < d.kw; ++j) {
+                                const int64_t yi = d.stride * u + i - d.pt, xi = d.stride * v + j - d.pl;
+                                if (yi < 0 || yi >= d.Hi || xi < 0 || xi >= d.Wi) continue;
+                                const int64_t iw = ((o * d.C + c) * d.kh + i) * d.kw + j;
+                                const int64_t ix = ((bi * d.C + c) * d.Hi + yi) * d.Wi + xi;
+                                gx[ix] += g * (double)w[iw];
+                                gw[iw] += g * (double)x[ix];
+                            }
+                }
+    for (size_t k = 0; k < gx.size(); ++k) dx[k] = (T)gx[k];
+    for (size_t k = 0; k < gw.size(); ++k) dw[k] = (T)gw[k];
+    for (size_t k = 0; k < gb.size(); ++k) db[k] = (T)gb[k];
+    return kConvOk;
+}
+
+template int conv2d_forward<float>(float*, const float*, const float*, const float*, const ConvDims&);
+template int conv2d_forward<double>(double*, const double*, const double*, const double*, const ConvDims&);
+template int conv2d_backward<float>(float*, float*, float*, const float*, const float*, const float*,
+                                    const ConvDims&);
+template int conv2d_backward<double>(double*, double*, double*, const double*, const double*, const double*,
+                                     const ConvDims&);
+template int conv2d_forward_plain<float>(float*, const float*, const float*, const float*, const ConvDims&);
+template int conv2d_forward_plain<double>(double*, const double*, const double*, const double*,
+                                          const ConvDims&);
+template int conv2d_backward_plain<float>(float*, float*, float*, const float*, const float*, const float*,
+                                          const ConvDims&);
+template int conv2d_backward_plain<double>(double*, double*, double*, const double*, const double*,
+                                           const double*, const ConvDims&);
+
+}  // namespace pyvf

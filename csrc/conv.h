@@ -1,0 +1,66 @@
+// The codebook's image-layer kernels: conv2d (conv.cpp), GroupNorm and swish (groupnorm.cpp);
+// declarations shared by the kernels and the bindings (conv_bind.cpp).
+#pragma once
+
+#include <cstdint>
+
+namespace pyvf {
+
+// Sizes of one conv2d, torch's cross-correlation:
+//   x  (B, C, Hi, Wi)      input images, C order
+//   w  (Co, C, kh, kw)     weights, C order; one output channel's weights are K = C*kh*kw numbers
+//   b  (Co,)               bias
+//   y  (B, Co, Ho, Wo)     Ho = (Hi + pt + pb - kh) / stride + 1, Wo = (Wi + pl + pr - kw) / stride + 1
+// Zero padding on each side separately: top pt, bottom pb, left pl, right pr (the Downsample's
+// (0, 1, 0, 1) pads only bottom and right, SPEC.md §4). The bindings check every size; the
+// kernels assume them consistent and every count (K, C, Co, Hi*Wi, Ho*Wo) below 2^31.
+struct ConvDims {
+    int64_t B, C, Hi, Wi, Co, kh, kw, stride, pt, pb, pl, pr, Ho, Wo;
+};
+
+// Status codes returned by the kernels (0 = ok); the bindings raise kConvOutOfMemory as MemoryError.
+enum ConvStatus : int { kConvOk = 0, kConvOutOfMemory = 2 };
+
+// Fast kernels: implicit GEMM on the gemm micro-kernel of simd.h, OpenMP over (image, pixel
+// tile) or (channel block) tasks; results bitwise the same for any thread count.
+//   forward:  y (B, Co, Ho, Wo) overwritten.
+//   backward: dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,) overwritten (never accumulated).
+template <typename T> int conv2d_forward(T* y, const T* x, const T* w, const T* b, const ConvDims& d);
+template <typename T>
+int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d);
+
+// Plain loops, obviously correct, one double accumulator per output element (the sums in double,
+// rounded once): the oracle the tests compare the fast kernels with. Same arguments and outputs.
+// Serial; test sizes only.
+template <typename T> int conv2d_forward_plain(T* y, const T* x, const T* w, const T* b, const ConvDims& d);
+template <typename T>
+int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d);
+
+// GroupNorm, optionally fused with the swish after it, and swish (groupnorm.cpp). Sizes:
+// x (B, C, P) with P = Hi*Wi, G groups of C/G consecutive channels (C % G == 0).
+struct GNDims {
+    int64_t B, C, G, P;
+};
+//   forward:  y (B, C, P) = [swish](xhat * gamma + beta), overwritten; saves xhat (B, C, P) and
+//             rstd (B, G), overwritten.
+//   backward: dx (B, C, P), dgamma, dbeta (C,) overwritten; beta is read only with swish (to
+//             recompute y).
+template <typename T>
+int groupnorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, const T* beta, const GNDims& d, double eps,
+                      bool swish);
+template <typename T>
+int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* xhat, const T* rstd, const T* gamma, const T* beta,
+                       const T* dy, const GNDims& d, bool swish);
+// y = x * sigmoid(x); dx = dy * swish'(x). Flat arrays of n elements, overwritten.
+template <typename T> void swish_forward(T* y, const T* x, int64_t n);
+template <typename T> void swish_backward(T* dx, const T* dy, const T* x, int64_t n);
+
+}  // namespace pyvf
+
+// The Python bindings (conv_bind.cpp), called from module.cpp's PYBIND11_MODULE. Declared only
+// where pybind11 is already included, so the kernels above stay plain C++.
+#ifdef PYBIND11_VERSION_MAJOR
+namespace pyvf {
+void bind_conv(pybind11::module_& m);
+}
+#endif

@@ -1,0 +1,241 @@
+// Python bindings of the image-layer kernels (conv.cpp, groupnorm.cpp), called from module.cpp's
+// PYBIND11_MODULE.
+// The user-facing functions, with argument checks that name the argument, are in pyvf/conv.py;
+// these take arrays of exactly one dtype in C layout (.noconvert(), c_style: a wrong dtype or
+// layout is a TypeError, never a silent cast or copy) and check every size again, since a wrong
+// one would read or write out of bounds.
+//
+// Argument order (STYLE.md): outputs, saved buffers, inputs, then sizes. Outputs are overwritten,
+// never accumulated into.
+//     conv2d_forward(y, x, w, b, stride, pt, pb, pl, pr)
+//     conv2d_backward(dx, dw, db, x, w, dy, stride, pt, pb, pl, pr)
+// and the same with _plain: the plain-loop oracle;
+//     groupnorm_forward(y, xhat, rstd, x, gamma, beta, groups, eps, swish)
+//     groupnorm_backward(dx, dgamma, dbeta, xhat, rstd, gamma, beta, dy, groups, swish)
+//     swish_forward(y, x), swish_backward(dx, dy, x)
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include <algorithm>
+#include <initializer_list>
+#include <limits>
+#include <string>
+
+#include "conv.h"
+
+namespace py = pybind11;
+
+namespace pyvf {
+
+namespace {
+
+template <typename T> using Arr = py::array_t<T, py::array::c_style>;
+
+constexpr int64_t kIntMax = std::numeric_limits<int>::max();  // the gemm's sizes are int
+
+[[noreturn]] void bad(const std::string& what) { throw py::value_error("pyvf._core.conv2d: " + what); }
+
+// a product of sizes (each >= 0) must fit the kernels' int: exact in 128 bits, so nothing wraps
+void check_count(const char* arg, const char* what, std::initializer_list<int64_t> factors) {
+    const __int128 big = (__int128)1 << 63;
+    __int128 n = 1;
+    for (int64_t f : factors) n = std::min(n * f, big);  // n, f < 2^63: the product fits 128 bits
+    if (n > kIntMax)
+        bad(std::string(arg) + ": " + what + " = " + (n < big ? std::to_string((int64_t)n) : "2^63 or more") +
+            " exceeds 2^31 - 1, the kernel's int indexing; split the batch or the image");
+}
+
+// Sizes of (x, w, stride, padding), every count checked against int overflow; `y` is the shape the
+// output (or dy) must have.
+ConvDims dims_of(const py::array& x, const py::array& w, int64_t stride, int64_t pt, int64_t pb, int64_t pl,
+                 int64_t pr) {
+    if (x.ndim() != 4) bad("x must be 4-D (B, C, Hi, Wi)");
+    if (w.ndim() != 4) bad("w must be 4-D (Co, C, kh, kw)");
+    if (w.shape(1) != x.shape(1)) bad("w.shape[1] must equal x.shape[1] (the input channels)");
+    if (stride < 1) bad("stride must be at least 1");
+    if (pt < 0 || pb < 0 || pl < 0 || pr < 0) bad("padding must be non-negative");
+    for (int64_t p : {pt, pb, pl, pr})
+        if (p > kIntMax) bad("padding: " + std::to_string(p) + " exceeds 2^31 - 1");
+    if (stride > kIntMax) bad("stride exceeds 2^31 - 1");
+    ConvDims d{};
+    d.B = x.shape(0), d.C = x.shape(1), d.Hi = x.shape(2), d.Wi = x.shape(3);
+    d.Co = w.shape(0), d.kh = w.shape(2), d.kw = w.shape(3);
+    d.stride = stride, d.pt = pt, d.pb = pb, d.pl = pl, d.pr = pr;
+    if (d.kh < 1 || d.kw < 1) bad("w: the kernel must be at least 1x1");
+    for (int64_t n : {d.Hi, d.Wi, d.kh, d.kw})
+        if (n > kIntMax) bad("x, w: every image and kernel side must be below 2^31");
+    if (d.Hi + pt + pb < d.kh || d.Wi + pl + pr < d.kw) bad("the kernel does not fit the padded image");
+    d.Ho = (d.Hi + pt + pb - d.kh) / stride + 1;
+    d.Wo = (d.Wi + pl + pr - d.kw) / stride + 1;
+    check_count("w", "C*kh*kw", {d.C, d.kh, d.kw});
+    check_count("w", "Co (w.shape[0])", {d.Co});
+    check_count("x", "Hi*Wi", {d.Hi, d.Wi});
+    check_count("padding", "Ho*Wo (the output's pixels)", {d.Ho, d.Wo});
+    return d;
+}
+
+void check_shape(const py::array& a, const char* name, std::initializer_list<int64_t> want) {
+    bool ok = a.ndim() == (py::ssize_t)want.size();
+    int k = 0;
+    for (int64_t n : want) ok = ok && a.shape(k++) == n;
+    if (!ok) {
+        std::string s = "(";
+        for (int64_t n : want) s += std::to_string(n) + ", ";
+        bad(std::string(name) + " must have shape " + s.substr(0, s.size() - 2) + ")");
+    }
+}
+
+const char* kConvMemory =
+    "conv2d: not enough memory for the kernel's work buffers (per thread about 128 KiB of columns, and w's "
+    "size for the flipped kernel of the backward)";
+const char* kGNMemory = "groupnorm: not enough memory for the backward's partial sums (16 bytes per image and channel)";
+
+void raise_status(int status, const char* memory_message = kConvMemory) {
+    if (status == kConvOutOfMemory) {
+        PyErr_SetString(PyExc_MemoryError, memory_message);
+        throw py::error_already_set();
+    }
+}
+
+template <typename T, bool PLAIN>
+void forward(Arr<T> y, Arr<T> x, Arr<T> w, Arr<T> b, int64_t stride, int64_t pt, int64_t pb, int64_t pl,
+             int64_t pr) {
+    const ConvDims d = dims_of(x, w, stride, pt, pb, pl, pr);
+    check_shape(b, "b", {d.Co});
+    check_shape(y, "y", {d.B, d.Co, d.Ho, d.Wo});
+    T* py_ = y.mutable_data();
+    const T *px = x.data(), *pw = w.data(), *pbias = b.data();
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = PLAIN ? conv2d_forward_plain<T>(py_, px, pw, pbias, d) : conv2d_forward<T>(py_, px, pw, pbias, d);
+    }
+    raise_status(status);
+}
+
+template <typename T, bool PLAIN>
+void backward(Arr<T> dx, Arr<T> dw, Arr<T> db, Arr<T> x, Arr<T> w, Arr<T> dy, int64_t stride, int64_t pt,
+              int64_t pb, int64_t pl, int64_t pr) {
+    const ConvDims d = dims_of(x, w, stride, pt, pb, pl, pr);
+    check_shape(dy, "dy", {d.B, d.Co, d.Ho, d.Wo});
+    check_shape(dx, "dx", {d.B, d.C, d.Hi, d.Wi});
+    check_shape(dw, "dw", {d.Co, d.C, d.kh, d.kw});
+    check_shape(db, "db", {d.Co});
+    T *pdx = dx.mutable_data(), *pdw = dw.mutable_data(), *pdb = db.mutable_data();
+    const T *px = x.data(), *pw = w.data(), *pdy = dy.data();
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = PLAIN ? conv2d_backward_plain<T>(pdx, pdw, pdb, px, pw, pdy, d)
+                       : conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d);
+    }
+    raise_status(status);
+}
+
+// ---- GroupNorm (+ swish), swish
+
+GNDims gn_dims(const py::array& x, int64_t groups) {
+    if (x.ndim() != 4) throw py::value_error("pyvf._core.groupnorm: x must be 4-D (B, C, Hi, Wi)");
+    GNDims d{x.shape(0), x.shape(1), groups, x.shape(2) * x.shape(3)};
+    if (groups < 1 || d.C % groups) throw py::value_error("pyvf._core.groupnorm: groups must divide C");
+    return d;
+}
+
+void same_size(const py::array& a, int64_t n, const char* name) {
+    if (a.size() != n) throw py::value_error(std::string("pyvf._core: ") + name + " has the wrong size");
+}
+
+template <typename T>
+void gn_forward(Arr<T> y, Arr<T> xhat, Arr<T> rstd, Arr<T> x, Arr<T> gamma, Arr<T> beta, int64_t groups, double eps,
+                bool swish) {
+    const GNDims d = gn_dims(x, groups);
+    same_size(y, x.size(), "y");
+    same_size(xhat, x.size(), "xhat");
+    same_size(rstd, d.B * d.G, "rstd");
+    check_shape(gamma, "gamma", {d.C});
+    check_shape(beta, "beta", {d.C});
+    T *py_ = y.mutable_data(), *ph = xhat.mutable_data(), *pr = rstd.mutable_data();
+    const T *px = x.data(), *pg = gamma.data(), *pb = beta.data();
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = groupnorm_forward<T>(py_, ph, pr, px, pg, pb, d, eps, swish);
+    }
+    raise_status(status);
+}
+
+template <typename T>
+void gn_backward(Arr<T> dx, Arr<T> dgamma, Arr<T> dbeta, Arr<T> xhat, Arr<T> rstd, Arr<T> gamma, Arr<T> beta,
+                 Arr<T> dy, int64_t groups, bool swish) {
+    const GNDims d = gn_dims(xhat, groups);
+    same_size(dx, xhat.size(), "dx");
+    same_size(dy, xhat.size(), "dy");
+    same_size(rstd, d.B * d.G, "rstd");
+    for (auto* a : {&dgamma, &dbeta, &gamma, &beta}) check_shape(*a, "gamma, beta, dgamma, dbeta", {d.C});
+    T *pdx = dx.mutable_data(), *pdg = dgamma.mutable_data(), *pdb = dbeta.mutable_data();
+    const T *ph = xhat.data(), *pr = rstd.data(), *pg = gamma.data(), *pb = beta.data(), *pdy = dy.data();
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = groupnorm_backward<T>(pdx, pdg, pdb, ph, pr, pg, pb, pdy, d, swish);
+    }
+    raise_status(status, kGNMemory);
+}
+
+template <typename T> void sw_forward(Arr<T> y, Arr<T> x) {
+    same_size(y, x.size(), "y");
+    T* py_ = y.mutable_data();
+    const T* px = x.data();
+    const int64_t n = x.size();
+    py::gil_scoped_release nogil;
+    swish_forward<T>(py_, px, n);
+}
+
+template <typename T> void sw_backward(Arr<T> dx, Arr<T> dy, Arr<T> x) {
+    same_size(dx, x.size(), "dx");
+    same_size(dy, x.size(), "dy");
+    T* pdx = dx.mutable_data();
+    const T *pdy = dy.data(), *px = x.data();
+    const int64_t n = x.size();
+    py::gil_scoped_release nogil;
+    swish_backward<T>(pdx, pdy, px, n);
+}
+
+template <typename T> void bind_dtype(py::module_& m) {
+    m.def("groupnorm_forward", &gn_forward<T>,
+          "y = [swish](GroupNorm(x)); y, xhat (B, C, Hi, Wi), rstd (B, G) overwritten", py::arg("y").noconvert(),
+          py::arg("xhat").noconvert(), py::arg("rstd").noconvert(), py::arg("x").noconvert(),
+          py::arg("gamma").noconvert(), py::arg("beta").noconvert(), py::arg("groups"), py::arg("eps"),
+          py::arg("swish"));
+    m.def("groupnorm_backward", &gn_backward<T>, "dx, dgamma, dbeta (overwritten) of groupnorm_forward",
+          py::arg("dx").noconvert(), py::arg("dgamma").noconvert(), py::arg("dbeta").noconvert(),
+          py::arg("xhat").noconvert(), py::arg("rstd").noconvert(), py::arg("gamma").noconvert(),
+          py::arg("beta").noconvert(), py::arg("dy").noconvert(), py::arg("groups"), py::arg("swish"));
+    m.def("swish_forward", &sw_forward<T>, "y = x * sigmoid(x), overwritten", py::arg("y").noconvert(),
+          py::arg("x").noconvert());
+    m.def("swish_backward", &sw_backward<T>, "dx = dy * swish'(x), overwritten", py::arg("dx").noconvert(),
+          py::arg("dy").noconvert(), py::arg("x").noconvert());
+    const char* doc_f = "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten";
+    const char* doc_b = "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy";
+    m.def("conv2d_forward", &forward<T, false>, doc_f, py::arg("y").noconvert(), py::arg("x").noconvert(),
+          py::arg("w").noconvert(), py::arg("b").noconvert(), py::arg("stride"), py::arg("pt"), py::arg("pb"),
+          py::arg("pl"), py::arg("pr"));
+    m.def("conv2d_forward_plain", &forward<T, true>, doc_f, py::arg("y").noconvert(), py::arg("x").noconvert(),
+          py::arg("w").noconvert(), py::arg("b").noconvert(), py::arg("stride"), py::arg("pt"), py::arg("pb"),
+          py::arg("pl"), py::arg("pr"));
+    m.def("conv2d_backward", &backward<T, false>, doc_b, py::arg("dx").noconvert(), py::arg("dw").noconvert(),
+          py::arg("db").noconvert(), py::arg("x").noconvert(), py::arg("w").noconvert(), py::arg("dy").noconvert(),
+          py::arg("stride"), py::arg("pt"), py::arg("pb"), py::arg("pl"), py::arg("pr"));
+    m.def("conv2d_backward_plain", &backward<T, true>, doc_b, py::arg("dx").noconvert(), py::arg("dw").noconvert(),
+          py::arg("db").noconvert(), py::arg("x").noconvert(), py::arg("w").noconvert(), py::arg("dy").noconvert(),
+          py::arg("stride"), py::arg("pt"), py::arg("pb"), py::arg("pl"), py::arg("pr"));
+}
+
+}  // namespace
+
+void bind_conv(py::module_& m) {
+    bind_dtype<float>(m);
+    bind_dtype<double>(m);
+}
+
+}  // namespace pyvf

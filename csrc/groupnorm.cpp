@@ -1,0 +1,270 @@
+// GroupNorm (the codebook's Normalize: 32 groups, eps 1e-6, affine, SPEC.md §4), optionally fused
+// with the swish that follows it in ResnetBlock (norm1, norm2) and before conv_out (norm_out);
+// and swish alone. Forward and backward, float32 and float64.
+//
+// Shapes (conv.h, GNDims): x, y, xhat, dx (B, C, P) with P = Hi*Wi pixels, C order; gamma, beta,
+// dgamma, dbeta (C,); rstd (B, G). Group g of image b is the M = (C/G)*P contiguous numbers of
+// channels g*C/G .. (g+1)*C/G - 1 (torch's grouping).
+//
+//   forward   mean = sum(x) / M in double, rounded to T; xc = x - mean, then xc -= (sum(xc) / M
+//             in double, rounded): the rounded mean can miss by an ulp, which rstd up to
+//             1/sqrt(eps) = 1000 would amplify on a constant group; var = sum(xc^2) / M in
+//             double, rounded; rstd = 1 / sqrt(var + eps) in T. xhat = xc * rstd,
+//             y = xhat * gamma[c] + beta[c], and with swish z = y * sigmoid(y).
+//             A constant group gives xhat = 0 and y = beta exactly; a group of mean 1e4 and
+//             spread 0.1 keeps its digits (x - mean is exact there). As pyvf/conv.py's NumPy
+//             groupnorm_forward, with the sums in double instead of NumPy's pairwise T sums.
+//   backward  (swish: g = dz * swish'(y), y recomputed from xhat as in the forward; else g = dy)
+//             dgamma[c] = sum over b, pixels of g * xhat, dbeta[c] = sum of g (per image and
+//             channel in double, then over images in order); dxhat = g * gamma[c];
+//             dx = rstd * (dxhat - mean_g(dxhat) - xhat * mean_g(dxhat * xhat)), the means in
+//             double. Outputs overwritten, never accumulated.
+//   swish     sigmoid from z = exp(-|x|) in (0, 1]: sigmoid(|x|) = 1 / (1 + z), sigmoid(-|x|) =
+//             z / (1 + z), each assigned by the sign of x (no overflow, and sigmoid(-x) never as
+//             1 - sigmoid(x), which cancels). exp is simd.h's exp_vec (about 1 ulp) where -|x| is
+//             above the smallest normal result, else std::exp (into the subnormals, as NumPy's).
+//             swish(x) = x * sigmoid(x); swish'(x) = sigmoid(x) * (1 + x * sigmoid(-x)).
+// Tasks: one per (image, group), or per block of elements for swish; every output element and
+// every partial sum is computed by one task in one order: bitwise the same for any thread count.
+//
+// Test: pytest tests/test_conv.py (torch float64, mpmath on the hard cases, the NumPy functions of
+// pyvf/conv.py, 1 vs 2 threads). Benchmark: pyvf bench codebook --quick (time per layer type).
+#include <algorithm>
+#include <cmath>
+#include <new>
+#include <vector>
+
+#include "conv.h"
+#include "simd.h"
+
+namespace pyvf {
+
+namespace {
+
+template <typename T> using V = typename Simd<T>::V;
+using VD = Simd<double>::V;
+constexpr int WD = Simd<double>::W;
+
+// sum of f(i) over i < n in double: WD lanes, 4 accumulators, lanes and accumulators added in a
+// fixed order. f returns the T value to convert.
+template <typename F> inline double dsum(int64_t n, F f) {
+    VD a0 = {}, a1 = {}, a2 = {}, a3 = {};
+    int64_t i = 0;
+    for (; i + 4 * WD <= n; i += 4 * WD) {
+        VD v0 = {}, v1 = {}, v2 = {}, v3 = {};  // filled lane by lane below
+        for (int l = 0; l < WD; ++l) {
+            v0[l] = (double)f(i + l);
+            v1[l] = (double)f(i + WD + l);
+            v2[l] = (double)f(i + 2 * WD + l);
+            v3[l] = (double)f(i + 3 * WD + l);
+        }
+        a0 += v0;
+        a1 += v1;
+        a2 += v2;
+        a3 += v3;
+    }
+    double tail = 0;
+    for (; i < n; ++i) tail += (double)f(i);
+    return hsum<double>((a0 + a1) + (a2 + a3)) + tail;
+}
+
+// (sigmoid(x), sigmoid(-x)) of a vector, as the header says.
+template <typename T> inline void sigmoids(V<T> x, V<T>& s, V<T>& sn) {
+    constexpr int W = Simd<T>::W;
+    const V<T> a = x < T(0) ? x : -x;  // -|x| <= 0 (x = -0.0 gives +0.0 or -0.0: e^0 = 1 either way)
+    V<T> z = exp_vec(a);
+    bool sub = false;
+    for (int l = 0; l < W; ++l) sub |= a[l] < ExpConst<T>::lo;
+    if (sub)  // e^a below the smallest normal: exp_vec returns 0, std::exp the subnormal
+        for (int l = 0; l < W; ++l)
+            if (a[l] < ExpConst<T>::lo) z[l] = std::exp(a[l]);
+    const V<T> one_z = T(1) + z;
+    const V<T> sp = T(1) / one_z, sm = z / one_z;  // sigmoid(|x|), sigmoid(-|x|)
+    s = x >= T(0) ? sp : sm;
+    sn = x >= T(0) ? sm : sp;
+}
+
+template <typename T> inline V<T> swish_vec(V<T> x) {
+    V<T> s, sn;
+    sigmoids<T>(x, s, sn);
+    return x * s;
+}
+
+// d swish / dx = s + x * s * (1 - s) = s * (1 + x * sigmoid(-x))
+template <typename T> inline V<T> swish_grad_vec(V<T> x) {
+    V<T> s, sn;
+    sigmoids<T>(x, s, sn);
+    return s * (T(1) + x * sn);
+}
+
+// a tail of n < W elements through one zero-padded vector
+template <typename T, typename F> inline void tail_apply(T* out, const T* in, int64_t n, F f) {
+    constexpr int W = Simd<T>::W;
+    T buf[W] = {};
+    for (int64_t l = 0; l < n; ++l) buf[l] = in[l];
+    const V<T> r = f(vload<T>(buf));
+    for (int64_t l = 0; l < n; ++l) out[l] = r[l];
+}
+
+// elementwise passes below 2^16 elements (about 20 us) run on one thread (see conv.cpp's kParallelFlops)
+inline bool worth_threads(int64_t n) { return n >= (1 << 16); }
+
+}  // namespace
+
+// =========================================================================================
+// swish
+
+template <typename T> void swish_forward(T* y, const T* x, int64_t n) {
+    constexpr int64_t W = Simd<T>::W, kBlock = 1 << 14;
+#pragma omp parallel for schedule(static) if (worth_threads(n))
+    for (int64_t b0 = 0; b0 < n; b0 += kBlock) {
+        const int64_t e = std::min(n, b0 + kBlock);
+        int64_t i = b0;
+        for (; i + W <= e; i += W) vstore<T>(y + i, swish_vec<T>(vload<T>(x + i)));
+        if (i < e) tail_apply<T>(y + i, x + i, e - i, swish_vec<T>);
+    }
+}
+
+template <typename T> void swish_backward(T* dx, const T* dy, const T* x, int64_t n) {
+    constexpr int64_t W = Simd<T>::W, kBlock = 1 << 14;
+#pragma omp parallel for schedule(static) if (worth_threads(n))
+    for (int64_t b0 = 0; b0 < n; b0 += kBlock) {
+        const int64_t e = std::min(n, b0 + kBlock);
+        int64_t i = b0;
+        for (; i + W <= e; i += W) vstore<T>(dx + i, vload<T>(dy + i) * swish_grad_vec<T>(vload<T>(x + i)));
+        for (; i < e; ++i) {
+            T g;
+            tail_apply<T>(&g, x + i, 1, swish_grad_vec<T>);
+            dx[i] = dy[i] * g;
+        }
+    }
+}
+
+// =========================================================================================
+// GroupNorm (+ swish)
+
+template <typename T>
+int groupnorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, const T* beta, const GNDims& d, double eps,
+                      bool swish) {
+    constexpr int64_t W = Simd<T>::W;
+    const int64_t cpg = d.C / d.G, M = cpg * d.P;
+    const T teps = (T)eps;
+#pragma omp parallel for schedule(static) if (worth_threads(d.B * d.C * d.P))
+    for (int64_t t = 0; t < d.B * d.G; ++t) {
+        const int64_t off = t * M;  // group (b, g) is x[off : off + M]
+        const T* xg = x + off;
+        T* hg = xhat + off;
+        const T mean = (T)(dsum(M, [&](int64_t i) { return xg[i]; }) / (double)M);
+        // xhat holds xc = x - mean for now; its residual mean is subtracted in the next pass
+        for (int64_t i = 0; i < M; ++i) hg[i] = xg[i] - mean;
+        const T r = (T)(dsum(M, [&](int64_t i) { return hg[i]; }) / (double)M);
+        const double ss = dsum(M, [&](int64_t i) {
+            const double c = (double)(hg[i] - r);
+            return c * c;
+        });
+        const T var = (T)(ss / (double)M);
+        const T rs = T(1) / std::sqrt(var + teps);
+        rstd[t] = rs;
+        const int64_t c0 = (t % d.G) * cpg;
+        for (int64_t c = 0; c < cpg; ++c) {
+            T* h = hg + c * d.P;
+            T* yc = y + off + c * d.P;
+            const T ga = gamma[c0 + c], be = beta[c0 + c];
+            int64_t i = 0;
+            for (; i + W <= d.P; i += W) {
+                const V<T> xh = (vload<T>(h + i) - r) * rs;
+                vstore<T>(h + i, xh);
+                const V<T> yv = xh * ga + be;
+                vstore<T>(yc + i, swish ? swish_vec<T>(yv) : yv);
+            }
+            for (; i < d.P; ++i) {
+                h[i] = (h[i] - r) * rs;
+                const T yv = h[i] * ga + be;
+                if (swish)
+                    tail_apply<T>(yc + i, &yv, 1, swish_vec<T>);
+                else
+                    yc[i] = yv;
+            }
+        }
+    }
+    return kConvOk;
+}
+
+template <typename T>
+int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* xhat, const T* rstd, const T* gamma, const T* beta,
+                       const T* dy, const GNDims& d, bool swish) {
+    constexpr int64_t W = Simd<T>::W;
+    const int64_t cpg = d.C / d.G, M = cpg * d.P;
+    std::vector<double> pg, pb;  // per (image, channel) partial sums of dgamma, dbeta
+    try {
+        pg.resize(d.B * d.C);
+        pb.resize(d.B * d.C);
+    } catch (const std::bad_alloc&) {
+        return kConvOutOfMemory;
+    }
+#pragma omp parallel if (worth_threads(d.B * d.C * d.P))
+    {
+#pragma omp for schedule(static)
+        for (int64_t t = 0; t < d.B * d.G; ++t) {
+            const int64_t off = t * M, b = t / d.G, c0 = (t % d.G) * cpg;
+            const T* hg = xhat + off;
+            T* dg = dx + off;  // holds dxhat until the last pass
+            // forward was y = xhat * gamma[c] + beta[c] (then z = swish(y)): g = dL/dy
+            for (int64_t c = 0; c < cpg; ++c) {
+                const T* h = hg + c * d.P;
+                const T* dyc = dy + off + c * d.P;
+                T* o = dg + c * d.P;
+                const T ga = gamma[c0 + c], be = beta ? beta[c0 + c] : T(0);
+                if (swish) {
+                    int64_t i = 0;
+                    for (; i + W <= d.P; i += W)
+                        vstore<T>(o + i, vload<T>(dyc + i) * swish_grad_vec<T>(vload<T>(h + i) * ga + be));
+                    for (; i < d.P; ++i) {
+                        const T yv = h[i] * ga + be;
+                        T gr;
+                        tail_apply<T>(&gr, &yv, 1, swish_grad_vec<T>);
+                        o[i] = dyc[i] * gr;
+                    }
+                } else {
+                    std::copy(dyc, dyc + d.P, o);
+                }
+                pg[b * d.C + c0 + c] = dsum(d.P, [&](int64_t i) { return (double)o[i] * (double)h[i]; });
+                pb[b * d.C + c0 + c] = dsum(d.P, [&](int64_t i) { return o[i]; });
+                for (int64_t i = 0; i < d.P; ++i) o[i] *= ga;  // dxhat = g * gamma[c]
+            }
+            // forward was xhat = (x - mean) * rstd, rstd = (mean((x - mean)^2) + eps)^(-1/2), so
+            // dx = rstd * (dxhat - mean_g(dxhat) - xhat * mean_g(dxhat * xhat))
+            const T m1 = (T)(dsum(M, [&](int64_t i) { return dg[i]; }) / (double)M);
+            const T m2 = (T)(dsum(M, [&](int64_t i) { return (double)dg[i] * (double)hg[i]; }) / (double)M);
+            const T rs = rstd[t];
+            for (int64_t i = 0; i < M; ++i) dg[i] = rs * (dg[i] - m1 - hg[i] * m2);
+        }
+        // the partial sums over images, in image order
+#pragma omp for schedule(static)
+        for (int64_t c = 0; c < d.C; ++c) {
+            double sg = 0, sb = 0;
+            for (int64_t b = 0; b < d.B; ++b) {
+                sg += pg[b * d.C + c];
+                sb += pb[b * d.C + c];
+            }
+            dgamma[c] = (T)sg;
+            dbeta[c] = (T)sb;
+        }
+    }
+    return kConvOk;
+}
+
+template void swish_forward<float>(float*, const float*, int64_t);
+template void swish_forward<double>(double*, const double*, int64_t);
+template void swish_backward<float>(float*, const float*, const float*, int64_t);
+template void swish_backward<double>(double*, const double*, const double*, int64_t);
+template int groupnorm_forward<float>(float*, float*, float*, const float*, const float*, const float*,
+                                      const GNDims&, double, bool);
+template int groupnorm_forward<double>(double*, double*, double*, const double*, const double*, const double*,
+                                       const GNDims&, double, bool);
+template int groupnorm_backward<float>(float*, float*, float*, const float*, const float*, const float*,
+                                       const float*, const float*, const GNDims&, bool);
+template int groupnorm_backward<double>(double*, double*, double*, const double*, const double*, const double*,
+                                        const double*, const double*, const GNDims&, bool);
+
+}  // namespace pyvf
