@@ -153,3 +153,23 @@ def model_file(path, what):
     except ValueError as e:
         raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
     return arrays, config
+
+
+def load_model(path, what, config_cls, model_cls):
+    """Codebook.load / Transformer.load: read the file (model_file), build the configuration and
+    the model, load the weights (load_official validates all of them first). Every problem is a
+    CheckpointError naming the file (and the entry)."""
+    from ._io import CheckpointError
+
+    arrays, fields = model_file(path, what)
+    name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
+    try:
+        config = config_cls(**fields)
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
+    model = model_cls(config)
+    try:
+        model.load_official(arrays)
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"{what} {name}: {e}") from e
+    return model

@@ -31,7 +31,7 @@ def _temp_name(path):
     return os.path.join(folder, f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
 
 
-def _fsync_dir(folder):
+def fsync_dir(folder):
     """Make a rename in `folder` durable (POSIX); a no-op where folders cannot be opened."""
     try:
         fd = os.open(folder, os.O_RDONLY)
@@ -63,7 +63,7 @@ def _atomic_write(path, write):
         except FileNotFoundError:
             pass
         raise
-    _fsync_dir(os.path.dirname(os.path.abspath(path)))
+    fsync_dir(os.path.dirname(os.path.abspath(path)))
 
 
 def atomic_savez(path, **arrays):

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import _checks
-from ._io import CheckpointError, atomic_savez
+from ._io import atomic_savez
 from .conv import (
     attnblock_backward,
     attnblock_forward,
@@ -274,18 +274,7 @@ class Codebook:
         binary file. A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
         configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
         pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
-        arrays, fields = _checks.model_file(path, "codebook")
-        name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
-        try:
-            config = CodebookConfig(**fields)
-        except (TypeError, ValueError) as e:
-            raise CheckpointError(f"codebook {name}: entry '__config__' is not a CodebookConfig: {e}") from e
-        model = cls(config)
-        try:
-            model.load_official(arrays)
-        except (TypeError, ValueError) as e:
-            raise CheckpointError(f"codebook {name}: {e}") from e
-        return model
+        return _checks.load_model(path, "codebook", CodebookConfig, cls)
 
     # -----------------------------------------------------------------------------------
     # the tape

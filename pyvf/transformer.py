@@ -27,7 +27,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import _checks
-from ._io import CheckpointError, atomic_savez
+from ._io import atomic_savez
 from .attention import attention_layer_backward, attention_layer_forward
 from .geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
 from .layers import (
@@ -220,18 +220,7 @@ class Transformer:
         file. A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
         configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
         pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
-        arrays, fields = _checks.model_file(path, "transformer")
-        name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
-        try:
-            config = TransformerConfig(**fields)
-        except (TypeError, ValueError) as e:
-            raise CheckpointError(f"transformer {name}: entry '__config__' is not a TransformerConfig: {e}") from e
-        model = cls(config)
-        try:
-            model.load_official(arrays)
-        except (TypeError, ValueError) as e:
-            raise CheckpointError(f"transformer {name}: {e}") from e
-        return model
+        return _checks.load_model(path, "transformer", TransformerConfig, cls)
 
     # -----------------------------------------------------------------------------------
     # input checks

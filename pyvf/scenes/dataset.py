@@ -31,11 +31,11 @@ import io
 import json
 import math
 import os
-import tempfile
 import zipfile
 
 import numpy as np
 
+from .._io import atomic_write_bytes, fsync_dir
 from . import cameras, render
 from .render import _image_shape, _nonneg_int, generate_scene
 
@@ -71,40 +71,6 @@ class SceneDataset:
 
 # ---------------------------------------------------------------------------------------
 # writing
-
-
-def _fsync_dir(folder):
-    """Make a rename in `folder` durable (POSIX); a no-op where folders cannot be opened."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def _atomic_write(path, data, mode):
-    """Write bytes to path atomically: a temporary file beside it, flush, fsync, os.replace."""
-    folder = os.path.dirname(path) or "."
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix="." + os.path.basename(path) + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, mode)  # mkstemp makes it 0600; give it the permissions of a normal new file
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    _fsync_dir(folder)
 
 
 def _npz_bytes(arrays):
@@ -155,7 +121,7 @@ def _check_dir_free(out_dir, overwrite):
                               "to replace it")
     if MANIFEST in old:
         os.remove(os.path.join(out_dir, MANIFEST))
-        _fsync_dir(out_dir)
+        fsync_dir(out_dir)
     for name in old:
         if name != MANIFEST:
             os.remove(os.path.join(out_dir, name))
@@ -177,9 +143,6 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     _check_dir_free(out_dir, overwrite)
-    umask = os.umask(0)
-    os.umask(umask)
-    mode = 0o666 & ~umask
 
     from tqdm.auto import tqdm  # a dependency of pyvf; imported here so that `import pyvf` stays light
 
@@ -194,7 +157,7 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
                 bar.update(1)
             data = _npz_bytes({"images": images, "poses": poses,
                                "scene_index": np.arange(first, first + n, dtype=np.int64)})
-            _atomic_write(os.path.join(out_dir, shard_name(k)), data, mode)
+            atomic_write_bytes(os.path.join(out_dir, shard_name(k)), data)
             shards.append({"file": shard_name(k), "first_scene": first, "n_scenes": n,
                            "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
 
@@ -215,7 +178,7 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
         "scene": _constants(),
         "shards": shards,
     }
-    _atomic_write(os.path.join(out_dir, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode(), mode)
+    atomic_write_bytes(os.path.join(out_dir, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode())
     return manifest
 
 
