@@ -30,10 +30,8 @@ from .conv import (
     attnblock_forward,
     conv2d_backward,
     conv2d_forward,
-    groupnorm_backward,
-    groupnorm_forward,
-    swish_backward,
-    swish_forward,
+    groupnorm_swish_backward,
+    groupnorm_swish_forward,
     upsample_nearest2x_backward,
     upsample_nearest2x_forward,
 )
@@ -284,10 +282,8 @@ class Codebook:
         P = self.params
         if kind == "conv":
             y, c = conv2d_forward(x, P[name + ".weight"], P[name + ".bias"], kw.get("stride", 1), kw.get("padding", 0))
-        elif kind == "norm":
-            y, c = groupnorm_forward(x, P[name + ".weight"], P[name + ".bias"])  # 32 groups, eps 1e-6 (SPEC §4)
-        elif kind == "swish":
-            y, c = swish_forward(x)
+        elif kind == "norm_swish":  # Normalize (32 groups, eps 1e-6, SPEC §4) then swish, fused
+            y, c = groupnorm_swish_forward(x, P[name + ".weight"], P[name + ".bias"])
         elif kind == "upsample":
             y, c = upsample_nearest2x_forward(x)
         elif kind == "res":
@@ -306,12 +302,10 @@ class Codebook:
                 dy, dw, db = conv2d_backward(dy, c)
                 grads[name + ".weight"] += dw
                 grads[name + ".bias"] += db
-            elif kind == "norm":
-                dy, dg, db = groupnorm_backward(dy, c)
+            elif kind == "norm_swish":
+                dy, dg, db = groupnorm_swish_backward(dy, c)
                 grads[name + ".weight"] += dg
                 grads[name + ".bias"] += db
-            elif kind == "swish":
-                (dy,) = swish_backward(dy, c)
             elif kind == "upsample":
                 (dy,) = upsample_nearest2x_backward(dy, c)
             elif kind == "res":
@@ -325,11 +319,9 @@ class Codebook:
     def _resblock_forward(self, name, x):
         """ResnetBlock: norm1, swish, conv1, norm2, swish, conv2; + x (or nin_shortcut(x))."""
         main, short = [], []
-        h = self._op(main, "norm", name + ".norm1", x)
-        h = self._op(main, "swish", None, h)
+        h = self._op(main, "norm_swish", name + ".norm1", x)
         h = self._op(main, "conv", name + ".conv1", h, padding=1)
-        h = self._op(main, "norm", name + ".norm2", h)
-        h = self._op(main, "swish", None, h)
+        h = self._op(main, "norm_swish", name + ".norm2", h)
         h = self._op(main, "conv", name + ".conv2", h, padding=1)
         s = self._op(short, "conv", name + ".nin_shortcut", x) if name + ".nin_shortcut.weight" in self.params else x
         return s + h, (main, short)
@@ -358,8 +350,7 @@ class Codebook:
         h = self._op(tape, "res", "encoder.mid.block_1", h)
         h = self._op(tape, "attn", "encoder.mid.attn_1", h)
         h = self._op(tape, "res", "encoder.mid.block_2", h)
-        h = self._op(tape, "norm", "encoder.norm_out", h)
-        h = self._op(tape, "swish", None, h)
+        h = self._op(tape, "norm_swish", "encoder.norm_out", h)
         h = self._op(tape, "conv", "encoder.conv_out", h, padding=1)
         return self._op(tape, "conv", "quant_conv", h)
 
@@ -381,8 +372,7 @@ class Codebook:
                 h = self._op(tape, "upsample", None, h)
                 h = self._op(tape, "conv", f"decoder.up.{l}.upsample.conv", h, padding=1)
                 res *= 2
-        h = self._op(tape, "norm", "decoder.norm_out", h)
-        h = self._op(tape, "swish", None, h)
+        h = self._op(tape, "norm_swish", "decoder.norm_out", h)
         return self._op(tape, "conv", "decoder.conv_out", h, padding=1)
 
     # -----------------------------------------------------------------------------------
