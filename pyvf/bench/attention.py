@@ -101,14 +101,18 @@ def pyvf_expected_memory(R, B, H, N, L, dh, itemsize, threads):
     accumulator (L, dh), s^T (L, L) and five L-vectors.
     backward: dq, dk, dv (like q), plus per thread q^T and do^T of one head (R*N*L, dh), D and the
     lse hi/lo split (R*N*L each), three (L, L) buffers.
-    forward+backward peaks in the backward, with o and lse still alive.
+    forward+backward peaks in the backward, with o and lse still alive. When B*H < 16 the
+    backward splits each head's key blocks into G = min(ceil(16 / (B*H)), 8, R*N) groups, and
+    groups 1..G-1 keep a dq of their own: (G-1) more arrays like q.
     """
     S = R * B * H * N * L * dh * itemsize  # one array like q
     lse = R * B * H * N * L * 8
-    fwd_thread = (2 * L * dh + L * L + 5 * L) * itemsize
-    bwd_thread = (2 * R * N * L * dh + 3 * R * N * L + 3 * L * L) * itemsize
+    Lt = min(L, 256)  # the kernel's tile
+    G = 1 if B * H >= 16 else min(-(-16 // (B * H)), 8, R * N)
+    fwd_thread = (2 * Lt * dh + Lt * Lt + 5 * Lt) * itemsize
+    bwd_thread = (2 * R * N * L * dh + 3 * R * N * L + 3 * Lt * Lt) * itemsize
     fwd = S + lse + threads * fwd_thread
-    fwd_bwd = S + lse + max(threads * fwd_thread, 3 * S + threads * bwd_thread)
+    fwd_bwd = S + lse + max(threads * fwd_thread, (3 + G - 1) * S + threads * bwd_thread)
     return fwd, fwd_bwd
 
 
