@@ -56,6 +56,15 @@ def int_array(name, a):
     return a
 
 
+def integer(name, x, lo=None):
+    """x: a Python or NumPy integer (not bool), >= lo when lo is given -> int."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {type(x).__name__} {x!r}")
+    if lo is not None and x < lo:
+        raise ValueError(f"{name} must be >= {lo}, got {x!r}")
+    return int(x)
+
+
 def real(name, x, lo=None, hi=None, lo_open=False, hi_open=False):
     """x: a finite real number (Python or numpy scalar, not bool), in [lo, hi] (open ends where
     asked) -> float."""

@@ -40,30 +40,6 @@ __all__ = [
 # argument checks: every error names the argument and says what was expected
 
 
-def _real(name, x, lo=None, hi=None, lo_open=False, hi_open=False):
-    """A finite real Python number in [lo, hi] (open ends where asked) -> float."""
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name} must be a real number, got {type(x).__name__} {x!r}")
-    x = float(x)
-    ok = math.isfinite(x)
-    if ok and lo is not None:
-        ok = x > lo if lo_open else x >= lo
-    if ok and hi is not None:
-        ok = x < hi if hi_open else x <= hi
-    if not ok:
-        rng = f"{'(' if lo_open else '['}{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}{')' if hi_open else ']'}"
-        raise ValueError(f"{name} must be finite and in {rng}, got {x!r}")
-    return x
-
-
-def _int(name, x, lo):
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer, got {type(x).__name__} {x!r}")
-    if x < lo:
-        raise ValueError(f"{name} must be >= {lo}, got {x!r}")
-    return int(x)
-
-
 def _check_array_dict(name, d, writable):
     """d: a non-empty dict str -> float32/float64 ndarray."""
     if not isinstance(d, Mapping):
@@ -149,18 +125,18 @@ class AdamW:
         if callable(lr):
             self.lr = lr
         else:
-            self.lr = _real("lr", lr, lo=0.0)
+            self.lr = _checks.real("lr", lr, lo=0.0)
         if not isinstance(betas, (tuple, list)) or len(betas) != 2:
             raise TypeError(f"betas must be a pair (beta1, beta2), got {betas!r}")
-        self.betas = (_real("betas[0]", betas[0], 0.0, 1.0, hi_open=True),
-                      _real("betas[1]", betas[1], 0.0, 1.0, hi_open=True))
+        self.betas = (_checks.real("betas[0]", betas[0], 0.0, 1.0, hi_open=True),
+                      _checks.real("betas[1]", betas[1], 0.0, 1.0, hi_open=True))
         # eps > 0: with eps = 0 a parameter whose gradients have all been 0 gets 0 / 0
-        self.eps = _real("eps", eps, lo=0.0, lo_open=True)
+        self.eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
         for k, p in params.items():  # eps is added in the parameters' dtype: it must not round to 0 there
             if p.dtype.type(self.eps) == 0:
                 raise ValueError(f"eps={self.eps!r} rounds to 0 in {p.dtype} (params[{k!r}]): a parameter whose "
                                  f"gradients are all 0 would get 0/0; use eps >= {np.finfo(p.dtype).smallest_normal}")
-        self.weight_decay = _real("weight_decay", weight_decay, lo=0.0)
+        self.weight_decay = _checks.real("weight_decay", weight_decay, lo=0.0)
         if eps_convention not in ("torch", "keras"):
             raise ValueError(f"eps_convention must be 'torch' or 'keras', got {eps_convention!r}")
         self.eps_convention = eps_convention
@@ -194,7 +170,7 @@ class AdamW:
     def lr_at(self, step):
         """The learning rate of the update that follows `step` applied updates."""
         lr = self.lr(step) if callable(self.lr) else self.lr
-        return _real(f"lr({step})", lr, lo=0.0)
+        return _checks.real(f"lr({step})", lr, lo=0.0)
 
     def step(self, grads):
         """Apply one update. grads: dict with exactly the parameters' names, each array of
@@ -279,7 +255,7 @@ class AdamW:
         missing = {"step", "exp_avg", "exp_avg_sq", "hyperparameters"} - set(state)
         if missing:
             raise ValueError(f"state lacks {sorted(missing)}: not a state_dict() of AdamW")
-        step = _int("state['step']", state["step"], 0)
+        step = _checks.integer("state['step']", state["step"], 0)
         hyper = dict(state["hyperparameters"])
         hyper["betas"] = tuple(hyper.get("betas", ()))
         hyper["decayed"] = sorted(hyper.get("decayed", ()))
@@ -333,13 +309,13 @@ def warmup_cosine_lr(step, peak_lr, warmup_steps, total_steps, min_lr_ratio=0.0)
 
     With W = 0 the schedule starts at peak_lr. The published run used W = 2000 and
     min_lr_ratio = 0, so its first update has lr 0 (the moments still accumulate)."""
-    step = _int("step", step, 0)
-    peak_lr = _real("peak_lr", peak_lr, lo=0.0)
-    warmup_steps = _int("warmup_steps", warmup_steps, 0)
-    total_steps = _int("total_steps", total_steps, 1)
+    step = _checks.integer("step", step, 0)
+    peak_lr = _checks.real("peak_lr", peak_lr, lo=0.0)
+    warmup_steps = _checks.integer("warmup_steps", warmup_steps, 0)
+    total_steps = _checks.integer("total_steps", total_steps, 1)
     if total_steps <= warmup_steps:
         raise ValueError(f"total_steps ({total_steps}) must exceed warmup_steps ({warmup_steps})")
-    min_lr_ratio = _real("min_lr_ratio", min_lr_ratio, 0.0, 1.0)
+    min_lr_ratio = _checks.real("min_lr_ratio", min_lr_ratio, 0.0, 1.0)
     final = peak_lr * min_lr_ratio
     if step <= warmup_steps and warmup_steps > 0:
         return peak_lr * (step / warmup_steps)
@@ -429,8 +405,8 @@ def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, e
     inf; in per_tensor mode for those tensors, the finite ones are still clipped), so that
     the caller can skip the step. AdamW.step refuses non-finite gradients in any case."""
     _check_array_dict("grads", grads, writable=True)
-    max_norm = _real("max_norm", max_norm, lo=0.0, lo_open=True)
-    eps = _real("eps", eps, lo=0.0)
+    max_norm = _checks.real("max_norm", max_norm, lo=0.0, lo_open=True)
+    eps = _checks.real("eps", eps, lo=0.0)
     if mode not in ("global", "per_tensor"):
         raise ValueError(f"mode must be 'global' or 'per_tensor', got {mode!r}")
     bad = _nonfinite_names(grads)

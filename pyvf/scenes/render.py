@@ -39,6 +39,8 @@ pin a scene's sha256.
 
 import numpy as np
 
+from .. import _checks
+
 from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, look_at_poses, pose_matrix, sample_camera_positions
 
 __all__ = [
@@ -263,11 +265,7 @@ def render_views(cells, colours, poses, size=64):
 
 
 def _nonneg_int(name, x, minimum=0):
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
-        raise TypeError(f"{name} must be an int, got {type(x).__name__}")
-    if x < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {x}")
-    return int(x)
+    return _checks.integer(name, x, minimum)
 
 
 def generate_scene(seed, index, views=15, size=64):

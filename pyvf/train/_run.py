@@ -31,6 +31,7 @@ import time
 
 import numpy as np
 
+from .. import _checks
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
 
 CHECKPOINT, LOG, CONFIG = "checkpoint.npz", "log.csv", "config.json"
@@ -54,24 +55,16 @@ def fingerprint(*arrays):
 
 def integer(name, x, lo=1):
     """x: a Python or NumPy integer >= lo -> int. Errors name the argument."""
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer, got {type(x).__name__} {x!r}")
-    if x < lo:
-        raise ValueError(f"{name} must be >= {lo}, got {x!r}")
-    return int(x)
+    return _checks.integer(name, x, lo)
 
 
 def positive_int(name, x):
-    return integer(name, x, 1)
+    return _checks.integer(name, x, 1)
 
 
 def real(name, x, lo=0.0):
     """x: a finite real number >= lo -> float. Errors name the argument."""
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name} must be a real number, got {type(x).__name__} {x!r}")
-    if not (np.isfinite(x) and x >= lo):
-        raise ValueError(f"{name} must be finite and >= {lo}, got {x!r}")
-    return float(x)
+    return _checks.real(name, x, lo=lo)
 
 
 def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed):
