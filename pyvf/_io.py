@@ -144,3 +144,22 @@ def remove_stale_temps(path):
             except FileNotFoundError:
                 pass
     return removed
+
+
+def save_model(path, config, state):
+    """Codebook.save / Transformer.save: the configuration (JSON, entry __config__) and the state
+    (name -> array) in one .npz. path: a str or os.PathLike, ".npz" appended when it does not
+    end with it (as np.savez does), written atomically; or an open binary file, written
+    directly (no atomicity: the caller owns it). Returns the path written (or the file)."""
+    import dataclasses
+    import json
+
+    arrays = {"__config__": json.dumps(dataclasses.asdict(config)), **state}
+    if hasattr(path, "write"):
+        np.savez(path, **arrays)
+        return path
+    path = os.fsdecode(os.fspath(path))
+    if not path.endswith(".npz"):
+        path += ".npz"
+    atomic_savez(path, **arrays)
+    return path

@@ -17,14 +17,12 @@ configuration's number of levels and blocks.
 """
 
 import dataclasses
-import json
-import os
 from collections.abc import Mapping
 
 import numpy as np
 
 from . import _checks
-from ._io import atomic_savez
+from ._io import save_model
 from .conv import (
     attnblock_backward,
     attnblock_forward,
@@ -256,15 +254,7 @@ class Codebook:
         os.replace'd): a process killed mid-save leaves the previous file intact. An open
         binary file object is written directly (no atomicity: the caller owns it).
         Returns the path written (or the file object)."""
-        arrays = {"__config__": json.dumps(dataclasses.asdict(self.config)), **self.state_dict()}
-        if hasattr(path, "write"):
-            np.savez(path, **arrays)
-            return path
-        path = os.fsdecode(os.fspath(path))
-        if not path.endswith(".npz"):
-            path += ".npz"
-        atomic_savez(path, **arrays)
-        return path
+        return save_model(path, self.config, self.state_dict())
 
     @classmethod
     def load(cls, path):

@@ -20,14 +20,12 @@ the `migt/` prefix and `:0` suffix); linear weights are (in, out), biases (1, ou
 """
 
 import dataclasses
-import json
-import os
 from collections.abc import Mapping
 
 import numpy as np
 
 from . import _checks
-from ._io import atomic_savez
+from ._io import save_model
 from .attention import attention_layer_backward, attention_layer_forward
 from .geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
 from .layers import (
@@ -204,15 +202,7 @@ class Transformer:
         os.replace'd): a process killed mid-save leaves the previous file intact. An open
         binary file object is written directly (no atomicity: the caller owns it).
         Returns the path written (or the file object)."""
-        arrays = {"__config__": json.dumps(dataclasses.asdict(self.config)), **self.params}
-        if hasattr(path, "write"):
-            np.savez(path, **arrays)
-            return path
-        path = os.fsdecode(os.fspath(path))
-        if not path.endswith(".npz"):
-            path += ".npz"
-        atomic_savez(path, **arrays)
-        return path
+        return save_model(path, self.config, self.params)
 
     @classmethod
     def load(cls, path):
