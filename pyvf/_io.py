@@ -12,6 +12,8 @@ included) removes the temporary file. Only SIGKILL or a power cut can leave one 
 remove_stale_temps(path) clears those (they are named `.{name}.{pid}.{random}.tmp`).
 """
 
+import dataclasses
+import json
 import os
 import secrets
 import zipfile
@@ -151,9 +153,6 @@ def save_model(path, config, state):
     (name -> array) in one .npz. path: a str or os.PathLike, ".npz" appended when it does not
     end with it (as np.savez does), written atomically; or an open binary file, written
     directly (no atomicity: the caller owns it). Returns the path written (or the file)."""
-    import dataclasses
-    import json
-
     arrays = {"__config__": json.dumps(dataclasses.asdict(config)), **state}
     if hasattr(path, "write"):
         np.savez(path, **arrays)

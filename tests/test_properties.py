@@ -26,9 +26,8 @@ The tests of functions that call the C++ kernels directly (test_kernel_*) run in
 pytest process (test_kernel_properties_in_a_subprocess), so that a crash fails one test
 instead of killing the run; so do the allocation-failure and oversized-dimension cases.
 
-pyvf.conv (the codebook's layers) is being rewritten elsewhere: the properties it fails today
-are listed in CONV_FAILS and each has a minimal example marked xfail (test_conv_finding_*, the
-reason says CONV FINDING); the others run like everything else.
+pyvf.conv (the codebook's layers) runs every property like everything else; the minimal cases
+of what it got wrong before (test_conv_finding_*) are kept as regression tests.
 
 Budget: the default settings profile "ci" runs a fixed number of examples per test,
 derandomized (the same cases on every run), without deadlines: the file runs in well under a
@@ -1054,8 +1053,7 @@ OPTIM_CASES = [case_adamw, case_clip]
 
 
 # ---------------------------------------------------------------------------------------
-# the codebook's image layers (pyvf.conv): another engineer is replacing their kernels, so the
-# properties they fail today are marked xfail (CONV FINDING, below) rather than fixed here
+# the codebook's image layers (pyvf.conv)
 
 
 def _ld_conv(X, W, stride, pad):
@@ -1306,29 +1304,15 @@ def test_property(make, prop, data):
     prop(make, data)
 
 
-# (case, property) pairs that pyvf.conv fails today: each has a minimal failing example below
-# (test_conv_finding_*), marked xfail; a search for them would only spend its time shrinking
-# (as of this writing). conv2d and groupnorm compute right on ordinary magnitudes but return inf
-# or beta where the true result overflows or |x| > 1e154: their "valid" runs ordinary only
-CONV_FAILS = set()  # every conv finding is fixed (pyvf.conv refuses NaN/inf and overflow)
-CONV_ORDINARY_ONLY = set()
-
-
-@pytest.mark.parametrize("make, prop", [(m, p) for m in CONV_CASES for p in PROPERTIES
-                                        if (_id(m), p.__name__[5:]) not in CONV_FAILS],
-                         ids=lambda v: _id(v) if v in CONV_CASES else v.__name__[5:])
+@pytest.mark.parametrize("prop", PROPERTIES, ids=lambda p: p.__name__[5:])
+@pytest.mark.parametrize("make", CONV_CASES, ids=_id)
 @given(data=st.data())
 def test_conv_property(make, prop, data):
-    if prop is prop_valid and _id(make) in CONV_ORDINARY_ONLY:
-        make = lambda data, extreme_ok=True, _make=make: _make(data, extreme_ok=False)  # noqa: E731
     prop(make, data)
 
 
-# CONV FINDING: the minimal failing cases of pyvf.conv (owned by the engineer replacing its
-# kernels). Each is what a property above requires; remove the xfail mark when it passes (the
-# unmarked ones below were findings too, fixed since).
-
-_CONV_XFAIL = dict(strict=False, reason="CONV FINDING: pyvf.conv does not check this yet (reported)")
+# The findings in pyvf.conv, each the minimal case of what a property above requires, kept as
+# regression tests (all fixed: NaN/inf refused, overflow raised, the EMA and the threads).
 
 
 @pytest.mark.parametrize("arg", ["x", "w", "b", "dy"])

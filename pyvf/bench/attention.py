@@ -94,6 +94,12 @@ def useful_flops(R, B, H, N, L, dh):
 # the memory one expects (written from csrc/branching_attention.cpp's header comment)
 
 
+def key_groups(R, B, H, N):
+    """G, the groups the backward splits each head's key blocks into (csrc/branching_attention.cpp,
+    key_groups): 1 when B*H >= 16, else ceil(16 / (B*H)), at most 8 and at most R*N."""
+    return 1 if B * H >= 16 else min(-(-16 // (B * H)), 8, R * N)
+
+
 def pyvf_expected_memory(R, B, H, N, L, dh, itemsize, threads):
     """Bytes pyvf should need above its inputs: (forward, forward+backward), outputs included.
 
@@ -108,7 +114,7 @@ def pyvf_expected_memory(R, B, H, N, L, dh, itemsize, threads):
     S = R * B * H * N * L * dh * itemsize  # one array like q
     lse = R * B * H * N * L * 8
     Lt = min(L, 256)  # the kernel's tile
-    G = 1 if B * H >= 16 else min(-(-16 // (B * H)), 8, R * N)
+    G = key_groups(R, B, H, N)
     fwd_thread = (2 * Lt * dh + Lt * Lt + 5 * Lt) * itemsize
     bwd_thread = (2 * R * N * L * dh + 3 * R * N * L + 3 * Lt * Lt) * itemsize
     fwd = S + lse + threads * fwd_thread
@@ -343,8 +349,7 @@ def backward_thread_scaling(R, N, L, dh, threads, repeat):
             res[n] = consecutive_times({"b": bwd}, repeat)["b"][0]
     finally:
         pyvf.set_num_threads(threads)
-    groups = min(8, 16, R * N)
-    return dict(t1=res[1], tn=res[threads], speedup=res[1] / res[threads], groups=groups)
+    return dict(t1=res[1], tn=res[threads], speedup=res[1] / res[threads], groups=key_groups(R, 1, 1, N))
 
 
 def table(header, rows):

@@ -8,6 +8,7 @@ labelled; the last value printed in the panel's title.
 """
 
 import csv
+import io
 import os
 
 import numpy as np
@@ -59,7 +60,6 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220)):
         draw.text((x0, y1 + 4), f"{smin:.0f}", fill="black")
         draw.text((x1 - 30, y1 + 4), f"{smax:.0f}", fill="black")
         draw.text((x0 + 4, top + 4), f"{col}{' (log)' if use_log else ''}: last {y[-1]:.4g}", fill="black")
-    import io
     buf = io.BytesIO()
     img.save(buf, format="PNG")
     atomic_write_bytes(png, buf.getvalue())
