@@ -18,9 +18,12 @@ torch-codebook converter import it inside the functions that need it.
 
 import argparse
 import importlib
+import os
+import subprocess
 import sys
 
 import pyvf
+from pyvf.bench import BLAS_THREAD_VARS
 from pyvf.bench import attention as bench_attention
 from pyvf.evaluate import cli_register as evaluate_commands
 from pyvf.scenes import cli_register as scenes_commands
@@ -62,8 +65,25 @@ def cmd_config(args):
     return 0
 
 
+def bench_threads(argv):
+    """The --threads a benchmark's arguments ask for (its default, 2, when none), or None for
+    a value its own parser should reject."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--threads", default="2")
+    value = p.parse_known_args(argv)[0].threads
+    return int(value) if value.isdigit() and int(value) >= 1 else None
+
+
 def cmd_bench(args):
-    """Run one benchmark of pyvf.bench; the arguments after its name go to its main()."""
+    """Run one benchmark of pyvf.bench; the arguments after its name go to its main().
+
+    A benchmark runs with numpy's BLAS on its --threads: where the BLAS_THREAD_VARS of this
+    process say otherwise (numpy is loaded by then, its BLAS thread count fixed), it runs in a
+    child process `python -m pyvf bench ...` with them set, and returns the child's status."""
+    n = bench_threads(args.args) if args.name != DEMO_ATTENTION else None
+    if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
+        env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
+        return subprocess.run([sys.executable, "-m", "pyvf", "bench", args.name, *args.args], env=env).returncode
     if args.name == DEMO_ATTENTION:
         return cmd_demo_attention(args.args)
     module = importlib.import_module(f"pyvf.bench.{args.name}")

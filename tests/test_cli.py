@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 
 import pyvf
+from pyvf.bench import BLAS_THREAD_VARS
+from pyvf.cli import bench_threads
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TIMEOUT = 300  # seconds per command: a hung benchmark fails instead of stalling the run
@@ -98,6 +100,28 @@ BENCH_QUICK = {
 def test_bench_quick(name, tmp_path):
     args, expected = BENCH_QUICK[name]
     assert_ran(run(["bench", name, *args], tmp_path), *expected)
+
+
+def test_bench_runs_numpy_blas_on_its_threads(tmp_path):
+    """numpy's GEMM (the attention benchmark's scale) and pyvf's numpy layers must use the
+    benchmark's --threads, as pyvf's kernels and torch do: `pyvf bench` started with the BLAS
+    thread variables unset (all cores) or set to another count runs the benchmark with them set
+    to --threads. Read back from the benchmark's own report."""
+    for start in ({}, {v: "7" for v in BLAS_THREAD_VARS}):
+        out = tmp_path / f"report-{len(start)}.json"
+        env = {k: v for k, v in clean_env().items() if k not in BLAS_THREAD_VARS}
+        proc = run(["bench", "attention", "--quick", "--no-scaling", "--repeat", "5", "--threads", "1",
+                    "--json", str(out)], tmp_path, env=dict(env, **start))
+        assert_ran(proc, "pyvf bounds:")
+        report = json.loads(out.read_text())
+        assert report["machine"]["blas_thread_env"] == {v: "1" for v in BLAS_THREAD_VARS}
+        assert report["config"]["threads"] == 1 and report["machine"]["pyvf_threads"] == 1
+
+
+@pytest.mark.parametrize("argv, want", [([], 2), (["--threads", "3"], 3), (["--quick", "--threads=5"], 5),
+                                        (["--threads", "0"], None), (["--threads", "x"], None)])
+def test_bench_threads_parse(argv, want):
+    assert bench_threads(argv) == want
 
 
 def test_bench_forwards_help(tmp_path):

@@ -9,3 +9,15 @@
 options. Every benchmark validates its results before it times them. torch is imported only
 inside the functions that use it: importing a module here does not import torch.
 """
+
+import os
+
+# numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
+# sets them to the benchmark's --threads (pyvf.cli.cmd_bench), so that numpy's GEMM and pyvf's
+# layers use the threads that pyvf's kernels and torch are given
+BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+
+
+def blas_thread_env():
+    """{variable: value or None} of BLAS_THREAD_VARS in this process, for a benchmark's report."""
+    return {v: os.environ.get(v) for v in BLAS_THREAD_VARS}

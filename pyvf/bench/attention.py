@@ -39,6 +39,7 @@ import traceback
 import numpy as np
 
 import pyvf
+from pyvf.bench import blas_thread_env
 from pyvf.measure import format_bytes, median_time, memory_method, peak_memory, rel_err
 
 # The bounds pyvf must meet before anything is timed: the same as tests/test_attention.py
@@ -220,8 +221,9 @@ def measure_once(fn, warmup):
 
 
 def gemm_fn():
-    """A float32 1024 x 1024 numpy matmul (numpy's BLAS, its default threads): the machine's
-    GEMM rate for scale, 2 * 1024^3 flops per call."""
+    """A float32 1024 x 1024 numpy matmul: the machine's GEMM rate for scale, 2 * 1024^3 flops
+    per call, on the threads numpy's BLAS was loaded with (`pyvf bench` loads it with
+    --threads, pyvf.cli.BLAS_THREAD_VARS)."""
     a, b = np.random.default_rng(1).standard_normal((2, 1024, 1024), dtype=np.float32)
     return lambda: a @ b
 
@@ -410,7 +412,7 @@ def main(argv=None):
         machine=dict(platform=platform.platform(), processor=_cpu_name(), cpu_count=os.cpu_count(),
                      python=platform.python_version(), numpy=np.__version__, torch=torch.__version__,
                      pyvf=pyvf.__version__, pyvf_threads=pyvf.num_threads(), torch_threads=torch.get_num_threads(),
-                     torch_cpu_capability=torch.backends.cpu.get_cpu_capability()),
+                     blas_thread_env=blas_thread_env(), torch_cpu_capability=torch.backends.cpu.get_cpu_capability()),
         memory_method=memory_method(),
         bounds=dict(pyvf_float32=BOUND32, pyvf_float64=BOUND64),
     )
