@@ -13,13 +13,14 @@ the call: allocate the inputs first, then measure.
 
 import ctypes
 import gc
+import platform
 import statistics
 import time
 import tracemalloc
 
 import numpy as np
 
-__all__ = ["median_time", "peak_memory", "memory_method", "format_bytes", "rel_err"]
+__all__ = ["median_time", "peak_memory", "memory_method", "format_bytes", "rel_err", "cpu_name"]
 
 _STATUS = "/proc/self/status"
 _CLEAR_REFS = "/proc/self/clear_refs"
@@ -189,3 +190,15 @@ def run_worker(module, *args):
     if proc.returncode:
         raise RuntimeError(f"worker {' '.join(cmd[1:])} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def cpu_name():
+    """The processor's model name (/proc/cpuinfo's "model name"; platform.processor() elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown CPU"

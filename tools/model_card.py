@@ -42,8 +42,17 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=()):
     plot_curves(run_dir, png, columns, title=f"{name}: {', '.join(columns)} against the step", log_y=log_y)
     steps, seconds = int(log["step"][-1]), float(log["seconds"][-1])
     lines = [f"## The {name}", "",
-             f"Trained for {steps} steps in {seconds / 60:.0f} min of wall time on this project's 2-core "
-             "machine (the log's elapsed seconds; other work shared the cores part of the time).", "",
+             f"Trained for {steps} steps in {seconds / 60:.0f} min of wall time in all (the log's elapsed "
+             "seconds, summed over the run's calls below; other work shared the cores part of the time).", "",
+             "| call started | resumed from step | machine (CPUs, processor, kernel path, threads) |",
+             "|---|---:|---|"]
+    for call in config.get("calls", []):
+        m = call.get("machine")
+        where = (f"{m['cpus']} CPUs, {m['processor']}, {m['kernel_path']}, {m['kernel_threads']} threads" if m
+                 else "not recorded (a call from before config.json recorded the machine)")
+        resumed = call.get("resumed_from_step")
+        lines.append(f"| {call.get('started', '?')} | {'-' if resumed is None else resumed} | {where} |")
+    lines += ["",
              "Configuration and hyperparameters (the run's config.json):", "", "```json",
              json.dumps({"config": config["config"], "hyperparameters": config["hyperparameters"]}, indent=1),
              "```", "", "Commands (each call of the run; a resumed run continues to the same total):", "", "```bash"]

@@ -40,7 +40,7 @@ import numpy as np
 
 import pyvf
 from pyvf.bench import blas_thread_env
-from pyvf.measure import format_bytes, median_time, memory_method, peak_memory, rel_err
+from pyvf.measure import cpu_name, format_bytes, median_time, memory_method, peak_memory, rel_err
 
 # The bounds pyvf must meet before anything is timed: the same as tests/test_attention.py
 # (RTOL64, RTOL32), where their reasons are written out. float64: the kernel and the reference
@@ -409,7 +409,7 @@ def main(argv=None):
     report = dict(
         config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=args.threads,
                     repeat=args.repeat, inputs="unit normal, seed 0"),
-        machine=dict(platform=platform.platform(), processor=_cpu_name(), cpu_count=os.cpu_count(),
+        machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
                      python=platform.python_version(), numpy=np.__version__, torch=torch.__version__,
                      pyvf=pyvf.__version__, pyvf_threads=pyvf.num_threads(), torch_threads=torch.get_num_threads(),
                      blas_thread_env=blas_thread_env(), torch_cpu_capability=torch.backends.cpu.get_cpu_capability()),
@@ -778,17 +778,6 @@ def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
     print(f"\n{'all errors within their bounds' if ok else 'ERROR BOUND EXCEEDED'}; "
           f"total {time.perf_counter() - t0:.0f} s")
     return 0 if ok else 1
-
-
-def _cpu_name():
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def _write_json(path, report):

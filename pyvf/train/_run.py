@@ -33,6 +33,7 @@ import numpy as np
 
 from .. import _checks
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
+from ..measure import cpu_name
 
 CHECKPOINT, LOG, CONFIG = "checkpoint.npz", "log.csv", "config.json"
 FORMAT_VERSION = 1
@@ -65,6 +66,14 @@ def positive_int(name, x):
 def real(name, x, lo=0.0):
     """x: a finite real number >= lo -> float. Errors name the argument."""
     return _checks.real(name, x, lo=lo)
+
+
+def _machine():
+    """Where a call runs, for config.json: CPU count, processor, the kernels' instruction-set path
+    and thread count (a resumed run's calls may run on different machines)."""
+    from .. import _core, kernel_path
+    return {"cpus": os.cpu_count(), "processor": cpu_name(),
+            "kernel_path": kernel_path(), "kernel_threads": int(_core.num_threads())}
 
 
 def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed):
@@ -201,7 +210,7 @@ class Run:
         calls.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "steps": self.steps_total,
                       "resumed_from_step": self.start if self.resumed else None,
                       "checkpoint_every": self.checkpoint_every, "log_every": self.log_every,
-                      "numpy": np.__version__, **jsonable(call or {})})
+                      "numpy": np.__version__, "machine": _machine(), **jsonable(call or {})})
         atomic_write_text(self.config_path, json.dumps(
             {"kind": self.kind, "config": self.config, "hyperparameters": self.hyper, "calls": calls},
             indent=2) + "\n")
