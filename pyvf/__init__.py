@@ -41,6 +41,8 @@ from .quantizer import EMAQuantizer, QuantizerOutput, vq_nearest
 from .optim import Adam, AdamW, WarmupCosine, clip_grad_norm, published_weight_decay, warmup_cosine_lr
 from .train import codebook_train_step, train_step
 from .transformer import Scene, Transformer, TransformerConfig, TransformerOutput
+from .compare import Comparison, compare
+from .measure import rel_err
 
 __version__ = "0.1.0"
 
@@ -107,6 +109,9 @@ def show_config(file=None):
 
 
 __all__ = [
+    "Comparison",
+    "compare",
+    "rel_err",
     "Codebook",
     "CodebookConfig",
     "CodebookOutput",

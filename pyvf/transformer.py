@@ -10,6 +10,15 @@ pose predictions and both losses; backward() is the same code read in reverse.
     out = model.forward(tokens, poses)      # tokens (B, N, L) ints in [0, V), poses (B, N, 7)
     grads = model.backward()                # d out.loss / d every parameter, official names
 
+Traces, for checking a port of the model layer by layer (pyvf.compare):
+
+    out = model.forward(tokens, poses, trace=True)
+    out.trace                               # name -> activation, in execution order (TRACE_NAMES)
+    g = model.backward(dlogits=dl, dpose=dp)  # a VJP: activations' gradients (backward order), then parameters'
+
+Without trace=True nothing extra is kept or computed: the trace only names arrays the forward
+already has (its caches), except `blocks.j.attn.c_attn`, rebuilt from q, k, v when traced.
+
 Rows (each (B, N, L, d)), E = wte[tokens], W = wpe[0:L], P = pose_embedding(poses):
     0 trunk:        E + W + P
     1 generation:   wte[V] + W + P        (image hidden, pose kept)
@@ -26,19 +35,116 @@ import numpy as np
 
 from . import _checks
 from ._io import save_model
-from .attention import attention_layer_backward, attention_layer_forward
+from .attention import (
+    _merge_heads,
+    _split_heads,
+    attention_layer_backward,
+    attention_layer_forward,
+    branching_attention_backward,
+)
 from .geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
 from .layers import (
     embedding_backward,
     embedding_forward,
+    gelu_backward,
     layernorm_backward,
     layernorm_forward,
+    linear_backward,
     mlp_backward,
     mlp_forward,
 )
 from .losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
 
 MAX_TOKENS_PER_VIEW = 256  # wpe has 256 rows: token t of every view gets row t
+
+# What forward(..., trace=True) records, in execution order ("{j}": every block). Layouts are the
+# tree's: R = 3 rows (trunk, generation, localization), heads split as the kernel takes them.
+# A port holding (B, T, d) with T in [row][view][token] reshapes to (B, R, N, L, d) and moves R first.
+TRACE_NAMES = (
+    "embed.tokens",              # (B, N, L, d)     E = wte[tokens]
+    "embed.positions",           # (L, d)           W = wpe[0:L]
+    "pose_embedding.input",      # (B, N, 7)        xyz * pose_multiplier, quaternion
+    "pose_embedding.c_fc",       # (B, N, 2d)       before GELU
+    "pose_embedding.gelu",       # (B, N, 2d)
+    "pose_embedding.c_proj",     # (B, N, d)        P, before the broadcast over L
+    "embed.out",                 # (R, B, N, L, d)  the three rows: E+W+P, wte[V]+W+P, E+W+wte[V+1]
+    "blocks.{j}.ln_1",           # (R, B, N, L, d)
+    "blocks.{j}.attn.c_attn",    # (R, B, N, L, 3d) fused columns [v | q | k] (SPEC.md §3)
+    "blocks.{j}.attn.q",         # (R, B, H, N, L, dh)
+    "blocks.{j}.attn.k",         # (R, B, H, N, L, dh)
+    "blocks.{j}.attn.v",         # (R, B, H, N, L, dh)
+    "blocks.{j}.attn.out",       # (R, B, H, N, L, dh) branching attention's output, before the heads merge
+    "blocks.{j}.attn.lse",       # (R, B, H, N, L)  log-sum-exp of each query's attended logits, float64
+                                 #                  even in a float32 model (compare(..., dtype="float32"))
+    "blocks.{j}.attn.c_proj",    # (R, B, N, L, d)
+    "blocks.{j}.resid_1",        # (R, B, N, L, d)  x + attn(ln_1(x))
+    "blocks.{j}.ln_2",           # (R, B, N, L, d)
+    "blocks.{j}.mlp.c_fc",       # (R, B, N, L, 4d) before GELU
+    "blocks.{j}.mlp.gelu",       # (R, B, N, L, 4d)
+    "blocks.{j}.mlp.c_proj",     # (R, B, N, L, d)
+    "blocks.{j}.out",            # (R, B, N, L, d)  resid_1 + mlp(ln_2(resid_1))
+    "ln_f.generation",           # (B, N, L, d)     ln_f of row 1
+    "ln_f.localization",         # (B, N, L, d)     ln_f of row 2
+    "logits",                    # (B, N, L, V)
+    "pose_head.c_fc",            # (B, N, L, 2d)    quaternion_pose_representation/pose_classifier
+    "pose_head.gelu",            # (B, N, L, 2d)
+    "pose",                      # (B, N, L, 7)     the raw pose head output (what the loss uses)
+    "ce_loss",                   # (B,)
+    "pose_loss",                 # (B,)
+    "loss",                      # ()               a scalar of the model's dtype (out.loss is a float)
+)
+# backward() gives no gradient for attn.lse (nothing downstream uses it) nor for the losses (the seed)
+
+
+def trace_names(n_layer):
+    """TRACE_NAMES with "{j}" expanded for blocks 0..n_layer-1: forward's trace keys, in order."""
+    names = []
+    block = [n for n in TRACE_NAMES if n.startswith("blocks.")]
+    for n in TRACE_NAMES:
+        if n == block[0]:
+            names += [b.format(j=j) for j in range(n_layer) for b in block]
+        elif not n.startswith("blocks."):
+            names.append(n)
+    return names
+
+
+def _trace_mlp(tr, name, cache, y):
+    """Record an mlp_forward's hidden layer, its GELU and its output (the cache keeps the first two)."""
+    (_, _), h, (a, _) = cache  # ((x, w_fc), h, (a, w_proj))
+    tr[name + ".c_fc"] = h  # (..., dh) before GELU
+    tr[name + ".gelu"] = a  # (..., dh)
+    tr[name + ".c_proj"] = y  # (..., dout)
+
+
+def _mlp_backward(dy, cache, g, name):
+    """mlp_backward; when g is a dict, also records the gradients of the GELU's output and input
+    under name.gelu and name.c_fc (the same operations, so the same bits, as mlp_backward)."""
+    if g is None:
+        return mlp_backward(dy, cache)
+    c_fc, c_act, c_proj = cache
+    da, dw_proj, db_proj = linear_backward(dy, c_proj)  # forward was y = a @ w_proj + b_proj
+    g[name + ".gelu"] = da  # (..., dh)
+    (dh,) = gelu_backward(da, c_act)  # forward was a = gelu(h)
+    g[name + ".c_fc"] = dh  # (..., dh)
+    dx, dw_fc, db_fc = linear_backward(dh, c_fc)  # forward was h = x @ w_fc + b_fc
+    return dx, dw_fc, db_fc, dw_proj, db_proj
+
+
+def _attention_backward(dy, cache, g, name):
+    """attention_layer_backward; when g is a dict, also records the gradients of the attention's
+    output, q, k, v and the fused projection under name.out, .q, .k, .v, .c_attn."""
+    if g is None:
+        return attention_layer_backward(dy, cache)
+    c_attn, c_proj, q, k, v, o, lse, scale = cache
+    do, dw_proj, db_proj = linear_backward(dy, c_proj)  # forward was y = merge(o) @ w_proj + b_proj
+    do = _split_heads(do, q.shape[2])  # (R, B, H, N, L, dh)
+    g[name + ".out"] = do
+    dq, dk, dv = branching_attention_backward(do, q, k, v, o, lse, scale)
+    g[name + ".v"], g[name + ".k"], g[name + ".q"] = dv, dk, dq  # the trace's order, reversed
+    dh = np.concatenate([_merge_heads(dv), _merge_heads(dq), _merge_heads(dk)], axis=-1)  # [v | q | k]
+    g[name + ".c_attn"] = dh  # (R, B, N, L, 3d)
+    dx, dw_attn, db_attn = linear_backward(dh, c_attn)  # forward was h = x @ w_attn + b_attn
+    return dx, dw_attn, db_attn, dw_proj, db_proj
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,6 +234,8 @@ class TransformerOutput:
     ce_loss: np.ndarray  # (B,) cross-entropy over views >= n_loss_skip
     pose_loss: np.ndarray  # (B,) pose loss over views >= n_loss_skip
     loss: float  # batch mean of image_generation_weight * ce + localization_weight * pose
+    pose_raw: np.ndarray = None  # (B, N, L, 7) the pose head's output: what the loss and backward(dpose=) see
+    trace: dict = None  # forward(..., trace=True) only: name -> activation (read-only), TRACE_NAMES order
 
 
 class Transformer:
@@ -242,8 +350,9 @@ class Transformer:
     # -----------------------------------------------------------------------------------
     # the tree's input rows
 
-    def _embed_forward(self, tokens, poses):
-        """tokens (B, N, L), poses (B, N, 7) -> x (3, B, N, L, d): trunk, generation, localization."""
+    def _embed_forward(self, tokens, poses, tr=None):
+        """tokens (B, N, L), poses (B, N, 7) -> x (3, B, N, L, d): trunk, generation, localization.
+        tr: None, or a dict the activations are recorded in (TRACE_NAMES)."""
         p, V, L = self.params, self.config.n_embeddings, tokens.shape[2]
         wte = p["wte/weight"]
         E, c_tok = embedding_forward(tokens, wte)  # (B, N, L, d)
@@ -252,21 +361,33 @@ class Transformer:
         pose_in[..., :3] *= self.dtype.type(self.config.pose_multiplier)  # xyz scaled, quaternion unchanged
         P, c_pose = mlp_forward(pose_in, p["pose_embedding/c_fc/weight"], p["pose_embedding/c_fc/bias"],
                                 p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, N, d)
+        if tr is not None:
+            tr["embed.tokens"], tr["embed.positions"], tr["pose_embedding.input"] = E, W, pose_in
+            _trace_mlp(tr, "pose_embedding", c_pose, P)
         P = P[:, :, None, :]  # (B, N, 1, d), broadcast over the L tokens
         x = np.stack([E + W + P, wte[V] + W + P, E + W + wte[V + 1]])  # (3, B, N, L, d)
+        if tr is not None:
+            tr["embed.out"] = x
         return x, (c_tok, c_pose, L)
 
-    def _embed_backward(self, dx, cache, grads):
+    def _embed_backward(self, dx, cache, grads, g=None):
+        """dx (3, B, N, L, d) -> accumulates into grads; g: None, or a dict for the activations' gradients."""
         c_tok, c_pose, L = cache
         V = self.config.n_embeddings
         dtrunk, dgen, dloc = dx  # each (B, N, L, d)
-        (dwte,) = embedding_backward(dtrunk + dloc, c_tok)  # E feeds the trunk and the localization row
+        dE = dtrunk + dloc  # (B, N, L, d): E feeds the trunk and the localization row
+        (dwte,) = embedding_backward(dE, c_tok)
         dwte[V] += dgen.sum(axis=(0, 1, 2))  # the mask token
         dwte[V + 1] += dloc.sum(axis=(0, 1, 2))  # the localization token
         grads["wte/weight"] += dwte
-        grads["wpe/embeddings"][:L] += dx.sum(axis=(0, 1, 2))  # W feeds all three rows
+        dW = dx.sum(axis=(0, 1, 2))  # (L, d): W feeds all three rows
+        grads["wpe/embeddings"][:L] += dW
         dP = (dtrunk + dgen).sum(axis=2)  # (B, N, d): P feeds the trunk and the generation row
-        _, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dP, c_pose)
+        if g is not None:
+            g["embed.out"], g["pose_embedding.c_proj"] = dx, dP
+        dpose_in, dw_fc, db_fc, dw_proj, db_proj = _mlp_backward(dP, c_pose, g, "pose_embedding")
+        if g is not None:
+            g["pose_embedding.input"], g["embed.positions"], g["embed.tokens"] = dpose_in, dW, dE
         grads["pose_embedding/c_fc/weight"] += dw_fc
         grads["pose_embedding/c_fc/bias"] += db_fc
         grads["pose_embedding/c_proj/weight"] += dw_proj
@@ -275,7 +396,8 @@ class Transformer:
     # -----------------------------------------------------------------------------------
     # one pre-LN block: x = x + attn(ln_1(x)); x = x + mlp(ln_2(x))
 
-    def _block_forward(self, x, j):
+    def _block_forward(self, x, j, tr=None):
+        """x (R, B, N, L, d) -> block j's output (R, B, N, L, d), cache; tr: None or the trace dict."""
         p, h = self.params, f"h.{j}/"
         a, c_ln1 = layernorm_forward(x, p[h + "ln_1/gamma"], p[h + "ln_1/beta"])
         y, c_attn = attention_layer_forward(a, p[h + "attn/c_attn/weight"], p[h + "attn/c_attn/bias"],
@@ -285,32 +407,52 @@ class Transformer:
         m, c_ln2 = layernorm_forward(x, p[h + "ln_2/gamma"], p[h + "ln_2/beta"])
         f, c_mlp = mlp_forward(m, p[h + "mlp/c_fc/weight"], p[h + "mlp/c_fc/bias"],
                                p[h + "mlp/c_proj/weight"], p[h + "mlp/c_proj/bias"])
-        return x + f, (c_ln1, c_attn, c_ln2, c_mlp)
+        out = x + f  # (R, B, N, L, d)
+        if tr is not None:
+            b = f"blocks.{j}."
+            _, _, q, k, v, o, lse, _ = c_attn  # (R, B, H, N, L, dh), lse (R, B, H, N, L)
+            tr[b + "ln_1"] = a
+            # the layer keeps q, k, v split by head, not the fused projection: rebuilt (same bits)
+            tr[b + "attn.c_attn"] = np.concatenate([_merge_heads(v), _merge_heads(q), _merge_heads(k)], axis=-1)
+            tr[b + "attn.q"], tr[b + "attn.k"], tr[b + "attn.v"] = q, k, v
+            tr[b + "attn.out"], tr[b + "attn.lse"] = o, lse
+            tr[b + "attn.c_proj"], tr[b + "resid_1"], tr[b + "ln_2"] = y, x, m
+            _trace_mlp(tr, b + "mlp", c_mlp, f)
+            tr[b + "out"] = out
+        return out, (c_ln1, c_attn, c_ln2, c_mlp)
 
-    def _block_backward(self, dx, cache, j, grads):
+    def _block_backward(self, dx, cache, j, grads, g=None):
+        """dx (R, B, N, L, d): gradient of block j's output -> of its input; g: None or a dict."""
         c_ln1, c_attn, c_ln2, c_mlp = cache
-        h = f"h.{j}/"
+        h, b = f"h.{j}/", f"blocks.{j}."
+        if g is not None:
+            g[b + "out"] = g[b + "mlp.c_proj"] = dx
         # forward was x2 = x1 + mlp(ln_2(x1))
-        dm, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dx, c_mlp)
+        dm, dw_fc, db_fc, dw_proj, db_proj = _mlp_backward(dx, c_mlp, g, b + "mlp")
         dx1, dg2, db2 = layernorm_backward(dm, c_ln2)
         dx = dx + dx1
+        if g is not None:
+            g[b + "ln_2"] = dm
+            g[b + "resid_1"] = g[b + "attn.c_proj"] = dx
         # forward was x1 = x0 + attn(ln_1(x0))
-        da, dw_attn, db_attn, dw_aproj, db_aproj = attention_layer_backward(dx, c_attn)
+        da, dw_attn, db_attn, dw_aproj, db_aproj = _attention_backward(dx, c_attn, g, b + "attn")
         dx0, dg1, db1 = layernorm_backward(da, c_ln1)
-        for name, g in (("ln_1/gamma", dg1), ("ln_1/beta", db1), ("attn/c_attn/weight", dw_attn),
+        if g is not None:
+            g[b + "ln_1"] = da
+        for name, dp in (("ln_1/gamma", dg1), ("ln_1/beta", db1), ("attn/c_attn/weight", dw_attn),
                         ("attn/c_attn/bias", db_attn), ("attn/c_proj/weight", dw_aproj),
                         ("attn/c_proj/bias", db_aproj), ("ln_2/gamma", dg2), ("ln_2/beta", db2),
                         ("mlp/c_fc/weight", dw_fc), ("mlp/c_fc/bias", db_fc),
                         ("mlp/c_proj/weight", dw_proj), ("mlp/c_proj/bias", db_proj)):
-            grads[h + name] += g
+            grads[h + name] += dp
         return dx + dx0
 
     # -----------------------------------------------------------------------------------
     # the heads
 
-    def _heads_forward(self, hg, hl):
+    def _heads_forward(self, hg, hl, tr=None):
         """hg, hl (B, N, L, d): the generation and localization rows after the last block.
-        -> logits (B, N, L, V), raw pose (B, N, L, 7)."""
+        -> logits (B, N, L, V), raw pose (B, N, L, 7). tr: None or the trace dict."""
         p, V = self.params, self.config.n_embeddings
         g, c_lng = layernorm_forward(hg, p["ln_f/gamma"], p["ln_f/beta"])  # (B, N, L, d)
         l, c_lnl = layernorm_forward(hl, p["ln_f/gamma"], p["ln_f/beta"])
@@ -319,16 +461,23 @@ class Transformer:
         head = "quaternion_pose_representation/pose_classifier/"
         raw, c_head = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
                                   p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (B, N, L, 7)
+        if tr is not None:
+            tr["ln_f.generation"], tr["ln_f.localization"], tr["logits"] = g, l, logits
+            _trace_mlp(tr, "pose_head", c_head, raw)
+            tr["pose"] = tr.pop("pose_head.c_proj")  # named as the model's output
         return logits, raw, (g, c_lng, c_lnl, c_head)
 
-    def _heads_backward(self, dlogits, draw, cache, grads):
-        g, c_lng, c_lnl, c_head = cache
-        p, V, d = self.params, self.config.n_embeddings, g.shape[-1]
-        # forward was logits = g @ wte[:V]^T
+    def _heads_backward(self, dlogits, draw, cache, grads, g=None):
+        """dlogits (B, N, L, V), draw (B, N, L, 7) -> dhg, dhl (B, N, L, d); g: None or a dict."""
+        gen, c_lng, c_lnl, c_head = cache  # gen: ln_f of the generation row (B, N, L, d)
+        p, V, d = self.params, self.config.n_embeddings, gen.shape[-1]
+        # forward was logits = gen @ wte[:V]^T
         dl2 = dlogits.reshape(-1, V)  # (M, V)
-        dg = (dl2 @ p["wte/weight"][:V]).reshape(g.shape)  # (B, N, L, d)
-        grads["wte/weight"][:V] += dl2.T @ g.reshape(-1, d)  # (V, d)
-        dl, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(draw, c_head)
+        dg = (dl2 @ p["wte/weight"][:V]).reshape(gen.shape)  # (B, N, L, d)
+        grads["wte/weight"][:V] += dl2.T @ gen.reshape(-1, d)  # (V, d)
+        dl, dw_fc, db_fc, dw_proj, db_proj = _mlp_backward(draw, c_head, g, "pose_head")
+        if g is not None:
+            g["logits"] = dlogits
         head = "quaternion_pose_representation/pose_classifier/"
         grads[head + "c_fc/weight"] += dw_fc
         grads[head + "c_fc/bias"] += db_fc
@@ -338,27 +487,36 @@ class Transformer:
         dhl, dgf2, dbf2 = layernorm_backward(dl, c_lnl)
         grads["ln_f/gamma"] += dgf1 + dgf2
         grads["ln_f/beta"] += dbf1 + dbf2
+        if g is not None:
+            g["ln_f.localization"], g["ln_f.generation"] = dl, dg
         return dhg, dhl
 
     # -----------------------------------------------------------------------------------
     # the whole model
 
-    def forward(self, tokens, poses):
+    def forward(self, tokens, poses, *, trace=False):
         """tokens (B, N, L) ints in [0, V), poses (B, N, 7) of the model's dtype (xyz, unit
         quaternion wxyz, in the frame the caller chose: training data is usually made relative
         to the first view, see geometry.make_relative) -> TransformerOutput. The loss needs at
-        least one view past n_loss_skip. Keeps what backward() needs."""
+        least one view past n_loss_skip. Keeps what backward() needs.
+
+        trace=True also returns, as `out.trace`, every intermediate activation by name
+        (TRACE_NAMES, in execution order; read-only views of what the forward keeps anyway:
+        do not modify them), and makes the next backward() return every activation's gradient."""
         cfg = self.config
+        if not isinstance(trace, (bool, np.bool_)):
+            raise TypeError(f"trace must be True or False, got {trace!r}")
         B, N, L = self._check_inputs(tokens, poses)
         S = cfg.n_loss_skip
         if N <= S:
             raise ValueError(f"tokens has N={N} views but n_loss_skip={S}: no view is a loss target")
-        x, c_embed = self._embed_forward(tokens, poses)  # (3, B, N, L, d)
+        tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
+        x, c_embed = self._embed_forward(tokens, poses, tr)  # (3, B, N, L, d)
         c_blocks = []
         for j in range(cfg.n_layer):
-            x, c = self._block_forward(x, j)
+            x, c = self._block_forward(x, j, tr)
             c_blocks.append(c)
-        logits, raw, c_heads = self._heads_forward(x[1], x[2])  # (B, N, L, V), (B, N, L, 7)
+        logits, raw, c_heads = self._heads_forward(x[1], x[2], tr)  # (B, N, L, V), (B, N, L, 7)
 
         # losses over the views S.. (the first S views are pure context)
         V = cfg.n_embeddings
@@ -369,33 +527,71 @@ class Transformer:
         pl = pl_tok.reshape(B, -1).mean(axis=1)  # (B,)
         loss = float(np.mean(cfg.image_generation_weight * ce + cfg.localization_weight * pl))
 
-        self._cache = (c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L))
+        if tr is not None:
+            tr["ce_loss"], tr["pose_loss"] = ce, pl
+            tr["loss"] = self.dtype.type(loss)  # exact: loss is a float of the model's dtype, widened
+            for name, a in tr.items():  # read-only views: the caches behind them feed backward()
+                if isinstance(a, np.ndarray):
+                    tr[name] = a.view()
+                    tr[name].flags.writeable = False
+        self._cache = (c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L), trace)
         return TransformerOutput(logits=logits, pose_prediction=pose_prediction(raw, cfg.pose_multiplier),
-                                 ce_loss=ce, pose_loss=pl, loss=loss)
+                                 ce_loss=ce, pose_loss=pl, loss=loss, pose_raw=raw, trace=tr)
 
-    def backward(self):
-        """Gradient of the last forward's `loss` for every parameter: official name -> array."""
+    def _upstream(self, name, a, shape):
+        """An upstream gradient: a finite ndarray of the model's dtype and the output's shape."""
+        _checks.float_array(name, a)
+        if a.dtype != self.dtype:
+            raise TypeError(f"{name} is {a.dtype} but the model is {self.dtype}: both must share one dtype "
+                            "(pyvf never casts silently)")
+        if a.shape != shape:
+            raise ValueError(f"{name} must have the shape of the output it differentiates, {shape}, got {a.shape}")
+        return _checks.finite(name, a)
+
+    def backward(self, dlogits=None, dpose=None, *, dloss=None):
+        """Differentiate the last forward: the gradient of
+
+            dloss * loss + sum(logits * dlogits) + sum(pose_raw * dpose)
+
+        (a vector-Jacobian product; a term whose seed is None is left out; with no seed at all,
+        dloss = 1: the gradient of the loss, as training needs). dlogits (B, N, L, V) and dpose
+        (B, N, L, 7) are arrays of the model's dtype, for out.logits and out.pose_raw (the pose
+        head's raw output, not the normalised out.pose_prediction); dloss a real number.
+
+        Returns official parameter name -> gradient. After forward(..., trace=True) the dict
+        first holds the gradient of every traced activation, in backward order (exactly the
+        reverse of the trace: compare a port's gradients in that order), under the trace's names,
+        except attn.lse (nothing downstream uses it) and the losses; then the parameters'."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
-        c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L) = self._cache
+        c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L), traced = self._cache
         cfg, dt = self.config, self.dtype
         S, V = cfg.n_loss_skip, cfg.n_embeddings
+        if dlogits is None and dpose is None and dloss is None:
+            dloss = 1.0
         grads = {name: np.zeros_like(p) for name, p in self.params.items()}
-        # forward was loss = mean_b(wg * mean_{i >= S, t}(ce) + wl * mean_{i >= S, t}(pose))
-        n_tok = (N - S) * L
-        dce_tok = np.full(B * n_tok, cfg.image_generation_weight / (B * n_tok), dtype=dt)
-        dpl_tok = np.full((B, N - S, L), cfg.localization_weight / (B * n_tok), dtype=dt)
-        dlogits = np.zeros((B, N, L, V), dtype=dt)
-        dlogits[:, S:] = cross_entropy_backward(dce_tok, c_ce)[0].reshape(B, N - S, L, V)
-        draw = np.zeros((B, N, L, 7), dtype=dt)
-        draw[:, S:] = pose_loss_backward(dpl_tok, c_pl)[0]
-        dhg, dhl = self._heads_backward(dlogits, draw, c_heads, grads)
+        dl_total = np.zeros((B, N, L, V), dtype=dt)  # (B, N, L, V)
+        draw = np.zeros((B, N, L, 7), dtype=dt)  # (B, N, L, 7)
+        if dloss is not None:
+            dloss = _checks.real("dloss", dloss)
+            # forward was loss = mean_b(wg * mean_{i >= S, t}(ce) + wl * mean_{i >= S, t}(pose))
+            n_tok = (N - S) * L
+            dce_tok = np.full(B * n_tok, dloss * cfg.image_generation_weight / (B * n_tok), dtype=dt)
+            dpl_tok = np.full((B, N - S, L), dloss * cfg.localization_weight / (B * n_tok), dtype=dt)
+            dl_total[:, S:] = cross_entropy_backward(dce_tok, c_ce)[0].reshape(B, N - S, L, V)
+            draw[:, S:] = pose_loss_backward(dpl_tok, c_pl)[0]
+        if dlogits is not None:
+            dl_total += self._upstream("dlogits", dlogits, (B, N, L, V))
+        if dpose is not None:
+            draw += self._upstream("dpose", dpose, (B, N, L, 7))
+        g = {"pose": draw} if traced else None  # the activations' gradients, the trace's order reversed
+        dhg, dhl = self._heads_backward(dl_total, draw, c_heads, grads, g)
         dx = np.zeros((3, B, N, L, cfg.d_model), dtype=dt)
         dx[1], dx[2] = dhg, dhl  # the trunk's output feeds no head
         for j in reversed(range(cfg.n_layer)):
-            dx = self._block_backward(dx, c_blocks[j], j, grads)
-        self._embed_backward(dx, c_embed, grads)
-        return grads
+            dx = self._block_backward(dx, c_blocks[j], j, grads, g)
+        self._embed_backward(dx, c_embed, grads, g)
+        return grads if g is None else {**g, **grads}
 
 
     # -----------------------------------------------------------------------------------

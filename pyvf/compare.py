@@ -1,0 +1,186 @@
+"""Compare a port's activations (or gradients) with pyvf's, name by name: where does it go wrong?
+
+    out = model.forward(tokens, poses, trace=True)       # pyvf: name -> activation, execution order
+    report = pyvf.compare(my_trace, out.trace)           # yours first, the reference second
+    print(report)                                        # the first divergence, then a table
+    report.first                                         # e.g. "blocks.1.attn.q" (None: all agree)
+
+Both sides are mappings name -> array: anything np.asarray accepts, and objects with
+`.detach()` (torch tensors, also ones that require grad: `.detach().cpu().numpy()` is called;
+torch is never imported here). The walk follows `ref`'s order, so give pyvf's trace as `ref`
+for the forward (execution order) and the dict `Transformer.backward()` returns for the
+gradients (backward order): the first quantity over tolerance in that order is where a bug
+starts; everything after it inherits the error.
+
+The error measure is normwise: rel_err(x, ref) = max|x - ref| / max|ref| (pyvf.measure), in
+float64. An elementwise relative error is meaningless where ref has entries near zero, and a
+wrong layer shows as a normwise error of order 1e-3..1, far above rounding.
+
+Default tolerances (DEFAULT_RTOL), from the dtype of the less precise side (or `dtype=`). Why these
+values: rounding in a length-n dot product leaves a relative error of about sqrt(n) * u
+(u = unit roundoff, half of eps; typical, not worst-case n * u), n up to 4d (~3000 for the paper's
+model, so sqrt(n) ~ 60); layers compound it and LayerNorm (dividing by a small std) and unscaled
+softmax logits amplify it, by 10-100x over a dozen blocks. Measured on the tiny model: float64
+pyvf vs float64 torch agree to 2e-14, float32 pyvf vs float64 to 1.6e-6 (logits) and 1.7e-5
+(gradients). Each default sits a few orders above the rounding of a deep model in that dtype
+and below what a wrong layer gives:
+
+    float64   u = 1.1e-16   rtol 1e-10
+    float32   u = 6.0e-8    rtol 1e-3
+    float16   u = 4.9e-4    rtol 2e-2
+    bfloat16  u = 3.9e-3    rtol 5e-2   (one rounding of every input is already u; only gross bugs
+                                         show in bf16: compare in float32 or float64 to find subtle ones)
+
+Integer and boolean arrays (token ids) must match exactly. The dtype is read from the arrays, so
+pass dtype= when a float64 array holds values computed in a lower precision (pyvf's attn.lse is
+float64 even in a float32 model: compare a float32 run with dtype="float32").
+"""
+
+import dataclasses
+from collections.abc import Mapping
+
+import numpy as np
+
+from .measure import rel_err
+
+__all__ = ["compare", "Comparison", "ComparisonRow", "DEFAULT_RTOL", "rel_err"]
+
+DEFAULT_RTOL = {"float64": 1e-10, "float32": 1e-3, "float16": 2e-2, "bfloat16": 5e-2}
+_PRECISION = ("float64", "float32", "float16", "bfloat16")  # most precise first
+
+
+@dataclasses.dataclass
+class ComparisonRow:
+    name: str
+    shape: tuple  # ref's shape
+    dtype: str  # the dtype the tolerance was taken from
+    max_abs: float  # max |mine - ref| (inf when the shapes differ)
+    rel: float  # max |mine - ref| / max |ref| (inf when the shapes differ, nan when mine is not finite)
+    rtol: float
+    note: str = ""  # e.g. the shapes, when they differ
+
+    @property
+    def ok(self):
+        return bool(self.rel <= self.rtol)  # False for nan
+
+
+@dataclasses.dataclass
+class Comparison:
+    first: str  # the first name (in ref's order) over tolerance; None when none is
+    rows: list  # ComparisonRow per name present on both sides, in ref's order
+    only_mine: list  # names in mine but not in ref (mine's order)
+    only_ref: list  # names in ref but not in mine (ref's order)
+
+    @property
+    def ok(self):
+        """Every shared quantity within tolerance and no name on one side only."""
+        return self.first is None and not self.only_mine and not self.only_ref
+
+    def table(self):
+        """Markdown table: every shared quantity's max abs and normwise relative error."""
+        lines = ["| # | name | shape | dtype | max abs err | rel err | rtol | |",
+                 "|---|---|---|---|---|---|---|---|"]
+        for i, r in enumerate(self.rows):
+            mark = "FIRST" if r.name == self.first else ("ok" if r.ok else "over")
+            note = f" {r.note}" if r.note else ""
+            lines.append(f"| {i} | {r.name} | {r.shape} | {r.dtype} | {r.max_abs:.3e} | {r.rel:.3e} "
+                         f"| {r.rtol:.0e} | {mark}{note} |")
+        return "\n".join(lines)
+
+    def __str__(self):
+        if self.first is None:
+            head = f"all {len(self.rows)} shared quantities within tolerance"
+        else:
+            r = next(r for r in self.rows if r.name == self.first)
+            n_over = sum(not r.ok for r in self.rows)
+            head = (f"first divergence: {r.name}: relative error {r.rel:.3e} > rtol {r.rtol:.0e} "
+                    f"({r.dtype}){' ' + r.note if r.note else ''}; {n_over} of {len(self.rows)} over tolerance")
+        parts = [head, "", self.table()]
+        if self.only_mine:
+            parts += ["", f"only in mine ({len(self.only_mine)}): {', '.join(self.only_mine)}"]
+        if self.only_ref:
+            parts += ["", f"only in ref ({len(self.only_ref)}): {', '.join(self.only_ref)}"]
+        return "\n".join(parts)
+
+
+def _to_numpy(name, side, x):
+    """-> (ndarray, dtype name). torch tensors through .detach().cpu(); bfloat16 (which numpy
+    lacks) widened to float32 exactly, its name kept for the tolerance."""
+    if hasattr(x, "detach"):
+        x = x.detach()
+        if hasattr(x, "cpu"):
+            x = x.cpu()
+        if str(getattr(x, "dtype", "")) == "torch.bfloat16":
+            return x.float().numpy(), "bfloat16"
+        x = x.numpy() if hasattr(x, "numpy") else x
+    try:
+        a = np.asarray(x)
+    except Exception as e:  # noqa: BLE001 - say which entry could not be read
+        raise TypeError(f"compare: {side}[{name!r}] cannot be read as an array: {e}") from e
+    if a.dtype.name == "bfloat16":  # ml_dtypes (JAX): exact in float32
+        return a.astype(np.float32), "bfloat16"
+    if a.dtype.kind not in "fiub":
+        raise TypeError(f"compare: {side}[{name!r}] must be a real numeric array, got dtype {a.dtype}")
+    return a, a.dtype.name
+
+
+def _tolerance(dt_mine, dt_ref, dtype, rtol):
+    """(dtype name the tolerance follows, rtol)."""
+    if dtype is not None:
+        dt = str(np.dtype(dtype)) if str(dtype) != "bfloat16" else "bfloat16"
+    else:
+        floats = [d for d in (dt_mine, dt_ref) if d in _PRECISION]
+        dt = max(floats, key=_PRECISION.index) if floats else dt_ref  # the less precise side
+    if rtol is not None:
+        return dt, rtol
+    if dt not in DEFAULT_RTOL:
+        if dt in ("bool",) or np.dtype(dt).kind in "iub":
+            return dt, 0.0  # integers: exactly
+        raise ValueError(f"compare: no default tolerance for dtype {dt}; pass rtol=")
+    return dt, DEFAULT_RTOL[dt]
+
+
+def compare(mine, ref, *, dtype=None, rtol=None):
+    """Compare two mappings name -> array; see the module's docstring.
+
+    mine: your port's quantities; ref: the reference's (pyvf's trace or gradients), whose order
+    is walked. dtype: the dtype whose default tolerance applies (default: the less precise of
+    the two arrays'); rtol: a normwise relative tolerance for every quantity (overrides dtype).
+    Returns a Comparison: .first (the first name over tolerance, or None), .rows, .only_mine,
+    .only_ref, .ok; str() of it is the report."""
+    for side, m in (("mine", mine), ("ref", ref)):
+        if not isinstance(m, Mapping):
+            raise TypeError(f"compare: {side} must be a mapping name -> array, got {type(m).__name__}")
+    if rtol is not None:
+        if isinstance(rtol, (bool, np.bool_)) or not isinstance(rtol, (int, float, np.integer, np.floating)) \
+                or not 0 <= rtol < np.inf:
+            raise ValueError(f"compare: rtol must be a finite number >= 0, got {rtol!r}")
+        rtol = float(rtol)
+    if dtype is not None and str(dtype) != "bfloat16" and str(np.dtype(dtype)) not in DEFAULT_RTOL:
+        raise ValueError(f"compare: dtype must be one of {list(DEFAULT_RTOL)}, got {dtype!r}")
+    rows, first = [], None
+    for name, r in ref.items():
+        if name not in mine:
+            continue
+        a, dt_a = _to_numpy(name, "mine", mine[name])
+        b, dt_b = _to_numpy(name, "ref", ref[name])
+        dt, tol = _tolerance(dt_a, dt_b, dtype, rtol)
+        if a.shape != b.shape:
+            row = ComparisonRow(name, b.shape, dt, np.inf, np.inf, tol, f"(shape {a.shape} vs ref {b.shape})")
+        elif a.size == 0:
+            row = ComparisonRow(name, b.shape, dt, 0.0, 0.0, tol)
+        else:
+            with np.errstate(invalid="ignore", over="ignore"):
+                max_abs = float(np.abs(a.astype(np.float64) - b.astype(np.float64)).max())
+                rel = rel_err(a, b)
+            if not np.isfinite(b.astype(np.float64)).all():
+                row = ComparisonRow(name, b.shape, dt, max_abs, np.nan, tol, "(ref not finite)")
+            else:
+                row = ComparisonRow(name, b.shape, dt, max_abs, rel, tol,
+                                    "" if np.isfinite(rel) else "(mine not finite)")
+        rows.append(row)
+        if first is None and not row.ok:
+            first = name
+    only_mine = [n for n in mine if n not in ref]
+    only_ref = [n for n in ref if n not in mine]
+    return Comparison(first=first, rows=rows, only_mine=only_mine, only_ref=only_ref)

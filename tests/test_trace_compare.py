@@ -1,0 +1,361 @@
+"""Traces of the transformer and pyvf.compare: named activations and their gradients against torch
+autograd in float64 (the oracle pyvf/verify/torch_transformer.py, its activations recorded by
+wrapping its layer functions, never rewriting them), and compare naming the first wrong quantity
+of a torch port with a bug planted in one layer."""
+
+import contextlib
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from torch.overrides import TorchFunctionMode
+
+import pyvf
+from conftest import assert_bitwise_equal, assert_close
+from pyvf.transformer import trace_names
+from pyvf.verify import torch_transformer as tt
+from test_transformer import TINY, random_batch, random_model
+
+NO_GRAD = {"ce_loss", "pose_loss", "loss"}  # traced, but the seed of backward, not differentiated
+
+
+def no_grad_names(n_layer):
+    return NO_GRAD | {f"blocks.{j}.attn.lse" for j in range(n_layer)}
+
+
+# ---------------------------------------------------------------------------------------
+# the torch oracle, traced: its activations under pyvf's names, in pyvf's tree layout
+
+
+def module_to_trace(name):
+    """Official module name -> trace prefix: 'h.1/attn/c_attn' -> 'blocks.1.attn.c_attn'."""
+    name = name.replace("quaternion_pose_representation/pose_classifier", "pose_head")
+    if name.startswith("h."):
+        j, rest = name[2:].split("/", 1)
+        name = f"blocks.{j}/{rest}"
+    return name.replace("/", ".")
+
+
+@contextlib.contextmanager
+def traced_oracle(P, tokens, cfg, rec, bug=None):
+    """While active, torch_transformer.forward records into rec (name -> torch tensor, in the
+    oracle's flat layout (B, T, ...), T in [row][view][token]). bug plants one port bug:
+    'swap_qk' (block 1 reads its fused projection as [v | k | q]), 'ln_eps' (block 0's ln_2 with
+    eps 1e-3 instead of 1e-5), 'wpe_shift' (token t gets positional row t + 1)."""
+    linear0, layer_norm0 = tt.linear, tt.layer_norm
+    d, L = cfg.d_model, tokens.shape[2]
+
+    def linear(x, P_, name):
+        y = linear0(x, P_, name)
+        key = module_to_trace(name)
+        if name.endswith("attn/c_attn"):  # the oracle splits what this returns as [v | q | k]
+            rec[key] = y
+            if bug == "swap_qk" and name == "h.1/attn/c_attn":
+                y = torch.cat([y[..., :d], y[..., 2 * d:], y[..., d:2 * d]], dim=-1)  # read as [v | k | q]
+            rec[key.replace("c_attn", "vqk")] = y  # not a trace name: q, k, v are cut from it
+            return y
+        if name == "pose_embedding/c_fc":
+            rec["pose_embedding.input"] = x
+        if name.endswith("attn/c_proj"):
+            rec[key.replace("c_proj", "out")] = x  # the heads merged: (B, T, d)
+        elif name.endswith("c_proj"):
+            rec[key.replace("c_proj", "gelu")] = x
+        rec["pose" if key == "pose_head.c_proj" else key] = y
+        return y
+
+    def layer_norm(x, P_, name):
+        if bug == "ln_eps" and name == "h.0/ln_2":
+            y = F.layer_norm(x, (x.shape[-1],), P_[name + "/gamma"], P_[name + "/beta"], eps=1e-3)
+        else:
+            y = layer_norm0(x, P_, name)
+        if name == "ln_f":  # called on the generation row, then the localization row
+            rec["ln_f.localization" if "ln_f.generation" in rec else "ln_f.generation"] = y
+            return y
+        key = module_to_trace(name)  # blocks.j.ln_1 or blocks.j.ln_2
+        j = int(key.split(".")[1])
+        if key.endswith("ln_1"):
+            rec["embed.out" if j == 0 else f"blocks.{j - 1}.out"] = x
+        else:
+            rec[f"blocks.{j}.resid_1"] = x
+        rec[key] = y
+        return y
+
+    class Lookups(TorchFunctionMode):
+        """The lookups the oracle writes inline: wte[tokens], wpe[:L], and the last block's output
+        (the only reshape to (B, R, N, L, d))."""
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            if func is torch.Tensor.__getitem__ and args[0] is P["wpe/embeddings"] and bug == "wpe_shift":
+                args = (args[0], slice(1, L + 1))
+            out = func(*args, **(kwargs or {}))
+            if func is torch.Tensor.__getitem__ and args[0] is P["wte/weight"] and args[1] is tokens:
+                rec["embed.tokens"] = out
+            elif func is torch.Tensor.__getitem__ and args[0] is P["wpe/embeddings"]:
+                rec["embed.positions"] = out
+            elif func is torch.Tensor.reshape and len(args) == 6:
+                rec[f"blocks.{cfg.n_layer - 1}.out"] = args[0]
+            elif func in (torch.Tensor.matmul, torch.Tensor.__matmul__) and args[0] is rec.get("ln_f.generation"):
+                rec["logits"] = out
+            return out
+
+    tt.linear, tt.layer_norm = linear, layer_norm
+    try:
+        with Lookups():
+            yield
+    finally:
+        tt.linear, tt.layer_norm = linear0, layer_norm0
+
+
+def to_tree(name, t, cfg, N, L):
+    """An oracle tensor (flat layout) -> pyvf's layout for that name, as float64 numpy."""
+    t = t.detach()
+    B, H, d = t.shape[0], cfg.n_head, cfg.d_model
+    if name.startswith("blocks.") or name == "embed.out":
+        if name.endswith(("attn.q", "attn.k", "attn.v", "attn.out")):  # (B, T, d) -> (R, B, H, N, L, dh)
+            t = t.reshape(B, 3, N, L, H, d // H).permute(1, 0, 4, 2, 3, 5)
+        elif name.endswith("attn.lse"):  # (B, H, T) -> (R, B, H, N, L)
+            t = t.reshape(B, H, 3, N, L).permute(2, 0, 1, 3, 4)
+        else:  # (B, T, w) -> (R, B, N, L, w)
+            t = t.reshape(B, 3, N, L, -1).permute(1, 0, 2, 3, 4)
+    return t.numpy().copy()
+
+
+def torch_trace(model, tokens, poses, dlogits=None, dpose=None, dloss=None, bug=None):
+    """Run the oracle in float64 -> (trace, grads, param grads): name -> numpy in pyvf's layout.
+    Backward of dloss * loss + sum(logits * dlogits) + sum(raw * dpose)."""
+    cfg = model.config
+    B, N, L = tokens.shape
+    d, H = cfg.d_model, cfg.n_head
+    P = {k: torch.tensor(v, requires_grad=True) for k, v in model.params.items()}
+    t_tokens, rec = torch.tensor(tokens), {}
+    with traced_oracle(P, t_tokens, cfg, rec, bug):
+        # poses require grad so that the pose MLP's input (xyz scaled) has a gradient to compare
+        logits, raw, ce, pl, loss = tt.forward(P, t_tokens, torch.tensor(poses, requires_grad=True), cfg)
+    for t in rec.values():
+        t.retain_grad()
+    vqk = {j: rec.pop(f"blocks.{j}.attn.vqk") for j in range(cfg.n_layer)}
+    for j in range(cfg.n_layer):  # q, k, v are column blocks of what the oracle splits: [v | q | k]
+        rec[f"blocks.{j}.attn.v"], rec[f"blocks.{j}.attn.q"], rec[f"blocks.{j}.attn.k"] = vqk[j].split(d, dim=-1)
+    total = 0.0 * loss
+    if dloss is not None:
+        total = total + dloss * loss
+    if dlogits is not None:
+        total = total + (logits * torch.tensor(dlogits)).sum()
+    if dpose is not None:
+        total = total + (raw * torch.tensor(dpose)).sum()
+    total.backward()
+    grads = {}
+    for name, t in rec.items():
+        if name.endswith(("attn.q", "attn.k", "attn.v")):
+            j = name.split(".")[1]
+            dv, dq, dk = vqk[int(j)].grad.split(d, dim=-1)
+            grads[name] = to_tree(name, {"q": dq, "k": dk, "v": dv}[name[-1]], cfg, N, L)
+        else:
+            grads[name] = to_tree(name, t.grad, cfg, N, L)
+    trace = {name: to_tree(name, t, cfg, N, L) for name, t in rec.items()}
+    mask = tt.tree_mask(3, N, L)
+    with torch.no_grad():
+        for j in range(cfg.n_layer):  # lse of the attended logits, from the oracle's own q and k
+            q, k = (rec[f"blocks.{j}.attn.{c}"].reshape(B, 3 * N * L, H, d // H).transpose(1, 2) for c in "qk")
+            s = (cfg.attention_scale * (q @ k.transpose(-1, -2))).masked_fill(~mask, float("-inf"))
+            trace[f"blocks.{j}.attn.lse"] = to_tree(f"blocks.{j}.attn.lse", torch.logsumexp(s, -1), cfg, N, L)
+    trace.update(ce_loss=ce.detach().numpy(), pose_loss=pl.detach().numpy(), loss=loss.item())
+    return trace, grads, {k: t.grad.numpy() for k, t in P.items()}
+
+
+def setup(rng, dtype="float64", **overrides):
+    cfg = pyvf.TransformerConfig(**{**TINY, **overrides}, dtype=dtype)
+    model = random_model(cfg, rng)
+    tokens, poses = random_batch(rng, 2, 4, 16, cfg.n_embeddings, dtype=np.dtype(dtype))
+    return model, tokens, poses
+
+
+def upstream(rng, model, tokens):
+    B, N, L = tokens.shape
+    return rng.normal(size=(B, N, L, model.config.n_embeddings)), rng.normal(size=(B, N, L, 7))
+
+
+# ---------------------------------------------------------------------------------------
+# 1. tracing changes nothing and costs nothing when off
+
+
+def test_traced_forward_and_backward_equal_untraced_bitwise(rng):
+    model, tokens, poses = setup(rng, "float32")
+    dl, dp = (a.astype(np.float32) for a in upstream(rng, model, tokens))
+    plain = model.forward(tokens, poses)
+    assert plain.trace is None
+    g_loss, g_vjp = model.backward(), model.backward(dlogits=dl, dpose=dp)
+    assert set(g_loss) == set(model.params)  # untraced: the parameters only, as always
+    out = model.forward(tokens, poses, trace=True)
+    t_loss, t_vjp = model.backward(), model.backward(dlogits=dl, dpose=dp)
+    for field in ("logits", "pose_prediction", "pose_raw", "ce_loss", "pose_loss"):
+        assert_bitwise_equal(field, getattr(out, field), getattr(plain, field))
+    assert out.loss == plain.loss
+    for name in model.params:
+        assert_bitwise_equal(f"d{name} (loss)", t_loss[name], g_loss[name])
+        assert_bitwise_equal(f"d{name} (vjp)", t_vjp[name], g_vjp[name])
+    # the trace: every name, in execution order; the model's outputs are the traced ones
+    assert list(out.trace) == trace_names(model.config.n_layer)
+    assert_bitwise_equal("trace logits", out.trace["logits"], out.logits)
+    assert_bitwise_equal("trace pose", out.trace["pose"], out.pose_raw)
+    with pytest.raises(ValueError, match="read-only"):
+        out.trace["blocks.0.ln_1"][...] = 0  # a view of a cache backward() reads
+    # gradients: every traced activation but lse and the losses, in backward order, then the parameters
+    acts = [n for n in trace_names(model.config.n_layer) if n not in no_grad_names(model.config.n_layer)]
+    names = list(t_vjp)
+    assert names[:len(acts)] == acts[::-1] and names[len(acts):] == list(model.params)
+    assert_bitwise_equal("dlogits seed", t_vjp["logits"], dl)
+    assert_bitwise_equal("dpose seed", t_vjp["pose"], dp)
+
+
+def test_bad_upstream_gradients_raise(rng):
+    model, tokens, poses = setup(rng, "float32")
+    dl, dp = upstream(rng, model, tokens)  # float64: the model is float32
+    with pytest.raises(TypeError, match="trace must be True or False"):
+        model.forward(tokens, poses, trace="yes")
+    model.forward(tokens, poses)
+    with pytest.raises(TypeError, match="dlogits is float64 but the model is float32"):
+        model.backward(dlogits=dl)
+    with pytest.raises(ValueError, match=r"dpose must have the shape .* \(2, 4, 16, 7\)"):
+        model.backward(dpose=dp[..., :6].astype(np.float32))
+    with pytest.raises(ValueError, match="dpose contains NaN"):
+        model.backward(dpose=np.full(dp.shape, np.nan, np.float32))
+    with pytest.raises(TypeError, match="dlogits must be a numpy.ndarray"):
+        model.backward(dlogits=dl.tolist())
+    with pytest.raises(TypeError, match="dloss must be a real number"):
+        model.backward(dloss="1")
+
+
+# ---------------------------------------------------------------------------------------
+# 2. every traced activation and its gradient against torch autograd, float64
+
+
+SEEDS = {
+    "vjp": dict(dlogits=True, dpose=True),
+    "dlogits_only": dict(dlogits=True),
+    "loss_and_vjp": dict(dlogits=True, dpose=True, dloss=0.7),
+}
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_trace_and_every_gradient_match_torch_float64(seed, rng):
+    model, tokens, poses = setup(rng, "float64", attention_scale=0.5, pose_multiplier=0.2, label_smoothing=0.1)
+    dl, dp = upstream(rng, model, tokens)
+    kw = dict(dlogits=dl if "dlogits" in SEEDS[seed] else None, dpose=dp if "dpose" in SEEDS[seed] else None,
+              dloss=SEEDS[seed].get("dloss"))
+    out = model.forward(tokens, poses, trace=True)
+    grads = model.backward(**kw)
+    t_trace, t_grads, t_pgrads = torch_trace(model, tokens, poses, **kw)
+    names = trace_names(model.config.n_layer)
+    assert set(t_trace) == set(names)  # the oracle, traced, covers every name
+    # float64 through ~40 roundings per path: measured <= 2e-14 relative (test_transformer.py); 1e-11 leaves room
+    for name in names:
+        assert_close(name, out.trace[name], t_trace[name], rtol=1e-11)
+    acts = [n for n in names if n not in no_grad_names(model.config.n_layer)]
+    assert set(t_grads) == set(acts)  # torch's autograd reaches every traced activation but lse and the losses
+    for name in acts:
+        assert_close(f"d {name}", grads[name], t_grads[name], rtol=1e-11)
+    for name in model.params:
+        assert_close(f"d {name}", grads[name], t_pgrads[name], rtol=1e-11)
+    # and through compare, its default float64 tolerance
+    report = pyvf.compare(t_trace, out.trace)
+    assert report.ok, str(report)
+    report = pyvf.compare({**t_grads, **t_pgrads}, grads)  # walked in backward's order
+    assert report.ok, str(report)
+
+
+def test_float32_model_within_the_float32_default_tolerance(rng):
+    """The float32 default (1e-3) against a float64 oracle: measured <= 3e-6 for the activations
+    and 1.1e-5 for the gradients on the tiny model, so the default leaves ~100x for depth."""
+    m64, tokens, poses = setup(rng, "float64")
+    m32 = pyvf.Transformer(dataclasses.replace(m64.config, dtype="float32"))
+    m32.load_official(m64.params)
+    dl, dp = upstream(rng, m64, tokens)
+    t_trace, t_grads, t_pgrads = torch_trace(m64, tokens, poses, dlogits=dl, dpose=dp)
+    out = m32.forward(tokens, poses.astype(np.float32), trace=True)
+    grads = m32.backward(dlogits=dl.astype(np.float32), dpose=dp.astype(np.float32))
+    # dtype= is needed for attn.lse: float64 on both sides, but computed from float32 q and k here
+    report = pyvf.compare(out.trace, t_trace, dtype="float32")
+    assert report.ok and max(r.rel for r in report.rows) < 1e-4, str(report)
+    assert [r.name for r in pyvf.compare(out.trace, t_trace).rows if not r.ok] == \
+        ["blocks.0.attn.lse", "blocks.1.attn.lse"]
+    report = pyvf.compare(grads, {**t_grads, **t_pgrads})
+    assert report.ok and {r.dtype for r in report.rows} == {"float32"} and max(r.rel for r in report.rows) < 1e-4, \
+        str(report)
+
+
+# ---------------------------------------------------------------------------------------
+# 3. compare names the first wrong quantity of a port with a planted bug
+
+
+BUGS = {
+    "swap_qk": "blocks.1.attn.q",  # q and k swapped inside block 1's fused projection
+    "ln_eps": "blocks.0.ln_2",  # LayerNorm eps 1e-3 in block 0's ln_2 (published: 1e-5)
+    "wpe_shift": "embed.positions",  # the positional embedding shifted by one
+}
+
+
+@pytest.mark.parametrize("bug", BUGS)
+def test_compare_names_the_first_wrong_quantity(bug, rng):
+    model, tokens, poses = setup(rng, "float64")
+    out = model.forward(tokens, poses, trace=True)
+    mine, _, _ = torch_trace(model, tokens, poses, dloss=1.0, bug=bug)
+    report = pyvf.compare(mine, out.trace)
+    assert report.first == BUGS[bug], str(report)
+    by_name = {r.name: r for r in report.rows}
+    assert all(r.ok for r in report.rows[:list(by_name).index(BUGS[bug])])
+    assert not by_name["logits"].ok and not by_name["loss"].ok  # the bug propagates: only the first one says where
+    assert f"first divergence: {BUGS[bug]}:" in str(report)
+    assert not report.ok and report.only_mine == [] and report.only_ref == []
+
+
+def test_compare_lists_names_on_one_side_only(rng):
+    model, tokens, poses = setup(rng, "float64", n_layer=1)
+    out = model.forward(tokens, poses, trace=True)
+    mine = {n: a for n, a in out.trace.items() if n != "blocks.0.attn.lse"}
+    mine["my.extra"] = np.zeros(3)
+    report = pyvf.compare(mine, out.trace)
+    assert report.first is None
+    assert report.only_mine == ["my.extra"] and report.only_ref == ["blocks.0.attn.lse"]
+    assert not report.ok  # listed, not ignored
+    text = str(report)
+    assert "only in mine (1): my.extra" in text and "only in ref (1): blocks.0.attn.lse" in text
+    assert len(report.rows) == len(out.trace) - 1
+
+
+# ---------------------------------------------------------------------------------------
+# 4. compare's inputs and tolerances
+
+
+def test_compare_inputs_and_tolerances():
+    rng = np.random.default_rng(0)
+    ref = {"a": rng.normal(size=(4, 5)), "b": rng.normal(size=(3,)), "ids": np.arange(6)}
+    # torch tensors that require grad are read through .detach(); float64 tolerance 1e-10
+    mine = {"a": torch.tensor(ref["a"] * (1 + 1e-12), requires_grad=True) * 1.0,
+            "b": torch.tensor(ref["b"]), "ids": torch.arange(6)}
+    report = pyvf.compare(mine, ref)
+    assert report.ok and [r.rtol for r in report.rows] == [1e-10, 1e-10, 0.0]
+    # the less precise side sets the tolerance: float32 -> 1e-3
+    r32 = pyvf.compare({"a": (ref["a"] * (1 + 1e-4)).astype(np.float32)}, {"a": ref["a"]})
+    assert r32.first is None and r32.rows[0].dtype == "float32" and r32.rows[0].rtol == 1e-3
+    assert pyvf.compare({"a": ref["a"] * (1 + 1e-4)}, {"a": ref["a"]}).first == "a"  # float64: over
+    assert pyvf.compare({"a": ref["a"] * (1 + 1e-4)}, {"a": ref["a"]}, dtype="float32").first is None
+    assert pyvf.compare({"a": ref["a"] * (1 + 1e-4)}, {"a": ref["a"]}, rtol=1e-5).first == "a"
+    bf = pyvf.compare({"a": torch.tensor(ref["a"]).to(torch.bfloat16)}, {"a": ref["a"]})
+    assert bf.first is None and bf.rows[0].dtype == "bfloat16" and bf.rows[0].rtol == 5e-2
+    # the error measure is pyvf.rel_err, public
+    x = ref["a"] + 0.01 * rng.normal(size=ref["a"].shape)
+    assert pyvf.compare({"a": x}, ref).rows[0].rel == pyvf.rel_err(x, ref["a"])
+    # a wrong shape, a NaN, a wrong id: each diverges, the first in ref's order is named
+    bad = pyvf.compare({"a": ref["a"].T, "b": np.full(3, np.nan), "ids": np.arange(1, 7)}, ref)
+    assert bad.first == "a" and [r.ok for r in bad.rows] == [False, False, False]
+    assert "shape (5, 4) vs ref (4, 5)" in str(bad)
+    assert pyvf.compare({"b": np.full(3, np.nan)}, ref).first == "b"
+    with pytest.raises(TypeError, match="mine must be a mapping"):
+        pyvf.compare([1, 2], ref)
+    with pytest.raises(ValueError, match="rtol must be a finite number"):
+        pyvf.compare(ref, ref, rtol=-1)
+    with pytest.raises(TypeError, match=r"mine\['a'\] must be a real numeric array"):
+        pyvf.compare({"a": np.array(["x"])}, ref)
