@@ -4,7 +4,7 @@
     pyvf demo --quick                           # seconds
     pyvf evaluate --scenes 200 --context 1,3,5 --out eval [--codebook F --transformer F]
     pyvf config                                 # the kernels' instruction-set path, threads
-    pyvf bench attention|vq|transformer|codebook [--quick] [...]   # `pyvf bench NAME --help`
+    pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
     pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
     pyvf convert tf-transformer path/model --config config.json -o model.npz
     pyvf convert torch-codebook model.ckpt --config config.json -o codebook.npz
@@ -30,7 +30,7 @@ from pyvf.scenes import cli_register as scenes_commands
 from pyvf.train import cli_register as train_commands
 from pyvf.verify import convert_tf, convert_torch
 
-BENCHMARKS = ("attention", "vq", "transformer", "codebook")  # modules of pyvf.bench
+BENCHMARKS = ("attention", "vq", "transformer", "codebook", "scaling")  # modules of pyvf.bench
 DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
 # name -> (the converter's module, what its checkpoint argument is, what its config is)
 CONVERTERS = {

@@ -56,7 +56,7 @@ def assert_ran(proc, *expected):
 
 def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path):
     code = ("import sys, pyvf, pyvf.cli, pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.transformer, "
-            "pyvf.bench.codebook, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
+            "pyvf.bench.codebook, pyvf.bench.scaling, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
             "assert 'torch' not in sys.modules, 'pyvf imported torch'; print(pyvf.__file__)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
                           text=True, timeout=TIMEOUT)

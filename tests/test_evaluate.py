@@ -294,7 +294,7 @@ def test_demo_quick_command(models, tmp_path):
     proc = run(["demo", "--quick", "--codebook", cb_path, "--transformer", tf_path, "--no-progress"], tmp_path)
     assert proc.returncode == 0, show(proc)
     assert proc.stdout.startswith("pyvf kernels: path "), show(proc)
-    for text in ("## Context 1 view", "## Context 3 views", "| pyvf |", "docs/walkthrough.md"):
+    for text in ("## Context 1 view", "## Context 3 views", "| pyvf |", "docs/models.md"):
         assert text in proc.stdout, text + show(proc)
     for name in ("metrics.json", "metrics.md", "views.png", "poses.png"):
         assert (tmp_path / "pyvf-demo" / name).is_file(), name
@@ -336,4 +336,4 @@ def test_demo_quick_with_the_shipped_models(tmp_path):
         assert "pyvf train-codebook" in proc.stdout and "all errors within their bounds" in proc.stdout, show(proc)
         return
     assert proc.returncode == 0, show(proc)
-    assert proc.stdout.startswith("pyvf kernels: path ") and "docs/walkthrough.md" in proc.stdout, show(proc)
+    assert proc.stdout.startswith("pyvf kernels: path ") and "docs/models.md" in proc.stdout, show(proc)

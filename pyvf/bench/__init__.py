@@ -4,6 +4,7 @@
     pyvf bench vq          nearest-code lookup: pyvf.vq_nearest, torch, numpy, float64 brute force
     pyvf bench transformer one training step, pyvf against the torch oracle model
     pyvf bench codebook    encode/decode and a training step, pyvf against the torch oracle model
+    pyvf bench scaling     attention memory and time against the number of views: pyvf, naive stacked, dense
 
 `pyvf bench <name> [args]` (or `python -m pyvf.bench.<name> [args]`) runs one; `--help` lists its
 options. Every benchmark validates its results before it times them. torch is imported only

@@ -1,0 +1,639 @@
+"""Attention memory and time as the number of views N grows: pyvf's branching kernel against the
+approaches it replaces (issue 11, item 1; SPEC.md §2).
+
+    pyvf bench scaling                             # N = 2, 4, ..., 64; H=12 dh=64 and H=4 dh=32; long
+    pyvf bench scaling --quick                     # N = 2, 4, 8; H=4 dh=32; well under a minute
+    pyvf bench scaling --json out.json --plots plots/
+
+Methods (float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1):
+  pyvf         pyvf's branching kernel, (R, B, H, N, L, dh): O(T*dh) memory, T = R*N*L
+  naive_pyvf   the naive approach the paper avoids: one sequence per query view (the trunk, and
+               for each branch r and view i the trunk views 0..i-1 followed by the branch's view
+               i), padded with zero views to N*L tokens and stacked along the batch: S = 1 +
+               (R-1)*N sequences. Run with pyvf's kernel at R=1, which is plain block-causal
+               attention over views (pyvf has no separate causal kernel: R=1 is that kernel).
+               Padding comes after every real token, so no real query sees it; the stacked output
+               gives back exactly the branching output
+  naive_sdpa   the same stacked sequences through torch SDPA with is_causal=True (token-causal:
+               within its own view a token sees only the tokens before it, not the paper's rule;
+               validated against the token-causal dense reference, the same cost order)
+  dense_sdpa   torch SDPA on the flat (B, H, T, dh) sequence with the (T, T) branching mask
+  dense_numpy  pyvf.branching_attention_reference: the NumPy dense reference, (T, T) logits
+  flex         torch flex_attention, compiled, with a block mask (forward only; not in --quick:
+               each N compiles anew, ~15 s on 2 cores when torch's inductor cache is cold)
+
+Every point (method, size, N) runs in a process of its own (this module with --worker): it
+validates its output (and gradients) against the float64 dense reference at the first N of each
+size, then measures one call's extra peak memory (pyvf.measure.peak_memory: resident memory,
+inputs excluded, outputs included) forward and forward+backward, then times each (median of
+--repeat calls after a warm-up). Beside the measurement: the theoretical counts (tokens held,
+block pairs computed, useful FLOPs, the largest buffer) and the memory expected. A point whose
+inputs plus expected memory would not fit in MEM_FRACTION of /proc/meminfo MemAvailable (read
+before each point; --mem-limit-mib overrides it) is skipped with the reason written down, as is a
+point whose predicted run time exceeds --max-point-seconds.
+
+The fitted slope of log(memory) and log(time) against log(N) per method is in the table and on
+the plots (--plots DIR, matplotlib: `pip install pyvf[plots]`). Theory: pyvf's memory ~N^1; the
+dense mask ~N^2; the naive stacked approach ~N^2 in tokens and activations, ~N^3 where its logits
+are materialised (torch's math path), time ~N^3 (S sequences of N*L tokens each). At small N the
+per-thread, N-independent buffers hold pyvf's slope below 1.
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+import pyvf
+from pyvf.bench import blas_thread_env
+from pyvf.bench.attention import (BOUND32, attended_pairs, dense_logits_bytes, make_inputs, measure_once,
+                                  ms, pyvf_expected_memory, pyvf_fns, reference_fns, setup_flex, table, torch_fns,
+                                  unflat, useful_flops)
+from pyvf.measure import cpu_name, format_bytes, median_time, memory_method, rel_err, run_worker
+
+WORKER = "pyvf.bench.scaling"  # this module, run as `python -m WORKER --worker SPEC`
+R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (SPEC.md §1)
+SIZES = ((12, 64), (4, 32))  # (H, dh): the paper's, and a small one
+QUICK_SIZES = ((4, 32),)
+VIEWS = (2, 4, 8, 16, 32, 64)
+QUICK_VIEWS = (2, 4, 8)
+METHODS = {
+    "pyvf": "pyvf branching kernel",
+    "naive_pyvf": "naive stacked, pyvf kernel at R=1",
+    "naive_sdpa": "naive stacked, torch SDPA is_causal",
+    "dense_sdpa": "dense (T,T) mask, torch SDPA",
+    "dense_numpy": "dense (T,T) mask, NumPy reference",
+    "flex": "torch flex_attention, block mask",
+}
+TORCH_METHODS = ("naive_sdpa", "dense_sdpa", "flex")
+QUICK_METHODS = tuple(m for m in METHODS if m != "flex")
+# The other implementations round the logits (up to ~40 here: unit-normal inputs, scale 1) in
+# float32 in their own order, torch's flash kernel with its own exp (measured: torch SDPA and
+# flex ~1.5e-6, at the first N of the small size); what is checked is that each computes the same
+# function, where a wrong mask or layout is an O(1) error. pyvf (and pyvf's kernel on the stacked
+# sequences) is held to BOUND32, tests/test_attention.py's bound.
+BOUND_OTHERS = 1e-4
+# the naive approach's time grows as N^3: at N=64, H=12 one forward+backward is minutes on 2 cores
+MAX_POINT_SECONDS = 120
+MEM_FRACTION = 0.8  # of MemAvailable a point may plan to use: the rest is margin (others share the machine)
+# resident memory of a worker before its inputs (python + numpy + pyvf; + torch): measured ~60 MiB
+# and ~350 MiB here, rounded up
+BASELINE = dict(numpy=128 * 2 ** 20, torch=512 * 2 ** 20)
+
+
+# ---------------------------------------------------------------------------------------
+# the naive approach: one sequence per query view, stacked along the batch
+
+
+def n_sequences(R, N):
+    """S: the trunk, and one sequence per (branch, view)."""
+    return 1 + (R - 1) * N
+
+
+def stack_naive(x, queries_only=False):
+    """(R, B, H, N, L, dh) -> (S, B, H, N, L, dh): sequence 0 is the trunk; sequence 1 + (r-1)*N + i
+    holds the trunk views 0..i-1, then branch r's view i, then zero views up to N.
+
+    queries_only (for the upstream gradient do): zeros in place of the trunk copies of the branch
+    sequences, whose outputs the naive approach throws away (only their view i is its query)."""
+    R, B, H, N, L, dh = x.shape
+    out = np.zeros((n_sequences(R, N),) + x.shape[1:], dtype=x.dtype)  # (S, B, H, N, L, dh)
+    out[0] = x[0]
+    for r in range(1, R):
+        for i in range(N):
+            s = 1 + (r - 1) * N + i
+            if not queries_only:
+                out[s, :, :, :i] = x[0, :, :, :i]
+            out[s, :, :, i] = x[r, :, :, i]
+    return out
+
+
+def unstack_naive(st, R, keys=False):
+    """The inverse of stack_naive for an output or a gradient (S, B, H, N, L, dh) -> (R, B, H, N, L, dh).
+
+    A query token appears in one sequence only (o, dq: keys=False); a trunk key in the trunk and in
+    every later branch sequence, so its gradient (dk, dv: keys=True) is the sum over them."""
+    S, B, H, N, L, dh = st.shape
+    out = np.zeros((R, B, H, N, L, dh), dtype=st.dtype)
+    out[0] = st[0]
+    for r in range(1, R):
+        for i in range(N):
+            s = 1 + (r - 1) * N + i
+            out[r, :, :, i] = st[s, :, :, i]
+            if keys:
+                out[0, :, :, :i] += st[s, :, :, :i]
+    return out
+
+
+def naive_pyvf_fns(qs, ks, vs, dos):
+    """pyvf's kernel at R=1 (block-causal over views) on the stacked (S, B, H, N, L, dh) inputs,
+    seen as one row of S*B batch entries (a free reshape)."""
+    S, B = qs.shape[:2]
+    return pyvf_fns(*(x.reshape((1, S * B) + x.shape[2:]) for x in (qs, ks, vs, dos)))
+
+
+def naive_sdpa_fns(qs, ks, vs, dos):
+    """torch SDPA is_causal=True on the stacked inputs as (S*B, H, N*L, dh) (a free reshape)."""
+    import torch
+    import torch.nn.functional as F
+
+    S, B, H, N, L, dh = qs.shape
+    qt, kt, vt, dot = (torch.from_numpy(x.reshape(S * B, H, N * L, dh)) for x in (qs, ks, vs, dos))
+    leaves = [x.clone().requires_grad_(True) for x in (qt, kt, vt)]
+
+    def fwd():
+        with torch.no_grad():
+            return F.scaled_dot_product_attention(qt, kt, vt, is_causal=True, scale=1.0)
+
+    def fwd_bwd():
+        o = F.scaled_dot_product_attention(*leaves, is_causal=True, scale=1.0)
+        return o.detach(), torch.autograd.grad(o, leaves, dot)
+
+    return fwd, fwd_bwd
+
+
+# ---------------------------------------------------------------------------------------
+# theory: what each method holds and computes, and the memory expected
+
+
+def theory(method, R, B, H, N, L, dh, threads, backend="FLASH_ATTENTION"):
+    """The counts of one point, float32: tokens (held, per batch entry and head), block pairs
+    computed per (b, h), useful FLOPs (attended blocks only, the same for every method), the
+    largest buffer, the inputs' bytes and the extra memory expected forward and forward+backward
+    (None where the method has no backward). backend: torch SDPA's ("MATH" materialises logits)."""
+    it = 4
+    T = R * N * L
+    S = R * B * H * N * L * dh * it  # one array like q
+    logits = dense_logits_bytes(R, B, H, N, L, it)  # (B, H, T, T)
+    mask = T * T  # the (T, T) bool mask
+    useful_fwd, useful_fb = useful_flops(R, B, H, N, L, dh)
+    nseq = n_sequences(R, N)
+    Sn = nseq * B * H * N * L * dh * it  # one stacked array (S, B, H, N, L, dh)
+    seq_logits = nseq * B * H * (N * L) ** 2 * it  # the stacked sequences' logits
+    math = backend == "MATH"
+    if method == "pyvf":
+        tokens, pairs, inputs = T, attended_pairs(R, N), 4 * S
+        fwd, fb = pyvf_expected_memory(R, B, H, N, L, dh, it, threads)
+        largest = (S, "one array like q (R,B,H,N,L,dh)")
+    elif method == "naive_pyvf":
+        tokens, pairs, inputs = nseq * N * L, nseq * N * (N + 1) // 2, 4 * Sn
+        fwd, fb = pyvf_expected_memory(1, nseq * B, H, N, L, dh, it, threads)
+        largest = (Sn, "one stacked array (S,B,H,N,L,dh)")
+    elif method == "naive_sdpa":
+        tokens, pairs, inputs = nseq * N * L, nseq * N * (N + 1) // 2, 7 * Sn  # q, k, v, do + 3 leaves
+        lse = nseq * B * H * N * L * it
+        fwd, fb = Sn + lse + math * seq_logits, 4 * Sn + lse + 2 * math * seq_logits
+        largest = (seq_logits, "stacked logits (S*B,H,N*L,N*L)") if math else (Sn, "one stacked array")
+    elif method == "dense_sdpa":
+        tokens, pairs, inputs = T, (R * N) ** 2, 7 * S + mask
+        # torch converts the bool mask to a float32 (T, T) additive mask; the math path also
+        # materialises the logits (and keeps the probabilities for the backward)
+        fwd, fb = 4 * mask + S + math * logits, 4 * mask + 4 * S + 2 * math * logits
+        largest = (logits, "logits (B,H,T,T)") if math else (4 * mask, "float32 mask (T,T)")
+    elif method == "dense_numpy":
+        # s, p = exp(s) and p / sum(p) alive at once; the vjp p, dp and one temporary (bench.attention)
+        tokens, pairs, inputs = T, (R * N) ** 2, 4 * S
+        fwd, fb = mask + 3 * logits + S, mask + 3 * logits + 3 * S
+        largest = (logits, "logits (B,H,T,T)")
+    elif method == "flex":
+        tokens, pairs, inputs = T, attended_pairs(R, N), 3 * S
+        fwd, fb = S + B * H * T * it, None  # o and its log-sum-exp; compiled kernel's workspace not modelled
+        largest = (S, "one array like q")
+    else:
+        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    computed = 4 * L * L * dh * pairs * B * H
+    return dict(tokens=tokens, block_pairs=pairs, useful_flops_fwd=useful_fwd, useful_flops_fwd_bwd=useful_fb,
+                computed_flops_fwd=computed, largest_buffer_bytes=largest[0], largest_buffer=largest[1],
+                inputs_bytes=inputs, expected_fwd=fwd, expected_fwd_bwd=fb)
+
+
+def mem_available():
+    """/proc/meminfo MemAvailable in bytes (None where there is no /proc/meminfo)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def skip_reason(method, th, available):
+    """Why a point must not run (a string), or None when its inputs, the expected memory of its
+    largest pass and the worker's baseline fit in MEM_FRACTION of `available` bytes."""
+    if available is None:
+        return None
+    base = BASELINE["torch" if method in TORCH_METHODS else "numpy"]
+    peak = max(x for x in (th["expected_fwd"], th["expected_fwd_bwd"]) if x is not None)
+    need = th["inputs_bytes"] + peak + base
+    if need > MEM_FRACTION * available:
+        return (f"needs ~{format_bytes(need)} (inputs {format_bytes(th['inputs_bytes'])} + expected peak "
+                f"{format_bytes(peak)} + process {format_bytes(base)}) > {MEM_FRACTION:.0%} of the "
+                f"{format_bytes(available)} available")
+    return None
+
+
+def fit_slope(Ns, values):
+    """The least-squares slope of log(value) against log(N): the exponent p of value ~ c N^p.
+    Points with a value of None or <= 0 are left out; None when fewer than two remain."""
+    pts = [(n, v) for n, v in zip(Ns, values) if v is not None and v > 0]
+    if len(pts) < 2:
+        return None
+    x, y = np.log(np.array(pts, dtype=np.float64)).T
+    return float(np.polyfit(x, y, 1)[0])
+
+
+# ---------------------------------------------------------------------------------------
+# the worker: one point in a process of its own
+
+
+def worker(spec):
+    """Run one point: {method, H, dh, N, threads, repeat, validate} -> the dict printed as JSON."""
+    method, H, dh, N = spec["method"], spec["H"], spec["dh"], spec["N"]
+    threads, repeat = spec["threads"], spec["repeat"]
+    pyvf.set_num_threads(threads)
+    out = dict(method=method)
+    if method in TORCH_METHODS:
+        import torch
+
+        torch.set_num_threads(threads)
+    q, k, v, do = make_inputs(R, B, H, N, L, dh, seed=N)  # (R, B, H, N, L, dh) each
+    shape = q.shape
+    ref = None
+    if spec["validate"]:  # the float64 dense reference of the branching output and its gradients
+        x64 = [x.astype(np.float64) for x in (q, k, v, do)]
+        ref = (pyvf.branching_attention_reference(*x64[:3]), pyvf.branching_attention_reference_vjp(*x64))
+        del x64
+
+    # each method's closures, and `check(o, grads)`: its result mapped back to (R, B, H, N, L, dh)
+    to_np = np.asarray
+    bound = BOUND_OTHERS
+    fb = None
+    if method == "pyvf":
+        fwd, fb = pyvf_fns(q, k, v, do)
+        bound = BOUND32
+    elif method == "dense_numpy":
+        fwd, fb = reference_fns(q, k, v, do)
+    elif method == "dense_sdpa":
+        from pyvf.bench.attention import torch_backend
+
+        mask = pyvf.branching_mask(R, N, L)  # (T, T) bool
+        fwd, fb, t_to_np = torch_fns(q, k, v, do, mask)
+        to_np = t_to_np  # a flat tensor -> (R, B, H, N, L, dh)
+        out["backend"] = torch_backend(q, mask)
+    elif method in ("naive_pyvf", "naive_sdpa"):
+        qs, ks, vs = (stack_naive(x) for x in (q, k, v))  # (S, B, H, N, L, dh)
+        dos = stack_naive(do, queries_only=True)
+        st = qs.shape
+        if method == "naive_pyvf":
+            fwd, fb = naive_pyvf_fns(qs, ks, vs, dos)
+            bound = BOUND32
+            o_map = lambda o: unstack_naive(o.reshape(st), R)  # noqa: E731
+            g_map = lambda g: [unstack_naive(g[0].reshape(st), R)] + [  # noqa: E731
+                unstack_naive(x.reshape(st), R, keys=True) for x in g[1:]]
+        else:
+            import torch
+            from torch.nn.attention import SDPBackend
+
+            fwd, fb = naive_sdpa_fns(qs, ks, vs, dos)
+            flat_s = lambda x: x.reshape(1, st[0] * B, H, N * L, 1, dh)  # noqa: E731
+            o_map = lambda o: o.numpy().reshape(st)  # noqa: E731
+            g_map = lambda g: [x.numpy().reshape(st) for x in g]  # noqa: E731
+            t = torch.from_numpy(qs.reshape(-1, H, N * L, dh))
+            out["backend"] = SDPBackend(torch._fused_sdp_choice(t, t, t, is_causal=True, scale=1.0)).name
+            if ref is not None:
+                # token-causal attention is the branching rule with R=1 and L=1 (each token a view)
+                s64 = [flat_s(x.astype(np.float64)) for x in (qs, ks, vs, dos)]
+                ref = (pyvf.branching_attention_reference(*s64[:3]).reshape(st),
+                       [g.reshape(st) for g in pyvf.branching_attention_reference_vjp(*s64)])
+                del s64
+        del qs, ks, vs, dos  # the closures hold what they need
+    elif method == "flex":
+        o_ref = ref[0] if ref is not None else pyvf.branching_attention(*(x.astype(np.float64) for x in (q, k, v)))
+        fx, fwd = setup_flex(q, k, v, o_ref)
+        out["flex"] = {kk: vv for kk, vv in fx.items() if kk != "traceback"}
+        if fwd is None:
+            out["error"] = f"flex_attention failed: {fx['error']}"
+            return out
+        to_np = lambda t: unflat(t.numpy(), shape)  # noqa: E731
+    else:
+        raise ValueError(f"unknown method {method!r}")
+    if method not in ("naive_pyvf", "naive_sdpa"):
+        o_map = to_np
+        g_map = lambda g: [to_np(x) for x in g]  # noqa: E731
+
+    # 1. validate (first N of each size) on the first call of each pass
+    def check(res, with_grads):
+        if not with_grads:
+            return {"o": rel_err(o_map(res), ref[0])}
+        o, grads = (None, res) if method == "dense_numpy" else res  # the reference's vjp returns grads only
+        err = {n: rel_err(g, w) for n, g, w in zip(("dq", "dk", "dv"), g_map(grads), ref[1])}
+        if o is not None:
+            err["o of fwd+bwd"] = rel_err(o_map(o), ref[0])
+        return err
+
+    for fn, with_grads in ((fwd, False), (fb, True)):
+        if fn is not None:
+            res = fn()
+            if ref is not None:
+                out.setdefault("errors", {}).update(check(res, with_grads))
+            del res
+    if ref is not None:
+        out["bound"] = bound
+        worst = max(out["errors"].values())
+        if worst > bound:
+            out["error"] = f"validation failed: max rel. error {worst:.2e} > {bound:g} against the float64 reference"
+            return out
+    ref = None  # free the reference before measuring
+
+    # 2. memory: one measured call of each pass after one warm-up call
+    _, out["fwd_bytes"], _ = measure_once(fwd, warmup=1)
+    if fb is not None:
+        _, out["fwd_bwd_bytes"], _ = measure_once(fb, warmup=1)
+    # 3. time
+    out["fwd_seconds"], out["fwd_times"] = median_time(fwd, repeat, warmup=0)
+    if fb is not None:
+        out["fwd_bwd_seconds"], out["fwd_bwd_times"] = median_time(fb, repeat, warmup=0)
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# the driver
+
+
+def sdpa_backends():
+    """The backend torch SDPA picks here for float32 with is_causal and with a bool mask
+    (decides whether the logits are materialised, for the memory estimates); None without torch."""
+    try:
+        import torch
+        from torch.nn.attention import SDPBackend
+    except ImportError:
+        return None
+    t = torch.zeros(1, 1, 2 * L, 32)
+    m = torch.ones(2 * L, 2 * L, dtype=torch.bool)
+    try:
+        return dict(causal=SDPBackend(torch._fused_sdp_choice(t, t, t, is_causal=True, scale=1.0)).name,
+                    mask=SDPBackend(torch._fused_sdp_choice(t, t, t, attn_mask=m, scale=1.0)).name)
+    except Exception:  # noqa: BLE001 -- a private function: assume the worst (logits materialised)
+        return dict(causal="MATH", mask="MATH")
+
+
+def predicted_seconds(prev, th, repeat):
+    """The run time of a point predicted from the previous N's point of the same method and size
+    (time scaled by the computed FLOPs): (repeat + 3) calls of each pass. None without one."""
+    if prev is None or "fwd_seconds" not in prev:
+        return None
+    per_call = prev["fwd_seconds"] + (prev.get("fwd_bwd_seconds") or 0.0)
+    return (repeat + 3) * per_call * th["computed_flops_fwd"] / prev["theory"]["computed_flops_fwd"]
+
+
+def run_points(sizes, views, methods, threads, repeat, mem_limit=None, max_point_seconds=None, log=print):
+    """Every point, each in a worker process (or skipped, with the reason): a list of dicts."""
+    backends = sdpa_backends() if any(m in TORCH_METHODS for m in methods) else {}
+    points = []
+    for H, dh in sizes:
+        prev = {}
+        for idx, N in enumerate(views):
+            for method in methods:
+                backend = (backends or {}).get("causal" if method == "naive_sdpa" else "mask", "FLASH_ATTENTION")
+                th = theory(method, R, B, H, N, L, dh, threads, backend)
+                p = dict(method=method, H=H, dh=dh, N=N, T=R * N * L, theory=th)
+                available = mem_limit if mem_limit is not None else mem_available()
+                reason = None
+                if method in TORCH_METHODS and backends is None:
+                    reason = "torch is not installed"
+                reason = reason or skip_reason(method, th, available)
+                est = predicted_seconds(prev.get(method), th, repeat)
+                if reason is None and max_point_seconds and est is not None and est > max_point_seconds:
+                    reason = f"predicted {est:.0f} s > --max-point-seconds {max_point_seconds:g}"
+                if reason is None and prev.get(method, {}).get("skipped"):
+                    reason = "a smaller N of this method was skipped"
+                if reason:
+                    p["skipped"] = reason
+                    log(f"  H={H} dh={dh} N={N:>2} {method:<12} skipped: {reason}")
+                else:
+                    spec = dict(method=method, H=H, dh=dh, N=N, threads=threads, repeat=repeat, validate=idx == 0)
+                    t0 = time.perf_counter()
+                    try:
+                        p.update(run_worker(WORKER, "--worker", json.dumps(spec)))
+                    except (RuntimeError, ValueError) as e:  # a crashed worker: record it, carry on
+                        p["error"] = str(e)[-2000:]
+                    p["worker_seconds"] = time.perf_counter() - t0
+                    what = p.get("error") or (f"fwd {format_bytes(p['fwd_bytes'])} {ms(p['fwd_seconds'])}"
+                                              + (f", fwd+bwd {format_bytes(p['fwd_bwd_bytes'])} "
+                                                 f"{ms(p['fwd_bwd_seconds'])}" if "fwd_bwd_bytes" in p else ""))
+                    log(f"  H={H} dh={dh} N={N:>2} {method:<12} {p['worker_seconds']:.1f} s: {what}", flush=True)
+                prev[method] = p
+                points.append(p)
+    return points
+
+
+def fits(points, sizes, methods):
+    """{"HxDH": {method: {memory/time slope of each pass, and the local exponent between the last two N}}}."""
+    out = {}
+    for H, dh in sizes:
+        per = {}
+        for method in methods:
+            pts = [p for p in points if p["method"] == method and (p["H"], p["dh"]) == (H, dh) and "fwd_seconds" in p]
+            Ns = [p["N"] for p in pts]
+            f = {}
+            for key in ("fwd_bytes", "fwd_bwd_bytes", "fwd_seconds", "fwd_bwd_seconds"):
+                vals = [p.get(key) for p in pts]
+                f[key] = fit_slope(Ns, vals)
+                f[key + "_last"] = fit_slope(Ns[-2:], vals[-2:])
+            f["expected_fwd"] = fit_slope(Ns, [p["theory"]["expected_fwd"] for p in pts])
+            f["expected_fwd_bwd"] = fit_slope(Ns, [p["theory"]["expected_fwd_bwd"] for p in pts])
+            f["N"] = Ns
+            per[method] = f
+        out[f"{H}x{dh}"] = per
+    return out
+
+
+def _b(x):
+    return "-" if x is None else format_bytes(x)
+
+
+def _s(x):
+    return "-" if x is None else f"{x:.2f}"
+
+
+def print_tables(points, fit, sizes, methods):
+    for H, dh in sizes:
+        print(f"\n## H={H} dh={dh} (R={R} B={B} L={L}, float32)\n")
+        rows = []
+        for p in points:
+            if (p["H"], p["dh"]) != (H, dh):
+                continue
+            th = p["theory"]
+            if "skipped" in p:
+                note = "skipped: " + p["skipped"]
+            elif "error" in p:
+                note = "FAILED: " + p["error"].splitlines()[0][:100]
+            else:
+                note = " ".join(x for x in (p.get("backend"), "validated" if "errors" in p else None) if x)
+            rows.append([p["N"], p["method"], th["tokens"], th["block_pairs"], f"{th['useful_flops_fwd'] / 1e9:.3g}",
+                         _b(th["largest_buffer_bytes"]), _b(th["expected_fwd"]), _b(p.get("fwd_bytes")),
+                         _b(th["expected_fwd_bwd"]), _b(p.get("fwd_bwd_bytes")),
+                         ms(p.get("fwd_seconds")), ms(p.get("fwd_bwd_seconds")), note])
+        print(table(["N", "method", "tokens", "block pairs", "useful GFLOP fwd", "largest buffer", "fwd expected",
+                     "fwd measured", "fwd+bwd expected", "fwd+bwd measured", "fwd time", "fwd+bwd time", "note"],
+                    [[str(c) for c in r] for r in rows]))
+        print(f"\nfitted slopes d log y / d log N over the measured N (last two N in brackets), H={H} dh={dh}\n")
+        f = fit[f"{H}x{dh}"]
+        rows = [[m, f"{_s(f[m]['fwd_bytes'])} ({_s(f[m]['fwd_bytes_last'])})",
+                 f"{_s(f[m]['fwd_bwd_bytes'])} ({_s(f[m]['fwd_bwd_bytes_last'])})",
+                 f"{_s(f[m]['expected_fwd'])} / {_s(f[m]['expected_fwd_bwd'])}",
+                 f"{_s(f[m]['fwd_seconds'])} ({_s(f[m]['fwd_seconds_last'])})",
+                 f"{_s(f[m]['fwd_bwd_seconds'])} ({_s(f[m]['fwd_bwd_seconds_last'])})",
+                 ",".join(map(str, f[m]["N"]))] for m in methods]
+        print(table(["method", "memory fwd", "memory fwd+bwd", "expected fwd / fwd+bwd", "time fwd", "time fwd+bwd",
+                     "N measured"], rows))
+    print("\nmemory: extra peak resident memory of one call (inputs excluded, outputs included); time: median; "
+          "tokens: held per (batch entry, head), padding included; block pairs: (L, L) blocks computed per head; "
+          "useful GFLOP: the attended blocks' matmuls, the same for every method")
+
+
+def plot(points, fit, sizes, methods, folder):
+    """memory_HxDH.png and time_HxDH.png in folder: log-log against N, a line per method and pass,
+    the fitted slope in the legend. Returns the files written, or None without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        import matplotlib.ticker
+    except ImportError:
+        return None
+    os.makedirs(folder, exist_ok=True)
+    files = []
+    for H, dh in sizes:
+        f = fit[f"{H}x{dh}"]
+        for what, keys, unit, scale in (("memory", ("fwd_bytes", "fwd_bwd_bytes"), "MiB", 2 ** 20),
+                                        ("time", ("fwd_seconds", "fwd_bwd_seconds"), "ms", 1e-3)):
+            fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+            for ax, key, title in zip(axes, keys, ("forward", "forward+backward")):
+                for method in methods:
+                    pts = [p for p in points if p["method"] == method and (p["H"], p["dh"]) == (H, dh)
+                           and p.get(key)]
+                    if not pts:
+                        continue
+                    ax.loglog([p["N"] for p in pts], [p[key] / scale for p in pts], "o-",
+                              label=f"{METHODS[method]} (slope {_s(f[method][key])})")
+                views = sorted({p["N"] for p in points})
+                ax.set_xticks(views, [str(n) for n in views])
+                ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+                ax.set_title(f"{what}, {title}: H={H} dh={dh} R={R} L={L}")
+                ax.set_xlabel("N (views)")
+                ax.grid(True, which="both", alpha=0.3)
+                ax.legend(fontsize=7)
+            axes[0].set_ylabel(f"extra peak memory ({unit})" if what == "memory" else f"median time ({unit})")
+            path = os.path.join(folder, f"{what}_H{H}_dh{dh}.png")
+            fig.tight_layout()
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            files.append(path)
+    return files
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(prog="pyvf bench scaling", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p.add_argument("--quick", action="store_true", help="N = 2, 4, 8, H=4 dh=32, no flex: well under a minute")
+    p.add_argument("--views", help="comma-separated N (default 2,4,...,64; 2,4,8 with --quick)")
+    p.add_argument("--sizes", help="comma-separated HxDH (default 12x64,4x32; 4x32 with --quick)")
+    p.add_argument("--methods", help=f"comma-separated, from {', '.join(METHODS)} (default all; no flex with --quick)")
+    p.add_argument("--threads", type=int, default=2, help="threads for pyvf and torch (default 2)")
+    p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
+    p.add_argument("--mem-limit-mib", type=float, default=None,
+                   help="plan against this many MiB instead of /proc/meminfo MemAvailable")
+    p.add_argument("--max-point-seconds", type=float, default=MAX_POINT_SECONDS,
+                   help="skip a point whose run time, predicted from the previous N by the FLOPs it computes, "
+                        f"exceeds this (default {MAX_POINT_SECONDS}; 0: never)")
+    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
+    p.add_argument("--plots", metavar="DIR", help="write memory and time plots (PNG) to DIR (needs matplotlib)")
+    p.add_argument("--worker", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.worker:
+        return args
+    if args.threads < 1:
+        p.error("--threads must be at least 1")
+    if args.repeat < 5:
+        p.error("--repeat must be at least 5 (medians of fewer calls are not worth printing)")
+    try:
+        args.views = tuple(int(x) for x in args.views.split(",")) if args.views else (
+            QUICK_VIEWS if args.quick else VIEWS)
+        args.sizes = tuple(tuple(int(y) for y in x.lower().split("x")) for x in args.sizes.split(",")) \
+            if args.sizes else (QUICK_SIZES if args.quick else SIZES)
+    except ValueError:
+        p.error("--views takes integers like 2,4,8; --sizes pairs like 12x64,4x32")
+    if any(n < 1 for n in args.views) or any(len(s) != 2 or min(s) < 1 for s in args.sizes):
+        p.error("--views and --sizes must be positive")
+    args.methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else (
+        QUICK_METHODS if args.quick else tuple(METHODS))
+    unknown = [m for m in args.methods if m not in METHODS]
+    if unknown:
+        p.error(f"unknown method {', '.join(unknown)}; choose from {', '.join(METHODS)}")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(json.loads(args.worker))))
+        return 0
+    t_start = time.perf_counter()
+    mem_limit = None if args.mem_limit_mib is None else int(args.mem_limit_mib * 2 ** 20)
+    available = mem_available()
+    print(f"# Attention memory and time against the number of views N: R={R} B={B} L={L}, float32, scale 1, "
+          f"{args.threads} threads")
+    print(f"machine: {cpu_name()}, {os.cpu_count()} CPUs; memory available "
+          f"{_b(available)}{'' if mem_limit is None else f' (planning against --mem-limit-mib: {_b(mem_limit)})'}")
+    print(f"memory: {memory_method()}")
+    print("each point in its own process; validated against the float64 dense reference at the first N\n")
+    skipped_methods = [m for m in METHODS if m not in args.methods]
+    if "flex" in skipped_methods and args.quick:
+        print("flex_attention is not run in --quick (it compiles anew for each N: ~15 s with a cold cache); "
+              "--methods flex,... runs it\n")
+    points = run_points(args.sizes, args.views, args.methods, args.threads, args.repeat, mem_limit,
+                        args.max_point_seconds or None)
+    fit = fits(points, args.sizes, args.methods)
+    print_tables(points, fit, args.sizes, args.methods)
+    errors = [p for p in points if "error" in p]
+    report = dict(
+        config=dict(R=R, B=B, L=L, views=list(args.views), sizes=[list(s) for s in args.sizes], dtype="float32",
+                    scale=1.0, threads=args.threads, repeat=args.repeat, methods=list(args.methods),
+                    not_run=({m: "not in --quick (flex compiles anew for each N: ~15 s cold)" if args.quick
+                              else "not in --methods" for m in skipped_methods}),
+                    mem_fraction=MEM_FRACTION, mem_limit_bytes=mem_limit, max_point_seconds=args.max_point_seconds,
+                    inputs="unit normal, seed N"),
+        machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
+                     mem_available_bytes=available, python=platform.python_version(), numpy=np.__version__,
+                     pyvf=pyvf.__version__, blas_thread_env=blas_thread_env()),
+        memory_method=memory_method(), methods=METHODS, points=points, slopes=fit)
+    if args.plots:
+        files = plot(points, fit, args.sizes, args.methods, args.plots)
+        if files is None:
+            print("\nplots need matplotlib: pip install pyvf[plots]")
+        else:
+            print("\nwrote " + ", ".join(files))
+        report["plots"] = files
+    if errors:
+        print(f"\n{len(errors)} point(s) failed: " + "; ".join(f"{p['method']} N={p['N']}: "
+                                                            f"{p['error'].splitlines()[0][:200]}" for p in errors))
+    report["total_seconds"] = time.perf_counter() - t_start
+    print(f"\ntotal {report['total_seconds']:.0f} s")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=2)
+        print(f"wrote {args.json}")
+    # a validation failure fails the run; a crashed or skipped point is written down
+    return 1 if any(p.get("error", "").startswith("validation failed") for p in points) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
