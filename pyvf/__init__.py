@@ -43,6 +43,7 @@ from .train import codebook_train_step, train_step
 from .transformer import Scene, Transformer, TransformerConfig, TransformerOutput
 from .compare import Comparison, compare
 from .measure import rel_err
+from .layout import flat_to_tree, tree_to_flat
 
 __version__ = "0.1.0"
 
@@ -112,6 +113,8 @@ __all__ = [
     "Comparison",
     "compare",
     "rel_err",
+    "flat_to_tree",
+    "tree_to_flat",
     "Codebook",
     "CodebookConfig",
     "CodebookOutput",

@@ -91,17 +91,34 @@ def finite_result(what, a, name="the result"):
     return a
 
 
-def weight_problem(name, a, shape):
+def checkpoint_array(name, a):
+    """A checkpoint's entry -> (numpy array or `a` unchanged, problem or None). Anything with
+    `.detach()` (a torch tensor, also one that requires grad, on any device) becomes
+    `a.detach().cpu().numpy()`, which keeps its dtype (pyvf never imports torch); a tensor numpy
+    cannot hold (bfloat16) is a TypeError problem naming `name`. Anything else is returned
+    as it is, for weight_problem to judge: nothing is cast (np.asarray is never called)."""
+    if hasattr(a, "detach") and not isinstance(a, np.ndarray):
+        try:
+            return a.detach().cpu().numpy(), None
+        except (TypeError, RuntimeError, AttributeError) as e:
+            return a, (TypeError, f"{name!r} ({type(a).__name__}) cannot become a numpy array: {e}")
+    return a, None
+
+
+def weight_problem(name, a, shape, *, hint=""):
     """What is wrong with a checkpoint's array for parameter `name` (a str): None when it is a
     finite float32/float64 array of `shape`, else (TypeError or ValueError, message). float16,
     longdouble, integer, bool, complex and object arrays are refused: only float32 <-> float64
-    converts, on purpose (see weight)."""
+    converts, on purpose (see weight). `shape` may be a list of alternative shapes (a list of
+    tuples); `hint` is appended to a wrong shape's message (e.g. the layout expected)."""
+    alternatives = isinstance(shape, list) and len(shape) > 0 and all(isinstance(s, (tuple, list)) for s in shape)
+    shapes = [tuple(s) for s in shape] if alternatives else [tuple(shape)]
     if not isinstance(a, np.ndarray):
         return TypeError, f"{name!r} is a {type(a).__name__}, not a numpy array"
     if a.dtype not in FLOATS:
         return TypeError, f"{name!r} has dtype {a.dtype}, expected a float array (float32 or float64)"
-    if a.shape != tuple(shape):
-        return ValueError, f"{name!r} has shape {a.shape}, expected {tuple(shape)}"
+    if a.shape not in shapes:
+        return ValueError, f"{name!r} has shape {a.shape}, expected {' or '.join(map(str, shapes))}{hint}"
     if not all_finite(a):
         return ValueError, f"{name!r} contains NaN or inf"
     return None

@@ -8,12 +8,36 @@
     out = cb.forward(images, train=True) # reconstruction, codes, rec_loss, commitment_loss, loss
     grads = cb.backward()                # d out.loss / d every parameter, torch names
 
+Traces, for checking a port layer by layer (pyvf.compare):
+
+    out = cb.forward(images, trace=True)
+    out.trace                            # name -> activation, in execution order (trace_names(cfg))
+    g = cb.backward(drec=d)              # a VJP of the reconstruction: activations' gradients
+                                         # (backward order), then the parameters'
+
 Parameters use the published torch names (spec/official-codebook-*.json), conv weights
 (out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
 
 The forward records every layer it runs on a tape, (kind, parameter name, cache); the backward
 replays the tape in reverse, so it reads as the forward read backwards, whatever the
-configuration's number of levels and blocks.
+configuration's number of levels and blocks. A traced forward records each op's output under
+its name as it runs (the published torch module's name; the activations the forward keeps
+anyway, as read-only views: nothing is copied or recomputed); without trace=True nothing extra
+is kept or computed. Names: every `_op` of the tape, nested ones included, in execution order:
+
+    encoder.conv_in
+    encoder.down.{l}.block.{i}.norm1 .conv1 .norm2 .conv2 [.nin_shortcut], then encoder.down.{l}.block.{i}
+    encoder.down.{l}.attn.{i}                (the AttnBlock's output, x + proj_out(...))
+    encoder.down.{l}.downsample.conv
+    encoder.mid.block_1 (and its children), encoder.mid.attn_1, encoder.mid.block_2
+    encoder.norm_out, encoder.conv_out, quant_conv (z), quantize (the quantized z),
+    post_quant_conv, decoder.conv_in, decoder.mid.*, decoder.up.{l}.block.{i}(.*),
+    decoder.up.{l}.attn.{i}, decoder.up.{l}.upsample.interp (nearest 2x), decoder.up.{l}.upsample.conv,
+    decoder.norm_out, decoder.conv_out (the reconstruction); then rec_loss, commitment_loss,
+    [perceptual_loss,] loss (scalars, no gradient).
+
+pyvf fuses Normalize and swish: `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)),
+not the torch GroupNorm module's output (record `nonlinearity(norm(x))` on a port's side).
 """
 
 import dataclasses
@@ -149,6 +173,53 @@ def parameter_shapes(cfg):
     return s
 
 
+def trace_names(cfg):
+    """The names forward(..., trace=True) records for configuration cfg, in execution order."""
+    names = []
+
+    def res(name, cin, cout):
+        names.extend(name + s for s in (".norm1", ".conv1", ".norm2", ".conv2"))
+        if cin != cout:
+            names.append(name + ".nin_shortcut")
+        names.append(name)
+
+    def mid(p, c):
+        res(p + ".mid.block_1", c, c)
+        names.append(p + ".mid.attn_1")
+        res(p + ".mid.block_2", c, c)
+
+    ch, mult, L = cfg.ch, cfg.ch_mult, len(cfg.ch_mult)
+    names.append("encoder.conv_in")
+    r, cin = cfg.image_size, ch
+    for l in range(L):
+        for i in range(cfg.num_res_blocks):
+            res(f"encoder.down.{l}.block.{i}", cin, ch * mult[l])
+            cin = ch * mult[l]
+            if r in cfg.attn_resolutions:
+                names.append(f"encoder.down.{l}.attn.{i}")
+        if l != L - 1:
+            names.append(f"encoder.down.{l}.downsample.conv")
+            r //= 2
+    mid("encoder", cin)
+    names += ["encoder.norm_out", "encoder.conv_out", "quant_conv", "quantize", "post_quant_conv", "decoder.conv_in"]
+    cin = ch * mult[-1]
+    mid("decoder", cin)
+    for l in reversed(range(L)):
+        for i in range(cfg.num_res_blocks + 1):
+            res(f"decoder.up.{l}.block.{i}", cin, ch * mult[l])
+            cin = ch * mult[l]
+            if r in cfg.attn_resolutions:
+                names.append(f"decoder.up.{l}.attn.{i}")
+        if l != 0:
+            names += [f"decoder.up.{l}.upsample.interp", f"decoder.up.{l}.upsample.conv"]
+            r *= 2
+    names += ["decoder.norm_out", "decoder.conv_out", "rec_loss", "commitment_loss"]
+    if cfg.perceptual_weight:
+        names.append("perceptual_loss")
+    names.append("loss")
+    return names
+
+
 @dataclasses.dataclass
 class CodebookOutput:
     reconstruction: np.ndarray  # (B, out_ch, S, S)
@@ -159,6 +230,7 @@ class CodebookOutput:
     usage: float  # fraction of codes used by the batch
     perplexity: float
     perceptual_loss: float = None  # mean over images of the perceptual module's loss; None when off
+    trace: dict = None  # forward(..., trace=True) only: name -> activation (read-only), trace_names(cfg) order
 
 
 class Codebook:
@@ -196,6 +268,7 @@ class Codebook:
         self.quantizer = EMAQuantizer(config.embed_dim, config.n_embed, config.decay, config.eps,
                                       config.dtype, seed=seed + 1)
         self._cache = None
+        self._trace = None  # during a traced forward only: the dict _op records into
 
     # -----------------------------------------------------------------------------------
     # weights
@@ -283,11 +356,16 @@ class Codebook:
         else:
             raise AssertionError(kind)
         tape.append((kind, name, c))
+        if self._trace is not None:
+            self._trace[name] = y
         return y
 
-    def _backward(self, tape, dy, grads):
-        """Replay a tape in reverse: dy is the gradient of its last output; returns that of its input."""
+    def _backward(self, tape, dy, grads, g=None):
+        """Replay a tape in reverse: dy is the gradient of its last output; returns that of its input.
+        g: None, or a dict each op's output gradient is recorded in (by the op's name)."""
         for kind, name, c in reversed(tape):
+            if g is not None:
+                g[name] = dy
             if kind == "conv":
                 dy, dw, db = conv2d_backward(dy, c)
                 grads[name + ".weight"] += dw
@@ -299,11 +377,11 @@ class Codebook:
             elif kind == "upsample":
                 (dy,) = upsample_nearest2x_backward(dy, c)
             elif kind == "res":
-                dy = self._resblock_backward(dy, c, grads)
+                dy = self._resblock_backward(dy, c, grads, g)
             elif kind == "attn":
                 dy, *dparams = attnblock_backward(dy, c)
-                for suffix, g in zip(ATTN_PARAMS, dparams):
-                    grads[name + suffix] += g
+                for suffix, dp in zip(ATTN_PARAMS, dparams):
+                    grads[name + suffix] += dp
         return dy
 
     def _resblock_forward(self, name, x):
@@ -316,9 +394,10 @@ class Codebook:
         s = self._op(short, "conv", name + ".nin_shortcut", x) if name + ".nin_shortcut.weight" in self.params else x
         return s + h, (main, short)
 
-    def _resblock_backward(self, dy, cache, grads):
+    def _resblock_backward(self, dy, cache, grads, g=None):
         main, short = cache
-        return self._backward(main, dy, grads) + self._backward(short, dy, grads)  # y = s(x) + h(x)
+        ds = self._backward(short, dy, grads, g)  # first: g stays the trace's order reversed
+        return self._backward(main, dy, grads, g) + ds  # y = s(x) + h(x)
 
     # -----------------------------------------------------------------------------------
     # encoder and decoder
@@ -359,7 +438,7 @@ class Codebook:
                 if res in cfg.attn_resolutions:
                     h = self._op(tape, "attn", f"decoder.up.{l}.attn.{i}", h)
             if l != 0:
-                h = self._op(tape, "upsample", None, h)
+                h = self._op(tape, "upsample", f"decoder.up.{l}.upsample.interp", h)
                 h = self._op(tape, "conv", f"decoder.up.{l}.upsample.conv", h, padding=1)
                 res *= 2
         h = self._op(tape, "norm_swish", "decoder.norm_out", h)
@@ -397,20 +476,33 @@ class Codebook:
         e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
         return self._decoder([], np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
-    def forward(self, images, train=False):
+    def forward(self, images, train=False, *, trace=False):
         """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers
-        (the output uses the codes from before the update). Keeps what backward() needs."""
+        (the output uses the codes from before the update). Keeps what backward() needs.
+
+        trace=True also returns, as `out.trace`, every intermediate activation by name
+        (trace_names(config), in execution order; read-only views of what the forward keeps
+        anyway: do not modify them), and makes the next backward() return every activation's
+        gradient."""
+        if not isinstance(trace, (bool, np.bool_)):
+            raise TypeError(f"trace must be True or False, got {trace!r}")
         self._check_images(images)
         enc, dec = [], []
-        z = self._encoder(enc, images)  # (B, D, k, k)
+        tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
         saved = {k: v.copy() for k, v in self.quantizer.state_dict().items()} if train else None
-        q, c_q = self.quantizer.forward(z, train=train)
+        self._trace = tr
         try:
+            z = self._encoder(enc, images)  # (B, D, k, k)
+            q, c_q = self.quantizer.forward(z, train=train)
+            if tr is not None:
+                tr["quantize"] = q.quantized
             rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
         except BaseException:  # a failed call leaves the EMA buffers as they were
             if saved is not None:
                 self.quantizer.load_state_dict(saved)
             raise
+        finally:
+            self._trace = None
         diff = rec - images
         rec_loss = float(np.mean(np.abs(diff)))
         loss = rec_loss + self.config.codebook_weight * q.commitment_loss
@@ -419,22 +511,67 @@ class Codebook:
             per_image, c_p = self.perceptual.forward(images, rec)  # (B,)
             perceptual = float(np.mean(per_image))
             loss += self.config.perceptual_weight * perceptual
-        self._cache = (enc, dec, c_q, np.sign(diff) / diff.size, c_p, images.shape[0])
+        if tr is not None:
+            tr["rec_loss"] = self.dtype.type(rec_loss)
+            tr["commitment_loss"] = self.dtype.type(q.commitment_loss)
+            if perceptual is not None:
+                tr["perceptual_loss"] = self.dtype.type(perceptual)
+            tr["loss"] = self.dtype.type(loss)
+            for name, a in tr.items():  # read-only views: the caches behind them feed backward()
+                if isinstance(a, np.ndarray):
+                    tr[name] = a.view()
+                    tr[name].flags.writeable = False
+        self._cache = (enc, dec, c_q, np.sign(diff) / diff.size, c_p, images.shape[0], rec.shape, trace)
         return CodebookOutput(reconstruction=rec, codes=q.codes, rec_loss=rec_loss, commitment_loss=q.commitment_loss,
-                              loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual)
+                              loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual, trace=tr)
 
-    def backward(self):
-        """Gradient of the last forward's loss for every parameter: torch name -> array."""
+    def backward(self, drec=None, *, dloss=None):
+        """Differentiate the last forward: the gradient of
+
+            dloss * loss + sum(reconstruction * drec)
+
+        (a vector-Jacobian product; a term whose seed is None is left out; with no seed at all,
+        dloss = 1: the gradient of the loss, as training needs). drec (B, out_ch, S, S) is an
+        array of the model's dtype, for out.reconstruction; dloss a real number. The commitment
+        term (the encoder's only gradient besides the straight-through one) comes with dloss only.
+
+        Returns torch parameter name -> gradient. After forward(..., trace=True) the dict first
+        holds the gradient of every traced activation, in backward order (exactly the reverse of
+        the trace), under the trace's names except the losses; then the parameters'."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
-        enc, dec, c_q, drec, c_p, B = self._cache
+        enc, dec, c_q, drec_loss, c_p, B, rec_shape, traced = self._cache
+        if drec is None and dloss is None:
+            dloss = 1.0
         grads = {name: np.zeros_like(p) for name, p in self.params.items()}
-        # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel
-        drec = drec.astype(self.dtype)
-        if c_p is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
-            dl = np.full(B, self.config.perceptual_weight / B, dtype=self.dtype)
-            drec = drec + self.perceptual.backward(dl, c_p)
-        dq = self._backward(dec, drec, grads)
-        (dz,) = self.quantizer.backward(dq, self.config.codebook_weight, c_q)  # straight-through + commitment
-        self._backward(enc, dz, grads)
-        return grads
+        total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
+        dcommitment = 0.0
+        if dloss is not None:
+            dloss = _checks.real("dloss", dloss)
+            # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel
+            total = (dloss * drec_loss).astype(self.dtype)
+            if c_p is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
+                dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
+                total = total + self.perceptual.backward(dl, c_p)
+            dcommitment = dloss * self.config.codebook_weight
+        if drec is not None:
+            _checks.float_array("drec", drec)
+            if drec.dtype != self.dtype:
+                raise TypeError(f"drec is {drec.dtype} but the model is {self.dtype}: both must share one dtype "
+                                "(pyvf never casts silently)")
+            if drec.shape != tuple(rec_shape):
+                raise ValueError(f"drec must have the reconstruction's shape {tuple(rec_shape)}, got {drec.shape}")
+            _checks.finite("drec", drec)
+            total = total + drec
+        g = {} if traced else None  # the activations' gradients, the trace's order reversed
+        dq = self._backward(dec, total, grads, g)
+        if g is not None:
+            g["quantize"] = dq
+        (dz,) = self.quantizer.backward(dq, dcommitment, c_q)  # straight-through + commitment
+        self._backward(enc, dz, grads, g)
+        if g is None:
+            return grads
+        for name, a in g.items():  # read-only views: one array can be several names' gradient
+            g[name] = a.view()
+            g[name].flags.writeable = False
+        return {**g, **grads}

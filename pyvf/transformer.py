@@ -227,6 +227,56 @@ def official_name(name):
     return name
 
 
+WEIGHT_LAYOUTS = ("tf", "torch")
+
+
+def _weight_layout(layout):
+    if not isinstance(layout, str) or layout not in WEIGHT_LAYOUTS:
+        raise ValueError(f"layout must be one of {WEIGHT_LAYOUTS} (the Dense kernels' convention: "
+                         f"TF (in, out) or torch nn.Linear (out, in)), got {layout!r}")
+    return layout
+
+
+def is_dense_kernel(name):
+    """True for the Dense (linear) kernels, stored (in, out) in the published checkpoint: every
+    official name ending in '/weight' but the token embedding 'wte/weight' (an embedding, never
+    transposed; nor is 'wpe/embeddings')."""
+    return name.endswith("/weight") and name != "wte/weight"
+
+
+def is_dense_bias(name):
+    """True for the Dense biases, stored (1, out) in the published checkpoint, (out,) by torch."""
+    return name.endswith("/bias")
+
+
+def _layout_shapes(name, shape, layout):
+    """The shapes parameter `name` (of published shape `shape`) may have in `layout`, the
+    preferred one first."""
+    if layout == "torch" and is_dense_kernel(name):
+        return [tuple(shape[::-1])]  # (out, in)
+    if layout == "torch" and is_dense_bias(name):
+        return [(shape[1],), tuple(shape)]  # nn.Linear's (out,), or the published (1, out)
+    return [tuple(shape)]
+
+
+def _from_layout(name, a, layout):
+    """An array in `layout` -> the published layout (a view)."""
+    if layout == "torch" and is_dense_kernel(name):
+        return a.T  # (out, in) -> (in, out)
+    if layout == "torch" and is_dense_bias(name):
+        return a.reshape(1, -1)  # (out,) -> (1, out)
+    return a
+
+
+def _to_layout(name, p, layout):
+    """A parameter in the published layout -> a C-contiguous copy in `layout`."""
+    if layout == "torch" and is_dense_kernel(name):
+        return np.ascontiguousarray(p.T)  # (in, out) -> (out, in)
+    if layout == "torch" and is_dense_bias(name):
+        return p.reshape(-1).copy()  # (1, out) -> (out,)
+    return p.copy()
+
+
 @dataclasses.dataclass
 class TransformerOutput:
     logits: np.ndarray  # (B, N, L, V) generation logits
@@ -261,21 +311,34 @@ class Transformer:
     # -----------------------------------------------------------------------------------
     # weights
 
-    def state_dict(self):
-        """Official name -> array (copies)."""
-        return {name: p.copy() for name, p in self.params.items()}
+    def state_dict(self, layout="tf"):
+        """Official name -> array (copies), in `layout` (see load_official): "tf", the published
+        layout (Dense kernels (in, out), biases (1, out)), or "torch", nn.Linear's (kernels
+        (out, in), biases (out,)). Embeddings and LayerNorm parameters are the same in both."""
+        layout = _weight_layout(layout)
+        return {name: _to_layout(name, p, layout) for name, p in self.params.items()}
 
-    def load_official(self, weights):
+    def load_official(self, weights, *, layout="tf"):
         """Load a dict name -> array named as the published checkpoint (with or without the
         `migt/` prefix and `:0` suffix).
 
-        Everything is checked before anything is assigned: every name (missing, unexpected,
-        given twice) and every array (a float32/float64 numpy array of the parameter's shape,
-        finite). Any problem raises one ValueError naming every wrong entry (TypeError when all
-        of them are wrong types), and the model is left unchanged. Arrays are converted to the
-        model's dtype (config.dtype), the one conversion pyvf makes, on purpose: a float32
-        checkpoint loads into a float64 model for a float64 check. The model never aliases the
-        caller's arrays."""
+        layout: the caller states the convention of the Dense layers (every `.../weight` but the
+        token embedding `wte/weight`), so that a square kernel (`attn/c_proj`) is never silently
+        transposed:
+          "tf"    the published TF Dense layout: kernel (in, out), bias (1, out);
+          "torch" torch nn.Linear's: kernel (out, in), transposed here; bias (out,) (or (1, out)).
+        Embeddings (`wte/weight`, `wpe/embeddings`) and LayerNorm parameters are never transposed.
+
+        Entries may be numpy arrays or anything with `.detach()` (torch tensors, also ones that
+        require grad: `.detach().cpu().numpy()` is called; pyvf never imports torch). Everything is
+        checked before anything is assigned: every name (missing, unexpected, given twice) and
+        every array (float32/float64 of the parameter's shape in `layout`, finite; other dtypes
+        are refused, not cast). Any problem raises one ValueError naming every wrong entry
+        (TypeError when all of them are wrong types), and the model is left unchanged. Arrays are
+        converted to the model's dtype (config.dtype), the one conversion pyvf makes, on purpose:
+        a float32 checkpoint loads into a float64 model for a float64 check. The model never
+        aliases the caller's arrays."""
+        layout = _weight_layout(layout)
         if not isinstance(weights, Mapping):
             raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")
         shapes = parameter_shapes(self.config)
@@ -289,9 +352,13 @@ class Transformer:
                 problems.append((ValueError, f"parameter {name!r} given twice (as {given_as[name]!r} and {raw_name!r})"))
                 continue
             given_as[name] = raw_name
-            problem = _checks.weight_problem(raw_name, arr, shapes[name])
+            arr, problem = _checks.checkpoint_array(raw_name, arr)
             if problem is None:
-                loaded[name] = np.array(arr, dtype=self.dtype, order="C", copy=True)
+                want = _layout_shapes(name, shapes[name], layout)
+                hint = " (layout='torch': nn.Linear's kernel (out, in), bias (out,))" if layout == "torch" else ""
+                problem = _checks.weight_problem(raw_name, arr, want, hint=hint)
+            if problem is None:
+                loaded[name] = np.array(_from_layout(name, arr, layout), dtype=self.dtype, order="C", copy=True)
             else:
                 problems.append(problem)
         missing = [n for n in shapes if n not in given_as]

@@ -1,0 +1,245 @@
+"""Codebook traces (issue 13, item 1): forward(..., trace=True) names every activation after the
+published torch modules, in execution order; backward(drec=) returns every traced activation's
+gradient by the same names. Checked bitwise against the untraced model, and against the torch
+oracle (pyvf/verify/torch_codebook.py, instrumented here by wrapping its functions) in float64;
+pyvf.compare names the first wrong layer of a torch port with a planted bug."""
+
+import numpy as np
+import pytest
+import torch
+
+import pyvf
+from pyvf.codebook import Codebook, CodebookConfig, trace_names
+from pyvf.verify import torch_codebook as tc
+from test_codebook import torch_state  # the model's parameters and EMA buffers as torch tensors
+
+SMALL = dict(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=8,
+             n_embed=16, image_size=16)
+LOSSES = ("rec_loss", "commitment_loss", "loss")
+
+
+def random_codebook(cfg, rng):
+    """Every parameter random (GroupNorm gammas != 1, biases != 0)."""
+    cb = Codebook(cfg, seed=1)
+    for name, p in cb.params.items():
+        if p.ndim == 1:
+            cb.params[name] = rng.normal(1.0 if name.endswith(".weight") else 0.0, 0.2, p.shape).astype(p.dtype)
+    return cb
+
+
+def images_for(cfg, rng, B=2):
+    return rng.uniform(-1, 1, (B, cfg.in_channels, cfg.image_size, cfg.image_size)).astype(cfg.dtype)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("seed_kind", ["loss", "drec", "both"])
+def test_traced_equals_untraced_bitwise(dtype, seed_kind, rng):
+    cfg = CodebookConfig(**SMALL, dtype=dtype)
+    cb = random_codebook(cfg, rng)
+    x = images_for(cfg, rng)
+    drec = rng.normal(size=x.shape).astype(dtype)
+    kw = {"loss": {}, "drec": {"drec": drec}, "both": {"drec": drec, "dloss": 0.5}}[seed_kind]
+    state = cb.state_dict()
+    plain = cb.forward(x, train=True)
+    g_plain = cb.backward(**kw)
+    after_plain = cb.state_dict()
+    cb.load_official(state)
+    traced = cb.forward(x, train=True, trace=True)
+    g_traced = cb.backward(**kw)
+    assert plain.trace is None
+    np.testing.assert_array_equal(traced.reconstruction, plain.reconstruction)
+    np.testing.assert_array_equal(traced.codes, plain.codes)
+    assert (traced.loss, traced.rec_loss, traced.commitment_loss) == (plain.loss, plain.rec_loss,
+                                                                      plain.commitment_loss)
+    for k, v in cb.state_dict().items():  # the same EMA step
+        np.testing.assert_array_equal(v, after_plain[k], err_msg=k)
+    assert set(g_plain) == set(cb.params)
+    for name in cb.params:
+        np.testing.assert_array_equal(g_traced[name], g_plain[name], err_msg=name)
+    # the trace is what the output is made of: views, read-only, no copies
+    tr = traced.trace
+    np.testing.assert_array_equal(tr["decoder.conv_out"], traced.reconstruction)
+    assert np.shares_memory(tr["decoder.conv_out"], traced.reconstruction)
+    for name, a in tr.items():
+        if isinstance(a, np.ndarray):
+            assert not a.flags.writeable, name
+            assert a.dtype == cfg.dtype, name
+    assert tr["loss"] == traced.loss
+
+
+def test_default_backward_unchanged_by_the_new_arguments(rng):
+    cfg = CodebookConfig(**SMALL, dtype="float64")
+    cb = random_codebook(cfg, rng)
+    x = images_for(cfg, rng)
+    cb.forward(x)
+    g0, g1 = cb.backward(), cb.backward(dloss=1.0)
+    for name in cb.params:
+        np.testing.assert_array_equal(g0[name], g1[name])
+    # linearity: loss + <rec, drec> = loss part + drec part (no commitment term in the drec part)
+    drec = rng.normal(size=(2, 3, 16, 16))
+    g2, g3 = cb.backward(drec=drec), cb.backward(drec=drec, dloss=1.0)
+    for name in cb.params:
+        np.testing.assert_allclose(g3[name], g0[name] + g2[name], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("config", [SMALL, dict(SMALL, ch_mult=(1, 1, 2), num_res_blocks=2, attn_resolutions=(16, 4),
+                                                 image_size=16)])
+def test_trace_names_in_execution_order(config, rng):
+    cfg = CodebookConfig(**config, dtype="float64")
+    cb = random_codebook(cfg, rng)
+    out = cb.forward(images_for(cfg, rng), trace=True)
+    names = list(out.trace)
+    assert names == trace_names(cfg)
+    for must in ("encoder.conv_in", "encoder.down.0.block.0", "encoder.down.0.block.0.norm1",
+                 "encoder.down.0.downsample.conv", "encoder.mid.block_1", "encoder.mid.attn_1", "encoder.norm_out",
+                 "encoder.conv_out", "quant_conv", "quantize", "post_quant_conv", "decoder.conv_in",
+                 "decoder.up.1.upsample.interp", "decoder.up.1.upsample.conv", "decoder.norm_out", "decoder.conv_out"):
+        assert must in names, must
+    pos = {n: i for i, n in enumerate(names)}
+    assert pos["encoder.down.0.block.0.conv2"] < pos["encoder.down.0.block.0"] < pos["encoder.down.0.downsample.conv"]
+    assert (pos["encoder.conv_out"] < pos["quant_conv"] < pos["quantize"] < pos["post_quant_conv"]
+            < pos["decoder.conv_in"])
+    assert pos["decoder.up.1.upsample.interp"] < pos["decoder.up.1.upsample.conv"] < pos["decoder.up.0.block.0"]
+    assert names[-4:] == ["decoder.conv_out", *LOSSES]
+    # every parameter's module is traced (nested ones: a ResnetBlock's children)
+    modules = {p.rsplit(".", 1)[0] for p in cb.params}
+    attn_children = {m for m in modules if m.rsplit(".", 1)[-1] in ("norm", "q", "k", "v", "proj_out")}
+    assert modules - attn_children <= set(names)
+    # backward: every activation but the losses, exactly in the reverse order, then the parameters
+    g = cb.backward(drec=np.ones_like(out.reconstruction))
+    acts = [n for n in g if n not in cb.params]
+    assert acts == [n for n in reversed(names) if n not in LOSSES]
+    assert list(g)[len(acts):] == list(cb.params)
+    for n in acts:
+        assert g[n].shape == out.trace[n].shape, n
+        assert not g[n].flags.writeable
+
+
+def test_trace_argument_is_checked(rng):
+    cfg = CodebookConfig(**SMALL, dtype="float64")
+    cb = random_codebook(cfg, rng)
+    x = images_for(cfg, rng)
+    with pytest.raises(TypeError, match="trace"):
+        cb.forward(x, trace=1)
+    cb.forward(x)
+    with pytest.raises(TypeError, match="drec"):
+        cb.backward(drec=np.zeros((2, 3, 16, 16), dtype=np.float32))
+    with pytest.raises(ValueError, match="drec"):
+        cb.backward(drec=np.zeros((2, 3, 16, 15)))
+    with pytest.raises(ValueError, match="drec"):
+        cb.backward(drec=np.full((2, 3, 16, 16), np.nan))
+    with pytest.raises(TypeError, match="dloss"):
+        cb.backward(dloss="1")
+    assert set(cb.backward()) == set(cb.params)  # untraced forward: parameters only
+
+
+# ---------------------------------------------------------------------------------------
+# the torch oracle, instrumented: every function of torch_codebook that makes a named
+# activation is wrapped to record its output (retain_grad'ed) under pyvf's trace name
+
+
+def torch_traced(monkeypatch, P, buffers, images, cfg, drec, dloss=None):
+    """Run the oracle with recording wrappers; backward of dloss * loss + <rec, drec>.
+    Returns (activations, activation gradients), name -> numpy array."""
+    acts = {}
+    state = {"norm": None, "upsample": None}
+
+    def record(name, t):
+        if t.requires_grad:
+            t.retain_grad()
+        acts[name] = t
+        return t
+
+    conv, norm, swish = tc.conv, tc.norm, tc.swish
+    resnet_block, attn_block, upsample = tc.resnet_block, tc.attn_block, tc.upsample
+
+    def conv_w(x, P, name, **kw):
+        if name == "post_quant_conv":
+            record("quantize", x)
+        return record(name, conv(x, P, name, **kw))
+
+    def norm_w(x, P, name):
+        state["norm"] = name
+        return norm(x, P, name)
+
+    def swish_w(x):  # always swish(norm(...)) in the oracle: pyvf's fused op
+        return record(state["norm"], swish(x))
+
+    class FProxy:  # F.interpolate recorded as decoder.up.{l}.upsample.interp
+        def __getattr__(self, a):
+            return getattr(torch.nn.functional, a)
+
+        def interpolate(self, x, **kw):
+            return record(state["upsample"], torch.nn.functional.interpolate(x, **kw))
+
+    def upsample_w(x, P, name):
+        state["upsample"] = name.rsplit(".", 1)[0] + ".interp"
+        return upsample(x, P, name)
+
+    monkeypatch.setattr(tc, "conv", conv_w)
+    monkeypatch.setattr(tc, "norm", norm_w)
+    monkeypatch.setattr(tc, "swish", swish_w)
+    monkeypatch.setattr(tc, "resnet_block", lambda x, P, name: record(name, resnet_block(x, P, name)))
+    monkeypatch.setattr(tc, "attn_block", lambda x, P, name: record(name, attn_block(x, P, name)))
+    monkeypatch.setattr(tc, "upsample", upsample_w)
+    monkeypatch.setattr(tc, "F", FProxy())
+    try:
+        ref = tc.forward(P, buffers, torch.tensor(images), cfg, cfg.codebook_weight, train=False)
+    finally:
+        monkeypatch.undo()
+    total = (ref["reconstruction"] * torch.tensor(drec)).sum()
+    if dloss is not None:
+        total = total + dloss * ref["loss"]
+    total.backward()
+    names = [n for n in trace_names(cfg) if n not in LOSSES]
+    act = {n: acts[n].detach().numpy() for n in names if n in acts}
+    grad = {n: acts[n].grad.numpy() for n in reversed(names) if n in acts and acts[n].grad is not None}
+    grad.update({n: p.grad.numpy() for n, p in P.items()})
+    return act, grad
+
+
+@pytest.mark.parametrize("dloss", [None, 1.0])
+def test_activations_and_their_gradients_match_torch(dloss, rng, monkeypatch):
+    cfg = CodebookConfig(**SMALL, dtype="float64")
+    cb = random_codebook(cfg, rng)
+    x = images_for(cfg, rng)
+    drec = rng.normal(size=x.shape)
+    out = cb.forward(x, trace=True)
+    mine_g = cb.backward(drec=drec, dloss=dloss)
+    P, buffers = torch_state(cb)
+    act, grad = torch_traced(monkeypatch, P, buffers, x, cfg, drec, dloss)
+    want = [n for n in trace_names(cfg) if n not in LOSSES]
+    assert list(act) == want  # the oracle runs the same named layers in the same order
+    rep = pyvf.compare(act, out.trace, rtol=1e-10)
+    assert rep.first is None and rep.only_ref == list(LOSSES), str(rep)
+    # gradients: a bias feeding a GroupNorm with one channel per group has an exactly zero
+    # gradient (rounding noise on both sides), so parameters are compared with a floor
+    acts_g = {n: v for n, v in mine_g.items() if n not in cb.params}
+    assert list(acts_g) == list(reversed(want))
+    rep = pyvf.compare({n: grad[n] for n in acts_g}, acts_g, rtol=1e-10)
+    assert rep.first is None, str(rep)
+    scale = max(np.abs(grad[n]).max() for n in cb.params)
+    for n in cb.params:
+        err = np.abs(mine_g[n] - grad[n]).max()
+        assert err <= 1e-10 * max(np.abs(grad[n]).max(), 1e-3 * scale), (n, err)
+
+
+def test_compare_names_the_first_wrong_layer_of_a_buggy_port(rng, monkeypatch):
+    """A port's Downsample padding (1, 1, 1, 1) instead of (0, 1, 0, 1): same shapes, wrong
+    numbers from the first downsample on; compare names exactly that layer, not a later one."""
+    cfg = CodebookConfig(**SMALL, dtype="float64")
+    cb = random_codebook(cfg, rng)
+    x = images_for(cfg, rng)
+    drec = rng.normal(size=x.shape)
+    out = cb.forward(x, trace=True)
+    cb.backward(drec=drec)
+    P, buffers = torch_state(cb)
+    monkeypatch.setattr(tc, "downsample", lambda x, P, name: tc.conv(torch.nn.functional.pad(x, (1, 1, 1, 1)), P, name,
+                                                                    stride=2))
+    act, _ = torch_traced(monkeypatch, P, buffers, x, cfg, drec)
+    rep = pyvf.compare(act, out.trace)
+    assert rep.first == "encoder.down.0.downsample.conv", str(rep)
+    rows = {r.name: r for r in rep.rows}
+    assert all(rows[n].ok for n in list(act)[:list(act).index(rep.first)])
+    assert not rows["decoder.conv_out"].ok  # the error propagates: only "first" localises it
+    assert "encoder.down.0.downsample.conv" in str(rep)
