@@ -256,12 +256,19 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
     return y, (c_attn, c_proj, q, k, v, o, lse, scale)
 
 
-def attention_layer_backward(dy, cache):
-    """dy (R, B, N, L, d) -> dx, dw_attn, db_attn, dw_proj, db_proj."""
+def attention_layer_backward(dy, cache, trace=None, name=""):
+    """dy (R, B, N, L, d) -> dx, dw_attn, db_attn, dw_proj, db_proj. trace: a dict that also
+    receives the gradients of the attention's output, v, k, q and the fused projection, as
+    trace[name + ".out"], ".v", ".k", ".q", ".c_attn" (the transformer's backward after
+    forward(trace=True))."""
     c_attn, c_proj, q, k, v, o, lse, scale = cache
     n_head = q.shape[2]
     do, dw_proj, db_proj = linear_backward(dy, c_proj)  # (R, B, N, L, d)
-    dq, dk, dv = branching_attention_backward(_split_heads(do, n_head), q, k, v, o, lse, scale)
+    do = _split_heads(do, n_head)  # (R, B, H, N, L, dh)
+    dq, dk, dv = branching_attention_backward(do, q, k, v, o, lse, scale)
     dh = np.concatenate([_merge_heads(dv), _merge_heads(dq), _merge_heads(dk)], axis=-1)  # [v | q | k]
+    if trace is not None:
+        for part, g in (("out", do), ("v", dv), ("k", dk), ("q", dq), ("c_attn", dh)):  # the trace's order, reversed
+            trace[f"{name}.{part}"] = g
     dx, dw_attn, db_attn = linear_backward(dh, c_attn)
     return dx, dw_attn, db_attn, dw_proj, db_proj

@@ -321,12 +321,9 @@ class Codebook:
     def save(self, path):
         """Write the configuration, the parameters and the quantizer's buffers to one .npz file.
 
-        path: a str or os.PathLike; ".npz" is appended when it does not end with it, as
-        np.savez does (so `Codebook.load` needs the name with ".npz"). The file is written
-        atomically (pyvf._io.atomic_savez: a temporary file in the same folder, fsync'ed, then
-        os.replace'd): a process killed mid-save leaves the previous file intact. An open
-        binary file object is written directly (no atomicity: the caller owns it).
-        Returns the path written (or the file object)."""
+        path: a str or os.PathLike (".npz" appended when missing, so `Codebook.load` needs the
+        name with ".npz"), written atomically, or an open binary file; see pyvf._io.save_model.
+        Returns the path written (or the file)."""
         return save_model(path, self.config, self.state_dict())
 
     @classmethod

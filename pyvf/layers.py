@@ -246,13 +246,17 @@ def mlp_forward(x, w_fc, b_fc, w_proj, b_proj):
     return y, ((x, w_fc), h, (a, w_proj))
 
 
-def mlp_backward(dy, cache):
-    """-> dx, dw_fc, db_fc, dw_proj, db_proj."""
+def mlp_backward(dy, cache, trace=None, name=""):
+    """-> dx, dw_fc, db_fc, dw_proj, db_proj. trace: a dict that also receives the gradients
+    of the GELU's output and input, as trace[name + ".gelu"] and trace[name + ".c_fc"] (the
+    models' backward after forward(trace=True))."""
     c_fc, c_act, c_proj = cache
     _grad("dy", dy, c_proj[0], c_proj[0].shape[:-1] + (c_proj[1].shape[1],))
-    da, dw_proj, db_proj = _linear_backward(dy, *c_proj)
-    dh = _gelu_backward(da, c_act)
-    dx, dw_fc, db_fc = _linear_backward(dh, *c_fc)
+    da, dw_proj, db_proj = _linear_backward(dy, *c_proj)  # forward was y = a @ w_proj + b_proj
+    dh = _gelu_backward(da, c_act)  # forward was a = gelu(h)
+    if trace is not None:
+        trace[name + ".gelu"], trace[name + ".c_fc"] = da, dh
+    dx, dw_fc, db_fc = _linear_backward(dh, *c_fc)  # forward was h = x @ w_fc + b_fc
     grads = (dx, dw_fc, db_fc, dw_proj, db_proj)
     for name, g in zip(("dx", "dw_fc", "db_fc", "dw_proj", "db_proj"), grads):
         _checks.finite_result("mlp_backward", g, name)

@@ -37,19 +37,15 @@ from . import _checks
 from ._io import save_model
 from .attention import (
     _merge_heads,
-    _split_heads,
     attention_layer_backward,
     attention_layer_forward,
-    branching_attention_backward,
 )
 from .geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
 from .layers import (
     embedding_backward,
     embedding_forward,
-    gelu_backward,
     layernorm_backward,
     layernorm_forward,
-    linear_backward,
     mlp_backward,
     mlp_forward,
 )
@@ -114,37 +110,6 @@ def _trace_mlp(tr, name, cache, y):
     tr[name + ".c_fc"] = h  # (..., dh) before GELU
     tr[name + ".gelu"] = a  # (..., dh)
     tr[name + ".c_proj"] = y  # (..., dout)
-
-
-def _mlp_backward(dy, cache, g, name):
-    """mlp_backward; when g is a dict, also records the gradients of the GELU's output and input
-    under name.gelu and name.c_fc (the same operations, so the same bits, as mlp_backward)."""
-    if g is None:
-        return mlp_backward(dy, cache)
-    c_fc, c_act, c_proj = cache
-    da, dw_proj, db_proj = linear_backward(dy, c_proj)  # forward was y = a @ w_proj + b_proj
-    g[name + ".gelu"] = da  # (..., dh)
-    (dh,) = gelu_backward(da, c_act)  # forward was a = gelu(h)
-    g[name + ".c_fc"] = dh  # (..., dh)
-    dx, dw_fc, db_fc = linear_backward(dh, c_fc)  # forward was h = x @ w_fc + b_fc
-    return dx, dw_fc, db_fc, dw_proj, db_proj
-
-
-def _attention_backward(dy, cache, g, name):
-    """attention_layer_backward; when g is a dict, also records the gradients of the attention's
-    output, q, k, v and the fused projection under name.out, .q, .k, .v, .c_attn."""
-    if g is None:
-        return attention_layer_backward(dy, cache)
-    c_attn, c_proj, q, k, v, o, lse, scale = cache
-    do, dw_proj, db_proj = linear_backward(dy, c_proj)  # forward was y = merge(o) @ w_proj + b_proj
-    do = _split_heads(do, q.shape[2])  # (R, B, H, N, L, dh)
-    g[name + ".out"] = do
-    dq, dk, dv = branching_attention_backward(do, q, k, v, o, lse, scale)
-    g[name + ".v"], g[name + ".k"], g[name + ".q"] = dv, dk, dq  # the trace's order, reversed
-    dh = np.concatenate([_merge_heads(dv), _merge_heads(dq), _merge_heads(dk)], axis=-1)  # [v | q | k]
-    g[name + ".c_attn"] = dh  # (R, B, N, L, 3d)
-    dx, dw_attn, db_attn = linear_backward(dh, c_attn)  # forward was h = x @ w_attn + b_attn
-    return dx, dw_attn, db_attn, dw_proj, db_proj
 
 
 @dataclasses.dataclass(frozen=True)
@@ -371,12 +336,9 @@ class Transformer:
     def save(self, path):
         """Write the configuration and the parameters to one .npz file.
 
-        path: a str or os.PathLike; ".npz" is appended when it does not end with it, as
-        np.savez does (so `Transformer.load` needs the name with ".npz"). The file is written
-        atomically (pyvf._io.atomic_savez: a temporary file in the same folder, fsync'ed, then
-        os.replace'd): a process killed mid-save leaves the previous file intact. An open
-        binary file object is written directly (no atomicity: the caller owns it).
-        Returns the path written (or the file object)."""
+        path: a str or os.PathLike (".npz" appended when missing, so `Transformer.load` needs the
+        name with ".npz"), written atomically, or an open binary file; see pyvf._io.save_model.
+        Returns the path written (or the file)."""
         return save_model(path, self.config, self.params)
 
     @classmethod
@@ -452,7 +414,7 @@ class Transformer:
         dP = (dtrunk + dgen).sum(axis=2)  # (B, N, d): P feeds the trunk and the generation row
         if g is not None:
             g["embed.out"], g["pose_embedding.c_proj"] = dx, dP
-        dpose_in, dw_fc, db_fc, dw_proj, db_proj = _mlp_backward(dP, c_pose, g, "pose_embedding")
+        dpose_in, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dP, c_pose, g, "pose_embedding")
         if g is not None:
             g["pose_embedding.input"], g["embed.positions"], g["embed.tokens"] = dpose_in, dW, dE
         grads["pose_embedding/c_fc/weight"] += dw_fc
@@ -495,14 +457,14 @@ class Transformer:
         if g is not None:
             g[b + "out"] = g[b + "mlp.c_proj"] = dx
         # forward was x2 = x1 + mlp(ln_2(x1))
-        dm, dw_fc, db_fc, dw_proj, db_proj = _mlp_backward(dx, c_mlp, g, b + "mlp")
+        dm, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dx, c_mlp, g, b + "mlp")
         dx1, dg2, db2 = layernorm_backward(dm, c_ln2)
         dx = dx + dx1
         if g is not None:
             g[b + "ln_2"] = dm
             g[b + "resid_1"] = g[b + "attn.c_proj"] = dx
         # forward was x1 = x0 + attn(ln_1(x0))
-        da, dw_attn, db_attn, dw_aproj, db_aproj = _attention_backward(dx, c_attn, g, b + "attn")
+        da, dw_attn, db_attn, dw_aproj, db_aproj = attention_layer_backward(dx, c_attn, g, b + "attn")
         dx0, dg1, db1 = layernorm_backward(da, c_ln1)
         if g is not None:
             g[b + "ln_1"] = da
@@ -542,7 +504,7 @@ class Transformer:
         dl2 = dlogits.reshape(-1, V)  # (M, V)
         dg = (dl2 @ p["wte/weight"][:V]).reshape(gen.shape)  # (B, N, L, d)
         grads["wte/weight"][:V] += dl2.T @ gen.reshape(-1, d)  # (V, d)
-        dl, dw_fc, db_fc, dw_proj, db_proj = _mlp_backward(draw, c_head, g, "pose_head")
+        dl, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(draw, c_head, g, "pose_head")
         if g is not None:
             g["logits"] = dlogits
         head = "quaternion_pose_representation/pose_classifier/"
