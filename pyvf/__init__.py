@@ -43,7 +43,8 @@ from .train import codebook_train_step, train_step
 from .transformer import Scene, Transformer, TransformerConfig, TransformerOutput
 from .compare import Comparison, compare
 from .measure import rel_err
-from .layout import flat_to_tree, tree_to_flat
+from .layout import flat_to_tree, params_from_layout, params_to_layout, trace_from_flat, tree_to_flat
+from .teacher import TeacherReport, teacher_force
 
 __version__ = "0.1.0"
 
@@ -115,6 +116,11 @@ __all__ = [
     "rel_err",
     "flat_to_tree",
     "tree_to_flat",
+    "params_from_layout",
+    "params_to_layout",
+    "trace_from_flat",
+    "TeacherReport",
+    "teacher_force",
     "Codebook",
     "CodebookConfig",
     "CodebookOutput",

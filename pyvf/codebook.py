@@ -17,6 +17,7 @@ Traces, for checking a port layer by layer (pyvf.compare):
 
 Parameters use the published torch names (spec/official-codebook-*.json), conv weights
 (out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
+load_official / state_dict also speak channels-last kernels (layout="tf": TF, Flax).
 
 The forward records every layer it runs on a tape, (kind, parameter name, cache); the backward
 replays the tape in reverse, so it reads as the forward read backwards, whatever the
@@ -62,6 +63,42 @@ from .quantizer import EMAQuantizer
 ATTN_PARAMS = (".norm.weight", ".norm.bias", ".q.weight", ".q.bias", ".k.weight", ".k.bias",
                ".v.weight", ".v.bias", ".proj_out.weight", ".proj_out.bias")
 BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.ema_dw_hidden", "quantize.counter")
+
+
+WEIGHT_LAYOUTS = ("torch", "tf")
+
+
+def _weight_layout(layout):
+    if not isinstance(layout, str) or layout not in WEIGHT_LAYOUTS:
+        raise ValueError(f"layout must be one of {WEIGHT_LAYOUTS} (the conv kernels' convention: torch "
+                         f"nn.Conv2d (out, in, kh, kw) or channels-last TF/Flax (kh, kw, in, out)), got {layout!r}")
+    return layout
+
+
+def is_conv_kernel(name, shape):
+    """True for the conv kernels: the 4-d `.weight`s (GroupNorm weights are 1-d)."""
+    return name.endswith(".weight") and len(shape) == 4
+
+
+def _layout_shape(name, shape, layout):
+    """The shape parameter `name` (published shape `shape`) has in `layout`."""
+    if layout == "tf" and is_conv_kernel(name, shape):
+        return tuple(shape[2:]) + (shape[1], shape[0])  # (out, in, kh, kw) -> (kh, kw, in, out)
+    return tuple(shape)
+
+
+def _from_layout(name, a, layout):
+    """An array in `layout` -> the published layout (a view)."""
+    if layout == "tf" and is_conv_kernel(name, a.shape):
+        return a.transpose(3, 2, 0, 1)  # (kh, kw, in, out) -> (out, in, kh, kw)
+    return a
+
+
+def _to_layout(name, p, layout):
+    """A parameter in the published layout -> a C-contiguous copy in `layout`."""
+    if layout == "tf" and is_conv_kernel(name, p.shape):
+        return np.ascontiguousarray(p.transpose(2, 3, 1, 0))  # (out, in, kh, kw) -> (kh, kw, in, out)
+    return p.copy()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,45 +310,74 @@ class Codebook:
     # -----------------------------------------------------------------------------------
     # weights
 
-    def state_dict(self):
-        """torch name -> array, the quantizer's buffers included (copies)."""
-        state = {name: p.copy() for name, p in self.params.items()}
+    def state_dict(self, layout="torch"):
+        """torch name -> array, the quantizer's buffers included (copies), in `layout` (see
+        load_official): "torch", the published state dict (nn.Conv2d kernels (out, in, kh, kw)),
+        or "tf", channels-last kernels (kh, kw, in, out) as TF/Keras Conv2D and Flax nn.Conv
+        hold them. Every other entry is the same in both."""
+        layout = _weight_layout(layout)
+        state = {name: _to_layout(name, p, layout) for name, p in self.params.items()}
         state.update({"quantize." + k: v for k, v in self.quantizer.state_dict().items()})
         return state
 
-    def load_official(self, state_dict):
-        """Load a torch state_dict (name -> array, e.g. from `pyvf convert torch-codebook`):
-        every parameter and the four quantize.* buffers, nothing else.
+    def load_official(self, state_dict, *, layout="torch"):
+        """Load a state dict (name -> array): every parameter and the four quantize.* buffers,
+        nothing else; names as the published torch state dict (a Lightning checkpoint's
+        `model.` prefix is dropped; other keys of such a checkpoint, e.g. `loss.*`, are
+        unexpected: `pyvf convert torch-codebook` skips them).
 
-        Everything is checked before anything is assigned: names (missing, unexpected), every
-        array (a float32/float64 numpy array of the parameter's shape, finite; the counter a
-        non-negative integer). Any problem raises one ValueError naming every wrong entry
-        (TypeError when all of them are wrong types), and the model is left unchanged. Float
-        arrays are converted to the model's dtype (the one conversion pyvf makes, on purpose);
-        the model never aliases the caller's arrays."""
+        layout: the caller states the convention of the conv kernels (every 4-d `.weight`), so a
+        kernel is never silently transposed:
+          "torch" the published state dict = torch nn.Conv2d's (out, in, kh, kw);
+          "tf"    channels-last (kh, kw, in, out): TF/Keras Conv2D, Flax nn.Conv; transposed here.
+        Biases, GroupNorm parameters and the quantizer's buffers (`quantize.embeddings` is
+        (embed_dim, n_embed) in both: codes are columns) are never transposed.
+
+        Entries may be numpy arrays or anything with `.detach()` (torch tensors, also ones that
+        require grad: `.detach().cpu().numpy()` is called; pyvf never imports torch). Everything is
+        checked before anything is assigned: names (missing, unexpected, given twice), every
+        array (float32/float64 of the parameter's shape in `layout`, finite; other dtypes are
+        refused, not cast; the counter a non-negative integer). Any problem raises one ValueError
+        naming every wrong entry (TypeError when all of them are wrong types), and the model is
+        left unchanged. Float arrays are converted to the model's dtype (the one conversion pyvf
+        makes, on purpose); the model never aliases the caller's arrays."""
+        layout = _weight_layout(layout)
         if not isinstance(state_dict, Mapping):
             raise TypeError(f"load_official: state_dict must be a dict name -> array, got {type(state_dict).__name__}")
         shapes = parameter_shapes(self.config)
-        problems = []
-        missing = [k for k in (*shapes, *BUFFERS) if k not in state_dict]
+        problems, entries, given_as, unexpected = [], {}, {}, []
+        for raw_name, arr in state_dict.items():
+            name = raw_name[len("model."):] if isinstance(raw_name, str) and raw_name.startswith("model.") else raw_name
+            if name not in shapes and name not in BUFFERS:
+                unexpected.append(repr(raw_name))
+                continue
+            if name in given_as:
+                problems.append((ValueError, f"{name!r} given twice (as {given_as[name]!r} and {raw_name!r})"))
+                continue
+            given_as[name] = raw_name
+            arr, problem = _checks.checkpoint_array(raw_name, arr)  # torch tensors -> numpy
+            if problem is not None:
+                problems.append(problem)
+            else:
+                entries[name] = arr
+        missing = [k for k in (*shapes, *BUFFERS) if k not in given_as]
         if missing:
             problems.append((ValueError, f"{len(missing)} names missing: {missing}"))
-        want = set(shapes) | set(BUFFERS)
-        unexpected = sorted(repr(k) for k in state_dict if k not in want)
         if unexpected:
-            problems.append((ValueError, f"unexpected names {', '.join(unexpected)}"))
+            problems.append((ValueError, f"unexpected names {', '.join(sorted(unexpected))}"))
         params = {}
+        hint = " (layout='tf': conv kernels (kh, kw, in, out))" if layout == "tf" else ""
         for name, shape in shapes.items():
-            if name in state_dict:
-                a = state_dict[name]
-                problem = _checks.weight_problem(name, a, shape)
+            if name in entries:
+                a = entries[name]
+                problem = _checks.weight_problem(given_as[name], a, _layout_shape(name, shape, layout), hint=hint)
                 if problem is None:
-                    params[name] = np.array(a, dtype=self.dtype, order="C", copy=True)
+                    params[name] = np.array(_from_layout(name, a, layout), dtype=self.dtype, order="C", copy=True)
                 else:
                     problems.append(problem)
         prefix = "quantize."
         buffers, buffer_problems = self.quantizer.check_state(
-            {k[len(prefix):]: state_dict[k] for k in BUFFERS if k in state_dict}, prefix=prefix, require_all=False)
+            {k[len(prefix):]: entries[k] for k in BUFFERS if k in entries}, prefix=prefix, require_all=False)
         problems += buffer_problems
         if problems:
             raise _checks.problems_error("load_official", problems)

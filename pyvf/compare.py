@@ -58,10 +58,11 @@ class ComparisonRow:
     rel: float  # max |mine - ref| / max |ref| (inf when the shapes differ, nan when mine is not finite)
     rtol: float
     note: str = ""  # e.g. the shapes, when they differ
+    atol: float = 0.0  # an absolute error always accepted (compare's atol=)
 
     @property
     def ok(self):
-        return bool(self.rel <= self.rtol)  # False for nan
+        return bool(self.rel <= self.rtol or self.max_abs <= self.atol)  # False for nan
 
 
 @dataclasses.dataclass
@@ -140,12 +141,17 @@ def _tolerance(dt_mine, dt_ref, dtype, rtol):
     return dt, DEFAULT_RTOL[dt]
 
 
-def compare(mine, ref, *, dtype=None, rtol=None):
+def compare(mine, ref, *, dtype=None, rtol=None, atol=0.0):
     """Compare two mappings name -> array; see the module's docstring.
 
     mine: your port's quantities; ref: the reference's (pyvf's trace or gradients), whose order
     is walked. dtype: the dtype whose default tolerance applies (default: the less precise of
     the two arrays'); rtol: a normwise relative tolerance for every quantity (overrides dtype).
+    atol: an absolute error accepted whatever the relative one (default 0), for quantities that
+    are exactly zero in exact arithmetic, whose relative error is rounding over rounding: e.g. the
+    gradient of a conv bias feeding a GroupNorm with one channel per group (the tiny codebook's
+    first level). Give it relative to the scale of the neighbouring quantities, e.g.
+    atol = 1e-10 * max|ref gradient| over a model's gradients (pyvf.teacher_force does that per layer).
     Returns a Comparison: .first (the first name over tolerance, or None), .rows, .only_mine,
     .only_ref, .ok; str() of it is the report."""
     for side, m in (("mine", mine), ("ref", ref)):
@@ -156,6 +162,10 @@ def compare(mine, ref, *, dtype=None, rtol=None):
                 or not 0 <= rtol < np.inf:
             raise ValueError(f"compare: rtol must be a finite number >= 0, got {rtol!r}")
         rtol = float(rtol)
+    if isinstance(atol, (bool, np.bool_)) or not isinstance(atol, (int, float, np.integer, np.floating)) \
+            or not 0 <= atol < np.inf:
+        raise ValueError(f"compare: atol must be a finite number >= 0, got {atol!r}")
+    atol = float(atol)
     if dtype is not None and str(dtype) != "bfloat16" and str(np.dtype(dtype)) not in DEFAULT_RTOL:
         raise ValueError(f"compare: dtype must be one of {list(DEFAULT_RTOL)}, got {dtype!r}")
     rows, first = [], None
@@ -168,7 +178,7 @@ def compare(mine, ref, *, dtype=None, rtol=None):
         if a.shape != b.shape:
             row = ComparisonRow(name, b.shape, dt, np.inf, np.inf, tol, f"(shape {a.shape} vs ref {b.shape})")
         elif a.size == 0:
-            row = ComparisonRow(name, b.shape, dt, 0.0, 0.0, tol)
+            row = ComparisonRow(name, b.shape, dt, 0.0, 0.0, tol, atol=atol)
         else:
             with np.errstate(invalid="ignore", over="ignore"):
                 max_abs = float(np.abs(a.astype(np.float64) - b.astype(np.float64)).max())
@@ -177,7 +187,9 @@ def compare(mine, ref, *, dtype=None, rtol=None):
                 row = ComparisonRow(name, b.shape, dt, max_abs, np.nan, tol, "(ref not finite)")
             else:
                 row = ComparisonRow(name, b.shape, dt, max_abs, rel, tol,
-                                    "" if np.isfinite(rel) else "(mine not finite)")
+                                    "" if np.isfinite(rel) else "(mine not finite)", atol=atol)
+                if not rel <= tol and row.ok:
+                    row.note = f"(max abs err within atol {atol:.1e})"
         rows.append(row)
         if first is None and not row.ok:
             first = name

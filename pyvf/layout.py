@@ -9,6 +9,10 @@ usually holds one flat sequence per batch element, (B, T, ...) with T = R*N*L, o
 
 tree_to_flat and flat_to_tree convert between the two (always a new C-contiguous array; the
 caller's is never aliased). Any dtype: activations, gradients or integer tokens.
+
+trace_from_flat converts a whole trace (the names of pyvf.transformer.TRACE_NAMES).
+params_from_layout / params_to_layout convert parameter-shaped arrays (a port's gradients)
+between pyvf's layout and the conventions load_official speaks (layout="tf" | "torch").
 """
 
 import numpy as np
@@ -41,3 +45,107 @@ def flat_to_tree(x, R, N, L):
         raise ValueError(f"x has T = {T} tokens (shape {x.shape}), but R*N*L = {R}*{N}*{L} = {R * N * L}")
     tree = x.reshape(B, R, N, L, *x.shape[2:])  # (B, R, N, L, ...)
     return np.moveaxis(tree, 1, 0).copy(order="C")  # (R, B, N, L, ...)
+
+
+_PER_HEAD = (".attn.q", ".attn.k", ".attn.v", ".attn.out", ".attn.lse")  # (R, B, H, N, L[, dh]) in pyvf
+
+
+def trace_from_flat(trace, N, L, R=3):
+    """A port's transformer trace (or its gradients) in the flat layout -> pyvf's tree layout,
+    to compare with out.trace: name -> array (numpy, or torch tensors: read through .detach()).
+
+    Whole-tree activations (embed.out and blocks.*) of shape (B, T, ...), T = R*N*L ordered
+    [row][view][token], become (R, B, N, L, ...); the attention's per-head ones (blocks.j.attn.q,
+    .k, .v, .out) given as (B, H, T, dh), and .lse as (B, H, T), become pyvf's (R, B, H, N, L[, dh]).
+    Every other entry (the heads' rows (B, N, L, ...), losses) is returned as it is, as numpy.
+    None values (a tensor without a gradient) are dropped. Always new arrays."""
+    out = {}
+    for name, a in trace.items():
+        if a is None:
+            continue
+        a = _readable(name, a)
+        if name == "embed.out" or name.startswith("blocks."):
+            if name.endswith(_PER_HEAD) and a.ndim in (3, 4):  # (B, H, T[, dh]) -> (R, B, H, N, L[, dh])
+                B, H, T = a.shape[:3]
+                if T != R * N * L:
+                    raise ValueError(f"{name!r} has shape {a.shape}: T = {T}, but R*N*L = {R * N * L}")
+                a = np.moveaxis(a.reshape(B, H, R, N, L, *a.shape[3:]), 2, 0).copy(order="C")
+            else:
+                try:
+                    a = flat_to_tree(a, R, N, L)
+                except ValueError as e:
+                    raise ValueError(f"{name!r}: {e}") from None
+        else:
+            a = np.array(a)
+        out[name] = a
+    return out
+
+# ---------------------------------------------------------------------------------------
+# parameter layouts: the conventions load_official / state_dict speak, for any parameter-shaped
+# arrays (a port's gradients, to compare with backward()'s)
+
+
+def _param_layout(model, layout):
+    """-> (official name -> pyvf's name, shapes, from_layout(name, a), to_layout(name, p)) for model."""
+    from . import codebook, transformer
+
+    if isinstance(model, transformer.Transformer):
+        layout = transformer._weight_layout(layout)
+        return (transformer.official_name, transformer.parameter_shapes(model.config),
+                lambda n, a: transformer._from_layout(n, a, layout), lambda n, p: transformer._to_layout(n, p, layout))
+    if isinstance(model, codebook.Codebook):
+        layout = codebook._weight_layout(layout)
+        return (lambda n: n, codebook.parameter_shapes(model.config),
+                lambda n, a: codebook._from_layout(n, a, layout), lambda n, p: codebook._to_layout(n, p, layout))
+    raise TypeError(f"model must be a pyvf.Transformer or pyvf.Codebook, got {type(model).__name__}")
+
+
+def _readable(name, a):
+    a, problem = _checks.checkpoint_array(name, a)  # torch tensors (also ones that require grad) -> numpy
+    if problem is not None:
+        raise problem[0](problem[1])
+    if not isinstance(a, np.ndarray):
+        raise TypeError(f"{name!r} must be a numpy array or a torch tensor, got {type(a).__name__}")
+    return a
+
+
+def params_from_layout(model, arrays, layout):
+    """arrays: name -> array (numpy, or torch tensors) -> a new dict in pyvf's layout (the
+    published one, model.params'): the entries named as the model's parameters (Transformer:
+    official names, `migt/` and `:0` optional) are transposed from `layout` as load_official
+    does ("tf" | "torch" for a Transformer, "torch" | "tf" for a Codebook), every other entry
+    (activations) passes unchanged. For a port's parameter gradients:
+
+        pyvf.compare(pyvf.params_from_layout(model, port_grads, "torch"), model.backward(...))
+
+    A parameter of the wrong shape for `layout` raises ValueError naming it."""
+    name_of, shapes, from_layout, _ = _param_layout(model, layout)
+    out = {}
+    for raw, a in arrays.items():
+        name = name_of(raw) if isinstance(raw, str) else raw
+        if name not in shapes:
+            out[raw] = a
+            continue
+        a = _readable(raw, a)
+        b = from_layout(name, a)
+        if b.shape != shapes[name]:
+            raise ValueError(f"{raw!r} has shape {a.shape}, which is not parameter {name!r} {shapes[name]} "
+                             f"in layout={layout!r}")
+        out[raw] = b
+    return out
+
+
+def params_to_layout(model, arrays, layout):
+    """The inverse of params_from_layout: arrays in pyvf's layout (e.g. backward()'s gradients)
+    -> a new dict whose parameters are in `layout` (copies); other entries pass unchanged."""
+    name_of, shapes, _, to_layout = _param_layout(model, layout)
+    out = {}
+    for raw, a in arrays.items():
+        name = name_of(raw) if isinstance(raw, str) else raw
+        if name in shapes:
+            a = _readable(raw, a)
+            if a.shape != shapes[name]:
+                raise ValueError(f"{raw!r} has shape {a.shape}, expected parameter {name!r}'s {shapes[name]}")
+            a = to_layout(name, a)
+        out[raw] = a
+    return out

@@ -158,3 +158,141 @@ def test_tree_flat_bad_shapes():
         pyvf.flat_to_tree(np.zeros((2, 0)), 1, 0, 4)
     with pytest.raises(TypeError, match="L must be an integer"):
         pyvf.flat_to_tree(np.zeros((2, 12)), 1, 3, 4.0)
+
+
+# ---------------------------------------------------------------------------------------
+# the codebook: the published torch state dict (= nn.Conv2d's layout) and channels-last "tf"
+
+CB = dict(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=8, n_embed=16,
+          image_size=16)
+
+
+def random_codebook(rng, dtype="float64"):
+    cb = pyvf.Codebook(pyvf.CodebookConfig(**CB, dtype=dtype))
+    state = cb.state_dict()
+    cb.load_official({k: (3 if k == "quantize.counter" else rng.normal(size=v.shape)) for k, v in state.items()})
+    return cb
+
+
+def assert_same_state(got, want):
+    a, b = got.state_dict(), want.state_dict()
+    assert list(a) == list(b)
+    for name in b:
+        assert_bitwise_equal(name, np.asarray(a[name]), np.asarray(b[name]))
+
+
+def test_codebook_torch_layout_is_nn_conv2d_and_tf_is_channels_last(rng):
+    cb = random_codebook(rng)
+    torch_sd, tf_sd = cb.state_dict(), cb.state_dict(layout="tf")
+    assert list(torch_sd) == list(cb.state_dict(layout="torch"))
+    name = "encoder.down.0.downsample.conv.weight"
+    assert torch_sd[name].shape == (32, 32, 3, 3) and tf_sd[name].shape == (3, 3, 32, 32)
+    assert tf_sd["quant_conv.weight"].shape == (1, 1, 32, 8) and tf_sd["quant_conv.bias"].shape == (8,)
+    assert tf_sd["quantize.embeddings"].shape == (8, 16)  # never transposed: codes are columns in both
+    # torch layout = nn.Conv2d's: the module computes pyvf's conv
+    conv = torch.nn.Conv2d(32, 8, 1, dtype=torch.float64)
+    conv.load_state_dict({"weight": torch.tensor(torch_sd["quant_conv.weight"]),
+                          "bias": torch.tensor(torch_sd["quant_conv.bias"])})
+    x = rng.normal(size=(2, 32, 4, 4))
+    want, _ = pyvf.conv.conv2d_forward(x, cb.params["quant_conv.weight"], cb.params["quant_conv.bias"])
+    np.testing.assert_allclose(conv(torch.tensor(x)).detach().numpy(), want, rtol=1e-13, atol=1e-13)
+    # tf layout = channels-last: TF's conv (NHWC, HWIO) computes the same, checked by hand with einsum
+    w = tf_sd["quant_conv.weight"]  # (1, 1, in, out)
+    np.testing.assert_allclose(np.einsum("bhwi,io->bhwo", x.transpose(0, 2, 3, 1), w[0, 0]) + tf_sd["quant_conv.bias"],
+                               want.transpose(0, 2, 3, 1), rtol=1e-13, atol=1e-13)
+    for layout, sd in (("torch", torch_sd), ("tf", tf_sd)):
+        again = pyvf.Codebook(cb.config, seed=5)
+        again.load_official(sd, layout=layout)
+        assert_same_state(again, cb)
+
+
+def test_codebook_loads_tensors_that_require_grad_and_a_lightning_prefix(rng):
+    cb = random_codebook(rng, "float32")
+    sd = {("model." + k): torch.tensor(v, requires_grad=np.asarray(v).dtype.kind == "f")
+          for k, v in cb.state_dict().items()}
+    again = pyvf.Codebook(cb.config, seed=5)
+    again.load_official(sd)
+    assert_same_state(again, cb)
+    assert all(p.dtype == np.float32 and p.flags.c_contiguous for p in again.params.values())
+
+
+def test_codebook_load_names_every_problem_and_changes_nothing(rng):
+    cb = random_codebook(rng)
+    target = pyvf.Codebook(cb.config, seed=5)
+    before = target.state_dict()
+    sd = cb.state_dict()
+    bad = dict(sd)
+    del bad["decoder.conv_out.bias"]  # missing
+    bad["loss.discriminator.weight"] = np.zeros(3)  # unexpected
+    bad["quant_conv.weight"] = sd["quant_conv.weight"].transpose(2, 3, 1, 0)  # tf layout given as torch
+    bad["encoder.conv_in.bias"] = np.full(32, np.nan)  # non-finite
+    bad["encoder.conv_out.bias"] = torch.ones(32, dtype=torch.bfloat16)  # numpy cannot hold it
+    bad["model.encoder.conv_in.weight"] = sd["encoder.conv_in.weight"]  # given twice
+    bad["quantize.counter"] = -1
+    with pytest.raises(ValueError) as e:
+        target.load_official(bad)
+    msg = str(e.value)
+    for part in ("'decoder.conv_out.bias'", "missing", "unexpected names 'loss.discriminator.weight'",
+                 "'quant_conv.weight' has shape (1, 1, 32, 8), expected (8, 32, 1, 1)",
+                 "'encoder.conv_in.bias' contains NaN or inf", "'encoder.conv_out.bias' (Tensor) cannot become",
+                 "'encoder.conv_in.weight' given twice", "'quantize.counter' must be a non-negative integer"):
+        assert part in msg, (part, msg)
+    assert_same_state(target, pyvf.Codebook(cb.config, seed=5))  # unchanged
+    for k, v in before.items():
+        assert_bitwise_equal(k, np.asarray(target.state_dict()[k]), np.asarray(v))
+    with pytest.raises(ValueError, match=r"layout='tf': conv kernels \(kh, kw, in, out\)"):
+        target.load_official(sd, layout="tf")  # torch kernels said to be tf: the shapes tell
+    for bad_layout in ("TF", "flax", None):
+        with pytest.raises(ValueError, match="layout must be one of"):
+            target.load_official(sd, layout=bad_layout)
+        with pytest.raises(ValueError, match="layout must be one of"):
+            target.state_dict(layout=bad_layout)
+    with pytest.raises(TypeError, match="'encoder.conv_in.bias' has dtype int64"):
+        target.load_official({**sd, "encoder.conv_in.bias": np.zeros(32, dtype=np.int64)})
+
+
+# ---------------------------------------------------------------------------------------
+# a port's gradients and traces into pyvf's layouts
+
+
+def test_params_from_and_to_layout(rng):
+    model = random_model(rng)
+    grads = {"blocks.0.ln_1": np.ones(3), **{k: rng.normal(size=v.shape) for k, v in model.params.items()}}
+    as_torch = pyvf.params_to_layout(model, grads, "torch")
+    assert as_torch["h.0/attn/c_attn/weight"].shape == (96, 32) and as_torch["h.0/attn/c_attn/bias"].shape == (96,)
+    assert as_torch["blocks.0.ln_1"] is grads["blocks.0.ln_1"]  # activations pass unchanged
+    tensors = {k: torch.tensor(v, requires_grad=True) if k != "blocks.0.ln_1" else v for k, v in as_torch.items()}
+    back = pyvf.params_from_layout(model, tensors, "torch")
+    for k in model.params:
+        assert_bitwise_equal(k, back[k], grads[k])
+    assert back["h.1/attn/c_proj/weight"].shape == (32, 32)
+    assert_bitwise_equal("square kernel transposed", back["h.1/attn/c_proj/weight"], grads["h.1/attn/c_proj/weight"])
+    with pytest.raises(ValueError, match=r"'h.0/mlp/c_fc/weight' has shape \(32, 128\).*layout='torch'"):
+        pyvf.params_from_layout(model, {"h.0/mlp/c_fc/weight": grads["h.0/mlp/c_fc/weight"]}, "torch")
+    cb = random_codebook(rng)
+    g = {k: rng.normal(size=v.shape) for k, v in cb.params.items()}
+    tf = pyvf.params_to_layout(cb, g, "tf")
+    assert tf["encoder.conv_in.weight"].shape == (3, 3, 3, 32)
+    for k, v in pyvf.params_from_layout(cb, tf, "tf").items():
+        assert_bitwise_equal(k, v, g[k])
+    with pytest.raises(TypeError, match="model must be a pyvf.Transformer or pyvf.Codebook"):
+        pyvf.params_from_layout("model", g, "tf")
+
+
+def test_trace_from_flat(rng):
+    R, B, H, N, L, dh = 3, 2, 2, 3, 4, 5
+    tree = rng.normal(size=(R, B, N, L, H * dh))
+    q_tree = rng.normal(size=(R, B, H, N, L, dh))
+    lse_tree = rng.normal(size=(R, B, H, N, L))
+    flat_q = q_tree.transpose(1, 2, 0, 3, 4, 5).reshape(B, H, R * N * L, dh)  # a port's (B, H, T, dh)
+    flat_lse = lse_tree.transpose(1, 2, 0, 3, 4).reshape(B, H, R * N * L)
+    rows = rng.normal(size=(B, N, L, 7))
+    got = pyvf.trace_from_flat({"embed.out": torch.tensor(pyvf.tree_to_flat(tree)), "blocks.0.attn.q": flat_q,
+                                "blocks.0.attn.lse": flat_lse, "pose": rows, "no.grad": None}, N, L)
+    assert list(got) == ["embed.out", "blocks.0.attn.q", "blocks.0.attn.lse", "pose"]
+    assert_bitwise_equal("embed.out", got["embed.out"], tree)
+    assert_bitwise_equal("q", got["blocks.0.attn.q"], q_tree)
+    assert_bitwise_equal("lse", got["blocks.0.attn.lse"], lse_tree)
+    assert_bitwise_equal("pose", got["pose"], rows) and not np.shares_memory(got["pose"], rows)
+    with pytest.raises(ValueError, match=r"'blocks.1.ln_1': x has T = 35"):
+        pyvf.trace_from_flat({"blocks.1.ln_1": np.zeros((2, 35, 8))}, N, L)

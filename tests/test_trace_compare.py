@@ -359,3 +359,19 @@ def test_compare_inputs_and_tolerances():
         pyvf.compare(ref, ref, rtol=-1)
     with pytest.raises(TypeError, match=r"mine\['a'\] must be a real numeric array"):
         pyvf.compare({"a": np.array(["x"])}, ref)
+
+
+def test_compare_atol_accepts_exact_zeros_only_up_to_it():
+    """A quantity that is zero in exact arithmetic is rounding on both sides: relative error noise
+    over noise. atol accepts an absolute error up to it (and nothing else changes)."""
+    ref = {"w": np.array([1.0, -2.0]), "b": np.array([3e-17, -1e-17])}  # b: an exact zero, rounded
+    mine = {"w": ref["w"] * (1 + 1e-13), "b": np.array([-2e-17, 4e-17])}
+    assert pyvf.compare(mine, ref).first == "b"  # relative error ~2: over 1e-10
+    ok = pyvf.compare(mine, ref, atol=1e-10 * 2.0)  # 1e-10 of the largest neighbouring quantity
+    assert ok.ok and "within atol" in ok.table() and ok.rows[1].rel > 1
+    assert pyvf.compare({**mine, "w": ref["w"] * 1.001}, ref, atol=2e-10).first == "w"  # not a blanket pass
+    assert pyvf.compare({"b": np.array([np.nan, 0.0])}, ref, atol=1.0).first == "b"  # never a NaN
+    assert pyvf.compare({"b": np.zeros(3)}, ref, atol=1.0).first == "b"  # nor a wrong shape
+    for bad in (-1.0, np.inf, True, "0"):
+        with pytest.raises(ValueError, match="atol must be a finite number"):
+            pyvf.compare(mine, ref, atol=bad)

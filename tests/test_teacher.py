@@ -1,0 +1,293 @@
+"""Issue 13's done-when: a typical bug planted in a torch port (pyvf/verify/torch_ports.py, torch
+nn.Modules as a port author writes them) is found by pyvf.compare on a traced forward+backward
+(the FIRST wrong quantity) and by pyvf.teacher_force (the ONLY wrong layer or layers), with at
+most 15 lines of user code beside the port (the functions below marked USER CODE; their lines
+are counted by test_user_code_is_at_most_15_lines). The correct port is checked too: nothing may
+be flagged, so a tool that flags everything fails here as much as one that flags nothing. The
+references are independent: the port is written from SPEC.md, and pyvf's side of each layer is
+pyvf's own layer pair (checked against torch autograd in float64 in test_trace_compare.py)."""
+
+import inspect
+import re
+
+import numpy as np
+import pytest
+import torch
+
+import pyvf
+import pyvf.teacher
+from pyvf.verify.torch_ports import (CODEBOOK_BUGS, TRANSFORMER_BUGS, CodebookPort, TransformerPort,
+                                     official_name)
+from test_codebook_trace import SMALL, images_for, random_codebook
+from test_transformer import TINY, random_batch, random_model
+
+
+# ---------------------------------------------------------------------------------------
+# USER CODE: what a port author writes beside the port (torch nn.Modules) to use the tools
+
+
+def port_trace(port, tokens, poses, dlogits, dpose):  # USER CODE (transformer, compare)
+    """Run the port, record its modules' outputs under pyvf's trace names in pyvf's tree
+    layout, and their gradients for the upstream gradients dlogits, dpose."""
+    rename = {"embed": "embed.out", "embed.wte": "embed.tokens", "embed.wpe": "embed.positions",
+              "embed.pose_embedding": "pose_embedding", "pose_head": "pose", "ln_f": "ln_f.generation"}
+    rec, names = {}, {m: re.sub(r"^h\.(\d+)", r"blocks.\1", rename.get(n, n.replace("embed.pose_", "pose_")))
+                      for n, m in port.named_modules() if n}
+    hook = lambda m, args, out: rec.update({"ln_f.localization" if names[m] in rec else names[m]: out})  # noqa: E731
+    handles = [m.register_forward_hook(hook) for m in names]  # (ln_f runs twice: generation row, then localization)
+    rec["logits"], pose = port(torch.tensor(tokens), torch.tensor(poses))
+    [h.remove() for h in handles] + [t.retain_grad() for t in rec.values()]
+    ((rec["logits"] * torch.tensor(dlogits)).sum() + (pose * torch.tensor(dpose)).sum()).backward()
+    grads = pyvf.trace_from_flat({n: t.grad for n, t in rec.items()}, *tokens.shape[1:])
+    return pyvf.trace_from_flat(rec, *tokens.shape[1:]), {**grads, **{official_name(n): p.grad for n, p
+                                                                           in port.named_parameters()}}
+
+
+def port_layers(port, N, L):  # USER CODE (transformer, teacher forcing)
+    layers, mask = {"embed": port.embed, "ln_f": port.ln_f, "logits": port.logits, "pose_head": port.pose_head}, port.mask(N, L)
+    for j, b in enumerate(port.h):
+        layers |= {f"blocks.{j}.ln_1": b.ln_1, f"blocks.{j}.attn": lambda x, b=b: b.attn(x, mask),
+                   f"blocks.{j}.ln_2": b.ln_2, f"blocks.{j}.mlp": b.mlp}
+    return layers, {official_name(n): p for n, p in port.named_parameters()}
+
+
+def codebook_trace(port, images, drec):  # USER CODE (codebook, compare)
+    rec, names = {}, {m: n for n, m in port.named_modules() if n}
+
+    def hook(module, args, out):
+        out = out[0] if isinstance(out, tuple) else out  # the quantizer returns (quantized, loss, codes)
+        out = torch.nn.functional.silu(out) if names[module].endswith(("norm1", "norm2", "norm_out")) else out
+        rec[names[module]] = out.retain_grad() or out  # pyvf fuses Normalize and swish: record swish(norm(x))
+
+    handles = [m.register_forward_hook(hook) for m in names]
+    rec_out = port(torch.tensor(images))[0]
+    [h.remove() for h in handles]
+    (rec_out * torch.tensor(drec)).sum().backward()
+    return ({n: t.detach().numpy() for n, t in rec.items()},
+            {**{n: t.grad.numpy() for n, t in rec.items() if t.grad is not None},
+             **{n: p.grad.numpy() for n, p in port.named_parameters()}})
+
+
+USER_CODE = (port_trace, port_layers, codebook_trace)  # + one teacher_force call each (in the tests)
+
+
+def test_user_code_is_at_most_15_lines():
+    """Each tool's user code, not counting docstrings, comments and blank lines, plus its call."""
+    def lines(f):
+        src = inspect.getsource(f)
+        src = re.sub(r'""".*?"""', "", src, flags=re.S)
+        return [l for l in src.splitlines() if l.strip() and not l.strip().startswith("#")]
+    counts = {f.__name__: len(lines(f)) for f in USER_CODE}
+    assert counts["port_trace"] + 2 <= 15, counts  # + pyvf.compare(...) and params_from_layout
+    assert counts["port_layers"] + 1 <= 15, counts  # + pyvf.teacher_force(...)
+    assert counts["codebook_trace"] + 1 <= 15, counts
+    # the codebook's teacher forcing: torch_modules + named_parameters + the call: 3 lines
+
+
+# ---------------------------------------------------------------------------------------
+# the transformer
+
+
+def transformer_setup(rng, bug):
+    cfg = pyvf.TransformerConfig(**TINY, dtype="float64", pose_multiplier=0.5)
+    model = random_model(cfg, rng)
+    tokens, poses = random_batch(rng, 2, 3, 16, cfg.n_embeddings)
+    port = TransformerPort(cfg, bug=bug).double()
+    sd = model.state_dict(layout="torch")  # nn.Linear's (out, in): the port's weights are pyvf's
+    port.load_state_dict({n: torch.tensor(sd[official_name(n)]) for n, _ in port.state_dict().items()})
+    dl = rng.normal(size=(*tokens.shape, cfg.n_embeddings))
+    dp = rng.normal(size=(*tokens.shape, 7))
+    return model, port, tokens, poses, dl, dp
+
+
+# the first wrong quantity compare names (in the port's recorded trace), the layers teacher forcing names
+TRANSFORMER_EXPECT = {
+    None: (None, []),
+    "qkv_order": ("blocks.1.attn.c_proj", ["blocks.1.attn"]),  # c_attn's output is right, its reading is not
+    "ln_eps": ("blocks.0.ln_2", ["blocks.0.ln_2"]),
+    "wrong_branch": ("blocks.0.attn.c_proj", ["blocks.0.attn", "blocks.1.attn"]),  # one mask, every attention
+    "gelu_tanh": ("blocks.0.mlp.gelu", ["blocks.0.mlp"]),
+    "attn_scale": ("blocks.0.attn.c_proj", ["blocks.0.attn", "blocks.1.attn"]),  # the Attention class's scale
+    "wpe_shift": ("embed.positions", ["embed"]),
+}
+assert set(TRANSFORMER_EXPECT) == {None, *TRANSFORMER_BUGS}
+
+
+@pytest.mark.parametrize("bug", list(TRANSFORMER_EXPECT), ids=str)
+def test_transformer_bug_found_by_compare_and_teacher_forcing(bug, rng):
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, bug)
+    first, wrong = TRANSFORMER_EXPECT[bug]
+    # compare: the traced forward names the first wrong quantity ...
+    out = model.forward(tokens, poses, trace=True)
+    grads = model.backward(dlogits=dl, dpose=dp)
+    mine, mine_grads = port_trace(port, tokens, poses, dl, dp)
+    report = pyvf.compare(mine, out.trace)
+    assert report.first == first, str(report)
+    assert len(report.rows) >= 2 * TINY["n_layer"] * 6, "the port's trace covers every block"
+    mine_grads = pyvf.params_from_layout(model, mine_grads, "torch")  # nn.Linear's (out, in) -> pyvf's
+    if bug is None:  # the correct port agrees everywhere, forward and backward, parameters included
+        g = pyvf.compare(mine_grads, grads)
+        assert g.first is None and len(g.rows) > len(model.params), str(g)  # module outputs pyvf does not name:
+        assert "blocks.0.attn" in g.only_mine  # listed as only_mine
+    else:  # ... everything after it differs (which is why only the first one says where) ...
+        assert not {r.name: r for r in report.rows}["logits"].ok
+        # ... and so does the backward: the gradients of the buggy layer's parameters among them
+        g = pyvf.compare(mine_grads, grads)
+        assert g.first is not None and any(not r.ok for r in g.rows if "/" in r.name), str(g)
+    # teacher forcing: each layer on pyvf's input, forward and VJP: only the buggy layer(s)
+    layers, params = port_layers(port, tokens.shape[1], tokens.shape[2])
+    tf = pyvf.teacher_force(model, (tokens, poses), layers, params=params, layout="torch",
+                            upstream=dict(dlogits=dl, dpose=dp))
+    assert tf.wrong == wrong, str(tf)
+    assert tf.unchecked == [] and len(tf.checks) == 4 * TINY["n_layer"] + 4
+    assert all(c.error is None and c.backward is not None for c in tf.checks)  # both ways, every layer
+    assert {r.name for c in tf.checks for r in c.backward.rows} >= set(model.params)  # every parameter
+    if bug is None:  # float64 both sides: within 1e-12 of pyvf, the default tolerance 1e-10
+        assert max(r.rel for c in tf.checks for comp in (c.forward, c.backward) for r in comp.rows) < 1e-12, str(tf)
+    else:
+        assert f"layers wrong: {', '.join(wrong)}" in str(tf)
+
+
+def test_teacher_forcing_without_upstream_checks_the_forward(rng):
+    model, port, tokens, poses, _, _ = transformer_setup(rng, "ln_eps")
+    layers, _ = port_layers(port, tokens.shape[1], tokens.shape[2])
+    tf = pyvf.teacher_force(model, (tokens, poses), layers, token_layout="flat")
+    assert tf.wrong == ["blocks.0.ln_2"] and all(c.backward is None for c in tf.checks)
+    # a partial dict checks what it has and lists the rest
+    part = pyvf.teacher_force(model, (tokens, poses), {k: layers[k] for k in ("blocks.0.ln_2", "blocks.1.mlp")})
+    assert part.wrong == ["blocks.0.ln_2"] and "embed" in part.unchecked and len(part.checks) == 2
+    assert "not checked" in str(part)
+
+
+def test_teacher_forcing_tree_layout_and_a_raising_layer(rng):
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
+    N, L = tokens.shape[1:]
+    seen = {}
+
+    def ln_1(x):  # token_layout="tree": pyvf's (R, B, N, L, d)
+        seen["shape"] = tuple(x.shape)
+        return port.h[0].ln_1(x)
+
+    def broken(x):
+        raise RuntimeError("shapes do not match")
+
+    tf = pyvf.teacher_force(model, (tokens, poses), {"blocks.0.ln_1": ln_1, "blocks.0.mlp": broken},
+                            token_layout="tree", upstream=dict(dlogits=dl))
+    assert seen["shape"] == (3, 2, N, L, TINY["d_model"])
+    assert tf.wrong == ["blocks.0.mlp"] and "RuntimeError: shapes do not match" in str(tf)
+
+
+def test_teacher_force_bad_arguments(rng):
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
+    layers, params = port_layers(port, tokens.shape[1], tokens.shape[2])
+    with pytest.raises(ValueError, match=r"unknown layer names \['blocks.9.attn'\]"):
+        pyvf.teacher_force(model, (tokens, poses), {"blocks.9.attn": layers["embed"]})
+    with pytest.raises(TypeError, match=r"not callable: \['embed'\]"):
+        pyvf.teacher_force(model, (tokens, poses), {"embed": 3})
+    with pytest.raises(ValueError, match="layout must be given with params"):
+        pyvf.teacher_force(model, (tokens, poses), layers, params=params)
+    bad = {**params, "h.0/attn/c_proj/weight": params["h.0/attn/c_attn/weight"], "nope": params["ln_f/gamma"]}
+    with pytest.raises(ValueError, match=r"2 problems: 'h.0/attn/c_proj/weight' has shape \(96, 32\), expected "
+                                         r"\(32, 32\).*'nope' is not a parameter"):
+        pyvf.teacher_force(model, (tokens, poses), layers, params=bad, layout="torch")
+    with pytest.raises(ValueError, match="token_layout"):
+        pyvf.teacher_force(model, (tokens, poses), layers, token_layout="BTD")
+    with pytest.raises(TypeError, match="dlogits is float32 but the model is float64"):
+        pyvf.teacher_force(model, (tokens, poses), layers, upstream=dict(dlogits=dl.astype(np.float32)))
+    with pytest.raises(TypeError, match="model must be a pyvf.Transformer or pyvf.Codebook"):
+        pyvf.teacher_force(port, (tokens, poses), layers)
+
+
+def test_teacher_forcing_restores_the_ports_grads(rng):
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
+    layers, params = port_layers(port, tokens.shape[1], tokens.shape[2])
+    marker = torch.full_like(params["ln_f/gamma"], 7.0)
+    params["ln_f/gamma"].grad = marker
+    pyvf.teacher_force(model, (tokens, poses), layers, params=params, layout="torch", upstream=dict(dpose=dp))
+    assert params["ln_f/gamma"].grad is marker and params["wte/weight"].grad is None
+
+
+# ---------------------------------------------------------------------------------------
+# the codebook
+
+
+def codebook_setup(rng, bug):
+    cfg = pyvf.CodebookConfig(**SMALL, dtype="float64")
+    cb = random_codebook(cfg, rng)
+    port = CodebookPort(cfg, bug=bug).double()
+    port.load_state_dict({k: torch.tensor(v) for k, v in cb.state_dict().items()})  # the published names
+    x = images_for(cfg, rng)
+    return cb, port, x, rng.normal(size=x.shape)
+
+
+CODEBOOK_EXPECT = {  # bug: (train mode, compare's first, teacher forcing's wrong layers)
+    None: (True, None, []),
+    "padding": (False, "encoder.down.0.downsample.conv", ["encoder.down.0.downsample"]),
+    "ema_first": (True, "quantize", ["quantize"]),  # shows in training mode only (SPEC.md §4)
+}
+assert set(CODEBOOK_EXPECT) == {None, *CODEBOOK_BUGS}
+
+
+@pytest.mark.parametrize("bug", list(CODEBOOK_EXPECT), ids=str)
+def test_codebook_bug_found_by_compare_and_teacher_forcing(bug, rng):
+    cb, port, x, drec = codebook_setup(rng, bug)
+    train, first, wrong = CODEBOOK_EXPECT[bug]
+    state = cb.state_dict()  # the EMA buffers before a training step
+    port.train(train)
+    out = cb.forward(x, train=train, trace=True)
+    grads = cb.backward(drec=drec)
+    mine, mine_grads = codebook_trace(port, x, drec)
+    report = pyvf.compare(mine, out.trace)
+    assert report.first == first, str(report)
+    assert len(report.rows) > 40
+    # atol: the conv biases feeding a GroupNorm of one channel per group (level 0: 32 channels, 32
+    # groups) have an exactly zero gradient, rounding noise on both sides (compare's docstring)
+    g = pyvf.compare(mine_grads, grads, atol=1e-10 * max(np.abs(v).max() for v in grads.values()))
+    if bug is None:
+        assert report.ok is False and set(report.only_ref) >= {"rec_loss", "loss"}  # losses not recorded: listed
+        assert g.first is None, str(g)
+    else:
+        assert not {r.name: r for r in report.rows}["decoder.conv_out"].ok and g.first is not None
+    # teacher forcing: the port's own modules, named as published, with their own parameters
+    cb.load_official(state)  # both sides' EMA buffers as before the step above
+    port.load_state_dict({k: torch.tensor(v) for k, v in state.items()})
+    tf = pyvf.teacher_force(cb, x, pyvf.teacher.torch_modules(port, cb), params=dict(port.named_parameters()),
+                            upstream=dict(drec=drec), train=train)
+    assert tf.wrong == wrong, str(tf)
+    assert tf.unchecked == [] and len(tf.checks) == len(pyvf.teacher.layer_names(cb))
+    assert {r.name for c in tf.checks for r in c.backward.rows} >= set(cb.params)  # every parameter, at its layer
+    if bug is None:  # float64: within 1e-11 of pyvf, but for the exactly-zero gradients, under the layer's atol
+        assert max(pyvf.teacher.LayerCheck._worst(comp) for c in tf.checks for comp in (c.forward, c.backward)) \
+            < 1e-11, str(tf)
+        zero = [r for c in tf.checks for r in c.backward.rows if r.rel > r.rtol]
+        assert {r.name.rsplit(".", 2)[-2] for r in zero} <= {"conv1", "conv2", "nin_shortcut", "k"}, zero
+        assert all(r.name.endswith(".bias") and r.max_abs < 1e-13 for r in zero), zero
+
+
+def test_codebook_layer_table():
+    cfg = pyvf.CodebookConfig(**SMALL, dtype="float64")
+    table = pyvf.teacher.layer_table(pyvf.Codebook(cfg))
+    by = {l.name: l for l in table}
+    assert table[0].calls == (((("images", None),), "encoder.conv_in"),)
+    assert by["encoder.down.0.downsample"].calls[0] == ((("encoder.down.0.block.0", None),),
+                                                        "encoder.down.0.downsample.conv")
+    nin = by["encoder.down.1.block.0.nin_shortcut"]  # the shortcut reads the block's input
+    assert nin.calls[0][0] == (("encoder.down.0.downsample.conv", None),)
+    assert by["encoder.down.1.block.0.norm1"].calls[0][0] == nin.calls[0][0]
+    assert by["decoder.up.1.upsample"].calls[0][1] == "decoder.up.1.upsample.conv"
+    assert by["quantize"].params == () and by["post_quant_conv"].calls[0][0] == (("quantize", None),)
+    assert not any(n.endswith(("block.0", "block_1", "interp")) for n in by)  # residual sums are not layers
+    # every parameter belongs to exactly one layer
+    owned = [p for l in table for p in l.params]
+    assert sorted(owned) == sorted(pyvf.Codebook(cfg).params)
+
+
+def test_codebook_upstream_is_drec_only(rng):
+    cb, port, x, drec = codebook_setup(rng, None)
+    with pytest.raises(ValueError, match="drec only"):
+        pyvf.teacher_force(cb, x, pyvf.teacher.torch_modules(port, cb), upstream=dict(drec=drec, dloss=1.0))
+    before = cb.state_dict()
+    port.train()
+    pyvf.teacher_force(cb, x, pyvf.teacher.torch_modules(port, cb), train=True)
+    for k, v in cb.state_dict().items():  # the model's EMA buffers are left as they were
+        np.testing.assert_array_equal(v, before[k], err_msg=k)
