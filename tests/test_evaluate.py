@@ -296,6 +296,8 @@ def test_demo_quick_command(models, tmp_path):
     assert proc.stdout.startswith("pyvf kernels: path "), show(proc)
     for text in ("## Context 1 view", "## Context 3 views", "| pyvf |", "docs/models.md"):
         assert text in proc.stdout, text + show(proc)
+    last = proc.stdout.strip().splitlines()[-1]
+    assert "docs/walkthrough.md" in last, "the demo's last line names the walkthrough" + show(proc)
     for name in ("metrics.json", "metrics.md", "views.png", "poses.png"):
         assert (tmp_path / "pyvf-demo" / name).is_file(), name
 
@@ -337,3 +339,5 @@ def test_demo_quick_with_the_shipped_models(tmp_path):
         return
     assert proc.returncode == 0, show(proc)
     assert proc.stdout.startswith("pyvf kernels: path ") and "docs/models.md" in proc.stdout, show(proc)
+    last = proc.stdout.strip().splitlines()[-1]
+    assert "docs/walkthrough.md" in last, "the demo's last line names the walkthrough" + show(proc)
