@@ -5,6 +5,8 @@
     pyvf evaluate --scenes 200 --context 1,3,5 --out eval [--codebook F --transformer F]
     pyvf config                                 # the kernels' instruction-set path, threads
     pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
+    pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]      # speed vs error; hard cases
+    pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
     pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
     pyvf convert tf-transformer path/model --config config.json -o model.npz
     pyvf convert torch-codebook model.ckpt --config config.json -o codebook.npz
@@ -30,7 +32,7 @@ from pyvf.scenes import cli_register as scenes_commands
 from pyvf.train import cli_register as train_commands
 from pyvf.verify import convert_tf, convert_torch
 
-BENCHMARKS = ("attention", "vq", "transformer", "codebook", "scaling")  # modules of pyvf.bench
+BENCHMARKS = ("attention", "vq", "transformer", "codebook", "scaling", "accuracy", "hardcases", "report")  # pyvf.bench
 DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
 # name -> (the converter's module, what its checkpoint argument is, what its config is)
 CONVERTERS = {
@@ -116,7 +118,7 @@ def build_parser():
                             description=cmd_config.__doc__)
     p.set_defaults(func=cmd_config)
 
-    p = commands.add_parser("bench", help="a benchmark: " + ", ".join(BENCHMARKS) + " (--quick: well under a minute)"
+    p = commands.add_parser("bench", help="a benchmark: " + ", ".join(BENCHMARKS) + " (--quick: at most a couple of minutes)"
                             f"; {DEMO_ATTENTION}: the attention kernel's error, time and memory at a few sizes",
                             description=cmd_bench.__doc__ + " `pyvf bench NAME --help` lists its options.")
     p.add_argument("name", choices=BENCHMARKS + (DEMO_ATTENTION,), help="which benchmark")

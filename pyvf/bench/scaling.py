@@ -49,7 +49,7 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf.bench import blas_thread_env
+from pyvf.bench import blas_thread_env, pyplot
 from pyvf.bench.attention import (BOUND32, attended_pairs, dense_logits_bytes, make_inputs, measure_once,
                                   ms, pyvf_expected_memory, pyvf_fns, reference_fns, setup_flex, table, torch_fns,
                                   unflat, useful_flops)
@@ -501,14 +501,10 @@ def print_tables(points, fit, sizes, methods):
 def plot(points, fit, sizes, methods, folder):
     """memory_HxDH.png and time_HxDH.png in folder: log-log against N, a line per method and pass,
     the fitted slope in the legend. Returns the files written, or None without matplotlib."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        import matplotlib.ticker
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         return None
+    import matplotlib.ticker
     os.makedirs(folder, exist_ok=True)
     files = []
     for H, dh in sizes:
