@@ -212,6 +212,20 @@ def embedding_forward(ids, table):
     return table[ids], (ids, table.shape, table.dtype)
 
 
+def sum_rows_by_id(ids, rows, n):
+    """out[k] = the sum of rows[i] over every i with ids[i] == k, in the order of i.
+    ids (m,) integers in [0, n), rows (m, d) -> out (n, d), rows' dtype; rows no id names are 0.
+    The ids sorted (stably) into runs, each run summed by np.add.reduceat: np.add.at does the same
+    one element at a time, 2-4x slower."""
+    out = np.zeros((n, rows.shape[1]), dtype=rows.dtype)
+    if ids.size:
+        order = np.argsort(ids, kind="stable")
+        run = ids[order]
+        starts = np.flatnonzero(np.concatenate(([True], run[1:] != run[:-1])))
+        out[run[starts]] = np.add.reduceat(rows[order], starts, axis=0)
+    return out
+
+
 def embedding_backward(dy, cache):
     """-> dtable (n, d): the rows of dy scatter-added at their ids (a row used twice gets both)."""
     ids, shape, dtype = cache
@@ -220,9 +234,8 @@ def embedding_backward(dy, cache):
         raise TypeError(f"dy is {dy.dtype} but the table is {dtype}: both must share one dtype "
                         "(pyvf never casts silently)")
     _grad("dy", dy, None, ids.shape + (shape[1],))
-    dtable = np.zeros(shape, dtype=dy.dtype)
-    with np.errstate(over="ignore"):
-        np.add.at(dtable, ids.reshape(-1), dy.reshape(ids.size, shape[1]))  # forward was y = table[ids]
+    with np.errstate(over="ignore"):  # forward was y = table[ids]
+        dtable = sum_rows_by_id(ids.reshape(-1), dy.reshape(ids.size, shape[1]), shape[0])
     return (_checks.finite_result("embedding_backward", dtable, "dtable"),)
 
 

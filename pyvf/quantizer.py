@@ -23,6 +23,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import _checks, _core
+from .layers import sum_rows_by_id
 
 __all__ = ["vq_nearest", "EMAQuantizer", "QuantizerOutput"]
 
@@ -225,8 +226,7 @@ class EMAQuantizer:
         K, dt = self.n_embed, self.dtype
         a = dt.type(1.0 - self.decay)
         with np.errstate(over="ignore", invalid="ignore"):  # checked below
-            S = np.zeros((self.embed_dim, K), dtype=dt)  # S_k: the sum of the vectors that chose k
-            np.add.at(S.T, idx, flat)
+            S = sum_rows_by_id(idx, flat, K).T  # (D, K), S_k: the sum of the vectors that chose k
             hcs = self.ema_cluster_size_hidden + a * (counts.astype(dt) - self.ema_cluster_size_hidden)
             hdw = self.ema_dw_hidden + a * (S - self.ema_dw_hidden)
             counter = self.counter + 1
