@@ -81,11 +81,15 @@ def cmd_bench(args):
 
     A benchmark runs with numpy's BLAS on its --threads: where the BLAS_THREAD_VARS of this
     process say otherwise (numpy is loaded by then, its BLAS thread count fixed), it runs in a
-    child process `python -m pyvf bench ...` with them set, and returns the child's status."""
+    child process `pyvf bench ...` with them set, and returns the child's status. The child runs
+    in this working folder (relative paths in the arguments keep their meaning) but drops it from
+    sys.path before importing pyvf: run from a source checkout, `python -m pyvf` would import the
+    unbuilt source tree instead of the installed package."""
     n = bench_threads(args.args) if args.name != DEMO_ATTENTION else None
     if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
         env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
-        return subprocess.run([sys.executable, "-m", "pyvf", "bench", args.name, *args.args], env=env).returncode
+        boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"
+        return subprocess.run([sys.executable, "-c", boot, "bench", args.name, *args.args], env=env).returncode
     if args.name == DEMO_ATTENTION:
         return cmd_demo_attention(args.args)
     module = importlib.import_module(f"pyvf.bench.{args.name}")

@@ -92,7 +92,7 @@ BENCH_QUICK = {
     "attention": (["--quick", "--no-scaling"], ["pyvf bounds:", "torch SDPA / pyvf time:"]),
     "vq": (["--quick"], ["| pyvf.vq_nearest |", "pyvf at the cancellation offsets"]),
     "transformer": (["--quick"], ["## tiny:", "first-step loss: pyvf", "| pyvf |"]),
-    "codebook": (["--quick"], ["## tiny:", "loss of the same weights and batch", "| pyvf |"]),
+    "codebook": (["--quick"], ["## tiny:", "loss of the same weights and batch", "| pyvf |", "images/s, ratio torch / pyvf"]),
 }
 
 
@@ -106,12 +106,16 @@ def test_bench_runs_numpy_blas_on_its_threads(tmp_path):
     """numpy's GEMM (the attention benchmark's scale) and pyvf's numpy layers must use the
     benchmark's --threads, as pyvf's kernels and torch do: `pyvf bench` started with the BLAS
     thread variables unset (all cores) or set to another count runs the benchmark with them set
-    to --threads. Read back from the benchmark's own report."""
+    to --threads. Read back from the benchmark's own report. Started in a folder that holds a
+    package named pyvf (as a source checkout does), the child still imports the installed pyvf,
+    and a relative --json path still means the starting folder."""
+    (tmp_path / "pyvf").mkdir()
+    (tmp_path / "pyvf" / "__init__.py").write_text("raise ImportError('the shadow pyvf was imported')\n")
     for start in ({}, {v: "7" for v in BLAS_THREAD_VARS}):
         out = tmp_path / f"report-{len(start)}.json"
         env = {k: v for k, v in clean_env().items() if k not in BLAS_THREAD_VARS}
         proc = run(["bench", "attention", "--quick", "--no-scaling", "--repeat", "5", "--threads", "1",
-                    "--json", str(out)], tmp_path, env=dict(env, **start))
+                    "--json", out.name], tmp_path, env=dict(env, **start))
         assert_ran(proc, "pyvf bounds:")
         report = json.loads(out.read_text())
         assert report["machine"]["blas_thread_env"] == {v: "1" for v in BLAS_THREAD_VARS}

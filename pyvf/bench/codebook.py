@@ -5,8 +5,9 @@
     pyvf bench codebook --quick         # the tiny one (seconds)
 
 Per configuration: encode + decode (images -> codes -> images) and one forward + backward
-(train=True, the EMA update included), medians, float32, each framework in its own process
-(so that neither's thread pool waits on the other's). Before timing, both compute the loss of the
+(train=True, the EMA update included), and for the tiny one a whole training step at batch 16
+(Adam, as `pyvf train-codebook`) in images per second; medians, float32, each framework in its
+own process (so that neither's thread pool waits on the other's). Before timing, both compute the loss of the
 same weights and batch, and the tool stops if they differ. torch is imported only in the torch
 worker. Then, for pyvf, where one forward + backward spends its time: the exclusive time of each
 layer type (layer_times), from one more step with every layer function of pyvf.conv wrapped in
@@ -33,9 +34,15 @@ CONFIGS = {
 }
 
 
-def setup(name):
+# the training step measured beside: the shipped tiny codebook's (pyvf train-codebook: batch 16,
+# Adam lr 1.584e-3, betas (0.5, 0.9), the EMA update), on the tiny configuration only
+TRAIN = dict(config="tiny", batch=16, lr=1.584e-3, betas=(0.5, 0.9))
+
+
+def setup(name, batch=None):
     spec = dict(CONFIGS[name])
-    B = spec.pop("batch")
+    B = spec.pop("batch") if batch is None else batch
+    spec.pop("batch", None)
     cfg = pyvf.CodebookConfig(**spec)
     cb = pyvf.Codebook(cfg, seed=0)
     images = np.tanh(np.random.default_rng(0).standard_normal((B, 3, cfg.image_size, cfg.image_size)))
@@ -142,6 +149,12 @@ def worker_pyvf(name, repeat):
     times, total = layer_times(step)
     result["layers"] = [[k, d, t] for (k, d), t in times.items()]
     result["layers_total"] = total
+    if name == TRAIN["config"]:
+        _, cb, images = setup(name, TRAIN["batch"])
+        opt = pyvf.Adam(cb.params, TRAIN["lr"], betas=TRAIN["betas"])
+        train = lambda: pyvf.codebook_train_step(cb, opt, images)  # noqa: E731
+        train()
+        result["train"] = median(train, repeat)
     return result
 
 
@@ -174,7 +187,20 @@ def worker_torch(name, repeat):
             p.grad = None
         torch_codebook.forward(P, buffers, x, cfg, train=True)["loss"].backward()
     step()
-    return dict(loss=loss, codec=t_codec, step=median(step, repeat))
+    result = dict(loss=loss, codec=t_codec, step=median(step, repeat))
+    if name == TRAIN["config"]:
+        _, cb, images = setup(name, TRAIN["batch"])
+        P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
+        opt = torch.optim.Adam(P.values(), TRAIN["lr"], betas=TRAIN["betas"])
+        x = torch.tensor(images)
+
+        def train():
+            opt.zero_grad()
+            torch_codebook.forward(P, buffers, x, cfg, train=True)["loss"].backward()
+            opt.step()
+        train()
+        result["train"] = median(train, repeat)
+    return result
 
 
 def bench(name, repeat, threads):
@@ -195,6 +221,11 @@ def bench(name, repeat, threads):
     print(f"| pyvf | {p['codec'] * 1e3:.0f} ms | {p['step'] * 1e3:.0f} ms |")
     print(f"| torch | {t['codec'] * 1e3:.0f} ms | {t['step'] * 1e3:.0f} ms |")
     print(f"| ratio torch / pyvf | {t['codec'] / p['codec']:.2f} | {t['step'] / p['step']:.2f} |")
+    if "train" in p:
+        B = TRAIN["batch"]
+        print(f"training step (batch {B}, Adam, the EMA update; pyvf.codebook_train_step, as pyvf train-codebook): "
+              f"pyvf {p['train'] * 1e3:.0f} ms = {B / p['train']:.1f} images/s, torch {t['train'] * 1e3:.0f} ms = "
+              f"{B / t['train']:.1f} images/s, ratio torch / pyvf {t['train'] / p['train']:.2f}")
     print()
     print_layer_times({(k, d): sec for k, d, sec in p["layers"]}, p["layers_total"])
     return True
