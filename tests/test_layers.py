@@ -666,3 +666,31 @@ def test_gelu_threaded_path_is_bitwise_the_serial_one(rng):
             assert_bitwise_equal(f"gelu dx {dtype.__name__}", dx, np.concatenate(dx_serial))
     finally:
         pyvf.set_num_threads(saved)
+
+
+# ---------------------------------------------------------------------------------------
+# the finiteness scan every layer's checks use (csrc/module.cpp all_finite)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_all_finite_finds_every_nonfinite_position(dtype):
+    """The scan runs four vector accumulators over blocks of 2^16 elements, the blocks on the
+    threads from 4 blocks on, then a scalar tail: a NaN or an inf must be found wherever it sits
+    (first element, each accumulator's lane, a block's last and the next block's first element,
+    the tail) and at every size (empty, shorter than a vector, one block, several); the largest
+    finite values, subnormals and -0.0 are finite."""
+    from pyvf import _checks
+    block = 1 << 16
+    for n in (0, 1, 3, 17, 64, 65, block - 1, block, 4 * block + 5):
+        x = np.zeros(n, dtype)
+        if n:
+            x[:: max(1, n // 7)] = np.finfo(dtype).max
+            x[1::5] = -np.finfo(dtype).smallest_subnormal
+            x[2::11] = -0.0
+        assert _checks.all_finite(x), n
+        where = {0, n // 2, n - 1, 8, 9, 31, 32, 33, block - 1, block, 3 * block + 1}
+        for pos in sorted(p for p in where if 0 <= p < n):
+            for bad in (np.nan, np.inf, -np.inf):
+                y = x.copy()
+                y[pos] = bad
+                assert not _checks.all_finite(y), (n, pos, bad)
