@@ -638,6 +638,13 @@ KERNEL_CASES = [
     (2, 5, 7, (5, 20), (1, 1), 1, 1),  # 1x1 padded: its stride-1 dx crops (negative padding)
     (2, 9, 6, (7, 40), (2, 3), 1, (2, 0, 1, 3)),  # every side different, stride-1 dx padded (-1, 1, 1, -1)
     (1, 6, 5, (9, 7), (4, 2), 2, (2, 1, 0, 1)),  # non-square kernel, stride 2, odd sizes
+    # Co >= W on every path (W <= 16): the dw as products on channels-last dy (dw_gemm), Co = 37 =
+    # 2 vectors + a scalar tail on AVX-512, two channel blocks (kCB = 8) of which one partial
+    (2, 11, 37, (8, 8), (3, 3), 1, 1),  # padded-row tiles taken as rows of Wp pixels (zero columns of dy)
+    (2, 9, 35, (20, 67), (3, 3), 1, 1),  # several row tiles, chunks of kDwChunk = 256 pixels
+    (2, 9, 35, (9, 35), (3, 3), 2, DOWN),  # the Downsample: im2col tiles
+    (2, 9, 35, (7, 37), (1, 1), 1, 0),  # 1x1 below 32x32 pixels: x read in place
+    (1, 5, 35, (32, 33), (1, 1), 1, 0),  # 1x1 from 32x32 pixels on: the lane sums again
 ]
 
 
