@@ -528,7 +528,14 @@ template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, co
     const int64_t K = d.C * d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi, Wp = d.Wo + d.kw - 1;
     const int64_t R = std::clamp<int64_t>(kRowTileBytes / (std::max<int64_t>(d.C, 1) * Wp * (int64_t)sizeof(T)) -
                                               (d.kh - 1), 1, d.Ho);
-    const int64_t Rp = R + d.kh - 1, ntile = ceil_div(d.Ho, R), ntask = d.B * ntile;
+    const int64_t Rp = R + d.kh - 1, ntile = ceil_div(d.Ho, R);
+    // Output-channel blocks, where images x row tiles make fewer than two tasks per thread (an 8x8
+    // image is one tile): blocks of whole register tiles (24 rows: 3 of AVX-512's 8, 4 of AVX2's 6);
+    // a row's sums are the same in any block, so the results do not depend on the thread count.
+    const int64_t ncob_want = std::clamp<int64_t>(ceil_div(2 * threads(), std::max<int64_t>(d.B * ntile, 1)), 1,
+                                                  std::max<int64_t>(ceil_div(d.Co, 24), 1));
+    const int64_t cob = std::max<int64_t>(round_up(ceil_div(d.Co, ncob_want), 24), 24), ncob = ceil_div(d.Co, cob);
+    const int64_t ntask = d.B * ntile * ncob;
     const bool wide = d.Wo < kRowsMinVectors * W;
     const int64_t nwide = round_up((R - 1) * Wp + d.Wo, W);  // columns of the widest wide product
     int status = kConvOk;
@@ -543,27 +550,30 @@ template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, co
             for (int64_t j = 0; j < d.kw; ++j) boff[(c * d.kh + i) * d.kw + j] = (c * Rp + i) * Wp + j;
 #pragma omp parallel if (worth_threads(d))
     {
-        Buf<T> tile, out;  // (C, Rp, Wp) + W slack; wide: the product (Co, nwide)
+        Buf<T> tile, out;  // (C, Rp, Wp) + W slack; wide: the product (cob, nwide)
         bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, tile.resize(d.C * Rp * Wp + W); if (wide) out.resize(d.Co * nwide); ok = true)
+        PYVF_CONV_TRY_ALLOC(status, tile.resize(d.C * Rp * Wp + W); if (wide) out.resize(std::min(cob, d.Co) * nwide);
+                            ok = true)
 #pragma omp for schedule(dynamic, 1)
         for (int64_t t = 0; t < ntask; ++t) {
             if (!ok) continue;
-            const int64_t bi = t / ntile, u0 = (t % ntile) * R, nr = std::min(R, d.Ho - u0);
+            const int64_t bt = t / ncob, bi = bt / ntile, u0 = (bt % ntile) * R, nr = std::min(R, d.Ho - u0);
+            const int64_t o0 = (t % ncob) * cob, no = std::min(cob, d.Co - o0);
             pad_rows(tile.data(), x + bi * d.C * HWi, d, 0, d.C, u0, nr + d.kh - 1, Rp, Wp);
-            T* yb = y + bi * d.Co * P;
+            T* yb = y + (bi * d.Co + o0) * P;  // rows o0 .. o0 + no of y_b
+            const T* wb = w + o0 * K;
             if (wide) {
                 const int64_t n = round_up((nr - 1) * Wp + d.Wo, W);
-                tab_gemm<T>((int)d.Co, (int)n, (int)K, w, K, tile.data(), boff.data(), out.data(), n);
-                for (int64_t o = 0; o < d.Co; ++o)
+                tab_gemm<T>((int)no, (int)n, (int)K, wb, K, tile.data(), boff.data(), out.data(), n);
+                for (int64_t o = 0; o < no; ++o)
                     for (int64_t r = 0; r < nr; ++r)
                         std::copy_n(out.data() + o * n + r * Wp, d.Wo, yb + o * P + (u0 + r) * d.Wo);
             } else {
-                for (int64_t r = 0; r < nr; ++r)  // y_b[:, u0 + r, :] = w2 @ Bt(row r)
-                    tab_gemm<T>((int)d.Co, (int)d.Wo, (int)K, w, K, tile.data() + r * Wp, boff.data(),
+                for (int64_t r = 0; r < nr; ++r)  // y_b[o0:o0+no, u0 + r, :] = w2[o0:o0+no] @ Bt(row r)
+                    tab_gemm<T>((int)no, (int)d.Wo, (int)K, wb, K, tile.data() + r * Wp, boff.data(),
                                 yb + (u0 + r) * d.Wo, P);
             }
-            if (b) add_bias_rows(yb + u0 * d.Wo, b, d.Co, P, nr * d.Wo);
+            if (b) add_bias_rows(yb + u0 * d.Wo, b + o0, no, P, nr * d.Wo);
         }
     }
     return status;
