@@ -896,6 +896,30 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
     return status;
 }
 
+// The AttnBlock's products (pyvf/conv.py attnblock_forward/_backward): per image b,
+// c_b (M, N) = op(a_b) (M, K) @ b_b (K, N), op = transpose when ta, on the gemm register tile of
+// simd.h (every element one sum in increasing k, FMA where the path has it). Tasks: (image, block
+// of kMatRows rows of c), each writing its own rows: bitwise the same for any thread count. Here
+// rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
+// milliseconds on the cores this file's OpenMP threads run on (11% of a paper codebook's
+// encode + decode went to that spinning).
+constexpr int64_t kMatRows = 48;  // whole register tiles on every path (8, 6 and 4 rows)
+
+template <typename T>
+void matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta) {
+    const int64_t nblk = ceil_div(M, kMatRows);
+#pragma omp parallel for schedule(dynamic, 1) if (nb * M * N * K >= kParallelFlops)
+    for (int64_t t = 0; t < nb * nblk; ++t) {
+        const int64_t bi = t / nblk, i0 = (t % nblk) * kMatRows, m = std::min(kMatRows, M - i0);
+        const T* ab = a + bi * M * K;
+        T* cb = c + (bi * M + i0) * N;
+        if (ta)  // a_b stored (K, M): rows i0.. of op(a_b) are its columns i0..
+            gemm_mr<T, false, true>((int)m, (int)N, (int)K, ab + i0, M, b + bi * K * N, N, cb, N);
+        else
+            gemm_mr<T, false, false>((int)m, (int)N, (int)K, ab + i0 * K, K, b + bi * K * N, N, cb, N);
+    }
+}
+
 // =========================================================================================
 // Plain loops: the oracle. y[b, o, u, v] = b[o] + sum over c, i, j of w[o, c, i, j] *
 // x[b, c, s*u + i - pt, s*v + j - pl] (terms outside x are the zero padding), in double.
@@ -955,6 +979,9 @@ int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* 
     return kConvOk;
 }
 
+template void matmul_batched<float>(float*, const float*, const float*, int64_t, int64_t, int64_t, int64_t, bool);
+template void matmul_batched<double>(double*, const double*, const double*, int64_t, int64_t, int64_t, int64_t,
+                                     bool);
 template int conv2d_forward<float>(float*, const float*, const float*, const float*, const ConvDims&);
 template int conv2d_forward<double>(double*, const double*, const double*, const double*, const ConvDims&);
 template int conv2d_backward<float>(float*, float*, float*, const float*, const float*, const float*,

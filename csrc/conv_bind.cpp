@@ -13,6 +13,7 @@
 //     groupnorm_forward(y, xhat, rstd, x, gamma, beta, groups, eps, swish)
 //     groupnorm_backward(dx, dgamma, dbeta, xhat, rstd, gamma, beta, dy, groups, swish)
 //     swish_forward(y, x), swish_backward(dx, dy, x)
+//     matmul(c, a, b, ta): c (nb, M, N) = op(a) @ b per image, a (nb, M, K) or (nb, K, M) if ta
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
@@ -201,6 +202,24 @@ template <typename T> void sw_backward(Arr<T> dx, Arr<T> dy, Arr<T> x) {
     swish_backward<T>(pdx, pdy, px, n);
 }
 
+template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta) {
+    auto fail = [](const std::string& what) { throw py::value_error("pyvf._core.matmul: " + what); };
+    if (a.ndim() != 3 || b.ndim() != 3 || c.ndim() != 3) fail("a, b and c must be 3-D (batch, rows, columns)");
+    const int64_t nb = a.shape(0), M = ta ? a.shape(2) : a.shape(1), K = ta ? a.shape(1) : a.shape(2);
+    const int64_t N = b.shape(2);
+    if (b.shape(0) != nb || b.shape(1) != K) fail("b must have shape (batch, K, N) with a's batch and K");
+    if (c.shape(0) != nb || c.shape(1) != M || c.shape(2) != N) fail("c must have shape (batch, M, N)");
+    for (int64_t n : {M, N, K})
+        if (n > kIntMax) fail("every side must be below 2^31");
+    check_count("a", "M*K", {M, K});
+    check_count("b", "K*N", {K, N});
+    check_count("c", "M*N", {M, N});
+    T* pc = c.mutable_data();
+    const T *pa = a.data(), *pb = b.data();
+    py::gil_scoped_release nogil;
+    matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta);
+}
+
 template <typename T> void bind_dtype(py::module_& m) {
     m.def("groupnorm_forward", &gn_forward<T>,
           "y = [swish](GroupNorm(x)); y, xhat (B, C, Hi, Wi), rstd (B, G) overwritten", py::arg("y").noconvert(),
@@ -215,6 +234,8 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("x").noconvert());
     m.def("swish_backward", &sw_backward<T>, "dx = dy * swish'(x), overwritten", py::arg("dx").noconvert(),
           py::arg("dy").noconvert(), py::arg("x").noconvert());
+    m.def("matmul", &matmul<T>, "c (nb, M, N) = op(a) @ b per image, op = transpose if ta; c overwritten",
+          py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(), py::arg("ta"));
     const char* doc_f = "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten";
     const char* doc_b = "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy";
     m.def("conv2d_forward", &forward<T, false>, doc_f, py::arg("y").noconvert(), py::arg("x").noconvert(),

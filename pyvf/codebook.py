@@ -404,21 +404,25 @@ class Codebook:
     # the tape
 
     def _op(self, tape, kind, name, x, **kw):
-        """Run one layer, record it on the tape, return its output."""
+        """Run one layer, record it on the tape, return its output. tape None: inference, no
+        backward will follow; nothing is kept, so each activation is freed once the next layer has
+        read it (encode and decode_code: peak memory a few activations, not the whole network's)."""
         P = self.params
+        keep = tape is not None
         if kind == "conv":
             y, c = conv2d_forward(x, P[name + ".weight"], P[name + ".bias"], kw.get("stride", 1), kw.get("padding", 0))
         elif kind == "norm_swish":  # Normalize (32 groups, eps 1e-6, SPEC §4) then swish, fused
-            y, c = groupnorm_swish_forward(x, P[name + ".weight"], P[name + ".bias"])
+            y, c = groupnorm_swish_forward(x, P[name + ".weight"], P[name + ".bias"], keep_cache=keep)
         elif kind == "upsample":
             y, c = upsample_nearest2x_forward(x)
         elif kind == "res":
-            y, c = self._resblock_forward(name, x)
+            y, c = self._resblock_forward(name, x, keep)
         elif kind == "attn":
             y, c = attnblock_forward(x, *(P[name + s] for s in ATTN_PARAMS))
         else:
             raise AssertionError(kind)
-        tape.append((kind, name, c))
+        if keep:
+            tape.append((kind, name, c))
         if self._trace is not None:
             self._trace[name] = y
         return y
@@ -447,15 +451,19 @@ class Codebook:
                     grads[name + suffix] += dp
         return dy
 
-    def _resblock_forward(self, name, x):
-        """ResnetBlock: norm1, swish, conv1, norm2, swish, conv2; + x (or nin_shortcut(x))."""
-        main, short = [], []
+    def _resblock_forward(self, name, x, keep=True):
+        """ResnetBlock: norm1, swish, conv1, norm2, swish, conv2; + x (or nin_shortcut(x)).
+        keep False: inference (see _op), nothing recorded."""
+        main, short = ([], []) if keep else (None, None)
         h = self._op(main, "norm_swish", name + ".norm1", x)
         h = self._op(main, "conv", name + ".conv1", h, padding=1)
         h = self._op(main, "norm_swish", name + ".norm2", h)
         h = self._op(main, "conv", name + ".conv2", h, padding=1)
         s = self._op(short, "conv", name + ".nin_shortcut", x) if name + ".nin_shortcut.weight" in self.params else x
-        return s + h, (main, short)
+        if self._trace is None:  # h, conv2's fresh output, is referenced nowhere else: add in place
+            h += s
+            return h, (main, short)
+        return s + h, (main, short)  # the trace keeps h itself
 
     def _resblock_backward(self, dy, cache, grads, g=None):
         main, short = cache
@@ -523,7 +531,7 @@ class Codebook:
     def encode(self, images):
         """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64."""
         self._check_images(images)
-        out, _ = self.quantizer.forward(self._encoder([], images), train=False)
+        out, _ = self.quantizer.forward(self._encoder(None, images), train=False)
         return out.codes
 
     def decode_code(self, codes):
@@ -537,7 +545,7 @@ class Codebook:
         if codes.size and (codes.min() < 0 or codes.max() >= cfg.n_embed):
             raise ValueError(f"codes must be in [0, {cfg.n_embed})")
         e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
-        return self._decoder([], np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
+        return self._decoder(None, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
     def forward(self, images, train=False, *, trace=False):
         """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers

@@ -239,17 +239,20 @@ def _groupnorm_args(x, gamma, beta, groups, eps):
     return int(groups)
 
 
-def _groupnorm_kernel(x, gamma, beta, G, eps, swish):
-    """The C++ forward (csrc/groupnorm.cpp) -> y, xhat (B, C, Hi, Wi), rstd (B, G, 1)."""
+def _groupnorm_kernel(x, gamma, beta, G, eps, swish, keep=True):
+    """The C++ forward (csrc/groupnorm.cpp) -> y, xhat (B, C, Hi, Wi), rstd (B, G, 1).
+    keep False: xhat is not needed; the kernel writes it into y's buffer (each element's xhat is
+    read before its y overwrites it) and xhat is returned as None."""
     x, gamma, beta = (_contig(a) for a in (x, gamma, beta))
-    y, xhat = np.empty_like(x), np.empty_like(x)  # (B, C, Hi, Wi)
+    y = np.empty_like(x)  # (B, C, Hi, Wi)
+    xhat = np.empty_like(x) if keep else y
     rstd = np.empty((x.shape[0], G, 1), dtype=x.dtype)  # (B, G, 1)
     _core.groupnorm_forward(y, xhat, rstd, x, gamma, beta, G, float(eps), swish)
     if not (rstd > 0).all():  # var = inf: a group's (x - mean)^2 overflowed float64 (|x| beyond ~1e154)
         raise ValueError("groupnorm: the variance of a group of x overflowed float64 (values beyond ~1e154): "
                          "rescale x (GroupNorm is scale-invariant up to eps)")
     _checks.finite_result("groupnorm_forward", y, "y")
-    return y, xhat, rstd
+    return y, (xhat if keep else None), rstd
 
 
 def _groupnorm_grad_kernel(dy, xhat, rstd, gamma, beta, G, swish):
@@ -296,7 +299,7 @@ def groupnorm_backward(dy, cache):
     return _groupnorm_grad_kernel(dy, xhat, rstd, gamma, gamma, G, swish=False)  # beta unused without swish
 
 
-def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6):
+def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6, *, keep_cache=True):
     """z = swish(groupnorm(x)): the Normalize + swish pair of the codebook (ResnetBlock's norm1 and
     norm2, and norm_out before conv_out, SPEC.md §4), in one pass of the C++ kernel.
 
@@ -304,10 +307,14 @@ def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6):
     swish_forward(groupnorm_forward(x, gamma, beta, groups, eps)[0])[0] (bitwise: the same
     operations), without the intermediate y. eps 1e-6: the parity trap of groupnorm_forward.
     cache: xhat (B, C, Hi, Wi), rstd (B, groups, 1), gamma, beta, groups; y = xhat * gamma + beta
-    is recomputed in the backward (one array fewer than the unfused pair's cache)."""
+    is recomputed in the backward (one array fewer than the unfused pair's cache).
+    keep_cache=False (inference: no backward will follow): cache is None and xhat is never
+    allocated; z is the same."""
     G = _groupnorm_args(x, gamma, beta, groups, eps)
-    z, xhat, rstd = _groupnorm_kernel(x, gamma, beta, G, eps, swish=True)
-    return z, (xhat, rstd, _contig(gamma), _contig(beta), G)
+    if not isinstance(keep_cache, (bool, np.bool_)):
+        raise TypeError(f"keep_cache must be True or False, got {keep_cache!r}")
+    z, xhat, rstd = _groupnorm_kernel(x, gamma, beta, G, eps, swish=True, keep=bool(keep_cache))
+    return z, ((xhat, rstd, _contig(gamma), _contig(beta), G) if keep_cache else None)
 
 
 def groupnorm_swish_backward(dz, cache):
@@ -451,6 +458,23 @@ def upsample_nearest2x_backward(dy, cache):
 # AttnBlock(c): single-head attention over the Hi*Wi positions, residual (SPEC.md §4)
 
 
+def _matmul(a, b, ta=False):
+    """c (n, M, N) = op(a) @ b per image, op(a) = a (n, M, K), or a^T when ta (a stored (n, K, M)):
+    the C++ kernel (csrc/conv.cpp matmul_batched; each element one sum in increasing k), not
+    NumPy's BLAS, whose threads spin for milliseconds after each call on the cores the conv kernels
+    run on. Inputs of one dtype, already checked by the caller."""
+    a, b = _contig(a), _contig(b)
+    n, M = a.shape[0], a.shape[2] if ta else a.shape[1]
+    c = np.empty((n, M, b.shape[2]), dtype=a.dtype)  # (n, M, N)
+    _core.matmul(c, a, b, ta)
+    return c
+
+
+def _transposed(a):
+    """(n, R, C) -> a C-ordered (n, C, R) copy (a NumPy copy, no BLAS)."""
+    return np.ascontiguousarray(a.transpose(0, 2, 1))
+
+
 def attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, groups=32, eps=1e-6):
     """y = x + proj_out(attention(q, k, v)), q, k, v = 1x1 convs of GroupNorm(x).
 
@@ -472,14 +496,16 @@ def attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, 
     v, c_v = conv2d_forward(h, wv, bv)  # (B, C, Hi, Wi)
     q2, k2, v2 = q.reshape(B, C, P), k.reshape(B, C, P), v.reshape(B, C, P)  # (B, C, P)
     scale = x.dtype.type(C ** -0.5)
-    s = (q2.transpose(0, 2, 1) @ k2) * scale  # (B, P, P): s[b,i,j] = scale * sum_c q[b,c,i] k[b,c,j]
+    s = _matmul(q2, k2, ta=True)  # (B, P, P): s[b,i,j] = sum_c q[b,c,i] k[b,c,j]
+    s *= scale
     s -= s.max(axis=-1, keepdims=True)
     with np.errstate(under="ignore"):  # exp of very negative logits underflowing to 0 is correct
         p = np.exp(s)  # (B, P, P)
     p /= p.sum(axis=-1, keepdims=True)  # softmax over the keys j
-    a = v2 @ p.transpose(0, 2, 1)  # (B, C, P): a[b,c,i] = sum_j v[b,c,j] p[b,i,j]
+    a = _matmul(v2, _transposed(p))  # (B, C, P): a[b,c,i] = sum_j v[b,c,j] p[b,i,j]
     o, c_o = conv2d_forward(a.reshape(B, C, Hi, Wi), wo, bo)  # (B, C, Hi, Wi)
-    y = x + o  # (B, C, Hi, Wi)
+    o += x  # y = x + o, in o's fresh buffer (referenced nowhere else)
+    y = o  # (B, C, Hi, Wi)
     return y, (c_norm, c_q, c_k, c_v, c_o, q2, k2, v2, p, scale)
 
 
@@ -492,13 +518,13 @@ def attnblock_backward(dy, cache):
     da, dwo, dbo = conv2d_backward(dy, c_o)
     da2 = da.reshape(B, C, P)  # (B, C, P)
     # forward was a = v @ p^T, so dv = da @ p and dp = da^T @ v
-    dv2 = da2 @ p  # (B, C, P): dv[b,c,j] = sum_i da[b,c,i] p[b,i,j]
-    dp = da2.transpose(0, 2, 1) @ v2  # (B, P, P): dp[b,i,j] = sum_c da[b,c,i] v[b,c,j]
+    dv2 = _matmul(da2, p)  # (B, C, P): dv[b,c,j] = sum_i da[b,c,i] p[b,i,j]
+    dp = _matmul(da2, v2, ta=True)  # (B, P, P): dp[b,i,j] = sum_c da[b,c,i] v[b,c,j]
     # forward was p = softmax_j(s), so ds = p * (dp - sum_j p * dp); s = scale * q^T k
     ds = p * (dp - (p * dp).sum(axis=-1, keepdims=True))  # (B, P, P)
     ds *= scale
-    dq2 = k2 @ ds.transpose(0, 2, 1)  # (B, C, P): dq[b,c,i] = sum_j k[b,c,j] ds[b,i,j]
-    dk2 = q2 @ ds  # (B, C, P): dk[b,c,j] = sum_i q[b,c,i] ds[b,i,j]
+    dq2 = _matmul(k2, _transposed(ds))  # (B, C, P): dq[b,c,i] = sum_j k[b,c,j] ds[b,i,j]
+    dk2 = _matmul(q2, ds)  # (B, C, P): dk[b,c,j] = sum_i q[b,c,i] ds[b,i,j]
     shape = c_norm[0].shape  # (B, C, Hi, Wi)
     dhq, dwq, dbq = conv2d_backward(dq2.reshape(shape), c_q)
     dhk, dwk, dbk = conv2d_backward(dk2.reshape(shape), c_k)

@@ -233,3 +233,23 @@ def test_perceptual_term_is_pluggable_and_differentiated(rng):
         # |x - x_hat| is not smooth where a pixel's error crosses 0; a 1e-6 step crosses none
         # here (checked by the tight agreement): truncation ~1e-12, rounding ~1e-10
         assert abs(numeric - (g[name] * u).sum()) <= 1e-6 * max(1.0, abs(numeric)), (name, numeric)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_inference_and_trace_paths_give_the_same_bits(dtype, rng):
+    """encode/decode_code keep nothing (residual sums in place, no GroupNorm cache) and forward
+    without a trace adds the residuals in place; forward with a trace keeps every activation. All
+    are the same operations on the same numbers: bitwise equal results."""
+    cb = random_codebook(CodebookConfig(**SMALL, dtype=dtype), rng)
+    images = rng.uniform(-1, 1, (2, 3, 16, 16)).astype(dtype)
+    plain = cb.forward(images)
+    traced = cb.forward(images, trace=True)
+    np.testing.assert_array_equal(plain.reconstruction, traced.reconstruction)
+    np.testing.assert_array_equal(cb.encode(images), traced.codes)
+    # decode_code feeds the embeddings themselves (forward feeds z + (e - z)): equal up to that rounding
+    assert_close("decode_code", cb.decode_code(traced.codes), traced.reconstruction,
+                 rtol=1e-5 if dtype == "float32" else 1e-12)
+    # the traced activations were not modified in place afterwards: conv2's output is not its block's sum
+    tr = traced.trace
+    name = "encoder.down.0.block.0"
+    assert not np.array_equal(tr[name + ".conv2"], tr[name])

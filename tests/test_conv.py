@@ -869,3 +869,73 @@ def test_groupnorm_swish_threads_bitwise(dtype, rng):
         pyvf.set_num_threads(before)
     for i, (a, b) in enumerate(zip(out[1], out[2])):
         assert_bitwise_equal(f"output {i}, 1 vs 2 threads", a, b)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_groupnorm_swish_without_cache_is_the_same(dtype, rng):
+    """keep_cache=False (inference: xhat written into z's buffer, no cache): z bitwise the same as
+    with the cache; cache None; a non-bool keep_cache is refused."""
+    _, inputs, _, _ = build(("groupnorm", 64, 24, 24), rng, dtype)
+    z, cache = conv.groupnorm_swish_forward(*inputs)
+    z2, cache2 = conv.groupnorm_swish_forward(*inputs, keep_cache=False)
+    assert cache is not None and cache2 is None
+    assert_bitwise_equal("z without the cache", z2, z)
+    with pytest.raises(TypeError, match="keep_cache must be True or False"):
+        conv.groupnorm_swish_forward(*inputs, keep_cache=1)
+
+
+# ---------------------------------------------------------------------------------------
+# 7. the AttnBlock's products (csrc/conv.cpp matmul_batched) against NumPy in float64
+
+# (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16), several
+# row blocks of 48, and the attention's own square case; K = 0 gives zeros
+MATMUL_CASES = [(2, 37, 21, 13), (1, 97, 35, 50), (3, 5, 3, 7), (2, 64, 64, 32), (1, 4, 4, 0), (0, 3, 5, 2)]
+
+
+@pytest.mark.parametrize("ta", [False, True])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("case", MATMUL_CASES, ids=lambda c: "x".join(map(str, c)))
+def test_matmul_kernel(case, dtype, ta, rng):
+    """c = op(a) @ b per image against NumPy in float64 on the same inputs. Each element is one
+    sum of K <= 50 products in increasing k: float64 within 50 u of the normwise scale (measured
+    ~1e-16), float32 within sqrt(K) u-ish, bound 2e-6 (measured <= 3e-7); bitwise the same on 1 and
+    2 threads."""
+    nb, M, N, K = case
+    a = rng.standard_normal((nb, K, M) if ta else (nb, M, K)).astype(dtype)
+    b = rng.standard_normal((nb, K, N)).astype(dtype)
+    want = (a.astype(np.float64).transpose(0, 2, 1) if ta else a.astype(np.float64)) @ b.astype(np.float64)
+    before = pyvf.num_threads()
+    try:
+        out = {}
+        for n in (1, 2):
+            pyvf.set_num_threads(n)
+            out[n] = conv._matmul(a, b, ta=ta)
+    finally:
+        pyvf.set_num_threads(before)
+    c = out[1]
+    assert c.dtype == dtype and c.shape == (nb, M, N)
+    if c.size:  # (the helpers need at least one element)
+        assert_close("matmul", c, want, rtol=1e-13 if dtype == np.float64 else 2e-6)
+        assert_bitwise_equal("matmul, 1 vs 2 threads", out[2], c)
+    if K == 0:
+        assert not c.any(), "a sum of no products must be 0"
+
+
+def test_matmul_kernel_would_catch_a_transpose(rng):
+    """The oracle tells a transposed operand apart (square sizes, where shapes cannot)."""
+    a, b = rng.standard_normal((2, 2, 9, 9))
+    good = conv._matmul(a, b)
+    assert gap(conv._matmul(a, b, ta=True), good) > 0.1
+    assert_close("matmul square", good, a @ b, rtol=1e-13)
+
+
+def test_matmul_kernel_refuses_bad_arguments():
+    a, b = np.zeros((2, 3, 4)), np.zeros((2, 4, 5))
+    with pytest.raises(TypeError):  # one dtype, never cast
+        _core.matmul(np.zeros((2, 3, 5)), a.astype(np.float32), b, False)
+    with pytest.raises(ValueError, match="b must have shape"):
+        _core.matmul(np.zeros((2, 3, 5)), a, np.zeros((2, 3, 5)), False)
+    with pytest.raises(ValueError, match="c must have shape"):
+        _core.matmul(np.zeros((2, 3, 4)), a, b, False)
+    with pytest.raises(ValueError, match="3-D"):
+        _core.matmul(np.zeros((3, 5)), a, b, False)

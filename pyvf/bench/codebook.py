@@ -7,7 +7,9 @@
 Per configuration: encode + decode (images -> codes -> images) and one forward + backward
 (train=True, the EMA update included), and for the tiny one a whole training step at batch 16
 (Adam, as `pyvf train-codebook`) in images per second; medians, float32, each framework in its
-own process (so that neither's thread pool waits on the other's). Before timing, both compute the loss of the
+own process (so that neither's thread pool waits on the other's). Memory: the measured peak
+resident memory of one call above what was resident before it (pyvf.measure.peak_memory;
+gradients of the step included, weights not). Before timing, both compute the loss of the
 same weights and batch, and the tool stops if they differ. torch is imported only in the torch
 worker. Then, for pyvf, where one forward + backward spends its time: the exclusive time of each
 layer type (layer_times), from one more step with every layer function of pyvf.conv wrapped in
@@ -22,7 +24,7 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf.measure import median_time, run_worker
+from pyvf.measure import format_bytes, median_time, peak_memory, run_worker
 
 WORKER = "pyvf.bench.codebook"  # this module, run as `python -m WORKER --worker ...`
 
@@ -139,7 +141,8 @@ def median(fn, repeat):
 def worker_pyvf(name, repeat):
     cfg, cb, images = setup(name)
     loss = cb.forward(images).loss
-    codec = median(lambda: cb.decode_code(cb.encode(images)), repeat)
+    codec_fn = lambda: cb.decode_code(cb.encode(images))  # noqa: E731
+    codec = median(codec_fn, repeat)
 
     def step():
         cb.forward(images, train=True)
@@ -150,11 +153,13 @@ def worker_pyvf(name, repeat):
     result["layers"] = [[k, d, t] for (k, d), t in times.items()]
     result["layers_total"] = total
     if name == TRAIN["config"]:
-        _, cb, images = setup(name, TRAIN["batch"])
-        opt = pyvf.Adam(cb.params, TRAIN["lr"], betas=TRAIN["betas"])
-        train = lambda: pyvf.codebook_train_step(cb, opt, images)  # noqa: E731
+        _, cb_t, images_t = setup(name, TRAIN["batch"])  # new names: codec_fn and step keep theirs
+        opt = pyvf.Adam(cb_t.params, TRAIN["lr"], betas=TRAIN["betas"])
+        train = lambda: pyvf.codebook_train_step(cb_t, opt, images_t)  # noqa: E731
         train()
         result["train"] = median(train, repeat)
+    # memory last: peak_memory makes every later large allocation map fresh pages (measure.py)
+    result["codec_mem"], result["step_mem"] = peak_memory(codec_fn)[1], peak_memory(step)[1]
     return result
 
 
@@ -173,7 +178,7 @@ def worker_torch(name, repeat):
     with torch.no_grad():
         loss = torch_codebook.forward(P, buffers, x, cfg, train=False)["loss"].item()
 
-        def codec():
+        def codec():  # under no_grad, as pyvf's encode and decode_code keep nothing for a backward
             z = torch_codebook.encoder(x, P, cfg)
             flat = z.permute(0, 2, 3, 1).reshape(-1, cfg.embed_dim)
             e = buffers["quantize.embeddings"]
@@ -189,17 +194,20 @@ def worker_torch(name, repeat):
     step()
     result = dict(loss=loss, codec=t_codec, step=median(step, repeat))
     if name == TRAIN["config"]:
-        _, cb, images = setup(name, TRAIN["batch"])
-        P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
-        opt = torch.optim.Adam(P.values(), TRAIN["lr"], betas=TRAIN["betas"])
-        x = torch.tensor(images)
+        _, cb_t, images_t = setup(name, TRAIN["batch"])  # new names: codec and step keep theirs
+        P_t = {k: torch.tensor(v, requires_grad=True) for k, v in cb_t.params.items()}
+        opt = torch.optim.Adam(P_t.values(), TRAIN["lr"], betas=TRAIN["betas"])
+        x_t = torch.tensor(images_t)
 
         def train():
             opt.zero_grad()
-            torch_codebook.forward(P, buffers, x, cfg, train=True)["loss"].backward()
+            torch_codebook.forward(P_t, buffers, x_t, cfg, train=True)["loss"].backward()
             opt.step()
         train()
         result["train"] = median(train, repeat)
+    with torch.no_grad():  # memory last, as in worker_pyvf
+        result["codec_mem"] = peak_memory(codec)[1]
+    result["step_mem"] = peak_memory(step)[1]
     return result
 
 
@@ -221,6 +229,8 @@ def bench(name, repeat, threads):
     print(f"| pyvf | {p['codec'] * 1e3:.0f} ms | {p['step'] * 1e3:.0f} ms |")
     print(f"| torch | {t['codec'] * 1e3:.0f} ms | {t['step'] * 1e3:.0f} ms |")
     print(f"| ratio torch / pyvf | {t['codec'] / p['codec']:.2f} | {t['step'] / p['step']:.2f} |")
+    print(f"| peak memory pyvf | {format_bytes(p['codec_mem'])} | {format_bytes(p['step_mem'])} |")
+    print(f"| peak memory torch | {format_bytes(t['codec_mem'])} | {format_bytes(t['step_mem'])} |")
     if "train" in p:
         B = TRAIN["batch"]
         print(f"training step (batch {B}, Adam, the EMA update; pyvf.codebook_train_step, as pyvf train-codebook): "
