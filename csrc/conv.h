@@ -46,15 +46,15 @@ void matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t
 struct GNDims {
     int64_t B, C, G, P;
 };
-//   forward:  y (B, C, P) = [swish](xhat * gamma + beta), overwritten; saves xhat (B, C, P) and
-//             rstd (B, G), overwritten.
-//   backward: dx (B, C, P), dgamma, dbeta (C,) overwritten; beta is read only with swish (to
-//             recompute y).
+//   forward:  y (B, C, P) = [swish](xhat * gamma + beta), overwritten; stats (B, G, 3) = per group
+//             (mean, r, rstd), overwritten: xhat = ((x - mean) - r) * rstd, recomputed by the backward.
+//   backward: dx (B, C, P), dgamma, dbeta (C,) overwritten, from the forward's x and stats; beta is
+//             read only with swish (to recompute y).
 template <typename T>
-int groupnorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, const T* beta, const GNDims& d, double eps,
+int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta, const GNDims& d, double eps,
                       bool swish);
 template <typename T>
-int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* xhat, const T* rstd, const T* gamma, const T* beta,
+int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, const T* gamma, const T* beta,
                        const T* dy, const GNDims& d, bool swish);
 // y = x * sigmoid(x); dx = dy * swish'(x). Flat arrays of n elements, overwritten.
 template <typename T> void swish_forward(T* y, const T* x, int64_t n);

@@ -10,8 +10,8 @@
 //     conv2d_forward(y, x, w, b, stride, pt, pb, pl, pr)
 //     conv2d_backward(dx, dw, db, x, w, dy, stride, pt, pb, pl, pr)
 // and the same with _plain: the plain-loop oracle;
-//     groupnorm_forward(y, xhat, rstd, x, gamma, beta, groups, eps, swish)
-//     groupnorm_backward(dx, dgamma, dbeta, xhat, rstd, gamma, beta, dy, groups, swish)
+//     groupnorm_forward(y, stats, x, gamma, beta, groups, eps, swish)
+//     groupnorm_backward(dx, dgamma, dbeta, x, stats, gamma, beta, dy, groups, swish)
 //     swish_forward(y, x), swish_backward(dx, dy, x)
 //     matmul(c, a, b, ta): c (nb, M, N) = op(a) @ b per image, a (nb, M, K) or (nb, K, M) if ta
 #include <pybind11/numpy.h>
@@ -147,34 +147,32 @@ void same_size(const py::array& a, int64_t n, const char* name) {
 }
 
 template <typename T>
-void gn_forward(Arr<T> y, Arr<T> xhat, Arr<T> rstd, Arr<T> x, Arr<T> gamma, Arr<T> beta, int64_t groups, double eps,
-                bool swish) {
+void gn_forward(Arr<T> y, Arr<T> stats, Arr<T> x, Arr<T> gamma, Arr<T> beta, int64_t groups, double eps, bool swish) {
     const GNDims d = gn_dims(x, groups);
     same_size(y, x.size(), "y");
-    same_size(xhat, x.size(), "xhat");
-    same_size(rstd, d.B * d.G, "rstd");
+    same_size(stats, d.B * d.G * 3, "stats");
     check_shape(gamma, "gamma", {d.C});
     check_shape(beta, "beta", {d.C});
-    T *py_ = y.mutable_data(), *ph = xhat.mutable_data(), *pr = rstd.mutable_data();
+    T *py_ = y.mutable_data(), *ps = stats.mutable_data();
     const T *px = x.data(), *pg = gamma.data(), *pb = beta.data();
     int status;
     {
         py::gil_scoped_release nogil;
-        status = groupnorm_forward<T>(py_, ph, pr, px, pg, pb, d, eps, swish);
+        status = groupnorm_forward<T>(py_, ps, px, pg, pb, d, eps, swish);
     }
     raise_status(status);
 }
 
 template <typename T>
-void gn_backward(Arr<T> dx, Arr<T> dgamma, Arr<T> dbeta, Arr<T> xhat, Arr<T> rstd, Arr<T> gamma, Arr<T> beta,
+void gn_backward(Arr<T> dx, Arr<T> dgamma, Arr<T> dbeta, Arr<T> x, Arr<T> stats, Arr<T> gamma, Arr<T> beta,
                  Arr<T> dy, int64_t groups, bool swish) {
-    const GNDims d = gn_dims(xhat, groups);
-    same_size(dx, xhat.size(), "dx");
-    same_size(dy, xhat.size(), "dy");
-    same_size(rstd, d.B * d.G, "rstd");
+    const GNDims d = gn_dims(x, groups);
+    same_size(dx, x.size(), "dx");
+    same_size(dy, x.size(), "dy");
+    same_size(stats, d.B * d.G * 3, "stats");
     for (auto* a : {&dgamma, &dbeta, &gamma, &beta}) check_shape(*a, "gamma, beta, dgamma, dbeta", {d.C});
     T *pdx = dx.mutable_data(), *pdg = dgamma.mutable_data(), *pdb = dbeta.mutable_data();
-    const T *ph = xhat.data(), *pr = rstd.data(), *pg = gamma.data(), *pb = beta.data(), *pdy = dy.data();
+    const T *ph = x.data(), *pr = stats.data(), *pg = gamma.data(), *pb = beta.data(), *pdy = dy.data();
     int status;
     {
         py::gil_scoped_release nogil;
@@ -222,13 +220,13 @@ template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta) {
 
 template <typename T> void bind_dtype(py::module_& m) {
     m.def("groupnorm_forward", &gn_forward<T>,
-          "y = [swish](GroupNorm(x)); y, xhat (B, C, Hi, Wi), rstd (B, G) overwritten", py::arg("y").noconvert(),
-          py::arg("xhat").noconvert(), py::arg("rstd").noconvert(), py::arg("x").noconvert(),
+          "y = [swish](GroupNorm(x)); y (B, C, Hi, Wi), stats (B, G, 3) = (mean, r, rstd) overwritten",
+          py::arg("y").noconvert(), py::arg("stats").noconvert(), py::arg("x").noconvert(),
           py::arg("gamma").noconvert(), py::arg("beta").noconvert(), py::arg("groups"), py::arg("eps"),
           py::arg("swish"));
     m.def("groupnorm_backward", &gn_backward<T>, "dx, dgamma, dbeta (overwritten) of groupnorm_forward",
           py::arg("dx").noconvert(), py::arg("dgamma").noconvert(), py::arg("dbeta").noconvert(),
-          py::arg("xhat").noconvert(), py::arg("rstd").noconvert(), py::arg("gamma").noconvert(),
+          py::arg("x").noconvert(), py::arg("stats").noconvert(), py::arg("gamma").noconvert(),
           py::arg("beta").noconvert(), py::arg("dy").noconvert(), py::arg("groups"), py::arg("swish"));
     m.def("swish_forward", &sw_forward<T>, "y = x * sigmoid(x), overwritten", py::arg("y").noconvert(),
           py::arg("x").noconvert());

@@ -2,19 +2,22 @@
 // with the swish that follows it in ResnetBlock (norm1, norm2) and before conv_out (norm_out);
 // and swish alone. Forward and backward, float32 and float64.
 //
-// Shapes (conv.h, GNDims): x, y, xhat, dx (B, C, P) with P = Hi*Wi pixels, C order; gamma, beta,
-// dgamma, dbeta (C,); rstd (B, G). Group g of image b is the M = (C/G)*P contiguous numbers of
+// Shapes (conv.h, GNDims): x, y, dx (B, C, P) with P = Hi*Wi pixels, C order; gamma, beta,
+// dgamma, dbeta (C,); stats (B, G, 3): per group (mean, r, rstd) as below. Group g of image b is the M = (C/G)*P contiguous numbers of
 // channels g*C/G .. (g+1)*C/G - 1 (torch's grouping).
 //
-//   forward   mean = sum(x) / M in double, rounded to T; xc = x - mean, then xc -= (sum(xc) / M
+//   forward   mean = sum(x) / M in double, rounded to T; xc = x - mean, then xc -= r = (sum(xc) / M
 //             in double, rounded): the rounded mean can miss by an ulp, which rstd up to
 //             1/sqrt(eps) = 1000 would amplify on a constant group; var = sum(xc^2) / M in
 //             double, rounded; rstd = 1 / sqrt(var + eps) in T. xhat = xc * rstd,
-//             y = xhat * gamma[c] + beta[c], and with swish z = y * sigmoid(y).
+//             y = xhat * gamma[c] + beta[c], and with swish z = y * sigmoid(y). xhat is never
+//             stored: the backward recomputes it from x and (mean, r, rstd) by the same operations,
+//             bitwise (an array fewer to allocate and keep: in a training step the fresh pages of
+//             a stored xhat cost more than the forward's arithmetic).
 //             A constant group gives xhat = 0 and y = beta exactly; a group of mean 1e4 and
 //             spread 0.1 keeps its digits (x - mean is exact there). As pyvf/conv.py's NumPy
 //             groupnorm_forward, with the sums in double instead of NumPy's pairwise T sums.
-//   backward  (swish: g = dz * swish'(y), y recomputed from xhat as in the forward; else g = dy)
+//   backward  (swish: g = dz * swish'(y), y recomputed from x as in the forward; else g = dy)
 //             dgamma[c] = sum over b, pixels of g * xhat, dbeta[c] = sum of g (per image and
 //             channel in double, then over images in order); dxhat = g * gamma[c];
 //             dx = rstd * (dxhat - mean_g(dxhat) - xhat * mean_g(dxhat * xhat)), the means in
@@ -143,8 +146,13 @@ template <typename T> void swish_backward(T* dx, const T* dy, const T* x, int64_
 // =========================================================================================
 // GroupNorm (+ swish)
 
+// xhat of element i of group t: ((x - mean) - r) * rstd, stats[t] = (mean, r, rstd), the
+// forward's exact operations, so the backward recomputes the forward's xhat bitwise.
+template <typename T> inline T xhat_of(T x, const T* st) { return ((x - st[0]) - st[1]) * st[2]; }
+template <typename T> inline V<T> xhat_of(V<T> x, const T* st) { return ((x - st[0]) - st[1]) * st[2]; }
+
 template <typename T>
-int groupnorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, const T* beta, const GNDims& d, double eps,
+int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta, const GNDims& d, double eps,
                       bool swish) {
     constexpr int64_t W = Simd<T>::W;
     const int64_t cpg = d.C / d.G, M = cpg * d.P;
@@ -153,33 +161,28 @@ int groupnorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, const 
     for (int64_t t = 0; t < d.B * d.G; ++t) {
         const int64_t off = t * M;  // group (b, g) is x[off : off + M]
         const T* xg = x + off;
-        T* hg = xhat + off;
+        T* st = stats + 3 * t;
         const T mean = (T)(dsum(M, [&](int64_t i) { return xg[i]; }) / (double)M);
-        // xhat holds xc = x - mean for now; its residual mean is subtracted in the next pass
-        for (int64_t i = 0; i < M; ++i) hg[i] = xg[i] - mean;
-        const T r = (T)(dsum(M, [&](int64_t i) { return hg[i]; }) / (double)M);
+        // xc = x - mean, recomputed in each pass (never stored: the backward recomputes it too)
+        const T r = (T)(dsum(M, [&](int64_t i) { return (T)(xg[i] - mean); }) / (double)M);
         const double ss = dsum(M, [&](int64_t i) {
-            const double c = (double)(hg[i] - r);
+            const double c = (double)((T)(xg[i] - mean) - r);
             return c * c;
         });
         const T var = (T)(ss / (double)M);
-        const T rs = T(1) / std::sqrt(var + teps);
-        rstd[t] = rs;
+        st[0] = mean, st[1] = r, st[2] = T(1) / std::sqrt(var + teps);
         const int64_t c0 = (t % d.G) * cpg;
         for (int64_t c = 0; c < cpg; ++c) {
-            T* h = hg + c * d.P;
+            const T* xc = xg + c * d.P;
             T* yc = y + off + c * d.P;
             const T ga = gamma[c0 + c], be = beta[c0 + c];
             int64_t i = 0;
             for (; i + W <= d.P; i += W) {
-                const V<T> xh = (vload<T>(h + i) - r) * rs;
-                vstore<T>(h + i, xh);
-                const V<T> yv = xh * ga + be;
+                const V<T> yv = xhat_of<T>(vload<T>(xc + i), st) * ga + be;
                 vstore<T>(yc + i, swish ? swish_vec<T>(yv) : yv);
             }
             for (; i < d.P; ++i) {
-                h[i] = (h[i] - r) * rs;
-                const T yv = h[i] * ga + be;
+                const T yv = xhat_of<T>(xc[i], st) * ga + be;
                 if (swish)
                     tail_apply<T>(yc + i, &yv, 1, swish_vec<T>);
                 else
@@ -191,7 +194,7 @@ int groupnorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, const 
 }
 
 template <typename T>
-int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* xhat, const T* rstd, const T* gamma, const T* beta,
+int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, const T* gamma, const T* beta,
                        const T* dy, const GNDims& d, bool swish) {
     constexpr int64_t W = Simd<T>::W;
     const int64_t cpg = d.C / d.G, M = cpg * d.P;
@@ -207,20 +210,22 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* xhat, const T* rstd,
 #pragma omp for schedule(static)
         for (int64_t t = 0; t < d.B * d.G; ++t) {
             const int64_t off = t * M, b = t / d.G, c0 = (t % d.G) * cpg;
-            const T* hg = xhat + off;
+            const T* xg = x + off;
+            const T* st = stats + 3 * t;
             T* dg = dx + off;  // holds dxhat until the last pass
             // forward was y = xhat * gamma[c] + beta[c] (then z = swish(y)): g = dL/dy
             for (int64_t c = 0; c < cpg; ++c) {
-                const T* h = hg + c * d.P;
+                const T* xc = xg + c * d.P;
                 const T* dyc = dy + off + c * d.P;
                 T* o = dg + c * d.P;
                 const T ga = gamma[c0 + c], be = beta ? beta[c0 + c] : T(0);
                 if (swish) {
                     int64_t i = 0;
                     for (; i + W <= d.P; i += W)
-                        vstore<T>(o + i, vload<T>(dyc + i) * swish_grad_vec<T>(vload<T>(h + i) * ga + be));
+                        vstore<T>(o + i, vload<T>(dyc + i) *
+                                             swish_grad_vec<T>(xhat_of<T>(vload<T>(xc + i), st) * ga + be));
                     for (; i < d.P; ++i) {
-                        const T yv = h[i] * ga + be;
+                        const T yv = xhat_of<T>(xc[i], st) * ga + be;
                         T gr;
                         tail_apply<T>(&gr, &yv, 1, swish_grad_vec<T>);
                         o[i] = dyc[i] * gr;
@@ -228,16 +233,17 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* xhat, const T* rstd,
                 } else {
                     std::copy(dyc, dyc + d.P, o);
                 }
-                pg[b * d.C + c0 + c] = dsum(d.P, [&](int64_t i) { return (double)o[i] * (double)h[i]; });
+                pg[b * d.C + c0 + c] = dsum(d.P, [&](int64_t i) { return (double)o[i] * (double)xhat_of<T>(xc[i], st); });
                 pb[b * d.C + c0 + c] = dsum(d.P, [&](int64_t i) { return o[i]; });
                 for (int64_t i = 0; i < d.P; ++i) o[i] *= ga;  // dxhat = g * gamma[c]
             }
             // forward was xhat = (x - mean) * rstd, rstd = (mean((x - mean)^2) + eps)^(-1/2), so
             // dx = rstd * (dxhat - mean_g(dxhat) - xhat * mean_g(dxhat * xhat))
             const T m1 = (T)(dsum(M, [&](int64_t i) { return dg[i]; }) / (double)M);
-            const T m2 = (T)(dsum(M, [&](int64_t i) { return (double)dg[i] * (double)hg[i]; }) / (double)M);
-            const T rs = rstd[t];
-            for (int64_t i = 0; i < M; ++i) dg[i] = rs * (dg[i] - m1 - hg[i] * m2);
+            const T m2 =
+                (T)(dsum(M, [&](int64_t i) { return (double)dg[i] * (double)xhat_of<T>(xg[i], st); }) / (double)M);
+            const T rs = st[2];
+            for (int64_t i = 0; i < M; ++i) dg[i] = rs * (dg[i] - m1 - xhat_of<T>(xg[i], st) * m2);
         }
         // the partial sums over images, in image order
 #pragma omp for schedule(static)
@@ -258,10 +264,10 @@ template void swish_forward<float>(float*, const float*, int64_t);
 template void swish_forward<double>(double*, const double*, int64_t);
 template void swish_backward<float>(float*, const float*, const float*, int64_t);
 template void swish_backward<double>(double*, const double*, const double*, int64_t);
-template int groupnorm_forward<float>(float*, float*, float*, const float*, const float*, const float*,
-                                      const GNDims&, double, bool);
-template int groupnorm_forward<double>(double*, double*, double*, const double*, const double*, const double*,
-                                       const GNDims&, double, bool);
+template int groupnorm_forward<float>(float*, float*, const float*, const float*, const float*, const GNDims&,
+                                      double, bool);
+template int groupnorm_forward<double>(double*, double*, const double*, const double*, const double*, const GNDims&,
+                                       double, bool);
 template int groupnorm_backward<float>(float*, float*, float*, const float*, const float*, const float*,
                                        const float*, const float*, const GNDims&, bool);
 template int groupnorm_backward<double>(double*, double*, double*, const double*, const double*, const double*,

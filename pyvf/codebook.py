@@ -270,6 +270,15 @@ class CodebookOutput:
     trace: dict = None  # forward(..., trace=True) only: name -> activation (read-only), trace_names(cfg) order
 
 
+def _add_grad(grads, name, g):
+    """grads[name] += g; the first gradient of a parameter is stored as is (a fresh array from the
+    layer's backward: no zero-filled copy of every parameter, 270 MB for the paper's codebook)."""
+    if name in grads:
+        grads[name] += g
+    else:
+        grads[name] = g
+
+
 class Codebook:
     """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward.
 
@@ -435,12 +444,12 @@ class Codebook:
                 g[name] = dy
             if kind == "conv":
                 dy, dw, db = conv2d_backward(dy, c)
-                grads[name + ".weight"] += dw
-                grads[name + ".bias"] += db
+                _add_grad(grads, name + ".weight", dw)
+                _add_grad(grads, name + ".bias", db)
             elif kind == "norm_swish":
                 dy, dg, db = groupnorm_swish_backward(dy, c)
-                grads[name + ".weight"] += dg
-                grads[name + ".bias"] += db
+                _add_grad(grads, name + ".weight", dg)
+                _add_grad(grads, name + ".bias", db)
             elif kind == "upsample":
                 (dy,) = upsample_nearest2x_backward(dy, c)
             elif kind == "res":
@@ -448,7 +457,7 @@ class Codebook:
             elif kind == "attn":
                 dy, *dparams = attnblock_backward(dy, c)
                 for suffix, dp in zip(ATTN_PARAMS, dparams):
-                    grads[name + suffix] += dp
+                    _add_grad(grads, name + suffix, dp)
         return dy
 
     def _resblock_forward(self, name, x, keep=True):
@@ -614,7 +623,7 @@ class Codebook:
         enc, dec, c_q, drec_loss, c_p, B, rec_shape, traced = self._cache
         if drec is None and dloss is None:
             dloss = 1.0
-        grads = {name: np.zeros_like(p) for name, p in self.params.items()}
+        grads = {}  # filled by _add_grad; parameters the model did not use get zeros at the end
         total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
         dcommitment = 0.0
         if dloss is not None:
@@ -640,6 +649,7 @@ class Codebook:
             g["quantize"] = dq
         (dz,) = self.quantizer.backward(dq, dcommitment, c_q)  # straight-through + commitment
         self._backward(enc, dz, grads, g)
+        grads = {name: grads[name] if name in grads else np.zeros_like(p) for name, p in self.params.items()}
         if g is None:
             return grads
         for name, a in g.items():  # read-only views: one array can be several names' gradient

@@ -239,29 +239,28 @@ def _groupnorm_args(x, gamma, beta, groups, eps):
     return int(groups)
 
 
-def _groupnorm_kernel(x, gamma, beta, G, eps, swish, keep=True):
-    """The C++ forward (csrc/groupnorm.cpp) -> y, xhat (B, C, Hi, Wi), rstd (B, G, 1).
-    keep False: xhat is not needed; the kernel writes it into y's buffer (each element's xhat is
-    read before its y overwrites it) and xhat is returned as None."""
+def _groupnorm_kernel(x, gamma, beta, G, eps, swish):
+    """The C++ forward (csrc/groupnorm.cpp) -> y (B, C, Hi, Wi), x as C-ordered, stats (B, G, 3):
+    per group (mean, r, rstd), from which the backward recomputes xhat = ((x - mean) - r) * rstd
+    bitwise as the forward computed it (xhat is never stored)."""
     x, gamma, beta = (_contig(a) for a in (x, gamma, beta))
     y = np.empty_like(x)  # (B, C, Hi, Wi)
-    xhat = np.empty_like(x) if keep else y
-    rstd = np.empty((x.shape[0], G, 1), dtype=x.dtype)  # (B, G, 1)
-    _core.groupnorm_forward(y, xhat, rstd, x, gamma, beta, G, float(eps), swish)
-    if not (rstd > 0).all():  # var = inf: a group's (x - mean)^2 overflowed float64 (|x| beyond ~1e154)
+    stats = np.empty((x.shape[0], G, 3), dtype=x.dtype)  # (B, G, 3)
+    _core.groupnorm_forward(y, stats, x, gamma, beta, G, float(eps), swish)
+    if not (stats[..., 2] > 0).all():  # var = inf: a group's (x - mean)^2 overflowed float64 (|x| beyond ~1e154)
         raise ValueError("groupnorm: the variance of a group of x overflowed float64 (values beyond ~1e154): "
                          "rescale x (GroupNorm is scale-invariant up to eps)")
     _checks.finite_result("groupnorm_forward", y, "y")
-    return y, (xhat if keep else None), rstd
+    return y, x, stats
 
 
-def _groupnorm_grad_kernel(dy, xhat, rstd, gamma, beta, G, swish):
-    _check_grad("dy", dy, xhat.shape)
-    _check_float("dy", dy, like=xhat, like_name="the forward's x")
+def _groupnorm_grad_kernel(dy, x, stats, gamma, beta, G, swish):
+    _check_grad("dy", dy, x.shape)
+    _check_float("dy", dy, like=x, like_name="the forward's x")
     dy = _contig(dy)
-    dx = np.empty_like(xhat)  # (B, C, Hi, Wi)
+    dx = np.empty_like(x)  # (B, C, Hi, Wi)
     dgamma, dbeta = np.empty_like(gamma), np.empty_like(gamma)  # (C,)
-    _core.groupnorm_backward(dx, dgamma, dbeta, xhat, rstd, gamma, beta, dy, G, swish)
+    _core.groupnorm_backward(dx, dgamma, dbeta, x, stats, gamma, beta, dy, G, swish)
     for name, g in (("dx", dx), ("dgamma", dgamma), ("dbeta", dbeta)):
         _checks.finite_result("groupnorm_backward", g, name)
     return dx, dgamma, dbeta
@@ -278,15 +277,16 @@ def groupnorm_forward(x, gamma, beta, groups=32, eps=1e-6):
     tens of percent.
 
     Two-pass, as layernorm_forward: the mean is accumulated in float64 and rounded, the group
-    centred twice (the second time by the centred group's own residual mean), then the variance
+    centred twice (the second time by the centred group's own residual mean r), then the variance
     is the mean square of it. So a group of mean 1e4 and spread 0.1 keeps its digits, and a
     constant group gives y = beta exactly (xhat = 0 even when the rounded mean is an ulp off).
     The C++ kernel (csrc/groupnorm.cpp) does exactly this, every sum in float64;
     groupnorm_forward_numpy is the same in NumPy, kept as a second reference.
-    cache: xhat (B, C, Hi, Wi), rstd (B, groups, 1), gamma, groups."""
+    cache: x (B, C, Hi, Wi) (itself: do not modify it before the backward), stats (B, groups, 3) =
+    (mean, r, rstd) per group, gamma, groups; the backward recomputes xhat from them, bitwise."""
     G = _groupnorm_args(x, gamma, beta, groups, eps)
-    y, xhat, rstd = _groupnorm_kernel(x, gamma, beta, G, eps, swish=False)
-    return y, (xhat, rstd, _contig(gamma), G)
+    y, xc, stats = _groupnorm_kernel(x, gamma, beta, G, eps, swish=False)
+    return y, (xc, stats, _contig(gamma), G)
 
 
 def groupnorm_backward(dy, cache):
@@ -295,8 +295,8 @@ def groupnorm_backward(dy, cache):
     forward was y = xhat * gamma[c] + beta[c], xhat = (x - mean_g(x)) * rstd, so dgamma = sum of
     dy * xhat, dbeta = sum of dy, and per group dx = rstd * (dxhat - mean_g(dxhat) - xhat *
     mean_g(dxhat * xhat)), dxhat = dy * gamma[c] (the C++ kernel; the sums in float64)."""
-    xhat, rstd, gamma, G = cache
-    return _groupnorm_grad_kernel(dy, xhat, rstd, gamma, gamma, G, swish=False)  # beta unused without swish
+    x, stats, gamma, G = cache
+    return _groupnorm_grad_kernel(dy, x, stats, gamma, gamma, G, swish=False)  # beta unused without swish
 
 
 def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6, *, keep_cache=True):
@@ -306,15 +306,15 @@ def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6, *, keep_cache=T
     x (B, C, Hi, Wi), gamma, beta (C,) -> z (B, C, Hi, Wi). The same numbers as
     swish_forward(groupnorm_forward(x, gamma, beta, groups, eps)[0])[0] (bitwise: the same
     operations), without the intermediate y. eps 1e-6: the parity trap of groupnorm_forward.
-    cache: xhat (B, C, Hi, Wi), rstd (B, groups, 1), gamma, beta, groups; y = xhat * gamma + beta
-    is recomputed in the backward (one array fewer than the unfused pair's cache).
-    keep_cache=False (inference: no backward will follow): cache is None and xhat is never
-    allocated; z is the same."""
+    cache: x (B, C, Hi, Wi) (itself: do not modify it before the backward), stats (B, groups, 3),
+    gamma, beta, groups; xhat and y = xhat * gamma + beta are recomputed in the backward.
+    keep_cache=False (inference: no backward will follow): cache is None, so x is not held; z is
+    the same."""
     G = _groupnorm_args(x, gamma, beta, groups, eps)
     if not isinstance(keep_cache, (bool, np.bool_)):
         raise TypeError(f"keep_cache must be True or False, got {keep_cache!r}")
-    z, xhat, rstd = _groupnorm_kernel(x, gamma, beta, G, eps, swish=True, keep=bool(keep_cache))
-    return z, ((xhat, rstd, _contig(gamma), _contig(beta), G) if keep_cache else None)
+    z, xc, stats = _groupnorm_kernel(x, gamma, beta, G, eps, swish=True)
+    return z, ((xc, stats, _contig(gamma), _contig(beta), G) if keep_cache else None)
 
 
 def groupnorm_swish_backward(dz, cache):
@@ -322,8 +322,8 @@ def groupnorm_swish_backward(dz, cache):
 
     forward was z = swish(y), y = xhat * gamma[c] + beta[c], so dy = dz * swish'(y) (y recomputed),
     then groupnorm_backward's formulas."""
-    xhat, rstd, gamma, beta, G = cache
-    return _groupnorm_grad_kernel(dz, xhat, rstd, gamma, beta, G, swish=True)
+    x, stats, gamma, beta, G = cache
+    return _groupnorm_grad_kernel(dz, x, stats, gamma, beta, G, swish=True)
 
 
 def groupnorm_forward_numpy(x, gamma, beta, groups=32, eps=1e-6):
