@@ -613,6 +613,19 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
     return status;
 }
 
+// Where row k = (c, i, j) of a dw task's cols starts, for its nc input channels: in x itself (1x1
+// direct: channel c's pixels), in a padded-row tile (nc, Rp, Wp) (tap (i, j) shifts channel c's
+// rows), or in an im2col tile of np pixels per row.
+inline void cols_row_offsets(int64_t* aoff, const ConvDims& d, int64_t nc, bool direct, bool rows, int64_t Rp,
+                             int64_t Wp, int64_t np) {
+    for (int64_t c = 0; c < nc; ++c)
+        for (int64_t i = 0; i < d.kh; ++i)
+            for (int64_t j = 0; j < d.kw; ++j)
+                aoff[(c * d.kh + i) * d.kw + j] = direct ? c * d.Hi * d.Wi
+                                                  : rows ? (c * Rp + i) * Wp + j
+                                                         : ((c * d.kh + i) * d.kw + j) * np;
+}
+
 // db[o] = sum over images and pixels of dy[b, o, :, :], in double (forward was y = ... + b[o]).
 template <typename T> void db_sum(T* db, const T* dy, const ConvDims& d, int64_t o) {
     const int64_t P = d.Ho * d.Wo;
@@ -704,12 +717,7 @@ template <typename T> int dw_gemm(T* dw, T* db, const T* x, const T* dy, const C
             if (!ok) continue;
             const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
             const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
-            for (int64_t c = 0; c < nc; ++c)
-                for (int64_t i = 0; i < d.kh; ++i)
-                    for (int64_t j = 0; j < d.kw; ++j)
-                        aoff[(c * d.kh + i) * d.kw + j] = direct ? c * HWi
-                                                          : rows ? (c * Rp + i) * Wq + j
-                                                                 : ((c * d.kh + i) * d.kw + j) * np;
+            cols_row_offsets(aoff.data(), d, nc, direct, rows, Rp, Wq, np);
             std::fill(acc.begin(), acc.end(), T(0));
             for (int64_t bi = 0; bi < d.B; ++bi)
                 for (int64_t tile = 0; tile < ntile; ++tile) {
@@ -857,12 +865,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
             if (!ok) continue;
             const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
             const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
-            for (int64_t c = 0; c < nc; ++c)
-                for (int64_t i = 0; i < d.kh; ++i)
-                    for (int64_t j = 0; j < d.kw; ++j)
-                        aoff[(c * d.kh + i) * d.kw + j] = direct ? c * HWi
-                                                          : rows ? (c * Rp + i) * Wp + j
-                                                                 : ((c * d.kh + i) * d.kw + j) * np;
+            cols_row_offsets(aoff.data(), d, nc, direct, rows, Rp, Wp, np);
             std::fill(acc.begin(), acc.end(), T(0));
             for (int64_t bi = 0; bi < d.B; ++bi)
                 for (int64_t tile = 0; tile < ntile; ++tile) {

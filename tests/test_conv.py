@@ -941,3 +941,34 @@ def test_matmul_kernel_refuses_bad_arguments():
         _core.matmul(np.zeros((2, 3, 4)), a, b, False)
     with pytest.raises(ValueError, match="3-D"):
         _core.matmul(np.zeros((3, 5)), a, b, False)
+
+
+# ---------------------------------------------------------------------------------------
+# 8. overflow: finite inputs whose result exceeds the dtype raise, naming the layer and output
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_outputs_that_overflow_raise(dtype, rng):
+    """Every layer checks what it returns: a conv whose sums pass the dtype's largest number, a
+    GroupNorm whose gamma scales xhat past it, and a backward whose dy does, raise ValueError
+    naming the function and the output, instead of returning inf. Just below, the same layers
+    return finite numbers (so the check is not simply refusing large inputs)."""
+    big = np.finfo(dtype).max
+    x = rng.uniform(0.5, 1.0, (1, 4, 6, 6)).astype(dtype)
+    w = np.full((3, 4, 3, 3), dtype(big / 20), dtype)  # up to 36 positive terms of x * w: > max
+    b = np.zeros(3, dtype)
+    with pytest.raises(ValueError, match="conv2d_forward: y is not finite"):
+        conv.conv2d_forward(x, w, b, padding=1)
+    y, cache = conv.conv2d_forward(x, w / dtype(64), b, padding=1)  # <= 36/64 of max: finite
+    assert np.isfinite(y).all()
+    with pytest.raises(ValueError, match="conv2d_backward: dx is not finite"):
+        conv.conv2d_backward(np.full(y.shape, dtype(64), dtype), cache)  # dx sums 27 terms of 64 * w/64 * ...
+
+    xg = rng.standard_normal((2, 64, 5, 5)).astype(dtype)
+    gamma, beta = np.full(64, big, dtype), np.zeros(64, dtype)  # mean xhat^2 ~ 1: some |xhat| > 1
+    with pytest.raises(ValueError, match="groupnorm_forward: y is not finite"):
+        conv.groupnorm_forward(xg, gamma, beta)
+    with pytest.raises(ValueError, match="groupnorm_forward: y is not finite"):
+        conv.groupnorm_swish_forward(xg, gamma, beta)
+    yg, cg = conv.groupnorm_forward(xg, gamma / dtype(1e6), beta)
+    assert np.isfinite(yg).all()
