@@ -47,6 +47,10 @@
 // (k, o)'s sums are the same in any block): bitwise the same results for any number of threads
 // (tests/test_conv.py checks 1 and 2). Gradients are written, never accumulated.
 //
+// Overflow: each task checks the part of y (the backward: of dx) it wrote while it is in cache and
+// the kernel returns kConvNonFinite, which the bindings raise naming the output (a separate pass
+// over a paper codebook's activations from memory cost ~1% of its training step).
+//
 // Plain loops beside it (conv2d_*_plain): one double accumulator per output element, the
 // obviously-correct oracle of the tests.
 //
@@ -513,6 +517,15 @@ template <typename T> inline void add_bias_rows(T* y, const T* b, int64_t Co, in
     }
 }
 
+// Whether the rows y[o, 0:n) (leading dimension ld) are all finite, for the m rows: each task checks
+// what it wrote while it is in cache (the bindings raise kConvNonFinite), instead of a pass over
+// the whole output from memory afterwards.
+template <typename T> inline bool rows_finite(const T* y, int64_t m, int64_t ld, int64_t n) {
+    bool ok = true;
+    for (int64_t o = 0; o < m; ++o) ok = finite_run(y + o * ld, n) && ok;
+    return ok;
+}
+
 // Stride 1 (the codebook's 3x3 pad 1, and every stride-1 dx): per task (image, tile of R output
 // rows) the R + kh - 1 input rows it reads are copied once, zero padded, into a (C, R + kh - 1, Wp)
 // tile, Wp = Wo + kw - 1, and w2 (Co, K) @ Bt is computed with Bt[(c,i,j), (r,v)] =
@@ -538,7 +551,7 @@ template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, co
     const int64_t ntask = d.B * ntile * ncob;
     const bool wide = d.Wo < kRowsMinVectors * W;
     const int64_t nwide = round_up((R - 1) * Wp + d.Wo, W);  // columns of the widest wide product
-    int status = kConvOk;
+    int status = kConvOk, nonfinite = 0;
     std::vector<int64_t> boff;  // row k = (c, i, j) of Bt starts at tile + boff[k] (+ r*Wp for row r)
     try {
         boff.resize(K);
@@ -574,9 +587,13 @@ template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, co
                                 yb + (u0 + r) * d.Wo, P);
             }
             if (b) add_bias_rows(yb + u0 * d.Wo, b + o0, no, P, nr * d.Wo);
+            if (!rows_finite(yb + u0 * d.Wo, no, P, nr * d.Wo)) {
+#pragma omp atomic write
+                nonfinite = 1;
+            }
         }
     }
-    return status;
+    return status != kConvOk ? status : nonfinite ? kConvNonFinite : kConvOk;
 }
 
 // y = conv(x, w) (+ b when b is not null): the forward, and the stride-1 dx with the flipped
@@ -586,7 +603,7 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
     const bool direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
     if (!direct && d.stride == 1) return conv_rows(y, x, w, b, d);
     const int64_t np = tile_pixels<T>(K, P), ntile = ceil_div(P, np), ntask = d.B * ntile;
-    int status = kConvOk;
+    int status = kConvOk, nonfinite = 0;
 #pragma omp parallel if (worth_threads(d))
     {
         Buf<T> cols;  // (K, np), this thread's column tile
@@ -608,9 +625,13 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
             // y_b[:, p0:p0+n] = w2 (Co, K) @ cols (K, n)
             gemm_mr<T, false>((int)d.Co, (int)n, (int)K, w, K, src, ldb, yb, P);
             if (b) add_bias_rows(yb, b, d.Co, P, n);
+            if (!rows_finite(yb, d.Co, P, n)) {
+#pragma omp atomic write
+                nonfinite = 1;
+            }
         }
     }
-    return status;
+    return status != kConvOk ? status : nonfinite ? kConvNonFinite : kConvOk;
 }
 
 // Where row k = (c, i, j) of a dw task's cols starts, for its nc input channels: in x itself (1x1
@@ -802,6 +823,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
     } else {
         // forward was y_b = w2 @ cols_b, so dcols_b = w2^T @ dy_b, scattered back by col2im
         const int64_t ncb = ceil_div(d.C, kCB), ntask = d.B * ncb;
+        int nonfinite = 0;
         const int64_t np = tile_pixels<T>(std::min(d.C, kCB) * khw, P), ntile = ceil_div(P, np);
 #pragma omp parallel if (worth_threads(d))
         {
@@ -821,9 +843,14 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
                                             dy + bi * d.Co * P + p0, P, dcols.data(), n);
                     col2im_add(dxb, dcols.data(), d, c0, nc, p0, n);
                 }
+                if (!finite_run(dxb + c0 * HWi, nc * HWi)) {
+#pragma omp atomic write
+                    nonfinite = 1;
+                }
             }
         }
         if (status != kConvOk) return status;
+        if (nonfinite) return kConvNonFinite;
     }
 
     // ---- dw and db: dw_gemm where Co fills a vector; else (conv_out's 3 channels, narrow layers)

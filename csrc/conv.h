@@ -18,8 +18,10 @@ struct ConvDims {
     int64_t B, C, Hi, Wi, Co, kh, kw, stride, pt, pb, pl, pr, Ho, Wo;
 };
 
-// Status codes returned by the kernels (0 = ok); the bindings raise kConvOutOfMemory as MemoryError.
-enum ConvStatus : int { kConvOk = 0, kConvOutOfMemory = 2 };
+// Status codes returned by the kernels (0 = ok); the bindings raise kConvOutOfMemory as MemoryError
+// and kConvNonFinite (conv2d: y, or the backward's dx, not finite: finite inputs overflowed; each
+// task checks what it wrote while it is still in cache) as ValueError.
+enum ConvStatus : int { kConvOk = 0, kConvOutOfMemory = 2, kConvNonFinite = 3 };
 
 // Fast kernels: implicit GEMM on the gemm micro-kernel of simd.h, OpenMP over (image, pixel
 // tile) or (channel block) tasks; results bitwise the same for any thread count.

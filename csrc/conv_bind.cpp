@@ -98,6 +98,15 @@ void raise_status(int status, const char* memory_message = kConvMemory) {
     }
 }
 
+// kConvNonFinite: the message of pyvf._checks.finite_result, naming the function and the output
+template <typename T> void raise_nonfinite(int status, const char* what, const char* name) {
+    if (status == kConvNonFinite)
+        throw py::value_error(std::string(what) + ": " + name + " is not finite: it overflowed " +
+                              (sizeof(T) == 4 ? "float32" : "float64") +
+                              " (inputs too large for the dtype; rescale them, or use float64)");
+    raise_status(status);
+}
+
 template <typename T, bool PLAIN>
 void forward(Arr<T> y, Arr<T> x, Arr<T> w, Arr<T> b, int64_t stride, int64_t pt, int64_t pb, int64_t pl,
              int64_t pr) {
@@ -111,7 +120,7 @@ void forward(Arr<T> y, Arr<T> x, Arr<T> w, Arr<T> b, int64_t stride, int64_t pt,
         py::gil_scoped_release nogil;
         status = PLAIN ? conv2d_forward_plain<T>(py_, px, pw, pbias, d) : conv2d_forward<T>(py_, px, pw, pbias, d);
     }
-    raise_status(status);
+    raise_nonfinite<T>(status, "conv2d_forward", "y");
 }
 
 template <typename T, bool PLAIN>
@@ -130,7 +139,7 @@ void backward(Arr<T> dx, Arr<T> dw, Arr<T> db, Arr<T> x, Arr<T> w, Arr<T> dy, in
         status = PLAIN ? conv2d_backward_plain<T>(pdx, pdw, pdb, px, pw, pdy, d)
                        : conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d);
     }
-    raise_status(status);
+    raise_nonfinite<T>(status, "conv2d_backward", "dx");
 }
 
 // ---- GroupNorm (+ swish), swish

@@ -136,27 +136,6 @@ template <typename T> void gelu_grad(Arr<T> dx, Arr<T> dy, Arr<T> x) {
     gelu_backward<T>(pdx, pdy, px, n);
 }
 
-namespace {
-
-// Whether p[0:n) is all finite: x * 0 is 0 for finite x, NaN for inf and NaN. Four accumulators,
-// so that the adds' latency does not bound the scan (one chain ran at a third of the bandwidth).
-template <typename T> bool finite_block(const T* p, int64_t n) {
-    constexpr int W = Simd<T>::W;
-    typename Simd<T>::V a0 = {}, a1 = {}, a2 = {}, a3 = {};
-    int64_t i = 0;
-    for (; i + 4 * W <= n; i += 4 * W) {
-        a0 += vload<T>(p + i) * T(0);
-        a1 += vload<T>(p + i + W) * T(0);
-        a2 += vload<T>(p + i + 2 * W) * T(0);
-        a3 += vload<T>(p + i + 3 * W) * T(0);
-    }
-    for (; i + W <= n; i += W) a0 += vload<T>(p + i) * T(0);
-    T tail = 0;
-    for (; i < n; ++i) tail += p[i] * T(0);
-    return hsum<T>((a0 + a1) + (a2 + a3)) + tail == 0;
-}
-
-}  // namespace
 
 // True when every element is finite; a scan that allocates nothing (np.isfinite(x).all()
 // would allocate a bool array as large as x). Blocks of 64 Ki elements, on the threads when
@@ -169,7 +148,7 @@ template <typename T> bool all_finite(Arr<T> x) {
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     bool ok = true;
 #pragma omp parallel for schedule(static) reduction(&& : ok) if (blocks >= 4)
-    for (int64_t b = 0; b < blocks; ++b) ok = finite_block(p + b * kBlock, std::min(kBlock, n - b * kBlock)) && ok;
+    for (int64_t b = 0; b < blocks; ++b) ok = finite_run(p + b * kBlock, std::min(kBlock, n - b * kBlock)) && ok;
     return ok;
 }
 

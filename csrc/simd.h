@@ -232,6 +232,24 @@ inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb
     for (; i < M; ++i) gemm_rows<T, 1, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
 }
 
+// Whether p[0:n) is all finite: x * 0 is 0 for finite x, NaN for inf and NaN. Four accumulators,
+// so that the adds' latency does not bound the scan (one chain ran at a third of the bandwidth).
+template <typename T> inline bool finite_run(const T* p, int64_t n) {
+    constexpr int W = Simd<T>::W;
+    typename Simd<T>::V a0 = {}, a1 = {}, a2 = {}, a3 = {};
+    int64_t i = 0;
+    for (; i + 4 * W <= n; i += 4 * W) {
+        a0 += vload<T>(p + i) * T(0);
+        a1 += vload<T>(p + i + W) * T(0);
+        a2 += vload<T>(p + i + 2 * W) * T(0);
+        a3 += vload<T>(p + i + 3 * W) * T(0);
+    }
+    for (; i + W <= n; i += W) a0 += vload<T>(p + i) * T(0);
+    T tail = 0;
+    for (; i < n; ++i) tail += p[i] * T(0);
+    return hsum<T>((a0 + a1) + (a2 + a3)) + tail == 0;
+}
+
 // out (cols, rows) = in (rows, cols)^T
 template <typename T> inline void transpose(T* out, const T* in, int rows, int cols) {
     for (int i = 0; i < rows; ++i)

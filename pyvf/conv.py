@@ -145,8 +145,7 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     stride, pad, Ho, Wo = _conv_args(x, w, b, stride, padding)
     x, w, b = (_contig(a) for a in (x, w, b))  # the kernel takes C order; views are copied once
     y = np.empty((x.shape[0], w.shape[0], Ho, Wo), dtype=x.dtype)  # (B, Co, Ho, Wo)
-    _core.conv2d_forward(y, x, w, b, stride, *pad)
-    _checks.finite_result("conv2d_forward", y, "y")
+    _core.conv2d_forward(y, x, w, b, stride, *pad)  # raises if y overflowed (each task checks its part)
     return y, (x, w, stride, pad)
 
 
@@ -162,8 +161,8 @@ def conv2d_backward(dy, cache):
     dy = _contig(dy)
     dx, dw = np.empty_like(x), np.empty_like(w)  # (B, C, Hi, Wi), (Co, C, kh, kw)
     db = np.empty(w.shape[0], dtype=x.dtype)  # (Co,)
-    _core.conv2d_backward(dx, dw, db, x, w, dy, stride, *pad)
-    for name, g in (("dx", dx), ("dw", dw), ("db", db)):
+    _core.conv2d_backward(dx, dw, db, x, w, dy, stride, *pad)  # raises if dx overflowed (checked per task)
+    for name, g in (("dw", dw), ("db", db)):
         _checks.finite_result("conv2d_backward", g, name)
     return dx, dw, db
 
