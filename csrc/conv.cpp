@@ -727,11 +727,11 @@ template <typename T> int dw_gemm(T* dw, T* db, const T* x, const T* dy, const C
                 for (int64_t v = 0; v < d.Wo; ++v)
                     for (int64_t o = o0; o < std::min(o0 + 16, d.Co); ++o) dst[v * ldt + o] = src[o * P + v];
         }
-        Buf<T> buf, acc;  // the padded rows (nc, Rp, Wp) + kw slack, or the cols tile (kb, np); acc (kb, ow)
+        Buf<T> buf, acc;  // the padded rows (nc, Rp, Wq) or the cols tile (kb, np); acc (kb, ow)
         std::vector<int64_t> aoff;
         std::vector<const T*> arow;
         bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, buf.resize(direct ? 0 : rows ? nc_max * Rp * Wq + d.kw : kb_max * np);
+        PYVF_CONV_TRY_ALLOC(status, buf.resize(direct ? 0 : rows ? nc_max * Rp * Wq : kb_max * np);
                             acc.resize(kb_max * ow); aoff.resize(kb_max); arow.resize(kb_max); ok = true)
 #pragma omp for schedule(dynamic, 1)
         for (int64_t t = 0; t < ncb * nob; ++t) {

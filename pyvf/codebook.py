@@ -421,7 +421,7 @@ class Codebook:
         if kind == "conv":
             y, c = conv2d_forward(x, P[name + ".weight"], P[name + ".bias"], kw.get("stride", 1), kw.get("padding", 0))
         elif kind == "norm_swish":  # Normalize (32 groups, eps 1e-6, SPEC §4) then swish, fused
-            y, c = groupnorm_swish_forward(x, P[name + ".weight"], P[name + ".bias"], keep_cache=keep)
+            y, c = groupnorm_swish_forward(x, P[name + ".weight"], P[name + ".bias"])
         elif kind == "upsample":
             y, c = upsample_nearest2x_forward(x)
         elif kind == "res":

@@ -298,7 +298,7 @@ def groupnorm_backward(dy, cache):
     return _groupnorm_grad_kernel(dy, x, stats, gamma, gamma, G, swish=False)  # beta unused without swish
 
 
-def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6, *, keep_cache=True):
+def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6):
     """z = swish(groupnorm(x)): the Normalize + swish pair of the codebook (ResnetBlock's norm1 and
     norm2, and norm_out before conv_out, SPEC.md §4), in one pass of the C++ kernel.
 
@@ -306,14 +306,10 @@ def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6, *, keep_cache=T
     swish_forward(groupnorm_forward(x, gamma, beta, groups, eps)[0])[0] (bitwise: the same
     operations), without the intermediate y. eps 1e-6: the parity trap of groupnorm_forward.
     cache: x (B, C, Hi, Wi) (itself: do not modify it before the backward), stats (B, groups, 3),
-    gamma, beta, groups; xhat and y = xhat * gamma + beta are recomputed in the backward.
-    keep_cache=False (inference: no backward will follow): cache is None, so x is not held; z is
-    the same."""
+    gamma, beta, groups; xhat and y = xhat * gamma + beta are recomputed in the backward."""
     G = _groupnorm_args(x, gamma, beta, groups, eps)
-    if not isinstance(keep_cache, (bool, np.bool_)):
-        raise TypeError(f"keep_cache must be True or False, got {keep_cache!r}")
     z, xc, stats = _groupnorm_kernel(x, gamma, beta, G, eps, swish=True)
-    return z, ((xc, stats, _contig(gamma), _contig(beta), G) if keep_cache else None)
+    return z, (xc, stats, _contig(gamma), _contig(beta), G)
 
 
 def groupnorm_swish_backward(dz, cache):

@@ -873,19 +873,6 @@ def test_groupnorm_swish_threads_bitwise(dtype, rng):
         assert_bitwise_equal(f"output {i}, 1 vs 2 threads", a, b)
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_groupnorm_swish_without_cache_is_the_same(dtype, rng):
-    """keep_cache=False (inference: xhat written into z's buffer, no cache): z bitwise the same as
-    with the cache; cache None; a non-bool keep_cache is refused."""
-    _, inputs, _, _ = build(("groupnorm", 64, 24, 24), rng, dtype)
-    z, cache = conv.groupnorm_swish_forward(*inputs)
-    z2, cache2 = conv.groupnorm_swish_forward(*inputs, keep_cache=False)
-    assert cache is not None and cache2 is None
-    assert_bitwise_equal("z without the cache", z2, z)
-    with pytest.raises(TypeError, match="keep_cache must be True or False"):
-        conv.groupnorm_swish_forward(*inputs, keep_cache=1)
-
-
 # ---------------------------------------------------------------------------------------
 # 7. the AttnBlock's products (csrc/conv.cpp matmul_batched) against NumPy in float64
 
