@@ -34,6 +34,7 @@
 // pyvf/conv.py, 1 vs 2 threads). Benchmark: pyvf bench codebook --quick (time per layer type).
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <new>
 #include <vector>
 
@@ -48,27 +49,73 @@ template <typename T> using V = typename Simd<T>::V;
 using VD = Simd<double>::V;
 constexpr int WD = Simd<double>::W;
 
-// sum of f(i) over i < n in double: WD lanes, 4 accumulators, lanes and accumulators added in a
-// fixed order. f returns the T value to convert.
-template <typename F> inline double dsum(int64_t n, F f) {
+// The W / WD double vectors of the elements of a T vector, in order (float -> double is exact).
+template <typename T> inline void widen(V<T> v, VD* out) {
+    if constexpr (sizeof(T) == sizeof(double)) {
+        out[0] = v;
+    } else {
+        typedef float H __attribute__((vector_size(WD * sizeof(float))));  // half a float vector
+        H lo, hi;
+        std::memcpy(&lo, &v, sizeof lo);
+        std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
+        out[0] = __builtin_convertvector(lo, VD);
+        out[1] = __builtin_convertvector(hi, VD);
+    }
+}
+
+// sum over i < n of the double values of elements i in double: WD lanes, 4 accumulators, lanes and
+// accumulators added in a fixed order. fv(i, v) writes the values of elements i .. i + 4*WD into
+// the 4 double vectors v (through widen: whole T vectors, no lane-by-lane inserts); f(i) is
+// element i's, for the last n % (4*WD).
+template <typename FV, typename F> inline double dsum(int64_t n, FV fv, F f) {
     VD a0 = {}, a1 = {}, a2 = {}, a3 = {};
     int64_t i = 0;
     for (; i + 4 * WD <= n; i += 4 * WD) {
-        VD v0 = {}, v1 = {}, v2 = {}, v3 = {};  // filled lane by lane below
-        for (int l = 0; l < WD; ++l) {
-            v0[l] = (double)f(i + l);
-            v1[l] = (double)f(i + WD + l);
-            v2[l] = (double)f(i + 2 * WD + l);
-            v3[l] = (double)f(i + 3 * WD + l);
-        }
-        a0 += v0;
-        a1 += v1;
-        a2 += v2;
-        a3 += v3;
+        VD v[4];
+        fv(i, v);
+        a0 += v[0];
+        a1 += v[1];
+        a2 += v[2];
+        a3 += v[3];
     }
     double tail = 0;
-    for (; i < n; ++i) tail += (double)f(i);
+    for (; i < n; ++i) tail += f(i);
     return hsum<double>((a0 + a1) + (a2 + a3)) + tail;
+}
+
+// fv of dsum for the values g(j) of T vectors at j = i, i + W, ...: the 4*WD elements from
+// 4*WD / W of them, each widened.
+template <typename T, typename G> inline auto widened(G g) {
+    return [g](int64_t i, VD* v) {
+        constexpr int W = Simd<T>::W, per = W / WD;  // double vectors per T vector
+        for (int q = 0; q < 4 / per; ++q) widen<T>(g(i + q * W), v + q * per);
+    };
+}
+
+// fv of dsum for the products g(j) * h(j) in double of T vectors g, h: each widened, then multiplied.
+template <typename T, typename G, typename H> inline auto widened_product(G g, H h) {
+    return [g, h](int64_t i, VD* v) {
+        constexpr int W = Simd<T>::W, per = W / WD;
+        for (int q = 0; q < 4 / per; ++q) {
+            VD u[per], w[per];
+            widen<T>(g(i + q * W), u);
+            widen<T>(h(i + q * W), w);
+            for (int l = 0; l < per; ++l) v[q * per + l] = u[l] * w[l];
+        }
+    };
+}
+
+// Whether any lane of a is below lo: one vector compare (a loop over lanes compiled to a scalar
+// compare per lane, a third of the time of a GroupNorm + swish).
+template <typename T> inline bool any_below(V<T> a, T lo) {
+    if constexpr (sizeof(T) == sizeof(float)) {
+        return any_lane(a < lo);
+    } else {
+        const auto m = a < lo;  // 64-bit lanes: any_lane reads them as pairs of 32-bit ones
+        Simd<float>::I m32;
+        std::memcpy(&m32, &m, sizeof m32);
+        return any_lane(m32);
+    }
 }
 
 // (sigmoid(x), sigmoid(-x)) of a vector, as the header says.
@@ -76,9 +123,7 @@ template <typename T> inline void sigmoids(V<T> x, V<T>& s, V<T>& sn) {
     constexpr int W = Simd<T>::W;
     const V<T> a = x < T(0) ? x : -x;  // -|x| <= 0 (x = -0.0 gives +0.0 or -0.0: e^0 = 1 either way)
     V<T> z = exp_vec(a);
-    bool sub = false;
-    for (int l = 0; l < W; ++l) sub |= a[l] < ExpConst<T>::lo;
-    if (sub)  // e^a below the smallest normal: exp_vec returns 0, std::exp the subnormal
+    if (any_below(a, ExpConst<T>::lo))  // e^a below the smallest normal: exp_vec returns 0, std::exp the subnormal
         for (int l = 0; l < W; ++l)
             if (a[l] < ExpConst<T>::lo) z[l] = std::exp(a[l]);
     const V<T> one_z = T(1) + z;
@@ -87,10 +132,17 @@ template <typename T> inline void sigmoids(V<T> x, V<T>& s, V<T>& sn) {
     sn = x >= T(0) ? sm : sp;
 }
 
+// x * sigmoid(x) with the one division sigmoids' s needs: (x >= 0 ? 1 : z) / (1 + z), the same
+// quotient lane by lane as sigmoids' (which divides twice and picks).
 template <typename T> inline V<T> swish_vec(V<T> x) {
-    V<T> s, sn;
-    sigmoids<T>(x, s, sn);
-    return x * s;
+    constexpr int W = Simd<T>::W;
+    const V<T> a = x < T(0) ? x : -x;
+    V<T> z = exp_vec(a);
+    if (any_below(a, ExpConst<T>::lo))
+        for (int l = 0; l < W; ++l)
+            if (a[l] < ExpConst<T>::lo) z[l] = std::exp(a[l]);
+    const V<T> one = vset1<T>(T(1));
+    return x * ((x >= T(0) ? one : z) / (T(1) + z));
 }
 
 // d swish / dx = s + x * s * (1 - s) = s * (1 + x * sigmoid(-x))
@@ -162,10 +214,13 @@ int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta,
         const int64_t off = t * M;  // group (b, g) is x[off : off + M]
         const T* xg = x + off;
         T* st = stats + 3 * t;
-        const T mean = (T)(dsum(M, [&](int64_t i) { return xg[i]; }) / (double)M);
+        const T mean = (T)(dsum(M, widened<T>([&](int64_t i) { return vload<T>(xg + i); }),
+                                [&](int64_t i) { return (double)xg[i]; }) / (double)M);
         // xc = x - mean, recomputed in each pass (never stored: the backward recomputes it too)
-        const T r = (T)(dsum(M, [&](int64_t i) { return (T)(xg[i] - mean); }) / (double)M);
-        const double ss = dsum(M, [&](int64_t i) {
+        const T r = (T)(dsum(M, widened<T>([&](int64_t i) { return vload<T>(xg + i) - mean; }),
+                             [&](int64_t i) { return (double)(T)(xg[i] - mean); }) / (double)M);
+        const auto xc2 = [&](int64_t i) { return (vload<T>(xg + i) - mean) - r; };  // T vector
+        const double ss = dsum(M, widened_product<T>(xc2, xc2), [&](int64_t i) {
             const double c = (double)((T)(xg[i] - mean) - r);
             return c * c;
         });
@@ -233,15 +288,21 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
                 } else {
                     std::copy(dyc, dyc + d.P, o);
                 }
-                pg[b * d.C + c0 + c] = dsum(d.P, [&](int64_t i) { return (double)o[i] * (double)xhat_of<T>(xc[i], st); });
-                pb[b * d.C + c0 + c] = dsum(d.P, [&](int64_t i) { return o[i]; });
+                const auto ov = [&](int64_t i) { return vload<T>(o + i); };
+                const auto xv = [&](int64_t i) { return xhat_of<T>(vload<T>(xc + i), st); };
+                pg[b * d.C + c0 + c] = dsum(d.P, widened_product<T>(ov, xv),
+                                            [&](int64_t i) { return (double)o[i] * (double)xhat_of<T>(xc[i], st); });
+                pb[b * d.C + c0 + c] = dsum(d.P, widened<T>(ov), [&](int64_t i) { return (double)o[i]; });
                 for (int64_t i = 0; i < d.P; ++i) o[i] *= ga;  // dxhat = g * gamma[c]
             }
             // forward was xhat = (x - mean) * rstd, rstd = (mean((x - mean)^2) + eps)^(-1/2), so
             // dx = rstd * (dxhat - mean_g(dxhat) - xhat * mean_g(dxhat * xhat))
-            const T m1 = (T)(dsum(M, [&](int64_t i) { return dg[i]; }) / (double)M);
-            const T m2 =
-                (T)(dsum(M, [&](int64_t i) { return (double)dg[i] * (double)xhat_of<T>(xg[i], st); }) / (double)M);
+            const auto gv = [&](int64_t i) { return vload<T>(dg + i); };
+            const auto xv = [&](int64_t i) { return xhat_of<T>(vload<T>(xg + i), st); };
+            const T m1 = (T)(dsum(M, widened<T>(gv), [&](int64_t i) { return (double)dg[i]; }) / (double)M);
+            const T m2 = (T)(dsum(M, widened_product<T>(gv, xv),
+                                  [&](int64_t i) { return (double)dg[i] * (double)xhat_of<T>(xg[i], st); }) /
+                             (double)M);
             const T rs = st[2];
             for (int64_t i = 0; i < M; ++i) dg[i] = rs * (dg[i] - m1 - xhat_of<T>(xg[i], st) * m2);
         }
