@@ -959,3 +959,87 @@ def test_outputs_that_overflow_raise(dtype, rng):
         conv.groupnorm_swish_forward(xg, gamma, beta)
     yg, cg = conv.groupnorm_forward(xg, gamma / dtype(1e6), beta)
     assert np.isfinite(yg).all()
+
+
+# ---------------------------------------------------------------------------------------
+# 9. NaN or inf in an input: conv2d and GroupNorm scan their inputs only when an output is not
+# finite (pyvf/conv.py's _after_kernel); the error names the input all the same
+
+
+CONV_SHAPES = [  # (x shape, w shape, stride, padding): the codebook's three kinds
+    ((2, 5, 7, 6), (4, 5, 3, 3), 1, 1),
+    ((2, 5, 8, 8), (4, 5, 3, 3), 2, (0, 1, 0, 1)),
+    ((2, 5, 4, 3), (4, 5, 1, 1), 1, 0),
+]
+
+
+def _spoil(a, rng, bad):
+    """a copy of a with `bad` at a random element, or at its first or last one"""
+    a = a.copy()
+    where = rng.integers(3)
+    flat = a.reshape(-1)
+    flat[[0, flat.size - 1, rng.integers(flat.size)][where]] = bad
+    return a
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("shape", CONV_SHAPES, ids=["3x3", "3x3 stride 2", "1x1"])
+def test_conv_names_the_input_that_holds_nan_or_inf(shape, dtype, bad, rng):
+    """Any element of x, w, b (forward) or dy (backward) that is NaN or inf raises ValueError
+    '<name> contains NaN or inf', although the inputs are scanned only after an output came out
+    not finite: every element of each is read by some output of these shapes."""
+    xs, ws, stride, padding = shape
+    x, w, b = (rng.standard_normal(s).astype(dtype) for s in (xs, ws, (ws[0],)))
+    args = dict(x=x, w=w, b=b)
+    for _ in range(4):  # random positions, the first and the last elements among them
+        for name in args:
+            spoilt = dict(args, **{name: _spoil(args[name], rng, bad)})
+            with pytest.raises(ValueError, match=f"^{name} contains NaN or inf"):
+                conv.conv2d_forward(spoilt["x"], spoilt["w"], spoilt["b"], stride, padding)
+        y, cache = conv.conv2d_forward(x, w, b, stride, padding)
+        dy = rng.standard_normal(y.shape).astype(dtype)
+        with pytest.raises(ValueError, match="^dy contains NaN or inf"):
+            conv.conv2d_backward(_spoil(dy, rng, bad), cache)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("swish", [False, True])
+def test_groupnorm_names_the_input_that_holds_nan_or_inf(swish, dtype, bad, rng):
+    fwd = conv.groupnorm_swish_forward if swish else conv.groupnorm_forward
+    bwd = conv.groupnorm_swish_backward if swish else conv.groupnorm_backward
+    x = rng.standard_normal((2, 64, 3, 5)).astype(dtype)
+    gamma, beta = (rng.standard_normal(64).astype(dtype) for _ in range(2))
+    args = dict(x=x, gamma=gamma, beta=beta)
+    for _ in range(4):
+        for name in args:
+            spoilt = dict(args, **{name: _spoil(args[name], rng, bad)})
+            with pytest.raises(ValueError, match=f"^{name} contains NaN or inf"):
+                fwd(spoilt["x"], spoilt["gamma"], spoilt["beta"])
+        y, cache = fwd(x, gamma, beta)
+        with pytest.raises(ValueError, match="^dy contains NaN or inf"):
+            bwd(_spoil(rng.standard_normal(y.shape).astype(dtype), rng, bad), cache)
+
+
+@pytest.mark.parametrize("xs, ws, stride, padding, where", [
+    ((1, 2, 4, 4), (3, 2, 1, 1), 2, 0, (0, 1, 1, 1)),  # a stride past the kernel skips odd pixels
+    ((1, 2, 6, 6), (3, 2, 3, 3), 2, 0, (0, 0, 5, 2)),  # the last window ends before the last row
+    ((0, 2, 4, 4), (3, 2, 3, 3), 1, 1, None),          # an empty batch reads no w
+])
+def test_conv_scans_inputs_first_where_some_are_not_read(xs, ws, stride, padding, where, rng):
+    """Where no output reads an element of x (or any of w, b), its NaN could not show in y: those
+    calls scan the inputs first, so the NaN still raises naming x (or w)."""
+    x, w, b = rng.standard_normal(xs), rng.standard_normal(ws), rng.standard_normal(ws[0])
+    name = "x" if where else "w"
+    if where:
+        x[where] = np.nan
+    else:
+        w[0, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match=f"^{name} contains NaN or inf"):
+        conv.conv2d_forward(x, w, b, stride, padding)
+    if where:  # the kernel alone would not have seen it
+        x[where] = 0.0
+        y_clean = conv.conv2d_forward(x, w, b, stride, padding)[0]
+        x[where] = 1e30
+        assert_bitwise_equal("y with the unread element changed", conv.conv2d_forward(x, w, b, stride, padding)[0], y_clean)
