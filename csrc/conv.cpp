@@ -657,14 +657,16 @@ template <typename T> void db_sum(T* db, const T* dy, const ConvDims& d, int64_t
     for (int64_t bi = 0; bi < d.B; ++bi) {
         const T* r = dy + (bi * d.Co + o) * P;
         int64_t p = 0;
-        for (; p + 2 * WD <= P; p += 2 * WD) {
-            VD v0 = {}, v1 = {};  // filled lane by lane below
-            for (int l = 0; l < WD; ++l) {
-                v0[l] = (double)r[p + l];
-                v1[l] = (double)r[p + WD + l];
+        for (; p + 2 * WD <= P; p += 2 * WD) {  // elements p .. p + WD into a0, the next WD into a1
+            VD v[2];
+            if constexpr (sizeof(T) == sizeof(double)) {
+                v[0] = vload<T>(r + p);
+                v[1] = vload<T>(r + p + WD);
+            } else {
+                widen_to_double<T>(vload<T>(r + p), v);  // a float vector is 2 * WD elements
             }
-            a0 += v0;
-            a1 += v1;
+            a0 += v[0];
+            a1 += v[1];
         }
         for (; p < P; ++p) tail += (double)r[p];
     }

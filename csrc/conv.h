@@ -19,8 +19,9 @@ struct ConvDims {
 };
 
 // Status codes returned by the kernels (0 = ok); the bindings raise kConvOutOfMemory as MemoryError
-// and kConvNonFinite (conv2d: y, or the backward's dx, not finite: finite inputs overflowed; each
-// task checks what it wrote while it is still in cache) as ValueError.
+// and kConvNonFinite (conv2d and GroupNorm: y, or the backward's dx, not finite: finite inputs
+// overflowed, or an input held NaN or inf; each task checks what it wrote while it is still in
+// cache) as ValueError, naming the output (pyvf/conv.py then names the input, if one is to blame).
 enum ConvStatus : int { kConvOk = 0, kConvOutOfMemory = 2, kConvNonFinite = 3 };
 
 // Fast kernels: implicit GEMM on the gemm micro-kernel of simd.h, OpenMP over (image, pixel

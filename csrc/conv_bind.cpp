@@ -169,7 +169,7 @@ void gn_forward(Arr<T> y, Arr<T> stats, Arr<T> x, Arr<T> gamma, Arr<T> beta, int
         py::gil_scoped_release nogil;
         status = groupnorm_forward<T>(py_, ps, px, pg, pb, d, eps, swish);
     }
-    raise_status(status);
+    raise_nonfinite<T>(status, "groupnorm_forward", "y");
 }
 
 template <typename T>
@@ -188,6 +188,7 @@ void gn_backward(Arr<T> dx, Arr<T> dgamma, Arr<T> dbeta, Arr<T> x, Arr<T> stats,
         status = groupnorm_backward<T>(pdx, pdg, pdb, ph, pr, pg, pb, pdy, d, swish);
     }
     raise_status(status, kGNMemory);
+    raise_nonfinite<T>(status, "groupnorm_backward", "dx");
 }
 
 template <typename T> void sw_forward(Arr<T> y, Arr<T> x) {

@@ -27,6 +27,8 @@
 //             1 - sigmoid(x), which cancels). exp is simd.h's exp_vec (about 1 ulp) where -|x| is
 //             above the smallest normal result, else std::exp (into the subnormals, as NumPy's).
 //             swish(x) = x * sigmoid(x); swish'(x) = sigmoid(x) * (1 + x * sigmoid(-x)).
+// Overflow: y (forward) and dx (backward) are checked finite by the task that wrote them, while
+// they are in cache; the kernels return kConvNonFinite, which the bindings raise naming the output.
 // Tasks: one per (image, group), or per block of elements for swish; every output element and
 // every partial sum is computed by one task in one order: bitwise the same for any thread count.
 //
@@ -48,20 +50,6 @@ namespace {
 template <typename T> using V = typename Simd<T>::V;
 using VD = Simd<double>::V;
 constexpr int WD = Simd<double>::W;
-
-// The W / WD double vectors of the elements of a T vector, in order (float -> double is exact).
-template <typename T> inline void widen(V<T> v, VD* out) {
-    if constexpr (sizeof(T) == sizeof(double)) {
-        out[0] = v;
-    } else {
-        typedef float H __attribute__((vector_size(WD * sizeof(float))));  // half a float vector
-        H lo, hi;
-        std::memcpy(&lo, &v, sizeof lo);
-        std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
-        out[0] = __builtin_convertvector(lo, VD);
-        out[1] = __builtin_convertvector(hi, VD);
-    }
-}
 
 // sum over i < n of the double values of elements i in double: WD lanes, 4 accumulators, lanes and
 // accumulators added in a fixed order. fv(i, v) writes the values of elements i .. i + 4*WD into
@@ -88,7 +76,7 @@ template <typename FV, typename F> inline double dsum(int64_t n, FV fv, F f) {
 template <typename T, typename G> inline auto widened(G g) {
     return [g](int64_t i, VD* v) {
         constexpr int W = Simd<T>::W, per = W / WD;  // double vectors per T vector
-        for (int q = 0; q < 4 / per; ++q) widen<T>(g(i + q * W), v + q * per);
+        for (int q = 0; q < 4 / per; ++q) widen_to_double<T>(g(i + q * W), v + q * per);
     };
 }
 
@@ -98,8 +86,8 @@ template <typename T, typename G, typename H> inline auto widened_product(G g, H
         constexpr int W = Simd<T>::W, per = W / WD;
         for (int q = 0; q < 4 / per; ++q) {
             VD u[per], w[per];
-            widen<T>(g(i + q * W), u);
-            widen<T>(h(i + q * W), w);
+            widen_to_double<T>(g(i + q * W), u);
+            widen_to_double<T>(h(i + q * W), w);
             for (int l = 0; l < per; ++l) v[q * per + l] = u[l] * w[l];
         }
     };
@@ -209,6 +197,7 @@ int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta,
     constexpr int64_t W = Simd<T>::W;
     const int64_t cpg = d.C / d.G, M = cpg * d.P;
     const T teps = (T)eps;
+    int nonfinite = 0;
 #pragma omp parallel for schedule(static) if (worth_threads(d.B * d.C * d.P))
     for (int64_t t = 0; t < d.B * d.G; ++t) {
         const int64_t off = t * M;  // group (b, g) is x[off : off + M]
@@ -243,9 +232,13 @@ int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta,
                 else
                     yc[i] = yv;
             }
+            if (!finite_run(yc, d.P)) {  // checked while in cache (the binding raises naming y)
+#pragma omp atomic write
+                nonfinite = 1;
+            }
         }
     }
-    return kConvOk;
+    return nonfinite ? kConvNonFinite : kConvOk;
 }
 
 template <typename T>
@@ -260,6 +253,7 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
     } catch (const std::bad_alloc&) {
         return kConvOutOfMemory;
     }
+    int nonfinite = 0;
 #pragma omp parallel if (worth_threads(d.B * d.C * d.P))
     {
 #pragma omp for schedule(static)
@@ -305,6 +299,10 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
                              (double)M);
             const T rs = st[2];
             for (int64_t i = 0; i < M; ++i) dg[i] = rs * (dg[i] - m1 - xhat_of<T>(xg[i], st) * m2);
+            if (!finite_run(dg, M)) {  // checked while in cache (the binding raises naming dx)
+#pragma omp atomic write
+                nonfinite = 1;
+            }
         }
         // the partial sums over images, in image order
 #pragma omp for schedule(static)
@@ -318,7 +316,7 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
             dbeta[c] = (T)sb;
         }
     }
-    return kConvOk;
+    return nonfinite ? kConvNonFinite : kConvOk;
 }
 
 template void swish_forward<float>(float*, const float*, int64_t);

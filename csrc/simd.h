@@ -84,6 +84,23 @@ inline bool any_lane(Simd<float>::I m) {
 #endif
 }
 
+// The W / WD double vectors of the elements of a T vector, in order (float -> double is exact):
+// whole-vector conversions (filling a double vector lane by lane compiles to a scalar insert per
+// lane, which dominated GroupNorm's sums).
+template <typename T> inline void widen_to_double(typename Simd<T>::V v, typename Simd<double>::V* out) {
+    if constexpr (sizeof(T) == sizeof(double)) {
+        out[0] = v;
+    } else {
+        using VD = typename Simd<double>::V;
+        typedef float H __attribute__((vector_size(Simd<double>::W * sizeof(float))));  // half a float vector
+        H lo, hi;
+        std::memcpy(&lo, &v, sizeof lo);
+        std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
+        out[0] = __builtin_convertvector(lo, VD);
+        out[1] = __builtin_convertvector(hi, VD);
+    }
+}
+
 template <typename T> inline T hsum(typename Simd<T>::V v) {
     T s = 0;
     for (int i = 0; i < Simd<T>::W; ++i) s += v[i];

@@ -296,7 +296,7 @@ def _groupnorm_kernel(x, gamma, beta, G, eps, swish):
         if not (stats[..., 2] > 0).all():  # var = inf: a group's (x - mean)^2 overflowed float64 (|x| beyond ~1e154)
             raise ValueError("groupnorm: the variance of a group of x overflowed float64 (values beyond ~1e154): "
                              "rescale x (GroupNorm is scale-invariant up to eps)")  # (or NaN: an input's)
-    _after_kernel("groupnorm_forward", run, (("y", y),), inputs, every_input_read=y.size > 0)
+    _after_kernel("groupnorm_forward", run, (), inputs, every_input_read=y.size > 0)  # y: the kernel checks it
     return y, x, stats
 
 
@@ -308,7 +308,7 @@ def _groupnorm_grad_kernel(dy, x, stats, gamma, beta, G, swish):
     dgamma, dbeta = np.empty_like(gamma), np.empty_like(gamma)  # (C,)
     _after_kernel("groupnorm_backward",
                   lambda: _core.groupnorm_backward(dx, dgamma, dbeta, x, stats, gamma, beta, dy, G, swish),
-                  (("dx", dx), ("dgamma", dgamma), ("dbeta", dbeta)), (("dy", dy),))
+                  (("dgamma", dgamma), ("dbeta", dbeta)), (("dy", dy),))  # dx: the kernel checks it
     return dx, dgamma, dbeta
 
 
