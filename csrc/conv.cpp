@@ -391,37 +391,42 @@ inline void ptr_tile(int K, const T* const* arow, const T* B, long ldb, T* C, lo
         }
 }
 
-template <typename T, int MR>
-inline void ptr_rows(int N, int K, const T* const* arow, const T* B, long ldb, T* C, long ldc) {
-    constexpr int W = Simd<T>::W;
-    int j = 0;
-    for (; j + 2 * W <= N; j += 2 * W) ptr_tile<T, MR, 2>(K, arow, B + j, ldb, C + j, ldc);
-    for (; j + W <= N; j += W) ptr_tile<T, MR, 1>(K, arow, B + j, ldb, C + j, ldc);
-    for (; j < N; ++j)  // columns past the last full vector
-        for (int i = 0; i < MR; ++i) {
-            T s = 0;
-            for (int k = 0; k < K; ++k) s += arow[i][k] * B[k * ldb + j];
-            C[i * ldc + j] += s;
-        }
-}
-
-template <typename T>
-void ptr_gemm(int M, int N, int K, const T* const* arow, const T* B, long ldb, T* C, long ldc) {
+// Every row tile of one column tile of NV vectors (the rows past the last whole tile as one tile).
+template <typename T, int NV>
+inline void ptr_cols(int M, int K, const T* const* arow, const T* B, long ldb, T* C, long ldc) {
     constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
     int i = 0;
-    for (; i + MR <= M; i += MR) ptr_rows<T, MR>(N, K, arow + i, B, ldb, C + i * ldc, ldc);
+    for (; i + MR <= M; i += MR) ptr_tile<T, MR, NV>(K, arow + i, B, ldb, C + i * ldc, ldc);
     arow += i;
     C += i * ldc;
     switch (M - i) {
         case 0: break;
-        case 1: ptr_rows<T, 1>(N, K, arow, B, ldb, C, ldc); break;
-        case 2: ptr_rows<T, 2>(N, K, arow, B, ldb, C, ldc); break;
-        case 3: ptr_rows<T, 3>(N, K, arow, B, ldb, C, ldc); break;
-        case 4: if constexpr (MR > 4) ptr_rows<T, 4>(N, K, arow, B, ldb, C, ldc); break;
-        case 5: if constexpr (MR > 5) ptr_rows<T, 5>(N, K, arow, B, ldb, C, ldc); break;
-        case 6: if constexpr (MR > 6) ptr_rows<T, 6>(N, K, arow, B, ldb, C, ldc); break;
-        case 7: if constexpr (MR > 7) ptr_rows<T, 7>(N, K, arow, B, ldb, C, ldc); break;
+        case 1: ptr_tile<T, 1, NV>(K, arow, B, ldb, C, ldc); break;
+        case 2: ptr_tile<T, 2, NV>(K, arow, B, ldb, C, ldc); break;
+        case 3: ptr_tile<T, 3, NV>(K, arow, B, ldb, C, ldc); break;
+        case 4: if constexpr (MR > 4) ptr_tile<T, 4, NV>(K, arow, B, ldb, C, ldc); break;
+        case 5: if constexpr (MR > 5) ptr_tile<T, 5, NV>(K, arow, B, ldb, C, ldc); break;
+        case 6: if constexpr (MR > 6) ptr_tile<T, 6, NV>(K, arow, B, ldb, C, ldc); break;
+        case 7: if constexpr (MR > 7) ptr_tile<T, 7, NV>(K, arow, B, ldb, C, ldc); break;
     }
+}
+
+// The column tiles outermost: a column tile's K rows of B (the dw's chunk of dyT, 256 pixels x 2
+// vectors = 32 KiB in float32) stay in L1 while every row tile of A passes (A's rows, 8 KiB a tile,
+// are the ones read from L2). Row tiles outermost re-read B from L2 for each (the 3x3 backward was
+// 1-5% slower on the codebook's shapes, Intel Xeon AVX-512, medians of interleaved runs).
+template <typename T>
+void ptr_gemm(int M, int N, int K, const T* const* arow, const T* B, long ldb, T* C, long ldc) {
+    constexpr int W = Simd<T>::W;
+    int j = 0;
+    for (; j + 2 * W <= N; j += 2 * W) ptr_cols<T, 2>(M, K, arow, B + j, ldb, C + j, ldc);
+    for (; j + W <= N; j += W) ptr_cols<T, 1>(M, K, arow, B + j, ldb, C + j, ldc);
+    for (; j < N; ++j)  // columns past the last full vector
+        for (int i = 0; i < M; ++i) {
+            T s = 0;
+            for (int k = 0; k < K; ++k) s += arow[i][k] * B[k * ldb + j];
+            C[i * ldc + j] += s;
+        }
 }
 
 // tile[c, rr, cc] = x[c0 + c, u0 + rr - pt, cc - pl] for c < nc, rr < nrr, cc < Wp, 0 outside x:
