@@ -35,13 +35,15 @@ Each variant is validated before it is timed: pyvf against the bound the tests s
 (tests/test_attention.py, test_layers.py, test_conv.py; BOUNDS below), torch and NumPy against
 SANITY (they compute the same function: a wrong mask or layout is an O(1) error). A variant
 outside its bound is not timed; the table says FAIL and the command exits with status 1.
-Time: the median of --repeat calls after a warm-up, on --threads threads (pyvf and torch).
+Time: the median of --repeat calls after a warm-up, on --threads threads (pyvf and torch); an op's
+variants are timed in interleaved rounds (time_variants).
 """
 
 import argparse
 import math
 import os
 import platform
+import statistics
 import sys
 import time
 
@@ -556,8 +558,9 @@ def errors(op, outs, ref, dtype):
     return out
 
 
-def run_variant(op, x, ref, v, repeat, exact_indices=None):
-    """Validate, then time, one variant: the dict that goes into the report."""
+def run_variant(op, x, ref, v, exact_indices=None):
+    """Validate one variant: (the dict that goes into the report, its function, or None where it
+    failed and is not timed)."""
     r = {k: v[k] for k in ("name", "backend", "dtype", "path", "bound")}
     fn = variant_fn(op, x, v)
     with pyvf.use_kernel_path(v["path"] or pyvf.kernel_path()):  # torch and NumPy: path None
@@ -579,9 +582,32 @@ def run_variant(op, x, ref, v, repeat, exact_indices=None):
                 problems.append(f"{r['wrong_codes']} rows with a wrong code")
         if problems:
             r["fail"] = "; ".join(problems)
-            return r
-        r["seconds"], r["times"] = median_time(fn, repeat, warmup=1)
-    return r
+            return r, None
+    return r, fn
+
+
+def time_variants(timed, repeat):
+    """Time the validated variants [(report dict, fn, kernel path)]: pyvf's in interleaved rounds
+    (round i calls each once, in order), so that a transient (NumPy's BLAS threads spinning on the
+    cores after the float64 reference) falls on each alike: timed one after another, the first of
+    an op's variants took it all (the avx512 conv2d measured slower than avx2, 7.1 vs 6.1 ms, though
+    30% faster alone). torch's and NumPy's one after another, after pyvf's: interleaved with pyvf's
+    calls, torch's OpenMP threads and pyvf's (another runtime) would spin on each other's cores.
+    Sets each dict's seconds (median) and times."""
+    ours = [t for t in timed if t[0]["backend"] == "pyvf"]
+    times = [[] for _ in ours]
+    for _ in range(1 + repeat):  # the first round is the warm-up
+        for i, (r, fn, path) in enumerate(ours):
+            with pyvf.use_kernel_path(path):
+                t0 = time.perf_counter()
+                fn()
+                times[i].append(time.perf_counter() - t0)
+    for (r, _, _), t in zip(ours, times):
+        r["times"] = t[1:]
+        r["seconds"] = statistics.median(r["times"])
+    for r, fn, path in [t for t in timed if t[0]["backend"] != "pyvf"]:
+        with pyvf.use_kernel_path(path):
+            r["seconds"], r["times"] = median_time(fn, repeat, warmup=1)
 
 
 def run_op(name, size="full", repeat=5, with_torch=True, plant_bug=False, seed=0, log=print):
@@ -593,9 +619,14 @@ def run_op(name, size="full", repeat=5, with_torch=True, plant_bug=False, seed=0
     res = dict(op=name, title=op.title, outputs=list(op.outputs), size=op.size, elementwise=op.elementwise,
                reference_seconds=time.perf_counter() - t0, variants=[])
     exact = op.exact_indices(x) if isinstance(op, VQNearest) else None
+    timed = []
     for v in variants(op, with_torch, plant_bug):
-        r = run_variant(op, x, ref, v, repeat, exact)
+        r, fn = run_variant(op, x, ref, v, exact)
         res["variants"].append(r)
+        if fn is not None:
+            timed.append((r, fn, v["path"] or pyvf.kernel_path()))
+    time_variants(timed, repeat)
+    for r in res["variants"]:
         log(f"  {name:<19} {r['name']:<28} err {r['rel']:.2e}  "
             + (f"FAIL: {r['fail']}" if "fail" in r else f"{r['seconds'] * 1e3:.2f} ms"), flush=True)
     torch_err = next((r["rel"] for r in res["variants"] if r["backend"] == "torch"), None)
