@@ -236,14 +236,16 @@ inline void tab_rows(int N, int K, const T* A, long lda, const T* B, const int64
 // Register tile: MR rows of A times 2 vectors. AVX-512: 12 rows, 24 accumulators of its 32
 // registers (8 rows made the 3x3 convs' forward 7-9% slower on the codebook's shapes: one load of B
 // served fewer FMAs); AVX2's 16 registers hold 6 rows, SSE2/NEON 4. The rows past the last whole
-// tile: one 8-row tile (AVX-512), then one of M % MR % 8 rows. A row's sums are the same in any tile.
+// tile: 8-row tiles (AVX-512), then one of the rest. A row's sums are the same in any tile.
 template <typename T>
 void tab_gemm(int M, int N, int K, const T* A, long lda, const T* B, const int64_t* boff, T* C, long ldc) {
     constexpr int MR = kVecBytes >= 64 ? 12 : kVecBytes == 32 ? 6 : 4;
+    // AVX-512: M % 12 == 4 (Co = 64, 256) as two 8-row tiles in place of a 12 and a 4
+    const int full = MR > 8 && M % MR == 4 && M >= MR ? M - MR - 4 : M - M % MR;
     int i = 0;
-    for (; i + MR <= M; i += MR) tab_rows<T, MR>(N, K, A + i * lda, lda, B, boff, C + i * ldc, ldc);
+    for (; i < full; i += MR) tab_rows<T, MR>(N, K, A + i * lda, lda, B, boff, C + i * ldc, ldc);
     if constexpr (MR > 8)
-        if (i + 8 <= M) {
+        while (i + 8 <= M) {
             tab_rows<T, 8>(N, K, A + i * lda, lda, B, boff, C + i * ldc, ldc);
             i += 8;
         }

@@ -647,6 +647,9 @@ KERNEL_CASES = [
     (2, 9, 35, (9, 35), (3, 3), 2, DOWN),  # the Downsample: im2col tiles
     (2, 9, 35, (7, 37), (1, 1), 1, 0),  # 1x1 below 32x32 pixels: x read in place
     (1, 5, 35, (32, 33), (1, 1), 1, 0),  # 1x1 from 32x32 pixels on: the lane sums again
+    # AVX-512's 12-row tiles of the stride-1 products: Co = 28 = 12 + 8 + 8 (M % 12 == 4 as two
+    # 8-row tiles), and the dx's 16 rows = 8 + 8
+    (2, 16, 28, (6, 35), (3, 3), 1, 1),
 ]
 
 
