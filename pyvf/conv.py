@@ -143,12 +143,12 @@ def _conv_args(x, w, b, stride, padding):
 
 def _reads_every_x(x, w, stride, pad):
     """Whether conv2d's windows read every element of x: along each axis the windows leave no gap
-    (kernel >= stride) and the last one reaches the last row / column; and the batch is not empty."""
+    (kernel >= stride) and the last one reaches the last row / column; and y is not empty."""
     B, _, Hi, Wi = x.shape
-    _, _, kh, kw = w.shape
+    Co, _, kh, kw = w.shape
     pt, pb, pl, pr = pad
     Ho, Wo = (Hi + pt + pb - kh) // stride + 1, (Wi + pl + pr - kw) // stride + 1
-    return (B > 0 and kh >= stride and kw >= stride and (Ho - 1) * stride - pt + kh >= Hi
+    return (B > 0 and Co > 0 and kh >= stride and kw >= stride and (Ho - 1) * stride - pt + kh >= Hi
             and (Wo - 1) * stride - pl + kw >= Wi)
 
 

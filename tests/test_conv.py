@@ -1029,6 +1029,7 @@ def test_groupnorm_names_the_input_that_holds_nan_or_inf(swish, dtype, bad, rng)
     ((1, 2, 4, 4), (3, 2, 1, 1), 2, 0, (0, 1, 1, 1)),  # a stride past the kernel skips odd pixels
     ((1, 2, 6, 6), (3, 2, 3, 3), 2, 0, (0, 0, 5, 2)),  # the last window ends before the last row
     ((0, 2, 4, 4), (3, 2, 3, 3), 1, 1, None),          # an empty batch reads no w
+    ((1, 2, 4, 4), (0, 2, 3, 3), 1, 1, (0, 1, 2, 3)),  # no output channels read no x
 ])
 def test_conv_scans_inputs_first_where_some_are_not_read(xs, ws, stride, padding, where, rng):
     """Where no output reads an element of x (or any of w, b), its NaN could not show in y: those
@@ -1041,7 +1042,7 @@ def test_conv_scans_inputs_first_where_some_are_not_read(xs, ws, stride, padding
         w[0, 0, 0, 0] = np.nan
     with pytest.raises(ValueError, match=f"^{name} contains NaN or inf"):
         conv.conv2d_forward(x, w, b, stride, padding)
-    if where:  # the kernel alone would not have seen it
+    if where and ws[0] > 0:  # the kernel alone would not have seen it (y unchanged by it)
         x[where] = 0.0
         y_clean = conv.conv2d_forward(x, w, b, stride, padding)[0]
         x[where] = 1e30
