@@ -53,7 +53,7 @@ constexpr int WD = Simd<double>::W;
 
 // sum over i < n of the double values of elements i in double: WD lanes, 4 accumulators, lanes and
 // accumulators added in a fixed order. fv(i, v) writes the values of elements i .. i + 4*WD into
-// the 4 double vectors v (through widen: whole T vectors, no lane-by-lane inserts); f(i) is
+// the 4 double vectors v (widen_to_double: whole T vectors, no lane-by-lane inserts); f(i) is
 // element i's, for the last n % (4*WD).
 template <typename FV, typename F> inline double dsum(int64_t n, FV fv, F f) {
     VD a0 = {}, a1 = {}, a2 = {}, a3 = {};
@@ -94,7 +94,7 @@ template <typename T, typename G, typename H> inline auto widened_product(G g, H
 }
 
 // Whether any lane of a is below lo: one vector compare (a loop over lanes compiled to a scalar
-// compare per lane, a third of the time of a GroupNorm + swish).
+// compare per lane).
 template <typename T> inline bool any_below(V<T> a, T lo) {
     if constexpr (sizeof(T) == sizeof(float)) {
         return any_lane(a < lo);
@@ -106,14 +106,20 @@ template <typename T> inline bool any_below(V<T> a, T lo) {
     }
 }
 
-// (sigmoid(x), sigmoid(-x)) of a vector, as the header says.
-template <typename T> inline void sigmoids(V<T> x, V<T>& s, V<T>& sn) {
+// z = exp(-|x|) in (0, 1] of a vector, as the header says.
+template <typename T> inline V<T> exp_neg_abs(V<T> x) {
     constexpr int W = Simd<T>::W;
     const V<T> a = x < T(0) ? x : -x;  // -|x| <= 0 (x = -0.0 gives +0.0 or -0.0: e^0 = 1 either way)
     V<T> z = exp_vec(a);
     if (any_below(a, ExpConst<T>::lo))  // e^a below the smallest normal: exp_vec returns 0, std::exp the subnormal
         for (int l = 0; l < W; ++l)
             if (a[l] < ExpConst<T>::lo) z[l] = std::exp(a[l]);
+    return z;
+}
+
+// (sigmoid(x), sigmoid(-x)) of a vector, as the header says.
+template <typename T> inline void sigmoids(V<T> x, V<T>& s, V<T>& sn) {
+    const V<T> z = exp_neg_abs<T>(x);
     const V<T> one_z = T(1) + z;
     const V<T> sp = T(1) / one_z, sm = z / one_z;  // sigmoid(|x|), sigmoid(-|x|)
     s = x >= T(0) ? sp : sm;
@@ -123,12 +129,7 @@ template <typename T> inline void sigmoids(V<T> x, V<T>& s, V<T>& sn) {
 // x * sigmoid(x) with the one division sigmoids' s needs: (x >= 0 ? 1 : z) / (1 + z), the same
 // quotient lane by lane as sigmoids' (which divides twice and picks).
 template <typename T> inline V<T> swish_vec(V<T> x) {
-    constexpr int W = Simd<T>::W;
-    const V<T> a = x < T(0) ? x : -x;
-    V<T> z = exp_vec(a);
-    if (any_below(a, ExpConst<T>::lo))
-        for (int l = 0; l < W; ++l)
-            if (a[l] < ExpConst<T>::lo) z[l] = std::exp(a[l]);
+    const V<T> z = exp_neg_abs<T>(x);
     const V<T> one = vset1<T>(T(1));
     return x * ((x >= T(0) ? one : z) / (T(1) + z));
 }
