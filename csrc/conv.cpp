@@ -674,13 +674,9 @@ template <typename T> void db_sum(T* db, const T* dy, const ConvDims& d, int64_t
         const T* r = dy + (bi * d.Co + o) * P;
         int64_t p = 0;
         for (; p + 2 * WD <= P; p += 2 * WD) {  // elements p .. p + WD into a0, the next WD into a1
+            constexpr int per = Simd<T>::W / WD;    // double vectors per T vector: 2 (float) or 1
             VD v[2];
-            if constexpr (sizeof(T) == sizeof(double)) {
-                v[0] = vload<T>(r + p);
-                v[1] = vload<T>(r + p + WD);
-            } else {
-                widen_to_double<T>(vload<T>(r + p), v);  // a float vector is 2 * WD elements
-            }
+            for (int q = 0; q < 2 / per; ++q) widen_to_double<T>(vload<T>(r + p + q * Simd<T>::W), v + q * per);
             a0 += v[0];
             a1 += v[1];
         }
