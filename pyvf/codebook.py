@@ -537,11 +537,13 @@ class Codebook:
             raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}")
         _checks.finite("images", images)
 
-    def encode(self, images):
-        """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64."""
+    def encode(self, images, *, return_latent=False):
+        """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64; with
+        return_latent=True, (z, codes): also the encoder's unquantized output z (B, D, k, k)."""
         self._check_images(images)
-        out, _ = self.quantizer.forward(self._encoder(None, images), train=False)
-        return out.codes
+        z = self._encoder(None, images)  # (B, D, k, k)
+        out, _ = self.quantizer.forward(z, train=False)
+        return (z, out.codes) if return_latent else out.codes
 
     def decode_code(self, codes):
         """codes (B, k, k) ints in [0, n_embed) -> images (B, out_ch, S, S)."""
@@ -556,9 +558,13 @@ class Codebook:
         e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
         return self._decoder(None, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
-    def forward(self, images, train=False, *, trace=False):
+    def forward(self, images, train=False, *, trace=False, pixel_weights=None):
         """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers
         (the output uses the codes from before the update). Keeps what backward() needs.
+
+        pixel_weights: None (rec_loss = mean |rec - x|, as published), or non-negative weights
+        (B, 1, S, S) of the model's dtype, not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x|
+        / (in_channels * sum w), the weighted mean (equal weights give the plain mean).
 
         trace=True also returns, as `out.trace`, every intermediate activation by name
         (trace_names(config), in execution order; read-only views of what the forward keeps
@@ -567,6 +573,14 @@ class Codebook:
         if not isinstance(trace, (bool, np.bool_)):
             raise TypeError(f"trace must be True or False, got {trace!r}")
         self._check_images(images)
+        if pixel_weights is not None:
+            _checks.float_array("pixel_weights", pixel_weights, images, "images")
+            B, _, S, _ = images.shape
+            if pixel_weights.shape != (B, 1, S, S):
+                raise ValueError(f"pixel_weights must have shape {(B, 1, S, S)}, got {pixel_weights.shape}")
+            _checks.finite("pixel_weights", pixel_weights)
+            if (pixel_weights < 0).any() or not pixel_weights.any():
+                raise ValueError("pixel_weights must be non-negative and not all zero")
         enc, dec = [], []
         tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
         saved = {k: v.copy() for k, v in self.quantizer.state_dict().items()} if train else None
@@ -584,7 +598,13 @@ class Codebook:
         finally:
             self._trace = None
         diff = rec - images
-        rec_loss = float(np.mean(np.abs(diff)))
+        if pixel_weights is None:
+            rec_loss = float(np.mean(np.abs(diff)))
+            drec_loss = np.sign(diff) / diff.size  # (B, C, S, S)
+        else:  # sum w |diff| / (C sum w): the mean over channels of each pixel's weighted mean
+            wsum = float(pixel_weights.sum(dtype=np.float64)) * diff.shape[1]
+            rec_loss = float(np.sum(pixel_weights * np.abs(diff), dtype=np.float64) / wsum)
+            drec_loss = np.sign(diff) * (pixel_weights / self.dtype.type(wsum))  # (B, C, S, S)
         loss = rec_loss + self.config.codebook_weight * q.commitment_loss
         perceptual, c_p = None, None
         if self.perceptual is not None:
@@ -601,7 +621,7 @@ class Codebook:
                 if isinstance(a, np.ndarray):
                     tr[name] = a.view()
                     tr[name].flags.writeable = False
-        self._cache = (enc, dec, c_q, np.sign(diff) / diff.size, c_p, images.shape[0], rec.shape, trace)
+        self._cache = (enc, dec, c_q, drec_loss, c_p, images.shape[0], rec.shape, trace)
         return CodebookOutput(reconstruction=rec, codes=q.codes, rec_loss=rec_loss, commitment_loss=q.commitment_loss,
                               loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual, trace=tr)
 
@@ -628,7 +648,7 @@ class Codebook:
         dcommitment = 0.0
         if dloss is not None:
             dloss = _checks.real("dloss", dloss)
-            # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel
+            # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
             total = (dloss * drec_loss).astype(self.dtype)
             if c_p is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
                 dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)

@@ -4,6 +4,7 @@ A run folder holds
 
     checkpoint.npz   the last checkpoint (atomic): model state, optimiser state, step, config
     log.csv          one row per logged step; rows past the checkpoint are dropped on resume
+    eval.csv         with held-out evaluation (eval_columns): one row per evaluation, likewise
     config.json      the run's configuration, hyperparameters, and each call's command line (atomic)
     <final>.npz      the trained model, loadable by Codebook.load / Transformer.load (atomic)
 
@@ -35,7 +36,7 @@ from .. import _checks
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
 from ..measure import cpu_name
 
-CHECKPOINT, LOG, CONFIG = "checkpoint.npz", "log.csv", "config.json"
+CHECKPOINT, LOG, CONFIG, EVAL_LOG = "checkpoint.npz", "log.csv", "config.json", "eval.csv"
 FORMAT_VERSION = 1
 
 
@@ -146,7 +147,7 @@ class Run:
     """
 
     def __init__(self, out_dir, kind, config, hyper, columns, *, final, steps, resume, progress,
-                 checkpoint_every, log_every, call=None):
+                 checkpoint_every, log_every, call=None, eval_columns=None):
         self.steps_total = positive_int("steps", steps)
         self.checkpoint_every = positive_int("checkpoint_every", checkpoint_every)
         self.log_every = positive_int("log_every", log_every)
@@ -157,9 +158,11 @@ class Run:
         os.makedirs(self.out_dir, exist_ok=True)
         self.ckpt_path = os.path.join(self.out_dir, CHECKPOINT)
         self.log_path = os.path.join(self.out_dir, LOG)
+        self.eval_path = os.path.join(self.out_dir, EVAL_LOG)
+        self.eval_columns = None if eval_columns is None else ["step", *eval_columns, "seconds"]
         self.config_path = os.path.join(self.out_dir, CONFIG)
         self.final_path = os.path.join(self.out_dir, final)
-        for path in (self.ckpt_path, self.log_path, self.config_path, self.final_path):
+        for path in (self.ckpt_path, self.log_path, self.config_path, self.final_path, self.eval_path):
             remove_stale_temps(path)  # left by a process killed mid-write
 
         self.start, self.elapsed0 = 0, 0.0
@@ -185,7 +188,11 @@ class Run:
                 if os.path.exists(path):
                     os.remove(path)
         self._write_config(call)
-        self._truncate_log()
+        self._truncate_log(self.log_path, self.columns)
+        if self.eval_columns is not None:
+            self._truncate_log(self.eval_path, self.eval_columns)
+        elif os.path.exists(self.eval_path) and not self.resumed:
+            os.remove(self.eval_path)  # an older run's evaluations
         self._log_file = self._bar = None
         self._t0 = time.perf_counter()
 
@@ -218,18 +225,18 @@ class Run:
     # -----------------------------------------------------------------------------------
     # the log
 
-    def _truncate_log(self):
+    def _truncate_log(self, path, columns):
         """Keep the header and the rows up to the checkpoint's step (none on a fresh start);
         a torn last line (a process killed mid-write) is dropped with the rows past it."""
         kept = []
-        if self.resumed and os.path.exists(self.log_path):
-            with open(self.log_path, newline="", encoding="utf-8") as f:
+        if self.resumed and os.path.exists(path):
+            with open(path, newline="", encoding="utf-8") as f:
                 rows = list(csv.reader(f))
-            if rows and rows[0] != self.columns:
-                raise CheckpointError(f"log {self.log_path} has the columns {rows[0]}, expected {self.columns}: "
+            if rows and rows[0] != columns:
+                raise CheckpointError(f"log {path} has the columns {rows[0]}, expected {columns}: "
                                       "not this run's log")
             for row in rows[1:]:
-                if len(row) != len(self.columns):
+                if len(row) != len(columns):
                     break  # torn
                 try:
                     step = int(row[0])
@@ -240,9 +247,9 @@ class Run:
                 kept.append(row)
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
-        w.writerow(self.columns)
+        w.writerow(columns)
         w.writerows(kept)
-        atomic_write_text(self.log_path, buf.getvalue())
+        atomic_write_text(path, buf.getvalue())
 
     def seconds(self):
         return self.elapsed0 + (time.perf_counter() - self._t0)
@@ -258,6 +265,18 @@ class Run:
         row = [str(step)] + [repr(float(values[c])) for c in self.columns[1:-1]] + [f"{self.seconds():.3f}"]
         csv.writer(self._log_file, lineterminator="\n").writerow(row)
         self._log_file.flush()
+
+    def eval_due(self, step, every):
+        """Whether to evaluate after `step`: every `every` steps (0: never), at the last step, and
+        before the first step of a fresh run (step 0)."""
+        return bool(every) and (step % every == 0 or step == self.steps_total)
+
+    def log_eval(self, step, values):
+        """Append one row of held-out figures to eval.csv (values: column -> float). The row
+        reads only the model: evaluation never changes the training trajectory."""
+        row = [str(step)] + [repr(float(values[c])) for c in self.eval_columns[1:-1]] + [f"{self.seconds():.3f}"]
+        with open(self.eval_path, "a", newline="", encoding="utf-8") as f:
+            csv.writer(f, lineterminator="\n").writerow(row)
 
     # -----------------------------------------------------------------------------------
     # the loop

@@ -19,6 +19,7 @@ import zipfile
 from ..codebook import Codebook, CodebookConfig
 from ..transformer import TransformerConfig
 from .loops import (
+    CODEBOOK_RECIPES,
     TINY_CODEBOOK,
     _Threads,
     TINY_TRANSFORMER,
@@ -74,15 +75,37 @@ def _guarded(name, work):
     return 0
 
 
+EVAL_VIEWS = 4  # views per held-out scene in a training run's evaluation
+
+
+def _held_out_views(args, data, size):
+    """The held-out views a run evaluates on every --eval-every steps: the first EVAL_VIEWS views
+    of --eval-scenes scenes of --eval-seed, (scenes * EVAL_VIEWS, size, size, 3) uint8; None
+    when --eval-every is 0. The seed must differ from the training data's."""
+    if not args.eval_every:
+        return None
+    if args.eval_scenes < 1:
+        raise ValueError(f"--eval-scenes must be a positive integer, got {args.eval_scenes}")
+    if getattr(data, "seed", None) == args.eval_seed:
+        raise ValueError(f"--eval-seed {args.eval_seed} is the training data's seed: held-out scenes need "
+                         "another seed")
+    from ..scenes import generate_scenes
+    images, _ = generate_scenes(args.eval_seed, args.eval_scenes, views=EVAL_VIEWS, size=size)
+    return images.reshape(-1, size, size, images.shape[-1])
+
+
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
     def work():
         config = _config(args.config, CodebookConfig, TINY_CODEBOOK)
         data = _load_dataset(args.data)
-        train_codebook(data.images, config, args.out, steps=args.steps, batch_size=args.batch, lr=args.lr,
-                       seed=args.seed, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+        held_out = _held_out_views(args, data, config.image_size)
+        train_codebook(data.images, config, args.out, steps=args.steps, batch_size=args.batch, recipe=args.recipe,
+                       lr=args.lr, betas=args.betas, reset_dead_codes=args.reset_dead_codes,
+                       object_weight=args.object_weight, seed=args.seed, checkpoint_every=args.checkpoint_every,
+                       log_every=args.log_every, eval_images=held_out, eval_every=args.eval_every,
                        resume=not args.no_resume, progress=not args.no_progress, threads=args.threads,
-                       command=_record(args), reset_dead_codes=args.reset_dead_codes)
+                       command=_record(args))
         print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
     return _guarded("train-codebook", work)
 
@@ -140,16 +163,34 @@ def _run_options(p, batch, checkpoint_every):
     p.add_argument("--threads", type=int, default=None, help="threads for pyvf's C++ kernels")
 
 
+def _eval_options(p):
+    p.add_argument("--eval-every", type=int, default=100,
+                   help="steps between evaluations on held-out scenes, logged to eval.csv (default 100; 0: none)")
+    p.add_argument("--eval-scenes", type=int, default=32,
+                   help=f"held-out scenes evaluated, {EVAL_VIEWS} views each (default 32)")
+    p.add_argument("--eval-seed", type=int, default=1,
+                   help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000)")
+
+
 def cli_register(subparsers):
     """Add train-codebook, tokenize and train-transformer to an argparse subparsers object."""
     p = subparsers.add_parser("train-codebook", help="train the codebook (VQ-VAE) on a dataset; resumable",
                               description=cmd_train_codebook.__doc__)
     p.add_argument("--data", required=True, help="dataset folder (pyvf.scenes.load_dataset)")
     _run_options(p, batch=16, checkpoint_every=200)
-    p.add_argument("--lr", type=float, default=1.584e-3, help="Adam learning rate (default 1.584e-3, published)")
-    p.add_argument("--reset-dead-codes", type=int, default=0, metavar="EVERY",
-                   help="every EVERY steps move unused codes to random encoder outputs (default 0: never, "
-                        "as published; a small codebook can collapse onto a few codes without it)")
+    p.add_argument("--recipe", default="small-batch", choices=sorted(CODEBOOK_RECIPES),
+                   help="the defaults of --lr, --betas, --reset-dead-codes and --object-weight: "
+                        + "; ".join(f"{k}: {v}" for k, v in CODEBOOK_RECIPES.items())
+                        + " (default small-batch; published is the published code's, for exactness work)")
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: the recipe's)")
+    p.add_argument("--betas", type=float, nargs=2, default=None, metavar=("B1", "B2"),
+                   help="Adam's betas (default: the recipe's)")
+    p.add_argument("--reset-dead-codes", type=int, default=None, metavar="EVERY",
+                   help="every EVERY steps move unused codes to random encoder outputs (0: never, as "
+                        "published; default: the recipe's)")
+    p.add_argument("--object-weight", type=float, default=None,
+                   help="loss weight of object pixels against 1 for the background (default: the recipe's)")
+    _eval_options(p)
     p.set_defaults(func=cmd_train_codebook)
 
     p = subparsers.add_parser("tokenize", help="encode a dataset into token images with a codebook",

@@ -43,14 +43,14 @@ def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode
     return out.loss, norm
 
 
-def codebook_train_step(codebook, optimizer, images):
+def codebook_train_step(codebook, optimizer, images, pixel_weights=None):
     """One codebook step: forward with the EMA update (train=True), backward, optimiser step.
 
     The published codebook trains with Adam, lr 1.584e-3, betas (0.5, 0.9):
     `optimizer = Adam(codebook.params, 1.584e-3, betas=(0.5, 0.9))`. The quantizer's codes are
-    not parameters: the EMA moves them. Returns the CodebookOutput of the step (before it)."""
+    not parameters: the EMA moves them. pixel_weights: Codebook.forward's. Returns the CodebookOutput of the step (before it)."""
     if optimizer.params is not codebook.params:
         raise ValueError("optimizer must be built on codebook.params (Adam(codebook.params, ...))")
-    out = codebook.forward(images, train=True)
+    out = codebook.forward(images, train=True, pixel_weights=pixel_weights)
     optimizer.step(codebook.backward())
     return out

@@ -1,0 +1,106 @@
+"""Health figures of a model in training: what a loss curve does not show.
+
+    h = codebook_health(codebook, images)   # images uint8 (M, Hi, Wi, 3): held-out views
+    # {"mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_rank", "colour_r2"}
+    effective_rank(z)                       # z (N, D) -> exp(entropy of the normalised singular values)
+    object_mask(images)                     # uint8 (..., Hi, Wi, 3) -> bool (..., Hi, Wi)
+    colour_r2(pred, target, mask)           # the share of the object pixels' chroma variance kept
+
+Why these: a codebook whose latent collapses can keep a falling reconstruction loss, a healthy
+perplexity and most of its codes in use while it loses the colours of the objects (measured on
+SM7: the decoder drew every object red or cyan). The latent's effective rank and the colour
+figure show such a collapse in the first minutes of a run.
+
+* effective rank (Roy and Vetterli, 2007): the singular values s_i of the centred latent
+  vectors, p_i = s_i / sum(s), rank = exp(-sum p_i log p_i). 1 for a rank-1 latent, D for D
+  equal singular values; in between it counts the directions the latent really uses.
+* colour_r2: the chroma of a pixel is its two opponent-colour coordinates on 0..255,
+  (R - G, (R + G) / 2 - B). Over the object pixels of the targets (object_mask),
+  colour_r2 = 1 - sum |c_pred - c_true|^2 / sum |c_true - mean c_true|^2: 1 when every object
+  pixel keeps its colour, about 0 for a prediction that draws every object grey or one colour,
+  negative for colours moved elsewhere (red drawn as cyan, say). Brightness does not enter it.
+"""
+
+import numpy as np
+
+from .metrics import image_metrics, to_model_images, to_uint8
+
+__all__ = ["effective_rank", "object_mask", "chroma", "colour_r2", "codebook_health", "CODEBOOK_HEALTH"]
+
+CODEBOOK_HEALTH = ["mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_rank", "colour_r2"]
+
+
+def effective_rank(z):
+    """z (N, D) float -> float in [1, min(N, D)]: exp of the entropy of the normalised singular
+    values of z minus its mean row. A constant z (no variance) has rank 0 by convention."""
+    if not isinstance(z, np.ndarray) or z.dtype.kind != "f" or z.ndim != 2 or z.shape[0] < 2:
+        raise ValueError(f"z must be a float (N >= 2, D) numpy array, got "
+                         f"{getattr(z, 'dtype', type(z).__name__)} {getattr(z, 'shape', '')}")
+    zc = z.astype(np.float64) - z.astype(np.float64).mean(axis=0)  # (N, D)
+    s = np.linalg.svd(zc, compute_uv=False)  # (min(N, D),)
+    total = s.sum()
+    if not total > 0:
+        return 0.0
+    p = s[s > 0] / total
+    return float(np.exp(-(p * np.log(p)).sum()))
+
+
+def object_mask(images):
+    """uint8 (..., Hi, Wi, 3) -> bool (..., Hi, Wi): the pixels whose colour differs from the
+    image's background, taken as the colour of its top-left pixel (SM7's backgrounds are one
+    flat colour and objects never reach the corner)."""
+    if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim < 3 or images.shape[-1] != 3:
+        raise TypeError(f"images must be uint8 (..., Hi, Wi, 3), got "
+                        f"{getattr(images, 'dtype', type(images).__name__)} {getattr(images, 'shape', '')}")
+    corner = images[..., :1, :1, :]  # (..., 1, 1, 3)
+    return np.any(images != corner, axis=-1)
+
+
+def chroma(images):
+    """uint8 or float (..., 3) RGB on 0..255 -> float64 (..., 2): (R - G, (R + G) / 2 - B)."""
+    x = np.asarray(images, dtype=np.float64)
+    r, g, b = x[..., 0], x[..., 1], x[..., 2]
+    return np.stack([r - g, 0.5 * (r + g) - b], axis=-1)
+
+
+def colour_r2(pred, target, mask):
+    """pred, target uint8 (..., Hi, Wi, 3) of one shape, mask bool (..., Hi, Wi) -> float: the
+    share of the chroma variance of target's masked pixels that pred keeps (module docstring);
+    nan when the mask is empty or those pixels all have one chroma."""
+    if pred.shape != target.shape or mask.shape != target.shape[:-1]:
+        raise ValueError(f"pred {pred.shape}, target {target.shape} and mask {mask.shape} do not match")
+    ct, cp = chroma(target[mask]), chroma(pred[mask])  # (n, 2)
+    if ct.shape[0] == 0:
+        return float("nan")
+    spread = ((ct - ct.mean(axis=0)) ** 2).sum()
+    if not spread > 0:
+        return float("nan")
+    return float(1.0 - ((cp - ct) ** 2).sum() / spread)
+
+
+def codebook_health(codebook, images, batch=64):
+    """A codebook's health on held-out views: uint8 images (M, Hi, Wi, 3) -> dict of floats,
+    CODEBOOK_HEALTH's keys: reconstruction mae, rmse, psnr (through the codes, on the saved
+    picture's 0..255 scale, the mean over images; evaluate.metrics), codes_in_use (distinct
+    codes the images chose), perplexity (exp of the entropy of their frequencies), latent_rank
+    (effective_rank of the encoder's unquantized output vectors), colour_r2 (of object pixels).
+    Runs the model for inference only: no EMA buffer, cache or random state is touched."""
+    if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim != 4 or images.shape[0] < 1:
+        raise ValueError(f"images must be uint8 (M >= 1, Hi, Wi, 3), got "
+                         f"{getattr(images, 'dtype', type(images).__name__)} {getattr(images, 'shape', '')}")
+    rec = np.empty_like(images)  # (M, Hi, Wi, 3)
+    zs, codes = [], []
+    for i in range(0, images.shape[0], batch):
+        x = to_model_images(images[i:i + batch], codebook.dtype)  # (b, C, Hi, Wi)
+        z, c = codebook.encode(x, return_latent=True)  # (b, D, k, k), (b, k, k)
+        rec[i:i + batch] = to_uint8(codebook.decode_code(c))
+        zs.append(z.transpose(0, 2, 3, 1).reshape(-1, z.shape[1]))  # (b k k, D)
+        codes.append(c.ravel())
+    m = image_metrics(rec, images)
+    codes = np.concatenate(codes)
+    freq = np.bincount(codes, minlength=codebook.config.n_embed) / codes.size  # (K,)
+    p = freq[freq > 0]
+    return {"mae": float(m["mae"].mean()), "rmse": float(m["rmse"].mean()), "psnr": float(m["psnr"].mean()),
+            "codes_in_use": float(p.size), "perplexity": float(np.exp(-(p * np.log(p)).sum())),
+            "latent_rank": effective_rank(np.concatenate(zs)),
+            "colour_r2": colour_r2(rec, images, object_mask(images))}
