@@ -119,3 +119,42 @@ def test_pixel_weights_equal_repeated_images(rng):
                      (-w, "non-negative"), (0 * w, "not all zero")):
         with pytest.raises((TypeError, ValueError), match=msg):
             cb.forward(x, pixel_weights=bad)
+
+
+def test_token_scores_against_torch(rng):
+    """Held-out cross-entropy and token accuracy against torch's cross_entropy (float64)."""
+    torch = pytest.importorskip("torch")
+    from pyvf.evaluate.run import _token_scores
+
+    logits = (rng.standard_normal((2, 3, 5, 7)) * 30).astype(np.float32)  # large: log-sum-exp must be stable
+    tokens = rng.integers(0, 7, (2, 3, 5))
+    got = _token_scores(logits, tokens)
+    t = torch.from_numpy(logits.astype(np.float64)).reshape(-1, 7)
+    ce = torch.nn.functional.cross_entropy(t, torch.from_numpy(tokens).reshape(-1), reduction="none")
+    np.testing.assert_allclose(got["ce"].ravel(), ce.reshape(6, 5).mean(1).numpy(), rtol=1e-12)
+    acc = (t.argmax(1).reshape(6, 5) == torch.from_numpy(tokens).reshape(6, 5)).double().mean(1).numpy()
+    np.testing.assert_array_equal(got["token_accuracy"].ravel(), acc)
+
+
+def test_transformer_health_is_evaluate_on_the_same_scenes():
+    """transformer_health's columns are pyvf evaluate's numbers for the same scenes, method by
+    method (the shipped models; a column wired to the wrong method or context fails)."""
+    from pyvf.evaluate.health import transformer_health
+    from pyvf.evaluate.run import evaluate
+    from pyvf.models import load_pretrained
+    from pyvf.scenes import generate_scenes
+
+    cb, tf = load_pretrained()
+    images, poses = generate_scenes(7, 3, size=cb.config.image_size)
+    tokens = np.stack([cb.encode(to_model_images(v, np.float32)).reshape(15, -1) for v in images])
+    h = transformer_health(cb, tf, images, poses, tokens, (1, 3, 5), batch=2)
+    m = evaluate(cb, tf, scenes=3, context=(1, 3, 5), seed=7, batch=2, progress=False, timing_scenes=1, repeat=1)
+    names = {"mae": ("pyvf", "mae"), "nearest_view_mae": ("nearest_view", "mae"),
+             "mean_image_rmse": ("mean_image", "rmse"), "position": ("pyvf", "position_error_median"),
+             "orientation": ("pyvf", "orientation_error_median_deg"),
+             "closest_image_orientation": ("closest_image_pose", "orientation_error_median_deg"),
+             "mean_pose_position": ("mean_pose", "position_error_median")}
+    for C in (1, 3, 5):
+        for stem, (method, metric) in names.items():
+            assert h[f"{stem}_c{C}"] == m["context"][str(C)][method][metric], (stem, C)
+        assert 0 <= h[f"token_accuracy_c{C}"] <= 1 and h[f"ce_c{C}"] > 0

@@ -439,3 +439,28 @@ def test_recipes_and_their_errors(tmp_path, rng):
                     (dict(object_weight=-1), "object_weight")):
         with pytest.raises(ValueError, match=msg):
             train_codebook(images, CB, str(tmp_path / "bad"), steps=1, batch_size=2, **kw, **QUIET)
+
+
+def test_transformer_evaluation_leaves_the_run_bit_identical(tmp_path, rng):
+    """train_transformer with a held-out eval_set ends with the checkpoint, model and log of a run
+    without one; eval.csv holds one row per evaluation with every health column finite."""
+    from pyvf.evaluate.health import transformer_health, transformer_health_columns
+
+    cb = Codebook(dataclasses.replace(CB, image_size=4, ch_mult=(1, 1), n_embed=16), seed=0)  # 4x4 -> 2x2 tokens
+    tokens, poses = _tokens(rng, scenes=2, views=3), _poses(rng, scenes=2, views=3)
+    held_images = _images(rng, scenes=2, views=7, size=4)
+    held_poses = _poses(rng, scenes=2, views=7)
+    held_tokens = tokenize(cb, held_images).reshape(2, 7, -1).astype(np.int64)
+    eval_set = {"codebook": cb, "images": held_images, "poses": held_poses, "tokens": held_tokens}
+    a, b = str(tmp_path / "plain"), str(tmp_path / "evaluated")
+    kw = dict(steps=4, batch_size=2, lr=1e-3, warmup=0, checkpoint_every=2, **QUIET)
+    train_transformer(tokens, poses, TF, a, **kw)
+    train_transformer(tokens, poses, TF, b, eval_set=eval_set, eval_every=3, **kw)
+    _assert_same_run(a, b, "transformer.npz")
+    rows = _log(b, "eval.csv")
+    assert rows[0] == ["step", *transformer_health_columns((1,))]  # TF trains context 2: only C = 1 of 1, 3, 5
+    assert [r[0] for r in rows[1:]] == ["0", "3", "4"]
+    final = Transformer.load(os.path.join(b, "transformer.npz"))
+    want = transformer_health(cb, final, held_images, held_poses, held_tokens, (1,))
+    assert [float(v) for v in rows[-1][1:]] == list(want.values())
+    assert all(np.isfinite(list(want.values())))

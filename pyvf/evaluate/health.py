@@ -1,6 +1,8 @@
 """Health figures of a model in training: what a loss curve does not show.
 
     h = codebook_health(codebook, images)   # images uint8 (M, Hi, Wi, 3): held-out views
+    h = transformer_health(codebook, transformer, images, poses, tokens, contexts=(1, 3, 5))
+    # {"ce_c1", "token_accuracy_c1", "mae_c1", "nearest_view_mae_c1", ..., "mean_pose_orientation_c5"}
     # {"mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_rank", "colour_r2"}
     effective_rank(z)                       # z (N, D) -> exp(entropy of the normalised singular values)
     object_mask(images)                     # uint8 (..., Hi, Wi, 3) -> bool (..., Hi, Wi)
@@ -25,7 +27,8 @@ import numpy as np
 
 from .metrics import image_metrics, to_model_images, to_uint8
 
-__all__ = ["effective_rank", "object_mask", "chroma", "colour_r2", "codebook_health", "CODEBOOK_HEALTH"]
+__all__ = ["effective_rank", "object_mask", "chroma", "colour_r2", "codebook_health", "CODEBOOK_HEALTH",
+           "health_contexts", "transformer_health", "transformer_health_columns"]
 
 CODEBOOK_HEALTH = ["mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_rank", "colour_r2"]
 
@@ -104,3 +107,51 @@ def codebook_health(codebook, images, batch=64):
             "codes_in_use": float(p.size), "perplexity": float(np.exp(-(p * np.log(p)).sum())),
             "latent_rank": effective_rank(np.concatenate(zs)),
             "colour_r2": colour_r2(rec, images, object_mask(images))}
+
+
+# ---------------------------------------------------------------------------------------
+# the transformer
+
+HEALTH_QUERIES = 5  # query views per held-out scene: the last ones, as pyvf evaluate
+_TF_METRICS = (  # (method, metric, column stem) for each context size
+    ("pyvf", "ce", "ce"), ("pyvf", "token_accuracy", "token_accuracy"),
+    ("pyvf", "mae", "mae"), ("pyvf", "rmse", "rmse"),
+    ("nearest_view", "mae", "nearest_view_mae"), ("mean_image", "mae", "mean_image_mae"),
+    ("nearest_view", "rmse", "nearest_view_rmse"), ("mean_image", "rmse", "mean_image_rmse"),
+    ("pyvf", "position_error_median", "position"), ("pyvf", "orientation_error_median_deg", "orientation"),
+    ("closest_image_pose", "position_error_median", "closest_image_position"),
+    ("closest_image_pose", "orientation_error_median_deg", "closest_image_orientation"),
+    ("mean_pose", "position_error_median", "mean_pose_position"),
+    ("mean_pose", "orientation_error_median_deg", "mean_pose_orientation"),
+)
+
+
+def health_contexts(transformer_config, views):
+    """The context sizes a training run is evaluated at: 1, 3 and 5 views, those the transformer
+    was trained on (sequence_size - 1) and the scenes leave HEALTH_QUERIES queries for."""
+    top = min(transformer_config.sequence_size - 1, views - HEALTH_QUERIES)
+    return tuple(c for c in (1, 3, 5) if c <= top) or ((top,) if top >= 1 else ())
+
+
+def transformer_health_columns(contexts):
+    """eval.csv's columns for these context sizes: stem_cC for each of _TF_METRICS' stems."""
+    return [f"{stem}_c{C}" for C in contexts for _, _, stem in _TF_METRICS]
+
+
+def transformer_health(codebook, transformer, images, poses, tokens, contexts, batch=8):
+    """A transformer's health on held-out scenes, with the baselines beside it.
+
+    images uint8 (n, V, S, S, 3), poses (n, V, 7), tokens (n, V, L) int64 (the codebook's tokens
+    of the images). For each C in contexts: the context is views 0..C-1, the queries the last
+    HEALTH_QUERIES views. Returns {column: float} (transformer_health_columns): the held-out
+    cross-entropy and token accuracy of the queries' tokens, the rendering's MAE and RMSE through
+    the codebook beside the nearest-view and mean-image baselines', and the median position and
+    orientation errors beside the closest-image and mean-pose baselines' (evaluate.run's
+    definitions). Inference only: nothing in either model changes."""
+    from .run import score_scenes  # evaluate.run imports the scenes home; only this needs it
+    views = images.shape[1]
+    qidx = np.arange(views - HEALTH_QUERIES, views)
+    results, _, _ = score_scenes(codebook, transformer, images, poses, tokens, tuple(contexts), qidx, batch,
+                                 token_scores=True)
+    return {f"{stem}_c{C}": results[str(C)][method][metric]
+            for C in contexts for method, metric, stem in _TF_METRICS}

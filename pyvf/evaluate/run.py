@@ -60,6 +60,7 @@ __all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
 POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
+TOKEN_SCORES = ("ce", "token_accuracy")  # score_scenes(token_scores=True): pyvf's held-out token figures
 # method -> the metrics it has, in the tables' order
 METHODS = {
     "pyvf": IMAGE_METRICS + POSE_METRICS,
@@ -193,6 +194,54 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     tokens[:, used] = _encode(codebook, flat, 4 * batch).reshape(n, len(used), -1)
     t_encode = (time.perf_counter() - t0) / flat.shape[0]
 
+    results, picture, dec = score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch,
+                                         picture_scenes=picture_scenes, progress=progress)
+    decode_s, decoded = dec
+
+    timing = _timing(transformer, tokens[:timing_scenes], poses[:timing_scenes], Cmax, qidx, repeat)
+    timing["codebook_encode_s_per_image"] = t_encode
+    timing["codebook_decode_s_per_image"] = decode_s / decoded
+    timing["total_s"] = time.perf_counter() - t_start
+    timing = {k: timing[k] for k in TIMING_KEYS}
+
+    import pyvf  # the package's version and kernel path (imported here: pyvf imports this package)
+    meta = {
+        "pyvf_version": pyvf.__version__, "seed": int(seed), "scenes": int(n), "views": int(views),
+        "image_size": int(S), "context_sizes": list(context), "query_views": [int(i) for i in qidx],
+        "n_queries": int(n * M), "trained_context": tf_cfg.sequence_size - 1,
+        "psnr_cap_db": psnr_cap((S, S, 3)), "kernel_path": pyvf.kernel_path(),
+        "kernel_threads": pyvf.num_threads(), "codebook": dataclasses.asdict(cb_cfg),
+        "transformer": dataclasses.asdict(tf_cfg), "sources": sources, "protocol": PROTOCOL,
+    }
+    # through JSON once: the dict returned is the file's content (tuples become lists), and a
+    # NaN or inf anywhere raises here instead of writing a file that strict readers reject
+    metrics = json.loads(json.dumps({"context": results, "timing": timing, "meta": meta}, allow_nan=False))
+    if out is not None:
+        write_metrics(metrics, out)
+        if pictures and picture_scenes > 0:
+            from .pictures import save_poses, save_views  # Pillow, only when pictures are written
+            picture["pyvf"] = np.concatenate(picture["pyvf"])
+            picture["estimated_poses"] = np.concatenate(picture["estimated_poses"])
+            save_views(os.path.join(out, "views.png"), picture)
+            save_poses(os.path.join(out, "poses.png"), picture)
+    return metrics
+
+
+def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch, *, picture_scenes=0,
+                 progress=False, token_scores=False):
+    """Score the pair and the baselines on these scenes: for each C in context (ascending), the
+    context is views 0..C-1 and the queries the views qidx.
+
+    images uint8 (n, V, S, S, 3), poses (n, V, 7) float64, tokens (n, V, L) int64 (the codebook's
+    tokens of at least the views used). Returns (results, picture, (decode seconds, images
+    decoded)): results[str(C)][method][metric] as evaluate()'s; picture the first
+    picture_scenes scenes' views at the largest C. token_scores=True adds to each C's "pyvf"
+    row the mean cross-entropy (nats) of the true query tokens under the rendered logits and
+    the share of tokens whose argmax is right ("ce", "token_accuracy")."""
+    n, M = images.shape[0], len(qidx)
+    S = images.shape[2]
+    dt = transformer.dtype
+    Cmax = context[-1]
     gt = images[:, qidx]  # (n, M, S, S, 3)
     gt_pose = poses[:, qidx]  # (n, M, 7) float64
     per = {str(C): {m: {} for m in METHODS} for C in context}  # C -> method -> metric -> per-query list
@@ -222,6 +271,8 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
             ctx_img, ctx_pose = images[sl, :C], poses[sl, :C]  # (B, C, S, S, 3), (B, C, 7)
             scene = transformer.encode_scene(tokens[sl, :C], ctx_pose.astype(dt))
             logits = transformer.render_scene(scene, q_pose)  # (B, M, L, V)
+            if token_scores:
+                add(key, "pyvf", _token_scores(logits, q_tok))
             t0 = time.perf_counter()
             rendered = _decode(codebook, logits.argmax(axis=-1).reshape(B * M, -1), 4 * batch).reshape(B, M, S, S, 3)
             decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + B * M
@@ -244,43 +295,29 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
         results[C] = {}
         for method, names in METHODS.items():
             vals = {k: np.concatenate(v) for k, v in per[C][method].items()}  # per query (n*M,)
+            if token_scores and method == "pyvf":
+                names = names + TOKEN_SCORES
             row = {}
             for name in names:
-                if name in IMAGE_METRICS:
+                if name in IMAGE_METRICS or name in TOKEN_SCORES:
                     row[name] = float(np.mean(vals[name]))
                 elif name == "position_error_median":
                     row[name] = float(np.median(vals["position_error"]))
                 else:
                     row[name] = float(np.median(vals["orientation_error_deg"]))
             results[C][method] = row
+    return results, picture, (decode_s, decoded)
 
-    timing = _timing(transformer, tokens[:timing_scenes], poses[:timing_scenes], Cmax, qidx, repeat)
-    timing["codebook_encode_s_per_image"] = t_encode
-    timing["codebook_decode_s_per_image"] = decode_s / decoded
-    timing["total_s"] = time.perf_counter() - t_start
-    timing = {k: timing[k] for k in TIMING_KEYS}
 
-    import pyvf  # the package's version and kernel path (imported here: pyvf imports this package)
-    meta = {
-        "pyvf_version": pyvf.__version__, "seed": int(seed), "scenes": int(n), "views": int(views),
-        "image_size": int(S), "context_sizes": list(context), "query_views": [int(i) for i in qidx],
-        "n_queries": int(n * M), "trained_context": tf_cfg.sequence_size - 1,
-        "psnr_cap_db": psnr_cap((S, S, 3)), "kernel_path": pyvf.kernel_path(),
-        "kernel_threads": pyvf.num_threads(), "codebook": dataclasses.asdict(cb_cfg),
-        "transformer": dataclasses.asdict(tf_cfg), "sources": sources, "protocol": PROTOCOL,
-    }
-    # through JSON once: the dict returned is the file's content (tuples become lists), and a
-    # NaN or inf anywhere raises here instead of writing a file that strict readers reject
-    metrics = json.loads(json.dumps({"context": results, "timing": timing, "meta": meta}, allow_nan=False))
-    if out is not None:
-        write_metrics(metrics, out)
-        if pictures and picture_scenes > 0:
-            from .pictures import save_poses, save_views  # Pillow, only when pictures are written
-            picture["pyvf"] = np.concatenate(picture["pyvf"])
-            picture["estimated_poses"] = np.concatenate(picture["estimated_poses"])
-            save_views(os.path.join(out, "views.png"), picture)
-            save_poses(os.path.join(out, "poses.png"), picture)
-    return metrics
+def _token_scores(logits, tokens):
+    """logits (B, M, L, V), true tokens (B, M, L) -> per view: the mean cross-entropy of
+    the true tokens (log-softmax in float64) and the share of tokens whose argmax is right, each (B, M)."""
+    z = logits.astype(np.float64)
+    z -= z.max(axis=-1, keepdims=True)
+    logp = z - np.log(np.exp(z).sum(axis=-1, keepdims=True))  # (B, M, L, V)
+    nll = -np.take_along_axis(logp, tokens[..., None], axis=-1)[..., 0]  # (B, M, L)
+    right = logits.argmax(axis=-1) == tokens  # (B, M, L)
+    return {"ce": nll.mean(axis=-1), "token_accuracy": right.mean(axis=-1)}
 
 
 def _timing(transformer, tokens, poses, C, qidx, repeat):

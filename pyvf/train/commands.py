@@ -16,6 +16,8 @@ import os
 import sys
 import zipfile
 
+import numpy as np
+
 from ..codebook import Codebook, CodebookConfig
 from ..transformer import TransformerConfig
 from .loops import (
@@ -94,6 +96,30 @@ def _held_out_views(args, data, size):
     return images.reshape(-1, size, size, images.shape[-1])
 
 
+def _held_out_scenes(args):
+    """train-transformer's held-out scenes: --eval-scenes whole scenes of --eval-seed (all 15
+    views), tokenized by --codebook -> train_transformer's eval_set."""
+    if args.eval_scenes < 1:
+        raise ValueError(f"--eval-scenes must be a positive integer, got {args.eval_scenes}")
+    codebook = _read_codebook(args.codebook)
+    from ..scenes import generate_scenes
+    images, poses = generate_scenes(args.eval_seed, args.eval_scenes, size=codebook.config.image_size)
+    n, V = images.shape[:2]
+    with _Threads(args.threads):
+        tokens = tokenize(codebook, images).reshape(n, V, -1).astype(np.int64)  # (n, V, L)
+    return {"codebook": codebook, "images": images, "poses": poses, "tokens": tokens}
+
+
+def _read_codebook(path):
+    """Codebook.load(path), its errors as ValueError naming the file."""
+    try:
+        return Codebook.load(path)
+    except FileNotFoundError as e:
+        raise ValueError(f"codebook {path} does not exist") from e
+    except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
+        raise ValueError(f"codebook {path} is not a readable codebook file: {type(e).__name__}: {e}") from e
+
+
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
     def work():
@@ -113,13 +139,7 @@ def cmd_train_codebook(args):
 def cmd_tokenize(args):
     """Encode a dataset's images into token images with a trained codebook."""
     def work():
-        try:
-            codebook = Codebook.load(args.codebook)
-        except FileNotFoundError as e:
-            raise ValueError(f"codebook {args.codebook} does not exist") from e
-        except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
-            raise ValueError(f"codebook {args.codebook} is not a readable codebook file: "
-                             f"{type(e).__name__}: {e}") from e
+        codebook = _read_codebook(args.codebook)
         data = _load_dataset(args.data)
         with _Threads(args.threads):
             tokens = tokenize(codebook, data.images, batch_size=args.batch, progress=not args.no_progress)
@@ -138,7 +158,12 @@ def cmd_train_transformer(args):
         if config.n_embeddings != n_embed:
             raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {args.tokens} "
                              f"was made by a codebook of {n_embed} codes")
+        eval_set = _held_out_scenes(args) if args.eval_every and args.codebook else None
+        if args.eval_every and not args.codebook:
+            print("pyvf train-transformer: no --codebook, so no held-out evaluation (it renders through the "
+                  "codebook)", file=sys.stderr)
         train_transformer(tokens, poses, config, args.out, steps=args.steps, batch_size=args.batch,
+                          eval_set=eval_set, eval_every=args.eval_every,
                           context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
                           weight_decay=args.weight_decay,
                           max_grad_norm=None if args.max_grad_norm <= 0 else args.max_grad_norm,
@@ -163,11 +188,10 @@ def _run_options(p, batch, checkpoint_every):
     p.add_argument("--threads", type=int, default=None, help="threads for pyvf's C++ kernels")
 
 
-def _eval_options(p):
-    p.add_argument("--eval-every", type=int, default=100,
-                   help="steps between evaluations on held-out scenes, logged to eval.csv (default 100; 0: none)")
-    p.add_argument("--eval-scenes", type=int, default=32,
-                   help=f"held-out scenes evaluated, {EVAL_VIEWS} views each (default 32)")
+def _eval_options(p, every, scenes):
+    p.add_argument("--eval-every", type=int, default=every,
+                   help=f"steps between evaluations on held-out scenes, logged to eval.csv (default {every}; 0: none)")
+    p.add_argument("--eval-scenes", type=int, default=scenes, help=f"held-out scenes evaluated (default {scenes})")
     p.add_argument("--eval-seed", type=int, default=1,
                    help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000)")
 
@@ -190,7 +214,7 @@ def cli_register(subparsers):
                         "published; default: the recipe's)")
     p.add_argument("--object-weight", type=float, default=None,
                    help="loss weight of object pixels against 1 for the background (default: the recipe's)")
-    _eval_options(p)
+    _eval_options(p, every=100, scenes=32)
     p.set_defaults(func=cmd_train_codebook)
 
     p = subparsers.add_parser("tokenize", help="encode a dataset into token images with a codebook",
@@ -215,5 +239,9 @@ def cli_register(subparsers):
                    help="length of the cosine schedule (default --steps; keep it when extending a run)")
     p.add_argument("--weight-decay", type=float, default=0.01, help="AdamW decay (default 0.01)")
     p.add_argument("--max-grad-norm", type=float, default=1.0, help="per-tensor clipping norm; 0 turns it off")
+    p.add_argument("--codebook", default=None,
+                   help="the codebook .npz the tokens came from: the held-out evaluation renders through it "
+                        "(without it, no evaluation)")
+    _eval_options(p, every=200, scenes=16)
     p.set_defaults(func=cmd_train_transformer)
     return subparsers

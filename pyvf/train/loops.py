@@ -18,7 +18,14 @@ import dataclasses
 
 import numpy as np
 
-from ..evaluate.health import CODEBOOK_HEALTH, codebook_health, object_mask
+from ..evaluate.health import (
+    CODEBOOK_HEALTH,
+    codebook_health,
+    health_contexts,
+    object_mask,
+    transformer_health,
+    transformer_health_columns,
+)
 from .._io import atomic_savez, load_npz
 from ..codebook import Codebook, CodebookConfig
 from ..optim import Adam, AdamW, WarmupCosine, published_weight_decay
@@ -289,7 +296,8 @@ def load_tokens(path):
 
 def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, context=None, lr=1e-4, warmup=None,
                       total_steps=None, weight_decay=0.01, max_grad_norm=1.0, clip_mode="per_tensor", seed=0,
-                      checkpoint_every=200, log_every=10, resume=True, progress=True, threads=None, command=None):
+                      checkpoint_every=200, log_every=10, eval_set=None, eval_every=0, resume=True, progress=True,
+                      threads=None, command=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
     (the branching tree, SPEC.md §2-3), with the published optimiser (SPEC.md §5).
 
@@ -307,6 +315,11 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         (all but the biases), Keras' epsilon convention as the published optimiser.
     max_grad_norm, clip_mode: gradient clipping (None: off); "per_tensor" is the published
         tf.clip_by_norm, "global" torch's clip_grad_norm_. The logged grad_norm is the global norm.
+    eval_set: None, or held-out scenes {"codebook": the Codebook the tokens came from, "images":
+        uint8 (n, V, S, S, 3), "poses": (n, V, 7), "tokens": (n, V, L) their codes}: every
+        eval_every steps, at the last step and before the first of a fresh run,
+        health.transformer_health at health.health_contexts is appended to out_dir/eval.csv
+        (reads the models only: the trajectory is the same without it).
     out_dir, resume, seed, threads, command: as train_codebook; the final model is
         out_dir/transformer.npz (Transformer.load reads it).
     Returns the trained Transformer."""
@@ -335,10 +348,27 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
              "total_steps": total_steps, "weight_decay": weight_decay, "eps": 1e-8, "eps_convention": "keras",
              "max_grad_norm": None if max_grad_norm is None else float(max_grad_norm), "clip_mode": clip_mode,
              "seed": seed, "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
+    eval_every = integer("eval_every", eval_every, 0)
+    contexts = None
+    if eval_set is not None:
+        if not isinstance(eval_set, dict) or sorted(eval_set) != ["codebook", "images", "poses", "tokens"]:
+            raise ValueError("eval_set must be a dict of codebook, images, poses and tokens")
+        contexts = health_contexts(config, eval_set["images"].shape[1])
+        if not contexts:
+            raise ValueError(f"eval_set's scenes have {eval_set['images'].shape[1]} views: too few for a context "
+                             "and the held-out queries")
     threads_set = _Threads(threads)
     run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
               steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
-              call={"command": command, "threads": threads})
+              call={"command": command, "threads": threads,
+                    "eval": None if eval_set is None else {"every": eval_every, "contexts": contexts,
+                                                           "fingerprint": fingerprint(eval_set["tokens"])}},
+              eval_columns=None if eval_set is None else transformer_health_columns(contexts))
+    evaluating = eval_set is not None and eval_every > 0
+
+    def health(model):
+        e = eval_set
+        return transformer_health(e["codebook"], model, e["images"], e["poses"], e["tokens"], contexts)
 
     model = Transformer(config, seed=seed)
     if run.resumed:
@@ -349,6 +379,8 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     if run.resumed:
         run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
     with threads_set, run:
+        if evaluating and not run.resumed:
+            run.log_eval(0, health(model))
         for t in run.steps():
             tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t, config.dtype)
             # tok (B, N, L), pos (B, N, 7)
@@ -360,6 +392,8 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
             run.log(t, {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)),
                         "pose_loss": float(np.mean(out.pose_loss)),
                         "grad_norm": np.nan if norm is None else norm, "lr": lr_t})
+            if evaluating and run.eval_due(t, eval_every):
+                run.log_eval(t, health(model))
             if run.checkpoint_due(t):
                 run.save(t, model.state_dict(), opt)
     run.save_final(model.state_dict())
