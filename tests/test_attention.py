@@ -987,6 +987,7 @@ except MemoryError as e:
 resource.setrlimit(resource.RLIMIT_AS, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
 small = np.ascontiguousarray(q[:, :, :1, :2, :16, :8])
 print("still running:", pyvf.branching_attention(small, small, small).shape)
+print("path:", pyvf.kernel_path())
 """
 
 
@@ -994,17 +995,20 @@ print("still running:", pyvf.branching_attention(small, small, small).shape)
     (1, 8, 1024, 256, 24 << 20),  # B*H = 1: the backward's per-group dq buffers (7 x 8 MiB) cannot be had
     (16, 8, 256, 64, 256 << 10),  # B*H = 16: one group; each thread's (1 MiB) buffers fail inside the OpenMP region
 ])
-def test_allocation_failure_is_a_memory_error_not_an_abort(H, N, L, dh, headroom, tmp_path):
+def test_allocation_failure_is_a_memory_error_not_an_abort(H, N, L, dh, headroom, tmp_path, kernel_path):
     """An allocation that fails inside the kernel, also inside an OpenMP region, raises
     MemoryError and the interpreter goes on (an exception escaping an OpenMP region would
-    abort the process). The address space is limited in a subprocess so that it fails."""
+    abort the process). The address space is limited in a subprocess so that it fails; the
+    subprocess runs this test's kernel path (PYVF_ISA), which it prints back."""
     import subprocess
     import sys
+    env = dict(os.environ, PYVF_ISA=kernel_path)
     proc = subprocess.run([sys.executable, "-c", OOM_WORKER, str(H), str(N), str(L), str(dh), str(headroom)],
-                          cwd=tmp_path, capture_output=True, text=True)
+                          cwd=tmp_path, env=env, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "MemoryError: branching_attention: not enough memory" in proc.stdout, proc.stdout
     assert "still running: (1, 1, 1, 2, 16, 8)" in proc.stdout
+    assert f"path: {kernel_path}" in proc.stdout, proc.stdout
 
 
 MEMORY_WORKER = """
@@ -1018,6 +1022,7 @@ pyvf.branching_attention_backward(small, small, small, small, *pyvf.branching_at
 (o, lse), fwd = peak_memory(lambda: pyvf.branching_attention_forward(q, q, q))
 _, bwd = peak_memory(lambda: pyvf.branching_attention_backward(q, q, q, q, o, lse))
 print(fwd, bwd, pyvf.num_threads())
+assert pyvf.kernel_path() == sys.argv[2], (pyvf.kernel_path(), sys.argv[2])
 """
 
 
@@ -1030,7 +1035,7 @@ def test_memory_is_bounded_for_long_views(tmp_path, kernel_path):
     import sys
     L = 4096
     env = dict(os.environ, PYVF_ISA=kernel_path)  # the worker on this test's path
-    out = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(L)], cwd=tmp_path, env=env,
+    out = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(L), kernel_path], cwd=tmp_path, env=env,
                          capture_output=True, text=True, check=True).stdout
     fwd, bwd, threads = (int(x) for x in out.split())
     outputs = 2 * L * 4 + 2 * L * 8  # o, lse

@@ -66,7 +66,12 @@ def test_model_matches_torch_float64(variant, rng):
     assert_close("ce", out.ce_loss, ce, rtol=1e-12)
     assert_close("pose loss", out.pose_loss, pl, rtol=1e-12)
     assert abs(out.loss - loss) <= 1e-12 * abs(loss)
-    pred = pyvf.transformer.pose_prediction(raw, cfg.pose_multiplier)
+    # the prediction from torch's raw head output, written out here (not pyvf's pose_prediction):
+    # xyz / pose_multiplier, the quaternion over its norm, its sign flipped where w < 0
+    raw = np.asarray(raw, dtype=np.float64)
+    q = raw[..., 3:] / np.linalg.norm(raw[..., 3:], axis=-1, keepdims=True)
+    q = np.where(q[..., :1] < 0, -q, q)
+    pred = np.concatenate([raw[..., :3] / cfg.pose_multiplier, q], axis=-1)
     assert_close("pose prediction", out.pose_prediction, pred, rtol=1e-12)
     assert set(grads) == set(tgrads) == set(model.params)
     for name in grads:

@@ -1,6 +1,8 @@
 """vq_nearest against float64 brute force: random data, the large-offset cancellation cases
 where the published |x|^2 - 2 x.e + |e|^2 formula fails, exact ties, duplicated codes, bad input."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -190,7 +192,7 @@ def test_overflowing_fast_scores_fall_back_to_the_exact_rerank(rng):
 
 
 MEMORY_WORKER = """
-import sys, numpy as np
+import sys, numpy as np, pyvf
 from pyvf.measure import peak_memory
 from pyvf.quantizer import vq_nearest
 K, D = int(sys.argv[1]), int(sys.argv[2])
@@ -198,20 +200,24 @@ codes = np.random.default_rng(0).standard_normal((K, D)).astype(np.float32)
 x = np.random.default_rng(1).standard_normal((64, D)).astype(np.float32)
 vq_nearest(x[:1], codes[:2])  # thread pools and first-call allocations outside the measurement
 _, extra = peak_memory(lambda: vq_nearest(x, codes))
+print(pyvf.kernel_path())
 print(extra)
 """
 
 
 @pytest.mark.parametrize("K, D", [(1 << 20, 1), (16384, 256)])
-def test_extra_memory_is_bounded_by_the_codes(K, D, tmp_path):
+def test_extra_memory_is_bounded_by_the_codes(K, D, tmp_path, kernel_path):
     """Peak extra memory of one call, measured in a fresh process: the packed codes (as large as
     the codes), one double per code, and per thread (64, D + 2048) float32 buffers. Before the
     rewrite: ~580 bytes per code at D = 1 (2.3 GiB at K = 2^22)."""
     import subprocess
     import sys
-    out = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(K), str(D)], cwd=tmp_path,
+    env = dict(os.environ, PYVF_ISA=kernel_path)  # the worker on this test's path, which it prints back
+    out = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(K), str(D)], cwd=tmp_path, env=env,
                          capture_output=True, text=True, check=True).stdout
-    extra = int(out.strip().splitlines()[-1])
+    path, extra = out.strip().splitlines()[-2:]
+    assert path == kernel_path, (path, kernel_path)
+    extra = int(extra)
     codes_bytes = K * D * 4
     bound = 2 * codes_bytes + 8 * K + 16 * 2 ** 20
     assert extra <= bound, f"extra {extra / 2**20:.1f} MiB > bound {bound / 2**20:.1f} MiB"
