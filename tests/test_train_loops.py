@@ -464,3 +464,24 @@ def test_transformer_evaluation_leaves_the_run_bit_identical(tmp_path, rng):
     want = transformer_health(cb, final, held_images, held_poses, held_tokens, (1,))
     assert [float(v) for v in rows[-1][1:]] == list(want.values())
     assert all(np.isfinite(list(want.values())))
+
+
+def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
+    """`pyvf runs`: one row per run with its changed hyperparameters and last evaluation (read back
+    from eval.csv); every evaluation redraws the run's eval.png."""
+    images, held_out = _images(rng), _images(rng, scenes=1, views=2).reshape(-1, 16, 16, 3)
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    train_codebook(images, CB, a, steps=2, batch_size=2, eval_images=held_out, eval_every=1, **QUIET)
+    train_codebook(images, CB, b, steps=3, batch_size=2, lr=1e-3, eval_images=held_out, eval_every=1, **QUIET)
+    assert os.path.getsize(os.path.join(b, "eval.png")) > 0
+    table = pyvf.train.curves.runs_table([a, b]).splitlines()
+    assert table[0].startswith("| run | steps | wall (s) | changes | mae (step) | psnr (step)")
+    last = _log(b, "eval.csv")[-1]
+    assert table[3].startswith("| b | 3 |") and "lr=0.001 |" in table[3] and f"{float(last[1]):.4g} (3)" in table[3]
+    assert "(the first run)" in table[2]
+    parser = argparse.ArgumentParser(prog="pyvf")
+    cli_register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["runs", a, b])
+    assert args.func(args) == 0 and capsys.readouterr().out.splitlines() == table
+    args = parser.parse_args(["runs", str(tmp_path)])
+    assert args.func(args) == 1 and "is not a run folder" in capsys.readouterr().err

@@ -2,7 +2,8 @@
 
     pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE]
     pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
-    pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16]
+    pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16] [--codebook F]
+    pyvf runs runs/cb runs/cb2 [--plot]   # compare runs: their last held-out evaluation
 
 Run again with the same arguments to resume from the run folder's checkpoint (--no-resume
 starts over). --config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the
@@ -20,6 +21,7 @@ import numpy as np
 
 from ..codebook import Codebook, CodebookConfig
 from ..transformer import TransformerConfig
+from .curves import plot_eval, runs_table
 from .loops import (
     CODEBOOK_RECIPES,
     TINY_CODEBOOK,
@@ -196,6 +198,21 @@ def _eval_options(p, every, scenes):
                    help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000)")
 
 
+def cmd_runs(args):
+    """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
+    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn."""
+    def work():
+        for d in args.run_dirs:
+            if not os.path.exists(os.path.join(d, "config.json")):
+                raise ValueError(f"{d} is not a run folder (no config.json)")
+        print(runs_table(args.run_dirs), end="")
+        if args.plot:
+            for d in args.run_dirs:
+                if os.path.exists(os.path.join(d, "eval.csv")):
+                    print(f"wrote {plot_eval(d)}")
+    return _guarded("runs", work)
+
+
 def cli_register(subparsers):
     """Add train-codebook, tokenize and train-transformer to an argparse subparsers object."""
     p = subparsers.add_parser("train-codebook", help="train the codebook (VQ-VAE) on a dataset; resumable",
@@ -244,4 +261,10 @@ def cli_register(subparsers):
                         "(without it, no evaluation)")
     _eval_options(p, every=200, scenes=16)
     p.set_defaults(func=cmd_train_transformer)
+
+    p = subparsers.add_parser("runs", help="compare training runs: a markdown table of their last held-out "
+                              "evaluations", description=cmd_runs.__doc__)
+    p.add_argument("run_dirs", nargs="+", metavar="RUN", help="run folders (train-codebook's or train-transformer's --out)")
+    p.add_argument("--plot", action="store_true", help="also redraw each run's eval.png")
+    p.set_defaults(func=cmd_runs)
     return subparsers

@@ -1,10 +1,15 @@
-"""Learning curves from a run folder's log.csv, drawn with Pillow (no plotting library needed).
+"""Learning curves from a run folder's log.csv and eval.csv, drawn with Pillow (no plotting
+library needed), and a table that compares runs.
 
     rows = read_log("runs/codebook")                        # {column: np.ndarray}
     plot_curves("runs/codebook", "curves.png", ["rec_loss", "commitment"])
+    plot_eval("runs/codebook")                              # runs/codebook/eval.png: held-out health
+    print(runs_table(["runs/a", "runs/b"]))                 # markdown: each run's last evaluation
 
 One panel per column, x = step, y on a linear axis (log axis with log_y=True), min and max
-labelled; the last value printed in the panel's title.
+labelled; the last value printed in the panel's title. A panel's baselines (eval.csv columns
+of the baselines' scores) are drawn as dashed horizontal lines at their mean: a model's curve
+must cross below them.
 """
 
 import csv
@@ -16,9 +21,12 @@ import numpy as np
 from .._io import atomic_write_bytes
 
 
-def read_log(run_dir):
-    """run_dir/log.csv -> {column: float64 array}, rows in file order."""
-    path = os.path.join(run_dir, "log.csv")
+BASELINE_COLOURS = [(214, 39, 40), (44, 160, 44), (148, 103, 189)]
+
+
+def read_log(run_dir, name="log.csv"):
+    """run_dir/log.csv (or another of its CSV files) -> {column: float64 array}, rows in file order."""
+    path = os.path.join(run_dir, name)
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
     if not rows:
@@ -26,14 +34,16 @@ def read_log(run_dir):
     return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
 
 
-def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220)):
-    """Write a PNG of `columns` of run_dir/log.csv against the step, one panel each, side by side."""
+def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), name="log.csv", baselines=None):
+    """Write a PNG of `columns` of run_dir/<name> against the step, one panel each, side by side.
+    baselines: {column: [baseline columns]}, each drawn as a dashed line at its mean."""
     from PIL import Image, ImageDraw
 
-    log = read_log(run_dir)
-    missing = [c for c in columns if c not in log]
+    log = read_log(run_dir, name)
+    baselines = baselines or {}
+    missing = [c for c in columns + [b for c in columns for b in baselines.get(c, ())] if c not in log]
     if missing:
-        raise ValueError(f"columns {missing} are not in {os.path.join(run_dir, 'log.csv')} (it has {list(log)})")
+        raise ValueError(f"columns {missing} are not in {os.path.join(run_dir, name)} (it has {list(log)})")
     w, h = size
     top = 24 if title else 0
     img = Image.new("RGB", (w * len(columns), h + top), "white")
@@ -43,17 +53,30 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220)):
     step = log["step"]
     for i, col in enumerate(columns):
         y = log[col]
-        use_log = col in log_y and (y > 0).all()
+        lines = [float(np.nanmean(log[b])) for b in baselines.get(col, ())]  # horizontal baselines
+        use_log = col in log_y and (y > 0).all() and all(v > 0 for v in lines)
         yv = np.log10(y) if use_log else y
+        lv = [np.log10(v) if use_log else v for v in lines]
         x0, y0, x1, y1 = i * w + 46, top + 22, (i + 1) * w - 10, top + h - 22  # plot area
         draw.rectangle([x0, y0, x1, y1], outline="gray")
-        lo, hi = float(yv.min()), float(yv.max())
+        finite = np.concatenate([yv[np.isfinite(yv)], np.array([v for v in lv if np.isfinite(v)])])
+        lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
         hi = hi if hi > lo else lo + 1.0
         smin, smax = float(step.min()), float(step.max())
         smax = smax if smax > smin else smin + 1.0
         px = x0 + (step - smin) / (smax - smin) * (x1 - x0)
         py = y1 - (yv - lo) / (hi - lo) * (y1 - y0)
-        draw.line(list(zip(px.tolist(), py.tolist())), fill=(31, 119, 180), width=2)
+        for k, (b, v) in enumerate(zip(baselines.get(col, ()), lv)):
+            if not np.isfinite(v):
+                continue
+            yb = y1 - (v - lo) / (hi - lo) * (y1 - y0)
+            colour = BASELINE_COLOURS[k % len(BASELINE_COLOURS)]
+            for xa in np.arange(x0, x1, 8.0):  # dashed
+                draw.line([(xa, yb), (min(xa + 4, x1), yb)], fill=colour, width=1)
+            draw.text((x0 + 4, top + 16 + 11 * (k + 1)), f"-- {b}", fill=colour)
+        ok = np.isfinite(py)
+        if ok.sum() > 1:
+            draw.line(list(zip(px[ok].tolist(), py[ok].tolist())), fill=(31, 119, 180), width=2)
         fmt = (lambda v: f"{10 ** v:.3g}") if use_log else (lambda v: f"{v:.3g}")
         draw.text((i * w + 2, y0 - 4), fmt(hi), fill="black")
         draw.text((i * w + 2, y1 - 8), fmt(lo), fill="black")
@@ -64,3 +87,59 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220)):
     img.save(buf, format="PNG")
     atomic_write_bytes(png, buf.getvalue())
     return png
+
+
+# ---------------------------------------------------------------------------------------
+# held-out evaluation (eval.csv): the panels and their baselines
+
+
+def eval_panels(columns):
+    """eval.csv's columns -> (panels, baselines) for plot_curves: the codebook's health, or the
+    transformer's figures at its largest evaluated context with their baselines."""
+    if "colour_r2" in columns:  # a codebook run
+        return ["mae", "psnr", "codes_in_use", "latent_rank", "colour_r2"], {}
+    C = max(int(c.rsplit("_c", 1)[1]) for c in columns if c.startswith("mae_c"))
+    panels = [f"ce_c{C}", f"token_accuracy_c{C}", f"mae_c{C}", f"position_c{C}", f"orientation_c{C}"]
+    baselines = {f"mae_c{C}": [f"nearest_view_mae_c{C}", f"mean_image_mae_c{C}"],
+                 f"position_c{C}": [f"closest_image_position_c{C}", f"mean_pose_position_c{C}"],
+                 f"orientation_c{C}": [f"closest_image_orientation_c{C}", f"mean_pose_orientation_c{C}"]}
+    return panels, baselines
+
+
+def plot_eval(run_dir, png=None):
+    """Plot run_dir/eval.csv (eval_panels) to png (default run_dir/eval.png); returns its path."""
+    log = read_log(run_dir, "eval.csv")
+    panels, baselines = eval_panels(list(log))
+    png = png or os.path.join(run_dir, "eval.png")
+    return plot_curves(run_dir, png, panels, title=f"{os.path.basename(os.path.normpath(run_dir))}: held-out "
+                       "evaluation against the step (dashed: baselines)", name="eval.csv", baselines=baselines,
+                       log_y=[c for c in panels if c == "mae" or c.startswith(("ce_c", "mae_c"))])
+
+
+def runs_table(run_dirs, columns=None):
+    """Markdown: one row per run folder: its name, steps, wall seconds (the log's), what its
+    hyperparameters change against the first run's, and its last held-out evaluation
+    (`columns` of eval.csv, default the panels of eval_panels)."""
+    import json
+
+    rows, first = [], None
+    for d in run_dirs:
+        with open(os.path.join(d, "config.json"), encoding="utf-8") as f:
+            cfg = json.load(f)
+        flat = {**{f"config.{k}": v for k, v in cfg["config"].items()},
+                **{k: v for k, v in cfg["hyperparameters"].items() if k != "data"}}
+        first = flat if first is None else first
+        changed = ", ".join(f"{k.removeprefix('config.')}={flat.get(k)}" for k in sorted(set(flat) | set(first))
+                            if flat.get(k) != first.get(k)) or "(the first run)"
+        log = read_log(d)
+        ev = read_log(d, "eval.csv") if os.path.exists(os.path.join(d, "eval.csv")) else {}
+        cols = columns or (eval_panels(list(ev))[0] if ev else [])
+        rows.append((os.path.basename(os.path.normpath(d)), int(log["step"][-1]), float(log["seconds"][-1]),
+                     changed, {c: (float(ev[c][-1]), int(ev["step"][-1])) for c in cols if c in ev}))
+    cols = columns or list(dict.fromkeys(c for r in rows for c in r[4]))  # the first run's order first
+    head = ["run", "steps", "wall (s)", "changes"] + [f"{c} (step)" for c in cols]
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, steps, secs, changed, ev in rows:
+        vals = [f"{ev[c][0]:.4g} ({ev[c][1]})" if c in ev else "-" for c in cols]
+        out.append("| " + " | ".join([name, str(steps), f"{secs:.0f}", changed] + vals) + " |")
+    return "\n".join(out) + "\n"

@@ -31,6 +31,7 @@ from ..codebook import Codebook, CodebookConfig
 from ..optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..transformer import Transformer, TransformerConfig
 from ._run import Run, fingerprint, integer, positive_int, real
+from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
@@ -231,6 +232,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
     with threads_set, run:
         if evaluating and not run.resumed:
             run.log_eval(0, codebook_health(model, eval_images))
+            plot_eval(run.out_dir)
         for t in run.steps():
             weighted = object_weight != 1.0
             x = codebook_batch(flat, batch_size, seed, t, config.dtype, object_weight if weighted else None)
@@ -244,6 +246,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
                         "perplexity": out.perplexity, "usage": out.usage, "lr": lr_t})
             if evaluating and run.eval_due(t, eval_every):
                 run.log_eval(t, codebook_health(model, eval_images))
+                plot_eval(run.out_dir)  # eval.png: the curves so far
             if run.checkpoint_due(t):
                 run.save(t, model.state_dict(), opt)
     run.save_final(model.state_dict())
@@ -381,6 +384,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     with threads_set, run:
         if evaluating and not run.resumed:
             run.log_eval(0, health(model))
+            plot_eval(run.out_dir)
         for t in run.steps():
             tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t, config.dtype)
             # tok (B, N, L), pos (B, N, 7)
@@ -394,6 +398,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
                         "grad_norm": np.nan if norm is None else norm, "lr": lr_t})
             if evaluating and run.eval_due(t, eval_every):
                 run.log_eval(t, health(model))
+                plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
             if run.checkpoint_due(t):
                 run.save(t, model.state_dict(), opt)
     run.save_final(model.state_dict())
