@@ -18,6 +18,8 @@ import dataclasses
 
 import numpy as np
 
+from .._io import atomic_savez, load_npz
+from ..codebook import Codebook, CodebookConfig
 from ..evaluate.health import (
     CODEBOOK_HEALTH,
     codebook_health,
@@ -26,8 +28,7 @@ from ..evaluate.health import (
     transformer_health,
     transformer_health_columns,
 )
-from .._io import atomic_savez, load_npz
-from ..codebook import Codebook, CodebookConfig
+from ..evaluate.metrics import to_model_images
 from ..optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..transformer import Transformer, TransformerConfig
 from ._run import Run, fingerprint, integer, positive_int, real
@@ -82,14 +83,6 @@ def _check_images(images, config):
     return images.reshape(-1, S, S, C)
 
 
-def _to_model_images(x, dtype):
-    """uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) of dtype in [-1, 1]: x / 127.5 - 1."""
-    x = x.transpose(0, 3, 1, 2).astype(dtype, order="C")  # (B, C, Hi, Wi)
-    x /= dtype.type(127.5)
-    x -= dtype.type(1.0)
-    return x
-
-
 def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weight=None):
     """Batch of step `step`: batch_size views drawn uniformly (with replacement) from the
     (M, Hi, Wi, C) uint8 images -> (B, C, Hi, Wi) in [-1, 1]. A pure function of (seed, step).
@@ -97,7 +90,7 @@ def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weigh
     pixels health.object_mask marks, 1 on the background."""
     rng = np.random.default_rng([seed, step])
     idx = rng.integers(0, images.shape[0], size=batch_size)  # (B,)
-    x = _to_model_images(images[idx], np.dtype(dtype))
+    x = to_model_images(images[idx], np.dtype(dtype))
     if object_weight is None:
         return x
     w = np.where(object_mask(images[idx]), object_weight, 1.0).astype(dtype)[:, None]  # (B, 1, Hi, Wi)
@@ -268,7 +261,7 @@ def tokenize(codebook, images, batch_size=64, progress=False):
         from tqdm.auto import tqdm
         starts = tqdm(starts, desc="tokenize", unit="batch")
     for i in starts:
-        x = _to_model_images(flat[i:i + batch_size], codebook.dtype)  # (b, C, Hi, Wi)
+        x = to_model_images(flat[i:i + batch_size], codebook.dtype)  # (b, C, Hi, Wi)
         out[i:i + batch_size] = codebook.encode(x)  # int64 in [0, n_embed): fits dtype
     return out.reshape(images.shape[:-3] + (k, k))
 
