@@ -341,3 +341,24 @@ def test_demo_quick_with_the_shipped_models(tmp_path):
     assert proc.stdout.startswith("pyvf kernels: path ") and "docs/models.md" in proc.stdout, show(proc)
     last = proc.stdout.strip().splitlines()[-1]
     assert "docs/walkthrough.md" in last, "the demo's last line names the walkthrough" + show(proc)
+
+
+def test_verdict_lines_say_whether_each_baseline_is_beaten():
+    """Hand-made metrics: pyvf beats nearest_view on both image metrics, mean_image on one, neither
+    pose baseline; the verdicts read the largest context (10 > 9 numerically, not as strings)."""
+    from pyvf.evaluate.run import verdict_lines
+
+    def row(mae=None, rmse=None, pos=None, ori=None):
+        return {k: v for k, v in (("mae", mae), ("rmse", rmse), ("position_error_median", pos),
+                                  ("orientation_error_median_deg", ori)) if v is not None}
+
+    good = {"pyvf": row(2.0, 9.0, 1.0, 10.0), "nearest_view": row(3.0, 10.0), "mean_image": row(1.0, 12.0),
+            "closest_image_pose": row(pos=0.5, ori=5.0), "mean_pose": row(pos=1.0, ori=10.0)}
+    bad = {k: {m: 100.0 for m in v} for k, v in good.items()}  # every method equal: no win anywhere
+    lines = verdict_lines({"context": {"9": bad, "10": good}, "meta": {"scenes": 7}})
+    assert lines[0].startswith("Does pyvf beat the baselines? (context 10, 7 held-out scenes")
+    assert lines[1] == "- nearest_view: yes (MAE 2.00 vs 3.00, RMSE 9.00 vs 10.00)"
+    assert lines[2] == "- mean_image: partly (MAE 2.00 vs 1.00, RMSE 9.00 vs 12.00)"
+    assert lines[3].startswith("- closest_image_pose: no (position 1.00 vs 0.50")
+    assert lines[4].startswith("- mean_pose: no (position 1.00 vs 1.00")  # a tie is no win
+    assert "MAE 1.61, RMSE 7.02, position 0.21, orientation (deg) 3.48" in lines[5]

@@ -55,8 +55,8 @@ from .metrics import (
     to_uint8,
 )
 
-__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS", "evaluate", "metrics_markdown",
-           "write_metrics"]
+__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS", "PAPER_SM7", "evaluate",
+           "metrics_markdown", "verdict_lines", "write_metrics"]
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
 POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
@@ -374,8 +374,40 @@ def _seconds(s):
     return f"{s * 1e3:.1f} ms" if s < 1 else f"{s:.2f} s"
 
 
+# The paper's SM7 figures (its Table on SM7; 64x64 images, context 3, 1000 scenes), from models
+# trained for hundreds of GPU-hours: where the direction past the baselines leads.
+PAPER_SM7 = {"mae": 1.61, "rmse": 7.02, "position_error_median": 0.21, "orientation_error_median_deg": 3.48}
+# each baseline and the metrics it is judged on (lower is better for all of them)
+VERDICTS = {"nearest_view": ("mae", "rmse"), "mean_image": ("mae", "rmse"),
+            "closest_image_pose": ("position_error_median", "orientation_error_median_deg"),
+            "mean_pose": ("position_error_median", "orientation_error_median_deg")}
+_SHORT = {"mae": "MAE", "rmse": "RMSE", "position_error_median": "position",
+          "orientation_error_median_deg": "orientation (deg)"}
+
+
+def verdict_lines(metrics):
+    """One line per baseline, at the largest context evaluated: pyvf's number beside the
+    baseline's for each metric it is judged on, and whether pyvf beats it on all of them; then
+    the paper's SM7 figures. -> list of str."""
+    C = max(metrics["context"], key=int)
+    table = metrics["context"][C]
+    me = table["pyvf"]
+    lines = [f"Does pyvf beat the baselines? (context {C}, {metrics['meta']['scenes']} held-out scenes; "
+             "lower is better)"]
+    for base, names in VERDICTS.items():
+        won = [me[m] < table[base][m] for m in names]
+        pairs = ", ".join(f"{_SHORT[m]} {_fmt(me[m])} vs {_fmt(table[base][m])}" for m in names)
+        word = "yes" if all(won) else ("partly" if any(won) else "no")
+        lines.append(f"- {base}: {word} ({pairs})")
+    lines.append("- for scale, the paper's SM7 models (hundreds of GPU-hours; context 3; its own scenes, "
+                 "positions in its units): " + ", ".join(
+        f"{_SHORT[m]} {_fmt(v)}" for m, v in PAPER_SM7.items()))
+    return lines
+
+
 def metrics_markdown(metrics):
-    """The metrics dict as markdown: a table per context size (methods x metrics), then the timings."""
+    """The metrics dict as markdown: the verdicts (verdict_lines), a table per context size
+    (methods x metrics), then the timings."""
     meta, timing = metrics["meta"], metrics["timing"]
     q = meta["query_views"]
     lines = [f"# pyvf evaluation: {meta['scenes']} scenes (seed {meta['seed']}), {meta['image_size']}x"
@@ -386,7 +418,8 @@ def metrics_markdown(metrics):
              f"then the mean), PSNR in dB on [0, 1] (per image, a perfect image capped at "
              f"{meta['psnr_cap_db']:.1f} dB, then the mean). Poses: medians over the queries, positions in cube "
              f"sides (cameras stand 10 from the object), orientations in degrees. `codebook` is the ground truth "
-             f"encoded and decoded: the best any rendering through this codebook can be."]
+             f"encoded and decoded: the best any rendering through this codebook can be.", ""]
+    lines += verdict_lines(metrics)
     for C, table in metrics["context"].items():
         lines += ["", f"## Context {C} view{'s' if C != '1' else ''}"]
         if int(C) > meta["trained_context"]:
