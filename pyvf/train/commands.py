@@ -4,6 +4,7 @@
     pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
     pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16] [--codebook F]
     pyvf runs runs/cb runs/cb2 [--plot]   # compare runs: their last held-out evaluation
+    pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
 
 Run again with the same arguments to resume from the run folder's checkpoint (--no-resume
 starts over). --config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the
@@ -198,6 +199,18 @@ def _eval_options(p, every, scenes):
                    help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000)")
 
 
+def cmd_train(args):
+    """The whole pipeline, resumable stage by stage: training scenes, codebook, tokens,
+    transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
+    from .pipeline import train_pipeline
+
+    def work():
+        train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress)
+        print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
+              f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
+    return _guarded("train", work)
+
+
 def cmd_runs(args):
     """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
     held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn."""
@@ -261,6 +274,18 @@ def cli_register(subparsers):
                         "(without it, no evaluation)")
     _eval_options(p, every=200, scenes=16)
     p.set_defaults(func=cmd_train_transformer)
+
+    from .pipeline import PRESETS
+    p = subparsers.add_parser("train", help="train a ViewFormer pair from scratch, every stage resumable "
+                              "(--preset quick: about 15 minutes on 2 cores)", description=cmd_train.__doc__)
+    p.add_argument("--out", required=True, help="folder of the stages (scenes/, codebook/, tokens.npz, "
+                                                "transformer/, eval/); run again to resume")
+    p.add_argument("--preset", default="quick", choices=sorted(PRESETS),
+                   help="sizes and steps of every stage: quick (default, ~15 min on 2 cores), full (the shipped "
+                        "models' sizes, many hours), smoke (seconds)")
+    p.add_argument("--threads", type=int, default=None, help="threads for pyvf's C++ kernels")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_train)
 
     p = subparsers.add_parser("runs", help="compare training runs: a markdown table of their last held-out "
                               "evaluations", description=cmd_runs.__doc__)

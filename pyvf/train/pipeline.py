@@ -1,0 +1,150 @@
+"""The whole ViewFormer pipeline in one call: scenes, codebook, tokens, transformer, evaluation.
+
+    metrics = train_pipeline("runs/quick", preset="quick")   # `pyvf train --out runs/quick --preset quick`
+
+The folder holds one stage each, every stage resumable (call again with the same arguments):
+
+    scenes/        pyvf.scenes.write_dataset (kept once its manifest is written)
+    codebook/      train_codebook's run folder (checkpoint, log.csv, eval.csv, eval.png, codebook.npz)
+    tokens.npz     tokenize's output, with tokens.json naming the codebook file it came from (sha256)
+    transformer/   train_transformer's run folder, evaluated on held-out scenes through the codebook
+    eval/          pyvf evaluate's metrics.json, metrics.md, views.png, poses.png
+
+A preset (PRESETS) fixes every size: the data, both models, their steps and the evaluation.
+Training scenes use seed 0, the runs' health checks seed 1, the final evaluation seed 1000.
+"""
+
+import dataclasses
+import hashlib
+import json
+import os
+
+import numpy as np
+
+from .._io import atomic_write_text
+from ..codebook import Codebook, CodebookConfig
+from ..transformer import TransformerConfig
+from .loops import TINY_CODEBOOK, TINY_TRANSFORMER, load_tokens, save_tokens, tokenize, train_codebook, train_transformer
+
+__all__ = ["PRESETS", "Preset", "train_pipeline"]
+
+TRAIN_SEED, HEALTH_SEED, EVAL_SEED = 0, 1, 1000
+
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    scenes: int  # training scenes of 15 views
+    codebook: CodebookConfig
+    codebook_steps: int
+    transformer: TransformerConfig
+    transformer_steps: int
+    transformer_batch: int
+    transformer_lr: float
+    eval_scenes: int  # pyvf evaluate's scenes at the end
+    health_scenes: int  # held-out scenes of the runs' evaluations
+    eval_every: int  # steps between the runs' evaluations
+    size: int = 64  # image side
+    codebook_batch: int = 16
+
+
+PRESETS = {
+    # a pair trained from scratch in about 15 minutes on 2 cores (docs/models.md has its numbers)
+    "quick": Preset(scenes=400, codebook=TINY_CODEBOOK, codebook_steps=1500, transformer=TINY_TRANSFORMER,
+                    transformer_steps=1500, transformer_batch=8, transformer_lr=5e-4, eval_scenes=50,
+                    health_scenes=8, eval_every=250),
+    # the shipped models' sizes: many hours of a 2-core machine (run in the background; resumable)
+    "full": Preset(scenes=4000, codebook=TINY_CODEBOOK, codebook_steps=20000, transformer=TINY_TRANSFORMER,
+                   transformer_steps=20000, transformer_batch=16, transformer_lr=5e-4, eval_scenes=200,
+                   health_scenes=16, eval_every=500),
+    # seconds: every stage runs, for the tests and a first look at the files
+    "smoke": Preset(scenes=3, codebook=dataclasses.replace(TINY_CODEBOOK, ch=32, ch_mult=(1, 1), image_size=16,
+                                                           z_channels=8, embed_dim=8, n_embed=16),
+                    codebook_steps=2, transformer=dataclasses.replace(TINY_TRANSFORMER, n_embeddings=16, d_model=32,
+                                                                      n_head=2, n_layer=1),
+                    transformer_steps=2, transformer_batch=2, transformer_lr=1e-3, eval_scenes=1, health_scenes=1,
+                    eval_every=1, size=16, codebook_batch=2),
+}
+
+
+def _sha256(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _scenes(folder, n, size, progress):
+    """The training scenes: loaded when the folder's manifest exists and matches, else written."""
+    from ..scenes import load_dataset, write_dataset
+
+    if os.path.exists(os.path.join(folder, "manifest.json")):
+        data = load_dataset(folder)
+        if (data.images.shape[0], data.seed, data.images.shape[2]) == (n, TRAIN_SEED, size):
+            return data
+        raise ValueError(f"{folder} holds another dataset ({data.images.shape[0]} scenes of seed {data.seed}, "
+                         f"{data.images.shape[2]} px): use another --out")
+    write_dataset(folder, n, TRAIN_SEED, size=size, progress=progress, overwrite=True)  # over an unfinished one
+    return load_dataset(folder)
+
+
+def _tokens(path, codebook_path, images, poses, progress):
+    """tokenize's output for this codebook file: reused when tokens.json names its sha256."""
+    stamp = path[:-len(".npz")] + ".json"
+    sha = _sha256(codebook_path)
+    if os.path.exists(path) and os.path.exists(stamp):
+        with open(stamp, encoding="utf-8") as f:
+            if json.load(f).get("codebook_sha256") == sha:
+                return load_tokens(path)
+    codebook = Codebook.load(codebook_path)
+    tokens = tokenize(codebook, images, progress=progress)
+    save_tokens(path, tokens, poses, codebook.config.n_embed)
+    atomic_write_text(stamp, json.dumps({"codebook": os.path.basename(codebook_path), "codebook_sha256": sha}) + "\n")
+    return load_tokens(path)
+
+
+def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=print):
+    """Run (or resume) every stage of `preset` in the folder `out` (module docstring); returns
+    the final evaluation's metrics dict (pyvf.evaluate.evaluate's). log: a function printing
+    one line per stage."""
+    from ..evaluate.run import evaluate, metrics_markdown
+    from ..scenes import generate_scenes
+
+    if preset not in PRESETS:
+        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    p = PRESETS[preset]
+    os.makedirs(out, exist_ok=True)
+    quiet = dict(progress=progress, threads=threads)
+
+    log(f"[1/5] scenes: {p.scenes} training scenes x 15 views of {p.size}x{p.size} (seed {TRAIN_SEED})")
+    data = _scenes(os.path.join(out, "scenes"), p.scenes, p.size, progress)
+
+    log(f"[2/5] codebook: {p.codebook_steps} steps of {p.codebook_batch} images, evaluated every {p.eval_every} "
+        f"steps on {p.health_scenes} held-out scenes (seed {HEALTH_SEED})")
+    held_images, held_poses = generate_scenes(HEALTH_SEED, p.health_scenes, size=p.size)  # (n, 15, S, S, 3)
+    cb_dir = os.path.join(out, "codebook")
+    codebook = train_codebook(data.images, p.codebook, cb_dir, steps=p.codebook_steps, batch_size=p.codebook_batch,
+                              checkpoint_every=max(1, p.eval_every), eval_images=held_images[:, :4].reshape(
+                                  -1, p.size, p.size, 3), eval_every=p.eval_every, **quiet)
+
+    log("[3/5] tokens: every training view through the codebook")
+    tokens, poses, _ = _tokens(os.path.join(out, "tokens.npz"), os.path.join(cb_dir, "codebook.npz"), data.images,
+                               data.poses, progress)
+
+    log(f"[4/5] transformer: {p.transformer_steps} steps of {p.transformer_batch} scenes, evaluated every "
+        f"{p.eval_every} steps on the held-out scenes against the baselines")
+    n, V = held_images.shape[:2]
+    eval_set = {"codebook": codebook, "images": held_images, "poses": held_poses,
+                "tokens": tokenize(codebook, held_images).reshape(n, V, -1).astype(np.int64)}
+    transformer = train_transformer(tokens, poses, p.transformer, os.path.join(out, "transformer"),
+                                    steps=p.transformer_steps, batch_size=p.transformer_batch, lr=p.transformer_lr,
+                                    checkpoint_every=max(1, p.eval_every), eval_set=eval_set,
+                                    eval_every=p.eval_every, **quiet)
+
+    log(f"[5/5] evaluation: {p.eval_scenes} held-out scenes (seed {EVAL_SEED}), context 1, 3, 5")
+    metrics = evaluate(codebook, transformer, scenes=p.eval_scenes, seed=EVAL_SEED, out=os.path.join(out, "eval"),
+                       progress=progress, timing_scenes=1, repeat=1,
+                       sources={"codebook": os.path.join(cb_dir, "codebook.npz"),
+                                "transformer": os.path.join(out, "transformer", "transformer.npz")})
+    log(metrics_markdown(metrics))  # the verdicts against each baseline first, then the tables
+    return metrics

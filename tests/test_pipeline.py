@@ -1,0 +1,53 @@
+"""`pyvf train` (pyvf/train/pipeline.py): every stage at the smoke preset, from a temporary folder;
+a second call resumes every stage instead of redoing it; a changed codebook re-tokenizes."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from pyvf.cli import main
+from pyvf.train.pipeline import PRESETS, train_pipeline
+
+
+def test_pipeline_runs_every_stage_and_resumes(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "--out", "run", "--preset", "smoke", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert [line[:5] for line in out.splitlines() if line.startswith("[")] == ["[1/5]", "[2/5]", "[3/5]", "[4/5]",
+                                                                             "[5/5]"]
+    assert "Does pyvf beat the baselines? (context 5" in out
+    run = tmp_path / "run"
+    for f in ("scenes/manifest.json", "codebook/codebook.npz", "codebook/eval.png", "tokens.npz", "tokens.json",
+              "transformer/transformer.npz", "transformer/eval.csv", "eval/metrics.json", "eval/views.png"):
+        assert (run / f).is_file(), f
+    first = json.loads((run / "eval" / "metrics.json").read_text())
+    stamps = {f: os.path.getmtime(run / f) for f in ("codebook/codebook.npz", "tokens.npz", "scenes/manifest.json")}
+
+    # again: the runs are complete, so nothing is retrained or re-tokenized, and the metrics agree
+    lines = []
+    again = train_pipeline(str(run), "smoke", progress=False, log=lines.append)
+    assert again["context"] == first["context"]
+    assert os.path.getmtime(run / "tokens.npz") == stamps["tokens.npz"]
+    assert os.path.getmtime(run / "scenes/manifest.json") == stamps["scenes/manifest.json"]
+    calls = json.loads((run / "codebook" / "config.json").read_text())["calls"]
+    assert [c["resumed_from_step"] for c in calls] == [None, PRESETS["smoke"].codebook_steps]
+
+    # a codebook file that changed makes the tokens stale: they are made again from it
+    stamp = json.loads((run / "tokens.json").read_text())
+    (run / "tokens.json").write_text(json.dumps({**stamp, "codebook_sha256": "0" * 64}))
+    train_pipeline(str(run), "smoke", progress=False, log=lines.append)
+    assert os.path.getmtime(run / "tokens.npz") > stamps["tokens.npz"]
+    assert json.loads((run / "tokens.json").read_text()) == stamp
+
+
+def test_pipeline_refuses_another_dataset_and_unknown_presets(tmp_path):
+    from pyvf.scenes import write_dataset
+
+    write_dataset(str(tmp_path / "run" / "scenes"), 2, 5, size=16, progress=False)
+    with pytest.raises(ValueError, match="holds another dataset"):
+        train_pipeline(str(tmp_path / "run"), "smoke", progress=False, log=lambda s: None)
+    with pytest.raises(ValueError, match="preset must be one of"):
+        train_pipeline(str(tmp_path / "x"), "huge", log=lambda s: None)
+    assert main(["train", "--out", str(tmp_path / "run"), "--preset", "smoke", "--no-progress"]) == 1
