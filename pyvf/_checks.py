@@ -34,6 +34,19 @@ def float_array(name, a, like=None, like_name="x"):
     return a
 
 
+def finite_float(name, a, like=None, like_name="x"):
+    """a: a finite float32/float64 ndarray (of like's dtype, when given); errors name the argument."""
+    float_array(name, a, like, like_name)
+    return finite(name, a)
+
+
+def c_order(a):
+    """a itself when C-contiguous, else a C-ordered copy (a layout copy, never a cast): the C++
+    kernels take C order only. Not np.ascontiguousarray alone: that turns a 0-d array into
+    shape (1,), while a 0-d array is always contiguous and returned as it is."""
+    return a if a.flags.c_contiguous else np.ascontiguousarray(a)
+
+
 def contiguous(name, a):
     if not a.flags.c_contiguous:
         raise ValueError(f"{name} is not C-contiguous (a transposed or sliced view?): "

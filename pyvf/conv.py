@@ -59,12 +59,6 @@ def _after_kernel(what, run, outputs, inputs, every_input_read=True):
             _checks.finite_result(what, g, name)
 
 
-def _contig(a):
-    """a itself when C-contiguous (a 0-d array stays 0-d, which np.ascontiguousarray would make
-    1-d), else a C-ordered copy: the C++ kernels take C order only."""
-    return a if a.flags.c_contiguous else np.ascontiguousarray(a)
-
-
 def _check_image(name, x, finite=True):
     _check_float(name, x, finite=finite)
     if x.ndim != 4:
@@ -184,7 +178,7 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     cache: x and w (no copies unless they were not C-contiguous), stride, padding; the columns
     are recomputed in the backward (they are kh*kw times the size of x)."""
     stride, pad, Ho, Wo = _conv_args(x, w, b, stride, padding)
-    x, w, b = (_contig(a) for a in (x, w, b))  # the kernel takes C order; views are copied once
+    x, w, b = (_checks.c_order(a) for a in (x, w, b))  # the kernel takes C order; views are copied once
     y = np.empty((x.shape[0], w.shape[0], Ho, Wo), dtype=x.dtype)  # (B, Co, Ho, Wo)
     # the kernel raises if y is not finite (each task checks its part); then x, w, b are scanned
     _after_kernel("conv2d_forward", lambda: _core.conv2d_forward(y, x, w, b, stride, *pad), (),
@@ -201,7 +195,7 @@ def conv2d_backward(dy, cache):
     csrc/conv.cpp says how dw and db are split into tasks so that the result is the same for any
     thread count."""
     x, w, stride, pad = _conv_grad_args(dy, cache)
-    dy = _contig(dy)
+    dy = _checks.c_order(dy)
     dx, dw = np.empty_like(x), np.empty_like(w)  # (B, C, Hi, Wi), (Co, C, kh, kw)
     db = np.empty(w.shape[0], dtype=x.dtype)  # (Co,)
     # the kernel raises if dx is not finite (checked per task); dw, db are checked here; then dy is
@@ -286,7 +280,7 @@ def _groupnorm_kernel(x, gamma, beta, G, eps, swish):
     """The C++ forward (csrc/groupnorm.cpp) -> y (B, C, Hi, Wi), x as C-ordered, stats (B, G, 3):
     per group (mean, r, rstd), from which the backward recomputes xhat = ((x - mean) - r) * rstd
     bitwise as the forward computed it (xhat is never stored)."""
-    x, gamma, beta = (_contig(a) for a in (x, gamma, beta))
+    x, gamma, beta = (_checks.c_order(a) for a in (x, gamma, beta))
     y = np.empty_like(x)  # (B, C, Hi, Wi)
     stats = np.empty((x.shape[0], G, 3), dtype=x.dtype)  # (B, G, 3)
     inputs = (("x", x), ("gamma", gamma), ("beta", beta))
@@ -303,7 +297,7 @@ def _groupnorm_kernel(x, gamma, beta, G, eps, swish):
 def _groupnorm_grad_kernel(dy, x, stats, gamma, beta, G, swish):
     _check_grad("dy", dy, x.shape)
     _check_float("dy", dy, like=x, like_name="the forward's x", finite=False)  # finiteness: _after_kernel
-    dy = _contig(dy)
+    dy = _checks.c_order(dy)
     dx = np.empty_like(x)  # (B, C, Hi, Wi)
     dgamma, dbeta = np.empty_like(gamma), np.empty_like(gamma)  # (C,)
     _after_kernel("groupnorm_backward",
@@ -332,7 +326,7 @@ def groupnorm_forward(x, gamma, beta, groups=32, eps=1e-6):
     (mean, r, rstd) per group, gamma, groups; the backward recomputes xhat from them, bitwise."""
     G = _groupnorm_args(x, gamma, beta, groups, eps)
     y, xc, stats = _groupnorm_kernel(x, gamma, beta, G, eps, swish=False)
-    return y, (xc, stats, _contig(gamma), G)
+    return y, (xc, stats, _checks.c_order(gamma), G)
 
 
 def groupnorm_backward(dy, cache):
@@ -356,7 +350,7 @@ def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6):
     gamma, beta, groups; xhat and y = xhat * gamma + beta are recomputed in the backward."""
     G = _groupnorm_args(x, gamma, beta, groups, eps)
     z, xc, stats = _groupnorm_kernel(x, gamma, beta, G, eps, swish=True)
-    return z, (xc, stats, _contig(gamma), _contig(beta), G)
+    return z, (xc, stats, _checks.c_order(gamma), _checks.c_order(beta), G)
 
 
 def groupnorm_swish_backward(dz, cache):
@@ -415,7 +409,7 @@ def swish_forward(x):
     vectorised one of about 1 ulp, std::exp where e^-|x| is subnormal. swish_forward_numpy is the
     same in NumPy. cache: x (no copy unless x was not C-contiguous); the sigmoids are recomputed."""
     _check_float("x", x)
-    x = _contig(x)
+    x = _checks.c_order(x)
     y = np.empty_like(x)
     _core.swish_forward(y, x)
     _checks.finite_result("swish_forward", y, "y")
@@ -428,7 +422,7 @@ def swish_backward(dy, cache):
     x = cache
     _check_grad("dy", dy, x.shape)
     _check_float("dy", dy, like=x, like_name="the forward's x")
-    dy = _contig(dy)
+    dy = _checks.c_order(dy)
     dx = np.empty_like(x)
     _core.swish_backward(dx, dy, x)
     _checks.finite_result("swish_backward", dx, "dx")
@@ -505,7 +499,7 @@ def _matmul(a, b, ta=False):
     the C++ kernel (csrc/conv.cpp matmul_batched; each element one sum in increasing k), not
     NumPy's BLAS, whose threads spin for milliseconds after each call on the cores the conv kernels
     run on. Inputs of one dtype, already checked by the caller."""
-    a, b = _contig(a), _contig(b)
+    a, b = _checks.c_order(a), _checks.c_order(b)
     n, M = a.shape[0], a.shape[2] if ta else a.shape[1]
     c = np.empty((n, M, b.shape[2]), dtype=a.dtype)  # (n, M, N)
     _core.matmul(c, a, b, ta)

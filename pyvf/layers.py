@@ -19,12 +19,6 @@ import numpy as np
 from . import _checks, _core
 
 
-def _float(name, a, like=None, like_name="x"):
-    """a: a finite float32/float64 ndarray (of like's dtype, when given)."""
-    _checks.float_array(name, a, like, like_name)
-    return _checks.finite(name, a)
-
-
 def _grad(name, dy, like, shape):
     """dy: the upstream gradient, a finite array of the forward output's dtype and shape."""
     _checks.float_array(name, dy, like, "the forward's input")
@@ -36,9 +30,9 @@ def _grad(name, dy, like, shape):
 def _check_linear(x, w, b, names=("x", "w", "b")):
     """x (..., din), w (din, dout), b (1, dout): finite, one float dtype."""
     nx, nw, nb = names
-    _float(nx, x)
-    _float(nw, w, x, nx)
-    _float(nb, b, x, nx)
+    _checks.finite_float(nx, x)
+    _checks.finite_float(nw, w, x, nx)
+    _checks.finite_float(nb, b, x, nx)
     if w.ndim != 2:
         raise ValueError(f"{nw} must be 2-D (din, dout), got shape {w.shape}")
     din, dout = w.shape
@@ -100,12 +94,12 @@ def layernorm_forward(x, gamma, beta, eps=1e-5):
     constant row gives y = beta exactly. Rows whose squares overflow (|x - mean| beyond
     sqrt of the dtype's largest number, 1e154 in float64) are scaled by a power of two first, so
     they normalise too. cache: xhat (..., d), rstd (..., 1), gamma."""
-    _float("x", x)
+    _checks.finite_float("x", x)
     if x.ndim < 1 or x.shape[-1] == 0:
         raise ValueError(f"x must have a last dimension d >= 1 to normalise over, got shape {x.shape}")
     d = x.shape[-1]
-    _float("gamma", gamma, x)
-    _float("beta", beta, x)
+    _checks.finite_float("gamma", gamma, x)
+    _checks.finite_float("beta", beta, x)
     for name, a in (("gamma", gamma), ("beta", beta)):
         if a.shape != (d,):
             raise ValueError(f"{name} must have shape ({d},) for x of shape {x.shape}, got {a.shape}")
@@ -162,13 +156,6 @@ def layernorm_backward(dy, cache):
 # GELU, exact erf form (the C++ kernel: accurate in the far negative tail, see csrc/elementwise.cpp)
 
 
-def _contig(x):
-    # the kernels take C-contiguous arrays (a layout copy, never a cast: the dtype is checked);
-    # layer outputs already are, so this copies nothing there. Not np.ascontiguousarray: it
-    # turns a 0-d array into shape (1,)
-    return x if x.flags.c_contiguous else np.array(x, order="C")
-
-
 def _gelu(x):
     y = np.empty_like(x)
     _core.gelu(y, x)
@@ -178,14 +165,14 @@ def _gelu(x):
 def gelu_forward(x):
     """y = x * Phi(x).   x (...) -> y (...). cache: x (C-contiguous; a copy if x was not).
     Finite for every finite x (|gelu(x)| <= |x|)."""
-    _float("x", x)
-    x = _contig(x)
+    _checks.finite_float("x", x)
+    x = _checks.c_order(x)
     return _gelu(x), x
 
 
 def _gelu_backward(dy, x):
     dx = np.empty_like(x)
-    _core.gelu_backward(dx, _contig(dy), x)
+    _core.gelu_backward(dx, _checks.c_order(dy), x)
     return dx
 
 
@@ -204,7 +191,7 @@ def embedding_forward(ids, table):
     """y = table[ids].   ids (...) integers in [0, len(table)), table (n, d) -> y (..., d).
     cache: ids and the table's shape."""
     _checks.int_array("ids", ids)
-    _float("table", table)
+    _checks.finite_float("table", table)
     if table.ndim != 2:
         raise ValueError(f"table must be 2-D (n, d), got shape {table.shape}")
     if ids.size and (ids.min() < 0 or ids.max() >= table.shape[0]):  # numpy would wrap -1 around
@@ -247,13 +234,13 @@ def mlp_forward(x, w_fc, b_fc, w_proj, b_proj):
     """y = gelu(x @ w_fc + b_fc) @ w_proj + b_proj.   x (..., din) -> y (..., dout).
     w_fc (din, dh), b_fc (1, dh), w_proj (dh, dout), b_proj (1, dout)."""
     _check_linear(x, w_fc, b_fc, ("x", "w_fc", "b_fc"))
-    _float("w_proj", w_proj, x)
+    _checks.finite_float("w_proj", w_proj, x)
     if w_proj.ndim != 2 or w_proj.shape[0] != w_fc.shape[1]:
         raise ValueError(f"w_proj must be 2-D with {w_fc.shape[1]} rows (w_fc.shape[1]), got shape {w_proj.shape}")
-    _float("b_proj", b_proj, x)
+    _checks.finite_float("b_proj", b_proj, x)
     if b_proj.shape != (1, w_proj.shape[1]):
         raise ValueError(f"b_proj must have shape (1, {w_proj.shape[1]}), got {b_proj.shape}")
-    h = _contig(_checks.finite_result("mlp_forward", _linear(x, w_fc, b_fc), "the hidden layer"))  # (..., dh)
+    h = _checks.c_order(_checks.finite_result("mlp_forward", _linear(x, w_fc, b_fc), "the hidden layer"))  # (..., dh)
     a = _gelu(h)  # (..., dh)
     y = _checks.finite_result("mlp_forward", _linear(a, w_proj, b_proj))  # (..., dout)
     return y, ((x, w_fc), h, (a, w_proj))

@@ -13,11 +13,6 @@ import numpy as np
 from . import _checks
 
 
-def _float(name, a, like=None, like_name="logits"):
-    _checks.float_array(name, a, like, like_name)
-    return _checks.finite(name, a)
-
-
 def cross_entropy_forward(logits, targets, label_smoothing=0.0):
     """Per-row cross-entropy from the log-sum-exp.
 
@@ -26,7 +21,7 @@ def cross_entropy_forward(logits, targets, label_smoothing=0.0):
     log p = logits - logsumexp(logits) computed with the row max subtracted, so logits of any
     size give a finite loss. label_smoothing in [0, 1]. cache: log p (M, V), targets, eps.
     """
-    _float("logits", logits)
+    _checks.finite_float("logits", logits)
     if logits.ndim != 2 or logits.shape[1] == 0:
         raise ValueError(f"logits must be 2-D (M, V) with V >= 1 classes, got shape {logits.shape}")
     M, V = logits.shape
@@ -52,7 +47,7 @@ def cross_entropy_backward(dloss, cache):
     """dloss (M,) -> dlogits (M, V) = dloss * (softmax(logits) - t)."""
     logp, targets, eps = cache
     M, V = logp.shape
-    _float("dloss", dloss, logp, "the logits")
+    _checks.finite_float("dloss", dloss, logp, "the logits")
     if dloss.shape != (M,):
         raise ValueError(f"dloss must have shape (M,) = ({M},), got {dloss.shape}")
     dlogits = np.exp(logp)  # (M, V) softmax
@@ -72,8 +67,8 @@ def pose_loss_forward(raw, target, pose_multiplier=1.0):
     The loss has raw's shape without the last axis: target may broadcast to raw, never beyond.
     cache: the two residuals.
     """
-    _float("raw", raw, like_name="raw")
-    _float("target", target, raw, "raw")
+    _checks.finite_float("raw", raw, like_name="raw")
+    _checks.finite_float("target", target, raw, "raw")
     for name, a in (("raw", raw), ("target", target)):
         if a.ndim < 1 or a.shape[-1] != 7:
             raise ValueError(f"{name} must have last dimension 7 (xyz, then the quaternion wxyz), got shape {a.shape}")
@@ -95,7 +90,7 @@ def pose_loss_forward(raw, target, pose_multiplier=1.0):
 def pose_loss_backward(dloss, cache):
     """dloss (...) -> draw (..., 7)."""
     rxyz, rq = cache
-    _float("dloss", dloss, rxyz, "raw")
+    _checks.finite_float("dloss", dloss, rxyz, "raw")
     if dloss.shape != rxyz.shape[:-1]:
         raise ValueError(f"dloss must have the loss's shape {rxyz.shape[:-1]}, got {dloss.shape}")
     # forward was loss = mean_3(rxyz^2) + mean_4(rq^2), rxyz = xyz_raw - m * xyz, rq = q_raw - q

@@ -51,8 +51,8 @@ PRESETS = {
     # a pair trained from scratch in about 15 minutes on 2 cores (measured on a 2-core AMD EPYC, avx2:
     # a codebook step of 16 images ~0.5 s, a transformer step of 8 scenes ~0.9 s); too short to
     # beat the baselines (its codebook alone reconstructs worse than the nearest context view)
-    "quick": Preset(scenes=400, codebook=TINY_CODEBOOK, codebook_steps=1000, transformer=TINY_TRANSFORMER,
-                    transformer_steps=350, transformer_batch=8, transformer_lr=5e-4, eval_scenes=30,
+    "quick": Preset(scenes=400, codebook=TINY_CODEBOOK, codebook_steps=900, transformer=TINY_TRANSFORMER,
+                    transformer_steps=300, transformer_batch=8, transformer_lr=5e-4, eval_scenes=30,
                     health_scenes=8, eval_every=250),
     # the shipped models' sizes: many hours of a 2-core machine (run in the background; resumable)
     "full": Preset(scenes=4000, codebook=TINY_CODEBOOK, codebook_steps=20000, transformer=TINY_TRANSFORMER,
