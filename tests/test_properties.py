@@ -951,6 +951,28 @@ def case_attention_layer(data, extreme_ok=True):
         check_close("y", out[0], L(y), tol * (np.abs(L(y)).max() + 1), dt)
         for g, p in zip(out[1:], (x, W, Bb, Wp, Bp)):
             assert g.shape == p.shape and g.dtype == dt and np.isfinite(g).all()
+        # every gradient against torch autograd in float64, with the tree's mask written out here
+        # (not pyvf's): query block (r, i) sees trunk blocks (0, j < i) and its own block (r, i)
+        import torch
+
+        T = R * N * Ln
+        row, view = np.divmod(np.arange(T) // Ln, N)  # each flattened token's tree row and view
+        mask = torch.from_numpy(((row[None, :] == 0) & (view[None, :] < view[:, None]))
+                                | ((row[None, :] == row[:, None]) & (view[None, :] == view[:, None])))
+        leaves = [torch.tensor(np.asarray(a[k], np.float64), requires_grad=True)
+                  for k in ("x", "w_attn", "b_attn", "w_proj", "b_proj")]
+        tx, tW, tB, tWp, tBp = leaves
+        th = (tx @ tW + tB).reshape(R, B, T // R, 3 * d).permute(1, 0, 2, 3).reshape(B, T, 3 * d)
+        heads = lambda t: t.reshape(B, T, H, d // H).transpose(1, 2)  # (B, H, T, dh)
+        tv, tq, tk = heads(th[..., :d]), heads(th[..., d:2 * d]), heads(th[..., 2 * d:])
+        att = (tq @ tk.transpose(-1, -2)).masked_fill(~mask, float("-inf")).softmax(-1) @ tv  # scale 1
+        to = att.transpose(1, 2).reshape(B, R, T // R, d).permute(1, 0, 2, 3).reshape(R, B, N, Ln, d)
+        ty = to @ tWp + tBp
+        ty.backward(torch.from_numpy(np.asarray(a["dy"], np.float64)))
+        check_close("y (torch)", out[0], L(ty.detach().numpy()), tol * (np.abs(L(y)).max() + 1), dt)
+        for name, g, leaf in zip(("dx", "dw_attn", "db_attn", "dw_proj", "db_proj"), out[1:], leaves):
+            ref = leaf.grad.numpy()
+            check_close(name, g, L(ref), tol * (np.abs(ref).max() + 1), dt)
 
     return Case(args, run, check, floats=tuple(args), shaped=tuple(args), dtype=dt)
 
@@ -1144,6 +1166,20 @@ def case_groupnorm(data, extreme_ok=True):
         check_close("y", out[0], xhat * g4 + b4, xerr * np.abs(g4) + 4 * u(dt) * np.abs(b4) + tiny(dt), dt)
         for name, got in zip(("dx", "dgamma", "dbeta"), out[1:]):
             assert np.isfinite(got).all(), name
+        if extreme:
+            return  # huge and tiny magnitudes: the forward's bound above and finiteness are what is stated
+        # the gradients against the closed form, in long double, per group of n values:
+        # dx = rstd (dxhat - mean(dxhat) - xhat mean(dxhat xhat)), dxhat = dy gamma;
+        # dgamma = sum_{b,h,w} dy xhat, dbeta = sum_{b,h,w} dy. Ordinary magnitudes: the bound is a
+        # few hundred roundings of the largest term (n <= 8 values a group, rstd <= 1e3 for eps 1e-6)
+        dxh = (DY * g4).reshape(B, G, -1)
+        xh = xhat.reshape(B, G, -1)
+        dx = (rstd * (dxh - dxh.mean(-1, keepdims=True) - xh * (dxh * xh).mean(-1, keepdims=True))).reshape(X.shape)
+        refs = {"dx": dx, "dgamma": (DY * xhat).sum((0, 2, 3)), "dbeta": DY.sum((0, 2, 3))}
+        scale = {"dx": rstd.max() * np.abs(dxh).max() * (1 + np.abs(xh).max() ** 2),
+                 "dgamma": np.abs(DY * xhat).sum((0, 2, 3)).max(), "dbeta": np.abs(DY).sum((0, 2, 3)).max()}
+        for name, got in zip(("dx", "dgamma", "dbeta"), out[1:]):
+            check_close(name, got, refs[name], 512 * u(dt) * (scale[name] + 1) * (1 + rstd.max() * p.max()), dt)
 
     return Case(args, run, check, floats=("x", "gamma", "beta", "dy"), ordinary=not extreme, dtype=dt)
 
