@@ -959,7 +959,7 @@ def case_attention_layer(data, extreme_ok=True):
         row, view = np.divmod(np.arange(T) // Ln, N)  # each flattened token's tree row and view
         mask = torch.from_numpy(((row[None, :] == 0) & (view[None, :] < view[:, None]))
                                 | ((row[None, :] == row[:, None]) & (view[None, :] == view[:, None])))
-        leaves = [torch.tensor(np.asarray(a[k], np.float64), requires_grad=True)
+        leaves = [torch.tensor(np.array(a[k], np.float64, order="C"), requires_grad=True)  # any layout a test made
                   for k in ("x", "w_attn", "b_attn", "w_proj", "b_proj")]
         tx, tW, tB, tWp, tBp = leaves
         th = (tx @ tW + tB).reshape(R, B, T // R, 3 * d).permute(1, 0, 2, 3).reshape(B, T, 3 * d)
@@ -968,7 +968,7 @@ def case_attention_layer(data, extreme_ok=True):
         att = (tq @ tk.transpose(-1, -2)).masked_fill(~mask, float("-inf")).softmax(-1) @ tv  # scale 1
         to = att.transpose(1, 2).reshape(B, R, T // R, d).permute(1, 0, 2, 3).reshape(R, B, N, Ln, d)
         ty = to @ tWp + tBp
-        ty.backward(torch.from_numpy(np.asarray(a["dy"], np.float64)))
+        ty.backward(torch.from_numpy(np.array(a["dy"], np.float64, order="C")))
         check_close("y (torch)", out[0], L(ty.detach().numpy()), tol * (np.abs(L(y)).max() + 1), dt)
         for name, g, leaf in zip(("dx", "dw_attn", "db_attn", "dw_proj", "db_proj"), out[1:], leaves):
             ref = leaf.grad.numpy()
