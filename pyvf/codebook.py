@@ -101,6 +101,9 @@ def _to_layout(name, p, layout):
     return p.copy()
 
 
+IMAGE_RANGE_SLACK = 1e-3  # images may leave [-1, 1] by this much (a user's own rounding), no more
+
+
 @dataclasses.dataclass(frozen=True)
 class CodebookConfig:
     ch: int  # channels of the first level
@@ -536,6 +539,11 @@ class Codebook:
         if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S) or images.shape[0] < 1:
             raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}")
         _checks.finite("images", images)
+        lo, hi = float(images.min()), float(images.max())
+        if lo < -1 - IMAGE_RANGE_SLACK or hi > 1 + IMAGE_RANGE_SLACK:  # e.g. 0..255 pixels passed as they are
+            raise ValueError(f"images must be in [-1, 1], got values in [{lo:.4g}, {hi:.4g}]: convert uint8 "
+                             "pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images(pictures, dtype), "
+                             "x / 127.5 - 1 in NCHW order")
 
     def encode(self, images, *, return_latent=False):
         """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64; with

@@ -149,6 +149,15 @@ def test_bad_input_raises(rng):
         cb.forward(x[:, :, :8].copy())
     with pytest.raises(ValueError, match="images contains NaN"):
         cb.forward(np.full_like(x, np.nan))
+    # pixels on 0..255 passed as they are: refused by every model call, saying how to convert
+    pixels = np.round((x + 1) * 127.5).astype(np.float32)
+    for call in (cb.forward, cb.encode, lambda a: cb.forward(a, train=True)):
+        with pytest.raises(ValueError, match=r"images must be in \[-1, 1\], got values in \[\d.*to_model_images"):
+            call(pixels)
+    edge = np.clip(x * np.float32(1.0005), -1.0005, 1.0005).astype(np.float32)  # within the slack of 1e-3
+    cb.encode(edge)
+    with pytest.raises(ValueError, match="must be in"):
+        cb.encode(x * np.float32(1.01) + np.float32(0.02))
     with pytest.raises(ValueError, match=r"codes must be in \[0, 16\)"):
         cb.decode_code(np.full((1, 8, 8), 16))
     with pytest.raises(TypeError, match="codes must be an integer"):
