@@ -48,9 +48,15 @@ def _built(path):
 _order = _arch_paths()
 _built_paths = tuple(p for p in _order if _built(p))
 if not _built_paths:
+    _here = os.path.dirname(os.path.abspath(__file__))
+    if os.path.exists(os.path.join(os.path.dirname(_here), "csrc")):  # a source checkout, not an installed copy
+        raise ImportError(
+            f"Python imported pyvf from the source tree {_here}, which has no compiled kernels: the folder "
+            "Python started in (or sys.path) puts the checkout before the installed package. Run Python from "
+            "another folder after `pip install .` (`pytest` from the root imports the installed package on its own)")
     raise ImportError(
-        "pyvf's compiled extension (pyvf._core_<path>) is missing: install pyvf with `pip install .` "
-        "(it compiles csrc/), and do not run Python from inside the source tree's pyvf/ folder")
+        "pyvf's compiled extension (pyvf._core_<path>) is missing from this installation: install pyvf "
+        "with `pip install .` (it compiles csrc/)")
 _base = importlib.import_module(f"pyvf._core_{_built_paths[0]}")
 _features = dict(_base.cpu_features())
 _runs = tuple(p for p in _built_paths if all(_features.get(f, False) for f in _NEEDS.get(p, ())))

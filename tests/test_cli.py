@@ -205,3 +205,13 @@ def test_convert_tf_transformer_without_tensorflow(tmp_path):
     proc = run(["convert", "tf-transformer", "model", "--config", "config.json", "-o", "out.npz"], tmp_path,
                env=clean_env(PYTHONPATH=str(tmp_path / "fake")))
     assert proc.returncode == 1 and "needs tensorflow" in proc.stderr, proc.stderr
+
+
+def test_import_from_the_checkout_root_names_the_cause():
+    """`python` started in the repository root finds the source tree's pyvf/ first, which has no
+    kernels: the error says so and how to fix it (not only that the extension is missing)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    assert os.path.isdir(os.path.join(root, "csrc")) and os.path.isdir(os.path.join(root, "pyvf"))
+    proc = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=root, capture_output=True, text=True)
+    assert proc.returncode != 0
+    assert "imported pyvf from the source tree" in proc.stderr and "another folder" in proc.stderr, proc.stderr
