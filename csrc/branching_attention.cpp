@@ -1,4 +1,4 @@
-// Branching attention kernels (SPEC.md §2).
+// Branching attention kernels (docs/math.md §2).
 //
 // Shapes: q, k, v, o, do are (R, B, H, N, L, dh), C order; block (r, i) of head (b, h) is the
 // (L, dh) matrix at ((((r*B + b)*H + h)*N + i) * L*dh. lse is (R, B, H, N, L) float64.

@@ -1,4 +1,4 @@
-// Branching attention (SPEC.md §2): declarations shared by the kernel and the bindings.
+// Branching attention (docs/math.md §2): declarations shared by the kernel and the bindings.
 #pragma once
 
 #include <cstdint>

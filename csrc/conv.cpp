@@ -1,6 +1,6 @@
 // conv2d, forward and backward, float32 and float64: torch's cross-correlation with any kernel,
 // stride and per-side zero padding (the codebook's: 3x3 stride 1 pad 1, the Downsample's 3x3
-// stride 2 padded (0, 1, 0, 1), 1x1), SPEC.md §4.
+// stride 2 padded (0, 1, 0, 1), 1x1), docs/math.md §4.
 //
 // Shapes (conv.h, ConvDims): x (B, C, Hi, Wi), w (Co, C, kh, kw), b (Co,), y (B, Co, Ho, Wo);
 // K = C*kh*kw, P = Ho*Wo. w is read as the matrix w2 (Co, K), columns in (c, i, j) order, and

@@ -12,7 +12,7 @@ namespace pyvf {
 //   b  (Co,)               bias
 //   y  (B, Co, Ho, Wo)     Ho = (Hi + pt + pb - kh) / stride + 1, Wo = (Wi + pl + pr - kw) / stride + 1
 // Zero padding on each side separately: top pt, bottom pb, left pl, right pr (the Downsample's
-// (0, 1, 0, 1) pads only bottom and right, SPEC.md §4). The bindings check every size; the
+// (0, 1, 0, 1) pads only bottom and right, docs/math.md §4). The bindings check every size; the
 // kernels assume them consistent and every count (K, C, Co, Hi*Wi, Ho*Wo) below 2^31.
 struct ConvDims {
     int64_t B, C, Hi, Wi, Co, kh, kw, stride, pt, pb, pl, pr, Ho, Wo;

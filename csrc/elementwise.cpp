@@ -1,6 +1,6 @@
 // Elementwise kernels that NumPy cannot do accurately by itself.
 //
-// GELU, exact erf form (SPEC.md §3): gelu(x) = x * Phi(x), Phi the standard normal CDF.
+// GELU, exact erf form (docs/math.md §3): gelu(x) = x * Phi(x), Phi the standard normal CDF.
 // Phi is computed as 0.5 * erfc(-x / sqrt(2)), never as 0.5 * (1 + erf(x / sqrt(2))): for
 // x <= -6 the latter loses every digit (Phi(-6) = 9.9e-10, Phi(-9) = 1e-19 < eps) while erfc
 // keeps its relative accuracy down to the underflow. NumPy has no erf/erfc; std::erfc (C99) is

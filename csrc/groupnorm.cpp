@@ -1,4 +1,4 @@
-// GroupNorm (the codebook's Normalize: 32 groups, eps 1e-6, affine, SPEC.md §4), optionally fused
+// GroupNorm (the codebook's Normalize: 32 groups, eps 1e-6, affine, docs/math.md §4), optionally fused
 // with the swish that follows it in ResnetBlock (norm1, norm2) and before conv_out (norm_out);
 // and swish alone. Forward and backward, float32 and float64.
 //

@@ -1,4 +1,4 @@
-// Nearest code (SPEC.md §4): for each row x_m of x (M, D), the index of the nearest row e_k of
+// Nearest code (docs/math.md §4): for each row x_m of x (M, D), the index of the nearest row e_k of
 // codes (K, D) in squared Euclidean distance, and that distance.
 //
 // The answer is the argmin of the exact distances d_k = sum_i (x_i - e_i)^2, summed in double

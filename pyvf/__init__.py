@@ -1,6 +1,6 @@
 """pyvf: a reference implementation of ViewFormer (ECCV 2022) in NumPy with C++ kernels.
 
-Every layer has a hand-written forward and backward pass; SPEC.md is the math.
+Every layer has a hand-written forward and backward pass; docs/math.md is the math.
 """
 
 import os

@@ -1,4 +1,4 @@
-"""Branching attention (SPEC.md §2): the C++ kernel's Python face, and a dense NumPy reference.
+"""Branching attention (docs/math.md §2): the C++ kernel's Python face, and a dense NumPy reference.
 
 Shapes: q, k, v, o of shape (R, B, H, N, L, dh): tree row, batch, head, view, token, head width.
 Row 0 is the trunk, rows 1..R-1 the branches. Query block (r, i) (the L tokens of view i in
@@ -9,7 +9,7 @@ row r) attends every key of
 For the trunk that is block-causal attention over views 0..i; a branch at view i sees the
 strictly earlier trunk views and itself, never another branch and never a later view. Masked
 keys are excluded before the softmax, exactly. The logit is scale * (q . k) with scale = 1 by
-default, as in the published model (SPEC.md §2: logits are not divided by sqrt(dh)).
+default, as in the published model (docs/math.md §2: logits are not divided by sqrt(dh)).
 
     o = branching_attention(q, k, v)                      # forward
     dq, dk, dv = branching_attention_vjp(q, k, v, do)     # gradient of sum(o * do)
@@ -246,11 +246,11 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
         _checks.finite(name, a)
     _check_scale(scale)
     h, c_attn = linear_forward(x, w_attn, b_attn)  # (R, B, N, L, 3d)
-    # SPEC.md §3: the fused columns are [values | queries | keys], not GPT-2's q, k, v order
+    # docs/math.md §3: the fused columns are [values | queries | keys], not GPT-2's q, k, v order
     v = _split_heads(h[..., 0:d], n_head)  # (R, B, H, N, L, dh)
     q = _split_heads(h[..., d:2 * d], n_head)
     k = _split_heads(h[..., 2 * d:3 * d], n_head)
-    # SPEC.md §2: the published model does not divide the logits by sqrt(dh): scale = 1
+    # docs/math.md §2: the published model does not divide the logits by sqrt(dh): scale = 1
     o, lse = branching_attention_forward(q, k, v, scale)  # (R, B, H, N, L, dh), (R, B, H, N, L)
     y, c_proj = linear_forward(_merge_heads(o), w_proj, b_proj)  # (R, B, N, L, d)
     return y, (c_attn, c_proj, q, k, v, o, lse, scale)

@@ -1,4 +1,4 @@
-"""The ViewFormer codebook: a VQ-VAE (taming-transformers style), SPEC.md §4, in NumPy.
+"""The ViewFormer codebook: a VQ-VAE (taming-transformers style), docs/math.md §4, in NumPy.
 
     cfg = CodebookConfig(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,),
                          z_channels=32, embed_dim=32, n_embed=64, image_size=64)
@@ -15,7 +15,7 @@ Traces, for checking a port layer by layer (pyvf.compare):
     g = cb.backward(drec=d)              # a VJP of the reconstruction: activations' gradients
                                          # (backward order), then the parameters'
 
-Parameters use the published torch names (spec/official-codebook-*.json), conv weights
+Parameters use the published torch names (tests/data/official-codebook-*.json), conv weights
 (out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
 load_official / state_dict also speak channels-last kernels (layout="tf": TF, Flax).
 
@@ -119,7 +119,7 @@ class CodebookConfig:
     decay: float = 0.99  # EMA decay of the quantizer
     eps: float = 1e-5  # Laplace smoothing of the EMA cluster sizes
     codebook_weight: float = 1.0  # loss = rec_loss + perceptual_weight * perceptual + codebook_weight * commitment
-    perceptual_weight: float = 0.0  # the LPIPS term (SPEC §4): needs a perceptual module, see Codebook
+    perceptual_weight: float = 0.0  # the LPIPS term (docs/math.md §4): needs a perceptual module, see Codebook
     dtype: str = "float32"
 
     def __post_init__(self):
@@ -423,7 +423,7 @@ class Codebook:
         keep = tape is not None
         if kind == "conv":
             y, c = conv2d_forward(x, P[name + ".weight"], P[name + ".bias"], kw.get("stride", 1), kw.get("padding", 0))
-        elif kind == "norm_swish":  # Normalize (32 groups, eps 1e-6, SPEC §4) then swish, fused
+        elif kind == "norm_swish":  # Normalize (32 groups, eps 1e-6, docs/math.md §4) then swish, fused
             y, c = groupnorm_swish_forward(x, P[name + ".weight"], P[name + ".bias"])
         elif kind == "upsample":
             y, c = upsample_nearest2x_forward(x)
@@ -496,7 +496,7 @@ class Codebook:
                 if res in cfg.attn_resolutions:
                     h = self._op(tape, "attn", f"encoder.down.{l}.attn.{i}", h)
             if l != len(cfg.ch_mult) - 1:
-                # SPEC §4 Downsample: zero-pad right and bottom by one, then 3x3 stride 2 pad 0
+                # docs/math.md §4 Downsample: zero-pad right and bottom by one, then 3x3 stride 2 pad 0
                 h = self._op(tape, "conv", f"encoder.down.{l}.downsample.conv", h, stride=2, padding=(0, 1, 0, 1))
                 res //= 2
         h = self._op(tape, "res", "encoder.mid.block_1", h)

@@ -1,4 +1,4 @@
-"""The codebook's image layers as forward/backward pairs (SPEC.md §4): conv2d, GroupNorm,
+"""The codebook's image layers as forward/backward pairs (docs/math.md §4): conv2d, GroupNorm,
 swish, nearest-neighbour x2 upsampling, and the 2D attention block built from them.
 
 Every layer is two functions: `x_forward(x, *params) -> (out, cache)` and
@@ -105,7 +105,7 @@ def _im2col(x, kh, kw, stride, pad):
     pt, pb, pl, pr = pad
     # zero padding on each side separately: np.pad's order is (before, after) per axis, here
     # (top, bottom) for the rows and (left, right) for the columns. The Downsample's (0, 1, 0, 1)
-    # pads only after (bottom, right): the padding trap of SPEC.md §4, see conv2d_forward
+    # pads only after (bottom, right): the padding trap of docs/math.md §4, see conv2d_forward
     xp = np.pad(x, ((0, 0), (0, 0), (pt, pb), (pl, pr))) if any(pad) else x  # (B, C, Hp, Wp)
     win = sliding_window_view(xp, (kh, kw), axis=(2, 3))[:, :, ::stride, ::stride]  # (B, C, Ho, Wo, kh, kw), a view
     B, C, Ho, Wo = win.shape[:4]
@@ -165,7 +165,7 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     padding: an int (the same zeros on all four sides, torch's `padding=p`) or
     (top, bottom, left, right).
 
-    Padding trap (SPEC.md §4): the Downsample pads only the right and the bottom, by one pixel,
+    Padding trap (docs/math.md §4): the Downsample pads only the right and the bottom, by one pixel,
     then convolves 3x3 stride 2 with padding 0: padding=(0, 1, 0, 1) here, F.pad(x, (0, 1, 0, 1))
     in torch (whose order is (left, right, top, bottom); with these numbers both orders agree).
     padding=1 gives the same output size on even images but shifts every window by one pixel;
@@ -312,7 +312,7 @@ def groupnorm_forward(x, gamma, beta, groups=32, eps=1e-6):
 
     x (B, C, Hi, Wi), gamma, beta (C,) -> y (B, C, Hi, Wi).
 
-    Parity trap (SPEC.md §4): the codebook's Normalize uses eps = 1e-6, not torch's
+    Parity trap (docs/math.md §4): the codebook's Normalize uses eps = 1e-6, not torch's
     nn.GroupNorm / F.group_norm default 1e-5. On groups of variance ~1e-5 the two differ by
     tens of percent.
 
@@ -341,7 +341,7 @@ def groupnorm_backward(dy, cache):
 
 def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6):
     """z = swish(groupnorm(x)): the Normalize + swish pair of the codebook (ResnetBlock's norm1 and
-    norm2, and norm_out before conv_out, SPEC.md §4), in one pass of the C++ kernel.
+    norm2, and norm_out before conv_out, docs/math.md §4), in one pass of the C++ kernel.
 
     x (B, C, Hi, Wi), gamma, beta (C,) -> z (B, C, Hi, Wi). The same numbers as
     swish_forward(groupnorm_forward(x, gamma, beta, groups, eps)[0])[0] (bitwise: the same
@@ -491,7 +491,7 @@ def upsample_nearest2x_backward(dy, cache):
 
 
 # ---------------------------------------------------------------------------------------
-# AttnBlock(c): single-head attention over the Hi*Wi positions, residual (SPEC.md §4)
+# AttnBlock(c): single-head attention over the Hi*Wi positions, residual (docs/math.md §4)
 
 
 def _matmul(a, b, ta=False):
@@ -518,7 +518,7 @@ def attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, 
     (C, C, 1, 1) and bq, bk, bv, bo (C,) (`q`, `k`, `v`, `proj_out`) -> y (B, C, Hi, Wi).
     Attention: logits s[b, i, j] = C**-0.5 * sum_c q[b, c, i] k[b, c, j] over the P = Hi*Wi
     positions (query i, key j), softmax over j, a[b, c, i] = sum_j p[b, i, j] v[b, c, j].
-    Unlike the transformer (SPEC.md §2), these logits ARE scaled, by C**-0.5 with C the channels.
+    Unlike the transformer (docs/math.md §2), these logits ARE scaled, by C**-0.5 with C the channels.
     cache: the children's caches, q, k, v as (B, C, P) and p (B, P, P)."""
     _check_image("x", x)
     B, C, Hi, Wi = x.shape

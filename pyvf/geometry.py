@@ -1,4 +1,4 @@
-"""Camera poses and quaternions (SPEC.md §3 poses, §6 pose metrics).
+"""Camera poses and quaternions (docs/math.md §3 poses, §6 pose metrics).
 
 A pose is 7 numbers: the camera position xyz, then its orientation as a unit quaternion
 (w, x, y, z), scalar first. Quaternions multiply by the Hamilton product (i*j = k); a unit
@@ -151,7 +151,7 @@ def _normalize(q, eps):
 
 def _canonical(q, tie_break=False):
     if not tie_break:
-        # SPEC.md §3 and the published quaternion_remove_sign: flip where w < 0 only
+        # docs/math.md §3 and the published quaternion_remove_sign: flip where w < 0 only
         # (w == 0 and w == -0.0 keep their sign)
         return np.where(q[..., :1] < 0, -q, q)
     # the first non-zero component of (w, x, y, z) made positive
@@ -198,7 +198,7 @@ def quat_rotate(q, v):
 
 
 def quat_normalize(q, eps=1e-12):
-    """q / sqrt(max(|q|^2, eps)), TF's l2_normalize (SPEC.md §3: eps 1e-12).
+    """q / sqrt(max(|q|^2, eps)), TF's l2_normalize (docs/math.md §3: eps 1e-12).
 
     q (..., 4) -> (..., 4). A zero quaternion gives zero (not NaN); |q| < sqrt(eps) = 1e-6
     gives q / 1e-6, a quaternion shorter than 1, as in TF."""
@@ -211,7 +211,7 @@ def quat_normalize(q, eps=1e-12):
 
 
 def quat_canonical(q, *, tie_break=False):
-    """The sign representative of q: -q where w < 0, else q (SPEC.md §3, the published
+    """The sign representative of q: -q where w < 0, else q (docs/math.md §3, the published
     `quaternion_remove_sign`).   q (..., 4) -> (..., 4).
 
     q and -q are the same rotation. At w == 0 exactly (either sign of zero) q is returned
@@ -232,7 +232,7 @@ def _check_pose(name, p, like=None, like_name=None):
 
 
 def relative_poses(poses, ref):
-    """Poses in the frame of the camera ref (SPEC.md §3).
+    """Poses in the frame of the camera ref (docs/math.md §3).
 
     poses (..., 7), ref (..., 7) broadcasting against poses (e.g. poses (B, N, 7) and
     ref (B, 1, 7)) -> (..., 7). With (t0, q0) = ref and (xyz, q) = poses:
@@ -288,7 +288,7 @@ def make_relative(poses, *, canonical=True):
 
 
 # ---------------------------------------------------------------------------------------
-# metrics (SPEC.md §6)
+# metrics (docs/math.md §6)
 
 
 def _check_pair(n1, a, n2, b, width, kind):
@@ -312,7 +312,7 @@ def position_error(p1, p2):
 
 
 def orientation_error(q1, q2):
-    """The angle in degrees of the rotation q1 * conj(q2), in [0, 180] (SPEC.md §6).
+    """The angle in degrees of the rotation q1 * conj(q2), in [0, 180] (docs/math.md §6).
 
     q1, q2 (..., 4) quaternions or (..., 7) poses (only the quaternion is used), both the
     same kind, broadcasting -> (...).
@@ -345,7 +345,7 @@ def orientation_error(q1, q2):
 
 
 def average_pose(poses, axis=-2):
-    """The mean pose over `axis` (SPEC.md §3, the published `reduce`/`quaternion_reduce_mean`).
+    """The mean pose over `axis` (docs/math.md §3, the published `reduce`/`quaternion_reduce_mean`).
 
     poses (..., 7) -> the same shape without `axis` (which must not be the last one).
     xyz: the arithmetic mean. Quaternions: normalised (quat_normalize, eps 1e-12),

@@ -1,4 +1,4 @@
-"""The transformer's small layers as forward/backward pairs (SPEC.md §3).
+"""The transformer's small layers as forward/backward pairs (docs/math.md §3).
 
 Every layer is two functions: `x_forward(x, *params) -> (out, cache)` and
 `x_backward(dout, cache) -> (dx, *dparams)`, gradients in the order of the forward's

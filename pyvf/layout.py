@@ -1,6 +1,6 @@
 """Token layouts: pyvf's tree layout and the flat layout most ports hold.
 
-pyvf runs the transformer on the tree of SPEC.md: every activation is (R, B, N, L, ...) with
+pyvf runs the transformer on the tree of docs/math.md §2: every activation is (R, B, N, L, ...) with
 R tree rows (the trunk and its branches), B the batch, N views, L tokens per view. A port
 usually holds one flat sequence per batch element, (B, T, ...) with T = R*N*L, ordered
 [row][view][token]:

@@ -1,4 +1,4 @@
-"""The transformer's losses as forward/backward pairs (SPEC.md §3).
+"""The transformer's losses as forward/backward pairs (docs/math.md §3).
 
 Both return a loss per row (per token); the model takes the means over views, tokens and the
 batch itself, so that what is averaged over is visible where it happens.
@@ -60,7 +60,7 @@ def cross_entropy_backward(dloss, cache):
 
 
 def pose_loss_forward(raw, target, pose_multiplier=1.0):
-    """The pose loss on the head's raw output (SPEC.md §3: the raw quaternion, not the normalised one).
+    """The pose loss on the head's raw output (docs/math.md §3: the raw quaternion, not the normalised one).
 
     raw (..., 7) = [xyz_raw, q_raw]; target (..., 7) = [xyz, q] in input units, broadcast to raw.
     loss (...) = mean over xyz of (pose_multiplier * xyz - xyz_raw)^2 + mean over wxyz of (q - q_raw)^2.

@@ -1,4 +1,4 @@
-"""Optimisers, the learning-rate schedule and gradient clipping (SPEC.md §4, §5).
+"""Optimisers, the learning-rate schedule and gradient clipping (docs/math.md §4, §5).
 
     opt = AdamW(params, lr=WarmupCosine(1e-4, 2000, 120_000), weight_decay=0.01)
     norm = clip_grad_norm(grads, 1.0, mode="per_tensor")   # in place
@@ -9,7 +9,7 @@ params and grads are dicts name -> numpy array (float32 or float64; a gradient h
 parameter's shape and dtype). Parameters are updated in place and keep their dtype; the
 moments live in the optimiser, in the parameters' dtype. Nothing is cast.
 
-The published training (SPEC.md §5) maps to these pieces as follows. Transformer: the
+The published training (docs/math.md §5) maps to these pieces as follows. Transformer: the
 HuggingFace `AdamWeightDecay` over Keras Adam, i.e. AdamW(eps_convention="keras",
 eps=1e-8, decay=published_weight_decay) (Keras Adam without decay when weight_decay is 0),
 2000 warmup steps then cosine decay to 0 (WarmupCosine), and `tf.clip_by_norm` per tensor
@@ -286,7 +286,7 @@ class AdamW:
 class Adam(AdamW):
     """Adam without weight decay: AdamW with weight_decay = 0 (no L2 term either; torch's
     Adam(weight_decay=...) adds wd * p to the gradient, which this does not offer).
-    The codebook (SPEC.md §4): Adam(params, 1.584e-3, betas=(0.5, 0.9))."""
+    The codebook (docs/math.md §4): Adam(params, 1.584e-3, betas=(0.5, 0.9))."""
 
     def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, *, eps_convention="torch"):
         super().__init__(params, lr, betas, eps, 0.0, eps_convention=eps_convention)
@@ -297,7 +297,7 @@ class Adam(AdamW):
 
 
 def warmup_cosine_lr(step, peak_lr, warmup_steps, total_steps, min_lr_ratio=0.0):
-    """Linear warmup then cosine decay (SPEC.md §5), as the published HuggingFace `WarmUp`
+    """Linear warmup then cosine decay (docs/math.md §5), as the published HuggingFace `WarmUp`
     over Keras `CosineDecay(peak_lr, total_steps - warmup_steps, alpha=min_lr_ratio)`.
 
     step: updates already applied (0 for the first update; see AdamW). With W = warmup_steps,

@@ -1,4 +1,4 @@
-"""The codebook's vector quantizer (SPEC.md §4): the exact nearest-code lookup and the EMA quantizer.
+"""The codebook's vector quantizer (docs/math.md §4): the exact nearest-code lookup and the EMA quantizer.
 
     indices, sq_distances = vq_nearest(x, codes)    # x (M, D), codes (K, D)
 
@@ -79,7 +79,7 @@ class QuantizerOutput:
 
 
 class EMAQuantizer:
-    """The published EMA vector quantizer (SPEC.md §4).
+    """The published EMA vector quantizer (docs/math.md §4).
 
     Buffers (the published names): `embeddings` (embed_dim, n_embed), the codes as COLUMNS,
     initialised uniform in (-sqrt 3, sqrt 3); `ema_cluster_size_hidden` (n_embed,),

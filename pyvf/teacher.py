@@ -179,7 +179,7 @@ def layer_table(model):
 
 
 def _conv_geometry(name, w):
-    """(stride, padding) of a codebook conv, SPEC.md §4: the Downsample pads (0, 1, 0, 1) and
+    """(stride, padding) of a codebook conv, docs/math.md §4: the Downsample pads (0, 1, 0, 1) and
     strides 2; every other 3x3 conv pads 1, every 1x1 conv 0."""
     if name.endswith(".downsample.conv"):
         return 2, (0, 1, 0, 1)

@@ -1,4 +1,4 @@
-"""The ViewFormer transformer ("MIGT" in the published code), SPEC.md §3, in NumPy.
+"""The ViewFormer transformer ("MIGT" in the published code), docs/math.md §3, in NumPy.
 
 One forward builds the three rows of the tree from tokens and poses, runs every block on all
 rows at once (rows meet only in the branching attention), and gives the generation logits, the
@@ -24,7 +24,7 @@ Rows (each (B, N, L, d)), E = wte[tokens], W = wpe[0:L], P = pose_embedding(pose
     1 generation:   wte[V] + W + P        (image hidden, pose kept)
     2 localization: E + W + wte[V + 1]    (image kept, pose replaced by the localization token)
 
-Parameters are named as in the published checkpoint (spec/official-transformer-*.json, without
+Parameters are named as in the published checkpoint (tests/data/official-transformer-tiny.json, without
 the `migt/` prefix and `:0` suffix); linear weights are (in, out), biases (1, out).
 """
 
@@ -65,7 +65,7 @@ TRACE_NAMES = (
     "pose_embedding.c_proj",     # (B, N, d)        P, before the broadcast over L
     "embed.out",                 # (R, B, N, L, d)  the three rows: E+W+P, wte[V]+W+P, E+W+wte[V+1]
     "blocks.{j}.ln_1",           # (R, B, N, L, d)
-    "blocks.{j}.attn.c_attn",    # (R, B, N, L, 3d) fused columns [v | q | k] (SPEC.md §3)
+    "blocks.{j}.attn.c_attn",    # (R, B, N, L, 3d) fused columns [v | q | k] (docs/math.md §3)
     "blocks.{j}.attn.q",         # (R, B, H, N, L, dh)
     "blocks.{j}.attn.k",         # (R, B, H, N, L, dh)
     "blocks.{j}.attn.v",         # (R, B, H, N, L, dh)

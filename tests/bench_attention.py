@@ -1,4 +1,4 @@
-"""pytest-benchmark suite: branching attention at the paper size (SPEC.md §1-2), pyvf's C++
+"""pytest-benchmark suite: branching attention at the paper size (docs/math.md §1-2), pyvf's C++
 kernel against torch's scaled_dot_product_attention with the dense (T, T) boolean mask.
 
     python -m pytest tests/bench_attention.py                      # run the benchmarks

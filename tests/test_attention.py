@@ -1,4 +1,4 @@
-"""Tests of branching attention (SPEC.md §2): the C++ kernel against a dense NumPy reference,
+"""Tests of branching attention (docs/math.md §2): the C++ kernel against a dense NumPy reference,
 PyTorch, finite differences, the defining property of the tree, hard numerical cases, argument
 checks, reproducibility, the mask, and the kernel's vectorised exp.
 
@@ -48,7 +48,7 @@ RTOL32 = 1e-5
 
 def rule_mask(R, N, L):
     """(T, T) bool: mask[t, u] says query token t attends key token u, written from the rule in
-    SPEC.md §2 by a loop over block pairs (independent of pyvf.branching_mask)."""
+    docs/math.md §2 by a loop over block pairs (independent of pyvf.branching_mask)."""
     T = R * N * L
     mask = np.zeros((T, T), dtype=bool)
     for r in range(R):

@@ -1,4 +1,4 @@
-"""The whole codebook against the torch oracle written from SPEC.md §4 (tests/torch_codebook.py):
+"""The whole codebook against the torch oracle written from docs/math.md §4 (tests/torch_codebook.py):
 codes, reconstructions, losses, every parameter gradient, the EMA buffers over three training
 steps; official names; encode/decode; bad input."""
 

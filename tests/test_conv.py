@@ -1,4 +1,4 @@
-"""Tests of the codebook's image layers (SPEC.md §4): conv2d, GroupNorm, swish, nearest x2
+"""Tests of the codebook's image layers (docs/math.md §4): conv2d, GroupNorm, swish, nearest x2
 upsampling and the 2D attention block (pyvf/conv.py).
 
 Each layer is a pair `x_forward(...) -> (out, cache)`, `x_backward(dout, cache) -> (dx, *dparams)`.
@@ -36,7 +36,7 @@ from conftest import assert_bitwise_equal, assert_close
 # GroupNorm and swish are C++ kernels (csrc/conv.cpp, csrc/groupnorm.cpp)
 pytestmark = pytest.mark.usefixtures("kernel_path")
 
-EPS = 1e-6  # the codebook's GroupNorm eps (SPEC.md §4); torch's default is 1e-5
+EPS = 1e-6  # the codebook's GroupNorm eps (docs/math.md §4); torch's default is 1e-5
 G = 32  # groups of Normalize
 
 # float64 pyvf vs float64 torch: the same sums (<= 7 * 3 * 3 * 5 = 315 terms for dw, 96 * 15 for
@@ -231,7 +231,7 @@ def gap(got, want):
 
 
 def test_conv2d_traps_have_teeth(rng):
-    """The Downsample case (SPEC.md §4), against the mistakes that still run: symmetric padding 1
+    """The Downsample case (docs/math.md §4), against the mistakes that still run: symmetric padding 1
     (same output size on even images), the pad on the top-left corner instead, a transposed 3x3
     kernel. Each is an O(1) change of y, far outside RTOL64 (measured gaps 1.06, 1.06, 0.73)."""
     _, (x, w, b), kwargs, _ = build(("conv2d", (3, 3), 2, DOWN, (8, 8)), rng, np.float64)
@@ -737,7 +737,7 @@ def test_conv2d_kernel_threads_bitwise(case, dtype, rng):
 
 
 def test_conv2d_kernel_padding_trap(rng):
-    """The kernel itself on the Downsample (SPEC.md §4): padding=(0, 1, 0, 1) against 1 (same
+    """The kernel itself on the Downsample (docs/math.md §4): padding=(0, 1, 0, 1) against 1 (same
     output size on even images) and (1, 0, 1, 0) (the wrong corner): O(1) apart, while each
     matches torch's own version of it."""
     inputs, kwargs, dy = kernel_inputs((2, 5, 7, (8, 8), (3, 3), 2, DOWN), rng, np.float64)

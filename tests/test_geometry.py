@@ -1,4 +1,4 @@
-"""Tests of pyvf.geometry (SPEC.md §3 poses, §6 pose metrics): the quaternion algebra in closed
+"""Tests of pyvf.geometry (docs/math.md §3 poses, §6 pose metrics): the quaternion algebra in closed
 form, rotations against rotation matrices built independently (Rodrigues' formula from an axis and
 an angle, and torch), relative/absolute poses (round trip, the reference view, invariance to moving
 the whole scene), the orientation error against the published asin form and closed-form angles,

@@ -1,4 +1,4 @@
-"""Tests of the transformer's small layers (SPEC.md §3): linear, LayerNorm, GELU, embedding, MLP.
+"""Tests of the transformer's small layers (docs/math.md §3): linear, LayerNorm, GELU, embedding, MLP.
 
 Each layer is a pair `x_forward(...) -> (out, cache)`, `x_backward(dout, cache) -> (dx, *dparams)`.
 The tests: every layer against PyTorch in float64 under a random upstream gradient; float32
@@ -33,7 +33,7 @@ pytestmark = pytest.mark.usefixtures("kernel_path")
 
 U32 = 2.0 ** -24  # float32 unit roundoff
 U64 = 2.0 ** -53  # float64 unit roundoff
-EPS = 1e-5  # LayerNorm eps, inside the square root (SPEC.md §3)
+EPS = 1e-5  # LayerNorm eps, inside the square root (docs/math.md §3)
 
 # float64 pyvf vs float64 torch: the same sums (at most 148 terms) in another order, and for GELU
 # the same function from another libm formula. Measured <= 1.0e-15 over every layer, output and

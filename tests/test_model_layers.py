@@ -29,7 +29,7 @@ def test_attention_layer_matches_torch(scale, rng):
     t = [torch.tensor(a, requires_grad=True) for a in (x, w_attn, b_attn, w_proj, b_proj)]
     tx = t[0].permute(1, 0, 2, 3, 4).reshape(B, R * N * L, d)  # flat [row][view][token]
     h = tx @ t[1] + t[2][0]
-    v, q, k = h[..., :d], h[..., d:2 * d], h[..., 2 * d:]  # SPEC.md §3: values, queries, keys
+    v, q, k = h[..., :d], h[..., d:2 * d], h[..., 2 * d:]  # docs/math.md §3: values, queries, keys
     q, k, v = (a.reshape(B, -1, H, d // H).transpose(1, 2) for a in (q, k, v))
     o = F.scaled_dot_product_attention(q, k, v, attn_mask=tree_mask(R, N, L), scale=scale)
     ty = o.transpose(1, 2).reshape(B, R * N * L, d) @ t[3] + t[4][0]

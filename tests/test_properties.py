@@ -1493,7 +1493,7 @@ def test_warmup_cosine_lr(step, peak, warm, total, ratio):
        L=st.one_of(st.integers(0, 3), st.sampled_from(ODD_SCALARS)))
 @settings(max_examples=_examples(40))
 def test_branching_mask(R, N, L):
-    """A TypeError/ValueError naming R, N or L, or the mask of SPEC.md section 2 by brute force."""
+    """A TypeError/ValueError naming R, N or L, or the mask of docs/math.md §2 by brute force."""
     ok, m = attempt(pyvf.branching_mask, R, N, L)
     if not ok:
         assert names(m, "R", "N", "L"), m

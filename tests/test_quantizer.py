@@ -1,4 +1,4 @@
-"""The EMA quantizer against an independent torch implementation of SPEC.md §4 (three training
+"""The EMA quantizer against an independent torch implementation of docs/math.md §4 (three training
 steps: codes, outputs, losses, every buffer), its gradients, and the hard cases: unused codes,
 every vector on one code, state round trip, bad input."""
 

@@ -1,4 +1,4 @@
-"""Tests of pyvf.scenes (SPEC.md §7): procedural Shepard-Metzler-7 scenes.
+"""Tests of pyvf.scenes (docs/math.md §7): procedural Shepard-Metzler-7 scenes.
 
 Against closed-form geometry: a unit cube seen head-on from a camera on an axis covers exactly
 the pixel square its face projects to, in the Lambertian colour of that face; every camera looks

@@ -4,7 +4,7 @@ nn.Modules as a port author writes them) is found by pyvf.compare on a traced fo
 most 15 lines of user code beside the port (the functions below marked USER CODE; their lines
 are counted by test_user_code_is_at_most_15_lines). The correct port is checked too: nothing may
 be flagged, so a tool that flags everything fails here as much as one that flags nothing. The
-references are independent: the port is written from SPEC.md, and pyvf's side of each layer is
+references are independent: the port is written from docs/math.md, and pyvf's side of each layer is
 pyvf's own layer pair (checked against torch autograd in float64 in test_trace_compare.py)."""
 
 import inspect
@@ -223,7 +223,7 @@ def codebook_setup(rng, bug):
 CODEBOOK_EXPECT = {  # bug: (train mode, compare's first, teacher forcing's wrong layers)
     None: (True, None, []),
     "padding": (False, "encoder.down.0.downsample.conv", ["encoder.down.0.downsample"]),
-    "ema_first": (True, "quantize", ["quantize"]),  # shows in training mode only (SPEC.md §4)
+    "ema_first": (True, "quantize", ["quantize"]),  # shows in training mode only (docs/math.md §4)
 }
 assert set(CODEBOOK_EXPECT) == {None, *CODEBOOK_BUGS}
 

@@ -306,7 +306,7 @@ class LayerNorm(Op):
 
 class GroupNorm(Op):
     name, title, outputs = "groupnorm", "GroupNorm forward + backward", ("y", "dx", "dgamma", "dbeta")
-    groups, eps = 32, 1e-6  # the codebook's Normalize (SPEC.md §4: eps 1e-6, not torch's 1e-5)
+    groups, eps = 32, 1e-6  # the codebook's Normalize (docs/math.md §4: eps 1e-6, not torch's 1e-5)
 
     def inputs(self, rng):
         B, C, Hi, Wi = self.size

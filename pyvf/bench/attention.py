@@ -1,4 +1,4 @@
-"""Benchmark branching attention (SPEC.md §2): pyvf's C++ kernel against torch's
+"""Benchmark branching attention (docs/math.md §2): pyvf's C++ kernel against torch's
 scaled_dot_product_attention with the dense (T, T) mask and against the dense NumPy reference.
 
     pyvf bench attention                   # paper size R=3, B=1, H=12, N=20, L=64, dh=64
@@ -20,7 +20,7 @@ What it does, in order:
 5. measures pyvf's extra peak memory as N grows, to show it grows linearly in T = R*N*L
    while the dense logits grow as T^2.
 
-Inputs are unit-normal, scale = 1 (the published model's unscaled logits, SPEC.md §2).
+Inputs are unit-normal, scale = 1 (the published model's unscaled logits, docs/math.md §2).
 Layouts: pyvf takes (R, B, H, N, L, dh); torch and the reference's flat sequence are
 (B, H, T, dh) with T = R*N*L in the order [row][view][token].
 
@@ -79,7 +79,7 @@ def make_inputs(R, B, H, N, L, dh, seed=0):
 
 
 def attended_pairs(R, N):
-    """Block pairs one (b, h) attends: trunk N(N+1)/2, each branch N(N-1)/2 + N (SPEC.md §2)."""
+    """Block pairs one (b, h) attends: trunk N(N+1)/2, each branch N(N-1)/2 + N (docs/math.md §2)."""
     return N * (N + 1) // 2 + (R - 1) * (N * (N - 1) // 2 + N)
 
 
@@ -251,7 +251,7 @@ def setup_flex(q, k, v, o_ref):
     try:
         from torch.nn.attention.flex_attention import create_block_mask, flex_attention
 
-        def mask_mod(b, h, q_idx, kv_idx):  # the rule of SPEC.md §2 on flat indices
+        def mask_mod(b, h, q_idx, kv_idx):  # the rule of docs/math.md §2 on flat indices
             q_row, q_view = q_idx // (N * L), (q_idx // L) % N
             k_row, k_view = kv_idx // (N * L), (kv_idx // L) % N
             return ((k_row == 0) & (k_view < q_view)) | ((k_row == q_row) & (k_view == q_view))
@@ -631,7 +631,7 @@ def main(argv=None):
 # pyvf demo: the same check without torch, at three sizes, pyvf against the dense NumPy
 # reference only; BOUND64 and BOUND32 as above
 
-# Sizes, small to the paper's (SPEC.md §1). The dense reference costs O(T^2) time and memory
+# Sizes, small to the paper's (docs/math.md §1). The dense reference costs O(T^2) time and memory
 # (seconds per call in float64 at the paper size, 2 GiB), so the largest size is checked in
 # float64 on two heads only, the first and the last (heads are computed independently, so the
 # reference of those heads' inputs is exactly the reference's output for those heads), and
@@ -768,7 +768,7 @@ def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
     if kernel_line:  # (the caller printed it already otherwise)
         print(f"pyvf kernels: path {pyvf.kernel_path()} (this CPU runs {', '.join(pyvf.kernel_paths())}; "
               "PYVF_ISA=<path> forces one; `pyvf config` for details)")
-    print("pyvf demo: branching attention (SPEC.md §2), the C++ kernel against the dense NumPy reference")
+    print("pyvf demo: branching attention (docs/math.md §2), the C++ kernel against the dense NumPy reference")
     print(f"pyvf {pyvf.__version__}, numpy {np.__version__}, {pyvf.num_threads()} kernel threads; "
           "inputs unit normal, scale 1 (unscaled logits, as the published model)")
     print(f"memory: {memory_method()}")

@@ -1,5 +1,5 @@
 """Attention memory and time as the number of views N grows: pyvf's branching kernel against the
-approaches it replaces (issue 11, item 1; SPEC.md §2).
+approaches it replaces (issue 11, item 1; docs/math.md §2).
 
     pyvf bench scaling                             # N = 2, 4, ..., 64; H=12 dh=64 and H=4 dh=32; long
     pyvf bench scaling --quick                     # N = 2, 4, 8; H=4 dh=32; well under a minute
@@ -56,7 +56,7 @@ from pyvf.bench.attention import (BOUND32, attended_pairs, dense_logits_bytes, m
 from pyvf.measure import cpu_name, format_bytes, median_time, memory_method, rel_err, run_worker
 
 WORKER = "pyvf.bench.scaling"  # this module, run as `python -m WORKER --worker SPEC`
-R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (SPEC.md §1)
+R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
 SIZES = ((12, 64), (4, 32))  # (H, dh): the paper's, and a small one
 QUICK_SIZES = ((4, 32),)
 VIEWS = (2, 4, 8, 16, 32, 64)

@@ -4,7 +4,7 @@ pictures, and the `pyvf demo` / `pyvf evaluate` commands.
     from pyvf.evaluate import evaluate
     metrics = evaluate(codebook, transformer, scenes=200, context=(1, 3, 5), out="eval")
 
-    metrics.py   SPEC.md §6 metrics, the baselines, uint8 <-> model image conversions
+    metrics.py   docs/math.md §6 metrics, the baselines, uint8 <-> model image conversions
     run.py       evaluate(): the protocol, the timings of the scene cache, metrics.json / metrics.md
     pictures.py  views.png (context | truth | codebook | pyvf) and poses.png (cameras from above), Pillow
     commands.py  the `pyvf demo` and `pyvf evaluate` commands (cli_register)

@@ -1,4 +1,4 @@
-"""The metrics of SPEC.md §6 and the four baselines pyvf is compared with, in NumPy.
+"""The metrics of docs/math.md §6 and the four baselines pyvf is compared with, in NumPy.
 
     x = to_model_images(images, np.float32)     # uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) in [-1, 1]
     images = to_uint8(x)                        # the inverse: round((x + 1) * 127.5), clipped to 0..255

@@ -2,7 +2,7 @@
 
     metrics = evaluate(codebook, transformer, scenes=200, context=(1, 3, 5), seed=1000, out="eval")
 
-The protocol (SPEC.md §6 for the metrics, metrics.py for their exact definitions):
+The protocol (docs/math.md §6 for the metrics, metrics.py for their exact definitions):
 
 * Scenes: pyvf.scenes.generate_scenes(seed, scenes, views, size=the codebook's image_size).
   Training data uses seed 0, so the default seed 1000 gives scenes the models never saw.
@@ -10,7 +10,7 @@ The protocol (SPEC.md §6 for the metrics, metrics.py for their exact definition
   the last `queries` views (10..14 of SM7's 15), the same queries for every C, so the rows of
   the tables differ only in how much the model was shown.
 * The codebook tokenizes every image used once (batched). The transformer encodes the
-  context once per (batch of scenes, C) (Transformer.encode_scene, the scene cache of SPEC.md
+  context once per (batch of scenes, C) (Transformer.encode_scene, the scene cache of docs/math.md
   §3), then renders every query (render_scene: the logits' argmax tokens, decoded by the
   codebook, rounded to uint8) and localizes every query from its ground-truth tokens
   (localize_scene).

@@ -1,4 +1,4 @@
-"""Procedural Shepard-Metzler-7 scenes (SPEC.md §7): the object, the cameras, a NumPy ray caster,
+"""Procedural Shepard-Metzler-7 scenes (docs/math.md §7): the object, the cameras, a NumPy ray caster,
 and the dataset on disk. Deterministic: a seed gives the same bytes on every machine.
 
     images, poses = generate_scene(seed, index)          # (15, 64, 64, 3) uint8, (15, 7) float64

@@ -46,7 +46,7 @@ def save_preview(path, images, scale=2):
 
 
 def cmd_scenes(args):
-    """Render a Shepard-Metzler-7 dataset (SPEC.md §7) into .npz shards and a manifest."""
+    """Render a Shepard-Metzler-7 dataset (docs/math.md §7) into .npz shards and a manifest."""
     t0 = time.perf_counter()
     try:
         manifest = write_dataset(args.out, args.scenes, args.seed, views=args.views, size=args.size,

@@ -6,7 +6,7 @@
     images, poses = generate_scene(seed, index)     # (15, 64, 64, 3) uint8, (15, 7) float64
     images, poses = generate_scenes(seed, n)        # (n, 15, 64, 64, 3), (n, 15, 7)
 
-The object (SPEC.md §7): N_CUBES = 7 unit cubes on the integer lattice, each attached face
+The object (docs/math.md §7): N_CUBES = 7 unit cubes on the integer lattice, each attached face
 to face to the previous one by a step along one of +-x, +-y, +-z, chosen uniformly among the
 steps that reach a free cell (self-avoiding; a chain of 7 never runs into a dead end: the last
 cube's neighbours other than its predecessor can only be cubes 3 or 5 steps back). Each cube

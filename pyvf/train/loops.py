@@ -1,4 +1,4 @@
-"""Training loops: the codebook on images, tokenization, the transformer on tokens (SPEC.md §4, §5).
+"""Training loops: the codebook on images, tokenization, the transformer on tokens (docs/math.md §4, §5).
 
     cb = train_codebook(images, TINY_CODEBOOK, "runs/cb", steps=20_000)  # images (scenes, views, Hi, Wi, 3) uint8
     tokens = tokenize(cb, images)                                         # (scenes, views, k, k) int16
@@ -36,7 +36,7 @@ from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
-# configuration (SPEC.md §4) at a quarter of the channels, one ResnetBlock per level and no
+# configuration (docs/math.md §4) at a quarter of the channels, one ResnetBlock per level and no
 # attention, so that a step of batch 16 takes about 2 s on 2 cores. 256 codes: SM7 scenes have
 # few colours and one object (the paper's 1024 serve real photographs).
 TINY_CODEBOOK = CodebookConfig(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(),
@@ -50,11 +50,11 @@ TINY_TRANSFORMER = TransformerConfig(
     token_image_size=8,  # = TINY_CODEBOOK.token_size: L = 64 tokens per view
     sequence_size=6,  # SM7 in the paper: context 5, so n = 6 views per sequence
     n_loss_skip=1,  # view 0 is pure context; every other view is a target with context 1..5
-    pose_multiplier=0.2,  # SM7: positions scaled by 0.2 (SPEC.md §5)
+    pose_multiplier=0.2,  # SM7: positions scaled by 0.2 (docs/math.md §5)
 )
 
 # Codebook training recipes: Adam's settings, dead-code restarts and the loss weight of object
-# pixels. "published" is the published code's (SPEC.md §4), kept for exactness work: it pairs
+# pixels. "published" is the published code's (docs/math.md §4), kept for exactness work: it pairs
 # lr 1.584e-3 and betas (0.5, 0.9) with a batch of 352. With the batches of 16 a CPU affords
 # the same settings collapse the latent (measured on SM7: 9 to 31 codes in use in the first 300
 # steps, the decoded colours on one line); "small-batch", the default, is chosen by the
@@ -157,7 +157,7 @@ class _Threads:
 def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="small-batch", lr=None, betas=None,
                    reset_dead_codes=None, object_weight=None, seed=0, checkpoint_every=200, log_every=10,
                    eval_images=None, eval_every=0, resume=True, progress=True, threads=None, command=None):
-    """Train a Codebook with Adam and the EMA quantizer (SPEC.md §4).
+    """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4).
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
     out_dir: the run folder (created): checkpoint.npz, log.csv, config.json, and at the end
@@ -295,7 +295,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
                       checkpoint_every=200, log_every=10, eval_set=None, eval_every=0, resume=True, progress=True,
                       threads=None, command=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
-    (the branching tree, SPEC.md §2-3), with the published optimiser (SPEC.md §5).
+    (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5).
 
     tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: floats (scenes,
         views, 7), xyz and a unit quaternion wxyz, in any frame (each sample is made relative

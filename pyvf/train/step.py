@@ -1,4 +1,4 @@
-"""One training step of the transformer and of the codebook, for a loop to call (SPEC.md §5).
+"""One training step of the transformer and of the codebook, for a loop to call (docs/math.md §5).
 
     model = Transformer(cfg)
     opt = AdamW(model.params, lr=WarmupCosine(1e-4, 2000, 120_000), weight_decay=0.01)

@@ -1,7 +1,7 @@
 """Checking pyvf against other implementations, and bringing their weights in.
 
-    torch_transformer   the transformer written again in torch from SPEC.md §3 (the oracle)
-    torch_codebook      the VQ-VAE codebook written again in torch from SPEC.md §4 (the oracle)
+    torch_transformer   the transformer written again in torch from docs/math.md §3 (the oracle)
+    torch_codebook      the VQ-VAE codebook written again in torch from docs/math.md §4 (the oracle)
     torch_ports         both models as a port author writes them (nn.Modules named as published),
                         with the typical port bugs to plant (tests/test_teacher.py, docs/verify.md)
     convert_tf          a published TensorFlow transformer checkpoint -> pyvf .npz

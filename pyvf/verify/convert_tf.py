@@ -6,7 +6,7 @@ into the .npz that pyvf.Transformer loads.
 --config is a JSON file of TransformerConfig fields (n_embeddings, n_head, d_model, n_layer,
 token_image_size, sequence_size, n_loss_skip, ...). Needs tensorflow (only here, inside
 convert_checkpoint: pyvf itself never imports it). The checkpoint's keys are matched to the official names of
-spec/official-transformer-*.json, whichever way TensorFlow wrote them:
+tests/data/official-transformer-tiny.json, whichever way TensorFlow wrote them:
 
     name-based (tf.compat.v1 Saver):   migt/h.0/attn/c_attn/weight
     object-based (Keras save_weights): migt/h.0/attn/c_attn/weight/.ATTRIBUTES/VARIABLE_VALUE

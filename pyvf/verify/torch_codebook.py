@@ -1,6 +1,6 @@
 """The ViewFormer VQ-VAE codebook written again in torch, as the oracle for pyvf's codebook.
 
-Written from SPEC.md §4 independently of pyvf's code (taming-transformers style Encoder /
+Written from docs/math.md §4 independently of pyvf's code (taming-transformers style Encoder /
 Decoder with official torch state_dict names, EMA vector quantizer). Functional torch only:
 F.conv2d, F.group_norm (32 groups, eps 1e-6), nearest upsampling, explicit softmax attention.
 Autograd gives the gradients; the EMA update runs without gradient.
@@ -83,7 +83,7 @@ def decoder(z, P, cfg):
 
 
 def ema_update(buffers, z_flat, codes, cfg):
-    """SPEC §4 EMA step (no gradient); returns a new buffers dict."""
+    """docs/math.md §4 EMA step (no gradient); returns a new buffers dict."""
     with torch.no_grad():
         z_flat = z_flat.detach()
         emb = buffers["quantize.embeddings"]
@@ -129,7 +129,7 @@ def forward(P, buffers, images, cfg, codebook_weight=1.0, train=True):
 
 
 def parameter_shapes(cfg):
-    """Official name -> shape of every parameter (not the quantizer buffers), from SPEC §4."""
+    """Official name -> shape of every parameter (not the quantizer buffers), from docs/math.md §4."""
     S = {}
 
     def c(name, cin, cout, ks):

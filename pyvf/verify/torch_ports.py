@@ -3,7 +3,7 @@ the tree as one flat sequence (B, T, d) with T = 3*N*L in [row][view][token] and
 
 A template for a port, and the subject of pyvf's verification tests: `bug=` plants one typical
 port bug (None, the default, is the published math), which pyvf.compare and pyvf.teacher_force
-must find at its layer (tests/test_teacher.py, docs/verify.md). Written from SPEC.md, not from
+must find at its layer (tests/test_teacher.py, docs/verify.md). Written from docs/math.md, not from
 pyvf's code. Module and parameter names:
 
     TransformerPort: embed (wte, wpe, pose_embedding.{c_fc, gelu, c_proj}), h.{j}.{ln_1, attn.{c_attn,
@@ -51,7 +51,7 @@ class MLP(nn.Module):
 
 def tree_mask(N, L, bug=None):
     """(T, T) bool, T = 3*N*L: query (row r, view i) sees the trunk's views before i and its own
-    row's view i (SPEC.md §2)."""
+    row's view i (docs/math.md §2)."""
     t = torch.arange(3 * N * L)
     row, view = t // (N * L), t // L % N
     qr, qi, kr, ki = row[:, None], view[:, None], row[None, :], view[None, :]
@@ -69,7 +69,7 @@ class Attention(nn.Module):
 
     def forward(self, x, mask):  # x (B, T, d)
         B, T, d = x.shape
-        v, q, k = self.c_attn(x).split(d, dim=-1)  # SPEC.md §3: the columns are [v | q | k]
+        v, q, k = self.c_attn(x).split(d, dim=-1)  # docs/math.md §3: the columns are [v | q | k]
         if self.qkv_order:
             q, k, v = v, q, k  # GPT-2's order
         q, k, v = (t.reshape(B, T, self.n_head, d // self.n_head).transpose(1, 2) for t in (q, k, v))
@@ -179,7 +179,7 @@ class Downsample(nn.Module):
         self.conv, self.pad = nn.Conv2d(c, c, 3, stride=2), pad
 
     def forward(self, x):
-        return self.conv(F.pad(x, self.pad))  # SPEC.md §4: right and bottom only
+        return self.conv(F.pad(x, self.pad))  # docs/math.md §4: right and bottom only
 
 
 class Upsample(nn.Module):
@@ -262,7 +262,7 @@ class Decoder(nn.Module):
 
 class Quantizer(nn.Module):
     """EMA vector quantizer; codes are the columns of `embeddings` (embed_dim, n_embed). In
-    training mode each call applies one EMA update, after the lookup (SPEC.md §4)."""
+    training mode each call applies one EMA update, after the lookup (docs/math.md §4)."""
 
     def __init__(self, D, K, decay=0.99, eps=1e-5, ema_first=False):
         super().__init__()

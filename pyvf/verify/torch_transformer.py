@@ -1,6 +1,6 @@
 """The ViewFormer transformer written again in torch, as the oracle for pyvf.Transformer.
 
-Written from SPEC.md §3 independently of pyvf's code: the tree is one flat sequence of
+Written from docs/math.md §3 independently of pyvf's code: the tree is one flat sequence of
 T = 3*N*L tokens in the order [row][view][token] with a dense boolean mask built here from the
 rule, attention is plain masked softmax (masked logits set to -inf), every layer is torch's own
 (F.layer_norm, F.gelu exact, F.cross_entropy with label_smoothing). Autograd gives the
