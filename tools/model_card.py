@@ -108,8 +108,9 @@ def main(argv=None):
                       ["rec_loss", "commitment", "perplexity", "usage"], img_dir, where_note=args.codebook_where)
     lines += _section("transformer", args.transformer_run, tf_config, tf_log,
                       ["ce_loss", "pose_loss", "lr"], img_dir, where_note=args.transformer_where)
-    lines += ["## Held-out evaluation", "", "```bash", meta.get("command", "pyvf evaluate ..."), "```", "",
-              metrics_md.strip(), ""]
+    command = (f"pyvf evaluate --scenes {meta['scenes']} --context {','.join(map(str, meta['context_sizes']))} "
+               f"--seed {meta['seed']} --out eval")  # what metrics.json's meta says was run
+    lines += ["## Held-out evaluation", "", "```bash", command, "```", "", metrics_md.strip(), ""]
     for pic, what in (("views.png", "context views | ground truth | codebook reconstruction | pyvf's rendering"),
                       ("poses.png", "estimated against true camera positions")):
         if os.path.exists(os.path.join(img_dir, pic)):
