@@ -101,7 +101,7 @@ def show_config(file=None):
     lines = [
         f"pyvf {__version__}",
         f"kernel path: {c['path']} ({c['path_description']}){forced}",
-        "  kernels on it: branching attention forward/backward, vq_nearest, gelu, exp, all_finite",
+        f"  kernels on it: {', '.join(c['kernels'])}",
         f"paths this process can use: {', '.join(c['available_paths'])}",
         f"paths built: {', '.join(c['built_paths'])}",
         f"cpu features: {features}",

@@ -106,11 +106,22 @@ def use_path(path):
     return previous
 
 
+_NOT_KERNELS = {"cpu_features", "num_threads", "set_num_threads", "openmp", "path", "simd_bytes"}
+
+
+def kernels():
+    """The compiled kernels of the current path, read from its module: its public functions
+    other than the settings (_NOT_KERNELS), a *_plain reference variant folded into its kernel."""
+    names = [n for n in dir(_impl) if not n.startswith("_") and n not in _NOT_KERNELS and callable(getattr(_impl, n))]
+    return sorted(n for n in names if not n.endswith("_plain"))
+
+
 def config():
     """What show_config prints, as a dict."""
     return {
         "path": _current,
         "path_description": _DESCRIBE.get(_current, _current),
+        "kernels": kernels(),
         "forced_by_PYVF_ISA": _forced,
         "available_paths": list(_allowed),
         "built_paths": list(_built_paths),

@@ -73,6 +73,12 @@ def test_python_dash_m_pyvf(tmp_path):
 
 def test_config(tmp_path):
     assert_ran(run(["config"], tmp_path), "kernel path:", "threads:")
+    # the kernels listed come from the compiled module: every one is callable there, and the
+    # codebook's (conv2d, GroupNorm, swish) are among them
+    listed = pyvf._core.config()["kernels"]
+    assert {"attn_forward", "conv2d_forward", "groupnorm_backward", "swish_forward", "vq_nearest"} <= set(listed)
+    assert all(callable(getattr(pyvf._core, name)) for name in listed)
+    assert not {"num_threads", "cpu_features"} & set(listed)
 
 
 def test_demo_attention_small(tmp_path):
