@@ -17,7 +17,7 @@ import shutil
 import sys
 
 from pyvf._io import atomic_write_text
-from pyvf.train.curves import plot_curves, read_log
+from pyvf.train.curves import eval_panels, plot_curves, plot_eval, read_log
 
 
 def _run(run_dir):
@@ -32,8 +32,9 @@ def _commands(config):
     out = []
     for call in config.get("calls", []):
         argv = (call.get("command") or {}).get("argv")
-        if argv:
-            out.append(" ".join(["pyvf"] + [a for a in argv[1:]]))
+        if argv:  # folders by their names, not one machine's paths
+            out.append(" ".join(["pyvf"] + [os.path.basename(a.rstrip("/")) if os.path.isabs(a) else a
+                                             for a in argv[1:]]))
     return out
 
 
@@ -61,6 +62,15 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=
     lines += _commands(config) or ["(not recorded)"]
     lines += ["```", "", f"Last logged values: " + ", ".join(f"{c} {log[c][-1]:.4g}" for c in columns), "",
               f"![{name} learning curves](img/{os.path.basename(png)})", ""]
+    if os.path.exists(os.path.join(run_dir, "eval.csv")):  # the held-out evaluation during training
+        ev = read_log(run_dir, "eval.csv")
+        panels, baselines = eval_panels(list(ev))
+        epng = plot_eval(run_dir, os.path.join(img_dir, f"{name}-eval.png"))
+        last = ", ".join(f"{c} {ev[c][-1]:.4g}" for c in panels)
+        base = ", ".join(f"{b} {ev[b][-1]:.4g}" for c in panels for b in baselines.get(c, ()))
+        lines += [f"Held-out evaluation during training (eval.csv; the baselines dashed), last at step "
+                  f"{int(ev['step'][-1])}: {last}" + (f"; baselines: {base}" if base else "") + ".", "",
+                  f"![{name} held-out evaluation]({'img/' + os.path.basename(epng)})", ""]
     return lines
 
 

@@ -205,7 +205,8 @@ def cmd_train(args):
     from .pipeline import train_pipeline
 
     def work():
-        train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress)
+        train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
+                       command=_record(args))
         print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
               f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
     return _guarded("train", work)

@@ -62,6 +62,7 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), na
         finite = np.concatenate([yv[np.isfinite(yv)], np.array([v for v in lv if np.isfinite(v)])])
         lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
         hi = hi if hi > lo else lo + 1.0
+        lo, hi = lo - 0.04 * (hi - lo), hi + 0.04 * (hi - lo)  # a margin: no line on the frame
         smin, smax = float(step.min()), float(step.max())
         smax = smax if smax > smin else smin + 1.0
         px = x0 + (step - smin) / (smax - smin) * (x1 - x0)
