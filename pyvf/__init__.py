@@ -50,15 +50,53 @@ __version__ = "0.1.0"
 
 
 def num_threads():
-    """Threads the C++ kernels use (OpenMP; OMP_NUM_THREADS sets the default)."""
+    """Threads the C++ kernels use (OpenMP; PYVF_NUM_THREADS, else OMP_NUM_THREADS, sets the default)."""
     return _core.num_threads()
 
 
+def _blas_limits(n):
+    """Limit numpy's BLAS pool to n threads (threadpoolctl); returns the limiter (its
+    restore_original_limits() puts the previous counts back), or None without threadpoolctl."""
+    try:
+        from threadpoolctl import threadpool_limits  # a dependency; imported when threads are set
+    except ImportError:  # pragma: no cover - installed with pyvf
+        return None
+    return threadpool_limits(limits=n, user_api="blas")
+
+
 def set_num_threads(n):
-    """Set the threads the C++ kernels use, for this process."""
+    """Set the threads of this process's numerical work: pyvf's C++ kernels and numpy's BLAS pool
+    together, so that the two never run more threads than asked for between them (BLAS threads
+    left at the core count spin against the kernels' on a busy machine). For a block only:
+    `with pyvf.threads(n): ...`."""
     if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n < 2 ** 31:
         raise ValueError(f"n must be a positive integer below 2^31, got {n!r}")
     _core.set_num_threads(n)
+    _blas_limits(n)
+
+
+class threads:
+    """`with pyvf.threads(n):` pyvf's kernels and numpy's BLAS on n threads inside the block, both
+    put back as they were after it. n=None changes nothing."""
+
+    def __init__(self, n):
+        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or not 1 <= n < 2 ** 31):
+            raise ValueError(f"n must be a positive integer below 2^31 or None, got {n!r}")
+        self.n, self._old, self._blas = n, None, None
+
+    def __enter__(self):
+        if self.n is not None:
+            self._old = _core.num_threads()
+            _core.set_num_threads(self.n)
+            self._blas = _blas_limits(self.n)
+        return self
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            if self._blas is not None:  # first: threadpoolctl's restore may touch OpenMP's count too
+                self._blas.restore_original_limits()
+            _core.set_num_threads(self._old)
+        return False
 
 
 def kernel_path():
@@ -110,6 +148,13 @@ def show_config(file=None):
     print("\n".join(lines), file=file)
 
 
+_env_threads = os.environ.get("PYVF_NUM_THREADS", "").strip()
+if _env_threads:  # one setting for the kernels and numpy's BLAS, for a whole process
+    if not _env_threads.isdigit() or int(_env_threads) < 1:
+        raise ImportError(f"PYVF_NUM_THREADS={_env_threads!r} is not a positive integer")
+    set_num_threads(int(_env_threads))
+
+
 __all__ = [
     "Comparison",
     "compare",
@@ -159,6 +204,7 @@ __all__ = [
     "branching_mask",
     "num_threads",
     "set_num_threads",
+    "threads",
     "kernel_path",
     "kernel_paths",
     "use_kernel_path",

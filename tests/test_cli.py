@@ -221,3 +221,38 @@ def test_import_from_the_checkout_root_names_the_cause():
     proc = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=root, capture_output=True, text=True)
     assert proc.returncode != 0
     assert "imported pyvf from the source tree" in proc.stderr and "another folder" in proc.stderr, proc.stderr
+
+
+def test_one_thread_setting_for_the_kernels_and_blas(tmp_path):
+    """pyvf.set_num_threads and pyvf.threads set the kernels and numpy's BLAS pool together; the
+    block puts both back; PYVF_NUM_THREADS does it for a process; a bad value names itself."""
+    from threadpoolctl import threadpool_info
+
+    def blas():
+        return sorted({p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"})
+
+    before_k, before_b = pyvf.num_threads(), blas()
+    assert before_b, "numpy has a BLAS pool"
+    with pyvf.threads(1):
+        assert pyvf.num_threads() == 1 and blas() == [1]
+    assert pyvf.num_threads() == before_k and blas() == before_b
+    with pyvf.threads(None):  # changes nothing
+        assert pyvf.num_threads() == before_k and blas() == before_b
+    try:
+        pyvf.set_num_threads(1)
+        assert pyvf.num_threads() == 1 and blas() == [1]
+    finally:
+        pyvf.set_num_threads(before_k)
+        from threadpoolctl import threadpool_limits
+        threadpool_limits(limits=before_b[0], user_api="blas")
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="positive integer"):
+            pyvf.threads(bad)
+    code = ("import pyvf; from threadpoolctl import threadpool_info; "
+            "print(pyvf.num_threads(), sorted({p['num_threads'] for p in threadpool_info() if p['user_api'] == 'blas'}))")
+    env = dict(os.environ, PYVF_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert out.stdout.split() == ["1", "[1]"], out.stdout + out.stderr
+    env["PYVF_NUM_THREADS"] = "two"
+    out = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert out.returncode != 0 and "PYVF_NUM_THREADS='two' is not a positive integer" in out.stderr

@@ -130,24 +130,21 @@ def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="flo
 
 
 class _Threads:
-    """Set the kernels' thread count for a block, then put the previous one back."""
+    """`--threads` for a block: pyvf.threads(n) (the kernels and numpy's BLAS), n checked first
+    so that a bad value raises naming the argument before anything runs."""
 
     def __init__(self, n):
         if n is not None:
             positive_int("threads", n)
-        self.n, self.old = n, None
+        self.n, self._block = n, None
 
     def __enter__(self):
-        if self.n is not None:
-            import pyvf  # at call time: pyvf is imported by then
-            self.old = pyvf.num_threads()
-            pyvf.set_num_threads(int(self.n))
+        import pyvf  # at call time: pyvf is imported by then
+        self._block = pyvf.threads(None if self.n is None else int(self.n))
+        return self._block.__enter__()
 
     def __exit__(self, *exc):
-        if self.old is not None:
-            import pyvf
-            pyvf.set_num_threads(self.old)
-        return False
+        return self._block.__exit__(*exc)
 
 
 # ---------------------------------------------------------------------------------------
