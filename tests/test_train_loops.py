@@ -431,9 +431,11 @@ def test_recipes_and_their_errors(tmp_path, rng):
     train_codebook(images, CB, str(tmp_path / "p"), steps=1, batch_size=2, recipe="published", **QUIET)
     hyper = json.loads((tmp_path / "p" / "config.json").read_text())["hyperparameters"]
     assert (hyper["lr"], hyper["betas"], hyper["reset_dead_codes"]) == (1.584e-3, [0.5, 0.9], 0)
+    assert "object_weight" not in hyper
     train_codebook(images, CB, str(tmp_path / "s"), steps=1, batch_size=2, lr=1e-3, **QUIET)
     hyper = json.loads((tmp_path / "s" / "config.json").read_text())["hyperparameters"]
     assert (hyper["lr"], hyper["betas"], hyper["reset_dead_codes"]) == (1e-3, [0.9, 0.99], 20)
+    assert hyper["object_weight"] == 4.0  # the default recipe's; the published one has none (1.0)
     for kw, msg in ((dict(recipe="fast"), "recipe must be one of"), (dict(betas=(0.9,)), "betas must be"),
                     (dict(betas=(0.9, 1.0)), "betas must be"), (dict(object_weight=0), "object_weight must be"),
                     (dict(object_weight=-1), "object_weight")):
