@@ -178,7 +178,6 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     views = SM7_VIEWS if views is None else views
     context = _check_args(context, scenes, views, queries, batch)
     cb_cfg, tf_cfg = codebook.config, transformer.config
-    dt = transformer.dtype
     Cmax = context[-1]
     qidx = np.arange(views - queries, views)  # (M,) the query views
     used = np.concatenate([np.arange(Cmax), qidx])  # the views any method looks at

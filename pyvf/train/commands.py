@@ -18,8 +18,6 @@ import os
 import sys
 import zipfile
 
-import numpy as np
-
 from ..codebook import Codebook, CodebookConfig
 from ..transformer import TransformerConfig
 from .curves import plot_eval, runs_table
@@ -27,6 +25,7 @@ from .loops import (
     CODEBOOK_RECIPES,
     TINY_CODEBOOK,
     _Threads,
+    held_out_set,
     TINY_TRANSFORMER,
     load_tokens,
     save_tokens,
@@ -107,10 +106,8 @@ def _held_out_scenes(args):
     codebook = _read_codebook(args.codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(args.eval_seed, args.eval_scenes, size=codebook.config.image_size)
-    n, V = images.shape[:2]
     with _Threads(args.threads):
-        tokens = tokenize(codebook, images).reshape(n, V, -1).astype(np.int64)  # (n, V, L)
-    return {"codebook": codebook, "images": images, "poses": poses, "tokens": tokens}
+        return held_out_set(codebook, images, poses)
 
 
 def _read_codebook(path):

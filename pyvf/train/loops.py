@@ -266,6 +266,14 @@ def tokenize(codebook, images, batch_size=64, progress=False):
     return out.reshape(images.shape[:-3] + (k, k))
 
 
+def held_out_set(codebook, images, poses):
+    """train_transformer's eval_set: held-out scenes images uint8 (n, V, S, S, 3) and poses
+    (n, V, 7) with their tokens (n, V, L) int64 by this codebook."""
+    n, V = images.shape[:2]
+    tokens = tokenize(codebook, images).reshape(n, V, -1).astype(np.int64)
+    return {"codebook": codebook, "images": images, "poses": poses, "tokens": tokens}
+
+
 def save_tokens(path, tokens, poses, n_embed):
     """Write a tokenized dataset atomically: tokens (scenes, views, k, k) ints in [0, n_embed),
     poses (scenes, views, 7) floats, and n_embed (the codebook size the tokens index)."""

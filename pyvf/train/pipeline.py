@@ -19,12 +19,19 @@ import hashlib
 import json
 import os
 
-import numpy as np
-
 from .._io import atomic_write_text
 from ..codebook import Codebook, CodebookConfig
 from ..transformer import TransformerConfig
-from .loops import TINY_CODEBOOK, TINY_TRANSFORMER, load_tokens, save_tokens, tokenize, train_codebook, train_transformer
+from .loops import (
+    TINY_CODEBOOK,
+    TINY_TRANSFORMER,
+    held_out_set,
+    load_tokens,
+    save_tokens,
+    tokenize,
+    train_codebook,
+    train_transformer,
+)
 
 __all__ = ["PRESETS", "Preset", "train_pipeline"]
 
@@ -135,9 +142,7 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
 
     log(f"[4/5] transformer: {p.transformer_steps} steps of {p.transformer_batch} scenes, evaluated every "
         f"{p.eval_every} steps on the held-out scenes against the baselines")
-    n, V = held_images.shape[:2]
-    eval_set = {"codebook": codebook, "images": held_images, "poses": held_poses,
-                "tokens": tokenize(codebook, held_images).reshape(n, V, -1).astype(np.int64)}
+    eval_set = held_out_set(codebook, held_images, held_poses)
     transformer = train_transformer(tokens, poses, p.transformer, os.path.join(out, "transformer"),
                                     steps=p.transformer_steps, batch_size=p.transformer_batch, lr=p.transformer_lr,
                                     checkpoint_every=max(1, p.eval_every), eval_set=eval_set,
