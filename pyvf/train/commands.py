@@ -169,7 +169,7 @@ def cmd_train_transformer(args):
                           max_grad_norm=None if args.max_grad_norm <= 0 else args.max_grad_norm,
                           seed=args.seed, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
                           resume=not args.no_resume, progress=not args.no_progress, threads=args.threads,
-                          command=_record(args))
+                          command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
         print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
     return _guarded("train-transformer", work)
 
@@ -271,6 +271,12 @@ def cli_register(subparsers):
                    help="the codebook .npz the tokens came from: the held-out evaluation renders through it "
                         "(without it, no evaluation)")
     _eval_options(p, every=200, scenes=16)
+    p.add_argument("--engine", default="pyvf", choices=["pyvf", "torch"],
+                   help="pyvf's kernels (default) or torch (pip install 'pyvf[torch]'): the same run, the model in "
+                        "torch, checked against pyvf at every checkpoint (parity.csv)")
+    p.add_argument("--device", default="cpu", help="the torch engine's device: cpu (default), cuda or cuda:N")
+    p.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
+                   help="the torch engine's arithmetic: fp32 (default) or bf16 autocast (weights stay float32)")
     p.set_defaults(func=cmd_train_transformer)
 
     from .pipeline import PRESETS

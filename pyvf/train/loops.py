@@ -34,6 +34,7 @@ from ..transformer import Transformer, TransformerConfig
 from ._run import Run, fingerprint, integer, positive_int, real
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
+from .torch_engine import TorchTransformer, check_engine, log_parity, parity_batch
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
 # configuration (docs/math.md §4) at a quarter of the channels, one ResnetBlock per level and no
@@ -301,7 +302,7 @@ def load_tokens(path):
 def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, context=None, lr=1e-4, warmup=None,
                       total_steps=None, weight_decay=0.01, max_grad_norm=1.0, clip_mode="per_tensor", seed=0,
                       checkpoint_every=200, log_every=10, eval_set=None, eval_every=0, resume=True, progress=True,
-                      threads=None, command=None):
+                      threads=None, command=None, engine="pyvf", device="cpu", precision="fp32"):
     """Train a Transformer on token images and poses, every context size and both tasks at once
     (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5).
 
@@ -326,6 +327,12 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         (reads the models only: the trajectory is the same without it).
     out_dir, resume, seed, threads, command: as train_codebook; the final model is
         out_dir/transformer.npz (Transformer.load reads it).
+    engine: "pyvf" (its own kernels, on the CPU) or "torch" (torch_engine.TorchTransformer:
+        the same batches, schedule, optimiser, clipping and checkpoints, the model in torch on
+        `device` "cpu" | "cuda" | "cuda:N" at `precision` "fp32" | "bf16" (autocast; the weights
+        and moments stay float32)). A checkpoint of either engine resumes in the other. The torch
+        engine checks the torch model against pyvf's at every checkpoint (out_dir/parity.csv)
+        and stops at a divergence.
     Returns the trained Transformer."""
     if not isinstance(config, TransformerConfig):
         raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
@@ -348,6 +355,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         raise ValueError("max_grad_norm must be positive, or None for no clipping")
     if clip_mode not in ("global", "per_tensor"):
         raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {clip_mode!r}")
+    check_engine(engine, device, precision)
     hyper = {"batch_size": batch_size, "views": n_views, "lr": lr, "warmup": int(warmup),
              "total_steps": total_steps, "weight_decay": weight_decay, "eps": 1e-8, "eps_convention": "keras",
              "max_grad_norm": None if max_grad_norm is None else float(max_grad_norm), "clip_mode": clip_mode,
@@ -364,7 +372,8 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     threads_set = _Threads(threads)
     run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
               steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
-              call={"command": command, "threads": threads,
+              call={"command": command, "threads": threads, "engine": engine, "device": device,
+                    "precision": precision,
                     "eval": None if eval_set is None else {"every": eval_every, "contexts": contexts,
                                                            "fingerprint": fingerprint(eval_set["tokens"])}},
               eval_columns=None if eval_set is None else transformer_health_columns(contexts))
@@ -382,25 +391,38 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
                 eps_convention="keras")
     if run.resumed:
         run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+
+    if engine == "torch":
+        eng = TorchTransformer(model, opt, device=device, precision=precision, max_grad_norm=max_grad_norm,
+                               clip_mode=clip_mode)
+        step, state, current, opt = eng.step, eng.state_dict, eng.to_pyvf, eng.opt
+        parity = parity_batch(tokens, poses, n_views, seed, config.dtype)
+    else:
+        def step(tok, pos):
+            out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=max_grad_norm, clip_mode=clip_mode,
+                                         relative=True)
+            if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
+                norm = float(np.sqrt(sum(n * n for n in norm.values())))
+            return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm
+        state, current = model.state_dict, lambda: model
+
     with threads_set, run:
         if evaluating and not run.resumed:
-            run.log_eval(0, health(model))
+            run.log_eval(0, health(current()))
             plot_eval(run.out_dir)
         for t in run.steps():
             tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t, config.dtype)
             # tok (B, N, L), pos (B, N, 7)
             lr_t = opt.lr_at(opt.step_count)
-            out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=max_grad_norm, clip_mode=clip_mode,
-                                         relative=True)
-            if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
-                norm = float(np.sqrt(sum(n * n for n in norm.values())))
-            run.log(t, {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)),
-                        "pose_loss": float(np.mean(out.pose_loss)),
+            loss, ce, pl, norm = step(tok, pos)
+            run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl,
                         "grad_norm": np.nan if norm is None else norm, "lr": lr_t})
             if evaluating and run.eval_due(t, eval_every):
-                run.log_eval(t, health(model))
+                run.log_eval(t, health(current()))
                 plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
             if run.checkpoint_due(t):
-                run.save(t, model.state_dict(), opt)
-    run.save_final(model.state_dict())
-    return model
+                if engine == "torch":  # before the save: a divergent model is not checkpointed
+                    log_parity(run.out_dir, t, eng.parity(*parity))
+                run.save(t, state(), opt)
+    run.save_final(state())
+    return current()

@@ -49,10 +49,10 @@ class MLP(nn.Module):
         return self.c_proj(self.gelu(self.c_fc(x)))
 
 
-def tree_mask(N, L, bug=None):
+def tree_mask(N, L, bug=None, device=None):
     """(T, T) bool, T = 3*N*L: query (row r, view i) sees the trunk's views before i and its own
     row's view i (docs/math.md §2)."""
-    t = torch.arange(3 * N * L)
+    t = torch.arange(3 * N * L, device=device)
     row, view = t // (N * L), t // L % N
     qr, qi, kr, ki = row[:, None], view[:, None], row[None, :], view[None, :]
     mask = ((kr == 0) & (ki < qi)) | ((kr == qr) & (ki == qi))
@@ -96,7 +96,7 @@ class Embedding(nn.Module):
 
     def forward(self, tokens, poses):  # (B, N, L), (B, N, 7) -> (B, 3*N*L, d), rows trunk, generation, localization
         B, N, L = tokens.shape
-        E, W = self.wte(tokens), self.wpe(torch.arange(L) + self.shift)
+        E, W = self.wte(tokens), self.wpe(torch.arange(L, device=tokens.device) + self.shift)
         P = self.pose_embedding(torch.cat([poses[..., :3] * self.pose_multiplier, poses[..., 3:]], -1))[:, :, None]
         rows = [E + W + P, (self.wte.weight[self.V] + W + P).expand(E.shape), E + W + self.wte.weight[self.V + 1]]
         return torch.stack(rows, 1).reshape(B, 3 * N * L, -1)
@@ -115,15 +115,15 @@ class TransformerPort(nn.Module):
                                      qkv_order=bug == "qkv_order" and j == 1) for j in range(cfg.n_layer))
         self.ln_f, self.pose_head = nn.LayerNorm(d, eps=1e-5), MLP(d, 2 * d, 7)
 
-    def mask(self, N, L):
-        return tree_mask(N, L, self.bug)
+    def mask(self, N, L, device=None):
+        return tree_mask(N, L, self.bug, device)
 
     def logits(self, g):  # tied to the token embedding
         return g @ self.embed.wte.weight[:self.V].T
 
     def forward(self, tokens, poses):  # -> logits (B, N, L, V), raw pose (B, N, L, 7)
         B, N, L = tokens.shape
-        x, mask = self.embed(tokens, poses), self.mask(N, L)
+        x, mask = self.embed(tokens, poses), self.mask(N, L, tokens.device)
         for block in self.h:
             x = block(x, mask)
         x = x.reshape(B, 3, N, L, -1)

@@ -70,11 +70,18 @@ def forward(P, tokens, poses, cfg, sdpa=False):
     loc = layer_norm(x[:, 2], P, "ln_f")
     logits = g @ wte[:V].T  # (B, N, L, V)
     raw = mlp(loc, P, "quaternion_pose_representation/pose_classifier")  # (B, N, L, 7)
-    S = cfg.n_loss_skip
+    ce, pl, loss = losses(logits, raw, tokens, poses, cfg)
+    return logits, raw, ce, pl, loss
+
+
+def losses(logits, raw, tokens, poses, cfg):
+    """logits (B, N, L, V), raw pose (B, N, L, 7), tokens (B, N, L), poses (B, N, 7) -> the
+    cross-entropy (B,) (label smoothing), the pose loss (B,), both over views >= n_loss_skip,
+    and the weighted batch mean (docs/math.md §5)."""
+    B, V, S = logits.shape[0], logits.shape[-1], cfg.n_loss_skip
     ce = F.cross_entropy(logits[:, S:].reshape(-1, V), tokens[:, S:].reshape(-1), reduction="none",
                          label_smoothing=cfg.label_smoothing).reshape(B, -1).mean(dim=1)
     target = poses[:, S:, None, :]
     pl = (((cfg.pose_multiplier * target[..., :3] - raw[:, S:, :, :3]) ** 2).mean(-1)
           + ((target[..., 3:] - raw[:, S:, :, 3:]) ** 2).mean(-1)).reshape(B, -1).mean(dim=1)
-    loss = (cfg.image_generation_weight * ce + cfg.localization_weight * pl).mean()
-    return logits, raw, ce, pl, loss
+    return ce, pl, (cfg.image_generation_weight * ce + cfg.localization_weight * pl).mean()

@@ -1,0 +1,229 @@
+"""The torch engine of train_transformer: the same loop, batches, schedule, optimiser, clipping,
+run folder and checkpoints as pyvf's engine, with the model and the update in torch, on a CPU or
+a GPU (docs/training.md, "Training with torch").
+
+The model is pyvf.verify's TransformerPort (written from docs/math.md, tested against pyvf to
+float32 rounding), initialised from pyvf's Transformer(config, seed), so both engines start from
+the same weights. TorchAdamW is pyvf.optim.AdamW's update written with torch operations (the
+Keras epsilon convention, decoupled decay on the parameters published_weight_decay names); its
+moments are saved in pyvf's layout, so a checkpoint of either engine resumes in the other.
+
+At every checkpoint the torch model is checked against pyvf (`parity`): pyvf loads the weights,
+runs a fixed batch, and its logits, pose predictions and losses must equal the torch model's
+(evaluated in float32, whatever the training precision) within PARITY_RTOL; the worst error is
+appended to parity.csv, and a larger one stops the run naming the first divergent quantity.
+"""
+
+import csv
+import math
+import os
+
+import numpy as np
+
+from ..compare import compare
+from ..geometry import make_relative
+from ..layout import params_from_layout, params_to_layout
+
+# The parity bound: pyvf.compare's normwise relative error, float32 torch against float32 pyvf.
+# Both round every dot product (length up to 4d) to float32 (u = 6e-8) in another order: about
+# sqrt(4d) * u = 1.4e-6 per layer at d = 128, compounded over the blocks and amplified by the
+# LayerNorms; the tiny model measures 1e-6 to 1e-5 (tests/test_torch_engine.py). 1e-3 is
+# compare's float32 default: two orders above that, below what one wrong layer gives (>= 1e-2).
+PARITY_RTOL = 1e-3
+PARITY_LOG = "parity.csv"
+
+
+def import_torch():
+    try:
+        import torch
+    except ImportError as e:
+        raise ImportError("engine='torch' needs torch: pip install 'pyvf[torch]' (or a torch build for your "
+                          "GPU, see pytorch.org)") from e
+    return torch
+
+
+def check_engine(engine, device, precision):
+    """engine 'pyvf' | 'torch'; device 'cpu' | 'cuda' | 'cuda:N' and precision 'fp32' | 'bf16'
+    (the torch engine's only: pyvf's engine runs in the configuration's dtype on the CPU)."""
+    if engine not in ("pyvf", "torch"):
+        raise ValueError(f"engine must be 'pyvf' or 'torch', got {engine!r}")
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+    if not isinstance(device, str) or not (device == "cpu" or device == "cuda" or device.startswith("cuda:")):
+        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
+    if engine == "pyvf" and (device != "cpu" or precision != "fp32"):
+        raise ValueError(f"device={device!r} and precision={precision!r} need engine='torch' "
+                         "(pyvf's engine runs on the CPU in the configuration's dtype)")
+    if engine == "torch":
+        torch = import_torch()
+        if device.startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError(f"device={device!r}, but torch sees no CUDA device (torch {torch.__version__})")
+
+
+class TorchAdamW:
+    """pyvf.optim.AdamW.step on torch tensors. ref: the pyvf AdamW whose hyperparameters,
+    schedule and decayed set it applies, and whose state_dict format it saves (its moments are
+    kept here, in the torch parameters' layout). params: official name -> torch Parameter."""
+
+    def __init__(self, params, ref, model):
+        self.params, self.ref, self.model = params, ref, model
+        self.exp_avg, self.exp_avg_sq = self._to_torch(ref.exp_avg), self._to_torch(ref.exp_avg_sq)
+
+    def _to_torch(self, arrays):
+        torch = import_torch()
+        arrays = params_to_layout(self.model, arrays, "torch")  # pyvf's layout -> nn.Linear's
+        return {k: torch.as_tensor(arrays[k]).to(p.device, p.dtype).contiguous() for k, p in self.params.items()}
+
+    @property
+    def step_count(self):
+        return self.ref.step_count
+
+    def lr_at(self, step):
+        return self.ref.lr_at(step)
+
+    def step(self):
+        """One update from the parameters' .grad (finite: the caller checked). Returns the lr."""
+        torch = import_torch()
+        r = self.ref
+        lr = r.lr_at(r.step_count)
+        t = r.step_count + 1
+        b1, b2 = r.betas
+        bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
+        with torch.no_grad():
+            for k, p in self.params.items():
+                g, m, v = p.grad, self.exp_avg[k], self.exp_avg_sq[k]
+                m.mul_(b1).add_(g, alpha=1 - b1)  # m = b1 m + (1 - b1) g
+                v.mul_(b2).addcmul_(g, g, value=1 - b2)  # v = b2 v + (1 - b2) g^2
+                if r.eps_convention == "torch":
+                    upd = (lr / bc1) * (m / (v.sqrt() / math.sqrt(bc2) + r.eps))
+                else:
+                    upd = (m * (lr * math.sqrt(bc2) / bc1)) / (v.sqrt() + r.eps)  # Keras' order
+                if r.weight_decay != 0 and k in r.decayed:
+                    p.mul_(1 - lr * r.weight_decay)  # decoupled, before the Adam step
+                p.sub_(upd)
+        r.step_count = t
+        return lr
+
+    def state_dict(self):
+        """pyvf AdamW's state_dict (its layout, numpy): what Run.save writes."""
+        for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
+            arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
+            setattr(self.ref, theirs, params_from_layout(self.model, arrays, "torch"))
+        return self.ref.state_dict()
+
+
+class TorchTransformer:
+    """The torch engine's model and optimiser for train_transformer's loop.
+
+    model: the pyvf Transformer holding the starting weights (a fresh one, or restored from a
+    checkpoint); opt_ref: the pyvf AdamW built on model.params (restored too), whose state this
+    engine continues."""
+
+    def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", max_grad_norm=None,
+                 clip_mode="per_tensor"):
+        torch = import_torch()
+        from ..verify.torch_ports import TransformerPort, official_name
+        self.torch, self.config, self.pyvf_model = torch, model.config, model
+        self.device, self.precision = torch.device(device), precision
+        self.max_grad_norm, self.clip_mode = max_grad_norm, clip_mode
+        dtype = {"float32": torch.float32, "float64": torch.float64}[str(model.dtype)]
+        self.port = TransformerPort(model.config).to(self.device, dtype)
+        self._names = {official_name(n): p for n, p in self.port.named_parameters()}
+        self.load(model.state_dict(layout="torch"))
+        self.opt = TorchAdamW(self._names, opt_ref, model)
+
+    def load(self, state):
+        """state: official name -> array in the torch layout."""
+        with self.torch.no_grad():
+            for k, p in self._names.items():
+                p.copy_(self.torch.as_tensor(state[k]))
+
+    def state_dict(self):
+        """The weights in pyvf's layout (numpy), as Transformer.state_dict() gives them."""
+        arrays = {k: p.detach().cpu().numpy() for k, p in self._names.items()}
+        self.pyvf_model.load_official(arrays, layout="torch")
+        return self.pyvf_model.state_dict()
+
+    def to_pyvf(self):
+        """A pyvf Transformer holding the torch model's current weights."""
+        self.state_dict()
+        return self.pyvf_model
+
+    def _outputs(self, tokens, poses, autocast):
+        """tokens (B, N, L) int64, poses (B, N, 7) numpy, poses already relative -> logits,
+        raw pose, ce (B,), pose loss (B,), loss, on the device."""
+        torch = self.torch
+        from ..verify.torch_transformer import losses
+        tok = torch.as_tensor(tokens).to(self.device, non_blocking=True)
+        pos = torch.as_tensor(poses).to(self.device, non_blocking=True)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
+            logits, raw = self.port(tok, pos)
+        logits, raw = logits.float() if autocast else logits, raw.float() if autocast else raw
+        return (logits, raw, *losses(logits, raw, tok, pos, self.config))
+
+    def step(self, tokens, poses):
+        """One update on a batch (poses in any frame: made relative here, as pyvf's engine).
+        Returns (loss, mean ce, mean pose loss, the global gradient norm before clipping)."""
+        torch = self.torch
+        pos = make_relative(poses)[0]
+        for p in self._names.values():
+            p.grad = None
+        _, _, ce, pl, loss = self._outputs(tokens, pos, self.precision == "bf16")
+        loss.backward()
+        grads = [p.grad for p in self._names.values()]
+        norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
+        total = norms.square().sum().sqrt()
+        stats = torch.stack([loss.detach(), ce.detach().mean(), pl.detach().mean(), total]).cpu().numpy()
+        if not np.isfinite(stats).all():
+            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
+                             "(loss, ce, pose loss, grad norm = "
+                             f"{stats.tolist()}): no update applied; lower the learning rate")
+        if self.max_grad_norm is not None:
+            m = float(self.max_grad_norm)
+            if self.clip_mode == "per_tensor":  # tf.clip_by_norm per tensor, as pyvf's clip_grad_norm
+                scale = torch.where(norms > m, m / norms, torch.ones_like(norms))
+                torch._foreach_mul_(grads, list(scale.unbind()))
+            elif stats[3] + 1e-6 > m:  # global: torch.nn.utils.clip_grad_norm_
+                torch._foreach_mul_(grads, m / (float(stats[3]) + 1e-6))
+        self.opt.step()
+        return float(stats[0]), float(stats[1]), float(stats[2]), float(stats[3])
+
+    def parity(self, tokens, poses):
+        """pyvf against the torch model (float32, no autocast) on one batch: pyvf.compare's
+        Comparison of logits, pose predictions, losses."""
+        torch = self.torch
+        pos = make_relative(poses)[0]
+        with torch.no_grad():
+            logits, raw, ce, pl, loss = self._outputs(tokens, pos, False)
+        mine = {"logits": logits.cpu().numpy(), "pose_raw": raw.cpu().numpy(), "ce_loss": ce.cpu().numpy(),
+                "pose_loss": pl.cpu().numpy(), "loss": np.asarray(loss.item())}
+        out = self.to_pyvf().forward(tokens, pos.astype(self.pyvf_model.dtype))
+        ref = {"logits": out.logits, "pose_raw": out.pose_raw, "ce_loss": out.ce_loss,
+               "pose_loss": out.pose_loss, "loss": np.asarray(out.loss)}
+        return compare(mine, ref, rtol=PARITY_RTOL)
+
+
+def log_parity(out_dir, step, comparison):
+    """Append the parity check of `step` to out_dir/parity.csv; raise when it failed."""
+    path = os.path.join(out_dir, PARITY_LOG)
+    worst = max(comparison.rows, key=lambda r: (not np.isfinite(r.rel), r.rel))
+    new = not os.path.exists(path)
+    with open(path, "a", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        if new:
+            w.writerow(["step", "worst", "rel_err", "bound"])
+        w.writerow([step, worst.name, repr(float(worst.rel)), repr(PARITY_RTOL)])
+    if not comparison.ok:
+        raise RuntimeError(f"parity check at step {step}: the torch model and pyvf differ first in "
+                           f"{comparison.first!r} (normwise relative error over {PARITY_RTOL}); the "
+                           f"checkpoint before it is intact. Comparison:\n{comparison}")
+
+
+def parity_batch(tokens, poses, n_views, seed, dtype):
+    """The fixed batch the parity checks run: 4 samples drawn as transformer_batch draws, from a
+    seed no training run of `seed` uses for its batches."""
+    from .loops import transformer_batch
+    return transformer_batch(tokens, poses, n_views, 4, seed + 1_000_003, 0, dtype)
+
+
+__all__ = ["TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_engine", "log_parity", "parity_batch"]

@@ -1,0 +1,134 @@
+"""train_transformer's torch engine against pyvf's: the same run in both, resume across engines,
+the parity check at checkpoints, the options' errors."""
+
+import csv
+import dataclasses
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from pyvf.train.loops import TINY_TRANSFORMER, train_transformer
+from pyvf.train.torch_engine import PARITY_RTOL, TorchTransformer, check_engine, log_parity, parity_batch
+from pyvf.optim import AdamW, published_weight_decay
+from pyvf.transformer import Transformer
+from pyvf.verify.torch_ports import TransformerPort
+
+CFG = dataclasses.replace(TINY_TRANSFORMER, d_model=32, n_head=2, n_layer=2, token_image_size=4, sequence_size=4,
+                          n_embeddings=16)
+D = CFG.d_model
+
+
+def _data(seed=0, scenes=10, views=6):
+    rng = np.random.default_rng(seed)
+    tokens = rng.integers(0, CFG.n_embeddings, size=(scenes, views, 4, 4)).astype(np.int16)
+    q = rng.normal(size=(scenes, views, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    poses = np.concatenate([rng.normal(size=(scenes, views, 3)), q], -1).astype(np.float32)
+    return tokens, poses
+
+
+def _train(tmp_path, name, engine, steps=20, **kw):
+    tokens, poses = _data()
+    return train_transformer(tokens, poses, CFG, tmp_path / name, steps=steps, batch_size=4, lr=1e-3, warmup=2,
+                             progress=False, engine=engine, **kw)
+
+
+def _check_same_run(a, b, w0):
+    """a, b: state dicts after the same steps from w0. Every tensor's difference is bounded by
+    1e-4 of how far training moved it: both engines round each step's float32 arithmetic in
+    another order (~1e-6 relative per step, measured 1e-6 over 20 steps), and Adam divides by
+    sqrt(v), so a rounding difference in a small gradient moves its update by as much. Not the
+    key bias (c_attn/bias's last third): softmax is invariant to it, its exact gradient is 0
+    and what each engine computes is rounding noise (~1e-9) that Adam's eps (1e-8) keeps to
+    steps of ~lr * 1e-1; its entries stay within 1e-5 of 0 in both."""
+    for k in w0:
+        da, db, moved = a[k], b[k], a[k] - w0[k]
+        if k.endswith("attn/c_attn/bias"):
+            key = slice(2 * D, 3 * D)
+            assert np.abs(da[..., key]).max() < 1e-5 and np.abs(db[..., key]).max() < 1e-5, k
+            da, db, moved = da[..., :2 * D], db[..., :2 * D], moved[..., :2 * D]
+        err = np.linalg.norm(da - db) / np.linalg.norm(moved)
+        assert err < 1e-4, (k, err)
+
+
+def test_torch_engine_equals_pyvf_after_20_steps(tmp_path):
+    a = _train(tmp_path, "pyvf", "pyvf").state_dict()
+    b = _train(tmp_path, "torch", "torch").state_dict()
+    _check_same_run(a, b, Transformer(CFG, seed=0).state_dict())
+    # and the logs: the same losses to float32 rounding, the same learning rates exactly
+    logs = [list(csv.DictReader(open(tmp_path / n / "log.csv"))) for n in ("pyvf", "torch")]
+    for ra, rb in zip(*logs):
+        assert ra["lr"] == rb["lr"]
+        assert abs(float(ra["loss"]) - float(rb["loss"])) < 1e-5 * abs(float(ra["loss"]))
+
+
+def test_a_wrong_optimizer_is_caught(tmp_path):
+    """The comparison above would catch an engine that skips the decay (a real difference, not rounding)."""
+    a = _train(tmp_path, "pyvf", "pyvf").state_dict()
+    tokens, poses = _data()
+    b = train_transformer(tokens, poses, CFG, tmp_path / "wd0", steps=20, batch_size=4, lr=1e-3, warmup=2,
+                          progress=False, engine="torch", weight_decay=0.0).state_dict()
+    with pytest.raises(AssertionError):
+        _check_same_run(a, b, Transformer(CFG, seed=0).state_dict())
+
+
+def test_resume_exact_and_across_engines(tmp_path):
+    straight = _train(tmp_path, "straight", "torch").state_dict()
+    _train(tmp_path, "split", "torch", steps=10, total_steps=20)
+    resumed = _train(tmp_path, "split", "torch", steps=20).state_dict()
+    for k in straight:  # the same engine on the same machine: bit for bit
+        np.testing.assert_array_equal(straight[k], resumed[k], err_msg=k)
+    # pyvf's checkpoint continued by torch: the pyvf run to float32 rounding
+    _train(tmp_path, "cross", "pyvf", steps=10, total_steps=20)
+    cross = _train(tmp_path, "cross", "torch", steps=20).state_dict()
+    _check_same_run(_train(tmp_path, "pyvf", "pyvf").state_dict(), cross, Transformer(CFG, seed=0).state_dict())
+
+
+def test_parity_logged_at_checkpoints(tmp_path):
+    _train(tmp_path, "p", "torch", checkpoint_every=10)
+    rows = list(csv.DictReader(open(tmp_path / "p" / "parity.csv")))
+    assert [r["step"] for r in rows] == ["10", "20"]
+    assert all(0 < float(r["rel_err"]) < 1e-5 for r in rows), rows  # measured ~4e-7
+    assert all(float(r["bound"]) == PARITY_RTOL for r in rows)
+
+
+@pytest.mark.parametrize("bug", ["qkv_order", "wrong_branch", "ln_eps"])
+def test_parity_catches_a_planted_bug(tmp_path, bug):
+    model = Transformer(CFG, seed=3)
+    eng = TorchTransformer(model, AdamW(model.params, 1e-3, decay=published_weight_decay))
+    bad = TransformerPort(CFG, bug=bug)
+    bad.load_state_dict(eng.port.state_dict())
+    eng.port = bad  # the same weights (pyvf reads them from the engine's own): only the math differs
+    tokens, poses = _data()
+    comparison = eng.parity(*parity_batch(tokens, poses, 4, 0, "float32"))
+    assert not comparison.ok
+    with pytest.raises(RuntimeError, match=r"parity check at step 7: the torch model and pyvf differ first in"):
+        log_parity(tmp_path, 7, comparison)
+    assert (tmp_path / "parity.csv").exists()
+
+
+def test_engine_options_are_checked():
+    with pytest.raises(ValueError, match="engine must be 'pyvf' or 'torch'"):
+        check_engine("jax", "cpu", "fp32")
+    with pytest.raises(ValueError, match="need engine='torch'"):
+        check_engine("pyvf", "cuda", "fp32")
+    with pytest.raises(ValueError, match="precision must be"):
+        check_engine("torch", "cpu", "fp16")
+    with pytest.raises(ValueError, match="device must be"):
+        check_engine("torch", "gpu", "fp32")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="torch sees no CUDA device"):
+            check_engine("torch", "cuda", "fp32")
+
+
+def test_bf16_trains_and_stays_near_fp32(tmp_path):
+    """bf16 autocast on the CPU: the loss falls as in fp32, the weights stay float32."""
+    a = _train(tmp_path, "fp32", "torch", steps=30)
+    b = _train(tmp_path, "bf16", "torch", steps=30, precision="bf16")
+    la = [float(r["loss"]) for r in csv.DictReader(open(tmp_path / "fp32" / "log.csv"))]
+    lb = [float(r["loss"]) for r in csv.DictReader(open(tmp_path / "bf16" / "log.csv"))]
+    assert lb[-1] < lb[0] and abs(lb[-1] - la[-1]) < 0.05 * la[-1], (la, lb)  # bf16's u = 3.9e-3
+    assert all(p.dtype == np.float32 for p in b.params.values())
+    assert any(not np.array_equal(a.params[k], b.params[k]) for k in a.params)  # autocast did change the math
