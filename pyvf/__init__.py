@@ -13,7 +13,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from . import _core  # the compiled kernels, on the best instruction-set path (or PYVF_ISA's)
 
-from .attention import (
+from .nn.attention import (
     branching_attention,
     branching_attention_backward,
     branching_attention_forward,
@@ -36,15 +36,15 @@ from .geometry import (
     quat_rotate,
     relative_poses,
 )
-from .codebook import Codebook, CodebookConfig, CodebookOutput
-from .quantizer import EMAQuantizer, QuantizerOutput, vq_nearest
-from .optim import Adam, AdamW, WarmupCosine, clip_grad_norm, published_weight_decay, warmup_cosine_lr
+from .models.codebook import Codebook, CodebookConfig, CodebookOutput
+from .nn.quantizer import EMAQuantizer, QuantizerOutput, vq_nearest
+from .train.optim import Adam, AdamW, WarmupCosine, clip_grad_norm, published_weight_decay, warmup_cosine_lr
 from .train import codebook_train_step, train_step
-from .transformer import Scene, Transformer, TransformerConfig, TransformerOutput
-from .compare import Comparison, compare
+from .models.transformer import Scene, Transformer, TransformerConfig, TransformerOutput
+from .verify.compare import Comparison, compare
 from .measure import rel_err
-from .layout import flat_to_tree, params_from_layout, params_to_layout, trace_from_flat, tree_to_flat
-from .teacher import TeacherReport, teacher_force
+from .verify.layout import flat_to_tree, params_from_layout, params_to_layout, trace_from_flat, tree_to_flat
+from .verify.teacher import TeacherReport, teacher_force
 
 __version__ = "0.1.0"
 

@@ -27,9 +27,9 @@ import sys
 import pyvf
 from pyvf.bench import BLAS_THREAD_VARS
 from pyvf.bench import attention as bench_attention
-from pyvf.evaluate import cli_register as evaluate_commands
-from pyvf.scenes import cli_register as scenes_commands
-from pyvf.train import cli_register as train_commands
+from pyvf.evaluate.commands import cli_register as evaluate_commands
+from pyvf.scenes.cli import cli_register as scenes_commands
+from pyvf.train.commands import cli_register as train_commands
 from pyvf.verify import convert_tf, convert_torch
 
 BENCHMARKS = ("attention", "vq", "transformer", "codebook", "scaling", "accuracy", "hardcases", "report")  # pyvf.bench

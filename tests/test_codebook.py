@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from conftest import assert_close
-from pyvf.codebook import Codebook, CodebookConfig, parameter_shapes
+from pyvf.models.codebook import Codebook, CodebookConfig, parameter_shapes
 from pyvf.verify import convert_torch, torch_codebook
 
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-codebook-tiny.json")

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import pyvf
-from pyvf.codebook import Codebook, CodebookConfig, trace_names
+from pyvf.models.codebook import Codebook, CodebookConfig, trace_names
 from pyvf.verify import torch_codebook as tc
 from test_codebook import torch_state  # the model's parameters and EMA buffers as torch tensors
 

@@ -1,5 +1,5 @@
 """Tests of the codebook's image layers (docs/math.md §4): conv2d, GroupNorm, swish, nearest x2
-upsampling and the 2D attention block (pyvf/conv.py).
+upsampling and the 2D attention block (pyvf/nn/conv.py).
 
 Each layer is a pair `x_forward(...) -> (out, cache)`, `x_backward(dout, cache) -> (dx, *dparams)`.
 The tests: every layer against PyTorch in float64 under a random upstream gradient (output and
@@ -28,7 +28,8 @@ import torch
 import torch.nn.functional as F
 
 import pyvf
-from pyvf import _core, conv
+from pyvf import _core
+from pyvf.nn import conv
 
 from conftest import assert_bitwise_equal, assert_close
 
@@ -839,7 +840,7 @@ def test_groupnorm_swish_constant_groups(dtype, rng):
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_groupnorm_swish_kernels_vs_numpy(dtype, rng):
-    """The C++ GroupNorm and swish against the NumPy versions kept in pyvf/conv.py (the same
+    """The C++ GroupNorm and swish against the NumPy versions kept in pyvf/nn/conv.py (the same
     formulas; C++ sums in float64 where NumPy sums pairwise in the dtype): within the float32
     tolerances of section 2, RTOL64 in float64."""
     _, inputs, _, dy = build(("groupnorm", 96, 4, 4), rng, dtype)
@@ -966,7 +967,7 @@ def test_outputs_that_overflow_raise(dtype, rng):
 
 # ---------------------------------------------------------------------------------------
 # 9. NaN or inf in an input: conv2d and GroupNorm scan their inputs only when an output is not
-# finite (pyvf/conv.py's _after_kernel); the error names the input all the same
+# finite (pyvf/nn/conv.py's _after_kernel); the error names the input all the same
 
 
 CONV_SHAPES = [  # (x shape, w shape, stride, padding): the codebook's three kinds

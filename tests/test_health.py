@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pyvf.codebook import Codebook, CodebookConfig
+from pyvf.models.codebook import Codebook, CodebookConfig
 from pyvf.evaluate.health import chroma, codebook_health, colour_r2, effective_rank, object_mask
 from pyvf.evaluate.metrics import image_metrics, to_model_images, to_uint8
 

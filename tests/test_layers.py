@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 
 import pyvf
-from pyvf import layers
+from pyvf.nn import layers
 
 from conftest import assert_bitwise_equal, assert_close
 

@@ -7,7 +7,7 @@ import torch
 
 import pyvf
 from conftest import assert_bitwise_equal
-from pyvf.transformer import is_dense_kernel, parameter_shapes
+from pyvf.models.transformer import is_dense_kernel, parameter_shapes
 
 TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5, n_loss_skip=1)
 
@@ -194,7 +194,7 @@ def test_codebook_torch_layout_is_nn_conv2d_and_tf_is_channels_last(rng):
     conv.load_state_dict({"weight": torch.tensor(torch_sd["quant_conv.weight"]),
                           "bias": torch.tensor(torch_sd["quant_conv.bias"])})
     x = rng.normal(size=(2, 32, 4, 4))
-    want, _ = pyvf.conv.conv2d_forward(x, cb.params["quant_conv.weight"], cb.params["quant_conv.bias"])
+    want, _ = pyvf.nn.conv.conv2d_forward(x, cb.params["quant_conv.weight"], cb.params["quant_conv.bias"])
     np.testing.assert_allclose(conv(torch.tensor(x)).detach().numpy(), want, rtol=1e-13, atol=1e-13)
     # tf layout = channels-last: TF's conv (NHWC, HWIO) computes the same, checked by hand with einsum
     w = tf_sd["quant_conv.weight"]  # (1, 1, in, out)

@@ -8,8 +8,8 @@ import torch
 import torch.nn.functional as F
 
 from conftest import assert_close
-from pyvf.attention import attention_layer_backward, attention_layer_forward
-from pyvf.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
+from pyvf.nn.attention import attention_layer_backward, attention_layer_forward
+from pyvf.nn.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
 from pyvf.verify.torch_transformer import tree_mask
 
 # float64, O(10) roundings per value: measured <= 3e-15; 1e-12 leaves room

@@ -1,4 +1,4 @@
-"""Tests of pyvf.optim (docs/math.md §4, §5): AdamW and Adam against torch.optim in float64 over many
+"""Tests of pyvf.train.optim (docs/math.md §4, §5): AdamW and Adam against torch.optim in float64 over many
 steps of random gradients, the Keras epsilon convention against a hand computation, the warmup +
 cosine schedule at its key steps and driven through torch's LambdaLR, gradient clipping against
 torch.nn.utils.clip_grad_norm_ and by hand, zero and non-finite gradients, checkpoint round trips
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from pyvf import optim
+from pyvf.train import optim
 
 from conftest import assert_bitwise_equal, assert_close
 

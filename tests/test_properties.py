@@ -3,7 +3,7 @@ computes, and what it leaves alone.
 
 For each function (branching attention and its references, vq_nearest, EMAQuantizer, the
 geometry functions, AdamW/Adam/clip_grad_norm/warmup_cosine_lr, every forward/backward pair of
-pyvf.layers, pyvf.losses and the attention layer, the Transformer and the Codebook on tiny
+pyvf.nn.layers, pyvf.nn.losses and the attention layer, the Transformer and the Codebook on tiny
 configurations) random arguments are drawn (shapes with zero-size dimensions, float32 and
 float64, magnitudes from 1e-300 to 1e300) and the call must either
 
@@ -26,7 +26,7 @@ The tests of functions that call the C++ kernels directly (test_kernel_*) run in
 pytest process (test_kernel_properties_in_a_subprocess), so that a crash fails one test
 instead of killing the run; so do the allocation-failure and oversized-dimension cases.
 
-pyvf.conv (the codebook's layers) runs every property like everything else; the minimal cases
+pyvf.nn.conv (the codebook's layers) runs every property like everything else; the minimal cases
 of what it got wrong before (test_conv_finding_*) are kept as regression tests.
 
 Budget: the default settings profile "ci" runs a fixed number of examples per test,
@@ -54,12 +54,14 @@ from hypothesis import strategies as st
 from hypothesis.configuration import set_hypothesis_home_dir
 
 import pyvf
-import pyvf.conv
-from pyvf import geometry, layers, losses, optim
+import pyvf.nn.conv
+from pyvf import geometry
+from pyvf.nn import layers, losses
+from pyvf.train import optim
 from pyvf._io import CheckpointError
-from pyvf.attention import attention_layer_backward, attention_layer_forward
-from pyvf.codebook import Codebook, CodebookConfig
-from pyvf.transformer import Transformer, TransformerConfig
+from pyvf.nn.attention import attention_layer_backward, attention_layer_forward
+from pyvf.models.codebook import Codebook, CodebookConfig
+from pyvf.models.transformer import Transformer, TransformerConfig
 
 # hypothesis keeps its files (cached constants, patches with failing examples) out of the source
 # tree, in the temp folder, unless HYPOTHESIS_STORAGE_DIRECTORY says where
@@ -315,7 +317,7 @@ def run_and_check_unchanged(case, args):
 
 
 # ---------------------------------------------------------------------------------------
-# the layers (pyvf.layers, pyvf.losses): each case runs the forward, then the backward
+# the layers (pyvf.nn.layers, pyvf.nn.losses): each case runs the forward, then the backward
 
 
 def case_linear(data, extreme_ok=True):
@@ -1076,7 +1078,7 @@ OPTIM_CASES = [case_adamw, case_clip]
 
 
 # ---------------------------------------------------------------------------------------
-# the codebook's image layers (pyvf.conv)
+# the codebook's image layers (pyvf.nn.conv)
 
 
 def _ld_conv(X, W, stride, pad):
@@ -1110,8 +1112,8 @@ def case_conv2d(data, extreme_ok=True):
             "b": normal(rng, (Co,), dt, e[2]), "dy": normal(rng, (B, Co, Ho, Wo), dt, e[3])}
 
     def run(x, w, b, dy):
-        y, cache = pyvf.conv.conv2d_forward(x, w, b, stride, pad)
-        return (y,) + tuple(pyvf.conv.conv2d_backward(dy, cache))
+        y, cache = pyvf.nn.conv.conv2d_forward(x, w, b, stride, pad)
+        return (y,) + tuple(pyvf.nn.conv.conv2d_backward(dy, cache))
 
     def check(out, a):
         X, W, Bb, DY = (L(a[k]) for k in ("x", "w", "b", "dy"))
@@ -1151,8 +1153,8 @@ def case_groupnorm(data, extreme_ok=True):
             "beta": normal(rng, (C,), dt, e[2]), "dy": normal(rng, (B, C, Hi, Wi), dt, e[3])}
 
     def run(x, gamma, beta, dy):
-        y, cache = pyvf.conv.groupnorm_forward(x, gamma, beta, groups=G)
-        return (y,) + tuple(pyvf.conv.groupnorm_backward(dy, cache))
+        y, cache = pyvf.nn.conv.groupnorm_forward(x, gamma, beta, groups=G)
+        return (y,) + tuple(pyvf.nn.conv.groupnorm_backward(dy, cache))
 
     def check(out, a):
         X, Gm, Bt, DY = (L(a[k_]) for k_ in ("x", "gamma", "beta", "dy"))
@@ -1193,8 +1195,8 @@ def case_swish(data, extreme_ok=True):
             "dy": normal(rng, shape, dt, draw_exp(data, dt, extreme))}
 
     def run(x, dy):
-        y, cache = pyvf.conv.swish_forward(x)
-        return (y,) + tuple(pyvf.conv.swish_backward(dy, cache))
+        y, cache = pyvf.nn.conv.swish_forward(x)
+        return (y,) + tuple(pyvf.nn.conv.swish_backward(dy, cache))
 
     def check(out, a):
         X, DY = L(a["x"]), L(a["dy"])
@@ -1219,8 +1221,8 @@ def case_upsample(data, extreme_ok=True):
             "dy": normal(rng, (B, C, 2 * Hi, 2 * Wi), dt, draw_exp(data, dt, extreme))}
 
     def run(x, dy):
-        y, cache = pyvf.conv.upsample_nearest2x_forward(x)
-        return (y,) + tuple(pyvf.conv.upsample_nearest2x_backward(dy, cache))
+        y, cache = pyvf.nn.conv.upsample_nearest2x_forward(x)
+        return (y,) + tuple(pyvf.nn.conv.upsample_nearest2x_backward(dy, cache))
 
     def check(out, a):
         x, DY = a["x"], L(a["dy"])
@@ -1348,7 +1350,7 @@ def test_conv_property(make, prop, data):
     prop(make, data)
 
 
-# The findings in pyvf.conv, each the minimal case of what a property above requires, kept as
+# The findings in pyvf.nn.conv, each the minimal case of what a property above requires, kept as
 # regression tests (all fixed: NaN/inf refused, overflow raised, the EMA and the threads).
 
 
@@ -1360,14 +1362,14 @@ def test_conv_finding_conv2d_accepts_nonfinite(arg):
     a[arg] = a[arg].copy()
     a[arg].flat[0] = np.nan
     with pytest.raises(ValueError, match=arg):
-        y, c = pyvf.conv.conv2d_forward(a["x"], a["w"], a["b"])
-        pyvf.conv.conv2d_backward(a["dy"], c)
+        y, c = pyvf.nn.conv.conv2d_forward(a["x"], a["w"], a["b"])
+        pyvf.nn.conv.conv2d_backward(a["dy"], c)
 
 
 def test_conv_finding_conv2d_overflow_returns_inf():
     """A conv whose true output exceeds float64 returns inf instead of raising ValueError."""
     with pytest.raises(ValueError):
-        pyvf.conv.conv2d_forward(np.full((1, 2, 1, 1), 1e300), np.full((1, 2, 1, 1), 1e300), np.zeros(1))
+        pyvf.nn.conv.conv2d_forward(np.full((1, 2, 1, 1), 1e300), np.full((1, 2, 1, 1), 1e300), np.zeros(1))
 
 
 def test_conv_finding_groupnorm_of_large_values_is_beta():
@@ -1378,15 +1380,15 @@ def test_conv_finding_groupnorm_of_large_values_is_beta():
     # now a clear exception (the variance overflows float64) instead of y = beta; an exact
     # answer would need a per-group power-of-two rescale in csrc/groupnorm.cpp (not done yet)
     with pytest.raises(ValueError, match="variance of a group of x overflowed"):
-        pyvf.conv.groupnorm_forward(x, np.ones(3), np.zeros(3), groups=1)
+        pyvf.nn.conv.groupnorm_forward(x, np.ones(3), np.zeros(3), groups=1)
 
 
 def test_conv_finding_groupnorm_backward_overflow_gives_nan():
     """A one-element group (dx = 0 exactly) with dy * gamma beyond float64: dx is NaN (inf - inf),
     returned without an error."""
-    y, c = pyvf.conv.groupnorm_forward(np.ones((1, 1, 1, 1)), np.array([1e11]), np.zeros(1), groups=1)
+    y, c = pyvf.nn.conv.groupnorm_forward(np.ones((1, 1, 1, 1)), np.array([1e11]), np.zeros(1), groups=1)
     try:
-        dx, _, _ = pyvf.conv.groupnorm_backward(np.full((1, 1, 1, 1), 1e300), c)
+        dx, _, _ = pyvf.nn.conv.groupnorm_backward(np.full((1, 1, 1, 1), 1e300), c)
     except ValueError:
         return
     assert np.isfinite(dx).all(), f"dx = {dx.ravel()}"
@@ -1395,25 +1397,25 @@ def test_conv_finding_groupnorm_backward_overflow_gives_nan():
 def test_conv_groupnorm_eps_inf():
     """eps=inf was accepted (y = beta); eps must be finite and > 0. (A conv finding, fixed.)"""
     with pytest.raises(ValueError, match="eps"):
-        pyvf.conv.groupnorm_forward(np.ones((1, 2, 1, 1)), np.ones(2), np.zeros(2), groups=1, eps=float("inf"))
+        pyvf.nn.conv.groupnorm_forward(np.ones((1, 2, 1, 1)), np.ones(2), np.zeros(2), groups=1, eps=float("inf"))
 
 
 @pytest.mark.parametrize("kind", ["float16", "int64", "complex128", "other float"])
 def test_conv_upsample_backward_dy_dtype(kind):
     """upsample_nearest2x_backward took a dy of any dtype (float16, integers, complex, the other
     float) and returned dx in it: a silent cast. (A conv finding, fixed.)"""
-    y, c = pyvf.conv.upsample_nearest2x_forward(np.ones((1, 2, 1, 1)))
+    y, c = pyvf.nn.conv.upsample_nearest2x_forward(np.ones((1, 2, 1, 1)))
     with pytest.raises(TypeError, match="dy"):
-        pyvf.conv.upsample_nearest2x_backward(with_dtype(np.ones_like(y), kind), c)
+        pyvf.nn.conv.upsample_nearest2x_backward(with_dtype(np.ones_like(y), kind), c)
 
 
 def test_conv_swish_of_a_0d_array():
     """swish_forward of a 0-d array returned y of shape (1,) (np.ascontiguousarray promotes 0-d to
-    1-d), so swish_backward then wanted a dy of shape (1,). pyvf.layers.gelu_forward had the same
+    1-d), so swish_backward then wanted a dy of shape (1,). pyvf.nn.layers.gelu_forward had the same
     bug. (A conv finding, fixed.)"""
-    y, c = pyvf.conv.swish_forward(np.array(0.5))
+    y, c = pyvf.nn.conv.swish_forward(np.array(0.5))
     assert y.shape == ()
-    (dx,) = pyvf.conv.swish_backward(np.array(1.0), c)
+    (dx,) = pyvf.nn.conv.swish_backward(np.array(1.0), c)
     assert dx.shape == ()
 
 
@@ -1423,10 +1425,10 @@ def test_conv_finding_nonfinite_accepted(layer, arg):
     """groupnorm, swish and upsample (forward and backward) pass NaN/inf through silently."""
     x = np.ones((1, 2, 1, 1))
     bad = np.full_like(x, np.nan)
-    fwd = {"groupnorm": lambda x: pyvf.conv.groupnorm_forward(x, np.ones(2), np.zeros(2), groups=1),
-           "swish": pyvf.conv.swish_forward, "upsample": pyvf.conv.upsample_nearest2x_forward}[layer]
-    bwd = {"groupnorm": pyvf.conv.groupnorm_backward, "swish": pyvf.conv.swish_backward,
-           "upsample": pyvf.conv.upsample_nearest2x_backward}[layer]
+    fwd = {"groupnorm": lambda x: pyvf.nn.conv.groupnorm_forward(x, np.ones(2), np.zeros(2), groups=1),
+           "swish": pyvf.nn.conv.swish_forward, "upsample": pyvf.nn.conv.upsample_nearest2x_forward}[layer]
+    bwd = {"groupnorm": pyvf.nn.conv.groupnorm_backward, "swish": pyvf.nn.conv.swish_backward,
+           "upsample": pyvf.nn.conv.upsample_nearest2x_backward}[layer]
     with pytest.raises(ValueError, match=arg):
         y, c = fwd(bad if arg == "x" else x)
         bwd(np.full_like(y, np.nan) if arg == "dy" else np.ones_like(y), c)
@@ -1930,7 +1932,7 @@ _CRASH_SCRIPT = textwrap.dedent("""
     idx, sq = pyvf.vq_nearest(np.zeros((0, 3)), np.zeros((1, 3)))
     assert idx.shape == (0,)
     expect("vq no codes", lambda: pyvf.vq_nearest(np.zeros((1, 3)), np.zeros((0, 3))), (ValueError,))
-    from pyvf import layers
+    from pyvf.nn import layers
     assert layers.gelu_forward(np.zeros(0))[0].shape == (0,)
     # allocation failures: with the address space capped just above what the outputs need, the
     # kernels' work buffers cannot all be had: each call succeeds or raises MemoryError, never

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from conftest import assert_close
-from pyvf.quantizer import EMAQuantizer
+from pyvf.nn.quantizer import EMAQuantizer
 
 
 def torch_ema_step(z, emb, hidden_cs, hidden_dw, counter, decay, eps):

@@ -22,6 +22,7 @@ import pytest
 
 from pyvf import quat_mul, quat_rotate
 from pyvf import scenes as sc
+from pyvf.scenes.cli import cli_register as scenes_cli_register
 
 from conftest import assert_bitwise_equal, assert_close
 
@@ -432,7 +433,7 @@ def test_bad_argument_types():
 
 def test_cli_writes_dataset_and_preview(tmp_path, capsys):
     parser = argparse.ArgumentParser(prog="pyvf")
-    sc.cli_register(parser.add_subparsers(dest="command"))
+    scenes_cli_register(parser.add_subparsers(dest="command"))
     out, png = tmp_path / "ds", tmp_path / "preview.png"
     args = parser.parse_args(["scenes", "--out", str(out), "--scenes", "2", "--seed", "4", "--views", "3",
                               "--size", "16", "--shard-size", "1", "--preview", str(png), "--quiet"])

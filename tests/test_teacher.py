@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import pyvf
-import pyvf.teacher
+import pyvf.verify.teacher
 from pyvf.verify.torch_ports import (CODEBOOK_BUGS, TRANSFORMER_BUGS, CodebookPort, TransformerPort,
                                      official_name)
 from test_codebook_trace import SMALL, images_for, random_codebook
@@ -251,13 +251,13 @@ def test_codebook_bug_found_by_compare_and_teacher_forcing(bug, rng):
     # teacher forcing: the port's own modules, named as published, with their own parameters
     cb.load_official(state)  # both sides' EMA buffers as before the step above
     port.load_state_dict({k: torch.tensor(v) for k, v in state.items()})
-    tf = pyvf.teacher_force(cb, x, pyvf.teacher.torch_modules(port, cb), params=dict(port.named_parameters()),
+    tf = pyvf.teacher_force(cb, x, pyvf.verify.teacher.torch_modules(port, cb), params=dict(port.named_parameters()),
                             upstream=dict(drec=drec), train=train)
     assert tf.wrong == wrong, str(tf)
-    assert tf.unchecked == [] and len(tf.checks) == len(pyvf.teacher.layer_names(cb))
+    assert tf.unchecked == [] and len(tf.checks) == len(pyvf.verify.teacher.layer_names(cb))
     assert {r.name for c in tf.checks for r in c.backward.rows} >= set(cb.params)  # every parameter, at its layer
     if bug is None:  # float64: within 1e-11 of pyvf, but for the exactly-zero gradients, under the layer's atol
-        assert max(pyvf.teacher.LayerCheck._worst(comp) for c in tf.checks for comp in (c.forward, c.backward)) \
+        assert max(pyvf.verify.teacher.LayerCheck._worst(comp) for c in tf.checks for comp in (c.forward, c.backward)) \
             < 1e-11, str(tf)
         zero = [r for c in tf.checks for r in c.backward.rows if r.rel > r.rtol]
         assert {r.name.rsplit(".", 2)[-2] for r in zero} <= {"conv1", "conv2", "nin_shortcut", "k"}, zero
@@ -266,7 +266,7 @@ def test_codebook_bug_found_by_compare_and_teacher_forcing(bug, rng):
 
 def test_codebook_layer_table():
     cfg = pyvf.CodebookConfig(**SMALL, dtype="float64")
-    table = pyvf.teacher.layer_table(pyvf.Codebook(cfg))
+    table = pyvf.verify.teacher.layer_table(pyvf.Codebook(cfg))
     by = {l.name: l for l in table}
     assert table[0].calls == (((("images", None),), "encoder.conv_in"),)
     assert by["encoder.down.0.downsample"].calls[0] == ((("encoder.down.0.block.0", None),),
@@ -285,9 +285,9 @@ def test_codebook_layer_table():
 def test_codebook_upstream_is_drec_only(rng):
     cb, port, x, drec = codebook_setup(rng, None)
     with pytest.raises(ValueError, match="drec only"):
-        pyvf.teacher_force(cb, x, pyvf.teacher.torch_modules(port, cb), upstream=dict(drec=drec, dloss=1.0))
+        pyvf.teacher_force(cb, x, pyvf.verify.teacher.torch_modules(port, cb), upstream=dict(drec=drec, dloss=1.0))
     before = cb.state_dict()
     port.train()
-    pyvf.teacher_force(cb, x, pyvf.teacher.torch_modules(port, cb), train=True)
+    pyvf.teacher_force(cb, x, pyvf.verify.teacher.torch_modules(port, cb), train=True)
     for k, v in cb.state_dict().items():  # the model's EMA buffers are left as they were
         np.testing.assert_array_equal(v, before[k], err_msg=k)

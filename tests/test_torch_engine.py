@@ -11,8 +11,8 @@ import torch
 
 from pyvf.train.loops import TINY_TRANSFORMER, train_transformer
 from pyvf.train.torch_engine import PARITY_RTOL, TorchTransformer, check_engine, log_parity, parity_batch
-from pyvf.optim import AdamW, published_weight_decay
-from pyvf.transformer import Transformer
+from pyvf.train.optim import AdamW, published_weight_decay
+from pyvf.models.transformer import Transformer
 from pyvf.verify.torch_ports import TransformerPort
 
 CFG = dataclasses.replace(TINY_TRANSFORMER, d_model=32, n_head=2, n_layer=2, token_image_size=4, sequence_size=4,

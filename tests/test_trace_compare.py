@@ -14,7 +14,7 @@ from torch.overrides import TorchFunctionMode
 
 import pyvf
 from conftest import assert_bitwise_equal, assert_close
-from pyvf.transformer import trace_names
+from pyvf.models.transformer import trace_names
 from pyvf.verify import torch_transformer as tt
 from test_transformer import TINY, random_batch, random_model
 

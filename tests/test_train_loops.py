@@ -20,9 +20,8 @@ import pyvf
 import pyvf._io
 from conftest import assert_bitwise_equal
 from pyvf._io import CheckpointError, atomic_savez, atomic_write_text, load_npz
-from pyvf.codebook import Codebook, CodebookConfig
+from pyvf.models.codebook import Codebook, CodebookConfig
 from pyvf.train import (
-    cli_register,
     codebook_batch,
     load_tokens,
     tokenize,
@@ -30,7 +29,8 @@ from pyvf.train import (
     train_transformer,
     transformer_batch,
 )
-from pyvf.transformer import Transformer, TransformerConfig
+from pyvf.models.transformer import Transformer, TransformerConfig
+from pyvf.train.commands import cli_register
 
 # 16x16 images -> 8x8 tokens (one downsampling), 16 codes
 CB = CodebookConfig(ch=32, ch_mult=(1, 1), num_res_blocks=1, attn_resolutions=(), z_channels=8, embed_dim=8,

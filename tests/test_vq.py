@@ -9,7 +9,7 @@ import pytest
 import pyvf
 from conftest import assert_bitwise_equal
 from pyvf import _core
-from pyvf.quantizer import vq_nearest
+from pyvf.nn.quantizer import vq_nearest
 
 # every test here runs once per kernel path this machine executes (conftest.kernel_path)
 pytestmark = pytest.mark.usefixtures("kernel_path")
@@ -194,7 +194,7 @@ def test_overflowing_fast_scores_fall_back_to_the_exact_rerank(rng):
 MEMORY_WORKER = """
 import sys, numpy as np, pyvf
 from pyvf.measure import peak_memory
-from pyvf.quantizer import vq_nearest
+from pyvf.nn.quantizer import vq_nearest
 K, D = int(sys.argv[1]), int(sys.argv[2])
 codes = np.random.default_rng(0).standard_normal((K, D)).astype(np.float32)
 x = np.random.default_rng(1).standard_normal((64, D)).astype(np.float32)

@@ -11,11 +11,11 @@ backward` the backward alone, given the forward's o and lse):
     attention_forward   pyvf.branching_attention_forward            o
     attention_backward  pyvf.branching_attention_backward           dq, dk, dv
     vq_nearest          pyvf.vq_nearest                             squared distance (+ wrong codes)
-    layernorm           pyvf.layers.layernorm_forward/_backward     y, dx, dgamma, dbeta
-    groupnorm           pyvf.conv.groupnorm_forward/_backward       y, dx, dgamma, dbeta
-    cross_entropy       pyvf.losses.cross_entropy_forward/_backward loss, dlogits
-    gelu                pyvf.layers.gelu_forward/_backward          y, dx (elementwise: ulps too)
-    conv2d              pyvf.conv.conv2d_forward/_backward          y, dx, dw, db
+    layernorm           pyvf.nn.layers.layernorm_forward/_backward     y, dx, dgamma, dbeta
+    groupnorm           pyvf.nn.conv.groupnorm_forward/_backward       y, dx, dgamma, dbeta
+    cross_entropy       pyvf.nn.losses.cross_entropy_forward/_backward loss, dlogits
+    gelu                pyvf.nn.layers.gelu_forward/_backward          y, dx (elementwise: ulps too)
+    conv2d              pyvf.nn.conv.conv2d_forward/_backward          y, dx, dw, db
 
 Variants: pyvf float32 on each instruction-set path this CPU runs (pyvf.kernel_paths(); switched
 in this process with pyvf.use_kernel_path, which reaches every path PYVF_ISA could force at
@@ -50,7 +50,7 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf import conv, layers, losses
+from pyvf.nn import conv, layers, losses
 from pyvf.bench import blas_thread_env, checking_parser, finish, pick, pyplot
 from pyvf.bench.attention import flat, table, unflat
 from pyvf.bench.vq import brute_force
@@ -98,7 +98,7 @@ BOUNDS = {
 # subnormal results' rounding step). Not gelu'(x) = Phi(x) + x phi(x): near its zero, x = -0.7518,
 # the two terms cancel and its ulps measure the conditioning (measured 56 ulp in float64 there)
 GELU_ULPS = 4
-WRONG_CODES_ALLOWED = 0  # vq_nearest is exact (pyvf/quantizer.py)
+WRONG_CODES_ALLOWED = 0  # vq_nearest is exact (pyvf/nn/quantizer.py)
 # torch and the NumPy reference compute the same function in float32 in their own order: a
 # wiring error (mask, layout, eps 1e-5 for GroupNorm's 1e-6) is O(1e-2..1); their rounding is 1e-4 at most
 SANITY = 1e-3

@@ -12,7 +12,7 @@ resident memory of one call above what was resident before it (pyvf.measure.peak
 gradients of the step included, weights not). Before timing, both compute the loss of the
 same weights and batch, and the tool stops if they differ. torch is imported only in the torch
 worker. Then, for pyvf, where one forward + backward spends its time: the exclusive time of each
-layer type (layer_times), from one more step with every layer function of pyvf.conv wrapped in
+layer type (layer_times), from one more step with every layer function of pyvf.nn.conv wrapped in
 a timer.
 """
 
@@ -51,7 +51,7 @@ def setup(name, batch=None):
     return cfg, cb, images.astype(np.float32)
 
 
-# pyvf.conv's layer functions -> the layer type they are timed under. An AttnBlock's time is its
+# pyvf.nn.conv's layer functions -> the layer type they are timed under. An AttnBlock's time is its
 # own work only (softmax, products): its GroupNorm and 1x1 convs count under their own types.
 LAYER_FUNCS = {
     "conv2d_forward": "conv", "conv2d_backward": "conv",
@@ -81,12 +81,12 @@ def _layer_key(name, args, kwargs):
 
 def layer_times(fn, clock=time.perf_counter):
     """Run fn() once with every function of LAYER_FUNCS wrapped in a timer, wherever pyvf bound
-    it (pyvf.conv and the modules that imported it by name). Returns ({(type, direction): seconds
+    it (pyvf.nn.conv and the modules that imported it by name). Returns ({(type, direction): seconds
     of exclusive time}, total seconds of fn()); exclusive: a layer called inside another (the
     AttnBlock's convs) counts under its own type only. clock: wall time by default;
     time.process_time (CPU time of the whole process) is steadier on a busy machine when the
     kernels run on one thread."""
-    from pyvf import conv
+    from pyvf.nn import conv
     originals = {name: getattr(conv, name) for name in LAYER_FUNCS if hasattr(conv, name)}
     times, stack = {}, []
 

@@ -41,7 +41,7 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf import conv, layers, losses
+from pyvf.nn import conv, layers, losses
 from pyvf.bench import checking_parser, finish, pick, pyplot
 from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive, machine, torch_available
 from pyvf.bench.attention import flat

@@ -24,8 +24,8 @@ import time
 import numpy as np
 
 import pyvf
-import pyvf.attention
-import pyvf.layers
+import pyvf.nn.attention
+import pyvf.nn.layers
 from pyvf.measure import format_bytes, peak_memory, run_worker
 
 WORKER = "pyvf.bench.transformer"  # this module, run as `python -m WORKER --worker ...`
@@ -42,10 +42,10 @@ CONFIGS = {
 @contextlib.contextmanager
 def timed(totals):
     """Accumulate the time spent in the kernel and in the linear layers into totals."""
-    patches = [(pyvf.attention, "branching_attention_forward", "attention"),
-               (pyvf.attention, "branching_attention_backward", "attention"),
-               (pyvf.attention, "linear_forward", "linear"), (pyvf.attention, "linear_backward", "linear"),
-               (pyvf.layers, "linear_forward", "linear"), (pyvf.layers, "linear_backward", "linear")]
+    patches = [(pyvf.nn.attention, "branching_attention_forward", "attention"),
+               (pyvf.nn.attention, "branching_attention_backward", "attention"),
+               (pyvf.nn.attention, "linear_forward", "linear"), (pyvf.nn.attention, "linear_backward", "linear"),
+               (pyvf.nn.layers, "linear_forward", "linear"), (pyvf.nn.layers, "linear_backward", "linear")]
     saved = []
     for module, name, key in patches:
         fn = getattr(module, name)

@@ -18,7 +18,7 @@ import numpy as np
 
 import pyvf
 from pyvf.measure import median_time
-from pyvf.quantizer import vq_nearest
+from pyvf.nn.quantizer import vq_nearest
 
 PAPER = dict(M=352 * 64, K=1024, D=256, repeat=5, checked_rows=4096)
 QUICK = dict(M=4096, K=256, D=64, repeat=3, checked_rows=1024)

@@ -7,14 +7,13 @@ pictures, and the `pyvf demo` / `pyvf evaluate` commands.
     metrics.py   docs/math.md §6 metrics, the baselines, uint8 <-> model image conversions
     run.py       evaluate(): the protocol, the timings of the scene cache, metrics.json / metrics.md
     pictures.py  views.png (context | truth | codebook | pyvf) and poses.png (cameras from above), Pillow
-    commands.py  the `pyvf demo` and `pyvf evaluate` commands (cli_register)
+    commands.py  the `pyvf demo` and `pyvf evaluate` commands (imported by pyvf.cli only)
 
 Note: the function `evaluate` lives in the package `pyvf.evaluate`; re-exporting it from pyvf
 under the same name would hide the package attribute, so pyvf exports it as `pyvf.evaluate`
 the package (call `pyvf.evaluate.evaluate(...)`).
 """
 
-from .commands import cli_register, cmd_demo, cmd_evaluate, kernel_line, report
 from .metrics import (
     closest_image_pose,
     image_metrics,
@@ -34,20 +33,15 @@ __all__ = [
     "METHODS",
     "POSE_METRICS",
     "TIMING_KEYS",
-    "cli_register",
     "closest_image_pose",
-    "cmd_demo",
-    "cmd_evaluate",
     "evaluate",
     "image_metrics",
-    "kernel_line",
     "mean_image",
     "mean_pose",
     "metrics_markdown",
     "nearest_view",
     "pose_metrics",
     "psnr_cap",
-    "report",
     "to_model_images",
     "to_uint8",
     "write_metrics",

@@ -15,8 +15,8 @@ agree on the codebook size (n_embeddings == n_embed) and on the token image side
 import importlib.resources
 import os
 
-from ..codebook import Codebook
-from ..transformer import Transformer
+from .codebook import Codebook
+from .transformer import Transformer
 
 __all__ = ["PRETRAINED", "TRAIN_HINT", "check_pair", "load_pretrained", "pretrained_path"]
 

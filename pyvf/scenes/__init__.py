@@ -44,7 +44,7 @@ from .cameras import (
     pose_to_gqn,
     sample_camera_positions,
 )
-from .cli import cli_register, cmd_scenes, preview_grid, save_preview
+from .preview import preview_grid, save_preview
 from .dataset import FORMAT, FORMAT_VERSION, SceneDataset, load_dataset, write_dataset
 from .render import (
     AMBIENT,
@@ -84,8 +84,6 @@ __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
     # command line
-    "cli_register",
-    "cmd_scenes",
     "preview_grid",
     "save_preview",
     # constants

@@ -1,48 +1,22 @@
-"""The `pyvf scenes` command and the preview grid.
+"""The `pyvf scenes` command (imported by pyvf.cli only).
 
     pyvf scenes --out data/sm7 --scenes 2000 --seed 0 [--views 15] [--size 64] [--shard-size 500]
                 [--preview sm7.png] [--overwrite] [--quiet]
 
 cli_register(subparsers) adds the subcommand to pyvf's parser; its handler cmd_scenes(args)
-only parses and calls write_dataset (dataset.py), then optionally save_preview.
+only parses and calls write_dataset (dataset.py), then optionally save_preview (preview.py).
 """
 
 import sys
 import time
 
-import numpy as np
-
 from .dataset import write_dataset
+from .preview import save_preview
 from .render import generate_scenes
 
-__all__ = ["cli_register", "cmd_scenes", "preview_grid", "save_preview"]
+__all__ = ["cli_register", "cmd_scenes"]
 
 PREVIEW_SCENES = 8  # rows of the preview: the dataset's first scenes, every view as a column
-_GAP = 2  # pixels of white between the tiles
-
-
-def preview_grid(images, gap=_GAP):
-    """Tile views into one picture: images (S, V, H, W, 3) uint8 -> (S*(H+gap)-gap, V*(W+gap)-gap, 3)
-    uint8, scene s in row s, view v in column v, white gaps."""
-    images = np.asarray(images)
-    if images.ndim != 5 or images.shape[-1] != 3 or images.dtype != np.uint8:
-        raise ValueError(f"images must be uint8 (S, V, H, W, 3), got {images.dtype}{images.shape}")
-    S, V, H, W, _ = images.shape
-    grid = np.full((S * (H + gap) - gap, V * (W + gap) - gap, 3), 255, dtype=np.uint8)
-    for s in range(S):
-        for v in range(V):
-            grid[s * (H + gap):s * (H + gap) + H, v * (W + gap):v * (W + gap) + W] = images[s, v]
-    return grid
-
-
-def save_preview(path, images, scale=2):
-    """Write preview_grid(images), enlarged `scale` times (nearest neighbour), as a PNG."""
-    from PIL import Image  # a dependency of pyvf; imported here so that `import pyvf` stays light
-
-    grid = preview_grid(images)
-    if scale > 1:
-        grid = np.repeat(np.repeat(grid, scale, axis=0), scale, axis=1)
-    Image.fromarray(grid).save(path, format="PNG")
 
 
 def cmd_scenes(args):

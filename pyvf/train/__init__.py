@@ -1,7 +1,8 @@
-"""Training: one step (step.py), the loops that checkpoint and resume exactly (loops.py), and
-the `pyvf` training commands (commands.py). The run folder's files are described in _run.py."""
+"""Training: the optimisers and schedules (optim.py), one step (step.py), the loops that
+checkpoint and resume exactly (loops.py), the torch engine (torch_engine.py), the whole
+pipeline (pipeline.py). The run folder's files are described in _run.py. The `pyvf` training
+commands (commands.py) are imported by pyvf.cli only."""
 
-from .commands import cli_register, cmd_tokenize, cmd_train_codebook, cmd_train_transformer
 from .loops import (
     TINY_CODEBOOK,
     TINY_TRANSFORMER,
@@ -18,10 +19,6 @@ from .step import codebook_train_step, train_step, transformer_step
 __all__ = [
     "TINY_CODEBOOK",
     "TINY_TRANSFORMER",
-    "cli_register",
-    "cmd_tokenize",
-    "cmd_train_codebook",
-    "cmd_train_transformer",
     "codebook_batch",
     "codebook_train_step",
     "load_tokens",

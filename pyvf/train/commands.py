@@ -18,8 +18,8 @@ import os
 import sys
 import zipfile
 
-from ..codebook import Codebook, CodebookConfig
-from ..transformer import TransformerConfig
+from ..models.codebook import Codebook, CodebookConfig
+from ..models.transformer import TransformerConfig
 from .curves import plot_eval, runs_table
 from .loops import (
     CODEBOOK_RECIPES,

@@ -19,7 +19,7 @@ import dataclasses
 import numpy as np
 
 from .._io import atomic_savez, load_npz
-from ..codebook import Codebook, CodebookConfig
+from ..models.codebook import Codebook, CodebookConfig
 from ..evaluate.health import (
     CODEBOOK_HEALTH,
     codebook_health,
@@ -29,8 +29,8 @@ from ..evaluate.health import (
     transformer_health_columns,
 )
 from ..evaluate.metrics import to_model_images
-from ..optim import Adam, AdamW, WarmupCosine, published_weight_decay
-from ..transformer import Transformer, TransformerConfig
+from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
+from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, fingerprint, integer, positive_int, real
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step

@@ -20,8 +20,8 @@ import json
 import os
 
 from .._io import atomic_write_text
-from ..codebook import Codebook, CodebookConfig
-from ..transformer import TransformerConfig
+from ..models.codebook import Codebook, CodebookConfig
+from ..models.transformer import TransformerConfig
 from .loops import (
     TINY_CODEBOOK,
     TINY_TRANSFORMER,

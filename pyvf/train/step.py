@@ -9,7 +9,7 @@ pyvf.train.loops runs these steps with checkpoints (train_transformer, train_cod
 """
 
 from ..geometry import make_relative
-from ..optim import clip_grad_norm
+from .optim import clip_grad_norm
 
 
 def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):

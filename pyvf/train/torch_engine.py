@@ -4,7 +4,7 @@ a GPU (docs/training.md, "Training with torch").
 
 The model is pyvf.verify's TransformerPort (written from docs/math.md, tested against pyvf to
 float32 rounding), initialised from pyvf's Transformer(config, seed), so both engines start from
-the same weights. TorchAdamW is pyvf.optim.AdamW's update written with torch operations (the
+the same weights. TorchAdamW is pyvf.train.optim.AdamW's update written with torch operations (the
 Keras epsilon convention, decoupled decay on the parameters published_weight_decay names); its
 moments are saved in pyvf's layout, so a checkpoint of either engine resumes in the other.
 
@@ -20,9 +20,9 @@ import os
 
 import numpy as np
 
-from ..compare import compare
+from ..verify.compare import compare
 from ..geometry import make_relative
-from ..layout import params_from_layout, params_to_layout
+from ..verify.layout import params_from_layout, params_to_layout
 
 # The parity bound: pyvf.compare's normwise relative error, float32 torch against float32 pyvf.
 # Both round every dot product (length up to 4d) to float32 (u = 6e-8) in another order: about
@@ -61,7 +61,7 @@ def check_engine(engine, device, precision):
 
 
 class TorchAdamW:
-    """pyvf.optim.AdamW.step on torch tensors. ref: the pyvf AdamW whose hyperparameters,
+    """pyvf.train.optim.AdamW.step on torch tensors. ref: the pyvf AdamW whose hyperparameters,
     schedule and decayed set it applies, and whose state_dict format it saves (its moments are
     kept here, in the torch parameters' layout). params: official name -> torch Parameter."""
 

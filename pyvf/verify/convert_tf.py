@@ -20,7 +20,7 @@ import json
 
 import numpy as np
 
-from pyvf.transformer import Transformer, TransformerConfig, parameter_shapes
+from pyvf.models.transformer import Transformer, TransformerConfig, parameter_shapes
 
 SKIP_MARKERS = ("/.OPTIMIZER_SLOT/", "optimizer/", "save_counter", "global_step", "_CHECKPOINTABLE_OBJECT_GRAPH",
                 "/m/", "/v/", "Adam")

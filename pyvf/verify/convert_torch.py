@@ -15,7 +15,7 @@ import json
 
 import numpy as np
 
-from pyvf.codebook import BUFFERS, Codebook, CodebookConfig, parameter_shapes
+from pyvf.models.codebook import BUFFERS, Codebook, CodebookConfig, parameter_shapes
 
 
 def convert(state_dict, config):

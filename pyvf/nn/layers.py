@@ -16,7 +16,7 @@ read-only); inputs are never modified.
 
 import numpy as np
 
-from . import _checks, _core
+from .. import _checks, _core
 
 
 def _grad(name, dy, like, shape):

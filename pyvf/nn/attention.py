@@ -23,7 +23,7 @@ oracle tests and benchmarks compare the kernel against, and costs O(T^2) memory 
 
 import numpy as np
 
-from . import _checks, _core
+from .. import _checks, _core
 from .layers import linear_backward, linear_forward
 
 __all__ = [

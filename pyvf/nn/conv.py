@@ -15,7 +15,7 @@ size; P = Hi * Wi pixels; K = C * kh * kw the length of one im2col column.
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from . import _checks, _core
+from .. import _checks, _core
 
 
 

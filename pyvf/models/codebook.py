@@ -46,9 +46,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from . import _checks
-from ._io import save_model
-from .conv import (
+from .. import _checks
+from .._io import save_model
+from ..nn.conv import (
     attnblock_backward,
     attnblock_forward,
     conv2d_backward,
@@ -58,7 +58,7 @@ from .conv import (
     upsample_nearest2x_backward,
     upsample_nearest2x_forward,
 )
-from .quantizer import EMAQuantizer
+from ..nn.quantizer import EMAQuantizer
 
 ATTN_PARAMS = (".norm.weight", ".norm.bias", ".q.weight", ".q.bias", ".k.weight", ".k.bias",
                ".v.weight", ".v.bias", ".proj_out.weight", ".proj_out.bias")

@@ -23,7 +23,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from . import _checks
+from .. import _checks
 
 __all__ = [
     "AdamW",

@@ -10,14 +10,14 @@ usually holds one flat sequence per batch element, (B, T, ...) with T = R*N*L, o
 tree_to_flat and flat_to_tree convert between the two (always a new C-contiguous array; the
 caller's is never aliased). Any dtype: activations, gradients or integer tokens.
 
-trace_from_flat converts a whole trace (the names of pyvf.transformer.TRACE_NAMES).
+trace_from_flat converts a whole trace (the names of pyvf.models.transformer.TRACE_NAMES).
 params_from_layout / params_to_layout convert parameter-shaped arrays (a port's gradients)
 between pyvf's layout and the conventions load_official speaks (layout="tf" | "torch").
 """
 
 import numpy as np
 
-from . import _checks
+from .. import _checks
 
 
 def tree_to_flat(x):
@@ -87,7 +87,7 @@ def trace_from_flat(trace, N, L, R=3):
 
 def _param_layout(model, layout):
     """-> (official name -> pyvf's name, shapes, from_layout(name, a), to_layout(name, p)) for model."""
-    from . import codebook, transformer
+    from ..models import codebook, transformer
 
     if isinstance(model, transformer.Transformer):
         layout = transformer._weight_layout(layout)

@@ -22,7 +22,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from . import _checks, _core
+from .. import _checks, _core
 from .layers import sum_rows_by_id
 
 __all__ = ["vq_nearest", "EMAQuantizer", "QuantizerOutput"]

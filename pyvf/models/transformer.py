@@ -33,15 +33,15 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from . import _checks
-from ._io import save_model
-from .attention import (
+from .. import _checks
+from .._io import save_model
+from ..nn.attention import (
     _merge_heads,
     attention_layer_backward,
     attention_layer_forward,
 )
-from .geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
-from .layers import (
+from ..geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
+from ..nn.layers import (
     embedding_backward,
     embedding_forward,
     layernorm_backward,
@@ -49,7 +49,7 @@ from .layers import (
     mlp_backward,
     mlp_forward,
 )
-from .losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
+from ..nn.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
 
 MAX_TOKENS_PER_VIEW = 256  # wpe has 256 rows: token t of every view gets row t
 

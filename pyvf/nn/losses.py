@@ -3,14 +3,14 @@
 Both return a loss per row (per token); the model takes the means over views, tokens and the
 batch itself, so that what is averaged over is visible where it happens.
 
-Arguments are checked as in pyvf.layers: float32/float64 arrays of one dtype, integer targets,
+Arguments are checked as in pyvf.nn.layers: float32/float64 arrays of one dtype, integer targets,
 the documented shapes, finite values (TypeError/ValueError naming the argument); a loss or
 gradient that overflows the dtype raises ValueError. Inputs are never modified.
 """
 
 import numpy as np
 
-from . import _checks
+from .. import _checks
 
 
 def cross_entropy_forward(logits, targets, label_smoothing=0.0):

@@ -41,7 +41,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .measure import rel_err
+from ..measure import rel_err
 
 __all__ = ["compare", "Comparison", "ComparisonRow", "DEFAULT_RTOL", "rel_err"]
 

@@ -61,11 +61,11 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from . import codebook as _codebook
-from . import transformer as _transformer
-from .attention import attention_layer_backward, attention_layer_forward
+from ..models import codebook as _codebook
+from ..models import transformer as _transformer
+from ..nn.attention import attention_layer_backward, attention_layer_forward
 from .compare import Comparison, compare
-from .conv import (
+from ..nn.conv import (
     attnblock_backward,
     attnblock_forward,
     conv2d_backward,
@@ -75,7 +75,7 @@ from .conv import (
     upsample_nearest2x_backward,
     upsample_nearest2x_forward,
 )
-from .layers import layernorm_backward, layernorm_forward, mlp_backward, mlp_forward
+from ..nn.layers import layernorm_backward, layernorm_forward, mlp_backward, mlp_forward
 from .layout import flat_to_tree, tree_to_flat
 
 __all__ = ["Layer", "LayerCheck", "TeacherReport", "layer_names", "layer_table", "teacher_force", "torch_modules"]
@@ -385,7 +385,7 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     unknown = [n for n in layers if n not in by_name]
     if unknown:
         raise ValueError(f"layers: unknown layer names {unknown}; this model's layers are "
-                         f"{[l.name for l in table]} (pyvf.teacher.layer_names(model))")
+                         f"{[l.name for l in table]} (pyvf.verify.teacher.layer_names(model))")
     not_callable = [n for n, f in layers.items() if not callable(f)]
     if not_callable:
         raise TypeError(f"layers: not callable: {not_callable}")
