@@ -65,6 +65,16 @@ def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path
     assert not where.startswith(os.path.realpath(REPO) + os.sep), f"imported the source tree: {where}"
 
 
+def test_import_pyvf_imports_no_command_code(tmp_path):
+    """The command line is the top layer: `import pyvf` (the library) loads none of it."""
+    code = ("import sys, pyvf; print(sorted(m for m in sys.modules if m.startswith('pyvf') and "
+            "m.rsplit('.', 1)[-1] in ('cli', 'commands', 'pipeline')))")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
+                          text=True, timeout=TIMEOUT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip() == "[]", proc.stdout
+
+
 def test_python_dash_m_pyvf(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "pyvf", "--version"], cwd=tmp_path, env=clean_env(),
                           capture_output=True, text=True, timeout=TIMEOUT)
