@@ -53,9 +53,12 @@ def _check_same_run(a, b, w0):
         assert err < 1e-4, (k, err)
 
 
-def test_torch_engine_equals_pyvf_after_20_steps(tmp_path):
-    a = _train(tmp_path, "pyvf", "pyvf").state_dict()
-    b = _train(tmp_path, "torch", "torch").state_dict()
+@pytest.mark.parametrize("clip", [dict(), dict(max_grad_norm=0.02), dict(max_grad_norm=0.1, clip_mode="global")])
+def test_torch_engine_equals_pyvf_after_20_steps(tmp_path, clip):
+    """clip: the default per-tensor norm 1 (no tensor reaches it: at step 1 their norms are
+    0.002 to 0.66), 0.02 (clips most of them) and a global norm of 0.1 (step 1's is 1.35)."""
+    a = _train(tmp_path, "pyvf", "pyvf", **clip).state_dict()
+    b = _train(tmp_path, "torch", "torch", **clip).state_dict()
     _check_same_run(a, b, Transformer(CFG, seed=0).state_dict())
     # and the logs: the same losses to float32 rounding, the same learning rates exactly
     logs = [list(csv.DictReader(open(tmp_path / n / "log.csv"))) for n in ("pyvf", "torch")]
