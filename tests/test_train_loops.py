@@ -10,6 +10,7 @@ import csv
 import dataclasses
 import json
 import os
+import shutil
 import sys
 import types
 
@@ -480,7 +481,16 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     assert table[0].startswith("| run | steps | wall (s) | changes | mae (step) | psnr (step)")
     last = _log(b, "eval.csv")[-1]
     assert table[3].startswith("| b | 3 |") and "lr=0.001 |" in table[3] and f"{float(last[1]):.4g} (3)" in table[3]
-    assert "(the first run)" in table[2]
+    assert "(the first codebook run)" in table[2]
+    # a run of another kind is compared with the first of its own kind, not with the codebook's
+    c = str(tmp_path / "c")
+    shutil.copytree(a, c)
+    with open(os.path.join(c, "config.json"), encoding="utf-8") as f:
+        cfg = json.load(f)
+    with open(os.path.join(c, "config.json"), "w", encoding="utf-8") as f:
+        json.dump({**cfg, "kind": "transformer", "hyperparameters": {**cfg["hyperparameters"], "lr": 5.0}}, f)
+    assert "| c | 2 |" in pyvf.train.curves.runs_table([a, b, c]).splitlines()[4]
+    assert "(the first transformer run)" in pyvf.train.curves.runs_table([a, b, c]).splitlines()[4]
     parser = argparse.ArgumentParser(prog="pyvf")
     cli_register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["runs", a, b])

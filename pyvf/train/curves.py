@@ -119,19 +119,19 @@ def plot_eval(run_dir, png=None):
 
 def runs_table(run_dirs, columns=None):
     """Markdown: one row per run folder: its name, steps, wall seconds (the log's), what its
-    hyperparameters change against the first run's, and its last held-out evaluation
-    (`columns` of eval.csv, default the panels of eval_panels)."""
+    hyperparameters change against the first run's of its kind (codebook, transformer), and its
+    last held-out evaluation (`columns` of eval.csv, default the panels of eval_panels)."""
     import json
 
-    rows, first = [], None
+    rows, firsts = [], {}
     for d in run_dirs:
         with open(os.path.join(d, "config.json"), encoding="utf-8") as f:
             cfg = json.load(f)
         flat = {**{f"config.{k}": v for k, v in cfg["config"].items()},
                 **{k: v for k, v in cfg["hyperparameters"].items() if k != "data"}}
-        first = flat if first is None else first
+        first = firsts.setdefault(cfg.get("kind"), flat)
         changed = ", ".join(f"{k.removeprefix('config.')}={flat.get(k)}" for k in sorted(set(flat) | set(first))
-                            if flat.get(k) != first.get(k)) or "(the first run)"
+                            if flat.get(k) != first.get(k)) or f"(the first {cfg.get('kind', 'run')} run)"
         log = read_log(d)
         ev = read_log(d, "eval.csv") if os.path.exists(os.path.join(d, "eval.csv")) else {}
         cols = columns or (eval_panels(list(ev))[0] if ev else [])
