@@ -1,6 +1,6 @@
 """The torch engine of train_transformer: the same loop, batches, schedule, optimiser, clipping,
 run folder and checkpoints as pyvf's engine, with the model and the update in torch, on a CPU or
-a GPU (docs/training.md, "Training with torch").
+a GPU (docs/walkthrough.md §7).
 
 The model is pyvf.verify's TransformerPort (written from docs/math.md, tested against pyvf to
 float32 rounding), initialised from pyvf's Transformer(config, seed), so both engines start from
@@ -123,7 +123,8 @@ class TorchTransformer:
                  clip_mode="per_tensor"):
         torch = import_torch()
         from ..verify.torch_ports import TransformerPort, official_name
-        self.torch, self.config, self.pyvf_model = torch, model.config, model
+        from ..verify.torch_transformer import losses
+        self.torch, self.config, self.pyvf_model, self._losses = torch, model.config, model, losses
         self.device, self.precision = torch.device(device), precision
         self.max_grad_norm, self.clip_mode = max_grad_norm, clip_mode
         dtype = {"float32": torch.float32, "float64": torch.float64}[str(model.dtype)]
@@ -138,28 +139,26 @@ class TorchTransformer:
             for k, p in self._names.items():
                 p.copy_(self.torch.as_tensor(state[k]))
 
+    def to_pyvf(self):
+        """The pyvf Transformer, given the torch model's current weights."""
+        self.pyvf_model.load_official({k: p.detach().cpu().numpy() for k, p in self._names.items()},
+                                      layout="torch")
+        return self.pyvf_model
+
     def state_dict(self):
         """The weights in pyvf's layout (numpy), as Transformer.state_dict() gives them."""
-        arrays = {k: p.detach().cpu().numpy() for k, p in self._names.items()}
-        self.pyvf_model.load_official(arrays, layout="torch")
-        return self.pyvf_model.state_dict()
-
-    def to_pyvf(self):
-        """A pyvf Transformer holding the torch model's current weights."""
-        self.state_dict()
-        return self.pyvf_model
+        return self.to_pyvf().state_dict()
 
     def _outputs(self, tokens, poses, autocast):
         """tokens (B, N, L) int64, poses (B, N, 7) numpy, poses already relative -> logits,
         raw pose, ce (B,), pose loss (B,), loss, on the device."""
         torch = self.torch
-        from ..verify.torch_transformer import losses
         tok = torch.as_tensor(tokens).to(self.device, non_blocking=True)
         pos = torch.as_tensor(poses).to(self.device, non_blocking=True)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
             logits, raw = self.port(tok, pos)
         logits, raw = logits.float() if autocast else logits, raw.float() if autocast else raw
-        return (logits, raw, *losses(logits, raw, tok, pos, self.config))
+        return (logits, raw, *self._losses(logits, raw, tok, pos, self.config))
 
     def step(self, tokens, poses):
         """One update on a batch (poses in any frame: made relative here, as pyvf's engine).
