@@ -1,89 +1,100 @@
-"""docs/walkthrough.md runs as a doctest: every example passes, the pictures are written, in time.
+"""docs/walkthrough.md runs as a doctest, each section on its own, in time, and its pictures are drawn.
 
     pytest tests/test_walkthrough.py                  # the test (pictures to a temporary folder)
     python tests/test_walkthrough.py                  # the same run, by hand, from the repository root
-    python tests/test_walkthrough.py --out docs/img   # regenerate the pictures the walkthrough shows
+    python tools/walkthrough_figures.py               # the same run, redrawing the pictures in docs/img
 
-Run as a script, Python puts tests/ (not the repository root) first on sys.path, so `import pyvf`
-finds the installed package, not the unbuilt source tree.
+The running and the drawing are tools/walkthrough_figures.py's (loaded from its path: tools/ is not
+a package). Run as a script, Python puts tests/ (not the repository root) first on sys.path, so
+`import pyvf` finds the installed package, not the unbuilt source tree.
 """
 
-import doctest
+import importlib.util
 import os
+import re
 import sys
-import tempfile
-import time
-
-import numpy as np
+import unicodedata
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOCS = os.path.join(ROOT, "docs")
-WALKTHROUGH = os.path.join(DOCS, "walkthrough.md")
-PICTURES = ("walkthrough-mask.png", "walkthrough-render.png")  # what the walkthrough writes, shown from docs/img
-TIME_LIMIT_S = 120  # the issue's bound for the whole file; it takes about 15 s on 2 cores
-OPTIONS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE
+TIME_LIMIT_S = 120  # the issue's bound for the whole file; it takes about 5 s alone, 15 s on 2 busy cores
 
 
-def run_walkthrough(out, verbose=False):
-    """Run every example of docs/walkthrough.md, the pictures written to `out`, from a temporary
-    working folder. Returns (doctest.TestResults, seconds). numpy's print options are restored."""
-    env = {"PYVF_DOCS": DOCS, "PYVF_WALKTHROUGH_OUT": os.path.abspath(out)}
-    saved_env = {k: os.environ.get(k) for k in env}
-    saved_print = np.get_printoptions()
-    cwd = os.getcwd()
-    t0 = time.perf_counter()
-    try:
-        os.environ.update(env)
-        with tempfile.TemporaryDirectory() as work:
-            os.chdir(work)
-            result = doctest.testfile(WALKTHROUGH, module_relative=False, optionflags=OPTIONS, verbose=verbose,
-                                      report=True, encoding="utf-8")
-    finally:
-        os.chdir(cwd)
-        np.set_printoptions(**saved_print)
-        for k, v in saved_env.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    return result, time.perf_counter() - t0
+def _figures_tool():
+    spec = importlib.util.spec_from_file_location("walkthrough_figures",
+                                                  os.path.join(ROOT, "tools", "walkthrough_figures.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
-def test_walkthrough_runs(tmp_path):
+def _text():
+    with open(os.path.join(DOCS, "walkthrough.md"), encoding="utf-8") as f:
+        return f.read()
+
+
+def _anchor(heading):
+    """GitHub's anchor of a markdown heading: lower case, punctuation dropped, spaces to hyphens."""
+    kept = "".join(c for c in heading.strip().lower()
+                   if c in " -_" or unicodedata.category(c)[0] in "LN")
+    return kept.replace(" ", "-")
+
+
+def test_walkthrough_runs_section_by_section(tmp_path):
     from PIL import Image
 
-    out = tmp_path / "pictures"
-    result, seconds = run_walkthrough(out)
-    assert result.attempted > 0, "docs/walkthrough.md has no examples"
-    assert result.failed == 0, f"{result.failed} of {result.attempted} examples of docs/walkthrough.md failed (above)"
+    tool = _figures_tool()
+    runs, seconds = tool.run_sections()
+    titles = [t for t, _, _ in runs]
+    assert [int(t.split(".")[0]) for t in titles[1:]] == list(range(1, 8)), f"sections 1..7 expected, got {titles}"
+    for title, result, _ in runs[1:]:  # each numbered section runs alone: it imports what it needs
+        assert result.attempted > 0, f"section {title!r} of docs/walkthrough.md has no examples"
+    failed = [(t, r.failed) for t, r, _ in runs if r.failed]
+    assert not failed, f"examples of docs/walkthrough.md failed (above), by section: {failed}"
     assert seconds < TIME_LIMIT_S, f"docs/walkthrough.md took {seconds:.0f} s, the limit is {TIME_LIMIT_S} s"
-    for name in PICTURES:
-        written = out / name
-        assert written.is_file(), f"the walkthrough did not write {name}"
-        shown = os.path.join(DOCS, "img", name)
-        assert os.path.isfile(shown), f"docs/img/{name}, the committed copy the walkthrough shows, is missing"
-        with Image.open(written) as a, Image.open(shown) as b:
-            assert a.size == b.size, f"{name}: written {a.size}, the committed copy is {b.size}: regenerate it"
-            if name == "walkthrough-mask.png":  # exact integer drawing: the committed copy must match to the pixel
-                assert np.array_equal(np.asarray(a), np.asarray(b)), \
-                    f"docs/img/{name} differs from what the walkthrough draws: regenerate it (module docstring)"
+
+    written = tool.draw_figures(runs, tmp_path)
+    shown = set(re.findall(r"\]\(img/(walkthrough-[\w-]+\.png)\)", _text()))
+    committed = {f for f in os.listdir(os.path.join(DOCS, "img")) if f.startswith("walkthrough-")}
+    assert shown == set(tool.FIGURES), f"pictures shown {sorted(shown)} != pictures drawn {sorted(tool.FIGURES)}"
+    assert committed == shown, f"docs/img/walkthrough-*.png {sorted(committed)} != pictures shown {sorted(shown)}"
+    for path in written:
+        name = os.path.basename(path)
+        with Image.open(path) as a, Image.open(os.path.join(DOCS, "img", name)) as b:
+            assert a.size == b.size, (f"{name}: drawn {a.size}, the committed copy is {b.size}: "
+                                      "regenerate it (python tools/walkthrough_figures.py)")
+            pixels = a.convert("L").getextrema()
+            assert pixels[0] < 100 and pixels[1] > 200, f"{name} is blank"
+
+
+def test_tree_picture_edges_come_from_the_mask():
+    """The tree picture's edge into each node is the last trunk view it attends (besides itself)."""
+    import pyvf
+
+    parents = _figures_tool()._tree_layout(pyvf.branching_mask(3, 4, 1), 4)
+    assert parents[(0, 0)] is None and parents[(1, 0)] is None and parents[(2, 0)] is None
+    for r in range(3):
+        for i in range(1, 4):
+            assert parents[(r, i)] == (0, i - 1)
+
+
+def test_walkthrough_links_name_its_headings():
+    """Every `#anchor` the walkthrough links (to itself, math.md, accuracy.md) names a heading there."""
+    text = _text()
+    bad = []
+    for target, anchor in re.findall(r"\]\(([\w./-]*)#([^)\s]+)\)", text):
+        path = os.path.join(DOCS, target) if target else os.path.join(DOCS, "walkthrough.md")
+        with open(path, encoding="utf-8") as f:
+            headings = {_anchor(h) for h in re.findall(r"^#+ (.+)$", f.read(), flags=re.M)}
+        if anchor not in headings:
+            bad.append(f"{target}#{anchor}")
+    assert not bad, f"docs/walkthrough.md links to headings that do not exist: {bad}"
+    assert _anchor("§4 The codebook") == "4-the-codebook"  # the rule itself, on a known GitHub anchor
 
 
 def main(argv):
-    import argparse
-
-    p = argparse.ArgumentParser(description="Run docs/walkthrough.md as a doctest.")
-    p.add_argument("--out", default=None, help="folder for the pictures (default: a temporary folder); "
-                                               "docs/img regenerates the committed copies")
-    p.add_argument("-v", "--verbose", action="store_true", help="print every example as it runs")
-    args = p.parse_args(argv)
-    with tempfile.TemporaryDirectory() as tmp:
-        out = args.out or tmp
-        os.makedirs(out, exist_ok=True)
-        result, seconds = run_walkthrough(out, verbose=args.verbose)
-        print(f"docs/walkthrough.md: {result.attempted} examples, {result.failed} failed, {seconds:.1f} s; "
-              f"pictures: {', '.join(os.path.join(args.out, n) for n in PICTURES) if args.out else 'not kept'}")
-    return 1 if result.failed or not result.attempted else 0
+    tool = _figures_tool()
+    return tool.main(["--no-pictures"] + argv)
 
 
 if __name__ == "__main__":
