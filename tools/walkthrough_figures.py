@@ -303,18 +303,21 @@ def mask_figure(ns):
     return sheet
 
 
-def loss_figure(ns, png):
+def loss_figure(ns):
     """Section 5: the toy run's losses, drawn by pyvf.train.curves.plot_curves (a run's curves.png)."""
     from pyvf.train.curves import plot_curves
 
+    Image = _pil()[0]
     with tempfile.TemporaryDirectory() as run:
         with open(os.path.join(run, "log.csv"), "w") as f:
             f.write("step,loss,cross_entropy,pose_loss\n")
             for step, (loss, ce, pose) in enumerate(ns["history"]):
                 f.write(f"{step},{loss!r},{ce!r},{pose!r}\n")
-        plot_curves(run, png, ["loss", "cross_entropy", "pose_loss"], size=(300, 220),
-                    title="Section 5: a toy transformer (2 layers, width 32) on 8 synthetic scenes: "
-                          "the loss before each of 30 AdamW steps")
+        png = plot_curves(run, os.path.join(run, "curves.png"), ["loss", "cross_entropy", "pose_loss"],
+                          size=(300, 220), title="Section 5: a toy transformer (2 layers, width 32) on 8 "
+                                                 "synthetic scenes: the loss before each of 30 AdamW steps")
+        with Image.open(png) as img:
+            return img.copy()
 
 
 def render_figure(ns):
@@ -409,10 +412,7 @@ def draw_figures(runs, out):
     paths = []
     for name, (section, draw) in FIGURES.items():
         path = os.path.join(out, name)
-        if draw is loss_figure:
-            draw(spaces[section], path)
-        else:
-            draw(spaces[section]).save(path, format="PNG")
+        draw(spaces[section]).save(path, format="PNG")
         paths.append(path)
     return paths
 
