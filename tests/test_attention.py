@@ -973,7 +973,8 @@ def test_exp_underflow_and_minus_inf_give_zero(dtype, lo):
 
 OOM_WORKER = """
 import resource, sys, numpy as np, pyvf
-H, N, L, dh, headroom = (int(a) for a in sys.argv[1:])
+assert pyvf.kernel_path() == sys.argv[-1], f"worker runs {pyvf.kernel_path()}, asked for {sys.argv[-1]}"
+H, N, L, dh, headroom = (int(a) for a in sys.argv[1:-1])
 q = np.random.default_rng(0).standard_normal((1, 1, H, N, L, dh)).astype(np.float32)
 o, lse = pyvf.branching_attention_forward(q, q, q)  # threads started, first-call memory taken
 grads = [np.empty_like(q) for _ in range(3)]  # the outputs exist: only the kernel's own buffers are asked for
@@ -987,7 +988,6 @@ except MemoryError as e:
 resource.setrlimit(resource.RLIMIT_AS, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
 small = np.ascontiguousarray(q[:, :, :1, :2, :16, :8])
 print("still running:", pyvf.branching_attention(small, small, small).shape)
-print("path:", pyvf.kernel_path())
 """
 
 
@@ -999,21 +999,22 @@ def test_allocation_failure_is_a_memory_error_not_an_abort(H, N, L, dh, headroom
     """An allocation that fails inside the kernel, also inside an OpenMP region, raises
     MemoryError and the interpreter goes on (an exception escaping an OpenMP region would
     abort the process). The address space is limited in a subprocess so that it fails; the
-    subprocess runs this test's kernel path (PYVF_ISA), which it prints back."""
+    subprocess runs this test's kernel path (PYVF_ISA) and asserts that it does."""
     import subprocess
     import sys
     env = dict(os.environ, PYVF_ISA=kernel_path)
-    proc = subprocess.run([sys.executable, "-c", OOM_WORKER, str(H), str(N), str(L), str(dh), str(headroom)],
-                          cwd=tmp_path, env=env, capture_output=True, text=True)
+    args = [str(a) for a in (H, N, L, dh, headroom)] + [kernel_path]
+    proc = subprocess.run([sys.executable, "-c", OOM_WORKER, *args], cwd=tmp_path, env=env,
+                          capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "MemoryError: branching_attention: not enough memory" in proc.stdout, proc.stdout
     assert "still running: (1, 1, 1, 2, 16, 8)" in proc.stdout
-    assert f"path: {kernel_path}" in proc.stdout, proc.stdout
 
 
 MEMORY_WORKER = """
 import sys, numpy as np, pyvf
 from pyvf.measure import peak_memory
+assert pyvf.kernel_path() == sys.argv[2], f"worker runs {pyvf.kernel_path()}, asked for {sys.argv[2]}"
 L = int(sys.argv[1])
 pyvf.set_num_threads(4)  # the same count on every machine: each thread holds its own buffers
 q = np.random.default_rng(0).standard_normal((1, 1, 1, 2, L, 1)).astype(np.float32)
@@ -1022,7 +1023,6 @@ pyvf.branching_attention_backward(small, small, small, small, *pyvf.branching_at
 (o, lse), fwd = peak_memory(lambda: pyvf.branching_attention_forward(q, q, q))
 _, bwd = peak_memory(lambda: pyvf.branching_attention_backward(q, q, q, q, o, lse))
 print(fwd, bwd, pyvf.num_threads())
-assert pyvf.kernel_path() == sys.argv[2], (pyvf.kernel_path(), sys.argv[2])
 """
 
 
@@ -1034,10 +1034,11 @@ def test_memory_is_bounded_for_long_views(tmp_path, kernel_path):
     import subprocess
     import sys
     L = 4096
-    env = dict(os.environ, PYVF_ISA=kernel_path)  # the worker on this test's path
-    out = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(L), kernel_path], cwd=tmp_path, env=env,
-                         capture_output=True, text=True, check=True).stdout
-    fwd, bwd, threads = (int(x) for x in out.split())
+    env = dict(os.environ, PYVF_ISA=kernel_path)  # the worker on this test's path, which it asserts
+    proc = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(L), kernel_path], cwd=tmp_path, env=env,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    fwd, bwd, threads = (int(x) for x in proc.stdout.split())
     outputs = 2 * L * 4 + 2 * L * 8  # o, lse
     per_thread = 4 * (8 * 256 * 256 + 6 * 2 * L)  # tiles and per-view buffers, generously
     # every thread holds its own buffers (the backward measured 0.9 MiB a thread at 16 threads)

@@ -199,6 +199,59 @@ def test_cached_scene_equals_the_whole_tree(dtype, rtol):
 # (d) evaluate() end to end
 
 
+def image_row(pred, target):
+    """uint8 images (..., Hi, Wi, 3) -> the mean over images of MAE, RMSE and PSNR, written out
+    from docs/math.md §6: per image on the 0..255 scale, PSNR = 10 log10(255^2 / mse) capped at
+    the PSNR of one value one level off."""
+    d = pred.astype(np.float64) - target.astype(np.float64)  # (..., Hi, Wi, 3)
+    d = d.reshape(-1, int(np.prod(d.shape[-3:])))  # (images, values)
+    mse = (d * d).mean(axis=1)
+    with np.errstate(divide="ignore"):
+        psnr = np.minimum(10 * np.log10(255.0 ** 2 / mse), 10 * np.log10(255.0 ** 2 * d.shape[1]))
+    return {"mae": np.abs(d).mean(axis=1).mean(), "rmse": np.sqrt(mse).mean(), "psnr": psnr.mean()}
+
+
+def pose_row(pred, target):
+    """poses (..., 7) -> the medians of the position error (Euclidean) and of the orientation error
+    in degrees, the angle between unit quaternions: 2 arccos |q1 . q2|."""
+    position = np.sqrt(((pred[..., :3] - target[..., :3]) ** 2).sum(axis=-1))
+    q1, q2 = (p[..., 3:] / np.linalg.norm(p[..., 3:], axis=-1, keepdims=True) for p in (pred, target))
+    angle = np.degrees(2 * np.arccos(np.minimum(np.abs((q1 * q2).sum(axis=-1)), 1.0)))
+    return {"position_error_median": np.median(position), "orientation_error_median_deg": np.median(angle)}
+
+
+def rows_by_hand(cb, tf, images, poses, C):
+    """evaluate()'s rows for 2 scenes (images (2, 15, 16, 16, 3), poses (2, 15, 7)) at context C:
+    context views 0..C-1, queries 10..14; pyvf renders each query (argmax tokens, decoded) and
+    localizes it from its tokens through Transformer.render / localize, one scene per call."""
+    q, k, f = np.arange(10, 15), cb.config.token_size, tf.dtype
+    truth, truth_pose = images[:, q], poses[:, q]  # (2, 5, 16, 16, 3), (2, 5, 7)
+    ctx, ctx_pose = images[:, :C], poses[:, :C]  # (2, C, 16, 16, 3), (2, C, 7)
+    tok = np.stack([cb.encode(to_model_images(v, cb.dtype)).reshape(15, -1) for v in images])  # (2, 15, L)
+
+    def decoded(codes):  # (2, 5, L) -> uint8 (2, 5, 16, 16, 3)
+        return to_uint8(cb.decode_code(codes.reshape(10, k, k))).reshape(2, 5, 16, 16, 3)
+
+    # one scene per call, as evaluate(batch=1): the same shapes, so the same float32 roundings
+    # (GEMMs blocked for another batch size round otherwise; a near-tie of an argmax would show it)
+    s = [slice(i, i + 1) for i in range(2)]
+    logits = np.concatenate([tf.render(tok[i, :C], ctx_pose[i].astype(f), truth_pose[i].astype(f)) for i in s])
+    est = np.concatenate([tf.localize(tok[i, :C], ctx_pose[i].astype(f), tok[i][:, q]) for i in s])
+    b = np.arange(2)[:, None]
+    near = np.linalg.norm(truth_pose[:, :, None, :3] - ctx_pose[:, None, :, :3], axis=-1).argmin(axis=2)  # (2, 5)
+    closest = ((truth[:, :, None].astype(float) - ctx[:, None]) ** 2).mean(axis=(-3, -2, -1)).argmin(axis=2)
+    mean_img = np.rint(ctx.mean(axis=1)).astype(np.uint8)[:, None].repeat(5, axis=1)  # (2, 5, 16, 16, 3)
+    quats = ctx_pose[..., 3:] / np.linalg.norm(ctx_pose[..., 3:], axis=-1, keepdims=True)  # (2, C, 4)
+    quats = np.where(quats[..., :1] < 0, -quats, quats).mean(axis=1)  # canonical (w >= 0), then the mean
+    mean_p = np.concatenate([ctx_pose[..., :3].mean(axis=1), quats], axis=-1)[:, None].repeat(5, axis=1)
+    return {"pyvf": {**image_row(decoded(logits.argmax(-1)), truth), **pose_row(est.astype(np.float64), truth_pose)},
+            "codebook": image_row(decoded(tok[:, q]), truth),
+            "nearest_view": image_row(ctx[b, near], truth),
+            "mean_image": image_row(mean_img, truth),
+            "closest_image_pose": pose_row(ctx_pose[b, closest], truth_pose),
+            "mean_pose": pose_row(mean_p, truth_pose)}
+
+
 def test_evaluate_smoke(models, tmp_path):
     cb, tf, _, _ = models
     out = tmp_path / "eval"
@@ -228,32 +281,18 @@ def test_evaluate_smoke(models, tmp_path):
     assert c1["nearest_view"] == c1["mean_image"]
     assert c1["closest_image_pose"] == c1["mean_pose"]
 
-    # pyvf's rows recomputed from their definition, outside evaluate(): context views 0..C-1,
-    # queries 10..14, each query rendered (argmax tokens, decoded) and localized from its tokens
-    from pyvf.evaluate.metrics import image_metrics, pose_metrics, to_model_images, to_uint8
-    from pyvf.scenes import generate_scenes
-
+    # every row recomputed outside evaluate(), its metrics and baselines written out in NumPy here.
+    # The same uint8 images and float64 poses, summed in another order, the angle by another
+    # formula (arccos, ~1e-14 rad off here): 1e-9 relative; one pixel one level off moves MAE by ~1e-5
     images, poses = generate_scenes(5, 2, size=16)  # (2, 15, 16, 16, 3), (2, 15, 7)
-    tok = np.stack([cb.encode(to_model_images(v, cb.dtype)).reshape(15, -1) for v in images])  # (2, 15, L)
-    q = np.arange(10, 15)
-    f = tf.dtype
     for C in (1, 3):
-        # one scene per call, as evaluate(batch=1) above: the same shapes, so the same roundings
-        # (float32 GEMMs blocked for another batch size round otherwise, and a near-tie of the
-        # argmax or the orientation's angle would show it)
-        s = [slice(i, i + 1) for i in range(2)]
-        logits = np.concatenate([tf.render(tok[i, :C], poses[i, :C].astype(f), poses[i][:, q].astype(f)) for i in s])
-        codes = logits.argmax(-1).reshape(10, cb.config.token_size, cb.config.token_size)  # (2, 5, L) -> (10, k, k)
-        rendered = to_uint8(cb.decode_code(codes)).reshape(2, 5, 16, 16, 3)
-        want = image_metrics(rendered, images[:, q])
-        est = np.concatenate([tf.localize(tok[i, :C], poses[i, :C].astype(f), tok[i][:, q]) for i in s])
-        pm = pose_metrics(est.astype(np.float64), poses[:, q])
-        row = metrics["context"][str(C)]["pyvf"]
-        assert row["mae"] == pytest.approx(want["mae"].mean(), rel=1e-12), C
-        assert row["psnr"] == pytest.approx(want["psnr"].mean(), rel=1e-12), C
-        assert row["position_error_median"] == pytest.approx(np.median(pm["position_error"]), rel=1e-9), C
-        assert row["orientation_error_median_deg"] == pytest.approx(np.median(pm["orientation_error_deg"]),
-                                                                   rel=1e-9, abs=1e-9), C
+        want = rows_by_hand(cb, tf, images, poses, C)
+        assert list(want) == list(metrics["context"][str(C)])
+        for method, row in want.items():
+            got = metrics["context"][str(C)][method]
+            assert list(row) == list(got), (C, method)
+            for name, value in row.items():
+                assert got[name] == pytest.approx(value, rel=1e-9, abs=1e-9), (C, method, name, got[name], value)
 
     md = (out / "metrics.md").read_text()
     assert "## Context 1 view" in md and "## Context 3 views" in md and "| pyvf |" in md

@@ -78,6 +78,23 @@ def test_model_matches_torch_float64(variant, rng):
         assert_close(f"d{name}", grads[name], tgrads[name], rtol=1e-11)
 
 
+def test_pose_prediction_closed_form():
+    """The head's raw (xyz, w, x, y, z) -> (xyz / pose_multiplier, unit quaternion with w >= 0),
+    on rows whose answers are written by hand: a 3-4-5 quaternion with w < 0 (flipped), one with
+    w > 0 (kept), one with w == 0 (kept, as the published code does), a negative unit one."""
+    raw = np.array([[1.0, -2.0, 0.5, -3.0, 0.0, 4.0, 0.0],
+                    [0.0, 0.4, -0.6, 1.0, 2.0, 2.0, 4.0],
+                    [0.0, 0.0, 0.0, 0.0, -2.0, 0.0, 0.0],
+                    [0.2, 0.2, 0.2, -0.5, -0.5, -0.5, -0.5]])[None, None]  # (B=1, N=1, L=4, 7)
+    want = np.array([[5.0, -10.0, 2.5, 0.6, 0.0, -0.8, 0.0],
+                     [0.0, 2.0, -3.0, 0.2, 0.4, 0.4, 0.8],
+                     [0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0],
+                     [1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 0.5]])[None, None]
+    got = pyvf.models.transformer.pose_prediction(raw, pose_multiplier=0.2)
+    # a few roundings of values <= 10 (0.6 / 0.2 is not exactly 3 in binary): 1e-15 relative
+    assert_close("pose prediction", got, want, rtol=1e-15)
+
+
 def test_float32_model_tracks_float64(rng):
     cfg64 = pyvf.TransformerConfig(**TINY, dtype="float64")
     m64 = random_model(cfg64, rng)
