@@ -1,4 +1,5 @@
-"""The README's Python examples run as written (in a temporary folder)."""
+"""docs/api.md's Python examples run as written (in a temporary folder), and compute and print
+what their comments say."""
 
 import glob
 import os
@@ -8,22 +9,22 @@ import numpy as np
 import pytest
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
-README = os.path.join(ROOT, "README.md")
+API_DOC = os.path.join(ROOT, "docs", "api.md")
 
 
 def python_blocks():
-    with open(README) as f:
+    with open(API_DOC) as f:
         return re.findall(r"```python\n(.*?)```", f.read(), flags=re.S)
 
 
-def test_readme_has_examples():
+def test_api_doc_has_examples():
     assert len(python_blocks()) >= 2
 
 
 def expected_paths(pyvf):
     """(the path in use, the paths this process can use, the paths built), found without pyvf's own
     detection: the built ones from the package's files, what the CPU runs from /proc/cpuinfo's flags
-    (x86-64 Linux; the README: avx2 = AVX2 + FMA, avx512 = AVX-512 F/DQ/BW/VL), PYVF_ISA as set."""
+    (x86-64 Linux; docs/api.md: avx2 = AVX2 + FMA, avx512 = AVX-512 F/DQ/BW/VL), PYVF_ISA as set."""
     here = os.path.dirname(pyvf.__file__)
     files = {os.path.basename(f).split(".")[0] for f in glob.glob(os.path.join(here, "_core_*"))}
     needs = {"baseline": set(), "avx2": {"avx2", "fma"},
@@ -98,12 +99,12 @@ def test_every_example_has_checks():
 
 
 @pytest.mark.parametrize("i", range(len(python_blocks())))
-def test_readme_example_runs(i, tmp_path, monkeypatch, capsys):
+def test_api_example_runs(i, tmp_path, monkeypatch, capsys):
     """Each example runs as written, and what it computes (or prints) is what its comments say."""
     monkeypatch.chdir(tmp_path)
     block = python_blocks()[i]
     ns = {}
-    exec(compile(block, f"README.md python block {i}", "exec"), ns)
+    exec(compile(block, f"docs/api.md python block {i}", "exec"), ns)
     out = capsys.readouterr().out
     for key, check in CHECKS.items():
         if key in block:
