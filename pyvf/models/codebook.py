@@ -151,7 +151,8 @@ def _attn(name, c):
 
 
 def _mid(part, c):
-    return [_resblock(part + ".mid.block_1", c, c), _attn(part + ".mid.attn_1", c), _resblock(part + ".mid.block_2", c, c)]
+    return [_resblock(part + ".mid.block_1", c, c), _attn(part + ".mid.attn_1", c),
+            _resblock(part + ".mid.block_2", c, c)]
 
 
 def layer_table(cfg):
@@ -187,7 +188,8 @@ def layer_table(cfg):
                 rows.append(_attn(f"decoder.up.{l}.attn.{i}", cin))
         if l != 0:  # Upsample: nearest 2x, then conv 3x3 pad 1
             up = f"decoder.up.{l}.upsample"
-            rows += [Layer(up + ".interp", "upsample", module=up), _conv(up + ".conv", cin, cin, 3, padding=1, module=up)]
+            rows += [Layer(up + ".interp", "upsample", module=up),
+                     _conv(up + ".conv", cin, cin, 3, padding=1, module=up)]
             res *= 2
     rows += [_norm("decoder.norm_out", cin), _conv("decoder.conv_out", cin, cfg.out_ch, 3, padding=1)]
     return tuple(rows)

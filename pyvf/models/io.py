@@ -143,7 +143,8 @@ class ModelWeights:
             problems.append((ValueError, f"{len(missing)} {self.ENTRY_NOUNS[1]} missing: {missing}"))
         if unexpected:
             noun = self.ENTRY_NOUNS[len(unexpected) > 1]
-            problems.append((ValueError, f"unexpected {noun} {', '.join(sorted(unexpected))} (not in this configuration)"))
+            names = ", ".join(sorted(unexpected))
+            problems.append((ValueError, f"unexpected {noun} {names} (not in this configuration)"))
         params = {name: loaded[name] for name in shapes if name in loaded}  # the published order
         return params, buffers, problems
 

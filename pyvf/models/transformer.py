@@ -223,7 +223,8 @@ def layer_table(cfg):
         prev = b + "out"
     rows += [
         # ln_f runs twice: on the generation row (1) and the localization row (2) of the last block
-        _row("ln_f", "layernorm", "ln_f/", norm, ((((prev, 1),), "ln_f.generation"), (((prev, 2),), "ln_f.localization"))),
+        _row("ln_f", "layernorm", "ln_f/", norm,
+             ((((prev, 1),), "ln_f.generation"), (((prev, 2),), "ln_f.localization"))),
         _row("logits", "logits", "", (), _one("ln_f.generation", "logits"), reads=("wte/weight",)),  # tied: wte[:V]
         _row("pose_head", "mlp", "quaternion_pose_representation/pose_classifier/", _dense(d, 2 * d, 7),
              _one("ln_f.localization", "pose")),

@@ -16,7 +16,10 @@ port's own parameter tensors by pyvf's official name, in `layout`; each layer's 
 gradients are compared with pyvf's contribution of that layer (a tied weight, wte, gets one
 per layer that reads it).
 
-The layers (`layer_table(model)`, `layer_names(model)`, in execution order), each a function of its inputs only:
+The layers (`layer_table(model)`, `layer_names(model)`, in execution order), each a function of its inputs only,
+are read off the model's own layer table (model.layers, pyvf.models.table): their names, parameters, inputs
+and, for a conv, its stride and padding; pyvf's side of each VJP runs the table's rows through the model's
+layer pairs (model.layer_forward / layer_backward). For the default tables:
 
   Transformer   input -> output (pyvf's trace names)                   parameters
     embed              tokens, poses -> embed.out                      wte, wpe, pose_embedding/*
