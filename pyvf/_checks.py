@@ -1,11 +1,7 @@
 """Argument checks shared by pyvf's modules: every error names the argument and says what was
 expected; nothing is cast or copied silently. Shape rules stay with the function that has them.
-Also the checks of a checkpoint's entries (weight_problem, problems_error: every wrong entry
-named in one error) and the reading of a model file (model_file) that Codebook and Transformer
-share."""
-
-import json
-import os
+Also the checks of a checkpoint's entries (checkpoint_array, weight_problem, problems_error:
+every wrong entry named in one error), which pyvf.models.io's loader and the quantizer share."""
 
 import numpy as np
 
@@ -143,72 +139,3 @@ def problems_error(what, problems):
     kind = TypeError if all(k is TypeError for k, _ in problems) else ValueError
     n = len(problems)
     return kind(f"{what}: {n} problem{'s' if n > 1 else ''}: " + "; ".join(m for _, m in problems))
-
-
-def weight(name, a, shape, dtype):
-    """A checkpoint's array for parameter `name` -> a new C-contiguous array of `dtype`: it must
-    be a float32/float64 array of `shape` with finite values. The conversion to the model's
-    dtype is the one pyvf makes, on purpose (a float32 checkpoint loads into a float64 model
-    for a float64 check). Always a copy: the caller's array is never aliased."""
-    problem = weight_problem(name, a, shape)
-    if problem is not None:
-        raise problems_error("load_official", [problem])
-    return np.array(a, dtype=dtype, order="C", copy=True)
-
-
-def model_file(path, what):
-    """The arrays and the configuration of a model file written by Codebook.save /
-    Transformer.save: (dict name -> array without __config__, dict of config fields), read now.
-
-    path: a path (str or os.PathLike, used as given: no ".npz" appended) or an open binary file.
-    A missing file raises FileNotFoundError; a truncated or corrupt one, or a missing or
-    unreadable __config__ entry, pyvf._io.CheckpointError (a ValueError) naming the file and
-    the entry."""
-    from ._io import CheckpointError, load_npz
-
-    if hasattr(path, "read"):
-        name = getattr(path, "name", repr(path))
-        entry = None
-        try:
-            with np.load(path, allow_pickle=False) as f:
-                arrays = {}
-                for entry in f.files:
-                    arrays[entry] = f[entry]
-        except Exception as e:  # zipfile, EOF, ValueError...: all mean a bad file
-            where = f" (entry {entry!r})" if entry is not None else ""
-            raise CheckpointError(f"{what} {name} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
-        if "__config__" not in arrays:
-            raise CheckpointError(f"{what} {name} lacks the entry '__config__': not a {what} written by pyvf")
-    else:
-        name = os.fspath(path)
-        arrays = load_npz(name, what, required=("__config__",))
-    raw = arrays.pop("__config__")
-    try:
-        if raw.shape != () or raw.dtype.kind != "U":
-            raise ValueError(f"expected a JSON string, got a {raw.dtype} array of shape {raw.shape}")
-        config = json.loads(str(raw))
-        if not isinstance(config, dict):
-            raise ValueError(f"expected a JSON object, got {type(config).__name__}")
-    except ValueError as e:
-        raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
-    return arrays, config
-
-
-def load_model(path, what, config_cls, model_cls):
-    """Codebook.load / Transformer.load: read the file (model_file), build the configuration and
-    the model, load the weights (load_official validates all of them first). Every problem is a
-    CheckpointError naming the file (and the entry)."""
-    from ._io import CheckpointError
-
-    arrays, fields = model_file(path, what)
-    name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
-    try:
-        config = config_cls(**fields)
-    except (TypeError, ValueError) as e:
-        raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
-    model = model_cls(config)
-    try:
-        model.load_official(arrays)
-    except (TypeError, ValueError) as e:
-        raise CheckpointError(f"{what} {name}: {e}") from e
-    return model

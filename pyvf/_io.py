@@ -10,10 +10,11 @@ the folder is fsync'ed so the rename itself is on disk. A process killed at any 
 either the previous file or the new one, never a mix; an exception (KeyboardInterrupt
 included) removes the temporary file. Only SIGKILL or a power cut can leave one behind:
 remove_stale_temps(path) clears those (they are named `.{name}.{pid}.{random}.tmp`).
+
+A model file (a model's configuration and state) is written and read by pyvf.models.io, on
+these primitives.
 """
 
-import dataclasses
-import json
 import os
 import secrets
 import zipfile
@@ -146,19 +147,3 @@ def remove_stale_temps(path):
             except FileNotFoundError:
                 pass
     return removed
-
-
-def save_model(path, config, state):
-    """Codebook.save / Transformer.save: the configuration (JSON, entry __config__) and the state
-    (name -> array) in one .npz. path: a str or os.PathLike, ".npz" appended when it does not
-    end with it (as np.savez does), written atomically; or an open binary file, written
-    directly (no atomicity: the caller owns it). Returns the path written (or the file)."""
-    arrays = {"__config__": json.dumps(dataclasses.asdict(config)), **state}
-    if hasattr(path, "write"):
-        np.savez(path, **arrays)
-        return path
-    path = os.fsdecode(os.fspath(path))
-    if not path.endswith(".npz"):
-        path += ".npz"
-    atomic_savez(path, **arrays)
-    return path

@@ -19,7 +19,11 @@ Parameters use the published torch names (tests/data/official-codebook-*.json), 
 (out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
 load_official / state_dict also speak channels-last kernels (layout="tf": TF, Flax).
 
-The forward records every layer it runs on a tape, (kind, parameter name, cache); the backward
+The model is described once, by its layer table (layer_table(config), pyvf.models.table): each
+layer's name, kind, parameter shapes, stride and padding. The parameters (parameter_shapes), the
+trace's names (trace_names), the forward's walk and teacher forcing's layers are read off it.
+
+The forward records every row of the table it runs on a tape, (row, cache); the backward
 replays the tape in reverse, so it reads as the forward read backwards, whatever the
 configuration's number of levels and blocks. A traced forward records each op's output under
 its name as it runs (the published torch module's name; the activations the forward keeps
@@ -42,12 +46,10 @@ not the torch GroupNorm module's output (record `nonlinearity(norm(x))` on a por
 """
 
 import dataclasses
-from collections.abc import Mapping
 
 import numpy as np
 
 from .. import _checks
-from .._io import save_model
 from ..nn.conv import (
     attnblock_backward,
     attnblock_forward,
@@ -59,47 +61,18 @@ from ..nn.conv import (
     upsample_nearest2x_forward,
 )
 from ..nn.quantizer import EMAQuantizer
+from .io import ModelWeights
+from .table import Layer, parameters, trace_order
 
-ATTN_PARAMS = (".norm.weight", ".norm.bias", ".q.weight", ".q.bias", ".k.weight", ".k.bias",
-               ".v.weight", ".v.bias", ".proj_out.weight", ".proj_out.bias")
 BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.ema_dw_hidden", "quantize.counter")
 
+# load_official's layouts: layout -> how it holds the conv kernels, the published one first
+LAYOUTS = {"torch": "nn.Conv2d kernels (out, in, kh, kw), the published state dict",
+           "tf": "conv kernels (kh, kw, in, out), channels-last as TF/Keras Conv2D and Flax nn.Conv hold them"}
+WEIGHT_LAYOUTS = tuple(LAYOUTS)
 
-WEIGHT_LAYOUTS = ("torch", "tf")
-
-
-def _weight_layout(layout):
-    if not isinstance(layout, str) or layout not in WEIGHT_LAYOUTS:
-        raise ValueError(f"layout must be one of {WEIGHT_LAYOUTS} (the conv kernels' convention: torch "
-                         f"nn.Conv2d (out, in, kh, kw) or channels-last TF/Flax (kh, kw, in, out)), got {layout!r}")
-    return layout
-
-
-def is_conv_kernel(name, shape):
-    """True for the conv kernels: the 4-d `.weight`s (GroupNorm weights are 1-d)."""
-    return name.endswith(".weight") and len(shape) == 4
-
-
-def _layout_shape(name, shape, layout):
-    """The shape parameter `name` (published shape `shape`) has in `layout`."""
-    if layout == "tf" and is_conv_kernel(name, shape):
-        return tuple(shape[2:]) + (shape[1], shape[0])  # (out, in, kh, kw) -> (kh, kw, in, out)
-    return tuple(shape)
-
-
-def _from_layout(name, a, layout):
-    """An array in `layout` -> the published layout (a view)."""
-    if layout == "tf" and is_conv_kernel(name, a.shape):
-        return a.transpose(3, 2, 0, 1)  # (kh, kw, in, out) -> (out, in, kh, kw)
-    return a
-
-
-def _to_layout(name, p, layout):
-    """A parameter in the published layout -> a C-contiguous copy in `layout`."""
-    if layout == "tf" and is_conv_kernel(name, p.shape):
-        return np.ascontiguousarray(p.transpose(2, 3, 1, 0))  # (out, in, kh, kw) -> (kh, kw, in, out)
-    return p.copy()
-
+# the published state dict registers the encoder, then the decoder, then the 1x1 convs around the quantizer
+PUBLISHED_ORDER = ("encoder", "decoder")
 
 IMAGE_RANGE_SLACK = 1e-3  # images may leave [-1, 1] by this much (a user's own rounding), no more
 
@@ -147,117 +120,140 @@ class CodebookConfig:
         return self.image_size // 2 ** (len(self.ch_mult) - 1)
 
 
-def _conv(shapes, name, cin, cout, k):
-    shapes[name + ".weight"] = (cout, cin, k, k)
-    shapes[name + ".bias"] = (cout,)
+# ---------------------------------------------------------------------------------------
+# the layer table: every layer once; the parameters, the trace, the forward and teacher forcing read it
 
 
-def _norm(shapes, name, c):
-    shapes[name + ".weight"] = (c,)
-    shapes[name + ".bias"] = (c,)
+def _conv(name, cin, cout, k, *, stride=1, padding=0, module=None):
+    return Layer(name, "conv", ((".weight", (cout, cin, k, k), "conv_kernel"), (".bias", (cout,), None)),
+                 stride=stride, padding=padding, module=module)
 
 
-def _resblock(shapes, name, cin, cout):
-    _norm(shapes, name + ".norm1", cin)
-    _conv(shapes, name + ".conv1", cin, cout, 3)
-    _norm(shapes, name + ".norm2", cout)
-    _conv(shapes, name + ".conv2", cout, cout, 3)
-    if cin != cout:
-        _conv(shapes, name + ".nin_shortcut", cin, cout, 1)
+def _norm(name, c):
+    """Normalize (32 groups, eps 1e-6, docs/math.md §4) then swish, fused."""
+    return Layer(name, "norm_swish", ((".weight", (c,), None), (".bias", (c,), None)))
 
 
-def _attn(shapes, name, c):
-    _norm(shapes, name + ".norm", c)
+def _resblock(name, cin, cout):
+    """ResnetBlock: norm1, swish, conv1, norm2, swish, conv2; + x (or nin_shortcut(x))."""
+    body = (_norm(name + ".norm1", cin), _conv(name + ".conv1", cin, cout, 3, padding=1),
+            _norm(name + ".norm2", cout), _conv(name + ".conv2", cout, cout, 3, padding=1))
+    shortcut = (_conv(name + ".nin_shortcut", cin, cout, 1),) if cin != cout else ()
+    return Layer(name, "res", body=body, shortcut=shortcut)
+
+
+def _attn(name, c):
+    """AttnBlock: x + proj_out(attention(q, k, v of norm(x))), residual included."""
+    params = [(".norm.weight", (c,), None), (".norm.bias", (c,), None)]
     for p in ("q", "k", "v", "proj_out"):
-        _conv(shapes, f"{name}.{p}", c, c, 1)
+        params += [(f".{p}.weight", (c, c, 1, 1), "conv_kernel"), (f".{p}.bias", (c,), None)]
+    return Layer(name, "attn", tuple(params))
+
+
+def _mid(part, c):
+    return [_resblock(part + ".mid.block_1", c, c), _attn(part + ".mid.attn_1", c),
+            _resblock(part + ".mid.block_2", c, c)]
+
+
+def layer_table(cfg):
+    """The codebook's layers for configuration cfg, in execution order (pyvf.models.table.Layer rows):
+    the encoder, quant_conv, quantize, post_quant_conv, the decoder."""
+    ch, mult, nres = cfg.ch, cfg.ch_mult, cfg.num_res_blocks
+    rows = [_conv("encoder.conv_in", cfg.in_channels, ch, 3, padding=1)]
+    res, cin = cfg.image_size, ch
+    for l, m in enumerate(mult):
+        for i in range(nres):
+            rows.append(_resblock(f"encoder.down.{l}.block.{i}", cin, ch * m))
+            cin = ch * m
+            if res in cfg.attn_resolutions:
+                rows.append(_attn(f"encoder.down.{l}.attn.{i}", cin))
+        if l != len(mult) - 1:
+            # docs/math.md §4 Downsample: zero-pad right and bottom by one, then 3x3 stride 2 pad 0
+            rows.append(_conv(f"encoder.down.{l}.downsample.conv", cin, cin, 3, stride=2, padding=(0, 1, 0, 1),
+                              module=f"encoder.down.{l}.downsample"))
+            res //= 2
+    rows += _mid("encoder", cin)
+    rows += [_norm("encoder.norm_out", cin), _conv("encoder.conv_out", cin, cfg.z_channels, 3, padding=1),
+             _conv("quant_conv", cfg.z_channels, cfg.embed_dim, 1),
+             Layer("quantize", "quantize"),  # the EMA quantizer: its buffers are not parameters
+             _conv("post_quant_conv", cfg.embed_dim, cfg.z_channels, 1)]
+    cin = ch * mult[-1]
+    rows.append(_conv("decoder.conv_in", cfg.z_channels, cin, 3, padding=1))
+    rows += _mid("decoder", cin)
+    for l in reversed(range(len(mult))):  # decoder.up.{l} is indexed by level, run last to first
+        for i in range(nres + 1):
+            rows.append(_resblock(f"decoder.up.{l}.block.{i}", cin, ch * mult[l]))
+            cin = ch * mult[l]
+            if res in cfg.attn_resolutions:
+                rows.append(_attn(f"decoder.up.{l}.attn.{i}", cin))
+        if l != 0:  # Upsample: nearest 2x, then conv 3x3 pad 1
+            up = f"decoder.up.{l}.upsample"
+            rows += [Layer(up + ".interp", "upsample", module=up),
+                     _conv(up + ".conv", cin, cin, 3, padding=1, module=up)]
+            res *= 2
+    rows += [_norm("decoder.norm_out", cin), _conv("decoder.conv_out", cin, cfg.out_ch, 3, padding=1)]
+    return tuple(rows)
+
+
+def _published_rank(name):
+    top = name.split(".", 1)[0]
+    return PUBLISHED_ORDER.index(top) if top in PUBLISHED_ORDER else len(PUBLISHED_ORDER)
+
+
+def _split(layers):
+    """The table -> (the encoder's rows, the quantize row, the decoder's rows)."""
+    at = [i for i, row in enumerate(layers) if row.kind == "quantize"]
+    if len(at) != 1:
+        raise ValueError(f"a codebook's layer table needs exactly one 'quantize' row, got {len(at)}")
+    return layers[:at[0]], layers[at[0]], layers[at[0] + 1:]
+
+
+def parameter_table(layers):
+    """A table's parameters: torch name -> (shape, role), in the published order."""
+    return dict(sorted(parameters(layers).items(), key=lambda kv: _published_rank(kv[0])))
 
 
 def parameter_shapes(cfg):
     """torch name -> shape of every parameter (not the quantizer's buffers), in the published order."""
-    s = {}
-    ch, mult, nres = cfg.ch, cfg.ch_mult, cfg.num_res_blocks
-    _conv(s, "encoder.conv_in", cfg.in_channels, ch, 3)
-    res, cin = cfg.image_size, ch
-    for l, m in enumerate(mult):
-        for i in range(nres):
-            _resblock(s, f"encoder.down.{l}.block.{i}", cin, ch * m)
-            cin = ch * m
-            if res in cfg.attn_resolutions:
-                _attn(s, f"encoder.down.{l}.attn.{i}", cin)
-        if l != len(mult) - 1:
-            _conv(s, f"encoder.down.{l}.downsample.conv", cin, cin, 3)
-            res //= 2
-    _resblock(s, "encoder.mid.block_1", cin, cin)
-    _attn(s, "encoder.mid.attn_1", cin)
-    _resblock(s, "encoder.mid.block_2", cin, cin)
-    _norm(s, "encoder.norm_out", cin)
-    _conv(s, "encoder.conv_out", cin, cfg.z_channels, 3)
-    cin = ch * mult[-1]
-    _conv(s, "decoder.conv_in", cfg.z_channels, cin, 3)
-    _resblock(s, "decoder.mid.block_1", cin, cin)
-    _attn(s, "decoder.mid.attn_1", cin)
-    _resblock(s, "decoder.mid.block_2", cin, cin)
-    for l in reversed(range(len(mult))):
-        for i in range(nres + 1):
-            _resblock(s, f"decoder.up.{l}.block.{i}", cin, ch * mult[l])
-            cin = ch * mult[l]
-            if res in cfg.attn_resolutions:
-                _attn(s, f"decoder.up.{l}.attn.{i}", cin)
-        if l != 0:
-            _conv(s, f"decoder.up.{l}.upsample.conv", cin, cin, 3)
-            res *= 2
-    _norm(s, "decoder.norm_out", cin)
-    _conv(s, "decoder.conv_out", cin, cfg.out_ch, 3)
-    _conv(s, "quant_conv", cfg.z_channels, cfg.embed_dim, 1)
-    _conv(s, "post_quant_conv", cfg.embed_dim, cfg.z_channels, 1)
-    return s
+    return {name: shape for name, (shape, _) in parameter_table(layer_table(cfg)).items()}
+
+
+def _losses(cfg):
+    return ["rec_loss", "commitment_loss"] + (["perceptual_loss"] if cfg.perceptual_weight else []) + ["loss"]
 
 
 def trace_names(cfg):
     """The names forward(..., trace=True) records for configuration cfg, in execution order."""
-    names = []
+    return trace_order(layer_table(cfg)) + _losses(cfg)
 
-    def res(name, cin, cout):
-        names.extend(name + s for s in (".norm1", ".conv1", ".norm2", ".conv2"))
-        if cin != cout:
-            names.append(name + ".nin_shortcut")
-        names.append(name)
 
-    def mid(p, c):
-        res(p + ".mid.block_1", c, c)
-        names.append(p + ".mid.attn_1")
-        res(p + ".mid.block_2", c, c)
+def row_forward(row, params, x):
+    """Run one row of the table (not a residual block): x -> (y, cache), with its parameters from params."""
+    P = [params[n] for n in row.param_names]
+    if row.kind == "conv":
+        return conv2d_forward(x, *P, row.stride, row.padding)
+    if row.kind == "norm_swish":
+        return groupnorm_swish_forward(x, *P)
+    if row.kind == "upsample":
+        return upsample_nearest2x_forward(x)
+    if row.kind == "attn":
+        return attnblock_forward(x, *P)
+    raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
 
-    ch, mult, L = cfg.ch, cfg.ch_mult, len(cfg.ch_mult)
-    names.append("encoder.conv_in")
-    r, cin = cfg.image_size, ch
-    for l in range(L):
-        for i in range(cfg.num_res_blocks):
-            res(f"encoder.down.{l}.block.{i}", cin, ch * mult[l])
-            cin = ch * mult[l]
-            if r in cfg.attn_resolutions:
-                names.append(f"encoder.down.{l}.attn.{i}")
-        if l != L - 1:
-            names.append(f"encoder.down.{l}.downsample.conv")
-            r //= 2
-    mid("encoder", cin)
-    names += ["encoder.norm_out", "encoder.conv_out", "quant_conv", "quantize", "post_quant_conv", "decoder.conv_in"]
-    cin = ch * mult[-1]
-    mid("decoder", cin)
-    for l in reversed(range(L)):
-        for i in range(cfg.num_res_blocks + 1):
-            res(f"decoder.up.{l}.block.{i}", cin, ch * mult[l])
-            cin = ch * mult[l]
-            if r in cfg.attn_resolutions:
-                names.append(f"decoder.up.{l}.attn.{i}")
-        if l != 0:
-            names += [f"decoder.up.{l}.upsample.interp", f"decoder.up.{l}.upsample.conv"]
-            r *= 2
-    names += ["decoder.norm_out", "decoder.conv_out", "rec_loss", "commitment_loss"]
-    if cfg.perceptual_weight:
-        names.append("perceptual_loss")
-    names.append("loss")
-    return names
+
+def row_backward(row, dy, cache):
+    """row_forward's VJP: dy -> (dx, the gradients of row.param_names, in order)."""
+    if row.kind == "conv":
+        dx, *dp = conv2d_backward(dy, cache)
+    elif row.kind == "norm_swish":
+        dx, *dp = groupnorm_swish_backward(dy, cache)
+    elif row.kind == "upsample":
+        dx, *dp = upsample_nearest2x_backward(dy, cache)
+    elif row.kind == "attn":
+        dx, *dp = attnblock_backward(dy, cache)
+    else:
+        raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
+    return dx, dp
 
 
 @dataclasses.dataclass
@@ -282,16 +278,26 @@ def _add_grad(grads, name, g):
         grads[name] = g
 
 
-class Codebook:
+class Codebook(ModelWeights):
     """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward.
 
     perceptual: the optional perceptual term (LPIPS in the paper, whose pretrained VGG weights
     are not bundled), any object with `forward(x, x_hat) -> (loss (B,), cache)` and
     `backward(dloss (B,), cache) -> dx_hat`; weighted by config.perceptual_weight, which must
     then be positive. Without one, perceptual_weight must be 0: the term is never silently dropped.
+
+    layers: the layer table (default layer_table(config)): the parameters, the forward, the trace
+    and teacher forcing all read it, so a changed table (a layer renamed, another padding) changes
+    them alike.
     """
 
-    def __init__(self, config, seed=0, perceptual=None):
+    LAYOUTS = LAYOUTS
+    ENTRY_NOUNS = ("names", "names")  # the state dict's names: parameters and buffers
+    FILE_KIND = "codebook"
+    CONFIG = CodebookConfig
+    INPUTS = ("images",)  # the model's inputs (teacher forcing: the first row reads the first)
+
+    def __init__(self, config, seed=0, perceptual=None, *, layers=None):
         if not isinstance(config, CodebookConfig):
             raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
         if (perceptual is None) != (config.perceptual_weight == 0):
@@ -303,10 +309,13 @@ class Codebook:
         self.perceptual = perceptual
         self.config = config
         self.dtype = np.dtype(config.dtype)
+        layers = layer_table(config) if layers is None else tuple(layers)
+        self._describe(layers, parameter_table(layers))
+        self._encoder_rows, self._quantize_row, self._decoder_rows = _split(self.layers)
         rng = np.random.default_rng(seed)
         self.params = {}
-        for name, shape in parameter_shapes(config).items():
-            if len(shape) == 4:  # conv weights: torch's default kaiming-uniform bound 1/sqrt(fan_in)
+        for name, (shape, role) in self._param_table.items():
+            if role == "conv_kernel":  # torch's default kaiming-uniform bound 1/sqrt(fan_in)
                 bound = 1.0 / np.sqrt(np.prod(shape[1:]))
                 p = rng.uniform(-bound, bound, shape)
             elif name.endswith(".weight"):  # GroupNorm gamma
@@ -316,20 +325,29 @@ class Codebook:
             self.params[name] = p.astype(self.dtype)
         self.quantizer = EMAQuantizer(config.embed_dim, config.n_embed, config.decay, config.eps,
                                       config.dtype, seed=seed + 1)
+        self._buffer_prefix = self._quantize_row.name + "."
+        self.BUFFERS = tuple(self._buffer_prefix + k for k in self.quantizer.state_dict())  # BUFFERS by default
         self._cache = None
         self._trace = None  # during a traced forward only: the dict _op records into
 
+    def trace_names(self):
+        """The names forward(..., trace=True) records, in execution order."""
+        return trace_order(self.layers) + _losses(self.config)
+
     # -----------------------------------------------------------------------------------
-    # weights
+    # weights (the mechanism: pyvf.models.io.ModelWeights)
+
+    def official_name(self, name):
+        """A Lightning checkpoint's `model.` prefix is dropped."""
+        return name[len("model."):] if name.startswith("model.") else name
 
     def state_dict(self, layout="torch"):
         """torch name -> array, the quantizer's buffers included (copies), in `layout` (see
         load_official): "torch", the published state dict (nn.Conv2d kernels (out, in, kh, kw)),
         or "tf", channels-last kernels (kh, kw, in, out) as TF/Keras Conv2D and Flax nn.Conv
         hold them. Every other entry is the same in both."""
-        layout = _weight_layout(layout)
-        state = {name: _to_layout(name, p, layout) for name, p in self.params.items()}
-        state.update({"quantize." + k: v for k, v in self.quantizer.state_dict().items()})
+        state = self._params_in(layout)
+        state.update({self._buffer_prefix + k: v for k, v in self.quantizer.state_dict().items()})
         return state
 
     def load_official(self, state_dict, *, layout="torch"):
@@ -338,8 +356,8 @@ class Codebook:
         `model.` prefix is dropped; other keys of such a checkpoint, e.g. `loss.*`, are
         unexpected: `pyvf convert torch-codebook` skips them).
 
-        layout: the caller states the convention of the conv kernels (every 4-d `.weight`), so a
-        kernel is never silently transposed:
+        layout: the caller states the convention of the conv kernels (the table's conv_kernel
+        parameters, every 4-d `.weight`), so a kernel is never silently transposed:
           "torch" the published state dict = torch nn.Conv2d's (out, in, kh, kw);
           "tf"    channels-last (kh, kw, in, out): TF/Keras Conv2D, Flax nn.Conv; transposed here.
         Biases, GroupNorm parameters and the quantizer's buffers (`quantize.embeddings` is
@@ -353,126 +371,75 @@ class Codebook:
         naming every wrong entry (TypeError when all of them are wrong types), and the model is
         left unchanged. Float arrays are converted to the model's dtype (the one conversion pyvf
         makes, on purpose); the model never aliases the caller's arrays."""
-        layout = _weight_layout(layout)
-        if not isinstance(state_dict, Mapping):
-            raise TypeError(f"load_official: state_dict must be a dict name -> array, got {type(state_dict).__name__}")
-        shapes = parameter_shapes(self.config)
-        problems, entries, given_as, unexpected = [], {}, {}, []
-        for raw_name, arr in state_dict.items():
-            name = raw_name[len("model."):] if isinstance(raw_name, str) and raw_name.startswith("model.") else raw_name
-            if name not in shapes and name not in BUFFERS:
-                unexpected.append(repr(raw_name))
-                continue
-            if name in given_as:
-                problems.append((ValueError, f"{name!r} given twice (as {given_as[name]!r} and {raw_name!r})"))
-                continue
-            given_as[name] = raw_name
-            arr, problem = _checks.checkpoint_array(raw_name, arr)  # torch tensors -> numpy
-            if problem is not None:
-                problems.append(problem)
-            else:
-                entries[name] = arr
-        missing = [k for k in (*shapes, *BUFFERS) if k not in given_as]
-        if missing:
-            problems.append((ValueError, f"{len(missing)} names missing: {missing}"))
-        if unexpected:
-            problems.append((ValueError, f"unexpected names {', '.join(sorted(unexpected))}"))
-        params = {}
-        hint = " (layout='tf': conv kernels (kh, kw, in, out))" if layout == "tf" else ""
-        for name, shape in shapes.items():
-            if name in entries:
-                a = entries[name]
-                problem = _checks.weight_problem(given_as[name], a, _layout_shape(name, shape, layout), hint=hint)
-                if problem is None:
-                    params[name] = np.array(_from_layout(name, a, layout), dtype=self.dtype, order="C", copy=True)
-                else:
-                    problems.append(problem)
-        prefix = "quantize."
-        buffers, buffer_problems = self.quantizer.check_state(
-            {k[len(prefix):]: entries[k] for k in BUFFERS if k in entries}, prefix=prefix, require_all=False)
-        problems += buffer_problems
-        if problems:
-            raise _checks.problems_error("load_official", problems)
-        self.quantizer._assign(buffers)
-        self.params = params
+        self._load(state_dict, layout)
 
-    def save(self, path):
-        """Write the configuration, the parameters and the quantizer's buffers to one .npz file.
+    def _check_buffers(self, entries):
+        prefix = self._buffer_prefix
+        buffers, problems = self.quantizer.check_state({k[len(prefix):]: v for k, v in entries.items()},
+                                                       prefix=prefix, require_all=False)
+        return (lambda: self.quantizer._assign(buffers)), problems
 
-        path: a str or os.PathLike (".npz" appended when missing, so `Codebook.load` needs the
-        name with ".npz"), written atomically, or an open binary file; see pyvf._io.save_model.
-        Returns the path written (or the file)."""
-        return save_model(path, self.config, self.state_dict())
+    # -----------------------------------------------------------------------------------
+    # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
 
-    @classmethod
-    def load(cls, path):
-        """Read a codebook written by save(): path as given (no ".npz" appended), or an open
-        binary file. A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
-        configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
-        pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
-        return _checks.load_model(path, "codebook", CodebookConfig, cls)
+    def layer_forward(self, row, x):
+        """Run the table's row (not a residual block) on x -> (output, cache)."""
+        if row.kind == "quantize":  # the quantized z (no EMA step); its gradient is the straight-through one
+            q, _ = self.quantizer.forward(x, train=False)
+            return q.quantized, None
+        return row_forward(row, self.params, x)
+
+    def layer_backward(self, row, dy, cache):
+        """layer_forward's VJP -> ([dx], the gradients of row.param_names, in order)."""
+        if row.kind == "quantize":  # forward was quantized = z + sg(e - z): the identity for the gradient
+            return [dy], []
+        dx, dparams = row_backward(row, dy, cache)
+        return [dx], dparams
 
     # -----------------------------------------------------------------------------------
     # the tape
 
-    def _op(self, tape, kind, name, x, **kw):
-        """Run one layer, record it on the tape, return its output. tape None: inference, no
-        backward will follow; nothing is kept, so each activation is freed once the next layer has
-        read it (encode and decode_code: peak memory a few activations, not the whole network's)."""
-        P = self.params
+    def _op(self, tape, row, x):
+        """Run one row of the table, record it on the tape, return its output. tape None:
+        inference, no backward will follow; nothing is kept, so each activation is freed once the
+        next layer has read it (encode and decode_code: peak memory a few activations, not the
+        whole network's)."""
         keep = tape is not None
-        if kind == "conv":
-            y, c = conv2d_forward(x, P[name + ".weight"], P[name + ".bias"], kw.get("stride", 1), kw.get("padding", 0))
-        elif kind == "norm_swish":  # Normalize (32 groups, eps 1e-6, docs/math.md §4) then swish, fused
-            y, c = groupnorm_swish_forward(x, P[name + ".weight"], P[name + ".bias"])
-        elif kind == "upsample":
-            y, c = upsample_nearest2x_forward(x)
-        elif kind == "res":
-            y, c = self._resblock_forward(name, x, keep)
-        elif kind == "attn":
-            y, c = attnblock_forward(x, *(P[name + s] for s in ATTN_PARAMS))
+        if row.kind == "res":
+            y, c = self._resblock_forward(row, x, keep)
         else:
-            raise AssertionError(kind)
+            y, c = row_forward(row, self.params, x)
         if keep:
-            tape.append((kind, name, c))
+            tape.append((row, c))
         if self._trace is not None:
-            self._trace[name] = y
+            self._trace[row.name] = y
         return y
 
     def _backward(self, tape, dy, grads, g=None):
         """Replay a tape in reverse: dy is the gradient of its last output; returns that of its input.
         g: None, or a dict each op's output gradient is recorded in (by the op's name)."""
-        for kind, name, c in reversed(tape):
+        for row, c in reversed(tape):
             if g is not None:
-                g[name] = dy
-            if kind == "conv":
-                dy, dw, db = conv2d_backward(dy, c)
-                _add_grad(grads, name + ".weight", dw)
-                _add_grad(grads, name + ".bias", db)
-            elif kind == "norm_swish":
-                dy, dg, db = groupnorm_swish_backward(dy, c)
-                _add_grad(grads, name + ".weight", dg)
-                _add_grad(grads, name + ".bias", db)
-            elif kind == "upsample":
-                (dy,) = upsample_nearest2x_backward(dy, c)
-            elif kind == "res":
+                g[row.name] = dy
+            if row.kind == "res":
                 dy = self._resblock_backward(dy, c, grads, g)
-            elif kind == "attn":
-                dy, *dparams = attnblock_backward(dy, c)
-                for suffix, dp in zip(ATTN_PARAMS, dparams):
-                    _add_grad(grads, name + suffix, dp)
+                continue
+            dy, dparams = row_backward(row, dy, c)
+            for name, dp in zip(row.param_names, dparams):
+                _add_grad(grads, name, dp)
         return dy
 
-    def _resblock_forward(self, name, x, keep=True):
-        """ResnetBlock: norm1, swish, conv1, norm2, swish, conv2; + x (or nin_shortcut(x)).
-        keep False: inference (see _op), nothing recorded."""
+    def _resblock_forward(self, row, x, keep=True):
+        """ResnetBlock: its body (norm1, swish, conv1, norm2, swish, conv2) + x (or its shortcut,
+        nin_shortcut(x)). keep False: inference (see _op), nothing recorded."""
         main, short = ([], []) if keep else (None, None)
-        h = self._op(main, "norm_swish", name + ".norm1", x)
-        h = self._op(main, "conv", name + ".conv1", h, padding=1)
-        h = self._op(main, "norm_swish", name + ".norm2", h)
-        h = self._op(main, "conv", name + ".conv2", h, padding=1)
-        s = self._op(short, "conv", name + ".nin_shortcut", x) if name + ".nin_shortcut.weight" in self.params else x
-        if self._trace is None:  # h, conv2's fresh output, is referenced nowhere else: add in place
+        h = x
+        for r in row.body:
+            h = self._op(main, r, h)
+        s = x
+        for r in row.shortcut:
+            s = self._op(short, r, s)
+        if self._trace is None and row.body:  # h, conv2's fresh output, is referenced nowhere else: add in place
             h += s
             return h, (main, short)
         return s + h, (main, short)  # the trace keeps h itself
@@ -483,49 +450,21 @@ class Codebook:
         return self._backward(main, dy, grads, g) + ds  # y = s(x) + h(x)
 
     # -----------------------------------------------------------------------------------
-    # encoder and decoder
+    # encoder and decoder: the table's rows before and after quantize
 
     def _encoder(self, tape, x):
         """x (B, in_channels, S, S) -> z (B, embed_dim, k, k), after quant_conv."""
-        cfg = self.config
-        h = self._op(tape, "conv", "encoder.conv_in", x, padding=1)
-        res = cfg.image_size
-        for l in range(len(cfg.ch_mult)):
-            for i in range(cfg.num_res_blocks):
-                h = self._op(tape, "res", f"encoder.down.{l}.block.{i}", h)
-                if res in cfg.attn_resolutions:
-                    h = self._op(tape, "attn", f"encoder.down.{l}.attn.{i}", h)
-            if l != len(cfg.ch_mult) - 1:
-                # docs/math.md §4 Downsample: zero-pad right and bottom by one, then 3x3 stride 2 pad 0
-                h = self._op(tape, "conv", f"encoder.down.{l}.downsample.conv", h, stride=2, padding=(0, 1, 0, 1))
-                res //= 2
-        h = self._op(tape, "res", "encoder.mid.block_1", h)
-        h = self._op(tape, "attn", "encoder.mid.attn_1", h)
-        h = self._op(tape, "res", "encoder.mid.block_2", h)
-        h = self._op(tape, "norm_swish", "encoder.norm_out", h)
-        h = self._op(tape, "conv", "encoder.conv_out", h, padding=1)
-        return self._op(tape, "conv", "quant_conv", h)
+        h = x
+        for row in self._encoder_rows:
+            h = self._op(tape, row, h)
+        return h
 
     def _decoder(self, tape, z):
         """z (B, embed_dim, k, k) quantized -> images (B, out_ch, S, S), from post_quant_conv on."""
-        cfg = self.config
-        h = self._op(tape, "conv", "post_quant_conv", z)
-        h = self._op(tape, "conv", "decoder.conv_in", h, padding=1)
-        h = self._op(tape, "res", "decoder.mid.block_1", h)
-        h = self._op(tape, "attn", "decoder.mid.attn_1", h)
-        h = self._op(tape, "res", "decoder.mid.block_2", h)
-        res = cfg.token_size
-        for l in reversed(range(len(cfg.ch_mult))):  # decoder.up.{l} is indexed by level, run last to first
-            for i in range(cfg.num_res_blocks + 1):
-                h = self._op(tape, "res", f"decoder.up.{l}.block.{i}", h)
-                if res in cfg.attn_resolutions:
-                    h = self._op(tape, "attn", f"decoder.up.{l}.attn.{i}", h)
-            if l != 0:
-                h = self._op(tape, "upsample", f"decoder.up.{l}.upsample.interp", h)
-                h = self._op(tape, "conv", f"decoder.up.{l}.upsample.conv", h, padding=1)
-                res *= 2
-        h = self._op(tape, "norm_swish", "decoder.norm_out", h)
-        return self._op(tape, "conv", "decoder.conv_out", h, padding=1)
+        h = z
+        for row in self._decoder_rows:
+            h = self._op(tape, row, h)
+        return h
 
     # -----------------------------------------------------------------------------------
     # the model
@@ -597,7 +536,7 @@ class Codebook:
             z = self._encoder(enc, images)  # (B, D, k, k)
             q, c_q = self.quantizer.forward(z, train=train)
             if tr is not None:
-                tr["quantize"] = q.quantized
+                tr[self._quantize_row.name] = q.quantized
             rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
         except BaseException:  # a failed call leaves the EMA buffers as they were
             if saved is not None:
@@ -674,7 +613,7 @@ class Codebook:
         g = {} if traced else None  # the activations' gradients, the trace's order reversed
         dq = self._backward(dec, total, grads, g)
         if g is not None:
-            g["quantize"] = dq
+            g[self._quantize_row.name] = dq
         (dz,) = self.quantizer.backward(dq, dcommitment, c_q)  # straight-through + commitment
         self._backward(enc, dz, grads, g)
         grads = {name: grads[name] if name in grads else np.zeros_like(p) for name, p in self.params.items()}

@@ -29,12 +29,10 @@ the `migt/` prefix and `:0` suffix); linear weights are (in, out), biases (1, ou
 """
 
 import dataclasses
-from collections.abc import Mapping
 
 import numpy as np
 
 from .. import _checks
-from .._io import save_model
 from ..nn.attention import (
     _merge_heads,
     attention_layer_backward,
@@ -50,6 +48,8 @@ from ..nn.layers import (
     mlp_forward,
 )
 from ..nn.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
+from .io import ModelWeights
+from .table import Layer, parameters
 
 MAX_TOKENS_PER_VIEW = 256  # wpe has 256 rows: token t of every view gets row t
 
@@ -153,34 +153,8 @@ class TransformerConfig:
         return self.token_image_size ** 2
 
 
-def parameter_shapes(cfg):
-    """Official name -> shape, in the published order of the blocks."""
-    V, d = cfg.n_embeddings, cfg.d_model
-    shapes = {
-        "wte/weight": (V + 2, d),
-        "wpe/embeddings": (MAX_TOKENS_PER_VIEW, d),
-        "pose_embedding/c_fc/weight": (7, 2 * d),
-        "pose_embedding/c_fc/bias": (1, 2 * d),
-        "pose_embedding/c_proj/weight": (2 * d, d),
-        "pose_embedding/c_proj/bias": (1, d),
-    }
-    for j in range(cfg.n_layer):
-        h = f"h.{j}/"
-        shapes.update({
-            h + "ln_1/gamma": (d,), h + "ln_1/beta": (d,),
-            h + "attn/c_attn/weight": (d, 3 * d), h + "attn/c_attn/bias": (1, 3 * d),
-            h + "attn/c_proj/weight": (d, d), h + "attn/c_proj/bias": (1, d),
-            h + "ln_2/gamma": (d,), h + "ln_2/beta": (d,),
-            h + "mlp/c_fc/weight": (d, 4 * d), h + "mlp/c_fc/bias": (1, 4 * d),
-            h + "mlp/c_proj/weight": (4 * d, d), h + "mlp/c_proj/bias": (1, d),
-        })
-    head = "quaternion_pose_representation/pose_classifier/"
-    shapes.update({
-        "ln_f/gamma": (d,), "ln_f/beta": (d,),
-        head + "c_fc/weight": (d, 2 * d), head + "c_fc/bias": (1, 2 * d),
-        head + "c_proj/weight": (2 * d, 7), head + "c_proj/bias": (1, 7),
-    })
-    return shapes
+# ---------------------------------------------------------------------------------------
+# the layer table (pyvf.models.table): the parameters and teacher forcing's layers read it
 
 
 def official_name(name):
@@ -192,14 +166,10 @@ def official_name(name):
     return name
 
 
-WEIGHT_LAYOUTS = ("tf", "torch")
-
-
-def _weight_layout(layout):
-    if not isinstance(layout, str) or layout not in WEIGHT_LAYOUTS:
-        raise ValueError(f"layout must be one of {WEIGHT_LAYOUTS} (the Dense kernels' convention: "
-                         f"TF (in, out) or torch nn.Linear (out, in)), got {layout!r}")
-    return layout
+# load_official's layouts: layout -> how it holds the Dense layers, the published one first
+LAYOUTS = {"tf": "the published TF Dense layout: kernel (in, out), bias (1, out)",
+           "torch": "nn.Linear's kernel (out, in), bias (out,)"}
+WEIGHT_LAYOUTS = tuple(LAYOUTS)
 
 
 def is_dense_kernel(name):
@@ -214,32 +184,57 @@ def is_dense_bias(name):
     return name.endswith("/bias")
 
 
-def _layout_shapes(name, shape, layout):
-    """The shapes parameter `name` (of published shape `shape`) may have in `layout`, the
-    preferred one first."""
-    if layout == "torch" and is_dense_kernel(name):
-        return [tuple(shape[::-1])]  # (out, in)
-    if layout == "torch" and is_dense_bias(name):
-        return [(shape[1],), tuple(shape)]  # nn.Linear's (out,), or the published (1, out)
-    return [tuple(shape)]
+def _row(name, kind, prefix, params, calls, reads=()):
+    """A row whose parameters prefix + suffix take their role (pyvf.models.io.ROLES) from their name."""
+    role = lambda n: "dense_kernel" if is_dense_kernel(n) else "dense_bias" if is_dense_bias(n) else None  # noqa: E731
+    return Layer(name, kind, tuple((s, shape, role(prefix + s)) for s, shape in params), prefix=prefix,
+                 calls=calls, reads=reads)
 
 
-def _from_layout(name, a, layout):
-    """An array in `layout` -> the published layout (a view)."""
-    if layout == "torch" and is_dense_kernel(name):
-        return a.T  # (out, in) -> (in, out)
-    if layout == "torch" and is_dense_bias(name):
-        return a.reshape(1, -1)  # (out,) -> (1, out)
-    return a
+def _dense(d_in, d_hidden, d_out, prefix=""):
+    """An MLP's two Dense layers (c_fc, GELU, c_proj): (suffix, shape) pairs."""
+    return ((prefix + "c_fc/weight", (d_in, d_hidden)), (prefix + "c_fc/bias", (1, d_hidden)),
+            (prefix + "c_proj/weight", (d_hidden, d_out)), (prefix + "c_proj/bias", (1, d_out)))
 
 
-def _to_layout(name, p, layout):
-    """A parameter in the published layout -> a C-contiguous copy in `layout`."""
-    if layout == "torch" and is_dense_kernel(name):
-        return np.ascontiguousarray(p.T)  # (in, out) -> (out, in)
-    if layout == "torch" and is_dense_bias(name):
-        return p.reshape(-1).copy()  # (1, out) -> (out,)
-    return p.copy()
+def _one(inp, out):
+    """One call on trace name `inp`, output trace name `out`."""
+    return ((((inp, None),), out),)
+
+
+def layer_table(cfg):
+    """The transformer's layers for cfg, in execution order (pyvf.models.table.Layer rows): each a
+    function of its inputs only (trace names or the model's inputs), its parameters in the
+    published order. The residual additions are not layers (pyvf.compare on a trace covers them)."""
+    V, d = cfg.n_embeddings, cfg.d_model
+    norm = (("gamma", (d,)), ("beta", (d,)))
+    rows = [_row("embed", "embed", "", (("wte/weight", (V + 2, d)), ("wpe/embeddings", (MAX_TOKENS_PER_VIEW, d)),
+                                        *_dense(7, 2 * d, d, "pose_embedding/")),
+                 (((("tokens", None), ("poses", None)), "embed.out"),))]
+    prev = "embed.out"
+    for j in range(cfg.n_layer):
+        b, h = f"blocks.{j}.", f"h.{j}/"
+        attn = (("c_attn/weight", (d, 3 * d)), ("c_attn/bias", (1, 3 * d)), ("c_proj/weight", (d, d)),
+                ("c_proj/bias", (1, d)))
+        rows += [_row(b + "ln_1", "layernorm", h + "ln_1/", norm, _one(prev, b + "ln_1")),
+                 _row(b + "attn", "attention", h + "attn/", attn, _one(b + "ln_1", b + "attn.c_proj")),
+                 _row(b + "ln_2", "layernorm", h + "ln_2/", norm, _one(b + "resid_1", b + "ln_2")),
+                 _row(b + "mlp", "mlp", h + "mlp/", _dense(d, 4 * d, d), _one(b + "ln_2", b + "mlp.c_proj"))]
+        prev = b + "out"
+    rows += [
+        # ln_f runs twice: on the generation row (1) and the localization row (2) of the last block
+        _row("ln_f", "layernorm", "ln_f/", norm,
+             ((((prev, 1),), "ln_f.generation"), (((prev, 2),), "ln_f.localization"))),
+        _row("logits", "logits", "", (), _one("ln_f.generation", "logits"), reads=("wte/weight",)),  # tied: wte[:V]
+        _row("pose_head", "mlp", "quaternion_pose_representation/pose_classifier/", _dense(d, 2 * d, 7),
+             _one("ln_f.localization", "pose")),
+    ]
+    return tuple(rows)
+
+
+def parameter_shapes(cfg):
+    """Official name -> shape, in the published order of the blocks."""
+    return {name: shape for name, (shape, _) in parameters(layer_table(cfg)).items()}
 
 
 @dataclasses.dataclass
@@ -253,17 +248,27 @@ class TransformerOutput:
     trace: dict = None  # forward(..., trace=True) only: name -> activation (read-only), TRACE_NAMES order
 
 
-class Transformer:
-    """The model: parameters in `self.params` (official name -> array), forward, backward."""
+class Transformer(ModelWeights):
+    """The model: parameters in `self.params` (official name -> array), forward, backward.
 
-    def __init__(self, config, seed=0):
+    layers: the layer table (default layer_table(config)): the parameters, their shapes and
+    layouts, and teacher forcing's layers read it."""
+
+    LAYOUTS = LAYOUTS
+    ENTRY_NOUNS = ("parameter", "parameters")
+    FILE_KIND = "transformer"
+    CONFIG = TransformerConfig
+    INPUTS = ("tokens", "poses")  # the model's inputs (teacher forcing: the first row reads the first)
+
+    def __init__(self, config, seed=0, *, layers=None):
         if not isinstance(config, TransformerConfig):
             raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
         self.config = config
         self.dtype = np.dtype(config.dtype)
+        self._describe(layer_table(config) if layers is None else layers)
         rng = np.random.default_rng(seed)
         self.params = {}
-        for name, shape in parameter_shapes(config).items():
+        for name, shape in self.parameter_shapes().items():
             if name.endswith("gamma"):
                 p = np.ones(shape)
             elif name.endswith(("bias", "beta")):
@@ -273,15 +278,22 @@ class Transformer:
             self.params[name] = p.astype(self.dtype)
         self._cache = None
 
+    def trace_names(self):
+        """The names forward(..., trace=True) records, in execution order."""
+        return trace_names(self.config.n_layer)
+
     # -----------------------------------------------------------------------------------
-    # weights
+    # weights (the mechanism: pyvf.models.io.ModelWeights)
+
+    def official_name(self, name):
+        """The published checkpoint's `migt/` prefix and `:0` suffix are dropped."""
+        return official_name(name)
 
     def state_dict(self, layout="tf"):
         """Official name -> array (copies), in `layout` (see load_official): "tf", the published
         layout (Dense kernels (in, out), biases (1, out)), or "torch", nn.Linear's (kernels
         (out, in), biases (out,)). Embeddings and LayerNorm parameters are the same in both."""
-        layout = _weight_layout(layout)
-        return {name: _to_layout(name, p, layout) for name, p in self.params.items()}
+        return self._params_in(layout)
 
     def load_official(self, weights, *, layout="tf"):
         """Load a dict name -> array named as the published checkpoint (with or without the
@@ -303,51 +315,49 @@ class Transformer:
         converted to the model's dtype (config.dtype), the one conversion pyvf makes, on purpose:
         a float32 checkpoint loads into a float64 model for a float64 check. The model never
         aliases the caller's arrays."""
-        layout = _weight_layout(layout)
-        if not isinstance(weights, Mapping):
-            raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")
-        shapes = parameter_shapes(self.config)
-        problems, loaded, given_as = [], {}, {}
-        for raw_name, arr in weights.items():
-            name = official_name(raw_name) if isinstance(raw_name, str) else raw_name
-            if name not in shapes:
-                problems.append((ValueError, f"unexpected parameter {raw_name!r} (not in this configuration)"))
-                continue
-            if name in given_as:
-                problems.append((ValueError, f"parameter {name!r} given twice (as {given_as[name]!r} and {raw_name!r})"))
-                continue
-            given_as[name] = raw_name
-            arr, problem = _checks.checkpoint_array(raw_name, arr)
-            if problem is None:
-                want = _layout_shapes(name, shapes[name], layout)
-                hint = " (layout='torch': nn.Linear's kernel (out, in), bias (out,))" if layout == "torch" else ""
-                problem = _checks.weight_problem(raw_name, arr, want, hint=hint)
-            if problem is None:
-                loaded[name] = np.array(_from_layout(name, arr, layout), dtype=self.dtype, order="C", copy=True)
-            else:
-                problems.append(problem)
-        missing = [n for n in shapes if n not in given_as]
-        if missing:
-            problems.append((ValueError, f"{len(missing)} parameters missing: {missing}"))
-        if problems:
-            raise _checks.problems_error("load_official", problems)
-        self.params = {name: loaded[name] for name in shapes}  # the published order
+        self._load(weights, layout)
 
-    def save(self, path):
-        """Write the configuration and the parameters to one .npz file.
+    # -----------------------------------------------------------------------------------
+    # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
 
-        path: a str or os.PathLike (".npz" appended when missing, so `Transformer.load` needs the
-        name with ".npz"), written atomically, or an open binary file; see pyvf._io.save_model.
-        Returns the path written (or the file)."""
-        return save_model(path, self.config, self.params)
+    def layer_forward(self, row, *xs):
+        """Run the table's row on its inputs (the arrays its call names) -> (output, cache)."""
+        P = [self.params[n] for n in row.param_names + row.reads]
+        if row.kind == "embed":  # tokens, poses -> the three rows (3, B, N, L, d)
+            return self._embed_forward(*xs)
+        (x,) = xs
+        if row.kind == "layernorm":
+            return layernorm_forward(x, *P)
+        if row.kind == "attention":
+            return attention_layer_forward(x, *P, self.config.n_head, self.config.attention_scale)
+        if row.kind == "mlp":
+            return mlp_forward(x, *P)
+        if row.kind == "logits":  # logits = g @ wte[:V]^T (B, N, L, V), the embedding tied
+            return x @ P[0][:self.config.n_embeddings].T, x
+        raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
 
-    @classmethod
-    def load(cls, path):
-        """Read a model written by save(): path as given (no ".npz" appended), or an open binary
-        file. A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
-        configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
-        pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
-        return _checks.load_model(path, "transformer", TransformerConfig, cls)
+    def layer_backward(self, row, dy, cache):
+        """layer_forward's VJP -> (per input its gradient, None for the model's inputs; the
+        gradients of row.param_names + row.reads, in order)."""
+        if row.kind == "embed":
+            grads = {n: np.zeros_like(self.params[n]) for n in row.param_names}
+            self._embed_backward(dy, cache, grads)
+            return [None, None], [grads[n] for n in row.param_names]  # tokens and poses get none
+        if row.kind == "layernorm":
+            dx, *dp = layernorm_backward(dy, cache)
+        elif row.kind == "attention":
+            dx, *dp = attention_layer_backward(dy, cache)
+        elif row.kind == "mlp":
+            dx, *dp = mlp_backward(dy, cache)
+        elif row.kind == "logits":  # forward was logits = g @ wte[:V]^T, g = cache (B, N, L, d)
+            wte, V = self.params["wte/weight"], self.config.n_embeddings
+            dl2 = dy.reshape(-1, V)  # (M, V)
+            dx = (dl2 @ wte[:V]).reshape(cache.shape)
+            dp = [np.zeros_like(wte)]
+            dp[0][:V] = dl2.T @ cache.reshape(-1, cache.shape[-1])  # (V, d)
+        else:
+            raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
+        return [dx], dp
 
     # -----------------------------------------------------------------------------------
     # input checks

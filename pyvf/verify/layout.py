@@ -12,12 +12,14 @@ caller's is never aliased). Any dtype: activations, gradients or integer tokens.
 
 trace_from_flat converts a whole trace (the names of pyvf.models.transformer.TRACE_NAMES).
 params_from_layout / params_to_layout convert parameter-shaped arrays (a port's gradients)
-between pyvf's layout and the conventions load_official speaks (layout="tf" | "torch").
+between pyvf's layout and the conventions load_official speaks (layout="tf" | "torch"), through
+the models' own mechanism (model.layout_shapes, from_layout, to_layout: pyvf.models.io).
 """
 
 import numpy as np
 
 from .. import _checks
+from ..models.io import ModelWeights
 
 
 def tree_to_flat(x):
@@ -85,19 +87,12 @@ def trace_from_flat(trace, N, L, R=3):
 # arrays (a port's gradients, to compare with backward()'s)
 
 
-def _param_layout(model, layout):
-    """-> (official name -> pyvf's name, shapes, from_layout(name, a), to_layout(name, p)) for model."""
-    from ..models import codebook, transformer
-
-    if isinstance(model, transformer.Transformer):
-        layout = transformer._weight_layout(layout)
-        return (transformer.official_name, transformer.parameter_shapes(model.config),
-                lambda n, a: transformer._from_layout(n, a, layout), lambda n, p: transformer._to_layout(n, p, layout))
-    if isinstance(model, codebook.Codebook):
-        layout = codebook._weight_layout(layout)
-        return (lambda n: n, codebook.parameter_shapes(model.config),
-                lambda n, a: codebook._from_layout(n, a, layout), lambda n, p: codebook._to_layout(n, p, layout))
-    raise TypeError(f"model must be a pyvf.Transformer or pyvf.Codebook, got {type(model).__name__}")
+def _model(model, layout):
+    """model must carry the weight mechanism (pyvf.models.io.ModelWeights); -> its parameters' shapes."""
+    if not isinstance(model, ModelWeights):
+        raise TypeError(f"model must be a pyvf.Transformer or pyvf.Codebook, got {type(model).__name__}")
+    model.check_layout(layout)
+    return model.parameter_shapes()
 
 
 def _readable(name, a):
@@ -119,33 +114,32 @@ def params_from_layout(model, arrays, layout):
         pyvf.compare(pyvf.params_from_layout(model, port_grads, "torch"), model.backward(...))
 
     A parameter of the wrong shape for `layout` raises ValueError naming it."""
-    name_of, shapes, from_layout, _ = _param_layout(model, layout)
+    shapes = _model(model, layout)
     out = {}
     for raw, a in arrays.items():
-        name = name_of(raw) if isinstance(raw, str) else raw
+        name = model.official_name(raw) if isinstance(raw, str) else raw
         if name not in shapes:
             out[raw] = a
             continue
         a = _readable(raw, a)
-        b = from_layout(name, a)
-        if b.shape != shapes[name]:
+        if a.shape not in model.layout_shapes(name, layout):
             raise ValueError(f"{raw!r} has shape {a.shape}, which is not parameter {name!r} {shapes[name]} "
                              f"in layout={layout!r}")
-        out[raw] = b
+        out[raw] = model.from_layout(name, a, layout)
     return out
 
 
 def params_to_layout(model, arrays, layout):
     """The inverse of params_from_layout: arrays in pyvf's layout (e.g. backward()'s gradients)
     -> a new dict whose parameters are in `layout` (copies); other entries pass unchanged."""
-    name_of, shapes, _, to_layout = _param_layout(model, layout)
+    shapes = _model(model, layout)
     out = {}
     for raw, a in arrays.items():
-        name = name_of(raw) if isinstance(raw, str) else raw
+        name = model.official_name(raw) if isinstance(raw, str) else raw
         if name in shapes:
             a = _readable(raw, a)
             if a.shape != shapes[name]:
                 raise ValueError(f"{raw!r} has shape {a.shape}, expected parameter {name!r}'s {shapes[name]}")
-            a = to_layout(name, a)
+            a = model.to_layout(name, a, layout)
         out[raw] = a
     return out

@@ -16,7 +16,10 @@ port's own parameter tensors by pyvf's official name, in `layout`; each layer's 
 gradients are compared with pyvf's contribution of that layer (a tied weight, wte, gets one
 per layer that reads it).
 
-The layers (`layer_table(model)`, `layer_names(model)`, in execution order), each a function of its inputs only:
+The layers (`layer_table(model)`, `layer_names(model)`, in execution order), each a function of its inputs only,
+are read off the model's own layer table (model.layers, pyvf.models.table): their names, parameters, inputs
+and, for a conv, its stride and padding; pyvf's side of each VJP runs the table's rows through the model's
+layer pairs (model.layer_forward / layer_backward). For the default tables:
 
   Transformer   input -> output (pyvf's trace names)                   parameters
     embed              tokens, poses -> embed.out                      wte, wpe, pose_embedding/*
@@ -61,21 +64,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from ..models import codebook as _codebook
 from ..models import transformer as _transformer
-from ..nn.attention import attention_layer_backward, attention_layer_forward
+from ..models.io import ModelWeights
 from .compare import Comparison, compare
-from ..nn.conv import (
-    attnblock_backward,
-    attnblock_forward,
-    conv2d_backward,
-    conv2d_forward,
-    groupnorm_swish_backward,
-    groupnorm_swish_forward,
-    upsample_nearest2x_backward,
-    upsample_nearest2x_forward,
-)
-from ..nn.layers import layernorm_backward, layernorm_forward, mlp_backward, mlp_forward
 from .layout import flat_to_tree, tree_to_flat
 
 __all__ = ["Layer", "LayerCheck", "TeacherReport", "layer_names", "layer_table", "teacher_force", "torch_modules"]
@@ -91,6 +82,7 @@ class Layer:
     calls: tuple  # per call: (inputs, output); inputs a tuple of (name, row): a trace name or a
     #               model input ("tokens", "poses", "images"), row None or the tree row taken
     params: tuple  # official parameter names the layer reads
+    rows: tuple = ()  # the model's layer-table rows it runs (model.layers), in order
 
 
 def _label(name, row):
@@ -101,63 +93,25 @@ def _label(name, row):
 # the layers of each model
 
 
-def _transformer_layers(cfg):
-    head = "quaternion_pose_representation/pose_classifier/"
-    dense = lambda p: (p + "/c_fc/weight", p + "/c_fc/bias", p + "/c_proj/weight", p + "/c_proj/bias")  # noqa: E731
-    out = [Layer("embed", "embed", (((("tokens", None), ("poses", None)), "embed.out"),),
-                 ("wte/weight", "wpe/embeddings", *dense("pose_embedding")))]
-    prev = "embed.out"
-    for j in range(cfg.n_layer):
-        b, h = f"blocks.{j}.", f"h.{j}/"
-        out += [
-            Layer(b + "ln_1", "layernorm", ((((prev, None),), b + "ln_1"),), (h + "ln_1/gamma", h + "ln_1/beta")),
-            Layer(b + "attn", "attention", ((((b + "ln_1", None),), b + "attn.c_proj"),),
-                  (h + "attn/c_attn/weight", h + "attn/c_attn/bias", h + "attn/c_proj/weight", h + "attn/c_proj/bias")),
-            Layer(b + "ln_2", "layernorm", ((((b + "resid_1", None),), b + "ln_2"),),
-                  (h + "ln_2/gamma", h + "ln_2/beta")),
-            Layer(b + "mlp", "mlp", ((((b + "ln_2", None),), b + "mlp.c_proj"),), dense(h + "mlp")),
-        ]
-        prev = b + "out"
-    out += [
-        Layer("ln_f", "layernorm", ((((prev, 1),), "ln_f.generation"), (((prev, 2),), "ln_f.localization")),
-              ("ln_f/gamma", "ln_f/beta")),
-        Layer("logits", "logits", (((("ln_f.generation", None),), "logits"),), ("wte/weight",)),
-        Layer("pose_head", "mlp", (((("ln_f.localization", None),), "pose"),), dense(head[:-1])),
-    ]
-    return out
-
-
-def _codebook_layers(cfg):
-    names = [n for n in _codebook.trace_names(cfg) if not n.endswith("_loss") and n != "loss"]
-    resblocks = {n for n in names if n + ".norm1" in names}
-    out, prev, block_in, before_interp = [], "images", {}, None
-    conv_params = lambda n: (n + ".weight", n + ".bias")  # noqa: E731
-    for n in names:
-        if n in resblocks:  # the block's output: shortcut + h, not a layer
-            prev = n
+def _collect(rows, prev, out):
+    """Append the teacher-forcing layers of the table's rows to out; prev: the input of the first
+    row without its own calls -> the last output's name."""
+    for row in rows:
+        if row.kind == "res":  # a residual block: its rows are layers, its sum (shortcut + h) is not
+            _collect(row.body, prev, out)
+            _collect(row.shortcut, prev, out)  # beside the main path, on the block's input
+            prev = row.name
             continue
-        last = n.rsplit(".", 1)[-1]
-        if last == "norm1":
-            block_in[n[:-len(".norm1")]] = prev
-        if n.endswith(".upsample.interp"):
-            before_interp = prev
-        elif n.endswith(".upsample.conv"):
-            out.append(Layer(n[:-len(".conv")], "upsample", ((((before_interp, None),), n),), conv_params(n)))
-        elif n.endswith(".downsample.conv"):
-            out.append(Layer(n[:-len(".conv")], "downsample", ((((prev, None),), n),), conv_params(n)))
-        elif last == "nin_shortcut":
-            out.append(Layer(n, "conv", ((((block_in[n[:-len(".nin_shortcut")]], None),), n),), conv_params(n)))
-        elif last in ("norm1", "norm2", "norm_out"):
-            out.append(Layer(n, "norm_swish", ((((prev, None),), n),), conv_params(n)))
-        elif last == "quantize":
-            out.append(Layer(n, "quantize", ((((prev, None),), n),), ()))
-        elif ".attn" in n:
-            out.append(Layer(n, "attnblock", ((((prev, None),), n),), tuple(n + s for s in _codebook.ATTN_PARAMS)))
+        calls = row.calls if row.calls is not None else ((((prev, None),), row.name),)
+        params = row.param_names + row.reads
+        last = out[-1] if out else None
+        if row.module is not None and last is not None and last.name == row.module:  # the module's next row
+            out[-1] = Layer(last.name, f"{last.kind}+{row.kind}", ((last.calls[0][0], row.name),),
+                            last.params + params, last.rows + (row,))
         else:
-            out.append(Layer(n, "conv", ((((prev, None),), n),), conv_params(n)))
-        if last != "nin_shortcut":  # the shortcut runs beside the main path
-            prev = n
-    return out
+            out.append(Layer(row.module or row.name, row.kind, calls, params, (row,)))
+        prev = calls[-1][1]
+    return prev
 
 
 def layer_names(model):
@@ -166,80 +120,39 @@ def layer_names(model):
 
 
 def layer_table(model):
-    """The model's teacher-forcing layers (see the module's docstring), in execution order."""
-    if isinstance(model, _transformer.Transformer):
-        return _transformer_layers(model.config)
-    if isinstance(model, _codebook.Codebook):
-        return _codebook_layers(model.config)
-    raise TypeError(f"model must be a pyvf.Transformer or pyvf.Codebook, got {type(model).__name__}")
+    """The model's teacher-forcing layers (see the module's docstring), in execution order, read
+    off its layer table (model.layers)."""
+    if not isinstance(model, ModelWeights):
+        raise TypeError(f"model must be a pyvf.Transformer or pyvf.Codebook, got {type(model).__name__}")
+    out = []
+    _collect(model.layers, model.INPUTS[0], out)
+    return out
 
 
 # ---------------------------------------------------------------------------------------
 # pyvf's side of each layer's VJP: its own layer pair, run again on the traced input
 
 
-def _conv_geometry(name, w):
-    """(stride, padding) of a codebook conv, docs/math.md §4: the Downsample pads (0, 1, 0, 1) and
-    strides 2; every other 3x3 conv pads 1, every 1x1 conv 0."""
-    if name.endswith(".downsample.conv"):
-        return 2, (0, 1, 0, 1)
-    return 1, w.shape[-1] // 2
-
-
 def _reference_vjp(model, layer, xs, douts):
-    """xs: per call, the list of input arrays; douts: per call, the output's gradient.
-    -> (per call, the list of the float inputs' gradients (None for the model's inputs),
+    """pyvf's VJP of one layer: its rows run again on the traced inputs through the model's own
+    layer pairs (model.layer_forward, model.layer_backward).
+    xs: per call, the list of input arrays; douts: per call, the output's gradient.
+    -> (per call, the list of the inputs' gradients (None for the model's inputs),
         official parameter name -> gradient)."""
-    P, kind = model.params, layer.kind
-    dparams = {n: np.zeros_like(P[n]) for n in layer.params}
+    dparams = {n: np.zeros_like(model.params[n]) for n in layer.params}
     dxs = []
     for x, dy in zip(xs, douts):
-        x = x[0]
-        if kind == "embed":
-            tokens, poses = xs[0]
-            _, cache = model._embed_forward(tokens, poses)
-            model._embed_backward(dy, cache, dparams)
-            dxs.append([None, None])  # the model's inputs: no gradient
-            continue
-        if kind == "layernorm":
-            _, c = layernorm_forward(x, *(P[n] for n in layer.params))
-            dx, *dp = layernorm_backward(dy, c)
-        elif kind == "attention":
-            cfg = model.config
-            _, c = attention_layer_forward(x, *(P[n] for n in layer.params), cfg.n_head, cfg.attention_scale)
-            dx, *dp = attention_layer_backward(dy, c)
-        elif kind == "mlp":
-            _, c = mlp_forward(x, *(P[n] for n in layer.params))
-            dx, *dp = mlp_backward(dy, c)
-        elif kind == "logits":  # forward was logits = g @ wte[:V]^T
-            V, d = model.config.n_embeddings, x.shape[-1]
-            dl2 = dy.reshape(-1, V)
-            dx = (dl2 @ P["wte/weight"][:V]).reshape(x.shape)
-            dp = [np.zeros_like(P["wte/weight"])]
-            dp[0][:V] = dl2.T @ x.reshape(-1, d)
-        elif kind in ("conv", "downsample"):
-            w, b = (P[n] for n in layer.params)
-            out_name = layer.calls[0][1]
-            _, c = conv2d_forward(x, w, b, *_conv_geometry(out_name, w))
-            dx, *dp = conv2d_backward(dy, c)
-        elif kind == "upsample":  # nearest 2x, then conv 3x3 pad 1
-            u, cu = upsample_nearest2x_forward(x)
-            _, cc = conv2d_forward(u, *(P[n] for n in layer.params), 1, 1)
-            du, *dp = conv2d_backward(dy, cc)
-            (dx,) = upsample_nearest2x_backward(du, cu)
-        elif kind == "norm_swish":
-            _, c = groupnorm_swish_forward(x, *(P[n] for n in layer.params))
-            dx, *dp = groupnorm_swish_backward(dy, c)
-        elif kind == "attnblock":
-            _, c = attnblock_forward(x, *(P[n] for n in layer.params))
-            dx, *dp = attnblock_backward(dy, c)
-        elif kind == "quantize":  # forward was quantized = z + sg(e - z): the identity for the gradient
-            dx, dp = dy, []
-        else:
-            raise AssertionError(kind)
-        for n, g in zip(layer.params, dp):
-            dparams[n] += g
-        dxs.append([dx])
+        caches = []
+        for row in layer.rows:  # a module of several rows (the codebook's Upsample) runs them in turn
+            y, c = model.layer_forward(row, *x)
+            caches.append(c)
+            x = (y,)
+        for row, c in zip(reversed(layer.rows), reversed(caches)):
+            dx, dps = model.layer_backward(row, dy, c)
+            for n, g in zip(row.param_names + row.reads, dps):
+                dparams[n] += g
+            dy = dx[0]
+        dxs.append(dx)
     return dxs, dparams
 
 
@@ -331,37 +244,33 @@ def _check_params(model, params, layout):
         return {}, None
     if not isinstance(params, Mapping):
         raise TypeError(f"params must be a dict official parameter name -> torch tensor, got {type(params).__name__}")
-    is_tf = isinstance(model, _transformer.Transformer)
-    shapes = _transformer.parameter_shapes(model.config) if is_tf else _codebook.parameter_shapes(model.config)
-    if is_tf:
-        if layout is None:
-            raise ValueError("layout must be given with params for a Transformer: 'tf' (Dense kernels (in, out)) or "
-                             "'torch' (nn.Linear (out, in)); the gradients are transposed accordingly")
-        layout = _transformer._weight_layout(layout)
-        want = lambda n: _transformer._layout_shapes(n, shapes[n], layout)  # noqa: E731
-        convert = lambda n, a: _transformer._from_layout(n, a, layout)  # noqa: E731
-    else:
-        layout = _codebook._weight_layout("torch" if layout is None else layout)
-        want = lambda n: [_codebook._layout_shape(n, shapes[n], layout)]  # noqa: E731
-        convert = lambda n, a: _codebook._from_layout(n, a, layout)  # noqa: E731
+    if layout is None:  # a torch port holds torch's layout: the default only where it is the published one
+        if next(iter(model.LAYOUTS)) != "torch":
+            said = " or ".join(f"{k!r} ({v})" for k, v in model.LAYOUTS.items())
+            raise ValueError(f"layout must be given with params for a {type(model).__name__}: {said}; the "
+                             "gradients are converted accordingly")
+        layout = "torch"
+    layout = model.check_layout(layout)
+    shapes = model.parameter_shapes()
     out, problems = {}, []
     for raw, t in params.items():
-        name = _transformer.official_name(raw) if is_tf and isinstance(raw, str) else raw
+        name = model.official_name(raw) if isinstance(raw, str) else raw
         if name not in shapes:
             problems.append(f"{raw!r} is not a parameter of this model")
         elif not (hasattr(t, "requires_grad") and hasattr(t, "grad")):
             problems.append(f"{raw!r} is a {type(t).__name__}, not a torch tensor")
         elif not t.requires_grad:
             problems.append(f"{raw!r} does not require grad (its gradient could not be read)")
-        elif tuple(t.shape) not in want(name):
-            problems.append(f"{raw!r} has shape {tuple(t.shape)}, expected {' or '.join(map(str, want(name)))} "
+        elif tuple(t.shape) not in model.layout_shapes(name, layout):
+            want = model.layout_shapes(name, layout)
+            problems.append(f"{raw!r} has shape {tuple(t.shape)}, expected {' or '.join(map(str, want))} "
                             f"in layout={layout!r}")
         else:
             out[name] = t
     if problems:
         raise ValueError(f"teacher_force: params: {len(problems)} problem{'s' * (len(problems) > 1)}: "
                          + "; ".join(problems))
-    return out, convert
+    return out, lambda n, a: model.from_layout(n, a, layout)
 
 
 def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=None, train=False,

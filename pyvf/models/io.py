@@ -1,0 +1,256 @@
+"""How a model's weights get in and out: the layouts load_official speaks, the one loader, the model file.
+
+Codebook and Transformer both derive from ModelWeights and describe their parameters in a layer
+table (pyvf.models.table); from it, with the same signatures for both models:
+
+    model.parameter_shapes()                 # name -> shape, in the published layout and order
+    model.layout_shapes(name, layout)        # the shapes `name` may have in `layout`, preferred first
+    model.from_layout(name, a, layout)       # an array in `layout` -> the published layout (a view)
+    model.to_layout(name, p, layout)         # a parameter in the published layout -> a copy in `layout`
+    model.official_name(raw)                 # a checkpoint's key -> the parameter's name
+    model.load_official(weights, layout=...) # every entry checked before anything is assigned
+    model.save(path); type(model).load(path) # one .npz: the configuration (JSON, __config__) and state_dict()
+
+A layout differs from the published one only in the parameters whose role (the table's) ROLES
+lists for it: the codebook's conv kernels in "tf" (channels-last), the transformer's Dense
+kernels and biases in "torch" (nn.Linear's). pyvf.params_from_layout / params_to_layout and
+teacher forcing convert through the same methods.
+
+Model files live here, beside the models, rather than in pyvf._io: a model file is a model's
+state plus its configuration, read back into a model through load_official; pyvf._io keeps the
+file primitives every writer shares (atomic writes, load_npz), which know nothing of models.
+"""
+
+import collections
+import dataclasses
+import json
+import os
+from collections.abc import Mapping
+
+import numpy as np
+
+from .. import _checks
+from .._io import CheckpointError, atomic_savez, load_npz
+from .table import parameters
+
+__all__ = ["ROLES", "ModelWeights", "load_model", "model_file", "save_model"]
+
+Role = collections.namedtuple("Role", "layout shapes to_layout from_layout")
+
+# role -> the layout holding it otherwise than the published one: its shapes there (from the
+# published shape, the preferred first), published -> that layout, that layout -> published (a view)
+ROLES = {
+    # the codebook's nn.Conv2d kernels (out, in, kh, kw) <-> channels-last (kh, kw, in, out), TF/Flax
+    "conv_kernel": Role("tf", lambda s: [(s[2], s[3], s[1], s[0])],
+                        lambda p: p.transpose(2, 3, 1, 0), lambda a: a.transpose(3, 2, 0, 1)),
+    # the transformer's TF Dense kernels (in, out) <-> nn.Linear's (out, in)
+    "dense_kernel": Role("torch", lambda s: [(s[1], s[0])], lambda p: p.T, lambda a: a.T),
+    # TF Dense biases (1, out) <-> nn.Linear's (out,) (the published (1, out) accepted too)
+    "dense_bias": Role("torch", lambda s: [(s[1],), tuple(s)], lambda p: p.reshape(-1), lambda a: a.reshape(1, -1)),
+}
+
+
+class ModelWeights:
+    """The weight mechanism Codebook and Transformer share (see the module's docstring). A model
+    sets `params` (name -> array, published layout), `config`, `dtype`, and calls
+    _describe(layers) in its __init__."""
+
+    LAYOUTS = {}  # layout -> what it holds (for messages); the published layout first
+    BUFFERS = ()  # state entries besides the parameters (the codebook's quantizer buffers)
+    ENTRY_NOUNS = ("names", "names")  # what load_official's messages call one, several entries
+    FILE_KIND = "model"  # how a model file's errors call it
+    CONFIG = None  # the configuration class a model file is read into
+    INPUTS = ()  # the names of forward's inputs (teacher forcing's first layer reads the first)
+
+    def _describe(self, layers, table=None):
+        """Take the layer table and its parameters (name -> (shape, role), the published order;
+        default: table.parameters(layers), the execution order)."""
+        self.layers = tuple(layers)
+        self._param_table = parameters(self.layers) if table is None else dict(table)
+
+    # the layouts -------------------------------------------------------------------------
+
+    def official_name(self, name):
+        """A checkpoint's key -> the parameter's name (the models strip their checkpoints' prefixes)."""
+        return name
+
+    def parameter_shapes(self):
+        """Parameter name -> shape, in the published layout and order (not the buffers)."""
+        return {name: shape for name, (shape, _) in self._param_table.items()}
+
+    def check_layout(self, layout):
+        if not isinstance(layout, str) or layout not in self.LAYOUTS:
+            said = "; ".join(f"{k!r}: {v}" for k, v in self.LAYOUTS.items())
+            raise ValueError(f"layout must be one of {tuple(self.LAYOUTS)} ({said}), got {layout!r}")
+        return layout
+
+    def _role(self, name, layout):
+        """The Role that converts parameter `name` in `layout`, None where it is held as published."""
+        if name not in self._param_table:
+            raise ValueError(f"{name!r} is not a parameter of this {type(self).__name__}")
+        role = ROLES.get(self._param_table[name][1])
+        return role if role is not None and role.layout == self.check_layout(layout) else None
+
+    def layout_shapes(self, name, layout):
+        """The shapes parameter `name` may have in `layout`, the preferred one first."""
+        role, shape = self._role(name, layout), self._param_table[name][0]
+        return [shape] if role is None else role.shapes(shape)
+
+    def from_layout(self, name, a, layout):
+        """An array of parameter `name` in `layout` -> the published layout (a view)."""
+        role = self._role(name, layout)
+        return a if role is None else role.from_layout(a)
+
+    def to_layout(self, name, p, layout):
+        """An array of parameter `name` in the published layout -> a C-contiguous copy in `layout`."""
+        role = self._role(name, layout)
+        return np.array(p if role is None else role.to_layout(p), order="C", copy=True)
+
+    def _params_in(self, layout):
+        return {name: self.to_layout(name, p, layout) for name, p in self.params.items()}
+
+    # loading -----------------------------------------------------------------------------
+
+    def _read_weights(self, weights, layout):
+        """load_official's checks: -> (parameters converted to the model's dtype, in the published
+        order; the BUFFERS entries given, unchecked; a list of (exception class, message))."""
+        layout = self.check_layout(layout)
+        if not isinstance(weights, Mapping):
+            raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")
+        shapes = self.parameter_shapes()
+        hint = "" if layout == next(iter(self.LAYOUTS)) else f" (layout={layout!r}: {self.LAYOUTS[layout]})"
+        problems, loaded, buffers, given_as, unexpected = [], {}, {}, {}, []
+        for raw, arr in weights.items():  # problems in the caller's order
+            name = self.official_name(raw) if isinstance(raw, str) else raw
+            if name not in shapes and name not in self.BUFFERS:
+                unexpected.append(repr(raw))
+                continue
+            if name in given_as:
+                problems.append((ValueError, f"{name!r} given twice (as {given_as[name]!r} and {raw!r})"))
+                continue
+            given_as[name] = raw
+            arr, problem = _checks.checkpoint_array(raw, arr)  # torch tensors -> numpy
+            if problem is None and name in shapes:
+                problem = _checks.weight_problem(raw, arr, self.layout_shapes(name, layout), hint=hint)
+            if problem is not None:
+                problems.append(problem)
+            elif name in shapes:
+                loaded[name] = np.array(self.from_layout(name, arr, layout), dtype=self.dtype, order="C", copy=True)
+            else:
+                buffers[name] = arr
+        missing = [k for k in (*shapes, *self.BUFFERS) if k not in given_as]
+        if missing:
+            problems.append((ValueError, f"{len(missing)} {self.ENTRY_NOUNS[1]} missing: {missing}"))
+        if unexpected:
+            noun = self.ENTRY_NOUNS[len(unexpected) > 1]
+            names = ", ".join(sorted(unexpected))
+            problems.append((ValueError, f"unexpected {noun} {names} (not in this configuration)"))
+        params = {name: loaded[name] for name in shapes if name in loaded}  # the published order
+        return params, buffers, problems
+
+    def _check_buffers(self, entries):
+        """The BUFFERS entries given -> (a function assigning them, problems). No buffers here."""
+        return (lambda: None), []
+
+    def _load(self, weights, layout):
+        """load_official: everything checked, one error naming every problem, then everything assigned."""
+        params, buffers, problems = self._read_weights(weights, layout)
+        assign, buffer_problems = self._check_buffers(buffers)
+        problems += buffer_problems
+        if problems:
+            raise _checks.problems_error("load_official", problems)
+        assign()
+        self.params = params
+
+    # the model file ----------------------------------------------------------------------
+
+    def save(self, path):
+        """Write the configuration and state_dict() (the published layout) to one .npz file.
+
+        path: a str or os.PathLike (".npz" appended when missing, so `load` needs the name with
+        ".npz"), written atomically, or an open binary file; see save_model. Returns the path
+        written (or the file)."""
+        return save_model(path, self.config, self.state_dict())
+
+    @classmethod
+    def load(cls, path):
+        """Read a model written by save(): path as given (no ".npz" appended), or an open binary
+        file. A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
+        configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
+        pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
+        return load_model(path, cls.FILE_KIND, cls.CONFIG, cls)
+
+
+def save_model(path, config, state):
+    """ModelWeights.save: the configuration (JSON, entry __config__) and the state (name -> array)
+    in one .npz. path: a str or os.PathLike, ".npz" appended when it does not end with it (as
+    np.savez does), written atomically; or an open binary file, written directly (no atomicity:
+    the caller owns it). Returns the path written (or the file)."""
+    arrays = {"__config__": json.dumps(dataclasses.asdict(config)), **state}
+    if hasattr(path, "write"):
+        np.savez(path, **arrays)
+        return path
+    path = os.fsdecode(os.fspath(path))
+    if not path.endswith(".npz"):
+        path += ".npz"
+    atomic_savez(path, **arrays)
+    return path
+
+
+def _read_open_file(f, what):
+    """The arrays of an open binary .npz file, read now; CheckpointError naming it when broken."""
+    name, entry = getattr(f, "name", repr(f)), None
+    try:
+        with np.load(f, allow_pickle=False) as npz:
+            arrays = {}
+            for entry in npz.files:
+                arrays[entry] = npz[entry]
+    except Exception as e:  # zipfile, EOF, ValueError...: all mean a bad file
+        where = f" (entry {entry!r})" if entry is not None else ""
+        raise CheckpointError(f"{what} {name} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
+    if "__config__" not in arrays:
+        raise CheckpointError(f"{what} {name} lacks the entry '__config__': not a {what} written by pyvf")
+    return arrays
+
+
+def model_file(path, what):
+    """The arrays and the configuration of a model file written by save(): (dict name -> array
+    without __config__, dict of config fields), read now.
+
+    path: a path (str or os.PathLike, used as given: no ".npz" appended) or an open binary file.
+    A missing file raises FileNotFoundError; a truncated or corrupt one, or a missing or
+    unreadable __config__ entry, pyvf._io.CheckpointError (a ValueError) naming the file and
+    the entry."""
+    if hasattr(path, "read"):
+        name, arrays = getattr(path, "name", repr(path)), _read_open_file(path, what)
+    else:
+        name = os.fspath(path)
+        arrays = load_npz(name, what, required=("__config__",))
+    raw = arrays.pop("__config__")
+    try:
+        if raw.shape != () or raw.dtype.kind != "U":
+            raise ValueError(f"expected a JSON string, got a {raw.dtype} array of shape {raw.shape}")
+        config = json.loads(str(raw))
+        if not isinstance(config, dict):
+            raise ValueError(f"expected a JSON object, got {type(config).__name__}")
+    except ValueError as e:
+        raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
+    return arrays, config
+
+
+def load_model(path, what, config_cls, model_cls):
+    """ModelWeights.load: read the file (model_file), build the configuration and the model, load
+    the weights (load_official validates all of them first). Every problem is a CheckpointError
+    naming the file (and the entry)."""
+    arrays, fields = model_file(path, what)
+    name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
+    try:
+        config = config_cls(**fields)
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
+    model = model_cls(config)
+    try:
+        model.load_official(arrays)
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(f"{what} {name}: {e}") from e
+    return model
