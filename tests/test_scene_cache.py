@@ -17,9 +17,9 @@ E32: 4 * E32 in float32. Rounding errors scale with the unit roundoff u, so in f
 bound is 4 * E32 * u64 / u32. E32 measured on a handful of numbers (one localized pose is 7)
 can fall below the error's typical size, so the bound is at least 16 ulps of the largest value
 (16 u max|want|): the pose's last steps (average_pose, absolute_poses) alone round a few times.
-Measured on the cases below: the float32 cached path is 0.7 to 1.4 times E32 from float64
+Measured on the cases below: the float32 cached path is 0.8 to 1.7 times E32 from float64
 (2.9 on the single pose of B = C = M = 1), |cached - forward| 0.1 to 0.4 of the bound, the
-float64 difference 0.06 to 0.2 of its bound. A planted bug (a query that does not see itself,
+float64 difference 0.07 to 0.2 of its bound. A planted bug (a query that does not see itself,
 the wrong layer's cache, queries that see each other) is off by 1e4 to 3e5 times the bound.
 """
 

@@ -144,13 +144,14 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     branch block (r, Nc) attends in the tree over [context, query] (module docstring). Returns o
     (R, B, H, 1, L, dh) and lse (R, B, H, 1, L) float64, as branching_attention_forward does.
 
-    Per query block, with its T = (Nc + 1) L keys K = [context keys; own keys] (T, dh) and
-    values V likewise, computed transposed as the kernel does (keys as rows):
-        s^T = scale * K q^T (T, L),  p^T = exp(s^T - max_keys s^T),  o = (p^T)^T V / sum_keys p^T.
-    Only the attended blocks are computed (Nc + 1 block pairs per query). The kernel itself
-    would visit every block of a tree (1, R*B, H, Nc + 1, L, dh): (Nc+1)(Nc+2)/2 pairs, 3.5 times
-    the work at Nc = 5. The products are pyvf's gemm (_core.matmul, float32 accumulators in
-    float32); the softmax is one pass instead of the kernel's online one, so o agrees with the
+    Per query block q (L, dh), with its T = (Nc + 1) L keys K = [context keys; own keys] (T, dh)
+    and values V likewise, computed transposed as the kernel does (keys as rows):
+        s^T = scale * K q^T (T, L),  p^T = exp(s^T - max_keys s^T),  o = (p^T)^T V / sum_keys p^T,
+    the context's part for the R queries of a head in one product with the cached keys (not
+    copied). Only the attended blocks are computed, Nc + 1 block pairs per query; the kernel
+    would visit every block of a tree (1, R*B, H, Nc + 1, L, dh): (Nc+1)(Nc+2)/2 pairs, 3.5
+    times the work at Nc = 5. The products are pyvf's gemm (_core.matmul, float32 accumulators
+    in float32); the softmax is one pass instead of the kernel's online one, so o agrees with the
     kernel's up to rounding (tests/test_scene_cache.py bounds it).
     """
     _checks.float_array("q", q)
@@ -171,26 +172,34 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     scale = _check_scale(scale)
     for name, a in (("q", q), ("k", k), ("v", v), ("k_ctx", k_ctx), ("v_ctx", v_ctx)):
         _checks.finite(name, a)
-    C = k_ctx.shape[2] * L  # context keys
-    T, n = C + L, R * B * H  # keys per query block, query blocks
-    K = np.empty((R, B, H, T, dh), dtype=q.dtype)  # (R, B, H, T, dh): the keys each query block attends
-    V = np.empty_like(K)
-    K[:, :, :, :C], V[:, :, :, :C] = k_ctx.reshape(B, H, C, dh), v_ctx.reshape(B, H, C, dh)  # over the rows
-    K[:, :, :, C:], V[:, :, :, C:] = k[:, :, :, 0], v[:, :, :, 0]  # its own block
-    qt = np.ascontiguousarray(q.reshape(n, L, dh).transpose(0, 2, 1))  # (n, dh, L)
-    st = np.empty((n, T, L), dtype=q.dtype)  # s^T: row t holds key t's logits against the L queries
-    _core.matmul(st, K.reshape(n, T, dh), qt, False)  # s^T = K q^T
+    C, G, n = k_ctx.shape[2] * L, B * H, R * B * H  # context keys, heads, query blocks
+    kc, vc = (_checks.c_order(a).reshape(G, C, dh) for a in (k_ctx, v_ctx))  # (G, C, dh), no copy
+    qt = np.ascontiguousarray(q.reshape(R, G, L, dh).transpose(0, 1, 3, 2))  # (R, G, dh, L)
+    # logits, transposed (keys as rows): the context's for all R queries of a head in one product
+    sc = np.empty((G, C, R * L), dtype=q.dtype)  # s_ctx^T = K_ctx Q^T, Q the R queries' rows
+    _core.matmul(sc, kc, np.ascontiguousarray(qt.transpose(1, 2, 0, 3)).reshape(G, dh, R * L), False)
+    so = np.empty((n, L, L), dtype=q.dtype)  # s_own^T = k q^T of each query block with its own keys
+    _core.matmul(so, _checks.c_order(k).reshape(n, L, dh), qt.reshape(n, dh, L), False)
     if scale != 1.0:  # docs/math.md §2: the published model's scale is 1
-        st *= q.dtype.type(scale)
-    _check_finite_result("context_attention_forward", st)
-    m = st.max(axis=1, keepdims=True)  # (n, 1, L) the largest logit of each query
-    st -= m
-    np.exp(st, out=st)  # p^T, every key the query attends (none is masked: exact exclusion)
-    denom = st.sum(axis=1)  # (n, L)
+        sc *= q.dtype.type(scale)
+        so *= q.dtype.type(scale)
+    _check_finite_result("context_attention_forward", sc, so)
+    # the softmax over all T = C + L keys of each query, kept in the two parts
+    m = np.maximum(sc.max(axis=1).reshape(G, R, L).transpose(1, 0, 2), so.max(axis=1).reshape(R, G, L))  # (R, G, L)
+    sc -= m.transpose(1, 0, 2).reshape(G, 1, R * L)
+    so -= m.reshape(n, 1, L)
+    np.exp(sc, out=sc)  # p^T: every key the query attends (nothing is masked: exact exclusion)
+    np.exp(so, out=so)
+    denom = sc.sum(axis=1).reshape(G, R, L).transpose(1, 0, 2) + so.sum(axis=1).reshape(R, G, L)  # (R, G, L)
+    # o = (p^T)^T V over the context's values, then over the own block's
+    oc = np.empty((G, R * L, dh), dtype=q.dtype)
+    _core.matmul(oc, sc, vc, True)
     o = np.empty((n, L, dh), dtype=q.dtype)
-    _core.matmul(o, st, V.reshape(n, T, dh), True)  # o = (p^T)^T V, unnormalised
-    o /= denom[:, :, None]
-    lse = m[:, 0].astype(np.float64) + np.log(denom.astype(np.float64))  # (n, L)
+    _core.matmul(o, so, _checks.c_order(v).reshape(n, L, dh), True)
+    o = o.reshape(R, G, L, dh)
+    o += oc.reshape(G, R, L, dh).transpose(1, 0, 2, 3)
+    o /= denom[..., None]
+    lse = m.astype(np.float64) + np.log(denom.astype(np.float64))  # (R, G, L)
     return o.reshape(R, B, H, 1, L, dh), lse.reshape(R, B, H, 1, L)
 
 
