@@ -482,14 +482,19 @@ class Transformer:
     # -----------------------------------------------------------------------------------
     # the heads
 
+    def _logits(self, g):
+        """g (..., d): ln_f of generation rows -> logits (..., V), the embedding tied: g @ wte[:V]^T,
+        one 2-D product (a stacked matmul calls the BLAS once per slice)."""
+        V, d = self.config.n_embeddings, g.shape[-1]
+        return (g.reshape(-1, d) @ self.params["wte/weight"][:V].T).reshape(*g.shape[:-1], V)
+
     def _heads_forward(self, hg, hl, tr=None):
         """hg, hl (B, N, L, d): the generation and localization rows after the last block.
         -> logits (B, N, L, V), raw pose (B, N, L, 7). tr: None or the trace dict."""
-        p, V = self.params, self.config.n_embeddings
+        p = self.params
         g, c_lng = layernorm_forward(hg, p["ln_f/gamma"], p["ln_f/beta"])  # (B, N, L, d)
         l, c_lnl = layernorm_forward(hl, p["ln_f/gamma"], p["ln_f/beta"])
-        d = g.shape[-1]
-        logits = (g.reshape(-1, d) @ p["wte/weight"][:V].T).reshape(*g.shape[:-1], V)  # tied: first V rows of wte
+        logits = self._logits(g)  # (B, N, L, V)
         head = "quaternion_pose_representation/pose_classifier/"
         raw, c_head = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
                                   p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (B, N, L, 7)
@@ -675,7 +680,7 @@ class Transformer:
                            p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, M, d)
         x = p["wte/weight"][V] + p["wpe/embeddings"][:L] + P[:, :, None, :]  # (B, M, L, d)
         g = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
-        return (g @ p["wte/weight"][:V].T).transpose(1, 0, 2, 3)  # (B, M, L, V)
+        return self._logits(g).transpose(1, 0, 2, 3)  # (B, M, L, V)
 
     def localize_scene(self, scene, query_tokens):
         """query_tokens (B, M, L) ints -> one pose per query view (B, M, 7) in the context's
