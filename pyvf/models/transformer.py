@@ -435,13 +435,16 @@ class Transformer(ModelWeights):
     # -----------------------------------------------------------------------------------
     # one pre-LN block: x = x + attn(ln_1(x)); x = x + mlp(ln_2(x))
 
-    def _block_forward(self, x, j, tr=None):
-        """x (R, B, N, L, d) -> block j's output (R, B, N, L, d), cache; tr: None or the trace dict."""
+    def _block_forward(self, x, j, tr=None, context=None):
+        """x (R, B, N, L, d) -> block j's output (R, B, N, L, d), cache; tr: None or the trace dict.
+        context: None (x is the whole tree), or a scene's cached trunk keys and values of block j,
+        (k, v) each (B, H, Nc, L, dh): then x (R, B, 1, L, d) holds query rows, each attending the
+        context and itself as the tree's branch row at view Nc does (attention_layer_forward)."""
         p, h = self.params, f"h.{j}/"
         a, c_ln1 = layernorm_forward(x, p[h + "ln_1/gamma"], p[h + "ln_1/beta"])
         y, c_attn = attention_layer_forward(a, p[h + "attn/c_attn/weight"], p[h + "attn/c_attn/bias"],
                                             p[h + "attn/c_proj/weight"], p[h + "attn/c_proj/bias"],
-                                            self.config.n_head, self.config.attention_scale)
+                                            self.config.n_head, self.config.attention_scale, context=context)
         x = x + y  # (R, B, N, L, d)
         m, c_ln2 = layernorm_forward(x, p[h + "ln_2/gamma"], p[h + "ln_2/beta"])
         f, c_mlp = mlp_forward(m, p[h + "mlp/c_fc/weight"], p[h + "mlp/c_fc/bias"],
@@ -449,7 +452,7 @@ class Transformer(ModelWeights):
         out = x + f  # (R, B, N, L, d)
         if tr is not None:
             b = f"blocks.{j}."
-            _, _, q, k, v, o, lse, _ = c_attn  # (R, B, H, N, L, dh), lse (R, B, H, N, L)
+            _, _, q, k, v, o, lse, _, _ = c_attn  # (R, B, H, N, L, dh), lse (R, B, H, N, L)
             tr[b + "ln_1"] = a
             # the layer keeps q, k, v split by head, not the fused projection: rebuilt (same bits)
             tr[b + "attn.c_attn"] = np.concatenate([_merge_heads(v), _merge_heads(q), _merge_heads(k)], axis=-1)
@@ -489,14 +492,19 @@ class Transformer(ModelWeights):
     # -----------------------------------------------------------------------------------
     # the heads
 
+    def _logits(self, g):
+        """g (..., d): ln_f of generation rows -> logits (..., V), the embedding tied: g @ wte[:V]^T,
+        one 2-D product (a stacked matmul calls the BLAS once per slice)."""
+        V, d = self.config.n_embeddings, g.shape[-1]
+        return (g.reshape(-1, d) @ self.params["wte/weight"][:V].T).reshape(*g.shape[:-1], V)
+
     def _heads_forward(self, hg, hl, tr=None):
         """hg, hl (B, N, L, d): the generation and localization rows after the last block.
         -> logits (B, N, L, V), raw pose (B, N, L, 7). tr: None or the trace dict."""
-        p, V = self.params, self.config.n_embeddings
+        p = self.params
         g, c_lng = layernorm_forward(hg, p["ln_f/gamma"], p["ln_f/beta"])  # (B, N, L, d)
         l, c_lnl = layernorm_forward(hl, p["ln_f/gamma"], p["ln_f/beta"])
-        d = g.shape[-1]
-        logits = (g.reshape(-1, d) @ p["wte/weight"][:V].T).reshape(*g.shape[:-1], V)  # tied: first V rows of wte
+        logits = self._logits(g)  # (B, N, L, V)
         head = "quaternion_pose_representation/pose_classifier/"
         raw, c_head = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
                                   p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (B, N, L, 7)
@@ -649,40 +657,19 @@ class Transformer(ModelWeights):
         keys, values = [], []
         for j in range(self.config.n_layer):
             x, c = self._block_forward(x, j)
-            _, _, q, k, v, _, _, _ = c[1]  # the attention layer's cache: (1, B, H, Nc, L, dh)
+            _, _, q, k, v, _, _, _, _ = c[1]  # the attention layer's cache: (1, B, H, Nc, L, dh)
             keys.append(k[0])  # (B, H, Nc, L, dh)
             values.append(v[0])
         return Scene(ref=ref, keys=keys, values=values, n_views=Nc, tokens_per_view=L)
 
     def _query_forward(self, scene, x):
-        """x (M, B, L, d): one block per query view, each attending every cached context block
-        and itself -> the query rows after ln_f (M, B, L, d)."""
-        p, cfg = self.params, self.config
-        M, B, L, d = x.shape
-        H = cfg.n_head
-        dh = d // H
-        scale = self.dtype.type(cfg.attention_scale)
-        for j in range(cfg.n_layer):
-            h = f"h.{j}/"
-            a, _ = layernorm_forward(x, p[h + "ln_1/gamma"], p[h + "ln_1/beta"])
-            vqk = a @ p[h + "attn/c_attn/weight"] + p[h + "attn/c_attn/bias"][0]  # (M, B, L, 3d): [v | q | k]
-            v, q, k = (vqk[..., c * d:(c + 1) * d].reshape(M, B, L, H, dh).transpose(0, 1, 3, 2, 4)
-                       for c in range(3))  # (M, B, H, L, dh)
-            K = scene.keys[j].reshape(B, H, -1, dh)  # (B, H, Nc*L, dh)
-            Vc = scene.values[j].reshape(B, H, -1, dh)
-            s_ctx = scale * np.einsum("mbhld,bhkd->mbhlk", q, K)  # (M, B, H, L, Nc*L)
-            s_own = scale * np.einsum("mbhld,mbhkd->mbhlk", q, k)  # (M, B, H, L, L)
-            mx = np.maximum(s_ctx.max(axis=-1, keepdims=True), s_own.max(axis=-1, keepdims=True))
-            p_ctx, p_own = np.exp(s_ctx - mx), np.exp(s_own - mx)
-            denom = p_ctx.sum(axis=-1, keepdims=True) + p_own.sum(axis=-1, keepdims=True)
-            o = (np.einsum("mbhlk,bhkd->mbhld", p_ctx, Vc) + np.einsum("mbhlk,mbhkd->mbhld", p_own, v)) / denom
-            o = o.transpose(0, 1, 3, 2, 4).reshape(M, B, L, d)
-            x = x + o @ p[h + "attn/c_proj/weight"] + p[h + "attn/c_proj/bias"][0]
-            m, _ = layernorm_forward(x, p[h + "ln_2/gamma"], p[h + "ln_2/beta"])
-            f, _ = mlp_forward(m, p[h + "mlp/c_fc/weight"], p[h + "mlp/c_fc/bias"],
-                               p[h + "mlp/c_proj/weight"], p[h + "mlp/c_proj/bias"])
-            x = x + f
-        return layernorm_forward(x, p["ln_f/gamma"], p["ln_f/beta"])[0]
+        """x (M, B, L, d): M query rows of one view each (generation or localization rows) -> after
+        ln_f (M, B, L, d). The training blocks, each attending the scene's cached trunk."""
+        p = self.params
+        x = x[:, :, None]  # (M, B, 1, L, d): rows of the tree, one view each
+        for j in range(self.config.n_layer):
+            x, _ = self._block_forward(x, j, context=(scene.keys[j], scene.values[j]))
+        return layernorm_forward(x[:, :, 0], p["ln_f/gamma"], p["ln_f/beta"])[0]
 
     def render_scene(self, scene, query_poses):
         """query_poses (B, M, 7), in the context's frame -> token logits (B, M, L, V) of each
@@ -703,7 +690,7 @@ class Transformer(ModelWeights):
                            p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, M, d)
         x = p["wte/weight"][V] + p["wpe/embeddings"][:L] + P[:, :, None, :]  # (B, M, L, d)
         g = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
-        return (g @ p["wte/weight"][:V].T).transpose(1, 0, 2, 3)  # (B, M, L, V)
+        return self._logits(g).transpose(1, 0, 2, 3)  # (B, M, L, V)
 
     def localize_scene(self, scene, query_tokens):
         """query_tokens (B, M, L) ints -> one pose per query view (B, M, 7) in the context's

@@ -15,6 +15,7 @@ default, as in the published model (docs/math.md §2: logits are not divided by 
     dq, dk, dv = branching_attention_vjp(q, k, v, do)     # gradient of sum(o * do)
     o, lse = branching_attention_forward(q, k, v)         # forward that keeps what backward needs
     dq, dk, dv = branching_attention_backward(do, q, k, v, o, lse)
+    o, lse = context_attention_forward(q, k, v, k_ctx, v_ctx)  # query rows against a cached trunk
 
 The reference (branching_attention_reference and its _vjp) materialises the (T, T) logits of
 the flat sequence, T = R*N*L in the order [row][view][token], with branching_mask: it is the
@@ -34,6 +35,7 @@ __all__ = [
     "branching_mask",
     "branching_attention_reference",
     "branching_attention_reference_vjp",
+    "context_attention_forward",
     "attention_layer_forward",
     "attention_layer_backward",
 ]
@@ -133,6 +135,74 @@ def branching_attention_vjp(q, k, v, do, scale=1.0):
     return branching_attention_backward(do, q, k, v, o, lse, scale)
 
 
+def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
+    """Branch blocks against a cached trunk: the scene cache's attention (docs/math.md §3).
+
+    q, k, v (R, B, H, 1, L, dh): R query rows of one view each; k_ctx, v_ctx (B, H, Nc, L, dh):
+    the trunk's keys and values of Nc context views, one dtype throughout. Query block (r, b, h)
+    attends every context block (b, h, 0..Nc-1) and its own block (r, b, h), nothing else: what
+    branch block (r, Nc) attends in the tree over [context, query] (module docstring). Returns o
+    (R, B, H, 1, L, dh) and lse (R, B, H, 1, L) float64, as branching_attention_forward does.
+
+    Per query block q (L, dh), with its T = (Nc + 1) L keys K = [context keys; own keys] (T, dh)
+    and values V likewise, computed transposed as the kernel does (keys as rows):
+        s^T = scale * K q^T (T, L),  p^T = exp(s^T - max_keys s^T),  o = (p^T)^T V / sum_keys p^T,
+    the context's part for the R queries of a head in one product with the cached keys (not
+    copied). Only the attended blocks are computed, Nc + 1 block pairs per query; the kernel
+    would visit every block of a tree (1, R*B, H, Nc + 1, L, dh): (Nc+1)(Nc+2)/2 pairs, 3.5
+    times the work at Nc = 5. The products are pyvf's gemm (_core.matmul, float32 accumulators
+    in float32); the softmax is one pass instead of the kernel's online one, so o agrees with the
+    kernel's up to rounding (tests/test_scene_cache.py bounds it).
+    """
+    _checks.float_array("q", q)
+    if q.ndim != 6 or q.shape[3] != 1 or 0 in q.shape:
+        raise ValueError(f"q must hold query rows of one view each, (R, B, H, 1, L, dh), got shape {q.shape}")
+    R, B, H, _, L, dh = q.shape
+    for name, a in (("k", k), ("v", v)):
+        _checks.float_array(name, a, q, "q")
+        if a.shape != q.shape:
+            raise ValueError(f"{name} has shape {a.shape} but q has shape {q.shape}")
+    for name, a in (("k_ctx", k_ctx), ("v_ctx", v_ctx)):
+        _checks.float_array(name, a, q, "q")
+        if a.ndim != 5 or a.shape[:2] != (B, H) or a.shape[3:] != (L, dh) or a.shape[2] < 1:
+            raise ValueError(f"{name} must be the context's (B, H, Nc >= 1, L, dh) = ({B}, {H}, Nc, {L}, {dh}) "
+                             f"for q of shape {q.shape}, got {a.shape}")
+    if v_ctx.shape != k_ctx.shape:
+        raise ValueError(f"v_ctx has shape {v_ctx.shape} but k_ctx has shape {k_ctx.shape}")
+    scale = _check_scale(scale)
+    for name, a in (("q", q), ("k", k), ("v", v), ("k_ctx", k_ctx), ("v_ctx", v_ctx)):
+        _checks.finite(name, a)
+    C, G, n = k_ctx.shape[2] * L, B * H, R * B * H  # context keys, heads, query blocks
+    kc, vc = (_checks.c_order(a).reshape(G, C, dh) for a in (k_ctx, v_ctx))  # (G, C, dh), no copy
+    qt = np.ascontiguousarray(q.reshape(R, G, L, dh).transpose(0, 1, 3, 2))  # (R, G, dh, L)
+    # logits, transposed (keys as rows): the context's for all R queries of a head in one product
+    sc = np.empty((G, C, R * L), dtype=q.dtype)  # s_ctx^T = K_ctx Q^T, Q the R queries' rows
+    _core.matmul(sc, kc, np.ascontiguousarray(qt.transpose(1, 2, 0, 3)).reshape(G, dh, R * L), False)
+    so = np.empty((n, L, L), dtype=q.dtype)  # s_own^T = k q^T of each query block with its own keys
+    _core.matmul(so, _checks.c_order(k).reshape(n, L, dh), qt.reshape(n, dh, L), False)
+    if scale != 1.0:  # docs/math.md §2: the published model's scale is 1
+        sc *= q.dtype.type(scale)
+        so *= q.dtype.type(scale)
+    _check_finite_result("context_attention_forward", sc, so)
+    # the softmax over all T = C + L keys of each query, kept in the two parts
+    m = np.maximum(sc.max(axis=1).reshape(G, R, L).transpose(1, 0, 2), so.max(axis=1).reshape(R, G, L))  # (R, G, L)
+    sc -= m.transpose(1, 0, 2).reshape(G, 1, R * L)
+    so -= m.reshape(n, 1, L)
+    np.exp(sc, out=sc)  # p^T: every key the query attends (nothing is masked: exact exclusion)
+    np.exp(so, out=so)
+    denom = sc.sum(axis=1).reshape(G, R, L).transpose(1, 0, 2) + so.sum(axis=1).reshape(R, G, L)  # (R, G, L)
+    # o = (p^T)^T V over the context's values, then over the own block's
+    oc = np.empty((G, R * L, dh), dtype=q.dtype)
+    _core.matmul(oc, sc, vc, True)
+    o = np.empty((n, L, dh), dtype=q.dtype)
+    _core.matmul(o, so, _checks.c_order(v).reshape(n, L, dh), True)
+    o = o.reshape(R, G, L, dh)
+    o += oc.reshape(G, R, L, dh).transpose(1, 0, 2, 3)
+    o /= denom[..., None]
+    lse = m.astype(np.float64) + np.log(denom.astype(np.float64))  # (R, G, L)
+    return o.reshape(R, B, H, 1, L, dh), lse.reshape(R, B, H, 1, L)
+
+
 # ---------------------------------------------------------------------------------------
 # the dense reference
 
@@ -221,12 +291,18 @@ def _merge_heads(t):
     return t.transpose(0, 1, 3, 4, 2, 5).reshape(R, B, N, L, H * dh)
 
 
-def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0):
+def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0, *, context=None):
     """Branching self-attention over the rows of the tree.
 
     x (R, B, N, L, d); w_attn (d, 3d), b_attn (1, 3d); w_proj (d, d), b_proj (1, d) -> y (R, B, N, L, d).
-    cache: both linear caches, q, k, v, o (R, B, H, N, L, dh) and lse: the kernel's backward
-    needs them and recomputes the probabilities from lse.
+    cache: both linear caches, q, k, v, o (R, B, H, N, L, dh), lse, scale and context: the
+    kernel's backward needs them and recomputes the probabilities from lse.
+
+    context: None (x is the whole tree), or a scene's cached trunk keys and values of this
+    layer, (k_ctx, v_ctx) each (B, H, Nc, L, dh) (the cache's k, v of the trunk's forward);
+    then x (R, B, 1, L, d) holds R query rows of one view each, every one attending the Nc
+    context blocks and itself, as the tree's branch row at view Nc (context_attention_forward).
+    Inference only: attention_layer_backward refuses such a cache.
     """
     _checks.float_array("x", x)
     if x.ndim != 5:
@@ -245,15 +321,21 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
             raise ValueError(f"{name} must have shape {shape} for x of width d={d}, got {a.shape}")
         _checks.finite(name, a)
     _check_scale(scale)
+    if context is not None and (not isinstance(context, (tuple, list)) or len(context) != 2):
+        raise TypeError(f"context must be None or a pair (k_ctx, v_ctx), got {type(context).__name__}")
     h, c_attn = linear_forward(x, w_attn, b_attn)  # (R, B, N, L, 3d)
     # docs/math.md §3: the fused columns are [values | queries | keys], not GPT-2's q, k, v order
     v = _split_heads(h[..., 0:d], n_head)  # (R, B, H, N, L, dh)
     q = _split_heads(h[..., d:2 * d], n_head)
     k = _split_heads(h[..., 2 * d:3 * d], n_head)
     # docs/math.md §2: the published model does not divide the logits by sqrt(dh): scale = 1
-    o, lse = branching_attention_forward(q, k, v, scale)  # (R, B, H, N, L, dh), (R, B, H, N, L)
+    if context is None:
+        o, lse = branching_attention_forward(q, k, v, scale)  # (R, B, H, N, L, dh), (R, B, H, N, L)
+    else:
+        k_ctx, v_ctx = context  # (B, H, Nc, L, dh) each
+        o, lse = context_attention_forward(q, k, v, k_ctx, v_ctx, scale)  # (R, B, H, 1, L, dh), (R, B, H, 1, L)
     y, c_proj = linear_forward(_merge_heads(o), w_proj, b_proj)  # (R, B, N, L, d)
-    return y, (c_attn, c_proj, q, k, v, o, lse, scale)
+    return y, (c_attn, c_proj, q, k, v, o, lse, scale, context)
 
 
 def attention_layer_backward(dy, cache, trace=None, name=""):
@@ -261,7 +343,10 @@ def attention_layer_backward(dy, cache, trace=None, name=""):
     receives the gradients of the attention's output, v, k, q and the fused projection, as
     trace[name + ".out"], ".v", ".k", ".q", ".c_attn" (the transformer's backward after
     forward(trace=True))."""
-    c_attn, c_proj, q, k, v, o, lse, scale = cache
+    c_attn, c_proj, q, k, v, o, lse, scale, context = cache
+    if context is not None:
+        raise ValueError("attention_layer_backward: the forward attended a cached context (scene inference), "
+                         "which has no backward; differentiate the whole tree's forward instead")
     n_head = q.shape[2]
     do, dw_proj, db_proj = linear_backward(dy, c_proj)  # (R, B, N, L, d)
     do = _split_heads(do, n_head)  # (R, B, H, N, L, dh)
