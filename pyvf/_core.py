@@ -51,9 +51,11 @@ if not _built_paths:
     _here = os.path.dirname(os.path.abspath(__file__))
     if os.path.exists(os.path.join(os.path.dirname(_here), "csrc")):  # a source checkout, not an installed copy
         raise ImportError(
-            f"Python imported pyvf from the source tree {_here}, which has no compiled kernels: the folder "
-            "Python started in (or sys.path) puts the checkout before the installed package. Run Python from "
-            "another folder after `pip install .` (`pytest` from the root imports the installed package on its own)")
+            f"Python imported pyvf from the source tree {_here}, which has no compiled kernels: Python was "
+            "started in the repository root (or sys.path names it), so the checkout shadows any installed "
+            "pyvf. To work from the checkout, install it editable, which builds the kernels and imports "
+            "these sources: `pip install scikit-build-core pybind11 && pip install --no-build-isolation -e .`; "
+            "or run Python from another folder after `pip install .`")
     raise ImportError(
         "pyvf's compiled extension (pyvf._core_<path>) is missing from this installation: install pyvf "
         "with `pip install .` (it compiles csrc/)")

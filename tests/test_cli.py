@@ -225,12 +225,18 @@ def test_convert_tf_transformer_without_tensorflow(tmp_path):
 
 def test_import_from_the_checkout_root_names_the_cause():
     """`python` started in the repository root finds the source tree's pyvf/ first, which has no
-    kernels: the error says so and how to fix it (not only that the extension is missing)."""
+    kernels: the error says so and how to fix it (not only that the extension is missing). With the
+    editable install the README gives for development, the same import works and is the source."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     assert os.path.isdir(os.path.join(root, "csrc")) and os.path.isdir(os.path.join(root, "pyvf"))
-    proc = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=root, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", "import pyvf; print(pyvf.__file__)"], cwd=root,
+                          capture_output=True, text=True)
+    if os.path.realpath(pyvf.__file__).startswith(os.path.realpath(root) + os.sep):  # editable install
+        assert proc.returncode == 0 and proc.stdout.strip() == os.path.join(root, "pyvf", "__init__.py"), proc
+        return
     assert proc.returncode != 0
-    assert "imported pyvf from the source tree" in proc.stderr and "another folder" in proc.stderr, proc.stderr
+    assert "imported pyvf from the source tree" in proc.stderr and "another folder" in proc.stderr \
+        and "pip install --no-build-isolation -e ." in proc.stderr, proc.stderr
 
 
 def test_one_thread_setting_for_the_kernels_and_blas(tmp_path):
