@@ -41,8 +41,7 @@ from .nn.quantizer import EMAQuantizer, QuantizerOutput, vq_nearest
 from .train.optim import Adam, AdamW, WarmupCosine, clip_grad_norm, published_weight_decay, warmup_cosine_lr
 from .train import codebook_train_step, train_step
 from .models.transformer import Scene, Transformer, TransformerConfig, TransformerOutput
-from .verify.compare import Comparison, compare
-from .measure import rel_err
+from .verify.compare import Comparison, compare, rel_err
 from .verify.layout import flat_to_tree, params_from_layout, params_to_layout, trace_from_flat, tree_to_flat
 from .verify.teacher import TeacherReport, teacher_force
 

@@ -1,4 +1,4 @@
-"""`python -m pyvf <command>`: the same as the console script `pyvf <command>` (pyvf/cli.py)."""
+"""`python -m pyvf <command>`: the same as the console script `pyvf <command>` (pyvf/cli/)."""
 
 import sys
 

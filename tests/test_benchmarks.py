@@ -19,7 +19,7 @@ import pytest_benchmark  # noqa: F401  (a test requirement: missing, this fails,
 
 import pyvf
 from pyvf.bench import accuracy
-from pyvf.measure import peak_memory
+from pyvf.bench.common import peak_memory
 
 SIZE = os.environ.get("PYVF_BENCH_SIZE", "smoke")
 ROUNDS = 3 if SIZE == "smoke" else 5

@@ -20,7 +20,8 @@ import pytest
 
 import pyvf
 from pyvf.bench import BLAS_THREAD_VARS
-from pyvf.cli import bench_threads
+from pyvf.cli import main
+from pyvf.cli.bench import BENCHMARKS
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TIMEOUT = 300  # seconds per command: a hung benchmark fails instead of stalling the run
@@ -66,9 +67,14 @@ def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path
 
 
 def test_import_pyvf_imports_no_command_code(tmp_path):
-    """The command line is the top layer: `import pyvf` (the library) loads none of it."""
-    code = ("import sys, pyvf; print(sorted(m for m in sys.modules if m.startswith('pyvf') and "
-            "m.rsplit('.', 1)[-1] in ('cli', 'commands', 'pipeline')))")
+    """The command line is the top layer: `import pyvf` (the library) loads none of it, and the
+    library's modules that do a command's work (every benchmark, the demo, the training tasks,
+    the scenes) do not import argparse: only pyvf.cli parses arguments."""
+    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.transformer, pyvf.bench.codebook, pyvf.bench.scaling, "
+               "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
+               "pyvf.scenes.make, pyvf.measure")
+    code = (f"import sys, pyvf, {library}; print(sorted(m for m in sys.modules if m == 'argparse' or "
+            "m.startswith('pyvf.cli') or (m.startswith('pyvf') and m.rsplit('.', 1)[-1] in ('commands', 'pipeline'))))")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
                           text=True, timeout=TIMEOUT)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -138,14 +144,33 @@ def test_bench_runs_numpy_blas_on_its_threads(tmp_path):
         assert report["config"]["threads"] == 1 and report["machine"]["pyvf_threads"] == 1
 
 
-@pytest.mark.parametrize("argv, want", [([], 2), (["--threads", "3"], 3), (["--quick", "--threads=5"], 5),
-                                        (["--threads", "0"], None), (["--threads", "x"], None)])
-def test_bench_threads_parse(argv, want):
-    assert bench_threads(argv) == want
+# every command with --threads, with its required arguments; the benchmarks follow
+THREADS_COMMANDS = [["demo"], ["evaluate", "--out", "e"], ["tokenize", "--codebook", "c", "--data", "d", "--out", "o"],
+                    ["train-codebook", "--data", "d", "--out", "o", "--steps", "1"],
+                    ["train-transformer", "--tokens", "t", "--out", "o", "--steps", "1"], ["train", "--out", "o"]]
+
+
+@pytest.mark.parametrize("argv", THREADS_COMMANDS + [["bench", name] for name in BENCHMARKS], ids=" ".join)
+def test_threads_is_one_option_checked_once(argv, capsys, monkeypatch):
+    """--threads is the same option everywhere (pyvf/cli/options.py): a positive integer, anything
+    else the parser's error naming it, before any work starts."""
+    for var in BLAS_THREAD_VARS:  # as a benchmark's --threads 2 wants: no child process
+        monkeypatch.setenv(var, "2")
+    for bad in ("0", "-1", "x", "1.5"):
+        with pytest.raises(SystemExit) as e:
+            main(argv + ["--threads", bad])
+        assert e.value.code == 2
+        assert f"argument --threads: expected a positive integer, got '{bad}'" in capsys.readouterr().err
+    if argv[0] == "bench":
+        parser, _ = BENCHMARKS[argv[1]][0]()
+        assert parser.parse_args(["--threads", "3"]).threads == 3
+    else:
+        from pyvf.cli import build_parser
+        assert build_parser().parse_args(argv + ["--threads", "3"]).threads == 3
 
 
 def test_bench_forwards_help(tmp_path):
-    """`pyvf bench NAME --help` is the benchmark's own help (the arguments go to its main)."""
+    """`pyvf bench NAME --help` is the benchmark's own help (pyvf/cli/bench.py's parser of it)."""
     assert_ran(run(["bench", "vq", "--help"], tmp_path), "usage: pyvf bench vq", "--quick")
 
 

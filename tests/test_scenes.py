@@ -22,7 +22,7 @@ import pytest
 
 from pyvf import quat_mul, quat_rotate
 from pyvf import scenes as sc
-from pyvf.scenes.cli import cli_register as scenes_cli_register
+from pyvf.cli.scenes import register as scenes_cli_register
 
 from conftest import assert_bitwise_equal, assert_close
 

@@ -31,7 +31,7 @@ from pyvf.train import (
     transformer_batch,
 )
 from pyvf.models.transformer import Transformer, TransformerConfig
-from pyvf.train.commands import cli_register
+from pyvf.cli.train import register as cli_register
 
 # 16x16 images -> 8x8 tokens (one downsampling), 16 codes
 CB = CodebookConfig(ch=32, ch_mult=(1, 1), num_res_blocks=1, attn_resolutions=(), z_channels=8, embed_dim=8,

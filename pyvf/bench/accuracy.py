@@ -39,22 +39,20 @@ Time: the median of --repeat calls after a warm-up, on --threads threads (pyvf a
 variants are timed in interleaved rounds (time_variants).
 """
 
-import argparse
 import math
 import os
 import platform
 import statistics
-import sys
 import time
 
 import numpy as np
 
 import pyvf
 from pyvf.nn import conv, layers, losses
-from pyvf.bench import blas_thread_env, checking_parser, finish, pick, pyplot
-from pyvf.bench.attention import flat, table, unflat
+from pyvf.bench.attention import flat, unflat
+from pyvf.bench.common import blas_thread_env, cpu_name, median_time, pyplot, table
 from pyvf.bench.vq import brute_force
-from pyvf.measure import cpu_name, median_time, rel_err
+from pyvf.verify.compare import rel_err
 
 U32, U64 = 2.0 ** -24, 2.0 ** -53  # unit roundoff
 
@@ -741,39 +739,11 @@ def run(ops=tuple(OPS), size="full", repeat=5, threads=2, plant_bug=False, log=p
                 total_seconds=time.perf_counter() - t0)
 
 
-def parse_args(argv=None):
-    p = checking_parser("pyvf bench accuracy", __doc__, "small sizes, median of 3: ~20 s",
-                        "write a time-vs-error plot per op")
-    p.add_argument("--ops", help=f"comma-separated, from {', '.join(OPS)} (default all)")
-    p.add_argument("--repeat", type=int, default=None, help="timed calls per median (default 5; 3 with --quick)")
-    p.add_argument("--plant-bug", action="store_true", help=argparse.SUPPRESS)  # the tests' bad variant
-    args = p.parse_args(argv)
-    args.ops = pick(p, args.ops, OPS, "op")
-    if args.threads < 1:
-        p.error("--threads must be at least 1")
-    args.repeat = args.repeat or (3 if args.quick else 5)
-    if args.repeat < 3:
-        p.error("--repeat must be at least 3")
-    return args
-
-
 def print_report(report):
+    """The machine, then each op's table of variants (op_table)."""
     m = report["machine"]
     print(f"\nmachine: {m['processor']}, {m['cpu_count']} CPUs; kernel path {m['kernel_path']} "
           f"(this CPU runs {', '.join(m['kernel_paths'])}); {m['threads']} threads")
     for res in report["results"]:
         print(f"\n## {res['title']} ({res['op']}, size {res['size']})\n")
         print(op_table(res))
-
-
-def main(argv=None):
-    args = parse_args(argv)
-    print(f"# speed against error: {len(args.ops)} ops, {'quick' if args.quick else 'full'} sizes, "
-          f"{args.threads} threads, median of {args.repeat}")
-    report = run(args.ops, "quick" if args.quick else "full", args.repeat, args.threads, args.plant_bug)
-    print_report(report)
-    return finish(report, args.json, args.plots, lambda d: plot(report["results"], d), "variant(s)")
-
-
-if __name__ == "__main__":
-    sys.exit(main())

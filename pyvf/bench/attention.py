@@ -11,7 +11,7 @@ What it does, in order:
    NumPy reference in float64 on float64 copies of the same inputs (output and every gradient,
    normwise relative error max|x - ref| / max|ref|), plus torch float64 as a check of the flat
    layout and mask given to torch; exits with status 1 if pyvf is outside its bound;
-2. measures the extra peak memory of one call of each (pyvf.measure.peak_memory: resident
+2. measures the extra peak memory of one call of each (pyvf.bench.common.peak_memory: resident
    memory, outputs included) beside the memory expected for it;
 3. optionally (--flex) compiles torch flex_attention with a block mask built from the
    branching rule, validates it and measures its memory;
@@ -24,23 +24,22 @@ Inputs are unit-normal, scale = 1 (the published model's unscaled logits, docs/m
 Layouts: pyvf takes (R, B, H, N, L, dh); torch and the reference's flat sequence are
 (B, H, T, dh) with T = R*N*L in the order [row][view][token].
 
-demo() is `pyvf demo`: the same check without torch, at three sizes, pyvf against the dense
+run() is the benchmark (its report: every number, for --json); demo() is `pyvf bench
+demo-attention` (and `pyvf demo` while no pretrained models are installed): the same check without torch, at three sizes, pyvf against the dense
 NumPy reference only (error, time, memory). torch is imported inside the functions that use it.
 """
 
-import argparse
-import json
+import itertools
 import os
 import platform
-import sys
 import time
 import traceback
 
 import numpy as np
 
 import pyvf
-from pyvf.bench import blas_thread_env
-from pyvf.measure import cpu_name, format_bytes, median_time, memory_method, peak_memory, rel_err
+from pyvf.bench.common import blas_thread_env, cpu_name, format_bytes, measured, median_time, memory_method, table
+from pyvf.verify.compare import rel_err
 
 # The bounds pyvf must meet before anything is timed: the same as tests/test_attention.py
 # (RTOL64, RTOL32), where their reasons are written out. float64: the kernel and the reference
@@ -195,27 +194,6 @@ def torch_backend(q, mask):
         return "unknown"
 
 
-def timed(fn):
-    """fn wrapped to record its own wall time in .seconds (for a call made under peak_memory)."""
-    def call():
-        t0 = time.perf_counter()
-        out = fn()
-        call.seconds = time.perf_counter() - t0
-        return out
-
-    call.seconds = None
-    return call
-
-
-def measure_once(fn, warmup):
-    """One call of fn under peak_memory after `warmup` plain calls: (result, bytes, seconds)."""
-    for _ in range(warmup):
-        fn()
-    t = timed(fn)
-    result, extra = peak_memory(t)
-    return result, extra, t.seconds
-
-
 # ---------------------------------------------------------------------------------------
 # steps
 
@@ -229,14 +207,6 @@ def gemm_fn():
 
 
 GEMM_FLOPS = 2 * 1024 ** 3
-
-
-def consecutive_times(fns, repeat, warmup=1):
-    """Time each function in turn, `repeat` consecutive calls after `warmup`: {name: (median
-    seconds, times)}. Consecutive, not interleaved: pyvf and torch have separate OpenMP
-    runtimes (pyvf the system libgomp, torch its own copy), whose idle threads spin for a few
-    ms after each parallel region; alternating them made both up to 2x slower and noisier here."""
-    return {name: median_time(fn, repeat, warmup) for name, fn in fns.items()}
 
 
 def setup_flex(q, k, v, o_ref):
@@ -272,7 +242,7 @@ def setup_flex(q, k, v, o_ref):
         t0 = time.perf_counter()
         fwd()  # compiles (torch's inductor cache in /tmp makes later runs' compiles shorter)
         out["first_call_seconds"] = time.perf_counter() - t0
-        o, extra, _ = measure_once(fwd, warmup=0)
+        o, extra, _ = measured(fwd)
         out["err_o"] = rel_err(unflat(o.numpy(), q.shape), o_ref)
         out["peak_bytes"] = extra
         return out, fwd
@@ -282,7 +252,7 @@ def setup_flex(q, k, v, o_ref):
         return out, None
 
 
-def run_scaling(Ns, R, B, H, L, dh, threads, calls=2):
+def memory_scaling(Ns, R, B, H, L, dh, threads, calls=2):
     """pyvf's extra peak memory (forward; forward+backward) for each N, float32: the smallest of
     `calls` measured calls. The call's own memory is deterministic and anything else that grows
     the process's resident memory meanwhile only adds, so the minimum is the estimate. Late in a
@@ -294,8 +264,8 @@ def run_scaling(Ns, R, B, H, L, dh, threads, calls=2):
     for N in Ns:
         q, k, v, do = make_inputs(R, B, H, N, L, dh, seed=N)
         fwd, fwd_bwd = pyvf_fns(q, k, v, do)
-        m_fwd = [measure_once(fwd, warmup=0)[1] for _ in range(calls)]
-        m_fb = [measure_once(fwd_bwd, warmup=0)[1] for _ in range(calls)]
+        m_fwd = [measured(fwd)[1] for _ in range(calls)]
+        m_fb = [measured(fwd_bwd)[1] for _ in range(calls)]
         e_fwd, e_fb = pyvf_expected_memory(R, B, H, N, L, dh, 4, threads)
         rows.append(dict(N=N, T=R * N * L, fwd_bytes=min(m_fwd), fwd_expected=e_fwd, fwd_bwd_bytes=min(m_fb),
                          fwd_bwd_expected=e_fb, fwd_bytes_each_call=m_fwd, fwd_bwd_bytes_each_call=m_fb,
@@ -317,7 +287,7 @@ def run_scaling(Ns, R, B, H, L, dh, threads, calls=2):
 
 
 # ---------------------------------------------------------------------------------------
-# printing
+# the benchmark's steps
 
 
 def path_times(q, k, v, do, repeat, f_fwd, f_fb, gemm):
@@ -331,8 +301,8 @@ def path_times(q, k, v, do, repeat, f_fwd, f_fb, gemm):
             err = rel_err(fwd(), o_ref)
             if err > BOUND32:
                 raise RuntimeError(f"path {path}: forward differs from the default path by {err:.2e} > {BOUND32}")
-            t_f = consecutive_times({"f": fwd}, repeat)["f"][0]
-            t_fb = consecutive_times({"fb": fwd_bwd}, repeat)["fb"][0]
+            t_f = median_time(fwd, repeat)[0]
+            t_fb = median_time(fwd_bwd, repeat)[0]
         out[path] = dict(fwd=t_f, fwd_bwd=t_fb, fwd_gflops=f_fwd / t_f / 1e9, fwd_bwd_gflops=f_fb / t_fb / 1e9,
                          fwd_of_gemm=f_fwd / t_f / 1e9 / gemm, fwd_bwd_of_gemm=f_fb / t_fb / 1e9 / gemm)
     return out
@@ -348,18 +318,10 @@ def backward_thread_scaling(R, N, L, dh, threads, repeat):
     try:
         for n in (1, threads):
             pyvf.set_num_threads(n)
-            res[n] = consecutive_times({"b": bwd}, repeat)["b"][0]
+            res[n] = median_time(bwd, repeat)[0]
     finally:
         pyvf.set_num_threads(threads)
     return dict(t1=res[1], tn=res[threads], speedup=res[1] / res[threads], groups=key_groups(R, 1, 1, N))
-
-
-def table(header, rows):
-    """A markdown table; every cell already a string."""
-    widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
-    line = lambda cells: "| " + " | ".join(str(c).ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
-    out = [line(header), "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
-    return "\n".join(out + [line(r) for r in rows])
 
 
 def error_table(err):
@@ -371,44 +333,61 @@ def ms(sec):
     return "-" if sec is None else f"{sec * 1e3:.1f} ms"
 
 
-def parse_args(argv=None):
-    p = argparse.ArgumentParser(prog="pyvf bench attention", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    for name, val in PAPER.items():
-        p.add_argument(f"--{name}", type=int, default=None, help=f"default {val} ({QUICK[name]} with --quick)")
-    p.add_argument("--threads", type=int, default=2, help="threads for pyvf and torch (default 2)")
-    p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
-    p.add_argument("--quick", action="store_true", help="smaller sizes (H=4, N=8; scaling N up to 16)")
-    p.add_argument("--flex", action="store_true", help="also torch flex_attention (torch.compile, forward only)")
-    p.add_argument("--no-scaling", action="store_true", help="skip the memory-versus-N measurement")
-    p.add_argument("--scaling-heads", type=int, default=None, help="H for the scaling runs (default: --H)")
-    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
-    args = p.parse_args(argv)
-    base = QUICK if args.quick else PAPER
-    for name in PAPER:
-        if getattr(args, name) is None:
-            setattr(args, name, base[name])
-    if args.threads < 1:
-        p.error("--threads must be at least 1")
-    if args.repeat < 5:
-        p.error("--repeat must be at least 5 (medians of fewer calls are not worth printing)")
-    return args
-
-
-def main(argv=None):
+def run(R, B, H, N, L, dh, threads=2, repeat=5, flex=False, scaling_views=None, scaling_heads=None):
+    """The benchmark at one size (the module docstring's steps): prints each section as it goes
+    and returns the report, every number. When pyvf is outside its bound nothing is timed and
+    report["aborted"] says so. flex: also torch flex_attention; scaling_views: the N of the
+    memory-versus-N measurement (None: none), at scaling_heads heads (default H)."""
     import torch
 
-    args = parse_args(argv)
     t_start = time.perf_counter()
-    R, B, H, N, L, dh = (args.R, args.B, args.H, args.N, args.L, args.dh)
     shape = (R, B, H, N, L, dh)
-    T = R * N * L
-    pyvf.set_num_threads(args.threads)
-    torch.set_num_threads(args.threads)
+    pyvf.set_num_threads(threads)
+    torch.set_num_threads(threads)
+    report = _start(shape, threads, repeat)
+    section = itertools.count(1).__next__  # the next section's number (some sections are optional)
+    q, k, v, do = make_inputs(*shape)
+    mask = pyvf.branching_mask(R, N, L)  # (T, T) bool, for torch
+    fns = dict(zip(("pyvf_fwd", "pyvf_fwd_bwd"), pyvf_fns(q, k, v, do)))
+    t_fwd, t_fb, to_np = torch_fns(q, k, v, do, mask)
+    fns.update(torch_fwd=t_fwd, torch_fwd_bwd=t_fb)
+    fns.update(zip(("numpy_fwd", "numpy_vjp"), reference_fns(q, k, v, do)))
+    o64, mem, first = _validate(report, section(), (q, k, v, do), mask, fns, to_np)
+    if "aborted" in report:
+        return report
+    _memory(report, section(), shape, q, mask, mem, threads)
+    if flex:
+        fns["flex_fwd"] = _flex(report, section(), q, k, v, o64)
+    f_fwd, f_fb = useful_flops(*shape)
+    gemm = _time(report, section(), shape, repeat, fns, first, (f_fwd, f_fb))
+    print(f"\n## {section()}. pyvf on each kernel path this CPU runs (same inputs, medians of {repeat}), "
+          "and the backward's thread scaling at B = H = 1\n")
+    report["paths"] = paths = path_times(q, k, v, do, repeat, f_fwd, f_fb, gemm)
+    print(table(["path", "forward", "GFLOP/s", "% of GEMM", "forward+backward", "GFLOP/s", "% of GEMM"],
+                [[p, ms(r["fwd"]), f"{r['fwd_gflops']:.1f}", f"{r['fwd_of_gemm']:.0%}", ms(r["fwd_bwd"]),
+                  f"{r['fwd_bwd_gflops']:.1f}", f"{r['fwd_bwd_of_gemm']:.0%}"] for p, r in paths.items()]))
+    print(f"(GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s, the same for every row; "
+          "PYVF_ISA=<path> runs the whole benchmark on one path)")
+    report["backward_thread_scaling"] = sc = backward_thread_scaling(R, N, L, dh, threads, repeat)
+    print(f"backward at R={R} B=1 H=1 N={N} L={L} dh={dh}: 1 thread {ms(sc['t1'])}, {threads} threads "
+          f"{ms(sc['tn'])}: {sc['speedup']:.2f}x (the key blocks of one head are split into "
+          f"{sc['groups']} groups of tasks)")
+    if scaling_views is not None:
+        _scaling(report, section(), scaling_views, R, B, scaling_heads or H, L, dh, threads)
+    report["total_seconds"] = total = time.perf_counter() - t_start
+    print(f"\ntotal {total:.0f} s")
+    return report
 
+
+def _start(shape, threads, repeat):
+    """The report's first fields (the problem, the machine, the bounds), printed as the header."""
+    import torch
+
+    R, B, H, N, L, dh = shape
+    T = R * N * L
     report = dict(
-        config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=args.threads,
-                    repeat=args.repeat, inputs="unit normal, seed 0"),
+        config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=threads,
+                    repeat=repeat, inputs="unit normal, seed 0"),
         machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
                      python=platform.python_version(), numpy=np.__version__, torch=torch.__version__,
                      pyvf=pyvf.__version__, pyvf_threads=pyvf.num_threads(), torch_threads=torch.get_num_threads(),
@@ -417,77 +396,64 @@ def main(argv=None):
         bounds=dict(pyvf_float32=BOUND32, pyvf_float64=BOUND64),
     )
     print(f"# Branching attention benchmark: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={T}), float32, "
-          f"scale 1, {args.threads} threads")
+          f"scale 1, {threads} threads")
     print(f"machine: {report['machine']['processor']}, {os.cpu_count()} CPUs; numpy {np.__version__}, "
           f"torch {torch.__version__}, pyvf {pyvf.__version__}")
     print(f"memory: {memory_method()}\n")
+    return report
 
-    counter = iter(range(1, 10))
 
-    def section():  # the next section's number (some sections are optional)
-        return next(counter)
-
-    q, k, v, do = make_inputs(*shape)
-    q64, k64, v64, do64 = (x.astype(np.float64) for x in (q, k, v, do))
-    mask = pyvf.branching_mask(R, N, L)  # (T, T) bool, for torch
-
-    # ---- 1. validate (and measure memory on the same calls) --------------------------------
-    print(f"## {section()}. Validation against the NumPy reference in float64 (float64 copies of the inputs)\n")
+def _validate(report, number, inputs, mask, fns, to_np):
+    """Section 1: every contender against the float64 reference, the first calls' memory and time
+    measured on the way. Returns (the reference's o, {call: extra peak bytes}, {call: seconds})."""
+    q, k, v, do = inputs
+    q64, k64, v64, do64 = (x.astype(np.float64) for x in inputs)
+    print(f"## {number}. Validation against the NumPy reference in float64 (float64 copies of the inputs)\n")
     t0 = time.perf_counter()
     o64 = pyvf.branching_attention_reference(q64, k64, v64)
     g64 = pyvf.branching_attention_reference_vjp(q64, k64, v64, do64)
-    ref64_seconds = time.perf_counter() - t0
-    print(f"(float64 reference forward + vjp: {ref64_seconds:.1f} s)\n")
+    print(f"(float64 reference forward + vjp: {time.perf_counter() - t0:.1f} s)\n")
+    mem, first, err = {}, {}, {}
 
-    p_fwd, p_fb = pyvf_fns(q, k, v, do)
-    t_fwd, t_fb, t_to_np = torch_fns(q, k, v, do, mask)
-    r_fwd, r_vjp = reference_fns(q, k, v, do)
-    mem, first = {}, {}
+    def measure(name, warmup):  # one measured call: its result; its memory and time kept
+        out, mem[name], times = measured(fns[name], warmup)
+        first[name] = times[0]
+        return out
 
-    def errors(o, grads):
-        return dict(o=rel_err(o, o64), **{n: rel_err(g, w) for n, g, w in zip(("dq", "dk", "dv"), grads, g64)})
-
-    err = {}
     # pyvf: one warm-up call (thread pool), then one measured call of each
-    o, mem["pyvf_fwd"], first["pyvf_fwd"] = measure_once(p_fwd, warmup=1)
-    (_, grads), mem["pyvf_fwd_bwd"], first["pyvf_fwd_bwd"] = measure_once(p_fb, warmup=1)
-    err["pyvf float32"] = errors(o, grads)
+    o, (_, grads) = measure("pyvf_fwd", 1), measure("pyvf_fwd_bwd", 1)
+    err["pyvf float32"] = _errors(o, grads, o64, g64, None)
     o, grads = pyvf.branching_attention(q64, k64, v64), pyvf.branching_attention_vjp(q64, k64, v64, do64)
-    err["pyvf float64"] = errors(o, grads)
+    err["pyvf float64"] = _errors(o, grads, o64, g64, None)
     worst32, worst64 = max(err["pyvf float32"].values()), max(err["pyvf float64"].values())
-    ok = worst32 <= BOUND32 and worst64 <= BOUND64
-    if not ok:  # stop before spending minutes on the others
+    bounds = f"pyvf bounds: float32 {BOUND32:g} (worst {worst32:.2e}), float64 {BOUND64:g} (worst {worst64:.2e})"
+    report["errors"] = err
+    if not (worst32 <= BOUND32 and worst64 <= BOUND64):  # stop before spending minutes on the others
         print(error_table(err))
-        print(f"\npyvf bounds: float32 {BOUND32:g} (worst {worst32:.2e}), float64 {BOUND64:g} (worst {worst64:.2e})")
-        report["errors"] = err
+        print(f"\n{bounds}")
         report["aborted"] = "pyvf error above its bound"
-        _write_json(args.json, report)
-        print("\nABORT: pyvf is outside its error bound; nothing is timed.", file=sys.stderr)
-        return 1
-    # torch
-    o, mem["torch_fwd"], first["torch_fwd"] = measure_once(t_fwd, warmup=1)
-    (_, grads), mem["torch_fwd_bwd"], first["torch_fwd_bwd"] = measure_once(t_fb, warmup=1)
-    err["torch SDPA float32"] = errors(t_to_np(o), [t_to_np(g) for g in grads])
-    t64_fwd, t64_fb, _ = torch_fns(q64, k64, v64, do64, mask)
-    o, grads = t64_fb()
-    err["torch SDPA float64 (layout check)"] = errors(t_to_np(o), [t_to_np(g) for g in grads])
-    del t64_fwd, t64_fb
+        return o64, mem, first
+    o, (_, grads) = measure("torch_fwd", 1), measure("torch_fwd_bwd", 1)
+    err["torch SDPA float32"] = _errors(to_np(o), [to_np(g) for g in grads], o64, g64, None)
+    o, grads = torch_fns(q64, k64, v64, do64, mask)[1]()
+    err["torch SDPA float64 (layout check)"] = _errors(to_np(o), [to_np(g) for g in grads], o64, g64, None)
     # the NumPy reference in float32: no warm-up (a call takes seconds); these calls are its
     # first timing sample too
-    o, mem["numpy_fwd"], first["numpy_fwd"] = measure_once(r_fwd, warmup=0)
-    grads, mem["numpy_vjp"], first["numpy_vjp"] = measure_once(r_vjp, warmup=0)
-    err["numpy reference float32"] = errors(o, grads)
+    o, grads = measure("numpy_fwd", 0), measure("numpy_vjp", 0)
+    err["numpy reference float32"] = _errors(o, grads, o64, g64, None)
     del o, grads
-
     print(error_table(err))
     print("\nrelative error = max|x - ref| / max|ref| over the whole array (normwise)")
-    print(f"pyvf bounds: float32 {BOUND32:g} (worst {worst32:.2e}), float64 {BOUND64:g} (worst {worst64:.2e}): OK")
-    report["errors"] = err
+    print(f"{bounds}: OK")
+    return o64, mem, first
 
-    # ---- 2. memory -----------------------------------------------------------------------
-    print(f"\n## {section()}. Extra peak memory of one call (inputs excluded, outputs included)\n")
-    e_fwd, e_fb = pyvf_expected_memory(*shape, 4, args.threads)
-    S = q.nbytes
+
+def _memory(report, number, shape, q, mask, mem, threads):
+    """Section 2: each call's extra peak memory beside the memory expected for it."""
+    R, B, H, N, L, dh = shape
+    S = q.nbytes  # one array like q
+    print(f"\n## {number}. Extra peak memory of one call (inputs excluded, outputs included)\n")
+    e_fwd, e_fb = pyvf_expected_memory(*shape, 4, threads)
     logits = dense_logits_bytes(R, B, H, N, L, 4)
     backend = torch_backend(q, mask)
     mask_f = mask.size * 4  # the bool mask as an additive float32 (T, T) mask
@@ -517,36 +483,42 @@ def main(argv=None):
     report["memory"]["dense_logits_bytes"] = logits
     report["torch_sdpa_backend"] = backend
 
-    # ---- 3. flex_attention: compile, validate, memory ------------------------------------
-    flex_fwd = None
-    if args.flex:
-        print(f"\n## {section()}. torch flex_attention (torch.compile, BlockMask from the branching rule, forward only)\n")
-        fx, flex_fwd = setup_flex(q, k, v, o64)
-        report["flex"] = fx
-        if flex_fwd is None:
-            print(f"flex_attention failed: {fx['error']}\n{fx['traceback']}")
-        else:
-            print(table(["", "value"], [
-                ["create_block_mask", f"{fx['block_mask_seconds']:.2f} s (sparsity {fx['block_mask_sparsity_percent']:.1f}%)"],
-                ["first call (compiles)", f"{fx['first_call_seconds']:.1f} s"],
-                ["max rel. error of o vs float64 ref", f"{fx['err_o']:.2e}"],
-                ["extra peak memory, one call", format_bytes(fx["peak_bytes"])],
-            ]))
-            print("\n(its time is in the next table)")
 
-    # ---- 4. time -------------------------------------------------------------------------
-    print(f"\n## {section()}. Time (median of {args.repeat} consecutive calls after one warm-up call)\n")
-    fns = {"gemm": gemm_fn(), "pyvf_fwd": p_fwd, "torch_fwd": t_fwd}
-    if flex_fwd is not None:
-        fns["flex_fwd"] = flex_fwd
-    fns.update(pyvf_fwd_bwd=p_fb, torch_fwd_bwd=t_fb)
-    times = consecutive_times(fns, args.repeat, warmup=1)
+def _flex(report, number, q, k, v, o64):
+    """Section 3 (optional): torch flex_attention compiled, validated, its memory. Returns its
+    forward, or None where it failed."""
+    print(f"\n## {number}. torch flex_attention (torch.compile, BlockMask from the branching rule, forward only)\n")
+    fx, flex_fwd = setup_flex(q, k, v, o64)
+    report["flex"] = fx
+    if flex_fwd is None:
+        print(f"flex_attention failed: {fx['error']}\n{fx['traceback']}")
+        return None
+    print(table(["", "value"], [
+        ["create_block_mask", f"{fx['block_mask_seconds']:.2f} s (sparsity {fx['block_mask_sparsity_percent']:.1f}%)"],
+        ["first call (compiles)", f"{fx['first_call_seconds']:.1f} s"],
+        ["max rel. error of o vs float64 ref", f"{fx['err_o']:.2e}"],
+        ["extra peak memory, one call", format_bytes(fx["peak_bytes"])],
+    ]))
+    print("\n(its time is in the next table)")
+    return flex_fwd
+
+
+def _time(report, number, shape, repeat, fns, first, flops):
+    """Section 4: each contender's median time and GFLOP/s; the machine's GEMM rate (returned) for
+    scale. Each is timed in `repeat` consecutive calls, not interleaved with the others: pyvf and
+    torch have separate OpenMP runtimes (pyvf the system libgomp, torch its own copy), whose idle
+    threads spin for a few ms after each parallel region; alternating them made both up to 2x
+    slower and noisier here."""
+    R, B, H, N, L, dh = shape
+    f_fwd, f_fb = flops
+    print(f"\n## {number}. Time (median of {repeat} consecutive calls after one warm-up call)\n")
+    order = ["pyvf_fwd", "torch_fwd", "flex_fwd", "pyvf_fwd_bwd", "torch_fwd_bwd"]
+    times = {"gemm": median_time(gemm_fn(), repeat, 1)}
+    times.update((name, median_time(fns[name], repeat, 1)) for name in order if fns.get(name) is not None)
     gemm = GEMM_FLOPS / times.pop("gemm")[0] / 1e9
-    for name, fn in (("numpy_fwd", r_fwd), ("numpy_vjp", r_vjp)):  # first sample: the validation call
-        _, more = median_time(fn, args.repeat - 1, warmup=0)
-        all_t = [first[name]] + more
+    for name in ("numpy_fwd", "numpy_vjp"):  # first sample: the validation call
+        all_t = [first[name]] + median_time(fns[name], repeat - 1, warmup=0)[1]
         times[name] = (float(np.median(all_t)), all_t)
-    f_fwd, f_fb = useful_flops(*shape)
     rows = []
     for fwd_name, fb_name, label in (("pyvf_fwd", "pyvf_fwd_bwd", "pyvf (C++ kernel)"),
                                      ("torch_fwd", "torch_fwd_bwd", "torch SDPA, dense bool mask"),
@@ -555,20 +527,18 @@ def main(argv=None):
         if fwd_name not in times:
             continue
         row = [label]
-        for name, flops in ((fwd_name, f_fwd), (fb_name, f_fb)):
-            if name is None:
-                row += ["-", "-", "-"]
-            else:
-                med, ts = times[name]
-                row += [ms(med), ms(min(ts)), f"{flops / med / 1e9:.1f}"]
+        for name, f in ((fwd_name, f_fwd), (fb_name, f_fb)):
+            row += ["-", "-", "-"] if name is None else [ms(times[name][0]), ms(min(times[name][1])),
+                                                         f"{f / times[name][0] / 1e9:.1f}"]
         rows.append(row)
     print(table(["", "forward", "(min)", "GFLOP/s", "forward+backward", "(min)", "GFLOP/s"], rows))
     print("GFLOP/s: useful flops (the same count for every row) / median time")
-    ratio_fwd = times["torch_fwd"][0] / times["pyvf_fwd"][0]
-    ratio_fb = times["torch_fwd_bwd"][0] / times["pyvf_fwd_bwd"][0]
-    print(f"\ntorch SDPA / pyvf time: forward {ratio_fwd:.2f}x, forward+backward {ratio_fb:.2f}x")
+    ratio = {"fwd": times["torch_fwd"][0] / times["pyvf_fwd"][0],
+             "fwd_bwd": times["torch_fwd_bwd"][0] / times["pyvf_fwd_bwd"][0]}
+    print(f"\ntorch SDPA / pyvf time: forward {ratio['fwd']:.2f}x, forward+backward {ratio['fwd_bwd']:.2f}x")
     if "flex_fwd" in times:
-        print(f"torch flex_attention / pyvf time: forward {times['flex_fwd'][0] / times['pyvf_fwd'][0]:.2f}x")
+        ratio["flex_fwd"] = times["flex_fwd"][0] / times["pyvf_fwd"][0]
+        print(f"torch flex_attention / pyvf time: forward {ratio['flex_fwd']:.2f}x")
     print(f"NumPy reference / pyvf time: forward {times['numpy_fwd'][0] / times['pyvf_fwd'][0]:.0f}x, "
           f"forward+backward {times['numpy_vjp'][0] / times['pyvf_fwd_bwd'][0]:.0f}x")
     print(f"useful flops (attended block pairs only, {attended_pairs(R, N)} of {(R * N) ** 2} per head): "
@@ -581,51 +551,28 @@ def main(argv=None):
     report["useful_flops"] = dict(fwd=f_fwd, fwd_bwd=f_fb, attended_pairs_per_head=attended_pairs(R, N))
     report["gflops"] = {n: (f_fwd if n.endswith("_fwd") else f_fb) / m / 1e9 for n, (m, _) in times.items()}
     report["gemm_float32_gflops"] = gemm
-    report["ratio_torch_over_pyvf"] = dict(fwd=ratio_fwd, fwd_bwd=ratio_fb)
-    if "flex_fwd" in times:
-        report["ratio_torch_over_pyvf"]["flex_fwd"] = times["flex_fwd"][0] / times["pyvf_fwd"][0]
+    report["ratio_torch_over_pyvf"] = ratio
+    return gemm
 
-    # ---- per kernel path, and the backward's thread scaling ---------------------------------
-    print(f"\n## {section()}. pyvf on each kernel path this CPU runs (same inputs, medians of {args.repeat}), "
-          "and the backward's thread scaling at B = H = 1\n")
-    report["paths"] = paths = path_times(q, k, v, do, args.repeat, f_fwd, f_fb, gemm)
-    print(table(["path", "forward", "GFLOP/s", "% of GEMM", "forward+backward", "GFLOP/s", "% of GEMM"],
-                [[p, ms(r["fwd"]), f"{r['fwd_gflops']:.1f}", f"{r['fwd_of_gemm']:.0%}", ms(r["fwd_bwd"]),
-                  f"{r['fwd_bwd_gflops']:.1f}", f"{r['fwd_bwd_of_gemm']:.0%}"] for p, r in paths.items()]))
-    print(f"(GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s, the same for every row; "
-          "PYVF_ISA=<path> runs the whole benchmark on one path)")
-    report["backward_thread_scaling"] = sc = backward_thread_scaling(R, N, L, dh, args.threads, args.repeat)
-    print(f"backward at R={R} B=1 H=1 N={N} L={L} dh={dh}: 1 thread {ms(sc['t1'])}, {args.threads} threads "
-          f"{ms(sc['tn'])}: {sc['speedup']:.2f}x (the key blocks of one head are split into "
-          f"{sc['groups']} groups of tasks)")
 
-    # ---- memory scaling ---------------------------------------------------------------------
-    if not args.no_scaling:
-        Ns = QUICK_SCALING_N if args.quick else SCALING_N
-        Hs = args.scaling_heads or H
-        print(f"\n## {section()}. pyvf extra peak memory as N grows (R={R} B={B} H={Hs} L={L} dh={dh}, float32; "
-              "smallest of 2 calls)\n")
-        srows, fit = run_scaling(Ns, R, B, Hs, L, dh, args.threads)
-        rows = [[r["N"], r["T"], format_bytes(r["fwd_bytes"]), format_bytes(r["fwd_expected"]),
-                 format_bytes(r["fwd_bwd_bytes"]), format_bytes(r["fwd_bwd_expected"]),
-                 format_bytes(r["fwd_bwd_bytes"] / r["N"]), format_bytes(r["dense_logits_bytes_computed"])]
-                for r in srows]
-        print(table(["N", "T", "fwd measured", "fwd expected", "fwd+bwd measured", "fwd+bwd expected",
-                     "fwd+bwd / N", "dense logits (computed)"], rows))
-        for key, label in (("fwd_bytes", "forward"), ("fwd_bwd_bytes", "forward+backward")):
-            f = fit[key]
-            print(f"{label}: linear fit {format_bytes(f['intercept_bytes'])} + {format_bytes(f['bytes_per_N'])} * N "
-                  f"(largest residual {100 * f['max_rel_residual']:.1f}%); growth exponents d log m / d log N: "
-                  + ", ".join(f"{x:.2f}" for x in f["growth_exponents"])
-                  + ("  ** SUPERLINEAR **" if f["superlinear"] else "  (linear: 1; dense logits: 2)"))
-        report["scaling"] = dict(heads=Hs, rows=srows, fit=fit)
-
-    total = time.perf_counter() - t_start
-    report["total_seconds"] = total
-    print(f"\ntotal {total:.0f} s")
-    _write_json(args.json, report)
-    return 0
-
+def _scaling(report, number, Ns, R, B, H, L, dh, threads):
+    """The last section: pyvf's extra peak memory as N grows (memory_scaling), with its fit."""
+    print(f"\n## {number}. pyvf extra peak memory as N grows (R={R} B={B} H={H} L={L} dh={dh}, float32; "
+          "smallest of 2 calls)\n")
+    srows, fit = memory_scaling(Ns, R, B, H, L, dh, threads)
+    rows = [[r["N"], r["T"], format_bytes(r["fwd_bytes"]), format_bytes(r["fwd_expected"]),
+             format_bytes(r["fwd_bwd_bytes"]), format_bytes(r["fwd_bwd_expected"]),
+             format_bytes(r["fwd_bwd_bytes"] / r["N"]), format_bytes(r["dense_logits_bytes_computed"])]
+            for r in srows]
+    print(table(["N", "T", "fwd measured", "fwd expected", "fwd+bwd measured", "fwd+bwd expected",
+                 "fwd+bwd / N", "dense logits (computed)"], rows))
+    for key, label in (("fwd_bytes", "forward"), ("fwd_bwd_bytes", "forward+backward")):
+        f = fit[key]
+        print(f"{label}: linear fit {format_bytes(f['intercept_bytes'])} + {format_bytes(f['bytes_per_N'])} * N "
+              f"(largest residual {100 * f['max_rel_residual']:.1f}%); growth exponents d log m / d log N: "
+              + ", ".join(f"{x:.2f}" for x in f["growth_exponents"])
+              + ("  ** SUPERLINEAR **" if f["superlinear"] else "  (linear: 1; dense logits: 2)"))
+    report["scaling"] = dict(heads=H, rows=srows, fit=fit)
 
 # ---------------------------------------------------------------------------------------
 # pyvf demo: the same check without torch, at three sizes, pyvf against the dense NumPy
@@ -654,30 +601,8 @@ def _errors(o, grads, o_ref, grads_ref, heads):
     return out
 
 
-def _measured(fn, repeat=1):
-    """repeat timed calls of fn, the first under peak_memory: (its result, its extra peak bytes,
-    the seconds of every call)."""
-    box = {}
-
-    def call():
-        t0 = time.perf_counter()
-        out = fn()
-        box["seconds"] = time.perf_counter() - t0
-        return out
-
-    result, extra = peak_memory(call)
-    times = [box["seconds"]]
-    if repeat > 1:
-        times += median_time(fn, repeat - 1, warmup=0)[1]
-    return result, extra, times
-
-
 def _times(ratio):
     return f"{ratio:.0f}x" if ratio >= 10 else f"{ratio:.1f}x"
-
-
-def _row(cells, widths):
-    return "  ".join(str(c).rjust(w) if i else str(c).ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
 
 
 def demo_size(name, shape, ref_repeat, all_heads, seed=0):
@@ -690,8 +615,7 @@ def demo_size(name, shape, ref_repeat, all_heads, seed=0):
     heads = None if all_heads else sorted({0, H - 1})  # None: every head
     print(f"\n== {name}: R={R} B={B} H={H} N={N} L={L} dh={dh}  (T = R*N*L = {T} tokens) ==", flush=True)
 
-    rng = np.random.default_rng(seed)
-    q, k, v, do = (rng.standard_normal((R, B, H, N, L, dh), dtype=np.float32) for _ in range(4))
+    q, k, v, do = make_inputs(R, B, H, N, L, dh, seed)
     q64, k64, v64, do64 = (x.astype(np.float64) for x in (q, k, v, do))  # the same values, in float64
 
     # the oracle: the dense reference in float64 (on the checked heads)
@@ -704,16 +628,10 @@ def demo_size(name, shape, ref_repeat, all_heads, seed=0):
                     o_ref, g_ref, heads)
 
     # pyvf in float32: one warm-up call (threads), then one measured call of each, then the medians
-    def fwd():
-        return pyvf.branching_attention_forward(q, k, v)
-
-    def fwd_bwd():
-        o, lse = pyvf.branching_attention_forward(q, k, v)
-        return o, pyvf.branching_attention_backward(do, q, k, v, o, lse)
-
+    fwd, fwd_bwd = pyvf_fns(q, k, v, do)
     fwd_bwd()
-    (o32, _), mem_fwd, _ = _measured(fwd)
-    (_, g32), mem_fb, _ = _measured(fwd_bwd)
+    o32, mem_fwd, _ = measured(fwd)
+    (_, g32), mem_fb, _ = measured(fwd_bwd)
     err32 = _errors(o32, g32, o_ref, g_ref, heads)
     ok = max(err64.values()) <= BOUND64 and max(err32.values()) <= BOUND32
     t_fwd, _ = median_time(fwd, repeat=DEMO_REPEAT, warmup=0)
@@ -721,42 +639,42 @@ def demo_size(name, shape, ref_repeat, all_heads, seed=0):
 
     # the dense reference in float32, no warm-up (a call can take seconds): the memory-measured
     # call is its first timing sample
-    o_np, mem_np_fwd, ts_np_fwd = _measured(lambda: pyvf.branching_attention_reference(q, k, v), ref_repeat)
-    g_np, mem_np_vjp, ts_np_vjp = _measured(lambda: pyvf.branching_attention_reference_vjp(q, k, v, do), ref_repeat)
+    r_fwd, r_vjp = reference_fns(q, k, v, do)
+    o_np, mem_np_fwd, ts_np_fwd = measured(r_fwd, repeat=ref_repeat)
+    g_np, mem_np_vjp, ts_np_vjp = measured(r_vjp, repeat=ref_repeat)
     err_np = _errors(o_np, g_np, o_ref, g_ref, heads)
     del o_np, g_np
 
     where = "all heads" if heads is None else f"heads {' and '.join(map(str, heads))} of {H}"
     print(f"max relative error vs the dense NumPy reference in float64 ({where}; max|x - ref| / max|ref|)")
-    w = (24, 9, 9, 9, 9, 7, 8)
-    print(_row(["", "o", "dq", "dk", "dv", "bound", ""], w))
+    rows = []
     for label, e, bound in (("pyvf float64", err64, BOUND64), ("pyvf float32", err32, BOUND32),
                             ("NumPy reference float32", err_np, None)):
         verdict = "" if bound is None else ("ok" if max(e.values()) <= bound else "EXCEEDED")
-        print(_row([label] + [f"{e[c]:.1e}" for c in ("o", "dq", "dk", "dv")]
-                   + ["" if bound is None else f"{bound:g}", verdict], w))
+        rows.append([label] + [f"{e[c]:.1e}" for c in ("o", "dq", "dk", "dv")]
+                    + ["" if bound is None else f"{bound:g}", verdict])
+    print(table(["", "o", "dq", "dk", "dv", "bound", ""], rows, widths=(24, 9, 9, 9, 9, 7, 8)))
 
     n_np = len(ts_np_fwd)
     print(f"time, float32 (median of {DEMO_REPEAT} calls for pyvf, {n_np} for the reference)")
     w = (24, 12, 18, 10)
-    print(_row(["", "forward", "forward+backward", ""], w))
-    print(_row(["pyvf (C++ kernel)", f"{t_fwd * 1e3:.1f} ms", f"{t_fb * 1e3:.1f} ms", ""], w))
     np_fwd, np_vjp = float(np.median(ts_np_fwd)), float(np.median(ts_np_vjp))
-    print(_row(["NumPy dense reference", f"{np_fwd * 1e3:.1f} ms", f"{np_vjp * 1e3:.1f} ms", "(its vjp)"], w))
-    print(_row(["reference / pyvf", _times(np_fwd / t_fwd), _times(np_vjp / t_fb), ""], w))
+    print(table(["", "forward", "forward+backward", ""], [
+        ["pyvf (C++ kernel)", f"{t_fwd * 1e3:.1f} ms", f"{t_fb * 1e3:.1f} ms", ""],
+        ["NumPy dense reference", f"{np_fwd * 1e3:.1f} ms", f"{np_vjp * 1e3:.1f} ms", "(its vjp)"],
+        ["reference / pyvf", _times(np_fwd / t_fwd), _times(np_vjp / t_fb), ""]], widths=w))
 
-    logits = B * H * T * T * 4
     print("extra peak memory of one call, float32 (measured; outputs included)")
-    print(_row(["", "forward", "forward+backward", ""], w))
-    print(_row(["pyvf (C++ kernel)", format_bytes(mem_fwd), format_bytes(mem_fb), "O(T*dh)"], w))
-    print(_row(["NumPy dense reference", format_bytes(mem_np_fwd), format_bytes(mem_np_vjp), "O(T^2)"], w))
-    print(_row(["dense logits (computed)", format_bytes(logits), "", "B*H*T^2*4"], w))
-    print(_row(["one array like q", format_bytes(q.nbytes), "", "B*H*T*dh*4"], w))
+    print(table(["", "forward", "forward+backward", ""], [
+        ["pyvf (C++ kernel)", format_bytes(mem_fwd), format_bytes(mem_fb), "O(T*dh)"],
+        ["NumPy dense reference", format_bytes(mem_np_fwd), format_bytes(mem_np_vjp), "O(T^2)"],
+        ["dense logits (computed)", format_bytes(dense_logits_bytes(R, B, H, N, L, 4)), "", "B*H*T^2*4"],
+        ["one array like q", format_bytes(q.nbytes), "", "B*H*T*dh*4"]], widths=w))
     return ok
 
 
 def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
-    """`pyvf demo`: branching attention at the given DEMO_SIZES names, pyvf against the dense
+    """`pyvf bench demo-attention`: branching attention at the given DEMO_SIZES names, pyvf against the dense
     NumPy reference: error, time, memory. Prints the tables; returns the exit status, 0 when
     every error is within its bound. NumPy only (no torch)."""
     unknown = [s for s in sizes if s not in DEMO_SIZES]
@@ -766,8 +684,8 @@ def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
         pyvf.set_num_threads(threads)
     t0 = time.perf_counter()
     if kernel_line:  # (the caller printed it already otherwise)
-        print(f"pyvf kernels: path {pyvf.kernel_path()} (this CPU runs {', '.join(pyvf.kernel_paths())}; "
-              "PYVF_ISA=<path> forces one; `pyvf config` for details)")
+        from pyvf.evaluate.demo import kernel_line as line
+        print(line())
     print("pyvf demo: branching attention (docs/math.md §2), the C++ kernel against the dense NumPy reference")
     print(f"pyvf {pyvf.__version__}, numpy {np.__version__}, {pyvf.num_threads()} kernel threads; "
           "inputs unit normal, scale 1 (unscaled logits, as the published model)")
@@ -778,14 +696,3 @@ def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
     print(f"\n{'all errors within their bounds' if ok else 'ERROR BOUND EXCEEDED'}; "
           f"total {time.perf_counter() - t0:.0f} s")
     return 0 if ok else 1
-
-
-def _write_json(path, report):
-    if path:
-        with open(path, "w") as f:
-            json.dump(report, f, indent=2)
-        print(f"wrote {path}")
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -8,7 +8,7 @@ Per configuration: encode + decode (images -> codes -> images) and one forward +
 (train=True, the EMA update included), and for the tiny one a whole training step at batch 16
 (Adam, as `pyvf train-codebook`) in images per second; medians, float32, each framework in its
 own process (so that neither's thread pool waits on the other's). Memory: the measured peak
-resident memory of one call above what was resident before it (pyvf.measure.peak_memory;
+resident memory of one call above what was resident before it (pyvf.bench.common.peak_memory;
 gradients of the step included, weights not). Before timing, both compute the loss of the
 same weights and batch, and the tool stops if they differ. torch is imported only in the torch
 worker. Then, for pyvf, where one forward + backward spends its time: the exclusive time of each
@@ -16,17 +16,15 @@ layer type (layer_times), from one more step with every layer function of pyvf.n
 a timer.
 """
 
-import argparse
-import json
 import sys
 import time
 
 import numpy as np
 
 import pyvf
-from pyvf.measure import format_bytes, median_time, peak_memory, run_worker
+from pyvf.bench.common import format_bytes, median_time, peak_memory, run_worker, worker_main
 
-WORKER = "pyvf.bench.codebook"  # this module, run as `python -m WORKER --worker ...`
+WORKER = "pyvf.bench.codebook"  # this module, run as `python -m WORKER SPEC` (worker_main)
 
 CONFIGS = {
     "tiny": dict(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=32,
@@ -135,6 +133,7 @@ def print_layer_times(times, total):
 
 
 def median(fn, repeat):
+    """The median seconds of `repeat` calls, no warm-up (the workers make their own first call)."""
     return median_time(fn, repeat=repeat, warmup=0)[0]
 
 
@@ -158,7 +157,7 @@ def worker_pyvf(name, repeat):
         train = lambda: pyvf.codebook_train_step(cb_t, opt, images_t)  # noqa: E731
         train()
         result["train"] = median(train, repeat)
-    # memory last: peak_memory makes every later large allocation map fresh pages (measure.py)
+    # memory last: peak_memory makes every later large allocation map fresh pages (bench/common.py)
     result["codec_mem"], result["step_mem"] = peak_memory(codec_fn)[1], peak_memory(step)[1]
     return result
 
@@ -211,14 +210,21 @@ def worker_torch(name, repeat):
     return result
 
 
+def worker(spec):
+    """One framework's run in a worker process: {framework: "pyvf" | "torch", config, repeat,
+    threads} -> worker_pyvf's or worker_torch's dict."""
+    pyvf.set_num_threads(spec["threads"])
+    return (worker_pyvf if spec["framework"] == "pyvf" else worker_torch)(spec["config"], spec["repeat"])
+
+
 def bench(name, repeat, threads):
-    """Run both workers on one configuration and print the table; False if their losses differ."""
-    common = ["--configs", name, "--repeat", repeat, "--threads", threads]
-    p = run_worker(WORKER, "--worker", "pyvf", *common)
-    t = run_worker(WORKER, "--worker", "torch", *common)
+    """Run both workers on one configuration and print the tables: {"pyvf": ..., "torch": ...},
+    or None (printed to stderr) when their losses differ."""
+    p, t = (run_worker(WORKER, dict(framework=f, config=name, repeat=repeat, threads=threads))
+            for f in ("pyvf", "torch"))
     if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
         print(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}", file=sys.stderr)
-        return False
+        return None
     spec = CONFIGS[name]
     print(f"\n## {name}: ch={spec['ch']}, ch_mult={spec['ch_mult']}, {spec['num_res_blocks']} res blocks, "
           f"{spec['image_size']}x{spec['image_size']} images, K={spec['n_embed']}, D={spec['embed_dim']}, "
@@ -238,35 +244,22 @@ def bench(name, repeat, threads):
               f"{B / t['train']:.1f} images/s, ratio torch / pyvf {t['train'] / p['train']:.2f}")
     print()
     print_layer_times({(k, d): sec for k, d, sec in p["layers"]}, p["layers_total"])
-    return True
+    return {"pyvf": p, "torch": t}
 
 
-def parse_args(argv=None):
-    ap = argparse.ArgumentParser(prog="pyvf bench codebook", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--configs", nargs="+", default=None, choices=list(CONFIGS),
-                    help="default: tiny paper (tiny with --quick)")
-    ap.add_argument("--repeat", type=int, default=3, help="timed calls per median (default 3, at least 3)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--quick", action="store_true", help="the tiny configuration only (seconds)")
-    ap.add_argument("--worker", choices=["pyvf", "torch"], help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
-    if args.configs is None:
-        args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
-    if args.repeat < 3:
-        ap.error("--repeat must be at least 3 (a median of fewer calls is not worth printing)")
-    return args
+def run(configs=tuple(CONFIGS), repeat=3, threads=2):
+    """bench() on each configuration of CONFIGS named, medians of `repeat` calls. Returns the
+    report; report["failures"] names a configuration whose losses differed (nothing after it is run)."""
+    pyvf.set_num_threads(threads)
+    report = dict(config=dict(configs=list(configs), repeat=repeat, threads=threads), results={}, failures=[])
+    for name in configs:
+        result = bench(name, repeat, threads)
+        if result is None:
+            report["failures"].append(f"{name}: the losses of pyvf and torch differ")
+            break
+        report["results"][name] = result
+    return report
 
 
-def main(argv=None):
-    args = parse_args(argv)
-    pyvf.set_num_threads(args.threads)
-    for name in args.configs:
-        if args.worker:
-            print(json.dumps((worker_pyvf if args.worker == "pyvf" else worker_torch)(name, args.repeat)))
-        elif not bench(name, args.repeat, args.threads):
-            return 1
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # a worker: `python -m pyvf.bench.codebook SPEC` (bench, run_worker)
+    worker_main(worker)

@@ -35,14 +35,13 @@ Sweeps (BOUND says what pyvf promises; the tests named hold the same claims at s
 
 import math
 import os
-import sys
 import time
 
 import numpy as np
 
 import pyvf
 from pyvf.nn import conv, layers, losses
-from pyvf.bench import checking_parser, finish, pick, pyplot
+from pyvf.bench.common import pyplot
 from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive, machine, torch_available
 from pyvf.bench.attention import flat
 from pyvf.bench.vq import brute_force
@@ -589,25 +588,7 @@ def run(names=tuple(SWEEPS), mode="full", threads=2, seed=0, log=print):
                 failures=failures, total_seconds=time.perf_counter() - t0)
 
 
-def parse_args(argv=None):
-    p = checking_parser("pyvf bench hardcases", __doc__, "fewer points, smaller problems: ~15 s",
-                        "write one plot per sweep")
-    p.add_argument("--sweeps", help=f"comma-separated, from {', '.join(SWEEPS)} (default all)")
-    args = p.parse_args(argv)
-    args.sweeps = pick(p, args.sweeps, SWEEPS, "sweep")
-    if args.threads < 1:
-        p.error("--threads must be at least 1")
-    return args
-
-
-def main(argv=None):
-    args = parse_args(argv)
-    print(f"# hard cases: {len(args.sweeps)} sweeps, {'quick' if args.quick else 'full'}, {args.threads} threads")
-    report = run(args.sweeps, "quick" if args.quick else "full", args.threads)
+def print_report(report):
+    """Each sweep's summary (sweep_summary) under its title."""
     for sw in report["sweeps"]:
         print(f"\n## {sw['title']}\n\n{sweep_summary(sw)}")
-    return finish(report, args.json, args.plots, lambda d: plot_all(report["sweeps"], d), "pyvf line(s)")
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -22,9 +22,9 @@ Methods (float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1):
   flex         torch flex_attention, compiled, with a block mask (forward only; not in --quick:
                each N compiles anew, ~15 s on 2 cores when torch's inductor cache is cold)
 
-Every point (method, size, N) runs in a process of its own (this module with --worker): it
+Every point (method, size, N) runs in a process of its own (this module, worker()): it
 validates its output (and gradients) against the float64 dense reference at the first N of each
-size, then measures one call's extra peak memory (pyvf.measure.peak_memory: resident memory,
+size, then measures one call's extra peak memory (pyvf.bench.common.peak_memory: resident memory,
 inputs excluded, outputs included) forward and forward+backward, then times each (median of
 --repeat calls after a warm-up). Beside the measurement: the theoretical counts (tokens held,
 block pairs computed, useful FLOPs, the largest buffer) and the memory expected. A point whose
@@ -39,23 +39,20 @@ are materialised (torch's math path), time ~N^3 (S sequences of N*L tokens each)
 per-thread, N-independent buffers hold pyvf's slope below 1.
 """
 
-import argparse
-import json
 import os
 import platform
-import sys
 import time
 
 import numpy as np
 
 import pyvf
-from pyvf.bench import blas_thread_env, pyplot
-from pyvf.bench.attention import (BOUND32, attended_pairs, dense_logits_bytes, make_inputs, measure_once,
-                                  ms, pyvf_expected_memory, pyvf_fns, reference_fns, setup_flex, table, torch_fns,
-                                  unflat, useful_flops)
-from pyvf.measure import cpu_name, format_bytes, median_time, memory_method, rel_err, run_worker
+from pyvf.bench.attention import (BOUND32, attended_pairs, dense_logits_bytes, make_inputs, ms, pyvf_expected_memory,
+                                  pyvf_fns, reference_fns, setup_flex, torch_backend, torch_fns, unflat, useful_flops)
+from pyvf.bench.common import (blas_thread_env, cpu_name, format_bytes, measured, median_time, memory_method, pyplot,
+                               run_worker, table, worker_main, write_outputs)
+from pyvf.verify.compare import rel_err
 
-WORKER = "pyvf.bench.scaling"  # this module, run as `python -m WORKER --worker SPEC`
+WORKER = "pyvf.bench.scaling"  # this module, run as `python -m WORKER SPEC` (worker_main)
 R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
 SIZES = ((12, 64), (4, 32))  # (H, dh): the paper's, and a small one
 QUICK_SIZES = ((4, 32),)
@@ -263,103 +260,119 @@ def worker(spec):
 
         torch.set_num_threads(threads)
     q, k, v, do = make_inputs(R, B, H, N, L, dh, seed=N)  # (R, B, H, N, L, dh) each
-    shape = q.shape
     ref = None
     if spec["validate"]:  # the float64 dense reference of the branching output and its gradients
         x64 = [x.astype(np.float64) for x in (q, k, v, do)]
         ref = (pyvf.branching_attention_reference(*x64[:3]), pyvf.branching_attention_reference_vjp(*x64))
         del x64
+    c = contender(method, (q, k, v, do), ref, out)
+    if c is None:  # it failed to set up; out["error"] says why
+        return out
+    if not validate_point(out, method, c):
+        return out
+    fwd, fb = c["fwd"], c["fb"]
+    del c, ref  # free the reference before measuring
 
-    # each method's closures, and `check(o, grads)`: its result mapped back to (R, B, H, N, L, dh)
-    to_np = np.asarray
-    bound = BOUND_OTHERS
-    fb = None
+    # 2. memory: one measured call of each pass after one warm-up call
+    _, out["fwd_bytes"], _ = measured(fwd, warmup=1)
+    if fb is not None:
+        _, out["fwd_bwd_bytes"], _ = measured(fb, warmup=1)
+    # 3. time
+    out["fwd_seconds"], out["fwd_times"] = median_time(fwd, repeat, warmup=0)
+    if fb is not None:
+        out["fwd_bwd_seconds"], out["fwd_bwd_times"] = median_time(fb, repeat, warmup=0)
+    return out
+
+
+def contender(method, inputs, ref, out):
+    """One method's closures on the (R, B, H, N, L, dh) inputs: {fwd, fb (None: no backward),
+    o_map, g_map (its output and gradients mapped back to (R, B, H, N, L, dh)), bound, ref (the
+    reference it is checked against: the branching one, or for naive_sdpa the token-causal one)}.
+    None where it failed to set up (out["error"] says why); out gets the SDPA backend chosen."""
+    q, k, v, do = inputs
+    to_np, bound, fb = np.asarray, BOUND_OTHERS, None
     if method == "pyvf":
         fwd, fb = pyvf_fns(q, k, v, do)
         bound = BOUND32
     elif method == "dense_numpy":
         fwd, fb = reference_fns(q, k, v, do)
     elif method == "dense_sdpa":
-        from pyvf.bench.attention import torch_backend
-
-        mask = pyvf.branching_mask(R, N, L)  # (T, T) bool
-        fwd, fb, t_to_np = torch_fns(q, k, v, do, mask)
-        to_np = t_to_np  # a flat tensor -> (R, B, H, N, L, dh)
+        mask = pyvf.branching_mask(R, q.shape[3], L)  # (T, T) bool
+        fwd, fb, to_np = torch_fns(q, k, v, do, mask)  # to_np: a flat tensor -> (R, B, H, N, L, dh)
         out["backend"] = torch_backend(q, mask)
     elif method in ("naive_pyvf", "naive_sdpa"):
-        qs, ks, vs = (stack_naive(x) for x in (q, k, v))  # (S, B, H, N, L, dh)
-        dos = stack_naive(do, queries_only=True)
-        st = qs.shape
-        if method == "naive_pyvf":
-            fwd, fb = naive_pyvf_fns(qs, ks, vs, dos)
-            bound = BOUND32
-            o_map = lambda o: unstack_naive(o.reshape(st), R)  # noqa: E731
-            g_map = lambda g: [unstack_naive(g[0].reshape(st), R)] + [  # noqa: E731
-                unstack_naive(x.reshape(st), R, keys=True) for x in g[1:]]
-        else:
-            import torch
-            from torch.nn.attention import SDPBackend
-
-            fwd, fb = naive_sdpa_fns(qs, ks, vs, dos)
-            flat_s = lambda x: x.reshape(1, st[0] * B, H, N * L, 1, dh)  # noqa: E731
-            o_map = lambda o: o.numpy().reshape(st)  # noqa: E731
-            g_map = lambda g: [x.numpy().reshape(st) for x in g]  # noqa: E731
-            t = torch.from_numpy(qs.reshape(-1, H, N * L, dh))
-            out["backend"] = SDPBackend(torch._fused_sdp_choice(t, t, t, is_causal=True, scale=1.0)).name
-            if ref is not None:
-                # token-causal attention is the branching rule with R=1 and L=1 (each token a view)
-                s64 = [flat_s(x.astype(np.float64)) for x in (qs, ks, vs, dos)]
-                ref = (pyvf.branching_attention_reference(*s64[:3]).reshape(st),
-                       [g.reshape(st) for g in pyvf.branching_attention_reference_vjp(*s64)])
-                del s64
-        del qs, ks, vs, dos  # the closures hold what they need
+        return naive_contender(method, inputs, ref, out)
     elif method == "flex":
         o_ref = ref[0] if ref is not None else pyvf.branching_attention(*(x.astype(np.float64) for x in (q, k, v)))
         fx, fwd = setup_flex(q, k, v, o_ref)
         out["flex"] = {kk: vv for kk, vv in fx.items() if kk != "traceback"}
         if fwd is None:
             out["error"] = f"flex_attention failed: {fx['error']}"
-            return out
-        to_np = lambda t: unflat(t.numpy(), shape)  # noqa: E731
+            return None
+        to_np = lambda t: unflat(t.numpy(), q.shape)  # noqa: E731
     else:
         raise ValueError(f"unknown method {method!r}")
-    if method not in ("naive_pyvf", "naive_sdpa"):
-        o_map = to_np
-        g_map = lambda g: [to_np(x) for x in g]  # noqa: E731
+    return dict(fwd=fwd, fb=fb, o_map=to_np, g_map=lambda g: [to_np(x) for x in g], bound=bound, ref=ref)
 
-    # 1. validate (first N of each size) on the first call of each pass
+
+def naive_contender(method, inputs, ref, out):
+    """contender() of the naive approach: the inputs stacked (stack_naive), through pyvf's kernel
+    at R=1 or torch SDPA is_causal."""
+    q, k, v, do = inputs
+    H, N, dh = q.shape[2], q.shape[3], q.shape[5]
+    qs, ks, vs = (stack_naive(x) for x in (q, k, v))  # (S, B, H, N, L, dh)
+    dos = stack_naive(do, queries_only=True)
+    st = qs.shape
+    if method == "naive_pyvf":
+        fwd, fb = naive_pyvf_fns(qs, ks, vs, dos)
+        return dict(fwd=fwd, fb=fb, o_map=lambda o: unstack_naive(o.reshape(st), R), bound=BOUND32, ref=ref,
+                    g_map=lambda g: [unstack_naive(g[0].reshape(st), R)]
+                    + [unstack_naive(x.reshape(st), R, keys=True) for x in g[1:]])
+    import torch
+    from torch.nn.attention import SDPBackend
+
+    fwd, fb = naive_sdpa_fns(qs, ks, vs, dos)
+    t = torch.from_numpy(qs.reshape(-1, H, N * L, dh))
+    out["backend"] = SDPBackend(torch._fused_sdp_choice(t, t, t, is_causal=True, scale=1.0)).name
+    if ref is not None:
+        # token-causal attention is the branching rule with R=1 and L=1 (each token a view)
+        s64 = [x.astype(np.float64).reshape(1, st[0] * B, H, N * L, 1, dh) for x in (qs, ks, vs, dos)]
+        ref = (pyvf.branching_attention_reference(*s64[:3]).reshape(st),
+               [g.reshape(st) for g in pyvf.branching_attention_reference_vjp(*s64)])
+        del s64
+    return dict(fwd=fwd, fb=fb, o_map=lambda o: o.numpy().reshape(st), g_map=lambda g: [x.numpy().reshape(st) for x in g],
+                bound=BOUND_OTHERS, ref=ref)
+
+
+def validate_point(out, method, c):
+    """1. validate: the first call of each pass, checked against c["ref"] when there is one (the
+    errors and the bound go into out). False (out["error"] says so) when the worst error is above
+    the bound."""
+    ref = c["ref"]
+
     def check(res, with_grads):
         if not with_grads:
-            return {"o": rel_err(o_map(res), ref[0])}
+            return {"o": rel_err(c["o_map"](res), ref[0])}
         o, grads = (None, res) if method == "dense_numpy" else res  # the reference's vjp returns grads only
-        err = {n: rel_err(g, w) for n, g, w in zip(("dq", "dk", "dv"), g_map(grads), ref[1])}
+        err = {n: rel_err(g, w) for n, g, w in zip(("dq", "dk", "dv"), c["g_map"](grads), ref[1])}
         if o is not None:
-            err["o of fwd+bwd"] = rel_err(o_map(o), ref[0])
+            err["o of fwd+bwd"] = rel_err(c["o_map"](o), ref[0])
         return err
 
-    for fn, with_grads in ((fwd, False), (fb, True)):
+    for fn, with_grads in ((c["fwd"], False), (c["fb"], True)):
         if fn is not None:
             res = fn()
             if ref is not None:
                 out.setdefault("errors", {}).update(check(res, with_grads))
             del res
-    if ref is not None:
-        out["bound"] = bound
-        worst = max(out["errors"].values())
-        if worst > bound:
-            out["error"] = f"validation failed: max rel. error {worst:.2e} > {bound:g} against the float64 reference"
-            return out
-    ref = None  # free the reference before measuring
-
-    # 2. memory: one measured call of each pass after one warm-up call
-    _, out["fwd_bytes"], _ = measure_once(fwd, warmup=1)
-    if fb is not None:
-        _, out["fwd_bwd_bytes"], _ = measure_once(fb, warmup=1)
-    # 3. time
-    out["fwd_seconds"], out["fwd_times"] = median_time(fwd, repeat, warmup=0)
-    if fb is not None:
-        out["fwd_bwd_seconds"], out["fwd_bwd_times"] = median_time(fb, repeat, warmup=0)
-    return out
+    if ref is None:
+        return True
+    out["bound"] = c["bound"]
+    worst = max(out["errors"].values())
+    if worst > c["bound"]:
+        out["error"] = f"validation failed: max rel. error {worst:.2e} > {c['bound']:g} against the float64 reference"
+        return False
+    return True
 
 
 # ---------------------------------------------------------------------------------------
@@ -420,7 +433,7 @@ def run_points(sizes, views, methods, threads, repeat, mem_limit=None, max_point
                     spec = dict(method=method, H=H, dh=dh, N=N, threads=threads, repeat=repeat, validate=idx == 0)
                     t0 = time.perf_counter()
                     try:
-                        p.update(run_worker(WORKER, "--worker", json.dumps(spec)))
+                        p.update(run_worker(WORKER, spec))
                     except (RuntimeError, ValueError) as e:  # a crashed worker: record it, carry on
                         p["error"] = str(e)[-2000:]
                     p["worker_seconds"] = time.perf_counter() - t0
@@ -462,9 +475,11 @@ def _s(x):
     return "-" if x is None else f"{x:.2f}"
 
 
-def print_tables(points, fit, sizes, methods):
+def tables(points, fit, sizes, methods):
+    """The tables of every size and its fitted slopes, as text (markdown)."""
+    out = []
     for H, dh in sizes:
-        print(f"\n## H={H} dh={dh} (R={R} B={B} L={L}, float32)\n")
+        out.append(f"\n## H={H} dh={dh} (R={R} B={B} L={L}, float32)\n")
         rows = []
         for p in points:
             if (p["H"], p["dh"]) != (H, dh):
@@ -480,10 +495,10 @@ def print_tables(points, fit, sizes, methods):
                          _b(th["largest_buffer_bytes"]), _b(th["expected_fwd"]), _b(p.get("fwd_bytes")),
                          _b(th["expected_fwd_bwd"]), _b(p.get("fwd_bwd_bytes")),
                          ms(p.get("fwd_seconds")), ms(p.get("fwd_bwd_seconds")), note])
-        print(table(["N", "method", "tokens", "block pairs", "useful GFLOP fwd", "largest buffer", "fwd expected",
-                     "fwd measured", "fwd+bwd expected", "fwd+bwd measured", "fwd time", "fwd+bwd time", "note"],
-                    [[str(c) for c in r] for r in rows]))
-        print(f"\nfitted slopes d log y / d log N over the measured N (last two N in brackets), H={H} dh={dh}\n")
+        out.append(table(["N", "method", "tokens", "block pairs", "useful GFLOP fwd", "largest buffer",
+                          "fwd expected", "fwd measured", "fwd+bwd expected", "fwd+bwd measured", "fwd time",
+                          "fwd+bwd time", "note"], [[str(c) for c in r] for r in rows]))
+        out.append(f"\nfitted slopes d log y / d log N over the measured N (last two N in brackets), H={H} dh={dh}\n")
         f = fit[f"{H}x{dh}"]
         rows = [[m, f"{_s(f[m]['fwd_bytes'])} ({_s(f[m]['fwd_bytes_last'])})",
                  f"{_s(f[m]['fwd_bwd_bytes'])} ({_s(f[m]['fwd_bwd_bytes_last'])})",
@@ -491,11 +506,12 @@ def print_tables(points, fit, sizes, methods):
                  f"{_s(f[m]['fwd_seconds'])} ({_s(f[m]['fwd_seconds_last'])})",
                  f"{_s(f[m]['fwd_bwd_seconds'])} ({_s(f[m]['fwd_bwd_seconds_last'])})",
                  ",".join(map(str, f[m]["N"]))] for m in methods]
-        print(table(["method", "memory fwd", "memory fwd+bwd", "expected fwd / fwd+bwd", "time fwd", "time fwd+bwd",
-                     "N measured"], rows))
-    print("\nmemory: extra peak resident memory of one call (inputs excluded, outputs included); time: median; "
-          "tokens: held per (batch entry, head), padding included; block pairs: (L, L) blocks computed per head; "
-          "useful GFLOP: the attended blocks' matmuls, the same for every method")
+        out.append(table(["method", "memory fwd", "memory fwd+bwd", "expected fwd / fwd+bwd", "time fwd",
+                          "time fwd+bwd", "N measured"], rows))
+    out.append("\nmemory: extra peak resident memory of one call (inputs excluded, outputs included); time: median; "
+               "tokens: held per (batch entry, head), padding included; block pairs: (L, L) blocks computed per head; "
+               "useful GFLOP: the attended blocks' matmuls, the same for every method")
+    return "\n".join(out) + "\n"
 
 
 def plot(points, fit, sizes, methods, folder):
@@ -536,100 +552,53 @@ def plot(points, fit, sizes, methods, folder):
     return files
 
 
-def parse_args(argv=None):
-    p = argparse.ArgumentParser(prog="pyvf bench scaling", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    p.add_argument("--quick", action="store_true", help="N = 2, 4, 8, H=4 dh=32, no flex: well under a minute")
-    p.add_argument("--views", help="comma-separated N (default 2,4,...,64; 2,4,8 with --quick)")
-    p.add_argument("--sizes", help="comma-separated HxDH (default 12x64,4x32; 4x32 with --quick)")
-    p.add_argument("--methods", help=f"comma-separated, from {', '.join(METHODS)} (default all; no flex with --quick)")
-    p.add_argument("--threads", type=int, default=2, help="threads for pyvf and torch (default 2)")
-    p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
-    p.add_argument("--mem-limit-mib", type=float, default=None,
-                   help="plan against this many MiB instead of /proc/meminfo MemAvailable")
-    p.add_argument("--max-point-seconds", type=float, default=MAX_POINT_SECONDS,
-                   help="skip a point whose run time, predicted from the previous N by the FLOPs it computes, "
-                        f"exceeds this (default {MAX_POINT_SECONDS}; 0: never)")
-    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
-    p.add_argument("--plots", metavar="DIR", help="write memory and time plots (PNG) to DIR (needs matplotlib)")
-    p.add_argument("--worker", help=argparse.SUPPRESS)
-    args = p.parse_args(argv)
-    if args.worker:
-        return args
-    if args.threads < 1:
-        p.error("--threads must be at least 1")
-    if args.repeat < 5:
-        p.error("--repeat must be at least 5 (medians of fewer calls are not worth printing)")
-    try:
-        args.views = tuple(int(x) for x in args.views.split(",")) if args.views else (
-            QUICK_VIEWS if args.quick else VIEWS)
-        args.sizes = tuple(tuple(int(y) for y in x.lower().split("x")) for x in args.sizes.split(",")) \
-            if args.sizes else (QUICK_SIZES if args.quick else SIZES)
-    except ValueError:
-        p.error("--views takes integers like 2,4,8; --sizes pairs like 12x64,4x32")
-    if any(n < 1 for n in args.views) or any(len(s) != 2 or min(s) < 1 for s in args.sizes):
-        p.error("--views and --sizes must be positive")
-    args.methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else (
-        QUICK_METHODS if args.quick else tuple(METHODS))
-    unknown = [m for m in args.methods if m not in METHODS]
-    if unknown:
-        p.error(f"unknown method {', '.join(unknown)}; choose from {', '.join(METHODS)}")
-    return args
-
-
-def main(argv=None):
-    args = parse_args(argv)
-    if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
-        return 0
+def run(sizes=SIZES, views=VIEWS, methods=tuple(METHODS), threads=2, repeat=5, mem_limit_mib=None,
+        max_point_seconds=MAX_POINT_SECONDS, plots=None, quick=False, log=print):
+    """The whole study (module docstring): every point in a worker process, the fitted slopes, the
+    tables logged, the plots written to the folder `plots` (None: none). Returns the report, every
+    number; a point whose validation failed has an "error" starting "validation failed". quick:
+    the methods are --quick's (the report says so of the ones not run)."""
     t_start = time.perf_counter()
-    mem_limit = None if args.mem_limit_mib is None else int(args.mem_limit_mib * 2 ** 20)
+    mem_limit = None if mem_limit_mib is None else int(mem_limit_mib * 2 ** 20)
     available = mem_available()
-    print(f"# Attention memory and time against the number of views N: R={R} B={B} L={L}, float32, scale 1, "
-          f"{args.threads} threads")
-    print(f"machine: {cpu_name()}, {os.cpu_count()} CPUs; memory available "
-          f"{_b(available)}{'' if mem_limit is None else f' (planning against --mem-limit-mib: {_b(mem_limit)})'}")
-    print(f"memory: {memory_method()}")
-    print("each point in its own process; validated against the float64 dense reference at the first N\n")
-    skipped_methods = [m for m in METHODS if m not in args.methods]
-    if "flex" in skipped_methods and args.quick:
-        print("flex_attention is not run in --quick (it compiles anew for each N: ~15 s with a cold cache); "
-              "--methods flex,... runs it\n")
-    points = run_points(args.sizes, args.views, args.methods, args.threads, args.repeat, mem_limit,
-                        args.max_point_seconds or None)
-    fit = fits(points, args.sizes, args.methods)
-    print_tables(points, fit, args.sizes, args.methods)
-    errors = [p for p in points if "error" in p]
+    log(f"# Attention memory and time against the number of views N: R={R} B={B} L={L}, float32, scale 1, "
+        f"{threads} threads")
+    log(f"machine: {cpu_name()}, {os.cpu_count()} CPUs; memory available "
+        f"{_b(available)}{'' if mem_limit is None else f' (planning against --mem-limit-mib: {_b(mem_limit)})'}")
+    log(f"memory: {memory_method()}")
+    log("each point in its own process; validated against the float64 dense reference at the first N\n")
+    skipped_methods = [m for m in METHODS if m not in methods]
+    if "flex" in skipped_methods and quick:
+        log("flex_attention is not run in --quick (it compiles anew for each N: ~15 s with a cold cache); "
+            "--methods flex,... runs it\n")
+    points = run_points(sizes, views, methods, threads, repeat, mem_limit, max_point_seconds or None, log=log)
+    fit = fits(points, sizes, methods)
+    log(tables(points, fit, sizes, methods).rstrip("\n"))
     report = dict(
-        config=dict(R=R, B=B, L=L, views=list(args.views), sizes=[list(s) for s in args.sizes], dtype="float32",
-                    scale=1.0, threads=args.threads, repeat=args.repeat, methods=list(args.methods),
-                    not_run=({m: "not in --quick (flex compiles anew for each N: ~15 s cold)" if args.quick
+        config=dict(R=R, B=B, L=L, views=list(views), sizes=[list(s) for s in sizes], dtype="float32",
+                    scale=1.0, threads=threads, repeat=repeat, methods=list(methods),
+                    not_run=({m: "not in --quick (flex compiles anew for each N: ~15 s cold)" if quick
                               else "not in --methods" for m in skipped_methods}),
-                    mem_fraction=MEM_FRACTION, mem_limit_bytes=mem_limit, max_point_seconds=args.max_point_seconds,
+                    mem_fraction=MEM_FRACTION, mem_limit_bytes=mem_limit, max_point_seconds=max_point_seconds,
                     inputs="unit normal, seed N"),
         machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
                      mem_available_bytes=available, python=platform.python_version(), numpy=np.__version__,
                      pyvf=pyvf.__version__, blas_thread_env=blas_thread_env()),
         memory_method=memory_method(), methods=METHODS, points=points, slopes=fit)
-    if args.plots:
-        files = plot(points, fit, args.sizes, args.methods, args.plots)
-        if files is None:
-            print("\nplots need matplotlib: pip install pyvf[plots]")
-        else:
-            print("\nwrote " + ", ".join(files))
-        report["plots"] = files
+    write_outputs(report, plots_dir=plots, make_plots=lambda d: plot(points, fit, sizes, methods, d), log=log)
+    errors = [p for p in points if "error" in p]
     if errors:
-        print(f"\n{len(errors)} point(s) failed: " + "; ".join(f"{p['method']} N={p['N']}: "
-                                                            f"{p['error'].splitlines()[0][:200]}" for p in errors))
+        log(f"\n{len(errors)} point(s) failed: " + "; ".join(f"{p['method']} N={p['N']}: "
+                                                          f"{p['error'].splitlines()[0][:200]}" for p in errors))
     report["total_seconds"] = time.perf_counter() - t_start
-    print(f"\ntotal {report['total_seconds']:.0f} s")
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(report, f, indent=2)
-        print(f"wrote {args.json}")
-    # a validation failure fails the run; a crashed or skipped point is written down
-    return 1 if any(p.get("error", "").startswith("validation failed") for p in points) else 0
+    log(f"\ntotal {report['total_seconds']:.0f} s")
+    return report
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def validation_failed(report):
+    """True when a point's validation failed (a crashed or skipped point is only written down)."""
+    return any(p.get("error", "").startswith("validation failed") for p in report["points"])
+
+
+if __name__ == "__main__":  # a worker: `python -m pyvf.bench.scaling SPEC` (run_points, run_worker)
+    worker_main(worker)

@@ -12,12 +12,10 @@ layers (every x @ w, forward and backward) and the rest (LayerNorm, GELU, embedd
 the tied logits, AdamW), by timing those functions inside the step. Before timing, the first
 step's loss of pyvf and torch (same weights, same batch) are compared, and the tool stops if
 they differ. Memory: the measured peak resident memory of one step above what was resident
-before it (pyvf.measure.peak_memory). torch is imported only in the torch worker.
+before it (pyvf.bench.common.peak_memory). torch is imported only in the torch worker.
 """
 
-import argparse
 import contextlib
-import json
 import sys
 import time
 
@@ -26,9 +24,9 @@ import numpy as np
 import pyvf
 import pyvf.nn.attention
 import pyvf.nn.layers
-from pyvf.measure import format_bytes, peak_memory, run_worker
+from pyvf.bench.common import format_bytes, peak_memory, run_worker, worker_main
 
-WORKER = "pyvf.bench.transformer"  # this module, run as `python -m WORKER --worker ...`
+WORKER = "pyvf.bench.transformer"  # this module, run as `python -m WORKER SPEC` (worker_main)
 
 CONFIGS = {
     "tiny": dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5,
@@ -129,14 +127,22 @@ def worker_torch(name, steps):
     return dict(loss=loss, time=float(np.median(times)), memory=mem)
 
 
+def worker(spec):
+    """One framework's run in a worker process: {framework: "pyvf" | "torch", config, steps,
+    threads} -> worker_pyvf's or worker_torch's dict."""
+    pyvf.set_num_threads(spec["threads"])
+    return (worker_pyvf if spec["framework"] == "pyvf" else worker_torch)(spec["config"], spec["steps"])
+
+
 def bench(name, steps, threads):
-    """Run both workers on one configuration and print the table; False if their losses differ."""
-    p = run_worker(WORKER, "--worker", "pyvf", "--configs", name, "--steps", steps, "--threads", threads)
-    t = run_worker(WORKER, "--worker", "torch", "--configs", name, "--steps", steps, "--threads", threads)
+    """Run both workers on one configuration and print the table: {"pyvf": ..., "torch": ...}, or
+    None (printed to stderr) when their first-step losses differ."""
+    p, t = (run_worker(WORKER, dict(framework=f, config=name, steps=steps, threads=threads))
+            for f in ("pyvf", "torch"))
     # validate: the same first-step loss from the same weights and batch (float32 both)
     if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
         print(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}", file=sys.stderr)
-        return False
+        return None
     spec = dict(CONFIGS[name])
     print(f"\n## {name}: d={spec['d_model']}, H={spec['n_head']}, {spec['n_layer']} layers, "
           f"N={spec['sequence_size']}, L={spec['token_image_size'] ** 2}, V={spec['n_embeddings']}, "
@@ -150,40 +156,23 @@ def bench(name, steps, threads):
     print(f"| ratio torch / pyvf | {t['time'] / p['time']:.2f} | {t['memory'] / p['memory']:.2f} |")
     print(f"pyvf step time shares: branching attention {p['attention']:.0%}, linear layers {p['linear']:.0%}, "
           f"the rest {1 - p['attention'] - p['linear']:.0%}")
-    return True
+    return {"pyvf": p, "torch": t}
 
 
-def parse_args(argv=None):
-    ap = argparse.ArgumentParser(prog="pyvf bench transformer", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--configs", nargs="+", default=None, choices=list(CONFIGS),
-                    help="default: tiny paper (tiny with --quick)")
-    ap.add_argument("--steps", type=int, default=None,
-                    help="timed steps (default 20 tiny, 3 paper; 10 with --quick)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--quick", action="store_true", help="the tiny configuration only, 10 steps (seconds)")
-    ap.add_argument("--worker", choices=["pyvf", "torch"], help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
-    if args.configs is None:
-        args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
-    if args.steps is None and args.quick:
-        args.steps = 10
-    if args.steps is not None and args.steps < 3:
-        ap.error("--steps must be at least 3 (a median of fewer steps is not worth printing)")
-    return args
+def run(configs=tuple(CONFIGS), steps=None, threads=2):
+    """bench() on each configuration of CONFIGS named (steps: timed steps, default 20 tiny, 3
+    paper). Returns the report; report["failures"] names a configuration whose losses differed
+    (nothing after it is run)."""
+    pyvf.set_num_threads(threads)
+    report = dict(config=dict(configs=list(configs), steps=steps, threads=threads), results={}, failures=[])
+    for name in configs:
+        result = bench(name, steps or (20 if name == "tiny" else 3), threads)
+        if result is None:
+            report["failures"].append(f"{name}: the first-step losses of pyvf and torch differ")
+            break
+        report["results"][name] = result
+    return report
 
 
-def main(argv=None):
-    args = parse_args(argv)
-    pyvf.set_num_threads(args.threads)
-    for name in args.configs:
-        steps = args.steps or (20 if name == "tiny" else 3)
-        if args.worker:
-            result = (worker_pyvf if args.worker == "pyvf" else worker_torch)(name, steps)
-            print(json.dumps(result))
-        elif not bench(name, steps, args.threads):
-            return 1
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # a worker: `python -m pyvf.bench.transformer SPEC` (bench, run_worker)
+    worker_main(worker)

@@ -11,13 +11,12 @@ which re-ranks exactly every code its error bound cannot exclude. torch is impor
 functions that use it.
 """
 
-import argparse
 import sys
 
 import numpy as np
 
 import pyvf
-from pyvf.measure import median_time
+from pyvf.bench.common import median_time
 from pyvf.nn.quantizer import vq_nearest
 
 PAPER = dict(M=352 * 64, K=1024, D=256, repeat=5, checked_rows=4096)
@@ -54,62 +53,44 @@ def methods():
             "torch expanded matmul": torch_expanded, "numpy expanded matmul": numpy_expanded}
 
 
-def parse_args(argv=None):
-    ap = argparse.ArgumentParser(prog="pyvf bench vq", description=__doc__.split("\n\n")[0])
-    for name in ("M", "K", "D"):
-        ap.add_argument(f"--{name}", type=int, default=None,
-                        help=f"default {PAPER[name]} ({QUICK[name]} with --quick)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--repeat", type=int, default=None,
-                    help=f"timed calls per median (default {PAPER['repeat']}, {QUICK['repeat']} with --quick)")
-    ap.add_argument("--quick", action="store_true",
-                    help=f"smaller sizes, answers checked on {QUICK['checked_rows']} rows (seconds)")
-    args = ap.parse_args(argv)
-    base = QUICK if args.quick else PAPER
-    for name in ("M", "K", "D", "repeat"):
-        if getattr(args, name) is None:
-            setattr(args, name, base[name])
-    args.checked_rows = min(base["checked_rows"], args.M)
-    if args.repeat < 3:
-        ap.error("--repeat must be at least 3 (a median of fewer calls is not worth printing)")
-    return args
-
-
-def main(argv=None):
-    args = parse_args(argv)
+def run(M, K, D, repeat=5, checked_rows=4096, threads=2):
+    """The table (module docstring) for M points, K codes of width D: each method's median time
+    of `repeat` calls and its share of wrong codes at each offset (on the first checked_rows
+    points), then pyvf's time at the offsets. Returns the report; report["failures"] is not
+    empty when pyvf disagrees with brute force (then nothing more is timed)."""
     import torch
-    torch.set_num_threads(args.threads)
-    pyvf.set_num_threads(args.threads)
+    torch.set_num_threads(threads)
+    pyvf.set_num_threads(threads)
     rng = np.random.default_rng(0)
-    M, K, D = args.M, args.K, args.D
-    print(f"# nearest code: M={M} K={K} D={D}, float32, {args.threads} threads, median of {args.repeat}\n")
+    checked_rows = min(checked_rows, M)
+    report = dict(config=dict(M=M, K=K, D=D, repeat=repeat, checked_rows=checked_rows, threads=threads),
+                  offsets=[0.0, 1e2, 1e3, 1e4], methods={}, pyvf_offset_seconds={}, failures=[])
+    print(f"# nearest code: M={M} K={K} D={D}, float32, {threads} threads, median of {repeat}\n")
     print("| method | time (unit normal data) | wrong, offset 0 | wrong, 1e2 | wrong, 1e3 | wrong, 1e4 |")
     print("|---|---|---|---|---|---|")
     base_x = rng.standard_normal((M, D)).astype(np.float32)
     base_c = rng.standard_normal((K, D)).astype(np.float32)
     truth = {}
-    for off in (0.0, 1e2, 1e3, 1e4):  # a subset of rows is enough for the disagreement rates
-        xs, cs = base_x[:args.checked_rows] + np.float32(off), base_c + np.float32(off)
+    for off in report["offsets"]:  # a subset of rows is enough for the disagreement rates
+        xs, cs = base_x[:checked_rows] + np.float32(off), base_c + np.float32(off)
         truth[off] = (xs, cs, brute_force(xs, cs))
-    results = {}
+    results = report["methods"]
     for name, fn in methods().items():
         wrong = [float((fn(xs, cs) != want).mean()) for xs, cs, want in truth.values()]
         if name.startswith("pyvf") and any(wrong):
             print(f"pyvf disagrees with brute force: {wrong}", file=sys.stderr)
-            return 1
-        t, _ = median_time(lambda: fn(base_x, base_c), repeat=args.repeat)
-        results[name] = t
+            report["failures"].append(f"pyvf disagrees with brute force: {wrong}")
+            return report
+        t, _ = median_time(lambda: fn(base_x, base_c), repeat=repeat)
+        results[name] = dict(seconds=t, wrong=wrong)
         print(f"| {name} | {t * 1e3:.1f} ms | " + " | ".join(f"{w:.2%}" for w in wrong) + " |")
-    t0 = results["pyvf.vq_nearest"]
-    print(f"\ntorch cdist / pyvf time: {results['torch cdist + argmin'] / t0:.2f}x; "
-          f"torch expanded / pyvf: {results['torch expanded matmul'] / t0:.2f}x")
+    t0 = results["pyvf.vq_nearest"]["seconds"]
+    print(f"\ntorch cdist / pyvf time: {results['torch cdist + argmin']['seconds'] / t0:.2f}x; "
+          f"torch expanded / pyvf: {results['torch expanded matmul']['seconds'] / t0:.2f}x")
     print("\npyvf at the cancellation offsets (exact re-rank of the codes the bound cannot exclude):")
     for off in (1e2, 1e3, 1e4):
         xs, cs = base_x + np.float32(off), base_c + np.float32(off)
         t, _ = median_time(lambda: vq_nearest(xs, cs), repeat=1)
+        report["pyvf_offset_seconds"][f"{off:g}"] = t
         print(f"  offset {off:g}: {t * 1e3:.0f} ms")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return report

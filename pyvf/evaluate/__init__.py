@@ -1,5 +1,5 @@
 """Evaluation: a codebook and transformer pair on held-out SM7 scenes against baselines, the
-pictures, and the `pyvf demo` / `pyvf evaluate` commands.
+pictures, and the work of the `pyvf demo` / `pyvf evaluate` commands.
 
     from pyvf.evaluate import evaluate
     metrics = evaluate(codebook, transformer, scenes=200, context=(1, 3, 5), out="eval")
@@ -7,7 +7,7 @@ pictures, and the `pyvf demo` / `pyvf evaluate` commands.
     metrics.py   docs/math.md §6 metrics, the baselines, uint8 <-> model image conversions
     run.py       evaluate(): the protocol, the timings of the scene cache, metrics.json / metrics.md
     pictures.py  views.png (context | truth | codebook | pyvf) and poses.png (cameras from above), Pillow
-    commands.py  the `pyvf demo` and `pyvf evaluate` commands (imported by pyvf.cli only)
+    demo.py      what `pyvf demo` and `pyvf evaluate` do (their arguments: pyvf/cli/evaluate.py)
 
 Note: the function `evaluate` lives in the package `pyvf.evaluate`; re-exporting it from pyvf
 under the same name would hide the package attribute, so pyvf exports it as `pyvf.evaluate`

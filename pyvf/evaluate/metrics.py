@@ -1,6 +1,7 @@
 """The metrics of docs/math.md §6 and the four baselines pyvf is compared with, in NumPy.
 
     x = to_model_images(images, np.float32)     # uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) in [-1, 1]
+    codes = encode_images(codebook, images)     # the same, through codebook.encode in batches -> (B, k, k)
     images = to_uint8(x)                        # the inverse: round((x + 1) * 127.5), clipped to 0..255
     m = image_metrics(pred, target)             # per image: {"mae", "rmse", "psnr"}, each (...)
     p = pose_metrics(pred, target)              # per view: {"position_error", "orientation_error_deg"}
@@ -29,6 +30,7 @@ import numpy as np
 from ..geometry import average_pose, orientation_error, position_error
 
 __all__ = [
+    "encode_images",
     "to_model_images",
     "to_uint8",
     "psnr_cap",
@@ -61,6 +63,21 @@ def to_model_images(images, dtype):
     x /= dtype.type(127.5)
     x -= dtype.type(1.0)
     return x
+
+
+def encode_images(codebook, images, batch_size=64, dtype=np.int64, progress=None):
+    """uint8 images (M, Hi, Wi, C) -> codebook.encode's codes (M, k, k) as dtype, batch_size images
+    per encoder call (each batch converted by to_model_images: the whole set never is at once).
+    progress: None, or the description of a tqdm progress bar."""
+    k = codebook.config.token_size
+    out = np.empty((images.shape[0], k, k), dtype)  # (M, k, k)
+    starts = range(0, images.shape[0], batch_size)
+    if progress:
+        from tqdm.auto import tqdm
+        starts = tqdm(starts, desc=progress, unit="batch")
+    for i in starts:
+        out[i:i + batch_size] = codebook.encode(to_model_images(images[i:i + batch_size], codebook.dtype))  # (b, k, k)
+    return out
 
 
 def to_uint8(x):

@@ -40,18 +40,18 @@ import numpy as np
 
 from .._io import atomic_write_text
 from ..geometry import make_relative
-from ..measure import median_time
+from ..bench.common import median_time
 from ..models import check_pair
 from ..scenes import generate_scenes
 from .metrics import (
     closest_image_pose,
+    encode_images,
     image_metrics,
     mean_image,
     mean_pose,
     nearest_view,
     pose_metrics,
     psnr_cap,
-    to_model_images,
     to_uint8,
 )
 
@@ -129,16 +129,6 @@ def _progress(iterable, total, desc, enabled):
     return tqdm(iterable, total=total, desc=desc, unit="batch")
 
 
-def _encode(codebook, images, batch):
-    """uint8 (n, Hi, Wi, 3) -> codes (n, k*k) int64, `batch` images per encoder call."""
-    k = codebook.config.token_size
-    out = np.empty((images.shape[0], k * k), np.int64)
-    for i in range(0, images.shape[0], batch):
-        codes = codebook.encode(to_model_images(images[i:i + batch], codebook.dtype))  # (b, k, k)
-        out[i:i + batch] = codes.reshape(codes.shape[0], -1)
-    return out
-
-
 def _decode(codebook, tokens, batch):
     """codes (n, k*k) ints -> uint8 images (n, Hi, Wi, 3), `batch` per decoder call."""
     k = codebook.config.token_size
@@ -190,7 +180,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     t0 = time.perf_counter()
     tokens = np.zeros((n, views, tf_cfg.token_image_size ** 2), np.int64)  # (n, V, L); unused views stay 0
     flat = np.ascontiguousarray(images[:, used]).reshape(-1, S, S, 3)
-    tokens[:, used] = _encode(codebook, flat, 4 * batch).reshape(n, len(used), -1)
+    tokens[:, used] = encode_images(codebook, flat, 4 * batch).reshape(n, len(used), -1)
     t_encode = (time.perf_counter() - t0) / flat.shape[0]
 
     results, picture, dec = score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch,

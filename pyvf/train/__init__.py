@@ -1,7 +1,8 @@
 """Training: the optimisers and schedules (optim.py), one step (step.py), the loops that
 checkpoint and resume exactly (loops.py), the torch engine (torch_engine.py), the whole
-pipeline (pipeline.py). The run folder's files are described in _run.py. The `pyvf` training
-commands (commands.py) are imported by pyvf.cli only."""
+pipeline (pipeline.py). The run folder's files are described in _run.py. What the `pyvf`
+training commands do on files (tasks.py) is imported by pyvf.cli only (their arguments:
+pyvf/cli/train.py)."""
 
 from .loops import (
     TINY_CODEBOOK,

@@ -34,7 +34,7 @@ import numpy as np
 
 from .. import _checks
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
-from ..measure import cpu_name
+from ..bench.common import cpu_name
 
 CHECKPOINT, LOG, CONFIG, EVAL_LOG = "checkpoint.npz", "log.csv", "config.json", "eval.csv"
 FORMAT_VERSION = 1

@@ -28,7 +28,7 @@ from ..evaluate.health import (
     transformer_health,
     transformer_health_columns,
 )
-from ..evaluate.metrics import to_model_images
+from ..evaluate.metrics import encode_images, to_model_images
 from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, fingerprint, integer, positive_int, real
@@ -155,6 +155,26 @@ class _Threads:
 # the codebook
 
 
+def _recipe(recipe, lr, betas, reset_dead_codes, object_weight):
+    """train_codebook's lr, betas, reset_dead_codes and object_weight: the recipe's (a name of
+    CODEBOOK_RECIPES) where None, each checked."""
+    if recipe not in CODEBOOK_RECIPES:
+        raise ValueError(f"recipe must be one of {sorted(CODEBOOK_RECIPES)}, got {recipe!r}")
+    r = CODEBOOK_RECIPES[recipe]
+    lr = real("lr", r["lr"] if lr is None else lr)
+    betas = r["betas"] if betas is None else betas
+    if (not isinstance(betas, (tuple, list)) or len(betas) != 2
+            or not all(0 <= real("betas", b) < 1 for b in betas)):
+        raise ValueError(f"betas must be two numbers in [0, 1), got {betas!r}")
+    betas = (float(betas[0]), float(betas[1]))
+    reset_dead_codes = integer("reset_dead_codes", r["reset_dead_codes"] if reset_dead_codes is None
+                               else reset_dead_codes, 0)
+    object_weight = real("object_weight", r["object_weight"] if object_weight is None else object_weight)
+    if object_weight == 0:
+        raise ValueError("object_weight must be positive")
+    return lr, betas, reset_dead_codes, object_weight
+
+
 def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="small-batch", lr=None, betas=None,
                    reset_dead_codes=None, object_weight=None, seed=0, checkpoint_every=200, log_every=10,
                    eval_images=None, eval_every=0, resume=True, progress=True, threads=None, command=None):
@@ -187,20 +207,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
     flat = _check_images(images, config)  # (M, Hi, Wi, C)
     batch_size = positive_int("batch_size", batch_size)
     seed = integer("seed", seed, 0)
-    if recipe not in CODEBOOK_RECIPES:
-        raise ValueError(f"recipe must be one of {sorted(CODEBOOK_RECIPES)}, got {recipe!r}")
-    r = CODEBOOK_RECIPES[recipe]
-    lr = real("lr", r["lr"] if lr is None else lr)
-    betas = r["betas"] if betas is None else betas
-    if (not isinstance(betas, (tuple, list)) or len(betas) != 2
-            or not all(0 <= real("betas", b) < 1 for b in betas)):
-        raise ValueError(f"betas must be two numbers in [0, 1), got {betas!r}")
-    betas = (float(betas[0]), float(betas[1]))
-    reset_dead_codes = integer("reset_dead_codes", r["reset_dead_codes"] if reset_dead_codes is None
-                               else reset_dead_codes, 0)
-    object_weight = real("object_weight", r["object_weight"] if object_weight is None else object_weight)
-    if object_weight == 0:
-        raise ValueError("object_weight must be positive")
+    lr, betas, reset_dead_codes, object_weight = _recipe(recipe, lr, betas, reset_dead_codes, object_weight)
     eval_every = integer("eval_every", eval_every, 0)
     if eval_images is not None:
         eval_images = _check_images(eval_images, config)
@@ -254,17 +261,9 @@ def tokenize(codebook, images, batch_size=64, progress=False):
         raise TypeError(f"codebook must be a Codebook, got {type(codebook).__name__}")
     flat = _check_images(images, codebook.config)  # (M, Hi, Wi, C)
     batch_size = positive_int("batch_size", batch_size)
-    k = codebook.config.token_size
     dtype = np.int16 if codebook.config.n_embed <= np.iinfo(np.int16).max + 1 else np.int32
-    out = np.empty((flat.shape[0], k, k), dtype)  # (M, k, k)
-    starts = range(0, flat.shape[0], batch_size)
-    if progress:
-        from tqdm.auto import tqdm
-        starts = tqdm(starts, desc="tokenize", unit="batch")
-    for i in starts:
-        x = to_model_images(flat[i:i + batch_size], codebook.dtype)  # (b, C, Hi, Wi)
-        out[i:i + batch_size] = codebook.encode(x)  # int64 in [0, n_embed): fits dtype
-    return out.reshape(images.shape[:-3] + (k, k))
+    out = encode_images(codebook, flat, batch_size, dtype, progress="tokenize" if progress else None)  # (M, k, k)
+    return out.reshape(images.shape[:-3] + out.shape[1:])
 
 
 def held_out_set(codebook, images, poses):
@@ -297,6 +296,83 @@ def load_tokens(path):
 
 # ---------------------------------------------------------------------------------------
 # the transformer
+
+
+def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup, total_steps, weight_decay,
+                       max_grad_norm, clip_mode, seed):
+    """train_transformer's arguments checked: (the run's hyperparameters, the WarmupCosine schedule,
+    steps); the hyperparameters hold batch_size, views (N), lr, warmup, total_steps, weight_decay,
+    clipping, seed and the data's fingerprint."""
+    batch_size = positive_int("batch_size", batch_size)
+    steps = positive_int("steps", steps)
+    seed = integer("seed", seed, 0)
+    lr, weight_decay = real("lr", lr), real("weight_decay", weight_decay)
+    n_views = 1 + (config.sequence_size - 1 if context is None else integer("context", context, 0))  # N
+    if n_views <= config.n_loss_skip:
+        raise ValueError(f"context={n_views - 1} leaves no loss target: a sample needs more than "
+                         f"n_loss_skip={config.n_loss_skip} views")
+    if n_views > tokens.shape[1]:
+        raise ValueError(f"context={n_views - 1} needs {n_views} distinct views per scene, "
+                         f"tokens has {tokens.shape[1]}")
+    total_steps = steps if total_steps is None else positive_int("total_steps", total_steps)
+    warmup = min(2000, total_steps // 10) if warmup is None else integer("warmup", warmup, 0)
+    schedule = WarmupCosine(lr, warmup, total_steps)  # checks lr, warmup < total_steps
+    if max_grad_norm is not None and real("max_grad_norm", max_grad_norm) == 0:
+        raise ValueError("max_grad_norm must be positive, or None for no clipping")
+    if clip_mode not in ("global", "per_tensor"):
+        raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {clip_mode!r}")
+    hyper = {"batch_size": batch_size, "views": n_views, "lr": lr, "warmup": int(warmup),
+             "total_steps": total_steps, "weight_decay": weight_decay, "eps": 1e-8, "eps_convention": "keras",
+             "max_grad_norm": None if max_grad_norm is None else float(max_grad_norm), "clip_mode": clip_mode,
+             "seed": seed, "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
+    return hyper, schedule, steps
+
+
+def _transformer_eval(eval_set, eval_every, config):
+    """train_transformer's held-out evaluation, eval_set checked: (its record for config.json, the
+    columns of eval.csv, health(model) -> the row of transformer_health at health_contexts); all
+    None without eval_set."""
+    if eval_set is None:
+        return None, None, None
+    if not isinstance(eval_set, dict) or sorted(eval_set) != ["codebook", "images", "poses", "tokens"]:
+        raise ValueError("eval_set must be a dict of codebook, images, poses and tokens")
+    e = eval_set
+    contexts = health_contexts(config, e["images"].shape[1])
+    if not contexts:
+        raise ValueError(f"eval_set's scenes have {e['images'].shape[1]} views: too few for a context "
+                         "and the held-out queries")
+
+    def health(model):
+        return transformer_health(e["codebook"], model, e["images"], e["poses"], e["tokens"], contexts)
+
+    record = {"every": eval_every, "contexts": contexts, "fingerprint": fingerprint(e["tokens"])}
+    return record, transformer_health_columns(contexts), health
+
+
+def _transformer_and_optimiser(run, config, seed, schedule, weight_decay):
+    """A new Transformer and its optimiser, the published one (optim.py: HF AdamWeightDecay over
+    Keras Adam); both as the run's checkpoint left them when it resumes."""
+    model = Transformer(config, seed=seed)
+    if run.resumed:
+        run.restore("model", model.load_official, run.model_state)  # replaces model.params
+    opt = AdamW(model.params, lr=schedule, eps=1e-8, weight_decay=weight_decay, decay=published_weight_decay,
+                eps_convention="keras")  # after the restore: on the params it put in place
+    if run.resumed:
+        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+    return model, opt
+
+
+def _pyvf_engine(model, opt, max_grad_norm, clip_mode):
+    """train_transformer's engine "pyvf": (step(tok, pos) -> (loss, mean ce, mean pose loss, the
+    global gradient norm), the state dict's function, the current model's)."""
+    def step(tok, pos):
+        out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=max_grad_norm, clip_mode=clip_mode,
+                                     relative=True)
+        if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
+            norm = float(np.sqrt(sum(n * n for n in norm.values())))
+        return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm
+
+    return step, model.state_dict, lambda: model
 
 
 def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, context=None, lr=1e-4, warmup=None,
@@ -337,74 +413,26 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     if not isinstance(config, TransformerConfig):
         raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
     _check_tokens_poses(tokens, poses, config)
-    batch_size = positive_int("batch_size", batch_size)
-    steps = positive_int("steps", steps)
-    seed = integer("seed", seed, 0)
-    lr, weight_decay = real("lr", lr), real("weight_decay", weight_decay)
-    n_views = 1 + (config.sequence_size - 1 if context is None else integer("context", context, 0))  # N
-    if n_views <= config.n_loss_skip:
-        raise ValueError(f"context={n_views - 1} leaves no loss target: a sample needs more than "
-                         f"n_loss_skip={config.n_loss_skip} views")
-    if n_views > tokens.shape[1]:
-        raise ValueError(f"context={n_views - 1} needs {n_views} distinct views per scene, "
-                         f"tokens has {tokens.shape[1]}")
-    total_steps = steps if total_steps is None else positive_int("total_steps", total_steps)
-    warmup = min(2000, total_steps // 10) if warmup is None else integer("warmup", warmup, 0)
-    schedule = WarmupCosine(lr, warmup, total_steps)  # checks lr, warmup < total_steps
-    if max_grad_norm is not None and real("max_grad_norm", max_grad_norm) == 0:
-        raise ValueError("max_grad_norm must be positive, or None for no clipping")
-    if clip_mode not in ("global", "per_tensor"):
-        raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {clip_mode!r}")
+    hyper, schedule, steps = _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup,
+                                                total_steps, weight_decay, max_grad_norm, clip_mode, seed)
+    batch_size, n_views, seed, weight_decay = (hyper[k] for k in ("batch_size", "views", "seed", "weight_decay"))
     check_engine(engine, device, precision)
-    hyper = {"batch_size": batch_size, "views": n_views, "lr": lr, "warmup": int(warmup),
-             "total_steps": total_steps, "weight_decay": weight_decay, "eps": 1e-8, "eps_convention": "keras",
-             "max_grad_norm": None if max_grad_norm is None else float(max_grad_norm), "clip_mode": clip_mode,
-             "seed": seed, "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
     eval_every = integer("eval_every", eval_every, 0)
-    contexts = None
-    if eval_set is not None:
-        if not isinstance(eval_set, dict) or sorted(eval_set) != ["codebook", "images", "poses", "tokens"]:
-            raise ValueError("eval_set must be a dict of codebook, images, poses and tokens")
-        contexts = health_contexts(config, eval_set["images"].shape[1])
-        if not contexts:
-            raise ValueError(f"eval_set's scenes have {eval_set['images'].shape[1]} views: too few for a context "
-                             "and the held-out queries")
+    eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
     threads_set = _Threads(threads)
     run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
               steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
               call={"command": command, "threads": threads, "engine": engine, "device": device,
-                    "precision": precision,
-                    "eval": None if eval_set is None else {"every": eval_every, "contexts": contexts,
-                                                           "fingerprint": fingerprint(eval_set["tokens"])}},
-              eval_columns=None if eval_set is None else transformer_health_columns(contexts))
-    evaluating = eval_set is not None and eval_every > 0
-
-    def health(model):
-        e = eval_set
-        return transformer_health(e["codebook"], model, e["images"], e["poses"], e["tokens"], contexts)
-
-    model = Transformer(config, seed=seed)
-    if run.resumed:
-        run.restore("model", model.load_official, run.model_state)  # replaces model.params
-    # the published optimiser (optim.py): HF AdamWeightDecay over Keras Adam
-    opt = AdamW(model.params, lr=schedule, eps=1e-8, weight_decay=weight_decay, decay=published_weight_decay,
-                eps_convention="keras")
-    if run.resumed:
-        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
-
+                    "precision": precision, "eval": eval_record}, eval_columns=eval_columns)
+    evaluating = health is not None and eval_every > 0
+    model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay)
     if engine == "torch":
         eng = TorchTransformer(model, opt, device=device, precision=precision, max_grad_norm=max_grad_norm,
                                clip_mode=clip_mode)
         step, state, current, opt = eng.step, eng.state_dict, eng.to_pyvf, eng.opt
         parity = parity_batch(tokens, poses, n_views, seed, config.dtype)
     else:
-        def step(tok, pos):
-            out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=max_grad_norm, clip_mode=clip_mode,
-                                         relative=True)
-            if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
-                norm = float(np.sqrt(sum(n * n for n in norm.values())))
-            return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm
-        state, current = model.state_dict, lambda: model
+        step, state, current = _pyvf_engine(model, opt, max_grad_norm, clip_mode)
 
     with threads_set, run:
         if evaluating and not run.resumed:

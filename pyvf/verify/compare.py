@@ -12,7 +12,7 @@ for the forward (execution order) and the dict `Transformer.backward()` returns 
 gradients (backward order): the first quantity over tolerance in that order is where a bug
 starts; everything after it inherits the error.
 
-The error measure is normwise: rel_err(x, ref) = max|x - ref| / max|ref| (pyvf.measure), in
+The error measure is normwise: rel_err(x, ref) = max|x - ref| / max|ref| (below), in
 float64. An elementwise relative error is meaningless where ref has entries near zero, and a
 wrong layer shows as a normwise error of order 1e-3..1, far above rounding.
 
@@ -41,12 +41,21 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from ..measure import rel_err
-
 __all__ = ["compare", "Comparison", "ComparisonRow", "DEFAULT_RTOL", "rel_err"]
 
 DEFAULT_RTOL = {"float64": 1e-10, "float32": 1e-3, "float16": 2e-2, "bfloat16": 5e-2}
 _PRECISION = ("float64", "float32", "float16", "bfloat16")  # most precise first
+
+
+def rel_err(x, ref):
+    """max |x - ref| / max |ref|: the largest error relative to the largest reference entry
+    (an elementwise relative error is meaningless where ref is near 0). Computed in float64."""
+    x = np.asarray(x, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
+    if x.shape != ref.shape:
+        raise ValueError(f"shapes differ: {x.shape} vs {ref.shape}")
+    scale = np.abs(ref).max()
+    return float(np.abs(x - ref).max() / (scale if scale > 0 else 1.0))
 
 
 @dataclasses.dataclass

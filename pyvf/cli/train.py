@@ -1,4 +1,4 @@
-"""The training commands of `pyvf`: argument parsing only; the work is in loops.py.
+"""The training commands' arguments; the work is pyvf.train.tasks' (and train_pipeline's).
 
     pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE]
     pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
@@ -7,61 +7,16 @@
     pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
 
 Run again with the same arguments to resume from the run folder's checkpoint (--no-resume
-starts over). --config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the
-configuration's fields, or a run's config.json (its "config" is used).
-Each handler returns an exit status: 0, or 1 after printing the error.
+starts over). Each handler returns an exit status: 0, or 1 after printing the error.
 """
 
-import dataclasses
-import json
 import os
 import sys
-import zipfile
 
-from ..models.codebook import Codebook, CodebookConfig
-from ..models.transformer import TransformerConfig
-from .curves import plot_eval, runs_table
-from .loops import (
-    CODEBOOK_RECIPES,
-    TINY_CODEBOOK,
-    _Threads,
-    held_out_set,
-    TINY_TRANSFORMER,
-    load_tokens,
-    save_tokens,
-    tokenize,
-    train_codebook,
-    train_transformer,
-)
-
-
-def _config(value, cls, tiny):
-    """--config: "tiny" or a JSON file -> a cls instance (ValueError naming the file)."""
-    if value == "tiny":
-        return tiny
-    try:
-        with open(value, encoding="utf-8") as f:
-            d = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"--config {value}: cannot read a JSON configuration ({e})") from e
-    if isinstance(d, dict) and isinstance(d.get("config"), dict):  # a run's config.json
-        d = d["config"]
-    if not isinstance(d, dict):
-        raise ValueError(f"--config {value}: expected a JSON object of {cls.__name__} fields")
-    try:
-        return cls(**d)
-    except TypeError as e:  # unknown or missing fields
-        raise ValueError(f"--config {value}: not a {cls.__name__} ({e}); its fields are "
-                         f"{[f.name for f in dataclasses.fields(cls)]}") from e
-
-
-def _load_dataset(path):
-    """pyvf.scenes.load_dataset(path): .images uint8 (scenes, views, Hi, Wi, 3), .poses (scenes, views, 7)."""
-    try:
-        from ..scenes import load_dataset  # imported here: the scenes home is optional for the other commands
-    except ImportError as e:
-        raise ValueError(f"cannot read the dataset {path}: pyvf.scenes is not available ({e})") from e
-    return load_dataset(path)
+from ..train import tasks
+from ..train.loops import CODEBOOK_RECIPES
+from ..train.pipeline import PRESETS, train_pipeline
+from .options import add_threads
 
 
 def _record(args):
@@ -79,59 +34,19 @@ def _guarded(name, work):
     return 0
 
 
-EVAL_VIEWS = 4  # views per held-out scene in a training run's evaluation
-
-
-def _held_out_views(args, data, size):
-    """The held-out views a run evaluates on every --eval-every steps: the first EVAL_VIEWS views
-    of --eval-scenes scenes of --eval-seed, (scenes * EVAL_VIEWS, size, size, 3) uint8; None
-    when --eval-every is 0. The seed must differ from the training data's."""
-    if not args.eval_every:
-        return None
-    if args.eval_scenes < 1:
-        raise ValueError(f"--eval-scenes must be a positive integer, got {args.eval_scenes}")
-    if getattr(data, "seed", None) == args.eval_seed:
-        raise ValueError(f"--eval-seed {args.eval_seed} is the training data's seed: held-out scenes need "
-                         "another seed")
-    from ..scenes import generate_scenes
-    images, _ = generate_scenes(args.eval_seed, args.eval_scenes, views=EVAL_VIEWS, size=size)
-    return images.reshape(-1, size, size, images.shape[-1])
-
-
-def _held_out_scenes(args):
-    """train-transformer's held-out scenes: --eval-scenes whole scenes of --eval-seed (all 15
-    views), tokenized by --codebook -> train_transformer's eval_set."""
-    if args.eval_scenes < 1:
-        raise ValueError(f"--eval-scenes must be a positive integer, got {args.eval_scenes}")
-    codebook = _read_codebook(args.codebook)
-    from ..scenes import generate_scenes
-    images, poses = generate_scenes(args.eval_seed, args.eval_scenes, size=codebook.config.image_size)
-    with _Threads(args.threads):
-        return held_out_set(codebook, images, poses)
-
-
-def _read_codebook(path):
-    """Codebook.load(path), its errors as ValueError naming the file."""
-    try:
-        return Codebook.load(path)
-    except FileNotFoundError as e:
-        raise ValueError(f"codebook {path} does not exist") from e
-    except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
-        raise ValueError(f"codebook {path} is not a readable codebook file: {type(e).__name__}: {e}") from e
+def _run(args):
+    """The options every training run takes, as train_codebook's and train_transformer's keywords."""
+    return dict(config=args.config, steps=args.steps, batch_size=args.batch, seed=args.seed,
+                checkpoint_every=args.checkpoint_every, log_every=args.log_every, eval_every=args.eval_every,
+                eval_scenes=args.eval_scenes, eval_seed=args.eval_seed, resume=not args.no_resume,
+                progress=not args.no_progress, threads=args.threads, command=_record(args))
 
 
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
     def work():
-        config = _config(args.config, CodebookConfig, TINY_CODEBOOK)
-        data = _load_dataset(args.data)
-        held_out = _held_out_views(args, data, config.image_size)
-        train_codebook(data.images, config, args.out, steps=args.steps, batch_size=args.batch, recipe=args.recipe,
-                       lr=args.lr, betas=args.betas, reset_dead_codes=args.reset_dead_codes,
-                       object_weight=args.object_weight, seed=args.seed, checkpoint_every=args.checkpoint_every,
-                       log_every=args.log_every, eval_images=held_out, eval_every=args.eval_every,
-                       resume=not args.no_resume, progress=not args.no_progress, threads=args.threads,
-                       command=_record(args))
+        tasks.codebook_run(args.data, args.out, recipe=args.recipe, lr=args.lr, betas=args.betas,
+                           reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight, **_run(args))
         print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
     return _guarded("train-codebook", work)
 
@@ -139,13 +54,8 @@ def cmd_train_codebook(args):
 def cmd_tokenize(args):
     """Encode a dataset's images into token images with a trained codebook."""
     def work():
-        codebook = _read_codebook(args.codebook)
-        data = _load_dataset(args.data)
-        with _Threads(args.threads):
-            tokens = tokenize(codebook, data.images, batch_size=args.batch, progress=not args.no_progress)
-        folder = os.path.dirname(os.path.abspath(args.out))
-        os.makedirs(folder, exist_ok=True)
-        save_tokens(args.out, tokens, data.poses, codebook.config.n_embed)
+        tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, batch_size=args.batch,
+                                        progress=not args.no_progress, threads=args.threads)
         print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
     return _guarded("tokenize", work)
 
@@ -153,25 +63,34 @@ def cmd_tokenize(args):
 def cmd_train_transformer(args):
     """Train the transformer on a tokenized dataset; resumable."""
     def work():
-        config = _config(args.config, TransformerConfig, TINY_TRANSFORMER)
-        tokens, poses, n_embed = load_tokens(args.tokens)
-        if config.n_embeddings != n_embed:
-            raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {args.tokens} "
-                             f"was made by a codebook of {n_embed} codes")
-        eval_set = _held_out_scenes(args) if args.eval_every and args.codebook else None
-        if args.eval_every and not args.codebook:
-            print("pyvf train-transformer: no --codebook, so no held-out evaluation (it renders through the "
-                  "codebook)", file=sys.stderr)
-        train_transformer(tokens, poses, config, args.out, steps=args.steps, batch_size=args.batch,
-                          eval_set=eval_set, eval_every=args.eval_every,
-                          context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
-                          weight_decay=args.weight_decay,
-                          max_grad_norm=None if args.max_grad_norm <= 0 else args.max_grad_norm,
-                          seed=args.seed, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
-                          resume=not args.no_resume, progress=not args.no_progress, threads=args.threads,
-                          command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
+        tasks.transformer_run(args.tokens, args.out, codebook=args.codebook, context=args.context, lr=args.lr,
+                              warmup=args.warmup, total_steps=args.total_steps, weight_decay=args.weight_decay,
+                              max_grad_norm=None if args.max_grad_norm <= 0 else args.max_grad_norm,
+                              engine=args.engine, device=args.device, precision=args.precision, **_run(args))
         print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
     return _guarded("train-transformer", work)
+
+
+def cmd_train(args):
+    """The whole pipeline, resumable stage by stage: training scenes, codebook, tokens,
+    transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
+    def work():
+        train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
+                       command=_record(args))
+        print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
+              f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
+    return _guarded("train", work)
+
+
+def cmd_runs(args):
+    """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
+    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn."""
+    def work():
+        table, plots = tasks.compare_runs(args.run_dirs, plot=args.plot)
+        print(table, end="")
+        for path in plots:
+            print(f"wrote {path}")
+    return _guarded("runs", work)
 
 
 def _run_options(p, batch, checkpoint_every):
@@ -185,7 +104,7 @@ def _run_options(p, batch, checkpoint_every):
     p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")
     p.add_argument("--no-resume", action="store_true", help="start over even if the run folder has a checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--threads", type=int, default=None, help="threads for pyvf's C++ kernels")
+    add_threads(p)
 
 
 def _eval_options(p, every, scenes):
@@ -196,36 +115,7 @@ def _eval_options(p, every, scenes):
                    help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000)")
 
 
-def cmd_train(args):
-    """The whole pipeline, resumable stage by stage: training scenes, codebook, tokens,
-    transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
-    from .pipeline import train_pipeline
-
-    def work():
-        train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
-                       command=_record(args))
-        print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
-              f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
-    return _guarded("train", work)
-
-
-def cmd_runs(args):
-    """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
-    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn."""
-    def work():
-        for d in args.run_dirs:
-            if not os.path.exists(os.path.join(d, "config.json")):
-                raise ValueError(f"{d} is not a run folder (no config.json)")
-        print(runs_table(args.run_dirs), end="")
-        if args.plot:
-            for d in args.run_dirs:
-                if os.path.exists(os.path.join(d, "eval.csv")):
-                    print(f"wrote {plot_eval(d)}")
-    return _guarded("runs", work)
-
-
-def cli_register(subparsers):
-    """Add train-codebook, tokenize and train-transformer to an argparse subparsers object."""
+def _train_codebook(subparsers):
     p = subparsers.add_parser("train-codebook", help="train the codebook (VQ-VAE) on a dataset; resumable",
                               description=cmd_train_codebook.__doc__)
     p.add_argument("--data", required=True, help="dataset folder (pyvf.scenes.load_dataset)")
@@ -245,6 +135,8 @@ def cli_register(subparsers):
     _eval_options(p, every=100, scenes=32)
     p.set_defaults(func=cmd_train_codebook)
 
+
+def _tokenize(subparsers):
     p = subparsers.add_parser("tokenize", help="encode a dataset into token images with a codebook",
                               description=cmd_tokenize.__doc__)
     p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
@@ -252,9 +144,11 @@ def cli_register(subparsers):
     p.add_argument("--out", required=True, help="tokens .npz to write: tokens, poses, n_embed")
     p.add_argument("--batch", type=int, default=64, help="images per encoder call (default 64)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--threads", type=int, default=None, help="threads for pyvf's C++ kernels")
+    add_threads(p)
     p.set_defaults(func=cmd_tokenize)
 
+
+def _train_transformer(subparsers):
     p = subparsers.add_parser("train-transformer", help="train the transformer on a tokens file; resumable",
                               description=cmd_train_transformer.__doc__)
     p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
@@ -279,7 +173,8 @@ def cli_register(subparsers):
                    help="the torch engine's arithmetic: fp32 (default) or bf16 autocast (weights stay float32)")
     p.set_defaults(func=cmd_train_transformer)
 
-    from .pipeline import PRESETS
+
+def _train(subparsers):
     p = subparsers.add_parser("train", help="train a ViewFormer pair from scratch, every stage resumable "
                               "(--preset quick: about 15 minutes on 2 cores)", description=cmd_train.__doc__)
     p.add_argument("--out", required=True, help="folder of the stages (scenes/, codebook/, tokens.npz, "
@@ -287,13 +182,21 @@ def cli_register(subparsers):
     p.add_argument("--preset", default="quick", choices=sorted(PRESETS),
                    help="sizes and steps of every stage: quick (default, ~15 min on 2 cores), full (the shipped "
                         "models' sizes, many hours), smoke (seconds)")
-    p.add_argument("--threads", type=int, default=None, help="threads for pyvf's C++ kernels")
+    add_threads(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_train)
 
+
+def _runs(subparsers):
     p = subparsers.add_parser("runs", help="compare training runs: a markdown table of their last held-out "
                               "evaluations", description=cmd_runs.__doc__)
     p.add_argument("run_dirs", nargs="+", metavar="RUN", help="run folders (train-codebook's or train-transformer's --out)")
     p.add_argument("--plot", action="store_true", help="also redraw each run's eval.png")
     p.set_defaults(func=cmd_runs)
+
+
+def register(subparsers):
+    """Add train-codebook, tokenize, train-transformer, train and runs to an argparse subparsers object."""
+    for add in (_train_codebook, _tokenize, _train_transformer, _train, _runs):
+        add(subparsers)
     return subparsers

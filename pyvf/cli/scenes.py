@@ -1,47 +1,26 @@
-"""The `pyvf scenes` command (imported by pyvf.cli only).
+"""`pyvf scenes`: its arguments; the work is pyvf.scenes.make.make_dataset.
 
     pyvf scenes --out data/sm7 --scenes 2000 --seed 0 [--views 15] [--size 64] [--shard-size 500]
                 [--preview sm7.png] [--overwrite] [--quiet]
-
-cli_register(subparsers) adds the subcommand to pyvf's parser; its handler cmd_scenes(args)
-only parses and calls write_dataset (dataset.py), then optionally save_preview (preview.py).
 """
 
 import sys
-import time
 
-from .dataset import write_dataset
-from .preview import save_preview
-from .render import generate_scenes
-
-__all__ = ["cli_register", "cmd_scenes"]
-
-PREVIEW_SCENES = 8  # rows of the preview: the dataset's first scenes, every view as a column
+from ..scenes.make import PREVIEW_SCENES, make_dataset
 
 
 def cmd_scenes(args):
     """Render a Shepard-Metzler-7 dataset (docs/math.md §7) into .npz shards and a manifest."""
-    t0 = time.perf_counter()
     try:
-        manifest = write_dataset(args.out, args.scenes, args.seed, views=args.views, size=args.size,
-                                 shard_size=args.shard_size, progress=not args.quiet,
-                                 overwrite=args.overwrite)
+        make_dataset(args.out, args.scenes, args.seed, views=args.views, size=args.size, shard_size=args.shard_size,
+                     preview=args.preview, progress=not args.quiet, overwrite=args.overwrite)
     except (ValueError, TypeError, FileExistsError) as e:
         print(f"pyvf scenes: {e}", file=sys.stderr)
         return 2
-    total = sum(s["bytes"] for s in manifest["shards"])
-    print(f"pyvf scenes: {manifest['n_scenes']} scenes x {manifest['views']} views of "
-          f"{manifest['height']}x{manifest['width']} (seed {manifest['seed']}) in "
-          f"{len(manifest['shards'])} shards, {total / 2**20:.1f} MiB, {time.perf_counter() - t0:.1f} s -> {args.out}")
-    if args.preview:
-        # the dataset's first scenes again: generation is deterministic, so these are the same bytes
-        images, _ = generate_scenes(args.seed, min(args.scenes, PREVIEW_SCENES), views=args.views, size=args.size)
-        save_preview(args.preview, images)
-        print(f"pyvf scenes: preview of the first {len(images)} scenes -> {args.preview}")
     return 0
 
 
-def cli_register(subparsers):
+def register(subparsers):
     """Add the `scenes` subcommand to an argparse subparsers object; returns its parser."""
     p = subparsers.add_parser("scenes", help="render a Shepard-Metzler-7 dataset (.npz shards + manifest)",
                               description=cmd_scenes.__doc__)

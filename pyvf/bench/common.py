@@ -1,0 +1,281 @@
+"""What every benchmark shares: the time and memory of a call, measured; the BLAS threads; the
+machine's name; a worker process; a table, a JSON file and the plots. NumPy and the standard
+library only (matplotlib where a plot is asked for).
+
+    seconds, times = median_time(fn, repeat=5, warmup=1)   # the one timing helper
+    result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
+    result, extra, times = measured(fn, warmup=1, repeat=1)  # one call under peak_memory, timed, then more
+    memory_method()                   # how peak_memory measures, for printing beside its numbers
+    print(table(header, rows))        # a markdown table (or, with widths, a plain aligned one)
+    write_json(path, report)          # a benchmark's report, as every benchmark writes it
+
+peak_memory measures the process's resident memory (Linux VmHWM), so it covers every
+allocation the call makes: NumPy arrays, C++ std::vector workspace, torch tensors. It counts
+the call's outputs too (they are still alive when fn returns), and nothing allocated before
+the call: allocate the inputs first, then measure.
+"""
+
+import ctypes
+import gc
+import json
+import os
+import platform
+import statistics
+import time
+import tracemalloc
+
+__all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "peak_memory", "memory_method",
+           "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot"]
+
+# numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
+# sets them to the benchmark's --threads (pyvf/cli/bench.py), so that numpy's GEMM and pyvf's
+# layers use the threads that pyvf's kernels and torch are given
+BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+
+
+def blas_thread_env():
+    """{variable: value or None} of BLAS_THREAD_VARS in this process, for a benchmark's report."""
+    return {v: os.environ.get(v) for v in BLAS_THREAD_VARS}
+
+
+_STATUS = "/proc/self/status"
+_CLEAR_REFS = "/proc/self/clear_refs"
+
+
+def median_time(fn, repeat=5, warmup=1):
+    """Median wall time in seconds of `repeat` calls of fn(), after `warmup` untimed calls.
+
+    Returns (median, times), times the list of every timed call's seconds (time.perf_counter).
+    """
+    if repeat < 1:
+        raise ValueError(f"repeat must be at least 1, got {repeat}")
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), times
+
+
+# ---------------------------------------------------------------------------------------
+# peak memory
+
+
+def _status_bytes(field):
+    """A memory field of /proc/self/status ("VmRSS", "VmHWM"), in bytes."""
+    with open(_STATUS) as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                value, unit = line.split()[1:3]
+                assert unit == "kB", line
+                return int(value) * 1024
+    raise OSError(f"{field} not in {_STATUS}")
+
+
+def _reset_hwm():
+    """Reset the kernel's peak-resident counter VmHWM to the current VmRSS (Linux >= 4.0)."""
+    with open(_CLEAR_REFS, "w") as f:
+        f.write("5")
+
+
+def _hwm_available():
+    try:
+        _reset_hwm()
+        return _status_bytes("VmHWM") > 0 and _status_bytes("VmRSS") > 0
+    except OSError:
+        return False
+
+
+_M_MMAP_THRESHOLD = -3  # glibc <malloc.h>
+_MMAP_THRESHOLD = 128 * 1024  # glibc's initial value
+_malloc_fixed = False
+
+
+def _fresh_pages():
+    """Make the measured call fault in fresh pages for what it allocates (glibc; elsewhere a no-op).
+
+    glibc keeps freed memory for reuse: its mmap threshold grows (up to 32 MiB) as blocks are
+    freed, and a thread's arena keeps its top chunk, which malloc_trim does not release. A call
+    that reuses what an earlier call freed would then look as if it needed nothing: measured, the
+    second OpenMP thread's backward workspace vanished from the second call on. So on first use
+    this fixes the mmap threshold at its initial 128 KiB, for the rest of the process: every block
+    of 128 KiB or more is then mapped fresh and unmapped on free (the price: page faults on every
+    call, ~3-5% of the attention kernel's time), and trims the heap's free pages before each call.
+    """
+    global _malloc_fixed
+    try:
+        libc = ctypes.CDLL(None)
+        if not _malloc_fixed:
+            libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)
+            _malloc_fixed = True
+        libc.malloc_trim(0)
+    except (OSError, AttributeError, TypeError):  # not glibc (TypeError: Windows' CDLL(None))
+        pass
+
+
+_HWM = _hwm_available()
+
+
+def memory_method():
+    """One line saying how peak_memory measures on this machine."""
+    if _HWM:
+        return ("resident memory, Linux VmHWM reset through /proc/self/clear_refs: every "
+                "allocation counts (NumPy, C++ workspace, torch); outputs included; blocks >= 128 KiB "
+                "mapped fresh on every call (glibc mmap threshold fixed)")
+    return ("tracemalloc (no /proc/self/clear_refs here): NumPy and Python allocations only, "
+            "C++ workspace and torch are NOT counted; outputs included")
+
+
+def peak_memory(fn):
+    """Run fn() once; return (result, extra_peak_bytes).
+
+    extra_peak_bytes is the peak resident memory of the process while fn ran minus the resident
+    memory just before it: the memory the call needed, its outputs included (they are alive when
+    fn returns). Inputs allocated before the call do not count. On Linux this reads VmHWM after
+    resetting it (every allocation counts, at page granularity, 4 KiB; the kernel's per-CPU
+    RSS counters lag by up to a few dozen pages per CPU, so below ~1 MiB it is approximate); elsewhere it falls
+    back to tracemalloc, which sees NumPy's allocations only (memory_method() says which).
+    Call fn once before measuring to keep one-time costs (thread pools, lazy imports) out.
+    On glibc the first call changes malloc's policy for the rest of the process: see _fresh_pages.
+    """
+    gc.collect()
+    _fresh_pages()
+    if _HWM:
+        before = _status_bytes("VmRSS")
+        _reset_hwm()
+        result = fn()
+        peak = _status_bytes("VmHWM")
+        return result, max(peak - before, 0)
+    started = not tracemalloc.is_tracing()
+    if started:
+        tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        before = tracemalloc.get_traced_memory()[0]
+        result = fn()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        if started:
+            tracemalloc.stop()
+    return result, max(peak - before, 0)
+
+
+def measured(fn, warmup=0, repeat=1):
+    """`warmup` plain calls of fn, then `repeat` timed calls, the first under peak_memory: (the
+    measured call's result, its extra peak bytes, the seconds of every timed call)."""
+    for _ in range(warmup):
+        fn()
+    box = {}
+
+    def call():
+        t0 = time.perf_counter()
+        out = fn()
+        box["seconds"] = time.perf_counter() - t0
+        return out
+
+    result, extra = peak_memory(call)
+    times = [box["seconds"]]
+    if repeat > 1:
+        times += median_time(fn, repeat - 1, warmup=0)[1]
+    return result, extra, times
+
+
+# ---------------------------------------------------------------------------------------
+# printing and writing
+
+
+def format_bytes(n):
+    """1536 -> '1.5 KiB'; powers of 1024, three significant figures."""
+    n = float(n)
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if abs(n) < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
+        n /= 1024
+    raise AssertionError("unreachable")
+
+
+def run_worker(module, spec):
+    """Run `python -m module SPEC` in a fresh process, SPEC the JSON of the dict spec, and return
+    the JSON object printed on its last line (the module's worker_main): for benchmarks that keep
+    each framework's thread pools in a process of its own.
+
+    The worker starts in the folder that holds this process's pyvf package, so that it imports
+    the same pyvf (`python -m` puts the working folder first on sys.path: started from a source
+    checkout, it would import the unbuilt source tree)."""
+    import subprocess
+    import sys
+
+    import pyvf
+    holds_pyvf = os.path.dirname(os.path.dirname(os.path.abspath(pyvf.__file__)))
+    cmd = [sys.executable, "-m", module, json.dumps(spec)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=holds_pyvf)
+    if proc.returncode:
+        raise RuntimeError(f"worker {' '.join(cmd[1:])} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def worker_main(work):
+    """A benchmark module's `if __name__ == "__main__":` (run_worker's other end): print
+    json.dumps(work(spec)), spec the JSON object of the command line's one argument."""
+    import sys
+
+    print(json.dumps(work(json.loads(sys.argv[1]))))
+
+
+def cpu_name():
+    """The processor's model name (/proc/cpuinfo's "model name"; platform.processor() elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown CPU"
+
+
+def table(header, rows, widths=None):
+    """A markdown table of str()-able cells, each column as wide as its widest cell; or, with
+    widths (one per column), a plain one: no rules, the first column left-aligned in its width,
+    the others right-aligned."""
+    if widths is not None:
+        line = lambda cells: "  ".join(str(c).rjust(w) if i else str(c).ljust(w)  # noqa: E731
+                                       for i, (c, w) in enumerate(zip(cells, widths)))
+        return "\n".join(line(r) for r in [header, *rows])
+    widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
+    line = lambda cells: "| " + " | ".join(str(c).ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
+    out = [line(header), "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
+    return "\n".join(out + [line(r) for r in rows])
+
+
+def write_json(path, report):
+    """A benchmark's report as JSON (every benchmark's, and the ones `pyvf bench report` keeps)."""
+    with open(path, "w") as f:
+        json.dump(report, f, indent=1)
+
+
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend, or None where matplotlib (the `plots`
+    extra, `pip install pyvf[plots]`) is not installed: the plotting functions' one import."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
+
+
+def write_outputs(report, json_path=None, plots_dir=None, make_plots=None, log=print):
+    """The files a benchmark was asked for: the plots (make_plots(dir) -> the files, or None
+    without matplotlib; kept in report["plots"]), then the JSON of the report."""
+    if plots_dir:
+        files = make_plots(plots_dir)
+        log("\nplots need matplotlib: pip install pyvf[plots]" if files is None else "\nwrote " + ", ".join(files))
+        report["plots"] = files
+    if json_path:
+        write_json(json_path, report)
+        log(f"wrote {json_path}")

@@ -1,0 +1,346 @@
+"""`pyvf bench NAME [options]`: each benchmark's arguments; the work is the run() of its module
+in pyvf.bench (and pyvf.bench.attention.demo for demo-attention).
+
+    pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
+    pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]      # speed vs error; hard cases
+    pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
+    pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
+
+Each benchmark is a parser function `_<name>_parser()` and a handler `_<name>(args) -> exit
+status` in BENCHMARKS; the modules are imported when their benchmark runs.
+"""
+
+import argparse
+import importlib
+import os
+import subprocess
+import sys
+
+from ..bench.common import BLAS_THREAD_VARS, write_outputs
+from .options import add_threads, names
+
+DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
+COMPARE_THREADS = "threads for pyvf and torch (default 2)"
+
+
+def _module(name):
+    return importlib.import_module(f"pyvf.bench.{name}")
+
+
+def _doc_parser(name, epilog=False):
+    """A benchmark's parser: its module docstring's first paragraph as description (all of it as
+    epilog when asked), the raw layout kept."""
+    doc = _module(name).__doc__
+    return argparse.ArgumentParser(prog=f"pyvf bench {name}", description=doc.split("\n\n")[0],
+                                   formatter_class=argparse.RawDescriptionHelpFormatter,
+                                   epilog=doc if epilog else None)
+
+
+def _check_repeat(p, args, least):
+    """--repeat at least `least` (3 or 5), else the parser's error."""
+    why = {3: "a median of fewer calls is not worth printing", 5: "medians of fewer calls are not worth printing"}
+    if args.repeat < least:
+        p.error(f"--repeat must be at least {least} ({why[least]})")
+
+
+# ---------------------------------------------------------------------------------------
+# attention, scaling, vq, transformer, codebook
+
+
+def _attention_parser():
+    attention = _module("attention")
+    p = _doc_parser("attention")
+    for name, val in attention.PAPER.items():
+        p.add_argument(f"--{name}", type=int, default=None, help=f"default {val} ({attention.QUICK[name]} with --quick)")
+    add_threads(p, 2, COMPARE_THREADS)
+    p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
+    p.add_argument("--quick", action="store_true", help="smaller sizes (H=4, N=8; scaling N up to 16)")
+    p.add_argument("--flex", action="store_true", help="also torch flex_attention (torch.compile, forward only)")
+    p.add_argument("--no-scaling", action="store_true", help="skip the memory-versus-N measurement")
+    p.add_argument("--scaling-heads", type=int, default=None, help="H for the scaling runs (default: --H)")
+    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
+    return p, lambda args: _check_repeat(p, args, 5)
+
+
+def _attention(args):
+    attention = _module("attention")
+    base = attention.QUICK if args.quick else attention.PAPER
+    shape = [base[n] if getattr(args, n) is None else getattr(args, n) for n in attention.PAPER]
+    views = None if args.no_scaling else (attention.QUICK_SCALING_N if args.quick else attention.SCALING_N)
+    report = attention.run(*shape, threads=args.threads, repeat=args.repeat, flex=args.flex, scaling_views=views,
+                           scaling_heads=args.scaling_heads)
+    write_outputs(report, args.json)
+    if "aborted" in report:
+        print("\nABORT: pyvf is outside its error bound; nothing is timed.", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _scaling_parser():
+    scaling = _module("scaling")
+    p = _doc_parser("scaling", epilog=True)
+    p.add_argument("--quick", action="store_true", help="N = 2, 4, 8, H=4 dh=32, no flex: well under a minute")
+    p.add_argument("--views", help="comma-separated N (default 2,4,...,64; 2,4,8 with --quick)")
+    p.add_argument("--sizes", help="comma-separated HxDH (default 12x64,4x32; 4x32 with --quick)")
+    p.add_argument("--methods", help=f"comma-separated, from {', '.join(scaling.METHODS)} (default all; no flex "
+                                     "with --quick)")
+    add_threads(p, 2, COMPARE_THREADS)
+    p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
+    p.add_argument("--mem-limit-mib", type=float, default=None,
+                   help="plan against this many MiB instead of /proc/meminfo MemAvailable")
+    p.add_argument("--max-point-seconds", type=float, default=scaling.MAX_POINT_SECONDS,
+                   help="skip a point whose run time, predicted from the previous N by the FLOPs it computes, "
+                        f"exceeds this (default {scaling.MAX_POINT_SECONDS}; 0: never)")
+    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
+    p.add_argument("--plots", metavar="DIR", help="write memory and time plots (PNG) to DIR (needs matplotlib)")
+    return p, lambda args: _scaling_check(p, args, scaling)
+
+
+def _scaling_check(p, args, scaling):
+    """--views, --sizes and --methods parsed (their defaults filled in), --repeat checked."""
+    _check_repeat(p, args, 5)
+    try:
+        args.views = tuple(int(x) for x in args.views.split(",")) if args.views else (
+            scaling.QUICK_VIEWS if args.quick else scaling.VIEWS)
+        args.sizes = tuple(tuple(int(y) for y in x.lower().split("x")) for x in args.sizes.split(",")) \
+            if args.sizes else (scaling.QUICK_SIZES if args.quick else scaling.SIZES)
+    except ValueError:
+        p.error("--views takes integers like 2,4,8; --sizes pairs like 12x64,4x32")
+    if any(n < 1 for n in args.views) or any(len(s) != 2 or min(s) < 1 for s in args.sizes):
+        p.error("--views and --sizes must be positive")
+    default = scaling.QUICK_METHODS if args.quick else tuple(scaling.METHODS)
+    args.methods = names(p, args.methods, scaling.METHODS, "method") if args.methods else default
+
+
+def _scaling(args):
+    scaling = _module("scaling")
+    report = scaling.run(args.sizes, args.views, args.methods, args.threads, args.repeat, args.mem_limit_mib,
+                         args.max_point_seconds, plots=args.plots, quick=args.quick)
+    write_outputs(report, args.json)
+    return 1 if scaling.validation_failed(report) else 0
+
+
+def _vq_parser():
+    vq = _module("vq")
+    p = argparse.ArgumentParser(prog="pyvf bench vq", description=vq.__doc__.split("\n\n")[0])
+    for name in ("M", "K", "D"):
+        p.add_argument(f"--{name}", type=int, default=None, help=f"default {vq.PAPER[name]} ({vq.QUICK[name]} with --quick)")
+    add_threads(p, 2, None)
+    p.add_argument("--repeat", type=int, default=None,
+                   help=f"timed calls per median (default {vq.PAPER['repeat']}, {vq.QUICK['repeat']} with --quick)")
+    p.add_argument("--quick", action="store_true",
+                   help=f"smaller sizes, answers checked on {vq.QUICK['checked_rows']} rows (seconds)")
+
+    def check(args):
+        base = vq.QUICK if args.quick else vq.PAPER
+        for name in ("M", "K", "D", "repeat"):
+            if getattr(args, name) is None:
+                setattr(args, name, base[name])
+        _check_repeat(p, args, 3)
+    return p, check
+
+
+def _vq(args):
+    vq = _module("vq")
+    base = vq.QUICK if args.quick else vq.PAPER
+    report = vq.run(args.M, args.K, args.D, args.repeat, base["checked_rows"], args.threads)
+    return 1 if report["failures"] else 0
+
+
+def _transformer_parser():
+    transformer = _module("transformer")
+    p = argparse.ArgumentParser(prog="pyvf bench transformer", description=transformer.__doc__.split("\n\n")[0])
+    p.add_argument("--configs", nargs="+", default=None, choices=list(transformer.CONFIGS),
+                   help="default: tiny paper (tiny with --quick)")
+    p.add_argument("--steps", type=int, default=None, help="timed steps (default 20 tiny, 3 paper; 10 with --quick)")
+    add_threads(p, 2, None)
+    p.add_argument("--quick", action="store_true", help="the tiny configuration only, 10 steps (seconds)")
+
+    def check(args):
+        if args.configs is None:
+            args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
+        if args.steps is None and args.quick:
+            args.steps = 10
+        if args.steps is not None and args.steps < 3:
+            p.error("--steps must be at least 3 (a median of fewer steps is not worth printing)")
+    return p, check
+
+
+def _transformer(args):
+    return 1 if _module("transformer").run(args.configs, args.steps, args.threads)["failures"] else 0
+
+
+def _codebook_parser():
+    codebook = _module("codebook")
+    p = argparse.ArgumentParser(prog="pyvf bench codebook", description=codebook.__doc__.split("\n\n")[0])
+    p.add_argument("--configs", nargs="+", default=None, choices=list(codebook.CONFIGS),
+                   help="default: tiny paper (tiny with --quick)")
+    p.add_argument("--repeat", type=int, default=3, help="timed calls per median (default 3, at least 3)")
+    add_threads(p, 2, None)
+    p.add_argument("--quick", action="store_true", help="the tiny configuration only (seconds)")
+
+    def check(args):
+        if args.configs is None:
+            args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
+        _check_repeat(p, args, 3)
+    return p, check
+
+
+def _codebook(args):
+    return 1 if _module("codebook").run(args.configs, args.repeat, args.threads)["failures"] else 0
+
+
+# ---------------------------------------------------------------------------------------
+# the checking benchmarks (accuracy, hardcases), the report, the demo
+
+
+def _checking_parser(name, quick, plots):
+    """The options every checking benchmark (accuracy, hardcases) takes: --quick, --threads, --json
+    and --plots; the module docstring as description and epilog. quick, plots: their help texts."""
+    p = _doc_parser(name, epilog=True)
+    p.add_argument("--quick", action="store_true", help=quick)
+    add_threads(p, 2, COMPARE_THREADS)
+    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
+    p.add_argument("--plots", metavar="DIR", help=plots + " (PNG) to DIR (needs matplotlib)")
+    return p
+
+
+def _verdict(report, args, make_plots, what):
+    """The end of a checking benchmark: the plots and the JSON asked for, a FAIL line per entry of
+    report["failures"] and the verdict. Returns the exit status: 1 if anything failed."""
+    write_outputs(report, args.json, args.plots, make_plots)
+    for f in report["failures"]:
+        print(f"FAIL {f}")
+    print(f"\n{'FAIL' if report['failures'] else 'PASS'}: {len(report['failures'])} {what} outside their bound; "
+          f"total {report['total_seconds']:.0f} s")
+    return 1 if report["failures"] else 0
+
+
+def _accuracy_parser():
+    accuracy = _module("accuracy")
+    p = _checking_parser("accuracy", "small sizes, median of 3: ~20 s", "write a time-vs-error plot per op")
+    p.add_argument("--ops", help=f"comma-separated, from {', '.join(accuracy.OPS)} (default all)")
+    p.add_argument("--repeat", type=int, default=None, help="timed calls per median (default 5; 3 with --quick)")
+    p.add_argument("--plant-bug", action="store_true", help=argparse.SUPPRESS)  # the tests' bad variant
+
+    def check(args):
+        args.ops = names(p, args.ops, accuracy.OPS, "op")
+        args.repeat = args.repeat or (3 if args.quick else 5)
+        if args.repeat < 3:
+            p.error("--repeat must be at least 3")
+    return p, check
+
+
+def _accuracy(args):
+    accuracy = _module("accuracy")
+    print(f"# speed against error: {len(args.ops)} ops, {'quick' if args.quick else 'full'} sizes, "
+          f"{args.threads} threads, median of {args.repeat}")
+    report = accuracy.run(args.ops, "quick" if args.quick else "full", args.repeat, args.threads, args.plant_bug)
+    accuracy.print_report(report)
+    return _verdict(report, args, lambda d: accuracy.plot(report["results"], d), "variant(s)")
+
+
+def _hardcases_parser():
+    hardcases = _module("hardcases")
+    p = _checking_parser("hardcases", "fewer points, smaller problems: ~15 s", "write one plot per sweep")
+    p.add_argument("--sweeps", help=f"comma-separated, from {', '.join(hardcases.SWEEPS)} (default all)")
+
+    def check(args):
+        args.sweeps = names(p, args.sweeps, hardcases.SWEEPS, "sweep")
+    return p, check
+
+
+def _hardcases(args):
+    hardcases = _module("hardcases")
+    print(f"# hard cases: {len(args.sweeps)} sweeps, {'quick' if args.quick else 'full'}, {args.threads} threads")
+    report = hardcases.run(args.sweeps, "quick" if args.quick else "full", args.threads)
+    hardcases.print_report(report)
+    return _verdict(report, args, lambda d: hardcases.plot_all(report["sweeps"], d), "pyvf line(s)")
+
+
+def _report_parser():
+    p = _doc_parser("report", epilog=True)
+    p.add_argument("--quick", action="store_true", help="every run in its --quick mode (a couple of minutes)")
+    p.add_argument("--out", default="docs", help="the folder for performance.md, accuracy.md, img/ and "
+                                                 "measurements/ (default docs)")
+    add_threads(p, 2, "threads for pyvf, torch and numpy's BLAS (default 2)")
+    return p, None
+
+
+def _report(args):
+    rep = _module("report").run(args.quick, args.out, args.threads)
+    print("wrote " + ", ".join(rep["files"]))
+    for f in rep["failures"]:
+        print(f"FAIL {f}")
+    print(f"{'FAIL' if rep['failures'] else 'PASS'}; total {rep['total_seconds'] / 60:.1f} minutes")
+    return 1 if rep["failures"] else 0
+
+
+def _demo_attention_parser():
+    attention = _module("attention")
+    p = argparse.ArgumentParser(prog=f"pyvf bench {DEMO_ATTENTION}", description=_demo_attention.__doc__)
+    add_threads(p, None, "threads for pyvf's C++ kernels (default: OpenMP's, OMP_NUM_THREADS or all cores)")
+    sizes = ", ".join(attention.DEMO_SIZES)
+    p.add_argument("--sizes", default=",".join(attention.DEMO_SIZES),
+                   help=f"comma-separated sizes to run, from {sizes} (default: all)")
+    return p, None
+
+
+def _demo_attention(args):
+    """Branching attention at a few sizes: error against the dense reference, time, memory."""
+    attention = _module("attention")
+    sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
+    unknown = [s for s in sizes if s not in attention.DEMO_SIZES]
+    if unknown or not sizes:
+        print(f"pyvf bench {DEMO_ATTENTION}: unknown size {unknown or args.sizes!r}; "
+              f"choose from {', '.join(attention.DEMO_SIZES)}", file=sys.stderr)
+        return 2
+    return attention.demo(sizes, threads=args.threads)
+
+
+# name -> (its parser function -> (parser, check(args) or None), its handler)
+BENCHMARKS = {
+    "attention": (_attention_parser, _attention),
+    "vq": (_vq_parser, _vq),
+    "transformer": (_transformer_parser, _transformer),
+    "codebook": (_codebook_parser, _codebook),
+    "scaling": (_scaling_parser, _scaling),
+    "accuracy": (_accuracy_parser, _accuracy),
+    "hardcases": (_hardcases_parser, _hardcases),
+    "report": (_report_parser, _report),
+    DEMO_ATTENTION: (_demo_attention_parser, _demo_attention),
+}
+
+
+def cmd_bench(args):
+    """Run one benchmark of pyvf.bench; the arguments after its name go to its main().
+
+    A benchmark runs with numpy's BLAS on its --threads: where the BLAS_THREAD_VARS of this
+    process say otherwise (numpy is loaded by then, its BLAS thread count fixed), it runs in a
+    child process `pyvf bench ...` with them set, and returns the child's status. The child runs
+    in this working folder (relative paths in the arguments keep their meaning) but drops it from
+    sys.path before importing pyvf: run from a source checkout, `python -m pyvf` would import the
+    unbuilt source tree instead of the installed package."""
+    make_parser, handler = BENCHMARKS[args.name]
+    parser, check = make_parser()
+    bench_args = parser.parse_args(args.args)
+    if check is not None:
+        check(bench_args)
+    n = bench_args.threads if args.name != DEMO_ATTENTION else None
+    if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
+        env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
+        boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"
+        return subprocess.run([sys.executable, "-c", boot, "bench", args.name, *args.args], env=env).returncode
+    return handler(bench_args)
+
+
+def register(subparsers):
+    """Add `bench` to an argparse subparsers object."""
+    listed = ", ".join(n for n in BENCHMARKS if n != DEMO_ATTENTION)
+    p = subparsers.add_parser("bench", help=f"a benchmark: {listed} (--quick: at most a couple of minutes)"
+                              f"; {DEMO_ATTENTION}: the attention kernel's error, time and memory at a few sizes",
+                              description=cmd_bench.__doc__ + " `pyvf bench NAME --help` lists its options.")
+    p.add_argument("name", choices=tuple(BENCHMARKS), help="which benchmark")
+    p.add_argument("args", nargs=argparse.REMAINDER, help="the benchmark's own options, e.g. --quick")
+    p.set_defaults(func=cmd_bench)
+    return p

@@ -1,0 +1,161 @@
+"""The work of the training commands (their arguments: pyvf/cli/train.py), on files: a dataset
+folder or a tokens file in, a run folder out.
+
+    codebook_run("data/sm7", "runs/cb", steps=20000)                        # pyvf train-codebook
+    tokenize_dataset("runs/cb/codebook.npz", "data/sm7", "runs/tokens.npz")  # pyvf tokenize
+    transformer_run("runs/tokens.npz", "runs/tf", steps=50000, codebook="runs/cb/codebook.npz")
+    print(compare_runs(["runs/cb", "runs/cb2"])[0])                         # pyvf runs
+
+A run resumes from its folder's checkpoint when there is one (resume=False starts over).
+config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the configuration's
+fields, or a run's config.json (its "config" is used). A bad argument or file raises
+ValueError, TypeError or OSError naming it.
+"""
+
+import dataclasses
+import json
+import os
+import sys
+import zipfile
+
+from ..models.codebook import Codebook, CodebookConfig
+from ..models.transformer import TransformerConfig
+from .curves import plot_eval, runs_table
+from .loops import (
+    TINY_CODEBOOK,
+    TINY_TRANSFORMER,
+    held_out_set,
+    load_tokens,
+    save_tokens,
+    tokenize,
+    train_codebook,
+    train_transformer,
+)
+
+__all__ = ["EVAL_VIEWS", "codebook_run", "compare_runs", "held_out_scenes", "held_out_views", "read_codebook",
+           "read_config", "tokenize_dataset", "transformer_run"]
+
+EVAL_VIEWS = 4  # views per held-out scene in a codebook run's evaluation
+
+
+def read_config(value, cls, tiny):
+    """config: "tiny" or a JSON file -> a cls instance (ValueError naming the file)."""
+    if value == "tiny":
+        return tiny
+    try:
+        with open(value, encoding="utf-8") as f:
+            d = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"--config {value}: cannot read a JSON configuration ({e})") from e
+    if isinstance(d, dict) and isinstance(d.get("config"), dict):  # a run's config.json
+        d = d["config"]
+    if not isinstance(d, dict):
+        raise ValueError(f"--config {value}: expected a JSON object of {cls.__name__} fields")
+    try:
+        return cls(**d)
+    except TypeError as e:  # unknown or missing fields
+        raise ValueError(f"--config {value}: not a {cls.__name__} ({e}); its fields are "
+                         f"{[f.name for f in dataclasses.fields(cls)]}") from e
+
+
+def read_codebook(path):
+    """Codebook.load(path), its errors as ValueError naming the file."""
+    try:
+        return Codebook.load(path)
+    except FileNotFoundError as e:
+        raise ValueError(f"codebook {path} does not exist") from e
+    except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
+        raise ValueError(f"codebook {path} is not a readable codebook file: {type(e).__name__}: {e}") from e
+
+
+def _load_dataset(path):
+    """pyvf.scenes.load_dataset(path): .images uint8 (scenes, views, Hi, Wi, 3), .poses (scenes, views, 7)."""
+    try:
+        from ..scenes import load_dataset  # imported here: the scenes home is optional for the other commands
+    except ImportError as e:
+        raise ValueError(f"cannot read the dataset {path}: pyvf.scenes is not available ({e})") from e
+    return load_dataset(path)
+
+
+def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
+    """The held-out views a codebook run evaluates on every eval_every steps: the first EVAL_VIEWS
+    views of eval_scenes scenes of eval_seed, (scenes * EVAL_VIEWS, size, size, 3) uint8; None
+    when eval_every is 0. The seed must differ from the training data's (data.seed)."""
+    if not eval_every:
+        return None
+    if eval_scenes < 1:
+        raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
+    if getattr(data, "seed", None) == eval_seed:
+        raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
+    from ..scenes import generate_scenes
+    images, _ = generate_scenes(eval_seed, eval_scenes, views=EVAL_VIEWS, size=size)
+    return images.reshape(-1, size, size, images.shape[-1])
+
+
+def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None):
+    """A transformer run's held-out scenes: eval_scenes whole scenes of eval_seed (all 15 views),
+    tokenized by the codebook file -> train_transformer's eval_set."""
+    import pyvf  # at call time: pyvf imports this package
+
+    if eval_scenes < 1:
+        raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
+    codebook = read_codebook(codebook)
+    from ..scenes import generate_scenes
+    images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
+    with pyvf.threads(threads):
+        return held_out_set(codebook, images, poses)
+
+
+def codebook_run(data, out, *, config="tiny", eval_every=100, eval_scenes=32, eval_seed=1, **train):
+    """train_codebook on the dataset folder `data` into the run folder `out`, evaluated every
+    eval_every steps on held_out_views; train: train_codebook's other keywords (steps,
+    batch_size, ..., threads, command). Returns the trained Codebook (out/codebook.npz)."""
+    config = read_config(config, CodebookConfig, TINY_CODEBOOK)
+    data = _load_dataset(data)
+    held_out = held_out_views(eval_every, eval_scenes, eval_seed, data, config.image_size)
+    return train_codebook(data.images, config, out, eval_images=held_out, eval_every=eval_every, **train)
+
+
+def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threads=None):
+    """The dataset folder `data` encoded by the codebook file into the tokens file `out`
+    (save_tokens: tokens, poses, n_embed; its folder created). Returns the tokens."""
+    import pyvf  # at call time: pyvf imports this package
+
+    codebook = read_codebook(codebook)
+    data = _load_dataset(data)
+    with pyvf.threads(threads):
+        tokens = tokenize(codebook, data.images, batch_size=batch_size, progress=progress)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    save_tokens(out, tokens, data.poses, codebook.config.n_embed)
+    return tokens
+
+
+def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200, eval_scenes=16, eval_seed=1,
+                    **train):
+    """train_transformer on the tokens file into the run folder `out`; with codebook (the file the
+    tokens came from), evaluated every eval_every steps on held_out_scenes. train:
+    train_transformer's other keywords (steps, batch_size, ..., threads, command). Returns the
+    trained Transformer (out/transformer.npz)."""
+    config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
+    tokens_path, (tokens, poses, n_embed) = tokens, load_tokens(tokens)
+    if config.n_embeddings != n_embed:
+        raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "
+                         f"was made by a codebook of {n_embed} codes")
+    eval_set = None
+    if eval_every and codebook:
+        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, train.get("threads"))
+    elif eval_every:
+        print("pyvf train-transformer: no --codebook, so no held-out evaluation (it renders through the "
+              "codebook)", file=sys.stderr)
+    return train_transformer(tokens, poses, config, out, eval_set=eval_set, eval_every=eval_every, **train)
+
+
+def compare_runs(run_dirs, plot=False):
+    """`pyvf runs`: (the markdown table of the run folders, runs_table; with plot, the eval.png
+    redrawn in each folder that has an eval.csv)."""
+    for d in run_dirs:
+        if not os.path.exists(os.path.join(d, "config.json")):
+            raise ValueError(f"{d} is not a run folder (no config.json)")
+    table = runs_table(run_dirs)
+    plots = [plot_eval(d) for d in run_dirs if plot and os.path.exists(os.path.join(d, "eval.csv"))]
+    return table, plots
