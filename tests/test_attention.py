@@ -1013,7 +1013,7 @@ def test_allocation_failure_is_a_memory_error_not_an_abort(H, N, L, dh, headroom
 
 MEMORY_WORKER = """
 import sys, numpy as np, pyvf
-from pyvf.measure import peak_memory
+from pyvf.bench.common import peak_memory
 assert pyvf.kernel_path() == sys.argv[2], f"worker runs {pyvf.kernel_path()}, asked for {sys.argv[2]}"
 L = int(sys.argv[1])
 pyvf.set_num_threads(4)  # the same count on every machine: each thread holds its own buffers

@@ -72,7 +72,7 @@ def test_import_pyvf_imports_no_command_code(tmp_path):
     the scenes) do not import argparse: only pyvf.cli parses arguments."""
     library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.transformer, pyvf.bench.codebook, pyvf.bench.scaling, "
                "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
-               "pyvf.scenes.make, pyvf.measure")
+               "pyvf.scenes.make, pyvf.bench.common")
     code = (f"import sys, pyvf, {library}; print(sorted(m for m in sys.modules if m == 'argparse' or "
             "m.startswith('pyvf.cli') or (m.startswith('pyvf') and m.rsplit('.', 1)[-1] in ('commands', 'pipeline'))))")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,

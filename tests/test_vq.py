@@ -193,7 +193,7 @@ def test_overflowing_fast_scores_fall_back_to_the_exact_rerank(rng):
 
 MEMORY_WORKER = """
 import sys, numpy as np, pyvf
-from pyvf.measure import peak_memory
+from pyvf.bench.common import peak_memory
 from pyvf.nn.quantizer import vq_nearest
 assert pyvf.kernel_path() == sys.argv[3], f"worker runs {pyvf.kernel_path()}, asked for {sys.argv[3]}"
 K, D = int(sys.argv[1]), int(sys.argv[2])

@@ -684,7 +684,7 @@ def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
         pyvf.set_num_threads(threads)
     t0 = time.perf_counter()
     if kernel_line:  # (the caller printed it already otherwise)
-        from pyvf.evaluate.demo import kernel_line as line
+        from pyvf._machine import kernel_line as line
         print(line())
     print("pyvf demo: branching attention (docs/math.md §2), the C++ kernel against the dense NumPy reference")
     print(f"pyvf {pyvf.__version__}, numpy {np.__version__}, {pyvf.num_threads()} kernel threads; "

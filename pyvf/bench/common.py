@@ -2,7 +2,7 @@
 machine's name; a worker process; a table, a JSON file and the plots. NumPy and the standard
 library only (matplotlib where a plot is asked for).
 
-    seconds, times = median_time(fn, repeat=5, warmup=1)   # the one timing helper
+    seconds, times = median_time(fn, repeat=5, warmup=1)   # the one timing helper (pyvf/_machine.py)
     result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
     result, extra, times = measured(fn, warmup=1, repeat=1)  # one call under peak_memory, timed, then more
     memory_method()                   # how peak_memory measures, for printing beside its numbers
@@ -19,10 +19,10 @@ import ctypes
 import gc
 import json
 import os
-import platform
-import statistics
 import time
 import tracemalloc
+
+from .._machine import cpu_name, median_time  # (re-exported: every benchmark imports them from here)
 
 __all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "peak_memory", "memory_method",
            "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot"]
@@ -40,23 +40,6 @@ def blas_thread_env():
 
 _STATUS = "/proc/self/status"
 _CLEAR_REFS = "/proc/self/clear_refs"
-
-
-def median_time(fn, repeat=5, warmup=1):
-    """Median wall time in seconds of `repeat` calls of fn(), after `warmup` untimed calls.
-
-    Returns (median, times), times the list of every timed call's seconds (time.perf_counter).
-    """
-    if repeat < 1:
-        raise ValueError(f"repeat must be at least 1, got {repeat}")
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), times
 
 
 # ---------------------------------------------------------------------------------------
@@ -222,18 +205,6 @@ def worker_main(work):
     import sys
 
     print(json.dumps(work(json.loads(sys.argv[1]))))
-
-
-def cpu_name():
-    """The processor's model name (/proc/cpuinfo's "model name"; platform.processor() elsewhere)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown CPU"
 
 
 def table(header, rows, widths=None):

@@ -7,33 +7,27 @@ Both load the shipped pretrained pair (pyvf.models.load_pretrained) unless files
 run evaluate() on held-out scenes and print the tables and timings. The demo's defaults are
 sized to finish in about two minutes on 2 cores; --quick is a few seconds' smoke run.
 A model file given on the command line that is missing prints what is missing and exits with
-status 1. While the package ships no pretrained pair, `pyvf demo` without files says so, prints
-how to train one, and runs the branching attention demo instead (exit 0).
+status 1. While the package ships no pretrained pair (shipped() is false), `pyvf demo` without
+files prints say_without_models() and runs the branching attention demo instead (exit 0): the
+command line decides (pyvf/cli/evaluate.py), since the benchmarks sit above this package.
 """
 
 import os
 import sys
 import time
 
+from .._machine import kernel_line
 from ..models import PRETRAINED, TRAIN_HINT, load_pretrained, pretrained_path
 from .run import evaluate, metrics_markdown
 
 __all__ = ["DEMO_SCENES", "DEMO_CONTEXT", "QUICK_SCENES", "QUICK_CONTEXT", "MODEL_CARD", "WALKTHROUGH", "demo",
-           "kernel_line", "report", "shipped"]
+           "kernel_line", "report", "say_without_models", "shipped"]
 
 DEMO_SCENES = 20  # held-out scenes of the demo (measured wall time in README/the report)
 DEMO_CONTEXT = (1, 3, 5)
 QUICK_SCENES, QUICK_CONTEXT = 2, (1, 3)
 MODEL_CARD = "docs/models.md"  # the shipped models: training, curves, held-out metrics
 WALKTHROUGH = "docs/walkthrough.md"  # every step from pixels to a rendered view, explained and checked
-
-
-def kernel_line():
-    """The line every pyvf demo starts with: which instruction-set path the C++ kernels run."""
-    import pyvf  # at call time: pyvf imports this package
-
-    return (f"pyvf kernels: path {pyvf.kernel_path()} (this CPU runs {', '.join(pyvf.kernel_paths())}; "
-            "PYVF_ISA=<path> forces one; `pyvf config` for details)")
 
 
 def report(name, *, out, scenes, context, seed, codebook=None, transformer=None, threads=None, progress=True):
@@ -78,11 +72,10 @@ def demo(out="pyvf-demo", *, scenes=None, context=None, seed=1000, quick=False, 
     """`pyvf demo`: render novel views and find camera poses of held-out scenes with the
     pretrained pair (or the files given), against the baselines; report() then where to read
     more. scenes, context: None for DEMO_SCENES, DEMO_CONTEXT (quick: QUICK_SCENES,
-    QUICK_CONTEXT). Returns the exit status."""
+    QUICK_CONTEXT). Returns the exit status. Without files, the shipped pair is loaded (a
+    missing one is status 1: the command line runs another demo then, see the module's note)."""
     scenes = scenes if scenes is not None else (QUICK_SCENES if quick else DEMO_SCENES)
     context = context if context is not None else (QUICK_CONTEXT if quick else DEMO_CONTEXT)
-    if codebook is None and transformer is None and not shipped():
-        return _demo_without_models(quick, threads)
     status = report("demo", out=out, scenes=scenes, context=context, seed=seed, codebook=codebook,
                     transformer=transformer, threads=threads, progress=progress)
     if status == 0:
@@ -98,16 +91,13 @@ def shipped():
     return all(os.path.exists(pretrained_path(kind)) for kind in PRETRAINED)
 
 
-def _demo_without_models(quick, threads):
-    """The package has no trained pair yet (they are being trained; docs/models.md): say so
-    plainly, then run what pyvf can already show, branching attention against the dense
-    reference, so that the main job still checks the kernels end to end."""
-    from ..bench.attention import demo as attention_demo
-
+def say_without_models():
+    """What `pyvf demo` prints when the package has no trained pair (shipped() is false): the
+    kernel line, what is missing and how to train a pair, then the heading of the branching
+    attention demo that the command line runs instead (pyvf/cli/evaluate.py), so that the main
+    job still checks the kernels end to end."""
     print(kernel_line(), flush=True)
     missing = [pretrained_path(kind) for kind in PRETRAINED if not os.path.exists(pretrained_path(kind))]
     print("pyvf demo: the pretrained SM7 models are not in this package yet (missing: "
           + ", ".join(os.path.basename(m) for m in missing) + "), so no views are rendered.\n"
           + TRAIN_HINT + "Meanwhile, the branching attention kernel against the dense float64 reference:", flush=True)
-    return attention_demo(sizes=("small", "medium") if quick else ("small", "medium", "paper"),
-                          threads=threads, kernel_line=False)

@@ -40,7 +40,7 @@ import numpy as np
 
 from .._io import atomic_write_text
 from ..geometry import make_relative
-from ..bench.common import median_time
+from .._machine import median_time
 from ..models import check_pair
 from ..scenes import generate_scenes
 from .metrics import (

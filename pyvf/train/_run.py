@@ -32,9 +32,9 @@ import time
 
 import numpy as np
 
-from .. import _checks
+from .. import _checks, _core
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
-from ..bench.common import cpu_name
+from .._machine import cpu_name
 
 CHECKPOINT, LOG, CONFIG, EVAL_LOG = "checkpoint.npz", "log.csv", "config.json", "eval.csv"
 FORMAT_VERSION = 1
@@ -72,9 +72,8 @@ def real(name, x, lo=0.0):
 def _machine():
     """Where a call runs, for config.json: CPU count, processor, the kernels' instruction-set path
     and thread count (a resumed run's calls may run on different machines)."""
-    from .. import _core, kernel_path
     return {"cpus": os.cpu_count(), "processor": cpu_name(),
-            "kernel_path": kernel_path(), "kernel_threads": int(_core.num_threads())}
+            "kernel_path": _core.current_path(), "kernel_threads": int(_core.num_threads())}
 
 
 def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed):

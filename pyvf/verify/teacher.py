@@ -288,6 +288,31 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     token_layout: "flat" | "tree" (Transformer). dtype, rtol: compare's tolerance arguments.
     Returns a TeacherReport (.wrong: the wrong layers' names)."""
     table = layer_table(model)
+    _check_arguments(table, layers, token_layout, train, upstream)
+    params, convert = _check_params(model, params, layout)
+    import torch  # only here: pyvf itself never needs it
+
+    trace, grads, sizes = _pyvf_run(model, inputs, upstream, train)
+    to_port, from_port = _port_converters(torch, model, trace, token_layout, sizes)
+    checks, unchecked = [], []
+    saved_grads = {n: t.grad for n, t in params.items()}
+    try:
+        for layer in table:
+            fn = layers.get(layer.name)
+            if fn is None:
+                unchecked.append(layer.name)
+                continue
+            checks.append(_check_layer(torch, model, layer, fn, trace, grads, params, convert, to_port, from_port,
+                                       dtype, rtol))
+    finally:
+        for n, t in params.items():
+            t.grad = saved_grads[n]
+    return TeacherReport(checks=checks, unchecked=unchecked)
+
+
+def _check_arguments(table, layers, token_layout, train, upstream):
+    """teacher_force's arguments other than the model, its inputs and params: raise on the first
+    wrong one, naming it (layers against the model's layer table)."""
     by_name = {l.name: l for l in table}
     if not isinstance(layers, Mapping):
         raise TypeError(f"layers must be a dict layer name -> callable, got {type(layers).__name__}")
@@ -304,12 +329,14 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
         raise TypeError(f"train must be True or False, got {train!r}")
     if upstream is not None and not isinstance(upstream, Mapping):
         raise TypeError(f"upstream must be a dict of model.backward's seeds, got {type(upstream).__name__}")
-    params, convert = _check_params(model, params, layout)
-    import torch  # only here: pyvf itself never needs it
 
-    # pyvf's run: the trace (every layer's input and output) and, seeded, every activation's gradient
-    is_tf = isinstance(model, _transformer.Transformer)
-    if is_tf:
+
+def _pyvf_run(model, inputs, upstream, train):
+    """pyvf's run, the reference every layer is checked against: (trace, every layer's input and
+    output by name, the model's inputs included; the activations' gradients from
+    model.backward(**upstream), None without upstream; (N, L) of a Transformer's tokens, None for
+    a Codebook). A Codebook's EMA buffers are restored after a train=True forward."""
+    if isinstance(model, _transformer.Transformer):
         if train:
             raise ValueError("train=True is for a Codebook (its EMA step); the transformer has no training mode")
         if not (isinstance(inputs, (tuple, list)) and len(inputs) == 2):
@@ -317,7 +344,8 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
         tokens, poses = inputs
         out = model.forward(tokens, poses, trace=True)
         given = {"tokens": tokens, "poses": poses}
-        saved = None
+        _, N, L = tokens.shape
+        sizes = (N, L)
     else:
         if upstream is not None and set(upstream) - {"drec"}:
             raise ValueError(f"upstream for a Codebook takes drec only, got {sorted(upstream)}: the commitment "
@@ -329,11 +357,18 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
             if saved is not None:
                 model.quantizer.load_state_dict(saved)
         given = {"images": inputs}
+        sizes = None
     trace = {**given, **out.trace}
     grads = model.backward(**upstream) if upstream is not None else None
+    return trace, grads, sizes
+
+
+def _port_converters(torch, model, trace, token_layout, sizes):
+    """(to_port, from_port): an activation (trace[name], or the array given; row r of a
+    per-row one) as a torch tensor for the port, and the port's output back as a NumPy array.
+    With token_layout "flat", a Transformer's tree activations go through the flat token layout
+    (R = 3 rows of N views of L tokens, sizes = (N, L))."""
     R = 3
-    if is_tf:
-        B, N, L = tokens.shape
 
     def to_port(name, row, a):
         a = trace[name] if a is None else a
@@ -344,24 +379,13 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
 
     def from_port(name, row, t):
         a = t.detach().cpu().numpy() if hasattr(t, "detach") else np.asarray(t)
-        if _is_tree(model, name, row) and token_layout == "flat" and a.ndim >= 2 and a.shape[1] == R * N * L:
-            a = flat_to_tree(a, R, N, L)
+        if _is_tree(model, name, row) and token_layout == "flat" and a.ndim >= 2:
+            N, L = sizes  # (a tree activation is a Transformer's: sizes is set)
+            if a.shape[1] == R * N * L:
+                a = flat_to_tree(a, R, N, L)
         return a
 
-    checks, unchecked = [], []
-    saved_grads = {n: t.grad for n, t in params.items()}
-    try:
-        for layer in table:
-            fn = layers.get(layer.name)
-            if fn is None:
-                unchecked.append(layer.name)
-                continue
-            checks.append(_check_layer(torch, model, layer, fn, trace, grads, params, convert, to_port, from_port,
-                                       dtype, rtol))
-    finally:
-        for n, t in params.items():
-            t.grad = saved_grads[n]
-    return TeacherReport(checks=checks, unchecked=unchecked)
+    return to_port, from_port
 
 
 def _check_layer(torch, model, layer, fn, trace, grads, params, convert, to_port, from_port, dtype, rtol):
