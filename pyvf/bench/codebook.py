@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import format_bytes, median_time, peak_memory, run_worker, worker_main
+from pyvf.bench.common import format_bytes, median_time, peak_memory, run_configs, run_worker, worker_main
 
 WORKER = "pyvf.bench.codebook"  # this module, run as `python -m WORKER SPEC` (worker_main)
 
@@ -250,15 +250,8 @@ def bench(name, repeat, threads):
 def run(configs=tuple(CONFIGS), repeat=3, threads=2):
     """bench() on each configuration of CONFIGS named, medians of `repeat` calls. Returns the
     report; report["failures"] names a configuration whose losses differed (nothing after it is run)."""
-    pyvf.set_num_threads(threads)
-    report = dict(config=dict(configs=list(configs), repeat=repeat, threads=threads), results={}, failures=[])
-    for name in configs:
-        result = bench(name, repeat, threads)
-        if result is None:
-            report["failures"].append(f"{name}: the losses of pyvf and torch differ")
-            break
-        report["results"][name] = result
-    return report
+    return run_configs(lambda name: bench(name, repeat, threads), configs,
+                       dict(configs=list(configs), repeat=repeat, threads=threads), threads)
 
 
 if __name__ == "__main__":  # a worker: `python -m pyvf.bench.codebook SPEC` (bench, run_worker)

@@ -207,6 +207,23 @@ def worker_main(work):
     print(json.dumps(work(json.loads(sys.argv[1]))))
 
 
+def run_configs(bench, configs, config, threads, what="losses"):
+    """Call bench(name) for each configuration named, after setting the threads; the report:
+    config, results by name, and failures: bench() returning None means pyvf and torch gave
+    different `what` for that configuration, and nothing after it is run."""
+    import pyvf  # bench sits above the facade
+
+    pyvf.set_num_threads(threads)
+    report = dict(config=config, results={}, failures=[])
+    for name in configs:
+        result = bench(name)
+        if result is None:
+            report["failures"].append(f"{name}: the {what} of pyvf and torch differ")
+            break
+        report["results"][name] = result
+    return report
+
+
 def table(header, rows, widths=None):
     """A markdown table of str()-able cells, each column as wide as its widest cell; or, with
     widths (one per column), a plain one: no rules, the first column left-aligned in its width,

@@ -24,7 +24,7 @@ import numpy as np
 import pyvf
 import pyvf.nn.attention
 import pyvf.nn.layers
-from pyvf.bench.common import format_bytes, peak_memory, run_worker, worker_main
+from pyvf.bench.common import format_bytes, peak_memory, run_configs, run_worker, worker_main
 
 WORKER = "pyvf.bench.transformer"  # this module, run as `python -m WORKER SPEC` (worker_main)
 
@@ -163,15 +163,8 @@ def run(configs=tuple(CONFIGS), steps=None, threads=2):
     """bench() on each configuration of CONFIGS named (steps: timed steps, default 20 tiny, 3
     paper). Returns the report; report["failures"] names a configuration whose losses differed
     (nothing after it is run)."""
-    pyvf.set_num_threads(threads)
-    report = dict(config=dict(configs=list(configs), steps=steps, threads=threads), results={}, failures=[])
-    for name in configs:
-        result = bench(name, steps or (20 if name == "tiny" else 3), threads)
-        if result is None:
-            report["failures"].append(f"{name}: the first-step losses of pyvf and torch differ")
-            break
-        report["results"][name] = result
-    return report
+    return run_configs(lambda name: bench(name, steps or (20 if name == "tiny" else 3), threads), configs,
+                       dict(configs=list(configs), steps=steps, threads=threads), threads, "first-step losses")
 
 
 if __name__ == "__main__":  # a worker: `python -m pyvf.bench.transformer SPEC` (bench, run_worker)

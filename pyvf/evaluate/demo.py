@@ -100,4 +100,4 @@ def say_without_models():
     missing = [pretrained_path(kind) for kind in PRETRAINED if not os.path.exists(pretrained_path(kind))]
     print("pyvf demo: the pretrained SM7 models are not in this package yet (missing: "
           + ", ".join(os.path.basename(m) for m in missing) + "), so no views are rendered.\n"
-          + TRAIN_HINT + "Meanwhile, the branching attention kernel against the dense float64 reference:", flush=True)
+          + TRAIN_HINT + "\nMeanwhile, the branching attention kernel against the dense float64 reference:", flush=True)
