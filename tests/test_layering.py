@@ -1,4 +1,4 @@
-"""The house's layout, read from the source (issue 27): one home per kind of work, each importing
+"""The house's layout, read from the source: one home per kind of work, each importing
 only from the homes below it; argparse only in the command line; no function longer than 80 lines.
 
 Every module under pyvf/ is parsed with `ast`; every import in it, at module level or inside a

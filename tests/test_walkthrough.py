@@ -17,7 +17,7 @@ import unicodedata
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOCS = os.path.join(ROOT, "docs")
-TIME_LIMIT_S = 120  # the bound for the whole file; it takes about 5 s alone, 15 s on 2 busy cores
+TIME_LIMIT_S = 120  # the walkthrough promises under two minutes; it takes about 5 s alone, 15 s on 2 busy cores
 
 
 def _figures_tool():
