@@ -17,6 +17,7 @@ import sys
 import time
 
 from .._machine import kernel_line
+from .._threads import set_num_threads
 from ..models import PRETRAINED, TRAIN_HINT, load_pretrained, pretrained_path
 from .run import evaluate, metrics_markdown
 
@@ -33,11 +34,9 @@ WALKTHROUGH = "docs/walkthrough.md"  # every step from pixels to a rendered view
 def report(name, *, out, scenes, context, seed, codebook=None, transformer=None, threads=None, progress=True):
     """Load the pair, evaluate, print the tables and timings, write `out`. Returns the exit status:
     0, or 1 (printed to stderr) when a model file is missing or does not fit."""
-    import pyvf
-
     print(kernel_line(), flush=True)
     if threads is not None:
-        pyvf.set_num_threads(threads)
+        set_num_threads(threads)
     try:
         cb, tf = load_pretrained(codebook, transformer)
     except FileNotFoundError as e:

@@ -40,7 +40,10 @@ import numpy as np
 
 from .._io import atomic_write_text
 from ..geometry import make_relative
+from .. import _core
 from .._machine import median_time
+from .._threads import num_threads
+from .._version import __version__
 from ..models import check_pair
 from ..scenes import generate_scenes
 from .metrics import (
@@ -97,7 +100,7 @@ META_KEYS = (
     "n_queries",  # scenes * queries: the images (and poses) each number is taken over
     "trained_context",  # the transformer's sequence_size - 1: larger C were never trained on
     "psnr_cap_db",  # the PSNR a perfect image is given
-    "kernel_path",  # pyvf.kernel_path() and pyvf.num_threads() during the run
+    "kernel_path",  # _core.current_path() and num_threads() during the run
     "kernel_threads",
     "codebook",  # the two configurations (dataclass fields)
     "transformer",
@@ -193,13 +196,12 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     timing["total_s"] = time.perf_counter() - t_start
     timing = {k: timing[k] for k in TIMING_KEYS}
 
-    import pyvf  # the package's version and kernel path (imported here: pyvf imports this package)
     meta = {
-        "pyvf_version": pyvf.__version__, "seed": int(seed), "scenes": int(n), "views": int(views),
+        "pyvf_version": __version__, "seed": int(seed), "scenes": int(n), "views": int(views),
         "image_size": int(S), "context_sizes": list(context), "query_views": [int(i) for i in qidx],
         "n_queries": int(n * M), "trained_context": tf_cfg.sequence_size - 1,
-        "psnr_cap_db": psnr_cap((S, S, 3)), "kernel_path": pyvf.kernel_path(),
-        "kernel_threads": pyvf.num_threads(), "codebook": dataclasses.asdict(cb_cfg),
+        "psnr_cap_db": psnr_cap((S, S, 3)), "kernel_path": _core.current_path(),
+        "kernel_threads": num_threads(), "codebook": dataclasses.asdict(cb_cfg),
         "transformer": dataclasses.asdict(tf_cfg), "sources": sources, "protocol": PROTOCOL,
     }
     # through JSON once: the dict returned is the file's content (tuples become lists), and a

@@ -19,6 +19,7 @@ import dataclasses
 import numpy as np
 
 from .._io import atomic_savez, load_npz
+from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..evaluate.health import (
     CODEBOOK_HEALTH,
@@ -143,8 +144,7 @@ class _Threads:
         self.n, self._block = n, None
 
     def __enter__(self):
-        import pyvf  # at call time: pyvf is imported by then
-        self._block = pyvf.threads(None if self.n is None else int(self.n))
+        self._block = kernel_threads(None if self.n is None else int(self.n))
         return self._block.__enter__()
 
     def __exit__(self, *exc):

@@ -18,6 +18,7 @@ import os
 import sys
 import zipfile
 
+from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import TransformerConfig
 from .curves import plot_eval, runs_table
@@ -95,14 +96,13 @@ def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
 def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None):
     """A transformer run's held-out scenes: eval_scenes whole scenes of eval_seed (all 15 views),
     tokenized by the codebook file -> train_transformer's eval_set."""
-    import pyvf  # at call time: pyvf imports this package
 
     if eval_scenes < 1:
         raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
     codebook = read_codebook(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
-    with pyvf.threads(threads):
+    with kernel_threads(threads):
         return held_out_set(codebook, images, poses)
 
 
@@ -119,11 +119,10 @@ def codebook_run(data, out, *, config="tiny", eval_every=100, eval_scenes=32, ev
 def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threads=None):
     """The dataset folder `data` encoded by the codebook file into the tokens file `out`
     (save_tokens: tokens, poses, n_embed; its folder created). Returns the tokens."""
-    import pyvf  # at call time: pyvf imports this package
 
     codebook = read_codebook(codebook)
     data = _load_dataset(data)
-    with pyvf.threads(threads):
+    with kernel_threads(threads):
         tokens = tokenize(codebook, data.images, batch_size=batch_size, progress=progress)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     save_tokens(out, tokens, data.poses, codebook.config.n_embed)
