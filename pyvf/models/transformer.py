@@ -333,7 +333,7 @@ class Transformer(ModelWeights):
         if row.kind == "mlp":
             return mlp_forward(x, *P)
         if row.kind == "logits":  # logits = g @ wte[:V]^T (B, N, L, V), the embedding tied
-            return x @ P[0][:self.config.n_embeddings].T, x
+            return self._logits(x), x
         raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
 
     def layer_backward(self, row, dy, cache):
@@ -349,12 +349,10 @@ class Transformer(ModelWeights):
             dx, *dp = attention_layer_backward(dy, cache)
         elif row.kind == "mlp":
             dx, *dp = mlp_backward(dy, cache)
-        elif row.kind == "logits":  # forward was logits = g @ wte[:V]^T, g = cache (B, N, L, d)
-            wte, V = self.params["wte/weight"], self.config.n_embeddings
-            dl2 = dy.reshape(-1, V)  # (M, V)
-            dx = (dl2 @ wte[:V]).reshape(cache.shape)
-            dp = [np.zeros_like(wte)]
-            dp[0][:V] = dl2.T @ cache.reshape(-1, cache.shape[-1])  # (V, d)
+        elif row.kind == "logits":  # g = cache (B, N, L, d); wte's rows past V get no gradient here
+            dx, dwte = self._logits_backward(dy, cache)
+            dp = [np.zeros_like(self.params["wte/weight"])]
+            dp[0][:self.config.n_embeddings] = dwte
         else:
             raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
         return [dx], dp
@@ -498,6 +496,13 @@ class Transformer(ModelWeights):
         V, d = self.config.n_embeddings, g.shape[-1]
         return (g.reshape(-1, d) @ self.params["wte/weight"][:V].T).reshape(*g.shape[:-1], V)
 
+    def _logits_backward(self, dlogits, g):
+        """_logits' VJP: forward was logits = g @ wte[:V]^T, so dg = dlogits @ wte[:V] (..., d)
+        and the gradient of wte[:V] is dlogits^T @ g (V, d)."""
+        V, d = self.config.n_embeddings, g.shape[-1]
+        dl2 = dlogits.reshape(-1, V)  # (M, V)
+        return (dl2 @ self.params["wte/weight"][:V]).reshape(g.shape), dl2.T @ g.reshape(-1, d)
+
     def _heads_forward(self, hg, hl, tr=None):
         """hg, hl (B, N, L, d): the generation and localization rows after the last block.
         -> logits (B, N, L, V), raw pose (B, N, L, 7). tr: None or the trace dict."""
@@ -517,11 +522,9 @@ class Transformer(ModelWeights):
     def _heads_backward(self, dlogits, draw, cache, grads, g=None):
         """dlogits (B, N, L, V), draw (B, N, L, 7) -> dhg, dhl (B, N, L, d); g: None or a dict."""
         gen, c_lng, c_lnl, c_head = cache  # gen: ln_f of the generation row (B, N, L, d)
-        p, V, d = self.params, self.config.n_embeddings, gen.shape[-1]
-        # forward was logits = gen @ wte[:V]^T
-        dl2 = dlogits.reshape(-1, V)  # (M, V)
-        dg = (dl2 @ p["wte/weight"][:V]).reshape(gen.shape)  # (B, N, L, d)
-        grads["wte/weight"][:V] += dl2.T @ gen.reshape(-1, d)  # (V, d)
+        V = self.config.n_embeddings
+        dg, dwte = self._logits_backward(dlogits, gen)  # (B, N, L, d), (V, d)
+        grads["wte/weight"][:V] += dwte
         dl, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(draw, c_head, g, "pose_head")
         if g is not None:
             g["logits"] = dlogits
