@@ -101,18 +101,23 @@ def atomic_write_text(path, text, encoding="utf-8"):
 def load_npz(path, what="file", required=()):
     """Every array of the .npz at `path`, read now (the file is closed on return): dict name -> array.
 
+    path: a str or os.PathLike, or an open binary file (read from where it stands).
     what: how the error messages call the file ("checkpoint", "codebook", ...).
     required: entries that must be present. A missing file raises FileNotFoundError; a
     truncated or corrupt one, or a missing entry, CheckpointError (a ValueError); both name
     the file, and the entry being read when it broke. Opened with allow_pickle=False."""
-    path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"{what} {path} does not exist")
+    if hasattr(path, "read"):
+        name = getattr(path, "name", repr(path))
+    else:
+        path = name = os.fspath(path)
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"{what} {path} does not exist")
     entry = None
     try:
-        with np.load(path, allow_pickle=False) as f:
-            if not isinstance(f, np.lib.npyio.NpzFile):
-                raise CheckpointError(f"{what} {path} is a single .npy array, not an .npz archive")
+        f = np.load(path, allow_pickle=False)
+        if not isinstance(f, np.lib.npyio.NpzFile):  # an ndarray: np.load read a whole .npy file
+            raise CheckpointError(f"{what} {name} is a single .npy array, not an .npz archive")
+        with f:
             out = {}
             for entry in f.files:
                 out[entry] = f[entry]
@@ -120,10 +125,10 @@ def load_npz(path, what="file", required=()):
         raise
     except (zipfile.BadZipFile, EOFError, ValueError, KeyError, OSError) as e:
         where = f" (entry {entry!r})" if entry is not None else ""
-        raise CheckpointError(f"{what} {path} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
+        raise CheckpointError(f"{what} {name} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
     missing = [k for k in required if k not in out]
     if missing:
-        raise CheckpointError(f"{what} {path} lacks the entries {missing}: not a {what} written by pyvf, "
+        raise CheckpointError(f"{what} {name} lacks the entries {missing}: not a {what} written by pyvf, "
                               "or written by another version")
     return out
 

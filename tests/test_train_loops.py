@@ -259,6 +259,15 @@ def test_a_corrupt_checkpoint_raises_naming_the_file(tmp_path, rng):
     atomic_savez(path, a=np.zeros(1))
     with pytest.raises(CheckpointError, match=r"lacks the entries \['__meta__'\]"):
         load_npz(path, "checkpoint", required=("__meta__",))
+    # a single .npy array is no archive (np.load returns an ndarray): named as such, not a TypeError
+    np.save(str(tmp_path / "one.npy"), np.zeros(3))
+    with pytest.raises(CheckpointError, match=r"one\.npy is a single \.npy array"):
+        load_npz(str(tmp_path / "one.npy"), "checkpoint")
+    # an open binary file is read from where it stands; a broken one is named by its name
+    with open(path, "rb") as f:
+        assert np.array_equal(load_npz(f)["a"], np.zeros(1))
+    with open(ckpt, "rb") as f, pytest.raises(CheckpointError, match=r"checkpoint .*checkpoint\.npz is truncated"):
+        load_npz(f, "checkpoint")
 
 
 # ---------------------------------------------------------------------------------------

@@ -197,22 +197,6 @@ def save_model(path, config, state):
     return path
 
 
-def _read_open_file(f, what):
-    """The arrays of an open binary .npz file, read now; CheckpointError naming it when broken."""
-    name, entry = getattr(f, "name", repr(f)), None
-    try:
-        with np.load(f, allow_pickle=False) as npz:
-            arrays = {}
-            for entry in npz.files:
-                arrays[entry] = npz[entry]
-    except Exception as e:  # zipfile, EOF, ValueError...: all mean a bad file
-        where = f" (entry {entry!r})" if entry is not None else ""
-        raise CheckpointError(f"{what} {name} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
-    if "__config__" not in arrays:
-        raise CheckpointError(f"{what} {name} lacks the entry '__config__': not a {what} written by pyvf")
-    return arrays
-
-
 def model_file(path, what):
     """The arrays and the configuration of a model file written by save(): (dict name -> array
     without __config__, dict of config fields), read now.
@@ -221,11 +205,8 @@ def model_file(path, what):
     A missing file raises FileNotFoundError; a truncated or corrupt one, or a missing or
     unreadable __config__ entry, pyvf._io.CheckpointError (a ValueError) naming the file and
     the entry."""
-    if hasattr(path, "read"):
-        name, arrays = getattr(path, "name", repr(path)), _read_open_file(path, what)
-    else:
-        name = os.fspath(path)
-        arrays = load_npz(name, what, required=("__config__",))
+    name = getattr(path, "name", repr(path)) if hasattr(path, "read") else os.fspath(path)
+    arrays = load_npz(path, what, required=("__config__",))
     raw = arrays.pop("__config__")
     try:
         if raw.shape != () or raw.dtype.kind != "U":
