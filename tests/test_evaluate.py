@@ -371,11 +371,12 @@ def test_demo_quick_command(models, tmp_path):
 def test_evaluate_command(models, tmp_path):
     _, _, cb_path, tf_path = models
     proc = run(["evaluate", "--scenes", "1", "--context", "2,1", "--seed", "3", "--out", "ev", "--codebook",
-                cb_path, "--transformer", tf_path, "--no-progress"], tmp_path)
+                cb_path, "--transformer", tf_path, "--no-progress", "--decode", "expected"], tmp_path)
     assert proc.returncode == 0, show(proc)
     with open(tmp_path / "ev" / "metrics.json") as f:
         metrics = json.load(f)
     assert list(metrics["context"]) == ["1", "2"] and metrics["meta"]["scenes"] == 1
+    assert metrics["meta"]["decode"] == "expected"
     assert metrics["meta"]["sources"] == {"codebook": cb_path, "transformer": tf_path}
 
 
@@ -427,3 +428,102 @@ def test_verdict_lines_say_whether_each_baseline_is_beaten():
     assert lines[3].startswith("- closest_image_pose: no (position 1.00 vs 0.50")
     assert lines[4].startswith("- mean_pose: no (position 1.00 vs 1.00")  # a tie is no win
     assert "MAE 1.61, RMSE 7.02, position 0.21, orientation (deg) 3.48" in lines[5]
+
+
+# ---------------------------------------------------------------------------------------
+# render_images: logits -> images, by the most likely code or by the expected code vector
+
+
+def _spy_latents(cb, monkeypatch):
+    """Record every z that reaches cb.decode_latent (then decode it as usual)."""
+    seen, real = [], cb.decode_latent
+
+    def spy(z):
+        seen.append(z.copy())
+        return real(z)
+
+    monkeypatch.setattr(cb, "decode_latent", spy)
+    return seen
+
+
+def test_decode_latent_of_the_codes_is_decode_code(models):
+    cb = models[0]
+    k, E = cb.config.token_size, cb.quantizer.embeddings  # E (D, K): the codes are columns
+    codes = np.random.default_rng(1).integers(0, cb.config.n_embed, (3, k, k))
+    z = np.ascontiguousarray(E.T[codes].transpose(0, 3, 1, 2))  # (3, D, k, k)
+    np.testing.assert_array_equal(cb.decode_latent(z), cb.decode_code(codes))  # the same decoder on the same input
+    with pytest.raises(TypeError, match="z must be a float32"):
+        cb.decode_latent(z.astype(np.float64))
+    with pytest.raises(ValueError, match=r"z must have shape \(B, 16, 8, 8\)"):
+        cb.decode_latent(z[:, :, :4])
+    bad = z.copy()
+    bad[0, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="z"):
+        cb.decode_latent(bad)
+
+
+def test_render_images_expected_is_the_softmax_mean_of_the_codes(models, monkeypatch):
+    """decode="expected": each token's latent is sum_j p_j e_j, p the softmax of its logits. The
+    oracle here loops over views and tokens and places token t at row t // k, column t % k, so a
+    softmax over the wrong axis, E for E.T, or a transposed token grid fails it. The latents are
+    float32 from a float64 sum: one float32 rounding, 6e-8 of max|z|; bound 1e-6 relative."""
+    cb = models[0]
+    k, K, E = cb.config.token_size, cb.config.n_embed, cb.quantizer.embeddings.astype(np.float64)
+    logits = np.random.default_rng(2).normal(0, 3, (2, 3, k * k, K)).astype(np.float32)  # (B, M, L, K)
+    seen = _spy_latents(cb, monkeypatch)
+    images = pyvf.evaluate.render_images(cb, logits, "expected", batch=4)
+    assert images.shape == (2, 3, 16, 16, 3) and images.dtype == np.uint8
+    z = np.concatenate(seen)  # (6, D, k, k), decoded 4 then 2
+    assert len(seen) == 2 and z.shape == (6, E.shape[0], k, k)
+    want = np.empty(z.shape)
+    for v, view in enumerate(logits.reshape(6, k * k, K).astype(np.float64)):
+        for t, row in enumerate(view):
+            p = np.exp(row - np.logaddexp.reduce(row))  # another form of the softmax
+            want[v, :, t // k, t % k] = E @ p
+    assert_close("expected latents", z, want, rtol=1e-6)
+    np.testing.assert_array_equal(images.reshape(6, 16, 16, 3), to_uint8(cb.decode_latent(z)))
+
+
+def test_render_images_argmax_and_a_certain_expected_agree(models):
+    """A margin of 1e4 makes the softmax exactly one-hot in float64 (exp(-1e4) is 0), so the
+    expected code vector is the code itself and both decodes give the same bytes; argmax is
+    decode_code of each token's largest logit."""
+    cb = models[0]
+    k, K = cb.config.token_size, cb.config.n_embed
+    codes = np.random.default_rng(3).integers(0, K, (5, k * k))
+    logits = np.zeros((5, k * k, K), np.float32)
+    np.put_along_axis(logits, codes[..., None], 1e4, axis=-1)
+    by_argmax = pyvf.evaluate.render_images(cb, logits, "argmax")
+    np.testing.assert_array_equal(by_argmax, to_uint8(cb.decode_code(codes.reshape(5, k, k))))
+    np.testing.assert_array_equal(pyvf.evaluate.render_images(cb, logits, "expected"), by_argmax)
+
+
+def test_render_images_and_evaluate_reject_a_bad_decode(models):
+    cb, tf = models[0], models[1]
+    k, K = cb.config.token_size, cb.config.n_embed
+    with pytest.raises(ValueError, match="decode must be one of"):
+        pyvf.evaluate.render_images(cb, np.zeros((1, k * k, K), np.float32), "mode")
+    with pytest.raises(ValueError, match=r"logits must have shape \(\.\.\., 64, 32\)"):
+        pyvf.evaluate.render_images(cb, np.zeros((1, k * k, K + 1), np.float32))
+    with pytest.raises(TypeError, match="logits must be a float"):
+        pyvf.evaluate.render_images(cb, np.zeros((1, k * k, K), np.int64))
+    with pytest.raises(ValueError, match="decode must be one of"):
+        evaluate(cb, tf, scenes=1, context=(1,), decode="sample", progress=False)
+
+
+def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, tmp_path):
+    """The same scenes through both decodes: the meta and the markdown say which; the poses and
+    the baselines do not depend on it; the renderings do (random logits are far from one-hot)."""
+    cb, tf = models[0], models[1]
+    kw = dict(scenes=1, context=(2,), seed=4, progress=False, repeat=1, pictures=False)
+    a = evaluate(cb, tf, **kw)
+    b = evaluate(cb, tf, decode="expected", out=str(tmp_path / "ev"), **kw)
+    assert a["meta"]["decode"] == "argmax" and b["meta"]["decode"] == "expected"
+    assert "(decode=expected)" in (tmp_path / "ev" / "metrics.md").read_text()
+    ra, rb = a["context"]["2"], b["context"]["2"]
+    for method in METHODS:
+        if method != "pyvf":
+            assert ra[method] == rb[method], method
+    for name in ("position_error_median", "orientation_error_median_deg"):
+        assert ra["pyvf"][name] == rb["pyvf"][name]
+    assert ra["pyvf"]["mae"] != rb["pyvf"]["mae"]

@@ -3,9 +3,11 @@
     pyvf demo [--out DIR] [--scenes N] [--context C[,C...]] [--seed S] [--quick]
               [--codebook FILE --transformer FILE] [--threads T]
     pyvf evaluate --scenes N --context C[,C...] --seed S --out DIR [--codebook FILE --transformer FILE]
+    both: [--decode argmax|expected]
 """
 
 from ..evaluate import demo as work
+from ..evaluate.run import DECODES
 from .options import add_threads, context_sizes, positive_int
 
 
@@ -16,7 +18,7 @@ def cmd_demo(args):
         return _attention_instead(args)
     return work.demo(args.out, scenes=args.scenes, context=args.context, seed=args.seed, quick=args.quick,
                      codebook=args.codebook, transformer=args.transformer, threads=args.threads,
-                     progress=not args.no_progress)
+                     progress=not args.no_progress, decode=args.decode)
 
 
 def _attention_instead(args):
@@ -33,7 +35,7 @@ def cmd_evaluate(args):
     """Evaluate a codebook and transformer pair on held-out scenes: metrics.json, metrics.md, pictures."""
     return work.report("evaluate", out=args.out, scenes=args.scenes, context=args.context, seed=args.seed,
                        codebook=args.codebook, transformer=args.transformer, threads=args.threads,
-                       progress=not args.no_progress)
+                       progress=not args.no_progress, decode=args.decode)
 
 
 def _common(p):
@@ -43,6 +45,9 @@ def _common(p):
                    help="a codebook .npz (Codebook.save, e.g. runs/cb/codebook.npz); default: the pretrained one")
     p.add_argument("--transformer", default=None, metavar="FILE",
                    help="a transformer .npz (Transformer.save); default: the pretrained one")
+    p.add_argument("--decode", choices=sorted(DECODES), default="argmax",
+                   help="how a rendered view's token logits become an image: argmax (each token's most likely "
+                        "code, the published way; default) or expected (each token's mean code vector)")
     add_threads(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -25,9 +25,21 @@ from .metrics import (
     to_model_images,
     to_uint8,
 )
-from .run import IMAGE_METRICS, META_KEYS, METHODS, POSE_METRICS, TIMING_KEYS, evaluate, metrics_markdown, write_metrics
+from .run import (
+    DECODES,
+    IMAGE_METRICS,
+    META_KEYS,
+    METHODS,
+    POSE_METRICS,
+    TIMING_KEYS,
+    evaluate,
+    metrics_markdown,
+    render_images,
+    write_metrics,
+)
 
 __all__ = [
+    "DECODES",
     "IMAGE_METRICS",
     "META_KEYS",
     "METHODS",
@@ -42,6 +54,7 @@ __all__ = [
     "nearest_view",
     "pose_metrics",
     "psnr_cap",
+    "render_images",
     "to_model_images",
     "to_uint8",
     "write_metrics",

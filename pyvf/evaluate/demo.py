@@ -31,8 +31,9 @@ MODEL_CARD = "docs/models.md"  # the shipped models: training, curves, held-out 
 WALKTHROUGH = "docs/walkthrough.md"  # every step from pixels to a rendered view, explained and checked
 
 
-def report(name, *, out, scenes, context, seed, codebook=None, transformer=None, threads=None, progress=True):
-    """Load the pair, evaluate, print the tables and timings, write `out`. Returns the exit status:
+def report(name, *, out, scenes, context, seed, codebook=None, transformer=None, threads=None, progress=True,
+           decode="argmax"):
+    """Load the pair, evaluate (decode: evaluate()'s), print the tables and timings, write `out`. Returns the exit status:
     0, or 1 (printed to stderr) when a model file is missing or does not fit."""
     print(kernel_line(), flush=True)
     if threads is not None:
@@ -55,7 +56,8 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
     t0 = time.perf_counter()
     try:
         metrics = evaluate(cb, tf, scenes=scenes, context=context, seed=seed, out=out, progress=progress,
-                           sources={"codebook": codebook or "pretrained", "transformer": transformer or "pretrained"})
+                           sources={"codebook": codebook or "pretrained", "transformer": transformer or "pretrained"},
+                           decode=decode)
     except ValueError as e:
         print(f"pyvf {name}: {e}", file=sys.stderr)
         return 1
@@ -67,7 +69,7 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
 
 
 def demo(out="pyvf-demo", *, scenes=None, context=None, seed=1000, quick=False, codebook=None, transformer=None,
-         threads=None, progress=True):
+         threads=None, progress=True, decode="argmax"):
     """`pyvf demo`: render novel views and find camera poses of held-out scenes with the
     pretrained pair (or the files given), against the baselines; report() then where to read
     more. scenes, context: None for DEMO_SCENES, DEMO_CONTEXT (quick: QUICK_SCENES,
@@ -76,7 +78,7 @@ def demo(out="pyvf-demo", *, scenes=None, context=None, seed=1000, quick=False, 
     scenes = scenes if scenes is not None else (QUICK_SCENES if quick else DEMO_SCENES)
     context = context if context is not None else (QUICK_CONTEXT if quick else DEMO_CONTEXT)
     status = report("demo", out=out, scenes=scenes, context=context, seed=seed, codebook=codebook,
-                    transformer=transformer, threads=threads, progress=progress)
+                    transformer=transformer, threads=threads, progress=progress, decode=decode)
     if status == 0:
         print(f"\nHow these models were trained, their learning curves and their metrics on 200 held-out "
               f"scenes: {MODEL_CARD} in the pyvf repository.")

@@ -11,8 +11,8 @@ The protocol (docs/math.md §6 for the metrics, metrics.py for their exact defin
   the tables differ only in how much the model was shown.
 * The codebook tokenizes every image used once (batched). The transformer encodes the
   context once per (batch of scenes, C) (Transformer.encode_scene, the scene cache of docs/math.md
-  §3), then renders every query (render_scene: the logits' argmax tokens, decoded by the
-  codebook, rounded to uint8) and localizes every query from its ground-truth tokens
+  §3), then renders every query (render_scene's logits turned into codes by `decode`, decoded
+  by the codebook, rounded to uint8: render_images) and localizes every query from its ground-truth tokens
   (localize_scene).
 * Methods: `pyvf` (both tasks), `codebook` (the ground-truth query encoded and decoded: the
   best a rendering through this codebook can be; the same for every C), and the baselines
@@ -58,8 +58,8 @@ from .metrics import (
     to_uint8,
 )
 
-__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS", "PAPER_SM7", "evaluate",
-           "metrics_markdown", "verdict_lines", "write_metrics"]
+__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS", "PAPER_SM7", "DECODES",
+           "evaluate", "metrics_markdown", "render_images", "verdict_lines", "write_metrics"]
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
 POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
@@ -100,6 +100,7 @@ META_KEYS = (
     "n_queries",  # scenes * queries: the images (and poses) each number is taken over
     "trained_context",  # the transformer's sequence_size - 1: larger C were never trained on
     "psnr_cap_db",  # the PSNR a perfect image is given
+    "decode",  # how rendered logits became images: a key of DECODES
     "kernel_path",  # _core.current_path() and num_threads() during the run
     "kernel_threads",
     "codebook",  # the two configurations (dataclass fields)
@@ -114,8 +115,8 @@ PROTOCOL = {
     "images": "uint8; MAE, RMSE on 0..255 per image then the mean over images; PSNR on [0, 1] per image, "
               "capped at psnr_cap_db for a perfect image, then the mean",
     "poses": "medians over all queries of the Euclidean position error and the orientation error in degrees",
-    "pyvf": "render: argmax tokens of render_scene decoded by the codebook; localize: localize_scene "
-            "on the ground-truth image's tokens",
+    "pyvf": "render: render_scene's logits decoded by the codebook as meta.decode says (DECODES); "
+            "localize: localize_scene on the ground-truth image's tokens",
     "codebook": "the ground-truth query image encoded and decoded (the same for every C)",
     "nearest_view": "the context image whose camera position is nearest the query's",
     "mean_image": "the mean of the context images",
@@ -123,6 +124,14 @@ PROTOCOL = {
     "mean_pose": "mean context position; normalised, sign-canonical mean context quaternion",
 }
 SM7_VIEWS = 15
+# how render_images turns a view's logits (L, K) into the codebook's input
+DECODES = {
+    # the published generation: each token's most likely code (a sharp image of the likeliest codes)
+    "argmax": "each token's most likely code",
+    # the expectation of the code vectors under each token's softmax: the latent of least squared
+    # error given the predicted distribution, so an uncertain token decodes to a blend, not a guess
+    "expected": "each token's mean code vector under the softmax of its logits",
+}
 
 
 def _progress(iterable, total, desc, enabled):
@@ -130,6 +139,37 @@ def _progress(iterable, total, desc, enabled):
         return iterable
     from tqdm.auto import tqdm
     return tqdm(iterable, total=total, desc=desc, unit="batch")
+
+
+def render_images(codebook, logits, decode="argmax", batch=32):
+    """A transformer's rendered logits -> uint8 images through the codebook.
+
+    logits (..., L, K) with L = token_size**2 tokens of a view over the K = n_embed codes (e.g.
+    render_scene's (B, M, L, K)) -> images (..., S, S, 3) uint8. decode: a key of DECODES:
+    "argmax" decodes each token's most likely code (decode_code); "expected" decodes each token's
+    mean code vector sum_j softmax(logits)_j e_j (decode_latent; softmax in float64). `batch`
+    views per decoder call."""
+    if decode not in DECODES:
+        raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
+    cfg = codebook.config
+    k, K = cfg.token_size, cfg.n_embed
+    if not isinstance(logits, np.ndarray) or logits.dtype.kind != "f":
+        raise TypeError(f"logits must be a float numpy array, got {getattr(logits, 'dtype', type(logits).__name__)}")
+    if logits.ndim < 2 or logits.shape[-2:] != (k * k, K):
+        raise ValueError(f"logits must have shape (..., {k * k}, {K}) for this codebook, got {logits.shape}")
+    lead = logits.shape[:-2]
+    flat = logits.reshape(-1, k * k, K)  # (n, L, K)
+    if decode == "argmax":
+        return _decode(codebook, flat.argmax(axis=-1), batch).reshape(*lead, cfg.image_size, cfg.image_size, -1)
+    E = codebook.quantizer.embeddings.astype(np.float64)  # (D, K): the codes are columns
+    out = np.empty((flat.shape[0], cfg.image_size, cfg.image_size, cfg.out_ch), np.uint8)
+    for i in range(0, flat.shape[0], batch):
+        x = flat[i:i + batch].astype(np.float64)  # (b, L, K)
+        p = np.exp(x - x.max(axis=-1, keepdims=True))
+        p /= p.sum(axis=-1, keepdims=True)  # (b, L, K) softmax
+        z = (p @ E.T).reshape(-1, k, k, E.shape[0]).transpose(0, 3, 1, 2)  # (b, D, k, k)
+        out[i:i + batch] = to_uint8(codebook.decode_latent(np.ascontiguousarray(z, dtype=codebook.dtype)))
+    return out.reshape(*lead, cfg.image_size, cfg.image_size, -1)
 
 
 def _decode(codebook, tokens, batch):
@@ -160,16 +200,19 @@ def _check_args(context, scenes, views, queries, batch):
 
 def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000, views=None, queries=5,
              batch=8, out=None, pictures=True, picture_scenes=4, timing_scenes=4, repeat=5, progress=True,
-             sources=None):
+             sources=None, decode="argmax"):
     """Score the pair on `scenes` held-out scenes for every context size; return the metrics dict
     (module docstring). views: per scene (None: 15, as SM7); queries: the last `queries` views;
     batch: scenes per transformer call. out: a folder to write metrics.json, metrics.md and (with
     pictures) views.png and poses.png of the first `picture_scenes` scenes at the largest C.
-    sources: JSON-able, where the models came from (e.g. their files), kept as meta["sources"]."""
+    sources: JSON-able, where the models came from (e.g. their files), kept as meta["sources"].
+    decode: how rendered logits become images, a key of DECODES (render_images)."""
     t_start = time.perf_counter()
     check_pair(codebook, transformer)
     views = SM7_VIEWS if views is None else views
     context = _check_args(context, scenes, views, queries, batch)
+    if decode not in DECODES:
+        raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
     cb_cfg, tf_cfg = codebook.config, transformer.config
     Cmax = context[-1]
     qidx = np.arange(views - queries, views)  # (M,) the query views
@@ -187,7 +230,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     t_encode = (time.perf_counter() - t0) / flat.shape[0]
 
     results, picture, dec = score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch,
-                                         picture_scenes=picture_scenes, progress=progress)
+                                         picture_scenes=picture_scenes, progress=progress, decode=decode)
     decode_s, decoded = dec
 
     timing = _timing(transformer, tokens[:timing_scenes], poses[:timing_scenes], Cmax, qidx, repeat)
@@ -200,7 +243,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
         "pyvf_version": __version__, "seed": int(seed), "scenes": int(n), "views": int(views),
         "image_size": int(S), "context_sizes": list(context), "query_views": [int(i) for i in qidx],
         "n_queries": int(n * M), "trained_context": tf_cfg.sequence_size - 1,
-        "psnr_cap_db": psnr_cap((S, S, 3)), "kernel_path": _core.current_path(),
+        "psnr_cap_db": psnr_cap((S, S, 3)), "decode": decode, "kernel_path": _core.current_path(),
         "kernel_threads": num_threads(), "codebook": dataclasses.asdict(cb_cfg),
         "transformer": dataclasses.asdict(tf_cfg), "sources": sources, "protocol": PROTOCOL,
     }
@@ -219,7 +262,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
 
 
 def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch, *, picture_scenes=0,
-                 progress=False, token_scores=False):
+                 progress=False, token_scores=False, decode="argmax"):
     """Score the pair and the baselines on these scenes: for each C in context (ascending), the
     context is views 0..C-1 and the queries the views qidx.
 
@@ -265,7 +308,7 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
             if token_scores:
                 add(key, "pyvf", _token_scores(logits, q_tok))
             t0 = time.perf_counter()
-            rendered = _decode(codebook, logits.argmax(axis=-1).reshape(B * M, -1), 4 * batch).reshape(B, M, S, S, 3)
+            rendered = render_images(codebook, logits, decode, 4 * batch)  # (B, M, S, S, 3)
             decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + B * M
             est = transformer.localize_scene(scene, q_tok).astype(np.float64)  # (B, M, 7)
             truth, truth_pose = gt[sl], gt_pose[sl]
@@ -409,7 +452,8 @@ def metrics_markdown(metrics):
              f"then the mean), PSNR in dB on [0, 1] (per image, a perfect image capped at "
              f"{meta['psnr_cap_db']:.1f} dB, then the mean). Poses: medians over the queries, positions in cube "
              f"sides (cameras stand 10 from the object), orientations in degrees. `codebook` is the ground truth "
-             f"encoded and decoded: the best any rendering through this codebook can be.", ""]
+             f"encoded and decoded: the best any rendering through this codebook can be. pyvf's renderings "
+             f"decode {DECODES[meta.get('decode', 'argmax')]} (decode={meta.get('decode', 'argmax')}).", ""]
     lines += verdict_lines(metrics)
     for C, table in metrics["context"].items():
         lines += ["", f"## Context {C} view{'s' if C != '1' else ''}"]

@@ -505,6 +505,19 @@ class Codebook(ModelWeights):
         e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
         return self._decoder(None, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
+    def decode_latent(self, z):
+        """z (B, embed_dim, k, k) of the model's dtype, a point of the code space (codes, or a
+        mixture of codes such as their expectation under a transformer's distribution) ->
+        images (B, out_ch, S, S). decode_code(codes) is decode_latent of the codes' columns."""
+        cfg = self.config
+        if not isinstance(z, np.ndarray) or z.dtype != self.dtype:
+            raise TypeError(f"z must be a {self.dtype} numpy array, got {getattr(z, 'dtype', type(z).__name__)}")
+        k = cfg.token_size
+        if z.ndim != 4 or z.shape[1:] != (cfg.embed_dim, k, k):
+            raise ValueError(f"z must have shape (B, {cfg.embed_dim}, {k}, {k}), got {z.shape}")
+        _checks.finite("z", z)
+        return self._decoder(None, np.ascontiguousarray(z))
+
     def forward(self, images, train=False, *, trace=False, pixel_weights=None):
         """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers
         (the output uses the codes from before the update). Keeps what backward() needs.
