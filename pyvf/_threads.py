@@ -4,9 +4,26 @@ pyvf (`pyvf.set_num_threads`, `with pyvf.threads(n):`, `pyvf.num_threads`); a ro
 any home may use it without importing the public facade.
 """
 
+import os
+
 from . import _core
 
-__all__ = ["num_threads", "set_num_threads", "threads"]
+__all__ = ["blas_limit", "blas_num_threads", "cores", "num_threads", "set_num_threads", "threads"]
+
+
+def cores():
+    """The CPUs this process may run on: its affinity mask (a container's or taskset's share),
+    not the machine's count; os.cpu_count() where the platform has no affinity."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def blas_num_threads():
+    """Threads of numpy's BLAS pool now (threadpoolctl; the largest if several BLAS are loaded)."""
+    from threadpoolctl import threadpool_info
+    return max((i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"), default=1)
 
 
 def num_threads():
@@ -14,9 +31,10 @@ def num_threads():
     return _core.num_threads()
 
 
-def _blas_limits(n):
-    """Limit numpy's BLAS pool to n threads (threadpoolctl); returns the limiter (its
-    restore_original_limits() puts the previous counts back), or None without threadpoolctl."""
+def blas_limit(n):
+    """Limit numpy's BLAS pool to n threads (threadpoolctl), pyvf's kernels as they are; returns
+    the limiter, also a context (`with blas_limit(1):`; its restore_original_limits() puts the
+    previous counts back), or None without threadpoolctl."""
     try:
         from threadpoolctl import threadpool_limits  # a dependency; imported when threads are set
     except ImportError:  # pragma: no cover - installed with pyvf
@@ -32,7 +50,7 @@ def set_num_threads(n):
     if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n < 2 ** 31:
         raise ValueError(f"n must be a positive integer below 2^31, got {n!r}")
     _core.set_num_threads(n)
-    _blas_limits(n)
+    blas_limit(n)
 
 
 class threads:
@@ -48,7 +66,7 @@ class threads:
         if self.n is not None:
             self._old = _core.num_threads()
             _core.set_num_threads(self.n)
-            self._blas = _blas_limits(self.n)
+            self._blas = blas_limit(self.n)
         return self
 
     def __exit__(self, *exc):

@@ -115,6 +115,8 @@ BENCH_QUICK = {
     "vq": (["--quick"], ["| pyvf.vq_nearest |", "pyvf at the cancellation offsets"]),
     "transformer": (["--quick"], ["## tiny:", "first-step loss: pyvf", "| pyvf |"]),
     "codebook": (["--quick"], ["## tiny:", "loss of the same weights and batch", "| pyvf |", "images/s, ratio torch / pyvf"]),
+    "threads": (["--quick"], ["| render + localize, cached | idle", "| Codebook.encode           |",
+                              "the default's worst ratio to the best setting"]),
 }
 
 

@@ -3,6 +3,7 @@ in pyvf.bench (and pyvf.bench.attention.demo for demo-attention).
 
     pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
     pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]      # speed vs error; hard cases
+    pyvf bench threads [--quick]                # each thread setting, idle and beside busy processes
     pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
     pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
 
@@ -170,6 +171,19 @@ def _transformer(args):
     return 1 if _module("transformer").run(args.configs, args.steps, args.threads)["failures"] else 0
 
 
+def _threads_parser():
+    p = _doc_parser("threads")
+    p.add_argument("--quick", action="store_true", help="smaller batches, 3 repeats (seconds)")
+    p.add_argument("--json", default=None, metavar="FILE", help="also write the report as JSON")
+    return p, None
+
+
+def _threads(args):
+    report = _module("threads").run(args.quick)
+    write_outputs(report, args.json)
+    return 1 if report["failures"] else 0
+
+
 def _codebook_parser():
     codebook = _module("codebook")
     p = argparse.ArgumentParser(prog="pyvf bench codebook", description=codebook.__doc__.split("\n\n")[0])
@@ -307,6 +321,7 @@ BENCHMARKS = {
     "scaling": (_scaling_parser, _scaling),
     "accuracy": (_accuracy_parser, _accuracy),
     "hardcases": (_hardcases_parser, _hardcases),
+    "threads": (_threads_parser, _threads),
     "report": (_report_parser, _report),
     DEMO_ATTENTION: (_demo_attention_parser, _demo_attention),
 }
@@ -326,7 +341,7 @@ def cmd_bench(args):
     bench_args = parser.parse_args(args.args)
     if check is not None:
         check(bench_args)
-    n = bench_args.threads if args.name != DEMO_ATTENTION else None
+    n = getattr(bench_args, "threads", None) if args.name != DEMO_ATTENTION else None  # `threads` sweeps them
     if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
         env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
         boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"

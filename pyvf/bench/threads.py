@@ -1,0 +1,233 @@
+"""Time of the calls a user makes, idle and beside busy processes, for each thread setting.
+
+    pyvf bench threads            # every call, 1..cores threads, idle and under load (~2 minutes on 2 cores)
+    pyvf bench threads --quick    # smaller batches and fewer repeats (seconds)
+
+The calls: the demo's cached render + localization (TINY_TRANSFORMER, 4 scenes of 5 context views,
+5 queries each, the scene encoded once beforehand), a codebook training step (TINY_CODEBOOK,
+batch 16, Adam), a transformer training step (TINY_TRANSFORMER, batch 8 of 6 views, AdamW) and
+Codebook.encode (32 images). The settings: pyvf's default (nothing set: what a user's script
+gets), `pyvf.threads(n)` for n = 1..cores (pyvf's kernels and numpy's BLAS pool on n threads),
+and numpy's BLAS on 1 thread with the kernels left at their default (what
+OPENBLAS_NUM_THREADS=1 does). The conditions: idle, and under load: `cores` busy processes
+(each a spinning Python loop, bounded in time and stopped at the end) on the same cores.
+
+Before timing, every call runs once in every setting from the same weights and inputs: each
+result must be finite and within RESULT_RTOL of the default's, and the table says which are
+bitwise equal to it. The table gives each call's median time per setting and condition, the
+best setting, and the default's time over the best's (the target: at most 1.1).
+"""
+
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+import pyvf
+from pyvf.bench.common import cpu_name, median_time, table
+from pyvf._threads import blas_limit, blas_num_threads, cores
+
+LOAD_SECONDS = 600  # a busy process stops by itself after this, should the benchmark die first
+QUICK = dict(scenes=2, cb_batch=4, tf_batch=2, images=8, repeat=3)
+FULL = dict(scenes=4, cb_batch=16, tf_batch=8, images=32, repeat=7)
+LIMIT = 1.1  # the default's time may be at most this much over the best setting's
+# pyvf's kernels give the same bits for any thread count; numpy's OpenBLAS does not for every
+# shape (a (128 x 3120) @ (3120 x 384) product differs in the last bits between 1 and 2 threads),
+# so a setting that changes the BLAS threads may move a result by float32 rounding: one step's
+# products (sums of up to 3120 terms, ~sqrt(3120) * 6e-8 = 3e-6 relative) and Adam's update of a
+# gradient near zero (at most lr = 1e-3 absolute); 1e-4 normwise lies above both, below any bug.
+RESULT_RTOL = 1e-4
+
+
+def _codebook_step(size):
+    """-> fn() running one codebook training step from fixed weights, returning the loss and weights."""
+    from pyvf.train.loops import TINY_CODEBOOK
+    rng = np.random.default_rng(0)
+    S = TINY_CODEBOOK.image_size
+    images = rng.uniform(-1, 1, (size, 3, S, S)).astype(np.float32)
+
+    def fn():
+        cb = pyvf.Codebook(TINY_CODEBOOK, seed=0)
+        opt = pyvf.Adam(cb.params, 1e-3)
+        out = pyvf.codebook_train_step(cb, opt, images)
+        return np.concatenate([[out.loss], *(p.ravel() for p in cb.params.values())])
+    return fn
+
+
+def _transformer_inputs(batch, views, seed=0):
+    from pyvf.train.loops import TINY_TRANSFORMER as cfg
+    rng = np.random.default_rng(seed)
+    tokens = rng.integers(0, cfg.n_embeddings, (batch, views, cfg.token_image_size ** 2))
+    poses = rng.normal(size=(batch, views, 7)).astype(np.float32)
+    poses[..., 3:] = pyvf.quat_normalize(poses[..., 3:])
+    return cfg, tokens, poses
+
+
+def _transformer_step(size):
+    cfg, tokens, poses = _transformer_inputs(size, 6)
+
+    def fn():
+        model = pyvf.Transformer(cfg, seed=0)
+        opt = pyvf.AdamW(model.params, lr=1e-4, weight_decay=0.01)
+        loss, _ = pyvf.train_step(model, opt, tokens, poses, max_grad_norm=1.0)
+        return np.concatenate([[loss], *(p.ravel() for p in model.params.values())])
+    return fn
+
+
+def _render_localize(size):
+    cfg, tokens, poses = _transformer_inputs(size, 10)
+    model = pyvf.Transformer(cfg, seed=0)
+    scene = model.encode_scene(tokens[:, :5], poses[:, :5])
+
+    def fn():
+        logits = model.render_scene(scene, poses[:, 5:])
+        est = model.localize_scene(scene, tokens[:, 5:])
+        return np.concatenate([logits.ravel(), est.ravel()])
+    return fn
+
+
+def _encode(size):
+    from pyvf.train.loops import TINY_CODEBOOK
+    cb = pyvf.Codebook(TINY_CODEBOOK, seed=0)
+    S = TINY_CODEBOOK.image_size
+    images = np.random.default_rng(1).uniform(-1, 1, (size, 3, S, S)).astype(np.float32)
+    return lambda: cb.encode(images)
+
+
+# name -> (maker(size) -> fn, which size of QUICK/FULL)
+CALLS = {
+    "render + localize, cached": (_render_localize, "scenes"),
+    "codebook training step": (_codebook_step, "cb_batch"),
+    "transformer training step": (_transformer_step, "tf_batch"),
+    "Codebook.encode": (_encode, "images"),
+}
+
+
+class _Setting:
+    """A thread setting as a context: "default" (nothing set), n (pyvf.threads(n)), or "blas1"
+    (numpy's BLAS on 1 thread, the kernels as they are)."""
+
+    def __init__(self, key):
+        self.key = key
+        self._ctx = None
+
+    def __enter__(self):
+        if self.key == "blas1":
+            self._ctx = blas_limit(1)
+        elif self.key != "default":
+            self._ctx = pyvf.threads(self.key)
+        if self._ctx is not None:
+            self._ctx.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._ctx is not None:
+            self._ctx.__exit__(*exc)
+        return False
+
+
+def settings(n_cores):
+    """The settings compared: the default, 1..n_cores threads, numpy's BLAS on one thread."""
+    return ["default", *range(1, n_cores + 1), "blas1"]
+
+
+def label(key):
+    return {"default": "default", "blas1": "BLAS 1"}.get(key, f"{key} thr")
+
+
+def check_results(fns, keys, log=print):
+    """Run each call once in every setting from the same weights and inputs. -> ({call: {setting:
+    True where bitwise equal to the default's result}}, failures): a failure is a non-finite
+    result or one further than RESULT_RTOL (normwise) from the default's."""
+    same, failures = {}, []
+    for name, fn in fns.items():
+        with _Setting("default"):
+            want = np.asarray(fn(), np.float64)
+        same[name] = {"default": True}
+        for key in keys[1:]:
+            with _Setting(key):
+                got = np.asarray(fn(), np.float64)
+            same[name][key] = bool(np.array_equal(got, want))
+            err = np.abs(got - want).max() / max(np.abs(want).max(), 1e-30) if np.isfinite(got).all() else np.inf
+            if not err <= RESULT_RTOL:
+                failures.append(f"{name}: {label(key)} is {err:.2g} from the default's result (bound {RESULT_RTOL})")
+    return same, failures
+
+
+class busy:
+    """`with busy(n):` n processes spinning on the CPU (each stops by itself after LOAD_SECONDS),
+    stopped when the block ends."""
+
+    def __init__(self, n):
+        self.n, self.procs = n, []
+
+    def __enter__(self):
+        code = f"import time\nt = time.time() + {LOAD_SECONDS}\nwhile time.time() < t: pass"
+        self.procs = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(self.n)]
+        time.sleep(0.2)  # let them start spinning
+        return self
+
+    def __exit__(self, *exc):
+        for p in self.procs:
+            p.kill()
+        for p in self.procs:
+            p.wait()
+        return False
+
+
+def time_all(fns, keys, repeat):
+    """{call: {setting: median seconds}}, the settings interleaved call by call."""
+    out = {name: {} for name in fns}
+    for name, fn in fns.items():
+        for key in keys:
+            with _Setting(key):
+                out[name][key] = median_time(fn, repeat=repeat, warmup=1)[0]
+    return out
+
+
+def rows_of(times, condition, keys, same):
+    """Table rows: a time in ms per setting (* where the result is not bitwise the default's)."""
+    rows = []
+    for name, t in times.items():
+        best = min(keys, key=lambda k: t[k])
+        rows.append([name, condition, *(f"{t[k] * 1e3:.1f}{'' if same[name][k] else '*'}" for k in keys),
+                     label(best), f"{t['default'] / t[best]:.2f}"])
+    return rows
+
+
+def run(quick=False, n_cores=None, log=print):
+    """Measure every call idle and under load; -> report dict (times in seconds, failures)."""
+    size = QUICK if quick else FULL
+    n_cores = n_cores or cores()
+    keys = settings(n_cores)
+    fns = {name: make(size[which]) for name, (make, which) in CALLS.items()}
+    log(f"# threads: {cpu_name()}, {n_cores} cores usable, kernel path {pyvf.kernel_path()}; "
+        f"default: {pyvf.num_threads()} kernel threads, {blas_num_threads()} BLAS threads")
+    same, failures = check_results(fns, keys)
+    if failures:
+        for f in failures:
+            log(f"FAILED: {f}")
+        return {"failures": failures}
+    idle = time_all(fns, keys, size["repeat"])
+    with busy(n_cores):
+        loaded = time_all(fns, keys, size["repeat"])
+    header = ["call", "machine", *(f"{label(k)} (ms)" for k in keys), "best", "default / best"]
+    rows = rows_of(idle, "idle", keys, same) + rows_of(loaded, f"{n_cores} busy", keys, same)
+    log(table(header, rows))
+    log("(* the result is not bitwise the default's: numpy's BLAS on another thread count rounds "
+        "some products differently)")
+    worst = max(t["default"] / min(t.values()) for times in (idle, loaded) for t in times.values())
+    log(f"# the default's worst ratio to the best setting: {worst:.2f} (target at most {LIMIT})")
+    return {"failures": [], "cores": n_cores, "settings": [str(k) for k in keys], "idle": _jsonable(idle),
+            "loaded": _jsonable(loaded), "bitwise_same": _jsonable(same), "worst_default_ratio": worst, "cpu": cpu_name(),
+            "kernel_path": pyvf.kernel_path()}
+
+
+def _jsonable(times):
+    return {name: {str(k): v for k, v in t.items()} for name, t in times.items()}
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(1 if run("--quick" in sys.argv)["failures"] else 0)
