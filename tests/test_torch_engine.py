@@ -1,16 +1,20 @@
 """train_transformer's torch engine against pyvf's: the same run in both, resume across engines,
-the parity check at checkpoints, the options' errors."""
+the parity check at checkpoints, the options' errors; two data-parallel processes against one."""
 
 import csv
 import dataclasses
+import json
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 
-from pyvf.train.loops import TINY_TRANSFORMER, train_transformer
-from pyvf.train.torch_engine import PARITY_RTOL, TorchTransformer, check_engine, log_parity, parity_batch
+from pyvf.train.loops import TINY_TRANSFORMER, save_tokens, train_transformer
+from pyvf.train.torch_engine import (PARITY_RTOL, DataParallel, TorchTransformer, check_engine, data_parallel,
+                                     log_parity, parity_batch)
 from pyvf.train.optim import AdamW, published_weight_decay
 from pyvf.models.transformer import Transformer
 from pyvf.verify.torch_ports import TransformerPort
@@ -135,3 +139,71 @@ def test_bf16_trains_and_stays_near_fp32(tmp_path):
     assert lb[-1] < lb[0] and abs(lb[-1] - la[-1]) < 0.05 * la[-1], (la, lb)  # bf16's u = 3.9e-3
     assert all(p.dtype == np.float32 for p in b.params.values())
     assert any(not np.array_equal(a.params[k], b.params[k]) for k in a.params)  # autocast did change the math
+
+
+# ---------------------------------------------------------------------------------------
+# data-parallel: two gloo processes (torchrun) against one
+
+
+def _torchrun(tmp_path, out, *args):
+    """`torchrun --nproc-per-node 2 pyvf train-transformer --engine torch` on _data() (the tokens file and
+    CFG written once), as a user runs it; returns the run folder."""
+    files = tmp_path / "tokens.npz", tmp_path / "config.json"
+    if not files[0].exists():
+        save_tokens(files[0], *_data(), CFG.n_embeddings)
+        files[1].write_text(json.dumps(dataclasses.asdict(CFG)))
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "pyvf",
+           "train-transformer", "--engine", "torch", "--tokens", str(files[0]), "--config", str(files[1]),
+           "--out", str(tmp_path / out), "--lr", "1e-3", "--warmup", "2", "--eval-every", "0", "--no-progress",
+           "--log-every", "1", *args]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return tmp_path / out
+
+
+def test_two_processes_equal_one_and_resume(tmp_path):
+    """Batch 5 on 2 gloo processes (shards of 3 and 2 rows), 3 steps, then resumed by both to 6,
+    against one process running the whole batch 6 steps. The bound is _check_same_run's, 1e-4 of
+    how far training moved each tensor: the processes sum their weighted shard gradients in
+    another order than one process sums the batch (float32 rounding, ~1e-7 per step, amplified
+    where Adam divides a small gradient by its sqrt(v)); measured 9e-6 (ln_f/gamma), 5e-7 elsewhere."""
+    _torchrun(tmp_path, "two", "--steps", "3", "--total-steps", "6", "--batch", "5", "--checkpoint-every", "3")
+    two = _torchrun(tmp_path, "two", "--steps", "6", "--batch", "5", "--checkpoint-every", "3")
+    tokens, poses = _data()
+    one = train_transformer(tokens, poses, CFG, tmp_path / "one", steps=6, batch_size=5, lr=1e-3, warmup=2,
+                            log_every=1, progress=False, engine="torch").state_dict()
+    _check_same_run(one, Transformer.load(two / "transformer.npz").state_dict(), Transformer(CFG, seed=0).state_dict())
+    # rank 0 alone wrote the folder: one row per step, the parity checks at both checkpoints
+    logs = [list(csv.DictReader(open(d / "log.csv"))) for d in (tmp_path / "one", two)]
+    assert [r["step"] for r in logs[1]] == [str(t) for t in range(1, 7)]
+    for ra, rb in zip(*logs):
+        assert ra["lr"] == rb["lr"] and abs(float(ra["loss"]) - float(rb["loss"])) < 1e-5 * float(ra["loss"])
+    assert [r["step"] for r in csv.DictReader(open(two / "parity.csv"))] == ["3", "6"]
+    calls = json.loads((two / "config.json").read_text())["calls"]
+    assert [c["processes"] for c in calls] == [2, 2] and calls[1]["resumed_from_step"] == 3
+
+
+class _World:
+    """torch.distributed's rank and world size, for DataParallel.shard."""
+
+    def __init__(self, rank, world):
+        self.get_rank, self.get_world_size = (lambda: rank), (lambda: world)
+
+
+@pytest.mark.parametrize("batch,world,sizes", [(4, 2, [2, 2]), (5, 2, [3, 2]), (7, 3, [3, 2, 2]), (3, 3, [1, 1, 1])])
+def test_shards_cover_the_batch_once(batch, world, sizes):
+    shards = [DataParallel(_World(r, world), "cpu", False).shard(batch) for r in range(world)]
+    assert [hi - lo for lo, hi in shards] == sizes
+    assert [lo for lo, _ in shards] == [0, *np.cumsum(sizes)[:-1]] and shards[-1][1] == batch
+
+
+def test_data_parallel_refusals(tmp_path, monkeypatch):
+    """Under torchrun (WORLD_SIZE 2): a batch smaller than the world, and one GPU named for two processes."""
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(ValueError, match=r"batch_size=1 \(--batch\) is smaller than the 2 processes"):
+        train_transformer(*_data(), CFG, tmp_path / "b1", steps=2, batch_size=1, progress=False, engine="torch")
+    with pytest.raises(ValueError, match=r"device='cuda:1' names one GPU for 2 processes"):
+        data_parallel("cuda:1", 4)
+    assert not os.path.exists(tmp_path / "b1")  # refused before the run folder is made

@@ -35,7 +35,7 @@ from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, fingerprint, integer, positive_int, real
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
-from .torch_engine import TorchTransformer, check_engine, log_parity, parity_batch
+from .torch_engine import Follower, TorchTransformer, check_engine, data_parallel, log_parity, parity_batch
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
 # configuration (docs/math.md §4) at a quarter of the channels, one ResnetBlock per level and no
@@ -375,6 +375,32 @@ def _pyvf_engine(model, opt, max_grad_norm, clip_mode):
     return step, model.state_dict, lambda: model
 
 
+def _transformer_engine(engine, model, opt, dp, parity, clipping, device, precision):
+    """train_transformer's engine: (step(tok, pos) -> (loss, mean ce, mean pose loss, grad norm),
+    state() -> the state dict, current() -> the model, the optimiser whose lr_at and step count
+    the loop reads, check(out_dir, step) before each checkpoint or None). The torch engine's
+    check is the parity of the torch model and pyvf's on the batch `parity` (tokens, poses)."""
+    if engine != "torch":
+        return (*_pyvf_engine(model, opt, *clipping), opt, None)
+    eng = TorchTransformer(model, opt, device=device, precision=precision, max_grad_norm=clipping[0],
+                           clip_mode=clipping[1], dp=dp)
+
+    def check(out_dir, step):  # before the save: a divergent model is not checkpointed
+        log_parity(out_dir, step, eng.parity(*parity))
+
+    return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, check
+
+
+def _run_folder(dp, make_run, steps, out_dir):
+    """make_run(): the Run, in a single process and on rank 0 of a data-parallel run (dp); on the
+    other processes a Follower from rank 0's start step (torch_engine.Follower)."""
+    if dp is None:
+        return make_run()
+    run = make_run() if dp.rank == 0 else None
+    start = dp.broadcast_int(run.start if run is not None else 0)
+    return run if run is not None else Follower(start, steps, out_dir)
+
+
 def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, context=None, lr=1e-4, warmup=None,
                       total_steps=None, weight_decay=0.01, max_grad_norm=1.0, clip_mode="per_tensor", seed=0,
                       checkpoint_every=200, log_every=10, eval_set=None, eval_every=0, resume=True, progress=True,
@@ -408,7 +434,8 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         `device` "cpu" | "cuda" | "cuda:N" at `precision` "fp32" | "bf16" (autocast; the weights
         and moments stay float32)). A checkpoint of either engine resumes in the other. The torch
         engine checks the torch model against pyvf's at every checkpoint (out_dir/parity.csv)
-        and stops at a divergence.
+        and stops at a divergence. Under torchrun (or in a process group) it is data-parallel:
+        each process runs its shard of every batch, rank 0 writes the run (torch_engine).
     Returns the trained Transformer."""
     if not isinstance(config, TransformerConfig):
         raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
@@ -417,30 +444,28 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
                                                 total_steps, weight_decay, max_grad_norm, clip_mode, seed)
     batch_size, n_views, seed, weight_decay = (hyper[k] for k in ("batch_size", "views", "seed", "weight_decay"))
     check_engine(engine, device, precision)
+    dp, device = data_parallel(device, batch_size) if engine == "torch" else (None, device)
     eval_every = integer("eval_every", eval_every, 0)
     eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
     threads_set = _Threads(threads)
-    run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
-              steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
-              call={"command": command, "threads": threads, "engine": engine, "device": device,
-                    "precision": precision, "eval": eval_record}, eval_columns=eval_columns)
-    evaluating = health is not None and eval_every > 0
+    call = {"command": command, "threads": threads, "engine": engine, "device": device, "precision": precision,
+            "processes": 1 if dp is None else dp.world, "eval": eval_record}
+    run = _run_folder(dp, lambda: Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG,
+                                      final="transformer.npz", steps=steps, resume=resume, progress=progress,
+                                      checkpoint_every=checkpoint_every, log_every=log_every, call=call,
+                                      eval_columns=eval_columns), steps, out_dir)
+    evaluating = health is not None and eval_every > 0 and not isinstance(run, Follower)
     model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay)
-    if engine == "torch":
-        eng = TorchTransformer(model, opt, device=device, precision=precision, max_grad_norm=max_grad_norm,
-                               clip_mode=clip_mode)
-        step, state, current, opt = eng.step, eng.state_dict, eng.to_pyvf, eng.opt
-        parity = parity_batch(tokens, poses, n_views, seed, config.dtype)
-    else:
-        step, state, current = _pyvf_engine(model, opt, max_grad_norm, clip_mode)
-
+    step, state, current, opt, check = _transformer_engine(
+        engine, model, opt, dp, parity_batch(tokens, poses, n_views, seed, config.dtype), (max_grad_norm, clip_mode),
+        device, precision)
     with threads_set, run:
         if evaluating and not run.resumed:
             run.log_eval(0, health(current()))
             plot_eval(run.out_dir)
         for t in run.steps():
-            tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t, config.dtype)
-            # tok (B, N, L), pos (B, N, 7)
+            tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t,
+                                         config.dtype)  # (B, N, L), (B, N, 7)
             lr_t = opt.lr_at(opt.step_count)
             loss, ce, pl, norm = step(tok, pos)
             run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl,
@@ -449,8 +474,10 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
                 run.log_eval(t, health(current()))
                 plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
             if run.checkpoint_due(t):
-                if engine == "torch":  # before the save: a divergent model is not checkpointed
-                    log_parity(run.out_dir, t, eng.parity(*parity))
+                if check is not None:
+                    check(run.out_dir, t)
                 run.save(t, state(), opt)
     run.save_final(state())
+    if dp is not None:
+        dp.close()
     return current()

@@ -12,6 +12,15 @@ At every checkpoint the torch model is checked against pyvf (`parity`): pyvf loa
 runs a fixed batch, and its logits, pose predictions and losses must equal the torch model's
 (evaluated in float32, whatever the training precision) within PARITY_RTOL; the worst error is
 appended to parity.csv, and a larger one stops the run naming the first divergent quantity.
+
+Data-parallel (`torchrun --nproc-per-node N pyvf train-transformer --engine torch ...`, or a
+process group the caller initialised): every process draws the same batch of (seed, step) and
+runs its shard of the rows (DataParallel.shard: contiguous, sizes differing by at most one);
+each shard's mean loss is weighted by its share of the batch, so the gradients summed across the
+processes (one all-reduce) are the whole batch's mean-loss gradient; clipping and the update
+follow on the summed gradients, the same on every process. Rank 0 alone writes the run folder
+(Run); the others follow (Follower), their weights, moments and start step broadcast from rank 0,
+so every process resumes from rank 0's checkpoint.
 """
 
 import csv
@@ -58,6 +67,106 @@ def check_engine(engine, device, precision):
         torch = import_torch()
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise ValueError(f"device={device!r}, but torch sees no CUDA device (torch {torch.__version__})")
+
+
+class DataParallel:
+    """The processes of a data-parallel run: this one's rank, the world size, the collectives.
+    Made by data_parallel(); `created`: whether it initialised the process group (close() ends it)."""
+
+    def __init__(self, dist, device, created):
+        self.dist, self.device, self.created = dist, device, created
+        self.rank, self.world = dist.get_rank(), dist.get_world_size()
+
+    def shard(self, batch_size):
+        """This process's rows lo:hi of a batch: contiguous shards in rank order, sizes differing
+        by at most one (batch_size 5 on 2 processes: 3 and 2)."""
+        base, extra = divmod(batch_size, self.world)
+        lo = self.rank * base + min(self.rank, extra)
+        return lo, lo + base + (self.rank < extra)
+
+    def all_reduce(self, tensors):
+        """Sum each tensor across the processes, in place, in one all-reduce of their concatenation."""
+        torch = import_torch()
+        flat = torch.cat([t.reshape(-1) for t in tensors])
+        self.dist.all_reduce(flat)
+        for t, summed in zip(tensors, flat.split([t.numel() for t in tensors])):
+            t.copy_(summed.view_as(t))
+
+    def broadcast(self, tensors):
+        """Rank 0's values of the tensors into every process's, in place."""
+        with import_torch().no_grad():
+            for t in tensors:
+                self.dist.broadcast(t, 0)
+
+    def broadcast_int(self, value):
+        """Rank 0's integer -> every process."""
+        torch = import_torch()
+        t = torch.tensor([int(value)], dtype=torch.int64, device=self.device)
+        self.dist.broadcast(t, 0)
+        return int(t.item())
+
+    def close(self):
+        if self.created:
+            self.dist.destroy_process_group()
+
+
+def data_parallel(device, batch_size):
+    """(DataParallel or None, the device this process trains on). None in a single process: no
+    process group and WORLD_SIZE (torchrun's) unset or 1. Else the caller's process group, or one
+    initialised here from torchrun's environment (gloo on the CPU, nccl on GPUs; device 'cuda'
+    becomes cuda:LOCAL_RANK)."""
+    torch = import_torch()
+    import torch.distributed as dist
+    initialised = dist.is_available() and dist.is_initialized()
+    world = dist.get_world_size() if initialised else int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return None, device
+    if device.startswith("cuda:"):
+        raise ValueError(f"device={device!r} names one GPU for {world} processes: pass device 'cuda' (--device "
+                         "cuda), each process takes cuda:LOCAL_RANK")
+    if batch_size < world:
+        raise ValueError(f"batch_size={batch_size} (--batch) is smaller than the {world} processes (the world "
+                         "size): every process needs at least one sample of the batch")
+    if not dist.is_available():
+        raise ValueError(f"WORLD_SIZE={world}, but this torch build has no torch.distributed")
+    if device == "cuda":
+        local = int(os.environ.get("LOCAL_RANK", dist.get_rank() if initialised else 0))
+        device = f"cuda:{local % torch.cuda.device_count()}"
+        torch.cuda.set_device(device)
+    if not initialised:
+        dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+    return DataParallel(dist, torch.device(device), created=not initialised), device
+
+
+class Follower:
+    """Run's stand-in on the processes of a data-parallel run other than rank 0: the same steps
+    from rank 0's start, nothing read or written (rank 0's Run keeps the folder)."""
+
+    resumed, model_state, optimizer_state = False, None, None
+
+    def __init__(self, start, steps_total, out_dir):
+        self.start, self.steps_total, self.out_dir = start, steps_total, out_dir
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def steps(self):
+        return range(self.start + 1, self.steps_total + 1)
+
+    def log(self, step, values):
+        pass
+
+    def eval_due(self, step, every):
+        return False
+
+    def checkpoint_due(self, step):
+        return False
+
+    def save_final(self, arrays):
+        pass
 
 
 class TorchAdamW:
@@ -117,10 +226,11 @@ class TorchTransformer:
 
     model: the pyvf Transformer holding the starting weights (a fresh one, or restored from a
     checkpoint); opt_ref: the pyvf AdamW built on model.params (restored too), whose state this
-    engine continues."""
+    engine continues. dp: a DataParallel (its rank 0's weights, moments and step count are
+    broadcast to every process here) or None."""
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", max_grad_norm=None,
-                 clip_mode="per_tensor"):
+                 clip_mode="per_tensor", dp=None):
         torch = import_torch()
         from ..verify.torch_ports import TransformerPort, official_name
         from ..verify.torch_transformer import losses
@@ -132,6 +242,10 @@ class TorchTransformer:
         self._names = {official_name(n): p for n, p in self.port.named_parameters()}
         self.load(model.state_dict(layout="torch"))
         self.opt = TorchAdamW(self._names, opt_ref, model)
+        self.dp = dp
+        if dp is not None:  # every process continues rank 0's state (a fresh start, or its checkpoint)
+            dp.broadcast([*self._names.values(), *self.opt.exp_avg.values(), *self.opt.exp_avg_sq.values()])
+            opt_ref.step_count = dp.broadcast_int(opt_ref.step_count)
 
     def load(self, state):
         """state: official name -> array in the torch layout."""
@@ -160,19 +274,31 @@ class TorchTransformer:
         logits, raw = logits.float() if autocast else logits, raw.float() if autocast else raw
         return (logits, raw, *self._losses(logits, raw, tok, pos, self.config))
 
+    def _gradients(self, tokens, poses):
+        """The gradients of the whole batch's mean loss, in the parameters' .grad (summed across
+        the processes of a data-parallel run, each having run its shard) -> (the list of them,
+        a tensor of the batch's loss, mean ce and mean pose loss)."""
+        B = len(tokens)
+        lo, hi = (0, B) if self.dp is None else self.dp.shard(B)
+        for p in self._names.values():
+            p.grad = None
+        _, _, ce, pl, loss = self._outputs(tokens[lo:hi], poses[lo:hi], self.precision == "bf16")
+        share = (hi - lo) / B  # loss = mean over the shard: its part of the batch mean is share * loss
+        (loss * share).backward()
+        grads = [p.grad for p in self._names.values()]
+        sums = self.torch.stack([loss.detach() * share, ce.detach().sum() / B, pl.detach().sum() / B])
+        if self.dp is not None:
+            self.dp.all_reduce([*grads, sums])  # before the clipping: it sees the batch's gradient
+        return grads, sums
+
     def step(self, tokens, poses):
         """One update on a batch (poses in any frame: made relative here, as pyvf's engine).
         Returns (loss, mean ce, mean pose loss, the global gradient norm before clipping)."""
         torch = self.torch
-        pos = make_relative(poses)[0]
-        for p in self._names.values():
-            p.grad = None
-        _, _, ce, pl, loss = self._outputs(tokens, pos, self.precision == "bf16")
-        loss.backward()
-        grads = [p.grad for p in self._names.values()]
+        grads, sums = self._gradients(tokens, make_relative(poses)[0])
         norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
         total = norms.square().sum().sqrt()
-        stats = torch.stack([loss.detach(), ce.detach().mean(), pl.detach().mean(), total]).cpu().numpy()
+        stats = torch.cat([sums, total[None]]).cpu().numpy()
         if not np.isfinite(stats).all():
             raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
                              "(loss, ce, pose loss, grad norm = "
@@ -225,4 +351,5 @@ def parity_batch(tokens, poses, n_views, seed, dtype):
     return transformer_batch(tokens, poses, n_views, 4, seed + 1_000_003, 0, dtype)
 
 
-__all__ = ["TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_engine", "log_parity", "parity_batch"]
+__all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_engine",
+           "data_parallel", "log_parity", "parity_batch"]
