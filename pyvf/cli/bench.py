@@ -173,13 +173,15 @@ def _transformer(args):
 
 def _threads_parser():
     p = _doc_parser("threads")
+    add_threads(p, None, "the most threads tried and the busy processes started (default: the cores this "
+                         "process may use)")
     p.add_argument("--quick", action="store_true", help="smaller batches, 3 repeats (seconds)")
     p.add_argument("--json", default=None, metavar="FILE", help="also write the report as JSON")
     return p, None
 
 
 def _threads(args):
-    report = _module("threads").run(args.quick)
+    report = _module("threads").run(args.quick, args.threads)
     write_outputs(report, args.json)
     return 1 if report["failures"] else 0
 
@@ -341,7 +343,7 @@ def cmd_bench(args):
     bench_args = parser.parse_args(args.args)
     if check is not None:
         check(bench_args)
-    n = getattr(bench_args, "threads", None) if args.name != DEMO_ATTENTION else None  # `threads` sweeps them
+    n = bench_args.threads if args.name not in (DEMO_ATTENTION, "threads") else None  # `threads` sweeps them
     if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
         env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
         boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"
