@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from pyvf.cli import main
 from pyvf.models.codebook import Codebook, CodebookConfig
 from pyvf.train.loops import TINY_TRANSFORMER, save_tokens, train_codebook, train_transformer
 from pyvf.train.torch_codebook_engine import TorchCodebook, parity_images
@@ -324,3 +325,13 @@ def test_codebook_engine_refuses_several_processes(tmp_path, monkeypatch):
     monkeypatch.setenv("WORLD_SIZE", "2")
     with pytest.raises(ValueError, match="the codebook's torch engine runs in one process"):
         _train_cb(tmp_path, "w2", "torch", CB, steps=1)
+
+
+def test_pyvf_train_with_the_torch_engine(tmp_path):
+    """`pyvf train --preset smoke --engine torch`: both stages train in torch, each checked by pyvf."""
+    assert main(["train", "--out", str(tmp_path / "run"), "--preset", "smoke", "--engine", "torch",
+                 "--no-progress"]) == 0
+    for stage in ("codebook", "transformer"):
+        calls = json.loads((tmp_path / "run" / stage / "config.json").read_text())["calls"]
+        assert calls[-1]["engine"] == "torch"
+        assert [r["step"] for r in csv.DictReader(open(tmp_path / "run" / stage / "parity.csv"))][-1] == "2"

@@ -77,7 +77,7 @@ def cmd_train(args):
     transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
     def work():
         train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
-                       command=_record(args))
+                       command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
         print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
               f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
     return _guarded("train", work)
@@ -190,6 +190,7 @@ def _train(subparsers):
                         "models' sizes, many hours), smoke (seconds)")
     add_threads(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    _engine_options(p, "; both stages")
     p.set_defaults(func=cmd_train)
 
 
