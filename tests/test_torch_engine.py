@@ -1,5 +1,6 @@
 """train_transformer's torch engine against pyvf's: the same run in both, resume across engines,
-the parity check at checkpoints, the options' errors; two data-parallel processes against one."""
+the parity check at checkpoints, the options' errors; two data-parallel processes against one;
+train_codebook's torch engine against pyvf's."""
 
 import csv
 import dataclasses
@@ -12,12 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from pyvf.train.loops import TINY_TRANSFORMER, save_tokens, train_transformer
+from pyvf.cli import main
+from pyvf.models.codebook import Codebook, CodebookConfig
+from pyvf.train.loops import TINY_TRANSFORMER, save_tokens, train_codebook, train_transformer
+from pyvf.train.torch_codebook_engine import TorchCodebook, parity_images
 from pyvf.train.torch_engine import (PARITY_RTOL, DataParallel, TorchTransformer, check_engine, data_parallel,
                                      log_parity, parity_batch)
-from pyvf.train.optim import AdamW, published_weight_decay
+from pyvf.train.optim import Adam, AdamW, published_weight_decay
 from pyvf.models.transformer import Transformer
-from pyvf.verify.torch_ports import TransformerPort
+from pyvf.verify.torch_ports import CodebookPort, TransformerPort
 
 CFG = dataclasses.replace(TINY_TRANSFORMER, d_model=32, n_head=2, n_layer=2, token_image_size=4, sequence_size=4,
                           n_embeddings=16)
@@ -207,3 +211,127 @@ def test_data_parallel_refusals(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"device='cuda:1' names one GPU for 2 processes"):
         data_parallel("cuda:1", 4)
     assert not os.path.exists(tmp_path / "b1")  # refused before the run folder is made
+
+
+# ---------------------------------------------------------------------------------------
+# the codebook's torch engine against pyvf's
+
+# 64 channels: 2 per GroupNorm group (with 1 per group a conv bias before a GroupNorm has an exactly
+# zero gradient, whose rounding noise Adam turns into lr-sized steps that differ between engines)
+CB = CodebookConfig(ch=64, ch_mult=(1, 1), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=8,
+                    n_embed=16, image_size=16)
+CB64 = dataclasses.replace(CB, dtype="float64")
+
+
+def _images():
+    from pyvf.scenes import generate_scenes
+    return generate_scenes(0, 4, views=4, size=16)[0]  # (4, 4, 16, 16, 3) uint8
+
+
+def _train_cb(tmp_path, name, engine, cfg=CB64, steps=20, **kw):
+    """The default recipe (small-batch: Adam (0.9, 0.99), objects weighted 4) with a dead-code restart
+    every 10 steps."""
+    return train_codebook(_images(), cfg, tmp_path / name, steps=steps, batch_size=4, reset_dead_codes=10,
+                          progress=False, engine=engine, **kw)
+
+
+def _check_same_codebook(a, b, w0, rtol):
+    """a, b: Codebook state dicts after the same steps from w0: every parameter and EMA buffer within
+    rtol of how far training moved it. Not the attention's key biases (k.bias): softmax is invariant
+    to them, their exact gradient is 0 and each engine's is rounding noise, below Adam's eps: both
+    stay within 1e-4 of 0 (measured 3e-5 in float32 after 6 steps; one step of lr is 3e-4)."""
+    assert a["quantize.counter"] == b["quantize.counter"]
+    for k in w0:
+        if k.endswith(".k.bias"):
+            assert np.abs(a[k]).max() < 1e-4 and np.abs(b[k]).max() < 1e-4, k
+        elif k != "quantize.counter":
+            err = np.linalg.norm(a[k] - b[k]) / np.linalg.norm(a[k] - w0[k])
+            assert err < rtol, (k, err)
+
+
+def test_torch_codebook_equals_pyvf_after_20_steps(tmp_path):
+    """In float64, 20 steps with object weighting and two dead-code restarts: every weight and EMA
+    buffer within 1e-9 of its movement (measured 1.3e-12: float64's u = 1.1e-16 amplified by 20 steps
+    of training, ~1e4). In float32 the same amplification of u = 6e-8, and the nearest-code choices
+    it flips (near-ties, from step 11 on this data), leave 2% after 20 steps: the float32 check
+    below stops at 6 steps, before any flip."""
+    a = _train_cb(tmp_path, "pyvf", "pyvf").state_dict()
+    b = _train_cb(tmp_path, "torch", "torch").state_dict()
+    _check_same_codebook(a, b, Codebook(CB64, seed=0).state_dict(), 1e-9)
+    logs = [list(csv.DictReader(open(tmp_path / n / "log.csv"))) for n in ("pyvf", "torch")]
+    for ra, rb in zip(*logs):
+        assert ra["lr"] == rb["lr"] and ra["usage"] == rb["usage"], (ra, rb)
+        assert abs(float(ra["loss"]) - float(rb["loss"])) < 1e-12 * float(ra["loss"])
+    with pytest.raises(AssertionError):  # the comparison sees an engine that skips the object weighting
+        c = _train_cb(tmp_path, "w1", "torch", object_weight=1.0).state_dict()
+        _check_same_codebook(a, c, Codebook(CB64, seed=0).state_dict(), 1e-9)
+
+
+def test_torch_codebook_float32(tmp_path):
+    """6 float32 steps: within 1e-2 of the movement (measured 1.5e-3 at step 6, 4e-3 at step 1, in
+    encoder.mid.block_2.conv1.weight). Adam's first steps are about lr * sign(g) for every entry
+    above its eps: an entry whose gradient is within float32 rounding of 0 (the encoder's, reached
+    through the commitment term only, are ~1e-8) may step the other way in the other engine."""
+    a = _train_cb(tmp_path, "pyvf", "pyvf", CB, steps=6).state_dict()
+    b = _train_cb(tmp_path, "torch", "torch", CB, steps=6).state_dict()
+    _check_same_codebook(a, b, Codebook(CB, seed=0).state_dict(), 1e-2)
+
+
+def test_torch_codebook_resume_and_parity_log(tmp_path):
+    straight = _train_cb(tmp_path, "straight", "torch", CB, steps=12, checkpoint_every=6).state_dict()
+    _train_cb(tmp_path, "split", "torch", CB, steps=6)
+    resumed = _train_cb(tmp_path, "split", "torch", CB, steps=12)
+    for k in straight:  # the same engine on the same machine: bit for bit
+        np.testing.assert_array_equal(straight[k], resumed.state_dict()[k], err_msg=k)
+    assert Codebook.load(tmp_path / "split" / "codebook.npz").state_dict()["quantize.counter"] == 12
+    rows = list(csv.DictReader(open(tmp_path / "straight" / "parity.csv")))
+    assert [r["step"] for r in rows] == ["6", "12"]
+    assert all(0 < float(r["rel_err"]) < 1e-5 and float(r["bound"]) == PARITY_RTOL for r in rows), rows
+    # pyvf's checkpoint continued by torch, in float64: the pyvf run to 1e-9 of the movement
+    _train_cb(tmp_path, "cross", "pyvf", steps=10)
+    cross = _train_cb(tmp_path, "cross", "torch", steps=20).state_dict()
+    _check_same_codebook(_train_cb(tmp_path, "pyvf", "pyvf").state_dict(), cross, Codebook(CB64, seed=0).state_dict(),
+                         1e-9)
+
+
+def _transpose_mid_conv(port):
+    """A conv that reads its (out, in) kernel as (in, out): a square kernel runs either way."""
+    conv = port.encoder.mid.block_1.conv1
+    conv.forward = lambda x: torch.nn.functional.conv2d(x, conv.weight.transpose(0, 1), conv.bias, padding=1)
+
+
+def _group_norm_eps(port):
+    """eps 1e-2 (published 1e-6) in the last GroupNorm: measured 1.4e-2 in the reconstruction (1e-3 gives
+    1.4e-3, at the bound: an eps error shows from about 1e-3 on)."""
+    port.decoder.norm_out.eps = 1e-2
+
+
+@pytest.mark.parametrize("bug", ["padding", _transpose_mid_conv, _group_norm_eps])
+def test_codebook_parity_catches_a_planted_bug(tmp_path, bug):
+    model = Codebook(CB, seed=3)
+    eng = TorchCodebook(model, Adam(model.params, 1e-3))
+    bad = CodebookPort(CB, bug=bug if isinstance(bug, str) else None)
+    bad.load_state_dict(eng.port.state_dict())
+    if callable(bug):
+        bug(bad)
+    eng.port = bad  # the same weights (pyvf reads them from the engine's own): only the math differs
+    comparison = eng.parity(parity_images(_images().reshape(-1, 16, 16, 3), 0, "float32"))
+    assert not comparison.ok, comparison
+    with pytest.raises(RuntimeError, match=r"parity check at step 7: the torch model and pyvf differ first in"):
+        log_parity(tmp_path, 7, comparison)
+
+
+def test_codebook_engine_refuses_several_processes(tmp_path, monkeypatch):
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(ValueError, match="the codebook's torch engine runs in one process"):
+        _train_cb(tmp_path, "w2", "torch", CB, steps=1)
+
+
+def test_pyvf_train_with_the_torch_engine(tmp_path):
+    """`pyvf train --preset smoke --engine torch`: both stages train in torch, each checked by pyvf."""
+    assert main(["train", "--out", str(tmp_path / "run"), "--preset", "smoke", "--engine", "torch",
+                 "--no-progress"]) == 0
+    for stage in ("codebook", "transformer"):
+        calls = json.loads((tmp_path / "run" / stage / "config.json").read_text())["calls"]
+        assert calls[-1]["engine"] == "torch"
+        assert [r["step"] for r in csv.DictReader(open(tmp_path / "run" / stage / "parity.csv"))][-1] == "2"

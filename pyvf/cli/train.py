@@ -46,7 +46,8 @@ def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
     def work():
         tasks.codebook_run(args.data, args.out, recipe=args.recipe, lr=args.lr, betas=args.betas,
-                           reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight, **_run(args))
+                           reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
+                           engine=args.engine, device=args.device, precision=args.precision, **_run(args))
         print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
     return _guarded("train-codebook", work)
 
@@ -76,7 +77,7 @@ def cmd_train(args):
     transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
     def work():
         train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
-                       command=_record(args))
+                       command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
         print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
               f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
     return _guarded("train", work)
@@ -115,6 +116,15 @@ def _eval_options(p, every, scenes):
                    help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000)")
 
 
+def _engine_options(p, more=""):
+    p.add_argument("--engine", default="pyvf", choices=["pyvf", "torch"],
+                   help="pyvf's kernels (default) or torch (pip install 'pyvf[torch]'): the same run, the model in "
+                        f"torch, checked against pyvf at every checkpoint (parity.csv){more}")
+    p.add_argument("--device", default="cpu", help="the torch engine's device: cpu (default), cuda or cuda:N")
+    p.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
+                   help="the torch engine's arithmetic: fp32 (default) or bf16 autocast (weights stay float32)")
+
+
 def _train_codebook(subparsers):
     p = subparsers.add_parser("train-codebook", help="train the codebook (VQ-VAE) on a dataset; resumable",
                               description=cmd_train_codebook.__doc__)
@@ -133,6 +143,7 @@ def _train_codebook(subparsers):
     p.add_argument("--object-weight", type=float, default=None,
                    help="loss weight of object pixels against 1 for the background (default: the recipe's)")
     _eval_options(p, every=100, scenes=32)
+    _engine_options(p)
     p.set_defaults(func=cmd_train_codebook)
 
 
@@ -165,12 +176,7 @@ def _train_transformer(subparsers):
                    help="the codebook .npz the tokens came from: the held-out evaluation renders through it "
                         "(without it, no evaluation)")
     _eval_options(p, every=200, scenes=16)
-    p.add_argument("--engine", default="pyvf", choices=["pyvf", "torch"],
-                   help="pyvf's kernels (default) or torch (pip install 'pyvf[torch]'): the same run, the model in "
-                        "torch, checked against pyvf at every checkpoint (parity.csv)")
-    p.add_argument("--device", default="cpu", help="the torch engine's device: cpu (default), cuda or cuda:N")
-    p.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
-                   help="the torch engine's arithmetic: fp32 (default) or bf16 autocast (weights stay float32)")
+    _engine_options(p, "; data-parallel under torchrun --nproc-per-node N")
     p.set_defaults(func=cmd_train_transformer)
 
 
@@ -184,6 +190,7 @@ def _train(subparsers):
                         "models' sizes, many hours), smoke (seconds)")
     add_threads(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    _engine_options(p, "; both stages")
     p.set_defaults(func=cmd_train)
 
 

@@ -35,6 +35,7 @@ from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, fingerprint, integer, positive_int, real
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
+from .torch_codebook_engine import parity_images
 from .torch_engine import Follower, TorchTransformer, check_engine, data_parallel, log_parity, parity_batch
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
@@ -175,9 +176,46 @@ def _recipe(recipe, lr, betas, reset_dead_codes, object_weight):
     return lr, betas, reset_dead_codes, object_weight
 
 
+def _codebook_and_optimiser(run, config, seed, lr, betas):
+    """A new Codebook and its Adam; both as the run's checkpoint left them when it resumes."""
+    model = Codebook(config, seed=seed)
+    if run.resumed:
+        run.restore("model", model.load_official, run.model_state)  # replaces model.params
+    opt = Adam(model.params, lr, betas=betas)  # after the restore: on the params it put in place
+    if run.resumed:
+        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+    return model, opt
+
+
+def _codebook_engine(engine, model, opt, parity, device, precision):
+    """train_codebook's engine: (step(x, w) -> the log's values but lr, reset(x, rng): the
+    dead-code restart after the step, state() -> the state dict, current() -> the model, the
+    optimiser the loop reads, check(out_dir, step) before each checkpoint or None). The torch
+    engine's check is the parity of the torch model and pyvf's on the images `parity`."""
+    if engine != "torch":
+        def step(x, w):
+            out = codebook_train_step(model, opt, x, pixel_weights=w)
+            return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
+                    "perplexity": out.perplexity, "usage": out.usage}
+
+        def reset(x, rng):
+            z = model._encoder([], x)  # (B, D, k, k) with the updated weights
+            return model.quantizer.reset_dead_codes(z, rng=rng)
+
+        return step, reset, model.state_dict, lambda: model, opt, None
+    from .torch_codebook_engine import TorchCodebook
+    eng = TorchCodebook(model, opt, device=device, precision=precision)
+
+    def check(out_dir, step):  # before the save: a divergent model is not checkpointed
+        log_parity(out_dir, step, eng.parity(parity))
+
+    return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, check
+
+
 def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="small-batch", lr=None, betas=None,
                    reset_dead_codes=None, object_weight=None, seed=0, checkpoint_every=200, log_every=10,
-                   eval_images=None, eval_every=0, resume=True, progress=True, threads=None, command=None):
+                   eval_images=None, eval_every=0, resume=True, progress=True, threads=None, command=None,
+                   engine="pyvf", device="cpu", precision="fp32"):
     """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4).
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
@@ -201,6 +239,8 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
         batch (EMAQuantizer.reset_dead_codes, its randomness from (seed, step), so a resumed
         run stays exact). Without it a small codebook trained from the uniform initialisation
         can collapse onto a few codes (measured on SM7: 9 of 256 codes in use at step 80).
+    engine, device, precision: as train_transformer's (torch_codebook_engine.TorchCodebook: the
+        same run with the model in torch, parity.csv at every checkpoint; one process).
     Returns the trained Codebook."""
     if not isinstance(config, CodebookConfig):
         raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
@@ -215,43 +255,40 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
     if object_weight != 1.0:  # absent at 1.0: runs from before the option resume as they were
         hyper["object_weight"] = object_weight
+    check_engine(engine, device, precision)
     threads_set = _Threads(threads)  # checked before the run folder is touched
     run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, final="codebook.npz",
               steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
-              call={"command": command, "threads": threads, "recipe": recipe,
-                    "eval": None if eval_images is None else {"every": eval_every,
-                                                              "fingerprint": fingerprint(eval_images)}},
+              call={"command": command, "threads": threads, "recipe": recipe, "engine": engine, "device": device,
+                    "precision": precision, "eval": None if eval_images is None else {
+                        "every": eval_every, "fingerprint": fingerprint(eval_images)}},
               eval_columns=None if eval_images is None else CODEBOOK_HEALTH)
     evaluating = eval_images is not None and eval_every > 0
-
-    model = Codebook(config, seed=seed)
-    if run.resumed:
-        run.restore("model", model.load_official, run.model_state)  # replaces model.params
-    opt = Adam(model.params, lr, betas=betas)  # after the restore: on the params it put in place
-    if run.resumed:
-        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+    model, opt = _codebook_and_optimiser(run, config, seed, lr, betas)
+    step, reset, state, current, opt, check = _codebook_engine(
+        engine, model, opt, parity_images(flat, seed, config.dtype), device, precision)
     with threads_set, run:
         if evaluating and not run.resumed:
-            run.log_eval(0, codebook_health(model, eval_images))
+            run.log_eval(0, codebook_health(current(), eval_images))
             plot_eval(run.out_dir)
         for t in run.steps():
             weighted = object_weight != 1.0
             x = codebook_batch(flat, batch_size, seed, t, config.dtype, object_weight if weighted else None)
             x, w = x if weighted else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
             lr_t = opt.lr_at(opt.step_count)
-            out = codebook_train_step(model, opt, x, pixel_weights=w)
+            values = step(x, w)
             if reset_dead_codes and t % reset_dead_codes == 0:
-                z = model._encoder([], x)  # (B, D, k, k) with the updated weights
-                model.quantizer.reset_dead_codes(z, rng=np.random.default_rng([seed, t, 1]))
-            run.log(t, {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
-                        "perplexity": out.perplexity, "usage": out.usage, "lr": lr_t})
+                reset(x, np.random.default_rng([seed, t, 1]))
+            run.log(t, {**values, "lr": lr_t})
             if evaluating and run.eval_due(t, eval_every):
-                run.log_eval(t, codebook_health(model, eval_images))
+                run.log_eval(t, codebook_health(current(), eval_images))
                 plot_eval(run.out_dir)  # eval.png: the curves so far
             if run.checkpoint_due(t):
-                run.save(t, model.state_dict(), opt)
-    run.save_final(model.state_dict())
-    return model
+                if check is not None:
+                    check(run.out_dir, t)
+                run.save(t, state(), opt)
+    run.save_final(state())
+    return current()
 
 
 def tokenize(codebook, images, batch_size=64, progress=False):

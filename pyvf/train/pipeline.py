@@ -112,10 +112,12 @@ def _tokens(path, codebook_path, images, poses, progress):
     return load_tokens(path)
 
 
-def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=print, command=None):
+def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=print, command=None, engine="pyvf",
+                   device="cpu", precision="fp32"):
     """Run (or resume) every stage of `preset` in the folder `out` (module docstring); returns
     the final evaluation's metrics dict (pyvf.evaluate.evaluate's). log: a function printing
-    one line per stage; command: the command line, recorded in both runs' config.json."""
+    one line per stage; command: the command line, recorded in both runs' config.json; engine,
+    device, precision: both training stages' (train_codebook's and train_transformer's)."""
     from ..evaluate.run import evaluate, metrics_markdown
     from ..scenes import generate_scenes
 
@@ -123,7 +125,8 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
         raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
     p = PRESETS[preset]
     os.makedirs(out, exist_ok=True)
-    quiet = dict(progress=progress, threads=threads, command=command)
+    quiet = dict(progress=progress, threads=threads, command=command, engine=engine, device=device,
+                 precision=precision)
 
     log(f"[1/5] scenes: {p.scenes} training scenes x 15 views of {p.size}x{p.size} (seed {TRAIN_SEED})")
     data = _scenes(os.path.join(out, "scenes"), p.scenes, p.size, progress)

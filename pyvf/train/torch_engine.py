@@ -110,6 +110,15 @@ class DataParallel:
             self.dist.destroy_process_group()
 
 
+def world_size():
+    """The processes of this run: the process group's size, else torchrun's WORLD_SIZE, else 1."""
+    import_torch()
+    import torch.distributed as dist
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_world_size()
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
 def data_parallel(device, batch_size):
     """(DataParallel or None, the device this process trains on). None in a single process: no
     process group and WORLD_SIZE (torchrun's) unset or 1. Else the caller's process group, or one
@@ -117,8 +126,7 @@ def data_parallel(device, batch_size):
     becomes cuda:LOCAL_RANK)."""
     torch = import_torch()
     import torch.distributed as dist
-    initialised = dist.is_available() and dist.is_initialized()
-    world = dist.get_world_size() if initialised else int(os.environ.get("WORLD_SIZE", "1"))
+    initialised, world = dist.is_available() and dist.is_initialized(), world_size()
     if world <= 1:
         return None, device
     if device.startswith("cuda:"):
@@ -352,4 +360,4 @@ def parity_batch(tokens, poses, n_views, seed, dtype):
 
 
 __all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_engine",
-           "data_parallel", "log_parity", "parity_batch"]
+           "data_parallel", "log_parity", "parity_batch", "world_size"]
