@@ -18,7 +18,7 @@ bitwise equal to it. The table gives each call's median time per setting and con
 best setting, and the default's time over the best's (the target: at most 1.1).
 """
 
-import os
+import contextlib
 import subprocess
 import sys
 import time
@@ -28,6 +28,7 @@ import numpy as np
 import pyvf
 from pyvf.bench.common import cpu_name, median_time, table
 from pyvf._threads import blas_limit, blas_num_threads, cores
+from pyvf.train.loops import TINY_CODEBOOK, TINY_TRANSFORMER
 
 LOAD_SECONDS = 600  # a busy process stops by itself after this, should the benchmark die first
 QUICK = dict(scenes=2, cb_batch=4, tf_batch=2, images=8, repeat=3)
@@ -43,7 +44,6 @@ RESULT_RTOL = 1e-4
 
 def _codebook_step(size):
     """-> fn() running one codebook training step from fixed weights, returning the loss and weights."""
-    from pyvf.train.loops import TINY_CODEBOOK
     rng = np.random.default_rng(0)
     S = TINY_CODEBOOK.image_size
     images = rng.uniform(-1, 1, (size, 3, S, S)).astype(np.float32)
@@ -57,7 +57,7 @@ def _codebook_step(size):
 
 
 def _transformer_inputs(batch, views, seed=0):
-    from pyvf.train.loops import TINY_TRANSFORMER as cfg
+    cfg = TINY_TRANSFORMER
     rng = np.random.default_rng(seed)
     tokens = rng.integers(0, cfg.n_embeddings, (batch, views, cfg.token_image_size ** 2))
     poses = rng.normal(size=(batch, views, 7)).astype(np.float32)
@@ -89,7 +89,6 @@ def _render_localize(size):
 
 
 def _encode(size):
-    from pyvf.train.loops import TINY_CODEBOOK
     cb = pyvf.Codebook(TINY_CODEBOOK, seed=0)
     S = TINY_CODEBOOK.image_size
     images = np.random.default_rng(1).uniform(-1, 1, (size, 3, S, S)).astype(np.float32)
@@ -105,27 +104,12 @@ CALLS = {
 }
 
 
-class _Setting:
+def _setting(key):
     """A thread setting as a context: "default" (nothing set), n (pyvf.threads(n)), or "blas1"
-    (numpy's BLAS on 1 thread, the kernels as they are)."""
-
-    def __init__(self, key):
-        self.key = key
-        self._ctx = None
-
-    def __enter__(self):
-        if self.key == "blas1":
-            self._ctx = blas_limit(1)
-        elif self.key != "default":
-            self._ctx = pyvf.threads(self.key)
-        if self._ctx is not None:
-            self._ctx.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        if self._ctx is not None:
-            self._ctx.__exit__(*exc)
-        return False
+    (numpy's BLAS on 1 thread, the kernels as they are; the limit holds from this call)."""
+    if key == "default":
+        return contextlib.nullcontext()
+    return blas_limit(1) if key == "blas1" else pyvf.threads(key)
 
 
 def settings(n_cores):
@@ -143,11 +127,11 @@ def check_results(fns, keys, log=print):
     result or one further than RESULT_RTOL (normwise) from the default's."""
     same, failures = {}, []
     for name, fn in fns.items():
-        with _Setting("default"):
+        with _setting("default"):
             want = np.asarray(fn(), np.float64)
         same[name] = {"default": True}
         for key in keys[1:]:
-            with _Setting(key):
+            with _setting(key):
                 got = np.asarray(fn(), np.float64)
             same[name][key] = bool(np.array_equal(got, want))
             err = np.abs(got - want).max() / max(np.abs(want).max(), 1e-30) if np.isfinite(got).all() else np.inf
@@ -182,7 +166,7 @@ def time_all(fns, keys, repeat):
     out = {name: {} for name in fns}
     for name, fn in fns.items():
         for key in keys:
-            with _Setting(key):
+            with _setting(key):
                 out[name][key] = median_time(fn, repeat=repeat, warmup=1)[0]
     return out
 

@@ -21,6 +21,9 @@ from ..bench.common import BLAS_THREAD_VARS, write_outputs
 from .options import add_threads, names
 
 DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
+# benchmarks that run in this process whatever the BLAS variables say: demo-attention has no
+# --threads; `threads` compares the thread settings themselves, its default included
+IN_PROCESS = (DEMO_ATTENTION, "threads")
 COMPARE_THREADS = "threads for pyvf and torch (default 2)"
 
 
@@ -343,7 +346,7 @@ def cmd_bench(args):
     bench_args = parser.parse_args(args.args)
     if check is not None:
         check(bench_args)
-    n = bench_args.threads if args.name not in (DEMO_ATTENTION, "threads") else None  # `threads` sweeps them
+    n = bench_args.threads if args.name not in IN_PROCESS else None
     if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
         env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
         boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"

@@ -25,6 +25,7 @@ figure show such a collapse in the first minutes of a run.
 
 import numpy as np
 
+from ..nn.quantizer import code_statistics
 from .metrics import image_metrics, to_model_images, to_uint8
 
 __all__ = ["effective_rank", "object_mask", "chroma", "colour_r2", "codebook_health", "CODEBOOK_HEALTH",
@@ -101,10 +102,10 @@ def codebook_health(codebook, images, batch=64):
         codes.append(c.ravel())
     m = image_metrics(rec, images)
     codes = np.concatenate(codes)
-    freq = np.bincount(codes, minlength=codebook.config.n_embed) / codes.size  # (K,)
-    p = freq[freq > 0]
+    counts = np.bincount(codes, minlength=codebook.config.n_embed)  # (K,)
+    _, perplexity = code_statistics(counts)
     return {"mae": float(m["mae"].mean()), "rmse": float(m["rmse"].mean()), "psnr": float(m["psnr"].mean()),
-            "codes_in_use": float(p.size), "perplexity": float(np.exp(-(p * np.log(p)).sum())),
+            "codes_in_use": float(np.count_nonzero(counts)), "perplexity": perplexity,
             "latent_rank": effective_rank(np.concatenate(zs)),
             "colour_r2": colour_r2(rec, images, object_mask(images))}
 

@@ -160,26 +160,36 @@ def render_images(codebook, logits, decode="argmax", batch=32):
     lead = logits.shape[:-2]
     flat = logits.reshape(-1, k * k, K)  # (n, L, K)
     if decode == "argmax":
-        return _decode(codebook, flat.argmax(axis=-1), batch).reshape(*lead, cfg.image_size, cfg.image_size, -1)
-    E = codebook.quantizer.embeddings.astype(np.float64)  # (D, K): the codes are columns
-    out = np.empty((flat.shape[0], cfg.image_size, cfg.image_size, cfg.out_ch), np.uint8)
-    for i in range(0, flat.shape[0], batch):
-        x = flat[i:i + batch].astype(np.float64)  # (b, L, K)
-        p = np.exp(x - x.max(axis=-1, keepdims=True))
-        p /= p.sum(axis=-1, keepdims=True)  # (b, L, K) softmax
-        z = (p @ E.T).reshape(-1, k, k, E.shape[0]).transpose(0, 3, 1, 2)  # (b, D, k, k)
-        out[i:i + batch] = to_uint8(codebook.decode_latent(np.ascontiguousarray(z, dtype=codebook.dtype)))
+        out = _decode(codebook, flat.argmax(axis=-1), batch)
+    else:
+        out = _decode(codebook, flat, batch, _expected_latent)
     return out.reshape(*lead, cfg.image_size, cfg.image_size, -1)
 
 
-def _decode(codebook, tokens, batch):
-    """codes (n, k*k) ints -> uint8 images (n, Hi, Wi, 3), `batch` per decoder call."""
+def _expected_latent(codebook, logits):
+    """logits (b, L, K) -> z (b, D, k, k) of the codebook's dtype: each token's sum_j
+    softmax(logits)_j e_j, the softmax in float64."""
+    k = codebook.config.token_size
+    E = codebook.quantizer.embeddings.astype(np.float64)  # (D, K): the codes are columns
+    x = logits.astype(np.float64)
+    p = np.exp(x - x.max(axis=-1, keepdims=True))
+    p /= p.sum(axis=-1, keepdims=True)  # (b, L, K) softmax
+    z = (p @ E.T).reshape(-1, k, k, E.shape[0]).transpose(0, 3, 1, 2)  # (b, D, k, k)
+    return np.ascontiguousarray(z, dtype=codebook.dtype)
+
+
+def _decode(codebook, inputs, batch, latent=None):
+    """-> uint8 images (n, Hi, Wi, 3), `batch` per decoder call. inputs: codes (n, k*k) ints, or,
+    with latent(codebook, inputs[i:j]) -> z (b, D, k, k), whatever latent reads (decode_latent)."""
     k = codebook.config.token_size
     S = codebook.config.image_size
-    out = np.empty((tokens.shape[0], S, S, codebook.config.out_ch), np.uint8)
-    for i in range(0, tokens.shape[0], batch):
-        t = tokens[i:i + batch].reshape(-1, k, k).astype(np.int64)
-        out[i:i + batch] = to_uint8(codebook.decode_code(t))
+    out = np.empty((inputs.shape[0], S, S, codebook.config.out_ch), np.uint8)
+    for i in range(0, inputs.shape[0], batch):
+        if latent is None:
+            images = codebook.decode_code(inputs[i:i + batch].reshape(-1, k, k).astype(np.int64))
+        else:
+            images = codebook.decode_latent(latent(codebook, inputs[i:i + batch]))
+        out[i:i + batch] = to_uint8(images)
     return out
 
 

@@ -25,7 +25,7 @@ import numpy as np
 from .. import _checks, _core
 from .layers import sum_rows_by_id
 
-__all__ = ["vq_nearest", "EMAQuantizer", "QuantizerOutput"]
+__all__ = ["vq_nearest", "code_statistics", "EMAQuantizer", "QuantizerOutput"]
 
 
 def _check_2d(name, a, like=None):
@@ -76,6 +76,13 @@ class QuantizerOutput:
     commitment_loss: float  # mean((sg(e) - z)^2)
     usage: float  # fraction of the n_embed codes used by this batch
     perplexity: float  # exp(entropy of the batch's code frequencies): n_embed when all are used evenly
+
+
+def code_statistics(counts):
+    """counts (K,): how often each code was chosen -> (usage: the fraction of codes used,
+    perplexity: exp of the entropy of the code frequencies, K when all are used evenly)."""
+    p = counts[counts > 0] / counts.sum()
+    return float((counts > 0).mean()), float(np.exp(-(p * np.log(p)).sum()))
 
 
 class EMAQuantizer:
@@ -196,10 +203,9 @@ class EMAQuantizer:
                              "(z is too far from the codes); the buffers are unchanged")
         # straight-through: the published z + sg(e - z), whose value is e up to one rounding
         quantized = (flat + diff).reshape(B, h, w, D).transpose(0, 3, 1, 2)  # (B, D, h, w)
-        p = counts[counts > 0] / counts.sum()
+        usage, perplexity = code_statistics(counts)
         out = QuantizerOutput(quantized=np.ascontiguousarray(quantized), codes=idx.reshape(B, h, w),
-                              commitment_loss=commitment, usage=float((counts > 0).mean()),
-                              perplexity=float(np.exp(-(p * np.log(p)).sum())))
+                              commitment_loss=commitment, usage=usage, perplexity=perplexity)
         if update is not None:
             self._assign(update)
         return out, (diff, z.shape)

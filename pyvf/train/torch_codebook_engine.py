@@ -26,6 +26,7 @@ all-reduce them too, which this engine does not).
 
 import numpy as np
 
+from ..nn.quantizer import code_statistics
 from ..verify.compare import compare
 from .torch_engine import PARITY_RTOL, TorchAdamW, import_torch, world_size
 
@@ -100,9 +101,9 @@ class TorchCodebook:
                              "lower the learning rate")
         self.opt.step()
         counts = torch.bincount(codes.reshape(-1), minlength=self.config.n_embed).cpu().numpy()  # (K,)
-        p = counts[counts > 0] / counts.sum()
+        usage, perplexity = code_statistics(counts)
         return {"loss": float(stats[0]), "rec_loss": float(stats[1]), "commitment": float(stats[2]),
-                "perplexity": float(np.exp(-(p * np.log(p)).sum())), "usage": float((counts > 0).mean())}
+                "perplexity": perplexity, "usage": usage}
 
     def reset_dead_codes(self, images, rng):
         """pyvf's EMAQuantizer.reset_dead_codes on the port's buffers, with the encoder's output
