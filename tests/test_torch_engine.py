@@ -156,13 +156,12 @@ def _torchrun(tmp_path, out, *args):
     if not files[0].exists():
         save_tokens(files[0], *_data(), CFG.n_embeddings)
         files[1].write_text(json.dumps(dataclasses.asdict(CFG)))
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "pyvf",
            "train-transformer", "--engine", "torch", "--tokens", str(files[0]), "--config", str(files[1]),
            "--out", str(tmp_path / out), "--lr", "1e-3", "--warmup", "2", "--eval-every", "0", "--no-progress",
            "--log-every", "1", *args]
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    # from tmp_path, as every command test: the installed pyvf, never a checkout on sys.path
+    done = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
     return tmp_path / out
 
