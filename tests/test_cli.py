@@ -299,3 +299,21 @@ def test_one_thread_setting_for_the_kernels_and_blas(tmp_path):
     env["PYVF_NUM_THREADS"] = "two"
     out = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=tmp_path, env=env, capture_output=True, text=True)
     assert out.returncode != 0 and "PYVF_NUM_THREADS='two' is not a positive integer" in out.stderr
+
+
+def test_export_a_running_runs_model(tmp_path):
+    """`pyvf export RUN -o F` from a folder outside the tree: the installed command writes the model
+    of a run's checkpoint, which Transformer.load reads back as the run's own final file."""
+    from pyvf.models.transformer import TransformerConfig
+    from pyvf.train import train_transformer
+    rng = np.random.default_rng(0)
+    config = TransformerConfig(n_embeddings=16, n_head=2, d_model=32, n_layer=1, token_image_size=2,
+                               sequence_size=3, n_loss_skip=1)
+    q = rng.standard_normal((3, 5, 4))
+    poses = np.concatenate([rng.standard_normal((3, 5, 3)), q / np.linalg.norm(q, axis=-1, keepdims=True)], -1)
+    train_transformer(rng.integers(0, 16, (3, 5, 2, 2)), poses, config, str(tmp_path / "run"), steps=2,
+                      batch_size=2, progress=False)
+    assert_ran(run(["export", "run", "-o", "now"], tmp_path), "transformer at step 2:")
+    got, want = pyvf.Transformer.load(tmp_path / "now.npz"), pyvf.Transformer.load(tmp_path / "run" / "transformer.npz")
+    assert got.config == want.config
+    assert all(np.array_equal(got.params[k], want.params[k]) for k in want.params)

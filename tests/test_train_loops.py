@@ -506,3 +506,39 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     assert args.func(args) == 0 and capsys.readouterr().out.splitlines() == table
     args = parser.parse_args(["runs", str(tmp_path)])
     assert args.func(args) == 1 and "is not a run folder" in capsys.readouterr().err
+
+
+def test_export_writes_the_checkpoints_model(tmp_path, rng, capsys):
+    """`pyvf export RUN -o F`: the model of the run's last checkpoint, the same arrays and configuration
+    as the final model file the run writes (a fresh model, or one step off, differs from it); a folder
+    without a checkpoint, a checkpoint whose arrays do not fit its configuration, and a file that is not
+    a checkpoint each raise naming the file."""
+    images = _images(rng)
+    cb_run, tf_run = str(tmp_path / "cb"), str(tmp_path / "tf")
+    train_codebook(images, CB, cb_run, steps=2, batch_size=2, **QUIET)
+    train_transformer(_tokens(rng), _poses(rng), TF, tf_run, steps=3, batch_size=2, **QUIET)
+    for run, name, cls in ((cb_run, "codebook.npz", Codebook), (tf_run, "transformer.npz", Transformer)):
+        kind, step, path = pyvf.train.tasks.export_run(run, tmp_path / f"exported-{name}")
+        assert (kind, step) == (name[:-4], 2 if cls is Codebook else 3)
+        want, got = load_npz(os.path.join(run, name), "model"), load_npz(path, "model")
+        assert sorted(got) == sorted(want)
+        for k in want:
+            assert_bitwise_equal(k, got[k], want[k])
+        fresh = cls(cls.CONFIG(**json.loads(str(want["__config__"])))).state_dict()
+        assert any(not np.array_equal(fresh[k], want[k]) for k in fresh)  # the test sees training
+    parser = argparse.ArgumentParser(prog="pyvf")
+    cli_register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["export", os.path.join(tf_run, "checkpoint.npz"), "-o", str(tmp_path / "t")])
+    assert args.func(args) == 0
+    assert capsys.readouterr().out.strip() == f"transformer at step 3: {tmp_path / 't.npz'}"
+    args = parser.parse_args(["export", str(tmp_path), "-o", str(tmp_path / "x")])
+    assert args.func(args) == 1 and "no checkpoint" in capsys.readouterr().err
+    with pytest.raises(CheckpointError, match="log.csv"):
+        pyvf.train.tasks.export_run(os.path.join(tf_run, "log.csv"), tmp_path / "x")
+    arrays = load_npz(os.path.join(tf_run, "checkpoint.npz"), "checkpoint")
+    meta = json.loads(str(arrays["__meta__"]))
+    atomic_savez(str(tmp_path / "bad.npz"), **{**arrays, "__meta__": json.dumps({**meta, "config": {
+        **meta["config"], "d_model": 64}})})
+    with pytest.raises(ValueError, match="bad.npz: its transformer does not load"):
+        pyvf.train.tasks.export_run(tmp_path / "bad.npz", tmp_path / "x")
+    assert not os.path.exists(tmp_path / "x.npz")

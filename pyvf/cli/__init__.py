@@ -10,7 +10,7 @@
     pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
     pyvf convert tf-transformer path/model --config config.json -o model.npz
     pyvf convert torch-codebook model.ckpt --config config.json -o codebook.npz
-    pyvf scenes | train-codebook | tokenize | train-transformer | train | runs   # the data and training
+    pyvf scenes | train-codebook | tokenize | train-transformer | train | runs | export   # data, training
 
 This package is the only place that parses arguments (argparse is imported nowhere else): each
 command is a function `cmd_<name>(args) -> exit status` that calls one library function of the

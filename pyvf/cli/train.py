@@ -4,6 +4,7 @@
     pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
     pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16] [--codebook F]
     pyvf runs runs/cb runs/cb2 [--plot]   # compare runs: their last held-out evaluation
+    pyvf export runs/tf -o tf-now.npz     # the model of a run's last checkpoint, while it trains
     pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
 
 Run again with the same arguments to resume from the run folder's checkpoint (--no-resume
@@ -92,6 +93,16 @@ def cmd_runs(args):
         for path in plots:
             print(f"wrote {path}")
     return _guarded("runs", work)
+
+
+def cmd_export(args):
+    """Write the model that a training run's last checkpoint holds, as the run writes its final
+    model at the end (codebook.npz, transformer.npz): evaluate or ship a run while it trains.
+    The run is not disturbed (its checkpoints are written atomically)."""
+    def work():
+        kind, step, path = tasks.export_run(args.run, args.output)
+        print(f"{kind} at step {step}: {path}")
+    return _guarded("export", work)
 
 
 def _run_options(p, batch, checkpoint_every):
@@ -202,8 +213,18 @@ def _runs(subparsers):
     p.set_defaults(func=cmd_runs)
 
 
+def _export(subparsers):
+    p = subparsers.add_parser("export", help="the model of a training run's last checkpoint, as a model file",
+                              description=cmd_export.__doc__)
+    p.add_argument("run", metavar="RUN", help="a run folder (train-codebook's or train-transformer's --out) "
+                                               "or its checkpoint.npz")
+    p.add_argument("-o", "--output", required=True, help="the model .npz to write (.npz appended when missing)")
+    p.set_defaults(func=cmd_export)
+
+
 def register(subparsers):
-    """Add train-codebook, tokenize, train-transformer, train and runs to an argparse subparsers object."""
-    for add in (_train_codebook, _tokenize, _train_transformer, _train, _runs):
+    """Add train-codebook, tokenize, train-transformer, train, runs and export to an argparse subparsers
+    object."""
+    for add in (_train_codebook, _tokenize, _train_transformer, _train, _runs, _export):
         add(subparsers)
     return subparsers

@@ -90,7 +90,8 @@ def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, 
 
 
 def read_checkpoint(path, kind):
-    """-> (meta dict, model state dict, optimizer state dict for load_state_dict)."""
+    """-> (meta dict, model state dict, optimizer state dict for load_state_dict). kind: the run's
+    kind ("codebook" or "transformer"; another raises ValueError), or None for either."""
     arrays = load_npz(path, "checkpoint", required=("__meta__",))
     try:
         meta = json.loads(str(arrays.pop("__meta__")))
@@ -105,7 +106,7 @@ def read_checkpoint(path, kind):
     lacking = [k for k in ("kind", "step", "config", "hyper", "elapsed", "optimizer") if k not in meta]
     if lacking:
         raise CheckpointError(f"checkpoint {path}: '__meta__' lacks {lacking}")
-    if meta.get("kind") != kind:
+    if kind is not None and meta.get("kind") != kind:
         raise ValueError(f"checkpoint {path} is a {meta.get('kind')!r} run, not a {kind!r} run: "
                          "use another output folder")
     model, opt = {}, {"exp_avg": {}, "exp_avg_sq": {}}

@@ -5,6 +5,7 @@ folder or a tokens file in, a run folder out.
     tokenize_dataset("runs/cb/codebook.npz", "data/sm7", "runs/tokens.npz")  # pyvf tokenize
     transformer_run("runs/tokens.npz", "runs/tf", steps=50000, codebook="runs/cb/codebook.npz")
     print(compare_runs(["runs/cb", "runs/cb2"])[0])                         # pyvf runs
+    export_run("runs/tf", "tf-now.npz")   # pyvf export: the model of a run's last checkpoint
 
 A run resumes from its folder's checkpoint when there is one (resume=False starts over).
 config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the configuration's
@@ -20,7 +21,8 @@ import zipfile
 
 from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
-from ..models.transformer import TransformerConfig
+from ..models.transformer import Transformer, TransformerConfig
+from ._run import CHECKPOINT, read_checkpoint
 from .curves import plot_eval, runs_table
 from .loops import (
     TINY_CODEBOOK,
@@ -33,7 +35,7 @@ from .loops import (
     train_transformer,
 )
 
-__all__ = ["EVAL_VIEWS", "codebook_run", "compare_runs", "held_out_scenes", "held_out_views", "read_codebook",
+__all__ = ["EVAL_VIEWS", "codebook_run", "compare_runs", "export_run", "held_out_scenes", "held_out_views", "read_codebook",
            "read_config", "tokenize_dataset", "transformer_run"]
 
 EVAL_VIEWS = 4  # views per held-out scene in a codebook run's evaluation
@@ -158,3 +160,29 @@ def compare_runs(run_dirs, plot=False):
     table = runs_table(run_dirs)
     plots = [plot_eval(d) for d in run_dirs if plot and os.path.exists(os.path.join(d, "eval.csv"))]
     return table, plots
+
+
+MODELS = {"codebook": Codebook, "transformer": Transformer}  # a run's kind -> its model class
+
+
+def export_run(run, out):
+    """The model that a run's last checkpoint holds, written to `out` as the run writes its final
+    model at the end (Codebook.save / Transformer.save; .load reads it), so that a run can be
+    evaluated, or shipped, while it trains. run: a run folder or its checkpoint.npz (read as it is
+    now: checkpoints are written atomically). Every array is validated by loading it into the
+    model first. Returns (the run's kind, its step, the path written)."""
+    path = os.fspath(run)
+    if os.path.isdir(path):
+        path = os.path.join(path, CHECKPOINT)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"run {os.fspath(run)!r}: no checkpoint ({path} does not exist)")
+    meta, state, _ = read_checkpoint(path, None)
+    cls = MODELS.get(meta["kind"])
+    if cls is None:
+        raise ValueError(f"checkpoint {path} is a {meta['kind']!r} run; pyvf exports {sorted(MODELS)}")
+    try:
+        model = cls(cls.CONFIG(**meta["config"]))
+        model.load_official(state)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"checkpoint {path}: its {meta['kind']} does not load: {e}") from e
+    return meta["kind"], int(meta["step"]), model.save(out)
