@@ -491,6 +491,13 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     last = _log(b, "eval.csv")[-1]
     assert table[3].startswith("| b | 3 |") and "lr=0.001 |" in table[3] and f"{float(last[1]):.4g} (3)" in table[3]
     assert "(the first codebook run)" in table[2]
+    # at equal steps (--step): each run's last evaluation at or before the step, from its own row
+    rows = _log(b, "eval.csv")
+    at2 = next(r for r in rows[1:] if r[0] == "2")
+    line = pyvf.train.curves.runs_table([a, b], step=2).splitlines()[3]
+    assert line.startswith("| b | 2 |") and f"{float(at2[1]):.4g} (2)" in line and float(at2[1]) != float(last[1])
+    first = int(rows[1][0])
+    assert pyvf.train.curves.runs_table([b], step=first - 1).splitlines()[2].endswith("| - | - | - | - | - |")
     # a run of another kind is compared with the first of its own kind, not with the codebook's
     c = str(tmp_path / "c")
     shutil.copytree(a, c)
@@ -504,6 +511,10 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     cli_register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["runs", a, b])
     assert args.func(args) == 0 and capsys.readouterr().out.splitlines() == table
+    args = parser.parse_args(["runs", a, b, "--step", "2"])
+    assert args.func(args) == 0 and capsys.readouterr().out == pyvf.train.curves.runs_table([a, b], step=2)
+    args = parser.parse_args(["runs", a, "--step", "-1"])
+    assert args.func(args) == 1 and "step must be a non-negative integer" in capsys.readouterr().err
     args = parser.parse_args(["runs", str(tmp_path)])
     assert args.func(args) == 1 and "is not a run folder" in capsys.readouterr().err
 

@@ -3,7 +3,7 @@
     pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE]
     pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
     pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16] [--codebook F]
-    pyvf runs runs/cb runs/cb2 [--plot]   # compare runs: their last held-out evaluation
+    pyvf runs runs/cb runs/cb2 [--plot] [--step N]   # compare runs: their last held-out evaluation
     pyvf export runs/tf -o tf-now.npz     # the model of a run's last checkpoint, while it trains
     pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
 
@@ -88,7 +88,7 @@ def cmd_runs(args):
     """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
     held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn."""
     def work():
-        table, plots = tasks.compare_runs(args.run_dirs, plot=args.plot)
+        table, plots = tasks.compare_runs(args.run_dirs, plot=args.plot, step=args.step)
         print(table, end="")
         for path in plots:
             print(f"wrote {path}")
@@ -210,6 +210,8 @@ def _runs(subparsers):
                               "evaluations", description=cmd_runs.__doc__)
     p.add_argument("run_dirs", nargs="+", metavar="RUN", help="run folders (train-codebook's or train-transformer's --out)")
     p.add_argument("--plot", action="store_true", help="also redraw each run's eval.png")
+    p.add_argument("--step", type=int, default=None,
+                   help="compare at equal steps: each run's last evaluation at or before STEP (default: its last)")
     p.set_defaults(func=cmd_runs)
 
 

@@ -117,10 +117,19 @@ def plot_eval(run_dir, png=None):
                        log_y=[c for c in panels if c == "mae" or c.startswith(("ce_c", "mae_c"))])
 
 
-def runs_table(run_dirs, columns=None):
+def _last_at(steps, step):
+    """The index of the last entry of steps at or before step (the last entry when step is None),
+    or None when there is none."""
+    k = len(steps) - 1 if step is None else int(np.searchsorted(steps, step, side="right")) - 1  # steps ascend
+    return k if k >= 0 else None
+
+
+def runs_table(run_dirs, columns=None, step=None):
     """Markdown: one row per run folder: its name, steps, wall seconds (the log's), what its
     hyperparameters change against the first run's of its kind (codebook, transformer), and its
-    last held-out evaluation (`columns` of eval.csv, default the panels of eval_panels)."""
+    last held-out evaluation (`columns` of eval.csv, default the panels of eval_panels); with
+    step, the last evaluation at or before that step (runs compared at equal steps; "-" for a run
+    with none), steps and wall seconds then also the log's at that step."""
     import json
 
     rows, firsts = [], {}
@@ -135,12 +144,15 @@ def runs_table(run_dirs, columns=None):
         log = read_log(d)
         ev = read_log(d, "eval.csv") if os.path.exists(os.path.join(d, "eval.csv")) else {}
         cols = columns or (eval_panels(list(ev))[0] if ev else [])
-        rows.append((os.path.basename(os.path.normpath(d)), int(log["step"][-1]), float(log["seconds"][-1]),
-                     changed, {c: (float(ev[c][-1]), int(ev["step"][-1])) for c in cols if c in ev}))
-    cols = columns or list(dict.fromkeys(c for r in rows for c in r[4]))  # the first run's order first
+        i = _last_at(log["step"], step)
+        j = _last_at(ev["step"], step) if ev else None
+        rows.append((os.path.basename(os.path.normpath(d)), int(log["step"][i]) if i is not None else 0,
+                     float(log["seconds"][i]) if i is not None else 0.0, changed,
+                     {c: (float(ev[c][j]), int(ev["step"][j])) for c in cols if c in ev and j is not None}, cols))
+    cols = columns or list(dict.fromkeys(c for r in rows for c in r[5]))  # the first run's order first
     head = ["run", "steps", "wall (s)", "changes"] + [f"{c} (step)" for c in cols]
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name, steps, secs, changed, ev in rows:
+    for name, steps, secs, changed, ev, _ in rows:
         vals = [f"{ev[c][0]:.4g} ({ev[c][1]})" if c in ev else "-" for c in cols]
         out.append("| " + " | ".join([name, str(steps), f"{secs:.0f}", changed] + vals) + " |")
     return "\n".join(out) + "\n"

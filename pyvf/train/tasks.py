@@ -151,13 +151,15 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
     return train_transformer(tokens, poses, config, out, eval_set=eval_set, eval_every=eval_every, **train)
 
 
-def compare_runs(run_dirs, plot=False):
-    """`pyvf runs`: (the markdown table of the run folders, runs_table; with plot, the eval.png
-    redrawn in each folder that has an eval.csv)."""
+def compare_runs(run_dirs, plot=False, step=None):
+    """`pyvf runs`: (the markdown table of the run folders, runs_table, at `step` when given; with
+    plot, the eval.png redrawn in each folder that has an eval.csv)."""
     for d in run_dirs:
         if not os.path.exists(os.path.join(d, "config.json")):
             raise ValueError(f"{d} is not a run folder (no config.json)")
-    table = runs_table(run_dirs)
+    if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 0):
+        raise ValueError(f"step must be a non-negative integer, got {step!r}")
+    table = runs_table(run_dirs, step=step)
     plots = [plot_eval(d) for d in run_dirs if plot and os.path.exists(os.path.join(d, "eval.csv"))]
     return table, plots
 
