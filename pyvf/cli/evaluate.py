@@ -7,7 +7,7 @@
 """
 
 from ..evaluate import demo as work
-from ..evaluate.run import DECODES
+from ..evaluate.run import DECODES, DEFAULT_DECODE
 from .options import add_threads, context_sizes, positive_int
 
 
@@ -45,9 +45,10 @@ def _common(p):
                    help="a codebook .npz (Codebook.save, e.g. runs/cb/codebook.npz); default: the pretrained one")
     p.add_argument("--transformer", default=None, metavar="FILE",
                    help="a transformer .npz (Transformer.save); default: the pretrained one")
-    p.add_argument("--decode", choices=sorted(DECODES), default="argmax",
-                   help="how a rendered view's token logits become an image: argmax (each token's most likely "
-                        "code, the published way; default) or expected (each token's mean code vector)")
+    p.add_argument("--decode", choices=sorted(DECODES), default=DEFAULT_DECODE,
+                   help="how a rendered view's token logits become an image: expected (each token's mean code "
+                        "vector, the latent of least expected squared error; default) or argmax (each token's "
+                        "most likely code, the published generation)")
     add_threads(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -27,6 +27,7 @@ from .metrics import (
 )
 from .run import (
     DECODES,
+    DEFAULT_DECODE,
     IMAGE_METRICS,
     META_KEYS,
     METHODS,
@@ -40,6 +41,7 @@ from .run import (
 
 __all__ = [
     "DECODES",
+    "DEFAULT_DECODE",
     "IMAGE_METRICS",
     "META_KEYS",
     "METHODS",

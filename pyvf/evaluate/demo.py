@@ -19,7 +19,7 @@ import time
 from .._machine import kernel_line
 from .._threads import set_num_threads
 from ..models import PRETRAINED, TRAIN_HINT, load_pretrained, pretrained_path
-from .run import evaluate, metrics_markdown
+from .run import DEFAULT_DECODE, evaluate, metrics_markdown
 
 __all__ = ["DEMO_SCENES", "DEMO_CONTEXT", "QUICK_SCENES", "QUICK_CONTEXT", "MODEL_CARD", "WALKTHROUGH", "demo",
            "kernel_line", "report", "say_without_models", "shipped"]
@@ -32,7 +32,7 @@ WALKTHROUGH = "docs/walkthrough.md"  # every step from pixels to a rendered view
 
 
 def report(name, *, out, scenes, context, seed, codebook=None, transformer=None, threads=None, progress=True,
-           decode="argmax"):
+           decode=DEFAULT_DECODE):
     """Load the pair, evaluate (decode: evaluate()'s), print the tables and timings, write `out`. Returns the exit status:
     0, or 1 (printed to stderr) when a model file is missing or does not fit."""
     print(kernel_line(), flush=True)
@@ -69,7 +69,7 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
 
 
 def demo(out="pyvf-demo", *, scenes=None, context=None, seed=1000, quick=False, codebook=None, transformer=None,
-         threads=None, progress=True, decode="argmax"):
+         threads=None, progress=True, decode=DEFAULT_DECODE):
     """`pyvf demo`: render novel views and find camera poses of held-out scenes with the
     pretrained pair (or the files given), against the baselines; report() then where to read
     more. scenes, context: None for DEMO_SCENES, DEMO_CONTEXT (quick: QUICK_SCENES,

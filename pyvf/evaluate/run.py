@@ -59,6 +59,7 @@ from .metrics import (
 )
 
 __all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS", "PAPER_SM7", "DECODES",
+           "DEFAULT_DECODE",
            "evaluate", "metrics_markdown", "render_images", "verdict_lines", "write_metrics"]
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
@@ -132,6 +133,13 @@ DECODES = {
     # error given the predicted distribution, so an uncertain token decodes to a blend, not a guess
     "expected": "each token's mean code vector under the softmax of its logits",
 }
+# How evaluate() and `pyvf demo` / `pyvf evaluate` decode unless told: "expected". A small model
+# is unsure of most tokens of a novel view; argmax commits each token to its likeliest code on its
+# own, so one view mixes codes of different guesses, while the mean code vector is the latent of
+# least expected squared error and scores lower MAE and RMSE on held-out scenes (docs/models.md
+# evaluates the shipped pair both ways). "argmax" is the published generation: use it to compare
+# with the paper or with another port of it.
+DEFAULT_DECODE = "expected"
 
 
 def _progress(iterable, total, desc, enabled):
@@ -210,13 +218,14 @@ def _check_args(context, scenes, views, queries, batch):
 
 def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000, views=None, queries=5,
              batch=8, out=None, pictures=True, picture_scenes=4, timing_scenes=4, repeat=5, progress=True,
-             sources=None, decode="argmax"):
+             sources=None, decode=DEFAULT_DECODE):
     """Score the pair on `scenes` held-out scenes for every context size; return the metrics dict
     (module docstring). views: per scene (None: 15, as SM7); queries: the last `queries` views;
     batch: scenes per transformer call. out: a folder to write metrics.json, metrics.md and (with
     pictures) views.png and poses.png of the first `picture_scenes` scenes at the largest C.
     sources: JSON-able, where the models came from (e.g. their files), kept as meta["sources"].
-    decode: how rendered logits become images, a key of DECODES (render_images)."""
+    decode: how rendered logits become images, a key of DECODES (render_images; DEFAULT_DECODE says
+    why "expected" is the default)."""
     t_start = time.perf_counter()
     check_pair(codebook, transformer)
     views = SM7_VIEWS if views is None else views
@@ -272,7 +281,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
 
 
 def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch, *, picture_scenes=0,
-                 progress=False, token_scores=False, decode="argmax"):
+                 progress=False, token_scores=False, decode=DEFAULT_DECODE):
     """Score the pair and the baselines on these scenes: for each C in context (ascending), the
     context is views 0..C-1 and the queries the views qidx.
 
