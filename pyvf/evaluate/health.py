@@ -148,11 +148,14 @@ def transformer_health(codebook, transformer, images, poses, tokens, contexts, b
     cross-entropy and token accuracy of the queries' tokens, the rendering's MAE and RMSE through
     the codebook beside the nearest-view and mean-image baselines', and the median position and
     orientation errors beside the closest-image and mean-pose baselines' (evaluate.run's
-    definitions). Inference only: nothing in either model changes."""
+    definitions). The rendering decodes each token's likeliest code (decode="argmax", the model's
+    own prediction), as every run's eval.csv always has, so that runs compare across versions;
+    pyvf evaluate's default decode (DEFAULT_DECODE) scores lower. Inference only: nothing in
+    either model changes."""
     from .run import score_scenes  # evaluate.run imports the scenes home; only this needs it
     views = images.shape[1]
     qidx = np.arange(views - HEALTH_QUERIES, views)
     results, _, _ = score_scenes(codebook, transformer, images, poses, tokens, tuple(contexts), qidx, batch,
-                                 token_scores=True)
+                                 token_scores=True, decode="argmax")
     return {f"{stem}_c{C}": results[str(C)][method][metric]
             for C in contexts for method, metric, stem in _TF_METRICS}
