@@ -20,6 +20,23 @@ from pyvf._io import atomic_write_text
 from pyvf.train.curves import eval_panels, plot_curves, plot_eval, read_log
 
 
+def _snapshot(run_dir, step, tmp):
+    """A copy of the run folder's config.json, log.csv and eval.csv in tmp with the rows up to
+    `step` only: the card of a model exported (`pyvf export`) from a run that trains on."""
+    import csv
+    tmp = os.path.join(tmp, os.path.basename(os.path.normpath(run_dir)))  # the plots' titles name the run
+    os.makedirs(tmp)
+    shutil.copyfile(os.path.join(run_dir, "config.json"), os.path.join(tmp, "config.json"))
+    for name in ("log.csv", "eval.csv"):
+        if os.path.exists(os.path.join(run_dir, name)):
+            with open(os.path.join(run_dir, name), newline="") as f:
+                rows = list(csv.reader(f))
+            rows = rows[:1] + [r for r in rows[1:] if int(float(r[0])) <= step]
+            with open(os.path.join(tmp, name), "w", newline="") as f:
+                csv.writer(f).writerows(rows)
+    return tmp
+
+
 def _run(run_dir):
     with open(os.path.join(run_dir, "config.json")) as f:
         config = json.load(f)
@@ -44,10 +61,16 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=
     steps, seconds = int(log["step"][-1]), float(log["seconds"][-1])
     lines = [f"## The {name}", "",
              f"Trained for {steps} steps in {seconds / 60:.0f} min of wall time in all (the log's elapsed "
-             "seconds, summed over the run's calls below; other work shared the cores part of the time).", "",
-             "| call started | resumed from step | machine (CPUs, processor, kernel path, threads) |",
-             "|---|---:|---|"]
+             "seconds, summed over the run's calls below; other work shared the cores part of the time)."]
+    planned = config["hyperparameters"].get("total_steps")
+    if planned and steps < planned:
+        lines[-1] += (f" The run is planned for {planned} steps (its learning-rate schedule's length) and trains "
+                      f"on: the shipped model is its state at step {steps}, written by `pyvf export`.")
+    lines += ["", "| call started | resumed from step | machine (CPUs, processor, kernel path, threads) |",
+              "|---|---:|---|"]
     for call in config.get("calls", []):
+        if (call.get("resumed_from_step") or 0) >= steps:  # a call after the exported step
+            continue
         m = call.get("machine")
         where = (f"{m['cpus']} CPUs, {m['processor']}, {m['kernel_path']}, {m['kernel_threads']} threads" if m
                  else "not recorded (a call from before config.json recorded the machine)")
@@ -85,8 +108,20 @@ def main(argv=None):
     p.add_argument("--transformer-where", default=None,
                    help="where the transformer run's calls ran, for calls that did not record it")
     p.add_argument("--remarks", default=None, help="a markdown file appended after the evaluation")
+    p.add_argument("--transformer-step", type=int, default=None,
+                   help="the step the shipped transformer was exported at (`pyvf export`) from a run that "
+                        "trains on: the card shows the run up to it")
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "..", "docs"))
     args = p.parse_args(argv)
+    if args.transformer_step is not None:
+        import tempfile
+        with tempfile.TemporaryDirectory() as tmp:
+            args.transformer_run = _snapshot(args.transformer_run, args.transformer_step, tmp)
+            return _write(args)
+    return _write(args)
+
+
+def _write(args):
 
     img_dir = os.path.join(args.out, "img")
     os.makedirs(img_dir, exist_ok=True)
