@@ -697,6 +697,8 @@ def plot(results, folder, prefix="accuracy-"):
         ax.plot(*zip(*front), "k--", lw=0.8, alpha=0.6, label="Pareto front")
         for u in (U32, U64):
             ax.axhline(u, color="0.4", ls=":", lw=1.0, label=f"unit roundoff, float32 {U32:.1e} / float64 {U64:.1e}")
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(min(lo, U64 / 3), max(hi, U32 * 3))  # both roundoffs in view
         ax.set_xlabel("median time (ms)")
         zero = any(r["rel"] == 0 for r in pts)
         ax.set_ylabel("normwise relative error vs float64 reference" + (f"\n(an error of 0 drawn at {FLOOR:.0e})"

@@ -1,6 +1,6 @@
 """docs/performance.md and docs/accuracy.md, generated (issue 11, item 5): never typed by hand.
 
-    pyvf bench report                 # the full runs into docs/; ~8 minutes on 2 cores
+    pyvf bench report                 # the full runs into docs/; ~10 minutes on 2 cores
     pyvf bench report --quick --out D # the --quick runs into D/ (a couple of minutes)
 
 Runs, in this order, on --threads threads:
@@ -18,9 +18,11 @@ the measurements of the same run (never typed): how the attention's memory and t
 against the naive stacked prefixes and dense masked attention (the fitted slopes, the ratios at the
 largest N every method measured), whether pyvf's default variant of each op is on the time/error
 Pareto front and its time over torch's, and the default thread setting's worst time over the best
-setting's; then the evidence, each table under the machine and date it was measured on. Plots need matplotlib (`pip install pyvf[plots]`); without it the documents
-are written without them and say so. Exit status 1 if any pyvf variant or sweep left its bound
-or the scaling study's validation failed.
+setting's; then the evidence, each table under the machine and date it was measured on.
+
+Plots need matplotlib (`pip install pyvf[plots]`); without it the documents are written without
+them and say so. Exit status 1 if any pyvf variant or sweep left its bound, the scaling study's
+validation failed, or a thread setting changed a call's result beyond pyvf bench threads' bound.
 """
 
 import datetime
