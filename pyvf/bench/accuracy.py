@@ -50,7 +50,8 @@ import numpy as np
 import pyvf
 from pyvf.nn import conv, layers, losses
 from pyvf.bench.attention import flat, unflat
-from pyvf.bench.common import blas_thread_env, cpu_name, median_time, pyplot, table
+from pyvf.bench.common import (blas_thread_env, cpu_name, legend_outside, log_ticks, median_time, pyplot,
+                               save_figure, table)
 from pyvf.bench.vq import brute_force
 from pyvf.verify.compare import rel_err
 
@@ -676,7 +677,8 @@ FLOOR = 1e-17  # where an error of exactly 0 is drawn on a log axis
 
 def plot(results, folder, prefix="accuracy-"):
     """A time-vs-error plot per op: {prefix}{op}.png in folder, each variant a point, the Pareto
-    front joined. Returns the files, or None without matplotlib."""
+    front joined, the unit roundoffs (the floor: an output's own rounding) dotted, the legend beside
+    the axes. Returns the files, or None without matplotlib."""
     plt = pyplot()
     if plt is None:
         return None
@@ -686,22 +688,27 @@ def plot(results, folder, prefix="accuracy-"):
         pts = [r for r in res["variants"] if "seconds" in r]
         if not pts:
             continue
-        fig, ax = plt.subplots(figsize=(6.4, 4.4))
+        fig, ax = plt.subplots(figsize=(8.4, 4.4), layout="constrained")
         xy = [(r["seconds"] * 1e3, max(r["rel"], FLOOR)) for r in pts]
         for (t, e), r in zip(xy, pts):
             marker = {"pyvf": "o", "torch": "s", "numpy": "^"}[r["backend"]]
             ax.loglog(t, e, marker, ms=8, label=r["name"])
         front = sorted(xy[i] for i in pareto(xy))
         ax.plot(*zip(*front), "k--", lw=0.8, alpha=0.6, label="Pareto front")
+        for u in (U32, U64):
+            ax.axhline(u, color="0.4", ls=":", lw=1.0, label=f"unit roundoff, float32 {U32:.1e} / float64 {U64:.1e}")
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(min(lo, U64 / 3), max(hi, U32 * 3))  # both roundoffs in view
         ax.set_xlabel("median time (ms)")
-        ax.set_ylabel("normwise relative error vs float64 reference")
+        zero = any(r["rel"] == 0 for r in pts)
+        ax.set_ylabel("normwise relative error vs float64 reference" + (f"\n(an error of 0 drawn at {FLOOR:.0e})"
+                                                                        if zero else ""))
         ax.set_title(f"{res['title']}\n{res['op']} size {res['size']}", fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
+        log_ticks(ax.xaxis)
+        legend_outside(fig)
         path = os.path.join(folder, f"{prefix}{res['op'].replace('_', '-')}.png")
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
+        save_figure(fig, path, dpi=100)
         files.append(path)
     return files
 

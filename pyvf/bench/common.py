@@ -8,6 +8,7 @@ library only (matplotlib where a plot is asked for).
     memory_method()                   # how peak_memory measures, for printing beside its numbers
     print(table(header, rows))        # a markdown table (or, with widths, a plain aligned one)
     write_json(path, report)          # a benchmark's report, as every benchmark writes it
+    legend_outside(fig); log_ticks(ax.xaxis); save_figure(fig, path)  # the plots' shared settings
 
 peak_memory measures the process's resident memory (Linux VmHWM), so it covers every
 allocation the call makes: NumPy arrays, C++ std::vector workspace, torch tensors. It counts
@@ -25,7 +26,8 @@ import tracemalloc
 from .._machine import cpu_name, median_time  # (re-exported: every benchmark imports them from here)
 
 __all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "peak_memory", "memory_method",
-           "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot"]
+           "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot",
+           "MEMORY_NOISE_BYTES", "legend_outside", "log_ticks", "save_figure"]
 
 # numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
 # sets them to the benchmark's --threads (pyvf/cli/bench.py), so that numpy's GEMM and pyvf's
@@ -99,6 +101,9 @@ def _fresh_pages():
 
 
 _HWM = _hwm_available()
+# below this, a peak_memory reading is approximate: the kernel's per-CPU RSS counters lag by up to
+# a few dozen pages per CPU (peak_memory's docstring); the memory plots draw it
+MEMORY_NOISE_BYTES = 2 ** 20
 
 
 def memory_method():
@@ -255,6 +260,51 @@ def pyplot():
     except ImportError:
         return None
     return plt
+
+
+def legend_outside(fig, where="right upper", ncol=1):
+    """One legend for every axes of fig (each label once, in drawing order), outside the axes so
+    that it covers no data. fig must be made with layout="constrained", which makes room for it.
+    where: matplotlib's "outside" locations ("right upper", "lower center", ...)."""
+    seen = {}
+    for ax in fig.axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(label, handle)
+    return fig.legend(list(seen.values()), list(seen), loc=f"outside {where}", fontsize=7, ncol=ncol)
+
+
+def log_ticks(axis, most=6):
+    """Label a log axis (ax.xaxis, after plotting) in plain numbers (0.3, 2, 40) at 1-2-5 steps
+    (1..9 on an axis too short for three of those), or at powers of ten (every k-th) where they
+    would be more than `most`; no minor labels.
+    matplotlib's default labels every minor tick of an axis spanning under a decade (3x10^-1,
+    4x10^-1, ...), and the labels run into each other."""
+    import math
+
+    from matplotlib import ticker
+
+    lo, hi = sorted(axis.get_view_interval())
+    decades = range(math.floor(math.log10(lo)), math.ceil(math.log10(hi)) + 1)
+
+    def at(steps):  # the ticks m 10^k in [lo, hi], m in steps
+        return [m * 10.0 ** k for k in decades for m in steps if lo <= m * 10.0 ** k <= hi]
+
+    ticks = at((1, 2, 5))
+    if len(ticks) < 3:  # under a decade
+        ticks = at(range(1, 10))
+    elif len(ticks) > most:  # over two decades: powers of ten
+        ticks = at((1,))
+    ticks = ticks[::max(1, math.ceil(len(ticks) / most))]
+    axis.set_major_locator(ticker.FixedLocator(ticks))
+    axis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_formatter(ticker.NullFormatter())
+
+
+def save_figure(fig, path, dpi=110):
+    """Write fig to path and close it: every benchmark plot is saved here (the tests wrap this to
+    check each figure's tick labels and legend before it is written)."""
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
 
 
 def write_outputs(report, json_path=None, plots_dir=None, make_plots=None, log=print):

@@ -41,7 +41,7 @@ import numpy as np
 
 import pyvf
 from pyvf.nn import conv, layers, losses
-from pyvf.bench.common import pyplot
+from pyvf.bench.common import legend_outside, pyplot, save_figure
 from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive, machine, torch_available
 from pyvf.bench.attention import flat
 from pyvf.bench.vq import brute_force
@@ -500,14 +500,21 @@ def breaks(sw):
     return out
 
 
+# the sweeps whose error is relative to the output's size: their plots draw the unit roundoffs,
+# the floor an output's own rounding sets
+RELATIVE = ("attention-spread", "attention-mask", "layernorm", "groupnorm", "cross-entropy", "quat-normalize")
+
+
 def plot_sweep(sw, folder):
     """hardcase-<name>.png: a line per variant, pyvf's bounds dashed; non-finite errors drawn as x
-    at the top of the axes. Returns the path, or None without matplotlib."""
+    at the top of the axes; errors below the floor (0 among them) drawn at it, and the ylabel says
+    so; the unit roundoffs dotted on the RELATIVE sweeps; the legend beside the axes. Returns the
+    path, or None without matplotlib."""
     plt = pyplot()
     if plt is None:
         return None
     os.makedirs(folder, exist_ok=True)
-    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    fig, ax = plt.subplots(figsize=(9.6, 4.8), layout="constrained")
     x = np.asarray(sw["x"], dtype=np.float64)
     finite = [v for vals in sw["lines"].values() for v in vals if np.isfinite(v) and v > 0]
     floor = sw.get("floor") or (min(finite) / 10 if finite else 1e-20)
@@ -522,24 +529,26 @@ def plot_sweep(sw, folder):
         if bad.any():
             ax.plot(x[bad], np.full(bad.sum(), top), "x", color=ln.get_color(), ms=7)
     for name, b in sw["bounds"].items():
-        ax.plot(x, np.maximum(np.array(b, dtype=np.float64), floor), "--", lw=1.2, color="k", alpha=0.7)
-    ax.plot([], [], "--", color="k", label="pyvf's bound(s)")
-    ax.plot([], [], "x", color="gray", label="NaN / inf")
+        ax.plot(x, np.maximum(np.array(b, dtype=np.float64), floor), "--", lw=1.2, color="k", alpha=0.7,
+                label="pyvf's bound(s)")
+    if sw["name"] in RELATIVE:
+        for u in (U32, U64):
+            ax.axhline(u, color="0.4", ls=":", lw=1.0, label=f"unit roundoff, float32 {U32:.1e} / float64 {U64:.1e}")
+    ax.plot([], [], "x", color="gray", label="NaN / inf (drawn at the top)")
     ax.set_yscale("log")
     if sw.get("logx", True):
         ax.set_xscale("log")
     if sw.get("invert_x"):
         ax.invert_xaxis()
-    ax.set_ylim(floor / 2, top * 3)
+    ax.set_ylim(min(floor, U64 if sw["name"] in RELATIVE else floor) / 2, top * 3)
+    below = any(v < floor for vals in sw["lines"].values() for v in vals)  # NaN compares False
     ax.set_xlabel(sw["xlabel"])
-    ax.set_ylabel(sw["ylabel"] + (f" (below {floor:.0e} drawn at it)" if sw.get("floor") else ""))
+    ax.set_ylabel(sw["ylabel"] + (f"\n(below {floor:.0e}, 0 included, drawn at {floor:.0e})" if below else ""))
     ax.set_title(sw["title"], fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
-    fig.tight_layout()
+    legend_outside(fig)
     path = os.path.join(folder, f"hardcase-{sw['name']}.png")
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
     return path
 
 

@@ -1,6 +1,6 @@
 """docs/performance.md and docs/accuracy.md, generated (issue 11, item 5): never typed by hand.
 
-    pyvf bench report                 # the full runs into docs/; ~8 minutes on 2 cores
+    pyvf bench report                 # the full runs into docs/; ~10 minutes on 2 cores
     pyvf bench report --quick --out D # the --quick runs into D/ (a couple of minutes)
 
 Runs, in this order, on --threads threads:
@@ -9,12 +9,20 @@ Runs, in this order, on --threads threads:
                            mode) -> img/scaling-{memory,time}-H<h>-dh<d>.png
   2. pyvf bench accuracy  -> img/accuracy-<op>.png
   3. pyvf bench hardcases -> img/hardcase-<sweep>.png
-and writes OUT/performance.md (machine, kernel path, threads; the scaling tables and slopes, the
-time of every op's variants beside their error), OUT/accuracy.md (every op's error table and
-Pareto plot, every hard-case sweep with pyvf's bound, PASS/FAIL) and the three runs' JSON in
-OUT/measurements/. Plots need matplotlib (`pip install pyvf[plots]`); without it the documents
-are written without them and say so. Exit status 1 if any pyvf variant or sweep left its bound
-or the scaling study's validation failed.
+  4. pyvf bench threads   (--quick: its quick mode; --threads threads at most, as many busy processes)
+and writes OUT/performance.md, OUT/accuracy.md (every op's error table and Pareto plot, every
+hard-case sweep with pyvf's bound, PASS/FAIL) and the four runs' JSON in OUT/measurements/.
+
+performance.md opens with its conclusions, one line per question, each number computed here from
+the measurements of the same run (never typed): how the attention's memory and time grow with N
+against the naive stacked prefixes and dense masked attention (the fitted slopes, the ratios at the
+largest N every method measured), whether pyvf's default variant of each op is on the time/error
+Pareto front and its time over torch's, and the default thread setting's worst time over the best
+setting's; then the evidence, each table under the machine and date it was measured on.
+
+Plots need matplotlib (`pip install pyvf[plots]`); without it the documents are written without
+them and say so. Exit status 1 if any pyvf variant or sweep left its bound, the scaling study's
+validation failed, or a thread setting changed a call's result beyond pyvf bench threads' bound.
 """
 
 import datetime
@@ -25,6 +33,7 @@ import tempfile
 import time
 
 from pyvf.bench import accuracy, hardcases, scaling
+from pyvf.bench import threads as _threads
 from pyvf.bench.common import table, write_json
 
 # the scaling runs: the command line that repeats each (in the documents), and scaling.run's options
@@ -76,41 +85,229 @@ def machine_lines(m, total=None):
     lines = [f"* machine: {m['processor']}, {m['cpu_count']} CPUs, {m['platform']}",
              f"* pyvf {m['pyvf']}, kernel path **{m['kernel_path']}** (this CPU runs {', '.join(m['kernel_paths'])}), "
              f"**{m['threads']} threads** (pyvf, torch and numpy's BLAS)",
-             f"* Python {m['python']}, NumPy {m['numpy']}, torch {m['torch'] or 'not installed'}"]
+             f"* Python {m['python']}, NumPy {m['numpy']}, torch {m['torch'] or 'not installed'}",
+             f"* measured {m['generated']}"]
     if total is not None:
         lines.append(f"* the whole report took {total / 60:.1f} minutes")
     return "\n".join(lines)
 
 
-def performance_md(out, quick, m, total, scalings, acc, acc_json):
-    """scalings: run_scaling's results, one per size."""
-    jsons = ", ".join(f"`{os.path.relpath(path, out)}`" for _, _, _, path in scalings)
+def measured_on(m, cpus=None, threads=None):
+    """The line above a table: the machine (CPU model, CPUs, kernel path, threads) and the date."""
+    return (f"Measured on {m['processor']} ({cpus or m['cpu_count']} CPUs), kernel path {m['kernel_path']}, "
+            f"{threads or m['threads']} threads, {m['generated']}.")
+
+
+# ---------------------------------------------------------------------------------------
+# the conclusions: one line per question, every number computed from the run's measurements
+
+# the methods as the conclusion lines name them (scaling.METHODS describes them in full)
+SHORT = dict(pyvf="pyvf", naive_pyvf="naive stacked prefixes (pyvf kernel)",
+             naive_sdpa="naive stacked prefixes (torch SDPA)", dense_sdpa="dense masked (torch SDPA)",
+             dense_numpy="dense masked (NumPy)", flex="torch flex_attention")
+QUESTION = dict(bytes=("Memory", "peak memory"), seconds=("Time", "time"))
+
+
+def _measured(scal, method, key):
+    """{N: value} of one method's measured `key` at the report's first size."""
+    H, dh = scal["config"]["sizes"][0]
+    return {p["N"]: p[key] for p in scal["points"]
+            if (p["method"], p["H"], p["dh"]) == (method, H, dh) and p.get(key)}
+
+
+def _not_measured(scal, method):
+    """Why a method has no measurement: not run (config["not_run"]), or its first point's note."""
+    if method in scal["config"].get("not_run", {}):
+        return scal["config"]["not_run"][method]
+    H, dh = scal["config"]["sizes"][0]
+    p = next((p for p in scal["points"] if (p["method"], p["H"], p["dh"]) == (method, H, dh)), {})
+    return (p.get("skipped") or p.get("error") or "no point").splitlines()[0][:120]
+
+
+def _against_pyvf(scal, vals, key):
+    """'label N^slope, ratio x pyvf's' for each method of vals but pyvf, the ratio at the largest N
+    every method of vals (pyvf included) measured: (that N or None, the phrases)."""
+    common = set.intersection(*(set(v) for v in vals.values()))
+    n = max(common) if common else None
+    fit = scal["slopes"]["{}x{}".format(*scal["config"]["sizes"][0])]
+    return n, [f"{SHORT[m]} N^{scaling._s(fit[m][key])}" + (f", {v[n] / vals['pyvf'][n]:.3g}x pyvf's" if n else "")
+               for m, v in vals.items() if m != "pyvf"]
+
+
+def scaling_line(scal, kind):
+    """The memory (kind "bytes") or time ("seconds") question's line, at the scaling report's first
+    size: pyvf's fitted slope over N, each other method's and its forward+backward value over
+    pyvf's at the largest N every method measured; forward-only methods (flex) at the largest N
+    they and pyvf measured; the methods not measured, with the reason."""
+    title, what = QUESTION[kind]
+    fb, fwd = f"fwd_bwd_{kind}", f"fwd_{kind}"
+    c = scal["config"]
+    where = f"H={c['sizes'][0][0]} dh={c['sizes'][0][1]}, R={c['R']}, B={c['B']}, L={c['L']}, float32"
+    vals = {m: _measured(scal, m, fb) for m in c["methods"]}
+    pyvf_fit = scal["slopes"]["{}x{}".format(*c["sizes"][0])]["pyvf"]
+    if not vals.get("pyvf"):
+        return f"* **{title}**: pyvf's forward+backward {what} was not measured ({_not_measured(scal, 'pyvf')})."
+    fwd_only = {m: _measured(scal, m, fwd) for m, v in vals.items() if not v}
+    fwd_only = {m: v for m, v in fwd_only.items() if v}
+    missing = [m for m in scaling.METHODS if m not in fwd_only and not vals.get(m)]
+    n, phrases = _against_pyvf(scal, {m: v for m, v in vals.items() if v}, fb)
+    line = (f"* **{title}**: pyvf's forward+backward {what} grows as **N^{scaling._s(pyvf_fit[fb])}** "
+            f"(N={min(vals['pyvf'])}..{max(vals['pyvf'])}; {where})")
+    line += (f"; at N={n}, the largest N every method measured: " if n else "; with no N every method measured: ")
+    line += "; ".join(phrases) if phrases else "no other method measured"
+    if fwd_only:
+        n1, ph = _against_pyvf(scal, {"pyvf": _measured(scal, "pyvf", fwd), **fwd_only}, fwd)
+        line += f". Forward only{f', at N={n1}' if n1 else ''}: " + "; ".join(ph)
+    if missing:
+        line += ". Not measured: " + "; ".join(f"{SHORT[m]}: {_not_measured(scal, m)}" for m in missing)
+    return line + "."
+
+
+def op_verdict(res):
+    """One op of the accuracy report: {op, ours (pyvf float32 on the default path), ref (torch
+    float32, else NumPy float32: the variant pyvf is timed against), front (ours on the time/error
+    Pareto front: no variant both faster and as accurate), beaten_by (the variants that are),
+    ratio (ours' time over ref's)}; ours None where it failed validation (untimed)."""
+    timed = [r for r in res["variants"] if "seconds" in r]
+    ours = next((r for r in timed if r["name"].endswith("(default)")), None)
+    ref = next((r for b in ("torch", "numpy") for r in timed if r["backend"] == b), None)
+    out = dict(op=res["op"], ours=ours, ref=ref, front=False, beaten_by=[], ratio=None)
+    if ours is None:
+        return out
+    front = accuracy.pareto([(r["seconds"], r["rel"]) for r in timed])
+    out["front"] = timed.index(ours) in front
+    out["beaten_by"] = [r["name"] for r in timed if r is not ours and r["seconds"] <= ours["seconds"]
+                        and r["rel"] <= ours["rel"] and (r["seconds"], r["rel"]) != (ours["seconds"], ours["rel"])]
+    out["ratio"] = ours["seconds"] / ref["seconds"] if ref else None
+    return out
+
+
+def speed_error_line(acc):
+    """The speed-against-error question's line: on how many ops pyvf's default variant is on the
+    Pareto front, its time over the reference variant's per op (grouped by reference), and who
+    beats it where it is not on the front."""
+    verdicts = [op_verdict(res) for res in acc["results"]]
+    by_ref = {}
+    for v in verdicts:
+        ref = ("failed validation" if v["ours"] is None else
+               f"over {v['ref']['name']}'s" if v["ref"] else "no reference timed")
+        by_ref.setdefault(ref, []).append(v["op"] + (f" {v['ratio']:.2g}" if v["ratio"] else ""))
+    off = [f"{v['op']} ({', '.join(v['beaten_by'])} faster and as accurate)" for v in verdicts
+           if v["ours"] is not None and not v["front"]]
+    return (f"* **Speed against error**: pyvf float32 on its default kernel path ({acc['machine']['kernel_path']}) "
+            f"is on the time/error Pareto front (no variant both faster and as accurate) for "
+            f"**{sum(v['front'] for v in verdicts)} of {len(verdicts)} ops**; its time "
+            + "; ".join(f"{ref}: {', '.join(ops)}" for ref, ops in by_ref.items())
+            + (f". Not on the front: {'; '.join(off)}." if off else "."))
+
+
+def _threads_worst(th):
+    """(the default setting's largest time over the best setting's, the call, the condition)."""
+    conditions = (("idle", th["idle"]), (f"beside {th['cores']} busy processes", th["loaded"]))
+    return max((t["default"] / min(t.values()), name, cond) for cond, times in conditions for name, t in times.items())
+
+
+def threads_line(th):
+    """The busy-machine question's line: the default thread setting's worst ratio to the best."""
+    if "idle" not in th:
+        return "* **On a busy machine**: not measured: " + "; ".join(th["failures"]) + "."
+    worst, name, cond = _threads_worst(th)
+    return (f"* **On a busy machine**: pyvf's default thread setting takes at most **{worst:.2f}x** the time of "
+            f"the best setting tried (worst: {name}, {cond}; target at most {_threads.LIMIT}), over "
+            f"{len(th['idle'])} calls idle and beside {th['cores']} busy processes.")
+
+
+def glance(out, quick, m, scalings, acc, th, jsons):
+    """The conclusions, first in performance.md: one line per question, then where to read more."""
+    lines = [f"Measured on {m['processor']} ({m['cpu_count']} CPUs), kernel path {m['kernel_path']}, "
+             f"{m['threads']} threads, {m['generated']}, by `pyvf bench report{' --quick' if quick else ''}`.", "",
+             scaling_line(scalings[0][0], "bytes"), scaling_line(scalings[0][0], "seconds"),
+             speed_error_line(acc), threads_line(th),
+             "* **More**: every op's error and the hard cases in [accuracy.md](accuracy.md); every number as JSON: "
+             + ", ".join(f"`{os.path.relpath(p, out)}`" for p in jsons) + "."]
+    return ["## At a glance", "", *lines, ""]
+
+
+# ---------------------------------------------------------------------------------------
+# the evidence
+
+
+def scaling_section(out, m, scal, tables):
+    """One scaling run: its command, plots, fitted slopes, and every point folded (<details>)."""
+    points, slopes = tables.split("\nfitted slopes", 1)
+    slopes, note = ("fitted slopes" + slopes).rsplit("\nmemory: ", 1)
+    c = scal["config"]
+    s = [f"`pyvf bench scaling {' '.join(scal['args'])}`: R={c['R']}, B={c['B']}, L={c['L']}, float32; each point "
+         f"in its own process, extra peak resident memory of one call ({scal['memory_method']}).", "",
+         measured_on(m, threads=c["threads"]), ""]
+    s += [_img(p, out, os.path.basename(p)) + "\n" for p in scal.get("plots") or []]
+    s += [points.strip().split("\n", 1)[0].replace("## H=", "### H="), "", slopes.strip(), "",
+          "<details><summary>every point: the counts, the memory expected and measured, the times</summary>", "",
+          points.strip().split("\n", 1)[1].strip(), "", "memory: " + note.strip(), "", "</details>", ""]
+    return s
+
+
+def accuracy_section(out, quick, m, acc):
+    """Every op's default pyvf variant against the reference variant (op_verdict), then each op's
+    variants: time beside error, and its plot."""
+    s = ["## Time of each op against its error", "",
+         f"`pyvf bench accuracy{' --quick' if quick else ''}`: median of {acc['config']['repeat']} calls after a "
+         "warm-up; error = max|x - ref| / max|ref| over the op's outputs against the float64 reference "
+         "(accuracy.md). Plots: time against error, the Pareto front dashed, the unit roundoffs dotted.", "",
+         measured_on(m), ""]
+    rows = []
+    for v in map(op_verdict, acc["results"]):
+        o, r = v["ours"], v["ref"]
+        rows.append([v["op"], _ms(o), accuracy._e(o and o["rel"]), r["name"] if r else "-", _ms(r),
+                     accuracy._e(r and r["rel"]), "-" if v["ratio"] is None else f"{v['ratio']:.2f}",
+                     "yes" if v["front"] else "no" + (f": {', '.join(v['beaten_by'])}" if v["beaten_by"] else "")])
+    s += [table(["op", "pyvf (default path)", "its error", "reference", "its time", "its error",
+                 "pyvf / reference time", "pyvf on the Pareto front"], rows), ""]
+    for res in acc["results"]:
+        size = tuple(res["size"]) if isinstance(res["size"], list) else res["size"]
+        s += [f"### {res['title']} (`{res['op']}`, size {size})", ""]
+        fastest = min((r["seconds"] for r in res["variants"] if "seconds" in r), default=None)
+        rows = [[r["name"], _ms(r) if "seconds" in r else "not timed: " + r.get("fail", ""), accuracy._e(r["rel"]),
+                 f"{r['seconds'] / fastest:.2f}" if fastest and "seconds" in r else "-"] for r in res["variants"]]
+        s += [table(["variant", "time (median)", "normwise rel. error", "time / fastest"], rows), "",
+              _img(res.get("plot"), out, f"time against error, {res['op']}"), ""]
+    return s
+
+
+def _ms(r):
+    return "-" if r is None else f"{r['seconds'] * 1e3:.3g} ms"
+
+
+def threads_section(quick, m, th):
+    """`pyvf bench threads`' table (threads.rows_of) under the question it answers."""
+    s = ["## Is pyvf fast on a busy machine?", "",
+         f"`pyvf bench threads{' --quick' if quick else ''}`, run inside the report (numpy's BLAS pool started with "
+         f"{', '.join(f'{k}={v}' for k, v in m['blas_thread_env'].items() if v) or 'no thread variable set'}): "
+         "each call's median time in every thread setting, idle and beside busy processes; "
+         "pyvf/bench/threads.py says what each call and setting is.", ""]
+    if "idle" not in th:
+        return s + ["Not measured: " + "; ".join(th["failures"]), ""]
+    keys = th["settings"]
+    rows = (_threads.rows_of(th["idle"], "idle", keys, th["bitwise_same"])
+            + _threads.rows_of(th["loaded"], f"{th['cores']} busy", keys, th["bitwise_same"]))
+    header = ["call", "machine", *(f"{_threads.label(k)} (ms)" for k in keys), "best", "default / best"]
+    return s + [measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{th['cores']}"),
+                "", table(header, rows), "",
+                "(* the result is not bitwise the default's: numpy's BLAS on another thread count rounds some "
+                f"products differently; target: default / best at most {_threads.LIMIT})", ""]
+
+
+def performance_md(out, quick, m, total, scalings, acc, th, jsons):
+    """scalings: run_scaling's results, one per size; th: threads.run's report; jsons: every JSON
+    written. The conclusions (glance), the machine, then the evidence."""
     s = [HEADER.format(quick=" --quick" if quick else ""), "", "# pyvf performance", "",
-         machine_lines(m, total), "",
-         f"Every number below was measured by `pyvf bench report{' --quick' if quick else ''}`; the JSON is in "
-         f"{jsons} and `{os.path.relpath(acc_json, out)}`. Every timed result was "
-         "validated first (accuracy.md has the errors).", "",
+         *glance(out, quick, m, scalings, acc, th, jsons), "## The machine", "", machine_lines(m, total), "",
+         "Every timed result was validated first (accuracy.md has the errors).", "",
          "## Attention memory and time against the number of views", ""]
     for scal, _, tables, _ in scalings:
-        s += [f"`pyvf bench scaling {' '.join(scal['args'])}`: R={scal['config']['R']}, "
-              f"B={scal['config']['B']}, L={scal['config']['L']}, float32; each point in its own process, extra "
-              f"peak resident memory of one call ({scal['memory_method']}).", ""]
-        for p in scal.get("plots") or []:
-            s += [_img(p, out, os.path.basename(p)), ""]
-        s += [tables.strip().replace("## H=", "### H="), ""]
-    s += ["## Time of each op against its error", "",
-          f"`pyvf bench accuracy{' --quick' if quick else ''}`: median of {acc['config']['repeat']} calls after a "
-          "warm-up; error = max|x - ref| / max|ref| over the op's outputs against the float64 reference "
-          "(accuracy.md). Plots: time against error, the Pareto front dashed.", ""]
-    for res in acc["results"]:
-        s += [f"### {res['title']} (`{res['op']}`, size {tuple(res['size']) if isinstance(res['size'], list) else res['size']})", ""]
-        rows = [[r["name"], f"{r['seconds'] * 1e3:.3g} ms" if "seconds" in r else "not timed: " + r.get("fail", ""),
-                 accuracy._e(r["rel"])] for r in res["variants"]]
-        fastest = min((r["seconds"] for r in res["variants"] if "seconds" in r), default=None)
-        for row, r in zip(rows, res["variants"]):
-            row.append(f"{r['seconds'] / fastest:.2f}" if fastest and "seconds" in r else "-")
-        s += [table(["variant", "time (median)", "normwise rel. error", "time / fastest"], rows), ""]
-        s += [_img(res.get("plot"), out, f"time against error, {res['op']}"), ""]
+        s += scaling_section(out, m, scal, tables)
+    s += accuracy_section(out, quick, m, acc)
+    s += threads_section(quick, m, th)
     return "\n".join(s)
 
 
@@ -144,29 +341,35 @@ def run(quick=False, out="docs", threads=2, log=print):
     os.makedirs(img, exist_ok=True)
     os.makedirs(meas, exist_ok=True)
     mode = "quick" if quick else "full"
-    log(f"1/3 pyvf bench scaling ({mode})", flush=True)
+    log(f"1/4 pyvf bench scaling ({mode})", flush=True)
     scalings = [run_scaling(args, options, quick, threads, img, meas)
                 for args, options in (SCALING_QUICK if quick else SCALING_FULL)]
-    log(f"2/3 pyvf bench accuracy ({mode})", flush=True)
+    log(f"2/4 pyvf bench accuracy ({mode})", flush=True)
     acc = accuracy.run(size=mode, repeat=3 if quick else 5, threads=threads, log=log)
     files = accuracy.plot(acc["results"], img) or []
     for res in acc["results"]:
         res["plot"] = next((f for f in files if f.endswith(f"accuracy-{res['op'].replace('_', '-')}.png")), None)
-    log(f"3/3 pyvf bench hardcases ({mode})", flush=True)
+    log(f"3/4 pyvf bench hardcases ({mode})", flush=True)
     hc = hardcases.run(mode=mode, threads=threads, log=log)
     hardcases.plot_all(hc["sweeps"], img)
+    log(f"4/4 pyvf bench threads ({mode})", flush=True)
+    th = _threads.run(quick, threads, log=log)
     suffix = "-quick" if quick else ""
-    acc_json, hc_json = os.path.join(meas, f"accuracy{suffix}.json"), os.path.join(meas, f"hardcases{suffix}.json")
+    jsons = dict(accuracy=acc, hardcases=hc, threads=th)
+    jsons = {os.path.join(meas, f"{name}{suffix}.json"): rep for name, rep in jsons.items()}
     total = time.perf_counter() - t0
     acc["total_seconds_report"] = hc["total_seconds_report"] = total
-    write_json(acc_json, acc)
-    write_json(hc_json, hc)
+    for path, rep in jsons.items():
+        write_json(path, rep)
     m = acc["machine"]
     m["generated"] = datetime.date.today().isoformat()
+    acc_json, hc_json, _ = jsons
     with open(os.path.join(out, "performance.md"), "w") as f:
-        f.write(performance_md(out, quick, m, total, scalings, acc, acc_json) + "\n")
+        f.write(performance_md(out, quick, m, total, scalings, acc, th, [sc[3] for sc in scalings] + list(jsons))
+                + "\n")
     with open(os.path.join(out, "accuracy.md"), "w") as f:
         f.write(accuracy_md(out, quick, m, total, acc, acc_json, hc, hc_json) + "\n")
-    failures = acc["failures"] + hc["failures"] + [f"scaling {' '.join(sc[0]['args'])}: a validation failed" for sc in scalings if sc[1]]
+    failures = (acc["failures"] + hc["failures"] + [f"threads: {f}" for f in th["failures"]]
+                + [f"scaling {' '.join(sc[0]['args'])}: a validation failed" for sc in scalings if sc[1]])
     return dict(failures=failures, total_seconds=total, files=[os.path.join(out, "performance.md"),
                                                                 os.path.join(out, "accuracy.md")])

@@ -48,8 +48,9 @@ import numpy as np
 import pyvf
 from pyvf.bench.attention import (BOUND32, attended_pairs, dense_logits_bytes, make_inputs, ms, pyvf_expected_memory,
                                   pyvf_fns, reference_fns, setup_flex, torch_backend, torch_fns, unflat, useful_flops)
-from pyvf.bench.common import (blas_thread_env, cpu_name, format_bytes, measured, median_time, memory_method, pyplot,
-                               run_worker, table, worker_main, write_outputs)
+from pyvf.bench.common import (MEMORY_NOISE_BYTES, blas_thread_env, cpu_name, format_bytes, legend_outside, measured,
+                               median_time, memory_method, pyplot, run_worker, save_figure, table, worker_main,
+                               write_outputs)
 from pyvf.verify.compare import rel_err
 
 WORKER = "pyvf.bench.scaling"  # this module, run as `python -m WORKER SPEC` (worker_main)
@@ -515,39 +516,45 @@ def tables(points, fit, sizes, methods):
 
 
 def plot(points, fit, sizes, methods, folder):
-    """memory_HxDH.png and time_HxDH.png in folder: log-log against N, a line per method and pass,
-    the fitted slope in the legend. Returns the files written, or None without matplotlib."""
+    """memory_HxDH.png and time_HxDH.png in folder: log-log against N, a panel per pass, a line per
+    method (one colour in both panels), the fitted slopes in the legend below the panels; the
+    memory plots draw MEMORY_NOISE_BYTES, below which a reading is approximate. Returns the files
+    written, or None without matplotlib."""
     plt = pyplot()
     if plt is None:
         return None
     import matplotlib.ticker
     os.makedirs(folder, exist_ok=True)
     files = []
+    views = sorted({p["N"] for p in points})
     for H, dh in sizes:
         f = fit[f"{H}x{dh}"]
         for what, keys, unit, scale in (("memory", ("fwd_bytes", "fwd_bwd_bytes"), "MiB", 2 ** 20),
                                         ("time", ("fwd_seconds", "fwd_bwd_seconds"), "ms", 1e-3)):
-            fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+            fig, axes = plt.subplots(1, 2, figsize=(12, 5.4), sharey=True, layout="constrained")
+            lowest = float("inf")
             for ax, key, title in zip(axes, keys, ("forward", "forward+backward")):
-                for method in methods:
+                for i, method in enumerate(methods):
                     pts = [p for p in points if p["method"] == method and (p["H"], p["dh"]) == (H, dh)
                            and p.get(key)]
-                    if not pts:
-                        continue
-                    ax.loglog([p["N"] for p in pts], [p[key] / scale for p in pts], "o-",
-                              label=f"{METHODS[method]} (slope {_s(f[method][key])})")
-                views = sorted({p["N"] for p in points})
+                    slopes = ", ".join(f"{t} {_s(f[method][k])}" for t, k in zip(("fwd", "fwd+bwd"), keys)
+                                       if f[method][k] is not None)
+                    if pts:
+                        ax.loglog([p["N"] for p in pts], [p[key] / scale for p in pts], "o-", color=f"C{i}",
+                                  label=f"{METHODS[method]} (slope {slopes})")
+                        lowest = min(lowest, min(p[key] for p in pts))
                 ax.set_xticks(views, [str(n) for n in views])
                 ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-                ax.set_title(f"{what}, {title}: H={H} dh={dh} R={R} L={L}")
+                ax.set_title(f"{what}, {title}: H={H} dh={dh} R={R} L={L}", fontsize=10)
                 ax.set_xlabel("N (views)")
                 ax.grid(True, which="both", alpha=0.3)
-                ax.legend(fontsize=7)
+                if what == "memory" and lowest < 4 * MEMORY_NOISE_BYTES:
+                    ax.axhline(MEMORY_NOISE_BYTES / scale, color="0.4", ls=":", lw=1.0,
+                               label=f"{format_bytes(MEMORY_NOISE_BYTES)}: below it a reading is approximate")
             axes[0].set_ylabel(f"extra peak memory ({unit})" if what == "memory" else f"median time ({unit})")
+            legend_outside(fig, "lower center", ncol=2)
             path = os.path.join(folder, f"{what}_H{H}_dh{dh}.png")
-            fig.tight_layout()
-            fig.savefig(path, dpi=110)
-            plt.close(fig)
+            save_figure(fig, path)
             files.append(path)
     return files
 
