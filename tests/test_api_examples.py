@@ -1,7 +1,7 @@
 """docs/api.md's Python examples run as written (in a temporary folder), and compute and print
 what their comments say."""
 
-import glob
+import importlib.util
 import os
 import re
 
@@ -25,11 +25,11 @@ def expected_paths(pyvf):
     """(the path in use, the paths this process can use, the paths built), found without pyvf's own
     detection: the built ones from the package's files, what the CPU runs from /proc/cpuinfo's flags
     (x86-64 Linux; docs/api.md: avx2 = AVX2 + FMA, avx512 = AVX-512 F/DQ/BW/VL), PYVF_ISA as set."""
-    here = os.path.dirname(pyvf.__file__)
-    files = {os.path.basename(f).split(".")[0] for f in glob.glob(os.path.join(here, "_core_*"))}
+    # an installed copy keeps the modules beside pyvf/__init__.py, an editable one in its build folder:
+    # Python's import system finds either
     needs = {"baseline": set(), "avx2": {"avx2", "fma"},
              "avx512": {"avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl"}, "neon": set()}
-    built = [p for p in needs if f"_core_{p}" in files]
+    built = [p for p in needs if importlib.util.find_spec(f"pyvf._core_{p}") is not None]
     with open("/proc/cpuinfo") as f:
         flags = set(next((line for line in f if line.startswith("flags")), ":").split(":")[1].split())
     runs = [p for p in built if needs[p] <= flags]

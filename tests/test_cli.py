@@ -63,7 +63,18 @@ def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path
                           text=True, timeout=TIMEOUT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     where = os.path.realpath(proc.stdout.strip())
-    assert not where.startswith(os.path.realpath(REPO) + os.sep), f"imported the source tree: {where}"
+    in_tree = where.startswith(os.path.realpath(REPO) + os.sep)
+    if editable_install():  # README's development install: the sources are the installed package
+        assert in_tree, f"an editable install imported another copy: {where}"
+    else:
+        assert not in_tree, f"imported the source tree: {where}"
+
+
+def editable_install():
+    """Whether pyvf was installed with `pip install -e` (PEP 610's direct_url.json says so)."""
+    from importlib.metadata import distribution
+    url = distribution("pyvf").read_text("direct_url.json")
+    return bool(url) and json.loads(url).get("dir_info", {}).get("editable", False)
 
 
 def test_import_pyvf_imports_no_command_code(tmp_path):
