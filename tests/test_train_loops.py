@@ -8,6 +8,7 @@ Tiny models and a handful of steps: the whole file runs in seconds."""
 import argparse
 import csv
 import dataclasses
+import hashlib
 import json
 import os
 import shutil
@@ -553,3 +554,171 @@ def test_export_writes_the_checkpoints_model(tmp_path, rng, capsys):
     with pytest.raises(ValueError, match="bad.npz: its transformer does not load"):
         pyvf.train.tasks.export_run(tmp_path / "bad.npz", tmp_path / "x")
     assert not os.path.exists(tmp_path / "x.npz")
+
+
+# ---------------------------------------------------------------------------------------
+# (g) a warm start: init, a model file's weights instead of the seed's
+
+
+def _engine_spy(monkeypatch, kind):
+    """Record what the loop's engine starts from: the model's state dict (through the engine, so
+    the torch engine's own copy) and the optimiser's state, read when the engine is built, before
+    the first update."""
+    import pyvf.train.loops as loops
+    name, at = ("_codebook_engine", (2, 4)) if kind == "codebook" else ("_transformer_engine", (1, 3))
+    real, seen = getattr(loops, name), {}
+
+    def spy(*args):
+        out = real(*args)
+        seen["model"], seen["optimizer"] = out[at[0]](), out[at[1]].state_dict()
+        return out
+
+    monkeypatch.setattr(loops, name, spy)
+    return seen
+
+
+def _trained_model_files(tmp_path, rng):
+    """A codebook and a transformer file, each trained 2 steps from seed 3 (the runs below use seed
+    0): model files unlike both the seed's initialisation and each other's."""
+    cb, tf = str(tmp_path / "init-cb"), str(tmp_path / "init-tf")
+    train_codebook(_images(rng), CB, cb, steps=2, batch_size=2, seed=3, **QUIET)
+    train_transformer(_tokens(rng), _poses(rng), TF, tf, steps=2, batch_size=2, lr=1e-3, seed=3, **QUIET)
+    return os.path.join(cb, "codebook.npz"), os.path.join(tf, "transformer.npz")
+
+
+@pytest.mark.parametrize("engine", ["pyvf", "torch"])
+def test_init_starts_from_the_files_weights(tmp_path, rng, monkeypatch, engine):
+    """A fresh run with init starts, before its first update, from the file's parameters bit for bit
+    (the codebook's EMA buffers too, its counter included) with a fresh optimiser (step 0, zero
+    moments): read from the engine, so the torch engine's model is checked, not only pyvf's. The
+    run records init's name and sha256 among its hyperparameters."""
+    if engine == "torch":
+        pytest.importorskip("torch")
+    cb_file, tf_file = _trained_model_files(tmp_path, rng)
+    for kind, file in (("codebook", cb_file), ("transformer", tf_file)):
+        seen = _engine_spy(monkeypatch, kind)
+        out = str(tmp_path / f"{engine}-{kind}")
+        if kind == "codebook":
+            train_codebook(_images(rng), CB, out, steps=1, batch_size=2, init=file, engine=engine, **QUIET)
+        else:
+            train_transformer(_tokens(rng), _poses(rng), TF, out, steps=1, batch_size=2, init=file, engine=engine,
+                              **QUIET)
+        want = load_npz(file, "model")
+        want.pop("__config__")
+        assert sorted(seen["model"]) == sorted(want)
+        for k in want:
+            assert_bitwise_equal(k, seen["model"][k], want[k])
+        fresh = (Codebook(CB) if kind == "codebook" else Transformer(TF)).state_dict()  # seed 0's
+        assert any(not np.array_equal(fresh[k], want[k]) for k in fresh)  # the check sees init ignored
+        opt = seen["optimizer"]
+        assert opt["step"] == 0 and all(not a.any() for m in ("exp_avg", "exp_avg_sq") for a in opt[m].values())
+        with open(file, "rb") as f:
+            sha = hashlib.sha256(f.read()).hexdigest()
+        record = {"path": os.path.basename(file), "sha256": sha}
+        assert json.loads(open(os.path.join(out, "config.json")).read())["hyperparameters"]["init"] == record
+        assert _checkpoint(out)[0]["hyper"]["init"] == record
+    assert int(load_npz(cb_file)["quantize.counter"]) == 2  # the EMA state compared above was a trained one
+
+
+def test_init_resume_is_exact(tmp_path, rng):
+    """A run with init, interrupted and resumed, equals the same run uninterrupted bit for bit; the
+    resume reads init from a copy in another folder (a run continued on another machine)."""
+    cb_file, tf_file = _trained_model_files(tmp_path, rng)
+    copies = tmp_path / "elsewhere"
+    copies.mkdir()
+    images, tokens, poses = _images(rng), _tokens(rng), _poses(rng)
+    for file, final in ((cb_file, "codebook.npz"), (tf_file, "transformer.npz")):
+        copy = shutil.copy(file, copies / os.path.basename(file))
+        a, b = str(tmp_path / f"a-{final}"), str(tmp_path / f"b-{final}")
+        if final == "codebook.npz":
+            def run(out, steps, init):
+                train_codebook(images, CB, out, steps=steps, batch_size=2, checkpoint_every=2, init=init, **QUIET)
+        else:
+            def run(out, steps, init):
+                train_transformer(tokens, poses, TF, out, steps=steps, batch_size=2, lr=1e-3, warmup=1,
+                                  total_steps=4, checkpoint_every=2, init=init, **QUIET)
+        run(a, 4, file)
+        run(b, 2, file)
+        run(b, 4, copy)
+        _assert_same_run(a, b, final)
+
+
+def test_init_of_another_configuration_or_kind_raises_naming_init(tmp_path, rng):
+    """A model file of another configuration raises ValueError naming init and the differing
+    fields; another kind of model file, or none, raises naming init; the run folder is untouched."""
+    small_cb = Codebook(dataclasses.replace(CB, n_embed=8)).save(str(tmp_path / "cb8.npz"))
+    wide_tf = Transformer(dataclasses.replace(TF, d_model=16)).save(str(tmp_path / "tf16.npz"))
+    images, tokens, poses, out = _images(rng), _tokens(rng), _poses(rng), str(tmp_path / "run")
+    with pytest.raises(ValueError, match=r"init .*cb8\.npz.* another configuration \(differs in \['n_embed'\]"):
+        train_codebook(images, CB, out, steps=1, batch_size=2, init=small_cb, **QUIET)
+    with pytest.raises(ValueError, match=r"init .*tf16\.npz.* another configuration \(differs in \['d_model'\]"):
+        train_transformer(tokens, poses, TF, out, steps=1, batch_size=2, init=wide_tf, **QUIET)
+    with pytest.raises(ValueError, match=r"init .*tf16\.npz is not a codebook model file"):
+        train_codebook(images, CB, out, steps=1, batch_size=2, init=wide_tf, **QUIET)
+    with pytest.raises(ValueError, match=r"init .*cb8\.npz is not a transformer model file"):
+        train_transformer(tokens, poses, TF, out, steps=1, batch_size=2, init=small_cb, **QUIET)
+    with pytest.raises(FileNotFoundError, match=r"init .*missing\.npz: no such file"):
+        train_codebook(images, CB, out, steps=1, batch_size=2, init=str(tmp_path / "missing.npz"), **QUIET)
+    with pytest.raises(TypeError, match="init must be a path"):
+        train_transformer(tokens, poses, TF, out, steps=1, batch_size=2, init=3, **QUIET)
+    assert not os.path.exists(out)
+
+
+def test_resume_with_another_init_is_refused(tmp_path, rng):
+    """init is part of the run: resuming with another file (other bytes under the same name, the same
+    bytes under another name) or without one raises naming init; so does resuming a run started
+    without init with one."""
+    images = _images(rng)
+    (tmp_path / "x").mkdir()
+    (tmp_path / "y").mkdir()
+    first = Codebook(CB, seed=1).save(str(tmp_path / "x" / "cb.npz"))
+    other_bytes = Codebook(CB, seed=2).save(str(tmp_path / "y" / "cb.npz"))
+    other_name = shutil.copy(first, tmp_path / "x" / "renamed.npz")
+    run = str(tmp_path / "run")
+    train_codebook(images, CB, run, steps=1, batch_size=2, init=first, **QUIET)
+    for init in (other_bytes, other_name, None):
+        with pytest.raises(ValueError, match=r"another hyperparameters \(differs in \['init'\]\)"):
+            train_codebook(images, CB, run, steps=2, batch_size=2, init=init, **QUIET)
+    plain = str(tmp_path / "plain")
+    train_codebook(images, CB, plain, steps=1, batch_size=2, **QUIET)
+    with pytest.raises(ValueError, match=r"differs in \['init'\]"):
+        train_codebook(images, CB, plain, steps=2, batch_size=2, init=first, **QUIET)
+    train_codebook(images, CB, run, steps=2, batch_size=2, init=first, **QUIET)  # the same file resumes
+    assert _checkpoint(run)[0]["step"] == 2
+
+
+def test_init_option_of_the_commands(tmp_path, rng, monkeypatch, capsys):
+    """--init FILE of train-codebook and train-transformer reaches the training function (the run
+    records the file); a missing file or another kind of model file is an error naming --init."""
+    images = _images(rng, scenes=3, views=5)
+    fake = types.ModuleType("pyvf.scenes")  # the dataset reader, whatever the state of pyvf.scenes
+    fake.load_dataset = lambda path: types.SimpleNamespace(images=images, poses=_poses(rng), seed=0)
+    monkeypatch.setitem(sys.modules, "pyvf.scenes", fake)
+    cb_json, tf_json = tmp_path / "cb.json", tmp_path / "tf.json"
+    cb_json.write_text(json.dumps(dataclasses.asdict(CB)))
+    tf_json.write_text(json.dumps(dataclasses.asdict(TF)))
+    pyvf.train.save_tokens(str(tmp_path / "tokens.npz"), _tokens(rng), _poses(rng), TF.n_embeddings)
+    cb_file = Codebook(CB, seed=1).save(str(tmp_path / "cb.npz"))
+    tf_file = Transformer(TF, seed=1).save(str(tmp_path / "tf.npz"))
+    parser = argparse.ArgumentParser(prog="pyvf")
+    cli_register(parser.add_subparsers(dest="command"))
+
+    def run(command, out, init):
+        data = ["--data", tmp_path / "data", "--config", cb_json] if command == "train-codebook" else \
+            ["--tokens", tmp_path / "tokens.npz", "--config", tf_json]
+        args = parser.parse_args([str(a) for a in [command, *data, "--out", tmp_path / out, "--steps", 1,
+                                                   "--batch", 2, "--eval-every", 0, "--no-progress", "--init", init]])
+        assert args.init == str(init)
+        return args.func(args)
+
+    for command, right, wrong, kind in (("train-codebook", cb_file, tf_file, "codebook"),
+                                        ("train-transformer", tf_file, cb_file, "transformer")):
+        assert run(command, command, right) == 0
+        hyper = json.loads((tmp_path / command / "config.json").read_text())["hyperparameters"]
+        assert hyper["init"]["path"] == os.path.basename(right)
+        capsys.readouterr()
+        assert run(command, "x", tmp_path / "missing.npz") == 1
+        assert f"--init {tmp_path / 'missing.npz'} does not exist" in capsys.readouterr().err
+        assert run(command, "x", wrong) == 1
+        assert f"--init {wrong} is not a readable {kind} file" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "x")

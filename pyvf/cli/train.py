@@ -1,8 +1,8 @@
 """The training commands' arguments; the work is pyvf.train.tasks' (and train_pipeline's).
 
-    pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE]
+    pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE] [--init F]
     pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
-    pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16] [--codebook F]
+    pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16] [--codebook F] [--init F]
     pyvf runs runs/cb runs/cb2 [--plot] [--step N]   # compare runs: their last held-out evaluation
     pyvf export runs/tf -o tf-now.npz     # the model of a run's last checkpoint, while it trains
     pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
@@ -37,7 +37,7 @@ def _guarded(name, work):
 
 def _run(args):
     """The options every training run takes, as train_codebook's and train_transformer's keywords."""
-    return dict(config=args.config, steps=args.steps, batch_size=args.batch, seed=args.seed,
+    return dict(config=args.config, init=args.init, steps=args.steps, batch_size=args.batch, seed=args.seed,
                 checkpoint_every=args.checkpoint_every, log_every=args.log_every, eval_every=args.eval_every,
                 eval_scenes=args.eval_scenes, eval_seed=args.eval_seed, resume=not args.no_resume,
                 progress=not args.no_progress, threads=args.threads, command=_record(args))
@@ -111,6 +111,9 @@ def _run_options(p, batch, checkpoint_every):
     p.add_argument("--batch", type=int, default=batch, help=f"batch size (default {batch})")
     p.add_argument("--seed", type=int, default=0, help="initialisation and batches (default 0)")
     p.add_argument("--config", default="tiny", help='"tiny" (default) or a JSON file of the configuration')
+    p.add_argument("--init", default=None, metavar="FILE",
+                   help="start from this model file's weights (Codebook.save / Transformer.save output) instead of "
+                        "the seed's initialisation; the optimiser starts fresh")
     p.add_argument("--checkpoint-every", type=int, default=checkpoint_every,
                    help=f"steps between checkpoints (default {checkpoint_every}; one at the end always)")
     p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")

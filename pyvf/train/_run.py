@@ -55,6 +55,15 @@ def fingerprint(*arrays):
     return h.hexdigest()
 
 
+def file_sha256(path):
+    """The sha256 of a file's bytes, hex: the file a run started from (a warm start's model file)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def integer(name, x, lo=1):
     """x: a Python or NumPy integer >= lo -> int. Errors name the argument."""
     return _checks.integer(name, x, lo)

@@ -15,6 +15,7 @@ no generator state is saved.
 """
 
 import dataclasses
+import os
 
 import numpy as np
 
@@ -32,7 +33,7 @@ from ..evaluate.health import (
 from ..evaluate.metrics import encode_images, to_model_images
 from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import Run, fingerprint, integer, positive_int, real
+from ._run import Run, _diff, file_sha256, fingerprint, integer, jsonable, positive_int, real
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
 from .torch_codebook_engine import parity_images
@@ -152,6 +153,37 @@ class _Threads:
         return self._block.__exit__(*exc)
 
 
+def _warm_start(init, cls, config, hyper):
+    """train_codebook's and train_transformer's `init`: None, or the path of a model file written
+    by cls.save (cls: Codebook or Transformer) whose configuration is the run's `config`.
+    Returns (hyper with the file's record, "init": {"path": its name, "sha256": its bytes'}, the
+    file's state_dict()), or (hyper, None) without one (no "init" entry: runs from before the
+    option resume as they were). The record keeps the name without its folder: the same file
+    copied elsewhere (a run continued on another machine) resumes the run, another file is
+    refused by Run's hyperparameter check. Errors name init and come before the run folder is
+    touched."""
+    if init is None:
+        return hyper, None
+    try:
+        path = os.fspath(init)
+    except TypeError:
+        raise TypeError(f"init must be a path to a {cls.FILE_KIND} model file, got {type(init).__name__}") from None
+    try:
+        model = cls.load(path)
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"init {path}: no such file") from e
+    except ValueError as e:  # CheckpointError: corrupt, or another kind of model
+        raise ValueError(f"init {path} is not a {cls.FILE_KIND} model file ({cls.__name__}.save's): {e}") from e
+    saved, now = jsonable(dataclasses.asdict(model.config)), jsonable(dataclasses.asdict(config))
+    differ = _diff(saved, now)
+    if differ:
+        said = "; ".join(f"{k}: {saved.get(k)!r} in the file, {now.get(k)!r} in the run" for k in differ)
+        raise ValueError(f"init {path} holds a {cls.__name__} of another configuration (differs in {differ}: "
+                         f"{said}): start from a model of the run's configuration, or run with the file's")
+    record = {"path": os.path.basename(path), "sha256": file_sha256(path)}
+    return {**hyper, "init": record}, model.state_dict()
+
+
 # ---------------------------------------------------------------------------------------
 # the codebook
 
@@ -176,11 +208,22 @@ def _recipe(recipe, lr, betas, reset_dead_codes, object_weight):
     return lr, betas, reset_dead_codes, object_weight
 
 
-def _codebook_and_optimiser(run, config, seed, lr, betas):
-    """A new Codebook and its Adam; both as the run's checkpoint left them when it resumes."""
+def _codebook_and_optimiser(run, config, seed, lr, betas, init_state=None):
+    """A new Codebook and its Adam; both as the run's checkpoint left them when it resumes. A fresh
+    run with init_state (_warm_start's) starts from its parameters and EMA buffers, its Adam fresh
+    (zero moments, step 0); a resumed run ignores init_state: the checkpoint holds the run's state."""
     model = Codebook(config, seed=seed)
     if run.resumed:
         run.restore("model", model.load_official, run.model_state)  # replaces model.params
+    elif init_state is not None:
+        # Codebook.save writes the quantizer's four buffers and Codebook.load requires them, so
+        # the EMA state is the file's too: the hidden cluster sizes and sums with the counter
+        # whose bias correction 1 - decay^counter they were accumulated under (docs/math.md §4).
+        # The codes then move from the file's by EMA steps, as in the run that wrote it. Zeroed
+        # averages and counter would not: at counter 1 the correction undoes the (1 - decay)
+        # weight, so the first update would set every code to that batch's mean of the vectors
+        # that chose it, and every code the batch left unused to 0.
+        model.load_official(init_state)  # replaces model.params and the quantizer's buffers
     opt = Adam(model.params, lr, betas=betas)  # after the restore: on the params it put in place
     if run.resumed:
         run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
@@ -215,7 +258,7 @@ def _codebook_engine(engine, model, opt, parity, device, precision):
 def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="small-batch", lr=None, betas=None,
                    reset_dead_codes=None, object_weight=None, seed=0, checkpoint_every=200, log_every=10,
                    eval_images=None, eval_every=0, resume=True, progress=True, threads=None, command=None,
-                   engine="pyvf", device="cpu", precision="fp32"):
+                   engine="pyvf", device="cpu", precision="fp32", init=None):
     """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4).
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
@@ -241,6 +284,8 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
         can collapse onto a few codes (measured on SM7: 9 of 256 codes in use at step 80).
     engine, device, precision: as train_transformer's (torch_codebook_engine.TorchCodebook: the
         same run with the model in torch, parity.csv at every checkpoint; one process).
+    init: None, or a Codebook.save file of this configuration: a fresh run starts from its weights
+        and EMA buffers instead of the seed's, Adam fresh; a resume needs the same file (any folder).
     Returns the trained Codebook."""
     if not isinstance(config, CodebookConfig):
         raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
@@ -255,6 +300,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
     if object_weight != 1.0:  # absent at 1.0: runs from before the option resume as they were
         hyper["object_weight"] = object_weight
+    hyper, init_state = _warm_start(init, Codebook, config, hyper)
     check_engine(engine, device, precision)
     threads_set = _Threads(threads)  # checked before the run folder is touched
     run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, final="codebook.npz",
@@ -264,7 +310,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
                         "every": eval_every, "fingerprint": fingerprint(eval_images)}},
               eval_columns=None if eval_images is None else CODEBOOK_HEALTH)
     evaluating = eval_images is not None and eval_every > 0
-    model, opt = _codebook_and_optimiser(run, config, seed, lr, betas)
+    model, opt = _codebook_and_optimiser(run, config, seed, lr, betas, init_state)
     step, reset, state, current, opt, check = _codebook_engine(
         engine, model, opt, parity_images(flat, seed, config.dtype), device, precision)
     with threads_set, run:
@@ -366,11 +412,12 @@ def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, wa
 
 
 def _transformer_eval(eval_set, eval_every, config):
-    """train_transformer's held-out evaluation, eval_set checked: (its record for config.json, the
-    columns of eval.csv, health(model) -> the row of transformer_health at health_contexts); all
-    None without eval_set."""
+    """train_transformer's held-out evaluation, eval_set and eval_every checked: (eval_every, its
+    record for config.json, the columns of eval.csv, health(model) -> the row of transformer_health
+    at health_contexts); all but eval_every None without eval_set."""
+    eval_every = integer("eval_every", eval_every, 0)
     if eval_set is None:
-        return None, None, None
+        return eval_every, None, None, None
     if not isinstance(eval_set, dict) or sorted(eval_set) != ["codebook", "images", "poses", "tokens"]:
         raise ValueError("eval_set must be a dict of codebook, images, poses and tokens")
     e = eval_set
@@ -383,15 +430,19 @@ def _transformer_eval(eval_set, eval_every, config):
         return transformer_health(e["codebook"], model, e["images"], e["poses"], e["tokens"], contexts)
 
     record = {"every": eval_every, "contexts": contexts, "fingerprint": fingerprint(e["tokens"])}
-    return record, transformer_health_columns(contexts), health
+    return eval_every, record, transformer_health_columns(contexts), health
 
 
-def _transformer_and_optimiser(run, config, seed, schedule, weight_decay):
+def _transformer_and_optimiser(run, config, seed, schedule, weight_decay, init_state=None):
     """A new Transformer and its optimiser, the published one (optim.py: HF AdamWeightDecay over
-    Keras Adam); both as the run's checkpoint left them when it resumes."""
+    Keras Adam); both as the run's checkpoint left them when it resumes. A fresh run with
+    init_state (_warm_start's) starts from its parameters, the optimiser fresh (zero moments,
+    step 0, the schedule from its start)."""
     model = Transformer(config, seed=seed)
     if run.resumed:
         run.restore("model", model.load_official, run.model_state)  # replaces model.params
+    elif init_state is not None:
+        model.load_official(init_state)  # replaces model.params
     opt = AdamW(model.params, lr=schedule, eps=1e-8, weight_decay=weight_decay, decay=published_weight_decay,
                 eps_convention="keras")  # after the restore: on the params it put in place
     if run.resumed:
@@ -441,7 +492,7 @@ def _run_folder(dp, make_run, steps, out_dir):
 def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, context=None, lr=1e-4, warmup=None,
                       total_steps=None, weight_decay=0.01, max_grad_norm=1.0, clip_mode="per_tensor", seed=0,
                       checkpoint_every=200, log_every=10, eval_set=None, eval_every=0, resume=True, progress=True,
-                      threads=None, command=None, engine="pyvf", device="cpu", precision="fp32"):
+                      threads=None, command=None, engine="pyvf", device="cpu", precision="fp32", init=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
     (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5).
 
@@ -464,8 +515,8 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         eval_every steps, at the last step and before the first of a fresh run,
         health.transformer_health at health.health_contexts is appended to out_dir/eval.csv
         (reads the models only: the trajectory is the same without it).
-    out_dir, resume, seed, threads, command: as train_codebook; the final model is
-        out_dir/transformer.npz (Transformer.load reads it).
+    out_dir, resume, seed, init, threads, command: as train_codebook (init a Transformer.save
+        file); the final model is out_dir/transformer.npz (Transformer.load reads it).
     engine: "pyvf" (its own kernels, on the CPU) or "torch" (torch_engine.TorchTransformer:
         the same batches, schedule, optimiser, clipping and checkpoints, the model in torch on
         `device` "cpu" | "cuda" | "cuda:N" at `precision` "fp32" | "bf16" (autocast; the weights
@@ -480,10 +531,10 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     hyper, schedule, steps = _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup,
                                                 total_steps, weight_decay, max_grad_norm, clip_mode, seed)
     batch_size, n_views, seed, weight_decay = (hyper[k] for k in ("batch_size", "views", "seed", "weight_decay"))
+    hyper, init_state = _warm_start(init, Transformer, config, hyper)
     check_engine(engine, device, precision)
     dp, device = data_parallel(device, batch_size) if engine == "torch" else (None, device)
-    eval_every = integer("eval_every", eval_every, 0)
-    eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
+    eval_every, eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
     threads_set = _Threads(threads)
     call = {"command": command, "threads": threads, "engine": engine, "device": device, "precision": precision,
             "processes": 1 if dp is None else dp.world, "eval": eval_record}
@@ -492,7 +543,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
                                       checkpoint_every=checkpoint_every, log_every=log_every, call=call,
                                       eval_columns=eval_columns), steps, out_dir)
     evaluating = health is not None and eval_every > 0 and not isinstance(run, Follower)
-    model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay)
+    model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay, init_state)
     step, state, current, opt, check = _transformer_engine(
         engine, model, opt, dp, parity_batch(tokens, poses, n_views, seed, config.dtype), (max_grad_norm, clip_mode),
         device, precision)

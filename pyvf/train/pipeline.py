@@ -15,13 +15,13 @@ Training scenes use seed 0, the runs' health checks seed 1, the final evaluation
 """
 
 import dataclasses
-import hashlib
 import json
 import os
 
 from .._io import atomic_write_text
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import TransformerConfig
+from ._run import file_sha256
 from .loops import (
     TINY_CODEBOOK,
     TINY_TRANSFORMER,
@@ -75,14 +75,6 @@ PRESETS = {
 }
 
 
-def _sha256(path):
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _scenes(folder, n, size, progress):
     """The training scenes: loaded when the folder's manifest exists and matches, else written."""
     from ..scenes import load_dataset, write_dataset
@@ -100,7 +92,7 @@ def _scenes(folder, n, size, progress):
 def _tokens(path, codebook_path, images, poses, progress):
     """tokenize's output for this codebook file: reused when tokens.json names its sha256."""
     stamp = path[:-len(".npz")] + ".json"
-    sha = _sha256(codebook_path)
+    sha = file_sha256(codebook_path)
     if os.path.exists(path) and os.path.exists(stamp):
         with open(stamp, encoding="utf-8") as f:
             if json.load(f).get("codebook_sha256") == sha:

@@ -36,7 +36,7 @@ from .loops import (
 )
 
 __all__ = ["EVAL_VIEWS", "codebook_run", "compare_runs", "export_run", "held_out_scenes", "held_out_views", "read_codebook",
-           "read_config", "tokenize_dataset", "transformer_run"]
+           "read_config", "read_model", "tokenize_dataset", "transformer_run"]
 
 EVAL_VIEWS = 4  # views per held-out scene in a codebook run's evaluation
 
@@ -61,14 +61,20 @@ def read_config(value, cls, tiny):
                          f"{[f.name for f in dataclasses.fields(cls)]}") from e
 
 
+def read_model(path, cls, what):
+    """cls.load(path) (cls: Codebook or Transformer), its errors as ValueError naming `what`
+    ("codebook", or the option "--init") and the file."""
+    try:
+        return cls.load(path)
+    except FileNotFoundError as e:
+        raise ValueError(f"{what} {path} does not exist") from e
+    except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
+        raise ValueError(f"{what} {path} is not a readable {cls.FILE_KIND} file: {type(e).__name__}: {e}") from e
+
+
 def read_codebook(path):
     """Codebook.load(path), its errors as ValueError naming the file."""
-    try:
-        return Codebook.load(path)
-    except FileNotFoundError as e:
-        raise ValueError(f"codebook {path} does not exist") from e
-    except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
-        raise ValueError(f"codebook {path} is not a readable codebook file: {type(e).__name__}: {e}") from e
+    return read_model(path, Codebook, "codebook")
 
 
 def _load_dataset(path):
@@ -108,14 +114,17 @@ def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None):
         return held_out_set(codebook, images, poses)
 
 
-def codebook_run(data, out, *, config="tiny", eval_every=100, eval_scenes=32, eval_seed=1, **train):
+def codebook_run(data, out, *, config="tiny", eval_every=100, eval_scenes=32, eval_seed=1, init=None, **train):
     """train_codebook on the dataset folder `data` into the run folder `out`, evaluated every
-    eval_every steps on held_out_views; train: train_codebook's other keywords (steps,
-    batch_size, ..., threads, command). Returns the trained Codebook (out/codebook.npz)."""
+    eval_every steps on held_out_views, starting from the codebook file `init` when given;
+    train: train_codebook's other keywords (steps, batch_size, ..., threads, command). Returns
+    the trained Codebook (out/codebook.npz)."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
+    if init is not None:
+        read_model(init, Codebook, "--init")  # a missing file or another model's, named as the option
     data = _load_dataset(data)
     held_out = held_out_views(eval_every, eval_scenes, eval_seed, data, config.image_size)
-    return train_codebook(data.images, config, out, eval_images=held_out, eval_every=eval_every, **train)
+    return train_codebook(data.images, config, out, eval_images=held_out, eval_every=eval_every, init=init, **train)
 
 
 def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threads=None):
@@ -132,12 +141,14 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
 
 
 def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200, eval_scenes=16, eval_seed=1,
-                    **train):
+                    init=None, **train):
     """train_transformer on the tokens file into the run folder `out`; with codebook (the file the
-    tokens came from), evaluated every eval_every steps on held_out_scenes. train:
-    train_transformer's other keywords (steps, batch_size, ..., threads, command). Returns the
-    trained Transformer (out/transformer.npz)."""
+    tokens came from), evaluated every eval_every steps on held_out_scenes; starting from the
+    transformer file `init` when given. train: train_transformer's other keywords (steps,
+    batch_size, ..., threads, command). Returns the trained Transformer (out/transformer.npz)."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
+    if init is not None:
+        read_model(init, Transformer, "--init")  # a missing file or another model's, named as the option
     tokens_path, (tokens, poses, n_embed) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
         raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "
@@ -148,7 +159,8 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
     elif eval_every:
         print("pyvf train-transformer: no --codebook, so no held-out evaluation (it renders through the "
               "codebook)", file=sys.stderr)
-    return train_transformer(tokens, poses, config, out, eval_set=eval_set, eval_every=eval_every, **train)
+    return train_transformer(tokens, poses, config, out, eval_set=eval_set, eval_every=eval_every, init=init,
+                             **train)
 
 
 def compare_runs(run_dirs, plot=False, step=None):
