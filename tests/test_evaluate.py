@@ -6,6 +6,7 @@ The models are tiny and random (16x16 images, 8x8 tokens of 32 codes): what is t
 protocol and the bookkeeping, not the quality of a trained model. About half a minute on 2 cores.
 """
 
+import importlib.util
 import json
 import os
 import shutil
@@ -428,6 +429,56 @@ def test_verdict_lines_say_whether_each_baseline_is_beaten():
     assert lines[3].startswith("- closest_image_pose: no (position 1.00 vs 0.50")
     assert lines[4].startswith("- mean_pose: no (position 1.00 vs 1.00")  # a tie is no win
     assert "MAE 1.61, RMSE 7.02, position 0.21, orientation (deg) 3.48" in lines[5]
+
+
+def test_verdicts_at_each_context_and_the_goal_at_contexts_3_and_5():
+    """Hand-made metrics, every baseline's figures distinct: at context 3 pyvf beats every baseline
+    on every figure; at context 5 it loses mean_image's MAE (2.0 vs 1.5) and closest_image_pose's
+    orientation (10 vs 8). verdict_lines(context=C) reads that context, not the largest; goal_line
+    names exactly the figures that hold and fail (an inverted comparison or a swapped baseline
+    would move them); the model card's section (tools/model_card.py) has every context, then them."""
+    from pyvf.evaluate.run import goal_line, verdict_lines
+
+    def row(mae=None, rmse=None, pos=None, ori=None):
+        return {k: v for k, v in (("mae", mae), ("rmse", rmse), ("position_error_median", pos),
+                                  ("orientation_error_median_deg", ori)) if v is not None}
+
+    c3 = {"pyvf": row(2.0, 9.0, 1.0, 10.0), "nearest_view": row(3.0, 10.0), "mean_image": row(4.0, 11.0),
+          "closest_image_pose": row(pos=2.0, ori=12.0), "mean_pose": row(pos=3.0, ori=14.0)}
+    c5 = {"pyvf": row(2.0, 9.0, 1.0, 10.0), "nearest_view": row(3.0, 10.0), "mean_image": row(1.5, 11.0),
+          "closest_image_pose": row(pos=2.0, ori=8.0), "mean_pose": row(pos=3.0, ori=14.0)}
+    metrics = {"context": {"3": c3, "5": c5, "10": c3}, "meta": {"scenes": 7}}
+    lines = verdict_lines(metrics, context=5, paper=False)
+    assert lines == ["Does pyvf beat the baselines? (context 5, 7 held-out scenes; lower is better)",
+                     "- nearest_view: yes (MAE 2.00 vs 3.00, RMSE 9.00 vs 10.00)",
+                     "- mean_image: partly (MAE 2.00 vs 1.50, RMSE 9.00 vs 11.00)",
+                     "- closest_image_pose: partly (position 1.00 vs 2.00, orientation (deg) 10.00 vs 8.00)",
+                     "- mean_pose: yes (position 1.00 vs 3.00, orientation (deg) 10.00 vs 14.00)"]
+    assert all(" yes (" in x for x in verdict_lines(metrics, context="3", paper=False)[1:])
+    every = ("nearest_view (MAE, RMSE), mean_image (MAE, RMSE), closest_image_pose (position, orientation), "
+             "mean_pose (position, orientation)")
+    assert goal_line(metrics) == (
+        f"- the goal, at contexts 3 and 5: pyvf beats {every}: not met. Context 3: beats {every} (all). "
+        "Context 5: beats nearest_view (MAE, RMSE), mean_image (RMSE), closest_image_pose "
+        "(position), mean_pose (position, orientation); does not beat mean_image (MAE), closest_image_pose "
+        "(orientation).")
+    assert ": met. " in goal_line(metrics, contexts=(3, 10))
+    assert ": not shown (a context is missing). Context 3: " in goal_line({"context": {"3": c3}})
+    assert goal_line({"context": {"3": c3}}).endswith("Context 5: not evaluated.")
+
+    spec = importlib.util.spec_from_file_location(
+        "model_card", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools",
+                                   "model_card.py"))
+    card = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(card)
+    section = card._baselines(metrics)
+    assert section[0] == "## Against the baselines"
+    heads = [x for x in section if x.startswith("Does pyvf beat")]
+    assert [h.split(",")[0] for h in heads] == ["Does pyvf beat the baselines? (context 3",
+                                                "Does pyvf beat the baselines? (context 5",
+                                                "Does pyvf beat the baselines? (context 10"]
+    assert section.index(lines[2]) > section.index(heads[1]) and goal_line(metrics) in section
+    assert sum("the paper's SM7 models" in x for x in section) == 1
 
 
 # ---------------------------------------------------------------------------------------

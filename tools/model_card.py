@@ -17,6 +17,7 @@ import shutil
 import sys
 
 from pyvf._io import atomic_write_text
+from pyvf.evaluate.run import goal_line, paper_line, verdict_lines
 from pyvf.train.curves import eval_panels, plot_curves, plot_eval, read_log
 
 
@@ -97,6 +98,17 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=
     return lines
 
 
+def _baselines(metrics):
+    """The section "Against the baselines", from metrics.json: at every context evaluated, pyvf's
+    figure beside each baseline's and whether pyvf beats it (verdict_lines); then whether the
+    project's goal holds (goal_line) and the paper's figures for scale."""
+    lines = ["## Against the baselines", "",
+             "Computed from the evaluation's metrics.json: every figure as in the tables above, lower is better."]
+    for C in sorted(metrics["context"], key=int):
+        lines += [""] + verdict_lines(metrics, context=C, paper=False)
+    return lines + ["", "Summary:", "", goal_line(metrics), paper_line(), ""]
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--codebook-run", required=True)
@@ -155,7 +167,12 @@ def _write(args):
                       ["ce_loss", "pose_loss", "lr"], img_dir, where_note=args.transformer_where)
     command = (f"pyvf evaluate --scenes {meta['scenes']} --context {','.join(map(str, meta['context_sizes']))} "
                f"--seed {meta['seed']} --out eval")  # what metrics.json's meta says was run
-    lines += ["## Held-out evaluation", "", "```bash", command, "```", "", metrics_md.strip(), ""]
+    # the section on the baselines goes right after the tables, before metrics.md's timings
+    tables, timing, rest = metrics_md.strip().partition("\n## Timing")
+    lines += ["## Held-out evaluation", "", "```bash", command, "```", "", tables.strip(), ""]
+    lines += _baselines(metrics)
+    if timing:
+        lines += [(timing + rest).strip(), ""]
     for pic, what in (("views.png", "context views | ground truth | codebook reconstruction | pyvf's rendering"),
                       ("poses.png", "estimated against true camera positions")):
         if os.path.exists(os.path.join(img_dir, pic)):

@@ -59,8 +59,9 @@ from .metrics import (
 )
 
 __all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS", "PAPER_SM7", "DECODES",
-           "DEFAULT_DECODE",
-           "evaluate", "metrics_markdown", "render_images", "verdict_lines", "write_metrics"]
+           "DEFAULT_DECODE", "GOAL_CONTEXTS",
+           "evaluate", "goal_line", "metrics_markdown", "paper_line", "render_images", "verdict_lines",
+           "write_metrics"]
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
 POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
@@ -436,26 +437,66 @@ VERDICTS = {"nearest_view": ("mae", "rmse"), "mean_image": ("mae", "rmse"),
             "mean_pose": ("position_error_median", "orientation_error_median_deg")}
 _SHORT = {"mae": "MAE", "rmse": "RMSE", "position_error_median": "position",
           "orientation_error_median_deg": "orientation (deg)"}
+_NAME = {m: short.removesuffix(" (deg)") for m, short in _SHORT.items()}  # in lists, without units
+# The project's goal: pyvf beats every baseline of VERDICTS on each of its metrics at these contexts
+GOAL_CONTEXTS = (3, 5)
 
 
-def verdict_lines(metrics):
-    """One line per baseline, at the largest context evaluated: pyvf's number beside the
-    baseline's for each metric it is judged on, and whether pyvf beats it on all of them; then
-    the paper's SM7 figures. -> list of str."""
-    C = max(metrics["context"], key=int)
+def _against(me, other, names):
+    """pyvf's row against a baseline's on the metrics it is judged on (lower is better; a tie is
+    no win) -> (the figures beaten, the figures not beaten, "MAE 2.00 vs 3.00, ...")."""
+    won = [m for m in names if me[m] < other[m]]
+    pairs = ", ".join(f"{_SHORT[m]} {_fmt(me[m])} vs {_fmt(other[m])}" for m in names)
+    return won, [m for m in names if m not in won], pairs
+
+
+def verdict_lines(metrics, context=None, paper=True):
+    """One line per baseline at one context (None: the largest evaluated): pyvf's number beside the
+    baseline's for each metric it is judged on, and whether pyvf beats it on all of them; then,
+    if paper, the paper's SM7 figures. -> list of str."""
+    C = max(metrics["context"], key=int) if context is None else str(context)
     table = metrics["context"][C]
-    me = table["pyvf"]
     lines = [f"Does pyvf beat the baselines? (context {C}, {metrics['meta']['scenes']} held-out scenes; "
              "lower is better)"]
     for base, names in VERDICTS.items():
-        won = [me[m] < table[base][m] for m in names]
-        pairs = ", ".join(f"{_SHORT[m]} {_fmt(me[m])} vs {_fmt(table[base][m])}" for m in names)
-        word = "yes" if all(won) else ("partly" if any(won) else "no")
+        won, lost, pairs = _against(table["pyvf"], table[base], names)
+        word = "no" if not won else ("partly" if lost else "yes")
         lines.append(f"- {base}: {word} ({pairs})")
-    lines.append("- for scale, the paper's SM7 models (hundreds of GPU-hours; context 3; its own scenes, "
-                 "positions in its units): " + ", ".join(
-        f"{_SHORT[m]} {_fmt(v)}" for m, v in PAPER_SM7.items()))
+    if paper:
+        lines.append(paper_line())
     return lines
+
+
+def paper_line():
+    """The paper's SM7 figures (PAPER_SM7), for scale."""
+    return ("- for scale, the paper's SM7 models (hundreds of GPU-hours; context 3; its own scenes, "
+            "positions in its units): " + ", ".join(f"{_SHORT[m]} {_fmt(v)}" for m, v in PAPER_SM7.items()))
+
+
+def _listed(items):
+    """{baseline: [metric, ...]} -> "nearest_view (MAE, RMSE), mean_pose (position)"."""
+    return ", ".join(f"{b} ({', '.join(_NAME[m] for m in ms)})" for b, ms in items.items() if ms) or "none"
+
+
+def goal_line(metrics, contexts=GOAL_CONTEXTS):
+    """Whether the project's goal holds: pyvf beats every baseline of VERDICTS on each metric it is
+    judged on, at each of `contexts`; per context, the figures that hold and those that fail. -> str."""
+    parts, failing, missing = [], False, False
+    for C in map(str, contexts):
+        if C not in metrics["context"]:
+            parts.append(f"Context {C}: not evaluated.")
+            missing = True
+            continue
+        table = metrics["context"][C]
+        held, failed = {}, {}
+        for base, names in VERDICTS.items():
+            held[base], failed[base], _ = _against(table["pyvf"], table[base], names)
+        failing = failing or any(failed.values())
+        parts.append(f"Context {C}: beats {_listed(held)}" + (f"; does not beat {_listed(failed)}."
+                                                                if any(failed.values()) else " (all)."))
+    word = "not met" if failing else ("not shown (a context is missing)" if missing else "met")
+    return (f"- the goal, at contexts {' and '.join(map(str, contexts))}: pyvf beats {_listed(VERDICTS)}: "
+            f"{word}. " + " ".join(parts))
 
 
 def metrics_markdown(metrics):
