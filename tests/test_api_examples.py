@@ -21,12 +21,11 @@ def test_api_doc_has_examples():
     assert len(python_blocks()) >= 2
 
 
-def expected_paths(pyvf):
+def expected_paths():
     """(the path in use, the paths this process can use, the paths built), found without pyvf's own
-    detection: the built ones from the package's files, what the CPU runs from /proc/cpuinfo's flags
+    detection: the built ones by Python's import system, what the CPU runs from /proc/cpuinfo's flags
     (x86-64 Linux; docs/api.md: avx2 = AVX2 + FMA, avx512 = AVX-512 F/DQ/BW/VL), PYVF_ISA as set."""
-    # an installed copy keeps the modules beside pyvf/__init__.py, an editable one in its build folder:
-    # Python's import system finds either
+    # an installed copy keeps the modules beside pyvf/__init__.py, an editable one in its build folder
     needs = {"baseline": set(), "avx2": {"avx2", "fma"},
              "avx512": {"avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl"}, "neon": set()}
     built = [p for p in needs if importlib.util.find_spec(f"pyvf._core_{p}") is not None]
@@ -43,7 +42,7 @@ def _check_paths(ns, out):
     # show_config's lines against the version in pyproject.toml and the paths found independently
     with open(os.path.join(ROOT, "pyproject.toml")) as f:
         version = re.search(r'^version = "(.*)"', f.read(), flags=re.M).group(1)
-    current, allowed, built = expected_paths(ns["pyvf"])
+    current, allowed, built = expected_paths()
     lines = out.splitlines()
     assert lines[0] == f"pyvf {version}", out
     assert lines[1].startswith(f"kernel path: {current} ("), out
