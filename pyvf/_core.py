@@ -27,12 +27,6 @@ import platform
 _ARCH_PATHS = {"x86_64": ("baseline", "avx2", "avx512"), "aarch64": ("neon",)}
 # CPU features (cpu_features() names) each path needs.
 _NEEDS = {"avx2": ("avx2", "fma"), "avx512": ("avx512f", "avx512dq", "avx512bw", "avx512vl", "avx2", "fma")}
-_DESCRIBE = {
-    "baseline": "x86-64 baseline, SSE2, 16-byte vectors",
-    "avx2": "AVX2 + FMA, 32-byte vectors",
-    "avx512": "AVX-512 F/DQ/BW/VL + FMA, 64-byte vectors",
-    "neon": "aarch64 NEON, 16-byte vectors",
-}
 
 
 def _arch_paths():
@@ -54,8 +48,8 @@ if not _built_paths:
             f"Python imported pyvf from the source tree {_here}, which has no compiled kernels: Python was "
             "started in the repository root (or sys.path names it), so the checkout shadows any installed "
             "pyvf. To work from the checkout, install it editable, which builds the kernels and imports "
-            "these sources: `pip install scikit-build-core pybind11 && pip install --no-build-isolation -e .`; "
-            "or run Python from another folder after `pip install .`")
+            "these sources (the README's development setup): `pip install scikit-build-core pybind11 cmake ninja "
+            "&& pip install --no-build-isolation -e .`; or run Python from another folder after `pip install .`")
     raise ImportError(
         "pyvf's compiled extension (pyvf._core_<path>) is missing from this installation: install pyvf "
         "with `pip install .` (it compiles csrc/)")
@@ -118,11 +112,20 @@ def kernels():
     return sorted(n for n in names if not n.endswith("_plain"))
 
 
+def _describe(path):
+    """A path in the words of what selects it and what it was compiled for: the CPU features it
+    needs (_NEEDS, the table the choice at import reads) and its module's vector width."""
+    needs = _NEEDS.get(path)
+    cpu = f"needs {', '.join(needs)}" if needs else f"any {platform.machine()} CPU"
+    return f"{cpu}; {_module(path).simd_bytes}-byte vectors"
+
+
 def config():
-    """What show_config prints, as a dict."""
+    """What show_config prints, as a dict: every entry read from the compiled modules or from the
+    tables above that choose among them."""
     return {
         "path": _current,
-        "path_description": _DESCRIBE.get(_current, _current),
+        "path_description": _describe(_current),
         "kernels": kernels(),
         "forced_by_PYVF_ISA": _forced,
         "available_paths": list(_allowed),

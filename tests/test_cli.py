@@ -106,6 +106,10 @@ def test_config(tmp_path):
     assert {"attn_forward", "conv2d_forward", "groupnorm_backward", "swish_forward", "vq_nearest"} <= set(listed)
     assert all(callable(getattr(pyvf._core, name)) for name in listed)
     assert not {"num_threads", "cpu_features"} & set(listed)
+    # the path's description too: the features that select it and its module's vector width
+    c = pyvf._core.config()
+    assert f"{pyvf._core._impl.simd_bytes}-byte vectors" in c["path_description"]
+    assert all(f in c["path_description"] for f in pyvf._core._NEEDS.get(c["path"], ()))
 
 
 def test_demo_attention_small(tmp_path):

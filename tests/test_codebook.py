@@ -154,6 +154,16 @@ def test_bad_input_raises(rng):
     for call in (cb.forward, cb.encode, lambda a: cb.forward(a, train=True)):
         with pytest.raises(ValueError, match=r"images must be in \[-1, 1\], got values in \[\d.*to_model_images"):
             call(pixels)
+        # the picture as it comes (uint8, channels last), and channels last converted to float only
+        picture = pixels.astype(np.uint8).transpose(0, 2, 3, 1).copy()  # (B, S, S, 3)
+        with pytest.raises(TypeError, match=r"got uint8: convert uint8 pictures .*to_model_images"):
+            call(picture)
+        with pytest.raises(TypeError, match=r"got uint8: convert uint8 pictures .*to_model_images"):
+            call(picture.transpose(0, 3, 1, 2).copy())
+        with pytest.raises(ValueError, match=r"got \(1, 16, 16, 3\): convert uint8 pictures .*to_model_images"):
+            call(x.transpose(0, 2, 3, 1).copy())
+    with pytest.raises(TypeError, match=r"images must be a float32 numpy array in \[-1, 1\], got float64$"):
+        cb.encode(x.astype(np.float64))  # a float of another dtype: no word about pictures
     edge = np.clip(x * np.float32(1.0005), -1.0005, 1.0005).astype(np.float32)  # within the slack of 1e-3
     cb.encode(edge)
     with pytest.raises(ValueError, match="must be in"):

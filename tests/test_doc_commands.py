@@ -76,3 +76,13 @@ def test_quoted_command_exists_with_its_options(doc, line, monkeypatch):
                         have |= set(sub._option_string_actions)
         missing = sorted(options - have - {"--help", "--version"})
         assert not missing, f"{doc}: `{line}`: `pyvf {name}` has no option {missing}"
+
+
+def test_no_quoted_command_is_a_placeholder():
+    """A command a reader copies runs as written: no `pyvf ... ...` with its arguments left out,
+    in a ```bash block or inline."""
+    bad = [(doc, line) for doc, line in quoted_commands() if "..." in line]
+    for doc in DOCS:
+        with open(os.path.join(ROOT, doc), encoding="utf-8") as f:
+            bad += [(doc, c) for c in re.findall(r"`(pyvf [^`]*)`", f.read()) if "..." in c]
+    assert not bad, f"commands with arguments left out: {bad}"

@@ -92,6 +92,23 @@ def test_walkthrough_links_name_its_headings():
     assert _anchor("§4 The codebook") == "4-the-codebook"  # the rule itself, on a known GitHub anchor
 
 
+def test_printed_output_is_compared_in_full(tmp_path):
+    """No ELLIPSIS: the walkthrough's output is checked as printed (its mask rows are made of dots,
+    which ELLIPSIS would read as "anything"); a wrong row of the mask fails."""
+    import doctest
+
+    tool = _figures_tool()
+    assert not tool.OPTIONS & doctest.ELLIPSIS
+    text = _text()
+    section = next(chunk for title, _, chunk in tool.split_sections(text) if title.startswith("2."))
+    assert "  gen view 2  ##.. ..#. ...." in section
+    wrong = tmp_path / "walkthrough.md"
+    wrong.write_text(section.replace("  gen view 2  ##.. ..#. ....", "  gen view 2  #... ..#. ....", 1),
+                     encoding="utf-8")
+    runs, _ = tool.run_sections(path=str(wrong))
+    assert sum(r.failed for _, r, _ in runs) == 1
+
+
 def main(argv):
     tool = _figures_tool()
     return tool.main(["--no-pictures"] + argv)

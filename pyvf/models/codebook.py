@@ -471,18 +471,21 @@ class Codebook(ModelWeights):
 
     def _check_images(self, images):
         cfg = self.config
+        # the likely mistake is a uint8 picture (B, S, S, 3) passed as it is: every refusal says how to convert
+        convert = ("convert uint8 pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images(pictures, "
+                   "codebook.dtype), x / 127.5 - 1 in NCHW order")
         if not isinstance(images, np.ndarray) or images.dtype != self.dtype:
-            raise TypeError(f"images must be a {self.dtype} numpy array, got "
-                            f"{getattr(images, 'dtype', type(images).__name__)}")
+            pixels = isinstance(images, np.ndarray) and images.dtype.kind in "iu"
+            raise TypeError(f"images must be a {self.dtype} numpy array in [-1, 1], got "
+                            f"{getattr(images, 'dtype', type(images).__name__)}" + (f": {convert}" if pixels else ""))
         S = cfg.image_size
         if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S) or images.shape[0] < 1:
-            raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}")
+            raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}"
+                             + (f": {convert}" if images.ndim == 4 and images.shape[3] == cfg.in_channels else ""))
         _checks.finite("images", images)
         lo, hi = float(images.min()), float(images.max())
         if lo < -1 - IMAGE_RANGE_SLACK or hi > 1 + IMAGE_RANGE_SLACK:  # e.g. 0..255 pixels passed as they are
-            raise ValueError(f"images must be in [-1, 1], got values in [{lo:.4g}, {hi:.4g}]: convert uint8 "
-                             "pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images(pictures, dtype), "
-                             "x / 127.5 - 1 in NCHW order")
+            raise ValueError(f"images must be in [-1, 1], got values in [{lo:.4g}, {hi:.4g}]: {convert}")
 
     def encode(self, images, *, return_latent=False):
         """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64; with
