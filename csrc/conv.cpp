@@ -149,23 +149,24 @@ template <typename T> int64_t tile_pixels(int64_t rows, int64_t P, int64_t bytes
 // (simd.h's gemm does them 4 and 1 at a time, which for Co = 32 on AVX2 leaves two rows at a
 // quarter of the FMA rate). Each element of C is the same sum in the same order whatever block
 // its row falls in, so this changes no result, only the speed.
-template <typename T, bool ACC, bool TA = false>
+template <typename T, bool ACC, bool TA = false, bool CONT = false>
 void gemm_mr(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
     constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
     const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;
     int i = 0;
-    for (; i + MR <= M; i += MR) gemm_rows<T, MR, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
+    for (; i + MR <= M; i += MR)
+        gemm_rows<T, MR, ACC, CONT>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
     A += i * sa_i;
     C += i * ldc;
     switch (M - i) {
         case 0: break;
-        case 1: gemm_rows<T, 1, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 2: gemm_rows<T, 2, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 3: gemm_rows<T, 3, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 4: if constexpr (MR > 4) gemm_rows<T, 4, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 5: if constexpr (MR > 5) gemm_rows<T, 5, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 6: if constexpr (MR > 6) gemm_rows<T, 6, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 7: if constexpr (MR > 7) gemm_rows<T, 7, ACC>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 1: gemm_rows<T, 1, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 2: gemm_rows<T, 2, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 3: gemm_rows<T, 3, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 4: if constexpr (MR > 4) gemm_rows<T, 4, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 5: if constexpr (MR > 5) gemm_rows<T, 5, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 6: if constexpr (MR > 6) gemm_rows<T, 6, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 7: if constexpr (MR > 7) gemm_rows<T, 7, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
     }
 }
 
@@ -940,28 +941,150 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
     return status;
 }
 
-// The AttnBlock's products (pyvf/conv.py attnblock_forward/_backward): per image b,
-// c_b (M, N) = op(a_b) (M, K) @ b_b (K, N), op = transpose when ta, on the gemm register tile of
-// simd.h (every element one sum in increasing k, FMA where the path has it). Tasks: (image, block
-// of kMatRows rows of c), each writing its own rows: bitwise the same for any thread count. Here
-// rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
-// milliseconds on the cores this file's OpenMP threads run on (11% of a paper codebook's
-// encode + decode went to that spinning).
-constexpr int64_t kMatRows = 48;  // whole register tiles on every path (8, 6 and 4 rows)
+// The products of the AttnBlock (pyvf/nn/conv.py) and of the transformer's linear layers and
+// tied logits (pyvf/nn/layers.py, models/transformer.py): per batch entry b,
+// c_b (M, N) = op(a_b) (M, K) @ op(b_b) (K, N), op = transpose when ta / tb.
+// Blocks: tasks of (entry, kMatRows rows, kMatCols columns), each writing its own block of c;
+// inside a task k runs in chunks of kMatDepth, each chunk continuing the sums of the last
+// (gemm_tile's CONT). A chunk's panel of b (kMatDepth x kMatCols) and of a (kMatRows x
+// kMatDepth) are copied into the order the register tile reads them (a's rows MR at a time, b's
+// columns 2 vectors at a time, k outermost), so that its loads are contiguous and the panels stay
+// in L2 and L1. Rows past the last full MR and columns past the last full 2 vectors run on the
+// unpacked matrices (gemm_mr). Every element of c is one sum in increasing k on simd.h's register
+// tile (FMA where the path has it), whatever the blocks, the tasks or the thread count: bitwise
+// the same for any thread count. A transposed b (a weight matrix, where pyvf asks for one) is
+// first copied into (K, N) order.
+// Here rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
+// milliseconds on the cores this file's OpenMP threads run on (11% of a paper codebook's encode +
+// decode went to that spinning; a 2-thread product right after a 2-thread BLAS call ran at the
+// speed of one thread), and because the BLAS's results change with its thread count for some
+// shapes.
+constexpr int64_t kMatRows = 96;    // whole register tiles on every path (8, 6 and 4 rows)
+constexpr int64_t kMatCols = 192;   // a multiple of the packed tile's columns on every path (96, 48, 16, 8, 4)
+constexpr int64_t kMatDepth = 256;  // b's panel: 256 x 192 floats, 192 KiB (L2); a's: 48 KiB
+
+// The packed register tile: c (MR, NV vectors) (+)= ap (k-major, MR per k) @ bp (k-major, NV
+// vectors per k) over kc; the accumulators start from c when CONT (the sums of earlier chunks).
+// The same sums as simd.h's gemm_tile, one FMA per k per element in increasing k, over buffers
+// laid out so that every load is contiguous.
+template <typename T, int MR, int NV, bool CONT>
+inline void packed_tile(int kc, const T* ap, const T* bp, T* c, long ldc) {
+    using V = typename Simd<T>::V;
+    constexpr int W = Simd<T>::W;
+    V acc[MR][NV];
+#pragma GCC unroll 8
+    for (int i = 0; i < MR; ++i)
+#pragma GCC unroll 8
+        for (int v = 0; v < NV; ++v) acc[i][v] = CONT ? vload<T>(c + i * ldc + v * W) : V{};
+    for (int k = 0; k < kc; ++k) {
+        V b[NV];
+#pragma GCC unroll 8
+        for (int v = 0; v < NV; ++v) b[v] = vload<T>(bp + (k * NV + v) * W);
+#pragma GCC unroll 8
+        for (int i = 0; i < MR; ++i) {
+            const T a = ap[k * MR + i];
+#pragma GCC unroll 8
+            for (int v = 0; v < NV; ++v) acc[i][v] += a * b[v];
+        }
+    }
+#pragma GCC unroll 8
+    for (int i = 0; i < MR; ++i)
+#pragma GCC unroll 8
+        for (int v = 0; v < NV; ++v) vstore<T>(c + i * ldc + v * W, acc[i][v]);
+}
+
+// The packed tile's shape: with 32 vector registers (AVX-512) 4 rows x 6 vectors (24
+// accumulators, 6 of b, 1 broadcast: 4 broadcasts per 24 FMAs); with 16 (AVX2) simd.h's 6 x 2,
+// SSE2/NEON 4 x 2.
+constexpr int kPackMR = kVecBytes >= 64 ? 4 : kVecBytes == 32 ? 6 : 4;
+constexpr int kPackNV = kVecBytes >= 64 ? 6 : 2;
+
+// One task's block: c (m, n) (leading dimension ldc) = op(a) @ b over k in [0, K), op(a)[i, k]
+// = A[k * lda + i] when ta, else A[i * lda + k]; b (K, n) with leading dimension ldb; ap and bp
+// the packing buffers (kMatRows * kMatDepth and kMatDepth * kMatCols).
+template <typename T, bool TA>
+void matmul_block(int64_t m, int64_t n, int64_t K, const T* A, long lda, const T* B, long ldb, T* C, long ldc, T* ap,
+                  T* bp) {
+    const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;
+    constexpr int MR = kPackMR;
+    constexpr int NB = kPackNV * kW<T>;
+    const int64_t ng = m / MR, nt = n / NB, mf = ng * MR, nf = nt * NB;
+    for (int64_t k0 = 0; k0 < K; k0 += kMatDepth) {
+        const int kc = (int)std::min(kMatDepth, K - k0);
+        const T* Ak = A + k0 * sa_k;
+        const T* Bk = B + k0 * ldb;
+        for (int64_t t = 0; t < nt; ++t)  // bp[t][k][0:NB] = b[k0 + k, t*NB : (t+1)*NB]
+            for (int k = 0; k < kc; ++k) {
+                T* dst = bp + (t * kc + k) * NB;
+                const T* src = Bk + k * ldb + t * NB;
+                for (int v = 0; v < NB; v += kW<T>) vstore<T>(dst + v, vload<T>(src + v));
+            }
+        for (int64_t g = 0; g < ng; ++g)  // ap[g][k][0:MR] = op(a)[g*MR : (g+1)*MR, k0 + k]
+            for (int k = 0; k < kc; ++k)
+                for (int i = 0; i < MR; ++i) ap[(g * kc + k) * MR + i] = Ak[(g * MR + i) * sa_i + k * sa_k];
+        for (int64_t t = 0; t < nt; ++t)
+            for (int64_t g = 0; g < ng; ++g) {
+                T* c = C + g * MR * ldc + t * NB;
+                if (k0 == 0) packed_tile<T, MR, kPackNV, false>(kc, ap + g * kc * MR, bp + t * kc * NB, c, ldc);
+                else packed_tile<T, MR, kPackNV, true>(kc, ap + g * kc * MR, bp + t * kc * NB, c, ldc);
+            }
+        // the edges, unpacked: the last rows under the packed columns, then every row of the last columns
+        if (mf < m) {
+            if (k0 == 0) gemm_mr<T, false, TA>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
+            else gemm_mr<T, false, TA, true>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
+        }
+        if (nf < n) {
+            if (k0 == 0) gemm_mr<T, false, TA>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
+            else gemm_mr<T, false, TA, true>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
+        }
+    }
+}
 
 template <typename T>
-void matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta) {
-    const int64_t nblk = ceil_div(M, kMatRows);
-#pragma omp parallel for schedule(dynamic, 1) if (nb * M * N * K >= kParallelFlops)
-    for (int64_t t = 0; t < nb * nblk; ++t) {
-        const int64_t bi = t / nblk, i0 = (t % nblk) * kMatRows, m = std::min(kMatRows, M - i0);
-        const T* ab = a + bi * M * K;
-        T* cb = c + (bi * M + i0) * N;
-        if (ta)  // a_b stored (K, M): rows i0.. of op(a_b) are its columns i0..
-            gemm_mr<T, false, true>((int)m, (int)N, (int)K, ab + i0, M, b + bi * K * N, N, cb, N);
-        else
-            gemm_mr<T, false, false>((int)m, (int)N, (int)K, ab + i0 * K, K, b + bi * K * N, N, cb, N);
+int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta, bool tb) {
+    const int64_t nmb = ceil_div(M, kMatRows), nnb = ceil_div(N, kMatCols), per = nmb * nnb;
+    if (nb == 0 || M == 0 || N == 0) return kConvOk;
+    if (K == 0) {
+        std::fill(c, c + nb * M * N, T(0));
+        return kConvOk;
     }
+    Buf<T> bt;  // a transposed b in (K, N) order: b is a weight matrix where pyvf asks for tb
+    if (tb) {
+        try {
+            bt.resize(nb * K * N);
+        } catch (const std::bad_alloc&) {
+            return kConvOutOfMemory;
+        }
+        constexpr int64_t kT = 32;  // tiles of 32 x 32: the reads and the writes both stay in L1
+        for (int64_t bi = 0; bi < nb; ++bi)
+            for (int64_t j0 = 0; j0 < N; j0 += kT)
+                for (int64_t k0 = 0; k0 < K; k0 += kT)
+                    for (int64_t j = j0; j < std::min(N, j0 + kT); ++j)
+                        for (int64_t k = k0; k < std::min(K, k0 + kT); ++k)
+                            bt[(bi * K + k) * N + j] = b[(bi * N + j) * K + k];
+        b = bt.data();
+    }
+    int status = kConvOk;
+#pragma omp parallel if (nb * M * N * K >= kParallelFlops)
+    {
+        Buf<T> ap, bp;
+        bool ok = false;
+        PYVF_CONV_TRY_ALLOC(status, ap.resize(kMatRows * kMatDepth); bp.resize(kMatDepth * kMatCols); ok = true)
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t t = 0; t < nb * per; ++t) {
+            if (!ok) continue;
+            const int64_t bi = t / per, i0 = (t % per % nmb) * kMatRows, j0 = (t % per / nmb) * kMatCols;
+            const int64_t m = std::min(kMatRows, M - i0), n = std::min(kMatCols, N - j0);
+            const T* ab = a + bi * M * K;
+            const T* bb = b + bi * K * N + j0;
+            T* cb = c + (bi * M + i0) * N + j0;
+            // consecutive tasks: the same columns, so that b's panels come from L2 while its rows pass;
+            // op(a)[i, k] = a_b[k, i] (stored (K, M)) when ta, else a_b[i, k] (stored (M, K))
+            if (ta) matmul_block<T, true>(m, n, K, ab + i0, (long)M, bb, (long)N, cb, (long)N, ap.data(), bp.data());
+            else matmul_block<T, false>(m, n, K, ab + i0 * K, (long)K, bb, (long)N, cb, (long)N, ap.data(), bp.data());
+        }
+    }
+    return status;
 }
 
 // =========================================================================================
@@ -1023,9 +1146,10 @@ int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* 
     return kConvOk;
 }
 
-template void matmul_batched<float>(float*, const float*, const float*, int64_t, int64_t, int64_t, int64_t, bool);
-template void matmul_batched<double>(double*, const double*, const double*, int64_t, int64_t, int64_t, int64_t,
-                                     bool);
+template int matmul_batched<float>(float*, const float*, const float*, int64_t, int64_t, int64_t, int64_t, bool,
+                                    bool);
+template int matmul_batched<double>(double*, const double*, const double*, int64_t, int64_t, int64_t, int64_t,
+                                     bool, bool);
 template int conv2d_forward<float>(float*, const float*, const float*, const float*, const ConvDims&);
 template int conv2d_forward<double>(double*, const double*, const double*, const double*, const ConvDims&);
 template int conv2d_backward<float>(float*, float*, float*, const float*, const float*, const float*,

@@ -13,7 +13,8 @@
 //     groupnorm_forward(y, stats, x, gamma, beta, groups, eps, swish)
 //     groupnorm_backward(dx, dgamma, dbeta, x, stats, gamma, beta, dy, groups, swish)
 //     swish_forward(y, x), swish_backward(dx, dy, x)
-//     matmul(c, a, b, ta): c (nb, M, N) = op(a) @ b per image, a (nb, M, K) or (nb, K, M) if ta
+//     matmul(c, a, b, ta, tb=False): c (nb, M, N) = op(a) @ op(b) per image, a (nb, M, K) or
+//     (nb, K, M) if ta, b (nb, K, N) or (nb, N, K) if tb
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
@@ -89,6 +90,7 @@ void check_shape(const py::array& a, const char* name, std::initializer_list<int
 const char* kConvMemory =
     "conv2d: not enough memory for the kernel's work buffers (per thread about 128 KiB of columns, and w's "
     "size for the flipped kernel of the backward)";
+const char* kMatMemory = "matmul: not enough memory for the transposed copy of b (b's size)";
 const char* kGNMemory = "groupnorm: not enough memory for the backward's partial sums (16 bytes per image and channel)";
 
 void raise_status(int status, const char* memory_message = kConvMemory) {
@@ -210,12 +212,13 @@ template <typename T> void sw_backward(Arr<T> dx, Arr<T> dy, Arr<T> x) {
     swish_backward<T>(pdx, pdy, px, n);
 }
 
-template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta) {
+template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb) {
     auto fail = [](const std::string& what) { throw py::value_error("pyvf._core.matmul: " + what); };
     if (a.ndim() != 3 || b.ndim() != 3 || c.ndim() != 3) fail("a, b and c must be 3-D (batch, rows, columns)");
     const int64_t nb = a.shape(0), M = ta ? a.shape(2) : a.shape(1), K = ta ? a.shape(1) : a.shape(2);
-    const int64_t N = b.shape(2);
-    if (b.shape(0) != nb || b.shape(1) != K) fail("b must have shape (batch, K, N) with a's batch and K");
+    const int64_t N = tb ? b.shape(1) : b.shape(2);
+    if (b.shape(0) != nb || (tb ? b.shape(2) : b.shape(1)) != K)
+        fail(tb ? "b must have shape (batch, N, K) with a's batch and K" : "b must have shape (batch, K, N) with a's batch and K");
     if (c.shape(0) != nb || c.shape(1) != M || c.shape(2) != N) fail("c must have shape (batch, M, N)");
     for (int64_t n : {M, N, K})
         if (n > kIntMax) fail("every side must be below 2^31");
@@ -224,8 +227,12 @@ template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta) {
     check_count("c", "M*N", {M, N});
     T* pc = c.mutable_data();
     const T *pa = a.data(), *pb = b.data();
-    py::gil_scoped_release nogil;
-    matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta);
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb);
+    }
+    raise_status(status, kMatMemory);
 }
 
 template <typename T> void bind_dtype(py::module_& m) {
@@ -242,8 +249,10 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("x").noconvert());
     m.def("swish_backward", &sw_backward<T>, "dx = dy * swish'(x), overwritten", py::arg("dx").noconvert(),
           py::arg("dy").noconvert(), py::arg("x").noconvert());
-    m.def("matmul", &matmul<T>, "c (nb, M, N) = op(a) @ b per image, op = transpose if ta; c overwritten",
-          py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(), py::arg("ta"));
+    m.def("matmul", &matmul<T>,
+          "c (nb, M, N) = op(a) @ op(b) per image, op = transpose of a if ta, of b if tb; c overwritten",
+          py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(), py::arg("ta"),
+          py::arg("tb") = false);
     const char* doc_f = "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten";
     const char* doc_b = "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy";
     m.def("conv2d_forward", &forward<T, false>, doc_f, py::arg("y").noconvert(), py::arg("x").noconvert(),

@@ -191,7 +191,10 @@ template <typename T> inline T exp_scalar(T x) {
 // the sum over k runs in increasing k for every element whatever the tile or TA, and a
 // transposed A costs nothing (the scalar is read down a column instead of along a row).
 
-template <typename T, int MR, int NV, bool ACC>
+// CONT (continue): the accumulators start from C instead of zero and C is overwritten, so that a
+// product split along k into chunks, each chunk continuing the last one's sums, gives every
+// element of C the same one sum in increasing k, bitwise, as the unsplit product.
+template <typename T, int MR, int NV, bool ACC, bool CONT = false>
 inline void gemm_tile(int K, const T* A, long sa_i, long sa_k, const T* B, long ldb, T* C, long ldc) {
     using V = typename Simd<T>::V;
     constexpr int W = Simd<T>::W;
@@ -199,7 +202,7 @@ inline void gemm_tile(int K, const T* A, long sa_i, long sa_k, const T* B, long 
 #pragma GCC unroll 16
     for (int i = 0; i < MR; ++i)
 #pragma GCC unroll 4
-        for (int v = 0; v < NV; ++v) acc[i][v] = V{};
+        for (int v = 0; v < NV; ++v) acc[i][v] = CONT ? vload<T>(C + i * ldc + v * W) : V{};
     for (int k = 0; k < K; ++k) {
         V b[NV];
 #pragma GCC unroll 4
@@ -216,21 +219,21 @@ inline void gemm_tile(int K, const T* A, long sa_i, long sa_k, const T* B, long 
 #pragma GCC unroll 4
         for (int v = 0; v < NV; ++v) {
             T* c = C + i * ldc + v * W;
-            vstore<T>(c, ACC ? vload<T>(c) + acc[i][v] : acc[i][v]);
+            vstore<T>(c, ACC && !CONT ? vload<T>(c) + acc[i][v] : acc[i][v]);
         }
 }
 
-template <typename T, int MR, bool ACC>
+template <typename T, int MR, bool ACC, bool CONT = false>
 inline void gemm_rows(int N, int K, const T* A, long sa_i, long sa_k, const T* B, long ldb, T* C, long ldc) {
     constexpr int W = Simd<T>::W;
     int j = 0;
-    for (; j + 2 * W <= N; j += 2 * W) gemm_tile<T, MR, 2, ACC>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
-    for (; j + W <= N; j += W) gemm_tile<T, MR, 1, ACC>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
+    for (; j + 2 * W <= N; j += 2 * W) gemm_tile<T, MR, 2, ACC, CONT>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
+    for (; j + W <= N; j += W) gemm_tile<T, MR, 1, ACC, CONT>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
     for (; j < N; ++j)  // columns past the last full vector
         for (int i = 0; i < MR; ++i) {
-            T s = 0;
+            T s = CONT ? C[i * ldc + j] : T(0);
             for (int k = 0; k < K; ++k) s += A[i * sa_i + k * sa_k] * B[k * ldb + j];
-            C[i * ldc + j] = ACC ? C[i * ldc + j] + s : s;
+            C[i * ldc + j] = ACC && !CONT ? C[i * ldc + j] + s : s;
         }
 }
 

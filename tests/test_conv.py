@@ -878,40 +878,83 @@ def test_groupnorm_swish_threads_bitwise(dtype, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 7. the AttnBlock's products (csrc/conv.cpp matmul_batched) against NumPy in float64
+# 7. pyvf's GEMM (csrc/conv.cpp matmul_batched: the AttnBlock's products, the transformer's linear
+# layers and tied logits) against NumPy in float64
 
-# (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16), several
-# row blocks of 48, and the attention's own square case; K = 0 gives zeros
-MATMUL_CASES = [(2, 37, 21, 13), (1, 97, 35, 50), (3, 5, 3, 7), (2, 64, 64, 32), (1, 4, 4, 0), (0, 3, 5, 2)]
+# (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16, the packed
+# tile's 6), several row blocks of 96 and column blocks of 192, k chunks of 256 with a short last
+# one, the attention's own square case; K = 0 gives zeros, zero rows or columns an empty result
+MATMUL_CASES = [(2, 37, 21, 13), (1, 97, 35, 50), (3, 5, 3, 7), (2, 64, 64, 32), (1, 4, 4, 0), (0, 3, 5, 2),
+                (1, 203, 401, 531), (2, 96, 192, 256), (1, 0, 5, 3), (1, 9, 0, 3)]
 
 
+def _mm(a, b, ta, tb):
+    """c (nb, M, N) = op(a) @ op(b) per entry by the kernel."""
+    nb, M, N = a.shape[0], a.shape[2 if ta else 1], b.shape[1 if tb else 2]
+    c = np.full((nb, M, N), np.nan, dtype=a.dtype)  # NaN: an element the kernel skips shows
+    _core.matmul(c, a, b, ta, tb)
+    return c
+
+
+def _operands(rng, case, ta, tb, dtype, draw=None):
+    nb, M, N, K = case
+    draw = draw or (lambda shape: rng.standard_normal(shape))
+    a = draw((nb, K, M) if ta else (nb, M, K)).astype(dtype)
+    b = draw((nb, N, K) if tb else (nb, K, N)).astype(dtype)
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    want = (a64.transpose(0, 2, 1) if ta else a64) @ (b64.transpose(0, 2, 1) if tb else b64)
+    return a, b, want
+
+
+@pytest.mark.parametrize("tb", [False, True])
 @pytest.mark.parametrize("ta", [False, True])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("case", MATMUL_CASES, ids=lambda c: "x".join(map(str, c)))
-def test_matmul_kernel(case, dtype, ta, rng):
-    """c = op(a) @ b per image against NumPy in float64 on the same inputs. Each element is one
-    sum of K <= 50 products in increasing k: float64 within 50 u of the normwise scale (measured
-    ~1e-16), float32 within sqrt(K) u-ish, bound 2e-6 (measured <= 3e-7); bitwise the same on 1 and
-    2 threads."""
+def test_matmul_kernel(case, dtype, ta, tb, rng):
+    """c = op(a) @ op(b) per entry against NumPy in float64 on the same inputs. Each element is
+    one sum of K products in increasing k, so its error is at most K u sum_k |a_ik b_kj| (Higham
+    3.5) and in practice ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
+    2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1 and 2
+    threads (each element's sum does not depend on which task or thread computes it)."""
     nb, M, N, K = case
-    a = rng.standard_normal((nb, K, M) if ta else (nb, M, K)).astype(dtype)
-    b = rng.standard_normal((nb, K, N)).astype(dtype)
-    want = (a.astype(np.float64).transpose(0, 2, 1) if ta else a.astype(np.float64)) @ b.astype(np.float64)
+    a, b, want = _operands(rng, case, ta, tb, dtype)
     before = pyvf.num_threads()
     try:
         out = {}
         for n in (1, 2):
             pyvf.set_num_threads(n)
-            out[n] = conv._matmul(a, b, ta=ta)
+            out[n] = _mm(a, b, ta, tb)
     finally:
         pyvf.set_num_threads(before)
     c = out[1]
     assert c.dtype == dtype and c.shape == (nb, M, N)
     if c.size:  # (the helpers need at least one element)
-        assert_close("matmul", c, want, rtol=1e-13 if dtype == np.float64 else 2e-6)
+        rtol = 1e-13 if dtype == np.float64 else 2e-6 * max(1.0, np.sqrt(K / 50))
+        assert_close("matmul", c, want, rtol=rtol)
         assert_bitwise_equal("matmul, 1 vs 2 threads", out[2], c)
     if K == 0:
         assert not c.any(), "a sum of no products must be 0"
+
+
+@pytest.mark.parametrize("ta, tb", [(False, False), (True, False), (False, True), (True, True)])
+def test_matmul_kernel_exact_on_integers(ta, tb, rng):
+    """Small integers make every partial sum exact in float32 (|sum| <= 3 * 3 * 800 < 2^24), so
+    the kernel must equal the float64 product exactly: a k chunk dropped or counted twice, an
+    edge row or column (past the packed tiles) or an entry computed from the wrong block all
+    show, however small the other errors."""
+    case = (2, 2 * 96 + 13, 192 + 96 + 21, 3 * 256 + 31)
+    a, b, want = _operands(rng, case, ta, tb, np.float32, draw=lambda s: rng.integers(-3, 4, s))
+    np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32))
+
+
+def test_matmul_layers_helper(rng):
+    """pyvf.nn.layers.matmul, the 2-D entry the linear layers and the logits use: each transpose
+    flag against NumPy in float64, and a non-contiguous operand read as its values."""
+    from pyvf.nn.layers import matmul
+    a, b = rng.standard_normal((2, 30, 40))
+    assert_close("a @ b^T", matmul(a, b, tb=True), a @ b.T, rtol=1e-13)
+    assert_close("a^T @ b", matmul(a[:, :30].T, b[:, :30], ta=True), a[:, :30] @ b[:, :30], rtol=1e-13)
+    assert_close("a @ b", matmul(a[:, :30], b.T[:30]), a[:, :30] @ b.T[:30], rtol=1e-13)
 
 
 def test_matmul_kernel_would_catch_a_transpose(rng):
@@ -919,6 +962,7 @@ def test_matmul_kernel_would_catch_a_transpose(rng):
     a, b = rng.standard_normal((2, 2, 9, 9))
     good = conv._matmul(a, b)
     assert gap(conv._matmul(a, b, ta=True), good) > 0.1
+    assert gap(_mm(a, b, False, True), good) > 0.1
     assert_close("matmul square", good, a @ b, rtol=1e-13)
 
 
@@ -928,6 +972,8 @@ def test_matmul_kernel_refuses_bad_arguments():
         _core.matmul(np.zeros((2, 3, 5)), a.astype(np.float32), b, False)
     with pytest.raises(ValueError, match="b must have shape"):
         _core.matmul(np.zeros((2, 3, 5)), a, np.zeros((2, 3, 5)), False)
+    with pytest.raises(ValueError, match=r"b must have shape \(batch, N, K\)"):
+        _core.matmul(np.zeros((2, 3, 5)), a, b, False, True)
     with pytest.raises(ValueError, match="c must have shape"):
         _core.matmul(np.zeros((2, 3, 4)), a, b, False)
     with pytest.raises(ValueError, match="3-D"):

@@ -19,6 +19,7 @@ best setting, and the default's time over the best's (the target: at most 1.1).
 """
 
 import contextlib
+import statistics
 import subprocess
 import sys
 import time
@@ -162,12 +163,20 @@ class busy:
 
 
 def time_all(fns, keys, repeat):
-    """{call: {setting: median seconds}}, the settings interleaved call by call."""
-    out = {name: {} for name in fns}
+    """{call: {setting: median seconds}}: for each call, one warm-up per setting, then `repeat`
+    rounds that time it once in every setting, so that a drift of the machine's speed (a busy
+    process's scheduling, another program) reaches every setting alike."""
+    out = {}
     for name, fn in fns.items():
-        for key in keys:
-            with _setting(key):
-                out[name][key] = median_time(fn, repeat=repeat, warmup=1)[0]
+        times = {key: [] for key in keys}
+        for r in range(repeat + 1):
+            for key in keys:
+                with _setting(key):
+                    if r == 0:
+                        fn()  # the warm-up
+                    else:
+                        times[key].append(median_time(fn, repeat=1, warmup=0)[0])
+        out[name] = {key: statistics.median(t) for key, t in times.items()}
     return out
 
 

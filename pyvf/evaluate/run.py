@@ -45,6 +45,7 @@ from .._machine import median_time
 from .._threads import num_threads
 from .._version import __version__
 from ..models import check_pair
+from ..nn.layers import matmul
 from ..scenes import generate_scenes
 from .metrics import (
     closest_image_pose,
@@ -183,7 +184,8 @@ def _expected_latent(codebook, logits):
     x = logits.astype(np.float64)
     p = np.exp(x - x.max(axis=-1, keepdims=True))
     p /= p.sum(axis=-1, keepdims=True)  # (b, L, K) softmax
-    z = (p @ E.T).reshape(-1, k, k, E.shape[0]).transpose(0, 3, 1, 2)  # (b, D, k, k)
+    z = matmul(p.reshape(-1, E.shape[1]), E, tb=True)  # (b*L, D) = p @ E^T
+    z = z.reshape(-1, k, k, E.shape[0]).transpose(0, 3, 1, 2)  # (b, D, k, k)
     return np.ascontiguousarray(z, dtype=codebook.dtype)
 
 

@@ -44,6 +44,7 @@ from ..nn.layers import (
     embedding_forward,
     layernorm_backward,
     layernorm_forward,
+    matmul,
     mlp_backward,
     mlp_forward,
 )
@@ -492,16 +493,17 @@ class Transformer(ModelWeights):
 
     def _logits(self, g):
         """g (..., d): ln_f of generation rows -> logits (..., V), the embedding tied: g @ wte[:V]^T,
-        one 2-D product (a stacked matmul calls the BLAS once per slice)."""
+        one 2-D product."""
         V, d = self.config.n_embeddings, g.shape[-1]
-        return (g.reshape(-1, d) @ self.params["wte/weight"][:V].T).reshape(*g.shape[:-1], V)
+        return matmul(g.reshape(-1, d), self.params["wte/weight"][:V], tb=True).reshape(*g.shape[:-1], V)
 
     def _logits_backward(self, dlogits, g):
         """_logits' VJP: forward was logits = g @ wte[:V]^T, so dg = dlogits @ wte[:V] (..., d)
         and the gradient of wte[:V] is dlogits^T @ g (V, d)."""
         V, d = self.config.n_embeddings, g.shape[-1]
         dl2 = dlogits.reshape(-1, V)  # (M, V)
-        return (dl2 @ self.params["wte/weight"][:V]).reshape(g.shape), dl2.T @ g.reshape(-1, d)
+        return (matmul(dl2, self.params["wte/weight"][:V]).reshape(g.shape),  # dg = dlogits @ wte[:V]
+                matmul(dl2, g.reshape(-1, d), ta=True))  # dlogits^T @ g
 
     def _heads_forward(self, hg, hl, tr=None):
         """hg, hl (B, N, L, d): the generation and localization rows after the last block.

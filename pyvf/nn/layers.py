@@ -42,6 +42,26 @@ def _check_linear(x, w, b, names=("x", "w", "b")):
         raise ValueError(f"{nb} must have shape (1, {dout}) (dout = {nw}.shape[1]), got {b.shape}")
 
 # ---------------------------------------------------------------------------------------
+# matmul: the products of the linear layers and the tied logits
+
+
+def matmul(a, b, ta=False, tb=False):
+    """c (M, N) = op(a) @ op(b), op = transpose when ta / tb: a (M, K), or (K, M) when ta; b (K, N),
+    or (N, K) when tb; one float dtype (the callers check it).
+
+    pyvf's GEMM (csrc/conv.cpp matmul_batched), not NumPy's BLAS: each element of c is one sum in
+    increasing k, so the result is bitwise the same for any thread count (OpenBLAS's is not for
+    some shapes), and the threads are pyvf's, which sleep between calls, where the BLAS's spin for
+    milliseconds after each call on the cores pyvf's kernels need (a 2-thread kernel right after a
+    2-thread BLAS product ran at the speed of one thread)."""
+    a, b = _checks.c_order(a), _checks.c_order(b)
+    M, N = a.shape[1 if ta else 0], b.shape[0 if tb else 1]
+    c = np.empty((1, M, N), dtype=a.dtype)  # (1, M, N): one entry of the batched kernel
+    _core.matmul(c, a[None], b[None], ta, tb)
+    return c[0]
+
+
+# ---------------------------------------------------------------------------------------
 # linear, published layout: weight (din, dout), bias (1, dout)
 
 
@@ -49,7 +69,7 @@ def _linear(x, w, b):
     din, dout = w.shape
     M = int(np.prod(x.shape[:-1]))  # rows; explicit rather than -1, so that din = 0 works
     with np.errstate(over="ignore", invalid="ignore"):  # the callers check the result
-        return (x.reshape(M, din) @ w + b).reshape(*x.shape[:-1], dout)  # (..., dout)
+        return (matmul(x.reshape(M, din), w) + b).reshape(*x.shape[:-1], dout)  # (..., dout)
 
 
 def _linear_backward(dy, x, w):
@@ -58,8 +78,8 @@ def _linear_backward(dy, x, w):
     dy2 = dy.reshape(M, dout)  # (M, dout)
     with np.errstate(over="ignore", invalid="ignore"):  # the callers check the results
         # forward was y = x @ w + b
-        dx = (dy2 @ w.T).reshape(x.shape)  # dx = dy @ w^T
-        dw = x.reshape(M, din).T @ dy2  # dw = x^T @ dy
+        dx = matmul(dy2, w, tb=True).reshape(x.shape)  # dx = dy @ w^T
+        dw = matmul(x.reshape(M, din), dy2, ta=True)  # dw = x^T @ dy
         db = dy2.sum(axis=0, keepdims=True)  # db = sum over rows of dy
     return dx, dw, db
 

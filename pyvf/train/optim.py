@@ -360,10 +360,12 @@ def _norm64(g):
     amax = float(np.abs(x).max())
     if amax == 0.0:
         return 0.0
+    # the sums of squares by NumPy's pairwise sum, not the BLAS's dot, whose threads spin after
+    # the call on the cores pyvf's kernels need and whose sum changes with its thread count
     if amax > _HUGE or amax < _TINY:
         y = x / amax
-        return amax * math.sqrt(float(np.dot(y, y)))
-    return math.sqrt(float(np.dot(x, x)))
+        return amax * math.sqrt(float(np.square(y).sum()))
+    return math.sqrt(float(np.square(x).sum()))
 
 
 def _hypot_all(norms):
