@@ -953,7 +953,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
 // unpacked matrices (gemm_mr). Every element of c is one sum in increasing k on simd.h's register
 // tile (FMA where the path has it), whatever the blocks, the tasks or the thread count: bitwise
 // the same for any thread count. A transposed b (a weight matrix, where pyvf asks for one) is
-// first copied into (K, N) order.
+// first copied into (K, N) order. A bias (N,), when given, is added to every row after its sums.
 // Here rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
 // milliseconds on the cores this file's OpenMP threads run on (11% of a paper codebook's encode +
 // decode went to that spinning; a 2-thread product right after a 2-thread BLAS call ran at the
@@ -1041,11 +1041,13 @@ void matmul_block(int64_t m, int64_t n, int64_t K, const T* A, long lda, const T
 }
 
 template <typename T>
-int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta, bool tb) {
+int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta, bool tb,
+                   const T* bias) {
     const int64_t nmb = ceil_div(M, kMatRows), nnb = ceil_div(N, kMatCols), per = nmb * nnb;
     if (nb == 0 || M == 0 || N == 0) return kConvOk;
     if (K == 0) {
-        std::fill(c, c + nb * M * N, T(0));
+        for (int64_t r = 0; r < nb * M; ++r)
+            for (int64_t j = 0; j < N; ++j) c[r * N + j] = bias ? T(0) + bias[j] : T(0);
         return kConvOk;
     }
     Buf<T> bt;  // a transposed b in (K, N) order: b is a weight matrix where pyvf asks for tb
@@ -1082,6 +1084,9 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
             // op(a)[i, k] = a_b[k, i] (stored (K, M)) when ta, else a_b[i, k] (stored (M, K))
             if (ta) matmul_block<T, true>(m, n, K, ab + i0, (long)M, bb, (long)N, cb, (long)N, ap.data(), bp.data());
             else matmul_block<T, false>(m, n, K, ab + i0 * K, (long)K, bb, (long)N, cb, (long)N, ap.data(), bp.data());
+            if (bias)  // the bias after the whole sum: (sum) + bias[j], one rounding each, as NumPy's x @ w + b
+                for (int64_t i = 0; i < m; ++i)
+                    for (int64_t j = 0; j < n; ++j) cb[i * N + j] += bias[j0 + j];
         }
     }
     return status;
@@ -1147,9 +1152,9 @@ int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* 
 }
 
 template int matmul_batched<float>(float*, const float*, const float*, int64_t, int64_t, int64_t, int64_t, bool,
-                                    bool);
+                                    bool, const float*);
 template int matmul_batched<double>(double*, const double*, const double*, int64_t, int64_t, int64_t, int64_t,
-                                     bool, bool);
+                                     bool, bool, const double*);
 template int conv2d_forward<float>(float*, const float*, const float*, const float*, const ConvDims&);
 template int conv2d_forward<double>(double*, const double*, const double*, const double*, const ConvDims&);
 template int conv2d_backward<float>(float*, float*, float*, const float*, const float*, const float*,

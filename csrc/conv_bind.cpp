@@ -13,12 +13,14 @@
 //     groupnorm_forward(y, stats, x, gamma, beta, groups, eps, swish)
 //     groupnorm_backward(dx, dgamma, dbeta, x, stats, gamma, beta, dy, groups, swish)
 //     swish_forward(y, x), swish_backward(dx, dy, x)
-//     matmul(c, a, b, ta, tb=False): c (nb, M, N) = op(a) @ op(b) per image, a (nb, M, K) or
-//     (nb, K, M) if ta, b (nb, K, N) or (nb, N, K) if tb
+//     matmul(c, a, b, ta, tb=False, bias=None): c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per
+//     image, a (nb, M, K) or (nb, K, M) if ta, b (nb, K, N) or (nb, N, K) if tb
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
 
 #include <algorithm>
+#include <optional>
 #include <initializer_list>
 #include <limits>
 #include <string>
@@ -212,7 +214,7 @@ template <typename T> void sw_backward(Arr<T> dx, Arr<T> dy, Arr<T> x) {
     swish_backward<T>(pdx, pdy, px, n);
 }
 
-template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb) {
+template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb, std::optional<Arr<T>> bias) {
     auto fail = [](const std::string& what) { throw py::value_error("pyvf._core.matmul: " + what); };
     if (a.ndim() != 3 || b.ndim() != 3 || c.ndim() != 3) fail("a, b and c must be 3-D (batch, rows, columns)");
     const int64_t nb = a.shape(0), M = ta ? a.shape(2) : a.shape(1), K = ta ? a.shape(1) : a.shape(2);
@@ -225,12 +227,13 @@ template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb
     check_count("a", "M*K", {M, K});
     check_count("b", "K*N", {K, N});
     check_count("c", "M*N", {M, N});
+    if (bias && (bias->ndim() != 1 || bias->shape(0) != N)) fail("bias must have shape (N,)");
     T* pc = c.mutable_data();
-    const T *pa = a.data(), *pb = b.data();
+    const T *pa = a.data(), *pb = b.data(), *pbias = bias ? bias->data() : nullptr;
     int status;
     {
         py::gil_scoped_release nogil;
-        status = matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb);
+        status = matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb, pbias);
     }
     raise_status(status, kMatMemory);
 }
@@ -250,9 +253,9 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("swish_backward", &sw_backward<T>, "dx = dy * swish'(x), overwritten", py::arg("dx").noconvert(),
           py::arg("dy").noconvert(), py::arg("x").noconvert());
     m.def("matmul", &matmul<T>,
-          "c (nb, M, N) = op(a) @ op(b) per image, op = transpose of a if ta, of b if tb; c overwritten",
+          "c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per image, op = transpose of a if ta, of b if tb; c overwritten",
           py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(), py::arg("ta"),
-          py::arg("tb") = false);
+          py::arg("tb") = false, py::arg("bias").noconvert() = py::none());
     const char* doc_f = "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten";
     const char* doc_b = "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy";
     m.def("conv2d_forward", &forward<T, false>, doc_f, py::arg("y").noconvert(), py::arg("x").noconvert(),

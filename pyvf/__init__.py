@@ -5,11 +5,12 @@ Every layer has a hand-written forward and backward pass; docs/math.md is the ma
 
 import os
 
-# OpenMP threads that spin after a parallel region steal the cores numpy's BLAS threads need
-# (measured on 2 cores: a tiny transformer's training step 57 ms spinning, 31.5 ms passive).
-# Sleep instead, unless the user chose.
-# Read by libgomp when _core loads it, so it must be set before the import.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# OpenMP threads that spin after a parallel region steal the cores other work needs: numpy's, the
+# user's, other processes' (`pyvf bench threads` measures each policy idle and beside busy
+# processes; docs/performance.md). Sleep at once instead, unless the user chose a policy or a spin
+# count. Read by libgomp when _core loads it, so it must be set before the import.
+if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 from . import _core  # the compiled kernels, on the best instruction-set path (or PYVF_ISA's)
 from ._threads import num_threads, set_num_threads, threads  # the kernels' and numpy's BLAS threads

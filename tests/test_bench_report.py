@@ -185,6 +185,21 @@ def _overlap(a, b):
     return max(0.0, min(a.x1, b.x1) - max(a.x0, b.x0)) * max(0.0, min(a.y1, b.y1) - max(a.y0, b.y0))
 
 
+def test_policy_and_scaling_lines_state_the_measured_ratios():
+    """pyvf's waiting policy against the others (worst ratio to the fastest, closed form from the
+    made-up times), and the speed-up on the most threads; absent measurements give no line."""
+    pol = {"passive (pyvf)": {"idle": {"a": 1.2, "b": 1.0}, "loaded": {"a": 2.0, "b": 1.0}},
+           "active": {"idle": {"a": 1.0, "b": 1.0}, "loaded": {"a": 6.0, "b": 1.5}}}
+    line = report.policy_line(dict(policies=pol, cores=2))
+    assert "passive (pyvf) takes at most **1.00x**" in line and "active takes up to 3.00x" in line
+    assert "idle it takes up to 1.20x (the others up to 1.00x)" in line
+    sc = {"threads": [1, 2], "times": {"step": {"1": 3.0, "2": 1.6}}, "bitwise": {"step": True}}
+    line = report.scaling_threads_line(dict(scaling=sc))
+    assert "on 2 threads against 1: step **1.88x**" in line and "bitwise the same at every" in line
+    assert "NOT bitwise" in report.scaling_threads_line(dict(scaling=dict(sc, bitwise={"step": False})))
+    assert report.policy_line({}) is None and report.scaling_threads_line({}) is None
+
+
 def test_plot_problems_finds_overlapping_ticks_and_a_legend_over_the_data():
     """The check above can fail: matplotlib's default log axis over 1.3..25 ms labels 2x10^0,
     3x10^0, 4x10^0 into each other (the old LayerNorm plot), and a legend inside the axes covers them."""

@@ -43,3 +43,81 @@ def test_blas_limit_sets_and_restores(n):
     with pyvf._threads.blas_limit(n):
         assert pyvf._threads.blas_num_threads() == n
     assert pyvf._threads.blas_num_threads() == before
+
+
+@pytest.mark.parametrize("n, want", [(1, [1]), (2, [1, 2]), (6, [1, 2, 4, 6]), (16, [1, 2, 4, 8, 16])])
+def test_thread_counts(n, want):
+    assert bench.thread_counts(n) == want
+
+
+def test_scale_catches_a_result_that_depends_on_the_threads(monkeypatch):
+    """A call whose result moves with the thread count fails the scaling (the paper sizes are left
+    out of quick mode: only the two fake calls run); a steady one passes, and the table shows the
+    speed-up of the recorded times."""
+    def fake(result):
+        def prepare():
+            return (lambda: None), result
+        return lambda quick: prepare
+    monkeypatch.setattr(bench, "SCALING_CALLS", {
+        "steady": (fake(lambda: np.arange(3.0)), True),
+        "planted": (fake(lambda: np.array([float(pyvf.num_threads())])), True),
+        "paper, not in quick": (fake(lambda: 1 / 0), False)})
+    rep = bench.scale(True, 2, log=lambda *a: None)
+    assert rep["bitwise"] == {"steady": True, "planted": False}
+    assert rep["failures"] == ["scaling: planted on 2 threads is not bitwise its result on 1"]
+    assert rep["threads"] == [1, 2]
+
+
+def test_scaling_table_and_targets_on_made_up_times():
+    rep = {"threads": [1, 2], "bitwise": {"transformer step, paper": True, "Codebook.encode": False},
+           "times": {"transformer step, paper": {"1": 30.0, "2": 15.0}, "Codebook.encode": {"1": 0.2, "2": 0.125}}}
+    header, rows = bench.scaling_table(rep)
+    assert header == ["call", "1 thr (speed-up)", "2 thr (speed-up)", "bitwise the same"]
+    assert rows == [["transformer step, paper", "30000 ms (1.00x)", "15000 ms (2.00x)", "yes"],
+                    ["Codebook.encode", "200 ms (1.00x)", "125 ms (1.60x)", "NO"]]
+    assert bench.scaling_targets(rep) == ["transformer step, paper: 2.00x on 2 threads (target at least 1.8)"]
+
+
+def test_policy_table_on_made_up_times():
+    pol = {"passive": {"idle": {"a": 0.012}, "loaded": {"a": 0.020}},
+           "spin": {"idle": {"a": 0.010}, "loaded": {"a": 0.050}}}
+    header, rows = bench.policy_table(pol, 2)
+    assert header == ["call", "machine", "passive: ms (/ best)", "spin: ms (/ best)"]
+    assert rows == [["a", "idle", "12.0 (1.20)", "10.0 (1.00)"], ["a", "2 busy", "20.0 (1.00)", "50.0 (2.50)"]]
+
+
+def test_each_policy_runs_in_its_own_environment(monkeypatch):
+    """The workers see exactly their policy's variables (the parent's are removed), and `import
+    pyvf` sets OMP_WAIT_POLICY=PASSIVE only where neither variable was set."""
+    seen = []
+    monkeypatch.setattr(bench, "run_worker", lambda module, spec, env: seen.append(env) or
+                        {"idle": {"a": 1.0}, "loaded": {"a": 1.0}, "env": {}})
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    bench.wait_policies(True, 2, log=lambda *a: None)
+    assert [{k: v for k, v in e.items() if v is not None} for e in seen] == list(bench.WAIT_POLICIES.values())
+    assert all(e.keys() >= {"OMP_WAIT_POLICY", "GOMP_SPINCOUNT"} for e in seen)  # each names both
+
+
+@pytest.mark.parametrize("env, want", [({}, "PASSIVE"), ({"GOMP_SPINCOUNT": "1000"}, None),
+                                       ({"OMP_WAIT_POLICY": "ACTIVE"}, "ACTIVE")])
+def test_import_sets_passive_waiting_unless_chosen(env, want):
+    import json
+    import subprocess
+    import sys
+    child = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    code = "import os, json, pyvf; print(json.dumps(os.environ.get('OMP_WAIT_POLICY')))"
+    holds = os.path.dirname(os.path.dirname(pyvf.__file__))
+    out = subprocess.run([sys.executable, "-c", code], env={**child, **env}, capture_output=True, text=True,
+                         cwd=holds, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == want
+
+
+def test_run_worker_removes_a_variable_given_none(monkeypatch):
+    """With OMP_WAIT_POLICY set here, the worker, told None for it, must not see it, and sees the
+    spin count it was given; its times name every call."""
+    from pyvf.bench.common import run_worker
+    monkeypatch.setenv("OMP_WAIT_POLICY", "PASSIVE")
+    got = run_worker("pyvf.bench.threads", {"quick": True, "cores": 1}, env={"OMP_WAIT_POLICY": None,
+                                                                            "GOMP_SPINCOUNT": "1000"})
+    assert got["env"] == {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": "1000"}
+    assert set(got["idle"]) == set(got["loaded"]) == set(bench.CALLS)

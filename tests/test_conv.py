@@ -947,6 +947,32 @@ def test_matmul_kernel_exact_on_integers(ta, tb, rng):
     np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32))
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_matmul_kernel_bias_rounds_as_numpy(dtype, rng):
+    """c = op(a) @ op(b) + bias: the bias is added to each element after its whole sum, one
+    rounding, so the result is bitwise the kernel's product + bias in NumPy (across block, chunk
+    and tile edges, 1 and 2 threads); K = 0 gives the bias itself; a bias of another length is
+    refused."""
+    case = (2, 101, 203, 300)
+    a, b, _ = _operands(rng, case, False, True, dtype)
+    bias = rng.standard_normal(case[2]).astype(dtype)
+    want = _mm(a, b, False, True) + bias
+    before = pyvf.num_threads()
+    try:
+        for n in (1, 2):
+            pyvf.set_num_threads(n)
+            c = np.full(want.shape, np.nan, dtype=dtype)
+            _core.matmul(c, a, b, False, True, bias)
+            assert_bitwise_equal(f"matmul + bias, {n} threads", c, want)
+    finally:
+        pyvf.set_num_threads(before)
+    c = np.full((1, 3, 4), np.nan, dtype=dtype)
+    _core.matmul(c, np.zeros((1, 3, 0), dtype), np.zeros((1, 0, 4), dtype), False, False, bias[:4])
+    np.testing.assert_array_equal(c, np.broadcast_to(bias[:4], (1, 3, 4)))
+    with pytest.raises(ValueError, match="bias must have shape"):
+        _core.matmul(c, np.zeros((1, 3, 2), dtype), np.zeros((1, 2, 4), dtype), False, False, bias[:5])
+
+
 def test_matmul_layers_helper(rng):
     """pyvf.nn.layers.matmul, the 2-D entry the linear layers and the logits use: each transpose
     flag against NumPy in float64, and a non-contiguous operand read as its values."""

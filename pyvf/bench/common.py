@@ -184,10 +184,12 @@ def format_bytes(n):
     raise AssertionError("unreachable")
 
 
-def run_worker(module, spec):
+def run_worker(module, spec, env=None):
     """Run `python -m module SPEC` in a fresh process, SPEC the JSON of the dict spec, and return
     the JSON object printed on its last line (the module's worker_main): for benchmarks that keep
-    each framework's thread pools in a process of its own.
+    each framework's thread pools in a process of its own, or that need environment variables
+    read when a library loads (env: {name: value} over this process's environment; a value of
+    None removes the variable).
 
     The worker starts in the folder that holds this process's pyvf package, so that it imports
     the same pyvf (`python -m` puts the working folder first on sys.path: started from a source
@@ -198,7 +200,8 @@ def run_worker(module, spec):
     import pyvf
     holds_pyvf = os.path.dirname(os.path.dirname(os.path.abspath(pyvf.__file__)))
     cmd = [sys.executable, "-m", module, json.dumps(spec)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=holds_pyvf)
+    child = {k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None}
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=holds_pyvf, env=child)
     if proc.returncode:
         raise RuntimeError(f"worker {' '.join(cmd[1:])} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -1,4 +1,4 @@
-"""docs/performance.md and docs/accuracy.md, generated (issue 11, item 5): never typed by hand.
+"""docs/performance.md and docs/accuracy.md, generated: never typed by hand.
 
     pyvf bench report                 # the full runs into docs/; ~10 minutes on 2 cores
     pyvf bench report --quick --out D # the --quick runs into D/ (a couple of minutes)
@@ -9,7 +9,9 @@ Runs, in this order, on --threads threads:
                            mode) -> img/scaling-{memory,time}-H<h>-dh<d>.png
   2. pyvf bench accuracy  -> img/accuracy-<op>.png
   3. pyvf bench hardcases -> img/hardcase-<sweep>.png
-  4. pyvf bench threads   (--quick: its quick mode; --threads threads at most, as many busy processes)
+  4. pyvf bench threads   (--quick: its quick mode; --threads threads at most, as many busy
+                           processes; with the OpenMP waiting policies and the scaling from 1
+                           thread to --threads)
 and writes OUT/performance.md, OUT/accuracy.md (every op's error table and Pareto plot, every
 hard-case sweep with pyvf's bound, PASS/FAIL) and the four runs' JSON in OUT/measurements/.
 
@@ -17,8 +19,9 @@ performance.md opens with its conclusions, one line per question, each number co
 the measurements of the same run (never typed): how the attention's memory and time grow with N
 against the naive stacked prefixes and dense masked attention (the fitted slopes, the ratios at the
 largest N every method measured), whether pyvf's default variant of each op is on the time/error
-Pareto front and its time over torch's, and the default thread setting's worst time over the best
-setting's; then the evidence, each table under the machine and date it was measured on.
+Pareto front and its time over torch's, the default thread setting's worst time over the best
+setting's, the waiting policy's cost idle and under load, and the training steps' speed-up with
+the threads; then the evidence, each table under the machine and date it was measured on.
 
 Plots need matplotlib (`pip install pyvf[plots]`); without it the documents are written without
 them and say so. Exit status 1 if any pyvf variant or sweep left its bound, the scaling study's
@@ -217,12 +220,41 @@ def threads_line(th):
             f"{len(th['idle'])} calls idle and beside {th['cores']} busy processes.")
 
 
+def policy_line(th):
+    """The waiting question's line: pyvf's policy (the first of WAIT_POLICIES) against the others,
+    its worst ratio to the fastest policy under load and idle."""
+    pol = th.get("policies")
+    if not pol:
+        return None
+    ours, others = next(iter(pol)), list(pol)[1:]
+
+    def worst(name, cond):
+        return max(pol[name][cond][c] / min(pol[n][cond][c] for n in pol) for c in pol[name][cond])
+    return (f"* **Waiting between parallel regions**: {ours} takes at most **{worst(ours, 'loaded'):.2f}x** the "
+            f"fastest policy's time beside {th['cores']} busy processes, where "
+            + ", ".join(f"{n} takes up to {worst(n, 'loaded'):.2f}x" for n in others)
+            + f"; idle it takes up to {worst(ours, 'idle'):.2f}x (the others up to "
+            + ", ".join(f"{worst(n, 'idle'):.2f}x" for n in others) + ").")
+
+
+def scaling_threads_line(th):
+    """The many-cores question's line: each call's speed-up at the most threads, and bitwise."""
+    sc = th.get("scaling")
+    if not sc:
+        return None
+    top = str(sc["threads"][-1])
+    ups = ", ".join(f"{name} **{t['1'] / t[top]:.2f}x**" for name, t in sc["times"].items())
+    same = all(sc["bitwise"].values())
+    return (f"* **More threads**: on {top} threads against 1: {ups}; every result "
+            + ("bitwise the same at every thread count." if same else "NOT bitwise the same: see the table."))
+
+
 def glance(out, quick, m, scalings, acc, th, jsons):
     """The conclusions, first in performance.md: one line per question, then where to read more."""
     lines = [f"Measured on {m['processor']} ({m['cpu_count']} CPUs), kernel path {m['kernel_path']}, "
              f"{m['threads']} threads, {m['generated']}, by `pyvf bench report{' --quick' if quick else ''}`.", "",
              scaling_line(scalings[0][0], "bytes"), scaling_line(scalings[0][0], "seconds"),
-             speed_error_line(acc), threads_line(th),
+             speed_error_line(acc), threads_line(th), *filter(None, (policy_line(th), scaling_threads_line(th))),
              "* **More**: every op's error and the hard cases in [accuracy.md](accuracy.md); every number as JSON: "
              + ", ".join(f"`{os.path.relpath(p, out)}`" for p in jsons) + "."]
     return ["## At a glance", "", *lines, ""]
@@ -293,8 +325,36 @@ def threads_section(quick, m, th):
     header = ["call", "machine", *(f"{_threads.label(k)} (ms)" for k in keys), "best", "default / best"]
     return s + [measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{th['cores']}"),
                 "", table(header, rows), "",
-                "(* the result is not bitwise the default's: numpy's BLAS on another thread count rounds some "
-                f"products differently; target: default / best at most {_threads.LIMIT})", ""]
+                f"({_threads.bitwise_note(th['bitwise_same'])}; target: default / best at most {_threads.LIMIT})", ""]
+
+
+def policies_section(quick, m, th):
+    """The OpenMP waiting policies' table (threads.policy_table)."""
+    if not th.get("policies"):
+        return []
+    s = ["## Waiting between parallel regions", "",
+         f"`pyvf bench threads{' --quick' if quick else ''}`: each waiting policy of the OpenMP runtime "
+         "(threads.WAIT_POLICIES) in a process of its own, pyvf's default thread setting, each call's median "
+         "time idle and beside busy processes, and its time over the fastest policy's.", "",
+         measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=th["cores"]), "",
+         table(*_threads.policy_table(th["policies"], th["cores"])), ""]
+    return s
+
+
+def scaling_threads_section(quick, m, th):
+    """The speed-up table from 1 thread to the most (threads.scaling_table) and the targets."""
+    sc = th.get("scaling")
+    if not sc:
+        return []
+    s = ["## From 1 thread to every core", "",
+         f"`pyvf bench threads{' --quick' if quick else ''}`: the training steps (the shipped tiny sizes"
+         + ("" if quick else " and the paper's") + ") and the evaluation's calls, each from a fresh model whose "
+         "first step's result must be bitwise the same on every thread count; the median time of the steps "
+         "after it, and the speed-up over 1 thread.", "",
+         measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{sc['threads'][-1]}"),
+         "", table(*_threads.scaling_table(sc)), ""]
+    targets = _threads.scaling_targets(sc)
+    return s + ([f"Paper sizes on 2 threads: {'; '.join(targets)}.", ""] if targets else [])
 
 
 def performance_md(out, quick, m, total, scalings, acc, th, jsons):
@@ -308,6 +368,8 @@ def performance_md(out, quick, m, total, scalings, acc, th, jsons):
         s += scaling_section(out, m, scal, tables)
     s += accuracy_section(out, quick, m, acc)
     s += threads_section(quick, m, th)
+    s += policies_section(quick, m, th)
+    s += scaling_threads_section(quick, m, th)
     return "\n".join(s)
 
 

@@ -16,9 +16,20 @@ Before timing, every call runs once in every setting from the same weights and i
 result must be finite and within RESULT_RTOL of the default's, and the table says which are
 bitwise equal to it. The table gives each call's median time per setting and condition, the
 best setting, and the default's time over the best's (the target: at most 1.1).
+
+Two more measurements follow (skipped by `run(..., policies=False, scaling=False)`):
+- The OpenMP runtime's waiting between parallel regions (WAIT_POLICIES): each choice in a worker
+  process of its own (the runtime reads it when it loads), the default setting's time of every
+  call idle and under load.
+- Scaling (SCALING_CALLS): the codebook's and the transformer's training steps at the shipped
+  (tiny) and the paper's sizes, and the evaluation's calls, at 1, 2, 4, ... up to every usable
+  core; each from the same fresh model for every thread count, whose first step's result must
+  be bitwise 1 thread's and whose second step is timed. Quick: the paper sizes left out, small
+  batches.
 """
 
 import contextlib
+import os
 import statistics
 import subprocess
 import sys
@@ -27,7 +38,8 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import cpu_name, median_time, table
+from pyvf.bench import codebook as _bench_codebook, transformer as _bench_transformer
+from pyvf.bench.common import cpu_name, median_time, run_worker, table, worker_main
 from pyvf._threads import blas_limit, blas_num_threads, cores
 from pyvf.train.loops import TINY_CODEBOOK, TINY_TRANSFORMER
 
@@ -190,8 +202,16 @@ def rows_of(times, condition, keys, same):
     return rows
 
 
-def run(quick=False, n_cores=None, log=print):
-    """Measure every call idle and under load; -> report dict (times in seconds, failures)."""
+def bitwise_note(same):
+    """What the table's * says, or that no result moved."""
+    if all(all(v.values()) for v in same.values()):
+        return "every setting's result is bitwise the default's"
+    return "* the result is not bitwise the default's: a product left to NumPy's BLAS rounds otherwise on another thread count"
+
+
+def run(quick=False, n_cores=None, log=print, policies=True, scaling=True):
+    """Measure every call idle and under load, then (unless turned off) the waiting policies and
+    the scaling; -> report dict (times in seconds, failures)."""
     size = QUICK if quick else FULL
     n_cores = n_cores or cores()
     keys = settings(n_cores)
@@ -209,18 +229,193 @@ def run(quick=False, n_cores=None, log=print):
     header = ["call", "machine", *(f"{label(k)} (ms)" for k in keys), "best", "default / best"]
     rows = rows_of(idle, "idle", keys, same) + rows_of(loaded, f"{n_cores} busy", keys, same)
     log(table(header, rows))
-    log("(* the result is not bitwise the default's: numpy's BLAS on another thread count rounds "
-        "some products differently)")
+    log(f"({bitwise_note(same)})")
     worst = max(t["default"] / min(t.values()) for times in (idle, loaded) for t in times.values())
     log(f"# the default's worst ratio to the best setting: {worst:.2f} (target at most {LIMIT})")
-    return {"failures": [], "cores": n_cores, "settings": [str(k) for k in keys], "idle": _jsonable(idle),
-            "loaded": _jsonable(loaded), "bitwise_same": _jsonable(same), "worst_default_ratio": worst, "cpu": cpu_name(),
-            "kernel_path": pyvf.kernel_path()}
+    report = {"failures": [], "cores": n_cores, "settings": [str(k) for k in keys], "idle": _jsonable(idle),
+              "loaded": _jsonable(loaded), "bitwise_same": _jsonable(same), "worst_default_ratio": worst,
+              "cpu": cpu_name(), "kernel_path": pyvf.kernel_path()}
+    if policies:
+        report["policies"] = wait_policies(quick, n_cores, log)
+    if scaling:
+        report["scaling"] = scale(quick, n_cores, log)
+        report["failures"] += report["scaling"]["failures"]
+    return report
 
 
 def _jsonable(times):
     return {name: {str(k): v for k, v in t.items()} for name, t in times.items()}
 
 
+# ---------------------------------------------------------------------------------------
+# the OpenMP runtime's waiting between parallel regions
+
+# libgomp's choices (pyvf's Linux build), each set in a worker process before the kernels load the
+# runtime: sleep at once (what `import pyvf` sets unless the user set OMP_WAIT_POLICY or
+# GOMP_SPINCOUNT), spin about 3 ms first (libgomp's own default when nothing is set: 300000 spins),
+# spin for minutes (ACTIVE).
+WAIT_POLICIES = {"passive (pyvf)": {"OMP_WAIT_POLICY": "PASSIVE"},
+                 "spin 3 ms (libgomp's default)": {"GOMP_SPINCOUNT": "300000"},
+                 "active": {"OMP_WAIT_POLICY": "ACTIVE"}}
+
+
+def _policy_worker(spec):
+    """In a worker process whose environment chose the waiting policy: the default setting's
+    median time of every call, idle and beside spec["cores"] busy processes."""
+    size = QUICK if spec["quick"] else FULL
+    fns = {name: make(size[which]) for name, (make, which) in CALLS.items()}
+    idle = time_all(fns, ["default"], size["repeat"])
+    with busy(spec["cores"]):
+        loaded = time_all(fns, ["default"], size["repeat"])
+    env = {v: os.environ.get(v) for v in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    return {"idle": {n: t["default"] for n, t in idle.items()}, "loaded": {n: t["default"] for n, t in loaded.items()},
+            "env": env}
+
+
+def wait_policies(quick, n_cores, log=print):
+    """{policy: {"idle": {call: s}, "loaded": {call: s}, "env"}} for each of WAIT_POLICIES, and the
+    table: each call's time per policy, over the best policy's."""
+    out = {}
+    for name, env in WAIT_POLICIES.items():
+        clear = {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": None}  # the parent's choice must not leak in
+        out[name] = run_worker(__name__, {"quick": quick, "cores": n_cores}, env={**clear, **env})
+    log(table(*policy_table(out, n_cores)))
+    return out
+
+
+def policy_table(policies, n_cores):
+    """(header, rows) of the waiting policies' times: ms per policy, and each one's time over the
+    fastest policy's for that call and condition."""
+    names = list(policies)
+    rows = []
+    for cond, label_ in (("idle", "idle"), ("loaded", f"{n_cores} busy")):
+        for call in policies[names[0]][cond]:
+            t = {n: policies[n][cond][call] for n in names}
+            best = min(t.values())
+            rows.append([call, label_, *(f"{t[n] * 1e3:.1f} ({t[n] / best:.2f})" for n in names)])
+    return ["call", "machine", *(f"{n}: ms (/ best)" for n in names)], rows
+
+
+# ---------------------------------------------------------------------------------------
+# scaling: 1 thread to every core
+
+
+def _codebook_stepper(config, batch):
+    """-> prepare() -> (step, result): a fresh codebook and Adam; step() takes one training step,
+    result() -> the last step's loss and the weights (outside the timed step)."""
+    def prepare():
+        cfg, cb, images = (_bench_codebook.setup("paper", batch=batch) if config == "paper" else
+                           (TINY_CODEBOOK, pyvf.Codebook(TINY_CODEBOOK, seed=0), np.random.default_rng(0).uniform(
+                               -1, 1, (batch, 3, TINY_CODEBOOK.image_size, TINY_CODEBOOK.image_size)).astype(np.float32)))
+        opt = pyvf.Adam(cb.params, 1e-3)
+
+        last = {}
+
+        def step():
+            last["loss"] = pyvf.codebook_train_step(cb, opt, images).loss
+        return step, lambda: np.concatenate([[last["loss"]], *(p.ravel() for p in cb.params.values())])
+    return prepare
+
+
+def _transformer_stepper(config, batch):
+    def prepare():
+        if config == "paper":
+            _, _, tokens, poses, model = _bench_transformer.setup("paper")
+        else:
+            cfg, tokens, poses = _transformer_inputs(batch, TINY_TRANSFORMER.sequence_size)
+            model = pyvf.Transformer(cfg, seed=0)
+        opt = pyvf.AdamW(model.params, lr=1e-4, weight_decay=0.01)
+
+        last = {}
+
+        def step():
+            last["loss"] = pyvf.train_step(model, opt, tokens, poses, max_grad_norm=1.0)[0]
+        return step, lambda: np.concatenate([[last["loss"]], *(p.ravel() for p in model.params.values())])
+    return prepare
+
+
+def _stateless(make, size):
+    """A call without state (CALLS' makers): step() keeps its output for result()."""
+    fn, last = make(size), {}
+
+    def step():
+        last["out"] = fn()
+    return lambda: (step, lambda: last["out"])
+
+
+# name -> (maker(quick) -> prepare, whether quick mode runs it); prepare() -> (step, result)
+SCALING_CALLS = {
+    "codebook step, tiny (batch 16)": (lambda q: _codebook_stepper("tiny", 4 if q else 16), True),
+    "transformer step, tiny (batch 8)": (lambda q: _transformer_stepper("tiny", 2 if q else 8), True),
+    "codebook step, paper (batch 2)": (lambda q: _codebook_stepper("paper", 2), False),
+    "transformer step, paper (1 x 20 views)": (lambda q: _transformer_stepper("paper", 1), False),
+    "render + localize, cached": (lambda q: _stateless(_render_localize, 2 if q else 4), True),
+    "Codebook.encode": (lambda q: _stateless(_encode, 8 if q else 32), True),
+}
+PAPER_SPEEDUP_2 = 1.8  # the paper-size steps on 2 threads against 1 (target)
+
+
+def thread_counts(n_cores):
+    """1, 2, 4, ... below n_cores, then n_cores."""
+    out, n = [], 1
+    while n < n_cores:
+        out.append(n)
+        n *= 2
+    return out + [n_cores]
+
+
+def scale(quick, n_cores, log=print):
+    """Each SCALING_CALLS call at every thread_counts(n_cores), in rounds over the counts: a fresh
+    model (prepared untimed), its first step (untimed: the warm-up, and its result must be bitwise
+    1 thread's), then its next steps timed. -> {"threads", "times": {call: {n: median s}},
+    "bitwise": {call: bool}, "failures"}."""
+    counts = thread_counts(n_cores)
+    calls = {name: make(quick) for name, (make, in_quick) in SCALING_CALLS.items() if in_quick or not quick}
+    times, bitwise, failures = {}, {}, []
+    for name, prepare in calls.items():
+        # rounds x timed steps per thread count: the paper sizes' steps take seconds to a minute,
+        # and vary by 10% on a shared machine, so each count times two in a row
+        rounds, timed = (1, 2) if "paper" in name else (3 if quick else 5, 1)
+        t, want = {n: [] for n in counts}, None
+        for _ in range(rounds):
+            for n in counts:
+                with pyvf.threads(n):
+                    step, result = prepare()
+                    step()
+                    got = np.asarray(result(), np.float64)
+                    for _ in range(timed):
+                        t0 = time.perf_counter()
+                        step()
+                        t[n].append(time.perf_counter() - t0)
+                want = got if want is None else want
+                if not np.array_equal(got, want) and bitwise.get(name, True):
+                    failures.append(f"scaling: {name} on {n} threads is not bitwise its result on {counts[0]}")
+                bitwise[name] = bitwise.get(name, True) and bool(np.array_equal(got, want))
+        times[name] = {n: statistics.median(v) for n, v in t.items()}
+    rep = {"threads": counts, "times": _jsonable(times), "bitwise": bitwise, "failures": failures}
+    log(table(*scaling_table(rep)))
+    for line in scaling_targets(rep):
+        log("# " + line)
+    return rep
+
+
+def scaling_table(rep):
+    """(header, rows): each call's median time per thread count and its speed-up over 1 thread."""
+    counts = [str(n) for n in rep["threads"]]
+    rows = []
+    for name, t in rep["times"].items():
+        rows.append([name, *(f"{t[n] * 1e3:.0f} ms ({t[counts[0]] / t[n]:.2f}x)" for n in counts),
+                     "yes" if rep["bitwise"][name] else "NO"])
+    return ["call", *(f"{n} thr (speed-up)" for n in counts), "bitwise the same"], rows
+
+
+def scaling_targets(rep):
+    """The paper-size steps' speed-up on 2 threads against the target (when 2 threads were run)."""
+    if "2" not in rep["times"][next(iter(rep["times"]))]:
+        return []
+    return [f"{name}: {t['1'] / t['2']:.2f}x on 2 threads (target at least {PAPER_SPEEDUP_2})"
+            for name, t in rep["times"].items() if "paper" in name]
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(1 if run("--quick" in sys.argv)["failures"] else 0)
+    worker_main(_policy_worker)

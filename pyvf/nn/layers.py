@@ -45,9 +45,10 @@ def _check_linear(x, w, b, names=("x", "w", "b")):
 # matmul: the products of the linear layers and the tied logits
 
 
-def matmul(a, b, ta=False, tb=False):
-    """c (M, N) = op(a) @ op(b), op = transpose when ta / tb: a (M, K), or (K, M) when ta; b (K, N),
-    or (N, K) when tb; one float dtype (the callers check it).
+def matmul(a, b, ta=False, tb=False, bias=None):
+    """c (M, N) = op(a) @ op(b) [+ bias], op = transpose when ta / tb: a (M, K), or (K, M) when ta;
+    b (K, N), or (N, K) when tb; bias (N,) added to every row after its sum (as NumPy's
+    a @ b + bias rounds); one float dtype (the callers check it).
 
     pyvf's GEMM (csrc/conv.cpp matmul_batched), not NumPy's BLAS: each element of c is one sum in
     increasing k, so the result is bitwise the same for any thread count (OpenBLAS's is not for
@@ -57,7 +58,7 @@ def matmul(a, b, ta=False, tb=False):
     a, b = _checks.c_order(a), _checks.c_order(b)
     M, N = a.shape[1 if ta else 0], b.shape[0 if tb else 1]
     c = np.empty((1, M, N), dtype=a.dtype)  # (1, M, N): one entry of the batched kernel
-    _core.matmul(c, a[None], b[None], ta, tb)
+    _core.matmul(c, a[None], b[None], ta, tb, None if bias is None else _checks.c_order(bias))
     return c[0]
 
 
@@ -69,7 +70,7 @@ def _linear(x, w, b):
     din, dout = w.shape
     M = int(np.prod(x.shape[:-1]))  # rows; explicit rather than -1, so that din = 0 works
     with np.errstate(over="ignore", invalid="ignore"):  # the callers check the result
-        return (matmul(x.reshape(M, din), w) + b).reshape(*x.shape[:-1], dout)  # (..., dout)
+        return matmul(x.reshape(M, din), w, bias=b.reshape(dout)).reshape(*x.shape[:-1], dout)  # (..., dout)
 
 
 def _linear_backward(dy, x, w):
