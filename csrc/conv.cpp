@@ -65,6 +65,7 @@
 #include "conv.h"
 
 #include <algorithm>
+#include <memory>
 #include <new>
 #include <vector>
 
@@ -947,13 +948,15 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
 // Blocks: tasks of (entry, kMatRows rows, kMatCols columns), each writing its own block of c;
 // inside a task k runs in chunks of kMatDepth, each chunk continuing the sums of the last
 // (gemm_tile's CONT). A chunk's panel of b (kMatDepth x kMatCols) and of a (kMatRows x
-// kMatDepth) are copied into the order the register tile reads them (a's rows MR at a time, b's
-// columns 2 vectors at a time, k outermost), so that its loads are contiguous and the panels stay
-// in L2 and L1. Rows past the last full MR and columns past the last full 2 vectors run on the
-// unpacked matrices (gemm_mr). Every element of c is one sum in increasing k on simd.h's register
-// tile (FMA where the path has it), whatever the blocks, the tasks or the thread count: bitwise
-// the same for any thread count. A transposed b (a weight matrix, where pyvf asks for one) is
-// first copied into (K, N) order. A bias (N,), when given, is added to every row after its sums.
+// kMatDepth) are copied into the order the register tile reads them (a's rows kPackMR at a time,
+// b's columns kPackNV vectors at a time, k outermost), so that its loads are contiguous and b's
+// panel stays in L2 while the block's rows pass over it. Rows past the last full kPackMR and
+// columns past the last full kPackNV vectors run on the unpacked matrices (gemm_mr). Every
+// element of c is one sum in increasing k (on simd.h's register tile, FMA where the path has it;
+// the last N % W columns as scalar sums), whatever the blocks, the tasks or the thread count:
+// bitwise the same for any thread count. A transposed b (a weight matrix, where pyvf asks for
+// one) is first copied into (K, N) order. A bias (N,), when given, is added to every row after
+// its sums.
 // Here rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
 // milliseconds on the cores this file's OpenMP threads run on (11% of a paper codebook's encode +
 // decode went to that spinning; a 2-thread product right after a 2-thread BLAS call ran at the
@@ -961,37 +964,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
 // shapes.
 constexpr int64_t kMatRows = 96;    // whole register tiles on every path (8, 6 and 4 rows)
 constexpr int64_t kMatCols = 192;   // a multiple of the packed tile's columns on every path (96, 48, 16, 8, 4)
-constexpr int64_t kMatDepth = 256;  // b's panel: 256 x 192 floats, 192 KiB (L2); a's: 48 KiB
-
-// The packed register tile: c (MR, NV vectors) (+)= ap (k-major, MR per k) @ bp (k-major, NV
-// vectors per k) over kc; the accumulators start from c when CONT (the sums of earlier chunks).
-// The same sums as simd.h's gemm_tile, one FMA per k per element in increasing k, over buffers
-// laid out so that every load is contiguous.
-template <typename T, int MR, int NV, bool CONT>
-inline void packed_tile(int kc, const T* ap, const T* bp, T* c, long ldc) {
-    using V = typename Simd<T>::V;
-    constexpr int W = Simd<T>::W;
-    V acc[MR][NV];
-#pragma GCC unroll 8
-    for (int i = 0; i < MR; ++i)
-#pragma GCC unroll 8
-        for (int v = 0; v < NV; ++v) acc[i][v] = CONT ? vload<T>(c + i * ldc + v * W) : V{};
-    for (int k = 0; k < kc; ++k) {
-        V b[NV];
-#pragma GCC unroll 8
-        for (int v = 0; v < NV; ++v) b[v] = vload<T>(bp + (k * NV + v) * W);
-#pragma GCC unroll 8
-        for (int i = 0; i < MR; ++i) {
-            const T a = ap[k * MR + i];
-#pragma GCC unroll 8
-            for (int v = 0; v < NV; ++v) acc[i][v] += a * b[v];
-        }
-    }
-#pragma GCC unroll 8
-    for (int i = 0; i < MR; ++i)
-#pragma GCC unroll 8
-        for (int v = 0; v < NV; ++v) vstore<T>(c + i * ldc + v * W, acc[i][v]);
-}
+constexpr int64_t kMatDepth = 256;  // panels: b's 256 x 192 (192 KiB of floats), a's 96 x 256 (96 KiB)
 
 // The packed tile's shape: with 32 vector registers (AVX-512) 4 rows x 6 vectors (24
 // accumulators, 6 of b, 1 broadcast: 4 broadcasts per 24 FMAs); with 16 (AVX2) simd.h's 6 x 2,
@@ -1025,8 +998,10 @@ void matmul_block(int64_t m, int64_t n, int64_t K, const T* A, long lda, const T
         for (int64_t t = 0; t < nt; ++t)
             for (int64_t g = 0; g < ng; ++g) {
                 T* c = C + g * MR * ldc + t * NB;
-                if (k0 == 0) packed_tile<T, MR, kPackNV, false>(kc, ap + g * kc * MR, bp + t * kc * NB, c, ldc);
-                else packed_tile<T, MR, kPackNV, true>(kc, ap + g * kc * MR, bp + t * kc * NB, c, ldc);
+                const T* At = ap + g * kc * MR;  // op(a)[i, k] at At[k * MR + i]
+                const T* Bt = bp + t * kc * NB;  // b[k, v * W + l] at Bt[k * NB + v * W + l]
+                if (k0 == 0) gemm_tile<T, MR, kPackNV, false>(kc, At, 1, MR, Bt, NB, c, ldc);
+                else gemm_tile<T, MR, kPackNV, false, true>(kc, At, 1, MR, Bt, NB, c, ldc);
             }
         // the edges, unpacked: the last rows under the packed columns, then every row of the last columns
         if (mf < m) {
@@ -1050,28 +1025,30 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
             for (int64_t j = 0; j < N; ++j) c[r * N + j] = bias ? T(0) + bias[j] : T(0);
         return kConvOk;
     }
-    Buf<T> bt;  // a transposed b in (K, N) order: b is a weight matrix where pyvf asks for tb
+    std::unique_ptr<T[]> bt;  // a transposed b in (K, N) order: b is a weight matrix where pyvf asks for tb
     if (tb) {
-        try {
-            bt.resize(nb * K * N);
-        } catch (const std::bad_alloc&) {
-            return kConvOutOfMemory;
-        }
+        bt.reset(new (std::nothrow) T[nb * K * N]);  // not initialised: every element is written below
+        if (!bt) return kConvOutOfMemory;
         constexpr int64_t kT = 32;  // tiles of 32 x 32: the reads and the writes both stay in L1
-        for (int64_t bi = 0; bi < nb; ++bi)
-            for (int64_t j0 = 0; j0 < N; j0 += kT)
-                for (int64_t k0 = 0; k0 < K; k0 += kT)
-                    for (int64_t j = j0; j < std::min(N, j0 + kT); ++j)
-                        for (int64_t k = k0; k < std::min(K, k0 + kT); ++k)
-                            bt[(bi * K + k) * N + j] = b[(bi * N + j) * K + k];
-        b = bt.data();
+        const int64_t nj = ceil_div(N, kT);
+#pragma omp parallel for schedule(static) if (nb * K * N >= kParallelFlops / 8)
+        for (int64_t t = 0; t < nb * nj; ++t) {
+            const int64_t bi = t / nj, j0 = (t % nj) * kT;
+            for (int64_t k0 = 0; k0 < K; k0 += kT)
+                for (int64_t j = j0; j < std::min(N, j0 + kT); ++j)
+                    for (int64_t k = k0; k < std::min(K, k0 + kT); ++k)
+                        bt[(bi * K + k) * N + j] = b[(bi * N + j) * K + k];
+        }
+        b = bt.get();
     }
+    // the panels as large as this product needs (a small product zero-fills little)
+    const int64_t rows = std::min(M, kMatRows), depth = std::min(K, kMatDepth), cols = std::min(N, kMatCols);
     int status = kConvOk;
 #pragma omp parallel if (nb * M * N * K >= kParallelFlops)
     {
         Buf<T> ap, bp;
         bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, ap.resize(kMatRows * kMatDepth); bp.resize(kMatDepth * kMatCols); ok = true)
+        PYVF_CONV_TRY_ALLOC(status, ap.resize(rows * depth); bp.resize(depth * cols); ok = true)
 #pragma omp for schedule(dynamic, 1)
         for (int64_t t = 0; t < nb * per; ++t) {
             if (!ok) continue;

@@ -201,22 +201,22 @@ inline void gemm_tile(int K, const T* A, long sa_i, long sa_k, const T* B, long 
     V acc[MR][NV];
 #pragma GCC unroll 16
     for (int i = 0; i < MR; ++i)
-#pragma GCC unroll 4
+#pragma GCC unroll 8
         for (int v = 0; v < NV; ++v) acc[i][v] = CONT ? vload<T>(C + i * ldc + v * W) : V{};
     for (int k = 0; k < K; ++k) {
         V b[NV];
-#pragma GCC unroll 4
+#pragma GCC unroll 8
         for (int v = 0; v < NV; ++v) b[v] = vload<T>(B + k * ldb + v * W);
 #pragma GCC unroll 16
         for (int i = 0; i < MR; ++i) {
             const T a = A[i * sa_i + k * sa_k];
-#pragma GCC unroll 4
+#pragma GCC unroll 8
             for (int v = 0; v < NV; ++v) acc[i][v] += a * b[v];
         }
     }
 #pragma GCC unroll 16
     for (int i = 0; i < MR; ++i)
-#pragma GCC unroll 4
+#pragma GCC unroll 8
         for (int v = 0; v < NV; ++v) {
             T* c = C + i * ldc + v * W;
             vstore<T>(c, ACC && !CONT ? vload<T>(c) + acc[i][v] : acc[i][v]);
@@ -229,7 +229,10 @@ inline void gemm_rows(int N, int K, const T* A, long sa_i, long sa_k, const T* B
     int j = 0;
     for (; j + 2 * W <= N; j += 2 * W) gemm_tile<T, MR, 2, ACC, CONT>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
     for (; j + W <= N; j += W) gemm_tile<T, MR, 1, ACC, CONT>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
-    for (; j < N; ++j)  // columns past the last full vector
+    // columns past the last full vector: scalar sums in increasing k, each product rounded or
+    // fused as the compiler chooses (not necessarily as the vector tile's FMA), the same choice
+    // for any block or thread count
+    for (; j < N; ++j)
         for (int i = 0; i < MR; ++i) {
             T s = CONT ? C[i * ldc + j] : T(0);
             for (int k = 0; k < K; ++k) s += A[i * sa_i + k * sa_k] * B[k * ldb + j];

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 import pyvf
+from pyvf.nn.layers import matmul
 from pyvf import _core
 from pyvf.nn import conv
 
@@ -915,7 +916,9 @@ def test_matmul_kernel(case, dtype, ta, tb, rng):
     one sum of K products in increasing k, so its error is at most K u sum_k |a_ik b_kj| (Higham
     3.5) and in practice ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
     2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1 and 2
-    threads (each element's sum does not depend on which task or thread computes it)."""
+    threads (each element's sum does not depend on which task or thread computes it; the cases
+    of at least 2^20 multiply-adds, (1, 203, 401, 531) and (2, 96, 192, 256), run on two threads,
+    the smaller ones on one whatever the setting)."""
     nb, M, N, K = case
     a, b, want = _operands(rng, case, ta, tb, dtype)
     before = pyvf.num_threads()
@@ -947,22 +950,23 @@ def test_matmul_kernel_exact_on_integers(ta, tb, rng):
     np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32))
 
 
+@pytest.mark.parametrize("tb", [False, True])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_matmul_kernel_bias_rounds_as_numpy(dtype, rng):
+def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
     """c = op(a) @ op(b) + bias: the bias is added to each element after its whole sum, one
     rounding, so the result is bitwise the kernel's product + bias in NumPy (across block, chunk
     and tile edges, 1 and 2 threads); K = 0 gives the bias itself; a bias of another length is
     refused."""
     case = (2, 101, 203, 300)
-    a, b, _ = _operands(rng, case, False, True, dtype)
+    a, b, _ = _operands(rng, case, False, tb, dtype)
     bias = rng.standard_normal(case[2]).astype(dtype)
-    want = _mm(a, b, False, True) + bias
+    want = _mm(a, b, False, tb) + bias
     before = pyvf.num_threads()
     try:
         for n in (1, 2):
             pyvf.set_num_threads(n)
             c = np.full(want.shape, np.nan, dtype=dtype)
-            _core.matmul(c, a, b, False, True, bias)
+            _core.matmul(c, a, b, False, tb, bias)
             assert_bitwise_equal(f"matmul + bias, {n} threads", c, want)
     finally:
         pyvf.set_num_threads(before)
@@ -974,9 +978,11 @@ def test_matmul_kernel_bias_rounds_as_numpy(dtype, rng):
 
 
 def test_matmul_layers_helper(rng):
-    """pyvf.nn.layers.matmul, the 2-D entry the linear layers and the logits use: each transpose
-    flag against NumPy in float64, and a non-contiguous operand read as its values."""
-    from pyvf.nn.layers import matmul
+    """pyvf.nn.layers.matmul, the entry the linear layers, the logits and the AttnBlock use: each
+    transpose flag against NumPy in float64 on 2-D and batched operands, and a non-contiguous
+    operand read as its values."""
+    a3, b3 = rng.standard_normal((2, 3, 30, 40))
+    assert_close("batched a @ b^T", matmul(a3, b3, tb=True), a3 @ b3.transpose(0, 2, 1), rtol=1e-13)
     a, b = rng.standard_normal((2, 30, 40))
     assert_close("a @ b^T", matmul(a, b, tb=True), a @ b.T, rtol=1e-13)
     assert_close("a^T @ b", matmul(a[:, :30].T, b[:, :30], ta=True), a[:, :30] @ b[:, :30], rtol=1e-13)
@@ -986,8 +992,8 @@ def test_matmul_layers_helper(rng):
 def test_matmul_kernel_would_catch_a_transpose(rng):
     """The oracle tells a transposed operand apart (square sizes, where shapes cannot)."""
     a, b = rng.standard_normal((2, 2, 9, 9))
-    good = conv._matmul(a, b)
-    assert gap(conv._matmul(a, b, ta=True), good) > 0.1
+    good = matmul(a, b)
+    assert gap(matmul(a, b, ta=True), good) > 0.1
     assert gap(_mm(a, b, False, True), good) > 0.1
     assert_close("matmul square", good, a @ b, rtol=1e-13)
 
@@ -998,8 +1004,12 @@ def test_matmul_kernel_refuses_bad_arguments():
         _core.matmul(np.zeros((2, 3, 5)), a.astype(np.float32), b, False)
     with pytest.raises(ValueError, match="b must have shape"):
         _core.matmul(np.zeros((2, 3, 5)), a, np.zeros((2, 3, 5)), False)
-    with pytest.raises(ValueError, match=r"b must have shape \(batch, N, K\)"):
+    with pytest.raises(ValueError, match=r"b must have shape \(batch, N, K\) with a's batch 2 and K = 4, got \(2, 4, 5\)"):
         _core.matmul(np.zeros((2, 3, 5)), a, b, False, True)
+    with pytest.raises(ValueError, match=r"c must have shape \(batch, M, N\) = \(2, 3, 5\), got \(2, 3, 4\)"):
+        _core.matmul(np.zeros((2, 3, 4)), a, b, False)
+    with pytest.raises(ValueError, match=r"bias must have shape \(N,\) = \(5,\), got \(4,\)"):
+        _core.matmul(np.zeros((2, 3, 5)), a, b, False, False, np.zeros(4))
     with pytest.raises(ValueError, match="c must have shape"):
         _core.matmul(np.zeros((2, 3, 4)), a, b, False)
     with pytest.raises(ValueError, match="3-D"):

@@ -3,10 +3,9 @@ training blocks with the trunk's keys and values cached, and compute what the wh
 forward computes for the query's branch row.
 
 Why not bitwise. The two paths evaluate the same function in a different order of rounding:
-the linear layers multiply a different number of rows (the BLAS blocks a (3*B*(C+1)*L, d)
-product otherwise than a (B*C*L, d) or (M*B*L, d) one, and the rows come out different in
-their last bits), and the cached attention takes its softmax in one pass where the kernel takes
-it block by block. So the test bounds the difference by the rounding error of the training
+the cached attention takes its softmax in one pass where the tree's kernel takes it block by
+block. (The linear layers' rows do not differ: pyvf's GEMM sums each element in one order
+whatever the number of rows in the product.) So the test bounds the difference by the rounding error of the training
 forward itself, measured:
 
     E32 = max |forward_float32 - forward_float64|   (the same float32 weights, widened)

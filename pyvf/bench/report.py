@@ -240,7 +240,7 @@ def policy_line(th):
 def scaling_threads_line(th):
     """The many-cores question's line: each call's speed-up at the most threads, and bitwise."""
     sc = th.get("scaling")
-    if not sc:
+    if not sc or len(sc["threads"]) < 2:
         return None
     top = str(sc["threads"][-1])
     ups = ", ".join(f"{name} **{t['1'] / t[top]:.2f}x**" for name, t in sc["times"].items())
@@ -336,7 +336,8 @@ def policies_section(quick, m, th):
          f"`pyvf bench threads{' --quick' if quick else ''}`: each waiting policy of the OpenMP runtime "
          "(threads.WAIT_POLICIES) in a process of its own, pyvf's default thread setting, each call's median "
          "time idle and beside busy processes, and its time over the fastest policy's.", "",
-         measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=th["cores"]), "",
+         measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]),
+                     threads=next(iter(th["policies"].values())).get("threads", th["cores"])), "",
          table(*_threads.policy_table(th["policies"], th["cores"])), ""]
     return s
 

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from .. import _checks, _core
+from .layers import matmul
 
 
 
@@ -494,23 +495,6 @@ def upsample_nearest2x_backward(dy, cache):
 # AttnBlock(c): single-head attention over the Hi*Wi positions, residual (docs/math.md §4)
 
 
-def _matmul(a, b, ta=False):
-    """c (n, M, N) = op(a) @ b per image, op(a) = a (n, M, K), or a^T when ta (a stored (n, K, M)):
-    the C++ kernel (csrc/conv.cpp matmul_batched; each element one sum in increasing k), not
-    NumPy's BLAS, whose threads spin for milliseconds after each call on the cores the conv kernels
-    run on. Inputs of one dtype, already checked by the caller."""
-    a, b = _checks.c_order(a), _checks.c_order(b)
-    n, M = a.shape[0], a.shape[2] if ta else a.shape[1]
-    c = np.empty((n, M, b.shape[2]), dtype=a.dtype)  # (n, M, N)
-    _core.matmul(c, a, b, ta)
-    return c
-
-
-def _transposed(a):
-    """(n, R, C) -> a C-ordered (n, C, R) copy (a NumPy copy, no BLAS)."""
-    return np.ascontiguousarray(a.transpose(0, 2, 1))
-
-
 def attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, groups=32, eps=1e-6):
     """y = x + proj_out(attention(q, k, v)), q, k, v = 1x1 convs of GroupNorm(x).
 
@@ -532,13 +516,13 @@ def attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, 
     v, c_v = conv2d_forward(h, wv, bv)  # (B, C, Hi, Wi)
     q2, k2, v2 = q.reshape(B, C, P), k.reshape(B, C, P), v.reshape(B, C, P)  # (B, C, P)
     scale = x.dtype.type(C ** -0.5)
-    s = _matmul(q2, k2, ta=True)  # (B, P, P): s[b,i,j] = sum_c q[b,c,i] k[b,c,j]
+    s = matmul(q2, k2, ta=True)  # (B, P, P): s[b,i,j] = sum_c q[b,c,i] k[b,c,j]
     s *= scale
     s -= s.max(axis=-1, keepdims=True)
     with np.errstate(under="ignore"):  # exp of very negative logits underflowing to 0 is correct
         p = np.exp(s)  # (B, P, P)
     p /= p.sum(axis=-1, keepdims=True)  # softmax over the keys j
-    a = _matmul(v2, _transposed(p))  # (B, C, P): a[b,c,i] = sum_j v[b,c,j] p[b,i,j]
+    a = matmul(v2, p, tb=True)  # (B, C, P): a[b,c,i] = sum_j v[b,c,j] p[b,i,j]
     o, c_o = conv2d_forward(a.reshape(B, C, Hi, Wi), wo, bo)  # (B, C, Hi, Wi)
     o += x  # y = x + o, in o's fresh buffer (referenced nowhere else)
     y = o  # (B, C, Hi, Wi)
@@ -554,13 +538,13 @@ def attnblock_backward(dy, cache):
     da, dwo, dbo = conv2d_backward(dy, c_o)
     da2 = da.reshape(B, C, P)  # (B, C, P)
     # forward was a = v @ p^T, so dv = da @ p and dp = da^T @ v
-    dv2 = _matmul(da2, p)  # (B, C, P): dv[b,c,j] = sum_i da[b,c,i] p[b,i,j]
-    dp = _matmul(da2, v2, ta=True)  # (B, P, P): dp[b,i,j] = sum_c da[b,c,i] v[b,c,j]
+    dv2 = matmul(da2, p)  # (B, C, P): dv[b,c,j] = sum_i da[b,c,i] p[b,i,j]
+    dp = matmul(da2, v2, ta=True)  # (B, P, P): dp[b,i,j] = sum_c da[b,c,i] v[b,c,j]
     # forward was p = softmax_j(s), so ds = p * (dp - sum_j p * dp); s = scale * q^T k
     ds = p * (dp - (p * dp).sum(axis=-1, keepdims=True))  # (B, P, P)
     ds *= scale
-    dq2 = _matmul(k2, _transposed(ds))  # (B, C, P): dq[b,c,i] = sum_j k[b,c,j] ds[b,i,j]
-    dk2 = _matmul(q2, ds)  # (B, C, P): dk[b,c,j] = sum_i q[b,c,i] ds[b,i,j]
+    dq2 = matmul(k2, ds, tb=True)  # (B, C, P): dq[b,c,i] = sum_j k[b,c,j] ds[b,i,j]
+    dk2 = matmul(q2, ds)  # (B, C, P): dk[b,c,j] = sum_i q[b,c,i] ds[b,i,j]
     shape = c_norm[0].shape  # (B, C, Hi, Wi)
     dhq, dwq, dbq = conv2d_backward(dq2.reshape(shape), c_q)
     dhk, dwk, dbk = conv2d_backward(dk2.reshape(shape), c_k)

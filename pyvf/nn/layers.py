@@ -46,9 +46,10 @@ def _check_linear(x, w, b, names=("x", "w", "b")):
 
 
 def matmul(a, b, ta=False, tb=False, bias=None):
-    """c (M, N) = op(a) @ op(b) [+ bias], op = transpose when ta / tb: a (M, K), or (K, M) when ta;
-    b (K, N), or (N, K) when tb; bias (N,) added to every row after its sum (as NumPy's
-    a @ b + bias rounds); one float dtype (the callers check it).
+    """c = op(a) @ op(b) [+ bias], op = transpose when ta / tb, for 2-D operands or per entry of
+    3-D ones (a leading batch axis): a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c
+    (M, N); bias (N,) added to every row after its sum (as NumPy's a @ b + bias rounds); one
+    float dtype (the callers check it).
 
     pyvf's GEMM (csrc/conv.cpp matmul_batched), not NumPy's BLAS: each element of c is one sum in
     increasing k, so the result is bitwise the same for any thread count (OpenBLAS's is not for
@@ -56,10 +57,12 @@ def matmul(a, b, ta=False, tb=False, bias=None):
     milliseconds after each call on the cores pyvf's kernels need (a 2-thread kernel right after a
     2-thread BLAS product ran at the speed of one thread)."""
     a, b = _checks.c_order(a), _checks.c_order(b)
-    M, N = a.shape[1 if ta else 0], b.shape[0 if tb else 1]
-    c = np.empty((1, M, N), dtype=a.dtype)  # (1, M, N): one entry of the batched kernel
-    _core.matmul(c, a[None], b[None], ta, tb, None if bias is None else _checks.c_order(bias))
-    return c[0]
+    one = a.ndim == 2  # 2-D: one entry of the batched kernel
+    a3, b3 = (a[None], b[None]) if one else (a, b)
+    M, N = a3.shape[2 if ta else 1], b3.shape[1 if tb else 2]
+    c = np.empty((a3.shape[0], M, N), dtype=a.dtype)  # (batch, M, N)
+    _core.matmul(c, a3, b3, ta, tb, None if bias is None else _checks.c_order(bias))
+    return c[0] if one else c
 
 
 # ---------------------------------------------------------------------------------------
@@ -69,8 +72,8 @@ def matmul(a, b, ta=False, tb=False, bias=None):
 def _linear(x, w, b):
     din, dout = w.shape
     M = int(np.prod(x.shape[:-1]))  # rows; explicit rather than -1, so that din = 0 works
-    with np.errstate(over="ignore", invalid="ignore"):  # the callers check the result
-        return matmul(x.reshape(M, din), w, bias=b.reshape(dout)).reshape(*x.shape[:-1], dout)  # (..., dout)
+    # (an overflow gives inf, which the callers check)
+    return matmul(x.reshape(M, din), w, bias=b.reshape(dout)).reshape(*x.shape[:-1], dout)  # (..., dout)
 
 
 def _linear_backward(dy, x, w):
