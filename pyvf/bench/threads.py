@@ -55,20 +55,6 @@ LIMIT = 1.1  # the default's time may be at most this much over the best setting
 RESULT_RTOL = 1e-4
 
 
-def _codebook_step(size):
-    """-> fn() running one codebook training step from fixed weights, returning the loss and weights."""
-    rng = np.random.default_rng(0)
-    S = TINY_CODEBOOK.image_size
-    images = rng.uniform(-1, 1, (size, 3, S, S)).astype(np.float32)
-
-    def fn():
-        cb = pyvf.Codebook(TINY_CODEBOOK, seed=0)
-        opt = pyvf.Adam(cb.params, 1e-3)
-        out = pyvf.codebook_train_step(cb, opt, images)
-        return np.concatenate([[out.loss], *(p.ravel() for p in cb.params.values())])
-    return fn
-
-
 def _transformer_inputs(batch, views, seed=0):
     cfg = TINY_TRANSFORMER
     rng = np.random.default_rng(seed)
@@ -78,14 +64,13 @@ def _transformer_inputs(batch, views, seed=0):
     return cfg, tokens, poses
 
 
-def _transformer_step(size):
-    cfg, tokens, poses = _transformer_inputs(size, 6)
-
+def _fresh_step(prepare):
+    """-> fn() taking one training step from a fresh model (prepare(): a scaling stepper's),
+    returning the loss and the weights after it."""
     def fn():
-        model = pyvf.Transformer(cfg, seed=0)
-        opt = pyvf.AdamW(model.params, lr=1e-4, weight_decay=0.01)
-        loss, _ = pyvf.train_step(model, opt, tokens, poses, max_grad_norm=1.0)
-        return np.concatenate([[loss], *(p.ravel() for p in model.params.values())])
+        step, result = prepare()
+        step()
+        return result()
     return fn
 
 
@@ -111,8 +96,8 @@ def _encode(size):
 # name -> (maker(size) -> fn, which size of QUICK/FULL)
 CALLS = {
     "render + localize, cached": (_render_localize, "scenes"),
-    "codebook training step": (_codebook_step, "cb_batch"),
-    "transformer training step": (_transformer_step, "tf_batch"),
+    "codebook training step": (lambda size: _fresh_step(_codebook_stepper("tiny", size)), "cb_batch"),
+    "transformer training step": (lambda size: _fresh_step(_transformer_stepper("tiny", size)), "tf_batch"),
     "Codebook.encode": (_encode, "images"),
 }
 
