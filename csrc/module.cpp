@@ -16,6 +16,8 @@
 #include "branching_attention.h"
 #include "conv.h"
 #include "elementwise.h"
+#include "layernorm.h"
+#include "optim.h"
 #include "vq.h"
 #include "simd.h"
 
@@ -137,6 +139,116 @@ template <typename T> void gelu_grad(Arr<T> dx, Arr<T> dy, Arr<T> x) {
 }
 
 
+// Adam/AdamW (optim.cpp): scalars (b1, 1 - b1, b2, 1 - b2, a, sbc2, eps, decay) are rounded to T
+// here, as NumPy rounds a Python float against an array of T.
+template <typename T> AdamScalars<T> adam_scalars(py::tuple s, bool keras, bool decayed) {
+    if (s.size() != 8) throw std::invalid_argument("pyvf._core.adam: scalars must be 8 numbers");
+    AdamScalars<T> r;
+    T* out[8] = {&r.b1, &r.c1, &r.b2, &r.c2, &r.a, &r.sbc2, &r.eps, &r.decay};
+    for (int i = 0; i < 8; ++i) *out[i] = static_cast<T>(s[i].cast<double>());
+    r.keras = keras;
+    r.decayed = decayed;
+    return r;
+}
+
+template <typename T> bool adam_check_k(Arr<T> p, Arr<T> m, Arr<T> v, Arr<T> g, py::tuple s, bool keras, bool decayed) {
+    for (const py::array* a : {&m, &v, &g}) same_size(*a, p, "adam");
+    const AdamScalars<T> sc = adam_scalars<T>(s, keras, decayed);
+    const T *pp = p.data(), *pm = m.data(), *pv = v.data(), *pg = g.data();
+    const int64_t n = p.size();
+    py::gil_scoped_release nogil;
+    return adam_check<T>(pp, pm, pv, pg, n, sc);
+}
+
+template <typename T> void adam_apply_k(Arr<T> p, Arr<T> m, Arr<T> v, Arr<T> g, py::tuple s, bool keras, bool decayed) {
+    for (const py::array* a : {&m, &v, &g}) same_size(*a, p, "adam");
+    const AdamScalars<T> sc = adam_scalars<T>(s, keras, decayed);
+    T *pp = p.mutable_data(), *pm = m.mutable_data(), *pv = v.mutable_data();
+    const T* pg = g.data();
+    const int64_t n = p.size();
+    py::gil_scoped_release nogil;
+    adam_apply<T>(pp, pm, pv, pg, n, sc);
+}
+
+template <typename T> py::tuple sum_squares_k(Arr<T> x, double s) {
+    const T* p = x.data();
+    const int64_t n = x.size();
+    double amax = 0, sumsq = 0;
+    {
+        py::gil_scoped_release nogil;
+        sum_squares<T>(p, n, s, &amax, &sumsq);
+    }
+    return py::make_tuple(amax, sumsq);
+}
+
+template <typename T> void scale_by_k(Arr<T> x, double c) {
+    T* p = x.mutable_data();
+    const int64_t n = x.size();
+    py::gil_scoped_release nogil;
+    scale_by<T>(p, n, static_cast<T>(c));
+}
+
+// LayerNorm (layernorm.cpp): x, y, xhat (M, d) in any shape whose last axis is d; rstd M elements.
+template <typename T> int64_t layernorm_fwd_k(Arr<T> y, Arr<T> xhat, Arr<T> rstd, Arr<T> x, Arr<T> gamma,
+                                              Arr<T> beta, double eps) {
+    same_size(y, x, "layernorm_forward");
+    same_size(xhat, x, "layernorm_forward");
+    const int64_t d = gamma.size();
+    if (d < 1 || beta.size() != d || x.size() % d != 0 || rstd.size() * d != x.size())
+        throw std::invalid_argument("pyvf._core.layernorm_forward: x (M, d), gamma and beta (d,), rstd (M,)");
+    T *py_ = y.mutable_data(), *ph = xhat.mutable_data(), *pr = rstd.mutable_data();
+    const T *px = x.data(), *pg = gamma.data(), *pb = beta.data();
+    const int64_t M = x.size() / d;
+    py::gil_scoped_release nogil;
+    return layernorm_forward<T>(py_, ph, pr, px, pg, pb, M, d, eps);
+}
+
+template <typename T> void layernorm_bwd_k(Arr<T> dx, Arr<T> dgamma, Arr<T> dbeta, Arr<T> dy, Arr<T> xhat,
+                                           Arr<T> rstd, Arr<T> gamma) {
+    same_size(dx, xhat, "layernorm_backward");
+    same_size(dy, xhat, "layernorm_backward");
+    const int64_t d = gamma.size();
+    if (d < 1 || dgamma.size() != d || dbeta.size() != d || xhat.size() % d != 0 || rstd.size() * d != xhat.size())
+        throw std::invalid_argument("pyvf._core.layernorm_backward: dy, xhat (M, d), gamma, dgamma, dbeta (d,), rstd (M,)");
+    T *pdx = dx.mutable_data(), *pdg = dgamma.mutable_data(), *pdb = dbeta.mutable_data();
+    const T *pdy = dy.data(), *ph = xhat.data(), *pr = rstd.data(), *pg = gamma.data();
+    const int64_t M = xhat.size() / d;
+    py::gil_scoped_release nogil;
+    layernorm_backward<T>(pdx, pdg, pdb, pdy, ph, pr, pg, M, d);
+}
+
+// Heads (elementwise.cpp): hd (R, B, H, N, L, dh), tok (R, B, N, L, w), columns [col, col + H dh) of w.
+template <typename T> void heads_dims(const py::array& hd, const py::array& tok, int64_t col, int64_t* dims) {
+    bool ok = hd.ndim() == 6 && tok.ndim() == 5 && col >= 0;
+    for (int i : {0, 1}) ok = ok && hd.shape(i) == tok.shape(i);
+    ok = ok && hd.shape(3) == tok.shape(2) && hd.shape(4) == tok.shape(3) &&
+         col + hd.shape(2) * hd.shape(5) <= tok.shape(4);
+    if (!ok) throw std::invalid_argument("pyvf._core.heads: hd (R, B, H, N, L, dh), tok (R, B, N, L, w >= col + H dh)");
+    dims[0] = hd.shape(0) * hd.shape(1);
+    dims[1] = hd.shape(3) * hd.shape(4);
+    dims[2] = hd.shape(2);
+    dims[3] = hd.shape(5);
+    dims[4] = tok.shape(4);
+}
+
+template <typename T> void heads_split_k(Arr<T> hd, Arr<T> tok, int64_t col) {
+    int64_t d[5];
+    heads_dims<T>(hd, tok, col, d);
+    T* ph = hd.mutable_data();
+    const T* pt = tok.data();
+    py::gil_scoped_release nogil;
+    heads_split<T>(ph, pt, d[0], d[1], d[2], d[3], d[4], col);
+}
+
+template <typename T> void heads_merge_k(Arr<T> tok, Arr<T> hd, int64_t col) {
+    int64_t d[5];
+    heads_dims<T>(hd, tok, col, d);
+    T* pt = tok.mutable_data();
+    const T* ph = hd.data();
+    py::gil_scoped_release nogil;
+    heads_merge<T>(pt, ph, d[0], d[1], d[2], d[3], d[4], col);
+}
+
 // True when every element is finite; a scan that allocates nothing (np.isfinite(x).all()
 // would allocate a bool array as large as x). Blocks of 64 Ki elements, on the threads when
 // there are at least 4 of them (the activations of a paper-size codebook are 4 Mi elements).
@@ -190,6 +302,20 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
     m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
           py::arg("x").noconvert(), py::arg("codes").noconvert());
+    m.def("adam_check", &adam_check_k<T>, py::arg("p").noconvert(), py::arg("m").noconvert(),
+          py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("scalars"), py::arg("keras"), py::arg("decayed"));
+    m.def("adam_apply", &adam_apply_k<T>, py::arg("p").noconvert(), py::arg("m").noconvert(),
+          py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("scalars"), py::arg("keras"), py::arg("decayed"));
+    m.def("sum_squares", &sum_squares_k<T>, py::arg("x").noconvert(), py::arg("scale"));
+    m.def("scale_by", &scale_by_k<T>, py::arg("x").noconvert(), py::arg("c"));
+    m.def("layernorm_forward", &layernorm_fwd_k<T>, py::arg("y").noconvert(), py::arg("xhat").noconvert(),
+          py::arg("rstd").noconvert(), py::arg("x").noconvert(), py::arg("gamma").noconvert(),
+          py::arg("beta").noconvert(), py::arg("eps"));
+    m.def("layernorm_backward", &layernorm_bwd_k<T>, py::arg("dx").noconvert(), py::arg("dgamma").noconvert(),
+          py::arg("dbeta").noconvert(), py::arg("dy").noconvert(), py::arg("xhat").noconvert(),
+          py::arg("rstd").noconvert(), py::arg("gamma").noconvert());
+    m.def("heads_split", &heads_split_k<T>, py::arg("hd").noconvert(), py::arg("tok").noconvert(), py::arg("col"));
+    m.def("heads_merge", &heads_merge_k<T>, py::arg("tok").noconvert(), py::arg("hd").noconvert(), py::arg("col"));
     m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("gelu_backward", &gelu_grad<T>, py::arg("dx").noconvert(), py::arg("dy").noconvert(),
           py::arg("x").noconvert());

@@ -694,3 +694,38 @@ def test_all_finite_finds_every_nonfinite_position(dtype):
                 y = x.copy()
                 y[pos] = bad
                 assert not _checks.all_finite(y), (n, pos, bad)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_layernorm_threads_bitwise_and_accurate(dtype, rng):
+    """The kernel's rows go to the threads in fixed blocks of 16, and dgamma, dbeta are summed per
+    block and then in block order: 1003 rows of 257 (63 blocks, a ragged last one) give bitwise
+    the same y, dx, dgamma, dbeta on 1, 2 and 3 threads; and they equal a float64 NumPy evaluation
+    of the formula (rows of mean up to 30 times their spread, so that the centring matters) to
+    RTOL32 / RTOL64."""
+    M, d = 1003, 257
+    x = (rng.uniform(-30, 30, (M, 1)) + rng.standard_normal((M, d))).astype(dtype)
+    gamma, beta, dy = (rng.standard_normal(s).astype(dtype) for s in (d, d, (M, d)))
+    saved, runs = pyvf.num_threads(), []
+    try:
+        for threads in (1, 2, 3):
+            pyvf.set_num_threads(threads)
+            y, cache = layers.layernorm_forward(x, gamma, beta)
+            runs.append((y, *layers.layernorm_backward(dy, cache)))
+    finally:
+        pyvf.set_num_threads(saved)
+    names = ("y", "dx", "dgamma", "dbeta")
+    for run in runs[1:]:
+        for name, a, b in zip(names, run, runs[0]):
+            assert_bitwise_equal(f"layernorm {name}, threads", a, b)
+    x64, g64, dy64 = x.astype(np.float64), gamma.astype(np.float64), dy.astype(np.float64)
+    xc = x64 - x64.mean(-1, keepdims=True)
+    rstd = 1 / np.sqrt((xc * xc).mean(-1, keepdims=True) + 1e-5)
+    xhat = xc * rstd
+    dxhat = dy64 * g64
+    want = (xhat * g64 + beta, rstd * (dxhat - dxhat.mean(-1, keepdims=True) - xhat * (dxhat * xhat).mean(-1, keepdims=True)),
+            (dy64 * xhat).sum(0), dy64.sum(0))
+    rtol = RTOL32["layernorm"] if dtype == np.float32 else RTOL64
+    for name, got, w in zip(names, runs[0], want):
+        assert got.dtype == dtype
+        assert_close(f"layernorm {name} vs float64 formula", got, w, rtol)

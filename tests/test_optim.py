@@ -217,6 +217,83 @@ def test_keras_convention_against_hand_computation(rng):
 
 
 # ---------------------------------------------------------------------------------------
+# the fused kernel (csrc/optim.cpp) against NumPy's array expressions of the same formula
+
+
+def numpy_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras):
+    """One update as NumPy array expressions, each operation rounded in the parameters' dtype
+    (Python floats meeting an array are rounded to its dtype): the oracle the kernel must equal
+    bit for bit, since it performs the same roundings in the same order."""
+    bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
+    with np.errstate(over="ignore", invalid="ignore"):
+        m = m * b1 + (1 - b1) * g
+        v = v * b2 + (1 - b2) * g * g
+        if keras:
+            upd = (m * (lr * math.sqrt(bc2) / bc1)) / (np.sqrt(v) + eps)
+        else:
+            upd = (lr / bc1) * (m / (np.sqrt(v) / math.sqrt(bc2) + eps))
+        p = (p * (1 - lr * wd) if wd else p) - upd
+    return p, m, v
+
+
+@pytest.mark.parametrize("keras", [False, True])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_fused_update_equals_numpy_expressions_bitwise(rng, dtype, keras):
+    """Six steps of AdamW on tensors of 1 to 40,011 elements (several of the kernel's 16 Ki blocks,
+    not a multiple of any vector width; one stored transposed, so not C-contiguous) whose
+    gradients span 1e-30 to 1e10 per element (tiny ones where eps decides, huge ones where g^2
+    nearly overflows float32), decayed and not, on 1 and on 2 threads: parameters and moments
+    bitwise the NumPy formula's. A fused multiply-add, a reordered product or eps moved would
+    differ in the last bits of many elements."""
+    import pyvf
+    shapes = {"a": (1,), "b": (7, 33), "c": (40011,), "d": (129, 65)}
+    params0 = {k: rng.standard_normal(s).astype(dtype) for k, s in shapes.items()}
+    params0["d"] = np.asfortranarray(params0["d"])  # a parameter of another layout
+    grads = [{k: (10.0 ** rng.uniform(-30, 10 if dtype == np.float32 else 18, s) * rng.standard_normal(s)).astype(dtype)
+              for k, s in shapes.items()} for _ in range(6)]
+    lr, b1, b2, eps, wd = 3e-3, 0.9, 0.999, 1e-8, 0.05
+    want = {k: (p.copy(), np.zeros_like(p), np.zeros_like(p)) for k, p in params0.items()}
+    for t, g in enumerate(grads, 1):
+        want = {k: numpy_update(*want[k], g[k], lr, t, b1, b2, eps, wd if k != "b" else 0.0, keras) for k in want}
+    saved = pyvf.num_threads()
+    try:
+        for threads in (1, 2):
+            pyvf.set_num_threads(threads)
+            p = {k: a.copy(order="K") for k, a in params0.items()}
+            opt = optim.AdamW(p, lr=lr, betas=(b1, b2), eps=eps, weight_decay=wd, decay={"a", "c", "d"},
+                              eps_convention="keras" if keras else "torch")
+            for g in grads:
+                opt.step(g)
+            for k in shapes:
+                assert p[k].dtype == dtype and p[k].flags.c_contiguous == (k != "d")
+                assert_bitwise_equal(f"{threads} threads, p[{k}]", p[k], want[k][0])
+                assert_bitwise_equal(f"{threads} threads, m[{k}]", opt.exp_avg[k], want[k][1])
+                assert_bitwise_equal(f"{threads} threads, v[{k}]", opt.exp_avg_sq[k], want[k][2])
+    finally:
+        pyvf.set_num_threads(saved)
+
+
+def test_update_overflow_raises_and_changes_nothing(rng):
+    """A float32 gradient of 1e22 ((1 - b2) g g overflows: v = inf) in one tensor of several: ValueError
+    naming that tensor, and no parameter or moment changed, including the tensors checked before
+    it."""
+    params = make_params(rng, np.float32)
+    p = _copy(params)
+    opt = optim.AdamW(p, lr=0.1)
+    opt.step(make_grads(rng, np.float32))
+    before_p, before = _copy(p), opt.state_dict()
+    g = make_grads(rng, np.float32)
+    g["wte/weight"][3, 2] = 1e22
+    with pytest.raises(ValueError, match=r"the update of \['wte/weight'\] overflows"):
+        opt.step(g)
+    assert opt.step_count == 1
+    for k in params:
+        assert_bitwise_equal(k, p[k], before_p[k])
+        assert_bitwise_equal(f"m {k}", opt.exp_avg[k], before["exp_avg"][k])
+        assert_bitwise_equal(f"v {k}", opt.exp_avg_sq[k], before["exp_avg_sq"][k])
+
+
+# ---------------------------------------------------------------------------------------
 # the schedule
 
 
@@ -264,6 +341,32 @@ def test_schedule_argument_checks():
 
 def _copy(d):
     return {k: v.copy() for k, v in d.items()}
+
+
+@pytest.mark.parametrize("power", [0, 600, -600])  # float64 scaled beyond 1e+-100 (rescaled), and not
+def test_norm_accurate_and_thread_independent(rng, power):
+    """optim._norm64 (one pass, csrc/optim.cpp sum_squares) against the exactly rounded norm:
+    entries that are float32 numbers times 2^power, so each square is exact in float64 and
+    math.fsum of the squares is the exact sum rounded once. 200,003 entries spanning 1e-20 to
+    1e20 (13 of the kernel's blocks, a ragged tail). Bound: the blocked sum's (16 Ki / 8 + 8 +
+    13) u = 2.3e-13 relative, halved by the square root; 1e-12. And bitwise the same on 1 and 2
+    threads (the blocks are summed alone and then in order, whichever thread took them)."""
+    import pyvf
+    y = (10.0 ** rng.uniform(-20, 20, 200_003) * rng.standard_normal(200_003)).astype(np.float32)
+    cases = {"float32": y} if power == 0 else {}
+    cases["float64"] = np.ldexp(y.astype(np.float64), power)
+    saved = pyvf.num_threads()
+    try:
+        for name, x in cases.items():
+            exact = math.ldexp(math.sqrt(math.fsum(np.ldexp(y.astype(np.float64), 0) ** 2)), power)
+            got = {}
+            for threads in (1, 2):
+                pyvf.set_num_threads(threads)
+                got[threads] = optim._norm64(x)
+            assert got[1] == got[2], f"{name}: {got}"
+            assert_close(f"{name} norm", got[1], exact, rtol=1e-12)
+    finally:
+        pyvf.set_num_threads(saved)
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -279,16 +279,25 @@ def branching_attention_reference_vjp(q, k, v, do, scale=1.0):
 # the attention layer: fused projection, heads, the kernel, output projection
 
 
-def _split_heads(t, n_head):
-    """(R, B, N, L, d) -> (R, B, H, N, L, dh), C-contiguous (head h = columns h*dh:(h+1)*dh)."""
-    R, B, N, L, d = t.shape
-    return np.ascontiguousarray(t.reshape(R, B, N, L, n_head, d // n_head).transpose(0, 1, 4, 2, 3, 5))
+def _split_heads(t, n_head, col=0, width=None):
+    """Columns col:col + width of t (R, B, N, L, w) -> (R, B, H, N, L, dh), C-contiguous (head h =
+    columns col + h*dh:col + (h+1)*dh); width defaults to w. Copied on pyvf's threads
+    (csrc/elementwise.cpp heads_split)."""
+    R, B, N, L, w = t.shape
+    width = w if width is None else width
+    out = np.empty((R, B, n_head, N, L, width // n_head), t.dtype)  # (R, B, H, N, L, dh)
+    _core.heads_split(out, _checks.c_order(t), col)
+    return out
 
 
-def _merge_heads(t):
-    """(R, B, H, N, L, dh) -> (R, B, N, L, H*dh)."""
+def _merge_heads(t, out=None, col=0):
+    """(R, B, H, N, L, dh) -> (R, B, N, L, H*dh); or into columns col:col + H*dh of out
+    (R, B, N, L, w), returned."""
     R, B, H, N, L, dh = t.shape
-    return t.transpose(0, 1, 3, 4, 2, 5).reshape(R, B, N, L, H * dh)
+    if out is None:
+        out = np.empty((R, B, N, L, H * dh), t.dtype)
+    _core.heads_merge(out, _checks.c_order(t), col)
+    return out
 
 
 def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0, *, context=None):
@@ -325,9 +334,9 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
         raise TypeError(f"context must be None or a pair (k_ctx, v_ctx), got {type(context).__name__}")
     h, c_attn = linear_forward(x, w_attn, b_attn)  # (R, B, N, L, 3d)
     # docs/math.md §3: the fused columns are [values | queries | keys], not GPT-2's q, k, v order
-    v = _split_heads(h[..., 0:d], n_head)  # (R, B, H, N, L, dh)
-    q = _split_heads(h[..., d:2 * d], n_head)
-    k = _split_heads(h[..., 2 * d:3 * d], n_head)
+    v = _split_heads(h, n_head, 0, d)  # (R, B, H, N, L, dh)
+    q = _split_heads(h, n_head, d, d)
+    k = _split_heads(h, n_head, 2 * d, d)
     # docs/math.md §2: the published model does not divide the logits by sqrt(dh): scale = 1
     if context is None:
         o, lse = branching_attention_forward(q, k, v, scale)  # (R, B, H, N, L, dh), (R, B, H, N, L)
@@ -351,7 +360,9 @@ def attention_layer_backward(dy, cache, trace=None, name=""):
     do, dw_proj, db_proj = linear_backward(dy, c_proj)  # (R, B, N, L, d)
     do = _split_heads(do, n_head)  # (R, B, H, N, L, dh)
     dq, dk, dv = branching_attention_backward(do, q, k, v, o, lse, scale)
-    dh = np.concatenate([_merge_heads(dv), _merge_heads(dq), _merge_heads(dk)], axis=-1)  # [v | q | k]
+    dh = np.empty(dy.shape[:-1] + (3 * dy.shape[-1],), dy.dtype)  # (R, B, N, L, 3d): [v | q | k]
+    for i, g in enumerate((dv, dq, dk)):
+        _merge_heads(g, dh, i * dy.shape[-1])
     if trace is not None:
         for part, g in (("out", do), ("v", dv), ("k", dk), ("q", dq), ("c_attn", dh)):  # the trace's order, reversed
             trace[f"{name}.{part}"] = g

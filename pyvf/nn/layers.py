@@ -113,11 +113,13 @@ def linear_backward(dy, cache):
 def layernorm_forward(x, gamma, beta, eps=1e-5):
     """y = (x - mean) / sqrt(var + eps) * gamma + beta.   x (..., d), gamma, beta (d,).
 
-    Two-pass: the mean is accumulated in float64 and rounded, the row centred twice (the second
-    time by the centred row's own residual mean), then the variance is the mean square of it, so a row of mean 1e4 and spread 0.1 keeps its digits and a
-    constant row gives y = beta exactly. Rows whose squares overflow (|x - mean| beyond
-    sqrt of the dtype's largest number, 1e154 in float64) are scaled by a power of two first, so
-    they normalise too. cache: xhat (..., d), rstd (..., 1), gamma."""
+    Two-pass (csrc/layernorm.cpp, rows on pyvf's threads): the mean is accumulated in float64
+    and rounded, the row centred twice (the second time by the centred row's own residual mean),
+    then the variance is the mean square of it, accumulated in float64, so a row of mean 1e4 and
+    spread 0.1 keeps its digits and a constant row gives y = beta exactly. Rows whose squares
+    overflow (|x - mean| beyond 1e154 in float64) are scaled by a power of two first, so they
+    normalise too. Bitwise the same for any thread count. cache: xhat (..., d), rstd (..., 1),
+    gamma."""
     _checks.finite_float("x", x)
     if x.ndim < 1 or x.shape[-1] == 0:
         raise ValueError(f"x must have a last dimension d >= 1 to normalise over, got shape {x.shape}")
@@ -128,32 +130,11 @@ def layernorm_forward(x, gamma, beta, eps=1e-5):
         if a.shape != (d,):
             raise ValueError(f"{name} must have shape ({d},) for x of shape {x.shape}, got {a.shape}")
     eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
-    with np.errstate(over="ignore", invalid="ignore"):  # checked below
-        mean = x.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (..., 1)
-        xc = x - mean  # (..., d)
-        # second pass: the rounded mean can be an ulp off, which 1/sqrt(eps) = 316 would amplify on
-        # a constant row; the residual mean of xc is tiny and exact to subtract
-        xc -= xc.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)
-    if not _checks.all_finite(xc):
+    x, gamma, beta = _checks.c_order(x), _checks.c_order(gamma), _checks.c_order(beta)
+    y, xhat = np.empty_like(x), np.empty_like(x)  # (..., d)
+    rstd = np.empty(x.shape[:-1] + (1,), x.dtype)  # (..., 1)
+    if _core.layernorm_forward(y, xhat, rstd, x, gamma, beta, eps):
         raise ValueError(f"layernorm_forward: mean(x) or x - mean(x) overflows {x.dtype}: rescale x")
-    with np.errstate(over="ignore"):
-        var = np.mean(xc * xc, axis=-1, keepdims=True)  # (..., 1)
-    rstd = 1.0 / np.sqrt(var + x.dtype.type(eps))  # (..., 1)
-    xhat = xc * rstd  # (..., d)
-    if not _checks.all_finite(var):
-        # rows whose squares overflow (|xc| > sqrt(max)): with sc = 2^-k, max|xc| < 2^k, xs = xc sc
-        # is exact and |xs| < 1, so xhat = xs / sqrt(mean(xs^2) + eps sc^2) (eps sc^2 underflows
-        # harmlessly) and rstd = sc / sqrt(...) for the backward
-        big = ~np.isfinite(var)  # (..., 1)
-        k = np.frexp(np.abs(xc).max(axis=-1, keepdims=True))[1]  # (..., 1)
-        sc = np.ldexp(np.ones(k.shape, x.dtype), -k)  # (..., 1), powers of two
-        xs = xc * sc  # (..., d)
-        with np.errstate(under="ignore"):
-            r1 = 1.0 / np.sqrt(np.mean(xs * xs, axis=-1, keepdims=True) + x.dtype.type(eps) * sc * sc)
-            xhat = np.where(big, xs * r1, xhat)
-            rstd = np.where(big, sc * r1, rstd)
-    with np.errstate(over="ignore", invalid="ignore"):  # checked
-        y = xhat * gamma + beta  # (..., d)
     _checks.finite_result("layernorm_forward", y)
     return y, (xhat, rstd, gamma)
 
@@ -163,14 +144,12 @@ def layernorm_backward(dy, cache):
     xhat, rstd, gamma = cache
     _grad("dy", dy, xhat, xhat.shape)
     d = xhat.shape[-1]
-    with np.errstate(over="ignore", invalid="ignore"):  # the results are checked below
-        # forward was y = xhat * gamma + beta
-        dgamma = (dy * xhat).reshape(-1, d).sum(axis=0)  # (d,)
-        dbeta = dy.reshape(-1, d).sum(axis=0)  # (d,)
-        dxhat = dy * gamma  # (..., d)
-        # forward was xhat = (x - mean(x)) * rstd, rstd = (mean((x - mean)^2) + eps)^(-1/2), so
-        # dx = rstd * (dxhat - mean(dxhat) - xhat * mean(dxhat * xhat))
-        dx = rstd * (dxhat - dxhat.mean(axis=-1, keepdims=True) - xhat * (dxhat * xhat).mean(axis=-1, keepdims=True))
+    dx = np.empty_like(xhat)  # (..., d)
+    dgamma, dbeta = np.empty(d, xhat.dtype), np.empty(d, xhat.dtype)  # (d,)
+    # forward was y = xhat * gamma + beta, xhat = (x - mean(x)) * rstd, rstd = (mean((x - mean)^2)
+    # + eps)^(-1/2), so dx = rstd * (dxhat - mean(dxhat) - xhat * mean(dxhat * xhat)), dxhat = dy * gamma;
+    # dgamma = sum over rows of dy * xhat, dbeta = sum over rows of dy (csrc/layernorm.cpp)
+    _core.layernorm_backward(dx, dgamma, dbeta, _checks.c_order(dy), xhat, rstd, gamma)
     for name, g in (("dx", dx), ("dgamma", dgamma), ("dbeta", dbeta)):
         _checks.finite_result("layernorm_backward", g, name)
     return dx, dgamma, dbeta

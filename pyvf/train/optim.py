@@ -23,7 +23,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .. import _checks
+from .. import _checks, _core
 
 __all__ = [
     "AdamW",
@@ -111,7 +111,10 @@ class AdamW:
     1 - lr * wd); it uses the scheduled lr, not the bias-corrected step size.
 
     All arithmetic is in the parameters' dtype; the bias corrections and step sizes are
-    Python floats (float64). state_dict()/load_state_dict() save and restore the step count
+    Python floats (float64), rounded to that dtype where they meet the arrays. One fused kernel
+    (csrc/optim.cpp) applies the update on pyvf's threads, each operation rounded once in the
+    order written above: bitwise NumPy's array expressions of it, for any thread count (the
+    torch convention's update is lr / (1 - b1^t) * (m / denom), that product last). state_dict()/load_state_dict() save and restore the step count
     and the moments, so that a run that is saved, loaded and continued matches an
     uninterrupted run bit for bit.
     """
@@ -143,8 +146,8 @@ class AdamW:
         self.decayed = self._resolve_decay(decay, params)  # frozenset of names
         self.params = params
         self.step_count = 0
-        self.exp_avg = {k: np.zeros_like(p) for k, p in params.items()}
-        self.exp_avg_sq = {k: np.zeros_like(p) for k, p in params.items()}
+        self.exp_avg = {k: np.zeros(p.shape, p.dtype) for k, p in params.items()}  # C order (the kernel's)
+        self.exp_avg_sq = {k: np.zeros(p.shape, p.dtype) for k, p in params.items()}
 
     @staticmethod
     def _resolve_decay(decay, params):
@@ -186,44 +189,35 @@ class AdamW:
                 raise TypeError(f"grads[{k!r}] is {g.dtype} but the parameter is {p.dtype}")
             if g.shape != p.shape:
                 raise ValueError(f"grads[{k!r}] has shape {g.shape} but the parameter has shape {p.shape}")
-        bad = _nonfinite_names(grads)
-        if bad:
-            raise ValueError(f"grads contain NaN or inf in {bad}: no update applied "
-                             "(skip this step, or lower the learning rate / loss scale)")
         lr = self.lr_at(self.step_count)
         t = self.step_count + 1
         b1, b2 = self.betas
         bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t  # bias corrections
-        wd, eps = self.weight_decay, self.eps
-        # every new value is computed first and checked, then assigned: an update that would
-        # overflow (huge gradients or learning rate) raises with nothing modified
-        new = {}
-        with np.errstate(over="ignore", invalid="ignore"):  # checked below
-            for k, p in self.params.items():
-                g = grads[k]
-                m = self.exp_avg[k] * b1
-                m += (1 - b1) * g  # m = b1 m + (1 - b1) g
-                v = self.exp_avg_sq[k] * b2
-                v += (1 - b2) * g * g  # v = b2 v + (1 - b2) g^2
-                if self.eps_convention == "torch":
-                    denom = np.sqrt(v) / math.sqrt(bc2) + eps  # sqrt(v_hat) + eps
-                    upd = (lr / bc1) * (m / denom)
-                else:
-                    step_size = lr * math.sqrt(bc2) / bc1  # Keras lr_t
-                    upd = (m * step_size) / (np.sqrt(v) + eps)  # TF ResourceApplyAdam's order
-                if wd != 0 and k in self.decayed:
-                    p_new = p * (1 - lr * wd)  # decoupled decay, before the Adam step (torch and HF AdamWeightDecay)
-                    p_new -= upd
-                else:
-                    p_new = p - upd
-                new[k] = (p_new, m, v)
-        bad = [k for k, arrays in new.items() if not all(_checks.all_finite(a) for a in arrays)]
+        keras = self.eps_convention == "keras"
+        # the kernel's scalars (csrc/optim.cpp), Python floats it rounds to the parameters' dtype:
+        # a = lr / bc1 (torch) or the Keras step size lr sqrt(bc2) / bc1; decay = 1 - lr wd
+        a = lr * math.sqrt(bc2) / bc1 if keras else lr / bc1
+        scalars = (b1, 1 - b1, b2, 1 - b2, a, math.sqrt(bc2), self.eps, 1 - lr * self.weight_decay)
+        work = {}  # name -> the kernel's C-contiguous operands (copies only of other layouts)
+        for k, p in self.params.items():
+            for state in (self.exp_avg, self.exp_avg_sq):
+                state[k] = _checks.c_order(state[k])
+            work[k] = (_checks.c_order(p), self.exp_avg[k], self.exp_avg_sq[k], _checks.c_order(grads[k]))
+        # every new value is checked first (a pass that writes nothing), then written: an update
+        # that would overflow (huge gradients or learning rate) raises with nothing modified
+        decayed = {k: self.weight_decay != 0 and k in self.decayed for k in work}
+        # (a NaN or inf gradient gives a non-finite update: it is named as such)
+        bad = [k for k, arrays in work.items() if not _core.adam_check(*arrays, scalars, keras, decayed[k])]
+        if bad and _nonfinite_names(grads):
+            raise ValueError(f"grads contain NaN or inf in {_nonfinite_names(grads)}: no update applied "
+                             "(skip this step, or lower the learning rate / loss scale)")
         if bad:
             raise ValueError(f"the update of {bad} overflows (gradients or learning rate too large for the "
                              "dtype): no update applied")
-        for k, (p_new, m, v) in new.items():
-            np.copyto(self.params[k], p_new)  # in place: the caller's arrays are the parameters
-            self.exp_avg[k], self.exp_avg_sq[k] = m, v
+        for k, arrays in work.items():
+            _core.adam_apply(*arrays, scalars, keras, decayed[k])
+            if arrays[0] is not self.params[k]:  # a parameter of another layout: updated as a copy
+                np.copyto(self.params[k], arrays[0])
         self.step_count = t
         return lr
 
@@ -276,7 +270,7 @@ class AdamW:
             bad = _nonfinite_names(d)
             if bad:
                 raise ValueError(f"state[{key!r}] contains NaN or inf in {bad}")
-            new[key] = {k: np.array(d[k], copy=True) for k in self.params}
+            new[key] = {k: np.array(d[k], copy=True, order="C") for k in self.params}
         if any((a < 0).any() for a in new["exp_avg_sq"].values()):
             raise ValueError("state['exp_avg_sq'] has negative entries: not a second moment")
         self.step_count = step
@@ -351,21 +345,21 @@ _TINY, _HUGE = 1e-100, 1e100  # outside this range of max|g| the squares are res
 
 
 def _norm64(g):
-    """|g|_2 accumulated in float64 (a Python float). Tensors whose largest entry is beyond
-    1e+-100 are divided by it first, so a finite float64 gradient of 1e200 or 1e-200 gets
-    its norm instead of inf or 0."""
-    x = g.astype(np.float64, copy=False).ravel()
+    """|g|_2 of a finite g, its squares summed in float64 (a Python float) by one pass on pyvf's
+    threads (csrc/optim.cpp sum_squares: the same sum for any thread count). A float64 tensor
+    whose largest entry is beyond 1e+-100 is scaled by a power of two near 1 / max|g| first
+    (exact), so a gradient of 1e200 or 1e-200 gets its norm instead of inf or 0."""
+    x = _checks.c_order(g)
     if x.size == 0:
         return 0.0
-    amax = float(np.abs(x).max())
+    amax, sumsq = _core.sum_squares(x, 1.0)
     if amax == 0.0:
         return 0.0
-    # the sums of squares by NumPy's pairwise sum, not the BLAS's dot, whose threads spin after
-    # the call on the cores pyvf's kernels need and whose sum changes with its thread count
     if amax > _HUGE or amax < _TINY:
-        y = x / amax
-        return amax * math.sqrt(float(np.square(y).sum()))
-    return math.sqrt(float(np.square(x).sum()))
+        s = math.ldexp(1.0, -math.frexp(amax)[1])  # 2^-e: amax s in [0.5, 1)
+        sumsq = _core.sum_squares(x, s)[1]
+        return math.sqrt(sumsq) / s
+    return math.sqrt(sumsq)
 
 
 def _hypot_all(norms):
@@ -382,7 +376,10 @@ def _scale(g, num, den):
     would be rounded to a few bits or to 0, so g / den * num is computed in float64 instead."""
     coef = num / den
     if coef >= np.finfo(g.dtype).smallest_normal:
-        g *= coef
+        if g.flags.c_contiguous:
+            _core.scale_by(g, coef)  # g *= coef on pyvf's threads, coef rounded to g's dtype as NumPy does
+        else:
+            g *= coef
     else:
         with np.errstate(under="ignore"):  # results that small are correctly rounded subnormals
             np.copyto(g, g.astype(np.float64) / den * num, casting="same_kind")
@@ -417,7 +414,7 @@ def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, e
                          "(error_if_nonfinite=False returns the non-finite norm instead)")
 
     def norm_of(k, g):
-        if not _checks.all_finite(g):
+        if k in bad:
             return float(np.linalg.norm(g.astype(np.float64, copy=False).ravel()))  # nan or inf
         n = _norm64(g)
         if not math.isfinite(n):
