@@ -697,7 +697,7 @@ def test_all_finite_finds_every_nonfinite_position(dtype):
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_layernorm_threads_bitwise_and_accurate(dtype, rng):
+def test_layernorm_threads_bitwise_and_accurate(dtype, rng, kernel_path):
     """The kernel's rows go to the threads in fixed blocks of 16, and dgamma, dbeta are summed per
     block and then in block order: 1003 rows of 257 (63 blocks, a ragged last one) give bitwise
     the same y, dx, dgamma, dbeta on 1, 2 and 3 threads; and they equal a float64 NumPy evaluation

@@ -238,12 +238,12 @@ def numpy_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras):
 
 @pytest.mark.parametrize("keras", [False, True])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_fused_update_equals_numpy_expressions_bitwise(rng, dtype, keras):
+def test_fused_update_equals_numpy_expressions_bitwise(rng, dtype, keras, kernel_path):
     """Six steps of AdamW on tensors of 1 to 40,011 elements (several of the kernel's 16 Ki blocks,
     not a multiple of any vector width; one stored transposed, so not C-contiguous) whose
     gradients span 1e-30 to 1e10 per element (tiny ones where eps decides, huge ones where g^2
-    nearly overflows float32), decayed and not, on 1 and on 2 threads: parameters and moments
-    bitwise the NumPy formula's. A fused multiply-add, a reordered product or eps moved would
+    nearly overflows float32), decayed and not, on 1 and on 2 threads, on every kernel path:
+    parameters and moments bitwise the NumPy formula's. A fused multiply-add, a reordered product or eps moved would
     differ in the last bits of many elements."""
     import pyvf
     shapes = {"a": (1,), "b": (7, 33), "c": (40011,), "d": (129, 65)}
@@ -344,7 +344,7 @@ def _copy(d):
 
 
 @pytest.mark.parametrize("power", [0, 600, -600])  # float64 scaled beyond 1e+-100 (rescaled), and not
-def test_norm_accurate_and_thread_independent(rng, power):
+def test_norm_accurate_and_thread_independent(rng, power, kernel_path):
     """optim._norm64 (one pass, csrc/optim.cpp sum_squares) against the exactly rounded norm:
     entries that are float32 numbers times 2^power, so each square is exact in float64 and
     math.fsum of the squares is the exact sum rounded once. 200,003 entries spanning 1e-20 to
