@@ -14,6 +14,7 @@ if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
 
 from . import _core  # the compiled kernels, on the best instruction-set path (or PYVF_ISA's)
 from ._threads import num_threads, set_num_threads, threads  # the kernels' and numpy's BLAS threads
+from ._memory import reuse_freed_memory  # page faults of each step's fresh arrays (every command calls it)
 from ._version import __version__
 
 from .nn.attention import (
@@ -107,6 +108,7 @@ if _env_threads:  # one setting for the kernels and numpy's BLAS, for a whole pr
 
 
 __all__ = [
+    "reuse_freed_memory",
     "Comparison",
     "compare",
     "rel_err",

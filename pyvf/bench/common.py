@@ -16,7 +16,6 @@ the call's outputs too (they are still alive when fn returns), and nothing alloc
 the call: allocate the inputs first, then measure.
 """
 
-import ctypes
 import gc
 import json
 import os
@@ -24,6 +23,7 @@ import time
 import tracemalloc
 
 from .._machine import cpu_name, median_time  # (re-exported: every benchmark imports them from here)
+from .._memory import map_fresh_pages
 
 __all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "peak_memory", "memory_method",
            "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot",
@@ -73,31 +73,10 @@ def _hwm_available():
         return False
 
 
-_M_MMAP_THRESHOLD = -3  # glibc <malloc.h>
-_MMAP_THRESHOLD = 128 * 1024  # glibc's initial value
-_malloc_fixed = False
-
-
 def _fresh_pages():
-    """Make the measured call fault in fresh pages for what it allocates (glibc; elsewhere a no-op).
-
-    glibc keeps freed memory for reuse: its mmap threshold grows (up to 32 MiB) as blocks are
-    freed, and a thread's arena keeps its top chunk, which malloc_trim does not release. A call
-    that reuses what an earlier call freed would then look as if it needed nothing: measured, the
-    second OpenMP thread's backward workspace vanished from the second call on. So on first use
-    this fixes the mmap threshold at its initial 128 KiB, for the rest of the process: every block
-    of 128 KiB or more is then mapped fresh and unmapped on free (the price: page faults on every
-    call, ~3-5% of the attention kernel's time), and trims the heap's free pages before each call.
-    """
-    global _malloc_fixed
-    try:
-        libc = ctypes.CDLL(None)
-        if not _malloc_fixed:
-            libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)
-            _malloc_fixed = True
-        libc.malloc_trim(0)
-    except (OSError, AttributeError, TypeError):  # not glibc (TypeError: Windows' CDLL(None))
-        pass
+    """Make the measured call fault in fresh pages for what it allocates (glibc; elsewhere a no-op):
+    pyvf._memory.map_fresh_pages, then the heap's free pages trimmed before each call."""
+    map_fresh_pages()
 
 
 _HWM = _hwm_available()

@@ -89,4 +89,5 @@ def main(argv=None):
     if args.command is None:
         parser.print_help()
         return 2
+    pyvf.reuse_freed_memory()  # a command is a process of its own: its steps reuse the memory freed
     return args.func(args)
