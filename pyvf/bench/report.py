@@ -350,8 +350,9 @@ def scaling_threads_section(quick, m, th):
     s = ["## From 1 thread to every core", "",
          f"`pyvf bench threads{' --quick' if quick else ''}`: the training steps (the shipped tiny sizes"
          + ("" if quick else " and the paper's") + ") and the evaluation's calls, each from a fresh model whose "
-         "first step's result must be bitwise the same on every thread count; the median time of the steps "
-         "after it, and the speed-up over 1 thread.", "",
+         "first step's result must be bitwise the same on every thread count; after one more step untimed "
+         "(the steady state of a training loop), the median time of the next steps, and the speed-up over "
+         "1 thread.", "",
          measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{sc['threads'][-1]}"),
          "", table(*_threads.scaling_table(sc)), ""]
     targets = _threads.scaling_targets(sc)

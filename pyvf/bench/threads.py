@@ -25,8 +25,9 @@ Two more measurements follow (skipped by `run(..., policies=False, scaling=False
 - Scaling (SCALING_CALLS): the codebook's and the transformer's training steps at the shipped
   (tiny) and the paper's sizes, and the evaluation's calls, at 1, 2, 4, ... up to every usable
   core; each from the same fresh model for every thread count, whose first step's result must
-  be bitwise 1 thread's and whose second step is timed. Quick: the paper sizes left out, small
-  batches.
+  be bitwise 1 thread's; after a second step untimed (a training loop's steady state: the first
+  steps grow the heap to its high-water mark, page-faulting in what later steps reuse), the next
+  ones are timed. Quick: the paper sizes left out, small batches.
 """
 
 import contextlib
@@ -197,7 +198,9 @@ def bitwise_note(same):
 
 def run(quick=False, n_cores=None, log=print, policies=True, scaling=True):
     """Measure every call idle and under load, then (unless turned off) the waiting policies and
-    the scaling; -> report dict (times in seconds, failures)."""
+    the scaling; -> report dict (times in seconds, failures). malloc's policy is a pyvf command's
+    (reuse_freed_memory), also where a memory measurement of the same process turned it off."""
+    pyvf.reuse_freed_memory()
     size = QUICK if quick else FULL
     n_cores = n_cores or cores()
     keys = settings(n_cores)
@@ -247,7 +250,9 @@ WAIT_POLICIES = {"passive (pyvf)": {"OMP_WAIT_POLICY": "PASSIVE"},
 
 def _policy_worker(spec):
     """In a worker process whose environment chose the waiting policy: the default setting's
-    median time of every call, idle and beside spec["cores"] busy processes."""
+    median time of every call, idle and beside spec["cores"] busy processes (malloc's policy as a
+    pyvf command's: reuse_freed_memory)."""
+    pyvf.reuse_freed_memory()
     size = QUICK if spec["quick"] else FULL
     fns = {name: make(size[which]) for name, (make, which) in CALLS.items()}
     idle = time_all(fns, ["default"], size["repeat"])
@@ -352,8 +357,9 @@ def thread_counts(n_cores):
 
 def scale(quick, n_cores, log=print):
     """Each SCALING_CALLS call at every thread_counts(n_cores), in rounds over the counts: a fresh
-    model (prepared untimed), its first step (untimed: the warm-up, and its result must be bitwise
-    1 thread's), then its next steps timed. -> {"threads", "times": {call: {n: median s}},
+    model (prepared untimed), its first step (untimed: its result must be bitwise 1 thread's) and a
+    second one untimed (the warm-up: heap and page tables at their steady state), then its next
+    steps timed. -> {"threads", "times": {call: {n: median s}},
     "bitwise": {call: bool}, "failures"}."""
     counts = thread_counts(n_cores)
     calls = {name: make(quick) for name, (make, in_quick) in SCALING_CALLS.items() if in_quick or not quick}
@@ -369,6 +375,7 @@ def scale(quick, n_cores, log=print):
                     step, result = prepare()
                     step()
                     got = np.asarray(result(), np.float64)
+                    step()  # the warm-up: a training loop's steady state from here on
                     for _ in range(timed):
                         t0 = time.perf_counter()
                         step()
