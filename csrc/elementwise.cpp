@@ -293,26 +293,29 @@ template void gelu_backward<double>(double*, const double*, const double*, int64
 // The attention's head split and merge: copies of dh-element runs, parallel over the tokens
 // (NumPy's transpose copies ran on one core: 0.6 s of a paper-size transformer step).
 
-template <typename T>
-void heads_split(T* hd, const T* tok, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
+// One loop for both directions: SPLIT copies tok into hd, else hd into tok.
+template <bool SPLIT, typename T>
+void heads_copy(T* hd, T* tok, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
     const int64_t n = RB * NL;
 #pragma omp parallel for schedule(static) if (n * H * dh >= (1 << 16))
     for (int64_t t = 0; t < n; ++t) {
         const int64_t rb = t / NL, nl = t % NL;
-        for (int64_t h = 0; h < H; ++h)
-            std::memcpy(hd + ((rb * H + h) * NL + nl) * dh, tok + t * ld + col + h * dh, sizeof(T) * dh);
+        for (int64_t h = 0; h < H; ++h) {
+            T* a = hd + ((rb * H + h) * NL + nl) * dh;  // hd[rb, h, nl, :]
+            T* b = tok + t * ld + col + h * dh;          // tok[t, col + h dh :]
+            std::memcpy(SPLIT ? a : b, SPLIT ? b : a, sizeof(T) * dh);
+        }
     }
 }
 
 template <typename T>
+void heads_split(T* hd, const T* tok, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
+    heads_copy<true>(hd, const_cast<T*>(tok), RB, NL, H, dh, ld, col);  // tok only read
+}
+
+template <typename T>
 void heads_merge(T* tok, const T* hd, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
-    const int64_t n = RB * NL;
-#pragma omp parallel for schedule(static) if (n * H * dh >= (1 << 16))
-    for (int64_t t = 0; t < n; ++t) {
-        const int64_t rb = t / NL, nl = t % NL;
-        for (int64_t h = 0; h < H; ++h)
-            std::memcpy(tok + t * ld + col + h * dh, hd + ((rb * H + h) * NL + nl) * dh, sizeof(T) * dh);
-    }
+    heads_copy<false>(const_cast<T*>(hd), tok, RB, NL, H, dh, ld, col);  // hd only read
 }
 
 template void heads_split<float>(float*, const float*, int64_t, int64_t, int64_t, int64_t, int64_t, int64_t);

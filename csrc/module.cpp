@@ -231,22 +231,19 @@ template <typename T> void heads_dims(const py::array& hd, const py::array& tok,
     dims[4] = tok.shape(4);
 }
 
-template <typename T> void heads_split_k(Arr<T> hd, Arr<T> tok, int64_t col) {
+// split: hd <- columns col.. of tok; merge: the other way
+template <typename T, bool SPLIT> void heads_k(Arr<T> out, Arr<T> in, int64_t col) {
+    py::array& hd = SPLIT ? out : in;
+    py::array& tok = SPLIT ? in : out;
     int64_t d[5];
     heads_dims<T>(hd, tok, col, d);
-    T* ph = hd.mutable_data();
-    const T* pt = tok.data();
+    T* po = out.mutable_data();
+    const T* pi = in.data();
     py::gil_scoped_release nogil;
-    heads_split<T>(ph, pt, d[0], d[1], d[2], d[3], d[4], col);
-}
-
-template <typename T> void heads_merge_k(Arr<T> tok, Arr<T> hd, int64_t col) {
-    int64_t d[5];
-    heads_dims<T>(hd, tok, col, d);
-    T* pt = tok.mutable_data();
-    const T* ph = hd.data();
-    py::gil_scoped_release nogil;
-    heads_merge<T>(pt, ph, d[0], d[1], d[2], d[3], d[4], col);
+    if (SPLIT)
+        heads_split<T>(po, pi, d[0], d[1], d[2], d[3], d[4], col);
+    else
+        heads_merge<T>(po, pi, d[0], d[1], d[2], d[3], d[4], col);
 }
 
 // True when every element is finite; a scan that allocates nothing (np.isfinite(x).all()
@@ -314,8 +311,8 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("layernorm_backward", &layernorm_bwd_k<T>, py::arg("dx").noconvert(), py::arg("dgamma").noconvert(),
           py::arg("dbeta").noconvert(), py::arg("dy").noconvert(), py::arg("xhat").noconvert(),
           py::arg("rstd").noconvert(), py::arg("gamma").noconvert());
-    m.def("heads_split", &heads_split_k<T>, py::arg("hd").noconvert(), py::arg("tok").noconvert(), py::arg("col"));
-    m.def("heads_merge", &heads_merge_k<T>, py::arg("tok").noconvert(), py::arg("hd").noconvert(), py::arg("col"));
+    m.def("heads_split", &heads_k<T, true>, py::arg("hd").noconvert(), py::arg("tok").noconvert(), py::arg("col"));
+    m.def("heads_merge", &heads_k<T, false>, py::arg("tok").noconvert(), py::arg("hd").noconvert(), py::arg("col"));
     m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("gelu_backward", &gelu_grad<T>, py::arg("dx").noconvert(), py::arg("dy").noconvert(),
           py::arg("x").noconvert());

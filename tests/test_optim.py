@@ -70,6 +70,15 @@ def pyvf_run(params, grad_seq, opt_cls, **kw):
     return p, opt, lrs
 
 
+def assert_unchanged(opt, p, before_p, before):
+    """After a refused step: parameters, moments and step count bitwise as they were (one step)."""
+    assert opt.step_count == 1
+    for k in before_p:
+        assert_bitwise_equal(k, p[k], before_p[k])
+        assert_bitwise_equal(f"m {k}", opt.exp_avg[k], before["exp_avg"][k])
+        assert_bitwise_equal(f"v {k}", opt.exp_avg_sq[k], before["exp_avg_sq"][k])
+
+
 def assert_params_close(got, want, rtol):
     assert got.keys() == want.keys()
     for k in got:
@@ -286,11 +295,7 @@ def test_update_overflow_raises_and_changes_nothing(rng):
     g["wte/weight"][3, 2] = 1e22
     with pytest.raises(ValueError, match=r"the update of \['wte/weight'\] overflows"):
         opt.step(g)
-    assert opt.step_count == 1
-    for k in params:
-        assert_bitwise_equal(k, p[k], before_p[k])
-        assert_bitwise_equal(f"m {k}", opt.exp_avg[k], before["exp_avg"][k])
-        assert_bitwise_equal(f"v {k}", opt.exp_avg_sq[k], before["exp_avg_sq"][k])
+    assert_unchanged(opt, p, before_p, before)
 
 
 # ---------------------------------------------------------------------------------------
@@ -506,11 +511,7 @@ def test_adamw_nonfinite_gradients_raise_and_change_nothing(rng):
         g["h.0/ln_1/gamma"][2] = bad
         with pytest.raises(ValueError, match=r"grads contain NaN or inf in \['h.0/ln_1/gamma'\]"):
             opt.step(g)
-    assert opt.step_count == 1
-    for k in params:
-        assert_bitwise_equal(k, p[k], before_p[k])
-        assert_bitwise_equal(f"m {k}", opt.exp_avg[k], before["exp_avg"][k])
-        assert_bitwise_equal(f"v {k}", opt.exp_avg_sq[k], before["exp_avg_sq"][k])
+    assert_unchanged(opt, p, before_p, before)
 
 
 # ---------------------------------------------------------------------------------------
