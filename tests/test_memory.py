@@ -22,18 +22,20 @@ print(json.dumps({"on": on, "again": pyvf.reuse_freed_memory() if on else None, 
 """
 
 
-def child(mode):
-    out = subprocess.run([sys.executable, "-c", CHILD, mode], capture_output=True, text=True, check=True)
+def child(mode, folder):
+    # from a folder of its own: `python -c` puts the working folder first on sys.path, and from the
+    # source tree it would import the unbuilt package
+    out = subprocess.run([sys.executable, "-c", CHILD, mode], capture_output=True, text=True, check=True, cwd=folder)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_reuse_freed_memory_removes_the_page_faults_of_a_second_allocation():
+def test_reuse_freed_memory_removes_the_page_faults_of_a_second_allocation(tmp_path):
     """64 MiB written three times: without the setting every round faults in its pages again (at
     least 16 Ki 4-KiB pages' worth... or, with huge pages, at least 32 faults of 2 MiB); with it,
     rounds two and three reuse the first round's pages (under 1% of the first round's faults).
     And the call reports that it is in effect, twice. Where the C library is not glibc it changes
     nothing and says so (False)."""
-    off, on = child("off"), child("on")
+    off, on = child("off", tmp_path), child("on", tmp_path)
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         assert on["on"] is False, on
         return
