@@ -246,6 +246,25 @@ template <typename T, bool SPLIT> void heads_k(Arr<T> out, Arr<T> in, int64_t co
         heads_merge<T>(po, pi, d[0], d[1], d[2], d[3], d[4], col);
 }
 
+// The scene cache's softmax (branching_attention.cpp): sc (G, C, R L), so (R G, L, L), m and
+// denom (R, G, L); in place.
+template <typename T> void context_softmax_k(Arr<T> sc, Arr<T> so, Arr<T> m, Arr<T> denom) {
+    if (sc.ndim() != 3 || so.ndim() != 3 || so.shape(1) != so.shape(2) || so.shape(1) < 1 ||
+        sc.shape(2) % so.shape(1) != 0)
+        throw std::invalid_argument("pyvf._core.context_softmax: sc (G, C, R L), so (R G, L, L)");
+    const int64_t G = sc.shape(0), C = sc.shape(1), L = so.shape(1), R = sc.shape(2) / L;
+    if (so.shape(0) != R * G || m.size() != R * G * L || denom.size() != R * G * L)
+        throw std::invalid_argument("pyvf._core.context_softmax: so (R G, L, L), m and denom R G L elements");
+    T *ps = sc.mutable_data(), *po = so.mutable_data(), *pm = m.mutable_data(), *pd = denom.mutable_data();
+    try {
+        py::gil_scoped_release nogil;
+        context_softmax<T>(ps, po, pm, pd, R, G, L, C);
+    } catch (const std::bad_alloc&) {
+        PyErr_SetString(PyExc_MemoryError, "context_softmax: not enough memory for R G L doubles");
+        throw py::error_already_set();
+    }
+}
+
 // True when every element is finite; a scan that allocates nothing (np.isfinite(x).all()
 // would allocate a bool array as large as x). Blocks of 64 Ki elements, on the threads when
 // there are at least 4 of them (the activations of a paper-size codebook are 4 Mi elements).
@@ -313,6 +332,8 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("rstd").noconvert(), py::arg("gamma").noconvert());
     m.def("heads_split", &heads_k<T, true>, py::arg("hd").noconvert(), py::arg("tok").noconvert(), py::arg("col"));
     m.def("heads_merge", &heads_k<T, false>, py::arg("tok").noconvert(), py::arg("hd").noconvert(), py::arg("col"));
+    m.def("context_softmax", &context_softmax_k<T>, py::arg("sc").noconvert(), py::arg("so").noconvert(),
+          py::arg("m").noconvert(), py::arg("denom").noconvert());
     m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("gelu_backward", &gelu_grad<T>, py::arg("dx").noconvert(), py::arg("dy").noconvert(),
           py::arg("x").noconvert());

@@ -177,8 +177,11 @@ def branch_tree(q, k, v, k_ctx, v_ctx):
 
 
 @pytest.mark.parametrize("R, B, H, Nc, L, dh, scale", [(1, 1, 1, 1, 4, 2, 1.0), (3, 2, 2, 4, 8, 4, 1.0),
-                                                        (2, 1, 3, 2, 16, 8, 0.3)])
-def test_context_attention_equals_branching_attention(R, B, H, Nc, L, dh, scale):
+                                                        (2, 1, 3, 2, 16, 8, 0.3),
+                                                        # the softmax kernel on the threads, L = 37: whole
+                                                        # vectors and a scalar tail on every path
+                                                        (2, 2, 4, 3, 37, 8, 1.0)])
+def test_context_attention_equals_branching_attention(R, B, H, Nc, L, dh, scale, kernel_path):
     """o and lse of each query row equal those of branch row 1 + r at view Nc of the tree: float64
     against the dense reference (sums of at most (Nc + 1) L = 80 terms: 1e-13 is about 1000 u64);
     float32 as accurate as the kernel on the tree (both against float64)."""

@@ -151,8 +151,9 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     copied). Only the attended blocks are computed, Nc + 1 block pairs per query; the kernel
     would visit every block of a tree (1, R*B, H, Nc + 1, L, dh): (Nc+1)(Nc+2)/2 pairs, 3.5
     times the work at Nc = 5. The products are pyvf's gemm (_core.matmul, float32 accumulators
-    in float32); the softmax is one pass instead of the kernel's online one, so o agrees with the
-    kernel's up to rounding (tests/test_scene_cache.py bounds it).
+    in float32); the softmax is one pass (csrc/branching_attention.cpp context_softmax) instead of
+    the kernel's online one, so o agrees with the kernel's up to rounding (tests/test_scene_cache.py
+    bounds it).
     """
     _checks.float_array("q", q)
     if q.ndim != 6 or q.shape[3] != 1 or 0 in q.shape:
@@ -184,13 +185,11 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
         sc *= q.dtype.type(scale)
         so *= q.dtype.type(scale)
     _check_finite_result("context_attention_forward", sc, so)
-    # the softmax over all T = C + L keys of each query, kept in the two parts
-    m = np.maximum(sc.max(axis=1).reshape(G, R, L).transpose(1, 0, 2), so.max(axis=1).reshape(R, G, L))  # (R, G, L)
-    sc -= m.transpose(1, 0, 2).reshape(G, 1, R * L)
-    so -= m.reshape(n, 1, L)
-    np.exp(sc, out=sc)  # p^T: every key the query attends (nothing is masked: exact exclusion)
-    np.exp(so, out=so)
-    denom = sc.sum(axis=1).reshape(G, R, L).transpose(1, 0, 2) + so.sum(axis=1).reshape(R, G, L)  # (R, G, L)
+    # the softmax over all T = C + L keys of each query, kept in the two parts, on pyvf's threads:
+    # s -> p^T = exp(s - m) in place, m the query's largest logit, denom = the sum of its p (in
+    # double); every key the query attends (nothing is masked: exact exclusion)
+    m, denom = np.empty((R, G, L), q.dtype), np.empty((R, G, L), q.dtype)  # (R, G, L)
+    _core.context_softmax(sc, so, m, denom)
     # o = (p^T)^T V over the context's values, then over the own block's
     oc = np.empty((G, R * L, dh), dtype=q.dtype)
     _core.matmul(oc, sc, vc, True)
