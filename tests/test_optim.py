@@ -348,6 +348,15 @@ def _copy(d):
     return {k: v.copy() for k, v in d.items()}
 
 
+def test_norm_of_subnormals():
+    """float64 gradients of subnormals only (max 5e-320): rescaled by 1 / max, where a power-of-two
+    scale up to ~1 would overflow; against math.hypot of the same numbers. rtol 1e-3: the norm is
+    itself subnormal (5.8e-320 holds about 13 significant bits, 1.2e-4 relative per rounding)."""
+    g = np.array([5e-320, -3e-320, 0.0, 1e-322])
+    assert_close("subnormal norm", optim._norm64(g), math.hypot(5e-320, 3e-320, 1e-322), rtol=1e-3)
+    assert optim.clip_grad_norm({"g": g.copy()}, 1.0) > 0
+
+
 @pytest.mark.parametrize("power", [0, 600, -600])  # float64 scaled beyond 1e+-100 (rescaled), and not
 def test_norm_accurate_and_thread_independent(rng, power, kernel_path):
     """optim._norm64 (one pass, csrc/optim.cpp sum_squares) against the exactly rounded norm:

@@ -114,9 +114,9 @@ class AdamW:
     Python floats (float64), rounded to that dtype where they meet the arrays. One fused kernel
     (csrc/optim.cpp) applies the update on pyvf's threads, each operation rounded once in the
     order written above: bitwise NumPy's array expressions of it, for any thread count (the
-    torch convention's update is lr / (1 - b1^t) * (m / denom), that product last). state_dict()/load_state_dict() save and restore the step count
-    and the moments, so that a run that is saved, loaded and continued matches an
-    uninterrupted run bit for bit.
+    torch convention's update is lr / (1 - b1^t) * (m / denom), that product last).
+    state_dict()/load_state_dict() save and restore the step count and the moments, so that a
+    run that is saved, loaded and continued matches an uninterrupted run bit for bit.
     """
 
     def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2, *,
@@ -347,18 +347,17 @@ _TINY, _HUGE = 1e-100, 1e100  # outside this range of max|g| the squares are res
 def _norm64(g):
     """|g|_2 of a finite g, its squares summed in float64 (a Python float) by one pass on pyvf's
     threads (csrc/optim.cpp sum_squares: the same sum for any thread count). A float64 tensor
-    whose largest entry is beyond 1e+-100 is scaled by a power of two near 1 / max|g| first
-    (exact), so a gradient of 1e200 or 1e-200 gets its norm instead of inf or 0."""
+    whose largest entry is beyond 1e+-100 is divided by it first, so a gradient of 1e200 or
+    1e-200 (or of subnormals) gets its norm instead of inf or 0."""
     x = _checks.c_order(g)
     if x.size == 0:
         return 0.0
     amax, sumsq = _core.sum_squares(x, 1.0)
     if amax == 0.0:
         return 0.0
-    if amax > _HUGE or amax < _TINY:
-        s = math.ldexp(1.0, -math.frexp(amax)[1])  # 2^-e: amax s in [0.5, 1)
-        sumsq = _core.sum_squares(x, s)[1]
-        return math.sqrt(sumsq) / s
+    if amax > _HUGE or amax < _TINY:  # float64 only, and rare: NumPy, x / amax (also for subnormals,
+        y = x.ravel() / amax            # whose 1 / amax overflows where a power-of-two scale would)
+        return amax * math.sqrt(float(np.square(y).sum()))
     return math.sqrt(sumsq)
 
 
