@@ -32,7 +32,8 @@ def child(mode, folder):
 def test_reuse_freed_memory_removes_the_page_faults_of_a_second_allocation(tmp_path):
     """64 MiB written three times: without the setting every round faults in its pages again (at
     least 16 Ki 4-KiB pages' worth... or, with huge pages, at least 32 faults of 2 MiB); with it,
-    rounds two and three reuse the first round's pages (under 1% of the first round's faults).
+    rounds two and three reuse the first round's pages (at most 1% of the first round's faults, or
+    8, for Python's own small allocations).
     And the call reports that it is in effect, twice. Where the C library is not glibc it changes
     nothing and says so (False)."""
     off, on = child("off", tmp_path), child("on", tmp_path)
@@ -42,4 +43,5 @@ def test_reuse_freed_memory_removes_the_page_faults_of_a_second_allocation(tmp_p
     assert on["on"] is True and on["again"] is True
     assert min(off["faults"][1:]) >= 32, off  # fresh pages each round
     assert on["faults"][0] >= 32, on
-    assert max(on["faults"][1:]) <= on["faults"][0] // 100, on
+    # a few faults of Python's own small allocations may fall inside a round: at most 8 (or 1%)
+    assert max(on["faults"][1:]) <= max(on["faults"][0] // 100, 8), on
