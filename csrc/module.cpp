@@ -170,13 +170,13 @@ template <typename T> void adam_apply_k(Arr<T> p, Arr<T> m, Arr<T> v, Arr<T> g, 
     adam_apply<T>(pp, pm, pv, pg, n, sc);
 }
 
-template <typename T> py::tuple sum_squares_k(Arr<T> x, double s) {
+template <typename T> py::tuple sum_squares_k(Arr<T> x) {
     const T* p = x.data();
     const int64_t n = x.size();
     double amax = 0, sumsq = 0;
     {
         py::gil_scoped_release nogil;
-        sum_squares<T>(p, n, s, &amax, &sumsq);
+        sum_squares<T>(p, n, &amax, &sumsq);
     }
     return py::make_tuple(amax, sumsq);
 }
@@ -322,7 +322,7 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("scalars"), py::arg("keras"), py::arg("decayed"));
     m.def("adam_apply", &adam_apply_k<T>, py::arg("p").noconvert(), py::arg("m").noconvert(),
           py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("scalars"), py::arg("keras"), py::arg("decayed"));
-    m.def("sum_squares", &sum_squares_k<T>, py::arg("x").noconvert(), py::arg("scale"));
+    m.def("sum_squares", &sum_squares_k<T>, py::arg("x").noconvert());
     m.def("scale_by", &scale_by_k<T>, py::arg("x").noconvert(), py::arg("c"));
     m.def("layernorm_forward", &layernorm_fwd_k<T>, py::arg("y").noconvert(), py::arg("xhat").noconvert(),
           py::arg("rstd").noconvert(), py::arg("x").noconvert(), py::arg("gamma").noconvert(),

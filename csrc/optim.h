@@ -19,9 +19,9 @@ template <typename T> bool adam_check(const T* p, const T* m, const T* v, const 
 // The update in place: p, m and v overwritten.
 template <typename T> void adam_apply(T* p, T* m, T* v, const T* g, int64_t n, const AdamScalars<T>& s);
 
-// Gradient clipping: sumsq = sum of (x_i s)^2 in double (bitwise the same for any thread count),
+// Gradient clipping: sumsq = sum of x_i^2 in double (bitwise the same for any thread count),
 // amax = max |x_i|; and x *= c in place.
-template <typename T> void sum_squares(const T* x, int64_t n, double s, double* amax, double* sumsq);
+template <typename T> void sum_squares(const T* x, int64_t n, double* amax, double* sumsq);
 template <typename T> void scale_by(T* x, int64_t n, T c);
 
 }  // namespace pyvf

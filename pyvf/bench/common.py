@@ -73,12 +73,6 @@ def _hwm_available():
         return False
 
 
-def _fresh_pages():
-    """Make the measured call fault in fresh pages for what it allocates (glibc; elsewhere a no-op):
-    pyvf._memory.map_fresh_pages, then the heap's free pages trimmed before each call."""
-    map_fresh_pages()
-
-
 _HWM = _hwm_available()
 # below this, a peak_memory reading is approximate: the kernel's per-CPU RSS counters lag by up to
 # a few dozen pages per CPU (peak_memory's docstring); the memory plots draw it
@@ -105,10 +99,11 @@ def peak_memory(fn):
     RSS counters lag by up to a few dozen pages per CPU, so below ~1 MiB it is approximate); elsewhere it falls
     back to tracemalloc, which sees NumPy's allocations only (memory_method() says which).
     Call fn once before measuring to keep one-time costs (thread pools, lazy imports) out.
-    On glibc the first call changes malloc's policy for the rest of the process: see _fresh_pages.
+    On glibc the first call changes malloc's policy for the rest of the process: see
+    pyvf._memory.map_fresh_pages.
     """
     gc.collect()
-    _fresh_pages()
+    map_fresh_pages()
     if _HWM:
         before = _status_bytes("VmRSS")
         _reset_hwm()

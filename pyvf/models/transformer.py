@@ -34,7 +34,7 @@ import numpy as np
 
 from .. import _checks
 from ..nn.attention import (
-    _merge_heads,
+    _fused_heads,
     attention_layer_backward,
     attention_layer_forward,
 )
@@ -454,7 +454,7 @@ class Transformer(ModelWeights):
             _, _, q, k, v, o, lse, _, _ = c_attn  # (R, B, H, N, L, dh), lse (R, B, H, N, L)
             tr[b + "ln_1"] = a
             # the layer keeps q, k, v split by head, not the fused projection: rebuilt (same bits)
-            tr[b + "attn.c_attn"] = np.concatenate([_merge_heads(v), _merge_heads(q), _merge_heads(k)], axis=-1)
+            tr[b + "attn.c_attn"] = _fused_heads(v, q, k)
             tr[b + "attn.q"], tr[b + "attn.k"], tr[b + "attn.v"] = q, k, v
             tr[b + "attn.out"], tr[b + "attn.lse"] = o, lse
             tr[b + "attn.c_proj"], tr[b + "resid_1"], tr[b + "ln_2"] = y, x, m

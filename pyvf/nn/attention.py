@@ -299,6 +299,16 @@ def _merge_heads(t, out=None, col=0):
     return out
 
 
+def _fused_heads(v, q, k):
+    """The fused projection's columns [v | q | k] (R, B, N, L, 3 H dh) from the heads, (R, B, H, N, L,
+    dh) each: the layout of attention_layer_forward's h (docs/math.md §3)."""
+    R, B, H, N, L, dh = v.shape
+    out = np.empty((R, B, N, L, 3 * H * dh), v.dtype)
+    for i, t in enumerate((v, q, k)):
+        _merge_heads(t, out, i * H * dh)
+    return out
+
+
 def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0, *, context=None):
     """Branching self-attention over the rows of the tree.
 
@@ -359,9 +369,7 @@ def attention_layer_backward(dy, cache, trace=None, name=""):
     do, dw_proj, db_proj = linear_backward(dy, c_proj)  # (R, B, N, L, d)
     do = _split_heads(do, n_head)  # (R, B, H, N, L, dh)
     dq, dk, dv = branching_attention_backward(do, q, k, v, o, lse, scale)
-    dh = np.empty(dy.shape[:-1] + (3 * dy.shape[-1],), dy.dtype)  # (R, B, N, L, 3d): [v | q | k]
-    for i, g in enumerate((dv, dq, dk)):
-        _merge_heads(g, dh, i * dy.shape[-1])
+    dh = _fused_heads(dv, dq, dk)  # (R, B, N, L, 3d): [v | q | k]
     if trace is not None:
         for part, g in (("out", do), ("v", dv), ("k", dk), ("q", dq), ("c_attn", dh)):  # the trace's order, reversed
             trace[f"{name}.{part}"] = g

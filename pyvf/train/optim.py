@@ -208,8 +208,9 @@ class AdamW:
         decayed = {k: self.weight_decay != 0 and k in self.decayed for k in work}
         # (a NaN or inf gradient gives a non-finite update: it is named as such)
         bad = [k for k, arrays in work.items() if not _core.adam_check(*arrays, scalars, keras, decayed[k])]
-        if bad and _nonfinite_names(grads):
-            raise ValueError(f"grads contain NaN or inf in {_nonfinite_names(grads)}: no update applied "
+        nonfinite = _nonfinite_names(grads) if bad else []
+        if nonfinite:
+            raise ValueError(f"grads contain NaN or inf in {nonfinite}: no update applied "
                              "(skip this step, or lower the learning rate / loss scale)")
         if bad:
             raise ValueError(f"the update of {bad} overflows (gradients or learning rate too large for the "
@@ -352,7 +353,7 @@ def _norm64(g):
     x = _checks.c_order(g)
     if x.size == 0:
         return 0.0
-    amax, sumsq = _core.sum_squares(x, 1.0)
+    amax, sumsq = _core.sum_squares(x)
     if amax == 0.0:
         return 0.0
     if amax > _HUGE or amax < _TINY:  # float64 only, and rare: NumPy, x / amax (also for subnormals,
