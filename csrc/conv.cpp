@@ -73,6 +73,7 @@
 #include <omp.h>
 #endif
 
+#include "branching_attention.h"  // num_threads
 #include "simd.h"
 
 namespace pyvf {
@@ -125,14 +126,19 @@ template <typename T> using Buf = std::vector<T, Aligned64<T>>;
 
 inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
-inline int64_t threads() {
-#ifdef PYVF_OPENMP
-    return omp_get_max_threads();
-#else
-    return 1;
-#endif
-}
+inline int64_t threads() { return num_threads(); }  // branching_attention.cpp's
 inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
+
+// Output channels per task of a forward product (conv_rows, conv_gemm) that has `tasks` (image,
+// pixel tile) tasks: all of them where those are at least four per thread, else blocks of whole
+// register tiles (24 rows: 3 of AVX-512's 8, 4 of AVX2's 6, 6 of SSE2's 4) making about four
+// tasks per thread (two left 16 threads a third idle on the 8x8 layers). A row's sums are the
+// same in any block, so the results do not depend on the thread count.
+inline int64_t out_channel_block(int64_t Co, int64_t tasks) {
+    const int64_t want = std::clamp<int64_t>(ceil_div(4 * threads(), std::max<int64_t>(tasks, 1)), 1,
+                                             std::max<int64_t>(ceil_div(Co, 24), 1));
+    return std::max<int64_t>(round_up(ceil_div(Co, want), 24), 24);
+}
 
 // Pixels per tile for a tile of `rows` rows: about kTileBytes, a multiple of gemm's widest
 // column tile (2 vectors), at most P. Depends on the shape only.
@@ -560,12 +566,8 @@ template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, co
     const int64_t R = std::clamp<int64_t>(kRowTileBytes / (std::max<int64_t>(d.C, 1) * Wp * (int64_t)sizeof(T)) -
                                               (d.kh - 1), 1, d.Ho);
     const int64_t Rp = R + d.kh - 1, ntile = ceil_div(d.Ho, R);
-    // Output-channel blocks, where images x row tiles make fewer than two tasks per thread (an 8x8
-    // image is one tile): blocks of whole register tiles (24 rows: 3 of AVX-512's 8, 4 of AVX2's 6);
-    // a row's sums are the same in any block, so the results do not depend on the thread count.
-    const int64_t ncob_want = std::clamp<int64_t>(ceil_div(2 * threads(), std::max<int64_t>(d.B * ntile, 1)), 1,
-                                                  std::max<int64_t>(ceil_div(d.Co, 24), 1));
-    const int64_t cob = std::max<int64_t>(round_up(ceil_div(d.Co, ncob_want), 24), 24), ncob = ceil_div(d.Co, cob);
+    // output-channel blocks where images x row tiles are few (an 8x8 image is one tile)
+    const int64_t cob = out_channel_block(d.Co, d.B * ntile), ncob = ceil_div(d.Co, cob);
     const int64_t ntask = d.B * ntile * ncob;
     const bool wide = d.Wo < kRowsMinVectors * W;
     const int64_t nwide = round_up((R - 1) * Wp + d.Wo, W);  // columns of the widest wide product
@@ -615,12 +617,14 @@ template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, co
 }
 
 // y = conv(x, w) (+ b when b is not null): the forward, and the stride-1 dx with the flipped
-// weights. Tasks: (image, tile of output pixels), each writing its own columns of y.
+// weights. Tasks: (image, tile of output pixels, block of output channels), each writing its own
+// block of y.
 template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
     const int64_t K = d.C * d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
     const bool direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
     if (!direct && d.stride == 1) return conv_rows(y, x, w, b, d);
-    const int64_t np = tile_pixels<T>(K, P), ntile = ceil_div(P, np), ntask = d.B * ntile;
+    const int64_t np = tile_pixels<T>(K, P), ntile = ceil_div(P, np);
+    const int64_t cob = out_channel_block(d.Co, d.B * ntile), ncob = ceil_div(d.Co, cob), ntask = d.B * ntile * ncob;
     int status = kConvOk, nonfinite = 0;
 #pragma omp parallel if (worth_threads(d))
     {
@@ -630,9 +634,10 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
 #pragma omp for schedule(dynamic, 1)
         for (int64_t t = 0; t < ntask; ++t) {
             if (!ok) continue;
-            const int64_t bi = t / ntile, p0 = (t % ntile) * np, n = std::min(np, P - p0);
-            const T* xb = x + bi * d.C * HWi;  // (C, Hi, Wi)
-            T* yb = y + bi * d.Co * P + p0;    // (Co, n) of (Co, P)
+            const int64_t bp = t / ncob, bi = bp / ntile, p0 = (bp % ntile) * np, n = std::min(np, P - p0);
+            const int64_t o0 = (t % ncob) * cob, no = std::min(cob, d.Co - o0);
+            const T* xb = x + bi * d.C * HWi;             // (C, Hi, Wi)
+            T* yb = y + (bi * d.Co + o0) * P + p0;        // (no, n) of (Co, P)
             const T* src = xb + p0;            // direct: the columns are x_b's own pixels
             int64_t ldb = P;
             if (!direct) {
@@ -640,10 +645,10 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
                 src = cols.data();
                 ldb = n;
             }
-            // y_b[:, p0:p0+n] = w2 (Co, K) @ cols (K, n)
-            gemm_mr<T, false>((int)d.Co, (int)n, (int)K, w, K, src, ldb, yb, P);
-            if (b) add_bias_rows(yb, b, d.Co, P, n);
-            if (!rows_finite(yb, d.Co, P, n)) {
+            // y_b[o0:o0+no, p0:p0+n] = w2[o0:o0+no] (no, K) @ cols (K, n)
+            gemm_mr<T, false>((int)no, (int)n, (int)K, w + o0 * K, K, src, ldb, yb, P);
+            if (b) add_bias_rows(yb, b + o0, no, P, n);
+            if (!rows_finite(yb, no, P, n)) {
 #pragma omp atomic write
                 nonfinite = 1;
             }
@@ -965,6 +970,15 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
 constexpr int64_t kMatRows = 96;    // whole register tiles on every path (8, 6 and 4 rows)
 constexpr int64_t kMatCols = 192;   // a multiple of the packed tile's columns on every path (96, 48, 16, 8, 4)
 constexpr int64_t kMatDepth = 256;  // panels: b's 256 x 192 (192 KiB of floats), a's 96 x 256 (96 KiB)
+// Split along k: a product with fewer than kMatMinTasks blocks of c and K of at least 2 *
+// kMatSplitDepth (the weight gradients X^T dY of the tiny transformer: c 128 x 512, K = 9216,
+// 6 blocks for 16 threads) is cut into parts of whole kMatDepth chunks, at least kMatSplitDepth
+// deep, as many as make about kMatMinTasks tasks. Each part's block is one sum in increasing k
+// (part 0 into c, the others into a buffer), then c = ((part 0 + part 1) + part 2) + ... in that
+// order. The parts follow from the shapes alone, so the result is still bitwise the same for any
+// thread count.
+constexpr int64_t kMatMinTasks = 64;
+constexpr int64_t kMatSplitDepth = 1024;
 
 // The packed tile's shape: with 32 vector registers (AVX-512) 4 rows x 6 vectors (24
 // accumulators, 6 of b, 1 broadcast: 4 broadcasts per 24 FMAs); with 16 (AVX2) simd.h's 6 x 2,
@@ -1041,8 +1055,19 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
         }
         b = bt.get();
     }
+    // the parts along k (kMatMinTasks): shapes alone decide them
+    int64_t parts = 1;
+    if (nb * per < kMatMinTasks && K >= 2 * kMatSplitDepth)
+        parts = std::min(K / kMatSplitDepth, ceil_div(kMatMinTasks, nb * per));
+    const int64_t span = round_up(ceil_div(K, parts), kMatDepth);  // k per part, whole chunks
+    parts = ceil_div(K, span);
+    std::unique_ptr<T[]> more;  // parts 1 .. parts - 1, each (nb, M, N)
+    if (parts > 1) {
+        more.reset(new (std::nothrow) T[(parts - 1) * nb * M * N]);
+        if (!more) return kConvOutOfMemory;
+    }
     // the panels as large as this product needs (a small product zero-fills little)
-    const int64_t rows = std::min(M, kMatRows), depth = std::min(K, kMatDepth), cols = std::min(N, kMatCols);
+    const int64_t rows = std::min(M, kMatRows), depth = std::min(span, kMatDepth), cols = std::min(N, kMatCols);
     int status = kConvOk;
 #pragma omp parallel if (nb * M * N * K >= kParallelFlops)
     {
@@ -1050,20 +1075,38 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
         bool ok = false;
         PYVF_CONV_TRY_ALLOC(status, ap.resize(rows * depth); bp.resize(depth * cols); ok = true)
 #pragma omp for schedule(dynamic, 1)
-        for (int64_t t = 0; t < nb * per; ++t) {
+        for (int64_t t = 0; t < parts * nb * per; ++t) {
             if (!ok) continue;
-            const int64_t bi = t / per, i0 = (t % per % nmb) * kMatRows, j0 = (t % per / nmb) * kMatCols;
+            const int64_t s = t / (nb * per), q = t % (nb * per);  // part s, block q
+            const int64_t bi = q / per, i0 = (q % per % nmb) * kMatRows, j0 = (q % per / nmb) * kMatCols;
             const int64_t m = std::min(kMatRows, M - i0), n = std::min(kMatCols, N - j0);
+            const int64_t k0 = s * span, kk = std::min(span, K - k0);
             const T* ab = a + bi * M * K;
-            const T* bb = b + bi * K * N + j0;
-            T* cb = c + (bi * M + i0) * N + j0;
+            const T* bb = b + (bi * K + k0) * N + j0;
+            T* cb = (s == 0 ? c : more.get() + (s - 1) * nb * M * N) + (bi * M + i0) * N + j0;
             // consecutive tasks: the same columns, so that b's panels come from L2 while its rows pass;
             // op(a)[i, k] = a_b[k, i] (stored (K, M)) when ta, else a_b[i, k] (stored (M, K))
-            if (ta) matmul_block<T, true>(m, n, K, ab + i0, (long)M, bb, (long)N, cb, (long)N, ap.data(), bp.data());
-            else matmul_block<T, false>(m, n, K, ab + i0 * K, (long)K, bb, (long)N, cb, (long)N, ap.data(), bp.data());
-            if (bias)  // the bias after the whole sum: (sum) + bias[j], one rounding each, as NumPy's x @ w + b
+            if (ta) matmul_block<T, true>(m, n, kk, ab + k0 * M + i0, (long)M, bb, (long)N, cb, (long)N, ap.data(),
+                                          bp.data());
+            else matmul_block<T, false>(m, n, kk, ab + i0 * K + k0, (long)K, bb, (long)N, cb, (long)N, ap.data(),
+                                        bp.data());
+            if (bias && parts == 1)  // the bias after the whole sum: (sum) + bias[j], one rounding each, as NumPy's x @ w + b
                 for (int64_t i = 0; i < m; ++i)
                     for (int64_t j = 0; j < n; ++j) cb[i * N + j] += bias[j0 + j];
+        }
+        // after the loop's barrier every thread sees the same status (a worksharing loop must be
+        // met by all threads or none)
+        if (parts > 1 && status == kConvOk) {  // c = ((part 0 + part 1) + part 2) + ... (+ bias), row by row
+#pragma omp for schedule(static)
+            for (int64_t r = 0; r < nb * M; ++r) {
+                T* cr = c + r * N;
+                for (int64_t s = 1; s < parts; ++s) {
+                    const T* pr = more.get() + ((s - 1) * nb * M + r) * N;
+                    for (int64_t j = 0; j < N; ++j) cr[j] += pr[j];
+                }
+                if (bias)
+                    for (int64_t j = 0; j < N; ++j) cr[j] += bias[j];
+            }
         }
     }
     return status;

@@ -16,4 +16,9 @@ template <typename T> void heads_split(T* hd, const T* tok, int64_t RB, int64_t 
 template <typename T> void heads_merge(T* tok, const T* hd, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld,
                                        int64_t col);
 
+// out = a + b (n elements; out may be a or b); out (N,) = a (M, N) summed over its rows in
+// increasing row (0 when M = 0).
+template <typename T> void add(T* out, const T* a, const T* b, int64_t n);
+template <typename T> void column_sums(T* out, const T* a, int64_t M, int64_t N);
+
 }  // namespace pyvf

@@ -217,6 +217,27 @@ template <typename T> void layernorm_bwd_k(Arr<T> dx, Arr<T> dgamma, Arr<T> dbet
     layernorm_backward<T>(pdx, pdg, pdb, pdy, ph, pr, pg, M, d);
 }
 
+// out = a + b, any shapes of one size (elementwise.cpp); out (N,) = a (M, N) summed over its rows.
+template <typename T> void add_k(Arr<T> out, Arr<T> a, Arr<T> b) {
+    same_size(a, out, "add");
+    same_size(b, out, "add");
+    T* po = out.mutable_data();
+    const T *pa = a.data(), *pb = b.data();
+    const int64_t n = out.size();
+    py::gil_scoped_release nogil;
+    add<T>(po, pa, pb, n);
+}
+
+template <typename T> void column_sums_k(Arr<T> out, Arr<T> a) {
+    if (a.ndim() != 2 || out.size() != a.shape(1))
+        throw std::invalid_argument("pyvf._core.column_sums: a (M, N) and out (N,)");
+    T* po = out.mutable_data();
+    const T* pa = a.data();
+    const int64_t M = a.shape(0), N = a.shape(1);
+    py::gil_scoped_release nogil;
+    column_sums<T>(po, pa, M, N);
+}
+
 // Heads (elementwise.cpp): hd (R, B, H, N, L, dh), tok (R, B, N, L, w), columns [col, col + H dh) of w.
 template <typename T> void heads_dims(const py::array& hd, const py::array& tok, int64_t col, int64_t* dims) {
     bool ok = hd.ndim() == 6 && tok.ndim() == 5 && col >= 0;
@@ -330,6 +351,8 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("layernorm_backward", &layernorm_bwd_k<T>, py::arg("dx").noconvert(), py::arg("dgamma").noconvert(),
           py::arg("dbeta").noconvert(), py::arg("dy").noconvert(), py::arg("xhat").noconvert(),
           py::arg("rstd").noconvert(), py::arg("gamma").noconvert());
+    m.def("add", &add_k<T>, py::arg("out").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert());
+    m.def("column_sums", &column_sums_k<T>, py::arg("out").noconvert(), py::arg("a").noconvert());
     m.def("heads_split", &heads_k<T, true>, py::arg("hd").noconvert(), py::arg("tok").noconvert(), py::arg("col"));
     m.def("heads_merge", &heads_k<T, false>, py::arg("tok").noconvert(), py::arg("hd").noconvert(), py::arg("col"));
     m.def("context_softmax", &context_softmax_k<T>, py::arg("sc").noconvert(), py::arg("so").noconvert(),

@@ -45,6 +45,7 @@
 #include <utility>
 #include <vector>
 
+#include "branching_attention.h"  // num_threads
 #include "simd.h"
 
 namespace pyvf {
@@ -84,7 +85,11 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
     using VD = Simd<double>::V;
     constexpr int W = Simd<T>::W, WD = Simd<double>::W;
     constexpr int64_t NB = 2 * W;    // codes per packed panel (the gemm's widest tile)
-    constexpr int64_t MB = 64;       // rows per block
+    // rows per block: 64, or fewer where that leaves threads idle (the paper codebook's 128 rows
+    // made 2 blocks for 16 threads), at least 8; each row's answer is the exact argmin over a
+    // candidate set that always holds it, whatever the block, so the result does not depend on MB
+    const int64_t nthr = num_threads();
+    const int64_t MB = std::clamp<int64_t>(((M + 4 * nthr - 1) / (4 * nthr) + 7) / 8 * 8, 8, 64);
     const int64_t KC = std::min<int64_t>(((K + NB - 1) / NB) * NB, 2048);  // codes per chunk, a multiple of NB
     const int64_t npanel = (K + NB - 1) / NB, Kp = npanel * NB;
     const double u = unit_roundoff<T>();

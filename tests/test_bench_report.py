@@ -275,3 +275,33 @@ def test_scaling_plots_are_readable_with_the_memory_floor(figures, tmp_path):
     # the memory plot draws the floor below which a reading is approximate (its points go down to 0.5 MiB)
     assert mem["hlines"] == {round(np.log10(common.MEMORY_NOISE_BYTES / 2 ** 20), 3)}, mem
     assert any("below it a reading is approximate" in t for t in mem["texts"]) and not tim["hlines"], (mem, tim)
+
+
+def test_other_machines_section_merges_one_machines_files(tmp_path):
+    """Scaling-only files of other machines (measurements/threads-scaling-*.json) become one table
+    per (CPU, cores, kernel path), naming the commands and files, with the 16-thread targets; two
+    runs of one machine merge; another machine gets its own table; other JSON files are ignored."""
+    import json
+    meas = tmp_path / "measurements"
+    meas.mkdir()
+
+    def write(name, cpu, calls, times, command):
+        sc = {"threads": sorted({int(n) for t in times for n in t}), "bitwise": {c: True for c in calls},
+              "times": dict(zip(calls, times))}
+        (meas / name).write_text(json.dumps({"cpu": cpu, "cores": 16, "kernel_path": "avx512", "scaling": sc,
+                                             "date": "2026-11-27", "command": command, "failures": []}))
+    write("threads-scaling-16-a.json", "Xeon X", ["codebook step, paper (batch 2)"],
+          [{"1": 8.0, "2": 4.0, "16": 0.9}], "pyvf bench threads --scaling-only --calls codebook-paper")
+    write("threads-scaling-16-b.json", "Xeon X", ["transformer step, tiny"], [{"1": 1.0, "16": 0.3}],
+          "pyvf bench threads --scaling-only --calls transformer-tiny --counts 1 16")
+    write("threads-scaling-other.json", "EPYC Y", ["Codebook.encode"], [{"1": 1.0, "16": 0.1}], "cmd")
+    (meas / "threads.json").write_text("{}")
+    text = "\n".join(report.other_machines_section(str(tmp_path)))
+    assert text.count("### 16 cores: ") == 2
+    xeon = text[text.index("### 16 cores: Xeon X"):text.index("### 16 cores: EPYC Y")]
+    assert "`pyvf bench threads --scaling-only --calls codebook-paper`; `pyvf bench threads --scaling-only " \
+           "--calls transformer-tiny --counts 1 16`" in xeon
+    assert re.search(r"\| transformer step, tiny +\| 1000 ms \(1\.00x\) +\| - +\| 300 ms \(3\.33x\)", xeon)
+    assert "codebook step, paper (batch 2): 8.89x on 16 threads (target at least 8)" in xeon
+    assert "transformer step, tiny: 3.33x on 16 threads (target at least 4) **missed**" in xeon
+    assert report.other_machines_section(str(tmp_path / "nowhere")) == []

@@ -68,6 +68,44 @@ def test_scale_catches_a_result_that_depends_on_the_threads(monkeypatch):
     assert rep["threads"] == [1, 2]
 
 
+def test_scale_runs_the_chosen_calls_and_counts_and_saves_after_each(monkeypatch):
+    """--calls and --counts choose the scaling's calls (by SCALING_IDS name, run in that order) and
+    thread counts;
+    save(report) is called after each call with the calls finished so far (a run killed part-way
+    keeps them)."""
+    def fake(result):
+        return lambda quick: (lambda: ((lambda: None), result))
+    calls = {"a step, tiny": (fake(lambda: np.zeros(2)), True), "b step, tiny": (fake(lambda: np.ones(2)), True),
+             "c": (fake(lambda: 1 / 0), True)}
+    monkeypatch.setattr(bench, "SCALING_CALLS", calls)
+    monkeypatch.setattr(bench, "SCALING_IDS", {"a": "a step, tiny", "b": "b step, tiny", "c": "c"})
+    saved = []
+    rep = bench.scale(True, 2, log=lambda *a: None, calls=["b", "a"], counts=[2, 1, 2],
+                      save=lambda r: saved.append(sorted(r["times"])))
+    assert rep["threads"] == [1, 2] and list(rep["times"]) == ["b step, tiny", "a step, tiny"]  # as asked
+    assert saved == [["b step, tiny"], ["a step, tiny", "b step, tiny"]]
+
+
+def test_merge_scaling_and_many_core_targets():
+    """Two runs of one machine (some calls at some counts each) merge into one table: the counts'
+    union, "-" where a call was not run, a call bitwise only if every run found it so; the
+    16-thread targets (paper steps 8x, tiny 4x) read off the merged times, a miss reported."""
+    one = {"scaling": {"threads": [1, 2, 16], "bitwise": {"codebook step, tiny": True, "Codebook.encode": True},
+                       "times": {"codebook step, tiny": {"1": 1.0, "2": 0.5, "16": 0.2},
+                                 "Codebook.encode": {"1": 0.4, "2": 0.2, "16": 0.1}}}}
+    two = {"scaling": {"threads": [1, 16], "bitwise": {"transformer step, paper (1 x 20 views)": False},
+                       "times": {"transformer step, paper (1 x 20 views)": {"1": 30.0, "16": 5.0}}}}
+    merged = bench.merge_scaling([two, one])
+    assert merged["threads"] == [1, 2, 16]
+    assert list(merged["times"]) == ["codebook step, tiny", "transformer step, paper (1 x 20 views)",
+                                     "Codebook.encode"]  # SCALING_CALLS' order
+    _, rows = bench.scaling_table(merged)
+    assert rows[1] == ["transformer step, paper (1 x 20 views)", "30000 ms (1.00x)", "-", "5000 ms (6.00x)", "NO"]
+    assert bench.many_core_targets(merged) == [
+        ("codebook step, tiny: 5.00x on 16 threads (target at least 4)", True),
+        ("transformer step, paper (1 x 20 views): 6.00x on 16 threads (target at least 8)", False)]
+
+
 def test_scaling_table_and_targets_on_made_up_times():
     rep = {"threads": [1, 2], "bitwise": {"transformer step, paper": True, "Codebook.encode": False},
            "times": {"transformer step, paper": {"1": 30.0, "2": 15.0}, "Codebook.encode": {"1": 0.2, "2": 0.125}}}

@@ -884,9 +884,12 @@ def test_groupnorm_swish_threads_bitwise(dtype, rng):
 
 # (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16, the packed
 # tile's 6), several row blocks of 96 and column blocks of 192, k chunks of 256 with a short last
-# one, the attention's own square case; K = 0 gives zeros, zero rows or columns an empty result
+# one, the attention's own square case; K = 0 gives zeros, zero rows or columns an empty result;
+# few blocks of c and a long K (a weight gradient's shape) split along k into parts
+# (kMatMinTasks): 2 parts with a short last one, and 9 parts of 1024 (the tiny transformer's X^T dY)
 MATMUL_CASES = [(2, 37, 21, 13), (1, 97, 35, 50), (3, 5, 3, 7), (2, 64, 64, 32), (1, 4, 4, 0), (0, 3, 5, 2),
-                (1, 203, 401, 531), (2, 96, 192, 256), (1, 0, 5, 3), (1, 9, 0, 3)]
+                (1, 203, 401, 531), (2, 96, 192, 256), (1, 0, 5, 3), (1, 9, 0, 3), (1, 37, 21, 2500),
+                (1, 101, 67, 9216)]
 
 
 def _mm(a, b, ta, tb):
@@ -913,11 +916,12 @@ def _operands(rng, case, ta, tb, dtype, draw=None):
 @pytest.mark.parametrize("case", MATMUL_CASES, ids=lambda c: "x".join(map(str, c)))
 def test_matmul_kernel(case, dtype, ta, tb, rng):
     """c = op(a) @ op(b) per entry against NumPy in float64 on the same inputs. Each element is
-    one sum of K products in increasing k, so its error is at most K u sum_k |a_ik b_kj| (Higham
-    3.5) and in practice ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
+    one sum of K products in increasing k (or, split along k, its parts' sums added in order: no
+    larger a bound), so its error is at most K u sum_k |a_ik b_kj| (Higham 3.5) and in practice
+    ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
     2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1 and 2
     threads (each element's sum does not depend on which task or thread computes it; the cases
-    of at least 2^20 multiply-adds, (1, 203, 401, 531) and (2, 96, 192, 256), run on two threads,
+    of at least 2^20 multiply-adds, (1, 203, 401, 531), (2, 96, 192, 256) and the split ones, run on two threads,
     the smaller ones on one whatever the setting)."""
     nb, M, N, K = case
     a, b, want = _operands(rng, case, ta, tb, dtype)
@@ -945,9 +949,10 @@ def test_matmul_kernel_exact_on_integers(ta, tb, rng):
     the kernel must equal the float64 product exactly: a k chunk dropped or counted twice, an
     edge row or column (past the packed tiles) or an entry computed from the wrong block all
     show, however small the other errors."""
-    case = (2, 2 * 96 + 13, 192 + 96 + 21, 3 * 256 + 31)
-    a, b, want = _operands(rng, case, ta, tb, np.float32, draw=lambda s: rng.integers(-3, 4, s))
-    np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32))
+    for case in [(2, 2 * 96 + 13, 192 + 96 + 21, 3 * 256 + 31),
+                 (1, 96 + 13, 21, 3 * 1024 + 31)]:  # split along k into 3 parts, the last one short
+        a, b, want = _operands(rng, case, ta, tb, np.float32, draw=lambda s: rng.integers(-3, 4, s))
+        np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32), err_msg=str(case))
 
 
 @pytest.mark.parametrize("tb", [False, True])
@@ -957,19 +962,19 @@ def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
     rounding, so the result is bitwise the kernel's product + bias in NumPy (across block, chunk
     and tile edges, 1 and 2 threads); K = 0 gives the bias itself; a bias of another length is
     refused."""
-    case = (2, 101, 203, 300)
-    a, b, _ = _operands(rng, case, False, tb, dtype)
-    bias = rng.standard_normal(case[2]).astype(dtype)
-    want = _mm(a, b, False, tb) + bias
     before = pyvf.num_threads()
-    try:
-        for n in (1, 2):
-            pyvf.set_num_threads(n)
-            c = np.full(want.shape, np.nan, dtype=dtype)
-            _core.matmul(c, a, b, False, tb, bias)
-            assert_bitwise_equal(f"matmul + bias, {n} threads", c, want)
-    finally:
-        pyvf.set_num_threads(before)
+    for case in [(2, 101, 203, 300), (1, 37, 45, 2100)]:  # the second split along k: the bias after the parts
+        a, b, _ = _operands(rng, case, False, tb, dtype)
+        bias = rng.standard_normal(case[2]).astype(dtype)
+        want = _mm(a, b, False, tb) + bias
+        try:
+            for n in (1, 2):
+                pyvf.set_num_threads(n)
+                c = np.full(want.shape, np.nan, dtype=dtype)
+                _core.matmul(c, a, b, False, tb, bias)
+                assert_bitwise_equal(f"matmul + bias {case}, {n} threads", c, want)
+        finally:
+            pyvf.set_num_threads(before)
     c = np.full((1, 3, 4), np.nan, dtype=dtype)
     _core.matmul(c, np.zeros((1, 3, 0), dtype), np.zeros((1, 0, 4), dtype), False, False, bias[:4])
     np.testing.assert_array_equal(c, np.broadcast_to(bias[:4], (1, 3, 4)))

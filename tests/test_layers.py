@@ -669,6 +669,45 @@ def test_gelu_threaded_path_is_bitwise_the_serial_one(rng):
 
 
 # ---------------------------------------------------------------------------------------
+# the residual adds and the bias gradients' column sums in pyvf's threads (csrc/elementwise.cpp)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_add_and_column_sums_bitwise_numpy_on_any_threads(dtype, rng):
+    """layers.add is NumPy's a + b bit for bit (one rounding per element), on 1 and 3 threads and
+    at sizes below and above its parallel threshold, with inf, NaN and -0.0 passed through;
+    layers.column_sums is each column's sum in increasing row in the dtype: bitwise
+    np.add.accumulate(a)[-1], whose order is fixed, on 1 and 3 threads, for column counts past
+    the vector width and the task's cache line (tails), one row and no rows (zeros). Large and
+    tiny magnitudes mixed make the order show: a sum in another order (pairwise, by blocks of
+    rows) differs in its last bits."""
+    saved = pyvf.num_threads()
+    try:
+        for n_thr in (1, 3):
+            pyvf.set_num_threads(n_thr)
+            for n in (0, 5, 70000, 3 * 65536 + 7):
+                a = rng.standard_normal(n).astype(dtype)
+                b = (rng.standard_normal(n) * 1e-3).astype(dtype)
+                if n > 5:
+                    a[:3], b[:3] = [np.inf, np.nan, -0.0], [1.0, 2.0, -0.0]
+                got = layers.add(a, b)
+                assert got.shape == (n,) and got.dtype == dtype
+                if n:
+                    assert_bitwise_equal(f"add n={n} on {n_thr}", got, a + b)
+            for M, N in ((1, 37), (0, 5), (2000, 128), (9216 // 4, 133), (700, 1)):
+                a = (rng.standard_normal((M, N)) * np.exp(rng.uniform(-8, 8, (M, N)))).astype(dtype)
+                want = np.add.accumulate(a, axis=0)[-1:] if M else np.zeros((1, N), dtype)
+                got = layers.column_sums(a)
+                assert got.shape == (1, N) and got.dtype == dtype
+                assert_bitwise_equal(f"column_sums {M}x{N} on {n_thr}", got, want)
+    finally:
+        pyvf.set_num_threads(saved)
+    a = rng.standard_normal((4000, 64)).astype(dtype) * 1e4
+    assert not np.array_equal(layers.column_sums(a), a.reshape(2, 2000, 64).sum(1).sum(0, keepdims=True)), \
+        "the order must show: blocks of rows summed apart give other bits"
+
+
+# ---------------------------------------------------------------------------------------
 # the finiteness scan every layer's checks use (csrc/module.cpp all_finite)
 
 

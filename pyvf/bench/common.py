@@ -23,6 +23,7 @@ import time
 import tracemalloc
 
 from .._machine import cpu_name, median_time  # (re-exported: every benchmark imports them from here)
+from .._io import atomic_write_text
 from .._memory import map_fresh_pages
 
 __all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "peak_memory", "memory_method",
@@ -221,9 +222,9 @@ def table(header, rows, widths=None):
 
 
 def write_json(path, report):
-    """A benchmark's report as JSON (every benchmark's, and the ones `pyvf bench report` keeps)."""
-    with open(path, "w") as f:
-        json.dump(report, f, indent=1)
+    """A benchmark's report as JSON (every benchmark's, and the ones `pyvf bench report` keeps),
+    written whole or not at all (a run killed while writing leaves the last complete file)."""
+    atomic_write_text(path, json.dumps(report, indent=1))
 
 
 def pyplot():

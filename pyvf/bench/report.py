@@ -359,6 +359,39 @@ def scaling_threads_section(quick, m, th):
     return s + ([f"Paper sizes on 2 threads: {'; '.join(targets)}.", ""] if targets else [])
 
 
+def other_machines(out):
+    """The scaling runs of other machines kept in OUT/measurements/threads-scaling-*.json
+    (`pyvf bench threads --scaling-only --json FILE`, e.g. on a lent 16-core machine): one merged
+    report per (CPU, cores, kernel path): [(key, merged scaling, [file names], [commands], dates)]."""
+    groups = {}
+    folder = os.path.join(out, "measurements")
+    names = sorted(f for f in os.listdir(folder) if f.startswith("threads-scaling-") and f.endswith(".json")) \
+        if os.path.isdir(folder) else []
+    for name in names:
+        with open(os.path.join(folder, name)) as f:
+            rep = json.load(f)
+        if "scaling" in rep:
+            groups.setdefault((rep["cpu"], rep["cores"], rep["kernel_path"]), []).append((name, rep))
+    return [(key, _threads.merge_scaling([r for _, r in reps]), [n for n, _ in reps],
+             [r.get("command", "pyvf bench threads --scaling-only") for _, r in reps],
+             sorted({r.get("date", "?") for _, r in reps})) for key, reps in groups.items()]
+
+
+def other_machines_section(out):
+    """The speed-up table of each other machine (other_machines) and its many-core targets."""
+    s = []
+    for (cpu, cores, path), sc, files, commands, dates in other_machines(out):
+        s += [f"### {cores} cores: {cpu}", "",
+              f"Measured on {cpu} ({cores} CPUs usable), kernel path {path}, {', '.join(dates)}, by "
+              + "; ".join(f"`{c}`" for c in commands) + " (" + ", ".join(f"`measurements/{f}`" for f in files)
+              + "), the same calls and method as above.", "", table(*_threads.scaling_table(sc)), ""]
+        targets = _threads.many_core_targets(sc)
+        if targets:
+            s += [f"On {_threads.MANY_CORES} threads: "
+                  + "; ".join(line + ("" if met else " **missed**") for line, met in targets) + ".", ""]
+    return (["## From 1 thread to every core, on other machines", ""] + s) if s else []
+
+
 def performance_md(out, quick, m, total, scalings, acc, th, jsons):
     """scalings: run_scaling's results, one per size; th: threads.run's report; jsons: every JSON
     written. The conclusions (glance), the machine, then the evidence."""
@@ -372,6 +405,7 @@ def performance_md(out, quick, m, total, scalings, acc, th, jsons):
     s += threads_section(quick, m, th)
     s += policies_section(quick, m, th)
     s += scaling_threads_section(quick, m, th)
+    s += other_machines_section(out)
     return "\n".join(s)
 
 

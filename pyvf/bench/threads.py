@@ -196,13 +196,23 @@ def bitwise_note(same):
     return "* the result is not bitwise the default's: a product left to NumPy's BLAS rounds otherwise on another thread count"
 
 
-def run(quick=False, n_cores=None, log=print, policies=True, scaling=True):
-    """Measure every call idle and under load, then (unless turned off) the waiting policies and
-    the scaling; -> report dict (times in seconds, failures). malloc's policy is a pyvf command's
-    (reuse_freed_memory), also where a memory measurement of the same process turned it off."""
+def run(quick=False, n_cores=None, log=print, policies=True, scaling=True, calls=True, scaling_calls=None,
+        counts=None, save=None):
+    """Measure every call idle and under load (unless calls=False), then (unless turned off) the
+    waiting policies and the scaling (scaling_calls, counts: scale's calls and counts); -> report
+    dict (times in seconds, failures). malloc's policy is a pyvf command's (reuse_freed_memory),
+    also where a memory measurement of the same process turned it off. calls=False: the scaling
+    alone, save(report) after each of its calls."""
     pyvf.reuse_freed_memory()
     size = QUICK if quick else FULL
     n_cores = n_cores or cores()
+    if not calls:  # the scaling alone (`pyvf bench threads --scaling-only`): a larger machine's table
+        log(f"# threads: {cpu_name()}, {n_cores} cores usable, kernel path {pyvf.kernel_path()}")
+        report = {"failures": [], "cores": n_cores, "cpu": cpu_name(), "kernel_path": pyvf.kernel_path()}
+        partial = (lambda sc: save(dict(report, scaling=sc, failures=sc["failures"]))) if save else None
+        report["scaling"] = scale(quick, n_cores, log, scaling_calls, counts, partial)
+        report["failures"] += report["scaling"]["failures"]
+        return report
     keys = settings(n_cores)
     fns = {name: make(size[which]) for name, (make, which) in CALLS.items()}
     log(f"# threads: {cpu_name()}, {n_cores} cores usable, kernel path {pyvf.kernel_path()}; "
@@ -227,7 +237,7 @@ def run(quick=False, n_cores=None, log=print, policies=True, scaling=True):
     if policies:
         report["policies"] = wait_policies(quick, n_cores, log)
     if scaling:
-        report["scaling"] = scale(quick, n_cores, log)
+        report["scaling"] = scale(quick, n_cores, log, scaling_calls, counts)
         report["failures"] += report["scaling"]["failures"]
     return report
 
@@ -343,6 +353,9 @@ SCALING_CALLS = {  # (the tiny batches: 4 and 2 in quick mode)
     "render + localize, cached": (lambda q: _stateless(_render_localize, 2 if q else 4), True),
     "Codebook.encode": (lambda q: _stateless(_encode, 8 if q else 32), True),
 }
+# the names `pyvf bench threads --calls` takes
+SCALING_IDS = dict(zip(("codebook-tiny", "transformer-tiny", "codebook-paper", "transformer-paper", "render",
+                        "encode"), SCALING_CALLS))
 PAPER_SPEEDUP_2 = 1.8  # the paper-size steps on 2 threads against 1 (target)
 
 
@@ -355,14 +368,16 @@ def thread_counts(n_cores):
     return out + [n_cores]
 
 
-def scale(quick, n_cores, log=print):
-    """Each SCALING_CALLS call at every thread_counts(n_cores), in rounds over the counts: a fresh
-    model (prepared untimed), its first step (untimed: its result must be bitwise 1 thread's) and a
-    second one untimed (the warm-up: heap and page tables at their steady state), then its next
-    steps timed. -> {"threads", "times": {call: {n: median s}},
-    "bitwise": {call: bool}, "failures"}."""
-    counts = thread_counts(n_cores)
-    calls = {name: make(quick) for name, (make, in_quick) in SCALING_CALLS.items() if in_quick or not quick}
+def scale(quick, n_cores, log=print, calls=None, counts=None, save=None):
+    """Each SCALING_CALLS call (or those of `calls`, SCALING_IDS names) at every thread_counts(n_cores)
+    (or `counts`), in rounds over the counts: a fresh model (prepared untimed), its first step
+    (untimed: its result must be bitwise the first count's) and a second one untimed (the warm-up:
+    heap and page tables at their steady state), then its next steps timed. save(report), when
+    given, is called after each call (a long run killed part-way keeps the calls it finished).
+    -> {"threads", "times": {call: {n: median s}}, "bitwise": {call: bool}, "failures"}."""
+    counts = sorted(set(counts)) if counts else thread_counts(n_cores)
+    chosen = [SCALING_IDS[c] for c in calls] if calls else list(SCALING_CALLS)
+    calls = {name: SCALING_CALLS[name][0](quick) for name in chosen if SCALING_CALLS[name][1] or not quick}
     times, bitwise, failures = {}, {}, []
     for name, prepare in calls.items():
         # rounds x timed steps per thread count: the paper sizes' steps take seconds to a minute,
@@ -385,6 +400,9 @@ def scale(quick, n_cores, log=print):
                     failures.append(f"scaling: {name} on {n} threads is not bitwise its result on {counts[0]}")
                 bitwise[name] = bitwise.get(name, True) and bool(np.array_equal(got, want))
         times[name] = {n: statistics.median(v) for n, v in t.items()}
+        log(f"# {name}: " + ", ".join(f"{n} thr {v * 1e3:.0f} ms" for n, v in times[name].items()))
+        if save:
+            save({"threads": counts, "times": _jsonable(times), "bitwise": dict(bitwise), "failures": list(failures)})
     rep = {"threads": counts, "times": _jsonable(times), "bitwise": bitwise, "failures": failures}
     log(table(*scaling_table(rep)))
     for line in scaling_targets(rep):
@@ -393,13 +411,49 @@ def scale(quick, n_cores, log=print):
 
 
 def scaling_table(rep):
-    """(header, rows): each call's median time per thread count and its speed-up over 1 thread."""
+    """(header, rows): each call's median time per thread count and its speed-up over the first
+    count ("-" where a call was not run at a count)."""
     counts = [str(n) for n in rep["threads"]]
     rows = []
     for name, t in rep["times"].items():
-        rows.append([name, *(f"{t[n] * 1e3:.0f} ms ({t[counts[0]] / t[n]:.2f}x)" for n in counts),
+        first = t.get(counts[0])
+        rows.append([name, *(f"{t[n] * 1e3:.0f} ms" + (f" ({first / t[n]:.2f}x)" if first else "") if n in t else "-"
+                             for n in counts),
                      "yes" if rep["bitwise"][name] else "NO"])
     return ["call", *(f"{n} thr (speed-up)" for n in counts), "bitwise the same"], rows
+
+
+MANY_CORES = 16  # the many-core targets: on 16 threads against 1, paper-size steps and tiny ones
+MANY_SPEEDUP = {"paper": 8.0, "tiny": 4.0}
+
+
+def many_core_targets(rep):
+    """The training steps' speed-up on MANY_CORES threads against 1 and its target (when both
+    counts were run); -> [(line, met)]."""
+    out = []
+    for name, t in rep["times"].items():
+        size = next((k for k in MANY_SPEEDUP if k in name), None)
+        if size and "step" in name and "1" in t and str(MANY_CORES) in t:
+            up = t["1"] / t[str(MANY_CORES)]
+            out.append((f"{name}: {up:.2f}x on {MANY_CORES} threads (target at least {MANY_SPEEDUP[size]:g})",
+                        up >= MANY_SPEEDUP[size]))
+    return out
+
+
+def merge_scaling(reports):
+    """Scaling reports of one machine (`--scaling-only` runs, each of some calls and counts) as one:
+    the counts' union, each call's times (a later report's cells replace an earlier one's), bitwise
+    only if every run found it so."""
+    counts, times, bitwise = set(), {}, {}
+    for rep in reports:
+        sc = rep["scaling"]
+        counts |= set(sc["threads"])
+        for name, t in sc["times"].items():
+            times.setdefault(name, {}).update(t)
+            bitwise[name] = bitwise.get(name, True) and sc["bitwise"][name]
+    order = list(SCALING_CALLS)
+    times = {n: times[n] for n in sorted(times, key=lambda n: order.index(n) if n in order else len(order))}
+    return {"threads": sorted(counts), "times": times, "bitwise": {n: bitwise[n] for n in times}}
 
 
 def scaling_targets(rep):

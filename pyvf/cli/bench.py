@@ -12,13 +12,14 @@ status` in BENCHMARKS; the modules are imported when their benchmark runs.
 """
 
 import argparse
+import datetime
 import importlib
 import os
 import subprocess
 import sys
 
-from ..bench.common import BLAS_THREAD_VARS, write_outputs
-from .options import add_threads, names
+from ..bench.common import BLAS_THREAD_VARS, write_json, write_outputs
+from .options import add_threads, names, positive_int
 
 DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
 # benchmarks that run in this process whatever the BLAS variables say: demo-attention has no
@@ -179,12 +180,31 @@ def _threads_parser():
     add_threads(p, None, "the most threads tried and the busy processes started (default: the cores this "
                          "process may use)")
     p.add_argument("--quick", action="store_true", help="smaller batches, 3 repeats (seconds)")
+    p.add_argument("--scaling-only", action="store_true",
+                   help="only the scaling from 1 thread to every core (a larger machine's table); with --json "
+                        "the file is rewritten after each call, so a run cut short keeps what it finished")
+    p.add_argument("--calls", nargs="+", default=None, choices=list(_module("threads").SCALING_IDS),
+                   help="the scaling's calls (default: all)")
+    p.add_argument("--counts", nargs="+", type=positive_int, default=None, metavar="N",
+                   help="the scaling's thread counts (default: 1, 2, 4, ... and every usable core)")
     p.add_argument("--json", default=None, metavar="FILE", help="also write the report as JSON")
     return p, None
 
 
 def _threads(args):
-    report = _module("threads").run(args.quick, args.threads)
+    stamp, save = {}, None
+    if args.scaling_only:  # the command that made a scaling-only file (other machines' tables in the report)
+        stamp = {"date": datetime.date.today().isoformat(),
+                 "command": " ".join(["pyvf bench threads --scaling-only", *(["--quick"] if args.quick else []),
+                                      *([f"--threads {args.threads}"] if args.threads else []),
+                                      *(["--calls", *args.calls] if args.calls else []),
+                                      *(["--counts", *map(str, args.counts)] if args.counts else [])])}
+        if args.json:  # rewritten after each call: a run cut short keeps what it finished
+            save = lambda rep: write_json(args.json, dict(rep, **stamp))  # noqa: E731
+    report = _module("threads").run(args.quick, args.threads, calls=not args.scaling_only,
+                                    policies=not args.scaling_only, scaling_calls=args.calls, counts=args.counts,
+                                    save=save)
+    report.update(stamp)
     write_outputs(report, args.json)
     return 1 if report["failures"] else 0
 

@@ -65,6 +65,29 @@ def matmul(a, b, ta=False, tb=False, bias=None):
     return c[0] if one else c
 
 
+def add(a, b):
+    """a + b for two arrays of one shape and float dtype, in pyvf's threads where both are
+    C-contiguous (the residual adds; NumPy's run on one core): bitwise NumPy's a + b, one rounding
+    per element; NumPy's a + b otherwise."""
+    if not (a.shape == b.shape and a.dtype == b.dtype and a.dtype in _checks.FLOATS and a.flags.c_contiguous
+            and b.flags.c_contiguous):
+        return a + b
+    out = np.empty_like(a)
+    _core.add(out, a, b)
+    return out
+
+
+def column_sums(a):
+    """a (M, N) float -> (1, N): each column summed in increasing row in a's dtype, the order of
+    np.add.accumulate (and of NumPy's a.sum(axis=0, keepdims=True)), in pyvf's threads (a bias
+    gradient; NumPy's sum ran on one core)."""
+    if not (a.ndim == 2 and a.dtype in _checks.FLOATS):
+        raise ValueError(f"column_sums needs a 2-D float array, got {a.dtype} {a.shape}")
+    out = np.empty((1, a.shape[1]), dtype=a.dtype)
+    _core.column_sums(out, _checks.c_order(a))
+    return out
+
+
 # ---------------------------------------------------------------------------------------
 # linear, published layout: weight (din, dout), bias (1, dout)
 
@@ -84,7 +107,7 @@ def _linear_backward(dy, x, w):
         # forward was y = x @ w + b
         dx = matmul(dy2, w, tb=True).reshape(x.shape)  # dx = dy @ w^T
         dw = matmul(x.reshape(M, din), dy2, ta=True)  # dw = x^T @ dy
-        db = dy2.sum(axis=0, keepdims=True)  # db = sum over rows of dy
+        db = column_sums(dy2)  # db = sum over rows of dy
     return dx, dw, db
 
 
