@@ -60,6 +60,7 @@ from ..nn.conv import (
     upsample_nearest2x_backward,
     upsample_nearest2x_forward,
 )
+from ..nn.layers import add
 from ..nn.quantizer import EMAQuantizer
 from .io import ModelWeights
 from .table import Layer, parameters, trace_order
@@ -440,14 +441,13 @@ class Codebook(ModelWeights):
         for r in row.shortcut:
             s = self._op(short, r, s)
         if self._trace is None and row.body:  # h, conv2's fresh output, is referenced nowhere else: add in place
-            h += s
-            return h, (main, short)
-        return s + h, (main, short)  # the trace keeps h itself
+            return add(h, s, out=h), (main, short)
+        return add(s, h), (main, short)  # the trace keeps h itself
 
     def _resblock_backward(self, dy, cache, grads, g=None):
         main, short = cache
         ds = self._backward(short, dy, grads, g)  # first: g stays the trace's order reversed
-        return self._backward(main, dy, grads, g) + ds  # y = s(x) + h(x)
+        return add(self._backward(main, dy, grads, g), ds)  # y = s(x) + h(x)
 
     # -----------------------------------------------------------------------------------
     # encoder and decoder: the table's rows before and after quantize

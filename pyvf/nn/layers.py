@@ -65,14 +65,17 @@ def matmul(a, b, ta=False, tb=False, bias=None):
     return c[0] if one else c
 
 
-def add(a, b):
-    """a + b for two arrays of one shape and float dtype, in pyvf's threads where both are
-    C-contiguous (the residual adds; NumPy's run on one core): bitwise NumPy's a + b, one rounding
-    per element; NumPy's a + b otherwise."""
-    if not (a.shape == b.shape and a.dtype == b.dtype and a.dtype in _checks.FLOATS and a.flags.c_contiguous
-            and b.flags.c_contiguous):
-        return a + b
-    out = np.empty_like(a)
+def add(a, b, out=None):
+    """a + b for two arrays of one shape and float dtype, in pyvf's threads where both (and out)
+    are C-contiguous (the residual adds; NumPy's run on one core): bitwise NumPy's a + b, one
+    rounding per element; NumPy's np.add otherwise. out: None (a new array), or where to write
+    it, a or b itself included."""
+    fast = (a.shape == b.shape and a.dtype == b.dtype and a.dtype in _checks.FLOATS and a.flags.c_contiguous
+            and b.flags.c_contiguous and (out is None or (out.shape == a.shape and out.dtype == a.dtype
+                                                          and out.flags.c_contiguous and out.flags.writeable)))
+    if not fast:
+        return np.add(a, b, out=out)
+    out = np.empty_like(a) if out is None else out
     _core.add(out, a, b)
     return out
 
