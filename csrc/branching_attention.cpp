@@ -49,24 +49,10 @@
 #endif
 
 #include "simd.h"
+#include "threads.h"
 
 namespace pyvf {
 
-int num_threads() {
-#ifdef PYVF_OPENMP
-    return omp_get_max_threads();
-#else
-    return 1;
-#endif
-}
-
-void set_num_threads(int n) {
-#ifdef PYVF_OPENMP
-    omp_set_num_threads(n);
-#else
-    (void)n;
-#endif
-}
 
 namespace {
 
@@ -88,7 +74,7 @@ struct Layout {
 // attended block pairs hold enough multiply-adds (here at least ~4M, a few hundred us).
 inline bool worth_threads(const Layout& d) {
     const double pairs = (double)d.B * d.H * d.R * d.N * (d.N + 1) / 2;  // attended block pairs
-    return pairs * d.L * d.L * d.dh >= 4.0e6;
+    return parallel_work((int64_t)(pairs * d.L * d.L * d.dh), 4000000);
 }
 
 // Elementwise helpers on one row of n values (a vector loop and a scalar tail). In the
@@ -571,7 +557,7 @@ template <typename T>
 void context_softmax(T* sc, T* so, T* m, T* denom, int64_t R, int64_t G, int64_t L, int64_t C) {
     const int64_t RL = R * L;
     std::vector<double> sums(R * G * L, 0.0);  // the tasks' sums (allocated here: no throw in the region)
-#pragma omp parallel for schedule(static) if (R * G * (C + L) * L >= (1 << 15))
+#pragma omp parallel for schedule(static) if (parallel_work(R * G * (C + L) * L, 1 << 15))
     for (int64_t t = 0; t < R * G; ++t) {
         const int64_t r = t / G, g = t % G;
         T* s1 = sc + g * C * RL + r * L;  // C rows, RL apart

@@ -43,7 +43,4 @@ int attn_backward_plain(T* dq, T* dk, T* dv, const double* lse, const T* q, cons
 template <typename T>
 void context_softmax(T* sc, T* so, T* m, T* denom, int64_t R, int64_t G, int64_t L, int64_t C);
 
-int num_threads();
-void set_num_threads(int n);
-
 }  // namespace pyvf

@@ -73,8 +73,8 @@
 #include <omp.h>
 #endif
 
-#include "branching_attention.h"  // num_threads
 #include "simd.h"
+#include "threads.h"
 
 namespace pyvf {
 
@@ -528,9 +528,7 @@ void col2im_add(T* dx, const T* dcols, const ConvDims& d, int64_t c0, int64_t nc
             }
 }
 
-bool worth_threads(const ConvDims& d) {
-    return d.B * d.Co * d.Ho * d.Wo * d.C * d.kh * d.kw >= kParallelFlops;
-}
+bool worth_threads(const ConvDims& d) { return parallel_work(d.B * d.Co * d.Ho * d.Wo * d.C * d.kh * d.kw, kParallelFlops); }
 
 // y[o, 0:n] += b[o] for the Co rows of y (leading dimension ld)
 template <typename T> inline void add_bias_rows(T* y, const T* b, int64_t Co, int64_t ld, int64_t n) {
@@ -829,7 +827,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
         // input channels, in parallel: w read in runs of 16 blocks, wf written in 16 runs (a paper
         // codebook's 512 x 512 x 3 x 3 weights are 9 MiB; one block at a time, each read a cache
         // miss, this took 15% of an 8x8 layer's backward)
-#pragma omp parallel for schedule(static) if (d.C * d.Co * khw >= (1 << 18))  // 1 MiB of float32 weights
+#pragma omp parallel for schedule(static) if (parallel_work(d.C * d.Co * khw, 1 << 18))  // 1 MiB of float32 weights
         for (int64_t c0 = 0; c0 < d.C; c0 += 16)
             for (int64_t o = 0; o < d.Co; ++o)
                 for (int64_t c = c0; c < std::min(c0 + 16, d.C); ++c) {
@@ -958,8 +956,9 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
 // panel stays in L2 while the block's rows pass over it. Rows past the last full kPackMR and
 // columns past the last full kPackNV vectors run on the unpacked matrices (gemm_mr). Every
 // element of c is one sum in increasing k (on simd.h's register tile, FMA where the path has it;
-// the last N % W columns as scalar sums), whatever the blocks, the tasks or the thread count:
-// bitwise the same for any thread count. A transposed b (a weight matrix, where pyvf asks for
+// the last N % W columns as scalar sums), or, split along k (kMatMinTasks), its parts' sums added
+// in order, whatever the blocks, the tasks or the thread count: bitwise the same for any thread
+// count. A transposed b (a weight matrix, where pyvf asks for
 // one) is first copied into (K, N) order. A bias (N,), when given, is added to every row after
 // its sums.
 // Here rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
@@ -1045,7 +1044,7 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
         if (!bt) return kConvOutOfMemory;
         constexpr int64_t kT = 32;  // tiles of 32 x 32: the reads and the writes both stay in L1
         const int64_t nj = ceil_div(N, kT);
-#pragma omp parallel for schedule(static) if (nb * K * N >= kParallelFlops / 8)
+#pragma omp parallel for schedule(static) if (parallel_work(nb * K * N, kParallelFlops / 8))
         for (int64_t t = 0; t < nb * nj; ++t) {
             const int64_t bi = t / nj, j0 = (t % nj) * kT;
             for (int64_t k0 = 0; k0 < K; k0 += kT)
@@ -1069,7 +1068,7 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
     // the panels as large as this product needs (a small product zero-fills little)
     const int64_t rows = std::min(M, kMatRows), depth = std::min(span, kMatDepth), cols = std::min(N, kMatCols);
     int status = kConvOk;
-#pragma omp parallel if (nb * M * N * K >= kParallelFlops)
+#pragma omp parallel if (parallel_work(nb * M * N * K, kParallelFlops))
     {
         Buf<T> ap, bp;
         bool ok = false;

@@ -20,7 +20,9 @@
 #include <cstring>
 
 #include "elementwise.h"
+
 #include "simd.h"
+#include "threads.h"
 
 namespace pyvf {
 
@@ -227,7 +229,7 @@ inline void normal_cdf_xpdf_d(VF x, VF& cdf, VF& xpdf) {
 
 // f(i, m) on [i, i + m) for every block of WF floats of [0, n); the last one has m < WF.
 template <typename F> inline void map_float(int64_t n, F f) {
-#pragma omp parallel for schedule(static) if (n > 65536)
+#pragma omp parallel for schedule(static) if (parallel_work(n, 65537))
     for (int64_t i = 0; i < n; i += WF) f(i, std::min<int64_t>(WF, n - i));
 }
 
@@ -268,7 +270,7 @@ template <> void gelu_backward<float>(float* dx, const float* dy, const float* x
 
 // float64: the scalar path, compensated as above.
 template <typename T> void gelu_forward(T* y, const T* x, int64_t n) {
-#pragma omp parallel for schedule(static) if (n > 65536)
+#pragma omp parallel for schedule(static) if (parallel_work(n, 65537))
     for (int64_t i = 0; i < n; ++i) {
         double cdf, pdf;
         normal_cdf_pdf((double)x[i], cdf, pdf);
@@ -277,7 +279,7 @@ template <typename T> void gelu_forward(T* y, const T* x, int64_t n) {
 }
 
 template <typename T> void gelu_backward(T* dx, const T* dy, const T* x, int64_t n) {
-#pragma omp parallel for schedule(static) if (n > 65536)
+#pragma omp parallel for schedule(static) if (parallel_work(n, 65537))
     for (int64_t i = 0; i < n; ++i) {
         const double xi = x[i];
         double cdf, pdf;
@@ -297,7 +299,7 @@ template void gelu_backward<double>(double*, const double*, const double*, int64
 template <bool SPLIT, typename T>
 void heads_copy(T* hd, T* tok, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
     const int64_t n = RB * NL;
-#pragma omp parallel for schedule(static) if (n * H * dh >= (1 << 16))
+#pragma omp parallel for schedule(static) if (parallel_work(n * H * dh, 1 << 16))
     for (int64_t t = 0; t < n; ++t) {
         const int64_t rb = t / NL, nl = t % NL;
         for (int64_t h = 0; h < H; ++h) {
@@ -328,7 +330,7 @@ void heads_merge(T* tok, const T* hd, int64_t RB, int64_t NL, int64_t H, int64_t
 
 template <typename T> void add(T* out, const T* a, const T* b, int64_t n) {
     constexpr int64_t kB = 1 << 14;  // elements a thread takes at a time
-#pragma omp parallel for schedule(static) if (n >= 4 * kB)
+#pragma omp parallel for schedule(static) if (parallel_work(n, 4 * kB))
     for (int64_t lo = 0; lo < n; lo += kB) {
         const int64_t hi = std::min(n, lo + kB);
         for (int64_t i = lo; i < hi; ++i) out[i] = a[i] + b[i];
@@ -338,7 +340,7 @@ template <typename T> void add(T* out, const T* a, const T* b, int64_t n) {
 template <typename T> void column_sums(T* out, const T* a, int64_t M, int64_t N) {
     constexpr int64_t W = Simd<T>::W, kC = 64 / sizeof(T);  // a cache line of columns per task
     const int64_t nblk = (N + kC - 1) / kC;
-#pragma omp parallel for schedule(static) if (M * N >= (1 << 17) && nblk >= 2)
+#pragma omp parallel for schedule(static) if (nblk >= 2 && parallel_work(M * N, 1 << 17))
     for (int64_t blk = 0; blk < nblk; ++blk) {
         const int64_t j0 = blk * kC, j1 = std::min(N, j0 + kC);
         int64_t j = j0;

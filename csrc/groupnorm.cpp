@@ -42,6 +42,7 @@
 
 #include "conv.h"
 #include "simd.h"
+#include "threads.h"
 
 namespace pyvf {
 
@@ -151,7 +152,7 @@ template <typename T, typename F> inline void tail_apply(T* out, const T* in, in
 }
 
 // elementwise passes below 2^16 elements (about 20 us) run on one thread (see conv.cpp's kParallelFlops)
-inline bool worth_threads(int64_t n) { return n >= (1 << 16); }
+inline bool worth_threads(int64_t n) { return parallel_work(n, 1 << 16); }
 
 }  // namespace
 

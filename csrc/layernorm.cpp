@@ -26,6 +26,8 @@
 #include <cmath>
 #include <vector>
 
+#include "threads.h"
+
 namespace pyvf {
 
 namespace {
@@ -85,7 +87,7 @@ int64_t layernorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, co
                           double eps) {
     const int64_t blocks = (M + kRows - 1) / kRows;
     int64_t bad = 0;
-#pragma omp parallel for schedule(static) reduction(+ : bad) if (M * d >= 16384)
+#pragma omp parallel for schedule(static) reduction(+ : bad) if (parallel_work(M * d, 16384))
     for (int64_t b = 0; b < blocks; ++b)
         for (int64_t r = b * kRows; r < std::min(M, (b + 1) * kRows); ++r)
             bad += !forward_row(y + r * d, xhat + r * d, rstd[r], x + r * d, gamma, beta, d, eps);
@@ -97,7 +99,7 @@ void layernorm_backward(T* dx, T* dgamma, T* dbeta, const T* dy, const T* xhat, 
                         int64_t M, int64_t d) {
     const int64_t blocks = (M + kRows - 1) / kRows;
     std::vector<double> pg(blocks * d), pb(blocks * d);  // per block: sums of dy xhat and of dy
-#pragma omp parallel for schedule(static) if (M * d >= 16384)
+#pragma omp parallel for schedule(static) if (parallel_work(M * d, 16384))
     for (int64_t b = 0; b < blocks; ++b) {
         double* sg = pg.data() + b * d;
         double* sb = pb.data() + b * d;

@@ -20,6 +20,7 @@
 #include "optim.h"
 #include "vq.h"
 #include "simd.h"
+#include "threads.h"
 
 namespace py = pybind11;
 using namespace pyvf;
@@ -296,7 +297,7 @@ template <typename T> bool all_finite(Arr<T> x) {
     constexpr int64_t kBlock = 1 << 16;
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     bool ok = true;
-#pragma omp parallel for schedule(static) reduction(&& : ok) if (blocks >= 4)
+#pragma omp parallel for schedule(static) reduction(&& : ok) if (parallel_work(blocks, 4))
     for (int64_t b = 0; b < blocks; ++b) ok = finite_run(p + b * kBlock, std::min(kBlock, n - b * kBlock)) && ok;
     return ok;
 }
@@ -392,6 +393,8 @@ PYBIND11_MODULE(PYVF_MODULE, m) {
     bind_conv(m);  // conv2d kernels (conv_bind.cpp)
     m.def("num_threads", &num_threads, "threads the kernels use (OpenMP; 1 without OpenMP)");
     m.def("set_num_threads", &set_num_threads, py::arg("n"));
+    m.def("oversubscribed", &oversubscribed,
+          "whether other processes keep this process's cores busy (then the kernels keep short calls on one thread)");
     m.attr("simd_bytes") = kVecBytes;
 #ifdef PYVF_OPENMP
     m.attr("openmp") = true;

@@ -23,6 +23,8 @@
 #include <limits>
 #include <vector>
 
+#include "threads.h"
+
 namespace pyvf {
 
 namespace {
@@ -75,7 +77,7 @@ template <typename T> bool adam_check(const T* p, const T* m, const T* v, const 
     const auto run = s.keras ? (s.decayed ? check_run<T, true, true> : check_run<T, true, false>)
                              : (s.decayed ? check_run<T, false, true> : check_run<T, false, false>);
     bool ok = true;
-#pragma omp parallel for schedule(static) reduction(&& : ok) if (blocks >= 2)
+#pragma omp parallel for schedule(static) reduction(&& : ok) if (parallel_work(blocks, 2))
     for (int64_t b = 0; b < blocks; ++b) ok = run(p, m, v, g, b * kBlock, std::min(n, (b + 1) * kBlock), s) && ok;
     return ok;
 }
@@ -84,7 +86,7 @@ template <typename T> void adam_apply(T* p, T* m, T* v, const T* g, int64_t n, c
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     const auto run = s.keras ? (s.decayed ? apply_run<T, true, true> : apply_run<T, true, false>)
                              : (s.decayed ? apply_run<T, false, true> : apply_run<T, false, false>);
-#pragma omp parallel for schedule(static) if (blocks >= 2)
+#pragma omp parallel for schedule(static) if (parallel_work(blocks, 2))
     for (int64_t b = 0; b < blocks; ++b) run(p, m, v, g, b * kBlock, std::min(n, (b + 1) * kBlock), s);
 }
 
@@ -102,7 +104,7 @@ template <typename T> void adam_apply(T* p, T* m, T* v, const T* g, int64_t n, c
 template <typename T> void sum_squares(const T* x, int64_t n, double* amax, double* sumsq) {
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     std::vector<double> part(blocks), top(blocks);
-#pragma omp parallel for schedule(static) if (blocks >= 2)
+#pragma omp parallel for schedule(static) if (parallel_work(blocks, 2))
     for (int64_t b = 0; b < blocks; ++b) {
         const int64_t lo = b * kBlock, hi = std::min(n, lo + kBlock);
         constexpr int L = 8;  // lanes: independent sums the compiler keeps in registers
@@ -139,7 +141,7 @@ template <typename T> void sum_squares(const T* x, int64_t n, double* amax, doub
 // x *= c in place, c already rounded to T (as NumPy's g *= c rounds a Python float).
 template <typename T> void scale_by(T* x, int64_t n, T c) {
     const int64_t blocks = (n + kBlock - 1) / kBlock;
-#pragma omp parallel for schedule(static) if (blocks >= 2)
+#pragma omp parallel for schedule(static) if (parallel_work(blocks, 2))
     for (int64_t b = 0; b < blocks; ++b) {
         const int64_t lo = b * kBlock, hi = std::min(n, lo + kBlock);
         for (int64_t i = lo; i < hi; ++i) x[i] *= c;

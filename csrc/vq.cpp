@@ -45,8 +45,8 @@
 #include <utility>
 #include <vector>
 
-#include "branching_attention.h"  // num_threads
 #include "simd.h"
+#include "threads.h"
 
 namespace pyvf {
 
@@ -130,7 +130,7 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
     int64_t reranked = 0;  // how many exact distances were computed beyond one per row
     const int64_t nblocks = (M + MB - 1) / MB;
     int failed = 0;
-#pragma omp parallel reduction(+ : reranked) if (M * K * D > (1 << 22))
+#pragma omp parallel reduction(+ : reranked) if (parallel_work(M * K * D, (1 << 22) + 1))
     {
         std::vector<T> xs, s;  // a block of shifted rows (MB, D); its scores against a chunk (MB, KC)
         std::vector<double> thr2(MB), best(MB);

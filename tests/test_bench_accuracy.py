@@ -151,8 +151,8 @@ def test_report_quick_writes_both_documents_with_their_plots(tmp_path):
     assert f"grows as **N^{slopes['fwd_bwd_seconds']:.2f}**" in time
     assert "Not measured: torch flex_attention: not in --quick" in memory
     assert speed == report.speed_error_line(meas["accuracy"]) and busy == report.threads_line(meas["threads"])
-    assert f"**{report._threads_worst(meas['threads'])[0]:.2f}x**" in busy
-    assert meas["threads"]["worst_default_ratio"] == pytest.approx(report._threads_worst(meas["threads"])[0])
+    assert f"**{report._threads.worst_default(meas['threads'])[0]:.2f}x**" in busy
+    assert meas["threads"]["worst_default_ratio"] == pytest.approx(report._threads.worst_default(meas['threads'])[0])
     # every table under the machine and date it was measured on
     assert "## Is pyvf fast on a busy machine?" in perf and "| render + localize, cached | idle" in perf
     for section in perf.split("\n## ")[3:]:

@@ -141,12 +141,17 @@ def test_speed_error_line_names_a_variant_that_failed_validation():
 
 
 def test_threads_line_states_the_worst_default_over_best():
-    idle = {"a": {"default": 1.0, "1": 0.8, "2": 1.0}, "b": {"default": 2.0, "1": 2.0, "2": 2.2}}
-    loaded = {"a": {"default": 3.0, "1": 2.0, "2": 3.0}, "b": {"default": 2.0, "1": 2.1, "2": 2.0}}
-    th = dict(idle=idle, loaded=loaded, cores=2, failures=[])
+    """The default over the best setting is the median of the rounds' ratios (each pair timed back
+    to back), not the ratio of the medians: under load, "a"'s rounds give ratios 1.5, 1.2, 1.5
+    (median 1.50) where the medians give 3.0 / 2.5 = 1.20; the best setting is the smallest median."""
+    idle = {"a": {"default": [1.0] * 3, "1": [0.8] * 3, "2": [1.0] * 3},
+            "b": {"default": [2.0] * 3, "1": [2.0] * 3, "2": [2.2] * 3}}
+    loaded = {"a": {"default": [3.0, 3.0, 9.0], "1": [2.0, 2.5, 6.0], "2": [3.0, 3.0, 9.0]},
+              "b": {"default": [2.0] * 3, "1": [2.1] * 3, "2": [2.0] * 3}}
+    th = dict(idle_rounds=idle, loaded_rounds=loaded, idle={}, cores=2, failures=[])
     line = report.threads_line(th)
     assert "at most **1.50x**" in line and "(worst: a, beside 2 busy processes;" in line, line
-    loaded["a"]["1"] = 2.5  # planted: the best under load no longer gives 1.50
+    loaded["a"]["1"] = [2.5, 2.5, 6.0]  # planted: the best under load no longer gives 1.50
     assert "at most **1.50x**" not in report.threads_line(th)
     assert "not measured: a: 2 thr is 1 from" in report.threads_line(dict(failures=["a: 2 thr is 1 from"]))
 

@@ -159,3 +159,23 @@ def test_run_worker_removes_a_variable_given_none(monkeypatch):
                                                                             "GOMP_SPINCOUNT": "1000"})
     assert got["env"] == {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": "1000"}
     assert set(got["idle"]) == set(got["loaded"]) == set(bench.CALLS)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/task"), reason="the run-queue waits are read from Linux's /proc")
+def test_kernels_see_a_busy_machine_and_give_the_same_results(rng):
+    """With a busy process of pyvf's priority on every usable core, pyvf's threads wait on the run
+    queue: oversubscribed() turns True within two seconds of kernel calls (it reads
+    /proc/self/task/*/schedstat at most every 50 ms); the product is bitwise the same as on the
+    quiet machine (short calls then run on one thread)."""
+    import time
+    from pyvf import _core
+    from pyvf.nn.layers import matmul
+    x = rng.standard_normal((128, 256)).astype(np.float32)
+    want = matmul(x, x.T)
+    seen = False
+    with bench.busy(pyvf._threads.cores()):
+        t0 = time.perf_counter()
+        while not seen and time.perf_counter() - t0 < 2.0:
+            np.testing.assert_array_equal(matmul(x, x.T), want)
+            seen = _core.oversubscribed()
+    assert seen, "busy processes on every core were not noticed"

@@ -204,17 +204,11 @@ def speed_error_line(acc):
             + (f". Not on the front: {'; '.join(off)}." if off else "."))
 
 
-def _threads_worst(th):
-    """(the default setting's largest time over the best setting's, the call, the condition)."""
-    conditions = (("idle", th["idle"]), (f"beside {th['cores']} busy processes", th["loaded"]))
-    return max((t["default"] / min(t.values()), name, cond) for cond, times in conditions for name, t in times.items())
-
-
 def threads_line(th):
     """The busy-machine question's line: the default thread setting's worst ratio to the best."""
     if "idle" not in th:
         return "* **On a busy machine**: not measured: " + "; ".join(th["failures"]) + "."
-    worst, name, cond = _threads_worst(th)
+    worst, name, cond = _threads.worst_default(th)
     return (f"* **On a busy machine**: pyvf's default thread setting takes at most **{worst:.2f}x** the time of "
             f"the best setting tried (worst: {name}, {cond}; target at most {_threads.LIMIT}), over "
             f"{len(th['idle'])} calls idle and beside {th['cores']} busy processes.")
@@ -255,6 +249,7 @@ def glance(out, quick, m, scalings, acc, th, jsons):
              f"{m['threads']} threads, {m['generated']}, by `pyvf bench report{' --quick' if quick else ''}`.", "",
              scaling_line(scalings[0][0], "bytes"), scaling_line(scalings[0][0], "seconds"),
              speed_error_line(acc), threads_line(th), *filter(None, (policy_line(th), scaling_threads_line(th))),
+             *other_machines_lines(out),
              "* **More**: every op's error and the hard cases in [accuracy.md](accuracy.md); every number as JSON: "
              + ", ".join(f"`{os.path.relpath(p, out)}`" for p in jsons) + "."]
     return ["## At a glance", "", *lines, ""]
@@ -315,13 +310,14 @@ def threads_section(quick, m, th):
     s = ["## Is pyvf fast on a busy machine?", "",
          f"`pyvf bench threads{' --quick' if quick else ''}`, run inside the report (numpy's BLAS pool started with "
          f"{', '.join(f'{k}={v}' for k, v in m['blas_thread_env'].items() if v) or 'no thread variable set'}): "
-         "each call's median time in every thread setting, idle and beside busy processes; "
+         "each call's median time in every thread setting, idle and beside busy processes, and the default's "
+         "time over the best setting's (the median of the rounds' ratios, each pair timed back to back); "
          "pyvf/bench/threads.py says what each call and setting is.", ""]
     if "idle" not in th:
         return s + ["Not measured: " + "; ".join(th["failures"]), ""]
     keys = th["settings"]
-    rows = (_threads.rows_of(th["idle"], "idle", keys, th["bitwise_same"])
-            + _threads.rows_of(th["loaded"], f"{th['cores']} busy", keys, th["bitwise_same"]))
+    rows = (_threads.rows_of(th["idle_rounds"], "idle", keys, th["bitwise_same"])
+            + _threads.rows_of(th["loaded_rounds"], f"{th['cores']} busy", keys, th["bitwise_same"]))
     header = ["call", "machine", *(f"{_threads.label(k)} (ms)" for k in keys), "best", "default / best"]
     return s + [measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{th['cores']}"),
                 "", table(header, rows), "",
@@ -375,6 +371,23 @@ def other_machines(out):
     return [(key, _threads.merge_scaling([r for _, r in reps]), [n for n, _ in reps],
              [r.get("command", "pyvf bench threads --scaling-only") for _, r in reps],
              sorted({r.get("date", "?") for _, r in reps})) for key, reps in groups.items()]
+
+
+def other_machines_lines(out):
+    """The many-cores question's line per other machine: its training steps' speed-up on
+    MANY_CORES threads against the targets."""
+    lines = []
+    for (cpu, cores, _), sc, _, _, _ in other_machines(out):
+        targets = _threads.many_core_targets(sc)
+        if targets:
+            lines.append(f"* **{cores} cores** ({cpu}, [table](#{cores}-cores-{_anchor(cpu)})): "
+                         + "; ".join(line + ("" if met else " (**missed**)") for line, met in targets) + ".")
+    return lines
+
+
+def _anchor(text):
+    """A heading's anchor as GitHub makes it: lower case, punctuation dropped, spaces to '-'."""
+    return "".join(c for c in text.lower() if c.isalnum() or c in " -_").replace(" ", "-")
 
 
 def other_machines_section(out):
