@@ -1,6 +1,6 @@
 """docs/performance.md and docs/accuracy.md, generated: never typed by hand.
 
-    pyvf bench report                 # the full runs into docs/; ~10 minutes on 2 cores
+    pyvf bench report                 # the full runs into docs/; ~20 minutes on 2 cores
     pyvf bench report --quick --out D # the --quick runs into D/ (a couple of minutes)
 
 Runs, in this order, on --threads threads:
@@ -11,7 +11,8 @@ Runs, in this order, on --threads threads:
   3. pyvf bench hardcases -> img/hardcase-<sweep>.png
   4. pyvf bench threads   (--quick: its quick mode; --threads threads at most, as many busy
                            processes; with the OpenMP waiting policies and the scaling from 1
-                           thread to --threads)
+                           thread to --threads; in a fresh process, as a user's: after the runs
+                           above this one's heap holds gigabytes)
 and writes OUT/performance.md, OUT/accuracy.md (every op's error table and Pareto plot, every
 hard-case sweep with pyvf's bound, PASS/FAIL) and the four runs' JSON in OUT/measurements/.
 
@@ -37,7 +38,7 @@ import time
 
 from pyvf.bench import accuracy, hardcases, scaling
 from pyvf.bench import threads as _threads
-from pyvf.bench.common import table, write_json
+from pyvf.bench.common import run_worker, table, write_json
 
 # the scaling runs: the command line that repeats each (in the documents), and scaling.run's options
 SCALING_FULL = [(["--sizes", "12x64", "--max-point-seconds", "30"], dict(sizes=((12, 64),), max_point_seconds=30)),
@@ -463,8 +464,8 @@ def run(quick=False, out="docs", threads=2, log=print):
     log(f"3/4 pyvf bench hardcases ({mode})", flush=True)
     hc = hardcases.run(mode=mode, threads=threads, log=log)
     hardcases.plot_all(hc["sweeps"], img)
-    log(f"4/4 pyvf bench threads ({mode})", flush=True)
-    th = _threads.run(quick, threads, log=log)
+    log(f"4/4 pyvf bench threads ({mode}, in a fresh process)", flush=True)
+    th = run_worker(_threads.MODULE, {"whole": True, "quick": quick, "cores": threads})
     suffix = "-quick" if quick else ""
     jsons = dict(accuracy=acc, hardcases=hc, threads=th)
     jsons = {os.path.join(meas, f"{name}{suffix}.json"): rep for name, rep in jsons.items()}

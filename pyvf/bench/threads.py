@@ -1,7 +1,7 @@
 """Time of the calls a user makes, idle and beside busy processes, for each thread setting.
 
     pyvf bench threads            # every call, setting and policy, idle and under load, and the
-                                  # scaling with the paper sizes (about 11 minutes on 2 cores)
+                                  # scaling with the paper sizes (about 14 minutes on 2 cores)
     pyvf bench threads --quick    # smaller batches, fewer repeats, no paper sizes (under a minute)
 
 The calls: the demo's cached render + localization (TINY_TRANSFORMER, 4 scenes of 5 context views,
@@ -47,6 +47,7 @@ from pyvf.bench.common import cpu_name, median_time, run_worker, table, worker_m
 from pyvf._threads import blas_limit, blas_num_threads, cores
 from pyvf.train.loops import TINY_CODEBOOK, TINY_TRANSFORMER
 
+MODULE = "pyvf.bench.threads"  # run_worker's module: __name__ is "__main__" where a worker runs this file
 LOAD_SECONDS = 600  # a busy process stops by itself after this, should the benchmark die first
 # repeat: rounds idle; loaded_repeat: beside the busy processes, whose scheduling makes one call
 # vary by 20% or more
@@ -307,7 +308,7 @@ def wait_policies(quick, n_cores, log=print):
     out = {}
     for name, env in WAIT_POLICIES.items():
         clear = {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": None}  # the parent's choice must not leak in
-        out[name] = run_worker(__name__, {"quick": quick, "cores": n_cores}, env={**clear, **env})
+        out[name] = run_worker(MODULE, {"quick": quick, "cores": n_cores}, env={**clear, **env})
     log(table(*policy_table(out, n_cores)))
     return out
 
@@ -409,8 +410,9 @@ def scale(quick, n_cores, log=print, calls=None, counts=None, save=None):
     times, bitwise, failures = {}, {}, []
     for name, prepare in calls.items():
         # rounds x timed steps per thread count: the paper sizes' steps take seconds to a minute,
-        # and vary by 10% on a shared machine, so each count times two in a row
-        rounds, timed = (1, 2) if "paper" in name else (3 if quick else 5, 1)
+        # and vary by 10% on a shared machine, where a slow minute can fall on one count: two
+        # rounds over the counts, one timed step each (the median of two is their mean)
+        rounds, timed = (2, 1) if "paper" in name else (3 if quick else 5, 1)
         t, want = {n: [] for n in counts}, None
         for _ in range(rounds):
             for n in counts:
@@ -492,5 +494,14 @@ def scaling_targets(rep):
             for name, t in rep["times"].items() if "paper" in name]
 
 
-if __name__ == "__main__":  # pragma: no cover - a waiting policy's worker (run_worker); `pyvf bench threads` runs the benchmark
-    worker_main(_policy_worker)
+def _worker(spec):
+    """run_worker's entry: the whole run (spec["whole"]: `pyvf bench report` measures the threads
+    in a fresh process, as a user's, not after its other runs grew its heap by gigabytes), its
+    log on stderr; else a waiting policy's worker."""
+    if spec.get("whole"):
+        return run(spec["quick"], spec["cores"], log=lambda *a, **k: print(*a, file=sys.stderr, **k))
+    return _policy_worker(spec)
+
+
+if __name__ == "__main__":  # pragma: no cover - run_worker's other end; `pyvf bench threads` runs the benchmark
+    worker_main(_worker)
