@@ -44,15 +44,10 @@
 #include <new>
 #include <vector>
 
-#ifdef PYVF_OPENMP
-#include <omp.h>
-#endif
-
 #include "simd.h"
 #include "threads.h"
 
 namespace pyvf {
-
 
 namespace {
 

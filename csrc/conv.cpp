@@ -69,10 +69,6 @@
 #include <new>
 #include <vector>
 
-#ifdef PYVF_OPENMP
-#include <omp.h>
-#endif
-
 #include "simd.h"
 #include "threads.h"
 
@@ -126,7 +122,6 @@ template <typename T> using Buf = std::vector<T, Aligned64<T>>;
 
 inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
-inline int64_t threads() { return num_threads(); }  // branching_attention.cpp's
 inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
 
 // Output channels per task of a forward product (conv_rows, conv_gemm) that has `tasks` (image,
@@ -135,7 +130,7 @@ inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
 // tasks per thread (two left 16 threads a third idle on the 8x8 layers). A row's sums are the
 // same in any block, so the results do not depend on the thread count.
 inline int64_t out_channel_block(int64_t Co, int64_t tasks) {
-    const int64_t want = std::clamp<int64_t>(ceil_div(4 * threads(), std::max<int64_t>(tasks, 1)), 1,
+    const int64_t want = std::clamp<int64_t>(ceil_div(4 * num_threads(), std::max<int64_t>(tasks, 1)), 1,
                                              std::max<int64_t>(ceil_div(Co, 24), 1));
     return std::max<int64_t>(round_up(ceil_div(Co, want), 24), 24);
 }
@@ -721,7 +716,7 @@ template <typename T> int dw_gemm(T* dw, T* db, const T* x, const T* dy, const C
     const int64_t ncb = ceil_div(d.C, kCB);
     // output-channel blocks of whole vectors: at least two tasks per thread where the input
     // channels alone do not make that many, at most 64 channels
-    const int64_t nob_want = std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, W), ceil_div(2 * threads(), ncb)));
+    const int64_t nob_want = std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, W), ceil_div(2 * num_threads(), ncb)));
     const int64_t ow = round_up(ceil_div(d.Co, std::max<int64_t>(nob_want, 1)), W), nob = ceil_div(d.Co, ow);
     // dyT's rows are ldt apart: Co rounded up to whole vectors plus one more, so that rows
     // 2^n bytes apart (Co = 128, 256, 512) do not fall into a few sets of the L1 cache (that
@@ -880,7 +875,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
     // make that many (each block re-reads its rows of cols), blocks of at least 4 and at most 64
     // channels (the lane accumulators, kb * ow vectors, stay in L2). The blocks may depend on the
     // thread count: a pair (k, o)'s lane sums are the same whatever block o falls in.
-    const int64_t nob_want = std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, 4), ceil_div(2 * threads(), ncb)));
+    const int64_t nob_want = std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, 4), ceil_div(2 * num_threads(), ncb)));
     const int64_t ow = ceil_div(d.Co, std::max<int64_t>(nob_want, 1)), nob = ceil_div(d.Co, std::max<int64_t>(ow, 1));
     // how a task reads its rows of cols: x itself (1x1, stride 1, unpadded); a zero-padded tile of
     // R + kh - 1 input rows per R output rows (stride 1, rows of at least two vectors), each tap's

@@ -20,7 +20,6 @@
 #include <cstring>
 
 #include "elementwise.h"
-
 #include "simd.h"
 #include "threads.h"
 

@@ -114,12 +114,12 @@ template <typename T> void sum_squares(const T* x, int64_t n, double* amax, doub
             for (int l = 0; l < L; ++l) {
                 const double y = static_cast<double>(x[i + l]);
                 acc[l] += y * y;
-                mx[l] = std::max(mx[l], std::fabs(static_cast<double>(x[i + l])));
+                mx[l] = std::max(mx[l], std::fabs(y));
             }
         for (int l = 0; i < hi; ++i, ++l) {
             const double y = static_cast<double>(x[i]);
             acc[l] += y * y;
-            mx[l] = std::max(mx[l], std::fabs(static_cast<double>(x[i])));
+            mx[l] = std::max(mx[l], std::fabs(y));
         }
         double t = 0, m = 0;
         for (int l = 0; l < L; ++l) {

@@ -161,12 +161,11 @@ def test_run_worker_removes_a_variable_given_none(monkeypatch):
     assert set(got["idle"]) == set(got["loaded"]) == set(bench.CALLS)
 
 
-@pytest.mark.skipif(not os.path.exists("/proc/self/task"), reason="the run-queue waits are read from Linux's /proc")
 def test_kernels_see_a_busy_machine_and_give_the_same_results(rng):
     """With a busy process of pyvf's priority on every usable core, pyvf's threads wait on the run
     queue: oversubscribed() turns True within two seconds of kernel calls (it reads
-    /proc/self/task/*/schedstat at most every 50 ms); the product is bitwise the same as on the
-    quiet machine (short calls then run on one thread)."""
+    /proc/self/task/*/schedstat at most every 50 ms; where there is no /proc it stays False); the
+    product is bitwise the same as on the quiet machine (short calls then run on one thread)."""
     import time
     from pyvf import _core
     from pyvf.nn.layers import matmul
@@ -178,4 +177,4 @@ def test_kernels_see_a_busy_machine_and_give_the_same_results(rng):
         while not seen and time.perf_counter() - t0 < 2.0:
             np.testing.assert_array_equal(matmul(x, x.T), want)
             seen = _core.oversubscribed()
-    assert seen, "busy processes on every core were not noticed"
+    assert seen == os.path.exists("/proc/self/task"), "busy processes on every core were not noticed"

@@ -309,7 +309,7 @@ def _ms(r):
 def threads_section(quick, m, th):
     """`pyvf bench threads`' table (threads.rows_of) under the question it answers."""
     s = ["## Is pyvf fast on a busy machine?", "",
-         f"`pyvf bench threads{' --quick' if quick else ''}`, run inside the report (numpy's BLAS pool started with "
+         f"`pyvf bench threads{' --quick' if quick else ''}`, run by the report in a fresh process (numpy's BLAS pool started with "
          f"{', '.join(f'{k}={v}' for k, v in m['blas_thread_env'].items() if v) or 'no thread variable set'}): "
          "each call's median time in every thread setting, idle and beside busy processes, and the default's "
          "time over the best setting's (the median of the rounds' ratios, each pair timed back to back); "
@@ -377,13 +377,13 @@ def other_machines(out):
 def other_machines_lines(out):
     """The many-cores question's line per other machine: its training steps' speed-up on
     MANY_CORES threads against the targets."""
-    lines = []
-    for (cpu, cores, _), sc, _, _, _ in other_machines(out):
-        targets = _threads.many_core_targets(sc)
-        if targets:
-            lines.append(f"* **{cores} cores** ({cpu}, [table](#{cores}-cores-{_anchor(cpu)})): "
-                         + "; ".join(line + ("" if met else " (**missed**)") for line, met in targets) + ".")
-    return lines
+    return [f"* **{cores} cores** ({cpu}, [table](#{cores}-cores-{_anchor(cpu)})): {_targets_text(sc, ' (**missed**)')}."
+            for (cpu, cores, _), sc, _, _, _ in other_machines(out) if _threads.many_core_targets(sc)]
+
+
+def _targets_text(sc, missed):
+    """The many-core targets of a scaling report, `missed` after each one not met."""
+    return "; ".join(line + ("" if met else missed) for line, met in _threads.many_core_targets(sc))
 
 
 def _anchor(text):
@@ -399,10 +399,8 @@ def other_machines_section(out):
               f"Measured on {cpu} ({cores} CPUs usable), kernel path {path}, {', '.join(dates)}, by "
               + "; ".join(f"`{c}`" for c in commands) + " (" + ", ".join(f"`measurements/{f}`" for f in files)
               + "), the same calls and method as above.", "", table(*_threads.scaling_table(sc)), ""]
-        targets = _threads.many_core_targets(sc)
-        if targets:
-            s += [f"On {_threads.MANY_CORES} threads: "
-                  + "; ".join(line + ("" if met else " **missed**") for line, met in targets) + ".", ""]
+        if _threads.many_core_targets(sc):
+            s += [f"On {_threads.MANY_CORES} threads: {_targets_text(sc, ' **missed**')}.", ""]
     return (["## From 1 thread to every core, on other machines", ""] + s) if s else []
 
 

@@ -408,6 +408,9 @@ def scale(quick, n_cores, log=print, calls=None, counts=None, save=None):
     chosen = [SCALING_IDS[c] for c in calls] if calls else list(SCALING_CALLS)
     calls = {name: SCALING_CALLS[name][0](quick) for name in chosen if SCALING_CALLS[name][1] or not quick}
     times, bitwise, failures = {}, {}, []
+
+    def report():
+        return {"threads": counts, "times": _jsonable(times), "bitwise": dict(bitwise), "failures": list(failures)}
     for name, prepare in calls.items():
         # rounds x timed steps per thread count: the paper sizes' steps take seconds to a minute,
         # and vary by 10% on a shared machine, where a slow minute can fall on one count: two
@@ -432,8 +435,8 @@ def scale(quick, n_cores, log=print, calls=None, counts=None, save=None):
         times[name] = {n: statistics.median(v) for n, v in t.items()}
         log(f"# {name}: " + ", ".join(f"{n} thr {v * 1e3:.0f} ms" for n, v in times[name].items()))
         if save:
-            save({"threads": counts, "times": _jsonable(times), "bitwise": dict(bitwise), "failures": list(failures)})
-    rep = {"threads": counts, "times": _jsonable(times), "bitwise": bitwise, "failures": failures}
+            save(report())
+    rep = report()
     log(table(*scaling_table(rep)))
     for line in scaling_targets(rep):
         log("# " + line)
