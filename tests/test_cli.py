@@ -141,6 +141,17 @@ def test_bench_quick(name, tmp_path):
     assert_ran(run(["bench", name, *args], tmp_path), *expected)
 
 
+def test_bench_threads_profile_quick(tmp_path):
+    """`pyvf bench threads --profile`: a step's time kernel by kernel at 1 and 2 threads, the rest
+    outside the kernels, in the table and the JSON."""
+    proc = run(["bench", "threads", "--profile", "--quick", "--calls", "codebook-tiny", "--counts", "1", "2",
+                "--json", "p.json"], tmp_path)
+    assert_ran(proc, "# codebook step, tiny: 2 timed steps per count", "| conv2d_backward 4x32x64x64 ",
+               "| outside the kernels (Python, NumPy) ", "| the whole step ")
+    prof = json.loads((tmp_path / "p.json").read_text())["calls"]["codebook step, tiny"]
+    assert prof["bitwise"] and set(prof["step"]) == {"1", "2"}
+
+
 def test_bench_runs_numpy_blas_on_its_threads(tmp_path):
     """numpy's GEMM (the attention benchmark's scale) and pyvf's numpy layers must use the
     benchmark's --threads, as pyvf's kernels and torch do: `pyvf bench` started with the BLAS

@@ -18,6 +18,7 @@ import os
 import subprocess
 import sys
 
+from .._threads import cores
 from ..bench.common import BLAS_THREAD_VARS, write_json, write_outputs
 from .options import add_threads, names, positive_int
 
@@ -183,8 +184,11 @@ def _threads_parser():
     p.add_argument("--scaling-only", action="store_true",
                    help="only the scaling from 1 thread to every core (a larger machine's table); with --json "
                         "the file is rewritten after each call, so a run cut short keeps what it finished")
+    p.add_argument("--profile", action="store_true",
+                   help="instead of the comparison, each scaling call's time kernel by kernel (and outside the "
+                        "kernels) at each thread count: where the speed-up is lost (pyvf.bench.profile)")
     p.add_argument("--calls", nargs="+", default=None, choices=list(_module("threads").SCALING_IDS),
-                   help="the scaling's calls (default: all)")
+                   help="the scaling's (or the profile's) calls (default: all; the profile: the tiny steps)")
     p.add_argument("--counts", nargs="+", type=positive_int, default=None, metavar="N",
                    help="the scaling's thread counts (default: 1, 2, 4, ... and every usable core)")
     p.add_argument("--json", default=None, metavar="FILE", help="also write the report as JSON")
@@ -192,6 +196,12 @@ def _threads_parser():
 
 
 def _threads(args):
+    if args.profile:
+        ids, counts = _module("threads").SCALING_IDS, args.counts or [1, args.threads or cores()]
+        report = _module("profile").run([ids[c] for c in args.calls or ("codebook-tiny", "transformer-tiny")],
+                                        sorted(set(counts)), args.quick)
+        write_outputs(report, args.json)
+        return 1 if report["failures"] else 0
     stamp, save = {}, None
     if args.scaling_only:  # the command that made a scaling-only file (other machines' tables in the report)
         stamp = {"date": datetime.date.today().isoformat(),
