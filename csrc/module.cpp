@@ -7,8 +7,10 @@
 // overwritten, never accumulated into.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
 
 #include <algorithm>
+#include <memory>
 #include <new>
 #include <stdexcept>
 #include <string>
@@ -140,35 +142,56 @@ template <typename T> void gelu_grad(Arr<T> dx, Arr<T> dy, Arr<T> x) {
 }
 
 
-// Adam/AdamW (optim.cpp): scalars (b1, 1 - b1, b2, 1 - b2, a, sbc2, eps, decay) are rounded to T
-// here, as NumPy rounds a Python float against an array of T.
-template <typename T> AdamScalars<T> adam_scalars(py::tuple s, bool keras, bool decayed) {
+// Adam/AdamW (optim.cpp), every tensor of a step in one call: lists p, m, v, g of arrays of one
+// dtype (each C-contiguous, as Arr<T> without conversion), decayed a list of bools; scalars
+// (b1, 1 - b1, b2, 1 - b2, a, sbc2, eps, decay) are rounded to T here, as NumPy rounds a Python
+// float against an array of T.
+template <typename T>
+std::vector<AdamTensor<T>> adam_tensors(std::vector<Arr<T>>& p, std::vector<Arr<T>>& m, std::vector<Arr<T>>& v,
+                                        const std::vector<Arr<T>>& g, const std::vector<bool>& decayed, bool write) {
+    const size_t n = p.size();
+    if (m.size() != n || v.size() != n || g.size() != n || decayed.size() != n)
+        throw std::invalid_argument("pyvf._core.adam: p, m, v, g and decayed must be lists of one length");
+    std::vector<AdamTensor<T>> t(n);
+    for (size_t i = 0; i < n; ++i) {
+        for (const py::array* a : std::initializer_list<const py::array*>{&m[i], &v[i], &g[i]})
+            same_size(*a, p[i], "adam");
+        // check writes nothing, so it takes read-only arrays; apply refuses them (mutable_data raises)
+        const auto data = [write](Arr<T>& a) { return write ? a.mutable_data() : const_cast<T*>(a.data()); };
+        t[i] = {data(p[i]), data(m[i]), data(v[i]), g[i].data(), static_cast<int64_t>(p[i].size()), decayed[i]};
+    }
+    return t;
+}
+
+template <typename T> AdamScalars<T> adam_scalars(py::tuple s, bool keras) {
     if (s.size() != 8) throw std::invalid_argument("pyvf._core.adam: scalars must be 8 numbers");
     AdamScalars<T> r;
     T* out[8] = {&r.b1, &r.c1, &r.b2, &r.c2, &r.a, &r.sbc2, &r.eps, &r.decay};
     for (int i = 0; i < 8; ++i) *out[i] = static_cast<T>(s[i].cast<double>());
     r.keras = keras;
-    r.decayed = decayed;
     return r;
 }
 
-template <typename T> bool adam_check_k(Arr<T> p, Arr<T> m, Arr<T> v, Arr<T> g, py::tuple s, bool keras, bool decayed) {
-    for (const py::array* a : {&m, &v, &g}) same_size(*a, p, "adam");
-    const AdamScalars<T> sc = adam_scalars<T>(s, keras, decayed);
-    const T *pp = p.data(), *pm = m.data(), *pv = v.data(), *pg = g.data();
-    const int64_t n = p.size();
-    py::gil_scoped_release nogil;
-    return adam_check<T>(pp, pm, pv, pg, n, sc);
+template <typename T>
+std::vector<bool> adam_check_k(std::vector<Arr<T>> p, std::vector<Arr<T>> m, std::vector<Arr<T>> v,
+                               std::vector<Arr<T>> g, std::vector<bool> decayed, py::tuple s, bool keras) {
+    const auto t = adam_tensors<T>(p, m, v, g, decayed, false);
+    const AdamScalars<T> sc = adam_scalars<T>(s, keras);
+    std::unique_ptr<bool[]> ok(new bool[t.size()]);
+    {
+        py::gil_scoped_release nogil;
+        adam_check<T>(t.data(), static_cast<int64_t>(t.size()), sc, ok.get());
+    }
+    return std::vector<bool>(ok.get(), ok.get() + t.size());
 }
 
-template <typename T> void adam_apply_k(Arr<T> p, Arr<T> m, Arr<T> v, Arr<T> g, py::tuple s, bool keras, bool decayed) {
-    for (const py::array* a : {&m, &v, &g}) same_size(*a, p, "adam");
-    const AdamScalars<T> sc = adam_scalars<T>(s, keras, decayed);
-    T *pp = p.mutable_data(), *pm = m.mutable_data(), *pv = v.mutable_data();
-    const T* pg = g.data();
-    const int64_t n = p.size();
+template <typename T>
+void adam_apply_k(std::vector<Arr<T>> p, std::vector<Arr<T>> m, std::vector<Arr<T>> v, std::vector<Arr<T>> g,
+                  std::vector<bool> decayed, py::tuple s, bool keras) {
+    const auto t = adam_tensors<T>(p, m, v, g, decayed, true);
+    const AdamScalars<T> sc = adam_scalars<T>(s, keras);
     py::gil_scoped_release nogil;
-    adam_apply<T>(pp, pm, pv, pg, n, sc);
+    adam_apply<T>(t.data(), static_cast<int64_t>(t.size()), sc);
 }
 
 template <typename T> py::tuple sum_squares_k(Arr<T> x) {
@@ -341,9 +364,9 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
           py::arg("x").noconvert(), py::arg("codes").noconvert());
     m.def("adam_check", &adam_check_k<T>, py::arg("p").noconvert(), py::arg("m").noconvert(),
-          py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("scalars"), py::arg("keras"), py::arg("decayed"));
+          py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("decayed"), py::arg("scalars"), py::arg("keras"));
     m.def("adam_apply", &adam_apply_k<T>, py::arg("p").noconvert(), py::arg("m").noconvert(),
-          py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("scalars"), py::arg("keras"), py::arg("decayed"));
+          py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("decayed"), py::arg("scalars"), py::arg("keras"));
     m.def("sum_squares", &sum_squares_k<T>, py::arg("x").noconvert());
     m.def("scale_by", &scale_by_k<T>, py::arg("x").noconvert(), py::arg("c"));
     m.def("layernorm_forward", &layernorm_fwd_k<T>, py::arg("y").noconvert(), py::arg("xhat").noconvert(),

@@ -10,14 +10,22 @@ namespace pyvf {
 // sbc2 = sqrt(bc2); keras: a = lr sqrt(bc2) / bc1 (sbc2 unused); eps; decay = 1 - lr wd.
 template <typename T> struct AdamScalars {
     T b1, c1, b2, c2, a, sbc2, eps, decay;
-    bool keras, decayed;
+    bool keras;
 };
 
-// Whether the update of every element is finite (nothing written).
-template <typename T> bool adam_check(const T* p, const T* m, const T* v, const T* g, int64_t n,
-                                      const AdamScalars<T>& s);
-// The update in place: p, m and v overwritten.
-template <typename T> void adam_apply(T* p, T* m, T* v, const T* g, int64_t n, const AdamScalars<T>& s);
+// One parameter tensor of the update: n elements of p, its moments m, v and its gradient g,
+// and whether it is decayed.
+template <typename T> struct AdamTensor {
+    T *p, *m, *v;
+    const T* g;
+    int64_t n;
+    bool decayed;
+};
+
+// Whether the update of every element of tensor i is finite: ok[i] (nothing written).
+template <typename T> void adam_check(const AdamTensor<T>* t, int64_t count, const AdamScalars<T>& s, bool* ok);
+// The update in place: every tensor's p, m and v overwritten.
+template <typename T> void adam_apply(const AdamTensor<T>* t, int64_t count, const AdamScalars<T>& s);
 
 // Gradient clipping: sumsq = sum of x_i^2 in double (bitwise the same for any thread count),
 // amax = max |x_i|; and x *= c in place.

@@ -282,6 +282,66 @@ def test_fused_update_equals_numpy_expressions_bitwise(rng, dtype, keras, kernel
         pyvf.set_num_threads(saved)
 
 
+def test_one_call_for_many_tensors_equals_one_call_each(rng, kernel_path):
+    """The kernels take every tensor of a step at once (one parallel region over all their blocks):
+    300 tensors of 1 to 40,000 elements, decayed or not, in one call on 3 threads, bitwise the
+    same as one call per tensor on 1 thread; the check names exactly the tensor whose update
+    overflows; check writes nothing and takes read-only arrays, apply refuses them; lists of
+    different lengths and a tensor of another dtype are refused."""
+    import pyvf
+    from pyvf import _core
+    sizes = [int(n) for n in rng.integers(1, 300, 299)] + [40000]
+    p0 = [rng.standard_normal(n).astype(np.float32) for n in sizes]
+    m0 = [rng.standard_normal(n).astype(np.float32) * 0.1 for n in sizes]
+    v0 = [rng.uniform(0, 1, n).astype(np.float32) for n in sizes]
+    g = [rng.standard_normal(n).astype(np.float32) for n in sizes]
+    dec = [bool(d) for d in rng.integers(0, 2, len(sizes))]
+    scalars = (0.9, 0.1, 0.999, 0.001, 3e-3, math.sqrt(0.001), 1e-8, 1 - 3e-3 * 0.05)
+    copy = lambda arrays: [a.copy() for a in arrays]  # noqa: E731
+    with pyvf.threads(1):
+        one = [copy(x) for x in (p0, m0, v0)]
+        for i in range(len(sizes)):
+            _core.adam_apply([one[0][i]], [one[1][i]], [one[2][i]], [g[i]], [dec[i]], scalars, False)
+    with pyvf.threads(3):
+        many = [copy(x) for x in (p0, m0, v0)]
+        _core.adam_apply(*many, g, dec, scalars, False)
+        for i in range(len(sizes)):
+            for name, a, b in zip("pmv", one, many):
+                assert_bitwise_equal(f"{name}[{i}]", b[i], a[i])
+        huge = copy(g)
+        huge[137][0] = 1e22  # (1 - b2) g g overflows float32
+        read_only = copy(p0)
+        for a in read_only:
+            a.flags.writeable = False
+        ok = _core.adam_check(read_only, m0, v0, huge, dec, scalars, False)
+        assert [i for i, good in enumerate(ok) if not good] == [137]
+        with pytest.raises(ValueError, match="not writeable"):
+            _core.adam_apply(read_only, copy(m0), copy(v0), g, dec, scalars, False)
+        with pytest.raises(ValueError, match="lists of one length"):
+            _core.adam_check(p0, m0, v0, g[:-1], dec, scalars, False)
+        with pytest.raises(TypeError):
+            _core.adam_check(p0, m0, v0, [g[0].astype(np.float64)] + g[1:], dec, scalars, False)
+
+
+def test_parameters_of_two_dtypes_in_one_optimiser(rng):
+    """float32 and float64 parameters in one AdamW: each dtype's tensors are one kernel call, and
+    each parameter ends bitwise as in an optimiser of its dtype alone."""
+    p32 = {"a": rng.standard_normal((3, 4)).astype(np.float32), "c": rng.standard_normal(5).astype(np.float32)}
+    p64 = {"b": rng.standard_normal(7)}
+    grads = [{k: rng.standard_normal(p.shape).astype(p.dtype) for k, p in {**p32, **p64}.items()} for _ in range(3)]
+    both = _copy({**p32, **p64})
+    opt = optim.AdamW(both, lr=0.01, weight_decay=0.1, decay={"a", "b"})
+    alone = [optim.AdamW(_copy(p), lr=0.01, weight_decay=0.1, decay={"a", "b"} & set(p)) for p in (p32, p64)]
+    for g in grads:
+        opt.step(g)
+        for o in alone:
+            o.step({k: g[k] for k in o.params})
+    for o in alone:
+        for k, p in o.params.items():
+            assert both[k].dtype == p.dtype
+            assert_bitwise_equal(k, both[k], p)
+
+
 def test_update_overflow_raises_and_changes_nothing(rng):
     """A float32 gradient of 1e22 ((1 - b2) g g overflows: v = inf) in one tensor of several: ValueError
     naming that tensor, and no parameter or moment changed, including the tensors checked before

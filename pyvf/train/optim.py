@@ -203,20 +203,29 @@ class AdamW:
             for state in (self.exp_avg, self.exp_avg_sq):
                 state[k] = _checks.c_order(state[k])
             work[k] = (_checks.c_order(p), self.exp_avg[k], self.exp_avg_sq[k], _checks.c_order(grads[k]))
+        # one kernel call per dtype for every tensor at once (one parallel region, not one a tensor):
+        # name lists and the kernel's lists p, m, v, g, decayed
+        groups = {}
+        for k, arrays in work.items():
+            names, *lists = groups.setdefault(arrays[0].dtype, ([], [], [], [], [], []))
+            names.append(k)
+            for lst, a in zip(lists, (*arrays, self.weight_decay != 0 and k in self.decayed)):
+                lst.append(a)
         # every new value is checked first (a pass that writes nothing), then written: an update
         # that would overflow (huge gradients or learning rate) raises with nothing modified
-        decayed = {k: self.weight_decay != 0 and k in self.decayed for k in work}
         # (a NaN or inf gradient gives a non-finite update: it is named as such)
-        bad = [k for k, arrays in work.items() if not _core.adam_check(*arrays, scalars, keras, decayed[k])]
+        bad = [k for names, *lists in groups.values()
+               for k, ok in zip(names, _core.adam_check(*lists, scalars, keras)) if not ok]
         nonfinite = _nonfinite_names(grads) if bad else []
         if nonfinite:
             raise ValueError(f"grads contain NaN or inf in {nonfinite}: no update applied "
                              "(skip this step, or lower the learning rate / loss scale)")
         if bad:
-            raise ValueError(f"the update of {bad} overflows (gradients or learning rate too large for the "
-                             "dtype): no update applied")
+            raise ValueError(f"the update of {sorted(bad, key=list(work).index)} overflows (gradients or learning "
+                             "rate too large for the dtype): no update applied")
+        for names, *lists in groups.values():
+            _core.adam_apply(*lists, scalars, keras)
         for k, arrays in work.items():
-            _core.adam_apply(*arrays, scalars, keras, decayed[k])
             if arrays[0] is not self.params[k]:  # a parameter of another layout: updated as a copy
                 np.copyto(self.params[k], arrays[0])
         self.step_count = t
