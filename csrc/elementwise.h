@@ -20,5 +20,9 @@ template <typename T> void heads_merge(T* tok, const T* hd, int64_t RB, int64_t 
 // increasing row (0 when M = 0).
 template <typename T> void add(T* out, const T* a, const T* b, int64_t n);
 template <typename T> void column_sums(T* out, const T* a, int64_t M, int64_t N);
+// Nearest-neighbour x2 upsampling of `rows` rows of w pixels (y: 2 rows x 2 w per row of x), and
+// its backward (dx: the sum of each 2x2 block of dy).
+template <typename T> void upsample2x(T* y, const T* x, int64_t rows, int64_t w);
+template <typename T> void upsample2x_backward(T* dx, const T* dy, int64_t rows, int64_t w);
 
 }  // namespace pyvf

@@ -262,6 +262,24 @@ template <typename T> void column_sums_k(Arr<T> out, Arr<T> a) {
     column_sums<T>(po, pa, M, N);
 }
 
+// Upsampling (elementwise.cpp): small (B, C, Hi, Wi), big (B, C, 2 Hi, 2 Wi); FORWARD writes big
+// from small, else small (dx) from big (dy).
+template <typename T, bool FORWARD> void upsample_k(Arr<T> out, Arr<T> in) {
+    const py::array& small = FORWARD ? in : out;
+    const py::array& big = FORWARD ? out : in;
+    bool ok = small.ndim() == 4 && big.ndim() == 4;
+    for (int i = 0; ok && i < 4; ++i) ok = big.shape(i) == small.shape(i) * (i < 2 ? 1 : 2);
+    if (!ok) throw std::invalid_argument("pyvf._core.upsample2x: x (B, C, Hi, Wi) and y (B, C, 2 Hi, 2 Wi)");
+    T* po = out.mutable_data();
+    const T* pi = in.data();
+    const int64_t rows = small.shape(0) * small.shape(1) * small.shape(2), w = small.shape(3);
+    py::gil_scoped_release nogil;
+    if (FORWARD)
+        upsample2x<T>(po, pi, rows, w);
+    else
+        upsample2x_backward<T>(po, pi, rows, w);
+}
+
 // Heads (elementwise.cpp): hd (R, B, H, N, L, dh), tok (R, B, N, L, w), columns [col, col + H dh) of w.
 template <typename T> void heads_dims(const py::array& hd, const py::array& tok, int64_t col, int64_t* dims) {
     bool ok = hd.ndim() == 6 && tok.ndim() == 5 && col >= 0;
@@ -377,6 +395,8 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("rstd").noconvert(), py::arg("gamma").noconvert());
     m.def("add", &add_k<T>, py::arg("out").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert());
     m.def("column_sums", &column_sums_k<T>, py::arg("out").noconvert(), py::arg("a").noconvert());
+    m.def("upsample2x", &upsample_k<T, true>, py::arg("y").noconvert(), py::arg("x").noconvert());
+    m.def("upsample2x_backward", &upsample_k<T, false>, py::arg("dx").noconvert(), py::arg("dy").noconvert());
     m.def("heads_split", &heads_k<T, true>, py::arg("hd").noconvert(), py::arg("tok").noconvert(), py::arg("col"));
     m.def("heads_merge", &heads_k<T, false>, py::arg("tok").noconvert(), py::arg("hd").noconvert(), py::arg("col"));
     m.def("context_softmax", &context_softmax_k<T>, py::arg("sc").noconvert(), py::arg("so").noconvert(),

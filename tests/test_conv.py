@@ -279,6 +279,32 @@ def test_upsample_backward_sums_the_block():
     assert_bitwise_equal("dx of a one-pixel-per-block dy", conv.upsample_nearest2x_backward(dy, cache)[0], x)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_upsample_kernel_is_bitwise_numpy_on_any_threads(rng, dtype):
+    """The kernels on 1 and 3 threads (rows past the parallel threshold, an odd width): y is
+    every pixel copied into its block (NumPy's repeat), dx the NumPy sum in its order,
+    (d00 + d01) + (d10 + d11); dy spread over 1e-20..1e20 so that another order of the four terms
+    rounds differently (checked: the order d00 + d10 + d01 + d11 gives other bits); a
+    non-contiguous x and dy are accepted."""
+    x = rng.standard_normal((2, 33, 40, 31)).astype(dtype)
+    dy = (rng.standard_normal((2, 33, 80, 62)) * 10.0 ** rng.uniform(-20, 20, (2, 33, 80, 62))).astype(dtype)
+    want_y = x.repeat(2, axis=3).repeat(2, axis=2)
+    (want_dx,) = conv.upsample_nearest2x_backward_numpy(dy, (x.shape, x.dtype))
+    d = dy.reshape(2, 33, 40, 2, 31, 2)
+    other = (d[:, :, :, 0, :, 0] + d[:, :, :, 1, :, 0]) + (d[:, :, :, 0, :, 1] + d[:, :, :, 1, :, 1])
+    assert not np.array_equal(other, want_dx)
+    for n in (1, 3):
+        with pyvf.threads(n):
+            y, cache = conv.upsample_nearest2x_forward(x)
+            assert_bitwise_equal(f"y, {n} threads", y, want_y)
+            assert_bitwise_equal(f"dx, {n} threads", conv.upsample_nearest2x_backward(dy, cache)[0], want_dx)
+            xt = np.asfortranarray(x)
+            assert_bitwise_equal(f"y of a Fortran-order x, {n} threads", conv.upsample_nearest2x_forward(xt)[0],
+                                 want_y)
+            assert_bitwise_equal(f"dx of a Fortran-order dy, {n} threads",
+                                 conv.upsample_nearest2x_backward(np.asfortranarray(dy), cache)[0], want_dx)
+
+
 # ---------------------------------------------------------------------------------------
 # 2. float32 vs float64 on the same inputs; dtypes kept
 
