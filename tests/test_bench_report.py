@@ -192,12 +192,19 @@ def _overlap(a, b):
 
 def test_policy_and_scaling_lines_state_the_measured_ratios():
     """pyvf's waiting policy against the others (worst ratio to the fastest, closed form from the
-    made-up times), and the speed-up on the most threads; absent measurements give no line."""
-    pol = {"passive (pyvf)": {"idle": {"a": 1.2, "b": 1.0}, "loaded": {"a": 2.0, "b": 1.0}},
-           "active": {"idle": {"a": 1.0, "b": 1.0}, "loaded": {"a": 6.0, "b": 1.5}}}
+    made-up times: the median of the rounds' ratios, which here is not the ratio of the medians),
+    and the speed-up on the most threads; absent measurements give no line."""
+    pol = {"passive (pyvf)": {"idle_rounds": {"a": [1.2] * 3, "b": [1.0] * 3},
+                              "loaded_rounds": {"a": [1.0, 3.0, 3.0], "b": [1.0] * 3}},
+           "active": {"idle_rounds": {"a": [1.0] * 3, "b": [1.0] * 3},
+                      "loaded_rounds": {"a": [2.0, 2.0, 4.0], "b": [1.5] * 3}}}
+    # loaded a: the rounds' fastest 1, 2, 3; passive 1, 1.5, 1 of it (median 1), active 2, 1, 4/3 (4/3),
+    # where the medians' ratio would say 1.5 and 1
     line = report.policy_line(dict(policies=pol, cores=2))
-    assert "passive (pyvf) takes at most **1.00x**" in line and "active takes up to 3.00x" in line
+    assert "passive (pyvf) takes at most **1.00x**" in line and "active takes up to 1.50x" in line
     assert "idle it takes up to 1.20x (the others up to 1.00x)" in line
+    pol["active"]["loaded_rounds"]["b"] = [1.0] * 3
+    assert "active takes up to 1.33x" in report.policy_line(dict(policies=pol, cores=2))
     sc = {"threads": [1, 2], "times": {"step": {"1": 3.0, "2": 1.6}}, "bitwise": {"step": True}}
     line = report.scaling_threads_line(dict(scaling=sc))
     assert "on 2 threads against 1: step **1.88x**" in line and "bitwise the same at every" in line

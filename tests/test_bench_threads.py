@@ -117,23 +117,64 @@ def test_scaling_table_and_targets_on_made_up_times():
 
 
 def test_policy_table_on_made_up_times():
-    pol = {"passive": {"idle": {"a": 0.012}, "loaded": {"a": 0.020}},
-           "spin": {"idle": {"a": 0.010}, "loaded": {"a": 0.050}}}
+    """ms: each policy's median; (/ fastest): the median of the rounds' ratios to each round's
+    fastest policy."""
+    pol = {"passive": {"idle_rounds": {"a": [0.012, 0.012, 0.030]}, "loaded_rounds": {"a": [0.020, 0.020, 0.020]}},
+           "spin": {"idle_rounds": {"a": [0.010, 0.010, 0.010]}, "loaded_rounds": {"a": [0.050, 0.010, 0.050]}}}
     header, rows = bench.policy_table(pol, 2)
-    assert header == ["call", "machine", "passive: ms (/ best)", "spin: ms (/ best)"]
+    assert header == ["call", "machine", "passive: ms (/ fastest)", "spin: ms (/ fastest)"]
     assert rows == [["a", "idle", "12.0 (1.20)", "10.0 (1.00)"], ["a", "2 busy", "20.0 (1.00)", "50.0 (2.50)"]]
 
 
-def test_each_policy_runs_in_its_own_environment(monkeypatch):
-    """The workers see exactly their policy's variables (the parent's are removed), and `import
-    pyvf` sets OMP_WAIT_POLICY=PASSIVE only where neither variable was set."""
-    seen = []
-    monkeypatch.setattr(bench, "run_worker", lambda module, spec, env: seen.append(env) or
-                        {"idle": {"a": 1.0}, "loaded": {"a": 1.0}, "env": {}})
+def test_each_policy_runs_in_its_own_environment_all_timed_in_every_round(monkeypatch):
+    """Real workers (quick sizes): each sees exactly its policy's variables (the parent's are
+    removed), every call is timed in every worker in each round, idle and loaded, and the table
+    has a row per call and condition."""
+    monkeypatch.setattr(bench, "WAIT_POLICIES", {"passive": {"OMP_WAIT_POLICY": "PASSIVE"},
+                                                 "spin 1000": {"GOMP_SPINCOUNT": "1000"}})
+    monkeypatch.setattr(bench, "QUICK", dict(bench.QUICK, repeat=2, loaded_repeat=1))
     monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
-    bench.wait_policies(True, 2, log=lambda *a: None)
-    assert [{k: v for k, v in e.items() if v is not None} for e in seen] == list(bench.WAIT_POLICIES.values())
-    assert all(e.keys() >= {"OMP_WAIT_POLICY", "GOMP_SPINCOUNT"} for e in seen)  # each names both
+    logged = []
+    out = bench.wait_policies(True, 1, log=logged.append)
+    assert out["passive"]["env"] == {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": None}
+    assert out["spin 1000"]["env"] == {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": "1000"}
+    for p in out.values():
+        assert set(p["idle_rounds"]) == set(p["loaded_rounds"]) == set(bench.CALLS)
+        assert all(len(t) == 2 for t in p["idle_rounds"].values()) and all(
+            len(t) == 1 for t in p["loaded_rounds"].values())
+        assert all(s > 0 for t in p["idle_rounds"].values() for s in t)
+    assert len(logged) == 1 and logged[0].count("\n") == 2 + 2 * len(bench.CALLS) - 1
+
+
+def test_a_stopped_worker_is_stopped_between_answers_and_finishes():
+    """Worker(stopped=True): between its answers the process is stopped (state T, taking no CPU
+    while other workers are timed), it answers when asked, and finish() resumes it for its result."""
+    from pyvf.bench.common import Worker
+
+    def state(pid):  # the process's state letter, once a signal sent just now has taken effect (within 2 s)
+        import time
+        for _ in range(200):
+            with open(f"/proc/{pid}/stat") as f:
+                s = f.read().rsplit(")", 1)[1].split()[0]
+            if s == "T":
+                break
+            time.sleep(0.01)
+        return s
+    with Worker("pyvf.bench.threads", {"quick": True}, env={"GOMP_SPINCOUNT": "1000"}, stopped=True) as w:
+        assert w.read() == bench.READY and state(w.proc.pid) == "T"
+        assert float(w.ask("Codebook.encode")) > 0 and state(w.proc.pid) == "T"
+        assert w.finish()["env"]["GOMP_SPINCOUNT"] == "1000"
+
+
+def test_a_worker_that_dies_is_an_error_naming_it():
+    """A worker whose process ends before it answers: RuntimeError with its command and its
+    standard error, and nothing left running."""
+    from pyvf.bench.common import Worker
+    with pytest.raises(RuntimeError, match="(?s)worker.*failed.*KeyError"):
+        with Worker("pyvf.bench.threads", {"quick": True}) as w:
+            assert w.read() == bench.READY
+            w.ask("no such call")
+    assert w.proc.poll() is not None
 
 
 @pytest.mark.parametrize("env, want", [({}, "PASSIVE"), ({"GOMP_SPINCOUNT": "1000"}, None),
@@ -152,13 +193,12 @@ def test_import_sets_passive_waiting_unless_chosen(env, want):
 
 def test_run_worker_removes_a_variable_given_none(monkeypatch):
     """With OMP_WAIT_POLICY set here, the worker, told None for it, must not see it, and sees the
-    spin count it was given; its times name every call."""
+    spin count it was given (a policy worker run to completion: its input is empty, so it answers
+    nothing and returns what it saw)."""
     from pyvf.bench.common import run_worker
     monkeypatch.setenv("OMP_WAIT_POLICY", "PASSIVE")
-    got = run_worker("pyvf.bench.threads", {"quick": True, "cores": 1}, env={"OMP_WAIT_POLICY": None,
-                                                                            "GOMP_SPINCOUNT": "1000"})
+    got = run_worker("pyvf.bench.threads", {"quick": True}, env={"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": "1000"})
     assert got["env"] == {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": "1000"}
-    assert set(got["idle"]) == set(got["loaded"]) == set(bench.CALLS)
 
 
 def test_kernels_see_a_busy_machine_and_give_the_same_results(rng):

@@ -19,6 +19,7 @@ the call: allocate the inputs first, then measure.
 import gc
 import json
 import os
+import signal
 import time
 import tracemalloc
 
@@ -159,27 +160,106 @@ def format_bytes(n):
     raise AssertionError("unreachable")
 
 
+def _worker_process(module, spec, env):
+    """(command, environment, folder) of a worker: `python -m module SPEC` started in the folder
+    that holds this process's pyvf package, so that it imports the same pyvf (`python -m` puts the
+    working folder first on sys.path: started from a source checkout, it would import the
+    unbuilt source tree)."""
+    import sys
+
+    import pyvf
+    holds_pyvf = os.path.dirname(os.path.dirname(os.path.abspath(pyvf.__file__)))
+    child = {k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None}
+    return [sys.executable, "-m", module, json.dumps(spec)], child, holds_pyvf
+
+
 def run_worker(module, spec, env=None):
     """Run `python -m module SPEC` in a fresh process, SPEC the JSON of the dict spec, and return
     the JSON object printed on its last line (the module's worker_main): for benchmarks that keep
     each framework's thread pools in a process of its own, or that need environment variables
     read when a library loads (env: {name: value} over this process's environment; a value of
-    None removes the variable).
-
-    The worker starts in the folder that holds this process's pyvf package, so that it imports
-    the same pyvf (`python -m` puts the working folder first on sys.path: started from a source
-    checkout, it would import the unbuilt source tree)."""
+    None removes the variable). Its standard input is empty."""
     import subprocess
-    import sys
 
-    import pyvf
-    holds_pyvf = os.path.dirname(os.path.dirname(os.path.abspath(pyvf.__file__)))
-    cmd = [sys.executable, "-m", module, json.dumps(spec)]
-    child = {k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None}
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=holds_pyvf, env=child)
+    cmd, child, cwd = _worker_process(module, spec, env)
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, env=child, stdin=subprocess.DEVNULL)
     if proc.returncode:
         raise RuntimeError(f"worker {' '.join(cmd[1:])} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+class Worker:
+    """run_worker's process kept alive, to be asked one line at a time: for measurements that time
+    several processes back to back, round after round (threads.py's waiting policies, each read
+    by the OpenMP runtime when it loads). Its module's worker answers each line of its standard
+    input with one line; at the end of input it prints its JSON result as worker_main does.
+
+        with Worker(module, spec, env, stopped=True) as w:
+            w.read()           # -> its first line, unasked (such as a line saying it is ready)
+            w.ask("name")      # -> the worker's one-line answer
+            w.finish()         # -> the JSON result (closes the worker's input)
+
+    stopped=True: the process is stopped (SIGSTOP) whenever it is not answering, so that it takes
+    no CPU while other workers are timed: an OpenMP runtime told to spin keeps its threads spinning
+    for minutes after a call, which would slow every other process on those cores.
+    """
+
+    def __init__(self, module, spec, env=None, stopped=False):
+        import subprocess
+        import tempfile
+
+        cmd, child, cwd = _worker_process(module, spec, env)
+        self.what, self.err = " ".join(cmd[1:]), tempfile.TemporaryFile(mode="w+")
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.err, text=True,
+                                     cwd=cwd, env=child)
+        self.stopped = stopped and hasattr(signal, "SIGSTOP")
+
+    def _signal(self, sig):
+        if self.stopped and self.proc.poll() is None:
+            self.proc.send_signal(sig)
+
+    def _failed(self):
+        self.proc.kill()
+        self.proc.wait()
+        self.err.seek(0)
+        return RuntimeError(f"worker {self.what} failed (exit status {self.proc.returncode}):\n"
+                            f"{self.err.read()[-3000:]}")
+
+    def ask(self, line):
+        self._signal(signal.SIGCONT)
+        try:
+            self.proc.stdin.write(line + "\n")
+            self.proc.stdin.flush()
+        except BrokenPipeError:
+            raise self._failed() from None
+        return self.read()
+
+    def read(self):
+        """The worker's next line (the answer to ask(), or one unasked); stopped after it."""
+        self._signal(signal.SIGCONT)
+        answer = self.proc.stdout.readline()
+        if not answer:
+            raise self._failed()
+        self._signal(signal.SIGSTOP)
+        return answer.strip()
+
+    def finish(self):
+        self._signal(signal.SIGCONT)
+        self.proc.stdin.close()
+        out = self.proc.stdout.read()
+        if self.proc.wait():
+            raise self._failed()
+        return json.loads(out.strip().splitlines()[-1])
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.proc.poll() is None:  # an error or an interrupt mid-way: nothing is left running
+            self.proc.kill()
+            self.proc.wait()
+        self.err.close()
+        return False
 
 
 def worker_main(work):

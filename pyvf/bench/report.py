@@ -224,7 +224,7 @@ def policy_line(th):
     ours, others = next(iter(pol)), list(pol)[1:]
 
     def worst(name, cond):
-        return max(pol[name][cond][c] / min(pol[n][cond][c] for n in pol) for c in pol[name][cond])
+        return max(_threads.over_fastest(pol, cond, c)[name] for c in pol[name][f"{cond}_rounds"])
     return (f"* **Waiting between parallel regions**: {ours} takes at most **{worst(ours, 'loaded'):.2f}x** the "
             f"fastest policy's time beside {th['cores']} busy processes, where "
             + ", ".join(f"{n} takes up to {worst(n, 'loaded'):.2f}x" for n in others)
@@ -331,8 +331,9 @@ def policies_section(quick, m, th):
         return []
     s = ["## Waiting between parallel regions", "",
          f"`pyvf bench threads{' --quick' if quick else ''}`: each waiting policy of the OpenMP runtime "
-         "(threads.WAIT_POLICIES) in a process of its own, pyvf's default thread setting, each call's median "
-         "time idle and beside busy processes, and its time over the fastest policy's.", "",
+         "(threads.WAIT_POLICIES) in a process of its own, all alive at once, pyvf's default thread setting; "
+         "each round times every call in every process back to back. Each call's median time idle and beside "
+         "busy processes, and its time over the fastest policy's (the median of the rounds' ratios).", "",
          measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]),
                      threads=next(iter(th["policies"].values())).get("threads", th["cores"])), "",
          table(*_threads.policy_table(th["policies"], th["cores"])), ""]

@@ -22,8 +22,8 @@ idle and 15 under load, where one call's time varies by 20% or more.
 
 Two more measurements follow (skipped by `run(..., policies=False, scaling=False)`):
 - The OpenMP runtime's waiting between parallel regions (WAIT_POLICIES): each choice in a worker
-  process of its own (the runtime reads it when it loads), the default setting's time of every
-  call idle and under load.
+  process of its own (the runtime reads it when it loads), all alive at once and timed back to back
+  in each round, the default setting's time of every call idle and under load.
 - Scaling (SCALING_CALLS): the codebook's and the transformer's training steps at the shipped
   (tiny) and the paper's sizes, and the evaluation's calls, at 1, 2, 4, ... up to every usable
   core; each from the same fresh model for every thread count, whose first step's result must
@@ -43,7 +43,7 @@ import numpy as np
 
 import pyvf
 from pyvf.bench import codebook as _bench_codebook, transformer as _bench_transformer
-from pyvf.bench.common import cpu_name, median_time, run_worker, table, worker_main
+from pyvf.bench.common import Worker, cpu_name, median_time, run_worker, table, worker_main
 from pyvf._threads import blas_limit, blas_num_threads, cores
 from pyvf.train.loops import TINY_CODEBOOK, TINY_TRANSFORMER
 
@@ -283,47 +283,87 @@ def _jsonable(times):
 # GOMP_SPINCOUNT), spin 300000 times first (libgomp's own default when nothing is set; its manual
 # reckons about 3 ms, the time depends on the CPU), spin for minutes (ACTIVE).
 WAIT_POLICIES = {"passive (pyvf)": {"OMP_WAIT_POLICY": "PASSIVE"},
+                 "spin 10000": {"GOMP_SPINCOUNT": "10000"},
                  "spin 300000 (libgomp's default)": {"GOMP_SPINCOUNT": "300000"},
                  "active": {"OMP_WAIT_POLICY": "ACTIVE"}}
+READY = "ready"
 
 
 def _policy_worker(spec):
-    """In a worker process whose environment chose the waiting policy: the default setting's
-    median time of every call, idle and beside spec["cores"] busy processes (malloc's policy as a
-    pyvf command's: reuse_freed_memory)."""
-    pyvf.reuse_freed_memory()
+    """A waiting policy's worker (its environment chose the policy), alive for the whole comparison:
+    every call prepared and run once, then READY printed; each call name read from standard input
+    is timed once in pyvf's default setting and its seconds printed. -> (at the end of input) the
+    policy variables it saw and its threads."""
+    pyvf.reuse_freed_memory()  # malloc's policy as a pyvf command's
     size = QUICK if spec["quick"] else FULL
     fns = {name: make(size[which]) for name, (make, which) in CALLS.items()}
-    idle = medians(time_all(fns, ["default"], size["repeat"]))
-    with busy(spec["cores"]):
-        loaded = medians(time_all(fns, ["default"], size["loaded_repeat"]))
-    env = {v: os.environ.get(v) for v in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
-    return {"idle": {n: t["default"] for n, t in idle.items()}, "loaded": {n: t["default"] for n, t in loaded.items()},
-            "env": env, "threads": pyvf.num_threads()}
+    for fn in fns.values():
+        fn()
+    print(READY, flush=True)
+    for line in sys.stdin:
+        print(median_time(fns[line.strip()], repeat=1, warmup=0)[0], flush=True)
+    return {"env": {v: os.environ.get(v) for v in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")},
+            "threads": pyvf.num_threads()}
+
+
+def _policy_rounds(workers, rounds):
+    """{call: {policy: [seconds of each round]}}: each round times every call once in every
+    policy's worker, back to back, starting one worker further on each round (time_all's rounds,
+    across processes)."""
+    names = list(workers)
+    out = {call: {name: [] for name in names} for call in CALLS}
+    for r in range(rounds):
+        for call in CALLS:
+            for name in names[r % len(names):] + names[:r % len(names)]:
+                out[call][name].append(float(workers[name].ask(call)))
+    return out
 
 
 def wait_policies(quick, n_cores, log=print):
-    """{policy: {"idle": {call: s}, "loaded": {call: s}, "env"}} for each of WAIT_POLICIES, and the
-    table: each call's time per policy, over the best policy's."""
-    out = {}
-    for name, env in WAIT_POLICIES.items():
-        clear = {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": None}  # the parent's choice must not leak in
-        out[name] = run_worker(MODULE, {"quick": quick, "cores": n_cores}, env={**clear, **env})
+    """{policy: {"idle_rounds": {call: [s]}, "loaded_rounds": ..., "env", "threads"}} for each of
+    WAIT_POLICIES, and the table (policy_table). The runtime reads its policy when it loads, so each
+    policy has a worker process of its own; all of them stay alive (each stopped while another is
+    timed), and every round times each call in each of them back to back (time_all's method: a
+    slow phase of the machine reaches every policy alike), idle and then beside n_cores busy
+    processes."""
+    size = QUICK if quick else FULL
+    clear = {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": None}  # the parent's choice must not leak in
+    with contextlib.ExitStack() as stack:
+        # each stopped while the others are timed (a spinning policy's threads would take their cores)
+        workers = {name: stack.enter_context(Worker(MODULE, {"quick": quick}, env={**clear, **env}, stopped=True))
+                   for name, env in WAIT_POLICIES.items()}
+        for name, w in workers.items():
+            if w.read() != READY:
+                raise RuntimeError(f"the worker of waiting policy {name!r} did not start")
+        idle = _policy_rounds(workers, size["repeat"])
+        with busy(n_cores):
+            loaded = _policy_rounds(workers, size["loaded_repeat"])
+        out = {name: dict(w.finish(), idle_rounds={c: t[name] for c, t in idle.items()},
+                          loaded_rounds={c: t[name] for c, t in loaded.items()}) for name, w in workers.items()}
     log(table(*policy_table(out, n_cores)))
     return out
 
 
+def over_fastest(policies, cond, call):
+    """{policy: its time over the fastest policy's} for one call and condition ("idle" or
+    "loaded"): the median of the rounds' ratios, each round's fastest policy the reference (as
+    default_over_best)."""
+    rounds = {name: p[f"{cond}_rounds"][call] for name, p in policies.items()}
+    fastest = [min(ts) for ts in zip(*rounds.values())]
+    return {name: statistics.median(t / f for t, f in zip(ts, fastest)) for name, ts in rounds.items()}
+
+
 def policy_table(policies, n_cores):
-    """(header, rows) of the waiting policies' times: ms per policy, and each one's time over the
-    fastest policy's for that call and condition."""
+    """(header, rows) of the waiting policies' times: each call's median ms per policy, and its
+    time over the fastest policy's (over_fastest)."""
     names = list(policies)
     rows = []
     for cond, label_ in (("idle", "idle"), ("loaded", f"{n_cores} busy")):
-        for call in policies[names[0]][cond]:
-            t = {n: policies[n][cond][call] for n in names}
-            best = min(t.values())
-            rows.append([call, label_, *(f"{t[n] * 1e3:.1f} ({t[n] / best:.2f})" for n in names)])
-    return ["call", "machine", *(f"{n}: ms (/ best)" for n in names)], rows
+        for call in policies[names[0]][f"{cond}_rounds"]:
+            ratio = over_fastest(policies, cond, call)
+            rows.append([call, label_, *(f"{statistics.median(policies[n][f'{cond}_rounds'][call]) * 1e3:.1f} "
+                                         f"({ratio[n]:.2f})" for n in names)])
+    return ["call", "machine", *(f"{n}: ms (/ fastest)" for n in names)], rows
 
 
 # ---------------------------------------------------------------------------------------
@@ -413,9 +453,10 @@ def scale(quick, n_cores, log=print, calls=None, counts=None, save=None):
         return {"threads": counts, "times": _jsonable(times), "bitwise": dict(bitwise), "failures": list(failures)}
     for name, prepare in calls.items():
         # rounds x timed steps per thread count: the paper sizes' steps take seconds to a minute,
-        # and vary by 10% on a shared machine, where a slow minute can fall on one count: two
-        # rounds over the counts, one timed step each (the median of two is their mean)
-        rounds, timed = (2, 1) if "paper" in name else (3 if quick else 5, 1)
+        # and vary by 10 to 20% on a shared machine, where a slow minute can fall on one count:
+        # three rounds over the counts, one timed step each (the median of three drops one slow
+        # round; two rounds' median, their mean, read 1.79x where a run of the scaling alone read 1.98x)
+        rounds, timed = (3, 1) if "paper" in name else (3 if quick else 5, 1)
         t, want = {n: [] for n in counts}, None
         for _ in range(rounds):
             for n in counts:
@@ -498,9 +539,9 @@ def scaling_targets(rep):
 
 
 def _worker(spec):
-    """run_worker's entry: the whole run (spec["whole"]: `pyvf bench report` measures the threads
-    in a fresh process, as a user's, not after its other runs grew its heap by gigabytes), its
-    log on stderr; else a waiting policy's worker."""
+    """run_worker's (and Worker's) entry: the whole run (spec["whole"]: `pyvf bench report`
+    measures the threads in a fresh process, as a user's, not after its other runs grew its heap by
+    gigabytes), its log on stderr; else a waiting policy's worker."""
     if spec.get("whole"):
         return run(spec["quick"], spec["cores"], log=lambda *a, **k: print(*a, file=sys.stderr, **k))
     return _policy_worker(spec)
