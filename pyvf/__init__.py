@@ -5,18 +5,12 @@ Every layer has a hand-written forward and backward pass; docs/math.md is the ma
 
 import os
 
-# How OpenMP's threads wait between parallel regions. Threads that spin long after a region steal
-# the cores other work needs (numpy's, the user's, other processes'): libgomp's default spin
-# (300000 times) made training steps 1.4 to 1.8x slower beside busy processes. Threads that sleep
-# at once must be woken for every region: 1.1 to 1.2x slower idle. A short spin, 10000 times (about
-# 0.1 to 0.5 ms, by the CPU's pause), catches the next region of a step and then sleeps: within
-# 1.10x of the fastest policy idle and 1.05x beside busy processes (`pyvf bench threads` measures
-# each policy; docs/performance.md). libomp (a clang build) sleeps at once (KMP_BLOCKTIME=0). Set
-# unless the user chose a policy, a spin count or a block time; read when _core loads the
-# runtime, so before the import.
-if not any(v in os.environ for v in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "KMP_BLOCKTIME")):
-    os.environ["GOMP_SPINCOUNT"] = "10000"
-    os.environ["KMP_BLOCKTIME"] = "0"
+# OpenMP threads that spin after a parallel region steal the cores other work needs: numpy's, the
+# user's, other processes' (`pyvf bench threads` measures each policy idle and beside busy
+# processes; docs/performance.md). Sleep at once instead, unless the user chose a policy or a spin
+# count. Read by libgomp when _core loads it, so it must be set before the import.
+if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 from . import _core  # the compiled kernels, on the best instruction-set path (or PYVF_ISA's)
 from ._threads import num_threads, set_num_threads, threads  # the kernels' and numpy's BLAS threads

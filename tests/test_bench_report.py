@@ -194,14 +194,14 @@ def test_policy_and_scaling_lines_state_the_measured_ratios():
     """pyvf's waiting policy against the others (worst ratio to the fastest, closed form from the
     made-up times: the median of the rounds' ratios, which here is not the ratio of the medians),
     and the speed-up on the most threads; absent measurements give no line."""
-    pol = {"spin (pyvf)": {"idle_rounds": {"a": [1.2] * 3, "b": [1.0] * 3},
+    pol = {"passive (pyvf)": {"idle_rounds": {"a": [1.2] * 3, "b": [1.0] * 3},
                               "loaded_rounds": {"a": [1.0, 3.0, 3.0], "b": [1.0] * 3}},
            "active": {"idle_rounds": {"a": [1.0] * 3, "b": [1.0] * 3},
                       "loaded_rounds": {"a": [2.0, 2.0, 4.0], "b": [1.5] * 3}}}
-    # loaded a: the rounds' fastest 1, 2, 3; spin 1, 1.5, 1 of it (median 1), active 2, 1, 4/3 (4/3),
+    # loaded a: the rounds' fastest 1, 2, 3; passive 1, 1.5, 1 of it (median 1), active 2, 1, 4/3 (4/3),
     # where the medians' ratio would say 1.5 and 1
     line = report.policy_line(dict(policies=pol, cores=2))
-    assert "spin (pyvf) takes at most **1.00x**" in line and "active takes up to 1.50x" in line
+    assert "passive (pyvf) takes at most **1.00x**" in line and "active takes up to 1.50x" in line
     assert "idle it takes up to 1.20x (the others up to 1.00x)" in line
     pol["active"]["loaded_rounds"]["b"] = [1.0] * 3
     assert "active takes up to 1.33x" in report.policy_line(dict(policies=pol, cores=2))

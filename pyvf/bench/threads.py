@@ -279,11 +279,11 @@ def _jsonable(times):
 # the OpenMP runtime's waiting between parallel regions
 
 # libgomp's choices (pyvf's Linux build), each set in a worker process before the kernels load the
-# runtime; pyvf's first: spin 10000 times, then sleep (what `import pyvf` sets unless the user
-# chose), sleep at once (PASSIVE), spin 300000 times first (libgomp's own default when nothing is
-# set; its manual reckons about 3 ms, the time depends on the CPU), spin for minutes (ACTIVE).
-WAIT_POLICIES = {"spin 10000 (pyvf)": {"GOMP_SPINCOUNT": "10000"},
-                 "passive": {"OMP_WAIT_POLICY": "PASSIVE"},
+# runtime: sleep at once (what `import pyvf` sets unless the user set OMP_WAIT_POLICY or
+# GOMP_SPINCOUNT), spin 300000 times first (libgomp's own default when nothing is set; its manual
+# reckons about 3 ms, the time depends on the CPU), spin for minutes (ACTIVE).
+WAIT_POLICIES = {"passive (pyvf)": {"OMP_WAIT_POLICY": "PASSIVE"},
+                 "spin 10000": {"GOMP_SPINCOUNT": "10000"},
                  "spin 300000 (libgomp's default)": {"GOMP_SPINCOUNT": "300000"},
                  "active": {"OMP_WAIT_POLICY": "ACTIVE"}}
 READY = "ready"
@@ -327,7 +327,7 @@ def wait_policies(quick, n_cores, log=print):
     slow phase of the machine reaches every policy alike), idle and then beside n_cores busy
     processes."""
     size = QUICK if quick else FULL
-    clear = {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": None, "KMP_BLOCKTIME": None}  # not the parent's choice
+    clear = {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": None}  # the parent's choice must not leak in
     with contextlib.ExitStack() as stack:
         # each stopped while the others are timed (a spinning policy's threads would take their cores)
         workers = {name: stack.enter_context(Worker(MODULE, {"quick": quick}, env={**clear, **env}, stopped=True))
