@@ -36,7 +36,8 @@ def _key(name, args):
 @contextlib.contextmanager
 def kernel_timer():
     """Within the block every compiled kernel called through `pyvf._core` is timed; yields
-    {"kernel shapes": [calls, seconds]}, filled as the calls run."""
+    {"kernel shapes": [calls, seconds]}, filled as the calls run. The kernels are those of the
+    kernel path current on entry (a `pyvf.use_kernel_path` inside the block does not reach them)."""
     totals = collections.defaultdict(lambda: [0, 0.0])
     names = _core.kernels()
 
