@@ -3,6 +3,8 @@
     pyvf bench threads            # every call, setting and policy, idle and under load, and the
                                   # scaling with the paper sizes (about 14 minutes on 2 cores)
     pyvf bench threads --quick    # smaller batches, fewer repeats, no paper sizes (under a minute)
+    pyvf bench threads --profile --calls codebook-paper --counts 1 16   # where the speed-up goes,
+                                  # kernel by kernel (pyvf.bench.profile)
 
 The calls: the demo's cached render + localization (TINY_TRANSFORMER, 4 scenes of 5 context views,
 5 queries each, the scene encoded once beforehand), a codebook training step (TINY_CODEBOOK,

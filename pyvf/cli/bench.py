@@ -4,6 +4,7 @@ in pyvf.bench (and pyvf.bench.attention.demo for demo-attention).
     pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
     pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]      # speed vs error; hard cases
     pyvf bench threads [--quick]                # each thread setting, idle and beside busy processes
+    pyvf bench threads --profile [--calls ...]  # a step's time kernel by kernel at each thread count
     pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
     pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
 
