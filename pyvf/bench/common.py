@@ -226,8 +226,7 @@ class Worker:
                             f"{self.err.read()[-3000:]}")
 
     def ask(self, line):
-        self._signal(signal.SIGCONT)
-        try:
+        try:  # (a stopped process's pipe takes the line; read() lets it go on)
             self.proc.stdin.write(line + "\n")
             self.proc.stdin.flush()
         except BrokenPipeError:

@@ -70,10 +70,7 @@ def profile_call(prepare, counts, steps=2):
     parts, calls, total, want, same = {}, {}, {}, None, True
     for n in counts:
         with pyvf.threads(n):
-            step, result = prepare()
-            step()
-            got = np.asarray(result(), np.float64)
-            step()  # the warm-up
+            step, got = threads.prepared(prepare)
             with kernel_timer() as totals:
                 t0 = time.perf_counter()
                 for _ in range(steps):

@@ -168,6 +168,13 @@ class busy:
         return False
 
 
+def rotated(keys, r):
+    """keys starting r places further on (round r of a back-to-back comparison: no setting always
+    follows the same one)."""
+    r %= len(keys)
+    return keys[r:] + keys[:r]
+
+
 def time_all(fns, keys, repeat):
     """{call: {setting: [seconds of each round]}}: for each call, one warm-up per setting, then `repeat`
     rounds that time it once in every setting, so that a drift of the machine's speed (a busy
@@ -178,7 +185,7 @@ def time_all(fns, keys, repeat):
     for name, fn in fns.items():
         times = {key: [] for key in keys}
         for r in range(repeat + 1):
-            for key in keys[r % len(keys):] + keys[:r % len(keys)]:
+            for key in rotated(keys, r):
                 with _setting(key):
                     if r == 0:
                         fn()  # the warm-up
@@ -316,7 +323,7 @@ def _policy_rounds(workers, rounds):
     out = {call: {name: [] for name in names} for call in CALLS}
     for r in range(rounds):
         for call in CALLS:
-            for name in names[r % len(names):] + names[:r % len(names)]:
+            for name in rotated(names, r):
                 out[call][name].append(float(workers[name].ask(call)))
     return out
 
@@ -430,6 +437,18 @@ SCALING_IDS = dict(zip(("codebook-tiny", "transformer-tiny", "codebook-paper", "
 PAPER_SPEEDUP_2 = 1.8  # the paper-size steps on 2 threads against 1 (target)
 
 
+def prepared(prepare):
+    """A scaling call (prepare(): SCALING_CALLS') made ready to time: a fresh model, its first step
+    (whose result the bitwise comparison across thread counts takes) and a second step untimed
+    (the warm-up: a training loop's steady state, its heap and page tables at their high-water
+    mark) -> (step, the first step's result as float64)."""
+    step, result = prepare()
+    step()
+    got = np.asarray(result(), np.float64)
+    step()
+    return step, got
+
+
 def thread_counts(n_cores):
     """1, 2, 4, ... below n_cores, then n_cores."""
     out, n = [], 1
@@ -463,10 +482,7 @@ def scale(quick, n_cores, log=print, calls=None, counts=None, save=None):
         for _ in range(rounds):
             for n in counts:
                 with pyvf.threads(n):
-                    step, result = prepare()
-                    step()
-                    got = np.asarray(result(), np.float64)
-                    step()  # the warm-up: a training loop's steady state from here on
+                    step, got = prepared(prepare)
                     for _ in range(timed):
                         t0 = time.perf_counter()
                         step()
