@@ -200,7 +200,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
                        mn.resize(TQ); c.resize(TQ); l.resize(TQ); ls.resize(TQ); ok = true)
         typename Simd<T>::V chk = {};
         // one task per query tile of a block (r, b, h, i); the views with the most key blocks first
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
         for (int64_t t = 0; t < ntask; ++t) {
             if (!ok) continue;
             const int64_t qa = (t % ntile) * TQ, nq = std::min(TQ, L - qa);  // the tile's queries
@@ -327,7 +327,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                        llo.resize(RN * L); st.resize(TK * TQ); dpt.resize(TK * TQ); dst.resize(TK * TQ); ok = true)
         V chk = V{};
         // one task per (head, group of its key blocks)
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
         for (int64_t task = 0; task < B * H * G; ++task) {
             if (!ok) continue;
             const int64_t bh = task / G, g = task % G;
@@ -422,7 +422,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
         // element has one writer. The barrier makes status the same for every thread here.
 #pragma omp barrier
         if (G > 1 && status == kAttnOk) {
-#pragma omp for schedule(static)
+#pragma omp for schedule(static) nowait
             for (int64_t t = 0; t < B * H * RN; ++t) {
                 const int64_t bh = t / RN, y = t % RN;
                 const int64_t b = bh / H, h = bh % H, x = d.blk(y / N, b, h, y % N);

@@ -580,7 +580,7 @@ template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, co
         bool ok = false;
         PYVF_CONV_TRY_ALLOC(status, tile.resize(d.C * Rp * Wp + W); if (wide) out.resize(std::min(cob, d.Co) * nwide);
                             ok = true)
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
         for (int64_t t = 0; t < ntask; ++t) {
             if (!ok) continue;
             const int64_t bt = t / ncob, bi = bt / ntile, u0 = (bt % ntile) * R, nr = std::min(R, d.Ho - u0);
@@ -624,7 +624,7 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
         Buf<T> cols;  // (K, np), this thread's column tile
         bool ok = false;
         PYVF_CONV_TRY_ALLOC(status, if (!direct) cols.resize(K * np); ok = true)
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
         for (int64_t t = 0; t < ntask; ++t) {
             if (!ok) continue;
             const int64_t bp = t / ncob, bi = bp / ntile, p0 = (bp % ntile) * np, n = std::min(np, P - p0);
@@ -747,7 +747,7 @@ template <typename T> int dw_gemm(T* dw, T* db, const T* x, const T* dy, const C
         bool ok = false;
         PYVF_CONV_TRY_ALLOC(status, buf.resize(direct ? 0 : rows ? nc_max * Rp * Wq : kb_max * np);
                             acc.resize(kb_max * ow); aoff.resize(kb_max); arow.resize(kb_max); ok = true)
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
         for (int64_t t = 0; t < ncb * nob; ++t) {
             if (!ok) continue;
             const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
@@ -786,7 +786,7 @@ template <typename T> int dw_gemm(T* dw, T* db, const T* x, const T* dy, const C
             for (int64_t o = 0; o < no; ++o)
                 for (int64_t r = 0; r < kb; ++r) dw[(o0 + o) * K + c0 * khw + r] = acc[r * ow + o];
         }
-#pragma omp for schedule(static)
+#pragma omp for schedule(static) nowait
         for (int64_t o = 0; o < d.Co; ++o) db_sum(db, dy, d, o);
     }
     return status;
@@ -844,7 +844,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
             Buf<T> dcols;  // (kCB*kh*kw, np)
             bool ok = false;
             PYVF_CONV_TRY_ALLOC(status, dcols.resize(std::min(d.C, kCB) * khw * np); ok = true)
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
             for (int64_t t = 0; t < ntask; ++t) {
                 if (!ok) continue;
                 const int64_t bi = t / ncb, c0 = (t % ncb) * kCB, nc = std::min(kCB, d.C - c0);
@@ -901,7 +901,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
         bool ok = false;
         PYVF_CONV_TRY_ALLOC(status, buf.resize(direct ? 0 : rows ? nc_max * Rp * Wp : kb_max * np);
                             acc.resize(kb_max * ow * kW<T>); aoff.resize(kb_max); ok = true)
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
         for (int64_t t = 0; t < ncb * nob; ++t) {
             if (!ok) continue;
             const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
@@ -934,7 +934,7 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
         }
 
         // ---- db
-#pragma omp for schedule(static)
+#pragma omp for schedule(static) nowait
         for (int64_t o = 0; o < d.Co; ++o) db_sum(db, dy, d, o);
     }
     return status;
@@ -1068,7 +1068,7 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
         Buf<T> ap, bp;
         bool ok = false;
         PYVF_CONV_TRY_ALLOC(status, ap.resize(rows * depth); bp.resize(depth * cols); ok = true)
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
         for (int64_t t = 0; t < parts * nb * per; ++t) {
             if (!ok) continue;
             const int64_t s = t / (nb * per), q = t % (nb * per);  // part s, block q
@@ -1088,18 +1088,22 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
                 for (int64_t i = 0; i < m; ++i)
                     for (int64_t j = 0; j < n; ++j) cb[i * N + j] += bias[j0 + j];
         }
-        // after the loop's barrier every thread sees the same status (a worksharing loop must be
-        // met by all threads or none)
-        if (parts > 1 && status == kConvOk) {  // c = ((part 0 + part 1) + part 2) + ... (+ bias), row by row
-#pragma omp for schedule(static)
-            for (int64_t r = 0; r < nb * M; ++r) {
-                T* cr = c + r * N;
-                for (int64_t s = 1; s < parts; ++s) {
-                    const T* pr = more.get() + ((s - 1) * nb * M + r) * N;
-                    for (int64_t j = 0; j < N; ++j) cr[j] += pr[j];
+        // the parts wait for every task (parts is the same on every thread, so all or none meet
+        // the barrier); after it every thread sees the same status (a worksharing loop must be
+        // met by all threads or none). One part: the region's end is the only barrier.
+        if (parts > 1) {
+#pragma omp barrier
+            if (status == kConvOk) {  // c = ((part 0 + part 1) + part 2) + ... (+ bias), row by row
+#pragma omp for schedule(static) nowait
+                for (int64_t r = 0; r < nb * M; ++r) {
+                    T* cr = c + r * N;
+                    for (int64_t s = 1; s < parts; ++s) {
+                        const T* pr = more.get() + ((s - 1) * nb * M + r) * N;
+                        for (int64_t j = 0; j < N; ++j) cr[j] += pr[j];
+                    }
+                    if (bias)
+                        for (int64_t j = 0; j < N; ++j) cr[j] += bias[j];
                 }
-                if (bias)
-                    for (int64_t j = 0; j < N; ++j) cr[j] += bias[j];
             }
         }
     }

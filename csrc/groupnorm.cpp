@@ -307,7 +307,7 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
             }
         }
         // the partial sums over images, in image order
-#pragma omp for schedule(static)
+#pragma omp for schedule(static) nowait
         for (int64_t c = 0; c < d.C; ++c) {
             double sg = 0, sb = 0;
             for (int64_t b = 0; b < d.B; ++b) {

@@ -145,7 +145,7 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
 #pragma omp atomic write
             failed = 1;
         }
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(dynamic, 1) nowait
         for (int64_t blk = 0; blk < nblocks; ++blk) {
             if (!ok) continue;
             try {
