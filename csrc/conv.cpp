@@ -11,9 +11,9 @@
 // y and dx element is one dot product accumulated in T in increasing (c, i, j) order (FMA where
 // the path has it); every dw element a sum over pixels in W vector lanes, the lanes added at the
 // end. cols is never stored whole.
-//   forward   y_b = w2 @ cols_b + b, by tasks (image, tile of output pixels), each writing its own
-//             columns of y:
-//             stride 1 (conv_rows): the R + kh - 1 input rows that R output rows read are copied
+//   forward   y_b = w2 @ cols_b + b, by tasks (image, tile of output pixels, block of output
+//             channels), each writing its own block of y (ConvTasks):
+//             stride 1: the R + kh - 1 input rows that R output rows read are copied
 //             once, zero padded, into a (C, R + kh - 1, Wo + kw - 1) tile; each cols row is then a
 //             shifted window of it, read in place through a table of row offsets (tab_gemm, the
 //             register tile of simd.h's gemm with B's rows found through the table). 1x the input
@@ -24,24 +24,29 @@
 //             (simd.h's gemm) straight into y's slab. 1x1, stride 1, unpadded: x itself is cols.
 //   dx        stride 1: the transposed conv is itself a stride-1 conv: dx = conv(dy, wf) with
 //             wf[c, o, i, j] = w[o, c, kh-1-i, kw-1-j] and padding (kh-1-pt, kh-1-pb, kw-1-pl,
-//             kw-1-pr) (a negative one crops), so it runs the forward's conv_rows: each dx element
+//             kw-1-pr) (a negative one crops), so it runs the forward's tasks: each dx element
 //             is one dot product of Co*kh*kw terms, a gather, no scatter.
 //             stride > 1 (the Downsample): dcols (K_blk, np) = w2[:, blk]^T @ dy tile, then col2im
 //             adds each row onto its strided slab of dx. Task = (image, block of kCB channels),
-//             its tiles in order, so no two tasks write the same dx element.
+//             its tiles in order, so no two tasks write the same dx element (StridedDxTasks).
 //   dw        dw2[o, k] = sum over images and pixels p of dy_b[o, p] cols_b[k, p]. Co >= W
-//             (dw_gemm): dw2^T (K, Co) = sum_b cols_b @ dyT_b, dyT = dy copied channels-last, on
+//             (DwGemmTasks): dw2^T (K, Co) = sum_b cols_b @ dyT_b, dyT = dy copied channels-last, on
 //             the gemm register tile (one broadcast of cols[k, p] times a vector of output
 //             channels), cols read in place from a padded-row tile taken as rows of Wp pixels
 //             (stride 1; dyT gets zero columns there) or from im2col tiles; the pixels summed in
 //             chunks of kDwChunk, each a fresh register sum added to the entry (two levels).
-//             Co < W (conv_out's 3 channels), and unpadded 1x1 from 32x32 pixels on: dot
+//             Co < W (conv_out's 3 channels), and unpadded 1x1 from 32x32 pixels on (DwLanesTasks): dot
 //             products along the pixels of two row-major operands (dot_lanes: MR rows of cols
 //             times 4 rows of dy per register tile), neither transposed, dy read in place, one
 //             vector of lane sums per entry added up at the end. Both: task = (block of kCB input
 //             channels, block of output channels), owning those entries of dw, every image's every
 //             tile summed in a fixed order.
 //   db        sum over images and pixels of dy, in double, per output channel.
+// Threads: one OpenMP region per call (each region, and each barrier in it, wakes the sleeping
+// threads under OMP_WAIT_POLICY=PASSIVE: 35-50 us on a 2-core VM). The backward's region flips
+// the weights and copies dy channels-last, meets its one barrier, then runs the dw tasks and the
+// dx tasks as one dynamic loop, so that the dx tasks fill the threads the dw tasks leave idle
+// (the tiny codebook's 32-channel dw has 8 tasks), and db.
 // Determinism: the tiles depend only on the shapes; every output element is computed by one
 // task in one fixed order (the dw's output-channel blocks follow the thread count, but a pair
 // (k, o)'s sums are the same in any block): bitwise the same results for any number of threads
@@ -56,7 +61,7 @@
 //
 // Measured (AMD EPYC, AVX2, one thread's CPU time, B = 16, 32 -> 32 channels, 64x64, 3x3 pad 1,
 // float32): forward 15.1 ms (80 GFLOP/s), backward 31 ms; torch 2.13 15 ms and 70 ms for both.
-// dw_gemm (Intel Xeon, AVX-512, 2 threads, B = 2, 3x3 pad 1, float32): the backward of 512 -> 512
+// DwGemmTasks (Intel Xeon, AVX-512, 2 threads, B = 2, 3x3 pad 1, float32): the backward of 512 -> 512
 // channels on 8x8 22.6 -> 9.3 ms, 128 -> 128 on 128x128 89.5 -> 86.6 ms (torch 5.4 and 71 ms).
 //
 // Test: pytest tests/test_conv.py (fast vs plain vs NumPy vs torch float64, every shape family
@@ -104,6 +109,13 @@ constexpr int64_t kParallelFlops = 1 << 20;
     } catch (const std::bad_alloc&) {                           \
         _Pragma("omp atomic write") status = kConvOutOfMemory;  \
     }
+// The same outside a region: the kernel returns kConvOutOfMemory.
+#define PYVF_CONV_OR_OOM(...)                 \
+    try {                                     \
+        __VA_ARGS__;                          \
+    } catch (const std::bad_alloc&) {         \
+        return kConvOutOfMemory;              \
+    }
 
 template <typename T> constexpr int64_t kW = Simd<T>::W;
 
@@ -124,11 +136,11 @@ inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
 inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
 
-// Output channels per task of a forward product (conv_rows, conv_gemm) that has `tasks` (image,
-// pixel tile) tasks: all of them where those are at least four per thread, else blocks of whole
-// register tiles (24 rows: 3 of AVX-512's 8, 4 of AVX2's 6, 6 of SSE2's 4) making about four
-// tasks per thread (two left 16 threads a third idle on the 8x8 layers). A row's sums are the
-// same in any block, so the results do not depend on the thread count.
+// Output channels per task of a forward product (ConvTasks) that has `tasks` (image, pixel tile)
+// tasks: all of them where those are at least four per thread, else blocks of whole register
+// tiles (24 rows: 3 of AVX-512's 8, 4 of AVX2's 6, 6 of SSE2's 4) making about four tasks per
+// thread (two left 16 threads a third idle on the 8x8 layers). A row's sums are the same in any
+// block, so the results do not depend on the thread count.
 inline int64_t out_channel_block(int64_t Co, int64_t tasks) {
     const int64_t want = std::clamp<int64_t>(ceil_div(4 * num_threads(), std::max<int64_t>(tasks, 1)), 1,
                                              std::max<int64_t>(ceil_div(Co, 24), 1));
@@ -543,112 +555,110 @@ template <typename T> inline bool rows_finite(const T* y, int64_t m, int64_t ld,
     return ok;
 }
 
-// Stride 1 (the codebook's 3x3 pad 1, and every stride-1 dx): per task (image, tile of R output
-// rows) the R + kh - 1 input rows it reads are copied once, zero padded, into a (C, R + kh - 1, Wp)
-// tile, Wp = Wo + kw - 1, and w2 (Co, K) @ Bt is computed with Bt[(c,i,j), (r,v)] =
-// tile[c, r + i, v + j] read in place by tab_gemm: 1x the input copied instead of kh*kw x for
-// im2col, and the tile stays in L1/L2.
-//   rows of at least kRowsMinVectors vectors: one tab_gemm per output row, N = Wo, straight into y;
-//   narrower rows (8x8 images): one tab_gemm over the whole tile taken as rows of Wp pixels,
-//   N = (nr - 1)*Wp + Wo rounded up to whole vectors: the kw - 1 columns past each row's end (and
-//   the rounding) are computed and dropped, and the Wo real ones copied into y. The tile has W
-//   elements of slack so that those columns read inside it.
-template <typename T> int conv_rows(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
-    constexpr int64_t W = kW<T>;
-    const int64_t K = d.C * d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi, Wp = d.Wo + d.kw - 1;
-    const int64_t R = std::clamp<int64_t>(kRowTileBytes / (std::max<int64_t>(d.C, 1) * Wp * (int64_t)sizeof(T)) -
-                                              (d.kh - 1), 1, d.Ho);
-    const int64_t Rp = R + d.kh - 1, ntile = ceil_div(d.Ho, R);
-    // output-channel blocks where images x row tiles are few (an 8x8 image is one tile)
-    const int64_t cob = out_channel_block(d.Co, d.B * ntile), ncob = ceil_div(d.Co, cob);
-    const int64_t ntask = d.B * ntile * ncob;
-    const bool wide = d.Wo < kRowsMinVectors * W;
-    const int64_t nwide = round_up((R - 1) * Wp + d.Wo, W);  // columns of the widest wide product
-    int status = kConvOk, nonfinite = 0;
-    std::vector<int64_t> boff;  // row k = (c, i, j) of Bt starts at tile + boff[k] (+ r*Wp for row r)
-    try {
-        boff.resize(K);
-    } catch (const std::bad_alloc&) {
-        return kConvOutOfMemory;
+// y = conv(x, w) (+ b when b is not null) as a set of tasks: the forward, and the stride-1 dx
+// with the flipped weights. Task = (image, tile of output rows or pixels, block of output
+// channels), each writing its own block of y; run(t) may be called by any thread, in any order,
+// with that thread's Scratch (made once by scratch()).
+//   Stride 1, not 1x1-direct (the codebook's 3x3 pad 1, and every 3x3 dx): per task the R + kh - 1
+//   input rows that its R output rows read are copied once, zero padded, into a (C, R + kh - 1,
+//   Wp) tile, Wp = Wo + kw - 1, and w2 (Co, K) @ Bt is computed with Bt[(c,i,j), (r,v)] =
+//   tile[c, r + i, v + j] read in place by tab_gemm: 1x the input copied instead of kh*kw x for
+//   im2col, and the tile stays in L1/L2.
+//     rows of at least kRowsMinVectors vectors: one tab_gemm per output row, N = Wo, straight
+//     into y;
+//     narrower rows (8x8 images, "wide"): one tab_gemm over the whole tile taken as rows of Wp
+//     pixels, N = (nr - 1)*Wp + Wo rounded up to whole vectors: the kw - 1 columns past each
+//     row's end (and the rounding) are computed and dropped, and the Wo real ones copied into y.
+//     The tile has W elements of slack so that those columns read inside it.
+//   Otherwise (stride > 1, 1x1): im2col tiles of about kTileBytes in the thread's buffer, gemm_mr
+//   straight into y's slab; unpadded 1x1 stride 1 ("direct"): x itself is cols.
+template <typename T> struct ConvTasks {
+    struct Scratch {
+        Buf<T> tile, out;  // rows: the padded rows (C, Rp, Wp) + W slack, and (wide) the product
+    };                     // (cob, nwide); else the cols tile (K, np) (none when direct)
+    T* y;
+    const T *x, *w, *b;
+    ConvDims d;
+    int64_t K, P, HWi, Wp = 0, R = 0, Rp = 0, np = 0, nwide = 0, ntile, cob, ncob, ntask;
+    bool direct, rows, wide = false;
+    std::vector<int64_t> boff;  // rows: row k = (c, i, j) of Bt starts at tile + boff[k] (+ r*Wp for row r)
+
+    // throws std::bad_alloc
+    ConvTasks(T* y_, const T* x_, const T* w_, const T* b_, const ConvDims& d_) : y(y_), x(x_), w(w_), b(b_), d(d_) {
+        constexpr int64_t W = kW<T>;
+        K = d.C * d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
+        direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
+        rows = !direct && d.stride == 1;
+        if (rows) {
+            Wp = d.Wo + d.kw - 1;
+            // tiles of at most kRowTileBytes, balanced: ceil(Ho / R) tiles of about equal rows (a
+            // 64-row image made 29 + 29 + 6, now 22 + 22 + 20). Each output element is one dot
+            // product whatever its tile, so the tiles change no bit.
+            R = std::clamp<int64_t>(kRowTileBytes / (std::max<int64_t>(d.C, 1) * Wp * (int64_t)sizeof(T)) - (d.kh - 1),
+                                    1, d.Ho);
+            ntile = ceil_div(d.Ho, R), R = ceil_div(d.Ho, ntile), Rp = R + d.kh - 1;
+            wide = d.Wo < kRowsMinVectors * W;
+            nwide = round_up((R - 1) * Wp + d.Wo, W);  // columns of the widest wide product
+            boff.resize(K);
+            for (int64_t c = 0; c < d.C; ++c)
+                for (int64_t i = 0; i < d.kh; ++i)
+                    for (int64_t j = 0; j < d.kw; ++j) boff[(c * d.kh + i) * d.kw + j] = (c * Rp + i) * Wp + j;
+        } else {
+            np = tile_pixels<T>(K, P), ntile = ceil_div(P, np);
+        }
+        // output-channel blocks where images x tiles are few (an 8x8 image is one tile)
+        cob = out_channel_block(d.Co, d.B * ntile), ncob = ceil_div(d.Co, cob), ntask = d.B * ntile * ncob;
     }
-    for (int64_t c = 0; c < d.C; ++c)
-        for (int64_t i = 0; i < d.kh; ++i)
-            for (int64_t j = 0; j < d.kw; ++j) boff[(c * d.kh + i) * d.kw + j] = (c * Rp + i) * Wp + j;
-#pragma omp parallel if (worth_threads(d))
-    {
-        Buf<T> tile, out;  // (C, Rp, Wp) + W slack; wide: the product (cob, nwide)
-        bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, tile.resize(d.C * Rp * Wp + W); if (wide) out.resize(std::min(cob, d.Co) * nwide);
-                            ok = true)
-#pragma omp for schedule(dynamic, 1) nowait
-        for (int64_t t = 0; t < ntask; ++t) {
-            if (!ok) continue;
-            const int64_t bt = t / ncob, bi = bt / ntile, u0 = (bt % ntile) * R, nr = std::min(R, d.Ho - u0);
-            const int64_t o0 = (t % ncob) * cob, no = std::min(cob, d.Co - o0);
-            pad_rows(tile.data(), x + bi * d.C * HWi, d, 0, d.C, u0, nr + d.kh - 1, Rp, Wp);
+
+    // throws std::bad_alloc
+    void scratch(Scratch& s) const {
+        if (rows) {
+            s.tile.resize(d.C * Rp * Wp + kW<T>);
+            if (wide) s.out.resize(std::min(cob, d.Co) * nwide);
+        } else if (!direct) {
+            s.tile.resize(K * np);
+        }
+    }
+
+    // task t; false when what it wrote is not finite
+    bool run(int64_t t, Scratch& s) const {
+        constexpr int64_t W = kW<T>;
+        const int64_t bt = t / ncob, bi = bt / ntile, o0 = (t % ncob) * cob, no = std::min(cob, d.Co - o0);
+        const T* xb = x + bi * d.C * HWi;  // (C, Hi, Wi)
+        const T* wb = w + o0 * K;          // rows o0 .. o0 + no of w2
+        if (rows) {
+            const int64_t u0 = (bt % ntile) * R, nr = std::min(R, d.Ho - u0);
+            pad_rows(s.tile.data(), xb, d, 0, d.C, u0, nr + d.kh - 1, Rp, Wp);
             T* yb = y + (bi * d.Co + o0) * P;  // rows o0 .. o0 + no of y_b
-            const T* wb = w + o0 * K;
             if (wide) {
                 const int64_t n = round_up((nr - 1) * Wp + d.Wo, W);
-                tab_gemm<T>((int)no, (int)n, (int)K, wb, K, tile.data(), boff.data(), out.data(), n);
+                tab_gemm<T>((int)no, (int)n, (int)K, wb, K, s.tile.data(), boff.data(), s.out.data(), n);
                 for (int64_t o = 0; o < no; ++o)
                     for (int64_t r = 0; r < nr; ++r)
-                        std::copy_n(out.data() + o * n + r * Wp, d.Wo, yb + o * P + (u0 + r) * d.Wo);
+                        std::copy_n(s.out.data() + o * n + r * Wp, d.Wo, yb + o * P + (u0 + r) * d.Wo);
             } else {
                 for (int64_t r = 0; r < nr; ++r)  // y_b[o0:o0+no, u0 + r, :] = w2[o0:o0+no] @ Bt(row r)
-                    tab_gemm<T>((int)no, (int)d.Wo, (int)K, wb, K, tile.data() + r * Wp, boff.data(),
+                    tab_gemm<T>((int)no, (int)d.Wo, (int)K, wb, K, s.tile.data() + r * Wp, boff.data(),
                                 yb + (u0 + r) * d.Wo, P);
             }
             if (b) add_bias_rows(yb + u0 * d.Wo, b + o0, no, P, nr * d.Wo);
-            if (!rows_finite(yb + u0 * d.Wo, no, P, nr * d.Wo)) {
-#pragma omp atomic write
-                nonfinite = 1;
-            }
+            return rows_finite(yb + u0 * d.Wo, no, P, nr * d.Wo);
         }
-    }
-    return status != kConvOk ? status : nonfinite ? kConvNonFinite : kConvOk;
-}
-
-// y = conv(x, w) (+ b when b is not null): the forward, and the stride-1 dx with the flipped
-// weights. Tasks: (image, tile of output pixels, block of output channels), each writing its own
-// block of y.
-template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
-    const int64_t K = d.C * d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
-    const bool direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
-    if (!direct && d.stride == 1) return conv_rows(y, x, w, b, d);
-    const int64_t np = tile_pixels<T>(K, P), ntile = ceil_div(P, np);
-    const int64_t cob = out_channel_block(d.Co, d.B * ntile), ncob = ceil_div(d.Co, cob), ntask = d.B * ntile * ncob;
-    int status = kConvOk, nonfinite = 0;
-#pragma omp parallel if (worth_threads(d))
-    {
-        Buf<T> cols;  // (K, np), this thread's column tile
-        bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, if (!direct) cols.resize(K * np); ok = true)
-#pragma omp for schedule(dynamic, 1) nowait
-        for (int64_t t = 0; t < ntask; ++t) {
-            if (!ok) continue;
-            const int64_t bp = t / ncob, bi = bp / ntile, p0 = (bp % ntile) * np, n = std::min(np, P - p0);
-            const int64_t o0 = (t % ncob) * cob, no = std::min(cob, d.Co - o0);
-            const T* xb = x + bi * d.C * HWi;             // (C, Hi, Wi)
-            T* yb = y + (bi * d.Co + o0) * P + p0;        // (no, n) of (Co, P)
-            const T* src = xb + p0;            // direct: the columns are x_b's own pixels
-            int64_t ldb = P;
-            if (!direct) {
-                im2col(cols.data(), xb, d, 0, d.C, p0, n, n);
-                src = cols.data();
-                ldb = n;
-            }
-            // y_b[o0:o0+no, p0:p0+n] = w2[o0:o0+no] (no, K) @ cols (K, n)
-            gemm_mr<T, false>((int)no, (int)n, (int)K, w + o0 * K, K, src, ldb, yb, P);
-            if (b) add_bias_rows(yb, b + o0, no, P, n);
-            if (!rows_finite(yb, no, P, n)) {
-#pragma omp atomic write
-                nonfinite = 1;
-            }
+        const int64_t p0 = (bt % ntile) * np, n = std::min(np, P - p0);
+        T* yb = y + (bi * d.Co + o0) * P + p0;  // (no, n) of (Co, P)
+        const T* src = xb + p0;                 // direct: the columns are x_b's own pixels
+        int64_t ldb = P;
+        if (!direct) {
+            im2col(s.tile.data(), xb, d, 0, d.C, p0, n, n);
+            src = s.tile.data();
+            ldb = n;
         }
+        // y_b[o0:o0+no, p0:p0+n] = w2[o0:o0+no] (no, K) @ cols (K, n)
+        gemm_mr<T, false>((int)no, (int)n, (int)K, wb, K, src, ldb, yb, P);
+        if (b) add_bias_rows(yb, b + o0, no, P, n);
+        return rows_finite(yb, no, P, n);
     }
-    return status != kConvOk ? status : nonfinite ? kConvNonFinite : kConvOk;
-}
+};
 
 // Where row k = (c, i, j) of a dw task's cols starts, for its nc input channels: in x itself (1x1
 // direct: channel c's pixels), in a padded-row tile (nc, Rp, Wp) (tap (i, j) shifts channel c's
@@ -688,7 +698,7 @@ template <typename T> void db_sum(T* db, const T* dy, const ConvDims& d, int64_t
 // dw when Co >= W (one vector of output channels): dw2^T (K, Co) = sum over images b of cols_b
 // (K, P) @ dyT_b (P, Co), dyT the channels-last copy of dy, as products on the register tile of
 // ptr_gemm: one broadcast of cols[k, p] times a vector of dyT[p, o0 ..], so the o's lie along the
-// vectors and no horizontal sum is needed (the lanes path, dot_lanes, 2-5x slower on the
+// vectors and no horizontal sum is needed (the lanes path, DwLanesTasks, 2-5x slower on the
 // codebook's shapes with 32..512 channels, stays for Co < W, where a row of dyT is less than a
 // vector). Stride 1, not 1x1-direct: cols is read in place from a padded-row tile of R + kh - 1
 // input rows, its row k = (c, i, j) the tile's contiguous numbers from (c, i, j) on, taken as rows
@@ -698,98 +708,323 @@ template <typename T> void db_sum(T* db, const T* dy, const ConvDims& d, int64_t
 // that order of a fresh register sum over the chunk's pixels in order (two levels). Tasks: (block
 // of kCB input channels, block of whole vectors of output channels), each owning its entries of
 // dw: bitwise the same for any thread count (a column is in a vector or in the scalar tail
-// whatever the blocks).
+// whatever the blocks). Before the tasks, prep(i) for i < nprep fills dyT's row i (every row
+// before any task).
 constexpr int64_t kDwChunk = 256;
 
-template <typename T> int dw_gemm(T* dw, T* db, const T* x, const T* dy, const ConvDims& d) {
-    constexpr int64_t W = kW<T>;
-    const int64_t khw = d.kh * d.kw, K = d.C * khw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
-    const bool direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
-    const bool rows = !direct && d.stride == 1;
-    const int64_t Wq = rows ? d.Wo + d.kw - 1 : d.Wo;  // dyT's row length (pixels)
-    const int64_t nc_max = std::min(d.C, kCB), kb_max = nc_max * khw;
-    const int64_t R = std::clamp<int64_t>(kDwTileBytes / (std::max<int64_t>(nc_max, 1) * Wq * (int64_t)sizeof(T)) -
-                                              (d.kh - 1), 1, d.Ho);
-    const int64_t Rp = R + d.kh - 1;
-    const int64_t np = rows ? R * d.Wo : tile_pixels<T>(direct ? 0 : kb_max, P, kDwTileBytes);
-    const int64_t ntile = rows ? ceil_div(d.Ho, R) : ceil_div(P, np);
-    const int64_t ncb = ceil_div(d.C, kCB);
-    // output-channel blocks of whole vectors: at least two tasks per thread where the input
-    // channels alone do not make that many, at most 64 channels
-    const int64_t nob_want = std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, W), ceil_div(2 * num_threads(), ncb)));
-    const int64_t ow = round_up(ceil_div(d.Co, std::max<int64_t>(nob_want, 1)), W), nob = ceil_div(d.Co, ow);
-    // dyT's rows are ldt apart: Co rounded up to whole vectors plus one more, so that rows
-    // 2^n bytes apart (Co = 128, 256, 512) do not fall into a few sets of the L1 cache (that
-    // alone made the 8x8, 512-channel dw 2x slower)
-    const int64_t ldt = round_up(d.Co, W) + W;
-    int status = kConvOk;
-    Buf<T> dyT;  // (B, Ho, Wq, ldt), zero where v >= Wo
-    try {
-        dyT.resize(d.B * d.Ho * Wq * ldt);
-    } catch (const std::bad_alloc&) {
-        return kConvOutOfMemory;
-    }
-    const bool par = worth_threads(d);
-#pragma omp parallel if (par)
-    {
-#pragma omp for schedule(static)
-        for (int64_t bu = 0; bu < d.B * d.Ho; ++bu) {  // dyT[b, u, v, o] = dy[b, o, u, v], 16 o at a time
-            const int64_t bi = bu / d.Ho, u = bu % d.Ho;
-            const T* src = dy + bi * d.Co * P + u * d.Wo;
-            T* dst = dyT.data() + bu * Wq * ldt;
-            for (int64_t o0 = 0; o0 < d.Co; o0 += 16)
-                for (int64_t v = 0; v < d.Wo; ++v)
-                    for (int64_t o = o0; o < std::min(o0 + 16, d.Co); ++o) dst[v * ldt + o] = src[o * P + v];
-        }
+template <typename T> struct DwGemmTasks {
+    struct Scratch {
         Buf<T> buf, acc;  // the padded rows (nc, Rp, Wq) or the cols tile (kb, np); acc (kb, ow)
         std::vector<int64_t> aoff;
         std::vector<const T*> arow;
-        bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, buf.resize(direct ? 0 : rows ? nc_max * Rp * Wq : kb_max * np);
-                            acc.resize(kb_max * ow); aoff.resize(kb_max); arow.resize(kb_max); ok = true)
-#pragma omp for schedule(dynamic, 1) nowait
-        for (int64_t t = 0; t < ncb * nob; ++t) {
-            if (!ok) continue;
-            const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
-            const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
-            cols_row_offsets(aoff.data(), d, nc, direct, rows, Rp, Wq, np);
-            std::fill(acc.begin(), acc.end(), T(0));
-            for (int64_t bi = 0; bi < d.B; ++bi)
-                for (int64_t tile = 0; tile < ntile; ++tile) {
-                    const T* xb = x + bi * d.C * HWi;
-                    const T* base;
-                    const T* Bt;  // dyT's row of the tile's first pixel, column o0
-                    int64_t nq;   // pixels of the tile (rows: with the zero columns between its rows)
-                    if (rows) {
-                        const int64_t u0 = tile * R, nr = std::min(R, d.Ho - u0);
-                        pad_rows(buf.data(), xb, d, c0, nc, u0, nr + d.kh - 1, Rp, Wq);
-                        base = buf.data();
-                        nq = (nr - 1) * Wq + d.Wo;
-                        Bt = dyT.data() + ((bi * d.Ho + u0) * Wq) * ldt + o0;
-                    } else {
-                        const int64_t p0 = tile * np;
-                        nq = std::min(np, P - p0);
-                        base = xb + c0 * HWi + p0;
-                        if (!direct) {
-                            im2col(buf.data(), xb, d, c0, nc, p0, nq, np);
-                            base = buf.data();
-                        }
-                        Bt = dyT.data() + (bi * P + p0) * ldt + o0;
+    };
+    T* dw;
+    const T *x, *dy;
+    ConvDims d;
+    int64_t khw, K, P, HWi, Wq, nc_max, kb_max, R, Rp, np, ntile, ncb, ow, nob, ntask, ldt, nprep;
+    bool direct, rows;
+    Buf<T> dyT;  // (B, Ho, Wq, ldt), zero where v >= Wo
+
+    // throws std::bad_alloc
+    DwGemmTasks(T* dw_, const T* x_, const T* dy_, const ConvDims& d_) : dw(dw_), x(x_), dy(dy_), d(d_) {
+        constexpr int64_t W = kW<T>;
+        khw = d.kh * d.kw, K = d.C * khw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
+        direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
+        rows = !direct && d.stride == 1;
+        Wq = rows ? d.Wo + d.kw - 1 : d.Wo;  // dyT's row length (pixels)
+        nc_max = std::min(d.C, kCB), kb_max = nc_max * khw;
+        R = std::clamp<int64_t>(kDwTileBytes / (std::max<int64_t>(nc_max, 1) * Wq * (int64_t)sizeof(T)) - (d.kh - 1), 1,
+                                d.Ho);
+        Rp = R + d.kh - 1;
+        np = rows ? R * d.Wo : tile_pixels<T>(direct ? 0 : kb_max, P, kDwTileBytes);
+        ntile = rows ? ceil_div(d.Ho, R) : ceil_div(P, np);
+        ncb = ceil_div(d.C, kCB);
+        // output-channel blocks of whole vectors: at least two tasks per thread where the input
+        // channels alone do not make that many, at most 64 channels
+        const int64_t nob_want =
+            std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, W), ceil_div(2 * num_threads(), ncb)));
+        ow = round_up(ceil_div(d.Co, std::max<int64_t>(nob_want, 1)), W), nob = ceil_div(d.Co, ow);
+        ntask = ncb * nob;
+        // dyT's rows are ldt apart: Co rounded up to whole vectors plus one more, so that rows
+        // 2^n bytes apart (Co = 128, 256, 512) do not fall into a few sets of the L1 cache (that
+        // alone made the 8x8, 512-channel dw 2x slower)
+        ldt = round_up(d.Co, W) + W;
+        nprep = d.B * d.Ho;
+        dyT.resize(d.B * d.Ho * Wq * ldt);
+    }
+
+    // dyT[b, u, v, o] = dy[b, o, u, v] for row bu = (b, u), 16 o at a time
+    void prep(int64_t bu) {
+        const int64_t bi = bu / d.Ho, u = bu % d.Ho;
+        const T* src = dy + bi * d.Co * P + u * d.Wo;
+        T* dst = dyT.data() + bu * Wq * ldt;
+        for (int64_t o0 = 0; o0 < d.Co; o0 += 16)
+            for (int64_t v = 0; v < d.Wo; ++v)
+                for (int64_t o = o0; o < std::min(o0 + 16, d.Co); ++o) dst[v * ldt + o] = src[o * P + v];
+    }
+
+    // throws std::bad_alloc
+    void scratch(Scratch& s) const {
+        s.buf.resize(direct ? 0 : rows ? nc_max * Rp * Wq : kb_max * np);
+        s.acc.resize(kb_max * ow);
+        s.aoff.resize(kb_max);
+        s.arow.resize(kb_max);
+    }
+
+    bool run(int64_t t, Scratch& s) const {
+        const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
+        const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
+        cols_row_offsets(s.aoff.data(), d, nc, direct, rows, Rp, Wq, np);
+        std::fill(s.acc.begin(), s.acc.end(), T(0));
+        for (int64_t bi = 0; bi < d.B; ++bi)
+            for (int64_t tile = 0; tile < ntile; ++tile) {
+                const T* xb = x + bi * d.C * HWi;
+                const T* base;
+                const T* Bt;  // dyT's row of the tile's first pixel, column o0
+                int64_t nq;   // pixels of the tile (rows: with the zero columns between its rows)
+                if (rows) {
+                    const int64_t u0 = tile * R, nr = std::min(R, d.Ho - u0);
+                    pad_rows(s.buf.data(), xb, d, c0, nc, u0, nr + d.kh - 1, Rp, Wq);
+                    base = s.buf.data();
+                    nq = (nr - 1) * Wq + d.Wo;
+                    Bt = dyT.data() + ((bi * d.Ho + u0) * Wq) * ldt + o0;
+                } else {
+                    const int64_t p0 = tile * np;
+                    nq = std::min(np, P - p0);
+                    base = xb + c0 * HWi + p0;
+                    if (!direct) {
+                        im2col(s.buf.data(), xb, d, c0, nc, p0, nq, np);
+                        base = s.buf.data();
                     }
-                    for (int64_t q0 = 0; q0 < nq; q0 += kDwChunk) {
-                        for (int64_t k = 0; k < kb; ++k) arow[k] = base + aoff[k] + q0;
-                        // acc (kb, no) += cols[:, q0:q0+n] @ dyT[q0:q0+n, o0:o0+no]
-                        ptr_gemm<T>((int)kb, (int)no, (int)std::min(kDwChunk, nq - q0), arow.data(),
-                                    Bt + q0 * ldt, ldt, acc.data(), ow);
-                    }
+                    Bt = dyT.data() + (bi * P + p0) * ldt + o0;
                 }
-            for (int64_t o = 0; o < no; ++o)
-                for (int64_t r = 0; r < kb; ++r) dw[(o0 + o) * K + c0 * khw + r] = acc[r * ow + o];
+                for (int64_t q0 = 0; q0 < nq; q0 += kDwChunk) {
+                    for (int64_t k = 0; k < kb; ++k) s.arow[k] = base + s.aoff[k] + q0;
+                    // acc (kb, no) += cols[:, q0:q0+n] @ dyT[q0:q0+n, o0:o0+no]
+                    ptr_gemm<T>((int)kb, (int)no, (int)std::min(kDwChunk, nq - q0), s.arow.data(), Bt + q0 * ldt,
+                                ldt, s.acc.data(), ow);
+                }
+            }
+        for (int64_t o = 0; o < no; ++o)
+            for (int64_t r = 0; r < kb; ++r) dw[(o0 + o) * K + c0 * khw + r] = s.acc[r * ow + o];
+        return true;
+    }
+};
+
+// dw when Co < W (conv_out's 3 channels), and unpadded 1x1 from 32x32 pixels on: forward was
+// y_b = w2 @ cols_b, so dw2[o, k] = sum over b, p of dy_b[o, p] cols_b[k, p]: dot products along
+// the pixels of two row-major operands (dot_lanes: MR rows of cols times 4 rows of dy per register
+// tile), neither transposed, dy read in place, one vector of lane sums per entry added up at the
+// end. Tasks as DwGemmTasks': (block of kCB input channels, block of output channels), every
+// image's every tile summed in a fixed order. Nothing to prepare (nprep = 0).
+template <typename T> struct DwLanesTasks {
+    struct Scratch {
+        // buf: the cols tile (kb, np) or the padded rows (nc, Rp, Wp); aoff: where each row of cols
+        // starts in it; acc (kb, ow, W): per (k, o) one vector of lane sums, lane l summing the
+        // pixels p = l mod W of every tile row, added up lane by lane at the end
+        Buf<T> buf, acc;
+        std::vector<int64_t> aoff;
+    };
+    T* dw;
+    const T *x, *dy;
+    ConvDims d;
+    int64_t khw, K, P, HWi, Wp, nc_max, kb_max, R, Rp, np, ntile, ncb, ow, nob, ntask, nprep = 0;
+    bool direct, rows;
+
+    DwLanesTasks(T* dw_, const T* x_, const T* dy_, const ConvDims& d_) : dw(dw_), x(x_), dy(dy_), d(d_) {
+        khw = d.kh * d.kw, K = d.C * khw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
+        ncb = ceil_div(d.C, kCB);
+        // output-channel blocks: at least two tasks per thread where the input channels alone do
+        // not make that many (each block re-reads its rows of cols), blocks of at least 4 and at
+        // most 64 channels (the lane accumulators, kb * ow vectors, stay in L2). The blocks may
+        // depend on the thread count: a pair (k, o)'s lane sums are the same whatever block o
+        // falls in.
+        const int64_t nob_want =
+            std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, 4), ceil_div(2 * num_threads(), ncb)));
+        ow = ceil_div(d.Co, std::max<int64_t>(nob_want, 1)), nob = ceil_div(d.Co, std::max<int64_t>(ow, 1));
+        ntask = ncb * nob;
+        // the padded-row tile where a row has at least kDwRowsMinVectors vectors
+        direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
+        rows = !direct && d.stride == 1 && d.Wo >= kDwRowsMinVectors * kW<T>;
+        nc_max = std::min(d.C, kCB), kb_max = nc_max * khw, Wp = d.Wo + d.kw - 1;
+        R = std::clamp<int64_t>(kDwTileBytes / (std::max<int64_t>(nc_max, 1) * Wp * (int64_t)sizeof(T)) - (d.kh - 1), 1,
+                                d.Ho);
+        Rp = R + d.kh - 1;
+        np = rows ? R * d.Wo : tile_pixels<T>(direct ? 0 : kb_max, P, kDwTileBytes);
+        ntile = rows ? ceil_div(d.Ho, R) : ceil_div(P, np);
+    }
+
+    void prep(int64_t) {}
+
+    // throws std::bad_alloc
+    void scratch(Scratch& s) const {
+        s.buf.resize(direct ? 0 : rows ? nc_max * Rp * Wp : kb_max * np);
+        s.acc.resize(kb_max * ow * kW<T>);
+        s.aoff.resize(kb_max);
+    }
+
+    bool run(int64_t t, Scratch& s) const {
+        const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
+        const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
+        cols_row_offsets(s.aoff.data(), d, nc, direct, rows, Rp, Wp, np);
+        std::fill(s.acc.begin(), s.acc.end(), T(0));
+        for (int64_t bi = 0; bi < d.B; ++bi)
+            for (int64_t tile = 0; tile < ntile; ++tile) {
+                const T* xb = x + bi * d.C * HWi;
+                const T* dyb = dy + (bi * d.Co + o0) * P;
+                // acc[k, o, :] += lanes of cols[k, p] * dy_b[o0 + o, p] over the tile's pixels p
+                if (rows) {
+                    const int64_t u0 = tile * R, nr = std::min(R, d.Ho - u0);
+                    pad_rows(s.buf.data(), xb, d, c0, nc, u0, nr + d.kh - 1, Rp, Wp);
+                    dot_lanes<T>(kb, no, nr, d.Wo, s.buf.data(), s.aoff.data(), Wp, dyb + u0 * d.Wo, P, d.Wo,
+                                 s.acc.data(), ow);
+                } else {
+                    const int64_t p0 = tile * np, n = std::min(np, P - p0);
+                    const T* A = xb + c0 * HWi + p0;
+                    if (!direct) {
+                        im2col(s.buf.data(), xb, d, c0, nc, p0, n, np);
+                        A = s.buf.data();
+                    }
+                    dot_lanes<T>(kb, no, 1, n, A, s.aoff.data(), 0, dyb + p0, P, 0, s.acc.data(), ow);
+                }
+            }
+        for (int64_t o = 0; o < no; ++o)
+            for (int64_t r = 0; r < kb; ++r)
+                dw[(o0 + o) * K + c0 * khw + r] = hsum<T>(vload<T>(s.acc.data() + (r * ow + o) * kW<T>));
+        return true;
+    }
+};
+
+// dx of a stride > 1 conv (the Downsample): forward was y_b = w2 @ cols_b, so dcols_b = w2^T @
+// dy_b, then col2im adds each row onto its strided slab of dx. Task = (image, block of kCB
+// channels), its tiles in order, so no two tasks write the same dx element; false when what it
+// wrote is not finite.
+template <typename T> struct StridedDxTasks {
+    struct Scratch {
+        Buf<T> dcols;  // (kCB*kh*kw, np)
+    };
+    T* dx;
+    const T *w, *dy;
+    ConvDims d;
+    int64_t khw, K, P, HWi, ncb, ntask, np, ntile;
+
+    StridedDxTasks(T* dx_, const T* w_, const T* dy_, const ConvDims& d_) : dx(dx_), w(w_), dy(dy_), d(d_) {
+        khw = d.kh * d.kw, K = d.C * khw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
+        ncb = ceil_div(d.C, kCB), ntask = d.B * ncb;
+        np = tile_pixels<T>(std::min(d.C, kCB) * khw, P), ntile = ceil_div(P, np);
+    }
+
+    // throws std::bad_alloc
+    void scratch(Scratch& s) const { s.dcols.resize(std::min(d.C, kCB) * khw * np); }
+
+    bool run(int64_t t, Scratch& s) const {
+        const int64_t bi = t / ncb, c0 = (t % ncb) * kCB, nc = std::min(kCB, d.C - c0);
+        T* dxb = dx + bi * d.C * HWi;
+        std::fill(dxb + c0 * HWi, dxb + (c0 + nc) * HWi, T(0));
+        for (int64_t tile = 0; tile < ntile; ++tile) {
+            const int64_t p0 = tile * np, n = std::min(np, P - p0);
+            // dcols (nc*kh*kw, n) = w2[:, c0*khw : (c0+nc)*khw]^T @ dy_b[:, p0:p0+n]
+            gemm_mr<T, false, true>((int)(nc * khw), (int)n, (int)d.Co, w + c0 * khw, K, dy + bi * d.Co * P + p0, P,
+                                    s.dcols.data(), n);
+            col2im_add(dxb, s.dcols.data(), d, c0, nc, p0, n);
+        }
+        return finite_run(dxb + c0 * HWi, nc * HWi);
+    }
+};
+
+// The status of a kernel from its allocation status and whether every task's output was finite.
+inline int conv_status(int status, int nonfinite) {
+    return status != kConvOk ? status : nonfinite ? kConvNonFinite : kConvOk;
+}
+
+// y = conv(x, w) (+ b): ConvTasks in one parallel region, each thread's scratch made once.
+template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
+    std::unique_ptr<ConvTasks<T>> p;
+    PYVF_CONV_OR_OOM(p.reset(new ConvTasks<T>(y, x, w, b, d)))
+    int status = kConvOk, nonfinite = 0;
+#pragma omp parallel if (worth_threads(d))
+    {
+        typename ConvTasks<T>::Scratch s;
+        bool ok = false;
+        PYVF_CONV_TRY_ALLOC(status, p->scratch(s); ok = true)
+#pragma omp for schedule(dynamic, 1) nowait
+        for (int64_t t = 0; t < p->ntask; ++t)
+            if (ok && !p->run(t, s)) {
+#pragma omp atomic write
+                nonfinite = 1;
+            }
+    }
+    return conv_status(status, nonfinite);
+}
+
+// The backward in one parallel region: the weights flipped for a stride-1 dx (wf, when not
+// null) and the dw tasks' preparation (dyT), one barrier, then the dw tasks and the dx tasks as
+// one dynamic loop (the dw tasks first: they are the longer ones, and the dx tasks fill the
+// threads' tails), and db. Every output element is still written by one task in one fixed order,
+// so the results are those of the tasks run one after another, on any number of threads.
+template <typename T, typename Dx, typename Dw>
+int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy, const ConvDims& d) {
+    const int64_t khw = d.kh * d.kw, nflip = wf ? ceil_div(d.C, 16) : 0;
+    int status = kConvOk, nonfinite = 0;
+#pragma omp parallel if (worth_threads(d))
+    {
+        // wf[c, o, i', j'] = w[o, c, kh-1-i', kw-1-j']: (i, j) -> (kh-1-i, kw-1-j) reverses each
+        // (o, c) block of kh*kw taps. By blocks of 16 input channels: w read in runs of 16 blocks,
+        // wf written in 16 runs (a paper codebook's 512 x 512 x 3 x 3 weights are 9 MiB; one block
+        // at a time, each read a cache miss, this took 15% of an 8x8 layer's backward)
+#pragma omp for schedule(static) nowait
+        for (int64_t cb = 0; cb < nflip; ++cb)
+            for (int64_t o = 0; o < d.Co; ++o)
+                for (int64_t c = cb * 16; c < std::min(cb * 16 + 16, d.C); ++c) {
+                    const T* src = w + (o * d.C + c) * khw;
+                    T* dst = wf + (c * d.Co + o) * khw;
+                    for (int64_t q = 0; q < khw; ++q) dst[khw - 1 - q] = src[q];
+                }
+#pragma omp for schedule(static) nowait
+        for (int64_t i = 0; i < dwt.nprep; ++i) dwt.prep(i);
+        typename Dx::Scratch sx;
+        typename Dw::Scratch sw;
+        bool ok = false;
+        PYVF_CONV_TRY_ALLOC(status, dxt.scratch(sx); dwt.scratch(sw); ok = true)
+#pragma omp barrier
+        const int64_t nw = dwt.ntask;
+#pragma omp for schedule(dynamic, 1) nowait
+        for (int64_t t = 0; t < nw + dxt.ntask; ++t) {
+            if (!ok) continue;
+            if (t < nw) {
+                dwt.run(t, sw);
+            } else if (!dxt.run(t - nw, sx)) {
+#pragma omp atomic write
+                nonfinite = 1;
+            }
         }
 #pragma omp for schedule(static) nowait
         for (int64_t o = 0; o < d.Co; ++o) db_sum(db, dy, d, o);
     }
-    return status;
+    return conv_status(status, nonfinite);
+}
+
+// The dx task set of a backward (ConvTasks on the flipped weights wf for stride 1, else
+// StridedDxTasks), then backward_tasks with the dw task set Dw.
+template <typename T, typename Dw>
+int backward_with(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d) {
+    std::unique_ptr<Dw> dwt;
+    PYVF_CONV_OR_OOM(dwt.reset(new Dw(dw, x, dy, d)))
+    if (d.stride == 1) {
+        // forward was y[o, u, v] = sum w[o, c, i, j] x[c, u + i - pt, v + j - pl], so
+        // dx[c, yy, xx] = sum over o, i, j of w[o, c, i, j] dy[o, yy + pt - i, xx + pl - j]
+        //              = conv(dy, wf)[c, yy, xx], wf[c, o, i', j'] = w[o, c, kh-1-i', kw-1-j'],
+        // padded (kh-1-pt, kh-1-pb, kw-1-pl, kw-1-pr): dy's rows yy + i' - (kh-1-pt).
+        const ConvDims t{d.B,  d.Co, d.Ho, d.Wo, d.C, d.kh, d.kw, 1, d.kh - 1 - d.pt, d.kh - 1 - d.pb,
+                         d.kw - 1 - d.pl, d.kw - 1 - d.pr, d.Hi, d.Wi};
+        Buf<T> wf;  // (C, Co, kh, kw)
+        std::unique_ptr<ConvTasks<T>> dxt;
+        PYVF_CONV_OR_OOM(wf.resize(d.C * d.Co * d.kh * d.kw); dxt.reset(new ConvTasks<T>(dx, dy, wf.data(), nullptr, t)))
+        return backward_tasks(*dxt, *dwt, wf.data(), w, db, dy, d);
+    }
+    std::unique_ptr<StridedDxTasks<T>> dxt;
+    PYVF_CONV_OR_OOM(dxt.reset(new StridedDxTasks<T>(dx, w, dy, d)))
+    return backward_tasks(*dxt, *dwt, (T*)nullptr, w, db, dy, d);
 }
 
 }  // namespace
@@ -803,141 +1038,13 @@ template <typename T> int conv2d_forward(T* y, const T* x, const T* w, const T* 
 
 template <typename T>
 int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d) {
-    const int64_t K = d.C * d.kh * d.kw, khw = d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
-    int status = kConvOk;
-
-    // ---- dx
-    if (d.stride == 1) {
-        // forward was y[o, u, v] = sum w[o, c, i, j] x[c, u + i - pt, v + j - pl], so
-        // dx[c, yy, xx] = sum over o, i, j of w[o, c, i, j] dy[o, yy + pt - i, xx + pl - j]
-        //              = conv(dy, wf)[c, yy, xx], wf[c, o, i', j'] = w[o, c, kh-1-i', kw-1-j'],
-        // padded (kh-1-pt, kh-1-pb, kw-1-pl, kw-1-pr): dy's rows yy + i' - (kh-1-pt).
-        std::vector<T> wf;  // (C, Co, kh, kw)
-        try {
-            wf.resize(d.C * d.Co * khw);
-        } catch (const std::bad_alloc&) {
-            return kConvOutOfMemory;
-        }
-        // (i, j) -> (kh-1-i, kw-1-j) reverses each (o, c) block of kh*kw taps. By blocks of 16
-        // input channels, in parallel: w read in runs of 16 blocks, wf written in 16 runs (a paper
-        // codebook's 512 x 512 x 3 x 3 weights are 9 MiB; one block at a time, each read a cache
-        // miss, this took 15% of an 8x8 layer's backward)
-#pragma omp parallel for schedule(static) if (parallel_work(d.C * d.Co * khw, 1 << 18))  // 1 MiB of float32 weights
-        for (int64_t c0 = 0; c0 < d.C; c0 += 16)
-            for (int64_t o = 0; o < d.Co; ++o)
-                for (int64_t c = c0; c < std::min(c0 + 16, d.C); ++c) {
-                    const T* src = w + (o * d.C + c) * khw;
-                    T* dst = wf.data() + (c * d.Co + o) * khw;
-                    for (int64_t q = 0; q < khw; ++q) dst[khw - 1 - q] = src[q];
-                }
-        const ConvDims t{d.B,  d.Co, d.Ho, d.Wo, d.C, d.kh, d.kw, 1, d.kh - 1 - d.pt, d.kh - 1 - d.pb,
-                         d.kw - 1 - d.pl, d.kw - 1 - d.pr, d.Hi, d.Wi};
-        status = conv_gemm<T>(dx, dy, wf.data(), nullptr, t);
-        if (status != kConvOk) return status;
-    } else {
-        // forward was y_b = w2 @ cols_b, so dcols_b = w2^T @ dy_b, scattered back by col2im
-        const int64_t ncb = ceil_div(d.C, kCB), ntask = d.B * ncb;
-        int nonfinite = 0;
-        const int64_t np = tile_pixels<T>(std::min(d.C, kCB) * khw, P), ntile = ceil_div(P, np);
-#pragma omp parallel if (worth_threads(d))
-        {
-            Buf<T> dcols;  // (kCB*kh*kw, np)
-            bool ok = false;
-            PYVF_CONV_TRY_ALLOC(status, dcols.resize(std::min(d.C, kCB) * khw * np); ok = true)
-#pragma omp for schedule(dynamic, 1) nowait
-            for (int64_t t = 0; t < ntask; ++t) {
-                if (!ok) continue;
-                const int64_t bi = t / ncb, c0 = (t % ncb) * kCB, nc = std::min(kCB, d.C - c0);
-                T* dxb = dx + bi * d.C * HWi;
-                std::fill(dxb + c0 * HWi, dxb + (c0 + nc) * HWi, T(0));
-                for (int64_t tile = 0; tile < ntile; ++tile) {
-                    const int64_t p0 = tile * np, n = std::min(np, P - p0);
-                    // dcols (nc*kh*kw, n) = w2[:, c0*khw : (c0+nc)*khw]^T @ dy_b[:, p0:p0+n]
-                    gemm_mr<T, false, true>((int)(nc * khw), (int)n, (int)d.Co, w + c0 * khw, K,
-                                            dy + bi * d.Co * P + p0, P, dcols.data(), n);
-                    col2im_add(dxb, dcols.data(), d, c0, nc, p0, n);
-                }
-                if (!finite_run(dxb + c0 * HWi, nc * HWi)) {
-#pragma omp atomic write
-                    nonfinite = 1;
-                }
-            }
-        }
-        if (status != kConvOk) return status;
-        if (nonfinite) return kConvNonFinite;
-    }
-
-    // ---- dw and db: dw_gemm where Co fills a vector; else (conv_out's 3 channels, narrow layers)
-    // here: forward was y_b = w2 @ cols_b, so dw2[o, k] = sum over b, p of dy_b[o, p] cols_b[k, p]:
-    // dot products along the pixels of two row-major operands, dy read in place
-    const int64_t ncb = ceil_div(d.C, kCB);
-    // output-channel blocks: at least two tasks per thread where the input channels alone do not
-    // make that many (each block re-reads its rows of cols), blocks of at least 4 and at most 64
-    // channels (the lane accumulators, kb * ow vectors, stay in L2). The blocks may depend on the
-    // thread count: a pair (k, o)'s lane sums are the same whatever block o falls in.
-    const int64_t nob_want = std::max(ceil_div(d.Co, 64), std::min(ceil_div(d.Co, 4), ceil_div(2 * num_threads(), ncb)));
-    const int64_t ow = ceil_div(d.Co, std::max<int64_t>(nob_want, 1)), nob = ceil_div(d.Co, std::max<int64_t>(ow, 1));
-    // how a task reads its rows of cols: x itself (1x1, stride 1, unpadded); a zero-padded tile of
-    // R + kh - 1 input rows per R output rows (stride 1, rows of at least two vectors), each tap's
-    // row a shifted window of it; else im2col tiles of np pixels
+    // dw on the register tile of ptr_gemm where Co fills a vector, except an unpadded 1x1 on
+    // images of >= 32x32 pixels, where the lane sums over x read in place measured faster
+    // (1.3-1.4x; 1.2-2.2x slower below)
     const bool direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
-    const bool rows = !direct && d.stride == 1 && d.Wo >= kDwRowsMinVectors * kW<T>;
-    const int64_t nc_max = std::min(d.C, kCB), kb_max = nc_max * khw, Wp = d.Wo + d.kw - 1;
-    const int64_t R = std::clamp<int64_t>(kDwTileBytes / (std::max<int64_t>(nc_max, 1) * Wp * (int64_t)sizeof(T)) -
-                                              (d.kh - 1), 1, d.Ho);
-    const int64_t Rp = R + d.kh - 1;
-    const int64_t np = rows ? R * d.Wo : tile_pixels<T>(direct ? 0 : kb_max, P, kDwTileBytes);
-    const int64_t ntile = rows ? ceil_div(d.Ho, R) : ceil_div(P, np);
-    // dw_gemm where Co fills a vector, except an unpadded 1x1 on images of >= 32x32 pixels, where
-    // these lane sums over x read in place measured faster (1.3-1.4x; 1.2-2.2x slower below)
-    if (d.Co >= kW<T> && !(direct && P >= 1024)) return dw_gemm(dw, db, x, dy, d);
-#pragma omp parallel if (worth_threads(d))
-    {
-        // buf: the cols tile (kb, np) or the padded rows (nc, Rp, Wp); aoff: where each row of cols
-        // starts in it; acc (kb, ow, W): per (k, o) one vector of lane sums, lane l summing the
-        // pixels p = l mod W of every tile row, added up lane by lane at the end
-        Buf<T> buf, acc;
-        std::vector<int64_t> aoff;
-        bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, buf.resize(direct ? 0 : rows ? nc_max * Rp * Wp : kb_max * np);
-                            acc.resize(kb_max * ow * kW<T>); aoff.resize(kb_max); ok = true)
-#pragma omp for schedule(dynamic, 1) nowait
-        for (int64_t t = 0; t < ncb * nob; ++t) {
-            if (!ok) continue;
-            const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
-            const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
-            cols_row_offsets(aoff.data(), d, nc, direct, rows, Rp, Wp, np);
-            std::fill(acc.begin(), acc.end(), T(0));
-            for (int64_t bi = 0; bi < d.B; ++bi)
-                for (int64_t tile = 0; tile < ntile; ++tile) {
-                    const T* xb = x + bi * d.C * HWi;
-                    const T* dyb = dy + (bi * d.Co + o0) * P;
-                    // acc[k, o, :] += lanes of cols[k, p] * dy_b[o0 + o, p] over the tile's pixels p
-                    if (rows) {
-                        const int64_t u0 = tile * R, nr = std::min(R, d.Ho - u0);
-                        pad_rows(buf.data(), xb, d, c0, nc, u0, nr + d.kh - 1, Rp, Wp);
-                        dot_lanes<T>(kb, no, nr, d.Wo, buf.data(), aoff.data(), Wp, dyb + u0 * d.Wo, P, d.Wo,
-                                     acc.data(), ow);
-                    } else {
-                        const int64_t p0 = tile * np, n = std::min(np, P - p0);
-                        const T* A = xb + c0 * HWi + p0;
-                        if (!direct) {
-                            im2col(buf.data(), xb, d, c0, nc, p0, n, np);
-                            A = buf.data();
-                        }
-                        dot_lanes<T>(kb, no, 1, n, A, aoff.data(), 0, dyb + p0, P, 0, acc.data(), ow);
-                    }
-                }
-            for (int64_t o = 0; o < no; ++o)
-                for (int64_t r = 0; r < kb; ++r)
-                    dw[(o0 + o) * K + c0 * khw + r] = hsum<T>(vload<T>(acc.data() + (r * ow + o) * kW<T>));
-        }
-
-        // ---- db
-#pragma omp for schedule(static) nowait
-        for (int64_t o = 0; o < d.Co; ++o) db_sum(db, dy, d, o);
-    }
-    return status;
+    if (d.Co >= kW<T> && !(direct && d.Ho * d.Wo >= 1024))
+        return backward_with<T, DwGemmTasks<T>>(dx, dw, db, x, w, dy, d);
+    return backward_with<T, DwLanesTasks<T>>(dx, dw, db, x, w, dy, d);
 }
 
 // The products of the AttnBlock (pyvf/nn/conv.py) and of the transformer's linear layers and
