@@ -438,6 +438,9 @@ PYBIND11_MODULE(PYVF_MODULE, m) {
     m.def("set_num_threads", &set_num_threads, py::arg("n"));
     m.def("oversubscribed", &oversubscribed,
           "whether other processes keep this process's cores busy (then the kernels keep short calls on one thread)");
+    m.def("set_force_parallel", [](bool on) { g_force_parallel.store(on); }, py::arg("on"),
+          "tests only: while on, every kernel call with any work runs on the threads (no size threshold)");
+    m.def("force_parallel", []() { return g_force_parallel.load(); });
     m.attr("simd_bytes") = kVecBytes;
 #ifdef PYVF_OPENMP
     m.attr("openmp") = true;

@@ -1,6 +1,7 @@
 // The kernels' threads (threads.cpp): how many, and whether a call is worth more than one.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 
 namespace pyvf {
@@ -24,7 +25,11 @@ bool oversubscribed();
 // and, while oversubscribed(), at least kBusyFactor times that (a few ms of work). No result
 // depends on it: every kernel's result is the same on any thread count.
 constexpr int64_t kBusyFactor = 64;
+// For the tests: while set, every call with any work runs on the threads (the thresholds are
+// skipped), so that the tests' small shapes run the parallel loops too. One flag per path module.
+inline std::atomic<bool> g_force_parallel{false};
 inline bool parallel_work(int64_t work, int64_t threshold) {
+    if (g_force_parallel.load(std::memory_order_relaxed)) return work > 0;
     return work >= threshold && (work >= threshold * kBusyFactor || !oversubscribed());
 }
 

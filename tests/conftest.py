@@ -1,4 +1,5 @@
-"""Shared test helpers: the comparison helper, its bitwise twin, and seeded random generators.
+"""Shared test helpers: the comparison helper, its bitwise twin, seeded random generators, and
+forced_threads (the kernels' parallel loops on the tests' small shapes).
 
 Every tolerance comparison in the tests goes through assert_close, so that a failure always
 says the same things: the largest absolute and relative error, where it is, and the first
@@ -6,10 +7,13 @@ mismatches. assert_bitwise_equal is for the claims that are exact (reproducibili
 block cannot see).
 """
 
+import contextlib
+
 import numpy as np
 import pytest
 
 import pyvf
+from pyvf import _core
 
 
 def assert_close(name, got, want, rtol, atol=0.0, n_show=5):
@@ -58,6 +62,20 @@ def assert_bitwise_equal(name, got, want, n_show=5):
         bad = np.argwhere(diff)[:n_show]
         shown = ", ".join(f"{tuple(map(int, i))}: {got[tuple(i)]!r} vs {want[tuple(i)]!r}" for i in bad)
         pytest.fail(f"{name}: {int(diff.sum())} of {diff.size} elements differ in their bits; first {shown}")
+
+
+@contextlib.contextmanager
+def forced_threads(n):
+    """n kernel threads, and every kernel call with any work on them: the size thresholds below
+    which a call stays on one thread are skipped (they would keep most test shapes serial, and a
+    test of the parallel loops would then test nothing). On the kernel path in use when entered."""
+    before = _core.force_parallel()
+    with pyvf.threads(n):
+        _core.set_force_parallel(True)
+        try:
+            yield
+        finally:
+            _core.set_force_parallel(before)
 
 
 SEED = 20220724  # fixed: every run of the suite draws the same numbers

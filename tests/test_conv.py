@@ -9,7 +9,8 @@ kernel, upsample's summing backward); hard numerical cases (constant groups, gro
 and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised, a 1x1
 image); float64 central finite differences; dtypes; strided inputs; bad arguments. Then the C++
 kernels themselves (section 6): the fast conv2d against its plain-loop twin, NumPy and torch on
-every shape family and code path, 1 vs 2 threads bitwise, float32 against float64, sizes refused;
+every shape family and code path, 1 vs 2 vs 5 threads bitwise (forced_threads: every
+shape on the threads), float32 against float64, sizes refused;
 the fused GroupNorm + swish.
 
 Shapes: images (B, C, Hi, Wi), NCHW; conv weights torch's (Co, C, kh, kw). Channels 5 -> 7 for the
@@ -32,7 +33,7 @@ from pyvf.nn.layers import matmul
 from pyvf import _core
 from pyvf.nn import conv
 
-from conftest import assert_bitwise_equal, assert_close
+from conftest import assert_bitwise_equal, assert_close, forced_threads
 
 # every test here runs once per kernel path this machine executes (conftest.kernel_path): conv2d,
 # GroupNorm and swish are C++ kernels (csrc/conv.cpp, csrc/groupnorm.cpp)
@@ -749,19 +750,18 @@ def test_conv2d_kernel_float32(case, rng):
 @pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
 def test_conv2d_kernel_threads_bitwise(case, dtype, rng):
     """The tasks depend on the shapes only, each output element is summed by one task in one
-    order: 1 and 2 threads give the same bits (y, dx, dw, db)."""
+    order: 1, 2 and 5 threads give the same bits (y, dx, dw, db). 5 threads: the blocks that
+    follow the thread count (the dw's and the forward's output channels) change, and the
+    backward's dw and dx tasks share one loop in another interleaving."""
     inputs, kwargs, dy = kernel_inputs(case, rng, dtype)
-    before = pyvf.num_threads()
-    try:
-        out = {}
-        for n in (1, 2):
-            pyvf.set_num_threads(n)
+    out = {}
+    for n in (1, 2, 5):
+        with forced_threads(n):  # these shapes are below the size at which a call takes threads
             y, grads, _ = pyvf_run("conv2d", inputs, kwargs, dy)
-            out[n] = [y, *grads]
-    finally:
-        pyvf.set_num_threads(before)
-    for name, a, b in zip(("y", "dx", "dw", "db"), out[1], out[2]):
-        assert_bitwise_equal(f"{kernel_case_id(case)} {name}, 1 vs 2 threads", a, b)
+        out[n] = [y, *grads]
+    for n in (2, 5):
+        for name, a, b in zip(("y", "dx", "dw", "db"), out[1], out[n]):
+            assert_bitwise_equal(f"{kernel_case_id(case)} {name}, 1 vs {n} threads", a, b)
 
 
 def test_conv2d_kernel_padding_trap(rng):
@@ -945,26 +945,22 @@ def test_matmul_kernel(case, dtype, ta, tb, rng):
     one sum of K products in increasing k (or, split along k, its parts' sums added in order: no
     larger a bound), so its error is at most K u sum_k |a_ik b_kj| (Higham 3.5) and in practice
     ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
-    2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1 and 2
-    threads (each element's sum does not depend on which task or thread computes it; the cases
-    of at least 2^20 multiply-adds, (1, 203, 401, 531), (2, 96, 192, 256) and the split ones, run on two threads,
-    the smaller ones on one whatever the setting)."""
+    2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1, 2 and 5
+    threads (each element's sum does not depend on which task or thread computes it), every case
+    on the threads whatever its size (forced_threads)."""
     nb, M, N, K = case
     a, b, want = _operands(rng, case, ta, tb, dtype)
-    before = pyvf.num_threads()
-    try:
-        out = {}
-        for n in (1, 2):
-            pyvf.set_num_threads(n)
+    out = {}
+    for n in (1, 2, 5):
+        with forced_threads(n):
             out[n] = _mm(a, b, ta, tb)
-    finally:
-        pyvf.set_num_threads(before)
     c = out[1]
     assert c.dtype == dtype and c.shape == (nb, M, N)
     if c.size:  # (the helpers need at least one element)
         rtol = 1e-13 if dtype == np.float64 else 2e-6 * max(1.0, np.sqrt(K / 50))
         assert_close("matmul", c, want, rtol=rtol)
-        assert_bitwise_equal("matmul, 1 vs 2 threads", out[2], c)
+        for n in (2, 5):
+            assert_bitwise_equal(f"matmul, 1 vs {n} threads", out[n], c)
     if K == 0:
         assert not c.any(), "a sum of no products must be 0"
 
@@ -988,19 +984,15 @@ def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
     rounding, so the result is bitwise the kernel's product + bias in NumPy (across block, chunk
     and tile edges, 1 and 2 threads); K = 0 gives the bias itself; a bias of another length is
     refused."""
-    before = pyvf.num_threads()
     for case in [(2, 101, 203, 300), (1, 37, 45, 2100)]:  # the second split along k: the bias after the parts
         a, b, _ = _operands(rng, case, False, tb, dtype)
         bias = rng.standard_normal(case[2]).astype(dtype)
         want = _mm(a, b, False, tb) + bias
-        try:
-            for n in (1, 2):
-                pyvf.set_num_threads(n)
+        for n in (1, 2):
+            with forced_threads(n):
                 c = np.full(want.shape, np.nan, dtype=dtype)
                 _core.matmul(c, a, b, False, tb, bias)
-                assert_bitwise_equal(f"matmul + bias {case}, {n} threads", c, want)
-        finally:
-            pyvf.set_num_threads(before)
+            assert_bitwise_equal(f"matmul + bias {case}, {n} threads", c, want)
     c = np.full((1, 3, 4), np.nan, dtype=dtype)
     _core.matmul(c, np.zeros((1, 3, 0), dtype), np.zeros((1, 0, 4), dtype), False, False, bias[:4])
     np.testing.assert_array_equal(c, np.broadcast_to(bias[:4], (1, 3, 4)))
