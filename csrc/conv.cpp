@@ -959,9 +959,12 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
 
 // The backward in one parallel region: the weights flipped for a stride-1 dx (wf, when not
 // null) and the dw tasks' preparation (dyT), one barrier, then the dw tasks and the dx tasks as
-// one dynamic loop (the dw tasks first: they are the longer ones, and the dx tasks fill the
-// threads' tails), and db. Every output element is still written by one task in one fixed order,
-// so the results are those of the tasks run one after another, on any number of threads.
+// one dynamic loop, and db. Both task sets share the same multiply-adds (stride 1: B*Co*P*C*kh*kw),
+// so the set with fewer tasks has the longer ones: it goes first, and the other's short tasks fill
+// the threads' tails (a 128-channel 128x128 layer: 32 dw tasks, then 256 dx tasks; a 512-channel
+// 8x8 layer: 44 dx tasks, then 512 dw tasks on 16 threads). Every output element is still written
+// by one task in one fixed order, so the results are those of the tasks run one after another, on
+// any number of threads.
 template <typename T, typename Dx, typename Dw>
 int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy, const ConvDims& d) {
     const int64_t khw = d.kh * d.kw, nflip = wf ? ceil_div(d.C, 16) : 0;
@@ -987,13 +990,16 @@ int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy
         bool ok = false;
         PYVF_CONV_TRY_ALLOC(status, dxt.scratch(sx); dwt.scratch(sw); ok = true)
 #pragma omp barrier
-        const int64_t nw = dwt.ntask;
+        const int64_t nw = dwt.ntask, nx = dxt.ntask;
+        const bool dw_first = nw <= nx;
 #pragma omp for schedule(dynamic, 1) nowait
-        for (int64_t t = 0; t < nw + dxt.ntask; ++t) {
+        for (int64_t t = 0; t < nw + nx; ++t) {
             if (!ok) continue;
-            if (t < nw) {
-                dwt.run(t, sw);
-            } else if (!dxt.run(t - nw, sx)) {
+            const bool is_dw = dw_first ? t < nw : t >= nx;
+            const int64_t i = is_dw ? (dw_first ? t : t - nx) : (dw_first ? t - nw : t);
+            if (is_dw) {
+                dwt.run(i, sw);
+            } else if (!dxt.run(i, sx)) {
 #pragma omp atomic write
                 nonfinite = 1;
             }
