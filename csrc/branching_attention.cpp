@@ -419,15 +419,19 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
             status = kAttnLogitOverflow;
         }
         // dq += the other groups' dq, in group order; one task per (head, block), so each dq
-        // element has one writer. The barrier makes status the same for every thread here.
+        // element has one writer. The barrier (met by every thread or none: G is the shape's)
+        // waits for every group and makes status the same for every thread here; one group
+        // (16 or more heads): the region's end is the only barrier.
+        if (G > 1) {
 #pragma omp barrier
-        if (G > 1 && status == kAttnOk) {
+            if (status == kAttnOk) {
 #pragma omp for schedule(static) nowait
-            for (int64_t t = 0; t < B * H * RN; ++t) {
-                const int64_t bh = t / RN, y = t % RN;
-                const int64_t b = bh / H, h = bh % H, x = d.blk(y / N, b, h, y % N);
-                for (int64_t g = 1; g < G; ++g)
-                    row_add<T>(dq + x * bs, dq_extra.data() + (bh * (G - 1) + g - 1) * head + y * bs, bs);
+                for (int64_t t = 0; t < B * H * RN; ++t) {
+                    const int64_t bh = t / RN, y = t % RN;
+                    const int64_t b = bh / H, h = bh % H, x = d.blk(y / N, b, h, y % N);
+                    for (int64_t g = 1; g < G; ++g)
+                        row_add<T>(dq + x * bs, dq_extra.data() + (bh * (G - 1) + g - 1) * head + y * bs, bs);
+                }
             }
         }
     }
