@@ -190,6 +190,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
     const int64_t ntask = d.nblk() * ntile;
 
     int status = kAttnOk;
+    RegionEnd end;
 #pragma omp parallel if (worth_threads(d))
     {
         // per thread: q^T (dh, TQ); s^T, then p^T (TK, TQ); the accumulator acc (TQ, dh); per
@@ -256,6 +257,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
 #pragma omp atomic write
             status = kAttnLogitOverflow;
         }
+        end.arrive();
     }
     return status;
 }
@@ -317,6 +319,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
 
     int status = kAttnOk;
     const bool threads = worth_threads(d);
+    RegionEnd end;
 #pragma omp parallel if (threads)
     {
         // per thread, for one head: q and do transposed per block (dh, L); D = rowsum(do * o)
@@ -434,6 +437,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                 }
             }
         }
+        end.arrive();
     }
     return status;
 }
@@ -556,21 +560,26 @@ template <typename T>
 void context_softmax(T* sc, T* so, T* m, T* denom, int64_t R, int64_t G, int64_t L, int64_t C) {
     const int64_t RL = R * L;
     std::vector<double> sums(R * G * L, 0.0);  // the tasks' sums (allocated here: no throw in the region)
-#pragma omp parallel for schedule(static) if (parallel_work(R * G * (C + L) * L, 1 << 15))
-    for (int64_t t = 0; t < R * G; ++t) {
-        const int64_t r = t / G, g = t % G;
-        T* s1 = sc + g * C * RL + r * L;  // C rows, RL apart
-        T* s2 = so + (r * G + g) * L * L;  // L rows, L apart
-        T* mx = m + (r * G + g) * L;
-        double* acc = sums.data() + (r * G + g) * L;
-        for (int64_t l = 0; l < L; ++l) mx[l] = -std::numeric_limits<T>::infinity();
-        for (int64_t c = 0; c < C; ++c)
-            for (int64_t l = 0; l < L; ++l) mx[l] = std::max(mx[l], s1[c * RL + l]);
-        for (int64_t j = 0; j < L; ++j)
-            for (int64_t l = 0; l < L; ++l) mx[l] = std::max(mx[l], s2[j * L + l]);
-        for (int64_t c = 0; c < C; ++c) exp_row(s1 + c * RL, mx, acc, L);
-        for (int64_t j = 0; j < L; ++j) exp_row(s2 + j * L, mx, acc, L);
-        for (int64_t l = 0; l < L; ++l) denom[(r * G + g) * L + l] = static_cast<T>(acc[l]);
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(R * G * (C + L) * L, 1 << 15))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t t = 0; t < R * G; ++t) {
+            const int64_t r = t / G, g = t % G;
+            T* s1 = sc + g * C * RL + r * L;  // C rows, RL apart
+            T* s2 = so + (r * G + g) * L * L;  // L rows, L apart
+            T* mx = m + (r * G + g) * L;
+            double* acc = sums.data() + (r * G + g) * L;
+            for (int64_t l = 0; l < L; ++l) mx[l] = -std::numeric_limits<T>::infinity();
+            for (int64_t c = 0; c < C; ++c)
+                for (int64_t l = 0; l < L; ++l) mx[l] = std::max(mx[l], s1[c * RL + l]);
+            for (int64_t j = 0; j < L; ++j)
+                for (int64_t l = 0; l < L; ++l) mx[l] = std::max(mx[l], s2[j * L + l]);
+            for (int64_t c = 0; c < C; ++c) exp_row(s1 + c * RL, mx, acc, L);
+            for (int64_t j = 0; j < L; ++j) exp_row(s2 + j * L, mx, acc, L);
+            for (int64_t l = 0; l < L; ++l) denom[(r * G + g) * L + l] = static_cast<T>(acc[l]);
+        }
+        end.arrive();
     }
 }
 

@@ -942,6 +942,7 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
     std::unique_ptr<ConvTasks<T>> p;
     PYVF_CONV_OR_OOM(p.reset(new ConvTasks<T>(y, x, w, b, d)))
     int status = kConvOk, nonfinite = 0;
+    RegionEnd end;
 #pragma omp parallel if (worth_threads(d))
     {
         typename ConvTasks<T>::Scratch s;
@@ -953,6 +954,7 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
 #pragma omp atomic write
                 nonfinite = 1;
             }
+        end.arrive();
     }
     return conv_status(status, nonfinite);
 }
@@ -969,6 +971,7 @@ template <typename T, typename Dx, typename Dw>
 int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy, const ConvDims& d) {
     const int64_t khw = d.kh * d.kw, nflip = wf ? ceil_div(d.C, 16) : 0;
     int status = kConvOk, nonfinite = 0;
+    RegionEnd end;
 #pragma omp parallel if (worth_threads(d))
     {
         // wf[c, o, i', j'] = w[o, c, kh-1-i', kw-1-j']: (i, j) -> (kh-1-i, kw-1-j) reverses each
@@ -1006,6 +1009,7 @@ int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy
         }
 #pragma omp for schedule(static) nowait
         for (int64_t o = 0; o < d.Co; ++o) db_sum(db, dy, d, o);
+        end.arrive();
     }
     return conv_status(status, nonfinite);
 }
@@ -1152,13 +1156,18 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
         if (!bt) return kConvOutOfMemory;
         constexpr int64_t kT = 32;  // tiles of 32 x 32: the reads and the writes both stay in L1
         const int64_t nj = ceil_div(N, kT);
-#pragma omp parallel for schedule(static) if (parallel_work(nb * K * N, kParallelFlops / 8))
-        for (int64_t t = 0; t < nb * nj; ++t) {
-            const int64_t bi = t / nj, j0 = (t % nj) * kT;
-            for (int64_t k0 = 0; k0 < K; k0 += kT)
-                for (int64_t j = j0; j < std::min(N, j0 + kT); ++j)
-                    for (int64_t k = k0; k < std::min(K, k0 + kT); ++k)
-                        bt[(bi * K + k) * N + j] = b[(bi * N + j) * K + k];
+        RegionEnd end;
+#pragma omp parallel if (parallel_work(nb * K * N, kParallelFlops / 8))
+        {
+#pragma omp for schedule(static) nowait
+            for (int64_t t = 0; t < nb * nj; ++t) {
+                const int64_t bi = t / nj, j0 = (t % nj) * kT;
+                for (int64_t k0 = 0; k0 < K; k0 += kT)
+                    for (int64_t j = j0; j < std::min(N, j0 + kT); ++j)
+                        for (int64_t k = k0; k < std::min(K, k0 + kT); ++k)
+                            bt[(bi * K + k) * N + j] = b[(bi * N + j) * K + k];
+            }
+            end.arrive();
         }
         b = bt.get();
     }
@@ -1176,6 +1185,7 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
     // the panels as large as this product needs (a small product zero-fills little)
     const int64_t rows = std::min(M, kMatRows), depth = std::min(span, kMatDepth), cols = std::min(N, kMatCols);
     int status = kConvOk;
+    RegionEnd end;
 #pragma omp parallel if (parallel_work(nb * M * N * K, kParallelFlops))
     {
         Buf<T> ap, bp;
@@ -1219,6 +1229,7 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
                 }
             }
         }
+        end.arrive();
     }
     return status;
 }

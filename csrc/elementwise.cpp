@@ -228,8 +228,13 @@ inline void normal_cdf_xpdf_d(VF x, VF& cdf, VF& xpdf) {
 
 // f(i, m) on [i, i + m) for every block of WF floats of [0, n); the last one has m < WF.
 template <typename F> inline void map_float(int64_t n, F f) {
-#pragma omp parallel for schedule(static) if (parallel_work(n, 65537))
-    for (int64_t i = 0; i < n; i += WF) f(i, std::min<int64_t>(WF, n - i));
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(n, 65537))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t i = 0; i < n; i += WF) f(i, std::min<int64_t>(WF, n - i));
+        end.arrive();
+    }
 }
 
 // the m <= WF floats at p as a vector, zero padded; and stored back
@@ -269,21 +274,31 @@ template <> void gelu_backward<float>(float* dx, const float* dy, const float* x
 
 // float64: the scalar path, compensated as above.
 template <typename T> void gelu_forward(T* y, const T* x, int64_t n) {
-#pragma omp parallel for schedule(static) if (parallel_work(n, 65537))
-    for (int64_t i = 0; i < n; ++i) {
-        double cdf, pdf;
-        normal_cdf_pdf((double)x[i], cdf, pdf);
-        y[i] = (T)((double)x[i] * cdf);
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(n, 65537))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t i = 0; i < n; ++i) {
+            double cdf, pdf;
+            normal_cdf_pdf((double)x[i], cdf, pdf);
+            y[i] = (T)((double)x[i] * cdf);
+        }
+        end.arrive();
     }
 }
 
 template <typename T> void gelu_backward(T* dx, const T* dy, const T* x, int64_t n) {
-#pragma omp parallel for schedule(static) if (parallel_work(n, 65537))
-    for (int64_t i = 0; i < n; ++i) {
-        const double xi = x[i];
-        double cdf, pdf;
-        normal_cdf_pdf(xi, cdf, pdf);
-        dx[i] = (T)((double)dy[i] * (cdf + xi * pdf));
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(n, 65537))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t i = 0; i < n; ++i) {
+            const double xi = x[i];
+            double cdf, pdf;
+            normal_cdf_pdf(xi, cdf, pdf);
+            dx[i] = (T)((double)dy[i] * (cdf + xi * pdf));
+        }
+        end.arrive();
     }
 }
 
@@ -298,14 +313,19 @@ template void gelu_backward<double>(double*, const double*, const double*, int64
 template <bool SPLIT, typename T>
 void heads_copy(T* hd, T* tok, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
     const int64_t n = RB * NL;
-#pragma omp parallel for schedule(static) if (parallel_work(n * H * dh, 1 << 16))
-    for (int64_t t = 0; t < n; ++t) {
-        const int64_t rb = t / NL, nl = t % NL;
-        for (int64_t h = 0; h < H; ++h) {
-            T* a = hd + ((rb * H + h) * NL + nl) * dh;  // hd[rb, h, nl, :]
-            T* b = tok + t * ld + col + h * dh;          // tok[t, col + h dh :]
-            std::memcpy(SPLIT ? a : b, SPLIT ? b : a, sizeof(T) * dh);
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(n * H * dh, 1 << 16))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t t = 0; t < n; ++t) {
+            const int64_t rb = t / NL, nl = t % NL;
+            for (int64_t h = 0; h < H; ++h) {
+                T* a = hd + ((rb * H + h) * NL + nl) * dh;  // hd[rb, h, nl, :]
+                T* b = tok + t * ld + col + h * dh;          // tok[t, col + h dh :]
+                std::memcpy(SPLIT ? a : b, SPLIT ? b : a, sizeof(T) * dh);
+            }
         }
+        end.arrive();
     }
 }
 
@@ -329,30 +349,40 @@ void heads_merge(T* tok, const T* hd, int64_t RB, int64_t NL, int64_t H, int64_t
 
 template <typename T> void add(T* out, const T* a, const T* b, int64_t n) {
     constexpr int64_t kB = 1 << 14;  // elements a thread takes at a time
-#pragma omp parallel for schedule(static) if (parallel_work(n, 4 * kB))
-    for (int64_t lo = 0; lo < n; lo += kB) {
-        const int64_t hi = std::min(n, lo + kB);
-        for (int64_t i = lo; i < hi; ++i) out[i] = a[i] + b[i];
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(n, 4 * kB))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t lo = 0; lo < n; lo += kB) {
+            const int64_t hi = std::min(n, lo + kB);
+            for (int64_t i = lo; i < hi; ++i) out[i] = a[i] + b[i];
+        }
+        end.arrive();
     }
 }
 
 template <typename T> void column_sums(T* out, const T* a, int64_t M, int64_t N) {
     constexpr int64_t W = Simd<T>::W, kC = 64 / sizeof(T);  // a cache line of columns per task
     const int64_t nblk = (N + kC - 1) / kC;
-#pragma omp parallel for schedule(static) if (nblk >= 2 && parallel_work(M * N, 1 << 17))
-    for (int64_t blk = 0; blk < nblk; ++blk) {
-        const int64_t j0 = blk * kC, j1 = std::min(N, j0 + kC);
-        int64_t j = j0;
-        for (; j + W <= j1; j += W) {
-            typename Simd<T>::V s = M ? vload<T>(a + j) : typename Simd<T>::V{};
-            for (int64_t i = 1; i < M; ++i) s = s + vload<T>(a + i * N + j);
-            vstore<T>(out + j, s);
+    RegionEnd end;
+#pragma omp parallel if (nblk >= 2 && parallel_work(M * N, 1 << 17))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t blk = 0; blk < nblk; ++blk) {
+            const int64_t j0 = blk * kC, j1 = std::min(N, j0 + kC);
+            int64_t j = j0;
+            for (; j + W <= j1; j += W) {
+                typename Simd<T>::V s = M ? vload<T>(a + j) : typename Simd<T>::V{};
+                for (int64_t i = 1; i < M; ++i) s = s + vload<T>(a + i * N + j);
+                vstore<T>(out + j, s);
+            }
+            for (; j < j1; ++j) {
+                T s = M ? a[j] : T(0);
+                for (int64_t i = 1; i < M; ++i) s = s + a[i * N + j];
+                out[j] = s;
+            }
         }
-        for (; j < j1; ++j) {
-            T s = M ? a[j] : T(0);
-            for (int64_t i = 1; i < M; ++i) s = s + a[i * N + j];
-            out[j] = s;
-        }
+        end.arrive();
     }
 }
 
@@ -365,22 +395,32 @@ template <typename T> void column_sums(T* out, const T* a, int64_t M, int64_t N)
 // sums ran on one core: 17 ms of a paper codebook step, 2% of it on 16 threads).
 
 template <typename T> void upsample2x(T* y, const T* x, int64_t rows, int64_t w) {
-#pragma omp parallel for schedule(static) if (parallel_work(rows * w, 1 << 16))
-    for (int64_t r = 0; r < rows; ++r) {
-        const T* src = x + r * w;
-        T* top = y + 2 * r * 2 * w;
-        for (int64_t v = 0; v < w; ++v) top[2 * v] = top[2 * v + 1] = src[v];
-        std::memcpy(top + 2 * w, top, sizeof(T) * 2 * w);
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(rows * w, 1 << 16))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t r = 0; r < rows; ++r) {
+            const T* src = x + r * w;
+            T* top = y + 2 * r * 2 * w;
+            for (int64_t v = 0; v < w; ++v) top[2 * v] = top[2 * v + 1] = src[v];
+            std::memcpy(top + 2 * w, top, sizeof(T) * 2 * w);
+        }
+        end.arrive();
     }
 }
 
 template <typename T> void upsample2x_backward(T* dx, const T* dy, int64_t rows, int64_t w) {
-#pragma omp parallel for schedule(static) if (parallel_work(rows * w, 1 << 16))
-    for (int64_t r = 0; r < rows; ++r) {
-        const T* a = dy + 2 * r * 2 * w;  // row 2r
-        const T* b = a + 2 * w;           // row 2r + 1
-        T* out = dx + r * w;
-        for (int64_t v = 0; v < w; ++v) out[v] = (a[2 * v] + a[2 * v + 1]) + (b[2 * v] + b[2 * v + 1]);
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(rows * w, 1 << 16))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t r = 0; r < rows; ++r) {
+            const T* a = dy + 2 * r * 2 * w;  // row 2r
+            const T* b = a + 2 * w;           // row 2r + 1
+            T* out = dx + r * w;
+            for (int64_t v = 0; v < w; ++v) out[v] = (a[2 * v] + a[2 * v + 1]) + (b[2 * v] + b[2 * v + 1]);
+        }
+        end.arrive();
     }
 }
 

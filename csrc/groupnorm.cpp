@@ -161,27 +161,37 @@ inline bool worth_threads(int64_t n) { return parallel_work(n, 1 << 16); }
 
 template <typename T> void swish_forward(T* y, const T* x, int64_t n) {
     constexpr int64_t W = Simd<T>::W, kBlock = 1 << 14;
-#pragma omp parallel for schedule(static) if (worth_threads(n))
-    for (int64_t b0 = 0; b0 < n; b0 += kBlock) {
-        const int64_t e = std::min(n, b0 + kBlock);
-        int64_t i = b0;
-        for (; i + W <= e; i += W) vstore<T>(y + i, swish_vec<T>(vload<T>(x + i)));
-        if (i < e) tail_apply<T>(y + i, x + i, e - i, swish_vec<T>);
+    RegionEnd end;
+#pragma omp parallel if (worth_threads(n))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t b0 = 0; b0 < n; b0 += kBlock) {
+            const int64_t e = std::min(n, b0 + kBlock);
+            int64_t i = b0;
+            for (; i + W <= e; i += W) vstore<T>(y + i, swish_vec<T>(vload<T>(x + i)));
+            if (i < e) tail_apply<T>(y + i, x + i, e - i, swish_vec<T>);
+        }
+        end.arrive();
     }
 }
 
 template <typename T> void swish_backward(T* dx, const T* dy, const T* x, int64_t n) {
     constexpr int64_t W = Simd<T>::W, kBlock = 1 << 14;
-#pragma omp parallel for schedule(static) if (worth_threads(n))
-    for (int64_t b0 = 0; b0 < n; b0 += kBlock) {
-        const int64_t e = std::min(n, b0 + kBlock);
-        int64_t i = b0;
-        for (; i + W <= e; i += W) vstore<T>(dx + i, vload<T>(dy + i) * swish_grad_vec<T>(vload<T>(x + i)));
-        for (; i < e; ++i) {
-            T g;
-            tail_apply<T>(&g, x + i, 1, swish_grad_vec<T>);
-            dx[i] = dy[i] * g;
+    RegionEnd end;
+#pragma omp parallel if (worth_threads(n))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t b0 = 0; b0 < n; b0 += kBlock) {
+            const int64_t e = std::min(n, b0 + kBlock);
+            int64_t i = b0;
+            for (; i + W <= e; i += W) vstore<T>(dx + i, vload<T>(dy + i) * swish_grad_vec<T>(vload<T>(x + i)));
+            for (; i < e; ++i) {
+                T g;
+                tail_apply<T>(&g, x + i, 1, swish_grad_vec<T>);
+                dx[i] = dy[i] * g;
+            }
         }
+        end.arrive();
     }
 }
 
@@ -200,45 +210,50 @@ int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta,
     const int64_t cpg = d.C / d.G, M = cpg * d.P;
     const T teps = (T)eps;
     int nonfinite = 0;
-#pragma omp parallel for schedule(static) if (worth_threads(d.B * d.C * d.P))
-    for (int64_t t = 0; t < d.B * d.G; ++t) {
-        const int64_t off = t * M;  // group (b, g) is x[off : off + M]
-        const T* xg = x + off;
-        T* st = stats + 3 * t;
-        const T mean = (T)(dsum(M, widened<T>([&](int64_t i) { return vload<T>(xg + i); }),
-                                [&](int64_t i) { return (double)xg[i]; }) / (double)M);
-        // xc = x - mean, recomputed in each pass (never stored: the backward recomputes it too)
-        const T r = (T)(dsum(M, widened<T>([&](int64_t i) { return vload<T>(xg + i) - mean; }),
-                             [&](int64_t i) { return (double)(T)(xg[i] - mean); }) / (double)M);
-        const auto xc2 = [&](int64_t i) { return (vload<T>(xg + i) - mean) - r; };  // T vector
-        const double ss = dsum(M, widened_product<T>(xc2, xc2), [&](int64_t i) {
-            const double c = (double)((T)(xg[i] - mean) - r);
-            return c * c;
-        });
-        const T var = (T)(ss / (double)M);
-        st[0] = mean, st[1] = r, st[2] = T(1) / std::sqrt(var + teps);
-        const int64_t c0 = (t % d.G) * cpg;
-        for (int64_t c = 0; c < cpg; ++c) {
-            const T* xc = xg + c * d.P;
-            T* yc = y + off + c * d.P;
-            const T ga = gamma[c0 + c], be = beta[c0 + c];
-            int64_t i = 0;
-            for (; i + W <= d.P; i += W) {
-                const V<T> yv = xhat_of<T>(vload<T>(xc + i), st) * ga + be;
-                vstore<T>(yc + i, swish ? swish_vec<T>(yv) : yv);
-            }
-            for (; i < d.P; ++i) {
-                const T yv = xhat_of<T>(xc[i], st) * ga + be;
-                if (swish)
-                    tail_apply<T>(yc + i, &yv, 1, swish_vec<T>);
-                else
-                    yc[i] = yv;
-            }
-            if (!finite_run(yc, d.P)) {  // checked while in cache (the binding raises naming y)
-#pragma omp atomic write
-                nonfinite = 1;
+    RegionEnd end;
+#pragma omp parallel if (worth_threads(d.B * d.C * d.P))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t t = 0; t < d.B * d.G; ++t) {
+            const int64_t off = t * M;  // group (b, g) is x[off : off + M]
+            const T* xg = x + off;
+            T* st = stats + 3 * t;
+            const T mean = (T)(dsum(M, widened<T>([&](int64_t i) { return vload<T>(xg + i); }),
+                                    [&](int64_t i) { return (double)xg[i]; }) / (double)M);
+            // xc = x - mean, recomputed in each pass (never stored: the backward recomputes it too)
+            const T r = (T)(dsum(M, widened<T>([&](int64_t i) { return vload<T>(xg + i) - mean; }),
+                                 [&](int64_t i) { return (double)(T)(xg[i] - mean); }) / (double)M);
+            const auto xc2 = [&](int64_t i) { return (vload<T>(xg + i) - mean) - r; };  // T vector
+            const double ss = dsum(M, widened_product<T>(xc2, xc2), [&](int64_t i) {
+                const double c = (double)((T)(xg[i] - mean) - r);
+                return c * c;
+            });
+            const T var = (T)(ss / (double)M);
+            st[0] = mean, st[1] = r, st[2] = T(1) / std::sqrt(var + teps);
+            const int64_t c0 = (t % d.G) * cpg;
+            for (int64_t c = 0; c < cpg; ++c) {
+                const T* xc = xg + c * d.P;
+                T* yc = y + off + c * d.P;
+                const T ga = gamma[c0 + c], be = beta[c0 + c];
+                int64_t i = 0;
+                for (; i + W <= d.P; i += W) {
+                    const V<T> yv = xhat_of<T>(vload<T>(xc + i), st) * ga + be;
+                    vstore<T>(yc + i, swish ? swish_vec<T>(yv) : yv);
+                }
+                for (; i < d.P; ++i) {
+                    const T yv = xhat_of<T>(xc[i], st) * ga + be;
+                    if (swish)
+                        tail_apply<T>(yc + i, &yv, 1, swish_vec<T>);
+                    else
+                        yc[i] = yv;
+                }
+                if (!finite_run(yc, d.P)) {  // checked while in cache (the binding raises naming y)
+    #pragma omp atomic write
+                    nonfinite = 1;
+                }
             }
         }
+        end.arrive();
     }
     return nonfinite ? kConvNonFinite : kConvOk;
 }
@@ -256,6 +271,7 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
         return kConvOutOfMemory;
     }
     int nonfinite = 0;
+    RegionEnd end;
 #pragma omp parallel if (worth_threads(d.B * d.C * d.P))
     {
 #pragma omp for schedule(static)
@@ -317,6 +333,7 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
             dgamma[c] = (T)sg;
             dbeta[c] = (T)sb;
         }
+        end.arrive();
     }
     return nonfinite ? kConvNonFinite : kConvOk;
 }

@@ -87,10 +87,15 @@ int64_t layernorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, co
                           double eps) {
     const int64_t blocks = (M + kRows - 1) / kRows;
     int64_t bad = 0;
-#pragma omp parallel for schedule(static) reduction(+ : bad) if (parallel_work(M * d, 16384))
-    for (int64_t b = 0; b < blocks; ++b)
-        for (int64_t r = b * kRows; r < std::min(M, (b + 1) * kRows); ++r)
-            bad += !forward_row(y + r * d, xhat + r * d, rstd[r], x + r * d, gamma, beta, d, eps);
+    RegionEnd end;
+#pragma omp parallel reduction(+ : bad) if (parallel_work(M * d, 16384))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t b = 0; b < blocks; ++b)
+            for (int64_t r = b * kRows; r < std::min(M, (b + 1) * kRows); ++r)
+                bad += !forward_row(y + r * d, xhat + r * d, rstd[r], x + r * d, gamma, beta, d, eps);
+        end.arrive();
+    }
     return bad;
 }
 
@@ -99,26 +104,31 @@ void layernorm_backward(T* dx, T* dgamma, T* dbeta, const T* dy, const T* xhat, 
                         int64_t M, int64_t d) {
     const int64_t blocks = (M + kRows - 1) / kRows;
     std::vector<double> pg(blocks * d), pb(blocks * d);  // per block: sums of dy xhat and of dy
-#pragma omp parallel for schedule(static) if (parallel_work(M * d, 16384))
-    for (int64_t b = 0; b < blocks; ++b) {
-        double* sg = pg.data() + b * d;
-        double* sb = pb.data() + b * d;
-        std::fill(sg, sg + d, 0.0);
-        std::fill(sb, sb + d, 0.0);
-        for (int64_t r = b * kRows; r < std::min(M, (b + 1) * kRows); ++r) {
-            const T *gy = dy + r * d, *xh = xhat + r * d;
-            const double m1 = lane_sum(d, [&](int64_t i) { return static_cast<double>(gy[i]) * gamma[i]; }) / d;
-            const double m2 =
-                lane_sum(d, [&](int64_t i) { return static_cast<double>(gy[i]) * gamma[i] * xh[i]; }) / d;
-            const double s = rstd[r];
-            T* out = dx + r * d;
-            for (int64_t i = 0; i < d; ++i) {
-                const double g = static_cast<double>(gy[i]) * gamma[i];
-                out[i] = static_cast<T>(s * (g - m1 - xh[i] * m2));
-                sg[i] += static_cast<double>(gy[i]) * xh[i];
-                sb[i] += gy[i];
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(M * d, 16384))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t b = 0; b < blocks; ++b) {
+            double* sg = pg.data() + b * d;
+            double* sb = pb.data() + b * d;
+            std::fill(sg, sg + d, 0.0);
+            std::fill(sb, sb + d, 0.0);
+            for (int64_t r = b * kRows; r < std::min(M, (b + 1) * kRows); ++r) {
+                const T *gy = dy + r * d, *xh = xhat + r * d;
+                const double m1 = lane_sum(d, [&](int64_t i) { return static_cast<double>(gy[i]) * gamma[i]; }) / d;
+                const double m2 =
+                    lane_sum(d, [&](int64_t i) { return static_cast<double>(gy[i]) * gamma[i] * xh[i]; }) / d;
+                const double s = rstd[r];
+                T* out = dx + r * d;
+                for (int64_t i = 0; i < d; ++i) {
+                    const double g = static_cast<double>(gy[i]) * gamma[i];
+                    out[i] = static_cast<T>(s * (g - m1 - xh[i] * m2));
+                    sg[i] += static_cast<double>(gy[i]) * xh[i];
+                    sb[i] += gy[i];
+                }
             }
         }
+        end.arrive();
     }
     for (int64_t i = 0; i < d; ++i) {  // the blocks' sums in block order
         double g = 0, s = 0;

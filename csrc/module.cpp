@@ -338,8 +338,13 @@ template <typename T> bool all_finite(Arr<T> x) {
     constexpr int64_t kBlock = 1 << 16;
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     bool ok = true;
-#pragma omp parallel for schedule(static) reduction(&& : ok) if (parallel_work(blocks, 4))
-    for (int64_t b = 0; b < blocks; ++b) ok = finite_run(p + b * kBlock, std::min(kBlock, n - b * kBlock)) && ok;
+    RegionEnd end;
+#pragma omp parallel reduction(&& : ok) if (parallel_work(blocks, 4))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t b = 0; b < blocks; ++b) ok = finite_run(p + b * kBlock, std::min(kBlock, n - b * kBlock)) && ok;
+        end.arrive();
+    }
     return ok;
 }
 

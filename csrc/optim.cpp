@@ -84,10 +84,15 @@ template <typename T, typename F> void each_block(const AdamTensor<T>* t, int64_
     for (int64_t i = 0; i < count; ++i)
         for (int64_t lo = 0; lo < t[i].n; lo += kBlock) tasks.emplace_back(i, lo);
     const int64_t nt = static_cast<int64_t>(tasks.size());
-#pragma omp parallel for schedule(static) if (parallel_work(nt, 2))
-    for (int64_t k = 0; k < nt; ++k) {
-        const auto [i, lo] = tasks[k];
-        f(i, t[i], lo, std::min(t[i].n, lo + kBlock));
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(nt, 2))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t k = 0; k < nt; ++k) {
+            const auto [i, lo] = tasks[k];
+            f(i, t[i], lo, std::min(t[i].n, lo + kBlock));
+        }
+        end.arrive();
     }
 }
 
@@ -128,30 +133,35 @@ template <typename T> void adam_apply(const AdamTensor<T>* t, int64_t count, con
 template <typename T> void sum_squares(const T* x, int64_t n, double* amax, double* sumsq) {
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     std::vector<double> part(blocks), top(blocks);
-#pragma omp parallel for schedule(static) if (parallel_work(blocks, 2))
-    for (int64_t b = 0; b < blocks; ++b) {
-        const int64_t lo = b * kBlock, hi = std::min(n, lo + kBlock);
-        constexpr int L = 8;  // lanes: independent sums the compiler keeps in registers
-        double acc[L] = {}, mx[L] = {};
-        int64_t i = lo;
-        for (; i + L <= hi; i += L)
-            for (int l = 0; l < L; ++l) {
-                const double y = static_cast<double>(x[i + l]);
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(blocks, 2))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t b = 0; b < blocks; ++b) {
+            const int64_t lo = b * kBlock, hi = std::min(n, lo + kBlock);
+            constexpr int L = 8;  // lanes: independent sums the compiler keeps in registers
+            double acc[L] = {}, mx[L] = {};
+            int64_t i = lo;
+            for (; i + L <= hi; i += L)
+                for (int l = 0; l < L; ++l) {
+                    const double y = static_cast<double>(x[i + l]);
+                    acc[l] += y * y;
+                    mx[l] = std::max(mx[l], std::fabs(y));
+                }
+            for (int l = 0; i < hi; ++i, ++l) {
+                const double y = static_cast<double>(x[i]);
                 acc[l] += y * y;
                 mx[l] = std::max(mx[l], std::fabs(y));
             }
-        for (int l = 0; i < hi; ++i, ++l) {
-            const double y = static_cast<double>(x[i]);
-            acc[l] += y * y;
-            mx[l] = std::max(mx[l], std::fabs(y));
+            double t = 0, m = 0;
+            for (int l = 0; l < L; ++l) {
+                t += acc[l];
+                m = std::max(m, mx[l]);
+            }
+            part[b] = t;
+            top[b] = m;
         }
-        double t = 0, m = 0;
-        for (int l = 0; l < L; ++l) {
-            t += acc[l];
-            m = std::max(m, mx[l]);
-        }
-        part[b] = t;
-        top[b] = m;
+        end.arrive();
     }
     double t = 0, m = 0;
     for (int64_t b = 0; b < blocks; ++b) {
@@ -165,10 +175,15 @@ template <typename T> void sum_squares(const T* x, int64_t n, double* amax, doub
 // x *= c in place, c already rounded to T (as NumPy's g *= c rounds a Python float).
 template <typename T> void scale_by(T* x, int64_t n, T c) {
     const int64_t blocks = (n + kBlock - 1) / kBlock;
-#pragma omp parallel for schedule(static) if (parallel_work(blocks, 2))
-    for (int64_t b = 0; b < blocks; ++b) {
-        const int64_t lo = b * kBlock, hi = std::min(n, lo + kBlock);
-        for (int64_t i = lo; i < hi; ++i) x[i] *= c;
+    RegionEnd end;
+#pragma omp parallel if (parallel_work(blocks, 2))
+    {
+#pragma omp for schedule(static) nowait
+        for (int64_t b = 0; b < blocks; ++b) {
+            const int64_t lo = b * kBlock, hi = std::min(n, lo + kBlock);
+            for (int64_t i = lo; i < hi; ++i) x[i] *= c;
+        }
+        end.arrive();
     }
 }
 

@@ -102,4 +102,28 @@ bool oversubscribed() {
 bool oversubscribed() { return false; }  // no /proc: the kernels' thresholds as on a quiet machine
 #endif
 
+void RegionEnd::arrive() {
+#ifdef PYVF_OPENMP
+    const int others = omp_get_num_threads() - 1;
+    if (others == 0) return;
+    if (omp_get_thread_num() != 0) {
+        arrived_.fetch_add(1, std::memory_order_release);
+        return;
+    }
+    if (oversubscribed()) return;
+    using clock = std::chrono::steady_clock;
+    const auto give_up = clock::now() + std::chrono::nanoseconds(kMasterSpinNs);
+    while (arrived_.load(std::memory_order_acquire) < others) {
+        for (int i = 0; i < 64 && arrived_.load(std::memory_order_relaxed) < others; ++i) {
+#if defined(__x86_64__) || defined(__i386__)
+            __builtin_ia32_pause();
+#elif defined(__aarch64__)
+            asm volatile("yield");
+#endif
+        }
+        if (clock::now() > give_up) return;
+    }
+#endif
+}
+
 }  // namespace pyvf
