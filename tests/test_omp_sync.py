@@ -1,0 +1,96 @@
+"""How many times a kernel call wakes its threads (tools/omp_sync_count.c, an LD_PRELOAD shim over
+libgomp): under OMP_WAIT_POLICY=PASSIVE each parallel region and each barrier inside one is a
+futex wake of sleeping threads (35-50 us on a VM, csrc/threads.h), so the kernels keep them few,
+and these counts pin that down: a conv2d backward is one region with one barrier (the flipped
+weights and the channels-last dy ready before any task), a forward one region and no barrier, the
+GEMM one region (a barrier only where its sum is split into parts), the attention's backward one
+region (a barrier only where its key blocks fall into several groups). A barrier added back, or a kernel
+split into two regions again, fails here. Every call on 2 forced threads (tests/conftest.py)."""
+
+import ctypes.util
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# the kernels themselves (pyvf._core: the Python wrappers add their own finiteness scans), each run
+# once in the child after a warm-up: name -> (code, regions, barriers per thread)
+CASES = {
+    "conv2d forward": ("K.conv2d_forward(y, x, w, b, 1, 1, 1, 1, 1)", 1, 0),
+    "conv2d backward (dw on channels-last dy)": ("K.conv2d_backward(dx, dw, db, x, w, dy, 1, 1, 1, 1, 1)", 1, 1),
+    "conv2d backward (dw lane sums, 3 channels)": ("K.conv2d_backward(dx, dw3, db3, x, w3, dy3, 1, 1, 1, 1, 1)", 1, 1),
+    "conv2d backward, stride 2": ("K.conv2d_backward(dx, dw, db, x, w, dy2, 2, 0, 1, 0, 1)", 1, 1),
+    "matmul": ("K.matmul(c, a, bm, False, False, None)", 1, 0),
+    "matmul, sum split in parts": ("K.matmul(c_long, a_long, b_long, False, False, None)", 1, 1),
+    "attention forward": ("K.attn_forward(o, lse, q, k, v, 1.0)", 1, 0),
+    "attention backward, 6 key groups": ("K.attn_backward(dq, dk, dv, lse, q, k, v, o, do, 1.0)", 1, 1),
+    "attention backward, 1 key group": ("K.attn_backward(dq16, dk16, dv16, lse16, q16, k16, v16, o16, do16, 1.0)", 1, 0),
+}
+
+CHILD = textwrap.dedent("""
+    import ctypes, json, sys
+    import numpy as np
+    import pyvf
+    from pyvf import _core as K
+    lib = ctypes.CDLL(sys.argv[1])
+    lib.omp_sync_regions.restype = lib.omp_sync_barriers.restype = ctypes.c_long
+    rng = np.random.default_rng(0)
+    f = lambda *s: rng.standard_normal(s).astype(np.float32)
+    e = lambda *s: np.empty(s, np.float32)
+    x, w, b, w3 = f(2, 9, 10, 12), f(35, 9, 3, 3), f(35), f(3, 9, 3, 3)
+    y, dy, dy3, dy2 = e(2, 35, 10, 12), f(2, 35, 10, 12), f(2, 3, 10, 12), f(2, 35, 5, 6)
+    dx, dw, db, dw3, db3 = e(2, 9, 10, 12), e(35, 9, 3, 3), e(35), e(3, 9, 3, 3), e(3)
+    a, bm, c = f(1, 40, 50), f(1, 50, 60), e(1, 40, 60)
+    a_long, b_long, c_long = f(1, 8, 4096), f(1, 4096, 16), e(1, 8, 16)
+    q, k, v, do = (f(2, 1, 2, 3, 16, 8) for _ in range(4))  # 2 heads: the key blocks in 6 groups
+    o, dq, dk, dv, lse = e(*q.shape), e(*q.shape), e(*q.shape), e(*q.shape), np.empty(q.shape[:5])
+    q16, k16, v16, do16 = (f(2, 2, 8, 3, 16, 8) for _ in range(4))  # 16 heads: one group
+    o16, dq16, dk16, dv16, lse16 = e(*q16.shape), e(*q16.shape), e(*q16.shape), e(*q16.shape), np.empty(q16.shape[:5])
+    K.attn_forward(o, lse, q, k, v, 1.0)
+    K.attn_forward(o16, lse16, q16, k16, v16, 1.0)
+    pyvf.set_num_threads(2)
+    K.set_force_parallel(True)
+    out = {}
+    for name, code in json.loads(sys.argv[2]).items():
+        eval(code)  # warm-up
+        r, bar = lib.omp_sync_regions(), lib.omp_sync_barriers()
+        eval(code)
+        out[name] = [lib.omp_sync_regions() - r, (lib.omp_sync_barriers() - bar) / 2]
+    print(json.dumps(out))
+""")
+
+
+def _libgomp_kernels():
+    """True when the kernels run on GCC's libgomp (the shim wraps its entry points)."""
+    from pyvf import _core
+    so = _core._module(_core.current_path()).__file__
+    ldd = shutil.which("ldd")
+    return bool(ldd) and "libgomp" in subprocess.run([ldd, so], capture_output=True, text=True).stdout
+
+
+@pytest.fixture(scope="module")
+def counts(tmp_path_factory):
+    import json
+    cc = shutil.which("gcc") or shutil.which("cc")
+    if not cc or not _libgomp_kernels():
+        pytest.skip("needs a C compiler and kernels built with GCC's libgomp")
+    shim = str(tmp_path_factory.mktemp("shim") / "omp_sync_count.so")
+    subprocess.run([cc, "-O2", "-shared", "-fPIC", os.path.join(ROOT, "tools", "omp_sync_count.c"), "-o", shim, "-ldl"],
+                   check=True)
+    env = dict(os.environ, LD_PRELOAD=shim)
+    run = subprocess.run([sys.executable, "-c", CHILD, shim, json.dumps({n: c for n, (c, _, _) in CASES.items()})],
+                         env=env, capture_output=True, text=True, cwd=str(tmp_path_factory.mktemp("cwd")), timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_wakes_per_call(name, counts):
+    _, regions, barriers = CASES[name]
+    assert counts[name] == [regions, barriers], \
+        f"{name}: {counts[name][0]} regions and {counts[name][1]} barriers per thread, expected {regions} and {barriers}"
