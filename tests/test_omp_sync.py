@@ -7,7 +7,6 @@ GEMM one region (a barrier only where its sum is split into parts), the attentio
 region (a barrier only where its key blocks fall into several groups). A barrier added back, or a kernel
 split into two regions again, fails here. Every call on 2 forced threads (tests/conftest.py)."""
 
-import ctypes.util
 import os
 import shutil
 import subprocess
@@ -94,3 +93,19 @@ def test_wakes_per_call(name, counts):
     _, regions, barriers = CASES[name]
     assert counts[name] == [regions, barriers], \
         f"{name}: {counts[name][0]} regions and {counts[name][1]} barriers per thread, expected {regions} and {barriers}"
+
+
+def test_region_end_tool_builds_and_runs(tmp_path):
+    """tools/omp_region_end.cpp (the measurement behind csrc/threads.h's RegionEnd) compiles and
+    prints its line for both modes (its numbers are the machine's, not checked here)."""
+    cxx = shutil.which("g++") or shutil.which("c++")
+    if not cxx:
+        pytest.skip("needs a C++ compiler with OpenMP")
+    exe = str(tmp_path / "region_end")
+    subprocess.run([cxx, "-O2", "-fopenmp", os.path.join(ROOT, "tools", "omp_region_end.cpp"), "-o", exe], check=True)
+    for mode in ("0", "1"):
+        run = subprocess.run([exe, "20", mode, "5"], capture_output=True, text=True, timeout=60,
+                             env=dict(os.environ, OMP_NUM_THREADS="2", OMP_WAIT_POLICY="PASSIVE"))
+        assert run.returncode == 0, run.stderr
+        assert f"threads 2, work 20 us per thread, mode {mode}, gap 5 us: median" in run.stdout, run.stdout
+    assert subprocess.run([exe], capture_output=True).returncode == 2  # usage
