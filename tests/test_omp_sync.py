@@ -4,8 +4,8 @@ futex wake of sleeping threads (35-50 us on a VM, csrc/threads.h), so the kernel
 and these counts pin that down: a conv2d backward is one region with one barrier (the flipped
 weights and the channels-last dy ready before any task), a forward one region and no barrier, the
 GEMM one region (a barrier only where its sum is split into parts), the attention's backward one
-region (a barrier only where its key blocks fall into several groups). A barrier added back, or a kernel
-split into two regions again, fails here. Every call on 2 forced threads (tests/conftest.py)."""
+region (a barrier only where its key blocks fall into several groups). A barrier added back, or a
+kernel split into two regions again, fails here. Every call on 2 forced threads (tests/conftest.py)."""
 
 import os
 import shutil
@@ -28,7 +28,8 @@ CASES = {
     "matmul, sum split in parts": ("K.matmul(c_long, a_long, b_long, False, False, None)", 1, 1),
     "attention forward": ("K.attn_forward(o, lse, q, k, v, 1.0)", 1, 0),
     "attention backward, 6 key groups": ("K.attn_backward(dq, dk, dv, lse, q, k, v, o, do, 1.0)", 1, 1),
-    "attention backward, 1 key group": ("K.attn_backward(dq16, dk16, dv16, lse16, q16, k16, v16, o16, do16, 1.0)", 1, 0),
+    "attention backward, 1 key group":
+        ("K.attn_backward(dq16, dk16, dv16, lse16, q16, k16, v16, o16, do16, 1.0)", 1, 0),
 }
 
 CHILD = textwrap.dedent("""
@@ -91,8 +92,9 @@ def counts(tmp_path_factory):
 @pytest.mark.parametrize("name", list(CASES))
 def test_wakes_per_call(name, counts):
     _, regions, barriers = CASES[name]
-    assert counts[name] == [regions, barriers], \
-        f"{name}: {counts[name][0]} regions and {counts[name][1]} barriers per thread, expected {regions} and {barriers}"
+    got_regions, got_barriers = counts[name]
+    assert [got_regions, got_barriers] == [regions, barriers], \
+        f"{name}: {got_regions} regions and {got_barriers} barriers per thread, expected {regions} and {barriers}"
 
 
 def test_region_end_tool_builds_and_runs(tmp_path):
