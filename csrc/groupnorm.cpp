@@ -274,7 +274,7 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
     RegionEnd end;
 #pragma omp parallel if (worth_threads(d.B * d.C * d.P))
     {
-#pragma omp for schedule(static)
+#pragma omp for schedule(static) nowait
         for (int64_t t = 0; t < d.B * d.G; ++t) {
             const int64_t off = t * M, b = t / d.G, c0 = (t % d.G) * cpg;
             const T* xg = x + off;
@@ -322,18 +322,18 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
                 nonfinite = 1;
             }
         }
-        // the partial sums over images, in image order
-#pragma omp for schedule(static) nowait
-        for (int64_t c = 0; c < d.C; ++c) {
-            double sg = 0, sb = 0;
-            for (int64_t b = 0; b < d.B; ++b) {
-                sg += pg[b * d.C + c];
-                sb += pb[b * d.C + c];
-            }
-            dgamma[c] = (T)sg;
-            dbeta[c] = (T)sb;
-        }
         end.arrive();
+    }
+    // the partial sums over images, in image order, after the region: B*C additions (8 Ki for a
+    // batch of 16 images of 512 channels, a few us) cost less than the barrier they would need in it
+    for (int64_t c = 0; c < d.C; ++c) {
+        double sg = 0, sb = 0;
+        for (int64_t b = 0; b < d.B; ++b) {
+            sg += pg[b * d.C + c];
+            sb += pb[b * d.C + c];
+        }
+        dgamma[c] = (T)sg;
+        dbeta[c] = (T)sb;
     }
     return nonfinite ? kConvNonFinite : kConvOk;
 }

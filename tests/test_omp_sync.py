@@ -2,10 +2,12 @@
 libgomp): under OMP_WAIT_POLICY=PASSIVE each parallel region and each barrier inside one is a
 futex wake of sleeping threads (35-50 us on a VM, csrc/threads.h), so the kernels keep them few,
 and these counts pin that down: a conv2d backward is one region with one barrier (the flipped
-weights and the channels-last dy ready before any task), a forward one region and no barrier, the
-GEMM one region (a barrier only where its sum is split into parts), the attention's backward one
-region (a barrier only where its key blocks fall into several groups). A barrier added back, or a
-kernel split into two regions again, fails here. Every call on 2 forced threads (tests/conftest.py)."""
+weights and the channels-last dy ready before any task), a forward one region and no barrier,
+GroupNorm's forward and backward one region each (the backward sums dgamma and dbeta over the
+images after its region), the GEMM one region (a barrier only where its sum is split into parts),
+the attention's backward one region (a barrier only where its key blocks fall into several
+groups). A barrier added back, or a kernel split into two regions again, fails here. Every call
+on 2 forced threads (tests/conftest.py)."""
 
 import os
 import shutil
@@ -24,6 +26,8 @@ CASES = {
     "conv2d backward (dw on channels-last dy)": ("K.conv2d_backward(dx, dw, db, x, w, dy, 1, 1, 1, 1, 1)", 1, 1),
     "conv2d backward (dw lane sums, 3 channels)": ("K.conv2d_backward(dx, dw3, db3, x, w3, dy3, 1, 1, 1, 1, 1)", 1, 1),
     "conv2d backward, stride 2": ("K.conv2d_backward(dx, dw, db, x, w, dy2, 2, 0, 1, 0, 1)", 1, 1),
+    "groupnorm + swish forward": ("K.groupnorm_forward(gy, gst, gx, gg, gb, 4, 1e-6, True)", 1, 0),
+    "groupnorm + swish backward": ("K.groupnorm_backward(gdx, gdg, gdb, gx, gst, gg, gb, gdy, 4, True)", 1, 0),
     "matmul": ("K.matmul(c, a, bm, False, False, None)", 1, 0),
     "matmul, sum split in parts": ("K.matmul(c_long, a_long, b_long, False, False, None)", 1, 1),
     "attention forward": ("K.attn_forward(o, lse, q, k, v, 1.0)", 1, 0),
@@ -45,6 +49,8 @@ CHILD = textwrap.dedent("""
     x, w, b, w3 = f(2, 9, 10, 12), f(35, 9, 3, 3), f(35), f(3, 9, 3, 3)
     y, dy, dy3, dy2 = e(2, 35, 10, 12), f(2, 35, 10, 12), f(2, 3, 10, 12), f(2, 35, 5, 6)
     dx, dw, db, dw3, db3 = e(2, 9, 10, 12), e(35, 9, 3, 3), e(35), e(3, 9, 3, 3), e(3)
+    gx, gg, gb, gdy = f(2, 8, 6, 6), f(8), f(8), f(2, 8, 6, 6)
+    gy, gst, gdx, gdg, gdb = e(2, 8, 6, 6), e(2, 4, 3), e(2, 8, 6, 6), e(8), e(8)
     a, bm, c = f(1, 40, 50), f(1, 50, 60), e(1, 40, 60)
     a_long, b_long, c_long = f(1, 8, 4096), f(1, 4096, 16), e(1, 8, 16)
     q, k, v, do = (f(2, 1, 2, 3, 16, 8) for _ in range(4))  # 2 heads: the key blocks in 6 groups
