@@ -771,7 +771,7 @@ template <typename T> struct DwGemmTasks {
         s.arow.resize(kb_max);
     }
 
-    bool run(int64_t t, Scratch& s) const {
+    void run(int64_t t, Scratch& s) const {
         const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
         const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
         cols_row_offsets(s.aoff.data(), d, nc, direct, rows, Rp, Wq, np);
@@ -807,7 +807,6 @@ template <typename T> struct DwGemmTasks {
             }
         for (int64_t o = 0; o < no; ++o)
             for (int64_t r = 0; r < kb; ++r) dw[(o0 + o) * K + c0 * khw + r] = s.acc[r * ow + o];
-        return true;
     }
 };
 
@@ -863,7 +862,7 @@ template <typename T> struct DwLanesTasks {
         s.aoff.resize(kb_max);
     }
 
-    bool run(int64_t t, Scratch& s) const {
+    void run(int64_t t, Scratch& s) const {
         const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
         const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
         cols_row_offsets(s.aoff.data(), d, nc, direct, rows, Rp, Wp, np);
@@ -891,7 +890,6 @@ template <typename T> struct DwLanesTasks {
         for (int64_t o = 0; o < no; ++o)
             for (int64_t r = 0; r < kb; ++r)
                 dw[(o0 + o) * K + c0 * khw + r] = hsum<T>(vload<T>(s.acc.data() + (r * ow + o) * kW<T>));
-        return true;
     }
 };
 
@@ -993,14 +991,13 @@ int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy
         bool ok = false;
         PYVF_CONV_TRY_ALLOC(status, dxt.scratch(sx); dwt.scratch(sw); ok = true)
 #pragma omp barrier
-        const int64_t nw = dwt.ntask, nx = dxt.ntask;
-        const bool dw_first = nw <= nx;
+        const bool dw_first = dwt.ntask <= dxt.ntask;
+        const int64_t first = dw_first ? dwt.ntask : dxt.ntask;  // tasks t < first: the first set's
 #pragma omp for schedule(dynamic, 1) nowait
-        for (int64_t t = 0; t < nw + nx; ++t) {
+        for (int64_t t = 0; t < dwt.ntask + dxt.ntask; ++t) {
             if (!ok) continue;
-            const bool is_dw = dw_first ? t < nw : t >= nx;
-            const int64_t i = is_dw ? (dw_first ? t : t - nx) : (dw_first ? t - nw : t);
-            if (is_dw) {
+            const int64_t i = t < first ? t : t - first;
+            if ((t < first) == dw_first) {
                 dwt.run(i, sw);
             } else if (!dxt.run(i, sx)) {
 #pragma omp atomic write
