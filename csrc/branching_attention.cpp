@@ -191,7 +191,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
 
     int status = kAttnOk;
     RegionEnd end;
-#pragma omp parallel if (worth_threads(d))
+#pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
         // per thread: q^T (dh, TQ); s^T, then p^T (TK, TQ); the accumulator acc (TQ, dh); per
         // query: running max m, new max mn, rescale factor c, sum l, this tile's sum ls
@@ -320,7 +320,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
     int status = kAttnOk;
     const bool threads = worth_threads(d);
     RegionEnd end;
-#pragma omp parallel if (threads)
+#pragma omp parallel num_threads(num_threads()) if (threads)
     {
         // per thread, for one head: q and do transposed per block (dh, L); D = rowsum(do * o)
         // and the lse hi/lo split per query; p^T, dp^T, ds^T (TK, TQ).
@@ -561,7 +561,7 @@ void context_softmax(T* sc, T* so, T* m, T* denom, int64_t R, int64_t G, int64_t
     const int64_t RL = R * L;
     std::vector<double> sums(R * G * L, 0.0);  // the tasks' sums (allocated here: no throw in the region)
     RegionEnd end;
-#pragma omp parallel if (parallel_work(R * G * (C + L) * L, 1 << 15))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(R * G * (C + L) * L, 1 << 15))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t t = 0; t < R * G; ++t) {

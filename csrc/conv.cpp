@@ -941,7 +941,7 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
     PYVF_CONV_OR_OOM(p.reset(new ConvTasks<T>(y, x, w, b, d)))
     int status = kConvOk, nonfinite = 0;
     RegionEnd end;
-#pragma omp parallel if (worth_threads(d))
+#pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
         typename ConvTasks<T>::Scratch s;
         bool ok = false;
@@ -970,7 +970,7 @@ int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy
     const int64_t khw = d.kh * d.kw, nflip = wf ? ceil_div(d.C, 16) : 0;
     int status = kConvOk, nonfinite = 0;
     RegionEnd end;
-#pragma omp parallel if (worth_threads(d))
+#pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
         // wf[c, o, i', j'] = w[o, c, kh-1-i', kw-1-j']: (i, j) -> (kh-1-i, kw-1-j) reverses each
         // (o, c) block of kh*kw taps. By blocks of 16 input channels: w read in runs of 16 blocks,
@@ -1154,7 +1154,7 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
         constexpr int64_t kT = 32;  // tiles of 32 x 32: the reads and the writes both stay in L1
         const int64_t nj = ceil_div(N, kT);
         RegionEnd end;
-#pragma omp parallel if (parallel_work(nb * K * N, kParallelFlops / 8))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(nb * K * N, kParallelFlops / 8))
         {
 #pragma omp for schedule(static) nowait
             for (int64_t t = 0; t < nb * nj; ++t) {
@@ -1183,7 +1183,7 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
     const int64_t rows = std::min(M, kMatRows), depth = std::min(span, kMatDepth), cols = std::min(N, kMatCols);
     int status = kConvOk;
     RegionEnd end;
-#pragma omp parallel if (parallel_work(nb * M * N * K, kParallelFlops))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(nb * M * N * K, kParallelFlops))
     {
         Buf<T> ap, bp;
         bool ok = false;

@@ -229,7 +229,7 @@ inline void normal_cdf_xpdf_d(VF x, VF& cdf, VF& xpdf) {
 // f(i, m) on [i, i + m) for every block of WF floats of [0, n); the last one has m < WF.
 template <typename F> inline void map_float(int64_t n, F f) {
     RegionEnd end;
-#pragma omp parallel if (parallel_work(n, 65537))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 65537))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t i = 0; i < n; i += WF) f(i, std::min<int64_t>(WF, n - i));
@@ -275,7 +275,7 @@ template <> void gelu_backward<float>(float* dx, const float* dy, const float* x
 // float64: the scalar path, compensated as above.
 template <typename T> void gelu_forward(T* y, const T* x, int64_t n) {
     RegionEnd end;
-#pragma omp parallel if (parallel_work(n, 65537))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 65537))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t i = 0; i < n; ++i) {
@@ -289,7 +289,7 @@ template <typename T> void gelu_forward(T* y, const T* x, int64_t n) {
 
 template <typename T> void gelu_backward(T* dx, const T* dy, const T* x, int64_t n) {
     RegionEnd end;
-#pragma omp parallel if (parallel_work(n, 65537))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 65537))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t i = 0; i < n; ++i) {
@@ -314,7 +314,7 @@ template <bool SPLIT, typename T>
 void heads_copy(T* hd, T* tok, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
     const int64_t n = RB * NL;
     RegionEnd end;
-#pragma omp parallel if (parallel_work(n * H * dh, 1 << 16))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(n * H * dh, 1 << 16))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t t = 0; t < n; ++t) {
@@ -350,7 +350,7 @@ void heads_merge(T* tok, const T* hd, int64_t RB, int64_t NL, int64_t H, int64_t
 template <typename T> void add(T* out, const T* a, const T* b, int64_t n) {
     constexpr int64_t kB = 1 << 14;  // elements a thread takes at a time
     RegionEnd end;
-#pragma omp parallel if (parallel_work(n, 4 * kB))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 4 * kB))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t lo = 0; lo < n; lo += kB) {
@@ -365,7 +365,7 @@ template <typename T> void column_sums(T* out, const T* a, int64_t M, int64_t N)
     constexpr int64_t W = Simd<T>::W, kC = 64 / sizeof(T);  // a cache line of columns per task
     const int64_t nblk = (N + kC - 1) / kC;
     RegionEnd end;
-#pragma omp parallel if (nblk >= 2 && parallel_work(M * N, 1 << 17))
+#pragma omp parallel num_threads(num_threads()) if (nblk >= 2 && parallel_work(M * N, 1 << 17))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t blk = 0; blk < nblk; ++blk) {
@@ -396,7 +396,7 @@ template <typename T> void column_sums(T* out, const T* a, int64_t M, int64_t N)
 
 template <typename T> void upsample2x(T* y, const T* x, int64_t rows, int64_t w) {
     RegionEnd end;
-#pragma omp parallel if (parallel_work(rows * w, 1 << 16))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(rows * w, 1 << 16))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t r = 0; r < rows; ++r) {
@@ -411,7 +411,7 @@ template <typename T> void upsample2x(T* y, const T* x, int64_t rows, int64_t w)
 
 template <typename T> void upsample2x_backward(T* dx, const T* dy, int64_t rows, int64_t w) {
     RegionEnd end;
-#pragma omp parallel if (parallel_work(rows * w, 1 << 16))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(rows * w, 1 << 16))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t r = 0; r < rows; ++r) {

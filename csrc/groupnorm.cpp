@@ -162,7 +162,7 @@ inline bool worth_threads(int64_t n) { return parallel_work(n, 1 << 16); }
 template <typename T> void swish_forward(T* y, const T* x, int64_t n) {
     constexpr int64_t W = Simd<T>::W, kBlock = 1 << 14;
     RegionEnd end;
-#pragma omp parallel if (worth_threads(n))
+#pragma omp parallel num_threads(num_threads()) if (worth_threads(n))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t b0 = 0; b0 < n; b0 += kBlock) {
@@ -178,7 +178,7 @@ template <typename T> void swish_forward(T* y, const T* x, int64_t n) {
 template <typename T> void swish_backward(T* dx, const T* dy, const T* x, int64_t n) {
     constexpr int64_t W = Simd<T>::W, kBlock = 1 << 14;
     RegionEnd end;
-#pragma omp parallel if (worth_threads(n))
+#pragma omp parallel num_threads(num_threads()) if (worth_threads(n))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t b0 = 0; b0 < n; b0 += kBlock) {
@@ -211,7 +211,7 @@ int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta,
     const T teps = (T)eps;
     int nonfinite = 0;
     RegionEnd end;
-#pragma omp parallel if (worth_threads(d.B * d.C * d.P))
+#pragma omp parallel num_threads(num_threads()) if (worth_threads(d.B * d.C * d.P))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t t = 0; t < d.B * d.G; ++t) {
@@ -272,7 +272,7 @@ int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, c
     }
     int nonfinite = 0;
     RegionEnd end;
-#pragma omp parallel if (worth_threads(d.B * d.C * d.P))
+#pragma omp parallel num_threads(num_threads()) if (worth_threads(d.B * d.C * d.P))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t t = 0; t < d.B * d.G; ++t) {

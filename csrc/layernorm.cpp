@@ -88,7 +88,7 @@ int64_t layernorm_forward(T* y, T* xhat, T* rstd, const T* x, const T* gamma, co
     const int64_t blocks = (M + kRows - 1) / kRows;
     int64_t bad = 0;
     RegionEnd end;
-#pragma omp parallel reduction(+ : bad) if (parallel_work(M * d, 16384))
+#pragma omp parallel num_threads(num_threads()) reduction(+ : bad) if (parallel_work(M * d, 16384))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t b = 0; b < blocks; ++b)
@@ -105,7 +105,7 @@ void layernorm_backward(T* dx, T* dgamma, T* dbeta, const T* dy, const T* xhat, 
     const int64_t blocks = (M + kRows - 1) / kRows;
     std::vector<double> pg(blocks * d), pb(blocks * d);  // per block: sums of dy xhat and of dy
     RegionEnd end;
-#pragma omp parallel if (parallel_work(M * d, 16384))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(M * d, 16384))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t b = 0; b < blocks; ++b) {

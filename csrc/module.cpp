@@ -339,7 +339,7 @@ template <typename T> bool all_finite(Arr<T> x) {
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     bool ok = true;
     RegionEnd end;
-#pragma omp parallel reduction(&& : ok) if (parallel_work(blocks, 4))
+#pragma omp parallel num_threads(num_threads()) reduction(&& : ok) if (parallel_work(blocks, 4))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t b = 0; b < blocks; ++b) ok = finite_run(p + b * kBlock, std::min(kBlock, n - b * kBlock)) && ok;

@@ -85,7 +85,7 @@ template <typename T, typename F> void each_block(const AdamTensor<T>* t, int64_
         for (int64_t lo = 0; lo < t[i].n; lo += kBlock) tasks.emplace_back(i, lo);
     const int64_t nt = static_cast<int64_t>(tasks.size());
     RegionEnd end;
-#pragma omp parallel if (parallel_work(nt, 2))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(nt, 2))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t k = 0; k < nt; ++k) {
@@ -134,7 +134,7 @@ template <typename T> void sum_squares(const T* x, int64_t n, double* amax, doub
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     std::vector<double> part(blocks), top(blocks);
     RegionEnd end;
-#pragma omp parallel if (parallel_work(blocks, 2))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(blocks, 2))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t b = 0; b < blocks; ++b) {
@@ -176,7 +176,7 @@ template <typename T> void sum_squares(const T* x, int64_t n, double* amax, doub
 template <typename T> void scale_by(T* x, int64_t n, T c) {
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     RegionEnd end;
-#pragma omp parallel if (parallel_work(blocks, 2))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(blocks, 2))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t b = 0; b < blocks; ++b) {

@@ -21,19 +21,14 @@ namespace pyvf {
 
 int num_threads() {
 #ifdef PYVF_OPENMP
-    return omp_get_max_threads();
+    const int n = g_num_threads.load(std::memory_order_relaxed);
+    return n > 0 ? n : omp_get_max_threads();
 #else
     return 1;
 #endif
 }
 
-void set_num_threads(int n) {
-#ifdef PYVF_OPENMP
-    omp_set_num_threads(n);
-#else
-    (void)n;
-#endif
-}
+void set_num_threads(int n) { g_num_threads.store(n > 0 ? n : 0, std::memory_order_relaxed); }
 
 #ifdef __linux__
 namespace {

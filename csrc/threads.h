@@ -6,7 +6,13 @@
 
 namespace pyvf {
 
-// OpenMP's thread count for the kernels (1 without OpenMP), and setting it.
+// The kernels' thread count (1 without OpenMP), and setting it for the whole process: every
+// parallel region names it (`num_threads(num_threads())`), so that it holds for the kernels
+// whichever thread calls them (omp_set_num_threads sets the calling thread's count only, and a
+// Python thread other than the one that set it would get OpenMP's default). 0 (the start):
+// OpenMP's default, the affinity's CPUs or OMP_NUM_THREADS. One count per path module; pyvf's
+// _core.set_num_threads sets every module loaded and each one loaded later.
+inline std::atomic<int> g_num_threads{0};
 int num_threads();
 void set_num_threads(int n);
 
@@ -45,7 +51,7 @@ inline bool parallel_work(int64_t work, int64_t threshold) {
 // the time of a region over its work: 41-43 -> 26-30 us (50 us of work per thread), 48-67 ->
 // 26-32 us (100 us), 45-48 -> 22-27 us (400 us). No result depends on it.
 //     RegionEnd end;                   // before the region
-//     #pragma omp parallel if (...)
+//     #pragma omp parallel num_threads(num_threads()) if (...)
 //     { ... #pragma omp for nowait ...; end.arrive(); }
 constexpr int64_t kMasterSpinNs = 100000;
 class RegionEnd {

@@ -131,7 +131,7 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
     const int64_t nblocks = (M + MB - 1) / MB;
     int failed = 0;
     RegionEnd end;
-#pragma omp parallel reduction(+ : reranked) if (parallel_work(M * K * D, (1 << 22) + 1))
+#pragma omp parallel num_threads(num_threads()) reduction(+ : reranked) if (parallel_work(M * K * D, (1 << 22) + 1))
     {
         std::vector<T> xs, s;  // a block of shifted rows (MB, D); its scores against a chunk (MB, KC)
         std::vector<double> thr2(MB), best(MB);

@@ -13,6 +13,7 @@ if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 from . import _core  # the compiled kernels, on the best instruction-set path (or PYVF_ISA's)
+from . import _threads
 from ._threads import num_threads, set_num_threads, threads  # the kernels' and numpy's BLAS threads
 from ._memory import reuse_freed_memory  # page faults of each step's fresh arrays (every command calls it)
 from ._version import __version__
@@ -85,7 +86,7 @@ class use_kernel_path:
 def show_config(file=None):
     """Print which instruction-set path the kernels use, the paths this CPU and build offer,
     and the threads: the first thing to include in a bug report or a benchmark."""
-    c = _core.config()
+    c, limit = _core.config(), _threads.cpu_limit()
     forced = f", forced by PYVF_ISA={c['forced_by_PYVF_ISA']}" if c["forced_by_PYVF_ISA"] else ""
     features = ", ".join(k for k, v in c["cpu_features"].items() if v) or "-"
     lines = [
@@ -95,16 +96,16 @@ def show_config(file=None):
         f"paths this process can use: {', '.join(c['available_paths'])}",
         f"paths built: {', '.join(c['built_paths'])}",
         f"cpu features: {features}",
-        f"threads: {c['threads']} (OpenMP {'on' if c['openmp'] else 'off'})",
+        f"threads: {c['threads']} (OpenMP {'on' if c['openmp'] else 'off'}; this process may use "
+        f"{_threads.cores()} CPUs: {_threads.affinity()} in its affinity, "
+        f"{'no CPU limit' if limit is None else f'a CPU limit of {limit:g}'})",
     ]
     print("\n".join(lines), file=file)
 
 
-_env_threads = os.environ.get("PYVF_NUM_THREADS", "").strip()
-if _env_threads:  # one setting for the kernels and numpy's BLAS, for a whole process
-    if not _env_threads.isdigit() or int(_env_threads) < 1:
-        raise ImportError(f"PYVF_NUM_THREADS={_env_threads!r} is not a positive integer")
-    set_num_threads(int(_env_threads))
+# PYVF_NUM_THREADS for the kernels and numpy's BLAS; without it, no more threads than the CPUs this
+# process may use (a container's CPU limit included, which OpenMP and the BLAS do not read)
+_threads.set_from_environment()
 
 
 __all__ = [

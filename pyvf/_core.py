@@ -73,10 +73,31 @@ _current = _forced or _runs[-1]
 _allowed = _runs[: _runs.index(_current) + 1] if _forced else _runs
 
 
+_threads_set = None  # the kernels' thread count set by set_num_threads (None: OpenMP's default)
+
+
 def _module(path):
     if path not in _modules:
         _modules[path] = importlib.import_module(f"pyvf._core_{path}")
+        if _threads_set is not None:
+            _modules[path].set_num_threads(_threads_set)
     return _modules[path]
+
+
+def set_num_threads(n):
+    """The kernels' threads, for the whole process (whichever thread calls a kernel) and every
+    path: each path's module keeps its own count, so every module loaded gets it, and any loaded
+    later (use_path). pyvf.set_num_threads, which also sets numpy's BLAS pool, is the public call."""
+    global _threads_set
+    for m in _modules.values():
+        m.set_num_threads(n)
+    _threads_set = n
+
+
+def num_threads():
+    """The kernels' threads: set_num_threads's count, else OpenMP's default (the CPUs of the
+    process's affinity, or OMP_NUM_THREADS)."""
+    return _impl.num_threads()
 
 
 _impl = _module(_current)

@@ -7,7 +7,8 @@ GroupNorm's forward and backward one region each (the backward sums dgamma and d
 images after its region), the GEMM one region (a barrier only where its sum is split into parts),
 the attention's backward one region (a barrier only where its key blocks fall into several
 groups). A barrier added back, or a kernel split into two regions again, fails here. Every call
-on 2 forced threads (tests/conftest.py)."""
+on 2 forced threads (tests/conftest.py). And each region asks for pyvf's thread count whichever
+Python thread calls the kernel."""
 
 import os
 import shutil
@@ -67,6 +68,18 @@ CHILD = textwrap.dedent("""
         r, bar = lib.omp_sync_regions(), lib.omp_sync_barriers()
         eval(code)
         out[name] = [lib.omp_sync_regions() - r, (lib.omp_sync_barriers() - bar) / 2]
+    # the threads a region asks for, a kernel called from another Python thread than the one
+    # that set the count (OpenMP's own setting is per thread; pyvf's holds for the process)
+    import threading
+    lib.omp_sync_last_threads.restype = ctypes.c_long
+    asked = []
+    for n in (3, 1, 2):
+        pyvf.set_num_threads(n)
+        t = threading.Thread(target=lambda: (K.matmul(c, a, bm, False, False, None),
+                                             asked.append(lib.omp_sync_last_threads())))
+        t.start()
+        t.join()
+    out["threads asked from another thread"] = asked
     print(json.dumps(out))
 """)
 
@@ -106,6 +119,13 @@ def test_wakes_per_call(name, counts):
         f"{name}: {got_regions} regions and {got_barriers} barriers per thread, expected {regions} and {barriers}"
 
 
+def test_the_thread_setting_holds_in_every_python_thread(counts):
+    """pyvf.set_num_threads on the main thread sets the threads a kernel's region asks for when
+    another Python thread calls it (a region without pyvf's num_threads clause asks for 0,
+    OpenMP's default, there)."""
+    assert counts["threads asked from another thread"] == [3, 1, 2]
+
+
 def test_region_end_tool_builds_and_runs(tmp_path):
     """tools/omp_region_end.cpp (the measurement behind csrc/threads.h's RegionEnd) compiles and
     prints its line for both modes (its numbers are the machine's, not checked here)."""
@@ -119,3 +139,18 @@ def test_region_end_tool_builds_and_runs(tmp_path):
         assert run.returncode == 0, run.stderr
         assert f"threads 2, work 20 us per thread, mode {mode}, gap 5 us: median" in run.stdout, run.stdout
     assert subprocess.run([exe], capture_output=True).returncode == 2  # usage
+
+
+def test_every_region_names_the_thread_count():
+    """Every parallel region of the kernels asks for pyvf's count (csrc/threads.h): one written
+    without the clause would run on OpenMP's default in a Python thread other than the one that
+    set it (the behaviour test above checks one kernel; this one, every region's source line)."""
+    regions = []
+    for name in sorted(os.listdir(os.path.join(ROOT, "csrc"))):
+        if name.endswith((".cpp", ".h")):
+            with open(os.path.join(ROOT, "csrc", name)) as f:
+                regions += [(name, i + 1, line.strip()) for i, line in enumerate(f)
+                            if line.lstrip().startswith("#pragma omp parallel")]
+    assert len(regions) >= 20, regions  # the kernels' regions were found
+    missing = [r for r in regions if "num_threads(num_threads())" not in r[2]]
+    assert not missing, missing

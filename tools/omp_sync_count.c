@@ -21,6 +21,7 @@
 #include <dlfcn.h>
 
 static long n_regions = 0, n_barriers = 0;
+static unsigned last_threads = 0; /* the thread count the last region asked for (0: OpenMP's default) */
 
 static void* libgomp(void) {
     static void* h = 0;
@@ -32,6 +33,7 @@ void GOMP_parallel(void (*fn)(void*), void* data, unsigned num_threads, unsigned
     static void (*real)(void (*)(void*), void*, unsigned, unsigned) = 0;
     if (!real) real = (void (*)(void (*)(void*), void*, unsigned, unsigned))dlsym(libgomp(), "GOMP_parallel");
     if (num_threads != 1) __atomic_add_fetch(&n_regions, 1, __ATOMIC_RELAXED); /* 1: the if clause was false */
+    __atomic_store_n(&last_threads, num_threads, __ATOMIC_RELAXED);
     real(fn, data, num_threads, flags);
 }
 
@@ -53,3 +55,4 @@ void GOMP_loop_end(void) {
 
 long omp_sync_regions(void) { return n_regions; }
 long omp_sync_barriers(void) { return n_barriers; }
+long omp_sync_last_threads(void) { return last_threads; }

@@ -46,7 +46,7 @@ import numpy as np
 import pyvf
 from pyvf.bench import codebook as _bench_codebook, transformer as _bench_transformer
 from pyvf.bench.common import Worker, cpu_name, median_time, run_worker, table, worker_main
-from pyvf._threads import blas_limit, blas_num_threads, cores
+from pyvf._threads import affinity, blas_limit, blas_num_threads, cores, cpu_limit
 from pyvf.train.loops import TINY_CODEBOOK, TINY_TRANSFORMER
 
 MODULE = "pyvf.bench.threads"  # run_worker's module: __name__ is "__main__" where a worker runs this file
@@ -118,9 +118,12 @@ def _setting(key):
     return blas_limit(1) if key == "blas1" else pyvf.threads(key)
 
 
-def settings(n_cores):
-    """The settings compared: the default, 1..n_cores threads, numpy's BLAS on one thread."""
-    return ["default", *range(1, n_cores + 1), "blas1"]
+def settings(n_cores, n_affinity=None):
+    """The settings compared: the default, 1..n_cores threads, the affinity's n_affinity CPUs where
+    a CPU limit makes cores() fewer (what OpenMP and the BLAS would run by themselves), numpy's BLAS
+    on one thread."""
+    more = [n_affinity] if n_affinity is not None and n_affinity > n_cores else []
+    return ["default", *range(1, n_cores + 1), *more, "blas1"]
 
 
 def label(key):
@@ -250,9 +253,11 @@ def run(quick=False, n_cores=None, log=print, policies=True, scaling=True, calls
         report["scaling"] = scale(quick, n_cores, log, scaling_calls, counts, partial)
         report["failures"] += report["scaling"]["failures"]
         return report
-    keys = settings(n_cores)
+    keys = settings(n_cores, affinity())
     fns = {name: make(size[which]) for name, (make, which) in CALLS.items()}
-    log(f"# threads: {cpu_name()}, {n_cores} cores usable, kernel path {pyvf.kernel_path()}; "
+    limit = cpu_limit()
+    log(f"# threads: {cpu_name()}, {n_cores} cores usable ({affinity()} in the affinity, "
+        f"{'no CPU limit' if limit is None else f'a CPU limit of {limit:g}'}), kernel path {pyvf.kernel_path()}; "
         f"default: {pyvf.num_threads()} kernel threads, {blas_num_threads()} BLAS threads")
     same, failures = check_results(fns, keys)
     if failures:
