@@ -1,7 +1,7 @@
 """pyvf's thread setting (pyvf/_threads.py): the CPUs a process may use (its affinity, and a
 control group's CPU limit read from a fake /proc and cgroup tree of each kind), the setting made
 at import (PYVF_NUM_THREADS, OMP_NUM_THREADS, the limit), and a count that holds for every path
-module and every Python thread."""
+module and every Python thread, and inference calls made from several Python threads at once."""
 
 import os
 import threading
@@ -132,3 +132,35 @@ def test_the_count_holds_for_every_path_and_python_thread(restore_threads):
         finally:
             _core.use_path(previous)
     assert seen == {(n, p): n for n in (1, 3) for p in _core.available_paths()}
+
+
+def test_inference_from_several_python_threads_at_once():
+    """A server's pattern: one model, one encoded scene, calls from several Python threads at once
+    (the kernels release the GIL, so their OpenMP teams run side by side): every render,
+    localization and encoding is bitwise the one made alone."""
+    import numpy as np
+    from pyvf.bench.threads import _transformer_inputs
+    from pyvf.train.loops import TINY_CODEBOOK
+    cfg, tokens, poses = _transformer_inputs(2, 8)
+    model = pyvf.Transformer(cfg, seed=0)
+    scene = model.encode_scene(tokens[:, :4], poses[:, :4])
+    codebook = pyvf.Codebook(TINY_CODEBOOK, seed=0)
+    S = TINY_CODEBOOK.image_size
+    images = np.random.default_rng(1).uniform(-1, 1, (4, 3, S, S)).astype(np.float32)
+
+    def job(i):
+        q = np.s_[:, 4 + i % 4: 5 + i % 4]
+        return (model.render_scene(scene, poses[q]), model.localize_scene(scene, tokens[q]),
+                codebook.encode(images[i % 4: i % 4 + 1]))
+
+    alone = [job(i) for i in range(6)]
+    together = [None] * len(alone)
+    workers = [threading.Thread(target=lambda i=i: together.__setitem__(i, job(i))) for i in range(len(alone))]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    for i, (a, b) in enumerate(zip(alone, together)):
+        assert b is not None, f"call {i} raised"
+        for what, x, y in zip(("render", "localize", "encode"), a, b):
+            assert np.array_equal(np.asarray(x), np.asarray(y)), f"call {i}: {what} differs run beside the others"
