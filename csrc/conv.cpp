@@ -673,8 +673,9 @@ inline void cols_row_offsets(int64_t* aoff, const ConvDims& d, int64_t nc, bool 
                                                          : ((c * d.kh + i) * d.kw + j) * np;
 }
 
-// db[o] = sum over images and pixels of dy[b, o, :, :], in double (forward was y = ... + b[o]).
-template <typename T> void db_sum(T* db, const T* dy, const ConvDims& d, int64_t o) {
+// db[o] = sum over images and pixels of dy[b, o, :, :], in double (forward was y = ... + b[o]);
+// false when it is not finite.
+template <typename T> bool db_sum(T* db, const T* dy, const ConvDims& d, int64_t o) {
     const int64_t P = d.Ho * d.Wo;
     using VD = Simd<double>::V;
     constexpr int WD = Simd<double>::W;
@@ -693,6 +694,7 @@ template <typename T> void db_sum(T* db, const T* dy, const ConvDims& d, int64_t
         for (; p < P; ++p) tail += (double)r[p];
     }
     db[o] = (T)(hsum<double>(a0 + a1) + tail);
+    return finite_run(db + o, 1);
 }
 
 // dw when Co >= W (one vector of output channels): dw2^T (K, Co) = sum over images b of cols_b
@@ -708,8 +710,9 @@ template <typename T> void db_sum(T* db, const T* dy, const ConvDims& d, int64_t
 // that order of a fresh register sum over the chunk's pixels in order (two levels). Tasks: (block
 // of kCB input channels, block of whole vectors of output channels), each owning its entries of
 // dw: bitwise the same for any thread count (a column is in a vector or in the scalar tail
-// whatever the blocks). Before the tasks, prep(i) for i < nprep fills dyT's row i (every row
-// before any task).
+// whatever the blocks); run(t) returns false when an entry it wrote is not finite (checked while
+// in cache, so that no pass over dw follows). Before the tasks, prep(i) for i < nprep fills dyT's
+// row i (every row before any task).
 constexpr int64_t kDwChunk = 256;
 
 template <typename T> struct DwGemmTasks {
@@ -771,7 +774,7 @@ template <typename T> struct DwGemmTasks {
         s.arow.resize(kb_max);
     }
 
-    void run(int64_t t, Scratch& s) const {
+    bool run(int64_t t, Scratch& s) const {
         const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
         const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
         cols_row_offsets(s.aoff.data(), d, nc, direct, rows, Rp, Wq, np);
@@ -805,8 +808,13 @@ template <typename T> struct DwGemmTasks {
                                 ldt, s.acc.data(), ow);
                 }
             }
-        for (int64_t o = 0; o < no; ++o)
-            for (int64_t r = 0; r < kb; ++r) dw[(o0 + o) * K + c0 * khw + r] = s.acc[r * ow + o];
+        bool ok = true;  // the entries written, checked while in cache
+        for (int64_t o = 0; o < no; ++o) {
+            T* row = dw + (o0 + o) * K + c0 * khw;
+            for (int64_t r = 0; r < kb; ++r) row[r] = s.acc[r * ow + o];
+            ok = finite_run(row, kb) && ok;
+        }
+        return ok;
     }
 };
 
@@ -815,7 +823,8 @@ template <typename T> struct DwGemmTasks {
 // the pixels of two row-major operands (dot_lanes: MR rows of cols times 4 rows of dy per register
 // tile), neither transposed, dy read in place, one vector of lane sums per entry added up at the
 // end. Tasks as DwGemmTasks': (block of kCB input channels, block of output channels), every
-// image's every tile summed in a fixed order. Nothing to prepare (nprep = 0).
+// image's every tile summed in a fixed order; run(t) checks what it wrote, as DwGemmTasks'.
+// Nothing to prepare (nprep = 0).
 template <typename T> struct DwLanesTasks {
     struct Scratch {
         // buf: the cols tile (kb, np) or the padded rows (nc, Rp, Wp); aoff: where each row of cols
@@ -862,7 +871,7 @@ template <typename T> struct DwLanesTasks {
         s.aoff.resize(kb_max);
     }
 
-    void run(int64_t t, Scratch& s) const {
+    bool run(int64_t t, Scratch& s) const {
         const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
         const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
         cols_row_offsets(s.aoff.data(), d, nc, direct, rows, Rp, Wp, np);
@@ -887,9 +896,13 @@ template <typename T> struct DwLanesTasks {
                     dot_lanes<T>(kb, no, 1, n, A, s.aoff.data(), 0, dyb + p0, P, 0, s.acc.data(), ow);
                 }
             }
-        for (int64_t o = 0; o < no; ++o)
-            for (int64_t r = 0; r < kb; ++r)
-                dw[(o0 + o) * K + c0 * khw + r] = hsum<T>(vload<T>(s.acc.data() + (r * ow + o) * kW<T>));
+        bool ok = true;  // the entries written, checked while in cache
+        for (int64_t o = 0; o < no; ++o) {
+            T* row = dw + (o0 + o) * K + c0 * khw;
+            for (int64_t r = 0; r < kb; ++r) row[r] = hsum<T>(vload<T>(s.acc.data() + (r * ow + o) * kW<T>));
+            ok = finite_run(row, kb) && ok;
+        }
+        return ok;
     }
 };
 
@@ -935,6 +948,12 @@ inline int conv_status(int status, int nonfinite) {
     return status != kConvOk ? status : nonfinite ? kConvNonFinite : kConvOk;
 }
 
+// A backward's: dx's, then dw's, then db's.
+inline int backward_status(int status, int nonfinite_dx, int nonfinite_dw, int nonfinite_db) {
+    status = conv_status(status, nonfinite_dx);
+    return status != kConvOk ? status : nonfinite_dw ? kConvNonFiniteDw : nonfinite_db ? kConvNonFiniteDb : kConvOk;
+}
+
 // y = conv(x, w) (+ b): ConvTasks in one parallel region, each thread's scratch made once.
 template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
     std::unique_ptr<ConvTasks<T>> p;
@@ -968,7 +987,7 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
 template <typename T, typename Dx, typename Dw>
 int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy, const ConvDims& d) {
     const int64_t khw = d.kh * d.kw, nflip = wf ? ceil_div(d.C, 16) : 0;
-    int status = kConvOk, nonfinite = 0;
+    int status = kConvOk, nonfinite = 0, nonfinite_dw = 0, nonfinite_db = 0;
     RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
@@ -998,17 +1017,24 @@ int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy
             if (!ok) continue;
             const int64_t i = t < first ? t : t - first;
             if ((t < first) == dw_first) {
-                dwt.run(i, sw);
+                if (!dwt.run(i, sw)) {
+#pragma omp atomic write
+                    nonfinite_dw = 1;
+                }
             } else if (!dxt.run(i, sx)) {
 #pragma omp atomic write
                 nonfinite = 1;
             }
         }
 #pragma omp for schedule(static) nowait
-        for (int64_t o = 0; o < d.Co; ++o) db_sum(db, dy, d, o);
+        for (int64_t o = 0; o < d.Co; ++o)
+            if (!db_sum(db, dy, d, o)) {
+#pragma omp atomic write
+                nonfinite_db = 1;
+            }
         end.arrive();
     }
-    return conv_status(status, nonfinite);
+    return backward_status(status, nonfinite, nonfinite_dw, nonfinite_db);
 }
 
 // The dx task set of a backward (ConvTasks on the flipped weights wf for stride 1, else
@@ -1287,7 +1313,8 @@ int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* 
     for (size_t k = 0; k < gx.size(); ++k) dx[k] = (T)gx[k];
     for (size_t k = 0; k < gw.size(); ++k) dw[k] = (T)gw[k];
     for (size_t k = 0; k < gb.size(); ++k) db[k] = (T)gb[k];
-    return kConvOk;
+    return backward_status(kConvOk, !finite_run(dx, (int64_t)gx.size()), !finite_run(dw, (int64_t)gw.size()),
+                           !finite_run(db, (int64_t)gb.size()));
 }
 
 template int matmul_batched<float>(float*, const float*, const float*, int64_t, int64_t, int64_t, int64_t, bool,

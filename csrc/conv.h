@@ -21,8 +21,16 @@ struct ConvDims {
 // Status codes returned by the kernels (0 = ok); the bindings raise kConvOutOfMemory as MemoryError
 // and kConvNonFinite (conv2d and GroupNorm: y, or the backward's dx, not finite: finite inputs
 // overflowed, or an input held NaN or inf; each task checks what it wrote while it is still in
-// cache) as ValueError, naming the output (pyvf/conv.py then names the input, if one is to blame).
-enum ConvStatus : int { kConvOk = 0, kConvOutOfMemory = 2, kConvNonFinite = 3 };
+// cache), kConvNonFiniteDw and kConvNonFiniteDb (the conv2d backward's dw, db, checked the same
+// way; dx first, then dw, then db) as ValueError, naming the output (pyvf/conv.py then names the
+// input, if one is to blame).
+enum ConvStatus : int {
+    kConvOk = 0,
+    kConvOutOfMemory = 2,
+    kConvNonFinite = 3,
+    kConvNonFiniteDw = 4,
+    kConvNonFiniteDb = 5,
+};
 
 // Fast kernels: implicit GEMM on the gemm micro-kernel of simd.h, OpenMP over (image, pixel
 // tile) or (channel block) tasks; results bitwise the same for any thread count.

@@ -104,9 +104,12 @@ void raise_status(int status, const char* memory_message = kConvMemory) {
     }
 }
 
-// kConvNonFinite: the message of pyvf._checks.finite_result, naming the function and the output
+// kConvNonFinite (and the backward's kConvNonFiniteDw, kConvNonFiniteDb): the message of
+// pyvf._checks.finite_result, naming the function and the output (name: kConvNonFinite's)
 template <typename T> void raise_nonfinite(int status, const char* what, const char* name) {
-    if (status == kConvNonFinite)
+    if (status == kConvNonFiniteDw) name = "dw";
+    if (status == kConvNonFiniteDb) name = "db";
+    if (status == kConvNonFinite || status == kConvNonFiniteDw || status == kConvNonFiniteDb)
         throw py::value_error(std::string(what) + ": " + name + " is not finite: it overflowed " +
                               (sizeof(T) == 4 ? "float32" : "float64") +
                               " (inputs too large for the dtype; rescale them, or use float64)");

@@ -1060,6 +1060,23 @@ def test_outputs_that_overflow_raise(dtype, rng):
     with pytest.raises(ValueError, match="conv2d_backward: dx is not finite"):
         conv.conv2d_backward(np.full(y.shape, dtype(64), dtype), cache)  # dx sums 27 terms of 64 * w/64 * ...
 
+    # dw and db, each the only output that overflows (the kernels check them as they write them,
+    # dx before dw before db); the reference kernel (_plain) checks the same outputs
+    small = np.full((3, 4, 3, 3), dtype(1e-3), dtype)
+    cases = {"dw": (x * dtype(big / 8), small, dtype(1)),          # dw sums 36 terms of ~big/8
+             "db": (x * dtype(1e-3), small, dtype(big / 8))}       # db sums 36 terms of big/8
+    for name, (xo, wo, g) in cases.items():
+        y, cache = conv.conv2d_forward(xo, wo, b, padding=1)
+        dy = np.full(y.shape, g, dtype)
+        with pytest.raises(ValueError, match=f"conv2d_backward: {name} is not finite: it overflowed"):
+            conv.conv2d_backward(dy, cache)
+        for kernel in (_core.conv2d_backward, _core.conv2d_backward_plain):
+            outs = np.empty_like(xo), np.empty_like(wo), np.empty_like(b)
+            with pytest.raises(ValueError, match=f"conv2d_backward: {name} is not finite"):
+                kernel(*outs, xo, wo, dy, 1, 1, 1, 1, 1)
+        finite = conv.conv2d_backward(dy / dtype(64), cache)  # 36/64 of the largest: finite
+        assert all(np.isfinite(a).all() for a in finite)
+
     xg = rng.standard_normal((2, 64, 5, 5)).astype(dtype)
     gamma, beta = np.full(64, big, dtype), np.zeros(64, dtype)  # mean xhat^2 ~ 1: some |xhat| > 1
     with pytest.raises(ValueError, match="groupnorm_forward: y is not finite"):
