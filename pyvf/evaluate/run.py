@@ -526,7 +526,8 @@ def metrics_markdown(metrics):
         for method, row in table.items():
             lines.append(f"| {method} | " + " | ".join(_fmt(row.get(m)) for m in _ALL) + " |")
     t = timing
-    lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} threads)", "",
+    lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} thread"
+              f"{'' if meta['kernel_threads'] == 1 else 's'})", "",
               f"Transformer: {t['scenes']} scenes at context {t['context']}, {t['queries']} queries each, "
               f"the fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
               "| step | time |", "|---|---:|",
