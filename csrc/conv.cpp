@@ -715,6 +715,18 @@ template <typename T> bool db_sum(T* db, const T* dy, const ConvDims& d, int64_t
 // row i (every row before any task).
 constexpr int64_t kDwChunk = 256;
 
+// A dw task's block: dw[o, r] = value(r, o) for its no output channels (rows ld apart) and kb
+// columns; false when an entry written is not finite (checked while in cache).
+template <typename T, typename F> bool store_dw(T* dw, int64_t ld, int64_t no, int64_t kb, F value) {
+    bool ok = true;
+    for (int64_t o = 0; o < no; ++o) {
+        T* row = dw + o * ld;
+        for (int64_t r = 0; r < kb; ++r) row[r] = value(r, o);
+        ok = finite_run(row, kb) && ok;
+    }
+    return ok;
+}
+
 template <typename T> struct DwGemmTasks {
     struct Scratch {
         Buf<T> buf, acc;  // the padded rows (nc, Rp, Wq) or the cols tile (kb, np); acc (kb, ow)
@@ -808,13 +820,7 @@ template <typename T> struct DwGemmTasks {
                                 ldt, s.acc.data(), ow);
                 }
             }
-        bool ok = true;  // the entries written, checked while in cache
-        for (int64_t o = 0; o < no; ++o) {
-            T* row = dw + (o0 + o) * K + c0 * khw;
-            for (int64_t r = 0; r < kb; ++r) row[r] = s.acc[r * ow + o];
-            ok = finite_run(row, kb) && ok;
-        }
-        return ok;
+        return store_dw(dw + o0 * K + c0 * khw, K, no, kb, [&](int64_t r, int64_t o) { return s.acc[r * ow + o]; });
     }
 };
 
@@ -896,13 +902,8 @@ template <typename T> struct DwLanesTasks {
                     dot_lanes<T>(kb, no, 1, n, A, s.aoff.data(), 0, dyb + p0, P, 0, s.acc.data(), ow);
                 }
             }
-        bool ok = true;  // the entries written, checked while in cache
-        for (int64_t o = 0; o < no; ++o) {
-            T* row = dw + (o0 + o) * K + c0 * khw;
-            for (int64_t r = 0; r < kb; ++r) row[r] = hsum<T>(vload<T>(s.acc.data() + (r * ow + o) * kW<T>));
-            ok = finite_run(row, kb) && ok;
-        }
-        return ok;
+        return store_dw(dw + o0 * K + c0 * khw, K, no, kb,
+                        [&](int64_t r, int64_t o) { return hsum<T>(vload<T>(s.acc.data() + (r * ow + o) * kW<T>)); });
     }
 };
 
@@ -1052,7 +1053,8 @@ int backward_with(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, cons
                          d.kw - 1 - d.pl, d.kw - 1 - d.pr, d.Hi, d.Wi};
         Buf<T> wf;  // (C, Co, kh, kw)
         std::unique_ptr<ConvTasks<T>> dxt;
-        PYVF_CONV_OR_OOM(wf.resize(d.C * d.Co * d.kh * d.kw); dxt.reset(new ConvTasks<T>(dx, dy, wf.data(), nullptr, t)))
+        PYVF_CONV_OR_OOM(wf.resize(d.C * d.Co * d.kh * d.kw);
+                         dxt.reset(new ConvTasks<T>(dx, dy, wf.data(), nullptr, t)))
         return backward_tasks(*dxt, *dwt, wf.data(), w, db, dy, d);
     }
     std::unique_ptr<StridedDxTasks<T>> dxt;
