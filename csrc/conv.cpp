@@ -72,6 +72,7 @@
 #include <algorithm>
 #include <memory>
 #include <new>
+#include <utility>
 #include <vector>
 
 #include "simd.h"
@@ -120,17 +121,34 @@ constexpr int64_t kParallelFlops = 1 << 20;
 template <typename T> constexpr int64_t kW = Simd<T>::W;
 
 // Work buffers start on a cache line (the column rows' vector stores are then aligned; malloc
-// gives 16 bytes). Allocation failure throws std::bad_alloc, as std::vector's does.
-template <typename T> struct Aligned64 {
+// gives 16 bytes). Allocation failure throws std::bad_alloc, as std::vector's does. A Buf's
+// resize zeroes the new elements, as std::vector's does; a RawBuf's leaves them unset, for a
+// buffer made before a parallel region whose every element read is written in it first (dyT,
+// wf): a zeroing there is one thread's pass over memory while the others wait (a paper
+// codebook's 128-channel 128x128 backward zeroed 19 MiB of dyT so, on the calling thread).
+template <typename T, bool Zero = true> struct Aligned64 {
     typedef T value_type;
+    template <typename U> struct rebind {
+        typedef Aligned64<U, Zero> other;
+    };
     Aligned64() = default;
-    template <typename U> Aligned64(const Aligned64<U>&) {}
+    template <typename U> Aligned64(const Aligned64<U, Zero>&) {}
     T* allocate(size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
     void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
-    template <typename U> bool operator==(const Aligned64<U>&) const { return true; }
-    template <typename U> bool operator!=(const Aligned64<U>&) const { return false; }
+    // resize's construction of each new element: value-initialised (0) or default-initialised
+    // (for an arithmetic T, nothing at all)
+    template <typename U> void construct(U* p) {
+        if constexpr (Zero)
+            ::new ((void*)p) U();
+        else
+            ::new ((void*)p) U;
+    }
+    template <typename U, typename... A> void construct(U* p, A&&... a) { ::new ((void*)p) U(std::forward<A>(a)...); }
+    template <typename U> bool operator==(const Aligned64<U, Zero>&) const { return true; }
+    template <typename U> bool operator!=(const Aligned64<U, Zero>&) const { return false; }
 };
 template <typename T> using Buf = std::vector<T, Aligned64<T>>;
+template <typename T> using RawBuf = std::vector<T, Aligned64<T, false>>;
 
 inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
@@ -738,7 +756,7 @@ template <typename T> struct DwGemmTasks {
     ConvDims d;
     int64_t khw, K, P, HWi, Wq, nc_max, kb_max, R, Rp, np, ntile, ncb, ow, nob, ntask, ldt, nprep;
     bool direct, rows;
-    Buf<T> dyT;  // (B, Ho, Wq, ldt), zero where v >= Wo
+    RawBuf<T> dyT;  // (B, Ho, Wq, ldt): o < Co written by prep, zero where v >= Wo; o >= Co never read
 
     // throws std::bad_alloc
     DwGemmTasks(T* dw_, const T* x_, const T* dy_, const ConvDims& d_) : dw(dw_), x(x_), dy(dy_), d(d_) {
@@ -768,7 +786,8 @@ template <typename T> struct DwGemmTasks {
         dyT.resize(d.B * d.Ho * Wq * ldt);
     }
 
-    // dyT[b, u, v, o] = dy[b, o, u, v] for row bu = (b, u), 16 o at a time
+    // dyT[b, u, v, o] = dy[b, o, u, v] for row bu = (b, u), 16 o at a time, and 0 for the
+    // padding pixels v >= Wo (the tasks read o < Co only: the columns o >= Co stay unset)
     void prep(int64_t bu) {
         const int64_t bi = bu / d.Ho, u = bu % d.Ho;
         const T* src = dy + bi * d.Co * P + u * d.Wo;
@@ -776,6 +795,7 @@ template <typename T> struct DwGemmTasks {
         for (int64_t o0 = 0; o0 < d.Co; o0 += 16)
             for (int64_t v = 0; v < d.Wo; ++v)
                 for (int64_t o = o0; o < std::min(o0 + 16, d.Co); ++o) dst[v * ldt + o] = src[o * P + v];
+        for (int64_t v = d.Wo; v < Wq; ++v) std::fill(dst + v * ldt, dst + v * ldt + d.Co, T(0));
     }
 
     // throws std::bad_alloc
@@ -1051,7 +1071,7 @@ int backward_with(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, cons
         // padded (kh-1-pt, kh-1-pb, kw-1-pl, kw-1-pr): dy's rows yy + i' - (kh-1-pt).
         const ConvDims t{d.B,  d.Co, d.Ho, d.Wo, d.C, d.kh, d.kw, 1, d.kh - 1 - d.pt, d.kh - 1 - d.pb,
                          d.kw - 1 - d.pl, d.kw - 1 - d.pr, d.Hi, d.Wi};
-        Buf<T> wf;  // (C, Co, kh, kw)
+        RawBuf<T> wf;  // (C, Co, kh, kw), every element written by the flip
         std::unique_ptr<ConvTasks<T>> dxt;
         PYVF_CONV_OR_OOM(wf.resize(d.C * d.Co * d.kh * d.kw);
                          dxt.reset(new ConvTasks<T>(dx, dy, wf.data(), nullptr, t)))

@@ -789,6 +789,32 @@ def test_conv2d_empty_batch():
     assert_bitwise_equal("db of no images", db, np.zeros_like(b))
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_conv2d_backward_reads_nothing_stale(dtype, rng):
+    """The backward's work buffers (dy channels-last with zero padding pixels for the dw tasks, the
+    flipped weights for dx) are not zeroed when allocated: the kernel writes every element its
+    tasks read. A backward of an all-NaN dy (which raises) leaves NaN in the buffers it frees, and
+    the next call of the same shape mostly gets them back from the allocator: its gradients must
+    be bitwise those of the first call, which match the plain loops. (With the padding pixels'
+    zeros left out of the preparation, that next call raised: dw not finite.)"""
+    for B, C, Co, H, Wd in [(2, 8, 16, 9, 9), (1, 3, 32, 5, 12), (2, 16, 24, 17, 7)]:
+        x, dy = rng.standard_normal((B, C, H, Wd)).astype(dtype), rng.standard_normal((B, Co, H, Wd)).astype(dtype)
+        w = rng.standard_normal((Co, C, 3, 3)).astype(dtype)
+        want = [np.empty_like(a) for a in (x, w, w[:, 0, 0, 0])]  # dx, dw, db
+        _core.conv2d_backward_plain(*want, x, w, dy, 1, 1, 1, 1, 1)
+        first = [np.empty_like(a) for a in want]
+        _core.conv2d_backward(*first, x, w, dy, 1, 1, 1, 1, 1)
+        for name, g, r in zip(("dx", "dw", "db"), first, want):
+            assert_close(f"{name} {(B, C, Co, H, Wd)} vs plain", g, r, RTOL64 if dtype == np.float64 else RTOL32_KERNEL)
+        nan, got = np.full_like(dy, np.nan), [np.empty_like(a) for a in want]
+        for _ in range(3):
+            with pytest.raises(ValueError, match="not finite"):
+                _core.conv2d_backward(*got, x, w, nan, 1, 1, 1, 1, 1)
+            _core.conv2d_backward(*got, x, w, dy, 1, 1, 1, 1, 1)
+            for name, g, f in zip(("dx", "dw", "db"), got, first):
+                assert_bitwise_equal(f"{name} {(B, C, Co, H, Wd)} after a NaN call", g, f)
+
+
 BIG = [  # sizes past the kernels' int indexing, on arrays with no elements (B = 0 or Co = 0)
     ("x", dict(x=(0, 1, 50_000, 50_000), w=(1, 1, 1, 1), padding=0), r"x: Hi\*Wi = 2500000000"),
     ("w", dict(x=(0, 2 ** 28, 1, 1), w=(0, 2 ** 28, 3, 3), padding=1), r"w: C\*kh\*kw = 2415919104"),
