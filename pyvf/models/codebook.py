@@ -447,7 +447,12 @@ class Codebook(ModelWeights):
     def _resblock_backward(self, dy, cache, grads, g=None):
         main, short = cache
         ds = self._backward(short, dy, grads, g)  # first: g stays the trace's order reversed
-        return add(self._backward(main, dy, grads, g), ds)  # y = s(x) + h(x)
+        dh = self._backward(main, dy, grads, g)
+        # y = s(x) + h(x): the sum goes into dh, the body's fresh dx, which nothing else holds (a
+        # fresh array for it, 16 MiB at the paper's 128x128, cost 4x the add in page faults); not
+        # where dh is dy or ds itself (an empty body)
+        in_place = not (np.may_share_memory(dh, dy) or np.may_share_memory(dh, ds))
+        return add(dh, ds, out=dh if in_place else None)
 
     # -----------------------------------------------------------------------------------
     # encoder and decoder: the table's rows before and after quantize
