@@ -38,9 +38,9 @@
 //             Co < W (conv_out's 3 channels), and unpadded 1x1 from 32x32 pixels on (DwLanesTasks): dot
 //             products along the pixels of two row-major operands (dot_lanes: MR rows of cols
 //             times 4 rows of dy per register tile), neither transposed, dy read in place, one
-//             vector of lane sums per entry added up at the end. Both: task = (block of kCB input
-//             channels, block of output channels), owning those entries of dw, every image's every
-//             tile summed in a fixed order.
+//             vector of lane sums per entry added up at the end. Both: task = (block of input
+//             channels, kCB or (DwGemmTasks, from kDwWideC channels on) 2 kCB, block of output
+//             channels), owning those entries of dw, every image's every tile summed in a fixed order.
 //   db        sum over images and pixels of dy, in double, per output channel.
 // Threads: one OpenMP region per call (each region, and each barrier in it, wakes the sleeping
 // threads under OMP_WAIT_POLICY=PASSIVE: 35-50 us on a 2-core VM). The backward's region flips
@@ -95,8 +95,12 @@ constexpr int64_t kRowTileBytes = 256 << 10;
 // was 35% slower than the per-row products on 16x16); the dw reads the padded-row tile when a row
 // has at least kDwRowsMinVectors vectors, else im2col tiles (25% faster on 16x16 and 8x8 rows).
 constexpr int64_t kRowsMinVectors = 2, kDwRowsMinVectors = 4;
-// Channels per task of the dw and stride > 1 dx loops.
-constexpr int64_t kCB = 8;
+// Channels per task of the dw and stride > 1 dx loops; DwGemmTasks takes twice as many where x
+// has at least kDwWideC channels (each pass over dyT then feeds twice the multiply-adds: the
+// 128-channel 128x128 backward 4-6% faster on one thread; with 32 or 64 channels it makes too
+// few tasks: 16 x 32 x 64 x 64 was 20% slower in an earlier trial). Its tiles stay those of kCB
+// channels, so every dw element's sums, and so the results, are the same whatever the block.
+constexpr int64_t kCB = 8, kDwWideC = 128;
 // Below this many multiply-adds (about 50 us on one core) a call runs on one thread: starting the
 // team costs microseconds on a quiet machine, and on a busy one each parallel region can wait a
 // scheduler time slice for a descheduled thread.
@@ -725,12 +729,12 @@ template <typename T> bool db_sum(T* db, const T* dy, const ConvDims& d, int64_t
 // of Wp = Wo + kw - 1 pixels: so dyT's rows are padded to Wp with zero columns, whose products
 // (with finite numbers of the tile) add exactly 0. Otherwise im2col tiles (or x itself, 1x1).
 // Summation: each dw element is a sum over (image, tile, chunk of at most kDwChunk pixels) in
-// that order of a fresh register sum over the chunk's pixels in order (two levels). Tasks: (block
-// of kCB input channels, block of whole vectors of output channels), each owning its entries of
-// dw: bitwise the same for any thread count (a column is in a vector or in the scalar tail
-// whatever the blocks); run(t) returns false when an entry it wrote is not finite (checked while
-// in cache, so that no pass over dw follows). Before the tasks, prep(i) for i < nprep fills dyT's
-// row i (every row before any task).
+// that order of a fresh register sum over the chunk's pixels in order (two levels), the tiles
+// those of kCB channels. Tasks: (block of cb input channels, block of whole vectors of output
+// channels), each owning its entries of dw: bitwise the same for any thread count (a column is in
+// a vector or in the scalar tail whatever the blocks); run(t) returns false when an entry it
+// wrote is not finite (checked while in cache, so that no pass over dw follows). Before the
+// tasks, prep(i) for i < nprep fills dyT's row i (every row before any task).
 constexpr int64_t kDwChunk = 256;
 
 // A dw task's block: dw[o, r] = value(r, o) for its no output channels (rows ld apart) and kb
@@ -754,24 +758,26 @@ template <typename T> struct DwGemmTasks {
     T* dw;
     const T *x, *dy;
     ConvDims d;
-    int64_t khw, K, P, HWi, Wq, nc_max, kb_max, R, Rp, np, ntile, ncb, ow, nob, ntask, ldt, nprep;
+    int64_t cb, khw, K, P, HWi, Wq, nc_max, kb_max, R, Rp, np, ntile, ncb, ow, nob, ntask, ldt, nprep;
     bool direct, rows;
     RawBuf<T> dyT;  // (B, Ho, Wq, ldt): o < Co written by prep, zero where v >= Wo; o >= Co never read
 
     // throws std::bad_alloc
     DwGemmTasks(T* dw_, const T* x_, const T* dy_, const ConvDims& d_) : dw(dw_), x(x_), dy(dy_), d(d_) {
         constexpr int64_t W = kW<T>;
+        cb = d.C >= kDwWideC ? 2 * kCB : kCB;  // input channels per task
         khw = d.kh * d.kw, K = d.C * khw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
         direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
         rows = !direct && d.stride == 1;
         Wq = rows ? d.Wo + d.kw - 1 : d.Wo;  // dyT's row length (pixels)
-        nc_max = std::min(d.C, kCB), kb_max = nc_max * khw;
-        R = std::clamp<int64_t>(kDwTileBytes / (std::max<int64_t>(nc_max, 1) * Wq * (int64_t)sizeof(T)) - (d.kh - 1), 1,
-                                d.Ho);
+        nc_max = std::min(d.C, cb), kb_max = nc_max * khw;
+        const int64_t nc_tile = std::min(d.C, kCB);  // the tiles: as for kCB channels, whatever cb
+        R = std::clamp<int64_t>(
+            kDwTileBytes / (std::max<int64_t>(nc_tile, 1) * Wq * (int64_t)sizeof(T)) - (d.kh - 1), 1, d.Ho);
         Rp = R + d.kh - 1;
-        np = rows ? R * d.Wo : tile_pixels<T>(direct ? 0 : kb_max, P, kDwTileBytes);
+        np = rows ? R * d.Wo : tile_pixels<T>(direct ? 0 : nc_tile * khw, P, kDwTileBytes);
         ntile = rows ? ceil_div(d.Ho, R) : ceil_div(P, np);
-        ncb = ceil_div(d.C, kCB);
+        ncb = ceil_div(d.C, cb);
         // output-channel blocks of whole vectors: at least two tasks per thread where the input
         // channels alone do not make that many, at most 64 channels
         const int64_t nob_want =
@@ -807,7 +813,7 @@ template <typename T> struct DwGemmTasks {
     }
 
     bool run(int64_t t, Scratch& s) const {
-        const int64_t c0 = (t / nob) * kCB, nc = std::min(kCB, d.C - c0), kb = nc * khw;
+        const int64_t c0 = (t / nob) * cb, nc = std::min(cb, d.C - c0), kb = nc * khw;
         const int64_t o0 = (t % nob) * ow, no = std::min(ow, d.Co - o0);
         cols_row_offsets(s.aoff.data(), d, nc, direct, rows, Rp, Wq, np);
         std::fill(s.acc.begin(), s.acc.end(), T(0));

@@ -815,6 +815,37 @@ def test_conv2d_backward_reads_nothing_stale(dtype, rng):
                 assert_bitwise_equal(f"{name} {(B, C, Co, H, Wd)} after a NaN call", g, f)
 
 
+def test_conv2d_backward_wide_channel_blocks(rng):
+    """From 128 input channels on, the dw tasks take blocks of 16 channels instead of 8 (130: eight
+    full blocks and one of 2), with the tiles of 8 channels: a dw element's sums do not depend on
+    the block it falls in. So dw[:, :120] of a 130-channel layer is bitwise the dw of its first
+    120 channels alone (blocks of 8); the image is wide and tall enough (125 x 40) that tiles of
+    16 channels would cut its rows elsewhere. Also: the plain loops in float64, and 1, 2, 5
+    threads bitwise."""
+    B, C, Co, H, Wd = 1, 130, 16, 40, 125
+    x = rng.standard_normal((B, C, H, Wd)).astype(np.float32)
+    w = rng.standard_normal((Co, C, 3, 3)).astype(np.float32)
+    dy = rng.standard_normal((B, Co, H, Wd)).astype(np.float32)
+
+    def backward(x, w, dy, n=1):
+        out = [np.empty_like(a) for a in (x, w, w[:, 0, 0, 0])]
+        with forced_threads(n):
+            _core.conv2d_backward(*out, x, w, dy, 1, 1, 1, 1, 1)
+        return out
+
+    dx, dw, db = backward(x, w, dy)
+    _, dw120, _ = backward(np.ascontiguousarray(x[:, :120]), np.ascontiguousarray(w[:, :120]), dy)
+    assert_bitwise_equal("dw of the first 120 channels, in a 130-channel layer vs alone", dw[:, :120], dw120)
+    for n in (2, 5):
+        for name, a, b in zip(("dx", "dw", "db"), (dx, dw, db), backward(x, w, dy, n)):
+            assert_bitwise_equal(f"{name}, 1 vs {n} threads", a, b)
+    x64, w64, dy64 = (a.astype(np.float64) for a in (x, w, dy))
+    want = [np.empty_like(a) for a in (x64, w64, w64[:, 0, 0, 0])]
+    _core.conv2d_backward_plain(*want, x64, w64, dy64, 1, 1, 1, 1, 1)
+    for name, g, r in zip(("dx", "dw", "db"), backward(x64, w64, dy64, 2), want):
+        assert_close(f"{name} float64 vs plain", g, r, RTOL64)
+
+
 BIG = [  # sizes past the kernels' int indexing, on arrays with no elements (B = 0 or Co = 0)
     ("x", dict(x=(0, 1, 50_000, 50_000), w=(1, 1, 1, 1), padding=0), r"x: Hi\*Wi = 2500000000"),
     ("w", dict(x=(0, 2 ** 28, 1, 1), w=(0, 2 ** 28, 3, 3), padding=1), r"w: C\*kh\*kw = 2415919104"),
