@@ -72,7 +72,6 @@
 #include <algorithm>
 #include <memory>
 #include <new>
-#include <utility>
 #include <vector>
 
 #include "simd.h"
@@ -140,14 +139,14 @@ template <typename T, bool Zero = true> struct Aligned64 {
     T* allocate(size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
     void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
     // resize's construction of each new element: value-initialised (0) or default-initialised
-    // (for an arithmetic T, nothing at all)
+    // (for an arithmetic T, nothing at all); a construction with arguments, which this does not
+    // declare, is std::allocator_traits' own placement new
     template <typename U> void construct(U* p) {
         if constexpr (Zero)
             ::new ((void*)p) U();
         else
             ::new ((void*)p) U;
     }
-    template <typename U, typename... A> void construct(U* p, A&&... a) { ::new ((void*)p) U(std::forward<A>(a)...); }
     template <typename U> bool operator==(const Aligned64<U, Zero>&) const { return true; }
     template <typename U> bool operator!=(const Aligned64<U, Zero>&) const { return false; }
 };

@@ -86,7 +86,7 @@ class use_kernel_path:
 def show_config(file=None):
     """Print which instruction-set path the kernels use, the paths this CPU and build offer,
     and the threads: the first thing to include in a bug report or a benchmark."""
-    c, limit, n = _core.config(), _threads.cpu_limit(), _threads.cores()
+    c, n = _core.config(), _threads.cores()
     forced = f", forced by PYVF_ISA={c['forced_by_PYVF_ISA']}" if c["forced_by_PYVF_ISA"] else ""
     features = ", ".join(k for k, v in c["cpu_features"].items() if v) or "-"
     lines = [
@@ -97,8 +97,7 @@ def show_config(file=None):
         f"paths built: {', '.join(c['built_paths'])}",
         f"cpu features: {features}",
         f"threads: {c['threads']} (OpenMP {'on' if c['openmp'] else 'off'}; this process may use "
-        f"{n} CPU{'' if n == 1 else 's'}: {_threads.affinity()} in its affinity, "
-        f"{'no CPU limit' if limit is None else f'a CPU limit of {limit:g}'})",
+        f"{n} CPU{'' if n == 1 else 's'}: {_threads.cpu_limits_text()})",
     ]
     print("\n".join(lines), file=file)
 

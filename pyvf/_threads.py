@@ -10,8 +10,8 @@ import re
 
 from . import _core
 
-__all__ = ["affinity", "blas_limit", "blas_num_threads", "cores", "cpu_limit", "num_threads", "set_from_environment",
-           "set_num_threads", "threads"]
+__all__ = ["affinity", "blas_limit", "blas_num_threads", "cores", "cpu_limit", "cpu_limits_text", "num_threads",
+           "set_from_environment", "set_num_threads", "threads"]
 
 
 def cores():
@@ -29,6 +29,13 @@ def affinity():
         return len(os.sched_getaffinity(0))
     except (AttributeError, OSError):  # pragma: no cover - not Linux
         return os.cpu_count() or 1
+
+
+def cpu_limits_text():
+    """What cores() is taken from, for `pyvf config` and `pyvf bench threads`: "16 in its
+    affinity, a CPU limit of 2" (or "..., no CPU limit")."""
+    limit = cpu_limit()
+    return f"{affinity()} in its affinity, {'no CPU limit' if limit is None else f'a CPU limit of {limit:g}'}"
 
 
 def cpu_limit(proc="/proc/self"):

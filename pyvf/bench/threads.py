@@ -46,7 +46,7 @@ import numpy as np
 import pyvf
 from pyvf.bench import codebook as _bench_codebook, transformer as _bench_transformer
 from pyvf.bench.common import Worker, cpu_name, median_time, run_worker, table, worker_main
-from pyvf._threads import affinity, blas_limit, blas_num_threads, cores, cpu_limit
+from pyvf._threads import affinity, blas_limit, blas_num_threads, cores, cpu_limits_text
 from pyvf.train.loops import TINY_CODEBOOK, TINY_TRANSFORMER
 
 MODULE = "pyvf.bench.threads"  # run_worker's module: __name__ is "__main__" where a worker runs this file
@@ -255,9 +255,7 @@ def run(quick=False, n_cores=None, log=print, policies=True, scaling=True, calls
         return report
     keys = settings(n_cores, affinity())
     fns = {name: make(size[which]) for name, (make, which) in CALLS.items()}
-    limit = cpu_limit()
-    log(f"# threads: {cpu_name()}, {n_cores} cores usable ({affinity()} in the affinity, "
-        f"{'no CPU limit' if limit is None else f'a CPU limit of {limit:g}'}), kernel path {pyvf.kernel_path()}; "
+    log(f"# threads: {cpu_name()}, {n_cores} cores usable ({cpu_limits_text()}), kernel path {pyvf.kernel_path()}; "
         f"default: {pyvf.num_threads()} kernel threads, {blas_num_threads()} BLAS threads")
     same, failures = check_results(fns, keys)
     if failures:
