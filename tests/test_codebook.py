@@ -272,3 +272,16 @@ def test_inference_and_trace_paths_give_the_same_bits(dtype, rng):
     tr = traced.trace
     name = "encoder.down.0.block.0"
     assert not np.array_equal(tr[name + ".conv2"], tr[name])
+
+
+def test_residual_backward_adds_in_place_only_into_a_fresh_gradient(rng):
+    """_resblock_backward adds the shortcut's gradient into the body's dx in place. Where the body
+    is empty its dx is dy itself (and the identity shortcut's is too): the sum must then go to a
+    new array, dy left as it was (the caller's gradient), and the result be dy + dy."""
+    cb = random_codebook(CodebookConfig(**SMALL), rng)
+    dy = rng.standard_normal((2, 32, 8, 8)).astype(np.float32)
+    before = dy.copy()
+    out = cb._resblock_backward(dy, ([], []), {})
+    np.testing.assert_array_equal(dy, before)
+    assert not np.may_share_memory(out, dy)
+    np.testing.assert_array_equal(out, before + before)
