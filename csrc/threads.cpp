@@ -1,15 +1,13 @@
 // The kernels' threads (threads.h).
 #include "threads.h"
 
-#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
-#include <mutex>
 
 #ifdef __linux__
-#include <dirent.h>
 #include <fcntl.h>
+#include <sys/syscall.h>
 #include <unistd.h>
 #endif
 
@@ -33,32 +31,21 @@ void set_num_threads(int n) { g_num_threads.store(n > 0 ? n : 0, std::memory_ord
 #ifdef __linux__
 namespace {
 
-// This process's threads' time on a CPU and waiting on a run queue (ns, the first two fields of
-// /proc/self/task/<tid>/schedstat), summed; false where it cannot be read.
-bool self_schedstat(int64_t& run, int64_t& wait) {
-    DIR* dir = ::opendir("/proc/self/task");
-    if (!dir) return false;
-    run = wait = 0;
-    bool any = false;
+// The calling thread's time on a CPU and waiting on a run queue (ns, the first two fields of
+// /proc/self/task/<tid>/schedstat); false where it cannot be read.
+bool thread_schedstat(int64_t& run, int64_t& wait) {
     char path[64], buf[128];
-    while (const dirent* e = ::readdir(dir)) {
-        if (e->d_name[0] == '.') continue;
-        std::snprintf(path, sizeof path, "/proc/self/task/%s/schedstat", e->d_name);
-        const int fd = ::open(path, O_RDONLY);
-        if (fd < 0) continue;  // a thread that ended meanwhile
-        const ssize_t n = ::read(fd, buf, sizeof buf - 1);
-        ::close(fd);
-        if (n <= 0) continue;
-        buf[n] = 0;
-        char* end;
-        const long long r = std::strtoll(buf, &end, 10);
-        const long long w = std::strtoll(end, nullptr, 10);
-        run += r;
-        wait += w;
-        any = true;
-    }
-    ::closedir(dir);
-    return any;
+    std::snprintf(path, sizeof path, "/proc/self/task/%ld/schedstat", (long)::syscall(SYS_gettid));
+    const int fd = ::open(path, O_RDONLY);
+    if (fd < 0) return false;
+    const ssize_t n = ::read(fd, buf, sizeof buf - 1);
+    ::close(fd);
+    if (n <= 0) return false;
+    buf[n] = 0;
+    char* end;
+    run = std::strtoll(buf, &end, 10);
+    wait = std::strtoll(end, nullptr, 10);
+    return true;
 }
 
 }  // namespace
@@ -66,32 +53,28 @@ bool self_schedstat(int64_t& run, int64_t& wait) {
 bool oversubscribed() {
     using clock = std::chrono::steady_clock;
     constexpr int64_t kMinRunNs = 2000000;  // a reading over less CPU time than 2 ms keeps the last answer
-    static std::atomic<int64_t> next{0};
-    static std::atomic<bool> busy{false};
-    static std::mutex reading;            // one reader at a time; the others keep the last answer
-    static int64_t last_run = -1, last_wait = 0;  // the last reading (under `reading`)
-    static double ratio = 0;                      // wait / run, averaged (under `reading`)
+    // each calling thread's own readings (several Python threads may call the kernels)
+    thread_local int64_t next = 0, last_run = -1, last_wait = 0;
+    thread_local double ratio = 0;  // wait / run, averaged over the readings
+    thread_local bool busy = false;
     const int64_t now = std::chrono::duration_cast<std::chrono::milliseconds>(clock::now().time_since_epoch()).count();
-    if (now >= next.load(std::memory_order_relaxed) && reading.try_lock()) {
-        int64_t run, wait;
-        if (self_schedstat(run, wait)) {
-            const int64_t dr = run - last_run, dw = wait - last_wait;
-            if (last_run < 0 || dr < 0 || dw < 0) {  // the first reading, or threads ended: start over
-                last_run = run;
-                last_wait = wait;
-            } else if (dr >= kMinRunNs) {
-                // the ratio averaged over the readings, half the weight on the newest: one window
-                // in which the other processes happened to be off the cores does not end it
-                ratio = 0.5 * ratio + 0.5 * (double)dw / (double)dr;
-                busy.store(ratio > 0.2, std::memory_order_relaxed);
-                last_run = run;
-                last_wait = wait;
-            }
-        }
-        next.store(now + kBusyRefreshMs, std::memory_order_relaxed);
-        reading.unlock();
+    if (now < next) return busy;
+    next = now + kBusyRefreshMs;
+    int64_t run, wait;
+    if (!thread_schedstat(run, wait)) return busy;
+    const int64_t dr = run - last_run, dw = wait - last_wait;
+    if (last_run < 0 || dr < 0 || dw < 0) {  // the first reading: start from it
+        last_run = run;
+        last_wait = wait;
+    } else if (dr >= kMinRunNs) {
+        // the ratio averaged over the readings, half the weight on the newest: one window in
+        // which the other processes happened to be off the cores does not end it
+        ratio = 0.5 * ratio + 0.5 * (double)dw / (double)dr;
+        busy = ratio > 0.2;
+        last_run = run;
+        last_wait = wait;
     }
-    return busy.load(std::memory_order_relaxed);
+    return busy;
 }
 #else
 bool oversubscribed() { return false; }  // no /proc: the kernels' thresholds as on a quiet machine
