@@ -200,8 +200,8 @@ def test_kernels_see_a_busy_machine_and_give_the_same_results(rng):
     """With a busy process of pyvf's priority on every usable core, pyvf's threads wait on the run
     queue: oversubscribed() turns True within two seconds of kernel calls (it reads the calling
     thread's /proc/self/task/<tid>/schedstat at most every 50 ms; where there is no /proc it stays
-    False); the
-    product is bitwise the same as on the quiet machine (short calls then run on one thread)."""
+    False); the product is bitwise the same as on the quiet machine (short calls then run on one
+    thread)."""
     import time
     from pyvf import _core
     from pyvf.nn.layers import matmul
@@ -224,7 +224,7 @@ def test_waits_of_other_threads_are_not_a_busy_machine():
     machine), which must not make short calls single-threaded. Here three threads of this process
     share one CPU (each waits two thirds of the time) while the caller, alone on another, calls a
     kernel for two seconds: oversubscribed() stays False (counting every thread's waits, it read
-    True 98% of the time). A half is allowed for some other process that takes the caller's CPU
+    True 97% of the time). A half is allowed for some other process that takes the caller's CPU
     for a moment."""
     import threading
     import time
