@@ -44,6 +44,7 @@
 #include <new>
 #include <vector>
 
+#include "buffers.h"
 #include "simd.h"
 #include "threads.h"
 
@@ -309,7 +310,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
     const int64_t TQ = std::min(L, kTile), TK = TQ;
     const int64_t G = key_groups(d);
     std::vector<int> group;
-    std::vector<T> dq_extra;  // (B*H, G-1, head): the dq of groups 1..G-1
+    RawBuf<T> dq_extra;  // (B*H, G-1, head): the dq of groups 1..G-1, each block zeroed by its task
     try {
         group = assign_groups(d, G);
         dq_extra.resize((size_t)(B * H * (G - 1) * head));

@@ -853,6 +853,29 @@ def test_bitwise_reproducible_across_runs_and_threads(make_qkv):
                 assert_bitwise_equal(f"{np.dtype(dtype).name} {name}: {what}", a, b)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_backward_reads_nothing_stale(dtype, make_qkv):
+    """The backward's dq buffers of key groups 1.. (dq_extra) are not zeroed when allocated: each
+    task zeroes every block it adds into. A backward with a NaN do fills them with NaN, and the
+    next call of the same shape mostly gets that memory back from the allocator: its gradients
+    must be bitwise those of the first call (4 heads: 4 key groups; 1 and 2 threads)."""
+    shape = (3, 1, 4, 5, 16, 8)
+    q, k, v, do = make_qkv(shape, dtype)
+    o, lse = pyvf.branching_attention_forward(q, k, v)
+    nan = np.full_like(do, np.nan)
+    for threads in (1, 2):
+        with forced_threads(threads):
+            first = [np.empty_like(q) for _ in range(3)]  # dq, dk, dv
+            _core.attn_backward(*first, lse, q, k, v, o, do, 1.0)
+            for _ in range(3):
+                got = [np.empty_like(q) for _ in range(3)]
+                _core.attn_backward(*got, lse, q, k, v, o, nan, 1.0)
+                assert np.isnan(got[0]).all()
+                _core.attn_backward(*got, lse, q, k, v, o, do, 1.0)
+                for name, g, f in zip(("dq", "dk", "dv"), got, first):
+                    assert_bitwise_equal(f"{name} on {threads} threads after a NaN call", g, f)
+
+
 def test_set_num_threads_rejects_bad_values():
     for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(ValueError, match="n must be a positive integer"):

@@ -1,0 +1,41 @@
+// Aligned work buffers of the kernels (conv.cpp, branching_attention.cpp).
+#pragma once
+
+#include <cstddef>
+#include <new>
+#include <vector>
+
+namespace pyvf {
+
+// Work buffers start on a cache line (the column rows' vector stores are then aligned; malloc
+// gives 16 bytes). Allocation failure throws std::bad_alloc, as std::vector's does. A Buf's resize
+// zeroes the new elements, as std::vector's does; a RawBuf's leaves them unset, for a buffer made
+// before a parallel region whose every element read is written in it first (conv's dyT and wf, the
+// attention backward's dq_extra): a zeroing there is one thread's pass over memory while the
+// others wait (a paper codebook's 128-channel 128x128 backward zeroed 19 MiB of dyT so, on the
+// calling thread).
+template <typename T, bool Zero = true> struct Aligned64 {
+    typedef T value_type;
+    template <typename U> struct rebind {
+        typedef Aligned64<U, Zero> other;
+    };
+    Aligned64() = default;
+    template <typename U> Aligned64(const Aligned64<U, Zero>&) {}
+    T* allocate(size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
+    void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
+    // resize's construction of each new element: value-initialised (0) or default-initialised
+    // (for an arithmetic T, nothing at all); a construction with arguments, which this does not
+    // declare, is std::allocator_traits' own placement new
+    template <typename U> void construct(U* p) {
+        if constexpr (Zero)
+            ::new ((void*)p) U();
+        else
+            ::new ((void*)p) U;
+    }
+    template <typename U> bool operator==(const Aligned64<U, Zero>&) const { return true; }
+    template <typename U> bool operator!=(const Aligned64<U, Zero>&) const { return false; }
+};
+template <typename T> using Buf = std::vector<T, Aligned64<T>>;
+template <typename T> using RawBuf = std::vector<T, Aligned64<T, false>>;
+
+}  // namespace pyvf
