@@ -124,7 +124,6 @@ constexpr int64_t kParallelFlops = 1 << 20;
 
 template <typename T> constexpr int64_t kW = Simd<T>::W;
 
-
 inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
 inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
