@@ -62,8 +62,8 @@ bool oversubscribed() {
     next = now + kBusyRefreshMs;
     int64_t run, wait;
     if (!thread_schedstat(run, wait)) return busy;
-    const int64_t dr = run - last_run, dw = wait - last_wait;
-    if (last_run < 0 || dr < 0 || dw < 0) {  // the first reading: start from it
+    const int64_t dr = run - last_run, dw = wait - last_wait;  // one thread's counters only grow
+    if (last_run < 0) {  // the first reading: start from it
         last_run = run;
         last_wait = wait;
     } else if (dr >= kMinRunNs) {

@@ -29,8 +29,7 @@ void set_num_threads(int n);
 // sleeps between regions, has none. Measured on the 2-core EPYC VM (2 threads, a tiny codebook
 // step and a cached render + localize): the caller's wait/run idle 0.002-0.013 (all threads
 // 0.002-0.015), beside 2 busy processes 0.67-0.84 (0.80-0.88), beside 2 niced ones 0.014-0.022
-// (0.016-0.025).
-// False where /proc cannot be read.
+// (0.016-0.025). False where /proc cannot be read.
 constexpr int64_t kBusyRefreshMs = 50;
 bool oversubscribed();
 
