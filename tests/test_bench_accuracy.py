@@ -68,6 +68,28 @@ def test_accuracy_planted_bug_is_flagged_and_fails_the_command(tmp_path):
 def test_pareto_front():
     pts = [(1.0, 1e-3), (2.0, 1e-6), (3.0, 1e-6), (0.5, 1e-2), (2.0, 1e-2)]
     assert accuracy.pareto(pts) == [0, 1, 3]
+    # timings within the tolerance are not told apart: one code on two paths, 5% apart, same
+    # error, are both on the front; 20% apart, the slower is not
+    assert accuracy.pareto([(1.00, 1e-7), (1.05, 1e-7)]) == [0, 1]
+    assert accuracy.pareto([(1.00, 1e-7), (1.20, 1e-7)]) == [0]
+    assert accuracy.pareto([(1.00, 1e-7), (1.05, 1e-7)], tol=0.0) == [0]
+
+
+def test_beats_within_the_time_tolerance_only_by_a_smaller_error():
+    tol = accuracy.TIME_TOL
+    assert accuracy.beats((1.0, 1e-7), (1.0 + 2 * tol, 1e-7)) == "faster and as accurate"
+    assert accuracy.beats((1.0, 1e-7), (1.0 + tol / 2, 1e-7)) is None  # noise, not faster
+    assert accuracy.beats((1.0 + tol / 2, 1e-16), (1.0, 1e-7)) == "as fast and more accurate"
+    assert accuracy.beats((1.0 + 2 * tol, 1e-16), (1.0, 1e-7)) is None  # slower: a trade-off
+    assert accuracy.beats((0.5, 2e-7), (1.0, 1e-7)) is None  # faster but less accurate
+    assert accuracy.beats((1.0, 1e-7), (1.0, 1e-7)) is None  # a point does not beat its equal
+    # never both ways, and a front whatever the points (random clouds, ties and near-ties)
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        pts = [(float(t), float(e)) for t, e in zip(rng.choice([1.0, 1.04, 1.09, 1.2, 2.0], 6),
+                                                      rng.choice([0.0, 1e-16, 1e-7, 2e-7], 6))]
+        assert not any(accuracy.beats(p, q) and accuracy.beats(q, p) for p in pts for q in pts)
+        assert accuracy.pareto(pts)
 
 
 def test_ulps_in_the_true_values_spacing():

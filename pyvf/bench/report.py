@@ -170,7 +170,7 @@ def scaling_line(scal, kind):
 def op_verdict(res):
     """One op of the accuracy report: {op, ours (pyvf float32 on the default path), ref (torch
     float32, else NumPy float32: the variant pyvf is timed against), front (ours on the time/error
-    Pareto front: no variant both faster and as accurate), beaten_by (the variants that are),
+    Pareto front: no variant beats it, accuracy.beats), beaten_by ("name how" of those that do),
     ratio (ours' time over ref's)}; ours None where it failed validation (untimed)."""
     timed = [r for r in res["variants"] if "seconds" in r]
     ours = next((r for r in timed if r["name"].endswith("(default)")), None)
@@ -180,8 +180,9 @@ def op_verdict(res):
         return out
     front = accuracy.pareto([(r["seconds"], r["rel"]) for r in timed])
     out["front"] = timed.index(ours) in front
-    out["beaten_by"] = [r["name"] for r in timed if r is not ours and r["seconds"] <= ours["seconds"]
-                        and r["rel"] <= ours["rel"] and (r["seconds"], r["rel"]) != (ours["seconds"], ours["rel"])]
+    point = (ours["seconds"], ours["rel"])
+    out["beaten_by"] = [f"{r['name']} {how}" for r in timed
+                        for how in [accuracy.beats((r["seconds"], r["rel"]), point)] if how]
     out["ratio"] = ours["seconds"] / ref["seconds"] if ref else None
     return out
 
@@ -196,10 +197,10 @@ def speed_error_line(acc):
         ref = ("failed validation" if v["ours"] is None else
                f"over {v['ref']['name']}'s" if v["ref"] else "no reference timed")
         by_ref.setdefault(ref, []).append(v["op"] + (f" {v['ratio']:.2g}" if v["ratio"] else ""))
-    off = [f"{v['op']} ({', '.join(v['beaten_by'])} faster and as accurate)" for v in verdicts
+    off = [f"{v['op']} ({', '.join(v['beaten_by'])})" for v in verdicts
            if v["ours"] is not None and not v["front"]]
     return (f"* **Speed against error**: pyvf float32 on its default kernel path ({acc['machine']['kernel_path']}) "
-            f"is on the time/error Pareto front (no variant both faster and as accurate) for "
+            f"is on the time/error Pareto front (no variant {accuracy.FRONT_RULE}) for "
             f"**{sum(v['front'] for v in verdicts)} of {len(verdicts)} ops**; its time "
             + "; ".join(f"{ref}: {', '.join(ops)}" for ref, ops in by_ref.items())
             + (f". Not on the front: {'; '.join(off)}." if off else "."))
@@ -281,7 +282,8 @@ def accuracy_section(out, quick, m, acc):
     s = ["## Time of each op against its error", "",
          f"`pyvf bench accuracy{' --quick' if quick else ''}`: median of {acc['config']['repeat']} calls after a "
          "warm-up; error = max|x - ref| / max|ref| over the op's outputs against the float64 reference "
-         "(accuracy.md). Plots: time against error, the Pareto front dashed, the unit roundoffs dotted.", "",
+         f"(accuracy.md). On the Pareto front: no variant {accuracy.FRONT_RULE}. Plots: time against error, "
+         "the Pareto front dashed, the unit roundoffs dotted.", "",
          measured_on(m), ""]
     rows = []
     for v in map(op_verdict, acc["results"]):
