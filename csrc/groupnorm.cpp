@@ -9,7 +9,8 @@
 //   forward   mean = sum(x) / M in double, rounded to T; xc = x - mean, then xc -= r = (sum(xc) / M
 //             in double, rounded): the rounded mean can miss by an ulp, which rstd up to
 //             1/sqrt(eps) = 1000 would amplify on a constant group; var = sum(xc^2) / M in
-//             double, rounded; rstd = 1 / sqrt(var + eps) in T. xhat = xc * rstd,
+//             double, rounded; rstd = 1 / sqrt(var + eps) in T (where var + eps overflows T,
+//             1 / sqrt(sum(xc^2) / M + eps) in double, rounded: rstd_wide). xhat = xc * rstd,
 //             y = xhat * gamma[c] + beta[c], and with swish z = y * sigmoid(y). xhat is never
 //             stored: the backward recomputes it from x and (mean, r, rstd) by the same operations,
 //             bitwise (an array fewer to allocate and keep: in a training step the fresh pages of
@@ -203,6 +204,25 @@ template <typename T> void swish_backward(T* dx, const T* dy, const T* x, int64_
 template <typename T> inline T xhat_of(T x, const T* st) { return ((x - st[0]) - st[1]) * st[2]; }
 template <typename T> inline V<T> xhat_of(V<T> x, const T* st) { return ((x - st[0]) - st[1]) * st[2]; }
 
+// rstd = 1 / sqrt(sum(xc^2) / M + eps) in double, for a group whose variance (or variance + eps)
+// overflows T: float32 spreads |x - mean| beyond ~1.8e19, whose rstd is still a float32 (that
+// group was refused, its var rounded to inf). Where sum(xc^2) = ss overflowed double too
+// (float64 beyond ~1e154), xc is first scaled by 2^-k, max |xc| < 2^k (exact).
+template <typename T> double rstd_wide(const T* xg, int64_t M, T mean, T r, double ss, double eps) {
+    if (std::isfinite(ss)) return 1.0 / std::sqrt(ss / (double)M + eps);
+    double amax = 0;
+    for (int64_t i = 0; i < M; ++i) amax = std::max(amax, std::fabs((double)((xg[i] - mean) - r)));
+    if (!std::isfinite(amax)) return 0.0;  // xc itself overflowed: y is not finite (the kernel says so)
+    int k;
+    std::frexp(amax, &k);
+    double s2 = 0;
+    for (int64_t i = 0; i < M; ++i) {
+        const double c = std::ldexp((double)((xg[i] - mean) - r), -k);
+        s2 += c * c;
+    }
+    return std::ldexp(1.0 / std::sqrt(s2 / (double)M + std::ldexp(eps, -2 * k)), -k);
+}
+
 template <typename T>
 int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta, const GNDims& d, double eps,
                       bool swish) {
@@ -218,6 +238,10 @@ int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta,
             const int64_t off = t * M;  // group (b, g) is x[off : off + M]
             const T* xg = x + off;
             T* st = stats + 3 * t;
+            if (M == 0) {  // an empty group (no pixels, or no channels): nothing to normalise
+                st[0] = T(0), st[1] = T(0), st[2] = T(1) / std::sqrt(teps);
+                continue;
+            }
             const T mean = (T)(dsum(M, widened<T>([&](int64_t i) { return vload<T>(xg + i); }),
                                     [&](int64_t i) { return (double)xg[i]; }) / (double)M);
             // xc = x - mean, recomputed in each pass (never stored: the backward recomputes it too)
@@ -229,7 +253,9 @@ int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta,
                 return c * c;
             });
             const T var = (T)(ss / (double)M);
-            st[0] = mean, st[1] = r, st[2] = T(1) / std::sqrt(var + teps);
+            T rstd = T(1) / std::sqrt(var + teps);  // the published order, in T
+            if (!(rstd > 0)) rstd = (T)rstd_wide(xg, M, mean, r, ss, eps);  // var + eps beyond T
+            st[0] = mean, st[1] = r, st[2] = rstd;
             const int64_t c0 = (t % d.G) * cpg;
             for (int64_t c = 0; c < cpg; ++c) {
                 const T* xc = xg + c * d.P;

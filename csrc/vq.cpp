@@ -65,13 +65,14 @@ template <typename T> double exact_sq_distance(const T* x, const T* e, int64_t D
     return s;
 }
 
-// The same sum with both vectors multiplied by sc (a power of two: exact, unless a component
-// falls below the smallest subnormal, far below what decides the sum), for vectors whose
-// distance would overflow or underflow double.
-template <typename T> double exact_sq_distance_scaled(const T* x, const T* e, int64_t D, double sc) {
+// The same sum with both vectors multiplied by 2^p (exact, unless a component falls below the
+// smallest subnormal, far below what decides the sum), for vectors whose distance would overflow
+// or underflow double. By ldexp, not a product with 2^p: for float64 subnormals p exceeds 1023
+// and 2^p itself is inf (which gave NaN distances and wrong codes).
+template <typename T> double exact_sq_distance_scaled(const T* x, const T* e, int64_t D, int p) {
     double s = 0;
     for (int64_t i = 0; i < D; ++i) {
-        const double t = (double)x[i] * sc - (double)e[i] * sc;
+        const double t = std::ldexp((double)x[i], p) - std::ldexp((double)e[i], p);
         s += t * t;
     }
     return s;
@@ -240,12 +241,11 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
                     for (int64_t i = 0; i < D; ++i) mx = std::max(mx, std::fabs((double)codes[code_of(j) * D + i]));
                 const int ex = mx > 0 ? std::ilogb(mx) : 0;
                 const bool scaled = ex > 400 || ex < -400;
-                const double sc = scaled ? std::ldexp(1.0, -ex) : 1.0;
                 int64_t bi = -1;
                 double bd = std::numeric_limits<double>::infinity();
                 for (int64_t j = 0; j < ncand; ++j) {
                     const int64_t k = code_of(j);
-                    const double dk = scaled ? exact_sq_distance_scaled(xr, codes + k * D, D, sc)
+                    const double dk = scaled ? exact_sq_distance_scaled(xr, codes + k * D, D, -ex)
                                              : exact_sq_distance(xr, codes + k * D, D);
                     if (bi < 0 || dk < bd) {
                         bd = dk;

@@ -466,6 +466,44 @@ def test_groupnorm_large_mean_small_spread(dtype, rng):
     assert gap(y1, want[0]) > 100 * rtol, f"one-pass variance error {gap(y1, want[0]):.1e} is inside {rtol:.1e}"
 
 
+@pytest.mark.parametrize("dtype, spread", [(np.float32, 1e20), (np.float32, 1e36),
+                                           (np.float64, 1e160), (np.float64, 1e300)])
+def test_groupnorm_spread_beyond_the_dtypes_variance(dtype, spread, rng):
+    """Groups whose variance overflows the dtype (float32: spread beyond ~1.8e19) or whose sum of
+    squares overflows double too (float64 beyond ~1e154), though every y, dx and dgamma is of
+    ordinary size: the kernel computes rstd in double, rescaled by a power of two where needed
+    (it refused the group before, naming a float64 overflow even for float32). Against mpmath on
+    the same rounded inputs, the bound of test_groupnorm_large_mean_small_spread (10 u)."""
+    C, groups = 64, G
+    x = (spread * rng.standard_normal((2, C, 3, 3))).astype(dtype)
+    gamma, beta = (rng.standard_normal(C).astype(dtype) for _ in range(2))
+    dy = rng.standard_normal(x.shape).astype(dtype)
+    y, cache = conv.groupnorm_forward(x, gamma, beta)
+    dx, dgamma, dbeta = conv.groupnorm_backward(dy, cache)
+    want = groupnorm_mp(x, gamma, beta, dy, groups)
+    rtol = 10 * float(np.finfo(dtype).eps) / 2
+    for what, got, w in zip(("y", "dx", "dgamma"), (y, dx, dgamma), want):
+        assert_close(f"{what} (spread {spread:g}, {dtype.__name__})", got, w, rtol)
+
+
+@pytest.mark.parametrize("shape", [(2, 64, 0, 3), (2, 0, 4, 4)])
+def test_groupnorm_of_empty_groups(shape, rng):
+    """Groups with no elements (no pixels; no channels, 32 groups of 0): an empty y and dx, dgamma
+    and dbeta 0 (sums of nothing). They were refused as a float64 overflow of the variance."""
+    x = np.zeros(shape, np.float32)
+    gamma, beta = (rng.standard_normal(shape[1]).astype(np.float32) for _ in range(2))
+    y, cache = conv.groupnorm_forward(x, gamma, beta)
+    assert y.shape == shape
+    dx, dgamma, dbeta = conv.groupnorm_backward(np.zeros(shape, np.float32), cache)
+    assert dx.shape == shape and not dgamma.any() and not dbeta.any()
+
+
+def test_groupnorm_eps_beyond_the_dtype_is_refused():
+    with pytest.raises(ValueError, match="eps = 1e\\+300 overflows x's dtype float32"):
+        conv.groupnorm_forward(np.ones((1, 32, 2, 2), np.float32), np.ones(32, np.float32),
+                               np.zeros(32, np.float32), eps=1e300)
+
+
 # ---------------------------------------------------------------------------------------
 # 3. hard cases: swish's ends, every floating-point error raised
 
@@ -601,6 +639,11 @@ BAD = [
     ("padding < 0", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), padding=-1), ValueError,
      "padding must be non-negative"),
     ("stride 0", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), stride=0), ValueError, "stride"),
+    # beyond int64, pybind11 refused the call with its C++ signatures instead of naming the argument
+    ("stride 2^63", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), stride=2**63), ValueError,
+     "stride must be a positive int of at most 2"),
+    ("padding 2^63", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), padding=(0, 2**63, 0, 0)),
+     ValueError, "padding must be at most 2"),
     ("no fit", lambda: conv.conv2d_forward(f64(1, 5, 2, 4), f64(7, 5, 3, 3), f64(7)), ValueError, "does not fit"),
     ("dy shape", lambda: conv.conv2d_backward(f64(1, 7, 3, 3),
                                               conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7))[1]),
@@ -787,6 +830,29 @@ def test_conv2d_empty_batch():
     assert dx.shape == x.shape
     assert_bitwise_equal("dw of no images", dw, np.zeros_like(w))
     assert_bitwise_equal("db of no images", db, np.zeros_like(b))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("xshape, wshape, padding", [
+    ((1, 0, 4, 4), (2, 0, 3, 3), 1),        # no input channels: the backward divided by C (SIGFPE)
+    ((1, 1, 0, 4), (3, 1, 3, 3), 2),        # no rows, the padding alone fits the kernel (SIGFPE)
+    ((2, 3, 5, 0), (17, 3, 3, 3), (0, 0, 2, 1)),  # no columns, 17 output channels (whole vectors and a tail)
+])
+def test_conv2d_of_an_empty_image_is_its_bias(dtype, xshape, wshape, padding, rng):
+    """x with no elements but an output the padding makes: y = b everywhere, and the backward
+    gives an empty dx, dw = 0 (every window read only padding) and db = the sums of dy, in the
+    double sum of db's kernel. Closed forms, on a random dy and b."""
+    x, w = np.zeros(xshape, dtype), rng.standard_normal(wshape).astype(dtype)
+    b = rng.standard_normal(wshape[0]).astype(dtype)
+    y, cache = conv.conv2d_forward(x, w, b, padding=padding)
+    assert y.size > 0
+    assert_bitwise_equal("y of an empty image", y, np.broadcast_to(b[:, None, None], y.shape))
+    dy = rng.standard_normal(y.shape).astype(dtype)
+    dx, dw, db = conv.conv2d_backward(dy, cache)
+    assert dx.shape == x.shape and dw.shape == w.shape
+    assert not dw.view(np.uint8).any(), "dw of an empty image: not +0 everywhere"  # (also when w is empty)
+    want = dy.astype(np.float64).sum(axis=(0, 2, 3))  # at most 2 * 8 * 5 terms: exact enough
+    assert_close("db of an empty image", db, want, 2 * np.finfo(dtype).eps)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

@@ -148,6 +148,12 @@ def test_bad_input_raises(x, codes, exc, match):
         vq_nearest(x, codes)
 
 
+def test_a_subnormal_float64_row_finds_its_equal_code():
+    """The smallest case of the subnormal rerank: x equal to the second code, distance 0."""
+    index, sq = vq_nearest(np.array([[1e-310]]), np.array([[0.0], [1e-310]]))
+    assert index.tolist() == [1] and sq.tolist() == [0.0]
+
+
 def test_no_rows_gives_empty_results():
     index, sq = vq_nearest(np.zeros((0, 4), np.float32), np.zeros((3, 4), np.float32))
     assert index.shape == (0,) and sq.shape == (0,) and sq.dtype == np.float32
@@ -162,6 +168,7 @@ def scaled_brute_force(x, codes, scale):
 
 @pytest.mark.parametrize("dtype, magnitude", [
     (np.float64, 1e200), (np.float64, 1e300), (np.float64, 1e-200), (np.float64, 1e-300),
+    (np.float64, 1e-310), (np.float64, 1e-320),  # subnormal: the rerank's scale 2^1030 overflowed (NaN, wrong codes)
     (np.float32, 1e20), (np.float32, 1e35), (np.float32, 1e-30), (np.float32, 1e-40),
 ])
 def test_extreme_magnitudes_give_the_true_nearest_code(dtype, magnitude, rng):

@@ -78,6 +78,9 @@ def _check_grad(name, dy, shape):
                          f"{getattr(dy, 'shape', type(dy).__name__)}")
 
 
+INT_MAX = 2**31 - 1  # the kernels' sides, strides and paddings are C ints (csrc/conv_bind.cpp)
+
+
 def _padding4(padding):
     """int p -> (p, p, p, p); (top, bottom, left, right) -> itself. Non-negative ints only."""
     if isinstance(padding, (int, np.integer)) and not isinstance(padding, bool):
@@ -92,6 +95,8 @@ def _padding4(padding):
         pad = tuple(int(p) for p in pad)
     if min(pad) < 0:
         raise ValueError(f"padding must be non-negative, got {padding!r}")
+    if max(pad) > INT_MAX:
+        raise ValueError(f"padding must be at most 2^31 - 1 (the kernels' int sides), got {padding!r}")
     return pad
 
 
@@ -124,8 +129,8 @@ def _conv_args(x, w, b, stride, padding):
     if Cw != C:
         raise ValueError(f"w has {Cw} input channels (w.shape[1]) but x has {C} (x.shape[1])")
     _check_vector("b", b, Co, x, finite=False)
-    if not isinstance(stride, (int, np.integer)) or isinstance(stride, bool) or stride < 1:
-        raise ValueError(f"stride must be a positive int, got {stride!r}")
+    if not isinstance(stride, (int, np.integer)) or isinstance(stride, bool) or not 1 <= stride <= INT_MAX:
+        raise ValueError(f"stride must be a positive int of at most 2^31 - 1, got {stride!r}")
     stride = int(stride)
     pad = _padding4(padding)
     pt, pb, pl, pr = pad
@@ -274,6 +279,8 @@ def _groupnorm_args(x, gamma, beta, groups, eps):
     if C % groups:
         raise ValueError(f"groups={groups} does not divide the {C} channels of x")
     _checks.real("eps", eps, lo=0, lo_open=True)  # finite and > 0: eps = inf would give y = beta
+    if eps > float(np.finfo(x.dtype).max):
+        raise ValueError(f"eps = {eps!r} overflows x's dtype {x.dtype} (the kernel adds it in that dtype)")
     return int(groups)
 
 
@@ -288,9 +295,8 @@ def _groupnorm_kernel(x, gamma, beta, G, eps, swish):
 
     def run():
         _core.groupnorm_forward(y, stats, x, gamma, beta, G, float(eps), swish)
-        if not (stats[..., 2] > 0).all():  # var = inf: a group's (x - mean)^2 overflowed float64 (|x| beyond ~1e154)
-            raise ValueError("groupnorm: the variance of a group of x overflowed float64 (values beyond ~1e154): "
-                             "rescale x (GroupNorm is scale-invariant up to eps)")  # (or NaN: an input's)
+        if not (stats[..., 2] > 0).all():  # NaN: an input's (named by _after_kernel's scan of x)
+            raise ValueError("groupnorm: the statistics of a group of x are not finite")
     _after_kernel("groupnorm_forward", run, (), inputs, every_input_read=y.size > 0)  # y: the kernel checks it
     return y, x, stats
 
