@@ -2,7 +2,8 @@
 // the checks and the published semantics: eps inside the square root, as TF's LayerNormalization).
 //
 // Rows of d elements, each normalised alone:
-//     forward:  mean = sum(x) / d               (double, rounded to T)
+//     forward:  mean = sum(x) / d               (double, rounded to T; a float64 row whose sum
+//                                                 overflows: the mean of x 2^-k, times 2^k)
 //               xc = x - mean; xc -= sum(xc) / d  (a second centring: the rounded mean can be
 //                                                 an ulp off, which 1/sqrt(eps) = 316 amplifies)
 //               rstd = 1 / sqrt(sum(xc^2) / d + eps)   (double)
@@ -50,7 +51,13 @@ template <typename F> inline double lane_sum(int64_t d, F f) {
 // One row; returns false where x - mean overflows T (nothing else written then).
 template <typename T>
 bool forward_row(T* y, T* xhat, T& rstd, const T* x, const T* gamma, const T* beta, int64_t d, double eps) {
-    const T mean = static_cast<T>(lane_sum(d, [&](int64_t i) { return static_cast<double>(x[i]); }) / d);
+    const double sum = lane_sum(d, [&](int64_t i) { return static_cast<double>(x[i]); });
+    double m = sum / d;
+    if (!std::isfinite(sum)) {  // a float64 row summing beyond 1.8e308, its mean finite: the mean of x 2^-k, 2^k >= 2d
+        const int k = 1 + static_cast<int>(std::ceil(std::log2(static_cast<double>(d))));
+        m = std::ldexp(lane_sum(d, [&](int64_t i) { return std::ldexp(static_cast<double>(x[i]), -k); }) / d, k);
+    }
+    const T mean = static_cast<T>(m);
     for (int64_t i = 0; i < d; ++i) xhat[i] = x[i] - mean;  // xhat holds xc until the end
     const double r = lane_sum(d, [&](int64_t i) { return static_cast<double>(xhat[i]); });
     if (!std::isfinite(r)) return false;

@@ -379,6 +379,19 @@ def test_layernorm_extreme_scale(dtype, scale, rng):
         assert_close(f"{what} (rows of {scale:g}, {dtype.__name__})", got, w, rtol)
 
 
+def test_layernorm_of_a_row_whose_sum_overflows_float64(rng):
+    """float64 rows near the largest value: their sum overflows, their mean does not (it was
+    refused: "mean(x) or x - mean(x) overflows"). The mean is then taken of x 2^-k; against
+    mpmath with the bound of test_layernorm_extreme_scale."""
+    M = np.finfo(np.float64).max / 2
+    x = np.array([[M, M, M, M / 2], *(M * rng.uniform(0.2, 0.9, (3, 4)))])
+    gamma, beta, dy = (rng.standard_normal(s) for s in (4, 4, x.shape))
+    y, cache = layers.layernorm_forward(x, gamma, beta)
+    grads = layers.layernorm_backward(dy, cache)
+    for what, got, w in zip(("y", "dx", "dgamma", "dbeta"), (y, *grads), layernorm_mp(x, gamma, beta, dy)):
+        assert_close(f"{what} (rows summing beyond float64)", got, w, RTOL64)
+
+
 # ---------------------------------------------------------------------------------------
 # 3. hard cases: GELU's ends
 

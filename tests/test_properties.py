@@ -1548,6 +1548,12 @@ def test_branching_mask(R, N, L):
     assert m.dtype == bool and same_bits(m, want)
 
 
+def test_branching_mask_of_narrow_integers():
+    """numpy uint8 counts whose products wrap in uint8 (20 * 20 = 144): the mask of Python ints."""
+    m = pyvf.branching_mask(np.uint8(20), np.uint8(20), 1)
+    assert m.shape == (400, 400) and same_bits(m, pyvf.branching_mask(20, 20, 1))
+
+
 @given(v=st.one_of(st.integers(-3, 2 ** 40), st.sampled_from(ODD_SCALARS)))
 @settings(max_examples=_examples(30))
 def test_scalar_settings(v):

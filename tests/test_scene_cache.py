@@ -227,6 +227,10 @@ def test_context_attention_rejects_bad_arguments():
         f(q, q, q, bad, ctx)
     with pytest.raises(ValueError, match="not finite"):  # logits overflow float32
         f(*(a.astype(np.float32) * 1e20 for a in (q, q, q, ctx, ctx)))
+    # values near float32's largest: the sums of p v overflow before the division (o returned inf)
+    v, v_ctx = np.full(q.shape, 2e38, np.float32), np.full(ctx.shape, 2e38, np.float32)
+    with pytest.raises(ValueError, match="context_attention_forward: the result is not finite"):
+        f(np.zeros(q.shape, np.float32), np.zeros(q.shape, np.float32), v, np.zeros(ctx.shape, np.float32), v_ctx)
 
 
 def test_attention_layer_with_context_has_no_backward():

@@ -375,3 +375,16 @@ def test_compare_atol_accepts_exact_zeros_only_up_to_it():
     for bad in (-1.0, np.inf, True, "0"):
         with pytest.raises(ValueError, match="atol must be a finite number"):
             pyvf.compare(mine, ref, atol=bad)
+
+
+def test_rel_err_at_the_ends_of_float64():
+    """max |x - ref| / max |ref| where x - ref overflows float64 (it returned inf), of
+    subnormals, and of nothing; a NaN in x is still reported, not scaled away."""
+    assert pyvf.rel_err([1e308], [-1e308]) == 2.0
+    assert pyvf.rel_err([1.5e308, 0.0], [1e308, 1e308]) == 1.0  # |0 - 1e308| / 1e308
+    assert pyvf.rel_err([3e-320], [1e-320]) == pytest.approx(2.0, rel=1e-3)  # subnormals: 3 digits
+    assert pyvf.rel_err(np.zeros((0, 3)), np.zeros((0, 3))) == 0.0
+    assert np.isnan(pyvf.rel_err([np.nan, 1.0], [1.0, 1.0]))
+    # an ordinary case: the power of two cancels exactly
+    x, ref = np.array([1.0, 2.5, -3.0]), np.array([1.1, 2.0, -3.0])
+    assert pyvf.rel_err(x, ref) == np.abs(x - ref).max() / 3.0

@@ -198,6 +198,9 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     o = o.reshape(R, G, L, dh)
     o += oc.reshape(G, R, L, dh).transpose(1, 0, 2, 3)
     o /= denom[..., None]
+    # the sums of p v before the division overflow where |v| is within a factor T of the dtype's
+    # largest value, though o itself (a weighted mean of v) fits: refused, as the kernel refuses it
+    _check_finite_result("context_attention_forward", o)
     lse = m.astype(np.float64) + np.log(denom.astype(np.float64))  # (R, G, L)
     return o.reshape(R, B, H, 1, L, dh), lse.reshape(R, B, H, 1, L)
 
@@ -214,7 +217,8 @@ def branching_mask(R, N, L):
             raise TypeError(f"{name} must be a positive integer, got {type(val).__name__} {val!r}")
         if val < 1:
             raise ValueError(f"{name} must be a positive integer, got {val!r}")
-    T = int(R) * int(N) * int(L)
+    R, N, L = int(R), int(N), int(L)  # Python ints: numpy's uint8 20 * 20 wraps around
+    T = R * N * L
     if T * T > np.iinfo(np.intp).max:
         raise ValueError(f"R*N*L = {T} tokens (R={R}, N={N}, L={L}): a ({T}, {T}) mask is beyond any array size")
     try:

@@ -49,11 +49,19 @@ _PRECISION = ("float64", "float32", "float16", "bfloat16")  # most precise first
 
 def rel_err(x, ref):
     """max |x - ref| / max |ref|: the largest error relative to the largest reference entry
-    (an elementwise relative error is meaningless where ref is near 0). Computed in float64."""
+    (an elementwise relative error is meaningless where ref is near 0). Computed in float64, of
+    both scaled by one power of two (exact but for subnormals far below the largest entry), so
+    that x - ref does not overflow: rel_err([1e308], [-1e308]) is 2. 0 for empty arrays."""
     x = np.asarray(x, dtype=np.float64)
     ref = np.asarray(ref, dtype=np.float64)
     if x.shape != ref.shape:
         raise ValueError(f"shapes differ: {x.shape} vs {ref.shape}")
+    if x.size == 0:
+        return 0.0
+    top = max(np.abs(x).max(), np.abs(ref).max())
+    if np.isfinite(top) and top > 0:  # (a NaN or inf in x is reported as such below)
+        k = int(np.frexp(top)[1])
+        x, ref = np.ldexp(x, -k), np.ldexp(ref, -k)
     scale = np.abs(ref).max()
     return float(np.abs(x - ref).max() / (scale if scale > 0 else 1.0))
 
