@@ -29,7 +29,9 @@ Conventions (each one decided here, tested in tests/test_geometry.py):
 * orientation_error is scale-invariant (it uses only the direction of q1 * conj(q2)), so it
   takes any non-zero quaternions; a zero quaternion there raises.
 * quat_normalize follows TF's l2_normalize, q / sqrt(max(|q|^2, eps)): a zero quaternion
-  maps to zero, not NaN (the published code's pose prediction and average rely on it).
+  maps to zero, not NaN (the published code's pose prediction and average rely on it). It is
+  computed for every finite q, also where |q| itself overflows the dtype (float32 components
+  of 3e38) or is subnormal: q is scaled by a power of two first (exact), as in orientation_error.
 * quat_canonical multiplies by -1 where w < 0, exactly as the published code
   (`quaternion_remove_sign`: sign = +1 where w >= 0). At w == 0 (and w == -0.0) the
   quaternion is left unchanged, so q and -q with w == 0, the same 180-degree rotation,
@@ -93,12 +95,20 @@ def _check_unit(name, q):
                          "normalise it first with quat_normalize")
 
 
-def _pow2_unit(q):
-    """q (..., 4) times a power of two per quaternion, exactly, so that its largest |component|
-    is in [0.5, 1): the same direction, and products of such quaternions neither overflow nor
-    lose digits to subnormals. A zero quaternion stays zero."""
+def _pow2_split(q):
+    """q (..., 4) = qs * 2^k per quaternion: qs (..., 4) with its largest |component| in [0.5, 1),
+    k (..., 1) integers. Exact (a power of two only moves the exponent), except that components
+    more than the dtype's exponent range (2^-126 in float32) below the largest become subnormal
+    and round: negligible next to the largest. A zero quaternion gives qs = 0, k = 0."""
     k = np.frexp(np.abs(q).max(axis=-1, keepdims=True))[1]  # (..., 1)
-    return np.ldexp(q, -k).astype(q.dtype, copy=False)
+    return np.ldexp(q, -k).astype(q.dtype, copy=False), k  # (..., 4), (..., 1)
+
+
+def _pow2_unit(q):
+    """q (..., 4) times a power of two per quaternion so that its largest |component| is in
+    [0.5, 1) (_pow2_split): the same direction, and products of such quaternions neither
+    overflow nor lose digits to subnormals. A zero quaternion stays zero."""
+    return _pow2_split(q)[0]
 
 
 def _norm3(v):
@@ -141,12 +151,25 @@ def _rotate(q, v):
 
 
 def _normalize(q, eps):
-    # TF l2_normalize: q / sqrt(max(|q|^2, eps)). |q| by hypot, so a float32 quaternion of
-    # size 1e20 (|q|^2 overflows) or 1e-25 (|q|^2 underflows) still normalises; wherever
-    # |q|^2 is representable this is the same as TF's formula.
-    n = np.hypot(np.hypot(q[..., 0], q[..., 1]), np.hypot(q[..., 2], q[..., 3]))  # (...)
-    floor = q.dtype.type(np.sqrt(eps))
-    return q / np.maximum(n, floor)[..., None]  # (..., 4)
+    """TF's l2_normalize q / sqrt(max(|q|^2, eps)) = q / max(|q|, floor), floor = sqrt(eps),
+    for any finite q (..., 4) -> (..., 4).
+
+    |q| itself may overflow (float32 components of 3e38: |q| > 3.4e38) or be a subnormal that
+    keeps few digits (1e-45), so q is first split as qs * 2^k (_pow2_split) and the norm taken
+    of qs, |qs| in [0.5, 2]: then |q| >= floor  <=>  |qs| >= floor / 2^k, and there the result is
+    qs / |qs| (= q / |q|: a power of two cancels; bit for bit the unscaled formula wherever |q|
+    is representable, since hypot and division commute with powers of two). Below the floor it
+    is q / floor, as in TF. A zero quaternion gives zero, not NaN."""
+    qs, k = _pow2_split(q)  # (..., 4), (..., 1)  q = qs 2^k
+    ns = np.hypot(np.hypot(qs[..., 0:1], qs[..., 1:2]), np.hypot(qs[..., 2:3], qs[..., 3:4]))  # (..., 1) |q| / 2^k
+    # floor in q's dtype (as TF's eps), and at least the smallest subnormal: only q = 0 is below
+    # that, so an eps whose root underflows the dtype still maps zero to zero
+    floor = max(q.dtype.type(np.sqrt(eps)), np.finfo(q.dtype).smallest_subnormal)
+    with np.errstate(over="ignore"):  # floor / 2^k = inf: then |q| is far below the floor, as compared
+        above = ns >= np.ldexp(floor, -k)  # (..., 1)  |q| >= floor
+    unit = qs / np.where(above, ns, 1)  # (..., 4)  q / |q| where above (ns >= floor / 2^k > 0 there)
+    small = np.where(above, 0, q) / floor  # (..., 4)  q / floor where not above (no overflow elsewhere)
+    return np.where(above, unit, small)  # (..., 4)
 
 
 def _canonical(q, tie_break=False):
@@ -201,7 +224,10 @@ def quat_normalize(q, eps=1e-12):
     """q / sqrt(max(|q|^2, eps)), TF's l2_normalize (docs/math.md §3: eps 1e-12).
 
     q (..., 4) -> (..., 4). A zero quaternion gives zero (not NaN); |q| < sqrt(eps) = 1e-6
-    gives q / 1e-6, a quaternion shorter than 1, as in TF."""
+    gives q / 1e-6, a quaternion shorter than 1, as in TF. Any finite q normalises, also one
+    whose |q| exceeds the dtype's largest value (float32 (3e38, 3e38, 0, 0) gives
+    (0.7071, 0.7071, 0, 0)) or is subnormal (with an eps below |q|^2): |q| is taken of q scaled
+    by a power of two (_normalize)."""
     _check("q", q, (4,), "a quaternion (w, x, y, z)")
     if isinstance(eps, (bool, np.bool_)) or not isinstance(eps, (int, float, np.integer, np.floating)):
         raise TypeError(f"eps must be a real number, got {type(eps).__name__}")
@@ -344,11 +370,31 @@ def orientation_error(q1, q2):
 # averaging the per-token predictions of a view
 
 
+def _mean(x, axis):
+    """x.mean(axis) for finite x, without a spurious overflow: the mean lies between the smallest
+    and the largest x, so it is finite, but the sum may overflow (float32 2e38 + 2e38). Where it
+    does, the mean is taken again of x / 2^c with 2^c >= 2n (n = x.shape[axis]): every partial
+    sum of n terms then stays below max/2, and dividing by a power of two is exact (but for
+    subnormals, negligible next to a sum that overflowed). Elsewhere it is x.mean itself."""
+    with np.errstate(over="ignore", invalid="ignore"):  # the overflowed entries are replaced below
+        m = x.mean(axis=axis)  # x's shape without axis
+    over = ~np.isfinite(m)
+    if over.any():
+        c = (2 * x.shape[axis] - 1).bit_length()  # 2^c >= 2n
+        with np.errstate(under="ignore"):
+            m_scaled = np.ldexp(x, -c).astype(x.dtype, copy=False).mean(axis=axis)
+        # only rounding at the dtype's very top could overflow here; finite_result raises then
+        with np.errstate(over="ignore"):
+            m = np.where(over, np.ldexp(m_scaled, c).astype(x.dtype, copy=False), m)
+    return m
+
+
 def average_pose(poses, axis=-2):
     """The mean pose over `axis` (docs/math.md §3, the published `reduce`/`quaternion_reduce_mean`).
 
     poses (..., 7) -> the same shape without `axis` (which must not be the last one).
-    xyz: the arithmetic mean. Quaternions: normalised (quat_normalize, eps 1e-12),
+    xyz: the arithmetic mean, finite for every finite input (float32 positions of 2e38 whose
+    sum overflows still average: _mean). Quaternions: normalised (quat_normalize, eps 1e-12),
     sign-canonicalised (quat_canonical), averaged, normalised and canonicalised again.
     Quaternions need not be unit. If the canonicalised quaternions cancel (e.g. all zero, or
     opposite 180-degree rotations with w == 0) the mean is the zero quaternion, not NaN, as
@@ -365,8 +411,7 @@ def average_pose(poses, axis=-2):
     axis = int(axis) % nd
     if poses.shape[axis] == 0:
         raise ValueError(f"poses has no entries along axis {axis}: shape {poses.shape}")
-    with np.errstate(over="ignore", invalid="ignore"):  # checked
-        xyz = poses[..., :3].mean(axis=axis)  # (..., 3)
+    xyz = _mean(poses[..., :3], axis)  # (..., 3)
     q = _canonical(_normalize(poses[..., 3:], 1e-12))  # (..., 4)
     q = _canonical(_normalize(q.mean(axis=axis), 1e-12))  # (..., 4)
     return _checks.finite_result("average_pose", np.concatenate([xyz, q], axis=-1))  # (..., 7)

@@ -20,6 +20,7 @@ import pyvf
 import pyvf.models
 from conftest import assert_close
 from pyvf.scenes import generate_scenes
+from pyvf.evaluate.metrics import encode_images
 from pyvf.evaluate import (
     META_KEYS,
     METHODS,
@@ -90,15 +91,20 @@ def test_image_metrics_closed_forms():
     np.testing.assert_allclose(m["rmse"], np.sqrt(17.0), rtol=1e-15)  # per image: sqrt((9 + 25) / 2)
     np.testing.assert_allclose(m["psnr"], 10 * np.log10(255.0 ** 2 / 17.0), rtol=1e-15)
 
-    # a perfect image: capped at one value off by one level
+    # a perfect image: given the PSNR of one value off by half a level (mse = 0.25 / 60)
     m = image_metrics(target, target)
     assert (m["mae"] == 0).all() and (m["rmse"] == 0).all()
-    cap = 10 * np.log10(255.0 ** 2 * 4 * 5 * 3)
+    cap = 10 * np.log10(255.0 ** 2 / (0.25 / (4 * 5 * 3)))
     assert psnr_cap((4, 5, 3)) == pytest.approx(cap, rel=1e-15)
     np.testing.assert_allclose(m["psnr"], cap, rtol=1e-15)
+    # the smallest non-zero error, one value off by one level (mse = 1 / 60), scores 20 log10(2)
+    # = 6.02 dB less: strictly below the perfect image, as the module docstring says
     one_off = target.copy()
     one_off[:, 0, 0, 0] += 1
-    np.testing.assert_allclose(image_metrics(one_off, target)["psnr"], cap, rtol=1e-12)
+    best_imperfect = image_metrics(one_off, target)["psnr"]
+    np.testing.assert_allclose(best_imperfect, 10 * np.log10(255.0 ** 2 * 60), rtol=1e-15)
+    assert (best_imperfect < m["psnr"]).all()
+    np.testing.assert_allclose(m["psnr"] - best_imperfect, 20 * np.log10(2.0), rtol=1e-12)
 
     # RMSE is per image, then the mean: two images off by 3 and by 4 give 3.5, not sqrt(12.5)
     pair = np.stack([target[0] + np.uint8(3), target[0] + np.uint8(4)])
@@ -168,6 +174,45 @@ def test_baselines_hand_made():
     np.testing.assert_allclose(p["orientation_error_deg"], [[0, 0]], atol=1e-12)
 
 
+def test_psnr_perfect_image_strictly_above_every_imperfect_one():
+    """Over every image of 2x2x1 values within one level of a target (3^4 - 1 imperfect ones),
+    and every single-value error of up to 3 levels on 4x4x3, the perfect image's PSNR is strictly
+    the largest: the best imperfect one, off by one level in one value, is 6.02 dB below."""
+    rng = np.random.default_rng(7)
+    target = rng.integers(10, 240, (2, 2, 1)).astype(np.uint8)
+    offsets = np.stack(np.meshgrid(*[[-1, 0, 1]] * 4, indexing="ij"), -1).reshape(-1, 2, 2, 1)  # (81, 2, 2, 1)
+    preds = (target.astype(np.int64) + offsets).astype(np.uint8)
+    psnr = image_metrics(preds, np.broadcast_to(target, preds.shape).copy())["psnr"]  # (81,)
+    perfect = (offsets == 0).all(axis=(1, 2, 3))
+    assert perfect.sum() == 1 and (psnr[~perfect] < psnr[perfect]).all()
+    assert psnr[~perfect].max() == pytest.approx(10 * np.log10(255.0 ** 2 * 4), rel=1e-15)
+    target = rng.integers(10, 240, (4, 4, 3)).astype(np.uint8)
+    perfect = image_metrics(target[None], target[None])["psnr"][0]
+    for level in (1, -1, 2, 3):
+        off = target.astype(np.int64)
+        off[1, 2, 0] += level
+        assert image_metrics(off.astype(np.uint8)[None], target[None])["psnr"][0] < perfect
+
+
+def test_baselines_reject_a_query_batch_other_than_the_contexts():
+    """B = 2 scenes of context against queries of B = 1 (or images of another size): a ValueError
+    naming the query argument and context_images, not a broadcast of one scene's queries against
+    both contexts; matching shapes give (B, M, 7) and (B, M, Hi, Wi, 3)."""
+    ctx_img = np.zeros((2, 3, 4, 4, 3), np.uint8)  # (B=2, C=3, 4, 4, 3)
+    ctx_pose = np.tile(np.array([0, 0, 0, 1, 0, 0, 0.0]), (2, 3, 1))  # (2, 3, 7)
+    q_img, q_pose = np.zeros((2, 2, 4, 4, 3), np.uint8), np.zeros((2, 2, 7))  # (B=2, M=2, ...)
+    assert closest_image_pose(ctx_img, ctx_pose, q_img).shape == (2, 2, 7)
+    assert nearest_view(ctx_img, ctx_pose, q_pose).shape == (2, 2, 4, 4, 3)
+    for bad in (q_img[:1], np.zeros((2, 2, 5, 4, 3), np.uint8), np.zeros((2, 2, 2, 4, 4, 3), np.uint8)):
+        with pytest.raises(ValueError, match=r"^query_images must have shape \(B, M, 4, 4, 3\) with B = 2.*context_images"):
+            closest_image_pose(ctx_img, ctx_pose, bad)
+    for bad in (q_pose[:1], np.zeros((3, 2, 7)), np.zeros((2, 2, 3))):
+        with pytest.raises(ValueError, match=r"^query_poses must have shape \(B, M, 7\) with B = 2.*context_images"):
+            nearest_view(ctx_img, ctx_pose, bad)
+    with pytest.raises(TypeError, match="^query_poses must be a numpy.ndarray"):
+        nearest_view(ctx_img, ctx_pose, q_pose.tolist())
+
+
 # ---------------------------------------------------------------------------------------
 # (c) the scene cache computes what the whole tree computes
 
@@ -202,13 +247,13 @@ def test_cached_scene_equals_the_whole_tree(dtype, rtol):
 
 def image_row(pred, target):
     """uint8 images (..., Hi, Wi, 3) -> the mean over images of MAE, RMSE and PSNR, written out
-    from docs/math.md §6: per image on the 0..255 scale, PSNR = 10 log10(255^2 / mse) capped at
-    the PSNR of one value one level off."""
+    from docs/math.md §6: per image on the 0..255 scale, PSNR = 10 log10(255^2 / mse), a perfect
+    image given the PSNR of one value half a level off."""
     d = pred.astype(np.float64) - target.astype(np.float64)  # (..., Hi, Wi, 3)
     d = d.reshape(-1, int(np.prod(d.shape[-3:])))  # (images, values)
     mse = (d * d).mean(axis=1)
     with np.errstate(divide="ignore"):
-        psnr = np.minimum(10 * np.log10(255.0 ** 2 / mse), 10 * np.log10(255.0 ** 2 * d.shape[1]))
+        psnr = np.minimum(10 * np.log10(255.0 ** 2 / mse), 10 * np.log10(255.0 ** 2 / (0.25 / d.shape[1])))
     return {"mae": np.abs(d).mean(axis=1).mean(), "rmse": np.sqrt(mse).mean(), "psnr": psnr.mean()}
 
 
@@ -578,3 +623,48 @@ def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, tm
     for name in ("position_error_median", "orientation_error_median_deg"):
         assert ra["pyvf"][name] == rb["pyvf"][name]
     assert ra["pyvf"]["mae"] != rb["pyvf"]["mae"]
+
+
+def test_render_images_and_encode_images_reject_a_bad_batch(models):
+    """batch (render_images) and batch_size (encode_images) below 1 raise ValueError naming the
+    argument (-1 used to return uninitialised memory, 0 a bare range() error); a non-integer
+    raises TypeError; 1 works."""
+    cb = models[0]
+    k, K = cb.config.token_size, cb.config.n_embed
+    logits = np.zeros((2, k * k, K), np.float32)
+    images = np.zeros((2, 16, 16, 3), np.uint8)
+    for bad in (-1, 0):
+        with pytest.raises(ValueError, match=f"^batch must be >= 1, got {bad}"):
+            pyvf.evaluate.render_images(cb, logits, batch=bad)
+        with pytest.raises(ValueError, match=f"^batch_size must be >= 1, got {bad}"):
+            encode_images(cb, images, batch_size=bad)
+    for bad in (1.5, "2", True):
+        with pytest.raises(TypeError, match="^batch must be an integer"):
+            pyvf.evaluate.render_images(cb, logits, batch=bad)
+        with pytest.raises(TypeError, match="^batch_size must be an integer"):
+            encode_images(cb, images, batch_size=bad)
+    assert pyvf.evaluate.render_images(cb, logits, batch=1).shape == (2, 16, 16, 3)
+    np.testing.assert_array_equal(encode_images(cb, images, batch_size=1), cb.encode(to_model_images(images, cb.dtype)))
+
+
+@pytest.mark.parametrize("decode", ["argmax", "expected"])
+def test_render_images_rejects_non_finite_logits(models, decode):
+    """A NaN or inf logit raises ValueError naming logits in both decodes (argmax used to pick the
+    NaN's index and return an image)."""
+    cb = models[0]
+    k, K = cb.config.token_size, cb.config.n_embed
+    for bad in (np.nan, np.inf, -np.inf):
+        logits = np.zeros((2, 3, k * k, K), np.float32)
+        logits[1, 2, 5, 7] = bad
+        with pytest.raises(ValueError, match="^logits contains NaN or inf"):
+            pyvf.evaluate.render_images(cb, logits, decode)
+
+
+@pytest.mark.parametrize("decode", ["argmax", "expected"])
+def test_render_images_empty_leading_dimensions(models, decode):
+    """No views give no images: logits (0, L, K) -> uint8 (0, S, S, 3), (2, 0, L, K) -> (2, 0, S, S, 3)."""
+    cb = models[0]
+    k, K, S = cb.config.token_size, cb.config.n_embed, cb.config.image_size
+    for lead in ((0,), (2, 0), (0, 3)):
+        out = pyvf.evaluate.render_images(cb, np.zeros(lead + (k * k, K), np.float32), decode)
+        assert out.shape == lead + (S, S, 3) and out.dtype == np.uint8

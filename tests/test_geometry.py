@@ -217,6 +217,42 @@ def test_quat_normalize_no_overflow_or_underflow():
                  np.array([math.sqrt(0.5), 0, 0, -math.sqrt(0.5)]), rtol=RTOL32)
 
 
+def test_quat_normalize_beyond_the_dtype_range(rng):
+    """Finite quaternions whose |q| exceeds the dtype's largest value still normalise: float32
+    (3e38, 3e38, 0, 0) (|q| = 4.2e38 > 3.4e38) and float64 (1.7e308, ...) x4 in closed form, and
+    random float32 directions scaled to |q| ~ 1e38..3e38 against the float64 division (exact
+    inputs, no overflow in float64), with no warning; a subnormal float32 quaternion (1e-45 x2,
+    eps 1e-90 below |q|^2) normalises to the unit one. The transformer's pose_prediction
+    normalises through the same routine."""
+    from pyvf.models.transformer import pose_prediction
+    s = math.sqrt(0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = geo.quat_normalize(np.array([3e38, 3e38, 0, 0], np.float32))
+        assert_close("3e38 float32", got, np.array([s, s, 0, 0]), rtol=RTOL32)
+        got = geo.quat_normalize(np.array([1.7e308, -1.7e308, 1.7e308, 1.7e308]))
+        assert_close("1.7e308 float64", got, np.array([0.5, -0.5, 0.5, 0.5]), rtol=RTOL64)
+        q = (unit_quats(rng, (200,)) * rng.uniform(1e38, 3e38, (200, 1))).astype(np.float32)
+        q64 = q.astype(np.float64)
+        assert_close("|q| beyond float32", geo.quat_normalize(q),
+                     q64 / np.linalg.norm(q64, axis=-1, keepdims=True), rtol=RTOL32)
+        sub = np.array([1e-45, 0, 0, -1e-45], np.float32)  # the smallest subnormal: |q|^2 = 0 in float32
+        assert_close("subnormal float32", geo.quat_normalize(sub, eps=1e-90), np.array([s, 0, 0, -s]),
+                     rtol=RTOL32)
+        raw = np.array([[1.0, 2.0, 3.0, 3e38, 3e38, 0, 0]], np.float32)
+        assert_close("pose_prediction", pose_prediction(raw)[0, 3:], np.array([s, s, 0, 0]), rtol=RTOL32)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_quat_normalize_ordinary_q_bit_for_bit_the_unscaled_formula(rng, dtype):
+    """Where |q| is representable, the power-of-two scaling changes no bit: the result equals
+    q / max(hypot(hypot(w, x), hypot(y, z)), sqrt(eps)) computed directly, for |q| from 1e-9
+    to 1e9 (both sides of the floor 1e-6)."""
+    q = (rng.standard_normal((5000, 4)) * 10.0 ** rng.uniform(-9, 9, (5000, 1))).astype(dtype)
+    n = np.hypot(np.hypot(q[:, 0], q[:, 1]), np.hypot(q[:, 2], q[:, 3]))[:, None]
+    assert_bitwise_equal("normalize", geo.quat_normalize(q), q / np.maximum(n, dtype(1e-6)))
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_quat_canonical(rng, dtype):
     """-q where w < 0, q where w > 0; at w == 0 (either sign of zero) q unchanged, bit for bit, as
@@ -481,6 +517,27 @@ def test_average_pose_cancelling_quaternions_give_zero():
         got = geo.average_pose(poses, axis=0)
         np.testing.assert_array_equal(got, [1, 0, 0, 0, 0, 0, 0])
         np.testing.assert_array_equal(geo.average_pose(np.zeros((3, 7)), axis=0), np.zeros(7))
+
+
+def test_average_pose_beyond_the_dtype_range(rng):
+    """float32 positions of 2e38 to 3e38, whose sum overflows float32 (the mean cannot: it lies
+    between the smallest and the largest entry), average to the float64 mean of the same float32
+    inputs; float64 positions of 1.7e308 likewise (closed form). Quaternions of 3e38 (|q| beyond
+    float32) average to their direction, not to zero. No warning."""
+    s = math.sqrt(0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        xyz = (rng.choice([-1, 1], (2, 5, 3)) * rng.uniform(2e38, 3e38, (2, 5, 3))).astype(np.float32)
+        xyz[:, :, 0] = np.abs(xyz[:, :, 0])  # one coordinate all one sign: its sum surely overflows
+        poses = np.concatenate([xyz, np.broadcast_to(np.float32([1, 0, 0, 0]), (2, 5, 4))], -1)
+        got = geo.average_pose(poses, axis=1)
+        assert got.dtype == np.float32
+        assert_close("2e38 float32 mean", got[:, :3], xyz.astype(np.float64).mean(axis=1), rtol=RTOL32)
+        big = np.array([[1.7e308, -1.7e308, 1.0, 1, 0, 0, 0], [1.7e308, -1.7e308, 3.0, 1, 0, 0, 0]])
+        np.testing.assert_array_equal(geo.average_pose(big, axis=0), [1.7e308, -1.7e308, 2.0, 1, 0, 0, 0])
+        q = np.array([[0, 0, 0, 3e38, 3e38, 0, 0]] * 2, np.float32)
+        assert_close("3e38 quaternions", geo.average_pose(q, axis=0), np.array([0, 0, 0, s, s, 0, 0]),
+                     rtol=RTOL32)
 
 
 # ---------------------------------------------------------------------------------------

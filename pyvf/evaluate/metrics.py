@@ -18,15 +18,18 @@ sees. Definitions (per image; the evaluation then takes the mean over images):
 * RMSE = sqrt(mean (pred - target)^2) over pixels and channels, on the 0..255 scale: per
   image, then the mean over images (as the paper's tables), not the root of the pooled mean.
 * PSNR = 10 log10(1 / mse) with mse on the [0, 1] scale. A perfect image has mse = 0 and an
-  infinite PSNR; it is capped at psnr_cap(shape) = the PSNR of the smallest non-zero error a
-  uint8 image can have, one channel of one pixel off by one level (89.0 dB at 64x64x3), so a
-  mean over images stays finite and a perfect image scores above every imperfect one.
+  infinite PSNR; it is given psnr_cap(shape) = the PSNR of one channel of one pixel off by half
+  a level (95.0 dB at 64x64x3), so a mean over images stays finite. That is 20 log10(2) = 6.02 dB
+  above the largest finite PSNR a uint8 image can score (one value off by one level, the
+  smallest non-zero error: 89.0 dB at 64x64x3), so a perfect image scores strictly above every
+  imperfect one.
 * position error: Euclidean distance of the camera positions (geometry.position_error).
 * orientation error: the angle of q1 * conj(q2) in degrees (geometry.orientation_error).
 """
 
 import numpy as np
 
+from .. import _checks
 from ..geometry import average_pose, orientation_error, position_error
 
 __all__ = [
@@ -68,7 +71,8 @@ def to_model_images(images, dtype):
 def encode_images(codebook, images, batch_size=64, dtype=np.int64, progress=None):
     """uint8 images (M, Hi, Wi, C) -> codebook.encode's codes (M, k, k) as dtype, batch_size images
     per encoder call (each batch converted by to_model_images: the whole set never is at once).
-    progress: None, or the description of a tqdm progress bar."""
+    progress: None, or the description of a tqdm progress bar. batch_size must be an integer >= 1."""
+    batch_size = _checks.integer("batch_size", batch_size, lo=1)
     k = codebook.config.token_size
     out = np.empty((images.shape[0], k, k), dtype)  # (M, k, k)
     starts = range(0, images.shape[0], batch_size)
@@ -95,10 +99,11 @@ def to_uint8(x):
 
 
 def psnr_cap(image_shape):
-    """The PSNR in dB given to a perfect image of shape (Hi, Wi, C): that of one value off by one
-    level, 10 log10(255^2 * Hi * Wi * C)."""
+    """The PSNR in dB given to a perfect image of shape (Hi, Wi, C): that of one value off by half
+    a level, 10 log10(4 * 255^2 * Hi * Wi * C). The largest finite PSNR, one value off by one level
+    (mse = 1 / (Hi Wi C) on 0..255), is 10 log10(255^2 * Hi * Wi * C): 6.02 dB below the cap."""
     n = int(np.prod(image_shape))
-    return float(10.0 * np.log10(255.0 ** 2 * n))
+    return float(10.0 * np.log10(4 * 255.0 ** 2 * n))
 
 
 def image_metrics(pred, target):
@@ -135,6 +140,15 @@ def _context(images, poses):
                          f"got {getattr(poses, 'shape', type(poses).__name__)}")
 
 
+def _same_batch(name, query, context_images, tail):
+    """query must be (B, M, *tail) with context_images' B: one scene's queries are never
+    broadcast against another scene's context."""
+    B = context_images.shape[0]
+    if query.ndim != 2 + len(tail) or query.shape[0] != B or query.shape[2:] != tail:
+        raise ValueError(f"{name} must have shape (B, M, {', '.join(map(str, tail))}) with B = {B}, the "
+                         f"scenes of context_images {context_images.shape}, got {query.shape}")
+
+
 def nearest_view(context_images, context_poses, query_poses):
     """The context image whose camera stands nearest (Euclidean distance of the positions) to
     each query camera; the first such view on a tie.
@@ -142,6 +156,9 @@ def nearest_view(context_images, context_poses, query_poses):
     context_images uint8 (B, C, Hi, Wi, 3), context_poses (B, C, 7), query_poses (B, M, 7)
     -> uint8 (B, M, Hi, Wi, 3)."""
     _context(context_images, context_poses)
+    if not isinstance(query_poses, np.ndarray):
+        raise TypeError(f"query_poses must be a numpy.ndarray, got {type(query_poses).__name__}")
+    _same_batch("query_poses", query_poses, context_images, (7,))
     d = position_error(query_poses[:, :, None, :], context_poses[:, None, :, :])  # (B, M, C)
     idx = np.argmin(d, axis=2)  # (B, M)
     return context_images[np.arange(idx.shape[0])[:, None], idx]  # (B, M, Hi, Wi, 3)
@@ -161,6 +178,7 @@ def closest_image_pose(context_images, context_poses, query_images):
     (B, M, Hi, Wi, 3) -> (B, M, 7)."""
     _context(context_images, context_poses)
     _uint8_images("query_images", query_images, 5)
+    _same_batch("query_images", query_images, context_images, context_images.shape[2:])
     ctx = context_images.astype(np.float64)  # (B, C, Hi, Wi, 3)
     qry = query_images.astype(np.float64)  # (B, M, Hi, Wi, 3)
     diff = qry[:, :, None] - ctx[:, None]  # (B, M, C, Hi, Wi, 3)

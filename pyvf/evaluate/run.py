@@ -40,7 +40,7 @@ import numpy as np
 
 from .._io import atomic_write_text
 from ..geometry import make_relative
-from .. import _core
+from .. import _checks, _core
 from .._machine import median_time
 from .._threads import num_threads
 from .._version import __version__
@@ -158,22 +158,25 @@ def render_images(codebook, logits, decode="argmax", batch=32):
     render_scene's (B, M, L, K)) -> images (..., S, S, 3) uint8. decode: a key of DECODES:
     "argmax" decodes each token's most likely code (decode_code); "expected" decodes each token's
     mean code vector sum_j softmax(logits)_j e_j (decode_latent; softmax in float64). `batch`
-    views per decoder call."""
+    views per decoder call, an integer >= 1. logits must be finite in both modes (NaN or inf raise
+    ValueError). Empty leading dimensions give empty images: logits (0, L, K) -> (0, S, S, 3)."""
     if decode not in DECODES:
         raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
+    batch = _checks.integer("batch", batch, lo=1)
     cfg = codebook.config
     k, K = cfg.token_size, cfg.n_embed
     if not isinstance(logits, np.ndarray) or logits.dtype.kind != "f":
         raise TypeError(f"logits must be a float numpy array, got {getattr(logits, 'dtype', type(logits).__name__)}")
     if logits.ndim < 2 or logits.shape[-2:] != (k * k, K):
         raise ValueError(f"logits must have shape (..., {k * k}, {K}) for this codebook, got {logits.shape}")
+    _checks.finite("logits", logits)  # argmax would pick a NaN's index silently
     lead = logits.shape[:-2]
     flat = logits.reshape(-1, k * k, K)  # (n, L, K)
     if decode == "argmax":
-        out = _decode(codebook, flat.argmax(axis=-1), batch)
+        out = _decode(codebook, flat.argmax(axis=-1), batch)  # (n, S, S, out_ch)
     else:
-        out = _decode(codebook, flat, batch, _expected_latent)
-    return out.reshape(*lead, cfg.image_size, cfg.image_size, -1)
+        out = _decode(codebook, flat, batch, _expected_latent)  # (n, S, S, out_ch)
+    return out.reshape(*lead, *out.shape[1:])  # (..., S, S, out_ch); no -1: lead may hold a 0
 
 
 def _expected_latent(codebook, logits):
