@@ -95,28 +95,10 @@ template <typename T, typename G, typename H> inline auto widened_product(G g, H
     };
 }
 
-// Whether any lane of a is below lo: one vector compare (a loop over lanes compiled to a scalar
-// compare per lane).
-template <typename T> inline bool any_below(V<T> a, T lo) {
-    if constexpr (sizeof(T) == sizeof(float)) {
-        return any_lane(a < lo);
-    } else {
-        const auto m = a < lo;  // 64-bit lanes: any_lane reads them as pairs of 32-bit ones
-        Simd<float>::I m32;
-        std::memcpy(&m32, &m, sizeof m32);
-        return any_lane(m32);
-    }
-}
-
 // z = exp(-|x|) in (0, 1] of a vector, as the header says.
 template <typename T> inline V<T> exp_neg_abs(V<T> x) {
-    constexpr int W = Simd<T>::W;
     const V<T> a = x < T(0) ? x : -x;  // -|x| <= 0 (x = -0.0 gives +0.0 or -0.0: e^0 = 1 either way)
-    V<T> z = exp_vec(a);
-    if (any_below(a, ExpConst<T>::lo))  // e^a below the smallest normal: exp_vec returns 0, std::exp the subnormal
-        for (int l = 0; l < W; ++l)
-            if (a[l] < ExpConst<T>::lo) z[l] = std::exp(a[l]);
-    return z;
+    return exp_vec_subnormal<T>(a);
 }
 
 // (sigmoid(x), sigmoid(-x)) of a vector, as the header says.

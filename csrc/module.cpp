@@ -17,6 +17,7 @@
 
 #include "branching_attention.h"
 #include "conv.h"
+#include "cross_entropy.h"
 #include "elementwise.h"
 #include "layernorm.h"
 #include "optim.h"
@@ -241,6 +242,48 @@ template <typename T> void layernorm_bwd_k(Arr<T> dx, Arr<T> dgamma, Arr<T> dbet
     layernorm_backward<T>(pdx, pdg, pdb, pdy, ph, pr, pg, M, d);
 }
 
+// Softmax cross-entropy (cross_entropy.cpp): x (M, n), targets (M,) int64 in [0, n) (checked here
+// too: an index out of range would read outside the row), loss, rowmax, logsum, dloss (M,).
+void check_ce(const py::array& x, const py::array_t<int64_t, py::array::c_style>& targets,
+              std::initializer_list<const py::array*> rows, const char* what) {
+    if (x.ndim() != 2 || x.shape(1) < 1 || targets.ndim() != 1 || targets.shape(0) != x.shape(0))
+        throw std::invalid_argument(std::string("pyvf._core.") + what + ": x (M, n >= 1), targets (M,)");
+    for (const py::array* a : rows)
+        if (a->ndim() != 1 || a->shape(0) != x.shape(0))
+            throw std::invalid_argument(std::string("pyvf._core.") + what + ": every per-row array must be (M,)");
+    const int64_t* t = targets.data();
+    for (py::ssize_t r = 0; r < targets.shape(0); ++r)
+        if (t[r] < 0 || t[r] >= x.shape(1))
+            throw std::invalid_argument(std::string("pyvf._core.") + what + ": targets must be in [0, n)");
+}
+
+template <typename T>
+void ce_fwd_k(Arr<T> loss, Arr<T> rowmax, py::array_t<double, py::array::c_style> logsum, Arr<T> x,
+              py::array_t<int64_t, py::array::c_style> targets, double eps) {
+    check_ce(x, targets, {&loss, &rowmax, &logsum}, "cross_entropy_forward");
+    T *pl = loss.mutable_data(), *pm = rowmax.mutable_data();
+    double* ps = logsum.mutable_data();
+    const T* px = x.data();
+    const int64_t* pt = targets.data();
+    const int64_t M = x.shape(0), n = x.shape(1);
+    py::gil_scoped_release nogil;
+    cross_entropy_forward<T>(pl, pm, ps, px, pt, M, n, eps);
+}
+
+template <typename T>
+void ce_bwd_k(Arr<T> dx, Arr<T> dloss, Arr<T> x, Arr<T> rowmax, py::array_t<double, py::array::c_style> logsum,
+              py::array_t<int64_t, py::array::c_style> targets, double eps) {
+    check_ce(x, targets, {&dloss, &rowmax, &logsum}, "cross_entropy_backward");
+    same_size(dx, x, "cross_entropy_backward");
+    T* pdx = dx.mutable_data();
+    const T *pdl = dloss.data(), *px = x.data(), *pm = rowmax.data();
+    const double* ps = logsum.data();
+    const int64_t* pt = targets.data();
+    const int64_t M = x.shape(0), n = x.shape(1);
+    py::gil_scoped_release nogil;
+    cross_entropy_backward<T>(pdx, pdl, px, pm, ps, pt, M, n, eps);
+}
+
 // out = a + b, any shapes of one size (elementwise.cpp); out (N,) = a (M, N) summed over its rows.
 template <typename T> void add_k(Arr<T> out, Arr<T> a, Arr<T> b) {
     same_size(a, out, "add");
@@ -392,6 +435,11 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("decayed"), py::arg("scalars"), py::arg("keras"));
     m.def("sum_squares", &sum_squares_k<T>, py::arg("x").noconvert());
     m.def("scale_by", &scale_by_k<T>, py::arg("x").noconvert(), py::arg("c"));
+    m.def("cross_entropy_forward", &ce_fwd_k<T>, py::arg("loss").noconvert(), py::arg("rowmax").noconvert(),
+          py::arg("logsum").noconvert(), py::arg("x").noconvert(), py::arg("targets").noconvert(), py::arg("eps"));
+    m.def("cross_entropy_backward", &ce_bwd_k<T>, py::arg("dx").noconvert(), py::arg("dloss").noconvert(),
+          py::arg("x").noconvert(), py::arg("rowmax").noconvert(), py::arg("logsum").noconvert(),
+          py::arg("targets").noconvert(), py::arg("eps"));
     m.def("layernorm_forward", &layernorm_fwd_k<T>, py::arg("y").noconvert(), py::arg("xhat").noconvert(),
           py::arg("rstd").noconvert(), py::arg("x").noconvert(), py::arg("gamma").noconvert(),
           py::arg("beta").noconvert(), py::arg("eps"));

@@ -180,6 +180,29 @@ template <typename T> inline T exp_scalar(T x) {
     return exp_vec(v)[0];
 }
 
+// Whether any lane of a is below lo: one vector compare (a loop over lanes compiled to a scalar
+// compare per lane).
+template <typename T> inline bool any_below(typename Simd<T>::V a, T lo) {
+    if constexpr (sizeof(T) == sizeof(float)) {
+        return any_lane(a < lo);
+    } else {
+        const auto m = a < lo;  // 64-bit lanes: any_lane reads them as pairs of 32-bit ones
+        Simd<float>::I m32;
+        std::memcpy(&m32, &m, sizeof m32);
+        return any_lane(m32);
+    }
+}
+
+// exp of a <= 0 into the subnormals: exp_vec, and std::exp (as NumPy's exp) for the lanes whose
+// result is below the smallest normal, where exp_vec returns 0.
+template <typename T> inline typename Simd<T>::V exp_vec_subnormal(typename Simd<T>::V a) {
+    typename Simd<T>::V z = exp_vec(a);
+    if (any_below<T>(a, ExpConst<T>::lo))
+        for (int l = 0; l < Simd<T>::W; ++l)
+            if (a[l] < ExpConst<T>::lo) z[l] = std::exp(a[l]);
+    return z;
+}
+
 // ---------------------------------------------------------------------------------------
 // gemm: C (M, N) = op(A) (M, K) @ B (K, N)      when ACC is false (C is overwritten),
 //       C (M, N) += op(A) (M, K) @ B (K, N)     when ACC is true;

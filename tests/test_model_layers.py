@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import assert_close
+from conftest import assert_bitwise_equal, assert_close, forced_threads
 from pyvf.nn.attention import attention_layer_backward, attention_layer_forward
 from pyvf.nn.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
 from pyvf.verify.torch_transformer import tree_mask
@@ -55,6 +55,80 @@ def test_cross_entropy_matches_torch(eps, rng):
     (tloss * torch.tensor(dloss)).sum().backward()
     assert_close("ce", loss, tloss.detach().numpy(), rtol=RTOL)
     assert_close("dlogits", dlogits, tl.grad.numpy(), rtol=RTOL)
+
+
+U32 = float(np.finfo(np.float32).eps) / 2
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("eps", [0.0, 0.1])
+def test_cross_entropy_float32_against_torch_float64(eps, rng):
+    """float32 logits (V = 1000: vectors and a tail on every path) against torch in float64 on the
+    same rounded values, a random dloss. The kernel's loss is the float64 log-sum-exp of float32
+    exponentials (each ~1 ulp), rounded once: within 4 u of the largest loss. dlogits: each p_i is
+    the exp of an argument rounded to float32, |z_i - ls| u off, |z_i - ls| < 40 here: within 64 u
+    of the largest |dlogits|."""
+    M, V = 64, 1000
+    logits = (4 * rng.standard_normal((M, V))).astype(np.float32)
+    targets, dloss = rng.integers(0, V, M), rng.standard_normal(M).astype(np.float32)
+    loss, cache = cross_entropy_forward(logits, targets, eps)
+    (dlogits,) = cross_entropy_backward(dloss, cache)
+    assert loss.dtype == dlogits.dtype == np.float32
+    tl = torch.tensor(logits.astype(np.float64), requires_grad=True)
+    tloss = F.cross_entropy(tl, torch.tensor(targets), reduction="none", label_smoothing=eps)
+    (tloss * torch.tensor(dloss.astype(np.float64))).sum().backward()
+    assert_close("ce float32", loss, tloss.detach().numpy(), rtol=4 * U32)
+    assert_close("dlogits float32", dlogits, tl.grad.numpy(), rtol=64 * U32)
+    # the bound has teeth: a loss computed from logits read one row off is far outside it
+    wrong, _ = cross_entropy_forward(np.roll(logits, 1, axis=0), targets, eps)
+    assert np.abs(wrong - tloss.detach().numpy()).max() > 1e4 * 4 * U32 * np.abs(loss).max()
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_cross_entropy_hard_cases(dtype):
+    """Closed forms: logits spanning the dtype, ties, one class, no rows, probabilities below the
+    smallest normal number (kept as NumPy's exp keeps them, not flushed to 0)."""
+    big = np.finfo(dtype).max
+    one = np.ones(2, dtype)
+    # a row from -max to +max: the target at the max has p = 1, loss 0, dlogits 0 (z = -inf elsewhere)
+    loss, cache = cross_entropy_forward(np.array([[big, -big]], dtype), np.array([0]))
+    assert loss.tolist() == [0.0] and cross_entropy_backward(one[:1], cache)[0].tolist() == [[0.0, 0.0]]
+    # the other target: -log p = 2 max overflows the dtype: refused, naming the loss
+    with pytest.raises(ValueError, match="cross_entropy_forward: the loss is not finite"):
+        cross_entropy_forward(np.array([[big, -big]], dtype), np.array([1]))
+    # ties: p = 1/V, loss = log V (rounded once); dlogits = 1/V - [i = t]
+    V = 7
+    loss, cache = cross_entropy_forward(np.full((2, V), 3.5, dtype), np.array([0, 6]))
+    assert_close("ties' loss", loss, np.full(2, np.log(V)), rtol=float(np.finfo(dtype).eps))
+    (d,) = cross_entropy_backward(one, cache)
+    want = np.full((2, V), 1 / V) - np.eye(V)[[0, 6]]
+    assert_close("ties", d, want, rtol=4 * float(np.finfo(dtype).eps))
+    # one class: loss 0, dlogits 0, exactly; with smoothing too (q = 1)
+    for eps in (0.0, 0.3):
+        loss, cache = cross_entropy_forward(np.array([[5.0], [-2.0]], dtype), np.array([0, 0]), eps)
+        assert loss.tolist() == [0.0, 0.0] and cross_entropy_backward(one, cache)[0].tolist() == [[0.0], [0.0]]
+    # no rows
+    loss, cache = cross_entropy_forward(np.zeros((0, 5), dtype), np.zeros(0, np.int64))
+    assert loss.shape == (0,) and cross_entropy_backward(np.zeros(0, dtype), cache)[0].shape == (0, 5)
+    # a probability in the subnormals (float32: e^-100 = 3.7e-44): the gradient keeps it
+    gap = dtype(-100.0) if dtype == np.float32 else dtype(-740.0)
+    loss, cache = cross_entropy_forward(np.array([[0.0, gap]], dtype), np.array([0]))
+    (d,) = cross_entropy_backward(one[:1], cache)
+    assert d[0, 1] == np.exp(gap) and d[0, 1] > 0, d
+
+
+def test_cross_entropy_threads_bitwise(rng):
+    """Rows on the threads: the same bits on 1 and 3 threads (every call parallel)."""
+    logits = (3 * rng.standard_normal((50, 333))).astype(np.float32)
+    targets, dloss = rng.integers(0, 333, 50), rng.standard_normal(50).astype(np.float32)
+    out = []
+    for n in (1, 3):
+        with forced_threads(n):
+            loss, cache = cross_entropy_forward(logits, targets, 0.1)
+            out.append((loss, cross_entropy_backward(dloss, cache)[0]))
+    for a, b, what in zip(out[0], out[1], ("loss", "dlogits")):
+        assert_bitwise_equal(f"{what}, 1 vs 3 threads", a, b)
 
 
 def test_pose_loss_matches_torch_and_uses_the_raw_quaternion(rng):

@@ -10,16 +10,19 @@ gradient that overflows the dtype raises ValueError. Inputs are never modified.
 
 import numpy as np
 
-from .. import _checks
+from .. import _checks, _core
 
 
 def cross_entropy_forward(logits, targets, label_smoothing=0.0):
     """Per-row cross-entropy from the log-sum-exp.
 
     logits (M, V) float, targets (M,) integers in [0, V) -> loss (M,).
-    Target distribution t = (1 - eps) * onehot(target) + eps / V, loss = -sum_v t_v log p_v,
-    log p = logits - logsumexp(logits) computed with the row max subtracted, so logits of any
-    size give a finite loss. label_smoothing in [0, 1]. cache: log p (M, V), targets, eps.
+    Target distribution q = (1 - eps) * onehot(target) + eps / V, loss = -sum_v q_v log p_v,
+    log p = (logits - max) - logsumexp(logits - max): logits of any size give a finite loss.
+    label_smoothing in [0, 1]. The C++ kernel (csrc/cross_entropy.cpp, rows on pyvf's threads):
+    the exponentials in the dtype, their sum, the log and the loss in float64, rounded once.
+    cache: the logits (not copied: do not modify them before the backward), each row's max and
+    log-sum (float64), the targets, eps.
     """
     _checks.finite_float("logits", logits)
     if logits.ndim != 2 or logits.shape[1] == 0:
@@ -31,31 +34,25 @@ def cross_entropy_forward(logits, targets, label_smoothing=0.0):
     if M and (targets.min() < 0 or targets.max() >= V):  # numpy would wrap -1 around
         raise ValueError(f"targets must be in [0, {V}) (V = logits.shape[1]), got values in "
                          f"[{targets.min()}, {targets.max()}]")
-    label_smoothing = _checks.real("label_smoothing", label_smoothing, 0.0, 1.0)
-    with np.errstate(over="ignore", invalid="ignore"):  # logits spanning more than the dtype: checked below
-        z = logits - logits.max(axis=-1, keepdims=True)  # (M, V), max 0
-        logp = z - np.log(np.exp(z).sum(axis=-1, keepdims=True))  # (M, V)
-        eps = logits.dtype.type(label_smoothing)
-        loss = -(1 - eps) * logp[np.arange(M), targets]  # (M,)
-        if label_smoothing:
-            loss = loss - eps / V * logp.sum(axis=-1)
-    _checks.finite_result("cross_entropy_forward", loss, "the loss")
-    return loss, (logp, targets, eps)
+    eps = _checks.real("label_smoothing", label_smoothing, 0.0, 1.0)
+    logits = _checks.c_order(logits)
+    targets = np.ascontiguousarray(targets, dtype=np.int64)  # the values, checked in range above
+    loss, rowmax = np.empty(M, logits.dtype), np.empty(M, logits.dtype)  # (M,), (M,)
+    logsum = np.empty(M, np.float64)  # (M,)
+    _core.cross_entropy_forward(loss, rowmax, logsum, logits, targets, eps)
+    _checks.finite_result("cross_entropy_forward", loss, "the loss")  # logits spanning beyond the dtype
+    return loss, (logits, rowmax, logsum, targets, eps)
 
 
 def cross_entropy_backward(dloss, cache):
-    """dloss (M,) -> dlogits (M, V) = dloss * (softmax(logits) - t)."""
-    logp, targets, eps = cache
-    M, V = logp.shape
-    _checks.finite_float("dloss", dloss, logp, "the logits")
+    """dloss (M,) -> dlogits (M, V) = dloss * (softmax(logits) - q)."""
+    logits, rowmax, logsum, targets, eps = cache
+    M, V = logits.shape
+    _checks.finite_float("dloss", dloss, logits, "the logits")
     if dloss.shape != (M,):
         raise ValueError(f"dloss must have shape (M,) = ({M},), got {dloss.shape}")
-    dlogits = np.exp(logp)  # (M, V) softmax
-    dlogits[np.arange(M), targets] -= 1 - eps
-    if eps:
-        dlogits -= eps / V
-    with np.errstate(over="ignore", invalid="ignore"):  # checked
-        dlogits *= dloss[:, None]
+    dlogits = np.empty_like(logits)  # (M, V)
+    _core.cross_entropy_backward(dlogits, _checks.c_order(dloss), logits, rowmax, logsum, targets, eps)
     return (_checks.finite_result("cross_entropy_backward", dlogits, "dlogits"),)
 
 
