@@ -202,15 +202,22 @@ def test_bench_forwards_help(tmp_path):
     assert_ran(run(["bench", "vq", "--help"], tmp_path), "usage: pyvf bench vq", "--quick")
 
 
-def test_convert_torch_codebook(tmp_path):
+def torch_codebook_files(folder):
+    """A small CodebookConfig as folder/config.json and its weights as folder/model.ckpt, laid out
+    as the published checkpoint is (a leading "model.", a key of the loss) -> the model's state."""
     import torch
     cfg = pyvf.CodebookConfig(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32,
                               embed_dim=8, n_embed=16, image_size=16)
     want = pyvf.Codebook(cfg, seed=3).state_dict()
     sd = {"model." + k: torch.tensor(v) for k, v in want.items()}  # a leading "model." is dropped
     sd["loss.discriminator.main.0.weight"] = torch.zeros(2)  # not the model's: skipped
-    torch.save({"state_dict": sd, "epoch": 1}, tmp_path / "model.ckpt")
-    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    torch.save({"state_dict": sd, "epoch": 1}, folder / "model.ckpt")
+    (folder / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    return want
+
+
+def test_convert_torch_codebook(tmp_path):
+    want = torch_codebook_files(tmp_path)
     proc = run(["convert", "torch-codebook", "model.ckpt", "--config", "config.json", "-o", "codebook.npz"],
                tmp_path)
     assert_ran(proc, f"wrote codebook.npz: {len(want)} arrays; skipped 1 other keys")
@@ -218,6 +225,81 @@ def test_convert_torch_codebook(tmp_path):
     assert set(got) == set(want)
     for name in want:
         np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    # an output without .npz is written with it (as Model.save names files), and the line says so
+    proc = run(["convert", "torch-codebook", "model.ckpt", "--config", "config.json", "-o", "converted"], tmp_path)
+    assert_ran(proc, f"wrote converted.npz: {len(want)} arrays")
+    assert not (tmp_path / "converted").exists() and (tmp_path / "converted.npz").is_file()
+
+
+# a mistake -> (`pyvf convert` arguments, the one line on stderr after "pyvf convert FORMAT: error: argument ")
+CONVERT_MISTAKES = {
+    "config missing": (["torch-codebook", "model.ckpt", "--config", "missing.json"],
+                       "--config: 'missing.json' does not exist"),
+    "config {}": (["torch-codebook", "model.ckpt", "--config", "empty.json"],
+                  "--config: 'empty.json' is not a valid CodebookConfig: CodebookConfig.__init__() missing 8"),
+    "config not JSON": (["torch-codebook", "model.ckpt", "--config", "model.ckpt"], "--config: 'model.ckpt' is not JSON"),
+    "checkpoint missing": (["torch-codebook", "missing.ckpt", "--config", "config.json"],
+                           "checkpoint: 'missing.ckpt' does not exist"),
+    "checkpoint empty": (["torch-codebook", "empty.ckpt", "--config", "config.json"],
+                         "checkpoint: 'empty.ckpt' is not a torch checkpoint, or is truncated"),
+    "checkpoint truncated": (["torch-codebook", "cut.ckpt", "--config", "config.json"],
+                             "checkpoint: 'cut.ckpt' is not a torch checkpoint, or is truncated"),
+    "checkpoint an npz": (["torch-codebook", "weights.npz", "--config", "config.json"],
+                          "checkpoint: 'weights.npz' is a zip archive but not a torch checkpoint"),
+    "checkpoint of another model": (["torch-codebook", "other.ckpt", "--config", "config.json"],
+                                    "checkpoint: 'other.ckpt' does not hold the model that --config 'config.json' "
+                                    "describes: load_official: 1 problem: 158 names missing"),
+    "output folder missing": (["torch-codebook", "model.ckpt", "--config", "config.json", "-o", "nodir/x.npz"],
+                              "-o/--output: cannot write 'nodir/x.npz': the folder 'nodir' does not exist"),
+    "output under a file": (["torch-codebook", "model.ckpt", "--config", "config.json", "-o", "empty.ckpt/x"],
+                            "-o/--output: cannot write 'empty.ckpt/x.npz': 'empty.ckpt' is a file, not a folder"),
+    "tf prefix missing": (["tf-transformer", "nowhere/model", "--config", "config.json"],
+                          "checkpoint: no checkpoint at 'nowhere/model'"),
+    "tf config {}": (["tf-transformer", "model", "--config", "empty.json"],
+                     "--config: 'empty.json' is not a valid TransformerConfig"),
+    "tf checkpoint damaged": (["tf-transformer", "model", "--config", "tf.json"],
+                              "checkpoint: tensorflow cannot read 'model': model.data-00000-of-00001 is truncated"),
+}
+
+
+@pytest.mark.parametrize("mistake", CONVERT_MISTAKES)
+def test_convert_mistakes_are_one_line(mistake, tmp_path):
+    """Each file a converter reads or writes is checked before the checkpoint is converted; a
+    mistake is one line naming the argument, exit status 2, no traceback and nothing written.
+    tensorflow is a stand-in whose reader raises an error of tensorflow's own (DataLossError)."""
+    import torch
+    torch_codebook_files(tmp_path)
+    (tmp_path / "empty.json").write_text("{}")
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    (tmp_path / "cut.ckpt").write_bytes((tmp_path / "model.ckpt").read_bytes()[:5000])
+    np.savez(tmp_path / "weights.npz", w=np.zeros(2))
+    torch.save({"state_dict": {"other.weight": torch.zeros(2)}}, tmp_path / "other.ckpt")
+    (tmp_path / "model.index").write_bytes(b"")
+    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
+                                 sequence_size=5, n_loss_skip=1)
+    (tmp_path / "tf.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
+    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text(textwrap.dedent(FAKE_DAMAGED_TENSORFLOW))
+    argv, message = CONVERT_MISTAKES[mistake]
+    argv = ["convert", *argv] + ([] if "-o" in argv else ["-o", "out.npz"])
+    proc = run(argv, tmp_path, env=clean_env(PYTHONPATH=str(tmp_path / "fake")))
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert proc.stderr.startswith(f"pyvf convert {argv[1]}: error: argument {message}"), proc.stderr[-3000:]
+    assert proc.stderr.count("\n") == 1 and proc.stdout == "", proc.stderr[-3000:]
+    assert not (tmp_path / "out.npz").exists()
+
+
+# tensorflow's checkpoint reader meeting a damaged checkpoint: an error class of tensorflow's own
+FAKE_DAMAGED_TENSORFLOW = '''
+class DataLossError(Exception):
+    pass
+
+
+class train:
+    @staticmethod
+    def load_checkpoint(prefix):
+        raise DataLossError(prefix + ".data-00000-of-00001 is truncated")
+'''
 
 
 # A stand-in for tensorflow, enough for the converter: tf.train.load_checkpoint(prefix) reads the
@@ -268,12 +350,38 @@ def test_convert_tf_transformer(tmp_path):
 
 def test_convert_tf_transformer_without_tensorflow(tmp_path):
     """A clear message and exit status 1, not a traceback (tensorflow hidden by a module that fails
-    to import, so that the test runs the same whether tensorflow is installed or not)."""
+    to import, so that the test runs the same whether tensorflow is installed or not). The files
+    are there: a missing one is named first (test_convert_mistakes_are_one_line)."""
     (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
     (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text("raise ImportError('no tensorflow here')\n")
+    (tmp_path / "model.index").write_bytes(b"")
+    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
+                                 sequence_size=5, n_loss_skip=1)
+    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
     proc = run(["convert", "tf-transformer", "model", "--config", "config.json", "-o", "out.npz"], tmp_path,
                env=clean_env(PYTHONPATH=str(tmp_path / "fake")))
     assert proc.returncode == 1 and "needs tensorflow" in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("command", ["demo", "evaluate"])
+def test_out_checked_before_evaluating(command, tmp_path):
+    """An --out that cannot be a folder is one line naming it, exit status 2, before the models are
+    loaded or any scene evaluated (it used to be a traceback after the whole evaluation)."""
+    from pyvf.evaluate.demo import shipped
+    if command == "demo" and not shipped():
+        pytest.skip("without the pretrained pair, `pyvf demo` runs the attention demo, which writes no --out")
+    (tmp_path / "afile").write_text("")
+    cases = {"afile": "'afile' is a file, not a folder",
+             "afile/x": "cannot create the folder 'afile/x': 'afile' is a file, not a folder",
+             "": "expected a folder, got an empty path"}
+    if os.path.isdir("/proc/self"):  # a virtual file system: no folder can be made there, not even by root
+        cases["/proc/pyvf-test"] = "cannot create the folder '/proc/pyvf-test': "
+    for out, message in cases.items():
+        args = ["--quick"] if command == "demo" else ["--scenes", "1", "--context", "1"]
+        proc = run([command, *args, "--no-progress", "--out", out], tmp_path)
+        assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-3000:]
+        assert proc.stderr.startswith(f"pyvf {command}: error: argument --out: {message}"), proc.stderr[-3000:]
+        assert proc.stderr.count("\n") == 1 and "evaluating" not in proc.stdout, proc.stderr[-3000:]
 
 
 def test_import_from_the_checkout_root_names_the_cause():

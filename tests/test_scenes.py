@@ -22,6 +22,7 @@ import pytest
 
 from pyvf import quat_mul, quat_rotate
 from pyvf import scenes as sc
+from pyvf.scenes import dataset as dataset_module
 from pyvf.cli.scenes import register as scenes_cli_register
 
 from conftest import assert_bitwise_equal, assert_close
@@ -385,6 +386,95 @@ def test_manifest_inconsistent_with_shard(damaged):
         sc.load_dataset(damaged)
 
 
+def test_manifest_counts_checked_before_allocating(damaged):
+    """A hand-edited manifest that promises more than its shards hold (here terabytes) is an error
+    naming the manifest and the shard, raised before the dataset's arrays are allocated."""
+    mpath = damaged / "manifest.json"
+    m = json.loads(mpath.read_text())
+    for key, value in (("n_scenes", 10**12), ("views", 10**9)):
+        edited = json.loads(json.dumps(m))
+        edited[key] = value
+        if key == "n_scenes":  # the shard entries agree with it, as a careful hand edit would make them
+            edited["shards"][-1]["n_scenes"] = value - edited["shards"][-1]["first_scene"]
+        mpath.write_text(json.dumps(edited))
+        with pytest.raises(ValueError, match=r"shard-0000\d\.npz \(shard entry \d of .*manifest\.json\): 'images'"):
+            sc.load_dataset(damaged)
+
+
+SMALL = dict(views=2, size=16, shard_size=2, progress=False)  # 5 scenes: shards of 2, 2, 1
+
+
+def interrupt_after(monkeypatch, calls, error=KeyboardInterrupt):
+    """Make the dataset writer's generate_scene raise `error` (Ctrl-C) after `calls` calls; -> [calls so far]."""
+    real, count = sc.generate_scene, [0]  # the renderer itself (not a stand-in set earlier)
+
+    def scene(*args):
+        count[0] += 1
+        if count[0] > calls:
+            raise error
+        return real(*args)
+
+    monkeypatch.setattr(dataset_module, "generate_scene", scene)
+    return count
+
+
+def assert_same_files(got, want):
+    assert sorted(os.listdir(got)) == sorted(os.listdir(want))
+    for name in os.listdir(want):
+        assert (got / name).read_bytes() == (want / name).read_bytes(), name
+
+
+def test_interrupted_write_resumes_bitwise(tmp_path, monkeypatch):
+    """Ctrl-C in the third scene leaves shard 0, the progress record and no manifest; the same
+    call again keeps shard 0 (its scenes not rendered again), renders the rest, and the folder
+    has the bytes of an uninterrupted write. A kept shard damaged in between is rendered again."""
+    want = tmp_path / "want"
+    sc.write_dataset(want, 5, seed=3, **SMALL)
+    for damage in (False, True):
+        out = tmp_path / f"out{damage}"
+        interrupt_after(monkeypatch, 3)
+        with pytest.raises(KeyboardInterrupt):
+            sc.write_dataset(out, 5, seed=3, **SMALL)
+        assert sorted(os.listdir(out)) == ["progress.jsonl", "shard-00000.npz"]
+        with pytest.raises(FileNotFoundError, match="did not finish.*resume"):
+            sc.load_dataset(out)
+        if damage:
+            data = bytearray((out / "shard-00000.npz").read_bytes())
+            data[len(data) // 2] ^= 1
+            (out / "shard-00000.npz").write_bytes(bytes(data))
+        rendered = interrupt_after(monkeypatch, 10**9)
+        assert sc.write_dataset(out, 5, seed=3, **SMALL) == json.loads((want / "manifest.json").read_text())
+        assert rendered[0] == (5 if damage else 3)
+        assert_same_files(out, want)
+
+
+def test_unfinished_write_of_other_arguments_is_refused(tmp_path, monkeypatch, capsys):
+    """Other arguments do not resume an unfinished write (nor do shards without their progress
+    record): the error says it is unfinished; the command line words the remedy as --overwrite."""
+    out = tmp_path / "ds"
+    interrupt_after(monkeypatch, 3)
+    with pytest.raises(KeyboardInterrupt):
+        sc.write_dataset(out, 5, seed=3, **SMALL)
+    monkeypatch.undo()
+    with pytest.raises(FileExistsError, match=r"unfinished write of another dataset \(seed 3, 5 scenes.*overwrite="):
+        sc.write_dataset(out, 5, seed=4, **SMALL)
+    parser = argparse.ArgumentParser(prog="pyvf")
+    scenes_cli_register(parser.add_subparsers(dest="command"))
+    argv = ["scenes", "--out", str(out), "--scenes", "5", "--seed", "4", "--views", "2", "--size", "16",
+            "--shard-size", "2", "--quiet"]
+    args = parser.parse_args(argv)
+    assert args.func(args) == 2
+    err = capsys.readouterr().err
+    assert "unfinished write" in err and "--overwrite" in err and "overwrite=True" not in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    os.remove(out / "progress.jsonl")
+    with pytest.raises(FileExistsError, match="unfinished write without its progress.jsonl"):
+        sc.write_dataset(out, 5, seed=3, **SMALL)
+    args = parser.parse_args(argv + ["--overwrite"])  # replaces it
+    assert args.func(args) == 0 and sc.load_dataset(out).seed == 4
+    assert sorted(os.listdir(out)) == ["manifest.json", "shard-00000.npz", "shard-00001.npz", "shard-00002.npz"]
+
+
 # ---------------------------------------------------------------------------------------
 # (g) argument checks
 
@@ -449,3 +539,27 @@ def test_cli_writes_dataset_and_preview(tmp_path, capsys):
     args = parser.parse_args(["scenes", "--out", str(tmp_path / "bad"), "--scenes", "0", "--seed", "1", "--quiet"])
     assert args.func(args) == 2
     assert "n_scenes" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("bad, message", [
+    (["--out", "{tmp}/afile/ds"], "argument --out: cannot create the folder '{tmp}/afile/ds': '{tmp}/afile' is a file, "
+                                    "not a folder"),
+    (["--out", "{tmp}/afile"], "argument --out: '{tmp}/afile' is a file, not a folder"),
+    (["--out", ""], "argument --out: expected a folder, got an empty path"),
+    (["--preview", "{tmp}/nodir/p.png"], "argument --preview: cannot write '{tmp}/nodir/p.png': the folder "
+                                         "'{tmp}/nodir' does not exist"),
+    (["--preview", "{tmp}"], "argument --preview: '{tmp}' is a folder, not a file"),
+], ids=["out under a file", "out a file", "out empty", "preview folder missing", "preview a folder"])
+def test_cli_checks_paths_before_rendering(bad, message, tmp_path, capsys, monkeypatch):
+    """A --out or --preview that cannot be written is one line naming the option, status 2,
+    before any scene is rendered or any file written."""
+    parser = argparse.ArgumentParser(prog="pyvf")
+    scenes_cli_register(parser.add_subparsers(dest="command"))
+    (tmp_path / "afile").write_text("")
+    rendered = interrupt_after(monkeypatch, 0, AssertionError("a scene was rendered"))
+    argv = ["scenes", "--out", str(tmp_path / "ds"), "--scenes", "2", "--seed", "0", "--size", "16", "--quiet"]
+    args = parser.parse_args(argv + [a.format(tmp=tmp_path) for a in bad])
+    assert args.func(args) == 2
+    err = capsys.readouterr().err
+    assert err == f"pyvf scenes: error: {message.format(tmp=tmp_path)}\n"
+    assert rendered[0] == 0 and not (tmp_path / "ds").exists()

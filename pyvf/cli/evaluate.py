@@ -6,19 +6,35 @@
     both: [--decode argmax|expected]
 """
 
+import os
+
 from ..evaluate import demo as work
 from ..evaluate.run import DECODES, DEFAULT_DECODE
-from .options import add_threads, context_sizes, positive_int
+from .options import add_threads, context_sizes, fail, make_folder, positive_int
 
 
 def cmd_demo(args):
     """Render novel views and find camera poses of held-out Shepard-Metzler scenes with the
     pretrained models; compare with simple baselines; write the tables and pictures."""
     if args.codebook is None and args.transformer is None and not work.shipped():
-        return _attention_instead(args)
-    return work.demo(args.out, scenes=args.scenes, context=args.context, seed=args.seed, quick=args.quick,
-                     codebook=args.codebook, transformer=args.transformer, threads=args.threads,
-                     progress=not args.no_progress, decode=args.decode)
+        return _attention_instead(args)  # writes nothing to --out
+    return _into_folder("demo", args.out, lambda: work.demo(
+        args.out, scenes=args.scenes, context=args.context, seed=args.seed, quick=args.quick,
+        codebook=args.codebook, transformer=args.transformer, threads=args.threads,
+        progress=not args.no_progress, decode=args.decode))
+
+
+def _into_folder(command, out, run):
+    """run() (-> exit status) writing into the folder `out`, created first (a path that cannot be
+    one is reported before minutes of evaluation, not after); a folder made here and left empty by
+    a run that failed (a model file missing) is removed again."""
+    made = not os.path.lexists(out)
+    if problem := make_folder(out):
+        return fail(command, f"argument --out: {problem}")
+    status = run()
+    if status and made and os.path.isdir(out) and not os.listdir(out):
+        os.rmdir(out)
+    return status
 
 
 def _attention_instead(args):
@@ -33,9 +49,10 @@ def _attention_instead(args):
 
 def cmd_evaluate(args):
     """Evaluate a codebook and transformer pair on held-out scenes: metrics.json, metrics.md, pictures."""
-    return work.report("evaluate", out=args.out, scenes=args.scenes, context=args.context, seed=args.seed,
-                       codebook=args.codebook, transformer=args.transformer, threads=args.threads,
-                       progress=not args.no_progress, decode=args.decode)
+    return _into_folder("evaluate", args.out, lambda: work.report(
+        "evaluate", out=args.out, scenes=args.scenes, context=args.context, seed=args.seed,
+        codebook=args.codebook, transformer=args.transformer, threads=args.threads,
+        progress=not args.no_progress, decode=args.decode))
 
 
 def _common(p):

@@ -1,6 +1,10 @@
-"""Options more than one command takes, defined and checked here once."""
+"""Options more than one command takes, defined and checked here once; and the checks of the
+paths a command reads and writes, run before its work, with the one-line error they print."""
 
 import argparse
+import os
+import sys
+import tempfile
 
 KERNEL_THREADS = "threads for pyvf's C++ kernels"
 
@@ -42,3 +46,86 @@ def names(parser, value, choices, what):
     if unknown:
         parser.error(f"unknown {what} {', '.join(unknown)}; choose from {', '.join(choices)}")
     return chosen
+
+
+# ---------------------------------------------------------------------------------------
+# paths: checked before a command's work starts, so that a mistake costs no minutes of it.
+# Each check returns None, or what is wrong as a phrase naming the path; the command passes
+# that to fail() with the option's name.
+
+
+def fail(command, message):
+    """A mistake in a command's arguments found after parsing (a path that cannot be written, a
+    file that is no checkpoint): one line on stderr, `pyvf COMMAND: error: MESSAGE`, as argparse
+    words its own errors, and argparse's exit status 2, which the command returns."""
+    print(f"pyvf {command}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _file_in_the_way(path):
+    """The nearest existing path at or above `path` (a file, when a folder cannot be made there)."""
+    path = os.path.normpath(path)
+    while path and not os.path.lexists(path) and os.path.dirname(path) != path:
+        path = os.path.dirname(path)
+    return path
+
+
+def folder_to_make(path):
+    """A folder the command will create (or write into): None unless a file is in the way."""
+    if not path:
+        return "expected a folder, got an empty path"
+    if os.path.lexists(path) and not os.path.isdir(path):
+        return f"{path!r} is a file, not a folder"
+    above = _file_in_the_way(path)
+    if os.path.lexists(above) and not os.path.isdir(above):
+        return f"cannot create the folder {path!r}: {above!r} is a file, not a folder"
+    return None
+
+
+def make_folder(path):
+    """Create the folder `path` (and its parents) now: None, or why it cannot be."""
+    if problem := folder_to_make(path):
+        return problem
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as e:  # a read-only or virtual file system (/proc), no permission
+        return f"cannot create the folder {path!r}: {e.strerror}"
+    return None
+
+
+def file_to_write(path):
+    """A file the command will write: None when its folder exists and takes a new file now (a
+    temporary file is made and removed there: that alone finds read-only and virtual file
+    systems), else why not. The file itself is not touched."""
+    if not path:
+        return "expected a file, got an empty path"
+    if os.path.isdir(path):
+        return f"{path!r} is a folder, not a file"
+    folder = os.path.dirname(path) or "."
+    if not os.path.isdir(folder):
+        above = _file_in_the_way(folder)
+        if os.path.lexists(above) and not os.path.isdir(above):
+            return f"cannot write {path!r}: {above!r} is a file, not a folder"
+        return f"cannot write {path!r}: the folder {folder!r} does not exist"
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as e:
+        return f"cannot write {path!r}: {e.strerror} (in {folder!r})"
+    return None
+
+
+def file_to_read(path):
+    """A file the command will read: None when it exists, is a file and opens, else why not."""
+    if not path:
+        return "expected a file, got an empty path"
+    if not os.path.exists(path):
+        return f"{path!r} does not exist"
+    if os.path.isdir(path):
+        return f"{path!r} is a folder, not a file"
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as e:
+        return f"cannot read {path!r}: {e.strerror}"
+    return None

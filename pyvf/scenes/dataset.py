@@ -16,13 +16,21 @@ The format (FORMAT = "pyvf-sm7-scenes", FORMAT_VERSION = 1), in one folder:
 * `manifest.json`, written last: format and version, seed, counts and sizes, the camera and
   render constants, and for each shard its file name, scene range, size in bytes and sha256.
   A folder without a manifest is an unfinished write.
+* `progress.jsonl`, only while a write is unfinished: its first line the manifest without
+  `shards` (the arguments and constants), then one line per shard written (its manifest
+  entry), appended once the shard is on disk; removed once the manifest is written. A write
+  interrupted (Ctrl-C, a crash) is resumed by the same arguments: each shard listed there
+  whose bytes still match its size and sha256 is kept, the others rendered again, so the
+  folder ends with the same bytes as an uninterrupted write.
 
 Every file is written to a temporary file in the same folder, flushed and fsynced, then
 renamed over its final name (os.replace, atomic on POSIX), and the folder is fsynced: a crash
 leaves either the old file or the new one, never a torn one. load_dataset checks each shard's
 size, sha256, array names, shapes, dtypes, finiteness and unit quaternions against the
 manifest and raises FileNotFoundError / ValueError naming the file and its manifest entry;
-it never returns a partly read dataset.
+it never returns a partly read dataset. The shards' sizes and array headers are checked
+before the dataset's arrays are allocated, so a manifest that promises more scenes than the
+shards hold is an error naming it, not an allocation of its size.
 """
 
 import dataclasses
@@ -39,11 +47,13 @@ from .._io import atomic_write_bytes, fsync_dir
 from . import cameras, render
 from .render import _image_shape, _nonneg_int, generate_scene
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "MANIFEST", "SceneDataset", "write_dataset", "load_dataset", "shard_name"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "MANIFEST", "PROGRESS", "DatasetExistsError", "SceneDataset", "write_dataset",
+           "load_dataset", "shard_name"]
 
 FORMAT = "pyvf-sm7-scenes"
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
+PROGRESS = "progress.jsonl"  # the record of an unfinished write (module docstring)
 _ARRAYS = ("images", "poses", "scene_index")
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # the earliest zip timestamp: the shard's bytes do not depend on the clock
 _UNIT_TOL = 1e-9  # | |q|^2 - 1 | allowed in a stored pose (pyvf.geometry's float64 tolerance)
@@ -52,6 +62,16 @@ _UNIT_TOL = 1e-9  # | |q|^2 - 1 | allowed in a stored pose (pyvf.geometry's floa
 def shard_name(k):
     """File name of shard k: shard-00000.npz, ..."""
     return f"shard-{k:05d}.npz"
+
+
+class DatasetExistsError(FileExistsError):
+    """write_dataset will not write into `folder`, which `holds` another dataset (a phrase: a
+    finished dataset, or an unfinished write that these arguments cannot resume). The message
+    ends with the Python remedy (overwrite=True); the command line words its own (--overwrite)."""
+
+    def __init__(self, folder, holds):
+        self.folder, self.holds = folder, holds
+        super().__init__(f"{folder} {holds}; pass overwrite=True to replace it")
 
 
 @dataclasses.dataclass(eq=False)
@@ -108,30 +128,118 @@ def _constants():
     }
 
 
-def _check_dir_free(out_dir, overwrite):
-    """Refuse to mix a new dataset with an old one, unless overwrite: then remove the old
-    manifest first (so the folder is never a complete-looking mixture) and its shards."""
-    old = sorted(n for n in os.listdir(out_dir)
-                 if n == MANIFEST or (n.startswith("shard-") and n.endswith(".npz")))
-    if not old:
-        return
-    if not overwrite:
-        raise FileExistsError(f"{out_dir} already holds a dataset ({', '.join(old[:3])}"
-                              f"{', ...' if len(old) > 3 else ''}); pass overwrite=True (--overwrite) "
-                              "to replace it")
-    if MANIFEST in old:
-        os.remove(os.path.join(out_dir, MANIFEST))
-        fsync_dir(out_dir)
-    for name in old:
-        if name != MANIFEST:
+def _listing(names):
+    """The first few of a folder's dataset files, for a message."""
+    return f"{', '.join(names[:3])}{', ...' if len(names) > 3 else ''}"
+
+
+def _describe(head):
+    """A progress record's arguments in words (head: its first line, a dict), for a message."""
+    try:
+        return (f"seed {head['seed']}, {head['n_scenes']} scenes of {head['views']} views, "
+                f"{head['height']}x{head['width']} pixels, {head['shard_size']} scenes per shard")
+    except (KeyError, TypeError):
+        return "arguments it does not record"
+
+
+def _read_progress(path):
+    """A progress record -> (its first line: a dict, or None when unreadable; the shard entries
+    that follow). A torn last line (a write killed while appending) is left out: that shard is
+    rendered again."""
+    try:
+        with open(path, "rb") as f:
+            lines = f.read().decode("utf-8").splitlines()
+        head = json.loads(lines[0]) if lines else None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None, []
+    entries = []
+    for line in lines[1:]:
+        try:
+            entries.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return (head if isinstance(head, dict) else None), entries
+
+
+def _verified(out_dir, entries, layout):
+    """The entries of a progress record whose shard is the one these arguments write (the same
+    file name and scene range) and is whole on disk (its size and sha256): shard index -> entry."""
+    kept = {}
+    for entry in entries:
+        name = entry.get("file") if isinstance(entry, dict) else None
+        if name not in layout:
+            continue
+        k, first, n = layout[name]
+        if (entry.get("first_scene"), entry.get("n_scenes")) != (first, n):
+            continue
+        try:
+            with open(os.path.join(out_dir, name), "rb") as f:
+                data = f.read()
+        except OSError:
+            continue
+        digest = hashlib.sha256(data).hexdigest()
+        if len(data) == entry.get("bytes") and digest == entry.get("sha256"):  # as the write loop records it:
+            kept[k] = {"file": name, "first_scene": first, "n_scenes": n, "bytes": len(data), "sha256": digest}
+    return kept
+
+
+def _prepare_dir(out_dir, head, layout, overwrite):
+    """Make out_dir ready for the write whose manifest without shards is `head` (shard file ->
+    (index, first scene, scenes) in `layout`): -> the shards to keep, index -> manifest entry.
+
+    Empty of datasets: nothing kept. An unfinished write of the same arguments: its shards that
+    are whole (_verified), every other shard file removed. A finished dataset, an unfinished
+    write of other arguments, or shards without a progress record: DatasetExistsError, unless
+    overwrite: then all of it is removed, the manifest first (so that the folder is never a
+    complete-looking mixture)."""
+    names = sorted(os.listdir(out_dir))
+    shards = [n for n in names if n.startswith("shard-") and n.endswith(".npz")]
+    if overwrite:
+        if MANIFEST in names:
+            os.remove(os.path.join(out_dir, MANIFEST))
+            fsync_dir(out_dir)
+        for name in ([PROGRESS] if PROGRESS in names else []) + shards:
+            os.remove(os.path.join(out_dir, name))
+        _remove_stale_temps(out_dir, names)
+        return {}
+    if MANIFEST in names:
+        raise DatasetExistsError(out_dir, f"already holds a finished dataset ({_listing([MANIFEST] + shards)})")
+    if PROGRESS in names:
+        old, entries = _read_progress(os.path.join(out_dir, PROGRESS))
+        if old is None:
+            raise DatasetExistsError(out_dir, f"holds an unfinished write whose {PROGRESS} cannot be read, which "
+                                              "cannot be resumed")
+        if old != json.loads(json.dumps(head)):  # compared as JSON: tuples are lists there
+            raise DatasetExistsError(out_dir, f"holds an unfinished write of another dataset ({_describe(old)}), "
+                                              "which only its own arguments resume")
+        kept = _verified(out_dir, entries, layout)
+    elif shards:
+        raise DatasetExistsError(out_dir, f"holds shard files but no {MANIFEST} ({_listing(shards)}): an "
+                                          f"unfinished write without its {PROGRESS}, which cannot be resumed")
+    else:
+        kept = {}
+    for name in shards:  # a shard not kept is rendered again; one these arguments do not write, removed
+        if layout.get(name, (None,))[0] not in kept:
+            os.remove(os.path.join(out_dir, name))
+    _remove_stale_temps(out_dir, names)
+    return kept
+
+
+def _remove_stale_temps(out_dir, names):
+    """The temporary files of this folder's atomic writes that a killed write left (pyvf._io)."""
+    for name in names:
+        if name.endswith(".tmp") and name.startswith((".shard-", f".{MANIFEST}.", f".{PROGRESS}.")):
             os.remove(os.path.join(out_dir, name))
 
 
 def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, progress=True, overwrite=False):
     """Render scenes 0..n_scenes-1 of `seed` into out_dir as .npz shards plus manifest.json.
 
-    out_dir is created if needed; if it already holds a dataset (a manifest or shard files)
-    this raises FileExistsError unless overwrite=True. progress=True shows a tqdm bar.
+    out_dir is created if needed. An unfinished write of the same arguments there (interrupted;
+    see PROGRESS in this module's docstring) is resumed: its whole shards are kept, and the
+    result has the same bytes as an uninterrupted write. A finished dataset there, or an
+    unfinished write of other arguments, raises DatasetExistsError (a FileExistsError) unless
+    overwrite=True, which replaces it. progress=True shows a tqdm bar.
     Returns the manifest (a dict, as written). The format: this module's docstring."""
     n_scenes = _nonneg_int("n_scenes", n_scenes, 1)
     seed = _nonneg_int("seed", seed)
@@ -142,26 +250,8 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
     H, W = _image_shape(size)
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
-    _check_dir_free(out_dir, overwrite)
 
-    from tqdm.auto import tqdm  # a dependency of pyvf; imported here so that `import pyvf` stays light
-
-    shards = []
-    with tqdm(total=n_scenes, unit="scene", desc="pyvf scenes", disable=not progress) as bar:
-        for k, first in enumerate(range(0, n_scenes, shard_size)):
-            n = min(shard_size, n_scenes - first)
-            images = np.empty((n, views, H, W, 3), dtype=np.uint8)
-            poses = np.empty((n, views, 7))
-            for i in range(n):
-                images[i], poses[i] = generate_scene(seed, first + i, views, size)
-                bar.update(1)
-            data = _npz_bytes({"images": images, "poses": poses,
-                               "scene_index": np.arange(first, first + n, dtype=np.int64)})
-            atomic_write_bytes(os.path.join(out_dir, shard_name(k)), data)
-            shards.append({"file": shard_name(k), "first_scene": first, "n_scenes": n,
-                           "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
-
-    manifest = {
+    head = {
         "format": FORMAT,
         "version": FORMAT_VERSION,
         "seed": seed,
@@ -176,10 +266,47 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
             "scene_index": "int64 (scenes,)",
         },
         "scene": _constants(),
-        "shards": shards,
     }
+    layout = {shard_name(k): (k, first, min(shard_size, n_scenes - first))
+              for k, first in enumerate(range(0, n_scenes, shard_size))}
+    kept = _prepare_dir(out_dir, head, layout, overwrite)
+    # the record of this write, before any shard: a rerun resumes it, other arguments are refused
+    record = os.path.join(out_dir, PROGRESS)
+    atomic_write_bytes(record, "".join(json.dumps(x) + "\n" for x in [head, *kept.values()]).encode())
+
+    from tqdm.auto import tqdm  # a dependency of pyvf; imported here so that `import pyvf` stays light
+
+    shards = []
+    with tqdm(total=n_scenes, initial=sum(e["n_scenes"] for e in kept.values()), unit="scene", desc="pyvf scenes",
+              disable=not progress) as bar:
+        for name, (k, first, n) in layout.items():
+            if k in kept:
+                shards.append(kept[k])
+                continue
+            images = np.empty((n, views, H, W, 3), dtype=np.uint8)
+            poses = np.empty((n, views, 7))
+            for i in range(n):
+                images[i], poses[i] = generate_scene(seed, first + i, views, size)
+                bar.update(1)
+            data = _npz_bytes({"images": images, "poses": poses,
+                               "scene_index": np.arange(first, first + n, dtype=np.int64)})
+            atomic_write_bytes(os.path.join(out_dir, name), data)
+            shards.append({"file": name, "first_scene": first, "n_scenes": n,
+                           "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
+            _append_line(record, json.dumps(shards[-1]))  # after the shard is on disk: it is whole
+
+    manifest = {**head, "shards": shards}
     atomic_write_bytes(os.path.join(out_dir, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode())
+    os.remove(record)
     return manifest
+
+
+def _append_line(path, line):
+    """Append one line to `path` and make it durable (a torn line is what a kill can leave)."""
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(line + "\n")
+        f.flush()
+        os.fsync(f.fileno())
 
 
 # ---------------------------------------------------------------------------------------
@@ -232,34 +359,79 @@ def _read_manifest(mpath):
     return manifest
 
 
-def _read_shard(path, entry, k, views, H, W):
+def _expected(entry, views, H, W):
+    """The arrays a shard of manifest entry `entry` holds: name -> (dtype, shape)."""
+    n = entry["n_scenes"]
+    return {"images": (np.dtype(np.uint8), (n, views, H, W, 3)), "poses": (np.dtype(np.float64), (n, views, 7)),
+            "scene_index": (np.dtype(np.int64), (n,))}
+
+
+def _check_arrays(where, found, want):
+    """found, want: array name -> (dtype, shape); every difference is a ValueError naming the shard."""
+    names = {n[:-4] if n.endswith(".npy") else n for n in found}
+    if names != set(want):
+        raise ValueError(f"{where} holds arrays {sorted(names)}, expected {list(_ARRAYS)}")
+    for name, (dtype, shape) in want.items():
+        got_dtype, got_shape = found.get(name) or found[name + ".npy"]
+        if got_dtype != dtype or tuple(got_shape) != shape:
+            raise ValueError(f"{where}: {name!r} is {got_dtype}{tuple(got_shape)}, expected {dtype}{shape}")
+
+
+def _check_size(where, size, entry):
+    if size != entry["bytes"]:
+        what = "truncated" if size < entry["bytes"] else "longer than written"
+        raise ValueError(f"{where} is {what}: {size} bytes, the manifest says {entry['bytes']}")
+
+
+def _check_digest(where, data, entry):
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != entry["sha256"].lower():
+        raise ValueError(f"{where} is corrupt: sha256 {digest}, the manifest says {entry['sha256']}")
+
+
+_NPY_HEADER = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+
+
+def _check_shard_layout(path, entry, k, views, H, W, mpath):
+    """Before the dataset is allocated: shard k exists, has its manifest entry's size, and the
+    headers of its arrays declare the entry's names, dtypes and shapes (the arrays are not read)."""
+    where = f"{path} (shard entry {k} of {mpath})"
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{where} is missing")
+    _check_size(where, os.path.getsize(path), entry)
+    found = {}
+    try:
+        with zipfile.ZipFile(path) as z:
+            for info in z.infolist():
+                with z.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    if version not in _NPY_HEADER:
+                        raise ValueError(f"{info.filename}: .npy format version {version}")
+                    shape, _, dtype = _NPY_HEADER[version](f)
+                found[info.filename] = (dtype, shape)
+    except Exception as e:  # damaged (its sha256 says so), or no .npz: written by something else
+        with open(path, "rb") as f:
+            _check_digest(where, f.read(), entry)
+        raise ValueError(f"{where} is not a readable .npz ({type(e).__name__}: {e})") from None
+    _check_arrays(where, found, _expected(entry, views, H, W))
+
+
+def _read_shard(path, entry, k, views, H, W, mpath):
     """One shard's (images, poses), checked against its manifest entry k."""
-    where = f"{path} (manifest shard entry {k})"
+    where = f"{path} (shard entry {k} of {mpath})"
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{where} is missing")
     with open(path, "rb") as f:
         data = f.read()
-    if len(data) != entry["bytes"]:
-        what = "truncated" if len(data) < entry["bytes"] else "longer than written"
-        raise ValueError(f"{where} is {what}: {len(data)} bytes, the manifest says {entry['bytes']}")
-    digest = hashlib.sha256(data).hexdigest()
-    if digest != entry["sha256"].lower():
-        raise ValueError(f"{where} is corrupt: sha256 {digest}, the manifest says {entry['sha256']}")
+    _check_size(where, len(data), entry)
+    _check_digest(where, data, entry)
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             arrays = {name: z[name] for name in z.files}
     except Exception as e:  # a file that matches its hash but is no .npz: written by something else
         raise ValueError(f"{where} is not a readable .npz ({type(e).__name__}: {e})") from None
-    names = {n[:-4] if n.endswith(".npy") else n for n in arrays}
-    if names != set(_ARRAYS):
-        raise ValueError(f"{where} holds arrays {sorted(names)}, expected {list(_ARRAYS)}")
+    _check_arrays(where, {name: (a.dtype, a.shape) for name, a in arrays.items()}, _expected(entry, views, H, W))
     n, first = entry["n_scenes"], entry["first_scene"]
-    want = {"images": (np.uint8, (n, views, H, W, 3)), "poses": (np.float64, (n, views, 7)),
-            "scene_index": (np.int64, (n,))}
-    for name, (dtype, shape) in want.items():
-        a = arrays[name]
-        if a.dtype != dtype or a.shape != shape:
-            raise ValueError(f"{where}: {name!r} is {a.dtype}{a.shape}, expected {np.dtype(dtype)}{shape}")
     poses = arrays["poses"]
     if not np.isfinite(poses).all():
         raise ValueError(f"{where}: 'poses' contains NaN or inf")
@@ -286,13 +458,18 @@ def load_dataset(path):
     if not os.path.isdir(root):
         raise FileNotFoundError(f"dataset folder {root} does not exist")
     if not os.path.isfile(mpath):
-        raise FileNotFoundError(f"{mpath} is missing: not a dataset folder, or write_dataset did not finish")
+        if os.path.isfile(os.path.join(root, PROGRESS)):
+            raise FileNotFoundError(f"{mpath} is missing: the write of this dataset did not finish ({PROGRESS} is "
+                                    "there); the same arguments to `pyvf scenes` (write_dataset) resume it")
+        raise FileNotFoundError(f"{mpath} is missing: not a dataset folder, or its write did not finish")
     manifest = _read_manifest(mpath)
     S, V, H, W = (manifest[k] for k in ("n_scenes", "views", "height", "width"))
+    for k, entry in enumerate(manifest["shards"]):  # the shards hold what the manifest says: then allocate
+        _check_shard_layout(os.path.join(root, entry["file"]), entry, k, V, H, W, mpath)
     images = np.empty((S, V, H, W, 3), dtype=np.uint8)
     poses = np.empty((S, V, 7))
     for k, entry in enumerate(manifest["shards"]):
-        im, po = _read_shard(os.path.join(root, entry["file"]), entry, k, V, H, W)
+        im, po = _read_shard(os.path.join(root, entry["file"]), entry, k, V, H, W, mpath)
         sl = slice(entry["first_scene"], entry["first_scene"] + entry["n_scenes"])
         images[sl], poses[sl] = im, po
     return SceneDataset(images=images, poses=poses, seed=manifest["seed"], manifest=manifest, path=root)
