@@ -249,6 +249,9 @@ CONVERT_MISTAKES = {
     "checkpoint of another model": (["torch-codebook", "other.ckpt", "--config", "config.json"],
                                     "checkpoint: 'other.ckpt' does not hold the model that --config 'config.json' "
                                     "describes: load_official: 1 problem: 158 names missing"),
+    "checkpoint a bare tensor": (["torch-codebook", "tensor.ckpt", "--config", "config.json"],
+                                 "checkpoint: 'tensor.ckpt' does not hold the model that --config 'config.json' "
+                                 "describes: tensor.ckpt holds a Tensor, not a checkpoint"),
     "output folder missing": (["torch-codebook", "model.ckpt", "--config", "config.json", "-o", "nodir/x.npz"],
                               "-o/--output: cannot write 'nodir/x.npz': the folder 'nodir' does not exist"),
     "output under a file": (["torch-codebook", "model.ckpt", "--config", "config.json", "-o", "empty.ckpt/x"],
@@ -274,6 +277,7 @@ def test_convert_mistakes_are_one_line(mistake, tmp_path):
     (tmp_path / "cut.ckpt").write_bytes((tmp_path / "model.ckpt").read_bytes()[:5000])
     np.savez(tmp_path / "weights.npz", w=np.zeros(2))
     torch.save({"state_dict": {"other.weight": torch.zeros(2)}}, tmp_path / "other.ckpt")
+    torch.save(torch.zeros(2), tmp_path / "tensor.ckpt")
     (tmp_path / "model.index").write_bytes(b"")
     cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
                                  sequence_size=5, n_loss_skip=1)
