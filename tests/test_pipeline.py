@@ -51,3 +51,41 @@ def test_pipeline_refuses_another_dataset_and_unknown_presets(tmp_path):
     with pytest.raises(ValueError, match="preset must be one of"):
         train_pipeline(str(tmp_path / "x"), "huge", log=lambda s: None)
     assert main(["train", "--out", str(tmp_path / "run"), "--preset", "smoke", "--no-progress"]) == 1
+
+
+def test_pipeline_checks_the_engine_options_before_any_stage(tmp_path, capsys):
+    """--device (or --precision) without --engine torch is refused before the scenes are rendered:
+    nothing written."""
+    assert main(["train", "--out", str(tmp_path / "run"), "--preset", "smoke", "--engine", "pyvf",
+                 "--device", "cuda", "--no-progress"]) == 1
+    assert capsys.readouterr().err == ("pyvf train: error: --device cuda needs --engine torch (the pyvf engine "
+                                       "runs on the CPU in the configuration's dtype)\n")
+    with pytest.raises(ValueError, match="need engine='torch'"):
+        train_pipeline(str(tmp_path / "lib"), "smoke", precision="bf16", log=lambda s: None)
+    assert not os.path.exists(tmp_path / "run") and not os.path.exists(tmp_path / "lib")
+
+
+def test_ctrl_c_of_pyvf_train_says_where_its_stages_resume(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during the transformer stage: one line naming each stage's checkpoint step, status
+    130; the same command resumes and finishes."""
+    import pyvf.train.loops as loops
+
+    real = loops.transformer_batch
+
+    def interrupted(*args):
+        if args[5] == 2:  # the step
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(loops, "transformer_batch", interrupted)
+    command = ["train", "--out", str(tmp_path / "run"), "--preset", "smoke", "--no-progress"]
+    try:
+        assert main(command) == 130
+    except KeyboardInterrupt:
+        pytest.fail("KeyboardInterrupt escaped the command: the user sees a traceback")
+    assert capsys.readouterr().err == ("pyvf train: interrupted; rerun the same command to resume (codebook at step "
+                                       f"{PRESETS['smoke'].codebook_steps}, transformer at step 1)\n")
+    monkeypatch.setattr(loops, "transformer_batch", real)
+    assert main(command) == 0
+    calls = json.loads((tmp_path / "run" / "transformer" / "config.json").read_text())["calls"]
+    assert [c["resumed_from_step"] for c in calls] == [None, 1]

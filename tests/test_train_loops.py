@@ -3,6 +3,9 @@ bit (parameters, optimiser moments, EMA buffers, log); a killed save leaves the 
 checkpoint; a corrupt one raises naming the file; training lowers the loss; tokenize equals
 Codebook.encode; the commands run end to end; bad arguments raise naming the argument.
 
+The commands' mistakes and interruptions (section h): one line naming the bad argument, checked
+before the work; Ctrl-C one line, status 130, and the same command resumes; no file of a run lost.
+
 Tiny models and a handful of steps: the whole file runs in seconds."""
 
 import argparse
@@ -12,7 +15,10 @@ import hashlib
 import json
 import os
 import shutil
+import signal
+import subprocess
 import sys
+import time
 import types
 
 import numpy as np
@@ -58,10 +64,12 @@ def _tokens(rng, scenes=3, views=5):
 
 
 def _checkpoint(folder):
-    """The checkpoint's meta (without the wall-clock seconds) and arrays."""
+    """The checkpoint's meta (without the wall-clock seconds, nor the fingerprint of the held-out
+    set eval.csv's rows came from: neither is part of the trajectory) and arrays."""
     arrays = load_npz(os.path.join(folder, "checkpoint.npz"), "checkpoint")
     meta = json.loads(str(arrays.pop("__meta__")))
     meta.pop("elapsed")
+    meta.pop("eval", None)
     return meta, arrays
 
 
@@ -153,7 +161,10 @@ def test_resume_refuses_another_run(tmp_path, rng):
     train_transformer(tokens, poses, TF, tf, steps=2, batch_size=2, **QUIET)
     with pytest.raises(ValueError, match="total_steps"):
         train_transformer(tokens, poses, TF, tf, steps=4, batch_size=2, **QUIET)
-    train_transformer(tokens, poses, TF, tf, steps=4, batch_size=2, total_steps=2, **QUIET)  # lr 0 after step 2
+    # ...and at most total_steps steps: past it the learning rate is 0
+    with pytest.raises(ValueError, match=r"steps=4 runs past total_steps=2, the schedule's end"):
+        train_transformer(tokens, poses, TF, tf, steps=4, batch_size=2, total_steps=2, **QUIET)
+    assert _checkpoint(tf)[0]["step"] == 2
     # resume=False starts over
     train_codebook(images, CB, cb, steps=1, batch_size=2, lr=1e-2, resume=False, **QUIET)
     assert _checkpoint(cb)[0]["step"] == 1 and len(_log(cb)) == 2
@@ -393,11 +404,11 @@ def test_commands_end_to_end(tmp_path, rng, monkeypatch, capsys):
     tokens, saved_poses, n_embed = load_tokens(str(d / "tok" / "tokens.npz"))
     assert np.array_equal(tokens, tokenize(cb, images)) and np.array_equal(saved_poses, poses) and n_embed == 16
     assert run("train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "tf", "--steps", 2,
-               "--batch", 2, "--config", tf_json, "--no-progress", "--lr", 1e-3) == 0
+               "--total-steps", 3, "--batch", 2, "--config", tf_json, "--no-progress", "--lr", 1e-3) == 0
     Transformer.load(str(d / "tf" / "transformer.npz"))
     # a run's config.json is a valid --config; a resume is one more call in config.json
     assert run("train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "tf", "--steps", 3,
-               "--total-steps", 2, "--batch", 2, "--config", d / "tf" / "config.json", "--no-progress",
+               "--total-steps", 3, "--batch", 2, "--config", d / "tf" / "config.json", "--no-progress",
                "--lr", 1e-3) == 0
     calls = json.loads((d / "tf" / "config.json").read_text())["calls"]
     assert [c["resumed_from_step"] for c in calls] == [None, 2] and [c["steps"] for c in calls] == [2, 3]
@@ -662,27 +673,92 @@ def test_init_of_another_configuration_or_kind_raises_naming_init(tmp_path, rng)
     assert not os.path.exists(out)
 
 
-def test_resume_with_another_init_is_refused(tmp_path, rng):
-    """init is part of the run: resuming with another file (other bytes under the same name, the same
-    bytes under another name) or without one raises naming init; so does resuming a run started
-    without init with one."""
+def test_resume_does_not_read_init(tmp_path, rng, capsys):
+    """init counts at step 0 only: a run started from a file resumes from its checkpoint whether the
+    file is named again, changed, renamed or gone (bit for bit the uninterrupted run, the record of
+    the file it started from kept); a file other than the run's own is named, with its full path,
+    in a note on stderr; so is one given to a run started without init."""
     images = _images(rng)
     (tmp_path / "x").mkdir()
     (tmp_path / "y").mkdir()
     first = Codebook(CB, seed=1).save(str(tmp_path / "x" / "cb.npz"))
     other_bytes = Codebook(CB, seed=2).save(str(tmp_path / "y" / "cb.npz"))
     other_name = shutil.copy(first, tmp_path / "x" / "renamed.npz")
+    kw = dict(batch_size=2, checkpoint_every=1, **QUIET)
+    straight = str(tmp_path / "straight")
+    train_codebook(images, CB, straight, steps=5, init=first, **kw)
     run = str(tmp_path / "run")
-    train_codebook(images, CB, run, steps=1, batch_size=2, init=first, **QUIET)
-    for init in (other_bytes, other_name, None):
-        with pytest.raises(ValueError, match=r"another hyperparameters \(differs in \['init'\]\)"):
-            train_codebook(images, CB, run, steps=2, batch_size=2, init=init, **QUIET)
+    train_codebook(images, CB, run, steps=1, init=first, **kw)
+    record = _checkpoint(run)[0]["hyper"]["init"]
+    capsys.readouterr()
+    for steps, init in ((2, other_bytes), (3, None), (4, str(tmp_path / "gone.npz"))):
+        train_codebook(images, CB, run, steps=steps, init=init, **kw)
+        err = capsys.readouterr().err
+        assert _checkpoint(run)[0]["hyper"]["init"] == record
+        assert json.loads(open(os.path.join(run, "config.json")).read())["hyperparameters"]["init"] == record
+        if init is None:
+            assert err == ""
+        else:
+            assert f"init {os.path.abspath(init)} is not read" in err and "resumes the run from step" in err, err
+            assert record["sha256"] in err
+    train_codebook(images, CB, run, steps=5, init=other_name, **kw)  # the run's own bytes: no note
+    assert capsys.readouterr().err == ""
+    _assert_same_run(straight, run, "codebook.npz")
     plain = str(tmp_path / "plain")
     train_codebook(images, CB, plain, steps=1, batch_size=2, **QUIET)
-    with pytest.raises(ValueError, match=r"differs in \['init'\]"):
-        train_codebook(images, CB, plain, steps=2, batch_size=2, init=first, **QUIET)
-    train_codebook(images, CB, run, steps=2, batch_size=2, init=first, **QUIET)  # the same file resumes
-    assert _checkpoint(run)[0]["step"] == 2
+    train_codebook(images, CB, plain, steps=2, batch_size=2, init=first, **QUIET)
+    assert "the seed's initialisation" in capsys.readouterr().err
+    assert "init" not in _checkpoint(plain)[0]["hyper"] and _checkpoint(plain)[0]["step"] == 2
+
+
+def _smoke_files(tmp_path):
+    """In tmp_path: d16/, 6 scenes of seed 0 at 16 px (pyvf scenes), and the smoke preset's
+    configurations as cb.json and tf.json: the files the commands' reports start from."""
+    from pyvf.scenes import write_dataset
+    from pyvf.train.pipeline import PRESETS
+
+    write_dataset(str(tmp_path / "d16"), 6, 0, size=16, progress=False)
+    (tmp_path / "cb.json").write_text(json.dumps(dataclasses.asdict(PRESETS["smoke"].codebook)))
+    (tmp_path / "tf.json").write_text(json.dumps(dataclasses.asdict(PRESETS["smoke"].transformer)))
+    return PRESETS["smoke"]
+
+
+def _cli():
+    """run(*argv): the training commands' handler on argv (parsed by their parser) -> exit status."""
+    parser = argparse.ArgumentParser(prog="pyvf")
+    cli_register(parser.add_subparsers(dest="command"))
+
+    def run(*argv):
+        args = parser.parse_args([str(a) for a in argv])
+        return args.func(args)
+    return run
+
+
+def test_resume_of_a_warm_started_command_after_its_init_file_changed(tmp_path, capsys):
+    """The commands of the report: a run warm-started from base/codebook.npz resumes, with or without
+    --init, after base trained on (its codebook.npz rewritten) and after the file was deleted."""
+    _smoke_files(tmp_path)
+    cli = _cli()
+
+    def run(out, steps, *more):
+        return cli("train-codebook", "--out", tmp_path / out, "--steps", steps, "--data", tmp_path / "d16",
+                   "--batch", 2, "--config", tmp_path / "cb.json", "--eval-scenes", 1, "--no-progress", *more)
+
+    base = tmp_path / "base" / "codebook.npz"
+    assert run("base", 4) == 0
+    assert run("warm", 4, "--init", base) == 0
+    assert run("base", 8) == 0  # base/codebook.npz rewritten
+    assert run("warm", 8) == 0
+    assert run("warm", 10, "--init", base) == 0  # another file under that name now: a note, no error
+    assert f"init {base} is not read: {tmp_path / 'warm' / 'checkpoint.npz'} resumes the run from step 8" \
+        in capsys.readouterr().err
+    os.remove(base)
+    assert run("warm", 12, "--init", base) == 0
+    assert f"init {base} is not read" in capsys.readouterr().err
+    calls = json.loads((tmp_path / "warm" / "config.json").read_text())["calls"]
+    assert [c["resumed_from_step"] for c in calls] == [None, 4, 8, 10]
+    assert run("warm", 1, "--init", base, "--no-resume") == 1  # starting over reads it: gone
+    assert f"--init {base} does not exist" in capsys.readouterr().err
 
 
 def test_init_option_of_the_commands(tmp_path, rng, monkeypatch, capsys):
@@ -720,3 +796,257 @@ def test_init_option_of_the_commands(tmp_path, rng, monkeypatch, capsys):
         assert run(command, "x", wrong) == 1
         assert f"--init {wrong} is not a readable {kind} file" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "x")
+
+
+# ---------------------------------------------------------------------------------------
+# (h) the commands' mistakes and interruptions
+
+
+def test_ctrl_c_is_one_line_and_the_same_command_resumes(tmp_path):
+    """SIGINT (Ctrl-C) to a training command: status 130 and one line on stderr, the step of the
+    checkpoint the same command resumes from; no traceback. The same command then resumes there."""
+    from test_cli import clean_env, pyvf_script
+
+    _smoke_files(tmp_path)
+    command = [pyvf_script(), "train-codebook", "--data", "d16", "--out", "run", "--batch", "2", "--config",
+               "cb.json", "--eval-every", "0", "--checkpoint-every", "5", "--no-progress"]
+    proc = subprocess.Popen([*command, "--steps", "1000000"], cwd=tmp_path, env=clean_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (tmp_path / "run" / "checkpoint.npz").exists():  # training, past its first checkpoint
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "no checkpoint after 120 s"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    step = _checkpoint(str(tmp_path / "run"))[0]["step"]
+    assert proc.returncode == 130, err
+    assert err.splitlines() == [f"pyvf train-codebook: interrupted; rerun the same command to resume from step {step}"]
+    done = subprocess.run([*command, "--steps", str(step + 2)], cwd=tmp_path, env=clean_env(), capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["calls"][-1]["resumed_from_step"] == step
+    assert _checkpoint(str(tmp_path / "run"))[0]["step"] == step + 2
+
+
+def no_escape(status):
+    """status(): a command's exit status; a KeyboardInterrupt escaping the command (the user's
+    traceback) fails the test instead of stopping pytest."""
+    try:
+        return status()
+    except KeyboardInterrupt:
+        pytest.fail("KeyboardInterrupt escaped the command: the user sees a traceback")
+
+
+def test_ctrl_c_in_train_transformer_and_tokenize(tmp_path, monkeypatch, capsys):
+    """KeyboardInterrupt inside train-transformer (during step 4 of a run checkpointed every 3 steps)
+    and tokenize: one line each, status 130; the same command resumes from step 3; with --no-resume
+    the line says to drop it."""
+    import pyvf.train.loops as loops
+
+    smoke = _smoke_files(tmp_path)
+    run = _cli()
+    cb = Codebook(smoke.codebook).save(str(tmp_path / "cb.npz"))
+    assert run("tokenize", "--codebook", cb, "--data", tmp_path / "d16", "--out", tmp_path / "tok.npz",
+               "--no-progress") == 0
+    real = loops.transformer_batch
+
+    def interrupted(*args):
+        if args[5] == 4:  # the step
+            raise KeyboardInterrupt
+        return real(*args)
+
+    tf = ["train-transformer", "--tokens", tmp_path / "tok.npz", "--out", tmp_path / "tf", "--steps", 6, "--batch", 2,
+          "--config", tmp_path / "tf.json", "--checkpoint-every", 3, "--eval-every", 0, "--no-progress"]
+    capsys.readouterr()
+    monkeypatch.setattr(loops, "transformer_batch", interrupted)
+    assert no_escape(lambda: run(*tf)) == 130
+    assert capsys.readouterr().err == ("pyvf train-transformer: interrupted; rerun the same command to resume from "
+                                       "step 3\n")
+    monkeypatch.setattr(loops, "transformer_batch", real)
+    assert run(*tf) == 0
+    assert json.loads((tmp_path / "tf" / "config.json").read_text())["calls"][-1]["resumed_from_step"] == 3
+    monkeypatch.setattr(loops, "transformer_batch", interrupted)
+    assert no_escape(lambda: run(*tf, "--no-resume")) == 130
+    assert capsys.readouterr().err == ("pyvf train-transformer: interrupted; rerun the same command without "
+                                       "--no-resume to resume from step 3\n")
+
+    def tokenize(*args, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pyvf.train.tasks, "tokenize", tokenize)
+    assert no_escape(lambda: run("tokenize", "--codebook", cb, "--data", tmp_path / "d16", "--out",
+                                 tmp_path / "t2.npz", "--no-progress")) == 130
+    assert capsys.readouterr().err == (f"pyvf tokenize: interrupted; {tmp_path / 't2.npz'} not written: rerun the "
+                                       "same command\n")
+
+
+def test_runs_skips_foreign_folders_and_reads_torn_logs(tmp_path, rng, capsys):
+    """`pyvf runs`: a folder whose config.json is another program's is skipped with a note; a torn
+    last line of log.csv or eval.csv (a process killed mid-write) is left out, as the trainers do;
+    every damaged file is an error naming it, status 1, no traceback."""
+    images, held_out = _images(rng), _images(rng, scenes=1, views=2).reshape(-1, 16, 16, 3)
+    a = str(tmp_path / "a")
+    train_codebook(images, CB, a, steps=2, batch_size=2, eval_images=held_out, eval_every=1, **QUIET)
+    want = pyvf.train.curves.runs_table([a])
+    foreign = tmp_path / "gpt2"
+    foreign.mkdir()
+    (foreign / "config.json").write_text('{"model_type": "gpt2"}')
+    run = _cli()
+    capsys.readouterr()
+    assert run("runs", a, foreign) == 0
+    out, err = capsys.readouterr()
+    assert out == want
+    assert err == f"pyvf runs: note: skipped {foreign}: {foreign / 'config.json'} is not a pyvf training run's " \
+                  "(it lacks kind, config, hyperparameters)\n"
+    assert run("runs", foreign) == 1 and "no run folder to compare" in capsys.readouterr().err
+
+    torn = tmp_path / "torn"
+    shutil.copytree(a, torn)
+    for name in ("eval.csv", "log.csv"):
+        with open(torn / name, "a") as f:
+            f.write("9,0.5")  # no newline: the write was cut
+    assert run("runs", torn, "--plot") == 0
+    out, err = capsys.readouterr()
+    assert out.splitlines()[2] == want.splitlines()[2].replace("| a |", "| torn |") and err == ""
+    train_codebook(images, CB, str(torn), steps=3, batch_size=2, eval_images=held_out, eval_every=1, **QUIET)
+    assert [r[0] for r in _log(str(torn), "eval.csv")[1:]] == ["0", "1", "2", "3"]  # the trainer agrees
+
+    header = open(os.path.join(a, "eval.csv")).read().splitlines()[0]
+    damaged = {"config.json": b"{", "log.csv": open(os.path.join(a, "log.csv"), "rb").read() + b"\xff\xfe\n",
+               "eval.csv": (header + "\n0,oops\n" + open(os.path.join(a, "eval.csv")).read().splitlines()[-1]
+                            + "\n").encode()}
+    for name, content in damaged.items():
+        bad = tmp_path / f"bad-{name}"
+        shutil.copytree(a, bad)
+        (bad / name).write_bytes(content)
+        assert run("runs", bad) == 1, name
+        err = capsys.readouterr().err
+        assert err.startswith(f"pyvf runs: error: {bad / name}") and len(err.splitlines()) == 1, err
+    assert "line 2" in err  # the bad row of eval.csv, not its last
+
+
+def test_an_output_that_is_an_input_is_refused(tmp_path, rng, capsys):
+    """`pyvf export RUN -o RUN/checkpoint.npz` (or the name without .npz, or a link to it) and
+    `pyvf tokenize --out` the codebook or a file of the dataset are refused before any work: the
+    run still resumes, the codebook still loads."""
+    _smoke_files(tmp_path)
+    run = _cli()
+    cb_run, images = str(tmp_path / "cb"), _images(rng)
+    train_codebook(images, CB, cb_run, steps=2, batch_size=2, **QUIET)
+    ckpt = os.path.join(cb_run, "checkpoint.npz")
+    before = open(ckpt, "rb").read()
+    os.symlink(ckpt, tmp_path / "link.npz")
+    capsys.readouterr()
+    for out in (ckpt, os.path.join(cb_run, "checkpoint"), tmp_path / "link.npz"):
+        assert run("export", cb_run, "-o", out) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("pyvf export: error: -o ") and f"is the run's checkpoint ({ckpt})" in err, err
+    assert open(ckpt, "rb").read() == before
+    train_codebook(images, CB, cb_run, steps=3, batch_size=2, **QUIET)  # resumes
+    assert _checkpoint(cb_run)[0]["step"] == 3
+    codebook = os.path.join(cb_run, "codebook.npz")
+    before = open(codebook, "rb").read()
+    dataset = [(tmp_path / "d16" / f, "a file of the dataset") for f in sorted(os.listdir(tmp_path / "d16"))]
+    assert len(dataset) >= 2  # the manifest and a shard: each refused
+    for out, what in ((codebook, "the codebook"), *dataset):
+        assert run("tokenize", "--codebook", codebook, "--data", tmp_path / "d16", "--out", out, "--no-progress") == 1
+        assert f"--out {out} is {what}" in capsys.readouterr().err
+    assert open(codebook, "rb").read() == before
+    pyvf.scenes.load_dataset(str(tmp_path / "d16"))
+
+
+def test_config_json_records_the_threads_the_run_used(tmp_path, rng):
+    """threads=n: config.json's machine.kernel_threads is n (read once the setting applies), and the
+    setting is undone after the call."""
+    before = pyvf.num_threads()
+    n = 1 if before != 1 else 2
+    train_codebook(_images(rng), CB, str(tmp_path / "cb"), steps=1, batch_size=2, threads=n, **QUIET)
+    train_transformer(_tokens(rng), _poses(rng), TF, str(tmp_path / "tf"), steps=1, batch_size=2, threads=n,
+                      **QUIET)
+    for run in ("cb", "tf"):
+        call = json.loads((tmp_path / run / "config.json").read_text())["calls"][-1]
+        assert call["threads"] == n and call["machine"]["kernel_threads"] == n, call
+    assert pyvf.num_threads() == before
+
+
+def test_resume_refuses_another_held_out_set(tmp_path, rng, capsys):
+    """eval.csv is one curve: a resume evaluating on another held-out set raises naming the file,
+    eval.csv and the checkpoint untouched; a resume without evaluation passes and keeps the record;
+    the run's own set resumes. The commands: another --eval-seed or --eval-scenes is refused."""
+    images = _images(rng)
+    first, other = (_images(rng, scenes=1, views=2).reshape(-1, 16, 16, 3) for _ in range(2))
+    out = str(tmp_path / "run")
+    kw = dict(batch_size=2, eval_every=1, **QUIET)
+    train_codebook(images, CB, out, steps=2, eval_images=first, **kw)
+    rows = _log(out, "eval.csv")
+    with pytest.raises(ValueError, match=r"eval\.csv holds evaluations on another held-out set"):
+        train_codebook(images, CB, out, steps=3, eval_images=other, **kw)
+    assert _log(out, "eval.csv") == rows and _checkpoint(out)[0]["step"] == 2
+    train_codebook(images, CB, out, steps=3, **kw)  # no evaluation this call
+    with pytest.raises(ValueError, match="another held-out set"):
+        train_codebook(images, CB, out, steps=4, eval_images=other, **kw)
+    train_codebook(images, CB, out, steps=4, eval_images=first, **kw)
+    assert [r[0] for r in _log(out, "eval.csv")[1:]] == ["0", "1", "2", "4"]
+
+    _smoke_files(tmp_path)
+    run = _cli()
+    cb = ["train-codebook", "--data", tmp_path / "d16", "--out", tmp_path / "cb", "--batch", 2, "--config",
+          tmp_path / "cb.json", "--eval-scenes", 1, "--no-progress"]
+    assert run(*cb, "--steps", 2) == 0
+    capsys.readouterr()
+    for change in (["--eval-seed", 5], ["--eval-scenes", 2]):  # the last given wins
+        assert run(*cb, *change, "--steps", 3) == 1
+        err = capsys.readouterr().err
+        assert "holds evaluations on another held-out set" in err and "--eval-seed" in err, err
+    assert run(*cb, "--steps", 3) == 0
+
+
+def test_training_options_are_checked_first(tmp_path, capsys, monkeypatch):
+    """The parser refuses a negative --max-grad-norm (0 turns clipping off, as its help says),
+    --eval-seed or --seed, naming the option; --device without --engine torch is refused before the
+    data is read; --steps past --total-steps (learning rate 0) is refused; held-out scenes of the
+    training data's seed are refused by train-transformer as by train-codebook."""
+    run = _cli()
+    parser = argparse.ArgumentParser(prog="pyvf")
+    cli_register(parser.add_subparsers(dest="command"))
+    tf = ["train-transformer", "--tokens", "t.npz", "--out", "o", "--steps", "1"]
+    cb = ["train-codebook", "--data", "d", "--out", "o", "--steps", "1"]
+    negative = "expected a non-negative integer, got '-1'"
+    for argv, said in ((tf + ["--max-grad-norm", "-5"], "--max-grad-norm: expected a finite number >= 0, got '-5'"),
+                       (tf + ["--eval-seed", "-1"], f"--eval-seed: {negative}"),
+                       (cb + ["--eval-seed", "-1"], f"--eval-seed: {negative}"),
+                       (cb + ["--seed", "-1"], f"--seed: {negative}")):
+        with pytest.raises(SystemExit) as e:
+            parser.parse_args(argv)
+        assert e.value.code == 2
+        assert capsys.readouterr().err.splitlines()[-1] == f"pyvf {argv[0]}: error: argument {said}"
+    seen = {}
+    monkeypatch.setattr(pyvf.train.tasks, "transformer_run", lambda *a, **kw: seen.update(kw))
+    args = parser.parse_args(tf + ["--max-grad-norm", "0"])
+    assert args.func(args) == 0 and seen["max_grad_norm"] is None
+    monkeypatch.undo()
+
+    assert run(*cb, "--device", "cuda") == 1  # d does not exist: the options are checked first
+    assert capsys.readouterr().err.startswith("pyvf train-codebook: error: --device cuda needs --engine torch")
+
+    smoke = _smoke_files(tmp_path)
+    codebook = Codebook(smoke.codebook).save(str(tmp_path / "cb.npz"))
+    assert run("tokenize", "--codebook", codebook, "--data", tmp_path / "d16", "--out", tmp_path / "tok.npz",
+               "--no-progress") == 0
+    tf = ["train-transformer", "--tokens", tmp_path / "tok.npz", "--out", tmp_path / "tf", "--batch", 2, "--config",
+          tmp_path / "tf.json", "--no-progress", "--codebook", codebook, "--eval-scenes", 1]
+    capsys.readouterr()
+    assert run(*tf, "--steps", 8, "--total-steps", 4) == 1
+    assert "steps=8 runs past total_steps=4" in capsys.readouterr().err
+    for command in (tf, ["train-codebook", "--data", tmp_path / "d16", "--out", tmp_path / "tf", "--config",
+                         tmp_path / "cb.json", "--eval-scenes", 1, "--no-progress"]):
+        assert run(*command, "--steps", 2, "--eval-seed", 0) == 1
+        assert "--eval-seed 0 is the training data's seed" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "tf")
+    assert run(*tf, "--steps", 2, "--eval-seed", 1) == 0

@@ -9,7 +9,9 @@ in pyvf.bench (and pyvf.bench.attention.demo for demo-attention).
     pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
 
 Each benchmark is a parser function `_<name>_parser()` and a handler `_<name>(args) -> exit
-status` in BENCHMARKS; the modules are imported when their benchmark runs.
+status` in BENCHMARKS; the modules are imported when their benchmark runs. Every option is checked
+when it is parsed (options.py's argparse types): a bad size, limit or output
+path is the parser's one-line error before anything is measured.
 """
 
 import argparse
@@ -21,7 +23,8 @@ import sys
 
 from .._threads import cores
 from ..bench.common import BLAS_THREAD_VARS, write_json, write_outputs
-from .options import add_threads, names, positive_int
+from .options import (add_threads, names, non_negative_float, output_dir, output_file, positive_float,
+                      positive_int)
 
 DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
 # benchmarks that run in this process whatever the BLAS variables say: demo-attention has no
@@ -58,14 +61,15 @@ def _attention_parser():
     attention = _module("attention")
     p = _doc_parser("attention")
     for name, val in attention.PAPER.items():
-        p.add_argument(f"--{name}", type=int, default=None, help=f"default {val} ({attention.QUICK[name]} with --quick)")
+        p.add_argument(f"--{name}", type=positive_int, default=None,
+                       help=f"default {val} ({attention.QUICK[name]} with --quick)")
     add_threads(p, 2, COMPARE_THREADS)
     p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
     p.add_argument("--quick", action="store_true", help="smaller sizes (H=4, N=8; scaling N up to 16)")
     p.add_argument("--flex", action="store_true", help="also torch flex_attention (torch.compile, forward only)")
     p.add_argument("--no-scaling", action="store_true", help="skip the memory-versus-N measurement")
-    p.add_argument("--scaling-heads", type=int, default=None, help="H for the scaling runs (default: --H)")
-    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
+    p.add_argument("--scaling-heads", type=positive_int, default=None, help="H for the scaling runs (default: --H)")
+    p.add_argument("--json", metavar="PATH", type=output_file, help="write every number to PATH")
     return p, lambda args: _check_repeat(p, args, 5)
 
 
@@ -93,13 +97,14 @@ def _scaling_parser():
                                      "with --quick)")
     add_threads(p, 2, COMPARE_THREADS)
     p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
-    p.add_argument("--mem-limit-mib", type=float, default=None,
+    p.add_argument("--mem-limit-mib", type=positive_float, default=None,
                    help="plan against this many MiB instead of /proc/meminfo MemAvailable")
-    p.add_argument("--max-point-seconds", type=float, default=scaling.MAX_POINT_SECONDS,
+    p.add_argument("--max-point-seconds", type=non_negative_float, default=scaling.MAX_POINT_SECONDS,
                    help="skip a point whose run time, predicted from the previous N by the FLOPs it computes, "
                         f"exceeds this (default {scaling.MAX_POINT_SECONDS}; 0: never)")
-    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
-    p.add_argument("--plots", metavar="DIR", help="write memory and time plots (PNG) to DIR (needs matplotlib)")
+    p.add_argument("--json", metavar="PATH", type=output_file, help="write every number to PATH")
+    p.add_argument("--plots", metavar="DIR", type=output_dir,
+                   help="write memory and time plots (PNG) to DIR (needs matplotlib)")
     return p, lambda args: _scaling_check(p, args, scaling)
 
 
@@ -131,7 +136,8 @@ def _vq_parser():
     vq = _module("vq")
     p = argparse.ArgumentParser(prog="pyvf bench vq", description=vq.__doc__.split("\n\n")[0])
     for name in ("M", "K", "D"):
-        p.add_argument(f"--{name}", type=int, default=None, help=f"default {vq.PAPER[name]} ({vq.QUICK[name]} with --quick)")
+        p.add_argument(f"--{name}", type=positive_int, default=None,
+                       help=f"default {vq.PAPER[name]} ({vq.QUICK[name]} with --quick)")
     add_threads(p, 2, None)
     p.add_argument("--repeat", type=int, default=None,
                    help=f"timed calls per median (default {vq.PAPER['repeat']}, {vq.QUICK['repeat']} with --quick)")
@@ -192,7 +198,7 @@ def _threads_parser():
                    help="the scaling's (or the profile's) calls (default: all; the profile: the tiny steps)")
     p.add_argument("--counts", nargs="+", type=positive_int, default=None, metavar="N",
                    help="the scaling's thread counts (default: 1, 2, 4, ... and every usable core)")
-    p.add_argument("--json", default=None, metavar="FILE", help="also write the report as JSON")
+    p.add_argument("--json", default=None, metavar="FILE", type=output_file, help="also write the report as JSON")
     return p, None
 
 
@@ -250,8 +256,8 @@ def _checking_parser(name, quick, plots):
     p = _doc_parser(name, epilog=True)
     p.add_argument("--quick", action="store_true", help=quick)
     add_threads(p, 2, COMPARE_THREADS)
-    p.add_argument("--json", metavar="PATH", help="write every number to PATH")
-    p.add_argument("--plots", metavar="DIR", help=plots + " (PNG) to DIR (needs matplotlib)")
+    p.add_argument("--json", metavar="PATH", type=output_file, help="write every number to PATH")
+    p.add_argument("--plots", metavar="DIR", type=output_dir, help=plots + " (PNG) to DIR (needs matplotlib)")
     return p
 
 
@@ -270,7 +276,8 @@ def _accuracy_parser():
     accuracy = _module("accuracy")
     p = _checking_parser("accuracy", "small sizes, median of 3: ~20 s", "write a time-vs-error plot per op")
     p.add_argument("--ops", help=f"comma-separated, from {', '.join(accuracy.OPS)} (default all)")
-    p.add_argument("--repeat", type=int, default=None, help="timed calls per median (default 5; 3 with --quick)")
+    p.add_argument("--repeat", type=positive_int, default=None,
+                   help="timed calls per median (default 5; 3 with --quick)")
     p.add_argument("--plant-bug", action="store_true", help=argparse.SUPPRESS)  # the tests' bad variant
 
     def check(args):
@@ -311,8 +318,8 @@ def _hardcases(args):
 def _report_parser():
     p = _doc_parser("report", epilog=True)
     p.add_argument("--quick", action="store_true", help="every run in its --quick mode (a couple of minutes)")
-    p.add_argument("--out", default="docs", help="the folder for performance.md, accuracy.md, img/ and "
-                                                 "measurements/ (default docs)")
+    p.add_argument("--out", default="docs", type=output_dir, help="the folder for performance.md, accuracy.md, "
+                                                                  "img/ and measurements/ (default docs)")
     add_threads(p, 2, "threads for pyvf, torch and numpy's BLAS (default 2)")
     return p, None
 

@@ -20,6 +20,37 @@ def positive_int(text):
     return v
 
 
+def _number(text, ok, expected):
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (v == v and abs(v) != float("inf") and ok(v)):  # NaN and inf refused too
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+    return v
+
+
+def positive_float(text):
+    """argparse type: a finite number > 0."""
+    return _number(text, lambda v: v > 0, "a positive number")
+
+
+def non_negative_float(text):
+    """argparse type: a finite number >= 0."""
+    return _number(text, lambda v: v >= 0, "a finite number >= 0")
+
+
+def non_negative_int(text):
+    """argparse type: an integer >= 0."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
+    return v
+
+
 def add_threads(parser, default=None, help=KERNEL_THREADS):
     """--threads: a positive integer, or `default`. The command applies it through
     pyvf.set_num_threads or pyvf.threads (the kernels and numpy's BLAS together), or hands it to
@@ -129,3 +160,18 @@ def file_to_read(path):
     except OSError as e:
         return f"cannot read {path!r}: {e.strerror}"
     return None
+
+
+def output_file(text):
+    """argparse type: a file a command writes at its end, checked when parsed (file_to_write), so
+    that a run is not lost at its last step."""
+    if problem := file_to_write(text):
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
+def output_dir(text):
+    """argparse type: a folder a command writes into, created when missing (folder_to_make)."""
+    if problem := folder_to_make(text):
+        raise argparse.ArgumentTypeError(problem)
+    return text

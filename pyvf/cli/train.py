@@ -8,7 +8,8 @@
     pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
 
 Run again with the same arguments to resume from the run folder's checkpoint (--no-resume
-starts over). Each handler returns an exit status: 0, or 1 after printing the error.
+starts over). Each handler returns an exit status: 0, or 1 after printing the error, or 130 after
+Ctrl-C (one line: the step a rerun resumes from).
 """
 
 import os
@@ -17,7 +18,9 @@ import sys
 from ..train import tasks
 from ..train.loops import CODEBOOK_RECIPES
 from ..train.pipeline import PRESETS, train_pipeline
-from .options import add_threads
+from .options import add_threads, non_negative_float, non_negative_int
+
+INTERRUPTED = 130  # the shell's status of a process ended by SIGINT (128 + 2)
 
 
 def _record(args):
@@ -25,14 +28,45 @@ def _record(args):
     return {"argv": list(sys.argv), "args": {k: v for k, v in vars(args).items() if k != "func"}}
 
 
-def _guarded(name, work):
-    """Run work(); a ValueError, TypeError or OSError (bad arguments or files) is printed, status 1."""
+def _guarded(name, work, interrupted=lambda: "interrupted"):
+    """Run work(); a ValueError, TypeError or OSError (bad arguments or files) is printed, status 1;
+    Ctrl-C (KeyboardInterrupt) prints the line interrupted() makes (what a rerun does), status 130."""
     try:
         work()
     except (ValueError, TypeError, OSError) as e:
         print(f"pyvf {name}: error: {e}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print(f"pyvf {name}: {interrupted()}", file=sys.stderr)
+        return INTERRUPTED
     return 0
+
+
+def _resume_hint(args):
+    """The line after Ctrl-C of a training run: where the same command resumes."""
+    step = tasks.checkpoint_step(args.out)
+    if step is None:
+        return "interrupted before the first checkpoint; rerun the same command to start again"
+    same = "the same command without --no-resume" if args.no_resume else "the same command"
+    return f"interrupted; rerun {same} to resume from step {step}"
+
+
+def _stages_hint(args):
+    """The line after Ctrl-C of `pyvf train`: its stages resume where their checkpoints are."""
+    at = [f"{stage} at step {step}" for stage in ("codebook", "transformer")
+          if (step := tasks.checkpoint_step(os.path.join(args.out, stage))) is not None]
+    return "interrupted; rerun the same command to resume" + (f" ({', '.join(at)})" if at else "")
+
+
+def _check_engine_options(args):
+    """--device and --precision other than cpu and fp32 need --engine torch: a ValueError naming them,
+    raised before any work (pyvf train would render its scenes first)."""
+    if args.engine != "torch":
+        given = [f"--{k} {getattr(args, k)}" for k, d in (("device", "cpu"), ("precision", "fp32"))
+                 if getattr(args, k) != d]
+        if given:
+            raise ValueError(f"{' and '.join(given)} need{'s' if len(given) == 1 else ''} --engine torch (the pyvf "
+                             "engine runs on the CPU in the configuration's dtype)")
 
 
 def _run(args):
@@ -46,11 +80,12 @@ def _run(args):
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
     def work():
+        _check_engine_options(args)
         tasks.codebook_run(args.data, args.out, recipe=args.recipe, lr=args.lr, betas=args.betas,
                            reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
                            engine=args.engine, device=args.device, precision=args.precision, **_run(args))
         print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
-    return _guarded("train-codebook", work)
+    return _guarded("train-codebook", work, lambda: _resume_hint(args))
 
 
 def cmd_tokenize(args):
@@ -59,34 +94,38 @@ def cmd_tokenize(args):
         tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, batch_size=args.batch,
                                         progress=not args.no_progress, threads=args.threads)
         print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
-    return _guarded("tokenize", work)
+    return _guarded("tokenize", work, lambda: f"interrupted; {args.out} not written: rerun the same command")
 
 
 def cmd_train_transformer(args):
     """Train the transformer on a tokenized dataset; resumable."""
     def work():
+        _check_engine_options(args)
         tasks.transformer_run(args.tokens, args.out, codebook=args.codebook, context=args.context, lr=args.lr,
                               warmup=args.warmup, total_steps=args.total_steps, weight_decay=args.weight_decay,
-                              max_grad_norm=None if args.max_grad_norm <= 0 else args.max_grad_norm,
+                              max_grad_norm=args.max_grad_norm or None,  # 0: off
                               engine=args.engine, device=args.device, precision=args.precision, **_run(args))
         print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
-    return _guarded("train-transformer", work)
+    return _guarded("train-transformer", work, lambda: _resume_hint(args))
 
 
 def cmd_train(args):
     """The whole pipeline, resumable stage by stage: training scenes, codebook, tokens,
     transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
     def work():
+        _check_engine_options(args)
         train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
                        command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
         print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
               f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
-    return _guarded("train", work)
+    return _guarded("train", work, lambda: _stages_hint(args))
 
 
 def cmd_runs(args):
     """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
-    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn."""
+    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn. A folder
+    of another program (its config.json not a run's) is skipped with a note; a torn last line of a
+    log (a run killed mid-write) is left out, as the trainers do."""
     def work():
         table, plots = tasks.compare_runs(args.run_dirs, plot=args.plot, step=args.step)
         print(table, end="")
@@ -109,11 +148,12 @@ def _run_options(p, batch, checkpoint_every):
     p.add_argument("--out", required=True, help="run folder: checkpoint.npz, log.csv, config.json, the final model")
     p.add_argument("--steps", type=int, required=True, help="total updates (a resumed run continues to it)")
     p.add_argument("--batch", type=int, default=batch, help=f"batch size (default {batch})")
-    p.add_argument("--seed", type=int, default=0, help="initialisation and batches (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="initialisation and batches (default 0)")
     p.add_argument("--config", default="tiny", help='"tiny" (default) or a JSON file of the configuration')
     p.add_argument("--init", default=None, metavar="FILE",
                    help="start from this model file's weights (Codebook.save / Transformer.save output) instead of "
-                        "the seed's initialisation; the optimiser starts fresh")
+                        "the seed's initialisation; the optimiser starts fresh. A resume does not read it (the "
+                        "checkpoint holds the run; another file than the run's own is named in a note)")
     p.add_argument("--checkpoint-every", type=int, default=checkpoint_every,
                    help=f"steps between checkpoints (default {checkpoint_every}; one at the end always)")
     p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")
@@ -126,8 +166,9 @@ def _eval_options(p, every, scenes):
     p.add_argument("--eval-every", type=int, default=every,
                    help=f"steps between evaluations on held-out scenes, logged to eval.csv (default {every}; 0: none)")
     p.add_argument("--eval-scenes", type=int, default=scenes, help=f"held-out scenes evaluated (default {scenes})")
-    p.add_argument("--eval-seed", type=int, default=1,
-                   help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000)")
+    p.add_argument("--eval-seed", type=non_negative_int, default=1,
+                   help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000); "
+                        "a resume keeps the run's --eval-scenes and --eval-seed (eval.csv is one curve)")
 
 
 def _engine_options(p, more=""):
@@ -166,7 +207,8 @@ def _tokenize(subparsers):
                               description=cmd_tokenize.__doc__)
     p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
     p.add_argument("--data", required=True, help="dataset folder (pyvf.scenes.load_dataset)")
-    p.add_argument("--out", required=True, help="tokens .npz to write: tokens, poses, n_embed")
+    p.add_argument("--out", required=True, help="tokens .npz to write: tokens, poses, n_embed (not the codebook "
+                                                "nor a file of the dataset)")
     p.add_argument("--batch", type=int, default=64, help="images per encoder call (default 64)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
@@ -183,9 +225,11 @@ def _train_transformer(subparsers):
     p.add_argument("--lr", type=float, default=1e-4, help="peak learning rate (default 1e-4, SM7)")
     p.add_argument("--warmup", type=int, default=None, help="warmup steps (default min(2000, total/10))")
     p.add_argument("--total-steps", type=int, default=None,
-                   help="length of the cosine schedule (default --steps; keep it when extending a run)")
+                   help="length of the cosine schedule (default --steps; keep it when extending a run; at least "
+                        "--steps: past it the learning rate is 0)")
     p.add_argument("--weight-decay", type=float, default=0.01, help="AdamW decay (default 0.01)")
-    p.add_argument("--max-grad-norm", type=float, default=1.0, help="per-tensor clipping norm; 0 turns it off")
+    p.add_argument("--max-grad-norm", type=non_negative_float, default=1.0,
+                   help="per-tensor clipping norm (default 1.0); 0 turns it off")
     p.add_argument("--codebook", default=None,
                    help="the codebook .npz the tokens came from: the held-out evaluation renders through it "
                         "(without it, no evaluation)")
@@ -223,7 +267,8 @@ def _export(subparsers):
                               description=cmd_export.__doc__)
     p.add_argument("run", metavar="RUN", help="a run folder (train-codebook's or train-transformer's --out) "
                                                "or its checkpoint.npz")
-    p.add_argument("-o", "--output", required=True, help="the model .npz to write (.npz appended when missing)")
+    p.add_argument("-o", "--output", required=True, help="the model .npz to write (.npz appended when missing; "
+                                                          "not the run's checkpoint)")
     p.set_defaults(func=cmd_export)
 
 

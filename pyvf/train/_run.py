@@ -20,7 +20,10 @@ Resuming is exact because nothing else carries state between steps: every batch 
 function of (seed, step) and the schedule a pure function of the optimiser's step count.
 `hyper` holds everything else the trajectory depends on (learning rate, batch size, seed,
 a fingerprint of the data...): a resume with other values raises instead of silently
-continuing another run.
+continuing another run. Its "init" (the model file a fresh run started from) counts at step 0
+only: a resume keeps the checkpoint's record, whatever file is named now. `__meta__`'s "eval"
+is the fingerprint of the held-out set whose rows eval.csv holds: a resume that would append
+another set's rows to that curve raises.
 """
 
 import csv
@@ -29,6 +32,7 @@ import io
 import json
 import os
 import time
+import zipfile
 
 import numpy as np
 
@@ -85,12 +89,14 @@ def _machine():
             "kernel_path": _core.current_path(), "kernel_threads": int(_core.num_threads())}
 
 
-def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed):
-    """Write the checkpoint atomically: a killed process leaves the previous one intact."""
+def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed, eval_fingerprint=None):
+    """Write the checkpoint atomically: a killed process leaves the previous one intact.
+    eval_fingerprint: the held-out set of eval.csv's rows (None: no evaluation so far)."""
     opt = optimizer.state_dict()
     meta = {"format": "pyvf-checkpoint", "version": FORMAT_VERSION, "kind": kind, "step": int(step),
             "config": config, "hyper": hyper, "elapsed": float(elapsed),
-            "optimizer": {"step": int(opt["step"]), "hyperparameters": opt["hyperparameters"]}}
+            "optimizer": {"step": int(opt["step"]), "hyperparameters": opt["hyperparameters"]},
+            "eval": eval_fingerprint}
     arrays = {"__meta__": json.dumps(meta)}
     arrays.update({"model/" + k: v for k, v in model_state.items()})
     for key in ("exp_avg", "exp_avg_sq"):
@@ -133,6 +139,27 @@ def read_checkpoint(path, kind):
     return meta, model, opt
 
 
+def checkpoint_meta(path):
+    """A checkpoint's __meta__ alone, its arrays left unread: a look at a run before it starts
+    (its step, its hyperparameters). A damaged file raises as read_checkpoint does."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            meta = json.loads(str(f["__meta__"]))
+        if (isinstance(meta, dict) and meta.get("format") == "pyvf-checkpoint"
+                and meta.get("version") == FORMAT_VERSION and {"kind", "step", "hyper"} <= set(meta)):
+            return meta
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        pass
+    return read_checkpoint(path, None)[0]  # raises naming what is wrong
+
+
+def resume_point(out_dir, resume=True):
+    """The __meta__ of the checkpoint that a run in out_dir resumes from (checkpoint_meta), or
+    None when the run starts afresh (resume False, or no checkpoint yet)."""
+    path = os.path.join(os.fspath(out_dir), CHECKPOINT)
+    return checkpoint_meta(path) if resume and os.path.exists(path) else None
+
+
 def _diff(saved, now):
     return sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
 
@@ -152,11 +179,14 @@ class Run:
                     run.save(t, model.state_dict(), optimizer)
         run.save_final(model.state_dict())
 
-    config and hyper are JSON-able dicts; a resume checks both against the checkpoint's.
+    config and hyper are JSON-able dicts; a resume checks both against the checkpoint's (but
+    hyper["init"], which counts at step 0 only: the checkpoint's record is kept). eval_fingerprint:
+    the held-out set whose rows log_eval appends (loops.fingerprint of it); a resume refuses
+    another set than the one eval.csv's rows came from.
     """
 
     def __init__(self, out_dir, kind, config, hyper, columns, *, final, steps, resume, progress,
-                 checkpoint_every, log_every, call=None, eval_columns=None):
+                 checkpoint_every, log_every, call=None, eval_columns=None, eval_fingerprint=None):
         self.steps_total = positive_int("steps", steps)
         self.checkpoint_every = positive_int("checkpoint_every", checkpoint_every)
         self.log_every = positive_int("log_every", log_every)
@@ -175,9 +205,15 @@ class Run:
             remove_stale_temps(path)  # left by a process killed mid-write
 
         self.start, self.elapsed0 = 0, 0.0
+        self.eval_fingerprint = eval_fingerprint if eval_columns is not None else None
         self.model_state = self.optimizer_state = None
         if resume and os.path.exists(self.ckpt_path):
             meta, self.model_state, self.optimizer_state = read_checkpoint(self.ckpt_path, kind)
+            # the model file a fresh run started from counts at step 0 only: the resume continues
+            # from the checkpoint whatever file (or none) is named now, and keeps its record
+            self.hyper = {k: v for k, v in self.hyper.items() if k != "init"}
+            if "init" in meta["hyper"]:
+                self.hyper["init"] = meta["hyper"]["init"]
             for what, saved, now in (("configuration", meta["config"], self.config),
                                      ("hyperparameters", meta["hyper"], self.hyper)):
                 if saved != now:
@@ -190,6 +226,7 @@ class Run:
             if self.start > self.steps_total:
                 raise ValueError(f"checkpoint {self.ckpt_path} is at step {self.start}, past steps={steps}: "
                                  "ask for at least as many steps, or start over with resume=False")
+            self._check_eval_set(meta.get("eval"))
         self.resumed = self.model_state is not None
         if not self.resumed:
             # starting over: an older run's checkpoint must not be resumed later, nor its model kept
@@ -204,6 +241,32 @@ class Run:
             os.remove(self.eval_path)  # an older run's evaluations
         self._log_file = self._bar = None
         self._t0 = time.perf_counter()
+
+    def _check_eval_set(self, saved):
+        """A resume appends to eval.csv only evaluations of the held-out set its rows came from
+        (saved: the checkpoint's fingerprint of it; None for a run not evaluated so far, or a
+        checkpoint from before the record). Without evaluation now, the record is kept."""
+        if saved is None or self.eval_fingerprint is None:
+            self.eval_fingerprint = self.eval_fingerprint or saved
+            return
+        if saved != self.eval_fingerprint:
+            raise ValueError(
+                f"{self.eval_path} holds evaluations on another held-out set (fingerprint {saved}) than this "
+                f"call's ({self.eval_fingerprint}): its curve would mix two sets. Resume with the held-out set "
+                f"the run started with{self._evaluated_by(saved)} (the same --eval-scenes, --eval-seed and, for a "
+                "transformer, --codebook), without evaluation (--eval-every 0), in another output folder, or "
+                "resume=False (--no-resume) to start over")
+
+    def _evaluated_by(self, fp):
+        """", by `COMMAND`": the command line of the last call in config.json that evaluated on the
+        held-out set of fingerprint fp, or "" when config.json does not say."""
+        try:
+            with open(self.config_path, encoding="utf-8") as f:
+                calls = json.load(f)["calls"]
+            argv = next(c["command"]["argv"] for c in reversed(calls) if (c.get("eval") or {}).get("fingerprint") == fp)
+            return f", by `{' '.join([os.path.basename(argv[0]), *argv[1:]])}`"
+        except (OSError, ValueError, KeyError, TypeError, IndexError, StopIteration, AttributeError):
+            return ""
 
     def restore(self, what, load, state):
         """load(state) (model.load_official, optimizer.load_state_dict): a state that does not
@@ -239,8 +302,11 @@ class Run:
         a torn last line (a process killed mid-write) is dropped with the rows past it."""
         kept = []
         if self.resumed and os.path.exists(path):
-            with open(path, newline="", encoding="utf-8") as f:
-                rows = list(csv.reader(f))
+            try:
+                with open(path, newline="", encoding="utf-8") as f:
+                    rows = list(csv.reader(f))
+            except UnicodeDecodeError as e:
+                raise CheckpointError(f"log {path} is not UTF-8 text ({e}): not this run's log") from None
             if rows and rows[0] != columns:
                 raise CheckpointError(f"log {path} has the columns {rows[0]}, expected {columns}: "
                                       "not this run's log")
@@ -316,7 +382,8 @@ class Run:
 
     def save(self, step, model_state, optimizer):
         save_checkpoint(self.ckpt_path, kind=self.kind, step=step, config=self.config, hyper=self.hyper,
-                        model_state=model_state, optimizer=optimizer, elapsed=self.seconds())
+                        model_state=model_state, optimizer=optimizer, elapsed=self.seconds(),
+                        eval_fingerprint=self.eval_fingerprint)
 
     def save_final(self, arrays):
         """The trained model as Codebook.save / Transformer.save write it: __config__ (the

@@ -14,6 +14,7 @@ must cross below them.
 
 import csv
 import io
+import json
 import os
 
 import numpy as np
@@ -24,14 +25,33 @@ from .._io import atomic_write_bytes
 BASELINE_COLOURS = [(214, 39, 40), (44, 160, 44), (148, 103, 189)]
 
 
-def read_log(run_dir, name="log.csv"):
-    """run_dir/log.csv (or another of its CSV files) -> {column: float64 array}, rows in file order."""
+def read_log(run_dir, name="log.csv", empty_ok=False):
+    """run_dir/log.csv (or another of its CSV files) -> {column: float64 array}, rows in file order.
+    A torn last line (a process killed mid-write: too few fields, a cut number) is left out, as a
+    resuming trainer drops it (_run.Run._truncate_log); any other bad row raises ValueError naming
+    the file and line. A file of a header alone raises, or with empty_ok gives empty arrays."""
     path = os.path.join(run_dir, name)
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path} is not a CSV log of pyvf's (not UTF-8 text: {e})") from None
     if not rows:
+        raise ValueError(f"{path} is empty: no header")
+    header, body, values = rows[0], rows[1:], []
+    for i, row in enumerate(body):
+        try:
+            if len(row) != len(header):
+                raise ValueError(f"{len(row)} fields where the header has {len(header)}")
+            values.append([float(v) for v in row])
+        except ValueError as e:
+            if i == len(body) - 1:
+                break  # torn: the trainers drop it too
+            raise ValueError(f"{path}, line {i + 2}: {e}") from None
+    if not values and not empty_ok:
         raise ValueError(f"{path} has no rows")
-    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+    table = np.array(values, dtype=np.float64).reshape(len(values), len(header))
+    return {k: table[:, j] for j, k in enumerate(header)}
 
 
 def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), name="log.csv", baselines=None):
@@ -117,6 +137,29 @@ def plot_eval(run_dir, png=None):
                        log_y=[c for c in panels if c == "mae" or c.startswith(("ce_c", "mae_c"))])
 
 
+RUN_CONFIG_KEYS = ("kind", "config", "hyperparameters")  # what a run folder's config.json holds
+
+
+class NotARunError(ValueError):
+    """A folder's config.json belongs to something other than a pyvf training run."""
+
+
+def read_run_config(run_dir):
+    """run_dir/config.json, a training run's (_run.Run writes it) -> its dict. A file that is no
+    JSON raises ValueError naming it; one that is another program's (no kind, config and
+    hyperparameters) raises NotARunError, a ValueError."""
+    path = os.path.join(run_dir, "config.json")
+    try:
+        with open(path, encoding="utf-8") as f:
+            cfg = json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path} is not readable JSON ({type(e).__name__}: {e})") from None
+    if not (isinstance(cfg, dict) and isinstance(cfg.get("kind"), str) and isinstance(cfg.get("config"), dict)
+            and isinstance(cfg.get("hyperparameters"), dict)):
+        raise NotARunError(f"{path} is not a pyvf training run's (it lacks {', '.join(RUN_CONFIG_KEYS)})")
+    return cfg
+
+
 def _last_at(steps, step):
     """The index of the last entry of steps at or before step (the last entry when step is None),
     or None when there is none."""
@@ -130,20 +173,25 @@ def runs_table(run_dirs, columns=None, step=None):
     last held-out evaluation (`columns` of eval.csv, default the panels of eval_panels); with
     step, the last evaluation at or before that step (runs compared at equal steps; "-" for a run
     with none), steps and wall seconds then also the log's at that step."""
-    import json
-
     rows, firsts = [], {}
     for d in run_dirs:
-        with open(os.path.join(d, "config.json"), encoding="utf-8") as f:
-            cfg = json.load(f)
+        cfg = read_run_config(d)
         flat = {**{f"config.{k}": v for k, v in cfg["config"].items()},
                 **{k: v for k, v in cfg["hyperparameters"].items() if k != "data"}}
         first = firsts.setdefault(cfg.get("kind"), flat)
         changed = ", ".join(f"{k.removeprefix('config.')}={flat.get(k)}" for k in sorted(set(flat) | set(first))
                             if flat.get(k) != first.get(k)) or f"(the first {cfg.get('kind', 'run')} run)"
-        log = read_log(d)
-        ev = read_log(d, "eval.csv") if os.path.exists(os.path.join(d, "eval.csv")) else {}
-        cols = columns or (eval_panels(list(ev))[0] if ev else [])
+        log = read_log(d, empty_ok=True)  # a header alone: a run before its first logged step
+        ev = read_log(d, "eval.csv", empty_ok=True) if os.path.exists(os.path.join(d, "eval.csv")) else {}
+        for name, table in (("log.csv", log), ("eval.csv", ev)):
+            if table and not {"step", "seconds"} <= set(table):
+                raise ValueError(f"{os.path.join(d, name)} has the columns {list(table)}: not a pyvf run's log "
+                                 "(no step and seconds)")
+        try:
+            cols = columns or (eval_panels(list(ev))[0] if ev else [])
+        except ValueError:  # no mae_c* column: not eval.csv's of either kind
+            raise ValueError(f"{os.path.join(d, 'eval.csv')} has the columns {list(ev)}: not a pyvf run's "
+                             "held-out evaluation") from None
         i = _last_at(log["step"], step)
         j = _last_at(ev["step"], step) if ev else None
         rows.append((os.path.basename(os.path.normpath(d)), int(log["step"][i]) if i is not None else 0,

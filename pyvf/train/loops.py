@@ -16,6 +16,7 @@ no generator state is saved.
 
 import dataclasses
 import os
+import sys
 
 import numpy as np
 
@@ -33,7 +34,7 @@ from ..evaluate.health import (
 from ..evaluate.metrics import encode_images, to_model_images
 from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import Run, _diff, file_sha256, fingerprint, integer, jsonable, positive_int, real
+from ._run import CHECKPOINT, Run, _diff, file_sha256, fingerprint, integer, jsonable, positive_int, real, resume_point
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
 from .torch_codebook_engine import parity_images
@@ -153,21 +154,25 @@ class _Threads:
         return self._block.__exit__(*exc)
 
 
-def _warm_start(init, cls, config, hyper):
+def _warm_start(init, cls, config, hyper, out_dir, resume):
     """train_codebook's and train_transformer's `init`: None, or the path of a model file written
     by cls.save (cls: Codebook or Transformer) whose configuration is the run's `config`.
     Returns (hyper with the file's record, "init": {"path": its name, "sha256": its bytes'}, the
     file's state_dict()), or (hyper, None) without one (no "init" entry: runs from before the
-    option resume as they were). The record keeps the name without its folder: the same file
-    copied elsewhere (a run continued on another machine) resumes the run, another file is
-    refused by Run's hyperparameter check. Errors name init and come before the run folder is
-    touched."""
+    option resume as they were). The file counts at step 0 only: when the run resumes from
+    out_dir's checkpoint it is not read (it may have changed or gone since), the checkpoint holds
+    the run's state and Run keeps its record; a file other than the one the run started from is
+    named in a note on stderr. Errors name init and come before the run folder is touched."""
     if init is None:
         return hyper, None
     try:
         path = os.fspath(init)
     except TypeError:
         raise TypeError(f"init must be a path to a {cls.FILE_KIND} model file, got {type(init).__name__}") from None
+    meta = resume_point(out_dir, resume)
+    if meta is not None and meta.get("kind") == cls.FILE_KIND:  # (another kind's: Run refuses the folder)
+        _note_init_not_read(path, meta, os.path.join(os.fspath(out_dir), CHECKPOINT))
+        return hyper, None
     try:
         model = cls.load(path)
     except FileNotFoundError as e:
@@ -184,8 +189,30 @@ def _warm_start(init, cls, config, hyper):
     return {**hyper, "init": record}, model.state_dict()
 
 
+def _note_init_not_read(path, meta, ckpt_path):
+    """A resume with init: a note on stderr when the file is not the one the run started from
+    (other bytes, or gone), saying that it is not read: the checkpoint holds the run's state."""
+    started = meta["hyper"].get("init")
+    if started is not None and os.path.isfile(path) and file_sha256(path) == started.get("sha256"):
+        return  # the run's own file (any name, any folder): nothing to say
+    origin = (f"{started.get('path')} of sha256 {started.get('sha256')}" if started is not None
+              else "the seed's initialisation")
+    print(f"pyvf: note: init {os.path.abspath(path)} is not read: {ckpt_path} resumes the run from step "
+          f"{meta['step']}, and a model file counts at step 0 only (this run started from {origin}); start over "
+          "from it with resume=False (--no-resume) or another output folder", file=sys.stderr)
+
+
 # ---------------------------------------------------------------------------------------
 # the codebook
+
+
+def _checkpoint(run, step, state, opt, check):
+    """The loops' checkpoint after `step`, when due: the engine's check(out_dir, step) first (the
+    torch engine's parity: a divergent model is not checkpointed), then run.save."""
+    if run.checkpoint_due(step):
+        if check is not None:
+            check(run.out_dir, step)
+        run.save(step, state(), opt)
 
 
 def _recipe(recipe, lr, betas, reset_dead_codes, object_weight):
@@ -285,7 +312,8 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
     engine, device, precision: as train_transformer's (torch_codebook_engine.TorchCodebook: the
         same run with the model in torch, parity.csv at every checkpoint; one process).
     init: None, or a Codebook.save file of this configuration: a fresh run starts from its weights
-        and EMA buffers instead of the seed's, Adam fresh; a resume needs the same file (any folder).
+        and EMA buffers instead of the seed's, Adam fresh. A resume does not read it (the
+        checkpoint holds the run's state; a file other than the run's own is named in a note).
     Returns the trained Codebook."""
     if not isinstance(config, CodebookConfig):
         raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
@@ -300,41 +328,39 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
     if object_weight != 1.0:  # absent at 1.0: runs from before the option resume as they were
         hyper["object_weight"] = object_weight
-    hyper, init_state = _warm_start(init, Codebook, config, hyper)
     check_engine(engine, device, precision)
     threads_set = _Threads(threads)  # checked before the run folder is touched
-    run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, final="codebook.npz",
-              steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
-              call={"command": command, "threads": threads, "recipe": recipe, "engine": engine, "device": device,
-                    "precision": precision, "eval": None if eval_images is None else {
-                        "every": eval_every, "fingerprint": fingerprint(eval_images)}},
-              eval_columns=None if eval_images is None else CODEBOOK_HEALTH)
+    hyper, init_state = _warm_start(init, Codebook, config, hyper, out_dir, resume)
+    eval_fp = None if eval_images is None else fingerprint(eval_images)
     evaluating = eval_images is not None and eval_every > 0
-    model, opt = _codebook_and_optimiser(run, config, seed, lr, betas, init_state)
-    step, reset, state, current, opt, check = _codebook_engine(
-        engine, model, opt, parity_images(flat, seed, config.dtype), device, precision)
-    with threads_set, run:
-        if evaluating and not run.resumed:
-            run.log_eval(0, codebook_health(current(), eval_images))
-            plot_eval(run.out_dir)
-        for t in run.steps():
-            weighted = object_weight != 1.0
-            x = codebook_batch(flat, batch_size, seed, t, config.dtype, object_weight if weighted else None)
-            x, w = x if weighted else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
-            lr_t = opt.lr_at(opt.step_count)
-            values = step(x, w)
-            if reset_dead_codes and t % reset_dead_codes == 0:
-                reset(x, np.random.default_rng([seed, t, 1]))
-            run.log(t, {**values, "lr": lr_t})
-            if evaluating and run.eval_due(t, eval_every):
-                run.log_eval(t, codebook_health(current(), eval_images))
-                plot_eval(run.out_dir)  # eval.png: the curves so far
-            if run.checkpoint_due(t):
-                if check is not None:
-                    check(run.out_dir, t)
-                run.save(t, state(), opt)
-    run.save_final(state())
-    return current()
+    call = {"command": command, "threads": threads, "recipe": recipe, "engine": engine, "device": device,
+            "precision": precision, "eval": None if eval_fp is None else {"every": eval_every, "fingerprint": eval_fp}}
+    with threads_set:  # before the Run: config.json records the threads the run uses
+        run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, final="codebook.npz",
+                  steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
+                  call=call, eval_columns=None if eval_fp is None else CODEBOOK_HEALTH, eval_fingerprint=eval_fp)
+        model, opt = _codebook_and_optimiser(run, config, seed, lr, betas, init_state)
+        step, reset, state, current, opt, check = _codebook_engine(
+            engine, model, opt, parity_images(flat, seed, config.dtype), device, precision)
+        with run:
+            if evaluating and not run.resumed:
+                run.log_eval(0, codebook_health(current(), eval_images))
+                plot_eval(run.out_dir)
+            for t in run.steps():
+                weighted = object_weight != 1.0
+                x = codebook_batch(flat, batch_size, seed, t, config.dtype, object_weight if weighted else None)
+                x, w = x if weighted else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
+                lr_t = opt.lr_at(opt.step_count)
+                values = step(x, w)
+                if reset_dead_codes and t % reset_dead_codes == 0:
+                    reset(x, np.random.default_rng([seed, t, 1]))
+                run.log(t, {**values, "lr": lr_t})
+                if evaluating and run.eval_due(t, eval_every):
+                    run.log_eval(t, codebook_health(current(), eval_images))
+                    plot_eval(run.out_dir)  # eval.png: the curves so far
+                _checkpoint(run, t, state, opt, check)
+        run.save_final(state())
+        return current()
 
 
 def tokenize(codebook, images, batch_size=64, progress=False):
@@ -398,6 +424,10 @@ def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, wa
         raise ValueError(f"context={n_views - 1} needs {n_views} distinct views per scene, "
                          f"tokens has {tokens.shape[1]}")
     total_steps = steps if total_steps is None else positive_int("total_steps", total_steps)
+    if total_steps < steps:
+        raise ValueError(f"steps={steps} runs past total_steps={total_steps}, the schedule's end: its last "
+                         f"{steps - total_steps} steps would run at learning rate 0. Ask for at most total_steps "
+                         "steps, or a longer schedule (total_steps >= steps) in a run of its own")
     warmup = min(2000, total_steps // 10) if warmup is None else integer("warmup", warmup, 0)
     schedule = WarmupCosine(lr, warmup, total_steps)  # checks lr, warmup < total_steps
     if max_grad_norm is not None and real("max_grad_norm", max_grad_norm) == 0:
@@ -505,7 +535,8 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     lr, warmup, total_steps: WarmupCosine(lr, warmup, total_steps): linear warmup from 0,
         then cosine decay to 0 at total_steps (default steps; default warmup
         min(2000, total_steps // 10): the paper's 2000 steps, shortened for short runs). The
-        schedule is part of the run: to extend a finished run, pass its total_steps.
+        schedule is part of the run: to extend a run, pass its total_steps; steps past
+        total_steps (learning rate 0) raise.
     weight_decay: AdamW's decoupled decay on the parameters published_weight_decay selects
         (all but the biases), Keras' epsilon convention as the published optimiser.
     max_grad_norm, clip_mode: gradient clipping (None: off); "per_tensor" is the published
@@ -531,41 +562,40 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     hyper, schedule, steps = _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup,
                                                 total_steps, weight_decay, max_grad_norm, clip_mode, seed)
     batch_size, n_views, seed, weight_decay = (hyper[k] for k in ("batch_size", "views", "seed", "weight_decay"))
-    hyper, init_state = _warm_start(init, Transformer, config, hyper)
     check_engine(engine, device, precision)
-    dp, device = data_parallel(device, batch_size) if engine == "torch" else (None, device)
     eval_every, eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
     threads_set = _Threads(threads)
+    hyper, init_state = _warm_start(init, Transformer, config, hyper, out_dir, resume)
+    dp, device = data_parallel(device, batch_size) if engine == "torch" else (None, device)
     call = {"command": command, "threads": threads, "engine": engine, "device": device, "precision": precision,
             "processes": 1 if dp is None else dp.world, "eval": eval_record}
-    run = _run_folder(dp, lambda: Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG,
-                                      final="transformer.npz", steps=steps, resume=resume, progress=progress,
-                                      checkpoint_every=checkpoint_every, log_every=log_every, call=call,
-                                      eval_columns=eval_columns), steps, out_dir)
-    evaluating = health is not None and eval_every > 0 and not isinstance(run, Follower)
-    model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay, init_state)
-    step, state, current, opt, check = _transformer_engine(
-        engine, model, opt, dp, parity_batch(tokens, poses, n_views, seed, config.dtype), (max_grad_norm, clip_mode),
-        device, precision)
-    with threads_set, run:
-        if evaluating and not run.resumed:
-            run.log_eval(0, health(current()))
-            plot_eval(run.out_dir)
-        for t in run.steps():
-            tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t,
-                                         config.dtype)  # (B, N, L), (B, N, 7)
-            lr_t = opt.lr_at(opt.step_count)
-            loss, ce, pl, norm = step(tok, pos)
-            run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl,
-                        "grad_norm": np.nan if norm is None else norm, "lr": lr_t})
-            if evaluating and run.eval_due(t, eval_every):
-                run.log_eval(t, health(current()))
-                plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
-            if run.checkpoint_due(t):
-                if check is not None:
-                    check(run.out_dir, t)
-                run.save(t, state(), opt)
-    run.save_final(state())
+    with threads_set:  # before the Run: config.json records the threads the run uses
+        run = _run_folder(dp, lambda: Run(
+            out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
+            steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
+            call=call, eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint")),
+            steps, out_dir)
+        evaluating = health is not None and eval_every > 0 and not isinstance(run, Follower)
+        model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay, init_state)
+        step, state, current, opt, check = _transformer_engine(
+            engine, model, opt, dp, parity_batch(tokens, poses, n_views, seed, config.dtype),
+            (max_grad_norm, clip_mode), device, precision)
+        with run:
+            if evaluating and not run.resumed:
+                run.log_eval(0, health(current()))
+                plot_eval(run.out_dir)
+            for t in run.steps():
+                tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t,
+                                             config.dtype)  # (B, N, L), (B, N, 7)
+                lr_t = opt.lr_at(opt.step_count)
+                loss, ce, pl, norm = step(tok, pos)
+                run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl,
+                            "grad_norm": np.nan if norm is None else norm, "lr": lr_t})
+                if evaluating and run.eval_due(t, eval_every):
+                    run.log_eval(t, health(current()))
+                    plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
+                _checkpoint(run, t, state, opt, check)
+        run.save_final(state())
     if dp is not None:
         dp.close()
     return current()

@@ -32,6 +32,7 @@ from .loops import (
     train_codebook,
     train_transformer,
 )
+from .torch_engine import check_engine
 
 __all__ = ["PRESETS", "Preset", "train_pipeline"]
 
@@ -115,6 +116,7 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
 
     if preset not in PRESETS:
         raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    check_engine(engine, device, precision)  # before any stage: a bad combination costs no rendering
     p = PRESETS[preset]
     os.makedirs(out, exist_ok=True)
     quiet = dict(progress=progress, threads=threads, command=command, engine=engine, device=device,

@@ -19,11 +19,13 @@ import os
 import sys
 import zipfile
 
+import numpy as np
+
 from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import CHECKPOINT, read_checkpoint
-from .curves import plot_eval, runs_table
+from ._run import CHECKPOINT, integer, read_checkpoint, resume_point
+from .curves import NotARunError, plot_eval, read_log, read_run_config, runs_table
 from .loops import (
     TINY_CODEBOOK,
     TINY_TRANSFORMER,
@@ -34,9 +36,11 @@ from .loops import (
     train_codebook,
     train_transformer,
 )
+from .torch_engine import check_engine
 
-__all__ = ["EVAL_VIEWS", "codebook_run", "compare_runs", "export_run", "held_out_scenes", "held_out_views", "read_codebook",
-           "read_config", "read_model", "tokenize_dataset", "transformer_run"]
+__all__ = ["EVAL_VIEWS", "checkpoint_step", "codebook_run", "compare_runs", "export_run", "held_out_scenes",
+           "held_out_views", "read_codebook", "read_config", "read_model", "same_file", "tokenize_dataset",
+           "transformer_run"]
 
 EVAL_VIEWS = 4  # views per held-out scene in a codebook run's evaluation
 
@@ -72,6 +76,32 @@ def read_model(path, cls, what):
         raise ValueError(f"{what} {path} is not a readable {cls.FILE_KIND} file: {type(e).__name__}: {e}") from e
 
 
+def same_file(a, b):
+    """Whether the paths a and b name one file: os.path.samefile where both exist (links and other
+    spellings of the path too), else their real paths compared."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def _refuse_input_as_output(out, inputs, option):
+    """out (the file a command writes) must be none of inputs ((what, path) pairs): writing it
+    would destroy an input (a run's checkpoint, the codebook), so it raises before any work."""
+    for what, path in inputs:
+        if same_file(out, path):
+            raise ValueError(f"{option} {out} is {what} ({path}): writing it would overwrite an input; "
+                             "choose another output file")
+
+
+def _eval_seed(eval_seed):
+    """--eval-seed checked: a non-negative integer (errors name the option, not --seed)."""
+    try:
+        return integer("--eval-seed", eval_seed, 0)
+    except TypeError as e:
+        raise ValueError(str(e)) from None
+
+
 def read_codebook(path):
     """Codebook.load(path), its errors as ValueError naming the file."""
     return read_model(path, Codebook, "codebook")
@@ -94,6 +124,7 @@ def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
         return None
     if eval_scenes < 1:
         raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
+    eval_seed = _eval_seed(eval_seed)
     if getattr(data, "seed", None) == eval_seed:
         raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
     from ..scenes import generate_scenes
@@ -101,15 +132,24 @@ def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
     return images.reshape(-1, size, size, images.shape[-1])
 
 
-def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None):
+def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None, train_poses=None):
     """A transformer run's held-out scenes: eval_scenes whole scenes of eval_seed (all 15 views),
-    tokenized by the codebook file -> train_transformer's eval_set."""
+    tokenized by the codebook file -> train_transformer's eval_set. train_poses: the training
+    data's poses (scenes, views, 7), when known: held-out scenes that are training scenes (eval_seed
+    the training data's seed: scene i of a seed is the same scene in any set of it) raise, as
+    held_out_views refuses the training data's seed."""
 
     if eval_scenes < 1:
         raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
+    eval_seed = _eval_seed(eval_seed)
     codebook = read_codebook(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
+    if train_poses is not None:
+        n, views = min(len(poses), len(train_poses)), min(poses.shape[1], train_poses.shape[1])
+        if n and np.allclose(poses[:n, :views], train_poses[:n, :views], rtol=0, atol=1e-6):
+            raise ValueError(f"--eval-seed {eval_seed} is the training data's seed (its held-out scenes are the "
+                             "tokens' training scenes): held-out scenes need another seed")
     with kernel_threads(threads):
         return held_out_set(codebook, images, poses)
 
@@ -120,7 +160,8 @@ def codebook_run(data, out, *, config="tiny", eval_every=100, eval_scenes=32, ev
     train: train_codebook's other keywords (steps, batch_size, ..., threads, command). Returns
     the trained Codebook (out/codebook.npz)."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
-    if init is not None:
+    check_engine(*(train.get(k, d) for k, d in (("engine", "pyvf"), ("device", "cpu"), ("precision", "fp32"))))
+    if init is not None and resume_point(out, train.get("resume", True)) is None:  # a resume does not read it
         read_model(init, Codebook, "--init")  # a missing file or another model's, named as the option
     data = _load_dataset(data)
     held_out = held_out_views(eval_every, eval_scenes, eval_seed, data, config.image_size)
@@ -131,6 +172,11 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
     """The dataset folder `data` encoded by the codebook file into the tokens file `out`
     (save_tokens: tokens, poses, n_embed; its folder created). Returns the tokens."""
 
+    if os.path.isdir(out):
+        raise ValueError(f"--out {out} is a folder: name the tokens file to write")
+    dataset = os.listdir(data) if os.path.isdir(data) else []  # the dataset's files are inputs too
+    _refuse_input_as_output(out, [("the codebook", codebook),
+                                  *(("a file of the dataset", os.path.join(data, f)) for f in dataset)], "--out")
     codebook = read_codebook(codebook)
     data = _load_dataset(data)
     with kernel_threads(threads):
@@ -147,7 +193,8 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
     transformer file `init` when given. train: train_transformer's other keywords (steps,
     batch_size, ..., threads, command). Returns the trained Transformer (out/transformer.npz)."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
-    if init is not None:
+    check_engine(*(train.get(k, d) for k, d in (("engine", "pyvf"), ("device", "cpu"), ("precision", "fp32"))))
+    if init is not None and resume_point(out, train.get("resume", True)) is None:  # a resume does not read it
         read_model(init, Transformer, "--init")  # a missing file or another model's, named as the option
     tokens_path, (tokens, poses, n_embed) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
@@ -155,7 +202,7 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
                          f"was made by a codebook of {n_embed} codes")
     eval_set = None
     if eval_every and codebook:
-        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, train.get("threads"))
+        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, train.get("threads"), train_poses=poses)
     elif eval_every:
         print("pyvf train-transformer: no --codebook, so no held-out evaluation (it renders through the "
               "codebook)", file=sys.stderr)
@@ -163,17 +210,41 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
                              **train)
 
 
-def compare_runs(run_dirs, plot=False, step=None):
+def compare_runs(run_dirs, plot=False, step=None, note=None):
     """`pyvf runs`: (the markdown table of the run folders, runs_table, at `step` when given; with
-    plot, the eval.png redrawn in each folder that has an eval.csv)."""
+    plot, the eval.png redrawn in each folder whose eval.csv has rows). A folder whose config.json
+    is another program's is left out, note(line) saying so (default: printed to stderr); a
+    damaged file raises ValueError naming it (a torn last line of a log is left out, as the
+    trainers do)."""
+    if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 0):
+        raise ValueError(f"step must be a non-negative integer, got {step!r}")
+    note = note or (lambda line: print(f"pyvf runs: note: {line}", file=sys.stderr))
+    runs = []
     for d in run_dirs:
         if not os.path.exists(os.path.join(d, "config.json")):
             raise ValueError(f"{d} is not a run folder (no config.json)")
-    if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 0):
-        raise ValueError(f"step must be a non-negative integer, got {step!r}")
-    table = runs_table(run_dirs, step=step)
-    plots = [plot_eval(d) for d in run_dirs if plot and os.path.exists(os.path.join(d, "eval.csv"))]
+        try:
+            read_run_config(d)
+        except NotARunError as e:
+            note(f"skipped {d}: {e}")
+            continue
+        runs.append(d)
+    if not runs:
+        raise ValueError(f"no run folder to compare among {', '.join(map(str, run_dirs))}")
+    table = runs_table(runs, step=step)
+    plots = [plot_eval(d) for d in runs if plot and os.path.exists(os.path.join(d, "eval.csv"))
+             and len(read_log(d, "eval.csv", empty_ok=True)["step"])]
     return table, plots
+
+
+def checkpoint_step(run_dir):
+    """The step of the run folder's checkpoint, where the same command resumes; None when it has
+    none yet or it cannot be read (what a command says after Ctrl-C)."""
+    try:
+        meta = resume_point(run_dir)
+    except (ValueError, OSError):
+        return None
+    return None if meta is None else int(meta["step"])
 
 
 MODELS = {"codebook": Codebook, "transformer": Transformer}  # a run's kind -> its model class
@@ -190,6 +261,9 @@ def export_run(run, out):
         path = os.path.join(path, CHECKPOINT)
     if not os.path.exists(path):
         raise FileNotFoundError(f"run {os.fspath(run)!r}: no checkpoint ({path} does not exist)")
+    written = os.fsdecode(os.fspath(out))
+    written += "" if written.endswith(".npz") else ".npz"  # as Model.save names it
+    _refuse_input_as_output(written, [("the run's checkpoint", path)], "-o")
     meta, state, _ = read_checkpoint(path, None)
     cls = MODELS.get(meta["kind"])
     if cls is None:
