@@ -1,6 +1,6 @@
 """Argument checks shared by pyvf's modules: every error names the argument and says what was
 expected; nothing is cast or copied silently. Shape rules stay with the function that has them.
-Also the checks of a checkpoint's entries (checkpoint_array, weight_problem, problems_error:
+Also the checks of a checkpoint's entries (checkpoint_array, weight_problem, converted_weight, problems_error:
 every wrong entry named in one error), which pyvf.models.io's loader and the quantizer share."""
 
 import numpy as np
@@ -74,6 +74,15 @@ def integer(name, x, lo=None):
     return int(x)
 
 
+def positive_integer(name, x):
+    """x: a Python or NumPy integer (not bool), >= 1 -> int (TypeError, or ValueError saying
+    "must be a positive integer", naming the argument)."""
+    x = integer(name, x)
+    if x < 1:
+        raise ValueError(f"{name} must be a positive integer, got {x!r}")
+    return x
+
+
 def real(name, x, lo=None, hi=None, lo_open=False, hi_open=False):
     """x: a finite real number (Python or numpy scalar, not bool), in [lo, hi] (open ends where
     asked) -> float."""
@@ -139,3 +148,18 @@ def problems_error(what, problems):
     kind = TypeError if all(k is TypeError for k, _ in problems) else ValueError
     n = len(problems)
     return kind(f"{what}: {n} problem{'s' if n > 1 else ''}: " + "; ".join(m for _, m in problems))
+
+
+def converted_weight(name, a, dtype):
+    """A checkpoint's finite float array (one weight_problem accepted) -> (a C-ordered copy of
+    dtype, None); or (None, (ValueError, message naming `name`)) when a value lies beyond
+    dtype's range, so that the conversion (float64 -> float32) would make it inf. Nothing is
+    assigned by this: the caller loads only when no entry has a problem."""
+    dtype = np.dtype(dtype)
+    with np.errstate(over="ignore"):  # checked below
+        out = np.array(a, dtype=dtype, order="C", copy=True)
+    if not all_finite(out):
+        big = float(np.max(np.abs(a)))
+        return None, (ValueError, f"{name!r} holds a value of magnitude {big:.4g}, beyond {dtype}'s range "
+                                  f"(largest {float(np.finfo(dtype).max):.4g}): it would become inf in {dtype}")
+    return out, None

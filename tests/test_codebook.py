@@ -180,6 +180,102 @@ def test_bad_input_raises(rng):
         CodebookConfig(**{**SMALL, "image_size": 15})
 
 
+def test_pixel_weights_near_float32_max_give_the_gradient_of_small_ones(rng):
+    """rec_loss = sum w |rec - x| / (C sum w) does not change when every weight is scaled by one
+    factor. Weights near float32's largest (C sum w overflows float32) must give the loss and
+    every gradient of the same weights scaled down: with a power of two, exactly (the float64
+    normalisation divides out the scale exactly), where an overflow gave w / inf = 0, an all-zero
+    gradient with a correct-looking loss. The loss itself against a float64 sum of the weighted
+    errors of the reconstruction."""
+    cb = random_codebook(CodebookConfig(**SMALL), rng)
+    x = rng.uniform(-1, 1, (2, 3, 16, 16)).astype(np.float32)
+    w = rng.uniform(0.25, 1.0, (2, 1, 16, 16)).astype(np.float32)
+    out = cb.forward(x, pixel_weights=w)
+    g = cb.backward()
+    err = np.abs(out.reconstruction.astype(np.float64) - x)  # (B, C, S, S)
+    want = (w * err).sum() / (3 * w.astype(np.float64).sum())
+    # the model forms rec - x in float32 (one rounding, <= 2^-24 relative, per element): rel 1e-7
+    assert out.rec_loss == pytest.approx(want, rel=1e-7)
+    big = w * np.float32(2.0 ** 127)  # exact; up to 1.7e38, C sum w ~ 4e41 is past float32's 3.4e38
+    out_big = cb.forward(x, pixel_weights=big)
+    g_big = cb.backward()
+    assert out_big.rec_loss == out.rec_loss and out_big.loss == out.loss
+    assert np.abs(g["decoder.conv_out.weight"]).max() > 0
+    for name in g:
+        np.testing.assert_array_equal(g_big[name], g[name], err_msg=name)
+    # equal weights, however large, are the plain mean: the unweighted loss (which numpy sums in
+    # float32, pairwise: rel 1e-6) and gradients (1 / numel rounded once to float32 either way)
+    plain = cb.forward(x)
+    g_plain = cb.backward()
+    for value in (1e36, 3e38):
+        o = cb.forward(x, pixel_weights=np.full((2, 1, 16, 16), value, np.float32))
+        g_w = cb.backward()
+        assert o.rec_loss == pytest.approx(plain.rec_loss, rel=1e-6), value
+        for name in g_plain:
+            assert_close(f"{name} (w={value:g})", g_w[name], g_plain[name], rtol=1e-6)
+
+
+def test_load_official_refuses_float64_values_beyond_float32(rng):
+    """A float64 state dict into a float32 codebook: a value past float32's largest would become
+    inf (numpy only warns), in a parameter or in a quantizer buffer. Refused, each named, and
+    nothing loaded (parameters and buffers as before); a float64 codebook takes the same values."""
+    cb = random_codebook(CodebookConfig(**SMALL), rng)
+    cb.forward(rng.uniform(-1, 1, (1, 3, 16, 16)).astype(np.float32), train=True)
+    before = cb.state_dict()
+    state = {k: v.astype(np.float64) if v.dtype.kind == "f" else v for k, v in before.items()}
+    state["encoder.conv_in.bias"][1] = 1e39
+    state["quantize.embeddings"][0, 2] = -1e39
+    with pytest.raises(ValueError, match=r"load_official: 2 problems: 'encoder.conv_in.bias' holds a value of "
+                                         r"magnitude 1e\+39, beyond float32's range.*'quantize.embeddings' "):
+        cb.load_official(state)
+    for name, value in cb.state_dict().items():
+        np.testing.assert_array_equal(value, before[name], err_msg=name)
+    cb64 = Codebook(CodebookConfig(**SMALL, dtype="float64"))
+    cb64.load_official(state)
+    assert cb64.params["encoder.conv_in.bias"][1] == 1e39 and cb64.quantizer.embeddings[0, 2] == -1e39
+
+
+@pytest.mark.parametrize("field, value, exc, match", [
+    # every float field finite (a NaN or inf weight made forward().loss NaN or inf), decay and eps
+    # in the quantizer's ranges
+    ("codebook_weight", float("nan"), ValueError, r"^CodebookConfig.codebook_weight must be finite"),
+    ("codebook_weight", float("inf"), ValueError, r"^CodebookConfig.codebook_weight must be finite"),
+    ("perceptual_weight", float("-inf"), ValueError, r"^CodebookConfig.perceptual_weight must be finite"),
+    ("decay", float("nan"), ValueError, r"^CodebookConfig.decay must be finite and in \(0.0, 1.0\)"),
+    ("decay", 1.0, ValueError, r"^CodebookConfig.decay must be finite and in \(0.0, 1.0\)"),
+    ("eps", 0.0, ValueError, r"^CodebookConfig.eps must be finite and in \(0.0"),
+    ("codebook_weight", "1", TypeError, r"^CodebookConfig.codebook_weight must be a real number, got str"),
+    ("eps", None, TypeError, r"^CodebookConfig.eps must be a real number, got NoneType"),
+    # sequences of positive integers, named (not "'int' object is not iterable")
+    ("ch_mult", 1, TypeError, r"^CodebookConfig.ch_mult must be a tuple of positive integers, got int 1"),
+    ("ch_mult", (1, 0), ValueError, r"^CodebookConfig.ch_mult\[1\] must be a positive integer, got 0"),
+    ("ch_mult", (1, 2.0), TypeError, r"^CodebookConfig.ch_mult\[1\] must be an integer, got float"),
+    ("ch_mult", (), ValueError, r"^CodebookConfig.ch_mult must name at least one level"),
+    ("attn_resolutions", None, TypeError, r"^CodebookConfig.attn_resolutions must be a tuple of positive integers"),
+    ("attn_resolutions", "8", TypeError, r"^CodebookConfig.attn_resolutions must be a tuple of positive integers"),
+    ("ch", True, TypeError, r"^CodebookConfig.ch must be an integer, got bool"),
+    ("n_embed", np.int64(0), ValueError, r"^CodebookConfig.n_embed must be a positive integer, got 0"),
+])
+def test_bad_config_field_is_named(field, value, exc, match):
+    with pytest.raises(exc, match=match):
+        CodebookConfig(**{**SMALL, field: value})
+
+
+def test_config_takes_numpy_integers_as_ints(tmp_path):
+    """NumPy integers (not bool) are integers, as everywhere in pyvf (_checks.integer): the
+    configuration equals the one of Python ints and holds ints, so a codebook saves (its
+    configuration is JSON) and loads back. An empty attn_resolutions (no attention) stays valid."""
+    fields = {**{k: np.int64(v) for k, v in SMALL.items() if isinstance(v, int)},
+              "ch_mult": np.array([1, 2]), "attn_resolutions": [np.int32(8)], "decay": np.float32(0.5)}
+    cfg = CodebookConfig(**fields)
+    assert cfg == CodebookConfig(**SMALL, decay=0.5)
+    assert all(type(getattr(cfg, k)) is int for k, v in SMALL.items() if isinstance(v, int))
+    assert all(type(m) is int for m in cfg.ch_mult + cfg.attn_resolutions) and type(cfg.decay) is float
+    path = Codebook(cfg).save(tmp_path / "cb.npz")
+    assert Codebook.load(path).config == cfg
+    assert CodebookConfig(**{**SMALL, "attn_resolutions": ()}).attn_resolutions == ()
+
+
 def test_torch_checkpoint_converter(rng, tmp_path):
     """A model.ckpt as the published training writes it (torch.save of a dict with state_dict,
     extra loss-network keys beside the model's) converts to an .npz that loads to the same model."""

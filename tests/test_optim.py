@@ -649,6 +649,32 @@ def test_state_dict_is_a_copy_and_load_checks(rng):
         opt2.load_state_dict({**opt.state_dict(), "step": 1.5})
 
 
+def test_load_state_dict_names_a_malformed_hyperparameters_entry(rng):
+    """state['hyperparameters'] and its betas and decayed entries of the wrong type: a TypeError
+    naming the entry (was Python's "'NoneType' object is not iterable"), nothing loaded. The
+    lists a JSON round trip gives are the saved tuple and names, and load."""
+    params = make_params(rng)
+    opt = optim.AdamW(_copy(params), lr=0.1)
+    opt.step(make_grads(rng))
+    sd, hyper = opt.state_dict(), opt.state_dict()["hyperparameters"]
+    fresh = optim.AdamW(_copy(params), lr=0.1)
+    for h, match in [(None, r"^state\['hyperparameters'\] must be a dict from state_dict\(\), got NoneType"),
+                     ([("eps", 1e-8)], r"^state\['hyperparameters'\] must be a dict .*got list"),
+                     ({**hyper, "betas": None}, r"^state\['hyperparameters'\]\['betas'\] must be a pair .*NoneType"),
+                     ({**hyper, "betas": 0.9}, r"^state\['hyperparameters'\]\['betas'\] must be a pair .*float"),
+                     ({**hyper, "decayed": None}, r"^state\['hyperparameters'\]\['decayed'\] must be a list of "
+                                                  "parameter names, got NoneType"),
+                     ({**hyper, "decayed": [1, "wte/weight"]}, r"^state\['hyperparameters'\]\['decayed'\] must be")]:
+        with pytest.raises(TypeError, match=match):
+            fresh.load_state_dict({**sd, "hyperparameters": h})
+        assert fresh.step_count == 0 and not any(m.any() for m in fresh.exp_avg.values())
+    as_json = {**hyper, "betas": list(hyper["betas"]), "decayed": list(reversed(hyper["decayed"]))}
+    fresh.load_state_dict({**sd, "hyperparameters": as_json})
+    assert fresh.step_count == 1
+    for k in params:
+        assert_bitwise_equal(k, fresh.exp_avg[k], opt.exp_avg[k])
+
+
 # ---------------------------------------------------------------------------------------
 # argument checks
 

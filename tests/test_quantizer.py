@@ -138,3 +138,64 @@ def test_state_round_trip_and_bad_input(rng):
         q2.load_state_dict({**q.state_dict(), "embeddings": np.zeros((8, 4))})
     with pytest.raises(ValueError, match="n_embed must be a positive integer"):
         EMAQuantizer(4, 0)
+
+
+def _state_equal(a, b):
+    return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_reset_dead_codes_checks_its_arguments_and_changes_nothing_on_error(rng):
+    """z as forward takes it (the quantizer's dtype, (B, D, h, w), non-empty, finite) and a finite
+    threshold >= 0, each wrong one named; nothing is written before the checks pass (an all-NaN z
+    wrote NaN into the dead codes, a float64 z was cast silently into a float32 quantizer)."""
+    q = EMAQuantizer(4, 8, dtype="float32")  # counter 0: every code is dead, every call would reset
+    before = q.state_dict()
+    z = rng.standard_normal((1, 4, 2, 2)).astype(np.float32)
+    cases = [(np.full_like(z, np.nan), ValueError, "^z contains NaN or inf"),
+             (z.astype(np.float64), TypeError, "^z must be a float32 numpy array, got float64"),
+             (z[:, :3].copy(), ValueError, r"^z must have shape \(B, 4, h, w\), got \(1, 3, 2, 2\)"),
+             (z[0], ValueError, r"^z must have shape \(B, 4, h, w\), got \(4, 2, 2\)"),
+             (z.tolist(), TypeError, "^z must be a float32 numpy array, got list"),
+             (z[:0], ValueError, r"^z is empty: shape \(0, 4, 2, 2\)")]
+    for bad, exc, match in cases:
+        with pytest.raises(exc, match=match):
+            q.reset_dead_codes(bad, rng=0)
+    for threshold, exc, match in [(float("nan"), ValueError, "^threshold must be finite"),
+                                  (float("inf"), ValueError, "^threshold must be finite"),
+                                  (-1.0, ValueError, r"^threshold must be finite and in \[0.0"),
+                                  ("0.1", TypeError, "^threshold must be a real number, got str")]:
+        with pytest.raises(exc, match=match):
+            q.reset_dead_codes(z, threshold=threshold, rng=0)
+    assert _state_equal(q.state_dict(), before)
+    # the same quantizer with good arguments does reset: the checks above were the only reason it did not
+    assert q.reset_dead_codes(z, rng=0) == 8 and not _state_equal(q.state_dict(), before)
+    assert np.isfinite(q.embeddings).all()
+
+
+def test_numpy_integer_sizes_are_ints():
+    """embed_dim and n_embed: Python or NumPy integers (not bool), held as int."""
+    q = EMAQuantizer(np.int64(4), np.int32(8))
+    assert type(q.embed_dim) is int and type(q.n_embed) is int
+    assert q.embeddings.shape == (4, 8) and q.state_dict().keys() == EMAQuantizer(4, 8).state_dict().keys()
+    with pytest.raises(TypeError, match="^embed_dim must be an integer, got bool"):
+        EMAQuantizer(True, 8)
+    with pytest.raises(TypeError, match="^n_embed must be an integer, got float"):
+        EMAQuantizer(4, 8.0)
+    with pytest.raises(ValueError, match="^n_embed must be a positive integer, got 0"):
+        EMAQuantizer(4, np.int64(0))
+
+
+def test_load_state_dict_refuses_float64_values_beyond_float32(rng):
+    """A float64 buffer into a float32 quantizer: a value past float32's largest would become inf.
+    Refused, named, nothing loaded; the largest float32 value loads exactly."""
+    q = EMAQuantizer(4, 8, dtype="float32")
+    q.forward(rng.standard_normal((1, 4, 2, 2)).astype(np.float32), train=True)
+    before = q.state_dict()
+    state = {k: v.astype(np.float64) if k != "counter" else v for k, v in before.items()}
+    state["ema_dw_hidden"][3, 5] = 1e39
+    with pytest.raises(ValueError, match=r"'ema_dw_hidden' holds a value of magnitude 1e\+39, beyond float32's"):
+        q.load_state_dict(state)
+    assert _state_equal(q.state_dict(), before)
+    state["ema_dw_hidden"][3, 5] = float(np.finfo(np.float32).max)
+    q.load_state_dict(state)
+    assert q.ema_dw_hidden[3, 5] == np.finfo(np.float32).max

@@ -309,6 +309,32 @@ def test_load_official_rejects_bad_weights(rng):
         model.load_official({**weights, "ln_f/gamma": np.ones(32, np.float32)})
 
 
+def test_load_official_refuses_float64_values_beyond_float32(rng):
+    """A float64 checkpoint into a float32 model: a value past float32's largest (3.4028e38)
+    would become inf (numpy only warns). Refused with every such parameter named, and nothing
+    loaded; the largest float32 value itself loads exactly, and a float64 model takes 1e39."""
+    cfg = pyvf.TransformerConfig(**TINY)
+    model = random_model(cfg, rng)
+    before = model.state_dict()
+    weights = {k: v.astype(np.float64) for k, v in before.items()}
+    weights["wte/weight"][0, 0] = 1e39
+    weights["h.1/mlp/c_proj/bias"][0, 3] = -2e300
+    with pytest.raises(ValueError, match=r"load_official: 2 problems: 'wte/weight' holds a value of magnitude "
+                                         r"1e\+39, beyond float32's range.*'h.1/mlp/c_proj/bias' .* 2e\+300"):
+        model.load_official(weights)
+    for name, p in before.items():  # nothing assigned
+        assert_bitwise_equal(name, model.params[name], p)
+    edge = float(np.finfo(np.float32).max)
+    weights["wte/weight"][0, 0], weights["h.1/mlp/c_proj/bias"][0, 3] = edge, -edge
+    model.load_official(weights)
+    assert model.params["wte/weight"][0, 0] == np.float32(edge)
+    assert model.params["h.1/mlp/c_proj/bias"][0, 3] == -np.float32(edge)
+    weights["wte/weight"][0, 0] = 1e39
+    model64 = pyvf.Transformer(dataclasses.replace(cfg, dtype="float64"))
+    model64.load_official(weights)
+    assert model64.params["wte/weight"][0, 0] == 1e39
+
+
 def test_save_and_load_round_trip(tmp_path, rng):
     cfg = pyvf.TransformerConfig(**{**TINY, "label_smoothing": 0.1}, dtype="float64")
     model = random_model(cfg, rng)
@@ -364,6 +390,65 @@ def test_bad_input_raises(rng):
 def test_bad_config_raises(field, value, match):
     with pytest.raises(ValueError, match=match):
         pyvf.TransformerConfig(**{**TINY, field: value})
+
+
+@pytest.mark.parametrize("field, value, exc, match", [
+    # positions are multiplied by pose_multiplier and predictions divided by it (docs/math.md §3):
+    # 0, or a magnitude that is 0 or subnormal in the dtype (its reciprocal overflows), gave inf poses
+    ("pose_multiplier", 0.0, ValueError, "^TransformerConfig.pose_multiplier must be nonzero"),
+    ("pose_multiplier", -0.0, ValueError, "^TransformerConfig.pose_multiplier must be nonzero"),
+    ("pose_multiplier", 1e-40, ValueError, "^TransformerConfig.pose_multiplier must be nonzero.*float32"),
+    ("pose_multiplier", 1e39, ValueError, "^TransformerConfig.pose_multiplier must be nonzero.*float32"),
+    ("pose_multiplier", float("nan"), ValueError, "^TransformerConfig.pose_multiplier must be finite"),
+    # wrong types: an error naming the field, not numpy's or Python's own
+    ("pose_multiplier", "a", TypeError, "^TransformerConfig.pose_multiplier must be a real number, got str"),
+    ("label_smoothing", None, TypeError, "^TransformerConfig.label_smoothing must be a real number, got NoneType"),
+    ("label_smoothing", float("nan"), ValueError, "^TransformerConfig.label_smoothing must be finite"),
+    ("attention_scale", [1.0], TypeError, "^TransformerConfig.attention_scale must be a real number"),
+    ("localization_weight", True, TypeError, "^TransformerConfig.localization_weight must be a real number"),
+    ("n_head", True, TypeError, "^TransformerConfig.n_head must be an integer, got bool"),
+    ("n_head", 2.0, TypeError, "^TransformerConfig.n_head must be an integer, got float"),
+    ("n_loss_skip", "1", TypeError, "^TransformerConfig.n_loss_skip must be an integer, got str"),
+    ("n_head", np.int64(0), ValueError, "^TransformerConfig.n_head must be a positive integer, got 0"),
+])
+def test_bad_config_field_is_named(field, value, exc, match):
+    with pytest.raises(exc, match=match):
+        pyvf.TransformerConfig(**{**TINY, field: value})
+
+
+def test_config_takes_numpy_scalars_as_python_numbers(tmp_path):
+    """NumPy integers (not bool) are integers, as everywhere in pyvf (_checks.integer): the
+    configuration equals the one of Python numbers and holds Python numbers, so a model saves
+    (its configuration is JSON) and loads back."""
+    fields = {k: np.int64(v) if k != "n_head" else np.int32(v) for k, v in TINY.items()}
+    cfg = pyvf.TransformerConfig(**fields, pose_multiplier=np.float32(0.5), label_smoothing=np.float64(0.1))
+    assert cfg == pyvf.TransformerConfig(**TINY, pose_multiplier=0.5, label_smoothing=0.1)
+    assert all(type(getattr(cfg, k)) is int for k in TINY)
+    assert type(cfg.pose_multiplier) is float and type(cfg.label_smoothing) is float
+    path = pyvf.Transformer(cfg).save(tmp_path / "m.npz")
+    assert pyvf.Transformer.load(path).config == cfg
+    # the subnormal bound is the dtype's: 1e-40 is a normal float64
+    assert pyvf.TransformerConfig(**TINY, pose_multiplier=1e-40, dtype="float64").pose_multiplier == 1e-40
+
+
+def test_negative_pose_multiplier_mirrors_positions_consistently(rng):
+    """A negative pose_multiplier is allowed: it mirrors the positions the model sees and
+    predicts alike. The model with -m, its pose MLP's xyz input rows and its pose head's xyz
+    output columns negated, computes the same loss and the same pose predictions (xyz_raw / m)
+    as the model with +m: every negation is exact, so bitwise."""
+    cfg = pyvf.TransformerConfig(**TINY, pose_multiplier=0.2, dtype="float64")
+    model = random_model(cfg, rng)
+    mirror = pyvf.Transformer(dataclasses.replace(cfg, pose_multiplier=-0.2))
+    mirror.params = {k: v.copy() for k, v in model.params.items()}
+    mirror.params["pose_embedding/c_fc/weight"][:3] *= -1  # rows of xyz * pose_multiplier
+    head = "quaternion_pose_representation/pose_classifier/c_proj/"
+    mirror.params[head + "weight"][:, :3] *= -1  # columns of xyz_raw
+    mirror.params[head + "bias"][:, :3] *= -1
+    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings)
+    want, got = model.forward(tokens, poses), mirror.forward(tokens, poses)
+    assert got.loss == want.loss
+    assert_bitwise_equal("pose_prediction", got.pose_prediction, want.pose_prediction)
+    assert_bitwise_equal("pose_raw xyz mirrored", got.pose_raw[..., :3], -want.pose_raw[..., :3])
 
 
 # ---------------------------------------------------------------------------------------

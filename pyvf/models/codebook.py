@@ -78,6 +78,13 @@ PUBLISHED_ORDER = ("encoder", "decoder")
 IMAGE_RANGE_SLACK = 1e-3  # images may leave [-1, 1] by this much (a user's own rounding), no more
 
 
+def _positive_tuple(name, val):
+    """val: a tuple, list or 1-d array of positive integers -> a tuple of int."""
+    if not (isinstance(val, (tuple, list)) or (isinstance(val, np.ndarray) and val.ndim == 1)):
+        raise TypeError(f"{name} must be a tuple of positive integers, got {type(val).__name__} {val!r}")
+    return tuple(_checks.positive_integer(f"{name}[{i}]", v) for i, v in enumerate(val))
+
+
 @dataclasses.dataclass(frozen=True)
 class CodebookConfig:
     ch: int  # channels of the first level
@@ -97,15 +104,19 @@ class CodebookConfig:
     dtype: str = "float32"
 
     def __post_init__(self):
-        object.__setattr__(self, "ch_mult", tuple(self.ch_mult))
-        object.__setattr__(self, "attn_resolutions", tuple(self.attn_resolutions))
+        # integers: Python or NumPy (not bool), stored as int (the configuration is saved as JSON)
         for name in ("ch", "num_res_blocks", "z_channels", "embed_dim", "n_embed", "image_size", "in_channels",
                      "out_ch"):
-            val = getattr(self, name)
-            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-                raise ValueError(f"CodebookConfig.{name} must be a positive integer, got {val!r}")
-        if not self.ch_mult or any(not isinstance(m, int) or m < 1 for m in self.ch_mult):
-            raise ValueError(f"CodebookConfig.ch_mult must be positive integers, got {self.ch_mult}")
+            object.__setattr__(self, name, _checks.positive_integer(f"CodebookConfig.{name}", getattr(self, name)))
+        object.__setattr__(self, "ch_mult", _positive_tuple("CodebookConfig.ch_mult", self.ch_mult))
+        if not self.ch_mult:
+            raise ValueError("CodebookConfig.ch_mult must name at least one level, got ()")
+        object.__setattr__(self, "attn_resolutions",
+                           _positive_tuple("CodebookConfig.attn_resolutions", self.attn_resolutions))
+        # real numbers (not bool), finite, stored as float; decay and eps in the quantizer's ranges
+        for name, kw in (("decay", dict(lo=0.0, hi=1.0, lo_open=True, hi_open=True)),
+                         ("eps", dict(lo=0.0, lo_open=True)), ("codebook_weight", {}), ("perceptual_weight", {})):
+            object.__setattr__(self, name, _checks.real(f"CodebookConfig.{name}", getattr(self, name), **kw))
         if self.image_size % 2 ** (len(self.ch_mult) - 1):
             raise ValueError(f"CodebookConfig.image_size={self.image_size} is not divisible by "
                              f"2^{len(self.ch_mult) - 1}")
@@ -367,7 +378,8 @@ class Codebook(ModelWeights):
         Entries may be numpy arrays or anything with `.detach()` (torch tensors, also ones that
         require grad: `.detach().cpu().numpy()` is called; pyvf never imports torch). Everything is
         checked before anything is assigned: names (missing, unexpected, given twice), every
-        array (float32/float64 of the parameter's shape in `layout`, finite; other dtypes are
+        array (float32/float64 of the parameter's shape in `layout`, finite, also in the model's
+        dtype: a float64 value past float32's range is refused, not made inf; other dtypes are
         refused, not cast; the counter a non-negative integer). Any problem raises one ValueError
         naming every wrong entry (TypeError when all of them are wrong types), and the model is
         left unchanged. Float arrays are converted to the model's dtype (the one conversion pyvf
@@ -532,7 +544,9 @@ class Codebook(ModelWeights):
 
         pixel_weights: None (rec_loss = mean |rec - x|, as published), or non-negative weights
         (B, 1, S, S) of the model's dtype, not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x|
-        / (in_channels * sum w), the weighted mean (equal weights give the plain mean).
+        / (in_channels * sum w), the weighted mean (equal weights give the plain mean). Any
+        finite scale: the weights are normalised in float64, so the loss and its gradient do
+        not depend on it (weights near float32's largest value included).
 
         trace=True also returns, as `out.trace`, every intermediate activation by name
         (trace_names(config), in execution order; read-only views of what the forward keeps
@@ -570,9 +584,12 @@ class Codebook(ModelWeights):
             rec_loss = float(np.mean(np.abs(diff)))
             drec_loss = np.sign(diff) / diff.size  # (B, C, S, S)
         else:  # sum w |diff| / (C sum w): the mean over channels of each pixel's weighted mean
+            # normalised in float64 first, wn = w / (C sum w): in float32, C sum w (or w |diff|)
+            # overflows for weights near float32's largest, and w / inf = 0 is a silent zero gradient
             wsum = float(pixel_weights.sum(dtype=np.float64)) * diff.shape[1]
-            rec_loss = float(np.sum(pixel_weights * np.abs(diff), dtype=np.float64) / wsum)
-            drec_loss = np.sign(diff) * (pixel_weights / self.dtype.type(wsum))  # (B, C, S, S)
+            wn = np.divide(pixel_weights, wsum, dtype=np.float64)  # (B, 1, S, S) float64, each <= 1/C
+            rec_loss = float(np.sum(wn * np.abs(diff), dtype=np.float64))
+            drec_loss = np.sign(diff) * wn.astype(self.dtype)  # (B, C, S, S)
         loss = rec_loss + self.config.codebook_weight * q.commitment_loss
         perceptual, c_p = None, None
         if self.perceptual is not None:

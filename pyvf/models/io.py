@@ -132,10 +132,12 @@ class ModelWeights:
             arr, problem = _checks.checkpoint_array(raw, arr)  # torch tensors -> numpy
             if problem is None and name in shapes:
                 problem = _checks.weight_problem(raw, arr, self.layout_shapes(name, layout), hint=hint)
+            if problem is None and name in shapes:  # to the model's dtype; float64 past float32's range refused
+                arr, problem = _checks.converted_weight(raw, self.from_layout(name, arr, layout), self.dtype)
             if problem is not None:
                 problems.append(problem)
             elif name in shapes:
-                loaded[name] = np.array(self.from_layout(name, arr, layout), dtype=self.dtype, order="C", copy=True)
+                loaded[name] = arr
             else:
                 buffers[name] = arr
         missing = [k for k in (*shapes, *self.BUFFERS) if k not in given_as]

@@ -123,7 +123,7 @@ class TransformerConfig:
     token_image_size: int  # k: a view is k x k tokens, L = k*k (at most 256)
     sequence_size: int  # N the model is trained on (context + queries); forward accepts any N >= 1
     n_loss_skip: int  # the first views are pure context, never a loss target (paper: 4; tiny: 1)
-    pose_multiplier: float = 1.0  # positions are scaled by this before the pose MLP and in the loss (SM7: 0.2)
+    pose_multiplier: float = 1.0  # positions are scaled by this before the pose MLP and in the loss (SM7: 0.2); != 0
     localization_weight: float = 1.0  # weight of the pose loss in the total loss
     image_generation_weight: float = 1.0  # weight of the cross-entropy in the total loss
     label_smoothing: float = 0.0  # eps: the CE target is (1 - eps) onehot + eps / V
@@ -131,12 +131,13 @@ class TransformerConfig:
     dtype: str = "float32"  # parameters and activations: "float32" or "float64"
 
     def __post_init__(self):
+        # Python or NumPy integers (not bool), stored as int: the configuration is saved as JSON
         for name in ("n_embeddings", "n_head", "d_model", "n_layer", "token_image_size", "sequence_size"):
-            val = getattr(self, name)
-            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-                raise ValueError(f"TransformerConfig.{name} must be a positive integer, got {val!r}")
-        if isinstance(self.n_loss_skip, bool) or not isinstance(self.n_loss_skip, int) or self.n_loss_skip < 0:
-            raise ValueError(f"TransformerConfig.n_loss_skip must be a non-negative integer, got {self.n_loss_skip!r}")
+            object.__setattr__(self, name, _checks.positive_integer(f"TransformerConfig.{name}", getattr(self, name)))
+        skip = _checks.integer("TransformerConfig.n_loss_skip", self.n_loss_skip)
+        if skip < 0:
+            raise ValueError(f"TransformerConfig.n_loss_skip must be a non-negative integer, got {skip!r}")
+        object.__setattr__(self, "n_loss_skip", skip)
         if self.d_model % self.n_head:
             raise ValueError(f"TransformerConfig: d_model={self.d_model} is not divisible by n_head={self.n_head}")
         if self.token_image_size ** 2 > MAX_TOKENS_PER_VIEW:
@@ -144,11 +145,20 @@ class TransformerConfig:
                              f"{self.token_image_size ** 2} tokens per view; wpe has {MAX_TOKENS_PER_VIEW}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"TransformerConfig.dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        # real numbers (not bool), finite, stored as float
+        for name in ("pose_multiplier", "localization_weight", "image_generation_weight", "label_smoothing",
+                     "attention_scale"):
+            object.__setattr__(self, name, _checks.real(f"TransformerConfig.{name}", getattr(self, name)))
         if not 0.0 <= self.label_smoothing < 1.0:
             raise ValueError(f"TransformerConfig.label_smoothing must be in [0, 1), got {self.label_smoothing}")
-        for name in ("pose_multiplier", "localization_weight", "image_generation_weight", "attention_scale"):
-            if not np.isfinite(getattr(self, name)):
-                raise ValueError(f"TransformerConfig.{name} must be finite")
+        # positions are multiplied by pose_multiplier and predictions divided by it (docs/math.md §3):
+        # 0 makes every prediction inf, and so, in effect, does a magnitude that is 0 or subnormal
+        # in the dtype (dividing by it overflows). A negative one mirrors both alike: allowed.
+        pm, fi = abs(self.pose_multiplier), np.finfo(self.dtype)
+        if not float(fi.smallest_normal) <= pm <= float(fi.max):
+            raise ValueError(f"TransformerConfig.pose_multiplier must be nonzero, its magnitude in {self.dtype}'s "
+                             f"normal range [{float(fi.smallest_normal):.4g}, {float(fi.max):.4g}] (positions are "
+                             f"multiplied by it, predictions divided by it), got {self.pose_multiplier!r}")
 
     @property
     def L(self):
@@ -311,8 +321,9 @@ class Transformer(ModelWeights):
         Entries may be numpy arrays or anything with `.detach()` (torch tensors, also ones that
         require grad: `.detach().cpu().numpy()` is called; pyvf never imports torch). Everything is
         checked before anything is assigned: every name (missing, unexpected, given twice) and
-        every array (float32/float64 of the parameter's shape in `layout`, finite; other dtypes
-        are refused, not cast). Any problem raises one ValueError naming every wrong entry
+        every array (float32/float64 of the parameter's shape in `layout`, finite, also in the
+        model's dtype: a float64 value past float32's range is refused, not made inf; other
+        dtypes are refused, not cast). Any problem raises one ValueError naming every wrong entry
         (TypeError when all of them are wrong types), and the model is left unchanged. Arrays are
         converted to the model's dtype (config.dtype), the one conversion pyvf makes, on purpose:
         a float32 checkpoint loads into a float64 model for a float64 check. The model never

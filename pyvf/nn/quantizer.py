@@ -102,9 +102,8 @@ class EMAQuantizer:
     """
 
     def __init__(self, embed_dim, n_embed, decay=0.99, eps=1e-5, dtype="float32", seed=0):
-        for name, val in (("embed_dim", embed_dim), ("n_embed", n_embed)):
-            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-                raise ValueError(f"{name} must be a positive integer, got {val!r}")
+        embed_dim = _checks.positive_integer("embed_dim", embed_dim)  # numpy integers too, stored as int
+        n_embed = _checks.positive_integer("n_embed", n_embed)
         decay = _checks.real("decay", decay, 0.0, 1.0, lo_open=True, hi_open=True)
         eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
         if dtype not in ("float32", "float64"):
@@ -128,7 +127,8 @@ class EMAQuantizer:
         (exception class, message), one per missing, unexpected or wrong entry (names carry
         `prefix`, e.g. "quantize.").
         Arrays must be float32/float64 (converted to the quantizer's dtype), of the buffer's
-        shape and finite; counter a non-negative integer (an integer array, or a float array
+        shape and finite, also once converted (a float64 value beyond float32's range is
+        refused); counter a non-negative integer (an integer array, or a float array
         holding an integral value, as a torch checkpoint may store it). require_all=False does
         not report missing entries (a caller that reports them itself)."""
         want = {"embeddings": (self.embed_dim, self.n_embed), "ema_cluster_size_hidden": (self.n_embed,),
@@ -155,10 +155,12 @@ class EMAQuantizer:
                     out[name] = c
                 continue
             problem = _checks.weight_problem(full, a, shape)
+            if problem is None:  # float64 values past float32's range would become inf: refused
+                a, problem = _checks.converted_weight(full, a, self.dtype)
             if problem is not None:
                 problems.append(problem)
             else:
-                out[name] = np.array(a, dtype=self.dtype, order="C", copy=True)
+                out[name] = a
         return out, problems
 
     def load_state_dict(self, state):
@@ -176,12 +178,8 @@ class EMAQuantizer:
         self.ema_dw_hidden = buffers["ema_dw_hidden"]
         self.counter = buffers["counter"]
 
-    def forward(self, z, train=False):
-        """z (B, D, h, w) of the quantizer's dtype -> (QuantizerOutput, cache).
-
-        train=True applies one EMA update (the output uses the codes from before it). z must be
-        finite; an update or a loss that would overflow the dtype raises ValueError, and a call
-        that raises leaves every buffer unchanged."""
+    def _check_z(self, z):
+        """z: a finite, non-empty (B, D, h, w) array of the quantizer's dtype (nothing is cast)."""
         if not isinstance(z, np.ndarray) or z.dtype != self.dtype:
             raise TypeError(f"z must be a {self.dtype} numpy array, got {getattr(z, 'dtype', type(z).__name__)}")
         if z.ndim != 4 or z.shape[1] != self.embed_dim:
@@ -189,6 +187,14 @@ class EMAQuantizer:
         if z.size == 0:
             raise ValueError(f"z is empty: shape {z.shape}")
         _checks.finite("z", z)
+
+    def forward(self, z, train=False):
+        """z (B, D, h, w) of the quantizer's dtype -> (QuantizerOutput, cache).
+
+        train=True applies one EMA update (the output uses the codes from before it). z must be
+        finite; an update or a loss that would overflow the dtype raises ValueError, and a call
+        that raises leaves every buffer unchanged."""
+        self._check_z(z)
         B, D, h, w = z.shape
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, D))  # (M, D)
         idx, _ = vq_nearest(flat, np.ascontiguousarray(self.embeddings.T))  # codes are columns
@@ -252,9 +258,15 @@ class EMAQuantizer:
     def reset_dead_codes(self, z, threshold=1e-3, rng=None):
         """Optional (off unless called): codes whose smoothed cluster size is below threshold are
         moved to random vectors of z (B, D, h, w), their EMA statistics restarted there.
-        Returns the number of codes reset."""
+        Returns the number of codes reset.
+
+        z: a finite, non-empty array of the quantizer's dtype (as forward's); threshold: a finite
+        real >= 0 (0 resets nothing: cluster sizes are never negative). A wrong argument raises
+        TypeError / ValueError naming it, before any buffer changes."""
+        self._check_z(z)
+        threshold = _checks.real("threshold", threshold, lo=0.0)
         rng = np.random.default_rng(rng)
-        flat = z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim)
+        flat = z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim)  # (M, D)
         debias = 1.0 - self.decay ** max(self.counter, 1)
         dead = np.flatnonzero(self.ema_cluster_size_hidden / debias < threshold)
         if dead.size:

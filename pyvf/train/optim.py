@@ -260,9 +260,20 @@ class AdamW:
         if missing:
             raise ValueError(f"state lacks {sorted(missing)}: not a state_dict() of AdamW")
         step = _checks.integer("state['step']", state["step"], 0)
-        hyper = dict(state["hyperparameters"])
-        hyper["betas"] = tuple(hyper.get("betas", ()))
-        hyper["decayed"] = sorted(hyper.get("decayed", ()))
+        hyper = state["hyperparameters"]
+        if not isinstance(hyper, Mapping):
+            raise TypeError(f"state['hyperparameters'] must be a dict from state_dict(), got {type(hyper).__name__}")
+        hyper = dict(hyper)
+        # a JSON round trip gives lists: betas and decayed are compared as a tuple and a sorted list
+        betas, decayed = hyper.get("betas", ()), hyper.get("decayed", ())
+        if not isinstance(betas, (tuple, list, np.ndarray)):
+            raise TypeError(f"state['hyperparameters']['betas'] must be a pair (beta1, beta2), got "
+                            f"{type(betas).__name__} {betas!r}")
+        if (not isinstance(decayed, (tuple, list, set, frozenset, np.ndarray))
+                or not all(isinstance(k, str) for k in decayed)):
+            raise TypeError("state['hyperparameters']['decayed'] must be a list of parameter names, got "
+                            f"{type(decayed).__name__} {decayed!r}")
+        hyper["betas"], hyper["decayed"] = tuple(betas), sorted(decayed)
         if hyper != self._hyper():
             diff = sorted(k for k in set(hyper) | set(self._hyper()) if hyper.get(k) != self._hyper().get(k))
             raise ValueError(f"state was saved with other hyperparameters ({diff}): construct the "
