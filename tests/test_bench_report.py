@@ -171,6 +171,23 @@ def test_threads_line_states_the_worst_default_over_best():
     assert "not measured: a: 2 thr is 1 from" in report.threads_line(dict(failures=["a: 2 thr is 1 from"]))
 
 
+def test_a_setting_that_is_the_defaults_configuration_is_not_a_better_one():
+    """"2 thr" with the default's kernel and BLAS threads is the default run again: its smaller
+    median is noise (the smallest of several medians of one configuration), so the best is the
+    best of the other settings; without the configurations (older reports) it counts as before."""
+    rounds = {"a": {"default": [2.2, 2.0, 2.4], "1": [3.0] * 3, "2": [1.8, 1.9, 2.0], "blas1": [2.1, 2.1, 2.1]}}
+    th = dict(idle_rounds=rounds, loaded_rounds=rounds, idle={}, cores=2, failures=[])
+    assert report._threads.default_over_best(rounds["a"])[1] == "2"
+    assert "at most **1.20x**" in report.threads_line(th)  # median of 2.2/1.8, 2.0/1.9, 2.4/2.0
+    th["configurations"] = {"default": [2, 2], "1": [1, 1], "2": [2, 2], "blas1": [2, 1]}
+    assert report._threads.default_over_best(rounds["a"], th["configurations"])[1] == "blas1"
+    assert "at most **1.05x**" in report.threads_line(th)  # median of 2.2/2.1, 2.0/2.1, 2.4/2.1
+    assert report._threads.configurations_note(th["configurations"]) == (
+        "; 2 thr is the default's configuration here (2 kernel threads, 2 BLAS threads), not counted as a "
+        "better setting")
+    assert report._threads.configurations_note({"default": [2, 1], "2": [2, 2]}) == ""
+
+
 # ---------------------------------------------------------------------------------------
 # the plots
 

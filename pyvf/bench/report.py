@@ -319,12 +319,14 @@ def threads_section(quick, m, th):
     if "idle" not in th:
         return s + ["Not measured: " + "; ".join(th["failures"]), ""]
     keys = th["settings"]
-    rows = (_threads.rows_of(th["idle_rounds"], "idle", keys, th["bitwise_same"])
-            + _threads.rows_of(th["loaded_rounds"], f"{th['cores']} busy", keys, th["bitwise_same"]))
+    configs = th.get("configurations")
+    rows = (_threads.rows_of(th["idle_rounds"], "idle", keys, th["bitwise_same"], configs)
+            + _threads.rows_of(th["loaded_rounds"], f"{th['cores']} busy", keys, th["bitwise_same"], configs))
     header = ["call", "machine", *(f"{_threads.label(k)} (ms)" for k in keys), "best", "default / best"]
     return s + [measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{th['cores']}"),
                 "", table(header, rows), "",
-                f"({_threads.bitwise_note(th['bitwise_same'])}; target: default / best at most {_threads.LIMIT})", ""]
+                f"({_threads.bitwise_note(th['bitwise_same'])}{_threads.configurations_note(configs)}; "
+                f"target: default / best at most {_threads.LIMIT})", ""]
 
 
 def policies_section(quick, m, th):
