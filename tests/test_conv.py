@@ -435,6 +435,23 @@ def groupnorm_mp(x, gamma, beta, dy, groups, eps=EPS, dps=40):
     return Y.reshape(x.shape), DX.reshape(x.shape), np.array([float(v) for v in dg])
 
 
+def groupnorm_within_10u_of_mpmath(x, groups, label, rng):
+    """GroupNorm of x (random gamma, beta, dy) forward and backward: y, dx and dgamma within 10 u
+    (u the dtype's unit roundoff, normwise) of mpmath on the same rounded inputs. -> (gamma, beta,
+    mpmath's (y, dx, dgamma), the bound)."""
+    dtype = x.dtype.type
+    gamma, beta = (rng.standard_normal(x.shape[1]).astype(dtype) for _ in range(2))
+    dy = rng.standard_normal(x.shape).astype(dtype)
+    y, cache = conv.groupnorm_forward(x, gamma, beta)
+    dx, dgamma, _ = conv.groupnorm_backward(dy, cache)
+    want = groupnorm_mp(x, gamma, beta, dy, groups)
+    rtol = 10 * float(np.finfo(dtype).eps) / 2
+    for what, got, w in zip(("y", "dx", "dgamma"), (y, dx, dgamma), want):
+        assert got.dtype == dtype
+        assert_close(f"{what} ({label}, {dtype.__name__})", got, w, rtol)
+    return gamma, beta, want, rtol
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_groupnorm_large_mean_small_spread(dtype, rng):
     """Groups of mean +-1e4 and spread 0.1, against mpmath on the same (rounded) inputs.
@@ -448,15 +465,7 @@ def test_groupnorm_large_mean_small_spread(dtype, rng):
     C, groups = 64, G
     x = 1e4 * rng.choice([-1.0, 1.0], (2, groups, 1, 1, 1)) + 0.1 * rng.standard_normal((2, groups, 2, 3, 3))
     x = x.reshape(2, C, 3, 3).astype(dtype)
-    gamma, beta = (rng.standard_normal(C).astype(dtype) for _ in range(2))
-    dy = rng.standard_normal(x.shape).astype(dtype)
-    y, cache = conv.groupnorm_forward(x, gamma, beta)
-    dx, dgamma, _ = conv.groupnorm_backward(dy, cache)
-    want = groupnorm_mp(x, gamma, beta, dy, groups)
-    rtol = 10 * float(np.finfo(dtype).eps) / 2
-    for what, got, w in zip(("y", "dx", "dgamma"), (y, dx, dgamma), want):
-        assert got.dtype == dtype
-        assert_close(f"{what} (mean 1e4, spread 0.1, {dtype.__name__})", got, w, rtol)
+    gamma, beta, want, rtol = groupnorm_within_10u_of_mpmath(x, groups, "mean 1e4, spread 0.1", rng)
 
     # the bound has teeth: the one-pass variance in the same precision is far outside it
     xg = x.reshape(2, groups, -1)
@@ -474,16 +483,8 @@ def test_groupnorm_spread_beyond_the_dtypes_variance(dtype, spread, rng):
     ordinary size: the kernel computes rstd in double, rescaled by a power of two where needed
     (it refused the group before, naming a float64 overflow even for float32). Against mpmath on
     the same rounded inputs, the bound of test_groupnorm_large_mean_small_spread (10 u)."""
-    C, groups = 64, G
-    x = (spread * rng.standard_normal((2, C, 3, 3))).astype(dtype)
-    gamma, beta = (rng.standard_normal(C).astype(dtype) for _ in range(2))
-    dy = rng.standard_normal(x.shape).astype(dtype)
-    y, cache = conv.groupnorm_forward(x, gamma, beta)
-    dx, dgamma, dbeta = conv.groupnorm_backward(dy, cache)
-    want = groupnorm_mp(x, gamma, beta, dy, groups)
-    rtol = 10 * float(np.finfo(dtype).eps) / 2
-    for what, got, w in zip(("y", "dx", "dgamma"), (y, dx, dgamma), want):
-        assert_close(f"{what} (spread {spread:g}, {dtype.__name__})", got, w, rtol)
+    x = (spread * rng.standard_normal((2, 64, 3, 3))).astype(dtype)
+    groupnorm_within_10u_of_mpmath(x, G, f"spread {spread:g}", rng)
 
 
 @pytest.mark.parametrize("shape", [(2, 64, 0, 3), (2, 0, 4, 4)])
