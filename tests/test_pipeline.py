@@ -89,3 +89,39 @@ def test_ctrl_c_of_pyvf_train_says_where_its_stages_resume(tmp_path, monkeypatch
     assert main(command) == 0
     calls = json.loads((tmp_path / "run" / "transformer" / "config.json").read_text())["calls"]
     assert [c["resumed_from_step"] for c in calls] == [None, 1]
+
+
+def test_the_scenes_stage_resumes_an_interrupted_write(tmp_path, monkeypatch):
+    """Ctrl-C in the training scenes' third scene (shards of 2 scenes): the stage run again keeps
+    the finished shard and renders only the rest (it started over: every scene again), and the
+    folder has the bytes of an uninterrupted write. A write of another size there is replaced."""
+    import functools
+    import pyvf.scenes as scenes_pkg
+    from pyvf.scenes import dataset as dataset_module
+    from pyvf.train import pipeline
+
+    monkeypatch.setattr(scenes_pkg, "write_dataset", functools.partial(scenes_pkg.write_dataset, shard_size=2))
+    real, count = dataset_module.generate_scene, [0]
+
+    def scene(*args):
+        count[0] += 1
+        if count[0] == 3:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(dataset_module, "generate_scene", scene)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline._scenes(str(tmp_path / "scenes"), 5, 16, False)
+    count[0] = 10  # no more interruptions; count the scenes rendered from here
+    data = pipeline._scenes(str(tmp_path / "scenes"), 5, 16, False)
+    assert count[0] - 10 == 3 and data.images.shape[0] == 5  # scenes 2, 3, 4; shard 0 kept
+    pipeline._scenes(str(tmp_path / "want"), 5, 16, False)
+    for name in os.listdir(tmp_path / "want"):
+        assert (tmp_path / "scenes" / name).read_bytes() == (tmp_path / "want" / name).read_bytes(), name
+    # an unfinished write of other arguments (another size) is replaced, not refused
+    count[0] = 2  # the next scene is interrupted
+    with pytest.raises(KeyboardInterrupt):
+        pipeline._scenes(str(tmp_path / "other"), 5, 16, False)
+    count[0] = 10
+    assert pipeline._scenes(str(tmp_path / "other"), 5, 24, False).images.shape[2] == 24
+

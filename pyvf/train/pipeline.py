@@ -79,6 +79,7 @@ PRESETS = {
 def _scenes(folder, n, size, progress):
     """The training scenes: loaded when the folder's manifest exists and matches, else written."""
     from ..scenes import load_dataset, write_dataset
+    from ..scenes.dataset import DatasetExistsError
 
     if os.path.exists(os.path.join(folder, "manifest.json")):
         data = load_dataset(folder)
@@ -86,7 +87,10 @@ def _scenes(folder, n, size, progress):
             return data
         raise ValueError(f"{folder} holds another dataset ({data.images.shape[0]} scenes of seed {data.seed}, "
                          f"{data.images.shape[2]} px): use another --out")
-    write_dataset(folder, n, TRAIN_SEED, size=size, progress=progress, overwrite=True)  # over an unfinished one
+    try:  # an unfinished write of the same arguments (interrupted) resumes, its whole shards kept
+        write_dataset(folder, n, TRAIN_SEED, size=size, progress=progress)
+    except DatasetExistsError:  # an unfinished write of other arguments (a preset changed): replaced
+        write_dataset(folder, n, TRAIN_SEED, size=size, progress=progress, overwrite=True)
     return load_dataset(folder)
 
 
