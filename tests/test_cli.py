@@ -370,10 +370,9 @@ def test_convert_tf_transformer_without_tensorflow(tmp_path):
 @pytest.mark.parametrize("command", ["demo", "evaluate"])
 def test_out_checked_before_evaluating(command, tmp_path):
     """An --out that cannot be a folder is one line naming it, exit status 2, before the models are
-    loaded or any scene evaluated (it used to be a traceback after the whole evaluation)."""
-    from pyvf.evaluate.demo import shipped
-    if command == "demo" and not shipped():
-        pytest.skip("without the pretrained pair, `pyvf demo` runs the attention demo, which writes no --out")
+    loaded or any scene evaluated (it used to be a traceback after the whole evaluation). Model
+    files are named (they need not exist: --out is checked first), so that the demo evaluates
+    whether or not the package ships its pretrained pair."""
     (tmp_path / "afile").write_text("")
     cases = {"afile": "'afile' is a file, not a folder",
              "afile/x": "cannot create the folder 'afile/x': 'afile' is a file, not a folder",
@@ -382,7 +381,8 @@ def test_out_checked_before_evaluating(command, tmp_path):
         cases["/proc/pyvf-test"] = "cannot create the folder '/proc/pyvf-test': "
     for out, message in cases.items():
         args = ["--quick"] if command == "demo" else ["--scenes", "1", "--context", "1"]
-        proc = run([command, *args, "--no-progress", "--out", out], tmp_path)
+        proc = run([command, *args, "--codebook", "cb.npz", "--transformer", "tf.npz", "--no-progress", "--out", out],
+                   tmp_path)
         assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-3000:]
         assert proc.stderr.startswith(f"pyvf {command}: error: argument --out: {message}"), proc.stderr[-3000:]
         assert proc.stderr.count("\n") == 1 and "evaluating" not in proc.stdout, proc.stderr[-3000:]

@@ -258,14 +258,10 @@ def configurations_note(configs):
     if not same:
         return ""
     k, b = configs["default"]
-    return (f"; {', '.join(label(_key(s)) for s in same)} {'is' if len(same) == 1 else 'are'} the default's "
+    return (f"; {', '.join(map(label, same))} {'is' if len(same) == 1 else 'are'} the default's "
             f"configuration here ({k} kernel threads, {b} BLAS thread{'s' if b != 1 else ''}), not counted as a "
             "better setting")
 
-
-def _key(s):
-    """A setting's key from its JSON name ("default", "blas1", "2" -> 2)."""
-    return int(s) if s.isdigit() else s
 
 
 def bitwise_note(same):
