@@ -803,8 +803,9 @@ def test_init_option_of_the_commands(tmp_path, rng, monkeypatch, capsys):
 
 
 def test_ctrl_c_is_one_line_and_the_same_command_resumes(tmp_path):
-    """SIGINT (Ctrl-C) to a training command: status 130 and one line on stderr, the step of the
-    checkpoint the same command resumes from; no traceback. The same command then resumes there."""
+    """SIGINT (Ctrl-C) to a training command: status 130, no traceback, and two lines on stderr: at
+    Ctrl-C the step it finishes and saves, then where the same command resumes, that step (not the
+    last multiple of --checkpoint-every). The same command then resumes there."""
     from test_cli import clean_env, pyvf_script
 
     _smoke_files(tmp_path)
@@ -826,12 +827,131 @@ def test_ctrl_c_is_one_line_and_the_same_command_resumes(tmp_path):
             proc.wait()
     step = _checkpoint(str(tmp_path / "run"))[0]["step"]
     assert proc.returncode == 130, err
-    assert err.splitlines() == [f"pyvf train-codebook: interrupted; rerun the same command to resume from step {step}"]
+    assert err.splitlines() == [  # the step under way when Ctrl-C came is the checkpoint's
+        f"Ctrl-C: finishing step {step} and saving it; Ctrl-C again stops at once (losing the steps since the last "
+        "checkpoint)", f"pyvf train-codebook: interrupted; rerun the same command to resume from step {step}"]
     done = subprocess.run([*command, "--steps", str(step + 2)], cwd=tmp_path, env=clean_env(), capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert json.loads((tmp_path / "run" / "config.json").read_text())["calls"][-1]["resumed_from_step"] == step
     assert _checkpoint(str(tmp_path / "run"))[0]["step"] == step + 2
+
+
+def _sigint_in_step(monkeypatch, batch, at, times=1):
+    """Make loops.<batch> (codebook_batch or transformer_batch, which each step calls first) send
+    this process SIGINT `times` times while it makes step `at`'s batch: Ctrl-C during that step."""
+    import pyvf.train.loops as loops
+
+    real = getattr(loops, batch)
+    step_arg = {"codebook_batch": 3, "transformer_batch": 5}[batch]
+
+    def batch_with_ctrl_c(*args, **kwargs):
+        if args[step_arg] == at:
+            for _ in range(times):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.01)  # the handler runs in the main thread between two bytecodes
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loops, batch, batch_with_ctrl_c)
+
+
+def test_ctrl_c_saves_the_step_under_way_and_the_run_resumes_bitwise(tmp_path, rng, monkeypatch, capsys):
+    """Ctrl-C (a real SIGINT) during step 3 of a codebook run checkpointed every 4 steps: step 3 is
+    finished and checkpointed, then KeyboardInterrupt; nothing of the run is lost, and resuming gives
+    the uninterrupted run bit for bit (parameters, moments, EMA buffers, log). Python's own SIGINT
+    handler is back afterwards. The same for the transformer, in step 2 of a run checkpointed every 3."""
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # else this test cannot tell
+    images, tokens, poses = _images(rng), _tokens(rng), _poses(rng)
+    kw = dict(batch_size=3, checkpoint_every=4, **QUIET)
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    train_codebook(images, CB, a, steps=6, **kw)
+    with monkeypatch.context() as m:
+        _sigint_in_step(m, "codebook_batch", 3)
+        with pytest.raises(KeyboardInterrupt):
+            train_codebook(images, CB, b, steps=6, **kw)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert capsys.readouterr().err == ("Ctrl-C: finishing step 3 and saving it; Ctrl-C again stops at once (losing the "
+                                       "steps since the last checkpoint)\n")
+    assert _checkpoint(b)[0]["step"] == 3 and not os.path.exists(os.path.join(b, "codebook.npz"))
+    train_codebook(images, CB, b, steps=6, **kw)
+    _assert_same_run(a, b, "codebook.npz")
+
+    kw = dict(batch_size=4, lr=1e-3, warmup=2, total_steps=5, checkpoint_every=3, **QUIET)
+    a, b = str(tmp_path / "ta"), str(tmp_path / "tb")
+    train_transformer(tokens, poses, TF, a, steps=5, **kw)
+    with monkeypatch.context() as m:
+        _sigint_in_step(m, "transformer_batch", 2)
+        with pytest.raises(KeyboardInterrupt):
+            train_transformer(tokens, poses, TF, b, steps=5, **kw)
+    assert _checkpoint(b)[0]["step"] == 2
+    train_transformer(tokens, poses, TF, b, steps=5, **kw)
+    _assert_same_run(a, b, "transformer.npz")
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_second_ctrl_c_stops_at_once_and_saves_nothing(tmp_path, rng, monkeypatch, capsys):
+    """Two Ctrl-C in step 3 (checkpoints every 2 steps): KeyboardInterrupt inside the step, before its
+    update; the checkpoint stays step 2's, never a half-updated state, and the run resumes from it
+    bitwise."""
+    images = _images(rng)
+    kw = dict(batch_size=2, checkpoint_every=2, **QUIET)
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    train_codebook(images, CB, a, steps=5, **kw)
+    with monkeypatch.context() as m:
+        _sigint_in_step(m, "codebook_batch", 3, times=2)
+        with pytest.raises(KeyboardInterrupt):
+            train_codebook(images, CB, b, steps=5, **kw)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert _checkpoint(b)[0]["step"] == 2
+    assert "Ctrl-C again stops at once" in capsys.readouterr().err
+    train_codebook(images, CB, b, steps=5, **kw)
+    _assert_same_run(a, b, "codebook.npz")
+
+
+def test_ctrl_c_after_the_last_checkpoint_still_stops(tmp_path, rng, monkeypatch):
+    """Ctrl-C while the last step's checkpoint is written: the loop has no step left to stop, but
+    the call still raises KeyboardInterrupt (pyvf train must not go on to its next stage) without
+    the final model; the same call then only writes it, the uninterrupted run's."""
+    import pyvf.train._run as run_module
+
+    images = _images(rng)
+    kw = dict(batch_size=2, checkpoint_every=10, **QUIET)
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    train_codebook(images, CB, a, steps=3, **kw)
+    real = run_module.save_checkpoint
+
+    def save_with_ctrl_c(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.01)
+        return real(*args, **kwargs)
+
+    with monkeypatch.context() as m:
+        m.setattr(run_module, "save_checkpoint", save_with_ctrl_c)
+        with pytest.raises(KeyboardInterrupt):
+            train_codebook(images, CB, b, steps=3, **kw)
+    assert _checkpoint(b)[0]["step"] == 3 and not os.path.exists(os.path.join(b, "codebook.npz"))
+    train_codebook(images, CB, b, steps=3, **kw)
+    _assert_same_run(a, b, "codebook.npz")
+
+
+def test_training_in_another_thread_leaves_sigint_alone(tmp_path, rng):
+    """A loop run from a thread other than the main one (where signal.signal raises) trains as
+    usual and installs nothing; SIGINT stays Python's."""
+    import threading
+
+    errors = []
+
+    def work():
+        try:
+            train_codebook(_images(rng), CB, str(tmp_path / "t"), steps=2, batch_size=2, **QUIET)
+        except BaseException as e:  # noqa: BLE001 - reported to the test below
+            errors.append(e)
+
+    thread = threading.Thread(target=work)
+    thread.start()
+    thread.join()
+    assert errors == [] and _checkpoint(str(tmp_path / "t"))[0]["step"] == 2
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def no_escape(status):

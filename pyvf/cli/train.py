@@ -9,7 +9,8 @@
 
 Run again with the same arguments to resume from the run folder's checkpoint (--no-resume
 starts over). Each handler returns an exit status: 0, or 1 after printing the error, or 130 after
-Ctrl-C (one line: the step a rerun resumes from).
+Ctrl-C (a training run first finishes and saves the step under way; one line: the step a rerun
+resumes from).
 """
 
 import os

@@ -8,6 +8,10 @@ A run folder holds
     config.json      the run's configuration, hyperparameters, and each call's command line (atomic)
     <final>.npz      the trained model, loadable by Codebook.load / Transformer.load (atomic)
 
+Ctrl-C (SIGINT) while a loop runs: the step under way finishes, a checkpoint of it is saved, and
+then KeyboardInterrupt is raised, so the same call resumes with no step lost; a second Ctrl-C
+raises at once (the steps since the last checkpoint are lost, never half an update saved).
+
 Checkpoint layout (one .npz, allow_pickle=False):
 
     __meta__                     JSON: kind, step, config, hyper, optimizer step and
@@ -31,6 +35,9 @@ import hashlib
 import io
 import json
 import os
+import signal
+import sys
+import threading
 import time
 import zipfile
 
@@ -164,6 +171,36 @@ def _diff(saved, now):
     return sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
 
 
+class StopAtStepEnd:
+    """SIGINT (Ctrl-C) while a training loop runs, as a context: the first one sets `requested`
+    and calls say() (the loop then saves the step under way and raises KeyboardInterrupt:
+    Run.stop_requested); a second raises KeyboardInterrupt at once. Installed only in the main
+    thread where Python's own handler is in place (a user's handler, or a thread, keeps SIGINT as
+    it was); off (on=False) for a data-parallel run, whose processes could stop after different
+    steps."""
+
+    def __init__(self, on=True, say=lambda: None):
+        self.on, self.say, self.requested, self._previous = bool(on), say, False, None
+
+    def __enter__(self):
+        if (self.on and threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._previous = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+        return False
+
+    def _handler(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        self.say()
+
+
 class Run:
     """The run folder of one call of a training loop.
 
@@ -175,18 +212,24 @@ class Run:
             for t in run.steps():              # run.start + 1 .. steps
                 ...                            # one update
                 run.log(t, {"loss": ...})      # every log_every steps and the last
-                if run.checkpoint_due(t):
+                stop = run.stop_requested()        # read once: Ctrl-C saves the step, then stops
+                if stop or run.checkpoint_due(t):
                     run.save(t, model.state_dict(), optimizer)
+                if stop:
+                    raise KeyboardInterrupt
         run.save_final(model.state_dict())
 
     config and hyper are JSON-able dicts; a resume checks both against the checkpoint's (but
     hyper["init"], which counts at step 0 only: the checkpoint's record is kept). eval_fingerprint:
     the held-out set whose rows log_eval appends (loops.fingerprint of it); a resume refuses
-    another set than the one eval.csv's rows came from.
+    another set than the one eval.csv's rows came from. stop_at_step_end: Ctrl-C inside `with run`
+    ends the loop after the step under way, checkpointed (StopAtStepEnd); False for a data-parallel
+    run.
     """
 
     def __init__(self, out_dir, kind, config, hyper, columns, *, final, steps, resume, progress,
-                 checkpoint_every, log_every, call=None, eval_columns=None, eval_fingerprint=None):
+                 checkpoint_every, log_every, call=None, eval_columns=None, eval_fingerprint=None,
+                 stop_at_step_end=True):
         self.steps_total = positive_int("steps", steps)
         self.checkpoint_every = positive_int("checkpoint_every", checkpoint_every)
         self.log_every = positive_int("log_every", log_every)
@@ -240,6 +283,8 @@ class Run:
         elif os.path.exists(self.eval_path) and not self.resumed:
             os.remove(self.eval_path)  # an older run's evaluations
         self._log_file = self._bar = None
+        self._step = None  # the step under way (for the Ctrl-C line)
+        self._stop = StopAtStepEnd(stop_at_step_end, self._say_stopping)
         self._t0 = time.perf_counter()
 
     def _check_eval_set(self, saved):
@@ -362,20 +407,39 @@ class Run:
             from tqdm.auto import tqdm
             self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}",
                              unit="step", dynamic_ncols=True)
+        self._stop.__enter__()
         return self
 
     def __exit__(self, *exc):
+        self._stop.__exit__(*exc)
         if self._bar is not None:
             self._bar.close()
         self._log_file.close()
+        if exc[0] is None and self._stop.requested:
+            # Ctrl-C after the last step's checkpoint was saved: stop here all the same (the
+            # caller's next work, e.g. pyvf train's next stage, must not start); a rerun finds the
+            # last step's checkpoint and only writes the final model
+            raise KeyboardInterrupt
         return False
 
     def steps(self):
         """The steps still to run, start + 1 .. steps; advances the progress bar."""
         for t in range(self.start + 1, self.steps_total + 1):
+            self._step = t
             yield t
             if self._bar is not None:
                 self._bar.update(1)
+
+    def _say_stopping(self):
+        """The line on stderr at the first Ctrl-C (on a line of its own after a progress bar)."""
+        at = "the step under way" if self._step is None else f"step {self._step}"
+        print(f"{chr(10) if self._bar is not None else ''}Ctrl-C: finishing {at} and saving it; Ctrl-C again "
+              "stops at once (losing the steps since the last checkpoint)", file=sys.stderr, flush=True)
+
+    def stop_requested(self):
+        """Whether Ctrl-C asked the loop to stop: then it saves the step it just finished and
+        raises KeyboardInterrupt (read once per step, before the checkpoint decision)."""
+        return self._stop.requested
 
     def checkpoint_due(self, step):
         return step % self.checkpoint_every == 0 or step == self.steps_total

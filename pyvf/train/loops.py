@@ -5,7 +5,8 @@
     tf = train_transformer(tokens, poses, TINY_TRANSFORMER, "runs/tf", steps=50_000)
 
 Each loop checkpoints its run folder atomically (see _run.py for the layout) every
-`checkpoint_every` steps and at the end, and a call with resume=True continues from the
+`checkpoint_every` steps, at the end, and at Ctrl-C (SIGINT, in the main thread: the step under
+way finishes and is saved, then KeyboardInterrupt; a second Ctrl-C raises at once), and a call with resume=True continues from the
 checkpoint to exactly the parameters, optimiser moments and EMA buffers an uninterrupted run
 reaches, bit for bit, on the same kernel path (pyvf.show_config: baseline, avx2 and avx512
 may round differently; 1 and 2 threads were measured to give the same bits). That needs
@@ -207,12 +208,16 @@ def _note_init_not_read(path, meta, ckpt_path):
 
 
 def _checkpoint(run, step, state, opt, check):
-    """The loops' checkpoint after `step`, when due: the engine's check(out_dir, step) first (the
-    torch engine's parity: a divergent model is not checkpointed), then run.save."""
-    if run.checkpoint_due(step):
+    """The loops' checkpoint after `step`, when due or when Ctrl-C asked the run to stop (then
+    KeyboardInterrupt after the save): the engine's check(out_dir, step) first (the torch engine's
+    parity: a divergent model is not checkpointed), then run.save."""
+    stop = run.stop_requested()  # read once: a Ctrl-C from here on stops after the next step
+    if stop or run.checkpoint_due(step):
         if check is not None:
             check(run.out_dir, step)
         run.save(step, state(), opt)
+    if stop:
+        raise KeyboardInterrupt
 
 
 def _recipe(recipe, lr, betas, reset_dead_codes, object_weight):
@@ -573,7 +578,8 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         run = _run_folder(dp, lambda: Run(
             out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
             steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
-            call=call, eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint")),
+            call=call, eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint"),
+            stop_at_step_end=dp is None),
             steps, out_dir)
         evaluating = health is not None and eval_every > 0 and not isinstance(run, Follower)
         model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay, init_state)

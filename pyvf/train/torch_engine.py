@@ -175,6 +175,9 @@ class Follower:
     def checkpoint_due(self, step):
         return False
 
+    def stop_requested(self):
+        return False
+
     def save_final(self, arrays):
         pass
 
