@@ -4,6 +4,7 @@ Every layer has a hand-written forward and backward pass; docs/math.md is the ma
 """
 
 import os
+import sys
 
 # OpenMP threads that spin after a parallel region steal the cores other work needs: numpy's, the
 # user's, other processes' (`pyvf bench threads` measures each policy idle and beside busy
@@ -12,7 +13,21 @@ import os
 if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
-from . import _core  # the compiled kernels, on the best instruction-set path (or PYVF_ISA's)
+
+def _running_the_pyvf_command():
+    """Whether this process is the `pyvf` command (its console script, or `python -m pyvf`)."""
+    if os.path.splitext(os.path.basename(sys.argv[0]))[0] == "pyvf":
+        return True
+    argv = list(getattr(sys, "orig_argv", []))  # while -m finds its module, sys.argv[0] is "-m"
+    return sys.argv[0] == "-m" and ("-mpyvf" in argv or any(a == "-m" and b == "pyvf" for a, b in zip(argv, argv[1:])))
+
+
+try:
+    from . import _core  # the compiled kernels, on the best instruction-set path (or PYVF_ISA's)
+except ImportError as e:
+    if _running_the_pyvf_command():  # a bad PYVF_ISA or a missing build: one line, not a traceback
+        raise SystemExit(f"pyvf: error: {e}") from None
+    raise
 from . import _threads
 from ._threads import num_threads, set_num_threads, threads  # the kernels' and numpy's BLAS threads
 from ._memory import reuse_freed_memory  # page faults of each step's fresh arrays (every command calls it)

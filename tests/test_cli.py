@@ -98,6 +98,23 @@ def test_python_dash_m_pyvf(tmp_path):
     assert_ran(proc, f"pyvf {pyvf.__version__}")
 
 
+@pytest.mark.parametrize("how", ["script", "-m", "-mpyvf"])
+def test_a_bad_kernel_path_is_one_line_for_the_command(how, tmp_path):
+    """PYVF_ISA naming no kernel path: `pyvf` (any subcommand, --help too) and `python -m pyvf` print
+    one line naming the variable and the paths there are, status 1, no traceback; the library's
+    `import pyvf` still raises the ImportError (a traceback is the library's way)."""
+    argv = {"script": [pyvf_script()], "-m": [sys.executable, "-m", "pyvf"], "-mpyvf": [sys.executable, "-mpyvf"]}[how]
+    env = clean_env(PYVF_ISA="avx9")
+    for args in (["--help"], ["demo", "--quick"]):
+        proc = subprocess.run([*argv, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=TIMEOUT)
+        assert proc.returncode == 1 and proc.stdout == "", proc
+        assert proc.stderr.splitlines() == ["pyvf: error: PYVF_ISA='avx9' is not a kernel path of this architecture; "
+                                            f"choose one of {', '.join(pyvf._core._order)}"], proc.stderr
+    lib = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=TIMEOUT)
+    assert lib.returncode == 1 and "Traceback" in lib.stderr and "ImportError: PYVF_ISA='avx9'" in lib.stderr, lib
+
+
 def test_config(tmp_path):
     assert_ran(run(["config"], tmp_path), "kernel path:", "threads:")
     # the kernels listed come from the compiled module: every one is callable there, and the
