@@ -242,6 +242,10 @@ def test_policy_and_scaling_lines_state_the_measured_ratios():
     assert "on 2 threads against 1: step **1.88x**" in line and "bitwise the same at every" in line
     assert "NOT bitwise" in report.scaling_threads_line(dict(scaling=dict(sc, bitwise={"step": False})))
     assert report.policy_line({}) is None and report.scaling_threads_line({}) is None
+    # the machine's ceilings are named as such, not as one more call
+    sc["times"]["ceiling: compute (GEMM)"] = {"1": 2.0, "2": 1.0}
+    line = report.scaling_threads_line(dict(scaling=sc))
+    assert "against 1: step **1.88x** (the machine's ceilings: compute (GEMM) 2.00x);" in line, line
 
 
 def test_plot_problems_finds_overlapping_ticks_and_a_legend_over_the_data():
@@ -338,6 +342,8 @@ def test_other_machines_section_merges_one_machines_files(tmp_path):
           [{"1": 8.0, "2": 4.0, "16": 0.9}], "pyvf bench threads --scaling-only --calls codebook-paper")
     write("threads-scaling-16-b.json", "Xeon X", ["transformer step, tiny"], [{"1": 1.0, "16": 0.3}],
           "pyvf bench threads --scaling-only --calls transformer-tiny --counts 1 16")
+    write("threads-scaling-16-c.json", "Xeon X", ["ceiling: compute (GEMM)", "ceiling: memory (add)"],
+          [{"1": 1.0, "16": 0.1}, {"1": 1.0, "2": 0.5}], "pyvf bench threads --scaling-only --calls gemm stream")
     write("threads-scaling-other.json", "EPYC Y", ["Codebook.encode"], [{"1": 1.0, "16": 0.1}], "cmd")
     (meas / "threads.json").write_text("{}")
     text = "\n".join(report.other_machines_section(str(tmp_path)))
@@ -348,4 +354,6 @@ def test_other_machines_section_merges_one_machines_files(tmp_path):
     assert re.search(r"\| transformer step, tiny +\| 1000 ms \(1\.00x\) +\| - +\| 300 ms \(3\.33x\)", xeon)
     assert "codebook step, paper (batch 2): 8.89x on 16 threads (target at least 8)" in xeon
     assert "transformer step, tiny: 3.33x on 16 threads (target at least 4) **missed**" in xeon
+    assert "8.89x on 16 threads (target at least 8); the machine's ceilings on 16 threads: compute (GEMM) " \
+           "10.00x.\n" in xeon  # memory (add) was not run on 16
     assert report.other_machines_section(str(tmp_path / "nowhere")) == []

@@ -101,6 +101,26 @@ def test_merge_scaling_and_many_core_targets():
         ("transformer step, paper (1 x 20 views): 6.00x on 16 threads (target at least 8)", False)]
 
 
+def test_the_ceilings_are_validated_pyvf_kernels_bitwise_across_threads():
+    """The machine's ceilings (quick sizes): pyvf's GEMM and add, each validated when made (the GEMM
+    within n u of float64 on 64 rows, the add bitwise NumPy's), bitwise the same on 1 and 2 threads;
+    ceilings_text reads their speed-ups and nothing else."""
+    rep = bench.scale(True, 2, log=lambda *a: None, calls=["gemm", "stream"])
+    assert list(rep["times"]) == ["ceiling: compute (GEMM)", "ceiling: memory (add)"]
+    assert rep["bitwise"] == {"ceiling: compute (GEMM)": True, "ceiling: memory (add)": True}
+    made = {"threads": [1, 16], "bitwise": {}, "times": {"ceiling: compute (GEMM)": {"1": 1.0, "16": 0.1},
+            "ceiling: memory (add)": {"1": 1.0, "16": 0.4}, "codebook step, tiny": {"1": 1.0, "16": 0.5}}}
+    assert bench.ceilings_text(made, 16) == "compute (GEMM) 10.00x, memory (add) 2.50x"
+    assert bench.ceilings_text(made, 8) == ""
+
+
+def test_a_wrong_gemm_is_refused_before_timing(monkeypatch):
+    """The compute ceiling checks its product: a GEMM that transposes b (a planted bug) raises."""
+    monkeypatch.setattr(bench, "matmul", lambda a, b: np.ascontiguousarray(a @ b.T))
+    with pytest.raises(AssertionError, match="GEMM of n = 512"):
+        bench._gemm(512)
+
+
 def test_scaling_table_and_targets_on_made_up_times():
     rep = {"threads": [1, 2], "bitwise": {"transformer step, paper": True, "Codebook.encode": False},
            "times": {"transformer step, paper": {"1": 30.0, "2": 15.0}, "Codebook.encode": {"1": 0.2, "2": 0.125}}}

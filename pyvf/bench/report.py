@@ -239,9 +239,12 @@ def scaling_threads_line(th):
     if not sc or len(sc["threads"]) < 2:
         return None
     top = str(sc["threads"][-1])
-    ups = ", ".join(f"{name} **{t['1'] / t[top]:.2f}x**" for name, t in sc["times"].items())
+    ups = ", ".join(f"{name} **{t['1'] / t[top]:.2f}x**" for name, t in sc["times"].items()
+                    if not name.startswith(_threads.CEILING))
+    ceilings = _threads.ceilings_text(sc, top)
     same = all(sc["bitwise"].values())
-    return (f"* **More threads**: on {top} threads against 1: {ups}; every result "
+    return (f"* **More threads**: on {top} threads against 1: {ups}"
+            + (f" (the machine's ceilings: {ceilings})" if ceilings else "") + "; every result "
             + ("bitwise the same at every thread count." if same else "NOT bitwise the same: see the table."))
 
 
@@ -354,7 +357,10 @@ def scaling_threads_section(quick, m, th):
          + ("" if quick else " and the paper's") + ") and the evaluation's calls, each from a fresh model whose "
          "first step's result must be bitwise the same on every thread count; after one more step untimed "
          "(the steady state of a training loop), the median time of the next steps, and the speed-up over "
-         "1 thread.", "",
+         "1 thread. The two ceilings are what this machine's cores give compute-bound work (pyvf's GEMM of "
+         "two 2048 x 2048 float32 matrices: the register tiles of the steps' convolutions and products) and "
+         "memory-bound work (pyvf's add of two 256 MiB float32 arrays into a third, far beyond the caches, as "
+         "Adam, GroupNorm and the residual adds stream): a step's speed-up is read against them.", "",
          measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{sc['threads'][-1]}"),
          "", table(*_threads.scaling_table(sc)), ""]
     targets = _threads.scaling_targets(sc)
@@ -387,8 +393,11 @@ def other_machines_lines(out):
 
 
 def _targets_text(sc, missed):
-    """The many-core targets of a scaling report, `missed` after each one not met."""
-    return "; ".join(line + ("" if met else missed) for line, met in _threads.many_core_targets(sc))
+    """The many-core targets of a scaling report, `missed` after each one not met, then the machine's
+    ceilings on as many threads where they were measured."""
+    ceilings = _threads.ceilings_text(sc, _threads.MANY_CORES)
+    return ("; ".join(line + ("" if met else missed) for line, met in _threads.many_core_targets(sc))
+            + (f"; the machine's ceilings on {_threads.MANY_CORES} threads: {ceilings}" if ceilings else ""))
 
 
 def _anchor(text):

@@ -27,8 +27,10 @@ Two more measurements follow (skipped by `run(..., policies=False, scaling=False
   process of its own (the runtime reads it when it loads), all alive at once and timed back to back
   in each round, the default setting's time of every call idle and under load.
 - Scaling (SCALING_CALLS): the codebook's and the transformer's training steps at the shipped
-  (tiny) and the paper's sizes, and the evaluation's calls, at 1, 2, 4, ... up to every usable
-  core; each from the same fresh model for every thread count, whose first step's result must
+  (tiny) and the paper's sizes, the evaluation's calls, and the machine's two ceilings (pyvf's
+  GEMM, compute-bound, and its add of arrays far beyond the caches, memory-bound: what the
+  cores give those kinds of work, which the steps' speed-ups are read against), at 1, 2, 4, ...
+  up to every usable core; each from the same fresh model for every thread count, whose first step's result must
   be bitwise 1 thread's; after a second step untimed (a training loop's steady state: the first
   steps grow the heap to its high-water mark, page-faulting in what later steps reuse), the next
   ones are timed. Quick: the paper sizes left out, small batches.
@@ -47,6 +49,7 @@ import pyvf
 from pyvf.bench import codebook as _bench_codebook, transformer as _bench_transformer
 from pyvf.bench.common import Worker, cpu_name, median_time, run_worker, table, worker_main
 from pyvf._threads import affinity, blas_limit, blas_num_threads, cores, cpu_limits_text
+from pyvf.nn.layers import add, matmul
 from pyvf.train.loops import TINY_CODEBOOK, TINY_TRANSFORMER
 
 MODULE = "pyvf.bench.threads"  # run_worker's module: __name__ is "__main__" where a worker runs this file
@@ -453,12 +456,39 @@ def _transformer_stepper(config, batch):
 
 
 def _stateless(make, size):
-    """A call without state (CALLS' makers): step() keeps its output for result()."""
-    fn, last = make(size), {}
+    """A call without state (CALLS' makers) -> prepare() -> (step, result): its inputs made at each
+    prepare (not while other calls run), step() keeping its output for result()."""
+    def prepare():
+        fn, last = make(size), {}
 
-    def step():
-        last["out"] = fn()
-    return lambda: (step, lambda: last["out"])
+        def step():
+            last["out"] = fn()
+        return step, lambda: last["out"]
+    return prepare
+
+
+def _gemm(n):
+    """pyvf's GEMM (pyvf.nn.layers.matmul) of two (n, n) float32 matrices: compute-bound work of
+    the training steps' kind (their convolutions and products run the same register tiles), so its
+    speed-up is what the machine's cores give such work: the ceiling of the steps' speed-ups."""
+    a, b = np.random.default_rng(2).standard_normal((2, n, n)).astype(np.float32)
+    c, want = matmul(a, b)[:64], a[:64].astype(np.float64) @ b  # validated on 64 rows before timing
+    # each element one float32 sum of n products: normwise within n u of float64 (unit normal inputs)
+    if not np.linalg.norm(c - want) <= n * 2.0 ** -24 * np.linalg.norm(want):
+        raise AssertionError(f"ceiling: pyvf's GEMM of n = {n} is {np.linalg.norm(c - want) / np.linalg.norm(want):.3g} "
+                             "from float64 normwise")
+    return lambda: matmul(a, b)
+
+
+def _stream(mib):
+    """pyvf's add (pyvf.nn.layers.add) of two float32 arrays of `mib` MiB each into a third, made
+    once: memory-bound (12 bytes moved per addition), its speed-up the machine's memory bandwidth
+    over one core's, the ceiling of the passes that only stream (Adam, GroupNorm, the adds)."""
+    a, b = np.random.default_rng(3).standard_normal((2, mib << 18)).astype(np.float32)
+    out = np.empty_like(a)
+    if not np.array_equal(add(a, b, out=out), a + b):  # one rounding each: bitwise NumPy's, checked before timing
+        raise AssertionError("ceiling: pyvf's add is not bitwise NumPy's a + b")
+    return lambda: add(a, b, out=out)
 
 
 # name -> (maker(quick) -> prepare, whether quick mode runs it); prepare() -> (step, result)
@@ -469,10 +499,15 @@ SCALING_CALLS = {  # (the tiny batches: 4 and 2 in quick mode)
     "transformer step, paper (1 x 20 views)": (lambda q: _transformer_stepper("paper", 1), False),
     "render + localize, cached": (lambda q: _stateless(_render_localize, 2 if q else 4), True),
     "Codebook.encode": (lambda q: _stateless(_encode, 8 if q else 32), True),
+    # the machine's ceilings: what its cores give compute-bound and memory-bound work
+    # (GEMM of n = 2048, add of 2 x 256 MiB; quick: 512 and 2 x 16 MiB)
+    "ceiling: compute (GEMM)": (lambda q: _stateless(_gemm, 512 if q else 2048), True),
+    "ceiling: memory (add)": (lambda q: _stateless(_stream, 16 if q else 256), True),
 }
 # the names `pyvf bench threads --calls` takes
 SCALING_IDS = dict(zip(("codebook-tiny", "transformer-tiny", "codebook-paper", "transformer-paper", "render",
-                        "encode"), SCALING_CALLS))
+                        "encode", "gemm", "stream"), SCALING_CALLS))
+CEILING = "ceiling: "  # the names of the machine's ceilings start so
 PAPER_SPEEDUP_2 = 1.8  # the paper-size steps on 2 threads against 1 (target)
 
 
@@ -569,6 +604,13 @@ def many_core_targets(rep):
             out.append((f"{name}: {up:.2f}x on {MANY_CORES} threads (target at least {MANY_SPEEDUP[size]:g})",
                         up >= MANY_SPEEDUP[size]))
     return out
+
+
+def ceilings_text(rep, n):
+    """The machine's ceilings' speed-ups on n threads against 1 ("compute (GEMM) 9.81x, memory (add)
+    4.02x"), "" where neither was run at both counts."""
+    return ", ".join(f"{name[len(CEILING):]} {t['1'] / t[str(n)]:.2f}x" for name, t in rep["times"].items()
+                     if name.startswith(CEILING) and "1" in t and str(n) in t)
 
 
 def merge_scaling(reports):
