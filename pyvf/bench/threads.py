@@ -30,8 +30,8 @@ Two more measurements follow (skipped by `run(..., policies=False, scaling=False
   (tiny) and the paper's sizes, the evaluation's calls, and the machine's two ceilings (pyvf's
   GEMM, compute-bound, and its add of arrays far beyond the caches, memory-bound: what the
   cores give those kinds of work, which the steps' speed-ups are read against), at 1, 2, 4, ...
-  up to every usable core; each from the same fresh model for every thread count, whose first step's result must
-  be bitwise 1 thread's; after a second step untimed (a training loop's steady state: the first
+  up to every usable core; each from the same fresh model for every thread count, whose first
+  step's result must be bitwise 1 thread's; after a second step untimed (a training loop's steady state: the first
   steps grow the heap to its high-water mark, page-faulting in what later steps reuse), the next
   ones are timed. Quick: the paper sizes left out, small batches.
 """
