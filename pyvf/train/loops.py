@@ -7,10 +7,10 @@
 Each loop checkpoints its run folder atomically (see _run.py for the layout) every
 `checkpoint_every` steps, at the end, and at Ctrl-C (SIGINT, in the main thread: the step under
 way finishes and is saved, then KeyboardInterrupt; a second Ctrl-C raises at once), and a call
-with resume=True continues from the checkpoint to exactly the parameters, optimiser moments and EMA buffers an uninterrupted run
-reaches, bit for bit, on the same kernel path (pyvf.show_config: baseline, avx2 and avx512
-may round differently; 1 and 2 threads were measured to give the same bits). That needs
-every batch to be a pure function of (seed, step):
+with resume=True continues from the checkpoint to exactly the parameters, optimiser moments and
+EMA buffers an uninterrupted run reaches, bit for bit, on the same kernel path (pyvf.show_config:
+baseline, avx2 and avx512 may round differently; 1 and 2 threads were measured to give the same
+bits). That needs every batch to be a pure function of (seed, step):
 `codebook_batch` and `transformer_batch` draw from np.random.default_rng([seed, step]), so
 no generator state is saved.
 """
