@@ -579,8 +579,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
             out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
             steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
             call=call, eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint"),
-            stop_at_step_end=dp is None),
-            steps, out_dir)
+            stop_at_step_end=dp is None), steps, out_dir)
         evaluating = health is not None and eval_every > 0 and not isinstance(run, Follower)
         model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay, init_state)
         step, state, current, opt, check = _transformer_engine(
