@@ -20,7 +20,7 @@ result must be finite and within RESULT_RTOL of the default's, and the table say
 bitwise equal to it. The table gives each call's median time per setting and condition, the
 best setting (the smallest median), and the default's time over the best's (the target: at most
 1.1), the median of the rounds' ratios: each round times every setting back to back, 7 rounds
-idle and 15 under load, where one call's time varies by 20% or more.
+idle and 25 under load, where one call's time varies by 20% or more.
 
 Two more measurements follow (skipped by `run(..., policies=False, scaling=False)`):
 - The OpenMP runtime's waiting between parallel regions (WAIT_POLICIES): each choice in a worker
@@ -57,7 +57,10 @@ LOAD_SECONDS = 600  # a busy process stops by itself after this, should the benc
 # repeat: rounds idle; loaded_repeat: beside the busy processes, whose scheduling makes one call
 # vary by 20% or more
 QUICK = dict(scenes=2, cb_batch=4, tf_batch=2, images=8, repeat=3, loaded_repeat=3)
-FULL = dict(scenes=4, cb_batch=16, tf_batch=8, images=32, repeat=7, loaded_repeat=15)
+# (25 rounds under load: with 15, the median ratio of two settings that run the same code, the
+# default and BLAS 1 for the cached render, which has no BLAS product, still read 1.10, as far from
+# 1 as the 10% the target allows)
+FULL = dict(scenes=4, cb_batch=16, tf_batch=8, images=32, repeat=7, loaded_repeat=25)
 LIMIT = 1.1  # the default's time may be at most this much over the best setting's
 # pyvf's kernels and products give the same bits for any thread count (its models use no BLAS
 # product), so every setting's result must be bitwise the default's; a result that is not fails
