@@ -474,7 +474,7 @@ def _gemm(n):
     """pyvf's GEMM (pyvf.nn.layers.matmul) of two (n, n) float32 matrices: compute-bound work of
     the training steps' kind (their convolutions and products run the same register tiles), so its
     speed-up is what the machine's cores give such work: the ceiling of the steps' speed-ups."""
-    a, b = np.random.default_rng(2).standard_normal((2, n, n)).astype(np.float32)
+    a, b = np.random.default_rng(2).standard_normal((2, n, n), dtype=np.float32)
     c, want = matmul(a, b)[:64], a[:64].astype(np.float64) @ b  # validated on 64 rows before timing
     # each element one float32 sum of n products: normwise within n u of float64 (unit normal inputs)
     if not np.linalg.norm(c - want) <= n * 2.0 ** -24 * np.linalg.norm(want):
@@ -487,7 +487,7 @@ def _stream(mib):
     """pyvf's add (pyvf.nn.layers.add) of two float32 arrays of `mib` MiB each into a third, made
     once: memory-bound (12 bytes moved per addition), its speed-up the machine's memory bandwidth
     over one core's, the ceiling of the passes that only stream (Adam, GroupNorm, the adds)."""
-    a, b = np.random.default_rng(3).standard_normal((2, mib << 18)).astype(np.float32)
+    a, b = np.random.default_rng(3).standard_normal((2, mib << 18), dtype=np.float32)  # no float64 copy
     out = np.empty_like(a)
     if not np.array_equal(add(a, b, out=out), a + b):  # one rounding each: bitwise NumPy's, checked before timing
         raise AssertionError("ceiling: pyvf's add is not bitwise NumPy's a + b")
