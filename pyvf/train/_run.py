@@ -413,6 +413,8 @@ class Run:
     def __exit__(self, *exc):
         self._stop.__exit__(*exc)
         if self._bar is not None:
+            if self._stop.requested and self._step is not None and self._bar.n < self._step:
+                self._bar.update(self._step - self._bar.n)  # Ctrl-C: the step it finished and saved
             self._bar.close()
         self._log_file.close()
         if exc[0] is None and self._stop.requested:
