@@ -7,17 +7,22 @@ import sys
 import tempfile
 
 KERNEL_THREADS = "threads for pyvf's C++ kernels"
+INTERRUPTED = 130  # a command's exit status after Ctrl-C: the shell's for a process ended by SIGINT (128 + 2)
+
+
+def _integer(text, lo, expected):
+    try:
+        v = int(text)
+    except ValueError:
+        v = lo - 1
+    if v < lo:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+    return v
 
 
 def positive_int(text):
     """argparse type: a positive integer (an error naming the option otherwise)."""
-    try:
-        v = int(text)
-    except ValueError:
-        v = 0
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return v
+    return _integer(text, 1, "a positive integer")
 
 
 def _number(text, ok, expected):
@@ -42,13 +47,7 @@ def non_negative_float(text):
 
 def non_negative_int(text):
     """argparse type: an integer >= 0."""
-    try:
-        v = int(text)
-    except ValueError:
-        v = -1
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
-    return v
+    return _integer(text, 0, "a non-negative integer")
 
 
 def add_threads(parser, default=None, help=KERNEL_THREADS):

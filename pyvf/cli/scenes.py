@@ -8,7 +8,7 @@ import sys
 
 from ..scenes.dataset import DatasetExistsError
 from ..scenes.make import PREVIEW_SCENES, make_dataset
-from .options import fail, file_to_write, folder_to_make
+from .options import INTERRUPTED, fail, file_to_write, folder_to_make
 
 
 def cmd_scenes(args):
@@ -31,7 +31,7 @@ def cmd_scenes(args):
     except KeyboardInterrupt:
         print(f"\npyvf scenes: interrupted; the same command resumes it, keeping the shards in {args.out} that "
               "are finished", file=sys.stderr)
-        return 130  # the shell's status of a command stopped by Ctrl-C
+        return INTERRUPTED
     return 0
 
 

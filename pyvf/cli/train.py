@@ -19,9 +19,7 @@ import sys
 from ..train import tasks
 from ..train.loops import CODEBOOK_RECIPES
 from ..train.pipeline import PRESETS, train_pipeline
-from .options import add_threads, non_negative_float, non_negative_int
-
-INTERRUPTED = 130  # the shell's status of a process ended by SIGINT (128 + 2)
+from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int
 
 
 def _record(args):

@@ -102,6 +102,12 @@ def _eval_seed(eval_seed):
         raise ValueError(str(e)) from None
 
 
+def _check_engine(train):
+    """check_engine on a run's keywords (engine, device, precision; the loops' defaults where
+    absent), before its data is read."""
+    check_engine(train.get("engine", "pyvf"), train.get("device", "cpu"), train.get("precision", "fp32"))
+
+
 def read_codebook(path):
     """Codebook.load(path), its errors as ValueError naming the file."""
     return read_model(path, Codebook, "codebook")
@@ -160,7 +166,7 @@ def codebook_run(data, out, *, config="tiny", eval_every=100, eval_scenes=32, ev
     train: train_codebook's other keywords (steps, batch_size, ..., threads, command). Returns
     the trained Codebook (out/codebook.npz)."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
-    check_engine(*(train.get(k, d) for k, d in (("engine", "pyvf"), ("device", "cpu"), ("precision", "fp32"))))
+    _check_engine(train)
     if init is not None and resume_point(out, train.get("resume", True)) is None:  # a resume does not read it
         read_model(init, Codebook, "--init")  # a missing file or another model's, named as the option
     data = _load_dataset(data)
@@ -193,7 +199,7 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
     transformer file `init` when given. train: train_transformer's other keywords (steps,
     batch_size, ..., threads, command). Returns the trained Transformer (out/transformer.npz)."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
-    check_engine(*(train.get(k, d) for k, d in (("engine", "pyvf"), ("device", "cpu"), ("precision", "fp32"))))
+    _check_engine(train)
     if init is not None and resume_point(out, train.get("resume", True)) is None:  # a resume does not read it
         read_model(init, Transformer, "--init")  # a missing file or another model's, named as the option
     tokens_path, (tokens, poses, n_embed) = tokens, load_tokens(tokens)
