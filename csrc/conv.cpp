@@ -25,7 +25,8 @@
 //   dx        stride 1: the transposed conv is itself a stride-1 conv: dx = conv(dy, wf) with
 //             wf[c, o, i, j] = w[o, c, kh-1-i, kw-1-j] and padding (kh-1-pt, kh-1-pb, kw-1-pl,
 //             kw-1-pr) (a negative one crops), so it runs the forward's tasks: each dx element
-//             is one dot product of Co*kh*kw terms, a gather, no scatter.
+//             is one dot product of Co*kh*kw terms, a gather, no scatter. wf is never stored: the
+//             tasks read it in place from w through a table of column offsets.
 //             stride > 1 (the Downsample): dcols (K_blk, np) = w2[:, blk]^T @ dy tile, then col2im
 //             adds each row onto its strided slab of dx. Task = (image, block of kCB channels),
 //             its tiles in order, so no two tasks write the same dx element (StridedDxTasks).
@@ -43,8 +44,8 @@
 //             channels), owning those entries of dw, every image's every tile summed in a fixed order.
 //   db        sum over images and pixels of dy, in double, per output channel.
 // Threads: one OpenMP region per call (each region, and each barrier in it, wakes the sleeping
-// threads under OMP_WAIT_POLICY=PASSIVE: 35-50 us on a 2-core VM). The backward's region flips
-// the weights and copies dy channels-last, meets its one barrier, then runs the dw tasks and the
+// threads under OMP_WAIT_POLICY=PASSIVE: 35-50 us on a 2-core VM). The backward's region copies
+// dy channels-last, meets its one barrier, then runs the dw tasks and the
 // dx tasks as one dynamic loop, so that the dx tasks fill the threads the dw tasks leave idle
 // (the tiny codebook's 32-channel dw has 8 tasks), and db.
 // Determinism: the tiles depend only on the shapes; every output element is computed by one
@@ -199,8 +200,12 @@ template <typename T> inline void copy_between_zeros(T* out, const T* src, int64
 // rows of a zero-padded image tile, shifted per kernel tap, so that Bt is the im2col matrix of
 // one output row without ever being written. Otherwise simd.h's gemm_tile/gemm_rows: the same
 // sums in the same order, so the result is bitwise the one im2col + gemm gives.
-template <typename T, int MR, int NV>
-inline void tab_tile(int K, const T* A, long lda, const T* B, const int64_t* boff, T* C, long ldc) {
+// A's element (i, k) is A[i * lda + k], or with AT A[i * lda + aoff[k]]: a matrix whose columns
+// are found through a table too (the dx's flipped weights, read in place from w; aoff is not read
+// without AT).
+template <typename T, int MR, int NV, bool AT>
+inline void tab_tile(int K, const T* A, long lda, const int64_t* aoff, const T* B, const int64_t* boff, T* C,
+                     long ldc) {
     using V = typename Simd<T>::V;
     constexpr int W = Simd<T>::W;
     V acc[MR][NV];
@@ -210,12 +215,13 @@ inline void tab_tile(int K, const T* A, long lda, const T* B, const int64_t* bof
         for (int v = 0; v < NV; ++v) acc[i][v] = V{};
     for (int k = 0; k < K; ++k) {
         const T* bk = B + boff[k];
+        const T* ak = A + (AT ? aoff[k] : k);
         V bv[NV];
 #pragma GCC unroll 4
         for (int v = 0; v < NV; ++v) bv[v] = vload<T>(bk + v * W);
 #pragma GCC unroll 16
         for (int i = 0; i < MR; ++i) {
-            const T a = A[i * lda + k];
+            const T a = ak[i * lda];
 #pragma GCC unroll 4
             for (int v = 0; v < NV; ++v) acc[i][v] += a * bv[v];
         }
@@ -226,16 +232,17 @@ inline void tab_tile(int K, const T* A, long lda, const T* B, const int64_t* bof
         for (int v = 0; v < NV; ++v) vstore<T>(C + i * ldc + v * W, acc[i][v]);
 }
 
-template <typename T, int MR>
-inline void tab_rows(int N, int K, const T* A, long lda, const T* B, const int64_t* boff, T* C, long ldc) {
+template <typename T, int MR, bool AT>
+inline void tab_rows(int N, int K, const T* A, long lda, const int64_t* aoff, const T* B, const int64_t* boff, T* C,
+                     long ldc) {
     constexpr int W = Simd<T>::W;
     int j = 0;
-    for (; j + 2 * W <= N; j += 2 * W) tab_tile<T, MR, 2>(K, A, lda, B + j, boff, C + j, ldc);
-    for (; j + W <= N; j += W) tab_tile<T, MR, 1>(K, A, lda, B + j, boff, C + j, ldc);
+    for (; j + 2 * W <= N; j += 2 * W) tab_tile<T, MR, 2, AT>(K, A, lda, aoff, B + j, boff, C + j, ldc);
+    for (; j + W <= N; j += W) tab_tile<T, MR, 1, AT>(K, A, lda, aoff, B + j, boff, C + j, ldc);
     for (; j < N; ++j)  // columns past the last full vector
         for (int i = 0; i < MR; ++i) {
             T s = 0;
-            for (int k = 0; k < K; ++k) s += A[i * lda + k] * B[boff[k] + j];
+            for (int k = 0; k < K; ++k) s += A[i * lda + (AT ? aoff[k] : k)] * B[boff[k] + j];
             C[i * ldc + j] = s;
         }
 }
@@ -244,29 +251,30 @@ inline void tab_rows(int N, int K, const T* A, long lda, const T* B, const int64
 // registers (8 rows made the 3x3 convs' forward 7-9% slower on the codebook's shapes: one load of B
 // served fewer FMAs); AVX2's 16 registers hold 6 rows, SSE2/NEON 4. The rows past the last whole
 // tile: 8-row tiles (AVX-512), then one of the rest. A row's sums are the same in any tile.
-template <typename T>
-void tab_gemm(int M, int N, int K, const T* A, long lda, const T* B, const int64_t* boff, T* C, long ldc) {
+template <typename T, bool AT>
+void tab_gemm(int M, int N, int K, const T* A, long lda, const int64_t* aoff, const T* B, const int64_t* boff, T* C,
+              long ldc) {
     constexpr int MR = kVecBytes >= 64 ? 12 : kVecBytes == 32 ? 6 : 4;
     // AVX-512: M % 12 == 4 (Co = 64, 256) as two 8-row tiles in place of a 12 and a 4
     const int full = MR > 8 && M % MR == 4 && M >= MR ? M - MR - 4 : M - M % MR;
     int i = 0;
-    for (; i < full; i += MR) tab_rows<T, MR>(N, K, A + i * lda, lda, B, boff, C + i * ldc, ldc);
+    for (; i < full; i += MR) tab_rows<T, MR, AT>(N, K, A + i * lda, lda, aoff, B, boff, C + i * ldc, ldc);
     if constexpr (MR > 8)
         while (i + 8 <= M) {
-            tab_rows<T, 8>(N, K, A + i * lda, lda, B, boff, C + i * ldc, ldc);
+            tab_rows<T, 8, AT>(N, K, A + i * lda, lda, aoff, B, boff, C + i * ldc, ldc);
             i += 8;
         }
     A += i * lda;
     C += i * ldc;
     switch (M - i) {
         case 0: break;
-        case 1: tab_rows<T, 1>(N, K, A, lda, B, boff, C, ldc); break;
-        case 2: tab_rows<T, 2>(N, K, A, lda, B, boff, C, ldc); break;
-        case 3: tab_rows<T, 3>(N, K, A, lda, B, boff, C, ldc); break;
-        case 4: if constexpr (MR > 4) tab_rows<T, 4>(N, K, A, lda, B, boff, C, ldc); break;
-        case 5: if constexpr (MR > 5) tab_rows<T, 5>(N, K, A, lda, B, boff, C, ldc); break;
-        case 6: if constexpr (MR > 6) tab_rows<T, 6>(N, K, A, lda, B, boff, C, ldc); break;
-        case 7: if constexpr (MR > 7) tab_rows<T, 7>(N, K, A, lda, B, boff, C, ldc); break;
+        case 1: tab_rows<T, 1, AT>(N, K, A, lda, aoff, B, boff, C, ldc); break;
+        case 2: tab_rows<T, 2, AT>(N, K, A, lda, aoff, B, boff, C, ldc); break;
+        case 3: tab_rows<T, 3, AT>(N, K, A, lda, aoff, B, boff, C, ldc); break;
+        case 4: if constexpr (MR > 4) tab_rows<T, 4, AT>(N, K, A, lda, aoff, B, boff, C, ldc); break;
+        case 5: if constexpr (MR > 5) tab_rows<T, 5, AT>(N, K, A, lda, aoff, B, boff, C, ldc); break;
+        case 6: if constexpr (MR > 6) tab_rows<T, 6, AT>(N, K, A, lda, aoff, B, boff, C, ldc); break;
+        case 7: if constexpr (MR > 7) tab_rows<T, 7, AT>(N, K, A, lda, aoff, B, boff, C, ldc); break;
     }
 }
 
@@ -548,7 +556,10 @@ template <typename T> inline bool rows_finite(const T* y, int64_t m, int64_t ld,
 }
 
 // y = conv(x, w) (+ b when b is not null) as a set of tasks: the forward, and the stride-1 dx
-// with the flipped weights. Task = (image, tile of output rows or pixels, block of output
+// (flipped: y = dx, x = dy, and w the forward's weights (C, Co, kh, kw) in this struct's names,
+// read in place as the flipped kernel wf[o, c, i', j'] = w[c, o, kh-1-i', kw-1-j'] through a
+// table of columns, aoff: never copied, which for a 512-channel 3x3 layer saved writing and
+// reading 9 MiB per backward). Task = (image, tile of output rows or pixels, block of output
 // channels), each writing its own block of y; run(t) may be called by any thread, in any order,
 // with that thread's Scratch (made once by scratch()).
 //   Stride 1, not 1x1-direct (the codebook's 3x3 pad 1, and every 3x3 dx): per task the R + kh - 1
@@ -572,13 +583,22 @@ template <typename T> struct ConvTasks {
     const T *x, *w, *b;
     ConvDims d;
     int64_t K, P, HWi, Wp = 0, R = 0, Rp = 0, np = 0, nwide = 0, ntile, cob, ncob, ntask;
-    bool direct, rows, wide = false;
+    int64_t lda;  // w2's element (o, k) is w[o * lda + k], flipped w[o * lda + aoff[k]]
+    bool flipped, direct, rows, wide = false;
     std::vector<int64_t> boff;  // rows: row k = (c, i, j) of Bt starts at tile + boff[k] (+ r*Wp for row r)
+    std::vector<int64_t> aoff;  // flipped: column k = (c, i', j') of wf starts at w + aoff[k]
 
-    // throws std::bad_alloc
-    ConvTasks(T* y_, const T* x_, const T* w_, const T* b_, const ConvDims& d_) : y(y_), x(x_), w(w_), b(b_), d(d_) {
+    // throws std::bad_alloc; flipped only with stride 1 (the dx)
+    ConvTasks(T* y_, const T* x_, const T* w_, const T* b_, const ConvDims& d_, bool flipped_ = false)
+        : y(y_), x(x_), w(w_), b(b_), d(d_), flipped(flipped_) {
         constexpr int64_t W = kW<T>;
-        K = d.C * d.kh * d.kw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
+        const int64_t khw = d.kh * d.kw;
+        K = d.C * khw, P = d.Ho * d.Wo, HWi = d.Hi * d.Wi;
+        lda = flipped ? khw : K;
+        if (flipped) {  // wf[o, (c, q)] = w[c, o, khw-1-q] at w + o * khw + c * Co * khw + khw-1-q
+            aoff.resize(K);
+            for (int64_t k = 0; k < K; ++k) aoff[k] = (k / khw) * d.Co * khw + khw - 1 - k % khw;
+        }
         direct = d.kh == 1 && d.kw == 1 && d.stride == 1 && !d.pt && !d.pb && !d.pl && !d.pr;
         rows = !direct && d.stride == 1;
         if (rows) {
@@ -617,21 +637,30 @@ template <typename T> struct ConvTasks {
         constexpr int64_t W = kW<T>;
         const int64_t bt = t / ncob, bi = bt / ntile, o0 = (t % ncob) * cob, no = std::min(cob, d.Co - o0);
         const T* xb = x + bi * d.C * HWi;  // (C, Hi, Wi)
-        const T* wb = w + o0 * K;          // rows o0 .. o0 + no of w2
+        const T* wb = w + o0 * lda;        // rows o0 .. o0 + no of w2 (flipped: of wf)
         if (rows) {
             const int64_t u0 = (bt % ntile) * R, nr = std::min(R, d.Ho - u0);
             pad_rows(s.tile.data(), xb, d, 0, d.C, u0, nr + d.kh - 1, Rp, Wp);
             T* yb = y + (bi * d.Co + o0) * P;  // rows o0 .. o0 + no of y_b
             if (wide) {
                 const int64_t n = round_up((nr - 1) * Wp + d.Wo, W);
-                tab_gemm<T>((int)no, (int)n, (int)K, wb, K, s.tile.data(), boff.data(), s.out.data(), n);
+                if (flipped)
+                    tab_gemm<T, true>((int)no, (int)n, (int)K, wb, lda, aoff.data(), s.tile.data(), boff.data(),
+                                      s.out.data(), n);
+                else
+                    tab_gemm<T, false>((int)no, (int)n, (int)K, wb, lda, nullptr, s.tile.data(), boff.data(),
+                                       s.out.data(), n);
                 for (int64_t o = 0; o < no; ++o)
                     for (int64_t r = 0; r < nr; ++r)
                         std::copy_n(s.out.data() + o * n + r * Wp, d.Wo, yb + o * P + (u0 + r) * d.Wo);
             } else {
                 for (int64_t r = 0; r < nr; ++r)  // y_b[o0:o0+no, u0 + r, :] = w2[o0:o0+no] @ Bt(row r)
-                    tab_gemm<T>((int)no, (int)d.Wo, (int)K, wb, K, s.tile.data() + r * Wp, boff.data(),
-                                yb + (u0 + r) * d.Wo, P);
+                    if (flipped)
+                        tab_gemm<T, true>((int)no, (int)d.Wo, (int)K, wb, lda, aoff.data(), s.tile.data() + r * Wp,
+                                          boff.data(), yb + (u0 + r) * d.Wo, P);
+                    else
+                        tab_gemm<T, false>((int)no, (int)d.Wo, (int)K, wb, lda, nullptr, s.tile.data() + r * Wp,
+                                           boff.data(), yb + (u0 + r) * d.Wo, P);
             }
             if (b) add_bias_rows(yb + u0 * d.Wo, b + o0, no, P, nr * d.Wo);
             return rows_finite(yb + u0 * d.Wo, no, P, nr * d.Wo);
@@ -645,8 +674,12 @@ template <typename T> struct ConvTasks {
             src = s.tile.data();
             ldb = n;
         }
-        // y_b[o0:o0+no, p0:p0+n] = w2[o0:o0+no] (no, K) @ cols (K, n)
-        gemm_mr<T, false>((int)no, (int)n, (int)K, wb, K, src, ldb, yb, P);
+        // y_b[o0:o0+no, p0:p0+n] = w2[o0:o0+no] (no, K) @ cols (K, n); flipped (1x1): wf = w^T, (no, K)
+        // read from w's columns o0.., lda apart
+        if (flipped)
+            gemm_mr<T, false, true>((int)no, (int)n, (int)K, w + o0, d.Co, src, ldb, yb, P);
+        else
+            gemm_mr<T, false>((int)no, (int)n, (int)K, wb, K, src, ldb, yb, P);
         if (b) add_bias_rows(yb, b + o0, no, P, n);
         return rows_finite(yb, no, P, n);
     }
@@ -973,33 +1006,19 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
     return conv_status(status, nonfinite);
 }
 
-// The backward in one parallel region: the weights flipped for a stride-1 dx (wf, when not
-// null) and the dw tasks' preparation (dyT), one barrier, then the dw tasks and the dx tasks as
-// one dynamic loop, and db. Both task sets share the same multiply-adds (stride 1: B*Co*P*C*kh*kw),
-// so the set with fewer tasks has the longer ones: it goes first, and the other's short tasks fill
-// the threads' tails (a 128-channel 128x128 layer: 32 dw tasks, then 256 dx tasks; a 512-channel
+// The backward in one parallel region: the dw tasks' preparation (dyT), one barrier, then the dw
+// tasks and the dx tasks as one dynamic loop, and db. Both task sets share the same multiply-adds
+// (stride 1: B*Co*P*C*kh*kw), so the set with fewer tasks has the longer ones: it goes first, and
+// the other's short tasks fill the threads' tails (a 128-channel 128x128 layer: 32 dw tasks, then 256 dx tasks; a 512-channel
 // 8x8 layer: 44 dx tasks, then 512 dw tasks on 16 threads). Every output element is still written
 // by one task in one fixed order, so the results are those of the tasks run one after another, on
 // any number of threads.
 template <typename T, typename Dx, typename Dw>
-int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy, const ConvDims& d) {
-    const int64_t khw = d.kh * d.kw, nflip = wf ? ceil_div(d.C, 16) : 0;
+int backward_tasks(const Dx& dxt, Dw& dwt, T* db, const T* dy, const ConvDims& d) {
     int status = kConvOk, nonfinite = 0, nonfinite_dw = 0, nonfinite_db = 0;
     RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
-        // wf[c, o, i', j'] = w[o, c, kh-1-i', kw-1-j']: (i, j) -> (kh-1-i, kw-1-j) reverses each
-        // (o, c) block of kh*kw taps. By blocks of 16 input channels: w read in runs of 16 blocks,
-        // wf written in 16 runs (a paper codebook's 512 x 512 x 3 x 3 weights are 9 MiB; one block
-        // at a time, each read a cache miss, this took 15% of an 8x8 layer's backward)
-#pragma omp for schedule(static) nowait
-        for (int64_t cb = 0; cb < nflip; ++cb)
-            for (int64_t o = 0; o < d.Co; ++o)
-                for (int64_t c = cb * 16; c < std::min(cb * 16 + 16, d.C); ++c) {
-                    const T* src = w + (o * d.C + c) * khw;
-                    T* dst = wf + (c * d.Co + o) * khw;
-                    for (int64_t q = 0; q < khw; ++q) dst[khw - 1 - q] = src[q];
-                }
 #pragma omp for schedule(static) nowait
         for (int64_t i = 0; i < dwt.nprep; ++i) dwt.prep(i);
         typename Dx::Scratch sx;
@@ -1034,7 +1053,7 @@ int backward_tasks(const Dx& dxt, Dw& dwt, T* wf, const T* w, T* db, const T* dy
     return backward_status(status, nonfinite, nonfinite_dw, nonfinite_db);
 }
 
-// The dx task set of a backward (ConvTasks on the flipped weights wf for stride 1, else
+// The dx task set of a backward (ConvTasks on the flipped weights for stride 1, else
 // StridedDxTasks), then backward_tasks with the dw task set Dw.
 template <typename T, typename Dw>
 int backward_with(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d) {
@@ -1047,15 +1066,14 @@ int backward_with(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, cons
         // padded (kh-1-pt, kh-1-pb, kw-1-pl, kw-1-pr): dy's rows yy + i' - (kh-1-pt).
         const ConvDims t{d.B,  d.Co, d.Ho, d.Wo, d.C, d.kh, d.kw, 1, d.kh - 1 - d.pt, d.kh - 1 - d.pb,
                          d.kw - 1 - d.pl, d.kw - 1 - d.pr, d.Hi, d.Wi};
-        RawBuf<T> wf;  // (C, Co, kh, kw), every element written by the flip
+        // (wf read in place from w by the tasks: ConvTasks' flipped)
         std::unique_ptr<ConvTasks<T>> dxt;
-        PYVF_CONV_OR_OOM(wf.resize(d.C * d.Co * d.kh * d.kw);
-                         dxt.reset(new ConvTasks<T>(dx, dy, wf.data(), nullptr, t)))
-        return backward_tasks(*dxt, *dwt, wf.data(), w, db, dy, d);
+        PYVF_CONV_OR_OOM(dxt.reset(new ConvTasks<T>(dx, dy, w, nullptr, t, true)))
+        return backward_tasks(*dxt, *dwt, db, dy, d);
     }
     std::unique_ptr<StridedDxTasks<T>> dxt;
     PYVF_CONV_OR_OOM(dxt.reset(new StridedDxTasks<T>(dx, w, dy, d)))
-    return backward_tasks(*dxt, *dwt, (T*)nullptr, w, db, dy, d);
+    return backward_tasks(*dxt, *dwt, db, dy, d);
 }
 
 }  // namespace
