@@ -632,6 +632,14 @@ template <typename T> struct ConvTasks {
         }
     }
 
+    // C (no, n) = rows of w2 from wb (no, K) @ Bt (K, n) read from the tile B through boff (rows)
+    void tab(int64_t no, int64_t n, const T* wb, const T* B, T* C, int64_t ldc) const {
+        if (flipped)
+            tab_gemm<T, true>((int)no, (int)n, (int)K, wb, lda, aoff.data(), B, boff.data(), C, ldc);
+        else
+            tab_gemm<T, false>((int)no, (int)n, (int)K, wb, lda, nullptr, B, boff.data(), C, ldc);
+    }
+
     // task t; false when what it wrote is not finite
     bool run(int64_t t, Scratch& s) const {
         constexpr int64_t W = kW<T>;
@@ -644,23 +652,13 @@ template <typename T> struct ConvTasks {
             T* yb = y + (bi * d.Co + o0) * P;  // rows o0 .. o0 + no of y_b
             if (wide) {
                 const int64_t n = round_up((nr - 1) * Wp + d.Wo, W);
-                if (flipped)
-                    tab_gemm<T, true>((int)no, (int)n, (int)K, wb, lda, aoff.data(), s.tile.data(), boff.data(),
-                                      s.out.data(), n);
-                else
-                    tab_gemm<T, false>((int)no, (int)n, (int)K, wb, lda, nullptr, s.tile.data(), boff.data(),
-                                       s.out.data(), n);
+                tab(no, n, wb, s.tile.data(), s.out.data(), n);
                 for (int64_t o = 0; o < no; ++o)
                     for (int64_t r = 0; r < nr; ++r)
                         std::copy_n(s.out.data() + o * n + r * Wp, d.Wo, yb + o * P + (u0 + r) * d.Wo);
             } else {
                 for (int64_t r = 0; r < nr; ++r)  // y_b[o0:o0+no, u0 + r, :] = w2[o0:o0+no] @ Bt(row r)
-                    if (flipped)
-                        tab_gemm<T, true>((int)no, (int)d.Wo, (int)K, wb, lda, aoff.data(), s.tile.data() + r * Wp,
-                                          boff.data(), yb + (u0 + r) * d.Wo, P);
-                    else
-                        tab_gemm<T, false>((int)no, (int)d.Wo, (int)K, wb, lda, nullptr, s.tile.data() + r * Wp,
-                                           boff.data(), yb + (u0 + r) * d.Wo, P);
+                    tab(no, d.Wo, wb, s.tile.data() + r * Wp, yb + (u0 + r) * d.Wo, P);
             }
             if (b) add_bias_rows(yb + u0 * d.Wo, b + o0, no, P, nr * d.Wo);
             return rows_finite(yb + u0 * d.Wo, no, P, nr * d.Wo);
