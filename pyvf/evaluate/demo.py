@@ -12,6 +12,7 @@ files prints say_without_models() and runs the branching attention demo instead 
 command line decides (pyvf/cli/evaluate.py), since the benchmarks sit above this package.
 """
 
+import numbers
 import os
 import sys
 import time
@@ -51,7 +52,8 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
           f"images -> {c.token_size}x{c.token_size} tokens of {c.n_embed} codes")
     print(f"transformer: {transformer or 'pretrained (pyvf/models/sm7-transformer.npz)'}: d={t.d_model}, "
           f"{t.n_layer} layers, {t.n_head} heads, trained on up to {t.sequence_size - 1} context views")
-    print(f"evaluating {scenes} held-out scenes (seed {seed}), context {', '.join(map(str, context))} ...",
+    sizes = (context,) if isinstance(context, numbers.Integral) else context  # one size, as evaluate() takes it
+    print(f"evaluating {scenes} held-out scenes (seed {seed}), context {', '.join(map(str, sizes))} ...",
           flush=True)
     t0 = time.perf_counter()
     try:

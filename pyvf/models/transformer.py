@@ -39,6 +39,7 @@ from ..nn.attention import (
     attention_layer_forward,
 )
 from ..geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
+from ..geometry import _UNIT_TOL, _check_unit  # name the caller's argument in a non-unit quaternion's error
 from ..nn.layers import (
     add,
     embedding_backward,
@@ -373,28 +374,30 @@ class Transformer(ModelWeights):
     # -----------------------------------------------------------------------------------
     # input checks
 
-    def _check_inputs(self, tokens, poses):
+    def _check_inputs(self, tokens, poses, names=("tokens", "poses")):
+        """names: the caller's names of the two arguments, for the errors."""
         cfg = self.config
+        tn, pn = names
         if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu":
-            raise TypeError(f"tokens must be an integer numpy array, got "
+            raise TypeError(f"{tn} must be an integer numpy array, got "
                             f"{getattr(tokens, 'dtype', type(tokens).__name__)}")
         if tokens.ndim != 3:
-            raise ValueError(f"tokens must have shape (B, N, L), got {tokens.shape}")
+            raise ValueError(f"{tn} must have shape (B, N, L), got {tokens.shape}")
         B, N, L = tokens.shape
         if 0 in tokens.shape:
-            raise ValueError(f"tokens has a zero-size dimension: {tokens.shape}")
+            raise ValueError(f"{tn} has a zero-size dimension: {tokens.shape}")
         if L > MAX_TOKENS_PER_VIEW:
-            raise ValueError(f"tokens has {L} tokens per view; at most {MAX_TOKENS_PER_VIEW} (the rows of wpe)")
+            raise ValueError(f"{tn} has {L} tokens per view; at most {MAX_TOKENS_PER_VIEW} (the rows of wpe)")
         lo, hi = tokens.min(), tokens.max()
         if lo < 0 or hi >= cfg.n_embeddings:
-            raise ValueError(f"tokens must be in [0, {cfg.n_embeddings}), got values in [{lo}, {hi}]")
+            raise ValueError(f"{tn} must be in [0, {cfg.n_embeddings}), got values in [{lo}, {hi}]")
         if not isinstance(poses, np.ndarray) or poses.dtype != self.dtype:
-            raise TypeError(f"poses must be a {self.dtype} numpy array (the model's dtype), got "
+            raise TypeError(f"{pn} must be a {self.dtype} numpy array (the model's dtype), got "
                             f"{getattr(poses, 'dtype', type(poses).__name__)}")
         if poses.shape != (B, N, 7):
-            raise ValueError(f"poses must have shape (B, N, 7) = {(B, N, 7)} (xyz, then quaternion wxyz), "
+            raise ValueError(f"{pn} must have shape (B, N, 7) = {(B, N, 7)} (xyz, then quaternion wxyz), "
                              f"got {poses.shape}")
-        _checks.finite("poses", poses)
+        _checks.finite(pn, poses)
         return B, N, L
 
     # -----------------------------------------------------------------------------------
@@ -667,7 +670,8 @@ class Transformer(ModelWeights):
         context_tokens (B, Nc, L) ints, context_poses (B, Nc, 7) (any frame: they are made
         relative to the first context view here) -> Scene, reused by render_scene and
         localize_scene for any number of queries. Costs one trunk pass (R = 1, block-causal)."""
-        B, Nc, L = self._check_inputs(context_tokens, context_poses)
+        B, Nc, L = self._check_inputs(context_tokens, context_poses, ("context_tokens", "context_poses"))
+        _check_unit("the quaternions of context_poses", context_poses[..., 3:])  # named here, not as make_relative's
         rel, ref = make_relative(context_poses)  # (B, Nc, 7), (B, 7)
         x, _ = self._embed_forward(context_tokens, rel)
         x = x[:1]  # (1, B, Nc, L, d): the trunk row only
@@ -677,7 +681,23 @@ class Transformer(ModelWeights):
             _, _, q, k, v, _, _, _, _ = c[1]  # the attention layer's cache: (1, B, H, Nc, L, dh)
             keys.append(k[0])  # (B, H, Nc, L, dh)
             values.append(v[0])
-        return Scene(ref=ref, keys=keys, values=values, n_views=Nc, tokens_per_view=L)
+        return Scene(ref=ref, keys=keys, values=values, n_views=Nc, tokens_per_view=L, config=self.config,
+                     params=dict(self.params))
+
+    def _check_scene(self, scene):
+        """scene: a Scene encoded by this model with its present parameters. Another model's (or
+        this one's before load_official replaced its parameters) holds another trunk: the
+        queries would attend it and give a wrong answer silently. The same parameter arrays and
+        configuration (a model sharing them) compute the same function and pass. Parameters
+        changed in place (an optimiser step) are not seen here."""
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene must be a Scene from encode_scene, got {type(scene).__name__}")
+        p = scene.params
+        if (scene.config != self.config or p is None or p.keys() != self.params.keys()
+                or any(self.params[n] is not a for n, a in p.items())):
+            raise ValueError("scene was encoded by another model (or by this one before its parameters were "
+                             "replaced): its cached keys and values are not this model's; encode the context "
+                             "again with this model's encode_scene")
 
     def _query_forward(self, scene, x):
         """x (M, B, L, d): M query rows of one view each (generation or localization rows) -> after
@@ -691,13 +711,15 @@ class Transformer(ModelWeights):
     def render_scene(self, scene, query_poses):
         """query_poses (B, M, 7), in the context's frame -> token logits (B, M, L, V) of each
         query view (the generation branch: image hidden, pose given)."""
+        self._check_scene(scene)
         p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
         B = scene.ref.shape[0]
         if not isinstance(query_poses, np.ndarray) or query_poses.dtype != self.dtype:
             raise TypeError(f"query_poses must be a {self.dtype} numpy array")
         if query_poses.ndim != 3 or query_poses.shape[0] != B or query_poses.shape[2] != 7 or query_poses.shape[1] < 1:
-            raise ValueError(f"query_poses must have shape (B={B}, M, 7), got {query_poses.shape}")
+            raise ValueError(f"query_poses must have shape (B={B}, M >= 1, 7), got {query_poses.shape}")
         _checks.finite("query_poses", query_poses)
+        _check_unit("the quaternions of query_poses", query_poses[..., 3:])  # named here, not as relative_poses'
         rel = relative_poses(query_poses, scene.ref[:, None, :])  # (B, M, 7)
         # as make_relative does for the context: the pose MLP is not sign-invariant
         rel[..., 3:] = quat_canonical(quat_normalize(rel[..., 3:]))
@@ -712,12 +734,13 @@ class Transformer(ModelWeights):
     def localize_scene(self, scene, query_tokens):
         """query_tokens (B, M, L) ints -> one pose per query view (B, M, 7) in the context's
         frame: the token predictions averaged (geometry.average_pose)."""
+        self._check_scene(scene)
         p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
         B = scene.ref.shape[0]
         if not isinstance(query_tokens, np.ndarray) or query_tokens.dtype.kind not in "iu":
             raise TypeError("query_tokens must be an integer numpy array")
         if query_tokens.ndim != 3 or query_tokens.shape[0] != B or query_tokens.shape[2] != L or query_tokens.shape[1] < 1:
-            raise ValueError(f"query_tokens must have shape (B={B}, M, L={L}), got {query_tokens.shape}")
+            raise ValueError(f"query_tokens must have shape (B={B}, M >= 1, L={L}), got {query_tokens.shape}")
         if query_tokens.min() < 0 or query_tokens.max() >= V:
             raise ValueError(f"query_tokens must be in [0, {V})")
         E = p["wte/weight"][query_tokens]  # (B, M, L, d)
@@ -727,6 +750,12 @@ class Transformer(ModelWeights):
         raw, _ = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
                              p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (M, B, L, 7)
         rel = average_pose(pose_prediction(raw, self.config.pose_multiplier), axis=2)  # (M, B, 7)
+        n2 = np.einsum("...i,...i->...", rel[..., 3:], rel[..., 3:])  # (M, B): 1, or < 1 where they cancel
+        if (np.abs(n2 - 1) > _UNIT_TOL[self.dtype]).any():
+            m, b = np.argwhere(np.abs(n2 - 1) > _UNIT_TOL[self.dtype])[0]
+            raise ValueError(f"localize_scene: query {m} of scene {b}: the model's pose predictions average to no "
+                             f"rotation (|q|^2 = {float(n2[m, b]):.3g}: its token quaternions are zero or cancel), "
+                             "so there is no pose to return")
         return absolute_poses(rel.transpose(1, 0, 2), scene.ref[:, None, :])  # (B, M, 7)
 
     def render(self, context_tokens, context_poses, query_poses):
@@ -746,6 +775,8 @@ class Scene:
     values: list  # per layer (B, H, Nc, L, dh)
     n_views: int  # Nc
     tokens_per_view: int  # L
+    config: "TransformerConfig" = None  # the encoding model's: render_scene / localize_scene check them
+    params: dict = dataclasses.field(default=None, repr=False)  # its parameter arrays (references, not copies)
 
 
 def pose_prediction(raw, pose_multiplier=1.0):
