@@ -51,19 +51,25 @@ def rel_err(x, ref):
     """max |x - ref| / max |ref|: the largest error relative to the largest reference entry
     (an elementwise relative error is meaningless where ref is near 0). Computed in float64, of
     both scaled by one power of two (exact but for subnormals far below the largest entry), so
-    that x - ref does not overflow: rel_err([1e308], [-1e308]) is 2. 0 for empty arrays."""
-    x = np.asarray(x, dtype=np.float64)
-    ref = np.asarray(ref, dtype=np.float64)
+    that x - ref does not overflow: rel_err([1e308], [-1e308]) is 2. 0 for empty arrays; the
+    absolute error max |x| where ref is all zero. x, ref: real (float, integer or bool) arrays."""
+    x, ref = np.asarray(x), np.asarray(ref)
+    for what, a in (("x", x), ("ref", ref)):
+        if a.dtype.kind not in "fiub" and a.dtype.name != "bfloat16":  # complex: its imaginary part lost
+            raise TypeError(f"rel_err: {what} must be a real numeric array, got dtype {a.dtype}")
+    x, ref = x.astype(np.float64), ref.astype(np.float64)
     if x.shape != ref.shape:
         raise ValueError(f"shapes differ: {x.shape} vs {ref.shape}")
     if x.size == 0:
         return 0.0
-    top = max(np.abs(x).max(), np.abs(ref).max())
+    top, k = max(np.abs(x).max(), np.abs(ref).max()), 0
     if np.isfinite(top) and top > 0:  # (a NaN or inf in x is reported as such below)
         k = int(np.frexp(top)[1])
         x, ref = np.ldexp(x, -k), np.ldexp(ref, -k)
     scale = np.abs(ref).max()
-    return float(np.abs(x - ref).max() / (scale if scale > 0 else 1.0))
+    if scale == 0:  # ref all zero: the absolute error (divided by 1), scaled back
+        return float(np.ldexp(np.abs(x).max(), k))
+    return float(np.abs(x - ref).max() / scale)
 
 
 @dataclasses.dataclass
@@ -143,7 +149,11 @@ def _to_numpy(name, side, x):
 
 
 def _tolerance(dt_mine, dt_ref, dtype, rtol):
-    """(dtype name the tolerance follows, rtol)."""
+    """(dtype name the tolerance follows, rtol). An integer or boolean ref (token ids, codes)
+    must match exactly, whatever mine's dtype or `dtype` (one wrong code of 1024 is a normwise
+    error under float32's rtol); only an explicit rtol overrides that."""
+    if rtol is None and dt_ref != "bfloat16" and np.dtype(dt_ref).kind in "iub":
+        return dt_ref, 0.0
     if dtype is not None:
         dt = str(np.dtype(dtype)) if str(dtype) != "bfloat16" else "bfloat16"
     else:
@@ -183,8 +193,13 @@ def compare(mine, ref, *, dtype=None, rtol=None, atol=0.0):
             or not 0 <= atol < np.inf:
         raise ValueError(f"compare: atol must be a finite number >= 0, got {atol!r}")
     atol = float(atol)
-    if dtype is not None and str(dtype) != "bfloat16" and str(np.dtype(dtype)) not in DEFAULT_RTOL:
-        raise ValueError(f"compare: dtype must be one of {list(DEFAULT_RTOL)}, got {dtype!r}")
+    if dtype is not None and str(dtype) != "bfloat16":
+        try:
+            known = str(np.dtype(dtype)) in DEFAULT_RTOL
+        except TypeError:  # not a dtype at all (a torch dtype, a typo)
+            known = False
+        if not known:
+            raise ValueError(f"compare: dtype must be one of {list(DEFAULT_RTOL)}, got {dtype!r}")
     rows, first = [], None
     for name, r in ref.items():
         if name not in mine:

@@ -15,20 +15,26 @@ import json
 
 import numpy as np
 
+from pyvf import _checks
 from pyvf.models.codebook import BUFFERS, Codebook, CodebookConfig, parameter_shapes
 
 
 def convert(state_dict, config):
-    """state_dict: name -> tensor or array (a leading 'model.' is dropped). Returns (the model's
-    name -> numpy array, skipped names)."""
+    """state_dict: name -> tensor or array (a leading 'model.' is dropped; a name given both with
+    and without it raises). Returns (the model's name -> numpy array, skipped names)."""
     want = set(parameter_shapes(config)) | set(BUFFERS)
-    out, skipped = {}, []
+    out, keys, skipped = {}, {}, []
     for key, value in state_dict.items():
         name = key[len("model."):] if key.startswith("model.") else key
         if name not in want:
             skipped.append(key)
             continue
-        out[name] = value.detach().cpu().numpy() if hasattr(value, "detach") else np.asarray(value)
+        if name in out:
+            raise ValueError(f"two state_dict keys map to {name!r}: {keys[name]!r} and {key!r}")
+        value, problem = _checks.checkpoint_array(key, value)  # a tensor numpy cannot hold: named
+        if problem is not None:
+            raise problem[0](problem[1])
+        out[name], keys[name] = np.asarray(value), key
     return out, skipped
 
 

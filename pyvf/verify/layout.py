@@ -16,6 +16,8 @@ between pyvf's layout and the conventions load_official speaks (layout="tf" | "t
 the models' own mechanism (model.layout_shapes, from_layout, to_layout: pyvf.models.io).
 """
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from .. import _checks
@@ -61,6 +63,11 @@ def trace_from_flat(trace, N, L, R=3):
     .k, .v, .out) given as (B, H, T, dh), and .lse as (B, H, T), become pyvf's (R, B, H, N, L[, dh]).
     Every other entry (the heads' rows (B, N, L, ...), losses) is returned as it is, as numpy.
     None values (a tensor without a gradient) are dropped. Always new arrays."""
+    R = _checks.integer("R", R, lo=1)  # (the per-head entries reshape with them unchecked otherwise)
+    N = _checks.integer("N", N, lo=1)
+    L = _checks.integer("L", L, lo=1)
+    if not isinstance(trace, Mapping):
+        raise TypeError(f"trace must be a mapping name -> array, got {type(trace).__name__}")
     out = {}
     for name, a in trace.items():
         if a is None:

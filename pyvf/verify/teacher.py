@@ -176,8 +176,13 @@ class LayerCheck:
 
     @staticmethod
     def _worst(c):
-        """The largest relative error of the rows judged by it (not those accepted by atol)."""
-        return max((r.rel for r in c.rows if r.rel <= r.rtol or not r.ok), default=0.0) if c is not None else None
+        """The largest relative error of the rows judged by it (not those accepted by atol); nan
+        where one is nan (Python's max keeps a nan only when it comes first); None where nothing
+        was compared."""
+        if c is None or not c.rows:
+            return None
+        rels = [r.rel for r in c.rows if r.rel <= r.rtol or not r.ok]
+        return float("nan") if any(np.isnan(rels)) else max(rels, default=0.0)
 
 
 @dataclasses.dataclass
@@ -195,7 +200,12 @@ class TeacherReport:
         return not self.wrong
 
     def __getitem__(self, name):
-        return next(c for c in self.checks if c.name == name)
+        for c in self.checks:
+            if c.name == name:
+                return c
+        if name in self.unchecked:
+            raise KeyError(f"layer {name!r} was not checked (no callable was given for it)")
+        raise KeyError(f"{name!r} is not a layer of this report; its layers: {[c.name for c in self.checks]}")
 
     def table(self):
         lines = ["| layer | forward rel err | backward rel err | rtol | |", "|---|---|---|---|---|"]
