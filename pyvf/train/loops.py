@@ -38,7 +38,7 @@ from ..models.transformer import Transformer, TransformerConfig
 from ._run import CHECKPOINT, Run, _diff, file_sha256, fingerprint, integer, jsonable, positive_int, real, resume_point
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
-from .torch_codebook_engine import parity_images
+from .torch_codebook_engine import check_codebook_engine, parity_images
 from .torch_engine import Follower, TorchTransformer, check_engine, data_parallel, log_parity, parity_batch
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
@@ -333,7 +333,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
     if object_weight != 1.0:  # absent at 1.0: runs from before the option resume as they were
         hyper["object_weight"] = object_weight
-    check_engine(engine, device, precision)
+    check_codebook_engine(engine, device, precision, config.dtype)
     threads_set = _Threads(threads)  # checked before the run folder is touched
     hyper, init_state = _warm_start(init, Codebook, config, hyper, out_dir, resume)
     eval_fp = None if eval_images is None else fingerprint(eval_images)
@@ -567,7 +567,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     hyper, schedule, steps = _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup,
                                                 total_steps, weight_decay, max_grad_norm, clip_mode, seed)
     batch_size, n_views, seed, weight_decay = (hyper[k] for k in ("batch_size", "views", "seed", "weight_decay"))
-    check_engine(engine, device, precision)
+    check_engine(engine, device, precision, config.dtype)
     eval_every, eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
     threads_set = _Threads(threads)
     hyper, init_state = _warm_start(init, Transformer, config, hyper, out_dir, resume)

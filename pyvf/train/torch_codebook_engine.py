@@ -32,9 +32,18 @@ import numpy as np
 
 from ..nn.quantizer import code_statistics
 from ..verify.compare import compare
-from .torch_engine import PARITY_RTOL, TorchAdamW, import_torch, world_size
+from .torch_engine import PARITY_RTOL, TorchAdamW, check_engine, import_torch, world_size
 
 _QUANTIZE = "quantize."  # the buffers' prefix in the state dict
+
+
+def check_codebook_engine(engine, device, precision, dtype):
+    """torch_engine.check_engine, and the codebook's torch engine runs in one process: torchrun's
+    WORLD_SIZE > 1 is refused (train_codebook checks all of it before it touches the run folder)."""
+    check_engine(engine, device, precision, dtype)
+    if engine == "torch" and world_size() > 1:
+        raise ValueError(f"the codebook's torch engine runs in one process, got {world_size()} (torchrun's "
+                         "WORLD_SIZE): run pyvf train-codebook without torchrun")
 
 
 class TorchCodebook:
@@ -46,9 +55,7 @@ class TorchCodebook:
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32"):
         torch = import_torch()
         from ..verify.torch_ports import CodebookPort
-        if world_size() > 1:
-            raise ValueError(f"the codebook's torch engine runs in one process, got {world_size()} (torchrun's "
-                             "WORLD_SIZE): run pyvf train-codebook without torchrun")
+        check_codebook_engine("torch", device, precision, str(model.dtype))
         self.torch, self.config, self.pyvf_model = torch, model.config, model
         self.device, self.precision = torch.device(device), precision
         self.dtype = {"float32": torch.float32, "float64": torch.float64}[str(model.dtype)]
@@ -148,4 +155,4 @@ def parity_images(images, seed, dtype):
     return codebook_batch(images, 4, seed + 1_000_003, 0, dtype)
 
 
-__all__ = ["TorchCodebook", "parity_images"]
+__all__ = ["TorchCodebook", "check_codebook_engine", "parity_images"]

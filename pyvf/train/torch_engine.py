@@ -24,13 +24,17 @@ so every process resumes from rank 0's checkpoint.
 """
 
 import csv
+import io
 import math
 import os
+import re
 
 import numpy as np
 
 from ..verify.compare import compare
 from ..geometry import make_relative
+from .._io import atomic_write_text
+from ._run import resume_point
 from ..verify.layout import params_from_layout, params_to_layout
 
 # The parity bound: pyvf.compare's normwise relative error, float32 torch against float32 pyvf.
@@ -53,15 +57,17 @@ def import_torch():
     return torch
 
 
-def check_engine(engine, device, precision):
+def check_engine(engine, device, precision, dtype=None):
     """engine 'pyvf' | 'torch'; device 'cpu' | 'cuda' | 'cuda:N' and precision 'fp32' | 'bf16'
-    (the torch engine's only: pyvf's engine runs in the configuration's dtype on the CPU)."""
+    (the torch engine's only: pyvf's engine runs in the configuration's dtype on the CPU); with
+    the configuration's dtype, also check_autocast (the loops check all of it before they touch
+    the run folder)."""
     if engine not in ("pyvf", "torch"):
         raise ValueError(f"engine must be 'pyvf' or 'torch', got {engine!r}")
     if precision not in ("fp32", "bf16"):
         raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
-    if not isinstance(device, str) or not (device == "cpu" or device == "cuda" or device.startswith("cuda:")):
-        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
+    if not isinstance(device, str) or not re.fullmatch(r"cpu|cuda|cuda:(0|[1-9][0-9]*)", device):
+        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N' (N = 0, 1, ...), got {device!r}")
     if engine == "pyvf" and (device != "cpu" or precision != "fp32"):
         raise ValueError(f"device={device!r} and precision={precision!r} need engine='torch' "
                          "(pyvf's engine runs on the CPU in the configuration's dtype)")
@@ -69,6 +75,22 @@ def check_engine(engine, device, precision):
         torch = import_torch()
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise ValueError(f"device={device!r}, but torch sees no CUDA device (torch {torch.__version__})")
+        if device.startswith("cuda:") and int(device[5:]) >= torch.cuda.device_count():
+            n = torch.cuda.device_count()
+            raise ValueError(f"device={device!r}, but torch sees {n} CUDA device{'s' if n > 1 else ''} "
+                             f"(cuda:0{f' to cuda:{n - 1}' if n > 1 else ''})")
+    if dtype is not None:
+        check_autocast(precision, dtype)
+
+
+def check_autocast(precision, dtype):
+    """precision 'bf16' autocasts float32 arithmetic only: a float64 model (dtype, numpy's or
+    torch's) would train in float64, its outputs rounded to float32, so it is refused."""
+    name = str(dtype).removeprefix("torch.")
+    if precision == "bf16" and name != "float32":
+        raise ValueError(f"precision='bf16' (--precision bf16) autocasts float32 arithmetic, but the configuration's "
+                         f"dtype is {name}, which autocast leaves as it is: use precision='fp32', or a float32 "
+                         "configuration")
 
 
 class DataParallel:
@@ -251,6 +273,7 @@ class TorchTransformer:
         self.device, self.precision = torch.device(device), precision
         self.max_grad_norm, self.clip_mode = max_grad_norm, clip_mode
         dtype = {"float32": torch.float32, "float64": torch.float64}[str(model.dtype)]
+        check_autocast(precision, dtype)
         self.port = TransformerPort(model.config).to(self.device, dtype)
         self._names = {official_name(n): p for n, p in self.port.named_parameters()}
         self.load(model.state_dict(layout="torch"))
@@ -342,15 +365,25 @@ class TorchTransformer:
 
 
 def log_parity(out_dir, step, comparison):
-    """Append the parity check of `step` to out_dir/parity.csv; raise when it failed."""
+    """Append the parity check of `step` to out_dir/parity.csv; raise when it failed. As log.csv, the
+    file keeps the rows of the run it continues, those up to out_dir's checkpoint (none before the
+    first): an older run's (a fresh start in the folder) and a resumed run's past its checkpoint go."""
     path = os.path.join(out_dir, PARITY_LOG)
     worst = max(comparison.rows, key=lambda r: (not np.isfinite(r.rel), r.rel))
-    new = not os.path.exists(path)
-    with open(path, "a", newline="", encoding="utf-8") as f:
-        w = csv.writer(f, lineterminator="\n")
-        if new:
-            w.writerow(["step", "worst", "rel_err", "bound"])
-        w.writerow([step, worst.name, repr(float(worst.rel)), repr(PARITY_RTOL)])
+    meta = resume_point(out_dir)  # the checkpoint before this step's (Run removed an older run's)
+    rows = []
+    if os.path.exists(path):
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))[1:]
+    kept = [r for r in rows if meta is not None and r and r[0].isdigit() and int(r[0]) <= meta["step"]]
+    row = [step, worst.name, repr(float(worst.rel)), repr(PARITY_RTOL)]
+    if rows and kept == rows:
+        with open(path, "a", newline="", encoding="utf-8") as f:
+            csv.writer(f, lineterminator="\n").writerow(row)
+    else:  # a new file, or rows to drop: written whole, atomically
+        text = io.StringIO()
+        csv.writer(text, lineterminator="\n").writerows([["step", "worst", "rel_err", "bound"], *kept, row])
+        atomic_write_text(path, text.getvalue())
     if not comparison.ok:
         raise RuntimeError(f"parity check at step {step}: the torch model and pyvf differ first in "
                            f"{comparison.first!r} (normwise relative error over {PARITY_RTOL}); the "
@@ -364,5 +397,5 @@ def parity_batch(tokens, poses, n_views, seed, dtype):
     return transformer_batch(tokens, poses, n_views, 4, seed + 1_000_003, 0, dtype)
 
 
-__all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_engine",
-           "data_parallel", "log_parity", "parity_batch", "world_size"]
+__all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_autocast",
+           "check_engine", "data_parallel", "log_parity", "parity_batch", "world_size"]
