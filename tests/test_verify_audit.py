@@ -130,3 +130,19 @@ def test_convert_torch_names_a_tensor_numpy_cannot_hold():
     state["decoder.conv_out.weight"] = state["decoder.conv_out.weight"].to(torch.bfloat16)
     with pytest.raises(TypeError, match="'decoder.conv_out.weight'"):
         convert_torch.convert(state, cfg)
+
+
+def test_teacher_force_leaves_the_users_last_forward_for_backward(rng):
+    """model.backward() differentiates the model's last forward (its docstring); teacher_force runs
+    the model's own forward on its inputs, and left that run in place of the user's: a backward
+    after it returned the gradients of teacher forcing's batch, silently. The oracle: the same
+    forward and backward without teacher_force between them, bitwise."""
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
+    layers, _ = port_layers(port, tokens.shape[1], tokens.shape[2])
+    other = (tokens[::-1].copy(), poses[::-1].copy())  # the user's own batch: another one
+    model.forward(*other)
+    want = model.backward(dlogits=dl, dpose=dp)
+    model.forward(*other)
+    pyvf.teacher_force(model, (tokens, poses), layers, upstream={"dlogits": dl, "dpose": dp})
+    got = model.backward(dlogits=dl, dpose=dp)
+    assert want.keys() == got.keys() and all(np.array_equal(want[k], got[k]) for k in want)

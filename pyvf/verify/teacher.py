@@ -296,13 +296,18 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     model.backward's seeds; with it every layer's VJP is checked too. train: the codebook's
     forward mode (the quantizer's EMA step; the model's buffers are restored afterwards).
     token_layout: "flat" | "tree" (Transformer). dtype, rtol: compare's tolerance arguments.
-    Returns a TeacherReport (.wrong: the wrong layers' names)."""
+    The model's last forward stays the caller's: a model.backward() after this call differentiates
+    it, not teacher forcing's run. Returns a TeacherReport (.wrong: the wrong layers' names)."""
     table = layer_table(model)
     _check_arguments(table, layers, token_layout, train, upstream)
     params, convert = _check_params(model, params, layout)
     import torch  # only here: pyvf itself never needs it
 
-    trace, grads, sizes = _pyvf_run(model, inputs, upstream, train)
+    cache = model._cache  # the user's last forward: a model.backward() after this call differentiates it
+    try:
+        trace, grads, sizes = _pyvf_run(model, inputs, upstream, train)
+    finally:
+        model._cache = cache
     to_port, from_port = _port_converters(torch, model, trace, token_layout, sizes)
     checks, unchecked = [], []
     saved_grads = {n: t.grad for n, t in params.items()}
