@@ -58,6 +58,26 @@ def _nonfinite_names(d):
     return [k for k, a in d.items() if not _checks.all_finite(a)]
 
 
+try:
+    from numpy.lib.array_utils import byte_bounds as _byte_bounds  # numpy >= 2
+except ImportError:  # numpy < 2
+    _byte_bounds = np.byte_bounds
+
+
+def _sharing_pairs(d):
+    """Pairs of names whose arrays share memory: np.shares_memory (exact) on the pairs whose byte
+    ranges overlap, found by sorting the ranges (disjoint views of one buffer are fine)."""
+    spans = sorted((*_byte_bounds(a), k) for k, a in d.items() if a.size)
+    pairs = []
+    for i, (_, hi, k) in enumerate(spans):
+        for lo2, _, k2 in spans[i + 1:]:
+            if lo2 >= hi:
+                break
+            if np.shares_memory(d[k], d[k2]):
+                pairs.append((k, k2))
+    return pairs
+
+
 # ---------------------------------------------------------------------------------------
 # which parameters get weight decay
 
@@ -84,7 +104,8 @@ def published_weight_decay(name):
 class AdamW:
     """Adam with decoupled weight decay (Loshchilov & Hutter), PyTorch semantics by default.
 
-    params: dict name -> float32/float64 array, updated in place by step().
+    params: dict name -> float32/float64 array, updated in place by step(); no two may share
+        memory (a tied parameter is listed once).
     lr: a float, or a schedule: a callable step -> float called with the number of updates
         already applied (0 for the first update), as Keras calls its schedules with
         `optimizer.iterations` and torch's LambdaLR starts at lambda(0).
@@ -125,6 +146,9 @@ class AdamW:
         bad = _nonfinite_names(params)
         if bad:
             raise ValueError(f"params contain NaN or inf: {bad}")
+        shared = _sharing_pairs(params)
+        if shared:  # each would be updated once per name, with moments of its own
+            raise ValueError(f"params share memory: {shared}; list a tied parameter once")
         if callable(lr):
             self.lr = lr
         else:
@@ -179,6 +203,15 @@ class AdamW:
         """Apply one update. grads: dict with exactly the parameters' names, each array of
         its parameter's shape and dtype, finite (NaN/inf raise ValueError and nothing is
         updated). grads are not modified. Returns the learning rate used."""
+        _check_array_dict("params", self.params, writable=True)  # the caller's dict: entries may be replaced
+        if set(self.params) != set(self.exp_avg):
+            raise ValueError("params gained or lost names since the optimiser was built: "
+                             f"{sorted(set(self.params) ^ set(self.exp_avg))}")
+        for k, p in self.params.items():
+            m = self.exp_avg[k]
+            if p.dtype != m.dtype or p.shape != m.shape:
+                raise ValueError(f"params[{k!r}] is now {p.dtype}{p.shape} but its moments are {m.dtype}{m.shape}: "
+                                 "replaced by another array? (build a new optimiser for it)")
         _check_array_dict("grads", grads, writable=False)
         missing, extra = sorted(set(self.params) - set(grads)), sorted(set(grads) - set(self.params))
         if missing or extra:
@@ -220,6 +253,9 @@ class AdamW:
         if nonfinite:
             raise ValueError(f"grads contain NaN or inf in {nonfinite}: no update applied "
                              "(skip this step, or lower the learning rate / loss scale)")
+        nonfinite = [k for k in bad if not _checks.all_finite(self.params[k])]  # set so after __init__
+        if nonfinite:
+            raise ValueError(f"params contain NaN or inf in {nonfinite}: no update applied")
         if bad:
             raise ValueError(f"the update of {sorted(bad, key=list(work).index)} overflows (gradients or learning "
                              "rate too large for the dtype): no update applied")
@@ -451,6 +487,8 @@ def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, e
     if bad:
         return math.nan if any(math.isnan(n) for n in norms.values()) else math.inf
     total = _hypot_all(list(norms.values()))
+    if not math.isfinite(total):  # max_norm / inf would zero every gradient
+        raise ValueError("the total norm of grads overflows float64: nothing was clipped")
     if total + eps > max_norm:
         for g in grads.values():
             _scale(g, max_norm, total + eps)  # coefficient max_norm / (total + eps) < 1
