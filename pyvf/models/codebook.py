@@ -554,6 +554,9 @@ class Codebook(ModelWeights):
         gradient."""
         if not isinstance(trace, (bool, np.bool_)):
             raise TypeError(f"trace must be True or False, got {trace!r}")
+        if not isinstance(train, (bool, np.bool_)):  # e.g. pixel_weights passed by position
+            raise TypeError(f"train must be True or False, got {type(train).__name__} "
+                            f"{getattr(train, 'shape', train)!r} (pixel_weights is keyword-only)")
         self._check_images(images)
         if pixel_weights is not None:
             _checks.float_array("pixel_weights", pixel_weights, images, "images")
@@ -573,6 +576,7 @@ class Codebook(ModelWeights):
             if tr is not None:
                 tr[self._quantize_row.name] = q.quantized
             rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
+            per_image, c_p = self.perceptual.forward(images, rec) if self.perceptual is not None else (None, None)
         except BaseException:  # a failed call leaves the EMA buffers as they were
             if saved is not None:
                 self.quantizer.load_state_dict(saved)
@@ -591,9 +595,8 @@ class Codebook(ModelWeights):
             rec_loss = float(np.sum(wn * np.abs(diff), dtype=np.float64))
             drec_loss = np.sign(diff) * wn.astype(self.dtype)  # (B, C, S, S)
         loss = rec_loss + self.config.codebook_weight * q.commitment_loss
-        perceptual, c_p = None, None
-        if self.perceptual is not None:
-            per_image, c_p = self.perceptual.forward(images, rec)  # (B,)
+        perceptual = None
+        if self.perceptual is not None:  # per_image (B,), computed above where a failure rolls the EMA back
             perceptual = float(np.mean(per_image))
             loss += self.config.perceptual_weight * perceptual
         if tr is not None:

@@ -39,19 +39,23 @@ def _check_2d(name, a, like=None):
     _checks.finite(name, a)
 
 
+COUNTER_MAX = np.iinfo(np.int64).max  # state_dict() stores the counter as int64
+
+
 def _counter(a):
     """An EMA update count -> int, or None when `a` is not a non-negative integral scalar
-    (a Python/numpy int, a 0-d integer array, or a 0-d float array of an integral value)."""
+    (a Python/numpy int, a 0-d integer array, or a 0-d float array of an integral value)
+    that int64 holds."""
     if isinstance(a, (bool, np.bool_)):
         return None
     if isinstance(a, (int, np.integer)):
-        return int(a) if a >= 0 else None
+        return int(a) if 0 <= a <= COUNTER_MAX else None
     if not isinstance(a, np.ndarray) or a.shape != () or not (a.dtype.kind in "iu" or a.dtype in _checks.FLOATS):
         return None
     v = a.item()
     if a.dtype.kind == "f" and not (np.isfinite(v) and v == int(v)):
         return None
-    return int(v) if v >= 0 else None
+    return int(v) if 0 <= v <= COUNTER_MAX else None
 
 
 def vq_nearest(x, codes):
@@ -110,6 +114,10 @@ class EMAQuantizer:
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         self.embed_dim, self.n_embed, self.decay, self.eps = embed_dim, n_embed, decay, eps
         self.dtype = np.dtype(dtype)
+        lo, hi = float(np.finfo(self.dtype).tiny), float(np.finfo(self.dtype).max) / n_embed
+        if not lo <= eps <= hi:  # the smoothing adds eps and n_embed * eps in the dtype: no underflow, no overflow
+            raise ValueError(f"eps must be in [{lo:.4g}, {hi:.4g}] for dtype {dtype} and n_embed={n_embed} "
+                             f"(eps and n_embed * eps must be normal {dtype} numbers), got {eps!r}")
         rng = np.random.default_rng(seed)
         lim = np.sqrt(3.0)
         self.embeddings = rng.uniform(-lim, lim, (embed_dim, n_embed)).astype(self.dtype)
@@ -128,8 +136,9 @@ class EMAQuantizer:
         `prefix`, e.g. "quantize.").
         Arrays must be float32/float64 (converted to the quantizer's dtype), of the buffer's
         shape and finite, also once converted (a float64 value beyond float32's range is
-        refused); counter a non-negative integer (an integer array, or a float array
-        holding an integral value, as a torch checkpoint may store it). require_all=False does
+        refused), the cluster sizes non-negative; counter a non-negative integer that int64
+        holds (an integer array, or a float array holding an integral value, as a torch
+        checkpoint may store it). require_all=False does
         not report missing entries (a caller that reports them itself)."""
         want = {"embeddings": (self.embed_dim, self.n_embed), "ema_cluster_size_hidden": (self.n_embed,),
                 "ema_dw_hidden": (self.embed_dim, self.n_embed), "counter": ()}
@@ -150,13 +159,16 @@ class EMAQuantizer:
                 c = _counter(a)
                 if c is None:
                     problems.append((ValueError, f"{full!r} must be a non-negative integer (the number of "
-                                                 f"EMA updates), got {a!r}"))
+                                                 f"EMA updates, at most {COUNTER_MAX}), got {a!r}"))
                 else:
                     out[name] = c
                 continue
             problem = _checks.weight_problem(full, a, shape)
             if problem is None:  # float64 values past float32's range would become inf: refused
                 a, problem = _checks.converted_weight(full, a, self.dtype)
+            if problem is None and name == "ema_cluster_size_hidden" and (a < 0).any():
+                problem = (ValueError, f"{full!r} holds a negative cluster size {float(a.min()):.4g}: "
+                                       "an EMA of counts is never negative")
             if problem is not None:
                 problems.append(problem)
             else:
@@ -194,6 +206,9 @@ class EMAQuantizer:
         train=True applies one EMA update (the output uses the codes from before it). z must be
         finite; an update or a loss that would overflow the dtype raises ValueError, and a call
         that raises leaves every buffer unchanged."""
+        if not isinstance(train, (bool, np.bool_)):
+            raise TypeError(f"train must be True or False, got {type(train).__name__} "
+                            f"{getattr(train, 'shape', train)!r}")
         self._check_z(z)
         B, D, h, w = z.shape
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, D))  # (M, D)
@@ -203,7 +218,8 @@ class EMAQuantizer:
         update = self._ema_update(flat, idx, counts) if train else None  # computed, not yet assigned
         with np.errstate(over="ignore", invalid="ignore"):  # checked below
             diff = e - flat  # (M, D)
-            commitment = float(np.mean(diff * diff))
+            # summed in float64: a float32 sum overflows where the mean of finite squares does not
+            commitment = float(np.mean(diff * diff, dtype=np.float64))
         if not (_checks.all_finite(diff) and np.isfinite(commitment)):
             raise ValueError(f"EMAQuantizer.forward: the commitment loss overflows {self.dtype} "
                              "(z is too far from the codes); the buffers are unchanged")
@@ -257,7 +273,8 @@ class EMAQuantizer:
 
     def reset_dead_codes(self, z, threshold=1e-3, rng=None):
         """Optional (off unless called): codes whose smoothed cluster size is below threshold are
-        moved to random vectors of z (B, D, h, w), their EMA statistics restarted there.
+        moved to random vectors of z (B, D, h, w), their EMA statistics restarted there: each
+        to a different vector of z, unless z has fewer vectors than there are dead codes.
         Returns the number of codes reset.
 
         z: a finite, non-empty array of the quantizer's dtype (as forward's); threshold: a finite
@@ -265,12 +282,20 @@ class EMAQuantizer:
         TypeError / ValueError naming it, before any buffer changes."""
         self._check_z(z)
         threshold = _checks.real("threshold", threshold, lo=0.0)
-        rng = np.random.default_rng(rng)
+        try:
+            rng = np.random.default_rng(rng)
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"rng must be None, a non-negative integer seed or a numpy Generator, got {rng!r} "
+                          f"({e})") from None
         flat = z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim)  # (M, D)
         debias = 1.0 - self.decay ** max(self.counter, 1)
         dead = np.flatnonzero(self.ema_cluster_size_hidden / debias < threshold)
         if dead.size:
-            picks = flat[rng.integers(0, len(flat), dead.size)]  # (n_dead, D)
+            # distinct vectors while there are enough (two codes on one vector: the larger index is
+            # never chosen, ties go to the smallest), then vectors drawn again for the rest
+            M = len(flat)
+            pick = np.concatenate([rng.permutation(M), rng.integers(0, M, max(dead.size - M, 0))])[:dead.size]
+            picks = flat[pick]  # (n_dead, D)
             # restart the statistics as if the code had been chosen once by its new vector:
             # bias-corrected cluster size 1 and dw = the vector, so dw / cs is the vector
             self.ema_cluster_size_hidden[dead] = debias
