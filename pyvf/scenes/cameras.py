@@ -80,6 +80,9 @@ def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
     uniform) and u_y^2 <= sin(60 deg)^2 |u|^2 (the elevation band; up is -y), then u / |u|.
     Candidates are drawn in batches of 2n and kept in order, so the result depends only on the
     generator's state. Only exactly rounded operations: no Gaussian (its tails use exp/log)."""
+    _check_rng(rng)
+    n = _checks.integer("n", n, 0)
+    radius = _checks.real("radius", radius, 0, lo_open=True)
     out = np.empty((0, 3))
     while len(out) < n:
         u = rng.random((2 * n, 3)) * 2 - 1  # (2n, 3) exact: a double in [0, 1) times 2, minus 1
@@ -88,6 +91,12 @@ def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
         u, r2 = u[keep], r2[keep]
         out = np.concatenate([out, u / np.sqrt(r2)[:, None]])
     return out[:n] * radius  # (n, 3)
+
+
+def _check_rng(rng):
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)), "
+                        f"got {type(rng).__name__} {rng!r}")
 
 
 def look_at_poses(positions):
@@ -148,7 +157,15 @@ def pose_matrix(q):
     """The rotation matrix of unit quaternions q (..., 4) -> (..., 3, 3), R[..., i, j] = e_i . rotate(q, e_j).
 
     Written out term by term (no BLAS, no einsum), so every element is the same bits on every
-    machine; the renderer turns camera rays into the world with it."""
+    machine; the renderer turns camera rays into the world with it. q: a float32/float64
+    ndarray of unit quaternions (pyvf.geometry's tolerance), else a TypeError/ValueError naming q."""
+    _check_last("q", q, 4, "quaternions (w, x, y, z)")
+    _check_unit("q", q)
+    return _rotation(q)
+
+
+def _rotation(q):
+    """pose_matrix without its checks (its callers have made them)."""
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
@@ -196,7 +213,7 @@ def pose_to_gqn(poses):
     dropped (GQN cameras have none). The quaternions must be unit (pyvf.geometry's tolerance)."""
     _check_last("poses", poses, 7, "poses: xyz then the quaternion (w, x, y, z)")
     _check_unit("the quaternions of poses", poses[..., 3:])
-    R = pose_matrix(poses[..., 3:])  # (..., 3, 3)
+    R = _rotation(poses[..., 3:])  # (..., 3, 3)
     f = R[..., :, 2]  # (..., 3) the optical axis in pyvf's world
     gx, gy, gz = -f[..., 2], f[..., 0], -f[..., 1]
     yaw = np.arctan2(gy, gx)

@@ -39,6 +39,7 @@ import io
 import json
 import math
 import os
+import shutil
 import zipfile
 
 import numpy as np
@@ -57,6 +58,9 @@ PROGRESS = "progress.jsonl"  # the record of an unfinished write (module docstri
 _ARRAYS = ("images", "poses", "scene_index")
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # the earliest zip timestamp: the shard's bytes do not depend on the clock
 _UNIT_TOL = 1e-9  # | |q|^2 - 1 | allowed in a stored pose (pyvf.geometry's float64 tolerance)
+_RENDER_BYTES = 256  # render_views' working memory per ray, i.e. per pixel of a scene's views (~200 measured)
+_SHARD_ENTRY_BYTES = 1024  # memory of one shard's entry in the layout and the manifest (dicts, names, digests)
+_DEFLATE_MAX_RATIO = 1032  # deflate compresses no data more: the shards need at least raw bytes / this on disk
 
 
 def shard_name(k):
@@ -183,6 +187,45 @@ def _verified(out_dir, entries, layout):
     return kept
 
 
+def _physical_memory():
+    """This machine's memory in bytes (None where the system does not say)."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _check_resources(out_dir, n_scenes, views, H, W, shard_size):
+    """Before out_dir is touched: a ValueError naming the arguments when the write can never fit
+    this machine's memory (one shard's arrays, one scene's rendering, the table of every shard)
+    or the free disk under out_dir (the shards' raw bytes / _DEFLATE_MAX_RATIO at the least)."""
+    n_shards, shard, pixels = -(-n_scenes // shard_size), min(shard_size, n_scenes), views * H * W
+    parts = {"shard_size, views, size": shard * (pixels * 3 + views * 7 * 8),  # a shard's images and poses
+             "views, size": pixels * _RENDER_BYTES,  # rendering one scene
+             "n_scenes, shard_size": n_shards * _SHARD_ENTRY_BYTES}  # the layout and the manifest
+    memory, need = _physical_memory(), sum(parts.values())
+    if memory is not None and need > memory:
+        names = max(parts, key=parts.get)
+        raise ValueError(f"{names}: writing {n_scenes} scenes of {views} views of {H}x{W} pixels, {shard_size} to "
+                         f"a shard, needs about {need / 2**30:.3g} GiB of memory ({names} alone "
+                         f"{parts[names] / 2**30:.3g} GiB), more than this machine's {memory / 2**30:.3g} GiB")
+    folder = os.path.abspath(out_dir)
+    while not os.path.isdir(folder) and os.path.dirname(folder) != folder:
+        folder = os.path.dirname(folder)  # the nearest existing folder: the disk out_dir will be on
+    try:
+        free = shutil.disk_usage(folder).free
+        if os.path.isdir(out_dir):  # its shards are kept or replaced: their space counts as free
+            free += sum(e.stat().st_size for e in os.scandir(out_dir)
+                        if e.name.startswith("shard-") and e.name.endswith(".npz") and e.is_file())
+    except OSError:
+        return
+    low = n_scenes * pixels * 3 // _DEFLATE_MAX_RATIO
+    if low > free:
+        raise ValueError(f"n_scenes: {n_scenes} scenes of {views} views of {H}x{W} pixels need at least "
+                         f"{low / 2**30:.3g} GiB of disk (deflate compresses at most {_DEFLATE_MAX_RATIO}:1), "
+                         f"but {folder} has {free / 2**30:.3g} GiB free")
+
+
 def _prepare_dir(out_dir, head, layout, overwrite):
     """Make out_dir ready for the write whose manifest without shards is `head` (shard file ->
     (index, first scene, scenes) in `layout`): -> the shards to keep, index -> manifest entry.
@@ -239,7 +282,8 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
     see PROGRESS in this module's docstring) is resumed: its whole shards are kept, and the
     result has the same bytes as an uninterrupted write. A finished dataset there, or an
     unfinished write of other arguments, raises DatasetExistsError (a FileExistsError) unless
-    overwrite=True, which replaces it. progress=True shows a tqdm bar.
+    overwrite=True, which replaces it. progress=True shows a tqdm bar. A write that cannot fit this
+    machine's memory or the free disk (counts far too large) is a ValueError before out_dir is touched.
     Returns the manifest (a dict, as written). The format: this module's docstring."""
     n_scenes = _nonneg_int("n_scenes", n_scenes, 1)
     seed = _nonneg_int("seed", seed)
@@ -249,6 +293,7 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
         raise TypeError(f"size must be an int (square images), got {size!r}")
     H, W = _image_shape(size)
     out_dir = os.fspath(out_dir)
+    _check_resources(out_dir, n_scenes, views, H, W, shard_size)
     os.makedirs(out_dir, exist_ok=True)
 
     head = {
@@ -448,14 +493,17 @@ def load_dataset(path):
     """Load and verify a dataset written by write_dataset -> SceneDataset.
 
     path: the dataset folder (or its manifest.json). Raises FileNotFoundError for a missing
-    folder, manifest or shard, ValueError for a manifest or shard that does not match (wrong
-    size, sha256, arrays, shapes, dtypes, non-finite poses), each naming the file and entry."""
+    folder, manifest or shard, NotADirectoryError for a path that is another file, ValueError
+    for a manifest or shard that does not match (wrong size, sha256, arrays, shapes, dtypes,
+    non-finite poses), each naming the file and entry."""
     path = os.fspath(path)
     if os.path.basename(path) == MANIFEST and os.path.isfile(path):
         root, mpath = os.path.dirname(path) or ".", path
     else:
         root, mpath = path, os.path.join(path, MANIFEST)
     if not os.path.isdir(root):
+        if os.path.exists(root):
+            raise NotADirectoryError(f"{root} is not a folder: load_dataset takes a dataset folder (or its {MANIFEST})")
         raise FileNotFoundError(f"dataset folder {root} does not exist")
     if not os.path.isfile(mpath):
         if os.path.isfile(os.path.join(root, PROGRESS)):

@@ -41,7 +41,8 @@ import numpy as np
 
 from .. import _checks
 
-from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, look_at_poses, pose_matrix, sample_camera_positions
+from ..geometry import _UNIT_TOL
+from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, _check_rng, _rotation, look_at_poses, sample_camera_positions
 
 __all__ = [
     "N_CUBES",
@@ -103,6 +104,7 @@ def make_object(rng):
     Draws from rng, in this order: for each of cubes 1..6, one integer choosing among the free
     face neighbours of the previous cube (in the order of _STEPS: +x, -x, +y, -y, +z, -z); then
     the 7 hues."""
+    _check_rng(rng)
     cells = [(0, 0, 0)]
     occupied = {cells[0]}
     for _ in range(N_CUBES - 1):
@@ -219,21 +221,36 @@ def render_views(cells, colours, poses, size=64):
     (object_boxes), colours (K, 3) float64 RGB in [0, 1], poses (V, 7) camera poses
     (cameras.py: xyz + camera-to-world unit quaternion, OpenCV camera frame), size: int
     (square) or (height, width), at least 8 -> images (V, H, W, 3) uint8.
-    The cameras must be outside every cube."""
+    The quaternions must be unit (to the tolerance of pyvf.geometry for the poses' dtype) and
+    the cameras outside every (closed) cube: a ValueError names any pose that is not."""
     lo, hi = object_boxes(cells)  # (K, 3) the boxes
     colours = np.asarray(colours, dtype=np.float64)
+    given = np.asarray(poses)
     poses = np.asarray(poses, dtype=np.float64)
     if colours.shape != lo.shape:
         raise ValueError(f"colours must be (K, 3) for K = {len(lo)} cells, got shape {colours.shape}")
     if poses.ndim != 2 or poses.shape[1] != 7:
         raise ValueError(f"poses must be (V, 7), got shape {poses.shape}")
+    _checks.finite("poses", poses)
+    q = poses[:, 3:]
+    n2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]  # (V,) |q|^2
+    bad = np.abs(n2 - 1) > _UNIT_TOL.get(given.dtype, _UNIT_TOL[np.dtype(np.float64)])  # (V,)
+    if bad.any():
+        v = int(np.argmax(bad))
+        raise ValueError(f"poses must hold unit quaternions, but poses[{v}] has |q|^2 = {float(n2[v])!r}: "
+                         "normalise it first with quat_normalize")
+    inside = ((poses[:, None, :3] >= lo) & (poses[:, None, :3] <= hi)).all(axis=-1)  # (V, K)
+    if inside.any():
+        v, k = map(int, np.argwhere(inside)[0])
+        raise ValueError(f"poses[{v}] puts the camera at {poses[v, :3].tolist()}, inside cube {k}: "
+                         "the cameras must be outside every cube")
     H, W = _image_shape(size)
     V = len(poses)
 
     f = (min(H, W) / 2) / TAN_HALF_FOV  # focal length in pixels
     u = (np.arange(W) + 0.5 - W / 2) / f  # (W,) camera-frame x of each column's ray (z = 1)
     v = (np.arange(H) + 0.5 - H / 2) / f  # (H,) camera-frame y of each row's ray
-    R = pose_matrix(poses[:, 3:])  # (V, 3, 3) camera-to-world
+    R = _rotation(poses[:, 3:])  # (V, 3, 3) camera-to-world
     # world direction of pixel (i, j) of view n: R[n] @ (u[j], v[i], 1), written out
     d = (R[:, None, None, :, 0] * u[None, None, :, None]
          + R[:, None, None, :, 1] * v[None, :, None, None]
