@@ -22,7 +22,8 @@
 //      and more codes are re-ranked, up to all of them: slower, never wrong. A row whose scores
 //      overflow (NaN or inf anywhere) re-ranks every code.
 //   The re-rank reads the original values: exactness never depends on the shift. Its exact
-//   distance is sum_i (x_i - e_i)^2 in double; where the vectors' largest component is beyond
+//   distance is sum_i (x_i - e_i)^2 in double, every operation rounded once (vq_exact.cpp, no
+//   fused multiply-add, so the same on every path); where the vectors' largest component is beyond
 //   2^+-400 (only float64 inputs get there) both are first multiplied by a power of two, so the
 //   comparison neither overflows nor underflows. The returned distance is that sum rounded to
 //   the dtype: inf exactly when the true distance exceeds the dtype's range (float32 vectors
@@ -55,28 +56,6 @@ namespace {
 template <typename T> constexpr double unit_roundoff();
 template <> constexpr double unit_roundoff<float>() { return 0x1p-24; }
 template <> constexpr double unit_roundoff<double>() { return 0x1p-53; }
-
-template <typename T> double exact_sq_distance(const T* x, const T* e, int64_t D) {
-    double s = 0;
-    for (int64_t i = 0; i < D; ++i) {
-        const double t = (double)x[i] - (double)e[i];
-        s += t * t;
-    }
-    return s;
-}
-
-// The same sum with both vectors multiplied by 2^p (exact, unless a component falls below the
-// smallest subnormal, far below what decides the sum), for vectors whose distance would overflow
-// or underflow double. By ldexp, not a product with 2^p: for float64 subnormals p exceeds 1023
-// and 2^p itself is inf (which gave NaN distances and wrong codes).
-template <typename T> double exact_sq_distance_scaled(const T* x, const T* e, int64_t D, int p) {
-    double s = 0;
-    for (int64_t i = 0; i < D; ++i) {
-        const double t = std::ldexp((double)x[i], p) - std::ldexp((double)e[i], p);
-        s += t * t;
-    }
-    return s;
-}
 
 }  // namespace
 

@@ -227,3 +227,34 @@ def test_extra_memory_is_bounded_by_the_codes(K, D, tmp_path, kernel_path):
     codes_bytes = K * D * 4
     bound = 2 * codes_bytes + 8 * K + 16 * 2 ** 20
     assert extra <= bound, f"extra {extra / 2**20:.1f} MiB > bound {bound / 2**20:.1f} MiB"
+
+
+def _plain_sum(x, e):
+    """The documented exact distance: sum_i (x_i - e_i)^2 in double, in increasing i, each
+    operation rounded once (Python floats: no fused multiply-add)."""
+    s = 0.0
+    for a, b in zip(x.tolist(), e.tolist()):
+        t = a - b
+        s = s + t * t
+    return s
+
+
+def test_float64_rerank_is_the_plain_sum_on_every_path(rng):
+    """The re-rank's exact distances are sum (x_i - e_i)^2 in double with every product and sum
+    rounded: where the compiler fused t * t + s into one FMA (-ffp-contract=fast on the avx2 and
+    avx512 paths, not on baseline), float64 rows on a tie of that sum went to the larger index
+    and the answer depended on the kernel path. The oracle: the argmin of the plain sum in Python
+    floats, ties to the smallest index, and its distance rounded to float64."""
+    x = np.array([[-0.001, 0.0, 0.0]])
+    codes = np.array([[0.0, 0.002, 0.001], [0.001, 0.001, -0.001]])
+    assert _plain_sum(x[0], codes[0]) == _plain_sum(x[0], codes[1])  # a tie of the documented sum
+    assert vq_nearest(x, codes)[0].tolist() == [0]
+    # random near-ties: codes of a few decimal steps, so that sums tie or differ in the last bits
+    for _ in range(200):
+        D = int(rng.integers(2, 6))
+        x = rng.integers(-3, 4, size=(4, D)) * 1e-3
+        codes = rng.integers(-3, 4, size=(6, D)) * 1e-3
+        idx, dist = vq_nearest(x, codes)
+        for m in range(len(x)):
+            d = [_plain_sum(x[m], c) for c in codes]
+            assert idx[m] == int(np.argmin(d)) and dist[m] == min(d), (x[m], codes)
