@@ -149,3 +149,20 @@ def test_parameter_replaced_in_the_dict_is_checked():
     want = _torch_adamw(start, [grads, grads], lr=0.1)
     for k in start:
         assert_close(k, params[k], want[k], rtol=1e-13)
+
+
+def test_global_norm_is_the_float64_norm_and_says_nan_or_inf():
+    """global_norm (transformer_step's norm without clipping) against NumPy in float64: float32
+    tensors whose squares overflow float32, an empty tensor, all zeros; NaN and inf named as nan
+    and inf; the gradients are not modified."""
+    from pyvf.train.optim import global_norm
+    rng = np.random.default_rng(5)
+    g = {"a": (rng.standard_normal((7, 5)) * 1e25).astype(np.float32), "b": np.zeros(0, np.float32),
+         "c": rng.standard_normal(11)}
+    before = {k: v.copy() for k, v in g.items()}
+    want = np.sqrt(sum(np.sum(v.astype(np.float64) ** 2) for v in g.values()))
+    assert global_norm(g) == pytest.approx(want, rel=1e-14)
+    assert all(np.array_equal(before[k], g[k]) for k in g)
+    assert global_norm({"z": np.zeros(3)}) == 0.0
+    assert np.isnan(global_norm({"a": np.array([np.inf]), "b": np.array([np.nan])}))
+    assert global_norm({"a": np.array([np.inf, 1.0]), "b": np.ones(2)}) == np.inf

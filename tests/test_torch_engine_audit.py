@@ -108,3 +108,15 @@ def test_refusals_leave_the_run_folder_as_it_was(tmp_path, monkeypatch):
         train_codebook(_images(), cb64, tmp_path / "c", steps=4, batch_size=2, progress=False, engine="torch",
                        resume=False)
     assert _folder(tmp_path / "c") == before
+
+
+def test_grad_norm_is_logged_without_clipping_by_both_engines(tmp_path):
+    """max_grad_norm=None: the torch engine logged the global gradient norm, pyvf's engine nan, though
+    train_transformer says the logged grad_norm is the global norm. Both now log it; from the same start
+    the first steps' norms agree to the float32 parity bound (the torch engine is the oracle)."""
+    for engine in ("pyvf", "torch"):
+        _train(tmp_path, engine, engine, steps=3, max_grad_norm=None, log_every=1)
+    logs = {e: [float(r["grad_norm"]) for r in csv.DictReader(open(tmp_path / e / "log.csv"))]
+            for e in ("pyvf", "torch")}
+    assert len(logs["pyvf"]) == 3 and all(np.isfinite(logs["pyvf"]))
+    np.testing.assert_allclose(logs["pyvf"], logs["torch"], rtol=1e-3)

@@ -595,7 +595,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
                 lr_t = opt.lr_at(opt.step_count)
                 loss, ce, pl, norm = step(tok, pos)
                 run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl,
-                            "grad_norm": np.nan if norm is None else norm, "lr": lr_t})
+                            "grad_norm": norm, "lr": lr_t})
                 if evaluating and run.eval_due(t, eval_every):
                     run.log_eval(t, health(current()))
                     plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed

@@ -31,6 +31,7 @@ __all__ = [
     "WarmupCosine",
     "warmup_cosine_lr",
     "clip_grad_norm",
+    "global_norm",
     "published_weight_decay",
 ]
 
@@ -424,6 +425,19 @@ def _hypot_all(norms):
     if amax == 0.0:
         return 0.0
     return amax * math.sqrt(math.fsum((n / amax) ** 2 for n in norms))
+
+
+def global_norm(grads):
+    """sqrt(sum over tensors of |g|^2) of grads (dict name -> float32/float64 array), accumulated
+    in float64 as clip_grad_norm's global mode, nothing modified: nan where a gradient holds a
+    NaN, inf where one holds an inf or the total overflows float64 (transformer_step's norm
+    without clipping, so that a run logs the same quantity with clipping off)."""
+    _check_array_dict("grads", grads, writable=False)
+    norms = [_norm64(g) if _checks.all_finite(g) else float(np.linalg.norm(g.astype(np.float64).ravel()))
+             for g in grads.values()]
+    if any(math.isnan(n) for n in norms):
+        return math.nan
+    return math.inf if any(math.isinf(n) for n in norms) else _hypot_all(norms)
 
 
 def _scale(g, num, den):

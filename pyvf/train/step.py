@@ -9,21 +9,22 @@ pyvf.train.loops runs these steps with checkpoints (train_transformer, train_cod
 """
 
 from ..geometry import make_relative
-from .optim import clip_grad_norm
+from .optim import clip_grad_norm, global_norm
 
 
 def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
     """train_step, returning everything a training loop logs: (TransformerOutput of the
-    forward before the update, the gradient norm before clipping or None). See train_step."""
+    forward before the update, the gradient norm before clipping). See train_step."""
     if optimizer.params is not model.params:
         raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
     if relative:
         poses = make_relative(poses)[0]
     out = model.forward(tokens, poses)
     grads = model.backward()
-    norm = None
     if max_grad_norm is not None:
         norm = clip_grad_norm(grads, max_grad_norm, mode=clip_mode)
+    else:  # no clipping: the global norm all the same (nan or inf where a gradient is not finite)
+        norm = global_norm(grads)
     optimizer.step(grads)
     return out, norm
 
@@ -36,7 +37,8 @@ def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode
     does. max_grad_norm: clip the gradients to this norm (clip_mode "global" as
     torch.nn.utils.clip_grad_norm_, or "per_tensor" as tf.clip_by_norm, the published choice).
     optimizer must hold model.params (it updates them in place).
-    Returns (loss before the step, the gradient norm before clipping or None).
+    Returns (loss before the step, the gradient norm before clipping: the global norm (a
+    float), or with clip_mode "per_tensor" {name: norm}; the global norm without clipping).
     """
     out, norm = transformer_step(model, optimizer, tokens, poses, max_grad_norm=max_grad_norm,
                                  clip_mode=clip_mode, relative=relative)
