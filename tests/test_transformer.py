@@ -481,18 +481,3 @@ def test_tf_converter_maps_checkpoint_keys(style, rng, tmp_path):
     del tensors["migt/wte/weight" + suffix]
     with pytest.raises(ValueError, match="1 weights not found"):
         convert_tf.convert(FakeReader(tensors), cfg)
-
-
-def test_backward_after_a_failed_forward_raises(rng):
-    """backward() differentiates the last forward: after one that raised (a token out of range),
-    it gave the gradients of the forward before it, silently; now it raises as with no forward."""
-    cfg = pyvf.TransformerConfig(**TINY, dtype="float64")
-    model = random_model(cfg, rng)
-    tokens, poses = random_batch(rng, 2, 3, 16, cfg.n_embeddings)
-    model.forward(tokens, poses)
-    bad = tokens.copy()
-    bad[0, 0, 0] = cfg.n_embeddings
-    with pytest.raises(ValueError, match="tokens must be in"):
-        model.forward(bad, poses)
-    with pytest.raises(RuntimeError, match=r"needs a forward\(\) first"):
-        model.backward()

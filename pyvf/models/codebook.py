@@ -552,7 +552,6 @@ class Codebook(ModelWeights):
         (trace_names(config), in execution order; read-only views of what the forward keeps
         anyway: do not modify them), and makes the next backward() return every activation's
         gradient."""
-        self._cache = None  # a forward that raises leaves no older one for backward() to differentiate
         if not isinstance(trace, (bool, np.bool_)):
             raise TypeError(f"trace must be True or False, got {trace!r}")
         if not isinstance(train, (bool, np.bool_)):  # e.g. pixel_weights passed by position

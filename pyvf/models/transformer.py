@@ -570,7 +570,6 @@ class Transformer(ModelWeights):
         trace=True also returns, as `out.trace`, every intermediate activation by name
         (TRACE_NAMES, in execution order; read-only views of what the forward keeps anyway:
         do not modify them), and makes the next backward() return every activation's gradient."""
-        self._cache = None  # a forward that raises leaves no older one for backward() to differentiate
         cfg = self.config
         if not isinstance(trace, (bool, np.bool_)):
             raise TypeError(f"trace must be True or False, got {trace!r}")
