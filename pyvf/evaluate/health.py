@@ -25,6 +25,7 @@ figure show such a collapse in the first minutes of a run.
 
 import numpy as np
 
+from .. import _checks
 from ..nn.quantizer import code_statistics
 from .metrics import image_metrics, to_model_images, to_uint8
 
@@ -40,6 +41,9 @@ def effective_rank(z):
     if not isinstance(z, np.ndarray) or z.dtype.kind != "f" or z.ndim != 2 or z.shape[0] < 2:
         raise ValueError(f"z must be a float (N >= 2, D) numpy array, got "
                          f"{getattr(z, 'dtype', type(z).__name__)} {getattr(z, 'shape', '')}")
+    _checks.finite("z", z)
+    if (z == z[:1]).all():  # constant: exactly rank 0 (the mean of equal rows can round off them)
+        return 0.0
     zc = z.astype(np.float64) - z.astype(np.float64).mean(axis=0)  # (N, D)
     s = np.linalg.svd(zc, compute_uv=False)  # (min(N, D),)
     total = s.sum()
@@ -73,6 +77,8 @@ def colour_r2(pred, target, mask):
     nan when the mask is empty or those pixels all have one chroma."""
     if pred.shape != target.shape or mask.shape != target.shape[:-1]:
         raise ValueError(f"pred {pred.shape}, target {target.shape} and mask {mask.shape} do not match")
+    if mask.dtype != np.bool_:  # an integer mask would index the images by position
+        raise TypeError(f"mask must be a bool array, got {mask.dtype}")
     ct, cp = chroma(target[mask]), chroma(pred[mask])  # (n, 2)
     if ct.shape[0] == 0:
         return float("nan")
@@ -92,6 +98,7 @@ def codebook_health(codebook, images, batch=64):
     if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim != 4 or images.shape[0] < 1:
         raise ValueError(f"images must be uint8 (M >= 1, Hi, Wi, 3), got "
                          f"{getattr(images, 'dtype', type(images).__name__)} {getattr(images, 'shape', '')}")
+    batch = _checks.integer("batch", batch, lo=1)
     rec = np.empty_like(images)  # (M, Hi, Wi, 3)
     zs, codes = [], []
     for i in range(0, images.shape[0], batch):
@@ -152,10 +159,12 @@ def transformer_health(codebook, transformer, images, poses, tokens, contexts, b
     own prediction), as every run's eval.csv always has, so that runs compare across versions;
     pyvf evaluate's default decode (DEFAULT_DECODE) scores lower. Inference only: nothing in
     either model changes."""
-    from .run import score_scenes  # evaluate.run imports the scenes home; only this needs it
+    from .run import _check_args, score_scenes  # evaluate.run imports the scenes home; only this needs it
     views = images.shape[1]
+    # the queries must not be context views: context + HEALTH_QUERIES <= views
+    checked = _check_args(contexts, images.shape[0], views, HEALTH_QUERIES, batch)
     qidx = np.arange(views - HEALTH_QUERIES, views)
-    results, _, _ = score_scenes(codebook, transformer, images, poses, tokens, tuple(contexts), qidx, batch,
+    results, _, _ = score_scenes(codebook, transformer, images, poses, tokens, checked, qidx, batch,
                                  token_scores=True, decode="argmax")
     return {f"{stem}_c{C}": results[str(C)][method][metric]
             for C in contexts for method, metric, stem in _TF_METRICS}

@@ -46,11 +46,21 @@ __all__ = [
 ]
 
 
-def _uint8_images(name, x, ndim_min=3):
+def _uint8_images(name, x, ndim_min=3, ndim_max=None):
     if not isinstance(x, np.ndarray) or x.dtype != np.uint8:
         raise TypeError(f"{name} must be a uint8 numpy array, got {getattr(x, 'dtype', type(x).__name__)}")
     if x.ndim < ndim_min or x.size == 0:
         raise ValueError(f"{name} must be images (..., Hi, Wi, C), got shape {x.shape}")
+    if ndim_max is not None and x.ndim > ndim_max:
+        raise ValueError(f"{name} must be images (B, Hi, Wi, C), got shape {x.shape}")
+    return x
+
+
+def _poses(name, x, like=None, like_name=None):
+    """x: finite float poses (..., 7) (of like's dtype, when given); errors name the argument."""
+    _checks.finite_float(name, x, like, like_name)
+    if x.ndim == 0 or x.shape[-1] != 7:
+        raise ValueError(f"{name} must be poses (..., 7), got shape {x.shape}")
     return x
 
 
@@ -60,7 +70,7 @@ def _uint8_images(name, x, ndim_min=3):
 
 def to_model_images(images, dtype):
     """uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) of dtype in [-1, 1]: x / 127.5 - 1 (as the training data)."""
-    _uint8_images("images", images, 4)
+    _uint8_images("images", images, 4, 4)
     dtype = np.dtype(dtype)
     x = images.transpose(0, 3, 1, 2).astype(dtype, order="C")  # (B, C, Hi, Wi)
     x /= dtype.type(127.5)
@@ -86,10 +96,12 @@ def encode_images(codebook, images, batch_size=64, dtype=np.int64, progress=None
 
 def to_uint8(x):
     """(B, C, Hi, Wi) floats in [-1, 1] -> uint8 (B, Hi, Wi, C): rint((x + 1) * 127.5) clipped to
-    0..255 (a decoder's output can leave [-1, 1]; rint rounds halves to even)."""
+    0..255 (a decoder's output can leave [-1, 1]; rint rounds halves to even). NaN raises ValueError."""
     if not isinstance(x, np.ndarray) or x.dtype.kind != "f" or x.ndim != 4:
         raise TypeError(f"x must be a float (B, C, Hi, Wi) numpy array, got "
                         f"{getattr(x, 'dtype', type(x).__name__)} {getattr(x, 'shape', '')}")
+    if np.isnan(x).any():  # NaN has no picture (a cast to uint8 would give 0 silently); +-inf clip
+        raise ValueError("x contains NaN")
     v = np.rint((x.astype(np.float64) + 1.0) * 127.5)  # (B, C, Hi, Wi)
     return np.clip(v, 0, 255).astype(np.uint8).transpose(0, 2, 3, 1).copy()  # (B, Hi, Wi, C)
 
@@ -124,7 +136,12 @@ def image_metrics(pred, target):
 
 
 def pose_metrics(pred, target):
-    """pred, target (..., 7) float64 poses -> {"position_error", "orientation_error_deg"}, each (...)."""
+    """pred, target (..., 7) float64 poses of one shape -> {"position_error", "orientation_error_deg"},
+    each (...)."""
+    _poses("pred", pred)
+    _poses("target", target, like=pred, like_name="pred")
+    if pred.shape != target.shape:
+        raise ValueError(f"pred and target must have one shape, got {pred.shape} and {target.shape}")
     return {"position_error": position_error(pred, target),
             "orientation_error_deg": orientation_error(pred, target)}
 
@@ -138,6 +155,7 @@ def _context(images, poses):
     if not isinstance(poses, np.ndarray) or poses.shape != images.shape[:2] + (7,):
         raise ValueError(f"context_poses must have shape {images.shape[:2] + (7,)} (B, C, 7), "
                          f"got {getattr(poses, 'shape', type(poses).__name__)}")
+    _checks.finite_float("context_poses", poses)
 
 
 def _same_batch(name, query, context_images, tail):
@@ -159,6 +177,7 @@ def nearest_view(context_images, context_poses, query_poses):
     if not isinstance(query_poses, np.ndarray):
         raise TypeError(f"query_poses must be a numpy.ndarray, got {type(query_poses).__name__}")
     _same_batch("query_poses", query_poses, context_images, (7,))
+    _checks.finite_float("query_poses", query_poses, context_poses, "context_poses")
     d = position_error(query_poses[:, :, None, :], context_poses[:, None, :, :])  # (B, M, C)
     idx = np.argmin(d, axis=2)  # (B, M)
     return context_images[np.arange(idx.shape[0])[:, None], idx]  # (B, M, Hi, Wi, 3)
@@ -190,4 +209,7 @@ def closest_image_pose(context_images, context_poses, query_images):
 def mean_pose(context_poses):
     """The mean context pose (B, C, 7) -> (B, 7): mean position; quaternions normalised,
     sign-canonicalised, averaged, normalised and canonicalised again (geometry.average_pose)."""
+    _checks.finite_float("context_poses", context_poses)
+    if context_poses.ndim != 3 or context_poses.shape[1] == 0 or context_poses.shape[2] != 7:
+        raise ValueError(f"context_poses must have shape (B, C, 7) with C >= 1, got {context_poses.shape}")
     return average_pose(context_poses, axis=1)

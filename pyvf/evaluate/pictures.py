@@ -13,7 +13,10 @@ The pose panels look down on the scene: the world's up is -y (pyvf.scenes), so t
 x to the right and z up, a view from above (not mirrored).
 """
 
+
 import numpy as np
+
+from .._io import atomic_write_png
 
 __all__ = ["views_sheet", "poses_sheet", "save_views", "save_poses"]
 
@@ -113,8 +116,8 @@ def poses_sheet(picture, panel=280):
 
 
 def save_views(path, picture):
-    views_sheet(picture).save(path, format="PNG")
+    atomic_write_png(path, views_sheet(picture))
 
 
 def save_poses(path, picture):
-    poses_sheet(picture).save(path, format="PNG")
+    atomic_write_png(path, poses_sheet(picture))

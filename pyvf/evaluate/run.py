@@ -211,8 +211,11 @@ def _check_args(context, scenes, views, queries, batch):
     for name, v in (("scenes", scenes), ("views", views), ("queries", queries), ("batch", batch)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ValueError(f"{name} must be a positive integer, got {v!r}")
-    if isinstance(context, (int, np.integer)):
+    if isinstance(context, (int, np.integer, float, np.floating, str)):
         context = (context,)
+    context = tuple(context)
+    if any(isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, np.integer)) for c in context):
+        raise ValueError(f"context sizes must be positive integers, got {context!r}")  # 2.7 is not 2
     context = tuple(sorted({int(c) for c in context}))
     if not context or context[0] < 1:
         raise ValueError(f"context sizes must be positive integers, got {context}")
@@ -236,6 +239,8 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     check_pair(codebook, transformer)
     views = SM7_VIEWS if views is None else views
     context = _check_args(context, scenes, views, queries, batch)
+    for name, v in (("timing_scenes", timing_scenes), ("repeat", repeat)):  # used after the scoring
+        _checks.positive_integer(name, v)
     if decode not in DECODES:
         raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
     cb_cfg, tf_cfg = codebook.config, transformer.config
