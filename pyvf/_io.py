@@ -2,6 +2,7 @@
 
     atomic_savez("run/checkpoint.npz", step=np.array(3), w=w)     # all or nothing
     atomic_write_text("run/config.json", json.dumps(cfg))
+    atomic_write_png("views.png", Image.fromarray(rgb))              # the same for a picture
     arrays = load_npz("run/checkpoint.npz", "checkpoint", required=("step",))
 
 An atomic write goes to a temporary file in the destination's folder (same file system, so
@@ -15,6 +16,7 @@ A model file (a model's configuration and state) is written and read by pyvf.mod
 these primitives.
 """
 
+import io
 import os
 import secrets
 import zipfile
@@ -88,6 +90,13 @@ def atomic_write_bytes(path, data):
     """Write the bytes `data` to `path`, atomically (e.g. a PNG encoded into a BytesIO)."""
     data = bytes(data)
     _atomic_write(path, lambda f: f.write(data))
+
+
+def atomic_write_png(path, image):
+    """Write the PIL image `image` to `path` as a PNG, atomically (encoded in memory first)."""
+    buf = io.BytesIO()
+    image.save(buf, format="PNG")
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def atomic_write_text(path, text, encoding="utf-8"):

@@ -1,10 +1,9 @@
 """The preview grid of a dataset: its scenes' views tiled into one picture."""
 
-import io
 
 import numpy as np
 
-from .._io import atomic_write_bytes
+from .._io import atomic_write_png
 
 __all__ = ["preview_grid", "save_preview"]
 
@@ -34,6 +33,4 @@ def save_preview(path, images, scale=2):
     grid = preview_grid(images)
     if scale > 1:
         grid = np.repeat(np.repeat(grid, scale, axis=0), scale, axis=1)
-    buf = io.BytesIO()
-    Image.fromarray(grid).save(buf, format="PNG")
-    atomic_write_bytes(path, buf.getvalue())
+    atomic_write_png(path, Image.fromarray(grid))

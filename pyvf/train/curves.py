@@ -13,13 +13,12 @@ must cross below them.
 """
 
 import csv
-import io
 import json
 import os
 
 import numpy as np
 
-from .._io import atomic_write_bytes
+from .._io import atomic_write_png
 
 
 BASELINE_COLOURS = [(214, 39, 40), (44, 160, 44), (148, 103, 189)]
@@ -104,9 +103,7 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), na
         draw.text((x0, y1 + 4), f"{smin:.0f}", fill="black")
         draw.text((x1 - 30, y1 + 4), f"{smax:.0f}", fill="black")
         draw.text((x0 + 4, top + 4), f"{col}{' (log)' if use_log else ''}: last {y[-1]:.4g}", fill="black")
-    buf = io.BytesIO()
-    img.save(buf, format="PNG")
-    atomic_write_bytes(png, buf.getvalue())
+    atomic_write_png(png, img)
     return png
 
 
