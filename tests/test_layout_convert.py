@@ -170,7 +170,11 @@ CB = dict(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_chan
 def random_codebook(rng, dtype="float64"):
     cb = pyvf.Codebook(pyvf.CodebookConfig(**CB, dtype=dtype))
     state = cb.state_dict()
-    cb.load_official({k: (3 if k == "quantize.counter" else rng.normal(size=v.shape)) for k, v in state.items()})
+    def value(k, v):  # cluster sizes are never negative
+        if k == "quantize.counter":
+            return 3
+        return np.abs(rng.normal(size=v.shape)) if k.endswith("cluster_size_hidden") else rng.normal(size=v.shape)
+    cb.load_official({k: value(k, v) for k, v in state.items()})
     return cb
 
 

@@ -67,6 +67,11 @@ class ModelWeights:
         default: table.parameters(layers), the execution order)."""
         self.layers = tuple(layers)
         self._param_table = parameters(self.layers) if table is None else dict(table)
+        known = [r for r, role in ROLES.items() if role.layout in tuple(self.LAYOUTS)[1:]]
+        for name, (_, role) in self._param_table.items():  # an unknown role would be held as published
+            if role is not None and role not in known:
+                raise ValueError(f"layer table: parameter {name!r} has role {role!r}; a {type(self).__name__}'s "
+                                 f"roles are {known} (or None: held as published in every layout)")
 
     # the layouts -------------------------------------------------------------------------
 
@@ -88,8 +93,9 @@ class ModelWeights:
         """The Role that converts parameter `name` in `layout`, None where it is held as published."""
         if name not in self._param_table:
             raise ValueError(f"{name!r} is not a parameter of this {type(self).__name__}")
+        layout = self.check_layout(layout)  # also for a parameter every layout holds as published
         role = ROLES.get(self._param_table[name][1])
-        return role if role is not None and role.layout == self.check_layout(layout) else None
+        return role if role is not None and role.layout == layout else None
 
     def layout_shapes(self, name, layout):
         """The shapes parameter `name` may have in `layout`, the preferred one first."""
@@ -97,13 +103,20 @@ class ModelWeights:
         return [shape] if role is None else role.shapes(shape)
 
     def from_layout(self, name, a, layout):
-        """An array of parameter `name` in `layout` -> the published layout (a view)."""
-        role = self._role(name, layout)
+        """An array of parameter `name` in `layout` -> the published layout (a view). An array of
+        none of layout_shapes(name, layout) raises ValueError naming it (never transposed or reshaped)."""
+        role, shapes = self._role(name, layout), self.layout_shapes(name, layout)
+        if tuple(np.shape(a)) not in shapes:
+            raise ValueError(f"{name!r} has shape {tuple(np.shape(a))}, expected {' or '.join(map(str, shapes))} "
+                             f"in layout={layout!r}")
         return a if role is None else role.from_layout(a)
 
     def to_layout(self, name, p, layout):
-        """An array of parameter `name` in the published layout -> a C-contiguous copy in `layout`."""
-        role = self._role(name, layout)
+        """An array of parameter `name` in the published layout -> a C-contiguous copy in `layout`.
+        An array not of the published shape raises ValueError naming it."""
+        role, shape = self._role(name, layout), self._param_table[name][0]
+        if tuple(np.shape(p)) != shape:
+            raise ValueError(f"{name!r} has shape {tuple(np.shape(p))}, expected {shape} (the published layout)")
         return np.array(p if role is None else role.to_layout(p), order="C", copy=True)
 
     def _params_in(self, layout):
@@ -227,6 +240,10 @@ def load_model(path, what, config_cls, model_cls):
     naming the file (and the entry)."""
     arrays, fields = model_file(path, what)
     name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
+    missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields]
+    if missing:  # never the defaults: they may be another model than the file's
+        raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
+                              f"{config_cls.__name__} written by save(), or written by another version")
     try:
         config = config_cls(**fields)
     except (TypeError, ValueError) as e:
