@@ -36,8 +36,9 @@ CODEBOOK_HEALTH = ["mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_
 
 
 def effective_rank(z):
-    """z (N, D) float -> float in [1, min(N, D)]: exp of the entropy of the normalised singular
-    values of z minus its mean row. A constant z (no variance) has rank 0 by convention."""
+    """z (N, D) float -> float in [1, min(N - 1, D)] (the mean row taken out leaves at most N - 1
+    directions): exp of the entropy of the normalised singular values of z minus its mean row. A
+    constant z (no variance) has rank 0 by convention."""
     if not isinstance(z, np.ndarray) or z.dtype.kind != "f" or z.ndim != 2 or z.shape[0] < 2:
         raise ValueError(f"z must be a float (N >= 2, D) numpy array, got "
                          f"{getattr(z, 'dtype', type(z).__name__)} {getattr(z, 'shape', '')}")
