@@ -49,13 +49,21 @@ def matmul(a, b, ta=False, tb=False, bias=None):
     """c = op(a) @ op(b) [+ bias], op = transpose when ta / tb, for 2-D operands or per entry of
     3-D ones (a leading batch axis): a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c
     (M, N); bias (N,) added to every row after its sum (as NumPy's a @ b + bias rounds); one
-    float dtype (the callers check it).
+    float dtype (TypeError otherwise; the callers check the values).
 
     pyvf's GEMM (csrc/conv.cpp matmul_batched), not NumPy's BLAS: each element of c is one sum in
     increasing k, so the result is bitwise the same for any thread count (OpenBLAS's is not for
     some shapes), and the threads are pyvf's, which sleep between calls, where the BLAS's spin for
     milliseconds after each call on the cores pyvf's kernels need (a 2-thread kernel right after a
     2-thread BLAS product ran at the speed of one thread)."""
+    _checks.float_array("a", a)
+    _checks.float_array("b", b, a, "a")
+    if bias is not None:
+        _checks.float_array("bias", bias, a, "a")
+    if a.ndim not in (2, 3):
+        raise ValueError(f"a must be 2-D (M, K) or 3-D (batch, M, K), got shape {a.shape}")
+    if b.ndim != a.ndim:
+        raise ValueError(f"b must have a's {a.ndim} dimensions, got shape {b.shape} for a of shape {a.shape}")
     a, b = _checks.c_order(a), _checks.c_order(b)
     one = a.ndim == 2  # 2-D: one entry of the batched kernel
     a3, b3 = (a[None], b[None]) if one else (a, b)
@@ -65,14 +73,22 @@ def matmul(a, b, ta=False, tb=False, bias=None):
     return c[0] if one else c
 
 
+def _same_or_apart(out, a):
+    """out is a's very memory (both C-contiguous, one shape and dtype), or shares none of it: a
+    shifted overlap would have the kernel read elements it already wrote (NumPy copies first)."""
+    return out.ctypes.data == a.ctypes.data or not np.may_share_memory(out, a)
+
+
 def add(a, b, out=None):
     """a + b for two arrays of one shape and float dtype, in pyvf's threads where both (and out)
     are C-contiguous (the residual adds; NumPy's run on one core): bitwise NumPy's a + b, one
     rounding per element; NumPy's np.add otherwise. out: None (a new array), or where to write
-    it, a or b itself included."""
+    it, a or b itself included (an out that overlaps a or b otherwise goes to np.add, which
+    copies first)."""
     fast = (a.shape == b.shape and a.dtype == b.dtype and a.dtype in _checks.FLOATS and a.flags.c_contiguous
             and b.flags.c_contiguous and (out is None or (out.shape == a.shape and out.dtype == a.dtype
-                                                          and out.flags.c_contiguous and out.flags.writeable)))
+                                                          and out.flags.c_contiguous and out.flags.writeable
+                                                          and _same_or_apart(out, a) and _same_or_apart(out, b))))
     if not fast:
         return np.add(a, b, out=out)
     out = np.empty_like(a) if out is None else out
@@ -237,6 +253,8 @@ def sum_rows_by_id(ids, rows, n):
     if ids.size:
         order = np.argsort(ids, kind="stable")
         run = ids[order]
+        if run[0] < 0 or run[-1] >= n:  # numpy would wrap -1 around
+            raise ValueError(f"ids must be in [0, {n}), got values in [{run[0]}, {run[-1]}]")
         starts = np.flatnonzero(np.concatenate(([True], run[1:] != run[:-1])))
         out[run[starts]] = np.add.reduceat(rows[order], starts, axis=0)
     return out
