@@ -1294,3 +1294,20 @@ def test_conv_scans_inputs_first_where_some_are_not_read(xs, ws, stride, padding
         y_clean = conv.conv2d_forward(x, w, b, stride, padding)[0]
         x[where] = 1e30
         assert_bitwise_equal("y with the unread element changed", conv.conv2d_forward(x, w, b, stride, padding)[0], y_clean)
+
+
+def test_attnblock_logits_that_overflow_are_named_as_such(rng):
+    """q.k / sqrt(C) beyond float32 (finite x, weights wq = wk = 1e19 I): the softmax's s - max s
+    gave inf - inf = NaN, and the error came from the next conv as "x contains NaN or inf",
+    blaming an input the user never passed. Now the logits are named; with wq = wk = I the
+    same block runs (the boundary)."""
+    C = 32
+    x = rng.standard_normal((1, C, 4, 4)).astype(np.float32)
+    eye = np.eye(C, dtype=np.float32)[:, :, None, None]
+    zeros, ones = np.zeros(C, np.float32), np.ones(C, np.float32)
+    w = (rng.standard_normal((C, C, 1, 1)) / np.sqrt(C)).astype(np.float32)
+    args = lambda big: (x, ones, zeros, big * eye, zeros, big * eye, zeros, w, zeros, w, zeros)
+    y, _ = conv.attnblock_forward(*args(np.float32(1)))
+    assert np.isfinite(y).all()
+    with pytest.raises(ValueError, match="attention logits .* overflow float32"):
+        conv.attnblock_forward(*args(np.float32(1e19)))

@@ -534,6 +534,9 @@ def attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, 
     scale = x.dtype.type(C ** -0.5)
     s = matmul(q2, k2, ta=True)  # (B, P, P): s[b,i,j] = sum_c q[b,c,i] k[b,c,j]
     s *= scale
+    if not _checks.all_finite(s):  # (else inf - inf = NaN, and the error would blame a later layer's input)
+        raise ValueError(f"attnblock_forward: the attention logits q.k / sqrt(C) overflow {x.dtype} "
+                         "(q and k too large: the weights wq, wk or the input diverged)")
     s -= s.max(axis=-1, keepdims=True)
     with np.errstate(under="ignore"):  # exp of very negative logits underflowing to 0 is correct
         p = np.exp(s)  # (B, P, P)
