@@ -41,7 +41,7 @@ import numpy as np
 
 from .. import _checks
 
-from ..geometry import _UNIT_TOL
+from ..geometry import _UNIT_TOL, _check_unit
 from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, _check_rng, _rotation, look_at_poses, sample_camera_positions
 
 __all__ = [
@@ -232,13 +232,8 @@ def render_views(cells, colours, poses, size=64):
     if poses.ndim != 2 or poses.shape[1] != 7:
         raise ValueError(f"poses must be (V, 7), got shape {poses.shape}")
     _checks.finite("poses", poses)
-    q = poses[:, 3:]
-    n2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]  # (V,) |q|^2
-    bad = np.abs(n2 - 1) > _UNIT_TOL.get(given.dtype, _UNIT_TOL[np.dtype(np.float64)])  # (V,)
-    if bad.any():
-        v = int(np.argmax(bad))
-        raise ValueError(f"poses must hold unit quaternions, but poses[{v}] has |q|^2 = {float(n2[v])!r}: "
-                         "normalise it first with quat_normalize")
+    # unit to the tolerance of the poses' own dtype (float32 poses are unit to float32's precision)
+    _check_unit("the quaternions of poses", (given if given.dtype in _UNIT_TOL else poses)[:, 3:])
     inside = ((poses[:, None, :3] >= lo) & (poses[:, None, :3] <= hi)).all(axis=-1)  # (V, K)
     if inside.any():
         v, k = map(int, np.argwhere(inside)[0])
