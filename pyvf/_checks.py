@@ -10,6 +10,32 @@ from . import _core
 FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 
 
+def _masked(name, a):
+    """The message refusing `a` when it is a masked array with masked elements, else None: the
+    kernels (and NumPy's indexing, np.array, np.ascontiguousarray) read the data under the mask as
+    values, a silently wrong answer. A masked array with nothing masked is its data. Free for a
+    plain ndarray; a masked array's mask is scanned (bool, one byte an element)."""
+    if isinstance(a, np.ma.MaskedArray) and np.ma.is_masked(a):
+        return (f"{name} is a masked array with masked elements: pyvf would compute with the values under "
+                "the mask; fill them (np.ma.filled) or leave those elements out")
+    return None
+
+
+def plain_array(name, a):
+    """Refuse the ndarray subclasses whose values or operators are not an ndarray's (TypeError):
+    masked elements (_masked), and np.matrix, which stays 2-D under indexing and makes * a
+    matrix product (quat_mul of a matrix returned a (1, 4) array for (3, 4) inputs, and NumPy's
+    np.stack of the matrices it made corrupted the heap). Other subclasses (np.memmap, ones with
+    __array_finalize__) are plain arrays to pyvf. float_array and int_array call it; a check of
+    its own (uint8 pictures, say) calls it after its isinstance test. Costs no pass over a plain
+    ndarray's data."""
+    if isinstance(a, np.matrix):
+        raise TypeError(f"{name} is a numpy.matrix (2-D only, * a matrix product): pass np.asarray({name})")
+    problem = _masked(name, a)
+    if problem:
+        raise TypeError(problem)
+
+
 def all_finite(a):
     """True when every element of the float array a is finite; a C-contiguous array is scanned by
     the C++ kernel, which allocates nothing (np.isfinite would allocate a bool array as large)."""
@@ -22,7 +48,11 @@ def float_array(name, a, like=None, like_name="x"):
     """a must be a float32 or float64 ndarray, of like's dtype when like is given."""
     if not isinstance(a, np.ndarray):
         raise TypeError(f"{name} must be a numpy.ndarray, got {type(a).__name__}")
+    plain_array(name, a)
     if a.dtype not in FLOATS:
+        if a.dtype.newbyteorder("=") in FLOATS:  # the kernels would read its bytes as native ones: refused too
+            raise TypeError(f"{name} is {a.dtype.newbyteorder('=')} in non-native byte order ({a.dtype.str}): the "
+                            f"kernels read native bytes; pass {name}.astype({name}.dtype.newbyteorder('='))")
         raise TypeError(f"{name} must be float32 or float64, got {a.dtype} (pyvf never casts silently)")
     if like is not None and a.dtype != like.dtype:
         raise TypeError(f"{name} is {a.dtype} but {like_name} is {like.dtype}: both must share one dtype "
@@ -51,6 +81,10 @@ def contiguous(name, a):
 
 
 def finite(name, a):
+    """a's values are all finite numbers; masked elements are not values (_masked): TypeError."""
+    problem = _masked(name, a)
+    if problem:  # the arrays checked here without float_array first (a model's images, poses)
+        raise TypeError(problem)
     if not all_finite(a):
         raise ValueError(f"{name} contains NaN or inf")
     return a
@@ -60,6 +94,7 @@ def int_array(name, a):
     """a must be an ndarray of a signed or unsigned integer dtype (bool, float, object refused)."""
     if not isinstance(a, np.ndarray):
         raise TypeError(f"{name} must be a numpy.ndarray of integers, got {type(a).__name__}")
+    plain_array(name, a)
     if a.dtype.kind not in "iu":
         raise TypeError(f"{name} must be an integer array, got {a.dtype} (pyvf never casts silently)")
     return a
@@ -128,13 +163,18 @@ def weight_problem(name, a, shape, *, hint=""):
     finite float32/float64 array of `shape`, else (TypeError or ValueError, message). float16,
     longdouble, integer, bool, complex and object arrays are refused: only float32 <-> float64
     converts, on purpose (see weight). `shape` may be a list of alternative shapes (a list of
-    tuples); `hint` is appended to a wrong shape's message (e.g. the layout expected)."""
+    tuples); `hint` is appended to a wrong shape's message (e.g. the layout expected). Either byte
+    order is accepted: converted_weight, which follows, makes the native copy (exact). A masked
+    array with masked elements is a TypeError problem (np.array would load the data under the mask)."""
     alternatives = isinstance(shape, list) and len(shape) > 0 and all(isinstance(s, (tuple, list)) for s in shape)
     shapes = [tuple(s) for s in shape] if alternatives else [tuple(shape)]
     if not isinstance(a, np.ndarray):
         return TypeError, f"{name!r} is a {type(a).__name__}, not a numpy array"
-    if a.dtype not in FLOATS:
+    if a.dtype.newbyteorder("=") not in FLOATS:  # a big-endian float32 is float32 in the file's byte order
         return TypeError, f"{name!r} has dtype {a.dtype}, expected a float array (float32 or float64)"
+    problem = _masked(repr(name), a)
+    if problem:
+        return TypeError, problem
     if a.shape not in shapes:
         return ValueError, f"{name!r} has shape {a.shape}, expected {' or '.join(map(str, shapes))}{hint}"
     if not all_finite(a):

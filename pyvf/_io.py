@@ -18,6 +18,7 @@ these primitives.
 
 import io
 import os
+import re
 import secrets
 import zipfile
 
@@ -55,7 +56,10 @@ def _atomic_write(path, write):
     path = os.fspath(path)
     tmp = _temp_name(path)
     # os.open with 0o666 honours the umask, as open(path, "wb") would (mkstemp would force 0600)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    except OSError as e:  # a missing folder, a file in the path, no permission: name the destination
+        raise type(e)(e.errno, f"cannot write {path}: {e.strerror} (creating its temporary file {tmp})") from e
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -71,13 +75,21 @@ def _atomic_write(path, write):
     fsync_dir(os.path.dirname(os.path.abspath(path)))
 
 
-def atomic_savez(path, **arrays):
+# np.savez(file, *args, allow_pickle=True, **kwds) takes these as its own arguments, not as entries
+_SAVEZ_ARGUMENTS = ("file", "allow_pickle")
+
+
+def atomic_savez(path, /, **arrays):
     """np.savez(path, **arrays), atomically; `path` is written as given (no ".npz" appended).
 
     Every value must convert to a non-object array (a str becomes a 0-d unicode array), so
-    that the file loads with allow_pickle=False: an object array raises TypeError naming it."""
+    that the file loads with allow_pickle=False: an object array raises TypeError naming it.
+    An entry may be named path, but not file or allow_pickle (np.savez's own arguments: ValueError)."""
     checked = {}
     for key, value in arrays.items():
+        if key in _SAVEZ_ARGUMENTS:
+            raise ValueError(f"atomic_savez: the entry name {key!r} is an argument of np.savez, which "
+                             "cannot store an entry of that name: rename it")
         a = np.asarray(value)
         if a.dtype.hasobject:
             raise TypeError(f"atomic_savez: {key!r} is an object array (it would need pickle); "
@@ -87,8 +99,15 @@ def atomic_savez(path, **arrays):
 
 
 def atomic_write_bytes(path, data):
-    """Write the bytes `data` to `path`, atomically (e.g. a PNG encoded into a BytesIO)."""
-    data = bytes(data)
+    """Write the bytes `data` to `path`, atomically (e.g. a PNG encoded into a BytesIO).
+
+    data: bytes or any bytes-like object (bytearray, memoryview, a numpy array's buffer); not an
+    int, which bytes() would turn into that many zero bytes."""
+    if not isinstance(data, bytes):  # bytes as they are: a dataset's shard is not copied
+        try:
+            data = memoryview(data).tobytes()
+        except TypeError:
+            raise TypeError(f"data must be a bytes-like object, got {type(data).__name__}") from None
     _atomic_write(path, lambda f: f.write(data))
 
 
@@ -121,6 +140,8 @@ def load_npz(path, what="file", required=()):
         path = name = os.fspath(path)
         if not os.path.exists(path):
             raise FileNotFoundError(f"{what} {path} does not exist")
+        if os.path.isdir(path):  # not "truncated or corrupt", as np.load's IsADirectoryError would be called
+            raise IsADirectoryError(f"{what} {path} is a folder, not a file")
     entry = None
     try:
         f = np.load(path, allow_pickle=False)
@@ -147,14 +168,16 @@ def remove_stale_temps(path):
     killed outright (SIGKILL, power cut). Call it only where no other process writes `path`.
     Returns the names removed."""
     folder, name = os.path.split(os.path.abspath(os.fspath(path)))
-    prefix = f".{name}."
+    # exactly _temp_name's `.{name}.{pid}.{hex}.tmp`: a looser `.{name}.*.tmp` would also match the
+    # temporary files of other paths (".model.npz.1.ab.tmp" for "model"), perhaps being written now
+    own = re.compile(re.escape(f".{name}.") + r"[0-9]+\.[0-9a-f]+\.tmp")
     removed = []
     try:
         entries = os.listdir(folder)
     except FileNotFoundError:
         return removed
     for entry in entries:
-        if entry.startswith(prefix) and entry.endswith(".tmp"):
+        if own.fullmatch(entry):
             try:
                 os.unlink(os.path.join(folder, entry))
                 removed.append(entry)

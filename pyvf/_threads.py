@@ -5,6 +5,7 @@ any home may use it without importing the public facade.
 """
 
 import math
+import numbers
 import os
 import re
 
@@ -145,30 +146,48 @@ def set_num_threads(n):
     left at the core count spin against the kernels' on a busy machine). One count for the
     process: a kernel called from any Python thread runs on it. For a block only:
     `with pyvf.threads(n): ...`."""
-    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n < 2 ** 31:
-        raise ValueError(f"n must be a positive integer below 2^31, got {n!r}")
+    n = _count(n)
     _core.set_num_threads(n)
     blas_limit(n)
+
+
+# The most threads a count may ask for. The OpenMP runtime creates them at the next parallel
+# region, and where it cannot (the process's thread or memory limits: 100000 threads under a 3 GB
+# address-space limit) it ends the process, so a count beyond any machine pyvf runs on is refused
+# when it is set. Above the core count is allowed (oversubscription is a thing to measure).
+MAX_THREADS = 1024
+
+
+def _count(n, alternatives=""):
+    """n: a thread count, a Python or NumPy integer (not bool) in [1, MAX_THREADS] -> int; else
+    ValueError naming n (numbers.Integral: numpy's integers are registered there, numpy's bool is not)."""
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 1 <= n <= MAX_THREADS:
+        raise ValueError(f"n must be a positive integer of at most {MAX_THREADS}{alternatives}, got {n!r}")
+    return int(n)
 
 
 def set_from_environment(environ=None):
     """pyvf's threads at import (pyvf/__init__.py calls it once): PYVF_NUM_THREADS sets the
     kernels and numpy's BLAS pool (a value that is not a positive integer is an ImportError naming
     it); without it, and unless OMP_NUM_THREADS chose the kernels' count, both are kept to cores()
-    where that is fewer than the OpenMP runtime's count (the affinity: a container's CPU limit is
-    read by neither OpenMP nor the BLAS, and threads beyond it are throttled mid-region).
+    where that is fewer than the OpenMP runtime's count or the BLAS pool's (the affinity: a
+    container's CPU limit is read by neither OpenMP nor the BLAS, and threads beyond it are
+    throttled mid-region; numpy's BLAS counted the CPUs when numpy was imported).
     Returns the count set, or None where nothing was set."""
     environ = os.environ if environ is None else environ
     value = environ.get("PYVF_NUM_THREADS", "").strip()
     if value:  # one setting for the kernels and numpy's BLAS, for a whole process
-        if not value.isdigit() or not 1 <= int(value) < 2 ** 31:
-            raise ImportError(f"PYVF_NUM_THREADS={value!r} is not a positive integer below 2^31")
+        # isdecimal, not isdigit: superscripts ('³') are digits that int() refuses
+        if not value.isdecimal() or not 1 <= int(value) <= MAX_THREADS:
+            raise ImportError(f"PYVF_NUM_THREADS={value!r} is not a positive integer of at most {MAX_THREADS}")
         n = int(value)
     elif environ.get("OMP_NUM_THREADS", "").strip():
         return None
     else:
         n = cores()
-        if n >= _core.num_threads():
+        # numpy's BLAS too: it sized its pool when numpy was imported, which may have been before
+        # this process was pinned to fewer CPUs (OpenMP reads the affinity later, at pyvf's import)
+        if n >= _core.num_threads() and n >= blas_num_threads():
             return None
     set_num_threads(n)
     return n
@@ -179,9 +198,7 @@ class threads:
     put back as they were after it. n=None changes nothing."""
 
     def __init__(self, n):
-        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or not 1 <= n < 2 ** 31):
-            raise ValueError(f"n must be a positive integer below 2^31 or None, got {n!r}")
-        self.n, self._old, self._blas = n, None, None
+        self.n, self._old, self._blas = None if n is None else _count(n, " or None"), None, None
 
     def __enter__(self):
         if self.n is not None:

@@ -140,14 +140,32 @@ def _conj(q):
     return q * np.array([1, -1, -1, -1], dtype=q.dtype)  # (w, -x, -y, -z)
 
 
-def _rotate(q, v):
-    """vec(q * (0, v) * conj(q)) for unit q, (..., 4) x (..., 3) -> (..., 3).
-
-    Expanded: with u = vec(q), t = 2 u x v, the rotated vector is v + w t + u x t
-    (18 multiplies instead of the 32 of two Hamilton products; equal for |q| = 1)."""
+def _rotate_expanded(q, v):
+    """vec(q * (0, v) * conj(q)) for unit q, expanded: with u = vec(q), t = 2 u x v, the rotated
+    vector is v + w t + u x t (18 multiplies instead of the 32 of two Hamilton products; equal for
+    |q| = 1). (..., 4) x (..., 3) -> (..., 3)."""
     w, u = q[..., :1], q[..., 1:]  # (..., 1), (..., 3)
     t = 2 * np.cross(u, v)  # (..., 3)
     return v + w * t + np.cross(u, t)  # (..., 3)
+
+
+def _rotate(q, v):
+    """vec(q * (0, v) * conj(q)) for unit q, (..., 4) x (..., 3) -> (..., 3), broadcasting.
+
+    The rotation keeps |v|, but the expanded formula's t = 2 u x v reaches 2 |v|: a v near the
+    dtype's largest value (float32 (3e38, 3e38, 0) turned 90 degrees) overflows in between although
+    its rotation fits. Those vectors are rotated again as v / 16 and scaled back (powers of two:
+    exact, but for components that become subnormal, negligible next to |v|); every intermediate
+    then stays below max / 1.8 (|v| <= sqrt(3) max, |t|, |w t|, |u x t| <= 2 |v|). A rotation that
+    really does not fit stays inf, for the caller's finite_result. Elsewhere bit for bit the formula."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = _rotate_expanded(q, v)  # (..., 3)
+    over = ~np.isfinite(out).all(axis=-1, keepdims=True)  # (..., 1)
+    if over.any():
+        with np.errstate(over="ignore", under="ignore"):
+            small = _rotate_expanded(q, np.ldexp(v, -4).astype(v.dtype, copy=False))
+            out = np.where(over, np.ldexp(small, 4).astype(v.dtype, copy=False), out)
+    return out
 
 
 def _normalize(q, eps):
@@ -231,9 +249,13 @@ def quat_normalize(q, eps=1e-12):
     _check("q", q, (4,), "a quaternion (w, x, y, z)")
     if isinstance(eps, (bool, np.bool_)) or not isinstance(eps, (int, float, np.integer, np.floating)):
         raise TypeError(f"eps must be a real number, got {type(eps).__name__}")
-    if not (np.isfinite(eps) and eps > 0):
+    try:
+        value = float(eps)
+    except OverflowError:  # an int beyond float64 (10**400): not finite either
+        value = np.inf
+    if not (np.isfinite(value) and value > 0):
         raise ValueError(f"eps must be finite and > 0, got {eps!r}")
-    return _normalize(q, float(eps))
+    return _normalize(q, value)
 
 
 def quat_canonical(q, *, tie_break=False):
@@ -349,7 +371,10 @@ def orientation_error(q1, q2):
     angle) and agree for unit inputs, but the asin form is NaN when rounding makes
     |vec(r)| > 1 and loses half its digits near 180 degrees (asin is flat at 1), and the
     2 * acos(w) form loses everything near 0 (a 1e-9 rad rotation has w = 1 in float64).
-    atan2 keeps full relative accuracy at every angle and never leaves [0, 180].
+    atan2 adds no error of its own at any angle and never leaves [0, 180]; what is left is the
+    rounding of r, a few units of roundoff in radians, absolute: for q1 within a few ulp of q2
+    the components of vec(r) cancel, and the angle there is right only to that absolute error
+    (tests/test_geometry.py holds it to 8 eps rad), not to full relative accuracy.
     It depends only on the direction of r, so q1 and q2 need not be unit; zero quaternions
     (no rotation at all) raise ValueError. Each quaternion is first scaled by a power of two
     (exact: the same direction) to a largest component in [0.5, 1), so quaternions of any size,

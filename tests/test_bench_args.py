@@ -26,6 +26,7 @@ BAD = [
     (["scaling", "--quick", "--json", "nodir/s.json"], "--json", "does not exist"),
     (["accuracy", "--quick", "--repeat", "0"], "--repeat", "expected a positive integer"),
     (["threads", "--quick", "--json", "nodir/t.json"], "--json", "does not exist"),
+    (["threads", "--scaling-only", "--counts", "1", "1025"], "--counts", "of at most 1024, got '1025'"),
 ]
 
 

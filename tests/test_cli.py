@@ -197,15 +197,15 @@ THREADS_COMMANDS = [["demo"], ["evaluate", "--out", "e"], ["tokenize", "--codebo
 
 @pytest.mark.parametrize("argv", THREADS_COMMANDS + [["bench", name] for name in BENCHMARKS], ids=" ".join)
 def test_threads_is_one_option_checked_once(argv, capsys, monkeypatch):
-    """--threads is the same option everywhere (pyvf/cli/options.py): a positive integer, anything
-    else the parser's error naming it, before any work starts."""
+    """--threads is the same option everywhere (pyvf/cli/options.py): a positive integer of at most
+    1024 (MAX_THREADS), anything else the parser's error naming it, before any work starts."""
     for var in BLAS_THREAD_VARS:  # as a benchmark's --threads 2 wants: no child process
         monkeypatch.setenv(var, "2")
-    for bad in ("0", "-1", "x", "1.5"):
+    for bad in ("0", "-1", "x", "1.5", "1025"):
         with pytest.raises(SystemExit) as e:
             main(argv + ["--threads", bad])
         assert e.value.code == 2
-        assert f"argument --threads: expected a positive integer, got '{bad}'" in capsys.readouterr().err
+        assert f"argument --threads: expected a positive integer of at most 1024, got '{bad}'" in capsys.readouterr().err
     if argv[0] == "bench":
         parser, _ = BENCHMARKS[argv[1]][0]()
         assert parser.parse_args(["--threads", "3"]).threads == 3

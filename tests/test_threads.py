@@ -3,6 +3,7 @@ control group's CPU limit read from a fake /proc and cgroup tree of each kind), 
 at import (PYVF_NUM_THREADS, OMP_NUM_THREADS, the limit), and a count that holds for every path
 module and every Python thread, and inference calls made from several Python threads at once."""
 
+import argparse
 import os
 import threading
 
@@ -113,9 +114,24 @@ def test_set_from_environment(monkeypatch, restore_threads):
     monkeypatch.setattr(_threads, "cores", lambda: 2)
     assert _threads.set_from_environment({}) is None  # more cores than threads: nothing to set
     assert pyvf.num_threads() == 1
-    for bad in ("0", "two", "-1", "1.5", str(2 ** 31)):
-        with pytest.raises(ImportError, match=f"PYVF_NUM_THREADS='{bad}' is not a positive integer below 2"):
+    for bad in ("0", "two", "-1", "1.5", str(2 ** 31), str(_threads.MAX_THREADS + 1)):
+        with pytest.raises(ImportError, match=f"PYVF_NUM_THREADS='{bad}' is not a positive integer of at most"):
             _threads.set_from_environment({"PYVF_NUM_THREADS": bad})
+
+
+def test_a_count_beyond_max_threads_is_refused_when_set(restore_threads):
+    """100000 threads were accepted, and the next parallel kernel ended the process (OpenMP cannot
+    create them under the process's limits: a segfault under a 3 GB address-space limit). The
+    count is refused when it is set, by the library, the context and the commands' --threads."""
+    from pyvf.cli.options import thread_count
+    n0, big = pyvf.num_threads(), _threads.MAX_THREADS + 1
+    for call in (pyvf.set_num_threads, pyvf.threads):
+        with pytest.raises(ValueError, match=f"n must be a positive integer of at most {_threads.MAX_THREADS}"):
+            call(big)
+    assert pyvf.num_threads() == n0
+    with pytest.raises(argparse.ArgumentTypeError, match=f"at most {_threads.MAX_THREADS}, got '{big}'"):
+        thread_count(str(big))
+    assert thread_count(str(_threads.MAX_THREADS)) == _threads.MAX_THREADS
 
 
 def test_the_count_holds_for_every_path_and_python_thread(restore_threads):

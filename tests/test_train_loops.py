@@ -889,6 +889,34 @@ def test_ctrl_c_saves_the_step_under_way_and_the_run_resumes_bitwise(tmp_path, r
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def test_ctrl_c_during_a_checkpoint_names_the_step_that_is_saved(tmp_path, rng, monkeypatch, capsys):
+    """Ctrl-C while step 4's checkpoint is written (checkpoints every 4 steps): step 4's stop
+    decision is already taken, so the run finishes and saves step 5, and the line must say step 5.
+    It said "finishing step 4" (the step under way when the signal came) and saved step 5: the
+    command line's race, seen under load. Ctrl-C during the last step's checkpoint names that step."""
+    from pyvf.train._run import Run
+
+    images = _images(rng)
+    kw = dict(batch_size=2, checkpoint_every=4, **QUIET)
+    real = Run.save
+
+    def save_with_ctrl_c(self, step, *args, **kwargs):
+        real(self, step, *args, **kwargs)
+        if step == at:  # after the decision of step `at`, before the next step
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)  # the handler runs in the main thread between two bytecodes
+
+    monkeypatch.setattr(Run, "save", save_with_ctrl_c)
+    for at, steps, saved in ((4, 8, 5), (6, 6, 6)):
+        out = str(tmp_path / f"run{at}")
+        with pytest.raises(KeyboardInterrupt):
+            train_codebook(images, CB, out, steps=steps, **kw)
+        assert capsys.readouterr().err == (f"Ctrl-C: finishing step {saved} and saving it; Ctrl-C again stops at once "
+                                           "(losing the steps since the last checkpoint)\n")
+        assert _checkpoint(out)[0]["step"] == saved
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_a_second_ctrl_c_stops_at_once_and_saves_nothing(tmp_path, rng, monkeypatch, capsys):
     """Two Ctrl-C in step 3 (checkpoints every 2 steps): KeyboardInterrupt inside the step, before its
     update; the checkpoint stays step 2's, never a half-updated state, and the run resumes from it

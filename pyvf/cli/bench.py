@@ -23,8 +23,8 @@ import sys
 
 from .._threads import cores
 from ..bench.common import BLAS_THREAD_VARS, write_json, write_outputs
-from .options import (add_threads, names, non_negative_float, output_dir, output_file, positive_float,
-                      positive_int)
+from .options import (add_threads, names, non_negative_float, output_dir, output_file, positive_float, positive_int,
+                      thread_count)
 
 DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
 # benchmarks that run in this process whatever the BLAS variables say: demo-attention has no
@@ -196,7 +196,7 @@ def _threads_parser():
                         "kernels) at each thread count: where the speed-up is lost (pyvf.bench.profile)")
     p.add_argument("--calls", nargs="+", default=None, choices=list(_module("threads").SCALING_IDS),
                    help="the scaling's (or the profile's) calls (default: all; the profile: the tiny steps)")
-    p.add_argument("--counts", nargs="+", type=positive_int, default=None, metavar="N",
+    p.add_argument("--counts", nargs="+", type=thread_count, default=None, metavar="N",
                    help="the scaling's thread counts (default: 1, 2, 4, ... and every usable core)")
     p.add_argument("--json", default=None, metavar="FILE", type=output_file, help="also write the report as JSON")
     return p, None

@@ -6,16 +6,18 @@ import os
 import sys
 import tempfile
 
+from .._threads import MAX_THREADS
+
 KERNEL_THREADS = "threads for pyvf's C++ kernels"
 INTERRUPTED = 130  # a command's exit status after Ctrl-C: the shell's for a process ended by SIGINT (128 + 2)
 
 
-def _integer(text, lo, expected):
+def _integer(text, lo, expected, hi=None):
     try:
         v = int(text)
     except ValueError:
         v = lo - 1
-    if v < lo:
+    if v < lo or (hi is not None and v > hi):
         raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return v
 
@@ -50,11 +52,17 @@ def non_negative_int(text):
     return _integer(text, 0, "a non-negative integer")
 
 
+def thread_count(text):
+    """argparse type: a thread count, a positive integer of at most pyvf's MAX_THREADS (refused
+    here, before the command's work, rather than by set_num_threads after it)."""
+    return _integer(text, 1, f"a positive integer of at most {MAX_THREADS}", hi=MAX_THREADS)
+
+
 def add_threads(parser, default=None, help=KERNEL_THREADS):
-    """--threads: a positive integer, or `default`. The command applies it through
+    """--threads: a thread count (thread_count), or `default`. The command applies it through
     pyvf.set_num_threads or pyvf.threads (the kernels and numpy's BLAS together), or hands it to
     the library function that does."""
-    parser.add_argument("--threads", type=positive_int, default=default, help=help)
+    parser.add_argument("--threads", type=thread_count, default=default, help=help)
 
 
 def context_sizes(text):

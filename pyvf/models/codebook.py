@@ -45,6 +45,7 @@ pyvf fuses Normalize and swish: `*.norm1`, `*.norm2`, `*.norm_out` are swish(Gro
 not the torch GroupNorm module's output (record `nonlinearity(norm(x))` on a port's side).
 """
 
+import contextlib
 import dataclasses
 
 import numpy as np
@@ -281,6 +282,20 @@ class CodebookOutput:
     trace: dict = None  # forward(..., trace=True) only: name -> activation (read-only), trace_names(cfg) order
 
 
+@contextlib.contextmanager
+def _naming(row):
+    """A TypeError or ValueError raised by row's layer function is raised again naming the row:
+    those functions name their own arguments (x, w, b, gamma, dy), and the model's parameters
+    behind them are the row's (a parameter assigned by hand, an overflow deep in the model)."""
+    try:
+        yield
+    except (TypeError, ValueError) as e:
+        if type(e) not in (TypeError, ValueError):  # a subclass may take other arguments: as it is
+            raise
+        params = f" (parameters {', '.join(row.param_names)})" if row.param_names else ""
+        raise type(e)(f"layer {row.name!r}{params}: {e}") from e
+
+
 def _add_grad(grads, name, g):
     """grads[name] += g; the first gradient of a parameter is stored as is (a fresh array from the
     layer's backward: no zero-filled copy of every parameter, 270 MB for the paper's codebook)."""
@@ -297,6 +312,9 @@ class Codebook(ModelWeights):
     are not bundled), any object with `forward(x, x_hat) -> (loss (B,), cache)` and
     `backward(dloss (B,), cache) -> dx_hat`; weighted by config.perceptual_weight, which must
     then be positive. Without one, perceptual_weight must be 0: the term is never silently dropped.
+    Its cache may be anything, None included (a module that keeps its state on itself). What it
+    returns is checked, not cast or broadcast: the loss a finite float array (B,), dx_hat a finite
+    array of the reconstruction's shape and the model's dtype.
 
     layers: the layer table (default layer_table(config)): the parameters, the forward, the trace
     and teacher forcing all read it, so a changed table (a layer renamed, another padding) changes
@@ -421,7 +439,8 @@ class Codebook(ModelWeights):
         if row.kind == "res":
             y, c = self._resblock_forward(row, x, keep)
         else:
-            y, c = row_forward(row, self.params, x)
+            with _naming(row):
+                y, c = row_forward(row, self.params, x)
         if keep:
             tape.append((row, c))
         if self._trace is not None:
@@ -437,7 +456,8 @@ class Codebook(ModelWeights):
             if row.kind == "res":
                 dy = self._resblock_backward(dy, c, grads, g)
                 continue
-            dy, dparams = row_backward(row, dy, c)
+            with _naming(row):
+                dy, dparams = row_backward(row, dy, c)
             for name, dp in zip(row.param_names, dparams):
                 _add_grad(grads, name, dp)
         return dy
@@ -496,7 +516,9 @@ class Codebook(ModelWeights):
             raise TypeError(f"images must be a {self.dtype} numpy array in [-1, 1], got "
                             f"{getattr(images, 'dtype', type(images).__name__)}" + (f": {convert}" if pixels else ""))
         S = cfg.image_size
-        if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S) or images.shape[0] < 1:
+        if images.ndim == 4 and images.shape[0] == 0:  # else "must have shape (B, ...)" for a shape that has it
+            raise ValueError(f"images is empty (B = 0, shape {images.shape}): pass at least one image")
+        if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S):
             raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}"
                              + (f": {convert}" if images.ndim == 4 and images.shape[3] == cfg.in_channels else ""))
         _checks.finite("images", images)
@@ -576,7 +598,8 @@ class Codebook(ModelWeights):
             if tr is not None:
                 tr[self._quantize_row.name] = q.quantized
             rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
-            per_image, c_p = self.perceptual.forward(images, rec) if self.perceptual is not None else (None, None)
+            # (the module that ran, its cache): backward differentiates it, whatever its cache (None too)
+            per_image, perc = self._perceptual_forward(images, rec) if self.perceptual is not None else (None, None)
         except BaseException:  # a failed call leaves the EMA buffers as they were
             if saved is not None:
                 self.quantizer.load_state_dict(saved)
@@ -609,9 +632,32 @@ class Codebook(ModelWeights):
                 if isinstance(a, np.ndarray):
                     tr[name] = a.view()
                     tr[name].flags.writeable = False
-        self._cache = (enc, dec, c_q, drec_loss, c_p, images.shape[0], rec.shape, trace)
+        self._cache = (enc, dec, c_q, drec_loss, perc, images.shape[0], rec.shape, trace)
         return CodebookOutput(reconstruction=rec, codes=q.codes, rec_loss=rec_loss, commitment_loss=q.commitment_loss,
                               loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual, trace=tr)
+
+    def _perceptual_forward(self, images, rec):
+        """The perceptual module's loss per image, checked: a finite float array (B,) (a NaN
+        made the loss NaN, another length was averaged as it was) -> (loss, (module, cache))."""
+        per_image, cache = self.perceptual.forward(images, rec)
+        what = "perceptual.forward's loss"
+        _checks.float_array(what, per_image)
+        if per_image.shape != (images.shape[0],):
+            raise ValueError(f"{what} must have shape ({images.shape[0]},), one value per image, "
+                             f"got {per_image.shape}")
+        _checks.finite(what, per_image)
+        return per_image, (self.perceptual, cache)
+
+    def _perceptual_backward(self, perc, dl, like):
+        """The perceptual module's gradient of the reconstruction for dl (B,), checked: an array
+        of the reconstruction's shape and the model's dtype (like's), finite; not broadcast, not cast."""
+        module, cache = perc
+        dx_hat = module.backward(dl, cache)
+        what = "perceptual.backward's gradient"
+        _checks.float_array(what, dx_hat, like, "the reconstruction")
+        if dx_hat.shape != like.shape:
+            raise ValueError(f"{what} must have the reconstruction's shape {like.shape}, got {dx_hat.shape}")
+        return _checks.finite(what, dx_hat)
 
     def backward(self, drec=None, *, dloss=None):
         """Differentiate the last forward: the gradient of
@@ -622,26 +668,17 @@ class Codebook(ModelWeights):
         dloss = 1: the gradient of the loss, as training needs). drec (B, out_ch, S, S) is an
         array of the model's dtype, for out.reconstruction; dloss a real number. The commitment
         term (the encoder's only gradient besides the straight-through one) comes with dloss only.
+        Seeds whose gradient of the reconstruction overflows the model's dtype (dloss = 1e300 on a
+        float32 model) raise ValueError naming them.
 
         Returns torch parameter name -> gradient. After forward(..., trace=True) the dict first
         holds the gradient of every traced activation, in backward order (exactly the reverse of
         the trace), under the trace's names except the losses; then the parameters'."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
-        enc, dec, c_q, drec_loss, c_p, B, rec_shape, traced = self._cache
+        enc, dec, c_q, drec_loss, perc, B, rec_shape, traced = self._cache
         if drec is None and dloss is None:
             dloss = 1.0
-        grads = {}  # filled by _add_grad; parameters the model did not use get zeros at the end
-        total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
-        dcommitment = 0.0
-        if dloss is not None:
-            dloss = _checks.real("dloss", dloss)
-            # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
-            total = (dloss * drec_loss).astype(self.dtype)
-            if c_p is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
-                dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
-                total = total + self.perceptual.backward(dl, c_p)
-            dcommitment = dloss * self.config.codebook_weight
         if drec is not None:
             _checks.float_array("drec", drec)
             if drec.dtype != self.dtype:
@@ -650,7 +687,33 @@ class Codebook(ModelWeights):
             if drec.shape != tuple(rec_shape):
                 raise ValueError(f"drec must have the reconstruction's shape {tuple(rec_shape)}, got {drec.shape}")
             _checks.finite("drec", drec)
-            total = total + drec
+        if dloss is not None:
+            dloss = _checks.real("dloss", dloss)
+        grads = {}  # filled by _add_grad; parameters the model did not use get zeros at the end
+        total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
+        dcommitment = 0.0
+        # the seeds are finite but their products and sums may overflow the model's dtype: that is
+        # refused below naming them (else the first layer's backward blamed its own "dy")
+        too_large = f"too large for the model's {self.dtype} (use a smaller seed, or float64)"
+        with np.errstate(over="ignore"):
+            if dloss is not None:
+                # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
+                total = (dloss * drec_loss).astype(self.dtype)
+                if not _checks.all_finite(total):
+                    raise ValueError(f"dloss = {dloss!r} times the loss's gradient overflows: {too_large}")
+                if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
+                    dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
+                    if not _checks.all_finite(dl):
+                        raise ValueError(f"dloss = {dloss!r} times perceptual_weight overflows: {too_large}")
+                    total = total + self._perceptual_backward(perc, dl, total)
+                    if not _checks.all_finite(total):
+                        raise ValueError(f"dloss = {dloss!r} times the loss's gradient (its perceptual term "
+                                         f"included) overflows: {too_large}")
+                dcommitment = dloss * self.config.codebook_weight
+            if drec is not None:
+                total = total + drec
+                if not _checks.all_finite(total):  # each was finite
+                    raise ValueError(f"drec plus dloss = {dloss!r} times the loss's gradient overflows: {too_large}")
         g = {} if traced else None  # the activations' gradients, the trace's order reversed
         dq = self._backward(dec, total, grads, g)
         if g is not None:

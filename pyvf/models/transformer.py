@@ -115,6 +115,19 @@ def _trace_mlp(tr, name, cache, y):
     tr[name + ".c_proj"] = y  # (..., dout)
 
 
+def _check_pose_multiplier(name, pm, dtype):
+    """pm: a real number whose magnitude is in dtype's normal range -> float. Positions are
+    multiplied by it and predictions divided by it (docs/math.md §3): 0 makes every prediction
+    inf, and so, in effect, does a magnitude that is 0 or subnormal in the dtype (dividing by it
+    overflows). A negative one mirrors both alike: allowed."""
+    pm, fi = _checks.real(name, pm), np.finfo(dtype)
+    if not float(fi.smallest_normal) <= abs(pm) <= float(fi.max):
+        raise ValueError(f"{name} must be nonzero, its magnitude in {fi.dtype}'s normal range "
+                         f"[{float(fi.smallest_normal):.4g}, {float(fi.max):.4g}] (positions are multiplied by it, "
+                         f"predictions divided by it), got {pm!r}")
+    return pm
+
+
 @dataclasses.dataclass(frozen=True)
 class TransformerConfig:
     n_embeddings: int  # V, the codebook size; wte has V + 2 rows: V = mask token, V + 1 = localization token
@@ -152,14 +165,7 @@ class TransformerConfig:
             object.__setattr__(self, name, _checks.real(f"TransformerConfig.{name}", getattr(self, name)))
         if not 0.0 <= self.label_smoothing < 1.0:
             raise ValueError(f"TransformerConfig.label_smoothing must be in [0, 1), got {self.label_smoothing}")
-        # positions are multiplied by pose_multiplier and predictions divided by it (docs/math.md §3):
-        # 0 makes every prediction inf, and so, in effect, does a magnitude that is 0 or subnormal
-        # in the dtype (dividing by it overflows). A negative one mirrors both alike: allowed.
-        pm, fi = abs(self.pose_multiplier), np.finfo(self.dtype)
-        if not float(fi.smallest_normal) <= pm <= float(fi.max):
-            raise ValueError(f"TransformerConfig.pose_multiplier must be nonzero, its magnitude in {self.dtype}'s "
-                             f"normal range [{float(fi.smallest_normal):.4g}, {float(fi.max):.4g}] (positions are "
-                             f"multiplied by it, predictions divided by it), got {self.pose_multiplier!r}")
+        _check_pose_multiplier("TransformerConfig.pose_multiplier", self.pose_multiplier, self.dtype)
 
     @property
     def L(self):
@@ -577,6 +583,9 @@ class Transformer(ModelWeights):
         S = cfg.n_loss_skip
         if N <= S:
             raise ValueError(f"tokens has N={N} views but n_loss_skip={S}: no view is a loss target")
+        # the caches keep the tokens (the embedding's scatter ids, the cross-entropy's targets) for
+        # backward(): the model's own copy, so that a caller refilling its buffer changes nothing
+        tokens = tokens.copy()
         tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
         x, c_embed = self._embed_forward(tokens, poses, tr)  # (3, B, N, L, d)
         c_blocks = []
@@ -587,12 +596,19 @@ class Transformer(ModelWeights):
 
         # losses over the views S.. (the first S views are pure context)
         V = cfg.n_embeddings
-        ce_tok, c_ce = cross_entropy_forward(logits[:, S:].reshape(-1, V), tokens[:, S:].reshape(-1),
-                                             cfg.label_smoothing)  # (B*(N-S)*L,)
-        ce = ce_tok.reshape(B, -1).mean(axis=1)  # (B,)
+        lg = logits[:, S:].reshape(-1, V)  # (B*(N-S)*L, V)
+        if np.may_share_memory(lg, logits):  # B = 1 or S = 0: a view; the cache must not be out.logits,
+            lg = lg.copy()  # which is the caller's to change (otherwise the reshape copied already)
+        ce_tok, c_ce = cross_entropy_forward(lg, tokens[:, S:].reshape(-1), cfg.label_smoothing)  # (B*(N-S)*L,)
         pl_tok, c_pl = pose_loss_forward(raw[:, S:], poses[:, S:, None, :], cfg.pose_multiplier)  # (B, N-S, L)
-        pl = pl_tok.reshape(B, -1).mean(axis=1)  # (B,)
-        loss = float(np.mean(cfg.image_generation_weight * ce + cfg.localization_weight * pl))
+        with np.errstate(over="ignore"):  # checked below: the means' sums, the weights can overflow
+            ce = ce_tok.reshape(B, -1).mean(axis=1)  # (B,)
+            pl = pl_tok.reshape(B, -1).mean(axis=1)  # (B,)
+            loss = np.mean(cfg.image_generation_weight * ce + cfg.localization_weight * pl)
+        for name, a in (("the cross-entropy", ce), ("the pose loss", pl), ("the loss", loss)):
+            _checks.finite_result("Transformer.forward", a, name)
+        loss = float(loss)
+        pred = pose_prediction(raw, cfg.pose_multiplier)  # (B, N, L, 7); raises before the cache is replaced
 
         if tr is not None:
             tr["ce_loss"], tr["pose_loss"] = ce, pl
@@ -602,8 +618,8 @@ class Transformer(ModelWeights):
                     tr[name] = a.view()
                     tr[name].flags.writeable = False
         self._cache = (c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L), trace)
-        return TransformerOutput(logits=logits, pose_prediction=pose_prediction(raw, cfg.pose_multiplier),
-                                 ce_loss=ce, pose_loss=pl, loss=loss, pose_raw=raw, trace=tr)
+        return TransformerOutput(logits=logits, pose_prediction=pred, ce_loss=ce, pose_loss=pl, loss=loss,
+                                 pose_raw=raw, trace=tr)
 
     def _upstream(self, name, a, shape):
         """An upstream gradient: a finite ndarray of the model's dtype and the output's shape."""
@@ -643,8 +659,15 @@ class Transformer(ModelWeights):
             dloss = _checks.real("dloss", dloss)
             # forward was loss = mean_b(wg * mean_{i >= S, t}(ce) + wl * mean_{i >= S, t}(pose))
             n_tok = (N - S) * L
-            dce_tok = np.full(B * n_tok, dloss * cfg.image_generation_weight / (B * n_tok), dtype=dt)
-            dpl_tok = np.full((B, N - S, L), dloss * cfg.localization_weight / (B * n_tok), dtype=dt)
+            seeds = [dloss * w / (B * n_tok) for w in (cfg.image_generation_weight, cfg.localization_weight)]
+            big = float(np.finfo(dt).max)
+            for s in seeds:  # a finite dloss whose per-token share the dtype cannot hold (np.full makes it inf)
+                if not abs(s) <= big:
+                    raise ValueError(f"dloss={dloss!r} is too large for the model's {dt}: its share of each "
+                                     f"token's loss, dloss * loss weight / (B (N - n_loss_skip) L) = {s:.4g}, "
+                                     f"is beyond {dt}'s largest {big:.4g}")
+            dce_tok = np.full(B * n_tok, seeds[0], dtype=dt)
+            dpl_tok = np.full((B, N - S, L), seeds[1], dtype=dt)
             dl_total[:, S:] = cross_entropy_backward(dce_tok, c_ce)[0].reshape(B, N - S, L, V)
             draw[:, S:] = pose_loss_backward(dpl_tok, c_pl)[0]
         if dlogits is not None:
@@ -781,7 +804,14 @@ class Scene:
 
 def pose_prediction(raw, pose_multiplier=1.0):
     """raw (..., 7) from the pose head -> (..., 7): xyz_raw / pose_multiplier and the raw
-    quaternion L2-normalised (eps 1e-12, TF's convention) and sign-canonicalised (w >= 0)."""
-    xyz = raw[..., :3] / raw.dtype.type(pose_multiplier)
+    quaternion L2-normalised (eps 1e-12, TF's convention) and sign-canonicalised (w >= 0).
+    raw: a finite float32/float64 array; pose_multiplier as TransformerConfig takes it (nonzero,
+    in raw's dtype's normal range). A quotient past the dtype's range raises ValueError."""
+    _checks.finite_float("raw", raw)
+    if raw.ndim < 1 or raw.shape[-1] != 7:
+        raise ValueError(f"raw must have last dimension 7 (xyz, then the quaternion wxyz), got shape {raw.shape}")
+    pm = _check_pose_multiplier("pose_multiplier", pose_multiplier, raw.dtype)
+    with np.errstate(over="ignore"):  # checked below
+        xyz = _checks.finite_result("pose_prediction", raw[..., :3] / raw.dtype.type(pm))
     q = quat_canonical(quat_normalize(raw[..., 3:], eps=1e-12))
     return np.concatenate([xyz, q], axis=-1)

@@ -332,8 +332,7 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
     if 0 in x.shape:
         raise ValueError(f"x has a zero-size dimension: shape {x.shape}")
     d = x.shape[-1]
-    if isinstance(n_head, (bool, np.bool_)) or not isinstance(n_head, (int, np.integer)) or n_head < 1:
-        raise ValueError(f"n_head must be a positive integer, got {n_head!r}")
+    n_head = _checks.positive_integer("n_head", n_head)
     if d % n_head:
         raise ValueError(f"n_head={n_head} does not divide the width d={d} of x")
     for name, a, shape in (("w_attn", w_attn, (d, 3 * d)), ("b_attn", b_attn, (1, 3 * d)),

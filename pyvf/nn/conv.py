@@ -73,9 +73,11 @@ def _check_vector(name, a, n, x, finite=True):
 
 
 def _check_grad(name, dy, shape):
-    if not isinstance(dy, np.ndarray) or dy.shape != shape:
-        raise ValueError(f"{name} must be an array of the forward output's shape {shape}, got "
-                         f"{getattr(dy, 'shape', type(dy).__name__)}")
+    if not isinstance(dy, np.ndarray):  # a TypeError, as _checks.float_array's
+        raise TypeError(f"{name} must be a numpy.ndarray of the forward output's shape {shape}, "
+                        f"got {type(dy).__name__}")
+    if dy.shape != shape:
+        raise ValueError(f"{name} must be an array of the forward output's shape {shape}, got {dy.shape}")
 
 
 INT_MAX = 2**31 - 1  # the kernels' sides, strides and paddings are C ints (csrc/conv_bind.cpp)
@@ -281,6 +283,8 @@ def _groupnorm_args(x, gamma, beta, groups, eps):
     _checks.real("eps", eps, lo=0, lo_open=True)  # finite and > 0: eps = inf would give y = beta
     if eps > float(np.finfo(x.dtype).max):
         raise ValueError(f"eps = {eps!r} overflows x's dtype {x.dtype} (the kernel adds it in that dtype)")
+    if x.dtype.type(eps) == 0:  # else a constant group (variance 0) divides by 0, blamed on x as an overflow
+        raise ValueError(f"eps = {eps!r} rounds to 0 in x's dtype {x.dtype} (the kernel adds it in that dtype)")
     return int(groups)
 
 
@@ -521,11 +525,29 @@ def attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, 
     Unlike the transformer (docs/math.md §2), these logits ARE scaled, by C**-0.5 with C the channels.
     cache: the children's caches, q, k, v as (B, C, P) and p (B, P, P)."""
     _check_image("x", x)
+    C = x.shape[1]
+    # checked here, not by the children, which name their own arguments (gamma, w, b) and not these
+    params = (("norm_gamma", norm_gamma), ("norm_beta", norm_beta), ("wq", wq), ("bq", bq), ("wk", wk), ("bk", bk),
+              ("wv", wv), ("bv", bv), ("wo", wo), ("bo", bo))
+    for name, a in params:
+        _check_float(name, a, like=x, finite=False)  # finiteness: below, once a child has raised
+        want = (C, C, 1, 1) if name[0] == "w" else (C,)
+        if a.shape != want:
+            raise ValueError(f"{name} must have shape {want} for x of {C} channels, got {a.shape}")
+    try:
+        return _attnblock_forward(x, *(a for _, a in params), groups, eps)
+    except ValueError:
+        # a child raises when a parameter holds NaN or inf (each is read whole, or scanned where
+        # the output is empty: see _after_kernel): only then are they scanned, to name it
+        for name, a in params:
+            _checks.finite(name, a)
+        raise
+
+
+def _attnblock_forward(x, norm_gamma, norm_beta, wq, bq, wk, bk, wv, bv, wo, bo, groups, eps):
+    """attnblock_forward's layers, its arguments checked."""
     B, C, Hi, Wi = x.shape
     P = Hi * Wi
-    for name, w in (("wq", wq), ("wk", wk), ("wv", wv), ("wo", wo)):  # the children check the rest
-        if np.shape(w) != (C, C, 1, 1):
-            raise ValueError(f"{name} must have shape ({C}, {C}, 1, 1) for x of {C} channels, got {np.shape(w)}")
     h, c_norm = groupnorm_forward(x, norm_gamma, norm_beta, groups, eps)  # (B, C, Hi, Wi)
     q, c_q = conv2d_forward(h, wq, bq)  # (B, C, Hi, Wi)
     k, c_k = conv2d_forward(h, wk, bk)  # (B, C, Hi, Wi)

@@ -249,6 +249,15 @@ def sum_rows_by_id(ids, rows, n):
     ids (m,) integers in [0, n), rows (m, d) -> out (n, d), rows' dtype; rows no id names are 0.
     The ids sorted (stably) into runs, each run summed by np.add.reduceat: np.add.at does the same
     one element at a time, 2-4x slower."""
+    _checks.int_array("ids", ids)
+    if ids.ndim != 1:
+        raise ValueError(f"ids must be 1-D (m,), got shape {ids.shape}")
+    _checks.float_array("rows", rows)
+    if rows.ndim != 2:
+        raise ValueError(f"rows must be 2-D (m, d), got shape {rows.shape}")
+    if rows.shape[0] != ids.shape[0]:  # rows past the ids were left out of the sum, silently
+        raise ValueError(f"rows has {rows.shape[0]} rows but ids has {ids.shape[0]} ids: one id per row")
+    n = _checks.integer("n", n, lo=0)
     out = np.zeros((n, rows.shape[1]), dtype=rows.dtype)
     if ids.size:
         order = np.argsort(ids, kind="stable")

@@ -76,6 +76,10 @@ def pose_loss_forward(raw, target, pose_multiplier=1.0):
     if shape != raw.shape:
         raise ValueError(f"target of shape {target.shape} does not broadcast to raw's shape {raw.shape}")
     pose_multiplier = _checks.real("pose_multiplier", pose_multiplier)
+    big = float(np.finfo(raw.dtype).max)
+    if abs(pose_multiplier) > big:  # it would become inf in the dtype, and inf * 0 NaN
+        raise ValueError(f"pose_multiplier {pose_multiplier!r} is beyond {raw.dtype}'s range (largest {big:.4g}): "
+                         f"the positions are multiplied by it in {raw.dtype}")
     with np.errstate(over="ignore", invalid="ignore"):  # checked: overflow raises
         rxyz = raw[..., :3] - raw.dtype.type(pose_multiplier) * target[..., :3]  # (..., 3)
         rq = raw[..., 3:] - target[..., 3:]  # (..., 4)

@@ -284,6 +284,8 @@ class Run:
             os.remove(self.eval_path)  # an older run's evaluations
         self._log_file = self._bar = None
         self._step = None  # the step under way (for the Ctrl-C line)
+        self._decided = None  # the last step whose stop decision stop_requested() has read
+        self._stop_at = None  # the step a Ctrl-C stops after, fixed by the handler when it says so
         self._stop = StopAtStepEnd(stop_at_step_end, self._say_stopping)
         self._t0 = time.perf_counter()
 
@@ -433,15 +435,24 @@ class Run:
                 self._bar.update(1)
 
     def _say_stopping(self):
-        """The line on stderr at the first Ctrl-C (on a line of its own after a progress bar)."""
-        at = "the step under way" if self._step is None else f"step {self._step}"
-        print(f"{chr(10) if self._bar is not None else ''}Ctrl-C: finishing {at} and saving it; Ctrl-C again "
+        """At the first Ctrl-C (the signal handler, between two bytecodes of the loop): fix the step
+        the loop stops after, and say it on stderr (on a line of its own after a progress bar). A
+        Ctrl-C that comes after the step's stop decision was read (during its checkpoint, say)
+        stops after the next step: the line names that one, the step that is saved."""
+        t = self.start + 1 if self._step is None else self._step
+        if self._decided == t and t < self.steps_total:
+            t += 1
+        self._stop_at = t
+        print(f"{chr(10) if self._bar is not None else ''}Ctrl-C: finishing step {t} and saving it; Ctrl-C again "
               "stops at once (losing the steps since the last checkpoint)", file=sys.stderr, flush=True)
 
     def stop_requested(self):
-        """Whether Ctrl-C asked the loop to stop: then it saves the step it just finished and
-        raises KeyboardInterrupt (read once per step, before the checkpoint decision)."""
-        return self._stop.requested
+        """Whether Ctrl-C asked the loop to stop after this step: then it saves the step it just
+        finished and raises KeyboardInterrupt (read once per step, before the checkpoint decision).
+        The step is marked decided first, so that the handler, whenever it runs, names the step
+        this returns True for: this one if it ran before the mark, else the next."""
+        self._decided = self._step
+        return self._stop_at is not None and self._stop_at <= self._step
 
     def checkpoint_due(self, step):
         return step % self.checkpoint_every == 0 or step == self.steps_total

@@ -8,6 +8,9 @@
 pyvf.train.loops runs these steps with checkpoints (train_transformer, train_codebook).
 """
 
+import numpy as np
+
+from .. import _checks
 from ..geometry import make_relative
 from .optim import clip_grad_norm, global_norm
 
@@ -17,6 +20,14 @@ def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, cli
     forward before the update, the gradient norm before clipping). See train_step."""
     if optimizer.params is not model.params:
         raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
+    # the settings are checked here, under these names and before the step runs (clip_grad_norm
+    # would name its own max_norm and mode, after the forward and backward, and only when clipping)
+    if not isinstance(relative, (bool, np.bool_)):  # "no" is truthy, None falsy: neither is a choice
+        raise TypeError(f"relative must be True or False, got {type(relative).__name__} {relative!r}")
+    if clip_mode not in ("global", "per_tensor"):
+        raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {clip_mode!r}")
+    if max_grad_norm is not None:
+        max_grad_norm = _checks.real("max_grad_norm", max_grad_norm, lo=0.0, lo_open=True)
     if relative:
         poses = make_relative(poses)[0]
     out = model.forward(tokens, poses)
@@ -50,9 +61,19 @@ def codebook_train_step(codebook, optimizer, images, pixel_weights=None):
 
     The published codebook trains with Adam, lr 1.584e-3, betas (0.5, 0.9):
     `optimizer = Adam(codebook.params, 1.584e-3, betas=(0.5, 0.9))`. The quantizer's codes are
-    not parameters: the EMA moves them. pixel_weights: Codebook.forward's. Returns the CodebookOutput of the step (before it)."""
+    not parameters: the EMA moves them. pixel_weights: Codebook.forward's. Returns the CodebookOutput of the step (before it).
+
+    A step that raises (the backward, or the optimiser refusing a non-finite or overflowing
+    update) leaves the codebook as it was: the forward has moved the EMA buffers by then, so
+    they are put back (a retried step would otherwise move them twice). The optimiser
+    changes nothing when it raises."""
     if optimizer.params is not codebook.params:
         raise ValueError("optimizer must be built on codebook.params (Adam(codebook.params, ...))")
-    out = codebook.forward(images, train=True, pixel_weights=pixel_weights)
-    optimizer.step(codebook.backward())
+    saved = codebook.quantizer.state_dict()  # copies; the buffers are (D, K): small beside the step
+    out = codebook.forward(images, train=True, pixel_weights=pixel_weights)  # puts them back itself if it raises
+    try:
+        optimizer.step(codebook.backward())
+    except BaseException:
+        codebook.quantizer.load_state_dict(saved)
+        raise
     return out
