@@ -88,13 +88,16 @@ class use_kernel_path:
     """
 
     def __init__(self, path):
-        self.previous = _core.use_path(path)
+        self.path, self.previous, self._active = path, _core.use_path(path), True
 
     def __enter__(self):
+        if not self._active:  # the object used again after its exit: switch again (it ran on the old path)
+            self.previous, self._active = _core.use_path(self.path), True
         return self
 
     def __exit__(self, *exc):
         _core.use_path(self.previous)
+        self._active = False
         return False
 
 

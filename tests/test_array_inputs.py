@@ -213,3 +213,35 @@ def test_misaligned_inputs_give_the_aligned_answer(rng, path):
                              layers.linear_forward(x, w, b)[0])
         assert_bitwise_equal("conv", conv.conv2d_forward(*map(misaligned, (img, kw, kb)), 1, 1)[0],
                              conv.conv2d_forward(img, kw, kb, 1, 1)[0])
+
+
+def test_use_kernel_path_object_used_twice_switches_each_time():
+    """`ctx = use_kernel_path("baseline")` entered a second time after its exit ran the block on
+    the path the process was on (avx512 here), because the switch happened only when the object was
+    made. Each `with` switches, and each exit puts back the path from before it."""
+    start = pyvf.kernel_path()
+    # another path than the current one (x86-64 always has baseline beside avx2/avx512; a machine
+    # with one path only cannot tell the two apart)
+    other = next((p for p in pyvf.kernel_paths() if p != start), start)
+    ctx = pyvf.use_kernel_path(other)
+    for _ in range(2):
+        with ctx:
+            assert pyvf.kernel_path() == other
+        assert pyvf.kernel_path() == start
+
+
+def test_masked_codes_tokens_and_pictures_are_refused_naming_them():
+    """The entries that check their integer or uint8 arrays themselves: decode_code decoded masked
+    codes from the data under the mask (0.27 off), a transformer's masked tokens were refused
+    naming the embedding's "ids", and the metrics scored masked pixels (to_model_images 170 off)."""
+    from pyvf.evaluate import metrics
+    cb = Codebook(CodebookConfig(**TINY_CODEBOOK, dtype="float32"), seed=0)
+    with pytest.raises(TypeError, match="^codes is a masked array with masked elements"):
+        cb.decode_code(masked(np.zeros((1, 2, 2), np.int64), 3))
+    tm, rng = transformer(), np.random.default_rng(0)
+    with pytest.raises(TypeError, match="^tokens is a masked array with masked elements"):
+        tm.forward(masked(rng.integers(0, 16, (1, 3, 4)), 3), unit_poses(rng, 1, 3, dtype=np.float32))
+    with pytest.raises(TypeError, match="^images is a masked array with masked elements"):
+        metrics.to_model_images(masked(np.zeros((1, 4, 4, 3), np.uint8), 255), np.float32)
+    with pytest.raises(TypeError, match="^x is a masked array with masked elements"):
+        metrics.to_uint8(masked(np.zeros((1, 3, 4, 4)), 1.0))

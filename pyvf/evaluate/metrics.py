@@ -49,6 +49,7 @@ __all__ = [
 def _uint8_images(name, x, ndim_min=3, ndim_max=None):
     if not isinstance(x, np.ndarray) or x.dtype != np.uint8:
         raise TypeError(f"{name} must be a uint8 numpy array, got {getattr(x, 'dtype', type(x).__name__)}")
+    _checks.plain_array(name, x)  # masked pixels would be scored by the values under the mask
     if x.ndim < ndim_min or x.size == 0:
         raise ValueError(f"{name} must be images (..., Hi, Wi, C), got shape {x.shape}")
     if ndim_max is not None and x.ndim > ndim_max:
@@ -100,6 +101,7 @@ def to_uint8(x):
     if not isinstance(x, np.ndarray) or x.dtype.kind != "f" or x.ndim != 4:
         raise TypeError(f"x must be a float (B, C, Hi, Wi) numpy array, got "
                         f"{getattr(x, 'dtype', type(x).__name__)} {getattr(x, 'shape', '')}")
+    _checks.plain_array("x", x)
     if np.isnan(x).any():  # NaN has no picture (a cast to uint8 would give 0 silently); +-inf clip
         raise ValueError("x contains NaN")
     v = np.rint((x.astype(np.float64) + 1.0) * 127.5)  # (B, C, Hi, Wi)

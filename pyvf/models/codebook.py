@@ -539,6 +539,7 @@ class Codebook(ModelWeights):
         cfg = self.config
         if not isinstance(codes, np.ndarray) or codes.dtype.kind not in "iu":
             raise TypeError("codes must be an integer numpy array")
+        _checks.plain_array("codes", codes)  # masked codes would be decoded from the data under the mask
         k = cfg.token_size
         if codes.ndim != 3 or codes.shape[1:] != (k, k):
             raise ValueError(f"codes must have shape (B, {k}, {k}), got {codes.shape}")

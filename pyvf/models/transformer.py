@@ -387,6 +387,7 @@ class Transformer(ModelWeights):
         if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu":
             raise TypeError(f"{tn} must be an integer numpy array, got "
                             f"{getattr(tokens, 'dtype', type(tokens).__name__)}")
+        _checks.plain_array(tn, tokens)  # else the embedding refused masked tokens naming its "ids"
         if tokens.ndim != 3:
             raise ValueError(f"{tn} must have shape (B, N, L), got {tokens.shape}")
         B, N, L = tokens.shape

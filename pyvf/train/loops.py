@@ -21,6 +21,7 @@ import sys
 
 import numpy as np
 
+from .. import _checks
 from .._io import atomic_savez, load_npz
 from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
@@ -33,6 +34,7 @@ from ..evaluate.health import (
     transformer_health_columns,
 )
 from ..evaluate.metrics import encode_images, to_model_images
+from ..geometry import _check_unit
 from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import CHECKPOINT, Run, _diff, file_sha256, fingerprint, integer, jsonable, positive_int, real, resume_point
@@ -81,15 +83,23 @@ TRANSFORMER_LOG = ["loss", "ce_loss", "pose_loss", "grad_norm", "lr"]
 # data checks and batches
 
 
-def _check_images(images, config):
-    """images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C) -> a (M, Hi, Wi, C) view."""
+def _check_images(images, config, name="images"):
+    """images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C) -> a (M, Hi, Wi, C) view.
+    name: the argument's, for the errors (eval_images of train_codebook, say)."""
     if not isinstance(images, np.ndarray) or images.dtype != np.uint8:
-        raise TypeError(f"images must be a uint8 numpy array, got {getattr(images, 'dtype', type(images).__name__)}")
+        raise TypeError(f"{name} must be a uint8 numpy array, got {getattr(images, 'dtype', type(images).__name__)}")
     S, C = config.image_size, config.in_channels
     if images.ndim not in (4, 5) or images.shape[-3:] != (S, S, C) or images.size == 0:
-        raise ValueError(f"images must have shape (scenes, views, {S}, {S}, {C}) or (M, {S}, {S}, {C}) "
+        raise ValueError(f"{name} must have shape (scenes, views, {S}, {S}, {C}) or (M, {S}, {S}, {C}) "
                          f"for this codebook, got {images.shape}")
     return images.reshape(-1, S, S, C)
+
+
+def _batch_key(batch_size, seed, step):
+    """The batch functions' batch_size, seed and step checked (errors name them, not numpy's
+    names) -> the key [seed, step] of the step's generator."""
+    positive_int("batch_size", batch_size)
+    return [integer("seed", seed, 0), integer("step", step, 0)]
 
 
 def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weight=None):
@@ -97,7 +107,7 @@ def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weigh
     (M, Hi, Wi, C) uint8 images -> (B, C, Hi, Wi) in [-1, 1]. A pure function of (seed, step).
     With object_weight (a float), also the pixel weights (B, 1, Hi, Wi): object_weight on the
     pixels health.object_mask marks, 1 on the background."""
-    rng = np.random.default_rng([seed, step])
+    rng = np.random.default_rng(_batch_key(batch_size, seed, step))
     idx = rng.integers(0, images.shape[0], size=batch_size)  # (B,)
     x = to_model_images(images[idx], np.dtype(dtype))
     if object_weight is None:
@@ -116,20 +126,24 @@ def _check_tokens_poses(tokens, poses, config):
     lo, hi = int(tokens.min()), int(tokens.max())
     if lo < 0 or hi >= config.n_embeddings:
         raise ValueError(f"tokens must be in [0, {config.n_embeddings}) (config.n_embeddings), got [{lo}, {hi}]")
-    if not isinstance(poses, np.ndarray) or poses.dtype.kind != "f":
-        raise TypeError(f"poses must be a float numpy array, got {getattr(poses, 'dtype', type(poses).__name__)}")
+    _checks.float_array("poses", poses)
     if poses.shape != tokens.shape[:2] + (7,):
         raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
     if not np.isfinite(poses).all():
         raise ValueError("poses contain NaN or inf")
+    # as the batches hold them (in the model's dtype), here rather than at the first step that
+    # draws a bad view, which may come thousands of steps in and name an index into its batch
+    _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))  # at (scene, view)
 
 
 def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="float32"):
     """Batch of step `step`: per sample a scene drawn uniformly, then n_views distinct views
     of it in random order. tokens (scenes, views, k, k), poses (scenes, views, 7) ->
     tokens (B, N, L) int64, poses (B, N, 7) of dtype. A pure function of (seed, step)."""
-    rng = np.random.default_rng([seed, step])
+    rng = np.random.default_rng(_batch_key(batch_size, seed, step))
     n_scenes, n_avail = tokens.shape[:2]
+    if integer("n_views", n_views) > n_avail:
+        raise ValueError(f"n_views must be at most the views a scene has, {n_avail}, got {n_views}")
     scenes = rng.integers(0, n_scenes, size=batch_size)  # (B,)
     order = rng.permuted(np.tile(np.arange(n_avail), (batch_size, 1)), axis=1)  # (B, views): a permutation per row
     views = order[:, :n_views]  # (B, N)
@@ -143,12 +157,11 @@ class _Threads:
     so that a bad value raises naming the argument before anything runs."""
 
     def __init__(self, n):
-        if n is not None:
-            positive_int("threads", n)
-        self.n, self._block = n, None
+        # an int (a numpy integer passes the check, and config.json records it: JSON takes ints)
+        self.n, self._block = None if n is None else positive_int("threads", n), None
 
     def __enter__(self):
-        self._block = kernel_threads(None if self.n is None else int(self.n))
+        self._block = kernel_threads(self.n)
         return self._block.__enter__()
 
     def __exit__(self, *exc):
@@ -301,19 +314,18 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
         and object_weight; each of those given overrides the recipe's.
     object_weight: the loss weight of object pixels (health.object_mask) against 1 for the
         background (1.0: the plain mean, as published).
-    eval_images: None, or held-out uint8 views (M, Hi, Wi, C): every eval_every steps, at the
-        last step and before the first step of a fresh run, health.codebook_health on them is
-        appended to out_dir/eval.csv. It reads the model only, so the trajectory is the same
-        with or without it.
+    eval_images: None, or held-out uint8 views (M, Hi, Wi, C): every eval_every steps (0:
+        never; then the set is not the run's), at the last step and before the first of a fresh
+        run, health.codebook_health on them is appended to out_dir/eval.csv (reads the model only).
     resume: continue from out_dir/checkpoint.npz when there is one (its configuration and
         hyperparameters must be these); False starts over, overwriting the folder's files.
     threads: the C++ kernels' thread count during the call (None: as it is).
     command: JSON-able record of the command line, written to config.json.
     reset_dead_codes: every this many steps (0: never, the published behaviour), codes whose
         EMA cluster size fell below 1e-3 are moved to random encoder outputs of that step's
-        batch (EMAQuantizer.reset_dead_codes, its randomness from (seed, step), so a resumed
-        run stays exact). Without it a small codebook trained from the uniform initialisation
-        can collapse onto a few codes (measured on SM7: 9 of 256 codes in use at step 80).
+        batch (EMAQuantizer.reset_dead_codes, random from (seed, step): resumes stay exact).
+        Without it a small codebook trained from the uniform initialisation can collapse onto a
+        few codes (measured on SM7: 9 of 256 codes in use at step 80).
     engine, device, precision: as train_transformer's (torch_codebook_engine.TorchCodebook: the
         same run with the model in torch, parity.csv at every checkpoint; one process).
     init: None, or a Codebook.save file of this configuration: a fresh run starts from its weights
@@ -328,7 +340,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
     lr, betas, reset_dead_codes, object_weight = _recipe(recipe, lr, betas, reset_dead_codes, object_weight)
     eval_every = integer("eval_every", eval_every, 0)
     if eval_images is not None:
-        eval_images = _check_images(eval_images, config)
+        eval_images = _check_images(eval_images, config, "eval_images")
     hyper = {"batch_size": batch_size, "lr": lr, "betas": betas, "seed": seed, "reset_dead_codes": reset_dead_codes,
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
     if object_weight != 1.0:  # absent at 1.0: runs from before the option resume as they were
@@ -336,9 +348,11 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
     check_codebook_engine(engine, device, precision, config.dtype)
     threads_set = _Threads(threads)  # checked before the run folder is touched
     hyper, init_state = _warm_start(init, Codebook, config, hyper, out_dir, resume)
-    eval_fp = None if eval_images is None else fingerprint(eval_images)
     evaluating = eval_images is not None and eval_every > 0
-    call = {"command": command, "threads": threads, "recipe": recipe, "engine": engine, "device": device,
+    # a set not evaluated on (eval_every 0) is not the run's: not recorded, so a later call may
+    # evaluate on any set, and a resume that evaluates nothing passes whatever set it names
+    eval_fp = fingerprint(eval_images) if evaluating else None
+    call = {"command": command, "threads": threads_set.n, "recipe": recipe, "engine": engine, "device": device,
             "precision": precision, "eval": None if eval_fp is None else {"every": eval_every, "fingerprint": eval_fp}}
     with threads_set:  # before the Run: config.json records the threads the run uses
         run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, final="codebook.npz",
@@ -434,7 +448,10 @@ def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, wa
                          f"{steps - total_steps} steps would run at learning rate 0. Ask for at most total_steps "
                          "steps, or a longer schedule (total_steps >= steps) in a run of its own")
     warmup = min(2000, total_steps // 10) if warmup is None else integer("warmup", warmup, 0)
-    schedule = WarmupCosine(lr, warmup, total_steps)  # checks lr, warmup < total_steps
+    if warmup >= total_steps:  # here: WarmupCosine would name its own warmup_steps
+        raise ValueError(f"warmup={warmup} must be less than total_steps={total_steps} (total_steps is steps when "
+                         "not given): the schedule warms up, then decays over the steps left")
+    schedule = WarmupCosine(lr, warmup, total_steps)
     if max_grad_norm is not None and real("max_grad_norm", max_grad_norm) == 0:
         raise ValueError("max_grad_norm must be positive, or None for no clipping")
     if clip_mode not in ("global", "per_tensor"):
@@ -446,15 +463,54 @@ def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, wa
     return hyper, schedule, steps
 
 
+def _check_eval_set(eval_set, config):
+    """train_transformer's eval_set, each entry checked and named: a Codebook whose tokens the
+    transformer of `config` reads, uint8 images (n, V, S, S, C) of its size, float64 poses
+    (n, V, 7) of unit quaternions, integer tokens (n, V, L) in [0, n_embeddings). Checked when
+    the call starts: the evaluation would fail at its first row, after the run folder was
+    touched (in a resumed run, after eval_every steps of training), naming its own internals."""
+    if not isinstance(eval_set, dict) or set(eval_set) != {"codebook", "images", "poses", "tokens"}:
+        raise ValueError("eval_set must be a dict of codebook, images, poses and tokens (held_out_set's)")
+    cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
+    if not isinstance(cb, Codebook):
+        raise TypeError(f"eval_set['codebook'] must be a Codebook, got {type(cb).__name__}")
+    c, k = cb.config, config.token_image_size
+    if (c.n_embed, c.token_size) != (config.n_embeddings, k):
+        raise ValueError(f"eval_set['codebook'] makes {c.token_size}x{c.token_size} token images of {c.n_embed} "
+                         f"codes; the transformer reads {k}x{k} of {config.n_embeddings} (config.token_image_size, "
+                         "config.n_embeddings): evaluate through the codebook its tokens came from")
+    _check_images(images, c, "eval_set['images']")
+    if images.ndim != 5:
+        raise ValueError(f"eval_set['images'] must have shape (scenes, views, {c.image_size}, {c.image_size}, "
+                         f"{c.in_channels}), got {images.shape}")
+    n, V = images.shape[:2]
+    if not isinstance(poses, np.ndarray) or poses.dtype != np.float64:  # the evaluation's scores are float64
+        raise TypeError("eval_set['poses'] must be a float64 numpy array (as pyvf.scenes.generate_scenes makes "
+                        f"them), got {getattr(poses, 'dtype', type(poses).__name__)}")
+    if poses.shape != (n, V, 7):
+        raise ValueError(f"eval_set['poses'] must have shape (scenes, views, 7) = {(n, V, 7)}, got {poses.shape}")
+    _checks.finite("eval_set['poses']", poses)
+    _check_unit("eval_set['poses'][..., 3:]", poses[..., 3:].astype(config.dtype))  # as the model reads them
+    _checks.int_array("eval_set['tokens']", tokens)
+    if tokens.shape != (n, V, k * k):
+        raise ValueError(f"eval_set['tokens'] must have shape (scenes, views, L) = {(n, V, k * k)} "
+                         f"(held_out_set's), got {tokens.shape}")
+    if tokens.size and (tokens.min() < 0 or tokens.max() >= config.n_embeddings):
+        raise ValueError(f"eval_set['tokens'] must be in [0, {config.n_embeddings}) (config.n_embeddings), got "
+                         f"[{int(tokens.min())}, {int(tokens.max())}]")
+
+
 def _transformer_eval(eval_set, eval_every, config):
     """train_transformer's held-out evaluation, eval_set and eval_every checked: (eval_every, its
     record for config.json, the columns of eval.csv, health(model) -> the row of transformer_health
-    at health_contexts); all but eval_every None without eval_set."""
+    at health_contexts); all but eval_every None without eval_set or with eval_every 0 (a set not
+    evaluated on is not the run's: not recorded, as train_codebook's eval_images)."""
     eval_every = integer("eval_every", eval_every, 0)
     if eval_set is None:
         return eval_every, None, None, None
-    if not isinstance(eval_set, dict) or sorted(eval_set) != ["codebook", "images", "poses", "tokens"]:
-        raise ValueError("eval_set must be a dict of codebook, images, poses and tokens")
+    _check_eval_set(eval_set, config)
+    if eval_every == 0:
+        return eval_every, None, None, None
     e = eval_set
     contexts = health_contexts(config, e["images"].shape[1])
     if not contexts:
@@ -531,9 +587,9 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     """Train a Transformer on token images and poses, every context size and both tasks at once
     (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5).
 
-    tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: floats (scenes,
-        views, 7), xyz and a unit quaternion wxyz, in any frame (each sample is made relative
-        to its first view).
+    tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: float32 or float64
+        (scenes, views, 7), xyz and a unit quaternion wxyz (in config.dtype, checked at the
+        start), in any frame (each sample is made relative to its first view).
     context: the most context views a sample has: a sample is N = context + 1 distinct views
         of one scene (default config.sequence_size - 1); the tree trains the contexts
         n_loss_skip..N-1 in the same step.
@@ -547,10 +603,10 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     max_grad_norm, clip_mode: gradient clipping (None: off); "per_tensor" is the published
         tf.clip_by_norm, "global" torch's clip_grad_norm_. The logged grad_norm is the global norm.
     eval_set: None, or held-out scenes {"codebook": the Codebook the tokens came from, "images":
-        uint8 (n, V, S, S, 3), "poses": (n, V, 7), "tokens": (n, V, L) their codes}: every
-        eval_every steps, at the last step and before the first of a fresh run,
-        health.transformer_health at health.health_contexts is appended to out_dir/eval.csv
-        (reads the models only: the trajectory is the same without it).
+        uint8 (n, V, S, S, 3), "poses": float64 (n, V, 7), "tokens": (n, V, L) their codes}
+        (held_out_set's; checked at the start): every eval_every steps (0: never; then the set
+        is not the run's), at the last step and before the first of a fresh run,
+        health.transformer_health at health.health_contexts is appended to out_dir/eval.csv.
     out_dir, resume, seed, init, threads, command: as train_codebook (init a Transformer.save
         file); the final model is out_dir/transformer.npz (Transformer.load reads it).
     engine: "pyvf" (its own kernels, on the CPU) or "torch" (torch_engine.TorchTransformer:
@@ -572,7 +628,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     threads_set = _Threads(threads)
     hyper, init_state = _warm_start(init, Transformer, config, hyper, out_dir, resume)
     dp, device = data_parallel(device, batch_size) if engine == "torch" else (None, device)
-    call = {"command": command, "threads": threads, "engine": engine, "device": device, "precision": precision,
+    call = {"command": command, "threads": threads_set.n, "engine": engine, "device": device, "precision": precision,
             "processes": 1 if dp is None else dp.world, "eval": eval_record}
     with threads_set:  # before the Run: config.json records the threads the run uses
         run = _run_folder(dp, lambda: Run(

@@ -222,7 +222,8 @@ def compare_runs(run_dirs, plot=False, step=None, note=None):
     is another program's is left out, note(line) saying so (default: printed to stderr); a
     damaged file raises ValueError naming it (a torn last line of a log is left out, as the
     trainers do)."""
-    if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 0):
+    if step is not None and (isinstance(step, (bool, np.bool_)) or not isinstance(step, (int, np.integer))
+                             or step < 0):
         raise ValueError(f"step must be a non-negative integer, got {step!r}")
     note = note or (lambda line: print(f"pyvf runs: note: {line}", file=sys.stderr))
     runs = []
