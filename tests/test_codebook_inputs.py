@@ -260,7 +260,8 @@ def test_attnblock_forward_names_the_wrong_argument(name, how, rng):
 @pytest.mark.parametrize("layer", ["conv2d", "groupnorm", "groupnorm_swish", "swish", "upsample", "attnblock"])
 def test_a_list_upstream_gradient_is_a_type_error(layer, rng):
     """As pyvf.nn.layers' backwards (tests/test_nn_inputs.py) and _checks.float_array: not an
-    array at all is a TypeError naming dy; it was a ValueError about the shape."""
+    array at all is a TypeError naming the gradient (dy; groupnorm_swish_backward's dz); it was a
+    ValueError about the shape."""
     x = rng.standard_normal((1, 32, 2, 2)).astype(np.float32)
     g, b = np.ones(32, np.float32), np.zeros(32, np.float32)
     fwd, bwd = {
@@ -273,7 +274,8 @@ def test_a_list_upstream_gradient_is_a_type_error(layer, rng):
         "attnblock": (lambda: conv.attnblock_forward(x, **_attn_args(rng)), conv.attnblock_backward),
     }[layer]
     y, cache = fwd()
-    with pytest.raises(TypeError, match="^dy must be a numpy.ndarray"):
+    name = "dz" if layer == "groupnorm_swish" else "dy"  # the backward's own argument
+    with pytest.raises(TypeError, match=f"^{name} must be a numpy.ndarray"):
         bwd(np.ones(y.shape, np.float32).tolist(), cache)
 
 

@@ -183,3 +183,17 @@ def test_compare_runs_takes_a_numpy_integer_step(tmp_path, rng):
     for bad in (np.int64(-1), 1.0, True):
         with pytest.raises(ValueError, match="^step must be a non-negative integer"):
             compare_runs([out], step=bad)
+
+
+def test_an_out_dir_that_is_a_file_and_a_command_json_cannot_hold_are_named(tmp_path):
+    """out_dir naming a file gave makedirs' "[Errno 17] File exists"; a command json cannot hold
+    gave "Object of type object is not JSON serializable" after the folder was made. Both name
+    their argument now, before anything is written."""
+    images = np.zeros((4, CB.image_size, CB.image_size, 3), np.uint8)
+    afile = tmp_path / "f"
+    afile.write_text("x")
+    with pytest.raises(NotADirectoryError, match=f"^out_dir {afile} is a file, not a folder"):
+        train_codebook(images, CB, str(afile), steps=1, batch_size=2, progress=False)
+    with pytest.raises(TypeError, match="^command must be JSON-able"):
+        train_codebook(images, CB, str(tmp_path / "run"), steps=1, batch_size=2, progress=False, command=object())
+    assert not (tmp_path / "run").exists() and afile.read_text() == "x"

@@ -306,14 +306,15 @@ def _groupnorm_kernel(x, gamma, beta, G, eps, swish):
 
 
 def _groupnorm_grad_kernel(dy, x, stats, gamma, beta, G, swish):
-    _check_grad("dy", dy, x.shape)
-    _check_float("dy", dy, like=x, like_name="the forward's x", finite=False)  # finiteness: _after_kernel
+    name = "dz" if swish else "dy"  # the caller's argument: groupnorm_swish_backward's is dz
+    _check_grad(name, dy, x.shape)
+    _check_float(name, dy, like=x, like_name="the forward's x", finite=False)  # finiteness: _after_kernel
     dy = _checks.c_order(dy)
     dx = np.empty_like(x)  # (B, C, Hi, Wi)
     dgamma, dbeta = np.empty_like(gamma), np.empty_like(gamma)  # (C,)
     _after_kernel("groupnorm_backward",
                   lambda: _core.groupnorm_backward(dx, dgamma, dbeta, x, stats, gamma, beta, dy, G, swish),
-                  (("dgamma", dgamma), ("dbeta", dbeta)), (("dy", dy),))  # dx: the kernel checks it
+                  (("dgamma", dgamma), ("dbeta", dbeta)), ((name, dy),))  # dx: the kernel checks it
     return dx, dgamma, dbeta
 
 

@@ -236,7 +236,15 @@ class Run:
         self.kind, self.config, self.hyper = kind, jsonable(config), jsonable(hyper)
         self.columns = ["step", *columns, "seconds"]
         self.progress = bool(progress)
+        for name, value in (call or {}).items():  # config.json records them: checked before the folder is touched
+            try:
+                json.dumps(value)
+            except (TypeError, ValueError):
+                raise TypeError(f"{name} must be JSON-able (config.json records it), got {type(value).__name__} "
+                                f"{value!r}") from None
         self.out_dir = os.fspath(out_dir)
+        if os.path.exists(self.out_dir) and not os.path.isdir(self.out_dir):  # makedirs: "File exists"
+            raise NotADirectoryError(f"out_dir {self.out_dir} is a file, not a folder: a run writes a folder")
         os.makedirs(self.out_dir, exist_ok=True)
         self.ckpt_path = os.path.join(self.out_dir, CHECKPOINT)
         self.log_path = os.path.join(self.out_dir, LOG)
