@@ -542,7 +542,11 @@ def ulps(got, want_mp, dtype):
 
 
 def errors(op, outs, ref, dtype):
-    """{output: {rel, abs[, ulps]}} of one variant's outputs against the reference."""
+    """{output: {rel, abs[, ulps]}} of one variant's outputs against the reference; ValueError
+    where an output is missing (or one too many) or of another shape."""
+    if len(outs) != len(op.outputs) or len(ref) != len(op.outputs):
+        raise ValueError(f"{op.name}: {len(outs)} outputs, reference {len(ref)}, expected {len(op.outputs)} "
+                         f"({', '.join(op.outputs)})")
     out = {}
     for name, got, want in zip(op.outputs, outs, ref):
         got = np.asarray(got)

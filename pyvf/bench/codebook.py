@@ -9,11 +9,12 @@ Per configuration: encode + decode (images -> codes -> images) and one forward +
 (Adam, as `pyvf train-codebook`) in images per second; medians, float32, each framework in its
 own process (so that neither's thread pool waits on the other's). Memory: the measured peak
 resident memory of one call above what was resident before it (pyvf.bench.common.peak_memory;
-gradients of the step included, weights not). Before timing, both compute the loss of the
-same weights and batch, and the tool stops if they differ. torch is imported only in the torch
-worker. Then, for pyvf, where one forward + backward spends its time: the exclusive time of each
-layer type (layer_times), from one more step with every layer function of pyvf.nn.conv wrapped in
-a timer.
+gradients of the step included, weights not). Both compute the loss of the same weights and
+batch, the output of encode + decode, the gradients of the first forward + backward and (tiny)
+the loss after the first training step's update, and the tool prints no time if they differ
+(pyvf.bench.common.first_step_differs). torch is imported only in the torch worker. Then, for
+pyvf, where one forward + backward spends its time: the exclusive time of each layer type
+(layer_times), from one more step with every layer function of pyvf.nn.conv wrapped in a timer.
 """
 
 import sys
@@ -22,7 +23,8 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import format_bytes, median_time, peak_memory, run_configs, run_worker, worker_main
+from pyvf.bench.common import (checksums, first_step_differs, format_bytes, median_time, peak_memory, run_configs,
+                               run_worker, worker_main)
 
 WORKER = "pyvf.bench.codebook"  # this module, run as `python -m WORKER SPEC` (worker_main)
 
@@ -132,6 +134,9 @@ def print_layer_times(times, total):
     print(f"| everything else (quantizer, loss, residual adds, Python) | | | {rest / total:.0%} ({rest * 1e3:.0f} ms) |")
 
 
+CODEC = "encode + decode"  # the codec's output, as the workers name it for first_step_differs
+
+
 def median(fn, repeat):
     """The median seconds of `repeat` calls, no warm-up (the workers make their own first call)."""
     return median_time(fn, repeat=repeat, warmup=0)[0]
@@ -141,21 +146,23 @@ def worker_pyvf(name, repeat):
     cfg, cb, images = setup(name)
     loss = cb.forward(images).loss
     codec_fn = lambda: cb.decode_code(cb.encode(images))  # noqa: E731
+    outputs = checksums({CODEC: codec_fn()})  # (also the codec's warm-up)
     codec = median(codec_fn, repeat)
 
     def step():
         cb.forward(images, train=True)
-        cb.backward()
-    step()
-    result = dict(loss=loss, codec=codec, step=median(step, repeat))
+        return cb.backward()
+    gradients = checksums(step())  # the first step's (also the step's warm-up)
+    result = dict(loss=loss, outputs=outputs, gradients=gradients, codec=codec, step=median(step, repeat))
     times, total = layer_times(step)
     result["layers"] = [[k, d, t] for (k, d), t in times.items()]
     result["layers_total"] = total
     if name == TRAIN["config"]:
         _, cb_t, images_t = setup(name, TRAIN["batch"])  # new names: codec_fn and step keep theirs
         opt = pyvf.Adam(cb_t.params, TRAIN["lr"], betas=TRAIN["betas"])
-        train = lambda: pyvf.codebook_train_step(cb_t, opt, images_t)  # noqa: E731
-        train()
+        train = lambda: float(pyvf.codebook_train_step(cb_t, opt, images_t).loss)  # noqa: E731  (before its update)
+        train()  # the warm-up, and the first update
+        result["loss_after_update"] = train()  # (the cross-check of Adam and the EMA update)
         result["train"] = median(train, repeat)
     # memory last: peak_memory makes every later large allocation map fresh pages (bench/common.py)
     result["codec_mem"], result["step_mem"] = peak_memory(codec_fn)[1], peak_memory(step)[1]
@@ -178,31 +185,40 @@ def worker_torch(name, repeat):
         loss = torch_codebook.forward(P, buffers, x, cfg, train=False)["loss"].item()
 
         def codec():  # under no_grad, as pyvf's encode and decode_code keep nothing for a backward
-            z = torch_codebook.encoder(x, P, cfg)
+            # torch_codebook.forward's path: the 1x1 quant_conv after the encoder, post_quant_conv
+            # before the decoder (its shapes match without them: z_channels = embed_dim)
+            z = torch_codebook.conv(torch_codebook.encoder(x, P, cfg), P, "quant_conv")
             flat = z.permute(0, 2, 3, 1).reshape(-1, cfg.embed_dim)
             e = buffers["quantize.embeddings"]
             idx = ((flat[:, :, None] - e[None]) ** 2).sum(1).argmin(1)
             zq = e.T[idx].reshape(z.shape[0], z.shape[2], z.shape[3], -1).permute(0, 3, 1, 2)
-            return torch_codebook.decoder(zq, P, cfg)
+            return torch_codebook.decoder(torch_codebook.conv(zq, P, "post_quant_conv"), P, cfg)
+        outputs = checksums({CODEC: codec().numpy()})  # (also the codec's warm-up)
         t_codec = median(codec, repeat)
 
     def step():
         for p in P.values():
             p.grad = None
         torch_codebook.forward(P, buffers, x, cfg, train=True)["loss"].backward()
-    step()
-    result = dict(loss=loss, codec=t_codec, step=median(step, repeat))
+    step()  # the first step (also the warm-up): its gradients for the cross-check
+    gradients = checksums({k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()})
+    result = dict(loss=loss, outputs=outputs, gradients=gradients, codec=t_codec, step=median(step, repeat))
     if name == TRAIN["config"]:
         _, cb_t, images_t = setup(name, TRAIN["batch"])  # new names: codec and step keep theirs
         P_t = {k: torch.tensor(v, requires_grad=True) for k, v in cb_t.params.items()}
         opt = torch.optim.Adam(P_t.values(), TRAIN["lr"], betas=TRAIN["betas"])
         x_t = torch.tensor(images_t)
+        state = {"buffers": buffers}
 
-        def train():
+        def train():  # -> the loss before its update
             opt.zero_grad()
-            torch_codebook.forward(P_t, buffers, x_t, cfg, train=True)["loss"].backward()
+            out = torch_codebook.forward(P_t, state["buffers"], x_t, cfg, train=True)
+            out["loss"].backward()
             opt.step()
-        train()
+            state["buffers"] = out["buffers"]  # the EMA update kept, as pyvf's codebook keeps it
+            return out["loss"].item()
+        train()  # as worker_pyvf's
+        result["loss_after_update"] = train()
         result["train"] = median(train, repeat)
     with torch.no_grad():  # memory last, as in worker_pyvf
         result["codec_mem"] = peak_memory(codec)[1]
@@ -219,17 +235,19 @@ def worker(spec):
 
 def bench(name, repeat, threads):
     """Run both workers on one configuration and print the tables: {"pyvf": ..., "torch": ...},
-    or None (printed to stderr) when their losses differ."""
+    or None (printed to stderr) when their losses, codec outputs or first gradients differ."""
     p, t = (run_worker(WORKER, dict(framework=f, config=name, repeat=repeat, threads=threads))
             for f in ("pyvf", "torch"))
-    if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
-        print(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}", file=sys.stderr)
+    differs = first_step_differs(p, t)
+    if differs:
+        print(f"{name}: pyvf and torch differ in {differs}", file=sys.stderr)
         return None
     spec = CONFIGS[name]
     print(f"\n## {name}: ch={spec['ch']}, ch_mult={spec['ch_mult']}, {spec['num_res_blocks']} res blocks, "
           f"{spec['image_size']}x{spec['image_size']} images, K={spec['n_embed']}, D={spec['embed_dim']}, "
           f"B={spec['batch']}, float32, {threads} threads, median of {repeat}, each in its own process")
-    print(f"loss of the same weights and batch: pyvf {p['loss']:.6f}, torch {t['loss']:.6f}")
+    print(f"loss of the same weights and batch: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the codec's output and "
+          "the first step's gradients agree)")
     print("| | encode + decode | forward + backward (train) |")
     print("|---|---|---|")
     print(f"| pyvf | {p['codec'] * 1e3:.0f} ms | {p['step'] * 1e3:.0f} ms |")
@@ -249,7 +267,7 @@ def bench(name, repeat, threads):
 
 def run(configs=tuple(CONFIGS), repeat=3, threads=2):
     """bench() on each configuration of CONFIGS named, medians of `repeat` calls. Returns the
-    report; report["failures"] names a configuration whose losses differed (nothing after it is run)."""
+    report; report["failures"] names a configuration whose first steps differed (nothing after it is run)."""
     return run_configs(lambda name: bench(name, repeat, threads), configs,
                        dict(configs=list(configs), repeat=repeat, threads=threads), threads)
 

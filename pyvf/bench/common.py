@@ -9,6 +9,7 @@ library only (matplotlib where a plot is asked for).
     print(table(header, rows))        # a markdown table (or, with widths, a plain aligned one)
     write_json(path, report)          # a benchmark's report, as every benchmark writes it
     legend_outside(fig); log_ticks(ax.xaxis); save_figure(fig, path)  # the plots' shared settings
+    first_step_differs(p, t)          # pyvf's and torch's first step (loss, checksums) compared
 
 peak_memory measures the process's resident memory (Linux VmHWM), so it covers every
 allocation the call makes: NumPy arrays, C++ std::vector workspace, torch tensors. It counts
@@ -22,6 +23,9 @@ import os
 import signal
 import time
 import tracemalloc
+import zlib
+
+import numpy as np
 
 from .._machine import cpu_name, median_time  # (re-exported: every benchmark imports them from here)
 from .._io import atomic_write_text
@@ -29,7 +33,7 @@ from .._memory import map_fresh_pages
 
 __all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "peak_memory", "memory_method",
            "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot",
-           "MEMORY_NOISE_BYTES", "legend_outside", "log_ticks", "save_figure"]
+           "MEMORY_NOISE_BYTES", "legend_outside", "log_ticks", "save_figure", "checksums", "first_step_differs"]
 
 # numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
 # sets them to the benchmark's --threads (pyvf/cli/bench.py), so that numpy's GEMM and pyvf's
@@ -269,7 +273,59 @@ def worker_main(work):
     print(json.dumps(work(json.loads(sys.argv[1]))))
 
 
-def run_configs(bench, configs, config, threads, what="losses"):
+# pyvf's and torch's first step, compared before any time is printed (first_step_differs): the
+# loss (and, where an optimizer is timed, the loss after its first update) to LOSS_RTOL (float32
+# both, the same weights and batch); each output's and gradient's checksums to CHECK_RTOL of its
+# norm (measured: 3e-5 at most, the paper codebook; 4e-6, the paper transformer). A gradient below
+# CHECK_FLOOR of the largest one's norm is compared at that level: the biases that feed a
+# normalisation have a gradient of exactly 0, computed as rounding noise.
+LOSS_RTOL, CHECK_RTOL, CHECK_FLOOR = 1e-4, 1e-3, 1e-3
+
+
+def checksums(arrays):
+    """{name: [2-norm, projection]} of each array (name -> gradient or output), in float64: the
+    projection is its dot product with unit-normal numbers seeded by its name, the same in every
+    process. What a worker sends of arrays too large to send: an array zeroed, transposed or
+    missing a term moves the projection by about its norm."""
+    out = {}
+    for name, a in arrays.items():
+        a = np.asarray(a, dtype=np.float64).ravel()
+        r = np.random.default_rng(zlib.crc32(name.encode())).standard_normal(a.size)
+        out[name] = [float(np.sqrt(a @ a)), float(a @ r)]
+    return out
+
+
+def _checksums_differ(pc, tc):
+    """What differs between two checksums() dicts of one kind (outputs, gradients), or None."""
+    if set(pc) != set(tc):
+        return f"the arrays compared: pyvf only {sorted(set(pc) - set(tc))}, torch only {sorted(set(tc) - set(pc))}"
+    floor = CHECK_FLOOR * max((norm for norm, _ in tc.values()), default=0.0)
+    wrong = [name for name in tc if not all(abs(a - b) <= CHECK_RTOL * max(tc[name][0], floor)
+                                            for a, b in zip(pc[name], tc[name]))]
+    if wrong:
+        return (f"{len(wrong)} array(s): {', '.join(wrong[:3])}{', ...' if len(wrong) > 3 else ''}; "
+                f"{wrong[0]} (norm, projection): pyvf {pc[wrong[0]]}, torch {tc[wrong[0]]}")
+    return None
+
+
+def first_step_differs(p, t):
+    """How pyvf's first step differs from torch's, or None. p, t: {loss, gradients (checksums of
+    the first step's), and where they are timed outputs (checksums) and loss_after_update}. In
+    order (the first step's differences first: they name what differs): the loss beyond LOSS_RTOL,
+    an output's or a gradient's checksums beyond CHECK_RTOL of its norm, an array on one side
+    only, the loss after the update. NaN differs from everything."""
+    def loss_differs(key):
+        if (key in p or key in t) and not abs(p[key] - t[key]) <= LOSS_RTOL * abs(t[key]):
+            return f"the {key.replace('_', ' ')}: pyvf {p[key]}, torch {t[key]}"
+        return None
+
+    return (loss_differs("loss")
+            or next((f"the {kind}: {why}" for kind in ("outputs", "gradients") if kind in p or kind in t
+                     for why in [_checksums_differ(p.get(kind, {}), t.get(kind, {}))] if why), None)
+            or loss_differs("loss_after_update"))
+
+
+def run_configs(bench, configs, config, threads, what="first steps"):
     """Call bench(name) for each configuration named, after setting the threads; the report:
     config, results by name, and failures: bench() returning None means pyvf and torch gave
     different `what` for that configuration, and nothing after it is run."""

@@ -38,6 +38,7 @@ import time
 
 from pyvf.bench import accuracy, hardcases, scaling
 from pyvf.bench import threads as _threads
+from pyvf._io import atomic_write_text
 from pyvf.bench.common import run_worker, table, write_json
 
 # the scaling runs: the command line that repeats each (in the documents), and scaling.run's options
@@ -488,11 +489,12 @@ def run(quick=False, out="docs", threads=2, log=print):
     m = acc["machine"]
     m["generated"] = datetime.date.today().isoformat()
     acc_json, hc_json, _ = jsons
-    with open(os.path.join(out, "performance.md"), "w") as f:
-        f.write(performance_md(out, quick, m, total, scalings, acc, th, [sc[3] for sc in scalings] + list(jsons))
-                + "\n")
-    with open(os.path.join(out, "accuracy.md"), "w") as f:
-        f.write(accuracy_md(out, quick, m, total, acc, acc_json, hc, hc_json) + "\n")
+    # atomically: a report stopped while writing leaves the last complete pages (after a half-hour run)
+    atomic_write_text(os.path.join(out, "performance.md"),
+                      performance_md(out, quick, m, total, scalings, acc, th, [sc[3] for sc in scalings] + list(jsons))
+                      + "\n")
+    atomic_write_text(os.path.join(out, "accuracy.md"), accuracy_md(out, quick, m, total, acc, acc_json, hc, hc_json)
+                      + "\n")
     failures = (acc["failures"] + hc["failures"] + [f"threads: {f}" for f in th["failures"]]
                 + [f"scaling {' '.join(sc[0]['args'])}: a validation failed" for sc in scalings if sc[1]])
     return dict(failures=failures, total_seconds=total, files=[os.path.join(out, "performance.md"),

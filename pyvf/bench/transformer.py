@@ -10,9 +10,12 @@ other's (harmless on a quiet machine; 10x and more on small calls when other wor
 pyvf's step is split into the branching-attention kernel (forward and backward), the linear
 layers (every x @ w, forward and backward) and the rest (LayerNorm, GELU, embeddings, losses,
 the tied logits, AdamW), by timing those functions inside the step. Before timing, the first
-step's loss of pyvf and torch (same weights, same batch) are compared, and the tool stops if
-they differ. Memory: the measured peak resident memory of one step above what was resident
-before it (pyvf.bench.common.peak_memory). torch is imported only in the torch worker.
+step's loss and gradients of pyvf and torch (same weights, same batch), and the loss after
+their first AdamW update, are compared (pyvf.bench.common.first_step_differs), and the tool
+stops if they differ. Memory: the measured peak resident memory of one step above what was
+resident before it (pyvf.bench.common.peak_memory), after a first step (it makes the optimizer's
+moments, resident before every later step, as the weights). torch is imported only in the
+torch worker.
 """
 
 import contextlib
@@ -24,7 +27,8 @@ import numpy as np
 import pyvf
 import pyvf.nn.attention
 import pyvf.nn.layers
-from pyvf.bench.common import format_bytes, peak_memory, run_configs, run_worker, worker_main
+from pyvf.bench.common import checksums, first_step_differs, format_bytes, peak_memory, run_configs, run_worker, \
+    worker_main
 
 WORKER = "pyvf.bench.transformer"  # this module, run as `python -m WORKER SPEC` (worker_main)
 
@@ -81,14 +85,17 @@ def setup(name, seed=0):
 
 def worker_pyvf(name, steps):
     cfg, B, tokens, poses, model = setup(name)
-    loss = model.forward(tokens, poses).loss  # the first step's loss, for the cross-check
+    loss = model.forward(tokens, poses).loss  # the first step's loss and gradients, for the cross-check
+    gradients = checksums(model.backward())
     opt = pyvf.AdamW(model.params, lr=1e-4, weight_decay=0.01)
 
-    def step():
-        model.forward(tokens, poses)
+    def step():  # -> the loss before its update
+        loss = model.forward(tokens, poses).loss
         opt.step(model.backward())
+        return loss
 
-    _, mem = peak_memory(step)  # also the warm-up step
+    step()  # the warm-up: the first update writes the moments (one-time, as the weights: not a step's memory)
+    after, mem = peak_memory(step)  # (its loss: the loss after one update, for the cross-check of AdamW)
     times, shares = [], {"attention": 0.0, "linear": 0.0}
     for _ in range(steps):
         t = time.perf_counter()
@@ -96,8 +103,9 @@ def worker_pyvf(name, steps):
             step()
         times.append(time.perf_counter() - t)
     total = sum(times)
-    return dict(loss=loss, time=float(np.median(times)), memory=mem, attention=shares["attention"] / total,
-                linear=shares["linear"] / total, params=int(sum(p.size for p in model.params.values())))
+    return dict(loss=loss, loss_after_update=after, gradients=gradients, time=float(np.median(times)), memory=mem,
+                attention=shares["attention"] / total, linear=shares["linear"] / total,
+                params=int(sum(p.size for p in model.params.values())))
 
 
 def worker_torch(name, steps):
@@ -110,21 +118,26 @@ def worker_torch(name, steps):
     P = {k: torch.tensor(v.copy(), requires_grad=True) for k, v in model.params.items()}
     opt = torch.optim.AdamW(P.values(), lr=1e-4, weight_decay=0.01)
     t_tokens, t_poses = torch.tensor(tokens), torch.tensor(poses)
-    with torch.no_grad():
-        loss = torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1].item()
+    out = torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1]
+    out.backward()
+    loss = out.item()
+    gradients = checksums({k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()})
 
-    def step():
+    def step():  # -> the loss before its update
         opt.zero_grad()
-        torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1].backward()
+        loss = torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1]
+        loss.backward()
         opt.step()
+        return loss.item()
 
-    _, mem = peak_memory(step)
+    step()  # the warm-up, as worker_pyvf's: the first step makes the moments
+    after, mem = peak_memory(step)
     times = []
     for _ in range(steps):
         t = time.perf_counter()
         step()
         times.append(time.perf_counter() - t)
-    return dict(loss=loss, time=float(np.median(times)), memory=mem)
+    return dict(loss=loss, loss_after_update=after, gradients=gradients, time=float(np.median(times)), memory=mem)
 
 
 def worker(spec):
@@ -136,19 +149,22 @@ def worker(spec):
 
 def bench(name, steps, threads):
     """Run both workers on one configuration and print the table: {"pyvf": ..., "torch": ...}, or
-    None (printed to stderr) when their first-step losses differ."""
+    None (printed to stderr) when their first steps differ."""
     p, t = (run_worker(WORKER, dict(framework=f, config=name, steps=steps, threads=threads))
             for f in ("pyvf", "torch"))
-    # validate: the same first-step loss from the same weights and batch (float32 both)
-    if abs(p["loss"] - t["loss"]) > 1e-4 * abs(t["loss"]):
-        print(f"{name}: pyvf loss {p['loss']} != torch loss {t['loss']}", file=sys.stderr)
+    # validate: the same first-step loss and gradients from the same weights and batch, and the same
+    # loss after the first update (float32 both)
+    differs = first_step_differs(p, t)
+    if differs:
+        print(f"{name}: pyvf and torch differ in {differs}", file=sys.stderr)
         return None
     spec = dict(CONFIGS[name])
     print(f"\n## {name}: d={spec['d_model']}, H={spec['n_head']}, {spec['n_layer']} layers, "
           f"N={spec['sequence_size']}, L={spec['token_image_size'] ** 2}, V={spec['n_embeddings']}, "
           f"B={spec['batch']}, {p['params'] / 1e6:.2f}M parameters, float32, {threads} threads, "
           f"median of {steps} steps, each framework in its own process")
-    print(f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f}")
+    print(f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the gradients, and the loss after an "
+          "update, agree)")
     print("| | step time | peak memory of a step |")
     print("|---|---|---|")
     print(f"| pyvf | {p['time'] * 1e3:.1f} ms | {format_bytes(p['memory'])} |")
@@ -161,10 +177,10 @@ def bench(name, steps, threads):
 
 def run(configs=tuple(CONFIGS), steps=None, threads=2):
     """bench() on each configuration of CONFIGS named (steps: timed steps, default 20 tiny, 3
-    paper). Returns the report; report["failures"] names a configuration whose losses differed
-    (nothing after it is run)."""
+    paper). Returns the report; report["failures"] names a configuration whose first steps
+    differed (nothing after it is run)."""
     return run_configs(lambda name: bench(name, steps or (20 if name == "tiny" else 3), threads), configs,
-                       dict(configs=list(configs), steps=steps, threads=threads), threads, "first-step losses")
+                       dict(configs=list(configs), steps=steps, threads=threads), threads)
 
 
 if __name__ == "__main__":  # a worker: `python -m pyvf.bench.transformer SPEC` (bench, run_worker)

@@ -81,8 +81,10 @@ def _attention(args):
     report = attention.run(*shape, threads=args.threads, repeat=args.repeat, flex=args.flex, scaling_views=views,
                            scaling_heads=args.scaling_heads)
     write_outputs(report, args.json)
-    if "aborted" in report:
-        print("\nABORT: pyvf is outside its error bound; nothing is timed.", file=sys.stderr)
+    failed = attention.failure(report)
+    if failed:
+        print(f"\nFAIL: {failed}; " + ("nothing is timed." if "aborted" in report else "it is not timed."),
+              file=sys.stderr)
         return 1
     return 0
 
