@@ -19,7 +19,8 @@ The protocol (docs/math.md §6 for the metrics, metrics.py for their exact defin
   `nearest_view`, `mean_image` (images), `closest_image_pose`, `mean_pose` (poses).
 * Image metrics are means over all query images, pose metrics medians over all queries.
 * Timing, on the first min(scenes, timing_scenes) scenes at the largest C: one cached render /
-  localization per view (the scene already encoded) against recomputing: Transformer.render
+  localization per view (the scene already encoded; all M queries in one call, and one per
+  call), against recomputing, one query per call: Transformer.render
   (encode the context again for every query) and Transformer.forward on [context, query]
   (the whole three-row tree; one call gives both a view's logits and its pose, so it is
   compared with one cached render plus one cached localization).
@@ -79,17 +80,19 @@ METHODS = {
 TIMING_KEYS = (
     "context",  # C of the timed scenes (the largest evaluated)
     "scenes",  # scenes timed together (one batch)
-    "queries",  # query views per scene
+    "queries",  # query views per scene (M): the cached paths are timed on all of them in one call, and on the first
     "repeat",  # timed calls per measurement (the fastest is kept), after one warm-up call
     "codebook_encode_s_per_image",  # over the whole evaluation
     "codebook_decode_s_per_image",
     "encode_scene_s_per_scene",  # Transformer.encode_scene: the trunk over the context, once per scene
-    "render_cached_s_per_view",  # render_scene on the encoded scene, per query view
-    "localize_cached_s_per_view",  # localize_scene, per query view
+    "render_cached_s_per_view",  # render_scene on the encoded scene, all M queries of a scene in one call, per view
+    "localize_cached_s_per_view",  # localize_scene, the same
+    "render_cached_one_s_per_view",  # render_scene, one query per scene per call
+    "localize_cached_one_s_per_view",  # localize_scene, one query per scene per call
     "render_reencode_s_per_view",  # Transformer.render (encode_scene again) for one query
     "forward_full_tree_s_per_view",  # Transformer.forward on [context, query]; None when it cannot run
-    "speedup_vs_reencode",  # render_reencode / render_cached
-    "speedup_vs_full_tree",  # forward_full_tree / (render_cached + localize_cached); None when not run
+    "speedup_vs_reencode",  # render_reencode / render_cached_one (like for like: one query per call)
+    "speedup_vs_full_tree",  # forward_full_tree / (render_cached_one + localize_cached_one); None when not run
     "total_s",  # wall time of the whole evaluate() call
 )
 META_KEYS = (
@@ -385,8 +388,12 @@ def _token_scores(logits, tokens):
 
 
 def _timing(transformer, tokens, poses, C, qidx, repeat):
-    """Median seconds per view of the cached and the recomputing paths on these scenes.
-    tokens (B, V, L), poses (B, V, 7) float64."""
+    """Seconds per view (the fastest call) of the cached and the recomputing paths on these
+    scenes. The cached paths twice: all M queries of a scene in one call (the cost per view of a
+    batch) and one query per scene per call. The speed-ups compare like with like, one query per
+    call on every path: a recomputing call of one query costs a whole context pass, and a cached
+    call of all M at once would add the gain of batching them to the cache's (render() batches M
+    queries over one context pass too). tokens (B, V, L), poses (B, V, 7) float64."""
     dt = transformer.dtype
     B, M = tokens.shape[0], len(qidx)
     ctx_tok, ctx_pose = tokens[:, :C], poses[:, :C].astype(dt)  # (B, C, L), (B, C, 7)
@@ -399,9 +406,11 @@ def _timing(transformer, tokens, poses, C, qidx, repeat):
 
     t_scene = timed(lambda: transformer.encode_scene(ctx_tok, ctx_pose))
     scene = transformer.encode_scene(ctx_tok, ctx_pose)
-    t_render = timed(lambda: transformer.render_scene(scene, q_pose)) / (B * M)
-    t_localize = timed(lambda: transformer.localize_scene(scene, q_tok)) / (B * M)
-    # recomputing, one query (the first) per call, as a server without the cache would
+    t_render_all = timed(lambda: transformer.render_scene(scene, q_pose)) / (B * M)
+    t_localize_all = timed(lambda: transformer.localize_scene(scene, q_tok)) / (B * M)
+    # each path on the first query, one per scene per call, as a server answers queries that arrive apart
+    t_render = timed(lambda: transformer.render_scene(scene, q_pose[:, :1])) / B
+    t_localize = timed(lambda: transformer.localize_scene(scene, q_tok[:, :1])) / B
     t_reencode = timed(lambda: transformer.render(ctx_tok, ctx_pose, q_pose[:, :1])) / B
     t_full = None
     if C + 1 > transformer.config.n_loss_skip:  # forward needs a loss target
@@ -411,8 +420,10 @@ def _timing(transformer, tokens, poses, C, qidx, repeat):
     return {
         "context": int(C), "scenes": int(B), "queries": int(M), "repeat": int(repeat),
         "encode_scene_s_per_scene": t_scene / B,
-        "render_cached_s_per_view": t_render,
-        "localize_cached_s_per_view": t_localize,
+        "render_cached_s_per_view": t_render_all,
+        "localize_cached_s_per_view": t_localize_all,
+        "render_cached_one_s_per_view": t_render,
+        "localize_cached_one_s_per_view": t_localize,
         "render_reencode_s_per_view": t_reencode,
         "forward_full_tree_s_per_view": t_full,
         "speedup_vs_reencode": t_reencode / t_render,
@@ -536,21 +547,28 @@ def metrics_markdown(metrics):
     t = timing
     lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} thread"
               f"{'' if meta['kernel_threads'] == 1 else 's'})", "",
-              f"Transformer: {t['scenes']} scenes at context {t['context']}, {t['queries']} queries each, "
-              f"the fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
+              f"Transformer: {t['scenes']} scenes at context {t['context']}, {t['queries']} queries each, the "
+              f"fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
               "| step | time |", "|---|---:|",
               f"| codebook: encode an image | {_seconds(t['codebook_encode_s_per_image'])} |",
               f"| codebook: decode an image | {_seconds(t['codebook_decode_s_per_image'])} |",
               f"| encode_scene (the context trunk, once per scene) | {_seconds(t['encode_scene_s_per_scene'])} |",
-              f"| render a view from the cached scene | {_seconds(t['render_cached_s_per_view'])} |",
-              f"| localize a view from the cached scene | {_seconds(t['localize_cached_s_per_view'])} |",
-              f"| render a view re-encoding the context (Transformer.render) | "
+              f"| render a view from the cached scene ({t['queries']} queries in one call) | "
+              f"{_seconds(t['render_cached_s_per_view'])} |",
+              f"| localize a view from the cached scene ({t['queries']} queries in one call) | "
+              f"{_seconds(t['localize_cached_s_per_view'])} |",
+              f"| render a view from the cached scene (one query per call) | "
+              f"{_seconds(t.get('render_cached_one_s_per_view'))} |",
+              f"| localize a view from the cached scene (one query per call) | "
+              f"{_seconds(t.get('localize_cached_one_s_per_view'))} |",
+              f"| render a view re-encoding the context (Transformer.render, one query per call) | "
               f"{_seconds(t['render_reencode_s_per_view'])} |",
-              f"| the whole tree on [context, query] (Transformer.forward) | "
+              f"| the whole tree on [context, query] (Transformer.forward, one query per call) | "
               f"{_seconds(t['forward_full_tree_s_per_view'])} |",
               "",
-              f"Speed-up of the scene cache: {_fmt(t['speedup_vs_reencode'], 1)}x against re-encoding the context "
-              f"for every query, {_fmt(t['speedup_vs_full_tree'], 1)}x against the whole tree for every query "
+              f"Speed-up of the scene cache, one query per call on every path: {_fmt(t['speedup_vs_reencode'], 1)}x "
+              f"against re-encoding the context for every query, {_fmt(t['speedup_vs_full_tree'], 1)}x against the "
+              "whole tree for every query "
               f"(one forward gives a rendering and a pose, so it is compared with one cached render plus one "
               f"cached localization). Whole evaluation: {t['total_s']:.1f} s."]
     return "\n".join(lines) + "\n"

@@ -763,6 +763,7 @@ class Transformer(ModelWeights):
         B = scene.ref.shape[0]
         if not isinstance(query_tokens, np.ndarray) or query_tokens.dtype.kind not in "iu":
             raise TypeError("query_tokens must be an integer numpy array")
+        _checks.plain_array("query_tokens", query_tokens)  # masked tokens would be embedded by the data under the mask
         if query_tokens.ndim != 3 or query_tokens.shape[0] != B or query_tokens.shape[2] != L or query_tokens.shape[1] < 1:
             raise ValueError(f"query_tokens must have shape (B={B}, M >= 1, L={L}), got {query_tokens.shape}")
         if query_tokens.min() < 0 or query_tokens.max() >= V:

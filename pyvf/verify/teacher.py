@@ -459,13 +459,22 @@ def _check_layer(torch, model, layer, fn, trace, grads, params, convert, to_port
     for n, t in mine_params.items():
         g = t.grad.detach().cpu().numpy() if t.grad is not None else np.zeros(tuple(t.shape))
         mine[n] = convert(n, g)
-    bwd = compare(mine, ref, dtype=dtype, rtol=rtol)
-    # each gradient is judged normwise against at least the layer's largest one: a gradient that is
-    # zero in exact arithmetic (a conv bias feeding a GroupNorm of one channel per group) is rounding
-    # on both sides, its own relative error meaningless
-    scale = max((float(np.abs(np.asarray(a, dtype=np.float64)).max()) for a in ref.values() if np.size(a)), default=0.0)
-    if bwd.rows and scale > 0:
-        bwd = compare(mine, ref, dtype=dtype, rtol=rtol, atol=min(r.rtol for r in bwd.rows) * scale)
+    # the inputs' gradients are judged each on its own scale; each parameter's gradient against at
+    # least the layer's largest parameter gradient: one that is zero in exact arithmetic (a conv bias
+    # feeding a GroupNorm of one channel per group) is rounding on both sides, its own relative error
+    # meaningless. A parameter's gradient sums over every token, so its scale (larger with the batch)
+    # would hide an input gradient wrong by several times rtol.
+    dinputs = compare({n: g for n, g in mine.items() if n not in dparams_ref},
+                      {n: g for n, g in ref.items() if n not in dparams_ref}, dtype=dtype, rtol=rtol)
+    mine_p, ref_p = {n: mine[n] for n in mine if n in dparams_ref}, {n: ref[n] for n in ref if n in dparams_ref}
+    dparams = compare(mine_p, ref_p, dtype=dtype, rtol=rtol)
+    scale = max((float(np.abs(np.asarray(a, dtype=np.float64)).max()) for a in ref_p.values() if np.size(a)),
+                default=0.0)
+    if dparams.rows and scale > 0:
+        dparams = compare(mine_p, ref_p, dtype=dtype, rtol=rtol, atol=min(r.rtol for r in dparams.rows) * scale)
+    rows = dinputs.rows + dparams.rows  # ref's order: the inputs' gradients, then the parameters'
+    bwd = Comparison(first=next((r.name for r in rows if not r.ok), None), rows=rows,
+                     only_mine=dinputs.only_mine + dparams.only_mine, only_ref=dinputs.only_ref + dparams.only_ref)
     return LayerCheck(layer.name, forward=fwd, backward=bwd)
 
 
