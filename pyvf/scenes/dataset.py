@@ -27,7 +27,8 @@ Every file is written to a temporary file in the same folder, flushed and fsynce
 renamed over its final name (os.replace, atomic on POSIX), and the folder is fsynced: a crash
 leaves either the old file or the new one, never a torn one. load_dataset checks each shard's
 size, sha256, array names, shapes, dtypes, finiteness and unit quaternions against the
-manifest and raises FileNotFoundError / ValueError naming the file and its manifest entry;
+manifest (and the entries' scene counts against shard_size's layout) and raises
+FileNotFoundError / ValueError naming the file and its manifest entry;
 it never returns a partly read dataset. The shards' sizes and array headers are checked
 before the dataset's arrays are allocated, so a manifest that promises more scenes than the
 shards hold is an error naming it, not an allocation of its size.
@@ -378,7 +379,8 @@ def _read_manifest(mpath):
     if manifest.get("version") != FORMAT_VERSION:
         raise ValueError(f"{mpath}: format version {manifest.get('version')!r}, "
                          f"this pyvf reads version {FORMAT_VERSION}")
-    for key, minimum in (("seed", 0), ("n_scenes", 1), ("views", 1), ("height", 8), ("width", 8)):
+    for key, minimum in (("seed", 0), ("n_scenes", 1), ("views", 1), ("height", 8), ("width", 8),
+                         ("shard_size", 1)):
         _manifest_int(manifest, key, mpath, minimum)
     shards = manifest.get("shards")
     if not isinstance(shards, list) or not shards:
@@ -402,6 +404,18 @@ def _read_manifest(mpath):
     if expect != manifest["n_scenes"]:
         raise ValueError(f"{mpath}: the shards hold {expect} scenes but n_scenes is {manifest['n_scenes']}")
     return manifest
+
+
+def _check_shard_size(manifest, mpath):
+    """The format's layout (module docstring): shard k holds scenes k*shard_size onwards, every shard
+    but the last shard_size of them. Checked after the shards' headers, which name a shard whose
+    arrays disagree with its entry; this names a shard_size that disagrees with the entries."""
+    size, left = manifest["shard_size"], manifest["n_scenes"]
+    for k, entry in enumerate(manifest["shards"]):
+        if entry["n_scenes"] != min(size, left):
+            raise ValueError(f"{mpath}, shard entry {k} ({entry['file']}): {entry['n_scenes']} scenes, but "
+                             f"shard_size {size} puts {min(size, left)} in it")
+        left -= entry["n_scenes"]
 
 
 def _expected(entry, views, H, W):
@@ -514,6 +528,7 @@ def load_dataset(path):
     S, V, H, W = (manifest[k] for k in ("n_scenes", "views", "height", "width"))
     for k, entry in enumerate(manifest["shards"]):  # the shards hold what the manifest says: then allocate
         _check_shard_layout(os.path.join(root, entry["file"]), entry, k, V, H, W, mpath)
+    _check_shard_size(manifest, mpath)
     images = np.empty((S, V, H, W, 3), dtype=np.uint8)
     poses = np.empty((S, V, 7))
     for k, entry in enumerate(manifest["shards"]):
