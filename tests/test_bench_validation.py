@@ -76,19 +76,28 @@ def test_flex_with_a_wrong_result_is_not_timed(monkeypatch):
 
 
 def test_each_kernel_paths_backward_is_validated_before_it_is_timed(monkeypatch):
-    """path_times checked each path's forward only, then timed its forward and backward."""
-    paths = pyvf.kernel_paths()
-    if len(paths) < 2:
-        pytest.skip("this CPU runs one kernel path")
-    wrong = paths[0] if paths[0] != pyvf.kernel_path() else paths[1]
-    backward = pyvf.branching_attention_backward
+    """path_times checked each path's forward only, then timed its forward and backward. The bug
+    is planted on the paths path_times switches to (inside use_kernel_path), not on the reference
+    it computes first: so the test runs on a CPU of one path too (no skip)."""
+    backward, switch = pyvf.branching_attention_backward, pyvf.use_kernel_path
+    inside = []
 
-    def planted(*args, **kwargs):  # the gradients of dk and dv swapped, on one path only
+    class planted_switch(switch):  # marks the calls made under a switched path
+        def __enter__(self):
+            inside.append(self.path)
+            return super().__enter__()
+
+        def __exit__(self, *exc):
+            inside.pop()
+            return super().__exit__(*exc)
+
+    def planted(*args, **kwargs):  # the gradients of dk and dv swapped, on the switched paths only
         dq, dk, dv = backward(*args, **kwargs)
-        return (dq, dv, dk) if pyvf.kernel_path() == wrong else (dq, dk, dv)
+        return (dq, dv, dk) if inside else (dq, dk, dv)
+    monkeypatch.setattr(pyvf, "use_kernel_path", planted_switch)
     monkeypatch.setattr(pyvf, "branching_attention_backward", planted)
     q, k, v, do = attention.make_inputs(3, 1, 1, 2, 8, 8)
-    with pytest.raises(RuntimeError, match=wrong):
+    with pytest.raises(RuntimeError, match=f"path {pyvf.kernel_paths()[0]}: differs"):
         attention.path_times(q, k, v, do, 1, 1.0, 1.0, 1.0)
 
 

@@ -325,10 +325,10 @@ def first_step_differs(p, t):
             or loss_differs("loss_after_update"))
 
 
-def run_configs(bench, configs, config, threads, what="first steps"):
+def run_configs(bench, configs, config, threads):
     """Call bench(name) for each configuration named, after setting the threads; the report:
-    config, results by name, and failures: bench() returning None means pyvf and torch gave
-    different `what` for that configuration, and nothing after it is run."""
+    config, results by name, and failures: bench() returning None means pyvf's and torch's first
+    steps differ for that configuration (first_step_differs), and nothing after it is run."""
     import pyvf  # bench sits above the facade
 
     pyvf.set_num_threads(threads)
@@ -336,7 +336,7 @@ def run_configs(bench, configs, config, threads, what="first steps"):
     for name in configs:
         result = bench(name)
         if result is None:
-            report["failures"].append(f"{name}: the {what} of pyvf and torch differ")
+            report["failures"].append(f"{name}: the first steps of pyvf and torch differ")
             break
         report["results"][name] = result
     return report

@@ -591,7 +591,7 @@ class Codebook(ModelWeights):
                 raise ValueError("pixel_weights must be non-negative and not all zero")
         enc, dec = [], []
         tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
-        saved = {k: v.copy() for k, v in self.quantizer.state_dict().items()} if train else None
+        saved = self.quantizer.state_dict() if train else None  # (copies)
         self._trace = tr
         try:
             z = self._encoder(enc, images)  # (B, D, k, k)

@@ -39,7 +39,7 @@ from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import CHECKPOINT, Run, _diff, file_sha256, fingerprint, integer, jsonable, positive_int, real, resume_point
 from .curves import plot_eval
-from .step import codebook_train_step, transformer_step
+from .step import check_clipping, codebook_train_step, transformer_step
 from .torch_codebook_engine import check_codebook_engine, parity_images
 from .torch_engine import Follower, TorchTransformer, check_engine, data_parallel, log_parity, parity_batch
 
@@ -452,10 +452,7 @@ def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, wa
         raise ValueError(f"warmup={warmup} must be less than total_steps={total_steps} (total_steps is steps when "
                          "not given): the schedule warms up, then decays over the steps left")
     schedule = WarmupCosine(lr, warmup, total_steps)
-    if max_grad_norm is not None and real("max_grad_norm", max_grad_norm) == 0:
-        raise ValueError("max_grad_norm must be positive, or None for no clipping")
-    if clip_mode not in ("global", "per_tensor"):
-        raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {clip_mode!r}")
+    max_grad_norm = check_clipping(max_grad_norm, clip_mode)
     hyper = {"batch_size": batch_size, "views": n_views, "lr": lr, "warmup": int(warmup),
              "total_steps": total_steps, "weight_decay": weight_decay, "eps": 1e-8, "eps_convention": "keras",
              "max_grad_norm": None if max_grad_norm is None else float(max_grad_norm), "clip_mode": clip_mode,
