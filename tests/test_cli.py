@@ -158,6 +158,28 @@ def test_bench_quick(name, tmp_path):
     assert_ran(run(["bench", name, *args], tmp_path), *expected)
 
 
+def test_every_readme_command_without_torch(tmp_path):
+    """After `pip install .` alone (torch made unimportable): each command's quick mode runs, pyvf's
+    own figures measured where torch is only a comparison column, or it stops with one line naming
+    the extra it needs. (bench threads and report run these same benchmarks; their quick modes
+    take minutes and are run with torch above.)"""
+    hide = tmp_path / "no-torch" / "torch"
+    hide.mkdir(parents=True)
+    (hide / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
+    env = clean_env(PYTHONPATH=str(hide.parent))
+    runs = [(["config"], "kernel path:"), (["demo", "--quick", "--out", "d"], "pyvf"),
+            (["train", "--preset", "smoke", "--out", "r", "--no-progress"], "pyvf train: done"),
+            (["runs", "r/codebook", "r/transformer"], "|"), (["export", "r/transformer", "-o", "now.npz"], "now.npz"),
+            (["bench", "attention", "--quick", "--no-scaling"], "torch SDPA: torch is not installed"),
+            (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"), (["bench", "scaling", "--quick"], "naive_sdpa"),
+            (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]
+    for args, expected in runs:
+        assert_ran(run(args, tmp_path, env), expected)
+    for name in ("transformer", "codebook"):
+        proc = run(["bench", name, "--quick"], tmp_path, env)
+        assert proc.returncode == 1 and len(proc.stderr.splitlines()) == 1 and "pyvf[torch]" in proc.stderr, proc
+
+
 def test_bench_threads_profile_quick(tmp_path):
     """`pyvf bench threads --profile`: a step's time kernel by kernel at 1 and 2 threads, the rest
     outside the kernels, in the table and the JSON."""

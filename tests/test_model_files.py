@@ -12,7 +12,7 @@ import pytest
 import pyvf
 from conftest import assert_bitwise_equal
 from pyvf._io import CheckpointError
-from pyvf.models import transformer
+from pyvf.models import check_pair, transformer
 from test_model_table import replace_row
 
 TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=1, token_image_size=4, sequence_size=5, n_loss_skip=1)
@@ -165,3 +165,34 @@ def test_a_model_file_is_refused_whole_for_any_bad_entry(tmp_path):
     np.savez(path, __config__=cfg, **{**sd, "ln_f/gamma": np.array([None] * 32, dtype=object)})
     with pytest.raises(CheckpointError, match=r"entry 'ln_f/gamma'.*allow_pickle=False"):
         pyvf.Transformer.load(path)
+
+
+def test_a_transformer_records_its_codebook_and_a_pairing_checks_it(tmp_path):
+    """The codebook's fingerprint: the same after a round trip, another for one ulp in one parameter
+    or a code, blind to the EMA statistics (they make no token). A transformer's file keeps the
+    fingerprint; check_pair refuses another codebook naming both files, and warns for a file that
+    records none (one saved before pyvf recorded it)."""
+    cb = pyvf.Codebook(pyvf.CodebookConfig(**CB), seed=0)
+    cb.save(tmp_path / "cb.npz")
+    loaded = pyvf.Codebook.load(tmp_path / "cb.npz")
+    assert loaded.fingerprint() == cb.fingerprint()
+    loaded.quantizer.ema_dw_hidden += 1
+    assert loaded.fingerprint() == cb.fingerprint()
+    name = sorted(cb.params)[3]
+    loaded.params[name].flat[5] = np.nextafter(loaded.params[name].flat[5], np.float32(np.inf))
+    assert loaded.fingerprint() != cb.fingerprint()
+    other = pyvf.Codebook.load(tmp_path / "cb.npz")
+    other.quantizer.embeddings[0, 0] = np.nextafter(other.quantizer.embeddings[0, 0], np.float32(np.inf))
+    assert other.fingerprint() != cb.fingerprint()
+    other.save(tmp_path / "other.npz")
+
+    tf = pyvf.Transformer(pyvf.TransformerConfig(**{**TINY, "n_embeddings": 16, "token_image_size": cb.config.token_size}))
+    tf.save(tmp_path / "old.npz")  # records no codebook
+    tf.codebook_fingerprint = cb.fingerprint()
+    tf.save(tmp_path / "tf.npz")
+    check_pair(pyvf.Codebook.load(tmp_path / "cb.npz"), pyvf.Transformer.load(tmp_path / "tf.npz"))
+    with pytest.raises(ValueError) as e:
+        check_pair(pyvf.Codebook.load(tmp_path / "other.npz"), pyvf.Transformer.load(tmp_path / "tf.npz"))
+    assert str(tmp_path / "other.npz") in str(e.value) and str(tmp_path / "tf.npz") in str(e.value)
+    with pytest.warns(UserWarning, match="old.npz"):
+        check_pair(cb, pyvf.Transformer.load(tmp_path / "old.npz"))

@@ -8,7 +8,6 @@ import shutil
 
 import numpy as np
 import pytest
-from scipy.spatial import ConvexHull
 
 import pyvf.scenes as sc
 from pyvf.geometry import quat_rotate
@@ -33,10 +32,30 @@ def cube_corners(lo, hi):
                      for a in (0, 1) for b in (0, 1) for c in (0, 1)])  # (8, 3)
 
 
+def hull_equations(points):
+    """The edges of the convex hull of 2-D points (N, 2) -> (F, 3) rows (n_x, n_y, offset), n the
+    unit outward normal: n . x + offset <= 0 inside. Andrew's monotone chain, counter-clockwise."""
+    def turn(o, a, b):  # > 0: o -> a -> b turns counter-clockwise
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    def chain(pts):
+        out = []
+        for p in pts:
+            while len(out) >= 2 and turn(out[-2], out[-1], p) <= 0:
+                out.pop()
+            out.append(p)
+        return out[:-1]
+    pts = np.unique(np.asarray(points, dtype=np.float64), axis=0)  # sorted by x, then y
+    v = np.array(chain(pts) + chain(pts[::-1]))  # (F, 2) counter-clockwise
+    e = np.roll(v, -1, axis=0) - v  # (F, 2) edges
+    n = np.stack([e[:, 1], -e[:, 0]], axis=1) / np.linalg.norm(e, axis=1, keepdims=True)  # outward for CCW
+    return np.concatenate([n, -(n * v).sum(axis=1, keepdims=True)], axis=1)
+
+
 def hull_distance(corners_px, H, W):
     """Signed distance (pixels) of each pixel centre to the convex hull of the projected corners:
     negative inside. -> (H, W)."""
-    eq = ConvexHull(corners_px).equations  # (F, 3): unit normal . x + offset <= 0 inside
+    eq = hull_equations(corners_px)  # (F, 3): unit normal . x + offset <= 0 inside
     x = np.arange(W) + 0.5
     y = np.arange(H) + 0.5
     pts = np.stack(np.meshgrid(x, y), axis=-1)  # (H, W, 2)

@@ -401,8 +401,9 @@ def test_commands_end_to_end(tmp_path, rng, monkeypatch, capsys):
     assert recorded["calls"][0]["command"]["args"]["steps"] == 3 and recorded["config"]["image_size"] == 16
     assert run("tokenize", "--codebook", d / "cb" / "codebook.npz", "--data", d / "data",
                "--out", d / "tok" / "tokens.npz", "--no-progress") == 0
-    tokens, saved_poses, n_embed = load_tokens(str(d / "tok" / "tokens.npz"))
+    tokens, saved_poses, n_embed, fingerprint = load_tokens(str(d / "tok" / "tokens.npz"))
     assert np.array_equal(tokens, tokenize(cb, images)) and np.array_equal(saved_poses, poses) and n_embed == 16
+    assert fingerprint == cb.fingerprint()
     assert run("train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "tf", "--steps", 2,
                "--total-steps", 3, "--batch", 2, "--config", tf_json, "--no-progress", "--lr", 1e-3) == 0
     Transformer.load(str(d / "tf" / "transformer.npz"))
@@ -421,6 +422,10 @@ def test_commands_end_to_end(tmp_path, rng, monkeypatch, capsys):
     assert run("train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "tf2", "--steps", 2,
                "--no-progress") == 1  # tiny: 256 codes, but the tokens index 16
     assert "n_embeddings=256" in capsys.readouterr().err
+    Codebook(CB, seed=9).save(str(d / "other.npz"))  # the same sizes, not the codebook of these tokens
+    assert run("train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "tf3", "--steps", 2,
+               "--config", tf_json, "--codebook", d / "other.npz", "--no-progress") == 1
+    assert "other.npz" in capsys.readouterr().err and not (d / "tf3").exists()
     (d / "bad.npz").write_bytes(b"garbage")
     assert run("tokenize", "--codebook", d / "bad.npz", "--data", d / "data", "--out", d / "t.npz") == 1
     assert "bad.npz" in capsys.readouterr().err

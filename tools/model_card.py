@@ -105,7 +105,8 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=
         epng = plot_eval(run_dir, os.path.join(img_dir, f"{name}-eval.png"))
         last = ", ".join(f"{c} {ev[c][-1]:.4g}" for c in panels)
         base = ", ".join(f"{b} {ev[b][-1]:.4g}" for c in panels for b in baselines.get(c, ()))
-        lines += [f"Held-out evaluation during training (eval.csv; the baselines dashed), last at step "
+        dashed = "; the baselines dashed" if baselines else ""
+        lines += [f"Held-out evaluation during training (eval.csv{dashed}), last at step "
                   f"{int(ev['step'][-1])}: {last}" + (f"; baselines: {base}" if base else "") + ".", "",
                   f"![{name} held-out evaluation]({'img/' + os.path.basename(epng)})", ""]
     return lines

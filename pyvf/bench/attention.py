@@ -40,7 +40,8 @@ import traceback
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import blas_thread_env, cpu_name, format_bytes, measured, median_time, memory_method, table
+from pyvf.bench.common import (TORCH_MISSING, blas_thread_env, cpu_name, format_bytes, measured, median_time,
+                               memory_method, table, torch_or_none)
 from pyvf.verify.compare import rel_err
 
 # The bounds pyvf must meet before anything is timed: the same as tests/test_attention.py
@@ -362,20 +363,25 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5, flex=False, scaling_views=None, 
     and returns the report, every number. When pyvf is outside its bound, or torch SDPA or the
     NumPy reference outside BOUND_OTHERS, nothing is timed and report["aborted"] says so
     (failure(report): the exit status). flex: also torch flex_attention; scaling_views: the N of the
-    memory-versus-N measurement (None: none), at scaling_heads heads (default H)."""
-    import torch
-
+    memory-versus-N measurement (None: none), at scaling_heads heads (default H). Without torch,
+    pyvf and the NumPy reference alone (report["torch"] says why)."""
+    torch = torch_or_none()
     t_start = time.perf_counter()
     shape = (R, B, H, N, L, dh)
     pyvf.set_num_threads(threads)
-    torch.set_num_threads(threads)
-    report = _start(shape, threads, repeat)
+    report = _start(shape, threads, repeat, torch)
     section = itertools.count(1).__next__  # the next section's number (some sections are optional)
     q, k, v, do = make_inputs(*shape)
     mask = pyvf.branching_mask(R, N, L)  # (T, T) bool, for torch
     fns = dict(zip(("pyvf_fwd", "pyvf_fwd_bwd"), pyvf_fns(q, k, v, do)))
-    t_fwd, t_fb, to_np = torch_fns(q, k, v, do, mask)
-    fns.update(torch_fwd=t_fwd, torch_fwd_bwd=t_fb)
+    to_np = None
+    if torch is not None:
+        torch.set_num_threads(threads)
+        t_fwd, t_fb, to_np = torch_fns(q, k, v, do, mask)
+        fns.update(torch_fwd=t_fwd, torch_fwd_bwd=t_fb)
+    if flex and torch is None:
+        print(f"--flex: {TORCH_MISSING}")
+        flex = False
     fns.update(zip(("numpy_fwd", "numpy_vjp"), reference_fns(q, k, v, do)))
     o64, mem, first = _validate(report, section(), (q, k, v, do), mask, fns, to_np)
     if "aborted" in report:
@@ -411,26 +417,27 @@ def failure(report):
     return report.get("aborted") or (f"flex_attention {flex}" if flex.startswith("validation failed") else None)
 
 
-def _start(shape, threads, repeat):
+def _start(shape, threads, repeat, torch):
     """The report's first fields (the problem, the machine, the bounds), printed as the header."""
-    import torch
-
     R, B, H, N, L, dh = shape
+    have = torch is not None
     T = R * N * L
     report = dict(
         config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=threads,
                     repeat=repeat, inputs="unit normal, seed 0"),
         machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
-                     python=platform.python_version(), numpy=np.__version__, torch=torch.__version__,
-                     pyvf=pyvf.__version__, pyvf_threads=pyvf.num_threads(), torch_threads=torch.get_num_threads(),
-                     blas_thread_env=blas_thread_env(), torch_cpu_capability=torch.backends.cpu.get_cpu_capability()),
+                     python=platform.python_version(), numpy=np.__version__,
+                     torch=torch.__version__ if have else TORCH_MISSING, pyvf=pyvf.__version__,
+                     pyvf_threads=pyvf.num_threads(), torch_threads=torch.get_num_threads() if have else None,
+                     blas_thread_env=blas_thread_env(),
+                     torch_cpu_capability=torch.backends.cpu.get_cpu_capability() if have else None),
         memory_method=memory_method(),
         bounds=dict(pyvf_float32=BOUND32, pyvf_float64=BOUND64),
     )
     print(f"# Branching attention benchmark: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={T}), float32, "
           f"scale 1, {threads} threads")
     print(f"machine: {report['machine']['processor']}, {os.cpu_count()} CPUs; numpy {np.__version__}, "
-          f"torch {torch.__version__}, pyvf {pyvf.__version__}")
+          f"torch {torch.__version__ if have else 'not installed'}, pyvf {pyvf.__version__}")
     print(f"memory: {memory_method()}\n")
     return report
 
@@ -465,10 +472,11 @@ def _validate(report, number, inputs, mask, fns, to_np):
         print(f"\n{bounds}")
         report["aborted"] = "pyvf error above its bound"
         return o64, mem, first
-    o, (_, grads) = measure("torch_fwd", 1), measure("torch_fwd_bwd", 1)
-    err["torch SDPA float32"] = _errors(to_np(o), [to_np(g) for g in grads], o64, g64, None)
-    o, grads = torch_fns(q64, k64, v64, do64, mask)[1]()
-    err["torch SDPA float64 (layout check)"] = _errors(to_np(o), [to_np(g) for g in grads], o64, g64, None)
+    if "torch_fwd" in fns:
+        o, (_, grads) = measure("torch_fwd", 1), measure("torch_fwd_bwd", 1)
+        err["torch SDPA float32"] = _errors(to_np(o), [to_np(g) for g in grads], o64, g64, None)
+        o, grads = torch_fns(q64, k64, v64, do64, mask)[1]()
+        err["torch SDPA float64 (layout check)"] = _errors(to_np(o), [to_np(g) for g in grads], o64, g64, None)
     # the NumPy reference in float32: no warm-up (a call takes seconds); these calls are its
     # first timing sample too
     o, grads = measure("numpy_fwd", 0), measure("numpy_vjp", 0)
@@ -494,7 +502,7 @@ def _memory(report, number, shape, q, mask, mem, threads):
     print(f"\n## {number}. Extra peak memory of one call (inputs excluded, outputs included)\n")
     e_fwd, e_fb = pyvf_expected_memory(*shape, 4, threads)
     logits = dense_logits_bytes(R, B, H, N, L, 4)
-    backend = torch_backend(q, mask)
+    backend = torch_backend(q, mask) if "torch_fwd" in mem else TORCH_MISSING
     mask_f = mask.size * 4  # the bool mask as an additive float32 (T, T) mask
     if backend == "FLASH_ATTENTION":  # torch's CPU flash kernel: O(T*dh), but it converts the mask
         t_fwd_e = (mask_f + S, "(T, T) mask as float32 + o (flash kernel: no logits)")
@@ -572,9 +580,13 @@ def _time(report, number, shape, repeat, fns, first, flops):
         rows.append(row)
     print(table(["", "forward", "(min)", "GFLOP/s", "forward+backward", "(min)", "GFLOP/s"], rows))
     print("GFLOP/s: useful flops (the same count for every row) / median time")
-    ratio = {"fwd": times["torch_fwd"][0] / times["pyvf_fwd"][0],
-             "fwd_bwd": times["torch_fwd_bwd"][0] / times["pyvf_fwd_bwd"][0]}
-    print(f"\ntorch SDPA / pyvf time: forward {ratio['fwd']:.2f}x, forward+backward {ratio['fwd_bwd']:.2f}x")
+    ratio = {}
+    if "torch_fwd" in times:
+        ratio = {"fwd": times["torch_fwd"][0] / times["pyvf_fwd"][0],
+                 "fwd_bwd": times["torch_fwd_bwd"][0] / times["pyvf_fwd_bwd"][0]}
+        print(f"\ntorch SDPA / pyvf time: forward {ratio['fwd']:.2f}x, forward+backward {ratio['fwd_bwd']:.2f}x")
+    else:
+        print(f"\ntorch SDPA: {TORCH_MISSING}")
     if "flex_fwd" in times:
         ratio["flex_fwd"] = times["flex_fwd"][0] / times["pyvf_fwd"][0]
         print(f"torch flex_attention / pyvf time: forward {ratio['flex_fwd']:.2f}x")

@@ -362,6 +362,19 @@ def write_json(path, report):
     atomic_write_text(path, json.dumps(report, indent=1))
 
 
+TORCH_MISSING = "torch is not installed (the torch extra: pip install 'pyvf[torch]')"
+
+
+def torch_or_none():
+    """torch, or None where it is not installed: benchmarks where torch is a comparison column
+    measure pyvf without it (the column says TORCH_MISSING)."""
+    try:
+        import torch
+    except ImportError:
+        return None
+    return torch
+
+
 def pyplot():
     """matplotlib.pyplot on the file-only Agg backend, or None where matplotlib (the `plots`
     extra, `pip install pyvf[plots]`) is not installed: the plotting functions' one import."""

@@ -16,7 +16,7 @@ import sys
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import median_time
+from pyvf.bench.common import TORCH_MISSING, median_time, torch_or_none
 from pyvf.nn.quantizer import vq_nearest
 
 PAPER = dict(M=352 * 64, K=1024, D=256, repeat=5, checked_rows=4096)
@@ -40,7 +40,15 @@ def brute_force(x, codes, chunk=512):
 
 
 def methods():
-    import torch
+    """name -> fn(x, codes) -> indices; the torch rows only where torch is installed."""
+    def numpy_expanded(x, codes):
+        d = (x ** 2).sum(1, keepdims=True) - 2 * x @ codes.T + (codes ** 2).sum(1)
+        return d.argmin(axis=1)
+
+    pyvf_numpy = {"pyvf.vq_nearest": lambda x, c: vq_nearest(x, c)[0], "numpy expanded matmul": numpy_expanded}
+    torch = torch_or_none()
+    if torch is None:
+        return pyvf_numpy
 
     def torch_cdist(x, codes):
         return torch.cdist(torch.from_numpy(x), torch.from_numpy(codes)).argmin(dim=1).numpy()
@@ -50,12 +58,7 @@ def methods():
         d = (tx ** 2).sum(1, keepdim=True) - 2 * tx @ tc.T + (tc ** 2).sum(1)
         return d.argmin(dim=1).numpy()
 
-    def numpy_expanded(x, codes):
-        d = (x ** 2).sum(1, keepdims=True) - 2 * x @ codes.T + (codes ** 2).sum(1)
-        return d.argmin(axis=1)
-
-    return {"pyvf.vq_nearest": lambda x, c: vq_nearest(x, c)[0], "torch cdist + argmin": torch_cdist,
-            "torch expanded matmul": torch_expanded, "numpy expanded matmul": numpy_expanded}
+    return {**pyvf_numpy, "torch cdist + argmin": torch_cdist, "torch expanded matmul": torch_expanded}
 
 
 def run(M, K, D, repeat=5, checked_rows=4096, threads=2):
@@ -64,8 +67,9 @@ def run(M, K, D, repeat=5, checked_rows=4096, threads=2):
     points), then pyvf's time at the offsets. Returns the report; report["failures"] is not
     empty when pyvf disagrees with brute force (then nothing more is timed) or another method
     picks more than SANITY_WRONG wrong codes at offset 0 (that one is not timed)."""
-    import torch
-    torch.set_num_threads(threads)
+    torch = torch_or_none()
+    if torch is not None:
+        torch.set_num_threads(threads)
     pyvf.set_num_threads(threads)
     rng = np.random.default_rng(0)
     checked_rows = min(checked_rows, M)
@@ -95,8 +99,9 @@ def run(M, K, D, repeat=5, checked_rows=4096, threads=2):
         results[name] = dict(seconds=t, wrong=wrong)
         print(f"| {name} | {t * 1e3:.1f} ms | " + " | ".join(f"{w:.2%}" for w in wrong) + " |")
     t0 = results["pyvf.vq_nearest"]["seconds"]
-    print("\n" + "; ".join(f"{name} / pyvf time: {results[name]['seconds'] / t0:.2f}x"
-                           for name in ("torch cdist + argmin", "torch expanded matmul") if name in results))
+    print("\n" + ("; ".join(f"{name} / pyvf time: {results[name]['seconds'] / t0:.2f}x"
+                            for name in ("torch cdist + argmin", "torch expanded matmul") if name in results)
+                  if torch is not None else f"torch: {TORCH_MISSING}"))
     print("\npyvf at the cancellation offsets (exact re-rank of the codes the bound cannot exclude):")
     for off in (1e2, 1e3, 1e4):
         xs, cs = base_x + np.float32(off), base_c + np.float32(off)

@@ -1,13 +1,13 @@
 """pyvf's command line: the console script `pyvf <command>`, or `python -m pyvf <command>`.
 
-    pyvf demo                                   # the pretrained models on held-out scenes; ~2 minutes
-    pyvf demo --quick                           # seconds
+    pyvf demo                                   # the pretrained models on held-out scenes
+    pyvf demo --quick                           # a smoke run
     pyvf evaluate --scenes 200 --context 1,3,5 --out eval [--codebook F --transformer F]
     pyvf config                                 # the kernels' instruction-set path, threads
     pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
     pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]      # speed vs error; hard cases
     pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
-    pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
+    pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory
     pyvf convert tf-transformer path/model --config config.json -o model.npz
     pyvf convert torch-codebook model.ckpt --config config.json -o codebook.npz
     pyvf scenes | train-codebook | tokenize | train-transformer | train | runs | export   # data, training

@@ -22,7 +22,7 @@ import subprocess
 import sys
 
 from .._threads import cores
-from ..bench.common import BLAS_THREAD_VARS, write_json, write_outputs
+from ..bench.common import BLAS_THREAD_VARS, TORCH_MISSING, torch_or_none, write_json, write_outputs
 from .options import (add_threads, names, non_negative_float, output_dir, output_file, positive_float, positive_int,
                       thread_count)
 
@@ -31,6 +31,9 @@ DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.att
 # --threads; `threads` compares the thread settings themselves, its default included
 IN_PROCESS = (DEMO_ATTENTION, "threads")
 COMPARE_THREADS = "threads for pyvf and torch (default 2)"
+# benchmarks that cannot run without torch (the others time pyvf alone where it is missing)
+NEEDS_TORCH = {"transformer": "the oracle its first step is checked against before both are timed",
+               "codebook": "the oracle its first step is checked against before both are timed"}
 
 
 def _module(name):
@@ -386,6 +389,9 @@ def cmd_bench(args):
     bench_args = parser.parse_args(args.args)
     if check is not None:
         check(bench_args)
+    if args.name in NEEDS_TORCH and torch_or_none() is None:
+        print(f"pyvf bench {args.name}: needs torch, {NEEDS_TORCH[args.name]}: {TORCH_MISSING}", file=sys.stderr)
+        return 1
     n = bench_args.threads if args.name not in IN_PROCESS else None
     if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
         env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})

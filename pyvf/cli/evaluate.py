@@ -73,7 +73,7 @@ def _common(p):
 def register(subparsers):
     """Add `demo` and `evaluate` to an argparse subparsers object."""
     p = subparsers.add_parser("demo", help="render views and find poses of held-out scenes with the pretrained "
-                                           "models, against baselines (~2 minutes; --quick: seconds)",
+                                           "models, against baselines",
                               description=cmd_demo.__doc__)
     p.add_argument("--out", default="pyvf-demo", metavar="DIR",
                    help="folder for metrics.json, metrics.md, views.png, poses.png (default ./pyvf-demo)")
@@ -82,7 +82,7 @@ def register(subparsers):
     p.add_argument("--context", type=context_sizes, default=None, metavar="C[,C...]",
                    help=f"context sizes (default {','.join(map(str, work.DEMO_CONTEXT))}; "
                         f"--quick: {','.join(map(str, work.QUICK_CONTEXT))})")
-    p.add_argument("--quick", action="store_true", help="a smoke run of a few seconds")
+    p.add_argument("--quick", action="store_true", help="a smoke run: few scenes, one context size")
     _common(p)
     p.set_defaults(func=cmd_demo)
 

@@ -9,11 +9,14 @@ The shipped pair is two package data files beside this module, `sm7-codebook.npz
 scenes of seed 0 (pyvf.scenes). A missing file raises FileNotFoundError naming it and saying
 how to train one (TRAIN_HINT). A transformer reads the codebook's tokens, so the pair must
 agree on the codebook size (n_embeddings == n_embed) and on the token image side
-(token_image_size == token_size); anything else raises ValueError.
+(token_image_size == token_size), and the transformer must have been trained on this codebook's
+tokens (Transformer.codebook_fingerprint == Codebook.fingerprint(); a file that does not record
+it is paired with a warning); anything else raises ValueError.
 """
 
 import importlib.resources
 import os
+import warnings
 
 from .codebook import Codebook
 from .transformer import Transformer
@@ -57,8 +60,9 @@ def _resolve(kind, path):
 
 
 def check_pair(codebook, transformer):
-    """ValueError unless the transformer reads this codebook's tokens: the same codebook size V
-    and the same token image side k (L = k*k tokens per view)."""
+    """ValueError unless the transformer reads this codebook's tokens: the same codebook size V,
+    the same token image side k (L = k*k tokens per view) and the codebook it was trained with
+    (a warning where the transformer does not record it); the errors name both models' files."""
     if not isinstance(codebook, Codebook):
         raise TypeError(f"codebook must be a Codebook, got {type(codebook).__name__}")
     if not isinstance(transformer, Transformer):
@@ -72,6 +76,16 @@ def check_pair(codebook, transformer):
                          f"{tf.token_image_size}x{tf.token_image_size} token images, the codebook makes "
                          f"{cb.token_size}x{cb.token_size} (image_size {cb.image_size}, "
                          f"{len(cb.ch_mult) - 1} downsamplings)")
+    cb_name = f"codebook {codebook.source}" if codebook.source else "the codebook"
+    tf_name = f"transformer {transformer.source}" if transformer.source else "the transformer"
+    if transformer.codebook_fingerprint is None:
+        warnings.warn(f"{tf_name} does not record the codebook it was trained with (saved before pyvf recorded "
+                      f"it): its pairing with {cb_name} could not be checked")  # once: one location
+    elif transformer.codebook_fingerprint != codebook.fingerprint():
+        raise ValueError(f"{tf_name} was trained on the tokens of another codebook (fingerprint "
+                         f"{transformer.codebook_fingerprint}) than {cb_name} ({codebook.fingerprint()}): its codes "
+                         "would mean something else. Pass the codebook its tokens came from (--codebook "
+                         "RUN/codebook.npz: the `pyvf tokenize --codebook` of its tokens file)")
 
 
 def load_pretrained(codebook=None, transformer=None):

@@ -47,6 +47,7 @@ not the torch GroupNorm module's output (record `nonlinearity(norm(x))` on a por
 
 import contextlib
 import dataclasses
+import hashlib
 
 import numpy as np
 
@@ -370,6 +371,16 @@ class Codebook(ModelWeights):
     def official_name(self, name):
         """A Lightning checkpoint's `model.` prefix is dropped."""
         return name[len("model."):] if name.startswith("model.") else name
+
+    def fingerprint(self):
+        """What makes this codebook's tokens and images: the sha256 (first 16 hex digits) of every
+        parameter and the codes, in name order (the EMA statistics left out). A transformer
+        records the fingerprint of the codebook it was trained with (Transformer.codebook_fingerprint)."""
+        h = hashlib.sha256()
+        for name, a in sorted({**self.params, "quantize.embeddings": self.quantizer.embeddings}.items()):
+            h.update(f"{name} {a.dtype.str} {a.shape}".encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()[:16]
 
     def state_dict(self, layout="torch"):
         """torch name -> array, the quantizer's buffers included (copies), in `layout` (see

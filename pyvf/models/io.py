@@ -61,6 +61,8 @@ class ModelWeights:
     FILE_KIND = "model"  # how a model file's errors call it
     CONFIG = None  # the configuration class a model file is read into
     INPUTS = ()  # the names of forward's inputs (teacher forcing's first layer reads the first)
+    META = ()  # attributes a model file keeps beside the weights (strings or None), as entries __name__
+    source = None  # the file a model was loaded from (load sets it; messages name it)
 
     def _describe(self, layers, table=None):
         """Take the layer table and its parameters (name -> (shape, role), the published order;
@@ -185,7 +187,8 @@ class ModelWeights:
         path: a str or os.PathLike (".npz" appended when missing, so `load` needs the name with
         ".npz"), written atomically, or an open binary file; see save_model. Returns the path
         written (or the file)."""
-        return save_model(path, self.config, self.state_dict())
+        meta = {k: getattr(self, k) for k in self.META if getattr(self, k, None) is not None}
+        return save_model(path, self.config, self.state_dict(), meta)
 
     @classmethod
     def load(cls, path):
@@ -196,12 +199,14 @@ class ModelWeights:
         return load_model(path, cls.FILE_KIND, cls.CONFIG, cls)
 
 
-def save_model(path, config, state):
-    """ModelWeights.save: the configuration (JSON, entry __config__) and the state (name -> array)
-    in one .npz. path: a str or os.PathLike, ".npz" appended when it does not end with it (as
-    np.savez does), written atomically; or an open binary file, written directly (no atomicity:
-    the caller owns it). Returns the path written (or the file)."""
-    arrays = {"__config__": json.dumps(dataclasses.asdict(config)), **state}
+def save_model(path, config, state, meta=None):
+    """ModelWeights.save: the configuration (JSON, entry __config__), the meta strings (name ->
+    str, entries __name__) and the state (name -> array) in one .npz. path: a str or
+    os.PathLike, ".npz" appended when it does not end with it (as np.savez does), written
+    atomically; or an open binary file, written directly (no atomicity: the caller owns it).
+    Returns the path written (or the file)."""
+    arrays = {"__config__": json.dumps(dataclasses.asdict(config)),
+              **{f"__{k}__": str(v) for k, v in (meta or {}).items()}, **state}
     if hasattr(path, "write"):
         np.savez(path, **arrays)
         return path
@@ -249,8 +254,12 @@ def load_model(path, what, config_cls, model_cls):
     except (TypeError, ValueError) as e:
         raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
     model = model_cls(config)
+    meta = {k: str(arrays.pop(f"__{k}__")) for k in model_cls.META if f"__{k}__" in arrays}  # absent: older file
     try:
         model.load_official(arrays)
     except (TypeError, ValueError) as e:
         raise CheckpointError(f"{what} {name}: {e}") from e
+    for k, v in meta.items():
+        setattr(model, k, v)
+    model.source = name
     return model

@@ -278,6 +278,10 @@ class Transformer(ModelWeights):
     FILE_KIND = "transformer"
     CONFIG = TransformerConfig
     INPUTS = ("tokens", "poses")  # the model's inputs (teacher forcing: the first row reads the first)
+    # the fingerprint of the codebook whose tokens it was trained on (Codebook.fingerprint; None:
+    # not known, as in files saved before pyvf recorded it); kept in the model file
+    META = ("codebook_fingerprint",)
+    codebook_fingerprint = None
 
     def __init__(self, config, seed=0, *, layers=None):
         if not isinstance(config, TransformerConfig):

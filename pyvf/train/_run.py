@@ -472,6 +472,8 @@ class Run:
 
     def save_final(self, arrays):
         """The trained model as Codebook.save / Transformer.save write it: __config__ (the
-        configuration as JSON) and the state dict. Returns its path."""
-        atomic_savez(self.final_path, __config__=json.dumps(self.config), **arrays)
+        configuration as JSON), the codebook's fingerprint when the run's hyperparameters record
+        it (a transformer's) and the state dict. Returns its path."""
+        meta = {"__codebook_fingerprint__": self.hyper["codebook_fingerprint"]} if "codebook_fingerprint" in self.hyper else {}
+        atomic_savez(self.final_path, __config__=json.dumps(self.config), **meta, **arrays)
         return self.final_path

@@ -129,8 +129,9 @@ def plot_eval(run_dir, png=None):
     log = read_log(run_dir, "eval.csv")
     panels, baselines = eval_panels(list(log))
     png = png or os.path.join(run_dir, "eval.png")
+    dashed = " (dashed: baselines)" if baselines else ""  # the codebook's panels have none
     return plot_curves(run_dir, png, panels, title=f"{os.path.basename(os.path.normpath(run_dir))}: held-out "
-                       "evaluation against the step (dashed: baselines)", name="eval.csv", baselines=baselines,
+                       f"evaluation against the step{dashed}", name="eval.csv", baselines=baselines,
                        log_y=[c for c in panels if c == "mae" or c.startswith(("ce_c", "mae_c"))])
 
 

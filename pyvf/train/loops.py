@@ -402,9 +402,10 @@ def held_out_set(codebook, images, poses):
     return {"codebook": codebook, "images": images, "poses": poses, "tokens": tokens}
 
 
-def save_tokens(path, tokens, poses, n_embed):
+def save_tokens(path, tokens, poses, n_embed, codebook_fingerprint=None):
     """Write a tokenized dataset atomically: tokens (scenes, views, k, k) ints in [0, n_embed),
-    poses (scenes, views, 7) floats, and n_embed (the codebook size the tokens index)."""
+    poses (scenes, views, 7) floats, n_embed (the codebook size the tokens index) and the
+    codebook's fingerprint (Codebook.fingerprint; None: not recorded)."""
     n_embed = positive_int("n_embed", n_embed)
     if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu" or tokens.ndim != 4:
         raise TypeError("tokens must be an integer numpy array (scenes, views, k, k)")
@@ -413,13 +414,16 @@ def save_tokens(path, tokens, poses, n_embed):
                          f"{getattr(poses, 'dtype', None)} {getattr(poses, 'shape', None)}")
     if tokens.size and (tokens.min() < 0 or tokens.max() >= n_embed):
         raise ValueError(f"tokens must be in [0, n_embed={n_embed})")
-    atomic_savez(path, tokens=tokens, poses=poses, n_embed=np.int64(n_embed))
+    extra = {} if codebook_fingerprint is None else {"codebook_fingerprint": str(codebook_fingerprint)}
+    atomic_savez(path, tokens=tokens, poses=poses, n_embed=np.int64(n_embed), **extra)
 
 
 def load_tokens(path):
-    """Read save_tokens' file -> (tokens (scenes, views, k, k), poses (scenes, views, 7), n_embed)."""
+    """Read save_tokens' file -> (tokens (scenes, views, k, k), poses (scenes, views, 7), n_embed,
+    the codebook's fingerprint or None when the file does not record it)."""
     f = load_npz(path, "tokens file", required=("tokens", "poses", "n_embed"))
-    return f["tokens"], f["poses"], int(f["n_embed"])
+    fingerprint = str(f["codebook_fingerprint"]) if "codebook_fingerprint" in f else None
+    return f["tokens"], f["poses"], int(f["n_embed"]), fingerprint
 
 
 # ---------------------------------------------------------------------------------------
@@ -580,7 +584,8 @@ def _run_folder(dp, make_run, steps, out_dir):
 def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, context=None, lr=1e-4, warmup=None,
                       total_steps=None, weight_decay=0.01, max_grad_norm=1.0, clip_mode="per_tensor", seed=0,
                       checkpoint_every=200, log_every=10, eval_set=None, eval_every=0, resume=True, progress=True,
-                      threads=None, command=None, engine="pyvf", device="cpu", precision="fp32", init=None):
+                      threads=None, command=None, engine="pyvf", device="cpu", precision="fp32", init=None,
+                      codebook_fingerprint=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
     (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5).
 
@@ -606,6 +611,8 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         health.transformer_health at health.health_contexts is appended to out_dir/eval.csv.
     out_dir, resume, seed, init, threads, command: as train_codebook (init a Transformer.save
         file); the final model is out_dir/transformer.npz (Transformer.load reads it).
+    codebook_fingerprint: the fingerprint of the codebook the tokens came from (load_tokens'):
+        recorded in config.json and the model, whose pairings then check it (models.check_pair).
     engine: "pyvf" (its own kernels, on the CPU) or "torch" (torch_engine.TorchTransformer:
         the same batches, schedule, optimiser, clipping and checkpoints, the model in torch on
         `device` "cpu" | "cuda" | "cuda:N" at `precision` "fp32" | "bf16" (autocast; the weights
@@ -620,6 +627,10 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     hyper, schedule, steps = _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup,
                                                 total_steps, weight_decay, max_grad_norm, clip_mode, seed)
     batch_size, n_views, seed, weight_decay = (hyper[k] for k in ("batch_size", "views", "seed", "weight_decay"))
+    if codebook_fingerprint is not None:
+        hyper["codebook_fingerprint"] = str(codebook_fingerprint)
+    if eval_set is not None and codebook_fingerprint is not None and eval_set["codebook"].fingerprint() != codebook_fingerprint:
+        raise ValueError("eval_set's codebook is not the one the tokens came from (codebook_fingerprint)")
     check_engine(engine, device, precision, config.dtype)
     eval_every, eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
     threads_set = _Threads(threads)
@@ -656,4 +667,6 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         run.save_final(state())
     if dp is not None:
         dp.close()
-    return current()
+    model = current()
+    model.codebook_fingerprint = hyper.get("codebook_fingerprint")
+    return model

@@ -104,7 +104,7 @@ def _tokens(path, codebook_path, images, poses, progress):
                 return load_tokens(path)
     codebook = Codebook.load(codebook_path)
     tokens = tokenize(codebook, images, progress=progress)
-    save_tokens(path, tokens, poses, codebook.config.n_embed)
+    save_tokens(path, tokens, poses, codebook.config.n_embed, codebook.fingerprint())
     atomic_write_text(stamp, json.dumps({"codebook": os.path.basename(codebook_path), "codebook_sha256": sha}) + "\n")
     return load_tokens(path)
 
@@ -138,7 +138,7 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
                                   -1, p.size, p.size, 3), eval_every=p.eval_every, **quiet)
 
     log("[3/5] tokens: every training view through the codebook")
-    tokens, poses, _ = _tokens(os.path.join(out, "tokens.npz"), os.path.join(cb_dir, "codebook.npz"), data.images,
+    tokens, poses, _, fingerprint = _tokens(os.path.join(out, "tokens.npz"), os.path.join(cb_dir, "codebook.npz"), data.images,
                                data.poses, progress)
 
     log(f"[4/5] transformer: {p.transformer_steps} steps of {p.transformer_batch} scenes, evaluated every "
@@ -147,7 +147,7 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
     transformer = train_transformer(tokens, poses, p.transformer, os.path.join(out, "transformer"),
                                     steps=p.transformer_steps, batch_size=p.transformer_batch, lr=p.transformer_lr,
                                     checkpoint_every=max(1, p.eval_every), eval_set=eval_set,
-                                    eval_every=p.eval_every, **quiet)
+                                    eval_every=p.eval_every, codebook_fingerprint=fingerprint, **quiet)
 
     log(f"[5/5] evaluation: {p.eval_scenes} held-out scenes (seed {EVAL_SEED}), context 1, 3, 5")
     metrics = evaluate(codebook, transformer, scenes=p.eval_scenes, seed=EVAL_SEED, out=os.path.join(out, "eval"),

@@ -188,7 +188,7 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
     with kernel_threads(threads):
         tokens = tokenize(codebook, data.images, batch_size=batch_size, progress=progress)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    save_tokens(out, tokens, data.poses, codebook.config.n_embed)
+    save_tokens(out, tokens, data.poses, codebook.config.n_embed, codebook.fingerprint())
     return tokens
 
 
@@ -202,10 +202,13 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
     _check_engine(train)
     if init is not None and resume_point(out, train.get("resume", True)) is None:  # a resume does not read it
         read_model(init, Transformer, "--init")  # a missing file or another model's, named as the option
-    tokens_path, (tokens, poses, n_embed) = tokens, load_tokens(tokens)
+    tokens_path, (tokens, poses, n_embed, fingerprint) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
         raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "
                          f"was made by a codebook of {n_embed} codes")
+    if codebook and fingerprint is not None and (given := read_codebook(codebook).fingerprint()) != fingerprint:
+        raise ValueError(f"--codebook {codebook} is not the codebook that made {tokens_path} (fingerprints {given} "
+                         f"and {fingerprint}): pass the --codebook of the `pyvf tokenize` that wrote it")
     eval_set = None
     if eval_every and codebook:
         eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, train.get("threads"), train_poses=poses)
@@ -213,7 +216,7 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
         print("pyvf train-transformer: no --codebook, so no held-out evaluation (it renders through the "
               "codebook)", file=sys.stderr)
     return train_transformer(tokens, poses, config, out, eval_set=eval_set, eval_every=eval_every, init=init,
-                             **train)
+                             codebook_fingerprint=fingerprint, **train)
 
 
 def compare_runs(run_dirs, plot=False, step=None, note=None):
@@ -280,4 +283,5 @@ def export_run(run, out):
         model.load_official(state)
     except (TypeError, ValueError) as e:
         raise ValueError(f"checkpoint {path}: its {meta['kind']} does not load: {e}") from e
+    model.codebook_fingerprint = meta["hyper"].get("codebook_fingerprint")  # a transformer's
     return meta["kind"], int(meta["step"]), model.save(out)

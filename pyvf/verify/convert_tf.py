@@ -68,7 +68,7 @@ def convert_checkpoint(checkpoint, config_json, output):
     try:
         import tensorflow as tf
     except ImportError:
-        raise ModuleNotFoundError("convert tf-transformer needs tensorflow (pip install tensorflow-cpu)") from None
+        raise ModuleNotFoundError("convert tf-transformer needs tensorflow (the tf extra: pip install 'pyvf[tf]', or tensorflow-cpu)") from None
     with open(config_json) as f:
         config = TransformerConfig(**json.load(f))
     weights, skipped = convert(tf.train.load_checkpoint(str(checkpoint)), config)
