@@ -1,4 +1,5 @@
-"""docs/walkthrough.md runs as a doctest, each section on its own, in time, and its pictures are drawn.
+"""docs/walkthrough.md runs as a doctest, each section on its own, in time, and its pictures are drawn;
+what its text claims beyond the printed output is checked here, on the arrays its sections computed.
 
     pytest tests/test_walkthrough.py                  # the test (pictures to a temporary folder)
     python tests/test_walkthrough.py                  # the same run, by hand, from the repository root
@@ -10,10 +11,14 @@ a package). Run as a script, Python puts tests/ (not the repository root) first 
 """
 
 import importlib.util
+import json
 import os
 import re
 import sys
 import unicodedata
+
+import numpy as np
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOCS = os.path.join(ROOT, "docs")
@@ -40,11 +45,19 @@ def _anchor(heading):
     return kept.replace(" ", "-")
 
 
-def test_walkthrough_runs_section_by_section(tmp_path):
+@pytest.fixture(scope="module")
+def sections():
+    """The walkthrough run once, section by section: (runs, seconds, {section number: namespace})."""
+    runs, seconds = _figures_tool().run_sections()
+    spaces = {int(t.split(".")[0]): ns for t, _, ns in runs if t[0].isdigit()}
+    return runs, seconds, spaces
+
+
+def test_walkthrough_runs_section_by_section(sections, tmp_path):
     from PIL import Image
 
     tool = _figures_tool()
-    runs, seconds = tool.run_sections()
+    runs, seconds, _ = sections
     titles = [t for t, _, _ in runs]
     assert [int(t.split(".")[0]) for t in titles[1:]] == list(range(1, 8)), f"sections 1..7 expected, got {titles}"
     for title, result, _ in runs[1:]:  # each numbered section runs alone: it imports what it needs
@@ -65,6 +78,81 @@ def test_walkthrough_runs_section_by_section(tmp_path):
                                       "regenerate it (python tools/walkthrough_figures.py)")
             pixels = a.convert("L").getextrema()
             assert pixels[0] < 100 and pixels[1] > 200, f"{name} is blank"
+
+
+# What the walkthrough's text claims beyond what its examples print, checked on the arrays its
+# sections left behind: the plumbing (tolerances, layouts, report files) lives here, not in the text.
+
+
+def test_section_1_codebook_claims(sections):
+    """The tokens are the C++ kernel's nearest codes; the loss is rec + weight * L_c, and L_c's
+    gradient joins the straight-through one; the EMA step follows math.md §4 line by line."""
+    import pyvf
+
+    ns = sections[2][1]
+    codebook, x, out, E = ns["codebook"], ns["x"], ns["out"], ns["E"]
+    cells = np.ascontiguousarray(ns["z"].reshape(64, 64).T)  # the kernel takes C-contiguous (M, D) and (V, D)
+    nearest, _ = pyvf.vq_nearest(cells, np.ascontiguousarray(E.T))
+    assert np.array_equal(nearest.reshape(8, 8), out.codes[0]) and np.array_equal(ns["tokens"][0], out.codes[0])
+    assert ns["tokens"].shape == (15, 8, 8) and 0 <= ns["tokens"].min() and ns["tokens"].max() < 256
+    w = codebook.config.codebook_weight
+    assert np.isclose(out.loss, out.rec_loss + w * out.commitment_loss)  # float32 sums: default rtol
+    out = codebook.forward(x[:1], trace=True)
+    g = codebook.backward()  # the gradient of the loss: d L_c / d z = 2 w (z - e) / z.size joins in
+    z, e = out.trace["quant_conv"][0], E[:, out.codes[0]]
+    # float32 gradients summed in another order: rtol 1e-4; atol far below the entries' size (~1e-6)
+    assert np.allclose(g["quant_conv"][0], g["quantize"][0] + 2 * w * (z - e) / z.size, rtol=1e-4, atol=1e-9)
+
+    # EMA, by hand (math.md §4): averages from 0, bias correction at counter 1, Laplace smoothing
+    quant, vecs, codes, before = ns["quant"], ns["vecs"], ns["codes"], ns["before"]
+    decay, eps, V = quant.decay, quant.eps, before.shape[1]
+    cs = (1 - decay) * np.bincount(codes, minlength=V) / (1 - decay)
+    dw = (1 - decay) * np.stack([vecs[codes == c].sum(axis=0) for c in range(V)], axis=1) / (1 - decay)
+    n = cs.sum()
+    # float64, a handful of operations in another order: rtol 1e-12
+    assert np.allclose(quant.embeddings, dw / ((cs + eps) / (n + V * eps) * n), rtol=1e-12, atol=0)
+    assert quant.counter == 1
+    q = ns["q_out"].quantized.reshape(2, 4).T  # the step's output used the codes from before it
+    assert np.array_equal(q, before.T[codes])
+
+
+def test_section_2_tree_claims(sections):
+    """Each '#' of the printed mask is a 4x4 square with 4 tokens per view; the scaling report
+    counts (1 + 2n) n L tokens for the stacked sequences and 3 n L for the tree, and its fitted
+    memory slopes are about 1 (tree) and 2 (stacked), as the text says."""
+    ns = sections[2][2]
+    assert int(ns["m4"].sum()) == 16 * int(ns["m"].sum())
+    with open(os.path.join(DOCS, "measurements", "scaling-H4-dh32.json"), encoding="utf-8") as f:
+        report = json.load(f)
+    R, L = report["config"]["R"], report["config"]["L"]
+    point = {(p["method"], p["N"]): p for p in report["points"]}
+    for n in report["config"]["views"]:
+        assert point["pyvf", n]["theory"]["tokens"] == R * n * L
+        assert point["naive_pyvf", n]["theory"]["tokens"] == (1 + (R - 1) * n) * n * L
+    slopes = report["slopes"]["4x32"]
+    assert 0.8 < slopes["pyvf"]["fwd_bwd_bytes"] < 1.25 and 1.75 < slopes["naive_pyvf"]["fwd_bwd_bytes"] < 2.25
+
+
+def test_section_4_transformer_claims(sections):
+    """make_relative is undone by absolute_poses; the rows and the heads equal the text's formulas to
+    float64 rounding; the per-token positions are the raw head output over pose_multiplier."""
+    import pyvf
+
+    ns = sections[2][4]
+    out, p, V, cams = ns["out"], ns["p"], ns["V"], ns["cams"]
+    back = pyvf.absolute_poses(ns["poses"], ns["first"][:, None])  # float64 round trip: default rtol, 1e-6 degrees
+    assert np.allclose(back[..., :3], cams[..., :3]) and pyvf.orientation_error(back[..., 3:], cams[..., 3:]).max() < 1e-6
+    # float64, the same products summed in another order: rtol 1e-12, atol for entries near 0
+    assert np.allclose(out.trace["embed.out"], ns["rows"], rtol=1e-12, atol=1e-15)
+    assert np.allclose(out.logits, out.trace["ln_f.generation"] @ p["wte/weight"][:V].T, rtol=1e-12, atol=1e-14)
+    assert np.allclose(out.pose_prediction[..., :3], out.pose_raw[..., :3] / 0.2)
+    assert np.allclose(ns["ce"], out.ce_loss, rtol=1e-12) and np.allclose(ns["pose"], out.pose_loss, rtol=1e-12)
+
+
+def test_section_5_the_loss_falls(sections):
+    """The toy run learns: the loss halves, the cross-entropy falls 4x in 30 steps."""
+    history = sections[2][5]["history"]
+    assert history[-1][0] < 0.5 * history[0][0] and history[-1][1] < 0.25 * history[0][1]
 
 
 def test_tree_picture_edges_come_from_the_mask():
