@@ -1,6 +1,6 @@
 """The torch engine of train_codebook: the same loop, batches, recipe (Adam, object-pixel
 weighting, dead-code restarts), run folder and checkpoints as pyvf's engine, with the model and
-the update in torch, on a CPU or a GPU (docs/walkthrough.md §7).
+the update in torch, on a CPU or a GPU (docs/howto-torch-engine.md).
 
 The model is pyvf.verify's CodebookPort (taming-transformers' module tree with the published
 state dict's names, written from docs/math.md §4 and tested against pyvf's Codebook), loaded

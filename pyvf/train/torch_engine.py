@@ -1,6 +1,6 @@
 """The torch engine of train_transformer: the same loop, batches, schedule, optimiser, clipping,
 run folder and checkpoints as pyvf's engine, with the model and the update in torch, on a CPU or
-a GPU (docs/walkthrough.md §7).
+a GPU (docs/howto-torch-engine.md).
 
 The model is pyvf.verify's TransformerPort (written from docs/math.md, tested against pyvf to
 float32 rounding), initialised from pyvf's Transformer(config, seed), so both engines start from
