@@ -630,3 +630,17 @@ def test_groupnorm_eps_that_rounds_to_zero_names_eps(layer, rng):
     if layer == "groupnorm":
         y, _ = call(x.astype(np.float64), g.astype(np.float64), b.astype(np.float64), 1e-46)
         np.testing.assert_array_equal(y, np.broadcast_to(b.astype(np.float64)[:, None, None], (1, 32, 2, 2)))
+
+
+def test_failed_training_forward_after_the_quantizer_keeps_the_ema_buffers(monkeypatch):
+    """A training forward that fails after the quantizer (here the decoder raises, as an overflow
+    check in a conv would) must leave the EMA buffers unchanged (a retry would move them twice)."""
+    cb = Codebook(CodebookConfig(**TINY), seed=3)
+    before = cb.state_dict()
+
+    def failing_decoder(self, tape, z):
+        raise ValueError("conv2d_forward: the result is not finite")
+    monkeypatch.setattr(Codebook, "_decoder", failing_decoder)
+    with pytest.raises(ValueError):
+        cb.forward(images(np.random.default_rng(0)), train=True)
+    assert same_state(cb.state_dict(), before)
