@@ -6,7 +6,10 @@ import pytest
 import torch
 
 import pyvf
+from pyvf.models.codebook import CodebookConfig
+from pyvf.verify import convert_torch
 from conftest import assert_bitwise_equal
+from test_codebook_trace import SMALL
 from pyvf.models.transformer import is_dense_kernel, parameter_shapes
 
 TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5, n_loss_skip=1)
@@ -145,19 +148,26 @@ def test_tree_flat_round_trip(rng, shape):
     assert np.array_equal(pyvf.tree_to_flat(pyvf.flat_to_tree(tokens, R, N, L)), tokens)
 
 
-def test_tree_flat_bad_shapes():
-    with pytest.raises(ValueError, match=r"x must have shape \(R, B, N, L, \.\.\.\)"):
-        pyvf.tree_to_flat(np.zeros((2, 3, 4)))
-    with pytest.raises(TypeError, match="x must be a numpy.ndarray"):
-        pyvf.tree_to_flat([[[[1.0]]]])
-    with pytest.raises(ValueError, match=r"x has T = 10 .* R\*N\*L = 1\*3\*4 = 12"):
-        pyvf.flat_to_tree(np.zeros((2, 10, 5)), 1, 3, 4)
-    with pytest.raises(ValueError, match=r"x must have shape \(B, T, \.\.\.\)"):
-        pyvf.flat_to_tree(np.zeros(12), 1, 3, 4)
-    with pytest.raises(ValueError, match="N must be >= 1"):
-        pyvf.flat_to_tree(np.zeros((2, 0)), 1, 0, 4)
-    with pytest.raises(TypeError, match="L must be an integer"):
-        pyvf.flat_to_tree(np.zeros((2, 12)), 1, 3, 4.0)
+Q_FLAT = {"blocks.0.attn.q": np.zeros((2, 2, 144, 16))}
+
+
+@pytest.mark.parametrize("call, error, name", [
+    (lambda: pyvf.tree_to_flat(np.zeros((2, 3, 4))), ValueError, "x"),
+    (lambda: pyvf.tree_to_flat([[[[1.0]]]]), TypeError, "x"),
+    (lambda: pyvf.flat_to_tree(np.zeros((2, 10, 5)), 1, 3, 4), ValueError, "x"),  # T = 10, R*N*L = 12
+    (lambda: pyvf.flat_to_tree(np.zeros(12), 1, 3, 4), ValueError, "x"),
+    (lambda: pyvf.flat_to_tree(np.zeros((2, 0)), 1, 0, 4), ValueError, "N"),
+    (lambda: pyvf.flat_to_tree(np.zeros((2, 12)), 1, 3, 4.0), TypeError, "L"),
+    # the per-head path used N, L unchecked: N=3.0 raised "'float' object cannot be interpreted as
+    # an integer", N=-3, L=-16 (R*N*L = 144 = T) numpy's "can only specify one unknown dimension"
+    (lambda: pyvf.trace_from_flat(Q_FLAT, N=3.0, L=16), TypeError, "N"),
+    (lambda: pyvf.trace_from_flat(Q_FLAT, N=-3, L=-16), ValueError, "N"),
+    (lambda: pyvf.trace_from_flat([Q_FLAT], N=3, L=16), TypeError, "trace"),
+])
+def test_tree_flat_refusals_name_the_argument(call, error, name):
+    with pytest.raises(error, match=rf"\b{name}\b"):
+        call()
+    assert pyvf.trace_from_flat(Q_FLAT, N=3, L=16)["blocks.0.attn.q"].shape == (3, 2, 2, 3, 16, 16)
 
 
 # ---------------------------------------------------------------------------------------
@@ -301,3 +311,21 @@ def test_trace_from_flat(rng):
     assert not np.shares_memory(got["pose"], rows)  # a copy: the caller's array is never aliased
     with pytest.raises(ValueError, match=r"'blocks.1.ln_1': x has T = 35"):
         pyvf.trace_from_flat({"blocks.1.ln_1": np.zeros((2, 35, 8))}, N, L)
+
+
+def test_convert_torch_refuses_a_key_given_twice():
+    """'model.x' and 'x' are one parameter: the later silently won (convert_tf raises for this)."""
+    cfg = CodebookConfig(**SMALL)
+    state = {k: torch.tensor(v) for k, v in pyvf.Codebook(cfg).state_dict().items()}
+    name = "encoder.conv_in.bias"
+    with pytest.raises(ValueError, match=r"'model.encoder.conv_in.bias' and 'encoder.conv_in.bias'"):
+        convert_torch.convert({"model." + name: state[name] + 1, **state}, cfg)
+
+
+
+def test_convert_torch_names_a_tensor_numpy_cannot_hold():
+    cfg = CodebookConfig(**SMALL)
+    state = {k: torch.tensor(v) for k, v in pyvf.Codebook(cfg).state_dict().items()}
+    state["decoder.conv_out.weight"] = state["decoder.conv_out.weight"].to(torch.bfloat16)
+    with pytest.raises(TypeError, match="'decoder.conv_out.weight'"):
+        convert_torch.convert(state, cfg)

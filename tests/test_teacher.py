@@ -177,25 +177,31 @@ def test_teacher_forcing_tree_layout_and_a_raising_layer(rng):
     assert tf.wrong == ["blocks.0.mlp"] and "RuntimeError: shapes do not match" in str(tf)
 
 
-def test_teacher_force_bad_arguments(rng):
+def _bad_params(params):
+    """Two problems: a weight of another's shape, and a name that is no parameter."""
+    return {**params, "h.0/attn/c_proj/weight": params["h.0/attn/c_attn/weight"], "nope": params["ln_f/gamma"]}
+
+
+@pytest.mark.parametrize("call, error, name", [
+    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, {"blocks.9.attn": layers["embed"]}), ValueError,
+     "blocks.9.attn"),  # not a layer
+    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, {"embed": 3}), TypeError, "embed"),
+    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, params=params), ValueError, "layout"),
+    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, params=_bad_params(params),
+                                                               layout="torch"), ValueError, "h.0/attn/c_proj/weight"),
+    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, params=_bad_params(params),
+                                                               layout="torch"), ValueError, "nope"),
+    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, token_layout="BTD"), ValueError,
+     "token_layout"),
+    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, upstream=dict(dlogits=dl.astype(np.float32))),
+     TypeError, "dlogits"),
+    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(port, x, layers), TypeError, "model"),
+])
+def test_teacher_force_refusals_name_the_argument(rng, call, error, name):
     model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
     layers, params = port_layers(port, tokens.shape[1], tokens.shape[2])
-    with pytest.raises(ValueError, match=r"unknown layer names \['blocks.9.attn'\]"):
-        pyvf.teacher_force(model, (tokens, poses), {"blocks.9.attn": layers["embed"]})
-    with pytest.raises(TypeError, match=r"not callable: \['embed'\]"):
-        pyvf.teacher_force(model, (tokens, poses), {"embed": 3})
-    with pytest.raises(ValueError, match="layout must be given with params"):
-        pyvf.teacher_force(model, (tokens, poses), layers, params=params)
-    bad = {**params, "h.0/attn/c_proj/weight": params["h.0/attn/c_attn/weight"], "nope": params["ln_f/gamma"]}
-    with pytest.raises(ValueError, match=r"2 problems: 'h.0/attn/c_proj/weight' has shape \(96, 32\), expected "
-                                         r"\(32, 32\).*'nope' is not a parameter"):
-        pyvf.teacher_force(model, (tokens, poses), layers, params=bad, layout="torch")
-    with pytest.raises(ValueError, match="token_layout"):
-        pyvf.teacher_force(model, (tokens, poses), layers, token_layout="BTD")
-    with pytest.raises(TypeError, match="dlogits is float32 but the model is float64"):
-        pyvf.teacher_force(model, (tokens, poses), layers, upstream=dict(dlogits=dl.astype(np.float32)))
-    with pytest.raises(TypeError, match="model must be a pyvf.Transformer or pyvf.Codebook"):
-        pyvf.teacher_force(port, (tokens, poses), layers)
+    with pytest.raises(error, match=rf"\b{re.escape(name)}\b"):
+        call(model, port, (tokens, poses), layers, params, dl)
 
 
 def test_teacher_forcing_restores_the_ports_grads(rng):
@@ -284,10 +290,61 @@ def test_codebook_layer_table():
 
 def test_codebook_upstream_is_drec_only(rng):
     cb, port, x, drec = codebook_setup(rng, None)
-    with pytest.raises(ValueError, match="drec only"):
+    with pytest.raises(ValueError, match=r"\bdrec\b"):
         pyvf.teacher_force(cb, x, pyvf.verify.teacher.torch_modules(port, cb), upstream=dict(drec=drec, dloss=1.0))
     before = cb.state_dict()
     port.train()
     pyvf.teacher_force(cb, x, pyvf.verify.teacher.torch_modules(port, cb), train=True)
     for k, v in cb.state_dict().items():  # the model's EMA buffers are left as they were
         np.testing.assert_array_equal(v, before[k], err_msg=k)
+
+
+def test_teacher_table_shows_a_nan_and_no_error_for_nothing_compared():
+    """A layer whose second call returns NaN showed the first call's 1e-16 in the table (Python's
+    max drops a NaN that is not first); a backward that compared nothing (embed without params:
+    its inputs are the model's) showed 0.0e+00 as if checked."""
+    rng = np.random.default_rng(0)
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
+    layers, _ = port_layers(port, tokens.shape[1], tokens.shape[2])
+    calls = []
+
+    def ln_f(x):  # the generation row right, the localization row NaN
+        calls.append(1)
+        y = port.ln_f(x)
+        return y if len(calls) % 2 else y * float("nan")
+
+    tf = pyvf.teacher_force(model, (tokens, poses), {"ln_f": ln_f, "embed": layers["embed"]},
+                            upstream=dict(dlogits=dl, dpose=dp))
+    assert tf.wrong == ["ln_f"]
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in tf.table().splitlines()[2:]}
+    assert rows["ln_f"][1] == "nan", tf.table()
+    assert rows["embed"][2] == "-", tf.table()  # nothing compared: no error to show
+
+
+
+def test_teacher_report_lookup_names_the_missing_layer():
+    rng = np.random.default_rng(0)
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
+    tf = pyvf.teacher_force(model, (tokens, poses), {"ln_f": port.ln_f})
+    assert tf["ln_f"].ok
+    with pytest.raises(KeyError, match="'embed' was not checked"):
+        tf["embed"]
+    with pytest.raises(KeyError, match="'nope' is not a layer"):
+        tf["nope"]
+
+
+
+def test_teacher_force_leaves_the_users_last_forward_for_backward(rng):
+    """model.backward() differentiates the model's last forward (its docstring); teacher_force runs
+    the model's own forward on its inputs, and left that run in place of the user's: a backward
+    after it returned the gradients of teacher forcing's batch, silently. The oracle: the same
+    forward and backward without teacher_force between them, bitwise."""
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
+    layers, _ = port_layers(port, tokens.shape[1], tokens.shape[2])
+    other = (tokens[::-1].copy(), poses[::-1].copy())  # the user's own batch: another one
+    model.forward(*other)
+    want = model.backward(dlogits=dl, dpose=dp)
+    model.forward(*other)
+    pyvf.teacher_force(model, (tokens, poses), layers, upstream={"dlogits": dl, "dpose": dp})
+    got = model.backward(dlogits=dl, dpose=dp)
+    assert want.keys() == got.keys() and all(np.array_equal(want[k], got[k]) for k in want)
