@@ -541,6 +541,13 @@ def test_check_engine_refusals(one_gpu, engine, device, precision, name):
         check_engine(engine, device, precision)
 
 
+def test_fp32_of_a_float64_configuration_trains_in_float64(tmp_path):
+    """What the bf16 refusal below leaves: a float64 model under fp32 trains in float64, as asked."""
+    m = train_transformer(*_float64_data(), dataclasses.replace(CFG, dtype="float64"), tmp_path / "t64", steps=3,
+                          batch_size=4, progress=False, engine="torch")
+    assert all(p.dtype == np.float64 for p in m.params.values())
+
+
 def _folder(path):
     """Every file under path with its bytes."""
     return {os.path.relpath(os.path.join(d, f), path): open(os.path.join(d, f), "rb").read()
