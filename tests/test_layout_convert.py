@@ -43,23 +43,13 @@ def test_dense_kernels_are_the_linear_weights_only():
     assert len(kernels) == 2 + 4 * TINY["n_layer"] + 2
 
 
-def test_torch_layout_loads_to_the_same_params(rng):
+def test_torch_layout_takes_the_published_bias_too(rng):
+    """Every layout round-trips bitwise (tests/test_model_files.py); the published (1, out) bias
+    is accepted in torch layout too: it is unambiguous."""
     model = random_model(rng)
-    sd = torch_layout(model.state_dict())
-    assert sd["h.0/attn/c_attn/weight"].shape == (96, 32) and sd["h.0/attn/c_attn/bias"].shape == (96,)
-    loaded = pyvf.Transformer(model.config, seed=1)
-    loaded.load_official(sd, layout="torch")
-    assert_same_params(loaded, model)
-    # state_dict(layout="torch") is that same dict, and round-trips
     back = model.state_dict(layout="torch")
-    assert list(back) == list(sd)
-    for name in sd:
-        assert_bitwise_equal(name, back[name], sd[name])
-        assert back[name].flags.c_contiguous
+    assert back["h.0/attn/c_attn/weight"].shape == (96, 32) and back["h.0/attn/c_attn/bias"].shape == (96,)
     again = pyvf.Transformer(model.config, seed=2)
-    again.load_official(back, layout="torch")
-    assert_same_params(again, model)
-    # the published (1, out) bias is accepted in torch layout too: unambiguous
     again.load_official({**back, "h.1/mlp/c_fc/bias": model.params["h.1/mlp/c_fc/bias"]}, layout="torch")
     assert_same_params(again, model)
 
@@ -119,15 +109,6 @@ def test_tensors_that_require_grad_load(rng):
     # other array-likes are not cast
     with pytest.raises(TypeError, match="'ln_f/gamma' is a list, not a numpy array"):
         loaded.load_official({**model.state_dict(), "ln_f/gamma": [1.0] * 32})
-
-
-def test_bad_layout_raises():
-    model = pyvf.Transformer(pyvf.TransformerConfig(**TINY))
-    for bad in ("TF", "jax", None, 0):
-        with pytest.raises(ValueError, match="layout"):
-            model.load_official(model.state_dict(), layout=bad)
-        with pytest.raises(ValueError, match="layout"):
-            model.state_dict(layout=bad)
 
 
 @pytest.mark.parametrize("shape", [(1, 2, 3, 4), (3, 2, 5, 16, 8), (2, 1, 3, 4, 2, 7)])
@@ -256,11 +237,6 @@ def test_codebook_load_names_every_problem_and_changes_nothing(rng):
         assert_bitwise_equal(k, np.asarray(target.state_dict()[k]), np.asarray(v))
     with pytest.raises(ValueError, match=r"layout='tf': conv kernels \(kh, kw, in, out\)"):
         target.load_official(sd, layout="tf")  # torch kernels said to be tf: the shapes tell
-    for bad_layout in ("TF", "flax", None):
-        with pytest.raises(ValueError, match="layout must be one of"):
-            target.load_official(sd, layout=bad_layout)
-        with pytest.raises(ValueError, match="layout must be one of"):
-            target.state_dict(layout=bad_layout)
     with pytest.raises(TypeError, match="'encoder.conv_in.bias' has dtype int64"):
         target.load_official({**sd, "encoder.conv_in.bias": np.zeros(32, dtype=np.int64)})
 
