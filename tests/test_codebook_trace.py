@@ -1,8 +1,8 @@
 """Codebook traces (issue 13, item 1): forward(..., trace=True) names every activation after the
 published torch modules, in execution order; backward(drec=) returns every traced activation's
 gradient by the same names. Checked bitwise against the untraced model, and against the torch
-oracle (pyvf/verify/torch_codebook.py, instrumented here by wrapping its functions) in float64;
-pyvf.compare names the first wrong layer of a torch port with a planted bug."""
+oracle (pyvf/verify/torch_codebook.py, instrumented here by wrapping its functions) in float64.
+(pyvf.compare naming the first wrong layer of a port with a planted bug: tests/test_teacher.py.)"""
 
 import numpy as np
 import pytest
@@ -119,16 +119,16 @@ def test_trace_argument_is_checked(rng):
     cfg = CodebookConfig(**SMALL, dtype="float64")
     cb = random_codebook(cfg, rng)
     x = images_for(cfg, rng)
-    with pytest.raises(TypeError, match="trace"):
+    with pytest.raises(TypeError, match=r"\btrace\b"):
         cb.forward(x, trace=1)
     cb.forward(x)
-    with pytest.raises(TypeError, match="drec"):
+    with pytest.raises(TypeError, match=r"\bdrec\b"):
         cb.backward(drec=np.zeros((2, 3, 16, 16), dtype=np.float32))
-    with pytest.raises(ValueError, match="drec"):
+    with pytest.raises(ValueError, match=r"\bdrec\b"):
         cb.backward(drec=np.zeros((2, 3, 16, 15)))
-    with pytest.raises(ValueError, match="drec"):
+    with pytest.raises(ValueError, match=r"\bdrec\b"):
         cb.backward(drec=np.full((2, 3, 16, 16), np.nan))
-    with pytest.raises(TypeError, match="dloss"):
+    with pytest.raises(TypeError, match=r"\bdloss\b"):
         cb.backward(dloss="1")
     assert set(cb.backward()) == set(cb.params)  # untraced forward: parameters only
 
@@ -224,22 +224,3 @@ def test_activations_and_their_gradients_match_torch(dloss, rng, monkeypatch):
         assert err <= 1e-10 * max(np.abs(grad[n]).max(), 1e-3 * scale), (n, err)
 
 
-def test_compare_names_the_first_wrong_layer_of_a_buggy_port(rng, monkeypatch):
-    """A port's Downsample padding (1, 1, 1, 1) instead of (0, 1, 0, 1): same shapes, wrong
-    numbers from the first downsample on; compare names exactly that layer, not a later one."""
-    cfg = CodebookConfig(**SMALL, dtype="float64")
-    cb = random_codebook(cfg, rng)
-    x = images_for(cfg, rng)
-    drec = rng.normal(size=x.shape)
-    out = cb.forward(x, trace=True)
-    cb.backward(drec=drec)
-    P, buffers = torch_state(cb)
-    monkeypatch.setattr(tc, "downsample", lambda x, P, name: tc.conv(torch.nn.functional.pad(x, (1, 1, 1, 1)), P, name,
-                                                                    stride=2))
-    act, _ = torch_traced(monkeypatch, P, buffers, x, cfg, drec)
-    rep = pyvf.compare(act, out.trace)
-    assert rep.first == "encoder.down.0.downsample.conv", str(rep)
-    rows = {r.name: r for r in rep.rows}
-    assert all(rows[n].ok for n in list(act)[:list(act).index(rep.first)])
-    assert not rows["decoder.conv_out"].ok  # the error propagates: only "first" localises it
-    assert "encoder.down.0.downsample.conv" in str(rep)

@@ -17,10 +17,13 @@ import pytest
 from PIL import Image
 
 import pyvf
+import pyvf.evaluate.run
 import pyvf.models
 from conftest import assert_close
 from pyvf.scenes import generate_scenes
+from pyvf.evaluate.health import codebook_health, colour_r2, effective_rank, transformer_health
 from pyvf.evaluate.metrics import encode_images
+from pyvf.evaluate.pictures import save_poses, save_views
 from pyvf.evaluate import (
     META_KEYS,
     METHODS,
@@ -121,8 +124,8 @@ def test_image_conversions():
         np.testing.assert_array_equal(to_uint8(x), images)  # every level comes back exactly
     x = np.array([-3.0, -1.0, -0.999, 0.0, 0.999, 1.0, 1.5], np.float32).reshape(1, 1, 1, 7)
     np.testing.assert_array_equal(to_uint8(x)[0, 0, :, 0], [0, 0, 0, 128, 255, 255, 255])  # 127.5 rounds to even
-    with pytest.raises(TypeError):
-        image_metrics(images.astype(np.float32), images)
+    x = np.array([-np.inf, 0.0, np.inf], np.float32).reshape(1, 1, 1, 3)  # infinities clip
+    np.testing.assert_array_equal(to_uint8(x)[0, 0, :, 0], [0, 128, 255])
 
 
 def test_pose_metrics_closed_forms():
@@ -192,25 +195,6 @@ def test_psnr_perfect_image_strictly_above_every_imperfect_one():
         off = target.astype(np.int64)
         off[1, 2, 0] += level
         assert image_metrics(off.astype(np.uint8)[None], target[None])["psnr"][0] < perfect
-
-
-def test_baselines_reject_a_query_batch_other_than_the_contexts():
-    """B = 2 scenes of context against queries of B = 1 (or images of another size): a ValueError
-    naming the query argument and context_images, not a broadcast of one scene's queries against
-    both contexts; matching shapes give (B, M, 7) and (B, M, Hi, Wi, 3)."""
-    ctx_img = np.zeros((2, 3, 4, 4, 3), np.uint8)  # (B=2, C=3, 4, 4, 3)
-    ctx_pose = np.tile(np.array([0, 0, 0, 1, 0, 0, 0.0]), (2, 3, 1))  # (2, 3, 7)
-    q_img, q_pose = np.zeros((2, 2, 4, 4, 3), np.uint8), np.zeros((2, 2, 7))  # (B=2, M=2, ...)
-    assert closest_image_pose(ctx_img, ctx_pose, q_img).shape == (2, 2, 7)
-    assert nearest_view(ctx_img, ctx_pose, q_pose).shape == (2, 2, 4, 4, 3)
-    for bad in (q_img[:1], np.zeros((2, 2, 5, 4, 3), np.uint8), np.zeros((2, 2, 2, 4, 4, 3), np.uint8)):
-        with pytest.raises(ValueError, match=r"^query_images must have shape \(B, M, 4, 4, 3\) with B = 2.*context_images"):
-            closest_image_pose(ctx_img, ctx_pose, bad)
-    for bad in (q_pose[:1], np.zeros((3, 2, 7)), np.zeros((2, 2, 3))):
-        with pytest.raises(ValueError, match=r"^query_poses must have shape \(B, M, 7\) with B = 2.*context_images"):
-            nearest_view(ctx_img, ctx_pose, bad)
-    with pytest.raises(TypeError, match="^query_poses must be a numpy.ndarray"):
-        nearest_view(ctx_img, ctx_pose, q_pose.tolist())
 
 
 # ---------------------------------------------------------------------------------------
@@ -346,14 +330,6 @@ def test_evaluate_smoke(models, tmp_path):
         with Image.open(out / name) as im:
             im.load()
             assert im.format == "PNG" and im.size[0] > 100 and im.size[1] > 100, (name, im.size)
-
-
-def test_evaluate_rejects_bad_arguments(models):
-    cb, tf, _, _ = models
-    with pytest.raises(ValueError, match="needs 16 views"):
-        evaluate(cb, tf, scenes=1, context=(11,), progress=False)
-    with pytest.raises(ValueError, match="context sizes"):
-        evaluate(cb, tf, scenes=1, context=(0, 1), progress=False)
 
 
 # ---------------------------------------------------------------------------------------
@@ -594,19 +570,6 @@ def test_render_images_argmax_and_a_certain_expected_agree(models):
     np.testing.assert_array_equal(pyvf.evaluate.render_images(cb, logits, "expected"), by_argmax)
 
 
-def test_render_images_and_evaluate_reject_a_bad_decode(models):
-    cb, tf = models[0], models[1]
-    k, K = cb.config.token_size, cb.config.n_embed
-    with pytest.raises(ValueError, match="decode must be one of"):
-        pyvf.evaluate.render_images(cb, np.zeros((1, k * k, K), np.float32), "mode")
-    with pytest.raises(ValueError, match=r"logits must have shape \(\.\.\., 64, 32\)"):
-        pyvf.evaluate.render_images(cb, np.zeros((1, k * k, K + 1), np.float32))
-    with pytest.raises(TypeError, match="logits must be a float"):
-        pyvf.evaluate.render_images(cb, np.zeros((1, k * k, K), np.int64))
-    with pytest.raises(ValueError, match="decode must be one of"):
-        evaluate(cb, tf, scenes=1, context=(1,), decode="sample", progress=False)
-
-
 def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, tmp_path):
     """The same scenes through both decodes: the meta and the markdown say which; the poses and
     the baselines do not depend on it; the renderings do (random logits are far from one-hot)."""
@@ -625,41 +588,6 @@ def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, tm
     assert ra["pyvf"]["mae"] != rb["pyvf"]["mae"]
 
 
-def test_render_images_and_encode_images_reject_a_bad_batch(models):
-    """batch (render_images) and batch_size (encode_images) below 1 raise ValueError naming the
-    argument (-1 used to return uninitialised memory, 0 a bare range() error); a non-integer
-    raises TypeError; 1 works."""
-    cb = models[0]
-    k, K = cb.config.token_size, cb.config.n_embed
-    logits = np.zeros((2, k * k, K), np.float32)
-    images = np.zeros((2, 16, 16, 3), np.uint8)
-    for bad in (-1, 0):
-        with pytest.raises(ValueError, match=f"^batch must be >= 1, got {bad}"):
-            pyvf.evaluate.render_images(cb, logits, batch=bad)
-        with pytest.raises(ValueError, match=f"^batch_size must be >= 1, got {bad}"):
-            encode_images(cb, images, batch_size=bad)
-    for bad in (1.5, "2", True):
-        with pytest.raises(TypeError, match="^batch must be an integer"):
-            pyvf.evaluate.render_images(cb, logits, batch=bad)
-        with pytest.raises(TypeError, match="^batch_size must be an integer"):
-            encode_images(cb, images, batch_size=bad)
-    assert pyvf.evaluate.render_images(cb, logits, batch=1).shape == (2, 16, 16, 3)
-    np.testing.assert_array_equal(encode_images(cb, images, batch_size=1), cb.encode(to_model_images(images, cb.dtype)))
-
-
-@pytest.mark.parametrize("decode", ["argmax", "expected"])
-def test_render_images_rejects_non_finite_logits(models, decode):
-    """A NaN or inf logit raises ValueError naming logits in both decodes (argmax used to pick the
-    NaN's index and return an image)."""
-    cb = models[0]
-    k, K = cb.config.token_size, cb.config.n_embed
-    for bad in (np.nan, np.inf, -np.inf):
-        logits = np.zeros((2, 3, k * k, K), np.float32)
-        logits[1, 2, 5, 7] = bad
-        with pytest.raises(ValueError, match="^logits contains NaN or inf"):
-            pyvf.evaluate.render_images(cb, logits, decode)
-
-
 @pytest.mark.parametrize("decode", ["argmax", "expected"])
 def test_render_images_empty_leading_dimensions(models, decode):
     """No views give no images: logits (0, L, K) -> uint8 (0, S, S, 3), (2, 0, L, K) -> (2, 0, S, S, 3)."""
@@ -668,3 +596,165 @@ def test_render_images_empty_leading_dimensions(models, decode):
     for lead in ((0,), (2, 0), (0, 3)):
         out = pyvf.evaluate.render_images(cb, np.zeros(lead + (k * k, K), np.float32), decode)
         assert out.shape == lead + (S, S, 3) and out.dtype == np.uint8
+
+
+def pose(xyz, axis, degrees):
+    h = np.radians(degrees) / 2
+    return np.concatenate([xyz, [np.cos(h)], np.sin(h) * np.asarray(axis, float)])
+
+
+def test_image_metrics_one_pixel_odd_sizes_and_a_single_image():
+    """1x1x1 and 3x5x3 images, batch of one and no batch: the closed forms of math.md §6."""
+    a, b = np.array([[[10]]], np.uint8), np.array([[[13]]], np.uint8)
+    m = image_metrics(a, b)
+    assert m["mae"] == 3 and m["rmse"] == 3 and m["psnr"] == pytest.approx(10 * np.log10(255.0 ** 2 / 9), rel=1e-15)
+    assert image_metrics(a, a)["psnr"] == pytest.approx(10 * np.log10(4 * 255.0 ** 2), rel=1e-15)  # the cap
+    rng = np.random.default_rng(1)
+    p, t = rng.integers(0, 256, (2, 1, 3, 5, 3)).astype(np.uint8)  # one image of 3x5x3
+    d = p.astype(float) - t.astype(float)
+    m = image_metrics(p, t)
+    assert m["mae"].shape == (1,)
+    np.testing.assert_allclose(m["rmse"], [np.sqrt((d ** 2).mean())], rtol=1e-14)
+    np.testing.assert_allclose(m["psnr"], [10 * np.log10(1 / ((d / 255) ** 2).mean())], rtol=1e-12)
+
+
+def test_pose_metrics_hard_cases_closed_forms():
+    """Identical poses, q against -q, 180 degrees, a 1e-9 rad rotation, zero translation."""
+    a = pose([1, 2, 3], [0, 0, 1], 0)
+    pred = np.stack([a, a * np.r_[1, 1, 1, -1, -1, -1, -1], pose([1, 2, 3], [1, 0, 0], 180),
+                     pose([1, 2, 3], [0, 1, 0], np.degrees(1e-9)), pose([4, 6, 3], [0, 0, 1], 0)])
+    m = pose_metrics(pred, np.broadcast_to(a, pred.shape).copy())
+    np.testing.assert_array_equal(m["position_error"][:4], 0)
+    assert m["position_error"][4] == pytest.approx(5.0, rel=1e-15)
+    np.testing.assert_array_equal(m["orientation_error_deg"][[0, 1, 4]], 0)
+    assert m["orientation_error_deg"][2] == pytest.approx(180.0, rel=1e-15)
+    assert m["orientation_error_deg"][3] == pytest.approx(np.degrees(1e-9), rel=1e-12)
+
+
+def _atomic_png(save, picture, tmp_path, monkeypatch):
+    path = tmp_path / "sheet.png"
+    path.write_bytes(b"the previous picture")
+
+    def broken_save(self, fp, format=None, **kwargs):
+        if isinstance(fp, (str, os.PathLike)):
+            fp = open(fp, "wb")
+        fp.write(b"\x89PNG half")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(Image.Image, "save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        save(str(path), picture)
+    assert path.read_bytes() == b"the previous picture"
+    monkeypatch.undo()
+    save(str(path), picture)
+    with Image.open(path) as im:
+        assert im.format == "PNG"
+
+
+def test_pictures_are_written_atomically(tmp_path, monkeypatch):
+    """An error while encoding used to leave a half-written views.png / poses.png over the old one."""
+    rng = np.random.default_rng(0)
+    q = pose([0, 0, 10], [0, 1, 0], 0)
+    picture = {"context": rng.integers(0, 256, (1, 2, 4, 4, 3)).astype(np.uint8),
+               "truth": np.zeros((1, 4, 4, 3), np.uint8), "codebook": np.zeros((1, 4, 4, 3), np.uint8),
+               "pyvf": np.zeros((1, 4, 4, 3), np.uint8), "context_poses": np.tile(q, (1, 2, 1)),
+               "query_poses": np.tile(q, (1, 1, 1)), "estimated_poses": np.tile(q, (1, 1, 1)), "C": 2}
+    for save in (save_views, save_poses):
+        _atomic_png(save, picture, tmp_path, monkeypatch)
+
+
+
+# ---------------------------------------------------------------------------------------
+# refusals: one table, the exception type and the argument's name
+
+
+def _no_work(monkeypatch):
+    """evaluate's arguments are refused before any scene is generated (timing_scenes=0 crashed
+    after every scene was scored)."""
+    def generate(*args, **kwargs):
+        raise AssertionError("the work started")
+    monkeypatch.setattr(pyvf.evaluate.run, "generate_scenes", generate)
+
+
+P0 = np.tile(np.array([0, 0, 0, 1, 0, 0, 0.0]), (2, 3, 1))  # (B=2, C=3, 7)
+I0 = np.zeros((2, 3, 4, 4, 3), np.uint8)  # (B=2, C=3, 4, 4, 3)
+NAN = P0.copy()
+NAN[0, 1, 0] = np.nan
+NAN_X = np.zeros((1, 3, 2, 2))
+NAN_X[0, 1, 1, 0] = np.nan  # a NaN in a decoder's output has no picture: it used to become black
+
+
+def _logits(cb, bad=None, extra=0, dtype=np.float32):
+    """Logits (2, 3, L, K + extra); one entry set to `bad`."""
+    x = np.zeros((2, 3, cb.config.token_size ** 2, cb.config.n_embed + extra), dtype)
+    if bad is not None:
+        x[1, 2, 5, 7] = bad
+    return x
+
+
+@pytest.mark.parametrize("call, error, name", [
+    (lambda cb, tf: to_uint8(NAN_X), ValueError, "x"),
+    (lambda cb, tf: to_model_images(np.zeros((1, 2, 3, 3, 3), np.uint8), np.float32), ValueError, "images"),
+    (lambda cb, tf: image_metrics(I0.astype(np.float32), I0), TypeError, "pred"),
+    # pred (2, 1, 7) against target (1, 3, 7) gave a (2, 3) grid of errors, whose median is no query's
+    (lambda cb, tf: pose_metrics(P0[:, :1], P0[:1]), ValueError, "pred"),
+    (lambda cb, tf: pose_metrics(P0[..., :3], P0[..., :3]), ValueError, "pred"),
+    (lambda cb, tf: pose_metrics(P0, P0.astype(np.int64)), TypeError, "target"),
+    (lambda cb, tf: pose_metrics(NAN, P0), ValueError, "pred"),
+    # closest_image_pose returned integer or NaN context poses as its estimate
+    (lambda cb, tf: closest_image_pose(I0, P0.astype(np.int64), I0[:, :1]), TypeError, "context_poses"),
+    (lambda cb, tf: closest_image_pose(I0, NAN, I0[:, :1]), ValueError, "context_poses"),
+    # another query batch or image size: not a broadcast of one scene's queries against both contexts
+    (lambda cb, tf: closest_image_pose(I0, P0, I0[:1]), ValueError, "query_images"),
+    (lambda cb, tf: closest_image_pose(I0, P0, np.zeros((2, 2, 5, 4, 3), np.uint8)), ValueError, "query_images"),
+    (lambda cb, tf: nearest_view(I0, P0.astype(np.int64), P0[:, :1]), TypeError, "context_poses"),
+    (lambda cb, tf: nearest_view(I0, NAN, P0[:, :1]), ValueError, "context_poses"),
+    (lambda cb, tf: nearest_view(I0, P0, NAN[:, 1:]), ValueError, "query_poses"),
+    (lambda cb, tf: nearest_view(I0, P0, P0[:, :1].astype(np.float32)), TypeError, "query_poses"),
+    (lambda cb, tf: nearest_view(I0, P0, P0[:1]), ValueError, "query_poses"),
+    (lambda cb, tf: nearest_view(I0, P0, P0[..., :3]), ValueError, "query_poses"),
+    (lambda cb, tf: nearest_view(I0, P0, P0.tolist()), TypeError, "query_poses"),
+    (lambda cb, tf: mean_pose(NAN), ValueError, "context_poses"),
+    (lambda cb, tf: mean_pose(P0[0]), ValueError, "context_poses"),
+    (lambda cb, tf: pyvf.evaluate.render_images(cb, _logits(cb), "mode"), ValueError, "decode"),
+    (lambda cb, tf: pyvf.evaluate.render_images(cb, _logits(cb, extra=1)), ValueError, "logits"),
+    (lambda cb, tf: pyvf.evaluate.render_images(cb, _logits(cb, dtype=np.int64)), TypeError, "logits"),
+    # argmax picked a NaN's index and returned an image
+    *[(lambda cb, tf, bad=bad, d=d: pyvf.evaluate.render_images(cb, _logits(cb, bad), d), ValueError, "logits")
+      for bad in (np.nan, np.inf, -np.inf) for d in ("argmax", "expected")],
+    # batch -1 returned uninitialised memory, 0 a bare range() error
+    *[(lambda cb, tf, b=b: pyvf.evaluate.render_images(cb, _logits(cb), batch=b), ValueError, "batch") for b in (-1, 0)],
+    *[(lambda cb, tf, b=b: pyvf.evaluate.render_images(cb, _logits(cb), batch=b), TypeError, "batch")
+      for b in (1.5, "2", True)],
+    (lambda cb, tf: encode_images(cb, I0[0], batch_size=0), ValueError, "batch_size"),
+    (lambda cb, tf: encode_images(cb, I0[0], batch_size=True), TypeError, "batch_size"),
+    (lambda cb, tf: evaluate(cb, tf, scenes=1, context=(11,), progress=False), ValueError, "context"),  # 16 views
+    # (1, 2.7) was evaluated as (1, 2), (True,) as (1,)
+    *[(lambda cb, tf, c=c: evaluate(cb, tf, scenes=1, context=c, progress=False), ValueError, "context")
+      for c in ((0, 1), (1, 2.7), (True,), "13")],
+    (lambda cb, tf: evaluate(cb, tf, scenes=1, context=1, progress=False, timing_scenes=0), ValueError,
+     "timing_scenes"),
+    (lambda cb, tf: evaluate(cb, tf, scenes=1, context=1, progress=False, repeat=0), ValueError, "repeat"),
+    (lambda cb, tf: evaluate(cb, tf, scenes=1, context=(1,), decode="sample", progress=False), ValueError, "decode"),
+    # health: a 0/1 integer mask indexed the images by position; 8 views with context 5 scored the
+    # queries (views 3..7) on context views 3 and 4 they were shown
+    (lambda cb, tf: effective_rank(np.array([[np.nan, 1.0], [2.0, 3.0]])), ValueError, "z"),
+    (lambda cb, tf: colour_r2(I0[0], I0[0], np.ones((3, 4, 4), np.uint8)), TypeError, "mask"),
+    (lambda cb, tf: codebook_health(cb, np.zeros((2, 16, 16, 3), np.uint8), batch=0), ValueError, "batch"),
+    *[(lambda cb, tf, c=c: transformer_health(cb, tf, np.zeros((1, 8, 16, 16, 3), np.uint8), P0[:1, :1].repeat(8, 1),
+                                             np.zeros((1, 8, 64), np.int64), c), ValueError, "context") for c in ((5,), ())],
+])
+def test_refusals_name_the_argument(models, monkeypatch, call, error, name):
+    _no_work(monkeypatch)
+    with pytest.raises(error, match=rf"\b{name}\b"):
+        call(models[0], models[1])
+
+
+def test_baselines_and_renderers_take_what_the_refusals_do_not(models):
+    """The shapes just inside the refusals: batches of 1, a (B, M) query batch matching the contexts."""
+    cb = models[0]
+    assert closest_image_pose(I0, P0, I0[:, :2]).shape == (2, 2, 7)
+    assert nearest_view(I0, P0, P0[:, :2]).shape == (2, 2, 4, 4, 3)
+    assert pyvf.evaluate.render_images(cb, _logits(cb)[0], batch=1).shape == (3, 16, 16, 3)
+    images = np.zeros((2, 16, 16, 3), np.uint8)
+    np.testing.assert_array_equal(encode_images(cb, images, batch_size=1), cb.encode(to_model_images(images, cb.dtype)))

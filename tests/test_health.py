@@ -29,6 +29,10 @@ def test_effective_rank_known_values(rng):
     p = np.array([0.75, 0.25])
     assert effective_rank(z) == pytest.approx(np.exp(-(p * np.log(p)).sum()), rel=1e-12)
     assert effective_rank(np.ones((5, 3))) == 0.0  # no variance at all
+    # a constant latent whose mean is not exact (three 0.1 do not average to 0.1): centred rows of
+    # 1e-17 gave rank 1.0, not 0
+    for z in (np.full((3, 4), 0.1), np.full((7, 5), 1 / 3), np.full((4, 2), 0.1, np.float32)):
+        assert effective_rank(z) == 0.0
     with pytest.raises(ValueError, match="z must be"):
         effective_rank(np.ones((1, 3)))
 

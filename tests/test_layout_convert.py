@@ -6,7 +6,10 @@ import pytest
 import torch
 
 import pyvf
+from pyvf.models.codebook import CodebookConfig
+from pyvf.verify import convert_torch
 from conftest import assert_bitwise_equal
+from test_codebook_trace import SMALL
 from pyvf.models.transformer import is_dense_kernel, parameter_shapes
 
 TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5, n_loss_skip=1)
@@ -40,23 +43,13 @@ def test_dense_kernels_are_the_linear_weights_only():
     assert len(kernels) == 2 + 4 * TINY["n_layer"] + 2
 
 
-def test_torch_layout_loads_to_the_same_params(rng):
+def test_torch_layout_takes_the_published_bias_too(rng):
+    """Every layout round-trips bitwise (tests/test_model_files.py); the published (1, out) bias
+    is accepted in torch layout too: it is unambiguous."""
     model = random_model(rng)
-    sd = torch_layout(model.state_dict())
-    assert sd["h.0/attn/c_attn/weight"].shape == (96, 32) and sd["h.0/attn/c_attn/bias"].shape == (96,)
-    loaded = pyvf.Transformer(model.config, seed=1)
-    loaded.load_official(sd, layout="torch")
-    assert_same_params(loaded, model)
-    # state_dict(layout="torch") is that same dict, and round-trips
     back = model.state_dict(layout="torch")
-    assert list(back) == list(sd)
-    for name in sd:
-        assert_bitwise_equal(name, back[name], sd[name])
-        assert back[name].flags.c_contiguous
+    assert back["h.0/attn/c_attn/weight"].shape == (96, 32) and back["h.0/attn/c_attn/bias"].shape == (96,)
     again = pyvf.Transformer(model.config, seed=2)
-    again.load_official(back, layout="torch")
-    assert_same_params(again, model)
-    # the published (1, out) bias is accepted in torch layout too: unambiguous
     again.load_official({**back, "h.1/mlp/c_fc/bias": model.params["h.1/mlp/c_fc/bias"]}, layout="torch")
     assert_same_params(again, model)
 
@@ -118,15 +111,6 @@ def test_tensors_that_require_grad_load(rng):
         loaded.load_official({**model.state_dict(), "ln_f/gamma": [1.0] * 32})
 
 
-def test_bad_layout_raises():
-    model = pyvf.Transformer(pyvf.TransformerConfig(**TINY))
-    for bad in ("TF", "jax", None, 0):
-        with pytest.raises(ValueError, match="layout"):
-            model.load_official(model.state_dict(), layout=bad)
-        with pytest.raises(ValueError, match="layout"):
-            model.state_dict(layout=bad)
-
-
 @pytest.mark.parametrize("shape", [(1, 2, 3, 4), (3, 2, 5, 16, 8), (2, 1, 3, 4, 2, 7)])
 def test_tree_flat_round_trip(rng, shape):
     x = rng.normal(size=shape)
@@ -145,19 +129,26 @@ def test_tree_flat_round_trip(rng, shape):
     assert np.array_equal(pyvf.tree_to_flat(pyvf.flat_to_tree(tokens, R, N, L)), tokens)
 
 
-def test_tree_flat_bad_shapes():
-    with pytest.raises(ValueError, match=r"x must have shape \(R, B, N, L, \.\.\.\)"):
-        pyvf.tree_to_flat(np.zeros((2, 3, 4)))
-    with pytest.raises(TypeError, match="x must be a numpy.ndarray"):
-        pyvf.tree_to_flat([[[[1.0]]]])
-    with pytest.raises(ValueError, match=r"x has T = 10 .* R\*N\*L = 1\*3\*4 = 12"):
-        pyvf.flat_to_tree(np.zeros((2, 10, 5)), 1, 3, 4)
-    with pytest.raises(ValueError, match=r"x must have shape \(B, T, \.\.\.\)"):
-        pyvf.flat_to_tree(np.zeros(12), 1, 3, 4)
-    with pytest.raises(ValueError, match="N must be >= 1"):
-        pyvf.flat_to_tree(np.zeros((2, 0)), 1, 0, 4)
-    with pytest.raises(TypeError, match="L must be an integer"):
-        pyvf.flat_to_tree(np.zeros((2, 12)), 1, 3, 4.0)
+Q_FLAT = {"blocks.0.attn.q": np.zeros((2, 2, 144, 16))}
+
+
+@pytest.mark.parametrize("call, error, name", [
+    (lambda: pyvf.tree_to_flat(np.zeros((2, 3, 4))), ValueError, "x"),
+    (lambda: pyvf.tree_to_flat([[[[1.0]]]]), TypeError, "x"),
+    (lambda: pyvf.flat_to_tree(np.zeros((2, 10, 5)), 1, 3, 4), ValueError, "x"),  # T = 10, R*N*L = 12
+    (lambda: pyvf.flat_to_tree(np.zeros(12), 1, 3, 4), ValueError, "x"),
+    (lambda: pyvf.flat_to_tree(np.zeros((2, 0)), 1, 0, 4), ValueError, "N"),
+    (lambda: pyvf.flat_to_tree(np.zeros((2, 12)), 1, 3, 4.0), TypeError, "L"),
+    # the per-head path used N, L unchecked: N=3.0 raised "'float' object cannot be interpreted as
+    # an integer", N=-3, L=-16 (R*N*L = 144 = T) numpy's "can only specify one unknown dimension"
+    (lambda: pyvf.trace_from_flat(Q_FLAT, N=3.0, L=16), TypeError, "N"),
+    (lambda: pyvf.trace_from_flat(Q_FLAT, N=-3, L=-16), ValueError, "N"),
+    (lambda: pyvf.trace_from_flat([Q_FLAT], N=3, L=16), TypeError, "trace"),
+])
+def test_tree_flat_refusals_name_the_argument(call, error, name):
+    with pytest.raises(error, match=rf"\b{name}\b"):
+        call()
+    assert pyvf.trace_from_flat(Q_FLAT, N=3, L=16)["blocks.0.attn.q"].shape == (3, 2, 2, 3, 16, 16)
 
 
 # ---------------------------------------------------------------------------------------
@@ -246,11 +237,6 @@ def test_codebook_load_names_every_problem_and_changes_nothing(rng):
         assert_bitwise_equal(k, np.asarray(target.state_dict()[k]), np.asarray(v))
     with pytest.raises(ValueError, match=r"layout='tf': conv kernels \(kh, kw, in, out\)"):
         target.load_official(sd, layout="tf")  # torch kernels said to be tf: the shapes tell
-    for bad_layout in ("TF", "flax", None):
-        with pytest.raises(ValueError, match="layout must be one of"):
-            target.load_official(sd, layout=bad_layout)
-        with pytest.raises(ValueError, match="layout must be one of"):
-            target.state_dict(layout=bad_layout)
     with pytest.raises(TypeError, match="'encoder.conv_in.bias' has dtype int64"):
         target.load_official({**sd, "encoder.conv_in.bias": np.zeros(32, dtype=np.int64)})
 
@@ -301,3 +287,21 @@ def test_trace_from_flat(rng):
     assert not np.shares_memory(got["pose"], rows)  # a copy: the caller's array is never aliased
     with pytest.raises(ValueError, match=r"'blocks.1.ln_1': x has T = 35"):
         pyvf.trace_from_flat({"blocks.1.ln_1": np.zeros((2, 35, 8))}, N, L)
+
+
+def test_convert_torch_refuses_a_key_given_twice():
+    """'model.x' and 'x' are one parameter: the later silently won (convert_tf raises for this)."""
+    cfg = CodebookConfig(**SMALL)
+    state = {k: torch.tensor(v) for k, v in pyvf.Codebook(cfg).state_dict().items()}
+    name = "encoder.conv_in.bias"
+    with pytest.raises(ValueError, match=r"'model.encoder.conv_in.bias' and 'encoder.conv_in.bias'"):
+        convert_torch.convert({"model." + name: state[name] + 1, **state}, cfg)
+
+
+
+def test_convert_torch_names_a_tensor_numpy_cannot_hold():
+    cfg = CodebookConfig(**SMALL)
+    state = {k: torch.tensor(v) for k, v in pyvf.Codebook(cfg).state_dict().items()}
+    state["decoder.conv_out.weight"] = state["decoder.conv_out.weight"].to(torch.bfloat16)
+    with pytest.raises(TypeError, match="'decoder.conv_out.weight'"):
+        convert_torch.convert(state, cfg)

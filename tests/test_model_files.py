@@ -4,13 +4,17 @@ naming it (never a silent transpose or reshape), a layer table's role must be on
 layouts know, and a model file whose configuration lacks a field is refused, not given defaults."""
 
 import dataclasses
+import io
 import json
+import os
+import re
 
 import numpy as np
 import pytest
 
 import pyvf
 from conftest import assert_bitwise_equal
+from pyvf import _io
 from pyvf._io import CheckpointError
 from pyvf.models import check_pair, transformer
 from test_model_table import replace_row
@@ -79,13 +83,12 @@ def test_a_bad_layout_raises_for_every_parameter():
     cb = pyvf.Codebook(pyvf.CodebookConfig(**CB))
     for m, name in ((model, "wte/weight"), (model, "ln_f/gamma"), (cb, "encoder.conv_in.bias")):
         p = m.params[name]
-        for bad in ("TF", "jax", None):
-            with pytest.raises(ValueError, match="layout must be one of"):
-                m.layout_shapes(name, bad)
-            with pytest.raises(ValueError, match="layout must be one of"):
-                m.from_layout(name, p, bad)
-            with pytest.raises(ValueError, match="layout must be one of"):
-                m.to_layout(name, p, bad)
+        for bad in ("TF", "jax", None, 0):
+            for call in (lambda: m.layout_shapes(name, bad), lambda: m.from_layout(name, p, bad),
+                         lambda: m.to_layout(name, p, bad), lambda: m.state_dict(layout=bad),
+                         lambda: m.load_official(m.state_dict(), layout=bad)):
+                with pytest.raises(ValueError, match=r"\blayout\b"):
+                    call()
 
 
 def test_from_and_to_layout_refuse_arrays_of_another_shape(rng):
@@ -196,3 +199,194 @@ def test_a_transformer_records_its_codebook_and_a_pairing_checks_it(tmp_path):
     assert str(tmp_path / "other.npz") in str(e.value) and str(tmp_path / "tf.npz") in str(e.value)
     with pytest.warns(UserWarning, match="old.npz"):
         check_pair(cb, pyvf.Transformer.load(tmp_path / "old.npz"))
+
+
+# ---------------------------------------------------------------------------------------
+# saving and loading: atomic, and never half-done
+
+
+def _models(dtype):
+    return [pyvf.Transformer(pyvf.TransformerConfig(**TINY, dtype=dtype), seed=3),
+            pyvf.Codebook(pyvf.CodebookConfig(**CB, dtype=dtype), seed=3)]
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_save_is_atomic_and_appends_npz(dtype, tmp_path, monkeypatch):
+    """save() writes path + '.npz' when the name lacks it (np.savez's rule, kept), returns the path;
+    a save killed before the rename (os.replace raising) or while writing leaves the previous
+    file intact and no temporary file behind; a file object is written directly."""
+    for m in _models(dtype):
+        cls = type(m)
+        assert m.save(tmp_path / "model") == str(tmp_path / "model.npz")
+        path = tmp_path / "m.npz"
+        assert m.save(path) == str(path)
+        first = path.read_bytes()
+        for k, v in m.state_dict().items():
+            assert_bitwise_equal(k, cls.load(path).state_dict()[k], v)
+        old = {k: v.copy() for k, v in m.params.items()}
+        for k in m.params:
+            m.params[k] = m.params[k] + 1
+        for where in ("replace", "write"):
+            with monkeypatch.context() as mp:
+                if where == "replace":
+                    mp.setattr(os, "replace", lambda *a: (_ for _ in ()).throw(OSError("killed before the rename")))
+                else:
+                    real = np.savez
+
+                    def dying(f, **arrays):
+                        real(f, **{k: arrays[k] for k in list(arrays)[:2]})
+                        raise KeyboardInterrupt("killed while writing")
+                    mp.setattr(np, "savez", dying)
+                with pytest.raises((OSError, KeyboardInterrupt)):
+                    m.save(path)
+            assert path.read_bytes() == first, f"{where}: the previous file was changed"
+            assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz", "model.npz"], "a temporary file was left"
+        m.params = old
+        buf = io.BytesIO()
+        assert m.save(buf) is buf
+        buf.seek(0)
+        for k, v in cls.load(buf).state_dict().items():
+            assert_bitwise_equal(k, v, m.state_dict()[k])
+
+
+@pytest.mark.parametrize("how, names", [
+    ("truncate", []), ("flip", []), ("empty", []),
+    ("shape", ["first"]), ("dtype", ["first"]), ("missing", ["first"]), ("nan", []),
+    ("extra", ["extra/entry"]), ("config", ["__config__"]), ("not json", ["__config__"]),
+])
+@pytest.mark.parametrize("which", [0, 1], ids=["transformer", "codebook"])
+def test_load_refuses_a_broken_file_naming_file_and_entry(tmp_path, how, names, which):
+    """Truncated, bytes flipped in its zip headers, empty, an entry of the wrong shape or dtype or
+    with NaN, a missing or extra entry, a broken __config__: CheckpointError (a ValueError) naming
+    the file and, where one entry is at fault, the entry; nothing written beside it."""
+    m = _models("float32")[which]
+    path, bad = tmp_path / "model.npz", str(tmp_path / "bad.npz")
+    m.save(path)
+    raw = path.read_bytes()
+    first = sorted(m.state_dict())[0]
+    if how in ("truncate", "flip", "empty"):
+        data = {"truncate": raw[: len(raw) // 2], "empty": b"",
+                "flip": bytes(b ^ 0xFF if i < 40 else b for i, b in enumerate(raw))}[how]
+        open(bad, "wb").write(data)
+    else:
+        with np.load(path) as f:
+            d = {k: f[k] for k in f.files}
+        if how == "shape":
+            d[first] = np.concatenate([d[first], d[first][..., :1]], axis=-1)
+        elif how == "dtype":
+            d[first] = d[first].astype(np.int32)
+        elif how == "nan":
+            d[first] = np.full(d[first].shape, np.nan)
+        elif how == "missing":
+            del d[first]
+        elif how == "extra":
+            d["extra/entry"] = np.zeros(1)
+        elif how == "config":
+            d["__config__"] = np.array('{"n_embeddings": -1}')
+        else:
+            d["__config__"] = np.array("not json {")
+        np.savez(bad, **d)
+    with pytest.raises(CheckpointError, match=re.escape(bad)) as e:
+        type(m).load(bad)
+    for name in names:
+        assert (first if name == "first" else name) in str(e.value), e.value
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.npz", "model.npz"]
+    with pytest.raises(FileNotFoundError):
+        type(m).load(tmp_path / "no-such-file.npz")
+
+
+@pytest.mark.parametrize("which", [0, 1], ids=["transformer", "codebook"])
+def test_load_official_copies_the_callers_arrays(which):
+    """A loaded model never aliases the state it was given: a caller refilling its arrays later
+    must not change the model's weights."""
+    m = _models("float64")[which]
+    state = {k: v + 0.5 if v.dtype.kind == "f" else v for k, v in m.state_dict().items()}
+    m.load_official(state)
+    for k, p in m.params.items():
+        assert_bitwise_equal(k, p, state[k])
+        assert not np.shares_memory(p, state[k]), f"{k} aliases the caller's array"
+
+
+# ---------------------------------------------------------------------------------------
+# the atomic writes and reads under every model file (pyvf/_io.py)
+
+
+def test_an_atomic_write_into_a_missing_folder_names_the_destination(tmp_path):
+    """Before, the error named only the temporary file the user never asked for:
+    "FileNotFoundError: [Errno 2] No such file or directory: '.../missing/.x.json.1234.ab12cd34.tmp'"
+    (and "Not a directory: '.../file/.x.json...tmp'" under a file). Now it names the destination;
+    the exception class is kept (FileNotFoundError, NotADirectoryError), and nothing is left."""
+    (tmp_path / "file").write_text("a file, not a folder")
+    for parent, kind in (("missing", FileNotFoundError), ("file", NotADirectoryError)):
+        dest = str(tmp_path / parent / "x.json")
+        for write in (lambda: _io.atomic_write_text(dest, "{}"), lambda: _io.atomic_savez(dest, a=np.zeros(2)),
+                      lambda: _io.atomic_write_bytes(dest, b"{}")):
+            with pytest.raises(kind) as e:
+                write()
+            assert dest in str(e.value), str(e.value)
+    assert sorted(os.listdir(tmp_path)) == ["file"]
+
+
+
+def test_atomic_write_bytes_refuses_what_is_not_bytes(tmp_path):
+    """bytes(5) is five zero bytes: before, atomic_write_bytes(path, 5) silently wrote
+    b'\\x00\\x00\\x00\\x00\\x00'. A bytes-like object (bytes, bytearray, memoryview, a numpy
+    buffer) is written as it is; anything else raises TypeError naming data, and nothing is
+    written."""
+    path = str(tmp_path / "b.bin")
+    for bad in (5, "text", [1, 2], None):
+        with pytest.raises(TypeError, match=r"\bdata\b"):
+            _io.atomic_write_bytes(path, bad)
+    assert os.listdir(tmp_path) == []
+    for good, want in ((b"ab", b"ab"), (bytearray(b"cd"), b"cd"), (memoryview(b"ef"), b"ef"),
+                       (np.array([1, 2], np.uint8), b"\x01\x02")):
+        _io.atomic_write_bytes(path, good)
+        assert open(path, "rb").read() == want
+
+
+
+def test_atomic_savez_entry_names_that_are_savez_arguments(tmp_path):
+    """atomic_savez(path, **arrays) passed the entries to np.savez(file, *args, allow_pickle=True,
+    **kwds) as keywords. Before, an entry named allow_pickle was taken as that flag and silently
+    not written (the file loaded as {}), one named file raised "savez() got multiple values for
+    argument 'file'" and one named path "atomic_savez() got multiple values for argument 'path'".
+    Now path is positional-only (an entry may be called path) and the two names np.savez cannot
+    store raise ValueError naming the entry, before anything is written."""
+    path = str(tmp_path / "x.npz")
+    _io.atomic_savez(path, path=np.arange(2), a=np.ones(1))
+    got = _io.load_npz(path)
+    assert sorted(got) == ["a", "path"] and np.array_equal(got["path"], np.arange(2))
+    for name in ("allow_pickle", "file"):
+        with pytest.raises(ValueError, match=rf"\b{name}\b"):
+            _io.atomic_savez(str(tmp_path / "y.npz"), **{name: np.ones(3)})
+    assert sorted(os.listdir(tmp_path)) == ["x.npz"]
+
+
+
+def test_remove_stale_temps_removes_only_the_temps_of_its_path(tmp_path):
+    """remove_stale_temps(path) matched `.{name}.*.tmp`, so clearing "model" also removed a
+    temporary file of "model.npz", and clearing "checkpoint.npz" one of "checkpoint.npz.bak":
+    an atomic write of that other file under way in another process then failed at its rename.
+    Only `.{name}.{pid}.{hex}.tmp`, what _io names a temporary file of `name`, is removed now."""
+    ours = [".checkpoint.npz.123.abcd.tmp", ".checkpoint.npz.98765.0f1e2d3c.tmp"]
+    others = [".checkpoint.npz.bak.123.0f1e2d3c.tmp", ".checkpoint.npz.notes.tmp", ".checkpoint.npzz.1.ab.tmp",
+              "checkpoint.npz", ".model.npz.55.ab12cd34.tmp"]
+    for name in ours + others:
+        (tmp_path / name).write_bytes(b"x")
+    # the name a real atomic write uses is one of ours
+    assert _io._temp_name(str(tmp_path / "checkpoint.npz")).startswith(str(tmp_path / ".checkpoint.npz."))
+    assert sorted(_io.remove_stale_temps(str(tmp_path / "checkpoint.npz"))) == sorted(ours)
+    assert _io.remove_stale_temps(str(tmp_path / "model")) == []
+    assert sorted(os.listdir(tmp_path)) == sorted(others)
+    real = os.path.basename(_io._temp_name(str(tmp_path / "model.npz")))  # what a write of model.npz leaves
+    (tmp_path / real).write_bytes(b"x")
+    assert sorted(_io.remove_stale_temps(str(tmp_path / "model.npz"))) == sorted([".model.npz.55.ab12cd34.tmp", real])
+
+
+
+def test_load_npz_of_a_folder_says_it_is_a_folder(tmp_path):
+    """Before, load_npz of a folder raised CheckpointError "checkpoint ... is truncated or corrupt:
+    IsADirectoryError", sending the user to look for damage in a file that does not exist. A folder
+    is an IsADirectoryError naming it (an OSError, like the missing file's FileNotFoundError)."""
+    with pytest.raises(IsADirectoryError, match=re.escape(str(tmp_path))):
+        _io.load_npz(str(tmp_path), "checkpoint")

@@ -1,11 +1,12 @@
 """Tests of pyvf.scenes (docs/math.md §7): procedural Shepard-Metzler-7 scenes.
 
-Against closed-form geometry: a unit cube seen head-on from a camera on an axis covers exactly
-the pixel square its face projects to, in the Lambertian colour of that face; every camera looks
-at the origin without roll; the GQN camera form round-trips and matches the published
-conversion; the object is 7 distinct face-adjacent cells; the whole object is always in frame.
-Then determinism (bitwise, with a pinned sha256), the dataset on disk (round trip, and each way
-it can be damaged), argument checks and the command line.
+Against closed forms and independent oracles: a unit cube seen head-on covers exactly the pixel
+square its face projects to, in its face's Lambertian colour; any cube covers the convex hull of
+its corners' pinhole projection (written here from quat_rotate, not the renderer's pose_matrix);
+the nearer cube hides the farther; every camera looks at the origin without roll; the GQN form
+round-trips and matches the published conversion; the object is 7 face-adjacent cells. Then
+determinism (bitwise, a pinned sha256), the dataset on disk (round trip, re-render of every stored
+pair, damage, Ctrl-C and resume), each entry point's refusals (one table), and the command.
 
 Shapes: images (V, H, W, 3) uint8, poses (V, 7) = xyz + unit quaternion (w, x, y, z).
 """
@@ -32,6 +33,9 @@ from conftest import assert_bitwise_equal, assert_close
 TOL = 1e-12
 
 E_X, E_Y, E_Z = np.eye(3)
+CUBE = np.zeros((1, 3), dtype=np.int64)
+BG = np.floor(np.array(sc.BACKGROUND) * 255 + 0.5).astype(np.uint8)
+MARGIN = 1e-3  # pixels: pixel centres this close to a silhouette's edge are not judged
 
 
 def to_uint8(v):
@@ -55,8 +59,84 @@ def wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+def rotation_about(axis, angle):
+    """Rodrigues' rotation matrix, written here: I + sin(t) K + (1 - cos(t)) K^2."""
+    x, y, z = axis
+    K = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]], dtype=np.float64)
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * (K @ K)
+
+
+def project(points, pose, H, W):
+    """Pinhole projection of world points (N, 3) by a pose (7,), written from the docs' convention:
+    camera-frame coordinates c_k = (X - p) . rotate(q, e_k), pixel (x, y) = f c_xy / c_z + (W, H) / 2,
+    where pixel (i, j) has its centre at (j + 0.5, i + 0.5). -> (N, 2) as (x, y), and depths (N,)."""
+    p, q = pose[:3], pose[3:]
+    axes = np.stack([quat_rotate(q, e) for e in np.eye(3)])  # (3, 3) rows: camera axes in the world
+    c = (np.asarray(points, dtype=np.float64) - p) @ axes.T  # (N, 3)
+    f = (min(H, W) / 2) / sc.TAN_HALF_FOV
+    return np.stack([f * c[:, 0] / c[:, 2] + W / 2, f * c[:, 1] / c[:, 2] + H / 2], axis=1), c[:, 2]
+
+
+def cube_corners(lo, hi):
+    return np.array([[(lo, hi)[a][0], (lo, hi)[b][1], (lo, hi)[c][2]]
+                     for a in (0, 1) for b in (0, 1) for c in (0, 1)])  # (8, 3)
+
+
+def hull_equations(points):
+    """The edges of the convex hull of 2-D points (N, 2) -> (F, 3) rows (n_x, n_y, offset), n the
+    unit outward normal: n . x + offset <= 0 inside. Andrew's monotone chain, counter-clockwise."""
+    def turn(o, a, b):  # > 0: o -> a -> b turns counter-clockwise
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    def chain(pts):
+        out = []
+        for p in pts:
+            while len(out) >= 2 and turn(out[-2], out[-1], p) <= 0:
+                out.pop()
+            out.append(p)
+        return out[:-1]
+    pts = np.unique(np.asarray(points, dtype=np.float64), axis=0)  # sorted by x, then y
+    v = np.array(chain(pts) + chain(pts[::-1]))  # (F, 2) counter-clockwise
+    e = np.roll(v, -1, axis=0) - v  # (F, 2) edges
+    n = np.stack([e[:, 1], -e[:, 0]], axis=1) / np.linalg.norm(e, axis=1, keepdims=True)  # outward for CCW
+    return np.concatenate([n, -(n * v).sum(axis=1, keepdims=True)], axis=1)
+
+
+def hull_distance(corners_px, H, W):
+    """Signed distance (pixels) of each pixel centre to the convex hull of the projected corners:
+    negative inside. -> (H, W)."""
+    eq = hull_equations(corners_px)  # (F, 3): unit normal . x + offset <= 0 inside
+    x = np.arange(W) + 0.5
+    y = np.arange(H) + 0.5
+    pts = np.stack(np.meshgrid(x, y), axis=-1)  # (H, W, 2)
+    return (pts @ eq[:, :2].T + eq[:, 2]).max(axis=-1)
+
+
+def silhouette(cells, pose, H, W):
+    """Where the union of the cubes' projected hulls surely covers (inside), surely misses (outside)."""
+    lo, hi = sc.object_boxes(cells)
+    dist = np.full((H, W), np.inf)
+    for k in range(len(lo)):
+        px, depth = project(cube_corners(lo[k], hi[k]), pose, H, W)
+        assert (depth > 0).all()  # the whole cube is in front of the camera
+        dist = np.minimum(dist, hull_distance(px, H, W))
+    return dist < -MARGIN, dist > MARGIN
+
+
+def random_pose(rng, distance):
+    """A camera at `distance` from the origin looking roughly at it, with an arbitrary roll:
+    a random unit quaternion, the camera placed behind the origin along its optical axis plus
+    a sideways offset, so the object is off the image centre."""
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    q = q if q[0] >= 0 else -q
+    axes = np.stack([quat_rotate(q, e) for e in np.eye(3)])
+    p = -distance * axes[2] + 0.8 * axes[0] - 0.5 * axes[1]  # the origin sits right of and above the centre
+    return np.concatenate([p, q])
+
+
 # ---------------------------------------------------------------------------------------
-# (a) a single cube seen head-on: the exact pixel square, in the face's Lambertian colour
+# rendering
 
 
 def axis_cameras():
@@ -132,8 +212,66 @@ def test_straight_chain_stays_in_frame():
     assert (imgs != bg).any(axis=-1).sum(axis=(1, 2)).min() > 50  # and the object is there
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cube_silhouette_is_the_pinhole_projection_of_its_corners(seed):
+    """A cube seen by a rolled, off-centre camera covers exactly the pixel centres inside the
+    convex hull of its 8 projected corners (the pose's own projection), on a non-square image."""
+    rng = np.random.default_rng(seed)
+    pose = random_pose(rng, 6.0)
+    H, W = 40, 56
+    cells = np.zeros((1, 3), dtype=np.int64)
+    img = sc.render_views(cells, [[0.9, 0.35, 0.6]], pose[None], (H, W))[0]
+    inside, outside = silhouette(cells, pose, H, W)
+    assert inside.sum() > 50 and outside.sum() > 50
+    covered = (img != BG).any(axis=-1)
+    assert covered[inside].all(), "a pixel inside the projected cube shows the background"
+    assert not covered[outside].any(), "a pixel outside the projected cube shows the cube"
+
+
+def test_nearer_cube_hides_the_farther():
+    """Two cubes on the camera's axis: from either side the nearer one's colour fills the centre,
+    whichever comes first in the cell list, and its whole projected square is its colour."""
+    H = W = 48
+    colours = np.array([[1.0, 0.2, 0.2], [0.2, 0.2, 1.0]])
+    for order in ((0, 1), (1, 0)):
+        cells = np.array([[0, 0, 0], [0, 0, 3]], dtype=np.int64)[list(order)]
+        cols = colours[list(order)]
+        lo, hi = sc.object_boxes(cells)
+        for z in (10.0, -10.0):
+            pose = sc.look_at_poses(np.array([0.0, 0.0, z]))
+            img = sc.render_views(cells, cols, pose[None], (H, W))[0]
+            near = int(np.argmax(np.sign(z) * (lo[:, 2] + hi[:, 2])))  # the cube nearer the camera
+            px, _ = project(cube_corners(lo[near], hi[near]), pose, H, W)
+            surely = hull_distance(px, H, W) < -MARGIN
+            assert surely.sum() > 4
+            shade = sc.face_shades()[2, 0 if z > 0 else 1]  # the face turned to the camera: normal +-z
+            want = np.floor(np.clip(cols[near] * shade, 0, 1) * 255 + 0.5).astype(np.uint8)
+            assert (img[surely] == want).all(), f"order {order}, camera z={z}: the farther cube shows through"
+
+
+@pytest.mark.parametrize("index", [0, 5])
+def test_scene_views_are_the_projection_of_their_tagged_poses(index):
+    """Every view of a generated scene covers the union of its cubes' projected hulls under the
+    pose it is tagged with, and nothing else: the pose is the camera that rendered it."""
+    rng = np.random.default_rng([3, index])
+    cells, _ = sc.make_object(rng)  # the scene's object: the first draws of its generator
+    images, poses = sc.generate_scene(3, index, views=6, size=32)
+    for v in range(len(poses)):
+        inside, outside = silhouette(cells, poses[v], 32, 32)
+        covered = (images[v] != BG).any(axis=-1)
+        assert covered[inside].all() and not covered[outside].any(), f"view {v}"
+
+
+def test_render_views_takes_float32_poses():
+    """float32 unit quaternions (unit to float32's precision) are still rendered, as before."""
+    p32 = sc.look_at_poses(np.array([[3.0, -1.0, 9.0]], dtype=np.float32))
+    assert abs(float((p32[0, 3:].astype(np.float64) ** 2).sum()) - 1) > 1e-12  # not unit in float64
+    img = sc.render_views(CUBE, [[0.9, 0.35, 0.6]], p32, 16)
+    assert img.shape == (1, 16, 16, 3) and (img != img[0, 0, 0]).any()
+
+
 # ---------------------------------------------------------------------------------------
-# (b) cameras
+# cameras and the GQN camera form
 
 
 @pytest.mark.parametrize("index", [0, 1, 2])
@@ -162,10 +300,6 @@ def test_camera_elevations_cover_the_band():
     assert np.abs(s).max() <= limit + TOL
     assert s.max() > 0.95 * limit and s.min() < -0.95 * limit
     assert abs(s.mean()) < 0.05  # uniform on the band: mean 0, std ~ 0.5
-
-
-# ---------------------------------------------------------------------------------------
-# (c) the GQN camera form
 
 
 def random_gqn(rng, n):
@@ -209,18 +343,16 @@ def test_gqn_matches_the_published_conversion(rng):
                  rtol=TOL)
 
 
-def test_scene_cameras_in_gqn_form_look_at_the_origin():
-    """A scene camera at GQN position c looks at the origin: yaw = atan2(-c_y, -c_x),
-    pitch = atan2(-c_z, hypot(c_x, c_y))."""
-    _, poses = sc.generate_scene(1, 0, views=15, size=16)
-    g = sc.pose_to_gqn(poses)
-    cx, cy, cz = g[:, 0], g[:, 1], g[:, 2]
-    assert np.abs(wrap(g[:, 3] - np.arctan2(-cy, -cx))).max() < TOL
-    assert np.abs(g[:, 4] - np.arctan2(-cz, np.hypot(cx, cy))).max() < TOL
+def test_pose_matrix_closed_form():
+    """pose_matrix of the quaternion (cos t/2, sin t/2 axis) is Rodrigues' rotation by t about axis."""
+    axis = np.array([2.0, -1.0, 2.0]) / 3
+    t = 0.7
+    q = np.concatenate([[math.cos(t / 2)], math.sin(t / 2) * axis])  # (w, x, y, z)
+    assert_close("pose_matrix", sc.pose_matrix(q), rotation_about(axis, t), rtol=TOL)
 
 
 # ---------------------------------------------------------------------------------------
-# (d) the object
+# the object and determinism
 
 
 @pytest.mark.parametrize("index", range(20))
@@ -244,10 +376,6 @@ def test_object_is_a_self_avoiding_chain(index):
     assert colours.shape == (sc.N_CUBES, 3)
     assert_close("max channel", colours.max(axis=1), np.ones(sc.N_CUBES), rtol=TOL)
     assert_close("min channel", colours.min(axis=1), np.full(sc.N_CUBES, 0.2), rtol=TOL)
-
-
-# ---------------------------------------------------------------------------------------
-# (e) determinism
 
 
 # sha256 of generate_scene(7, 3, views=3, size=32): its images' bytes, then its poses' bytes
@@ -289,7 +417,8 @@ def test_scenes_differ_and_batch_equals_single():
 
 
 # ---------------------------------------------------------------------------------------
-# (f) the dataset on disk
+# the dataset on disk
+
 
 N_SCENES, VIEWS, SIZE, SHARD = 3, 4, 16, 2
 
@@ -330,6 +459,18 @@ def test_dataset_round_trip(dataset_dir, tmp_path):
     assert again == m
 
 
+def test_every_image_pose_pair_re_renders(dataset_dir):
+    """Each stored view is the render of its scene's object under the stored pose (no scene's
+    poses paired with another's images, no shard shifted), and the shards' sha256 are the files'."""
+    ds = sc.load_dataset(dataset_dir)
+    for i in range(N_SCENES):
+        cells, colours = sc.make_object(np.random.default_rng([9, i]))
+        assert np.array_equal(sc.render_views(cells, colours, ds.poses[i], SIZE), ds.images[i]), f"scene {i}"
+    for entry in ds.manifest["shards"]:
+        data = (dataset_dir / entry["file"]).read_bytes()
+        assert (len(data), hashlib.sha256(data).hexdigest()) == (entry["bytes"], entry["sha256"])
+
+
 def test_dataset_refuses_to_overwrite(damaged):
     with pytest.raises(FileExistsError, match="overwrite"):
         sc.write_dataset(damaged, 1, seed=0, views=2, size=8, progress=False)
@@ -338,67 +479,72 @@ def test_dataset_refuses_to_overwrite(damaged):
     assert sc.load_dataset(damaged).images.shape == (1, 2, 8, 8, 3)
 
 
-def test_truncated_shard(damaged):
+def flip(at):
+    def damage(data):
+        data = bytearray(data)
+        data[at(len(data)) if callable(at) else at] ^= 0x10
+        return bytes(data)
+    return damage
+
+
+@pytest.mark.parametrize("damage", [lambda d: d[: len(d) // 2], lambda d: None]
+                         + [flip(at) for at in (0, 40, 100, -30, -1)] + [flip(lambda n: n // 2)],
+                         ids=["truncated", "missing", "flip 0", "flip 40", "flip 100", "flip -30", "flip -1", "flip middle"])
+def test_damaged_shard_is_named(damaged, damage):
+    """A shard cut short, missing, or with one bit flipped anywhere (zip headers, compressed data,
+    central directory) is an error naming the shard, never a silently different dataset."""
     path = damaged / "shard-00001.npz"
-    data = path.read_bytes()
-    path.write_bytes(data[: len(data) // 2])
-    with pytest.raises(ValueError, match=r"shard-00001\.npz.*entry 1.*truncated"):
+    data = damage(path.read_bytes())
+    if data is None:
+        os.remove(path)
+    else:
+        path.write_bytes(data)
+    with pytest.raises(FileNotFoundError if data is None else ValueError, match=r"shard-00001\.npz"):
         sc.load_dataset(damaged)
 
 
-def test_corrupted_byte(damaged):
-    path = damaged / "shard-00000.npz"
-    data = bytearray(path.read_bytes())
-    data[len(data) // 2] ^= 0x01
-    path.write_bytes(bytes(data))
-    with pytest.raises(ValueError, match=r"shard-00000\.npz.*entry 0.*corrupt.*sha256"):
+def edit(**changes):
+    """A manifest edit: top-level keys (None deletes) and, as entry_<k>_<key>, a shard entry's."""
+    def apply(m):
+        for key, value in changes.items():
+            if key.startswith("entry_"):
+                _, k, field = key.split("_", 2)
+                m["shards"][int(k)][field] = value
+            elif value is None:
+                del m[key]
+            else:
+                m[key] = value
+        return json.dumps(m)
+    return apply
+
+
+@pytest.mark.parametrize("damage, name", [
+    (edit(views=VIEWS + 1), r"shard-00000\.npz"),               # a shard that matches its hash, not the promised shape
+    (edit(views=10**9), r"shard-0000\d\.npz.*'images'"),       # terabytes promised: refused before allocating
+    (edit(n_scenes=10**12, entry_1_n_scenes=10**12 - 2), r"shard-00001\.npz.*'images'"),
+    (edit(entry_0_n_scenes=1, entry_1_first_scene=1, entry_1_n_scenes=2), r"shard-0000[01]\.npz"),  # counts moved
+    (edit(entry_0_file="../shard-00000.npz"), "file"),        # not a plain name in the folder
+    (edit(shard_size=3), "shard_size"),                         # another layout than the shards'
+    (edit(shard_size=1), "shard_size"),
+    (edit(shard_size=None), "shard_size"),
+    (lambda m: "{not json", r"manifest\.json"),
+])
+def test_damaged_manifest_is_named(damaged, damage, name):
+    mpath = damaged / "manifest.json"
+    mpath.write_text(damage(json.loads(mpath.read_text())))
+    with pytest.raises(ValueError, match=name):
         sc.load_dataset(damaged)
 
 
-def test_missing_shard(damaged):
-    os.remove(damaged / "shard-00001.npz")
-    with pytest.raises(FileNotFoundError, match=r"shard-00001\.npz.*entry 1.*missing"):
-        sc.load_dataset(damaged)
-
-
-def test_missing_manifest(damaged):
+def test_load_dataset_names_a_missing_or_wrong_path(damaged):
+    shard = damaged / "shard-00000.npz"
+    with pytest.raises(NotADirectoryError, match=r"shard-00000\.npz"):  # a file given as the folder
+        sc.load_dataset(shard)
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        sc.load_dataset(damaged / "nowhere")
     os.remove(damaged / "manifest.json")
     with pytest.raises(FileNotFoundError, match=r"manifest\.json"):
         sc.load_dataset(damaged)
-    with pytest.raises(FileNotFoundError, match="does not exist"):
-        sc.load_dataset(damaged / "nowhere")
-
-
-def test_manifest_inconsistent_with_shard(damaged):
-    """A shard that matches its hash but not the shape the manifest promises is refused."""
-    mpath = damaged / "manifest.json"
-    m = json.loads(mpath.read_text())
-    m["views"] = VIEWS + 1
-    mpath.write_text(json.dumps(m))
-    with pytest.raises(ValueError, match=r"shard-00000\.npz.*'images'"):
-        sc.load_dataset(damaged)
-    m["views"], m["shards"][0]["file"] = VIEWS, "../shard-00000.npz"
-    mpath.write_text(json.dumps(m))
-    with pytest.raises(ValueError, match="plain file name"):
-        sc.load_dataset(damaged)
-    mpath.write_text("{not json")
-    with pytest.raises(ValueError, match=r"manifest\.json"):
-        sc.load_dataset(damaged)
-
-
-def test_manifest_counts_checked_before_allocating(damaged):
-    """A hand-edited manifest that promises more than its shards hold (here terabytes) is an error
-    naming the manifest and the shard, raised before the dataset's arrays are allocated."""
-    mpath = damaged / "manifest.json"
-    m = json.loads(mpath.read_text())
-    for key, value in (("n_scenes", 10**12), ("views", 10**9)):
-        edited = json.loads(json.dumps(m))
-        edited[key] = value
-        if key == "n_scenes":  # the shard entries agree with it, as a careful hand edit would make them
-            edited["shards"][-1]["n_scenes"] = value - edited["shards"][-1]["first_scene"]
-        mpath.write_text(json.dumps(edited))
-        with pytest.raises(ValueError, match=r"shard-0000\d\.npz \(shard entry \d of .*manifest\.json\): 'images'"):
-            sc.load_dataset(damaged)
 
 
 SMALL = dict(views=2, size=16, shard_size=2, progress=False)  # 5 scenes: shards of 2, 2, 1
@@ -475,46 +621,110 @@ def test_unfinished_write_of_other_arguments_is_refused(tmp_path, monkeypatch, c
     assert sorted(os.listdir(out)) == ["manifest.json", "shard-00000.npz", "shard-00001.npz", "shard-00002.npz"]
 
 
-# ---------------------------------------------------------------------------------------
-# (g) argument checks
+def forbid_rendering(monkeypatch):
+    def scene(*args):
+        raise AssertionError("a scene was rendered")
+    monkeypatch.setattr(dataset_module, "generate_scene", scene)
 
 
 @pytest.mark.parametrize("kwargs, name", [
-    (dict(n_scenes=0), "n_scenes"),
-    (dict(n_scenes=-3), "n_scenes"),
-    (dict(size=7), "size"),
-    (dict(views=0), "views"),
-    (dict(seed=-1), "seed"),
-    (dict(shard_size=0), "shard_size"),
+    (dict(n_scenes=1, views=10**10, size=8), "views"),                  # 1.75 TiB of images in one shard
+    (dict(n_scenes=2, views=3, size=10**6, shard_size=1), "size"),      # a scene's rendering: PiB
+    (dict(n_scenes=10**15, views=15, size=64, shard_size=1), "n_scenes"),  # 10^15 shards in the manifest
+    (dict(n_scenes=10**12, shard_size=10**7, memory=2**60), "n_scenes"),  # fits memory; 1.8e14 bytes on disk
 ])
-def test_write_dataset_bad_arguments(tmp_path, kwargs, name):
-    args = dict(n_scenes=1, seed=0, views=2, size=8, shard_size=1, progress=False) | kwargs
-    with pytest.raises(ValueError, match=name):
-        sc.write_dataset(tmp_path / "ds", **args)
-    assert not (tmp_path / "ds" / "manifest.json").exists()
+def test_write_dataset_refuses_work_beyond_memory_or_disk(tmp_path, monkeypatch, kwargs, name):
+    """Refused before the folder is touched: a MemoryError after progress.jsonl was written would
+    block the corrected call (an unfinished write of another dataset). Deflate compresses at most
+    1032:1, so shards of raw size B need at least B / 1032 bytes of disk."""
+    forbid_rendering(monkeypatch)
+    memory = kwargs.pop("memory", 64 * 2**30)
+    monkeypatch.setattr(dataset_module, "_physical_memory", lambda: memory)
+    out = tmp_path / "ds"
+    with pytest.raises(ValueError, match=rf"\b{name}\b"):
+        sc.write_dataset(out, seed=0, progress=False, **kwargs)
+    assert not out.exists()
+    monkeypatch.undo()
+    sc.write_dataset(out, 1, seed=0, views=2, size=8, progress=False)  # the folder is not blocked
+    assert sorted(os.listdir(out)) == ["manifest.json", "shard-00000.npz"]
 
 
-@pytest.mark.parametrize("call, name", [
-    (lambda: sc.generate_scene(0, 0, views=0), "views"),
-    (lambda: sc.generate_scene(0, 0, size=4), "size"),
-    (lambda: sc.generate_scene(-1, 0), "seed"),
-    (lambda: sc.generate_scene(0, -1), "index"),
-    (lambda: sc.generate_scenes(0, 0), "n"),
-    (lambda: sc.generate_scenes(0, 1, start=-1), "start"),
-    (lambda: sc.look_at_poses(np.array([0.0, 5.0, 0.0])), "vertical"),
-    (lambda: sc.pose_to_gqn(np.array([0.0, 0, 0, 2, 0, 0, 0])), "unit"),
-    (lambda: sc.gqn_to_pose(np.zeros(4)), "cams"),
+def test_save_preview_is_atomic(tmp_path, monkeypatch):
+    """A save interrupted half way (Ctrl-C in the PNG encoder) leaves the earlier preview whole."""
+    from PIL import Image, PngImagePlugin  # noqa: F401  (the plugin registers the PNG writer)
+
+    path = tmp_path / "p.png"
+    images = np.full((1, 2, 8, 8, 3), 7, dtype=np.uint8)
+    sc.save_preview(path, images)
+    before = path.read_bytes()
+
+    def torn(im, fp, filename, *args, **kwargs):
+        fp.write(b"\x89PNG half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setitem(Image.SAVE, "PNG", torn)
+    with pytest.raises(KeyboardInterrupt):
+        sc.save_preview(path, images + 1)
+    monkeypatch.undo()
+    assert path.read_bytes() == before
+    assert sorted(os.listdir(tmp_path)) == ["p.png"]  # no temporary file left
+
+
+# ---------------------------------------------------------------------------------------
+# refusals: one table, the exception type and the argument's name
+
+
+def rng0():
+    return np.random.default_rng(0)
+
+
+def at_pose(pose):
+    return lambda: sc.render_views(CUBE, [[0.9, 0.35, 0.6]], np.array([pose]), 8)
+
+
+@pytest.mark.parametrize("call, error, name", [
+    (lambda: sc.generate_scene(0, 0, views=0), ValueError, "views"),
+    (lambda: sc.generate_scene(0, 0, views=2.0), TypeError, "views"),
+    (lambda: sc.generate_scene(0, 0, size=4), ValueError, "size"),
+    (lambda: sc.generate_scene(-1, 0), ValueError, "seed"),
+    (lambda: sc.generate_scene(True, 0), TypeError, "seed"),
+    (lambda: sc.generate_scene(0, -1), ValueError, "index"),
+    (lambda: sc.generate_scenes(0, 0), ValueError, "n"),
+    (lambda: sc.generate_scenes(0, 1, start=-1), ValueError, "start"),
+    (lambda: sc.look_at_poses(np.array([0.0, 5.0, 0.0])), ValueError, "positions"),  # on the vertical axis
+    (lambda: sc.pose_to_gqn(np.array([0.0, 0, 0, 2, 0, 0, 0])), ValueError, "poses"),  # not unit
+    (lambda: sc.gqn_to_pose(np.zeros(4)), ValueError, "cams"),
+    (lambda: sc.pose_matrix(np.array([1.0, 1.0, 0.0, 0.0])), ValueError, "q"),  # |q|^2 = 2: no rotation
+    (lambda: sc.pose_matrix(np.array([1.0, 0.0, 0.0])), ValueError, "q"),
+    (lambda: sc.pose_matrix([1.0, 0.0, 0.0, 0.0]), TypeError, "q"),
+    (lambda: sc.sample_camera_positions(rng0(), -1), ValueError, "n"),
+    (lambda: sc.sample_camera_positions(rng0(), 2.0), TypeError, "n"),
+    (lambda: sc.sample_camera_positions(rng0(), 2, radius=0.0), ValueError, "radius"),
+    (lambda: sc.sample_camera_positions(rng0(), 2, radius=np.inf), ValueError, "radius"),
+    (lambda: sc.sample_camera_positions(0, 2), TypeError, "rng"),
+    (lambda: sc.make_object(0), TypeError, "rng"),
+    # poses the renderer cannot render (each rendered an image without complaint once)
+    (at_pose([0.0, 0.0, -10.0, 1.0, 1.0, 0.0, 0.0]), ValueError, "poses"),  # not a rotation
+    (at_pose([0.0, 0.0, -10.0, 2.0, 0.0, 0.0, 0.0]), ValueError, "poses"),  # a scaled identity
+    (at_pose([0.0, 0.0, np.nan, 1.0, 0.0, 0.0, 0.0]), ValueError, "poses"),  # rendered all background
+    (at_pose([0.2, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]), ValueError, "poses"),  # a camera inside the cube
+    (at_pose([0.5, 0.5, -0.5, 1.0, 0.0, 0.0, 0.0]), ValueError, "poses"),  # on its corner: the closed box
+    (lambda: sc.preview_grid(np.zeros((0, 2, 8, 8, 3), dtype=np.uint8)), ValueError, "images"),
+    (lambda: sc.preview_grid(np.zeros((2, 0, 8, 8, 3), dtype=np.uint8)), ValueError, "images"),
 ])
-def test_bad_arguments(call, name):
-    with pytest.raises(ValueError, match=name):
+def test_refusals_name_the_argument(call, error, name):
+    with pytest.raises(error, match=rf"\b{name}\b"):
         call()
 
 
-def test_bad_argument_types():
-    with pytest.raises(TypeError, match="views"):
-        sc.generate_scene(0, 0, views=2.0)
-    with pytest.raises(TypeError, match="seed"):
-        sc.generate_scene(True, 0)
+@pytest.mark.parametrize("name, value", [
+    ("n_scenes", 0), ("n_scenes", -3), ("size", 7), ("views", 0), ("seed", -1), ("shard_size", 0),
+])
+def test_write_dataset_refusals_write_nothing(tmp_path, name, value):
+    args = dict(n_scenes=1, seed=0, views=2, size=8, shard_size=1, progress=False) | {name: value}
+    with pytest.raises(ValueError, match=rf"\b{name}\b"):
+        sc.write_dataset(tmp_path / "ds", **args)
+    assert not (tmp_path / "ds").exists()
 
 
 # ---------------------------------------------------------------------------------------
@@ -541,16 +751,14 @@ def test_cli_writes_dataset_and_preview(tmp_path, capsys):
     assert "n_scenes" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("bad, message", [
-    (["--out", "{tmp}/afile/ds"], "argument --out: cannot create the folder '{tmp}/afile/ds': '{tmp}/afile' is a file, "
-                                    "not a folder"),
-    (["--out", "{tmp}/afile"], "argument --out: '{tmp}/afile' is a file, not a folder"),
-    (["--out", ""], "argument --out: expected a folder, got an empty path"),
-    (["--preview", "{tmp}/nodir/p.png"], "argument --preview: cannot write '{tmp}/nodir/p.png': the folder "
-                                         "'{tmp}/nodir' does not exist"),
-    (["--preview", "{tmp}"], "argument --preview: '{tmp}' is a folder, not a file"),
-], ids=["out under a file", "out a file", "out empty", "preview folder missing", "preview a folder"])
-def test_cli_checks_paths_before_rendering(bad, message, tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("bad, option", [
+    (["--out", "{tmp}/afile/ds"], "--out"),  # under a file
+    (["--out", "{tmp}/afile"], "--out"),     # a file
+    (["--out", ""], "--out"),
+    (["--preview", "{tmp}/nodir/p.png"], "--preview"),  # its folder missing
+    (["--preview", "{tmp}"], "--preview"),              # a folder
+])
+def test_cli_checks_paths_before_rendering(bad, option, tmp_path, capsys, monkeypatch):
     """A --out or --preview that cannot be written is one line naming the option, status 2,
     before any scene is rendered or any file written."""
     parser = argparse.ArgumentParser(prog="pyvf")
@@ -561,5 +769,5 @@ def test_cli_checks_paths_before_rendering(bad, message, tmp_path, capsys, monke
     args = parser.parse_args(argv + [a.format(tmp=tmp_path) for a in bad])
     assert args.func(args) == 2
     err = capsys.readouterr().err
-    assert err == f"pyvf scenes: error: {message.format(tmp=tmp_path)}\n"
+    assert err.startswith(f"pyvf scenes: error: argument {option}:") and err.count("\n") == 1, err
     assert rendered[0] == 0 and not (tmp_path / "ds").exists()

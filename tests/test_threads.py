@@ -5,8 +5,12 @@ module and every Python thread, and inference calls made from several Python thr
 
 import argparse
 import os
+import subprocess
+import sys
+import textwrap
 import threading
 
+import numpy as np
 import pytest
 
 import pyvf
@@ -180,3 +184,62 @@ def test_inference_from_several_python_threads_at_once():
         assert b is not None, f"call {i} raised"
         for what, x, y in zip(("render", "localize", "encode"), a, b):
             assert np.array_equal(np.asarray(x), np.asarray(y)), f"call {i}: {what} differs run beside the others"
+
+
+def test_set_num_threads_takes_numpy_integers(restore_threads):
+    """A count from numpy (np.arange, an array of core counts) is an integer like any other, as
+    pyvf's own argument checks take it (_checks.integer). Before, pyvf.set_num_threads(np.int64(1))
+    raised "ValueError: n must be a positive integer below 2^31, got np.int64(1)", and
+    pyvf.threads(np.int32(1)) too. Bools (np.bool_ included) are still refused."""
+    pyvf.set_num_threads(np.int64(1))
+    assert pyvf.num_threads() == 1 and _threads.blas_num_threads() == 1
+    assert type(pyvf.num_threads()) is int
+    pyvf.set_num_threads(2)
+    with pyvf.threads(np.int32(1)):
+        assert pyvf.num_threads() == 1 and _threads.blas_num_threads() == 1
+    assert pyvf.num_threads() == 2
+    for bad in (True, np.bool_(True), np.int64(0), np.uint64(2 ** 31)):
+        with pytest.raises(ValueError, match=r"\bn\b"):
+            pyvf.set_num_threads(bad)
+        with pytest.raises(ValueError, match=r"\bn\b"):
+            pyvf.threads(bad)
+
+
+
+@pytest.mark.parametrize("value", ["³", "²", "¹⁰"])
+def test_malformed_thread_variable_is_named(value):
+    """Superscript digits are digits to str.isdigit but not to int(). Before,
+    PYVF_NUM_THREADS='³' raised "ValueError: invalid literal for int() with base 10: '³'" at
+    import, naming neither the variable nor what it must be (the documented ImportError)."""
+    with pytest.raises(ImportError, match="PYVF_NUM_THREADS"):
+        _threads.set_from_environment({"PYVF_NUM_THREADS": value})
+
+
+
+def test_default_under_a_narrower_affinity_limits_numpy_blas_too(tmp_path):
+    """The default is one thread per CPU of the affinity for the kernels and numpy's BLAS alike
+    (docs/api.md, Threads). A process that imported numpy (its BLAS pool sized to every CPU) and
+    was then pinned to one CPU (a launcher pinning its workers) before importing pyvf: OpenMP
+    reads the new affinity, so the kernels got 1 thread, but set_from_environment compared cores()
+    with OpenMP's count only and left numpy's BLAS at 2 (printed before: "1 2"). Then
+    set_num_threads moves both. (On a machine of one CPU, or without sched_setaffinity, the pin
+    changes nothing and the same lines are expected: the test runs everywhere, it can fail only
+    where there are CPUs to take away.) From tmp_path: the checkout's root would shadow the
+    installed package in CI."""
+    code = textwrap.dedent("""
+        import os
+        import numpy
+        if hasattr(os, "sched_setaffinity"):
+            os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+        import pyvf
+        from pyvf import _threads
+        print(pyvf.num_threads(), _threads.blas_num_threads())
+        pyvf.set_num_threads(2)
+        print(pyvf.num_threads(), _threads.blas_num_threads())
+    """)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYVF_NUM_THREADS", "OMP_NUM_THREADS",
+                                                            "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[:2] == ["1 1", "2 2"], out.stdout

@@ -26,6 +26,7 @@ import pytest
 
 import pyvf
 import pyvf._io
+import pyvf.train.loops as loops
 from conftest import assert_bitwise_equal
 from pyvf._io import CheckpointError, atomic_savez, atomic_write_text, load_npz
 from pyvf.models.codebook import Codebook, CodebookConfig
@@ -39,6 +40,7 @@ from pyvf.train import (
 )
 from pyvf.models.transformer import Transformer, TransformerConfig
 from pyvf.cli.train import register as cli_register
+from pyvf.train.tasks import compare_runs
 
 # 16x16 images -> 8x8 tokens (one downsampling), 16 codes
 CB = CodebookConfig(ch=32, ch_mult=(1, 1), num_res_blocks=1, attn_resolutions=(), z_channels=8, embed_dim=8,
@@ -330,38 +332,140 @@ def test_tokenize_equals_encode(rng):
 # bad arguments
 
 
-def test_bad_arguments_name_the_argument(tmp_path, rng):
-    images, tokens, poses = _images(rng), _tokens(rng), _poses(rng)
-    out = str(tmp_path / "x")
-    cases = [
-        (ValueError, "steps", lambda: train_codebook(images, CB, out, steps=0, **QUIET)),
-        (ValueError, "batch_size", lambda: train_codebook(images, CB, out, steps=1, batch_size=0, **QUIET)),
-        (TypeError, "steps", lambda: train_codebook(images, CB, out, steps=2.0, **QUIET)),
-        (TypeError, "images", lambda: train_codebook(images.astype(np.float32), CB, out, steps=1, **QUIET)),
-        (ValueError, "images", lambda: train_codebook(images[..., :2], CB, out, steps=1, **QUIET)),
-        (ValueError, "images", lambda: train_codebook(images[0, 0], CB, out, steps=1, **QUIET)),
-        (TypeError, "config", lambda: train_codebook(images, TF, out, steps=1, **QUIET)),
-        (ValueError, "checkpoint_every", lambda: train_codebook(images, CB, out, steps=1, checkpoint_every=0,
-                                                                **QUIET)),
-        (ValueError, "threads", lambda: train_codebook(images, CB, out, steps=1, threads=0, **QUIET)),
-        (TypeError, "images", lambda: tokenize(Codebook(CB), images.astype(np.int64))),
-        (ValueError, "batch_size", lambda: tokenize(Codebook(CB), images, batch_size=0)),
-        (ValueError, "steps", lambda: train_transformer(tokens, poses, TF, out, steps=0, **QUIET)),
-        (ValueError, "batch_size", lambda: train_transformer(tokens, poses, TF, out, steps=1, batch_size=-1,
-                                                             **QUIET)),
-        (ValueError, "tokens", lambda: train_transformer(tokens + 16, poses, TF, out, steps=1, **QUIET)),
-        (ValueError, "tokens", lambda: train_transformer(tokens[..., :1], poses, TF, out, steps=1, **QUIET)),
-        (TypeError, "tokens", lambda: train_transformer(tokens * 1.0, poses, TF, out, steps=1, **QUIET)),
-        (ValueError, "poses", lambda: train_transformer(tokens, poses[:, :4], TF, out, steps=1, **QUIET)),
-        (ValueError, "context", lambda: train_transformer(tokens, poses, TF, out, steps=1, context=5, **QUIET)),
-        (ValueError, "context", lambda: train_transformer(tokens, poses, TF, out, steps=1, context=0, **QUIET)),
-        (ValueError, "lr", lambda: train_transformer(tokens, poses, TF, out, steps=1, lr=-1.0, **QUIET)),
-        (ValueError, "max_grad_norm", lambda: train_transformer(tokens, poses, TF, out, steps=1, max_grad_norm=0,
-                                                                **QUIET)),
-    ]
-    for exc, name, call in cases:
-        with pytest.raises(exc, match=name):
-            call()
+# ---------------------------------------------------------------------------------------
+# refusals of the training functions: one table, the exception type and the argument's name, each
+# before the run folder is made
+
+
+# 4x4 images -> 2x2 tokens of 16 codes: the held-out set TF reads
+CB4 = dataclasses.replace(CB, image_size=4, ch_mult=(1, 1), n_embed=16)
+
+
+def _eval_set(rng, scenes=2, views=7):
+    cb = Codebook(CB4, seed=0)
+    images, poses = _images(rng, scenes=scenes, views=views, size=4), _poses(rng, scenes=scenes, views=views)
+    tokens = tokenize(cb, images).reshape(scenes, views, -1).astype(np.int64)  # (n, V, L)
+    return {"codebook": cb, "images": images, "poses": poses, "tokens": tokens}
+
+
+def _count_steps(monkeypatch):
+    """The number of transformer updates the loop runs from here on."""
+    calls, real = [], loops.transformer_step
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loops, "transformer_step", counted)
+    return calls
+
+
+def _cb(d, out, **kw):
+    return train_codebook(d["images"], kw.pop("config", CB), out, **{"steps": 1, **kw, **QUIET})
+
+
+def _tf(d, out, **kw):
+    return train_transformer(kw.pop("tokens", d["tokens"]), kw.pop("poses", d["poses"]), TF, out,
+                             **{"steps": 1, **kw, **QUIET})
+
+
+def _eval(**change):
+    """train_transformer evaluating on the held-out set with some entries changed: each entry is
+    checked when the call starts and named, not as the evaluation's internals (context_tokens,
+    target and pred, an AttributeError)."""
+    return lambda d, out: _tf(d, out, steps=2, batch_size=2, eval_every=1,
+                              eval_set={**d["eval"], **{k: f(d["eval"]) for k, f in change.items()}})
+
+
+@pytest.mark.parametrize("call, error, name", [
+    (lambda d, out: _cb(d, out, steps=0), ValueError, "steps"),
+    (lambda d, out: _cb(d, out, steps=2.0), TypeError, "steps"),
+    (lambda d, out: _cb(d, out, batch_size=0), ValueError, "batch_size"),
+    (lambda d, out: _cb({"images": d["images"].astype(np.float32)}, out), TypeError, "images"),
+    (lambda d, out: _cb({"images": d["images"][..., :2]}, out), ValueError, "images"),
+    (lambda d, out: _cb({"images": d["images"][0, 0]}, out), ValueError, "images"),
+    (lambda d, out: _cb(d, out, config=TF), TypeError, "config"),
+    (lambda d, out: _cb(d, out, checkpoint_every=0), ValueError, "checkpoint_every"),
+    (lambda d, out: _cb(d, out, threads=0), ValueError, "threads"),
+    (lambda d, out: _cb(d, out, command=object()), TypeError, "command"),  # config.json cannot hold it
+    *[(lambda d, out, bad=bad: _cb(d, out, batch_size=2, eval_images=bad(d["images"]), eval_every=1), error,
+       "eval_images") for bad, error in [(lambda i: i.astype(np.float32), TypeError), (lambda i: i[..., :2], ValueError)]],
+    (lambda d, out: tokenize(Codebook(CB), d["images"].astype(np.int64)), TypeError, "images"),
+    (lambda d, out: tokenize(Codebook(CB), d["images"], batch_size=0), ValueError, "batch_size"),
+    (lambda d, out: _tf(d, out, steps=0), ValueError, "steps"),
+    (lambda d, out: _tf(d, out, batch_size=-1), ValueError, "batch_size"),
+    (lambda d, out: _tf(d, out, tokens=d["tokens"] + 16), ValueError, "tokens"),
+    (lambda d, out: _tf(d, out, tokens=d["tokens"][..., :1]), ValueError, "tokens"),
+    (lambda d, out: _tf(d, out, tokens=d["tokens"] * 1.0), TypeError, "tokens"),
+    (lambda d, out: _tf(d, out, poses=d["poses"][:, :4]), ValueError, "poses"),
+    (lambda d, out: _tf(d, out, poses=d["poses"].astype(np.float16)), TypeError, "poses"),  # cannot hold a unit q
+    (lambda d, out: _tf(d, out, context=5), ValueError, "context"),
+    (lambda d, out: _tf(d, out, context=0), ValueError, "context"),
+    (lambda d, out: _tf(d, out, lr=-1.0), ValueError, "lr"),
+    (lambda d, out: _tf(d, out, max_grad_norm=0), ValueError, "max_grad_norm"),
+    # warmup >= total_steps is train_transformer's warmup, not WarmupCosine's warmup_steps
+    (lambda d, out: _tf(d, out, steps=5, warmup=5), ValueError, "warmup"),
+    (lambda d, out: _tf(d, out, steps=5, total_steps=8, warmup=9), ValueError, "warmup"),
+    (_eval(codebook=lambda e: "cb.npz"), TypeError, "codebook"),
+    (_eval(codebook=lambda e: Codebook(dataclasses.replace(CB4, n_embed=32), seed=0)), ValueError, "codebook"),
+    (_eval(images=lambda e: e["images"].astype(np.float32)), TypeError, "images"),
+    (_eval(images=lambda e: e["images"][:, :, :2]), ValueError, "images"),
+    (_eval(poses=lambda e: e["poses"].astype(np.float32)), TypeError, "poses"),
+    (_eval(poses=lambda e: e["poses"][:1]), ValueError, "poses"),
+    (_eval(poses=lambda e: e["poses"] * 2), ValueError, "poses"),
+    (_eval(tokens=lambda e: e["tokens"].reshape(2, 7, 2, 2)), ValueError, "tokens"),
+    (_eval(tokens=lambda e: e["tokens"] + 16), ValueError, "tokens"),
+    (_eval(tokens=lambda e: e["tokens"] * 1.0), TypeError, "tokens"),
+    # the batch functions are public: not numpy's reshape error, "images" (an empty batch) or "seed"
+    (lambda d, out: codebook_batch(d["images"].reshape(-1, 16, 16, 3), 0, 0, 1), ValueError, "batch_size"),
+    (lambda d, out: codebook_batch(d["images"].reshape(-1, 16, 16, 3), 2, -1, 1), ValueError, "seed"),
+    (lambda d, out: codebook_batch(d["images"].reshape(-1, 16, 16, 3), 2, 0, 1.5), TypeError, "step"),
+    (lambda d, out: transformer_batch(d["tokens"], d["poses"], 6, 2, 0, 1), ValueError, "n_views"),
+    (lambda d, out: transformer_batch(d["tokens"], d["poses"], 0, 2, 0, 1), ValueError, "n_views"),
+    (lambda d, out: transformer_batch(d["tokens"], d["poses"], 3, 0, 0, 1), ValueError, "batch_size"),
+    (lambda d, out: transformer_batch(d["tokens"], d["poses"], 3, 2, 0, 1.5), TypeError, "step"),
+    (lambda d, out: transformer_batch(d["tokens"], d["poses"], 3, 2, 0, -1), ValueError, "step"),
+])
+def test_refusals_name_the_argument(tmp_path, rng, call, error, name):
+    d = {"images": _images(rng), "tokens": _tokens(rng), "poses": _poses(rng), "eval": _eval_set(rng)}
+    out = str(tmp_path / "run")
+    with pytest.raises(error, match=rf"\b{name}\b"):
+        call(d, out)
+    assert not os.path.exists(out)
+
+
+def test_a_non_unit_quaternion_in_poses_raises_before_any_step(tmp_path, rng, monkeypatch):
+    """poses' quaternions are checked when the call starts, the error naming poses at its own
+    (scene, view): not at the first batch that happens to draw the bad view, many steps (and the
+    work since the last checkpoint) later, at an index into that batch."""
+    tokens, poses = _tokens(rng, scenes=8), _poses(rng, scenes=8)
+    poses[7, 4, 3:] *= 1.01
+    steps, out = _count_steps(monkeypatch), str(tmp_path / "run")
+    with pytest.raises(ValueError, match=r"\bposes\b.*\(7, 4\)"):
+        train_transformer(tokens, poses, TF, out, steps=50, batch_size=1, checkpoint_every=100, **QUIET)
+    assert steps == [] and not os.path.exists(out)
+
+
+def test_a_bad_eval_set_of_a_resumed_run_is_refused_before_any_step(tmp_path, rng, monkeypatch):
+    """A resumed run does not evaluate at step 0: it must not train eval_every steps first and
+    then lose them to the refusal."""
+    tokens, poses, good = _tokens(rng), _poses(rng), _eval_set(rng)
+    resumed = str(tmp_path / "resumed")
+    train_transformer(tokens, poses, TF, resumed, steps=2, batch_size=2, total_steps=6, checkpoint_every=10, **QUIET)
+    steps = _count_steps(monkeypatch)
+    with pytest.raises(TypeError, match=r"\bposes\b"):
+        train_transformer(tokens, poses, TF, resumed, steps=6, batch_size=2, total_steps=6, checkpoint_every=10,
+                          eval_set={**good, "poses": good["poses"].astype(np.float32)}, eval_every=3, **QUIET)
+    assert steps == [] and _checkpoint(resumed)[0]["step"] == 2
+
+
+def test_an_out_dir_that_is_a_file_is_named(tmp_path):
+    """out_dir naming a file gave makedirs' "[Errno 17] File exists"."""
+    afile = tmp_path / "f"
+    afile.write_text("x")
+    with pytest.raises(NotADirectoryError, match=r"\bout_dir\b"):
+        train_codebook(np.zeros((4, 16, 16, 3), np.uint8), CB, str(afile), steps=1, batch_size=2, progress=False)
+    assert afile.read_text() == "x"
 
 
 # ---------------------------------------------------------------------------------------
@@ -1203,3 +1307,57 @@ def test_training_options_are_checked_first(tmp_path, capsys, monkeypatch):
         assert "--eval-seed 0 is the training data's seed" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "tf")
     assert run(*tf, "--steps", 2, "--eval-seed", 1) == 0
+
+
+def test_numpy_integer_threads_are_accepted(tmp_path, rng):
+    """threads=np.int64(1) passes the check (any integer does) and config.json records it:
+    it used to pass the check and then crash writing config.json (int64 is not JSON)."""
+    cb, tf = str(tmp_path / "cb"), str(tmp_path / "tf")
+    train_codebook(_images(rng), CB, cb, steps=1, batch_size=2, threads=np.int64(1), **QUIET)
+    train_transformer(_tokens(rng), _poses(rng), TF, tf, steps=1, batch_size=2, threads=np.int32(1), **QUIET)
+    for run in (cb, tf):
+        with open(os.path.join(run, "config.json"), encoding="utf-8") as f:
+            assert json.load(f)["calls"][-1]["threads"] == 1
+
+
+
+def test_a_held_out_set_not_evaluated_on_is_not_part_of_the_run(tmp_path, rng):
+    """With eval_every=0 nothing is evaluated, so the held-out set passed is not recorded: a
+    resume with eval_every=0 passes whatever set it names (the advice of the refusal of another
+    set), and a run that evaluated nothing may evaluate on any set later, as the commands do
+    (they pass no set with --eval-every 0)."""
+    images = _images(rng)
+    first, other = (_images(rng, scenes=1, views=2).reshape(-1, 16, 16, 3) for _ in range(2))
+    kw = dict(batch_size=2, **QUIET)
+    evaluated = str(tmp_path / "evaluated")
+    train_codebook(images, CB, evaluated, steps=2, eval_images=first, eval_every=1, **kw)
+    rows = _log(evaluated, "eval.csv")
+    train_codebook(images, CB, evaluated, steps=3, eval_images=other, eval_every=0, **kw)
+    assert _checkpoint(evaluated)[0]["step"] == 3 and _log(evaluated, "eval.csv") == rows
+    with pytest.raises(ValueError, match="another held-out set"):  # the run's record kept
+        train_codebook(images, CB, evaluated, steps=4, eval_images=other, eval_every=1, **kw)
+
+    plain = str(tmp_path / "plain")
+    train_codebook(images, CB, plain, steps=2, eval_images=first, eval_every=0, **kw)
+    assert not os.path.exists(os.path.join(plain, "eval.csv"))
+    train_codebook(images, CB, plain, steps=3, eval_images=other, eval_every=1, **kw)
+    assert [r[0] for r in _log(plain, "eval.csv")[1:]] == ["3"]
+
+    tokens, poses = _tokens(rng), _poses(rng)
+    tf, kw = str(tmp_path / "tf"), dict(batch_size=2, total_steps=3, **QUIET)
+    train_transformer(tokens, poses, TF, tf, steps=2, eval_set=_eval_set(rng), eval_every=0, **kw)
+    assert not os.path.exists(os.path.join(tf, "eval.csv"))
+    train_transformer(tokens, poses, TF, tf, steps=3, eval_set=_eval_set(rng), eval_every=1, **kw)
+    assert [r[0] for r in _log(tf, "eval.csv")[1:]] == ["3"]
+
+
+
+def test_compare_runs_takes_a_numpy_integer_step(tmp_path, rng):
+    """compare_runs' step: a numpy integer (a step read from a log's array, say) is an integer, as
+    everywhere else in pyvf; a negative one or a float is still refused naming step."""
+    out = str(tmp_path / "run")
+    train_codebook(_images(rng), CB, out, steps=2, batch_size=2, **QUIET)
+    assert compare_runs([out], step=np.int64(1))[0] == compare_runs([out], step=1)[0]
+    for bad in (np.int64(-1), 1.0, True):
+        with pytest.raises(ValueError, match=r"\bstep\b"):
+            compare_runs([out], step=bad)

@@ -11,6 +11,8 @@ import torch
 
 import pyvf
 from conftest import assert_bitwise_equal, assert_close
+from pyvf.models.transformer import pose_prediction
+from pyvf.nn import attention, layers, losses
 from pyvf.verify import convert_tf, torch_transformer
 
 TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5, n_loss_skip=1)
@@ -192,40 +194,19 @@ def test_generation_branch_does_not_see_its_own_image(rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 4. cached inference equals the full computation
+# 4. cached inference (against the whole tree: tests/test_scene_cache.py)
 
 
-def test_cached_inference_equals_full_tree(rng):
+def test_render_and_localize_are_the_scene_paths(rng):
+    """render / localize (one call) are encode_scene then render_scene / localize_scene, bitwise."""
     cfg = pyvf.TransformerConfig(**{**TINY, "pose_multiplier": 0.5}, dtype="float64")
     model = random_model(cfg, rng)
-    B, Nc, M, L = 2, 4, 3, 16
-    ctx_tokens, ctx_poses = random_batch(rng, B, Nc, L, cfg.n_embeddings)
-    q_tokens, q_poses = random_batch(rng, B, M, L, cfg.n_embeddings)
+    ctx_tokens, ctx_poses = random_batch(rng, 2, 4, 16, cfg.n_embeddings)
+    q_tokens, q_poses = random_batch(rng, 2, 3, 16, cfg.n_embeddings)
     scene = model.encode_scene(ctx_tokens, ctx_poses)
-    logits = model.render_scene(scene, q_poses)  # (B, M, L, V)
-    poses = model.localize_scene(scene, q_tokens)  # (B, M, 7)
-    assert logits.shape == (B, M, L, cfg.n_embeddings) and poses.shape == (B, M, 7)
-    assert_bitwise_equal("render", model.render(ctx_tokens, ctx_poses, q_poses), logits)
-    assert_bitwise_equal("localize", model.localize(ctx_tokens, ctx_poses, q_tokens), poses)
-    for j in range(M):  # each query is view Nc of a full tree over context + that query
-        tokens = np.concatenate([ctx_tokens, q_tokens[:, j:j + 1]], axis=1)
-        rel, ref = pyvf.make_relative(np.concatenate([ctx_poses, q_poses[:, j:j + 1]], axis=1))
-        out = model.forward(tokens, rel)
-        # the same math in another order (einsum vs the kernel): measured 1e-15
-        assert_close(f"render query {j}", logits[:, j], out.logits[:, Nc], rtol=1e-12)
-        want = pyvf.absolute_poses(pyvf.average_pose(out.pose_prediction[:, Nc], axis=1), ref)
-        assert_close(f"localize query {j}", poses[:, j], want, rtol=1e-12)
-
-
-def test_render_is_independent_of_the_other_queries(rng):
-    cfg = pyvf.TransformerConfig(**TINY, dtype="float64")
-    model = random_model(cfg, rng)
-    ctx_tokens, ctx_poses = random_batch(rng, 1, 3, 16, cfg.n_embeddings)
-    _, q_poses = random_batch(rng, 1, 4, 16, cfg.n_embeddings)
-    scene = model.encode_scene(ctx_tokens, ctx_poses)
-    all4 = model.render_scene(scene, q_poses)
-    one = model.render_scene(scene, q_poses[:, 2:3])
-    assert_close("query 2 alone", one[:, 0], all4[:, 2], rtol=1e-14)
+    assert_bitwise_equal("render", model.render(ctx_tokens, ctx_poses, q_poses), model.render_scene(scene, q_poses))
+    assert_bitwise_equal("localize", model.localize(ctx_tokens, ctx_poses, q_tokens),
+                         model.localize_scene(scene, q_tokens))
 
 
 # ---------------------------------------------------------------------------------------
@@ -284,31 +265,6 @@ def test_load_official_names_and_shapes(rng):
                          model.forward(tokens, poses).logits)
 
 
-def test_load_official_rejects_bad_weights(rng):
-    weights, spec_cfg = official_weights(rng)
-    model = pyvf.Transformer(pyvf.TransformerConfig(**spec_cfg))
-    missing = dict(weights)
-    missing.pop("migt/h.1/mlp/c_fc/bias:0")
-    with pytest.raises(ValueError, match="missing"):
-        model.load_official(missing)
-    with pytest.raises(ValueError, match="unexpected parameter 'migt/h.2/ln_1/gamma:0'"):
-        model.load_official({**weights, "migt/h.2/ln_1/gamma:0": np.ones(32, np.float32)})
-    bad = dict(weights)
-    bad["migt/h.0/attn/c_attn/weight:0"] = np.zeros((96, 32), np.float32)  # transposed
-    with pytest.raises(ValueError, match=r"c_attn/weight:0' has shape \(96, 32\), expected \(32, 96\)"):
-        model.load_official(bad)
-    bad = dict(weights)
-    bad["migt/ln_f/gamma:0"] = np.ones(32, np.int32)
-    with pytest.raises(TypeError, match="expected a float array"):
-        model.load_official(bad)
-    bad = dict(weights)
-    bad["migt/ln_f/gamma:0"] = np.full(32, np.nan, np.float32)
-    with pytest.raises(ValueError, match="NaN"):
-        model.load_official(bad)
-    with pytest.raises(ValueError, match="given twice"):
-        model.load_official({**weights, "ln_f/gamma": np.ones(32, np.float32)})
-
-
 def test_load_official_refuses_float64_values_beyond_float32(rng):
     """A float64 checkpoint into a float32 model: a value past float32's largest (3.4028e38)
     would become inf (numpy only warns). Refused with every such parameter named, and nothing
@@ -347,72 +303,86 @@ def test_save_and_load_round_trip(tmp_path, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 7. bad input
+# 7. refusals: one table per entry point, the exception type and the argument's name
 
 
-def test_bad_input_raises(rng):
+def _forward_args(rng):
     cfg = pyvf.TransformerConfig(**TINY)
-    model = pyvf.Transformer(cfg)
-    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings, dtype=np.float32)
-    cases = [
-        ((np.where(tokens == tokens.max(), 64, tokens), poses), ValueError, r"tokens must be in \[0, 64\)"),
-        ((tokens - 1, poses), ValueError, r"tokens must be in \[0, 64\)"),
-        ((tokens.astype(np.float32), poses), TypeError, "tokens must be an integer"),
-        ((tokens[0], poses), ValueError, r"tokens must have shape \(B, N, L\)"),
-        ((tokens, poses[..., :6]), ValueError, r"poses must have shape \(B, N, 7\)"),
-        ((tokens, poses.astype(np.float64)), TypeError, "poses must be a float32"),
-        ((tokens, np.where(np.arange(7) == 2, np.inf, poses).astype(np.float32)), ValueError, "poses contains NaN"),
-        ((tokens, np.full_like(poses, np.nan)), ValueError, "poses contains NaN"),
-        ((tokens[:, :1], poses[:, :1]), ValueError, "no view is a loss target"),
-        ((rng.integers(0, 64, (1, 2, 257)), poses[:1, :2]), ValueError, "257 tokens per view; at most 256"),
-        ((tokens.tolist(), poses), TypeError, "tokens must be an integer numpy array"),
-    ]
-    for args, exc, match in cases:
-        with pytest.raises(exc, match=match):
-            model.forward(*args)
-    with pytest.raises(RuntimeError, match="needs a forward"):
-        pyvf.Transformer(cfg).backward()
-    scene = model.encode_scene(tokens[:, :3], poses[:, :3])
-    with pytest.raises(ValueError, match=r"query_poses must have shape"):
-        model.render_scene(scene, poses[:, :2, :6])
-    with pytest.raises(ValueError, match=r"query_tokens must be in \[0, 64\)"):
-        model.localize_scene(scene, tokens[:, :2] + 64)
+    return pyvf.Transformer(cfg), *random_batch(rng, 2, 5, 16, cfg.n_embeddings, dtype=np.float32)
 
 
-@pytest.mark.parametrize("field, value, match", [
-    ("d_model", 33, "not divisible by n_head"),
-    ("token_image_size", 17, "289 tokens per view"),
-    ("n_loss_skip", -1, "non-negative"),
-    ("dtype", "float16", "'float32' or 'float64'"),
-    ("label_smoothing", 1.0, r"in \[0, 1\)"),
-    ("n_head", 0, "positive integer"),
+@pytest.mark.parametrize("edit, error, name", [
+    (lambda t, p: (np.where(t == t.max(), 64, t), p), ValueError, "tokens"),
+    (lambda t, p: (t - 1, p), ValueError, "tokens"),
+    (lambda t, p: (t.astype(np.float32), p), TypeError, "tokens"),
+    (lambda t, p: (t[0], p), ValueError, "tokens"),
+    (lambda t, p: (t.tolist(), p), TypeError, "tokens"),
+    (lambda t, p: (t[:, :1], p[:, :1]), ValueError, "tokens"),  # one view: no view is a loss target
+    (lambda t, p: (np.zeros((1, 2, 257), np.int64), p[:1, :2]), ValueError, "tokens"),  # past wpe's rows
+    (lambda t, p: (t, p[..., :6]), ValueError, "poses"),
+    (lambda t, p: (t, p.astype(np.float64)), TypeError, "poses"),
+    (lambda t, p: (t, np.where(np.arange(7) == 2, np.inf, p).astype(np.float32)), ValueError, "poses"),
+    (lambda t, p: (t, np.full_like(p, np.nan)), ValueError, "poses"),
 ])
-def test_bad_config_raises(field, value, match):
-    with pytest.raises(ValueError, match=match):
-        pyvf.TransformerConfig(**{**TINY, field: value})
+def test_forward_refusals(rng, edit, error, name):
+    model, tokens, poses = _forward_args(rng)
+    with pytest.raises(error, match=rf"\b{name}\b"):
+        model.forward(*edit(tokens, poses))
 
 
-@pytest.mark.parametrize("field, value, exc, match", [
+def test_backward_needs_a_forward():
+    with pytest.raises(RuntimeError, match=r"forward"):
+        pyvf.Transformer(pyvf.TransformerConfig(**TINY)).backward()
+
+
+def _without(weights, name):
+    weights = dict(weights)
+    weights.pop(name)
+    return weights
+
+
+@pytest.mark.parametrize("edit, error, name", [
+    (lambda w: _without(w, "migt/h.1/mlp/c_fc/bias:0"), ValueError, "h.1/mlp/c_fc/bias"),  # missing
+    (lambda w: {**w, "migt/h.2/ln_1/gamma:0": np.ones(32, np.float32)}, ValueError, "h.2/ln_1/gamma"),  # unexpected
+    (lambda w: {**w, "migt/h.0/attn/c_attn/weight:0": np.zeros((96, 32), np.float32)}, ValueError,
+     "h.0/attn/c_attn/weight"),  # transposed
+    (lambda w: {**w, "migt/ln_f/gamma:0": np.ones(32, np.int32)}, TypeError, "ln_f/gamma"),
+    (lambda w: {**w, "migt/ln_f/gamma:0": np.full(32, np.nan, np.float32)}, ValueError, "ln_f/gamma"),
+    (lambda w: {**w, "ln_f/gamma": np.ones(32, np.float32)}, ValueError, "ln_f/gamma"),  # given twice
+])
+def test_load_official_refusals_name_the_weight(rng, edit, error, name):
+    weights, spec_cfg = official_weights(rng)
+    model = pyvf.Transformer(pyvf.TransformerConfig(**spec_cfg))
+    with pytest.raises(error, match=name):
+        model.load_official(edit(weights))
+
+
+@pytest.mark.parametrize("field, value, error", [
+    ("d_model", 33, ValueError),  # not divisible by n_head
+    ("token_image_size", 17, ValueError),  # 289 tokens per view, wpe has 256
+    ("n_loss_skip", -1, ValueError),
+    ("dtype", "float16", ValueError),
+    ("label_smoothing", 1.0, ValueError),
+    ("label_smoothing", float("nan"), ValueError),
+    ("label_smoothing", None, TypeError),
+    ("n_head", 0, ValueError),
+    ("n_head", np.int64(0), ValueError),
+    ("n_head", True, TypeError),
+    ("n_head", 2.0, TypeError),
+    ("n_loss_skip", "1", TypeError),
     # positions are multiplied by pose_multiplier and predictions divided by it (docs/math.md §3):
     # 0, or a magnitude that is 0 or subnormal in the dtype (its reciprocal overflows), gave inf poses
-    ("pose_multiplier", 0.0, ValueError, "^TransformerConfig.pose_multiplier must be nonzero"),
-    ("pose_multiplier", -0.0, ValueError, "^TransformerConfig.pose_multiplier must be nonzero"),
-    ("pose_multiplier", 1e-40, ValueError, "^TransformerConfig.pose_multiplier must be nonzero.*float32"),
-    ("pose_multiplier", 1e39, ValueError, "^TransformerConfig.pose_multiplier must be nonzero.*float32"),
-    ("pose_multiplier", float("nan"), ValueError, "^TransformerConfig.pose_multiplier must be finite"),
-    # wrong types: an error naming the field, not numpy's or Python's own
-    ("pose_multiplier", "a", TypeError, "^TransformerConfig.pose_multiplier must be a real number, got str"),
-    ("label_smoothing", None, TypeError, "^TransformerConfig.label_smoothing must be a real number, got NoneType"),
-    ("label_smoothing", float("nan"), ValueError, "^TransformerConfig.label_smoothing must be finite"),
-    ("attention_scale", [1.0], TypeError, "^TransformerConfig.attention_scale must be a real number"),
-    ("localization_weight", True, TypeError, "^TransformerConfig.localization_weight must be a real number"),
-    ("n_head", True, TypeError, "^TransformerConfig.n_head must be an integer, got bool"),
-    ("n_head", 2.0, TypeError, "^TransformerConfig.n_head must be an integer, got float"),
-    ("n_loss_skip", "1", TypeError, "^TransformerConfig.n_loss_skip must be an integer, got str"),
-    ("n_head", np.int64(0), ValueError, "^TransformerConfig.n_head must be a positive integer, got 0"),
+    ("pose_multiplier", 0.0, ValueError),
+    ("pose_multiplier", -0.0, ValueError),
+    ("pose_multiplier", 1e-40, ValueError),
+    ("pose_multiplier", 1e39, ValueError),
+    ("pose_multiplier", float("nan"), ValueError),
+    ("pose_multiplier", "a", TypeError),
+    ("attention_scale", [1.0], TypeError),
+    ("localization_weight", True, TypeError),
 ])
-def test_bad_config_field_is_named(field, value, exc, match):
-    with pytest.raises(exc, match=match):
+def test_config_refusals(field, value, error):
+    with pytest.raises(error, match=rf"\b{field}\b"):
         pyvf.TransformerConfig(**{**TINY, field: value})
 
 
@@ -481,3 +451,140 @@ def test_tf_converter_maps_checkpoint_keys(style, rng, tmp_path):
     del tensors["migt/wte/weight" + suffix]
     with pytest.raises(ValueError, match="1 weights not found"):
         convert_tf.convert(FakeReader(tensors), cfg)
+
+
+# ---------------------------------------------------------------------------------------
+# 8. what a demanding user tries: buffers changed between forward() and backward(), losses, seeds
+# and pose multipliers past the dtype's range
+
+
+SMALL = dict(n_embeddings=16, n_head=2, d_model=8, n_layer=1, token_image_size=2, sequence_size=3, n_loss_skip=1)
+
+
+def small_batch(rng, B, N, dtype, L=4, V=16):
+    return random_batch(rng, B, N, L, V, dtype)
+
+
+def small_model(dtype="float64", **cfg):
+    return pyvf.Transformer(pyvf.TransformerConfig(**{**SMALL, **cfg}, dtype=dtype), seed=0)
+
+
+def assert_same_grads(got, want):
+    assert got.keys() == want.keys()
+    for name in want:
+        assert_bitwise_equal(name, got[name], want[name])
+
+
+@pytest.mark.parametrize("B", [1, 2])
+def test_backward_ignores_inputs_changed_after_forward(rng, B):
+    """The forward kept the caller's tokens array itself (the embedding's scatter ids, and the
+    cross-entropy's targets when they were a view): a data loader refilling its buffer before
+    backward() moved the wte gradient to the new batch's rows, silently (max |diff| 1.2 on a
+    tiny model). The oracle: the same forward and backward on arrays nobody touched, bitwise."""
+    m = small_model()
+    tokens, poses = small_batch(rng, B, 3, np.float64)
+    m.forward(tokens.copy(), poses.copy())
+    want = m.backward()
+    m.forward(tokens, poses)
+    tokens[...] = (tokens + 1) % SMALL["n_embeddings"]  # the caller reuses its buffers
+    poses[...] = poses[::-1]
+    assert_same_grads(m.backward(), want)
+
+
+@pytest.mark.parametrize("B, skip", [(1, 1), (2, 0), (2, 1)])
+def test_backward_ignores_outputs_changed_after_forward(rng, B, skip):
+    """out.logits is the caller's array, yet with B = 1 or n_loss_skip = 0 the cross-entropy's
+    cache was a view of it (the logits of the loss views, reshaped without a copy): a softmax
+    written in place into out.logits changed the next backward() silently."""
+    m = small_model(n_loss_skip=skip)
+    tokens, poses = small_batch(rng, B, 3, np.float64)
+    m.forward(tokens, poses)
+    want = m.backward()
+    out = m.forward(tokens, poses)
+    for a in (out.logits, out.pose_raw, out.pose_prediction, out.ce_loss, out.pose_loss):
+        a *= 2
+    assert_same_grads(m.backward(), want)
+
+
+def test_loss_that_overflows_raises_and_keeps_the_last_forward(rng):
+    """A float32 loss weight that makes each batch element's weighted loss 0.75 of float32's
+    largest value: the batch mean fits, the sum NumPy's mean takes first does not, and out.loss
+    came back inf, silently (a RuntimeWarning at most), while backward() gave finite gradients
+    of that inf. Now a ValueError naming the loss; the failed forward leaves what backward()
+    differentiates unchanged (bitwise)."""
+    tokens, poses = small_batch(rng, 1, 3, np.float32)
+    pl = float(small_model("float32").forward(tokens, poses).pose_loss[0])
+    m = small_model("float32", localization_weight=0.75 * float(np.finfo(np.float32).max) / pl)  # same seed, same weights
+    m.forward(tokens, poses)  # one element: its weighted loss fits float32
+    want = m.backward()
+    with pytest.raises(ValueError, match=r"\bloss\b"):
+        m.forward(np.concatenate([tokens, tokens]), np.concatenate([poses, poses]))  # the sum of two does not
+    assert_same_grads(m.backward(), want)
+
+
+@pytest.mark.parametrize("dloss", [1e40, -1e300])
+def test_backward_seed_beyond_the_dtype_is_named(rng, dloss):
+    """backward(dloss=1e40) on a float32 model said "dloss contains NaN or inf" (and NumPy
+    warned of an overflowing cast): dloss is finite; it is the per-token seed dloss / (B N L)
+    that float32 cannot hold. The error now says so, and the model is left as it was."""
+    m = small_model("float32")
+    tokens, poses = small_batch(rng, 2, 3, np.float32)
+    m.forward(tokens, poses)
+    want = m.backward()
+    with pytest.raises(ValueError, match=r"\bdloss\b") as e:
+        m.backward(dloss=dloss)
+    assert "NaN" not in str(e.value)
+    assert_same_grads(m.backward(), want)
+
+
+@pytest.mark.parametrize("raw, pm, exc, name", [
+    (np.ones((2, 7), np.int64), 1.0, TypeError, "raw"),
+    (np.full((2, 7), np.nan, np.float32), 1.0, ValueError, "raw"),
+    ([[1.0] * 7], 1.0, TypeError, "raw"),
+    (np.ones((2, 6)), 1.0, ValueError, "raw"),
+    (np.ones((2, 7), np.float32), 0.0, ValueError, "pose_multiplier"),
+    (np.ones((2, 7), np.float32), 1e-40, ValueError, "pose_multiplier"),  # 0 in float32
+    (np.ones((2, 7), np.float32), "0.2", TypeError, "pose_multiplier"),
+    (np.full((2, 7), 1e30, np.float32), 1e-10, ValueError, "pose_prediction"),  # the quotient overflows
+])
+def test_pose_prediction_bad_input_is_named(raw, pm, exc, name):
+    """pose_prediction blamed `q`, the quaternion helper's argument, for a raw of the wrong dtype
+    or with NaN; pose_multiplier = 0 (or one float32 holds as 0) and a quotient past float32's
+    range returned inf poses, silently."""
+    with np.errstate(all="raise"):  # no division by zero or overflow reaches NumPy any more
+        with pytest.raises(exc, match=rf"\b{name}\b"):
+            pose_prediction(raw, pm)
+
+
+def test_pose_loss_multiplier_beyond_the_dtype_is_named():
+    """pose_multiplier = 1e39 is finite but not a float32: it became inf, and inf * 0 NaN, so a
+    zero target (whose loss is mean(raw^2), finite) raised "the loss is not finite: it
+    overflowed float32", blaming the loss for the argument."""
+    raw, target = np.ones((2, 7), np.float32), np.zeros((2, 7), np.float32)
+    with pytest.raises(ValueError, match=r"\bpose_multiplier\b"):
+        losses.pose_loss_forward(raw, target, 1e39)
+    # the bound is the dtype's: the same multiplier is a float64
+    loss, _ = losses.pose_loss_forward(raw.astype(np.float64), target.astype(np.float64), 1e39)
+    np.testing.assert_array_equal(loss, np.full(2, 2.0))  # 3/3 + 4/4: exact
+
+
+@pytest.mark.parametrize("ids, rows, exc, name", [
+    (np.array([0, 1]), np.ones((3, 2)), ValueError, "rows"),
+    (np.array([0, 1, 1]), np.ones((2, 2)), ValueError, "rows"),
+])
+def test_sum_rows_by_id_refuses_ids_and_rows_of_other_lengths(ids, rows, exc, name):
+    """ids shorter than rows dropped the rows past them from the sum, silently ([[1, 1], [1, 1]]
+    for three rows of ones on ids [0, 1])."""
+    with pytest.raises(exc, match=rf"\b{name}\b"):
+        layers.sum_rows_by_id(ids, rows, 2)
+
+
+@pytest.mark.parametrize("n_head", [2.0, "2", True])
+def test_attention_n_head_of_the_wrong_type_is_a_type_error(rng, n_head):
+    """n_head = 2.0 raised ValueError "must be a positive integer": a wrong type is a TypeError
+    throughout pyvf (_checks.positive_integer; TransformerConfig.n_head says so)."""
+    x = rng.normal(size=(2, 1, 2, 3, 4))
+    w_attn, b_attn = rng.normal(size=(4, 12)), np.zeros((1, 12))
+    w_proj, b_proj = rng.normal(size=(4, 4)), np.zeros((1, 4))
+    with pytest.raises(TypeError, match=r"\bn_head\b"):
+        attention.attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head)
