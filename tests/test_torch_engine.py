@@ -304,7 +304,7 @@ def test_torch_codebook_equals_pyvf_after_20_steps(tmp_path):
 
 
 def test_torch_codebook_float32(tmp_path):
-    """The free float32 runs, 20 steps: the torch engine within 1e-2 of pyvf's movement, and as near the
+    """The free float32 runs, 20 steps: the torch engine within 3e-2 of pyvf's movement, and as near the
     float64 run. Not rounding-sized, by Adam (the step-by-step test below shows each step equal to
     rounding): its first steps are about lr * sign(g), so an entry whose gradient is below its own
     rounding error (~1e-6 of its tensor's largest, ~1e-8, Adam's eps) steps up to lr the other way in
@@ -314,14 +314,16 @@ def test_torch_codebook_float32(tmp_path):
     nearest codes equal at every step). The float64 run puts it on float32's account: pyvf's float32 run
     is as far from it (8.7e-4), torch's nearer (1.8e-4). 1e-2 leaves room for such an entry in a smaller
     tensor on another machine: 0.71 lr in conv_in's 1728 entries is 1.7e-2 of its first step's movement,
-    3.4e-3 of its 20 steps' (5 lr sqrt(1728)). The Keras epsilon planted in the torch engine gives 0.17
-    after 20 steps (7.9e-3 after 6: a shorter free run would miss it; each step's check sees it at once)."""
+    3.4e-3 of its 20 steps' (5 lr sqrt(1728)) for each such entry: on a 2-core AVX2 EPYC conv_in ends
+    1.1e-2 apart (a few such entries), so the bound is 3e-2. The Keras epsilon planted in the torch
+    engine gives 0.17 after 20 steps, 5.7x above it (7.9e-3 after 6: a shorter free run would miss it;
+    each step's check sees it at once)."""
     a = _train_cb(tmp_path, "pyvf", "pyvf", CB).state_dict()
     b = _train_cb(tmp_path, "torch", "torch", CB).state_dict()
     exact = _train_cb(tmp_path, "float64", "pyvf").state_dict()
     w0 = Codebook(CB, seed=0).state_dict()
-    _check_same_codebook(a, b, w0, 1e-2)
-    _check_same_codebook(exact, b, w0, 1e-2)
+    _check_same_codebook(a, b, w0, 3e-2)
+    _check_same_codebook(exact, b, w0, 3e-2)
 
 
 def test_torch_codebook_resume_and_parity_log(tmp_path):
