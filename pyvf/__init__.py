@@ -58,13 +58,26 @@ from .geometry import (
 )
 from .models.codebook import Codebook, CodebookConfig, CodebookOutput
 from .nn.quantizer import EMAQuantizer, QuantizerOutput, vq_nearest
-from .train.optim import Adam, AdamW, WarmupCosine, clip_grad_norm, published_weight_decay, warmup_cosine_lr
-from .train import codebook_train_step, train_step
 from .models.transformer import Scene, Transformer, TransformerConfig, TransformerOutput
 from .verify.compare import Comparison, compare, rel_err
 from .verify.layout import flat_to_tree, params_from_layout, params_to_layout, trace_from_flat, tree_to_flat
 from .verify.teacher import TeacherReport, teacher_force
 
+
+# The training names, imported on first use (PEP 562): `import pyvf` loads no training code.
+_TRAINING = {name: "train.optim" for name in ("Adam", "AdamW", "WarmupCosine", "clip_grad_norm",
+                                             "published_weight_decay", "warmup_cosine_lr")}
+_TRAINING.update(codebook_train_step="train", train_step="train")
+
+
+def __getattr__(name):
+    if name not in _TRAINING:
+        raise AttributeError(f"module 'pyvf' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(f".{_TRAINING[name]}", __name__), name)
+    globals()[name] = value
+    return value
 
 
 def kernel_path():

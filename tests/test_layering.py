@@ -187,3 +187,15 @@ def test_no_function_longer_than_80_lines():
     offenders = [f"{where}: {n} lines" for n, where in long if n > MAX_FUNCTION_LINES]
     assert long and long[-1][0] > 20, long[-3:]  # the scan saw real functions
     assert not offenders, f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(offenders)
+
+
+def test_import_pyvf_loads_no_training_code(tmp_path):
+    """`import pyvf` is the library: the training names (pyvf.AdamW, pyvf.train_step, ...) load
+    pyvf.train on first use, not before."""
+    import subprocess
+    import sys
+
+    code = ("import sys, pyvf; print(sorted(m for m in sys.modules if m.startswith('pyvf.train'))); "
+            "pyvf.AdamW; print('pyvf.train.optim' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.stdout.split("\n")[:2] == ["[]", "True"], proc.stdout + proc.stderr
