@@ -431,10 +431,10 @@ def load_tokens(path):
 
 
 def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup, total_steps, weight_decay,
-                       max_grad_norm, clip_mode, seed):
+                       max_grad_norm, clip_mode, seed, codebook_fingerprint):
     """train_transformer's arguments checked: (the run's hyperparameters, the WarmupCosine schedule,
     steps); the hyperparameters hold batch_size, views (N), lr, warmup, total_steps, weight_decay,
-    clipping, seed and the data's fingerprint."""
+    clipping, seed, the data's fingerprint and the codebook's (when known)."""
     batch_size = positive_int("batch_size", batch_size)
     steps = positive_int("steps", steps)
     seed = integer("seed", seed, 0)
@@ -461,6 +461,8 @@ def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, wa
              "total_steps": total_steps, "weight_decay": weight_decay, "eps": 1e-8, "eps_convention": "keras",
              "max_grad_norm": None if max_grad_norm is None else float(max_grad_norm), "clip_mode": clip_mode,
              "seed": seed, "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
+    if codebook_fingerprint is not None:
+        hyper["codebook_fingerprint"] = str(codebook_fingerprint)
     return hyper, schedule, steps
 
 
@@ -525,17 +527,19 @@ def _transformer_eval(eval_set, eval_every, config):
     return eval_every, record, transformer_health_columns(contexts), health
 
 
-def _transformer_and_optimiser(run, config, seed, schedule, weight_decay, init_state=None):
-    """A new Transformer and its optimiser, the published one (optim.py: HF AdamWeightDecay over
-    Keras Adam); both as the run's checkpoint left them when it resumes. A fresh run with
-    init_state (_warm_start's) starts from its parameters, the optimiser fresh (zero moments,
-    step 0, the schedule from its start)."""
-    model = Transformer(config, seed=seed)
+def _transformer_and_optimiser(run, config, hyper, schedule, init_state=None):
+    """A new Transformer (of hyper's seed, recording hyper's codebook fingerprint) and its
+    optimiser, the published one (optim.py: HF AdamWeightDecay over Keras Adam, hyper's weight
+    decay); both as the run's checkpoint left them when it resumes. A fresh run with init_state
+    (_warm_start's) starts from its parameters, the optimiser fresh (zero moments, step 0, the
+    schedule from its start)."""
+    model = Transformer(config, seed=hyper["seed"])
+    model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
     if run.resumed:
         run.restore("model", model.load_official, run.model_state)  # replaces model.params
     elif init_state is not None:
         model.load_official(init_state)  # replaces model.params
-    opt = AdamW(model.params, lr=schedule, eps=1e-8, weight_decay=weight_decay, decay=published_weight_decay,
+    opt = AdamW(model.params, lr=schedule, eps=1e-8, weight_decay=hyper["weight_decay"], decay=published_weight_decay,
                 eps_convention="keras")  # after the restore: on the params it put in place
     if run.resumed:
         run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
@@ -613,24 +617,18 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         file); the final model is out_dir/transformer.npz (Transformer.load reads it).
     codebook_fingerprint: the fingerprint of the codebook the tokens came from (load_tokens'):
         recorded in config.json and the model, whose pairings then check it (models.check_pair).
-    engine: "pyvf" (its own kernels, on the CPU) or "torch" (torch_engine.TorchTransformer:
-        the same batches, schedule, optimiser, clipping and checkpoints, the model in torch on
-        `device` "cpu" | "cuda" | "cuda:N" at `precision` "fp32" | "bf16" (autocast; the weights
-        and moments stay float32)). A checkpoint of either engine resumes in the other. The torch
-        engine checks the torch model against pyvf's at every checkpoint (out_dir/parity.csv)
-        and stops at a divergence. Under torchrun (or in a process group) it is data-parallel:
-        each process runs its shard of every batch, rank 0 writes the run (torch_engine).
+    engine, device, precision: "pyvf" (its own kernels, on the CPU) or "torch" on `device` "cpu" |
+        "cuda" | "cuda:N" at `precision` "fp32" | "bf16": the same run with the model in torch,
+        checked against pyvf's at every checkpoint, data-parallel under torchrun (torch_engine's
+        docstring; docs/howto-torch-engine.md). A checkpoint of either engine resumes in the other.
     Returns the trained Transformer."""
     if not isinstance(config, TransformerConfig):
         raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
     _check_tokens_poses(tokens, poses, config)
     hyper, schedule, steps = _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup,
-                                                total_steps, weight_decay, max_grad_norm, clip_mode, seed)
-    batch_size, n_views, seed, weight_decay = (hyper[k] for k in ("batch_size", "views", "seed", "weight_decay"))
-    if codebook_fingerprint is not None:
-        hyper["codebook_fingerprint"] = str(codebook_fingerprint)
-    if eval_set is not None and codebook_fingerprint is not None and eval_set["codebook"].fingerprint() != codebook_fingerprint:
-        raise ValueError("eval_set's codebook is not the one the tokens came from (codebook_fingerprint)")
+                                                total_steps, weight_decay, max_grad_norm, clip_mode, seed,
+                                                codebook_fingerprint)
+    batch_size, n_views, seed = (hyper[k] for k in ("batch_size", "views", "seed"))
     check_engine(engine, device, precision, config.dtype)
     eval_every, eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
     threads_set = _Threads(threads)
@@ -645,7 +643,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
             call=call, eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint"),
             stop_at_step_end=dp is None), steps, out_dir)
         evaluating = health is not None and eval_every > 0 and not isinstance(run, Follower)
-        model, opt = _transformer_and_optimiser(run, config, seed, schedule, weight_decay, init_state)
+        model, opt = _transformer_and_optimiser(run, config, hyper, schedule, init_state)
         step, state, current, opt, check = _transformer_engine(
             engine, model, opt, dp, parity_batch(tokens, poses, n_views, seed, config.dtype),
             (max_grad_norm, clip_mode), device, precision)
@@ -658,8 +656,7 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
                                              config.dtype)  # (B, N, L), (B, N, 7)
                 lr_t = opt.lr_at(opt.step_count)
                 loss, ce, pl, norm = step(tok, pos)
-                run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl,
-                            "grad_norm": norm, "lr": lr_t})
+                run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl, "grad_norm": norm, "lr": lr_t})
                 if evaluating and run.eval_due(t, eval_every):
                     run.log_eval(t, health(current()))
                     plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
@@ -667,6 +664,4 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
         run.save_final(state())
     if dp is not None:
         dp.close()
-    model = current()
-    model.codebook_fingerprint = hyper.get("codebook_fingerprint")
-    return model
+    return current()

@@ -7,6 +7,7 @@ float32 rounding), initialised from pyvf's Transformer(config, seed), so both en
 the same weights. TorchAdamW is pyvf.train.optim.AdamW's update written with torch operations (the
 Keras epsilon convention, decoupled decay on the parameters published_weight_decay names); its
 moments are saved in pyvf's layout, so a checkpoint of either engine resumes in the other.
+precision "bf16" autocasts the arithmetic; the weights and the moments stay float32.
 
 At every checkpoint the torch model is checked against pyvf (`parity`): pyvf loads the weights,
 runs a fixed batch, and its logits, pose predictions and losses must equal the torch model's
