@@ -199,3 +199,38 @@ def test_import_pyvf_loads_no_training_code(tmp_path):
             "pyvf.AdamW; print('pyvf.train.optim' in sys.modules)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert proc.stdout.split("\n")[:2] == ["[]", "True"], proc.stdout + proc.stderr
+
+
+def cycles(edges):
+    """The import cycles of a graph {module: set of modules it imports}, each as the path that
+    closes it (a depth-first search; each cycle reported once from its first module)."""
+    found, state = [], {}
+
+    def visit(m, path):
+        state[m] = "open"
+        for n in sorted(edges.get(m, ())):
+            if state.get(n) == "open":
+                found.append(path[path.index(n):] + [n])
+            elif n not in state:
+                visit(n, path + [n])
+        state[m] = "done"
+
+    for m in sorted(edges):
+        if m not in state:
+            visit(m, [m])
+    return found
+
+
+def test_no_import_cycles():
+    """No module imports one that imports it back, through any chain, at module level or inside a
+    function (a package's __init__ and its submodules aside: a package imports its own parts)."""
+    edges = {}
+    for m, _, target, _, _, _ in imports():
+        if not (m.startswith(target + ".") or target.startswith(m + ".")) and target != m:
+            edges.setdefault(m, set()).add(target)
+    assert not cycles(edges), cycles(edges)
+
+
+def test_the_cycle_scan_finds_a_planted_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c", "a"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []

@@ -29,15 +29,15 @@ from ..evaluate.health import (
     CODEBOOK_HEALTH,
     codebook_health,
     health_contexts,
-    object_mask,
     transformer_health,
     transformer_health_columns,
 )
-from ..evaluate.metrics import encode_images, to_model_images
+from ..evaluate.metrics import encode_images
 from ..geometry import _check_unit
 from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import CHECKPOINT, Run, _diff, file_sha256, fingerprint, integer, jsonable, positive_int, real, resume_point
+from .batches import codebook_batch, transformer_batch
 from .curves import plot_eval
 from .step import check_clipping, codebook_train_step, transformer_step
 from .torch_codebook_engine import check_codebook_engine, parity_images
@@ -95,27 +95,6 @@ def _check_images(images, config, name="images"):
     return images.reshape(-1, S, S, C)
 
 
-def _batch_key(batch_size, seed, step):
-    """The batch functions' batch_size, seed and step checked (errors name them, not numpy's
-    names) -> the key [seed, step] of the step's generator."""
-    positive_int("batch_size", batch_size)
-    return [integer("seed", seed, 0), integer("step", step, 0)]
-
-
-def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weight=None):
-    """Batch of step `step`: batch_size views drawn uniformly (with replacement) from the
-    (M, Hi, Wi, C) uint8 images -> (B, C, Hi, Wi) in [-1, 1]. A pure function of (seed, step).
-    With object_weight (a float), also the pixel weights (B, 1, Hi, Wi): object_weight on the
-    pixels health.object_mask marks, 1 on the background."""
-    rng = np.random.default_rng(_batch_key(batch_size, seed, step))
-    idx = rng.integers(0, images.shape[0], size=batch_size)  # (B,)
-    x = to_model_images(images[idx], np.dtype(dtype))
-    if object_weight is None:
-        return x
-    w = np.where(object_mask(images[idx]), object_weight, 1.0).astype(dtype)[:, None]  # (B, 1, Hi, Wi)
-    return x, w
-
-
 def _check_tokens_poses(tokens, poses, config):
     if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu":
         raise TypeError("tokens must be an integer numpy array, got "
@@ -134,22 +113,6 @@ def _check_tokens_poses(tokens, poses, config):
     # as the batches hold them (in the model's dtype), here rather than at the first step that
     # draws a bad view, which may come thousands of steps in and name an index into its batch
     _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))  # at (scene, view)
-
-
-def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="float32"):
-    """Batch of step `step`: per sample a scene drawn uniformly, then n_views distinct views
-    of it in random order. tokens (scenes, views, k, k), poses (scenes, views, 7) ->
-    tokens (B, N, L) int64, poses (B, N, 7) of dtype. A pure function of (seed, step)."""
-    rng = np.random.default_rng(_batch_key(batch_size, seed, step))
-    n_scenes, n_avail = tokens.shape[:2]
-    if integer("n_views", n_views) > n_avail:
-        raise ValueError(f"n_views must be at most the views a scene has, {n_avail}, got {n_views}")
-    scenes = rng.integers(0, n_scenes, size=batch_size)  # (B,)
-    order = rng.permuted(np.tile(np.arange(n_avail), (batch_size, 1)), axis=1)  # (B, views): a permutation per row
-    views = order[:, :n_views]  # (B, N)
-    tok = tokens[scenes[:, None], views].reshape(batch_size, n_views, -1).astype(np.int64)  # (B, N, L)
-    pos = poses[scenes[:, None], views].astype(dtype)  # (B, N, 7)
-    return tok, pos
 
 
 class _Threads:

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..nn.quantizer import code_statistics
 from ..verify.compare import compare
+from .batches import codebook_batch
 from .torch_engine import PARITY_RTOL, TorchAdamW, check_engine, import_torch, world_size
 
 _QUANTIZE = "quantize."  # the buffers' prefix in the state dict
@@ -151,7 +152,6 @@ class TorchCodebook:
 def parity_images(images, seed, dtype):
     """The fixed batch the codebook's parity checks run: 4 views drawn as codebook_batch draws,
     from a seed no training run of `seed` uses for its batches. images (M, S, S, C) uint8."""
-    from .loops import codebook_batch
     return codebook_batch(images, 4, seed + 1_000_003, 0, dtype)
 
 

@@ -36,6 +36,7 @@ from ..verify.compare import compare
 from ..geometry import make_relative
 from .._io import atomic_write_text
 from ._run import resume_point
+from .batches import transformer_batch
 from ..verify.layout import params_from_layout, params_to_layout
 
 # The parity bound: pyvf.compare's normwise relative error, float32 torch against float32 pyvf.
@@ -394,7 +395,6 @@ def log_parity(out_dir, step, comparison):
 def parity_batch(tokens, poses, n_views, seed, dtype):
     """The fixed batch the parity checks run: 4 samples drawn as transformer_batch draws, from a
     seed no training run of `seed` uses for its batches."""
-    from .loops import transformer_batch
     return transformer_batch(tokens, poses, n_views, 4, seed + 1_000_003, 0, dtype)
 
 
