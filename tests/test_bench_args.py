@@ -25,8 +25,6 @@ BAD = [
     (["scaling", "--quick", "--max-point-seconds", "-1"], "--max-point-seconds", "expected a finite number >= 0"),
     (["scaling", "--quick", "--json", "nodir/s.json"], "--json", "does not exist"),
     (["accuracy", "--quick", "--repeat", "0"], "--repeat", "expected a positive integer"),
-    (["threads", "--quick", "--json", "nodir/t.json"], "--json", "does not exist"),
-    (["threads", "--scaling-only", "--counts", "1", "1025"], "--counts", "of at most 1024, got '1025'"),
 ]
 
 

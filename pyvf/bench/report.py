@@ -1,6 +1,6 @@
 """docs/performance.md and docs/accuracy.md, generated: never typed by hand.
 
-    pyvf bench report                 # the full runs into docs/; ~20 minutes on 2 cores
+    pyvf bench report                 # the full runs into docs/ (the time it took: its machine section)
     pyvf bench report --quick --out D # the --quick runs into D/ (a couple of minutes)
 
 Runs, in this order, on --threads threads:
@@ -9,24 +9,18 @@ Runs, in this order, on --threads threads:
                            mode) -> img/scaling-{memory,time}-H<h>-dh<d>.png
   2. pyvf bench accuracy  -> img/accuracy-<op>.png
   3. pyvf bench hardcases -> img/hardcase-<sweep>.png
-  4. pyvf bench threads   (--quick: its quick mode; --threads threads at most, as many busy
-                           processes; with the OpenMP waiting policies and the scaling from 1
-                           thread to --threads; in a fresh process, as a user's: after the runs
-                           above this one's heap holds gigabytes)
 and writes OUT/performance.md, OUT/accuracy.md (every op's error table and Pareto plot, every
-hard-case sweep with pyvf's bound, PASS/FAIL) and the four runs' JSON in OUT/measurements/.
+hard-case sweep with pyvf's bound, PASS/FAIL) and the three runs' JSON in OUT/measurements/.
 
 performance.md opens with its conclusions, one line per question, each number computed here from
 the measurements of the same run (never typed): how the attention's memory and time grow with N
 against the naive stacked prefixes and dense masked attention (the fitted slopes, the ratios at the
 largest N every method measured), whether pyvf's default variant of each op is on the time/error
-Pareto front and its time over torch's, the default thread setting's worst time over the best
-setting's, the waiting policy's cost idle and under load, and the training steps' speed-up with
-the threads; then the evidence, each table under the machine and date it was measured on.
+Pareto front and its time over torch's; then the evidence, each table under the machine and date it was measured on.
 
 Plots need matplotlib (`pip install pyvf[plots]`); without it the documents are written without
-them and say so. Exit status 1 if any pyvf variant or sweep left its bound, the scaling study's
-validation failed, or a thread setting changed a call's result beyond pyvf bench threads' bound.
+them and say so. Exit status 1 if any pyvf variant or sweep left its bound, or the scaling study's
+validation failed.
 """
 
 import datetime
@@ -37,9 +31,8 @@ import tempfile
 import time
 
 from pyvf.bench import accuracy, hardcases, scaling
-from pyvf.bench import threads as _threads
 from pyvf._io import atomic_write_text
-from pyvf.bench.common import run_worker, table, write_json
+from pyvf.bench.common import table, write_json
 
 # the scaling runs: the command line that repeats each (in the documents), and scaling.run's options
 SCALING_FULL = [(["--sizes", "12x64", "--max-point-seconds", "30"], dict(sizes=((12, 64),), max_point_seconds=30)),
@@ -97,9 +90,9 @@ def machine_lines(m, total=None):
     return "\n".join(lines)
 
 
-def measured_on(m, cpus=None, threads=None):
+def measured_on(m, threads=None):
     """The line above a table: the machine (CPU model, CPUs, kernel path, threads) and the date."""
-    return (f"Measured on {m['processor']} ({cpus or m['cpu_count']} CPUs), kernel path {m['kernel_path']}, "
+    return (f"Measured on {m['processor']} ({m['cpu_count']} CPUs), kernel path {m['kernel_path']}, "
             f"{threads or m['threads']} threads, {m['generated']}.")
 
 
@@ -207,55 +200,12 @@ def speed_error_line(acc):
             + (f". Not on the front: {'; '.join(off)}." if off else "."))
 
 
-def threads_line(th):
-    """The busy-machine question's line: the default thread setting's worst ratio to the best."""
-    if "idle" not in th:
-        return "* **On a busy machine**: not measured: " + "; ".join(th["failures"]) + "."
-    worst, name, cond = _threads.worst_default(th)
-    return (f"* **On a busy machine**: pyvf's default thread setting takes at most **{worst:.2f}x** the time of "
-            f"the best setting tried (worst: {name}, {cond}; target at most {_threads.LIMIT}), over "
-            f"{len(th['idle'])} calls idle and beside {th['cores']} busy processes.")
-
-
-def policy_line(th):
-    """The waiting question's line: pyvf's policy (the first of WAIT_POLICIES) against the others,
-    its worst ratio to the fastest policy under load and idle."""
-    pol = th.get("policies")
-    if not pol:
-        return None
-    ours, others = next(iter(pol)), list(pol)[1:]
-
-    def worst(name, cond):
-        return max(_threads.over_fastest(pol, cond, c)[name] for c in pol[name][f"{cond}_rounds"])
-    return (f"* **Waiting between parallel regions**: {ours} takes at most **{worst(ours, 'loaded'):.2f}x** the "
-            f"fastest policy's time beside {th['cores']} busy processes, where "
-            + ", ".join(f"{n} takes up to {worst(n, 'loaded'):.2f}x" for n in others)
-            + f"; idle it takes up to {worst(ours, 'idle'):.2f}x (the others up to "
-            + ", ".join(f"{worst(n, 'idle'):.2f}x" for n in others) + ").")
-
-
-def scaling_threads_line(th):
-    """The many-cores question's line: each call's speed-up at the most threads, and bitwise."""
-    sc = th.get("scaling")
-    if not sc or len(sc["threads"]) < 2:
-        return None
-    top = str(sc["threads"][-1])
-    ups = ", ".join(f"{name} **{t['1'] / t[top]:.2f}x**" for name, t in sc["times"].items()
-                    if not name.startswith(_threads.CEILING))
-    ceilings = _threads.ceilings_text(sc, top)
-    same = all(sc["bitwise"].values())
-    return (f"* **More threads**: on {top} threads against 1: {ups}"
-            + (f" (the machine's ceilings: {ceilings})" if ceilings else "") + "; every result "
-            + ("bitwise the same at every thread count." if same else "NOT bitwise the same: see the table."))
-
-
-def glance(out, quick, m, scalings, acc, th, jsons):
+def glance(out, quick, m, scalings, acc, jsons):
     """The conclusions, first in performance.md: one line per question, then where to read more."""
     lines = [f"Measured on {m['processor']} ({m['cpu_count']} CPUs), kernel path {m['kernel_path']}, "
              f"{m['threads']} threads, {m['generated']}, by `pyvf bench report{' --quick' if quick else ''}`.", "",
              scaling_line(scalings[0][0], "bytes"), scaling_line(scalings[0][0], "seconds"),
-             speed_error_line(acc), threads_line(th), *filter(None, (policy_line(th), scaling_threads_line(th))),
-             *other_machines_lines(out),
+             speed_error_line(acc),
              "* **More**: every op's error and the hard cases in [accuracy.md](accuracy.md); every number as JSON: "
              + ", ".join(f"`{os.path.relpath(p, out)}`" for p in jsons) + "."]
     return ["## At a glance", "", *lines, ""]
@@ -312,127 +262,15 @@ def _ms(r):
     return "-" if r is None else f"{r['seconds'] * 1e3:.3g} ms"
 
 
-def threads_section(quick, m, th):
-    """`pyvf bench threads`' table (threads.rows_of) under the question it answers."""
-    s = ["## Is pyvf fast on a busy machine?", "",
-         f"`pyvf bench threads{' --quick' if quick else ''}`, run by the report in a fresh process (numpy's BLAS pool started with "
-         f"{', '.join(f'{k}={v}' for k, v in m['blas_thread_env'].items() if v) or 'no thread variable set'}): "
-         "each call's median time in every thread setting, idle and beside busy processes, and the default's "
-         "time over the best setting's (the median of the rounds' ratios, each pair timed back to back); "
-         "pyvf/bench/threads.py says what each call and setting is.", ""]
-    if "idle" not in th:
-        return s + ["Not measured: " + "; ".join(th["failures"]), ""]
-    keys = th["settings"]
-    configs = th.get("configurations")
-    rows = (_threads.rows_of(th["idle_rounds"], "idle", keys, th["bitwise_same"], configs)
-            + _threads.rows_of(th["loaded_rounds"], f"{th['cores']} busy", keys, th["bitwise_same"], configs))
-    header = ["call", "machine", *(f"{_threads.label(k)} (ms)" for k in keys), "best", "default / best"]
-    return s + [measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{th['cores']}"),
-                "", table(header, rows), "",
-                f"({_threads.bitwise_note(th['bitwise_same'])}{_threads.configurations_note(configs)}; "
-                f"target: default / best at most {_threads.LIMIT})", ""]
-
-
-def policies_section(quick, m, th):
-    """The OpenMP waiting policies' table (threads.policy_table)."""
-    if not th.get("policies"):
-        return []
-    s = ["## Waiting between parallel regions", "",
-         f"`pyvf bench threads{' --quick' if quick else ''}`: each waiting policy of the OpenMP runtime "
-         "(threads.WAIT_POLICIES) in a process of its own, all alive at once, pyvf's default thread setting; "
-         "each round times every call in every process back to back. Each call's median time idle and beside "
-         "busy processes, and its time over the fastest policy's (the median of the rounds' ratios).", "",
-         measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]),
-                     threads=next(iter(th["policies"].values())).get("threads", th["cores"])), "",
-         table(*_threads.policy_table(th["policies"], th["cores"])), ""]
-    return s
-
-
-def scaling_threads_section(quick, m, th):
-    """The speed-up table from 1 thread to the most (threads.scaling_table) and the targets."""
-    sc = th.get("scaling")
-    if not sc:
-        return []
-    s = ["## From 1 thread to every core", "",
-         f"`pyvf bench threads{' --quick' if quick else ''}`: the training steps (the shipped tiny sizes"
-         + ("" if quick else " and the paper's") + ") and the evaluation's calls, each from a fresh model whose "
-         "first step's result must be bitwise the same on every thread count; after one more step untimed "
-         "(the steady state of a training loop), the median time of the next steps, and the speed-up over "
-         "1 thread. The two ceilings are what this machine's cores give compute-bound work (pyvf's GEMM of "
-         "two 2048 x 2048 float32 matrices: the register tiles of the steps' convolutions and products) and "
-         "memory-bound work (pyvf's add of two 256 MiB float32 arrays into a third, far beyond the caches, as "
-         "Adam, GroupNorm and the residual adds stream): a step's speed-up is read against them.", "",
-         measured_on(dict(m, processor=th["cpu"], kernel_path=th["kernel_path"]), threads=f"1..{sc['threads'][-1]}"),
-         "", table(*_threads.scaling_table(sc)), ""]
-    targets = _threads.scaling_targets(sc)
-    return s + ([f"Paper sizes on 2 threads: {'; '.join(targets)}.", ""] if targets else [])
-
-
-def other_machines(out):
-    """The scaling runs of other machines kept in OUT/measurements/threads-scaling-*.json
-    (`pyvf bench threads --scaling-only --json FILE`, e.g. on a lent 16-core machine): one merged
-    report per (CPU, cores, kernel path): [(key, merged scaling, [file names], [commands], dates)]."""
-    groups = {}
-    folder = os.path.join(out, "measurements")
-    names = sorted(f for f in os.listdir(folder) if f.startswith("threads-scaling-") and f.endswith(".json")) \
-        if os.path.isdir(folder) else []
-    for name in names:
-        with open(os.path.join(folder, name)) as f:
-            rep = json.load(f)
-        if "scaling" in rep:
-            groups.setdefault((rep["cpu"], rep["cores"], rep["kernel_path"]), []).append((name, rep))
-    return [(key, _threads.merge_scaling([r for _, r in reps]), [n for n, _ in reps],
-             [r.get("command", "pyvf bench threads --scaling-only") for _, r in reps],
-             sorted({r.get("date", "?") for _, r in reps})) for key, reps in groups.items()]
-
-
-def other_machines_lines(out):
-    """The many-cores question's line per other machine: its training steps' speed-up on
-    MANY_CORES threads against the targets."""
-    return [f"* **{cores} cores** ({cpu}, [table](#{cores}-cores-{_anchor(cpu)})): {_targets_text(sc, ' (**missed**)')}."
-            for (cpu, cores, _), sc, _, _, _ in other_machines(out) if _threads.many_core_targets(sc)]
-
-
-def _targets_text(sc, missed):
-    """The many-core targets of a scaling report, `missed` after each one not met, then the machine's
-    ceilings on as many threads where they were measured."""
-    ceilings = _threads.ceilings_text(sc, _threads.MANY_CORES)
-    return ("; ".join(line + ("" if met else missed) for line, met in _threads.many_core_targets(sc))
-            + (f"; the machine's ceilings on {_threads.MANY_CORES} threads: {ceilings}" if ceilings else ""))
-
-
-def _anchor(text):
-    """A heading's anchor as GitHub makes it: lower case, punctuation dropped, spaces to '-'."""
-    return "".join(c for c in text.lower() if c.isalnum() or c in " -_").replace(" ", "-")
-
-
-def other_machines_section(out):
-    """The speed-up table of each other machine (other_machines) and its many-core targets."""
-    s = []
-    for (cpu, cores, path), sc, files, commands, dates in other_machines(out):
-        s += [f"### {cores} cores: {cpu}", "",
-              f"Measured on {cpu} ({cores} CPUs usable), kernel path {path}, {', '.join(dates)}, by "
-              + "; ".join(f"`{c}`" for c in commands) + " (" + ", ".join(f"`measurements/{f}`" for f in files)
-              + "), the same calls and method as above.", "", table(*_threads.scaling_table(sc)), ""]
-        if _threads.many_core_targets(sc):
-            s += [f"On {_threads.MANY_CORES} threads: {_targets_text(sc, ' **missed**')}.", ""]
-    return (["## From 1 thread to every core, on other machines", ""] + s) if s else []
-
-
-def performance_md(out, quick, m, total, scalings, acc, th, jsons):
-    """scalings: run_scaling's results, one per size; th: threads.run's report; jsons: every JSON
-    written. The conclusions (glance), the machine, then the evidence."""
+def performance_md(out, quick, m, total, scalings, acc, jsons):
+    """scalings: run_scaling's results, one per size; jsons: every JSON written. The conclusions (glance), the machine, then the evidence."""
     s = [HEADER.format(quick=" --quick" if quick else ""), "", "# pyvf performance", "",
-         *glance(out, quick, m, scalings, acc, th, jsons), "## The machine", "", machine_lines(m, total), "",
+         *glance(out, quick, m, scalings, acc, jsons), "## The machine", "", machine_lines(m, total), "",
          "Every timed result was validated first (accuracy.md has the errors).", "",
          "## Attention memory and time against the number of views", ""]
     for scal, _, tables, _ in scalings:
         s += scaling_section(out, m, scal, tables)
     s += accuracy_section(out, quick, m, acc)
-    s += threads_section(quick, m, th)
-    s += policies_section(quick, m, th)
-    s += scaling_threads_section(quick, m, th)
-    s += other_machines_section(out)
     return "\n".join(s)
 
 
@@ -466,21 +304,19 @@ def run(quick=False, out="docs", threads=2, log=print):
     os.makedirs(img, exist_ok=True)
     os.makedirs(meas, exist_ok=True)
     mode = "quick" if quick else "full"
-    log(f"1/4 pyvf bench scaling ({mode})", flush=True)
+    log(f"1/3 pyvf bench scaling ({mode})", flush=True)
     scalings = [run_scaling(args, options, quick, threads, img, meas)
                 for args, options in (SCALING_QUICK if quick else SCALING_FULL)]
-    log(f"2/4 pyvf bench accuracy ({mode})", flush=True)
+    log(f"2/3 pyvf bench accuracy ({mode})", flush=True)
     acc = accuracy.run(size=mode, repeat=3 if quick else 5, threads=threads, log=log)
     files = accuracy.plot(acc["results"], img) or []
     for res in acc["results"]:
         res["plot"] = next((f for f in files if f.endswith(f"accuracy-{res['op'].replace('_', '-')}.png")), None)
-    log(f"3/4 pyvf bench hardcases ({mode})", flush=True)
+    log(f"3/3 pyvf bench hardcases ({mode})", flush=True)
     hc = hardcases.run(mode=mode, threads=threads, log=log)
     hardcases.plot_all(hc["sweeps"], img)
-    log(f"4/4 pyvf bench threads ({mode}, in a fresh process)", flush=True)
-    th = run_worker(_threads.MODULE, {"whole": True, "quick": quick, "cores": threads})
     suffix = "-quick" if quick else ""
-    jsons = dict(accuracy=acc, hardcases=hc, threads=th)
+    jsons = dict(accuracy=acc, hardcases=hc)
     jsons = {os.path.join(meas, f"{name}{suffix}.json"): rep for name, rep in jsons.items()}
     total = time.perf_counter() - t0
     acc["total_seconds_report"] = hc["total_seconds_report"] = total
@@ -488,14 +324,14 @@ def run(quick=False, out="docs", threads=2, log=print):
         write_json(path, rep)
     m = acc["machine"]
     m["generated"] = datetime.date.today().isoformat()
-    acc_json, hc_json, _ = jsons
+    acc_json, hc_json = jsons
     # atomically: a report stopped while writing leaves the last complete pages (after a half-hour run)
     atomic_write_text(os.path.join(out, "performance.md"),
-                      performance_md(out, quick, m, total, scalings, acc, th, [sc[3] for sc in scalings] + list(jsons))
+                      performance_md(out, quick, m, total, scalings, acc, [sc[3] for sc in scalings] + list(jsons))
                       + "\n")
     atomic_write_text(os.path.join(out, "accuracy.md"), accuracy_md(out, quick, m, total, acc, acc_json, hc, hc_json)
                       + "\n")
-    failures = (acc["failures"] + hc["failures"] + [f"threads: {f}" for f in th["failures"]]
+    failures = (acc["failures"] + hc["failures"]
                 + [f"scaling {' '.join(sc[0]['args'])}: a validation failed" for sc in scalings if sc[1]])
     return dict(failures=failures, total_seconds=total, files=[os.path.join(out, "performance.md"),
                                                                 os.path.join(out, "accuracy.md")])

@@ -3,8 +3,6 @@ in pyvf.bench (and pyvf.bench.attention.demo for demo-attention).
 
     pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
     pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]      # speed vs error; hard cases
-    pyvf bench threads [--quick]                # each thread setting, idle and beside busy processes
-    pyvf bench threads --profile [--calls ...]  # a step's time kernel by kernel at each thread count
     pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
     pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
 
@@ -15,21 +13,15 @@ path is the parser's one-line error before anything is measured.
 """
 
 import argparse
-import datetime
 import importlib
 import os
 import subprocess
 import sys
 
-from .._threads import cores
-from ..bench.common import BLAS_THREAD_VARS, TORCH_MISSING, torch_or_none, write_json, write_outputs
-from .options import (add_threads, names, non_negative_float, output_dir, output_file, positive_float, positive_int,
-                      thread_count)
+from ..bench.common import BLAS_THREAD_VARS, TORCH_MISSING, torch_or_none, write_outputs
+from .options import add_threads, names, non_negative_float, output_dir, output_file, positive_float, positive_int
 
 DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
-# benchmarks that run in this process whatever the BLAS variables say: demo-attention has no
-# --threads; `threads` compares the thread settings themselves, its default included
-IN_PROCESS = (DEMO_ATTENTION, "threads")
 COMPARE_THREADS = "threads for pyvf and torch (default 2)"
 # benchmarks that cannot run without torch (the others time pyvf alone where it is missing)
 NEEDS_TORCH = {"transformer": "the oracle its first step is checked against before both are timed",
@@ -188,49 +180,6 @@ def _transformer(args):
     return 1 if _module("transformer").run(args.configs, args.steps, args.threads)["failures"] else 0
 
 
-def _threads_parser():
-    p = _doc_parser("threads")
-    add_threads(p, None, "the most threads tried and the busy processes started (default: the cores this "
-                         "process may use)")
-    p.add_argument("--quick", action="store_true", help="smaller batches, 3 repeats (seconds)")
-    p.add_argument("--scaling-only", action="store_true",
-                   help="only the scaling from 1 thread to every core (a larger machine's table); with --json "
-                        "the file is rewritten after each call, so a run cut short keeps what it finished")
-    p.add_argument("--profile", action="store_true",
-                   help="instead of the comparison, each scaling call's time kernel by kernel (and outside the "
-                        "kernels) at each thread count: where the speed-up is lost (pyvf.bench.profile)")
-    p.add_argument("--calls", nargs="+", default=None, choices=list(_module("threads").SCALING_IDS),
-                   help="the scaling's (or the profile's) calls (default: all; the profile: the tiny steps)")
-    p.add_argument("--counts", nargs="+", type=thread_count, default=None, metavar="N",
-                   help="the scaling's thread counts (default: 1, 2, 4, ... and every usable core)")
-    p.add_argument("--json", default=None, metavar="FILE", type=output_file, help="also write the report as JSON")
-    return p, None
-
-
-def _threads(args):
-    if args.profile:
-        ids, counts = _module("threads").SCALING_IDS, args.counts or [1, args.threads or cores()]
-        report = _module("profile").run([ids[c] for c in args.calls or ("codebook-tiny", "transformer-tiny")],
-                                        sorted(set(counts)), args.quick)
-        write_outputs(report, args.json)
-        return 1 if report["failures"] else 0
-    stamp, save = {}, None
-    if args.scaling_only:  # the command that made a scaling-only file (other machines' tables in the report)
-        stamp = {"date": datetime.date.today().isoformat(),
-                 "command": " ".join(["pyvf bench threads --scaling-only", *(["--quick"] if args.quick else []),
-                                      *([f"--threads {args.threads}"] if args.threads else []),
-                                      *(["--calls", *args.calls] if args.calls else []),
-                                      *(["--counts", *map(str, args.counts)] if args.counts else [])])}
-        if args.json:  # rewritten after each call: a run cut short keeps what it finished
-            save = lambda rep: write_json(args.json, dict(rep, **stamp))  # noqa: E731
-    report = _module("threads").run(args.quick, args.threads, calls=not args.scaling_only,
-                                    policies=not args.scaling_only, scaling_calls=args.calls, counts=args.counts,
-                                    save=save)
-    report.update(stamp)
-    write_outputs(report, args.json)
-    return 1 if report["failures"] else 0
-
-
 def _codebook_parser():
     codebook = _module("codebook")
     p = argparse.ArgumentParser(prog="pyvf bench codebook", description=codebook.__doc__.split("\n\n")[0])
@@ -369,7 +318,6 @@ BENCHMARKS = {
     "scaling": (_scaling_parser, _scaling),
     "accuracy": (_accuracy_parser, _accuracy),
     "hardcases": (_hardcases_parser, _hardcases),
-    "threads": (_threads_parser, _threads),
     "report": (_report_parser, _report),
     DEMO_ATTENTION: (_demo_attention_parser, _demo_attention),
 }
@@ -392,7 +340,7 @@ def cmd_bench(args):
     if args.name in NEEDS_TORCH and torch_or_none() is None:
         print(f"pyvf bench {args.name}: needs torch, {NEEDS_TORCH[args.name]}: {TORCH_MISSING}", file=sys.stderr)
         return 1
-    n = bench_args.threads if args.name not in IN_PROCESS else None
+    n = bench_args.threads if args.name != DEMO_ATTENTION else None  # (demo-attention has no --threads)
     if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
         env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
         boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"
