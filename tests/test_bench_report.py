@@ -15,26 +15,24 @@ from pyvf.bench import accuracy, common, hardcases, report, scaling
 
 SIZE = (4, 32)  # (H, dh) of the made-up scaling report
 VIEWS = (2, 4, 8, 16, 32)
-# method -> (memory ~ c N^p: c, p; time: c, p; the largest N measured; forward only)
-LAWS = {"pyvf": (2 ** 20, 1.0, 1e-3, 2.0, 32, False),
-        "naive_pyvf": (3 * 2 ** 20, 2.0, 2e-3, 3.0, 16, False),
-        "dense_sdpa": (5 * 2 ** 20, 1.5, 4e-3, 2.5, 32, False),
-        "flex": (2 ** 20, 0.5, 3e-3, 2.0, 8, True)}
+# method -> (memory ~ c N^p: c, p; time: c, p; the largest N measured)
+LAWS = {"pyvf": (2 ** 20, 1.0, 1e-3, 2.0, 32),
+        "naive_pyvf": (3 * 2 ** 20, 2.0, 2e-3, 3.0, 16),
+        "dense_sdpa": (5 * 2 ** 20, 1.5, 4e-3, 2.5, 32)}
 
 
-def scaling_report(laws=LAWS, not_run=("naive_sdpa", "dense_numpy")):
+def scaling_report(laws=LAWS, not_run=("dense_numpy",)):
     """A scaling report (as scaling.run writes it) whose memory and time follow `laws` exactly;
     each method skipped above its largest N; the slopes fitted by the scaling study's own fits()."""
     points = []
     for N in VIEWS:
-        for m, (cm, pm, ct, pt, top, fwd_only) in laws.items():
+        for m, (cm, pm, ct, pt, top) in laws.items():
             p = dict(method=m, H=SIZE[0], dh=SIZE[1], N=N, theory=dict(expected_fwd=N, expected_fwd_bwd=N))
             if N > top:
                 p["skipped"] = "predicted 99 s > --max-point-seconds 30"
             else:
-                p.update(fwd_bytes=cm * N ** pm / 2, fwd_seconds=ct * N ** pt / 2)
-                if not fwd_only:
-                    p.update(fwd_bwd_bytes=cm * N ** pm, fwd_bwd_seconds=ct * N ** pt)
+                p.update(fwd_bytes=cm * N ** pm / 2, fwd_seconds=ct * N ** pt / 2, fwd_bwd_bytes=cm * N ** pm,
+                         fwd_bwd_seconds=ct * N ** pt)
             points.append(p)
     methods = list(laws)
     return dict(config=dict(sizes=[list(SIZE)], methods=methods, R=3, B=1, L=64, threads=2,
@@ -43,28 +41,23 @@ def scaling_report(laws=LAWS, not_run=("naive_sdpa", "dense_numpy")):
 
 
 def expected_scaling_numbers(kind, laws=LAWS):
-    """The closed-form answer: (pyvf's exponent, the N all fwd+bwd methods share, [(exponent,
-    ratio to pyvf) per other fwd+bwd method], forward only: (its N, [(exponent, ratio)]))."""
+    """The closed-form answer: (pyvf's exponent, the N all methods share, [(exponent, ratio to
+    pyvf) per other method])."""
     c, p = (0, 1) if kind == "bytes" else (2, 3)
-    fb = {m: law for m, law in laws.items() if not law[5]}
-    n = min(law[4] for law in fb.values())
-    others = [(law[p], law[c] * n ** law[p] / (fb["pyvf"][c] * n ** fb["pyvf"][p])) for m, law in fb.items()
+    n = min(law[4] for law in laws.values())
+    others = [(law[p], law[c] * n ** law[p] / (laws["pyvf"][c] * n ** laws["pyvf"][p])) for m, law in laws.items()
               if m != "pyvf"]
-    fwd = [law for law in laws.values() if law[5]]
-    n1 = min([laws["pyvf"][4]] + [law[4] for law in fwd])
-    fwd_only = [(law[p], law[c] * n1 ** law[p] / (laws["pyvf"][c] * n1 ** laws["pyvf"][p])) for law in fwd]
-    return laws["pyvf"][p], n, others, (n1, fwd_only)
+    return laws["pyvf"][p], n, others
 
 
 def assert_scaling_line(line, kind, laws=LAWS):
     """Every number of the line against the closed form: exponents to the 2 decimals printed,
     ratios to the 3 significant digits printed."""
-    p_pyvf, n, others, (n1, fwd_only) = expected_scaling_numbers(kind, laws)
+    p_pyvf, n, others = expected_scaling_numbers(kind, laws)
     assert re.search(r"grows as \*\*N\^([\d.]+)\*\*", line).group(1) == f"{p_pyvf:.2f}", line
-    assert f"at N={n}, the largest N every method measured" in line and f"Forward only, at N={n1}" in line, line
+    assert f"at N={n}, the largest N every method measured" in line, line
     got = re.findall(r"N\^([\d.]+), ([\d.]+)x pyvf's", line)
-    want = [(f"{p:.2f}", f"{r:.3g}") for p, r in others + fwd_only]
-    assert got == want, (line, want)
+    assert got == [(f"{p:.2f}", f"{r:.3g}") for p, r in others], line
 
 
 @pytest.mark.parametrize("kind", ["bytes", "seconds"])
@@ -74,8 +67,7 @@ def test_scaling_line_states_the_measured_slopes_and_ratios(kind):
     assert line.startswith("* **Memory**" if kind == "bytes" else "* **Time**")
     assert_scaling_line(line, kind)
     # the methods not run are named, with the reason, never given a number
-    assert "Not measured: naive stacked prefixes (torch SDPA): not in --quick; dense masked (NumPy): not in --quick" \
-        in line
+    assert "Not measured: dense masked (NumPy): not in --quick" in line
 
 
 @pytest.mark.parametrize("plant", ["slope", "point", "law"])
@@ -89,13 +81,13 @@ def test_scaling_line_check_catches_a_wrong_number(plant):
         p = next(p for p in rep["points"] if (p["method"], p["N"]) == ("dense_sdpa", 16))
         p["fwd_bwd_bytes"] *= 1.01
     else:
-        rep = scaling_report(dict(LAWS, pyvf=(2 ** 20, 1.1, 1e-3, 2.0, 32, False)))
+        rep = scaling_report(dict(LAWS, pyvf=(2 ** 20, 1.1, 1e-3, 2.0, 32)))
     with pytest.raises(AssertionError):
         assert_scaling_line(report.scaling_line(rep, "bytes"), "bytes")
 
 
 def test_scaling_line_without_pyvf_says_so():
-    rep = scaling_report(dict(LAWS, pyvf=(2 ** 20, 1.0, 1e-3, 2.0, 0, False)))
+    rep = scaling_report(dict(LAWS, pyvf=(2 ** 20, 1.0, 1e-3, 2.0, 0)))
     line = report.scaling_line(rep, "bytes")
     assert "was not measured (predicted 99 s" in line and "N^" not in line, line
 
@@ -260,7 +252,6 @@ def test_scaling_plots_are_readable_with_the_memory_floor(figures, tmp_path):
     f = rep["slopes"]["4x32"]
     assert f"{scaling.METHODS['pyvf']} (slope fwd {f['pyvf']['fwd_bytes']:.2f}, fwd+bwd " \
            f"{f['pyvf']['fwd_bwd_bytes']:.2f})" in mem["texts"], mem
-    assert f"{scaling.METHODS['flex']} (slope fwd {f['flex']['fwd_bytes']:.2f})" in mem["texts"], mem
     # the memory plot draws the floor below which a reading is approximate (its points go down to 0.5 MiB)
     assert mem["hlines"] == {round(np.log10(common.MEMORY_NOISE_BYTES / 2 ** 20), 3)}, mem
     assert any("below it a reading is approximate" in t for t in mem["texts"]) and not tim["hlines"], (mem, tim)

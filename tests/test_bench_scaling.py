@@ -24,7 +24,7 @@ def test_quick_run_writes_json_table_and_plots(tmp_path):
     assert not [p for p in points if "skipped" in p], "a quick-mode point was skipped"
     # every method validated against the float64 reference at the first N, before it was timed
     first = [p for p in points if p["N"] == min(report["config"]["views"])]
-    assert {p["method"] for p in first} == set(scaling.QUICK_METHODS)
+    assert {p["method"] for p in first} == set(scaling.METHODS)
     for p in first:
         assert max(p["errors"].values()) <= p["bound"], p
     for p in points:
@@ -78,7 +78,7 @@ def test_every_point_skipped_under_a_tiny_memory_limit_and_plots_need_matplotlib
     assert_ran(proc, "skipped: needs", "pip install pyvf[plots]", "wrote out.json")
     report = json.loads((tmp_path / "out.json").read_text())
     assert report["plots"] is None and not os.path.exists(tmp_path / "plots")
-    assert len(report["points"]) == len(scaling.QUICK_VIEWS) * len(scaling.QUICK_METHODS)
+    assert len(report["points"]) == len(scaling.QUICK_VIEWS) * len(scaling.METHODS)
     for p in report["points"]:
         assert "skipped" in p and "fwd_bytes" not in p, p
 

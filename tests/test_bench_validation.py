@@ -61,20 +61,6 @@ def test_attention_aborts_before_timing_torch_given_a_wrong_mask(monkeypatch, ca
     assert "time" not in report and "ratio_torch_over_pyvf" not in report
 
 
-@pytest.mark.filterwarnings("ignore:flex_attention called without torch.compile")  # eager is enough to check it
-def test_flex_with_a_wrong_result_is_not_timed(monkeypatch):
-    """setup_flex computed flex_attention's error and returned its forward for timing whatever the
-    error. (torch.compile left out: the eager flex_attention computes the same thing in seconds.)"""
-    from torch.nn.attention.flex_attention import flex_attention
-
-    zeros = lambda *a, **k: flex_attention(*a, **k) * 0  # noqa: E731  (a result of zeros)
-    monkeypatch.setattr(torch, "compile", lambda fn, **kw: zeros if fn is flex_attention else fn)
-    q, k, v, _ = attention.make_inputs(3, 1, 1, 2, 16, 8)
-    o64 = pyvf.branching_attention(*(x.astype(np.float64) for x in (q, k, v)))
-    out, fwd = attention.setup_flex(q, k, v, o64)
-    assert fwd is None and out["error"].startswith("validation failed"), out
-
-
 def test_each_kernel_paths_backward_is_validated_before_it_is_timed(monkeypatch):
     """path_times checked each path's forward only, then timed its forward and backward. The bug
     is planted on the paths path_times switches to (inside use_kernel_path), not on the reference
@@ -109,15 +95,16 @@ def test_scaling_point_with_a_nan_gradient_fails_validation():
     q, k, v, do = attention.make_inputs(3, 1, 1, 2, 8, 8)
     x64 = [x.astype(np.float64) for x in (q, k, v, do)]
     ref = (pyvf.branching_attention_reference(*x64[:3]), pyvf.branching_attention_reference_vjp(*x64))
-    fwd, fb = attention.pyvf_fns(q, k, v, do)
+    c = scaling.contender("pyvf", (q, k, v, do), {})
+    fb = c["fb"]
 
     def planted():
         o, (dq, dk, dv) = fb()
         return o, (np.full_like(dq, np.nan), dk, dv)
-    c = dict(fwd=fwd, fb=planted, o_map=np.asarray, g_map=lambda g: [np.asarray(x) for x in g],
-             bound=attention.BOUND32, ref=ref)
     out = {}
-    assert not scaling.validate_point(out, "pyvf", c)
+    assert scaling.validate_point(out, c, ref) and out["errors"]["dq"] <= attention.BOUND32
+    out = {}
+    assert not scaling.validate_point(out, dict(c, fb=planted), ref)
     assert out["error"].startswith("validation failed"), out
 
 

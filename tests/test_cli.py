@@ -143,7 +143,7 @@ def test_demo_attention_unknown_size(tmp_path):
 
 # benchmark -> (its quick arguments, lines it must print)
 BENCH_QUICK = {
-    "attention": (["--quick", "--no-scaling"], ["pyvf bounds:", "torch SDPA / pyvf time:"]),
+    "attention": (["--quick"], ["pyvf bounds:", "torch SDPA / pyvf time:"]),
     "vq": (["--quick"], ["| pyvf.vq_nearest |", "pyvf at the cancellation offsets"]),
     "transformer": (["--quick"], ["## tiny:", "first-step loss: pyvf", "| pyvf |"]),
     "codebook": (["--quick"], ["## tiny:", "loss of the same weights and batch", "| pyvf |", "images/s, ratio torch / pyvf"]),
@@ -168,7 +168,7 @@ def test_every_readme_command_without_torch(tmp_path):
     runs = [(["config"], "kernel path:"), (["demo", "--quick", "--out", "d"], "pyvf"),
             (["train", "--preset", "smoke", "--out", "r", "--no-progress"], "pyvf train: done"),
             (["runs", "r/codebook", "r/transformer"], "|"), (["export", "r/transformer", "-o", "now.npz"], "now.npz"),
-            (["bench", "attention", "--quick", "--no-scaling"], "torch SDPA: torch is not installed"),
+            (["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
             (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"), (["bench", "scaling", "--quick"], "naive_sdpa"),
             (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]
     for args, expected in runs:
@@ -190,7 +190,7 @@ def test_bench_runs_numpy_blas_on_its_threads(tmp_path):
     for start in ({}, {v: "7" for v in BLAS_THREAD_VARS}):
         out = tmp_path / f"report-{len(start)}.json"
         env = {k: v for k, v in clean_env().items() if k not in BLAS_THREAD_VARS}
-        proc = run(["bench", "attention", "--quick", "--no-scaling", "--repeat", "5", "--threads", "1",
+        proc = run(["bench", "attention", "--quick", "--repeat", "5", "--threads", "1",
                     "--json", out.name], tmp_path, env=dict(env, **start))
         assert_ran(proc, "pyvf bounds:")
         report = json.loads(out.read_text())

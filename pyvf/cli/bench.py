@@ -60,10 +60,7 @@ def _attention_parser():
                        help=f"default {val} ({attention.QUICK[name]} with --quick)")
     add_threads(p, 2, COMPARE_THREADS)
     p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
-    p.add_argument("--quick", action="store_true", help="smaller sizes (H=4, N=8; scaling N up to 16)")
-    p.add_argument("--flex", action="store_true", help="also torch flex_attention (torch.compile, forward only)")
-    p.add_argument("--no-scaling", action="store_true", help="skip the memory-versus-N measurement")
-    p.add_argument("--scaling-heads", type=positive_int, default=None, help="H for the scaling runs (default: --H)")
+    p.add_argument("--quick", action="store_true", help="smaller sizes (H=4, N=8)")
     p.add_argument("--json", metavar="PATH", type=output_file, help="write every number to PATH")
     return p, lambda args: _check_repeat(p, args, 5)
 
@@ -71,15 +68,11 @@ def _attention_parser():
 def _attention(args):
     attention = _module("attention")
     base = attention.QUICK if args.quick else attention.PAPER
-    shape = [base[n] if getattr(args, n) is None else getattr(args, n) for n in attention.PAPER]
-    views = None if args.no_scaling else (attention.QUICK_SCALING_N if args.quick else attention.SCALING_N)
-    report = attention.run(*shape, threads=args.threads, repeat=args.repeat, flex=args.flex, scaling_views=views,
-                           scaling_heads=args.scaling_heads)
+    report = attention.run(*(base[n] if getattr(args, n) is None else getattr(args, n) for n in attention.PAPER),
+                           threads=args.threads, repeat=args.repeat)
     write_outputs(report, args.json)
-    failed = attention.failure(report)
-    if failed:
-        print(f"\nFAIL: {failed}; " + ("nothing is timed." if "aborted" in report else "it is not timed."),
-              file=sys.stderr)
+    if "aborted" in report:
+        print(f"\nFAIL: {report['aborted']}; nothing is timed.", file=sys.stderr)
         return 1
     return 0
 
@@ -87,11 +80,10 @@ def _attention(args):
 def _scaling_parser():
     scaling = _module("scaling")
     p = _doc_parser("scaling", epilog=True)
-    p.add_argument("--quick", action="store_true", help="N = 2, 4, 8, H=4 dh=32, no flex: well under a minute")
+    p.add_argument("--quick", action="store_true", help="N = 2, 4, 8, H=4 dh=32")
     p.add_argument("--views", help="comma-separated N (default 2,4,...,64; 2,4,8 with --quick)")
     p.add_argument("--sizes", help="comma-separated HxDH (default 12x64,4x32; 4x32 with --quick)")
-    p.add_argument("--methods", help=f"comma-separated, from {', '.join(scaling.METHODS)} (default all; no flex "
-                                     "with --quick)")
+    p.add_argument("--methods", help=f"comma-separated, from {', '.join(scaling.METHODS)} (default all)")
     add_threads(p, 2, COMPARE_THREADS)
     p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
     p.add_argument("--mem-limit-mib", type=positive_float, default=None,
@@ -117,14 +109,13 @@ def _scaling_check(p, args, scaling):
         p.error("--views takes integers like 2,4,8; --sizes pairs like 12x64,4x32")
     if any(n < 1 for n in args.views) or any(len(s) != 2 or min(s) < 1 for s in args.sizes):
         p.error("--views and --sizes must be positive")
-    default = scaling.QUICK_METHODS if args.quick else tuple(scaling.METHODS)
-    args.methods = names(p, args.methods, scaling.METHODS, "method") if args.methods else default
+    args.methods = names(p, args.methods, scaling.METHODS, "method")
 
 
 def _scaling(args):
     scaling = _module("scaling")
     report = scaling.run(args.sizes, args.views, args.methods, args.threads, args.repeat, args.mem_limit_mib,
-                         args.max_point_seconds, plots=args.plots, quick=args.quick)
+                         args.max_point_seconds, plots=args.plots)
     write_outputs(report, args.json)
     return 1 if scaling.validation_failed(report) else 0
 
