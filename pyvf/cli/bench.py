@@ -148,14 +148,16 @@ def _vq(args):
     return 1 if report["failures"] else 0
 
 
-def _transformer_parser():
-    transformer = _module("transformer")
-    p = argparse.ArgumentParser(prog="pyvf bench transformer", description=transformer.__doc__.split("\n\n")[0])
-    p.add_argument("--configs", nargs="+", default=None, choices=list(transformer.CONFIGS),
+def _steps_parser(name):
+    """transformer and codebook: pyvf's training step against torch's, per configuration."""
+    module = _module(name)
+    p = _doc_parser(name)
+    p.add_argument("--configs", nargs="+", default=None, choices=list(module.CONFIGS),
                    help="default: tiny paper (tiny with --quick)")
-    p.add_argument("--steps", type=int, default=None, help="timed steps (default 20 tiny, 3 paper; 10 with --quick)")
+    p.add_argument("--steps", type=int, default=None, help="timed steps (default: 20 tiny for the transformer, 10 "
+                                                           "for the codebook; 3 paper; 10 with --quick)")
     add_threads(p, 2, None)
-    p.add_argument("--quick", action="store_true", help="the tiny configuration only, 10 steps (seconds)")
+    p.add_argument("--quick", action="store_true", help="the tiny configuration only, 10 steps")
 
     def check(args):
         if args.configs is None:
@@ -167,28 +169,8 @@ def _transformer_parser():
     return p, check
 
 
-def _transformer(args):
-    return 1 if _module("transformer").run(args.configs, args.steps, args.threads)["failures"] else 0
-
-
-def _codebook_parser():
-    codebook = _module("codebook")
-    p = argparse.ArgumentParser(prog="pyvf bench codebook", description=codebook.__doc__.split("\n\n")[0])
-    p.add_argument("--configs", nargs="+", default=None, choices=list(codebook.CONFIGS),
-                   help="default: tiny paper (tiny with --quick)")
-    p.add_argument("--repeat", type=int, default=3, help="timed calls per median (default 3, at least 3)")
-    add_threads(p, 2, None)
-    p.add_argument("--quick", action="store_true", help="the tiny configuration only (seconds)")
-
-    def check(args):
-        if args.configs is None:
-            args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
-        _check_repeat(p, args, 3)
-    return p, check
-
-
-def _codebook(args):
-    return 1 if _module("codebook").run(args.configs, args.repeat, args.threads)["failures"] else 0
+def _steps(name):
+    return lambda args: 1 if _module(name).run(args.configs, args.steps, args.threads)["failures"] else 0
 
 
 # ---------------------------------------------------------------------------------------
@@ -304,8 +286,8 @@ def _demo_attention(args):
 BENCHMARKS = {
     "attention": (_attention_parser, _attention),
     "vq": (_vq_parser, _vq),
-    "transformer": (_transformer_parser, _transformer),
-    "codebook": (_codebook_parser, _codebook),
+    "transformer": (lambda: _steps_parser("transformer"), _steps("transformer")),
+    "codebook": (lambda: _steps_parser("codebook"), _steps("codebook")),
     "scaling": (_scaling_parser, _scaling),
     "accuracy": (_accuracy_parser, _accuracy),
     "hardcases": (_hardcases_parser, _hardcases),
