@@ -12,13 +12,15 @@ import numpy as np
 import pytest
 
 import pyvf
-from pyvf.bench import accuracy, hardcases, report
+from pyvf.bench import BLAS_THREAD_VARS, accuracy, hardcases, report
+from pyvf.cli import main
+from pyvf.nn import layers
 from test_cli import assert_ran, run
 
 
 def test_accuracy_quick_writes_json_tables_and_plots(tmp_path):
     proc = run(["bench", "accuracy", "--quick", "--json", "out.json", "--plots", "plots"], tmp_path)
-    assert_ran(proc, "| pyvf float32 ", "| torch float32 ", "| numpy float32 ", "error / torch f32's", "PASS: 0",
+    assert_ran(proc, "| pyvf float32 ", "| torch float32 ", "| numpy float32 ", "PASS: 0",
                "wrote out.json")
     report = json.loads((tmp_path / "out.json").read_text())
     assert report["failures"] == []
@@ -34,9 +36,6 @@ def test_accuracy_quick_writes_json_tables_and_plots(tmp_path):
             # validated (an error against the reference for every output), then timed
             assert set(r["errors"]) == set(res["outputs"]) and "fail" not in r, (res["op"], r)
             assert r["rel"] <= r["bound"] and len(r["times"]) == 3 and r["seconds"] > 0, r
-            assert r["vs_torch"] is not None and r["abs"] >= 0
-        torch_row = next(r for r in res["variants"] if r["name"] == "torch float32")
-        assert torch_row["vs_torch"] == pytest.approx(1.0)
         pyvf32 = res["variants"][0]
         assert pyvf32["path"] == pyvf.kernel_path() and pyvf32["rel"] <= accuracy.BOUNDS[res["op"]][0]
         f64 = next(r for r in res["variants"] if r["name"] == "pyvf float64")
@@ -50,19 +49,21 @@ def test_accuracy_quick_writes_json_tables_and_plots(tmp_path):
     assert all(r["wrong_codes"] == 0 for r in vq["variants"] if r["backend"] == "pyvf")
 
 
-def test_accuracy_planted_bug_is_flagged_and_fails_the_command(tmp_path):
-    """--plant-bug adds pyvf float32 with its first output off by 1e-3 relative, held to pyvf's
-    bound: it must be reported as FAIL, left untimed, and make the command exit with status 1."""
-    proc = run(["bench", "accuracy", "--quick", "--ops", "layernorm,conv2d", "--plant-bug", "--json", "out.json"],
-               tmp_path)
-    assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
-    assert "FAIL layernorm / pyvf float32 (planted bug)" in proc.stdout, proc.stdout[-2000:]
-    report = json.loads((tmp_path / "out.json").read_text())
-    assert len(report["failures"]) == 2
-    for res in report["results"]:
-        bad = [r for r in res["variants"] if "fail" in r]
-        assert [r["name"] for r in bad] == ["pyvf float32 (planted bug)"], bad
-        assert "seconds" not in bad[0] and bad[0]["rel"] == pytest.approx(accuracy.PLANTED_BUG, rel=0.05)
+def test_accuracy_variant_outside_its_bound_is_not_timed_and_fails_the_command(monkeypatch, capsys):
+    """pyvf's LayerNorm made 1e-3 off (relative): each pyvf variant of it must be reported as FAIL,
+    left untimed, and make the command exit with status 1; torch and NumPy, untouched, are timed."""
+    forward = layers.layernorm_forward
+
+    def planted(*args, **kwargs):
+        y, cache = forward(*args, **kwargs)
+        return y * y.dtype.type(1 + 1e-3), cache
+    monkeypatch.setattr(layers, "layernorm_forward", planted)
+    for var in BLAS_THREAD_VARS:  # the benchmark's --threads 2: in this process, where the bug is
+        monkeypatch.setenv(var, "2")
+    assert main(["bench", "accuracy", "--quick", "--ops", "layernorm", "--repeat", "3"]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL layernorm / pyvf float32 " in out and "FAIL layernorm / pyvf float64" in out, out[-2000:]
+    assert "FAIL layernorm / torch" not in out and "FAIL layernorm / numpy" not in out, out[-2000:]
 
 
 def test_pareto_front():

@@ -28,15 +28,13 @@ torch, at three sizes, pyvf against the dense NumPy reference only (error, time,
 imported inside the functions that use it.
 """
 
-import os
-import platform
 import time
 
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import (TORCH_MISSING, blas_thread_env, cpu_name, format_bytes, measured, median_time,
-                               memory_method, table, torch_or_none)
+from pyvf.bench.common import (TORCH_MISSING, format_bytes, machine, measured, median_time, memory_method, table,
+                               torch_or_none)
 from pyvf.verify.compare import rel_err
 
 # The bounds pyvf must meet before anything is timed: the same as tests/test_attention.py
@@ -262,7 +260,7 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5):
     t_start = time.perf_counter()
     shape = (R, B, H, N, L, dh)
     pyvf.set_num_threads(threads)
-    report = _start(shape, threads, repeat, torch)
+    report = _start(shape, threads, repeat)
     q, k, v, do = make_inputs(*shape)
     mask = pyvf.branching_mask(R, N, L)  # (T, T) bool, for torch
     fns = dict(zip(("pyvf_fwd", "pyvf_fwd_bwd"), pyvf_fns(q, k, v, do)))
@@ -290,27 +288,19 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5):
     return report
 
 
-def _start(shape, threads, repeat, torch):
+def _start(shape, threads, repeat):
     """The report's first fields (the problem, the machine, the bounds), printed as the header."""
     R, B, H, N, L, dh = shape
-    have = torch is not None
     T = R * N * L
-    report = dict(
-        config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=threads,
-                    repeat=repeat, inputs="unit normal, seed 0"),
-        machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
-                     python=platform.python_version(), numpy=np.__version__,
-                     torch=torch.__version__ if have else TORCH_MISSING, pyvf=pyvf.__version__,
-                     pyvf_threads=pyvf.num_threads(), torch_threads=torch.get_num_threads() if have else None,
-                     blas_thread_env=blas_thread_env(),
-                     torch_cpu_capability=torch.backends.cpu.get_cpu_capability() if have else None),
-        memory_method=memory_method(),
-        bounds=dict(pyvf_float32=BOUND32, pyvf_float64=BOUND64),
-    )
+    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=threads,
+                              repeat=repeat, inputs="unit normal, seed 0"),
+                  machine=machine(threads), memory_method=memory_method(),
+                  bounds=dict(pyvf_float32=BOUND32, pyvf_float64=BOUND64))
+    m = report["machine"]
     print(f"# Branching attention benchmark: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={T}), float32, "
           f"scale 1, {threads} threads")
-    print(f"machine: {report['machine']['processor']}, {os.cpu_count()} CPUs; numpy {np.__version__}, "
-          f"torch {torch.__version__ if have else 'not installed'}, pyvf {pyvf.__version__}")
+    print(f"machine: {m['processor']}, {m['cpu_count']} CPUs; numpy {m['numpy']}, torch {m['torch'] or 'not installed'}, "
+          f"pyvf {m['pyvf']}")
     print(f"memory: {memory_method()}\n")
     return report
 
@@ -320,7 +310,7 @@ def _validate(report, inputs, mask, fns, to_np):
     measured on the way. Returns ({call: extra peak bytes}, {call: seconds})."""
     q, k, v, do = inputs
     q64, k64, v64, do64 = (x.astype(np.float64) for x in inputs)
-    print(f"## 1. Validation against the NumPy reference in float64 (float64 copies of the inputs)\n")
+    print("## 1. Validation against the NumPy reference in float64 (float64 copies of the inputs)\n")
     t0 = time.perf_counter()
     o64 = pyvf.branching_attention_reference(q64, k64, v64)
     g64 = pyvf.branching_attention_reference_vjp(q64, k64, v64, do64)
@@ -372,7 +362,7 @@ def _memory(report, shape, q, mask, mem, threads):
     """Section 2: each call's extra peak memory beside the memory expected for it."""
     R, B, H, N, L, dh = shape
     S = q.nbytes  # one array like q
-    print(f"\n## 2. Extra peak memory of one call (inputs excluded, outputs included)\n")
+    print("\n## 2. Extra peak memory of one call (inputs excluded, outputs included)\n")
     e_fwd, e_fb = pyvf_expected_memory(*shape, 4, threads)
     logits = dense_logits_bytes(R, B, H, N, L, 4)
     backend = torch_backend(q, mask) if "torch_fwd" in mem else TORCH_MISSING

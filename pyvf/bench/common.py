@@ -31,7 +31,7 @@ from .._machine import cpu_name, median_time  # (re-exported: every benchmark im
 from .._io import atomic_write_text
 from .._memory import map_fresh_pages
 
-__all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "peak_memory", "memory_method",
+__all__ = ["BLAS_THREAD_VARS", "machine", "median_time", "measured", "peak_memory", "memory_method",
            "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot",
            "MEMORY_NOISE_BYTES", "legend_outside", "log_ticks", "save_figure", "checksums", "first_step_differs",
            "step_figures", "compare_steps", "TORCH_MISSING", "torch_or_none"]
@@ -42,9 +42,19 @@ __all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "pe
 BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 
 
-def blas_thread_env():
-    """{variable: value or None} of BLAS_THREAD_VARS in this process, for a benchmark's report."""
-    return {v: os.environ.get(v) for v in BLAS_THREAD_VARS}
+def machine(threads):
+    """The machine a report ran on, for its JSON and the documents: the CPU, the versions (torch
+    None where it is not installed), pyvf's kernel path and the ones this CPU runs, the threads
+    asked for and pyvf's in effect, and BLAS_THREAD_VARS as numpy's BLAS pool was started with."""
+    import platform
+
+    import pyvf
+    torch = torch_or_none()
+    return dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
+                python=platform.python_version(), numpy=np.__version__, torch=torch and torch.__version__,
+                pyvf=pyvf.__version__, kernel_path=pyvf.kernel_path(), kernel_paths=pyvf.kernel_paths(),
+                threads=threads, pyvf_threads=pyvf.num_threads(),
+                blas_thread_env={v: os.environ.get(v) for v in BLAS_THREAD_VARS})
 
 
 _STATUS = "/proc/self/status"

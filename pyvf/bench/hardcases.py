@@ -41,8 +41,8 @@ import numpy as np
 
 import pyvf
 from pyvf.nn import conv, layers, losses
-from pyvf.bench.common import legend_outside, pyplot, save_figure
-from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive, machine, torch_available
+from pyvf.bench.common import legend_outside, machine, pyplot, save_figure, torch_or_none
+from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive
 from pyvf.bench.attention import flat
 from pyvf.bench.vq import brute_force
 from pyvf.geometry import _conj, _mul  # the Hamilton product, for the published asin form
@@ -102,7 +102,7 @@ def _attention_sweep(name, title, xlabel, values, make_qk, mode, rng):
     shape = ATT_SHAPE[mode]
     R, B, H, N, L, dh = shape
     mask = pyvf.branching_mask(R, N, L)
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     lines = {k: [] for k in ("pyvf float32", "pyvf float64", "torch SDPA float32", "numpy exact float32",
                              "naive exp (no max) float32", "published -1e4 mask float32",
                              "published -1e4 mask float64")}
@@ -172,7 +172,7 @@ def sweep_vq(mode, rng):
     pyvf's bound: 0 (vq_nearest is exact)."""
     M, K, D = (2048, 256, 32) if mode == "full" else (512, 128, 16)
     values = np.logspace(0, 6, 13 if mode == "full" else 7)
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     names = ["pyvf float32", "pyvf float64", "numpy expanded float32", "numpy expanded float64"]
     names += ["torch cdist float32", "torch expanded float32"] if with_torch else []
     lines = {n: [] for n in names}
@@ -224,7 +224,7 @@ def _norm_sweep(kind, mode, rng):
     RTOL32 / RTOL64 for ordinary rows, whatever s: the second centring pass makes the large mean
     cost nothing (tests/test_layers.py, tests/test_conv.py: large mean, small spread)."""
     values = np.logspace(0, 6, 13 if mode == "full" else 7)
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     if kind == "layernorm":
         shape, eps, b32 = ((256, 256) if mode == "full" else (64, 64)), 1e-5, 1e-6
     else:
@@ -291,7 +291,7 @@ def sweep_gelu(mode, rng):
     |x| * (smallest subnormal) its rounding can cost the product, in ulps."""
     x64 = np.linspace(0, -40, 161 if mode == "full" else 41)  # easy to hard, as every sweep
     lines, bounds = {}, {}
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     want = {}
     for xi in x64:
         want[xi] = gelu_mp(xi)
@@ -337,7 +337,7 @@ def sweep_cross_entropy(mode, rng):
 
     M, V = (16, 1024) if mode == "full" else (8, 256)
     values = np.logspace(0, 4, 9 if mode == "full" else 5)
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     names = ["pyvf float32", "pyvf float64", "naive -log(softmax) float32", "naive -log(softmax) float64"]
     names += ["torch float32"] if with_torch else []
     lines = {n: [] for n in names}
@@ -376,7 +376,7 @@ def sweep_quat_normalize(mode, rng):
     n = 256 if mode == "full" else 64
     values = np.logspace(0, -30, 31 if mode == "full" else 11)
     eps = 1e-70
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     lines = {n_: [] for n_ in ["pyvf float32", "naive q / sqrt(max(sum q^2, eps)) float32"]
              + (["torch F.normalize float32"] if with_torch else [])}
     u = rng.standard_normal((n, 4))
@@ -578,9 +578,8 @@ def sweep_summary(sw):
 def run(names=tuple(SWEEPS), mode="full", threads=2, seed=0, log=print):
     t0 = time.perf_counter()
     pyvf.set_num_threads(threads)
-    if torch_available():
-        import torch
-
+    torch = torch_or_none()
+    if torch is not None:
         torch.set_num_threads(threads)
     sweeps = []
     for name in names:

@@ -35,7 +35,6 @@ slope below 1.
 """
 
 import os
-import platform
 import time
 
 import numpy as np
@@ -43,7 +42,7 @@ import numpy as np
 import pyvf
 from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, attended_pairs, dense_logits_bytes, error, make_inputs, ms,
                                   pyvf_expected_memory, pyvf_fns, reference_fns, torch_backend, torch_fns)
-from pyvf.bench.common import (MEMORY_NOISE_BYTES, blas_thread_env, cpu_name, format_bytes, legend_outside, measured,
+from pyvf.bench.common import (MEMORY_NOISE_BYTES, cpu_name, format_bytes, legend_outside, machine, measured,
                                median_time, memory_method, pyplot, run_worker, save_figure, table, worker_main,
                                write_outputs)
 
@@ -467,9 +466,7 @@ def run(sizes=SIZES, views=VIEWS, methods=tuple(METHODS), threads=2, repeat=5, m
                     not_run={m: "not in --methods" for m in METHODS if m not in methods},
                     mem_fraction=MEM_FRACTION, mem_limit_bytes=mem_limit, max_point_seconds=max_point_seconds,
                     inputs="unit normal, seed N"),
-        machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
-                     mem_available_bytes=available, python=platform.python_version(), numpy=np.__version__,
-                     pyvf=pyvf.__version__, blas_thread_env=blas_thread_env()),
+        machine=dict(machine(threads), mem_available_bytes=available),
         memory_method=memory_method(), methods=METHODS, points=points, slopes=fit)
     write_outputs(report, plots_dir=plots, make_plots=lambda d: plot(points, fit, sizes, methods, d), log=log)
     errors = [p for p in points if "error" in p]

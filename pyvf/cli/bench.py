@@ -205,7 +205,6 @@ def _accuracy_parser():
     p.add_argument("--ops", help=f"comma-separated, from {', '.join(accuracy.OPS)} (default all)")
     p.add_argument("--repeat", type=positive_int, default=None,
                    help="timed calls per median (default 5; 3 with --quick)")
-    p.add_argument("--plant-bug", action="store_true", help=argparse.SUPPRESS)  # the tests' bad variant
 
     def check(args):
         args.ops = names(p, args.ops, accuracy.OPS, "op")
@@ -219,7 +218,7 @@ def _accuracy(args):
     accuracy = _module("accuracy")
     print(f"# speed against error: {len(args.ops)} ops, {'quick' if args.quick else 'full'} sizes, "
           f"{args.threads} threads, median of {args.repeat}")
-    report = accuracy.run(args.ops, "quick" if args.quick else "full", args.repeat, args.threads, args.plant_bug)
+    report = accuracy.run(args.ops, "quick" if args.quick else "full", args.repeat, args.threads)
     accuracy.print_report(report)
     return _verdict(report, args, lambda d: accuracy.plot(report["results"], d), "variant(s)")
 
