@@ -23,6 +23,8 @@ BAD = [
     (["scaling", "--quick", "--mem-limit-mib", "nan"], "--mem-limit-mib", "expected a positive number"),
     (["scaling", "--quick", "--max-point-seconds", "-1"], "--max-point-seconds", "expected a finite number >= 0"),
     (["scaling", "--quick", "--json", "nodir/s.json"], "--json", "does not exist"),
+    (["scaling", "--quick", "--views", "2,x"], "--views", "expected positive integers"),
+    (["scaling", "--quick", "--sizes", "4x"], "--sizes", "expected HxDH pairs of positive integers"),
     (["accuracy", "--quick", "--repeat", "0"], "--repeat", "expected a positive integer"),
 ]
 
