@@ -116,7 +116,6 @@ def test_hardcases_quick_every_bound_holds_and_the_naive_formulas_break(tmp_path
     assert 1e2 <= brk["attention-spread"]["naive exp (no max) float32"] <= 1e3
     assert brk["attention-mask"]["published -1e4 mask float64"] == pytest.approx(1e4)
     assert brk["attention-mask"]["numpy exact float32"] is None
-    assert brk["vq"]["numpy expanded float32"] <= 1e3 and brk["vq"]["torch cdist float32"] <= 1e3
     for kind in ("layernorm", "groupnorm"):
         assert brk[kind]["one-pass float32"] <= 1e2 and brk[kind]["one-pass float64"] <= 1e4
     # 1 + erf(x / sqrt 2) cancels long before it reaches 0 (at x = -8.4 in float64)

@@ -215,14 +215,14 @@ def scaling_section(out, m, scal, tables):
     return s
 
 
-def accuracy_section(out, quick, m, acc):
-    """Every op's default pyvf variant against the reference variant (op_verdict), then each op's
-    variants: time beside error, and its plot."""
+def accuracy_section(quick, m, acc):
+    """Every op's default pyvf variant against the reference variant (op_verdict); each op's
+    variants, their times and errors and its plot are in accuracy.md."""
     s = ["## Time of each op against its error", "",
          f"`pyvf bench accuracy{' --quick' if quick else ''}`: median of {acc['config']['repeat']} calls after a "
          "warm-up; error = max|x - ref| / max|ref| over the op's outputs against the float64 reference "
-         f"(accuracy.md). On the Pareto front: no variant {accuracy.FRONT_RULE}. Plots: time against error, "
-         "the Pareto front dashed, the unit roundoffs dotted.", "",
+         f"(accuracy.md). On the Pareto front: no variant {accuracy.FRONT_RULE}. Every variant's time and error, "
+         "and the plot of time against error: [accuracy.md](accuracy.md).", "",
          measured_on(m), ""]
     rows = []
     for v in map(op_verdict, acc["results"]):
@@ -230,17 +230,8 @@ def accuracy_section(out, quick, m, acc):
         rows.append([v["op"], _ms(o), accuracy._e(o and o["rel"]), r["name"] if r else "-", _ms(r),
                      accuracy._e(r and r["rel"]), "-" if v["ratio"] is None else f"{v['ratio']:.2f}",
                      "yes" if v["front"] else "no" + (f": {', '.join(v['beaten_by'])}" if v["beaten_by"] else "")])
-    s += [table(["op", "pyvf (default path)", "its error", "reference", "its time", "its error",
-                 "pyvf / reference time", "pyvf on the Pareto front"], rows), ""]
-    for res in acc["results"]:
-        size = tuple(res["size"]) if isinstance(res["size"], list) else res["size"]
-        s += [f"### {res['title']} (`{res['op']}`, size {size})", ""]
-        fastest = min((r["seconds"] for r in res["variants"] if "seconds" in r), default=None)
-        rows = [[r["name"], _ms(r) if "seconds" in r else "not timed: " + r.get("fail", ""), accuracy._e(r["rel"]),
-                 f"{r['seconds'] / fastest:.2f}" if fastest and "seconds" in r else "-"] for r in res["variants"]]
-        s += [table(["variant", "time (median)", "normwise rel. error", "time / fastest"], rows), "",
-              _img(res.get("plot"), out, f"time against error, {res['op']}"), ""]
-    return s
+    return s + [table(["op", "pyvf (default path)", "its error", "reference", "its time", "its error",
+                       "pyvf / reference time", "pyvf on the Pareto front"], rows), ""]
 
 
 def _ms(r):
@@ -255,7 +246,7 @@ def performance_md(out, quick, m, total, scalings, acc, jsons):
          "## Attention memory and time against the number of views", ""]
     for scal, _, tables, _ in scalings:
         s += scaling_section(out, m, scal, tables)
-    s += accuracy_section(out, quick, m, acc)
+    s += accuracy_section(quick, m, acc)
     return "\n".join(s)
 
 
