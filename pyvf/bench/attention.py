@@ -135,6 +135,24 @@ def dense_logits_bytes(R, B, H, N, L, itemsize):
     return B * H * T * T * itemsize
 
 
+def expected_memory(method, R, B, H, N, L, dh, threads, backend="FLASH_ATTENTION"):
+    """Bytes a float32 call should need above its inputs: (forward, forward+backward), outputs
+    included. "pyvf": pyvf_expected_memory, O(T*dh). "sdpa", torch SDPA with the (T, T) bool mask:
+    torch converts the mask to a float32 additive one (4 T^2), then o (and dq, dk, dv); its flash
+    kernel (backend FLASH_ATTENTION) holds no logits, the math path the logits and, for the
+    backward, the probabilities. "numpy", the dense reference: s, p = exp(s) and p / sum(p) alive
+    at once, its vjp p, dp and one (dp - rowsum) temporary (3 dense (B, H, T, T) arrays each),
+    beside its (T, T) bool mask."""
+    if method == "pyvf":
+        return pyvf_expected_memory(R, B, H, N, L, dh, 4, threads)
+    S = R * B * H * N * L * dh * 4  # one array like q
+    T2, logits = (R * N * L) ** 2, dense_logits_bytes(R, B, H, N, L, 4)
+    if method == "sdpa":
+        math = backend != "FLASH_ATTENTION"
+        return 4 * T2 + S + math * logits, 4 * T2 + 4 * S + 2 * math * logits
+    return T2 + 3 * logits + S, T2 + 3 * logits + 3 * S
+
+
 # ---------------------------------------------------------------------------------------
 # the contenders: each a forward and a forward+backward closure over prepared inputs
 
@@ -359,37 +377,21 @@ def _validate(report, inputs, mask, fns, to_np):
 
 
 def _memory(report, shape, q, mask, mem, threads):
-    """Section 2: each call's extra peak memory beside the memory expected for it."""
-    R, B, H, N, L, dh = shape
-    S = q.nbytes  # one array like q
+    """Section 2: each call's extra peak memory beside the memory expected for it (expected_memory)."""
     print("\n## 2. Extra peak memory of one call (inputs excluded, outputs included)\n")
-    e_fwd, e_fb = pyvf_expected_memory(*shape, 4, threads)
-    logits = dense_logits_bytes(R, B, H, N, L, 4)
     backend = torch_backend(q, mask) if "torch_fwd" in mem else TORCH_MISSING
-    mask_f = mask.size * 4  # the bool mask as an additive float32 (T, T) mask
-    if backend == "FLASH_ATTENTION":  # torch's CPU flash kernel: O(T*dh), but it converts the mask
-        t_fwd_e = (mask_f + S, "(T, T) mask as float32 + o (flash kernel: no logits)")
-        t_fb_e = (mask_f + 4 * S, "(T, T) mask as float32 + o, dq, dk, dv; torch's backward workspace not modelled")
-    else:  # the math path materialises the logits, and keeps the probabilities for backward
-        t_fwd_e = (logits + S, "dense logits B*H*T^2*4 + o (math path)")
-        t_fb_e = (2 * logits + 4 * S, "logits + probabilities saved for backward + o, dq, dk, dv")
-    expected = {
-        "pyvf_fwd": (e_fwd, "o + lse + per-thread tiles: O(T*dh)"),
-        "pyvf_fwd_bwd": (e_fb, "o, lse, dq, dk, dv + per-thread head buffers: O(T*dh)"),
-        "torch_fwd": t_fwd_e,
-        "torch_fwd_bwd": t_fb_e,
-        # branching_attention_reference keeps s, p = exp(s) and p / sum(p) alive at once; its vjp
-        # p, dp and one (dp - rowsum) temporary: 3 dense (B, H, T, T) arrays each
-        "numpy_fwd": (3 * logits + S, "3 dense (B, H, T, T) arrays at once + o"),
-        "numpy_vjp": (3 * logits + 3 * S, "3 dense (B, H, T, T) arrays at once + dq, dk, dv"),
-    }
-    rows = [[name, format_bytes(mem[name]), format_bytes(expected[name][0]),
-             f"{mem[name] / expected[name][0]:.2f}", expected[name][1]] for name in mem]
-    print(table(["call", "measured", "expected", "measured/expected", "expected is"], rows))
-    print(f"\ndense logits (B, H, T, T) float32 = {format_bytes(logits)}; one array like q = {format_bytes(S)}; "
-          f"mask (T, T) bool = {format_bytes(mask.nbytes)}; torch SDPA backend chosen: {backend}")
-    report["memory"] = {n: dict(measured_bytes=mem[n], expected_bytes=expected[n][0], expected_is=expected[n][1])
-                        for n in mem}
+    expected = {}
+    for method, (fwd, fb) in (("pyvf", ("pyvf_fwd", "pyvf_fwd_bwd")), ("sdpa", ("torch_fwd", "torch_fwd_bwd")),
+                              ("numpy", ("numpy_fwd", "numpy_vjp"))):
+        expected[fwd], expected[fb] = expected_memory(method, *shape, threads, backend)
+    rows = [[name, format_bytes(mem[name]), format_bytes(expected[name]), f"{mem[name] / expected[name]:.2f}"]
+            for name in mem]
+    print(table(["call", "measured", "expected", "measured/expected"], rows))
+    logits = dense_logits_bytes(*shape[:5], 4)
+    print(f"\nexpected: pyvf O(T*dh); torch SDPA the (T, T) mask as float32 and, on its math path, the logits "
+          f"(expected_memory); the NumPy reference 3 dense (B, H, T, T) arrays. Dense logits (B, H, T, T) float32 = "
+          f"{format_bytes(logits)}; one array like q = {format_bytes(q.nbytes)}; torch SDPA backend chosen: {backend}")
+    report["memory"] = {n: dict(measured_bytes=mem[n], expected_bytes=expected[n]) for n in mem}
     report["memory"]["dense_logits_bytes"] = logits
     report["torch_sdpa_backend"] = backend
 
@@ -472,10 +474,6 @@ def _errors(o, grads, o_ref, grads_ref, heads):
     return out
 
 
-def _times(ratio):
-    return f"{ratio:.0f}x" if ratio >= 10 else f"{ratio:.1f}x"
-
-
 def demo_size(name, shape, ref_repeat, all_heads, seed=0):
     """Run one size; print its three tables; return True when pyvf is within its bounds.
 
@@ -524,23 +522,17 @@ def demo_size(name, shape, ref_repeat, all_heads, seed=0):
         verdict = "" if bound is None else ("ok" if max(e.values()) <= bound else "EXCEEDED")
         rows.append([label] + [f"{e[c]:.1e}" for c in ("o", "dq", "dk", "dv")]
                     + ["" if bound is None else f"{bound:g}", verdict])
-    print(table(["", "o", "dq", "dk", "dv", "bound", ""], rows, widths=(24, 9, 9, 9, 9, 7, 8)))
+    print(table(["", "o", "dq", "dk", "dv", "bound", ""], rows))
 
-    n_np = len(ts_np_fwd)
-    print(f"time, float32 (median of {DEMO_REPEAT} calls for pyvf, {n_np} for the reference)")
-    w = (24, 12, 18, 10)
+    print(f"\ntime, float32 (median of {DEMO_REPEAT} calls for pyvf, {len(ts_np_fwd)} for the reference), and the "
+          "extra peak memory of one call (measured, outputs included)")
     np_fwd, np_vjp = float(np.median(ts_np_fwd)), float(np.median(ts_np_vjp))
-    print(table(["", "forward", "forward+backward", ""], [
-        ["pyvf (C++ kernel)", f"{t_fwd * 1e3:.1f} ms", f"{t_fb * 1e3:.1f} ms", ""],
-        ["NumPy dense reference", f"{np_fwd * 1e3:.1f} ms", f"{np_vjp * 1e3:.1f} ms", "(its vjp)"],
-        ["reference / pyvf", _times(np_fwd / t_fwd), _times(np_vjp / t_fb), ""]], widths=w))
-
-    print("extra peak memory of one call, float32 (measured; outputs included)")
-    print(table(["", "forward", "forward+backward", ""], [
-        ["pyvf (C++ kernel)", format_bytes(mem_fwd), format_bytes(mem_fb), "O(T*dh)"],
-        ["NumPy dense reference", format_bytes(mem_np_fwd), format_bytes(mem_np_vjp), "O(T^2)"],
-        ["dense logits (computed)", format_bytes(dense_logits_bytes(R, B, H, N, L, 4)), "", "B*H*T^2*4"],
-        ["one array like q", format_bytes(q.nbytes), "", "B*H*T*dh*4"]], widths=w))
+    print(table(["", "forward", "forward+backward", "memory, forward", "memory, forward+backward"], [
+        ["pyvf (C++ kernel)", ms(t_fwd), ms(t_fb), format_bytes(mem_fwd), format_bytes(mem_fb)],
+        ["NumPy dense reference (its vjp)", ms(np_fwd), ms(np_vjp), format_bytes(mem_np_fwd), format_bytes(mem_np_vjp)],
+        ["reference / pyvf", f"{np_fwd / t_fwd:.3g}x", f"{np_vjp / t_fb:.3g}x", "", ""]]))
+    print(f"dense logits (B, H, T, T) float32 = {format_bytes(dense_logits_bytes(R, B, H, N, L, 4))}: O(T^2); one "
+          f"array like q = {format_bytes(q.nbytes)}: O(T*dh)")
     return ok
 
 

@@ -6,7 +6,7 @@ library only (matplotlib where a plot is asked for).
     result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
     result, extra, times = measured(fn, warmup=1, repeat=1)  # one call under peak_memory, timed, then more
     memory_method()                   # how peak_memory measures, for printing beside its numbers
-    print(table(header, rows))        # a markdown table (or, with widths, a plain aligned one)
+    print(table(header, rows))        # a markdown table
     write_json(path, report)          # a benchmark's report, as every benchmark writes it
     legend_outside(fig); log_ticks(ax.xaxis); save_figure(fig, path)  # the plots' shared settings
     first_step_differs(p, t)          # pyvf's and torch's first step (loss, checksums) compared
@@ -296,14 +296,8 @@ def compare_steps(module, configs, steps, threads, describe):
     return report
 
 
-def table(header, rows, widths=None):
-    """A markdown table of str()-able cells, each column as wide as its widest cell; or, with
-    widths (one per column), a plain one: no rules, the first column left-aligned in its width,
-    the others right-aligned."""
-    if widths is not None:
-        line = lambda cells: "  ".join(str(c).rjust(w) if i else str(c).ljust(w)  # noqa: E731
-                                       for i, (c, w) in enumerate(zip(cells, widths)))
-        return "\n".join(line(r) for r in [header, *rows])
+def table(header, rows):
+    """A markdown table of str()-able cells, each column as wide as its widest cell."""
     widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
     line = lambda cells: "| " + " | ".join(str(c).ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
     out = [line(header), "|" + "|".join("-" * (w + 2) for w in widths) + "|"]

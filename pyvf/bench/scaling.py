@@ -40,8 +40,8 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, attended_pairs, dense_logits_bytes, error, make_inputs, ms,
-                                  pyvf_expected_memory, pyvf_fns, reference_fns, torch_backend, torch_fns)
+from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, attended_pairs, error, expected_memory, make_inputs, ms,
+                                  pyvf_fns, reference_fns, torch_backend, torch_fns)
 from pyvf.bench.common import (MEMORY_NOISE_BYTES, cpu_name, format_bytes, legend_outside, machine, measured,
                                median_time, memory_method, pyplot, run_worker, save_figure, table, worker_main,
                                write_outputs)
@@ -128,28 +128,18 @@ def naive_pyvf_fns(qs, ks, vs, dos):
 def theory(method, R, B, H, N, L, dh, threads, backend="FLASH_ATTENTION"):
     """The counts of one point, float32: tokens held (per batch entry and head), (L, L) block pairs
     computed per (b, h), the inputs' bytes and the extra memory expected forward and
-    forward+backward. backend: torch SDPA's ("MATH" materialises the logits)."""
-    it = 4
+    forward+backward (attention.expected_memory; backend: torch SDPA's)."""
+    S = R * B * H * N * L * dh * 4  # one array like q
     T = R * N * L
-    S = R * B * H * N * L * dh * it  # one array like q
-    logits = dense_logits_bytes(R, B, H, N, L, it)  # (B, H, T, T)
-    mask = T * T  # the (T, T) bool mask
-    if method == "pyvf":
-        tokens, pairs, inputs = T, attended_pairs(R, N), 4 * S
-        fwd, fb = pyvf_expected_memory(R, B, H, N, L, dh, it, threads)
-    elif method == "naive_pyvf":
+    if method == "naive_pyvf":  # pyvf's kernel at R=1 on the stacked (S, B, H, N, L, dh) sequences
         nseq = n_sequences(R, N)
         tokens, pairs, inputs = nseq * N * L, nseq * N * (N + 1) // 2, 4 * nseq * S // R
-        fwd, fb = pyvf_expected_memory(1, nseq * B, H, N, L, dh, it, threads)
-    elif method == "dense_sdpa":
-        tokens, pairs, inputs = T, (R * N) ** 2, 7 * S + mask  # q, k, v, do and 3 leaves
-        # torch converts the bool mask to a float32 (T, T) additive mask; the math path also
-        # materialises the logits (and keeps the probabilities for the backward)
-        math = backend == "MATH"
-        fwd, fb = 4 * mask + S + math * logits, 4 * mask + 4 * S + 2 * math * logits
-    else:  # dense_numpy: s, p = exp(s) and p / sum(p) alive at once; the vjp p, dp and one temporary
-        tokens, pairs, inputs = T, (R * N) ** 2, 4 * S
-        fwd, fb = mask + 3 * logits + S, mask + 3 * logits + 3 * S
+        fwd, fb = expected_memory("pyvf", 1, nseq * B, H, N, L, dh, threads)
+    else:
+        tokens, pairs = T, (attended_pairs(R, N) if method == "pyvf" else (R * N) ** 2)
+        inputs = 7 * S + T * T if method == "dense_sdpa" else 4 * S  # SDPA: q, k, v, do, 3 leaves, the mask
+        fwd, fb = expected_memory({"dense_sdpa": "sdpa", "dense_numpy": "numpy"}.get(method, method),
+                                  R, B, H, N, L, dh, threads, backend)
     return dict(tokens=tokens, block_pairs=pairs, computed_flops_fwd=4 * L * L * dh * pairs * B * H,
                 inputs_bytes=inputs, expected_fwd=fwd, expected_fwd_bwd=fb)
 
