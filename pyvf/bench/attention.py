@@ -317,8 +317,8 @@ def _start(shape, threads, repeat):
     m = report["machine"]
     print(f"# Branching attention benchmark: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={T}), float32, "
           f"scale 1, {threads} threads")
-    print(f"machine: {m['processor']}, {m['cpu_count']} CPUs; numpy {m['numpy']}, torch {m['torch'] or 'not installed'}, "
-          f"pyvf {m['pyvf']}")
+    print(f"machine: {m['processor']}, {m['cpu_count']} CPUs; numpy {m['numpy']}, "
+          f"torch {m['torch'] or 'not installed'}, pyvf {m['pyvf']}")
     print(f"memory: {memory_method()}\n")
     return report
 

@@ -239,7 +239,8 @@ def _ms(r):
 
 
 def performance_md(out, quick, m, total, scalings, acc, jsons):
-    """scalings: run_scaling's results, one per size; jsons: every JSON written. The conclusions (glance), the machine, then the evidence."""
+    """scalings: run_scaling's results, one per size; jsons: every JSON written. The conclusions
+    (glance), the machine, then the evidence."""
     s = [HEADER.format(quick=" --quick" if quick else ""), "", "# pyvf performance", "",
          *glance(out, quick, m, scalings, acc, jsons), "## The machine", "", machine_lines(m, total), "",
          "Every timed result was validated first (accuracy.md has the errors).", "",

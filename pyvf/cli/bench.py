@@ -235,9 +235,10 @@ def _report(args):
 
 def _demo_attention_parser():
     attention = _module("attention")
-    p = argparse.ArgumentParser(prog=f"pyvf bench {DEMO_ATTENTION}", description="Branching attention at a few sizes: error against the dense reference, time, memory.")
+    p = argparse.ArgumentParser(prog=f"pyvf bench {DEMO_ATTENTION}", description="Branching attention at a few "
+                                "sizes: error against the dense reference, time, memory.")
     add_threads(p, None, "threads for pyvf's C++ kernels (default: OpenMP's, OMP_NUM_THREADS or all cores)")
-    p.add_argument("--sizes", help=f"comma-separated sizes to run, from {', '.join(attention.DEMO_SIZES)} (default all)")
+    p.add_argument("--sizes", help=f"comma-separated sizes, from {', '.join(attention.DEMO_SIZES)} (default all)")
     return p, lambda args: setattr(args, "sizes", names(p, args.sizes, attention.DEMO_SIZES, "size"))
 
 
