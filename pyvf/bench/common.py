@@ -31,10 +31,6 @@ from .._machine import cpu_name, median_time  # (re-exported: every benchmark im
 from .._io import atomic_write_text
 from .._memory import map_fresh_pages
 
-__all__ = ["BLAS_THREAD_VARS", "machine", "median_time", "measured", "peak_memory", "memory_method",
-           "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot",
-           "MEMORY_NOISE_BYTES", "legend_outside", "log_ticks", "save_figure", "checksums", "first_step_differs",
-           "step_figures", "compare_steps", "TORCH_MISSING", "torch_or_none"]
 
 # numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
 # sets them to the benchmark's --threads (pyvf/cli/bench.py), so that numpy's GEMM and pyvf's
