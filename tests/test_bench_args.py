@@ -8,15 +8,14 @@ from pyvf.cli import main
 from pyvf.cli.bench import BENCHMARKS
 
 BAD = [
-    (["attention", "--quick", "--no-scaling", "--N", "0"], "--N", "expected a positive integer, got '0'"),
-    (["attention", "--quick", "--no-scaling", "--N", "-1"], "--N", "expected a positive integer, got '-1'"),
-    (["attention", "--quick", "--no-scaling", "--H", "0"], "--H", "expected a positive integer"),
-    (["attention", "--quick", "--no-scaling", "--R", "0"], "--R", "expected a positive integer"),
-    (["attention", "--quick", "--no-scaling", "--L", "0"], "--L", "expected a positive integer"),
-    (["attention", "--quick", "--scaling-heads", "0"], "--scaling-heads", "expected a positive integer"),
-    (["attention", "--quick", "--no-scaling", "--json", "nodir/a.json"], "--json", "cannot write 'nodir/a.json': the "
+    (["attention", "--quick", "--N", "0"], "--N", "expected a positive integer, got '0'"),
+    (["attention", "--quick", "--N", "-1"], "--N", "expected a positive integer, got '-1'"),
+    (["attention", "--quick", "--H", "0"], "--H", "expected a positive integer"),
+    (["attention", "--quick", "--R", "0"], "--R", "expected a positive integer"),
+    (["attention", "--quick", "--L", "0"], "--L", "expected a positive integer"),
+    (["attention", "--quick", "--json", "nodir/a.json"], "--json", "cannot write 'nodir/a.json': the "
                                                                                    "folder 'nodir' does not exist"),
-    (["attention", "--quick", "--no-scaling", "--json", "."], "--json", "'.' is a folder, not a file"),
+    (["attention", "--quick", "--json", "."], "--json", "'.' is a folder, not a file"),
     (["vq", "--quick", "--K", "-1"], "--K", "expected a positive integer"),
     (["vq", "--quick", "--D", "0"], "--D", "expected a positive integer"),
     (["vq", "--quick", "--M", "0"], "--M", "expected a positive integer"),
@@ -24,9 +23,9 @@ BAD = [
     (["scaling", "--quick", "--mem-limit-mib", "nan"], "--mem-limit-mib", "expected a positive number"),
     (["scaling", "--quick", "--max-point-seconds", "-1"], "--max-point-seconds", "expected a finite number >= 0"),
     (["scaling", "--quick", "--json", "nodir/s.json"], "--json", "does not exist"),
+    (["scaling", "--quick", "--views", "2,x"], "--views", "expected positive integers"),
+    (["scaling", "--quick", "--sizes", "4x"], "--sizes", "expected HxDH pairs of positive integers"),
     (["accuracy", "--quick", "--repeat", "0"], "--repeat", "expected a positive integer"),
-    (["threads", "--quick", "--json", "nodir/t.json"], "--json", "does not exist"),
-    (["threads", "--scaling-only", "--counts", "1", "1025"], "--counts", "of at most 1024, got '1025'"),
 ]
 
 
@@ -61,9 +60,8 @@ def test_good_arguments_parse(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "out").mkdir()
     parse = {name: make()[0].parse_args for name, (make, _) in BENCHMARKS.items()}
-    a = parse["attention"](["--N", "1", "--H", "1", "--R", "1", "--L", "1", "--scaling-heads", "1", "--json",
-                            "out/a.json"])
-    assert (a.N, a.H, a.R, a.L, a.scaling_heads, a.json) == (1, 1, 1, 1, 1, "out/a.json")
+    a = parse["attention"](["--N", "1", "--H", "1", "--R", "1", "--L", "1", "--json", "out/a.json"])
+    assert (a.N, a.H, a.R, a.L, a.json) == (1, 1, 1, 1, "out/a.json")
     s = parse["scaling"](["--mem-limit-mib", "0.5", "--max-point-seconds", "0", "--plots", "new/plots"])
     assert (s.mem_limit_mib, s.max_point_seconds, s.plots) == (0.5, 0.0, "new/plots")
     assert parse["report"](["--out", "out/docs"]).out == "out/docs"

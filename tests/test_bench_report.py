@@ -15,26 +15,24 @@ from pyvf.bench import accuracy, common, hardcases, report, scaling
 
 SIZE = (4, 32)  # (H, dh) of the made-up scaling report
 VIEWS = (2, 4, 8, 16, 32)
-# method -> (memory ~ c N^p: c, p; time: c, p; the largest N measured; forward only)
-LAWS = {"pyvf": (2 ** 20, 1.0, 1e-3, 2.0, 32, False),
-        "naive_pyvf": (3 * 2 ** 20, 2.0, 2e-3, 3.0, 16, False),
-        "dense_sdpa": (5 * 2 ** 20, 1.5, 4e-3, 2.5, 32, False),
-        "flex": (2 ** 20, 0.5, 3e-3, 2.0, 8, True)}
+# method -> (memory ~ c N^p: c, p; time: c, p; the largest N measured)
+LAWS = {"pyvf": (2 ** 20, 1.0, 1e-3, 2.0, 32),
+        "naive_pyvf": (3 * 2 ** 20, 2.0, 2e-3, 3.0, 16),
+        "dense_sdpa": (5 * 2 ** 20, 1.5, 4e-3, 2.5, 32)}
 
 
-def scaling_report(laws=LAWS, not_run=("naive_sdpa", "dense_numpy")):
+def scaling_report(laws=LAWS, not_run=("dense_numpy",)):
     """A scaling report (as scaling.run writes it) whose memory and time follow `laws` exactly;
     each method skipped above its largest N; the slopes fitted by the scaling study's own fits()."""
     points = []
     for N in VIEWS:
-        for m, (cm, pm, ct, pt, top, fwd_only) in laws.items():
+        for m, (cm, pm, ct, pt, top) in laws.items():
             p = dict(method=m, H=SIZE[0], dh=SIZE[1], N=N, theory=dict(expected_fwd=N, expected_fwd_bwd=N))
             if N > top:
                 p["skipped"] = "predicted 99 s > --max-point-seconds 30"
             else:
-                p.update(fwd_bytes=cm * N ** pm / 2, fwd_seconds=ct * N ** pt / 2)
-                if not fwd_only:
-                    p.update(fwd_bwd_bytes=cm * N ** pm, fwd_bwd_seconds=ct * N ** pt)
+                p.update(fwd_bytes=cm * N ** pm / 2, fwd_seconds=ct * N ** pt / 2, fwd_bwd_bytes=cm * N ** pm,
+                         fwd_bwd_seconds=ct * N ** pt)
             points.append(p)
     methods = list(laws)
     return dict(config=dict(sizes=[list(SIZE)], methods=methods, R=3, B=1, L=64, threads=2,
@@ -43,28 +41,23 @@ def scaling_report(laws=LAWS, not_run=("naive_sdpa", "dense_numpy")):
 
 
 def expected_scaling_numbers(kind, laws=LAWS):
-    """The closed-form answer: (pyvf's exponent, the N all fwd+bwd methods share, [(exponent,
-    ratio to pyvf) per other fwd+bwd method], forward only: (its N, [(exponent, ratio)]))."""
+    """The closed-form answer: (pyvf's exponent, the N all methods share, [(exponent, ratio to
+    pyvf) per other method])."""
     c, p = (0, 1) if kind == "bytes" else (2, 3)
-    fb = {m: law for m, law in laws.items() if not law[5]}
-    n = min(law[4] for law in fb.values())
-    others = [(law[p], law[c] * n ** law[p] / (fb["pyvf"][c] * n ** fb["pyvf"][p])) for m, law in fb.items()
+    n = min(law[4] for law in laws.values())
+    others = [(law[p], law[c] * n ** law[p] / (laws["pyvf"][c] * n ** laws["pyvf"][p])) for m, law in laws.items()
               if m != "pyvf"]
-    fwd = [law for law in laws.values() if law[5]]
-    n1 = min([laws["pyvf"][4]] + [law[4] for law in fwd])
-    fwd_only = [(law[p], law[c] * n1 ** law[p] / (laws["pyvf"][c] * n1 ** laws["pyvf"][p])) for law in fwd]
-    return laws["pyvf"][p], n, others, (n1, fwd_only)
+    return laws["pyvf"][p], n, others
 
 
 def assert_scaling_line(line, kind, laws=LAWS):
     """Every number of the line against the closed form: exponents to the 2 decimals printed,
     ratios to the 3 significant digits printed."""
-    p_pyvf, n, others, (n1, fwd_only) = expected_scaling_numbers(kind, laws)
+    p_pyvf, n, others = expected_scaling_numbers(kind, laws)
     assert re.search(r"grows as \*\*N\^([\d.]+)\*\*", line).group(1) == f"{p_pyvf:.2f}", line
-    assert f"at N={n}, the largest N every method measured" in line and f"Forward only, at N={n1}" in line, line
+    assert f"at N={n}, the largest N every method measured" in line, line
     got = re.findall(r"N\^([\d.]+), ([\d.]+)x pyvf's", line)
-    want = [(f"{p:.2f}", f"{r:.3g}") for p, r in others + fwd_only]
-    assert got == want, (line, want)
+    assert got == [(f"{p:.2f}", f"{r:.3g}") for p, r in others], line
 
 
 @pytest.mark.parametrize("kind", ["bytes", "seconds"])
@@ -74,8 +67,7 @@ def test_scaling_line_states_the_measured_slopes_and_ratios(kind):
     assert line.startswith("* **Memory**" if kind == "bytes" else "* **Time**")
     assert_scaling_line(line, kind)
     # the methods not run are named, with the reason, never given a number
-    assert "Not measured: naive stacked prefixes (torch SDPA): not in --quick; dense masked (NumPy): not in --quick" \
-        in line
+    assert "Not measured: dense masked (NumPy): not in --quick" in line
 
 
 @pytest.mark.parametrize("plant", ["slope", "point", "law"])
@@ -89,13 +81,13 @@ def test_scaling_line_check_catches_a_wrong_number(plant):
         p = next(p for p in rep["points"] if (p["method"], p["N"]) == ("dense_sdpa", 16))
         p["fwd_bwd_bytes"] *= 1.01
     else:
-        rep = scaling_report(dict(LAWS, pyvf=(2 ** 20, 1.1, 1e-3, 2.0, 32, False)))
+        rep = scaling_report(dict(LAWS, pyvf=(2 ** 20, 1.1, 1e-3, 2.0, 32)))
     with pytest.raises(AssertionError):
         assert_scaling_line(report.scaling_line(rep, "bytes"), "bytes")
 
 
 def test_scaling_line_without_pyvf_says_so():
-    rep = scaling_report(dict(LAWS, pyvf=(2 ** 20, 1.0, 1e-3, 2.0, 0, False)))
+    rep = scaling_report(dict(LAWS, pyvf=(2 ** 20, 1.0, 1e-3, 2.0, 0)))
     line = report.scaling_line(rep, "bytes")
     assert "was not measured (predicted 99 s" in line and "N^" not in line, line
 
@@ -155,39 +147,6 @@ def test_speed_error_line_names_a_variant_that_failed_validation():
     assert "for **1 of 2 ops**" in line and "failed validation: slow" in line and "Not on the front" not in line, line
 
 
-def test_threads_line_states_the_worst_default_over_best():
-    """The default over the best setting is the median of the rounds' ratios (each pair timed back
-    to back), not the ratio of the medians: under load, "a"'s rounds give ratios 1.5, 1.2, 1.5
-    (median 1.50) where the medians give 3.0 / 2.5 = 1.20; the best setting is the smallest median."""
-    idle = {"a": {"default": [1.0] * 3, "1": [0.8] * 3, "2": [1.0] * 3},
-            "b": {"default": [2.0] * 3, "1": [2.0] * 3, "2": [2.2] * 3}}
-    loaded = {"a": {"default": [3.0, 3.0, 9.0], "1": [2.0, 2.5, 6.0], "2": [3.0, 3.0, 9.0]},
-              "b": {"default": [2.0] * 3, "1": [2.1] * 3, "2": [2.0] * 3}}
-    th = dict(idle_rounds=idle, loaded_rounds=loaded, idle={}, cores=2, failures=[])
-    line = report.threads_line(th)
-    assert "at most **1.50x**" in line and "(worst: a, beside 2 busy processes;" in line, line
-    loaded["a"]["1"] = [2.5, 2.5, 6.0]  # planted: the best under load no longer gives 1.50
-    assert "at most **1.50x**" not in report.threads_line(th)
-    assert "not measured: a: 2 thr is 1 from" in report.threads_line(dict(failures=["a: 2 thr is 1 from"]))
-
-
-def test_a_setting_that_is_the_defaults_configuration_is_not_a_better_one():
-    """"2 thr" with the default's kernel and BLAS threads is the default run again: its smaller
-    median is noise (the smallest of several medians of one configuration), so the best is the
-    best of the other settings; without the configurations (older reports) it counts as before."""
-    rounds = {"a": {"default": [2.2, 2.0, 2.4], "1": [3.0] * 3, "2": [1.8, 1.9, 2.0], "blas1": [2.1, 2.1, 2.1]}}
-    th = dict(idle_rounds=rounds, loaded_rounds=rounds, idle={}, cores=2, failures=[])
-    assert report._threads.default_over_best(rounds["a"])[1] == "2"
-    assert "at most **1.20x**" in report.threads_line(th)  # median of 2.2/1.8, 2.0/1.9, 2.4/2.0
-    th["configurations"] = {"default": [2, 2], "1": [1, 1], "2": [2, 2], "blas1": [2, 1]}
-    assert report._threads.default_over_best(rounds["a"], th["configurations"])[1] == "blas1"
-    assert "at most **1.05x**" in report.threads_line(th)  # median of 2.2/2.1, 2.0/2.1, 2.4/2.1
-    assert report._threads.configurations_note(th["configurations"]) == (
-        "; 2 thr is the default's configuration here (2 kernel threads, 2 BLAS threads), not counted as a "
-        "better setting")
-    assert report._threads.configurations_note({"default": [2, 1], "2": [2, 2]}) == ""
-
-
 # ---------------------------------------------------------------------------------------
 # the plots
 
@@ -220,32 +179,6 @@ def plot_problems(fig):
 def _overlap(a, b):
     """The area (pixels) two boxes share."""
     return max(0.0, min(a.x1, b.x1) - max(a.x0, b.x0)) * max(0.0, min(a.y1, b.y1) - max(a.y0, b.y0))
-
-
-def test_policy_and_scaling_lines_state_the_measured_ratios():
-    """pyvf's waiting policy against the others (worst ratio to the fastest, closed form from the
-    made-up times: the median of the rounds' ratios, which here is not the ratio of the medians),
-    and the speed-up on the most threads; absent measurements give no line."""
-    pol = {"passive (pyvf)": {"idle_rounds": {"a": [1.2] * 3, "b": [1.0] * 3},
-                              "loaded_rounds": {"a": [1.0, 3.0, 3.0], "b": [1.0] * 3}},
-           "active": {"idle_rounds": {"a": [1.0] * 3, "b": [1.0] * 3},
-                      "loaded_rounds": {"a": [2.0, 2.0, 4.0], "b": [1.5] * 3}}}
-    # loaded a: the rounds' fastest 1, 2, 3; passive 1, 1.5, 1 of it (median 1), active 2, 1, 4/3 (4/3),
-    # where the medians' ratio would say 1.5 and 1
-    line = report.policy_line(dict(policies=pol, cores=2))
-    assert "passive (pyvf) takes at most **1.00x**" in line and "active takes up to 1.50x" in line
-    assert "idle it takes up to 1.20x (the others up to 1.00x)" in line
-    pol["active"]["loaded_rounds"]["b"] = [1.0] * 3
-    assert "active takes up to 1.33x" in report.policy_line(dict(policies=pol, cores=2))
-    sc = {"threads": [1, 2], "times": {"step": {"1": 3.0, "2": 1.6}}, "bitwise": {"step": True}}
-    line = report.scaling_threads_line(dict(scaling=sc))
-    assert "on 2 threads against 1: step **1.88x**" in line and "bitwise the same at every" in line
-    assert "NOT bitwise" in report.scaling_threads_line(dict(scaling=dict(sc, bitwise={"step": False})))
-    assert report.policy_line({}) is None and report.scaling_threads_line({}) is None
-    # the machine's ceilings are named as such, not as one more call
-    sc["times"]["ceiling: compute (GEMM)"] = {"1": 2.0, "2": 1.0}
-    line = report.scaling_threads_line(dict(scaling=sc))
-    assert "against 1: step **1.88x** (the machine's ceilings: compute (GEMM) 2.00x);" in line, line
 
 
 def test_plot_problems_finds_overlapping_ticks_and_a_legend_over_the_data():
@@ -319,41 +252,6 @@ def test_scaling_plots_are_readable_with_the_memory_floor(figures, tmp_path):
     f = rep["slopes"]["4x32"]
     assert f"{scaling.METHODS['pyvf']} (slope fwd {f['pyvf']['fwd_bytes']:.2f}, fwd+bwd " \
            f"{f['pyvf']['fwd_bwd_bytes']:.2f})" in mem["texts"], mem
-    assert f"{scaling.METHODS['flex']} (slope fwd {f['flex']['fwd_bytes']:.2f})" in mem["texts"], mem
     # the memory plot draws the floor below which a reading is approximate (its points go down to 0.5 MiB)
     assert mem["hlines"] == {round(np.log10(common.MEMORY_NOISE_BYTES / 2 ** 20), 3)}, mem
     assert any("below it a reading is approximate" in t for t in mem["texts"]) and not tim["hlines"], (mem, tim)
-
-
-def test_other_machines_section_merges_one_machines_files(tmp_path):
-    """Scaling-only files of other machines (measurements/threads-scaling-*.json) become one table
-    per (CPU, cores, kernel path), naming the commands and files, with the 16-thread targets; two
-    runs of one machine merge; another machine gets its own table; other JSON files are ignored."""
-    import json
-    meas = tmp_path / "measurements"
-    meas.mkdir()
-
-    def write(name, cpu, calls, times, command):
-        sc = {"threads": sorted({int(n) for t in times for n in t}), "bitwise": {c: True for c in calls},
-              "times": dict(zip(calls, times))}
-        (meas / name).write_text(json.dumps({"cpu": cpu, "cores": 16, "kernel_path": "avx512", "scaling": sc,
-                                             "date": "2026-11-27", "command": command, "failures": []}))
-    write("threads-scaling-16-a.json", "Xeon X", ["codebook step, paper (batch 2)"],
-          [{"1": 8.0, "2": 4.0, "16": 0.9}], "pyvf bench threads --scaling-only --calls codebook-paper")
-    write("threads-scaling-16-b.json", "Xeon X", ["transformer step, tiny"], [{"1": 1.0, "16": 0.3}],
-          "pyvf bench threads --scaling-only --calls transformer-tiny --counts 1 16")
-    write("threads-scaling-16-c.json", "Xeon X", ["ceiling: compute (GEMM)", "ceiling: memory (add)"],
-          [{"1": 1.0, "16": 0.1}, {"1": 1.0, "2": 0.5}], "pyvf bench threads --scaling-only --calls gemm stream")
-    write("threads-scaling-other.json", "EPYC Y", ["Codebook.encode"], [{"1": 1.0, "16": 0.1}], "cmd")
-    (meas / "threads.json").write_text("{}")
-    text = "\n".join(report.other_machines_section(str(tmp_path)))
-    assert text.count("### 16 cores: ") == 2
-    xeon = text[text.index("### 16 cores: Xeon X"):text.index("### 16 cores: EPYC Y")]
-    assert "`pyvf bench threads --scaling-only --calls codebook-paper`; `pyvf bench threads --scaling-only " \
-           "--calls transformer-tiny --counts 1 16`" in xeon
-    assert re.search(r"\| transformer step, tiny +\| 1000 ms \(1\.00x\) +\| - +\| 300 ms \(3\.33x\)", xeon)
-    assert "codebook step, paper (batch 2): 8.89x on 16 threads (target at least 8)" in xeon
-    assert "transformer step, tiny: 3.33x on 16 threads (target at least 4) **missed**" in xeon
-    assert "8.89x on 16 threads (target at least 8); the machine's ceilings on 16 threads: compute (GEMM) " \
-           "10.00x.\n" in xeon  # memory (add) was not run on 16
-    assert report.other_machines_section(str(tmp_path / "nowhere")) == []

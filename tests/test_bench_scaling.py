@@ -1,7 +1,7 @@
-"""`pyvf bench scaling` (pyvf/bench/scaling.py): the quick mode through the installed console
-script, from a folder outside the source tree, and the pieces it rests on: the slope fit on
-exact power laws, the skip of a point that would not fit in memory, the plots' optional
-dependency. The quick run takes ~30 s on 2 cores; the rest seconds.
+"""`pyvf bench scaling` (pyvf/bench/scaling.py): the pieces it rests on: the slope fit on exact
+power laws, the skip of a point that would not fit in memory, the plots' optional dependency,
+the naive stacked prefixes. Its quick run is checked on the quick report's measurements
+(check_scaling, called by tests/test_bench_accuracy.py).
 """
 
 import json
@@ -14,17 +14,15 @@ from pyvf.bench import scaling
 from test_cli import assert_ran, clean_env, run
 
 
-def test_quick_run_writes_json_table_and_plots(tmp_path):
-    proc = run(["bench", "scaling", "--quick", "--json", "out.json", "--plots", "plots"], tmp_path)
-    assert_ran(proc, "fitted slopes", "| pyvf ", "wrote out.json")
-    report = json.loads((tmp_path / "out.json").read_text())
+def check_scaling(report, plots):
+    """`pyvf bench scaling --quick`'s JSON (as the quick report writes it) and its plots."""
     points = report["points"]
     failed = [(p["method"], p["N"], p["error"][:300]) for p in points if "error" in p]
     assert not failed, failed
     assert not [p for p in points if "skipped" in p], "a quick-mode point was skipped"
     # every method validated against the float64 reference at the first N, before it was timed
     first = [p for p in points if p["N"] == min(report["config"]["views"])]
-    assert {p["method"] for p in first} == set(scaling.QUICK_METHODS)
+    assert {p["method"] for p in first} == set(scaling.METHODS)
     for p in first:
         assert max(p["errors"].values()) <= p["bound"], p
     for p in points:
@@ -36,8 +34,8 @@ def test_quick_run_writes_json_table_and_plots(tmp_path):
         assert s["pyvf"][key] < 1.3, s["pyvf"]
     assert s["pyvf"]["fwd_bytes"] < s["dense_sdpa"]["fwd_bytes"], (s["pyvf"], s["dense_sdpa"])
     # tests/requirements.txt installs matplotlib (the pyvf[plots] extra), so the plots must be there
-    for name in ("memory_H4_dh32.png", "time_H4_dh32.png"):
-        assert (tmp_path / "plots" / name).stat().st_size > 1000
+    for name in ("scaling-memory-H4-dh32.png", "scaling-time-H4-dh32.png"):
+        assert (plots / name).stat().st_size > 1000
 
 
 @pytest.mark.parametrize("p", [0.5, 1.0, 2.0, 3.0, -1.0])
@@ -78,7 +76,7 @@ def test_every_point_skipped_under_a_tiny_memory_limit_and_plots_need_matplotlib
     assert_ran(proc, "skipped: needs", "pip install pyvf[plots]", "wrote out.json")
     report = json.loads((tmp_path / "out.json").read_text())
     assert report["plots"] is None and not os.path.exists(tmp_path / "plots")
-    assert len(report["points"]) == len(scaling.QUICK_VIEWS) * len(scaling.QUICK_METHODS)
+    assert len(report["points"]) == len(scaling.QUICK_VIEWS) * len(scaling.METHODS)
     for p in report["points"]:
         assert "skipped" in p and "fwd_bytes" not in p, p
 

@@ -19,11 +19,11 @@ import pytest_benchmark  # noqa: F401  (a test requirement: missing, this fails,
 
 import pyvf
 from pyvf.bench import accuracy
-from pyvf.bench.common import peak_memory
+from pyvf.bench.common import peak_memory, torch_or_none
 
 SIZE = os.environ.get("PYVF_BENCH_SIZE", "smoke")
 ROUNDS = 3 if SIZE == "smoke" else 5
-WITH_TORCH = accuracy.torch_available()
+WITH_TORCH = torch_or_none() is not None
 
 
 @functools.lru_cache(maxsize=None)

@@ -159,9 +159,12 @@ def test_inference_from_several_python_threads_at_once():
     (the kernels release the GIL, so their OpenMP teams run side by side): every render,
     localization and encoding is bitwise the one made alone."""
     import numpy as np
-    from pyvf.bench.threads import _transformer_inputs
-    from pyvf.train.loops import TINY_CODEBOOK
-    cfg, tokens, poses = _transformer_inputs(2, 8)
+    from pyvf.train.loops import TINY_CODEBOOK, TINY_TRANSFORMER
+    cfg = TINY_TRANSFORMER
+    rng = np.random.default_rng(0)
+    tokens = rng.integers(0, cfg.n_embeddings, (2, 8, cfg.token_image_size ** 2))
+    poses = rng.normal(size=(2, 8, 7)).astype(np.float32)
+    poses[..., 3:] = pyvf.quat_normalize(poses[..., 3:])
     model = pyvf.Transformer(cfg, seed=0)
     scene = model.encode_scene(tokens[:, :4], poses[:, :4])
     codebook = pyvf.Codebook(TINY_CODEBOOK, seed=0)

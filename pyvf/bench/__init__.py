@@ -3,7 +3,7 @@
     pyvf bench attention   branching attention: pyvf's kernel, torch SDPA, the dense NumPy reference
     pyvf bench vq          nearest-code lookup: pyvf.vq_nearest, torch, numpy, float64 brute force
     pyvf bench transformer one training step, pyvf against the torch oracle model
-    pyvf bench codebook    encode/decode and a training step, pyvf against the torch oracle model
+    pyvf bench codebook    one training step, pyvf against the torch oracle model
     pyvf bench scaling     attention memory and time against the number of views: pyvf, naive stacked, dense
     pyvf bench accuracy    speed against error: every op and variant against a float64 reference
     pyvf bench hardcases   sweeps into the hard cases, pyvf's stated bound checked along each

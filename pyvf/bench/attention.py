@@ -2,8 +2,7 @@
 scaled_dot_product_attention with the dense (T, T) mask and against the dense NumPy reference.
 
     pyvf bench attention                   # paper size R=3, B=1, H=12, N=20, L=64, dh=64
-    pyvf bench attention --quick           # smaller sizes, well under a minute
-    pyvf bench attention --flex            # also torch flex_attention (compiled, forward only)
+    pyvf bench attention --quick           # smaller sizes
     pyvf bench attention --json out.json   # every number, machine-readable
 
 What it does, in order:
@@ -14,34 +13,28 @@ What it does, in order:
    bound or another is outside BOUND_OTHERS (it would be the time of another computation);
 2. measures the extra peak memory of one call of each (pyvf.bench.common.peak_memory: resident
    memory, outputs included) beside the memory expected for it;
-3. optionally (--flex) compiles torch flex_attention with a block mask built from the
-   branching rule, validates it (outside BOUND_OTHERS it is not timed, and the exit status is 1)
-   and measures its memory;
-4. times forward and forward+backward of each (median of --repeat calls), with the useful
+3. times forward and forward+backward of each (median of --repeat calls), with the useful
    GFLOP/s (attended block pairs only) and the machine's float32 GEMM rate for scale;
-5. measures pyvf's extra peak memory as N grows, to show it grows linearly in T = R*N*L
-   while the dense logits grow as T^2.
+4. times pyvf on every kernel path this CPU runs, each validated first, as % of the GEMM rate.
 
+How the memory grows with N, against stacked prefixes and dense masks: `pyvf bench scaling`.
 Inputs are unit-normal, scale = 1 (the published model's unscaled logits, docs/math.md §2).
 Layouts: pyvf takes (R, B, H, N, L, dh); torch and the reference's flat sequence are
 (B, H, T, dh) with T = R*N*L in the order [row][view][token].
 
 run() is the benchmark (its report: every number, for --json); demo() is `pyvf bench
-demo-attention` (and `pyvf demo` while no pretrained models are installed): the same check without torch, at three sizes, pyvf against the dense
-NumPy reference only (error, time, memory). torch is imported inside the functions that use it.
+demo-attention` (and `pyvf demo` while no pretrained models are installed): the same check without
+torch, at three sizes, pyvf against the dense NumPy reference only (error, time, memory). torch is
+imported inside the functions that use it.
 """
 
-import itertools
-import os
-import platform
 import time
-import traceback
 
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import (TORCH_MISSING, blas_thread_env, cpu_name, format_bytes, measured, median_time,
-                               memory_method, table, torch_or_none)
+from pyvf.bench.common import (TORCH_MISSING, format_bytes, machine, measured, median_time, memory_method, table,
+                               torch_or_none)
 from pyvf.verify.compare import rel_err
 
 # The bounds pyvf must meet before anything is timed: the same as tests/test_attention.py
@@ -51,7 +44,7 @@ from pyvf.verify.compare import rel_err
 # worst, moves each probability by that relative amount; measured ~2.5e-6; a bug is O(1).
 BOUND64 = 1e-12
 BOUND32 = 1e-5
-# The other implementations (torch SDPA and flex_attention, the NumPy reference in float32) round
+# The other implementations (torch SDPA, the NumPy reference in float32) round
 # the logits (up to ~40 here: unit-normal inputs, scale 1) in float32 in their own order, torch's
 # flash kernel with its own exp (measured: ~3.3e-6 at the paper size, ~1.5e-6 at the small one);
 # what is checked is that each computes the same function, where a wrong mask or layout is an
@@ -60,8 +53,6 @@ BOUND_OTHERS = 1e-4
 
 PAPER = dict(R=3, B=1, H=12, N=20, L=64, dh=64)
 QUICK = dict(R=3, B=1, H=4, N=8, L=64, dh=64)
-SCALING_N = (4, 8, 16, 32, 64)
-QUICK_SCALING_N = (2, 4, 8, 16)
 
 
 def error(x, ref):
@@ -142,6 +133,24 @@ def dense_logits_bytes(R, B, H, N, L, itemsize):
     """The (B, H, T, T) logits a dense attention materialises."""
     T = R * N * L
     return B * H * T * T * itemsize
+
+
+def expected_memory(method, R, B, H, N, L, dh, threads, backend="FLASH_ATTENTION"):
+    """Bytes a float32 call should need above its inputs: (forward, forward+backward), outputs
+    included. "pyvf": pyvf_expected_memory, O(T*dh). "sdpa", torch SDPA with the (T, T) bool mask:
+    torch converts the mask to a float32 additive one (4 T^2), then o (and dq, dk, dv); its flash
+    kernel (backend FLASH_ATTENTION) holds no logits, the math path the logits and, for the
+    backward, the probabilities. "numpy", the dense reference: s, p = exp(s) and p / sum(p) alive
+    at once, its vjp p, dp and one (dp - rowsum) temporary (3 dense (B, H, T, T) arrays each),
+    beside its (T, T) bool mask."""
+    if method == "pyvf":
+        return pyvf_expected_memory(R, B, H, N, L, dh, 4, threads)
+    S = R * B * H * N * L * dh * 4  # one array like q
+    T2, logits = (R * N * L) ** 2, dense_logits_bytes(R, B, H, N, L, 4)
+    if method == "sdpa":
+        math = backend != "FLASH_ATTENTION"
+        return 4 * T2 + S + math * logits, 4 * T2 + 4 * S + 2 * math * logits
+    return T2 + 3 * logits + S, T2 + 3 * logits + 3 * S
 
 
 # ---------------------------------------------------------------------------------------
@@ -225,88 +234,6 @@ def gemm_fn():
 GEMM_FLOPS = 2 * 1024 ** 3
 
 
-def setup_flex(q, k, v, o_ref):
-    """torch flex_attention, compiled, with a BlockMask from the branching rule; forward only
-    (flex_attention has no CPU backward). Compiles, validates o against o_ref (BOUND_OTHERS; out
-    of it, out["error"] starts "validation failed" and there is nothing to time) and measures one
-    call's memory. Returns (dict of results or of the error, the forward function or None)."""
-    import torch
-
-    R, B, H, N, L, dh = q.shape
-    T = R * N * L
-    out = {}
-    try:
-        from torch.nn.attention.flex_attention import create_block_mask, flex_attention
-
-        def mask_mod(b, h, q_idx, kv_idx):  # the rule of docs/math.md §2 on flat indices
-            q_row, q_view = q_idx // (N * L), (q_idx // L) % N
-            k_row, k_view = kv_idx // (N * L), (kv_idx // L) % N
-            return ((k_row == 0) & (k_view < q_view)) | ((k_row == q_row) & (k_view == q_view))
-
-        t0 = time.perf_counter()
-        # block size L: every (L, L) tile is then either fully attended or fully masked
-        block_mask = create_block_mask(mask_mod, B=None, H=None, Q_LEN=T, KV_LEN=T, device="cpu",
-                                       BLOCK_SIZE=L)
-        out["block_mask_seconds"] = time.perf_counter() - t0
-        out["block_mask_sparsity_percent"] = float(block_mask.sparsity())
-        flex = torch.compile(flex_attention)
-        qt, kt, vt = (torch.from_numpy(flat(x)) for x in (q, k, v))
-
-        def fwd():
-            with torch.no_grad():
-                return flex(qt, kt, vt, block_mask=block_mask, scale=1.0)
-
-        t0 = time.perf_counter()
-        fwd()  # compiles (torch's inductor cache in /tmp makes later runs' compiles shorter)
-        out["first_call_seconds"] = time.perf_counter() - t0
-        o, extra, _ = measured(fwd)
-        out["err_o"] = err = error(unflat(o.numpy(), q.shape), o_ref)
-        out["peak_bytes"] = extra
-        if not err <= BOUND_OTHERS:
-            out["error"] = (f"validation failed: max rel. error of o {err:.2e} > {BOUND_OTHERS:g} against the "
-                            "float64 reference")
-            return out, None
-        return out, fwd
-    except Exception as e:  # noqa: BLE001 -- report any failure and carry on, as asked
-        out["error"] = f"{type(e).__name__}: {e}"
-        out["traceback"] = traceback.format_exc()
-        return out, None
-
-
-def memory_scaling(Ns, R, B, H, L, dh, threads, calls=2):
-    """pyvf's extra peak memory (forward; forward+backward) for each N, float32: the smallest of
-    `calls` measured calls. The call's own memory is deterministic and anything else that grows
-    the process's resident memory meanwhile only adds, so the minimum is the estimate. Late in a
-    full run the calls here have read up to ~40% (<= 10 MiB) above the model in some runs, even
-    as the minimum of two, and within 1% in others; in a fresh process they were always within
-    a few %: some of the process's earlier activity (suspected: the kernel collapsing transparent
-    huge pages) grows its resident memory during the call."""
-    rows = []
-    for N in Ns:
-        q, k, v, do = make_inputs(R, B, H, N, L, dh, seed=N)
-        fwd, fwd_bwd = pyvf_fns(q, k, v, do)
-        m_fwd = [measured(fwd)[1] for _ in range(calls)]
-        m_fb = [measured(fwd_bwd)[1] for _ in range(calls)]
-        e_fwd, e_fb = pyvf_expected_memory(R, B, H, N, L, dh, 4, threads)
-        rows.append(dict(N=N, T=R * N * L, fwd_bytes=min(m_fwd), fwd_expected=e_fwd, fwd_bwd_bytes=min(m_fb),
-                         fwd_bwd_expected=e_fb, fwd_bytes_each_call=m_fwd, fwd_bwd_bytes_each_call=m_fb,
-                         dense_logits_bytes_computed=dense_logits_bytes(R, B, H, N, L, 4)))
-        del q, k, v, do
-    Ns_a = np.array([r["N"] for r in rows], dtype=np.float64)
-    fit = {}
-    for key in ("fwd_bytes", "fwd_bwd_bytes"):
-        m = np.array([r[key] for r in rows], dtype=np.float64)
-        slope, intercept = np.polyfit(Ns_a, m, 1)  # m ~ intercept + slope * N
-        resid = np.abs(m - (intercept + slope * Ns_a)) / m
-        # local growth exponents d log m / d log N between successive N: 1 for linear (below 1
-        # while the N-independent per-thread buffers still matter), 2 for quadratic
-        expo = np.diff(np.log(m)) / np.diff(np.log(Ns_a))
-        fit[key] = dict(bytes_per_N=float(slope), intercept_bytes=float(intercept),
-                        max_rel_residual=float(resid.max()), growth_exponents=[float(x) for x in expo],
-                        superlinear=bool(expo[-1] > 1.15))
-    return rows, fit
-
-
 # ---------------------------------------------------------------------------------------
 # the benchmark's steps
 
@@ -333,22 +260,6 @@ def path_times(q, k, v, do, repeat, f_fwd, f_fb, gemm):
     return out
 
 
-def backward_thread_scaling(R, N, L, dh, threads, repeat):
-    """The backward alone at B = H = 1 on 1 thread and on `threads`: it splits one head's key
-    blocks into groups, so it uses every thread even with a single head."""
-    q, k, v, do = make_inputs(R, 1, 1, N, L, dh, seed=1)
-    o, lse = pyvf.branching_attention_forward(q, k, v)
-    bwd = lambda: pyvf.branching_attention_backward(do, q, k, v, o, lse)  # noqa: E731
-    res = {}
-    try:
-        for n in (1, threads):
-            pyvf.set_num_threads(n)
-            res[n] = median_time(bwd, repeat)[0]
-    finally:
-        pyvf.set_num_threads(threads)
-    return dict(t1=res[1], tn=res[threads], speedup=res[1] / res[threads], groups=key_groups(R, 1, 1, N))
-
-
 def error_table(err):
     rows = [[name] + [f"{e[c]:.2e}" for c in ("o", "dq", "dk", "dv")] for name, e in err.items()]
     return table(["max rel. error vs float64 ref", "o", "dq", "dk", "dv"], rows)
@@ -358,19 +269,16 @@ def ms(sec):
     return "-" if sec is None else f"{sec * 1e3:.1f} ms"
 
 
-def run(R, B, H, N, L, dh, threads=2, repeat=5, flex=False, scaling_views=None, scaling_heads=None):
+def run(R, B, H, N, L, dh, threads=2, repeat=5):
     """The benchmark at one size (the module docstring's steps): prints each section as it goes
     and returns the report, every number. When pyvf is outside its bound, or torch SDPA or the
-    NumPy reference outside BOUND_OTHERS, nothing is timed and report["aborted"] says so
-    (failure(report): the exit status). flex: also torch flex_attention; scaling_views: the N of the
-    memory-versus-N measurement (None: none), at scaling_heads heads (default H). Without torch,
-    pyvf and the NumPy reference alone (report["torch"] says why)."""
+    NumPy reference outside BOUND_OTHERS, nothing is timed and report["aborted"] says so. Without
+    torch, pyvf and the NumPy reference alone (report["torch"] says why)."""
     torch = torch_or_none()
     t_start = time.perf_counter()
     shape = (R, B, H, N, L, dh)
     pyvf.set_num_threads(threads)
-    report = _start(shape, threads, repeat, torch)
-    section = itertools.count(1).__next__  # the next section's number (some sections are optional)
+    report = _start(shape, threads, repeat)
     q, k, v, do = make_inputs(*shape)
     mask = pyvf.branching_mask(R, N, L)  # (T, T) bool, for torch
     fns = dict(zip(("pyvf_fwd", "pyvf_fwd_bwd"), pyvf_fns(q, k, v, do)))
@@ -379,75 +287,48 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5, flex=False, scaling_views=None, 
         torch.set_num_threads(threads)
         t_fwd, t_fb, to_np = torch_fns(q, k, v, do, mask)
         fns.update(torch_fwd=t_fwd, torch_fwd_bwd=t_fb)
-    if flex and torch is None:
-        print(f"--flex: {TORCH_MISSING}")
-        flex = False
     fns.update(zip(("numpy_fwd", "numpy_vjp"), reference_fns(q, k, v, do)))
-    o64, mem, first = _validate(report, section(), (q, k, v, do), mask, fns, to_np)
+    mem, first = _validate(report, (q, k, v, do), mask, fns, to_np)
     if "aborted" in report:
         return report
-    _memory(report, section(), shape, q, mask, mem, threads)
-    if flex:
-        fns["flex_fwd"] = _flex(report, section(), q, k, v, o64)
+    _memory(report, shape, q, mask, mem, threads)
     f_fwd, f_fb = useful_flops(*shape)
-    gemm = _time(report, section(), shape, repeat, fns, first, (f_fwd, f_fb))
-    print(f"\n## {section()}. pyvf on each kernel path this CPU runs (same inputs, medians of {repeat}), "
-          "and the backward's thread scaling at B = H = 1\n")
+    gemm = _time(report, shape, repeat, fns, first, (f_fwd, f_fb))
+    print(f"\n## 4. pyvf on each kernel path this CPU runs (same inputs, medians of {repeat})\n")
     report["paths"] = paths = path_times(q, k, v, do, repeat, f_fwd, f_fb, gemm)
     print(table(["path", "forward", "GFLOP/s", "% of GEMM", "forward+backward", "GFLOP/s", "% of GEMM"],
                 [[p, ms(r["fwd"]), f"{r['fwd_gflops']:.1f}", f"{r['fwd_of_gemm']:.0%}", ms(r["fwd_bwd"]),
                   f"{r['fwd_bwd_gflops']:.1f}", f"{r['fwd_bwd_of_gemm']:.0%}"] for p, r in paths.items()]))
     print(f"(GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s, the same for every row; "
           "PYVF_ISA=<path> runs the whole benchmark on one path)")
-    report["backward_thread_scaling"] = sc = backward_thread_scaling(R, N, L, dh, threads, repeat)
-    print(f"backward at R={R} B=1 H=1 N={N} L={L} dh={dh}: 1 thread {ms(sc['t1'])}, {threads} threads "
-          f"{ms(sc['tn'])}: {sc['speedup']:.2f}x (the key blocks of one head are split into "
-          f"{sc['groups']} groups of tasks)")
-    if scaling_views is not None:
-        _scaling(report, section(), scaling_views, R, B, scaling_heads or H, L, dh, threads)
     report["total_seconds"] = total = time.perf_counter() - t_start
     print(f"\ntotal {total:.0f} s")
     return report
 
 
-def failure(report):
-    """Why run()'s report is a failure, or None: it aborted (an error above its bound), or
-    flex_attention failed its validation (so it was not timed)."""
-    flex = report.get("flex", {}).get("error", "")
-    return report.get("aborted") or (f"flex_attention {flex}" if flex.startswith("validation failed") else None)
-
-
-def _start(shape, threads, repeat, torch):
+def _start(shape, threads, repeat):
     """The report's first fields (the problem, the machine, the bounds), printed as the header."""
     R, B, H, N, L, dh = shape
-    have = torch is not None
     T = R * N * L
-    report = dict(
-        config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=threads,
-                    repeat=repeat, inputs="unit normal, seed 0"),
-        machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
-                     python=platform.python_version(), numpy=np.__version__,
-                     torch=torch.__version__ if have else TORCH_MISSING, pyvf=pyvf.__version__,
-                     pyvf_threads=pyvf.num_threads(), torch_threads=torch.get_num_threads() if have else None,
-                     blas_thread_env=blas_thread_env(),
-                     torch_cpu_capability=torch.backends.cpu.get_cpu_capability() if have else None),
-        memory_method=memory_method(),
-        bounds=dict(pyvf_float32=BOUND32, pyvf_float64=BOUND64),
-    )
+    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=T, dtype="float32", scale=1.0, threads=threads,
+                              repeat=repeat, inputs="unit normal, seed 0"),
+                  machine=machine(threads), memory_method=memory_method(),
+                  bounds=dict(pyvf_float32=BOUND32, pyvf_float64=BOUND64))
+    m = report["machine"]
     print(f"# Branching attention benchmark: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={T}), float32, "
           f"scale 1, {threads} threads")
-    print(f"machine: {report['machine']['processor']}, {os.cpu_count()} CPUs; numpy {np.__version__}, "
-          f"torch {torch.__version__ if have else 'not installed'}, pyvf {pyvf.__version__}")
+    print(f"machine: {m['processor']}, {m['cpu_count']} CPUs; numpy {m['numpy']}, "
+          f"torch {m['torch'] or 'not installed'}, pyvf {m['pyvf']}")
     print(f"memory: {memory_method()}\n")
     return report
 
 
-def _validate(report, number, inputs, mask, fns, to_np):
+def _validate(report, inputs, mask, fns, to_np):
     """Section 1: every contender against the float64 reference, the first calls' memory and time
-    measured on the way. Returns (the reference's o, {call: extra peak bytes}, {call: seconds})."""
+    measured on the way. Returns ({call: extra peak bytes}, {call: seconds})."""
     q, k, v, do = inputs
     q64, k64, v64, do64 = (x.astype(np.float64) for x in inputs)
-    print(f"## {number}. Validation against the NumPy reference in float64 (float64 copies of the inputs)\n")
+    print("## 1. Validation against the NumPy reference in float64 (float64 copies of the inputs)\n")
     t0 = time.perf_counter()
     o64 = pyvf.branching_attention_reference(q64, k64, v64)
     g64 = pyvf.branching_attention_reference_vjp(q64, k64, v64, do64)
@@ -471,7 +352,7 @@ def _validate(report, number, inputs, mask, fns, to_np):
         print(error_table(err))
         print(f"\n{bounds}")
         report["aborted"] = "pyvf error above its bound"
-        return o64, mem, first
+        return mem, first
     if "torch_fwd" in fns:
         o, (_, grads) = measure("torch_fwd", 1), measure("torch_fwd_bwd", 1)
         err["torch SDPA float32"] = _errors(to_np(o), [to_np(g) for g in grads], o64, g64, None)
@@ -490,76 +371,41 @@ def _validate(report, number, inputs, mask, fns, to_np):
     if wrong:
         print(f"\n{bounds}: OK; {', '.join(wrong)} above {BOUND_OTHERS:g} (the same function)")
         report["aborted"] = f"{', '.join(wrong)} error above {BOUND_OTHERS:g}"
-        return o64, mem, first
+        return mem, first
     print(f"{bounds}; the others within {BOUND_OTHERS:g}: OK")
-    return o64, mem, first
+    return mem, first
 
 
-def _memory(report, number, shape, q, mask, mem, threads):
-    """Section 2: each call's extra peak memory beside the memory expected for it."""
-    R, B, H, N, L, dh = shape
-    S = q.nbytes  # one array like q
-    print(f"\n## {number}. Extra peak memory of one call (inputs excluded, outputs included)\n")
-    e_fwd, e_fb = pyvf_expected_memory(*shape, 4, threads)
-    logits = dense_logits_bytes(R, B, H, N, L, 4)
+def _memory(report, shape, q, mask, mem, threads):
+    """Section 2: each call's extra peak memory beside the memory expected for it (expected_memory)."""
+    print("\n## 2. Extra peak memory of one call (inputs excluded, outputs included)\n")
     backend = torch_backend(q, mask) if "torch_fwd" in mem else TORCH_MISSING
-    mask_f = mask.size * 4  # the bool mask as an additive float32 (T, T) mask
-    if backend == "FLASH_ATTENTION":  # torch's CPU flash kernel: O(T*dh), but it converts the mask
-        t_fwd_e = (mask_f + S, "(T, T) mask as float32 + o (flash kernel: no logits)")
-        t_fb_e = (mask_f + 4 * S, "(T, T) mask as float32 + o, dq, dk, dv; torch's backward workspace not modelled")
-    else:  # the math path materialises the logits, and keeps the probabilities for backward
-        t_fwd_e = (logits + S, "dense logits B*H*T^2*4 + o (math path)")
-        t_fb_e = (2 * logits + 4 * S, "logits + probabilities saved for backward + o, dq, dk, dv")
-    expected = {
-        "pyvf_fwd": (e_fwd, "o + lse + per-thread tiles: O(T*dh)"),
-        "pyvf_fwd_bwd": (e_fb, "o, lse, dq, dk, dv + per-thread head buffers: O(T*dh)"),
-        "torch_fwd": t_fwd_e,
-        "torch_fwd_bwd": t_fb_e,
-        # branching_attention_reference keeps s, p = exp(s) and p / sum(p) alive at once; its vjp
-        # p, dp and one (dp - rowsum) temporary: 3 dense (B, H, T, T) arrays each
-        "numpy_fwd": (3 * logits + S, "3 dense (B, H, T, T) arrays at once + o"),
-        "numpy_vjp": (3 * logits + 3 * S, "3 dense (B, H, T, T) arrays at once + dq, dk, dv"),
-    }
-    rows = [[name, format_bytes(mem[name]), format_bytes(expected[name][0]),
-             f"{mem[name] / expected[name][0]:.2f}", expected[name][1]] for name in mem]
-    print(table(["call", "measured", "expected", "measured/expected", "expected is"], rows))
-    print(f"\ndense logits (B, H, T, T) float32 = {format_bytes(logits)}; one array like q = {format_bytes(S)}; "
-          f"mask (T, T) bool = {format_bytes(mask.nbytes)}; torch SDPA backend chosen: {backend}")
-    report["memory"] = {n: dict(measured_bytes=mem[n], expected_bytes=expected[n][0], expected_is=expected[n][1])
-                        for n in mem}
+    expected = {}
+    for method, (fwd, fb) in (("pyvf", ("pyvf_fwd", "pyvf_fwd_bwd")), ("sdpa", ("torch_fwd", "torch_fwd_bwd")),
+                              ("numpy", ("numpy_fwd", "numpy_vjp"))):
+        expected[fwd], expected[fb] = expected_memory(method, *shape, threads, backend)
+    rows = [[name, format_bytes(mem[name]), format_bytes(expected[name]), f"{mem[name] / expected[name]:.2f}"]
+            for name in mem]
+    print(table(["call", "measured", "expected", "measured/expected"], rows))
+    logits = dense_logits_bytes(*shape[:5], 4)
+    print(f"\nexpected: pyvf O(T*dh); torch SDPA the (T, T) mask as float32 and, on its math path, the logits "
+          f"(expected_memory); the NumPy reference 3 dense (B, H, T, T) arrays. Dense logits (B, H, T, T) float32 = "
+          f"{format_bytes(logits)}; one array like q = {format_bytes(q.nbytes)}; torch SDPA backend chosen: {backend}")
+    report["memory"] = {n: dict(measured_bytes=mem[n], expected_bytes=expected[n]) for n in mem}
     report["memory"]["dense_logits_bytes"] = logits
     report["torch_sdpa_backend"] = backend
 
 
-def _flex(report, number, q, k, v, o64):
-    """Section 3 (optional): torch flex_attention compiled, validated, its memory. Returns its
-    forward, or None where it failed."""
-    print(f"\n## {number}. torch flex_attention (torch.compile, BlockMask from the branching rule, forward only)\n")
-    fx, flex_fwd = setup_flex(q, k, v, o64)
-    report["flex"] = fx
-    if flex_fwd is None:  # not timed
-        print(f"flex_attention failed: {fx['error']}\n{fx.get('traceback', '')}")
-        return None
-    print(table(["", "value"], [
-        ["create_block_mask", f"{fx['block_mask_seconds']:.2f} s (sparsity {fx['block_mask_sparsity_percent']:.1f}%)"],
-        ["first call (compiles)", f"{fx['first_call_seconds']:.1f} s"],
-        ["max rel. error of o vs float64 ref", f"{fx['err_o']:.2e}"],
-        ["extra peak memory, one call", format_bytes(fx["peak_bytes"])],
-    ]))
-    print("\n(its time is in the next table)")
-    return flex_fwd
-
-
-def _time(report, number, shape, repeat, fns, first, flops):
-    """Section 4: each contender's median time and GFLOP/s; the machine's GEMM rate (returned) for
+def _time(report, shape, repeat, fns, first, flops):
+    """Section 3: each contender's median time and GFLOP/s; the machine's GEMM rate (returned) for
     scale. Each is timed in `repeat` consecutive calls, not interleaved with the others: pyvf and
     torch have separate OpenMP runtimes (pyvf the system libgomp, torch its own copy), whose idle
     threads spin for a few ms after each parallel region; alternating them made both up to 2x
     slower and noisier here."""
     R, B, H, N, L, dh = shape
     f_fwd, f_fb = flops
-    print(f"\n## {number}. Time (median of {repeat} consecutive calls after one warm-up call)\n")
-    order = ["pyvf_fwd", "torch_fwd", "flex_fwd", "pyvf_fwd_bwd", "torch_fwd_bwd"]
+    print(f"\n## 3. Time (median of {repeat} consecutive calls after one warm-up call)\n")
+    order = ["pyvf_fwd", "torch_fwd", "pyvf_fwd_bwd", "torch_fwd_bwd"]
     times = {"gemm": median_time(gemm_fn(), repeat, 1)}
     times.update((name, median_time(fns[name], repeat, 1)) for name in order if fns.get(name) is not None)
     gemm = GEMM_FLOPS / times.pop("gemm")[0] / 1e9
@@ -569,14 +415,12 @@ def _time(report, number, shape, repeat, fns, first, flops):
     rows = []
     for fwd_name, fb_name, label in (("pyvf_fwd", "pyvf_fwd_bwd", "pyvf (C++ kernel)"),
                                      ("torch_fwd", "torch_fwd_bwd", "torch SDPA, dense bool mask"),
-                                     ("flex_fwd", None, "torch flex_attention (compiled)"),
                                      ("numpy_fwd", "numpy_vjp", "NumPy dense reference")):
         if fwd_name not in times:
             continue
         row = [label]
         for name, f in ((fwd_name, f_fwd), (fb_name, f_fb)):
-            row += ["-", "-", "-"] if name is None else [ms(times[name][0]), ms(min(times[name][1])),
-                                                         f"{f / times[name][0] / 1e9:.1f}"]
+            row += [ms(times[name][0]), ms(min(times[name][1])), f"{f / times[name][0] / 1e9:.1f}"]
         rows.append(row)
     print(table(["", "forward", "(min)", "GFLOP/s", "forward+backward", "(min)", "GFLOP/s"], rows))
     print("GFLOP/s: useful flops (the same count for every row) / median time")
@@ -587,9 +431,6 @@ def _time(report, number, shape, repeat, fns, first, flops):
         print(f"\ntorch SDPA / pyvf time: forward {ratio['fwd']:.2f}x, forward+backward {ratio['fwd_bwd']:.2f}x")
     else:
         print(f"\ntorch SDPA: {TORCH_MISSING}")
-    if "flex_fwd" in times:
-        ratio["flex_fwd"] = times["flex_fwd"][0] / times["pyvf_fwd"][0]
-        print(f"torch flex_attention / pyvf time: forward {ratio['flex_fwd']:.2f}x")
     print(f"NumPy reference / pyvf time: forward {times['numpy_fwd'][0] / times['pyvf_fwd'][0]:.0f}x, "
           f"forward+backward {times['numpy_vjp'][0] / times['pyvf_fwd_bwd'][0]:.0f}x")
     print(f"useful flops (attended block pairs only, {attended_pairs(R, N)} of {(R * N) ** 2} per head): "
@@ -605,25 +446,6 @@ def _time(report, number, shape, repeat, fns, first, flops):
     report["ratio_torch_over_pyvf"] = ratio
     return gemm
 
-
-def _scaling(report, number, Ns, R, B, H, L, dh, threads):
-    """The last section: pyvf's extra peak memory as N grows (memory_scaling), with its fit."""
-    print(f"\n## {number}. pyvf extra peak memory as N grows (R={R} B={B} H={H} L={L} dh={dh}, float32; "
-          "smallest of 2 calls)\n")
-    srows, fit = memory_scaling(Ns, R, B, H, L, dh, threads)
-    rows = [[r["N"], r["T"], format_bytes(r["fwd_bytes"]), format_bytes(r["fwd_expected"]),
-             format_bytes(r["fwd_bwd_bytes"]), format_bytes(r["fwd_bwd_expected"]),
-             format_bytes(r["fwd_bwd_bytes"] / r["N"]), format_bytes(r["dense_logits_bytes_computed"])]
-            for r in srows]
-    print(table(["N", "T", "fwd measured", "fwd expected", "fwd+bwd measured", "fwd+bwd expected",
-                 "fwd+bwd / N", "dense logits (computed)"], rows))
-    for key, label in (("fwd_bytes", "forward"), ("fwd_bwd_bytes", "forward+backward")):
-        f = fit[key]
-        print(f"{label}: linear fit {format_bytes(f['intercept_bytes'])} + {format_bytes(f['bytes_per_N'])} * N "
-              f"(largest residual {100 * f['max_rel_residual']:.1f}%); growth exponents d log m / d log N: "
-              + ", ".join(f"{x:.2f}" for x in f["growth_exponents"])
-              + ("  ** SUPERLINEAR **" if f["superlinear"] else "  (linear: 1; dense logits: 2)"))
-    report["scaling"] = dict(heads=H, rows=srows, fit=fit)
 
 # ---------------------------------------------------------------------------------------
 # pyvf demo: the same check without torch, at three sizes, pyvf against the dense NumPy
@@ -650,10 +472,6 @@ def _errors(o, grads, o_ref, grads_ref, heads):
     for name, g, w in zip(("dq", "dk", "dv"), grads, grads_ref):
         out[name] = error(pick(g), w)
     return out
-
-
-def _times(ratio):
-    return f"{ratio:.0f}x" if ratio >= 10 else f"{ratio:.1f}x"
 
 
 def demo_size(name, shape, ref_repeat, all_heads, seed=0):
@@ -704,23 +522,17 @@ def demo_size(name, shape, ref_repeat, all_heads, seed=0):
         verdict = "" if bound is None else ("ok" if max(e.values()) <= bound else "EXCEEDED")
         rows.append([label] + [f"{e[c]:.1e}" for c in ("o", "dq", "dk", "dv")]
                     + ["" if bound is None else f"{bound:g}", verdict])
-    print(table(["", "o", "dq", "dk", "dv", "bound", ""], rows, widths=(24, 9, 9, 9, 9, 7, 8)))
+    print(table(["", "o", "dq", "dk", "dv", "bound", ""], rows))
 
-    n_np = len(ts_np_fwd)
-    print(f"time, float32 (median of {DEMO_REPEAT} calls for pyvf, {n_np} for the reference)")
-    w = (24, 12, 18, 10)
+    print(f"\ntime, float32 (median of {DEMO_REPEAT} calls for pyvf, {len(ts_np_fwd)} for the reference), and the "
+          "extra peak memory of one call (measured, outputs included)")
     np_fwd, np_vjp = float(np.median(ts_np_fwd)), float(np.median(ts_np_vjp))
-    print(table(["", "forward", "forward+backward", ""], [
-        ["pyvf (C++ kernel)", f"{t_fwd * 1e3:.1f} ms", f"{t_fb * 1e3:.1f} ms", ""],
-        ["NumPy dense reference", f"{np_fwd * 1e3:.1f} ms", f"{np_vjp * 1e3:.1f} ms", "(its vjp)"],
-        ["reference / pyvf", _times(np_fwd / t_fwd), _times(np_vjp / t_fb), ""]], widths=w))
-
-    print("extra peak memory of one call, float32 (measured; outputs included)")
-    print(table(["", "forward", "forward+backward", ""], [
-        ["pyvf (C++ kernel)", format_bytes(mem_fwd), format_bytes(mem_fb), "O(T*dh)"],
-        ["NumPy dense reference", format_bytes(mem_np_fwd), format_bytes(mem_np_vjp), "O(T^2)"],
-        ["dense logits (computed)", format_bytes(dense_logits_bytes(R, B, H, N, L, 4)), "", "B*H*T^2*4"],
-        ["one array like q", format_bytes(q.nbytes), "", "B*H*T*dh*4"]], widths=w))
+    print(table(["", "forward", "forward+backward", "memory, forward", "memory, forward+backward"], [
+        ["pyvf (C++ kernel)", ms(t_fwd), ms(t_fb), format_bytes(mem_fwd), format_bytes(mem_fb)],
+        ["NumPy dense reference (its vjp)", ms(np_fwd), ms(np_vjp), format_bytes(mem_np_fwd), format_bytes(mem_np_vjp)],
+        ["reference / pyvf", f"{np_fwd / t_fwd:.3g}x", f"{np_vjp / t_fb:.3g}x", "", ""]]))
+    print(f"dense logits (B, H, T, T) float32 = {format_bytes(dense_logits_bytes(R, B, H, N, L, 4))}: O(T^2); one "
+          f"array like q = {format_bytes(q.nbytes)}: O(T*dh)")
     return ok
 
 
@@ -728,9 +540,6 @@ def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
     """`pyvf bench demo-attention`: branching attention at the given DEMO_SIZES names, pyvf against the dense
     NumPy reference: error, time, memory. Prints the tables; returns the exit status, 0 when
     every error is within its bound. NumPy only (no torch)."""
-    unknown = [s for s in sizes if s not in DEMO_SIZES]
-    if unknown or not sizes:
-        raise ValueError(f"unknown size {unknown or sizes!r}; choose from {', '.join(DEMO_SIZES)}")
     if threads is not None:
         pyvf.set_num_threads(threads)
     t0 = time.perf_counter()

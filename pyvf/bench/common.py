@@ -6,10 +6,11 @@ library only (matplotlib where a plot is asked for).
     result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
     result, extra, times = measured(fn, warmup=1, repeat=1)  # one call under peak_memory, timed, then more
     memory_method()                   # how peak_memory measures, for printing beside its numbers
-    print(table(header, rows))        # a markdown table (or, with widths, a plain aligned one)
+    print(table(header, rows))        # a markdown table
     write_json(path, report)          # a benchmark's report, as every benchmark writes it
     legend_outside(fig); log_ticks(ax.xaxis); save_figure(fig, path)  # the plots' shared settings
     first_step_differs(p, t)          # pyvf's and torch's first step (loss, checksums) compared
+    compare_steps(module, ...)        # pyvf's and torch's training steps, each in a worker, checked, timed
 
 peak_memory measures the process's resident memory (Linux VmHWM), so it covers every
 allocation the call makes: NumPy arrays, C++ std::vector workspace, torch tensors. It counts
@@ -20,7 +21,6 @@ the call: allocate the inputs first, then measure.
 import gc
 import json
 import os
-import signal
 import time
 import tracemalloc
 import zlib
@@ -31,9 +31,6 @@ from .._machine import cpu_name, median_time  # (re-exported: every benchmark im
 from .._io import atomic_write_text
 from .._memory import map_fresh_pages
 
-__all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "peak_memory", "memory_method",
-           "format_bytes", "cpu_name", "run_worker", "worker_main", "table", "write_json", "write_outputs", "pyplot",
-           "MEMORY_NOISE_BYTES", "legend_outside", "log_ticks", "save_figure", "checksums", "first_step_differs"]
 
 # numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
 # sets them to the benchmark's --threads (pyvf/cli/bench.py), so that numpy's GEMM and pyvf's
@@ -41,9 +38,19 @@ __all__ = ["BLAS_THREAD_VARS", "blas_thread_env", "median_time", "measured", "pe
 BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 
 
-def blas_thread_env():
-    """{variable: value or None} of BLAS_THREAD_VARS in this process, for a benchmark's report."""
-    return {v: os.environ.get(v) for v in BLAS_THREAD_VARS}
+def machine(threads):
+    """The machine a report ran on, for its JSON and the documents: the CPU, the versions (torch
+    None where it is not installed), pyvf's kernel path and the ones this CPU runs, the threads
+    asked for and pyvf's in effect, and BLAS_THREAD_VARS as numpy's BLAS pool was started with."""
+    import platform
+
+    import pyvf
+    torch = torch_or_none()
+    return dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
+                python=platform.python_version(), numpy=np.__version__, torch=torch and torch.__version__,
+                pyvf=pyvf.__version__, kernel_path=pyvf.kernel_path(), kernel_paths=pyvf.kernel_paths(),
+                threads=threads, pyvf_threads=pyvf.num_threads(),
+                blas_thread_env={v: os.environ.get(v) for v in BLAS_THREAD_VARS})
 
 
 _STATUS = "/proc/self/status"
@@ -164,105 +171,25 @@ def format_bytes(n):
     raise AssertionError("unreachable")
 
 
-def _worker_process(module, spec, env):
-    """(command, environment, folder) of a worker: `python -m module SPEC` started in the folder
-    that holds this process's pyvf package, so that it imports the same pyvf (`python -m` puts the
-    working folder first on sys.path: started from a source checkout, it would import the
-    unbuilt source tree)."""
+def run_worker(module, spec):
+    """Run `python -m module SPEC` in a fresh process, SPEC the JSON of the dict spec, and return
+    the JSON object printed on its last line (the module's worker_main): for benchmarks that keep
+    each framework's thread pools in a process of its own, or each point's memory apart. The
+    process starts in the folder that holds
+    this process's pyvf package, so that it imports the same pyvf (`python -m` puts the working
+    folder first on sys.path: started from a source checkout, it would import the unbuilt source
+    tree). Its standard input is empty."""
+    import subprocess
     import sys
 
     import pyvf
-    holds_pyvf = os.path.dirname(os.path.dirname(os.path.abspath(pyvf.__file__)))
-    child = {k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None}
-    return [sys.executable, "-m", module, json.dumps(spec)], child, holds_pyvf
-
-
-def run_worker(module, spec, env=None):
-    """Run `python -m module SPEC` in a fresh process, SPEC the JSON of the dict spec, and return
-    the JSON object printed on its last line (the module's worker_main): for benchmarks that keep
-    each framework's thread pools in a process of its own, or that need environment variables
-    read when a library loads (env: {name: value} over this process's environment; a value of
-    None removes the variable). Its standard input is empty."""
-    import subprocess
-
-    cmd, child, cwd = _worker_process(module, spec, env)
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, env=child, stdin=subprocess.DEVNULL)
+    cmd = [sys.executable, "-m", module, json.dumps(spec)]
+    proc = subprocess.run(cmd, capture_output=True, text=True,
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(pyvf.__file__))),
+                          stdin=subprocess.DEVNULL)
     if proc.returncode:
         raise RuntimeError(f"worker {' '.join(cmd[1:])} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-class Worker:
-    """run_worker's process kept alive, to be asked one line at a time: for measurements that time
-    several processes back to back, round after round (threads.py's waiting policies, each read
-    by the OpenMP runtime when it loads). Its module's worker answers each line of its standard
-    input with one line; at the end of input it prints its JSON result as worker_main does.
-
-        with Worker(module, spec, env, stopped=True) as w:
-            w.read()           # -> its first line, unasked (such as a line saying it is ready)
-            w.ask("name")      # -> the worker's one-line answer
-            w.finish()         # -> the JSON result (closes the worker's input)
-
-    stopped=True: the process is stopped (SIGSTOP) whenever it is not answering, so that it takes
-    no CPU while other workers are timed: an OpenMP runtime told to spin keeps its threads spinning
-    for minutes after a call, which would slow every other process on those cores.
-    """
-
-    def __init__(self, module, spec, env=None, stopped=False):
-        import subprocess
-        import tempfile
-
-        cmd, child, cwd = _worker_process(module, spec, env)
-        self.what, self.err = " ".join(cmd[1:]), tempfile.TemporaryFile(mode="w+")
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.err, text=True,
-                                     cwd=cwd, env=child)
-        self.stopped = stopped and hasattr(signal, "SIGSTOP")
-
-    def _signal(self, sig):
-        if self.stopped and self.proc.poll() is None:
-            self.proc.send_signal(sig)
-
-    def _failed(self):
-        self.proc.kill()
-        self.proc.wait()
-        self.err.seek(0)
-        return RuntimeError(f"worker {self.what} failed (exit status {self.proc.returncode}):\n"
-                            f"{self.err.read()[-3000:]}")
-
-    def ask(self, line):
-        try:  # (a stopped process's pipe takes the line; read() lets it go on)
-            self.proc.stdin.write(line + "\n")
-            self.proc.stdin.flush()
-        except BrokenPipeError:
-            raise self._failed() from None
-        return self.read()
-
-    def read(self):
-        """The worker's next line (the answer to ask(), or one unasked); stopped after it."""
-        self._signal(signal.SIGCONT)
-        answer = self.proc.stdout.readline()
-        if not answer:
-            raise self._failed()
-        self._signal(signal.SIGSTOP)
-        return answer.strip()
-
-    def finish(self):
-        self._signal(signal.SIGCONT)
-        self.proc.stdin.close()
-        out = self.proc.stdout.read()
-        if self.proc.wait():
-            raise self._failed()
-        return json.loads(out.strip().splitlines()[-1])
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        if self.proc.poll() is None:  # an error or an interrupt mid-way: nothing is left running
-            self.proc.kill()
-            self.proc.wait()
-        self.err.close()
-        return False
 
 
 def worker_main(work):
@@ -325,31 +252,48 @@ def first_step_differs(p, t):
             or loss_differs("loss_after_update"))
 
 
-def run_configs(bench, configs, config, threads):
-    """Call bench(name) for each configuration named, after setting the threads; the report:
-    config, results by name, and failures: bench() returning None means pyvf's and torch's first
-    steps differ for that configuration (first_step_differs), and nothing after it is run."""
-    import pyvf  # bench sits above the facade
+def step_figures(step, steps):
+    """A training step's figures (step() -> the loss before its update): a first call, the warm-up
+    (its update makes the optimizer's moments, resident from then on as the weights are: no step's
+    memory), the next one under peak_memory (its loss, after one update, checks the optimizer),
+    then the median of `steps` more. -> {loss_after_update, memory (bytes), time (seconds)}."""
+    step()
+    after, memory = peak_memory(step)
+    return dict(loss_after_update=after, memory=memory, time=median_time(step, steps, warmup=0)[0])
 
-    pyvf.set_num_threads(threads)
-    report = dict(config=config, results={}, failures=[])
+
+def compare_steps(module, configs, steps, threads, describe):
+    """pyvf's and torch's training step on each configuration named, each framework in a worker
+    process (`python -m module SPEC`, SPEC {framework, config, steps (steps(name)), threads}, the
+    worker returning {loss, gradients (checksums), step_figures' fields}): their first steps are
+    compared (first_step_differs) before any time is printed; describe(name): the configuration in
+    words. -> {config, results {name: {"pyvf", "torch"}}, failures}: a configuration whose steps
+    differ is a failure, and nothing after it runs."""
+    import sys
+
+    report = dict(config=dict(configs=list(configs), threads=threads), results={}, failures=[])
     for name in configs:
-        result = bench(name)
-        if result is None:
+        p, t = (run_worker(module, dict(framework=f, config=name, steps=steps(name), threads=threads))
+                for f in ("pyvf", "torch"))
+        differs = first_step_differs(p, t)
+        if differs:
+            print(f"{name}: pyvf and torch differ in {differs}", file=sys.stderr)
             report["failures"].append(f"{name}: the first steps of pyvf and torch differ")
             break
-        report["results"][name] = result
+        print(f"\n## {name}: {describe(name)}, float32, {threads} threads, median of {steps(name)} steps, each "
+              "framework in its own process")
+        print(f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the gradients, and the loss after "
+              "an update, agree)\n")
+        print(table(["", "step time", "peak memory of a step"],
+                    [["pyvf", f"{p['time'] * 1e3:.1f} ms", format_bytes(p["memory"])],
+                     ["torch", f"{t['time'] * 1e3:.1f} ms", format_bytes(t["memory"])],
+                     ["torch / pyvf", f"{t['time'] / p['time']:.2f}", f"{t['memory'] / p['memory']:.2f}"]]))
+        report["results"][name] = {"pyvf": p, "torch": t}
     return report
 
 
-def table(header, rows, widths=None):
-    """A markdown table of str()-able cells, each column as wide as its widest cell; or, with
-    widths (one per column), a plain one: no rules, the first column left-aligned in its width,
-    the others right-aligned."""
-    if widths is not None:
-        line = lambda cells: "  ".join(str(c).rjust(w) if i else str(c).ljust(w)  # noqa: E731
-                                       for i, (c, w) in enumerate(zip(cells, widths)))
-        return "\n".join(line(r) for r in [header, *rows])
+def table(header, rows):
+    """A markdown table of str()-able cells, each column as wide as its widest cell."""
     widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
     line = lambda cells: "| " + " | ".join(str(c).ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
     out = [line(header), "|" + "|".join("-" * (w + 2) for w in widths) + "|"]

@@ -11,7 +11,9 @@ and pyvf's bound as a function of the swept quantity, drawn on the plot. The ref
 on the very float32 (or float64) numbers the variants see: float64 where that is exact enough, long
 double (x87, 64-bit significand) for the norms, mpmath for GELU, the cross-entropy and the angles.
 A pyvf line that leaves its bound at any point fails the sweep: the report prints FAIL and the
-command exits with status 1. A non-finite result (NaN, inf) counts as an error of inf.
+command exits with status 1. A non-finite result (NaN, inf) counts as an error of inf. The
+nearest-code search's cancellation (the expanded |x|^2 - 2 x.e + |e|^2 picks wrong codes far
+from the origin; pyvf's re-ranked search stays exact) is `pyvf bench vq`'s table of offsets.
 
 Sweeps (BOUND says what pyvf promises; the tests named hold the same claims at single points):
   attention-spread    logits of size s = 1..1e6 (random q, k): float32 softmax without the max
@@ -19,9 +21,6 @@ Sweeps (BOUND says what pyvf promises; the tests named hold the same claims at s
                       are limited by the logits' own float32 rounding, delta ~ dh u s
   attention-mask      attended logits near -s, s = 1..1e6: the published mask, logits * mask - 1e4 *
                       (1 - mask), puts the weight on the masked keys once s > 1e4; pyvf excludes them
-  vq                  points and codes offset by s times the code spread: the expanded
-                      |x|^2 - 2 x.e + |e|^2 (the published quantizer, torch.cdist's matmul path) picks
-                      wrong codes from s ~ 1e2..1e3 (float32); pyvf's re-ranked search stays exact
   layernorm/groupnorm rows (groups) of mean s times their spread, s = 1..1e6: one-pass variance
                       E[x^2] - E[x]^2 cancels; pyvf's two passes do not
   gelu                x in [-40, 0], error in ulps of the true value (mpmath): 0.5 (1 + erf(x/sqrt 2))
@@ -41,10 +40,9 @@ import numpy as np
 
 import pyvf
 from pyvf.nn import conv, layers, losses
-from pyvf.bench.common import legend_outside, pyplot, save_figure
-from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive, machine, torch_available
+from pyvf.bench.common import legend_outside, machine, pyplot, save_figure, torch_or_none
+from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive
 from pyvf.bench.attention import flat
-from pyvf.bench.vq import brute_force
 from pyvf.geometry import _conj, _mul  # the Hamilton product, for the published asin form
 
 LD = np.longdouble
@@ -102,7 +100,7 @@ def _attention_sweep(name, title, xlabel, values, make_qk, mode, rng):
     shape = ATT_SHAPE[mode]
     R, B, H, N, L, dh = shape
     mask = pyvf.branching_mask(R, N, L)
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     lines = {k: [] for k in ("pyvf float32", "pyvf float64", "torch SDPA float32", "numpy exact float32",
                              "naive exp (no max) float32", "published -1e4 mask float32",
                              "published -1e4 mask float64")}
@@ -163,43 +161,6 @@ def sweep_attention_mask(mode, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# vq_nearest
-
-
-def sweep_vq(mode, rng):
-    """Codes N(0, 1) (spread 1) plus s in every coordinate, points near a code: fraction of rows
-    whose chosen code is not the exact nearest (float64 brute force on the same numbers).
-    pyvf's bound: 0 (vq_nearest is exact)."""
-    M, K, D = (2048, 256, 32) if mode == "full" else (512, 128, 16)
-    values = np.logspace(0, 6, 13 if mode == "full" else 7)
-    with_torch = torch_available()
-    names = ["pyvf float32", "pyvf float64", "numpy expanded float32", "numpy expanded float64"]
-    names += ["torch cdist float32", "torch expanded float32"] if with_torch else []
-    lines = {n: [] for n in names}
-    base_c = rng.standard_normal((K, D))
-    base_x = base_c[rng.integers(0, K, M)] + 0.5 * rng.standard_normal((M, D))
-    for s in values:
-        for dtype, tag in ((np.float32, "float32"), (np.float64, "float64")):
-            xs, cs = (base_x + s).astype(dtype), (base_c + s).astype(dtype)
-            want = brute_force(xs, cs, chunk=64)
-            wrong = lambda idx: float((np.asarray(idx) != want).mean())  # noqa: E731
-            lines[f"pyvf {tag}"].append(wrong(pyvf.vq_nearest(xs, cs)[0]))
-            d = (xs ** 2).sum(1, keepdims=True) - 2 * xs @ cs.T + (cs ** 2).sum(1)
-            lines[f"numpy expanded {tag}"].append(wrong(d.argmin(1)))
-            if with_torch and dtype == np.float32:
-                torch, _ = _torch()
-                tx, tc = torch.from_numpy(xs), torch.from_numpy(cs)
-                lines["torch cdist float32"].append(wrong(torch.cdist(tx, tc).argmin(1).numpy()))
-                td = (tx ** 2).sum(1, keepdim=True) - 2 * tx @ tc.T + (tc ** 2).sum(1)
-                lines["torch expanded float32"].append(wrong(td.argmin(1).numpy()))
-    zero = [0.0] * len(values)
-    return dict(name="vq", title=f"vq_nearest: points and codes offset by s x the code spread (M={M}, K={K}, D={D})",
-                xlabel="s = offset / code spread", ylabel="fraction of rows with a wrong code", x=list(values),
-                lines=lines, bounds={"pyvf float32": zero, "pyvf float64": zero},
-                bound_text="0: the exact nearest code (ties to the smallest index) at every offset", floor=0.5 / M)
-
-
-# ---------------------------------------------------------------------------------------
 # LayerNorm and GroupNorm
 
 
@@ -224,7 +185,7 @@ def _norm_sweep(kind, mode, rng):
     RTOL32 / RTOL64 for ordinary rows, whatever s: the second centring pass makes the large mean
     cost nothing (tests/test_layers.py, tests/test_conv.py: large mean, small spread)."""
     values = np.logspace(0, 6, 13 if mode == "full" else 7)
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     if kind == "layernorm":
         shape, eps, b32 = ((256, 256) if mode == "full" else (64, 64)), 1e-5, 1e-6
     else:
@@ -291,7 +252,7 @@ def sweep_gelu(mode, rng):
     |x| * (smallest subnormal) its rounding can cost the product, in ulps."""
     x64 = np.linspace(0, -40, 161 if mode == "full" else 41)  # easy to hard, as every sweep
     lines, bounds = {}, {}
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     want = {}
     for xi in x64:
         want[xi] = gelu_mp(xi)
@@ -337,7 +298,7 @@ def sweep_cross_entropy(mode, rng):
 
     M, V = (16, 1024) if mode == "full" else (8, 256)
     values = np.logspace(0, 4, 9 if mode == "full" else 5)
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     names = ["pyvf float32", "pyvf float64", "naive -log(softmax) float32", "naive -log(softmax) float64"]
     names += ["torch float32"] if with_torch else []
     lines = {n: [] for n in names}
@@ -376,7 +337,7 @@ def sweep_quat_normalize(mode, rng):
     n = 256 if mode == "full" else 64
     values = np.logspace(0, -30, 31 if mode == "full" else 11)
     eps = 1e-70
-    with_torch = torch_available()
+    with_torch = torch_or_none() is not None
     lines = {n_: [] for n_ in ["pyvf float32", "naive q / sqrt(max(sum q^2, eps)) float32"]
              + (["torch F.normalize float32"] if with_torch else [])}
     u = rng.standard_normal((n, 4))
@@ -455,7 +416,6 @@ def sweep_orientation(mode, rng):
 SWEEPS = {
     "attention-spread": sweep_attention_spread,
     "attention-mask": sweep_attention_mask,
-    "vq": sweep_vq,
     "layernorm": sweep_layernorm,
     "groupnorm": sweep_groupnorm,
     "gelu": sweep_gelu,
@@ -578,9 +538,8 @@ def sweep_summary(sw):
 def run(names=tuple(SWEEPS), mode="full", threads=2, seed=0, log=print):
     t0 = time.perf_counter()
     pyvf.set_num_threads(threads)
-    if torch_available():
-        import torch
-
+    torch = torch_or_none()
+    if torch is not None:
         torch.set_num_threads(threads)
     sweeps = []
     for name in names:

@@ -2,7 +2,7 @@
 approaches it replaces (issue 11, item 1; docs/math.md §2).
 
     pyvf bench scaling                             # N = 2, 4, ..., 64; H=12 dh=64 and H=4 dh=32; long
-    pyvf bench scaling --quick                     # N = 2, 4, 8; H=4 dh=32; well under a minute
+    pyvf bench scaling --quick                     # N = 2, 4, 8; H=4 dh=32
     pyvf bench scaling --json out.json --plots plots/
 
 Methods (float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1):
@@ -14,42 +14,35 @@ Methods (float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1):
                attention over views (pyvf has no separate causal kernel: R=1 is that kernel).
                Padding comes after every real token, so no real query sees it; the stacked output
                gives back exactly the branching output
-  naive_sdpa   the same stacked sequences through torch SDPA with is_causal=True (token-causal:
-               within its own view a token sees only the tokens before it, not the paper's rule;
-               validated against the token-causal dense reference, the same cost order)
   dense_sdpa   torch SDPA on the flat (B, H, T, dh) sequence with the (T, T) branching mask
   dense_numpy  pyvf.branching_attention_reference: the NumPy dense reference, (T, T) logits
-  flex         torch flex_attention, compiled, with a block mask (forward only; not in --quick:
-               each N compiles anew, ~15 s on 2 cores when torch's inductor cache is cold)
 
 Every point (method, size, N) runs in a process of its own (this module, worker()): it
 validates its output (and gradients) against the float64 dense reference at the first N of each
 size, then measures one call's extra peak memory (pyvf.bench.common.peak_memory: resident memory,
 inputs excluded, outputs included) forward and forward+backward, then times each (median of
---repeat calls after a warm-up). Beside the measurement: the theoretical counts (tokens held,
-block pairs computed, useful FLOPs, the largest buffer) and the memory expected. A point whose
+--repeat calls after a warm-up). Beside the measurement: the tokens held, the block pairs
+computed and the memory expected. A point whose
 inputs plus expected memory would not fit in MEM_FRACTION of /proc/meminfo MemAvailable (read
 before each point; --mem-limit-mib overrides it) is skipped with the reason written down, as is a
 point whose predicted run time exceeds --max-point-seconds.
 
 The fitted slope of log(memory) and log(time) against log(N) per method is in the table and on
 the plots (--plots DIR, matplotlib: `pip install pyvf[plots]`). Theory: pyvf's memory ~N^1; the
-dense mask ~N^2; the naive stacked approach ~N^2 in tokens and activations, ~N^3 where its logits
-are materialised (torch's math path), time ~N^3 (S sequences of N*L tokens each). At small N the
-per-thread, N-independent buffers hold pyvf's slope below 1.
+dense mask ~N^2; the naive stacked approach ~N^2 in tokens and activations, time ~N^3 (S
+sequences of N*L tokens each). At small N the per-thread, N-independent buffers hold pyvf's
+slope below 1.
 """
 
 import os
-import platform
 import time
 
 import numpy as np
 
 import pyvf
-from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, attended_pairs, dense_logits_bytes, error, make_inputs, ms,
-                                  pyvf_expected_memory, pyvf_fns, reference_fns, setup_flex, torch_backend, torch_fns,
-                                  unflat, useful_flops)
-from pyvf.bench.common import (MEMORY_NOISE_BYTES, blas_thread_env, cpu_name, format_bytes, legend_outside, measured,
+from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, attended_pairs, error, expected_memory, make_inputs, ms,
+                                  pyvf_fns, reference_fns, torch_backend, torch_fns)
+from pyvf.bench.common import (MEMORY_NOISE_BYTES, cpu_name, format_bytes, legend_outside, machine, measured,
                                median_time, memory_method, pyplot, run_worker, save_figure, table, worker_main,
                                write_outputs)
 
@@ -62,13 +55,10 @@ QUICK_VIEWS = (2, 4, 8)
 METHODS = {
     "pyvf": "pyvf branching kernel",
     "naive_pyvf": "naive stacked, pyvf kernel at R=1",
-    "naive_sdpa": "naive stacked, torch SDPA is_causal",
     "dense_sdpa": "dense (T,T) mask, torch SDPA",
     "dense_numpy": "dense (T,T) mask, NumPy reference",
-    "flex": "torch flex_attention, block mask",
 }
-TORCH_METHODS = ("naive_sdpa", "dense_sdpa", "flex")
-QUICK_METHODS = tuple(m for m in METHODS if m != "flex")
+TORCH_METHODS = ("dense_sdpa",)
 # The other implementations are held to BOUND_OTHERS (pyvf/bench/attention.py: they compute the
 # same function, where a wrong mask or layout is an O(1) error); pyvf (and pyvf's kernel on the
 # stacked sequences) to BOUND32, tests/test_attention.py's bound.
@@ -131,78 +121,26 @@ def naive_pyvf_fns(qs, ks, vs, dos):
     return pyvf_fns(*(x.reshape((1, S * B) + x.shape[2:]) for x in (qs, ks, vs, dos)))
 
 
-def naive_sdpa_fns(qs, ks, vs, dos):
-    """torch SDPA is_causal=True on the stacked inputs as (S*B, H, N*L, dh) (a free reshape)."""
-    import torch
-    import torch.nn.functional as F
-
-    S, B, H, N, L, dh = qs.shape
-    qt, kt, vt, dot = (torch.from_numpy(x.reshape(S * B, H, N * L, dh)) for x in (qs, ks, vs, dos))
-    leaves = [x.clone().requires_grad_(True) for x in (qt, kt, vt)]
-
-    def fwd():
-        with torch.no_grad():
-            return F.scaled_dot_product_attention(qt, kt, vt, is_causal=True, scale=1.0)
-
-    def fwd_bwd():
-        o = F.scaled_dot_product_attention(*leaves, is_causal=True, scale=1.0)
-        return o.detach(), torch.autograd.grad(o, leaves, dot)
-
-    return fwd, fwd_bwd
-
-
 # ---------------------------------------------------------------------------------------
 # theory: what each method holds and computes, and the memory expected
 
 
 def theory(method, R, B, H, N, L, dh, threads, backend="FLASH_ATTENTION"):
-    """The counts of one point, float32: tokens (held, per batch entry and head), block pairs
-    computed per (b, h), useful FLOPs (attended blocks only, the same for every method), the
-    largest buffer, the inputs' bytes and the extra memory expected forward and forward+backward
-    (None where the method has no backward). backend: torch SDPA's ("MATH" materialises logits)."""
-    it = 4
+    """The counts of one point, float32: tokens held (per batch entry and head), (L, L) block pairs
+    computed per (b, h), the inputs' bytes and the extra memory expected forward and
+    forward+backward (attention.expected_memory; backend: torch SDPA's)."""
+    S = R * B * H * N * L * dh * 4  # one array like q
     T = R * N * L
-    S = R * B * H * N * L * dh * it  # one array like q
-    logits = dense_logits_bytes(R, B, H, N, L, it)  # (B, H, T, T)
-    mask = T * T  # the (T, T) bool mask
-    useful_fwd, useful_fb = useful_flops(R, B, H, N, L, dh)
-    nseq = n_sequences(R, N)
-    Sn = nseq * B * H * N * L * dh * it  # one stacked array (S, B, H, N, L, dh)
-    seq_logits = nseq * B * H * (N * L) ** 2 * it  # the stacked sequences' logits
-    math = backend == "MATH"
-    if method == "pyvf":
-        tokens, pairs, inputs = T, attended_pairs(R, N), 4 * S
-        fwd, fb = pyvf_expected_memory(R, B, H, N, L, dh, it, threads)
-        largest = (S, "one array like q (R,B,H,N,L,dh)")
-    elif method == "naive_pyvf":
-        tokens, pairs, inputs = nseq * N * L, nseq * N * (N + 1) // 2, 4 * Sn
-        fwd, fb = pyvf_expected_memory(1, nseq * B, H, N, L, dh, it, threads)
-        largest = (Sn, "one stacked array (S,B,H,N,L,dh)")
-    elif method == "naive_sdpa":
-        tokens, pairs, inputs = nseq * N * L, nseq * N * (N + 1) // 2, 7 * Sn  # q, k, v, do + 3 leaves
-        lse = nseq * B * H * N * L * it
-        fwd, fb = Sn + lse + math * seq_logits, 4 * Sn + lse + 2 * math * seq_logits
-        largest = (seq_logits, "stacked logits (S*B,H,N*L,N*L)") if math else (Sn, "one stacked array")
-    elif method == "dense_sdpa":
-        tokens, pairs, inputs = T, (R * N) ** 2, 7 * S + mask
-        # torch converts the bool mask to a float32 (T, T) additive mask; the math path also
-        # materialises the logits (and keeps the probabilities for the backward)
-        fwd, fb = 4 * mask + S + math * logits, 4 * mask + 4 * S + 2 * math * logits
-        largest = (logits, "logits (B,H,T,T)") if math else (4 * mask, "float32 mask (T,T)")
-    elif method == "dense_numpy":
-        # s, p = exp(s) and p / sum(p) alive at once; the vjp p, dp and one temporary (bench.attention)
-        tokens, pairs, inputs = T, (R * N) ** 2, 4 * S
-        fwd, fb = mask + 3 * logits + S, mask + 3 * logits + 3 * S
-        largest = (logits, "logits (B,H,T,T)")
-    elif method == "flex":
-        tokens, pairs, inputs = T, attended_pairs(R, N), 3 * S
-        fwd, fb = S + B * H * T * it, None  # o and its log-sum-exp; compiled kernel's workspace not modelled
-        largest = (S, "one array like q")
+    if method == "naive_pyvf":  # pyvf's kernel at R=1 on the stacked (S, B, H, N, L, dh) sequences
+        nseq = n_sequences(R, N)
+        tokens, pairs, inputs = nseq * N * L, nseq * N * (N + 1) // 2, 4 * nseq * S // R
+        fwd, fb = expected_memory("pyvf", 1, nseq * B, H, N, L, dh, threads)
     else:
-        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    computed = 4 * L * L * dh * pairs * B * H
-    return dict(tokens=tokens, block_pairs=pairs, useful_flops_fwd=useful_fwd, useful_flops_fwd_bwd=useful_fb,
-                computed_flops_fwd=computed, largest_buffer_bytes=largest[0], largest_buffer=largest[1],
+        tokens, pairs = T, (attended_pairs(R, N) if method == "pyvf" else (R * N) ** 2)
+        inputs = 7 * S + T * T if method == "dense_sdpa" else 4 * S  # SDPA: q, k, v, do, 3 leaves, the mask
+        fwd, fb = expected_memory({"dense_sdpa": "sdpa", "dense_numpy": "numpy"}.get(method, method),
+                                  R, B, H, N, L, dh, threads, backend)
+    return dict(tokens=tokens, block_pairs=pairs, computed_flops_fwd=4 * L * L * dh * pairs * B * H,
                 inputs_bytes=inputs, expected_fwd=fwd, expected_fwd_bwd=fb)
 
 
@@ -224,7 +162,7 @@ def skip_reason(method, th, available):
     if available is None:
         return None
     base = BASELINE["torch" if method in TORCH_METHODS else "numpy"]
-    peak = max(x for x in (th["expected_fwd"], th["expected_fwd_bwd"]) if x is not None)
+    peak = max(th["expected_fwd"], th["expected_fwd_bwd"])
     need = th["inputs_bytes"] + peak + base
     if need > MEM_FRACTION * available:
         return (f"needs ~{format_bytes(need)} (inputs {format_bytes(th['inputs_bytes'])} + expected peak "
@@ -248,126 +186,70 @@ def fit_slope(Ns, values):
 
 
 def worker(spec):
-    """Run one point: {method, H, dh, N, threads, repeat, validate} -> the dict printed as JSON."""
+    """Run one point: {method, H, dh, N, threads, repeat, validate} -> the dict printed as JSON.
+    1. validate (spec["validate"]: the first N of a size) against the float64 dense reference;
+    2. the extra peak memory of one call of each pass, after a warm-up call; 3. the median times."""
     method, H, dh, N = spec["method"], spec["H"], spec["dh"], spec["N"]
-    threads, repeat = spec["threads"], spec["repeat"]
-    pyvf.set_num_threads(threads)
-    out = dict(method=method)
+    pyvf.set_num_threads(spec["threads"])
     if method in TORCH_METHODS:
         import torch
 
-        torch.set_num_threads(threads)
+        torch.set_num_threads(spec["threads"])
     q, k, v, do = make_inputs(R, B, H, N, L, dh, seed=N)  # (R, B, H, N, L, dh) each
-    ref = None
-    if spec["validate"]:  # the float64 dense reference of the branching output and its gradients
+    out = dict(method=method)
+    c = contender(method, (q, k, v, do), out)
+    if spec["validate"]:
         x64 = [x.astype(np.float64) for x in (q, k, v, do)]
         ref = (pyvf.branching_attention_reference(*x64[:3]), pyvf.branching_attention_reference_vjp(*x64))
-        del x64
-    c = contender(method, (q, k, v, do), ref, out)
-    if c is None:  # it failed to set up; out["error"] says why
-        return out
-    if not validate_point(out, method, c):
-        return out
-    fwd, fb = c["fwd"], c["fb"]
-    del c, ref  # free the reference before measuring
-
-    # 2. memory: one measured call of each pass after one warm-up call
-    _, out["fwd_bytes"], _ = measured(fwd, warmup=1)
-    if fb is not None:
-        _, out["fwd_bwd_bytes"], _ = measured(fb, warmup=1)
-    # 3. time
-    out["fwd_seconds"], out["fwd_times"] = median_time(fwd, repeat, warmup=0)
-    if fb is not None:
-        out["fwd_bwd_seconds"], out["fwd_bwd_times"] = median_time(fb, repeat, warmup=0)
+        ok = validate_point(out, c, ref)
+        del x64, ref  # freed before the memory is measured
+        if not ok:
+            return out
+    passes = (("fwd", c["fwd"]), ("fwd_bwd", c["fb"]))
+    for name, fn in passes:
+        _, out[f"{name}_bytes"], _ = measured(fn, warmup=1)
+    for name, fn in passes:
+        out[f"{name}_seconds"], out[f"{name}_times"] = median_time(fn, spec["repeat"], warmup=0)
     return out
 
 
-def contender(method, inputs, ref, out):
-    """One method's closures on the (R, B, H, N, L, dh) inputs: {fwd, fb (None: no backward),
-    o_map, g_map (its output and gradients mapped back to (R, B, H, N, L, dh)), bound, ref (the
-    reference it is checked against: the branching one, or for naive_sdpa the token-causal one)}.
-    None where it failed to set up (out["error"] says why); out gets the SDPA backend chosen."""
+def contender(method, inputs, out):
+    """One method's closures on the (R, B, H, N, L, dh) inputs: {fwd, fb (-> (o or None,
+    gradients)), o_map, g_map (its output and gradients mapped back to (R, B, H, N, L, dh)), bound}.
+    out gets the SDPA backend chosen."""
     q, k, v, do = inputs
-    to_np, bound, fb = np.asarray, BOUND_OTHERS, None
+    if method == "naive_pyvf":
+        qs, ks, vs = (stack_naive(x) for x in (q, k, v))  # (S, B, H, N, L, dh)
+        st = qs.shape
+        fwd, fb = naive_pyvf_fns(qs, ks, vs, stack_naive(do, queries_only=True))
+        return dict(fwd=fwd, fb=fb, bound=BOUND32, o_map=lambda o: unstack_naive(o.reshape(st), R),
+                    g_map=lambda g: [unstack_naive(g[0].reshape(st), R)]
+                    + [unstack_naive(x.reshape(st), R, keys=True) for x in g[1:]])
+    to_np = np.asarray
     if method == "pyvf":
         fwd, fb = pyvf_fns(q, k, v, do)
-        bound = BOUND32
     elif method == "dense_numpy":
-        fwd, fb = reference_fns(q, k, v, do)
-    elif method == "dense_sdpa":
+        fwd, vjp = reference_fns(q, k, v, do)
+        fb = lambda: (None, vjp())  # noqa: E731  (the reference's vjp returns the gradients only)
+    else:  # dense_sdpa
         mask = pyvf.branching_mask(R, q.shape[3], L)  # (T, T) bool
         fwd, fb, to_np = torch_fns(q, k, v, do, mask)  # to_np: a flat tensor -> (R, B, H, N, L, dh)
         out["backend"] = torch_backend(q, mask)
-    elif method in ("naive_pyvf", "naive_sdpa"):
-        return naive_contender(method, inputs, ref, out)
-    elif method == "flex":
-        o_ref = ref[0] if ref is not None else pyvf.branching_attention(*(x.astype(np.float64) for x in (q, k, v)))
-        fx, fwd = setup_flex(q, k, v, o_ref)
-        out["flex"] = {kk: vv for kk, vv in fx.items() if kk != "traceback"}
-        if fwd is None:  # (its validation too: setup_flex checks o against o_ref)
-            out["error"] = fx["error"] if fx["error"].startswith("validation failed") else \
-                f"flex_attention failed: {fx['error']}"
-            return None
-        to_np = lambda t: unflat(t.numpy(), q.shape)  # noqa: E731
-    else:
-        raise ValueError(f"unknown method {method!r}")
-    return dict(fwd=fwd, fb=fb, o_map=to_np, g_map=lambda g: [to_np(x) for x in g], bound=bound, ref=ref)
+    return dict(fwd=fwd, fb=fb, bound=BOUND32 if method == "pyvf" else BOUND_OTHERS, o_map=to_np,
+                g_map=lambda g: [to_np(x) for x in g])
 
 
-def naive_contender(method, inputs, ref, out):
-    """contender() of the naive approach: the inputs stacked (stack_naive), through pyvf's kernel
-    at R=1 or torch SDPA is_causal."""
-    q, k, v, do = inputs
-    H, N, dh = q.shape[2], q.shape[3], q.shape[5]
-    qs, ks, vs = (stack_naive(x) for x in (q, k, v))  # (S, B, H, N, L, dh)
-    dos = stack_naive(do, queries_only=True)
-    st = qs.shape
-    if method == "naive_pyvf":
-        fwd, fb = naive_pyvf_fns(qs, ks, vs, dos)
-        return dict(fwd=fwd, fb=fb, o_map=lambda o: unstack_naive(o.reshape(st), R), bound=BOUND32, ref=ref,
-                    g_map=lambda g: [unstack_naive(g[0].reshape(st), R)]
-                    + [unstack_naive(x.reshape(st), R, keys=True) for x in g[1:]])
-    import torch
-    from torch.nn.attention import SDPBackend
-
-    fwd, fb = naive_sdpa_fns(qs, ks, vs, dos)
-    t = torch.from_numpy(qs.reshape(-1, H, N * L, dh))
-    out["backend"] = SDPBackend(torch._fused_sdp_choice(t, t, t, is_causal=True, scale=1.0)).name
-    if ref is not None:
-        # token-causal attention is the branching rule with R=1 and L=1 (each token a view)
-        s64 = [x.astype(np.float64).reshape(1, st[0] * B, H, N * L, 1, dh) for x in (qs, ks, vs, dos)]
-        ref = (pyvf.branching_attention_reference(*s64[:3]).reshape(st),
-               [g.reshape(st) for g in pyvf.branching_attention_reference_vjp(*s64)])
-        del s64
-    return dict(fwd=fwd, fb=fb, o_map=lambda o: o.numpy().reshape(st), g_map=lambda g: [x.numpy().reshape(st) for x in g],
-                bound=BOUND_OTHERS, ref=ref)
-
-
-def validate_point(out, method, c):
-    """1. validate: the first call of each pass, checked against c["ref"] when there is one (the
-    errors and the bound go into out). False (out["error"] says so) when the worst error is above
-    the bound."""
-    ref = c["ref"]
-
-    def check(res, with_grads):
-        if not with_grads:
-            return {"o": error(c["o_map"](res), ref[0])}
-        o, grads = (None, res) if method == "dense_numpy" else res  # the reference's vjp returns grads only
-        err = {n: error(g, w) for n, g, w in zip(("dq", "dk", "dv"), c["g_map"](grads), ref[1])}
-        if o is not None:
-            err["o of fwd+bwd"] = error(c["o_map"](o), ref[0])
-        return err
-
-    for fn, with_grads in ((c["fwd"], False), (c["fb"], True)):
-        if fn is not None:
-            res = fn()
-            if ref is not None:
-                out.setdefault("errors", {}).update(check(res, with_grads))
-            del res
-    if ref is None:
-        return True
-    out["bound"] = c["bound"]
-    worst = max(out["errors"].values())  # (error(): a NaN is inf)
+def validate_point(out, c, ref):
+    """The first call of each pass against ref = (o, (dq, dk, dv)), the float64 dense reference:
+    the errors and the bound go into out. False (out["error"] says so) when the worst error is
+    above the bound."""
+    err = {"o": error(c["o_map"](c["fwd"]()), ref[0])}
+    o, grads = c["fb"]()
+    err.update((n, error(g, w)) for n, g, w in zip(("dq", "dk", "dv"), c["g_map"](grads), ref[1]))
+    if o is not None:
+        err["o of fwd+bwd"] = error(c["o_map"](o), ref[0])
+    out.update(errors=err, bound=c["bound"])
+    worst = max(err.values())  # (error(): a NaN is inf)
     if not worst <= c["bound"]:
         out["error"] = f"validation failed: max rel. error {worst:.2e} > {c['bound']:g} against the float64 reference"
         return False
@@ -378,9 +260,9 @@ def validate_point(out, method, c):
 # the driver
 
 
-def sdpa_backends():
-    """The backend torch SDPA picks here for float32 with is_causal and with a bool mask
-    (decides whether the logits are materialised, for the memory estimates); None without torch."""
+def sdpa_backend():
+    """The backend torch SDPA picks here for float32 with a bool mask (whether the logits are
+    materialised, for the memory expected); None without torch."""
     try:
         import torch
         from torch.nn.attention import SDPBackend
@@ -389,10 +271,9 @@ def sdpa_backends():
     t = torch.zeros(1, 1, 2 * L, 32)
     m = torch.ones(2 * L, 2 * L, dtype=torch.bool)
     try:
-        return dict(causal=SDPBackend(torch._fused_sdp_choice(t, t, t, is_causal=True, scale=1.0)).name,
-                    mask=SDPBackend(torch._fused_sdp_choice(t, t, t, attn_mask=m, scale=1.0)).name)
+        return SDPBackend(torch._fused_sdp_choice(t, t, t, attn_mask=m, scale=1.0)).name
     except Exception:  # noqa: BLE001 -- a private function: assume the worst (logits materialised)
-        return dict(causal="MATH", mask="MATH")
+        return "MATH"
 
 
 def predicted_seconds(prev, th, repeat):
@@ -400,34 +281,33 @@ def predicted_seconds(prev, th, repeat):
     (time scaled by the computed FLOPs): (repeat + 3) calls of each pass. None without one."""
     if prev is None or "fwd_seconds" not in prev:
         return None
-    per_call = prev["fwd_seconds"] + (prev.get("fwd_bwd_seconds") or 0.0)
+    per_call = prev["fwd_seconds"] + prev["fwd_bwd_seconds"]
     return (repeat + 3) * per_call * th["computed_flops_fwd"] / prev["theory"]["computed_flops_fwd"]
 
 
 def run_points(sizes, views, methods, threads, repeat, mem_limit=None, max_point_seconds=None, log=print):
     """Every point, each in a worker process (or skipped, with the reason): a list of dicts."""
-    backends = sdpa_backends() if any(m in TORCH_METHODS for m in methods) else {}
+    backend = sdpa_backend()
     points = []
     for H, dh in sizes:
         prev = {}
         for idx, N in enumerate(views):
             for method in methods:
-                backend = (backends or {}).get("causal" if method == "naive_sdpa" else "mask", "FLASH_ATTENTION")
-                th = theory(method, R, B, H, N, L, dh, threads, backend)
+                th = theory(method, R, B, H, N, L, dh, threads, backend or "FLASH_ATTENTION")
                 p = dict(method=method, H=H, dh=dh, N=N, T=R * N * L, theory=th)
-                available = mem_limit if mem_limit is not None else mem_available()
-                reason = None
-                if method in TORCH_METHODS and backends is None:
-                    reason = "torch is not installed"
-                reason = reason or skip_reason(method, th, available)
                 est = predicted_seconds(prev.get(method), th, repeat)
-                if reason is None and max_point_seconds and est is not None and est > max_point_seconds:
-                    reason = f"predicted {est:.0f} s > --max-point-seconds {max_point_seconds:g}"
-                if reason is None and prev.get(method, {}).get("skipped"):
-                    reason = "a smaller N of this method was skipped"
-                if reason:
-                    p["skipped"] = reason
-                    log(f"  H={H} dh={dh} N={N:>2} {method:<12} skipped: {reason}")
+                if method in TORCH_METHODS and backend is None:
+                    p["skipped"] = "torch is not installed"
+                elif prev.get(method, {}).get("skipped"):
+                    p["skipped"] = "a smaller N of this method was skipped"
+                elif max_point_seconds and est is not None and est > max_point_seconds:
+                    p["skipped"] = f"predicted {est:.0f} s > --max-point-seconds {max_point_seconds:g}"
+                else:
+                    reason = skip_reason(method, th, mem_limit if mem_limit is not None else mem_available())
+                    if reason:
+                        p["skipped"] = reason
+                if "skipped" in p:
+                    log(f"  H={H} dh={dh} N={N:>2} {method:<12} skipped: {p['skipped']}")
                 else:
                     spec = dict(method=method, H=H, dh=dh, N=N, threads=threads, repeat=repeat, validate=idx == 0)
                     t0 = time.perf_counter()
@@ -436,9 +316,8 @@ def run_points(sizes, views, methods, threads, repeat, mem_limit=None, max_point
                     except (RuntimeError, ValueError) as e:  # a crashed worker: record it, carry on
                         p["error"] = str(e)[-2000:]
                     p["worker_seconds"] = time.perf_counter() - t0
-                    what = p.get("error") or (f"fwd {format_bytes(p['fwd_bytes'])} {ms(p['fwd_seconds'])}"
-                                              + (f", fwd+bwd {format_bytes(p['fwd_bwd_bytes'])} "
-                                                 f"{ms(p['fwd_bwd_seconds'])}" if "fwd_bwd_bytes" in p else ""))
+                    what = p.get("error") or (f"fwd {format_bytes(p['fwd_bytes'])} {ms(p['fwd_seconds'])}, fwd+bwd "
+                                              f"{format_bytes(p['fwd_bwd_bytes'])} {ms(p['fwd_bwd_seconds'])}")
                     log(f"  H={H} dh={dh} N={N:>2} {method:<12} {p['worker_seconds']:.1f} s: {what}", flush=True)
                 prev[method] = p
                 points.append(p)
@@ -490,13 +369,11 @@ def tables(points, fit, sizes, methods):
                 note = "FAILED: " + p["error"].splitlines()[0][:100]
             else:
                 note = " ".join(x for x in (p.get("backend"), "validated" if "errors" in p else None) if x)
-            rows.append([p["N"], p["method"], th["tokens"], th["block_pairs"], f"{th['useful_flops_fwd'] / 1e9:.3g}",
-                         _b(th["largest_buffer_bytes"]), _b(th["expected_fwd"]), _b(p.get("fwd_bytes")),
-                         _b(th["expected_fwd_bwd"]), _b(p.get("fwd_bwd_bytes")),
+            rows.append([p["N"], p["method"], th["tokens"], th["block_pairs"], _b(th["expected_fwd"]),
+                         _b(p.get("fwd_bytes")), _b(th["expected_fwd_bwd"]), _b(p.get("fwd_bwd_bytes")),
                          ms(p.get("fwd_seconds")), ms(p.get("fwd_bwd_seconds")), note])
-        out.append(table(["N", "method", "tokens", "block pairs", "useful GFLOP fwd", "largest buffer",
-                          "fwd expected", "fwd measured", "fwd+bwd expected", "fwd+bwd measured", "fwd time",
-                          "fwd+bwd time", "note"], [[str(c) for c in r] for r in rows]))
+        out.append(table(["N", "method", "tokens", "block pairs", "fwd expected", "fwd measured", "fwd+bwd expected",
+                          "fwd+bwd measured", "fwd time", "fwd+bwd time", "note"], [[str(c) for c in r] for r in rows]))
         out.append(f"\nfitted slopes d log y / d log N over the measured N (last two N in brackets), H={H} dh={dh}\n")
         f = fit[f"{H}x{dh}"]
         rows = [[m, f"{_s(f[m]['fwd_bytes'])} ({_s(f[m]['fwd_bytes_last'])})",
@@ -508,8 +385,7 @@ def tables(points, fit, sizes, methods):
         out.append(table(["method", "memory fwd", "memory fwd+bwd", "expected fwd / fwd+bwd", "time fwd",
                           "time fwd+bwd", "N measured"], rows))
     out.append("\nmemory: extra peak resident memory of one call (inputs excluded, outputs included); time: median; "
-               "tokens: held per (batch entry, head), padding included; block pairs: (L, L) blocks computed per head; "
-               "useful GFLOP: the attended blocks' matmuls, the same for every method")
+               "tokens: held per (batch entry, head), padding included; block pairs: (L, L) blocks computed per head")
     return "\n".join(out) + "\n"
 
 
@@ -558,11 +434,10 @@ def plot(points, fit, sizes, methods, folder):
 
 
 def run(sizes=SIZES, views=VIEWS, methods=tuple(METHODS), threads=2, repeat=5, mem_limit_mib=None,
-        max_point_seconds=MAX_POINT_SECONDS, plots=None, quick=False, log=print):
+        max_point_seconds=MAX_POINT_SECONDS, plots=None, log=print):
     """The whole study (module docstring): every point in a worker process, the fitted slopes, the
     tables logged, the plots written to the folder `plots` (None: none). Returns the report, every
-    number; a point whose validation failed has an "error" starting "validation failed". quick:
-    the methods are --quick's (the report says so of the ones not run)."""
+    number; a point whose validation failed has an "error" starting "validation failed"."""
     t_start = time.perf_counter()
     mem_limit = None if mem_limit_mib is None else int(mem_limit_mib * 2 ** 20)
     available = mem_available()
@@ -572,23 +447,16 @@ def run(sizes=SIZES, views=VIEWS, methods=tuple(METHODS), threads=2, repeat=5, m
         f"{_b(available)}{'' if mem_limit is None else f' (planning against --mem-limit-mib: {_b(mem_limit)})'}")
     log(f"memory: {memory_method()}")
     log("each point in its own process; validated against the float64 dense reference at the first N\n")
-    skipped_methods = [m for m in METHODS if m not in methods]
-    if "flex" in skipped_methods and quick:
-        log("flex_attention is not run in --quick (it compiles anew for each N: ~15 s with a cold cache); "
-            "--methods flex,... runs it\n")
     points = run_points(sizes, views, methods, threads, repeat, mem_limit, max_point_seconds or None, log=log)
     fit = fits(points, sizes, methods)
     log(tables(points, fit, sizes, methods).rstrip("\n"))
     report = dict(
         config=dict(R=R, B=B, L=L, views=list(views), sizes=[list(s) for s in sizes], dtype="float32",
                     scale=1.0, threads=threads, repeat=repeat, methods=list(methods),
-                    not_run=({m: "not in --quick (flex compiles anew for each N: ~15 s cold)" if quick
-                              else "not in --methods" for m in skipped_methods}),
+                    not_run={m: "not in --methods" for m in METHODS if m not in methods},
                     mem_fraction=MEM_FRACTION, mem_limit_bytes=mem_limit, max_point_seconds=max_point_seconds,
                     inputs="unit normal, seed N"),
-        machine=dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
-                     mem_available_bytes=available, python=platform.python_version(), numpy=np.__version__,
-                     pyvf=pyvf.__version__, blas_thread_env=blas_thread_env()),
+        machine=dict(machine(threads), mem_available_bytes=available),
         memory_method=memory_method(), methods=METHODS, points=points, slopes=fit)
     write_outputs(report, plots_dir=plots, make_plots=lambda d: plot(points, fit, sizes, methods, d), log=log)
     errors = [p for p in points if "error" in p]

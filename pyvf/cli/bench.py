@@ -3,33 +3,27 @@ in pyvf.bench (and pyvf.bench.attention.demo for demo-attention).
 
     pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
     pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]      # speed vs error; hard cases
-    pyvf bench threads [--quick]                # each thread setting, idle and beside busy processes
-    pyvf bench threads --profile [--calls ...]  # a step's time kernel by kernel at each thread count
     pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
-    pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory; ~1 minute
+    pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory
 
-Each benchmark is a parser function `_<name>_parser()` and a handler `_<name>(args) -> exit
-status` in BENCHMARKS; the modules are imported when their benchmark runs. Every option is checked
-when it is parsed (options.py's argparse types): a bad size, limit or output
-path is the parser's one-line error before anything is measured.
+Each benchmark is a parser function `_<name>_parser() -> (parser, check(args) or None)` and a
+handler `_<name>(args) -> exit status` in BENCHMARKS; the modules are imported when their
+benchmark runs. Every option is checked when it is parsed (options.py's argparse types, then
+check): a bad size, limit or output path is the parser's one-line error before anything is
+measured.
 """
 
 import argparse
-import datetime
 import importlib
 import os
 import subprocess
 import sys
 
-from .._threads import cores
-from ..bench.common import BLAS_THREAD_VARS, TORCH_MISSING, torch_or_none, write_json, write_outputs
-from .options import (add_threads, names, non_negative_float, output_dir, output_file, positive_float, positive_int,
-                      thread_count)
+from ..bench.common import BLAS_THREAD_VARS, TORCH_MISSING, torch_or_none, write_outputs
+from .options import (add_threads, context_sizes, names, non_negative_float, output_dir, output_file, positive_float,
+                      positive_int)
 
 DEMO_ATTENTION = "demo-attention"  # `pyvf bench demo-attention`: pyvf.bench.attention.demo()
-# benchmarks that run in this process whatever the BLAS variables say: demo-attention has no
-# --threads; `threads` compares the thread settings themselves, its default included
-IN_PROCESS = (DEMO_ATTENTION, "threads")
 COMPARE_THREADS = "threads for pyvf and torch (default 2)"
 # benchmarks that cannot run without torch (the others time pyvf alone where it is missing)
 NEEDS_TORCH = {"transformer": "the oracle its first step is checked against before both are timed",
@@ -40,20 +34,34 @@ def _module(name):
     return importlib.import_module(f"pyvf.bench.{name}")
 
 
-def _doc_parser(name, epilog=False):
-    """A benchmark's parser: its module docstring's first paragraph as description (all of it as
-    epilog when asked), the raw layout kept."""
+def _parser(name, quick, epilog=False, repeat=None, json=True, plots=None):
+    """A benchmark's parser with the options most take: --quick (its help), --threads (default 2),
+    --repeat (repeat: its help), --json, --plots (plots: what is drawn); the module docstring's first
+    paragraph as description (all of it as epilog when asked), the raw layout kept."""
     doc = _module(name).__doc__
-    return argparse.ArgumentParser(prog=f"pyvf bench {name}", description=doc.split("\n\n")[0],
-                                   formatter_class=argparse.RawDescriptionHelpFormatter,
-                                   epilog=doc if epilog else None)
+    p = argparse.ArgumentParser(prog=f"pyvf bench {name}", description=doc.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=doc if epilog else None)
+    p.add_argument("--quick", action="store_true", help=quick)
+    add_threads(p, 2, COMPARE_THREADS)
+    if repeat:
+        p.add_argument("--repeat", type=positive_int, default=None, help=f"timed calls per median ({repeat})")
+    if json:
+        p.add_argument("--json", metavar="PATH", type=output_file, help="write every number to PATH")
+    if plots:
+        p.add_argument("--plots", metavar="DIR", type=output_dir, help=plots + " (PNG) to DIR (needs matplotlib)")
+    return p
 
 
-def _check_repeat(p, args, least):
-    """--repeat at least `least` (3 or 5), else the parser's error."""
-    why = {3: "a median of fewer calls is not worth printing", 5: "medians of fewer calls are not worth printing"}
+def _repeat(p, args, default, least):
+    """--repeat filled in with its default and checked: at least `least` calls per median."""
+    args.repeat = args.repeat or default
     if args.repeat < least:
-        p.error(f"--repeat must be at least {least} ({why[least]})")
+        p.error(f"--repeat must be at least {least} (a median of fewer calls is not worth printing)")
+
+
+def _sizes(args, base, quick):
+    """The size options named by base's keys (--R, ...), each defaulting to base's (quick's with --quick)."""
+    return [getattr(args, n) or (quick if args.quick else base)[n] for n in base]
 
 
 # ---------------------------------------------------------------------------------------
@@ -62,208 +70,104 @@ def _check_repeat(p, args, least):
 
 def _attention_parser():
     attention = _module("attention")
-    p = _doc_parser("attention")
+    p = _parser("attention", "smaller sizes (H=4, N=8)", repeat="default 5, at least 5")
     for name, val in attention.PAPER.items():
         p.add_argument(f"--{name}", type=positive_int, default=None,
                        help=f"default {val} ({attention.QUICK[name]} with --quick)")
-    add_threads(p, 2, COMPARE_THREADS)
-    p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
-    p.add_argument("--quick", action="store_true", help="smaller sizes (H=4, N=8; scaling N up to 16)")
-    p.add_argument("--flex", action="store_true", help="also torch flex_attention (torch.compile, forward only)")
-    p.add_argument("--no-scaling", action="store_true", help="skip the memory-versus-N measurement")
-    p.add_argument("--scaling-heads", type=positive_int, default=None, help="H for the scaling runs (default: --H)")
-    p.add_argument("--json", metavar="PATH", type=output_file, help="write every number to PATH")
-    return p, lambda args: _check_repeat(p, args, 5)
+    return p, lambda args: _repeat(p, args, 5, 5)
 
 
 def _attention(args):
     attention = _module("attention")
-    base = attention.QUICK if args.quick else attention.PAPER
-    shape = [base[n] if getattr(args, n) is None else getattr(args, n) for n in attention.PAPER]
-    views = None if args.no_scaling else (attention.QUICK_SCALING_N if args.quick else attention.SCALING_N)
-    report = attention.run(*shape, threads=args.threads, repeat=args.repeat, flex=args.flex, scaling_views=views,
-                           scaling_heads=args.scaling_heads)
+    report = attention.run(*_sizes(args, attention.PAPER, attention.QUICK), threads=args.threads, repeat=args.repeat)
     write_outputs(report, args.json)
-    failed = attention.failure(report)
-    if failed:
-        print(f"\nFAIL: {failed}; " + ("nothing is timed." if "aborted" in report else "it is not timed."),
-              file=sys.stderr)
+    if "aborted" in report:
+        print(f"\nFAIL: {report['aborted']}; nothing is timed.", file=sys.stderr)
         return 1
     return 0
 
 
+def _head_sizes(text):
+    """argparse type of --sizes: comma-separated HxDH pairs of positive integers, e.g. 12x64,4x32."""
+    try:
+        sizes = tuple(tuple(int(y) for y in x.lower().split("x")) for x in text.split(","))
+    except ValueError:
+        sizes = ()
+    if not sizes or any(len(s) != 2 or min(s) < 1 for s in sizes):
+        raise argparse.ArgumentTypeError(f"expected HxDH pairs of positive integers, e.g. 12x64,4x32; got {text!r}")
+    return sizes
+
+
 def _scaling_parser():
     scaling = _module("scaling")
-    p = _doc_parser("scaling", epilog=True)
-    p.add_argument("--quick", action="store_true", help="N = 2, 4, 8, H=4 dh=32, no flex: well under a minute")
-    p.add_argument("--views", help="comma-separated N (default 2,4,...,64; 2,4,8 with --quick)")
-    p.add_argument("--sizes", help="comma-separated HxDH (default 12x64,4x32; 4x32 with --quick)")
-    p.add_argument("--methods", help=f"comma-separated, from {', '.join(scaling.METHODS)} (default all; no flex "
-                                     "with --quick)")
-    add_threads(p, 2, COMPARE_THREADS)
-    p.add_argument("--repeat", type=int, default=5, help="timed calls per median (default 5, at least 5)")
+    p = _parser("scaling", "N = 2, 4, 8, H=4 dh=32", epilog=True, repeat="default 5, at least 5",
+                plots="write memory and time plots")
+    p.add_argument("--views", type=context_sizes, help="comma-separated N (default 2,4,...,64; 2,4,8 with --quick)")
+    p.add_argument("--sizes", type=_head_sizes, help="comma-separated HxDH (default 12x64,4x32; 4x32 with --quick)")
+    p.add_argument("--methods", help=f"comma-separated, from {', '.join(scaling.METHODS)} (default all)")
     p.add_argument("--mem-limit-mib", type=positive_float, default=None,
                    help="plan against this many MiB instead of /proc/meminfo MemAvailable")
     p.add_argument("--max-point-seconds", type=non_negative_float, default=scaling.MAX_POINT_SECONDS,
                    help="skip a point whose run time, predicted from the previous N by the FLOPs it computes, "
                         f"exceeds this (default {scaling.MAX_POINT_SECONDS}; 0: never)")
-    p.add_argument("--json", metavar="PATH", type=output_file, help="write every number to PATH")
-    p.add_argument("--plots", metavar="DIR", type=output_dir,
-                   help="write memory and time plots (PNG) to DIR (needs matplotlib)")
-    return p, lambda args: _scaling_check(p, args, scaling)
 
-
-def _scaling_check(p, args, scaling):
-    """--views, --sizes and --methods parsed (their defaults filled in), --repeat checked."""
-    _check_repeat(p, args, 5)
-    try:
-        args.views = tuple(int(x) for x in args.views.split(",")) if args.views else (
-            scaling.QUICK_VIEWS if args.quick else scaling.VIEWS)
-        args.sizes = tuple(tuple(int(y) for y in x.lower().split("x")) for x in args.sizes.split(",")) \
-            if args.sizes else (scaling.QUICK_SIZES if args.quick else scaling.SIZES)
-    except ValueError:
-        p.error("--views takes integers like 2,4,8; --sizes pairs like 12x64,4x32")
-    if any(n < 1 for n in args.views) or any(len(s) != 2 or min(s) < 1 for s in args.sizes):
-        p.error("--views and --sizes must be positive")
-    default = scaling.QUICK_METHODS if args.quick else tuple(scaling.METHODS)
-    args.methods = names(p, args.methods, scaling.METHODS, "method") if args.methods else default
+    def check(args):
+        _repeat(p, args, 5, 5)
+        args.views = args.views or (scaling.QUICK_VIEWS if args.quick else scaling.VIEWS)
+        args.sizes = args.sizes or (scaling.QUICK_SIZES if args.quick else scaling.SIZES)
+        args.methods = names(p, args.methods, scaling.METHODS, "method")
+    return p, check
 
 
 def _scaling(args):
     scaling = _module("scaling")
     report = scaling.run(args.sizes, args.views, args.methods, args.threads, args.repeat, args.mem_limit_mib,
-                         args.max_point_seconds, plots=args.plots, quick=args.quick)
+                         args.max_point_seconds, plots=args.plots)
     write_outputs(report, args.json)
     return 1 if scaling.validation_failed(report) else 0
 
 
 def _vq_parser():
     vq = _module("vq")
-    p = argparse.ArgumentParser(prog="pyvf bench vq", description=vq.__doc__.split("\n\n")[0])
+    p = _parser("vq", f"smaller sizes, answers checked on {vq.QUICK['checked_rows']} rows", json=False,
+                repeat=f"default {vq.PAPER['repeat']}, {vq.QUICK['repeat']} with --quick; at least 3")
     for name in ("M", "K", "D"):
         p.add_argument(f"--{name}", type=positive_int, default=None,
                        help=f"default {vq.PAPER[name]} ({vq.QUICK[name]} with --quick)")
-    add_threads(p, 2, None)
-    p.add_argument("--repeat", type=int, default=None,
-                   help=f"timed calls per median (default {vq.PAPER['repeat']}, {vq.QUICK['repeat']} with --quick)")
-    p.add_argument("--quick", action="store_true",
-                   help=f"smaller sizes, answers checked on {vq.QUICK['checked_rows']} rows (seconds)")
-
-    def check(args):
-        base = vq.QUICK if args.quick else vq.PAPER
-        for name in ("M", "K", "D", "repeat"):
-            if getattr(args, name) is None:
-                setattr(args, name, base[name])
-        _check_repeat(p, args, 3)
-    return p, check
+    return p, lambda args: _repeat(p, args, (vq.QUICK if args.quick else vq.PAPER)["repeat"], 3)
 
 
 def _vq(args):
     vq = _module("vq")
     base = vq.QUICK if args.quick else vq.PAPER
-    report = vq.run(args.M, args.K, args.D, args.repeat, base["checked_rows"], args.threads)
+    sizes = _sizes(args, {n: vq.PAPER[n] for n in "MKD"}, vq.QUICK)
+    report = vq.run(*sizes, args.repeat, base["checked_rows"], args.threads)
     return 1 if report["failures"] else 0
 
 
-def _transformer_parser():
-    transformer = _module("transformer")
-    p = argparse.ArgumentParser(prog="pyvf bench transformer", description=transformer.__doc__.split("\n\n")[0])
-    p.add_argument("--configs", nargs="+", default=None, choices=list(transformer.CONFIGS),
+def _steps_parser(name):
+    """transformer and codebook: pyvf's training step against torch's, per configuration."""
+    module = _module(name)
+    p = _parser(name, "the tiny configuration only, 10 steps", json=False)
+    p.add_argument("--configs", nargs="+", default=None, choices=list(module.CONFIGS),
                    help="default: tiny paper (tiny with --quick)")
-    p.add_argument("--steps", type=int, default=None, help="timed steps (default 20 tiny, 3 paper; 10 with --quick)")
-    add_threads(p, 2, None)
-    p.add_argument("--quick", action="store_true", help="the tiny configuration only, 10 steps (seconds)")
+    p.add_argument("--steps", type=int, default=None, help="timed steps (default: 20 tiny for the transformer, 10 "
+                                                           "for the codebook; 3 paper; 10 with --quick)")
 
     def check(args):
-        if args.configs is None:
-            args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
-        if args.steps is None and args.quick:
-            args.steps = 10
+        args.configs = args.configs or (["tiny"] if args.quick else ["tiny", "paper"])
+        args.steps = args.steps or (10 if args.quick else None)
         if args.steps is not None and args.steps < 3:
             p.error("--steps must be at least 3 (a median of fewer steps is not worth printing)")
     return p, check
 
 
-def _transformer(args):
-    return 1 if _module("transformer").run(args.configs, args.steps, args.threads)["failures"] else 0
-
-
-def _threads_parser():
-    p = _doc_parser("threads")
-    add_threads(p, None, "the most threads tried and the busy processes started (default: the cores this "
-                         "process may use)")
-    p.add_argument("--quick", action="store_true", help="smaller batches, 3 repeats (seconds)")
-    p.add_argument("--scaling-only", action="store_true",
-                   help="only the scaling from 1 thread to every core (a larger machine's table); with --json "
-                        "the file is rewritten after each call, so a run cut short keeps what it finished")
-    p.add_argument("--profile", action="store_true",
-                   help="instead of the comparison, each scaling call's time kernel by kernel (and outside the "
-                        "kernels) at each thread count: where the speed-up is lost (pyvf.bench.profile)")
-    p.add_argument("--calls", nargs="+", default=None, choices=list(_module("threads").SCALING_IDS),
-                   help="the scaling's (or the profile's) calls (default: all; the profile: the tiny steps)")
-    p.add_argument("--counts", nargs="+", type=thread_count, default=None, metavar="N",
-                   help="the scaling's thread counts (default: 1, 2, 4, ... and every usable core)")
-    p.add_argument("--json", default=None, metavar="FILE", type=output_file, help="also write the report as JSON")
-    return p, None
-
-
-def _threads(args):
-    if args.profile:
-        ids, counts = _module("threads").SCALING_IDS, args.counts or [1, args.threads or cores()]
-        report = _module("profile").run([ids[c] for c in args.calls or ("codebook-tiny", "transformer-tiny")],
-                                        sorted(set(counts)), args.quick)
-        write_outputs(report, args.json)
-        return 1 if report["failures"] else 0
-    stamp, save = {}, None
-    if args.scaling_only:  # the command that made a scaling-only file (other machines' tables in the report)
-        stamp = {"date": datetime.date.today().isoformat(),
-                 "command": " ".join(["pyvf bench threads --scaling-only", *(["--quick"] if args.quick else []),
-                                      *([f"--threads {args.threads}"] if args.threads else []),
-                                      *(["--calls", *args.calls] if args.calls else []),
-                                      *(["--counts", *map(str, args.counts)] if args.counts else [])])}
-        if args.json:  # rewritten after each call: a run cut short keeps what it finished
-            save = lambda rep: write_json(args.json, dict(rep, **stamp))  # noqa: E731
-    report = _module("threads").run(args.quick, args.threads, calls=not args.scaling_only,
-                                    policies=not args.scaling_only, scaling_calls=args.calls, counts=args.counts,
-                                    save=save)
-    report.update(stamp)
-    write_outputs(report, args.json)
-    return 1 if report["failures"] else 0
-
-
-def _codebook_parser():
-    codebook = _module("codebook")
-    p = argparse.ArgumentParser(prog="pyvf bench codebook", description=codebook.__doc__.split("\n\n")[0])
-    p.add_argument("--configs", nargs="+", default=None, choices=list(codebook.CONFIGS),
-                   help="default: tiny paper (tiny with --quick)")
-    p.add_argument("--repeat", type=int, default=3, help="timed calls per median (default 3, at least 3)")
-    add_threads(p, 2, None)
-    p.add_argument("--quick", action="store_true", help="the tiny configuration only (seconds)")
-
-    def check(args):
-        if args.configs is None:
-            args.configs = ["tiny"] if args.quick else ["tiny", "paper"]
-        _check_repeat(p, args, 3)
-    return p, check
-
-
-def _codebook(args):
-    return 1 if _module("codebook").run(args.configs, args.repeat, args.threads)["failures"] else 0
+def _steps(name):
+    return lambda args: 1 if _module(name).run(args.configs, args.steps, args.threads)["failures"] else 0
 
 
 # ---------------------------------------------------------------------------------------
 # the checking benchmarks (accuracy, hardcases), the report, the demo
-
-
-def _checking_parser(name, quick, plots):
-    """The options every checking benchmark (accuracy, hardcases) takes: --quick, --threads, --json
-    and --plots; the module docstring as description and epilog. quick, plots: their help texts."""
-    p = _doc_parser(name, epilog=True)
-    p.add_argument("--quick", action="store_true", help=quick)
-    add_threads(p, 2, COMPARE_THREADS)
-    p.add_argument("--json", metavar="PATH", type=output_file, help="write every number to PATH")
-    p.add_argument("--plots", metavar="DIR", type=output_dir, help=plots + " (PNG) to DIR (needs matplotlib)")
-    return p
 
 
 def _verdict(report, args, make_plots, what):
@@ -279,17 +183,13 @@ def _verdict(report, args, make_plots, what):
 
 def _accuracy_parser():
     accuracy = _module("accuracy")
-    p = _checking_parser("accuracy", "small sizes, median of 3: ~20 s", "write a time-vs-error plot per op")
+    p = _parser("accuracy", "small sizes, median of 3", epilog=True, repeat="default 5; 3 with --quick; at least 3",
+                plots="write a time-vs-error plot per op")
     p.add_argument("--ops", help=f"comma-separated, from {', '.join(accuracy.OPS)} (default all)")
-    p.add_argument("--repeat", type=positive_int, default=None,
-                   help="timed calls per median (default 5; 3 with --quick)")
-    p.add_argument("--plant-bug", action="store_true", help=argparse.SUPPRESS)  # the tests' bad variant
 
     def check(args):
         args.ops = names(p, args.ops, accuracy.OPS, "op")
-        args.repeat = args.repeat or (3 if args.quick else 5)
-        if args.repeat < 3:
-            p.error("--repeat must be at least 3")
+        _repeat(p, args, 3 if args.quick else 5, 3)
     return p, check
 
 
@@ -297,19 +197,16 @@ def _accuracy(args):
     accuracy = _module("accuracy")
     print(f"# speed against error: {len(args.ops)} ops, {'quick' if args.quick else 'full'} sizes, "
           f"{args.threads} threads, median of {args.repeat}")
-    report = accuracy.run(args.ops, "quick" if args.quick else "full", args.repeat, args.threads, args.plant_bug)
+    report = accuracy.run(args.ops, "quick" if args.quick else "full", args.repeat, args.threads)
     accuracy.print_report(report)
     return _verdict(report, args, lambda d: accuracy.plot(report["results"], d), "variant(s)")
 
 
 def _hardcases_parser():
     hardcases = _module("hardcases")
-    p = _checking_parser("hardcases", "fewer points, smaller problems: ~15 s", "write one plot per sweep")
+    p = _parser("hardcases", "fewer points, smaller problems", epilog=True, plots="write one plot per sweep")
     p.add_argument("--sweeps", help=f"comma-separated, from {', '.join(hardcases.SWEEPS)} (default all)")
-
-    def check(args):
-        args.sweeps = names(p, args.sweeps, hardcases.SWEEPS, "sweep")
-    return p, check
+    return p, lambda args: setattr(args, "sweeps", names(p, args.sweeps, hardcases.SWEEPS, "sweep"))
 
 
 def _hardcases(args):
@@ -321,11 +218,9 @@ def _hardcases(args):
 
 
 def _report_parser():
-    p = _doc_parser("report", epilog=True)
-    p.add_argument("--quick", action="store_true", help="every run in its --quick mode (a couple of minutes)")
+    p = _parser("report", "every run in its --quick mode", epilog=True, json=False)
     p.add_argument("--out", default="docs", type=output_dir, help="the folder for performance.md, accuracy.md, "
                                                                   "img/ and measurements/ (default docs)")
-    add_threads(p, 2, "threads for pyvf, torch and numpy's BLAS (default 2)")
     return p, None
 
 
@@ -340,36 +235,26 @@ def _report(args):
 
 def _demo_attention_parser():
     attention = _module("attention")
-    p = argparse.ArgumentParser(prog=f"pyvf bench {DEMO_ATTENTION}", description=_demo_attention.__doc__)
+    p = argparse.ArgumentParser(prog=f"pyvf bench {DEMO_ATTENTION}", description="Branching attention at a few "
+                                "sizes: error against the dense reference, time, memory.")
     add_threads(p, None, "threads for pyvf's C++ kernels (default: OpenMP's, OMP_NUM_THREADS or all cores)")
-    sizes = ", ".join(attention.DEMO_SIZES)
-    p.add_argument("--sizes", default=",".join(attention.DEMO_SIZES),
-                   help=f"comma-separated sizes to run, from {sizes} (default: all)")
-    return p, None
+    p.add_argument("--sizes", help=f"comma-separated sizes, from {', '.join(attention.DEMO_SIZES)} (default all)")
+    return p, lambda args: setattr(args, "sizes", names(p, args.sizes, attention.DEMO_SIZES, "size"))
 
 
 def _demo_attention(args):
-    """Branching attention at a few sizes: error against the dense reference, time, memory."""
-    attention = _module("attention")
-    sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
-    unknown = [s for s in sizes if s not in attention.DEMO_SIZES]
-    if unknown or not sizes:
-        print(f"pyvf bench {DEMO_ATTENTION}: unknown size {unknown or args.sizes!r}; "
-              f"choose from {', '.join(attention.DEMO_SIZES)}", file=sys.stderr)
-        return 2
-    return attention.demo(sizes, threads=args.threads)
+    return _module("attention").demo(args.sizes, threads=args.threads)
 
 
 # name -> (its parser function -> (parser, check(args) or None), its handler)
 BENCHMARKS = {
     "attention": (_attention_parser, _attention),
     "vq": (_vq_parser, _vq),
-    "transformer": (_transformer_parser, _transformer),
-    "codebook": (_codebook_parser, _codebook),
+    "transformer": (lambda: _steps_parser("transformer"), _steps("transformer")),
+    "codebook": (lambda: _steps_parser("codebook"), _steps("codebook")),
     "scaling": (_scaling_parser, _scaling),
     "accuracy": (_accuracy_parser, _accuracy),
     "hardcases": (_hardcases_parser, _hardcases),
-    "threads": (_threads_parser, _threads),
     "report": (_report_parser, _report),
     DEMO_ATTENTION: (_demo_attention_parser, _demo_attention),
 }
@@ -392,7 +277,7 @@ def cmd_bench(args):
     if args.name in NEEDS_TORCH and torch_or_none() is None:
         print(f"pyvf bench {args.name}: needs torch, {NEEDS_TORCH[args.name]}: {TORCH_MISSING}", file=sys.stderr)
         return 1
-    n = bench_args.threads if args.name not in IN_PROCESS else None
+    n = bench_args.threads if args.name != DEMO_ATTENTION else None  # (demo-attention's default: OpenMP's)
     if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
         env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
         boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"
