@@ -7,9 +7,8 @@ import os
 import sys
 
 # OpenMP threads that spin after a parallel region steal the cores other work needs: numpy's, the
-# user's, other processes' (`pyvf bench threads` measures each policy idle and beside busy
-# processes; docs/performance.md). Sleep at once instead, unless the user chose a policy or a spin
-# count. Read by libgomp when _core loads it, so it must be set before the import.
+# user's, other processes'. Sleep at once instead, unless the user chose a policy or a spin count.
+# Read by libgomp when _core loads it, so it must be set before the import.
 if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 

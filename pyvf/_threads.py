@@ -33,8 +33,8 @@ def affinity():
 
 
 def cpu_limits_text():
-    """What cores() is taken from, for `pyvf config` and `pyvf bench threads`: "16 in its
-    affinity, a CPU limit of 2" (or "..., no CPU limit")."""
+    """What cores() is taken from, for `pyvf config`: "16 in its affinity, a CPU limit of 2"
+    (or "..., no CPU limit")."""
     limit = cpu_limit()
     return f"{affinity()} in its affinity, {'no CPU limit' if limit is None else f'a CPU limit of {limit:g}'}"
 
