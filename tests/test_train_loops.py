@@ -445,7 +445,8 @@ def test_held_out_evaluation_leaves_the_run_bit_identical(tmp_path, rng):
     # the last row is the health of the final model
     final = Codebook.load(os.path.join(b, "codebook.npz"))
     want = pyvf.evaluate.health.codebook_health(final, held_out)
-    assert [float(v) for v in rows[-1][1:]] == [want[k] for k in pyvf.evaluate.health.CODEBOOK_HEALTH]
+    # (empty_entropy is nan where the images have no empty patch: compared as equal)
+    np.testing.assert_array_equal([float(v) for v in rows[-1][1:]], [want[k] for k in pyvf.evaluate.health.CODEBOOK_HEALTH])
 
 
 def test_recipes_and_their_errors(tmp_path, rng):
@@ -486,8 +487,9 @@ def test_transformer_evaluation_leaves_the_run_bit_identical(tmp_path, rng):
     assert [r[0] for r in rows[1:]] == ["0", "3", "4"]
     final = Transformer.load(os.path.join(b, "transformer.npz"))
     want = transformer_health(cb, final, held_images, held_poses, held_tokens, (1,))
-    assert [float(v) for v in rows[-1][1:]] == list(want.values())
-    assert all(np.isfinite(list(want.values())))
+    np.testing.assert_array_equal([float(v) for v in rows[-1][1:]], list(want.values()))  # nan equals nan
+    # the empty / object split is nan where the held-out views have no patch of that kind (16 px here)
+    assert all(np.isfinite(v) for k, v in want.items() if not k.endswith(("empty_c1", "object_c1")))
 
 
 def test_runs_table_and_eval_plot(tmp_path, rng, capsys):

@@ -269,6 +269,9 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
                                          picture_scenes=picture_scenes, progress=progress, decode=decode,
                                          token_scores=True)
     decode_s, decoded = dec
+    for table in results.values():  # None, not NaN, where the queries have no patch of that kind
+        for row, keys in ((table["pyvf"], TOKEN_SCORES[2:]), (table["codebook"], ("empty_entropy",))):
+            row.update({k: None for k in keys if np.isnan(row[k])})
 
     timing = _timing(transformer, tokens[:timing_scenes], poses[:timing_scenes], Cmax, qidx, repeat)
     timing["codebook_encode_s_per_image"] = t_encode
@@ -373,8 +376,8 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
                 names = names + TOKEN_SCORES
             row = {}
             for name in names:
-                if name in IMAGE_METRICS or name in TOKEN_SCORES:
-                    row[name] = float(np.mean(vals[name]))
+                if name in IMAGE_METRICS or name in TOKEN_SCORES:  # nan: no token of that kind
+                    row[name] = float(np.mean(vals[name])) if vals[name].size else float("nan")
                 elif name == "position_error_median":
                     row[name] = float(np.median(vals["position_error"]))
                 else:
