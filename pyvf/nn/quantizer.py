@@ -306,22 +306,23 @@ class EMAQuantizer:
             pick = np.concatenate([rng.permutation(M), rng.integers(0, M, max(dead.size - M, 0))])[:dead.size]
         if restart == "worst" or reseat:
             idx, util, second = code_utility(flat, np.ascontiguousarray(self.embeddings.T))
-            e = flat.astype(np.float64) - self.embeddings.T[idx]  # (M, D)
-            worst = np.argsort(-(e * e).sum(axis=1), kind="stable")  # (M,) worst represented first
-            worst_err = (e * e).sum(axis=1)[worst]  # (M,)
+            err = ((flat.astype(np.float64) - self.embeddings.T[idx]) ** 2).sum(axis=1)  # (M,)
+            worst = np.argsort(-err, kind="stable")  # (M,) worst represented first
             if restart == "worst":
                 pick = np.resize(worst, dead.size)  # distinct while M >= the dead codes
             taken = dead.size if restart == "worst" else 0
-            low = low_utility_codes(idx, util, second, dead, worst_err[taken:taken + reseat])
-            dead, pick = np.concatenate([dead, low]), np.concatenate([pick, worst[taken:taken + low.size]])
-        if dead.size:
+            low = low_utility_codes(idx, util, second, dead, err[worst[taken:taken + reseat]])
+            moved, pick = np.concatenate([dead, low]), np.concatenate([pick, worst[taken:taken + low.size]])
+        else:
+            moved = dead
+        if moved.size:
             picks = flat[pick]  # (n_moved, D)
             # restart the statistics as if the code had been chosen once by its new vector:
             # bias-corrected cluster size 1 and dw = the vector, so dw / cs is the vector
-            self.ema_cluster_size_hidden[dead] = debias
-            self.ema_dw_hidden[:, dead] = picks.T * self.dtype.type(debias)
-            self.embeddings[:, dead] = picks.T
-        return int(dead.size)
+            self.ema_cluster_size_hidden[moved] = debias
+            self.ema_dw_hidden[:, moved] = picks.T * self.dtype.type(debias)
+            self.embeddings[:, moved] = picks.T
+        return int(moved.size)
 
     def init_kmeans(self, z, iters, batch, rng=None):
         """Codes from data: k-means++ seeding on the vectors of z (B, D, h, w), then `iters` Lloyd
