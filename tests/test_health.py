@@ -133,12 +133,16 @@ def test_token_scores_against_torch(rng):
 
     logits = (rng.standard_normal((2, 3, 5, 7)) * 30).astype(np.float32)  # large: log-sum-exp must be stable
     tokens = rng.integers(0, 7, (2, 3, 5))
-    got = _token_scores(logits, tokens)
+    empty = rng.random((2, 3, 5)) < 0.5
+    got = _token_scores(logits, tokens, empty)
     t = torch.from_numpy(logits.astype(np.float64)).reshape(-1, 7)
     ce = torch.nn.functional.cross_entropy(t, torch.from_numpy(tokens).reshape(-1), reduction="none")
     np.testing.assert_allclose(got["ce"].ravel(), ce.reshape(6, 5).mean(1).numpy(), rtol=1e-12)
     acc = (t.argmax(1).reshape(6, 5) == torch.from_numpy(tokens).reshape(6, 5)).double().mean(1).numpy()
     np.testing.assert_array_equal(got["token_accuracy"].ravel(), acc)
+    e = torch.from_numpy(empty.ravel())
+    np.testing.assert_allclose(got["ce_empty"], ce[e].numpy(), rtol=1e-12)  # per token, in order
+    np.testing.assert_allclose(got["ce_object"], ce[~e].numpy(), rtol=1e-12)
 
 
 def test_transformer_health_is_evaluate_on_the_same_scenes():

@@ -82,6 +82,7 @@ def cmd_train_codebook(args):
         _check_engine_options(args)
         tasks.codebook_run(args.data, args.out, recipe=args.recipe, lr=args.lr, betas=args.betas,
                            reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
+                           restart=args.restart, reseat=args.reseat, kmeans=args.kmeans,
                            engine=args.engine, device=args.device, precision=args.precision, **_run(args))
         print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
     return _guarded("train-codebook", work, lambda: _resume_hint(args))
@@ -196,6 +197,15 @@ def _train_codebook(subparsers):
                         "published; default: the recipe's)")
     p.add_argument("--object-weight", type=float, default=None,
                    help="loss weight of object pixels against 1 for the background (default: the recipe's)")
+    p.add_argument("--restart", default=None, choices=["batch", "worst"],
+                   help="where dead codes restart: random encoder outputs (batch) or the worst represented ones "
+                        "(default: the recipe's)")
+    p.add_argument("--reseat", type=int, default=None, metavar="N",
+                   help="each reset also moves up to N codes of least utility to the worst represented outputs "
+                        "(default: the recipe's)")
+    p.add_argument("--kmeans", type=int, default=None, metavar="ITERS",
+                   help="initialise the codes by k-means (ITERS Lloyd iterations) on the first batches' encoder "
+                        "outputs; 0: uniform (default: the recipe's)")
     _eval_options(p, every=100, scenes=32)
     _engine_options(p)
     p.set_defaults(func=cmd_train_codebook)

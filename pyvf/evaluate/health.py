@@ -29,10 +29,10 @@ from .. import _checks
 from ..nn.quantizer import code_statistics
 from .metrics import image_metrics, to_model_images, to_uint8
 
-__all__ = ["effective_rank", "object_mask", "chroma", "colour_r2", "codebook_health", "CODEBOOK_HEALTH",
+__all__ = ["effective_rank", "object_mask", "empty_patches", "empty_entropy", "chroma", "colour_r2", "codebook_health", "CODEBOOK_HEALTH",
            "health_contexts", "transformer_health", "transformer_health_columns"]
 
-CODEBOOK_HEALTH = ["mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_rank", "colour_r2"]
+CODEBOOK_HEALTH = ["mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_rank", "colour_r2", "empty_entropy"]
 
 
 def effective_rank(z):
@@ -65,6 +65,26 @@ def object_mask(images):
     return np.any(images != corner, axis=-1)
 
 
+def empty_patches(images, k):
+    """uint8 (..., Hi, Wi, 3) -> bool (..., k, k): the k x k grid's patches whose every pixel is
+    background (object_mask false), i.e. empty."""
+    m = object_mask(images)  # (..., Hi, Wi)
+    p = m.shape[-1] // k
+    return ~m.reshape(m.shape[:-2] + (k, p, k, p)).any(axis=(-3, -1))
+
+
+def empty_entropy(codes, empty):
+    """codes (M, k, k) ints, empty (M, k, k) bool -> float: for each grid position the entropy
+    (nats) of the code over the views where that patch is empty, averaged over the positions
+    with at least one empty view (nan when there are none). 0 when the background has one code."""
+    ents = []
+    for c, e in zip(codes.reshape(len(codes), -1).T, empty.reshape(len(empty), -1).T):  # per position
+        if e.any():
+            p = np.unique(c[e], return_counts=True)[1] / e.sum()
+            ents.append(-(p * np.log(p)).sum())
+    return float(np.mean(ents)) if ents else float("nan")
+
+
 def chroma(images):
     """uint8 or float (..., 3) RGB on 0..255 -> float64 (..., 2): (R - G, (R + G) / 2 - B)."""
     x = np.asarray(images, dtype=np.float64)
@@ -94,7 +114,8 @@ def codebook_health(codebook, images, batch=64):
     CODEBOOK_HEALTH's keys: reconstruction mae, rmse, psnr (through the codes, on the saved
     picture's 0..255 scale, the mean over images; evaluate.metrics), codes_in_use (distinct
     codes the images chose), perplexity (exp of the entropy of their frequencies), latent_rank
-    (effective_rank of the encoder's unquantized output vectors), colour_r2 (of object pixels).
+    (effective_rank of the encoder's unquantized output vectors), colour_r2 (of object pixels),
+    empty_entropy (of the codes of empty patches, position by position: empty_entropy).
     Runs the model for inference only: no EMA buffer, cache or random state is touched."""
     if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim != 4 or images.shape[0] < 1:
         raise ValueError(f"images must be uint8 (M >= 1, Hi, Wi, 3), got "
@@ -107,15 +128,17 @@ def codebook_health(codebook, images, batch=64):
         z, c = codebook.encode(x, return_latent=True)  # (b, D, k, k), (b, k, k)
         rec[i:i + batch] = to_uint8(codebook.decode_code(c))
         zs.append(z.transpose(0, 2, 3, 1).reshape(-1, z.shape[1]))  # (b k k, D)
-        codes.append(c.ravel())
+        codes.append(c)
     m = image_metrics(rec, images)
-    codes = np.concatenate(codes)
+    codes = np.concatenate(codes)  # (M, k, k)
+    empty = empty_entropy(codes, empty_patches(images, codes.shape[-1]))
+    codes = codes.ravel()
     counts = np.bincount(codes, minlength=codebook.config.n_embed)  # (K,)
     _, perplexity = code_statistics(counts)
     return {"mae": float(m["mae"].mean()), "rmse": float(m["rmse"].mean()), "psnr": float(m["psnr"].mean()),
             "codes_in_use": float(np.count_nonzero(counts)), "perplexity": perplexity,
             "latent_rank": effective_rank(np.concatenate(zs)),
-            "colour_r2": colour_r2(rec, images, object_mask(images))}
+            "colour_r2": colour_r2(rec, images, object_mask(images)), "empty_entropy": empty}
 
 
 # ---------------------------------------------------------------------------------------
@@ -124,6 +147,8 @@ def codebook_health(codebook, images, batch=64):
 HEALTH_QUERIES = 5  # query views per held-out scene: the last ones, as pyvf evaluate
 _TF_METRICS = (  # (method, metric, column stem) for each context size
     ("pyvf", "ce", "ce"), ("pyvf", "token_accuracy", "token_accuracy"),
+    ("pyvf", "ce_empty", "ce_empty"), ("pyvf", "ce_object", "ce_object"),  # tokens of empty / object patches
+    ("pyvf", "token_accuracy_empty", "token_accuracy_empty"), ("pyvf", "token_accuracy_object", "token_accuracy_object"),
     ("pyvf", "mae", "mae"), ("pyvf", "rmse", "rmse"),
     ("nearest_view", "mae", "nearest_view_mae"), ("mean_image", "mae", "mean_image_mae"),
     ("nearest_view", "rmse", "nearest_view_rmse"), ("mean_image", "rmse", "mean_image_rmse"),
@@ -153,7 +178,8 @@ def transformer_health(codebook, transformer, images, poses, tokens, contexts, b
     images uint8 (n, V, S, S, 3), poses (n, V, 7), tokens (n, V, L) int64 (the codebook's tokens
     of the images). For each C in contexts: the context is views 0..C-1, the queries the last
     HEALTH_QUERIES views. Returns {column: float} (transformer_health_columns): the held-out
-    cross-entropy and token accuracy of the queries' tokens, the rendering's MAE and RMSE through
+    cross-entropy and token accuracy of the queries' tokens (also split into the tokens of empty
+    patches and of object patches, empty_patches), the rendering's MAE and RMSE through
     the codebook beside the nearest-view and mean-image baselines', and the median position and
     orientation errors beside the closest-image and mean-pose baselines' (evaluate.run's
     definitions). The rendering decodes each token's likeliest code (decode="argmax", the model's

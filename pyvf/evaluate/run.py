@@ -48,6 +48,7 @@ from .._version import __version__
 from ..models import check_pair
 from ..nn.layers import matmul
 from ..scenes import generate_scenes
+from .health import empty_entropy, empty_patches
 from .metrics import (
     closest_image_pose,
     encode_images,
@@ -67,7 +68,9 @@ __all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
 POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
-TOKEN_SCORES = ("ce", "token_accuracy")  # score_scenes(token_scores=True): pyvf's held-out token figures
+# score_scenes(token_scores=True): pyvf's held-out token figures, over all tokens and split into
+# the tokens of empty patches (every pixel background: health.empty_patches) and of object patches
+TOKEN_SCORES = ("ce", "token_accuracy", "ce_empty", "ce_object", "token_accuracy_empty", "token_accuracy_object")
 # method -> the metrics it has, in the tables' order
 METHODS = {
     "pyvf": IMAGE_METRICS + POSE_METRICS,
@@ -263,8 +266,12 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     t_encode = (time.perf_counter() - t0) / flat.shape[0]
 
     results, picture, dec = score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch,
-                                         picture_scenes=picture_scenes, progress=progress, decode=decode)
+                                         picture_scenes=picture_scenes, progress=progress, decode=decode,
+                                         token_scores=True)
     decode_s, decoded = dec
+    for table in results.values():  # None, not NaN, where the queries have no patch of that kind
+        for row, keys in ((table["pyvf"], TOKEN_SCORES[2:]), (table["codebook"], ("empty_entropy",))):
+            row.update({k: None for k in keys if np.isnan(row[k])})
 
     timing = _timing(transformer, tokens[:timing_scenes], poses[:timing_scenes], Cmax, qidx, repeat)
     timing["codebook_encode_s_per_image"] = t_encode
@@ -304,13 +311,16 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
     decoded)): results[str(C)][method][metric] as evaluate()'s; picture the first
     picture_scenes scenes' views at the largest C. token_scores=True adds to each C's "pyvf"
     row the mean cross-entropy (nats) of the true query tokens under the rendered logits and
-    the share of tokens whose argmax is right ("ce", "token_accuracy")."""
+    the share of tokens whose argmax is right (TOKEN_SCORES, also split into empty and object
+    patches), and to each C's "codebook" row empty_entropy (health.empty_entropy of the queries)."""
     n, M = images.shape[0], len(qidx)
     S = images.shape[2]
     dt = transformer.dtype
     Cmax = context[-1]
     gt = images[:, qidx]  # (n, M, S, S, 3)
     gt_pose = poses[:, qidx]  # (n, M, 7) float64
+    side = transformer.config.token_image_size
+    empty = empty_patches(gt, side).reshape(n, M, side * side)  # (n, M, L)
     per = {str(C): {m: {} for m in METHODS} for C in context}  # C -> method -> metric -> per-query list
     decode_s, decoded = 0.0, 0
 
@@ -339,7 +349,7 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
             scene = transformer.encode_scene(tokens[sl, :C], ctx_pose.astype(dt))
             logits = transformer.render_scene(scene, q_pose)  # (B, M, L, V)
             if token_scores:
-                add(key, "pyvf", _token_scores(logits, q_tok))
+                add(key, "pyvf", _token_scores(logits, q_tok, empty[sl]))
             t0 = time.perf_counter()
             rendered = render_images(codebook, logits, decode, 4 * batch)  # (B, M, S, S, 3)
             decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + B * M
@@ -366,25 +376,29 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
                 names = names + TOKEN_SCORES
             row = {}
             for name in names:
-                if name in IMAGE_METRICS or name in TOKEN_SCORES:
-                    row[name] = float(np.mean(vals[name]))
+                if name in IMAGE_METRICS or name in TOKEN_SCORES:  # nan: no token of that kind
+                    row[name] = float(np.mean(vals[name])) if vals[name].size else float("nan")
                 elif name == "position_error_median":
                     row[name] = float(np.median(vals["position_error"]))
                 else:
                     row[name] = float(np.median(vals["orientation_error_deg"]))
             results[C][method] = row
+        results[C]["codebook"]["empty_entropy"] = empty_entropy(tokens[:, qidx].reshape(n * M, side, side),
+                                                                empty.reshape(n * M, side, side))
     return results, picture, (decode_s, decoded)
 
 
-def _token_scores(logits, tokens):
-    """logits (B, M, L, V), true tokens (B, M, L) -> per view: the mean cross-entropy of
-    the true tokens (log-softmax in float64) and the share of tokens whose argmax is right, each (B, M)."""
+def _token_scores(logits, tokens, empty):
+    """logits (B, M, L, V), true tokens (B, M, L), empty (B, M, L) bool -> per view: the mean
+    cross-entropy of the true tokens (log-softmax in float64) and the share of tokens whose argmax
+    is right, each (B, M); and per token of empty (of object) patches the same, each (n_empty,)."""
     z = logits.astype(np.float64)
     z -= z.max(axis=-1, keepdims=True)
     logp = z - np.log(np.exp(z).sum(axis=-1, keepdims=True))  # (B, M, L, V)
     nll = -np.take_along_axis(logp, tokens[..., None], axis=-1)[..., 0]  # (B, M, L)
     right = logits.argmax(axis=-1) == tokens  # (B, M, L)
-    return {"ce": nll.mean(axis=-1), "token_accuracy": right.mean(axis=-1)}
+    return {"ce": nll.mean(axis=-1), "token_accuracy": right.mean(axis=-1), "ce_empty": nll[empty],
+            "ce_object": nll[~empty], "token_accuracy_empty": right[empty], "token_accuracy_object": right[~empty]}
 
 
 def _timing(transformer, tokens, poses, C, qidx, repeat):
@@ -544,6 +558,12 @@ def metrics_markdown(metrics):
                   "|---|" + "---:|" * len(_ALL)]
         for method, row in table.items():
             lines.append(f"| {method} | " + " | ".join(_fmt(row.get(m)) for m in _ALL) + " |")
+        p, cb = table["pyvf"], table["codebook"]
+        if "ce_empty" in p:  # metrics from before issue 48 lack them
+            lines += ["", f"Tokens of the queries: code entropy of empty patches {_fmt(cb['empty_entropy'])} nats "
+                      f"(position by position); pyvf's cross-entropy {_fmt(p['ce_empty'])} nats on empty patches, "
+                      f"{_fmt(p['ce_object'])} on object patches; accuracy {_fmt(p['token_accuracy_empty'])} and "
+                      f"{_fmt(p['token_accuracy_object'])}."]
     t = timing
     lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} thread"
               f"{'' if meta['kernel_threads'] == 1 else 's'})", "",

@@ -25,7 +25,7 @@ import numpy as np
 from .. import _checks, _core
 from .layers import sum_rows_by_id
 
-__all__ = ["vq_nearest", "code_statistics", "EMAQuantizer", "QuantizerOutput"]
+__all__ = ["vq_nearest", "code_statistics", "code_utility", "low_utility_codes", "EMAQuantizer", "QuantizerOutput"]
 
 
 def _check_2d(name, a, like=None):
@@ -271,34 +271,116 @@ class EMAQuantizer:
                              "for the dtype); the buffers are unchanged")
         return new
 
-    def reset_dead_codes(self, z, threshold=1e-3, rng=None):
+    def reset_dead_codes(self, z, threshold=1e-3, rng=None, restart="batch", reseat=0):
         """Optional (off unless called): codes whose smoothed cluster size is below threshold are
-        moved to random vectors of z (B, D, h, w), their EMA statistics restarted there: each
-        to a different vector of z, unless z has fewer vectors than there are dead codes.
-        Returns the number of codes reset.
+        moved to vectors of z (B, D, h, w), their EMA statistics restarted there: each to a
+        different vector of z, unless z has fewer vectors than there are dead codes.
+        restart: "batch", vectors drawn uniformly from z; "worst", the vectors the codes represent
+        worst (largest squared distance to their nearest code first, ties to the first vector).
+        reseat: also move up to this many live codes of least utility (code_utility, see
+        low_utility_codes) to the worst-represented vectors not taken by a dead code, each only
+        while its utility is below the squared error of the vector it goes to (the move then lowers
+        the batch's quantization error: the ELBG idea, Patane and Russo 2001).
+        Returns the number of codes moved.
 
         z: a finite, non-empty array of the quantizer's dtype (as forward's); threshold: a finite
         real >= 0 (0 resets nothing: cluster sizes are never negative). A wrong argument raises
         TypeError / ValueError naming it, before any buffer changes."""
         self._check_z(z)
         threshold = _checks.real("threshold", threshold, lo=0.0)
+        if restart not in ("batch", "worst"):
+            raise ValueError(f"restart must be 'batch' or 'worst', got {restart!r}")
+        reseat = _checks.integer("reseat", reseat, lo=0)
         try:
             rng = np.random.default_rng(rng)
         except (TypeError, ValueError) as e:
             raise type(e)(f"rng must be None, a non-negative integer seed or a numpy Generator, got {rng!r} "
                           f"({e})") from None
         flat = z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim)  # (M, D)
+        M = len(flat)
         debias = 1.0 - self.decay ** max(self.counter, 1)
         dead = np.flatnonzero(self.ema_cluster_size_hidden / debias < threshold)
-        if dead.size:
+        if restart == "batch":
             # distinct vectors while there are enough (two codes on one vector: the larger index is
             # never chosen, ties go to the smallest), then vectors drawn again for the rest
-            M = len(flat)
             pick = np.concatenate([rng.permutation(M), rng.integers(0, M, max(dead.size - M, 0))])[:dead.size]
-            picks = flat[pick]  # (n_dead, D)
+        if restart == "worst" or reseat:
+            idx, util, second = code_utility(flat, np.ascontiguousarray(self.embeddings.T))
+            err = ((flat.astype(np.float64) - self.embeddings.T[idx]) ** 2).sum(axis=1)  # (M,)
+            worst = np.argsort(-err, kind="stable")  # (M,) worst represented first
+            if restart == "worst":
+                pick = np.resize(worst, dead.size)  # distinct while M >= the dead codes
+            taken = dead.size if restart == "worst" else 0
+            low = low_utility_codes(idx, util, second, dead, err[worst[taken:taken + reseat]])
+            moved, pick = np.concatenate([dead, low]), np.concatenate([pick, worst[taken:taken + low.size]])
+        else:
+            moved = dead
+        if moved.size:
+            picks = flat[pick]  # (n_moved, D)
             # restart the statistics as if the code had been chosen once by its new vector:
             # bias-corrected cluster size 1 and dw = the vector, so dw / cs is the vector
-            self.ema_cluster_size_hidden[dead] = debias
-            self.ema_dw_hidden[:, dead] = picks.T * self.dtype.type(debias)
-            self.embeddings[:, dead] = picks.T
-        return int(dead.size)
+            self.ema_cluster_size_hidden[moved] = debias
+            self.ema_dw_hidden[:, moved] = picks.T * self.dtype.type(debias)
+            self.embeddings[:, moved] = picks.T
+        return int(moved.size)
+
+    def init_kmeans(self, z, iters, batch, rng=None):
+        """Codes from data: k-means++ seeding on the vectors of z (B, D, h, w), then `iters` Lloyd
+        iterations (a code no vector chose keeps its place); the EMA statistics set as if one update
+        (counter 1) had seen each code chosen by its cluster's share of a batch of `batch` images,
+        so that the next updates move the codes on from there."""
+        flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim), np.float64)  # (M, D)
+        rng = np.random.default_rng(rng)
+        K, M = self.n_embed, len(flat)
+        c = np.empty((K, self.embed_dim))  # (K, D)
+        c[0] = flat[rng.integers(M)]
+        d = ((flat - c[0]) ** 2).sum(axis=1)  # (M,) squared distance to the nearest chosen centre
+        for k in range(1, K):  # D^2 sampling: a cluster of identical vectors is seeded once
+            c[k] = flat[rng.choice(M, p=d / d.sum())] if d.sum() > 0 else flat[rng.integers(M)]
+            d = np.minimum(d, ((flat - c[k]) ** 2).sum(axis=1))
+        for _ in range(iters):
+            idx, _ = vq_nearest(flat, c)
+            n = np.bincount(idx, minlength=K)  # (K,)
+            c[n > 0] = (sum_rows_by_id(idx, flat, K) / np.maximum(n, 1)[:, None])[n > 0]
+        idx, _ = vq_nearest(flat, c)
+        n = np.bincount(idx, minlength=K) * (batch / z.shape[0])  # (K,) chosen per batch
+        a = 1.0 - self.decay  # hidden = a * (bias-corrected value) at counter 1
+        self.embeddings = np.ascontiguousarray(c.T.astype(self.dtype))  # (D, K)
+        self.ema_cluster_size_hidden = (a * n).astype(self.dtype)
+        self.ema_dw_hidden = (a * c.T * n).astype(self.dtype)
+        self.counter = 1
+
+
+def code_utility(x, codes):
+    """x (M, D), codes (K, D) -> (idx (M,): each vector's nearest code, utility (K,) float64: the
+    increase of the total squared error sum_m |x_m - codes[idx_m]|^2 were code k removed and its
+    vectors sent to their second-nearest code (inf for a single code), second (M,): that code).
+    0 for a code no vector chose, about 0 for codes that split one tight cluster. In float64."""
+    x, c = x.astype(np.float64), codes.astype(np.float64)
+    d = (x * x).sum(1)[:, None] - 2.0 * x @ c.T + (c * c).sum(1)  # (M, K) squared distances
+    rows = np.arange(len(x))
+    idx = np.argmin(d, axis=1)  # (M,)
+    d1 = d[rows, idx].copy()
+    d[rows, idx] = np.inf
+    second = np.argmin(d, axis=1)  # (M,)
+    return idx, np.bincount(idx, d[rows, second] - d1, minlength=len(c)), second
+
+
+def low_utility_codes(idx, util, second, exclude, gains):
+    """The codes to move, least utility first (ties to the smaller index), at most len(gains):
+    the i-th only while its utility is below gains[i] (the squared error of the vector it goes
+    to), among codes some vector chose, not in exclude, not the second-nearest code of a chosen
+    code's vectors (they take those vectors) and whose own vectors' second-nearest codes stay."""
+    K = len(util)
+    blocked = np.bincount(idx, minlength=K) == 0  # (K,) a code absent from the batch is not judged
+    blocked[exclude] = True
+    chosen = []
+    for k in np.argsort(util, kind="stable"):
+        if len(chosen) == len(gains) or util[k] >= gains[len(chosen)]:
+            break
+        takers = second[idx == k]
+        if blocked[k] or np.isin(takers, chosen).any():
+            continue
+        chosen.append(k)
+        blocked[takers] = True
+    return np.array(chosen, dtype=np.int64)

@@ -70,10 +70,16 @@ TINY_TRANSFORMER = TransformerConfig(
 # and a latent of effective rank 27 where the published ones kept 11 and 5, and weighting the
 # objects' pixels 4 times the background's (a tenth of an SM7 image is object) raised the
 # objects' colour_r2 from 0.45 to 0.79 and lowered the whole image's MAE from 5.5 to 4.9.
+# restart, reseat and kmeans (issue 48): where dead codes restart ("batch": vectors drawn uniformly,
+# "worst": the worst represented), how many low-utility codes each reset moves as well, and the
+# Lloyd iterations of a k-means initialisation of the codes from data (0: the uniform one); see
+# EMAQuantizer.reset_dead_codes and init_kmeans.
+_CODES = {"restart": "batch", "reseat": 0, "kmeans": 0}
 CODEBOOK_RECIPES = {
-    "published": {"lr": 1.584e-3, "betas": (0.5, 0.9), "reset_dead_codes": 0, "object_weight": 1.0},
-    "small-batch": {"lr": 3e-4, "betas": (0.9, 0.99), "reset_dead_codes": 20, "object_weight": 4.0},
+    "published": {"lr": 1.584e-3, "betas": (0.5, 0.9), "reset_dead_codes": 0, "object_weight": 1.0, **_CODES},
+    "small-batch": {"lr": 3e-4, "betas": (0.9, 0.99), "reset_dead_codes": 20, "object_weight": 4.0, **_CODES},
 }
+KMEANS_BATCHES = 4  # the k-means initialisation clusters the encoder's outputs of this many batches
 
 CODEBOOK_LOG = ["loss", "rec_loss", "commitment", "perplexity", "usage", "lr"]
 TRANSFORMER_LOG = ["loss", "ce_loss", "pose_loss", "grad_norm", "lr"]
@@ -196,9 +202,9 @@ def _checkpoint(run, step, state, opt, check):
         raise KeyboardInterrupt
 
 
-def _recipe(recipe, lr, betas, reset_dead_codes, object_weight):
-    """train_codebook's lr, betas, reset_dead_codes and object_weight: the recipe's (a name of
-    CODEBOOK_RECIPES) where None, each checked."""
+def _recipe(recipe, lr, betas, reset_dead_codes, object_weight, restart, reseat, kmeans):
+    """train_codebook's lr, betas, reset_dead_codes, object_weight, restart, reseat and kmeans:
+    the recipe's (a name of CODEBOOK_RECIPES) where None, each checked."""
     if recipe not in CODEBOOK_RECIPES:
         raise ValueError(f"recipe must be one of {sorted(CODEBOOK_RECIPES)}, got {recipe!r}")
     r = CODEBOOK_RECIPES[recipe]
@@ -213,7 +219,12 @@ def _recipe(recipe, lr, betas, reset_dead_codes, object_weight):
     object_weight = real("object_weight", r["object_weight"] if object_weight is None else object_weight)
     if object_weight == 0:
         raise ValueError("object_weight must be positive")
-    return lr, betas, reset_dead_codes, object_weight
+    restart = r["restart"] if restart is None else restart
+    if restart not in ("batch", "worst"):
+        raise ValueError(f"restart must be 'batch' or 'worst', got {restart!r}")
+    reseat = integer("reseat", r["reseat"] if reseat is None else reseat, 0)
+    kmeans = integer("kmeans", r["kmeans"] if kmeans is None else kmeans, 0)
+    return lr, betas, reset_dead_codes, object_weight, {"restart": restart, "reseat": reseat, "kmeans": kmeans}
 
 
 def _codebook_and_optimiser(run, config, seed, lr, betas, init_state=None):
@@ -249,9 +260,9 @@ def _codebook_engine(engine, model, opt, parity, device, precision):
             return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
                     "perplexity": out.perplexity, "usage": out.usage}
 
-        def reset(x, rng):
+        def reset(x, rng, **codes):
             z = model._encoder([], x)  # (B, D, k, k) with the updated weights
-            return model.quantizer.reset_dead_codes(z, rng=rng)
+            return model.quantizer.reset_dead_codes(z, rng=rng, **codes)
 
         return step, reset, model.state_dict, lambda: model, opt, None
     from .torch_codebook_engine import TorchCodebook
@@ -264,9 +275,9 @@ def _codebook_engine(engine, model, opt, parity, device, precision):
 
 
 def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="small-batch", lr=None, betas=None,
-                   reset_dead_codes=None, object_weight=None, seed=0, checkpoint_every=200, log_every=10,
-                   eval_images=None, eval_every=0, resume=True, progress=True, threads=None, command=None,
-                   engine="pyvf", device="cpu", precision="fp32", init=None):
+                   reset_dead_codes=None, object_weight=None, restart=None, reseat=None, kmeans=None, seed=0,
+                   checkpoint_every=200, log_every=10, eval_images=None, eval_every=0, resume=True, progress=True,
+                   threads=None, command=None, engine="pyvf", device="cpu", precision="fp32", init=None):
     """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4).
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
@@ -289,6 +300,10 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
         batch (EMAQuantizer.reset_dead_codes, random from (seed, step): resumes stay exact).
         Without it a small codebook trained from the uniform initialisation can collapse onto a
         few codes (measured on SM7: 9 of 256 codes in use at step 80).
+    restart, reseat: where dead codes restart ("batch" or "worst") and how many low-utility codes
+        each reset moves too (EMAQuantizer.reset_dead_codes); kmeans: 0, or the Lloyd iterations
+        of a fresh run's k-means initialisation of the codes on the encoder's outputs of
+        KMEANS_BATCHES batches (EMAQuantizer.init_kmeans). Each defaults to the recipe's.
     engine, device, precision: as train_transformer's (torch_codebook_engine.TorchCodebook: the
         same run with the model in torch, parity.csv at every checkpoint; one process).
     init: None, or a Codebook.save file of this configuration: a fresh run starts from its weights
@@ -300,7 +315,8 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
     flat = _check_images(images, config)  # (M, Hi, Wi, C)
     batch_size = positive_int("batch_size", batch_size)
     seed = integer("seed", seed, 0)
-    lr, betas, reset_dead_codes, object_weight = _recipe(recipe, lr, betas, reset_dead_codes, object_weight)
+    lr, betas, reset_dead_codes, object_weight, codes = _recipe(recipe, lr, betas, reset_dead_codes, object_weight,
+                                                                restart, reseat, kmeans)
     eval_every = integer("eval_every", eval_every, 0)
     if eval_images is not None:
         eval_images = _check_images(eval_images, config, "eval_images")
@@ -308,6 +324,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
     if object_weight != 1.0:  # absent at 1.0: runs from before the option resume as they were
         hyper["object_weight"] = object_weight
+    hyper.update({k: v for k, v in codes.items() if v != _CODES[k]})  # absent at the defaults: as object_weight
     check_codebook_engine(engine, device, precision, config.dtype)
     threads_set = _Threads(threads)  # checked before the run folder is touched
     hyper, init_state = _warm_start(init, Codebook, config, hyper, out_dir, resume)
@@ -322,6 +339,9 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
                   steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
                   call=call, eval_columns=None if eval_fp is None else CODEBOOK_HEALTH, eval_fingerprint=eval_fp)
         model, opt = _codebook_and_optimiser(run, config, seed, lr, betas, init_state)
+        if codes["kmeans"] and not run.resumed and init_state is None:
+            z = model._encoder(None, codebook_batch(flat, KMEANS_BATCHES * batch_size, seed, 0, config.dtype))
+            model.quantizer.init_kmeans(z, codes["kmeans"], batch_size, rng=np.random.default_rng([seed, 0, 2]))
         step, reset, state, current, opt, check = _codebook_engine(
             engine, model, opt, parity_images(flat, seed, config.dtype), device, precision)
         with run:
@@ -335,7 +355,7 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
                 lr_t = opt.lr_at(opt.step_count)
                 values = step(x, w)
                 if reset_dead_codes and t % reset_dead_codes == 0:
-                    reset(x, np.random.default_rng([seed, t, 1]))
+                    reset(x, np.random.default_rng([seed, t, 1]), restart=codes["restart"], reseat=codes["reseat"])
                 run.log(t, {**values, "lr": lr_t})
                 if evaluating and run.eval_due(t, eval_every):
                     run.log_eval(t, codebook_health(current(), eval_images))

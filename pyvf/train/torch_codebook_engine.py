@@ -117,14 +117,14 @@ class TorchCodebook:
         return {"loss": float(stats[0]), "rec_loss": float(stats[1]), "commitment": float(stats[2]),
                 "perplexity": perplexity, "usage": usage}
 
-    def reset_dead_codes(self, images, rng):
+    def reset_dead_codes(self, images, rng, **codes):
         """pyvf's EMAQuantizer.reset_dead_codes on the port's buffers, with the encoder's output
         z of images (B, C, S, S) by the updated weights, as pyvf's loop. Returns the codes reset."""
         torch, quantizer = self.torch, self.pyvf_model.quantizer
         with torch.no_grad():
             z = self.port.quant_conv(self.port.encoder(torch.as_tensor(images).to(self.device)))  # (B, D, k, k)
         quantizer.load_state_dict({k: v.cpu().numpy() for k, v in self.port.quantize.state_dict().items()})
-        n = quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng)
+        n = quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng, **codes)
         self.port.quantize.load_state_dict({k: torch.as_tensor(v) for k, v in quantizer.state_dict().items()})
         return n
 
