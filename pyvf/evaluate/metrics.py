@@ -33,6 +33,9 @@ from .. import _checks
 from ..geometry import average_pose, orientation_error, position_error
 
 __all__ = [
+    "object_mask",
+    "empty_patches",
+    "empty_entropy",
     "encode_images",
     "to_model_images",
     "to_uint8",
@@ -67,6 +70,37 @@ def _poses(name, x, like=None, like_name=None):
 
 # ---------------------------------------------------------------------------------------
 # between the picture (uint8, channels last) and the models' images (float, NCHW, [-1, 1])
+
+
+def object_mask(images):
+    """uint8 (..., Hi, Wi, 3) -> bool (..., Hi, Wi): the pixels whose colour differs from the
+    image's background, taken as the colour of its top-left pixel (SM7's backgrounds are one
+    flat colour and objects never reach the corner)."""
+    if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim < 3 or images.shape[-1] != 3:
+        raise TypeError(f"images must be uint8 (..., Hi, Wi, 3), got "
+                        f"{getattr(images, 'dtype', type(images).__name__)} {getattr(images, 'shape', '')}")
+    corner = images[..., :1, :1, :]  # (..., 1, 1, 3)
+    return np.any(images != corner, axis=-1)
+
+
+def empty_patches(images, k):
+    """uint8 (..., Hi, Wi, 3) -> bool (..., k, k): the k x k grid's patches whose every pixel is
+    background (object_mask false), i.e. empty."""
+    m = object_mask(images)  # (..., Hi, Wi)
+    p = m.shape[-1] // k
+    return ~m.reshape(m.shape[:-2] + (k, p, k, p)).any(axis=(-3, -1))
+
+
+def empty_entropy(codes, empty):
+    """codes (M, k, k) ints, empty (M, k, k) bool -> float: for each grid position the entropy
+    (nats) of the code over the views where that patch is empty, averaged over the positions
+    with at least one empty view (nan when there are none). 0 when the background has one code."""
+    ents = []
+    for c, e in zip(codes.reshape(len(codes), -1).T, empty.reshape(len(empty), -1).T):  # per position
+        if e.any():
+            p = np.unique(c[e], return_counts=True)[1] / e.sum()
+            ents.append(-(p * np.log(p)).sum())
+    return float(np.mean(ents)) if ents else float("nan")
 
 
 def to_model_images(images, dtype):

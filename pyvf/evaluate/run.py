@@ -48,9 +48,10 @@ from .._version import __version__
 from ..models import check_pair
 from ..nn.layers import matmul
 from ..scenes import generate_scenes
-from .health import empty_entropy, empty_patches
 from .metrics import (
     closest_image_pose,
+    empty_entropy,
+    empty_patches,
     encode_images,
     image_metrics,
     mean_image,
@@ -367,8 +368,19 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
                 picture.setdefault("pyvf", []).append(rendered[:k, 0])
                 picture.setdefault("estimated_poses", []).append(est[:k])
 
-    results = {}
+    results = _summaries(per, token_scores)
     for C in map(str, context):
+        results[C]["codebook"]["empty_entropy"] = empty_entropy(tokens[:, qidx].reshape(n * M, side, side),
+                                                                empty.reshape(n * M, side, side))
+    return results, picture, (decode_s, decoded)
+
+
+def _summaries(per, token_scores):
+    """score_scenes' per-query values (C -> method -> metric -> list of arrays) -> C -> method ->
+    metric: the mean of the image metrics and token scores (nan where no token was of that kind),
+    the median of the pose errors."""
+    results = {}
+    for C in per:
         results[C] = {}
         for method, names in METHODS.items():
             vals = {k: np.concatenate(v) for k, v in per[C][method].items()}  # per query (n*M,)
@@ -383,9 +395,7 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
                 else:
                     row[name] = float(np.median(vals["orientation_error_deg"]))
             results[C][method] = row
-        results[C]["codebook"]["empty_entropy"] = empty_entropy(tokens[:, qidx].reshape(n * M, side, side),
-                                                                empty.reshape(n * M, side, side))
-    return results, picture, (decode_s, decoded)
+    return results
 
 
 def _token_scores(logits, tokens, empty):

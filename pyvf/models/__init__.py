@@ -78,10 +78,10 @@ def check_pair(codebook, transformer):
                          f"{len(cb.ch_mult) - 1} downsamplings)")
     cb_name = f"codebook {codebook.source}" if codebook.source else "the codebook"
     tf_name = f"transformer {transformer.source}" if transformer.source else "the transformer"
-    if transformer.codebook_fingerprint is None:
+    if transformer.codebook_fingerprint is None and transformer.source:  # a file saved before pyvf recorded it
         warnings.warn(f"{tf_name} does not record the codebook it was trained with (saved before pyvf recorded "
                       f"it): its pairing with {cb_name} could not be checked")  # once: one location
-    elif transformer.codebook_fingerprint != codebook.fingerprint():
+    elif transformer.codebook_fingerprint not in (None, codebook.fingerprint()):
         raise ValueError(f"{tf_name} was trained on the tokens of another codebook (fingerprint "
                          f"{transformer.codebook_fingerprint}) than {cb_name} ({codebook.fingerprint()}): its codes "
                          "would mean something else. Pass the codebook its tokens came from (--codebook "

@@ -7,8 +7,7 @@ same batches and both engines (pyvf's and torch's) train on the same ones.
 
 import numpy as np
 
-from ..evaluate.health import object_mask
-from ..evaluate.metrics import to_model_images
+from ..evaluate.metrics import object_mask, to_model_images
 from ._run import integer, positive_int
 
 __all__ = ["codebook_batch", "transformer_batch"]

@@ -224,7 +224,32 @@ def _recipe(recipe, lr, betas, reset_dead_codes, object_weight, restart, reseat,
         raise ValueError(f"restart must be 'batch' or 'worst', got {restart!r}")
     reseat = integer("reseat", r["reseat"] if reseat is None else reseat, 0)
     kmeans = integer("kmeans", r["kmeans"] if kmeans is None else kmeans, 0)
-    return lr, betas, reset_dead_codes, object_weight, {"restart": restart, "reseat": reseat, "kmeans": kmeans}
+    codes = {"restart": restart, "reseat": reseat, "kmeans": kmeans}
+    # what the run records beyond the base hyperparameters: absent at their defaults (object_weight
+    # 1.0, _CODES), so that runs from before these options resume as they were
+    recorded = {"object_weight": object_weight} if object_weight != 1.0 else {}
+    recorded.update({k: v for k, v in codes.items() if v != _CODES[k]})
+    return lr, betas, reset_dead_codes, object_weight, codes, recorded
+
+
+def _codebook_eval(eval_images, eval_every, config):
+    """train_codebook's held-out evaluation: (eval_every, the images checked or None, their
+    fingerprint, None when nothing is evaluated). A set not evaluated on (eval_every 0) is not
+    the run's: not recorded, so a later call may evaluate on any set, and a resume that evaluates
+    nothing passes whatever set it names."""
+    eval_every = integer("eval_every", eval_every, 0)
+    if eval_images is not None:
+        eval_images = _check_images(eval_images, config, "eval_images")
+    evaluating = eval_images is not None and eval_every > 0
+    return eval_every, eval_images, fingerprint(eval_images) if evaluating else None
+
+
+def _kmeans_start(model, flat, iters, batch_size, seed):
+    """A fresh run's codes by k-means (EMAQuantizer.init_kmeans, `iters` Lloyd iterations; 0 keeps
+    the uniform initialisation) on the encoder's outputs of KMEANS_BATCHES batches drawn as step 0's."""
+    if iters:
+        z = model._encoder(None, codebook_batch(flat, KMEANS_BATCHES * batch_size, seed, 0, model.config.dtype))
+        model.quantizer.init_kmeans(z, iters, batch_size, rng=np.random.default_rng([seed, 0, 2]))
 
 
 def _codebook_and_optimiser(run, config, seed, lr, betas, init_state=None):
@@ -315,23 +340,15 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
     flat = _check_images(images, config)  # (M, Hi, Wi, C)
     batch_size = positive_int("batch_size", batch_size)
     seed = integer("seed", seed, 0)
-    lr, betas, reset_dead_codes, object_weight, codes = _recipe(recipe, lr, betas, reset_dead_codes, object_weight,
-                                                                restart, reseat, kmeans)
-    eval_every = integer("eval_every", eval_every, 0)
-    if eval_images is not None:
-        eval_images = _check_images(eval_images, config, "eval_images")
+    lr, betas, reset_dead_codes, object_weight, codes, recorded = _recipe(recipe, lr, betas, reset_dead_codes,
+                                                                          object_weight, restart, reseat, kmeans)
+    eval_every, eval_images, eval_fp = _codebook_eval(eval_images, eval_every, config)
+    evaluating = eval_fp is not None
     hyper = {"batch_size": batch_size, "lr": lr, "betas": betas, "seed": seed, "reset_dead_codes": reset_dead_codes,
-             "data": {"shape": images.shape, "fingerprint": fingerprint(images)}}
-    if object_weight != 1.0:  # absent at 1.0: runs from before the option resume as they were
-        hyper["object_weight"] = object_weight
-    hyper.update({k: v for k, v in codes.items() if v != _CODES[k]})  # absent at the defaults: as object_weight
+             "data": {"shape": images.shape, "fingerprint": fingerprint(images)}, **recorded}
     check_codebook_engine(engine, device, precision, config.dtype)
     threads_set = _Threads(threads)  # checked before the run folder is touched
     hyper, init_state = _warm_start(init, Codebook, config, hyper, out_dir, resume)
-    evaluating = eval_images is not None and eval_every > 0
-    # a set not evaluated on (eval_every 0) is not the run's: not recorded, so a later call may
-    # evaluate on any set, and a resume that evaluates nothing passes whatever set it names
-    eval_fp = fingerprint(eval_images) if evaluating else None
     call = {"command": command, "threads": threads_set.n, "recipe": recipe, "engine": engine, "device": device,
             "precision": precision, "eval": None if eval_fp is None else {"every": eval_every, "fingerprint": eval_fp}}
     with threads_set:  # before the Run: config.json records the threads the run uses
@@ -339,9 +356,8 @@ def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="sma
                   steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
                   call=call, eval_columns=None if eval_fp is None else CODEBOOK_HEALTH, eval_fingerprint=eval_fp)
         model, opt = _codebook_and_optimiser(run, config, seed, lr, betas, init_state)
-        if codes["kmeans"] and not run.resumed and init_state is None:
-            z = model._encoder(None, codebook_batch(flat, KMEANS_BATCHES * batch_size, seed, 0, config.dtype))
-            model.quantizer.init_kmeans(z, codes["kmeans"], batch_size, rng=np.random.default_rng([seed, 0, 2]))
+        if not run.resumed and init_state is None:
+            _kmeans_start(model, flat, codes["kmeans"], batch_size, seed)
         step, reset, state, current, opt, check = _codebook_engine(
             engine, model, opt, parity_images(flat, seed, config.dtype), device, precision)
         with run:
