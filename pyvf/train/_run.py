@@ -46,6 +46,7 @@ import numpy as np
 from .. import _checks, _core
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
 from .._machine import cpu_name
+from .curves import eval_line
 
 CHECKPOINT, LOG, CONFIG, EVAL_LOG = "checkpoint.npz", "log.csv", "config.json", "eval.csv"
 FORMAT_VERSION = 1
@@ -402,11 +403,14 @@ class Run:
         return bool(every) and (step % every == 0 or step == self.steps_total)
 
     def log_eval(self, step, values):
-        """Append one row of held-out figures to eval.csv (values: column -> float). The row
-        reads only the model: evaluation never changes the training trajectory."""
+        """Append one row of held-out figures to eval.csv (values: column -> float) and print it
+        beside its baselines (curves.eval_line). The row reads only the model: evaluation never
+        changes the training trajectory."""
         row = [str(step)] + [repr(float(values[c])) for c in self.eval_columns[1:-1]] + [f"{self.seconds():.3f}"]
         with open(self.eval_path, "a", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow(row)
+        line = f"{self.kind} held-out at step {step}: {eval_line(values)}"  # as it trains, not only at the end
+        (self._bar.write if self._bar is not None else print)(line)
 
     # -----------------------------------------------------------------------------------
     # the loop

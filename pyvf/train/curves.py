@@ -114,14 +114,23 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), na
 def eval_panels(columns):
     """eval.csv's columns -> (panels, baselines) for plot_curves: the codebook's health, or the
     transformer's figures at its largest evaluated context with their baselines."""
-    if "colour_r2" in columns:  # a codebook run
-        return ["mae", "psnr", "codes_in_use", "latent_rank", "colour_r2"], {}
+    if "colour_r2" in columns:  # a codebook run (empty_entropy: runs since it was measured)
+        return [c for c in ("mae", "psnr", "codes_in_use", "latent_rank", "colour_r2", "empty_entropy")
+                if c in columns], {}
     C = max(int(c.rsplit("_c", 1)[1]) for c in columns if c.startswith("mae_c"))
     panels = [f"ce_c{C}", f"token_accuracy_c{C}", f"mae_c{C}", f"position_c{C}", f"orientation_c{C}"]
     baselines = {f"mae_c{C}": [f"nearest_view_mae_c{C}", f"mean_image_mae_c{C}"],
                  f"position_c{C}": [f"closest_image_position_c{C}", f"mean_pose_position_c{C}"],
                  f"orientation_c{C}": [f"closest_image_orientation_c{C}", f"mean_pose_orientation_c{C}"]}
     return panels, baselines
+
+
+def eval_line(values):
+    """One held-out evaluation (column -> value) as a line for the console: each panel's value
+    (eval_panels), its baselines in brackets beside it."""
+    panels, baselines = eval_panels(list(values))
+    return ", ".join(f"{c} {values[c]:.4g}" + (" [" + ", ".join(f"{b} {values[b]:.4g}" for b in baselines[c]) + "]"
+                                               if c in baselines else "") for c in panels)
 
 
 def plot_eval(run_dir, png=None):
