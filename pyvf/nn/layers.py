@@ -42,20 +42,15 @@ def _check_linear(x, w, b, names=("x", "w", "b")):
         raise ValueError(f"{nb} must have shape (1, {dout}) (dout = {nw}.shape[1]), got {b.shape}")
 
 # ---------------------------------------------------------------------------------------
-# matmul: the products of the linear layers and the tied logits
+# matmul and add: NumPy's, in the forms the models call
 
 
 def matmul(a, b, ta=False, tb=False, bias=None):
     """c = op(a) @ op(b) [+ bias], op = transpose when ta / tb, for 2-D operands or per entry of
     3-D ones (a leading batch axis): a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c
-    (M, N); bias (N,) added to every row after its sum (as NumPy's a @ b + bias rounds); one
-    float dtype (TypeError otherwise; the callers check the values).
-
-    pyvf's GEMM (csrc/conv.cpp matmul_batched), not NumPy's BLAS: each element of c is one sum in
-    increasing k, so the result is bitwise the same for any thread count (OpenBLAS's is not for
-    some shapes), and the threads are pyvf's, which sleep between calls, where the BLAS's spin for
-    milliseconds after each call on the cores pyvf's kernels need (a 2-thread kernel right after a
-    2-thread BLAS product ran at the speed of one thread)."""
+    (M, N); bias (N,) added to every row after its sum; one float dtype (TypeError otherwise).
+    NumPy's matmul (its BLAS: the order of each sum is the BLAS's, which may depend on the thread
+    count for some shapes)."""
     _checks.float_array("a", a)
     _checks.float_array("b", b, a, "a")
     if bias is not None:
@@ -64,47 +59,17 @@ def matmul(a, b, ta=False, tb=False, bias=None):
         raise ValueError(f"a must be 2-D (M, K) or 3-D (batch, M, K), got shape {a.shape}")
     if b.ndim != a.ndim:
         raise ValueError(f"b must have a's {a.ndim} dimensions, got shape {b.shape} for a of shape {a.shape}")
-    a, b = _checks.c_order(a), _checks.c_order(b)
-    one = a.ndim == 2  # 2-D: one entry of the batched kernel
-    a3, b3 = (a[None], b[None]) if one else (a, b)
-    M, N = a3.shape[2 if ta else 1], b3.shape[1 if tb else 2]
-    c = np.empty((a3.shape[0], M, N), dtype=a.dtype)  # (batch, M, N)
-    _core.matmul(c, a3, b3, ta, tb, None if bias is None else _checks.c_order(bias))
-    return c[0] if one else c
-
-
-def _same_or_apart(out, a):
-    """out is a's very memory (both C-contiguous, one shape and dtype), or shares none of it: a
-    shifted overlap would have the kernel read elements it already wrote (NumPy copies first)."""
-    return out.ctypes.data == a.ctypes.data or not np.may_share_memory(out, a)
+    with np.errstate(over="ignore", invalid="ignore"):  # the callers check the results
+        c = np.matmul(np.swapaxes(a, -1, -2) if ta else a, np.swapaxes(b, -1, -2) if tb else b)  # ([batch,] M, N)
+        if bias is not None:
+            c += bias
+    return c
 
 
 def add(a, b, out=None):
-    """a + b for two arrays of one shape and float dtype, in pyvf's threads where both (and out)
-    are C-contiguous (the residual adds; NumPy's run on one core): bitwise NumPy's a + b, one
-    rounding per element; NumPy's np.add otherwise. out: None (a new array), or where to write
-    it, a or b itself included (an out that overlaps a or b otherwise goes to np.add, which
-    copies first)."""
-    fast = (a.shape == b.shape and a.dtype == b.dtype and a.dtype in _checks.FLOATS and a.flags.c_contiguous
-            and b.flags.c_contiguous and (out is None or (out.shape == a.shape and out.dtype == a.dtype
-                                                          and out.flags.c_contiguous and out.flags.writeable
-                                                          and _same_or_apart(out, a) and _same_or_apart(out, b))))
-    if not fast:
-        return np.add(a, b, out=out)
-    out = np.empty_like(a) if out is None else out
-    _core.add(out, a, b)
-    return out
-
-
-def column_sums(a):
-    """a (M, N) float -> (1, N): each column summed in increasing row in a's dtype, the order of
-    np.add.accumulate (and of NumPy's a.sum(axis=0, keepdims=True)), in pyvf's threads (a bias
-    gradient; NumPy's sum ran on one core)."""
-    if not (a.ndim == 2 and a.dtype in _checks.FLOATS):
-        raise ValueError(f"column_sums needs a 2-D float array, got {a.dtype} {a.shape}")
-    out = np.empty((1, a.shape[1]), dtype=a.dtype)
-    _core.column_sums(out, _checks.c_order(a))
-    return out
+    """a + b (np.add; out as np.add's, a or b itself included). Kept as the models' name for the
+    residual adds."""
+    return np.add(a, b, out=out)
 
 
 # ---------------------------------------------------------------------------------------
@@ -126,7 +91,7 @@ def _linear_backward(dy, x, w):
         # forward was y = x @ w + b
         dx = matmul(dy2, w, tb=True).reshape(x.shape)  # dx = dy @ w^T
         dw = matmul(x.reshape(M, din), dy2, ta=True)  # dw = x^T @ dy
-        db = column_sums(dy2)  # db = sum over rows of dy
+        db = dy2.sum(axis=0, keepdims=True)  # db = sum over rows of dy
     return dx, dw, db
 
 
@@ -155,13 +120,12 @@ def linear_backward(dy, cache):
 def layernorm_forward(x, gamma, beta, eps=1e-5):
     """y = (x - mean) / sqrt(var + eps) * gamma + beta.   x (..., d), gamma, beta (d,).
 
-    Two-pass (csrc/layernorm.cpp, rows on pyvf's threads): the mean is accumulated in float64
-    and rounded, the row centred twice (the second time by the centred row's own residual mean),
-    then the variance is the mean square of it, accumulated in float64, so a row of mean 1e4 and
-    spread 0.1 keeps its digits and a constant row gives y = beta exactly. Rows whose squares
-    overflow (|x - mean| beyond 1e154 in float64) are scaled by a power of two first, so they
-    normalise too. Bitwise the same for any thread count. cache: xhat (..., d), rstd (..., 1),
-    gamma."""
+    In float64 whatever x's dtype, rounded to it once at the end. Two-pass: the mean, then the
+    variance as the mean square of the centred row, centred a second time by its own residual
+    mean, so that a row of mean 1e4 and spread 0.1 keeps its digits and a constant row gives
+    y = beta exactly. Each row is first divided by a power of two s <= max|x| (exact), so that
+    rows near float64's largest value sum and square without overflow; eps enters as eps / s^2.
+    cache: xhat (..., d) and rstd (..., 1), rounded to x's dtype, and gamma."""
     _checks.finite_float("x", x)
     if x.ndim < 1 or x.shape[-1] == 0:
         raise ValueError(f"x must have a last dimension d >= 1 to normalise over, got shape {x.shape}")
@@ -172,29 +136,38 @@ def layernorm_forward(x, gamma, beta, eps=1e-5):
         if a.shape != (d,):
             raise ValueError(f"{name} must have shape ({d},) for x of shape {x.shape}, got {a.shape}")
     eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
-    x, gamma, beta = _checks.c_order(x), _checks.c_order(gamma), _checks.c_order(beta)
-    y, xhat = np.empty_like(x), np.empty_like(x)  # (..., d)
-    rstd = np.empty(x.shape[:-1] + (1,), x.dtype)  # (..., 1)
-    if _core.layernorm_forward(y, xhat, rstd, x, gamma, beta, eps):
-        raise ValueError(f"layernorm_forward: mean(x) or x - mean(x) overflows {x.dtype}: rescale x")
+    x64 = x.astype(np.float64)  # (..., d)
+    amax = np.abs(x64).max(axis=-1, keepdims=True)  # (..., 1)
+    s = np.ldexp(1.0, np.frexp(np.where(amax > 0, amax, 1.0))[1] - 1)  # (..., 1): s <= max|x| < 2 s
+    xs = x64 / s  # (..., d), |xs| < 2
+    xc = xs - xs.mean(axis=-1, keepdims=True)  # (..., d)
+    xc -= xc.mean(axis=-1, keepdims=True)  # the residual of the rounded mean (0 for a constant row)
+    with np.errstate(over="ignore"):  # eps / s^2 beyond float64 (rows below 1e-150): rstd 0, xhat 0
+        rstd_s = 1 / np.sqrt((xc * xc).mean(axis=-1, keepdims=True) + eps / (s * s))  # (..., 1)
+    xhat = xc * rstd_s  # (..., d)
+    y = (xhat * gamma.astype(np.float64) + beta).astype(x.dtype)  # (..., d)
     _checks.finite_result("layernorm_forward", y)
-    return y, (xhat, rstd, gamma)
+    return y, (xhat.astype(x.dtype), (rstd_s / s).astype(x.dtype), gamma)  # rstd (..., 1) in x's units
 
 
 def layernorm_backward(dy, cache):
-    """-> dx (..., d), dgamma (d,), dbeta (d,)."""
+    """-> dx (..., d), dgamma (d,), dbeta (d,), in float64, rounded to dy's dtype."""
     xhat, rstd, gamma = cache
     _grad("dy", dy, xhat, xhat.shape)
     d = xhat.shape[-1]
-    dx = np.empty_like(xhat)  # (..., d)
-    dgamma, dbeta = np.empty(d, xhat.dtype), np.empty(d, xhat.dtype)  # (d,)
-    # forward was y = xhat * gamma + beta, xhat = (x - mean(x)) * rstd, rstd = (mean((x - mean)^2)
-    # + eps)^(-1/2), so dx = rstd * (dxhat - mean(dxhat) - xhat * mean(dxhat * xhat)), dxhat = dy * gamma;
-    # dgamma = sum over rows of dy * xhat, dbeta = sum over rows of dy (csrc/layernorm.cpp)
-    _core.layernorm_backward(dx, dgamma, dbeta, _checks.c_order(dy), xhat, rstd, gamma)
-    for name, g in (("dx", dx), ("dgamma", dgamma), ("dbeta", dbeta)):
+    dy64 = dy.astype(np.float64)  # (..., d)
+    # forward was y = xhat * gamma + beta, so dxhat = dy * gamma
+    dxhat = dy64 * gamma  # (..., d)
+    # forward was xhat = (x - mean(x)) * rstd, rstd = (mean((x - mean)^2) + eps)^(-1/2), so
+    # dx = rstd * (dxhat - mean(dxhat) - xhat * mean(dxhat * xhat))
+    xhat, rstd = xhat.astype(np.float64), rstd.astype(np.float64)  # (..., d), (..., 1)
+    dx = rstd * (dxhat - dxhat.mean(axis=-1, keepdims=True) - xhat * (dxhat * xhat).mean(axis=-1, keepdims=True))
+    dgamma = (dy64 * xhat).reshape(-1, d).sum(axis=0)  # (d,): sum over rows of dy * xhat
+    dbeta = dy64.reshape(-1, d).sum(axis=0)  # (d,): sum over rows of dy
+    grads = tuple(g.astype(dy.dtype) for g in (dx, dgamma, dbeta))
+    for name, g in zip(("dx", "dgamma", "dbeta"), grads):
         _checks.finite_result("layernorm_backward", g, name)
-    return dx, dgamma, dbeta
+    return grads
 
 
 # ---------------------------------------------------------------------------------------
