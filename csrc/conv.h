@@ -47,6 +47,13 @@ template <typename T> int conv2d_forward_plain(T* y, const T* x, const T* w, con
 template <typename T>
 int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d);
 
+// c (nb, M, N) = op(a) @ op(b) per image: a (nb, M, K), or (nb, K, M) transposed when ta; b (nb, K, N),
+// or (nb, N, K) transposed when tb; c overwritten; bias (N,) or nullptr, added to every row of c
+// after its sum. Every count below 2^31 (the bindings check). Returns kConvOk or kConvOutOfMemory.
+template <typename T>
+int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta, bool tb,
+                   const T* bias = nullptr);
+
 // GroupNorm, optionally fused with the swish after it, and swish (groupnorm.cpp). Sizes:
 // x (B, C, P) with P = Hi*Wi, G groups of C/G consecutive channels (C % G == 0).
 struct GNDims {

@@ -13,11 +13,14 @@
 //     groupnorm_forward(y, stats, x, gamma, beta, groups, eps, swish)
 //     groupnorm_backward(dx, dgamma, dbeta, x, stats, gamma, beta, dy, groups, swish)
 //     swish_forward(y, x), swish_backward(dx, dy, x)
+//     matmul(c, a, b, ta, tb=False, bias=None): c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per
+//     image, a (nb, M, K) or (nb, K, M) if ta, b (nb, K, N) or (nb, N, K) if tb
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
 #include <algorithm>
+#include <optional>
 #include <initializer_list>
 #include <limits>
 #include <string>
@@ -89,6 +92,9 @@ void check_shape(const py::array& a, const char* name, std::initializer_list<int
 const char* kConvMemory =
     "conv2d: not enough memory for the kernel's work buffers (per thread about 128 KiB of columns, and w's "
     "size for the flipped kernel of the backward)";
+const char* kMatMemory =
+    "matmul: not enough memory for the transposed copy of b (b's size) and the packed panels (per thread up to "
+    "288 KiB of float32, 576 KiB of float64)";
 const char* kGNMemory = "groupnorm: not enough memory for the backward's partial sums (16 bytes per image and channel)";
 
 void raise_status(int status, const char* memory_message = kConvMemory) {
@@ -213,6 +219,40 @@ template <typename T> void sw_backward(Arr<T> dx, Arr<T> dy, Arr<T> x) {
     swish_backward<T>(pdx, pdy, px, n);
 }
 
+template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb, std::optional<Arr<T>> bias) {
+    auto fail = [](const std::string& what) { throw py::value_error("pyvf._core.matmul: " + what); };
+    if (a.ndim() != 3 || b.ndim() != 3 || c.ndim() != 3) fail("a, b and c must be 3-D (batch, rows, columns)");
+    const int64_t nb = a.shape(0), M = ta ? a.shape(2) : a.shape(1), K = ta ? a.shape(1) : a.shape(2);
+    const int64_t N = tb ? b.shape(1) : b.shape(2);
+    auto shape = [](const py::array& x) {
+        std::string s = "(";
+        for (py::ssize_t d = 0; d < x.ndim(); ++d) s += (d ? ", " : "") + std::to_string(x.shape(d));
+        return s + (x.ndim() == 1 ? ",)" : ")");
+    };
+    const std::string want_k = " with a's batch " + std::to_string(nb) + " and K = " + std::to_string(K);
+    if (b.shape(0) != nb || (tb ? b.shape(2) : b.shape(1)) != K)
+        fail(std::string(tb ? "b must have shape (batch, N, K)" : "b must have shape (batch, K, N)") + want_k +
+             ", got " + shape(b));
+    if (c.shape(0) != nb || c.shape(1) != M || c.shape(2) != N)
+        fail("c must have shape (batch, M, N) = (" + std::to_string(nb) + ", " + std::to_string(M) + ", " +
+             std::to_string(N) + "), got " + shape(c));
+    for (int64_t n : {M, N, K})
+        if (n > kIntMax) fail("every side must be below 2^31");
+    check_count("a", "M*K", {M, K});
+    check_count("b", "K*N", {K, N});
+    check_count("c", "M*N", {M, N});
+    if (bias && (bias->ndim() != 1 || bias->shape(0) != N))
+        fail("bias must have shape (N,) = (" + std::to_string(N) + ",), got " + shape(*bias));
+    T* pc = c.mutable_data();
+    const T *pa = a.data(), *pb = b.data(), *pbias = bias ? bias->data() : nullptr;
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb, pbias);
+    }
+    raise_status(status, kMatMemory);
+}
+
 template <typename T> void bind_dtype(py::module_& m) {
     m.def("groupnorm_forward", &gn_forward<T>,
           "y = [swish](GroupNorm(x)); y (B, C, Hi, Wi), stats (B, G, 3) = (mean, r, rstd) overwritten",
@@ -227,6 +267,10 @@ template <typename T> void bind_dtype(py::module_& m) {
           py::arg("x").noconvert());
     m.def("swish_backward", &sw_backward<T>, "dx = dy * swish'(x), overwritten", py::arg("dx").noconvert(),
           py::arg("dy").noconvert(), py::arg("x").noconvert());
+    m.def("matmul", &matmul<T>,
+          "c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per image, op = transpose of a if ta, of b if tb; c overwritten",
+          py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(), py::arg("ta"),
+          py::arg("tb") = false, py::arg("bias").noconvert() = py::none());
     const char* doc_f = "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten";
     const char* doc_b = "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy";
     m.def("conv2d_forward", &forward<T, false>, doc_f, py::arg("y").noconvert(), py::arg("x").noconvert(),

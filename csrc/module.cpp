@@ -18,6 +18,7 @@
 #include "branching_attention.h"
 #include "conv.h"
 #include "elementwise.h"
+#include "layernorm.h"
 #include "vq.h"
 #include "simd.h"
 #include "threads.h"
@@ -140,6 +141,35 @@ template <typename T> void gelu_grad(Arr<T> dx, Arr<T> dy, Arr<T> x) {
 }
 
 
+// LayerNorm (layernorm.cpp): x, y, xhat (M, d) in any shape whose last axis is d; rstd M elements.
+template <typename T> int64_t layernorm_fwd_k(Arr<T> y, Arr<T> xhat, Arr<T> rstd, Arr<T> x, Arr<T> gamma,
+                                              Arr<T> beta, double eps) {
+    same_size(y, x, "layernorm_forward");
+    same_size(xhat, x, "layernorm_forward");
+    const int64_t d = gamma.size();
+    if (d < 1 || beta.size() != d || x.size() % d != 0 || rstd.size() * d != x.size())
+        throw std::invalid_argument("pyvf._core.layernorm_forward: x (M, d), gamma and beta (d,), rstd (M,)");
+    T *py_ = y.mutable_data(), *ph = xhat.mutable_data(), *pr = rstd.mutable_data();
+    const T *px = x.data(), *pg = gamma.data(), *pb = beta.data();
+    const int64_t M = x.size() / d;
+    py::gil_scoped_release nogil;
+    return layernorm_forward<T>(py_, ph, pr, px, pg, pb, M, d, eps);
+}
+
+template <typename T> void layernorm_bwd_k(Arr<T> dx, Arr<T> dgamma, Arr<T> dbeta, Arr<T> dy, Arr<T> xhat,
+                                           Arr<T> rstd, Arr<T> gamma) {
+    same_size(dx, xhat, "layernorm_backward");
+    same_size(dy, xhat, "layernorm_backward");
+    const int64_t d = gamma.size();
+    if (d < 1 || dgamma.size() != d || dbeta.size() != d || xhat.size() % d != 0 || rstd.size() * d != xhat.size())
+        throw std::invalid_argument("pyvf._core.layernorm_backward: dy, xhat (M, d), gamma, dgamma, dbeta (d,), rstd (M,)");
+    T *pdx = dx.mutable_data(), *pdg = dgamma.mutable_data(), *pdb = dbeta.mutable_data();
+    const T *pdy = dy.data(), *ph = xhat.data(), *pr = rstd.data(), *pg = gamma.data();
+    const int64_t M = xhat.size() / d;
+    py::gil_scoped_release nogil;
+    layernorm_backward<T>(pdx, pdg, pdb, pdy, ph, pr, pg, M, d);
+}
+
 // Upsampling (elementwise.cpp): small (B, C, Hi, Wi), big (B, C, 2 Hi, 2 Wi); FORWARD writes big
 // from small, else small (dx) from big (dy).
 template <typename T, bool FORWARD> void upsample_k(Arr<T> out, Arr<T> in) {
@@ -216,6 +246,12 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
     m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
           py::arg("x").noconvert(), py::arg("codes").noconvert());
+    m.def("layernorm_forward", &layernorm_fwd_k<T>, py::arg("y").noconvert(), py::arg("xhat").noconvert(),
+          py::arg("rstd").noconvert(), py::arg("x").noconvert(), py::arg("gamma").noconvert(),
+          py::arg("beta").noconvert(), py::arg("eps"));
+    m.def("layernorm_backward", &layernorm_bwd_k<T>, py::arg("dx").noconvert(), py::arg("dgamma").noconvert(),
+          py::arg("dbeta").noconvert(), py::arg("dy").noconvert(), py::arg("xhat").noconvert(),
+          py::arg("rstd").noconvert(), py::arg("gamma").noconvert());
     m.def("upsample2x", &upsample_k<T, true>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("upsample2x_backward", &upsample_k<T, false>, py::arg("dx").noconvert(), py::arg("dy").noconvert());
     m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());

@@ -1029,7 +1029,99 @@ def test_groupnorm_swish_threads_bitwise(dtype, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 7. layers.matmul's transpose flags (the AttnBlock's products, the linear layers, the logits)
+# 7. pyvf's GEMM (csrc/conv.cpp matmul_batched: the AttnBlock's products, the transformer's linear
+# layers and tied logits) against NumPy in float64
+
+# (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16, the packed
+# tile's 6), several row blocks of 96 and column blocks of 192, k chunks of 256 with a short last
+# one, the attention's own square case; K = 0 gives zeros, zero rows or columns an empty result;
+# few blocks of c and a long K (a weight gradient's shape) split along k into parts
+# (kMatMinTasks): 2 parts with a short last one, and 9 parts of 1024 (the tiny transformer's X^T dY)
+MATMUL_CASES = [(2, 37, 21, 13), (1, 97, 35, 50), (3, 5, 3, 7), (2, 64, 64, 32), (1, 4, 4, 0), (0, 3, 5, 2),
+                (1, 203, 401, 531), (2, 96, 192, 256), (1, 0, 5, 3), (1, 9, 0, 3), (1, 37, 21, 2500),
+                (1, 101, 67, 9216)]
+
+
+def _mm(a, b, ta, tb):
+    """c (nb, M, N) = op(a) @ op(b) per entry by the kernel."""
+    nb, M, N = a.shape[0], a.shape[2 if ta else 1], b.shape[1 if tb else 2]
+    c = np.full((nb, M, N), np.nan, dtype=a.dtype)  # NaN: an element the kernel skips shows
+    _core.matmul(c, a, b, ta, tb)
+    return c
+
+
+def _operands(rng, case, ta, tb, dtype, draw=None):
+    nb, M, N, K = case
+    draw = draw or (lambda shape: rng.standard_normal(shape))
+    a = draw((nb, K, M) if ta else (nb, M, K)).astype(dtype)
+    b = draw((nb, N, K) if tb else (nb, K, N)).astype(dtype)
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    want = (a64.transpose(0, 2, 1) if ta else a64) @ (b64.transpose(0, 2, 1) if tb else b64)
+    return a, b, want
+
+
+@pytest.mark.parametrize("tb", [False, True])
+@pytest.mark.parametrize("ta", [False, True])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("case", MATMUL_CASES, ids=lambda c: "x".join(map(str, c)))
+def test_matmul_kernel(case, dtype, ta, tb, rng):
+    """c = op(a) @ op(b) per entry against NumPy in float64 on the same inputs. Each element is
+    one sum of K products in increasing k (or, split along k, its parts' sums added in order: no
+    larger a bound), so its error is at most K u sum_k |a_ik b_kj| (Higham 3.5) and in practice
+    ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
+    2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1, 2 and 5
+    threads (each element's sum does not depend on which task or thread computes it), every case
+    on the threads whatever its size (forced_threads)."""
+    nb, M, N, K = case
+    a, b, want = _operands(rng, case, ta, tb, dtype)
+    out = {}
+    for n in (1, 2, 5):
+        with forced_threads(n):
+            out[n] = _mm(a, b, ta, tb)
+    c = out[1]
+    assert c.dtype == dtype and c.shape == (nb, M, N)
+    if c.size:  # (the helpers need at least one element)
+        rtol = 1e-13 if dtype == np.float64 else 2e-6 * max(1.0, np.sqrt(K / 50))
+        assert_close("matmul", c, want, rtol=rtol)
+        for n in (2, 5):
+            assert_bitwise_equal(f"matmul, 1 vs {n} threads", out[n], c)
+    if K == 0:
+        assert not c.any(), "a sum of no products must be 0"
+
+
+@pytest.mark.parametrize("ta, tb", [(False, False), (True, False), (False, True), (True, True)])
+def test_matmul_kernel_exact_on_integers(ta, tb, rng):
+    """Small integers make every partial sum exact in float32 (|sum| <= 3 * 3 * 800 < 2^24), so
+    the kernel must equal the float64 product exactly: a k chunk dropped or counted twice, an
+    edge row or column (past the packed tiles) or an entry computed from the wrong block all
+    show, however small the other errors."""
+    for case in [(2, 2 * 96 + 13, 192 + 96 + 21, 3 * 256 + 31),
+                 (1, 96 + 13, 21, 3 * 1024 + 31)]:  # split along k into 3 parts, the last one short
+        a, b, want = _operands(rng, case, ta, tb, np.float32, draw=lambda s: rng.integers(-3, 4, s))
+        np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32), err_msg=str(case))
+
+
+@pytest.mark.parametrize("tb", [False, True])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
+    """c = op(a) @ op(b) + bias: the bias is added to each element after its whole sum, one
+    rounding, so the result is bitwise the kernel's product + bias in NumPy (across block, chunk
+    and tile edges, 1 and 2 threads); K = 0 gives the bias itself; a bias of another length is
+    refused."""
+    for case in [(2, 101, 203, 300), (1, 37, 45, 2100)]:  # the second split along k: the bias after the parts
+        a, b, _ = _operands(rng, case, False, tb, dtype)
+        bias = rng.standard_normal(case[2]).astype(dtype)
+        want = _mm(a, b, False, tb) + bias
+        for n in (1, 2):
+            with forced_threads(n):
+                c = np.full(want.shape, np.nan, dtype=dtype)
+                _core.matmul(c, a, b, False, tb, bias)
+            assert_bitwise_equal(f"matmul + bias {case}, {n} threads", c, want)
+    c = np.full((1, 3, 4), np.nan, dtype=dtype)
+    _core.matmul(c, np.zeros((1, 3, 0), dtype), np.zeros((1, 0, 4), dtype), False, False, bias[:4])
+    np.testing.assert_array_equal(c, np.broadcast_to(bias[:4], (1, 3, 4)))
+    with pytest.raises(ValueError, match="bias must have shape"):
+        _core.matmul(c, np.zeros((1, 3, 2), dtype), np.zeros((1, 2, 4), dtype), False, False, bias[:5])
 
 
 def test_matmul_layers_helper(rng):
@@ -1042,6 +1134,33 @@ def test_matmul_layers_helper(rng):
     assert_close("a @ b^T", matmul(a, b, tb=True), a @ b.T, rtol=1e-13)
     assert_close("a^T @ b", matmul(a[:, :30].T, b[:, :30], ta=True), a[:, :30] @ b[:, :30], rtol=1e-13)
     assert_close("a @ b", matmul(a[:, :30], b.T[:30]), a[:, :30] @ b.T[:30], rtol=1e-13)
+
+
+def test_matmul_kernel_would_catch_a_transpose(rng):
+    """The oracle tells a transposed operand apart (square sizes, where shapes cannot)."""
+    a, b = rng.standard_normal((2, 2, 9, 9))
+    good = matmul(a, b)
+    assert gap(matmul(a, b, ta=True), good) > 0.1
+    assert gap(_mm(a, b, False, True), good) > 0.1
+    assert_close("matmul square", good, a @ b, rtol=1e-13)
+
+
+def test_matmul_kernel_refuses_bad_arguments():
+    a, b = np.zeros((2, 3, 4)), np.zeros((2, 4, 5))
+    with pytest.raises(TypeError):  # one dtype, never cast
+        _core.matmul(np.zeros((2, 3, 5)), a.astype(np.float32), b, False)
+    with pytest.raises(ValueError, match="b must have shape"):
+        _core.matmul(np.zeros((2, 3, 5)), a, np.zeros((2, 3, 5)), False)
+    with pytest.raises(ValueError, match=r"b must have shape \(batch, N, K\) with a's batch 2 and K = 4, got \(2, 4, 5\)"):
+        _core.matmul(np.zeros((2, 3, 5)), a, b, False, True)
+    with pytest.raises(ValueError, match=r"c must have shape \(batch, M, N\) = \(2, 3, 5\), got \(2, 3, 4\)"):
+        _core.matmul(np.zeros((2, 3, 4)), a, b, False)
+    with pytest.raises(ValueError, match=r"bias must have shape \(N,\) = \(5,\), got \(4,\)"):
+        _core.matmul(np.zeros((2, 3, 5)), a, b, False, False, np.zeros(4))
+    with pytest.raises(ValueError, match="c must have shape"):
+        _core.matmul(np.zeros((2, 3, 4)), a, b, False)
+    with pytest.raises(ValueError, match="3-D"):
+        _core.matmul(np.zeros((3, 5)), a, b, False)
 
 
 # ---------------------------------------------------------------------------------------

@@ -447,6 +447,24 @@ def assert_ulps(what, x, ulps, bound):
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_gelu_kernel_equals_its_numpy_reference(dtype, rng):
+    """The C++ GELU against layers.gelu_forward_numpy / gelu_backward_numpy (float64 erfc,
+    rounded once), random upstream gradient, x in [-8, 8]. Bound: the reference's float64 error,
+    dominated by rounding -x / sqrt(2) before erfc (relative error about x^2 u = 64 * 1.1e-16 =
+    7e-15), under the kernel's own (RTOL64, or RTOL32["gelu"] in float32)."""
+    x = rng.uniform(-8, 8, 4001).astype(dtype)
+    dy = rng.standard_normal(x.shape).astype(dtype)
+    y, cache = layers.gelu_forward(x)
+    (dx,) = layers.gelu_backward(dy, cache)
+    y_ref, cache_ref = layers.gelu_forward_numpy(x)
+    (dx_ref,) = layers.gelu_backward_numpy(dy, cache_ref)
+    rtol = RTOL32["gelu"] if dtype == np.float32 else RTOL64
+    assert y_ref.dtype == dx_ref.dtype == dtype
+    assert_close("gelu y vs reference", y, y_ref, rtol)
+    assert_close("gelu dx vs reference", dx, dx_ref, rtol)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_gelu_tail_within_its_conditioning(dtype):
     """Far negative tail against mpmath, in ulps of the true value, bounded by the problem's
     conditioning. Phi(x) = erfc(z) / 2 with z = -x / sqrt(2): erfc's relative condition number in
@@ -710,15 +728,27 @@ def test_all_finite_finds_every_nonfinite_position(dtype):
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_layernorm_accurate_on_many_rows(dtype, rng):
-    """1003 rows of 257 (rows of mean up to 30 times their spread, so that the centring matters):
-    y, dx, dgamma, dbeta equal a float64 NumPy evaluation of the formula to RTOL32 / RTOL64."""
+def test_layernorm_threads_bitwise_and_accurate(dtype, rng, kernel_path):
+    """The kernel's rows go to the threads in fixed blocks of 16, and dgamma, dbeta are summed per
+    block and then in block order: 1003 rows of 257 (63 blocks, a ragged last one) give bitwise
+    the same y, dx, dgamma, dbeta on 1, 2 and 3 threads; and they equal a float64 NumPy evaluation
+    of the formula (rows of mean up to 30 times their spread, so that the centring matters) to
+    RTOL32 / RTOL64."""
     M, d = 1003, 257
     x = (rng.uniform(-30, 30, (M, 1)) + rng.standard_normal((M, d))).astype(dtype)
     gamma, beta, dy = (rng.standard_normal(s).astype(dtype) for s in (d, d, (M, d)))
-    y, cache = layers.layernorm_forward(x, gamma, beta)
-    got = (y, *layers.layernorm_backward(dy, cache))
+    saved, runs = pyvf.num_threads(), []
+    try:
+        for threads in (1, 2, 3):
+            pyvf.set_num_threads(threads)
+            y, cache = layers.layernorm_forward(x, gamma, beta)
+            runs.append((y, *layers.layernorm_backward(dy, cache)))
+    finally:
+        pyvf.set_num_threads(saved)
     names = ("y", "dx", "dgamma", "dbeta")
+    for run in runs[1:]:
+        for name, a, b in zip(names, run, runs[0]):
+            assert_bitwise_equal(f"layernorm {name}, threads", a, b)
     x64, g64, dy64 = x.astype(np.float64), gamma.astype(np.float64), dy.astype(np.float64)
     xc = x64 - x64.mean(-1, keepdims=True)
     rstd = 1 / np.sqrt((xc * xc).mean(-1, keepdims=True) + 1e-5)
@@ -727,6 +757,32 @@ def test_layernorm_accurate_on_many_rows(dtype, rng):
     want = (xhat * g64 + beta, rstd * (dxhat - dxhat.mean(-1, keepdims=True) - xhat * (dxhat * xhat).mean(-1, keepdims=True)),
             (dy64 * xhat).sum(0), dy64.sum(0))
     rtol = RTOL32["layernorm"] if dtype == np.float32 else RTOL64
-    for name, g, w in zip(names, got, want):
-        assert g.dtype == dtype
-        assert_close(f"layernorm {name} vs float64 formula", g, w, rtol)
+    for name, got, w in zip(names, runs[0], want):
+        assert got.dtype == dtype
+        assert_close(f"layernorm {name} vs float64 formula", got, w, rtol)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", ["ordinary", "constant", "huge", "tiny"])
+def test_layernorm_kernel_equals_its_numpy_reference(rows, dtype, rng):
+    """The C++ kernel against layers.layernorm_forward_numpy / layernorm_backward_numpy (float64
+    throughout, rounded once), random upstream gradient, on ordinary rows, constant rows (y ==
+    beta exactly in both), and rows of 1e+-30 (float64) or 1e+-15 (float32). Both are within
+    RTOL32 / RTOL64 of the exact values (the tests above), so of each other within twice that."""
+    shape, d = (5, 3, D), D
+    scale = {"ordinary": 1.0, "constant": 1.0, "huge": 1e30 if dtype == np.float64 else 1e15,
+             "tiny": 1e-30 if dtype == np.float64 else 1e-15}[rows]
+    x = scale * (rng.uniform(-3, 3, (5, 3, 1)) + rng.standard_normal(shape))
+    if rows == "constant":
+        x = np.broadcast_to(x[..., :1], shape).copy()
+    x = x.astype(dtype)
+    gamma, beta, dy = (rng.standard_normal(s).astype(dtype) for s in (d, d, shape))
+    y, cache = layers.layernorm_forward(x, gamma, beta)
+    y_ref, cache_ref = layers.layernorm_forward_numpy(x, gamma, beta)
+    rtol = 2 * (RTOL32["layernorm"] if dtype == np.float32 else RTOL64)
+    for name, got, want in zip(("y", "dx", "dgamma", "dbeta"), (y, *layers.layernorm_backward(dy, cache)),
+                               (y_ref, *layers.layernorm_backward_numpy(dy, cache_ref))):
+        assert want.dtype == dtype
+        assert_close(f"layernorm {name}, {rows} rows, kernel vs reference", got, want, rtol)
+    if rows == "constant":
+        assert_bitwise_equal("reference y of constant rows", y_ref, np.broadcast_to(beta, shape))

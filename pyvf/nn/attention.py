@@ -25,7 +25,7 @@ oracle tests and benchmarks compare the kernel against, and costs O(T^2) memory 
 import numpy as np
 
 from .. import _checks, _core
-from .layers import linear_backward, linear_forward
+from .layers import linear_backward, linear_forward, matmul
 
 __all__ = [
     "branching_attention",
@@ -150,7 +150,7 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     the context's part for the R queries of a head in one product with the cached keys (not
     copied). Only the attended blocks are computed, Nc + 1 block pairs per query; the kernel
     would visit every block of a tree (1, R*B, H, Nc + 1, L, dh): (Nc+1)(Nc+2)/2 pairs, 3.5
-    times the work at Nc = 5. The products are NumPy's; the softmax is one pass instead of the
+    times the work at Nc = 5. The products are pyvf's GEMM (layers.matmul); the softmax is one pass instead of the
     kernel's online one, so o agrees with the kernel's up to rounding (tests/test_scene_cache.py
     bounds it).
     """
@@ -172,13 +172,14 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     scale = _check_scale(scale)
     for name, a in (("q", q), ("k", k), ("v", v), ("k_ctx", k_ctx), ("v_ctx", v_ctx)):
         _checks.finite(name, a)
-    C, G = k_ctx.shape[2] * L, B * H  # context keys, heads
-    qg, kg, vg = (a.reshape(R, G, L, dh) for a in (q, k, v))  # (R, G, L, dh)
+    C, G, n = k_ctx.shape[2] * L, B * H, R * B * H  # context keys, heads, query blocks
+    qh = np.ascontiguousarray(q.reshape(R, G, L, dh).transpose(1, 0, 2, 3)).reshape(G, R * L, dh)  # per head
     kc, vc = k_ctx.reshape(G, C, dh), v_ctx.reshape(G, C, dh)  # (G, C, dh)
-    # logits s_ij = scale * q_i . k_j, against the context's keys and against the own block's
+    # logits s_ij = scale * q_i . k_j, against the context's keys (the R queries of a head in one
+    # product) and against the own block's
     with np.errstate(over="ignore", invalid="ignore"):  # checked below
-        sc = scale * np.matmul(qg, kc.swapaxes(1, 2))  # (R, G, L, C)
-        so = scale * np.matmul(qg, kg.swapaxes(2, 3))  # (R, G, L, L)
+        sc = scale * matmul(qh, kc, tb=True).reshape(G, R, L, C).transpose(1, 0, 2, 3)  # (R, G, L, C)
+        so = scale * matmul(q.reshape(n, L, dh), k.reshape(n, L, dh), tb=True).reshape(R, G, L, L)  # (R, G, L, L)
     _check_finite_result("context_attention_forward", sc, so)
     # the softmax over all T = C + L keys of each query, kept in the two parts: p = exp(s - m), m the
     # query's largest logit, denom = the sum of its p (in float64); every key the query attends
@@ -188,7 +189,9 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     denom = pc.sum(axis=-1, keepdims=True, dtype=np.float64) + po.sum(axis=-1, keepdims=True, dtype=np.float64)
     # o = sum_j p_j v_j / denom over the context's values and the own block's
     with np.errstate(over="ignore", invalid="ignore"):  # checked below
-        o = ((np.matmul(pc, vc) + np.matmul(po, vg)) / denom).astype(q.dtype)  # (R, G, L, dh)
+        oc = matmul(np.ascontiguousarray(pc.transpose(1, 0, 2, 3)).reshape(G, R * L, C), vc)  # (G, R L, dh)
+        oo = matmul(po.reshape(n, L, L), v.reshape(n, L, dh)).reshape(R, G, L, dh)  # (R, G, L, dh)
+        o = ((oo + oc.reshape(G, R, L, dh).transpose(1, 0, 2, 3)) / denom).astype(q.dtype)  # (R, G, L, dh)
     # the sums of p v before the division overflow where |v| is within a factor T of the dtype's
     # largest value, though o itself (a weighted mean of v) fits: refused, as the kernel refuses it
     _check_finite_result("context_attention_forward", o)

@@ -14,6 +14,8 @@ inf or NaN to the next layer. Views of any layout are accepted (strided, negativ
 read-only); inputs are never modified.
 """
 
+import math
+
 import numpy as np
 
 from .. import _checks, _core
@@ -42,15 +44,23 @@ def _check_linear(x, w, b, names=("x", "w", "b")):
         raise ValueError(f"{nb} must have shape (1, {dout}) (dout = {nw}.shape[1]), got {b.shape}")
 
 # ---------------------------------------------------------------------------------------
-# matmul and add: NumPy's, in the forms the models call
+# matmul (pyvf's GEMM) and add (NumPy's), in the forms the models call
 
 
 def matmul(a, b, ta=False, tb=False, bias=None):
     """c = op(a) @ op(b) [+ bias], op = transpose when ta / tb, for 2-D operands or per entry of
     3-D ones (a leading batch axis): a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c
-    (M, N); bias (N,) added to every row after its sum; one float dtype (TypeError otherwise).
-    NumPy's matmul (its BLAS: the order of each sum is the BLAS's, which may depend on the thread
-    count for some shapes)."""
+    (M, N); bias (N,) added to every row after its sum (as NumPy's a @ b + bias rounds); one
+    float dtype (TypeError otherwise; the callers check the values).
+
+    pyvf's GEMM (csrc/conv.cpp matmul_batched), not NumPy's BLAS: each element of c is one sum in
+    increasing k, so the result is bitwise the same for any thread count (OpenBLAS's is not for
+    some shapes), and the threads are pyvf's, which sleep between calls, where the BLAS's spin for
+    milliseconds after each call on the cores pyvf's kernels need (a 2-thread kernel right after a
+    2-thread BLAS product ran at the speed of one thread; measured again with the tiny transformer
+    on 2 busy cores: np.matmul's 2 BLAS threads made its training step 14x slower, 1143 ms against
+    79 ms). Its reference is the expression itself, np.matmul(op(a), op(b)) + bias: the tests
+    (tests/test_conv.py, section 7) hold the kernel to it in float64."""
     _checks.float_array("a", a)
     _checks.float_array("b", b, a, "a")
     if bias is not None:
@@ -59,11 +69,13 @@ def matmul(a, b, ta=False, tb=False, bias=None):
         raise ValueError(f"a must be 2-D (M, K) or 3-D (batch, M, K), got shape {a.shape}")
     if b.ndim != a.ndim:
         raise ValueError(f"b must have a's {a.ndim} dimensions, got shape {b.shape} for a of shape {a.shape}")
-    with np.errstate(over="ignore", invalid="ignore"):  # the callers check the results
-        c = np.matmul(np.swapaxes(a, -1, -2) if ta else a, np.swapaxes(b, -1, -2) if tb else b)  # ([batch,] M, N)
-        if bias is not None:
-            c += bias
-    return c
+    a, b = _checks.c_order(a), _checks.c_order(b)
+    one = a.ndim == 2  # 2-D: one entry of the batched kernel
+    a3, b3 = (a[None], b[None]) if one else (a, b)
+    M, N = a3.shape[2 if ta else 1], b3.shape[1 if tb else 2]
+    c = np.empty((a3.shape[0], M, N), dtype=a.dtype)  # (batch, M, N)
+    _core.matmul(c, a3, b3, ta, tb, None if bias is None else _checks.c_order(bias))
+    return c[0] if one else c
 
 
 def add(a, b, out=None):
@@ -120,12 +132,16 @@ def linear_backward(dy, cache):
 def layernorm_forward(x, gamma, beta, eps=1e-5):
     """y = (x - mean) / sqrt(var + eps) * gamma + beta.   x (..., d), gamma, beta (d,).
 
-    In float64 whatever x's dtype, rounded to it once at the end. Two-pass: the mean, then the
-    variance as the mean square of the centred row, centred a second time by its own residual
-    mean, so that a row of mean 1e4 and spread 0.1 keeps its digits and a constant row gives
-    y = beta exactly. Each row is first divided by a power of two s <= max|x| (exact), so that
-    rows near float64's largest value sum and square without overflow; eps enters as eps / s^2.
-    cache: xhat (..., d) and rstd (..., 1), rounded to x's dtype, and gamma."""
+    Two-pass (csrc/layernorm.cpp, rows on pyvf's threads): the mean is accumulated in float64
+    and rounded, the row centred twice (the second time by the centred row's own residual mean),
+    then the variance is the mean square of it, accumulated in float64, so a row of mean 1e4 and
+    spread 0.1 keeps its digits and a constant row gives y = beta exactly. Rows whose squares
+    overflow (|x - mean| beyond 1e154 in float64) are scaled by a power of two first, so they
+    normalise too. Bitwise the same for any thread count. cache: xhat (..., d), rstd (..., 1),
+    gamma. layernorm_forward_numpy below is the same math in NumPy (float64 throughout), the
+    reference the kernel is tested against; the kernel stays because NumPy's ten passes and their
+    temporaries took the tiny transformer's training step below 1.3x torch's speed
+    (pyvf bench transformer --quick)."""
     _checks.finite_float("x", x)
     if x.ndim < 1 or x.shape[-1] == 0:
         raise ValueError(f"x must have a last dimension d >= 1 to normalise over, got shape {x.shape}")
@@ -136,6 +152,40 @@ def layernorm_forward(x, gamma, beta, eps=1e-5):
         if a.shape != (d,):
             raise ValueError(f"{name} must have shape ({d},) for x of shape {x.shape}, got {a.shape}")
     eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
+    x, gamma, beta = _checks.c_order(x), _checks.c_order(gamma), _checks.c_order(beta)
+    y, xhat = np.empty_like(x), np.empty_like(x)  # (..., d)
+    rstd = np.empty(x.shape[:-1] + (1,), x.dtype)  # (..., 1)
+    if _core.layernorm_forward(y, xhat, rstd, x, gamma, beta, eps):
+        raise ValueError(f"layernorm_forward: mean(x) or x - mean(x) overflows {x.dtype}: rescale x")
+    _checks.finite_result("layernorm_forward", y)
+    return y, (xhat, rstd, gamma)
+
+
+def layernorm_backward(dy, cache):
+    """-> dx (..., d), dgamma (d,), dbeta (d,)."""
+    xhat, rstd, gamma = cache
+    _grad("dy", dy, xhat, xhat.shape)
+    d = xhat.shape[-1]
+    dx = np.empty_like(xhat)  # (..., d)
+    dgamma, dbeta = np.empty(d, xhat.dtype), np.empty(d, xhat.dtype)  # (d,)
+    # forward was y = xhat * gamma + beta, xhat = (x - mean(x)) * rstd, rstd = (mean((x - mean)^2)
+    # + eps)^(-1/2), so dx = rstd * (dxhat - mean(dxhat) - xhat * mean(dxhat * xhat)), dxhat = dy * gamma;
+    # dgamma = sum over rows of dy * xhat, dbeta = sum over rows of dy (csrc/layernorm.cpp)
+    _core.layernorm_backward(dx, dgamma, dbeta, _checks.c_order(dy), xhat, rstd, gamma)
+    for name, g in (("dx", dx), ("dgamma", dgamma), ("dbeta", dbeta)):
+        _checks.finite_result("layernorm_backward", g, name)
+    return dx, dgamma, dbeta
+
+
+def layernorm_forward_numpy(x, gamma, beta, eps=1e-5):
+    """layernorm_forward's math in NumPy, the reference the C++ kernel is tested against (and the
+    same cache). In float64 whatever x's dtype, rounded to it once at the end. Two-pass: the mean, then the
+    variance as the mean square of the centred row, centred a second time by its own residual
+    mean, so that a row of mean 1e4 and spread 0.1 keeps its digits and a constant row gives
+    y = beta exactly. Each row is first divided by a power of two s <= max|x| (exact), so that
+    rows near float64's largest value sum and square without overflow; eps enters as eps / s^2.
+    cache: xhat (..., d) and rstd (..., 1), rounded to x's dtype, and gamma."""
+    d = x.shape[-1]
     x64 = x.astype(np.float64)  # (..., d)
     amax = np.abs(x64).max(axis=-1, keepdims=True)  # (..., 1)
     s = np.ldexp(1.0, np.frexp(np.where(amax > 0, amax, 1.0))[1] - 1)  # (..., 1): s <= max|x| < 2 s
@@ -146,14 +196,12 @@ def layernorm_forward(x, gamma, beta, eps=1e-5):
         rstd_s = 1 / np.sqrt((xc * xc).mean(axis=-1, keepdims=True) + eps / (s * s))  # (..., 1)
     xhat = xc * rstd_s  # (..., d)
     y = (xhat * gamma.astype(np.float64) + beta).astype(x.dtype)  # (..., d)
-    _checks.finite_result("layernorm_forward", y)
     return y, (xhat.astype(x.dtype), (rstd_s / s).astype(x.dtype), gamma)  # rstd (..., 1) in x's units
 
 
-def layernorm_backward(dy, cache):
+def layernorm_backward_numpy(dy, cache):
     """-> dx (..., d), dgamma (d,), dbeta (d,), in float64, rounded to dy's dtype."""
     xhat, rstd, gamma = cache
-    _grad("dy", dy, xhat, xhat.shape)
     d = xhat.shape[-1]
     dy64 = dy.astype(np.float64)  # (..., d)
     # forward was y = xhat * gamma + beta, so dxhat = dy * gamma
@@ -164,14 +212,12 @@ def layernorm_backward(dy, cache):
     dx = rstd * (dxhat - dxhat.mean(axis=-1, keepdims=True) - xhat * (dxhat * xhat).mean(axis=-1, keepdims=True))
     dgamma = (dy64 * xhat).reshape(-1, d).sum(axis=0)  # (d,): sum over rows of dy * xhat
     dbeta = dy64.reshape(-1, d).sum(axis=0)  # (d,): sum over rows of dy
-    grads = tuple(g.astype(dy.dtype) for g in (dx, dgamma, dbeta))
-    for name, g in zip(("dx", "dgamma", "dbeta"), grads):
-        _checks.finite_result("layernorm_backward", g, name)
-    return grads
+    return tuple(g.astype(dy.dtype) for g in (dx, dgamma, dbeta))
 
 
 # ---------------------------------------------------------------------------------------
-# GELU, exact erf form (the C++ kernel: accurate in the far negative tail, see csrc/elementwise.cpp)
+# GELU, exact erf form: the C++ kernel (accurate in the far negative tail, see csrc/elementwise.cpp)
+# beside its NumPy reference
 
 
 def _gelu(x):
@@ -199,6 +245,26 @@ def gelu_backward(dy, cache):
     x = cache
     _grad("dy", dy, x, x.shape)
     return (_checks.finite_result("gelu_backward", _gelu_backward(dy, x), "dx"),)
+
+
+_erfc = np.frompyfunc(math.erfc, 1, 1)  # C99's erfc, one element at a time (NumPy has none)
+
+
+def gelu_forward_numpy(x):
+    """gelu_forward's math in NumPy, the reference the C++ kernel is tested against: in float64,
+    Phi(x) = erfc(-x / sqrt(2)) / 2 (erfc, not 1 + erf(x / sqrt(2)), which loses every digit of
+    Phi for x <= -6), y = x * Phi(x), rounded once. Slow (Python's erfc per element)."""
+    x64 = x.astype(np.float64)  # (...)
+    Phi = 0.5 * _erfc(-x64 / math.sqrt(2)).astype(np.float64)  # (...)
+    return (x64 * Phi).astype(x.dtype), x
+
+
+def gelu_backward_numpy(dy, cache):
+    """-> dx: forward was y = x * Phi(x), so dx = dy * (Phi(x) + x * phi(x)), phi the normal pdf."""
+    x64 = cache.astype(np.float64)  # (...)
+    Phi = 0.5 * _erfc(-x64 / math.sqrt(2)).astype(np.float64)  # (...)
+    phi = np.exp(-0.5 * x64 * x64) / math.sqrt(2 * math.pi)  # (...)
+    return ((dy * (Phi + x64 * phi)).astype(cache.dtype),)
 
 
 # ---------------------------------------------------------------------------------------
