@@ -106,18 +106,29 @@ def _adam_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras):
     """Update t (1, 2, ...) of p by gradient g with moments m, v -> the new (p, m, v).
     p, m, v, g: arrays of one shape and dtype, not modified; the rest Python floats (wd 0: no
     decay). Every operation rounds once in p's dtype, the scalars rounded to it where they meet
-    an array (NumPy's rule for a Python float), in the order written."""
+    an array (NumPy's rule for a Python float), in the order of the formulas in the comments
+    (sums and products of two terms commute exactly); in place where that saves a temporary
+    (each one is a pass over memory, and the update runs over every parameter each step)."""
     bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t  # bias corrections
     with np.errstate(over="ignore", invalid="ignore"):  # the caller checks the results
-        m = m * b1 + (1 - b1) * g  # first moment
-        v = v * b2 + ((1 - b2) * g) * g  # second moment
-        if keras:  # eps on the raw sqrt(v), the bias corrections folded into the step size
-            u = (m * (lr * math.sqrt(bc2) / bc1)) / (np.sqrt(v) + eps)
-        else:  # torch: eps on the bias-corrected sqrt(v / bc2)
-            u = (lr / bc1) * (m / (np.sqrt(v) / math.sqrt(bc2) + eps))
-        if wd:
-            p = p * (1 - lr * wd)  # decoupled weight decay, with the scheduled lr
-        return p - u, m, v
+        m1 = m * b1  # m1 = b1 m + (1 - b1) g
+        m1 += (1 - b1) * g
+        v1 = (1 - b2) * g  # v1 = b2 v + ((1 - b2) g) g
+        v1 *= g
+        v1 += v * b2
+        den = np.sqrt(v1)
+        if keras:  # u = (m1 (lr sqrt(bc2) / bc1)) / (sqrt(v1) + eps): eps on the raw sqrt(v)
+            den += eps
+            u = m1 * (lr * math.sqrt(bc2) / bc1)
+            u /= den
+        else:  # u = (lr / bc1) (m1 / (sqrt(v1) / sqrt(bc2) + eps)): eps on the bias-corrected sqrt(v / bc2)
+            den /= math.sqrt(bc2)
+            den += eps
+            u = np.divide(m1, den, out=den)
+            u *= lr / bc1
+        p1 = p * (1 - lr * wd) if wd else p.copy()  # decoupled weight decay, with the scheduled lr
+        p1 -= u  # p1 = p (1 - lr wd) - u
+    return p1, m1, v1
 
 
 # ---------------------------------------------------------------------------------------
@@ -253,7 +264,8 @@ class AdamW:
         new = {k: _adam_update(p, self.exp_avg[k], self.exp_avg_sq[k], grads[k], lr, t, b1, b2, self.eps,
                                self.weight_decay if k in self.decayed else 0.0, self.eps_convention == "keras")
                for k, p in self.params.items()}
-        bad = [k for k, arrays in new.items() if not all(_checks.all_finite(a) for a in arrays)]
+        # p1 finite needs m1 finite (else u is not); v1 is checked itself (an inf v1 gives u = 0)
+        bad = [k for k, (p1, _, v1) in new.items() if not (_checks.all_finite(p1) and _checks.all_finite(v1))]
         nonfinite = _nonfinite_names(grads) if bad else []
         if nonfinite:
             raise ValueError(f"grads contain NaN or inf in {nonfinite}: no update applied "
