@@ -124,11 +124,11 @@ def _adam_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras):
         else:  # u = (lr / bc1) (m1 / (sqrt(v1) / sqrt(bc2) + eps)): eps on the bias-corrected sqrt(v / bc2)
             den /= math.sqrt(bc2)
             den += eps
-            u = np.divide(m1, den, out=den)
+            u = m1 / den
             u *= lr / bc1
         p1 = p * (1 - lr * wd) if wd else p.copy()  # decoupled weight decay, with the scheduled lr
         p1 -= u  # p1 = p (1 - lr wd) - u
-    return p1, m1, v1
+    return p1, np.asarray(m1), np.asarray(v1)  # a 0-d p's arithmetic gives NumPy scalars
 
 
 # ---------------------------------------------------------------------------------------
