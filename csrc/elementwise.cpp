@@ -306,87 +306,6 @@ template void gelu_forward<double>(double*, const double*, int64_t);
 template void gelu_backward<double>(double*, const double*, const double*, int64_t);
 
 // ---------------------------------------------------------------------------------------
-// The attention's head split and merge: copies of dh-element runs, parallel over the tokens
-// (NumPy's transpose copies ran on one core: 0.6 s of a paper-size transformer step).
-
-// One loop for both directions: SPLIT copies tok into hd, else hd into tok.
-template <bool SPLIT, typename T>
-void heads_copy(T* hd, T* tok, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
-    const int64_t n = RB * NL;
-    RegionEnd end;
-#pragma omp parallel num_threads(num_threads()) if (parallel_work(n * H * dh, 1 << 16))
-    {
-#pragma omp for schedule(static) nowait
-        for (int64_t t = 0; t < n; ++t) {
-            const int64_t rb = t / NL, nl = t % NL;
-            for (int64_t h = 0; h < H; ++h) {
-                T* a = hd + ((rb * H + h) * NL + nl) * dh;  // hd[rb, h, nl, :]
-                T* b = tok + t * ld + col + h * dh;          // tok[t, col + h dh :]
-                std::memcpy(SPLIT ? a : b, SPLIT ? b : a, sizeof(T) * dh);
-            }
-        }
-        end.arrive();
-    }
-}
-
-template <typename T>
-void heads_split(T* hd, const T* tok, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
-    heads_copy<true>(hd, const_cast<T*>(tok), RB, NL, H, dh, ld, col);  // tok only read
-}
-
-template <typename T>
-void heads_merge(T* tok, const T* hd, int64_t RB, int64_t NL, int64_t H, int64_t dh, int64_t ld, int64_t col) {
-    heads_copy<false>(const_cast<T*>(hd), tok, RB, NL, H, dh, ld, col);  // hd only read
-}
-
-// ---------------------------------------------------------------------------------------
-// NumPy's a + b and a.sum(axis=0) in pyvf's threads (the transformer's residual adds and its
-// linear layers' bias gradients ran on one core: 7% of a tiny training step on 16 threads).
-// add: one rounding per element, bitwise NumPy's. column_sums of a (M, N): each column summed
-// in increasing row, in the dtype, ((a0 + a1) + a2) + ... (np.add.accumulate's order, which
-// NumPy's sum over the outer axis also takes), W columns at a time in the lanes of a vector:
-// parallel over blocks of columns, so bitwise the same for any thread count.
-
-template <typename T> void add(T* out, const T* a, const T* b, int64_t n) {
-    constexpr int64_t kB = 1 << 14;  // elements a thread takes at a time
-    RegionEnd end;
-#pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 4 * kB))
-    {
-#pragma omp for schedule(static) nowait
-        for (int64_t lo = 0; lo < n; lo += kB) {
-            const int64_t hi = std::min(n, lo + kB);
-            for (int64_t i = lo; i < hi; ++i) out[i] = a[i] + b[i];
-        }
-        end.arrive();
-    }
-}
-
-template <typename T> void column_sums(T* out, const T* a, int64_t M, int64_t N) {
-    constexpr int64_t W = Simd<T>::W, kC = 64 / sizeof(T);  // a cache line of columns per task
-    const int64_t nblk = (N + kC - 1) / kC;
-    RegionEnd end;
-#pragma omp parallel num_threads(num_threads()) if (nblk >= 2 && parallel_work(M * N, 1 << 17))
-    {
-#pragma omp for schedule(static) nowait
-        for (int64_t blk = 0; blk < nblk; ++blk) {
-            const int64_t j0 = blk * kC, j1 = std::min(N, j0 + kC);
-            int64_t j = j0;
-            for (; j + W <= j1; j += W) {
-                typename Simd<T>::V s = M ? vload<T>(a + j) : typename Simd<T>::V{};
-                for (int64_t i = 1; i < M; ++i) s = s + vload<T>(a + i * N + j);
-                vstore<T>(out + j, s);
-            }
-            for (; j < j1; ++j) {
-                T s = M ? a[j] : T(0);
-                for (int64_t i = 1; i < M; ++i) s = s + a[i * N + j];
-                out[j] = s;
-            }
-        }
-        end.arrive();
-    }
-}
-
-// ---------------------------------------------------------------------------------------
 // Nearest-neighbour x2 upsampling (the codebook's Upsample) of `rows` image rows of w pixels, row
 // r of x making rows 2r and 2r + 1 of y (x (B, C, Hi, w) and y (B, C, 2 Hi, 2 w): r runs over
 // (b, c, u)). forward: y[2r + i, 2v + j] = x[r, v]; backward: the sum of each 2x2 block,
@@ -428,15 +347,5 @@ template void upsample2x<float>(float*, const float*, int64_t, int64_t);
 template void upsample2x<double>(double*, const double*, int64_t, int64_t);
 template void upsample2x_backward<float>(float*, const float*, int64_t, int64_t);
 template void upsample2x_backward<double>(double*, const double*, int64_t, int64_t);
-
-template void add<float>(float*, const float*, const float*, int64_t);
-template void add<double>(double*, const double*, const double*, int64_t);
-template void column_sums<float>(float*, const float*, int64_t, int64_t);
-template void column_sums<double>(double*, const double*, int64_t, int64_t);
-
-template void heads_split<float>(float*, const float*, int64_t, int64_t, int64_t, int64_t, int64_t, int64_t);
-template void heads_split<double>(double*, const double*, int64_t, int64_t, int64_t, int64_t, int64_t, int64_t);
-template void heads_merge<float>(float*, const float*, int64_t, int64_t, int64_t, int64_t, int64_t, int64_t);
-template void heads_merge<double>(double*, const double*, int64_t, int64_t, int64_t, int64_t, int64_t, int64_t);
 
 }  // namespace pyvf

@@ -17,10 +17,8 @@
 
 #include "branching_attention.h"
 #include "conv.h"
-#include "cross_entropy.h"
 #include "elementwise.h"
 #include "layernorm.h"
-#include "optim.h"
 #include "vq.h"
 #include "simd.h"
 #include "threads.h"
@@ -143,76 +141,6 @@ template <typename T> void gelu_grad(Arr<T> dx, Arr<T> dy, Arr<T> x) {
 }
 
 
-// Adam/AdamW (optim.cpp), every tensor of a step in one call: lists p, m, v, g of arrays of one
-// dtype (each C-contiguous, as Arr<T> without conversion), decayed a list of bools; scalars
-// (b1, 1 - b1, b2, 1 - b2, a, sbc2, eps, decay) are rounded to T here, as NumPy rounds a Python
-// float against an array of T.
-template <typename T>
-std::vector<AdamTensor<T>> adam_tensors(std::vector<Arr<T>>& p, std::vector<Arr<T>>& m, std::vector<Arr<T>>& v,
-                                        const std::vector<Arr<T>>& g, const std::vector<bool>& decayed, bool write) {
-    const size_t n = p.size();
-    if (m.size() != n || v.size() != n || g.size() != n || decayed.size() != n)
-        throw std::invalid_argument("pyvf._core.adam: p, m, v, g and decayed must be lists of one length");
-    std::vector<AdamTensor<T>> t(n);
-    for (size_t i = 0; i < n; ++i) {
-        for (const py::array* a : std::initializer_list<const py::array*>{&m[i], &v[i], &g[i]})
-            same_size(*a, p[i], "adam");
-        // check writes nothing, so it takes read-only arrays; apply refuses them (mutable_data raises)
-        const auto data = [write](Arr<T>& a) { return write ? a.mutable_data() : const_cast<T*>(a.data()); };
-        t[i] = {data(p[i]), data(m[i]), data(v[i]), g[i].data(), static_cast<int64_t>(p[i].size()), decayed[i]};
-    }
-    return t;
-}
-
-template <typename T> AdamScalars<T> adam_scalars(py::tuple s, bool keras) {
-    if (s.size() != 8) throw std::invalid_argument("pyvf._core.adam: scalars must be 8 numbers");
-    AdamScalars<T> r;
-    T* out[8] = {&r.b1, &r.c1, &r.b2, &r.c2, &r.a, &r.sbc2, &r.eps, &r.decay};
-    for (int i = 0; i < 8; ++i) *out[i] = static_cast<T>(s[i].cast<double>());
-    r.keras = keras;
-    return r;
-}
-
-template <typename T>
-std::vector<bool> adam_check_k(std::vector<Arr<T>> p, std::vector<Arr<T>> m, std::vector<Arr<T>> v,
-                               std::vector<Arr<T>> g, std::vector<bool> decayed, py::tuple s, bool keras) {
-    const auto t = adam_tensors<T>(p, m, v, g, decayed, false);
-    const AdamScalars<T> sc = adam_scalars<T>(s, keras);
-    std::unique_ptr<bool[]> ok(new bool[t.size()]);
-    {
-        py::gil_scoped_release nogil;
-        adam_check<T>(t.data(), static_cast<int64_t>(t.size()), sc, ok.get());
-    }
-    return std::vector<bool>(ok.get(), ok.get() + t.size());
-}
-
-template <typename T>
-void adam_apply_k(std::vector<Arr<T>> p, std::vector<Arr<T>> m, std::vector<Arr<T>> v, std::vector<Arr<T>> g,
-                  std::vector<bool> decayed, py::tuple s, bool keras) {
-    const auto t = adam_tensors<T>(p, m, v, g, decayed, true);
-    const AdamScalars<T> sc = adam_scalars<T>(s, keras);
-    py::gil_scoped_release nogil;
-    adam_apply<T>(t.data(), static_cast<int64_t>(t.size()), sc);
-}
-
-template <typename T> py::tuple sum_squares_k(Arr<T> x) {
-    const T* p = x.data();
-    const int64_t n = x.size();
-    double amax = 0, sumsq = 0;
-    {
-        py::gil_scoped_release nogil;
-        sum_squares<T>(p, n, &amax, &sumsq);
-    }
-    return py::make_tuple(amax, sumsq);
-}
-
-template <typename T> void scale_by_k(Arr<T> x, double c) {
-    T* p = x.mutable_data();
-    const int64_t n = x.size();
-    py::gil_scoped_release nogil;
-    scale_by<T>(p, n, static_cast<T>(c));
-}
-
 // LayerNorm (layernorm.cpp): x, y, xhat (M, d) in any shape whose last axis is d; rstd M elements.
 template <typename T> int64_t layernorm_fwd_k(Arr<T> y, Arr<T> xhat, Arr<T> rstd, Arr<T> x, Arr<T> gamma,
                                               Arr<T> beta, double eps) {
@@ -242,69 +170,6 @@ template <typename T> void layernorm_bwd_k(Arr<T> dx, Arr<T> dgamma, Arr<T> dbet
     layernorm_backward<T>(pdx, pdg, pdb, pdy, ph, pr, pg, M, d);
 }
 
-// Softmax cross-entropy (cross_entropy.cpp): x (M, n), targets (M,) int64 in [0, n) (checked here
-// too: an index out of range would read outside the row), loss, rowmax, logsum, dloss (M,).
-void check_ce(const py::array& x, const py::array_t<int64_t, py::array::c_style>& targets,
-              std::initializer_list<const py::array*> rows, const char* what) {
-    if (x.ndim() != 2 || x.shape(1) < 1 || targets.ndim() != 1 || targets.shape(0) != x.shape(0))
-        throw std::invalid_argument(std::string("pyvf._core.") + what + ": x (M, n >= 1), targets (M,)");
-    for (const py::array* a : rows)
-        if (a->ndim() != 1 || a->shape(0) != x.shape(0))
-            throw std::invalid_argument(std::string("pyvf._core.") + what + ": every per-row array must be (M,)");
-    const int64_t* t = targets.data();
-    for (py::ssize_t r = 0; r < targets.shape(0); ++r)
-        if (t[r] < 0 || t[r] >= x.shape(1))
-            throw std::invalid_argument(std::string("pyvf._core.") + what + ": targets must be in [0, n)");
-}
-
-template <typename T>
-void ce_fwd_k(Arr<T> loss, Arr<T> rowmax, py::array_t<double, py::array::c_style> logsum, Arr<T> x,
-              py::array_t<int64_t, py::array::c_style> targets, double eps) {
-    check_ce(x, targets, {&loss, &rowmax, &logsum}, "cross_entropy_forward");
-    T *pl = loss.mutable_data(), *pm = rowmax.mutable_data();
-    double* ps = logsum.mutable_data();
-    const T* px = x.data();
-    const int64_t* pt = targets.data();
-    const int64_t M = x.shape(0), n = x.shape(1);
-    py::gil_scoped_release nogil;
-    cross_entropy_forward<T>(pl, pm, ps, px, pt, M, n, eps);
-}
-
-template <typename T>
-void ce_bwd_k(Arr<T> dx, Arr<T> dloss, Arr<T> x, Arr<T> rowmax, py::array_t<double, py::array::c_style> logsum,
-              py::array_t<int64_t, py::array::c_style> targets, double eps) {
-    check_ce(x, targets, {&dloss, &rowmax, &logsum}, "cross_entropy_backward");
-    same_size(dx, x, "cross_entropy_backward");
-    T* pdx = dx.mutable_data();
-    const T *pdl = dloss.data(), *px = x.data(), *pm = rowmax.data();
-    const double* ps = logsum.data();
-    const int64_t* pt = targets.data();
-    const int64_t M = x.shape(0), n = x.shape(1);
-    py::gil_scoped_release nogil;
-    cross_entropy_backward<T>(pdx, pdl, px, pm, ps, pt, M, n, eps);
-}
-
-// out = a + b, any shapes of one size (elementwise.cpp); out (N,) = a (M, N) summed over its rows.
-template <typename T> void add_k(Arr<T> out, Arr<T> a, Arr<T> b) {
-    same_size(a, out, "add");
-    same_size(b, out, "add");
-    T* po = out.mutable_data();
-    const T *pa = a.data(), *pb = b.data();
-    const int64_t n = out.size();
-    py::gil_scoped_release nogil;
-    add<T>(po, pa, pb, n);
-}
-
-template <typename T> void column_sums_k(Arr<T> out, Arr<T> a) {
-    if (a.ndim() != 2 || out.size() != a.shape(1))
-        throw std::invalid_argument("pyvf._core.column_sums: a (M, N) and out (N,)");
-    T* po = out.mutable_data();
-    const T* pa = a.data();
-    const int64_t M = a.shape(0), N = a.shape(1);
-    py::gil_scoped_release nogil;
-    column_sums<T>(po, pa, M, N);
-}
-
 // Upsampling (elementwise.cpp): small (B, C, Hi, Wi), big (B, C, 2 Hi, 2 Wi); FORWARD writes big
 // from small, else small (dx) from big (dy).
 template <typename T, bool FORWARD> void upsample_k(Arr<T> out, Arr<T> in) {
@@ -321,54 +186,6 @@ template <typename T, bool FORWARD> void upsample_k(Arr<T> out, Arr<T> in) {
         upsample2x<T>(po, pi, rows, w);
     else
         upsample2x_backward<T>(po, pi, rows, w);
-}
-
-// Heads (elementwise.cpp): hd (R, B, H, N, L, dh), tok (R, B, N, L, w), columns [col, col + H dh) of w.
-template <typename T> void heads_dims(const py::array& hd, const py::array& tok, int64_t col, int64_t* dims) {
-    bool ok = hd.ndim() == 6 && tok.ndim() == 5 && col >= 0;
-    for (int i : {0, 1}) ok = ok && hd.shape(i) == tok.shape(i);
-    ok = ok && hd.shape(3) == tok.shape(2) && hd.shape(4) == tok.shape(3) &&
-         col + hd.shape(2) * hd.shape(5) <= tok.shape(4);
-    if (!ok) throw std::invalid_argument("pyvf._core.heads: hd (R, B, H, N, L, dh), tok (R, B, N, L, w >= col + H dh)");
-    dims[0] = hd.shape(0) * hd.shape(1);
-    dims[1] = hd.shape(3) * hd.shape(4);
-    dims[2] = hd.shape(2);
-    dims[3] = hd.shape(5);
-    dims[4] = tok.shape(4);
-}
-
-// split: hd <- columns col.. of tok; merge: the other way
-template <typename T, bool SPLIT> void heads_k(Arr<T> out, Arr<T> in, int64_t col) {
-    py::array& hd = SPLIT ? out : in;
-    py::array& tok = SPLIT ? in : out;
-    int64_t d[5];
-    heads_dims<T>(hd, tok, col, d);
-    T* po = out.mutable_data();
-    const T* pi = in.data();
-    py::gil_scoped_release nogil;
-    if (SPLIT)
-        heads_split<T>(po, pi, d[0], d[1], d[2], d[3], d[4], col);
-    else
-        heads_merge<T>(po, pi, d[0], d[1], d[2], d[3], d[4], col);
-}
-
-// The scene cache's softmax (branching_attention.cpp): sc (G, C, R L), so (R G, L, L), m and
-// denom (R, G, L); in place.
-template <typename T> void context_softmax_k(Arr<T> sc, Arr<T> so, Arr<T> m, Arr<T> denom) {
-    if (sc.ndim() != 3 || so.ndim() != 3 || so.shape(1) != so.shape(2) || so.shape(1) < 1 ||
-        sc.shape(2) % so.shape(1) != 0)
-        throw std::invalid_argument("pyvf._core.context_softmax: sc (G, C, R L), so (R G, L, L)");
-    const int64_t G = sc.shape(0), C = sc.shape(1), L = so.shape(1), R = sc.shape(2) / L;
-    if (so.shape(0) != R * G || m.size() != R * G * L || denom.size() != R * G * L)
-        throw std::invalid_argument("pyvf._core.context_softmax: so (R G, L, L), m and denom R G L elements");
-    T *ps = sc.mutable_data(), *po = so.mutable_data(), *pm = m.mutable_data(), *pd = denom.mutable_data();
-    try {
-        py::gil_scoped_release nogil;
-        context_softmax<T>(ps, po, pm, pd, R, G, L, C);
-    } catch (const std::bad_alloc&) {
-        PyErr_SetString(PyExc_MemoryError, "context_softmax: not enough memory for R G L doubles");
-        throw py::error_already_set();
-    }
 }
 
 // True when every element is finite; a scan that allocates nothing (np.isfinite(x).all()
@@ -429,31 +246,14 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
     m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
           py::arg("x").noconvert(), py::arg("codes").noconvert());
-    m.def("adam_check", &adam_check_k<T>, py::arg("p").noconvert(), py::arg("m").noconvert(),
-          py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("decayed"), py::arg("scalars"), py::arg("keras"));
-    m.def("adam_apply", &adam_apply_k<T>, py::arg("p").noconvert(), py::arg("m").noconvert(),
-          py::arg("v").noconvert(), py::arg("g").noconvert(), py::arg("decayed"), py::arg("scalars"), py::arg("keras"));
-    m.def("sum_squares", &sum_squares_k<T>, py::arg("x").noconvert());
-    m.def("scale_by", &scale_by_k<T>, py::arg("x").noconvert(), py::arg("c"));
-    m.def("cross_entropy_forward", &ce_fwd_k<T>, py::arg("loss").noconvert(), py::arg("rowmax").noconvert(),
-          py::arg("logsum").noconvert(), py::arg("x").noconvert(), py::arg("targets").noconvert(), py::arg("eps"));
-    m.def("cross_entropy_backward", &ce_bwd_k<T>, py::arg("dx").noconvert(), py::arg("dloss").noconvert(),
-          py::arg("x").noconvert(), py::arg("rowmax").noconvert(), py::arg("logsum").noconvert(),
-          py::arg("targets").noconvert(), py::arg("eps"));
     m.def("layernorm_forward", &layernorm_fwd_k<T>, py::arg("y").noconvert(), py::arg("xhat").noconvert(),
           py::arg("rstd").noconvert(), py::arg("x").noconvert(), py::arg("gamma").noconvert(),
           py::arg("beta").noconvert(), py::arg("eps"));
     m.def("layernorm_backward", &layernorm_bwd_k<T>, py::arg("dx").noconvert(), py::arg("dgamma").noconvert(),
           py::arg("dbeta").noconvert(), py::arg("dy").noconvert(), py::arg("xhat").noconvert(),
           py::arg("rstd").noconvert(), py::arg("gamma").noconvert());
-    m.def("add", &add_k<T>, py::arg("out").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert());
-    m.def("column_sums", &column_sums_k<T>, py::arg("out").noconvert(), py::arg("a").noconvert());
     m.def("upsample2x", &upsample_k<T, true>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("upsample2x_backward", &upsample_k<T, false>, py::arg("dx").noconvert(), py::arg("dy").noconvert());
-    m.def("heads_split", &heads_k<T, true>, py::arg("hd").noconvert(), py::arg("tok").noconvert(), py::arg("col"));
-    m.def("heads_merge", &heads_k<T, false>, py::arg("tok").noconvert(), py::arg("hd").noconvert(), py::arg("col"));
-    m.def("context_softmax", &context_softmax_k<T>, py::arg("sc").noconvert(), py::arg("so").noconvert(),
-          py::arg("m").noconvert(), py::arg("denom").noconvert());
     m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
     m.def("gelu_backward", &gelu_grad<T>, py::arg("dx").noconvert(), py::arg("dy").noconvert(),
           py::arg("x").noconvert());

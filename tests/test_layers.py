@@ -447,6 +447,24 @@ def assert_ulps(what, x, ulps, bound):
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_gelu_kernel_equals_its_numpy_reference(dtype, rng):
+    """The C++ GELU against layers.gelu_forward_numpy / gelu_backward_numpy (float64 erfc,
+    rounded once), random upstream gradient, x in [-8, 8]. Bound: the reference's float64 error,
+    dominated by rounding -x / sqrt(2) before erfc (relative error about x^2 u = 64 * 1.1e-16 =
+    7e-15), under the kernel's own (RTOL64, or RTOL32["gelu"] in float32)."""
+    x = rng.uniform(-8, 8, 4001).astype(dtype)
+    dy = rng.standard_normal(x.shape).astype(dtype)
+    y, cache = layers.gelu_forward(x)
+    (dx,) = layers.gelu_backward(dy, cache)
+    y_ref, cache_ref = layers.gelu_forward_numpy(x)
+    (dx_ref,) = layers.gelu_backward_numpy(dy, cache_ref)
+    rtol = RTOL32["gelu"] if dtype == np.float32 else RTOL64
+    assert y_ref.dtype == dx_ref.dtype == dtype
+    assert_close("gelu y vs reference", y, y_ref, rtol)
+    assert_close("gelu dx vs reference", dx, dx_ref, rtol)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_gelu_tail_within_its_conditioning(dtype):
     """Far negative tail against mpmath, in ulps of the true value, bounded by the problem's
     conditioning. Phi(x) = erfc(z) / 2 with z = -x / sqrt(2): erfc's relative condition number in
@@ -682,45 +700,6 @@ def test_gelu_threaded_path_is_bitwise_the_serial_one(rng):
 
 
 # ---------------------------------------------------------------------------------------
-# the residual adds and the bias gradients' column sums in pyvf's threads (csrc/elementwise.cpp)
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_add_and_column_sums_bitwise_numpy_on_any_threads(dtype, rng):
-    """layers.add is NumPy's a + b bit for bit (one rounding per element), on 1 and 3 threads and
-    at sizes below and above its parallel threshold, with inf, NaN and -0.0 passed through;
-    layers.column_sums is each column's sum in increasing row in the dtype: bitwise
-    np.add.accumulate(a)[-1], whose order is fixed, on 1 and 3 threads, for column counts past
-    the vector width and the task's cache line (tails), one row and no rows (zeros). Large and
-    tiny magnitudes mixed make the order show: a sum in another order (pairwise, by blocks of
-    rows) differs in its last bits."""
-    saved = pyvf.num_threads()
-    try:
-        for n_thr in (1, 3):
-            pyvf.set_num_threads(n_thr)
-            for n in (0, 5, 70000, 3 * 65536 + 7):
-                a = rng.standard_normal(n).astype(dtype)
-                b = (rng.standard_normal(n) * 1e-3).astype(dtype)
-                if n > 5:
-                    a[:3], b[:3] = [np.inf, np.nan, -0.0], [1.0, 2.0, -0.0]
-                got = layers.add(a, b)
-                assert got.shape == (n,) and got.dtype == dtype
-                if n:
-                    assert_bitwise_equal(f"add n={n} on {n_thr}", got, a + b)
-            for M, N in ((1, 37), (0, 5), (2000, 128), (9216 // 4, 133), (700, 1)):
-                a = (rng.standard_normal((M, N)) * np.exp(rng.uniform(-8, 8, (M, N)))).astype(dtype)
-                want = np.add.accumulate(a, axis=0)[-1:] if M else np.zeros((1, N), dtype)
-                got = layers.column_sums(a)
-                assert got.shape == (1, N) and got.dtype == dtype
-                assert_bitwise_equal(f"column_sums {M}x{N} on {n_thr}", got, want)
-    finally:
-        pyvf.set_num_threads(saved)
-    a = rng.standard_normal((4000, 64)).astype(dtype) * 1e4
-    assert not np.array_equal(layers.column_sums(a), a.reshape(2, 2000, 64).sum(1).sum(0, keepdims=True)), \
-        "the order must show: blocks of rows summed apart give other bits"
-
-
-# ---------------------------------------------------------------------------------------
 # the finiteness scan every layer's checks use (csrc/module.cpp all_finite)
 
 
@@ -781,3 +760,29 @@ def test_layernorm_threads_bitwise_and_accurate(dtype, rng, kernel_path):
     for name, got, w in zip(names, runs[0], want):
         assert got.dtype == dtype
         assert_close(f"layernorm {name} vs float64 formula", got, w, rtol)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", ["ordinary", "constant", "huge", "tiny"])
+def test_layernorm_kernel_equals_its_numpy_reference(rows, dtype, rng):
+    """The C++ kernel against layers.layernorm_forward_numpy / layernorm_backward_numpy (float64
+    throughout, rounded once), random upstream gradient, on ordinary rows, constant rows (y ==
+    beta exactly in both), and rows of 1e+-30 (float64) or 1e+-15 (float32). Both are within
+    RTOL32 / RTOL64 of the exact values (the tests above), so of each other within twice that."""
+    shape, d = (5, 3, D), D
+    scale = {"ordinary": 1.0, "constant": 1.0, "huge": 1e30 if dtype == np.float64 else 1e15,
+             "tiny": 1e-30 if dtype == np.float64 else 1e-15}[rows]
+    x = scale * (rng.uniform(-3, 3, (5, 3, 1)) + rng.standard_normal(shape))
+    if rows == "constant":
+        x = np.broadcast_to(x[..., :1], shape).copy()
+    x = x.astype(dtype)
+    gamma, beta, dy = (rng.standard_normal(s).astype(dtype) for s in (d, d, shape))
+    y, cache = layers.layernorm_forward(x, gamma, beta)
+    y_ref, cache_ref = layers.layernorm_forward_numpy(x, gamma, beta)
+    rtol = 2 * (RTOL32["layernorm"] if dtype == np.float32 else RTOL64)
+    for name, got, want in zip(("y", "dx", "dgamma", "dbeta"), (y, *layers.layernorm_backward(dy, cache)),
+                               (y_ref, *layers.layernorm_backward_numpy(dy, cache_ref))):
+        assert want.dtype == dtype
+        assert_close(f"layernorm {name}, {rows} rows, kernel vs reference", got, want, rtol)
+    if rows == "constant":
+        assert_bitwise_equal("reference y of constant rows", y_ref, np.broadcast_to(beta, shape))

@@ -226,12 +226,12 @@ def test_keras_convention_against_hand_computation(rng):
 
 
 # ---------------------------------------------------------------------------------------
-# the fused kernel (csrc/optim.cpp) against NumPy's array expressions of the same formula
+# AdamW.step against the update written out independently as NumPy array expressions
 
 
 def numpy_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras):
     """One update as NumPy array expressions, each operation rounded in the parameters' dtype
-    (Python floats meeting an array are rounded to its dtype): the oracle the kernel must equal
+    (Python floats meeting an array are rounded to its dtype): the oracle AdamW.step must equal
     bit for bit, since it performs the same roundings in the same order."""
     bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
     with np.errstate(over="ignore", invalid="ignore"):
@@ -247,14 +247,12 @@ def numpy_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras):
 
 @pytest.mark.parametrize("keras", [False, True])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_fused_update_equals_numpy_expressions_bitwise(rng, dtype, keras, kernel_path):
-    """Six steps of AdamW on tensors of 1 to 40,011 elements (several of the kernel's 16 Ki blocks,
-    not a multiple of any vector width; one stored transposed, so not C-contiguous) whose
-    gradients span 1e-30 to 1e10 per element (tiny ones where eps decides, huge ones where g^2
-    nearly overflows float32), decayed and not, on 1 and on 2 threads, on every kernel path:
-    parameters and moments bitwise the NumPy formula's. A fused multiply-add, a reordered product or eps moved would
-    differ in the last bits of many elements."""
-    import pyvf
+def test_update_equals_numpy_expressions_bitwise(rng, dtype, keras):
+    """Six steps of AdamW on tensors of 1 to 40,011 elements (one stored transposed, so not
+    C-contiguous) whose gradients span 1e-30 to 1e10 per element (tiny ones where eps decides,
+    huge ones where g^2 nearly overflows float32), decayed and not: parameters and moments bitwise
+    the formula's. A reordered product, eps moved or the decay set ignored would differ in the
+    last bits of many elements."""
     shapes = {"a": (1,), "b": (7, 33), "c": (40011,), "d": (129, 65)}
     params0 = {k: rng.standard_normal(s).astype(dtype) for k, s in shapes.items()}
     params0["d"] = np.asfortranarray(params0["d"])  # a parameter of another layout
@@ -264,63 +262,16 @@ def test_fused_update_equals_numpy_expressions_bitwise(rng, dtype, keras, kernel
     want = {k: (p.copy(), np.zeros_like(p), np.zeros_like(p)) for k, p in params0.items()}
     for t, g in enumerate(grads, 1):
         want = {k: numpy_update(*want[k], g[k], lr, t, b1, b2, eps, wd if k != "b" else 0.0, keras) for k in want}
-    saved = pyvf.num_threads()
-    try:
-        for threads in (1, 2):
-            pyvf.set_num_threads(threads)
-            p = {k: a.copy(order="K") for k, a in params0.items()}
-            opt = optim.AdamW(p, lr=lr, betas=(b1, b2), eps=eps, weight_decay=wd, decay={"a", "c", "d"},
-                              eps_convention="keras" if keras else "torch")
-            for g in grads:
-                opt.step(g)
-            for k in shapes:
-                assert p[k].dtype == dtype and p[k].flags.c_contiguous == (k != "d")
-                assert_bitwise_equal(f"{threads} threads, p[{k}]", p[k], want[k][0])
-                assert_bitwise_equal(f"{threads} threads, m[{k}]", opt.exp_avg[k], want[k][1])
-                assert_bitwise_equal(f"{threads} threads, v[{k}]", opt.exp_avg_sq[k], want[k][2])
-    finally:
-        pyvf.set_num_threads(saved)
-
-
-def test_one_call_for_many_tensors_equals_one_call_each(rng, kernel_path):
-    """The kernels take every tensor of a step at once (one parallel region over all their blocks):
-    300 tensors of 1 to 40,000 elements, decayed or not, in one call on 3 threads, bitwise the
-    same as one call per tensor on 1 thread; the check names exactly the tensor whose update
-    overflows; check writes nothing and takes read-only arrays, apply refuses them; lists of
-    different lengths and a tensor of another dtype are refused."""
-    import pyvf
-    from pyvf import _core
-    sizes = [int(n) for n in rng.integers(1, 300, 299)] + [40000]
-    p0 = [rng.standard_normal(n).astype(np.float32) for n in sizes]
-    m0 = [rng.standard_normal(n).astype(np.float32) * 0.1 for n in sizes]
-    v0 = [rng.uniform(0, 1, n).astype(np.float32) for n in sizes]
-    g = [rng.standard_normal(n).astype(np.float32) for n in sizes]
-    dec = [bool(d) for d in rng.integers(0, 2, len(sizes))]
-    scalars = (0.9, 0.1, 0.999, 0.001, 3e-3, math.sqrt(0.001), 1e-8, 1 - 3e-3 * 0.05)
-    copy = lambda arrays: [a.copy() for a in arrays]  # noqa: E731
-    with pyvf.threads(1):
-        one = [copy(x) for x in (p0, m0, v0)]
-        for i in range(len(sizes)):
-            _core.adam_apply([one[0][i]], [one[1][i]], [one[2][i]], [g[i]], [dec[i]], scalars, False)
-    with pyvf.threads(3):
-        many = [copy(x) for x in (p0, m0, v0)]
-        _core.adam_apply(*many, g, dec, scalars, False)
-        for i in range(len(sizes)):
-            for name, a, b in zip("pmv", one, many):
-                assert_bitwise_equal(f"{name}[{i}]", b[i], a[i])
-        huge = copy(g)
-        huge[137][0] = 1e22  # (1 - b2) g g overflows float32
-        read_only = copy(p0)
-        for a in read_only:
-            a.flags.writeable = False
-        ok = _core.adam_check(read_only, m0, v0, huge, dec, scalars, False)
-        assert [i for i, good in enumerate(ok) if not good] == [137]
-        with pytest.raises(ValueError, match="not writeable"):
-            _core.adam_apply(read_only, copy(m0), copy(v0), g, dec, scalars, False)
-        with pytest.raises(ValueError, match="lists of one length"):
-            _core.adam_check(p0, m0, v0, g[:-1], dec, scalars, False)
-        with pytest.raises(TypeError):
-            _core.adam_check(p0, m0, v0, [g[0].astype(np.float64)] + g[1:], dec, scalars, False)
+    p = {k: a.copy(order="K") for k, a in params0.items()}
+    opt = optim.AdamW(p, lr=lr, betas=(b1, b2), eps=eps, weight_decay=wd, decay={"a", "c", "d"},
+                      eps_convention="keras" if keras else "torch")
+    for g in grads:
+        opt.step(g)
+    for k in shapes:
+        assert p[k].dtype == dtype and p[k].flags.c_contiguous == (k != "d")
+        assert_bitwise_equal(f"p[{k}]", p[k], want[k][0])
+        assert_bitwise_equal(f"m[{k}]", opt.exp_avg[k], want[k][1])
+        assert_bitwise_equal(f"v[{k}]", opt.exp_avg_sq[k], want[k][2])
 
 
 def test_parameters_of_two_dtypes_in_one_optimiser(rng):
@@ -418,29 +369,18 @@ def test_norm_of_subnormals():
 
 
 @pytest.mark.parametrize("power", [0, 600, -600])  # float64 scaled beyond 1e+-100 (rescaled), and not
-def test_norm_accurate_and_thread_independent(rng, power, kernel_path):
-    """optim._norm64 (one pass, csrc/optim.cpp sum_squares) against the exactly rounded norm:
-    entries that are float32 numbers times 2^power, so each square is exact in float64 and
-    math.fsum of the squares is the exact sum rounded once. 200,003 entries spanning 1e-20 to
-    1e20 (13 of the kernel's blocks, a ragged tail). Bound: the blocked sum's (16 Ki / 8 + 8 +
-    13) u = 2.3e-13 relative, halved by the square root; 1e-12. And bitwise the same on 1 and 2
-    threads (the blocks are summed alone and then in order, whichever thread took them)."""
-    import pyvf
+def test_norm_accurate(rng, power):
+    """optim._norm64 (NumPy's pairwise sum of the float64 squares) against the exactly rounded
+    norm: entries that are float32 numbers times 2^power, so each square is exact in float64 and
+    math.fsum of the squares is the exact sum rounded once. 200,003 entries spanning 1e-20 to 1e20.
+    Bound: the pairwise sum's (128 + log2(200003 / 128)) u = 1.5e-14 relative (blocks of 128
+    summed in order, then pairwise), halved by the square root; 1e-12."""
     y = (10.0 ** rng.uniform(-20, 20, 200_003) * rng.standard_normal(200_003)).astype(np.float32)
     cases = {"float32": y} if power == 0 else {}
     cases["float64"] = np.ldexp(y.astype(np.float64), power)
-    saved = pyvf.num_threads()
-    try:
-        for name, x in cases.items():
-            exact = math.ldexp(math.sqrt(math.fsum(np.ldexp(y.astype(np.float64), 0) ** 2)), power)
-            got = {}
-            for threads in (1, 2):
-                pyvf.set_num_threads(threads)
-                got[threads] = optim._norm64(x)
-            assert got[1] == got[2], f"{name}: {got}"
-            assert_close(f"{name} norm", got[1], exact, rtol=1e-12)
-    finally:
-        pyvf.set_num_threads(saved)
+    for name, x in cases.items():
+        exact = math.ldexp(math.sqrt(math.fsum(np.ldexp(y.astype(np.float64), 0) ** 2)), power)
+        assert_close(f"{name} norm", optim._norm64(x), exact, rtol=1e-12)
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -25,7 +25,7 @@ oracle tests and benchmarks compare the kernel against, and costs O(T^2) memory 
 import numpy as np
 
 from .. import _checks, _core
-from .layers import linear_backward, linear_forward
+from .layers import linear_backward, linear_forward, matmul
 
 __all__ = [
     "branching_attention",
@@ -150,9 +150,8 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     the context's part for the R queries of a head in one product with the cached keys (not
     copied). Only the attended blocks are computed, Nc + 1 block pairs per query; the kernel
     would visit every block of a tree (1, R*B, H, Nc + 1, L, dh): (Nc+1)(Nc+2)/2 pairs, 3.5
-    times the work at Nc = 5. The products are pyvf's gemm (_core.matmul, float32 accumulators
-    in float32); the softmax is one pass (csrc/branching_attention.cpp context_softmax) instead of
-    the kernel's online one, so o agrees with the kernel's up to rounding (tests/test_scene_cache.py
+    times the work at Nc = 5. The products are pyvf's GEMM (layers.matmul); the softmax is one pass instead of the
+    kernel's online one, so o agrees with the kernel's up to rounding (tests/test_scene_cache.py
     bounds it).
     """
     _checks.float_array("q", q)
@@ -174,34 +173,29 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     for name, a in (("q", q), ("k", k), ("v", v), ("k_ctx", k_ctx), ("v_ctx", v_ctx)):
         _checks.finite(name, a)
     C, G, n = k_ctx.shape[2] * L, B * H, R * B * H  # context keys, heads, query blocks
-    kc, vc = (_checks.c_order(a).reshape(G, C, dh) for a in (k_ctx, v_ctx))  # (G, C, dh), no copy
-    qt = np.ascontiguousarray(q.reshape(R, G, L, dh).transpose(0, 1, 3, 2))  # (R, G, dh, L)
-    # logits, transposed (keys as rows): the context's for all R queries of a head in one product
-    sc = np.empty((G, C, R * L), dtype=q.dtype)  # s_ctx^T = K_ctx Q^T, Q the R queries' rows
-    _core.matmul(sc, kc, np.ascontiguousarray(qt.transpose(1, 2, 0, 3)).reshape(G, dh, R * L), False)
-    so = np.empty((n, L, L), dtype=q.dtype)  # s_own^T = k q^T of each query block with its own keys
-    _core.matmul(so, _checks.c_order(k).reshape(n, L, dh), qt.reshape(n, dh, L), False)
-    if scale != 1.0:  # docs/math.md §2: the published model's scale is 1
-        sc *= q.dtype.type(scale)
-        so *= q.dtype.type(scale)
+    qh = np.ascontiguousarray(q.reshape(R, G, L, dh).transpose(1, 0, 2, 3)).reshape(G, R * L, dh)  # per head
+    kc, vc = k_ctx.reshape(G, C, dh), v_ctx.reshape(G, C, dh)  # (G, C, dh)
+    # logits s_ij = scale * q_i . k_j, against the context's keys (the R queries of a head in one
+    # product) and against the own block's
+    with np.errstate(over="ignore", invalid="ignore"):  # checked below
+        sc = scale * matmul(qh, kc, tb=True).reshape(G, R, L, C).transpose(1, 0, 2, 3)  # (R, G, L, C)
+        so = scale * matmul(q.reshape(n, L, dh), k.reshape(n, L, dh), tb=True).reshape(R, G, L, L)  # (R, G, L, L)
     _check_finite_result("context_attention_forward", sc, so)
-    # the softmax over all T = C + L keys of each query, kept in the two parts, on pyvf's threads:
-    # s -> p^T = exp(s - m) in place, m the query's largest logit, denom = the sum of its p (in
-    # double); every key the query attends (nothing is masked: exact exclusion)
-    m, denom = np.empty((R, G, L), q.dtype), np.empty((R, G, L), q.dtype)  # (R, G, L)
-    _core.context_softmax(sc, so, m, denom)
-    # o = (p^T)^T V over the context's values, then over the own block's
-    oc = np.empty((G, R * L, dh), dtype=q.dtype)
-    _core.matmul(oc, sc, vc, True)
-    o = np.empty((n, L, dh), dtype=q.dtype)
-    _core.matmul(o, so, _checks.c_order(v).reshape(n, L, dh), True)
-    o = o.reshape(R, G, L, dh)
-    o += oc.reshape(G, R, L, dh).transpose(1, 0, 2, 3)
-    o /= denom[..., None]
+    # the softmax over all T = C + L keys of each query, kept in the two parts: p = exp(s - m), m the
+    # query's largest logit, denom = the sum of its p (in float64); every key the query attends
+    # (nothing is masked: exact exclusion)
+    m = np.maximum(sc.max(axis=-1, keepdims=True), so.max(axis=-1, keepdims=True))  # (R, G, L, 1)
+    pc, po = np.exp(sc - m), np.exp(so - m)  # (R, G, L, C), (R, G, L, L)
+    denom = pc.sum(axis=-1, keepdims=True, dtype=np.float64) + po.sum(axis=-1, keepdims=True, dtype=np.float64)
+    # o = sum_j p_j v_j / denom over the context's values and the own block's
+    with np.errstate(over="ignore", invalid="ignore"):  # checked below
+        oc = matmul(np.ascontiguousarray(pc.transpose(1, 0, 2, 3)).reshape(G, R * L, C), vc)  # (G, R L, dh)
+        oo = matmul(po.reshape(n, L, L), v.reshape(n, L, dh)).reshape(R, G, L, dh)  # (R, G, L, dh)
+        o = ((oo + oc.reshape(G, R, L, dh).transpose(1, 0, 2, 3)) / denom).astype(q.dtype)  # (R, G, L, dh)
     # the sums of p v before the division overflow where |v| is within a factor T of the dtype's
     # largest value, though o itself (a weighted mean of v) fits: refused, as the kernel refuses it
     _check_finite_result("context_attention_forward", o)
-    lse = m.astype(np.float64) + np.log(denom.astype(np.float64))  # (R, G, L)
+    lse = (m.astype(np.float64) + np.log(denom))[..., 0]  # (R, G, L)
     return o.reshape(R, B, H, 1, L, dh), lse.reshape(R, B, H, 1, L)
 
 
@@ -284,13 +278,11 @@ def branching_attention_reference_vjp(q, k, v, do, scale=1.0):
 
 def _split_heads(t, n_head, col=0, width=None):
     """Columns col:col + width of t (R, B, N, L, w) -> (R, B, H, N, L, dh), C-contiguous (head h =
-    columns col + h*dh:col + (h+1)*dh); width defaults to w. Copied on pyvf's threads
-    (csrc/elementwise.cpp heads_split)."""
+    columns col + h*dh:col + (h+1)*dh); width defaults to w."""
     R, B, N, L, w = t.shape
     width = w if width is None else width
-    out = np.empty((R, B, n_head, N, L, width // n_head), t.dtype)  # (R, B, H, N, L, dh)
-    _core.heads_split(out, _checks.c_order(t), col)
-    return out
+    heads = t[..., col:col + width].reshape(R, B, N, L, n_head, width // n_head)  # (R, B, N, L, H, dh)
+    return np.ascontiguousarray(heads.transpose(0, 1, 4, 2, 3, 5))  # (R, B, H, N, L, dh)
 
 
 def _merge_heads(t, out=None, col=0):
@@ -299,7 +291,7 @@ def _merge_heads(t, out=None, col=0):
     R, B, H, N, L, dh = t.shape
     if out is None:
         out = np.empty((R, B, N, L, H * dh), t.dtype)
-    _core.heads_merge(out, _checks.c_order(t), col)
+    out[..., col:col + H * dh] = t.transpose(0, 1, 3, 4, 2, 5).reshape(R, B, N, L, H * dh)
     return out
 
 

@@ -14,6 +14,8 @@ inf or NaN to the next layer. Views of any layout are accepted (strided, negativ
 read-only); inputs are never modified.
 """
 
+import math
+
 import numpy as np
 
 from .. import _checks, _core
@@ -42,7 +44,7 @@ def _check_linear(x, w, b, names=("x", "w", "b")):
         raise ValueError(f"{nb} must have shape (1, {dout}) (dout = {nw}.shape[1]), got {b.shape}")
 
 # ---------------------------------------------------------------------------------------
-# matmul: the products of the linear layers and the tied logits
+# matmul (pyvf's GEMM) and add (NumPy's), in the forms the models call
 
 
 def matmul(a, b, ta=False, tb=False, bias=None):
@@ -55,7 +57,10 @@ def matmul(a, b, ta=False, tb=False, bias=None):
     increasing k, so the result is bitwise the same for any thread count (OpenBLAS's is not for
     some shapes), and the threads are pyvf's, which sleep between calls, where the BLAS's spin for
     milliseconds after each call on the cores pyvf's kernels need (a 2-thread kernel right after a
-    2-thread BLAS product ran at the speed of one thread)."""
+    2-thread BLAS product ran at the speed of one thread; measured again with the tiny transformer
+    on 2 busy cores: np.matmul's 2 BLAS threads made its training step 14x slower, 1143 ms against
+    79 ms). Its reference is the expression itself, np.matmul(op(a), op(b)) + bias: the tests
+    (tests/test_conv.py, section 7) hold the kernel to it in float64."""
     _checks.float_array("a", a)
     _checks.float_array("b", b, a, "a")
     if bias is not None:
@@ -73,38 +78,10 @@ def matmul(a, b, ta=False, tb=False, bias=None):
     return c[0] if one else c
 
 
-def _same_or_apart(out, a):
-    """out is a's very memory (both C-contiguous, one shape and dtype), or shares none of it: a
-    shifted overlap would have the kernel read elements it already wrote (NumPy copies first)."""
-    return out.ctypes.data == a.ctypes.data or not np.may_share_memory(out, a)
-
-
 def add(a, b, out=None):
-    """a + b for two arrays of one shape and float dtype, in pyvf's threads where both (and out)
-    are C-contiguous (the residual adds; NumPy's run on one core): bitwise NumPy's a + b, one
-    rounding per element; NumPy's np.add otherwise. out: None (a new array), or where to write
-    it, a or b itself included (an out that overlaps a or b otherwise goes to np.add, which
-    copies first)."""
-    fast = (a.shape == b.shape and a.dtype == b.dtype and a.dtype in _checks.FLOATS and a.flags.c_contiguous
-            and b.flags.c_contiguous and (out is None or (out.shape == a.shape and out.dtype == a.dtype
-                                                          and out.flags.c_contiguous and out.flags.writeable
-                                                          and _same_or_apart(out, a) and _same_or_apart(out, b))))
-    if not fast:
-        return np.add(a, b, out=out)
-    out = np.empty_like(a) if out is None else out
-    _core.add(out, a, b)
-    return out
-
-
-def column_sums(a):
-    """a (M, N) float -> (1, N): each column summed in increasing row in a's dtype, the order of
-    np.add.accumulate (and of NumPy's a.sum(axis=0, keepdims=True)), in pyvf's threads (a bias
-    gradient; NumPy's sum ran on one core)."""
-    if not (a.ndim == 2 and a.dtype in _checks.FLOATS):
-        raise ValueError(f"column_sums needs a 2-D float array, got {a.dtype} {a.shape}")
-    out = np.empty((1, a.shape[1]), dtype=a.dtype)
-    _core.column_sums(out, _checks.c_order(a))
-    return out
+    """a + b (np.add; out as np.add's, a or b itself included). Kept as the models' name for the
+    residual adds."""
+    return np.add(a, b, out=out)
 
 
 # ---------------------------------------------------------------------------------------
@@ -126,7 +103,7 @@ def _linear_backward(dy, x, w):
         # forward was y = x @ w + b
         dx = matmul(dy2, w, tb=True).reshape(x.shape)  # dx = dy @ w^T
         dw = matmul(x.reshape(M, din), dy2, ta=True)  # dw = x^T @ dy
-        db = column_sums(dy2)  # db = sum over rows of dy
+        db = dy2.sum(axis=0, keepdims=True)  # db = sum over rows of dy
     return dx, dw, db
 
 
@@ -161,7 +138,10 @@ def layernorm_forward(x, gamma, beta, eps=1e-5):
     spread 0.1 keeps its digits and a constant row gives y = beta exactly. Rows whose squares
     overflow (|x - mean| beyond 1e154 in float64) are scaled by a power of two first, so they
     normalise too. Bitwise the same for any thread count. cache: xhat (..., d), rstd (..., 1),
-    gamma."""
+    gamma. layernorm_forward_numpy below is the same math in NumPy (float64 throughout), the
+    reference the kernel is tested against; the kernel stays because NumPy's ten passes and their
+    temporaries took the tiny transformer's training step below 1.3x torch's speed
+    (pyvf bench transformer --quick)."""
     _checks.finite_float("x", x)
     if x.ndim < 1 or x.shape[-1] == 0:
         raise ValueError(f"x must have a last dimension d >= 1 to normalise over, got shape {x.shape}")
@@ -197,8 +177,47 @@ def layernorm_backward(dy, cache):
     return dx, dgamma, dbeta
 
 
+def layernorm_forward_numpy(x, gamma, beta, eps=1e-5):
+    """layernorm_forward's math in NumPy, the reference the C++ kernel is tested against (and the
+    same cache). In float64 whatever x's dtype, rounded to it once at the end. Two-pass: the mean, then the
+    variance as the mean square of the centred row, centred a second time by its own residual
+    mean, so that a row of mean 1e4 and spread 0.1 keeps its digits and a constant row gives
+    y = beta exactly. Each row is first divided by a power of two s <= max|x| (exact), so that
+    rows near float64's largest value sum and square without overflow; eps enters as eps / s^2.
+    cache: xhat (..., d) and rstd (..., 1), rounded to x's dtype, and gamma."""
+    d = x.shape[-1]
+    x64 = x.astype(np.float64)  # (..., d)
+    amax = np.abs(x64).max(axis=-1, keepdims=True)  # (..., 1)
+    s = np.ldexp(1.0, np.frexp(np.where(amax > 0, amax, 1.0))[1] - 1)  # (..., 1): s <= max|x| < 2 s
+    xs = x64 / s  # (..., d), |xs| < 2
+    xc = xs - xs.mean(axis=-1, keepdims=True)  # (..., d)
+    xc -= xc.mean(axis=-1, keepdims=True)  # the residual of the rounded mean (0 for a constant row)
+    with np.errstate(over="ignore"):  # eps / s^2 beyond float64 (rows below 1e-150): rstd 0, xhat 0
+        rstd_s = 1 / np.sqrt((xc * xc).mean(axis=-1, keepdims=True) + eps / (s * s))  # (..., 1)
+    xhat = xc * rstd_s  # (..., d)
+    y = (xhat * gamma.astype(np.float64) + beta).astype(x.dtype)  # (..., d)
+    return y, (xhat.astype(x.dtype), (rstd_s / s).astype(x.dtype), gamma)  # rstd (..., 1) in x's units
+
+
+def layernorm_backward_numpy(dy, cache):
+    """-> dx (..., d), dgamma (d,), dbeta (d,), in float64, rounded to dy's dtype."""
+    xhat, rstd, gamma = cache
+    d = xhat.shape[-1]
+    dy64 = dy.astype(np.float64)  # (..., d)
+    # forward was y = xhat * gamma + beta, so dxhat = dy * gamma
+    dxhat = dy64 * gamma  # (..., d)
+    # forward was xhat = (x - mean(x)) * rstd, rstd = (mean((x - mean)^2) + eps)^(-1/2), so
+    # dx = rstd * (dxhat - mean(dxhat) - xhat * mean(dxhat * xhat))
+    xhat, rstd = xhat.astype(np.float64), rstd.astype(np.float64)  # (..., d), (..., 1)
+    dx = rstd * (dxhat - dxhat.mean(axis=-1, keepdims=True) - xhat * (dxhat * xhat).mean(axis=-1, keepdims=True))
+    dgamma = (dy64 * xhat).reshape(-1, d).sum(axis=0)  # (d,): sum over rows of dy * xhat
+    dbeta = dy64.reshape(-1, d).sum(axis=0)  # (d,): sum over rows of dy
+    return tuple(g.astype(dy.dtype) for g in (dx, dgamma, dbeta))
+
+
 # ---------------------------------------------------------------------------------------
-# GELU, exact erf form (the C++ kernel: accurate in the far negative tail, see csrc/elementwise.cpp)
+# GELU, exact erf form: the C++ kernel (accurate in the far negative tail, see csrc/elementwise.cpp)
+# beside its NumPy reference
 
 
 def _gelu(x):
@@ -226,6 +245,26 @@ def gelu_backward(dy, cache):
     x = cache
     _grad("dy", dy, x, x.shape)
     return (_checks.finite_result("gelu_backward", _gelu_backward(dy, x), "dx"),)
+
+
+_erfc = np.frompyfunc(math.erfc, 1, 1)  # C99's erfc, one element at a time (NumPy has none)
+
+
+def gelu_forward_numpy(x):
+    """gelu_forward's math in NumPy, the reference the C++ kernel is tested against: in float64,
+    Phi(x) = erfc(-x / sqrt(2)) / 2 (erfc, not 1 + erf(x / sqrt(2)), which loses every digit of
+    Phi for x <= -6), y = x * Phi(x), rounded once. Slow (Python's erfc per element)."""
+    x64 = x.astype(np.float64)  # (...)
+    Phi = 0.5 * _erfc(-x64 / math.sqrt(2)).astype(np.float64)  # (...)
+    return (x64 * Phi).astype(x.dtype), x
+
+
+def gelu_backward_numpy(dy, cache):
+    """-> dx: forward was y = x * Phi(x), so dx = dy * (Phi(x) + x * phi(x)), phi the normal pdf."""
+    x64 = cache.astype(np.float64)  # (...)
+    Phi = 0.5 * _erfc(-x64 / math.sqrt(2)).astype(np.float64)  # (...)
+    phi = np.exp(-0.5 * x64 * x64) / math.sqrt(2 * math.pi)  # (...)
+    return ((dy * (Phi + x64 * phi)).astype(cache.dtype),)
 
 
 # ---------------------------------------------------------------------------------------

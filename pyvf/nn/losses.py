@@ -10,7 +10,7 @@ gradient that overflows the dtype raises ValueError. Inputs are never modified.
 
 import numpy as np
 
-from .. import _checks, _core
+from .. import _checks
 
 
 def cross_entropy_forward(logits, targets, label_smoothing=0.0):
@@ -18,9 +18,8 @@ def cross_entropy_forward(logits, targets, label_smoothing=0.0):
 
     logits (M, V) float, targets (M,) integers in [0, V) -> loss (M,).
     Target distribution q = (1 - eps) * onehot(target) + eps / V, loss = -sum_v q_v log p_v,
-    log p = (logits - max) - logsumexp(logits - max): logits of any size give a finite loss.
-    label_smoothing in [0, 1]. The C++ kernel (csrc/cross_entropy.cpp, rows on pyvf's threads):
-    the exponentials in the dtype, their sum, the log and the loss in float64, rounded once.
+    log p = z - logsumexp(z), z = logits - max: logits of any size give a finite loss.
+    label_smoothing in [0, 1]. In float64, the loss rounded to the logits' dtype once.
     cache: the logits (not copied: do not modify them before the backward), each row's max and
     log-sum (float64), the targets, eps.
     """
@@ -35,11 +34,18 @@ def cross_entropy_forward(logits, targets, label_smoothing=0.0):
         raise ValueError(f"targets must be in [0, {V}) (V = logits.shape[1]), got values in "
                          f"[{targets.min()}, {targets.max()}]")
     eps = _checks.real("label_smoothing", label_smoothing, 0.0, 1.0)
-    logits = _checks.c_order(logits)
-    targets = np.ascontiguousarray(targets, dtype=np.int64)  # the values, checked in range above
-    loss, rowmax = np.empty(M, logits.dtype), np.empty(M, logits.dtype)  # (M,), (M,)
-    logsum = np.empty(M, np.float64)  # (M,)
-    _core.cross_entropy_forward(loss, rowmax, logsum, logits, targets, eps)
+    rowmax = logits.max(axis=1, keepdims=True).astype(np.float64)  # (M, 1)
+    with np.errstate(over="ignore"):  # logits spanning beyond float64 give z = -inf: checked below
+        z = logits - rowmax  # (M, V) float64, <= 0
+        logsum = np.log(np.exp(z).sum(axis=1, keepdims=True))  # (M, 1): log sum_v exp(z_v), in [0, log V]
+        # -sum_v q_v log p_v with log p_v = z_v - logsum: (1 - eps) (logsum - z_t) + eps (logsum - mean_v z_v)
+        z_t = np.take_along_axis(z, targets.reshape(M, 1), axis=1)  # (M, 1)
+        loss = np.zeros((M, 1))  # (M, 1); a term whose weight is 0 is left out (0 * inf is NaN)
+        if eps < 1:
+            loss += (1 - eps) * (logsum - z_t)
+        if eps > 0:
+            loss += eps * (logsum - z.mean(axis=1, keepdims=True))
+        loss = loss[:, 0].astype(logits.dtype)  # (M,)
     _checks.finite_result("cross_entropy_forward", loss, "the loss")  # logits spanning beyond the dtype
     return loss, (logits, rowmax, logsum, targets, eps)
 
@@ -51,8 +57,12 @@ def cross_entropy_backward(dloss, cache):
     _checks.finite_float("dloss", dloss, logits, "the logits")
     if dloss.shape != (M,):
         raise ValueError(f"dloss must have shape (M,) = ({M},), got {dloss.shape}")
-    dlogits = np.empty_like(logits)  # (M, V)
-    _core.cross_entropy_backward(dlogits, _checks.c_order(dloss), logits, rowmax, logsum, targets, eps)
+    # forward was loss = -sum_v q_v (z_v - logsum), so dloss/dz_v = p_v - q_v, p = exp(z - logsum)
+    with np.errstate(over="ignore"):  # z = -inf: p = 0
+        dz = np.exp(logits - rowmax - logsum)  # (M, V): p
+    dz -= eps / V  # q's smoothing share
+    dz[np.arange(M), targets] -= 1 - eps  # and its target share
+    dlogits = (dz * dloss[:, None]).astype(logits.dtype)  # (M, V)
     return (_checks.finite_result("cross_entropy_backward", dlogits, "dlogits"),)
 
 

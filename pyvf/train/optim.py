@@ -23,7 +23,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .. import _checks, _core
+from .. import _checks
 
 __all__ = [
     "AdamW",
@@ -99,6 +99,39 @@ def published_weight_decay(name):
 
 
 # ---------------------------------------------------------------------------------------
+# the Adam update (docs/math.md §4), one parameter
+
+
+def _adam_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras):
+    """Update t (1, 2, ...) of p by gradient g with moments m, v -> the new (p, m, v).
+    p, m, v, g: arrays of one shape and dtype, not modified; the rest Python floats (wd 0: no
+    decay). Every operation rounds once in p's dtype, the scalars rounded to it where they meet
+    an array (NumPy's rule for a Python float), in the order of the formulas in the comments
+    (sums and products of two terms commute exactly); in place where that saves a temporary
+    (each one is a pass over memory, and the update runs over every parameter each step)."""
+    bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t  # bias corrections
+    with np.errstate(over="ignore", invalid="ignore"):  # the caller checks the results
+        m1 = m * b1  # m1 = b1 m + (1 - b1) g
+        m1 += (1 - b1) * g
+        v1 = (1 - b2) * g  # v1 = b2 v + ((1 - b2) g) g
+        v1 *= g
+        v1 += v * b2
+        den = np.sqrt(v1)
+        if keras:  # u = (m1 (lr sqrt(bc2) / bc1)) / (sqrt(v1) + eps): eps on the raw sqrt(v)
+            den += eps
+            u = m1 * (lr * math.sqrt(bc2) / bc1)
+            u /= den
+        else:  # u = (lr / bc1) (m1 / (sqrt(v1) / sqrt(bc2) + eps)): eps on the bias-corrected sqrt(v / bc2)
+            den /= math.sqrt(bc2)
+            den += eps
+            u = m1 / den
+            u *= lr / bc1
+        p1 = p * (1 - lr * wd) if wd else p.copy()  # decoupled weight decay, with the scheduled lr
+        p1 -= u  # p1 = p (1 - lr wd) - u
+    return p1, np.asarray(m1), np.asarray(v1)  # a 0-d p's arithmetic gives NumPy scalars
+
+
+# ---------------------------------------------------------------------------------------
 # AdamW
 
 
@@ -133,9 +166,7 @@ class AdamW:
     1 - lr * wd); it uses the scheduled lr, not the bias-corrected step size.
 
     All arithmetic is in the parameters' dtype; the bias corrections and step sizes are
-    Python floats (float64), rounded to that dtype where they meet the arrays. One fused kernel
-    (csrc/optim.cpp) applies the update on pyvf's threads, each operation rounded once in the
-    order written above: bitwise NumPy's array expressions of it, for any thread count (the
+    Python floats (float64), rounded to that dtype where they meet the arrays (_adam_update: the
     torch convention's update is lr / (1 - b1^t) * (m / denom), that product last).
     state_dict()/load_state_dict() save and restore the step count and the moments, so that a
     run that is saved, loaded and continued matches an uninterrupted run bit for bit.
@@ -171,7 +202,7 @@ class AdamW:
         self.decayed = self._resolve_decay(decay, params)  # frozenset of names
         self.params = params
         self.step_count = 0
-        self.exp_avg = {k: np.zeros(p.shape, p.dtype) for k, p in params.items()}  # C order (the kernel's)
+        self.exp_avg = {k: np.zeros(p.shape, p.dtype) for k, p in params.items()}
         self.exp_avg_sq = {k: np.zeros(p.shape, p.dtype) for k, p in params.items()}
 
     @staticmethod
@@ -226,30 +257,15 @@ class AdamW:
         lr = self.lr_at(self.step_count)
         t = self.step_count + 1
         b1, b2 = self.betas
-        bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t  # bias corrections
-        keras = self.eps_convention == "keras"
-        # the kernel's scalars (csrc/optim.cpp), Python floats it rounds to the parameters' dtype:
-        # a = lr / bc1 (torch) or the Keras step size lr sqrt(bc2) / bc1; decay = 1 - lr wd
-        a = lr * math.sqrt(bc2) / bc1 if keras else lr / bc1
-        scalars = (b1, 1 - b1, b2, 1 - b2, a, math.sqrt(bc2), self.eps, 1 - lr * self.weight_decay)
-        work = {}  # name -> the kernel's C-contiguous operands (copies only of other layouts)
-        for k, p in self.params.items():
-            for state in (self.exp_avg, self.exp_avg_sq):
-                state[k] = _checks.c_order(state[k])
-            work[k] = (_checks.c_order(p), self.exp_avg[k], self.exp_avg_sq[k], _checks.c_order(grads[k]))
-        # one kernel call per dtype for every tensor at once (one parallel region, not one a tensor):
-        # name lists and the kernel's lists p, m, v, g, decayed
-        groups = {}
-        for k, arrays in work.items():
-            names, *lists = groups.setdefault(arrays[0].dtype, ([], [], [], [], [], []))
-            names.append(k)
-            for lst, a in zip(lists, (*arrays, self.weight_decay != 0 and k in self.decayed)):
-                lst.append(a)
-        # every new value is checked first (a pass that writes nothing), then written: an update
-        # that would overflow (huge gradients or learning rate) raises with nothing modified
-        # (a NaN or inf gradient gives a non-finite update: it is named as such)
-        bad = [k for names, *lists in groups.values()
-               for k, ok in zip(names, _core.adam_check(*lists, scalars, keras)) if not ok]
+        # every new value is computed and checked before any is written: an update that would
+        # overflow (huge gradients or learning rate) raises with nothing modified (a NaN or inf
+        # gradient gives a non-finite update: it is named as such). Peak memory: the new p, m, v
+        # of every parameter beside the old ones.
+        new = {k: _adam_update(p, self.exp_avg[k], self.exp_avg_sq[k], grads[k], lr, t, b1, b2, self.eps,
+                               self.weight_decay if k in self.decayed else 0.0, self.eps_convention == "keras")
+               for k, p in self.params.items()}
+        # p1 finite needs m1 finite (else u is not); v1 is checked itself (an inf v1 gives u = 0)
+        bad = [k for k, (p1, _, v1) in new.items() if not (_checks.all_finite(p1) and _checks.all_finite(v1))]
         nonfinite = _nonfinite_names(grads) if bad else []
         if nonfinite:
             raise ValueError(f"grads contain NaN or inf in {nonfinite}: no update applied "
@@ -258,13 +274,11 @@ class AdamW:
         if nonfinite:
             raise ValueError(f"params contain NaN or inf in {nonfinite}: no update applied")
         if bad:
-            raise ValueError(f"the update of {sorted(bad, key=list(work).index)} overflows (gradients or learning "
+            raise ValueError(f"the update of {bad} overflows (gradients or learning "
                              "rate too large for the dtype): no update applied")
-        for names, *lists in groups.values():
-            _core.adam_apply(*lists, scalars, keras)
-        for k, arrays in work.items():
-            if arrays[0] is not self.params[k]:  # a parameter of another layout: updated as a copy
-                np.copyto(self.params[k], arrays[0])
+        for k, (p1, m1, v1) in new.items():
+            np.copyto(self.params[k], p1)  # in place: the caller's arrays are the model's
+            self.exp_avg[k], self.exp_avg_sq[k] = m1, v1
         self.step_count = t
         return lr
 
@@ -403,20 +417,19 @@ _TINY, _HUGE = 1e-100, 1e100  # outside this range of max|g| the squares are res
 
 
 def _norm64(g):
-    """|g|_2 of a finite g, its squares summed in float64 (a Python float) by one pass on pyvf's
-    threads (csrc/optim.cpp sum_squares: the same sum for any thread count). A float64 tensor
-    whose largest entry is beyond 1e+-100 is divided by it first, so a gradient of 1e200 or
-    1e-200 (or of subnormals) gets its norm instead of inf or 0."""
-    x = _checks.c_order(g)
-    if x.size == 0:
+    """|g|_2 of a finite g, its squares summed in float64 (a Python float; NumPy's pairwise sum, the
+    same for any thread count). A tensor whose largest entry is beyond 1e+-100 is divided by it
+    first, so a gradient of 1e200 or 1e-200 (or of subnormals) gets its norm instead of inf or 0."""
+    if g.size == 0:
         return 0.0
-    amax, sumsq = _core.sum_squares(x)
+    x = g.astype(np.float64, copy=False).ravel()  # (n,)
+    amax = float(np.abs(x).max())
     if amax == 0.0:
         return 0.0
-    if amax > _HUGE or amax < _TINY:  # float64 only, and rare: NumPy, x / amax (also for subnormals,
-        y = x.ravel() / amax            # whose 1 / amax overflows where a power-of-two scale would)
+    if amax > _HUGE or amax < _TINY:  # float64 only, and rare: x / amax (also for subnormals,
+        y = x / amax                    # whose 1 / amax overflows where a power-of-two scale would)
         return amax * math.sqrt(float(np.square(y).sum()))
-    return math.sqrt(sumsq)
+    return math.sqrt(float(np.square(x).sum()))
 
 
 def _hypot_all(norms):
@@ -446,10 +459,7 @@ def _scale(g, num, den):
     would be rounded to a few bits or to 0, so g / den * num is computed in float64 instead."""
     coef = num / den
     if coef >= np.finfo(g.dtype).smallest_normal:
-        if g.flags.c_contiguous:
-            _core.scale_by(g, coef)  # g *= coef on pyvf's threads, coef rounded to g's dtype as NumPy does
-        else:
-            g *= coef
+        g *= coef  # coef rounded to g's dtype
     else:
         with np.errstate(under="ignore"):  # results that small are correctly rounded subnormals
             np.copyto(g, g.astype(np.float64) / den * num, casting="same_kind")
