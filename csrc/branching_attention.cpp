@@ -538,60 +538,13 @@ int attn_backward_plain(T* dq, T* dk, T* dv, const double* lse, const T* q, cons
     return kAttnOk;
 }
 
-// ---------------------------------------------------------------------------------------
-// The scene cache's softmax (branching_attention.h). Task (r, g): the columns r L .. r L + L of
-// sc[g] and the block so[r G + g], which no other task touches; each query's max and sum over its
-// keys in key order (elementwise across the L queries, so the loops vectorise), the same for any
-// thread count.
-
-namespace {
-
-// row[l] = exp(row[l] - mx[l]) for l < L; acc[l] += the new row[l]
-template <typename T> inline void exp_row(T* row, const T* mx, double* acc, int64_t L) {
-    constexpr int64_t W = Simd<T>::W;
-    int64_t l = 0;
-    for (; l + W <= L; l += W) vstore<T>(row + l, exp_vec(vload<T>(row + l) - vload<T>(mx + l)));
-    for (; l < L; ++l) row[l] = exp_scalar<T>(row[l] - mx[l]);
-    for (l = 0; l < L; ++l) acc[l] += row[l];
-}
-
-}  // namespace
-
-template <typename T>
-void context_softmax(T* sc, T* so, T* m, T* denom, int64_t R, int64_t G, int64_t L, int64_t C) {
-    const int64_t RL = R * L;
-    std::vector<double> sums(R * G * L, 0.0);  // the tasks' sums (allocated here: no throw in the region)
-    RegionEnd end;
-#pragma omp parallel num_threads(num_threads()) if (parallel_work(R * G * (C + L) * L, 1 << 15))
-    {
-#pragma omp for schedule(static) nowait
-        for (int64_t t = 0; t < R * G; ++t) {
-            const int64_t r = t / G, g = t % G;
-            T* s1 = sc + g * C * RL + r * L;  // C rows, RL apart
-            T* s2 = so + (r * G + g) * L * L;  // L rows, L apart
-            T* mx = m + (r * G + g) * L;
-            double* acc = sums.data() + (r * G + g) * L;
-            for (int64_t l = 0; l < L; ++l) mx[l] = -std::numeric_limits<T>::infinity();
-            for (int64_t c = 0; c < C; ++c)
-                for (int64_t l = 0; l < L; ++l) mx[l] = std::max(mx[l], s1[c * RL + l]);
-            for (int64_t j = 0; j < L; ++j)
-                for (int64_t l = 0; l < L; ++l) mx[l] = std::max(mx[l], s2[j * L + l]);
-            for (int64_t c = 0; c < C; ++c) exp_row(s1 + c * RL, mx, acc, L);
-            for (int64_t j = 0; j < L; ++j) exp_row(s2 + j * L, mx, acc, L);
-            for (int64_t l = 0; l < L; ++l) denom[(r * G + g) * L + l] = static_cast<T>(acc[l]);
-        }
-        end.arrive();
-    }
-}
-
 #define PYVF_INSTANTIATE(T)                                                                        \
     template int attn_forward<T>(T*, double*, const T*, const T*, const T*, AttnDims, T);          \
     template int attn_backward<T>(T*, T*, T*, const double*, const T*, const T*, const T*,         \
                                   const T*, const T*, AttnDims, T);                                \
     template int attn_forward_plain<T>(T*, double*, const T*, const T*, const T*, AttnDims, T);    \
     template int attn_backward_plain<T>(T*, T*, T*, const double*, const T*, const T*, const T*,   \
-                                        const T*, const T*, AttnDims, T);                          \
-    template void context_softmax<T>(T*, T*, T*, T*, int64_t, int64_t, int64_t, int64_t);
+                                        const T*, const T*, AttnDims, T);
 PYVF_INSTANTIATE(float)
 PYVF_INSTANTIATE(double)
 

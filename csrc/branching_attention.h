@@ -34,13 +34,4 @@ template <typename T>
 int attn_backward_plain(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k,
                         const T* v, const T* o, const T* dout, AttnDims d, T scale);
 
-// The scene cache's softmax (pyvf/nn/attention.py context_attention_forward), in place. The
-// logits of R query rows' blocks, for G = B H heads, kept transposed (keys as rows, queries as
-// columns) in two parts: sc (G, C, R L) against the C cached context keys and so (R G, L, L)
-// against each block's own L keys (block r G + g). Every logit s becomes exp(s - m), m the
-// largest logit of its query over both parts; m and denom (the sum of the exps, accumulated in
-// double) are written, (R G, L) each.
-template <typename T>
-void context_softmax(T* sc, T* so, T* m, T* denom, int64_t R, int64_t G, int64_t L, int64_t C);
-
 }  // namespace pyvf

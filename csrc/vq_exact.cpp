@@ -3,7 +3,7 @@
 // compiled with -ffp-contract=off (CMakeLists.txt): with GCC's default the avx2 and avx512 paths
 // fused t * t + s into one FMA and the baseline path did not, so a float64 row on a tie of this
 // sum went to another code on another path (float32 inputs were unaffected: their differences
-// and squares are exact in double). -fno-lto keeps the option (as for optim.cpp).
+// and squares are exact in double). -fno-lto keeps the option.
 //
 // Test: tests/test_vq.py (test_float64_rerank_is_the_plain_sum_on_every_path).
 #include "vq.h"
