@@ -151,6 +151,6 @@ def test_every_region_names_the_thread_count():
             with open(os.path.join(ROOT, "csrc", name)) as f:
                 regions += [(name, i + 1, line.strip()) for i, line in enumerate(f)
                             if line.lstrip().startswith("#pragma omp parallel")]
-    assert len(regions) >= 20, regions  # the kernels' regions were found
+    assert {r[0] for r in regions} >= {"branching_attention.cpp", "conv.cpp", "vq.cpp"}, regions  # the scan finds them
     missing = [r for r in regions if "num_threads(num_threads())" not in r[2]]
     assert not missing, missing

@@ -650,7 +650,7 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     parser = argparse.ArgumentParser(prog="pyvf")
     cli_register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["runs", a, b])
-    assert "codebook held-out at step 2: mae " in capsys.readouterr().out  # printed as the runs trained
+    assert "codebook held-out at step 2: mae " in capsys.readouterr().err  # printed as the runs trained
     assert args.func(args) == 0 and capsys.readouterr().out.splitlines() == table
     args = parser.parse_args(["runs", a, b, "--step", "2"])
     assert args.func(args) == 0 and capsys.readouterr().out == pyvf.train.curves.runs_table([a, b], step=2)

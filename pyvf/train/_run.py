@@ -404,13 +404,16 @@ class Run:
 
     def log_eval(self, step, values):
         """Append one row of held-out figures to eval.csv (values: column -> float) and print it
-        beside its baselines (curves.eval_line). The row reads only the model: evaluation never
+        to stderr beside its baselines (curves.eval_line). The row reads only the model: evaluation never
         changes the training trajectory."""
         row = [str(step)] + [repr(float(values[c])) for c in self.eval_columns[1:-1]] + [f"{self.seconds():.3f}"]
         with open(self.eval_path, "a", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow(row)
         line = f"{self.kind} held-out at step {step}: {eval_line(values)}"  # as it trains, not only at the end
-        (self._bar.write if self._bar is not None else print)(line)
+        if self._bar is not None:
+            self._bar.write(line, file=sys.stderr)  # above the bar, on the bar's stream
+        else:
+            print(line, file=sys.stderr)
 
     # -----------------------------------------------------------------------------------
     # the loop
