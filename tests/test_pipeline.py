@@ -101,8 +101,10 @@ def test_ctrl_c_of_pyvf_train_says_where_its_stages_resume(tmp_path, monkeypatch
         assert main(command) == 130
     except KeyboardInterrupt:
         pytest.fail("KeyboardInterrupt escaped the command: the user sees a traceback")
-    assert capsys.readouterr().err == ("pyvf train: interrupted; rerun the same command to resume (codebook at step "
-                                       f"{PRESETS['smoke'].codebook_steps}, transformer at step 1)\n")
+    *held_out, last = capsys.readouterr().err.splitlines()  # the runs' held-out lines, then one line
+    assert all(" held-out at step " in line for line in held_out), held_out
+    assert last == ("pyvf train: interrupted; rerun the same command to resume (codebook at step "
+                    f"{PRESETS['smoke'].codebook_steps}, transformer at step 1)")
     monkeypatch.setattr(loops, "transformer_batch", real)
     assert main(command) == 0
     calls = json.loads((tmp_path / "run" / "transformer" / "config.json").read_text())["calls"]

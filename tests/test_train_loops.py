@@ -1193,6 +1193,7 @@ def test_runs_skips_foreign_folders_and_reads_torn_logs(tmp_path, rng, capsys):
     assert out.splitlines()[2] == want.splitlines()[2].replace("| a |", "| torn |") and err == ""
     train_codebook(images, CB, str(torn), steps=3, batch_size=2, eval_images=held_out, eval_every=1, **QUIET)
     assert [r[0] for r in _log(str(torn), "eval.csv")[1:]] == ["0", "1", "2", "3"]  # the trainer agrees
+    capsys.readouterr()  # its held-out lines
 
     header = open(os.path.join(a, "eval.csv")).read().splitlines()[0]
     damaged = {"config.json": b"{", "log.csv": open(os.path.join(a, "log.csv"), "rb").read() + b"\xff\xfe\n",
