@@ -27,6 +27,7 @@ import zlib
 
 import numpy as np
 
+from .._threads import set_num_threads
 from .._machine import cpu_name, median_time  # (re-exported: every benchmark imports them from here)
 from .._io import atomic_write_text
 from .._memory import map_fresh_pages
@@ -190,6 +191,15 @@ def run_worker(module, spec):
     if proc.returncode:
         raise RuntimeError(f"worker {' '.join(cmd[1:])} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def step_worker(worker_pyvf, worker_torch):
+    """The transformer's and the codebook's worker: {framework: "pyvf" | "torch", config, steps,
+    threads} -> worker_pyvf(config, steps) or worker_torch(config, steps), on `threads` threads."""
+    def worker(spec):
+        set_num_threads(spec["threads"])
+        return (worker_pyvf if spec["framework"] == "pyvf" else worker_torch)(spec["config"], spec["steps"])
+    return worker
 
 
 def worker_main(work):

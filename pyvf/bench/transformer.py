@@ -18,7 +18,7 @@ the torch worker.
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import checksums, compare_steps, step_figures, worker_main
+from pyvf.bench.common import checksums, compare_steps, step_figures, step_worker, worker_main
 
 WORKER = "pyvf.bench.transformer"  # this module, run as `python -m WORKER SPEC` (worker_main)
 
@@ -78,11 +78,7 @@ def worker_torch(name, steps):
     return dict(loss=out.item(), gradients=gradients, **step_figures(step, steps))
 
 
-def worker(spec):
-    """One framework's run in a worker process: {framework: "pyvf" | "torch", config, steps,
-    threads} -> worker_pyvf's or worker_torch's dict."""
-    pyvf.set_num_threads(spec["threads"])
-    return (worker_pyvf if spec["framework"] == "pyvf" else worker_torch)(spec["config"], spec["steps"])
+worker = step_worker(worker_pyvf, worker_torch)  # one framework's run in a worker process
 
 
 def describe(name):
