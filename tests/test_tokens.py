@@ -125,3 +125,48 @@ def test_reset_dead_codes_refuses(kw, name):
     q = EMAQuantizer(2, 3, dtype="float64")
     with pytest.raises(ValueError, match=name):
         q.reset_dead_codes(np.zeros((1, 2, 1, 3)), **kw)
+
+
+def test_empty_code_zero_exactly_at_empty_positions_nearest_of_the_rest_elsewhere():
+    rng = np.random.default_rng(3)
+    q = EMAQuantizer(3, 6, dtype="float64", seed=1)
+    z = rng.normal(size=(2, 3, 4, 4))
+    empty = rng.random((2, 4, 4)) < 0.5
+    flat = z.transpose(0, 2, 3, 1).reshape(-1, 3)
+    q.embeddings[:, 0] = flat[np.flatnonzero(~empty.ravel())[0]]  # code 0 nearest to a non-empty vector: not taken
+    out, _ = q.forward(z, empty=empty)
+    d = ((flat[:, None] - q.embeddings.T[None, 1:]) ** 2).sum(-1)  # (M, K - 1) brute force
+    np.testing.assert_array_equal(out.codes.ravel(), np.where(empty.ravel(), 0, d.argmin(1) + 1))
+    q.forward(z, train=True, empty=empty)  # first update (counter 1): code 0 = the empty vectors' mean
+    np.testing.assert_allclose(q.embeddings[:, 0], flat[empty.ravel()].mean(0), rtol=1e-4)  # Laplace eps 1e-5
+    with pytest.raises(ValueError, match="empty"):
+        q.forward(z, empty=empty[0])
+
+
+def test_empty_code_never_moves_and_codes_restart_on_object_vectors():
+    x = np.array([[0.0, 0.0], [40.0, 40.0], [3.0, 0.0], [0.0, 4.5]])  # vector 1 is empty: far, yet not taken
+    z = x.T.reshape(1, 2, 1, 4).copy()
+    empty = np.array([[[False, True, False, False]]])
+    q = _quantizer(np.array([[50.0, 50.0], [0.0, 0.0], [9.0, 9.0]]), [0.0, 2.0, 0.0])  # codes 0 and 2 dead
+    assert q.reset_dead_codes(z, restart="worst", empty=empty) == 1
+    np.testing.assert_array_equal(q.embeddings.T, [[50.0, 50.0], [0.0, 0.0], [0.0, 4.5]])
+    q.init_kmeans(z, 3, batch=1, rng=0, empty=empty)
+    np.testing.assert_array_equal(q.embeddings[:, 0], [40.0, 40.0])  # the empty vectors' mean
+
+
+def test_codebook_empty_code_matches_the_uint8_empty_patches():
+    import dataclasses
+
+    from pyvf.evaluate.metrics import to_model_images
+    from pyvf.models.codebook import Codebook
+    from pyvf.train.loops import TINY_CODEBOOK
+    rng = np.random.default_rng(4)
+    img = np.full((3, 64, 64, 3), 128, np.uint8)
+    img[:, 20:40, 10:30] = rng.integers(0, 256, (3, 20, 20, 3))  # objects
+    img[1, 63, 63] = (128, 128, 129)  # one pixel off the background: that corner patch is not empty
+    cb = Codebook(dataclasses.replace(TINY_CODEBOOK, empty_code=True), seed=0)
+    codes = cb.encode(to_model_images(img, cb.dtype))
+    np.testing.assert_array_equal(codes == 0, empty_patches(img, 8))
+    assert not (codes == 0)[1, 7, 7] and (codes == 0).sum() > 100
+    with pytest.raises(ValueError, match="empty_code"):
+        cb.layer_forward(cb._quantize_row, np.zeros((1, 32, 8, 8), np.float32))

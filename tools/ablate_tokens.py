@@ -36,6 +36,9 @@ CANDIDATES = {  # in the order they run: the likeliest to matter first
     "worst-reseat": ({"restart": "worst", "reseat": 32}, {}),
     "kmeans-worst-reseat": ({"restart": "worst", "reseat": 32, "kmeans": 10}, {}),
     "worst": ({"restart": "worst"}, {}),
+    "empty": ({}, {"empty_code": True}),
+    "empty-worst-reseat": ({"restart": "worst", "reseat": 32}, {"empty_code": True}),
+    "empty-kmeans-worst-reseat": ({"restart": "worst", "reseat": 32, "kmeans": 10}, {"empty_code": True}),
     "worst-reseat-n128": ({"restart": "worst", "reseat": 32}, {"n_embed": 128}),
     "worst-reseat-decay0.95": ({"restart": "worst", "reseat": 32}, {"decay": 0.95}),
 }

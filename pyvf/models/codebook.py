@@ -104,6 +104,10 @@ class CodebookConfig:
     codebook_weight: float = 1.0  # loss = rec_loss + perceptual_weight * perceptual + codebook_weight * commitment
     perceptual_weight: float = 0.0  # the LPIPS term (docs/math.md §4): needs a perceptual module, see Codebook
     dtype: str = "float32"
+    # pyvf's own, not published: code 0 stands for the empty patch, whose every pixel has the colour
+    # of the image's top-left pixel (a flat background, as SM7's); such patches take code 0 and no
+    # other patch does (Codebook.empty_patches). False: every patch takes its nearest code.
+    empty_code: bool = False
 
     def __post_init__(self):
         # integers: Python or NumPy (not bool), stored as int (the configuration is saved as JSON)
@@ -127,6 +131,9 @@ class CodebookConfig:
                              f"{[self.ch * m for m in self.ch_mult]} must be divisible by the 32 GroupNorm groups")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"CodebookConfig.dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        if not isinstance(self.empty_code, (bool, np.bool_)):
+            raise TypeError(f"CodebookConfig.empty_code must be True or False, got {self.empty_code!r}")
+        object.__setattr__(self, "empty_code", bool(self.empty_code))
 
     @property
     def token_size(self):
@@ -427,6 +434,8 @@ class Codebook(ModelWeights):
     def layer_forward(self, row, x):
         """Run the table's row (not a residual block) on x -> (output, cache)."""
         if row.kind == "quantize":  # the quantized z (no EMA step); its gradient is the straight-through one
+            if self.config.empty_code:  # the empty code is read off the images, which this row does not see
+                raise ValueError("teacher forcing needs a codebook without empty_code (the published quantizer)")
             q, _ = self.quantizer.forward(x, train=False)
             return q.quantized, None
         return row_forward(row, self.params, x)
@@ -537,12 +546,23 @@ class Codebook(ModelWeights):
         if lo < -1 - IMAGE_RANGE_SLACK or hi > 1 + IMAGE_RANGE_SLACK:  # e.g. 0..255 pixels passed as they are
             raise ValueError(f"images must be in [-1, 1], got values in [{lo:.4g}, {hi:.4g}]: {convert}")
 
+    def empty_patches(self, images):
+        """images (B, C, S, S) -> None without config.empty_code, else bool (B, k, k): the patches
+        of the k x k grid whose every pixel has the colour of the image's top-left pixel."""
+        if not self.config.empty_code:
+            return None
+        B, _, S, _ = images.shape
+        k = self.config.token_size
+        p = S // k
+        differs = (images != images[:, :, :1, :1]).any(axis=1)  # (B, S, S): an object pixel
+        return ~differs.reshape(B, k, p, k, p).any(axis=(2, 4))
+
     def encode(self, images, *, return_latent=False):
         """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64; with
         return_latent=True, (z, codes): also the encoder's unquantized output z (B, D, k, k)."""
         self._check_images(images)
         z = self._encoder(None, images)  # (B, D, k, k)
-        out, _ = self.quantizer.forward(z, train=False)
+        out, _ = self.quantizer.forward(z, train=False, empty=self.empty_patches(images))
         return (z, out.codes) if return_latent else out.codes
 
     def decode_code(self, codes):
@@ -606,7 +626,7 @@ class Codebook(ModelWeights):
         self._trace = tr
         try:
             z = self._encoder(enc, images)  # (B, D, k, k)
-            q, c_q = self.quantizer.forward(z, train=train)
+            q, c_q = self.quantizer.forward(z, train=train, empty=self.empty_patches(images))
             if tr is not None:
                 tr[self._quantize_row.name] = q.quantized
             rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)

@@ -200,19 +200,46 @@ class EMAQuantizer:
             raise ValueError(f"z is empty: shape {z.shape}")
         _checks.finite("z", z)
 
-    def forward(self, z, train=False):
+    def _check_empty(self, empty, z):
+        """empty: None, or bool (B, h, w) as z's positions, for a quantizer of at least 2 codes."""
+        if empty is None:
+            return None
+        if not isinstance(empty, np.ndarray) or empty.dtype != bool or empty.shape != z.shape[:1] + z.shape[2:]:
+            raise ValueError(f"empty must be a bool array of shape {z.shape[:1] + z.shape[2:]}, got "
+                             f"{getattr(empty, 'dtype', type(empty).__name__)} {getattr(empty, 'shape', '')}")
+        if self.n_embed < 2:
+            raise ValueError("empty needs n_embed >= 2: code 0 is the empty code, the others the rest")
+        return empty.reshape(-1)
+
+    def nearest(self, flat, empty=None):
+        """flat (M, D) -> codes (M,) int64: each vector's nearest code (codes are columns). With
+        empty (M,) bool, code 0 is the empty code: the vectors marked empty take it, the others
+        their nearest of codes 1..K-1."""
+        codes = np.ascontiguousarray(self.embeddings.T)  # (K, D)
+        if empty is None:
+            return vq_nearest(flat, codes)[0]
+        idx = np.zeros(len(flat), np.int64)
+        if not empty.all():
+            idx[~empty] = vq_nearest(np.ascontiguousarray(flat[~empty]), codes[1:])[0] + 1
+        return idx
+
+    def forward(self, z, train=False, empty=None):
         """z (B, D, h, w) of the quantizer's dtype -> (QuantizerOutput, cache).
 
         train=True applies one EMA update (the output uses the codes from before it). z must be
         finite; an update or a loss that would overflow the dtype raises ValueError, and a call
-        that raises leaves every buffer unchanged."""
+        that raises leaves every buffer unchanged.
+        empty: None (published: every vector takes its nearest code), or bool (B, h, w): the
+        positions whose patch is empty background take code 0, the others their nearest of the
+        rest (see nearest). Code 0's EMA then averages the empty positions' vectors."""
         if not isinstance(train, (bool, np.bool_)):
             raise TypeError(f"train must be True or False, got {type(train).__name__} "
                             f"{getattr(train, 'shape', train)!r}")
         self._check_z(z)
+        empty = self._check_empty(empty, z)
         B, D, h, w = z.shape
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, D))  # (M, D)
-        idx, _ = vq_nearest(flat, np.ascontiguousarray(self.embeddings.T))  # codes are columns
+        idx = self.nearest(flat, empty)  # (M,)
         e = self.embeddings.T[idx]  # (M, D): the codes from before any update
         counts = np.bincount(idx, minlength=self.n_embed)  # (K,) N_k
         update = self._ema_update(flat, idx, counts) if train else None  # computed, not yet assigned
@@ -271,7 +298,7 @@ class EMAQuantizer:
                              "for the dtype); the buffers are unchanged")
         return new
 
-    def reset_dead_codes(self, z, threshold=1e-3, rng=None, restart="batch", reseat=0):
+    def reset_dead_codes(self, z, threshold=1e-3, rng=None, restart="batch", reseat=0, empty=None):
         """Optional (off unless called): codes whose smoothed cluster size is below threshold are
         moved to vectors of z (B, D, h, w), their EMA statistics restarted there: each to a
         different vector of z, unless z has fewer vectors than there are dead codes.
@@ -281,6 +308,8 @@ class EMAQuantizer:
         low_utility_codes) to the worst-represented vectors not taken by a dead code, each only
         while its utility is below the squared error of the vector it goes to (the move then lowers
         the batch's quantization error: the ELBG idea, Patane and Russo 2001).
+        empty: as forward's; code 0, the empty code, never moves, and the other codes move only to
+        vectors of non-empty positions.
         Returns the number of codes moved.
 
         z: a finite, non-empty array of the quantizer's dtype (as forward's); threshold: a finite
@@ -296,17 +325,24 @@ class EMAQuantizer:
         except (TypeError, ValueError) as e:
             raise type(e)(f"rng must be None, a non-negative integer seed or a numpy Generator, got {rng!r} "
                           f"({e})") from None
+        empty = self._check_empty(empty, z)
         flat = z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim)  # (M, D)
+        first = 0 if empty is None else 1  # the codes before `first` never move
+        if empty is not None:
+            flat = flat[~empty]  # (M', D): the vectors the other codes stand for
         M = len(flat)
+        if M == 0:
+            return 0
         debias = 1.0 - self.decay ** max(self.counter, 1)
-        dead = np.flatnonzero(self.ema_cluster_size_hidden / debias < threshold)
+        dead = np.flatnonzero(self.ema_cluster_size_hidden[first:] / debias < threshold)  # indices from `first`
         if restart == "batch":
             # distinct vectors while there are enough (two codes on one vector: the larger index is
             # never chosen, ties go to the smallest), then vectors drawn again for the rest
             pick = np.concatenate([rng.permutation(M), rng.integers(0, M, max(dead.size - M, 0))])[:dead.size]
         if restart == "worst" or reseat:
-            idx, util, second = code_utility(flat, np.ascontiguousarray(self.embeddings.T))
-            err = ((flat.astype(np.float64) - self.embeddings.T[idx]) ** 2).sum(axis=1)  # (M,)
+            codes = np.ascontiguousarray(self.embeddings.T[first:])  # (K - first, D)
+            idx, util, second = code_utility(flat, codes)
+            err = ((flat.astype(np.float64) - codes[idx]) ** 2).sum(axis=1)  # (M,)
             worst = np.argsort(-err, kind="stable")  # (M,) worst represented first
             if restart == "worst":
                 pick = np.resize(worst, dead.size)  # distinct while M >= the dead codes
@@ -315,6 +351,7 @@ class EMAQuantizer:
             moved, pick = np.concatenate([dead, low]), np.concatenate([pick, worst[taken:taken + low.size]])
         else:
             moved = dead
+        moved = moved + first
         if moved.size:
             picks = flat[pick]  # (n_moved, D)
             # restart the statistics as if the code had been chosen once by its new vector:
@@ -324,14 +361,20 @@ class EMAQuantizer:
             self.embeddings[:, moved] = picks.T
         return int(moved.size)
 
-    def init_kmeans(self, z, iters, batch, rng=None):
+    def init_kmeans(self, z, iters, batch, rng=None, empty=None):
         """Codes from data: k-means++ seeding on the vectors of z (B, D, h, w), then `iters` Lloyd
         iterations (a code no vector chose keeps its place); the EMA statistics set as if one update
         (counter 1) had seen each code chosen by its cluster's share of a batch of `batch` images,
-        so that the next updates move the codes on from there."""
+        so that the next updates move the codes on from there. empty: as forward's; code 0 then
+        starts at the mean of the empty positions' vectors, k-means places the others on the rest."""
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim), np.float64)  # (M, D)
+        scale = batch / z.shape[0]  # images per batch / images in z
+        empty = self._check_empty(empty, z)
+        if empty is not None:
+            e0, n0 = (flat[empty].mean(axis=0), empty.sum() * scale) if empty.any() else (self.embeddings[:, 0], 0.0)
+            flat = flat[~empty]
         rng = np.random.default_rng(rng)
-        K, M = self.n_embed, len(flat)
+        K, M = self.n_embed - (empty is not None), len(flat)
         c = np.empty((K, self.embed_dim))  # (K, D)
         c[0] = flat[rng.integers(M)]
         d = ((flat - c[0]) ** 2).sum(axis=1)  # (M,) squared distance to the nearest chosen centre
@@ -343,7 +386,9 @@ class EMAQuantizer:
             n = np.bincount(idx, minlength=K)  # (K,)
             c[n > 0] = (sum_rows_by_id(idx, flat, K) / np.maximum(n, 1)[:, None])[n > 0]
         idx, _ = vq_nearest(flat, c)
-        n = np.bincount(idx, minlength=K) * (batch / z.shape[0])  # (K,) chosen per batch
+        n = np.bincount(idx, minlength=K) * scale  # (K,) chosen per batch
+        if empty is not None:  # code 0 first
+            c, n = np.vstack([e0, c]), np.concatenate([[n0], n])
         a = 1.0 - self.decay  # hidden = a * (bias-corrected value) at counter 1
         self.embeddings = np.ascontiguousarray(c.T.astype(self.dtype))  # (D, K)
         self.ema_cluster_size_hidden = (a * n).astype(self.dtype)

@@ -248,8 +248,10 @@ def _kmeans_start(model, flat, iters, batch_size, seed):
     """A fresh run's codes by k-means (EMAQuantizer.init_kmeans, `iters` Lloyd iterations; 0 keeps
     the uniform initialisation) on the encoder's outputs of KMEANS_BATCHES batches drawn as step 0's."""
     if iters:
-        z = model._encoder(None, codebook_batch(flat, KMEANS_BATCHES * batch_size, seed, 0, model.config.dtype))
-        model.quantizer.init_kmeans(z, iters, batch_size, rng=np.random.default_rng([seed, 0, 2]))
+        x = codebook_batch(flat, KMEANS_BATCHES * batch_size, seed, 0, model.config.dtype)  # (B, C, Hi, Wi)
+        z = model._encoder(None, x)
+        model.quantizer.init_kmeans(z, iters, batch_size, rng=np.random.default_rng([seed, 0, 2]),
+                                    empty=model.empty_patches(x))
 
 
 def _codebook_and_optimiser(run, config, seed, lr, betas, init_state=None):
@@ -287,7 +289,7 @@ def _codebook_engine(engine, model, opt, parity, device, precision):
 
         def reset(x, rng, **codes):
             z = model._encoder([], x)  # (B, D, k, k) with the updated weights
-            return model.quantizer.reset_dead_codes(z, rng=rng, **codes)
+            return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
 
         return step, reset, model.state_dict, lambda: model, opt, None
     from .torch_codebook_engine import TorchCodebook

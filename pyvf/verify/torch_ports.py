@@ -300,6 +300,9 @@ class Quantizer(nn.Module):
 class CodebookPort(nn.Module):
     def __init__(self, cfg, bug=None):
         super().__init__()
+        if getattr(cfg, "empty_code", False):
+            raise ValueError("the torch port is the published codebook: a config with empty_code (pyvf's own) "
+                             "has no port; train it with engine='pyvf'")
         self.bug = _check_bug(bug, CODEBOOK_BUGS)
         self.encoder = Encoder(cfg, (1, 1, 1, 1) if bug == "padding" else (0, 1, 0, 1))
         self.decoder = Decoder(cfg)
