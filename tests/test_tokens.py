@@ -170,3 +170,26 @@ def test_codebook_empty_code_matches_the_uint8_empty_patches():
     assert not (codes == 0)[1, 7, 7] and (codes == 0).sum() > 100
     with pytest.raises(ValueError, match="empty_code"):
         cb.layer_forward(cb._quantize_row, np.zeros((1, 32, 8, 8), np.float32))
+
+
+def test_a_codebook_file_from_before_the_empty_code_loads_without_it(tmp_path):
+    import dataclasses
+    import json
+
+    from pyvf.models.codebook import Codebook
+    from pyvf.train.loops import TINY_CODEBOOK
+    cb = Codebook(dataclasses.replace(TINY_CODEBOOK, n_embed=16), seed=0)
+    cb.save(tmp_path / "new.npz")
+    with np.load(tmp_path / "new.npz") as f:
+        entries = dict(f)
+    config = json.loads(str(entries["__config__"]))
+    del config["empty_code"]  # as files saved before the field existed
+    entries["__config__"] = np.array(json.dumps(config))
+    np.savez(tmp_path / "old.npz", **entries)
+    old = Codebook.load(tmp_path / "old.npz")
+    assert old.config == cb.config and old.fingerprint() == cb.fingerprint()
+    del config["n_embed"]  # any other field missing is still refused
+    entries["__config__"] = np.array(json.dumps(config))
+    np.savez(tmp_path / "bad.npz", **entries)
+    with pytest.raises(ValueError, match="n_embed"):
+        Codebook.load(tmp_path / "bad.npz")

@@ -12,6 +12,15 @@ final evaluation's): reconstruction (whole image and object pixels), the empty-p
 the transformer's held-out cross-entropy (empty / object patches) and rendering MAE beside the
 nearest-view baseline's. Every stage is skipped when its output exists and resumes from its
 checkpoint otherwise. out/ablation.json and out/ablation.md gather the candidates' results.
+
+The transformer's recipe (issue 48), on one codebook candidate's tokens:
+
+    python tools/ablate_tokens.py --data runs/sm7-train --out runs/abl --tokens-from empty-worst-reseat
+
+trains each of TRANSFORMERS (width, depth, batch, learning rate) for --transformer-minutes of CPU
+time at one thread (its steps are those a probe run times to fill it, so that the schedule's
+cosine ends where the budget does), judged on the same held-out scenes: out/tf-<name>/, gathered in
+out/ablation-transformer.json and .md.
 """
 
 import argparse
@@ -42,6 +51,21 @@ CANDIDATES = {  # in the order they run: the likeliest to matter first
     "worst-reseat-n128": ({"restart": "worst", "reseat": 32}, {"n_embed": 128}),
     "worst-reseat-decay0.95": ({"restart": "worst", "reseat": 32}, {"decay": 0.95}),
 }
+# name -> (TransformerConfig changes, batch, lr, warmup (None: train_transformer's default)); each
+# trained on one codebook candidate's tokens (--tokens-from) for the same CPU time
+TRANSFORMERS = {
+    "b8-lr5e-4": ({}, 8, 5e-4, None),
+    "b8-lr1e-3": ({}, 8, 1e-3, None),
+    "b8-lr2e-3": ({}, 8, 2e-3, None),
+    "b16-lr1e-3": ({}, 16, 1e-3, None),
+    "l2-lr1e-3": ({"n_layer": 2}, 8, 1e-3, None),
+    "d96-l3-lr1e-3": ({"d_model": 96, "n_layer": 3}, 8, 1e-3, None),
+}
+TF_COLUMNS = [("steps", "steps", 0), ("ce_c3", "CE c3", 3), ("ce_object_c3", "CE object c3", 3),
+              ("token_accuracy_object_c3", "acc object c3", 3), ("mae_c3", "MAE c3", 2),
+              ("mean_image_mae_c3", "mean image c3", 2), ("mae_c5", "MAE c5", 2), ("mean_image_mae_c5", "mean image c5", 2),
+              ("nearest_view_mae_c5", "nearest c5", 2), ("position_c5", "position c5", 2),
+              ("orientation_c5", "orientation c5", 1)]
 COLUMNS = [("steps", "codebook steps", 0), ("codebook_seconds", "wall s", 0), ("mae", "rec MAE", 2), ("psnr", "rec PSNR", 2),
            ("object_mae", "object MAE", 2), ("object_psnr", "object PSNR", 2), ("empty_entropy", "empty H", 2),
            ("codes_in_use", "codes", 0), ("colour_r2", "colour r2", 2), ("ce_c3", "CE c3", 3),
@@ -98,7 +122,7 @@ def run_candidate(name, args, data, held):
     tokens_path = os.path.join(folder, "tokens.npz")
     if not os.path.exists(tokens_path):
         save_tokens(tokens_path, tokenize(cb, data.images), data.poses, cb_config.n_embed)
-    tokens, poses, _ = load_tokens(tokens_path)
+    tokens, poses = load_tokens(tokens_path)[:2]
     tf_path = os.path.join(folder, "transformer", "transformer.npz")
     tf = train_transformer(tokens, poses, tf_config, os.path.join(folder, "transformer"), steps=args.transformer_steps,
                            batch_size=8, lr=5e-4, seed=0, checkpoint_every=50, threads=1, progress=False)
@@ -116,19 +140,86 @@ def run_candidate(name, args, data, held):
     return result
 
 
-def table(results):
-    head = "| candidate | " + " | ".join(c[1] for c in COLUMNS) + " |"
-    rows = [head, "|" + "---|" * (len(COLUMNS) + 1)]
+def table(results, columns=COLUMNS):
+    head = "| candidate | " + " | ".join(c[1] for c in columns) + " |"
+    rows = [head, "|" + "---|" * (len(columns) + 1)]
     for r in results:
-        rows.append(f"| {r['name']} | " + " | ".join(f"{r[k]:.{d}f}" for k, _, d in COLUMNS) + " |")
+        rows.append(f"| {r['name']} | " + " | ".join(f"{r[k]:.{d}f}" for k, _, d in columns) + " |")
     return "\n".join(rows) + "\n"
+
+
+def transformer_steps_for(seconds, tokens, poses, config, folder, batch, lr):
+    """The steps that fill `seconds` of CPU time: a probe run of 2 then 6 steps (its folder
+    removed), the per-step time of the last 4 (the first steps pay for the setup)."""
+    import shutil
+    import time
+    probe = os.path.join(folder, "probe")
+    times = []
+    for steps in (2, 6):
+        t = time.process_time()
+        train_transformer(tokens, poses, config, probe, steps=steps, total_steps=6, batch_size=batch, lr=lr,
+                          seed=0, checkpoint_every=2, threads=1, progress=False)
+        times.append(time.process_time() - t)
+    shutil.rmtree(probe)
+    return max(int(seconds / (times[1] / 4)), 10)
+
+
+def run_transformer_candidate(name, args, held, ev):
+    changes, batch, lr, warmup = TRANSFORMERS[name]
+    folder = os.path.join(args.out, "tf-" + name)
+    result_path = os.path.join(folder, "result.json")
+    if os.path.exists(result_path):
+        with open(result_path) as f:
+            return json.load(f)
+    source = os.path.join(args.out, args.tokens_from)
+    cb = Codebook.load(os.path.join(source, "codebook", "codebook.npz"))
+    tokens, poses = load_tokens(os.path.join(source, "tokens.npz"))[:2]
+    config = dataclasses.replace(TINY_TRANSFORMER, n_embeddings=cb.config.n_embed, **changes)
+    os.makedirs(folder, exist_ok=True)
+    steps_path = os.path.join(folder, "steps.json")
+    if not os.path.exists(steps_path):
+        steps = transformer_steps_for(60 * args.transformer_minutes, tokens, poses, config, folder, batch, lr)
+        with open(steps_path, "w") as f:
+            json.dump({"steps": steps}, f)
+    with open(steps_path) as f:
+        steps = json.load(f)["steps"]
+    tf = train_transformer(tokens, poses, config, os.path.join(folder, "run"), steps=steps, batch_size=batch, lr=lr,
+                           warmup=warmup, seed=0, checkpoint_every=50, threads=1, progress=False)
+    images, poses_h = held
+    result = {"name": name, "config": changes, "batch": batch, "lr": lr, "warmup": warmup, "steps": steps,
+              "tokens_from": args.tokens_from,
+              **transformer_health(cb, tf, images, poses_h, ev(cb)["tokens"], (1, 3, 5))}
+    with open(result_path, "w") as f:
+        json.dump(result, f, indent=2)
+    print(f"tf-{name}: done", flush=True)
+    return result
+
+
+def transformer_main(args, held):
+    names = args.only.split(",")
+    unknown = [n for n in names if n not in TRANSFORMERS]
+    if unknown:
+        raise SystemExit(f"unknown transformer candidates {unknown}; known: {list(TRANSFORMERS)}")
+    results = []
+    for name in names:
+        results.append(run_transformer_candidate(name, args, held, lambda cb: held_out_set(cb, *held)))
+        with open(os.path.join(args.out, "ablation-transformer.json"), "w") as f:
+            json.dump(results, f, indent=2)
+        with open(os.path.join(args.out, "ablation-transformer.md"), "w") as f:
+            f.write(f"Held-out: {args.scenes} scenes of seed {args.seed}; tokens of the {args.tokens_from} codebook; "
+                    f"each transformer {args.transformer_minutes} min of CPU time at 1 thread.\n\n")
+            f.write(table(results, TF_COLUMNS))
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", required=True, help="training dataset folder (pyvf scenes)")
     p.add_argument("--out", required=True)
-    p.add_argument("--only", default=",".join(CANDIDATES), help="comma-separated candidates, in order")
+    p.add_argument("--only", default=None, help="comma-separated candidates, in order (default: all)")
+    p.add_argument("--tokens-from", default=None, metavar="CANDIDATE",
+                   help="ablate the transformer's recipe (TRANSFORMERS) on this codebook candidate's tokens")
+    p.add_argument("--transformer-minutes", type=float, default=8.0, help="CPU minutes per transformer "
+                   "(with --tokens-from)")
     p.add_argument("--codebook-minutes", type=float, default=8.0, help="CPU minutes per codebook")
     p.add_argument("--transformer-steps", type=int, default=250)
     p.add_argument("--scenes", type=int, default=40, help="held-out scenes")
@@ -136,12 +227,15 @@ def main():
     args = p.parse_args()
     if args.seed in (0, 1000):
         raise SystemExit("--seed must not be 0 (training) or 1000 (the final evaluation)")
-    names = args.only.split(",")
+    held = generate_scenes(args.seed, args.scenes, size=TINY_CODEBOOK.image_size)
+    if args.tokens_from:
+        args.only = args.only or ",".join(TRANSFORMERS)
+        return transformer_main(args, held)
+    names = (args.only or ",".join(CANDIDATES)).split(",")
     unknown = [n for n in names if n not in CANDIDATES]
     if unknown:
         raise SystemExit(f"unknown candidates {unknown}; known: {list(CANDIDATES)}")
     data = load_dataset(args.data)
-    held = generate_scenes(args.seed, args.scenes, size=TINY_CODEBOOK.image_size)
     results = []
     for name in names:
         results.append(run_candidate(name, args, data, held))
