@@ -60,12 +60,10 @@ parameters' .grad are cleared per layer and restored afterwards.
 """
 
 import dataclasses
-from collections.abc import Mapping
 
 import numpy as np
 
 from ..models import transformer as _transformer
-from ..models.io import ModelWeights
 from .compare import Comparison, compare
 from .layout import flat_to_tree, tree_to_flat
 
@@ -122,8 +120,6 @@ def layer_names(model):
 def layer_table(model):
     """The model's teacher-forcing layers (see the module's docstring), in execution order, read
     off its layer table (model.layers)."""
-    if not isinstance(model, ModelWeights):
-        raise TypeError(f"model must be a pyvf.Transformer or pyvf.Codebook, got {type(model).__name__}")
     out = []
     _collect(model.layers, model.INPUTS[0], out)
     return out
@@ -252,34 +248,23 @@ def _check_params(model, params, layout):
     """params -> (official name -> tensor, the layout function), every problem in one error."""
     if params is None:
         return {}, None
-    if not isinstance(params, Mapping):
-        raise TypeError(f"params must be a dict official parameter name -> torch tensor, got {type(params).__name__}")
     if layout is None:  # a torch port holds torch's layout: the default only where it is the published one
         if next(iter(model.LAYOUTS)) != "torch":
-            said = " or ".join(f"{k!r} ({v})" for k, v in model.LAYOUTS.items())
-            raise ValueError(f"layout must be given with params for a {type(model).__name__}: {said}; the "
-                             "gradients are converted accordingly")
+            raise ValueError(f"layout must be given with params for a {type(model).__name__}: one of "
+                             f"{tuple(model.LAYOUTS)}")
         layout = "torch"
     layout = model.check_layout(layout)
-    shapes = model.parameter_shapes()
-    out, problems = {}, []
+    shapes, out, problems = model.parameter_shapes(), {}, []
     for raw, t in params.items():
         name = model.official_name(raw) if isinstance(raw, str) else raw
-        if name not in shapes:
-            problems.append(f"{raw!r} is not a parameter of this model")
-        elif not (hasattr(t, "requires_grad") and hasattr(t, "grad")):
-            problems.append(f"{raw!r} is a {type(t).__name__}, not a torch tensor")
-        elif not t.requires_grad:
-            problems.append(f"{raw!r} does not require grad (its gradient could not be read)")
+        if name not in shapes or not getattr(t, "requires_grad", False):
+            problems.append(f"{raw!r} is not a parameter of this model, or not a tensor that requires grad")
         elif tuple(t.shape) not in model.layout_shapes(name, layout):
-            want = model.layout_shapes(name, layout)
-            problems.append(f"{raw!r} has shape {tuple(t.shape)}, expected {' or '.join(map(str, want))} "
-                            f"in layout={layout!r}")
+            problems.append(f"{raw!r} has shape {tuple(t.shape)}, not its shape in layout={layout!r}")
         else:
             out[name] = t
     if problems:
-        raise ValueError(f"teacher_force: params: {len(problems)} problem{'s' * (len(problems) > 1)}: "
-                         + "; ".join(problems))
+        raise ValueError("teacher_force: params: " + "; ".join(problems))
     return out, lambda n, a: model.from_layout(n, a, layout)
 
 
@@ -328,22 +313,11 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
 def _check_arguments(table, layers, token_layout, train, upstream):
     """teacher_force's arguments other than the model, its inputs and params: raise on the first
     wrong one, naming it (layers against the model's layer table)."""
-    by_name = {l.name: l for l in table}
-    if not isinstance(layers, Mapping):
-        raise TypeError(f"layers must be a dict layer name -> callable, got {type(layers).__name__}")
-    unknown = [n for n in layers if n not in by_name]
-    if unknown:
-        raise ValueError(f"layers: unknown layer names {unknown}; this model's layers are "
-                         f"{[l.name for l in table]} (pyvf.verify.teacher.layer_names(model))")
-    not_callable = [n for n, f in layers.items() if not callable(f)]
-    if not_callable:
-        raise TypeError(f"layers: not callable: {not_callable}")
+    unknown = [n for n in layers if n not in {l.name for l in table}]
+    if unknown:  # a misspelt name would be silently not checked
+        raise ValueError(f"layers: unknown layer names {unknown}; this model's layers are {[l.name for l in table]}")
     if token_layout not in TOKEN_LAYOUTS:
         raise ValueError(f"token_layout must be one of {TOKEN_LAYOUTS}, got {token_layout!r}")
-    if not isinstance(train, (bool, np.bool_)):
-        raise TypeError(f"train must be True or False, got {train!r}")
-    if upstream is not None and not isinstance(upstream, Mapping):
-        raise TypeError(f"upstream must be a dict of model.backward's seeds, got {type(upstream).__name__}")
 
 
 def _pyvf_run(model, inputs, upstream, train):
@@ -354,8 +328,6 @@ def _pyvf_run(model, inputs, upstream, train):
     if isinstance(model, _transformer.Transformer):
         if train:
             raise ValueError("train=True is for a Codebook (its EMA step); the transformer has no training mode")
-        if not (isinstance(inputs, (tuple, list)) and len(inputs) == 2):
-            raise TypeError("inputs must be (tokens, poses) for a Transformer")
         tokens, poses = inputs
         out = model.forward(tokens, poses, trace=True)
         given = {"tokens": tokens, "poses": poses}
@@ -489,8 +461,6 @@ def torch_modules(port, model, path=None):
     where there is none (or path returns None). A codebook's norm layers (GroupNorm modules) are
     wrapped in swish, as pyvf fuses them. The transformer's attention usually takes the tree
     mask too, and its embedding is rarely one module: give those as functions."""
-    if not callable(getattr(port, "get_submodule", None)):
-        raise TypeError(f"port must be a torch nn.Module, got {type(port).__name__}")
     import torch
 
     out = {}
