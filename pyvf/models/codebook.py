@@ -663,13 +663,16 @@ class Codebook(ModelWeights):
                 if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
                     module, cache = perc
                     dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
-                    total = total + module.backward(dl, cache)
+                    dx_hat = module.backward(dl, cache)
+                    if np.shape(dx_hat) != tuple(rec_shape):  # it would broadcast silently
+                        raise ValueError(f"perceptual.backward's gradient must have shape {tuple(rec_shape)}")
+                    total = total + dx_hat
                 dcommitment = dloss * self.config.codebook_weight
             if drec is not None:
                 total = total + drec
-        if total.shape != tuple(rec_shape) or not _checks.all_finite(total):
+        if not _checks.all_finite(total):
             raise ValueError(f"dloss = {dloss!r} (or drec) times the loss's gradient overflows {self.dtype}, or the "
-                             "perceptual module's gradient is not finite or not of the reconstruction's shape")
+                             "perceptual module's gradient is not finite")
         g = {} if traced else None  # the activations' gradients, the trace's order reversed
         dq = self._backward(dec, total, grads, g)
         if g is not None:
