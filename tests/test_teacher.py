@@ -320,18 +320,6 @@ def test_teacher_table_shows_a_nan_and_no_error_for_nothing_compared():
 
 
 
-def test_teacher_report_lookup_names_the_missing_layer():
-    rng = np.random.default_rng(0)
-    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
-    tf = pyvf.teacher_force(model, (tokens, poses), {"ln_f": port.ln_f})
-    assert tf["ln_f"].ok
-    with pytest.raises(KeyError, match="'embed' was not checked"):
-        tf["embed"]
-    with pytest.raises(KeyError, match="'nope' is not a layer"):
-        tf["nope"]
-
-
-
 def test_teacher_force_leaves_the_users_last_forward_for_backward(rng):
     """model.backward() differentiates the model's last forward (its docstring); teacher_force runs
     the model's own forward on its inputs, and left that run in place of the user's: a backward

@@ -19,30 +19,12 @@ Parameters use the published torch names (tests/data/official-codebook-*.json), 
 (out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
 load_official / state_dict also speak channels-last kernels (layout="tf": TF, Flax).
 
-The model is described once, by its layer table (layer_table(config), pyvf.models.table): each
-layer's name, kind, parameter shapes, stride and padding. The parameters (parameter_shapes), the
-trace's names (trace_names), the forward's walk and teacher forcing's layers are read off it.
-
-The forward records every row of the table it runs on a tape, (row, cache); the backward
-replays the tape in reverse, so it reads as the forward read backwards, whatever the
-configuration's number of levels and blocks. A traced forward records each op's output under
-its name as it runs (the published torch module's name; the activations the forward keeps
-anyway, as read-only views: nothing is copied or recomputed); without trace=True nothing extra
-is kept or computed. Names: every `_op` of the tape, nested ones included, in execution order:
-
-    encoder.conv_in
-    encoder.down.{l}.block.{i}.norm1 .conv1 .norm2 .conv2 [.nin_shortcut], then encoder.down.{l}.block.{i}
-    encoder.down.{l}.attn.{i}                (the AttnBlock's output, x + proj_out(...))
-    encoder.down.{l}.downsample.conv
-    encoder.mid.block_1 (and its children), encoder.mid.attn_1, encoder.mid.block_2
-    encoder.norm_out, encoder.conv_out, quant_conv (z), quantize (the quantized z),
-    post_quant_conv, decoder.conv_in, decoder.mid.*, decoder.up.{l}.block.{i}(.*),
-    decoder.up.{l}.attn.{i}, decoder.up.{l}.upsample.interp (nearest 2x), decoder.up.{l}.upsample.conv,
-    decoder.norm_out, decoder.conv_out (the reconstruction); then rec_loss, commitment_loss,
-    [perceptual_loss,] loss (scalars, no gradient).
-
-pyvf fuses Normalize and swish: `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)),
-not the torch GroupNorm module's output (record `nonlinearity(norm(x))` on a port's side).
+The model is described once, by its layer table (layer_table(config), pyvf.models.table); the
+parameters, the trace's names (each row's name: the published torch module's, a residual block's
+after its children's, then the losses), the forward's walk and teacher forcing's layers are read
+off it. The forward records every row it runs on a tape, (row, cache); the backward replays the
+tape in reverse. pyvf fuses Normalize and swish: `*.norm1`, `*.norm2`, `*.norm_out` are
+swish(GroupNorm(x)), not the torch GroupNorm module's output.
 """
 
 import dataclasses

@@ -13,50 +13,29 @@ inputs as torch tensors and returning its output (a tuple's first element is tak
 `torch_modules(port, model)` builds it from a module whose children are named as the published
 modules. Layers without a callable are listed as not checked. params (for the backward): the
 port's own parameter tensors by pyvf's official name, in `layout`; each layer's parameters'
-gradients are compared with pyvf's contribution of that layer (a tied weight, wte, gets one
-per layer that reads it).
+gradients are compared with pyvf's contribution of that layer (a tied weight, wte, gets one per
+layer that reads it).
 
-The layers (`layer_table(model)`, `layer_names(model)`, in execution order), each a function of its inputs only,
-are read off the model's own layer table (model.layers, pyvf.models.table): their names, parameters, inputs
-and, for a conv, its stride and padding; pyvf's side of each VJP runs the table's rows through the model's
-layer pairs (model.layer_forward / layer_backward). For the default tables:
+The layers (`layer_table(model)`, `layer_names(model)`, in execution order) are read off the
+model's own layer table (model.layers, pyvf.models.table): each a function of its inputs only.
+The transformer's: embed (tokens, poses -> embed.out), per block ln_1, attn (the branching
+attention, ln_1 -> attn.c_proj), ln_2 (resid_1 -> ln_2), mlp (ln_2 -> mlp.c_proj); ln_f
+(called twice: rows 1 and 2 of the last block's output), logits (the tied wte), pose_head. The
+codebook's: every module of the published tree that is a leaf of the computation (convs,
+norm+swish, AttnBlocks, Downsample, Upsample, quantize; with train=True the port's EMA step runs
+too). The residual additions and the losses are not layers (pyvf.compare on a trace covers them);
+the model's inputs get no gradient.
 
-  Transformer   input -> output (pyvf's trace names)                   parameters
-    embed              tokens, poses -> embed.out                      wte, wpe, pose_embedding/*
-    blocks.{j}.ln_1    blocks.{j-1}.out (embed.out) -> blocks.{j}.ln_1  h.{j}/ln_1/*
-    blocks.{j}.attn    blocks.{j}.ln_1 -> blocks.{j}.attn.c_proj        h.{j}/attn/* (branching attention)
-    blocks.{j}.ln_2    blocks.{j}.resid_1 -> blocks.{j}.ln_2           h.{j}/ln_2/*
-    blocks.{j}.mlp     blocks.{j}.ln_2 -> blocks.{j}.mlp.c_proj        h.{j}/mlp/*
-    ln_f               called twice: rows 1 and 2 of the last block's output ->
-                       ln_f.generation, ln_f.localization              ln_f/*
-    logits             ln_f.generation -> logits                       wte/weight (tied: its first V rows)
-    pose_head          ln_f.localization -> pose                       quaternion_pose_representation/...
+Transformer activations of the whole tree, pyvf's (R, B, N, L, d), reach a callable in
+`token_layout` "flat" (default: (B, T, d), T = R*N*L ordered [row][view][token], as most ports
+hold them) or "tree"; the heads' rows stay (B, N, L, ...); codebook activations are NCHW, in
+pyvf's dtype (run pyvf in the port's dtype: compare's tolerances apply per layer).
 
-  Codebook: every module of the published tree that is a leaf of the computation:
-    *.conv_in, *.conv1, *.conv2, *.nin_shortcut, *.conv_out, quant_conv, post_quant_conv (Conv2d);
-    *.norm1, *.norm2, *.norm_out: GroupNorm **then swish** (pyvf fuses them; torch_modules wraps
-    a GroupNorm module in swish); *.attn.{i}, *.mid.attn_1 (the AttnBlock, residual included);
-    encoder.down.{l}.downsample (pad (0, 1, 0, 1), conv 3x3 stride 2: output
-    encoder.down.{l}.downsample.conv); decoder.up.{l}.upsample (nearest 2x, conv: output
-    decoder.up.{l}.upsample.conv); quantize (z -> the straight-through quantized z; with
-    train=True the port's EMA step runs too: a port whose codes see the update differs here).
-
-Not layers: the residual additions (x + attn, x + mlp, a ResnetBlock's shortcut + h) and the
-losses; pyvf.compare on a trace covers them. The model's inputs (tokens, poses, images) get no
-gradient.
-
-Layouts. Transformer activations of the whole tree, pyvf's (R, B, N, L, d), reach a callable in
-`token_layout`: "flat" (default) as most ports hold them, (B, T, d) with T = R*N*L ordered
-[row][view][token] (pyvf.tree_to_flat), or "tree". The heads' rows stay (B, N, L, ...). Codebook
-activations are NCHW. The tensors have pyvf's dtype: run pyvf in the port's dtype (float64 for a
-check of the math: see compare's tolerances, which apply here per layer).
-
-Backward: upstream holds model.backward's seeds (Transformer: dlogits, dpose, dloss; Codebook:
-drec only, since the quantize layer's commitment loss is a second output no layer VJP sees).
-pyvf's gradient of each layer's output is the layer's upstream gradient; the port's VJP is taken
-by torch autograd ((out * dout).sum().backward()) and compared with pyvf's own layer pair run on
-the same input: the gradient of each float input ("d <input name>") and of each parameter. The
-parameters' .grad are cleared per layer and restored afterwards.
+Backward: upstream holds model.backward's seeds (a Codebook's drec only: the quantize layer's
+commitment loss is a second output no layer VJP sees). pyvf's gradient of each layer's output
+seeds the port's VJP (torch autograd, (out * dout).sum().backward()), compared with pyvf's own
+layer pair run on the same input: the gradient of each float input ("d <input name>") and of
+each parameter. The parameters' .grad are cleared per layer and restored afterwards.
 """
 
 import dataclasses
