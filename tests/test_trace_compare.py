@@ -203,19 +203,25 @@ def test_traced_forward_and_backward_equal_untraced_bitwise(rng):
 # 2. every traced activation and its gradient against torch autograd, float64
 
 
-SEEDS = {
-    "vjp": dict(dlogits=True, dpose=True),
-    "dlogits_only": dict(dlogits=True),
-    "loss_and_vjp": dict(dlogits=True, dpose=True, dloss=0.7),
+SAME = dict(attention_scale=0.5, pose_multiplier=0.2, label_smoothing=0.1)
+CASES = {  # configuration, backward's seeds
+    "vjp": (SAME, dict(dlogits=True, dpose=True)),
+    "dlogits_only": (SAME, dict(dlogits=True)),
+    "loss_and_vjp": (SAME, dict(dlogits=True, dpose=True, dloss=0.7)),
+    "weights": (dict(pose_multiplier=0.2, localization_weight=5.0, image_generation_weight=0.7, label_smoothing=0.1),
+                dict(dloss=1.0)),
+    "scaled": (dict(attention_scale=1 / 4, n_loss_skip=2, n_layer=3, n_head=4), dict(dloss=1.0)),
+    "no_skip": (dict(n_loss_skip=0, n_head=1, d_model=24), dict(dloss=1.0)),
 }
 
 
-@pytest.mark.parametrize("seed", SEEDS)
-def test_trace_and_every_gradient_match_torch_float64(seed, rng):
-    model, tokens, poses = setup(rng, "float64", attention_scale=0.5, pose_multiplier=0.2, label_smoothing=0.1)
+@pytest.mark.parametrize("case", CASES)
+def test_trace_and_every_gradient_match_torch_float64(case, rng):
+    config, seeds = CASES[case]
+    model, tokens, poses = setup(rng, "float64", **config)
     dl, dp = upstream(rng, model, tokens)
-    kw = dict(dlogits=dl if "dlogits" in SEEDS[seed] else None, dpose=dp if "dpose" in SEEDS[seed] else None,
-              dloss=SEEDS[seed].get("dloss"))
+    kw = dict(dlogits=dl if "dlogits" in seeds else None, dpose=dp if "dpose" in seeds else None,
+              dloss=seeds.get("dloss"))
     out = model.forward(tokens, poses, trace=True)
     grads = model.backward(**kw)
     t_trace, t_grads, t_pgrads = torch_trace(model, tokens, poses, **kw)

@@ -1,5 +1,5 @@
-"""The whole transformer: against a torch model written independently (tests/torch_transformer.py),
-finite differences, the tree's defining property, cached inference, training, weights and bad input."""
+"""The whole transformer: finite differences, float32 against float64, the tree's defining property,
+cached inference, training, weights and bad input (against torch float64: tests/test_trace_compare.py)."""
 
 import dataclasses
 import json
@@ -7,12 +7,11 @@ import os
 
 import numpy as np
 import pytest
-import torch
 
 import pyvf
 from conftest import assert_bitwise_equal, assert_close
 from pyvf.models.transformer import pose_prediction
-from pyvf.verify import convert_tf, torch_transformer
+from pyvf.verify import convert_tf
 
 TINY = dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5, n_loss_skip=1)
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-transformer-tiny.json")
@@ -34,49 +33,8 @@ def random_batch(rng, B, N, L, V, dtype=np.float64):
     return tokens, poses.astype(dtype)
 
 
-def torch_run(model, tokens, poses):
-    P = {k: torch.tensor(v, requires_grad=True) for k, v in model.params.items()}
-    logits, raw, ce, pl, loss = torch_transformer.forward(P, torch.tensor(tokens), torch.tensor(poses), model.config)
-    loss.backward()
-    return logits.detach().numpy(), raw.detach().numpy(), ce.detach().numpy(), pl.detach().numpy(), \
-        loss.item(), {k: t.grad.numpy() for k, t in P.items()}
-
-
 # ---------------------------------------------------------------------------------------
-# 1. against torch, float64
-
-
-CONFIGS = {
-    "tiny": {},
-    "weights": dict(pose_multiplier=0.2, localization_weight=5.0, image_generation_weight=0.7, label_smoothing=0.1),
-    "scaled": dict(attention_scale=1 / 4, n_loss_skip=2, n_layer=3, n_head=4),
-    "no_skip": dict(n_loss_skip=0, n_head=1, d_model=24),
-}
-
-
-@pytest.mark.parametrize("variant", CONFIGS)
-def test_model_matches_torch_float64(variant, rng):
-    cfg = pyvf.TransformerConfig(**{**TINY, **CONFIGS[variant]}, dtype="float64")
-    model = random_model(cfg, rng)
-    tokens, poses = random_batch(rng, 2, 5, 16, cfg.n_embeddings)
-    out = model.forward(tokens, poses)
-    grads = model.backward()
-    logits, raw, ce, pl, loss, tgrads = torch_run(model, tokens, poses)
-    # float64 through ~40 roundings per path: measured <= 2e-14 relative; 1e-12 leaves room
-    assert_close("logits", out.logits, logits, rtol=1e-12)
-    assert_close("ce", out.ce_loss, ce, rtol=1e-12)
-    assert_close("pose loss", out.pose_loss, pl, rtol=1e-12)
-    assert abs(out.loss - loss) <= 1e-12 * abs(loss)
-    # the prediction from torch's raw head output, written out here (not pyvf's pose_prediction):
-    # xyz / pose_multiplier, the quaternion over its norm, its sign flipped where w < 0
-    raw = np.asarray(raw, dtype=np.float64)
-    q = raw[..., 3:] / np.linalg.norm(raw[..., 3:], axis=-1, keepdims=True)
-    q = np.where(q[..., :1] < 0, -q, q)
-    pred = np.concatenate([raw[..., :3] / cfg.pose_multiplier, q], axis=-1)
-    assert_close("pose prediction", out.pose_prediction, pred, rtol=1e-12)
-    assert set(grads) == set(tgrads) == set(model.params)
-    for name in grads:
-        assert_close(f"d{name}", grads[name], tgrads[name], rtol=1e-11)
+# 1. the model against torch float64: every activation and gradient, tests/test_trace_compare.py
 
 
 def test_pose_prediction_closed_form():
