@@ -29,7 +29,7 @@ from .. import _checks
 from .._io import CheckpointError, atomic_savez, load_npz
 from .table import parameters
 
-__all__ = ["ROLES", "ModelWeights", "load_model", "model_file", "save_model"]
+__all__ = ["ROLES", "ModelWeights", "load_model", "save_model"]
 
 Role = collections.namedtuple("Role", "layout shapes to_layout from_layout")
 
@@ -202,29 +202,16 @@ def save_model(path, config, state, meta=None):
     return path
 
 
-def model_file(path, what):
-    """The arrays and the configuration of a model file written by save(): (dict name -> array
-    without __config__, dict of config fields), read now.
-
-    path: a path (str or os.PathLike, used as given: no ".npz" appended) or an open binary file.
-    A missing file raises FileNotFoundError; a truncated or corrupt one, or a missing or
-    unreadable __config__ entry, pyvf._io.CheckpointError (a ValueError) naming the file and
-    the entry."""
+def load_model(path, what, config_cls, model_cls):
+    """ModelWeights.load: read the file, build the configuration and the model, load the weights
+    (load_official validates all of them first). A missing file raises FileNotFoundError; every
+    other problem is a CheckpointError naming the file (and the entry)."""
     name = getattr(path, "name", repr(path)) if hasattr(path, "read") else os.fspath(path)
     arrays = load_npz(path, what, required=("__config__",))
     try:
-        config = json.loads(str(arrays.pop("__config__")))
+        fields = json.loads(str(arrays.pop("__config__")))
     except ValueError as e:
         raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
-    return arrays, config
-
-
-def load_model(path, what, config_cls, model_cls):
-    """ModelWeights.load: read the file (model_file), build the configuration and the model, load
-    the weights (load_official validates all of them first). Every problem is a CheckpointError
-    naming the file (and the entry)."""
-    arrays, fields = model_file(path, what)
-    name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
     missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields]
     if missing:  # never the defaults: they may be another model than the file's
         raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
@@ -241,5 +228,5 @@ def load_model(path, what, config_cls, model_cls):
         raise CheckpointError(f"{what} {name}: {e}") from e
     for k, v in meta.items():
         setattr(model, k, v)
-    model.source = name
+    model.source = getattr(path, "name", None) if hasattr(path, "read") else name
     return model
