@@ -67,15 +67,13 @@ def test_traced_equals_untraced_bitwise(dtype, seed_kind, rng):
     assert tr["loss"] == traced.loss
 
 
-def test_default_backward_unchanged_by_the_new_arguments(rng):
+def test_backward_is_linear_in_its_seeds(rng):
+    """loss + <rec, drec> = the loss part + the drec part (no commitment term in the drec part)."""
     cfg = CodebookConfig(**SMALL, dtype="float64")
     cb = random_codebook(cfg, rng)
     x = images_for(cfg, rng)
     cb.forward(x)
-    g0, g1 = cb.backward(), cb.backward(dloss=1.0)
-    for name in cb.params:
-        np.testing.assert_array_equal(g0[name], g1[name])
-    # linearity: loss + <rec, drec> = loss part + drec part (no commitment term in the drec part)
+    g0 = cb.backward()
     drec = rng.normal(size=(2, 3, 16, 16))
     g2, g3 = cb.backward(drec=drec), cb.backward(drec=drec, dloss=1.0)
     for name in cb.params:

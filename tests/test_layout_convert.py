@@ -43,17 +43,6 @@ def test_dense_kernels_are_the_linear_weights_only():
     assert len(kernels) == 2 + 4 * TINY["n_layer"] + 2
 
 
-def test_torch_layout_takes_the_published_bias_too(rng):
-    """Every layout round-trips bitwise (tests/test_model_files.py); the published (1, out) bias
-    is accepted in torch layout too: it is unambiguous."""
-    model = random_model(rng)
-    back = model.state_dict(layout="torch")
-    assert back["h.0/attn/c_attn/weight"].shape == (96, 32) and back["h.0/attn/c_attn/bias"].shape == (96,)
-    again = pyvf.Transformer(model.config, seed=2)
-    again.load_official({**back, "h.1/mlp/c_fc/bias": model.params["h.1/mlp/c_fc/bias"]}, layout="torch")
-    assert_same_params(again, model)
-
-
 def test_torch_layout_is_nn_linear(rng):
     """A kernel given to nn.Linear in torch layout computes what pyvf's x @ W + b computes."""
     model = random_model(rng)

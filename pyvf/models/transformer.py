@@ -562,7 +562,7 @@ class Transformer(ModelWeights):
             raise ValueError(f"tokens has N={N} views but n_loss_skip={S}: no view is a loss target")
         # the caches keep the tokens (the embedding's scatter ids, the cross-entropy's targets) for
         # backward(): the model's own copy, so that a caller refilling its buffer changes nothing
-        tokens = tokens.copy()
+        tokens, poses = tokens.copy(), np.ascontiguousarray(poses)
         tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
         x, c_embed = self._embed_forward(tokens, poses, tr)  # (3, B, N, L, d)
         c_blocks = []
