@@ -88,6 +88,8 @@ class CodebookConfig:
     # other patch does (Codebook.empty_patches). False: every patch takes its nearest code.
     empty_code: bool = False
 
+    ADDED_FIELDS = ("empty_code",)  # fields newer than some saved files; a file without one loads with the default
+
     def __post_init__(self):
         # integers: Python or NumPy (not bool), stored as int (the configuration is saved as JSON)
         for name in ("ch", "num_res_blocks", "z_channels", "embed_dim", "n_embed", "image_size", "in_channels",

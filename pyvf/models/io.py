@@ -212,8 +212,9 @@ def load_model(path, what, config_cls, model_cls):
         fields = json.loads(str(arrays.pop("__config__")))
     except ValueError as e:
         raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
-    missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields]
-    if missing:  # never the defaults: they may be another model than the file's
+    later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
+    missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields and f.name not in later]
+    if missing:  # never the other defaults: they may be another model than the file's
         raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
                               f"{config_cls.__name__} written by save(), or written by another version")
     try:
