@@ -53,7 +53,6 @@ BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.
 # load_official's layouts: layout -> how it holds the conv kernels, the published one first
 LAYOUTS = {"torch": "nn.Conv2d kernels (out, in, kh, kw), the published state dict",
            "tf": "conv kernels (kh, kw, in, out), channels-last as TF/Keras Conv2D and Flax nn.Conv hold them"}
-WEIGHT_LAYOUTS = tuple(LAYOUTS)
 
 # the published state dict registers the encoder, then the decoder, then the 1x1 convs around the quantizer
 PUBLISHED_ORDER = ("encoder", "decoder")

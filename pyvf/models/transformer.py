@@ -170,7 +170,6 @@ def official_name(name):
 # load_official's layouts: layout -> how it holds the Dense layers, the published one first
 LAYOUTS = {"tf": "the published TF Dense layout: kernel (in, out), bias (1, out)",
            "torch": "nn.Linear's kernel (out, in), bias (out,)"}
-WEIGHT_LAYOUTS = tuple(LAYOUTS)
 
 
 def is_dense_kernel(name):
@@ -180,14 +179,10 @@ def is_dense_kernel(name):
     return name.endswith("/weight") and name != "wte/weight"
 
 
-def is_dense_bias(name):
-    """True for the Dense biases, stored (1, out) in the published checkpoint, (out,) by torch."""
-    return name.endswith("/bias")
-
-
 def _row(name, kind, prefix, params, calls, reads=()):
     """A row whose parameters prefix + suffix take their role (pyvf.models.io.ROLES) from their name."""
-    role = lambda n: "dense_kernel" if is_dense_kernel(n) else "dense_bias" if is_dense_bias(n) else None  # noqa: E731
+    # Dense biases are (1, out) in the published checkpoint, (out,) in torch's layout
+    role = lambda n: "dense_kernel" if is_dense_kernel(n) else "dense_bias" if n.endswith("/bias") else None  # noqa: E731
     return Layer(name, kind, tuple((s, shape, role(prefix + s)) for s, shape in params), prefix=prefix,
                  calls=calls, reads=reads)
 
