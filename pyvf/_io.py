@@ -75,39 +75,19 @@ def _atomic_write(path, write):
     fsync_dir(os.path.dirname(os.path.abspath(path)))
 
 
-# np.savez(file, *args, allow_pickle=True, **kwds) takes these as its own arguments, not as entries
-_SAVEZ_ARGUMENTS = ("file", "allow_pickle")
-
-
 def atomic_savez(path, /, **arrays):
     """np.savez(path, **arrays), atomically; `path` is written as given (no ".npz" appended).
-
-    Every value must convert to a non-object array (a str becomes a 0-d unicode array), so
-    that the file loads with allow_pickle=False: an object array raises TypeError naming it.
-    An entry may be named path, but not file or allow_pickle (np.savez's own arguments: ValueError)."""
-    checked = {}
-    for key, value in arrays.items():
-        if key in _SAVEZ_ARGUMENTS:
-            raise ValueError(f"atomic_savez: the entry name {key!r} is an argument of np.savez, which "
-                             "cannot store an entry of that name: rename it")
-        a = np.asarray(value)
+    Every value must convert to a non-object array (a str becomes a 0-d unicode array), so that
+    the file loads with allow_pickle=False: an object array raises TypeError naming it."""
+    arrays = {key: np.asarray(value) for key, value in arrays.items()}
+    for key, a in arrays.items():
         if a.dtype.hasobject:
-            raise TypeError(f"atomic_savez: {key!r} is an object array (it would need pickle); "
-                            "store numbers, strings (e.g. JSON) or arrays of them")
-        checked[key] = a
-    _atomic_write(path, lambda f: np.savez(f, **checked))
+            raise TypeError(f"atomic_savez: {key!r} is an object array (it would need pickle)")
+    _atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
 def atomic_write_bytes(path, data):
-    """Write the bytes `data` to `path`, atomically (e.g. a PNG encoded into a BytesIO).
-
-    data: bytes or any bytes-like object (bytearray, memoryview, a numpy array's buffer); not an
-    int, which bytes() would turn into that many zero bytes."""
-    if not isinstance(data, bytes):  # bytes as they are: a dataset's shard is not copied
-        try:
-            data = memoryview(data).tobytes()
-        except TypeError:
-            raise TypeError(f"data must be a bytes-like object, got {type(data).__name__}") from None
+    """Write the bytes-like `data` to `path`, atomically (e.g. a PNG encoded into a BytesIO)."""
     _atomic_write(path, lambda f: f.write(data))
 
 
@@ -120,8 +100,6 @@ def atomic_write_png(path, image):
 
 def atomic_write_text(path, text, encoding="utf-8"):
     """Write the str `text` to `path`, atomically."""
-    if not isinstance(text, str):
-        raise TypeError(f"text must be a str, got {type(text).__name__}")
     data = text.encode(encoding)
     _atomic_write(path, lambda f: f.write(data))
 
@@ -140,20 +118,13 @@ def load_npz(path, what="file", required=()):
         path = name = os.fspath(path)
         if not os.path.exists(path):
             raise FileNotFoundError(f"{what} {path} does not exist")
-        if os.path.isdir(path):  # not "truncated or corrupt", as np.load's IsADirectoryError would be called
-            raise IsADirectoryError(f"{what} {path} is a folder, not a file")
     entry = None
     try:
-        f = np.load(path, allow_pickle=False)
-        if not isinstance(f, np.lib.npyio.NpzFile):  # an ndarray: np.load read a whole .npy file
-            raise CheckpointError(f"{what} {name} is a single .npy array, not an .npz archive")
-        with f:
+        with np.load(path, allow_pickle=False) as f:
             out = {}
             for entry in f.files:
                 out[entry] = f[entry]
-    except CheckpointError:
-        raise
-    except (zipfile.BadZipFile, EOFError, ValueError, KeyError, OSError) as e:
+    except (TypeError, zipfile.BadZipFile, EOFError, ValueError, KeyError, OSError) as e:
         where = f" (entry {entry!r})" if entry is not None else ""
         raise CheckpointError(f"{what} {name} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
     missing = [k for k in required if k not in out]

@@ -142,16 +142,6 @@ def test_a_changed_codebook_padding_is_read_by_the_forward_and_teacher_forcing(r
         assert tf.wrong == wrong, str(tf)
 
 
-def test_a_codebook_table_needs_one_quantize_row():
-    cfg = pyvf.CodebookConfig(**SMALL)
-    rows = tuple(r for r in codebook.layer_table(cfg) if r.kind != "quantize")
-    with pytest.raises(ValueError, match="exactly one 'quantize' row, got 0"):
-        pyvf.Codebook(cfg, layers=rows)
-    twice = codebook.layer_table(cfg) + (codebook.layer_table(cfg)[0],)
-    with pytest.raises(ValueError, match="'encoder.conv_in.weight' is declared twice"):
-        pyvf.Codebook(cfg, layers=twice)
-
-
 # ---------------------------------------------------------------------------------------
 # the transformer: its table gives the parameters (names, shapes, layouts) and teacher forcing's
 # layers; its forward names its parameters itself (the blocks' code), so only a teacher layer is

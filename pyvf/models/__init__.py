@@ -63,10 +63,6 @@ def check_pair(codebook, transformer):
     """ValueError unless the transformer reads this codebook's tokens: the same codebook size V,
     the same token image side k (L = k*k tokens per view) and the codebook it was trained with
     (a warning where the transformer does not record it); the errors name both models' files."""
-    if not isinstance(codebook, Codebook):
-        raise TypeError(f"codebook must be a Codebook, got {type(codebook).__name__}")
-    if not isinstance(transformer, Transformer):
-        raise TypeError(f"transformer must be a Transformer, got {type(transformer).__name__}")
     cb, tf = codebook.config, transformer.config
     if tf.n_embeddings != cb.n_embed:
         raise ValueError(f"the transformer and the codebook do not fit: the transformer reads "

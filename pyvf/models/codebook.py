@@ -19,33 +19,14 @@ Parameters use the published torch names (tests/data/official-codebook-*.json), 
 (out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
 load_official / state_dict also speak channels-last kernels (layout="tf": TF, Flax).
 
-The model is described once, by its layer table (layer_table(config), pyvf.models.table): each
-layer's name, kind, parameter shapes, stride and padding. The parameters (parameter_shapes), the
-trace's names (trace_names), the forward's walk and teacher forcing's layers are read off it.
-
-The forward records every row of the table it runs on a tape, (row, cache); the backward
-replays the tape in reverse, so it reads as the forward read backwards, whatever the
-configuration's number of levels and blocks. A traced forward records each op's output under
-its name as it runs (the published torch module's name; the activations the forward keeps
-anyway, as read-only views: nothing is copied or recomputed); without trace=True nothing extra
-is kept or computed. Names: every `_op` of the tape, nested ones included, in execution order:
-
-    encoder.conv_in
-    encoder.down.{l}.block.{i}.norm1 .conv1 .norm2 .conv2 [.nin_shortcut], then encoder.down.{l}.block.{i}
-    encoder.down.{l}.attn.{i}                (the AttnBlock's output, x + proj_out(...))
-    encoder.down.{l}.downsample.conv
-    encoder.mid.block_1 (and its children), encoder.mid.attn_1, encoder.mid.block_2
-    encoder.norm_out, encoder.conv_out, quant_conv (z), quantize (the quantized z),
-    post_quant_conv, decoder.conv_in, decoder.mid.*, decoder.up.{l}.block.{i}(.*),
-    decoder.up.{l}.attn.{i}, decoder.up.{l}.upsample.interp (nearest 2x), decoder.up.{l}.upsample.conv,
-    decoder.norm_out, decoder.conv_out (the reconstruction); then rec_loss, commitment_loss,
-    [perceptual_loss,] loss (scalars, no gradient).
-
-pyvf fuses Normalize and swish: `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)),
-not the torch GroupNorm module's output (record `nonlinearity(norm(x))` on a port's side).
+The model is described once, by its layer table (layer_table(config), pyvf.models.table); the
+parameters, the trace's names (each row's name: the published torch module's, a residual block's
+after its children's, then the losses), the forward's walk and teacher forcing's layers are read
+off it. The forward records every row it runs on a tape, (row, cache); the backward replays the
+tape in reverse. pyvf fuses Normalize and swish: `*.norm1`, `*.norm2`, `*.norm_out` are
+swish(GroupNorm(x)), not the torch GroupNorm module's output.
 """
 
-import contextlib
 import dataclasses
 import hashlib
 
@@ -72,7 +53,6 @@ BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.
 # load_official's layouts: layout -> how it holds the conv kernels, the published one first
 LAYOUTS = {"torch": "nn.Conv2d kernels (out, in, kh, kw), the published state dict",
            "tf": "conv kernels (kh, kw, in, out), channels-last as TF/Keras Conv2D and Flax nn.Conv hold them"}
-WEIGHT_LAYOUTS = tuple(LAYOUTS)
 
 # the published state dict registers the encoder, then the decoder, then the 1x1 convs around the quantizer
 PUBLISHED_ORDER = ("encoder", "decoder")
@@ -81,9 +61,7 @@ IMAGE_RANGE_SLACK = 1e-3  # images may leave [-1, 1] by this much (a user's own 
 
 
 def _positive_tuple(name, val):
-    """val: a tuple, list or 1-d array of positive integers -> a tuple of int."""
-    if not (isinstance(val, (tuple, list)) or (isinstance(val, np.ndarray) and val.ndim == 1)):
-        raise TypeError(f"{name} must be a tuple of positive integers, got {type(val).__name__} {val!r}")
+    """val: a sequence of positive integers -> a tuple of int (JSON-safe, hashable)."""
     return tuple(_checks.positive_integer(f"{name}[{i}]", v) for i, v in enumerate(val))
 
 
@@ -121,21 +99,18 @@ class CodebookConfig:
             raise ValueError("CodebookConfig.ch_mult must name at least one level, got ()")
         object.__setattr__(self, "attn_resolutions",
                            _positive_tuple("CodebookConfig.attn_resolutions", self.attn_resolutions))
-        # real numbers (not bool), finite, stored as float; decay and eps in the quantizer's ranges
+        # real numbers, stored as float; decay and eps in the quantizer's ranges
         for name, kw in (("decay", dict(lo=0.0, hi=1.0, lo_open=True, hi_open=True)),
                          ("eps", dict(lo=0.0, lo_open=True)), ("codebook_weight", {}), ("perceptual_weight", {})):
             object.__setattr__(self, name, _checks.real(f"CodebookConfig.{name}", getattr(self, name), **kw))
         if self.image_size % 2 ** (len(self.ch_mult) - 1):
-            raise ValueError(f"CodebookConfig.image_size={self.image_size} is not divisible by "
-                             f"2^{len(self.ch_mult) - 1}")
+            raise ValueError(f"CodebookConfig.image_size={self.image_size} is not divisible by 2^{len(self.ch_mult) - 1}")
         if any((self.ch * m) % 32 for m in self.ch_mult):
-            raise ValueError(f"CodebookConfig: every level's channels ch * ch_mult = "
-                             f"{[self.ch * m for m in self.ch_mult]} must be divisible by the 32 GroupNorm groups")
+            raise ValueError("CodebookConfig: every level's channels ch * ch_mult must be divisible by the 32 "
+                             "GroupNorm groups")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"CodebookConfig.dtype must be 'float32' or 'float64', got {self.dtype!r}")
-        if not isinstance(self.empty_code, (bool, np.bool_)):
-            raise TypeError(f"CodebookConfig.empty_code must be True or False, got {self.empty_code!r}")
-        object.__setattr__(self, "empty_code", bool(self.empty_code))
+        object.__setattr__(self, "empty_code", bool(self.empty_code))  # a NumPy bool is not JSON
 
     @property
     def token_size(self):
@@ -292,20 +267,6 @@ class CodebookOutput:
     trace: dict = None  # forward(..., trace=True) only: name -> activation (read-only), trace_names(cfg) order
 
 
-@contextlib.contextmanager
-def _naming(row):
-    """A TypeError or ValueError raised by row's layer function is raised again naming the row:
-    those functions name their own arguments (x, w, b, gamma, dy), and the model's parameters
-    behind them are the row's (a parameter assigned by hand, an overflow deep in the model)."""
-    try:
-        yield
-    except (TypeError, ValueError) as e:
-        if type(e) not in (TypeError, ValueError):  # a subclass may take other arguments: as it is
-            raise
-        params = f" (parameters {', '.join(row.param_names)})" if row.param_names else ""
-        raise type(e)(f"layer {row.name!r}{params}: {e}") from e
-
-
 def _add_grad(grads, name, g):
     """grads[name] += g; the first gradient of a parameter is stored as is (a fresh array from the
     layer's backward: no zero-filled copy of every parameter, 270 MB for the paper's codebook)."""
@@ -322,9 +283,7 @@ class Codebook(ModelWeights):
     are not bundled), any object with `forward(x, x_hat) -> (loss (B,), cache)` and
     `backward(dloss (B,), cache) -> dx_hat`; weighted by config.perceptual_weight, which must
     then be positive. Without one, perceptual_weight must be 0: the term is never silently dropped.
-    Its cache may be anything, None included (a module that keeps its state on itself). What it
-    returns is checked, not cast or broadcast: the loss a finite float array (B,), dx_hat a finite
-    array of the reconstruction's shape and the model's dtype.
+    Its cache may be anything, None included (a module that keeps its state on itself).
 
     layers: the layer table (default layer_table(config)): the parameters, the forward, the trace
     and teacher forcing all read it, so a changed table (a layer renamed, another padding) changes
@@ -338,14 +297,9 @@ class Codebook(ModelWeights):
     INPUTS = ("images",)  # the model's inputs (teacher forcing: the first row reads the first)
 
     def __init__(self, config, seed=0, perceptual=None, *, layers=None):
-        if not isinstance(config, CodebookConfig):
-            raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
         if (perceptual is None) != (config.perceptual_weight == 0):
             raise ValueError(f"perceptual_weight={config.perceptual_weight} needs a perceptual module, and a "
                              "perceptual module needs perceptual_weight > 0 (LPIPS weights are not bundled)")
-        if perceptual is not None and not (callable(getattr(perceptual, "forward", None))
-                                           and callable(getattr(perceptual, "backward", None))):
-            raise TypeError("perceptual must have forward(x, x_hat) and backward(dloss, cache)")
         self.perceptual = perceptual
         self.config = config
         self.dtype = np.dtype(config.dtype)
@@ -413,15 +367,8 @@ class Codebook(ModelWeights):
         Biases, GroupNorm parameters and the quantizer's buffers (`quantize.embeddings` is
         (embed_dim, n_embed) in both: codes are columns) are never transposed.
 
-        Entries may be numpy arrays or anything with `.detach()` (torch tensors, also ones that
-        require grad: `.detach().cpu().numpy()` is called; pyvf never imports torch). Everything is
-        checked before anything is assigned: names (missing, unexpected, given twice), every
-        array (float32/float64 of the parameter's shape in `layout`, finite, also in the model's
-        dtype: a float64 value past float32's range is refused, not made inf; other dtypes are
-        refused, not cast; the counter a non-negative integer). Any problem raises one ValueError
-        naming every wrong entry (TypeError when all of them are wrong types), and the model is
-        left unchanged. Float arrays are converted to the model's dtype (the one conversion pyvf
-        makes, on purpose); the model never aliases the caller's arrays."""
+        Entries may be numpy arrays or torch tensors; they are checked as Transformer.load_official
+        checks them (the counter a non-negative integer), one error naming every wrong entry."""
         self._load(state_dict, layout)
 
     def _check_buffers(self, entries):
@@ -461,8 +408,7 @@ class Codebook(ModelWeights):
         if row.kind == "res":
             y, c = self._resblock_forward(row, x, keep)
         else:
-            with _naming(row):
-                y, c = row_forward(row, self.params, x)
+            y, c = row_forward(row, self.params, x)
         if keep:
             tape.append((row, c))
         if self._trace is not None:
@@ -478,8 +424,7 @@ class Codebook(ModelWeights):
             if row.kind == "res":
                 dy = self._resblock_backward(dy, c, grads, g)
                 continue
-            with _naming(row):
-                dy, dparams = row_backward(row, dy, c)
+            dy, dparams = row_backward(row, dy, c)
             for name, dp in zip(row.param_names, dparams):
                 _add_grad(grads, name, dp)
         return dy
@@ -529,24 +474,18 @@ class Codebook(ModelWeights):
     # the model
 
     def _check_images(self, images):
-        cfg = self.config
-        # the likely mistake is a uint8 picture (B, S, S, 3) passed as it is: every refusal says how to convert
-        convert = ("convert uint8 pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images(pictures, "
-                   "codebook.dtype), x / 127.5 - 1 in NCHW order")
+        """images (B >= 1, in_channels, S, S) of the model's dtype, finite, in [-1, 1] -> C-ordered.
+        The likely mistake, uint8 pictures (B, S, S, 3), is refused saying how to convert them."""
+        cfg, S = self.config, self.config.image_size
+        convert = "convert uint8 pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images"
         if not isinstance(images, np.ndarray) or images.dtype != self.dtype:
-            pixels = isinstance(images, np.ndarray) and images.dtype.kind in "iu"
-            raise TypeError(f"images must be a {self.dtype} numpy array in [-1, 1], got "
-                            f"{getattr(images, 'dtype', type(images).__name__)}" + (f": {convert}" if pixels else ""))
-        S = cfg.image_size
-        if images.ndim == 4 and images.shape[0] == 0:  # else "must have shape (B, ...)" for a shape that has it
-            raise ValueError(f"images is empty (B = 0, shape {images.shape}): pass at least one image")
-        if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S):
-            raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}"
-                             + (f": {convert}" if images.ndim == 4 and images.shape[3] == cfg.in_channels else ""))
+            raise TypeError(f"images must be a {self.dtype} numpy array in [-1, 1]: {convert}")
+        if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S) or images.shape[0] == 0:
+            raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}: {convert}")
         _checks.finite("images", images)
-        lo, hi = float(images.min()), float(images.max())
-        if lo < -1 - IMAGE_RANGE_SLACK or hi > 1 + IMAGE_RANGE_SLACK:  # e.g. 0..255 pixels passed as they are
-            raise ValueError(f"images must be in [-1, 1], got values in [{lo:.4g}, {hi:.4g}]: {convert}")
+        if images.min() < -1 - IMAGE_RANGE_SLACK or images.max() > 1 + IMAGE_RANGE_SLACK:
+            raise ValueError(f"images must be in [-1, 1]: {convert}")
+        return np.ascontiguousarray(images)
 
     def empty_patches(self, images):
         """images (B, C, S, S) -> None without config.empty_code, else bool (B, k, k): the patches
@@ -562,19 +501,16 @@ class Codebook(ModelWeights):
     def encode(self, images, *, return_latent=False):
         """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64; with
         return_latent=True, (z, codes): also the encoder's unquantized output z (B, D, k, k)."""
-        self._check_images(images)
+        images = self._check_images(images)
         z = self._encoder(None, images)  # (B, D, k, k)
         out, _ = self.quantizer.forward(z, train=False, empty=self.empty_patches(images))
         return (z, out.codes) if return_latent else out.codes
 
     def decode_code(self, codes):
         """codes (B, k, k) ints in [0, n_embed) -> images (B, out_ch, S, S)."""
-        cfg = self.config
-        if not isinstance(codes, np.ndarray) or codes.dtype.kind not in "iu":
-            raise TypeError("codes must be an integer numpy array")
-        _checks.plain_array("codes", codes)  # masked codes would be decoded from the data under the mask
-        k = cfg.token_size
-        if codes.ndim != 3 or codes.shape[1:] != (k, k):
+        cfg, k = self.config, self.config.token_size
+        _checks.int_array("codes", codes)
+        if codes.shape[1:] != (k, k):
             raise ValueError(f"codes must have shape (B, {k}, {k}), got {codes.shape}")
         if codes.size and (codes.min() < 0 or codes.max() >= cfg.n_embed):
             raise ValueError(f"codes must be in [0, {cfg.n_embed})")
@@ -585,10 +521,9 @@ class Codebook(ModelWeights):
         """z (B, embed_dim, k, k) of the model's dtype, a point of the code space (codes, or a
         mixture of codes such as their expectation under a transformer's distribution) ->
         images (B, out_ch, S, S). decode_code(codes) is decode_latent of the codes' columns."""
-        cfg = self.config
+        cfg, k = self.config, self.config.token_size
         if not isinstance(z, np.ndarray) or z.dtype != self.dtype:
-            raise TypeError(f"z must be a {self.dtype} numpy array, got {getattr(z, 'dtype', type(z).__name__)}")
-        k = cfg.token_size
+            raise TypeError(f"z must be a {self.dtype} numpy array")
         if z.ndim != 4 or z.shape[1:] != (cfg.embed_dim, k, k):
             raise ValueError(f"z must have shape (B, {cfg.embed_dim}, {k}, {k}), got {z.shape}")
         _checks.finite("z", z)
@@ -608,12 +543,7 @@ class Codebook(ModelWeights):
         (trace_names(config), in execution order; read-only views of what the forward keeps
         anyway: do not modify them), and makes the next backward() return every activation's
         gradient."""
-        if not isinstance(trace, (bool, np.bool_)):
-            raise TypeError(f"trace must be True or False, got {trace!r}")
-        if not isinstance(train, (bool, np.bool_)):  # e.g. pixel_weights passed by position
-            raise TypeError(f"train must be True or False, got {type(train).__name__} "
-                            f"{getattr(train, 'shape', train)!r} (pixel_weights is keyword-only)")
-        self._check_images(images)
+        images = self._check_images(images)
         if pixel_weights is not None:
             _checks.float_array("pixel_weights", pixel_weights, images, "images")
             B, _, S, _ = images.shape
@@ -671,27 +601,12 @@ class Codebook(ModelWeights):
                               loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual, trace=tr)
 
     def _perceptual_forward(self, images, rec):
-        """The perceptual module's loss per image, checked: a finite float array (B,) (a NaN
-        made the loss NaN, another length was averaged as it was) -> (loss, (module, cache))."""
+        """The perceptual module's loss per image (B,) -> (loss, (module, cache)); another shape
+        would be averaged (or broadcast) silently."""
         per_image, cache = self.perceptual.forward(images, rec)
-        what = "perceptual.forward's loss"
-        _checks.float_array(what, per_image)
-        if per_image.shape != (images.shape[0],):
-            raise ValueError(f"{what} must have shape ({images.shape[0]},), one value per image, "
-                             f"got {per_image.shape}")
-        _checks.finite(what, per_image)
+        if np.shape(per_image) != (images.shape[0],):
+            raise ValueError(f"perceptual.forward's loss must have shape ({images.shape[0]},), got {np.shape(per_image)}")
         return per_image, (self.perceptual, cache)
-
-    def _perceptual_backward(self, perc, dl, like):
-        """The perceptual module's gradient of the reconstruction for dl (B,), checked: an array
-        of the reconstruction's shape and the model's dtype (like's), finite; not broadcast, not cast."""
-        module, cache = perc
-        dx_hat = module.backward(dl, cache)
-        what = "perceptual.backward's gradient"
-        _checks.float_array(what, dx_hat, like, "the reconstruction")
-        if dx_hat.shape != like.shape:
-            raise ValueError(f"{what} must have the reconstruction's shape {like.shape}, got {dx_hat.shape}")
-        return _checks.finite(what, dx_hat)
 
     def backward(self, drec=None, *, dloss=None):
         """Differentiate the last forward: the gradient of
@@ -714,10 +629,8 @@ class Codebook(ModelWeights):
         if drec is None and dloss is None:
             dloss = 1.0
         if drec is not None:
-            _checks.float_array("drec", drec)
-            if drec.dtype != self.dtype:
-                raise TypeError(f"drec is {drec.dtype} but the model is {self.dtype}: both must share one dtype "
-                                "(pyvf never casts silently)")
+            if not isinstance(drec, np.ndarray) or drec.dtype != self.dtype:
+                raise TypeError(f"drec must be a {self.dtype} numpy array (the model's dtype)")
             if drec.shape != tuple(rec_shape):
                 raise ValueError(f"drec must have the reconstruction's shape {tuple(rec_shape)}, got {drec.shape}")
             _checks.finite("drec", drec)
@@ -726,28 +639,23 @@ class Codebook(ModelWeights):
         grads = {}  # filled by _add_grad; parameters the model did not use get zeros at the end
         total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
         dcommitment = 0.0
-        # the seeds are finite but their products and sums may overflow the model's dtype: that is
-        # refused below naming them (else the first layer's backward blamed its own "dy")
-        too_large = f"too large for the model's {self.dtype} (use a smaller seed, or float64)"
-        with np.errstate(over="ignore"):
+        with np.errstate(over="ignore"):  # the seeds are finite, their products may overflow: checked below
             if dloss is not None:
                 # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
                 total = (dloss * drec_loss).astype(self.dtype)
-                if not _checks.all_finite(total):
-                    raise ValueError(f"dloss = {dloss!r} times the loss's gradient overflows: {too_large}")
                 if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
+                    module, cache = perc
                     dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
-                    if not _checks.all_finite(dl):
-                        raise ValueError(f"dloss = {dloss!r} times perceptual_weight overflows: {too_large}")
-                    total = total + self._perceptual_backward(perc, dl, total)
-                    if not _checks.all_finite(total):
-                        raise ValueError(f"dloss = {dloss!r} times the loss's gradient (its perceptual term "
-                                         f"included) overflows: {too_large}")
+                    dx_hat = module.backward(dl, cache)
+                    if np.shape(dx_hat) != tuple(rec_shape):  # it would broadcast silently
+                        raise ValueError(f"perceptual.backward's gradient must have shape {tuple(rec_shape)}")
+                    total = total + dx_hat
                 dcommitment = dloss * self.config.codebook_weight
             if drec is not None:
                 total = total + drec
-                if not _checks.all_finite(total):  # each was finite
-                    raise ValueError(f"drec plus dloss = {dloss!r} times the loss's gradient overflows: {too_large}")
+        if not _checks.all_finite(total):
+            raise ValueError(f"dloss = {dloss!r} (or drec) times the loss's gradient overflows {self.dtype}, or the "
+                             "perceptual module's gradient is not finite")
         g = {} if traced else None  # the activations' gradients, the trace's order reversed
         dq = self._backward(dec, total, grads, g)
         if g is not None:

@@ -15,10 +15,6 @@ A layout differs from the published one only in the parameters whose role (the t
 lists for it: the codebook's conv kernels in "tf" (channels-last), the transformer's Dense
 kernels and biases in "torch" (nn.Linear's). pyvf.params_from_layout / params_to_layout and
 teacher forcing convert through the same methods.
-
-Model files live here, beside the models, rather than in pyvf._io: a model file is a model's
-state plus its configuration, read back into a model through load_official; pyvf._io keeps the
-file primitives every writer shares (atomic writes, load_npz), which know nothing of models.
 """
 
 import collections
@@ -33,7 +29,7 @@ from .. import _checks
 from .._io import CheckpointError, atomic_savez, load_npz
 from .table import parameters
 
-__all__ = ["ROLES", "ModelWeights", "load_model", "model_file", "save_model"]
+__all__ = ["ROLES", "ModelWeights", "load_model", "save_model"]
 
 Role = collections.namedtuple("Role", "layout shapes to_layout from_layout")
 
@@ -69,11 +65,6 @@ class ModelWeights:
         default: table.parameters(layers), the execution order)."""
         self.layers = tuple(layers)
         self._param_table = parameters(self.layers) if table is None else dict(table)
-        known = [r for r, role in ROLES.items() if role.layout in tuple(self.LAYOUTS)[1:]]
-        for name, (_, role) in self._param_table.items():  # an unknown role would be held as published
-            if role is not None and role not in known:
-                raise ValueError(f"layer table: parameter {name!r} has role {role!r}; a {type(self).__name__}'s "
-                                 f"roles are {known} (or None: held as published in every layout)")
 
     # the layouts -------------------------------------------------------------------------
 
@@ -86,16 +77,13 @@ class ModelWeights:
         return {name: shape for name, (shape, _) in self._param_table.items()}
 
     def check_layout(self, layout):
-        if not isinstance(layout, str) or layout not in self.LAYOUTS:
-            said = "; ".join(f"{k!r}: {v}" for k, v in self.LAYOUTS.items())
-            raise ValueError(f"layout must be one of {tuple(self.LAYOUTS)} ({said}), got {layout!r}")
+        if layout not in self.LAYOUTS:
+            raise ValueError(f"layout must be one of {tuple(self.LAYOUTS)}, got {layout!r}")
         return layout
 
     def _role(self, name, layout):
         """The Role that converts parameter `name` in `layout`, None where it is held as published."""
-        if name not in self._param_table:
-            raise ValueError(f"{name!r} is not a parameter of this {type(self).__name__}")
-        layout = self.check_layout(layout)  # also for a parameter every layout holds as published
+        layout = self.check_layout(layout)
         role = ROLES.get(self._param_table[name][1])
         return role if role is not None and role.layout == layout else None
 
@@ -114,11 +102,8 @@ class ModelWeights:
         return a if role is None else role.from_layout(a)
 
     def to_layout(self, name, p, layout):
-        """An array of parameter `name` in the published layout -> a C-contiguous copy in `layout`.
-        An array not of the published shape raises ValueError naming it."""
-        role, shape = self._role(name, layout), self._param_table[name][0]
-        if tuple(np.shape(p)) != shape:
-            raise ValueError(f"{name!r} has shape {tuple(np.shape(p))}, expected {shape} (the published layout)")
+        """An array of parameter `name` in the published layout -> a C-contiguous copy in `layout`."""
+        role = self._role(name, layout)
         return np.array(p if role is None else role.to_layout(p), order="C", copy=True)
 
     def _params_in(self, layout):
@@ -217,34 +202,16 @@ def save_model(path, config, state, meta=None):
     return path
 
 
-def model_file(path, what):
-    """The arrays and the configuration of a model file written by save(): (dict name -> array
-    without __config__, dict of config fields), read now.
-
-    path: a path (str or os.PathLike, used as given: no ".npz" appended) or an open binary file.
-    A missing file raises FileNotFoundError; a truncated or corrupt one, or a missing or
-    unreadable __config__ entry, pyvf._io.CheckpointError (a ValueError) naming the file and
-    the entry."""
+def load_model(path, what, config_cls, model_cls):
+    """ModelWeights.load: read the file, build the configuration and the model, load the weights
+    (load_official validates all of them first). A missing file raises FileNotFoundError; every
+    other problem is a CheckpointError naming the file (and the entry)."""
     name = getattr(path, "name", repr(path)) if hasattr(path, "read") else os.fspath(path)
     arrays = load_npz(path, what, required=("__config__",))
-    raw = arrays.pop("__config__")
     try:
-        if raw.shape != () or raw.dtype.kind != "U":
-            raise ValueError(f"expected a JSON string, got a {raw.dtype} array of shape {raw.shape}")
-        config = json.loads(str(raw))
-        if not isinstance(config, dict):
-            raise ValueError(f"expected a JSON object, got {type(config).__name__}")
+        fields = json.loads(str(arrays.pop("__config__")))
     except ValueError as e:
         raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
-    return arrays, config
-
-
-def load_model(path, what, config_cls, model_cls):
-    """ModelWeights.load: read the file (model_file), build the configuration and the model, load
-    the weights (load_official validates all of them first). Every problem is a CheckpointError
-    naming the file (and the entry)."""
-    arrays, fields = model_file(path, what)
-    name = getattr(path, "name", None) if hasattr(path, "read") else os.fspath(path)
     later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
     missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields and f.name not in later]
     if missing:  # never the other defaults: they may be another model than the file's
@@ -252,7 +219,7 @@ def load_model(path, what, config_cls, model_cls):
                               f"{config_cls.__name__} written by save(), or written by another version")
     try:
         config = config_cls(**fields)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, AttributeError) as e:
         raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
     model = model_cls(config)
     meta = {k: str(arrays.pop(f"__{k}__")) for k in model_cls.META if f"__{k}__" in arrays}  # absent: older file
@@ -262,5 +229,5 @@ def load_model(path, what, config_cls, model_cls):
         raise CheckpointError(f"{what} {name}: {e}") from e
     for k, v in meta.items():
         setattr(model, k, v)
-    model.source = name
+    model.source = getattr(path, "name", None) if hasattr(path, "read") else name
     return model

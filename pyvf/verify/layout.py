@@ -16,20 +16,13 @@ between pyvf's layout and the conventions load_official speaks (layout="tf" | "t
 the models' own mechanism (model.layout_shapes, from_layout, to_layout: pyvf.models.io).
 """
 
-from collections.abc import Mapping
-
 import numpy as np
 
 from .. import _checks
-from ..models.io import ModelWeights
 
 
 def tree_to_flat(x):
     """x (R, B, N, L, ...) -> (B, R*N*L, ...), the sequence ordered [row][view][token]."""
-    if not isinstance(x, np.ndarray):
-        raise TypeError(f"x must be a numpy.ndarray of shape (R, B, N, L, ...), got {type(x).__name__}")
-    if x.ndim < 4:
-        raise ValueError(f"x must have shape (R, B, N, L, ...) (at least 4 dimensions), got shape {x.shape}")
     R, B, N, L = x.shape[:4]
     flat = np.moveaxis(x, 1, 0)  # (B, R, N, L, ...)
     return flat.copy(order="C").reshape(B, R * N * L, *x.shape[4:])  # (B, T, ...)
@@ -37,13 +30,6 @@ def tree_to_flat(x):
 
 def flat_to_tree(x, R, N, L):
     """x (B, T, ...) with T = R*N*L ordered [row][view][token] -> (R, B, N, L, ...)."""
-    R = _checks.integer("R", R, lo=1)
-    N = _checks.integer("N", N, lo=1)
-    L = _checks.integer("L", L, lo=1)
-    if not isinstance(x, np.ndarray):
-        raise TypeError(f"x must be a numpy.ndarray of shape (B, T, ...), got {type(x).__name__}")
-    if x.ndim < 2:
-        raise ValueError(f"x must have shape (B, T, ...) (at least 2 dimensions), got shape {x.shape}")
     B, T = x.shape[:2]
     if T != R * N * L:
         raise ValueError(f"x has T = {T} tokens (shape {x.shape}), but R*N*L = {R}*{N}*{L} = {R * N * L}")
@@ -63,11 +49,6 @@ def trace_from_flat(trace, N, L, R=3):
     .k, .v, .out) given as (B, H, T, dh), and .lse as (B, H, T), become pyvf's (R, B, H, N, L[, dh]).
     Every other entry (the heads' rows (B, N, L, ...), losses) is returned as it is, as numpy.
     None values (a tensor without a gradient) are dropped. Always new arrays."""
-    R = _checks.integer("R", R, lo=1)  # (the per-head entries reshape with them unchecked otherwise)
-    N = _checks.integer("N", N, lo=1)
-    L = _checks.integer("L", L, lo=1)
-    if not isinstance(trace, Mapping):
-        raise TypeError(f"trace must be a mapping name -> array, got {type(trace).__name__}")
     out = {}
     for name, a in trace.items():
         if a is None:
@@ -94,21 +75,12 @@ def trace_from_flat(trace, N, L, R=3):
 # arrays (a port's gradients, to compare with backward()'s)
 
 
-def _model(model, layout):
-    """model must carry the weight mechanism (pyvf.models.io.ModelWeights); -> its parameters' shapes."""
-    if not isinstance(model, ModelWeights):
-        raise TypeError(f"model must be a pyvf.Transformer or pyvf.Codebook, got {type(model).__name__}")
-    model.check_layout(layout)
-    return model.parameter_shapes()
-
-
 def _readable(name, a):
-    a, problem = _checks.checkpoint_array(name, a)  # torch tensors (also ones that require grad) -> numpy
+    """A numpy array, or a torch tensor (also one that requires grad) -> a numpy array."""
+    a, problem = _checks.checkpoint_array(name, a)
     if problem is not None:
         raise problem[0](problem[1])
-    if not isinstance(a, np.ndarray):
-        raise TypeError(f"{name!r} must be a numpy array or a torch tensor, got {type(a).__name__}")
-    return a
+    return np.asarray(a)
 
 
 def params_from_layout(model, arrays, layout):
@@ -121,26 +93,17 @@ def params_from_layout(model, arrays, layout):
         pyvf.compare(pyvf.params_from_layout(model, port_grads, "torch"), model.backward(...))
 
     A parameter of the wrong shape for `layout` raises ValueError naming it."""
-    shapes = _model(model, layout)
-    out = {}
+    shapes, out = model.parameter_shapes(), {}
     for raw, a in arrays.items():
         name = model.official_name(raw) if isinstance(raw, str) else raw
-        if name not in shapes:
-            out[raw] = a
-            continue
-        a = _readable(raw, a)
-        if a.shape not in model.layout_shapes(name, layout):
-            raise ValueError(f"{raw!r} has shape {a.shape}, which is not parameter {name!r} {shapes[name]} "
-                             f"in layout={layout!r}")
-        out[raw] = model.from_layout(name, a, layout)
+        out[raw] = model.from_layout(name, _readable(raw, a), layout) if name in shapes else a
     return out
 
 
 def params_to_layout(model, arrays, layout):
     """The inverse of params_from_layout: arrays in pyvf's layout (e.g. backward()'s gradients)
     -> a new dict whose parameters are in `layout` (copies); other entries pass unchanged."""
-    shapes = _model(model, layout)
-    out = {}
+    shapes, out = model.parameter_shapes(), {}
     for raw, a in arrays.items():
         name = model.official_name(raw) if isinstance(raw, str) else raw
         if name in shapes:

@@ -13,59 +13,36 @@ inputs as torch tensors and returning its output (a tuple's first element is tak
 `torch_modules(port, model)` builds it from a module whose children are named as the published
 modules. Layers without a callable are listed as not checked. params (for the backward): the
 port's own parameter tensors by pyvf's official name, in `layout`; each layer's parameters'
-gradients are compared with pyvf's contribution of that layer (a tied weight, wte, gets one
-per layer that reads it).
+gradients are compared with pyvf's contribution of that layer (a tied weight, wte, gets one per
+layer that reads it).
 
-The layers (`layer_table(model)`, `layer_names(model)`, in execution order), each a function of its inputs only,
-are read off the model's own layer table (model.layers, pyvf.models.table): their names, parameters, inputs
-and, for a conv, its stride and padding; pyvf's side of each VJP runs the table's rows through the model's
-layer pairs (model.layer_forward / layer_backward). For the default tables:
+The layers (`layer_table(model)`, `layer_names(model)`, in execution order) are read off the
+model's own layer table (model.layers, pyvf.models.table): each a function of its inputs only.
+The transformer's: embed (tokens, poses -> embed.out), per block ln_1, attn (the branching
+attention, ln_1 -> attn.c_proj), ln_2 (resid_1 -> ln_2), mlp (ln_2 -> mlp.c_proj); ln_f
+(called twice: rows 1 and 2 of the last block's output), logits (the tied wte), pose_head. The
+codebook's: every module of the published tree that is a leaf of the computation (convs,
+norm+swish, AttnBlocks, Downsample, Upsample, quantize; with train=True the port's EMA step runs
+too). The residual additions and the losses are not layers (pyvf.compare on a trace covers them);
+the model's inputs get no gradient.
 
-  Transformer   input -> output (pyvf's trace names)                   parameters
-    embed              tokens, poses -> embed.out                      wte, wpe, pose_embedding/*
-    blocks.{j}.ln_1    blocks.{j-1}.out (embed.out) -> blocks.{j}.ln_1  h.{j}/ln_1/*
-    blocks.{j}.attn    blocks.{j}.ln_1 -> blocks.{j}.attn.c_proj        h.{j}/attn/* (branching attention)
-    blocks.{j}.ln_2    blocks.{j}.resid_1 -> blocks.{j}.ln_2           h.{j}/ln_2/*
-    blocks.{j}.mlp     blocks.{j}.ln_2 -> blocks.{j}.mlp.c_proj        h.{j}/mlp/*
-    ln_f               called twice: rows 1 and 2 of the last block's output ->
-                       ln_f.generation, ln_f.localization              ln_f/*
-    logits             ln_f.generation -> logits                       wte/weight (tied: its first V rows)
-    pose_head          ln_f.localization -> pose                       quaternion_pose_representation/...
+Transformer activations of the whole tree, pyvf's (R, B, N, L, d), reach a callable in
+`token_layout` "flat" (default: (B, T, d), T = R*N*L ordered [row][view][token], as most ports
+hold them) or "tree"; the heads' rows stay (B, N, L, ...); codebook activations are NCHW, in
+pyvf's dtype (run pyvf in the port's dtype: compare's tolerances apply per layer).
 
-  Codebook: every module of the published tree that is a leaf of the computation:
-    *.conv_in, *.conv1, *.conv2, *.nin_shortcut, *.conv_out, quant_conv, post_quant_conv (Conv2d);
-    *.norm1, *.norm2, *.norm_out: GroupNorm **then swish** (pyvf fuses them; torch_modules wraps
-    a GroupNorm module in swish); *.attn.{i}, *.mid.attn_1 (the AttnBlock, residual included);
-    encoder.down.{l}.downsample (pad (0, 1, 0, 1), conv 3x3 stride 2: output
-    encoder.down.{l}.downsample.conv); decoder.up.{l}.upsample (nearest 2x, conv: output
-    decoder.up.{l}.upsample.conv); quantize (z -> the straight-through quantized z; with
-    train=True the port's EMA step runs too: a port whose codes see the update differs here).
-
-Not layers: the residual additions (x + attn, x + mlp, a ResnetBlock's shortcut + h) and the
-losses; pyvf.compare on a trace covers them. The model's inputs (tokens, poses, images) get no
-gradient.
-
-Layouts. Transformer activations of the whole tree, pyvf's (R, B, N, L, d), reach a callable in
-`token_layout`: "flat" (default) as most ports hold them, (B, T, d) with T = R*N*L ordered
-[row][view][token] (pyvf.tree_to_flat), or "tree". The heads' rows stay (B, N, L, ...). Codebook
-activations are NCHW. The tensors have pyvf's dtype: run pyvf in the port's dtype (float64 for a
-check of the math: see compare's tolerances, which apply here per layer).
-
-Backward: upstream holds model.backward's seeds (Transformer: dlogits, dpose, dloss; Codebook:
-drec only, since the quantize layer's commitment loss is a second output no layer VJP sees).
-pyvf's gradient of each layer's output is the layer's upstream gradient; the port's VJP is taken
-by torch autograd ((out * dout).sum().backward()) and compared with pyvf's own layer pair run on
-the same input: the gradient of each float input ("d <input name>") and of each parameter. The
-parameters' .grad are cleared per layer and restored afterwards.
+Backward: upstream holds model.backward's seeds (a Codebook's drec only: the quantize layer's
+commitment loss is a second output no layer VJP sees). pyvf's gradient of each layer's output
+seeds the port's VJP (torch autograd, (out * dout).sum().backward()), compared with pyvf's own
+layer pair run on the same input: the gradient of each float input ("d <input name>") and of
+each parameter. The parameters' .grad are cleared per layer and restored afterwards.
 """
 
 import dataclasses
-from collections.abc import Mapping
 
 import numpy as np
 
 from ..models import transformer as _transformer
-from ..models.io import ModelWeights
 from .compare import Comparison, compare
 from .layout import flat_to_tree, tree_to_flat
 
@@ -122,8 +99,6 @@ def layer_names(model):
 def layer_table(model):
     """The model's teacher-forcing layers (see the module's docstring), in execution order, read
     off its layer table (model.layers)."""
-    if not isinstance(model, ModelWeights):
-        raise TypeError(f"model must be a pyvf.Transformer or pyvf.Codebook, got {type(model).__name__}")
     out = []
     _collect(model.layers, model.INPUTS[0], out)
     return out
@@ -200,12 +175,7 @@ class TeacherReport:
         return not self.wrong
 
     def __getitem__(self, name):
-        for c in self.checks:
-            if c.name == name:
-                return c
-        if name in self.unchecked:
-            raise KeyError(f"layer {name!r} was not checked (no callable was given for it)")
-        raise KeyError(f"{name!r} is not a layer of this report; its layers: {[c.name for c in self.checks]}")
+        return {c.name: c for c in self.checks}[name]  # KeyError: not checked (no callable), or no layer
 
     def table(self):
         lines = ["| layer | forward rel err | backward rel err | rtol | |", "|---|---|---|---|---|"]
@@ -252,34 +222,23 @@ def _check_params(model, params, layout):
     """params -> (official name -> tensor, the layout function), every problem in one error."""
     if params is None:
         return {}, None
-    if not isinstance(params, Mapping):
-        raise TypeError(f"params must be a dict official parameter name -> torch tensor, got {type(params).__name__}")
     if layout is None:  # a torch port holds torch's layout: the default only where it is the published one
         if next(iter(model.LAYOUTS)) != "torch":
-            said = " or ".join(f"{k!r} ({v})" for k, v in model.LAYOUTS.items())
-            raise ValueError(f"layout must be given with params for a {type(model).__name__}: {said}; the "
-                             "gradients are converted accordingly")
+            raise ValueError(f"layout must be given with params for a {type(model).__name__}: one of "
+                             f"{tuple(model.LAYOUTS)}")
         layout = "torch"
     layout = model.check_layout(layout)
-    shapes = model.parameter_shapes()
-    out, problems = {}, []
+    shapes, out, problems = model.parameter_shapes(), {}, []
     for raw, t in params.items():
         name = model.official_name(raw) if isinstance(raw, str) else raw
-        if name not in shapes:
-            problems.append(f"{raw!r} is not a parameter of this model")
-        elif not (hasattr(t, "requires_grad") and hasattr(t, "grad")):
-            problems.append(f"{raw!r} is a {type(t).__name__}, not a torch tensor")
-        elif not t.requires_grad:
-            problems.append(f"{raw!r} does not require grad (its gradient could not be read)")
+        if name not in shapes or not getattr(t, "requires_grad", False):
+            problems.append(f"{raw!r} is not a parameter of this model, or not a tensor that requires grad")
         elif tuple(t.shape) not in model.layout_shapes(name, layout):
-            want = model.layout_shapes(name, layout)
-            problems.append(f"{raw!r} has shape {tuple(t.shape)}, expected {' or '.join(map(str, want))} "
-                            f"in layout={layout!r}")
+            problems.append(f"{raw!r} has shape {tuple(t.shape)}, not its shape in layout={layout!r}")
         else:
             out[name] = t
     if problems:
-        raise ValueError(f"teacher_force: params: {len(problems)} problem{'s' * (len(problems) > 1)}: "
-                         + "; ".join(problems))
+        raise ValueError("teacher_force: params: " + "; ".join(problems))
     return out, lambda n, a: model.from_layout(n, a, layout)
 
 
@@ -328,22 +287,11 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
 def _check_arguments(table, layers, token_layout, train, upstream):
     """teacher_force's arguments other than the model, its inputs and params: raise on the first
     wrong one, naming it (layers against the model's layer table)."""
-    by_name = {l.name: l for l in table}
-    if not isinstance(layers, Mapping):
-        raise TypeError(f"layers must be a dict layer name -> callable, got {type(layers).__name__}")
-    unknown = [n for n in layers if n not in by_name]
-    if unknown:
-        raise ValueError(f"layers: unknown layer names {unknown}; this model's layers are "
-                         f"{[l.name for l in table]} (pyvf.verify.teacher.layer_names(model))")
-    not_callable = [n for n, f in layers.items() if not callable(f)]
-    if not_callable:
-        raise TypeError(f"layers: not callable: {not_callable}")
+    unknown = [n for n in layers if n not in {l.name for l in table}]
+    if unknown:  # a misspelt name would be silently not checked
+        raise ValueError(f"layers: unknown layer names {unknown}; this model's layers are {[l.name for l in table]}")
     if token_layout not in TOKEN_LAYOUTS:
         raise ValueError(f"token_layout must be one of {TOKEN_LAYOUTS}, got {token_layout!r}")
-    if not isinstance(train, (bool, np.bool_)):
-        raise TypeError(f"train must be True or False, got {train!r}")
-    if upstream is not None and not isinstance(upstream, Mapping):
-        raise TypeError(f"upstream must be a dict of model.backward's seeds, got {type(upstream).__name__}")
 
 
 def _pyvf_run(model, inputs, upstream, train):
@@ -354,8 +302,6 @@ def _pyvf_run(model, inputs, upstream, train):
     if isinstance(model, _transformer.Transformer):
         if train:
             raise ValueError("train=True is for a Codebook (its EMA step); the transformer has no training mode")
-        if not (isinstance(inputs, (tuple, list)) and len(inputs) == 2):
-            raise TypeError("inputs must be (tokens, poses) for a Transformer")
         tokens, poses = inputs
         out = model.forward(tokens, poses, trace=True)
         given = {"tokens": tokens, "poses": poses}
@@ -489,8 +435,6 @@ def torch_modules(port, model, path=None):
     where there is none (or path returns None). A codebook's norm layers (GroupNorm modules) are
     wrapped in swish, as pyvf fuses them. The transformer's attention usually takes the tree
     mask too, and its embedding is rarely one module: give those as functions."""
-    if not callable(getattr(port, "get_submodule", None)):
-        raise TypeError(f"port must be a torch nn.Module, got {type(port).__name__}")
     import torch
 
     out = {}
