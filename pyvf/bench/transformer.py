@@ -1,18 +1,14 @@
 """Time and memory of one transformer training step (forward, backward, AdamW), pyvf against the
-same model in torch (pyvf/verify/torch_transformer.py, SDPA with the tree's boolean mask), one run.
+same model in torch (pyvf/verify/torch_transformer.py, SDPA with a boolean mask).
 
-    pyvf bench transformer                  # tiny and paper configurations
-    pyvf bench transformer --configs tiny   # just the tiny one
-    pyvf bench transformer --quick          # the tiny one, 10 steps
+    pyvf bench transformer           # the tiny and the paper configuration
+    pyvf bench transformer --quick   # the tiny one, 5 steps
 
 Each framework runs in its own worker process, so that neither's thread pool waits on the
-other's (harmless on a quiet machine; 10x and more on small calls when other work loads it).
-Before timing, the first step's loss and gradients of pyvf and torch (same weights, same batch),
-and the loss after their first AdamW update, are compared (pyvf.bench.common.first_step_differs),
-and the tool stops if they differ. Memory: the measured peak resident memory of one step above
-what was resident before it (pyvf.bench.common.peak_memory), after a first step (it makes the
-optimizer's moments, resident before every later step, as the weights). torch is imported only in
-the torch worker.
+other's. Before timing, the first step's loss and gradients of pyvf and torch (same weights, same
+batch) and the loss after their first update are compared (common.first_step_differs); the tool
+stops if they differ. Memory: the peak resident memory of one step above what was resident
+before it, after a first step (which makes the optimizer's moments).
 """
 
 import numpy as np
@@ -29,6 +25,7 @@ CONFIGS = {
     "paper": dict(n_embeddings=1024, n_head=12, d_model=768, n_layer=12, token_image_size=8, sequence_size=20,
                   n_loss_skip=4, batch=1),
 }
+FULL = ("tiny", "paper")
 
 
 def setup(name, seed=0):
@@ -87,12 +84,10 @@ def describe(name):
             f"L={s['token_image_size'] ** 2}, V={s['n_embeddings']}, B={s['batch']}")
 
 
-def run(configs=tuple(CONFIGS), steps=None, threads=2):
-    """compare_steps on each configuration of CONFIGS named (steps: timed steps, default 20 tiny,
-    3 paper): the report; report["failures"] names a configuration whose first steps differed
-    (nothing after it is run)."""
-    return compare_steps(WORKER, configs, lambda name: steps or (20 if name == "tiny" else 3), threads, describe)
+def run(configs=FULL, steps=None, threads=2):
+    """common.compare_steps on each configuration named (steps: timed steps, default 20 tiny, 3 paper)."""
+    return compare_steps(WORKER, configs, lambda name: steps or (3 if name == "paper" else 20), threads, describe)
 
 
-if __name__ == "__main__":  # a worker: `python -m pyvf.bench.transformer SPEC` (compare_steps, run_worker)
+if __name__ == "__main__":  # a worker: `python -m pyvf.bench.transformer SPEC`
     worker_main(worker)
