@@ -26,7 +26,7 @@ loses every digit in the tail): the normwise error max|x - ref| / max|ref|, the 
 op's outputs. Each variant is validated before it is timed: pyvf against the bound its tests
 state (BOUNDS), torch and NumPy against SANITY (the same function: a wrong mask or layout is an
 O(1) error). A variant outside its bound is not timed; the command then exits with status 1.
-Time: the median of --repeat calls after a warm-up, on --threads threads.
+Time: the median of 5 calls (3 with --quick) after a warm-up, on --threads threads.
 """
 
 import functools
@@ -280,12 +280,12 @@ def conv_windows(x, w, b, dy):
     Hi, Wi = x.shape[2:]
     xp = np.pad(x, ((0, 0), (0, 0), (1, 1), (1, 1)))
     win = np.lib.stride_tricks.sliding_window_view(xp, (3, 3), axis=(2, 3))  # (B, C, Hi, Wi, 3, 3)
-    y = np.einsum("bchwae,ocae->bohw", win, w) + b[:, None, None]
+    y = np.einsum("bchwae,ocae->bohw", win, w, optimize=True) + b[:, None, None]
     dxp = np.zeros_like(xp)
     for a in range(3):
         for e in range(3):
             dxp[:, :, a:a + Hi, e:e + Wi] += np.einsum("bohw,oc->bchw", dy, w[:, :, a, e])
-    return [y, dxp[:, :, 1:-1, 1:-1], np.einsum("bchwae,bohw->ocae", win, dy), dy.sum((0, 2, 3))]
+    return [y, dxp[:, :, 1:-1, 1:-1], np.einsum("bchwae,bohw->ocae", win, dy, optimize=True), dy.sum((0, 2, 3))]
 
 
 def conv2d_op(size, rng):

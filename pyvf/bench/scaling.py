@@ -209,8 +209,9 @@ def tables(points, fit, sizes, methods):
                 table(["method", "memory fwd", "memory fwd+bwd", "time fwd", "time fwd+bwd", "N measured"],
                       [[m, _s(f[m]["fwd_bytes"]), _s(f[m]["fb_bytes"]), _s(f[m]["fwd_seconds"]), _s(f[m]["fb_seconds"]),
                         ",".join(map(str, f[m]["N"]))] for m in methods]),
-                "slopes d log y / d log N over the N measured; every point: block pairs computed per head, memory "
-                "expected / measured (the extra peak of one call, inputs excluded, outputs included), median time",
+                "The slopes of log(memory) and log(time) against log(N) over the N measured. Every point: the block "
+                "pairs computed per head, the memory expected / measured (the extra peak of one call, inputs "
+                "excluded, outputs included), the median time:",
                 table(["N", "method", "block pairs", "fwd memory", "fwd+bwd memory", "fwd time", "fwd+bwd time", "note"],
                       [[p["N"], p["method"], p["theory"]["block_pairs"],
                         f"{format_bytes(p['theory']['expected_fwd'])} / {format_bytes(p.get('fwd_bytes'))}",
