@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import pyvf
-from pyvf.bench import accuracy, attention, codebook, common, hardcases, scaling, transformer, vq
+from pyvf.bench import accuracy, attention, common, hardcases, scaling, steps, vq
 from pyvf.nn import layers
 
 TINY = (3, 1, 1, 2, 8, 8)  # (R, B, H, N, L, dh)
@@ -161,18 +161,18 @@ def test_vq_runs_and_refuses_to_time_a_wrong_method(monkeypatch):
 
 def test_first_step_differs_on_nan_and_missing():
     good = dict(loss=1.5, gradients={"w": [2.0, 0.5]}, loss_after_update=1.4)
-    assert common.first_step_differs(good, good) is None
+    assert steps.first_step_differs(good, good) is None
     for bad in (dict(good, loss=np.nan), dict(good, loss_after_update=np.nan), dict(good, gradients={}),
                 dict(good, gradients={"w": [2.0, np.nan]})):
-        assert common.first_step_differs(bad, good), bad
+        assert steps.first_step_differs(bad, good), bad
     a = np.random.default_rng(0).standard_normal((8, 8))
-    right, wrong = common.checksums({"w": a})["w"], common.checksums({"w": a.T})["w"]
+    right, wrong = steps.checksums({"w": a})["w"], steps.checksums({"w": a.T})["w"]
     assert right[0] == pytest.approx(wrong[0]) and abs(right[1] - wrong[1]) > 0.1 * right[0]
 
 
 def test_transformer_backward_and_optimizer_bugs_are_caught_before_timing(monkeypatch):
-    t = transformer.worker_torch("tiny", 1)
-    assert common.first_step_differs(transformer.worker_pyvf("tiny", 1), t) is None
+    t = steps.transformer_torch("tiny", 1)
+    assert steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t) is None
     with monkeypatch.context() as m:  # a square weight's gradient transposed
         backward = pyvf.Transformer.backward
 
@@ -181,15 +181,15 @@ def test_transformer_backward_and_optimizer_bugs_are_caught_before_timing(monkey
             name = next(n for n, x in g.items() if x.ndim == 2 and x.shape[0] == x.shape[1])
             return dict(g, **{name: np.ascontiguousarray(g[name].T)})
         m.setattr(pyvf.Transformer, "backward", transposed)
-        assert "gradients" in common.first_step_differs(transformer.worker_pyvf("tiny", 1), t)
+        assert "gradients" in steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t)
     step = pyvf.AdamW.step  # uphill
     monkeypatch.setattr(pyvf.AdamW, "step", lambda self, grads: step(self, {k: -g for k, g in grads.items()}))
-    assert "after update" in common.first_step_differs(transformer.worker_pyvf("tiny", 1), t)
+    assert "after update" in steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t)
 
 
 def test_codebook_optimizer_bug_is_caught_before_timing(monkeypatch):
-    t = codebook.worker_torch("quick", 1)
-    assert common.first_step_differs(codebook.worker_pyvf("quick", 1), t) is None
+    t = steps.codebook_torch("quick", 1)
+    assert steps.first_step_differs(steps.codebook_pyvf("quick", 1), t) is None
     step = pyvf.Adam.step
     monkeypatch.setattr(pyvf.Adam, "step", lambda self, grads: step(self, {k: -g for k, g in grads.items()}))
-    assert "after update" in common.first_step_differs(codebook.worker_pyvf("quick", 1), t)
+    assert "after update" in steps.first_step_differs(steps.codebook_pyvf("quick", 1), t)

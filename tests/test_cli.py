@@ -56,8 +56,8 @@ def assert_ran(proc, *expected):
 
 
 def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path):
-    code = ("import sys, pyvf, pyvf.cli, pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.transformer, "
-            "pyvf.bench.codebook, pyvf.bench.scaling, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
+    code = ("import sys, pyvf, pyvf.cli, pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, "
+            "pyvf.bench.scaling, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
             "assert 'torch' not in sys.modules, 'pyvf imported torch'; print(pyvf.__file__)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
                           text=True, timeout=TIMEOUT)
@@ -81,7 +81,7 @@ def test_import_pyvf_imports_no_command_code(tmp_path):
     """The command line is the top layer: `import pyvf` (the library) loads none of it, and the
     library's modules that do a command's work (every benchmark, the demo, the training tasks,
     the scenes) do not import argparse: only pyvf.cli parses arguments."""
-    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.transformer, pyvf.bench.codebook, pyvf.bench.scaling, "
+    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
                "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
                "pyvf.scenes.make, pyvf.bench.common")
     code = (f"import sys, pyvf, {library}; print(sorted(m for m in sys.modules if m == 'argparse' or "

@@ -83,6 +83,28 @@ def _round32(*arrays):
     return [a.astype(np.float32).astype(np.float64) for a in arrays]
 
 
+def _pair(forward, backward, dy, *args):
+    """fn() -> [y, *gradients] of a layer pair: y, cache = forward(*args); backward(dy, cache)."""
+    def fn():
+        y, cache = forward(*args)
+        return [y, *backward(dy, cache)]
+    return fn
+
+
+def _torch_vjp(f, dy, *args):
+    """fn() -> [y, *gradients] of y = f(*tensors) by torch autograd with upstream gradient dy: the
+    gradient of each float array of args, the others (ints) passed as they are."""
+    import torch
+
+    ts = [torch.from_numpy(a).requires_grad_(a.dtype.kind == "f") for a in args]
+
+    def fn():
+        y = f(*ts)
+        return [y.detach().numpy()] + [g.numpy() for g in torch.autograd.grad(
+            y, [t for t in ts if t.requires_grad], torch.from_numpy(dy))]
+    return fn
+
+
 def attention_op(size, rng, backward):
     R, B, H, N, L, dh = size
     x = dict(zip("qkvd", _round32(*(rng.standard_normal(size) for _ in range(4)))))
@@ -169,23 +191,15 @@ def norm_op(size, rng, groups):
         return fn
 
     def pyvf_fn(x):
-        def fn():
-            if groups is None:
-                y, cache = layers.layernorm_forward(x["x"], x["gamma"], x["beta"], eps)
-                return [y, *layers.layernorm_backward(x["dy"], cache)]
-            y, cache = conv.groupnorm_forward(x["x"], x["gamma"], x["beta"], groups, eps)
-            return [y, *conv.groupnorm_backward(x["dy"], cache)]
-        return fn
+        if groups is None:
+            return _pair(layers.layernorm_forward, layers.layernorm_backward, x["dy"], x["x"], x["gamma"], x["beta"], eps)
+        return _pair(conv.groupnorm_forward, conv.groupnorm_backward, x["dy"], x["x"], x["gamma"], x["beta"], groups, eps)
 
     def torch_fn(x):
-        import torch
-        import torch.nn.functional as F
-        xt, g, b = (torch.from_numpy(x[n]).requires_grad_(True) for n in ("x", "gamma", "beta"))
-
-        def fn():
-            y = F.layer_norm(xt, (C,), g, b, eps) if groups is None else F.group_norm(xt, groups, g, b, eps)
-            return [y.detach().numpy()] + [t.numpy() for t in torch.autograd.grad(y, (xt, g, b), torch.from_numpy(x["dy"]))]
-        return fn
+        from torch.nn import functional as F
+        norm = (lambda *a: F.layer_norm(a[0], (C,), *a[1:], eps)) if groups is None else (
+            lambda *a: F.group_norm(a[0], groups, *a[1:], eps))
+        return _torch_vjp(norm, x["dy"], x["x"], x["gamma"], x["beta"])
 
     return dict(outputs=("y", "dx", "dgamma", "dbeta"), inputs=x, reference=numpy_fn(x)(), pyvf=pyvf_fn,
                 numpy=numpy_fn, torch=torch_fn)
@@ -206,25 +220,14 @@ def cross_entropy_op(size, rng):
             return [-logp[np.arange(M), t], d * x["dloss"][:, None]]
         return fn
 
-    def pyvf_fn(x):
-        def fn():
-            loss, cache = losses.cross_entropy_forward(x["logits"], t)
-            return [loss, *losses.cross_entropy_backward(x["dloss"], cache)]
-        return fn
-
     def torch_fn(x):
-        import torch
-        import torch.nn.functional as F
-        lt = torch.from_numpy(x["logits"]).requires_grad_(True)
-
-        def fn():
-            loss = F.cross_entropy(lt, torch.from_numpy(t), reduction="none")
-            return [loss.detach().numpy(), torch.autograd.grad(loss, lt, torch.from_numpy(x["dloss"]))[0].numpy()]
-        return fn
+        from torch.nn import functional as F
+        return _torch_vjp(lambda z, t: F.cross_entropy(z, t, reduction="none"), x["dloss"], x["logits"], t)
 
     x = dict(logits=logits, dloss=dloss)
-    return dict(outputs=("loss", "dlogits"), inputs=x, reference=numpy_fn(x, log_softmax=True)(), pyvf=pyvf_fn,
-                numpy=numpy_fn, torch=torch_fn)
+    return dict(outputs=("loss", "dlogits"), inputs=x, reference=numpy_fn(x, log_softmax=True)(), numpy=numpy_fn,
+                pyvf=lambda x: _pair(losses.cross_entropy_forward, losses.cross_entropy_backward, x["dloss"], x["logits"], t),
+                torch=torch_fn)
 
 
 def gelu_mp(x):
@@ -248,21 +251,9 @@ def gelu_op(n, rng):
     dy = _round32(rng.standard_normal(n))[0]
     ys = [gelu_mp(v) for v in x]
 
-    def pyvf_fn(x):
-        def fn():
-            y, cache = layers.gelu_forward(x["x"])
-            return [y, *layers.gelu_backward(x["dy"], cache)]
-        return fn
-
     def torch_fn(x):
-        import torch
-        import torch.nn.functional as F
-        xt = torch.from_numpy(x["x"]).requires_grad_(True)
-
-        def fn():
-            y = F.gelu(xt)
-            return [y.detach().numpy(), torch.autograd.grad(y, xt, torch.from_numpy(x["dy"]))[0].numpy()]
-        return fn
+        from torch.nn import functional as F
+        return _torch_vjp(F.gelu, x["dy"], x["x"])
 
     def numpy_fn(x):
         def fn():
@@ -270,7 +261,8 @@ def gelu_op(n, rng):
             return [y, d * x["dy"]]
         return fn
 
-    return dict(outputs=("y", "dx"), inputs=dict(x=x, dy=dy), pyvf=pyvf_fn, torch=torch_fn, numpy=numpy_fn,
+    return dict(outputs=("y", "dx"), inputs=dict(x=x, dy=dy), torch=torch_fn, numpy=numpy_fn,
+                pyvf=lambda x: _pair(layers.gelu_forward, layers.gelu_backward, x["dy"], x["x"]),
                 reference=[np.array([float(a) for a, _ in ys]), np.array([float(b) for _, b in ys]) * dy])
 
 
@@ -294,23 +286,12 @@ def conv2d_op(size, rng):
                                                  rng.standard_normal((Co, C, 3, 3)) / math.sqrt(9 * C),
                                                  rng.standard_normal(Co), rng.standard_normal((B, Co, Hi, Wi)))))
 
-    def pyvf_fn(x):
-        def fn():
-            y, cache = conv.conv2d_forward(x["x"], x["w"], x["b"], 1, 1)
-            return [y, *conv.conv2d_backward(x["dy"], cache)]
-        return fn
-
     def torch_fn(x):
-        import torch
-        import torch.nn.functional as F
-        xt, w, b = (torch.from_numpy(x[n]).requires_grad_(True) for n in ("x", "w", "b"))
+        from torch.nn import functional as F
+        return _torch_vjp(lambda *a: F.conv2d(*a, padding=1), x["dy"], x["x"], x["w"], x["b"])
 
-        def fn():
-            y = F.conv2d(xt, w, b, padding=1)
-            return [y.detach().numpy()] + [t.numpy() for t in torch.autograd.grad(y, (xt, w, b), torch.from_numpy(x["dy"]))]
-        return fn
-
-    return dict(outputs=("y", "dx", "dw", "db"), inputs=x, reference=conv_windows(*x.values()), pyvf=pyvf_fn,
+    return dict(outputs=("y", "dx", "dw", "db"), inputs=x, reference=conv_windows(*x.values()),
+                pyvf=lambda x: _pair(conv.conv2d_forward, conv.conv2d_backward, x["dy"], x["x"], x["w"], x["b"], 1, 1),
                 torch=torch_fn, numpy=lambda x: lambda: conv_windows(*x.values()))
 
 

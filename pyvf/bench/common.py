@@ -6,7 +6,6 @@ machine's name, worker processes, tables, JSON and plots. NumPy and the standard
     errs, ok = validate(outs, refs, names, bound)        # the one validator: normwise errors vs float64
     result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
     print(table(header, rows)); write_json(path, report)
-    compare_steps(module, ...)        # pyvf's and torch's training steps, each in a worker, checked, timed
 
 peak_memory measures the process's resident memory (Linux VmHWM), so it covers every
 allocation the call makes: NumPy arrays, C++ workspace, torch tensors. It counts the call's
@@ -19,14 +18,12 @@ import json
 import os
 import sys
 import tracemalloc
-import zlib
 
 import numpy as np
 
 from .._io import atomic_write_text
 from .._machine import cpu_name, median_time  # noqa: F401  (re-exported: the benchmarks import them from here)
 from .._memory import map_fresh_pages
-from .._threads import set_num_threads
 
 # numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
 # sets them to the benchmark's --threads (pyvf/cli/bench.py), so that numpy's GEMM and pyvf's
@@ -166,89 +163,6 @@ def run_worker(module, spec):
 def worker_main(work):
     """A benchmark module's `if __name__ == "__main__":`: print json.dumps(work(spec))."""
     print(json.dumps(work(json.loads(sys.argv[1]))))
-
-
-# ---------------------------------------------------------------------------------------
-# training steps, pyvf against torch (transformer.py, codebook.py)
-
-# pyvf's and torch's first step, compared before any time is printed: the loss and the loss after
-# the first update to LOSS_RTOL (float32 both, the same weights and batch); each gradient's
-# checksums to CHECK_RTOL of its norm (measured: 3e-5 at most, the paper codebook). A gradient
-# below CHECK_FLOOR of the largest one's norm is compared at that level: the biases that feed a
-# normalisation have a gradient of exactly 0, computed as rounding noise.
-LOSS_RTOL, CHECK_RTOL, CHECK_FLOOR = 1e-4, 1e-3, 1e-3
-
-
-def checksums(arrays):
-    """{name: [2-norm, projection]} of each array, the projection its dot product with unit-normal
-    numbers seeded by its name (the same in every process): what a worker sends of a gradient. An
-    array zeroed, transposed or missing a term moves the projection by about its norm."""
-    out = {}
-    for name, a in arrays.items():
-        a = np.asarray(a, dtype=np.float64).ravel()
-        r = np.random.default_rng(zlib.crc32(name.encode())).standard_normal(a.size)
-        out[name] = [float(np.sqrt(a @ a)), float(a @ r)]
-    return out
-
-
-def first_step_differs(p, t):
-    """How pyvf's first step differs from torch's, or None. p, t: {loss, gradients (checksums),
-    loss_after_update}. NaN differs from everything."""
-    if not abs(p["loss"] - t["loss"]) <= LOSS_RTOL * abs(t["loss"]):
-        return f"the loss: pyvf {p['loss']}, torch {t['loss']}"
-    pg, tg = p["gradients"], t["gradients"]
-    if set(pg) != set(tg):
-        return f"the gradients named: pyvf only {sorted(set(pg) - set(tg))}, torch only {sorted(set(tg) - set(pg))}"
-    floor = CHECK_FLOOR * max(norm for norm, _ in tg.values())
-    wrong = [n for n in tg if not all(abs(a - b) <= CHECK_RTOL * max(tg[n][0], floor) for a, b in zip(pg[n], tg[n]))]
-    if wrong:
-        return f"the gradients of {', '.join(wrong[:3])}: (norm, projection) pyvf {pg[wrong[0]]}, torch {tg[wrong[0]]}"
-    if not abs(p["loss_after_update"] - t["loss_after_update"]) <= LOSS_RTOL * abs(t["loss_after_update"]):
-        return f"the loss after update: pyvf {p['loss_after_update']}, torch {t['loss_after_update']}"
-    return None
-
-
-def step_figures(step, steps):
-    """A training step's figures (step() -> the loss before its update): a warm-up call (it makes
-    the optimizer's moments, resident from then on as the weights are), the next one under
-    peak_memory (its loss, after one update, checks the optimizer), then the median of `steps`."""
-    step()
-    after, memory = peak_memory(step)
-    return dict(loss_after_update=after, memory=memory, time=median_time(step, steps, warmup=0)[0])
-
-
-def step_worker(worker_pyvf, worker_torch):
-    """A worker of {framework, config, steps, threads}: one framework's step_figures."""
-    def worker(spec):
-        set_num_threads(spec["threads"])
-        return (worker_pyvf if spec["framework"] == "pyvf" else worker_torch)(spec["config"], spec["steps"])
-    return worker
-
-
-def compare_steps(module, configs, steps, threads, describe):
-    """pyvf's and torch's training step on each configuration named, each framework in a worker
-    process (`python -m module SPEC`); their first steps compared (first_step_differs) before any
-    time is printed. -> {config, results {name: {"pyvf", "torch"}}, failures}: a configuration
-    whose steps differ is a failure, and nothing after it runs."""
-    report = dict(config=dict(configs=list(configs), threads=threads), results={}, failures=[])
-    for name in configs:
-        p, t = (run_worker(module, dict(framework=f, config=name, steps=steps(name), threads=threads))
-                for f in ("pyvf", "torch"))
-        differs = first_step_differs(p, t)
-        if differs:
-            print(f"{name}: pyvf and torch differ in {differs}", file=sys.stderr)
-            report["failures"].append(f"{name}: the first steps of pyvf and torch differ")
-            break
-        print(f"\n## {name}: {describe(name)}, float32, {threads} threads, median of {steps(name)} steps, each "
-              "framework in its own process")
-        print(f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the gradients, and the loss after "
-              "an update, agree)\n")
-        print(table(["", "step time", "peak memory of a step"],
-                    [["pyvf", ms(p["time"]), format_bytes(p["memory"])],
-                     ["torch", ms(t["time"]), format_bytes(t["memory"])],
-                     ["torch / pyvf", f"{t['time'] / p['time']:.2f}", f"{t['memory'] / p['memory']:.2f}"]]))
-        report["results"][name] = {"pyvf": p, "torch": t}
-    return report
 
 
 # ---------------------------------------------------------------------------------------

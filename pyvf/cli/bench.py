@@ -31,7 +31,7 @@ def _module(name):
 def _parser(name, quick, json=False, plots=False):
     """A benchmark's parser: --quick (its help), --threads (default 2), --json, --plots; the module
     docstring's first paragraph as description, all of it as epilog."""
-    doc = _module(name).__doc__
+    doc = _module("steps" if name in NEEDS_TORCH else name).__doc__
     p = argparse.ArgumentParser(prog=f"pyvf bench {name}", description=doc.split("\n\n")[0], epilog=doc,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help=quick)
@@ -77,9 +77,9 @@ def _vq(args):
 
 def _steps(name):
     def handler(args):
-        module = _module(name)
-        configs = ["quick" if "quick" in module.CONFIGS else "tiny"] if args.quick else module.FULL
-        return 1 if module.run(configs, 5 if args.quick else None, threads=args.threads)["failures"] else 0
+        steps = _module("steps")
+        configs = ["quick" if name == "codebook" else "tiny"] if args.quick else steps.FULL
+        return 1 if steps.run(name, configs, 5 if args.quick else None, args.threads)["failures"] else 0
     return handler
 
 
