@@ -166,11 +166,14 @@ def figures(c, repeat, warmup=1):
 # the benchmark
 
 
-def run(R, B, H, N, L, dh, threads=2, repeat=5):
+def run(R, B, H, N, L, dh, threads=2, repeat=5, with_torch=True, heads=None, ref_repeat=None):
     """The benchmark at one size (the module docstring's steps): prints its tables and returns the
-    report. When a contender fails validation nothing is timed and report["aborted"] says so."""
+    report. When a contender fails validation nothing is timed and report["aborted"] says so.
+    heads: check these heads only (the float64 dense reference of all heads at the paper size
+    takes GiBs; heads are independent, so the reference on their inputs is its output for them);
+    ref_repeat: timed calls of the NumPy reference (default repeat)."""
     t_start = time.perf_counter()
-    torch = torch_or_none()
+    torch = torch_or_none() if with_torch else None
     shape = (R, B, H, N, L, dh)
     pyvf.set_num_threads(threads)
     if torch is not None:
@@ -180,7 +183,8 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5):
     print(f"# Branching attention: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={R * N * L}), float32, scale 1, "
           f"{threads} threads\nmachine: {report['machine']['processor']}; memory: {memory_method()}\n")
     q, k, v, do = make_inputs(*shape)
-    ref = reference64(q, k, v, do)
+    pick = (lambda x: x) if heads is None else (lambda x: np.ascontiguousarray(x[:, :, heads]))  # noqa: E731
+    ref = reference64(*map(pick, (q, k, v, do)))
     contenders = {"pyvf (C++ kernel)": (pyvf_contender(q, k, v, do), BOUND32, "pyvf")}
     if torch is not None:
         contenders["torch SDPA, dense bool mask"] = (torch_contender(q, k, v, do), BOUND_OTHERS, "sdpa")
@@ -188,7 +192,7 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5):
     report["errors"], failed = {}, []
     checks = [("pyvf float64", pyvf_contender(*(x.astype(np.float64) for x in (q, k, v, do))), BOUND64)]
     for name, c, bound in checks + [(n, c, b) for n, (c, b, _) in contenders.items()]:
-        report["errors"][name], ok = validate(c["outs"](), ref, NAMES, bound)
+        report["errors"][name], ok = validate(map(pick, c["outs"]()), ref, NAMES, bound)
         failed += [] if ok else [f"{name} above {bound:g}"]
     print(table(["max rel. error vs float64 reference"] + list(NAMES),
                 [[n] + [f"{e[c]:.2e}" for c in NAMES] for n, e in report["errors"].items()]))
@@ -202,7 +206,7 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5):
     f_fwd, f_fb = useful_flops(*shape)
     rows, report["results"] = [], {}
     for name, (c, _, method) in contenders.items():
-        r = report["results"][name] = figures(c, repeat, warmup=0 if method == "numpy" else 1)
+        r = report["results"][name] = figures(c, *((ref_repeat or repeat, 0) if method == "numpy" else (repeat, 1)))
         r["expected_fwd_bytes"], r["expected_fb_bytes"] = expected_memory(method, *shape, threads)
         rows.append([name, ms(r["fwd_seconds"]), f"{f_fwd / r['fwd_seconds'] / 1e9:.1f}", ms(r["fb_seconds"]),
                      f"{f_fb / r['fb_seconds'] / 1e9:.1f}", f"{f_fb / r['fb_seconds'] / 1e9 / gemm:.0%}",
@@ -215,7 +219,7 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5):
           "the extra peak of one call, inputs excluded, outputs included")
     res, pyvf_fb = report["results"], report["results"]["pyvf (C++ kernel)"]["fb_seconds"]
     report["gemm_gflops"], report["ratio_over_pyvf"] = gemm, {n: r["fb_seconds"] / pyvf_fb for n, r in res.items()}
-    if torch is None:
+    if torch is None and with_torch:
         print(f"torch SDPA: {TORCH_MISSING}")
     print("forward+backward time over pyvf's: " + ", ".join(f"{n} {x:.2f}x" for n, x in report["ratio_over_pyvf"]
                                                             .items() if not n.startswith("pyvf")))
@@ -224,52 +228,18 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5):
 
 
 # ---------------------------------------------------------------------------------------
-# the demo: pyvf against the dense NumPy reference only, at three sizes
-
-# The dense reference costs O(T^2) time and memory (2 GiB in float64 at the paper size), so there
-# it is checked on two heads, the first and the last (heads are independent: the reference on
-# those heads' inputs is the reference's output for them), and timed in one call.
+# the demo: pyvf against the dense NumPy reference only, at three sizes; at the paper's, checked on
+# the first and the last head, and the reference timed in one call (seconds, 2 GiB)
 DEMO_SIZES = {
-    "small": dict(shape=(3, 2, 2, 4, 16, 16), ref_repeat=5, all_heads=True),
-    "medium": dict(shape=(3, 1, 4, 8, 64, 64), ref_repeat=1, all_heads=True),
-    "paper": dict(shape=(3, 1, 12, 20, 64, 64), ref_repeat=1, all_heads=False),
+    "small": dict(shape=(3, 2, 2, 4, 16, 16), ref_repeat=5, heads=None),
+    "medium": dict(shape=(3, 1, 4, 8, 64, 64), ref_repeat=1, heads=None),
+    "paper": dict(shape=(3, 1, 12, 20, 64, 64), ref_repeat=1, heads=[0, 11]),
 }
 
 
-def demo_size(name, shape, ref_repeat, all_heads):
-    """One size: its error table and time/memory table printed; True when pyvf is within its bounds."""
-    R, B, H, N, L, dh = shape
-    print(f"\n== {name}: R={R} B={B} H={H} N={N} L={L} dh={dh}  (T = R*N*L = {R * N * L} tokens) ==", flush=True)
-    q, k, v, do = make_inputs(*shape)
-    heads = slice(None) if all_heads else [0, H - 1]
-    ref = reference64(*(np.ascontiguousarray(x[:, :, heads]) for x in (q, k, v, do)))
-    ok, rows, times = True, [], []
-    for label, c, bound in (("pyvf float64", pyvf_contender(*(x.astype(np.float64) for x in (q, k, v, do))), BOUND64),
-                            ("pyvf float32", pyvf_contender(q, k, v, do), BOUND32),
-                            ("NumPy reference float32", reference_contender(q, k, v, do), np.inf)):
-        errs, within = validate([x[:, :, heads] for x in c["outs"]()], ref, NAMES, bound)
-        ok &= within
-        rows.append([label] + [f"{errs[n]:.1e}" for n in NAMES] + ["" if bound == np.inf else f"{bound:g}",
-                                                                   "" if bound == np.inf else ("ok" if within else "EXCEEDED")])
-        if label != "pyvf float64":
-            times.append(figures(c, 5 if label == "pyvf float32" else ref_repeat, warmup=0))
-    print(f"max relative error vs the dense NumPy reference in float64 ({'all heads' if all_heads else f'heads 0 and {H - 1}'})")
-    print(table(["", *NAMES, "bound", ""], rows))
-    p, r = times
-    print("\ntime, float32 (median), and the extra peak memory of one call (outputs included)")
-    print(table(["", "forward", "forward+backward", "memory, forward", "memory, forward+backward"], [
-        ["pyvf (C++ kernel)", ms(p["fwd_seconds"]), ms(p["fb_seconds"]), format_bytes(p["fwd_bytes"]),
-         format_bytes(p["fb_bytes"])],
-        ["NumPy dense reference", ms(r["fwd_seconds"]), ms(r["fb_seconds"]), format_bytes(r["fwd_bytes"]),
-         format_bytes(r["fb_bytes"])],
-        ["reference / pyvf", f"{r['fwd_seconds'] / p['fwd_seconds']:.3g}x", f"{r['fb_seconds'] / p['fb_seconds']:.3g}x",
-         "", ""]]))
-    return ok
-
-
 def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
-    """`pyvf bench demo-attention`: demo_size at each of the DEMO_SIZES named. Returns the exit
-    status, 0 when every error is within its bound. NumPy only (no torch)."""
+    """`pyvf bench demo-attention`: run() at each of the DEMO_SIZES named, without torch. Returns
+    the exit status, 0 when every error is within its bound."""
     if threads is not None:
         pyvf.set_num_threads(threads)
     t0 = time.perf_counter()
@@ -277,8 +247,11 @@ def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
         from pyvf._machine import kernel_line as line
         print(line())
     print("pyvf demo: branching attention (docs/math.md §2), the C++ kernel against the dense NumPy reference")
-    print(f"pyvf {pyvf.__version__}, {pyvf.num_threads()} kernel threads; inputs unit normal, scale 1; "
-          f"memory: {memory_method()}")
-    ok = all([demo_size(name, **DEMO_SIZES[name]) for name in sizes])
+    ok = True
+    for name in sizes:
+        size = DEMO_SIZES[name]
+        print(f"\n== {name}: " + ("all heads" if size["heads"] is None else f"heads {size['heads']}") + " ==\n")
+        ok &= "aborted" not in run(*size["shape"], threads=pyvf.num_threads(), with_torch=False, heads=size["heads"],
+                                   ref_repeat=size["ref_repeat"])
     print(f"\n{'all errors within their bounds' if ok else 'ERROR BOUND EXCEEDED'}; total {time.perf_counter() - t0:.0f} s")
     return 0 if ok else 1

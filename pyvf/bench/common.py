@@ -137,7 +137,8 @@ def format_bytes(n):
 
 
 def ms(seconds):
-    return "-" if seconds is None else f"{seconds * 1e3:.3g} ms"
+    """0.0123 -> '12.3 ms'; three significant figures, whole milliseconds from a second on; None -> '-'."""
+    return "-" if seconds is None else f"{seconds * 1e3:.3g} ms" if seconds < 1 else f"{seconds * 1e3:.0f} ms"
 
 
 # ---------------------------------------------------------------------------------------
