@@ -159,7 +159,7 @@ def test_every_readme_command_without_torch(tmp_path):
     """After `pip install .` alone (torch made unimportable): each command's quick mode runs, pyvf's
     own figures measured where torch is only a comparison column, or it stops with one line naming
     the extra it needs. (bench report runs these same benchmarks; its quick mode takes minutes
-    and is run with torch in test_bench_accuracy.py.)"""
+    and its code is tested with torch in test_bench_report.py and test_bench_validation.py.)"""
     hide = tmp_path / "no-torch" / "torch"
     hide.mkdir(parents=True)
     (hide / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")

@@ -10,7 +10,7 @@ scaled_dot_product_attention with the dense (T, T) mask and against the dense Nu
    with status 1, nothing timed, if pyvf is outside its bound or another outside BOUND_OTHERS (its
    time would be that of another computation);
 2. measures the extra peak memory of one call of each, beside the memory expected for it;
-3. times forward and forward+backward of each (median of --repeat calls), with the useful
+3. times forward and forward+backward of each (median of 5 calls), with the useful
    GFLOP/s (attended block pairs only) and its share of the machine's float32 GEMM rate.
 
 Inputs are unit-normal, scale = 1 (the published model's unscaled logits). pyvf takes (R, B, H, N,

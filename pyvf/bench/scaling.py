@@ -18,7 +18,7 @@ Methods (float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1):
 Every point (method, size, N) runs in a process of its own (worker()): at the first N of each
 size it validates its output and gradients against the float64 dense reference, then measures
 one call's extra peak memory (inputs excluded, outputs included) beside the memory expected
-(attention.expected_memory), forward and forward+backward, then the median times of --repeat
+(attention.expected_memory), forward and forward+backward, then the median times of 5
 calls. A point whose run time, predicted from the same method's previous N by the FLOPs it
 computes, exceeds --max-point-seconds is skipped, and so are the larger N of that method.
 
