@@ -1,15 +1,19 @@
-"""Every benchmark validates what it times before timing it (pyvf/bench/__init__.py): a bug planted
-in a timed computation (a NaN gradient, a transposed mask or weight, a dropped output, zeros)
-must stop it, or record a failure, instead of printing a time. Each test plants one such bug in
-one benchmark and runs the part that validates, on tiny inputs (about 30 s in all on 2 cores).
+"""Every benchmark (pyvf/bench/) runs on its smallest sizes and validates what it times before
+timing it: a bug planted in a timed computation (a NaN gradient, a transposed mask or weight, an
+output off by 1e-3, a wrong code) must stop it or record a failure instead of printing a time.
 """
+
+import json
 
 import numpy as np
 import pytest
 import torch
 
 import pyvf
-from pyvf.bench import accuracy, attention, codebook, common, scaling, transformer, vq
+from pyvf.bench import accuracy, attention, common, hardcases, scaling, steps, vq
+from pyvf.nn import layers
+
+TINY = (3, 1, 1, 2, 8, 8)  # (R, B, H, N, L, dh)
 
 
 @pytest.fixture(autouse=True)
@@ -21,7 +25,8 @@ def _keep_threads():
     torch.set_num_threads(nt)
 
 
-def _nan_dq(monkeypatch):
+@pytest.fixture
+def nan_dq(monkeypatch):
     """pyvf's attention backward with a NaN in dq (the other gradients right)."""
     backward = pyvf.branching_attention_backward
 
@@ -33,192 +38,158 @@ def _nan_dq(monkeypatch):
     monkeypatch.setattr(pyvf, "branching_attention_backward", planted)
 
 
-# ---------------------------------------------------------------------------------------
-# attention
+def test_validate_rejects_nan_shape_missing_and_error_above_the_bound():
+    ref = [np.ones((2, 3)), np.full(4, 2.0)]
+    errs, ok = common.validate([np.ones((2, 3)), np.full(4, 2.0 + 1e-9)], ref, ("a", "b"), 1e-8)
+    assert ok and errs["a"] == 0 and errs["b"] == pytest.approx(5e-10)
+    assert not common.validate([ref[0], np.full(4, 2.0 + 1e-7)], ref, ("a", "b"), 1e-8)[1]
+    for wrong in ([ref[0], np.full(4, np.nan)], [ref[0], np.full(5, 2.0)], [ref[0]], [ref[0], np.full(4, np.inf)]):
+        errs, ok = common.validate(wrong, ref, ("a", "b"), 1.0)
+        assert not ok and errs["b"] == np.inf, wrong
 
 
-def test_attention_demo_fails_on_a_nan_gradient(monkeypatch, capsys):
-    """A NaN compares False with every bound: max() over the errors skipped it and the demo said ok."""
-    _nan_dq(monkeypatch)
-    assert not attention.demo_size("small", **attention.DEMO_SIZES["small"])
-    assert "EXCEEDED" in capsys.readouterr().out
+def test_attention_validates_then_times_every_contender():
+    report = attention.run(*TINY, threads=2, repeat=3)
+    assert "aborted" not in report and set(report["results"]) == {"pyvf (C++ kernel)", "torch SDPA, dense bool mask",
+                                                                 "NumPy dense reference"}
+    assert max(report["errors"]["pyvf (C++ kernel)"].values()) <= attention.BOUND32
+    assert all(r["fb_seconds"] > 0 and r["fb_bytes"] >= 0 for r in report["results"].values())
 
 
-def test_attention_aborts_before_timing_a_nan_gradient(monkeypatch, capsys):
-    _nan_dq(monkeypatch)
-    report = attention.run(3, 1, 1, 2, 8, 8, threads=2, repeat=5)
-    assert "pyvf" in report.get("aborted", ""), report.get("aborted")
-    assert "time" not in report
+def test_attention_aborts_before_timing_a_nan_gradient(nan_dq):
+    report = attention.run(*TINY, threads=2, repeat=3)
+    assert "pyvf (C++ kernel)" in report["aborted"] and "results" not in report
+    assert attention.demo(("small",)) == 1
 
 
-def test_attention_aborts_before_timing_torch_given_a_wrong_mask(monkeypatch, capsys):
-    """torch SDPA's errors were printed but held to no bound: with the mask transposed, its time
-    and the torch / pyvf ratio were still reported."""
-    torch_fns = attention.torch_fns
-    monkeypatch.setattr(attention, "torch_fns", lambda q, k, v, do, mask: torch_fns(q, k, v, do, mask.T.copy()))
-    report = attention.run(3, 1, 1, 2, 8, 8, threads=2, repeat=5)
-    assert "torch" in report.get("aborted", ""), report.get("aborted")
-    assert "time" not in report and "ratio_torch_over_pyvf" not in report
+def test_attention_aborts_before_timing_torch_given_a_wrong_mask(monkeypatch):
+    mask = pyvf.branching_mask
+    monkeypatch.setattr(pyvf, "branching_mask", lambda R, N, L: mask(R, N, L).T.copy())
+    report = attention.run(*TINY, threads=2, repeat=3)
+    assert "torch SDPA" in report["aborted"] and "results" not in report
 
 
-def test_each_kernel_paths_backward_is_validated_before_it_is_timed(monkeypatch):
-    """path_times checked each path's forward only, then timed its forward and backward. The bug
-    is planted on the paths path_times switches to (inside use_kernel_path), not on the reference
-    it computes first: so the test runs on a CPU of one path too (no skip)."""
-    backward, switch = pyvf.branching_attention_backward, pyvf.use_kernel_path
-    inside = []
-
-    class planted_switch(switch):  # marks the calls made under a switched path
-        def __enter__(self):
-            inside.append(self.path)
-            return super().__enter__()
-
-        def __exit__(self, *exc):
-            inside.pop()
-            return super().__exit__(*exc)
-
-    def planted(*args, **kwargs):  # the gradients of dk and dv swapped, on the switched paths only
-        dq, dk, dv = backward(*args, **kwargs)
-        return (dq, dv, dk) if inside else (dq, dk, dv)
-    monkeypatch.setattr(pyvf, "use_kernel_path", planted_switch)
-    monkeypatch.setattr(pyvf, "branching_attention_backward", planted)
-    q, k, v, do = attention.make_inputs(3, 1, 1, 2, 8, 8)
-    with pytest.raises(RuntimeError, match=f"path {pyvf.kernel_paths()[0]}: differs"):
-        attention.path_times(q, k, v, do, 1, 1.0, 1.0, 1.0)
+@pytest.mark.parametrize("method", list(scaling.METHODS))
+def test_scaling_point_validates_every_method(method):
+    """In process, at the smallest size: the naive stacked prefixes unstacked give back the
+    branching output and gradients (the stacking is right), the dense ones the same."""
+    out = scaling.worker(dict(method=method, H=1, dh=8, N=2, threads=2, repeat=1, validate=True))
+    assert "error" not in out and max(out["errors"].values()) <= scaling.BOUND_OTHERS, out
+    assert out["fb_bytes"] > 0 and out["fb_seconds"] > 0
 
 
-# ---------------------------------------------------------------------------------------
-# scaling
+def test_scaling_point_with_a_nan_gradient_fails_validation(nan_dq):
+    out = scaling.worker(dict(method="pyvf", H=1, dh=8, N=2, threads=2, repeat=1, validate=True))
+    assert out["error"].startswith("validation failed") and "fb_seconds" not in out, out
 
 
-def test_scaling_point_with_a_nan_gradient_fails_validation():
-    q, k, v, do = attention.make_inputs(3, 1, 1, 2, 8, 8)
-    x64 = [x.astype(np.float64) for x in (q, k, v, do)]
-    ref = (pyvf.branching_attention_reference(*x64[:3]), pyvf.branching_attention_reference_vjp(*x64))
-    c = scaling.contender("pyvf", (q, k, v, do), {})
-    fb = c["fb"]
-
-    def planted():
-        o, (dq, dk, dv) = fb()
-        return o, (np.full_like(dq, np.nan), dk, dv)
-    out = {}
-    assert scaling.validate_point(out, c, ref) and out["errors"]["dq"] <= attention.BOUND32
-    out = {}
-    assert not scaling.validate_point(out, dict(c, fb=planted), ref)
-    assert out["error"].startswith("validation failed"), out
+def test_scaling_run_in_workers_writes_its_json_and_plots(tmp_path):
+    rep = scaling.run(((1, 8),), (2, 4), ("pyvf",), threads=2, repeat=1, plots=str(tmp_path),
+                      json_path=str(tmp_path / "s.json"), log=lambda *a, **k: None)
+    assert not scaling.validation_failed(rep) and json.loads((tmp_path / "s.json").read_text())["points"]
+    assert [p.get("error") for p in rep["points"]] == [None] * 2
+    assert rep["slopes"]["1x8"]["pyvf"]["N"] == [2, 4]
+    for what in ("memory", "time"):
+        assert (tmp_path / f"scaling-{what}-H1-dh8.png").stat().st_size > 1000
 
 
-# ---------------------------------------------------------------------------------------
-# accuracy
+@pytest.mark.parametrize("p", [0.5, 1.0, 3.0, -1.0])
+def test_fit_slope_recovers_exact_power_laws(p):
+    Ns = [2, 4, 8, 16]
+    assert scaling.fit_slope(Ns, [3.7 * n ** p for n in Ns]) == pytest.approx(p, abs=1e-12)
+    assert scaling.fit_slope(Ns, [None, 0.0] + [5.0 * n ** p for n in Ns[2:]]) == pytest.approx(p, abs=1e-12)
+    assert scaling.fit_slope(Ns[:2], [1.0, None]) is None
 
 
-def test_accuracy_variant_that_drops_an_output_is_not_timed(monkeypatch):
-    """errors() zipped the outputs with the reference's, so a variant that returned fewer outputs
-    (LayerNorm without dbeta) was checked on the ones it returned and passed."""
-    backward = pyvf.nn.layers.layernorm_backward
-    monkeypatch.setattr(pyvf.nn.layers, "layernorm_backward", lambda *a, **k: backward(*a, **k)[:2])
-    op = accuracy.make_op("layernorm", "smoke")
-    x = op.inputs(np.random.default_rng(0))
-    v = accuracy.variants(op, with_torch=False)[0]
-    with pytest.raises(ValueError, match="outputs"):
-        accuracy.run_variant(op, x, op.reference(x), v)
+@pytest.mark.parametrize("op", list(accuracy.OPS))
+def test_accuracy_op_validates_and_times_every_variant(op, monkeypatch):
+    monkeypatch.setitem(accuracy.SIZES, "quick", accuracy.SIZES["smoke"])
+    res = accuracy.run_op(op, "quick", repeat=1, log=lambda *a, **k: None)
+    assert [r["name"] for r in res["variants"]] == ["pyvf float32", "pyvf float64", "torch float32", "numpy float32"]
+    for r in res["variants"]:
+        assert "fail" not in r and r["rel"] <= r["bound"] and r["seconds"] > 0, r
+    assert res["variants"][1]["rel"] < 1e-12  # float64 really ran in float64
 
 
-# ---------------------------------------------------------------------------------------
-# vq
+def test_accuracy_variant_outside_its_bound_is_not_timed(monkeypatch):
+    """pyvf's LayerNorm made 1e-3 off: both pyvf variants fail, untimed; torch and NumPy pass."""
+    forward = layers.layernorm_forward
+    monkeypatch.setattr(layers, "layernorm_forward", lambda *a, **k: (lambda y, c: (y * (1 + 1e-3), c))(*forward(*a, **k)))
+    monkeypatch.setitem(accuracy.SIZES, "quick", accuracy.SIZES["smoke"])
+    report = accuracy.run("quick", ops=("layernorm",), log=lambda *a, **k: None)
+    assert [f.split(":")[0] for f in report["failures"]] == ["layernorm / pyvf float32", "layernorm / pyvf float64"]
+    assert ["seconds" in r for r in report["results"][0]["variants"]] == [False, False, True, True]
 
 
-def test_vq_contender_with_wrong_codes_is_not_timed(monkeypatch, capsys):
-    """The other methods' wrong codes were only printed: one that is wrong on ordinary data (here
-    the argmin over the wrong axis) was timed and its ratio to pyvf printed."""
+def test_hardcases_hold_and_the_naive_formulas_break_where_the_sweeps_say(tmp_path):
+    report = hardcases.run("quick", log=lambda *a, **k: None)
+    assert report["failures"] == [] and hardcases.plot_all(report, str(tmp_path))
+    brk = {sw["name"]: sw["breaks"] for sw in report["sweeps"]}
+    assert 1e2 <= brk["attention-spread"]["naive exp (no max) float32"] <= 1e3
+    assert brk["attention-mask"]["published -1e4 mask float64"] == pytest.approx(1e4)
+    assert brk["attention-mask"]["numpy exact float32"] is None
+    assert brk["layernorm"]["one-pass float32"] <= 1e2 and brk["layernorm"]["one-pass float64"] <= 1e4
+    assert -8 <= brk["gelu"]["naive 0.5 (1 + erf) float64"] < 0 and -8 <= brk["gelu"]["torch float64"] < 0
+    assert brk["cross-entropy"]["naive -log(softmax) float32"] <= 1e2
+
+
+def test_hardcase_sweep_fails_when_pyvf_leaves_its_bound(monkeypatch):
+    """LayerNorm by the one-pass variance: the sweep fails where the mean's square cancels; a NaN
+    counts as outside."""
+    def one_pass(x, gamma, beta, eps=1e-5):
+        m = x.mean(-1, keepdims=True)
+        return (x - m) / np.sqrt((x * x).mean(-1, keepdims=True) - m * m + eps) * gamma + beta, None
+    monkeypatch.setattr(layers, "layernorm_forward", one_pass)
+    with np.errstate(invalid="ignore"):
+        report = hardcases.run("quick", names=("layernorm",), log=lambda *a, **k: None)
+    c = report["sweeps"][0]["check"]["pyvf float32"]
+    assert not c["ok"] and c["first_x_out"] <= 1e2 and "layernorm / pyvf float32" in report["failures"][0]
+    sw = dict(x=[1, 2], lines={"pyvf float32": [0.0, float("nan")]}, bounds={"pyvf float32": [1.0, 1.0]})
+    assert hardcases.check(sw)[0]["pyvf float32"]["first_x_out"] == 2
+
+
+def test_vq_runs_and_refuses_to_time_a_wrong_method(monkeypatch):
+    assert vq.run(512, 64, 16, repeat=3, checked_rows=256)["failures"] == []
     methods = vq.methods
-
-    def planted():
-        out = methods()
-        out["torch cdist + argmin"] = lambda x, c: torch.cdist(torch.from_numpy(x), torch.from_numpy(c)).argmin(
-            dim=0).numpy()[np.arange(len(x)) % len(c)]
-        return out
-    monkeypatch.setattr(vq, "methods", planted)
-    report = vq.run(512, 64, 16, repeat=3, checked_rows=256, threads=2)
-    assert any("torch cdist" in f for f in report["failures"]), report["failures"]
-    assert "torch cdist + argmin" not in report["methods"]
+    monkeypatch.setattr(vq, "methods", lambda: dict(methods(), **{"torch cdist + argmin": lambda x, c: np.zeros(
+        len(x), dtype=np.int64)}))
+    report = vq.run(512, 64, 16, repeat=3, checked_rows=256)
+    assert any("torch cdist" in f for f in report["failures"]) and "torch cdist + argmin" not in report["methods"]
+    monkeypatch.setattr(vq, "vq_nearest", lambda x, c: (np.zeros(len(x), dtype=np.int64), None))
+    assert "pyvf disagrees" in vq.run(512, 64, 16, repeat=3, checked_rows=256)["failures"][0]
 
 
-# ---------------------------------------------------------------------------------------
-# transformer and codebook: pyvf's and torch's first step compared before timing
-
-
-def _transposed(grads, ndim, planted):
-    """grads with the first gradient of `ndim` dimensions whose last two axes are square
-    transposed in them (a weight read the wrong way round in the backward); its name in planted."""
-    name = next(k for k, g in grads.items() if g.ndim == ndim and g.shape[-1] == g.shape[-2] > 1)
-    planted.append(name)
-    return dict(grads, **{name: np.ascontiguousarray(grads[name].swapaxes(-1, -2))})
-
-
-def test_transformer_backward_bug_is_caught_before_timing(monkeypatch):
-    """Only the first forward's loss was compared: a wrong gradient (here a transposed weight's)
-    was timed as a training step."""
-    t = transformer.worker_torch("tiny", 3)
-    p = transformer.worker_pyvf("tiny", 3)
-    assert common.first_step_differs(p, t) is None
-    backward, planted = pyvf.Transformer.backward, []
-    monkeypatch.setattr(pyvf.Transformer, "backward",
-                        lambda self, *a, **k: _transposed(backward(self, *a, **k), 2, planted))
-    differs = common.first_step_differs(transformer.worker_pyvf("tiny", 3), t)
-    assert differs and planted[0] in differs, differs
-
-
-def test_transformer_optimizer_bug_is_caught_before_timing(monkeypatch):
-    """The timed step ends in AdamW's update, which nothing compared: here it goes uphill."""
-    t = transformer.worker_torch("tiny", 3)
-    step = pyvf.AdamW.step
-    monkeypatch.setattr(pyvf.AdamW, "step", lambda self, grads: step(self, {k: -g for k, g in grads.items()}))
-    differs = common.first_step_differs(transformer.worker_pyvf("tiny", 3), t)
-    assert differs and "after update" in differs, differs
-
-
-def test_a_nan_loss_or_checksum_is_a_difference():
-    """abs(nan - t) > tol is False: a NaN loss passed the loss comparison."""
+def test_first_step_differs_on_nan_and_missing():
     good = dict(loss=1.5, gradients={"w": [2.0, 0.5]}, loss_after_update=1.4)
-    assert common.first_step_differs(good, good) is None
-    assert common.first_step_differs(dict(good, loss=float("nan")), good)
-    assert common.first_step_differs(dict(good, loss_after_update=float("nan")), good)
-    assert common.first_step_differs(dict(good, gradients={"w": [2.0, float("nan")]}), good)
-    assert common.first_step_differs(dict(good, gradients={}), good)
-    assert common.first_step_differs(dict(good, outputs={"o": [1.0, 1.0]}), good)  # on one side only
-
-
-def test_checksums_tell_a_transposed_array_from_the_right_one():
+    assert steps.first_step_differs(good, good) is None
+    for bad in (dict(good, loss=np.nan), dict(good, loss_after_update=np.nan), dict(good, gradients={}),
+                dict(good, gradients={"w": [2.0, np.nan]})):
+        assert steps.first_step_differs(bad, good), bad
     a = np.random.default_rng(0).standard_normal((8, 8))
-    right, wrong = common.checksums({"w": a}), common.checksums({"w": a.T})
-    assert right["w"][0] == pytest.approx(wrong["w"][0])  # the same norm
-    assert abs(right["w"][1] - wrong["w"][1]) > 0.1 * right["w"][0]
+    right, wrong = steps.checksums({"w": a})["w"], steps.checksums({"w": a.T})["w"]
+    assert right[0] == pytest.approx(wrong[0]) and abs(right[1] - wrong[1]) > 0.1 * right[0]
 
 
-def test_step_memory_is_measured_after_a_warm_up_step(monkeypatch):
-    """peak_memory(step) was the first step, which brings the optimizer's moments into being (two
-    arrays per parameter, in both frameworks) and any thread pool: one-time costs that peak_memory's
-    contract keeps out by calling fn once first."""
-    calls = []
-    monkeypatch.setattr(common, "peak_memory", lambda fn: (calls.append("measured"), (fn(), 0))[1])
-    fig = common.step_figures(lambda: calls.append("step") or 1.5, 3)
-    assert calls[:3] == ["step", "measured", "step"] and len(calls) == 6, calls
-    assert fig["loss_after_update"] == 1.5 and fig["memory"] == 0 and fig["time"] >= 0
+def test_transformer_backward_and_optimizer_bugs_are_caught_before_timing(monkeypatch):
+    t = steps.transformer_torch("tiny", 1)
+    assert steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t) is None
+    with monkeypatch.context() as m:  # a square weight's gradient transposed
+        backward = pyvf.Transformer.backward
+
+        def transposed(self, *a, **k):
+            g = backward(self, *a, **k)
+            name = next(n for n, x in g.items() if x.ndim == 2 and x.shape[0] == x.shape[1])
+            return dict(g, **{name: np.ascontiguousarray(g[name].T)})
+        m.setattr(pyvf.Transformer, "backward", transposed)
+        assert "gradients" in steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t)
+    step = pyvf.AdamW.step  # uphill
+    monkeypatch.setattr(pyvf.AdamW, "step", lambda self, grads: step(self, {k: -g for k, g in grads.items()}))
+    assert "after update" in steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t)
 
 
-def test_codebook_backward_and_optimizer_bugs_are_caught_before_timing(monkeypatch):
-    """Only the loss of a forward (train=False) was compared: a wrong gradient (here a 3x3 conv
-    weight's kernel flipped across its diagonal) was timed as a training step, and so was a wrong
-    update."""
-    t = codebook.worker_torch("tiny", 1)
-    assert common.first_step_differs(codebook.worker_pyvf("tiny", 1), t) is None
-    with monkeypatch.context() as m:
-        backward, planted = pyvf.Codebook.backward, []
-        m.setattr(pyvf.Codebook, "backward", lambda self, *a, **k: _transposed(backward(self, *a, **k), 4, planted))
-        differs = common.first_step_differs(codebook.worker_pyvf("tiny", 1), t)
-        assert differs and planted[0] in differs, differs
-    step = pyvf.Adam.step  # uphill
+def test_codebook_optimizer_bug_is_caught_before_timing(monkeypatch):
+    t = steps.codebook_torch("quick", 1)
+    assert steps.first_step_differs(steps.codebook_pyvf("quick", 1), t) is None
+    step = pyvf.Adam.step
     monkeypatch.setattr(pyvf.Adam, "step", lambda self, grads: step(self, {k: -g for k, g in grads.items()}))
-    differs = common.first_step_differs(codebook.worker_pyvf("tiny", 1), t)
-    assert differs and "after update" in differs, differs
+    assert "after update" in steps.first_step_differs(steps.codebook_pyvf("quick", 1), t)

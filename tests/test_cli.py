@@ -56,8 +56,8 @@ def assert_ran(proc, *expected):
 
 
 def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path):
-    code = ("import sys, pyvf, pyvf.cli, pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.transformer, "
-            "pyvf.bench.codebook, pyvf.bench.scaling, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
+    code = ("import sys, pyvf, pyvf.cli, pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, "
+            "pyvf.bench.scaling, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
             "assert 'torch' not in sys.modules, 'pyvf imported torch'; print(pyvf.__file__)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
                           text=True, timeout=TIMEOUT)
@@ -81,7 +81,7 @@ def test_import_pyvf_imports_no_command_code(tmp_path):
     """The command line is the top layer: `import pyvf` (the library) loads none of it, and the
     library's modules that do a command's work (every benchmark, the demo, the training tasks,
     the scenes) do not import argparse: only pyvf.cli parses arguments."""
-    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.transformer, pyvf.bench.codebook, pyvf.bench.scaling, "
+    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
                "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
                "pyvf.scenes.make, pyvf.bench.common")
     code = (f"import sys, pyvf, {library}; print(sorted(m for m in sys.modules if m == 'argparse' or "
@@ -143,10 +143,9 @@ def test_demo_attention_unknown_size(tmp_path):
 
 # benchmark -> (its quick arguments, lines it must print)
 BENCH_QUICK = {
-    "attention": (["--quick"], ["pyvf bounds:", "torch SDPA / pyvf time:"]),
+    "attention": (["--quick"], ["pyvf within", "forward+backward time over pyvf's: torch SDPA"]),
     "vq": (["--quick"], ["| pyvf.vq_nearest |", "pyvf at the cancellation offsets"]),
     "transformer": (["--quick"], ["## tiny:", "first-step loss: pyvf", "| torch / pyvf "]),
-    "codebook": (["--quick"], ["## tiny:", "first-step loss: pyvf", "| torch / pyvf "]),
 }
 
 
@@ -160,7 +159,7 @@ def test_every_readme_command_without_torch(tmp_path):
     """After `pip install .` alone (torch made unimportable): each command's quick mode runs, pyvf's
     own figures measured where torch is only a comparison column, or it stops with one line naming
     the extra it needs. (bench report runs these same benchmarks; its quick mode takes minutes
-    and is run with torch in test_bench_accuracy.py.)"""
+    and its code is tested with torch in test_bench_report.py and test_bench_validation.py.)"""
     hide = tmp_path / "no-torch" / "torch"
     hide.mkdir(parents=True)
     (hide / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
@@ -189,21 +188,18 @@ def test_every_readme_command_without_torch(tmp_path):
 def test_bench_runs_numpy_blas_on_its_threads(tmp_path):
     """numpy's GEMM (the attention benchmark's scale) and pyvf's numpy layers must use the
     benchmark's --threads, as pyvf's kernels and torch do: `pyvf bench` started with the BLAS
-    thread variables unset (all cores) or set to another count runs the benchmark with them set
-    to --threads. Read back from the benchmark's own report. Started in a folder that holds a
-    package named pyvf (as a source checkout does), the child still imports the installed pyvf,
-    and a relative --json path still means the starting folder."""
+    thread variables set to another count runs the benchmark with them set to --threads. Read back
+    from the benchmark's own report. Started in a folder that holds a package named pyvf (as a
+    source checkout does), the child still imports the installed pyvf, and a relative --json path
+    still means the starting folder."""
     (tmp_path / "pyvf").mkdir()
     (tmp_path / "pyvf" / "__init__.py").write_text("raise ImportError('the shadow pyvf was imported')\n")
-    for start in ({}, {v: "7" for v in BLAS_THREAD_VARS}):
-        out = tmp_path / f"report-{len(start)}.json"
-        env = {k: v for k, v in clean_env().items() if k not in BLAS_THREAD_VARS}
-        proc = run(["bench", "attention", "--quick", "--repeat", "5", "--threads", "1",
-                    "--json", out.name], tmp_path, env=dict(env, **start))
-        assert_ran(proc, "pyvf bounds:")
-        report = json.loads(out.read_text())
-        assert report["machine"]["blas_thread_env"] == {v: "1" for v in BLAS_THREAD_VARS}
-        assert report["config"]["threads"] == 1 and report["machine"]["pyvf_threads"] == 1
+    env = dict({k: v for k, v in clean_env().items() if k not in BLAS_THREAD_VARS}, **{v: "7" for v in BLAS_THREAD_VARS})
+    assert_ran(run(["bench", "attention", "--quick", "--threads", "1", "--json", "report.json"], tmp_path, env=env),
+               "pyvf within")
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["machine"]["blas_thread_env"] == {v: "1" for v in BLAS_THREAD_VARS}
+    assert report["config"]["threads"] == 1 and report["machine"]["pyvf_threads"] == 1
 
 
 # every command with --threads, with its required arguments; the benchmarks follow
@@ -224,7 +220,7 @@ def test_threads_is_one_option_checked_once(argv, capsys, monkeypatch):
         assert e.value.code == 2
         assert f"argument --threads: expected a positive integer of at most 1024, got '{bad}'" in capsys.readouterr().err
     if argv[0] == "bench":
-        parser, _ = BENCHMARKS[argv[1]][0]()
+        parser = BENCHMARKS[argv[1]][0]()
         assert parser.parse_args(["--threads", "3"]).threads == 3
     else:
         from pyvf.cli import build_parser
