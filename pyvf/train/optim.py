@@ -39,6 +39,20 @@ def _nonfinite_names(d):
     return [k for k, a in d.items() if not _checks.all_finite(a)]
 
 
+def _check_grads(grads, like=None, writable=False):
+    """grads: dict name -> float32/float64 array (with like's names, dtypes and shapes; writable:
+    clipped in place), errors naming grads[name]: the optimisers' and clip_grad_norm's boundary."""
+    if like is not None and set(grads) != set(like):
+        raise ValueError(f"grads must have exactly the parameters' names, got {sorted(set(grads) ^ set(like))} "
+                         "extra or missing")
+    for k, g in grads.items():
+        _checks.float_array(f"grads[{k!r}]", g, None if like is None else like[k], "its parameter")
+        if like is not None and g.shape != like[k].shape:
+            raise ValueError(f"grads[{k!r}] has shape {g.shape} but its parameter {like[k].shape}")
+        if writable and not g.flags.writeable:
+            raise ValueError(f"grads[{k!r}] is read-only: it is clipped in place")
+
+
 # ---------------------------------------------------------------------------------------
 # which parameters get weight decay
 
@@ -146,6 +160,8 @@ class AdamW:
             raise ValueError(f"eps_convention must be 'torch' or 'keras', got {eps_convention!r}")
         self.eps_convention = eps_convention
         # which parameters decay: all (None), a predicate name -> bool, or a collection of names
+        if not (decay is None or callable(decay) or isinstance(decay, (set, frozenset, list, tuple))):
+            raise TypeError(f"decay must be None, a predicate or a collection of names, got {type(decay).__name__}")
         self.decayed = frozenset(params if decay is None else filter(decay, params) if callable(decay) else decay)
         self.params = params
         self.step_count = 0
@@ -160,6 +176,7 @@ class AdamW:
         """Apply one update. grads: dict name -> array of its parameter's shape and dtype, not
         modified. An update that is not finite (a NaN or inf gradient, or one that overflows
         the dtype) raises ValueError with nothing updated. Returns the learning rate used."""
+        _check_grads(grads, self.params)
         lr = self.lr_at(self.step_count)
         t = self.step_count + 1
         b1, b2 = self.betas
@@ -353,6 +370,7 @@ def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, e
     modified; with False nothing is modified and the non-finite norm is returned (nan or
     inf; in per_tensor mode for those tensors, the finite ones are still clipped), so that
     the caller can skip the step. AdamW.step refuses non-finite gradients in any case."""
+    _check_grads(grads, writable=True)
     max_norm = _checks.real("max_norm", max_norm, lo=0.0, lo_open=True)
     eps = _checks.real("eps", eps, lo=0.0)
     if mode not in ("global", "per_tensor"):
