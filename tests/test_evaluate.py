@@ -23,7 +23,6 @@ from conftest import assert_close
 from pyvf.scenes import generate_scenes
 from pyvf.evaluate.health import codebook_health, colour_r2, effective_rank, transformer_health
 from pyvf.evaluate.metrics import encode_images
-from pyvf.evaluate.pictures import save_poses, save_views
 from pyvf.evaluate import (
     META_KEYS,
     METHODS,
@@ -196,34 +195,6 @@ def test_psnr_perfect_image_strictly_above_every_imperfect_one():
         off = target.astype(np.int64)
         off[1, 2, 0] += level
         assert image_metrics(off.astype(np.uint8)[None], target[None])["psnr"][0] < perfect
-
-
-# ---------------------------------------------------------------------------------------
-# (c) the scene cache computes what the whole tree computes
-
-
-@pytest.mark.parametrize("dtype, rtol", [("float64", 1e-12), ("float32", 1e-5)])
-def test_cached_scene_equals_the_whole_tree(dtype, rtol):
-    """render_scene's logits (and localize_scene's poses) for query m equal Transformer.forward on
-    the sequence [context views, query m]: its generation row (logits) and localization row
-    (pose) at the last view, the poses made relative to the first context view."""
-    tf = random_transformer(dtype)
-    rng = np.random.default_rng(1)
-    B, C, M, V = 2, 3, 3, TRANSFORMER["n_embeddings"]
-    _, poses = generate_scenes(7, B, views=C + M, size=8)  # real cameras (B, C + M, 7)
-    poses = poses.astype(dtype)
-    tokens = rng.integers(0, V, (B, C + M, 64))
-    scene = tf.encode_scene(tokens[:, :C], poses[:, :C])
-    logits = tf.render_scene(scene, poses[:, C:])  # (B, M, L, V)
-    located = tf.localize_scene(scene, tokens[:, C:])  # (B, M, 7)
-    for m in range(M):
-        views = list(range(C)) + [C + m]
-        rel, ref = pyvf.make_relative(poses[:, views])  # (B, C + 1, 7), (B, 7)
-        out = tf.forward(tokens[:, views], rel)
-        assert_close(f"logits of query {m}", logits[:, m], out.logits[:, C], rtol)
-        pose = pyvf.absolute_poses(pyvf.average_pose(out.pose_prediction[:, C], axis=1), ref)  # (B, 7)
-        assert_close(f"position of query {m}", located[:, m, :3], pose[:, :3], rtol)
-        assert_close(f"quaternion of query {m}", located[:, m, 3:], pose[:, 3:], rtol)
 
 
 # ---------------------------------------------------------------------------------------
@@ -633,39 +604,6 @@ def test_pose_metrics_hard_cases_closed_forms():
     np.testing.assert_array_equal(m["orientation_error_deg"][[0, 1, 4]], 0)
     assert m["orientation_error_deg"][2] == pytest.approx(180.0, rel=1e-15)
     assert m["orientation_error_deg"][3] == pytest.approx(np.degrees(1e-9), rel=1e-12)
-
-
-def _atomic_png(save, picture, tmp_path, monkeypatch):
-    path = tmp_path / "sheet.png"
-    path.write_bytes(b"the previous picture")
-
-    def broken_save(self, fp, format=None, **kwargs):
-        if isinstance(fp, (str, os.PathLike)):
-            fp = open(fp, "wb")
-        fp.write(b"\x89PNG half")
-        raise OSError("disk full")
-
-    monkeypatch.setattr(Image.Image, "save", broken_save)
-    with pytest.raises(OSError, match="disk full"):
-        save(str(path), picture)
-    assert path.read_bytes() == b"the previous picture"
-    monkeypatch.undo()
-    save(str(path), picture)
-    with Image.open(path) as im:
-        assert im.format == "PNG"
-
-
-def test_pictures_are_written_atomically(tmp_path, monkeypatch):
-    """An error while encoding used to leave a half-written views.png / poses.png over the old one."""
-    rng = np.random.default_rng(0)
-    q = pose([0, 0, 10], [0, 1, 0], 0)
-    picture = {"context": rng.integers(0, 256, (1, 2, 4, 4, 3)).astype(np.uint8),
-               "truth": np.zeros((1, 4, 4, 3), np.uint8), "codebook": np.zeros((1, 4, 4, 3), np.uint8),
-               "pyvf": np.zeros((1, 4, 4, 3), np.uint8), "context_poses": np.tile(q, (1, 2, 1)),
-               "query_poses": np.tile(q, (1, 1, 1)), "estimated_poses": np.tile(q, (1, 1, 1)), "C": 2}
-    for save in (save_views, save_poses):
-        _atomic_png(save, picture, tmp_path, monkeypatch)
-
 
 
 # ---------------------------------------------------------------------------------------
