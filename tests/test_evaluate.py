@@ -21,7 +21,6 @@ import pyvf.evaluate.run
 import pyvf.models
 from conftest import assert_close
 from pyvf.scenes import generate_scenes
-from pyvf.evaluate.health import codebook_health, colour_r2, effective_rank, transformer_health
 from pyvf.evaluate.metrics import encode_images
 from pyvf.evaluate import (
     META_KEYS,

@@ -265,11 +265,11 @@ def _images():
     return generate_scenes(0, 4, views=4, size=16)[0]  # (4, 4, 16, 16, 3) uint8
 
 
-def _train_cb(tmp_path, name, engine, cfg=CB64, steps=10, object_weight=None, **kw):
+def _train_cb(tmp_path, name, engine, cfg=CB64, steps=6, object_weight=None, **kw):
     """The default recipe (small-batch: Adam (0.9, 0.99), objects weighted 4) with a dead-code restart
-    every 5 steps."""
+    every 3 steps."""
     return train_codebook(_images(), cfg, tmp_path / name, RunOptions(**{
-        "steps": steps, "batch_size": 4, "progress": False, "engine": engine, **kw}), reset_dead_codes=5,
+        "steps": steps, "batch_size": 4, "progress": False, "engine": engine, **kw}), reset_dead_codes=3,
         object_weight=object_weight)
 
 
@@ -288,9 +288,9 @@ def _check_same_codebook(a, b, w0, rtol):
 
 
 def test_torch_codebook_equals_pyvf_and_resumes_across_engines(tmp_path):
-    """In float64, 10 steps with object weighting and two dead-code restarts: every weight and EMA
+    """In float64, 6 steps with object weighting and two dead-code restarts: every weight and EMA
     buffer within 1e-9 of its movement (measured 1.3e-12 after 20 steps: float64's u = 1.1e-16
-    amplified by training, ~1e4); the same for pyvf's checkpoint at step 5 continued by torch. (In
+    amplified by training, ~1e4); the same for pyvf's checkpoint at step 3 continued by torch. (In
     float32 the same amplification of u = 6e-8 leaves ~1e-3: float32 is checked step by step below.)
     The comparison sees an engine that skips the object weighting."""
     w0 = Codebook(CB64, seed=0).state_dict()
@@ -301,7 +301,7 @@ def test_torch_codebook_equals_pyvf_and_resumes_across_engines(tmp_path):
     for ra, rb in zip(*logs):
         assert ra["lr"] == rb["lr"] and ra["usage"] == rb["usage"], (ra, rb)
         assert abs(float(ra["loss"]) - float(rb["loss"])) < 1e-12 * float(ra["loss"])
-    _train_cb(tmp_path, "cross", "pyvf", steps=5)
+    _train_cb(tmp_path, "cross", "pyvf", steps=3)
     _check_same_codebook(a, _train_cb(tmp_path, "cross", "torch").state_dict(), w0, 1e-9)
     with pytest.raises(AssertionError):
         _check_same_codebook(a, _train_cb(tmp_path, "w1", "torch", object_weight=1.0).state_dict(), w0, 1e-9)
@@ -395,9 +395,9 @@ def _check_adam(torch_engine, pyvf_adam, before, m0, grads, what):
             assert err.max() <= ulps, f"{what}: Adam's {name} of {k}: {err.max():.3g} u of its scale (bound {ulps})"
 
 
-def _step_by_step(steps=10, plant=None):
+def _step_by_step(steps=6, plant=None):
     """_train_cb's float32 run (the small-batch recipe: Adam (0.9, 0.99) at 3e-4, objects weighted 4,
-    dead-code restarts every 5 steps) driven by pyvf; at each step a fresh torch engine starts from
+    dead-code restarts every 3 steps) driven by pyvf; at each step a fresh torch engine starts from
     pyvf's state (weights, EMA buffers, Adam's moments and count) and takes the step on the same batch.
     plant(engine): a bug planted in each torch engine. AssertionError at the first step and part that
     differ beyond the bounds above: the nearest codes and the forward (the engine's own parity check),
@@ -435,7 +435,7 @@ def _step_by_step(steps=10, plant=None):
         adam.step(torch_grads)
         _check_adam(eng, adam, before, m0, torch_grads, f"step {t}")
         _check_ema(eng, model, f"step {t}: the EMA update")
-        if t % 5 == 0:  # the dead-code restart, both from pyvf's state after the step
+        if t % 3 == 0:  # the dead-code restart, both from pyvf's state after the step
             eng.load(model.state_dict())
             n = model.quantizer.reset_dead_codes(model._encoder([], x), rng=np.random.default_rng([0, t, 1]))
             assert eng.reset_dead_codes(x, np.random.default_rng([0, t, 1])) == n, f"step {t}: codes reset"
@@ -452,7 +452,7 @@ def _check_ema(eng, model, what):
 
 
 def test_torch_codebook_float32_step_by_step():
-    """Each of the 10 steps of the float32 run equals pyvf's to float32 rounding (the bounds above):
+    """Each of the 6 steps of the float32 run equals pyvf's to float32 rounding (the bounds above):
     the torch engine's weights after a step are pyvf's Adam applied, within WEIGHT_ULPS, to gradients
     within GRAD_RTOL of pyvf's. They can differ from pyvf's own step by more: Adam normalises each
     gradient entry, so an entry below its rounding error may step by up to lr otherwise (the free run
