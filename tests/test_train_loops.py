@@ -873,6 +873,27 @@ def test_ctrl_c_saves_the_step_under_way_and_the_run_resumes_bitwise(tmp_path, r
     _assert_same_run(a, b, "transformer.npz")
 
 
+def test_ctrl_c_during_a_checkpoint_names_the_step_that_is_saved(tmp_path, rng, monkeypatch, capsys):
+    """Ctrl-C while step 4's checkpoint is written (checkpoints every 4 steps): step 4's stop decision
+    is taken, so the run finishes and saves step 5, and the line must say step 5 (it said 4: the
+    command line's race, seen under load)."""
+    from pyvf.train._run import Run
+
+    real = Run.save
+
+    def save_with_ctrl_c(self, step, *args, **kwargs):
+        real(self, step, *args, **kwargs)
+        if step == 4:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)  # the handler runs in the main thread between two bytecodes
+
+    monkeypatch.setattr(Run, "save", save_with_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        train_codebook(_images(rng), CB, str(tmp_path / "run"), opts(8, checkpoint_every=4))
+    assert capsys.readouterr().err.startswith("Ctrl-C: finishing step 5 and saving it")
+    assert _checkpoint(str(tmp_path / "run"))[0]["step"] == 5
+
+
 def test_ctrl_c_in_train_transformer_and_tokenize(tmp_path, monkeypatch, capsys):
     """KeyboardInterrupt inside train-transformer (during step 4 of a run checkpointed every 3 steps)
     and tokenize: one line each, status 130; the same command resumes from step 3; with --no-resume
