@@ -24,7 +24,6 @@ import numpy as np
 from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
-from .. import _checks
 from ._run import CHECKPOINT, read_checkpoint, resume_point
 from .curves import NotARunError, plot_eval, read_log, read_run_config, runs_table
 from .loops import (
@@ -95,26 +94,9 @@ def _refuse_input_as_output(out, inputs, option):
                              "choose another output file")
 
 
-def _eval_seed(eval_seed):
-    """--eval-seed checked: a non-negative integer (errors name the option, not --seed)."""
-    try:
-        return _checks.integer("--eval-seed", eval_seed, 0)
-    except TypeError as e:
-        raise ValueError(str(e)) from None
-
-
 def read_codebook(path):
     """Codebook.load(path), its errors as ValueError naming the file."""
     return read_model(path, Codebook, "codebook")
-
-
-def _load_dataset(path):
-    """pyvf.scenes.load_dataset(path): .images uint8 (scenes, views, Hi, Wi, 3), .poses (scenes, views, 7)."""
-    try:
-        from ..scenes import load_dataset  # imported here: the scenes home is optional for the other commands
-    except ImportError as e:
-        raise ValueError(f"cannot read the dataset {path}: pyvf.scenes is not available ({e})") from e
-    return load_dataset(path)
 
 
 def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
@@ -125,7 +107,6 @@ def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
         return None
     if eval_scenes < 1:
         raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
-    eval_seed = _eval_seed(eval_seed)
     if getattr(data, "seed", None) == eval_seed:
         raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
     from ..scenes import generate_scenes
@@ -142,7 +123,6 @@ def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None, train_poses=
 
     if eval_scenes < 1:
         raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
-    eval_seed = _eval_seed(eval_seed)
     codebook = read_codebook(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
@@ -163,7 +143,8 @@ def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1,
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
     if opts.init is not None and resume_point(out, opts.resume) is None:  # a resume does not read it
         read_model(opts.init, Codebook, "--init")  # a missing file or another model's, named as the option
-    data = _load_dataset(data)
+    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
+    data = load_dataset(data)
     held_out = held_out_views(opts.eval_every, eval_scenes, eval_seed, data, config.image_size)
     return train_codebook(data.images, config, out, opts, eval_images=held_out, **recipe)
 
@@ -178,7 +159,8 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
     _refuse_input_as_output(out, [("the codebook", codebook),
                                   *(("a file of the dataset", os.path.join(data, f)) for f in dataset)], "--out")
     codebook = read_codebook(codebook)
-    data = _load_dataset(data)
+    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
+    data = load_dataset(data)
     with kernel_threads(threads):
         tokens = tokenize(codebook, data.images, batch_size=batch_size, progress=progress)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
