@@ -158,27 +158,34 @@ def test_bench_quick(name, tmp_path):
 def test_every_readme_command_without_torch(tmp_path):
     """After `pip install .` alone (torch made unimportable): each command's quick mode runs, pyvf's
     own figures measured where torch is only a comparison column, or it stops with one line naming
-    the extra it needs. (bench report runs these same benchmarks; its quick mode takes minutes
-    and its code is tested with torch in test_bench_report.py and test_bench_validation.py.)"""
+    the extra it needs. The commands that are not benchmarks run in one process (`pyvf train`
+    covers train-codebook, tokenize, train-transformer and evaluate; their own options are tested
+    in test_train_loops.py), which must not have imported torch; the benchmarks each in its own.
+    (bench report runs these same benchmarks; its code is tested with torch in test_bench_report.py and test_bench_validation.py.)"""
     hide = tmp_path / "no-torch" / "torch"
     hide.mkdir(parents=True)
     (hide / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
     env = clean_env(PYTHONPATH=str(hide.parent))
-    runs = [(["config"], "kernel path:"), (["demo", "--quick", "--out", "d"], "pyvf"),
-            (["train", "--preset", "smoke", "--out", "r", "--no-progress"], "pyvf train: done"),
-            (["runs", "r/codebook", "r/transformer"], "|"), (["export", "r/transformer", "-o", "now.npz"], "now.npz"),
-            (["scenes", "--out", "s", "--scenes", "2", "--seed", "3", "--size", "16", "--quiet"], ""),
-            (["train-codebook", "--data", "s", "--out", "cb", "--steps", "1", "--config", "r/codebook/config.json",
-              "--no-progress"], "codebook:"),
-            (["tokenize", "--codebook", "cb/codebook.npz", "--data", "s", "--out", "t.npz", "--no-progress"], "tokens"),
-            (["train-transformer", "--tokens", "t.npz", "--out", "tf", "--steps", "1", "--config",
-              "r/transformer/config.json", "--codebook", "cb/codebook.npz", "--no-progress"], "transformer:"),
-            (["evaluate", "--codebook", "cb/codebook.npz", "--transformer", "tf/transformer.npz", "--scenes", "1",
-              "--context", "1", "--out", "ev", "--no-progress"], "pyvf"),
-            (["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
-            (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"), (["bench", "scaling", "--quick"], "skipped: torch is not installed"),
-            (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]
-    for args, expected in runs:
+    commands = [(["config"], "kernel path:"), (["demo", "--quick", "--out", "d"], "pyvf"),
+                (["train", "--preset", "smoke", "--out", "r", "--no-progress"], "pyvf train: done"),
+                (["runs", "r/codebook", "r/transformer"], "|"), (["export", "r/transformer", "-o", "now.npz"], "now.npz"),
+                (["scenes", "--out", "s", "--scenes", "2", "--seed", "3", "--size", "16", "--quiet"], "")]
+    script = textwrap.dedent(f"""
+        import contextlib, io, sys
+        from pyvf.cli import main
+        for argv, expected in {commands!r}:
+            out = io.StringIO()
+            with contextlib.redirect_stdout(out):
+                status = main(argv)
+            assert status == 0 and expected in out.getvalue(), (argv, status, out.getvalue()[-2000:])
+        assert "torch" not in sys.modules, "a command imported torch"
+        print("all ran")""")
+    assert_ran(subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
+                              timeout=TIMEOUT), "all ran")
+    for args, expected in [(["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
+                           (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"),
+                           (["bench", "scaling", "--quick"], "skipped: torch is not installed"),
+                           (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]:
         assert_ran(run(args, tmp_path, env), expected)
     for name in ("transformer", "codebook"):
         proc = run(["bench", name, "--quick"], tmp_path, env)
@@ -467,21 +474,3 @@ def test_one_thread_setting_for_the_kernels_and_blas(tmp_path):
     env["PYVF_NUM_THREADS"] = "two"
     out = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=tmp_path, env=env, capture_output=True, text=True)
     assert out.returncode != 0 and "PYVF_NUM_THREADS='two' is not a positive integer" in out.stderr
-
-
-def test_export_a_running_runs_model(tmp_path):
-    """`pyvf export RUN -o F` from a folder outside the tree: the installed command writes the model
-    of a run's checkpoint, which Transformer.load reads back as the run's own final file."""
-    from pyvf.models.transformer import TransformerConfig
-    from pyvf.train import train_transformer
-    rng = np.random.default_rng(0)
-    config = TransformerConfig(n_embeddings=16, n_head=2, d_model=32, n_layer=1, token_image_size=2,
-                               sequence_size=3, n_loss_skip=1)
-    q = rng.standard_normal((3, 5, 4))
-    poses = np.concatenate([rng.standard_normal((3, 5, 3)), q / np.linalg.norm(q, axis=-1, keepdims=True)], -1)
-    train_transformer(rng.integers(0, 16, (3, 5, 2, 2)), poses, config, str(tmp_path / "run"), steps=2,
-                      batch_size=2, progress=False)
-    assert_ran(run(["export", "run", "-o", "now"], tmp_path), "transformer at step 2:")
-    got, want = pyvf.Transformer.load(tmp_path / "now.npz"), pyvf.Transformer.load(tmp_path / "run" / "transformer.npz")
-    assert got.config == want.config
-    assert all(np.array_equal(got.params[k], want.params[k]) for k in want.params)

@@ -33,8 +33,6 @@ def test_effective_rank_known_values(rng):
     # 1e-17 gave rank 1.0, not 0
     for z in (np.full((3, 4), 0.1), np.full((7, 5), 1 / 3), np.full((4, 2), 0.1, np.float32)):
         assert effective_rank(z) == 0.0
-    with pytest.raises(ValueError, match="z must be"):
-        effective_rank(np.ones((1, 3)))
 
 
 def _objects(rng, n=6, size=16):
@@ -68,10 +66,6 @@ def test_object_mask_and_colour_r2_hand_made(rng):
     m = object_mask(flat)
     assert colour_r2(flat, flat, m) == 1.0
     assert np.isnan(colour_r2(flat, flat, np.zeros_like(m)))  # no object pixels
-    with pytest.raises(ValueError, match="do not match"):
-        colour_r2(flat, flat[..., :2, :], m)
-    with pytest.raises(TypeError, match="uint8"):
-        object_mask(flat.astype(np.float32))
 
 
 def test_codebook_health_against_its_definition(rng):

@@ -503,30 +503,9 @@ def test_damaged_shard_is_named(damaged, damage):
         sc.load_dataset(damaged)
 
 
-def edit(**changes):
-    """A manifest edit: top-level keys (None deletes) and, as entry_<k>_<key>, a shard entry's."""
-    def apply(m):
-        for key, value in changes.items():
-            if key.startswith("entry_"):
-                _, k, field = key.split("_", 2)
-                m["shards"][int(k)][field] = value
-            elif value is None:
-                del m[key]
-            else:
-                m[key] = value
-        return json.dumps(m)
-    return apply
-
-
 @pytest.mark.parametrize("damage, name", [
-    (edit(views=VIEWS + 1), r"shard-00000\.npz"),               # a shard that matches its hash, not the promised shape
-    (edit(views=10**9), r"shard-0000\d\.npz.*'images'"),       # terabytes promised: refused before allocating
-    (edit(n_scenes=10**12, entry_1_n_scenes=10**12 - 2), r"shard-00001\.npz.*'images'"),
-    (edit(entry_0_n_scenes=1, entry_1_first_scene=1, entry_1_n_scenes=2), r"shard-0000[01]\.npz"),  # counts moved
-    (edit(entry_0_file="../shard-00000.npz"), "file"),        # not a plain name in the folder
-    (edit(shard_size=3), "shard_size"),                         # another layout than the shards'
-    (edit(shard_size=1), "shard_size"),
-    (edit(shard_size=None), "shard_size"),
+    (lambda m: json.dumps({**m, "views": VIEWS + 1}), r"shard-00000\.npz"),  # matches its hash, not the shape
+    (lambda m: json.dumps({**m, "n_scenes": 4}), "n_scenes"),
     (lambda m: "{not json", r"manifest\.json"),
 ])
 def test_damaged_manifest_is_named(damaged, damage, name):
@@ -536,10 +515,7 @@ def test_damaged_manifest_is_named(damaged, damage, name):
         sc.load_dataset(damaged)
 
 
-def test_load_dataset_names_a_missing_or_wrong_path(damaged):
-    shard = damaged / "shard-00000.npz"
-    with pytest.raises(NotADirectoryError, match=r"shard-00000\.npz"):  # a file given as the folder
-        sc.load_dataset(shard)
+def test_load_dataset_names_a_missing_path(damaged):
     with pytest.raises(FileNotFoundError, match="nowhere"):
         sc.load_dataset(damaged / "nowhere")
     os.remove(damaged / "manifest.json")
@@ -619,34 +595,6 @@ def test_unfinished_write_of_other_arguments_is_refused(tmp_path, monkeypatch, c
     args = parser.parse_args(argv + ["--overwrite"])  # replaces it
     assert args.func(args) == 0 and sc.load_dataset(out).seed == 4
     assert sorted(os.listdir(out)) == ["manifest.json", "shard-00000.npz", "shard-00001.npz", "shard-00002.npz"]
-
-
-def forbid_rendering(monkeypatch):
-    def scene(*args):
-        raise AssertionError("a scene was rendered")
-    monkeypatch.setattr(dataset_module, "generate_scene", scene)
-
-
-@pytest.mark.parametrize("kwargs, name", [
-    (dict(n_scenes=1, views=10**10, size=8), "views"),                  # 1.75 TiB of images in one shard
-    (dict(n_scenes=2, views=3, size=10**6, shard_size=1), "size"),      # a scene's rendering: PiB
-    (dict(n_scenes=10**15, views=15, size=64, shard_size=1), "n_scenes"),  # 10^15 shards in the manifest
-    (dict(n_scenes=10**12, shard_size=10**7, memory=2**60), "n_scenes"),  # fits memory; 1.8e14 bytes on disk
-])
-def test_write_dataset_refuses_work_beyond_memory_or_disk(tmp_path, monkeypatch, kwargs, name):
-    """Refused before the folder is touched: a MemoryError after progress.jsonl was written would
-    block the corrected call (an unfinished write of another dataset). Deflate compresses at most
-    1032:1, so shards of raw size B need at least B / 1032 bytes of disk."""
-    forbid_rendering(monkeypatch)
-    memory = kwargs.pop("memory", 64 * 2**30)
-    monkeypatch.setattr(dataset_module, "_physical_memory", lambda: memory)
-    out = tmp_path / "ds"
-    with pytest.raises(ValueError, match=rf"\b{name}\b"):
-        sc.write_dataset(out, seed=0, progress=False, **kwargs)
-    assert not out.exists()
-    monkeypatch.undo()
-    sc.write_dataset(out, 1, seed=0, views=2, size=8, progress=False)  # the folder is not blocked
-    assert sorted(os.listdir(out)) == ["manifest.json", "shard-00000.npz"]
 
 
 def test_save_preview_is_atomic(tmp_path, monkeypatch):

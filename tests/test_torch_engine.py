@@ -19,7 +19,8 @@ from pyvf.cli import main
 from pyvf.models.codebook import Codebook, CodebookConfig
 from pyvf.train import torch_engine
 from pyvf.train._run import read_checkpoint
-from pyvf.train.loops import TINY_TRANSFORMER, codebook_batch, save_tokens, train_codebook, train_transformer
+from pyvf.train.loops import (TINY_TRANSFORMER, RunOptions, TransformerRecipe, codebook_batch, save_tokens,
+                              train_codebook, train_transformer)
 from pyvf.train.torch_codebook_engine import TorchCodebook, parity_images
 from pyvf.train.torch_engine import (PARITY_RTOL, DataParallel, TorchTransformer, check_engine, data_parallel,
                                      log_parity, parity_batch)
@@ -43,10 +44,12 @@ def _data(seed=0, scenes=10, views=6):
     return tokens, poses
 
 
-def _train(tmp_path, name, engine, steps=20, **kw):
+def _train(tmp_path, name, engine, steps=20, recipe=(), **kw):
+    """recipe: TransformerRecipe's fields beside lr 1e-3 and warmup 2; kw: RunOptions'."""
     tokens, poses = _data()
-    return train_transformer(tokens, poses, CFG, tmp_path / name, steps=steps, batch_size=4, lr=1e-3, warmup=2,
-                             progress=False, engine=engine, **kw)
+    return train_transformer(tokens, poses, CFG, tmp_path / name, RunOptions(**{
+        "steps": steps, "batch_size": 4, "progress": False, "engine": engine, **kw}),
+        TransformerRecipe(**{"lr": 1e-3, "warmup": 2, **dict(recipe)}))
 
 
 def _check_same_run(a, b, w0):
@@ -71,8 +74,8 @@ def _check_same_run(a, b, w0):
 def test_torch_engine_equals_pyvf_after_20_steps(tmp_path, clip):
     """clip: the default per-tensor norm 1 (no tensor reaches it: at step 1 their norms are
     0.002 to 0.66), 0.02 (clips most of them) and a global norm of 0.1 (step 1's is 1.35)."""
-    a = _train(tmp_path, "pyvf", "pyvf", **clip).state_dict()
-    b = _train(tmp_path, "torch", "torch", **clip).state_dict()
+    a = _train(tmp_path, "pyvf", "pyvf", recipe=clip).state_dict()
+    b = _train(tmp_path, "torch", "torch", recipe=clip).state_dict()
     _check_same_run(a, b, Transformer(CFG, seed=0).state_dict())
     # and the logs: the same losses to float32 rounding, the same learning rates exactly
     logs = [list(csv.DictReader(open(tmp_path / n / "log.csv"))) for n in ("pyvf", "torch")]
@@ -84,21 +87,19 @@ def test_torch_engine_equals_pyvf_after_20_steps(tmp_path, clip):
 def test_a_wrong_optimizer_is_caught(tmp_path):
     """The comparison above would catch an engine that skips the decay (a real difference, not rounding)."""
     a = _train(tmp_path, "pyvf", "pyvf").state_dict()
-    tokens, poses = _data()
-    b = train_transformer(tokens, poses, CFG, tmp_path / "wd0", steps=20, batch_size=4, lr=1e-3, warmup=2,
-                          progress=False, engine="torch", weight_decay=0.0).state_dict()
+    b = _train(tmp_path, "wd0", "torch", recipe=dict(weight_decay=0.0)).state_dict()
     with pytest.raises(AssertionError):
         _check_same_run(a, b, Transformer(CFG, seed=0).state_dict())
 
 
 def test_resume_exact_and_across_engines(tmp_path):
     straight = _train(tmp_path, "straight", "torch").state_dict()
-    _train(tmp_path, "split", "torch", steps=10, total_steps=20)
+    _train(tmp_path, "split", "torch", steps=10, recipe=dict(total_steps=20))
     resumed = _train(tmp_path, "split", "torch", steps=20).state_dict()
     for k in straight:  # the same engine on the same machine: bit for bit
         np.testing.assert_array_equal(straight[k], resumed[k], err_msg=k)
     # pyvf's checkpoint continued by torch: the pyvf run to float32 rounding
-    _train(tmp_path, "cross", "pyvf", steps=10, total_steps=20)
+    _train(tmp_path, "cross", "pyvf", steps=10, recipe=dict(total_steps=20))
     cross = _train(tmp_path, "cross", "torch", steps=20).state_dict()
     _check_same_run(_train(tmp_path, "pyvf", "pyvf").state_dict(), cross, Transformer(CFG, seed=0).state_dict())
 
@@ -109,7 +110,7 @@ def test_checkpointed_moments_and_step_equal_pyvf(tmp_path):
     each moment tensor normwise within 1e-4 of pyvf's (measured <= 1.4e-6: float32 rounding in
     another order, ~1e-6 per step as the weights'), the step count and hyperparameters equal."""
     for engine in ("pyvf", "torch"):
-        _train(tmp_path, engine, engine, steps=8, max_grad_norm=0.1, clip_mode="global")
+        _train(tmp_path, engine, engine, steps=8, recipe=dict(max_grad_norm=0.1, clip_mode="global"))
     meta_a, _, opt_a = read_checkpoint(tmp_path / "pyvf" / "checkpoint.npz", "transformer")
     meta_b, _, opt_b = read_checkpoint(tmp_path / "torch" / "checkpoint.npz", "transformer")
     assert meta_a["optimizer"] == meta_b["optimizer"] and opt_a["step"] == opt_b["step"] == 8
@@ -137,7 +138,7 @@ def test_parity_log_holds_the_run_it_continues(tmp_path):
     assert _parity_steps(tmp_path / "p") == ["3", "6"]
     assert [r["step"] for r in csv.DictReader(open(tmp_path / "p" / "log.csv"))][-1] == "6"
     # a resume from step 3 (a run stopped there): the rows to 3 kept, 5 and 6 appended
-    _train(tmp_path, "r", "torch", steps=3, total_steps=6, checkpoint_every=3)
+    _train(tmp_path, "r", "torch", steps=3, recipe=dict(total_steps=6), checkpoint_every=3)
     _train(tmp_path, "r", "torch", steps=6, checkpoint_every=5)
     assert _parity_steps(tmp_path / "r") == ["3", "5", "6"]
 
@@ -172,8 +173,8 @@ def test_a_divergent_forward_stops_a_whole_run_before_its_checkpoint(tmp_path, m
 
 def test_bf16_trains_and_stays_near_fp32(tmp_path):
     """bf16 autocast on the CPU: the loss falls as in fp32, the weights stay float32."""
-    a = _train(tmp_path, "fp32", "torch", steps=30)
-    b = _train(tmp_path, "bf16", "torch", steps=30, precision="bf16")
+    a = _train(tmp_path, "fp32", "torch", steps=15)
+    b = _train(tmp_path, "bf16", "torch", steps=15, precision="bf16")
     la = [float(r["loss"]) for r in csv.DictReader(open(tmp_path / "fp32" / "log.csv"))]
     lb = [float(r["loss"]) for r in csv.DictReader(open(tmp_path / "bf16" / "log.csv"))]
     assert lb[-1] < lb[0] and abs(lb[-1] - la[-1]) < 0.05 * la[-1], (la, lb)  # bf16's u = 3.9e-3
@@ -186,7 +187,7 @@ def test_grad_norm_is_logged_without_clipping_by_both_engines(tmp_path):
     train_transformer says the logged grad_norm is the global norm. Both now log it; from the same start
     the first steps' norms agree to the float32 parity bound (the torch engine is the oracle)."""
     for engine in ("pyvf", "torch"):
-        _train(tmp_path, engine, engine, steps=3, max_grad_norm=None, log_every=1)
+        _train(tmp_path, engine, engine, steps=3, recipe=dict(max_grad_norm=None), log_every=1)
     logs = {e: [float(r["grad_norm"]) for r in csv.DictReader(open(tmp_path / e / "log.csv"))]
             for e in ("pyvf", "torch")}
     assert len(logs["pyvf"]) == 3 and all(np.isfinite(logs["pyvf"]))
@@ -223,8 +224,7 @@ def test_two_processes_equal_one_and_resume(tmp_path):
     _torchrun(tmp_path, "two", "--steps", "3", "--total-steps", "6", "--batch", "5", "--checkpoint-every", "3")
     two = _torchrun(tmp_path, "two", "--steps", "6", "--batch", "5", "--checkpoint-every", "3")
     tokens, poses = _data()
-    one = train_transformer(tokens, poses, CFG, tmp_path / "one", steps=6, batch_size=5, lr=1e-3, warmup=2,
-                            log_every=1, progress=False, engine="torch").state_dict()
+    one = _train(tmp_path, "one", "torch", steps=6, batch_size=5, log_every=1).state_dict()
     _check_same_run(one, Transformer.load(two / "transformer.npz").state_dict(), Transformer(CFG, seed=0).state_dict())
     # rank 0 alone wrote the folder: one row per step, the parity checks at both checkpoints
     logs = [list(csv.DictReader(open(d / "log.csv"))) for d in (tmp_path / "one", two)]
@@ -265,11 +265,12 @@ def _images():
     return generate_scenes(0, 4, views=4, size=16)[0]  # (4, 4, 16, 16, 3) uint8
 
 
-def _train_cb(tmp_path, name, engine, cfg=CB64, steps=20, **kw):
+def _train_cb(tmp_path, name, engine, cfg=CB64, steps=6, object_weight=None, **kw):
     """The default recipe (small-batch: Adam (0.9, 0.99), objects weighted 4) with a dead-code restart
-    every 10 steps."""
-    return train_codebook(_images(), cfg, tmp_path / name, steps=steps, batch_size=4, reset_dead_codes=10,
-                          progress=False, engine=engine, **kw)
+    every 3 steps."""
+    return train_codebook(_images(), cfg, tmp_path / name, RunOptions(**{
+        "steps": steps, "batch_size": 4, "progress": False, "engine": engine, **kw}), reset_dead_codes=3,
+        object_weight=object_weight)
 
 
 def _check_same_codebook(a, b, w0, rtol):
@@ -286,61 +287,36 @@ def _check_same_codebook(a, b, w0, rtol):
             assert err < rtol, (k, err)
 
 
-def test_torch_codebook_equals_pyvf_after_20_steps(tmp_path):
-    """In float64, 20 steps with object weighting and two dead-code restarts: every weight and EMA
-    buffer within 1e-9 of its movement (measured 1.3e-12: float64's u = 1.1e-16 amplified by 20 steps
-    of training, ~1e4). In float32 the same amplification of u = 6e-8 leaves 8.7e-4 (1.5e4 u): the
-    float32 tests below, the free run's and each step's to rounding."""
+def test_torch_codebook_equals_pyvf_and_resumes_across_engines(tmp_path):
+    """In float64, 6 steps with object weighting and two dead-code restarts: every weight and EMA
+    buffer within 1e-9 of its movement (measured 1.3e-12 after 20 steps: float64's u = 1.1e-16
+    amplified by training, ~1e4); the same for pyvf's checkpoint at step 3 continued by torch. (In
+    float32 the same amplification of u = 6e-8 leaves ~1e-3: float32 is checked step by step below.)
+    The comparison sees an engine that skips the object weighting."""
+    w0 = Codebook(CB64, seed=0).state_dict()
     a = _train_cb(tmp_path, "pyvf", "pyvf").state_dict()
     b = _train_cb(tmp_path, "torch", "torch").state_dict()
-    _check_same_codebook(a, b, Codebook(CB64, seed=0).state_dict(), 1e-9)
+    _check_same_codebook(a, b, w0, 1e-9)
     logs = [list(csv.DictReader(open(tmp_path / n / "log.csv"))) for n in ("pyvf", "torch")]
     for ra, rb in zip(*logs):
         assert ra["lr"] == rb["lr"] and ra["usage"] == rb["usage"], (ra, rb)
         assert abs(float(ra["loss"]) - float(rb["loss"])) < 1e-12 * float(ra["loss"])
-    with pytest.raises(AssertionError):  # the comparison sees an engine that skips the object weighting
-        c = _train_cb(tmp_path, "w1", "torch", object_weight=1.0).state_dict()
-        _check_same_codebook(a, c, Codebook(CB64, seed=0).state_dict(), 1e-9)
-
-
-def test_torch_codebook_float32(tmp_path):
-    """The free float32 runs, 20 steps: the torch engine within 3e-2 of pyvf's movement, and as near the
-    float64 run. Not rounding-sized, by Adam (the step-by-step test below shows each step equal to
-    rounding): its first steps are about lr * sign(g), so an entry whose gradient is below its own
-    rounding error (~1e-6 of its tensor's largest, ~1e-8, Adam's eps) steps up to lr the other way in
-    the other engine, and training carries that on. Measured: one such entry at step 1 (gradient 1.1e-8
-    in float64, -9e-10 in pyvf, 1.7e-8 in torch; the steps 0.71 lr apart) makes 3.7e-3 of
-    encoder.mid.block_2.conv1.weight's movement, 8.7e-4 after 20 steps as the movement grows (the
-    nearest codes equal at every step). The float64 run puts it on float32's account: pyvf's float32 run
-    is as far from it (8.7e-4), torch's nearer (1.8e-4). 1e-2 leaves room for such an entry in a smaller
-    tensor on another machine: 0.71 lr in conv_in's 1728 entries is 1.7e-2 of its first step's movement,
-    3.4e-3 of its 20 steps' (5 lr sqrt(1728)) for each such entry: on a 2-core AVX2 EPYC conv_in ends
-    1.1e-2 apart (a few such entries), so the bound is 3e-2. The Keras epsilon planted in the torch
-    engine gives 0.17 after 20 steps, 5.7x above it (7.9e-3 after 6: a shorter free run would miss it;
-    each step's check sees it at once)."""
-    a = _train_cb(tmp_path, "pyvf", "pyvf", CB).state_dict()
-    b = _train_cb(tmp_path, "torch", "torch", CB).state_dict()
-    exact = _train_cb(tmp_path, "float64", "pyvf").state_dict()
-    w0 = Codebook(CB, seed=0).state_dict()
-    _check_same_codebook(a, b, w0, 3e-2)
-    _check_same_codebook(exact, b, w0, 3e-2)
+    _train_cb(tmp_path, "cross", "pyvf", steps=3)
+    _check_same_codebook(a, _train_cb(tmp_path, "cross", "torch").state_dict(), w0, 1e-9)
+    with pytest.raises(AssertionError):
+        _check_same_codebook(a, _train_cb(tmp_path, "w1", "torch", object_weight=1.0).state_dict(), w0, 1e-9)
 
 
 def test_torch_codebook_resume_and_parity_log(tmp_path):
-    straight = _train_cb(tmp_path, "straight", "torch", CB, steps=12, checkpoint_every=6).state_dict()
-    _train_cb(tmp_path, "split", "torch", CB, steps=6)
-    resumed = _train_cb(tmp_path, "split", "torch", CB, steps=12)
+    straight = _train_cb(tmp_path, "straight", "torch", CB, steps=4, checkpoint_every=2).state_dict()
+    _train_cb(tmp_path, "split", "torch", CB, steps=2)
+    resumed = _train_cb(tmp_path, "split", "torch", CB, steps=4)
     for k in straight:  # the same engine on the same machine: bit for bit
         np.testing.assert_array_equal(straight[k], resumed.state_dict()[k], err_msg=k)
-    assert Codebook.load(tmp_path / "split" / "codebook.npz").state_dict()["quantize.counter"] == 12
+    assert Codebook.load(tmp_path / "split" / "codebook.npz").state_dict()["quantize.counter"] == 4
     rows = list(csv.DictReader(open(tmp_path / "straight" / "parity.csv")))
-    assert [r["step"] for r in rows] == ["6", "12"]
+    assert [r["step"] for r in rows] == ["2", "4"]
     assert all(0 < float(r["rel_err"]) < 1e-5 and float(r["bound"]) == PARITY_RTOL for r in rows), rows
-    # pyvf's checkpoint continued by torch, in float64: the pyvf run to 1e-9 of the movement
-    _train_cb(tmp_path, "cross", "pyvf", steps=10)
-    cross = _train_cb(tmp_path, "cross", "torch", steps=20).state_dict()
-    _check_same_codebook(_train_cb(tmp_path, "pyvf", "pyvf").state_dict(), cross, Codebook(CB64, seed=0).state_dict(),
-                         1e-9)
 
 
 def _transpose_mid_conv(port):
@@ -419,9 +395,9 @@ def _check_adam(torch_engine, pyvf_adam, before, m0, grads, what):
             assert err.max() <= ulps, f"{what}: Adam's {name} of {k}: {err.max():.3g} u of its scale (bound {ulps})"
 
 
-def _step_by_step(steps=20, plant=None):
+def _step_by_step(steps=6, plant=None):
     """_train_cb's float32 run (the small-batch recipe: Adam (0.9, 0.99) at 3e-4, objects weighted 4,
-    dead-code restarts every 10 steps) driven by pyvf; at each step a fresh torch engine starts from
+    dead-code restarts every 3 steps) driven by pyvf; at each step a fresh torch engine starts from
     pyvf's state (weights, EMA buffers, Adam's moments and count) and takes the step on the same batch.
     plant(engine): a bug planted in each torch engine. AssertionError at the first step and part that
     differ beyond the bounds above: the nearest codes and the forward (the engine's own parity check),
@@ -459,7 +435,7 @@ def _step_by_step(steps=20, plant=None):
         adam.step(torch_grads)
         _check_adam(eng, adam, before, m0, torch_grads, f"step {t}")
         _check_ema(eng, model, f"step {t}: the EMA update")
-        if t % 10 == 0:  # the dead-code restart, both from pyvf's state after the step
+        if t % 3 == 0:  # the dead-code restart, both from pyvf's state after the step
             eng.load(model.state_dict())
             n = model.quantizer.reset_dead_codes(model._encoder([], x), rng=np.random.default_rng([0, t, 1]))
             assert eng.reset_dead_codes(x, np.random.default_rng([0, t, 1])) == n, f"step {t}: codes reset"
@@ -476,7 +452,7 @@ def _check_ema(eng, model, what):
 
 
 def test_torch_codebook_float32_step_by_step():
-    """Each of the 20 steps of the float32 run equals pyvf's to float32 rounding (the bounds above):
+    """Each of the 6 steps of the float32 run equals pyvf's to float32 rounding (the bounds above):
     the torch engine's weights after a step are pyvf's Adam applied, within WEIGHT_ULPS, to gradients
     within GRAD_RTOL of pyvf's. They can differ from pyvf's own step by more: Adam normalises each
     gradient entry, so an entry below its rounding error may step by up to lr otherwise (the free run
@@ -545,9 +521,13 @@ def test_check_engine_refusals(one_gpu, engine, device, precision, name):
 
 def test_fp32_of_a_float64_configuration_trains_in_float64(tmp_path):
     """What the bf16 refusal below leaves: a float64 model under fp32 trains in float64, as asked."""
-    m = train_transformer(*_float64_data(), dataclasses.replace(CFG, dtype="float64"), tmp_path / "t64", steps=3,
-                          batch_size=4, progress=False, engine="torch")
+    m = train_transformer(*_float64_data(), dataclasses.replace(CFG, dtype="float64"), tmp_path / "t64",
+                          RunOptions(steps=3, batch_size=4, progress=False, engine="torch"))
     assert all(p.dtype == np.float64 for p in m.params.values())
+
+
+def _opts(steps, **kw):
+    return RunOptions(**{"steps": steps, "batch_size": 2, "progress": False, "engine": "torch", **kw})
 
 
 def _folder(path):
@@ -565,20 +545,17 @@ def _float64_data():
 
 @pytest.mark.parametrize("call, world, name", [
     # autocast casts float32 tensors only: a float64 model under bf16 ran in float64, recorded as bf16
-    (lambda out: train_transformer(*_float64_data(), dataclasses.replace(CFG, dtype="float64"), out, steps=3,
-                                   batch_size=4, progress=False, engine="torch", precision="bf16"), 1, "precision"),
-    (lambda out: train_codebook(_images(), CB64, out, steps=4, batch_size=2, progress=False, engine="torch",
-                                precision="bf16", resume=False), 1, "precision"),
-    (lambda out: train_codebook(_images(), CB64, out, steps=4, batch_size=2, progress=False, engine="torch",
-                                resume=False), 2, "engine"),  # the codebook's torch engine: one process
-    (lambda out: train_transformer(*_data(), CFG, out, steps=2, batch_size=1, progress=False, engine="torch"),
-     2, "batch_size"),  # smaller than the 2 processes
+    (lambda out: train_transformer(*_float64_data(), dataclasses.replace(CFG, dtype="float64"), out,
+                                   _opts(3, precision="bf16")), 1, "precision"),
+    (lambda out: train_codebook(_images(), CB64, out, _opts(4, precision="bf16", resume=False)), 1, "precision"),
+    (lambda out: train_codebook(_images(), CB64, out, _opts(4, resume=False)), 2, "engine"),  # one process
+    (lambda out: train_transformer(*_data(), CFG, out, _opts(2, batch_size=1)), 2, "batch_size"),  # < 2 processes
     (lambda out: data_parallel("cuda:1", 4), 2, "device"),  # one GPU named for two processes
 ])
 def test_training_refusals_leave_the_run_folder_as_it_was(tmp_path, monkeypatch, call, world, name):
     """Refused before Run writes config.json or (resume=False) removes the folder's checkpoint: a
     mistaken command must not cost the run. The folder is byte for byte as it was."""
-    train_codebook(_images(), CB64, tmp_path / "run", steps=2, batch_size=2, progress=False)
+    train_codebook(_images(), CB64, tmp_path / "run", RunOptions(steps=2, batch_size=2, progress=False))
     before = _folder(tmp_path / "run")
     monkeypatch.setenv("WORLD_SIZE", str(world))
     with pytest.raises(ValueError, match=rf"\b{name}\b"):

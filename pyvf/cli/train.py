@@ -17,7 +17,7 @@ import os
 import sys
 
 from ..train import tasks
-from ..train.loops import CODEBOOK_RECIPES
+from ..train.loops import CODEBOOK_RECIPES, RunOptions, TransformerRecipe
 from ..train.pipeline import PRESETS, train_pipeline
 from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int
 
@@ -57,33 +57,22 @@ def _stages_hint(args):
     return "interrupted; rerun the same command to resume" + (f" ({', '.join(at)})" if at else "")
 
 
-def _check_engine_options(args):
-    """--device and --precision other than cpu and fp32 need --engine torch: a ValueError naming them,
-    raised before any work (pyvf train would render its scenes first)."""
-    if args.engine != "torch":
-        given = [f"--{k} {getattr(args, k)}" for k, d in (("device", "cpu"), ("precision", "fp32"))
-                 if getattr(args, k) != d]
-        if given:
-            raise ValueError(f"{' and '.join(given)} need{'s' if len(given) == 1 else ''} --engine torch (the pyvf "
-                             "engine runs on the CPU in the configuration's dtype)")
-
-
 def _run(args):
-    """The options every training run takes, as train_codebook's and train_transformer's keywords."""
-    return dict(config=args.config, init=args.init, steps=args.steps, batch_size=args.batch, seed=args.seed,
-                checkpoint_every=args.checkpoint_every, log_every=args.log_every, eval_every=args.eval_every,
-                eval_scenes=args.eval_scenes, eval_seed=args.eval_seed, resume=not args.no_resume,
-                progress=not args.no_progress, threads=args.threads, command=_record(args))
+    """The options every training run takes: (RunOptions, the held-out scenes' keywords)."""
+    opts = RunOptions(steps=args.steps, batch_size=args.batch, seed=args.seed, checkpoint_every=args.checkpoint_every,
+                      log_every=args.log_every, eval_every=args.eval_every, resume=not args.no_resume,
+                      progress=not args.no_progress, threads=args.threads, command=_record(args), engine=args.engine,
+                      device=args.device, precision=args.precision, init=args.init)
+    return opts, dict(config=args.config, eval_scenes=args.eval_scenes, eval_seed=args.eval_seed)
 
 
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
     def work():
-        _check_engine_options(args)
-        tasks.codebook_run(args.data, args.out, recipe=args.recipe, lr=args.lr, betas=args.betas,
+        opts, held_out = _run(args)
+        tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr, betas=args.betas,
                            reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
-                           restart=args.restart, reseat=args.reseat, kmeans=args.kmeans,
-                           engine=args.engine, device=args.device, precision=args.precision, **_run(args))
+                           restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
         print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
     return _guarded("train-codebook", work, lambda: _resume_hint(args))
 
@@ -100,11 +89,10 @@ def cmd_tokenize(args):
 def cmd_train_transformer(args):
     """Train the transformer on a tokenized dataset; resumable."""
     def work():
-        _check_engine_options(args)
-        tasks.transformer_run(args.tokens, args.out, codebook=args.codebook, context=args.context, lr=args.lr,
-                              warmup=args.warmup, total_steps=args.total_steps, weight_decay=args.weight_decay,
-                              max_grad_norm=args.max_grad_norm or None,  # 0: off
-                              engine=args.engine, device=args.device, precision=args.precision, **_run(args))
+        opts, held_out = _run(args)
+        recipe = TransformerRecipe(context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
+                                   weight_decay=args.weight_decay, max_grad_norm=args.max_grad_norm or None)  # 0: off
+        tasks.transformer_run(args.tokens, args.out, opts, recipe, codebook=args.codebook, **held_out)
         print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
     return _guarded("train-transformer", work, lambda: _resume_hint(args))
 
@@ -113,7 +101,6 @@ def cmd_train(args):
     """The whole pipeline, resumable stage by stage: training scenes, codebook, tokens,
     transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
     def work():
-        _check_engine_options(args)
         train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
                        command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
         print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "

@@ -25,7 +25,6 @@ figure show such a collapse in the first minutes of a run.
 
 import numpy as np
 
-from .. import _checks
 from ..nn.quantizer import code_statistics
 from .metrics import empty_entropy, empty_patches, image_metrics, object_mask, to_model_images, to_uint8
 
@@ -39,10 +38,6 @@ def effective_rank(z):
     """z (N, D) float -> float in [1, min(N - 1, D)] (the mean row taken out leaves at most N - 1
     directions): exp of the entropy of the normalised singular values of z minus its mean row. A
     constant z (no variance) has rank 0 by convention."""
-    if not isinstance(z, np.ndarray) or z.dtype.kind != "f" or z.ndim != 2 or z.shape[0] < 2:
-        raise ValueError(f"z must be a float (N >= 2, D) numpy array, got "
-                         f"{getattr(z, 'dtype', type(z).__name__)} {getattr(z, 'shape', '')}")
-    _checks.finite("z", z)
     if (z == z[:1]).all():  # constant: exactly rank 0 (the mean of equal rows can round off them)
         return 0.0
     zc = z.astype(np.float64) - z.astype(np.float64).mean(axis=0)  # (N, D)
@@ -65,10 +60,6 @@ def colour_r2(pred, target, mask):
     """pred, target uint8 (..., Hi, Wi, 3) of one shape, mask bool (..., Hi, Wi) -> float: the
     share of the chroma variance of target's masked pixels that pred keeps (module docstring);
     nan when the mask is empty or those pixels all have one chroma."""
-    if pred.shape != target.shape or mask.shape != target.shape[:-1]:
-        raise ValueError(f"pred {pred.shape}, target {target.shape} and mask {mask.shape} do not match")
-    if mask.dtype != np.bool_:  # an integer mask would index the images by position
-        raise TypeError(f"mask must be a bool array, got {mask.dtype}")
     ct, cp = chroma(target[mask]), chroma(pred[mask])  # (n, 2)
     if ct.shape[0] == 0:
         return float("nan")
@@ -86,10 +77,6 @@ def codebook_health(codebook, images, batch=64):
     (effective_rank of the encoder's unquantized output vectors), colour_r2 (of object pixels),
     empty_entropy (of the codes of empty patches, position by position: empty_entropy).
     Runs the model for inference only: no EMA buffer, cache or random state is touched."""
-    if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim != 4 or images.shape[0] < 1:
-        raise ValueError(f"images must be uint8 (M >= 1, Hi, Wi, 3), got "
-                         f"{getattr(images, 'dtype', type(images).__name__)} {getattr(images, 'shape', '')}")
-    batch = _checks.integer("batch", batch, lo=1)
     rec = np.empty_like(images)  # (M, Hi, Wi, 3)
     zs, codes = [], []
     for i in range(0, images.shape[0], batch):

@@ -49,25 +49,6 @@ __all__ = [
 ]
 
 
-def _uint8_images(name, x, ndim_min=3, ndim_max=None):
-    if not isinstance(x, np.ndarray) or x.dtype != np.uint8:
-        raise TypeError(f"{name} must be a uint8 numpy array, got {getattr(x, 'dtype', type(x).__name__)}")
-    _checks.plain_array(name, x)  # masked pixels would be scored by the values under the mask
-    if x.ndim < ndim_min or x.size == 0:
-        raise ValueError(f"{name} must be images (..., Hi, Wi, C), got shape {x.shape}")
-    if ndim_max is not None and x.ndim > ndim_max:
-        raise ValueError(f"{name} must be images (B, Hi, Wi, C), got shape {x.shape}")
-    return x
-
-
-def _poses(name, x, like=None, like_name=None):
-    """x: finite float poses (..., 7) (of like's dtype, when given); errors name the argument."""
-    _checks.finite_float(name, x, like, like_name)
-    if x.ndim == 0 or x.shape[-1] != 7:
-        raise ValueError(f"{name} must be poses (..., 7), got shape {x.shape}")
-    return x
-
-
 # ---------------------------------------------------------------------------------------
 # between the picture (uint8, channels last) and the models' images (float, NCHW, [-1, 1])
 
@@ -76,9 +57,6 @@ def object_mask(images):
     """uint8 (..., Hi, Wi, 3) -> bool (..., Hi, Wi): the pixels whose colour differs from the
     image's background, taken as the colour of its top-left pixel (SM7's backgrounds are one
     flat colour and objects never reach the corner)."""
-    if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim < 3 or images.shape[-1] != 3:
-        raise TypeError(f"images must be uint8 (..., Hi, Wi, 3), got "
-                        f"{getattr(images, 'dtype', type(images).__name__)} {getattr(images, 'shape', '')}")
     corner = images[..., :1, :1, :]  # (..., 1, 1, 3)
     return np.any(images != corner, axis=-1)
 
@@ -105,7 +83,9 @@ def empty_entropy(codes, empty):
 
 def to_model_images(images, dtype):
     """uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) of dtype in [-1, 1]: x / 127.5 - 1 (as the training data)."""
-    _uint8_images("images", images, 4, 4)
+    _checks.plain_array("images", images)  # masked pixels would be scored by the values under the mask
+    if images.dtype != np.uint8 or images.ndim != 4:
+        raise ValueError(f"images must be uint8 (B, Hi, Wi, C), got {images.dtype} {images.shape}")
     dtype = np.dtype(dtype)
     x = images.transpose(0, 3, 1, 2).astype(dtype, order="C")  # (B, C, Hi, Wi)
     x /= dtype.type(127.5)
@@ -157,10 +137,6 @@ def psnr_cap(image_shape):
 def image_metrics(pred, target):
     """pred, target uint8 (..., Hi, Wi, C) of one shape -> {"mae", "rmse", "psnr"}, each a float64
     array (...) with one value per image (definitions in the module docstring)."""
-    _uint8_images("pred", pred)
-    _uint8_images("target", target)
-    if pred.shape != target.shape:
-        raise ValueError(f"pred and target must have one shape, got {pred.shape} and {target.shape}")
     diff = pred.astype(np.float64) - target.astype(np.float64)  # (..., Hi, Wi, C) on 0..255
     mae = np.abs(diff).mean(axis=(-3, -2, -1))  # (...)
     mse = (diff * diff).mean(axis=(-3, -2, -1))  # (...) on 0..255
@@ -174,10 +150,6 @@ def image_metrics(pred, target):
 def pose_metrics(pred, target):
     """pred, target (..., 7) float64 poses of one shape -> {"position_error", "orientation_error_deg"},
     each (...)."""
-    _poses("pred", pred)
-    _poses("target", target, like=pred, like_name="pred")
-    if pred.shape != target.shape:
-        raise ValueError(f"pred and target must have one shape, got {pred.shape} and {target.shape}")
     return {"position_error": position_error(pred, target),
             "orientation_error_deg": orientation_error(pred, target)}
 
@@ -186,34 +158,12 @@ def pose_metrics(pred, target):
 # baselines: what the context alone gives, without a model
 
 
-def _context(images, poses):
-    _uint8_images("context_images", images, 5)
-    if not isinstance(poses, np.ndarray) or poses.shape != images.shape[:2] + (7,):
-        raise ValueError(f"context_poses must have shape {images.shape[:2] + (7,)} (B, C, 7), "
-                         f"got {getattr(poses, 'shape', type(poses).__name__)}")
-    _checks.finite_float("context_poses", poses)
-
-
-def _same_batch(name, query, context_images, tail):
-    """query must be (B, M, *tail) with context_images' B: one scene's queries are never
-    broadcast against another scene's context."""
-    B = context_images.shape[0]
-    if query.ndim != 2 + len(tail) or query.shape[0] != B or query.shape[2:] != tail:
-        raise ValueError(f"{name} must have shape (B, M, {', '.join(map(str, tail))}) with B = {B}, the "
-                         f"scenes of context_images {context_images.shape}, got {query.shape}")
-
-
 def nearest_view(context_images, context_poses, query_poses):
     """The context image whose camera stands nearest (Euclidean distance of the positions) to
     each query camera; the first such view on a tie.
 
     context_images uint8 (B, C, Hi, Wi, 3), context_poses (B, C, 7), query_poses (B, M, 7)
     -> uint8 (B, M, Hi, Wi, 3)."""
-    _context(context_images, context_poses)
-    if not isinstance(query_poses, np.ndarray):
-        raise TypeError(f"query_poses must be a numpy.ndarray, got {type(query_poses).__name__}")
-    _same_batch("query_poses", query_poses, context_images, (7,))
-    _checks.finite_float("query_poses", query_poses, context_poses, "context_poses")
     d = position_error(query_poses[:, :, None, :], context_poses[:, None, :, :])  # (B, M, C)
     idx = np.argmin(d, axis=2)  # (B, M)
     return context_images[np.arange(idx.shape[0])[:, None], idx]  # (B, M, Hi, Wi, 3)
@@ -221,7 +171,6 @@ def nearest_view(context_images, context_poses, query_poses):
 
 def mean_image(context_images):
     """The mean of the context images, rounded to uint8.   uint8 (B, C, Hi, Wi, 3) -> (B, Hi, Wi, 3)."""
-    _uint8_images("context_images", context_images, 5)
     return np.rint(context_images.mean(axis=1)).astype(np.uint8)  # (B, Hi, Wi, 3)
 
 
@@ -231,9 +180,6 @@ def closest_image_pose(context_images, context_poses, query_images):
 
     context_images uint8 (B, C, Hi, Wi, 3), context_poses (B, C, 7), query_images uint8
     (B, M, Hi, Wi, 3) -> (B, M, 7)."""
-    _context(context_images, context_poses)
-    _uint8_images("query_images", query_images, 5)
-    _same_batch("query_images", query_images, context_images, context_images.shape[2:])
     ctx = context_images.astype(np.float64)  # (B, C, Hi, Wi, 3)
     qry = query_images.astype(np.float64)  # (B, M, Hi, Wi, 3)
     diff = qry[:, :, None] - ctx[:, None]  # (B, M, C, Hi, Wi, 3)
@@ -245,7 +191,4 @@ def closest_image_pose(context_images, context_poses, query_images):
 def mean_pose(context_poses):
     """The mean context pose (B, C, 7) -> (B, 7): mean position; quaternions normalised,
     sign-canonicalised, averaged, normalised and canonicalised again (geometry.average_pose)."""
-    _checks.finite_float("context_poses", context_poses)
-    if context_poses.ndim != 3 or context_poses.shape[1] == 0 or context_poses.shape[2] != 7:
-        raise ValueError(f"context_poses must have shape (B, C, 7) with C >= 1, got {context_poses.shape}")
     return average_pose(context_poses, axis=1)

@@ -7,6 +7,8 @@ pyvf/cli/train.py)."""
 from .loops import (
     TINY_CODEBOOK,
     TINY_TRANSFORMER,
+    RunOptions,
+    TransformerRecipe,
     codebook_batch,
     load_tokens,
     save_tokens,
@@ -20,6 +22,8 @@ from .step import codebook_train_step, train_step, transformer_step
 __all__ = [
     "TINY_CODEBOOK",
     "TINY_TRANSFORMER",
+    "RunOptions",
+    "TransformerRecipe",
     "codebook_batch",
     "codebook_train_step",
     "load_tokens",

@@ -6,7 +6,7 @@ A run folder holds
     log.csv          one row per logged step; rows past the checkpoint are dropped on resume
     eval.csv         with held-out evaluation (eval_columns): one row per evaluation, likewise
     config.json      the run's configuration, hyperparameters, and each call's command line (atomic)
-    <final>.npz      the trained model, loadable by Codebook.load / Transformer.load (atomic)
+    <kind>.npz       the trained model, loadable by Codebook.load / Transformer.load (atomic)
 
 Ctrl-C (SIGINT) while a loop runs: the step under way finishes, a checkpoint of it is saved, and
 then KeyboardInterrupt is raised, so the same call resumes with no step lost; a second Ctrl-C
@@ -15,7 +15,7 @@ raises at once (the steps since the last checkpoint are lost, never half an upda
 Checkpoint layout (one .npz, allow_pickle=False):
 
     __meta__                     JSON: kind, step, config, hyper, optimizer step and
-                                 hyperparameters, elapsed seconds
+                                 hyperparameters, elapsed seconds, the held-out set's fingerprint
     model/<name>                 the model's state_dict() (the codebook's EMA buffers included)
     optimizer/exp_avg/<name>     Adam's first moments
     optimizer/exp_avg_sq/<name>  Adam's second moments
@@ -25,9 +25,8 @@ function of (seed, step) and the schedule a pure function of the optimiser's ste
 `hyper` holds everything else the trajectory depends on (learning rate, batch size, seed,
 a fingerprint of the data...): a resume with other values raises instead of silently
 continuing another run. Its "init" (the model file a fresh run started from) counts at step 0
-only: a resume keeps the checkpoint's record, whatever file is named now. `__meta__`'s "eval"
-is the fingerprint of the held-out set whose rows eval.csv holds: a resume that would append
-another set's rows to that curve raises.
+only: a resume keeps the checkpoint's record. `__meta__`'s "eval" is the fingerprint of the
+held-out set whose rows eval.csv holds: a resume that would append another set's rows raises.
 """
 
 import csv
@@ -39,11 +38,10 @@ import signal
 import sys
 import threading
 import time
-import zipfile
 
 import numpy as np
 
-from .. import _checks, _core
+from .. import _core
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
 from .._machine import cpu_name
 from .curves import eval_line
@@ -76,20 +74,6 @@ def file_sha256(path):
     return h.hexdigest()
 
 
-def integer(name, x, lo=1):
-    """x: a Python or NumPy integer >= lo -> int. Errors name the argument."""
-    return _checks.integer(name, x, lo)
-
-
-def positive_int(name, x):
-    return _checks.integer(name, x, 1)
-
-
-def real(name, x, lo=0.0):
-    """x: a finite real number >= lo -> float. Errors name the argument."""
-    return _checks.real(name, x, lo=lo)
-
-
 def _machine():
     """Where a call runs, for config.json: CPU count, processor, the kernels' instruction-set path
     and thread count (a resumed run's calls may run on different machines)."""
@@ -98,8 +82,7 @@ def _machine():
 
 
 def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed, eval_fingerprint=None):
-    """Write the checkpoint atomically: a killed process leaves the previous one intact.
-    eval_fingerprint: the held-out set of eval.csv's rows (None: no evaluation so far)."""
+    """Write the checkpoint atomically: a killed process leaves the previous one intact."""
     opt = optimizer.state_dict()
     meta = {"format": "pyvf-checkpoint", "version": FORMAT_VERSION, "kind": kind, "step": int(step),
             "config": config, "hyper": hyper, "elapsed": float(elapsed),
@@ -114,74 +97,54 @@ def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, 
 
 def read_checkpoint(path, kind):
     """-> (meta dict, model state dict, optimizer state dict for load_state_dict). kind: the run's
-    kind ("codebook" or "transformer"; another raises ValueError), or None for either."""
+    kind ("codebook" or "transformer"; another raises ValueError), or None for either. A file that
+    is not a pyvf checkpoint raises CheckpointError naming it."""
     arrays = load_npz(path, "checkpoint", required=("__meta__",))
     try:
         meta = json.loads(str(arrays.pop("__meta__")))
-        ok = isinstance(meta, dict) and meta.get("format") == "pyvf-checkpoint"
-    except (json.JSONDecodeError, TypeError) as e:
+    except json.JSONDecodeError as e:
         raise CheckpointError(f"checkpoint {path}: entry '__meta__' is not valid JSON ({e})") from e
-    if not ok:
-        raise CheckpointError(f"checkpoint {path}: '__meta__' is not a pyvf checkpoint's")
-    if meta.get("version") != FORMAT_VERSION:
-        raise CheckpointError(f"checkpoint {path} has format version {meta.get('version')!r}; "
-                              f"this pyvf reads version {FORMAT_VERSION}")
-    lacking = [k for k in ("kind", "step", "config", "hyper", "elapsed", "optimizer") if k not in meta]
-    if lacking:
-        raise CheckpointError(f"checkpoint {path}: '__meta__' lacks {lacking}")
+    if not isinstance(meta, dict) or meta.get("format") != "pyvf-checkpoint" or meta.get("version") != FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {path}: not a pyvf checkpoint of format version {FORMAT_VERSION}")
     if kind is not None and meta.get("kind") != kind:
         raise ValueError(f"checkpoint {path} is a {meta.get('kind')!r} run, not a {kind!r} run: "
                          "use another output folder")
     model, opt = {}, {"exp_avg": {}, "exp_avg_sq": {}}
     for name, a in arrays.items():
-        if name.startswith("model/"):
-            model[name[len("model/"):]] = a
-        elif name.startswith("optimizer/exp_avg/"):
-            opt["exp_avg"][name[len("optimizer/exp_avg/"):]] = a
-        elif name.startswith("optimizer/exp_avg_sq/"):
-            opt["exp_avg_sq"][name[len("optimizer/exp_avg_sq/"):]] = a
-        else:
+        group = next((g for g in ("model/", "optimizer/exp_avg/", "optimizer/exp_avg_sq/") if name.startswith(g)), None)
+        if group is None:
             raise CheckpointError(f"checkpoint {path}: unexpected entry {name!r}")
+        (model if group == "model/" else opt[group.split("/")[1]])[name[len(group):]] = a
     opt["step"] = meta["optimizer"]["step"]
     opt["hyperparameters"] = meta["optimizer"]["hyperparameters"]
     return meta, model, opt
 
 
-def checkpoint_meta(path):
-    """A checkpoint's __meta__ alone, its arrays left unread: a look at a run before it starts
-    (its step, its hyperparameters). A damaged file raises as read_checkpoint does."""
+def resume_point(out_dir, resume=True):
+    """The __meta__ of the checkpoint that a run in out_dir resumes from (its arrays left unread),
+    or None when the run starts afresh (resume False, or no checkpoint yet)."""
+    path = os.path.join(os.fspath(out_dir), CHECKPOINT)
+    if not (resume and os.path.exists(path)):
+        return None
     try:
         with np.load(path, allow_pickle=False) as f:
-            meta = json.loads(str(f["__meta__"]))
-        if (isinstance(meta, dict) and meta.get("format") == "pyvf-checkpoint"
-                and meta.get("version") == FORMAT_VERSION and {"kind", "step", "hyper"} <= set(meta)):
-            return meta
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-        pass
-    return read_checkpoint(path, None)[0]  # raises naming what is wrong
-
-
-def resume_point(out_dir, resume=True):
-    """The __meta__ of the checkpoint that a run in out_dir resumes from (checkpoint_meta), or
-    None when the run starts afresh (resume False, or no checkpoint yet)."""
-    path = os.path.join(os.fspath(out_dir), CHECKPOINT)
-    return checkpoint_meta(path) if resume and os.path.exists(path) else None
+            return json.loads(str(f["__meta__"]))
+    except Exception:  # noqa: BLE001 -- damaged: read_checkpoint raises naming what is wrong
+        return read_checkpoint(path, None)[0]
 
 
 def _diff(saved, now):
     return sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
 
 
-class StopAtStepEnd:
-    """SIGINT (Ctrl-C) while a training loop runs, as a context: the first one sets `requested`
-    and calls say() (the loop then saves the step under way and raises KeyboardInterrupt:
-    Run.stop_requested); a second raises KeyboardInterrupt at once. Installed only in the main
-    thread where Python's own handler is in place (a user's handler, or a thread, keeps SIGINT as
-    it was); off (on=False) for a data-parallel run, whose processes could stop after different
-    steps."""
+class _StopAtStepEnd:
+    """SIGINT (Ctrl-C) inside `with run`: the first sets `requested` and says which step is saved
+    (the loop then saves the step under way and raises KeyboardInterrupt); a second raises at once.
+    Installed only in the main thread where Python's own handler is in place; off for a
+    data-parallel run, whose processes could stop after different steps."""
 
-    def __init__(self, on=True, say=lambda: None):
-        self.on, self.say, self.requested, self._previous = bool(on), say, False, None
+    def __init__(self, on, say):
+        self.on, self.say, self.requested, self._previous = on, say, False, None
 
     def __enter__(self):
         if (self.on and threading.current_thread() is threading.main_thread()
@@ -193,7 +156,6 @@ class StopAtStepEnd:
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
             self._previous = None
-        return False
 
     def _handler(self, signum, frame):
         if self.requested:
@@ -205,7 +167,7 @@ class StopAtStepEnd:
 class Run:
     """The run folder of one call of a training loop.
 
-        run = Run(out_dir, "codebook", config_dict, hyper, LOG_COLUMNS, final="codebook.npz", steps=..., ...)
+        run = Run(out_dir, "codebook", config_dict, hyper, LOG_COLUMNS, opts)   # opts: loops.RunOptions
         if run.resumed: run.restore("model", model.load_official, run.model_state)
         optimizer = Adam(model.params, ...)                          # after: load_official replaces params
         if run.resumed: run.restore("optimizer", optimizer.load_state_dict, run.optimizer_state)
@@ -213,7 +175,7 @@ class Run:
             for t in run.steps():              # run.start + 1 .. steps
                 ...                            # one update
                 run.log(t, {"loss": ...})      # every log_every steps and the last
-                stop = run.stop_requested()        # read once: Ctrl-C saves the step, then stops
+                stop = run.stop_requested()    # Ctrl-C: save the step, then stop
                 if stop or run.checkpoint_due(t):
                     run.save(t, model.state_dict(), optimizer)
                 if stop:
@@ -221,67 +183,32 @@ class Run:
         run.save_final(model.state_dict())
 
     config and hyper are JSON-able dicts; a resume checks both against the checkpoint's (but
-    hyper["init"], which counts at step 0 only: the checkpoint's record is kept). eval_fingerprint:
-    the held-out set whose rows log_eval appends (loops.fingerprint of it); a resume refuses
-    another set than the one eval.csv's rows came from. stop_at_step_end: Ctrl-C inside `with run`
-    ends the loop after the step under way, checkpointed (StopAtStepEnd); False for a data-parallel
-    run.
+    hyper["init"]: the checkpoint's record is kept). call: what config.json records of this call.
+    eval_fingerprint: the held-out set whose rows log_eval appends; a resume refuses another.
+    interruptible: Ctrl-C ends the loop after the step under way (False for data-parallel runs).
     """
 
-    def __init__(self, out_dir, kind, config, hyper, columns, *, final, steps, resume, progress,
-                 checkpoint_every, log_every, call=None, eval_columns=None, eval_fingerprint=None,
-                 stop_at_step_end=True):
-        self.steps_total = positive_int("steps", steps)
-        self.checkpoint_every = positive_int("checkpoint_every", checkpoint_every)
-        self.log_every = positive_int("log_every", log_every)
+    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, eval_columns=None,
+                 eval_fingerprint=None, interruptible=True):
+        self.steps_total, self.checkpoint_every, self.log_every = opts.steps, opts.checkpoint_every, opts.log_every
         self.kind, self.config, self.hyper = kind, jsonable(config), jsonable(hyper)
         self.columns = ["step", *columns, "seconds"]
-        self.progress = bool(progress)
-        for name, value in (call or {}).items():  # config.json records them: checked before the folder is touched
-            try:
-                json.dumps(value)
-            except (TypeError, ValueError):
-                raise TypeError(f"{name} must be JSON-able (config.json records it), got {type(value).__name__} "
-                                f"{value!r}") from None
+        self.progress = opts.progress
         self.out_dir = os.fspath(out_dir)
-        if os.path.exists(self.out_dir) and not os.path.isdir(self.out_dir):  # makedirs: "File exists"
-            raise NotADirectoryError(f"out_dir {self.out_dir} is a file, not a folder: a run writes a folder")
         os.makedirs(self.out_dir, exist_ok=True)
-        self.ckpt_path = os.path.join(self.out_dir, CHECKPOINT)
-        self.log_path = os.path.join(self.out_dir, LOG)
-        self.eval_path = os.path.join(self.out_dir, EVAL_LOG)
+        self.ckpt_path, self.log_path, self.eval_path, self.config_path, self.final_path = (
+            os.path.join(self.out_dir, name) for name in (CHECKPOINT, LOG, EVAL_LOG, CONFIG, f"{kind}.npz"))
         self.eval_columns = None if eval_columns is None else ["step", *eval_columns, "seconds"]
-        self.config_path = os.path.join(self.out_dir, CONFIG)
-        self.final_path = os.path.join(self.out_dir, final)
         for path in (self.ckpt_path, self.log_path, self.config_path, self.final_path, self.eval_path):
             remove_stale_temps(path)  # left by a process killed mid-write
 
         self.start, self.elapsed0 = 0, 0.0
         self.eval_fingerprint = eval_fingerprint if eval_columns is not None else None
         self.model_state = self.optimizer_state = None
-        if resume and os.path.exists(self.ckpt_path):
-            meta, self.model_state, self.optimizer_state = read_checkpoint(self.ckpt_path, kind)
-            # the model file a fresh run started from counts at step 0 only: the resume continues
-            # from the checkpoint whatever file (or none) is named now, and keeps its record
-            self.hyper = {k: v for k, v in self.hyper.items() if k != "init"}
-            if "init" in meta["hyper"]:
-                self.hyper["init"] = meta["hyper"]["init"]
-            for what, saved, now in (("configuration", meta["config"], self.config),
-                                     ("hyperparameters", meta["hyper"], self.hyper)):
-                if saved != now:
-                    raise ValueError(
-                        f"checkpoint {self.ckpt_path} was written with another {what} "
-                        f"(differs in {_diff(saved, now)}): resuming would not continue that run. "
-                        f"Pass the saved values {{{', '.join(f'{k}: {saved.get(k)!r}' for k in _diff(saved, now))}}}, "
-                        "another output folder, or resume=False (--no-resume) to start over")
-            self.start, self.elapsed0 = int(meta["step"]), float(meta["elapsed"])
-            if self.start > self.steps_total:
-                raise ValueError(f"checkpoint {self.ckpt_path} is at step {self.start}, past steps={steps}: "
-                                 "ask for at least as many steps, or start over with resume=False")
-            self._check_eval_set(meta.get("eval"))
+        if opts.resume and os.path.exists(self.ckpt_path):
+            self._resume()
         self.resumed = self.model_state is not None
-        if not self.resumed:
-            # starting over: an older run's checkpoint must not be resumed later, nor its model kept
+        if not self.resumed:  # starting over: an older run's checkpoint must not be resumed later, nor its model kept
             for path in (self.ckpt_path, self.final_path):
                 if os.path.exists(path):
                     os.remove(path)
@@ -291,38 +218,36 @@ class Run:
             self._truncate_log(self.eval_path, self.eval_columns)
         elif os.path.exists(self.eval_path) and not self.resumed:
             os.remove(self.eval_path)  # an older run's evaluations
-        self._log_file = self._bar = None
-        self._step = None  # the step under way (for the Ctrl-C line)
-        self._decided = None  # the last step whose stop decision stop_requested() has read
-        self._stop_at = None  # the step a Ctrl-C stops after, fixed by the handler when it says so
-        self._stop = StopAtStepEnd(stop_at_step_end, self._say_stopping)
+        self._log_file = self._bar = self._step = self._decided = None  # _decided: the last step stop_requested read
+        self._stop = _StopAtStepEnd(interruptible, self._say_stopping)
         self._t0 = time.perf_counter()
 
-    def _check_eval_set(self, saved):
-        """A resume appends to eval.csv only evaluations of the held-out set its rows came from
-        (saved: the checkpoint's fingerprint of it; None for a run not evaluated so far, or a
-        checkpoint from before the record). Without evaluation now, the record is kept."""
-        if saved is None or self.eval_fingerprint is None:
-            self.eval_fingerprint = self.eval_fingerprint or saved
-            return
-        if saved != self.eval_fingerprint:
-            raise ValueError(
-                f"{self.eval_path} holds evaluations on another held-out set (fingerprint {saved}) than this "
-                f"call's ({self.eval_fingerprint}): its curve would mix two sets. Resume with the held-out set "
-                f"the run started with{self._evaluated_by(saved)} (the same --eval-scenes, --eval-seed and, for a "
-                "transformer, --codebook), without evaluation (--eval-every 0), in another output folder, or "
-                "resume=False (--no-resume) to start over")
-
-    def _evaluated_by(self, fp):
-        """", by `COMMAND`": the command line of the last call in config.json that evaluated on the
-        held-out set of fingerprint fp, or "" when config.json does not say."""
-        try:
-            with open(self.config_path, encoding="utf-8") as f:
-                calls = json.load(f)["calls"]
-            argv = next(c["command"]["argv"] for c in reversed(calls) if (c.get("eval") or {}).get("fingerprint") == fp)
-            return f", by `{' '.join([os.path.basename(argv[0]), *argv[1:]])}`"
-        except (OSError, ValueError, KeyError, TypeError, IndexError, StopIteration, AttributeError):
-            return ""
+    def _resume(self):
+        """Read the checkpoint; raise when it is another run's (configuration, hyperparameters,
+        a step past steps, another held-out set)."""
+        meta, self.model_state, self.optimizer_state = read_checkpoint(self.ckpt_path, self.kind)
+        self.hyper = {k: v for k, v in self.hyper.items() if k != "init"}  # the model file counts at step 0 only
+        if "init" in meta["hyper"]:
+            self.hyper["init"] = meta["hyper"]["init"]
+        for what, saved, now in (("configuration", meta["config"], self.config),
+                                 ("hyperparameters", meta["hyper"], self.hyper)):
+            if saved != now:
+                differ = _diff(saved, now)
+                raise ValueError(
+                    f"checkpoint {self.ckpt_path} was written with another {what} (differs in {differ}): "
+                    f"resuming would not continue that run. Pass the saved values "
+                    f"{{{', '.join(f'{k}: {saved.get(k)!r}' for k in differ)}}}, another output folder, "
+                    "or resume=False (--no-resume) to start over")
+        self.start, self.elapsed0 = int(meta["step"]), float(meta["elapsed"])
+        if self.start > self.steps_total:
+            raise ValueError(f"checkpoint {self.ckpt_path} is at step {self.start}, past steps={self.steps_total}: "
+                             "ask for at least as many steps, or start over with resume=False")
+        saved = meta.get("eval")
+        if saved is not None and self.eval_fingerprint is not None and saved != self.eval_fingerprint:
+            raise ValueError(f"{self.eval_path} holds evaluations on another held-out set than this call's: its "
+                             "curve would mix two sets. Resume with the run's held-out set (the same --eval-scenes, "
+                             "--eval-seed and --codebook), without evaluation (--eval-every 0), or start over")
+        self.eval_fingerprint = self.eval_fingerprint or saved
 
     def restore(self, what, load, state):
         """load(state) (model.load_official, optimizer.load_state_dict): a state that does not
@@ -339,8 +264,8 @@ class Run:
         if self.resumed and os.path.exists(self.config_path):
             try:
                 with open(self.config_path, encoding="utf-8") as f:
-                    calls = list(json.load(f).get("calls", []))
-            except (OSError, ValueError, AttributeError, TypeError):
+                    calls = list(json.load(f)["calls"])
+            except (OSError, ValueError, KeyError, TypeError):
                 calls = []  # unreadable: the checkpoint, not this file, is the run's state
         calls.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "steps": self.steps_total,
                       "resumed_from_step": self.start if self.resumed else None,
@@ -358,28 +283,14 @@ class Run:
         a torn last line (a process killed mid-write) is dropped with the rows past it."""
         kept = []
         if self.resumed and os.path.exists(path):
-            try:
-                with open(path, newline="", encoding="utf-8") as f:
-                    rows = list(csv.reader(f))
-            except UnicodeDecodeError as e:
-                raise CheckpointError(f"log {path} is not UTF-8 text ({e}): not this run's log") from None
-            if rows and rows[0] != columns:
-                raise CheckpointError(f"log {path} has the columns {rows[0]}, expected {columns}: "
-                                      "not this run's log")
+            with open(path, newline="", encoding="utf-8", errors="replace") as f:
+                rows = list(csv.reader(f))
             for row in rows[1:]:
-                if len(row) != len(columns):
-                    break  # torn
-                try:
-                    step = int(row[0])
-                except ValueError:
-                    break
-                if step > self.start:
-                    break
+                if len(row) != len(columns) or not row[0].isdigit() or int(row[0]) > self.start:
+                    break  # torn, or past the checkpoint
                 kept.append(row)
         buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(columns)
-        w.writerows(kept)
+        csv.writer(buf, lineterminator="\n").writerows([columns, *kept])
         atomic_write_text(path, buf.getvalue())
 
     def seconds(self):
@@ -398,14 +309,13 @@ class Run:
         self._log_file.flush()
 
     def eval_due(self, step, every):
-        """Whether to evaluate after `step`: every `every` steps (0: never), at the last step, and
-        before the first step of a fresh run (step 0)."""
+        """Whether to evaluate after `step`: every `every` steps (0: never) and at the last step."""
         return bool(every) and (step % every == 0 or step == self.steps_total)
 
     def log_eval(self, step, values):
         """Append one row of held-out figures to eval.csv (values: column -> float) and print it
-        to stderr beside its baselines (curves.eval_line). The row reads only the model: evaluation never
-        changes the training trajectory."""
+        to stderr beside its baselines (curves.eval_line). The row reads only the model: evaluation
+        never changes the training trajectory."""
         row = [str(step)] + [repr(float(values[c])) for c in self.eval_columns[1:-1]] + [f"{self.seconds():.3f}"]
         with open(self.eval_path, "a", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow(row)
@@ -430,14 +340,11 @@ class Run:
     def __exit__(self, *exc):
         self._stop.__exit__(*exc)
         if self._bar is not None:
-            if self._stop.requested and self._step is not None and self._bar.n < self._step:
-                self._bar.update(self._step - self._bar.n)  # Ctrl-C: the step it finished and saved
             self._bar.close()
         self._log_file.close()
         if exc[0] is None and self._stop.requested:
             # Ctrl-C after the last step's checkpoint was saved: stop here all the same (the
-            # caller's next work, e.g. pyvf train's next stage, must not start); a rerun finds the
-            # last step's checkpoint and only writes the final model
+            # caller's next work, e.g. pyvf train's next stage, must not start)
             raise KeyboardInterrupt
         return False
 
@@ -450,24 +357,19 @@ class Run:
                 self._bar.update(1)
 
     def _say_stopping(self):
-        """At the first Ctrl-C (the signal handler, between two bytecodes of the loop): fix the step
-        the loop stops after, and say it on stderr (on a line of its own after a progress bar). A
-        Ctrl-C that comes after the step's stop decision was read (during its checkpoint, say)
-        stops after the next step: the line names that one, the step that is saved."""
+        """At the first Ctrl-C: say on stderr which step is finished and saved: the step under way,
+        or the next one when this step's stop decision was already read (during its checkpoint)."""
         t = self.start + 1 if self._step is None else self._step
         if self._decided == t and t < self.steps_total:
             t += 1
-        self._stop_at = t
         print(f"{chr(10) if self._bar is not None else ''}Ctrl-C: finishing step {t} and saving it; Ctrl-C again "
               "stops at once (losing the steps since the last checkpoint)", file=sys.stderr, flush=True)
 
     def stop_requested(self):
         """Whether Ctrl-C asked the loop to stop after this step: then it saves the step it just
-        finished and raises KeyboardInterrupt (read once per step, before the checkpoint decision).
-        The step is marked decided first, so that the handler, whenever it runs, names the step
-        this returns True for: this one if it ran before the mark, else the next."""
+        finished and raises KeyboardInterrupt (read once per step, before the checkpoint decision)."""
         self._decided = self._step
-        return self._stop_at is not None and self._stop_at <= self._step
+        return self._stop.requested
 
     def checkpoint_due(self, step):
         return step % self.checkpoint_every == 0 or step == self.steps_total

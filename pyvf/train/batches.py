@@ -8,16 +8,8 @@ same batches and both engines (pyvf's and torch's) train on the same ones.
 import numpy as np
 
 from ..evaluate.metrics import object_mask, to_model_images
-from ._run import integer, positive_int
 
 __all__ = ["codebook_batch", "transformer_batch"]
-
-
-def _batch_key(batch_size, seed, step):
-    """The batch functions' batch_size, seed and step checked (errors name them, not numpy's
-    names) -> the key [seed, step] of the step's generator."""
-    positive_int("batch_size", batch_size)
-    return [integer("seed", seed, 0), integer("step", step, 0)]
 
 
 def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weight=None):
@@ -25,7 +17,7 @@ def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weigh
     (M, Hi, Wi, C) uint8 images -> (B, C, Hi, Wi) in [-1, 1]. A pure function of (seed, step).
     With object_weight (a float), also the pixel weights (B, 1, Hi, Wi): object_weight on the
     pixels health.object_mask marks, 1 on the background."""
-    rng = np.random.default_rng(_batch_key(batch_size, seed, step))
+    rng = np.random.default_rng([seed, step])
     idx = rng.integers(0, images.shape[0], size=batch_size)  # (B,)
     x = to_model_images(images[idx], np.dtype(dtype))
     if object_weight is None:
@@ -38,10 +30,8 @@ def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="flo
     """Batch of step `step`: per sample a scene drawn uniformly, then n_views distinct views
     of it in random order. tokens (scenes, views, k, k), poses (scenes, views, 7) ->
     tokens (B, N, L) int64, poses (B, N, 7) of dtype. A pure function of (seed, step)."""
-    rng = np.random.default_rng(_batch_key(batch_size, seed, step))
+    rng = np.random.default_rng([seed, step])
     n_scenes, n_avail = tokens.shape[:2]
-    if integer("n_views", n_views) > n_avail:
-        raise ValueError(f"n_views must be at most the views a scene has, {n_avail}, got {n_views}")
     scenes = rng.integers(0, n_scenes, size=batch_size)  # (B,)
     order = rng.permuted(np.tile(np.arange(n_avail), (batch_size, 1)), axis=1)  # (B, views): a permutation per row
     views = order[:, :n_views]  # (B, N)

@@ -1,8 +1,12 @@
 """Training loops: the codebook on images, tokenization, the transformer on tokens (docs/math.md §4, §5).
 
-    cb = train_codebook(images, TINY_CODEBOOK, "runs/cb", steps=20_000)  # images (scenes, views, Hi, Wi, 3) uint8
-    tokens = tokenize(cb, images)                                         # (scenes, views, k, k) int16
-    tf = train_transformer(tokens, poses, TINY_TRANSFORMER, "runs/tf", steps=50_000)
+    cb = train_codebook(images, TINY_CODEBOOK, "runs/cb", RunOptions(steps=20_000))  # images (scenes, views, Hi, Wi, 3) uint8
+    tokens = tokenize(cb, images)                                                     # (scenes, views, k, k) int16
+    tf = train_transformer(tokens, poses, TINY_TRANSFORMER, "runs/tf", RunOptions(steps=50_000))
+
+RunOptions says how a call runs (steps, batch size, seed, checkpoints, logging, engine...); the
+configuration and the recipe (train_codebook's recipe and its overrides, train_transformer's
+TransformerRecipe) say what it learns.
 
 Each loop checkpoints its run folder atomically (see _run.py for the layout) every
 `checkpoint_every` steps, at the end, and at Ctrl-C (SIGINT, in the main thread: the step under
@@ -17,7 +21,6 @@ no generator state is saved.
 
 import dataclasses
 import os
-import sys
 
 import numpy as np
 
@@ -36,10 +39,10 @@ from ..evaluate.metrics import encode_images
 from ..geometry import _check_unit
 from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import CHECKPOINT, Run, _diff, file_sha256, fingerprint, integer, jsonable, positive_int, real, resume_point
+from ._run import Run, _diff, file_sha256, fingerprint, jsonable, resume_point
 from .batches import codebook_batch, transformer_batch
 from .curves import plot_eval
-from .step import check_clipping, codebook_train_step, transformer_step
+from .step import codebook_train_step, transformer_step
 from .torch_codebook_engine import check_codebook_engine, parity_images
 from .torch_engine import Follower, TorchTransformer, check_engine, data_parallel, log_parity, parity_batch
 
@@ -81,17 +84,45 @@ CODEBOOK_RECIPES = {
 }
 KMEANS_BATCHES = 4  # the k-means initialisation clusters the encoder's outputs of this many batches
 
+
 CODEBOOK_LOG = ["loss", "rec_loss", "commitment", "perplexity", "usage", "lr"]
 TRANSFORMER_LOG = ["loss", "ce_loss", "pose_loss", "grad_norm", "lr"]
 
 
-# ---------------------------------------------------------------------------------------
-# data checks and batches
+@dataclasses.dataclass(frozen=True)
+class RunOptions:
+    """How a training call runs: its length, batches, checkpoints, logging and engine (what it
+    learns is the configuration's and the recipe's). Checked when made; an error names the field."""
+
+    steps: int  # the total number of updates; a resumed run continues to it from its checkpoint
+    batch_size: int = 16
+    seed: int = 0  # the initialisation and every batch (np.random.default_rng([seed, step]))
+    checkpoint_every: int = 200  # steps between checkpoints; one at the end and at Ctrl-C always
+    log_every: int = 10  # steps between log.csv rows (and the last step)
+    eval_every: int = 0  # steps between held-out evaluations (0: none; then the set is not the run's)
+    resume: bool = True  # continue from out_dir/checkpoint.npz when there is one; False starts over
+    progress: bool = True  # a progress bar on stderr
+    threads: int | None = None  # the kernels' and BLAS' threads during the call (None: as they are)
+    command: dict | None = None  # the command line, recorded in config.json
+    engine: str = "pyvf"  # "pyvf" (its own kernels, on the CPU) or "torch" (torch_engine.py)
+    device: str = "cpu"  # the torch engine's: "cpu", "cuda" or "cuda:N"
+    precision: str = "fp32"  # the torch engine's: "fp32" or "bf16" autocast
+    init: str | None = None  # a Codebook.save / Transformer.save file a fresh run starts from
+
+    def __post_init__(self):
+        for name, lo in (("steps", 1), ("batch_size", 1), ("seed", 0), ("checkpoint_every", 1), ("log_every", 1),
+                         ("eval_every", 0), ("threads", 1)):
+            if name != "threads" or self.threads is not None:
+                object.__setattr__(self, name, _checks.integer(name, getattr(self, name), lo))
+        check_engine(self.engine, self.device, self.precision)
+        if self.init is not None:
+            if not isinstance(self.init, (str, os.PathLike)):
+                raise TypeError(f"init must be the path of a model file, got {type(self.init).__name__}")
+            object.__setattr__(self, "init", os.fspath(self.init))
 
 
 def _check_images(images, config, name="images"):
-    """images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C) -> a (M, Hi, Wi, C) view.
-    name: the argument's, for the errors (eval_images of train_codebook, say)."""
+    """images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C) -> a (M, Hi, Wi, C) view."""
     if not isinstance(images, np.ndarray) or images.dtype != np.uint8:
         raise TypeError(f"{name} must be a uint8 numpy array, got {getattr(images, 'dtype', type(images).__name__)}")
     S, C = config.image_size, config.in_channels
@@ -101,60 +132,28 @@ def _check_images(images, config, name="images"):
     return images.reshape(-1, S, S, C)
 
 
-def _check_tokens_poses(tokens, poses, config):
-    if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu":
-        raise TypeError("tokens must be an integer numpy array, got "
-                        f"{getattr(tokens, 'dtype', type(tokens).__name__)}")
-    k = config.token_image_size
-    if tokens.ndim != 4 or tokens.shape[2:] != (k, k) or tokens.size == 0:
-        raise ValueError(f"tokens must have shape (scenes, views, {k}, {k}), got {tokens.shape}")
-    lo, hi = int(tokens.min()), int(tokens.max())
-    if lo < 0 or hi >= config.n_embeddings:
-        raise ValueError(f"tokens must be in [0, {config.n_embeddings}) (config.n_embeddings), got [{lo}, {hi}]")
-    _checks.float_array("poses", poses)
+def _check_tokens_poses(tokens, poses, config, names=("tokens", "poses")):
+    """tokens ints (scenes, views, ...) in [0, n_embeddings), poses (scenes, views, 7) finite with
+    unit quaternions (in the model's dtype, as the batches hold them: checked here rather than at
+    the first step that draws a bad view, which may come thousands of steps in). names: theirs."""
+    t, p = names
+    _checks.int_array(t, tokens)
+    if tokens.size == 0 or tokens.min() < 0 or tokens.max() >= config.n_embeddings:
+        raise ValueError(f"{t} must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
+    _checks.float_array(p, poses)
     if poses.shape != tokens.shape[:2] + (7,):
-        raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
-    if not np.isfinite(poses).all():
-        raise ValueError("poses contain NaN or inf")
-    # as the batches hold them (in the model's dtype), here rather than at the first step that
-    # draws a bad view, which may come thousands of steps in and name an index into its batch
-    _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))  # at (scene, view)
+        raise ValueError(f"{p} must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
+    _checks.finite(p, poses)
+    _check_unit(f"the quaternions of {p}", poses[..., 3:].astype(config.dtype))
 
 
-class _Threads:
-    """`--threads` for a block: pyvf.threads(n) (the kernels and numpy's BLAS), n checked first
-    so that a bad value raises naming the argument before anything runs."""
-
-    def __init__(self, n):
-        # an int (a numpy integer passes the check, and config.json records it: JSON takes ints)
-        self.n, self._block = None if n is None else positive_int("threads", n), None
-
-    def __enter__(self):
-        self._block = kernel_threads(self.n)
-        return self._block.__enter__()
-
-    def __exit__(self, *exc):
-        return self._block.__exit__(*exc)
-
-
-def _warm_start(init, cls, config, hyper, out_dir, resume):
-    """train_codebook's and train_transformer's `init`: None, or the path of a model file written
-    by cls.save (cls: Codebook or Transformer) whose configuration is the run's `config`.
-    Returns (hyper with the file's record, "init": {"path": its name, "sha256": its bytes'}, the
-    file's state_dict()), or (hyper, None) without one (no "init" entry: runs from before the
-    option resume as they were). The file counts at step 0 only: when the run resumes from
-    out_dir's checkpoint it is not read (it may have changed or gone since), the checkpoint holds
-    the run's state and Run keeps its record; a file other than the one the run started from is
-    named in a note on stderr. Errors name init and come before the run folder is touched."""
-    if init is None:
-        return hyper, None
-    try:
-        path = os.fspath(init)
-    except TypeError:
-        raise TypeError(f"init must be a path to a {cls.FILE_KIND} model file, got {type(init).__name__}") from None
-    meta = resume_point(out_dir, resume)
-    if meta is not None and meta.get("kind") == cls.FILE_KIND:  # (another kind's: Run refuses the folder)
-        _note_init_not_read(path, meta, os.path.join(os.fspath(out_dir), CHECKPOINT))
+def _warm_start(cls, config, hyper, out_dir, opts):
+    """opts.init: None, or a cls.save file of the run's configuration. Returns (hyper with the
+    file's record {"path", "sha256"}, its state_dict()), or (hyper, None) without one. The file
+    counts at step 0 only: a run that resumes from out_dir's checkpoint does not read it (the
+    checkpoint holds the run's state, and Run keeps the record). Errors name init."""
+    path = opts.init
+    if path is None or resume_point(out_dir, opts.resume) is not None:
         return hyper, None
     try:
         model = cls.load(path)
@@ -163,30 +162,10 @@ def _warm_start(init, cls, config, hyper, out_dir, resume):
     except ValueError as e:  # CheckpointError: corrupt, or another kind of model
         raise ValueError(f"init {path} is not a {cls.FILE_KIND} model file ({cls.__name__}.save's): {e}") from e
     saved, now = jsonable(dataclasses.asdict(model.config)), jsonable(dataclasses.asdict(config))
-    differ = _diff(saved, now)
-    if differ:
-        said = "; ".join(f"{k}: {saved.get(k)!r} in the file, {now.get(k)!r} in the run" for k in differ)
-        raise ValueError(f"init {path} holds a {cls.__name__} of another configuration (differs in {differ}: "
-                         f"{said}): start from a model of the run's configuration, or run with the file's")
-    record = {"path": os.path.basename(path), "sha256": file_sha256(path)}
-    return {**hyper, "init": record}, model.state_dict()
-
-
-def _note_init_not_read(path, meta, ckpt_path):
-    """A resume with init: a note on stderr when the file is not the one the run started from
-    (other bytes, or gone), saying that it is not read: the checkpoint holds the run's state."""
-    started = meta["hyper"].get("init")
-    if started is not None and os.path.isfile(path) and file_sha256(path) == started.get("sha256"):
-        return  # the run's own file (any name, any folder): nothing to say
-    origin = (f"{started.get('path')} of sha256 {started.get('sha256')}" if started is not None
-              else "the seed's initialisation")
-    print(f"pyvf: note: init {os.path.abspath(path)} is not read: {ckpt_path} resumes the run from step "
-          f"{meta['step']}, and a model file counts at step 0 only (this run started from {origin}); start over "
-          "from it with resume=False (--no-resume) or another output folder", file=sys.stderr)
-
-
-# ---------------------------------------------------------------------------------------
-# the codebook
+    if _diff(saved, now):
+        raise ValueError(f"init {path} holds a {cls.__name__} of another configuration (differs in "
+                         f"{_diff(saved, now)}): start from a model of the run's configuration, or run with the file's")
+    return {**hyper, "init": {"path": os.path.basename(path), "sha256": file_sha256(path)}}, model.state_dict()
 
 
 def _checkpoint(run, step, state, opt, check):
@@ -202,46 +181,37 @@ def _checkpoint(run, step, state, opt, check):
         raise KeyboardInterrupt
 
 
-def _recipe(recipe, lr, betas, reset_dead_codes, object_weight, restart, reseat, kmeans):
-    """train_codebook's lr, betas, reset_dead_codes, object_weight, restart, reseat and kmeans:
-    the recipe's (a name of CODEBOOK_RECIPES) where None, each checked."""
+# ---------------------------------------------------------------------------------------
+# the codebook
+
+
+def _recipe(recipe, overrides):
+    """train_codebook's recipe (a name of CODEBOOK_RECIPES) with the overrides not None, each
+    checked -> (lr, betas, reset_dead_codes, object_weight, codes, what the run records beyond the
+    base hyperparameters)."""
     if recipe not in CODEBOOK_RECIPES:
         raise ValueError(f"recipe must be one of {sorted(CODEBOOK_RECIPES)}, got {recipe!r}")
-    r = CODEBOOK_RECIPES[recipe]
-    lr = real("lr", r["lr"] if lr is None else lr)
-    betas = r["betas"] if betas is None else betas
-    if (not isinstance(betas, (tuple, list)) or len(betas) != 2
-            or not all(0 <= real("betas", b) < 1 for b in betas)):
+    unknown = sorted(set(overrides) - set(CODEBOOK_RECIPES[recipe]))
+    if unknown:
+        raise TypeError(f"train_codebook got unexpected keyword arguments {unknown}")
+    r = {**CODEBOOK_RECIPES[recipe], **{k: v for k, v in overrides.items() if v is not None}}
+    lr = _checks.real("lr", r["lr"], lo=0.0)
+    betas = r["betas"]
+    if not isinstance(betas, (tuple, list)) or len(betas) != 2 or not all(0 <= _checks.real("betas", b) < 1
+                                                                        for b in betas):
         raise ValueError(f"betas must be two numbers in [0, 1), got {betas!r}")
     betas = (float(betas[0]), float(betas[1]))
-    reset_dead_codes = integer("reset_dead_codes", r["reset_dead_codes"] if reset_dead_codes is None
-                               else reset_dead_codes, 0)
-    object_weight = real("object_weight", r["object_weight"] if object_weight is None else object_weight)
-    if object_weight == 0:
-        raise ValueError("object_weight must be positive")
-    restart = r["restart"] if restart is None else restart
-    if restart not in ("batch", "worst"):
-        raise ValueError(f"restart must be 'batch' or 'worst', got {restart!r}")
-    reseat = integer("reseat", r["reseat"] if reseat is None else reseat, 0)
-    kmeans = integer("kmeans", r["kmeans"] if kmeans is None else kmeans, 0)
-    codes = {"restart": restart, "reseat": reseat, "kmeans": kmeans}
+    reset_dead_codes = _checks.integer("reset_dead_codes", r["reset_dead_codes"], 0)
+    object_weight = _checks.real("object_weight", r["object_weight"], lo=0.0, lo_open=True)
+    if r["restart"] not in ("batch", "worst"):
+        raise ValueError(f"restart must be 'batch' or 'worst', got {r['restart']!r}")
+    codes = {"restart": r["restart"], "reseat": _checks.integer("reseat", r["reseat"], 0),
+             "kmeans": _checks.integer("kmeans", r["kmeans"], 0)}
     # what the run records beyond the base hyperparameters: absent at their defaults (object_weight
     # 1.0, _CODES), so that runs from before these options resume as they were
     recorded = {"object_weight": object_weight} if object_weight != 1.0 else {}
     recorded.update({k: v for k, v in codes.items() if v != _CODES[k]})
     return lr, betas, reset_dead_codes, object_weight, codes, recorded
-
-
-def _codebook_eval(eval_images, eval_every, config):
-    """train_codebook's held-out evaluation: (eval_every, the images checked or None, their
-    fingerprint, None when nothing is evaluated). A set not evaluated on (eval_every 0) is not
-    the run's: not recorded, so a later call may evaluate on any set, and a resume that evaluates
-    nothing passes whatever set it names."""
-    eval_every = integer("eval_every", eval_every, 0)
-    if eval_images is not None:
-        eval_images = _check_images(eval_images, config, "eval_images")
-    evaluating = eval_images is not None and eval_every > 0
-    return eval_every, eval_images, fingerprint(eval_images) if evaluating else None
 
 
 def _kmeans_start(model, flat, iters, batch_size, seed):
@@ -301,81 +271,67 @@ def _codebook_engine(engine, model, opt, parity, device, precision):
     return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, check
 
 
-def train_codebook(images, config, out_dir, *, steps, batch_size=16, recipe="small-batch", lr=None, betas=None,
-                   reset_dead_codes=None, object_weight=None, restart=None, reseat=None, kmeans=None, seed=0,
-                   checkpoint_every=200, log_every=10, eval_images=None, eval_every=0, resume=True, progress=True,
-                   threads=None, command=None, engine="pyvf", device="cpu", precision="fp32", init=None):
+def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="small-batch", **overrides):
     """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4).
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
     out_dir: the run folder (created): checkpoint.npz, log.csv, config.json, and at the end
         codebook.npz (Codebook.load reads it).
-    steps: the total number of updates; a resumed run continues to it from its checkpoint.
-    recipe: a name of CODEBOOK_RECIPES, the defaults of lr, betas (Adam's), reset_dead_codes
-        and object_weight; each of those given overrides the recipe's.
-    object_weight: the loss weight of object pixels (health.object_mask) against 1 for the
-        background (1.0: the plain mean, as published).
-    eval_images: None, or held-out uint8 views (M, Hi, Wi, C): every eval_every steps (0:
-        never; then the set is not the run's), at the last step and before the first of a fresh
-        run, health.codebook_health on them is appended to out_dir/eval.csv (reads the model only).
-    resume: continue from out_dir/checkpoint.npz when there is one (its configuration and
-        hyperparameters must be these); False starts over, overwriting the folder's files.
-    threads: the C++ kernels' thread count during the call (None: as it is).
-    command: JSON-able record of the command line, written to config.json.
-    reset_dead_codes: every this many steps (0: never, the published behaviour), codes whose
-        EMA cluster size fell below 1e-3 are moved to random encoder outputs of that step's
-        batch (EMAQuantizer.reset_dead_codes, random from (seed, step): resumes stay exact).
-        Without it a small codebook trained from the uniform initialisation can collapse onto a
-        few codes (measured on SM7: 9 of 256 codes in use at step 80).
-    restart, reseat: where dead codes restart ("batch" or "worst") and how many low-utility codes
-        each reset moves too (EMAQuantizer.reset_dead_codes); kmeans: 0, or the Lloyd iterations
-        of a fresh run's k-means initialisation of the codes on the encoder's outputs of
-        KMEANS_BATCHES batches (EMAQuantizer.init_kmeans). Each defaults to the recipe's.
-    engine, device, precision: as train_transformer's (torch_codebook_engine.TorchCodebook: the
-        same run with the model in torch, parity.csv at every checkpoint; one process).
-    init: None, or a Codebook.save file of this configuration: a fresh run starts from its weights
-        and EMA buffers instead of the seed's, Adam fresh. A resume does not read it (the
-        checkpoint holds the run's state; a file other than the run's own is named in a note).
+    opts: RunOptions (steps, batch_size, seed, checkpoints, engine, init, ...). init: a fresh run
+        starts from the file's weights and EMA buffers, Adam fresh; a resume does not read it.
+        engine "torch": torch_codebook_engine.TorchCodebook, parity.csv at every checkpoint.
+    eval_images: None, or held-out uint8 views (M, Hi, Wi, C): every opts.eval_every steps, at the
+        last step and before the first of a fresh run, health.codebook_health on them is appended
+        to out_dir/eval.csv (it reads the model only).
+    recipe: a name of CODEBOOK_RECIPES, the defaults of the overrides: lr, betas (Adam's),
+        reset_dead_codes, object_weight, restart, reseat, kmeans; each given (not None) overrides
+        the recipe's. object_weight: the loss weight of object pixels (health.object_mask)
+        against 1 for the background. reset_dead_codes: every this many steps (0: never, as
+        published) codes whose EMA cluster size fell below 1e-3 move to encoder outputs of the
+        step's batch (EMAQuantizer.reset_dead_codes, random from (seed, step): resumes stay
+        exact); restart, reseat: where they restart ("batch" or "worst") and how many low-utility
+        codes each reset moves too; kmeans: 0, or the Lloyd iterations of a fresh run's k-means
+        initialisation of the codes on the encoder's outputs of KMEANS_BATCHES batches.
     Returns the trained Codebook."""
     if not isinstance(config, CodebookConfig):
         raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
+    if not isinstance(opts, RunOptions):
+        raise TypeError(f"opts must be a RunOptions, got {type(opts).__name__}")
     flat = _check_images(images, config)  # (M, Hi, Wi, C)
-    batch_size = positive_int("batch_size", batch_size)
-    seed = integer("seed", seed, 0)
-    lr, betas, reset_dead_codes, object_weight, codes, recorded = _recipe(recipe, lr, betas, reset_dead_codes,
-                                                                          object_weight, restart, reseat, kmeans)
-    eval_every, eval_images, eval_fp = _codebook_eval(eval_images, eval_every, config)
-    evaluating = eval_fp is not None
-    hyper = {"batch_size": batch_size, "lr": lr, "betas": betas, "seed": seed, "reset_dead_codes": reset_dead_codes,
+    lr, betas, reset_dead_codes, object_weight, codes, recorded = _recipe(recipe, overrides)
+    if eval_images is not None:
+        eval_images = _check_images(eval_images, config, "eval_images")
+    eval_fp = fingerprint(eval_images) if eval_images is not None and opts.eval_every else None
+    B, seed = opts.batch_size, opts.seed
+    hyper = {"batch_size": B, "lr": lr, "betas": betas, "seed": seed, "reset_dead_codes": reset_dead_codes,
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}, **recorded}
-    check_codebook_engine(engine, device, precision, config.dtype)
-    threads_set = _Threads(threads)  # checked before the run folder is touched
-    hyper, init_state = _warm_start(init, Codebook, config, hyper, out_dir, resume)
-    call = {"command": command, "threads": threads_set.n, "recipe": recipe, "engine": engine, "device": device,
-            "precision": precision, "eval": None if eval_fp is None else {"every": eval_every, "fingerprint": eval_fp}}
-    with threads_set:  # before the Run: config.json records the threads the run uses
-        run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, final="codebook.npz",
-                  steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
-                  call=call, eval_columns=None if eval_fp is None else CODEBOOK_HEALTH, eval_fingerprint=eval_fp)
+    check_codebook_engine(opts.engine, opts.device, opts.precision, config.dtype)
+    hyper, init_state = _warm_start(Codebook, config, hyper, out_dir, opts)
+    call = {"command": opts.command, "threads": opts.threads, "recipe": recipe, "engine": opts.engine,
+            "device": opts.device, "precision": opts.precision,
+            "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
+    with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
+        run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, opts, call=call,
+                  eval_columns=None if eval_fp is None else CODEBOOK_HEALTH, eval_fingerprint=eval_fp)
         model, opt = _codebook_and_optimiser(run, config, seed, lr, betas, init_state)
         if not run.resumed and init_state is None:
-            _kmeans_start(model, flat, codes["kmeans"], batch_size, seed)
+            _kmeans_start(model, flat, codes["kmeans"], B, seed)
         step, reset, state, current, opt, check = _codebook_engine(
-            engine, model, opt, parity_images(flat, seed, config.dtype), device, precision)
+            opts.engine, model, opt, parity_images(flat, seed, config.dtype), opts.device, opts.precision)
+        weighted = object_weight != 1.0
         with run:
-            if evaluating and not run.resumed:
+            if eval_fp is not None and not run.resumed:
                 run.log_eval(0, codebook_health(current(), eval_images))
                 plot_eval(run.out_dir)
             for t in run.steps():
-                weighted = object_weight != 1.0
-                x = codebook_batch(flat, batch_size, seed, t, config.dtype, object_weight if weighted else None)
+                x = codebook_batch(flat, B, seed, t, config.dtype, object_weight if weighted else None)
                 x, w = x if weighted else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
                 lr_t = opt.lr_at(opt.step_count)
                 values = step(x, w)
                 if reset_dead_codes and t % reset_dead_codes == 0:
                     reset(x, np.random.default_rng([seed, t, 1]), restart=codes["restart"], reseat=codes["reseat"])
                 run.log(t, {**values, "lr": lr_t})
-                if evaluating and run.eval_due(t, eval_every):
+                if eval_fp is not None and run.eval_due(t, opts.eval_every):
                     run.log_eval(t, codebook_health(current(), eval_images))
                     plot_eval(run.out_dir)  # eval.png: the curves so far
                 _checkpoint(run, t, state, opt, check)
@@ -389,7 +345,7 @@ def tokenize(codebook, images, batch_size=64, progress=False):
     if not isinstance(codebook, Codebook):
         raise TypeError(f"codebook must be a Codebook, got {type(codebook).__name__}")
     flat = _check_images(images, codebook.config)  # (M, Hi, Wi, C)
-    batch_size = positive_int("batch_size", batch_size)
+    batch_size = _checks.integer("batch_size", batch_size, 1)
     dtype = np.int16 if codebook.config.n_embed <= np.iinfo(np.int16).max + 1 else np.int32
     out = encode_images(codebook, flat, batch_size, dtype, progress="tokenize" if progress else None)  # (M, k, k)
     return out.reshape(images.shape[:-3] + out.shape[1:])
@@ -407,14 +363,6 @@ def save_tokens(path, tokens, poses, n_embed, codebook_fingerprint=None):
     """Write a tokenized dataset atomically: tokens (scenes, views, k, k) ints in [0, n_embed),
     poses (scenes, views, 7) floats, n_embed (the codebook size the tokens index) and the
     codebook's fingerprint (Codebook.fingerprint; None: not recorded)."""
-    n_embed = positive_int("n_embed", n_embed)
-    if not isinstance(tokens, np.ndarray) or tokens.dtype.kind not in "iu" or tokens.ndim != 4:
-        raise TypeError("tokens must be an integer numpy array (scenes, views, k, k)")
-    if not isinstance(poses, np.ndarray) or poses.dtype.kind != "f" or poses.shape != tokens.shape[:2] + (7,):
-        raise ValueError(f"poses must be a float array of shape {tokens.shape[:2] + (7,)}, got "
-                         f"{getattr(poses, 'dtype', None)} {getattr(poses, 'shape', None)}")
-    if tokens.size and (tokens.min() < 0 or tokens.max() >= n_embed):
-        raise ValueError(f"tokens must be in [0, n_embed={n_embed})")
     extra = {} if codebook_fingerprint is None else {"codebook_fingerprint": str(codebook_fingerprint)}
     atomic_savez(path, tokens=tokens, poses=poses, n_embed=np.int64(n_embed), **extra)
 
@@ -431,101 +379,89 @@ def load_tokens(path):
 # the transformer
 
 
-def _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup, total_steps, weight_decay,
-                       max_grad_norm, clip_mode, seed, codebook_fingerprint):
-    """train_transformer's arguments checked: (the run's hyperparameters, the WarmupCosine schedule,
-    steps); the hyperparameters hold batch_size, views (N), lr, warmup, total_steps, weight_decay,
-    clipping, seed, the data's fingerprint and the codebook's (when known)."""
-    batch_size = positive_int("batch_size", batch_size)
-    steps = positive_int("steps", steps)
-    seed = integer("seed", seed, 0)
-    lr, weight_decay = real("lr", lr), real("weight_decay", weight_decay)
-    n_views = 1 + (config.sequence_size - 1 if context is None else integer("context", context, 0))  # N
-    if n_views <= config.n_loss_skip:
-        raise ValueError(f"context={n_views - 1} leaves no loss target: a sample needs more than "
-                         f"n_loss_skip={config.n_loss_skip} views")
-    if n_views > tokens.shape[1]:
-        raise ValueError(f"context={n_views - 1} needs {n_views} distinct views per scene, "
-                         f"tokens has {tokens.shape[1]}")
-    total_steps = steps if total_steps is None else positive_int("total_steps", total_steps)
-    if total_steps < steps:
-        raise ValueError(f"steps={steps} runs past total_steps={total_steps}, the schedule's end: its last "
-                         f"{steps - total_steps} steps would run at learning rate 0. Ask for at most total_steps "
-                         "steps, or a longer schedule (total_steps >= steps) in a run of its own")
-    warmup = min(2000, total_steps // 10) if warmup is None else integer("warmup", warmup, 0)
-    if warmup >= total_steps:  # here: WarmupCosine would name its own warmup_steps
+@dataclasses.dataclass(frozen=True)
+class TransformerRecipe:
+    """What train_transformer trains with beside the configuration: the samples' context and the
+    published optimiser (docs/math.md §5: HF AdamWeightDecay over Keras Adam, warmup then cosine
+    decay, tf.clip_by_norm per tensor). Checked when made; an error names the field."""
+
+    context: int | None = None  # the most context views a sample has: N = context + 1 distinct views of a
+    # scene (None: config.sequence_size - 1); the tree trains the contexts n_loss_skip..N-1 in one step
+    lr: float = 1e-4  # WarmupCosine's peak: linear warmup from 0, then cosine decay to 0 at total_steps
+    warmup: int | None = None  # None: min(2000, total_steps // 10), the paper's 2000 shortened for short runs
+    total_steps: int | None = None  # None: the run's steps; part of the run: keep it to extend a run
+    weight_decay: float = 0.01  # AdamW's decoupled decay on what published_weight_decay selects (not biases)
+    max_grad_norm: float | None = 1.0  # gradient clipping (None: off); the logged grad_norm is the global norm
+    clip_mode: str = "per_tensor"  # "per_tensor": the published tf.clip_by_norm; "global": torch's clip_grad_norm_
+
+    def __post_init__(self):
+        for name, lo in (("context", 0), ("warmup", 0), ("total_steps", 1)):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _checks.integer(name, getattr(self, name), lo))
+        for name in ("lr", "weight_decay"):
+            object.__setattr__(self, name, _checks.real(name, getattr(self, name), lo=0.0))
+        if self.max_grad_norm is not None:
+            object.__setattr__(self, "max_grad_norm", _checks.real("max_grad_norm", self.max_grad_norm, lo=0.0,
+                                                                   lo_open=True))
+        if self.clip_mode not in ("global", "per_tensor"):
+            raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {self.clip_mode!r}")
+
+
+def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint):
+    """train_transformer's run checked against its data: (the run's hyperparameters, the
+    WarmupCosine schedule); the hyperparameters hold batch_size, views (N), lr, warmup,
+    total_steps, weight_decay, clipping, seed, the data's fingerprint and the codebook's."""
+    r = recipe
+    n_views = 1 + (config.sequence_size - 1 if r.context is None else r.context)  # N
+    if not config.n_loss_skip < n_views <= tokens.shape[1]:
+        raise ValueError(f"context={n_views - 1} must leave a loss target (more than n_loss_skip="
+                         f"{config.n_loss_skip} views) and fit the {tokens.shape[1]} views a scene has")
+    total_steps = opts.steps if r.total_steps is None else r.total_steps
+    if total_steps < opts.steps:
+        raise ValueError(f"steps={opts.steps} runs past total_steps={total_steps}, the schedule's end (learning "
+                         "rate 0 from there): ask for at most total_steps steps, or a longer schedule")
+    warmup = min(2000, total_steps // 10) if r.warmup is None else r.warmup
+    if warmup >= total_steps:
         raise ValueError(f"warmup={warmup} must be less than total_steps={total_steps} (total_steps is steps when "
-                         "not given): the schedule warms up, then decays over the steps left")
-    schedule = WarmupCosine(lr, warmup, total_steps)
-    max_grad_norm = check_clipping(max_grad_norm, clip_mode)
-    hyper = {"batch_size": batch_size, "views": n_views, "lr": lr, "warmup": int(warmup),
-             "total_steps": total_steps, "weight_decay": weight_decay, "eps": 1e-8, "eps_convention": "keras",
-             "max_grad_norm": None if max_grad_norm is None else float(max_grad_norm), "clip_mode": clip_mode,
-             "seed": seed, "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
+                         "not given)")
+    hyper = {"batch_size": opts.batch_size, "views": n_views, "lr": r.lr, "warmup": warmup,
+             "total_steps": total_steps, "weight_decay": r.weight_decay, "eps": 1e-8, "eps_convention": "keras",
+             "max_grad_norm": r.max_grad_norm, "clip_mode": r.clip_mode, "seed": opts.seed,
+             "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
     if codebook_fingerprint is not None:
         hyper["codebook_fingerprint"] = str(codebook_fingerprint)
-    return hyper, schedule, steps
-
-
-def _check_eval_set(eval_set, config):
-    """train_transformer's eval_set, each entry checked and named: a Codebook whose tokens the
-    transformer of `config` reads, uint8 images (n, V, S, S, C) of its size, float64 poses
-    (n, V, 7) of unit quaternions, integer tokens (n, V, L) in [0, n_embeddings). Checked when
-    the call starts: the evaluation would fail at its first row, after the run folder was
-    touched (in a resumed run, after eval_every steps of training), naming its own internals."""
-    if not isinstance(eval_set, dict) or set(eval_set) != {"codebook", "images", "poses", "tokens"}:
-        raise ValueError("eval_set must be a dict of codebook, images, poses and tokens (held_out_set's)")
-    cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
-    if not isinstance(cb, Codebook):
-        raise TypeError(f"eval_set['codebook'] must be a Codebook, got {type(cb).__name__}")
-    c, k = cb.config, config.token_image_size
-    if (c.n_embed, c.token_size) != (config.n_embeddings, k):
-        raise ValueError(f"eval_set['codebook'] makes {c.token_size}x{c.token_size} token images of {c.n_embed} "
-                         f"codes; the transformer reads {k}x{k} of {config.n_embeddings} (config.token_image_size, "
-                         "config.n_embeddings): evaluate through the codebook its tokens came from")
-    _check_images(images, c, "eval_set['images']")
-    if images.ndim != 5:
-        raise ValueError(f"eval_set['images'] must have shape (scenes, views, {c.image_size}, {c.image_size}, "
-                         f"{c.in_channels}), got {images.shape}")
-    n, V = images.shape[:2]
-    if not isinstance(poses, np.ndarray) or poses.dtype != np.float64:  # the evaluation's scores are float64
-        raise TypeError("eval_set['poses'] must be a float64 numpy array (as pyvf.scenes.generate_scenes makes "
-                        f"them), got {getattr(poses, 'dtype', type(poses).__name__)}")
-    if poses.shape != (n, V, 7):
-        raise ValueError(f"eval_set['poses'] must have shape (scenes, views, 7) = {(n, V, 7)}, got {poses.shape}")
-    _checks.finite("eval_set['poses']", poses)
-    _check_unit("eval_set['poses'][..., 3:]", poses[..., 3:].astype(config.dtype))  # as the model reads them
-    _checks.int_array("eval_set['tokens']", tokens)
-    if tokens.shape != (n, V, k * k):
-        raise ValueError(f"eval_set['tokens'] must have shape (scenes, views, L) = {(n, V, k * k)} "
-                         f"(held_out_set's), got {tokens.shape}")
-    if tokens.size and (tokens.min() < 0 or tokens.max() >= config.n_embeddings):
-        raise ValueError(f"eval_set['tokens'] must be in [0, {config.n_embeddings}) (config.n_embeddings), got "
-                         f"[{int(tokens.min())}, {int(tokens.max())}]")
+    return hyper, WarmupCosine(r.lr, warmup, total_steps)
 
 
 def _transformer_eval(eval_set, eval_every, config):
-    """train_transformer's held-out evaluation, eval_set and eval_every checked: (eval_every, its
-    record for config.json, the columns of eval.csv, health(model) -> the row of transformer_health
-    at health_contexts); all but eval_every None without eval_set or with eval_every 0 (a set not
-    evaluated on is not the run's: not recorded, as train_codebook's eval_images)."""
-    eval_every = integer("eval_every", eval_every, 0)
+    """train_transformer's held-out evaluation, eval_set checked: (its record for config.json,
+    the columns of eval.csv, health(model) -> the row of transformer_health at health_contexts);
+    all None without eval_set or with eval_every 0 (a set not evaluated on is not the run's)."""
     if eval_set is None:
-        return eval_every, None, None, None
-    _check_eval_set(eval_set, config)
+        return None, None, None
+    if not isinstance(eval_set, dict) or set(eval_set) != {"codebook", "images", "poses", "tokens"}:
+        raise ValueError("eval_set must be a dict of codebook, images, poses and tokens (held_out_set's)")
+    cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
+    if not isinstance(cb, Codebook) or (cb.config.n_embed, cb.config.token_size) != (
+            config.n_embeddings, config.token_image_size):
+        raise ValueError("eval_set['codebook'] must be the Codebook the tokens came from: its codes and token "
+                         "images those the transformer reads (config.n_embeddings, config.token_image_size)")
+    _check_images(images, cb.config, "eval_set['images']")
+    _check_tokens_poses(tokens, poses, config, ("eval_set['tokens']", "eval_set['poses']"))
+    if images.ndim != 5 or tokens.shape != images.shape[:2] + (config.token_image_size ** 2,):
+        raise ValueError("eval_set['images'] and eval_set['tokens'] must have shapes (scenes, views, S, S, C) and "
+                         "(scenes, views, L) (held_out_set's)")
     if eval_every == 0:
-        return eval_every, None, None, None
-    e = eval_set
-    contexts = health_contexts(config, e["images"].shape[1])
+        return None, None, None
+    contexts = health_contexts(config, images.shape[1])
     if not contexts:
-        raise ValueError(f"eval_set's scenes have {e['images'].shape[1]} views: too few for a context "
-                         "and the held-out queries")
+        raise ValueError(f"eval_set's scenes have {images.shape[1]} views: too few for a context and the queries")
 
     def health(model):
-        return transformer_health(e["codebook"], model, e["images"], e["poses"], e["tokens"], contexts)
+        return transformer_health(cb, model, images, poses, tokens, contexts)
 
-    record = {"every": eval_every, "contexts": contexts, "fingerprint": fingerprint(e["tokens"])}
-    return eval_every, record, transformer_health_columns(contexts), health
+    record = {"every": eval_every, "contexts": contexts, "fingerprint": fingerprint(tokens)}
+    return record, transformer_health_columns(contexts), health
 
 
 def _transformer_and_optimiser(run, config, hyper, schedule, init_state=None):
@@ -547,28 +483,22 @@ def _transformer_and_optimiser(run, config, hyper, schedule, init_state=None):
     return model, opt
 
 
-def _pyvf_engine(model, opt, max_grad_norm, clip_mode):
-    """train_transformer's engine "pyvf": (step(tok, pos) -> (loss, mean ce, mean pose loss, the
-    global gradient norm), the state dict's function, the current model's)."""
-    def step(tok, pos):
-        out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=max_grad_norm, clip_mode=clip_mode,
-                                     relative=True)
-        if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
-            norm = float(np.sqrt(sum(n * n for n in norm.values())))
-        return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm
-
-    return step, model.state_dict, lambda: model
-
-
-def _transformer_engine(engine, model, opt, dp, parity, clipping, device, precision):
+def _transformer_engine(opts, model, opt, dp, parity, recipe):
     """train_transformer's engine: (step(tok, pos) -> (loss, mean ce, mean pose loss, grad norm),
     state() -> the state dict, current() -> the model, the optimiser whose lr_at and step count
     the loop reads, check(out_dir, step) before each checkpoint or None). The torch engine's
     check is the parity of the torch model and pyvf's on the batch `parity` (tokens, poses)."""
-    if engine != "torch":
-        return (*_pyvf_engine(model, opt, *clipping), opt, None)
-    eng = TorchTransformer(model, opt, device=device, precision=precision, max_grad_norm=clipping[0],
-                           clip_mode=clipping[1], dp=dp)
+    if opts.engine != "torch":
+        def step(tok, pos):
+            out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
+                                         clip_mode=recipe.clip_mode, relative=True)
+            if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
+                norm = float(np.sqrt(sum(n * n for n in norm.values())))
+            return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm
+
+        return step, model.state_dict, lambda: model, opt, None
+    eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision,
+                           max_grad_norm=recipe.max_grad_norm, clip_mode=recipe.clip_mode, dp=dp)
 
     def check(out_dir, step):  # before the save: a divergent model is not checkpointed
         log_parity(out_dir, step, eng.parity(*parity))
@@ -576,20 +506,7 @@ def _transformer_engine(engine, model, opt, dp, parity, clipping, device, precis
     return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, check
 
 
-def _run_folder(dp, make_run, steps, out_dir):
-    """make_run(): the Run, in a single process and on rank 0 of a data-parallel run (dp); on the
-    other processes a Follower from rank 0's start step (torch_engine.Follower)."""
-    if dp is None:
-        return make_run()
-    run = make_run() if dp.rank == 0 else None
-    start = dp.broadcast_int(run.start if run is not None else 0)
-    return run if run is not None else Follower(start, steps, out_dir)
-
-
-def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, context=None, lr=1e-4, warmup=None,
-                      total_steps=None, weight_decay=0.01, max_grad_norm=1.0, clip_mode="per_tensor", seed=0,
-                      checkpoint_every=200, log_every=10, eval_set=None, eval_every=0, resume=True, progress=True,
-                      threads=None, command=None, engine="pyvf", device="cpu", precision="fp32", init=None,
+def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRecipe(), *, eval_set=None,
                       codebook_fingerprint=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
     (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5).
@@ -597,68 +514,58 @@ def train_transformer(tokens, poses, config, out_dir, *, steps, batch_size=16, c
     tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: float32 or float64
         (scenes, views, 7), xyz and a unit quaternion wxyz (in config.dtype, checked at the
         start), in any frame (each sample is made relative to its first view).
-    context: the most context views a sample has: a sample is N = context + 1 distinct views
-        of one scene (default config.sequence_size - 1); the tree trains the contexts
-        n_loss_skip..N-1 in the same step.
-    lr, warmup, total_steps: WarmupCosine(lr, warmup, total_steps): linear warmup from 0,
-        then cosine decay to 0 at total_steps (default steps; default warmup
-        min(2000, total_steps // 10): the paper's 2000 steps, shortened for short runs). The
-        schedule is part of the run: to extend a run, pass its total_steps; steps past
-        total_steps (learning rate 0) raise.
-    weight_decay: AdamW's decoupled decay on the parameters published_weight_decay selects
-        (all but the biases), Keras' epsilon convention as the published optimiser.
-    max_grad_norm, clip_mode: gradient clipping (None: off); "per_tensor" is the published
-        tf.clip_by_norm, "global" torch's clip_grad_norm_. The logged grad_norm is the global norm.
+    opts: RunOptions, as train_codebook's (init: a Transformer.save file); the final model is
+        out_dir/transformer.npz (Transformer.load reads it). engine "torch" on opts.device at
+        opts.precision: the same run with the model in torch, checked against pyvf's at every
+        checkpoint, data-parallel under torchrun (torch_engine's docstring,
+        docs/howto-torch-engine.md). A checkpoint of either engine resumes in the other.
+    recipe: TransformerRecipe (context, lr, warmup, total_steps, weight_decay, clipping).
     eval_set: None, or held-out scenes {"codebook": the Codebook the tokens came from, "images":
         uint8 (n, V, S, S, 3), "poses": float64 (n, V, 7), "tokens": (n, V, L) their codes}
-        (held_out_set's; checked at the start): every eval_every steps (0: never; then the set
-        is not the run's), at the last step and before the first of a fresh run,
-        health.transformer_health at health.health_contexts is appended to out_dir/eval.csv.
-    out_dir, resume, seed, init, threads, command: as train_codebook (init a Transformer.save
-        file); the final model is out_dir/transformer.npz (Transformer.load reads it).
+        (held_out_set's): every opts.eval_every steps, at the last step and before the first of a
+        fresh run, health.transformer_health at health.health_contexts is appended to eval.csv.
     codebook_fingerprint: the fingerprint of the codebook the tokens came from (load_tokens'):
         recorded in config.json and the model, whose pairings then check it (models.check_pair).
-    engine, device, precision: "pyvf" (its own kernels, on the CPU) or "torch" on `device` "cpu" |
-        "cuda" | "cuda:N" at `precision` "fp32" | "bf16": the same run with the model in torch,
-        checked against pyvf's at every checkpoint, data-parallel under torchrun (torch_engine's
-        docstring; docs/howto-torch-engine.md). A checkpoint of either engine resumes in the other.
     Returns the trained Transformer."""
     if not isinstance(config, TransformerConfig):
         raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
+    if not isinstance(opts, RunOptions):
+        raise TypeError(f"opts must be a RunOptions, got {type(opts).__name__}")
+    if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
+        raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
+                         f"got {tokens.shape}")
     _check_tokens_poses(tokens, poses, config)
-    hyper, schedule, steps = _transformer_hyper(tokens, poses, config, steps, batch_size, context, lr, warmup,
-                                                total_steps, weight_decay, max_grad_norm, clip_mode, seed,
-                                                codebook_fingerprint)
-    batch_size, n_views, seed = (hyper[k] for k in ("batch_size", "views", "seed"))
-    check_engine(engine, device, precision, config.dtype)
-    eval_every, eval_record, eval_columns, health = _transformer_eval(eval_set, eval_every, config)
-    threads_set = _Threads(threads)
-    hyper, init_state = _warm_start(init, Transformer, config, hyper, out_dir, resume)
-    dp, device = data_parallel(device, batch_size) if engine == "torch" else (None, device)
-    call = {"command": command, "threads": threads_set.n, "engine": engine, "device": device, "precision": precision,
-            "processes": 1 if dp is None else dp.world, "eval": eval_record}
-    with threads_set:  # before the Run: config.json records the threads the run uses
-        run = _run_folder(dp, lambda: Run(
-            out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, final="transformer.npz",
-            steps=steps, resume=resume, progress=progress, checkpoint_every=checkpoint_every, log_every=log_every,
-            call=call, eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint"),
-            stop_at_step_end=dp is None), steps, out_dir)
-        evaluating = health is not None and eval_every > 0 and not isinstance(run, Follower)
+    hyper, schedule = _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint)
+    B, n_views, seed = opts.batch_size, hyper["views"], opts.seed
+    check_engine(opts.engine, opts.device, opts.precision, config.dtype)
+    eval_record, eval_columns, health = _transformer_eval(eval_set, opts.eval_every, config)
+    hyper, init_state = _warm_start(Transformer, config, hyper, out_dir, opts)
+    dp, device = data_parallel(opts.device, B) if opts.engine == "torch" else (None, opts.device)
+    opts = dataclasses.replace(opts, device=device)
+    call = {"command": opts.command, "threads": opts.threads, "engine": opts.engine, "device": device,
+            "precision": opts.precision, "processes": 1 if dp is None else dp.world, "eval": eval_record}
+    with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
+        if dp is None or dp.rank == 0:
+            run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, opts, call=call,
+                      eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint"),
+                      interruptible=dp is None)
+        if dp is not None:  # the other processes follow rank 0's run from its start step
+            start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
+            run = run if dp.rank == 0 else Follower(start, opts.steps, out_dir)
+        evaluating = health is not None and not isinstance(run, Follower)
         model, opt = _transformer_and_optimiser(run, config, hyper, schedule, init_state)
         step, state, current, opt, check = _transformer_engine(
-            engine, model, opt, dp, parity_batch(tokens, poses, n_views, seed, config.dtype),
-            (max_grad_norm, clip_mode), device, precision)
+            opts, model, opt, dp, parity_batch(tokens, poses, n_views, seed, config.dtype), recipe)
         with run:
             if evaluating and not run.resumed:
                 run.log_eval(0, health(current()))
                 plot_eval(run.out_dir)
             for t in run.steps():
-                tok, pos = transformer_batch(tokens, poses, n_views, batch_size, seed, t,
-                                             config.dtype)  # (B, N, L), (B, N, 7)
+                tok, pos = transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)  # (B, N, L), (B, N, 7)
                 lr_t = opt.lr_at(opt.step_count)
                 loss, ce, pl, norm = step(tok, pos)
                 run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl, "grad_norm": norm, "lr": lr_t})
-                if evaluating and run.eval_due(t, eval_every):
+                if evaluating and run.eval_due(t, opts.eval_every):
                     run.log_eval(t, health(current()))
                     plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
                 _checkpoint(run, t, state, opt, check)

@@ -19,8 +19,6 @@ when clipping (clip_grad_norm(mode="per_tensor")). Codebook: torch Adam with bet
 
 import math
 import re
-from collections.abc import Mapping
-
 import numpy as np
 
 from .. import _checks
@@ -37,46 +35,22 @@ __all__ = [
 
 
 
-# ---------------------------------------------------------------------------------------
-# argument checks: every error names the argument and says what was expected
-
-
-def _check_array_dict(name, d, writable):
-    """d: a non-empty dict str -> float32/float64 ndarray."""
-    if not isinstance(d, Mapping):
-        raise TypeError(f"{name} must be a dict name -> numpy array, got {type(d).__name__}")
-    if not d:
-        raise ValueError(f"{name} is empty")
-    for k, a in d.items():
-        if not isinstance(k, str):
-            raise TypeError(f"{name}: keys must be str (parameter names), got {type(k).__name__} {k!r}")
-        _checks.float_array(f"{name}[{k!r}]", a)
-        if writable and not a.flags.writeable:
-            raise ValueError(f"{name}[{k!r}] is read-only: it is updated in place")
-
-
 def _nonfinite_names(d):
     return [k for k, a in d.items() if not _checks.all_finite(a)]
 
 
-try:
-    from numpy.lib.array_utils import byte_bounds as _byte_bounds  # numpy >= 2
-except ImportError:  # numpy < 2
-    _byte_bounds = np.byte_bounds
-
-
-def _sharing_pairs(d):
-    """Pairs of names whose arrays share memory: np.shares_memory (exact) on the pairs whose byte
-    ranges overlap, found by sorting the ranges (disjoint views of one buffer are fine)."""
-    spans = sorted((*_byte_bounds(a), k) for k, a in d.items() if a.size)
-    pairs = []
-    for i, (_, hi, k) in enumerate(spans):
-        for lo2, _, k2 in spans[i + 1:]:
-            if lo2 >= hi:
-                break
-            if np.shares_memory(d[k], d[k2]):
-                pairs.append((k, k2))
-    return pairs
+def _check_grads(grads, like=None, writable=False):
+    """grads: dict name -> float32/float64 array (with like's names, dtypes and shapes; writable:
+    clipped in place), errors naming grads[name]: the optimisers' and clip_grad_norm's boundary."""
+    if like is not None and set(grads) != set(like):
+        raise ValueError(f"grads must have exactly the parameters' names, got {sorted(set(grads) ^ set(like))} "
+                         "extra or missing")
+    for k, g in grads.items():
+        _checks.float_array(f"grads[{k!r}]", g, None if like is None else like[k], "its parameter")
+        if like is not None and g.shape != like[k].shape:
+            raise ValueError(f"grads[{k!r}] has shape {g.shape} but its parameter {like[k].shape}")
+        if writable and not g.flags.writeable:
+            raise ValueError(f"grads[{k!r}] is read-only: it is clipped in place")
 
 
 # ---------------------------------------------------------------------------------------
@@ -174,108 +148,50 @@ class AdamW:
 
     def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2, *,
                  decay=None, eps_convention="torch"):
-        _check_array_dict("params", params, writable=True)
-        bad = _nonfinite_names(params)
-        if bad:
-            raise ValueError(f"params contain NaN or inf: {bad}")
-        shared = _sharing_pairs(params)
-        if shared:  # each would be updated once per name, with moments of its own
-            raise ValueError(f"params share memory: {shared}; list a tied parameter once")
-        if callable(lr):
-            self.lr = lr
-        else:
-            self.lr = _checks.real("lr", lr, lo=0.0)
+        self.lr = lr if callable(lr) else _checks.real("lr", lr, lo=0.0)
         if not isinstance(betas, (tuple, list)) or len(betas) != 2:
             raise TypeError(f"betas must be a pair (beta1, beta2), got {betas!r}")
         self.betas = (_checks.real("betas[0]", betas[0], 0.0, 1.0, hi_open=True),
                       _checks.real("betas[1]", betas[1], 0.0, 1.0, hi_open=True))
         # eps > 0: with eps = 0 a parameter whose gradients have all been 0 gets 0 / 0
         self.eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
-        for k, p in params.items():  # eps is added in the parameters' dtype: it must not round to 0 there
-            if p.dtype.type(self.eps) == 0:
-                raise ValueError(f"eps={self.eps!r} rounds to 0 in {p.dtype} (params[{k!r}]): a parameter whose "
-                                 f"gradients are all 0 would get 0/0; use eps >= {np.finfo(p.dtype).smallest_normal}")
         self.weight_decay = _checks.real("weight_decay", weight_decay, lo=0.0)
         if eps_convention not in ("torch", "keras"):
             raise ValueError(f"eps_convention must be 'torch' or 'keras', got {eps_convention!r}")
         self.eps_convention = eps_convention
-        self.decayed = self._resolve_decay(decay, params)  # frozenset of names
+        # which parameters decay: all (None), a predicate name -> bool, or a collection of names
+        if not (decay is None or callable(decay) or isinstance(decay, (set, frozenset, list, tuple))):
+            raise TypeError(f"decay must be None, a predicate or a collection of names, got {type(decay).__name__}")
+        self.decayed = frozenset(params if decay is None else filter(decay, params) if callable(decay) else decay)
         self.params = params
         self.step_count = 0
         self.exp_avg = {k: np.zeros(p.shape, p.dtype) for k, p in params.items()}
         self.exp_avg_sq = {k: np.zeros(p.shape, p.dtype) for k, p in params.items()}
 
-    @staticmethod
-    def _resolve_decay(decay, params):
-        if decay is None:
-            return frozenset(params)
-        if callable(decay):
-            out = set()
-            for k in params:
-                ans = decay(k)
-                if not isinstance(ans, (bool, np.bool_)):
-                    raise TypeError(f"decay({k!r}) must return a bool, got {type(ans).__name__}")
-                if ans:
-                    out.add(k)
-            return frozenset(out)
-        if isinstance(decay, str) or not isinstance(decay, (set, frozenset, list, tuple)):
-            raise TypeError("decay must be None, a collection of parameter names or a predicate "
-                            f"name -> bool, got {type(decay).__name__}")
-        unknown = sorted(set(decay) - set(params))
-        if unknown:
-            raise ValueError(f"decay names parameters that are not in params: {unknown}")
-        return frozenset(decay)
-
     def lr_at(self, step):
         """The learning rate of the update that follows `step` applied updates."""
-        lr = self.lr(step) if callable(self.lr) else self.lr
-        return _checks.real(f"lr({step})", lr, lo=0.0)
+        return self.lr(step) if callable(self.lr) else self.lr
 
     def step(self, grads):
-        """Apply one update. grads: dict with exactly the parameters' names, each array of
-        its parameter's shape and dtype, finite (NaN/inf raise ValueError and nothing is
-        updated). grads are not modified. Returns the learning rate used."""
-        _check_array_dict("params", self.params, writable=True)  # the caller's dict: entries may be replaced
-        if set(self.params) != set(self.exp_avg):
-            raise ValueError("params gained or lost names since the optimiser was built: "
-                             f"{sorted(set(self.params) ^ set(self.exp_avg))}")
-        for k, p in self.params.items():
-            m = self.exp_avg[k]
-            if p.dtype != m.dtype or p.shape != m.shape:
-                raise ValueError(f"params[{k!r}] is now {p.dtype}{p.shape} but its moments are {m.dtype}{m.shape}: "
-                                 "replaced by another array? (build a new optimiser for it)")
-        _check_array_dict("grads", grads, writable=False)
-        missing, extra = sorted(set(self.params) - set(grads)), sorted(set(grads) - set(self.params))
-        if missing or extra:
-            raise ValueError(f"grads must have exactly the parameters' names: missing {missing}, unknown {extra}")
-        for k, p in self.params.items():
-            g = grads[k]
-            if g.dtype != p.dtype:
-                raise TypeError(f"grads[{k!r}] is {g.dtype} but the parameter is {p.dtype}")
-            if g.shape != p.shape:
-                raise ValueError(f"grads[{k!r}] has shape {g.shape} but the parameter has shape {p.shape}")
+        """Apply one update. grads: dict name -> array of its parameter's shape and dtype, not
+        modified. An update that is not finite (a NaN or inf gradient, or one that overflows
+        the dtype) raises ValueError with nothing updated. Returns the learning rate used."""
+        _check_grads(grads, self.params)
         lr = self.lr_at(self.step_count)
         t = self.step_count + 1
         b1, b2 = self.betas
-        # every new value is computed and checked before any is written: an update that would
-        # overflow (huge gradients or learning rate) raises with nothing modified (a NaN or inf
-        # gradient gives a non-finite update: it is named as such). Peak memory: the new p, m, v
-        # of every parameter beside the old ones.
+        # every new value is computed and checked before any is written. Peak memory: the new
+        # p, m, v of every parameter beside the old ones.
         new = {k: _adam_update(p, self.exp_avg[k], self.exp_avg_sq[k], grads[k], lr, t, b1, b2, self.eps,
                                self.weight_decay if k in self.decayed else 0.0, self.eps_convention == "keras")
                for k, p in self.params.items()}
         # p1 finite needs m1 finite (else u is not); v1 is checked itself (an inf v1 gives u = 0)
         bad = [k for k, (p1, _, v1) in new.items() if not (_checks.all_finite(p1) and _checks.all_finite(v1))]
-        nonfinite = _nonfinite_names(grads) if bad else []
-        if nonfinite:
-            raise ValueError(f"grads contain NaN or inf in {nonfinite}: no update applied "
-                             "(skip this step, or lower the learning rate / loss scale)")
-        nonfinite = [k for k in bad if not _checks.all_finite(self.params[k])]  # set so after __init__
-        if nonfinite:
-            raise ValueError(f"params contain NaN or inf in {nonfinite}: no update applied")
         if bad:
-            raise ValueError(f"the update of {bad} overflows (gradients or learning "
-                             "rate too large for the dtype): no update applied")
+            nonfinite = _nonfinite_names({k: grads[k] for k in bad})
+            raise ValueError(f"grads contain NaN or inf in {nonfinite}: no update applied" if nonfinite else
+                             f"the update of {bad} is not finite (gradients or learning rate too large for the "
+                             "dtype, or NaN in the parameters): no update applied")
         for k, (p1, m1, v1) in new.items():
             np.copyto(self.params[k], p1)  # in place: the caller's arrays are the model's
             self.exp_avg[k], self.exp_avg_sq[k] = m1, v1
@@ -301,52 +217,24 @@ class AdamW:
         }
 
     def load_state_dict(self, state):
-        """Restore a state_dict() (copied in). The parameters' names, shapes and dtypes and the
-        hyperparameters (betas, eps, weight decay and which parameters it applies to, the eps
-        convention) must be the saved ones, else ValueError: the moments mean nothing under
-        other ones. The parameters themselves are checkpointed separately."""
-        if not isinstance(state, Mapping):
-            raise TypeError(f"state must be a dict from state_dict(), got {type(state).__name__}")
-        missing = {"step", "exp_avg", "exp_avg_sq", "hyperparameters"} - set(state)
-        if missing:
-            raise ValueError(f"state lacks {sorted(missing)}: not a state_dict() of AdamW")
-        step = _checks.integer("state['step']", state["step"], 0)
-        hyper = state["hyperparameters"]
-        if not isinstance(hyper, Mapping):
-            raise TypeError(f"state['hyperparameters'] must be a dict from state_dict(), got {type(hyper).__name__}")
-        hyper = dict(hyper)
+        """Restore a state_dict() (copied in). The hyperparameters (betas, eps, weight decay and
+        which parameters it applies to, the eps convention) and the moments' names, shapes and
+        dtypes must be the saved ones, else ValueError: the moments mean nothing under other
+        ones. The parameters themselves are checkpointed separately."""
+        hyper = dict(state["hyperparameters"])
         # a JSON round trip gives lists: betas and decayed are compared as a tuple and a sorted list
-        betas, decayed = hyper.get("betas", ()), hyper.get("decayed", ())
-        if not isinstance(betas, (tuple, list, np.ndarray)):
-            raise TypeError(f"state['hyperparameters']['betas'] must be a pair (beta1, beta2), got "
-                            f"{type(betas).__name__} {betas!r}")
-        if (not isinstance(decayed, (tuple, list, set, frozenset, np.ndarray))
-                or not all(isinstance(k, str) for k in decayed)):
-            raise TypeError("state['hyperparameters']['decayed'] must be a list of parameter names, got "
-                            f"{type(decayed).__name__} {decayed!r}")
-        hyper["betas"], hyper["decayed"] = tuple(betas), sorted(decayed)
+        hyper["betas"], hyper["decayed"] = tuple(hyper["betas"]), sorted(hyper["decayed"])
         if hyper != self._hyper():
             diff = sorted(k for k in set(hyper) | set(self._hyper()) if hyper.get(k) != self._hyper().get(k))
             raise ValueError(f"state was saved with other hyperparameters ({diff}): construct the "
                              f"optimiser with the saved ones {hyper}")
-        new = {}
         for key in ("exp_avg", "exp_avg_sq"):
-            d = state[key]
-            _check_array_dict(f"state[{key!r}]", d, writable=False)
-            if set(d) != set(self.params):
-                raise ValueError(f"state[{key!r}] has names {sorted(d)} but params has {sorted(self.params)}")
-            for k, p in self.params.items():
-                if d[k].dtype != p.dtype or d[k].shape != p.shape:
-                    raise ValueError(f"state[{key!r}][{k!r}] is {d[k].dtype}{d[k].shape} but the parameter "
-                                     f"is {p.dtype}{p.shape}")
-            bad = _nonfinite_names(d)
-            if bad:
-                raise ValueError(f"state[{key!r}] contains NaN or inf in {bad}")
-            new[key] = {k: np.array(d[k], copy=True, order="C") for k in self.params}
-        if any((a < 0).any() for a in new["exp_avg_sq"].values()):
-            raise ValueError("state['exp_avg_sq'] has negative entries: not a second moment")
-        self.step_count = step
-        self.exp_avg, self.exp_avg_sq = new["exp_avg"], new["exp_avg_sq"]
+            want = {k: (p.dtype, p.shape) for k, p in self.params.items()}
+            if {k: (a.dtype, a.shape) for k, a in state[key].items()} != want:
+                raise ValueError(f"state[{key!r}] does not hold the parameters' names, dtypes and shapes")
+        self.step_count = _checks.integer("state['step']", state["step"], 0)
+        self.exp_avg, self.exp_avg_sq = ({k: np.array(state[key][k]) for k in self.params}
+                                         for key in ("exp_avg", "exp_avg_sq"))
 
 
 class Adam(AdamW):
@@ -445,7 +333,6 @@ def global_norm(grads):
     in float64 as clip_grad_norm's global mode, nothing modified: nan where a gradient holds a
     NaN, inf where one holds an inf or the total overflows float64 (transformer_step's norm
     without clipping, so that a run logs the same quantity with clipping off)."""
-    _check_array_dict("grads", grads, writable=False)
     norms = [_norm64(g) if _checks.all_finite(g) else float(np.linalg.norm(g.astype(np.float64).ravel()))
              for g in grads.values()]
     if any(math.isnan(n) for n in norms):
@@ -483,7 +370,7 @@ def clip_grad_norm(grads, max_norm, *, mode="global", error_if_nonfinite=True, e
     modified; with False nothing is modified and the non-finite norm is returned (nan or
     inf; in per_tensor mode for those tensors, the finite ones are still clipped), so that
     the caller can skip the step. AdamW.step refuses non-finite gradients in any case."""
-    _check_array_dict("grads", grads, writable=True)
+    _check_grads(grads, writable=True)
     max_norm = _checks.real("max_norm", max_norm, lo=0.0, lo_open=True)
     eps = _checks.real("eps", eps, lo=0.0)
     if mode not in ("global", "per_tensor"):

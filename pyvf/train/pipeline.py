@@ -26,13 +26,14 @@ from .loops import (
     TINY_CODEBOOK,
     TINY_TRANSFORMER,
     held_out_set,
+    RunOptions,
+    TransformerRecipe,
     load_tokens,
     save_tokens,
     tokenize,
     train_codebook,
     train_transformer,
 )
-from .torch_engine import check_engine
 
 __all__ = ["PRESETS", "Preset", "train_pipeline"]
 
@@ -120,11 +121,10 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
 
     if preset not in PRESETS:
         raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
-    check_engine(engine, device, precision)  # before any stage: a bad combination costs no rendering
     p = PRESETS[preset]
-    os.makedirs(out, exist_ok=True)
-    quiet = dict(progress=progress, threads=threads, command=command, engine=engine, device=device,
-                 precision=precision)
+    run = RunOptions(steps=1, progress=progress, threads=threads, command=command, engine=engine, device=device,
+                     precision=precision, eval_every=p.eval_every, checkpoint_every=max(1, p.eval_every))
+    os.makedirs(out, exist_ok=True)  # after the options' checks: a bad combination costs no rendering
 
     log(f"[1/5] scenes: {p.scenes} training scenes x 15 views of {p.size}x{p.size} (seed {TRAIN_SEED})")
     data = _scenes(os.path.join(out, "scenes"), p.scenes, p.size, progress)
@@ -133,9 +133,9 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
         f"steps on {p.health_scenes} held-out scenes (seed {HEALTH_SEED})")
     held_images, held_poses = generate_scenes(HEALTH_SEED, p.health_scenes, size=p.size)  # (n, 15, S, S, 3)
     cb_dir = os.path.join(out, "codebook")
-    codebook = train_codebook(data.images, p.codebook, cb_dir, steps=p.codebook_steps, batch_size=p.codebook_batch,
-                              checkpoint_every=max(1, p.eval_every), eval_images=held_images[:, :4].reshape(
-                                  -1, p.size, p.size, 3), eval_every=p.eval_every, **quiet)
+    codebook = train_codebook(data.images, p.codebook, cb_dir,
+                              dataclasses.replace(run, steps=p.codebook_steps, batch_size=p.codebook_batch),
+                              eval_images=held_images[:, :4].reshape(-1, p.size, p.size, 3))
 
     log("[3/5] tokens: every training view through the codebook")
     tokens, poses, _, fingerprint = _tokens(os.path.join(out, "tokens.npz"), os.path.join(cb_dir, "codebook.npz"), data.images,
@@ -145,9 +145,9 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
         f"{p.eval_every} steps on the held-out scenes against the baselines")
     eval_set = held_out_set(codebook, held_images, held_poses)
     transformer = train_transformer(tokens, poses, p.transformer, os.path.join(out, "transformer"),
-                                    steps=p.transformer_steps, batch_size=p.transformer_batch, lr=p.transformer_lr,
-                                    checkpoint_every=max(1, p.eval_every), eval_set=eval_set,
-                                    eval_every=p.eval_every, codebook_fingerprint=fingerprint, **quiet)
+                                    dataclasses.replace(run, steps=p.transformer_steps, batch_size=p.transformer_batch),
+                                    TransformerRecipe(lr=p.transformer_lr), eval_set=eval_set,
+                                    codebook_fingerprint=fingerprint)
 
     log(f"[5/5] evaluation: {p.eval_scenes} held-out scenes (seed {EVAL_SEED}), context 1, 3, 5")
     metrics = evaluate(codebook, transformer, scenes=p.eval_scenes, seed=EVAL_SEED, out=os.path.join(out, "eval"),

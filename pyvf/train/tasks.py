@@ -1,9 +1,9 @@
 """The work of the training commands (their arguments: pyvf/cli/train.py), on files: a dataset
 folder or a tokens file in, a run folder out.
 
-    codebook_run("data/sm7", "runs/cb", steps=20000)                        # pyvf train-codebook
-    tokenize_dataset("runs/cb/codebook.npz", "data/sm7", "runs/tokens.npz")  # pyvf tokenize
-    transformer_run("runs/tokens.npz", "runs/tf", steps=50000, codebook="runs/cb/codebook.npz")
+    codebook_run("data/sm7", "runs/cb", RunOptions(steps=20000, eval_every=100))  # pyvf train-codebook
+    tokenize_dataset("runs/cb/codebook.npz", "data/sm7", "runs/tokens.npz")      # pyvf tokenize
+    transformer_run("runs/tokens.npz", "runs/tf", RunOptions(steps=50000), codebook="runs/cb/codebook.npz")
     print(compare_runs(["runs/cb", "runs/cb2"])[0])                         # pyvf runs
     export_run("runs/tf", "tf-now.npz")   # pyvf export: the model of a run's last checkpoint
 
@@ -24,10 +24,11 @@ import numpy as np
 from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import CHECKPOINT, integer, read_checkpoint, resume_point
+from ._run import CHECKPOINT, read_checkpoint, resume_point
 from .curves import NotARunError, plot_eval, read_log, read_run_config, runs_table
 from .loops import (
     TINY_CODEBOOK,
+    TransformerRecipe,
     TINY_TRANSFORMER,
     held_out_set,
     load_tokens,
@@ -36,7 +37,6 @@ from .loops import (
     train_codebook,
     train_transformer,
 )
-from .torch_engine import check_engine
 
 __all__ = ["EVAL_VIEWS", "checkpoint_step", "codebook_run", "compare_runs", "export_run", "held_out_scenes",
            "held_out_views", "read_codebook", "read_config", "read_model", "same_file", "tokenize_dataset",
@@ -94,32 +94,9 @@ def _refuse_input_as_output(out, inputs, option):
                              "choose another output file")
 
 
-def _eval_seed(eval_seed):
-    """--eval-seed checked: a non-negative integer (errors name the option, not --seed)."""
-    try:
-        return integer("--eval-seed", eval_seed, 0)
-    except TypeError as e:
-        raise ValueError(str(e)) from None
-
-
-def _check_engine(train):
-    """check_engine on a run's keywords (engine, device, precision; the loops' defaults where
-    absent), before its data is read."""
-    check_engine(train.get("engine", "pyvf"), train.get("device", "cpu"), train.get("precision", "fp32"))
-
-
 def read_codebook(path):
     """Codebook.load(path), its errors as ValueError naming the file."""
     return read_model(path, Codebook, "codebook")
-
-
-def _load_dataset(path):
-    """pyvf.scenes.load_dataset(path): .images uint8 (scenes, views, Hi, Wi, 3), .poses (scenes, views, 7)."""
-    try:
-        from ..scenes import load_dataset  # imported here: the scenes home is optional for the other commands
-    except ImportError as e:
-        raise ValueError(f"cannot read the dataset {path}: pyvf.scenes is not available ({e})") from e
-    return load_dataset(path)
 
 
 def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
@@ -130,7 +107,6 @@ def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
         return None
     if eval_scenes < 1:
         raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
-    eval_seed = _eval_seed(eval_seed)
     if getattr(data, "seed", None) == eval_seed:
         raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
     from ..scenes import generate_scenes
@@ -147,7 +123,6 @@ def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None, train_poses=
 
     if eval_scenes < 1:
         raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
-    eval_seed = _eval_seed(eval_seed)
     codebook = read_codebook(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
@@ -160,18 +135,18 @@ def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None, train_poses=
         return held_out_set(codebook, images, poses)
 
 
-def codebook_run(data, out, *, config="tiny", eval_every=100, eval_scenes=32, eval_seed=1, init=None, **train):
-    """train_codebook on the dataset folder `data` into the run folder `out`, evaluated every
-    eval_every steps on held_out_views, starting from the codebook file `init` when given;
-    train: train_codebook's other keywords (steps, batch_size, ..., threads, command). Returns
-    the trained Codebook (out/codebook.npz)."""
+def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1, **recipe):
+    """train_codebook on the dataset folder `data` into the run folder `out` (opts: RunOptions),
+    evaluated every opts.eval_every steps on held_out_views, starting from the codebook file
+    opts.init when given; recipe: train_codebook's recipe and overrides. Returns the trained
+    Codebook (out/codebook.npz)."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
-    _check_engine(train)
-    if init is not None and resume_point(out, train.get("resume", True)) is None:  # a resume does not read it
-        read_model(init, Codebook, "--init")  # a missing file or another model's, named as the option
-    data = _load_dataset(data)
-    held_out = held_out_views(eval_every, eval_scenes, eval_seed, data, config.image_size)
-    return train_codebook(data.images, config, out, eval_images=held_out, eval_every=eval_every, init=init, **train)
+    if opts.init is not None and resume_point(out, opts.resume) is None:  # a resume does not read it
+        read_model(opts.init, Codebook, "--init")  # a missing file or another model's, named as the option
+    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
+    data = load_dataset(data)
+    held_out = held_out_views(opts.eval_every, eval_scenes, eval_seed, data, config.image_size)
+    return train_codebook(data.images, config, out, opts, eval_images=held_out, **recipe)
 
 
 def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threads=None):
@@ -184,7 +159,8 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
     _refuse_input_as_output(out, [("the codebook", codebook),
                                   *(("a file of the dataset", os.path.join(data, f)) for f in dataset)], "--out")
     codebook = read_codebook(codebook)
-    data = _load_dataset(data)
+    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
+    data = load_dataset(data)
     with kernel_threads(threads):
         tokens = tokenize(codebook, data.images, batch_size=batch_size, progress=progress)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
@@ -192,16 +168,15 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
     return tokens
 
 
-def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200, eval_scenes=16, eval_seed=1,
-                    init=None, **train):
-    """train_transformer on the tokens file into the run folder `out`; with codebook (the file the
-    tokens came from), evaluated every eval_every steps on held_out_scenes; starting from the
-    transformer file `init` when given. train: train_transformer's other keywords (steps,
-    batch_size, ..., threads, command). Returns the trained Transformer (out/transformer.npz)."""
+def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="tiny", codebook=None, eval_scenes=16,
+                    eval_seed=1):
+    """train_transformer on the tokens file into the run folder `out` (opts: RunOptions, recipe:
+    TransformerRecipe); with codebook (the file the tokens came from), evaluated every
+    opts.eval_every steps on held_out_scenes; starting from the transformer file opts.init when
+    given. Returns the trained Transformer (out/transformer.npz)."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
-    _check_engine(train)
-    if init is not None and resume_point(out, train.get("resume", True)) is None:  # a resume does not read it
-        read_model(init, Transformer, "--init")  # a missing file or another model's, named as the option
+    if opts.init is not None and resume_point(out, opts.resume) is None:  # a resume does not read it
+        read_model(opts.init, Transformer, "--init")  # a missing file or another model's, named as the option
     tokens_path, (tokens, poses, n_embed, fingerprint) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
         raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "
@@ -210,13 +185,13 @@ def transformer_run(tokens, out, *, config="tiny", codebook=None, eval_every=200
         raise ValueError(f"--codebook {codebook} is not the codebook that made {tokens_path} (fingerprints {given} "
                          f"and {fingerprint}): pass the --codebook of the `pyvf tokenize` that wrote it")
     eval_set = None
-    if eval_every and codebook:
-        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, train.get("threads"), train_poses=poses)
-    elif eval_every:
+    if opts.eval_every and codebook:
+        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, opts.threads, train_poses=poses)
+    elif opts.eval_every:
         print("pyvf train-transformer: no --codebook, so no held-out evaluation (it renders through the "
               "codebook)", file=sys.stderr)
-    return train_transformer(tokens, poses, config, out, eval_set=eval_set, eval_every=eval_every, init=init,
-                             codebook_fingerprint=fingerprint, **train)
+    return train_transformer(tokens, poses, config, out, opts, recipe, eval_set=eval_set,
+                             codebook_fingerprint=fingerprint)
 
 
 def compare_runs(run_dirs, plot=False, step=None, note=None):
