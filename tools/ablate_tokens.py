@@ -36,8 +36,8 @@ from pyvf.evaluate.metrics import to_model_images, to_uint8
 from pyvf.models.codebook import Codebook
 from pyvf.scenes import generate_scenes, load_dataset
 from pyvf.train._run import CHECKPOINT, read_checkpoint
-from pyvf.train.loops import (TINY_CODEBOOK, TINY_TRANSFORMER, held_out_set, load_tokens, save_tokens, tokenize,
-                              train_codebook, train_transformer)
+from pyvf.train.loops import (TINY_CODEBOOK, TINY_TRANSFORMER, RunOptions, TransformerRecipe, held_out_set,
+                              load_tokens, save_tokens, tokenize, train_codebook, train_transformer)
 
 # name -> (train_codebook keywords, CodebookConfig changes); all on the small-batch recipe
 CANDIDATES = {  # in the order they run: the likeliest to matter first
@@ -74,7 +74,7 @@ COLUMNS = [("steps", "codebook steps", 0), ("codebook_seconds", "wall s", 0), ("
            ("nearest_view_mae_c3", "nearest c3", 2), ("mae_c5", "MAE c5", 2), ("nearest_view_mae_c5", "nearest c5", 2)]
 
 
-def train_codebook_for(seconds, images, config, out, **kw):
+def train_codebook_for(seconds, images, config, out, opts, **kw):
     """train_codebook until `seconds` of this process's CPU time (ITIMER_PROF: user + system; at one
     thread, the compute spent), stopped by the run's Ctrl-C path (SIGINT when the timer fires), then
     its final model written at the step it reached. A run resumed after a kill counts its checkpoint's
@@ -85,14 +85,14 @@ def train_codebook_for(seconds, images, config, out, **kw):
         old = signal.signal(signal.SIGPROF, lambda *_: os.kill(os.getpid(), signal.SIGINT))
         signal.setitimer(signal.ITIMER_PROF, seconds - done)
         try:
-            return train_codebook(images, config, out, steps=10 ** 7, **kw)  # stopped by the timer
+            return train_codebook(images, config, out, dataclasses.replace(opts, steps=10 ** 7), **kw)  # the timer stops it
         except KeyboardInterrupt:
             pass
         finally:
             signal.setitimer(signal.ITIMER_PROF, 0)
             signal.signal(signal.SIGPROF, old)
     step = read_checkpoint(ckpt, "codebook")[0]["step"]
-    return train_codebook(images, config, out, steps=step, **kw)  # nothing left to run: the final model
+    return train_codebook(images, config, out, dataclasses.replace(opts, steps=step), **kw)  # the final model
 
 
 def object_scores(codebook, images):
@@ -118,14 +118,15 @@ def run_candidate(name, args, data, held):
         cb = Codebook.load(cb_path)
     else:
         cb = train_codebook_for(60 * args.codebook_minutes, data.images, cb_config, os.path.join(folder, "codebook"),
-                                threads=1, progress=False, checkpoint_every=25, **kw)
+                                RunOptions(steps=1, threads=1, progress=False, checkpoint_every=25), **kw)
     tokens_path = os.path.join(folder, "tokens.npz")
     if not os.path.exists(tokens_path):
         save_tokens(tokens_path, tokenize(cb, data.images), data.poses, cb_config.n_embed)
     tokens, poses = load_tokens(tokens_path)[:2]
     tf_path = os.path.join(folder, "transformer", "transformer.npz")
-    tf = train_transformer(tokens, poses, tf_config, os.path.join(folder, "transformer"), steps=args.transformer_steps,
-                           batch_size=8, lr=5e-4, seed=0, checkpoint_every=50, threads=1, progress=False)
+    tf = train_transformer(tokens, poses, tf_config, os.path.join(folder, "transformer"),
+                           RunOptions(steps=args.transformer_steps, batch_size=8, checkpoint_every=50, threads=1,
+                                      progress=False), TransformerRecipe(lr=5e-4))
     meta = read_checkpoint(os.path.join(folder, "codebook", CHECKPOINT), "codebook")[0]
     images, poses = held
     views = images.reshape(-1, *images.shape[2:])  # (n V, S, S, 3)
@@ -157,8 +158,9 @@ def transformer_steps_for(seconds, tokens, poses, config, folder, batch, lr):
     times = []
     for steps in (2, 6):
         t = time.process_time()
-        train_transformer(tokens, poses, config, probe, steps=steps, total_steps=6, batch_size=batch, lr=lr,
-                          seed=0, checkpoint_every=2, threads=1, progress=False)
+        train_transformer(tokens, poses, config, probe, RunOptions(steps=steps, batch_size=batch, checkpoint_every=2,
+                                                                   threads=1, progress=False),
+                          TransformerRecipe(lr=lr, total_steps=6))
         times.append(time.process_time() - t)
     shutil.rmtree(probe)
     return max(int(seconds / (times[1] / 4)), 10)
@@ -183,8 +185,9 @@ def run_transformer_candidate(name, args, held, ev):
             json.dump({"steps": steps}, f)
     with open(steps_path) as f:
         steps = json.load(f)["steps"]
-    tf = train_transformer(tokens, poses, config, os.path.join(folder, "run"), steps=steps, batch_size=batch, lr=lr,
-                           warmup=warmup, seed=0, checkpoint_every=50, threads=1, progress=False)
+    tf = train_transformer(tokens, poses, config, os.path.join(folder, "run"),
+                           RunOptions(steps=steps, batch_size=batch, checkpoint_every=50, threads=1, progress=False),
+                           TransformerRecipe(lr=lr, warmup=warmup))
     images, poses_h = held
     result = {"name": name, "config": changes, "batch": batch, "lr": lr, "warmup": warmup, "steps": steps,
               "tokens_from": args.tokens_from,
