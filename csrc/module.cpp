@@ -16,6 +16,7 @@
 #include <string>
 
 #include "branching_attention.h"
+#include "conv.h"
 #include "vq.h"
 #include "simd.h"
 #include "threads.h"
@@ -199,6 +200,7 @@ PYBIND11_MODULE(PYVF_MODULE, m) {
     bind_dtype<float>(m);
     bind_dtype<double>(m);
     bind_gelu(m);  // gelu.cpp
+    bind_conv(m);  // conv2d and the GEMM (conv_bind.cpp)
     m.def("num_threads", &num_threads, "threads the kernels use (OpenMP; 1 without OpenMP)");
     m.def("set_num_threads", &set_num_threads, py::arg("n"));
     m.def("set_force_parallel", [](bool on) { g_force_parallel.store(on); }, py::arg("on"),

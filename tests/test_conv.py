@@ -7,7 +7,10 @@ every gradient); float32 against float64 on the same inputs; the parity traps sh
 (the Downsample's (0,1,0,1) padding, GroupNorm eps 1e-6, the grouping of channels, a transposed
 kernel, upsample's summing backward); hard numerical cases (constant groups, groups of mean 1e4
 and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised, a 1x1
-image); float64 central finite differences; dtypes; strided inputs; the fused GroupNorm + swish.
+image); float64 central finite differences; dtypes; strided inputs; GroupNorm + swish. Then the C++
+kernels (sections 6, 7, once per instruction-set path): the conv2d kernel against its plain-loop
+twin, its NumPy reference and torch on every code path, 1 vs 2 vs 5 threads bitwise; the GEMM
+against NumPy.
 
 Shapes: images (B, C, Hi, Wi), NCHW; conv weights torch's (Co, C, kh, kw). Channels 5 -> 7 for the
 convs (not multiples of 8, in != out), batch 3, odd and even image sides; 32 groups on 64 and 96
@@ -24,9 +27,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from pyvf import _core
 from pyvf.nn import conv
+from pyvf.nn.layers import matmul
 
-from conftest import assert_bitwise_equal, assert_close
+from conftest import assert_bitwise_equal, assert_close, forced_threads
 
 EPS = 1e-6  # the codebook's GroupNorm eps (docs/math.md §4); torch's default is 1e-5
 G = 32  # groups of Normalize
@@ -572,3 +577,240 @@ def test_groupnorm_swish(C, Hi, Wi, dtype, rng):
     z_t, grads_t = torch_run("groupnorm_swish", inputs, {}, dy)
     rtol = RTOL64 if dtype == np.float64 else RTOL32["groupnorm_swish"]
     compare("groupnorm_swish", z, grads, z_t, grads_t, rtol, f"groupnorm+swish {C}x{Hi}x{Wi} vs torch")
+
+
+# ---------------------------------------------------------------------------------------
+# 6. the C++ conv2d: fast vs the plain loops (double sums) vs NumPy vs torch, every code path
+# (each test once per instruction-set path: conftest.kernel_path)
+
+# (B, C, Co, (Hi, Wi), (kh, kw), stride, padding): each family of the codebook and each code path of
+# csrc/conv.cpp on every kernel path (vector widths W = 4..16). C and Co are not multiples of any
+# vector width, and C > 8 makes several channel blocks (kCB = 8) in the dw and the stride-2 dx.
+KERNEL_CASES = [
+    (3, 19, 13, (9, 67), (3, 3), 1, 1),  # 3x3 pad 1, rows of >= 4 vectors: per-row products, dw on padded rows
+    (2, 11, 13, (16, 16), (3, 3), 1, 1),  # 16x16: per-row forward (W <= 8), im2col dw
+    (2, 19, 5, (8, 8), (3, 3), 1, 1),  # 8x8: one wide product per tile, columns past each row dropped
+    (1, 5, 7, (5, 4), (3, 3), 1, 1),  # B = 1, rows shorter than a vector
+    (2, 7, 3, (1, 9), (3, 3), 1, 1),  # one row: every tap row but the centre is padding
+    (3, 19, 13, (8, 8), (3, 3), 2, DOWN),  # the Downsample: im2col, col2im for dx
+    (2, 5, 7, (9, 35), (3, 3), 2, DOWN),  # ... odd height, a width past 2 vectors
+    (3, 19, 13, (7, 37), (1, 1), 1, 0),  # 1x1: x read in place (no columns)
+    (2, 5, 7, (7, 6), (1, 1), 2, 0),  # 1x1 strided
+    (2, 5, 7, (5, 20), (1, 1), 1, 1),  # 1x1 padded: its stride-1 dx crops (negative padding)
+    (2, 9, 6, (7, 40), (2, 3), 1, (2, 0, 1, 3)),  # every side different, stride-1 dx padded (-1, 1, 1, -1)
+    (1, 6, 5, (9, 7), (4, 2), 2, (2, 1, 0, 1)),  # non-square kernel, stride 2, odd sizes
+    # Co >= W on every path (W <= 16): the dw as products on channels-last dy (dw_gemm), Co = 37 =
+    # 2 vectors + a scalar tail on AVX-512, two channel blocks (kCB = 8) of which one partial
+    (2, 11, 37, (8, 8), (3, 3), 1, 1),  # padded-row tiles taken as rows of Wp pixels (zero columns of dy)
+    (2, 9, 35, (20, 67), (3, 3), 1, 1),  # several row tiles, chunks of kDwChunk = 256 pixels
+    (2, 9, 35, (9, 35), (3, 3), 2, DOWN),  # the Downsample: im2col tiles
+    (2, 9, 35, (7, 37), (1, 1), 1, 0),  # 1x1 below 32x32 pixels: x read in place
+    (1, 5, 35, (32, 33), (1, 1), 1, 0),  # 1x1 from 32x32 pixels on: the lane sums again
+    # AVX-512's 12-row tiles of the stride-1 products: Co = 28 = 12 + 8 + 8 (M % 12 == 4 as two
+    # 8-row tiles), and the dx's 16 rows = 8 + 8
+    (2, 16, 28, (6, 35), (3, 3), 1, 1),
+]
+
+
+def kernel_case_id(c):
+    B, C, Co, (Hi, Wi), (kh, kw), s, p = c
+    return f"B{B}-{C}to{Co}-{Hi}x{Wi}-k{kh}x{kw}-s{s}-p{'x'.join(map(str, p)) if isinstance(p, tuple) else p}"
+
+
+def kernel_inputs(case, rng, dtype):
+    B, C, Co, (Hi, Wi), (kh, kw), stride, padding = case
+    f = rng.standard_normal
+    x, w, b = f((B, C, Hi, Wi)), f((Co, C, kh, kw)) / np.sqrt(C * kh * kw), f(Co)
+    kwargs = {"stride": stride, "padding": padding}
+    y, _ = conv.conv2d_forward_numpy(x, w, b, **kwargs)
+    return [a.astype(dtype) for a in (x, w, b)], kwargs, f(y.shape).astype(dtype)
+
+
+def plain_run(inputs, kwargs, dy):
+    """The plain loops of csrc/conv.cpp (one double sum per output element, rounded once)."""
+    x, w, b = inputs
+    pad = conv._padding4(kwargs["padding"])
+    y = np.empty(dy.shape, dy.dtype)
+    _core.conv2d_forward_plain(y, x, w, b, kwargs["stride"], *pad)
+    grads = [np.empty_like(a) for a in inputs]
+    _core.conv2d_backward_plain(*grads, x, w, dy, kwargs["stride"], *pad)
+    return y, grads
+
+
+def numpy_run(inputs, kwargs, dy):
+    y, cache = conv.conv2d_forward_numpy(*inputs, **kwargs)
+    return y, conv.conv2d_backward_numpy(dy, cache)
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
+def test_conv2d_kernel_float64(case, rng):
+    """float64: fast kernel, plain loops, the NumPy path and torch agree to RTOL64 (the same sums
+    in other orders; measured <= 2.5e-15 on the baseline and avx2 paths)."""
+    inputs, kwargs, dy = kernel_inputs(case, rng, np.float64)
+    y, grads, _ = pyvf_run("conv2d", inputs, kwargs, dy)
+    runs = {"plain": plain_run(inputs, kwargs, dy), "numpy": numpy_run(inputs, kwargs, dy),
+            "torch": torch_run("conv2d", inputs, kwargs, dy)}
+    for name, (y_r, grads_r) in runs.items():
+        compare("conv2d", y, grads, y_r, grads_r, RTOL64, f"{kernel_case_id(case)} fast vs {name}")
+    compare("conv2d", *runs["plain"], *runs["torch"], RTOL64, f"{kernel_case_id(case)} plain vs torch")
+
+
+# float32 fast kernel vs the float64 plain loops on the same (float32) inputs: the kernel's float32
+# arithmetic only. y and dx are dot products of K = C*kh*kw <= 171 terms accumulated in float32
+# (FMA where the path has it); dw sums B*Ho*Wo <= 1809 products in W lanes; db sums in double.
+# About sqrt(n) u normwise; measured <= 4.7e-7 (dx of the 3x3 case on 9x67, baseline path; y 3.9e-7,
+# dw 2.7e-7, db 4.3e-8); 2e-6 leaves 4x. The plain loops in float32 measured <= 4.8e-8.
+RTOL32_KERNEL = 2e-6
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
+def test_conv2d_kernel_float32(case, rng):
+    inputs, kwargs, dy = kernel_inputs(case, rng, np.float32)
+    y, grads, _ = pyvf_run("conv2d", inputs, kwargs, dy)
+    assert y.dtype == np.float32 and all(g.dtype == np.float32 for g in grads)
+    y64, grads64 = plain_run([a.astype(np.float64) for a in inputs], kwargs, dy.astype(np.float64))
+    compare("conv2d", y, grads, y64, grads64, RTOL32_KERNEL, f"{kernel_case_id(case)} f32 vs f64")
+    # the plain loops in float32 round one double sum per element: within an ulp or two of float64
+    y_p, grads_p = plain_run(inputs, kwargs, dy)
+    compare("conv2d", y_p, grads_p, y64, grads64, 2 * float(np.finfo(np.float32).eps),
+            f"{kernel_case_id(case)} f32 plain vs f64")
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
+def test_conv2d_kernel_threads_bitwise(case, dtype, rng):
+    """The tasks depend on the shapes only, each output element is summed by one task in one
+    order: 1, 2 and 5 threads give the same bits (y, dx, dw, db). 5 threads: the blocks that
+    follow the thread count (the dw's and the forward's output channels) change, and the
+    backward's dw and dx tasks share one loop in another interleaving."""
+    inputs, kwargs, dy = kernel_inputs(case, rng, dtype)
+    out = {}
+    for n in (1, 2, 5):
+        with forced_threads(n):  # these shapes are below the size at which a call takes threads
+            y, grads, _ = pyvf_run("conv2d", inputs, kwargs, dy)
+        out[n] = [y, *grads]
+    for n in (2, 5):
+        for name, a, b in zip(("y", "dx", "dw", "db"), out[1], out[n]):
+            assert_bitwise_equal(f"{kernel_case_id(case)} {name}, 1 vs {n} threads", a, b)
+
+
+# ---------------------------------------------------------------------------------------
+# 7. pyvf's GEMM (once per instruction-set path) (csrc/conv.cpp matmul_batched: the AttnBlock's products, the transformer's linear
+# layers and tied logits) against NumPy in float64
+
+# (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16, the packed
+# tile's 6), several row blocks of 96 and column blocks of 192, k chunks of 256 with a short last
+# one, the attention's own square case; K = 0 gives zeros, zero rows or columns an empty result;
+# few blocks of c and a long K (a weight gradient's shape) split along k into parts
+# (kMatMinTasks): 2 parts with a short last one, and 9 parts of 1024 (the tiny transformer's X^T dY)
+MATMUL_CASES = [(2, 37, 21, 13), (1, 97, 35, 50), (3, 5, 3, 7), (2, 64, 64, 32), (1, 4, 4, 0), (0, 3, 5, 2),
+                (1, 203, 401, 531), (2, 96, 192, 256), (1, 0, 5, 3), (1, 9, 0, 3), (1, 37, 21, 2500),
+                (1, 101, 67, 9216)]
+
+
+def _mm(a, b, ta, tb):
+    """c (nb, M, N) = op(a) @ op(b) per entry by the kernel."""
+    nb, M, N = a.shape[0], a.shape[2 if ta else 1], b.shape[1 if tb else 2]
+    c = np.full((nb, M, N), np.nan, dtype=a.dtype)  # NaN: an element the kernel skips shows
+    _core.matmul(c, a, b, ta, tb)
+    return c
+
+
+def _operands(rng, case, ta, tb, dtype, draw=None):
+    nb, M, N, K = case
+    draw = draw or (lambda shape: rng.standard_normal(shape))
+    a = draw((nb, K, M) if ta else (nb, M, K)).astype(dtype)
+    b = draw((nb, N, K) if tb else (nb, K, N)).astype(dtype)
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    want = (a64.transpose(0, 2, 1) if ta else a64) @ (b64.transpose(0, 2, 1) if tb else b64)
+    return a, b, want
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("tb", [False, True])
+@pytest.mark.parametrize("ta", [False, True])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("case", MATMUL_CASES, ids=lambda c: "x".join(map(str, c)))
+def test_matmul_kernel(case, dtype, ta, tb, rng):
+    """c = op(a) @ op(b) per entry against NumPy in float64 on the same inputs. Each element is
+    one sum of K products in increasing k (or, split along k, its parts' sums added in order: no
+    larger a bound), so its error is at most K u sum_k |a_ik b_kj| (Higham 3.5) and in practice
+    ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
+    2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1, 2 and 5
+    threads (each element's sum does not depend on which task or thread computes it), every case
+    on the threads whatever its size (forced_threads)."""
+    nb, M, N, K = case
+    a, b, want = _operands(rng, case, ta, tb, dtype)
+    out = {}
+    for n in (1, 2, 5):
+        with forced_threads(n):
+            out[n] = _mm(a, b, ta, tb)
+    c = out[1]
+    assert c.dtype == dtype and c.shape == (nb, M, N)
+    if c.size:  # (the helpers need at least one element)
+        rtol = 1e-13 if dtype == np.float64 else 2e-6 * max(1.0, np.sqrt(K / 50))
+        assert_close("matmul", c, want, rtol=rtol)
+        for n in (2, 5):
+            assert_bitwise_equal(f"matmul, 1 vs {n} threads", out[n], c)
+    if K == 0:
+        assert not c.any(), "a sum of no products must be 0"
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("ta, tb", [(False, False), (True, False), (False, True), (True, True)])
+def test_matmul_kernel_exact_on_integers(ta, tb, rng):
+    """Small integers make every partial sum exact in float32 (|sum| <= 3 * 3 * 800 < 2^24), so
+    the kernel must equal the float64 product exactly: a k chunk dropped or counted twice, an
+    edge row or column (past the packed tiles) or an entry computed from the wrong block all
+    show, however small the other errors."""
+    for case in [(2, 2 * 96 + 13, 192 + 96 + 21, 3 * 256 + 31),
+                 (1, 96 + 13, 21, 3 * 1024 + 31)]:  # split along k into 3 parts, the last one short
+        a, b, want = _operands(rng, case, ta, tb, np.float32, draw=lambda s: rng.integers(-3, 4, s))
+        np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32), err_msg=str(case))
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("tb", [False, True])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
+    """c = op(a) @ op(b) + bias: the bias is added to each element after its whole sum, one
+    rounding, so the result is bitwise the kernel's product + bias in NumPy (across block, chunk
+    and tile edges, 1 and 2 threads); K = 0 gives the bias itself."""
+    for case in [(2, 101, 203, 300), (1, 37, 45, 2100)]:  # the second split along k: the bias after the parts
+        a, b, _ = _operands(rng, case, False, tb, dtype)
+        bias = rng.standard_normal(case[2]).astype(dtype)
+        want = _mm(a, b, False, tb) + bias
+        for n in (1, 2):
+            with forced_threads(n):
+                c = np.full(want.shape, np.nan, dtype=dtype)
+                _core.matmul(c, a, b, False, tb, bias)
+            assert_bitwise_equal(f"matmul + bias {case}, {n} threads", c, want)
+    c = np.full((1, 3, 4), np.nan, dtype=dtype)
+    _core.matmul(c, np.zeros((1, 3, 0), dtype), np.zeros((1, 0, 4), dtype), False, False, bias[:4])
+    np.testing.assert_array_equal(c, np.broadcast_to(bias[:4], (1, 3, 4)))
+
+
+@pytest.mark.usefixtures("kernel_path")
+def test_matmul_layers_helper(rng):
+    """pyvf.nn.layers.matmul, the entry the linear layers, the logits and the AttnBlock use: each
+    transpose flag against NumPy in float64 on 2-D and batched operands, and a non-contiguous
+    operand read as its values."""
+    a3, b3 = rng.standard_normal((2, 3, 30, 40))
+    assert_close("batched a @ b^T", matmul(a3, b3, tb=True), a3 @ b3.transpose(0, 2, 1), rtol=1e-13)
+    a, b = rng.standard_normal((2, 30, 40))
+    assert_close("a @ b^T", matmul(a, b, tb=True), a @ b.T, rtol=1e-13)
+    assert_close("a^T @ b", matmul(a[:, :30].T, b[:, :30], ta=True), a[:, :30] @ b[:, :30], rtol=1e-13)
+    assert_close("a @ b", matmul(a[:, :30], b.T[:30]), a[:, :30] @ b.T[:30], rtol=1e-13)
+
+
+@pytest.mark.usefixtures("kernel_path")
+def test_matmul_kernel_would_catch_a_transpose(rng):
+    """The oracle tells a transposed operand apart (square sizes, where shapes cannot)."""
+    a, b = rng.standard_normal((2, 2, 9, 9))
+    good = matmul(a, b)
+    assert gap(matmul(a, b, ta=True), good) > 0.1
+    assert gap(_mm(a, b, False, True), good) > 0.1
+    assert_close("matmul square", good, a @ b, rtol=1e-13)

@@ -15,6 +15,7 @@ size; P = Hi * Wi pixels; K = C * kh * kw the length of one im2col column.
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from .. import _core
 from .layers import matmul
 
 
@@ -55,6 +56,34 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     padding=1 gives the same output size on even images but shifts every window by one pixel;
     (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
 
+    The C++ kernel (csrc/conv.cpp): implicit GEMM, y_b = w2 @ cols_b + b with w2 = w as (Co, K),
+    the im2col columns cols_b (K, Ho*Wo) built a cache-sized tile at a time and never stored
+    whole. conv2d_forward_numpy below is the same layer in NumPy, its reference. The kernel stays
+    because NumPy's form needs the BLAS on 2 threads to keep up, and the BLAS's spinning threads
+    made the tiny codebook's training step 12x slower on a busy 2-core machine (46 s against 3.9 s
+    for torch; 7 s on one BLAS thread: below 0.75x torch, pyvf bench codebook --quick).
+    cache: x and w (C-ordered), stride, padding; the columns are recomputed in the backward."""
+    pad = _padding4(padding)
+    pt, pb, pl, pr = pad
+    x, w, b = np.ascontiguousarray(x), np.ascontiguousarray(w), np.ascontiguousarray(b)
+    (B, C, Hi, Wi), (Co, _, kh, kw) = x.shape, w.shape
+    y = np.empty((B, Co, (Hi + pt + pb - kh) // stride + 1, (Wi + pl + pr - kw) // stride + 1), x.dtype)
+    _core.conv2d_forward(y, x, w, b, stride, *pad)  # (B, Co, Ho, Wo)
+    return y, (x, w, stride, pad)
+
+
+def conv2d_backward(dy, cache):
+    """-> dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,): conv2d_backward_numpy's formulas, in
+    the C++ kernel (dx of a stride-1 conv as the conv of dy with the flipped, transposed kernel)."""
+    x, w, stride, pad = cache
+    dx, dw, db = np.empty_like(x), np.empty_like(w), np.empty(w.shape[0], x.dtype)
+    _core.conv2d_backward(dx, dw, db, x, w, np.ascontiguousarray(dy), stride, *pad)
+    return dx, dw, db
+
+
+def conv2d_forward_numpy(x, w, b, stride=1, padding=0):
+    """conv2d_forward in NumPy, its reference: same arguments, output and cache.
+
     One matmul over the whole batch: y[o, (b, u, v)] = sum_k w2[o, k] cols[k, (b, u, v)], w2 = w as
     (Co, K), cols the im2col columns (K, B*Ho*Wo); a 1x1 conv with stride 1 and no padding is
     that matmul on x itself, per image. cache: x and w (no copies), stride, padding; the columns
@@ -64,7 +93,7 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     Co, _, kh, kw = w.shape
     w2 = w.reshape(Co, C * kh * kw)  # (Co, K), columns in (c, i, j) order
     if kh == kw == 1 and stride == 1 and not any(pad):
-        y = matmul(w2, x.reshape(B, C, Hi * Wi)).reshape(B, Co, Hi, Wi)  # y[b,o,p] = sum_c w[o,c] x[b,c,p]
+        y = (w2 @ x.reshape(B, C, Hi * Wi)).reshape(B, Co, Hi, Wi)  # y[b,o,p] = sum_c w[o,c] x[b,c,p]
     else:
         cols = _im2col(x, kh, kw, stride, pad)  # (K, B, Ho, Wo)
         Ho, Wo = cols.shape[2:]
@@ -73,7 +102,7 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     return y, (x, w, stride, pad)
 
 
-def conv2d_backward(dy, cache):
+def conv2d_backward_numpy(dy, cache):
     """-> dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,).
 
     forward was y = w2 @ cols + b, so dw = dy @ cols^T, dcols = w2^T @ dy (scattered back onto x
@@ -89,7 +118,7 @@ def conv2d_backward(dy, cache):
     if kh == kw == 1 and stride == 1 and not any(pad):
         dy2, x2 = dy.reshape(B, Co, Hi * Wi), x.reshape(B, C, Hi * Wi)  # (B, Co, P), (B, C, P)
         # forward was y_b = w2 @ x_b, so dx_b = w2^T @ dy_b and dw = sum_b dy_b @ x_b^T
-        dx = matmul(w2, dy2, ta=True).reshape(x.shape)  # (B, C, Hi, Wi)
+        dx = (w2.T @ dy2).reshape(x.shape)  # (B, C, Hi, Wi)
         dw = np.einsum("bop,bcp->oc", dy2, x2, optimize=True).reshape(w.shape)  # (Co, C, 1, 1)
         return dx, dw, db
     dyT = dy.transpose(1, 0, 2, 3).reshape(Co, B * Ho * Wo)  # (Co, B*Ho*Wo), a copy

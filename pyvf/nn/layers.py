@@ -21,13 +21,28 @@ from .. import _core
 
 
 def matmul(a, b, ta=False, tb=False, bias=None):
-    """c = op(a) @ op(b) [+ bias], op = transpose of the last two axes when ta / tb: a (M, K), or
-    (K, M) when ta; b (K, N), or (N, K) when tb; c (M, N); leading batch axes broadcast as
-    np.matmul's; bias (N,) added to every row."""
+    """c = op(a) @ op(b) [+ bias], op = transpose when ta / tb, for 2-D operands or per entry of
+    3-D ones (a leading batch axis): a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c
+    (M, N); bias (N,) added to every row after its sum (as NumPy's a @ b + bias rounds).
+
+    pyvf's GEMM (csrc/conv.cpp matmul_batched), not NumPy's BLAS: the BLAS's threads spin for
+    milliseconds after each call on the cores pyvf's kernels need (measured with the tiny
+    transformer on 2 busy cores: np.matmul with 2 BLAS threads made its training step 5x slower,
+    526 ms against 100 ms). Each element of c is one sum in increasing k, the same for any thread
+    count. Its reference is matmul_numpy, the expression itself (tests/test_layers.py)."""
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    one = a.ndim == 2  # 2-D: one entry of the batched kernel
+    a3, b3 = (a[None], b[None]) if one else (a, b)
+    M, N = a3.shape[2 if ta else 1], b3.shape[1 if tb else 2]
+    c = np.empty((a3.shape[0], M, N), dtype=a.dtype)  # (batch, M, N)
+    _core.matmul(c, a3, b3, ta, tb, None if bias is None else np.ascontiguousarray(bias))
+    return c[0] if one else c
+
+
+def matmul_numpy(a, b, ta=False, tb=False, bias=None):
+    """matmul in NumPy: np.matmul(op(a), op(b)) + bias."""
     c = np.matmul(a.swapaxes(-1, -2) if ta else a, b.swapaxes(-1, -2) if tb else b)
-    if bias is not None:
-        c += bias
-    return c
+    return c if bias is None else c + bias
 
 
 def add(a, b, out=None):
