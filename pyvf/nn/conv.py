@@ -207,33 +207,41 @@ def groupnorm_swish_backward(dz, cache):
 
 
 def _sigmoids(x):
-    """(sigmoid(x), sigmoid(-x)) without overflow or cancellation. z = exp(-|x|) is in (0, 1], so
-    exp never overflows; sigmoid(|x|) = 1 / (1 + z) and sigmoid(-|x|) = z / (1 + z), each assigned
-    by the sign of x. sigmoid(-x) is computed, not taken as 1 - sigmoid(x), which would cancel to
-    0 for x >~ 17 (float64) and lose the gradient's tail."""
+    """(sigmoid(|x|), sigmoid(-|x|), x >= 0), without overflow or cancellation: z = exp(-|x|) is
+    in (0, 1], so exp never overflows; sigmoid(|x|) = 1 / (1 + z) and sigmoid(-|x|) = z / (1 + z),
+    each assigned by the sign of x. sigmoid(-x) is computed, not taken as 1 - sigmoid(x), which
+    would cancel to 0 for x >~ 17 (float64) and lose the gradient's tail. In place, one temporary
+    each: these passes are most of the codebook's swish time."""
+    z = np.abs(x)
+    np.negative(z, out=z)
     with np.errstate(under="ignore"):  # e^-|x| underflowing for large |x| is the correctly rounded value
-        z = np.exp(-np.abs(x))  # (...), in (0, 1]
-        s_pos = 1 / (1 + z)  # sigmoid(|x|)
-        s_neg = z * s_pos  # sigmoid(-|x|)
-    pos = x >= 0
-    return np.where(pos, s_pos, s_neg), np.where(pos, s_neg, s_pos)
+        np.exp(z, out=z)  # (...), in (0, 1]
+        s_pos = z + 1
+        np.reciprocal(s_pos, out=s_pos)  # sigmoid(|x|)
+        np.multiply(z, s_pos, out=z)  # sigmoid(-|x|)
+    return s_pos, z, x >= 0
 
 
 def swish_forward(x):
     """y = x * sigmoid(x).   x (...) -> y (...). Finite and warning-free for any finite x
     (x = -1000 gives -0.0, x = +1000 gives 1000). cache: x; the sigmoids are recomputed."""
-    s, _ = _sigmoids(x)
+    s_pos, s_neg, pos = _sigmoids(x)
     with np.errstate(under="ignore"):
-        return x * s, x
+        return x * np.where(pos, s_pos, s_neg), x
 
 
 def swish_backward(dy, cache):
     """-> dx (...). forward was y = x * s, s' = s * (1 - s), so
     dy/dx = s + x * s * (1 - s) = s * (1 + x * sigmoid(-x))."""
     x = cache
-    s, sn = _sigmoids(x)  # sigmoid(x), sigmoid(-x) = 1 - sigmoid(x)
+    s_pos, s_neg, pos = _sigmoids(x)
+    s, sn = np.where(pos, s_pos, s_neg), np.where(pos, s_neg, s_pos)  # sigmoid(x), sigmoid(-x)
     with np.errstate(under="ignore"):
-        return (dy * (s * (1 + x * sn)),)
+        np.multiply(sn, x, out=sn)
+        sn += 1
+        sn *= s
+        sn *= dy
+        return (sn,)
 
 
 # ---------------------------------------------------------------------------------------
