@@ -191,7 +191,6 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
     const int64_t ntask = d.nblk() * ntile;
 
     int status = kAttnOk;
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
         // per thread: q^T (dh, TQ); s^T, then p^T (TK, TQ); the accumulator acc (TQ, dh); per
@@ -258,7 +257,6 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
 #pragma omp atomic write
             status = kAttnLogitOverflow;
         }
-        end.arrive();
     }
     return status;
 }
@@ -320,7 +318,6 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
 
     int status = kAttnOk;
     const bool threads = worth_threads(d);
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (threads)
     {
         // per thread, for one head: q and do transposed per block (dh, L); D = rowsum(do * o)
@@ -438,7 +435,6 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                 }
             }
         }
-        end.arrive();
     }
     return status;
 }

@@ -987,7 +987,6 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
     std::unique_ptr<ConvTasks<T>> p;
     PYVF_CONV_OR_OOM(p.reset(new ConvTasks<T>(y, x, w, b, d)))
     int status = kConvOk, nonfinite = 0;
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
         typename ConvTasks<T>::Scratch s;
@@ -999,7 +998,6 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
 #pragma omp atomic write
                 nonfinite = 1;
             }
-        end.arrive();
     }
     return conv_status(status, nonfinite);
 }
@@ -1014,7 +1012,6 @@ template <typename T> int conv_gemm(T* y, const T* x, const T* w, const T* b, co
 template <typename T, typename Dx, typename Dw>
 int backward_tasks(const Dx& dxt, Dw& dwt, T* db, const T* dy, const ConvDims& d) {
     int status = kConvOk, nonfinite = 0, nonfinite_dw = 0, nonfinite_db = 0;
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
 #pragma omp for schedule(static) nowait
@@ -1046,7 +1043,6 @@ int backward_tasks(const Dx& dxt, Dw& dwt, T* db, const T* dy, const ConvDims& d
 #pragma omp atomic write
                 nonfinite_db = 1;
             }
-        end.arrive();
     }
     return backward_status(status, nonfinite, nonfinite_dw, nonfinite_db);
 }
@@ -1202,7 +1198,6 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
         if (!bt) return kConvOutOfMemory;
         constexpr int64_t kT = 32;  // tiles of 32 x 32: the reads and the writes both stay in L1
         const int64_t nj = ceil_div(N, kT);
-        RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(nb * K * N, kParallelFlops / 8))
         {
 #pragma omp for schedule(static) nowait
@@ -1213,7 +1208,6 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
                         for (int64_t k = k0; k < std::min(K, k0 + kT); ++k)
                             bt[(bi * K + k) * N + j] = b[(bi * N + j) * K + k];
             }
-            end.arrive();
         }
         b = bt.get();
     }
@@ -1231,7 +1225,6 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
     // the panels as large as this product needs (a small product zero-fills little)
     const int64_t rows = std::min(M, kMatRows), depth = std::min(span, kMatDepth), cols = std::min(N, kMatCols);
     int status = kConvOk;
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(nb * M * N * K, kParallelFlops))
     {
         Buf<T> ap, bp;
@@ -1275,7 +1268,6 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
                 }
             }
         }
-        end.arrive();
     }
     return status;
 }

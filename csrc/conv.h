@@ -1,4 +1,4 @@
-// The codebook's image-layer kernels: conv2d (conv.cpp), GroupNorm and swish (groupnorm.cpp);
+// The codebook's conv2d kernel and pyvf's GEMM (conv.cpp);
 // declarations shared by the kernels and the bindings (conv_bind.cpp).
 #pragma once
 
@@ -53,25 +53,6 @@ int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* 
 template <typename T>
 int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta, bool tb,
                    const T* bias = nullptr);
-
-// GroupNorm, optionally fused with the swish after it, and swish (groupnorm.cpp). Sizes:
-// x (B, C, P) with P = Hi*Wi, G groups of C/G consecutive channels (C % G == 0).
-struct GNDims {
-    int64_t B, C, G, P;
-};
-//   forward:  y (B, C, P) = [swish](xhat * gamma + beta), overwritten; stats (B, G, 3) = per group
-//             (mean, r, rstd), overwritten: xhat = ((x - mean) - r) * rstd, recomputed by the backward.
-//   backward: dx (B, C, P), dgamma, dbeta (C,) overwritten, from the forward's x and stats; beta is
-//             read only with swish (to recompute y).
-template <typename T>
-int groupnorm_forward(T* y, T* stats, const T* x, const T* gamma, const T* beta, const GNDims& d, double eps,
-                      bool swish);
-template <typename T>
-int groupnorm_backward(T* dx, T* dgamma, T* dbeta, const T* x, const T* stats, const T* gamma, const T* beta,
-                       const T* dy, const GNDims& d, bool swish);
-// y = x * sigmoid(x); dx = dy * swish'(x). Flat arrays of n elements, overwritten.
-template <typename T> void swish_forward(T* y, const T* x, int64_t n);
-template <typename T> void swish_backward(T* dx, const T* dy, const T* x, int64_t n);
 
 }  // namespace pyvf
 

@@ -1,6 +1,6 @@
-// Python bindings of the image-layer kernels (conv.cpp, groupnorm.cpp), called from module.cpp's
+// Python bindings of the conv2d and GEMM kernels (conv.cpp), called from module.cpp's
 // PYBIND11_MODULE.
-// The user-facing functions, with argument checks that name the argument, are in pyvf/conv.py;
+// The layers that call them are in pyvf/nn/conv.py and pyvf/nn/layers.py;
 // these take arrays of exactly one dtype in C layout (.noconvert(), c_style: a wrong dtype or
 // layout is a TypeError, never a silent cast or copy) and check every size again, since a wrong
 // one would read or write out of bounds.
@@ -10,9 +10,6 @@
 //     conv2d_forward(y, x, w, b, stride, pt, pb, pl, pr)
 //     conv2d_backward(dx, dw, db, x, w, dy, stride, pt, pb, pl, pr)
 // and the same with _plain: the plain-loop oracle;
-//     groupnorm_forward(y, stats, x, gamma, beta, groups, eps, swish)
-//     groupnorm_backward(dx, dgamma, dbeta, x, stats, gamma, beta, dy, groups, swish)
-//     swish_forward(y, x), swish_backward(dx, dy, x)
 //     matmul(c, a, b, ta, tb=False, bias=None): c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per
 //     image, a (nb, M, K) or (nb, K, M) if ta, b (nb, K, N) or (nb, N, K) if tb
 #include <pybind11/numpy.h>
@@ -95,7 +92,6 @@ const char* kConvMemory =
 const char* kMatMemory =
     "matmul: not enough memory for the transposed copy of b (b's size) and the packed panels (per thread up to "
     "288 KiB of float32, 576 KiB of float64)";
-const char* kGNMemory = "groupnorm: not enough memory for the backward's partial sums (16 bytes per image and channel)";
 
 void raise_status(int status, const char* memory_message = kConvMemory) {
     if (status == kConvOutOfMemory) {
@@ -151,74 +147,6 @@ void backward(Arr<T> dx, Arr<T> dw, Arr<T> db, Arr<T> x, Arr<T> w, Arr<T> dy, in
     raise_nonfinite<T>(status, "conv2d_backward", "dx");
 }
 
-// ---- GroupNorm (+ swish), swish
-
-GNDims gn_dims(const py::array& x, int64_t groups) {
-    if (x.ndim() != 4) throw py::value_error("pyvf._core.groupnorm: x must be 4-D (B, C, Hi, Wi)");
-    GNDims d{x.shape(0), x.shape(1), groups, x.shape(2) * x.shape(3)};
-    if (groups < 1 || d.C % groups) throw py::value_error("pyvf._core.groupnorm: groups must divide C");
-    return d;
-}
-
-void same_size(const py::array& a, int64_t n, const char* name) {
-    if (a.size() != n) throw py::value_error(std::string("pyvf._core: ") + name + " has the wrong size");
-}
-
-template <typename T>
-void gn_forward(Arr<T> y, Arr<T> stats, Arr<T> x, Arr<T> gamma, Arr<T> beta, int64_t groups, double eps, bool swish) {
-    const GNDims d = gn_dims(x, groups);
-    same_size(y, x.size(), "y");
-    same_size(stats, d.B * d.G * 3, "stats");
-    check_shape(gamma, "gamma", {d.C});
-    check_shape(beta, "beta", {d.C});
-    T *py_ = y.mutable_data(), *ps = stats.mutable_data();
-    const T *px = x.data(), *pg = gamma.data(), *pb = beta.data();
-    int status;
-    {
-        py::gil_scoped_release nogil;
-        status = groupnorm_forward<T>(py_, ps, px, pg, pb, d, eps, swish);
-    }
-    raise_nonfinite<T>(status, "groupnorm_forward", "y");
-}
-
-template <typename T>
-void gn_backward(Arr<T> dx, Arr<T> dgamma, Arr<T> dbeta, Arr<T> x, Arr<T> stats, Arr<T> gamma, Arr<T> beta,
-                 Arr<T> dy, int64_t groups, bool swish) {
-    const GNDims d = gn_dims(x, groups);
-    same_size(dx, x.size(), "dx");
-    same_size(dy, x.size(), "dy");
-    same_size(stats, d.B * d.G * 3, "stats");
-    for (auto* a : {&dgamma, &dbeta, &gamma, &beta}) check_shape(*a, "gamma, beta, dgamma, dbeta", {d.C});
-    T *pdx = dx.mutable_data(), *pdg = dgamma.mutable_data(), *pdb = dbeta.mutable_data();
-    const T *ph = x.data(), *pr = stats.data(), *pg = gamma.data(), *pb = beta.data(), *pdy = dy.data();
-    int status;
-    {
-        py::gil_scoped_release nogil;
-        status = groupnorm_backward<T>(pdx, pdg, pdb, ph, pr, pg, pb, pdy, d, swish);
-    }
-    raise_status(status, kGNMemory);
-    raise_nonfinite<T>(status, "groupnorm_backward", "dx");
-}
-
-template <typename T> void sw_forward(Arr<T> y, Arr<T> x) {
-    same_size(y, x.size(), "y");
-    T* py_ = y.mutable_data();
-    const T* px = x.data();
-    const int64_t n = x.size();
-    py::gil_scoped_release nogil;
-    swish_forward<T>(py_, px, n);
-}
-
-template <typename T> void sw_backward(Arr<T> dx, Arr<T> dy, Arr<T> x) {
-    same_size(dx, x.size(), "dx");
-    same_size(dy, x.size(), "dy");
-    T* pdx = dx.mutable_data();
-    const T *pdy = dy.data(), *px = x.data();
-    const int64_t n = x.size();
-    py::gil_scoped_release nogil;
-    swish_backward<T>(pdx, pdy, px, n);
-}
-
 template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb, std::optional<Arr<T>> bias) {
     auto fail = [](const std::string& what) { throw py::value_error("pyvf._core.matmul: " + what); };
     if (a.ndim() != 3 || b.ndim() != 3 || c.ndim() != 3) fail("a, b and c must be 3-D (batch, rows, columns)");
@@ -254,19 +182,6 @@ template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb
 }
 
 template <typename T> void bind_dtype(py::module_& m) {
-    m.def("groupnorm_forward", &gn_forward<T>,
-          "y = [swish](GroupNorm(x)); y (B, C, Hi, Wi), stats (B, G, 3) = (mean, r, rstd) overwritten",
-          py::arg("y").noconvert(), py::arg("stats").noconvert(), py::arg("x").noconvert(),
-          py::arg("gamma").noconvert(), py::arg("beta").noconvert(), py::arg("groups"), py::arg("eps"),
-          py::arg("swish"));
-    m.def("groupnorm_backward", &gn_backward<T>, "dx, dgamma, dbeta (overwritten) of groupnorm_forward",
-          py::arg("dx").noconvert(), py::arg("dgamma").noconvert(), py::arg("dbeta").noconvert(),
-          py::arg("x").noconvert(), py::arg("stats").noconvert(), py::arg("gamma").noconvert(),
-          py::arg("beta").noconvert(), py::arg("dy").noconvert(), py::arg("groups"), py::arg("swish"));
-    m.def("swish_forward", &sw_forward<T>, "y = x * sigmoid(x), overwritten", py::arg("y").noconvert(),
-          py::arg("x").noconvert());
-    m.def("swish_backward", &sw_backward<T>, "dx = dy * swish'(x), overwritten", py::arg("dx").noconvert(),
-          py::arg("dy").noconvert(), py::arg("x").noconvert());
     m.def("matmul", &matmul<T>,
           "c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per image, op = transpose of a if ta, of b if tb; c overwritten",
           py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(), py::arg("ta"),

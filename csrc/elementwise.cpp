@@ -1,4 +1,4 @@
-// Elementwise kernels that NumPy cannot do accurately by itself.
+// GELU, the one elementwise kernel NumPy cannot do accurately by itself (it has no erfc).
 //
 // GELU, exact erf form (docs/math.md §3): gelu(x) = x * Phi(x), Phi the standard normal CDF.
 // Phi is computed as 0.5 * erfc(-x / sqrt(2)), never as 0.5 * (1 + erf(x / sqrt(2))): for
@@ -228,12 +228,10 @@ inline void normal_cdf_xpdf_d(VF x, VF& cdf, VF& xpdf) {
 
 // f(i, m) on [i, i + m) for every block of WF floats of [0, n); the last one has m < WF.
 template <typename F> inline void map_float(int64_t n, F f) {
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 65537))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t i = 0; i < n; i += WF) f(i, std::min<int64_t>(WF, n - i));
-        end.arrive();
     }
 }
 
@@ -274,7 +272,6 @@ template <> void gelu_backward<float>(float* dx, const float* dy, const float* x
 
 // float64: the scalar path, compensated as above.
 template <typename T> void gelu_forward(T* y, const T* x, int64_t n) {
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 65537))
     {
 #pragma omp for schedule(static) nowait
@@ -283,12 +280,10 @@ template <typename T> void gelu_forward(T* y, const T* x, int64_t n) {
             normal_cdf_pdf((double)x[i], cdf, pdf);
             y[i] = (T)((double)x[i] * cdf);
         }
-        end.arrive();
     }
 }
 
 template <typename T> void gelu_backward(T* dx, const T* dy, const T* x, int64_t n) {
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 65537))
     {
 #pragma omp for schedule(static) nowait
@@ -298,54 +293,10 @@ template <typename T> void gelu_backward(T* dx, const T* dy, const T* x, int64_t
             normal_cdf_pdf(xi, cdf, pdf);
             dx[i] = (T)((double)dy[i] * (cdf + xi * pdf));
         }
-        end.arrive();
     }
 }
 
 template void gelu_forward<double>(double*, const double*, int64_t);
 template void gelu_backward<double>(double*, const double*, const double*, int64_t);
-
-// ---------------------------------------------------------------------------------------
-// Nearest-neighbour x2 upsampling (the codebook's Upsample) of `rows` image rows of w pixels, row
-// r of x making rows 2r and 2r + 1 of y (x (B, C, Hi, w) and y (B, C, 2 Hi, 2 w): r runs over
-// (b, c, u)). forward: y[2r + i, 2v + j] = x[r, v]; backward: the sum of each 2x2 block,
-// (dy[2r, 2v] + dy[2r, 2v + 1]) + (dy[2r + 1, 2v] + dy[2r + 1, 2v + 1]), the order of the NumPy
-// expression in pyvf/nn/conv.py, so bitwise the same. Parallel over rows (NumPy's copies and
-// sums ran on one core: 17 ms of a paper codebook step, 2% of it on 16 threads).
-
-template <typename T> void upsample2x(T* y, const T* x, int64_t rows, int64_t w) {
-    RegionEnd end;
-#pragma omp parallel num_threads(num_threads()) if (parallel_work(rows * w, 1 << 16))
-    {
-#pragma omp for schedule(static) nowait
-        for (int64_t r = 0; r < rows; ++r) {
-            const T* src = x + r * w;
-            T* top = y + 2 * r * 2 * w;
-            for (int64_t v = 0; v < w; ++v) top[2 * v] = top[2 * v + 1] = src[v];
-            std::memcpy(top + 2 * w, top, sizeof(T) * 2 * w);
-        }
-        end.arrive();
-    }
-}
-
-template <typename T> void upsample2x_backward(T* dx, const T* dy, int64_t rows, int64_t w) {
-    RegionEnd end;
-#pragma omp parallel num_threads(num_threads()) if (parallel_work(rows * w, 1 << 16))
-    {
-#pragma omp for schedule(static) nowait
-        for (int64_t r = 0; r < rows; ++r) {
-            const T* a = dy + 2 * r * 2 * w;  // row 2r
-            const T* b = a + 2 * w;           // row 2r + 1
-            T* out = dx + r * w;
-            for (int64_t v = 0; v < w; ++v) out[v] = (a[2 * v] + a[2 * v + 1]) + (b[2 * v] + b[2 * v + 1]);
-        }
-        end.arrive();
-    }
-}
-
-template void upsample2x<float>(float*, const float*, int64_t, int64_t);
-template void upsample2x<double>(double*, const double*, int64_t, int64_t);
-template void upsample2x_backward<float>(float*, const float*, int64_t, int64_t);
-template void upsample2x_backward<double>(double*, const double*, int64_t, int64_t);
 
 }  // namespace pyvf

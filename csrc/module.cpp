@@ -17,14 +17,14 @@
 
 #include "branching_attention.h"
 #include "conv.h"
-#include "elementwise.h"
-#include "layernorm.h"
 #include "vq.h"
 #include "simd.h"
 #include "threads.h"
 
 namespace py = pybind11;
 using namespace pyvf;
+
+void bind_gelu(py::module_& m);  // gelu.cpp
 
 namespace {
 
@@ -117,77 +117,6 @@ template <typename T> void exp_kernel(Arr<T> y, Arr<T> x) {
     for (py::ssize_t i = 0; i < x.size(); ++i) py_[i] = exp_scalar<T>(px[i]);
 }
 
-void same_size(const py::array& a, const py::array& b, const char* what) {
-    if (a.size() != b.size()) throw std::invalid_argument(std::string("pyvf._core.") + what + ": arrays differ in size");
-}
-
-template <typename T> void gelu(Arr<T> y, Arr<T> x) {
-    same_size(y, x, "gelu");
-    T* py_ = y.mutable_data();
-    const T* px = x.data();
-    const int64_t n = x.size();
-    py::gil_scoped_release nogil;
-    gelu_forward<T>(py_, px, n);
-}
-
-template <typename T> void gelu_grad(Arr<T> dx, Arr<T> dy, Arr<T> x) {
-    same_size(dx, x, "gelu_backward");
-    same_size(dy, x, "gelu_backward");
-    T* pdx = dx.mutable_data();
-    const T *pdy = dy.data(), *px = x.data();
-    const int64_t n = x.size();
-    py::gil_scoped_release nogil;
-    gelu_backward<T>(pdx, pdy, px, n);
-}
-
-
-// LayerNorm (layernorm.cpp): x, y, xhat (M, d) in any shape whose last axis is d; rstd M elements.
-template <typename T> int64_t layernorm_fwd_k(Arr<T> y, Arr<T> xhat, Arr<T> rstd, Arr<T> x, Arr<T> gamma,
-                                              Arr<T> beta, double eps) {
-    same_size(y, x, "layernorm_forward");
-    same_size(xhat, x, "layernorm_forward");
-    const int64_t d = gamma.size();
-    if (d < 1 || beta.size() != d || x.size() % d != 0 || rstd.size() * d != x.size())
-        throw std::invalid_argument("pyvf._core.layernorm_forward: x (M, d), gamma and beta (d,), rstd (M,)");
-    T *py_ = y.mutable_data(), *ph = xhat.mutable_data(), *pr = rstd.mutable_data();
-    const T *px = x.data(), *pg = gamma.data(), *pb = beta.data();
-    const int64_t M = x.size() / d;
-    py::gil_scoped_release nogil;
-    return layernorm_forward<T>(py_, ph, pr, px, pg, pb, M, d, eps);
-}
-
-template <typename T> void layernorm_bwd_k(Arr<T> dx, Arr<T> dgamma, Arr<T> dbeta, Arr<T> dy, Arr<T> xhat,
-                                           Arr<T> rstd, Arr<T> gamma) {
-    same_size(dx, xhat, "layernorm_backward");
-    same_size(dy, xhat, "layernorm_backward");
-    const int64_t d = gamma.size();
-    if (d < 1 || dgamma.size() != d || dbeta.size() != d || xhat.size() % d != 0 || rstd.size() * d != xhat.size())
-        throw std::invalid_argument("pyvf._core.layernorm_backward: dy, xhat (M, d), gamma, dgamma, dbeta (d,), rstd (M,)");
-    T *pdx = dx.mutable_data(), *pdg = dgamma.mutable_data(), *pdb = dbeta.mutable_data();
-    const T *pdy = dy.data(), *ph = xhat.data(), *pr = rstd.data(), *pg = gamma.data();
-    const int64_t M = xhat.size() / d;
-    py::gil_scoped_release nogil;
-    layernorm_backward<T>(pdx, pdg, pdb, pdy, ph, pr, pg, M, d);
-}
-
-// Upsampling (elementwise.cpp): small (B, C, Hi, Wi), big (B, C, 2 Hi, 2 Wi); FORWARD writes big
-// from small, else small (dx) from big (dy).
-template <typename T, bool FORWARD> void upsample_k(Arr<T> out, Arr<T> in) {
-    const py::array& small = FORWARD ? in : out;
-    const py::array& big = FORWARD ? out : in;
-    bool ok = small.ndim() == 4 && big.ndim() == 4;
-    for (int i = 0; ok && i < 4; ++i) ok = big.shape(i) == small.shape(i) * (i < 2 ? 1 : 2);
-    if (!ok) throw std::invalid_argument("pyvf._core.upsample2x: x (B, C, Hi, Wi) and y (B, C, 2 Hi, 2 Wi)");
-    T* po = out.mutable_data();
-    const T* pi = in.data();
-    const int64_t rows = small.shape(0) * small.shape(1) * small.shape(2), w = small.shape(3);
-    py::gil_scoped_release nogil;
-    if (FORWARD)
-        upsample2x<T>(po, pi, rows, w);
-    else
-        upsample2x_backward<T>(po, pi, rows, w);
-}
-
 // True when every element is finite; a scan that allocates nothing (np.isfinite(x).all()
 // would allocate a bool array as large as x). Blocks of 64 Ki elements, on the threads when
 // there are at least 4 of them (the activations of a paper-size codebook are 4 Mi elements).
@@ -198,13 +127,8 @@ template <typename T> bool all_finite(Arr<T> x) {
     constexpr int64_t kBlock = 1 << 16;
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     bool ok = true;
-    RegionEnd end;
-#pragma omp parallel num_threads(num_threads()) reduction(&& : ok) if (parallel_work(blocks, 4))
-    {
-#pragma omp for schedule(static) nowait
-        for (int64_t b = 0; b < blocks; ++b) ok = finite_run(p + b * kBlock, std::min(kBlock, n - b * kBlock)) && ok;
-        end.arrive();
-    }
+#pragma omp parallel for schedule(static) num_threads(num_threads()) reduction(&& : ok) if (parallel_work(blocks, 4))
+    for (int64_t b = 0; b < blocks; ++b) ok = finite_run(p + b * kBlock, std::min(kBlock, n - b * kBlock)) && ok;
     return ok;
 }
 
@@ -246,17 +170,6 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
     m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
           py::arg("x").noconvert(), py::arg("codes").noconvert());
-    m.def("layernorm_forward", &layernorm_fwd_k<T>, py::arg("y").noconvert(), py::arg("xhat").noconvert(),
-          py::arg("rstd").noconvert(), py::arg("x").noconvert(), py::arg("gamma").noconvert(),
-          py::arg("beta").noconvert(), py::arg("eps"));
-    m.def("layernorm_backward", &layernorm_bwd_k<T>, py::arg("dx").noconvert(), py::arg("dgamma").noconvert(),
-          py::arg("dbeta").noconvert(), py::arg("dy").noconvert(), py::arg("xhat").noconvert(),
-          py::arg("rstd").noconvert(), py::arg("gamma").noconvert());
-    m.def("upsample2x", &upsample_k<T, true>, py::arg("y").noconvert(), py::arg("x").noconvert());
-    m.def("upsample2x_backward", &upsample_k<T, false>, py::arg("dx").noconvert(), py::arg("dy").noconvert());
-    m.def("gelu", &gelu<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
-    m.def("gelu_backward", &gelu_grad<T>, py::arg("dx").noconvert(), py::arg("dy").noconvert(),
-          py::arg("x").noconvert());
 }
 
 // What this CPU (and its operating system) can run, as the compiler's runtime reads it
@@ -286,11 +199,10 @@ PYBIND11_MODULE(PYVF_MODULE, m) {
     m.def("cpu_features", &cpu_features, "what the CPU supports: {feature: bool} (x86-64; empty elsewhere)");
     bind_dtype<float>(m);
     bind_dtype<double>(m);
-    bind_conv(m);  // conv2d kernels (conv_bind.cpp)
+    bind_gelu(m);  // gelu.cpp
+    bind_conv(m);  // conv2d and the GEMM (conv_bind.cpp)
     m.def("num_threads", &num_threads, "threads the kernels use (OpenMP; 1 without OpenMP)");
     m.def("set_num_threads", &set_num_threads, py::arg("n"));
-    m.def("oversubscribed", &oversubscribed,
-          "whether other processes keep this process's cores busy (then the kernels keep short calls on one thread)");
     m.def("set_force_parallel", [](bool on) { g_force_parallel.store(on); }, py::arg("on"),
           "tests only: while on, every kernel call with any work runs on the threads (no size threshold)");
     m.def("force_parallel", []() { return g_force_parallel.load(); });

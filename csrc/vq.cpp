@@ -110,7 +110,6 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
     int64_t reranked = 0;  // how many exact distances were computed beyond one per row
     const int64_t nblocks = (M + MB - 1) / MB;
     int failed = 0;
-    RegionEnd end;
 #pragma omp parallel num_threads(num_threads()) reduction(+ : reranked) if (parallel_work(M * K * D, (1 << 22) + 1))
     {
         std::vector<T> xs, s;  // a block of shifted rows (MB, D); its scores against a chunk (MB, KC)
@@ -240,7 +239,6 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
                 failed = 1;
             }
         }
-        end.arrive();
     }
     if (failed) throw std::bad_alloc();
     return reranked;

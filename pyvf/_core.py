@@ -123,7 +123,8 @@ def use_path(path):
     return previous
 
 
-_NOT_KERNELS = {"cpu_features", "num_threads", "set_num_threads", "openmp", "path", "simd_bytes"}
+_NOT_KERNELS = {"cpu_features", "num_threads", "set_num_threads", "openmp", "path", "simd_bytes", "force_parallel",
+                "set_force_parallel"}
 
 
 def kernels():

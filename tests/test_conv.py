@@ -7,11 +7,10 @@ every gradient); float32 against float64 on the same inputs; the parity traps sh
 (the Downsample's (0,1,0,1) padding, GroupNorm eps 1e-6, the grouping of channels, a transposed
 kernel, upsample's summing backward); hard numerical cases (constant groups, groups of mean 1e4
 and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised, a 1x1
-image); float64 central finite differences; dtypes; strided inputs; bad arguments. Then the C++
-kernels themselves (section 6): the fast conv2d against its plain-loop twin, NumPy and torch on
-every shape family and code path, 1 vs 2 vs 5 threads bitwise (forced_threads: every
-shape on the threads), float32 against float64, sizes refused;
-the fused GroupNorm + swish.
+image); float64 central finite differences; dtypes; strided inputs; GroupNorm + swish. Then the C++
+kernels (sections 6, 7, once per instruction-set path): the conv2d kernel against its plain-loop
+twin, its NumPy reference and torch on every code path, 1 vs 2 vs 5 threads bitwise; the GEMM
+against NumPy.
 
 Shapes: images (B, C, Hi, Wi), NCHW; conv weights torch's (Co, C, kh, kw). Channels 5 -> 7 for the
 convs (not multiples of 8, in != out), batch 3, odd and even image sides; 32 groups on 64 and 96
@@ -28,16 +27,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import pyvf
-from pyvf.nn.layers import matmul
 from pyvf import _core
 from pyvf.nn import conv
+from pyvf.nn.layers import matmul
 
 from conftest import assert_bitwise_equal, assert_close, forced_threads
-
-# every test here runs once per kernel path this machine executes (conftest.kernel_path): conv2d,
-# GroupNorm and swish are C++ kernels (csrc/conv.cpp, csrc/groupnorm.cpp)
-pytestmark = pytest.mark.usefixtures("kernel_path")
 
 EPS = 1e-6  # the codebook's GroupNorm eps (docs/math.md §4); torch's default is 1e-5
 G = 32  # groups of Normalize
@@ -280,32 +274,6 @@ def test_upsample_backward_sums_the_block():
     assert_bitwise_equal("dx of a one-pixel-per-block dy", conv.upsample_nearest2x_backward(dy, cache)[0], x)
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_upsample_kernel_is_bitwise_numpy_on_any_threads(rng, dtype):
-    """The kernels on 1 and 3 threads (rows past the parallel threshold, an odd width): y is
-    every pixel copied into its block (NumPy's repeat), dx the NumPy sum in its order,
-    (d00 + d01) + (d10 + d11); dy spread over 1e-20..1e20 so that another order of the four terms
-    rounds differently (checked: the order d00 + d10 + d01 + d11 gives other bits); a
-    non-contiguous x and dy are accepted."""
-    x = rng.standard_normal((2, 33, 40, 31)).astype(dtype)
-    dy = (rng.standard_normal((2, 33, 80, 62)) * 10.0 ** rng.uniform(-20, 20, (2, 33, 80, 62))).astype(dtype)
-    want_y = x.repeat(2, axis=3).repeat(2, axis=2)
-    (want_dx,) = conv.upsample_nearest2x_backward_numpy(dy, (x.shape, x.dtype))
-    d = dy.reshape(2, 33, 40, 2, 31, 2)
-    other = (d[:, :, :, 0, :, 0] + d[:, :, :, 1, :, 0]) + (d[:, :, :, 0, :, 1] + d[:, :, :, 1, :, 1])
-    assert not np.array_equal(other, want_dx)
-    for n in (1, 3):
-        with pyvf.threads(n):
-            y, cache = conv.upsample_nearest2x_forward(x)
-            assert_bitwise_equal(f"y, {n} threads", y, want_y)
-            assert_bitwise_equal(f"dx, {n} threads", conv.upsample_nearest2x_backward(dy, cache)[0], want_dx)
-            xt = np.asfortranarray(x)
-            assert_bitwise_equal(f"y of a Fortran-order x, {n} threads", conv.upsample_nearest2x_forward(xt)[0],
-                                 want_y)
-            assert_bitwise_equal(f"dx of a Fortran-order dy, {n} threads",
-                                 conv.upsample_nearest2x_backward(np.asfortranarray(dy), cache)[0], want_dx)
-
-
 # ---------------------------------------------------------------------------------------
 # 2. float32 vs float64 on the same inputs; dtypes kept
 
@@ -380,9 +348,7 @@ def test_groupnorm_constant_groups(dtype, rng):
     k = 2 * len(CONSTANTS)  # the constant channels of batch 0
     want_y = np.ascontiguousarray(np.broadcast_to(beta[:k, None, None], (k,) + x.shape[2:]))
     assert_bitwise_equal(f"y of constant groups ({dtype.__name__})", y[0, :k], want_y)
-    x_c, stats, _, G = cache  # xhat = ((x - mean) - r) * rstd per group: the kernel's operations
-    g = x_c.reshape(x_c.shape[0], G, -1)
-    xhat = (((g - stats[..., 0:1]) - stats[..., 1:2]) * stats[..., 2:3]).reshape(x_c.shape)
+    xhat = cache[0]
     zero = np.zeros_like(xhat[0, :k])
     assert_bitwise_equal("xhat of constant groups (so dgamma gets nothing)", np.abs(xhat[0, :k]), zero)
 
@@ -475,36 +441,6 @@ def test_groupnorm_large_mean_small_spread(dtype, rng):
     assert gap(y1, want[0]) > 100 * rtol, f"one-pass variance error {gap(y1, want[0]):.1e} is inside {rtol:.1e}"
 
 
-@pytest.mark.parametrize("dtype, spread", [(np.float32, 1e20), (np.float32, 1e36),
-                                           (np.float64, 1e160), (np.float64, 1e300)])
-def test_groupnorm_spread_beyond_the_dtypes_variance(dtype, spread, rng):
-    """Groups whose variance overflows the dtype (float32: spread beyond ~1.8e19) or whose sum of
-    squares overflows double too (float64 beyond ~1e154), though every y, dx and dgamma is of
-    ordinary size: the kernel computes rstd in double, rescaled by a power of two where needed
-    (it refused the group before, naming a float64 overflow even for float32). Against mpmath on
-    the same rounded inputs, the bound of test_groupnorm_large_mean_small_spread (10 u)."""
-    x = (spread * rng.standard_normal((2, 64, 3, 3))).astype(dtype)
-    groupnorm_within_10u_of_mpmath(x, G, f"spread {spread:g}", rng)
-
-
-@pytest.mark.parametrize("shape", [(2, 64, 0, 3), (2, 0, 4, 4)])
-def test_groupnorm_of_empty_groups(shape, rng):
-    """Groups with no elements (no pixels; no channels, 32 groups of 0): an empty y and dx, dgamma
-    and dbeta 0 (sums of nothing). They were refused as a float64 overflow of the variance."""
-    x = np.zeros(shape, np.float32)
-    gamma, beta = (rng.standard_normal(shape[1]).astype(np.float32) for _ in range(2))
-    y, cache = conv.groupnorm_forward(x, gamma, beta)
-    assert y.shape == shape
-    dx, dgamma, dbeta = conv.groupnorm_backward(np.zeros(shape, np.float32), cache)
-    assert dx.shape == shape and not dgamma.any() and not dbeta.any()
-
-
-def test_groupnorm_eps_beyond_the_dtype_is_refused():
-    with pytest.raises(ValueError, match="eps = 1e\\+300 overflows x's dtype float32"):
-        conv.groupnorm_forward(np.ones((1, 32, 2, 2), np.float32), np.ones(32, np.float32),
-                               np.zeros(32, np.float32), eps=1e300)
-
-
 # ---------------------------------------------------------------------------------------
 # 3. hard cases: swish's ends, every floating-point error raised
 
@@ -559,8 +495,7 @@ def test_swish_ends_raise_nothing(dtype, rng):
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_conv2d_one_pixel_image(dtype, rng):
     """A 1x1 image: 3x3 pad 1 sees only the centre tap (y = w[:, :, 1, 1] @ x + b); 1x1 pad 1 gives
-    a 3x3 output that is b on the border; the Downsample's 3x3 stride 2 on the padded 2x2 image
-    does not fit and raises. Against torch, and the centre tap by hand."""
+    a 3x3 output that is b on the border. Against torch, and the centre tap by hand."""
     x = rng.standard_normal((2, CI, 1, 1)).astype(dtype)
     rtol = RTOL32["conv2d"] if dtype == np.float32 else RTOL64
     for (kh, kw), padding in (((3, 3), 1), ((1, 1), 1), ((4, 2), (2, 1, 0, 1))):
@@ -577,9 +512,6 @@ def test_conv2d_one_pixel_image(dtype, rng):
             border = np.ones((3, 3), bool)
             border[1, 1] = False
             assert_bitwise_equal("border = b", y[:, :, border], np.broadcast_to(b[:, None], (2, CO, 8)).copy())
-    w = rng.standard_normal((CO, CI, 3, 3)).astype(dtype)
-    with pytest.raises(ValueError, match="does not fit"):
-        conv.conv2d_forward(x, w, rng.standard_normal(CO).astype(dtype), stride=2, padding=DOWN)
 
 
 # ---------------------------------------------------------------------------------------
@@ -620,82 +552,36 @@ def test_finite_differences_groupnorm(rng):
     fd_check("groupnorm", [x, f(4), f(4)], {"groups": 2}, f(x.shape))
 
 
-# ---------------------------------------------------------------------------------------
-# 5. bad arguments: TypeError for a dtype, ValueError for a shape or a value, naming the argument
-
-f64 = lambda *s: np.zeros(s)
-BAD = [
-    ("x 3-D", lambda: conv.conv2d_forward(f64(5, 4, 4), f64(7, 5, 3, 3), f64(7)), ValueError, "x must be 4-D"),
-    ("w 3-D", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3), f64(7)), ValueError, "w must be 4-D"),
-    ("channels", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 4, 3, 3), f64(7)), ValueError,
-     r"w has 4 input channels \(w.shape\[1\]\) but x has 5"),
-    ("b shape", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(5)), ValueError,
-     r"b must have shape \(7,\)"),
-    ("x int", lambda: conv.conv2d_forward(np.zeros((1, 5, 4, 4), int), f64(7, 5, 3, 3), f64(7)), TypeError,
-     "x must be float32 or float64"),
-    ("w float32", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3).astype(np.float32), f64(7)), TypeError,
-     "w is float32 but x is float64"),
-    ("padding 3", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), padding=(0, 1, 0)), ValueError,
-     "padding must be"),
-    ("padding < 0", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), padding=-1), ValueError,
-     "padding must be non-negative"),
-    ("stride 0", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), stride=0), ValueError, "stride"),
-    # beyond int64, pybind11 refused the call with its C++ signatures instead of naming the argument
-    ("stride 2^63", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), stride=2**63), ValueError,
-     "stride must be a positive int of at most 2"),
-    ("padding 2^63", lambda: conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7), padding=(0, 2**63, 0, 0)),
-     ValueError, "padding must be at most 2"),
-    ("no fit", lambda: conv.conv2d_forward(f64(1, 5, 2, 4), f64(7, 5, 3, 3), f64(7)), ValueError, "does not fit"),
-    ("dy shape", lambda: conv.conv2d_backward(f64(1, 7, 3, 3),
-                                              conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7))[1]),
-     ValueError, "dy must be"),
-    ("gn groups", lambda: conv.groupnorm_forward(f64(1, 48, 2, 2), f64(48), f64(48)), ValueError,
-     "groups=32 does not divide the 48 channels of x"),
-    ("gn x 2-D", lambda: conv.groupnorm_forward(f64(2, 64), f64(64), f64(64)), ValueError, "x must be 4-D"),
-    ("gn gamma", lambda: conv.groupnorm_forward(f64(1, 64, 2, 2), f64(32), f64(64)), ValueError,
-     "gamma must have shape"),
-    ("gn int", lambda: conv.groupnorm_forward(np.zeros((1, 64, 2, 2), np.int32), f64(64), f64(64)), TypeError,
-     "x must be float32 or float64"),
-    ("gn beta f32", lambda: conv.groupnorm_forward(f64(1, 64, 2, 2), f64(64), f64(64).astype(np.float32)), TypeError,
-     "beta is float32"),
-    ("attn wk shape", lambda: conv.attnblock_forward(f64(1, 64, 2, 2), f64(64), f64(64), f64(64, 64, 1, 1), f64(64),
-                                                     f64(32, 64, 1, 1), f64(32), f64(64, 64, 1, 1), f64(64),
-                                                     f64(64, 64, 1, 1), f64(64)), ValueError,
-     r"wk must have shape \(64, 64, 1, 1\)"),
-    ("gn eps inf", lambda: conv.groupnorm_forward(f64(1, 64, 2, 2), f64(64), f64(64), eps=float("inf")), ValueError,
-     "eps must be finite"),
-    ("swish int", lambda: conv.swish_forward(np.arange(3)), TypeError, "x must be float32 or float64"),
-    ("swish dy f32", lambda: conv.swish_backward(f64(3).astype(np.float32), conv.swish_forward(f64(3))[1]), TypeError,
-     "dy is float32"),
-    ("upsample dy f32", lambda: conv.upsample_nearest2x_backward(
-        f64(1, 2, 2, 2).astype(np.float32), conv.upsample_nearest2x_forward(f64(1, 2, 1, 1))[1]), TypeError,
-     "dy is float32"),
-    ("conv dy f32", lambda: conv.conv2d_backward(f64(1, 7, 2, 2).astype(np.float32),
-                                                 conv.conv2d_forward(f64(1, 5, 4, 4), f64(7, 5, 3, 3), f64(7))[1]),
-     TypeError, "dy is float32"),
-    ("upsample 3-D", lambda: conv.upsample_nearest2x_forward(f64(3, 4, 4)), ValueError, "x must be 4-D"),
-    ("upsample f16", lambda: conv.upsample_nearest2x_forward(f64(1, 3, 4, 4).astype(np.float16)), TypeError,
-     "x must be float32 or float64"),
-]
-
-
-def test_swish_keeps_a_0d_array_0d():
-    """The C++ swish takes C-contiguous arrays; a 0-d one is passed as is (np.ascontiguousarray
-    would make it 1-d)."""
-    y, cache = conv.swish_forward(np.array(0.5))
-    (dx,) = conv.swish_backward(np.array(1.0), cache)
-    assert y.shape == dx.shape == ()
-    assert_close("swish(0.5)", y, np.array(0.5 / (1 + np.exp(-0.5))), RTOL64)
-
-
-@pytest.mark.parametrize("call, exc, match", [b[1:] for b in BAD], ids=[b[0] for b in BAD])
-def test_bad_arguments(call, exc, match):
-    with pytest.raises(exc, match=match):
-        call()
 
 
 # ---------------------------------------------------------------------------------------
-# 6. the C++ kernels: fast conv2d vs the plain loops (double sums) vs torch, every code path
+# 5. GroupNorm + swish (ResnetBlock's norm1/norm2 + swish, norm_out + swish)
+
+
+def torch_groupnorm_swish(x, gamma, beta, groups=G, eps=EPS):
+    return F.silu(F.group_norm(x, groups, gamma, beta, eps=eps))
+
+
+LAYERS["groupnorm_swish"] = (conv.groupnorm_swish_forward, conv.groupnorm_swish_backward, torch_groupnorm_swish,
+                             ("dx", "dgamma", "dbeta"))
+RTOL32["groupnorm_swish"] = RTOL32["groupnorm"]  # swish adds a few ulp elementwise; measured <= 1.7e-7
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("C, Hi, Wi", [(64, 5, 3), (32, 9, 37)])
+def test_groupnorm_swish(C, Hi, Wi, dtype, rng):
+    """The pair against torch (F.silu(F.group_norm)) in float64 on the same inputs."""
+    _, inputs, _, dy = build(("groupnorm", C, Hi, Wi), rng, dtype)
+    z, grads, _ = pyvf_run("groupnorm_swish", inputs, {}, dy)
+    assert z.dtype == dtype
+    z_t, grads_t = torch_run("groupnorm_swish", inputs, {}, dy)
+    rtol = RTOL64 if dtype == np.float64 else RTOL32["groupnorm_swish"]
+    compare("groupnorm_swish", z, grads, z_t, grads_t, rtol, f"groupnorm+swish {C}x{Hi}x{Wi} vs torch")
+
+
+# ---------------------------------------------------------------------------------------
+# 6. the C++ conv2d: fast vs the plain loops (double sums) vs NumPy vs torch, every code path
+# (each test once per instruction-set path: conftest.kernel_path)
 
 # (B, C, Co, (Hi, Wi), (kh, kw), stride, padding): each family of the codebook and each code path of
 # csrc/conv.cpp on every kernel path (vector widths W = 4..16). C and Co are not multiples of any
@@ -756,6 +642,7 @@ def numpy_run(inputs, kwargs, dy):
     return y, conv.conv2d_backward_numpy(dy, cache)
 
 
+@pytest.mark.usefixtures("kernel_path")
 @pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
 def test_conv2d_kernel_float64(case, rng):
     """float64: fast kernel, plain loops, the NumPy path and torch agree to RTOL64 (the same sums
@@ -777,6 +664,7 @@ def test_conv2d_kernel_float64(case, rng):
 RTOL32_KERNEL = 2e-6
 
 
+@pytest.mark.usefixtures("kernel_path")
 @pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
 def test_conv2d_kernel_float32(case, rng):
     inputs, kwargs, dy = kernel_inputs(case, rng, np.float32)
@@ -790,6 +678,7 @@ def test_conv2d_kernel_float32(case, rng):
             f"{kernel_case_id(case)} f32 plain vs f64")
 
 
+@pytest.mark.usefixtures("kernel_path")
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
 def test_conv2d_kernel_threads_bitwise(case, dtype, rng):
@@ -808,228 +697,8 @@ def test_conv2d_kernel_threads_bitwise(case, dtype, rng):
             assert_bitwise_equal(f"{kernel_case_id(case)} {name}, 1 vs {n} threads", a, b)
 
 
-def test_conv2d_kernel_padding_trap(rng):
-    """The kernel itself on the Downsample (docs/math.md §4): padding=(0, 1, 0, 1) against 1 (same
-    output size on even images) and (1, 0, 1, 0) (the wrong corner): O(1) apart, while each
-    matches torch's own version of it."""
-    inputs, kwargs, dy = kernel_inputs((2, 5, 7, (8, 8), (3, 3), 2, DOWN), rng, np.float64)
-    y, _ = conv.conv2d_forward(*inputs, stride=2, padding=DOWN)
-    for wrong in (1, (1, 0, 1, 0)):
-        y_w, _ = conv.conv2d_forward(*inputs, stride=2, padding=wrong)
-        assert y_w.shape == y.shape
-        assert gap(y, y_w) > 0.1, f"padding {wrong} is only {gap(y, y_w):.1e} from (0, 1, 0, 1)"
-        y_t, _ = torch_run("conv2d", inputs, {"stride": 2, "padding": wrong}, dy)
-        assert_close(f"padding {wrong} vs torch", y_w, y_t, RTOL64)
-
-
-def test_conv2d_empty_batch():
-    """B = 0: an empty y, and zero dw, db (a sum of nothing)."""
-    x, w, b = np.zeros((0, 5, 6, 7)), np.ones((4, 5, 3, 3)), np.ones(4)
-    y, cache = conv.conv2d_forward(x, w, b, padding=1)
-    assert y.shape == (0, 4, 6, 7)
-    dx, dw, db = conv.conv2d_backward(y, cache)
-    assert dx.shape == x.shape
-    assert_bitwise_equal("dw of no images", dw, np.zeros_like(w))
-    assert_bitwise_equal("db of no images", db, np.zeros_like(b))
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("xshape, wshape, padding", [
-    ((1, 0, 4, 4), (2, 0, 3, 3), 1),        # no input channels: the backward divided by C (SIGFPE)
-    ((1, 1, 0, 4), (3, 1, 3, 3), 2),        # no rows, the padding alone fits the kernel (SIGFPE)
-    ((2, 3, 5, 0), (17, 3, 3, 3), (0, 0, 2, 1)),  # no columns, 17 output channels (whole vectors and a tail)
-])
-def test_conv2d_of_an_empty_image_is_its_bias(dtype, xshape, wshape, padding, rng):
-    """x with no elements but an output the padding makes: y = b everywhere, and the backward
-    gives an empty dx, dw = 0 (every window read only padding) and db = the sums of dy, in the
-    double sum of db's kernel. Closed forms, on a random dy and b."""
-    x, w = np.zeros(xshape, dtype), rng.standard_normal(wshape).astype(dtype)
-    b = rng.standard_normal(wshape[0]).astype(dtype)
-    y, cache = conv.conv2d_forward(x, w, b, padding=padding)
-    assert y.size > 0
-    assert_bitwise_equal("y of an empty image", y, np.broadcast_to(b[:, None, None], y.shape))
-    dy = rng.standard_normal(y.shape).astype(dtype)
-    dx, dw, db = conv.conv2d_backward(dy, cache)
-    assert dx.shape == x.shape and dw.shape == w.shape
-    assert not dw.view(np.uint8).any(), "dw of an empty image: not +0 everywhere"  # (also when w is empty)
-    want = dy.astype(np.float64).sum(axis=(0, 2, 3))  # at most 2 * 8 * 5 terms: exact enough
-    assert_close("db of an empty image", db, want, 2 * np.finfo(dtype).eps)
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_conv2d_backward_reads_nothing_stale(dtype, rng):
-    """The backward's work buffers (dy channels-last with zero padding pixels for the dw tasks, the
-    flipped weights for dx) are not zeroed when allocated: the kernel writes every element its
-    tasks read. A backward of an all-NaN dy (which raises) leaves NaN in the buffers it frees, and
-    the next call of the same shape mostly gets them back from the allocator: its gradients must
-    be bitwise those of the first call, which match the plain loops. (With the padding pixels'
-    zeros left out of the preparation, that next call raised: dw not finite.)"""
-    for B, C, Co, H, Wd in [(2, 8, 16, 9, 9), (1, 3, 32, 5, 12), (2, 16, 24, 17, 7)]:
-        x, dy = rng.standard_normal((B, C, H, Wd)).astype(dtype), rng.standard_normal((B, Co, H, Wd)).astype(dtype)
-        w = rng.standard_normal((Co, C, 3, 3)).astype(dtype)
-        want = [np.empty_like(a) for a in (x, w, w[:, 0, 0, 0])]  # dx, dw, db
-        _core.conv2d_backward_plain(*want, x, w, dy, 1, 1, 1, 1, 1)
-        first = [np.empty_like(a) for a in want]
-        _core.conv2d_backward(*first, x, w, dy, 1, 1, 1, 1, 1)
-        for name, g, r in zip(("dx", "dw", "db"), first, want):
-            assert_close(f"{name} {(B, C, Co, H, Wd)} vs plain", g, r, RTOL64 if dtype == np.float64 else RTOL32_KERNEL)
-        nan, got = np.full_like(dy, np.nan), [np.empty_like(a) for a in want]
-        for _ in range(3):
-            with pytest.raises(ValueError, match="not finite"):
-                _core.conv2d_backward(*got, x, w, nan, 1, 1, 1, 1, 1)
-            _core.conv2d_backward(*got, x, w, dy, 1, 1, 1, 1, 1)
-            for name, g, f in zip(("dx", "dw", "db"), got, first):
-                assert_bitwise_equal(f"{name} {(B, C, Co, H, Wd)} after a NaN call", g, f)
-
-
-def test_conv2d_backward_wide_channel_blocks(rng):
-    """From 128 input channels on, the dw tasks take blocks of 16 channels instead of 8 (130: eight
-    full blocks and one of 2), with the tiles of 8 channels: a dw element's sums do not depend on
-    the block it falls in. So dw[:, :120] of a 130-channel layer is bitwise the dw of its first
-    120 channels alone (blocks of 8); the image is wide and tall enough (125 x 40) that tiles of
-    16 channels would cut its rows elsewhere. Also: the plain loops in float64, and 1, 2, 5
-    threads bitwise."""
-    B, C, Co, H, Wd = 1, 130, 16, 40, 125
-    x = rng.standard_normal((B, C, H, Wd)).astype(np.float32)
-    w = rng.standard_normal((Co, C, 3, 3)).astype(np.float32)
-    dy = rng.standard_normal((B, Co, H, Wd)).astype(np.float32)
-
-    def backward(x, w, dy, n=1):
-        out = [np.empty_like(a) for a in (x, w, w[:, 0, 0, 0])]
-        with forced_threads(n):
-            _core.conv2d_backward(*out, x, w, dy, 1, 1, 1, 1, 1)
-        return out
-
-    dx, dw, db = backward(x, w, dy)
-    _, dw120, _ = backward(np.ascontiguousarray(x[:, :120]), np.ascontiguousarray(w[:, :120]), dy)
-    assert_bitwise_equal("dw of the first 120 channels, in a 130-channel layer vs alone", dw[:, :120], dw120)
-    for n in (2, 5):
-        for name, a, b in zip(("dx", "dw", "db"), (dx, dw, db), backward(x, w, dy, n)):
-            assert_bitwise_equal(f"{name}, 1 vs {n} threads", a, b)
-    x64, w64, dy64 = (a.astype(np.float64) for a in (x, w, dy))
-    want = [np.empty_like(a) for a in (x64, w64, w64[:, 0, 0, 0])]
-    _core.conv2d_backward_plain(*want, x64, w64, dy64, 1, 1, 1, 1, 1)
-    for name, g, r in zip(("dx", "dw", "db"), backward(x64, w64, dy64, 2), want):
-        assert_close(f"{name} float64 vs plain", g, r, RTOL64)
-
-
-BIG = [  # sizes past the kernels' int indexing, on arrays with no elements (B = 0 or Co = 0)
-    ("x", dict(x=(0, 1, 50_000, 50_000), w=(1, 1, 1, 1), padding=0), r"x: Hi\*Wi = 2500000000"),
-    ("w", dict(x=(0, 2 ** 28, 1, 1), w=(0, 2 ** 28, 3, 3), padding=1), r"w: C\*kh\*kw = 2415919104"),
-    ("padding", dict(x=(0, 1, 1, 1), w=(1, 1, 1, 1), padding=2 ** 16), r"padding: Ho\*Wo"),
-]
-
-
-@pytest.mark.parametrize("what, sizes, match", BIG, ids=[b[0] for b in BIG])
-def test_conv2d_refuses_int_overflow(what, sizes, match):
-    x, w = np.zeros(sizes["x"], np.float32), np.zeros(sizes["w"], np.float32)
-    with pytest.raises(ValueError, match=match):
-        conv.conv2d_forward(x, w, np.zeros(w.shape[0], np.float32), padding=sizes["padding"])
-
-
-def test_conv2d_bindings_refuse_bad_arrays(rng):
-    """The bindings (pyvf._core) check again: a wrong output shape is a ValueError, a wrong dtype
-    or a non-C-contiguous array a TypeError (never a silent copy or cast)."""
-    x, w, b = rng.standard_normal((2, 3, 5, 5)), rng.standard_normal((4, 3, 3, 3)), rng.standard_normal(4)
-    with pytest.raises(ValueError, match="y must have shape"):
-        _core.conv2d_forward(np.empty((2, 4, 5, 4)), x, w, b, 1, 1, 1, 1, 1)
-    with pytest.raises(TypeError):
-        _core.conv2d_forward(np.empty((2, 4, 5, 5)), x[:, :, :, ::-1], w, b, 1, 1, 1, 1, 1)
-    with pytest.raises(TypeError):
-        _core.conv2d_forward(np.empty((2, 4, 5, 5)), x.astype(np.float32), w, b, 1, 1, 1, 1, 1)
-    with pytest.raises(ValueError, match="dw must have shape"):
-        _core.conv2d_backward(np.empty_like(x), np.empty((4, 3, 3, 2)), np.empty(4), x, w,
-                              np.empty((2, 4, 5, 5)), 1, 1, 1, 1, 1)
-
-
 # ---------------------------------------------------------------------------------------
-# 7. GroupNorm + swish, fused (ResnetBlock's norm1/norm2 + swish, norm_out + swish)
-
-
-def torch_groupnorm_swish(x, gamma, beta, groups=G, eps=EPS):
-    return F.silu(F.group_norm(x, groups, gamma, beta, eps=eps))
-
-
-LAYERS["groupnorm_swish"] = (conv.groupnorm_swish_forward, conv.groupnorm_swish_backward, torch_groupnorm_swish,
-                             ("dx", "dgamma", "dbeta"))
-RTOL32["groupnorm_swish"] = RTOL32["groupnorm"]  # swish adds a few ulp elementwise; measured <= 1.7e-7
-GN_CASES = [(64, 5, 3), (96, 4, 4), (32, 9, 37)]  # 2, 3, 1 channels per group; pixels not a vector multiple
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("C, Hi, Wi", GN_CASES)
-def test_groupnorm_swish_fused(C, Hi, Wi, dtype, rng):
-    """The fused pair against torch (F.silu(F.group_norm)) in float64 on the same inputs, and
-    bitwise against the unfused pyvf pair (the same operations), forward and backward."""
-    _, inputs, _, dy = build(("groupnorm", C, Hi, Wi), rng, dtype)
-    z, grads, cache = pyvf_run("groupnorm_swish", inputs, {}, dy)
-    assert z.dtype == dtype and len(cache) == 5
-    z_t, grads_t = torch_run("groupnorm_swish", inputs, {}, dy)
-    rtol = RTOL64 if dtype == np.float64 else RTOL32["groupnorm_swish"]
-    compare("groupnorm_swish", z, grads, z_t, grads_t, rtol, f"groupnorm+swish {C}x{Hi}x{Wi} vs torch")
-    y, c_gn = conv.groupnorm_forward(*inputs)
-    z2, c_sw = conv.swish_forward(y)
-    (dy2,) = conv.swish_backward(dy, c_sw)
-    grads2 = conv.groupnorm_backward(dy2, c_gn)
-    assert_bitwise_equal("fused z vs swish(groupnorm)", z, z2)
-    for name, a, b in zip(("dx", "dgamma", "dbeta"), grads, grads2):
-        assert_bitwise_equal(f"fused {name} vs the unfused pair", a, b)
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_groupnorm_swish_constant_groups(dtype, rng):
-    """A constant group normalises to exactly beta, so the fused output there is exactly
-    swish(beta), whatever the constant (1e4 + 0.3, 123456.789: not dyadic)."""
-    x = constant_group_images(rng, dtype)
-    C = x.shape[1]
-    gamma, beta = (rng.standard_normal(C).astype(dtype) for _ in range(2))
-    z, _ = conv.groupnorm_swish_forward(x, gamma, beta)
-    k = 2 * len(CONSTANTS)
-    want = conv.swish_forward(np.ascontiguousarray(np.broadcast_to(beta[:k, None, None], (k,) + x.shape[2:])))[0]
-    assert_bitwise_equal(f"z of constant groups ({dtype.__name__})", z[0, :k], want)
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_groupnorm_swish_kernels_vs_numpy(dtype, rng):
-    """The C++ GroupNorm and swish against the NumPy versions kept in pyvf/nn/conv.py (the same
-    formulas; C++ sums in float64 where NumPy sums pairwise in the dtype): within the float32
-    tolerances of section 2, RTOL64 in float64."""
-    _, inputs, _, dy = build(("groupnorm", 96, 4, 4), rng, dtype)
-    rtol = RTOL64 if dtype == np.float64 else RTOL32["groupnorm"]
-    y, c = conv.groupnorm_forward(*inputs)
-    y_n, c_n = conv.groupnorm_forward_numpy(*inputs)
-    assert_close("groupnorm y vs numpy", y, y_n, rtol)
-    for name, a, b in zip(("dx", "dgamma", "dbeta"), conv.groupnorm_backward(dy, c), conv.groupnorm_backward_numpy(dy, c_n)):
-        assert_close(f"groupnorm {name} vs numpy", a, b, rtol)
-    x, ds = ((6 * rng.standard_normal((2, 4, 5, 3))).astype(dtype) for _ in range(2))
-    rtol = RTOL64 if dtype == np.float64 else RTOL32["swish"]
-    s, c = conv.swish_forward(x)
-    assert_close("swish vs numpy", s, conv.swish_forward_numpy(x)[0], rtol)
-    assert_close("swish' vs numpy", conv.swish_backward(ds, c)[0], conv.swish_backward_numpy(ds, c)[0], rtol)
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_groupnorm_swish_threads_bitwise(dtype, rng):
-    """GroupNorm (+ swish) and swish: 1 and 2 threads give the same bits (tasks per (image, group),
-    dgamma/dbeta summed per image, then over images in order)."""
-    _, inputs, _, dy = build(("groupnorm", 64, 24, 24), rng, dtype)  # 73728 elements: threads start
-    before = pyvf.num_threads()
-    try:
-        out = {}
-        for n in (1, 2):
-            pyvf.set_num_threads(n)
-            z, grads, _ = pyvf_run("groupnorm_swish", inputs, {}, dy)
-            y, c = conv.groupnorm_forward(*inputs)
-            s, c_s = conv.swish_forward(y)
-            out[n] = [z, *grads, y, *conv.groupnorm_backward(dy, c), s, *conv.swish_backward(dy, c_s)]
-    finally:
-        pyvf.set_num_threads(before)
-    for i, (a, b) in enumerate(zip(out[1], out[2])):
-        assert_bitwise_equal(f"output {i}, 1 vs 2 threads", a, b)
-
-
-# ---------------------------------------------------------------------------------------
-# 7. pyvf's GEMM (csrc/conv.cpp matmul_batched: the AttnBlock's products, the transformer's linear
+# 7. pyvf's GEMM (once per instruction-set path) (csrc/conv.cpp matmul_batched: the AttnBlock's products, the transformer's linear
 # layers and tied logits) against NumPy in float64
 
 # (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16, the packed
@@ -1060,6 +729,7 @@ def _operands(rng, case, ta, tb, dtype, draw=None):
     return a, b, want
 
 
+@pytest.mark.usefixtures("kernel_path")
 @pytest.mark.parametrize("tb", [False, True])
 @pytest.mark.parametrize("ta", [False, True])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
@@ -1089,6 +759,7 @@ def test_matmul_kernel(case, dtype, ta, tb, rng):
         assert not c.any(), "a sum of no products must be 0"
 
 
+@pytest.mark.usefixtures("kernel_path")
 @pytest.mark.parametrize("ta, tb", [(False, False), (True, False), (False, True), (True, True)])
 def test_matmul_kernel_exact_on_integers(ta, tb, rng):
     """Small integers make every partial sum exact in float32 (|sum| <= 3 * 3 * 800 < 2^24), so
@@ -1101,13 +772,13 @@ def test_matmul_kernel_exact_on_integers(ta, tb, rng):
         np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32), err_msg=str(case))
 
 
+@pytest.mark.usefixtures("kernel_path")
 @pytest.mark.parametrize("tb", [False, True])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
     """c = op(a) @ op(b) + bias: the bias is added to each element after its whole sum, one
     rounding, so the result is bitwise the kernel's product + bias in NumPy (across block, chunk
-    and tile edges, 1 and 2 threads); K = 0 gives the bias itself; a bias of another length is
-    refused."""
+    and tile edges, 1 and 2 threads); K = 0 gives the bias itself."""
     for case in [(2, 101, 203, 300), (1, 37, 45, 2100)]:  # the second split along k: the bias after the parts
         a, b, _ = _operands(rng, case, False, tb, dtype)
         bias = rng.standard_normal(case[2]).astype(dtype)
@@ -1120,10 +791,9 @@ def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
     c = np.full((1, 3, 4), np.nan, dtype=dtype)
     _core.matmul(c, np.zeros((1, 3, 0), dtype), np.zeros((1, 0, 4), dtype), False, False, bias[:4])
     np.testing.assert_array_equal(c, np.broadcast_to(bias[:4], (1, 3, 4)))
-    with pytest.raises(ValueError, match="bias must have shape"):
-        _core.matmul(c, np.zeros((1, 3, 2), dtype), np.zeros((1, 2, 4), dtype), False, False, bias[:5])
 
 
+@pytest.mark.usefixtures("kernel_path")
 def test_matmul_layers_helper(rng):
     """pyvf.nn.layers.matmul, the entry the linear layers, the logits and the AttnBlock use: each
     transpose flag against NumPy in float64 on 2-D and batched operands, and a non-contiguous
@@ -1136,6 +806,7 @@ def test_matmul_layers_helper(rng):
     assert_close("a @ b", matmul(a[:, :30], b.T[:30]), a[:, :30] @ b.T[:30], rtol=1e-13)
 
 
+@pytest.mark.usefixtures("kernel_path")
 def test_matmul_kernel_would_catch_a_transpose(rng):
     """The oracle tells a transposed operand apart (square sizes, where shapes cannot)."""
     a, b = rng.standard_normal((2, 2, 9, 9))
@@ -1143,171 +814,3 @@ def test_matmul_kernel_would_catch_a_transpose(rng):
     assert gap(matmul(a, b, ta=True), good) > 0.1
     assert gap(_mm(a, b, False, True), good) > 0.1
     assert_close("matmul square", good, a @ b, rtol=1e-13)
-
-
-def test_matmul_kernel_refuses_bad_arguments():
-    a, b = np.zeros((2, 3, 4)), np.zeros((2, 4, 5))
-    with pytest.raises(TypeError):  # one dtype, never cast
-        _core.matmul(np.zeros((2, 3, 5)), a.astype(np.float32), b, False)
-    with pytest.raises(ValueError, match="b must have shape"):
-        _core.matmul(np.zeros((2, 3, 5)), a, np.zeros((2, 3, 5)), False)
-    with pytest.raises(ValueError, match=r"b must have shape \(batch, N, K\) with a's batch 2 and K = 4, got \(2, 4, 5\)"):
-        _core.matmul(np.zeros((2, 3, 5)), a, b, False, True)
-    with pytest.raises(ValueError, match=r"c must have shape \(batch, M, N\) = \(2, 3, 5\), got \(2, 3, 4\)"):
-        _core.matmul(np.zeros((2, 3, 4)), a, b, False)
-    with pytest.raises(ValueError, match=r"bias must have shape \(N,\) = \(5,\), got \(4,\)"):
-        _core.matmul(np.zeros((2, 3, 5)), a, b, False, False, np.zeros(4))
-    with pytest.raises(ValueError, match="c must have shape"):
-        _core.matmul(np.zeros((2, 3, 4)), a, b, False)
-    with pytest.raises(ValueError, match="3-D"):
-        _core.matmul(np.zeros((3, 5)), a, b, False)
-
-
-# ---------------------------------------------------------------------------------------
-# 8. overflow: finite inputs whose result exceeds the dtype raise, naming the layer and output
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_outputs_that_overflow_raise(dtype, rng):
-    """Every layer checks what it returns: a conv whose sums pass the dtype's largest number, a
-    GroupNorm whose gamma scales xhat past it, and a backward whose dy does, raise ValueError
-    naming the function and the output, instead of returning inf. Just below, the same layers
-    return finite numbers (so the check is not simply refusing large inputs)."""
-    big = np.finfo(dtype).max
-    x = rng.uniform(0.5, 1.0, (1, 4, 6, 6)).astype(dtype)
-    w = np.full((3, 4, 3, 3), dtype(big / 20), dtype)  # up to 36 positive terms of x * w: > max
-    b = np.zeros(3, dtype)
-    with pytest.raises(ValueError, match="conv2d_forward: y is not finite"):
-        conv.conv2d_forward(x, w, b, padding=1)
-    y, cache = conv.conv2d_forward(x, w / dtype(64), b, padding=1)  # <= 36/64 of max: finite
-    assert np.isfinite(y).all()
-    with pytest.raises(ValueError, match="conv2d_backward: dx is not finite"):
-        conv.conv2d_backward(np.full(y.shape, dtype(64), dtype), cache)  # dx sums 27 terms of 64 * w/64 * ...
-
-    # dw and db, each the only output that overflows (the kernels check them as they write them,
-    # dx before dw before db); the reference kernel (_plain) checks the same outputs
-    small = np.full((3, 4, 3, 3), dtype(1e-3), dtype)
-    cases = {"dw": (x * dtype(big / 8), small, dtype(1)),          # dw sums 36 terms of ~big/8
-             "db": (x * dtype(1e-3), small, dtype(big / 8))}       # db sums 36 terms of big/8
-    for name, (xo, wo, g) in cases.items():
-        y, cache = conv.conv2d_forward(xo, wo, b, padding=1)
-        dy = np.full(y.shape, g, dtype)
-        with pytest.raises(ValueError, match=f"conv2d_backward: {name} is not finite: it overflowed"):
-            conv.conv2d_backward(dy, cache)
-        for kernel in (_core.conv2d_backward, _core.conv2d_backward_plain):
-            outs = np.empty_like(xo), np.empty_like(wo), np.empty_like(b)
-            with pytest.raises(ValueError, match=f"conv2d_backward: {name} is not finite"):
-                kernel(*outs, xo, wo, dy, 1, 1, 1, 1, 1)
-        finite = conv.conv2d_backward(dy / dtype(64), cache)  # 36/64 of the largest: finite
-        assert all(np.isfinite(a).all() for a in finite)
-
-    xg = rng.standard_normal((2, 64, 5, 5)).astype(dtype)
-    gamma, beta = np.full(64, big, dtype), np.zeros(64, dtype)  # mean xhat^2 ~ 1: some |xhat| > 1
-    with pytest.raises(ValueError, match="groupnorm_forward: y is not finite"):
-        conv.groupnorm_forward(xg, gamma, beta)
-    with pytest.raises(ValueError, match="groupnorm_forward: y is not finite"):
-        conv.groupnorm_swish_forward(xg, gamma, beta)
-    yg, cg = conv.groupnorm_forward(xg, gamma / dtype(1e6), beta)
-    assert np.isfinite(yg).all()
-
-
-# ---------------------------------------------------------------------------------------
-# 9. NaN or inf in an input: conv2d and GroupNorm scan their inputs only when an output is not
-# finite (pyvf/nn/conv.py's _after_kernel); the error names the input all the same
-
-
-CONV_SHAPES = [  # (x shape, w shape, stride, padding): the codebook's three kinds
-    ((2, 5, 7, 6), (4, 5, 3, 3), 1, 1),
-    ((2, 5, 8, 8), (4, 5, 3, 3), 2, (0, 1, 0, 1)),
-    ((2, 5, 4, 3), (4, 5, 1, 1), 1, 0),
-]
-
-
-def _spoil(a, rng, bad):
-    """a copy of a with `bad` at a random element, or at its first or last one"""
-    a = a.copy()
-    where = rng.integers(3)
-    flat = a.reshape(-1)
-    flat[[0, flat.size - 1, rng.integers(flat.size)][where]] = bad
-    return a
-
-
-@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("shape", CONV_SHAPES, ids=["3x3", "3x3 stride 2", "1x1"])
-def test_conv_names_the_input_that_holds_nan_or_inf(shape, dtype, bad, rng):
-    """Any element of x, w, b (forward) or dy (backward) that is NaN or inf raises ValueError
-    '<name> contains NaN or inf', although the inputs are scanned only after an output came out
-    not finite: every element of each is read by some output of these shapes."""
-    xs, ws, stride, padding = shape
-    x, w, b = (rng.standard_normal(s).astype(dtype) for s in (xs, ws, (ws[0],)))
-    args = dict(x=x, w=w, b=b)
-    for _ in range(4):  # random positions, the first and the last elements among them
-        for name in args:
-            spoilt = dict(args, **{name: _spoil(args[name], rng, bad)})
-            with pytest.raises(ValueError, match=f"^{name} contains NaN or inf"):
-                conv.conv2d_forward(spoilt["x"], spoilt["w"], spoilt["b"], stride, padding)
-        y, cache = conv.conv2d_forward(x, w, b, stride, padding)
-        dy = rng.standard_normal(y.shape).astype(dtype)
-        with pytest.raises(ValueError, match="^dy contains NaN or inf"):
-            conv.conv2d_backward(_spoil(dy, rng, bad), cache)
-
-
-@pytest.mark.parametrize("bad", [np.nan, np.inf])
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("swish", [False, True])
-def test_groupnorm_names_the_input_that_holds_nan_or_inf(swish, dtype, bad, rng):
-    fwd = conv.groupnorm_swish_forward if swish else conv.groupnorm_forward
-    bwd = conv.groupnorm_swish_backward if swish else conv.groupnorm_backward
-    x = rng.standard_normal((2, 64, 3, 5)).astype(dtype)
-    gamma, beta = (rng.standard_normal(64).astype(dtype) for _ in range(2))
-    args = dict(x=x, gamma=gamma, beta=beta)
-    for _ in range(4):
-        for name in args:
-            spoilt = dict(args, **{name: _spoil(args[name], rng, bad)})
-            with pytest.raises(ValueError, match=f"^{name} contains NaN or inf"):
-                fwd(spoilt["x"], spoilt["gamma"], spoilt["beta"])
-        y, cache = fwd(x, gamma, beta)
-        with pytest.raises(ValueError, match=f"^{'dz' if swish else 'dy'} contains NaN or inf"):  # bwd's own argument
-            bwd(_spoil(rng.standard_normal(y.shape).astype(dtype), rng, bad), cache)
-
-
-@pytest.mark.parametrize("xs, ws, stride, padding, where", [
-    ((1, 2, 4, 4), (3, 2, 1, 1), 2, 0, (0, 1, 1, 1)),  # a stride past the kernel skips odd pixels
-    ((1, 2, 6, 6), (3, 2, 3, 3), 2, 0, (0, 0, 5, 2)),  # the last window ends before the last row
-    ((0, 2, 4, 4), (3, 2, 3, 3), 1, 1, None),          # an empty batch reads no w
-    ((1, 2, 4, 4), (0, 2, 3, 3), 1, 1, (0, 1, 2, 3)),  # no output channels read no x
-])
-def test_conv_scans_inputs_first_where_some_are_not_read(xs, ws, stride, padding, where, rng):
-    """Where no output reads an element of x (or any of w, b), its NaN could not show in y: those
-    calls scan the inputs first, so the NaN still raises naming x (or w)."""
-    x, w, b = rng.standard_normal(xs), rng.standard_normal(ws), rng.standard_normal(ws[0])
-    name = "x" if where else "w"
-    if where:
-        x[where] = np.nan
-    else:
-        w[0, 0, 0, 0] = np.nan
-    with pytest.raises(ValueError, match=f"^{name} contains NaN or inf"):
-        conv.conv2d_forward(x, w, b, stride, padding)
-    if where and ws[0] > 0:  # the kernel alone would not have seen it (y unchanged by it)
-        x[where] = 0.0
-        y_clean = conv.conv2d_forward(x, w, b, stride, padding)[0]
-        x[where] = 1e30
-        assert_bitwise_equal("y with the unread element changed", conv.conv2d_forward(x, w, b, stride, padding)[0], y_clean)
-
-
-def test_attnblock_logits_that_overflow_are_named_as_such(rng):
-    """q.k / sqrt(C) beyond float32 (finite x, weights wq = wk = 1e19 I): the softmax's s - max s
-    gave inf - inf = NaN, and the error came from the next conv as "x contains NaN or inf",
-    blaming an input the user never passed. Now the logits are named; with wq = wk = I the
-    same block runs (the boundary)."""
-    C = 32
-    x = rng.standard_normal((1, C, 4, 4)).astype(np.float32)
-    eye = np.eye(C, dtype=np.float32)[:, :, None, None]
-    zeros, ones = np.zeros(C, np.float32), np.ones(C, np.float32)
-    w = (rng.standard_normal((C, C, 1, 1)) / np.sqrt(C)).astype(np.float32)
-    args = lambda big: (x, ones, zeros, big * eye, zeros, big * eye, zeros, w, zeros, w, zeros)
-    y, _ = conv.attnblock_forward(*args(np.float32(1)))
-    assert np.isfinite(y).all()
-    with pytest.raises(ValueError, match="attention logits .* overflow float32"):
-        conv.attnblock_forward(*args(np.float32(1e19)))

@@ -28,9 +28,6 @@ from pyvf.nn import layers
 
 from conftest import assert_bitwise_equal, assert_close
 
-# every test here runs once per kernel path this machine executes (conftest.kernel_path)
-pytestmark = pytest.mark.usefixtures("kernel_path")
-
 U32 = 2.0 ** -24  # float32 unit roundoff
 U64 = 2.0 ** -53  # float64 unit roundoff
 EPS = 1e-5  # LayerNorm eps, inside the square root (docs/math.md §3)
@@ -379,19 +376,6 @@ def test_layernorm_extreme_scale(dtype, scale, rng):
         assert_close(f"{what} (rows of {scale:g}, {dtype.__name__})", got, w, rtol)
 
 
-def test_layernorm_of_a_row_whose_sum_overflows_float64(rng):
-    """float64 rows near the largest value: their sum overflows, their mean does not (it was
-    refused: "mean(x) or x - mean(x) overflows"). The mean is then taken of x 2^-k; against
-    mpmath with the bound of test_layernorm_extreme_scale."""
-    M = np.finfo(np.float64).max / 2
-    x = np.array([[M, M, M, M / 2], *(M * rng.uniform(0.2, 0.9, (3, 4)))])
-    gamma, beta, dy = (rng.standard_normal(s) for s in (4, 4, x.shape))
-    y, cache = layers.layernorm_forward(x, gamma, beta)
-    grads = layers.layernorm_backward(dy, cache)
-    for what, got, w in zip(("y", "dx", "dgamma", "dbeta"), (y, *grads), layernorm_mp(x, gamma, beta, dy)):
-        assert_close(f"{what} (rows summing beyond float64)", got, w, RTOL64)
-
-
 # ---------------------------------------------------------------------------------------
 # 3. hard cases: GELU's ends
 
@@ -446,6 +430,7 @@ def assert_ulps(what, x, ulps, bound):
                     f"{ulps[worst]:.1f} ulp > {bound[worst]:.1f}; first bad x: {[float(v) for v in x[bad[:5]]]}")
 
 
+@pytest.mark.usefixtures("kernel_path")  # a C++ kernel: once per instruction-set path
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_gelu_kernel_equals_its_numpy_reference(dtype, rng):
     """The C++ GELU against layers.gelu_forward_numpy / gelu_backward_numpy (float64 erfc,
@@ -482,6 +467,7 @@ def test_gelu_tail_within_its_conditioning(dtype):
     assert_ulps(f"gelu' {dtype.__name__} tail", x, udx, cond + sdx)
 
 
+@pytest.mark.usefixtures("kernel_path")  # a C++ kernel: once per instruction-set path
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_gelu_tail_few_ulp(dtype):
     """The kernel header's claim: erfc "keeps full relative accuracy down to the underflow". Few
@@ -513,34 +499,22 @@ def test_naive_erf_form_is_useless_in_the_tail():
     assert (uy > 4 + 2 * x ** 2 + sy).mean() > 0.9  # the conditioning bound above rejects it almost everywhere
 
 
-def test_gelu_float32_lanes_within_4_ulp():
-    """The float32 kernel's float-lane path (x >= -3, csrc/elementwise.cpp): polynomials fitted to
-    3e-8 relative, exp about 1 ulp, and a few roundings: bound 4 ulp for gelu, and for
-    gelu' = Phi + x phi 4 u (Phi + |x| phi) -- relative to its terms, since the sum cancels at its
-    root x = -0.7518 (any float32 sum loses as much there; torch's does). Against mpmath on a grid
-    over [-3, 7] with the piece boundaries (+-X0, +-3, 6) and their neighbours, once in order
-    (every vector in the float lanes) and once shuffled among x < -3 values (vectors that take the
-    double path with lanes of the main range). Measured (AMD EPYC): avx2 2.41 ulp (gelu) and 2.02 u
-    (gelu'), baseline (no FMA) 1.86 and 1.60."""
+def test_gelu_float32_within_4_ulp():
+    """float32 GELU over [-3, 7] (the bulk of any activation), evaluated in double and rounded once:
+    bound 4 ulp for gelu, and for gelu' = Phi + x phi 4 u (Phi + |x| phi) -- relative to its terms,
+    since the sum cancels at its root x = -0.7518 (any float32 sum loses as much there)."""
     f32 = np.float32
-    edges = np.array([0.6744897501960817, 1.5, 3.0, 6.0], f32)
-    near = np.concatenate([np.nextafter(edges, f32(np.inf) * s) for s in (-1, 1)] + [edges])
-    grid = np.concatenate([np.linspace(-3, 7, 1601, dtype=f32), near, -near[np.abs(near) <= 3]])
+    grid = np.linspace(-3, 7, 1601, dtype=f32)
     want = [gelu_mp(v) for v in grid]
     Y = np.array([float(w[0]) for w in want])
     D = np.array([float(w[1]) for w in want])
     terms = np.array([float(w[2] + abs(mpmath.mpf(float(v))) * mpmath.npdf(float(v))) for w, v in zip(want, grid)])
-    rng = np.random.default_rng(7)
-    order = rng.permutation(2 * grid.size)
-    mixed = np.concatenate([grid, rng.uniform(-9, -3.5, grid.size).astype(f32)])[order]
-    for x, pick in ((grid, slice(None)), (mixed, np.argsort(order)[:grid.size])):
-        _, y, dx = run_gelu(x, np.float32)
-        y, dx = y[pick].astype(np.float64), dx[pick].astype(np.float64)
-        uy = np.abs(y - Y) / np.spacing(np.abs(Y).astype(f32)).astype(np.float64)
-        ud = np.abs(dx - D) / (terms * 2.0 ** -24)
-        assert_ulps("gelu float32 lanes", grid, uy, np.full(grid.size, 4.0))
-        assert_ulps("gelu' float32 lanes (u of the terms)", grid, ud, np.full(grid.size, 4.0))
-        assert uy.max() > 0.4  # the comparison resolves rounding: not all exact by accident
+    _, y, dx = run_gelu(grid, np.float32)
+    uy = np.abs(y.astype(np.float64) - Y) / np.spacing(np.abs(Y).astype(f32)).astype(np.float64)
+    ud = np.abs(dx.astype(np.float64) - D) / (terms * 2.0 ** -24)
+    assert_ulps("gelu float32", grid, uy, np.full(grid.size, 4.0))
+    assert_ulps("gelu' float32 (u of the terms)", grid, ud, np.full(grid.size, 4.0))
+    assert uy.max() > 0.1  # the comparison resolves rounding: not all exact by accident
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
@@ -680,7 +654,7 @@ def test_strided_inputs(case, rng):
 
 
 def test_gelu_threaded_path_is_bitwise_the_serial_one(rng):
-    """The kernel goes parallel above 65536 elements (here on 3 threads); chunks of 50000 run
+    """The kernel goes parallel above 16384 elements (here on 3 threads); chunks of 10000 run
     serially. Elementwise, threading must not change a bit."""
     saved = pyvf.num_threads()
     try:
@@ -690,7 +664,7 @@ def test_gelu_threaded_path_is_bitwise_the_serial_one(rng):
             x, dy = (4 * rng.standard_normal(n)).astype(dtype), rng.standard_normal(n).astype(dtype)
             y, cache = layers.gelu_forward(x)
             (dx,) = layers.gelu_backward(dy, cache)
-            chunks = [np.s_[i:i + 50000] for i in range(0, n, 50000)]
+            chunks = [np.s_[i:i + 10000] for i in range(0, n, 10000)]
             y_serial = [layers.gelu_forward(x[c])[0] for c in chunks]
             dx_serial = [layers.gelu_backward(dy[c], layers.gelu_forward(x[c])[1])[0] for c in chunks]
             assert_bitwise_equal(f"gelu y {dtype.__name__}", y, np.concatenate(y_serial))
@@ -703,6 +677,7 @@ def test_gelu_threaded_path_is_bitwise_the_serial_one(rng):
 # the finiteness scan every layer's checks use (csrc/module.cpp all_finite)
 
 
+@pytest.mark.usefixtures("kernel_path")  # a C++ kernel: once per instruction-set path
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_all_finite_finds_every_nonfinite_position(dtype):
     """The scan runs four vector accumulators over blocks of 2^16 elements, the blocks on the
@@ -725,64 +700,3 @@ def test_all_finite_finds_every_nonfinite_position(dtype):
                 y = x.copy()
                 y[pos] = bad
                 assert not _checks.all_finite(y), (n, pos, bad)
-
-
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_layernorm_threads_bitwise_and_accurate(dtype, rng, kernel_path):
-    """The kernel's rows go to the threads in fixed blocks of 16, and dgamma, dbeta are summed per
-    block and then in block order: 1003 rows of 257 (63 blocks, a ragged last one) give bitwise
-    the same y, dx, dgamma, dbeta on 1, 2 and 3 threads; and they equal a float64 NumPy evaluation
-    of the formula (rows of mean up to 30 times their spread, so that the centring matters) to
-    RTOL32 / RTOL64."""
-    M, d = 1003, 257
-    x = (rng.uniform(-30, 30, (M, 1)) + rng.standard_normal((M, d))).astype(dtype)
-    gamma, beta, dy = (rng.standard_normal(s).astype(dtype) for s in (d, d, (M, d)))
-    saved, runs = pyvf.num_threads(), []
-    try:
-        for threads in (1, 2, 3):
-            pyvf.set_num_threads(threads)
-            y, cache = layers.layernorm_forward(x, gamma, beta)
-            runs.append((y, *layers.layernorm_backward(dy, cache)))
-    finally:
-        pyvf.set_num_threads(saved)
-    names = ("y", "dx", "dgamma", "dbeta")
-    for run in runs[1:]:
-        for name, a, b in zip(names, run, runs[0]):
-            assert_bitwise_equal(f"layernorm {name}, threads", a, b)
-    x64, g64, dy64 = x.astype(np.float64), gamma.astype(np.float64), dy.astype(np.float64)
-    xc = x64 - x64.mean(-1, keepdims=True)
-    rstd = 1 / np.sqrt((xc * xc).mean(-1, keepdims=True) + 1e-5)
-    xhat = xc * rstd
-    dxhat = dy64 * g64
-    want = (xhat * g64 + beta, rstd * (dxhat - dxhat.mean(-1, keepdims=True) - xhat * (dxhat * xhat).mean(-1, keepdims=True)),
-            (dy64 * xhat).sum(0), dy64.sum(0))
-    rtol = RTOL32["layernorm"] if dtype == np.float32 else RTOL64
-    for name, got, w in zip(names, runs[0], want):
-        assert got.dtype == dtype
-        assert_close(f"layernorm {name} vs float64 formula", got, w, rtol)
-
-
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
-@pytest.mark.parametrize("rows", ["ordinary", "constant", "huge", "tiny"])
-def test_layernorm_kernel_equals_its_numpy_reference(rows, dtype, rng):
-    """The C++ kernel against layers.layernorm_forward_numpy / layernorm_backward_numpy (float64
-    throughout, rounded once), random upstream gradient, on ordinary rows, constant rows (y ==
-    beta exactly in both), and rows of 1e+-30 (float64) or 1e+-15 (float32). Both are within
-    RTOL32 / RTOL64 of the exact values (the tests above), so of each other within twice that."""
-    shape, d = (5, 3, D), D
-    scale = {"ordinary": 1.0, "constant": 1.0, "huge": 1e30 if dtype == np.float64 else 1e15,
-             "tiny": 1e-30 if dtype == np.float64 else 1e-15}[rows]
-    x = scale * (rng.uniform(-3, 3, (5, 3, 1)) + rng.standard_normal(shape))
-    if rows == "constant":
-        x = np.broadcast_to(x[..., :1], shape).copy()
-    x = x.astype(dtype)
-    gamma, beta, dy = (rng.standard_normal(s).astype(dtype) for s in (d, d, shape))
-    y, cache = layers.layernorm_forward(x, gamma, beta)
-    y_ref, cache_ref = layers.layernorm_forward_numpy(x, gamma, beta)
-    rtol = 2 * (RTOL32["layernorm"] if dtype == np.float32 else RTOL64)
-    for name, got, want in zip(("y", "dx", "dgamma", "dbeta"), (y, *layers.layernorm_backward(dy, cache)),
-                               (y_ref, *layers.layernorm_backward_numpy(dy, cache_ref))):
-        assert want.dtype == dtype
-        assert_close(f"layernorm {name}, {rows} rows, kernel vs reference", got, want, rtol)
-    if rows == "constant":
-        assert_bitwise_equal("reference y of constant rows", y_ref, np.broadcast_to(beta, shape))

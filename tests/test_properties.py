@@ -1,9 +1,8 @@
 """Property-based tests (hypothesis) of every public function of pyvf: what it refuses, what it
 computes, and what it leaves alone.
 
-For each function (branching attention and its references, vq_nearest, EMAQuantizer, the
-geometry functions, AdamW/Adam/clip_grad_norm/warmup_cosine_lr, every forward/backward pair of
-pyvf.nn.layers, pyvf.nn.losses and the attention layer) random arguments are drawn (shapes with zero-size dimensions, float32 and
+For each public function (branching attention and its references, vq_nearest, EMAQuantizer, the
+geometry functions, AdamW/Adam/clip_grad_norm/warmup_cosine_lr) random arguments are drawn (shapes with zero-size dimensions, float32 and
 float64, magnitudes from 1e-300 to 1e300) and the call must either
 
 * return the NumPy reference's result within the bound written beside it (references are
@@ -25,8 +24,9 @@ The tests of functions that call the C++ kernels directly (test_kernel_*) run in
 pytest process (test_kernel_properties_in_a_subprocess), so that a crash fails one test
 instead of killing the run; so do the allocation-failure and oversized-dimension cases.
 
-pyvf.nn.conv (the codebook's layers) runs every property like everything else; the minimal cases
-of what it got wrong before (test_conv_finding_*) are kept as regression tests.
+The internal layers (pyvf.nn.layers, losses, conv and the attention layer) trust their callers
+and are tested against torch in float64 and mpmath where they are hard (tests/test_layers.py,
+test_conv.py, test_attention.py).
 
 Budget: the default settings profile "ci" runs a fixed number of examples per test,
 derandomized (the same cases on every run), without deadlines: the file runs in well under a
@@ -52,11 +52,9 @@ from hypothesis import strategies as st
 from hypothesis.configuration import set_hypothesis_home_dir
 
 import pyvf
-import pyvf.nn.conv
 from pyvf import geometry
-from pyvf.nn import layers, losses
 from pyvf.train import optim
-from pyvf.nn.attention import attention_layer_backward, attention_layer_forward
+
 
 # hypothesis keeps its files (cached constants, patches with failing examples) out of the source
 # tree, in the temp folder, unless HYPOTHESIS_STORAGE_DIRECTORY says where
@@ -309,259 +307,6 @@ def run_and_check_unchanged(case, args):
     if not ok:
         assert_unchanged(state, case.state(), "the state after a failed call")
     return ok, out
-
-
-# ---------------------------------------------------------------------------------------
-# the layers (pyvf.nn.layers, pyvf.nn.losses): each case runs the forward, then the backward
-
-
-def case_linear(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    lead = draw_shape(data, 2, 3)
-    din, dout = data.draw(st.integers(0, 4), label="din"), data.draw(st.integers(0, 4), label="dout")
-    e = [draw_exp(data, dt, extreme) for _ in range(4)]
-    args = {"x": normal(rng, lead + (din,), dt, e[0]), "w": normal(rng, (din, dout), dt, e[1]),
-            "b": normal(rng, (1, dout), dt, e[2]), "dy": normal(rng, lead + (dout,), dt, e[3])}
-
-    def run(x, w, b, dy):
-        y, cache = layers.linear_forward(x, w, b)
-        return (y,) + tuple(layers.linear_backward(dy, cache))
-
-    def check(out, a):
-        X, W, B, DY = (L(a[k]) for k in ("x", "w", "b", "dy"))
-        M = int(np.prod(lead))
-        X2, DY2 = X.reshape(M, din), DY.reshape(M, dout)
-        y = (X2 @ W + B).reshape(lead + (dout,))
-        by = (np.abs(X2) @ np.abs(W) + np.abs(B)).reshape(lead + (dout,))  # |x||w| + |b|: the terms summed
-        dx, bdx = (DY2 @ W.T).reshape(lead + (din,)), (np.abs(DY2) @ np.abs(W.T)).reshape(lead + (din,))
-        dw, bdw = X2.T @ DY2, np.abs(X2.T) @ np.abs(DY2)
-        db, bdb = DY2.sum(0, keepdims=True), np.abs(DY2).sum(0, keepdims=True)
-        # a dot product of n terms is within (n + 1) u of the sum of its terms' magnitudes
-        for name, got, ref, terms, n in (("y", out[0], y, by, din + 1), ("dx", out[1], dx, bdx, dout),
-                                         ("dw", out[2], dw, bdw, M), ("db", out[3], db, bdb, M)):
-            check_close(name, got, ref, 2 * (n + 1) * u(dt) * terms + (n + 1) * tiny(dt), dt)
-
-    return Case(args, run, check, floats=("x", "w", "b", "dy"), ordinary=not extreme, dtype=dt)
-
-
-def case_layernorm(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    lead = draw_shape(data, 2, 3)
-    d = data.draw(st.integers(1, 6), label="d")
-    e = [draw_exp(data, dt, extreme) for _ in range(4)]
-    x = normal(rng, lead + (d,), dt, e[0])
-    if x.size and data.draw(st.booleans(), label="offset rows"):  # rows of mean >> spread
-        x = (x + normal(rng, lead + (1,), dt, 0) * np.asarray(4 * np.abs(x).max() + 1, dt)).astype(dt)
-    args = {"x": x, "gamma": normal(rng, (d,), dt, e[1]), "beta": normal(rng, (d,), dt, e[2]),
-            "dy": normal(rng, lead + (d,), dt, e[3])}
-
-    def run(x, gamma, beta, dy):
-        y, cache = layers.layernorm_forward(x, gamma, beta)
-        return (y,) + tuple(layers.layernorm_backward(dy, cache))
-
-    def check(out, a):
-        X, G, Bt, DY = (L(a[k]) for k in ("x", "gamma", "beta", "dy"))
-        mean = X.mean(-1, keepdims=True)
-        xc = X - mean
-        var = (xc * xc).mean(-1, keepdims=True)
-        rstd = 1 / np.sqrt(var + LD(np.asarray(1e-5, dt)))
-        xhat = xc * rstd
-        # the inputs themselves are resolved to ulp(max|x|) of the row: relative to the row's
-        # spread sqrt(var + eps) that is p = u max|x| rstd, the conditioning of the centring (the
-        # large-mean-small-spread case); plus a few u per pass over d elements
-        p = (8 * d + 16) * u(dt) * (np.abs(X).max(-1, keepdims=True) * rstd + 1)  # (..., 1)
-        xerr = p * (np.abs(xhat) + 1)
-        DYs = DY.reshape(-1, d)
-        dxhat = DY * G
-        m1, m2 = dxhat.mean(-1, keepdims=True), (dxhat * xhat).mean(-1, keepdims=True)
-        dx = rstd * (dxhat - m1 - xhat * m2)
-        bdx = rstd * p * (np.abs(dxhat) + np.abs(dxhat).mean(-1, keepdims=True) * (1 + 2 * (np.abs(xhat) + 1) ** 2))
-        check_close("y", out[0], xhat * G + Bt, xerr * np.abs(G) + 4 * u(dt) * np.abs(Bt) + tiny(dt), dt)
-        check_close("dx", out[1], dx, bdx + 4 * tiny(dt), dt)
-        n = DYs.shape[0] + 1
-        check_close("dgamma", out[2], (DYs * xhat.reshape(-1, d)).sum(0),
-                    n * (np.abs(DYs) * xerr.reshape(-1, d)).sum(0) + n * u(dt) * np.abs(DYs * xhat.reshape(-1, d)).sum(0)
-                    + n * tiny(dt), dt)
-        check_close("dbeta", out[3], DYs.sum(0), 2 * n * u(dt) * np.abs(DYs).sum(0) + n * tiny(dt), dt)
-
-    return Case(args, run, check, floats=("x", "gamma", "beta", "dy"), ordinary=not extreme, dtype=dt)
-
-
-def _gelu_ref(x):
-    """gelu(x) and gelu'(x) in float64 from math.erfc (accurate over the whole range)."""
-    x64 = np.asarray(x, np.float64)
-    Phi = np.vectorize(lambda t: 0.5 * math.erfc(-t / math.sqrt(2)))(x64) if x64.size else x64.copy()
-    with np.errstate(under="ignore", over="ignore"):
-        phi = np.exp(-0.5 * np.minimum(x64 * x64, 1e300)) / math.sqrt(2 * math.pi)
-    return L(x64) * L(Phi), L(Phi) + L(x64) * L(phi), L(Phi) + np.abs(L(x64)) * L(phi)
-
-
-def case_gelu(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    shape = draw_shape(data, 3, 4)
-    args = {"x": np.array(normal(rng, shape, dt, draw_exp(data, dt, extreme)) * dt.type(4), dtype=dt),
-            "dy": normal(rng, shape, dt, draw_exp(data, dt, extreme))}
-
-    def run(x, dy):
-        y, cache = layers.gelu_forward(x)
-        return (y,) + tuple(layers.gelu_backward(dy, cache))
-
-    def check(out, a):
-        g, dg, dterms = _gelu_ref(a["x"])  # dterms: Phi + |x| phi, what gelu' = Phi + x phi cancels
-        X = np.abs(L(a["x"]))
-        # the tail's conditioning: erfc's relative condition number there is x^2 (tests/test_layers.py),
-        # and the float64 reference carries the same; plus the subnormal steps of tiny results
-        rel = (16 + 4 * X * X) * max(u(dt), u(np.float64))
-        check_close("y", out[0], g, rel * np.abs(g) + (X + 1) * tiny(dt), dt)
-        DY = L(a["dy"])
-        check_close("dx", out[1], DY * dg, rel * np.abs(DY) * dterms + 4 * np.abs(DY) * tiny(dt) + tiny(dt), dt)
-
-    return Case(args, run, check, floats=("x", "dy"), ordinary=not extreme, dtype=dt)
-
-
-def case_embedding(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    n, d = data.draw(st.integers(1, 5), label="n"), data.draw(st.integers(0, 4), label="d")
-    shape = draw_shape(data, 2, 4)
-    idt = data.draw(st.sampled_from(["int64", "int32", "uint8", "int8"]), label="ids dtype")
-    args = {"ids": rng.integers(0, n, shape).astype(idt), "table": normal(rng, (n, d), dt, draw_exp(data, dt, extreme)),
-            "dy": normal(rng, shape + (d,), dt, draw_exp(data, dt, extreme))}
-
-    def run(ids, table, dy):
-        y, cache = layers.embedding_forward(ids, table)
-        return (y,) + tuple(layers.embedding_backward(dy, cache))
-
-    def check(out, a):
-        ids, table, DY = a["ids"], a["table"], L(a["dy"])
-        assert same_bits(np.ascontiguousarray(out[0]), np.ascontiguousarray(table[ids.astype(np.int64)]))
-        ref, terms = np.zeros((n, d), LD), np.zeros((n, d), LD)
-        np.add.at(ref, ids.reshape(-1).astype(np.int64), DY.reshape(ids.size, d))
-        np.add.at(terms, ids.reshape(-1).astype(np.int64), np.abs(DY).reshape(ids.size, d))
-        k = ids.size + 1
-        check_close("dtable", out[1], ref, k * u(dt) * terms + k * tiny(dt), dt)
-
-    return Case(args, run, check, floats=("table", "dy"), ints=("ids",), shaped=("table", "dy"),
-                ordinary=not extreme, dtype=dt)
-
-
-def case_mlp(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    lead = draw_shape(data, 2, 3)
-    din, dh, dout = (data.draw(st.integers(1, 4), label=n) for n in ("din", "dh", "dout"))
-    e = [draw_exp(data, dt, extreme) for _ in range(6)]
-    args = {"x": normal(rng, lead + (din,), dt, e[0]), "w_fc": normal(rng, (din, dh), dt, e[1]),
-            "b_fc": normal(rng, (1, dh), dt, e[2]), "w_proj": normal(rng, (dh, dout), dt, e[3]),
-            "b_proj": normal(rng, (1, dout), dt, e[4]), "dy": normal(rng, lead + (dout,), dt, e[5])}
-
-    def run(x, w_fc, b_fc, w_proj, b_proj, dy):
-        y, cache = layers.mlp_forward(x, w_fc, b_fc, w_proj, b_proj)
-        return (y,) + tuple(layers.mlp_backward(dy, cache))
-
-    def check(out, a):
-        # the reference in long double from the definition, gelu from math.erfc (_gelu_ref), not
-        # pyvf's layers. The bound follows each rounding through the layers: a dot product of n
-        # terms within 2 (n + 2) u of their magnitudes; |gelu'| <= 1.13 and |gelu''| <= 0.8 carry
-        # the hidden layer's error eh into gelu and gelu'; tiny(dt) per step for the subnormal range
-        X, DY = L(a["x"]).reshape(-1, din), L(a["dy"]).reshape(-1, dout)  # (M, din), (M, dout)
-        Wf, Bf, Wp, Bp = (L(a[k]) for k in ("w_fc", "b_fc", "w_proj", "b_proj"))
-        M, ud, tn = X.shape[0], u(dt), tiny(dt)
-        H = X @ Wf + Bf  # (M, dh)
-        eh = 2 * (din + 2) * ud * (np.abs(X) @ np.abs(Wf) + np.abs(Bf)) + (din + 2) * tn
-        g, gp, gterms = _gelu_ref(H)
-        rel = (16 + 4 * np.minimum(H * H, 1600)) * max(ud, u(np.float64))  # erfc's tail (case_gelu)
-        eg = 1.13 * eh + rel * np.abs(g) + (np.abs(H) + 1) * tn
-        egp = 0.8 * eh + rel * gterms + 4 * tn
-        DG = DY @ Wp.T  # (M, dh)
-        edg = 2 * (dout + 2) * ud * (np.abs(DY) @ np.abs(Wp.T)) + (dout + 2) * tn
-        DH = DG * gp
-        edh = edg * (np.abs(gp) + egp) + np.abs(DG) * egp + 4 * ud * np.abs(DH) + 4 * (np.abs(DG) + edg + 1) * tn
-        G_, DH_ = np.abs(g) + eg, np.abs(DH) + edh  # what pyvf's g and dh can be, in magnitude
-        dot = lambda n, terms, carried: 2 * (n + 2) * ud * terms + carried + (n + 2) * tn
-        want = {"y": (g @ Wp + Bp, dot(dh, G_ @ np.abs(Wp) + np.abs(Bp), eg @ np.abs(Wp))),
-                "dx": (DH @ Wf.T, dot(dh, DH_ @ np.abs(Wf.T), edh @ np.abs(Wf.T))),
-                "dw_fc": (X.T @ DH, dot(M, np.abs(X.T) @ DH_, np.abs(X.T) @ edh)),
-                "db_fc": (DH.sum(0, keepdims=True), dot(M, DH_.sum(0, keepdims=True), edh.sum(0, keepdims=True))),
-                "dw_proj": (g.T @ DY, dot(M, G_.T @ np.abs(DY), eg.T @ np.abs(DY))),
-                "db_proj": (DY.sum(0, keepdims=True), dot(M, np.abs(DY).sum(0, keepdims=True), 0))}
-        shapes = {"y": lead + (dout,), "dx": lead + (din,)}
-        for (name, (ref, bound)), got in zip(want.items(), out):
-            shape = shapes.get(name, ref.shape)
-            check_close(name, got, ref.reshape(shape), bound.reshape(shape), dt)
-
-    return Case(args, run, check, floats=tuple(args), ordinary=not extreme, dtype=dt)
-
-
-def case_cross_entropy(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    M, V = data.draw(st.integers(0, 5), label="M"), data.draw(st.integers(1, 5), label="V")
-    eps = data.draw(st.sampled_from([0.0, 0.1, 1.0]), label="label_smoothing")
-    tdt = data.draw(st.sampled_from(["int64", "int32", "uint16"]), label="targets dtype")
-    args = {"logits": normal(rng, (M, V), dt, draw_exp(data, dt, extreme)),
-            "targets": rng.integers(0, V, M).astype(tdt),
-            "dloss": normal(rng, (M,), dt, draw_exp(data, dt, extreme))}
-
-    def run(logits, targets, dloss):
-        loss, cache = losses.cross_entropy_forward(logits, targets, eps)
-        return (loss,) + tuple(losses.cross_entropy_backward(dloss, cache))
-
-    def check(out, a):
-        Z, t, DL = L(a["logits"]), a["targets"].astype(np.int64), L(a["dloss"])
-        z = Z - Z.max(-1, keepdims=True)
-        logp = z - np.log(np.exp(z).sum(-1, keepdims=True))
-        T = np.full((M, V), LD(np.asarray(eps, dt)) / V)
-        T[np.arange(M), t] += 1 - LD(np.asarray(eps, dt))
-        loss = -(T * logp).sum(-1)
-        # log p is within (V + 4) u (|z| + log V) of the truth (the shift, the sum, the log)
-        lerr = (V + 8) * u(dt) * (np.abs(z) + np.log(LD(V)) + 1)
-        check_close("loss", out[0], loss, (T * lerr).sum(-1) + tiny(dt), dt)
-        p = np.exp(logp)
-        check_close("dlogits", out[1], DL[:, None] * (p - T),
-                    np.abs(DL[:, None]) * (p * lerr + 4 * u(dt)) + 4 * tiny(dt), dt)
-
-    # a wider logits is valid (more classes): only targets and dloss have a constrained last dimension
-    return Case(args, run, check, floats=("logits", "dloss"), ints=("targets",), shaped=("targets", "dloss"),
-                ordinary=not extreme, dtype=dt)
-
-
-def case_pose_loss(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    lead = draw_shape(data, 2, 3)
-    tlead = tuple(1 if data.draw(st.booleans(), label="broadcast") else n for n in lead)  # broadcast to raw
-    m = data.draw(st.sampled_from([1.0, 0.2, 3.0]), label="pose_multiplier")
-    args = {"raw": normal(rng, lead + (7,), dt, draw_exp(data, dt, extreme)),
-            "target": normal(rng, tlead + (7,), dt, draw_exp(data, dt, extreme)),
-            "dloss": normal(rng, lead, dt, draw_exp(data, dt, extreme))}
-
-    def run(raw, target, dloss):
-        loss, cache = losses.pose_loss_forward(raw, target, m)
-        return (loss,) + tuple(losses.pose_loss_backward(dloss, cache))
-
-    def check(out, a):
-        R, T, DL = L(a["raw"]), np.broadcast_to(L(a["target"]), lead + (7,)), L(a["dloss"])
-        mm = np.concatenate([np.full(3, LD(np.asarray(m, dt))), np.ones(4, LD)])
-        r = R - mm * T  # (..., 7) residuals
-        terms = np.abs(R) + np.abs(mm * T)  # their rounding: u * terms each
-        w = np.concatenate([np.full(3, LD(1) / 3), np.full(4, LD(1) / 4)])
-        loss = (w * r * r).sum(-1)
-        check_close("loss", out[0], loss, (w * (4 * u(dt) * 2 * np.abs(r) * terms + 8 * u(dt) * r * r)).sum(-1)
-                    + 8 * tiny(dt), dt)
-        draw = 2 * w * r * DL[..., None]
-        check_close("draw", out[1], draw, np.abs(2 * w * DL[..., None]) * 4 * u(dt) * (terms + np.abs(r))
-                    + 4 * tiny(dt), dt)
-
-    # target's leading shape may broadcast, so only its last dimension is constrained: with_bad_shape
-    # changes exactly that
-    return Case(args, run, check, floats=("raw", "target", "dloss"), ordinary=not extreme, dtype=dt)
-
-
-LAYER_CASES = [case_linear, case_layernorm, case_gelu, case_embedding, case_mlp, case_cross_entropy, case_pose_loss]
 
 
 # ---------------------------------------------------------------------------------------
@@ -960,47 +705,7 @@ def case_quantizer(data, extreme_ok=True):
                 shaped=("z", "dquantized"), ordinary=not extreme, dtype=dt)
 
 
-def case_attention_layer(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    R, B, N, Ln = (data.draw(st.integers(1, 2), label=n) for n in ("R", "B", "N", "L"))
-    H = data.draw(st.integers(1, 2), label="H")
-    d = H * data.draw(st.integers(1, 3), label="dh")
-    args = {"x": normal(rng, (R, B, N, Ln, d), dt), "w_attn": normal(rng, (d, 3 * d), dt, -1),
-            "b_attn": normal(rng, (1, 3 * d), dt, -1), "w_proj": normal(rng, (d, d), dt, -1),
-            "b_proj": normal(rng, (1, d), dt, -1), "dy": normal(rng, (R, B, N, Ln, d), dt)}
-
-    def run(x, w_attn, b_attn, w_proj, b_proj, dy):
-        y, cache = attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, H)
-        return (y,) + tuple(attention_layer_backward(dy, cache))
-
-    def check(out, a):
-        for g, k in zip(out[1:], ("x", "w_attn", "b_attn", "w_proj", "b_proj")):
-            assert g.shape == a[k].shape and g.dtype == dt, k
-        # y and every gradient against torch autograd in float64 (the fused projection's v/q/k
-        # column order, unscaled logits), with the tree's mask written out here (tree_mask, not pyvf's)
-        import torch
-
-        T = R * N * Ln
-        mask = torch.from_numpy(tree_mask(R, N, Ln))
-        leaves = [torch.tensor(np.array(a[k], np.float64, order="C"), requires_grad=True)  # any layout a test made
-                  for k in ("x", "w_attn", "b_attn", "w_proj", "b_proj")]
-        tx, tW, tB, tWp, tBp = leaves
-        th = (tx @ tW + tB).reshape(R, B, T // R, 3 * d).permute(1, 0, 2, 3).reshape(B, T, 3 * d)
-        heads = lambda t: t.reshape(B, T, H, d // H).transpose(1, 2)  # (B, H, T, dh)
-        tv, tq, tk = heads(th[..., :d]), heads(th[..., d:2 * d]), heads(th[..., 2 * d:])
-        att = (tq @ tk.transpose(-1, -2)).masked_fill(~mask, float("-inf")).softmax(-1) @ tv  # scale 1
-        to = att.transpose(1, 2).reshape(B, R, T // R, d).permute(1, 0, 2, 3).reshape(R, B, N, Ln, d)
-        ty = to @ tWp + tBp
-        ty.backward(torch.from_numpy(np.array(a["dy"], np.float64, order="C")))
-        tol = 1e-4 if dt == np.float32 else 1e-11  # normwise, relative to the largest value (and 1: O(1) inputs)
-        for name, g, ref in zip(("y", "dx", "dw_attn", "db_attn", "dw_proj", "db_proj"), out,
-                                [ty.detach().numpy()] + [leaf.grad.numpy() for leaf in leaves]):
-            check_close(name, g, L(ref), tol * (np.abs(ref).max() + 1), dt)
-
-    return Case(args, run, check, floats=tuple(args), shaped=tuple(args), dtype=dt)
-
-
-KERNEL_CASES = [case_attention, case_attention_reference, case_vq, case_quantizer, case_attention_layer]
+KERNEL_CASES = [case_attention, case_attention_reference, case_vq, case_quantizer]
 
 
 # ---------------------------------------------------------------------------------------
@@ -1097,166 +802,7 @@ def case_clip(data, extreme_ok=True):
 OPTIM_CASES = [case_adamw, case_clip]
 
 
-# ---------------------------------------------------------------------------------------
-# the codebook's image layers (pyvf.nn.conv)
-
-
-def _ld_conv(X, W, stride, pad):
-    """conv2d in long double by its definition: -> (y, the padded x, Ho, Wo)."""
-    pt, pb, pl, pr = pad
-    Xp = np.pad(X, ((0, 0), (0, 0), (pt, pb), (pl, pr)))
-    Co, C, kh, kw = W.shape
-    Ho, Wo = (Xp.shape[2] - kh) // stride + 1, (Xp.shape[3] - kw) // stride + 1
-    y = np.zeros((X.shape[0], Co, Ho, Wo), LD)
-    for i in range(kh):
-        for j in range(kw):
-            patch = Xp[:, :, i:i + stride * (Ho - 1) + 1:stride, j:j + stride * (Wo - 1) + 1:stride]
-            y += np.einsum("bchw,oc->bohw", patch, W[:, :, i, j])
-    return y, Xp, Ho, Wo
-
-
-def case_conv2d(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    B, C, Co = data.draw(st.integers(0, 2), label="B"), data.draw(st.integers(1, 3), label="C"), \
-        data.draw(st.integers(1, 3), label="Co")
-    Hi, Wi = data.draw(st.integers(1, 4), label="Hi"), data.draw(st.integers(1, 4), label="Wi")
-    stride = data.draw(st.integers(1, 2), label="stride")
-    pad = data.draw(st.one_of(st.integers(0, 1).map(lambda p: (p,) * 4),
-                              st.tuples(*[st.integers(0, 1)] * 4)), label="padding")
-    # kernels no larger than the padded image, drawn so (nothing filtered): Ho, Wo >= 1
-    kh = data.draw(st.integers(1, min(3, Hi + pad[0] + pad[1])), label="kh")
-    kw = data.draw(st.integers(1, min(3, Wi + pad[2] + pad[3])), label="kw")
-    Ho, Wo = (Hi + pad[0] + pad[1] - kh) // stride + 1, (Wi + pad[2] + pad[3] - kw) // stride + 1
-    e = [draw_exp(data, dt, extreme) for _ in range(4)]
-    args = {"x": normal(rng, (B, C, Hi, Wi), dt, e[0]), "w": normal(rng, (Co, C, kh, kw), dt, e[1]),
-            "b": normal(rng, (Co,), dt, e[2]), "dy": normal(rng, (B, Co, Ho, Wo), dt, e[3])}
-
-    def run(x, w, b, dy):
-        y, cache = pyvf.nn.conv.conv2d_forward(x, w, b, stride, pad)
-        return (y,) + tuple(pyvf.nn.conv.conv2d_backward(dy, cache))
-
-    def check(out, a):
-        X, W, Bb, DY = (L(a[k]) for k in ("x", "w", "b", "dy"))
-        y, Xp, _, _ = _ld_conv(X, W, stride, pad)
-        ty, _, _, _ = _ld_conv(np.abs(X), np.abs(W), stride, pad)
-        K = C * kh * kw
-        check_close("y", out[0], y + Bb[:, None, None], (2 * K + 4) * u(dt) * (ty + np.abs(Bb)[:, None, None])
-                    + (K + 1) * tiny(dt), dt)
-        dxp, tdx = np.zeros(Xp.shape, LD), np.zeros(Xp.shape, LD)
-        dw, tdw = np.zeros(W.shape, LD), np.zeros(W.shape, LD)
-        for i in range(kh):
-            for j in range(kw):
-                sl = (slice(None), slice(None), slice(i, i + stride * (Ho - 1) + 1, stride),
-                      slice(j, j + stride * (Wo - 1) + 1, stride))
-                dxp[sl] += np.einsum("bohw,oc->bchw", DY, W[:, :, i, j])
-                tdx[sl] += np.einsum("bohw,oc->bchw", np.abs(DY), np.abs(W[:, :, i, j]))
-                dw[:, :, i, j] = np.einsum("bohw,bchw->oc", DY, Xp[sl])
-                tdw[:, :, i, j] = np.einsum("bohw,bchw->oc", np.abs(DY), np.abs(Xp[sl]))
-        crop = (slice(None), slice(None), slice(pad[0], pad[0] + Hi), slice(pad[2], pad[2] + Wi))
-        n = B * Ho * Wo + Co * kh * kw + 4
-        check_close("dx", out[1], dxp[crop], 2 * n * u(dt) * tdx[crop] + n * tiny(dt), dt)
-        check_close("dw", out[2], dw, 2 * n * u(dt) * tdw + n * tiny(dt), dt)
-        check_close("db", out[3], DY.sum((0, 2, 3)), 2 * n * u(dt) * np.abs(DY).sum((0, 2, 3)) + n * tiny(dt), dt)
-
-    # x and w may change size without changing the output's (stride 2 floors): only b and dy are pinned
-    return Case(args, run, check, floats=("x", "w", "b", "dy"), shaped=("b", "dy"), ordinary=not extreme, dtype=dt)
-
-
-def case_groupnorm(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    G, k = data.draw(st.sampled_from([1, 2, 4]), label="groups"), data.draw(st.integers(1, 2), label="C/G")
-    B, Hi, Wi = (data.draw(st.integers(1, 2), label=n) for n in ("B", "Hi", "Wi"))
-    C = G * k
-    e = [draw_exp(data, dt, extreme) for _ in range(4)]
-    args = {"x": normal(rng, (B, C, Hi, Wi), dt, e[0]), "gamma": normal(rng, (C,), dt, e[1]),
-            "beta": normal(rng, (C,), dt, e[2]), "dy": normal(rng, (B, C, Hi, Wi), dt, e[3])}
-
-    def run(x, gamma, beta, dy):
-        y, cache = pyvf.nn.conv.groupnorm_forward(x, gamma, beta, groups=G)
-        return (y,) + tuple(pyvf.nn.conv.groupnorm_backward(dy, cache))
-
-    def check(out, a):
-        X, Gm, Bt, DY = (L(a[k_]) for k_ in ("x", "gamma", "beta", "dy"))
-        Xg = X.reshape(B, G, -1)
-        xc = Xg - Xg.mean(-1, keepdims=True)
-        rstd = 1 / np.sqrt((xc * xc).mean(-1, keepdims=True) + LD(np.asarray(1e-6, dt)))
-        xhat = (xc * rstd).reshape(X.shape)
-        n = Xg.shape[-1]
-        p = ((8 * n + 16) * u(dt) * (np.abs(Xg).max(-1, keepdims=True) * rstd + 1))  # as for layernorm
-        xerr = (p * (np.abs(xc * rstd) + 1)).reshape(X.shape)
-        g4, b4 = Gm[:, None, None], Bt[:, None, None]
-        check_close("y", out[0], xhat * g4 + b4, xerr * np.abs(g4) + 4 * u(dt) * np.abs(b4) + tiny(dt), dt)
-        for name, got in zip(("dx", "dgamma", "dbeta"), out[1:]):
-            assert np.isfinite(got).all(), name
-        if extreme:
-            return  # huge and tiny magnitudes: the forward's bound above and finiteness are what is stated
-        # the gradients against the closed form, in long double, per group of n values:
-        # dx = rstd (dxhat - mean(dxhat) - xhat mean(dxhat xhat)), dxhat = dy gamma;
-        # dgamma = sum_{b,h,w} dy xhat, dbeta = sum_{b,h,w} dy. Ordinary magnitudes: the bound is a
-        # few hundred roundings of the largest term (n <= 8 values a group, rstd <= 1e3 for eps 1e-6)
-        dxh = (DY * g4).reshape(B, G, -1)
-        xh = xhat.reshape(B, G, -1)
-        dx = (rstd * (dxh - dxh.mean(-1, keepdims=True) - xh * (dxh * xh).mean(-1, keepdims=True))).reshape(X.shape)
-        refs = {"dx": dx, "dgamma": (DY * xhat).sum((0, 2, 3)), "dbeta": DY.sum((0, 2, 3))}
-        scale = {"dx": rstd.max() * np.abs(dxh).max() * (1 + np.abs(xh).max() ** 2),
-                 "dgamma": np.abs(DY * xhat).sum((0, 2, 3)).max(), "dbeta": np.abs(DY).sum((0, 2, 3)).max()}
-        for name, got in zip(("dx", "dgamma", "dbeta"), out[1:]):
-            check_close(name, got, refs[name], 512 * u(dt) * (scale[name] + 1) * (1 + rstd.max() * p.max()), dt)
-
-    return Case(args, run, check, floats=("x", "gamma", "beta", "dy"), ordinary=not extreme, dtype=dt)
-
-
-def case_swish(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    shape = draw_shape(data, 3, 3)
-    args = {"x": np.array(normal(rng, shape, dt, draw_exp(data, dt, extreme)) * dt.type(8), dtype=dt),
-            "dy": normal(rng, shape, dt, draw_exp(data, dt, extreme))}
-
-    def run(x, dy):
-        y, cache = pyvf.nn.conv.swish_forward(x)
-        return (y,) + tuple(pyvf.nn.conv.swish_backward(dy, cache))
-
-    def check(out, a):
-        X, DY = L(a["x"]), L(a["dy"])
-        with np.errstate(over="ignore"):
-            s = 1 / (1 + np.exp(-X))
-        # sigmoid(x) itself is rounded to the dtype's subnormal steps for x < -87 (float32): y and
-        # dx carry that absolute error times |x| and |dy| (1 + |x|)
-        check_close("y", out[0], X * s, 8 * u(dt) * np.abs(X * s) + (np.abs(X) + 1) * tiny(dt), dt)
-        d = s * (1 + X * (1 - s))
-        dterms = s * (1 + np.abs(X) * (1 - s))
-        check_close("dx", out[1], DY * d, 16 * u(dt) * np.abs(DY) * dterms + 4 * (np.abs(DY) + 1) * (np.abs(X) + 1)
-                    * tiny(dt), dt)
-
-    return Case(args, run, check, floats=("x", "dy"), ordinary=not extreme, dtype=dt)
-
-
-def case_upsample(data, extreme_ok=True):
-    rng, dt = rng_of(data), draw_dtype(data)
-    extreme = extreme_ok and data.draw(st.booleans(), label="extreme")
-    B, C, Hi, Wi = (data.draw(st.integers(0 if n == "B" else 1, 2), label=n) for n in ("B", "C", "Hi", "Wi"))
-    args = {"x": normal(rng, (B, C, Hi, Wi), dt, draw_exp(data, dt, extreme)),
-            "dy": normal(rng, (B, C, 2 * Hi, 2 * Wi), dt, draw_exp(data, dt, extreme))}
-
-    def run(x, dy):
-        y, cache = pyvf.nn.conv.upsample_nearest2x_forward(x)
-        return (y,) + tuple(pyvf.nn.conv.upsample_nearest2x_backward(dy, cache))
-
-    def check(out, a):
-        x, DY = a["x"], L(a["dy"])
-        assert same_bits(np.ascontiguousarray(out[0]), x.repeat(2, 2).repeat(2, 3)), "upsampled"
-        ref = DY.reshape(B, C, Hi, 2, Wi, 2).sum((3, 5))
-        check_close("dx", out[1], ref, 4 * u(dt) * np.abs(DY).reshape(B, C, Hi, 2, Wi, 2).sum((3, 5))
-                    + 4 * tiny(dt), dt)
-
-    return Case(args, run, check, floats=("x", "dy"), ordinary=not extreme, dtype=dt)
-
-
-CONV_CASES = [case_conv2d, case_groupnorm, case_swish, case_upsample]
-CASES = LAYER_CASES + GEOMETRY_CASES + OPTIM_CASES
+CASES = GEOMETRY_CASES + OPTIM_CASES
 
 
 def _id(f):
@@ -1380,95 +926,6 @@ def test_property(make, prop):
     run_property(make, prop)
 
 
-@pytest.mark.parametrize("prop", PROPERTIES, ids=lambda p: p.__name__[5:])
-@pytest.mark.parametrize("make", CONV_CASES, ids=_id)
-def test_conv_property(make, prop):
-    run_property(make, prop)
-
-
-# The findings in pyvf.nn.conv, each the minimal case of what a property above requires, kept as
-# regression tests (all fixed: NaN/inf refused, overflow raised, the EMA and the threads).
-
-
-@pytest.mark.parametrize("arg", ["x", "w", "b", "dy"])
-def test_conv_finding_conv2d_accepts_nonfinite(arg):
-    """conv2d_forward/backward return NaN for a NaN (or inf) in x, w, b or dy instead of a
-    ValueError naming it."""
-    a = {"x": np.ones((1, 2, 3, 3)), "w": np.ones((2, 2, 3, 3)), "b": np.ones(2), "dy": np.ones((1, 2, 1, 1))}
-    a[arg] = a[arg].copy()
-    a[arg].flat[0] = np.nan
-    with pytest.raises(ValueError, match=arg):
-        y, c = pyvf.nn.conv.conv2d_forward(a["x"], a["w"], a["b"])
-        pyvf.nn.conv.conv2d_backward(a["dy"], c)
-
-
-def test_conv_finding_conv2d_overflow_returns_inf():
-    """A conv whose true output exceeds float64 returns inf instead of raising ValueError."""
-    with pytest.raises(ValueError):
-        pyvf.nn.conv.conv2d_forward(np.full((1, 2, 1, 1), 1e300), np.full((1, 2, 1, 1), 1e300), np.zeros(1))
-
-
-def test_conv_finding_groupnorm_of_large_values_is_beta():
-    """groupnorm_forward of a group of size ~1e200: (x - mean)^2 overflows, var = inf, rstd = 0, so
-    y = beta (all zeros here) instead of the normalised values (+-1.22, 0), with no error. Then a
-    refusal; now the exact answer (rstd in double from a power-of-two rescale, as layernorm's)."""
-    x = np.array([1e200, -1e200, 3e200]).reshape(1, 3, 1, 1)
-    y, _ = pyvf.nn.conv.groupnorm_forward(x, np.ones(3), np.zeros(3), groups=1)
-    want = (x - x.mean()) / (x / 1e200).std() / 1e200
-    np.testing.assert_allclose(y, want, rtol=1e-15)
-
-
-def test_conv_finding_groupnorm_backward_overflow_gives_nan():
-    """A one-element group (dx = 0 exactly) with dy * gamma beyond float64: dx is NaN (inf - inf),
-    returned without an error."""
-    y, c = pyvf.nn.conv.groupnorm_forward(np.ones((1, 1, 1, 1)), np.array([1e11]), np.zeros(1), groups=1)
-    try:
-        dx, _, _ = pyvf.nn.conv.groupnorm_backward(np.full((1, 1, 1, 1), 1e300), c)
-    except ValueError:
-        return
-    assert np.isfinite(dx).all(), f"dx = {dx.ravel()}"
-
-
-def test_conv_groupnorm_eps_inf():
-    """eps=inf was accepted (y = beta); eps must be finite and > 0. (A conv finding, fixed.)"""
-    with pytest.raises(ValueError, match="eps"):
-        pyvf.nn.conv.groupnorm_forward(np.ones((1, 2, 1, 1)), np.ones(2), np.zeros(2), groups=1, eps=float("inf"))
-
-
-@pytest.mark.parametrize("kind", ["float16", "int64", "complex128", "other float"])
-def test_conv_upsample_backward_dy_dtype(kind):
-    """upsample_nearest2x_backward took a dy of any dtype (float16, integers, complex, the other
-    float) and returned dx in it: a silent cast. (A conv finding, fixed.)"""
-    y, c = pyvf.nn.conv.upsample_nearest2x_forward(np.ones((1, 2, 1, 1)))
-    with pytest.raises(TypeError, match="dy"):
-        pyvf.nn.conv.upsample_nearest2x_backward(with_dtype(np.ones_like(y), kind), c)
-
-
-def test_conv_swish_of_a_0d_array():
-    """swish_forward of a 0-d array returned y of shape (1,) (np.ascontiguousarray promotes 0-d to
-    1-d), so swish_backward then wanted a dy of shape (1,). pyvf.nn.layers.gelu_forward had the same
-    bug. (A conv finding, fixed.)"""
-    y, c = pyvf.nn.conv.swish_forward(np.array(0.5))
-    assert y.shape == ()
-    (dx,) = pyvf.nn.conv.swish_backward(np.array(1.0), c)
-    assert dx.shape == ()
-
-
-@pytest.mark.parametrize("layer", ["groupnorm", "swish", "upsample"])
-@pytest.mark.parametrize("arg", ["x", "dy"])
-def test_conv_finding_nonfinite_accepted(layer, arg):
-    """groupnorm, swish and upsample (forward and backward) pass NaN/inf through silently."""
-    x = np.ones((1, 2, 1, 1))
-    bad = np.full_like(x, np.nan)
-    fwd = {"groupnorm": lambda x: pyvf.nn.conv.groupnorm_forward(x, np.ones(2), np.zeros(2), groups=1),
-           "swish": pyvf.nn.conv.swish_forward, "upsample": pyvf.nn.conv.upsample_nearest2x_forward}[layer]
-    bwd = {"groupnorm": pyvf.nn.conv.groupnorm_backward, "swish": pyvf.nn.conv.swish_backward,
-           "upsample": pyvf.nn.conv.upsample_nearest2x_backward}[layer]
-    with pytest.raises(ValueError, match=arg):
-        y, c = fwd(bad if arg == "x" else x)
-        bwd(np.full_like(y, np.nan) if arg == "dy" else np.ones_like(y), c)
-
-
 if CHILD:  # collected only in the child process (never skipped in the parent: CI counts skips)
     @pytest.mark.parametrize("prop", PROPERTIES, ids=lambda p: p.__name__[5:])
     @pytest.mark.parametrize("make", KERNEL_CASES, ids=_id)
@@ -1559,7 +1016,7 @@ def test_scalar_settings(v):
         ok, out = attempt(pyvf.set_num_threads, v)
         if ok:
             assert pyvf.num_threads() == v
-        elif not (isinstance(v, int) and v >= 2 ** 31):  # test_set_num_threads_huge below
+        else:
             assert names(out, "n"), out
     finally:
         pyvf.set_num_threads(n0)
@@ -1567,13 +1024,6 @@ def test_scalar_settings(v):
     assert not ok and names(out, "path"), out
     ok, out = attempt(pyvf.published_weight_decay, v)
     assert ok if isinstance(v, str) else (not ok and names(out, "name")), out
-
-
-def test_set_num_threads_huge():
-    """set_num_threads(2**31) raises pybind11's 'incompatible function arguments' TypeError, which
-    does not name n."""
-    with pytest.raises(ValueError, match="n must be"):
-        pyvf.set_num_threads(2 ** 31)
 
 
 @given(data=st.data())

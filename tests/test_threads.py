@@ -1,6 +1,5 @@
-"""pyvf's thread setting (pyvf/_threads.py): the CPUs a process may use (its affinity, and a
-control group's CPU limit read from a fake /proc and cgroup tree of each kind), the setting made
-at import (PYVF_NUM_THREADS, OMP_NUM_THREADS, the limit), and a count that holds for every path
+"""pyvf's thread setting (pyvf/_threads.py): the CPUs a process may use (its affinity), the setting
+made at import (PYVF_NUM_THREADS, OMP_NUM_THREADS, the affinity), a count that holds for every path
 module and every Python thread, and inference calls made from several Python threads at once."""
 
 import argparse
@@ -17,82 +16,8 @@ import pyvf
 from pyvf import _core, _threads
 
 
-def _tree(tmp_path, mounts, cgroup, files):
-    """A fake /proc/self (mountinfo, cgroup) and cgroup folders: mounts are (root, mountpoint
-    under tmp_path, fstype, superoptions); files {relative path: text}. -> the proc folder."""
-    proc = tmp_path / "proc"
-    proc.mkdir()
-    lines = [f"{30 + i} 23 0:{40 + i} {root} {tmp_path / point} rw,relatime shared:1 - {fstype} cgroup {opts}"
-             for i, (root, point, fstype, opts) in enumerate(mounts)]
-    (proc / "mountinfo").write_text("\n".join(["22 1 8:1 / / rw - ext4 /dev/sda1 rw", *lines]) + "\n")
-    (proc / "cgroup").write_text(cgroup)
-    for rel, text in files.items():
-        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
-        (tmp_path / rel).write_text(text)
-    return str(proc)
-
-
-V2 = [("/", "cg", "cgroup2", "rw,nsdelegate")]
-
-
-@pytest.mark.parametrize("files, want", [
-    ({"cg/cpu.max": "max 100000\n"}, None),                      # no limit
-    ({"cg/cpu.max": "200000 100000\n"}, 2.0),                    # docker --cpus 2 (the namespace's root)
-    ({"cg/cpu.max": "150000 100000\n"}, 1.5),
-    ({"cg/cpu.max": "max 100000\n", "cg/app/job/cpu.max": "50000 100000\n"}, 0.5),  # the group's own
-    ({"cg/cpu.max": "300000 100000\n", "cg/app/job/cpu.max": "max 100000\n"}, 3.0),  # a parent binds
-    ({"cg/cpu.max": "100000 100000\n", "cg/app/cpu.max": "400000 100000\n"}, 1.0),   # the smallest
-    ({"cg/cpu.max": "garbage\n"}, None),                         # unreadable: no limit, no error
-    ({"cg/cpu.max": "0 100000\n"}, None),
-    ({}, None),                                                  # no cpu controller in the hierarchy
-])
-def test_cgroup_v2_limit(tmp_path, files, want):
-    proc = _tree(tmp_path, V2, "0::/app/job\n", files)
-    assert _threads.cpu_limit(proc) == want
-
-
-def test_cgroup_v1_limit_and_mount_views(tmp_path):
-    """v1: cpu.cfs_quota_us over cpu.cfs_period_us (-1: none), the cpu controller's hierarchy
-    found among the others (cpu,cpuacct mounted together), a mount point with a space (mountinfo's
-    octal escape), and a container's view where the group's path is the mount's root."""
-    mounts = [("/", "mem", "cgroup", "rw,memory"), ("/docker/abc", "cpu acct", "cgroup", "rw,cpu,cpuacct")]
-    files = {"mem/cpu.cfs_quota_us": "100000\n", "mem/cpu.cfs_period_us": "100000\n",  # not the cpu hierarchy
-             "cpu acct/cpu.cfs_quota_us": "250000\n", "cpu acct/cpu.cfs_period_us": "100000\n"}
-    proc = _tree(tmp_path, mounts, "5:memory:/docker/abc\n4:cpu,cpuacct:/docker/abc\n", files)
-    text = (tmp_path / "proc" / "mountinfo").read_text().replace("cpu acct", "cpu\\040acct")
-    (tmp_path / "proc" / "mountinfo").write_text(text)
-    assert _threads.cpu_limit(proc) == 2.5
-    (tmp_path / "cpu acct" / "cpu.cfs_quota_us").write_text("-1\n")
-    assert _threads.cpu_limit(proc) is None
-
-
-def test_cgroup_v1_and_v2_together_take_the_smaller(tmp_path):
-    mounts = [("/", "v1", "cgroup", "rw,cpu"), ("/", "v2", "cgroup2", "rw")]
-    files = {"v1/job/cpu.cfs_quota_us": "300000", "v1/job/cpu.cfs_period_us": "100000",
-             "v2/job/cpu.max": "120000 100000"}
-    proc = _tree(tmp_path, mounts, "1:cpu:/job\n0::/job\n", files)
-    assert _threads.cpu_limit(proc) == 1.2
-
-
-def test_no_proc_means_no_limit(tmp_path):
-    assert _threads.cpu_limit(str(tmp_path / "absent")) is None
-
-
-def test_cores_are_the_affinity_within_the_cpu_limit(monkeypatch):
-    monkeypatch.setattr(_threads, "cpu_limit", lambda: None)
+def test_cores_are_the_affinity():
     assert _threads.cores() == len(os.sched_getaffinity(0))
-    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)))
-    for limit, want in ((None, 16), (2.0, 2), (2.5, 2), (0.3, 1), (64.0, 16)):
-        monkeypatch.setattr(_threads, "cpu_limit", lambda: limit)
-        assert _threads.cores() == want, limit
-
-
-def test_this_process_cores_agree_with_its_cgroup():
-    """The real reading on this machine: a limit, where there is one, is a positive number of CPUs,
-    and cores() is never more than the affinity."""
-    limit = _threads.cpu_limit()
-    assert limit is None or limit > 0
-    assert 1 <= _threads.cores() <= len(os.sched_getaffinity(0))
 
 
 @pytest.fixture
@@ -107,7 +32,7 @@ def restore_threads():
 
 def test_set_from_environment(monkeypatch, restore_threads):
     """At import: PYVF_NUM_THREADS wins; else OMP_NUM_THREADS is left to OpenMP; else the kernels
-    and numpy's BLAS are kept to cores() where OpenMP would run more (a container's CPU limit)."""
+    and numpy's BLAS are kept to cores() where OpenMP would run more."""
     monkeypatch.setattr(_threads, "cores", lambda: 1)
     assert _threads.set_from_environment({"PYVF_NUM_THREADS": " 3 "}) == 3
     assert pyvf.num_threads() == 3 and _threads.blas_num_threads() == 3

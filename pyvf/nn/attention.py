@@ -41,37 +41,22 @@ __all__ = [
 ]
 
 # ---------------------------------------------------------------------------------------
-# argument checks: every error names the argument and says what was expected
+# argument checks of the public faces: every error names the argument
 
 
-def _check_array(name, x, like=None):
-    """x must be a finite C-contiguous float32/float64 ndarray of 6 dims (like `like`, when given)."""
-    _checks.float_array(name, x, like, "q")
-    if like is None:
-        if x.ndim != 6:
-            raise ValueError(f"{name} must have 6 dimensions (R, B, H, N, L, dh), got shape {x.shape}")
-        if 0 in x.shape:
-            raise ValueError(f"{name} has a zero-size dimension: shape {x.shape}")
-    elif x.shape != like.shape:
-        raise ValueError(f"{name} has shape {x.shape} but q has shape {like.shape}")
-    _checks.contiguous(name, x)
-    _checks.finite(name, x)
-
-
-def _check_scale(scale):
-    if isinstance(scale, (bool, np.bool_)) or not isinstance(scale, (int, float, np.floating, np.integer)):
-        raise TypeError(f"scale must be a real number, got {type(scale).__name__}")
-    scale = float(scale)
-    if not np.isfinite(scale):
-        raise ValueError(f"scale must be finite, got {scale}")
-    return scale
-
-
-def _check_qkv(q, k, v, scale):
-    _check_array("q", q)
-    _check_array("k", k, like=q)
-    _check_array("v", v, like=q)
-    return _check_scale(scale)
+def _check_qkv(q, k, v, scale, **more):
+    """q: a finite C-contiguous float32/float64 array of 6 non-zero dimensions; k, v and `more`
+    (name=array) finite arrays like it; scale a finite real -> float(scale)."""
+    _checks.float_array("q", q)
+    if q.ndim != 6 or 0 in q.shape:
+        raise ValueError(f"q must have 6 non-zero dimensions (R, B, H, N, L, dh), got shape {q.shape}")
+    for name, a in (("q", q), ("k", k), ("v", v), *more.items()):
+        _checks.float_array(name, a, q, "q")
+        if a.shape != q.shape:
+            raise ValueError(f"{name} has shape {a.shape} but q has shape {q.shape}")
+        _checks.contiguous(name, a)
+        _checks.finite(name, a)
+    return _checks.real("scale", scale)
 
 
 def _check_finite_result(name, *arrays):
@@ -108,15 +93,11 @@ def branching_attention_backward(do, q, k, v, o, lse, scale=1.0, *, plain=False)
     do, o: like q; lse: (R, B, H, N, L) float64 as returned by branching_attention_forward.
     Returns new arrays dq, dk, dv of q's shape and dtype.
     """
-    scale = _check_qkv(q, k, v, scale)
-    _check_array("do", do, like=q)
-    _check_array("o", o, like=q)
+    scale = _check_qkv(q, k, v, scale, do=do, o=o)
     if not isinstance(lse, np.ndarray) or lse.dtype != np.float64 or lse.shape != q.shape[:5]:
-        got = f"{lse.dtype} of shape {lse.shape}" if isinstance(lse, np.ndarray) else type(lse).__name__
-        raise TypeError(f"lse must be the float64 array of shape {q.shape[:5]} that "
-                        f"branching_attention_forward returned, got {got}")
-    if not lse.flags.c_contiguous:
-        raise ValueError("lse is not C-contiguous: pass the array branching_attention_forward returned")
+        raise TypeError(f"lse must be the float64 array of shape {q.shape[:5]} that branching_attention_forward "
+                        "returned")
+    _checks.contiguous("lse", lse)
     _checks.finite("lse", lse)
     dq, dk, dv = np.empty_like(q), np.empty_like(q), np.empty_like(q)
     (_core.attn_backward_plain if plain else _core.attn_backward)(dq, dk, dv, lse, q, k, v, o, do, scale)
@@ -150,37 +131,18 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     the context's part for the R queries of a head in one product with the cached keys (not
     copied). Only the attended blocks are computed, Nc + 1 block pairs per query; the kernel
     would visit every block of a tree (1, R*B, H, Nc + 1, L, dh): (Nc+1)(Nc+2)/2 pairs, 3.5
-    times the work at Nc = 5. The products are pyvf's GEMM (layers.matmul); the softmax is one pass instead of the
+    times the work at Nc = 5. The products are NumPy's (layers.matmul); the softmax is one pass instead of the
     kernel's online one, so o agrees with the kernel's up to rounding (tests/test_scene_cache.py
     bounds it).
     """
-    _checks.float_array("q", q)
-    if q.ndim != 6 or q.shape[3] != 1 or 0 in q.shape:
-        raise ValueError(f"q must hold query rows of one view each, (R, B, H, 1, L, dh), got shape {q.shape}")
     R, B, H, _, L, dh = q.shape
-    for name, a in (("k", k), ("v", v)):
-        _checks.float_array(name, a, q, "q")
-        if a.shape != q.shape:
-            raise ValueError(f"{name} has shape {a.shape} but q has shape {q.shape}")
-    for name, a in (("k_ctx", k_ctx), ("v_ctx", v_ctx)):
-        _checks.float_array(name, a, q, "q")
-        if a.ndim != 5 or a.shape[:2] != (B, H) or a.shape[3:] != (L, dh) or a.shape[2] < 1:
-            raise ValueError(f"{name} must be the context's (B, H, Nc >= 1, L, dh) = ({B}, {H}, Nc, {L}, {dh}) "
-                             f"for q of shape {q.shape}, got {a.shape}")
-    if v_ctx.shape != k_ctx.shape:
-        raise ValueError(f"v_ctx has shape {v_ctx.shape} but k_ctx has shape {k_ctx.shape}")
-    scale = _check_scale(scale)
-    for name, a in (("q", q), ("k", k), ("v", v), ("k_ctx", k_ctx), ("v_ctx", v_ctx)):
-        _checks.finite(name, a)
     C, G, n = k_ctx.shape[2] * L, B * H, R * B * H  # context keys, heads, query blocks
     qh = np.ascontiguousarray(q.reshape(R, G, L, dh).transpose(1, 0, 2, 3)).reshape(G, R * L, dh)  # per head
     kc, vc = k_ctx.reshape(G, C, dh), v_ctx.reshape(G, C, dh)  # (G, C, dh)
     # logits s_ij = scale * q_i . k_j, against the context's keys (the R queries of a head in one
     # product) and against the own block's
-    with np.errstate(over="ignore", invalid="ignore"):  # checked below
-        sc = scale * matmul(qh, kc, tb=True).reshape(G, R, L, C).transpose(1, 0, 2, 3)  # (R, G, L, C)
-        so = scale * matmul(q.reshape(n, L, dh), k.reshape(n, L, dh), tb=True).reshape(R, G, L, L)  # (R, G, L, L)
-    _check_finite_result("context_attention_forward", sc, so)
+    sc = scale * matmul(qh, kc, tb=True).reshape(G, R, L, C).transpose(1, 0, 2, 3)  # (R, G, L, C)
+    so = scale * matmul(q.reshape(n, L, dh), k.reshape(n, L, dh), tb=True).reshape(R, G, L, L)  # (R, G, L, L)
     # the softmax over all T = C + L keys of each query, kept in the two parts: p = exp(s - m), m the
     # query's largest logit, denom = the sum of its p (in float64); every key the query attends
     # (nothing is masked: exact exclusion)
@@ -188,13 +150,9 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     pc, po = np.exp(sc - m), np.exp(so - m)  # (R, G, L, C), (R, G, L, L)
     denom = pc.sum(axis=-1, keepdims=True, dtype=np.float64) + po.sum(axis=-1, keepdims=True, dtype=np.float64)
     # o = sum_j p_j v_j / denom over the context's values and the own block's
-    with np.errstate(over="ignore", invalid="ignore"):  # checked below
-        oc = matmul(np.ascontiguousarray(pc.transpose(1, 0, 2, 3)).reshape(G, R * L, C), vc)  # (G, R L, dh)
-        oo = matmul(po.reshape(n, L, L), v.reshape(n, L, dh)).reshape(R, G, L, dh)  # (R, G, L, dh)
-        o = ((oo + oc.reshape(G, R, L, dh).transpose(1, 0, 2, 3)) / denom).astype(q.dtype)  # (R, G, L, dh)
-    # the sums of p v before the division overflow where |v| is within a factor T of the dtype's
-    # largest value, though o itself (a weighted mean of v) fits: refused, as the kernel refuses it
-    _check_finite_result("context_attention_forward", o)
+    oc = matmul(np.ascontiguousarray(pc.transpose(1, 0, 2, 3)).reshape(G, R * L, C), vc)  # (G, R L, dh)
+    oo = matmul(po.reshape(n, L, L), v.reshape(n, L, dh)).reshape(R, G, L, dh)  # (R, G, L, dh)
+    o = ((oo + oc.reshape(G, R, L, dh).transpose(1, 0, 2, 3)) / denom).astype(q.dtype)  # (R, G, L, dh)
     lse = (m.astype(np.float64) + np.log(denom))[..., 0]  # (R, G, L)
     return o.reshape(R, B, H, 1, L, dh), lse.reshape(R, B, H, 1, L)
 
@@ -206,15 +164,8 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
 def branching_mask(R, N, L):
     """Boolean (T, T) mask, T = R*N*L, flat order [row][view][token]: mask[t, u] is True where
     query token t attends key token u."""
-    for name, val in (("R", R), ("N", N), ("L", L)):
-        if isinstance(val, bool) or not isinstance(val, (int, np.integer)):
-            raise TypeError(f"{name} must be a positive integer, got {type(val).__name__} {val!r}")
-        if val < 1:
-            raise ValueError(f"{name} must be a positive integer, got {val!r}")
-    R, N, L = int(R), int(N), int(L)  # Python ints: numpy's uint8 20 * 20 wraps around
-    T = R * N * L
-    if T * T > np.iinfo(np.intp).max:
-        raise ValueError(f"R*N*L = {T} tokens (R={R}, N={N}, L={L}): a ({T}, {T}) mask is beyond any array size")
+    R, N, L = (_checks.positive_integer(name, n) for name, n in (("R", R), ("N", N), ("L", L)))
+    T = R * N * L  # Python ints: numpy's uint8 20 * 20 wraps around
     try:
         r = np.repeat(np.arange(R), N)  # (R*N,) row of each block
         i = np.tile(np.arange(N), R)  # (R*N,) view of each block
@@ -256,8 +207,7 @@ def branching_attention_reference(q, k, v, scale=1.0):
 
 def branching_attention_reference_vjp(q, k, v, do, scale=1.0):
     """Dense NumPy reference of branching_attention_vjp."""
-    scale = _check_qkv(q, k, v, scale)
-    _check_array("do", do, like=q)
+    scale = _check_qkv(q, k, v, scale, do=do)
     R, B, H, N, L, dh = q.shape
     qf, kf, vf, dof = _flat(q), _flat(k), _flat(v), _flat(do)
     p = _reference_probs(qf, kf, scale, branching_mask(R, N, L))  # (B, H, T, T)
@@ -316,26 +266,9 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
     layer, (k_ctx, v_ctx) each (B, H, Nc, L, dh) (the cache's k, v of the trunk's forward);
     then x (R, B, 1, L, d) holds R query rows of one view each, every one attending the Nc
     context blocks and itself, as the tree's branch row at view Nc (context_attention_forward).
-    Inference only: attention_layer_backward refuses such a cache.
+    Inference only: such a cache has no backward.
     """
-    _checks.float_array("x", x)
-    if x.ndim != 5:
-        raise ValueError(f"x must have 5 dimensions (R, B, N, L, d), got shape {x.shape}")
-    if 0 in x.shape:
-        raise ValueError(f"x has a zero-size dimension: shape {x.shape}")
     d = x.shape[-1]
-    n_head = _checks.positive_integer("n_head", n_head)
-    if d % n_head:
-        raise ValueError(f"n_head={n_head} does not divide the width d={d} of x")
-    for name, a, shape in (("w_attn", w_attn, (d, 3 * d)), ("b_attn", b_attn, (1, 3 * d)),
-                           ("w_proj", w_proj, (d, d)), ("b_proj", b_proj, (1, d))):
-        _checks.float_array(name, a, x, "x")
-        if a.shape != shape:
-            raise ValueError(f"{name} must have shape {shape} for x of width d={d}, got {a.shape}")
-        _checks.finite(name, a)
-    _check_scale(scale)
-    if context is not None and (not isinstance(context, (tuple, list)) or len(context) != 2):
-        raise TypeError(f"context must be None or a pair (k_ctx, v_ctx), got {type(context).__name__}")
     h, c_attn = linear_forward(x, w_attn, b_attn)  # (R, B, N, L, 3d)
     # docs/math.md §3: the fused columns are [values | queries | keys], not GPT-2's q, k, v order
     v = _split_heads(h, n_head, 0, d)  # (R, B, H, N, L, dh)
@@ -357,9 +290,6 @@ def attention_layer_backward(dy, cache, trace=None, name=""):
     trace[name + ".out"], ".v", ".k", ".q", ".c_attn" (the transformer's backward after
     forward(trace=True))."""
     c_attn, c_proj, q, k, v, o, lse, scale, context = cache
-    if context is not None:
-        raise ValueError("attention_layer_backward: the forward attended a cached context (scene inference), "
-                         "which has no backward; differentiate the whole tree's forward instead")
     n_head = q.shape[2]
     do, dw_proj, db_proj = linear_backward(dy, c_proj)  # (R, B, N, L, d)
     do = _split_heads(do, n_head)  # (R, B, H, N, L, dh)
