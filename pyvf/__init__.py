@@ -132,8 +132,8 @@ def show_config(file=None):
     print("\n".join(lines), file=file)
 
 
-# PYVF_NUM_THREADS for the kernels and numpy's BLAS; without it, no more threads than the CPUs this
-# process may use (a container's CPU limit included, which OpenMP and the BLAS do not read)
+# PYVF_NUM_THREADS for the kernels and numpy's BLAS; without it, no more threads than the CPUs in this
+# process's affinity
 _threads.set_from_environment()
 
 

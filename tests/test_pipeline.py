@@ -4,7 +4,6 @@ a second call resumes every stage instead of redoing it; a changed codebook re-t
 import json
 import os
 
-import numpy as np
 import pytest
 
 from pyvf.cli import main

@@ -325,16 +325,6 @@ def test_refusals_name_the_argument(call, error, name):
     assert _state_equal(q.state_dict(), before)
 
 
-def test_codebook_forward_names_a_train_that_is_not_a_bool(rng):
-    """pixel_weights passed by position to Codebook.forward landed in train."""
-    cb = Codebook(CodebookConfig(**SMALL), seed=0)
-    images = np.tanh(rng.standard_normal((2, 3, 16, 16))).astype(np.float32)
-    for bad in (np.ones((2, 1, 16, 16), np.float32), "no"):
-        with pytest.raises(TypeError, match=r"\btrain\b"):
-            cb.forward(images, bad)
-    assert cb.quantizer.counter == 0
-
-
 def test_what_the_refusals_take(rng):
     """Just inside the refusals: a Generator, np.bool_, a signed zero cluster size, the largest
     int64 counter, a float counter of an integral value (as torch may store it)."""

@@ -206,20 +206,6 @@ def test_context_attention_equals_branching_attention(R, B, H, Nc, L, dh, scale,
         assert_close(f"{what}, float32", got, ref, rtol=8 * U32, atol=2 * e32)
 
 
-def test_attention_layer_with_context_has_no_backward():
-    rng = np.random.default_rng(0)
-    d, H = 8, 2
-    x = rng.normal(size=(2, 1, 1, 4, d))
-    w = [rng.normal(size=s) for s in ((d, 3 * d), (1, 3 * d), (d, d), (1, d))]
-    ctx = tuple(rng.normal(size=(1, H, 3, 4, d // H)) for _ in range(2))
-    y, cache = attention.attention_layer_forward(x, *w, H, context=ctx)
-    assert y.shape == x.shape
-    with pytest.raises(ValueError, match="has no backward"):
-        attention.attention_layer_backward(rng.normal(size=y.shape), cache)
-    with pytest.raises(TypeError, match="context must be None or a pair"):
-        attention.attention_layer_forward(x, *w, H, context=ctx[0])
-
-
 # ---------------------------------------------------------------------------------------
 # inference's answers beyond the cache's: far cameras, threads, what the demo times
 
@@ -429,31 +415,3 @@ MASKED = np.ma.array(np.zeros((2, 2, 16), np.int64), mask=True)  # the one maske
 def test_refusals_name_the_argument(inference, call, error, name):
     with pytest.raises(error, match=rf"\b{name}\b"):
         call(*inference)
-
-
-Q = np.random.default_rng(0).normal(size=(2, 1, 2, 1, 4, 3))  # (B, R, H, 1 query row, L, dh)
-CTX = np.random.default_rng(1).normal(size=(1, 2, 3, 4, 3))  # (1, H, C, L, dh)
-
-
-@pytest.mark.parametrize("args, error, name", [
-    ((np.zeros((2, 1, 2, 2, 4, 3)), Q, Q, CTX, CTX), ValueError, "q"),  # two query rows
-    ((Q, Q[:1], Q, CTX, CTX), ValueError, "k"),
-    ((Q, Q, Q, CTX[:, :, :, :2], CTX), ValueError, "k_ctx"),
-    ((Q, Q, Q, CTX, CTX[:, :, :2]), ValueError, "v_ctx"),
-    ((Q, Q, Q, CTX, CTX.astype(np.float32)), TypeError, "v_ctx"),
-    ((Q, Q, Q, edited(CTX, (0, 0, 0, 0, 0), np.nan), CTX), ValueError, "k_ctx"),
-])
-def test_context_attention_refusals(args, error, name):
-    with pytest.raises(error, match=rf"\b{name}\b"):
-        attention.context_attention_forward(*args)
-
-
-def test_context_attention_refuses_an_overflow():
-    """Logits past float32's range, and values near its largest whose sums p v overflow before the
-    division (o was returned inf): an error, never an infinite output."""
-    f = attention.context_attention_forward
-    with pytest.raises(ValueError, match="not finite"):
-        f(*(a.astype(np.float32) * 1e20 for a in (Q, Q, Q, CTX, CTX)))
-    v, v_ctx = np.full(Q.shape, 2e38, np.float32), np.full(CTX.shape, 2e38, np.float32)
-    with pytest.raises(ValueError, match="not finite"):
-        f(np.zeros(Q.shape, np.float32), np.zeros(Q.shape, np.float32), v, np.zeros(CTX.shape, np.float32), v_ctx)

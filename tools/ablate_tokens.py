@@ -123,7 +123,6 @@ def run_candidate(name, args, data, held):
     if not os.path.exists(tokens_path):
         save_tokens(tokens_path, tokenize(cb, data.images), data.poses, cb_config.n_embed)
     tokens, poses = load_tokens(tokens_path)[:2]
-    tf_path = os.path.join(folder, "transformer", "transformer.npz")
     tf = train_transformer(tokens, poses, tf_config, os.path.join(folder, "transformer"),
                            RunOptions(steps=args.transformer_steps, batch_size=8, checkpoint_every=50, threads=1,
                                       progress=False), TransformerRecipe(lr=5e-4))

@@ -66,7 +66,7 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     pad = _padding4(padding)
     pt, pb, pl, pr = pad
     x, w, b = np.ascontiguousarray(x), np.ascontiguousarray(w), np.ascontiguousarray(b)
-    (B, C, Hi, Wi), (Co, _, kh, kw) = x.shape, w.shape
+    (B, _, Hi, Wi), (Co, _, kh, kw) = x.shape, w.shape
     y = np.empty((B, Co, (Hi + pt + pb - kh) // stride + 1, (Wi + pl + pr - kw) // stride + 1), x.dtype)
     _core.conv2d_forward(y, x, w, b, stride, *pad)  # (B, Co, Ho, Wo)
     return y, (x, w, stride, pad)
