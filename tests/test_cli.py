@@ -118,9 +118,9 @@ def test_a_bad_kernel_path_is_one_line_for_the_command(how, tmp_path):
 def test_config(tmp_path):
     assert_ran(run(["config"], tmp_path), "kernel path:", "threads:")
     # the kernels listed come from the compiled module: every one is callable there, and the
-    # codebook's (conv2d, GroupNorm, swish) are among them
+    # codebook's conv2d and the transformer's GELU are among them
     listed = pyvf._core.config()["kernels"]
-    assert {"attn_forward", "conv2d_forward", "groupnorm_backward", "swish_forward", "vq_nearest"} <= set(listed)
+    assert {"attn_forward", "conv2d_forward", "gelu", "matmul", "vq_nearest"} <= set(listed)
     assert all(callable(getattr(pyvf._core, name)) for name in listed)
     assert not {"num_threads", "cpu_features"} & set(listed)
     # the path's description too: the features that select it and its module's vector width
