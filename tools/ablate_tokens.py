@@ -59,6 +59,7 @@ TRANSFORMERS = {
     "b8-lr2e-3": ({}, 8, 2e-3, None),
     "b16-lr1e-3": ({}, 16, 1e-3, None),
     "l2-lr1e-3": ({"n_layer": 2}, 8, 1e-3, None),
+    "l2-lr5e-4": ({"n_layer": 2}, 8, 5e-4, None),
     "d96-l3-lr1e-3": ({"d_model": 96, "n_layer": 3}, 8, 1e-3, None),
 }
 TF_COLUMNS = [("steps", "steps", 0), ("ce_c3", "CE c3", 3), ("ce_object_c3", "CE object c3", 3),
