@@ -27,14 +27,13 @@ def images_for(cfg, rng, B=2):
     return rng.uniform(-1, 1, (B, cfg.in_channels, cfg.image_size, cfg.image_size)).astype(cfg.dtype)
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
-@pytest.mark.parametrize("seed_kind", ["loss", "drec", "both"])
+@pytest.mark.parametrize("dtype, seed_kind", [("float32", "both"), ("float64", "drec")])
 def test_traced_equals_untraced_bitwise(dtype, seed_kind, rng):
     cfg = CodebookConfig(**SMALL, dtype=dtype)
     cb = random_codebook(cfg, rng)
     x = images_for(cfg, rng)
     drec = rng.normal(size=x.shape).astype(dtype)
-    kw = {"loss": {}, "drec": {"drec": drec}, "both": {"drec": drec, "dloss": 0.5}}[seed_kind]
+    kw = {"drec": {"drec": drec}, "both": {"drec": drec, "dloss": 0.5}}[seed_kind]
     state = cb.state_dict()
     plain = cb.forward(x, train=True)
     g_plain = cb.backward(**kw)
@@ -63,23 +62,8 @@ def test_traced_equals_untraced_bitwise(dtype, seed_kind, rng):
     assert tr["loss"] == traced.loss
 
 
-def test_backward_is_linear_in_its_seeds(rng):
-    """loss + <rec, drec> = the loss part + the drec part (no commitment term in the drec part)."""
-    cfg = CodebookConfig(**SMALL, dtype="float64")
-    cb = random_codebook(cfg, rng)
-    x = images_for(cfg, rng)
-    cb.forward(x)
-    g0 = cb.backward()
-    drec = rng.normal(size=(2, 3, 16, 16))
-    g2, g3 = cb.backward(drec=drec), cb.backward(drec=drec, dloss=1.0)
-    for name in cb.params:
-        np.testing.assert_allclose(g3[name], g0[name] + g2[name], rtol=1e-9, atol=1e-12)
-
-
-@pytest.mark.parametrize("config", [SMALL, dict(SMALL, ch_mult=(1, 1, 2), num_res_blocks=2, attn_resolutions=(16, 4),
-                                                 image_size=16)])
-def test_trace_names_in_execution_order(config, rng):
-    cfg = CodebookConfig(**config, dtype="float64")
+def test_trace_names_in_execution_order(rng):
+    cfg = CodebookConfig(**dict(SMALL, ch_mult=(1, 1, 2), num_res_blocks=2, attn_resolutions=(16, 4)), dtype="float64")
     cb = random_codebook(cfg, rng)
     out = cb.forward(images_for(cfg, rng), trace=True)
     names = list(out.trace)

@@ -153,28 +153,6 @@ def test_teacher_forcing_without_upstream_checks_the_forward(rng):
     layers, _ = port_layers(port, tokens.shape[1], tokens.shape[2])
     tf = pyvf.teacher_force(model, (tokens, poses), layers, token_layout="flat")
     assert tf.wrong == ["blocks.0.ln_2"] and all(c.backward is None for c in tf.checks)
-    # a partial dict checks what it has and lists the rest
-    part = pyvf.teacher_force(model, (tokens, poses), {k: layers[k] for k in ("blocks.0.ln_2", "blocks.1.mlp")})
-    assert part.wrong == ["blocks.0.ln_2"] and "embed" in part.unchecked and len(part.checks) == 2
-    assert "not checked" in str(part)
-
-
-def test_teacher_forcing_tree_layout_and_a_raising_layer(rng):
-    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
-    N, L = tokens.shape[1:]
-    seen = {}
-
-    def ln_1(x):  # token_layout="tree": pyvf's (R, B, N, L, d)
-        seen["shape"] = tuple(x.shape)
-        return port.h[0].ln_1(x)
-
-    def broken(x):
-        raise RuntimeError("shapes do not match")
-
-    tf = pyvf.teacher_force(model, (tokens, poses), {"blocks.0.ln_1": ln_1, "blocks.0.mlp": broken},
-                            token_layout="tree", upstream=dict(dlogits=dl))
-    assert seen["shape"] == (3, 2, N, L, TINY["d_model"])
-    assert tf.wrong == ["blocks.0.mlp"] and "RuntimeError: shapes do not match" in str(tf)
 
 
 def _bad_params(params):
@@ -182,33 +160,19 @@ def _bad_params(params):
     return {**params, "h.0/attn/c_proj/weight": params["h.0/attn/c_attn/weight"], "nope": params["ln_f/gamma"]}
 
 
-@pytest.mark.parametrize("call, error, name", [
-    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, {"blocks.9.attn": layers["embed"]}), ValueError,
-     "blocks.9.attn"),  # not a layer
-    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, params=params), ValueError, "layout"),
-    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, params=_bad_params(params),
-                                                               layout="torch"), ValueError, "h.0/attn/c_proj/weight"),
-    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, params=_bad_params(params),
-                                                               layout="torch"), ValueError, "nope"),
-    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, token_layout="BTD"), ValueError,
-     "token_layout"),
-    (lambda m, port, x, layers, params, dl: pyvf.teacher_force(m, x, layers, upstream=dict(dlogits=dl.astype(np.float32))),
-     TypeError, "dlogits"),
+@pytest.mark.parametrize("kw, error, name", [  # kw(layers, params, dlogits) -> teacher_force's keywords
+    (lambda l, p, dl: dict(layers={"blocks.9.attn": l["embed"]}), ValueError, "blocks.9.attn"),  # not a layer
+    (lambda l, p, dl: dict(layers=l, params=p), ValueError, "layout"),  # params without their layout
+    (lambda l, p, dl: dict(layers=l, params=_bad_params(p), layout="torch"), ValueError, "h.0/attn/c_proj/weight"),
+    (lambda l, p, dl: dict(layers=l, params=_bad_params(p), layout="torch"), ValueError, "nope"),
+    (lambda l, p, dl: dict(layers=l, token_layout="BTD"), ValueError, "token_layout"),
+    (lambda l, p, dl: dict(layers=l, upstream=dict(dlogits=dl.astype(np.float32))), TypeError, "dlogits"),
 ])
-def test_teacher_force_refusals_name_the_argument(rng, call, error, name):
+def test_teacher_force_refusals_name_the_argument(rng, kw, error, name):
     model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
     layers, params = port_layers(port, tokens.shape[1], tokens.shape[2])
     with pytest.raises(error, match=rf"\b{re.escape(name)}\b"):
-        call(model, port, (tokens, poses), layers, params, dl)
-
-
-def test_teacher_forcing_restores_the_ports_grads(rng):
-    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
-    layers, params = port_layers(port, tokens.shape[1], tokens.shape[2])
-    marker = torch.full_like(params["ln_f/gamma"], 7.0)
-    params["ln_f/gamma"].grad = marker
-    pyvf.teacher_force(model, (tokens, poses), layers, params=params, layout="torch", upstream=dict(dpose=dp))
-    assert params["ln_f/gamma"].grad is marker and params["wte/weight"].grad is None
+        pyvf.teacher_force(model, (tokens, poses), **kw(layers, params, dl))
 
 
 # ---------------------------------------------------------------------------------------
@@ -266,74 +230,6 @@ def test_codebook_bug_found_by_compare_and_teacher_forcing(bug, rng):
         zero = [r for c in tf.checks for r in c.backward.rows if r.rel > r.rtol]
         assert {r.name.rsplit(".", 2)[-2] for r in zero} <= {"conv1", "conv2", "nin_shortcut", "k"}, zero
         assert all(r.name.endswith(".bias") and r.max_abs < 1e-13 for r in zero), zero
-
-
-def test_codebook_layer_table():
-    cfg = pyvf.CodebookConfig(**SMALL, dtype="float64")
-    table = pyvf.verify.teacher.layer_table(pyvf.Codebook(cfg))
-    by = {l.name: l for l in table}
-    assert table[0].calls == (((("images", None),), "encoder.conv_in"),)
-    assert by["encoder.down.0.downsample"].calls[0] == ((("encoder.down.0.block.0", None),),
-                                                        "encoder.down.0.downsample.conv")
-    nin = by["encoder.down.1.block.0.nin_shortcut"]  # the shortcut reads the block's input
-    assert nin.calls[0][0] == (("encoder.down.0.downsample.conv", None),)
-    assert by["encoder.down.1.block.0.norm1"].calls[0][0] == nin.calls[0][0]
-    assert by["decoder.up.1.upsample"].calls[0][1] == "decoder.up.1.upsample.conv"
-    assert by["quantize"].params == () and by["post_quant_conv"].calls[0][0] == (("quantize", None),)
-    assert not any(n.endswith(("block.0", "block_1", "interp")) for n in by)  # residual sums are not layers
-    # every parameter belongs to exactly one layer
-    owned = [p for l in table for p in l.params]
-    assert sorted(owned) == sorted(pyvf.Codebook(cfg).params)
-
-
-def test_codebook_upstream_is_drec_only(rng):
-    cb, port, x, drec = codebook_setup(rng, None)
-    with pytest.raises(ValueError, match=r"\bdrec\b"):
-        pyvf.teacher_force(cb, x, pyvf.verify.teacher.torch_modules(port, cb), upstream=dict(drec=drec, dloss=1.0))
-    before = cb.state_dict()
-    port.train()
-    pyvf.teacher_force(cb, x, pyvf.verify.teacher.torch_modules(port, cb), train=True)
-    for k, v in cb.state_dict().items():  # the model's EMA buffers are left as they were
-        np.testing.assert_array_equal(v, before[k], err_msg=k)
-
-
-def test_teacher_table_shows_a_nan_and_no_error_for_nothing_compared():
-    """A layer whose second call returns NaN showed the first call's 1e-16 in the table (Python's
-    max drops a NaN that is not first); a backward that compared nothing (embed without params:
-    its inputs are the model's) showed 0.0e+00 as if checked."""
-    rng = np.random.default_rng(0)
-    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
-    layers, _ = port_layers(port, tokens.shape[1], tokens.shape[2])
-    calls = []
-
-    def ln_f(x):  # the generation row right, the localization row NaN
-        calls.append(1)
-        y = port.ln_f(x)
-        return y if len(calls) % 2 else y * float("nan")
-
-    tf = pyvf.teacher_force(model, (tokens, poses), {"ln_f": ln_f, "embed": layers["embed"]},
-                            upstream=dict(dlogits=dl, dpose=dp))
-    assert tf.wrong == ["ln_f"]
-    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in tf.table().splitlines()[2:]}
-    assert rows["ln_f"][1] == "nan", tf.table()
-    assert rows["embed"][2] == "-", tf.table()  # nothing compared: no error to show
-
-
-
-def test_teacher_force_leaves_the_users_last_forward_for_backward(rng):
-    """model.backward() differentiates the model's last forward (its docstring); teacher_force runs
-    the model's own forward on its inputs, and left that run in place of the user's: a backward
-    after it returned the gradients of teacher forcing's batch, silently. The oracle: the same
-    forward and backward without teacher_force between them, bitwise."""
-    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
-    layers, _ = port_layers(port, tokens.shape[1], tokens.shape[2])
-    other = (tokens[::-1].copy(), poses[::-1].copy())  # the user's own batch: another one
-    model.forward(*other)
-    want = model.backward(dlogits=dl, dpose=dp)
-    model.forward(*other)
-    pyvf.teacher_force(model, (tokens, poses), layers, upstream={"dlogits": dl, "dpose": dp})
-    got = model.backward(dlogits=dl, dpose=dp)
-    assert want.keys() == got.keys() and all(np.array_equal(want[k], got[k]) for k in want)
 
 
 # ---------------------------------------------------------------------------------------

@@ -205,7 +205,6 @@ def test_traced_forward_and_backward_equal_untraced_bitwise(rng):
 
 SAME = dict(attention_scale=0.5, pose_multiplier=0.2, label_smoothing=0.1)
 CASES = {  # configuration, backward's seeds
-    "vjp": (SAME, dict(dlogits=True, dpose=True)),
     "dlogits_only": (SAME, dict(dlogits=True)),
     "loss_and_vjp": (SAME, dict(dlogits=True, dpose=True, dloss=0.7)),
     "weights": (dict(pose_multiplier=0.2, localization_weight=5.0, image_generation_weight=0.7, label_smoothing=0.1),
@@ -241,26 +240,6 @@ def test_trace_and_every_gradient_match_torch_float64(case, rng):
     assert report.ok, str(report)
     report = pyvf.compare({**t_grads, **t_pgrads}, grads)  # walked in backward's order
     assert report.ok, str(report)
-
-
-def test_float32_model_within_the_float32_default_tolerance(rng):
-    """The float32 default (1e-3) against a float64 oracle: measured <= 3e-6 for the activations
-    and 1.1e-5 for the gradients on the tiny model, so the default leaves ~100x for depth."""
-    m64, tokens, poses = setup(rng, "float64")
-    m32 = pyvf.Transformer(dataclasses.replace(m64.config, dtype="float32"))
-    m32.load_official(m64.params)
-    dl, dp = upstream(rng, m64, tokens)
-    t_trace, t_grads, t_pgrads = torch_trace(m64, tokens, poses, dlogits=dl, dpose=dp)
-    out = m32.forward(tokens, poses.astype(np.float32), trace=True)
-    grads = m32.backward(dlogits=dl.astype(np.float32), dpose=dp.astype(np.float32))
-    # dtype= is needed for attn.lse: float64 on both sides, but computed from float32 q and k here
-    report = pyvf.compare(out.trace, t_trace, dtype="float32")
-    assert report.ok and max(r.rel for r in report.rows) < 1e-4, str(report)
-    assert [r.name for r in pyvf.compare(out.trace, t_trace).rows if not r.ok] == \
-        ["blocks.0.attn.lse", "blocks.1.attn.lse"]
-    report = pyvf.compare(grads, {**t_grads, **t_pgrads})
-    assert report.ok and {r.dtype for r in report.rows} == {"float32"} and max(r.rel for r in report.rows) < 1e-4, \
-        str(report)
 
 
 # ---------------------------------------------------------------------------------------
@@ -332,22 +311,10 @@ def test_rel_err_at_the_ends_of_float64():
     assert pyvf.rel_err([3e-320], [1e-320]) == pytest.approx(2.0, rel=1e-3)  # subnormals: 3 digits
     assert pyvf.rel_err(np.zeros((0, 3)), np.zeros((0, 3))) == 0.0
     assert np.isnan(pyvf.rel_err([np.nan, 1.0], [1.0, 1.0]))
+    assert pyvf.rel_err([1e6, 0.0], [0.0, 0.0]) == 1e6  # an all-zero ref: the absolute error
     # an ordinary case: the power of two cancels exactly
     x, ref = np.array([1.0, 2.5, -3.0]), np.array([1.1, 2.0, -3.0])
     assert pyvf.rel_err(x, ref) == np.abs(x - ref).max() / 3.0
-
-
-def test_rel_err_of_an_all_zero_ref_is_the_absolute_error():
-    """max |x - ref| / max |ref| falls back to max |x - ref| where ref is all zero (its divisor
-    1.0): the power-of-two scaling against overflow must not leak into the result (it returned
-    a number in [0.5, 1) for any nonzero x, so 1e6 against 0 passed rtol=1)."""
-    assert pyvf.rel_err([4.0], [0.0]) == 4.0
-    assert pyvf.rel_err([1e-20, -3e-20], [0.0, 0.0]) == 3e-20
-    assert pyvf.rel_err([1e6, 0.0], [0.0, 0.0]) == 1e6
-    assert pyvf.rel_err([0.0], [0.0]) == 0.0
-    assert pyvf.compare({"a": np.array([1e6])}, {"a": np.zeros(1)}, rtol=1.0).first == "a"
-    assert pyvf.compare({"a": np.array([1e-20])}, {"a": np.zeros(1)}).first is None  # below 1e-10
-
 
 
 def test_integer_ref_must_match_exactly_whatever_the_float_tolerance():
