@@ -11,10 +11,10 @@ import torch
 
 import pyvf
 import pyvf.verify.teacher as teacher
-from pyvf.models import codebook, transformer
+from pyvf.models import codebook
 from pyvf.verify.torch_ports import CodebookPort
 from test_codebook_trace import SMALL, images_for, random_codebook
-from test_teacher import codebook_trace, port_layers, transformer_setup
+from test_teacher import codebook_trace
 
 
 def _replaced(rows, name, changes):
@@ -140,52 +140,3 @@ def test_a_changed_codebook_padding_is_read_by_the_forward_and_teacher_forcing(r
         tf = pyvf.teacher_force(other, x, teacher.torch_modules(ports[bug], other),
                                 params=dict(ports[bug].named_parameters()), upstream=dict(drec=drec))
         assert tf.wrong == wrong, str(tf)
-
-
-# ---------------------------------------------------------------------------------------
-# the transformer: its table gives the parameters (names, shapes, layouts) and teacher forcing's
-# layers; its forward names its parameters itself (the blocks' code), so only a teacher layer is
-# renamed for a forward, and a renamed parameter prefix is checked on the weights alone
-
-
-def test_a_renamed_transformer_layer_is_renamed_in_teacher_forcing(rng):
-    model, port, tokens, poses, dl, dp = transformer_setup(rng, None)
-    rows = replace_row(model.layers, "pose_head", name="pose_classifier")
-    other = pyvf.Transformer(model.config, layers=rows)
-    other.load_official(model.state_dict())
-    assert other.parameter_shapes() == model.parameter_shapes()
-    assert teacher.layer_names(other) == renamed(teacher.layer_names(model), {"pose_head": "pose_classifier"})
-    layers, params = port_layers(port, tokens.shape[1], tokens.shape[2])
-    layers["pose_classifier"] = layers.pop("pose_head")
-    tf = pyvf.teacher_force(other, (tokens, poses), layers, params=params, layout="torch",
-                            upstream=dict(dlogits=dl, dpose=dp))
-    assert tf.wrong == [] and tf.unchecked == [], str(tf)
-    head = "quaternion_pose_representation/pose_classifier/"
-    assert {head + "c_fc/weight", "d ln_f.localization"} <= {r.name for r in tf["pose_classifier"].backward.rows}
-    with pytest.raises(ValueError, match=r"unknown layer names \['pose_head'\]"):
-        pyvf.teacher_force(other, (tokens, poses), {"pose_head": port.pose_head})
-
-
-def test_a_transformer_parameter_prefix_renames_its_weights(rng):
-    cfg = pyvf.TransformerConfig(n_embeddings=16, n_head=2, d_model=8, n_layer=1, token_image_size=2,
-                                 sequence_size=3, n_loss_skip=1)
-    rows = replace_row(transformer.layer_table(cfg), "ln_f", prefix="final_norm/")
-    rows = replace_row(rows, "blocks.0.mlp", prefix="h.0/ffn/")
-    model = pyvf.Transformer(cfg, layers=rows)
-    default = transformer.parameter_shapes(cfg)
-    new = {"ln_f/gamma": "final_norm/gamma", "ln_f/beta": "final_norm/beta",
-           **{f"h.0/mlp/{s}": f"h.0/ffn/{s}" for s in ("c_fc/weight", "c_fc/bias", "c_proj/weight", "c_proj/bias")}}
-    assert list(model.parameter_shapes().items()) == [(new.get(n, n), s) for n, s in default.items()]
-    by = {l.name: l for l in teacher.layer_table(model)}
-    assert by["ln_f"].params == ("final_norm/gamma", "final_norm/beta")
-    assert by["blocks.0.mlp"].params[0] == "h.0/ffn/c_fc/weight"
-    # the layouts follow the roles the table gave: nn.Linear's (out, in) kernel, (out,) bias
-    torch_sd = model.state_dict(layout="torch")
-    assert torch_sd["h.0/ffn/c_fc/weight"].shape == (32, 8) and torch_sd["h.0/ffn/c_fc/bias"].shape == (32,)
-    assert torch_sd["final_norm/gamma"].shape == (8,)
-    again = pyvf.Transformer(cfg, seed=3, layers=rows)
-    again.load_official({f"migt/{k}:0": v for k, v in torch_sd.items()}, layout="torch")
-    for k, p in model.params.items():
-        np.testing.assert_array_equal(again.params[k], p, err_msg=k)
-    with pytest.raises(ValueError, match="unexpected parameters 'ln_f/beta', 'ln_f/gamma'"):
-        again.load_official({**model.state_dict(), "ln_f/gamma": np.ones(8), "ln_f/beta": np.ones(8)})
