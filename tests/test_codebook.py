@@ -13,6 +13,7 @@ import torch
 from conftest import assert_close
 from pyvf.models.codebook import Codebook, CodebookConfig, parameter_shapes
 from pyvf.verify import convert_torch, torch_codebook
+from test_codebook_trace import SMALL, random_codebook
 
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-codebook-tiny.json")
 
@@ -23,19 +24,6 @@ def tiny_config(**kw):
     fields = {k: c[k] for k in ("ch", "ch_mult", "num_res_blocks", "attn_resolutions", "z_channels", "embed_dim",
                                 "n_embed", "image_size")}
     return CodebookConfig(**{**fields, **kw})
-
-
-SMALL = dict(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=8,
-             n_embed=16, image_size=16)
-
-
-def random_codebook(cfg, rng):
-    """Every parameter random (GroupNorm gammas != 1, biases != 0): a role mix-up shows."""
-    cb = Codebook(cfg, seed=1)
-    for name, p in cb.params.items():
-        if p.ndim == 1:
-            cb.params[name] = (rng.normal(1.0 if name.endswith(".weight") else 0.0, 0.2, p.shape)).astype(p.dtype)
-    return cb
 
 
 def torch_state(cb):
