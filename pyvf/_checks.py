@@ -37,17 +37,6 @@ def float_array(name, a, like=None, like_name="x"):
     return a
 
 
-def finite_float(name, a, like=None, like_name="x"):
-    """a: a finite float32/float64 ndarray (of like's dtype, when given)."""
-    return finite(name, float_array(name, a, like, like_name))
-
-
-def c_order(a):
-    """a itself when C-contiguous, else a C-ordered copy (the C++ kernels take C order only; not
-    np.ascontiguousarray alone, which turns a 0-d array into shape (1,))."""
-    return a if a.flags.c_contiguous else np.ascontiguousarray(a)
-
-
 def contiguous(name, a):
     if not a.flags.c_contiguous:
         raise ValueError(f"{name} is not C-contiguous: pass np.ascontiguousarray({name})")

@@ -107,17 +107,14 @@ def atomic_write_text(path, text, encoding="utf-8"):
 def load_npz(path, what="file", required=()):
     """Every array of the .npz at `path`, read now (the file is closed on return): dict name -> array.
 
-    path: a str or os.PathLike, or an open binary file (read from where it stands).
+    path: a str or os.PathLike.
     what: how the error messages call the file ("checkpoint", "codebook", ...).
     required: entries that must be present. A missing file raises FileNotFoundError; a
     truncated or corrupt one, or a missing entry, CheckpointError (a ValueError); both name
     the file, and the entry being read when it broke. Opened with allow_pickle=False."""
-    if hasattr(path, "read"):
-        name = getattr(path, "name", repr(path))
-    else:
-        path = name = os.fspath(path)
-        if not os.path.exists(path):
-            raise FileNotFoundError(f"{what} {path} does not exist")
+    path = name = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{what} {path} does not exist")
     entry = None
     try:
         with np.load(path, allow_pickle=False) as f:

@@ -170,15 +170,13 @@ class ModelWeights:
         """Write the configuration and state_dict() (the published layout) to one .npz file.
 
         path: a str or os.PathLike (".npz" appended when missing, so `load` needs the name with
-        ".npz"), written atomically, or an open binary file; see save_model. Returns the path
-        written (or the file)."""
+        ".npz"), written atomically; see save_model. Returns the path written."""
         meta = {k: getattr(self, k) for k in self.META if getattr(self, k, None) is not None}
         return save_model(path, self.config, self.state_dict(), meta)
 
     @classmethod
     def load(cls, path):
-        """Read a model written by save(): path as given (no ".npz" appended), or an open binary
-        file. A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
+        """Read a model written by save(): path as given (no ".npz" appended). A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
         configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
         pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
         return load_model(path, cls.FILE_KIND, cls.CONFIG, cls)
@@ -188,13 +186,9 @@ def save_model(path, config, state, meta=None):
     """ModelWeights.save: the configuration (JSON, entry __config__), the meta strings (name ->
     str, entries __name__) and the state (name -> array) in one .npz. path: a str or
     os.PathLike, ".npz" appended when it does not end with it (as np.savez does), written
-    atomically; or an open binary file, written directly (no atomicity: the caller owns it).
-    Returns the path written (or the file)."""
+    atomically. Returns the path written."""
     arrays = {"__config__": json.dumps(dataclasses.asdict(config)),
               **{f"__{k}__": str(v) for k, v in (meta or {}).items()}, **state}
-    if hasattr(path, "write"):
-        np.savez(path, **arrays)
-        return path
     path = os.fsdecode(os.fspath(path))
     if not path.endswith(".npz"):
         path += ".npz"
@@ -206,7 +200,7 @@ def load_model(path, what, config_cls, model_cls):
     """ModelWeights.load: read the file, build the configuration and the model, load the weights
     (load_official validates all of them first). A missing file raises FileNotFoundError; every
     other problem is a CheckpointError naming the file (and the entry)."""
-    name = getattr(path, "name", repr(path)) if hasattr(path, "read") else os.fspath(path)
+    name = os.fspath(path)
     arrays = load_npz(path, what, required=("__config__",))
     try:
         fields = json.loads(str(arrays.pop("__config__")))
@@ -229,5 +223,5 @@ def load_model(path, what, config_cls, model_cls):
         raise CheckpointError(f"{what} {name}: {e}") from e
     for k, v in meta.items():
         setattr(model, k, v)
-    model.source = getattr(path, "name", None) if hasattr(path, "read") else name
+    model.source = name
     return model
