@@ -562,8 +562,10 @@ class Codebook(ModelWeights):
             if tr is not None:
                 tr[self._quantize_row.name] = q.quantized
             rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
-            # (the module that ran, its cache): backward differentiates it, whatever its cache (None too)
-            per_image, perc = self._perceptual_forward(images, rec) if self.perceptual is not None else (None, None)
+            per_image, perc = None, None
+            if self.perceptual is not None:  # (the module that ran, its cache): backward differentiates it
+                per_image, cache = self.perceptual.forward(images, rec)  # (B,)
+                perc = (self.perceptual, cache)
         except BaseException:  # a failed call leaves the EMA buffers as they were
             if saved is not None:
                 self.quantizer.load_state_dict(saved)
@@ -599,14 +601,6 @@ class Codebook(ModelWeights):
         self._cache = (enc, dec, c_q, drec_loss, perc, images.shape[0], rec.shape, trace)
         return CodebookOutput(reconstruction=rec, codes=q.codes, rec_loss=rec_loss, commitment_loss=q.commitment_loss,
                               loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual, trace=tr)
-
-    def _perceptual_forward(self, images, rec):
-        """The perceptual module's loss per image (B,) -> (loss, (module, cache)); another shape
-        would be averaged (or broadcast) silently."""
-        per_image, cache = self.perceptual.forward(images, rec)
-        if np.shape(per_image) != (images.shape[0],):
-            raise ValueError(f"perceptual.forward's loss must have shape ({images.shape[0]},), got {np.shape(per_image)}")
-        return per_image, (self.perceptual, cache)
 
     def backward(self, drec=None, *, dloss=None):
         """Differentiate the last forward: the gradient of
@@ -646,10 +640,7 @@ class Codebook(ModelWeights):
                 if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
                     module, cache = perc
                     dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
-                    dx_hat = module.backward(dl, cache)
-                    if np.shape(dx_hat) != tuple(rec_shape):  # it would broadcast silently
-                        raise ValueError(f"perceptual.backward's gradient must have shape {tuple(rec_shape)}")
-                    total = total + dx_hat
+                    total = total + module.backward(dl, cache)  # (B, out_ch, S, S)
                 dcommitment = dloss * self.config.codebook_weight
             if drec is not None:
                 total = total + drec

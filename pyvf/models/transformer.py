@@ -720,11 +720,6 @@ class Transformer(ModelWeights):
         raw, _ = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
                              p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (M, B, L, 7)
         rel = average_pose(pose_prediction(raw, self.config.pose_multiplier), axis=2)  # (M, B, 7)
-        n2 = np.einsum("...i,...i->...", rel[..., 3:], rel[..., 3:])  # (M, B): 1, or < 1 where they cancel
-        bad = np.argwhere(np.abs(n2 - 1) > (1e-5 if self.dtype == np.float32 else 1e-9))
-        if len(bad):  # no rotation to return, not a silent garbage pose
-            raise ValueError(f"localize_scene: query {bad[0][0]} of scene {bad[0][1]}: the model's pose predictions "
-                             "average to no rotation (its token quaternions are zero or cancel)")
         return absolute_poses(rel.transpose(1, 0, 2), scene.ref[:, None, :])  # (B, M, 7)
 
     def render(self, context_tokens, context_poses, query_poses):
