@@ -88,15 +88,17 @@ def test_user_code_is_at_most_15_lines():
 # the transformer
 
 
-def transformer_setup(rng, bug):
-    cfg = pyvf.TransformerConfig(**TINY, dtype="float64", pose_multiplier=0.5)
+def transformer_setup(rng, bug=None, dtype="float64", **config):
+    """A random tiny model in dtype, pyvf's torch port of it (bug planted) in the same dtype, a
+    batch and random upstream gradients."""
+    cfg = pyvf.TransformerConfig(**TINY, dtype=dtype, pose_multiplier=0.5, **config)
     model = random_model(cfg, rng)
-    tokens, poses = random_batch(rng, 2, 3, 16, cfg.n_embeddings)
-    port = TransformerPort(cfg, bug=bug).double()
+    tokens, poses = random_batch(rng, 2, 3, 16, cfg.n_embeddings, dtype=dtype)
+    port = TransformerPort(cfg, bug=bug).to(getattr(torch, dtype))
     sd = model.state_dict(layout="torch")  # nn.Linear's (out, in): the port's weights are pyvf's
-    port.load_state_dict({n: torch.tensor(sd[official_name(n)]) for n, _ in port.state_dict().items()})
-    dl = rng.normal(size=(*tokens.shape, cfg.n_embeddings))
-    dp = rng.normal(size=(*tokens.shape, 7))
+    port.load_state_dict({n: torch.tensor(sd[official_name(n)]) for n in port.state_dict()})
+    dl = rng.normal(size=(*tokens.shape, cfg.n_embeddings)).astype(dtype)
+    dp = rng.normal(size=(*tokens.shape, 7)).astype(dtype)
     return model, port, tokens, poses, dl, dp
 
 
@@ -237,19 +239,6 @@ def test_codebook_bug_found_by_compare_and_teacher_forcing(bug, rng):
 # bugs the ports' bug lists do not plant, and the defects of the tools these found
 
 
-def dtype_setup(dtype, rng, **config):
-    """A random tiny model in dtype and pyvf's torch port of it, in the same dtype."""
-    cfg = pyvf.TransformerConfig(**TINY, dtype=dtype, pose_multiplier=0.5, **config)
-    model = random_model(cfg, rng)
-    tokens, poses = random_batch(rng, 2, 3, 16, cfg.n_embeddings, dtype=dtype)
-    port = TransformerPort(cfg).to(getattr(torch, dtype))
-    sd = model.state_dict(layout="torch")
-    port.load_state_dict({n: torch.tensor(sd[official_name(n)]) for n in port.state_dict()})
-    dl = rng.normal(size=(*tokens.shape, cfg.n_embeddings)).astype(dtype)
-    dp = rng.normal(size=(*tokens.shape, 7)).astype(dtype)
-    return model, port, tokens, poses, dl, dp
-
-
 def force(model, port, tokens, poses, dl, dp, layers=None):
     mine, params = port_layers(port, *tokens.shape[1:])
     return pyvf.teacher_force(model, (tokens, poses), {**mine, **(layers or {})}, params=params, layout="torch",
@@ -277,9 +266,9 @@ def test_correct_port_passes_in_float32(rng):
     """No false alarm: the correct port in float32 against a float32 pyvf (float64: the bug table's
     None), forward and backward, every layer; and a float32 port's trace against a float64 pyvf's
     (compare's tolerance follows the less precise side)."""
-    model, port, tokens, poses, dl, dp = dtype_setup("float32", rng)
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, dtype="float32")
     assert force(model, port, tokens, poses, dl, dp).wrong == []
-    model64, _, _, _, _, _ = dtype_setup("float64", np.random.default_rng(0))
+    model64 = transformer_setup(np.random.default_rng(0))[0]
     model64.load_official(model.params)
     out = model64.forward(tokens, poses.astype(np.float64), trace=True)
     mine, _ = port_trace(port, tokens, poses, dl, dp)
@@ -294,7 +283,7 @@ def test_a_wrong_input_gradient_is_not_hidden_under_the_parameters_gradients(lay
     layer's largest gradient, which is a parameter's (a sum over every token, here 6-15 times
     larger and growing with the batch): an input gradient up to 15 rtol off passed (1.4% in float32,
     so this failed there; float64 keeps the promise for the same bug)."""
-    model, port, tokens, poses, dl, dp = dtype_setup(dtype, rng)
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, dtype=dtype)
     f = port_layers(port, *tokens.shape[1:])[0][layer]
     tf = force(model, port, tokens, poses, dl, dp, {layer: lambda x: f(ScaleGrad.apply(x, 1.003))})
     assert tf.wrong == [layer], str(tf)
@@ -342,7 +331,7 @@ PLANTED = {  # planting: (compare's first wrong quantity, teacher forcing's wron
 
 @pytest.mark.parametrize("plant", list(PLANTED), ids=lambda f: f.__name__)
 def test_planted_transformer_bug_found_at_its_layer(plant, rng):
-    model, port, tokens, poses, dl, dp = dtype_setup("float64", rng)
+    model, port, tokens, poses, dl, dp = transformer_setup(rng)
     plant(port)
     first, wrong = PLANTED[plant]
     out = model.forward(tokens, poses, trace=True)
@@ -354,7 +343,7 @@ def test_planted_transformer_bug_found_at_its_layer(plant, rng):
 
 def test_label_smoothing_off_found_at_the_cross_entropy(rng):
     """pyvf trained with label_smoothing 0.1, a port's loss without it: ce_loss, not the logits."""
-    model, port, tokens, poses, dl, dp = dtype_setup("float64", rng, label_smoothing=0.1)
+    model, port, tokens, poses, dl, dp = transformer_setup(rng, label_smoothing=0.1)
     out = model.forward(tokens, poses, trace=True)
     logits, _ = port(torch.tensor(tokens), torch.tensor(poses))
     S, V = model.config.n_loss_skip, model.config.n_embeddings
