@@ -153,7 +153,7 @@ def test_transformer_bug_found_by_compare_and_teacher_forcing(bug, rng):
 def test_teacher_forcing_without_upstream_checks_the_forward(rng):
     model, port, tokens, poses, _, _ = transformer_setup(rng, "ln_eps")
     layers, _ = port_layers(port, tokens.shape[1], tokens.shape[2])
-    tf = pyvf.teacher_force(model, (tokens, poses), layers, token_layout="flat")
+    tf = pyvf.teacher_force(model, (tokens, poses), layers)
     assert tf.wrong == ["blocks.0.ln_2"] and all(c.backward is None for c in tf.checks)
 
 
@@ -167,7 +167,6 @@ def _bad_params(params):
     (lambda l, p, dl: dict(layers=l, params=p), ValueError, "layout"),  # params without their layout
     (lambda l, p, dl: dict(layers=l, params=_bad_params(p), layout="torch"), ValueError, "h.0/attn/c_proj/weight"),
     (lambda l, p, dl: dict(layers=l, params=_bad_params(p), layout="torch"), ValueError, "nope"),
-    (lambda l, p, dl: dict(layers=l, token_layout="BTD"), ValueError, "token_layout"),
     (lambda l, p, dl: dict(layers=l, upstream=dict(dlogits=dl.astype(np.float32))), TypeError, "dlogits"),
 ])
 def test_teacher_force_refusals_name_the_argument(rng, kw, error, name):

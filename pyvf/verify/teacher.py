@@ -26,10 +26,9 @@ norm+swish, AttnBlocks, Downsample, Upsample, quantize; with train=True the port
 too). The residual additions and the losses are not layers (pyvf.compare on a trace covers them);
 the model's inputs get no gradient.
 
-Transformer activations of the whole tree, pyvf's (R, B, N, L, d), reach a callable in
-`token_layout` "flat" (default: (B, T, d), T = R*N*L ordered [row][view][token], as most ports
-hold them) or "tree"; the heads' rows stay (B, N, L, ...); codebook activations are NCHW, in
-pyvf's dtype (run pyvf in the port's dtype: compare's tolerances apply per layer).
+Transformer activations of the whole tree, pyvf's (R, B, N, L, d), reach a callable flat:
+(B, T, d), T = R*N*L ordered [row][view][token], as most ports hold them; the heads' rows stay
+(B, N, L, ...); codebook activations are NCHW, in pyvf's dtype (run pyvf in the port's dtype: compare's tolerances apply per layer).
 
 Backward: upstream holds model.backward's seeds (a Codebook's drec only: the quantize layer's
 commitment loss is a second output no layer VJP sees). pyvf's gradient of each layer's output
@@ -48,7 +47,6 @@ from .layout import flat_to_tree, tree_to_flat
 
 __all__ = ["Layer", "LayerCheck", "TeacherReport", "layer_names", "layer_table", "teacher_force", "torch_modules"]
 
-TOKEN_LAYOUTS = ("flat", "tree")
 MODEL_INPUTS = ("tokens", "poses", "images")
 
 
@@ -243,7 +241,7 @@ def _check_params(model, params, layout):
 
 
 def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=None, train=False,
-                  token_layout="flat", dtype=None, rtol=None):
+                  dtype=None, rtol=None):
     """Run each of the port's layers on pyvf's input to it; see the module's docstring.
 
     model: a pyvf.Transformer or pyvf.Codebook holding the port's weights. inputs: (tokens,
@@ -254,11 +252,11 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     a Codebook): their per-layer gradients are compared. upstream: optional dict of
     model.backward's seeds; with it every layer's VJP is checked too. train: the codebook's
     forward mode (the quantizer's EMA step; the model's buffers are restored afterwards).
-    token_layout: "flat" | "tree" (Transformer). dtype, rtol: compare's tolerance arguments.
+    dtype, rtol: compare's tolerance arguments.
     The model's last forward stays the caller's: a model.backward() after this call differentiates
     it, not teacher forcing's run. Returns a TeacherReport (.wrong: the wrong layers' names)."""
     table = layer_table(model)
-    _check_arguments(table, layers, token_layout, train, upstream)
+    _check_layers(table, layers)
     params, convert = _check_params(model, params, layout)
     import torch  # only here: pyvf itself never needs it
 
@@ -267,7 +265,7 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
         trace, grads, sizes = _pyvf_run(model, inputs, upstream, train)
     finally:
         model._cache = cache
-    to_port, from_port = _port_converters(torch, model, trace, token_layout, sizes)
+    to_port, from_port = _port_converters(torch, model, trace, sizes)
     checks, unchecked = [], []
     for layer in table:
         fn = layers.get(layer.name)
@@ -279,14 +277,11 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     return TeacherReport(checks=checks, unchecked=unchecked)
 
 
-def _check_arguments(table, layers, token_layout, train, upstream):
-    """teacher_force's arguments other than the model, its inputs and params: raise on the first
-    wrong one, naming it (layers against the model's layer table)."""
+def _check_layers(table, layers):
+    """layers against the model's layer table: a misspelt name would be silently not checked."""
     unknown = [n for n in layers if n not in {l.name for l in table}]
-    if unknown:  # a misspelt name would be silently not checked
+    if unknown:
         raise ValueError(f"layers: unknown layer names {unknown}; this model's layers are {[l.name for l in table]}")
-    if token_layout not in TOKEN_LAYOUTS:
-        raise ValueError(f"token_layout must be one of {TOKEN_LAYOUTS}, got {token_layout!r}")
 
 
 def _pyvf_run(model, inputs, upstream, train):
@@ -319,23 +314,23 @@ def _pyvf_run(model, inputs, upstream, train):
     return trace, grads, sizes
 
 
-def _port_converters(torch, model, trace, token_layout, sizes):
+def _port_converters(torch, model, trace, sizes):
     """(to_port, from_port): an activation (trace[name], or the array given; row r of a
     per-row one) as a torch tensor for the port, and the port's output back as a NumPy array.
-    With token_layout "flat", a Transformer's tree activations go through the flat token layout
-    (R = 3 rows of N views of L tokens, sizes = (N, L))."""
+    A Transformer's tree activations go through the flat token layout (R = 3 rows of N views of
+    L tokens, sizes = (N, L))."""
     R = 3
 
     def to_port(name, row, a):
         a = trace[name] if a is None else a
         a = a[row] if row is not None else a
-        if _is_tree(model, name, row) and token_layout == "flat":
+        if _is_tree(model, name, row):
             a = tree_to_flat(np.asarray(a))
         return torch.from_numpy(np.array(a))  # a copy: the port may write into it
 
     def from_port(name, row, t):
         a = t.detach().cpu().numpy() if hasattr(t, "detach") else np.asarray(t)
-        if _is_tree(model, name, row) and token_layout == "flat" and a.ndim >= 2:
+        if _is_tree(model, name, row) and a.ndim >= 2:
             N, L = sizes  # (a tree activation is a Transformer's: sizes is set)
             if a.shape[1] == R * N * L:
                 a = flat_to_tree(a, R, N, L)
