@@ -1,5 +1,5 @@
 """The whole transformer: float32 against float64, the tree's defining property,
-cached inference, weights and bad input (against torch float64: tests/test_trace_compare.py)."""
+weights and bad input (against torch float64: tests/test_trace_compare.py)."""
 
 import dataclasses
 import json
@@ -109,23 +109,7 @@ def test_generation_branch_does_not_see_its_own_image(rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 3. cached inference (against the whole tree: tests/test_scene_cache.py)
-
-
-def test_render_and_localize_are_the_scene_paths(rng):
-    """render / localize (one call) are encode_scene then render_scene / localize_scene, bitwise."""
-    cfg = pyvf.TransformerConfig(**{**TINY, "pose_multiplier": 0.5}, dtype="float64")
-    model = random_model(cfg, rng)
-    ctx_tokens, ctx_poses = random_batch(rng, 2, 4, 16, cfg.n_embeddings)
-    q_tokens, q_poses = random_batch(rng, 2, 3, 16, cfg.n_embeddings)
-    scene = model.encode_scene(ctx_tokens, ctx_poses)
-    assert_bitwise_equal("render", model.render(ctx_tokens, ctx_poses, q_poses), model.render_scene(scene, q_poses))
-    assert_bitwise_equal("localize", model.localize(ctx_tokens, ctx_poses, q_tokens),
-                         model.localize_scene(scene, q_tokens))
-
-
-# ---------------------------------------------------------------------------------------
-# 4. weights
+# 3. weights
 
 
 def official_weights(rng, dtype=np.float32):
@@ -152,7 +136,7 @@ def test_load_official_names_and_shapes(rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 5. refusals: one table per entry point, the exception type and the argument's name
+# 4. refusals: one table per entry point, the exception type and the argument's name
 
 
 def _call(rng, what, edit):
@@ -261,7 +245,7 @@ def test_config_refusals(field, value, error):
 
 
 # ---------------------------------------------------------------------------------------
-# 6. the TensorFlow checkpoint converter (pyvf convert tf-transformer), with a stand-in for tf.train.load_checkpoint
+# 5. the TensorFlow checkpoint converter (pyvf convert tf-transformer), with a stand-in for tf.train.load_checkpoint
 
 
 class FakeReader:
@@ -293,7 +277,7 @@ def test_tf_converter_maps_checkpoint_keys(style, rng, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------
-# 7. buffers changed between forward() and backward(); a loss past the dtype's range
+# 6. buffers changed between forward() and backward(); a loss past the dtype's range
 
 
 SMALL = dict(n_embeddings=16, n_head=2, d_model=8, n_layer=1, token_image_size=2, sequence_size=3, n_loss_skip=1)
