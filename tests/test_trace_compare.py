@@ -4,7 +4,6 @@ wrapping its layer functions, never rewriting them), and compare naming the firs
 of a port's traces."""
 
 import contextlib
-import dataclasses
 
 import numpy as np
 import pytest
