@@ -630,8 +630,6 @@ BAD_INPUTS = {
     "mask R = 0": (lambda: pyvf.branching_mask(0, 2, 2), ValueError, "R"),
     "mask N float": (lambda: pyvf.branching_mask(2, 2.0, 2), TypeError, "N"),
     "mask L bool": (lambda: pyvf.branching_mask(2, 2, True), TypeError, "L"),
-    "threads 0": (lambda: pyvf.set_num_threads(0), ValueError, "n"),
-    "threads 1.5": (lambda: pyvf.set_num_threads(1.5), ValueError, "n"),
 }
 
 

@@ -17,7 +17,8 @@ pytestmark = pytest.mark.usefixtures("kernel_path")
 
 def brute_force(x, codes):
     """Exact distances in float64 by direct differences; argmin takes the first minimum."""
-    d = ((x.astype(np.float64)[:, None, :] - codes.astype(np.float64)[None]) ** 2).sum(axis=-1)  # (M, K)
+    x = x.astype(np.float64)
+    d = np.stack([((x - c) ** 2).sum(axis=1) for c in codes.astype(np.float64)], axis=1)  # (M, K)
     return d.argmin(axis=1), d.min(axis=1), d
 
 
