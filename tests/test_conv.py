@@ -1,5 +1,5 @@
 """Tests of the codebook's image layers (docs/math.md §4): conv2d, GroupNorm, swish, nearest x2
-upsampling and the 2D attention block (pyvf/nn/conv.py).
+upsampling, GroupNorm + swish and the 2D attention block (pyvf/nn/conv.py).
 
 Each layer is a pair `x_forward(...) -> (out, cache)`, `x_backward(dout, cache) -> (dx, *dparams)`.
 The tests: every layer against PyTorch in float64 under a random upstream gradient (output and
@@ -7,8 +7,8 @@ every gradient); float32 against float64 on the same inputs; the parity traps sh
 (the Downsample's (0,1,0,1) padding, GroupNorm eps 1e-6, the grouping of channels, a transposed
 kernel, upsample's summing backward); hard numerical cases (constant groups, groups of mean 1e4
 and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised, a 1x1
-image); dtypes; GroupNorm + swish. Then the C++
-kernels (sections 5, 6, once per instruction-set path): the conv2d kernel against its plain-loop
+image); dtypes. Then the C++
+kernels (sections 4, 5, once per instruction-set path): the conv2d kernel against its plain-loop
 twin, its NumPy reference and torch on every code path, 1 vs 2 vs 5 threads bitwise; the GEMM
 against NumPy.
 
@@ -56,6 +56,8 @@ RTOL32 = {
     "groupnorm": 4e-7,
     # elementwise: exp, one division, a few products. Measured <= 5.6e-8 (dx); 2e-7 = 3.6x margin.
     "swish": 2e-7,
+    # GroupNorm, then swish's few ulp elementwise. Measured <= 1.7e-7.
+    "groupnorm_swish": 4e-7,
     # copies forward; the backward adds 4 numbers. Measured <= 6.1e-8 (dx); 2e-7 = 3.3x margin.
     "upsample": 2e-7,
     # GroupNorm, three 1x1 convs, a softmax over P = 15 positions, two batched products, a 1x1
@@ -109,6 +111,8 @@ LAYERS = {  # name -> (forward, backward, torch twin, gradient names in forward-
     "groupnorm": (conv.groupnorm_forward, conv.groupnorm_backward, torch_groupnorm, ("dx", "dgamma", "dbeta")),
     "swish": (conv.swish_forward, conv.swish_backward, torch_swish, ("dx",)),
     "upsample": (conv.upsample_nearest2x_forward, conv.upsample_nearest2x_backward, torch_upsample, ("dx",)),
+    "groupnorm_swish": (conv.groupnorm_swish_forward, conv.groupnorm_swish_backward,
+                        lambda x, g, b: F.silu(torch_groupnorm(x, g, b)), ("dx", "dgamma", "dbeta")),
     "attnblock": (conv.attnblock_forward, conv.attnblock_backward, torch_attnblock,
                   ("dx", "dnorm_gamma", "dnorm_beta", "dwq", "dbq", "dwk", "dbk", "dwv", "dbv", "dwo", "dbo")),
 }
@@ -135,7 +139,7 @@ def build(case, rng, dtype):
         (kh, kw), stride, padding, (Hi, Wi) = dims
         inputs = [f(B, CI, Hi, Wi), f(CO, CI, kh, kw) / np.sqrt(CI * kh * kw), f(CO)]
         kwargs = {"stride": stride, "padding": padding}
-    elif name == "groupnorm":
+    elif name in ("groupnorm", "groupnorm_swish"):
         C, Hi, Wi = dims
         inputs = [group_images(rng, (2, C, Hi, Wi)), 1 + 0.5 * f(C), f(C)]
     elif name == "swish":
@@ -193,6 +197,8 @@ CASES = [
     ("conv2d", (4, 2), 1, 0, (7, 6)),  # non-square kernel: a transposed kernel cannot even run
     ("groupnorm", 64, 5, 3),  # 2 channels per group
     ("groupnorm", 96, 4, 4),  # 3 channels per group
+    ("groupnorm_swish", 64, 5, 3),  # ResnetBlock's norm1/norm2 + swish, norm_out + swish
+    ("groupnorm_swish", 32, 9, 37),
     ("swish",),
     ("upsample", 5, 4),
     ("upsample", 1, 3),
@@ -492,32 +498,7 @@ def test_conv2d_one_pixel_image(dtype, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 4. GroupNorm + swish (ResnetBlock's norm1/norm2 + swish, norm_out + swish)
-
-
-def torch_groupnorm_swish(x, gamma, beta, groups=G, eps=EPS):
-    return F.silu(F.group_norm(x, groups, gamma, beta, eps=eps))
-
-
-LAYERS["groupnorm_swish"] = (conv.groupnorm_swish_forward, conv.groupnorm_swish_backward, torch_groupnorm_swish,
-                             ("dx", "dgamma", "dbeta"))
-RTOL32["groupnorm_swish"] = RTOL32["groupnorm"]  # swish adds a few ulp elementwise; measured <= 1.7e-7
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("C, Hi, Wi", [(64, 5, 3), (32, 9, 37)])
-def test_groupnorm_swish(C, Hi, Wi, dtype, rng):
-    """The pair against torch (F.silu(F.group_norm)) in float64 on the same inputs."""
-    _, inputs, _, dy = build(("groupnorm", C, Hi, Wi), rng, dtype)
-    z, grads, _ = pyvf_run("groupnorm_swish", inputs, {}, dy)
-    assert z.dtype == dtype
-    z_t, grads_t = torch_run("groupnorm_swish", inputs, {}, dy)
-    rtol = RTOL64 if dtype == np.float64 else RTOL32["groupnorm_swish"]
-    compare("groupnorm_swish", z, grads, z_t, grads_t, rtol, f"groupnorm+swish {C}x{Hi}x{Wi} vs torch")
-
-
-# ---------------------------------------------------------------------------------------
-# 5. the C++ conv2d: fast vs the plain loops (double sums) vs NumPy vs torch, every code path
+# 4. the C++ conv2d: fast vs the plain loops (double sums) vs NumPy vs torch, every code path
 # (each test once per instruction-set path: conftest.kernel_path)
 
 # (B, C, Co, (Hi, Wi), (kh, kw), stride, padding): each family of the codebook and each code path of
@@ -632,7 +613,7 @@ def test_conv2d_kernel_float32(case, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 6. pyvf's GEMM (once per instruction-set path) (csrc/conv.cpp matmul_batched: the AttnBlock's products, the transformer's linear
+# 5. pyvf's GEMM (once per instruction-set path) (csrc/conv.cpp matmul_batched: the AttnBlock's products, the transformer's linear
 # layers and tied logits) against NumPy in float64
 
 # (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16, the packed
