@@ -29,7 +29,6 @@ import torch.nn.functional as F
 
 from pyvf import _core
 from pyvf.nn import conv
-from pyvf.nn.layers import matmul
 
 from conftest import assert_bitwise_equal, assert_close, forced_threads
 
@@ -258,19 +257,6 @@ def test_groupnorm_traps_have_teeth(rng):
     for what, yw, dxw in (("eps 1e-5", y5, g5[0]), ("interleaved groups", yi, gi[0])):
         for q, got, want in (("y", y, yw), ("dx", dx, dxw)):
             assert gap(got, want) > 1e3 * RTOL32["groupnorm"], f"{what}: {q} only {gap(got, want):.1e} away"
-
-
-def test_upsample_backward_sums_the_block():
-    """dy = 1 everywhere gives dx = 4 exactly (an averaging backward would give 1); a dy that is
-    1 on one pixel of each block picks that pixel out."""
-    x = np.arange(2 * 3 * 4 * 5, dtype=np.float64).reshape(2, 3, 4, 5)
-    y, cache = conv.upsample_nearest2x_forward(x)
-    assert_bitwise_equal("y[2u+i, 2v+j] = x[u, v]", y[:, :, 1::2, ::2], x)
-    (dx,) = conv.upsample_nearest2x_backward(np.ones_like(y), cache)
-    assert_bitwise_equal("dx of dy = 1", dx, np.full_like(x, 4))
-    dy = np.zeros_like(y)
-    dy[:, :, 1::2, ::2] = y[:, :, 1::2, ::2]
-    assert_bitwise_equal("dx of a one-pixel-per-block dy", conv.upsample_nearest2x_backward(dy, cache)[0], x)
 
 
 # ---------------------------------------------------------------------------------------
@@ -706,16 +692,3 @@ def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
     c = np.full((1, 3, 4), np.nan, dtype=dtype)
     _core.matmul(c, np.zeros((1, 3, 0), dtype), np.zeros((1, 0, 4), dtype), False, False, bias[:4])
     np.testing.assert_array_equal(c, np.broadcast_to(bias[:4], (1, 3, 4)))
-
-
-@pytest.mark.usefixtures("kernel_path")
-def test_matmul_layers_helper(rng):
-    """pyvf.nn.layers.matmul, the entry the linear layers, the logits and the AttnBlock use: each
-    transpose flag against NumPy in float64 on 2-D and batched operands, and a non-contiguous
-    operand read as its values."""
-    a3, b3 = rng.standard_normal((2, 3, 30, 40))
-    assert_close("batched a @ b^T", matmul(a3, b3, tb=True), a3 @ b3.transpose(0, 2, 1), rtol=1e-13)
-    a, b = rng.standard_normal((2, 30, 40))
-    assert_close("a @ b^T", matmul(a, b, tb=True), a @ b.T, rtol=1e-13)
-    assert_close("a^T @ b", matmul(a[:, :30].T, b[:, :30], ta=True), a[:, :30] @ b[:, :30], rtol=1e-13)
-    assert_close("a @ b", matmul(a[:, :30], b.T[:30]), a[:, :30] @ b.T[:30], rtol=1e-13)
