@@ -16,7 +16,6 @@ import os
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 import pyvf
 from pyvf import _core
@@ -191,15 +190,6 @@ def test_matches_torch(shape, scale_kind, make_qkv):
     for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_vjp(q32, k32, v32, do32, scale), grads_t):
         assert g.dtype == np.float32
         assert_close(f"{name} f32", g, w, RTOL32)
-
-
-def test_sdpa_agrees_with_the_explicit_torch_oracle(make_qkv):
-    """torch's scaled_dot_product_attention with the boolean mask: the oracle above is torch's own."""
-    shape, scale = (3, 2, 2, 4, 5, 17), -0.7
-    q, k, v, _ = (torch_flat(torch.tensor(x)) for x in make_qkv(shape))
-    mask = torch_branching_mask(shape[0], shape[3], shape[4])
-    assert_close("sdpa", F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=scale).numpy(),
-                 torch_attention(q, k, v, scale, mask).numpy(), RTOL64)
 
 
 # ---------------------------------------------------------------------------------------
@@ -536,13 +526,8 @@ def test_single_key(R, dtype, plain, make_qkv):
                  1e-15 if dtype == np.float64 else 4 * 17 * U32)
     dq, dk, dv = pyvf.branching_attention_backward(do, q, k, v, o, lse, plain=plain)
     assert_bitwise_equal("dv", dv, do)
-    for name, g in (("dq", dq), ("dk", dk)):
-        if np.any(g != 0):
-            size = (np.linalg.norm(do, axis=-1) * np.linalg.norm(v, axis=-1) * np.linalg.norm(k, axis=-1))[..., None]
-            pytest.fail(f"{name} must be exactly 0: p = 1, so ds = p (dp - D) with dp = do . v and "
-                        f"D = do . o = do . v; got {np.count_nonzero(g)} of {g.size} entries nonzero, "
-                        f"max |{name}| = {np.abs(g).max():.3g}, max |{name}| / (|do| |v| |k|) = "
-                        f"{(np.abs(g) / size).max():.3g}")
+    for name, g in (("dq", dq), ("dk", dk)):  # ds = p (dp - D) with dp = do . v and D = do . o = do . v
+        assert not np.any(g != 0), f"{name} must be exactly 0: {np.count_nonzero(g)} of {g.size} entries nonzero"
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -26,8 +26,6 @@ from pyvf.nn import layers
 
 from conftest import assert_bitwise_equal, assert_close
 
-U32 = 2.0 ** -24  # float32 unit roundoff
-U64 = 2.0 ** -53  # float64 unit roundoff
 EPS = 1e-5  # LayerNorm eps, inside the square root (docs/math.md §3)
 
 # float64 pyvf vs float64 torch: the same sums (at most 148 terms) in another order, and for GELU

@@ -113,11 +113,7 @@ def test_dead_code_reset_is_off_by_default_and_restarts_codes(rng):
     z = rng.standard_normal((1, 4, 3, 3))
     q.forward(z, train=True)
     assert (q.embeddings[:, 1:] == 0).all()  # dead codes collapse to 0 without a reset
-    n = q.reset_dead_codes(z, threshold=1e-3, rng=0)
-    assert n == 5
-    flat = z.transpose(0, 2, 3, 1).reshape(-1, 4)
-    for k in range(1, 6):  # each restarted code is one of the batch's vectors, and stays there
-        assert any(np.array_equal(q.embeddings[:, k], v) for v in flat)
+    assert q.reset_dead_codes(z, threshold=1e-3, rng=0) == 5  # where to: the next test
     q.forward(np.zeros((1, 4, 1, 1)) + 1e3, train=True)  # a batch far away: codes 1.. unused
     assert np.isfinite(q.embeddings).all()
 
