@@ -1,6 +1,6 @@
 """The machine's facts and a timer: what every home needs to say where and how fast it ran
 (the benchmarks' pyvf/bench/common.py re-exports these beside its memory and report helpers).
-The standard library, the compiled kernels' module and the argument checks only, so that any home
+The standard library and the compiled kernels' module only, so that any home
 may import it.
 
     seconds, times = median_time(fn, repeat=5, warmup=1)   # the one timing helper
@@ -12,7 +12,7 @@ import platform
 import statistics
 import time
 
-from . import _checks, _core
+from . import _core
 
 __all__ = ["median_time", "cpu_name", "kernel_line"]
 
@@ -22,8 +22,6 @@ def median_time(fn, repeat=5, warmup=1):
 
     Returns (median, times), times the list of every timed call's seconds (time.perf_counter).
     """
-    repeat = _checks.positive_integer("repeat", repeat)
-    warmup = _checks.integer("warmup", warmup, lo=0)
     for _ in range(warmup):
         fn()
     times = []

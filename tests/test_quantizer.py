@@ -113,11 +113,7 @@ def test_dead_code_reset_is_off_by_default_and_restarts_codes(rng):
     z = rng.standard_normal((1, 4, 3, 3))
     q.forward(z, train=True)
     assert (q.embeddings[:, 1:] == 0).all()  # dead codes collapse to 0 without a reset
-    n = q.reset_dead_codes(z, threshold=1e-3, rng=0)
-    assert n == 5
-    flat = z.transpose(0, 2, 3, 1).reshape(-1, 4)
-    for k in range(1, 6):  # each restarted code is one of the batch's vectors, and stays there
-        assert any(np.array_equal(q.embeddings[:, k], v) for v in flat)
+    assert q.reset_dead_codes(z, threshold=1e-3, rng=0) == 5  # where to: the next test
     q.forward(np.zeros((1, 4, 1, 1)) + 1e3, train=True)  # a batch far away: codes 1.. unused
     assert np.isfinite(q.embeddings).all()
 
@@ -133,35 +129,6 @@ def test_state_round_trip(rng):
 
 def _state_equal(a, b):
     return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
-
-
-def test_numpy_integer_sizes_are_ints():
-    """embed_dim and n_embed: Python or NumPy integers (not bool), held as int."""
-    q = EMAQuantizer(np.int64(4), np.int32(8))
-    assert type(q.embed_dim) is int and type(q.n_embed) is int
-    assert q.embeddings.shape == (4, 8) and q.state_dict().keys() == EMAQuantizer(4, 8).state_dict().keys()
-    with pytest.raises(TypeError, match="^embed_dim must be an integer, got bool"):
-        EMAQuantizer(True, 8)
-    with pytest.raises(TypeError, match="^n_embed must be an integer, got float"):
-        EMAQuantizer(4, 8.0)
-    with pytest.raises(ValueError, match="^n_embed must be a positive integer, got 0"):
-        EMAQuantizer(4, np.int64(0))
-
-
-def test_load_state_dict_refuses_float64_values_beyond_float32(rng):
-    """A float64 buffer into a float32 quantizer: a value past float32's largest would become inf.
-    Refused, named, nothing loaded; the largest float32 value loads exactly."""
-    q = EMAQuantizer(4, 8, dtype="float32")
-    q.forward(rng.standard_normal((1, 4, 2, 2)).astype(np.float32), train=True)
-    before = q.state_dict()
-    state = {k: v.astype(np.float64) if k != "counter" else v for k, v in before.items()}
-    state["ema_dw_hidden"][3, 5] = 1e39
-    with pytest.raises(ValueError, match=r"\bema_dw_hidden\b"):
-        q.load_state_dict(state)
-    assert _state_equal(q.state_dict(), before)
-    state["ema_dw_hidden"][3, 5] = float(np.finfo(np.float32).max)
-    q.load_state_dict(state)
-    assert q.ema_dw_hidden[3, 5] == np.finfo(np.float32).max
 
 
 # ---------------------------------------------------------------------------------------
@@ -264,19 +231,6 @@ def test_batch_of_one_vector_and_a_code_unused_for_many_steps(rng):
 
 
 
-def test_ties_and_duplicated_codes_go_to_the_smallest_index():
-    """x exactly between two codes, and codes repeated: the smallest index (float32 values whose
-    squared differences are exact in float64, so the tie is exact)."""
-    q = EMAQuantizer(2, 5, dtype="float32")
-    q.embeddings[:] = np.array([[3.0, 1.0, -1.0, 1.0, -1.0], [0.0, 0.0, 0.0, 0.0, 0.0]], np.float32)
-    z = np.array([0.0, 1.0, -1.0, 2.0], np.float32).reshape(1, 1, 2, 2)
-    z = np.concatenate([z, np.zeros_like(z)], axis=1)  # (1, 2, 2, 2)
-    out, _ = q.forward(z, train=True)
-    np.testing.assert_array_equal(out.codes.ravel(), [1, 1, 2, 0])  # 0 ties 1 and 2; 2 ties 0 and 1
-    assert np.isfinite(q.embeddings).all()
-
-
-
 # ---------------------------------------------------------------------------------------
 # refusals: one table, the exception type and the argument's name; nothing changed by a refusal
 
@@ -307,8 +261,11 @@ def _load(**changes):
     (lambda q, z: q.reset_dead_codes(z, rng="abc"), TypeError, "rng"),
     (lambda q, z: q.reset_dead_codes(z, rng=-1), ValueError, "rng"),
     (_load(embeddings=np.zeros((8, 4), np.float32)), ValueError, "embeddings"),
-    # a negative cluster size (impossible for an EMA of counts) gave codes that are not the formula's
-    (_load(ema_cluster_size_hidden=-np.ones(8, np.float32)), ValueError, "ema_cluster_size_hidden"),
+    # a float64 value past float32's largest would become inf in a float32 quantizer
+    (_load(ema_dw_hidden=np.full((4, 8), 1e39)), ValueError, "ema_dw_hidden"),
+    (_load(ema_dw_hidden=np.zeros((4, 8), np.float16)), TypeError, "ema_dw_hidden"),
+    (_load(embeddings=None), TypeError, "embeddings"),
+    (lambda q, z: q.load_state_dict({k: v for k, v in q.state_dict().items() if k != "counter"}), ValueError, "counter"),
     # a counter int64 cannot hold loaded, then state_dict() raised OverflowError
     *[(_load(counter=big), ValueError, "counter") for big in (np.uint64(2 ** 63), 2 ** 63, np.array(2.0 ** 63))],
     # float32: eps=1e-50 rounds to 0 (an unused code's size 0, its code 0/0), 1e39 is inf; every
@@ -316,6 +273,8 @@ def _load(**changes):
     *[(lambda q, z, e=e: EMAQuantizer(3, 5, eps=e, dtype="float32"), ValueError, "eps") for e in (1e-50, 1e39)],
     *[(lambda q, z, e=e: Codebook(CodebookConfig(**SMALL, eps=e)), ValueError, "eps") for e in (1e-50, 1e39)],
     (lambda q, z: EMAQuantizer(4, 0), ValueError, "n_embed"),
+    (lambda q, z: EMAQuantizer(True, 8), TypeError, "embed_dim"),
+    (lambda q, z: EMAQuantizer(4, 8.0), TypeError, "n_embed"),
 ])
 def test_refusals_name_the_argument(call, error, name):
     q = EMAQuantizer(4, 8, dtype="float32")  # counter 0: every code is dead, every reset would write
@@ -326,17 +285,23 @@ def test_refusals_name_the_argument(call, error, name):
 
 
 def test_what_the_refusals_take(rng):
-    """Just inside the refusals: a Generator, np.bool_, a signed zero cluster size, the largest
-    int64 counter, a float counter of an integral value (as torch may store it)."""
-    q = EMAQuantizer(4, 8, dtype="float32")
+    """Just inside the refusals: NumPy integer sizes (held as int), a Generator, np.bool_, the
+    largest int64 counter, a float counter of an integral value (as torch may store it), float64
+    buffers whose values float32 holds (the largest loads exactly)."""
+    q = EMAQuantizer(np.int64(4), np.int32(8), dtype="float32")
+    assert type(q.embed_dim) is int and type(q.n_embed) is int
     assert q.reset_dead_codes(Z, rng=np.random.default_rng(0)) == 8 and np.isfinite(q.embeddings).all()
     q.forward(Z, train=np.bool_(True))
     state = q.state_dict()
-    state["ema_cluster_size_hidden"][0] = -0.0
     state["counter"] = np.uint64(2 ** 63 - 1)
     q.load_state_dict(state)
     assert q.state_dict()["counter"] == 2 ** 63 - 1
     state["counter"] = np.array(1e18)
+    state["ema_dw_hidden"] = state["ema_dw_hidden"].astype(np.float64)
+    state["ema_dw_hidden"][3, 5] = float(np.finfo(np.float32).max)
+    q.load_state_dict(state)
+    assert q.ema_dw_hidden.dtype == np.float32 and q.ema_dw_hidden[3, 5] == np.finfo(np.float32).max
+    state["ema_dw_hidden"][3, 5] = 0
     q.load_state_dict(state)
     q.forward(Z, train=True)  # decay ** counter = 0: no debias
     assert np.isfinite(q.embeddings).all() and q.state_dict()["counter"] == 10 ** 18 + 1

@@ -8,7 +8,6 @@ import pytest
 
 import pyvf
 from conftest import assert_bitwise_equal
-from pyvf import _core
 from pyvf.nn.quantizer import vq_nearest
 
 # every test here runs once per kernel path this machine executes (conftest.kernel_path)
@@ -17,7 +16,8 @@ pytestmark = pytest.mark.usefixtures("kernel_path")
 
 def brute_force(x, codes):
     """Exact distances in float64 by direct differences; argmin takes the first minimum."""
-    d = ((x.astype(np.float64)[:, None, :] - codes.astype(np.float64)[None]) ** 2).sum(axis=-1)  # (M, K)
+    x = x.astype(np.float64)
+    d = np.stack([((x - c) ** 2).sum(axis=1) for c in codes.astype(np.float64)], axis=1)  # (M, K)
     return d.argmin(axis=1), d.min(axis=1), d
 
 
@@ -101,21 +101,6 @@ def test_same_result_for_any_thread_count(rng):
         pyvf.set_num_threads(n)
     assert_bitwise_equal("index", two[0], one[0])
     assert_bitwise_equal("sq", two[1], one[1])
-
-
-@pytest.mark.parametrize("offset", [0.0, 1e3, 1e5])
-def test_certified_rows_skip_the_rerank(offset, rng):
-    """On well separated data the error bound certifies the winners: almost nothing re-ranked,
-    also far from the origin (the kernel scores vectors shifted by the codes' centroid). The
-    bound is one per row (the largest code norm, so the kernel keeps one number per code), so
-    a row with a near-tie is re-ranked now and then: measured 0, 1, 1 rows of 1000 at these
-    offsets. An unshifted kernel re-ranks nearly every row at 1e3 (the cancellation)."""
-    x = (rng.standard_normal((1000, 32)) + offset).astype(np.float32)
-    codes = (rng.standard_normal((256, 32)) + offset).astype(np.float32)
-    index = np.empty(1000, np.int64)
-    sq = np.empty(1000, np.float32)
-    assert _core.vq_nearest(index, sq, x, codes) <= 5
-    np.testing.assert_array_equal(index, brute_force(x, codes)[0])
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

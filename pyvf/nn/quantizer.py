@@ -43,19 +43,12 @@ COUNTER_MAX = np.iinfo(np.int64).max  # state_dict() stores the counter as int64
 
 
 def _counter(a):
-    """An EMA update count -> int, or None when `a` is not a non-negative integral scalar
-    (a Python/numpy int, a 0-d integer array, or a 0-d float array of an integral value)
-    that int64 holds."""
-    if isinstance(a, (bool, np.bool_)):
+    """An EMA update count (an integer, or a 0-d array holding one, as a torch checkpoint may
+    store it as a float) -> int, or None when it is not a non-negative integer int64 holds."""
+    a = np.asarray(a)
+    if a.shape != () or a.dtype.kind not in "iuf" or not np.isfinite(a) or a != np.floor(a):
         return None
-    if isinstance(a, (int, np.integer)):
-        return int(a) if 0 <= a <= COUNTER_MAX else None
-    if not isinstance(a, np.ndarray) or a.shape != () or not (a.dtype.kind in "iu" or a.dtype in _checks.FLOATS):
-        return None
-    v = a.item()
-    if a.dtype.kind == "f" and not (np.isfinite(v) and v == int(v)):
-        return None
-    return int(v) if 0 <= v <= COUNTER_MAX else None
+    return int(a) if 0 <= int(a) <= COUNTER_MAX else None
 
 
 def vq_nearest(x, codes):
@@ -133,13 +126,9 @@ class EMAQuantizer:
         """Validate a state_dict() without loading it -> (buffers, problems): the converted
         buffers (new arrays of the quantizer's dtype; counter an int) and a list of
         (exception class, message), one per missing, unexpected or wrong entry (names carry
-        `prefix`, e.g. "quantize.").
-        Arrays must be float32/float64 (converted to the quantizer's dtype), of the buffer's
-        shape and finite, also once converted (a float64 value beyond float32's range is
-        refused), the cluster sizes non-negative; counter a non-negative integer that int64
-        holds (an integer array, or a float array holding an integral value, as a torch
-        checkpoint may store it). require_all=False does
-        not report missing entries (a caller that reports them itself)."""
+        `prefix`, e.g. "quantize."). Arrays: float32/float64 of the buffer's shape, finite also
+        once converted; counter: see _counter. require_all=False does not report missing
+        entries (a caller that reports them itself)."""
         want = {"embeddings": (self.embed_dim, self.n_embed), "ema_cluster_size_hidden": (self.n_embed,),
                 "ema_dw_hidden": (self.embed_dim, self.n_embed), "counter": ()}
         problems, out = [], {}
@@ -166,9 +155,6 @@ class EMAQuantizer:
             problem = _checks.weight_problem(full, a, shape)
             if problem is None:  # float64 values past float32's range would become inf: refused
                 a, problem = _checks.converted_weight(full, a, self.dtype)
-            if problem is None and name == "ema_cluster_size_hidden" and (a < 0).any():
-                problem = (ValueError, f"{full!r} holds a negative cluster size {float(a.min()):.4g}: "
-                                       "an EMA of counts is never negative")
             if problem is not None:
                 problems.append(problem)
             else:
