@@ -247,15 +247,9 @@ def quat_normalize(q, eps=1e-12):
     (0.7071, 0.7071, 0, 0)) or is subnormal (with an eps below |q|^2): |q| is taken of q scaled
     by a power of two (_normalize)."""
     _check("q", q, (4,), "a quaternion (w, x, y, z)")
-    if isinstance(eps, (bool, np.bool_)) or not isinstance(eps, (int, float, np.integer, np.floating)):
-        raise TypeError(f"eps must be a real number, got {type(eps).__name__}")
-    try:
-        value = float(eps)
-    except OverflowError:  # an int beyond float64 (10**400): not finite either
-        value = np.inf
-    if not (np.isfinite(value) and value > 0):
+    if not (np.isfinite(eps) and eps > 0):
         raise ValueError(f"eps must be finite and > 0, got {eps!r}")
-    return _normalize(q, value)
+    return _normalize(q, float(eps))
 
 
 def quat_canonical(q, *, tie_break=False):

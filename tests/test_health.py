@@ -113,9 +113,9 @@ def test_pixel_weights_equal_repeated_images(rng):
     # equal weights are the plain mean
     out1 = cb.forward(x, pixel_weights=np.full((2, 1, 16, 16), 0.5))
     assert out1.rec_loss == pytest.approx(cb.forward(x).rec_loss, rel=1e-14)
-    for bad, msg in ((w.astype(np.float32), "dtype|float64"), (w[:, :, :8], "shape"),
-                     (-w, "non-negative"), (0 * w, "not all zero")):
-        with pytest.raises((TypeError, ValueError), match=msg):
+    for bad, error in ((w.astype(np.float32), TypeError), (w[:, :, :8], ValueError), (-w, ValueError),
+                       (0 * w, ValueError)):
+        with pytest.raises(error, match=r"\bpixel_weights\b"):
             cb.forward(x, pixel_weights=bad)
 
 
@@ -148,10 +148,10 @@ def test_transformer_health_is_evaluate_on_the_same_scenes():
     from pyvf.scenes import generate_scenes
 
     cb, tf = load_pretrained()
-    images, poses = generate_scenes(7, 3, size=cb.config.image_size)
+    images, poses = generate_scenes(7, 2, size=cb.config.image_size)
     tokens = np.stack([cb.encode(to_model_images(v, np.float32)).reshape(15, -1) for v in images])
     h = transformer_health(cb, tf, images, poses, tokens, (1, 3, 5), batch=2)
-    m = evaluate(cb, tf, scenes=3, context=(1, 3, 5), seed=7, batch=2, progress=False, timing_scenes=1, repeat=1,
+    m = evaluate(cb, tf, scenes=2, context=(1, 3, 5), seed=7, batch=2, progress=False, timing_scenes=1, repeat=1,
                  decode="argmax")  # the health's decode (its docstring says why)
     names = {"mae": ("pyvf", "mae"), "nearest_view_mae": ("nearest_view", "mae"),
              "mean_image_rmse": ("mean_image", "rmse"), "position": ("pyvf", "position_error_median"),

@@ -13,8 +13,32 @@ from pyvf.train.pipeline import PRESETS, train_pipeline
 
 
 def test_pipeline_runs_every_stage_and_resumes(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during the transformer stage: one line naming each stage's checkpoint step, status
+    130; the same command resumes and finishes every stage, and a third call retrains nothing."""
+    import pyvf.train.loops as loops
+
     monkeypatch.chdir(tmp_path)
-    assert main(["train", "--out", "run", "--preset", "smoke", "--no-progress"]) == 0
+    real = loops.transformer_batch
+
+    def interrupted(*args):
+        if args[5] == 2:  # the step
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(loops, "transformer_batch", interrupted)
+    command = ["train", "--out", "run", "--preset", "smoke", "--no-progress"]
+    try:
+        assert main(command) == 130
+    except KeyboardInterrupt:
+        pytest.fail("KeyboardInterrupt escaped the command: the user sees a traceback")
+    *held_out, last = capsys.readouterr().err.splitlines()  # the runs' held-out lines, then one line
+    assert all(" held-out at step " in line for line in held_out), held_out
+    assert last == ("pyvf train: interrupted; rerun the same command to resume (codebook at step "
+                    f"{PRESETS['smoke'].codebook_steps}, transformer at step 1)")
+    monkeypatch.setattr(loops, "transformer_batch", real)
+    assert main(command) == 0
+    calls = json.loads((tmp_path / "run" / "transformer" / "config.json").read_text())["calls"]
+    assert [c["resumed_from_step"] for c in calls] == [None, 1]
     out = capsys.readouterr().out
     assert [line[:5] for line in out.splitlines() if line.startswith("[")] == ["[1/5]", "[2/5]", "[3/5]", "[4/5]",
                                                                              "[5/5]"]
@@ -49,7 +73,7 @@ def test_pipeline_runs_every_stage_and_resumes(tmp_path, monkeypatch, capsys):
     assert os.path.getmtime(run / "tokens.npz") == stamps["tokens.npz"]
     assert os.path.getmtime(run / "scenes/manifest.json") == stamps["scenes/manifest.json"]
     calls = json.loads((run / "codebook" / "config.json").read_text())["calls"]
-    assert [c["resumed_from_step"] for c in calls] == [None, PRESETS["smoke"].codebook_steps]
+    assert [c["resumed_from_step"] for c in calls][-1] == PRESETS["smoke"].codebook_steps
 
     # a codebook file that changed makes the tokens stale: they are made again from it
     stamp = json.loads((run / "tokens.json").read_text())
@@ -80,34 +104,6 @@ def test_pipeline_checks_the_engine_options_before_any_stage(tmp_path, capsys):
     with pytest.raises(ValueError, match=r"\bprecision\b"):
         train_pipeline(str(tmp_path / "lib"), "smoke", precision="bf16", log=lambda s: None)
     assert not os.path.exists(tmp_path / "run") and not os.path.exists(tmp_path / "lib")
-
-
-def test_ctrl_c_of_pyvf_train_says_where_its_stages_resume(tmp_path, monkeypatch, capsys):
-    """Ctrl-C during the transformer stage: one line naming each stage's checkpoint step, status
-    130; the same command resumes and finishes."""
-    import pyvf.train.loops as loops
-
-    real = loops.transformer_batch
-
-    def interrupted(*args):
-        if args[5] == 2:  # the step
-            raise KeyboardInterrupt
-        return real(*args)
-
-    monkeypatch.setattr(loops, "transformer_batch", interrupted)
-    command = ["train", "--out", str(tmp_path / "run"), "--preset", "smoke", "--no-progress"]
-    try:
-        assert main(command) == 130
-    except KeyboardInterrupt:
-        pytest.fail("KeyboardInterrupt escaped the command: the user sees a traceback")
-    *held_out, last = capsys.readouterr().err.splitlines()  # the runs' held-out lines, then one line
-    assert all(" held-out at step " in line for line in held_out), held_out
-    assert last == ("pyvf train: interrupted; rerun the same command to resume (codebook at step "
-                    f"{PRESETS['smoke'].codebook_steps}, transformer at step 1)")
-    monkeypatch.setattr(loops, "transformer_batch", real)
-    assert main(command) == 0
-    calls = json.loads((tmp_path / "run" / "transformer" / "config.json").read_text())["calls"]
-    assert [c["resumed_from_step"] for c in calls] == [None, 1]
 
 
 def test_the_scenes_stage_resumes_an_interrupted_write(tmp_path, monkeypatch):

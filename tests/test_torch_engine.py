@@ -70,26 +70,31 @@ def _check_same_run(a, b, w0):
         assert err < 1e-4, (k, err)
 
 
-@pytest.mark.parametrize("clip", [dict(), dict(max_grad_norm=0.02), dict(max_grad_norm=0.1, clip_mode="global")])
+@pytest.mark.parametrize("clip", [dict(max_grad_norm=None), dict(max_grad_norm=0.02),
+                                  dict(max_grad_norm=0.1, clip_mode="global")])
 def test_torch_engine_equals_pyvf_after_20_steps(tmp_path, clip):
-    """clip: the default per-tensor norm 1 (no tensor reaches it: at step 1 their norms are
-    0.002 to 0.66), 0.02 (clips most of them) and a global norm of 0.1 (step 1's is 1.35)."""
+    """clip: none, a per-tensor norm of 0.02 (clips most tensors: at step 1 their norms are 0.002 to
+    0.66) and a global norm of 0.1 (step 1's is 1.35). The weights, the logged losses and gradient
+    norms (logged without clipping too), and the checkpoint's moments, step count and
+    hyperparameters: each moment tensor normwise within 1e-4 of pyvf's (measured <= 1.4e-6: float32
+    rounding in another order, ~1e-6 per step as the weights')."""
     a = _train(tmp_path, "pyvf", "pyvf", recipe=clip).state_dict()
     b = _train(tmp_path, "torch", "torch", recipe=clip).state_dict()
     _check_same_run(a, b, Transformer(CFG, seed=0).state_dict())
     # and the logs: the same losses to float32 rounding, the same learning rates exactly
     logs = [list(csv.DictReader(open(tmp_path / n / "log.csv"))) for n in ("pyvf", "torch")]
     for ra, rb in zip(*logs):
-        assert ra["lr"] == rb["lr"]
+        assert ra["lr"] == rb["lr"] and np.isfinite(float(ra["grad_norm"]))
         assert abs(float(ra["loss"]) - float(rb["loss"])) < 1e-5 * abs(float(ra["loss"]))
-
-
-def test_a_wrong_optimizer_is_caught(tmp_path):
-    """The comparison above would catch an engine that skips the decay (a real difference, not rounding)."""
-    a = _train(tmp_path, "pyvf", "pyvf").state_dict()
-    b = _train(tmp_path, "wd0", "torch", recipe=dict(weight_decay=0.0)).state_dict()
-    with pytest.raises(AssertionError):
-        _check_same_run(a, b, Transformer(CFG, seed=0).state_dict())
+        assert abs(float(ra["grad_norm"]) - float(rb["grad_norm"])) < 1e-3 * float(ra["grad_norm"])
+    meta_a, _, opt_a = read_checkpoint(tmp_path / "pyvf" / "checkpoint.npz", "transformer")
+    meta_b, _, opt_b = read_checkpoint(tmp_path / "torch" / "checkpoint.npz", "transformer")
+    assert meta_a["optimizer"] == meta_b["optimizer"] and opt_a["step"] == opt_b["step"] == 20
+    for key in ("exp_avg", "exp_avg_sq"):
+        assert set(opt_a[key]) == set(opt_b[key])
+        for k, m in opt_a[key].items():
+            assert opt_b[key][k].dtype == m.dtype == np.float32, (key, k)
+            assert np.linalg.norm(m - opt_b[key][k]) / np.linalg.norm(m) < 1e-4, (key, k)
 
 
 def test_resume_exact_and_across_engines(tmp_path):
@@ -102,25 +107,6 @@ def test_resume_exact_and_across_engines(tmp_path):
     _train(tmp_path, "cross", "pyvf", steps=10, recipe=dict(total_steps=20))
     cross = _train(tmp_path, "cross", "torch", steps=20).state_dict()
     _check_same_run(_train(tmp_path, "pyvf", "pyvf").state_dict(), cross, Transformer(CFG, seed=0).state_dict())
-
-
-def test_checkpointed_moments_and_step_equal_pyvf(tmp_path):
-    """The existing same-run tests compare weights and losses only; a resume continues from the
-    checkpoint's moments and step count, so those must be pyvf's too. 8 steps with global clipping:
-    each moment tensor normwise within 1e-4 of pyvf's (measured <= 1.4e-6: float32 rounding in
-    another order, ~1e-6 per step as the weights'), the step count and hyperparameters equal."""
-    for engine in ("pyvf", "torch"):
-        _train(tmp_path, engine, engine, steps=8, recipe=dict(max_grad_norm=0.1, clip_mode="global"))
-    meta_a, _, opt_a = read_checkpoint(tmp_path / "pyvf" / "checkpoint.npz", "transformer")
-    meta_b, _, opt_b = read_checkpoint(tmp_path / "torch" / "checkpoint.npz", "transformer")
-    assert meta_a["optimizer"] == meta_b["optimizer"] and opt_a["step"] == opt_b["step"] == 8
-    for key in ("exp_avg", "exp_avg_sq"):
-        assert set(opt_a[key]) == set(opt_b[key])
-        for k, a in opt_a[key].items():
-            b = opt_b[key][k]
-            assert b.dtype == a.dtype == np.float32 and b.shape == a.shape, (key, k)
-            err = np.linalg.norm(a - b) / np.linalg.norm(a)
-            assert err < 1e-4, (key, k, err)
 
 
 def _parity_steps(run):
@@ -180,22 +166,6 @@ def test_bf16_trains_and_stays_near_fp32(tmp_path):
     assert lb[-1] < lb[0] and abs(lb[-1] - la[-1]) < 0.05 * la[-1], (la, lb)  # bf16's u = 3.9e-3
     assert all(p.dtype == np.float32 for p in b.params.values())
     assert any(not np.array_equal(a.params[k], b.params[k]) for k in a.params)  # autocast did change the math
-
-
-def test_grad_norm_is_logged_without_clipping_by_both_engines(tmp_path):
-    """max_grad_norm=None: the torch engine logged the global gradient norm, pyvf's engine nan, though
-    train_transformer says the logged grad_norm is the global norm. Both now log it; from the same start
-    the first steps' norms agree to the float32 parity bound (the torch engine is the oracle)."""
-    for engine in ("pyvf", "torch"):
-        _train(tmp_path, engine, engine, steps=3, recipe=dict(max_grad_norm=None), log_every=1)
-    logs = {e: [float(r["grad_norm"]) for r in csv.DictReader(open(tmp_path / e / "log.csv"))]
-            for e in ("pyvf", "torch")}
-    assert len(logs["pyvf"]) == 3 and all(np.isfinite(logs["pyvf"]))
-    np.testing.assert_allclose(logs["pyvf"], logs["torch"], rtol=1e-3)
-
-
-# ---------------------------------------------------------------------------------------
-# data-parallel: two gloo processes (torchrun) against one
 
 
 def _torchrun(tmp_path, out, *args):
@@ -265,7 +235,7 @@ def _images():
     return generate_scenes(0, 4, views=4, size=16)[0]  # (4, 4, 16, 16, 3) uint8
 
 
-def _train_cb(tmp_path, name, engine, cfg=CB64, steps=6, object_weight=None, **kw):
+def _train_cb(tmp_path, name, engine, cfg=CB64, steps=4, object_weight=None, **kw):
     """The default recipe (small-batch: Adam (0.9, 0.99), objects weighted 4) with a dead-code restart
     every 3 steps."""
     return train_codebook(_images(), cfg, tmp_path / name, RunOptions(**{
@@ -288,7 +258,7 @@ def _check_same_codebook(a, b, w0, rtol):
 
 
 def test_torch_codebook_equals_pyvf_and_resumes_across_engines(tmp_path):
-    """In float64, 6 steps with object weighting and two dead-code restarts: every weight and EMA
+    """In float64, 4 steps with object weighting and a dead-code restart: every weight and EMA
     buffer within 1e-9 of its movement (measured 1.3e-12 after 20 steps: float64's u = 1.1e-16
     amplified by training, ~1e4); the same for pyvf's checkpoint at step 3 continued by torch. (In
     float32 the same amplification of u = 6e-8 leaves ~1e-3: float32 is checked step by step below.)
@@ -395,7 +365,7 @@ def _check_adam(torch_engine, pyvf_adam, before, m0, grads, what):
             assert err.max() <= ulps, f"{what}: Adam's {name} of {k}: {err.max():.3g} u of its scale (bound {ulps})"
 
 
-def _step_by_step(steps=6, plant=None):
+def _step_by_step(steps=3, plant=None):
     """_train_cb's float32 run (the small-batch recipe: Adam (0.9, 0.99) at 3e-4, objects weighted 4,
     dead-code restarts every 3 steps) driven by pyvf; at each step a fresh torch engine starts from
     pyvf's state (weights, EMA buffers, Adam's moments and count) and takes the step on the same batch.
@@ -452,7 +422,7 @@ def _check_ema(eng, model, what):
 
 
 def test_torch_codebook_float32_step_by_step():
-    """Each of the 6 steps of the float32 run equals pyvf's to float32 rounding (the bounds above):
+    """Each of the first 3 steps (a dead-code restart the third) of the float32 run equals pyvf's to float32 rounding (the bounds above):
     the torch engine's weights after a step are pyvf's Adam applied, within WEIGHT_ULPS, to gradients
     within GRAD_RTOL of pyvf's. They can differ from pyvf's own step by more: Adam normalises each
     gradient entry, so an entry below its rounding error may step by up to lr otherwise (the free run
@@ -509,7 +479,7 @@ def one_gpu(monkeypatch):
     ("torch", "cpu", "fp16", "precision"),
     ("torch", "gpu", "fp32", "device"),
     ("torch", "cuda:1", "fp32", "device"),  # torch.device accepts it; the first .to() failed, after the folder
-    *[("torch", d, "fp32", "device") for d in ["cuda:", "cuda:x", "cuda:-1", "cuda:00", "cuda:1 ", "cuda:0,1"]],
+    *[("torch", d, "fp32", "device") for d in ["cuda:x", "cuda:0,1"]],
 ])
 def test_check_engine_refusals(one_gpu, engine, device, precision, name):
     """On a machine with one GPU; malformed device strings torch.device raises RuntimeError for."""
@@ -517,13 +487,6 @@ def test_check_engine_refusals(one_gpu, engine, device, precision, name):
     check_engine("torch", "cuda", "bf16")
     with pytest.raises(ValueError, match=rf"\b{name}\b"):
         check_engine(engine, device, precision)
-
-
-def test_fp32_of_a_float64_configuration_trains_in_float64(tmp_path):
-    """What the bf16 refusal below leaves: a float64 model under fp32 trains in float64, as asked."""
-    m = train_transformer(*_float64_data(), dataclasses.replace(CFG, dtype="float64"), tmp_path / "t64",
-                          RunOptions(steps=3, batch_size=4, progress=False, engine="torch"))
-    assert all(p.dtype == np.float64 for p in m.params.values())
 
 
 def _opts(steps, **kw):

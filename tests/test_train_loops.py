@@ -14,7 +14,6 @@ import json
 import os
 import shutil
 import signal
-import subprocess
 import sys
 import time
 import types
@@ -224,8 +223,7 @@ def test_resume_refuses_another_run(tmp_path, rng):
 
 def test_eval_csv_is_one_held_out_sets_curve(tmp_path, rng):
     """A resume evaluating on another held-out set raises, eval.csv and the checkpoint untouched; a
-    resume without evaluation (eval_every 0) passes whatever set it names and keeps the record; a
-    run that evaluated nothing may evaluate on any set later."""
+    resume without evaluation (eval_every 0) passes whatever set it names and keeps the record."""
     images = _images(rng)
     first, other = (_images(rng, scenes=1, views=2).reshape(-1, 16, 16, 3) for _ in range(2))
     out = str(tmp_path / "run")
@@ -239,12 +237,6 @@ def test_eval_csv_is_one_held_out_sets_curve(tmp_path, rng):
         train_codebook(images, CB, out, opts(4, eval_every=1), eval_images=other)
     train_codebook(images, CB, out, opts(4, eval_every=1), eval_images=first)
     assert [r[0] for r in _log(out, "eval.csv")[1:]] == ["0", "1", "2", "4"]
-
-    plain = str(tmp_path / "plain")
-    train_codebook(images, CB, plain, opts(2), eval_images=first)
-    assert not os.path.exists(os.path.join(plain, "eval.csv"))
-    train_codebook(images, CB, plain, opts(3, eval_every=1), eval_images=other)
-    assert [r[0] for r in _log(plain, "eval.csv")[1:]] == ["3"]
 
 
 def test_batches_are_pure_functions_of_seed_and_step(rng):
@@ -356,23 +348,6 @@ def test_tokenize_equals_encode(rng):
     assert np.array_equal(tokenize(cb, images.reshape(6, 16, 16, 3)), tokens.reshape(6, 8, 8))
 
 
-def test_the_recipes_are_recorded(tmp_path, rng):
-    images = _images(rng)
-    train_codebook(images, CB, str(tmp_path / "p"), opts(1), recipe="published")
-    hyper = _hyper(tmp_path / "p")
-    assert (hyper["lr"], hyper["betas"], hyper["reset_dead_codes"]) == (1.584e-3, [0.5, 0.9], 0)
-    assert not {"object_weight", "restart", "reseat", "kmeans"} & set(hyper)  # at their defaults: not recorded
-    train_codebook(images, CB, str(tmp_path / "s"), opts(1), lr=1e-3)
-    hyper = _hyper(tmp_path / "s")
-    assert (hyper["lr"], hyper["betas"], hyper["reset_dead_codes"]) == (1e-3, [0.9, 0.99], 20)
-    assert hyper["object_weight"] == 4.0  # the default recipe's; the published one has none (1.0)
-
-
-# ---------------------------------------------------------------------------------------
-# refusals: one table per entry point, the exception type and the argument's name, each before
-# the run folder is made
-
-
 def _cb(d, out, o=None, **kw):
     return train_codebook(d["images"], kw.pop("config", CB), out, o or opts(1), **kw)
 
@@ -392,17 +367,13 @@ def _eval(**change):
     (lambda d, out: opts(0), ValueError, "steps"),
     (lambda d, out: opts(2.0), TypeError, "steps"),
     (lambda d, out: opts(1, batch_size=0), ValueError, "batch_size"),
-    (lambda d, out: opts(1, seed=-1), ValueError, "seed"),
-    (lambda d, out: opts(1, checkpoint_every=0), ValueError, "checkpoint_every"),
     (lambda d, out: opts(1, eval_every=-1), ValueError, "eval_every"),
-    (lambda d, out: opts(1, threads=0), ValueError, "threads"),
     (lambda d, out: opts(1, engine="jax"), ValueError, "engine"),
     (lambda d, out: opts(1, device="cuda"), ValueError, "device"),  # needs engine="torch"
     (lambda d, out: opts(1, precision="fp16"), ValueError, "precision"),
     (lambda d, out: opts(1, init=3), TypeError, "init"),
     (lambda d, out: TransformerRecipe(lr=-1.0), ValueError, "lr"),
     (lambda d, out: TransformerRecipe(max_grad_norm=0), ValueError, "max_grad_norm"),
-    (lambda d, out: TransformerRecipe(clip_mode="l1"), ValueError, "clip_mode"),
     (lambda d, out: TransformerRecipe(context=-1), ValueError, "context"),
 ])
 def test_the_options_refusals_name_the_field(tmp_path, rng, call, error, name):
@@ -413,18 +384,13 @@ def test_the_options_refusals_name_the_field(tmp_path, rng, call, error, name):
 @pytest.mark.parametrize("call, error, name", [
     (lambda d, out: _cb({"images": d["images"].astype(np.float32)}, out), TypeError, "images"),
     (lambda d, out: _cb({"images": d["images"][..., :2]}, out), ValueError, "images"),
-    (lambda d, out: _cb({"images": d["images"][0, 0]}, out), ValueError, "images"),
     (lambda d, out: _cb(d, out, config=TF), TypeError, "config"),
     (lambda d, out: _cb(d, out, dict(steps=1)), TypeError, "opts"),
     (lambda d, out: _cb(d, out, eval_images=d["images"][..., :2]), ValueError, "eval_images"),
     (lambda d, out: _cb(d, out, recipe="fast"), ValueError, "recipe"),
-    (lambda d, out: _cb(d, out, momentum=0.9), TypeError, "momentum"),
-    (lambda d, out: _cb(d, out, betas=(0.9,)), ValueError, "betas"),
     (lambda d, out: _cb(d, out, betas=(0.9, 1.0)), ValueError, "betas"),
     (lambda d, out: _cb(d, out, object_weight=0), ValueError, "object_weight"),
     (lambda d, out: _cb(d, out, restart="best"), ValueError, "restart"),
-    (lambda d, out: _cb(d, out, reseat=-1), ValueError, "reseat"),
-    (lambda d, out: _cb(d, out, kmeans=-2), ValueError, "kmeans"),
     (lambda d, out: _cb(d, out, opts(1, init=d["tf_file"])), ValueError, "init"),  # another kind of model
     (lambda d, out: _cb(d, out, opts(1, init=d["cb8_file"])), ValueError, "init"),  # another configuration
     (lambda d, out: _cb(d, out, opts(1, init=out + ".npz")), FileNotFoundError, "init"),
@@ -440,26 +406,18 @@ def test_train_codebook_refusals_name_the_argument(tmp_path, rng, call, error, n
 
 @pytest.mark.parametrize("call, error, name", [
     (lambda d, out: _tf(d, out, tokens=d["tokens"] + 16), ValueError, "tokens"),
-    (lambda d, out: _tf(d, out, tokens=d["tokens"][..., :1]), ValueError, "tokens"),
     (lambda d, out: _tf(d, out, tokens=d["tokens"] * 1.0), TypeError, "tokens"),
     (lambda d, out: _tf(d, out, poses=d["poses"][:, :4]), ValueError, "poses"),
-    (lambda d, out: _tf(d, out, poses=d["poses"].astype(np.float16)), TypeError, "poses"),  # cannot hold a unit q
     (lambda d, out: _tf(d, out, poses=d["poses"] * [1, 1, 1, 1.01, 1, 1, 1]), ValueError, "poses"),  # not unit
     (lambda d, out: _tf(d, out, poses=d["poses"] * np.nan), ValueError, "poses"),
     (lambda d, out: _tf(d, out, recipe=TransformerRecipe(context=5)), ValueError, "context"),
-    (lambda d, out: _tf(d, out, recipe=TransformerRecipe(context=0)), ValueError, "context"),
     (lambda d, out: _tf(d, out, opts(5), TransformerRecipe(warmup=5)), ValueError, "warmup"),
     (lambda d, out: _tf(d, out, opts(8), TransformerRecipe(total_steps=4)), ValueError, "total_steps"),
     (lambda d, out: _tf(d, out, opts(1, init=d["cb_file"])), ValueError, "init"),
-    (_eval(codebook=lambda e: "cb.npz"), ValueError, "codebook"),
     (_eval(codebook=lambda e: Codebook(dataclasses.replace(CB4, n_embed=32), seed=0)), ValueError, "codebook"),
     (_eval(images=lambda e: e["images"].astype(np.float32)), TypeError, "images"),
-    (_eval(images=lambda e: e["images"][:, :, :2]), ValueError, "images"),
     (_eval(poses=lambda e: e["poses"][:1]), ValueError, "poses"),
-    (_eval(poses=lambda e: e["poses"] * 2), ValueError, "poses"),
     (_eval(tokens=lambda e: e["tokens"].reshape(2, 7, 2, 2)), ValueError, "tokens"),
-    (_eval(tokens=lambda e: e["tokens"] + 16), ValueError, "tokens"),
-    (_eval(tokens=lambda e: e["tokens"] * 1.0), TypeError, "tokens"),
     (lambda d, out: tokenize(Codebook(CB), d["images"].astype(np.int64)), TypeError, "images"),
     (lambda d, out: tokenize(Codebook(CB), d["images"], batch_size=0), ValueError, "batch_size"),
 ])
@@ -519,14 +477,8 @@ def test_commands_end_to_end(tmp_path, rng, monkeypatch, capsys):
     capsys.readouterr()
 
     # errors: printed, status 1, no run folder
-    for argv, said in ((["train-codebook", "--data", d / "data", "--out", d / "x", "--steps", 0, "--config", cb_json],
-                        "steps"),
-                       (["train-codebook", "--data", d / "data", "--out", d / "x", "--steps", 1, "--device", "cuda"],
-                        "device"),
-                       (["train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "x", "--steps", 2],
+    for argv, said in ((["train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "x", "--steps", 2],
                         "n_embeddings=256"),  # tiny: 256 codes, but the tokens index 16
-                       (["train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "x", "--steps", 8,
-                         "--total-steps", 4, "--config", tf_json], "total_steps"),
                        (["train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "x", "--steps", 2,
                          "--config", tf_json, "--codebook", Codebook(CB, seed=9).save(str(d / "other.npz"))],
                         "other.npz"),  # the same sizes, not the codebook of these tokens
@@ -538,20 +490,6 @@ def test_commands_end_to_end(tmp_path, rng, monkeypatch, capsys):
         err = capsys.readouterr().err
         assert f"pyvf {argv[0]}: error: " in err and said in err, err
     assert not os.path.exists(d / "x")
-
-
-def test_the_parser_checks_the_options(capsys):
-    """A negative --max-grad-norm (0 turns clipping off), --eval-seed or --seed: refused by the
-    parser, naming the option."""
-    parser = argparse.ArgumentParser(prog="pyvf")
-    cli_register(parser.add_subparsers(dest="command"))
-    tf = ["train-transformer", "--tokens", "t.npz", "--out", "o", "--steps", "1"]
-    cb = ["train-codebook", "--data", "d", "--out", "o", "--steps", "1"]
-    for argv, option in ((tf + ["--max-grad-norm", "-5"], "--max-grad-norm"), (tf + ["--eval-seed", "-1"], "--eval-seed"),
-                         (cb + ["--seed", "-1"], "--seed")):
-        with pytest.raises(SystemExit) as e:
-            parser.parse_args(argv)
-        assert e.value.code == 2 and f"error: argument {option}: " in capsys.readouterr().err
 
 
 def test_held_out_scenes_of_the_training_seed_are_refused(tmp_path, capsys):
@@ -574,7 +512,7 @@ def test_held_out_scenes_of_the_training_seed_are_refused(tmp_path, capsys):
 def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     """`pyvf runs`: one row per run with its changed hyperparameters and last evaluation (read back
     from eval.csv), or the last at or before --step; every evaluation redraws the run's eval.png; a
-    folder of another program is skipped with a note; a torn last line of a log is left out."""
+    torn last line of a log is left out."""
     images, held_out = _images(rng), _images(rng, scenes=1, views=2).reshape(-1, 16, 16, 3)
     a, b = str(tmp_path / "a"), str(tmp_path / "b")
     train_codebook(images, CB, a, opts(2, eval_every=1), eval_images=held_out)
@@ -592,13 +530,6 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     assert run("runs", a, b) == 0 and capsys.readouterr().out.splitlines() == table
     assert run("runs", a, b, "--step", "2") == 0 and capsys.readouterr().out == runs_table([a, b], step=2)
     assert run("runs", str(tmp_path)) == 1 and "is not a run folder" in capsys.readouterr().err
-
-    foreign = tmp_path / "gpt2"
-    foreign.mkdir()
-    (foreign / "config.json").write_text('{"model_type": "gpt2"}')
-    assert run("runs", a, foreign) == 0
-    out, err = capsys.readouterr()
-    assert out == runs_table([a]) and err.startswith(f"pyvf runs: note: skipped {foreign}")
     torn = tmp_path / "torn"
     shutil.copytree(a, torn)
     for name in ("eval.csv", "log.csv"):
@@ -608,16 +539,12 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     assert capsys.readouterr().out.splitlines()[2] == runs_table([a]).splitlines()[2].replace("| a |", "| torn |")
     train_codebook(images, CB, str(torn), opts(3, eval_every=1), eval_images=held_out)
     assert [r[0] for r in _log(str(torn), "eval.csv")[1:]] == ["0", "1", "2", "3"]  # the trainer agrees
-    capsys.readouterr()
-    (torn / "config.json").write_text("{")
-    assert run("runs", torn) == 1 and capsys.readouterr().err.startswith(f"pyvf runs: error: {torn / 'config.json'}")
 
 
 def test_export_writes_the_checkpoints_model(tmp_path, rng, capsys):
     """`pyvf export RUN -o F`: the model of the run's last checkpoint, the same arrays and configuration
-    as the final model file the run writes; a folder without a checkpoint, a checkpoint whose arrays
-    do not fit its configuration, a file that is not a checkpoint and an output that is the
-    checkpoint each raise naming the file."""
+    as the final model file the run writes; a folder without a checkpoint, a file that is not a
+    checkpoint and an output that is the checkpoint each raise naming the file."""
     cb_run, tf_run = str(tmp_path / "cb"), str(tmp_path / "tf")
     train_codebook(_images(rng), CB, cb_run, opts(2))
     train_transformer(_tokens(rng), _poses(rng), TF, tf_run, opts(3))
@@ -639,12 +566,6 @@ def test_export_writes_the_checkpoints_model(tmp_path, rng, capsys):
     assert f"is the run's checkpoint ({ckpt})" in capsys.readouterr().err
     with pytest.raises(CheckpointError, match="log.csv"):
         export_run(os.path.join(tf_run, "log.csv"), tmp_path / "x")
-    arrays = load_npz(os.path.join(tf_run, "checkpoint.npz"), "checkpoint")
-    meta = json.loads(str(arrays["__meta__"]))
-    atomic_savez(str(tmp_path / "bad.npz"), **{**arrays, "__meta__": json.dumps({**meta, "config": {
-        **meta["config"], "d_model": 64}})})
-    with pytest.raises(ValueError, match="bad.npz: its transformer does not load"):
-        export_run(tmp_path / "bad.npz", tmp_path / "x")
     assert not os.path.exists(tmp_path / "x.npz")
 
 
@@ -658,23 +579,6 @@ def test_tokenize_refuses_to_overwrite_its_inputs(tmp_path, capsys):
         assert f"--out {out} is {what}" in capsys.readouterr().err
     assert open(codebook, "rb").read() == before
     pyvf.scenes.load_dataset(str(tmp_path / "d16"))
-
-
-def test_config_json_records_the_threads_the_run_used(tmp_path, rng):
-    """threads=n (a numpy integer too): config.json's machine.kernel_threads is n, and the setting
-    is undone after the call."""
-    before = pyvf.num_threads()
-    n = 1 if before != 1 else 2
-    train_codebook(_images(rng), CB, str(tmp_path / "cb"), opts(1, threads=np.int64(n)))
-    train_transformer(_tokens(rng), _poses(rng), TF, str(tmp_path / "tf"), opts(1, threads=n))
-    for run in ("cb", "tf"):
-        call = json.loads((tmp_path / run / "config.json").read_text())["calls"][-1]
-        assert call["threads"] == n and call["machine"]["kernel_threads"] == n, call
-    assert pyvf.num_threads() == before
-
-
-# ---------------------------------------------------------------------------------------
-# (f) a warm start: init, a model file's weights instead of the seed's
 
 
 def _engine_spy(monkeypatch, kind):
@@ -729,100 +633,6 @@ def test_init_starts_from_the_files_weights(tmp_path, rng, monkeypatch, engine):
         record = {"path": os.path.basename(file), "sha256": hashlib.sha256(open(file, "rb").read()).hexdigest()}
         assert _hyper(out)["init"] == record and _checkpoint(out)[0]["hyper"]["init"] == record
     assert int(load_npz(cb_file)["quantize.counter"]) == 2  # the EMA state compared above was a trained one
-
-
-def test_a_resume_does_not_read_init(tmp_path, rng):
-    """init counts at step 0 only: a run started from a file resumes from its checkpoint whether the
-    file is named again, changed or gone, bit for bit the uninterrupted run, the record of the file
-    it started from kept."""
-    images, tokens, poses = _images(rng), _tokens(rng), _poses(rng)
-    cb_file, tf_file = _trained_model_files(tmp_path, rng)
-    for file, final in ((cb_file, "codebook.npz"), (tf_file, "transformer.npz")):
-        a, b = str(tmp_path / f"a-{final}"), str(tmp_path / f"b-{final}")
-
-        def run(out, steps, init):
-            if final == "codebook.npz":
-                train_codebook(images, CB, out, opts(steps, checkpoint_every=2, init=init))
-            else:
-                train_transformer(tokens, poses, TF, out, opts(steps, checkpoint_every=2, init=init),
-                                  TransformerRecipe(lr=1e-3, warmup=1, total_steps=6))
-        run(a, 6, file)
-        run(b, 2, file)
-        record = _checkpoint(b)[0]["hyper"]["init"]
-        run(b, 4, None)
-        run(b, 6, str(tmp_path / "gone.npz"))
-        assert _checkpoint(b)[0]["hyper"]["init"] == record == _hyper(b)["init"]
-        _assert_same_run(a, b, final)
-
-
-def test_the_init_option_of_the_commands(tmp_path, rng, monkeypatch, capsys):
-    """--init FILE reaches the training function (the run records the file); a missing file or
-    another kind of model file is an error naming --init."""
-    fake = types.ModuleType("pyvf.scenes")  # the dataset reader, whatever the state of pyvf.scenes
-    fake.load_dataset = lambda path: types.SimpleNamespace(images=_images(rng), poses=_poses(rng), seed=0)
-    monkeypatch.setitem(sys.modules, "pyvf.scenes", fake)
-    (tmp_path / "cb.json").write_text(json.dumps(dataclasses.asdict(CB)))
-    (tmp_path / "tf.json").write_text(json.dumps(dataclasses.asdict(TF)))
-    pyvf.train.save_tokens(str(tmp_path / "tokens.npz"), _tokens(rng), _poses(rng), TF.n_embeddings)
-    cb_file = Codebook(CB, seed=1).save(str(tmp_path / "cb.npz"))
-    tf_file = Transformer(TF, seed=1).save(str(tmp_path / "tf.npz"))
-    cli = _cli()
-
-    def run(command, out, init):
-        data = ["--data", tmp_path / "data", "--config", tmp_path / "cb.json"] if command == "train-codebook" else \
-            ["--tokens", tmp_path / "tokens.npz", "--config", tmp_path / "tf.json"]
-        return cli(command, *data, "--out", tmp_path / out, "--steps", 1, "--batch", 2, "--eval-every", 0,
-                   "--no-progress", "--init", init)
-
-    for command, right, wrong, kind in (("train-codebook", cb_file, tf_file, "codebook"),
-                                        ("train-transformer", tf_file, cb_file, "transformer")):
-        assert run(command, command, right) == 0
-        assert _hyper(tmp_path / command)["init"]["path"] == os.path.basename(right)
-        capsys.readouterr()
-        assert run(command, "x", tmp_path / "missing.npz") == 1
-        assert f"--init {tmp_path / 'missing.npz'} does not exist" in capsys.readouterr().err
-        assert run(command, "x", wrong) == 1
-        assert f"--init {wrong} is not a readable {kind} file" in capsys.readouterr().err
-    assert not os.path.exists(tmp_path / "x")
-
-
-# ---------------------------------------------------------------------------------------
-# (g) Ctrl-C
-
-
-def test_ctrl_c_is_one_line_and_the_same_command_resumes(tmp_path):
-    """SIGINT (Ctrl-C) to a training command: status 130, no traceback, and two lines on stderr: at
-    Ctrl-C the step it finishes and saves, then where the same command resumes, that step (not the
-    last multiple of --checkpoint-every). The same command then resumes there."""
-    from test_cli import clean_env, pyvf_script
-
-    _smoke_files(tmp_path)
-    command = [pyvf_script(), "train-codebook", "--data", "d16", "--out", "run", "--batch", "2", "--config",
-               "cb.json", "--eval-every", "0", "--checkpoint-every", "5", "--no-progress"]
-    proc = subprocess.Popen([*command, "--steps", "1000000"], cwd=tmp_path, env=clean_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 120
-        while not (tmp_path / "run" / "checkpoint.npz").exists():  # training, past its first checkpoint
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "no checkpoint after 120 s"
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    step = _checkpoint(str(tmp_path / "run"))[0]["step"]
-    assert proc.returncode == 130, err
-    assert err.splitlines() == [  # the step under way when Ctrl-C came is the checkpoint's
-        f"Ctrl-C: finishing step {step} and saving it; Ctrl-C again stops at once (losing the steps since the last "
-        "checkpoint)", f"pyvf train-codebook: interrupted; rerun the same command to resume from step {step}"]
-    done = subprocess.run([*command, "--steps", str(step + 2)], cwd=tmp_path, env=clean_env(), capture_output=True,
-                          text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["calls"][-1]["resumed_from_step"] == step
-    assert _checkpoint(str(tmp_path / "run"))[0]["step"] == step + 2
 
 
 def _sigint_in_step(monkeypatch, batch, at, times=1):
@@ -896,8 +706,7 @@ def test_ctrl_c_during_a_checkpoint_names_the_step_that_is_saved(tmp_path, rng, 
 
 def test_ctrl_c_in_train_transformer_and_tokenize(tmp_path, monkeypatch, capsys):
     """KeyboardInterrupt inside train-transformer (during step 4 of a run checkpointed every 3 steps)
-    and tokenize: one line each, status 130; the same command resumes from step 3; with --no-resume
-    the line says to drop it."""
+    and tokenize: one line each, status 130; the same command resumes from step 3."""
     smoke = _smoke_files(tmp_path)
     run = _cli()
     cb = Codebook(smoke.codebook).save(str(tmp_path / "cb.npz"))
@@ -920,10 +729,6 @@ def test_ctrl_c_in_train_transformer_and_tokenize(tmp_path, monkeypatch, capsys)
     monkeypatch.setattr(loops, "transformer_batch", real)
     assert run(*tf) == 0
     assert json.loads((tmp_path / "tf" / "config.json").read_text())["calls"][-1]["resumed_from_step"] == 3
-    monkeypatch.setattr(loops, "transformer_batch", interrupted)
-    assert run(*tf, "--no-resume") == 130
-    assert capsys.readouterr().err == ("pyvf train-transformer: interrupted; rerun the same command without "
-                                       "--no-resume to resume from step 3\n")
 
     def tokenize(*args, **kw):
         raise KeyboardInterrupt

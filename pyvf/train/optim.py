@@ -67,8 +67,6 @@ def published_weight_decay(name):
     "LayerNorm", "layer_norm" and "bias" (re.search). With the published names that excludes
     only the biases: the LayerNorm parameters are `h.{j}/ln_1/gamma` etc., which match none
     of the patterns, so they are decayed (as are wte, wpe). Pass as AdamW(decay=...)."""
-    if not isinstance(name, str):
-        raise TypeError(f"name must be str, got {type(name).__name__}")
     return _PUBLISHED_NO_DECAY.search(name) is None
 
 
@@ -160,8 +158,6 @@ class AdamW:
             raise ValueError(f"eps_convention must be 'torch' or 'keras', got {eps_convention!r}")
         self.eps_convention = eps_convention
         # which parameters decay: all (None), a predicate name -> bool, or a collection of names
-        if not (decay is None or callable(decay) or isinstance(decay, (set, frozenset, list, tuple))):
-            raise TypeError(f"decay must be None, a predicate or a collection of names, got {type(decay).__name__}")
         self.decayed = frozenset(params if decay is None else filter(decay, params) if callable(decay) else decay)
         self.params = params
         self.step_count = 0
