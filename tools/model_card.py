@@ -97,7 +97,7 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=
              "```", "", f"Commands ({'its tokens file, then ' if before else ''}each call of the run; a resumed run "
              "continues to the same total):", "", "```bash"]
     lines += ([before] if before else []) + (_commands(config) or ["(not recorded)"])
-    lines += ["```", "", f"Last logged values: " + ", ".join(f"{c} {log[c][-1]:.4g}" for c in columns), "",
+    lines += ["```", "", "Last logged values: " + ", ".join(f"{c} {log[c][-1]:.4g}" for c in columns), "",
               f"![{name} learning curves](img/{os.path.basename(png)})", ""]
     if os.path.exists(os.path.join(run_dir, "eval.csv")):  # the held-out evaluation during training
         ev = read_log(run_dir, "eval.csv")
