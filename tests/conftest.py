@@ -106,3 +106,13 @@ def kernel_path(request):
     every path the machine runs was exercised."""
     with pyvf.use_kernel_path(request.param):
         yield request.param
+
+
+def float_arrays(obj):
+    """The float arrays in obj, an array or nested tuples/lists of them (a layer's cache)."""
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind == "f":
+            yield obj
+    elif isinstance(obj, (tuple, list)):
+        for o in obj:
+            yield from float_arrays(o)

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from pyvf import _core
 from pyvf.nn import conv
 
-from conftest import assert_bitwise_equal, assert_close, forced_threads
+from conftest import assert_bitwise_equal, assert_close, float_arrays, forced_threads
 
 EPS = 1e-6  # the codebook's GroupNorm eps (docs/math.md §4); torch's default is 1e-5
 G = 32  # groups of Normalize
@@ -275,15 +275,6 @@ def test_float32_matches_float64(case, rng):
         assert a.dtype == np.float32, f"{name} caches a {a.dtype} array {a.shape}: a silent upcast"
     y_t, grads_t = torch_run(name, inputs, kwargs, dy)  # float64 on the float32 values
     compare(name, y, grads, y_t, grads_t, RTOL32[name], f"{case_id(case)} f32")
-
-
-def float_arrays(obj):
-    if isinstance(obj, np.ndarray):
-        if obj.dtype.kind == "f":
-            yield obj
-    elif isinstance(obj, (tuple, list)):
-        for o in obj:
-            yield from float_arrays(o)
 
 
 # ---------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 import pyvf
 from pyvf.nn import layers
 
-from conftest import assert_bitwise_equal, assert_close
+from conftest import assert_bitwise_equal, assert_close, float_arrays
 
 EPS = 1e-5  # LayerNorm eps, inside the square root (docs/math.md §3)
 
@@ -193,15 +193,6 @@ def test_matches_torch_float64(case, lead, rng):
 
 # ---------------------------------------------------------------------------------------
 # 2. float32 vs float64 on the same inputs
-
-
-def float_arrays(obj):
-    if isinstance(obj, np.ndarray):
-        if obj.dtype.kind == "f":
-            yield obj
-    elif isinstance(obj, (tuple, list)):
-        for o in obj:
-            yield from float_arrays(o)
 
 
 @pytest.mark.parametrize("lead", LEADS, ids=lead_id)

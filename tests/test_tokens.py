@@ -1,14 +1,19 @@
 """Issue 48: the empty-patch health figures and the codebook's restart options, against
 closed forms and brute force."""
 
+import dataclasses
+import json
 import math
 
 import numpy as np
 import pytest
 
 from pyvf.evaluate.health import empty_entropy, empty_patches
+from pyvf.evaluate.metrics import to_model_images
 from pyvf.evaluate.run import _token_scores
+from pyvf.models.codebook import Codebook
 from pyvf.nn.quantizer import EMAQuantizer, code_utility, low_utility_codes
+from pyvf.train.loops import TINY_CODEBOOK
 
 
 def test_empty_patches_marks_patches_without_object_pixels():
@@ -155,11 +160,6 @@ def test_empty_code_never_moves_and_codes_restart_on_object_vectors():
 
 
 def test_codebook_empty_code_matches_the_uint8_empty_patches():
-    import dataclasses
-
-    from pyvf.evaluate.metrics import to_model_images
-    from pyvf.models.codebook import Codebook
-    from pyvf.train.loops import TINY_CODEBOOK
     rng = np.random.default_rng(4)
     img = np.full((3, 64, 64, 3), 128, np.uint8)
     img[:, 20:40, 10:30] = rng.integers(0, 256, (3, 20, 20, 3))  # objects
@@ -173,11 +173,6 @@ def test_codebook_empty_code_matches_the_uint8_empty_patches():
 
 
 def test_a_codebook_file_from_before_the_empty_code_loads_without_it(tmp_path):
-    import dataclasses
-    import json
-
-    from pyvf.models.codebook import Codebook
-    from pyvf.train.loops import TINY_CODEBOOK
     cb = Codebook(dataclasses.replace(TINY_CODEBOOK, n_embed=16), seed=0)
     cb.save(tmp_path / "new.npz")
     with np.load(tmp_path / "new.npz") as f:

@@ -611,8 +611,6 @@ def test_init_starts_from_the_files_weights(tmp_path, rng, monkeypatch, engine):
     (the codebook's EMA buffers too) with a fresh optimiser (step 0, zero moments): read from the
     engine, so the torch engine's model is checked, not only pyvf's. The run records init's name
     and sha256 among its hyperparameters."""
-    if engine == "torch":
-        pytest.importorskip("torch")
     cb_file, tf_file = _trained_model_files(tmp_path, rng)
     for kind, file in (("codebook", cb_file), ("transformer", tf_file)):
         seen = _engine_spy(monkeypatch, kind)

@@ -27,7 +27,9 @@ import argparse
 import dataclasses
 import json
 import os
+import shutil
 import signal
+import time
 
 import numpy as np
 
@@ -152,8 +154,6 @@ def table(results, columns=COLUMNS):
 def transformer_steps_for(seconds, tokens, poses, config, folder, batch, lr):
     """The steps that fill `seconds` of CPU time: a probe run of 2 then 6 steps (its folder
     removed), the per-step time of the last 4 (the first steps pay for the setup)."""
-    import shutil
-    import time
     probe = os.path.join(folder, "probe")
     times = []
     for steps in (2, 6):

@@ -37,11 +37,6 @@ def _number(text, ok, expected):
     return v
 
 
-def positive_float(text):
-    """argparse type: a finite number > 0."""
-    return _number(text, lambda v: v > 0, "a positive number")
-
-
 def non_negative_float(text):
     """argparse type: a finite number >= 0."""
     return _number(text, lambda v: v >= 0, "a finite number >= 0")
