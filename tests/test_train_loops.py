@@ -633,6 +633,16 @@ def test_init_starts_from_the_files_weights(tmp_path, rng, monkeypatch, engine):
     assert int(load_npz(cb_file)["quantize.counter"]) == 2  # the EMA state compared above was a trained one
 
 
+def test_init_may_differ_in_what_does_not_shape_the_weights(tmp_path, rng):
+    """Fine-tuning onto the empty code: a codebook file without it starts a run with it, from the
+    file's weights and under the run's configuration (a file of other shapes is refused above)."""
+    file = Codebook(CB).save(str(tmp_path / "plain.npz"))
+    out = str(tmp_path / "empty")
+    train_codebook(_images(rng), dataclasses.replace(CB, empty_code=True), out, opts(1, init=file))
+    assert _hyper(out)["init"]["path"] == "plain.npz"
+    assert Codebook.load(os.path.join(out, "codebook.npz")).config.empty_code
+
+
 def _sigint_in_step(monkeypatch, batch, at, times=1):
     """Make loops.<batch> (codebook_batch or transformer_batch, which each step calls first) send
     this process SIGINT `times` times while it makes step `at`'s batch: Ctrl-C during that step."""

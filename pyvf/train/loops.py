@@ -39,7 +39,7 @@ from ..evaluate.metrics import encode_images
 from ..geometry import _check_unit
 from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import Run, _diff, file_sha256, fingerprint, jsonable, resume_point
+from ._run import Run, file_sha256, fingerprint, resume_point
 from .batches import codebook_batch, transformer_batch
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
@@ -148,7 +148,8 @@ def _check_tokens_poses(tokens, poses, config, names=("tokens", "poses")):
 
 
 def _warm_start(cls, config, hyper, out_dir, opts):
-    """opts.init: None, or a cls.save file of the run's configuration. Returns (hyper with the
+    """opts.init: None, or a cls.save file whose weights have the shapes of the run's configuration
+    (other fields, such as empty_code or the loss weights, may differ: a fine-tuning). Returns (hyper with the
     file's record {"path", "sha256"}, its state_dict()), or (hyper, None) without one. The file
     counts at step 0 only: a run that resumes from out_dir's checkpoint does not read it (the
     checkpoint holds the run's state, and Run keeps the record). Errors name init."""
@@ -161,10 +162,11 @@ def _warm_start(cls, config, hyper, out_dir, opts):
         raise FileNotFoundError(f"init {path}: no such file") from e
     except ValueError as e:  # CheckpointError: corrupt, or another kind of model
         raise ValueError(f"init {path} is not a {cls.FILE_KIND} model file ({cls.__name__}.save's): {e}") from e
-    saved, now = jsonable(dataclasses.asdict(model.config)), jsonable(dataclasses.asdict(config))
-    if _diff(saved, now):
-        raise ValueError(f"init {path} holds a {cls.__name__} of another configuration (differs in "
-                         f"{_diff(saved, now)}): start from a model of the run's configuration, or run with the file's")
+    got, want = model.state_dict(), cls(config).state_dict()
+    shapes = sorted(k for k in got.keys() | want.keys() if np.shape(got.get(k)) != np.shape(want.get(k)))
+    if shapes:  # a configuration that shapes the weights alike (e.g. another empty_code or loss weight) may differ
+        raise ValueError(f"init {path} holds a {cls.__name__} whose weights are shaped unlike the run's "
+                         f"configuration's (in {shapes[:4]}): start from a model of the run's configuration")
     return {**hyper, "init": {"path": os.path.basename(path), "sha256": file_sha256(path)}}, model.state_dict()
 
 
