@@ -41,7 +41,6 @@ import dataclasses
 
 import numpy as np
 
-from ..models import transformer as _transformer
 from .compare import Comparison, compare
 from .layout import flat_to_tree, tree_to_flat
 
@@ -212,12 +211,11 @@ class TeacherReport:
 
 def _is_tree(model, name, row):
     """True for the transformer activations of the whole tree, (R, B, N, L, ...)."""
-    return (isinstance(model, _transformer.Transformer) and row is None
-            and (name == "embed.out" or name.startswith("blocks.")))
+    return model.INPUTS[0] == "tokens" and row is None and (name == "embed.out" or name.startswith("blocks."))
 
 
 def _check_params(model, params, layout):
-    """params -> (official name -> tensor, the layout function), every problem in one error."""
+    """params -> (official name -> tensor, the layout they are in), every problem in one error."""
     if params is None:
         return {}, None
     if layout is None:  # a torch port holds torch's layout: the default only where it is the published one
@@ -225,10 +223,10 @@ def _check_params(model, params, layout):
             raise ValueError(f"layout must be given with params for a {type(model).__name__}: one of "
                              f"{tuple(model.LAYOUTS)}")
         layout = "torch"
-    layout = model.check_layout(layout)
+    model.check_layout(layout)
     shapes, out, problems = model.parameter_shapes(), {}, []
     for raw, t in params.items():
-        name = model.official_name(raw) if isinstance(raw, str) else raw
+        name = model.official_name(raw)
         if name not in shapes or not getattr(t, "requires_grad", False):
             problems.append(f"{raw!r} is not a parameter of this model, or not a tensor that requires grad")
         elif tuple(t.shape) not in model.layout_shapes(name, layout):
@@ -237,7 +235,7 @@ def _check_params(model, params, layout):
             out[name] = t
     if problems:
         raise ValueError("teacher_force: params: " + "; ".join(problems))
-    return out, lambda n, a: model.from_layout(n, a, layout)
+    return out, layout
 
 
 def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=None, train=False,
@@ -256,162 +254,119 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     The model's last forward stays the caller's: a model.backward() after this call differentiates
     it, not teacher forcing's run. Returns a TeacherReport (.wrong: the wrong layers' names)."""
     table = layer_table(model)
-    _check_layers(table, layers)
-    params, convert = _check_params(model, params, layout)
-    import torch  # only here: pyvf itself never needs it
-
-    cache = model._cache  # the user's last forward: a model.backward() after this call differentiates it
-    try:
-        trace, grads, sizes = _pyvf_run(model, inputs, upstream, train)
-    finally:
-        model._cache = cache
-    to_port, from_port = _port_converters(torch, model, trace, sizes)
-    checks, unchecked = [], []
-    for layer in table:
-        fn = layers.get(layer.name)
-        if fn is None:
-            unchecked.append(layer.name)
-            continue
-        checks.append(_check_layer(torch, model, layer, fn, trace, grads, params, convert, to_port, from_port,
-                                   dtype, rtol))
-    return TeacherReport(checks=checks, unchecked=unchecked)
-
-
-def _check_layers(table, layers):
-    """layers against the model's layer table: a misspelt name would be silently not checked."""
-    unknown = [n for n in layers if n not in {l.name for l in table}]
+    unknown = [n for n in layers if n not in {l.name for l in table}]  # a misspelt name: silently unchecked
     if unknown:
         raise ValueError(f"layers: unknown layer names {unknown}; this model's layers are {[l.name for l in table]}")
+    params, layout = _check_params(model, params, layout)
+    if upstream is not None and model.INPUTS == ("images",) and set(upstream) - {"drec"}:
+        raise ValueError(f"upstream for a Codebook takes drec only, got {sorted(upstream)}: the commitment "
+                         "loss (dloss) is a second output of the quantize layer, which no layer VJP sees")
+    if train and model.INPUTS[0] == "tokens":
+        raise ValueError("train=True is for a Codebook (its EMA step); the transformer has no training mode")
+    inputs = tuple(inputs) if model.INPUTS[0] == "tokens" else (inputs,)
+    cache = model._cache  # the user's last forward: a model.backward() after this call differentiates it
+    saved = model.quantizer.state_dict() if train else None  # (copies)
+    try:
+        out = model.forward(*inputs, trace=True, **({"train": True} if train else {}))
+        trace = {**dict(zip(model.INPUTS, inputs)), **out.trace}
+        grads = model.backward(**upstream) if upstream is not None else None
+    finally:
+        model._cache = cache
+        if saved is not None:
+            model.quantizer.load_state_dict(saved)
+    run = _Run(model, trace, grads, params, layout, dtype, rtol)
+    return TeacherReport(checks=[run.check(l, layers[l.name]) for l in table if l.name in layers],
+                         unchecked=[l.name for l in table if l.name not in layers])
 
 
-def _pyvf_run(model, inputs, upstream, train):
-    """pyvf's run, the reference every layer is checked against: (trace, every layer's input and
-    output by name, the model's inputs included; the activations' gradients from
-    model.backward(**upstream), None without upstream; (N, L) of a Transformer's tokens, None for
-    a Codebook). A Codebook's EMA buffers are restored after a train=True forward."""
-    if isinstance(model, _transformer.Transformer):
-        if train:
-            raise ValueError("train=True is for a Codebook (its EMA step); the transformer has no training mode")
-        tokens, poses = inputs
-        out = model.forward(tokens, poses, trace=True)
-        given = {"tokens": tokens, "poses": poses}
-        _, N, L = tokens.shape
-        sizes = (N, L)
-    else:
-        if upstream is not None and set(upstream) - {"drec"}:
-            raise ValueError(f"upstream for a Codebook takes drec only, got {sorted(upstream)}: the commitment "
-                             "loss (dloss) is a second output of the quantize layer, which no layer VJP sees")
-        saved = {k: v.copy() for k, v in model.quantizer.state_dict().items()} if train else None
-        try:
-            out = model.forward(inputs, train=train, trace=True)
-        finally:
-            if saved is not None:
-                model.quantizer.load_state_dict(saved)
-        given = {"images": inputs}
-        sizes = None
-    trace = {**given, **out.trace}
-    grads = model.backward(**upstream) if upstream is not None else None
-    return trace, grads, sizes
+class _Run:
+    """One teacher_force call: pyvf's trace and gradients, and the port's parameters."""
 
+    def __init__(self, model, trace, grads, params, layout, dtype, rtol):
+        import torch  # only here: pyvf itself never needs it
 
-def _port_converters(torch, model, trace, sizes):
-    """(to_port, from_port): an activation (trace[name], or the array given; row r of a
-    per-row one) as a torch tensor for the port, and the port's output back as a NumPy array.
-    A Transformer's tree activations go through the flat token layout (R = 3 rows of N views of
-    L tokens, sizes = (N, L))."""
-    R = 3
+        self.torch, self.model, self.trace, self.grads = torch, model, trace, grads
+        self.params, self.layout, self.tol = params, layout, dict(dtype=dtype, rtol=rtol)
+        self.sizes = trace["tokens"].shape[1:] if "tokens" in trace else None  # (N, L) of the tree
 
-    def to_port(name, row, a):
-        a = trace[name] if a is None else a
+    def to_port(self, name, row, a=None):
+        """An activation (trace[name], or the array given; row r of a per-row one) -> a torch tensor
+        (a copy: the port may write into it), the tree's through the flat token layout."""
+        a = self.trace[name] if a is None else a
         a = a[row] if row is not None else a
-        if _is_tree(model, name, row):
+        if _is_tree(self.model, name, row):
             a = tree_to_flat(np.asarray(a))
-        return torch.from_numpy(np.array(a))  # a copy: the port may write into it
+        return self.torch.from_numpy(np.array(a))
 
-    def from_port(name, row, t):
+    def from_port(self, name, row, t):
         a = t.detach().cpu().numpy() if hasattr(t, "detach") else np.asarray(t)
-        if _is_tree(model, name, row) and a.ndim >= 2:
-            N, L = sizes  # (a tree activation is a Transformer's: sizes is set)
-            if a.shape[1] == R * N * L:
-                a = flat_to_tree(a, R, N, L)
+        if _is_tree(self.model, name, row) and a.ndim >= 2 and a.shape[1] == 3 * np.prod(self.sizes):
+            a = flat_to_tree(a, 3, *self.sizes)
         return a
 
-    return to_port, from_port
-
-
-def _check_layer(torch, model, layer, fn, trace, grads, params, convert, to_port, from_port, dtype, rtol):
-    backward = grads is not None
-    mine_out, ins, outs = {}, [], []
-    try:
-        for inputs, out_name in layer.calls:
-            xs = [to_port(n, r, None) for n, r in inputs]
-            if backward:  # the model's inputs get no gradient
-                for x, (n, _) in zip(xs, inputs):
-                    if x.is_floating_point() and n not in MODEL_INPUTS:
+    def check(self, layer, fn):
+        """Run the port's layer on pyvf's inputs, compare its outputs (and VJP) -> LayerCheck."""
+        backward = self.grads is not None
+        mine, ins, outs = {}, [], []
+        try:
+            for inputs, out_name in layer.calls:
+                xs = [self.to_port(n, r) for n, r in inputs]
+                for x, (n, _) in zip(xs, inputs):  # the model's inputs get no gradient
+                    if backward and x.is_floating_point() and n not in MODEL_INPUTS:
                         x.requires_grad_(True)
-            y = fn(*xs)
-            if isinstance(y, (tuple, list)):
-                y = y[0]
-            ins.append(xs)
-            outs.append(y)
-            mine_out[out_name] = from_port(out_name, None, y)
-    except Exception as e:  # noqa: BLE001 - the port's layer failed: report it at this layer
-        return LayerCheck(layer.name, error=f"{type(e).__name__}: {e}")
-    fwd = compare(mine_out, {o: trace[o] for _, o in layer.calls}, dtype=dtype, rtol=rtol)
-    if not backward:
-        return LayerCheck(layer.name, forward=fwd)
-    # pyvf's VJP of this layer, on its own input, seeded with pyvf's gradient of the layer's output
-    xs_ref = [[trace[n][r] if r is not None else trace[n] for n, r in inputs] for inputs, _ in layer.calls]
-    douts = [grads[o] for _, o in layer.calls]
-    dxs_ref, dparams_ref = _reference_vjp(model, layer, xs_ref, douts)
-    ref, mine = {}, {}
-    for (inputs, _), dxs in zip(layer.calls, dxs_ref):
-        for (n, r), dx in zip(inputs, dxs):
-            if dx is not None and n not in MODEL_INPUTS:
-                ref[f"d {_label(n, r)}"] = dx
-    ref.update(dparams_ref)
-    mine_params = {n: params[n] for n in layer.params if n in params}
-    for n in layer.params:
-        if n not in mine_params:
-            del ref[n]  # the port's tensor was not given: nothing to compare
-    try:
+                y = fn(*xs)
+                y = y[0] if isinstance(y, (tuple, list)) else y
+                ins.append(xs)
+                outs.append(y)
+                mine[out_name] = self.from_port(out_name, None, y)
+        except Exception as e:  # noqa: BLE001 - the port's layer failed: report it at this layer
+            return LayerCheck(layer.name, error=f"{type(e).__name__}: {e}")
+        fwd = compare(mine, {o: self.trace[o] for _, o in layer.calls}, **self.tol)
+        if not backward:
+            return LayerCheck(layer.name, forward=fwd)
+        try:
+            bwd = self.vjp(layer, ins, outs)
+        except Exception as e:  # noqa: BLE001
+            return LayerCheck(layer.name, forward=fwd, error=f"backward: {type(e).__name__}: {e}")
+        return LayerCheck(layer.name, forward=fwd, backward=bwd)
+
+    def vjp(self, layer, ins, outs):
+        """The port's VJP (torch autograd) against pyvf's layer pair, both seeded with pyvf's
+        gradient of the layer's output -> Comparison: "d <input>" then the parameters' gradients."""
+        xs_ref = [[self.trace[n][r] if r is not None else self.trace[n] for n, r in inputs]
+                  for inputs, _ in layer.calls]
+        douts = [self.grads[o] for _, o in layer.calls]
+        dxs_ref, dparams_ref = _reference_vjp(self.model, layer, xs_ref, douts)
+        mine_params = {n: self.params[n] for n in layer.params if n in self.params}
         for t in mine_params.values():
             t.grad = None
-        total = 0
-        for (inputs, out_name), y, dy in zip(layer.calls, outs, douts):
-            if not getattr(y, "requires_grad", False):
-                continue  # a port output that does not depend on anything differentiable
-            total = total + (y * to_port(out_name, None, dy).to(y.dtype)).sum()
-        if torch.is_tensor(total):
+        total = sum((y * self.to_port(o, None, dy).to(y.dtype)).sum()
+                    for (_, o), y, dy in zip(layer.calls, outs, douts) if getattr(y, "requires_grad", False))
+        if self.torch.is_tensor(total):  # (0: no port output depends on anything differentiable)
             total.backward()
-    except Exception as e:  # noqa: BLE001
-        return LayerCheck(layer.name, forward=fwd, error=f"backward: {type(e).__name__}: {e}")
-    for (inputs, _), xs, dxs in zip(layer.calls, ins, dxs_ref):
-        for (n, r), x, dx in zip(inputs, xs, dxs):
-            if dx is None or n in MODEL_INPUTS:
-                continue
-            g = x.grad if x.grad is not None else torch.zeros_like(x)
-            mine[f"d {_label(n, r)}"] = from_port(n, r, g)
-    for n, t in mine_params.items():
-        g = t.grad.detach().cpu().numpy() if t.grad is not None else np.zeros(tuple(t.shape))
-        mine[n] = convert(n, g)
-    # the inputs' gradients are judged each on its own scale; each parameter's gradient against at
-    # least the layer's largest parameter gradient: one that is zero in exact arithmetic (a conv bias
-    # feeding a GroupNorm of one channel per group) is rounding on both sides, its own relative error
-    # meaningless. A parameter's gradient sums over every token, so its scale (larger with the batch)
-    # would hide an input gradient wrong by several times rtol.
-    dinputs = compare({n: g for n, g in mine.items() if n not in dparams_ref},
-                      {n: g for n, g in ref.items() if n not in dparams_ref}, dtype=dtype, rtol=rtol)
-    mine_p, ref_p = {n: mine[n] for n in mine if n in dparams_ref}, {n: ref[n] for n in ref if n in dparams_ref}
-    dparams = compare(mine_p, ref_p, dtype=dtype, rtol=rtol)
-    scale = max((float(np.abs(np.asarray(a, dtype=np.float64)).max()) for a in ref_p.values() if np.size(a)),
-                default=0.0)
-    if dparams.rows and scale > 0:
-        dparams = compare(mine_p, ref_p, dtype=dtype, rtol=rtol, atol=min(r.rtol for r in dparams.rows) * scale)
-    rows = dinputs.rows + dparams.rows  # ref's order: the inputs' gradients, then the parameters'
-    bwd = Comparison(first=next((r.name for r in rows if not r.ok), None), rows=rows,
-                     only_mine=dinputs.only_mine + dparams.only_mine, only_ref=dinputs.only_ref + dparams.only_ref)
-    return LayerCheck(layer.name, forward=fwd, backward=bwd)
+        dins_ref, dins = {}, {}
+        for (inputs, _), xs, dxs in zip(layer.calls, ins, dxs_ref):
+            for (n, r), x, dx in zip(inputs, xs, dxs):
+                if dx is not None and n not in MODEL_INPUTS:
+                    dins_ref[f"d {_label(n, r)}"] = dx
+                    dins[f"d {_label(n, r)}"] = self.from_port(n, r, x.grad if x.grad is not None else 0 * x)
+        ref_p = {n: g for n, g in dparams_ref.items() if n in mine_params}
+        mine_p = {n: self.model.from_layout(n, t.grad.detach().cpu().numpy() if t.grad is not None
+                                            else np.zeros(tuple(t.shape)), self.layout)
+                  for n, t in mine_params.items()}
+        # the inputs' gradients are judged each on its own scale; each parameter's gradient against
+        # at least the layer's largest parameter gradient: one that is zero in exact arithmetic (a
+        # conv bias feeding a GroupNorm of one channel per group) is rounding on both sides, its own
+        # relative error meaningless. A parameter's gradient sums over every token, so its scale
+        # (larger with the batch) would hide an input gradient wrong by several times rtol.
+        dinputs = compare(dins, dins_ref, **self.tol)
+        dparams = compare(mine_p, ref_p, **self.tol)
+        scale = max((float(np.abs(a).max()) for a in ref_p.values() if np.size(a)), default=0.0)
+        if dparams.rows and scale > 0:
+            dparams = compare(mine_p, ref_p, **self.tol, atol=min(r.rtol for r in dparams.rows) * scale)
+        rows = dinputs.rows + dparams.rows
+        return Comparison(first=next((r.name for r in rows if not r.ok), None), rows=rows,
+                          only_mine=dinputs.only_mine + dparams.only_mine, only_ref=dinputs.only_ref + dparams.only_ref)
 
 
 # ---------------------------------------------------------------------------------------

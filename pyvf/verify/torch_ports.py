@@ -284,10 +284,14 @@ class Quantizer(nn.Module):
         n = cs.sum()
         self.embeddings.copy_(dw / ((cs + self.eps) / (n + len(cs) * self.eps) * n))
 
-    def forward(self, z):  # (B, D, h, w) -> quantized (B, D, h, w), commitment loss, codes (B, h, w)
+    def forward(self, z, empty=None):  # (B, D, h, w) -> quantized (B, D, h, w), commitment loss, codes (B, h, w)
         B, D, h, w = z.shape
         flat = z.permute(0, 2, 3, 1).reshape(-1, D)
-        codes = ((flat.detach()[:, :, None] - self.embeddings[None]) ** 2).sum(1).argmin(1)
+        dist = ((flat.detach()[:, :, None] - self.embeddings[None]) ** 2).sum(1)  # (M, K)
+        if empty is None:
+            codes = dist.argmin(1)
+        else:  # the empty code (pyvf's CodebookConfig.empty_code): empty patches take code 0, the rest 1..K-1
+            codes = torch.where(empty.reshape(-1), 0, dist[:, 1:].argmin(1) + 1)
         if self.training and self.ema_first:
             self.ema_update(flat.detach(), codes)
         e = self.embeddings.T[codes]  # (M, D), a copy
@@ -300,16 +304,20 @@ class Quantizer(nn.Module):
 class CodebookPort(nn.Module):
     def __init__(self, cfg, bug=None):
         super().__init__()
-        if getattr(cfg, "empty_code", False):
-            raise ValueError("the torch port is the published codebook: a config with empty_code (pyvf's own) "
-                             "has no port; train it with engine='pyvf'")
         self.bug = _check_bug(bug, CODEBOOK_BUGS)
         self.encoder = Encoder(cfg, (1, 1, 1, 1) if bug == "padding" else (0, 1, 0, 1))
         self.decoder = Decoder(cfg)
         self.quant_conv = nn.Conv2d(cfg.z_channels, cfg.embed_dim, 1)
         self.post_quant_conv = nn.Conv2d(cfg.embed_dim, cfg.z_channels, 1)
         self.quantize = Quantizer(cfg.embed_dim, cfg.n_embed, cfg.decay, cfg.eps, ema_first=bug == "ema_first")
+        self.empty_code, self.k = getattr(cfg, "empty_code", False), cfg.token_size
+
+    def empty_patches(self, x):  # (B, C, S, S) -> (B, k, k): every pixel of the patch is the top-left pixel's colour
+        B, _, S, _ = x.shape
+        p = S // self.k
+        return ~(x != x[:, :, :1, :1]).any(1).reshape(B, self.k, p, self.k, p).any(4).any(2)
 
     def forward(self, x):  # -> reconstruction, commitment loss, codes
-        q, commitment, codes = self.quantize(self.quant_conv(self.encoder(x)))
+        empty = self.empty_patches(x) if self.empty_code else None
+        q, commitment, codes = self.quantize(self.quant_conv(self.encoder(x)), empty)
         return self.decoder(self.post_quant_conv(q)), commitment, codes
