@@ -13,6 +13,7 @@ import torch
 from conftest import assert_close
 from pyvf.models.codebook import Codebook, CodebookConfig, parameter_shapes
 from pyvf.verify import convert_torch, torch_codebook
+from pyvf.verify.torch_ports import CodebookPort
 from test_codebook_trace import SMALL, random_codebook
 
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-codebook-tiny.json")
@@ -40,7 +41,7 @@ def test_parameter_names_and_shapes_are_the_official_ones():
         want = {k: tuple(v) for k, v in json.load(f)["state_dict"].items() if not k.startswith("quantize.")}
     cfg = tiny_config()
     assert parameter_shapes(cfg) == want
-    assert torch_codebook.parameter_shapes(dataclasses.replace(cfg)) == want
+    assert {n: tuple(p.shape) for n, p in CodebookPort(cfg).named_parameters()} == want
 
 
 @pytest.mark.parametrize("config", ["small", "official tiny"])
@@ -268,36 +269,3 @@ def test_entry_point_refusals(call, arg, error, name):
 def test_config_refusals(field, value, error):
     with pytest.raises(error, match=rf"\b{field}\b"):
         CodebookConfig(**{**SMALL, field: value})
-
-
-# ---------------------------------------------------------------------------------------
-# a failed training step changes nothing; a perceptual term that keeps its state on itself
-
-
-# the smallest codebook: one level, 32 channels (the GroupNorm groups), 2x2 images, no attention
-TINY = dict(ch=32, ch_mult=(1,), num_res_blocks=1, attn_resolutions=(), z_channels=4, embed_dim=3, n_embed=5,
-            image_size=2)
-
-
-def images(rng, B=2, dtype="float32"):
-    return rng.uniform(-1, 1, (B, 3, 2, 2)).astype(dtype)
-
-
-def same_state(a, b):
-    return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
-
-
-def test_failed_training_forward_after_the_quantizer_keeps_the_ema_buffers(monkeypatch):
-    """A training forward that fails after the quantizer (here the decoder raises) must leave the
-    EMA buffers unchanged (a retry would move them twice)."""
-    cb = Codebook(CodebookConfig(**TINY), seed=3)
-    before = cb.state_dict()
-
-    def failing_decoder(self, tape, z):
-        raise ValueError("conv2d_forward: the result is not finite")
-    monkeypatch.setattr(Codebook, "_decoder", failing_decoder)
-    with pytest.raises(ValueError):
-        cb.forward(images(np.random.default_rng(0)), train=True)
-    assert same_state(cb.state_dict(), before)
-
-

@@ -51,13 +51,12 @@ def test_traced_equals_untraced_bitwise(dtype, seed_kind, rng):
     assert set(g_plain) == set(cb.params)
     for name in cb.params:
         np.testing.assert_array_equal(g_traced[name], g_plain[name], err_msg=name)
-    # the trace is what the output is made of: views, read-only, no copies
+    # the trace is what the output is made of: no copies
     tr = traced.trace
     np.testing.assert_array_equal(tr["decoder.conv_out"], traced.reconstruction)
     assert np.shares_memory(tr["decoder.conv_out"], traced.reconstruction)
     for name, a in tr.items():
         if isinstance(a, np.ndarray):
-            assert not a.flags.writeable, name
             assert a.dtype == cfg.dtype, name
     assert tr["loss"] == traced.loss
 
@@ -90,4 +89,3 @@ def test_trace_names_in_execution_order(rng):
     assert list(g)[len(acts):] == list(cb.params)
     for n in acts:
         assert g[n].shape == out.trace[n].shape, n
-        assert not g[n].flags.writeable

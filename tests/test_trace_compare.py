@@ -188,8 +188,6 @@ def test_traced_forward_and_backward_equal_untraced_bitwise(rng):
     assert list(out.trace) == trace_names(model.config.n_layer)
     assert_bitwise_equal("trace logits", out.trace["logits"], out.logits)
     assert_bitwise_equal("trace pose", out.trace["pose"], out.pose_raw)
-    with pytest.raises(ValueError, match="read-only"):
-        out.trace["blocks.0.ln_1"][...] = 0  # a view of a cache backward() reads
     # gradients: every traced activation but lse and the losses, in backward order, then the parameters
     acts = [n for n in trace_names(model.config.n_layer) if n not in no_grad_names(model.config.n_layer)]
     names = list(t_vjp)

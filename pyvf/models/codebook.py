@@ -264,7 +264,7 @@ class CodebookOutput:
     usage: float  # fraction of codes used by the batch
     perplexity: float
     perceptual_loss: float = None  # mean over images of the perceptual module's loss; None when off
-    trace: dict = None  # forward(..., trace=True) only: name -> activation (read-only), trace_names(cfg) order
+    trace: dict = None  # forward(..., trace=True) only: name -> activation, trace_names(cfg) order
 
 
 def _add_grad(grads, name, g):
@@ -540,8 +540,8 @@ class Codebook(ModelWeights):
         not depend on it (weights near float32's largest value included).
 
         trace=True also returns, as `out.trace`, every intermediate activation by name
-        (trace_names(config), in execution order; read-only views of what the forward keeps
-        anyway: do not modify them), and makes the next backward() return every activation's
+        (trace_names(config), in execution order: what the forward keeps anyway, not copies: do
+        not modify them), and makes the next backward() return every activation's
         gradient."""
         images = self._check_images(images)
         if pixel_weights is not None:
@@ -553,25 +553,19 @@ class Codebook(ModelWeights):
             if (pixel_weights < 0).any() or not pixel_weights.any():
                 raise ValueError("pixel_weights must be non-negative and not all zero")
         enc, dec = [], []
-        tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
-        saved = self.quantizer.state_dict() if train else None  # (copies)
-        self._trace = tr
+        tr = self._trace = {} if trace else None  # None: nothing is recorded, nothing extra is computed
         try:
             z = self._encoder(enc, images)  # (B, D, k, k)
             q, c_q = self.quantizer.forward(z, train=train, empty=self.empty_patches(images))
             if tr is not None:
                 tr[self._quantize_row.name] = q.quantized
             rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
-            per_image, perc = None, None
-            if self.perceptual is not None:  # (the module that ran, its cache): backward differentiates it
-                per_image, cache = self.perceptual.forward(images, rec)  # (B,)
-                perc = (self.perceptual, cache)
-        except BaseException:  # a failed call leaves the EMA buffers as they were
-            if saved is not None:
-                self.quantizer.load_state_dict(saved)
-            raise
         finally:
             self._trace = None
+        perc = None
+        if self.perceptual is not None:  # (the module that ran, its cache): backward differentiates it
+            per_image, cache = self.perceptual.forward(images, rec)  # (B,)
+            perc = (self.perceptual, cache)
         diff = rec - images
         if pixel_weights is None:
             rec_loss = float(np.mean(np.abs(diff)))
@@ -585,7 +579,7 @@ class Codebook(ModelWeights):
             drec_loss = np.sign(diff) * wn.astype(self.dtype)  # (B, C, S, S)
         loss = rec_loss + self.config.codebook_weight * q.commitment_loss
         perceptual = None
-        if self.perceptual is not None:  # per_image (B,), computed above where a failure rolls the EMA back
+        if perc is not None:
             perceptual = float(np.mean(per_image))
             loss += self.config.perceptual_weight * perceptual
         if tr is not None:
@@ -594,10 +588,6 @@ class Codebook(ModelWeights):
             if perceptual is not None:
                 tr["perceptual_loss"] = self.dtype.type(perceptual)
             tr["loss"] = self.dtype.type(loss)
-            for name, a in tr.items():  # read-only views: the caches behind them feed backward()
-                if isinstance(a, np.ndarray):
-                    tr[name] = a.view()
-                    tr[name].flags.writeable = False
         self._cache = (enc, dec, c_q, drec_loss, perc, images.shape[0], rec.shape, trace)
         return CodebookOutput(reconstruction=rec, codes=q.codes, rec_loss=rec_loss, commitment_loss=q.commitment_loss,
                               loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual, trace=tr)
@@ -654,9 +644,4 @@ class Codebook(ModelWeights):
         (dz,) = self.quantizer.backward(dq, dcommitment, c_q)  # straight-through + commitment
         self._backward(enc, dz, grads, g)
         grads = {name: grads[name] if name in grads else np.zeros_like(p) for name, p in self.params.items()}
-        if g is None:
-            return grads
-        for name, a in g.items():  # read-only views: one array can be several names' gradient
-            g[name] = a.view()
-            g[name].flags.writeable = False
-        return {**g, **grads}
+        return grads if g is None else {**g, **grads}  # (one array can be several names' gradient)

@@ -241,7 +241,7 @@ class TransformerOutput:
     pose_loss: np.ndarray  # (B,) pose loss over views >= n_loss_skip
     loss: float  # batch mean of image_generation_weight * ce + localization_weight * pose
     pose_raw: np.ndarray = None  # (B, N, L, 7) the pose head's output: what the loss and backward(dpose=) see
-    trace: dict = None  # forward(..., trace=True) only: name -> activation (read-only), TRACE_NAMES order
+    trace: dict = None  # forward(..., trace=True) only: name -> activation, TRACE_NAMES order
 
 
 class Transformer(ModelWeights):
@@ -547,8 +547,8 @@ class Transformer(ModelWeights):
         least one view past n_loss_skip. Keeps what backward() needs.
 
         trace=True also returns, as `out.trace`, every intermediate activation by name
-        (TRACE_NAMES, in execution order; read-only views of what the forward keeps anyway:
-        do not modify them), and makes the next backward() return every activation's gradient."""
+        (TRACE_NAMES, in execution order: what the forward keeps anyway, not copies: do not
+        modify them), and makes the next backward() return every activation's gradient."""
         cfg = self.config
         B, N, L = self._check_tokens("tokens", tokens)
         self._check_poses("poses", poses, B, N)
@@ -583,10 +583,6 @@ class Transformer(ModelWeights):
         if tr is not None:
             tr["ce_loss"], tr["pose_loss"] = ce, pl
             tr["loss"] = self.dtype.type(loss)  # exact: loss is a float of the model's dtype, widened
-            for name, a in tr.items():  # read-only views: the caches behind them feed backward()
-                if isinstance(a, np.ndarray):
-                    tr[name] = a.view()
-                    tr[name].flags.writeable = False
         self._cache = (c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L), trace)
         return TransformerOutput(logits=logits, pose_prediction=pred, ce_loss=ce, pose_loss=pl, loss=loss,
                                  pose_raw=raw, trace=tr)
