@@ -44,14 +44,30 @@ def test_parameter_names_and_shapes_are_the_official_ones():
     assert {n: tuple(p.shape) for n, p in CodebookPort(cfg).named_parameters()} == want
 
 
-@pytest.mark.parametrize("config", ["small", "official tiny"])
+def with_empty_patches(images, p):
+    """Every other p x p patch of each image made empty: all its pixels the top-left pixel's colour."""
+    images[:, :, :p, :p] = images[:, :, :1, :1]
+    images[:, :, -p:, :p] = images[:, :, :1, :1]
+    return images
+
+
+CONFIGS = {  # the official tiny one at 32 x 32 (its levels and attention at the last level, 4x faster)
+    "small": dict(SMALL), "official tiny": dict(image_size=32, attn_resolutions=(4,)),
+    "empty code": dict(SMALL, empty_code=True),  # pyvf's own (docs/math.md §4), in the torch port too
+}
+
+
+@pytest.mark.parametrize("config", list(CONFIGS))
 def test_codebook_matches_torch_over_three_training_steps(config, rng):
-    cfg = CodebookConfig(**SMALL, dtype="float64") if config == "small" else tiny_config(dtype="float64")
+    cfg = (tiny_config if config == "official tiny" else CodebookConfig)(**CONFIGS[config], dtype="float64")
     cb = random_codebook(cfg, rng)
     P, buffers = torch_state(cb)
-    steps = 3 if config == "small" else 1
+    steps = 1 if config == "official tiny" else 3
     for step in range(steps):
         images = rng.uniform(-1, 1, (2, cfg.in_channels, cfg.image_size, cfg.image_size))
+        if cfg.empty_code:  # an empty patch takes code 0 whatever is nearest; no other patch does
+            images = with_empty_patches(images, cfg.image_size // cfg.token_size)
+            assert (cb.empty_patches(images).sum(), cb.empty_patches(images)[:, 0, 0].all()) == (4, True)
         out = cb.forward(images, train=True)
         grads = cb.backward()
         for p in P.values():
@@ -59,6 +75,8 @@ def test_codebook_matches_torch_over_three_training_steps(config, rng):
         ref = torch_codebook.forward(P, buffers, torch.tensor(images), cfg, cfg.codebook_weight, train=True)
         ref["loss"].backward()
         np.testing.assert_array_equal(out.codes, ref["codes"].numpy())
+        if cfg.empty_code:
+            np.testing.assert_array_equal(out.codes == 0, cb.empty_patches(images))
         # float64 through ~30 layers: measured <= 1e-13; 1e-11 leaves room
         assert_close(f"reconstruction {step}", out.reconstruction, ref["reconstruction"].detach().numpy(), rtol=1e-11)
         assert abs(out.rec_loss - ref["rec_loss"].item()) <= 1e-12 * ref["rec_loss"].item()

@@ -53,12 +53,8 @@ def test_a_changed_codebook_padding_is_read_by_the_forward_and_teacher_forcing(r
         ports[bug] = CodebookPort(cfg, bug=bug).double().eval()  # eval: no EMA step in the port's quantizer
         ports[bug].load_state_dict({k: torch.tensor(v) for k, v in cb.state_dict().items()})
     out = other.forward(x, trace=True)
-    grads = other.backward(drec=drec)
-    mine, mine_grads = codebook_trace(ports["padding"], x, drec)
-    report = pyvf.compare(mine, out.trace)
-    assert report.first is None and len(report.rows) > 40, str(report)
-    assert pyvf.compare(mine_grads, grads, atol=1e-10 * max(np.abs(v).max() for v in grads.values())).first is None
-    assert pyvf.compare(codebook_trace(ports[None], x, drec)[0], out.trace).first == "encoder.down.0.downsample.conv"
+    for bug, first in ((None, "encoder.down.0.downsample.conv"), ("padding", None)):
+        assert pyvf.compare(codebook_trace(ports[bug], x, drec)[0], out.trace).first == first
     for bug, wrong in ((None, ["encoder.down.0.downsample"]), ("padding", [])):
         tf = pyvf.teacher_force(other, x, teacher.torch_modules(ports[bug], other),
                                 params=dict(ports[bug].named_parameters()), upstream=dict(drec=drec))
