@@ -1,19 +1,18 @@
 """Traces of the transformer and pyvf.compare: named activations and their gradients against torch
-autograd in float64 (the oracle pyvf/verify/torch_transformer.py, its activations recorded by
-wrapping its layer functions, never rewriting them), and compare naming the first wrong quantity
-of a port's traces."""
+autograd in float64 (the torch port of pyvf/verify/torch_ports.py, its activations recorded by
+module hooks, never rewriting it), and compare naming the first wrong quantity of a port's traces."""
 
-import contextlib
+import re
 
 import numpy as np
 import pytest
 import torch
-from torch.overrides import TorchFunctionMode
 
 import pyvf
 from conftest import assert_bitwise_equal, assert_close
 from pyvf.models.transformer import trace_names
 from pyvf.verify import torch_transformer as tt
+from pyvf.verify.torch_ports import TransformerPort, official_name, tree_mask
 from test_transformer import TINY, random_batch, random_model
 
 NO_GRAD = {"ce_loss", "pose_loss", "loss"}  # traced, but the seed of backward, not differentiated
@@ -24,133 +23,67 @@ def no_grad_names(n_layer):
 
 
 # ---------------------------------------------------------------------------------------
-# the torch oracle, traced: its activations under pyvf's names, in pyvf's tree layout
+# the torch oracle, traced: the port of pyvf/verify/torch_ports.py (written from docs/math.md) with
+# module hooks, as a port author traces theirs (tests/test_teacher.py), its losses torch_transformer's
 
 
-def module_to_trace(name):
-    """Official module name -> trace prefix: 'h.1/attn/c_attn' -> 'blocks.1.attn.c_attn'."""
-    name = name.replace("quaternion_pose_representation/pose_classifier", "pose_head")
-    if name.startswith("h."):
-        j, rest = name[2:].split("/", 1)
-        name = f"blocks.{j}/{rest}"
-    return name.replace("/", ".")
+def trace_name(module):
+    """A TransformerPort module's name -> the trace name of its output ('h.1.attn.c_attn' ->
+    'blocks.1.attn.c_attn'); names pyvf does not trace pass through (dropped at the end)."""
+    n = re.sub(r"^h\.(\d+)", r"blocks.\1", module).removeprefix("embed.")
+    n = {"embed": "embed.out", "wte": "embed.tokens", "wpe": "embed.positions", "pose_head": "pose",
+         "ln_f": "ln_f.generation"}.get(n, n)
+    return n + ".out" if re.fullmatch(r"blocks\.\d+", n) else n
 
 
-@contextlib.contextmanager
-def traced_oracle(P, tokens, cfg, rec):
-    """While active, torch_transformer.forward records into rec (name -> torch tensor, in the
-    oracle's flat layout (B, T, ...), T in [row][view][token])."""
-    linear0, layer_norm0 = tt.linear, tt.layer_norm
-
-    def linear(x, P_, name):
-        y = linear0(x, P_, name)
-        key = module_to_trace(name)
-        if name.endswith("attn/c_attn"):  # the oracle splits what this returns as [v | q | k]
-            rec[key] = y
-            rec[key.replace("c_attn", "vqk")] = y  # not a trace name: q, k, v are cut from it
-            return y
-        if name == "pose_embedding/c_fc":
-            rec["pose_embedding.input"] = x
-        if name.endswith("attn/c_proj"):
-            rec[key.replace("c_proj", "out")] = x  # the heads merged: (B, T, d)
-        elif name.endswith("c_proj"):
-            rec[key.replace("c_proj", "gelu")] = x
-        rec["pose" if key == "pose_head.c_proj" else key] = y
-        return y
-
-    def layer_norm(x, P_, name):
-        y = layer_norm0(x, P_, name)
-        if name == "ln_f":  # called on the generation row, then the localization row
-            rec["ln_f.localization" if "ln_f.generation" in rec else "ln_f.generation"] = y
-            return y
-        key = module_to_trace(name)  # blocks.j.ln_1 or blocks.j.ln_2
-        j = int(key.split(".")[1])
-        if key.endswith("ln_1"):
-            rec["embed.out" if j == 0 else f"blocks.{j - 1}.out"] = x
-        else:
-            rec[f"blocks.{j}.resid_1"] = x
-        rec[key] = y
-        return y
-
-    class Lookups(TorchFunctionMode):
-        """The lookups the oracle writes inline: wte[tokens], wpe[:L], and the last block's output
-        (the only reshape to (B, R, N, L, d))."""
-
-        def __torch_function__(self, func, types, args=(), kwargs=None):
-            out = func(*args, **(kwargs or {}))
-            if func is torch.Tensor.__getitem__ and args[0] is P["wte/weight"] and args[1] is tokens:
-                rec["embed.tokens"] = out
-            elif func is torch.Tensor.__getitem__ and args[0] is P["wpe/embeddings"]:
-                rec["embed.positions"] = out
-            elif func is torch.Tensor.reshape and len(args) == 6:
-                rec[f"blocks.{cfg.n_layer - 1}.out"] = args[0]
-            elif func in (torch.Tensor.matmul, torch.Tensor.__matmul__) and args[0] is rec.get("ln_f.generation"):
-                rec["logits"] = out
-            return out
-
-    tt.linear, tt.layer_norm = linear, layer_norm
-    try:
-        with Lookups():
-            yield
-    finally:
-        tt.linear, tt.layer_norm = linear0, layer_norm0
-
-
-def to_tree(name, t, cfg, N, L):
-    """An oracle tensor (flat layout) -> pyvf's layout for that name, as float64 numpy."""
-    t = t.detach()
-    B, H, d = t.shape[0], cfg.n_head, cfg.d_model
-    if name.startswith("blocks.") or name == "embed.out":
-        if name.endswith(("attn.q", "attn.k", "attn.v", "attn.out")):  # (B, T, d) -> (R, B, H, N, L, dh)
-            t = t.reshape(B, 3, N, L, H, d // H).permute(1, 0, 4, 2, 3, 5)
-        elif name.endswith("attn.lse"):  # (B, H, T) -> (R, B, H, N, L)
-            t = t.reshape(B, H, 3, N, L).permute(2, 0, 1, 3, 4)
-        else:  # (B, T, w) -> (R, B, N, L, w)
-            t = t.reshape(B, 3, N, L, -1).permute(1, 0, 2, 3, 4)
-    return t.numpy().copy()
+INPUT_NAMES = {"pose_embedding": "pose_embedding.input", ".ln_2": ".resid_1", ".attn.c_proj": ".attn.out"}
 
 
 def torch_trace(model, tokens, poses, dlogits=None, dpose=None, dloss=None):
-    """Run the oracle in float64 -> (trace, grads, param grads): name -> numpy in pyvf's layout.
-    Backward of dloss * loss + sum(logits * dlogits) + sum(raw * dpose)."""
-    cfg = model.config
-    B, N, L = tokens.shape
+    """The port in float64 on the model's weights -> (trace, activations' gradients, parameters'
+    gradients), pyvf's names and layouts, for dloss * loss + sum(logits * dlogits) + sum(raw * dpose).
+    q, k, v are the column blocks of c_attn ([v | q | k]), lse is computed from them."""
+    cfg, (B, N, L) = model.config, tokens.shape
     d, H = cfg.d_model, cfg.n_head
-    P = {k: torch.tensor(v, requires_grad=True) for k, v in model.params.items()}
-    t_tokens, rec = torch.tensor(tokens), {}
-    with traced_oracle(P, t_tokens, cfg, rec):
-        # poses require grad so that the pose MLP's input (xyz scaled) has a gradient to compare
-        logits, raw, ce, pl, loss = tt.forward(P, t_tokens, torch.tensor(poses, requires_grad=True), cfg)
-    for t in rec.values():
-        t.retain_grad()
-    vqk = {j: rec.pop(f"blocks.{j}.attn.vqk") for j in range(cfg.n_layer)}
-    for j in range(cfg.n_layer):  # q, k, v are column blocks of what the oracle splits: [v | q | k]
-        rec[f"blocks.{j}.attn.v"], rec[f"blocks.{j}.attn.q"], rec[f"blocks.{j}.attn.k"] = vqk[j].split(d, dim=-1)
-    total = 0.0 * loss
-    if dloss is not None:
-        total = total + dloss * loss
-    if dlogits is not None:
-        total = total + (logits * torch.tensor(dlogits)).sum()
-    if dpose is not None:
-        total = total + (raw * torch.tensor(dpose)).sum()
+    port = TransformerPort(cfg).double()
+    sd = model.state_dict(layout="torch")
+    port.load_state_dict({n: torch.tensor(sd[official_name(n)]) for n in port.state_dict()})
+    rec = {}
+
+    def hook(module, args, out):
+        name = trace_name(names[module])
+        for end, what in INPUT_NAMES.items():  # inputs pyvf traces: a layer's input, not an output
+            if name.endswith(end):
+                rec[name[:-len(end)] + what] = args[0]
+        rec["ln_f.localization" if name in rec else name] = out  # ln_f: generation row, then localization
+
+    names = {m: n for n, m in port.named_modules() if n}
+    handles = [m.register_forward_hook(hook) for m in names]
+    t_tokens, t_poses = torch.tensor(tokens), torch.tensor(poses, requires_grad=True)
+    rec["logits"], raw = port(t_tokens, t_poses)
+    [h.remove() for h in handles]
+    ce, pl, loss = tt.losses(rec["logits"], raw, t_tokens, t_poses, cfg)
+    [t.retain_grad() for t in rec.values()]
+    total = sum(t for t in (None if dloss is None else dloss * loss,
+                            None if dlogits is None else (rec["logits"] * torch.tensor(dlogits)).sum(),
+                            None if dpose is None else (raw * torch.tensor(dpose)).sum()) if t is not None)
     total.backward()
-    grads = {}
-    for name, t in rec.items():
-        if name.endswith(("attn.q", "attn.k", "attn.v")):
-            j = name.split(".")[1]
-            dv, dq, dk = vqk[int(j)].grad.split(d, dim=-1)
-            grads[name] = to_tree(name, {"q": dq, "k": dk, "v": dv}[name[-1]], cfg, N, L)
-        else:
-            grads[name] = to_tree(name, t.grad, cfg, N, L)
-    trace = {name: to_tree(name, t, cfg, N, L) for name, t in rec.items()}
-    mask = tt.tree_mask(3, N, L)
-    with torch.no_grad():
-        for j in range(cfg.n_layer):  # lse of the attended logits, from the oracle's own q and k
-            q, k = (rec[f"blocks.{j}.attn.{c}"].reshape(B, 3 * N * L, H, d // H).transpose(1, 2) for c in "qk")
-            s = (cfg.attention_scale * (q @ k.transpose(-1, -2))).masked_fill(~mask, float("-inf"))
-            trace[f"blocks.{j}.attn.lse"] = to_tree(f"blocks.{j}.attn.lse", torch.logsumexp(s, -1), cfg, N, L)
-    trace.update(ce_loss=ce.detach().numpy(), pose_loss=pl.detach().numpy(), loss=loss.item())
-    return trace, grads, {k: t.grad.numpy() for k, t in P.items()}
+    heads = lambda t: t.reshape(B, 3 * N * L, H, d // H).transpose(1, 2)  # noqa: E731  (B, H, T, dh)
+    trace, grads = dict(rec), {n: torch.zeros_like(t) if t.grad is None else t.grad for n, t in rec.items()}
+    mask = tree_mask(N, L)
+    for j in range(cfg.n_layer):
+        b = f"blocks.{j}.attn."
+        for which, a in ((trace, rec[b + "c_attn"].detach()), (grads, rec[b + "c_attn"].grad)):
+            which[b + "v"], which[b + "q"], which[b + "k"] = (heads(t) for t in a.split(d, dim=-1))
+            which[b + "out"] = heads(which[b + "out"])
+        s = cfg.attention_scale * trace[b + "q"] @ trace[b + "k"].transpose(-1, -2)
+        trace[b + "lse"] = torch.logsumexp(s.masked_fill(~mask, float("-inf")), -1)  # (B, H, T)
+    trace.update(ce_loss=ce, pose_loss=pl, loss=loss.detach().numpy())
+    keep = set(trace_names(cfg.n_layer))
+    param_grads = pyvf.params_from_layout(model, {official_name(n): torch.zeros_like(p) if p.grad is None else p.grad
+                                                  for n, p in port.named_parameters()}, "torch")
+    return (pyvf.trace_from_flat({n: t for n, t in trace.items() if n in keep}, N, L),
+            pyvf.trace_from_flat({n: t for n, t in grads.items() if n in keep}, N, L), param_grads)
 
 
 def setup(rng, dtype="float64", **overrides):
