@@ -170,6 +170,11 @@ def test_trace_and_every_gradient_match_torch_float64(case, rng):
     assert report.ok, str(report)
     report = pyvf.compare({**t_grads, **t_pgrads}, grads)  # walked in backward's order
     assert report.ok, str(report)
+    # the functional form (pyvf bench's torch side): the same port on the published layout
+    P = {k: torch.tensor(v) for k, v in model.params.items()}
+    logits, raw, ce, pl, loss = tt.forward(P, torch.tensor(tokens), torch.tensor(poses), model.config)
+    assert_close("tt.forward logits", logits.detach().numpy(), out.logits, rtol=1e-11)
+    assert abs(loss.item() - out.loss) <= 1e-12 * abs(out.loss)
 
 
 # ---------------------------------------------------------------------------------------
