@@ -200,10 +200,8 @@ def _published_rank(name):
 
 def _split(layers):
     """The table -> (the encoder's rows, the quantize row, the decoder's rows)."""
-    at = [i for i, row in enumerate(layers) if row.kind == "quantize"]
-    if len(at) != 1:
-        raise ValueError(f"a codebook's layer table needs exactly one 'quantize' row, got {len(at)}")
-    return layers[:at[0]], layers[at[0]], layers[at[0] + 1:]
+    at = [row.kind for row in layers].index("quantize")
+    return layers[:at], layers[at], layers[at + 1:]
 
 
 def parameter_table(layers):
@@ -346,29 +344,20 @@ class Codebook(ModelWeights):
         return h.hexdigest()[:16]
 
     def state_dict(self, layout="torch"):
-        """torch name -> array, the quantizer's buffers included (copies), in `layout` (see
-        load_official): "torch", the published state dict (nn.Conv2d kernels (out, in, kh, kw)),
-        or "tf", channels-last kernels (kh, kw, in, out) as TF/Keras Conv2D and Flax nn.Conv
-        hold them. Every other entry is the same in both."""
+        """torch name -> array, the quantizer's buffers included (copies), in `layout` (LAYOUTS):
+        "torch", the published state dict, or "tf", channels-last conv kernels. Every other entry
+        is the same in both."""
         state = self._params_in(layout)
         state.update({self._buffer_prefix + k: v for k, v in self.quantizer.state_dict().items()})
         return state
 
     def load_official(self, state_dict, *, layout="torch"):
-        """Load a state dict (name -> array): every parameter and the four quantize.* buffers,
-        nothing else; names as the published torch state dict (a Lightning checkpoint's
-        `model.` prefix is dropped; other keys of such a checkpoint, e.g. `loss.*`, are
-        unexpected: `pyvf convert torch-codebook` skips them).
-
-        layout: the caller states the convention of the conv kernels (the table's conv_kernel
-        parameters, every 4-d `.weight`), so a kernel is never silently transposed:
-          "torch" the published state dict = torch nn.Conv2d's (out, in, kh, kw);
-          "tf"    channels-last (kh, kw, in, out): TF/Keras Conv2D, Flax nn.Conv; transposed here.
-        Biases, GroupNorm parameters and the quantizer's buffers (`quantize.embeddings` is
-        (embed_dim, n_embed) in both: codes are columns) are never transposed.
-
-        Entries may be numpy arrays or torch tensors; they are checked as Transformer.load_official
-        checks them (the counter a non-negative integer), one error naming every wrong entry."""
+        """Load a state dict (name -> array or torch tensor): every parameter and the four
+        quantize.* buffers, nothing else, named as the published torch state dict (a Lightning
+        checkpoint's `model.` prefix is dropped; its other keys, e.g. `loss.*`, are unexpected:
+        `pyvf convert torch-codebook` skips them). The caller states the conv kernels' `layout`,
+        so a kernel is never silently transposed; `quantize.embeddings` is (embed_dim, n_embed) in
+        both (codes are columns). Checked as pyvf.models.io says, one error naming every wrong entry."""
         self._load(state_dict, layout)
 
     def _check_buffers(self, entries):

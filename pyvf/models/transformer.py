@@ -288,27 +288,17 @@ class Transformer(ModelWeights):
         return official_name(name)
 
     def state_dict(self, layout="tf"):
-        """Official name -> array (copies), in `layout` (see load_official): "tf", the published
-        layout (Dense kernels (in, out), biases (1, out)), or "torch", nn.Linear's (kernels
-        (out, in), biases (out,)). Embeddings and LayerNorm parameters are the same in both."""
+        """Official name -> array (copies), in `layout` (LAYOUTS): "tf", the published one, or
+        "torch", nn.Linear's. Embeddings and LayerNorm parameters are the same in both."""
         return self._params_in(layout)
 
     def load_official(self, weights, *, layout="tf"):
-        """Load a dict name -> array named as the published checkpoint (with or without the
-        `migt/` prefix and `:0` suffix).
-
-        layout: the caller states the convention of the Dense layers (every `.../weight` but the
-        token embedding `wte/weight`), so that a square kernel (`attn/c_proj`) is never silently
-        transposed:
-          "tf"    the published TF Dense layout: kernel (in, out), bias (1, out);
-          "torch" torch nn.Linear's: kernel (out, in), transposed here; bias (out,) (or (1, out)).
-        Embeddings (`wte/weight`, `wpe/embeddings`) and LayerNorm parameters are never transposed.
-
-        Entries may be numpy arrays or torch tensors. Everything is checked before anything is
-        assigned (names missing, unexpected or given twice; float32/float64 arrays of the
-        parameter's shape, finite, within the model's dtype's range): one error names every wrong
-        entry and the model is left unchanged. Arrays are copied into the model's dtype (a float32
-        checkpoint loads into a float64 model for a float64 check)."""
+        """Load a dict name -> array (or torch tensor) named as the published checkpoint (the
+        `migt/` prefix and `:0` suffix optional), its Dense layers (every `.../weight` but the
+        token embedding `wte/weight`, and their biases) in `layout`, which the caller states so
+        that a square kernel (`attn/c_proj`) is never silently transposed. Checked as
+        pyvf.models.io says: one error names every wrong entry and the model is left unchanged;
+        arrays are copied into the model's dtype."""
         self._load(weights, layout)
 
     # -----------------------------------------------------------------------------------
