@@ -142,11 +142,7 @@ def test_codebook_torch_layout_is_nn_conv2d_and_tf_is_channels_last(rng):
     # tf layout = channels-last: TF's conv (NHWC, HWIO) computes the same, checked by hand with einsum
     w = tf_sd["quant_conv.weight"]  # (1, 1, in, out)
     np.testing.assert_allclose(np.einsum("bhwi,io->bhwo", x.transpose(0, 2, 3, 1), w[0, 0]) + tf_sd["quant_conv.bias"],
-                               want.transpose(0, 2, 3, 1), rtol=1e-13, atol=1e-13)
-    for layout, sd in (("torch", torch_sd), ("tf", tf_sd)):
-        again = pyvf.Codebook(cb.config, seed=5)
-        again.load_official(sd, layout=layout)
-        assert_same_state(again, cb)
+                               want.transpose(0, 2, 3, 1), rtol=1e-13, atol=1e-13)  # (round trips: test_model_files.py)
 
 
 def test_codebook_load_names_every_problem_and_changes_nothing(rng):
