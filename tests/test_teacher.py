@@ -18,6 +18,7 @@ import pyvf
 import pyvf.verify.teacher
 from pyvf.verify.torch_ports import (CODEBOOK_BUGS, TRANSFORMER_BUGS, CodebookPort, TransformerPort,
                                      official_name, tree_mask)
+from test_codebook import with_empty_patches
 from test_codebook_trace import SMALL, images_for, random_codebook
 from test_transformer import TINY, random_batch, random_model
 
@@ -231,6 +232,21 @@ def test_codebook_bug_found_by_compare_and_teacher_forcing(bug, rng):
         zero = [r for c in tf.checks for r in c.backward.rows if r.rel > r.rtol]
         assert {r.name.rsplit(".", 2)[-2] for r in zero} <= {"conv1", "conv2", "nin_shortcut", "k"}, zero
         assert all(r.name.endswith(".bias") and r.max_abs < 1e-13 for r in zero), zero
+
+
+def test_empty_code_checked_at_the_quantize_layer(rng):
+    """Under the empty code (pyvf's own, docs/math.md §4) the quantize layer reads the images too:
+    the port's empty code agrees in training mode; a quantizer that ignores it is wrong there only."""
+    cfg = pyvf.CodebookConfig(**SMALL, dtype="float64", empty_code=True)
+    cb = random_codebook(cfg, rng)
+    port = CodebookPort(cfg).double()
+    port.load_state_dict({k: torch.tensor(v) for k, v in cb.state_dict().items()})
+    x = with_empty_patches(images_for(cfg, rng), cfg.image_size // cfg.token_size)
+    layers = pyvf.verify.teacher.torch_modules(port, cb)
+    for quantize, wrong in ((layers["quantize"], []), (lambda z, x: port.quantize(z), ["quantize"])):
+        tf = pyvf.teacher_force(cb, x, {**layers, "quantize": quantize}, params=dict(port.named_parameters()),
+                                upstream=dict(drec=rng.normal(size=x.shape)), train=True)
+        assert tf.wrong == wrong and not tf.unchecked, str(tf)
 
 
 # ---------------------------------------------------------------------------------------

@@ -173,7 +173,9 @@ def layer_table(cfg):
     rows += _mid("encoder", cin)
     rows += [_norm("encoder.norm_out", cin), _conv("encoder.conv_out", cin, cfg.z_channels, 3, padding=1),
              _conv("quant_conv", cfg.z_channels, cfg.embed_dim, 1),
-             Layer("quantize", "quantize"),  # the EMA quantizer: its buffers are not parameters
+             # the EMA quantizer (its buffers are not parameters); the empty code reads the images too
+             Layer("quantize", "quantize", calls=((((("quant_conv", None), ("images", None)), "quantize"),)
+                                                  if cfg.empty_code else None)),
              _conv("post_quant_conv", cfg.embed_dim, cfg.z_channels, 1)]
     cin = ch * mult[-1]
     rows.append(_conv("decoder.conv_in", cfg.z_channels, cin, 3, padding=1))
@@ -369,12 +371,12 @@ class Codebook(ModelWeights):
     # -----------------------------------------------------------------------------------
     # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
 
-    def layer_forward(self, row, x):
-        """Run the table's row (not a residual block) on x -> (output, cache)."""
+    def layer_forward(self, row, x, images=None):
+        """Run the table's row (not a residual block) on x -> (output, cache); images: the
+        quantize row's second input under the empty code."""
         if row.kind == "quantize":  # the quantized z (no EMA step); its gradient is the straight-through one
-            if self.config.empty_code:  # the empty code is read off the images, which this row does not see
-                raise ValueError("teacher forcing needs a codebook without empty_code (the published quantizer)")
-            q, _ = self.quantizer.forward(x, train=False)
+            empty = None if images is None else self.empty_patches(images)
+            q, _ = self.quantizer.forward(x, train=False, empty=empty)
             return q.quantized, None
         return row_forward(row, self.params, x)
 

@@ -378,8 +378,9 @@ def torch_modules(port, model, path=None):
     modules: for each of layer_names(model), the submodule port.get_submodule(path(name)) (path
     default: the name itself, which is the published module's name in the codebook), left out
     where there is none (or path returns None). A codebook's norm layers (GroupNorm modules) are
-    wrapped in swish, as pyvf fuses them. The transformer's attention usually takes the tree
-    mask too, and its embedding is rarely one module: give those as functions."""
+    wrapped in swish, as pyvf fuses them; under the empty code the quantize layer takes (z,
+    images) and calls port.quantize(z, port.empty_patches(images)). The transformer's attention
+    usually takes the tree mask too, and its embedding is rarely one module: give those as functions."""
     import torch
 
     out = {}
@@ -393,6 +394,8 @@ def torch_modules(port, model, path=None):
             continue
         if layer.kind == "norm_swish":
             out[layer.name] = (lambda m: lambda x: torch.nn.functional.silu(m(x)))(m)
+        elif layer.kind == "quantize" and len(layer.calls[0][0]) == 2:  # the empty code: (z, images)
+            out[layer.name] = (lambda m: lambda z, x: m(z, port.empty_patches(x)))(m)
         else:
             out[layer.name] = m
     return out
