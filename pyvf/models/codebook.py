@@ -322,7 +322,6 @@ class Codebook(ModelWeights):
         self._buffer_prefix = self._quantize_row.name + "."
         self.BUFFERS = tuple(self._buffer_prefix + k for k in self.quantizer.state_dict())  # BUFFERS by default
         self._cache = None
-        self._trace = None  # during a traced forward only: the dict _op records into
 
     def trace_names(self):
         """The names forward(..., trace=True) records, in execution order."""
@@ -390,21 +389,21 @@ class Codebook(ModelWeights):
     # -----------------------------------------------------------------------------------
     # the tape
 
-    def _op(self, tape, row, x):
-        """Run one row of the table, record it on the tape, return its output. tape None:
-        inference, no backward will follow; nothing is kept, so each activation is freed once the
-        next layer has read it (encode and decode_code: peak memory a few activations, not the
-        whole network's)."""
-        keep = tape is not None
-        if row.kind == "res":
-            y, c = self._resblock_forward(row, x, keep)
-        else:
-            y, c = row_forward(row, self.params, x)
-        if keep:
-            tape.append((row, c))
-        if self._trace is not None:
-            self._trace[row.name] = y
-        return y
+    def _run(self, rows, x, tape=None, tr=None):
+        """Run rows of the table in turn on x, each recorded on the tape as (row, cache) and in
+        the trace tr (name -> output; None: not traced). tape None: inference, no backward will
+        follow; nothing is kept, so each activation is freed once the next row has read it
+        (encode and decode_code: peak memory a few activations, not the whole network's)."""
+        for row in rows:
+            if row.kind == "res":
+                x, c = self._resblock_forward(row, x, tape is not None, tr)
+            else:
+                x, c = row_forward(row, self.params, x)
+            if tape is not None:
+                tape.append((row, c))
+            if tr is not None:
+                tr[row.name] = x
+        return x
 
     def _backward(self, tape, dy, grads, g=None):
         """Replay a tape in reverse: dy is the gradient of its last output; returns that of its input.
@@ -420,17 +419,13 @@ class Codebook(ModelWeights):
                 _add_grad(grads, name, dp)
         return dy
 
-    def _resblock_forward(self, row, x, keep=True):
+    def _resblock_forward(self, row, x, keep, tr):
         """ResnetBlock: its body (norm1, swish, conv1, norm2, swish, conv2) + x (or its shortcut,
-        nin_shortcut(x)). keep False: inference (see _op), nothing recorded."""
+        nin_shortcut(x)). keep False: inference (see _run), nothing recorded."""
         main, short = ([], []) if keep else (None, None)
-        h = x
-        for r in row.body:
-            h = self._op(main, r, h)
-        s = x
-        for r in row.shortcut:
-            s = self._op(short, r, s)
-        if self._trace is None and row.body:  # h, conv2's fresh output, is referenced nowhere else: add in place
+        h = self._run(row.body, x, main, tr)
+        s = self._run(row.shortcut, x, short, tr)
+        if tr is None and row.body:  # h, conv2's fresh output, is referenced nowhere else: add in place
             return add(h, s, out=h), (main, short)
         return add(s, h), (main, short)  # the trace keeps h itself
 
@@ -447,19 +442,13 @@ class Codebook(ModelWeights):
     # -----------------------------------------------------------------------------------
     # encoder and decoder: the table's rows before and after quantize
 
-    def _encoder(self, tape, x):
+    def _encoder(self, tape, x, tr=None):
         """x (B, in_channels, S, S) -> z (B, embed_dim, k, k), after quant_conv."""
-        h = x
-        for row in self._encoder_rows:
-            h = self._op(tape, row, h)
-        return h
+        return self._run(self._encoder_rows, x, tape, tr)
 
-    def _decoder(self, tape, z):
+    def _decoder(self, tape, z, tr=None):
         """z (B, embed_dim, k, k) quantized -> images (B, out_ch, S, S), from post_quant_conv on."""
-        h = z
-        for row in self._decoder_rows:
-            h = self._op(tape, row, h)
-        return h
+        return self._run(self._decoder_rows, z, tape, tr)
 
     # -----------------------------------------------------------------------------------
     # the model
@@ -544,15 +533,12 @@ class Codebook(ModelWeights):
             if (pixel_weights < 0).any() or not pixel_weights.any():
                 raise ValueError("pixel_weights must be non-negative and not all zero")
         enc, dec = [], []
-        tr = self._trace = {} if trace else None  # None: nothing is recorded, nothing extra is computed
-        try:
-            z = self._encoder(enc, images)  # (B, D, k, k)
-            q, c_q = self.quantizer.forward(z, train=train, empty=self.empty_patches(images))
-            if tr is not None:
-                tr[self._quantize_row.name] = q.quantized
-            rec = self._decoder(dec, q.quantized)  # (B, out_ch, S, S)
-        finally:
-            self._trace = None
+        tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
+        z = self._encoder(enc, images, tr)  # (B, D, k, k)
+        q, c_q = self.quantizer.forward(z, train=train, empty=self.empty_patches(images))
+        if tr is not None:
+            tr[self._quantize_row.name] = q.quantized
+        rec = self._decoder(dec, q.quantized, tr)  # (B, out_ch, S, S)
         perc = None
         if self.perceptual is not None:  # (the module that ran, its cache): backward differentiates it
             per_image, cache = self.perceptual.forward(images, rec)  # (B,)
