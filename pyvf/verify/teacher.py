@@ -11,30 +11,24 @@ exactly the layer that has it, instead of in everything after it (as in pyvf.com
 layers: a dict layer name -> callable (a function or a torch nn.Module) taking the layer's
 inputs as torch tensors and returning its output (a tuple's first element is taken);
 `torch_modules(port, model)` builds it from a module whose children are named as the published
-modules. Layers without a callable are listed as not checked. params (for the backward): the
-port's own parameter tensors by pyvf's official name, in `layout`; each layer's parameters'
-gradients are compared with pyvf's contribution of that layer (a tied weight, wte, gets one per
-layer that reads it).
+modules. params (for the backward): the port's own parameter tensors by pyvf's official name, in
+`layout`; each layer's parameters' gradients are compared with that layer's contribution (a tied
+weight, wte, gets one per layer that reads it). docs/verify.md §2 walks through both models.
 
 The layers (`layer_table(model)`, `layer_names(model)`, in execution order) are read off the
-model's own layer table (model.layers, pyvf.models.table): each a function of its inputs only.
-The transformer's: embed (tokens, poses -> embed.out), per block ln_1, attn (the branching
-attention, ln_1 -> attn.c_proj), ln_2 (resid_1 -> ln_2), mlp (ln_2 -> mlp.c_proj); ln_f
-(called twice: rows 1 and 2 of the last block's output), logits (the tied wte), pose_head. The
-codebook's: every module of the published tree that is a leaf of the computation (convs,
-norm+swish, AttnBlocks, Downsample, Upsample, quantize; with train=True the port's EMA step runs
-too). The residual additions and the losses are not layers (pyvf.compare on a trace covers them);
-the model's inputs get no gradient.
-
-Transformer activations of the whole tree, pyvf's (R, B, N, L, d), reach a callable flat:
-(B, T, d), T = R*N*L ordered [row][view][token], as most ports hold them; the heads' rows stay
-(B, N, L, ...); codebook activations are NCHW, in pyvf's dtype (run pyvf in the port's dtype: compare's tolerances apply per layer).
+model's own layer table (model.layers, pyvf.models.table), each a function of its inputs only:
+the transformer's embed, per block ln_1, attn, ln_2, mlp, then ln_f (called on rows 1 and 2 of
+the last block's output), logits (the tied wte) and pose_head; the codebook's every leaf module
+of the published tree (convs, norm+swish, AttnBlocks, Downsample, Upsample, quantize). The
+residual additions and the losses are not layers (compare on a trace covers them). Tree
+activations, pyvf's (R, B, N, L, d), reach a callable flat, (B, T, d) with T = R*N*L ordered
+[row][view][token]; codebook activations are NCHW; both in pyvf's dtype.
 
 Backward: upstream holds model.backward's seeds (a Codebook's drec only: the quantize layer's
 commitment loss is a second output no layer VJP sees). pyvf's gradient of each layer's output
-seeds the port's VJP (torch autograd, (out * dout).sum().backward()), compared with pyvf's own
-layer pair run on the same input: the gradient of each float input ("d <input name>") and of
-each parameter. The parameters' .grad are cleared per layer (and left holding the last layer's).
+seeds the port's VJP (torch autograd) and pyvf's own layer pair on the same input; the gradients
+of each float input ("d <input name>", the model's inputs get none) and of each parameter are
+compared. The parameters' .grad are cleared per layer (and left holding the last layer's).
 """
 
 import dataclasses
