@@ -175,9 +175,9 @@ def test_torch_checkpoint_converter(rng, tmp_path):
     config.write_text(json.dumps(dataclasses.asdict(cfg)))
     out = tmp_path / "codebook.npz"
     convert_torch.convert_checkpoint(ckpt, config, out)
-    loaded = Codebook.load(out)
+    loaded = Codebook.load(out).state_dict()
     for name, value in cb.state_dict().items():
-        np.testing.assert_array_equal(loaded.state_dict()[name], value)
+        np.testing.assert_array_equal(loaded[name], value)
 
 
 class FeatureDistance:

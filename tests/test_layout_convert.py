@@ -163,8 +163,9 @@ def test_codebook_load_names_every_problem_and_changes_nothing(rng):
     for name in ("decoder.conv_out.bias", "loss.discriminator.weight", "quant_conv.weight", "encoder.conv_in.bias",
                  "encoder.conv_out.bias", "encoder.conv_in.weight", "quantize.counter"):
         assert f"'{name}'" in str(e.value), (name, str(e.value))
+    after = target.state_dict()
     for k, v in before.items():  # unchanged
-        assert_bitwise_equal(k, np.asarray(target.state_dict()[k]), np.asarray(v))
+        assert_bitwise_equal(k, np.asarray(after[k]), np.asarray(v))
 
 
 # ---------------------------------------------------------------------------------------

@@ -60,12 +60,14 @@ def test_every_layout_round_trips_bitwise(rng, tmp_path, dtype):
                 assert_bitwise_equal(f"{name} from {layout}", model.from_layout(name, want, layout), p)
             again = type(model)(model.config, seed=7)
             again.load_official(sd, layout=layout)
+            got = again.state_dict()
             for name, v in model.state_dict().items():
-                assert_bitwise_equal(f"{name} load {layout}", np.asarray(again.state_dict()[name]), np.asarray(v))
+                assert_bitwise_equal(f"{name} load {layout}", np.asarray(got[name]), np.asarray(v))
         back = type(model).load(model.save(tmp_path / type(model).__name__))
         assert back.config == model.config
+        got = back.state_dict()
         for name, v in model.state_dict().items():
-            assert_bitwise_equal(f"{name} save/load", np.asarray(back.state_dict()[name]), np.asarray(v))
+            assert_bitwise_equal(f"{name} save/load", np.asarray(got[name]), np.asarray(v))
 
 
 def test_a_bad_layout_or_shape_raises_naming_it(rng):
