@@ -68,7 +68,7 @@ def _tokenize_command(config, data_dir):
             f"--out {name(args['tokens'])}")
 
 
-def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=None, before=None):
+def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=None, before=None, previous=None):
     png = os.path.join(img_dir, f"{name}-curves.png")
     plot_curves(run_dir, png, columns, title=f"{name}: {', '.join(columns)} against the step", log_y=log_y)
     steps, seconds = int(log["step"][-1]), float(log["seconds"][-1])
@@ -79,6 +79,11 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=
     if planned and steps < planned:
         lines[-1] += (f" The run is planned for {planned} steps (its learning-rate schedule's length) and trains "
                       f"on: the shipped model is its state at step {steps}, written by `pyvf export`.")
+    init = config["hyperparameters"].get("init")
+    if init:  # a fine-tuning (--init): where its starting weights came from
+        lines[-1] += (f" It started (`--init`) from `{init['path']}` (sha256 {init['sha256'][:12]}...)"
+                      + (f", the {name} of the pair described in [{os.path.basename(previous)}]"
+                         f"({os.path.basename(previous)})." if previous else "."))
     lines += ["", "| call started | resumed from step | machine (CPUs, processor, kernel path, threads) |",
               "|---|---:|---|"]
     for call in config.get("calls", []):
@@ -137,6 +142,8 @@ def main(argv=None):
     p.add_argument("--transformer-step", type=int, default=None,
                    help="the step the shipped transformer was exported at (`pyvf export`) from a run that "
                         "trains on: the card shows the run up to it")
+    p.add_argument("--previous", default=None,
+                   help="the card (in --out) of the pair the runs were fine-tuned from (--init)")
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "..", "docs"))
     args = p.parse_args(argv)
     if args.transformer_step is not None:
@@ -177,10 +184,11 @@ def _write(args):
              f"Training data: {data_line} Evaluation scenes use other seeds (the evaluation's seed: "
              f"{meta.get('seed', '?')}), so no evaluated scene was seen in training.", ""]
     lines += _section("codebook", args.codebook_run, cb_config, cb_log,
-                      ["rec_loss", "commitment", "perplexity", "usage"], img_dir, where_note=args.codebook_where)
+                      ["rec_loss", "commitment", "perplexity", "usage"], img_dir, where_note=args.codebook_where,
+                      previous=args.previous)
     lines += _section("transformer", args.transformer_run, tf_config, tf_log,
                       ["ce_loss", "pose_loss", "lr"], img_dir, where_note=args.transformer_where,
-                      before=_tokenize_command(tf_config, args.data))
+                      before=_tokenize_command(tf_config, args.data), previous=args.previous)
     command = (f"pyvf evaluate --scenes {meta['scenes']} --context {','.join(map(str, meta['context_sizes']))} "
                f"--seed {meta['seed']} --out eval")  # what metrics.json's meta says was run
     # the section on the baselines goes right after the tables, before metrics.md's timings
