@@ -138,30 +138,29 @@ def status(argv):
         return e.code
 
 
-def test_demo_attention_small(monkeypatch, capsys):
-    """The branching-attention demo (`pyvf demo` is the pretrained models', test_evaluate.py's)."""
-    for var in BLAS_THREAD_VARS:  # as --threads 1 wants: no child process
-        monkeypatch.setenv(var, "1")
-    assert status(["bench", "demo-attention", "--sizes", "small", "--threads", "1"]) == 0
-    out = capsys.readouterr().out
-    assert "== small:" in out and "all errors within their bounds" in out
-
-
 def test_every_readme_command_without_torch(tmp_path):
     """After `pip install .` alone (torch made unimportable): each command's quick mode runs, pyvf's
     own figures measured where torch is only a comparison column, or it stops with one line naming
-    the extra it needs. The commands that are not benchmarks run in one process (`pyvf train`
-    covers train-codebook, tokenize, train-transformer and evaluate; their own options are tested
-    in test_train_loops.py), which must not have imported torch; the benchmarks each in its own.
-    (bench report runs these same benchmarks; its code is tested with torch in test_bench_report.py and test_bench_validation.py.)"""
+    the extra it needs. Every command runs in one process (`pyvf train` covers train-codebook,
+    tokenize, train-transformer and evaluate; their own options are tested in
+    test_train_loops.py), with numpy's BLAS on the benchmarks' 2 threads, so that no benchmark
+    starts a child process of its own (their worker processes still start, from the package;
+    scaling's slow points are skipped, as --max-point-seconds says);
+    torch must not have been imported. (bench report runs these same benchmarks; its code is tested
+    with torch in test_bench_report.py and test_bench_validation.py.)"""
     hide = tmp_path / "no-torch" / "torch"
     hide.mkdir(parents=True)
     (hide / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
-    env = clean_env(PYTHONPATH=str(hide.parent))
+    env = clean_env(PYTHONPATH=str(hide.parent), **{v: "2" for v in BLAS_THREAD_VARS})
     commands = [(["config"], "kernel path:"), (["demo", "--quick", "--out", "d"], "Does pyvf beat the baselines? (context 3"),
                 (["train", "--preset", "smoke", "--out", "r", "--no-progress"], "pyvf train: done"),
                 (["runs", "r/codebook", "r/transformer"], "|"), (["export", "r/transformer", "-o", "now.npz"], "now.npz"),
-                (["scenes", "--out", "s", "--scenes", "2", "--seed", "3", "--size", "16", "--quiet"], "")]
+                (["scenes", "--out", "s", "--scenes", "2", "--seed", "3", "--size", "16", "--quiet"], ""),
+                (["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
+                (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"),
+                # the dense NumPy points past N=2 skipped as too slow (predicted): seconds, not a minute
+                (["bench", "scaling", "--quick", "--max-point-seconds", "1"], "skipped: torch is not installed"),
+                (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]
     script = textwrap.dedent(f"""
         import contextlib, io, sys
         from pyvf.cli import main
@@ -170,18 +169,15 @@ def test_every_readme_command_without_torch(tmp_path):
             with contextlib.redirect_stdout(out):
                 status = main(argv)
             assert status == 0 and expected in out.getvalue(), (argv, status, out.getvalue()[-2000:])
+        for name in ("transformer", "codebook"):  # one line naming the extra they need
+            err = io.StringIO()
+            with contextlib.redirect_stderr(err):
+                status = main(["bench", name, "--quick"])
+            assert status == 1 and len(err.getvalue().splitlines()) == 1 and "pyvf[torch]" in err.getvalue(), err
         assert "torch" not in sys.modules, "a command imported torch"
         print("all ran")""")
     assert_ran(subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
                               timeout=TIMEOUT), "all ran")
-    for args, expected in [(["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
-                           (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"),
-                           (["bench", "scaling", "--quick"], "skipped: torch is not installed"),
-                           (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]:
-        assert_ran(run(args, tmp_path, env), expected)
-    for name in ("transformer", "codebook"):
-        proc = run(["bench", name, "--quick"], tmp_path, env)
-        assert proc.returncode == 1 and len(proc.stderr.splitlines()) == 1 and "pyvf[torch]" in proc.stderr, proc
 
 
 # every command with --threads, with its required arguments; the benchmarks follow

@@ -7,7 +7,7 @@ machine's name, worker processes, tables, JSON and plots. NumPy and the standard
     result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
     print(table(header, rows)); write_json(path, report)
 
-peak_memory measures the process's resident memory (Linux VmHWM), so it covers every
+peak_memory measures the process's resident memory (Linux VmHWM: Linux only), so it covers every
 allocation the call makes: NumPy arrays, C++ workspace, torch tensors. It counts the call's
 outputs (alive when fn returns), and nothing allocated before the call: allocate the inputs
 first, then measure.
@@ -17,7 +17,6 @@ import gc
 import json
 import os
 import sys
-import tracemalloc
 
 import numpy as np
 
@@ -91,18 +90,9 @@ def _reset_hwm():
         f.write("5")
 
 
-try:
-    _reset_hwm()
-    _HWM = _status_bytes("VmHWM") > 0
-except OSError:
-    _HWM = False
-
-
 def memory_method():
-    """One line saying how peak_memory measures on this machine."""
-    if _HWM:
-        return "resident memory (Linux VmHWM): every allocation counts, NumPy, C++ workspace and torch; outputs included"
-    return "tracemalloc (no /proc/self/clear_refs here): NumPy allocations only, C++ and torch NOT counted"
+    """One line saying how peak_memory measures."""
+    return "resident memory (Linux VmHWM): every allocation counts, NumPy, C++ workspace and torch; outputs included"
 
 
 def peak_memory(fn):
@@ -113,17 +103,10 @@ def peak_memory(fn):
     reuse what an earlier one freed and look as if it needed nothing."""
     gc.collect()
     map_fresh_pages()
-    if _HWM:
-        before = _status_bytes("VmRSS")
-        _reset_hwm()
-        result = fn()
-        return result, max(_status_bytes("VmHWM") - before, 0)
-    tracemalloc.start()
-    try:
-        result = fn()
-        return result, tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    before = _status_bytes("VmRSS")
+    _reset_hwm()
+    result = fn()
+    return result, max(_status_bytes("VmHWM") - before, 0)
 
 
 def format_bytes(n):

@@ -169,11 +169,9 @@ def render_images(codebook, logits, decode="argmax", batch=32):
     ValueError). Empty leading dimensions give empty images: logits (0, L, K) -> (0, S, S, 3)."""
     if decode not in DECODES:
         raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
-    batch = _checks.integer("batch", batch, lo=1)
-    cfg = codebook.config
-    k, K = cfg.token_size, cfg.n_embed
-    if not isinstance(logits, np.ndarray) or logits.dtype.kind != "f":
-        raise TypeError(f"logits must be a float numpy array, got {getattr(logits, 'dtype', type(logits).__name__)}")
+    batch = _checks.positive_integer("batch", batch)
+    k, K = codebook.config.token_size, codebook.config.n_embed
+    _checks.float_array("logits", logits)
     if logits.ndim < 2 or logits.shape[-2:] != (k * k, K):
         raise ValueError(f"logits must have shape (..., {k * k}, {K}) for this codebook, got {logits.shape}")
     _checks.finite("logits", logits)  # argmax would pick a NaN's index silently
@@ -215,17 +213,14 @@ def _decode(codebook, inputs, batch, latent=None):
 
 
 def _check_args(context, scenes, views, queries, batch):
+    """The sizes evaluate() and health take, each a positive integer; context: one size or several
+    -> them sorted, without repeats."""
     for name, v in (("scenes", scenes), ("views", views), ("queries", queries), ("batch", batch)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ValueError(f"{name} must be a positive integer, got {v!r}")
-    if isinstance(context, (int, np.integer, float, np.floating, str)):
-        context = (context,)
-    context = tuple(context)
-    if any(isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, np.integer)) for c in context):
-        raise ValueError(f"context sizes must be positive integers, got {context!r}")  # 2.7 is not 2
-    context = tuple(sorted({int(c) for c in context}))
-    if not context or context[0] < 1:
-        raise ValueError(f"context sizes must be positive integers, got {context}")
+        _checks.positive_integer(name, v)
+    context = (context,) if np.ndim(context) == 0 else tuple(context)
+    context = tuple(sorted({_checks.positive_integer("context", c) for c in context}))  # 2.7 is not 2
+    if not context:
+        raise ValueError("context must name at least one size")
     if context[-1] + queries > views:
         raise ValueError(f"context {context[-1]} + {queries} queries needs {context[-1] + queries} views "
                          f"per scene, the scenes have {views}")
