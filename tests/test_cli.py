@@ -205,6 +205,39 @@ def test_threads_is_one_option_checked_once(argv, capsys, monkeypatch):
         assert build_parser().parse_args(argv + ["--threads", "3"]).threads == 3
 
 
+# `pyvf bench NAME` refuses a bad option when it parses its arguments: one line naming the
+# option, status 2, before anything is measured (pyvf/cli/options.py's argparse types)
+BENCH_BAD = [  # (arguments, the option named)
+    (["attention", "--json", "nodir/a.json"], "--json"),
+    (["attention", "--json", "."], "--json"),
+    (["scaling", "--max-point-seconds", "-1"], "--max-point-seconds"),
+    (["scaling", "--sizes", "4x"], "--sizes"),
+    (["scaling", "--sizes", "0x32"], "--sizes"),
+    (["accuracy", "--plots", "afile"], "--plots"),
+    (["hardcases", "--plots", "afile/sub"], "--plots"),
+    (["report", "--out", "afile"], "--out"),
+]
+
+
+@pytest.mark.parametrize("argv, option", BENCH_BAD, ids=[" ".join(b[0]) for b in BENCH_BAD])
+def test_a_bad_bench_argument_is_the_parsers_one_line_error(argv, option, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(SystemExit) as e:
+        main(["bench", *argv])
+    assert e.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].startswith(f"pyvf bench {argv[0]}: error: argument {option}: ")
+
+
+def test_good_bench_arguments_parse(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "out").mkdir()
+    parse = {name: make().parse_args for name, (make, _) in BENCHMARKS.items()}
+    s = parse["scaling"](["--sizes", "12x64,4x32", "--max-point-seconds", "0", "--plots", "new/plots", "--json", "s.json"])
+    assert (s.sizes, s.max_point_seconds, s.plots, s.json) == (((12, 64), (4, 32)), 0.0, "new/plots", "s.json")
+    assert parse["report"](["--out", "out/docs", "--quick"]).out == "out/docs"
+
+
 def test_bench_forwards_help(tmp_path):
     """`pyvf bench NAME --help` is the benchmark's own help (pyvf/cli/bench.py's parser of it)."""
     assert_ran(run(["bench", "vq", "--help"], tmp_path), "usage: pyvf bench vq", "--quick")

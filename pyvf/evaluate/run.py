@@ -69,7 +69,7 @@ __all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
 POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
-# score_scenes(token_scores=True): pyvf's held-out token figures, over all tokens and split into
+# score_scenes' token figures of pyvf's row, over all tokens and split into
 # the tokens of empty patches (every pixel background: health.empty_patches) and of object patches
 TOKEN_SCORES = ("ce", "token_accuracy", "ce_empty", "ce_object", "token_accuracy_empty", "token_accuracy_object")
 # method -> the metrics it has, in the tables' order
@@ -262,8 +262,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     t_encode = (time.perf_counter() - t0) / flat.shape[0]
 
     results, picture, dec = score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch,
-                                         picture_scenes=picture_scenes, progress=progress, decode=decode,
-                                         token_scores=True)
+                                         picture_scenes=picture_scenes, progress=progress, decode=decode)
     decode_s, decoded = dec
     for table in results.values():  # None, not NaN, where the queries have no patch of that kind
         for row, keys in ((table["pyvf"], TOKEN_SCORES[2:]), (table["codebook"], ("empty_entropy",))):
@@ -298,15 +297,15 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
 
 
 def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch, *, picture_scenes=0,
-                 progress=False, token_scores=False, decode=DEFAULT_DECODE):
+                 progress=False, decode=DEFAULT_DECODE):
     """Score the pair and the baselines on these scenes: for each C in context (ascending), the
     context is views 0..C-1 and the queries the views qidx.
 
     images uint8 (n, V, S, S, 3), poses (n, V, 7) float64, tokens (n, V, L) int64 (the codebook's
     tokens of at least the views used). Returns (results, picture, (decode seconds, images
     decoded)): results[str(C)][method][metric] as evaluate()'s; picture the first
-    picture_scenes scenes' views at the largest C. token_scores=True adds to each C's "pyvf"
-    row the mean cross-entropy (nats) of the true query tokens under the rendered logits and
+    picture_scenes scenes' views at the largest C. Each C's "pyvf" row has besides its image and
+    pose metrics the mean cross-entropy (nats) of the true query tokens under the rendered logits and
     the share of tokens whose argmax is right (TOKEN_SCORES, also split into empty and object
     patches), and to each C's "codebook" row empty_entropy (health.empty_entropy of the queries)."""
     n, M = images.shape[0], len(qidx)
@@ -344,8 +343,7 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
             ctx_img, ctx_pose = images[sl, :C], poses[sl, :C]  # (B, C, S, S, 3), (B, C, 7)
             scene = transformer.encode_scene(tokens[sl, :C], ctx_pose.astype(dt))
             logits = transformer.render_scene(scene, q_pose)  # (B, M, L, V)
-            if token_scores:
-                add(key, "pyvf", _token_scores(logits, q_tok, empty[sl]))
+            add(key, "pyvf", _token_scores(logits, q_tok, empty[sl]))
             t0 = time.perf_counter()
             rendered = render_images(codebook, logits, decode, 4 * batch)  # (B, M, S, S, 3)
             decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + B * M
@@ -363,14 +361,14 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
                 picture.setdefault("pyvf", []).append(rendered[:k, 0])
                 picture.setdefault("estimated_poses", []).append(est[:k])
 
-    results = _summaries(per, token_scores)
+    results = _summaries(per)
     for C in map(str, context):
         results[C]["codebook"]["empty_entropy"] = empty_entropy(tokens[:, qidx].reshape(n * M, side, side),
                                                                 empty.reshape(n * M, side, side))
     return results, picture, (decode_s, decoded)
 
 
-def _summaries(per, token_scores):
+def _summaries(per):
     """score_scenes' per-query values (C -> method -> metric -> list of arrays) -> C -> method ->
     metric: the mean of the image metrics and token scores (nan where no token was of that kind),
     the median of the pose errors."""
@@ -379,7 +377,7 @@ def _summaries(per, token_scores):
         results[C] = {}
         for method, names in METHODS.items():
             vals = {k: np.concatenate(v) for k, v in per[C][method].items()}  # per query (n*M,)
-            if token_scores and method == "pyvf":
+            if method == "pyvf":
                 names = names + TOKEN_SCORES
             row = {}
             for name in names:
