@@ -104,13 +104,6 @@ def _pow2_split(q):
     return np.ldexp(q, -k).astype(q.dtype, copy=False), k  # (..., 4), (..., 1)
 
 
-def _pow2_unit(q):
-    """q (..., 4) times a power of two per quaternion so that its largest |component| is in
-    [0.5, 1) (_pow2_split): the same direction, and products of such quaternions neither
-    overflow nor lose digits to subnormals. A zero quaternion stays zero."""
-    return _pow2_split(q)[0]
-
-
 def _norm3(v):
     """|v| over the last axis of (..., 3), by hypot: no overflow or underflow of the squares."""
     return np.hypot(np.hypot(v[..., 0], v[..., 1]), v[..., 2])
@@ -372,7 +365,9 @@ def orientation_error(q1, q2):
         if (q == 0).all(axis=-1).any():
             raise ValueError(f"{name} contains a zero quaternion: it is no rotation, the angle is undefined")
     with np.errstate(under="ignore"):  # components far below the largest may become subnormal: negligible
-        r = _mul(_pow2_unit(a), _conj(_pow2_unit(b)))  # (..., 4)
+        # each scaled to a largest |component| in [0.5, 1): the same directions, and their
+        # product neither overflows nor loses digits to subnormals
+        r = _mul(_pow2_split(a)[0], _conj(_pow2_split(b)[0]))  # (..., 4)
     s, c = _norm3(r[..., 1:]), np.abs(r[..., 0])  # (...) |vec(r)|, |w(r)| >= 1/16 together: never 0/0
     return np.degrees(2 * np.arctan2(s, c))  # (...)
 
