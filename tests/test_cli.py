@@ -54,15 +54,22 @@ def assert_ran(proc, *expected):
         assert text in proc.stdout, f"`{' '.join(proc.args[1:])}` did not print {text!r}{tail}"
 
 
-def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path):
-    code = ("import sys, pyvf, pyvf.cli, pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, "
-            "pyvf.bench.scaling, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
-            "assert 'torch' not in sys.modules, 'pyvf imported torch'; print(pyvf.__file__)")
+def test_import_pyvf_is_the_installed_package_and_imports_no_torch_or_command_code(tmp_path):
+    """`import pyvf` from outside the source tree imports the installed package, and neither torch
+    nor the command line: the library's modules that do a command's work (every benchmark, the
+    demo, the training tasks, the scenes) do not import argparse; only pyvf.cli parses arguments."""
+    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
+               "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
+               "pyvf.scenes.make, pyvf.bench.common, pyvf.verify.convert_tf, pyvf.verify.convert_torch")
+    code = (f"import sys, pyvf, {library}; assert 'torch' not in sys.modules, 'pyvf imported torch'; "
+            "print(sorted(m for m in sys.modules if m == 'argparse' or m.startswith('pyvf.cli') or "
+            "(m.startswith('pyvf') and m.rsplit('.', 1)[-1] in ('commands', 'pipeline')))); print(pyvf.__file__)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
                           text=True, timeout=TIMEOUT)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    where = os.path.realpath(proc.stdout.strip())
-    in_tree = where.startswith(os.path.realpath(REPO) + os.sep)
+    commands, where = proc.stdout.strip().splitlines()
+    assert commands == "[]", commands
+    in_tree = os.path.realpath(where).startswith(os.path.realpath(REPO) + os.sep)
     if editable_install():  # README's development install: the sources are the installed package
         assert in_tree, f"an editable install imported another copy: {where}"
     else:
@@ -74,21 +81,6 @@ def editable_install():
     from importlib.metadata import distribution
     url = distribution("pyvf").read_text("direct_url.json")
     return bool(url) and json.loads(url).get("dir_info", {}).get("editable", False)
-
-
-def test_import_pyvf_imports_no_command_code(tmp_path):
-    """The command line is the top layer: `import pyvf` (the library) loads none of it, and the
-    library's modules that do a command's work (every benchmark, the demo, the training tasks,
-    the scenes) do not import argparse: only pyvf.cli parses arguments."""
-    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
-               "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
-               "pyvf.scenes.make, pyvf.bench.common")
-    code = (f"import sys, pyvf, {library}; print(sorted(m for m in sys.modules if m == 'argparse' or "
-            "m.startswith('pyvf.cli') or (m.startswith('pyvf') and m.rsplit('.', 1)[-1] in ('commands', 'pipeline'))))")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
-                          text=True, timeout=TIMEOUT)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert proc.stdout.strip() == "[]", proc.stdout
 
 
 def test_python_dash_m_pyvf(tmp_path):

@@ -537,6 +537,21 @@ def goal_line(metrics, contexts=GOAL_CONTEXTS):
             f"{word}. " + " ".join(parts))
 
 
+def _timing_rows(M):
+    """(step, TIMING_KEYS key) of metrics.md's timing table, M queries per scene."""
+    return [("codebook: encode an image", "codebook_encode_s_per_image"),
+            ("codebook: decode an image", "codebook_decode_s_per_image"),
+            ("encode_scene (the context trunk, once per scene)", "encode_scene_s_per_scene"),
+            (f"render a view from the cached scene ({M} queries in one call)", "render_cached_s_per_view"),
+            (f"localize a view from the cached scene ({M} queries in one call)", "localize_cached_s_per_view"),
+            ("render a view from the cached scene (one query per call)", "render_cached_one_s_per_view"),
+            ("localize a view from the cached scene (one query per call)", "localize_cached_one_s_per_view"),
+            ("render a view re-encoding the context (Transformer.render, one query per call)",
+             "render_reencode_s_per_view"),
+            ("the whole tree on [context, query] (Transformer.forward, one query per call)",
+             "forward_full_tree_s_per_view")]
+
+
 def metrics_markdown(metrics):
     """The metrics dict as markdown: the verdicts (verdict_lines), a table per context size
     (methods x metrics), then the timings."""
@@ -572,23 +587,9 @@ def metrics_markdown(metrics):
               f"{'' if meta['kernel_threads'] == 1 else 's'})", "",
               f"Transformer: {t['scenes']} scenes at context {t['context']}, {t['queries']} queries each, the "
               f"fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
-              "| step | time |", "|---|---:|",
-              f"| codebook: encode an image | {_seconds(t['codebook_encode_s_per_image'])} |",
-              f"| codebook: decode an image | {_seconds(t['codebook_decode_s_per_image'])} |",
-              f"| encode_scene (the context trunk, once per scene) | {_seconds(t['encode_scene_s_per_scene'])} |",
-              f"| render a view from the cached scene ({t['queries']} queries in one call) | "
-              f"{_seconds(t['render_cached_s_per_view'])} |",
-              f"| localize a view from the cached scene ({t['queries']} queries in one call) | "
-              f"{_seconds(t['localize_cached_s_per_view'])} |",
-              f"| render a view from the cached scene (one query per call) | "
-              f"{_seconds(t.get('render_cached_one_s_per_view'))} |",
-              f"| localize a view from the cached scene (one query per call) | "
-              f"{_seconds(t.get('localize_cached_one_s_per_view'))} |",
-              f"| render a view re-encoding the context (Transformer.render, one query per call) | "
-              f"{_seconds(t['render_reencode_s_per_view'])} |",
-              f"| the whole tree on [context, query] (Transformer.forward, one query per call) | "
-              f"{_seconds(t['forward_full_tree_s_per_view'])} |",
-              "",
+              "| step | time |", "|---|---:|"]
+    lines += [f"| {step} | {_seconds(t.get(key))} |" for step, key in _timing_rows(t["queries"])]
+    lines += ["",
               f"Speed-up of the scene cache, one query per call on every path: {_fmt(t['speedup_vs_reencode'], 1)}x "
               f"against re-encoding the context for every query, {_fmt(t['speedup_vs_full_tree'], 1)}x against the "
               "whole tree for every query "
