@@ -153,7 +153,8 @@ def reference64(q, k, v, do):
 
 def figures(c, repeat, warmup=1):
     """A contender's extra peak memory of one call and median time, forward and forward+backward
-    (its first call, in validation, took the one-time costs: thread pools)."""
+    (a call before, its validation or a warm-up, took the one-time costs: thread pools). The one
+    timer of the attention benchmarks: this one's and each point of scaling.py."""
     out = {}
     for name in ("fwd", "fb"):
         _, out[f"{name}_bytes"] = peak_memory(c[name])

@@ -566,7 +566,7 @@ def metrics_markdown(metrics):
              f"{meta['psnr_cap_db']:.1f} dB, then the mean). Poses: medians over the queries, positions in cube "
              f"sides (cameras stand 10 from the object), orientations in degrees. `codebook` is the ground truth "
              f"encoded and decoded: the best any rendering through this codebook can be. pyvf's renderings "
-             f"decode {DECODES[meta.get('decode', 'argmax')]} (decode={meta.get('decode', 'argmax')}).", ""]
+             f"decode {DECODES[meta['decode']]} (decode={meta['decode']}).", ""]
     lines += verdict_lines(metrics)
     for C, table in metrics["context"].items():
         lines += ["", f"## Context {C} view{'s' if C != '1' else ''}"]
@@ -577,18 +577,17 @@ def metrics_markdown(metrics):
         for method, row in table.items():
             lines.append(f"| {method} | " + " | ".join(_fmt(row.get(m)) for m in _ALL) + " |")
         p, cb = table["pyvf"], table["codebook"]
-        if "ce_empty" in p:  # metrics from before issue 48 lack them
-            lines += ["", f"Tokens of the queries: code entropy of empty patches {_fmt(cb['empty_entropy'])} nats "
-                      f"(position by position); pyvf's cross-entropy {_fmt(p['ce_empty'])} nats on empty patches, "
-                      f"{_fmt(p['ce_object'])} on object patches; accuracy {_fmt(p['token_accuracy_empty'])} and "
-                      f"{_fmt(p['token_accuracy_object'])}."]
+        lines += ["", f"Tokens of the queries: code entropy of empty patches {_fmt(cb['empty_entropy'])} nats "
+                  f"(position by position); pyvf's cross-entropy {_fmt(p['ce_empty'])} nats on empty patches, "
+                  f"{_fmt(p['ce_object'])} on object patches; accuracy {_fmt(p['token_accuracy_empty'])} and "
+                  f"{_fmt(p['token_accuracy_object'])}."]
     t = timing
     lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} thread"
               f"{'' if meta['kernel_threads'] == 1 else 's'})", "",
               f"Transformer: {t['scenes']} scenes at context {t['context']}, {t['queries']} queries each, the "
               f"fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
               "| step | time |", "|---|---:|"]
-    lines += [f"| {step} | {_seconds(t.get(key))} |" for step, key in _timing_rows(t["queries"])]
+    lines += [f"| {step} | {_seconds(t[key])} |" for step, key in _timing_rows(t["queries"])]
     lines += ["",
               f"Speed-up of the scene cache, one query per call on every path: {_fmt(t['speedup_vs_reencode'], 1)}x "
               f"against re-encoding the context for every query, {_fmt(t['speedup_vs_full_tree'], 1)}x against the "
