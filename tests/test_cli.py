@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 
 import pyvf
-from pyvf.bench import BLAS_THREAD_VARS
 from pyvf.cli import main
 from pyvf.cli.bench import BENCHMARKS
 
@@ -135,15 +134,14 @@ def test_every_readme_command_without_torch(tmp_path):
     own figures measured where torch is only a comparison column, or it stops with one line naming
     the extra it needs. Every command runs in one process (`pyvf train` covers train-codebook,
     tokenize, train-transformer and evaluate; their own options are tested in
-    test_train_loops.py), with numpy's BLAS on the benchmarks' 2 threads, so that no benchmark
-    starts a child process of its own (their worker processes still start, from the package;
-    scaling's slow points are skipped, as --max-point-seconds says);
+    test_train_loops.py); the benchmarks' worker processes start from the package (scaling's slow
+    points are skipped, as --max-point-seconds says);
     torch must not have been imported. (bench report runs these same benchmarks; its code is tested
     with torch in test_bench_report.py and test_bench_validation.py.)"""
     hide = tmp_path / "no-torch" / "torch"
     hide.mkdir(parents=True)
     (hide / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
-    env = clean_env(PYTHONPATH=str(hide.parent), **{v: "2" for v in BLAS_THREAD_VARS})
+    env = clean_env(PYTHONPATH=str(hide.parent))
     commands = [(["config"], "kernel path:"), (["demo", "--quick", "--out", "d"], "Does pyvf beat the baselines? (context 3"),
                 (["train", "--preset", "smoke", "--out", "r", "--no-progress"], "pyvf train: done"),
                 (["runs", "r/codebook", "r/transformer"], "|"), (["export", "r/transformer", "-o", "now.npz"], "now.npz"),
@@ -179,11 +177,9 @@ THREADS_COMMANDS = [["demo"], ["evaluate", "--out", "e"], ["tokenize", "--codebo
 
 
 @pytest.mark.parametrize("argv", THREADS_COMMANDS + [["bench", name] for name in BENCHMARKS], ids=" ".join)
-def test_threads_is_one_option_checked_once(argv, capsys, monkeypatch):
+def test_threads_is_one_option_checked_once(argv, capsys):
     """--threads is the same option everywhere (pyvf/cli/options.py): a positive integer of at most
     1024 (MAX_THREADS), anything else the parser's error naming it, before any work starts."""
-    for var in BLAS_THREAD_VARS:  # as a benchmark's --threads 2 wants: no child process
-        monkeypatch.setenv(var, "2")
     for bad in ("0", "x", "1025"):
         with pytest.raises(SystemExit) as e:
             main(argv + ["--threads", bad])

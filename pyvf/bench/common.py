@@ -23,11 +23,8 @@ import numpy as np
 from .._io import atomic_write_text
 from .._machine import cpu_name, median_time  # noqa: F401  (re-exported: the benchmarks import them from here)
 from .._memory import map_fresh_pages
+from .._threads import blas_num_threads
 
-# numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
-# sets them to the benchmark's --threads (pyvf/cli/bench.py), so that numpy's GEMM and pyvf's
-# layers use the threads that pyvf's kernels and torch are given
-BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 TORCH_MISSING = "torch is not installed (the torch extra: pip install 'pyvf[torch]')"
 
 
@@ -41,7 +38,8 @@ def torch_or_none():
 
 
 def machine(threads):
-    """The machine a report ran on: CPU, versions, pyvf's kernel path, the threads."""
+    """The machine a report ran on: CPU, versions, pyvf's kernel path, the threads (numpy's BLAS
+    pool's too: pyvf.set_num_threads, which every benchmark calls, sets it with the kernels')."""
     import platform
 
     import pyvf
@@ -49,7 +47,7 @@ def machine(threads):
     return dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
                 python=platform.python_version(), numpy=np.__version__, torch=torch and torch.__version__,
                 pyvf=pyvf.__version__, kernel_path=pyvf.kernel_path(), kernel_paths=pyvf.kernel_paths(),
-                threads=threads, blas_thread_env={v: os.environ.get(v) for v in BLAS_THREAD_VARS})
+                threads=threads, blas_threads=blas_num_threads())
 
 
 # ---------------------------------------------------------------------------------------

@@ -12,11 +12,9 @@ is the parser's one-line error before anything is measured.
 
 import argparse
 import importlib
-import os
-import subprocess
 import sys
 
-from ..bench.common import BLAS_THREAD_VARS, TORCH_MISSING, torch_or_none, write_json
+from ..bench.common import TORCH_MISSING, torch_or_none, write_json
 from .options import add_threads, non_negative_float, output_dir, output_file
 
 NEEDS_TORCH = ("transformer", "codebook")  # the oracle their first step is checked against before timing
@@ -142,24 +140,14 @@ BENCHMARKS = {
 
 
 def cmd_bench(args):
-    """Run one benchmark of pyvf.bench; the arguments after its name go to its parser.
-
-    A benchmark runs with numpy's BLAS on its --threads: where the BLAS_THREAD_VARS of this
-    process say otherwise (numpy is loaded by then, its BLAS thread count fixed), it runs in a
-    child process `pyvf bench ...` with them set, and returns the child's status. The child drops
-    the working folder from sys.path before importing pyvf: run from a source checkout, it would
-    import the unbuilt source tree instead of the installed package."""
+    """Run one benchmark of pyvf.bench; the arguments after its name go to its parser. It runs on
+    its --threads: pyvf's kernels and numpy's BLAS pool (pyvf.set_num_threads) and torch's."""
     make_parser, handler = BENCHMARKS[args.name]
     bench_args = make_parser().parse_args(args.args)
     if args.name in NEEDS_TORCH and torch_or_none() is None:
         print(f"pyvf bench {args.name}: needs torch, the oracle its first step is checked against before both are "
               f"timed: {TORCH_MISSING}", file=sys.stderr)
         return 1
-    n = bench_args.threads
-    if any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
-        env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
-        boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"
-        return subprocess.run([sys.executable, "-c", boot, "bench", args.name, *args.args], env=env).returncode
     return handler(bench_args)
 
 
