@@ -388,8 +388,7 @@ def test_convert_tf_transformer_without_tensorflow(tmp_path, monkeypatch, capsys
 def test_out_checked_before_evaluating(command, tmp_path, monkeypatch, capsys):
     """An --out that cannot be a folder is one line naming it, exit status 2, before the models are
     loaded or any scene evaluated (it used to be a traceback after the whole evaluation). Model
-    files are named (they need not exist: --out is checked first), so that the demo evaluates
-    whether or not the package ships its pretrained pair."""
+    files are named; they need not exist: --out is checked first."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "afile").write_text("")
     cases = {"afile": "'afile' is a file, not a folder",
