@@ -36,7 +36,7 @@ Conventions (each one decided here, tested in tests/test_geometry.py):
   (`quaternion_remove_sign`: sign = +1 where w >= 0). At w == 0 (and w == -0.0) the
   quaternion is left unchanged, so q and -q with w == 0, the same 180-degree rotation,
   stay different arrays. That is kept for parity: the model's pose predictions and
-  average_pose are defined by it. tie_break=True gives a unique representative instead.
+  average_pose are defined by it.
 """
 
 import numpy as np
@@ -102,13 +102,6 @@ def _pow2_split(q):
     and round: negligible next to the largest. A zero quaternion gives qs = 0, k = 0."""
     k = np.frexp(np.abs(q).max(axis=-1, keepdims=True))[1]  # (..., 1)
     return np.ldexp(q, -k).astype(q.dtype, copy=False), k  # (..., 4), (..., 1)
-
-
-def _pow2_unit(q):
-    """q (..., 4) times a power of two per quaternion so that its largest |component| is in
-    [0.5, 1) (_pow2_split): the same direction, and products of such quaternions neither
-    overflow nor lose digits to subnormals. A zero quaternion stays zero."""
-    return _pow2_split(q)[0]
 
 
 def _norm3(v):
@@ -190,16 +183,10 @@ def _normalize(q, eps):
     return np.where(above, unit, small)  # (..., 4)
 
 
-def _canonical(q, tie_break=False):
-    if not tie_break:
-        # docs/math.md §3 and the published quaternion_remove_sign: flip where w < 0 only
-        # (w == 0 and w == -0.0 keep their sign)
-        return np.where(q[..., :1] < 0, -q, q)
-    # the first non-zero component of (w, x, y, z) made positive
-    nz = q != 0  # (..., 4)
-    first = np.argmax(nz, axis=-1)[..., None]  # (..., 1) index of the first non-zero (0 if none)
-    lead = np.take_along_axis(q, first, axis=-1)  # (..., 1)
-    return np.where(lead < 0, -q, q)
+def _canonical(q):
+    # docs/math.md §3 and the published quaternion_remove_sign: flip where w < 0 only
+    # (w == 0 and w == -0.0 keep their sign)
+    return np.where(q[..., :1] < 0, -q, q)
 
 
 # ---------------------------------------------------------------------------------------
@@ -252,16 +239,14 @@ def quat_normalize(q, eps=1e-12):
     return _normalize(q, float(eps))
 
 
-def quat_canonical(q, *, tie_break=False):
+def quat_canonical(q):
     """The sign representative of q: -q where w < 0, else q (docs/math.md §3, the published
     `quaternion_remove_sign`).   q (..., 4) -> (..., 4).
 
     q and -q are the same rotation. At w == 0 exactly (either sign of zero) q is returned
-    unchanged, as in the published code, so there q and -q stay distinct. tie_break=True
-    instead makes the first non-zero component of (w, x, y, z) positive: then q and -q give
-    the same array for every non-zero q (the zero quaternion stays zero)."""
+    unchanged, as in the published code, so there q and -q stay distinct."""
     _check("q", q, (4,), "a quaternion (w, x, y, z)")
-    return _canonical(q, bool(tie_break))
+    return _canonical(q)
 
 
 # ---------------------------------------------------------------------------------------
@@ -380,7 +365,9 @@ def orientation_error(q1, q2):
         if (q == 0).all(axis=-1).any():
             raise ValueError(f"{name} contains a zero quaternion: it is no rotation, the angle is undefined")
     with np.errstate(under="ignore"):  # components far below the largest may become subnormal: negligible
-        r = _mul(_pow2_unit(a), _conj(_pow2_unit(b)))  # (..., 4)
+        # each scaled to a largest |component| in [0.5, 1): the same directions, and their
+        # product neither overflows nor loses digits to subnormals
+        r = _mul(_pow2_split(a)[0], _conj(_pow2_split(b)[0]))  # (..., 4)
     s, c = _norm3(r[..., 1:]), np.abs(r[..., 0])  # (...) |vec(r)|, |w(r)| >= 1/16 together: never 0/0
     return np.degrees(2 * np.arctan2(s, c))  # (...)
 

@@ -59,7 +59,6 @@ def test_attention_validates_then_times_every_contender():
 def test_attention_aborts_before_timing_a_nan_gradient(nan_dq):
     report = attention.run(*TINY, threads=2, repeat=3)
     assert "pyvf (C++ kernel)" in report["aborted"] and "results" not in report
-    assert attention.demo(("small",)) == 1
 
 
 def test_attention_aborts_before_timing_torch_given_a_wrong_mask(monkeypatch):

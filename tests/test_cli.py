@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 
 import pyvf
-from pyvf.bench import BLAS_THREAD_VARS
 from pyvf.cli import main
 from pyvf.cli.bench import BENCHMARKS
 
@@ -54,15 +53,22 @@ def assert_ran(proc, *expected):
         assert text in proc.stdout, f"`{' '.join(proc.args[1:])}` did not print {text!r}{tail}"
 
 
-def test_import_pyvf_is_the_installed_package_and_does_not_import_torch(tmp_path):
-    code = ("import sys, pyvf, pyvf.cli, pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, "
-            "pyvf.bench.scaling, pyvf.verify.convert_tf, pyvf.verify.convert_torch; "
-            "assert 'torch' not in sys.modules, 'pyvf imported torch'; print(pyvf.__file__)")
+def test_import_pyvf_is_the_installed_package_and_imports_no_torch_or_command_code(tmp_path):
+    """`import pyvf` from outside the source tree imports the installed package, and neither torch
+    nor the command line: the library's modules that do a command's work (every benchmark, the
+    demo, the training tasks, the scenes) do not import argparse; only pyvf.cli parses arguments."""
+    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
+               "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
+               "pyvf.scenes.make, pyvf.bench.common, pyvf.verify.convert_tf, pyvf.verify.convert_torch")
+    code = (f"import sys, pyvf, {library}; assert 'torch' not in sys.modules, 'pyvf imported torch'; "
+            "print(sorted(m for m in sys.modules if m == 'argparse' or m.startswith('pyvf.cli') or "
+            "(m.startswith('pyvf') and m.rsplit('.', 1)[-1] in ('commands', 'pipeline')))); print(pyvf.__file__)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
                           text=True, timeout=TIMEOUT)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    where = os.path.realpath(proc.stdout.strip())
-    in_tree = where.startswith(os.path.realpath(REPO) + os.sep)
+    commands, where = proc.stdout.strip().splitlines()
+    assert commands == "[]", commands
+    in_tree = os.path.realpath(where).startswith(os.path.realpath(REPO) + os.sep)
     if editable_install():  # README's development install: the sources are the installed package
         assert in_tree, f"an editable install imported another copy: {where}"
     else:
@@ -74,21 +80,6 @@ def editable_install():
     from importlib.metadata import distribution
     url = distribution("pyvf").read_text("direct_url.json")
     return bool(url) and json.loads(url).get("dir_info", {}).get("editable", False)
-
-
-def test_import_pyvf_imports_no_command_code(tmp_path):
-    """The command line is the top layer: `import pyvf` (the library) loads none of it, and the
-    library's modules that do a command's work (every benchmark, the demo, the training tasks,
-    the scenes) do not import argparse: only pyvf.cli parses arguments."""
-    library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
-               "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
-               "pyvf.scenes.make, pyvf.bench.common")
-    code = (f"import sys, pyvf, {library}; print(sorted(m for m in sys.modules if m == 'argparse' or "
-            "m.startswith('pyvf.cli') or (m.startswith('pyvf') and m.rsplit('.', 1)[-1] in ('commands', 'pipeline'))))")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=clean_env(), capture_output=True,
-                          text=True, timeout=TIMEOUT)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert proc.stdout.strip() == "[]", proc.stdout
 
 
 def test_python_dash_m_pyvf(tmp_path):
@@ -138,22 +129,15 @@ def status(argv):
         return e.code
 
 
-def test_demo_attention_small(monkeypatch, capsys):
-    """The branching-attention demo (`pyvf demo` is the pretrained models', test_evaluate.py's)."""
-    for var in BLAS_THREAD_VARS:  # as --threads 1 wants: no child process
-        monkeypatch.setenv(var, "1")
-    assert status(["bench", "demo-attention", "--sizes", "small", "--threads", "1"]) == 0
-    out = capsys.readouterr().out
-    assert "== small:" in out and "all errors within their bounds" in out
-
-
 def test_every_readme_command_without_torch(tmp_path):
     """After `pip install .` alone (torch made unimportable): each command's quick mode runs, pyvf's
     own figures measured where torch is only a comparison column, or it stops with one line naming
-    the extra it needs. The commands that are not benchmarks run in one process (`pyvf train`
-    covers train-codebook, tokenize, train-transformer and evaluate; their own options are tested
-    in test_train_loops.py), which must not have imported torch; the benchmarks each in its own.
-    (bench report runs these same benchmarks; its code is tested with torch in test_bench_report.py and test_bench_validation.py.)"""
+    the extra it needs. Every command runs in one process (`pyvf train` covers train-codebook,
+    tokenize, train-transformer and evaluate; their own options are tested in
+    test_train_loops.py); the benchmarks' worker processes start from the package (scaling's slow
+    points are skipped, as --max-point-seconds says);
+    torch must not have been imported. (bench report runs these same benchmarks; its code is tested
+    with torch in test_bench_report.py and test_bench_validation.py.)"""
     hide = tmp_path / "no-torch" / "torch"
     hide.mkdir(parents=True)
     (hide / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
@@ -161,7 +145,12 @@ def test_every_readme_command_without_torch(tmp_path):
     commands = [(["config"], "kernel path:"), (["demo", "--quick", "--out", "d"], "Does pyvf beat the baselines? (context 3"),
                 (["train", "--preset", "smoke", "--out", "r", "--no-progress"], "pyvf train: done"),
                 (["runs", "r/codebook", "r/transformer"], "|"), (["export", "r/transformer", "-o", "now.npz"], "now.npz"),
-                (["scenes", "--out", "s", "--scenes", "2", "--seed", "3", "--size", "16", "--quiet"], "")]
+                (["scenes", "--out", "s", "--scenes", "2", "--seed", "3", "--size", "16", "--quiet"], ""),
+                (["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
+                (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"),
+                # the dense NumPy points past N=2 skipped as too slow (predicted): seconds, not a minute
+                (["bench", "scaling", "--quick", "--max-point-seconds", "1"], "skipped: torch is not installed"),
+                (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]
     script = textwrap.dedent(f"""
         import contextlib, io, sys
         from pyvf.cli import main
@@ -170,18 +159,15 @@ def test_every_readme_command_without_torch(tmp_path):
             with contextlib.redirect_stdout(out):
                 status = main(argv)
             assert status == 0 and expected in out.getvalue(), (argv, status, out.getvalue()[-2000:])
+        for name in ("transformer", "codebook"):  # one line naming the extra they need
+            err = io.StringIO()
+            with contextlib.redirect_stderr(err):
+                status = main(["bench", name, "--quick"])
+            assert status == 1 and len(err.getvalue().splitlines()) == 1 and "pyvf[torch]" in err.getvalue(), err
         assert "torch" not in sys.modules, "a command imported torch"
         print("all ran")""")
     assert_ran(subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
                               timeout=TIMEOUT), "all ran")
-    for args, expected in [(["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
-                           (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"),
-                           (["bench", "scaling", "--quick"], "skipped: torch is not installed"),
-                           (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]:
-        assert_ran(run(args, tmp_path, env), expected)
-    for name in ("transformer", "codebook"):
-        proc = run(["bench", name, "--quick"], tmp_path, env)
-        assert proc.returncode == 1 and len(proc.stderr.splitlines()) == 1 and "pyvf[torch]" in proc.stderr, proc
 
 
 # every command with --threads, with its required arguments; the benchmarks follow
@@ -191,11 +177,9 @@ THREADS_COMMANDS = [["demo"], ["evaluate", "--out", "e"], ["tokenize", "--codebo
 
 
 @pytest.mark.parametrize("argv", THREADS_COMMANDS + [["bench", name] for name in BENCHMARKS], ids=" ".join)
-def test_threads_is_one_option_checked_once(argv, capsys, monkeypatch):
+def test_threads_is_one_option_checked_once(argv, capsys):
     """--threads is the same option everywhere (pyvf/cli/options.py): a positive integer of at most
     1024 (MAX_THREADS), anything else the parser's error naming it, before any work starts."""
-    for var in BLAS_THREAD_VARS:  # as a benchmark's --threads 2 wants: no child process
-        monkeypatch.setenv(var, "2")
     for bad in ("0", "x", "1025"):
         with pytest.raises(SystemExit) as e:
             main(argv + ["--threads", bad])
@@ -207,6 +191,39 @@ def test_threads_is_one_option_checked_once(argv, capsys, monkeypatch):
     else:
         from pyvf.cli import build_parser
         assert build_parser().parse_args(argv + ["--threads", "3"]).threads == 3
+
+
+# `pyvf bench NAME` refuses a bad option when it parses its arguments: one line naming the
+# option, status 2, before anything is measured (pyvf/cli/options.py's argparse types)
+BENCH_BAD = [  # (arguments, the option named)
+    (["attention", "--json", "nodir/a.json"], "--json"),
+    (["attention", "--json", "."], "--json"),
+    (["scaling", "--max-point-seconds", "-1"], "--max-point-seconds"),
+    (["scaling", "--sizes", "4x"], "--sizes"),
+    (["scaling", "--sizes", "0x32"], "--sizes"),
+    (["accuracy", "--plots", "afile"], "--plots"),
+    (["hardcases", "--plots", "afile/sub"], "--plots"),
+    (["report", "--out", "afile"], "--out"),
+]
+
+
+@pytest.mark.parametrize("argv, option", BENCH_BAD, ids=[" ".join(b[0]) for b in BENCH_BAD])
+def test_a_bad_bench_argument_is_the_parsers_one_line_error(argv, option, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(SystemExit) as e:
+        main(["bench", *argv])
+    assert e.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].startswith(f"pyvf bench {argv[0]}: error: argument {option}: ")
+
+
+def test_good_bench_arguments_parse(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "out").mkdir()
+    parse = {name: make().parse_args for name, (make, _) in BENCHMARKS.items()}
+    s = parse["scaling"](["--sizes", "12x64,4x32", "--max-point-seconds", "0", "--plots", "new/plots", "--json", "s.json"])
+    assert (s.sizes, s.max_point_seconds, s.plots, s.json) == (((12, 64), (4, 32)), 0.0, "new/plots", "s.json")
+    assert parse["report"](["--out", "out/docs", "--quick"]).out == "out/docs"
 
 
 def test_bench_forwards_help(tmp_path):
@@ -371,8 +388,7 @@ def test_convert_tf_transformer_without_tensorflow(tmp_path, monkeypatch, capsys
 def test_out_checked_before_evaluating(command, tmp_path, monkeypatch, capsys):
     """An --out that cannot be a folder is one line naming it, exit status 2, before the models are
     loaded or any scene evaluated (it used to be a traceback after the whole evaluation). Model
-    files are named (they need not exist: --out is checked first), so that the demo evaluates
-    whether or not the package ships its pretrained pair."""
+    files are named; they need not exist: --out is checked first."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "afile").write_text("")
     cases = {"afile": "'afile' is a file, not a folder",

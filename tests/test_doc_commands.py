@@ -37,11 +37,7 @@ def _subparsers():
     return action.choices
 
 
-def _bench_options(name, monkeypatch):
-    from pyvf.bench import BLAS_THREAD_VARS
-
-    for var in BLAS_THREAD_VARS:  # as a benchmark's default --threads wants: no child process
-        monkeypatch.setenv(var, "2")
+def _bench_options(name):
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf), pytest.raises(SystemExit):
         main(["bench", name, "--help"])
@@ -53,7 +49,7 @@ def test_some_commands_are_quoted():
 
 
 @pytest.mark.parametrize("doc, line", quoted_commands())
-def test_quoted_command_exists_with_its_options(doc, line, monkeypatch):
+def test_quoted_command_exists_with_its_options(doc, line):
     words = line.split()
     commands = _subparsers()
     names = words[1].split("|")
@@ -67,7 +63,7 @@ def test_quoted_command_exists_with_its_options(doc, line, monkeypatch):
             # the benchmark's name(s) follow; each has its own parser
             have = set()
             for bench in words[2].split("|"):
-                have |= _bench_options(bench, monkeypatch)
+                have |= _bench_options(bench)
         else:
             have = set(commands[name]._option_string_actions)
             for action in commands[name]._actions:  # a command with commands of its own (convert)

@@ -212,11 +212,19 @@ def rows_by_hand(cb, tf, images, poses, C):
             "mean_pose": pose_row(mean_p, truth_pose)}
 
 
-def test_evaluate_smoke(models, tmp_path):
+SMOKE = dict(scenes=2, context=(3, 1), seed=5, progress=False, repeat=1, timing_scenes=1, batch=1)
+
+
+@pytest.fixture(scope="module")
+def smoke(models, tmp_path_factory):
+    """evaluate() by argmax (as rows_by_hand renders) on 2 scenes at contexts 1 and 3: (metrics, out)."""
+    out = tmp_path_factory.mktemp("eval")
+    return evaluate(models[0], models[1], out=str(out), picture_scenes=2, decode="argmax", **SMOKE), out
+
+
+def test_evaluate_smoke(models, smoke):
     cb, tf, _, _ = models
-    out = tmp_path / "eval"
-    metrics = evaluate(cb, tf, scenes=2, context=(3, 1), seed=5, out=str(out), progress=False, repeat=1,
-                       picture_scenes=2, batch=1, decode="argmax")  # rows_by_hand renders by argmax
+    metrics, out = smoke
     with open(out / "metrics.json") as f:
         on_disk = json.load(f)
     assert on_disk == metrics
@@ -442,16 +450,14 @@ def test_render_images_argmax_and_a_certain_expected_agree(models):
     np.testing.assert_array_equal(pyvf.evaluate.render_images(cb, logits, "expected"), by_argmax)
 
 
-def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, tmp_path):
+def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, smoke, tmp_path):
     """The same scenes through both decodes: the meta and the markdown say which; the poses and
     the baselines do not depend on it; the renderings do (random logits are far from one-hot)."""
-    cb, tf = models[0], models[1]
-    kw = dict(scenes=1, context=(2,), seed=4, progress=False, repeat=1, pictures=False)
-    a = evaluate(cb, tf, decode="argmax", **kw)
-    b = evaluate(cb, tf, out=str(tmp_path / "ev"), **kw)  # the default: expected (DEFAULT_DECODE's reason)
+    a = smoke[0]
+    b = evaluate(models[0], models[1], out=str(tmp_path / "ev"), pictures=False, **SMOKE)  # the default: expected
     assert a["meta"]["decode"] == "argmax" and b["meta"]["decode"] == "expected" == pyvf.evaluate.DEFAULT_DECODE
     assert "(decode=expected)" in (tmp_path / "ev" / "metrics.md").read_text()
-    ra, rb = a["context"]["2"], b["context"]["2"]
+    ra, rb = a["context"]["3"], b["context"]["3"]
     for method in METHODS:
         if method != "pyvf":
             assert ra[method] == rb[method], method
@@ -518,7 +524,7 @@ def _logits(cb, bad=None, extra=0, dtype=np.float32):
     (lambda cb, tf: encode_images(cb, I0[0], batch_size=0), ValueError, "batch_size"),
     (lambda cb, tf: evaluate(cb, tf, scenes=1, context=(11,), progress=False), ValueError, "context"),  # 16 views
     # (1, 2.7) was evaluated as (1, 2), (True,) as (1,)
-    *[(lambda cb, tf, c=c: evaluate(cb, tf, scenes=1, context=c, progress=False), ValueError, "context")
+    *[(lambda cb, tf, c=c: evaluate(cb, tf, scenes=1, context=c, progress=False), TypeError, "context")
       for c in ((1, 2.7), (True,))],
     (lambda cb, tf: evaluate(cb, tf, scenes=0, context=1, progress=False), ValueError, "scenes"),
     (lambda cb, tf: evaluate(cb, tf, scenes=1, context=1, progress=False, timing_scenes=0), ValueError,

@@ -39,6 +39,7 @@ import numpy as np
 import pyvf
 from pyvf.bench.attention import flat, unflat
 from pyvf.bench.common import machine, median_time, ms, pyplot, save_figure, table, torch_or_none, validate
+from pyvf.bench.vq import brute_force
 from pyvf.nn import conv, layers, losses
 
 U32, U64 = 2.0 ** -24, 2.0 ** -53  # unit roundoff
@@ -141,9 +142,7 @@ def vq_op(size, rng):
     M, K, D = size
     codes = rng.standard_normal((K, D))
     x, codes = _round32(codes[rng.integers(0, K, M)] + 0.7 * rng.standard_normal((M, D)), codes)  # near a code
-    best = np.empty(M, dtype=np.int64)
-    for i in range(0, M, 256):  # float64 direct differences, the first minimum
-        best[i:i + 256] = ((x[i:i + 256, None] - codes[None]) ** 2).sum(-1).argmin(1)
+    best = brute_force(x, codes)  # float64 direct differences, the first minimum
 
     def numpy_fn(x):  # the published quantizer's expanded formula
         def fn():

@@ -15,8 +15,7 @@ scaled_dot_product_attention with the dense (T, T) mask and against the dense Nu
 
 Inputs are unit-normal, scale = 1 (the published model's unscaled logits). pyvf takes (R, B, H, N,
 L, dh); torch and the reference's flat sequence are (B, H, T, dh), T = R*N*L in the order
-[row][view][token]. demo() is `pyvf bench demo-attention` (and `pyvf demo` while no pretrained
-models are installed): pyvf against the dense NumPy reference at three sizes, without torch.
+[row][view][token]. Without torch, pyvf is timed against the dense NumPy reference alone.
 """
 
 import time
@@ -154,7 +153,8 @@ def reference64(q, k, v, do):
 
 def figures(c, repeat, warmup=1):
     """A contender's extra peak memory of one call and median time, forward and forward+backward
-    (its first call, in validation, took the one-time costs: thread pools)."""
+    (a call before, its validation or a warm-up, took the one-time costs: thread pools). The one
+    timer of the attention benchmarks: this one's and each point of scaling.py."""
     out = {}
     for name in ("fwd", "fb"):
         _, out[f"{name}_bytes"] = peak_memory(c[name])
@@ -166,14 +166,11 @@ def figures(c, repeat, warmup=1):
 # the benchmark
 
 
-def run(R, B, H, N, L, dh, threads=2, repeat=5, with_torch=True, heads=None, ref_repeat=None):
+def run(R, B, H, N, L, dh, threads=2, repeat=5):
     """The benchmark at one size (the module docstring's steps): prints its tables and returns the
-    report. When a contender fails validation nothing is timed and report["aborted"] says so.
-    heads: check these heads only (the float64 dense reference of all heads at the paper size
-    takes GiBs; heads are independent, so the reference on their inputs is its output for them);
-    ref_repeat: timed calls of the NumPy reference (default repeat)."""
+    report. When a contender fails validation nothing is timed and report["aborted"] says so."""
     t_start = time.perf_counter()
-    torch = torch_or_none() if with_torch else None
+    torch = torch_or_none()
     shape = (R, B, H, N, L, dh)
     pyvf.set_num_threads(threads)
     if torch is not None:
@@ -183,8 +180,7 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5, with_torch=True, heads=None, ref
     print(f"# Branching attention: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={R * N * L}), float32, scale 1, "
           f"{threads} threads\nmachine: {report['machine']['processor']}; memory: {memory_method()}\n")
     q, k, v, do = make_inputs(*shape)
-    pick = (lambda x: x) if heads is None else (lambda x: np.ascontiguousarray(x[:, :, heads]))  # noqa: E731
-    ref = reference64(*map(pick, (q, k, v, do)))
+    ref = reference64(q, k, v, do)
     contenders = {"pyvf (C++ kernel)": (pyvf_contender(q, k, v, do), BOUND32, "pyvf")}
     if torch is not None:
         contenders["torch SDPA, dense bool mask"] = (torch_contender(q, k, v, do), BOUND_OTHERS, "sdpa")
@@ -192,7 +188,7 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5, with_torch=True, heads=None, ref
     report["errors"], failed = {}, []
     checks = [("pyvf float64", pyvf_contender(*(x.astype(np.float64) for x in (q, k, v, do))), BOUND64)]
     for name, c, bound in checks + [(n, c, b) for n, (c, b, _) in contenders.items()]:
-        report["errors"][name], ok = validate(map(pick, c["outs"]()), ref, NAMES, bound)
+        report["errors"][name], ok = validate(c["outs"](), ref, NAMES, bound)
         failed += [] if ok else [f"{name} above {bound:g}"]
     print(table(["max rel. error vs float64 reference"] + list(NAMES),
                 [[n] + [f"{e[c]:.2e}" for c in NAMES] for n, e in report["errors"].items()]))
@@ -206,7 +202,7 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5, with_torch=True, heads=None, ref
     f_fwd, f_fb = useful_flops(*shape)
     rows, report["results"] = [], {}
     for name, (c, _, method) in contenders.items():
-        r = report["results"][name] = figures(c, *((ref_repeat or repeat, 0) if method == "numpy" else (repeat, 1)))
+        r = report["results"][name] = figures(c, repeat, 0 if method == "numpy" else 1)
         r["expected_fwd_bytes"], r["expected_fb_bytes"] = expected_memory(method, *shape, threads)
         rows.append([name, ms(r["fwd_seconds"]), f"{f_fwd / r['fwd_seconds'] / 1e9:.1f}", ms(r["fb_seconds"]),
                      f"{f_fb / r['fb_seconds'] / 1e9:.1f}", f"{f_fb / r['fb_seconds'] / 1e9 / gemm:.0%}",
@@ -219,39 +215,10 @@ def run(R, B, H, N, L, dh, threads=2, repeat=5, with_torch=True, heads=None, ref
           "the extra peak of one call, inputs excluded, outputs included")
     res, pyvf_fb = report["results"], report["results"]["pyvf (C++ kernel)"]["fb_seconds"]
     report["gemm_gflops"], report["ratio_over_pyvf"] = gemm, {n: r["fb_seconds"] / pyvf_fb for n, r in res.items()}
-    if torch is None and with_torch:
+    if torch is None:
         print(f"torch SDPA: {TORCH_MISSING}")
     print("forward+backward time over pyvf's: " + ", ".join(f"{n} {x:.2f}x" for n, x in report["ratio_over_pyvf"]
                                                             .items() if not n.startswith("pyvf")))
     report["total_seconds"] = time.perf_counter() - t_start
     return report
 
-
-# ---------------------------------------------------------------------------------------
-# the demo: pyvf against the dense NumPy reference only, at three sizes; at the paper's, checked on
-# the first and the last head, and the reference timed in one call (seconds, 2 GiB)
-DEMO_SIZES = {
-    "small": dict(shape=(3, 2, 2, 4, 16, 16), ref_repeat=5, heads=None),
-    "medium": dict(shape=(3, 1, 4, 8, 64, 64), ref_repeat=1, heads=None),
-    "paper": dict(shape=(3, 1, 12, 20, 64, 64), ref_repeat=1, heads=[0, 11]),
-}
-
-
-def demo(sizes=tuple(DEMO_SIZES), threads=None, kernel_line=True):
-    """`pyvf bench demo-attention`: run() at each of the DEMO_SIZES named, without torch. Returns
-    the exit status, 0 when every error is within its bound."""
-    if threads is not None:
-        pyvf.set_num_threads(threads)
-    t0 = time.perf_counter()
-    if kernel_line:  # (the caller printed it already otherwise)
-        from pyvf._machine import kernel_line as line
-        print(line())
-    print("pyvf demo: branching attention (docs/math.md §2), the C++ kernel against the dense NumPy reference")
-    ok = True
-    for name in sizes:
-        size = DEMO_SIZES[name]
-        print(f"\n== {name}: " + ("all heads" if size["heads"] is None else f"heads {size['heads']}") + " ==\n")
-        ok &= "aborted" not in run(*size["shape"], threads=pyvf.num_threads(), with_torch=False, heads=size["heads"],
-                                   ref_repeat=size["ref_repeat"])
-    print(f"\n{'all errors within their bounds' if ok else 'ERROR BOUND EXCEEDED'}; total {time.perf_counter() - t0:.0f} s")
-    return 0 if ok else 1

@@ -7,7 +7,7 @@ machine's name, worker processes, tables, JSON and plots. NumPy and the standard
     result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
     print(table(header, rows)); write_json(path, report)
 
-peak_memory measures the process's resident memory (Linux VmHWM), so it covers every
+peak_memory measures the process's resident memory (Linux VmHWM: Linux only), so it covers every
 allocation the call makes: NumPy arrays, C++ workspace, torch tensors. It counts the call's
 outputs (alive when fn returns), and nothing allocated before the call: allocate the inputs
 first, then measure.
@@ -17,18 +17,14 @@ import gc
 import json
 import os
 import sys
-import tracemalloc
 
 import numpy as np
 
 from .._io import atomic_write_text
 from .._machine import cpu_name, median_time  # noqa: F401  (re-exported: the benchmarks import them from here)
 from .._memory import map_fresh_pages
+from .._threads import blas_num_threads
 
-# numpy's BLAS takes its thread count from these variables once, when numpy loads; `pyvf bench`
-# sets them to the benchmark's --threads (pyvf/cli/bench.py), so that numpy's GEMM and pyvf's
-# layers use the threads that pyvf's kernels and torch are given
-BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 TORCH_MISSING = "torch is not installed (the torch extra: pip install 'pyvf[torch]')"
 
 
@@ -42,7 +38,8 @@ def torch_or_none():
 
 
 def machine(threads):
-    """The machine a report ran on: CPU, versions, pyvf's kernel path, the threads."""
+    """The machine a report ran on: CPU, versions, pyvf's kernel path, the threads (numpy's BLAS
+    pool's too: pyvf.set_num_threads, which every benchmark calls, sets it with the kernels')."""
     import platform
 
     import pyvf
@@ -50,7 +47,7 @@ def machine(threads):
     return dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
                 python=platform.python_version(), numpy=np.__version__, torch=torch and torch.__version__,
                 pyvf=pyvf.__version__, kernel_path=pyvf.kernel_path(), kernel_paths=pyvf.kernel_paths(),
-                threads=threads, blas_thread_env={v: os.environ.get(v) for v in BLAS_THREAD_VARS})
+                threads=threads, blas_threads=blas_num_threads())
 
 
 # ---------------------------------------------------------------------------------------
@@ -91,18 +88,9 @@ def _reset_hwm():
         f.write("5")
 
 
-try:
-    _reset_hwm()
-    _HWM = _status_bytes("VmHWM") > 0
-except OSError:
-    _HWM = False
-
-
 def memory_method():
-    """One line saying how peak_memory measures on this machine."""
-    if _HWM:
-        return "resident memory (Linux VmHWM): every allocation counts, NumPy, C++ workspace and torch; outputs included"
-    return "tracemalloc (no /proc/self/clear_refs here): NumPy allocations only, C++ and torch NOT counted"
+    """One line saying how peak_memory measures."""
+    return "resident memory (Linux VmHWM): every allocation counts, NumPy, C++ workspace and torch; outputs included"
 
 
 def peak_memory(fn):
@@ -113,17 +101,10 @@ def peak_memory(fn):
     reuse what an earlier one freed and look as if it needed nothing."""
     gc.collect()
     map_fresh_pages()
-    if _HWM:
-        before = _status_bytes("VmRSS")
-        _reset_hwm()
-        result = fn()
-        return result, max(_status_bytes("VmHWM") - before, 0)
-    tracemalloc.start()
-    try:
-        result = fn()
-        return result, tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    before = _status_bytes("VmRSS")
+    _reset_hwm()
+    result = fn()
+    return result, max(_status_bytes("VmHWM") - before, 0)
 
 
 def format_bytes(n):

@@ -33,10 +33,10 @@ import time
 import numpy as np
 
 import pyvf
-from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, NAMES, attended_pairs, expected_memory, make_inputs,
-                                  pyvf_contender, reference64, reference_contender, torch_contender)
-from pyvf.bench.common import (format_bytes, machine, median_time, memory_method, ms, peak_memory, pyplot,
-                               run_worker, save_figure, table, torch_or_none, validate, worker_main, write_json)
+from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, NAMES, attended_pairs, expected_memory, figures,
+                                  make_inputs, pyvf_contender, reference64, reference_contender, torch_contender)
+from pyvf.bench.common import (format_bytes, machine, memory_method, ms, pyplot, run_worker, save_figure, table,
+                               torch_or_none, validate, worker_main, write_json)
 
 WORKER = "pyvf.bench.scaling"  # this module, run as `python -m WORKER SPEC` (worker_main)
 R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
@@ -128,10 +128,7 @@ def worker(spec):
             return out
     for name in ("fwd", "fb"):
         c[name]()  # a warm-up call: thread pools
-        _, out[f"{name}_bytes"] = peak_memory(c[name])
-    for name in ("fwd", "fb"):
-        out[f"{name}_seconds"] = median_time(c[name], spec["repeat"], warmup=0)[0]
-    return out
+    return {**out, **figures(c, spec["repeat"], warmup=0)}
 
 
 def run_points(sizes, views, methods, threads, repeat, max_point_seconds, log=print):

@@ -7,7 +7,6 @@
     pyvf bench attention|vq|transformer|codebook|scaling [--quick] [...]   # `pyvf bench NAME --help`
     pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]      # speed vs error; hard cases
     pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
-    pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory
     pyvf convert tf-transformer path/model --config config.json -o model.npz
     pyvf convert torch-codebook model.ckpt --config config.json -o codebook.npz
     pyvf scenes | train-codebook | tokenize | train-transformer | train | runs | export   # data, training

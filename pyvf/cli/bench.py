@@ -1,11 +1,10 @@
 """`pyvf bench NAME [options]`: each benchmark's arguments; the work is the run() of its module in
-pyvf.bench (pyvf.bench.attention.demo for demo-attention).
+pyvf.bench.
 
     pyvf bench attention|vq|transformer|codebook [--quick] [--threads N]
     pyvf bench scaling [--quick] [--sizes 12x64,4x32] [--max-point-seconds S] [--json F] [--plots DIR]
     pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]
     pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
-    pyvf bench demo-attention [--sizes small]   # branching attention: error, time, memory
 
 Every option is checked when it is parsed (options.py's argparse types): a bad size or output path
 is the parser's one-line error before anything is measured.
@@ -13,14 +12,11 @@ is the parser's one-line error before anything is measured.
 
 import argparse
 import importlib
-import os
-import subprocess
 import sys
 
-from ..bench.common import BLAS_THREAD_VARS, TORCH_MISSING, torch_or_none, write_json
-from .options import add_threads, names, non_negative_float, output_dir, output_file
+from ..bench.common import TORCH_MISSING, torch_or_none, write_json
+from .options import add_threads, non_negative_float, output_dir, output_file
 
-DEMO_ATTENTION = "demo-attention"
 NEEDS_TORCH = ("transformer", "codebook")  # the oracle their first step is checked against before timing
 
 
@@ -128,20 +124,6 @@ def _report_parser():
     return p
 
 
-def _demo_attention_parser():
-    attention = _module("attention")
-    p = argparse.ArgumentParser(prog=f"pyvf bench {DEMO_ATTENTION}", description="Branching attention at a few "
-                                "sizes: error against the dense reference, time, memory.")
-    add_threads(p, None, "threads for pyvf's C++ kernels (default: OpenMP's, OMP_NUM_THREADS or all cores)")
-    p.add_argument("--sizes", help=f"comma-separated sizes, from {', '.join(attention.DEMO_SIZES)} (default all)")
-    return p
-
-
-def _demo_attention(args):
-    sizes = names(_demo_attention_parser(), args.sizes, tuple(_module("attention").DEMO_SIZES), "size")
-    return _module("attention").demo(sizes, threads=args.threads)
-
-
 # name -> (its parser function, its handler)
 BENCHMARKS = {
     "attention": (lambda: _parser("attention", "a small size (H=2, N=4, dh=32)", json=True), _attention),
@@ -154,37 +136,25 @@ BENCHMARKS = {
     "hardcases": (lambda: _parser("hardcases", "fewer points, smaller problems", json=True, plots=True),
                   _checking("hardcases", "pyvf line(s)")),
     "report": (_report_parser, _report),
-    DEMO_ATTENTION: (_demo_attention_parser, _demo_attention),
 }
 
 
 def cmd_bench(args):
-    """Run one benchmark of pyvf.bench; the arguments after its name go to its parser.
-
-    A benchmark runs with numpy's BLAS on its --threads: where the BLAS_THREAD_VARS of this
-    process say otherwise (numpy is loaded by then, its BLAS thread count fixed), it runs in a
-    child process `pyvf bench ...` with them set, and returns the child's status. The child drops
-    the working folder from sys.path before importing pyvf: run from a source checkout, it would
-    import the unbuilt source tree instead of the installed package."""
+    """Run one benchmark of pyvf.bench; the arguments after its name go to its parser. It runs on
+    its --threads: pyvf's kernels and numpy's BLAS pool (pyvf.set_num_threads) and torch's."""
     make_parser, handler = BENCHMARKS[args.name]
     bench_args = make_parser().parse_args(args.args)
     if args.name in NEEDS_TORCH and torch_or_none() is None:
         print(f"pyvf bench {args.name}: needs torch, the oracle its first step is checked against before both are "
               f"timed: {TORCH_MISSING}", file=sys.stderr)
         return 1
-    n = bench_args.threads if args.name != DEMO_ATTENTION else None  # (demo-attention's default: OpenMP's)
-    if n is not None and any(os.environ.get(v) != str(n) for v in BLAS_THREAD_VARS):
-        env = dict(os.environ, **{v: str(n) for v in BLAS_THREAD_VARS})
-        boot = "import sys; del sys.path[0]; from pyvf.cli import main; sys.exit(main())"
-        return subprocess.run([sys.executable, "-c", boot, "bench", args.name, *args.args], env=env).returncode
     return handler(bench_args)
 
 
 def register(subparsers):
     """Add `bench` to an argparse subparsers object."""
-    listed = ", ".join(n for n in BENCHMARKS if n != DEMO_ATTENTION)
-    p = subparsers.add_parser("bench", help=f"a benchmark: {listed} (--quick: at most a couple of minutes)"
-                              f"; {DEMO_ATTENTION}: the attention kernel's error, time and memory at a few sizes",
+    p = subparsers.add_parser("bench", help=f"a benchmark: {', '.join(BENCHMARKS)} (--quick: at most a couple of "
+                              "minutes)",
                               description=cmd_bench.__doc__ + " `pyvf bench NAME --help` lists its options.")
     p.add_argument("name", choices=tuple(BENCHMARKS), help="which benchmark")
     p.add_argument("args", nargs=argparse.REMAINDER, help="the benchmark's own options, e.g. --quick")

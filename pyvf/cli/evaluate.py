@@ -16,8 +16,6 @@ from .options import add_threads, context_sizes, fail, make_folder, positive_int
 def cmd_demo(args):
     """Render novel views and find camera poses of held-out Shepard-Metzler scenes with the
     pretrained models; compare with simple baselines; write the tables and pictures."""
-    if args.codebook is None and args.transformer is None and not work.shipped():
-        return _attention_instead(args)  # writes nothing to --out
     return _into_folder("demo", args.out, lambda: work.demo(
         args.out, scenes=args.scenes, context=args.context, seed=args.seed, quick=args.quick,
         codebook=args.codebook, transformer=args.transformer, threads=args.threads,
@@ -35,16 +33,6 @@ def _into_folder(command, out, run):
     if status and made and os.path.isdir(out) and not os.listdir(out):
         os.rmdir(out)
     return status
-
-
-def _attention_instead(args):
-    """`pyvf demo` while the package ships no trained pair: say so, then the branching attention
-    demo (pyvf.bench.attention; imported here, since pyvf.evaluate sits below the benchmarks)."""
-    from ..bench.attention import demo as attention_demo
-
-    work.say_without_models()
-    return attention_demo(sizes=("small", "medium") if args.quick else ("small", "medium", "paper"),
-                          threads=args.threads, kernel_line=False)
 
 
 def cmd_evaluate(args):

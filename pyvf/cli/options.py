@@ -71,16 +71,6 @@ def context_sizes(text):
     return sizes
 
 
-def names(parser, value, choices, what):
-    """The comma-separated names of an option (all of choices when it was not given), each one
-    checked against choices: an unknown name is the parser's error, naming the choices."""
-    chosen = tuple(n.strip() for n in value.split(",")) if value else tuple(choices)
-    unknown = [n for n in chosen if n not in choices]
-    if unknown:
-        parser.error(f"unknown {what} {', '.join(unknown)}; choose from {', '.join(choices)}")
-    return chosen
-
-
 # ---------------------------------------------------------------------------------------
 # paths: checked before a command's work starts, so that a mistake costs no minutes of it.
 # Each check returns None, or what is wrong as a phrase naming the path; the command passes

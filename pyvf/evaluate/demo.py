@@ -6,10 +6,8 @@
 Both load the shipped pretrained pair (pyvf.models.load_pretrained) unless files are given,
 run evaluate() on held-out scenes and print the tables and timings. The demo's defaults are
 sized to finish in about two minutes on 2 cores; --quick is a few seconds' smoke run.
-A model file given on the command line that is missing prints what is missing and exits with
-status 1. While the package ships no pretrained pair (shipped() is false), `pyvf demo` without
-files prints say_without_models() and runs the branching attention demo instead (exit 0): the
-command line decides (pyvf/cli/evaluate.py), since the benchmarks sit above this package.
+A model file that is missing (given on the command line, or the shipped one) prints what is
+missing and how to train a pair, and exits with status 1.
 """
 
 import numbers
@@ -19,11 +17,11 @@ import time
 
 from .._machine import kernel_line
 from .._threads import set_num_threads
-from ..models import PRETRAINED, TRAIN_HINT, load_pretrained, pretrained_path
+from ..models import load_pretrained
 from .run import DEFAULT_DECODE, evaluate, metrics_markdown
 
 __all__ = ["DEMO_SCENES", "DEMO_CONTEXT", "QUICK_SCENES", "QUICK_CONTEXT", "MODEL_CARD", "WALKTHROUGH", "demo",
-           "kernel_line", "report", "say_without_models", "shipped"]
+           "kernel_line", "report"]
 
 DEMO_SCENES = 20  # held-out scenes of the demo (measured wall time in README/the report)
 DEMO_CONTEXT = (1, 3, 5)
@@ -33,9 +31,9 @@ WALKTHROUGH = "docs/walkthrough.md"  # every step from pixels to a rendered view
 
 
 def report(name, *, out, scenes, context, seed, codebook=None, transformer=None, threads=None, progress=True,
-           decode=DEFAULT_DECODE):
-    """Load the pair, evaluate (decode: evaluate()'s), print the tables and timings, write `out`. Returns the exit status:
-    0, or 1 (printed to stderr) when a model file is missing or does not fit."""
+           decode=DEFAULT_DECODE, repeat=5):
+    """Load the pair, evaluate (decode, repeat: evaluate()'s), print the tables and timings, write `out`. Returns the
+    exit status: 0, or 1 (printed to stderr) when a model file is missing or does not fit."""
     print(kernel_line(), flush=True)
     if threads is not None:
         set_num_threads(threads)
@@ -59,7 +57,7 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
     try:
         metrics = evaluate(cb, tf, scenes=scenes, context=context, seed=seed, out=out, progress=progress,
                            sources={"codebook": codebook or "pretrained", "transformer": transformer or "pretrained"},
-                           decode=decode)
+                           decode=decode, repeat=repeat)
     except ValueError as e:
         print(f"pyvf {name}: {e}", file=sys.stderr)
         return 1
@@ -75,12 +73,13 @@ def demo(out="pyvf-demo", *, scenes=None, context=None, seed=1000, quick=False, 
     """`pyvf demo`: render novel views and find camera poses of held-out scenes with the
     pretrained pair (or the files given), against the baselines; report() then where to read
     more. scenes, context: None for DEMO_SCENES, DEMO_CONTEXT (quick: QUICK_SCENES,
-    QUICK_CONTEXT). Returns the exit status. Without files, the shipped pair is loaded (a
-    missing one is status 1: the command line runs another demo then, see the module's note)."""
+    QUICK_CONTEXT; quick times each step once after its warm-up, not the fastest of 5). Returns the exit
+    status. Without files, the shipped pair is loaded."""
     scenes = scenes if scenes is not None else (QUICK_SCENES if quick else DEMO_SCENES)
     context = context if context is not None else (QUICK_CONTEXT if quick else DEMO_CONTEXT)
     status = report("demo", out=out, scenes=scenes, context=context, seed=seed, codebook=codebook,
-                    transformer=transformer, threads=threads, progress=progress, decode=decode)
+                    transformer=transformer, threads=threads, progress=progress, decode=decode,
+                    repeat=1 if quick else 5)
     if status == 0:
         print(f"\nHow these models were trained, their learning curves and their metrics on 200 held-out "
               f"scenes: {MODEL_CARD} in the pyvf repository.")
@@ -88,19 +87,3 @@ def demo(out="pyvf-demo", *, scenes=None, context=None, seed=1000, quick=False, 
               f"(the same repository).")
     return status
 
-
-def shipped():
-    """True when both pretrained files are in the package."""
-    return all(os.path.exists(pretrained_path(kind)) for kind in PRETRAINED)
-
-
-def say_without_models():
-    """What `pyvf demo` prints when the package has no trained pair (shipped() is false): the
-    kernel line, what is missing and how to train a pair, then the heading of the branching
-    attention demo that the command line runs instead (pyvf/cli/evaluate.py), so that the main
-    job still checks the kernels end to end."""
-    print(kernel_line(), flush=True)
-    missing = [pretrained_path(kind) for kind in PRETRAINED if not os.path.exists(pretrained_path(kind))]
-    print("pyvf demo: the pretrained SM7 models are not in this package yet (missing: "
-          + ", ".join(os.path.basename(m) for m in missing) + "), so no views are rendered.\n"
-          + TRAIN_HINT + "\nMeanwhile, the branching attention kernel against the dense float64 reference:", flush=True)

@@ -148,6 +148,6 @@ def transformer_health(codebook, transformer, images, poses, tokens, contexts, b
     checked = _check_args(contexts, images.shape[0], views, HEALTH_QUERIES, batch)
     qidx = np.arange(views - HEALTH_QUERIES, views)
     results, _, _ = score_scenes(codebook, transformer, images, poses, tokens, checked, qidx, batch,
-                                 token_scores=True, decode="argmax")
+                                 decode="argmax")
     return {f"{stem}_c{C}": results[str(C)][method][metric]
             for C in contexts for method, metric, stem in _TF_METRICS}

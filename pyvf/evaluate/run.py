@@ -69,7 +69,7 @@ __all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
 POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
-# score_scenes(token_scores=True): pyvf's held-out token figures, over all tokens and split into
+# score_scenes' token figures of pyvf's row, over all tokens and split into
 # the tokens of empty patches (every pixel background: health.empty_patches) and of object patches
 TOKEN_SCORES = ("ce", "token_accuracy", "ce_empty", "ce_object", "token_accuracy_empty", "token_accuracy_object")
 # method -> the metrics it has, in the tables' order
@@ -169,11 +169,9 @@ def render_images(codebook, logits, decode="argmax", batch=32):
     ValueError). Empty leading dimensions give empty images: logits (0, L, K) -> (0, S, S, 3)."""
     if decode not in DECODES:
         raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
-    batch = _checks.integer("batch", batch, lo=1)
-    cfg = codebook.config
-    k, K = cfg.token_size, cfg.n_embed
-    if not isinstance(logits, np.ndarray) or logits.dtype.kind != "f":
-        raise TypeError(f"logits must be a float numpy array, got {getattr(logits, 'dtype', type(logits).__name__)}")
+    batch = _checks.positive_integer("batch", batch)
+    k, K = codebook.config.token_size, codebook.config.n_embed
+    _checks.float_array("logits", logits)
     if logits.ndim < 2 or logits.shape[-2:] != (k * k, K):
         raise ValueError(f"logits must have shape (..., {k * k}, {K}) for this codebook, got {logits.shape}")
     _checks.finite("logits", logits)  # argmax would pick a NaN's index silently
@@ -215,17 +213,14 @@ def _decode(codebook, inputs, batch, latent=None):
 
 
 def _check_args(context, scenes, views, queries, batch):
+    """The sizes evaluate() and health take, each a positive integer; context: one size or several
+    -> them sorted, without repeats."""
     for name, v in (("scenes", scenes), ("views", views), ("queries", queries), ("batch", batch)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ValueError(f"{name} must be a positive integer, got {v!r}")
-    if isinstance(context, (int, np.integer, float, np.floating, str)):
-        context = (context,)
-    context = tuple(context)
-    if any(isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, np.integer)) for c in context):
-        raise ValueError(f"context sizes must be positive integers, got {context!r}")  # 2.7 is not 2
-    context = tuple(sorted({int(c) for c in context}))
-    if not context or context[0] < 1:
-        raise ValueError(f"context sizes must be positive integers, got {context}")
+        _checks.positive_integer(name, v)
+    context = (context,) if np.ndim(context) == 0 else tuple(context)
+    context = tuple(sorted({_checks.positive_integer("context", c) for c in context}))  # 2.7 is not 2
+    if not context:
+        raise ValueError("context must name at least one size")
     if context[-1] + queries > views:
         raise ValueError(f"context {context[-1]} + {queries} queries needs {context[-1] + queries} views "
                          f"per scene, the scenes have {views}")
@@ -267,8 +262,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     t_encode = (time.perf_counter() - t0) / flat.shape[0]
 
     results, picture, dec = score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch,
-                                         picture_scenes=picture_scenes, progress=progress, decode=decode,
-                                         token_scores=True)
+                                         picture_scenes=picture_scenes, progress=progress, decode=decode)
     decode_s, decoded = dec
     for table in results.values():  # None, not NaN, where the queries have no patch of that kind
         for row, keys in ((table["pyvf"], TOKEN_SCORES[2:]), (table["codebook"], ("empty_entropy",))):
@@ -303,15 +297,15 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
 
 
 def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch, *, picture_scenes=0,
-                 progress=False, token_scores=False, decode=DEFAULT_DECODE):
+                 progress=False, decode=DEFAULT_DECODE):
     """Score the pair and the baselines on these scenes: for each C in context (ascending), the
     context is views 0..C-1 and the queries the views qidx.
 
     images uint8 (n, V, S, S, 3), poses (n, V, 7) float64, tokens (n, V, L) int64 (the codebook's
     tokens of at least the views used). Returns (results, picture, (decode seconds, images
     decoded)): results[str(C)][method][metric] as evaluate()'s; picture the first
-    picture_scenes scenes' views at the largest C. token_scores=True adds to each C's "pyvf"
-    row the mean cross-entropy (nats) of the true query tokens under the rendered logits and
+    picture_scenes scenes' views at the largest C. Each C's "pyvf" row has besides its image and
+    pose metrics the mean cross-entropy (nats) of the true query tokens under the rendered logits and
     the share of tokens whose argmax is right (TOKEN_SCORES, also split into empty and object
     patches), and to each C's "codebook" row empty_entropy (health.empty_entropy of the queries)."""
     n, M = images.shape[0], len(qidx)
@@ -349,8 +343,7 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
             ctx_img, ctx_pose = images[sl, :C], poses[sl, :C]  # (B, C, S, S, 3), (B, C, 7)
             scene = transformer.encode_scene(tokens[sl, :C], ctx_pose.astype(dt))
             logits = transformer.render_scene(scene, q_pose)  # (B, M, L, V)
-            if token_scores:
-                add(key, "pyvf", _token_scores(logits, q_tok, empty[sl]))
+            add(key, "pyvf", _token_scores(logits, q_tok, empty[sl]))
             t0 = time.perf_counter()
             rendered = render_images(codebook, logits, decode, 4 * batch)  # (B, M, S, S, 3)
             decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + B * M
@@ -368,14 +361,14 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
                 picture.setdefault("pyvf", []).append(rendered[:k, 0])
                 picture.setdefault("estimated_poses", []).append(est[:k])
 
-    results = _summaries(per, token_scores)
+    results = _summaries(per)
     for C in map(str, context):
         results[C]["codebook"]["empty_entropy"] = empty_entropy(tokens[:, qidx].reshape(n * M, side, side),
                                                                 empty.reshape(n * M, side, side))
     return results, picture, (decode_s, decoded)
 
 
-def _summaries(per, token_scores):
+def _summaries(per):
     """score_scenes' per-query values (C -> method -> metric -> list of arrays) -> C -> method ->
     metric: the mean of the image metrics and token scores (nan where no token was of that kind),
     the median of the pose errors."""
@@ -384,7 +377,7 @@ def _summaries(per, token_scores):
         results[C] = {}
         for method, names in METHODS.items():
             vals = {k: np.concatenate(v) for k, v in per[C][method].items()}  # per query (n*M,)
-            if token_scores and method == "pyvf":
+            if method == "pyvf":
                 names = names + TOKEN_SCORES
             row = {}
             for name in names:
@@ -544,6 +537,21 @@ def goal_line(metrics, contexts=GOAL_CONTEXTS):
             f"{word}. " + " ".join(parts))
 
 
+def _timing_rows(M):
+    """(step, TIMING_KEYS key) of metrics.md's timing table, M queries per scene."""
+    return [("codebook: encode an image", "codebook_encode_s_per_image"),
+            ("codebook: decode an image", "codebook_decode_s_per_image"),
+            ("encode_scene (the context trunk, once per scene)", "encode_scene_s_per_scene"),
+            (f"render a view from the cached scene ({M} queries in one call)", "render_cached_s_per_view"),
+            (f"localize a view from the cached scene ({M} queries in one call)", "localize_cached_s_per_view"),
+            ("render a view from the cached scene (one query per call)", "render_cached_one_s_per_view"),
+            ("localize a view from the cached scene (one query per call)", "localize_cached_one_s_per_view"),
+            ("render a view re-encoding the context (Transformer.render, one query per call)",
+             "render_reencode_s_per_view"),
+            ("the whole tree on [context, query] (Transformer.forward, one query per call)",
+             "forward_full_tree_s_per_view")]
+
+
 def metrics_markdown(metrics):
     """The metrics dict as markdown: the verdicts (verdict_lines), a table per context size
     (methods x metrics), then the timings."""
@@ -558,7 +566,7 @@ def metrics_markdown(metrics):
              f"{meta['psnr_cap_db']:.1f} dB, then the mean). Poses: medians over the queries, positions in cube "
              f"sides (cameras stand 10 from the object), orientations in degrees. `codebook` is the ground truth "
              f"encoded and decoded: the best any rendering through this codebook can be. pyvf's renderings "
-             f"decode {DECODES[meta.get('decode', 'argmax')]} (decode={meta.get('decode', 'argmax')}).", ""]
+             f"decode {DECODES[meta['decode']]} (decode={meta['decode']}).", ""]
     lines += verdict_lines(metrics)
     for C, table in metrics["context"].items():
         lines += ["", f"## Context {C} view{'s' if C != '1' else ''}"]
@@ -569,33 +577,18 @@ def metrics_markdown(metrics):
         for method, row in table.items():
             lines.append(f"| {method} | " + " | ".join(_fmt(row.get(m)) for m in _ALL) + " |")
         p, cb = table["pyvf"], table["codebook"]
-        if "ce_empty" in p:  # metrics from before issue 48 lack them
-            lines += ["", f"Tokens of the queries: code entropy of empty patches {_fmt(cb['empty_entropy'])} nats "
-                      f"(position by position); pyvf's cross-entropy {_fmt(p['ce_empty'])} nats on empty patches, "
-                      f"{_fmt(p['ce_object'])} on object patches; accuracy {_fmt(p['token_accuracy_empty'])} and "
-                      f"{_fmt(p['token_accuracy_object'])}."]
+        lines += ["", f"Tokens of the queries: code entropy of empty patches {_fmt(cb['empty_entropy'])} nats "
+                  f"(position by position); pyvf's cross-entropy {_fmt(p['ce_empty'])} nats on empty patches, "
+                  f"{_fmt(p['ce_object'])} on object patches; accuracy {_fmt(p['token_accuracy_empty'])} and "
+                  f"{_fmt(p['token_accuracy_object'])}."]
     t = timing
     lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} thread"
               f"{'' if meta['kernel_threads'] == 1 else 's'})", "",
               f"Transformer: {t['scenes']} scenes at context {t['context']}, {t['queries']} queries each, the "
               f"fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
-              "| step | time |", "|---|---:|",
-              f"| codebook: encode an image | {_seconds(t['codebook_encode_s_per_image'])} |",
-              f"| codebook: decode an image | {_seconds(t['codebook_decode_s_per_image'])} |",
-              f"| encode_scene (the context trunk, once per scene) | {_seconds(t['encode_scene_s_per_scene'])} |",
-              f"| render a view from the cached scene ({t['queries']} queries in one call) | "
-              f"{_seconds(t['render_cached_s_per_view'])} |",
-              f"| localize a view from the cached scene ({t['queries']} queries in one call) | "
-              f"{_seconds(t['localize_cached_s_per_view'])} |",
-              f"| render a view from the cached scene (one query per call) | "
-              f"{_seconds(t.get('render_cached_one_s_per_view'))} |",
-              f"| localize a view from the cached scene (one query per call) | "
-              f"{_seconds(t.get('localize_cached_one_s_per_view'))} |",
-              f"| render a view re-encoding the context (Transformer.render, one query per call) | "
-              f"{_seconds(t['render_reencode_s_per_view'])} |",
-              f"| the whole tree on [context, query] (Transformer.forward, one query per call) | "
-              f"{_seconds(t['forward_full_tree_s_per_view'])} |",
-              "",
+              "| step | time |", "|---|---:|"]
+    lines += [f"| {step} | {_seconds(t[key])} |" for step, key in _timing_rows(t["queries"])]
+    lines += ["",
               f"Speed-up of the scene cache, one query per call on every path: {_fmt(t['speedup_vs_reencode'], 1)}x "
               f"against re-encoding the context for every query, {_fmt(t['speedup_vs_full_tree'], 1)}x against the "
               "whole tree for every query "

@@ -7,31 +7,12 @@ and the dataset on disk. Deterministic: a seed gives the same bytes on every mac
     ds = load_dataset("data/sm7")                        # ds.images, ds.poses, ds.seed, ds.manifest
     poses = gqn_to_pose(cams); cams = pose_to_gqn(poses) # GQN's (x, y, z, yaw, pitch)
 
-Conventions (details and reasons in the submodules' docstrings):
-
-* **Object** (render.py): 7 unit cubes on the integer lattice, a self-avoiding chain of face
-  neighbours, each cube a random hue at HSV saturation 0.8, value 1; the centroid of the cube
-  centres at the origin. Units: one cube side.
-* **World frame** (cameras.py): right-handed, **up is -y**, the frame the published ViewFormer
-  converts GQN's cameras into. **Camera frame**: OpenCV, x right, y down, z forward (the
-  camera looks along its local +z). **Pose**: position xyz, then the sign-canonical (w >= 0)
-  unit quaternion (w, x, y, z) of the camera-to-world rotation (pyvf.geometry's Hamilton
-  product): the optical axis is quat_rotate(q, (0, 0, 1)).
-* **Cameras**: on the sphere of radius 10 around the origin, looking at it, no roll, elevation
-  within +-60 degrees, uniform on that band; pinhole with tan(fov/2) = 0.39 (42.6 degrees,
-  across the shorter image side), so the whole object is always in view.
-* **Light** (render.py): colour * (0.25 + 0.9 max(0, n.l) + 0.45 max(0, -n.l)), l = LIGHT_DIR
-  = (0.557, -0.696, 0.453) (from above and the side; the last term a weak fill light from the
-  opposite side, so every face direction has its own shade). **Background**: grey 0.15.
-  uint8 = floor(255 clip(v, 0, 1) + 0.5).
-* **GQN form**: (x, y, z, yaw, pitch) in radians in GQN's z-up world; converted as the
-  published code does (position (y, -z, -x), rotation q_y(pi - yaw) * q_x(pitch)).
-* **On disk** (dataset.py): `shard-00000.npz`, ... each with `images` (n, V, H, W, 3) uint8,
-  `poses` (n, V, 7) float64 and `scene_index` (n,) int64, then `manifest.json` (format
-  "pyvf-sm7-scenes" version 1: seed, counts, sizes, these constants, each shard's file,
-  scene range, bytes and sha256), every file written atomically; load_dataset verifies all.
-* **Determinism**: scene i draws only from numpy.random.default_rng([seed, i]), and sampling
-  and rendering use only exactly rounded IEEE operations (no BLAS, no SIMD trig).
+Each submodule's docstring states its conventions and their reasons: render.py the object, the
+light and the renderer; cameras.py the world frame (up is -y), the camera frame (OpenCV), the
+pose (xyz + sign-canonical camera-to-world quaternion), the cameras of a scene and GQN's form;
+dataset.py the files on disk. Determinism: scene i draws only from
+numpy.random.default_rng([seed, i]), and sampling and rendering use only exactly rounded IEEE
+operations (no BLAS, no SIMD trig).
 """
 
 from .cameras import (

@@ -49,7 +49,7 @@ so the same seed gives the same bits on every machine. Only the GQN conversions 
 import numpy as np
 
 from .. import _checks
-from ..geometry import _canonical, _check_unit
+from ..geometry import _canonical, _check, _check_unit
 
 __all__ = [
     "CAMERA_RADIUS",
@@ -107,10 +107,7 @@ def look_at_poses(positions):
     the world, [right, down, forward]:
         forward = -p / |p|,  right = (forward x up) / |.| with up = (0, -1, 0),
         down = forward x right."""
-    p = _checks.float_array("positions", positions)
-    if p.ndim == 0 or p.shape[-1] != 3:
-        raise ValueError(f"positions must be (..., 3), got shape {p.shape}")
-    _checks.finite("positions", p)
+    p = _check("positions", positions, (3,), "camera positions xyz")
     px, py, pz = p[..., 0], p[..., 1], p[..., 2]
     horiz2 = px * px + pz * pz  # (...)
     if (horiz2 <= 1e-12 * (horiz2 + py * py)).any():
@@ -159,7 +156,7 @@ def pose_matrix(q):
     Written out term by term (no BLAS, no einsum), so every element is the same bits on every
     machine; the renderer turns camera rays into the world with it. q: a float32/float64
     ndarray of unit quaternions (pyvf.geometry's tolerance), else a TypeError/ValueError naming q."""
-    _check_last("q", q, 4, "quaternions (w, x, y, z)")
+    _check("q", q, (4,), "quaternions (w, x, y, z)")
     _check_unit("q", q)
     return _rotation(q)
 
@@ -182,13 +179,6 @@ def _rotation(q):
 # GQN's camera form (trig allowed here: not on the rendering path)
 
 
-def _check_last(name, a, width, what):
-    _checks.float_array(name, a)
-    if a.ndim == 0 or a.shape[-1] != width:
-        raise ValueError(f"{name} must have last dimension {width} ({what}), got shape {a.shape}")
-    return _checks.finite(name, a)
-
-
 def gqn_to_pose(cams):
     """GQN cameras (..., 5) = (x, y, z, yaw, pitch) in GQN's z-up frame -> poses (..., 7).
 
@@ -196,7 +186,7 @@ def gqn_to_pose(cams):
     q = q_y(pi - yaw) * q_x(pitch), with q_y(t) = (cos t/2, 0, sin t/2, 0) and
     q_x(t) = (cos t/2, sin t/2, 0, 0); the product is (cy cx, cy sx, sy cx, -sy sx).
     Made sign-canonical (w >= 0). Float32 or float64; the result has the input's dtype."""
-    _check_last("cams", cams, 5, "GQN cameras (x, y, z, yaw, pitch)")
+    _check("cams", cams, (5,), "GQN cameras (x, y, z, yaw, pitch)")
     x, y, z, yaw, pitch = (cams[..., i] for i in range(5))
     half_y, half_x = (np.pi - yaw) / 2, pitch / 2
     cy, sy, cx, sx = np.cos(half_y), np.sin(half_y), np.cos(half_x), np.sin(half_x)
@@ -211,7 +201,7 @@ def pose_to_gqn(poses):
     written in GQN's frame as g = (-f_z, f_x, -f_y), gives yaw = atan2(g_y, g_x) in [-pi, pi]
     and pitch = atan2(g_z, hypot(g_x, g_y)) in [-pi/2, pi/2]. A roll about the optical axis is
     dropped (GQN cameras have none). The quaternions must be unit (pyvf.geometry's tolerance)."""
-    _check_last("poses", poses, 7, "poses: xyz then the quaternion (w, x, y, z)")
+    _check("poses", poses, (7,), "poses: xyz then the quaternion (w, x, y, z)")
     _check_unit("the quaternions of poses", poses[..., 3:])
     R = _rotation(poses[..., 3:])  # (..., 3, 3)
     f = R[..., :, 2]  # (..., 3) the optical axis in pyvf's world

@@ -42,7 +42,8 @@ import numpy as np
 
 from .._io import atomic_write_bytes, fsync_dir
 from . import cameras, render
-from .render import _image_shape, _nonneg_int, generate_scene
+from .. import _checks
+from .render import _image_shape, generate_scene
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "MANIFEST", "PROGRESS", "DatasetExistsError", "SceneDataset", "write_dataset",
            "load_dataset", "shard_name"]
@@ -235,10 +236,10 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
     result has the same bytes as an uninterrupted write. A finished dataset there, or an
     unfinished write of other arguments, raises DatasetExistsError (a FileExistsError) unless
     overwrite=True, which replaces it. progress=True shows a tqdm bar. Returns the manifest (a dict, as written). The format: this module's docstring."""
-    n_scenes = _nonneg_int("n_scenes", n_scenes, 1)
-    seed = _nonneg_int("seed", seed)
-    views = _nonneg_int("views", views, 1)
-    shard_size = _nonneg_int("shard_size", shard_size, 1)
+    n_scenes = _checks.integer("n_scenes", n_scenes, 1)
+    seed = _checks.integer("seed", seed, 0)
+    views = _checks.integer("views", views, 1)
+    shard_size = _checks.integer("shard_size", shard_size, 1)
     if isinstance(size, (bool, np.bool_)) or not isinstance(size, (int, np.integer)):
         raise TypeError(f"size must be an int (square images), got {size!r}")
     H, W = _image_shape(size)

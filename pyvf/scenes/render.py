@@ -276,18 +276,14 @@ def render_views(cells, colours, poses, size=64):
 # scenes
 
 
-def _nonneg_int(name, x, minimum=0):
-    return _checks.integer(name, x, minimum)
-
-
 def generate_scene(seed, index, views=15, size=64):
     """Scene `index` of the family `seed`: (images (V, size, size, 3) uint8, poses (V, 7) float64).
 
     Its random numbers come from np.random.default_rng([seed, index]) alone, so every scene is
     reproducible by itself and independent of the others: first the object (make_object), then
     the camera positions (sample_camera_positions), looking at the origin (look_at_poses)."""
-    seed, index = _nonneg_int("seed", seed), _nonneg_int("index", index)
-    views = _nonneg_int("views", views, 1)
+    seed, index = _checks.integer("seed", seed, 0), _checks.integer("index", index, 0)
+    views = _checks.integer("views", views, 1)
     _image_shape(size)
     rng = np.random.default_rng([seed, index])
     cells, colours = make_object(rng)
@@ -297,9 +293,9 @@ def generate_scene(seed, index, views=15, size=64):
 
 def generate_scenes(seed, n, views=15, size=64, start=0):
     """Scenes start .. start+n-1: (images (n, V, H, W, 3) uint8, poses (n, V, 7) float64)."""
-    n = _nonneg_int("n", n, 1)
-    start = _nonneg_int("start", start)
-    views = _nonneg_int("views", views, 1)
+    n = _checks.integer("n", n, 1)
+    start = _checks.integer("start", start, 0)
+    views = _checks.integer("views", views, 1)
     H, W = _image_shape(size)
     images = np.empty((n, views, H, W, 3), dtype=np.uint8)
     poses = np.empty((n, views, 7))
