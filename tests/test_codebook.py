@@ -228,7 +228,6 @@ def test_perceptual_term_is_pluggable_and_differentiated(rng):
 
 
 X = np.random.default_rng(0).uniform(-1, 1, (2, 3, 16, 16)).astype(np.float32)  # (B, 3, S, S) in [-1, 1]
-PICTURE = np.round((X + 1) * 127.5).astype(np.uint8).transpose(0, 2, 3, 1).copy()  # (B, S, S, 3) uint8
 
 
 def _run(call, arg):
@@ -252,12 +251,9 @@ def _without(state, name):
     ("forward", X[:, :, :8].copy(), ValueError, "images"),
     ("train", np.full_like(X, np.nan), ValueError, "images"),
     ("train", X * np.float32(1.01) + np.float32(0.02), ValueError, "images"),  # out of [-1, 1]
-    ("encode", np.zeros((0, 3, 16, 16), np.float32), ValueError, "images"),
-    ("encode", PICTURE, TypeError, "images"),  # the uint8 picture as it comes: the message says how to convert
     ("encode", X.transpose(0, 2, 3, 1).copy(), ValueError, "images"),  # channels last
     ("pixel_weights", np.ones((2, 1, 16, 16)), TypeError, "pixel_weights"),  # float64 for float32 images
     ("pixel_weights", np.ones((2, 3, 16, 16), np.float32), ValueError, "pixel_weights"),
-    ("pixel_weights", np.zeros((2, 1, 16, 16), np.float32), ValueError, "pixel_weights"),
     ("pixel_weights", -np.ones((2, 1, 16, 16), np.float32), ValueError, "pixel_weights"),
     ("decode_code", np.full((1, 8, 8), 16), ValueError, "codes"),
     ("decode_code", np.zeros((1, 8, 8), np.float32), TypeError, "codes"),

@@ -163,26 +163,24 @@ def test_save_is_atomic_and_appends_npz(dtype, tmp_path, monkeypatch):
         m.params = old
 
 
-@pytest.mark.parametrize("how, names", [
-    ("truncate", []), ("flip", []), ("empty", []),
-    ("shape", ["first"]), ("dtype", ["first"]), ("missing", ["first"]), ("nan", []),
-    ("extra", ["extra/entry"]), ("config", ["__config__"]), ("not json", ["__config__"]),
+@pytest.mark.parametrize("how, names", [  # the entries' values: the load_official tables
+    ("truncate", []), ("flip", []), ("shape", ["first"]), ("missing", ["first"]),
+    ("config", ["__config__"]), ("not json", ["__config__"]),
     ("lacks a field", ["__config__", "dtype"]),  # never the field's default silently: another model
-    ("beyond float32", ["first"]), ("pickled", ["first"]),
+    ("pickled", ["first"]),
 ])
 @pytest.mark.parametrize("which", [0, 1], ids=["transformer", "codebook"])
 def test_load_refuses_a_broken_file_naming_file_and_entry(tmp_path, how, names, which):
-    """Truncated, bytes flipped in its zip headers, empty, an entry of the wrong shape or dtype or
-    with NaN or beyond float32 or pickled, a missing or extra entry, a broken __config__ or one
-    lacking a field: CheckpointError (a ValueError) naming the file and, where one entry is at
-    fault, the entry; nothing written beside it."""
+    """Truncated, bytes flipped in its zip headers, an entry of the wrong shape or pickled, a
+    missing entry, a broken __config__ or one lacking a field: CheckpointError (a ValueError)
+    naming the file and, where one entry is at fault, the entry; nothing written beside it."""
     m = _models("float32")[which]
     path, bad = tmp_path / "model.npz", str(tmp_path / "bad.npz")
     m.save(path)
     raw = path.read_bytes()
     first = sorted(m.state_dict())[0]
-    if how in ("truncate", "flip", "empty"):
-        data = {"truncate": raw[: len(raw) // 2], "empty": b"",
+    if how in ("truncate", "flip"):
+        data = {"truncate": raw[: len(raw) // 2],
                 "flip": bytes(b ^ 0xFF if i < 40 else b for i, b in enumerate(raw))}[how]
         open(bad, "wb").write(data)
     else:
@@ -190,22 +188,14 @@ def test_load_refuses_a_broken_file_naming_file_and_entry(tmp_path, how, names, 
             d = {k: f[k] for k in f.files}
         if how == "shape":
             d[first] = np.concatenate([d[first], d[first][..., :1]], axis=-1)
-        elif how == "dtype":
-            d[first] = d[first].astype(np.int32)
-        elif how == "nan":
-            d[first] = np.full(d[first].shape, np.nan)
         elif how == "missing":
             del d[first]
-        elif how == "extra":
-            d["extra/entry"] = np.zeros(1)
         elif how == "config":
             d["__config__"] = np.array('{"n_embeddings": -1}')
         elif how == "lacks a field":
             cfg = json.loads(str(d["__config__"]))
             del cfg["dtype"]
             d["__config__"] = np.array(json.dumps(cfg))
-        elif how == "beyond float32":
-            d[first] = np.full(d[first].shape, 1e39)
         elif how == "pickled":
             d[first] = np.array([None] * d[first].size, dtype=object)
         else:

@@ -158,16 +158,12 @@ def test_teacher_forcing_without_upstream_checks_the_forward(rng):
     assert tf.wrong == ["blocks.0.ln_2"] and all(c.backward is None for c in tf.checks)
 
 
-def _bad_params(params):
-    """Two problems: a weight of another's shape, and a name that is no parameter."""
-    return {**params, "h.0/attn/c_proj/weight": params["h.0/attn/c_attn/weight"], "nope": params["ln_f/gamma"]}
-
-
 @pytest.mark.parametrize("kw, error, name", [  # kw(layers, params, dlogits) -> teacher_force's keywords
     (lambda l, p, dl: dict(layers={"blocks.9.attn": l["embed"]}), ValueError, "blocks.9.attn"),  # not a layer
     (lambda l, p, dl: dict(layers=l, params=p), ValueError, "layout"),  # params without their layout
-    (lambda l, p, dl: dict(layers=l, params=_bad_params(p), layout="torch"), ValueError, "h.0/attn/c_proj/weight"),
-    (lambda l, p, dl: dict(layers=l, params=_bad_params(p), layout="torch"), ValueError, "nope"),
+    (lambda l, p, dl: dict(layers=l, params={**p, "h.0/attn/c_proj/weight": p["h.0/attn/c_attn/weight"]},
+                           layout="torch"), ValueError, "h.0/attn/c_proj/weight"),  # another's shape
+    (lambda l, p, dl: dict(layers=l, params={**p, "nope": p["ln_f/gamma"]}, layout="torch"), ValueError, "nope"),
     (lambda l, p, dl: dict(layers=l, upstream=dict(dlogits=dl.astype(np.float32))), TypeError, "dlogits"),
 ])
 def test_teacher_force_refusals_name_the_argument(rng, kw, error, name):

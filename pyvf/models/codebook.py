@@ -291,7 +291,6 @@ class Codebook(ModelWeights):
     """
 
     LAYOUTS = LAYOUTS
-    ENTRY_NOUNS = ("names", "names")  # the state dict's names: parameters and buffers
     FILE_KIND = "codebook"
     CONFIG = CodebookConfig
     INPUTS = ("images",)  # the model's inputs (teacher forcing: the first row reads the first)
@@ -358,14 +357,16 @@ class Codebook(ModelWeights):
         checkpoint's `model.` prefix is dropped; its other keys, e.g. `loss.*`, are unexpected:
         `pyvf convert torch-codebook` skips them). The caller states the conv kernels' `layout`,
         so a kernel is never silently transposed; `quantize.embeddings` is (embed_dim, n_embed) in
-        both (codes are columns). Checked as pyvf.models.io says, one error naming every wrong entry."""
+        both (codes are columns). Checked as pyvf.models.io says, the first wrong entry named."""
         self._load(state_dict, layout)
 
-    def _check_buffers(self, entries):
+    def _load_buffers(self, entries):
         prefix = self._buffer_prefix
         buffers, problems = self.quantizer.check_state({k[len(prefix):]: v for k, v in entries.items()},
                                                        prefix=prefix, require_all=False)
-        return (lambda: self.quantizer._assign(buffers)), problems
+        if problems:
+            raise problems[0][0](f"load_official: {problems[0][1]}")
+        self.quantizer._assign(buffers)
 
     # -----------------------------------------------------------------------------------
     # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
