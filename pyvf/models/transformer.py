@@ -317,7 +317,6 @@ class Transformer(ModelWeights):
             return mlp_forward(x, *P)
         if row.kind == "logits":  # logits = g @ wte[:V]^T (B, N, L, V), the embedding tied
             return self._logits(x), x
-        raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
 
     def layer_backward(self, row, dy, cache):
         """layer_forward's VJP -> (per input its gradient, None for the model's inputs; the
@@ -336,8 +335,6 @@ class Transformer(ModelWeights):
             dx, dwte = self._logits_backward(dy, cache)
             dp = [np.zeros_like(self.params["wte/weight"])]
             dp[0][:self.config.n_embeddings] = dwte
-        else:
-            raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
         return [dx], dp
 
     # -----------------------------------------------------------------------------------
