@@ -29,7 +29,7 @@ from .. import _checks
 from .._io import CheckpointError, atomic_savez, load_npz
 from .table import parameters
 
-__all__ = ["ROLES", "ModelWeights", "load_model", "save_model"]
+__all__ = ["ROLES", "ModelWeights"]
 
 Role = collections.namedtuple("Role", "layout shapes to_layout from_layout")
 
@@ -146,12 +146,16 @@ class ModelWeights:
     # the model file ----------------------------------------------------------------------
 
     def save(self, path):
-        """Write the configuration and state_dict() (the published layout) to one .npz file.
-
-        path: a str or os.PathLike (".npz" appended when missing, so `load` needs the name with
-        ".npz"), written atomically; see save_model. Returns the path written."""
-        meta = {k: getattr(self, k) for k in self.META if getattr(self, k, None) is not None}
-        return save_model(path, self.config, self.state_dict(), meta)
+        """Write the configuration (JSON, entry __config__), the META strings (entries __name__) and
+        state_dict() (the published layout) to one .npz, atomically. path: a str or os.PathLike,
+        ".npz" appended when missing (as np.savez does), so `load` needs the name with ".npz".
+        Returns the path written."""
+        meta = {f"__{k}__": str(getattr(self, k)) for k in self.META if getattr(self, k, None) is not None}
+        path = os.fsdecode(os.fspath(path))
+        if not path.endswith(".npz"):
+            path += ".npz"
+        atomic_savez(path, __config__=json.dumps(dataclasses.asdict(self.config)), **meta, **self.state_dict())
+        return path
 
     @classmethod
     def load(cls, path):
@@ -159,49 +163,27 @@ class ModelWeights:
         FileNotFoundError; a truncated or corrupt file, a bad configuration or a missing, unexpected,
         wrongly shaped or non-finite entry raises pyvf._io.CheckpointError (a ValueError) naming the
         file and the entry."""
-        return load_model(path, cls.FILE_KIND, cls.CONFIG, cls)
-
-
-def save_model(path, config, state, meta=None):
-    """ModelWeights.save: the configuration (JSON, entry __config__), the meta strings (name ->
-    str, entries __name__) and the state (name -> array) in one .npz. path: a str or
-    os.PathLike, ".npz" appended when it does not end with it (as np.savez does), written
-    atomically. Returns the path written."""
-    arrays = {"__config__": json.dumps(dataclasses.asdict(config)),
-              **{f"__{k}__": str(v) for k, v in (meta or {}).items()}, **state}
-    path = os.fsdecode(os.fspath(path))
-    if not path.endswith(".npz"):
-        path += ".npz"
-    atomic_savez(path, **arrays)
-    return path
-
-
-def load_model(path, what, config_cls, model_cls):
-    """ModelWeights.load: read the file, build the configuration and the model, load the weights
-    (load_official validates all of them first). A missing file raises FileNotFoundError; every
-    other problem is a CheckpointError naming the file (and the entry)."""
-    name = os.fspath(path)
-    arrays = load_npz(path, what, required=("__config__",))
-    try:
-        fields = json.loads(str(arrays.pop("__config__")))
-    except ValueError as e:
-        raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
-    later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
-    missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields and f.name not in later]
-    if missing:  # never the other defaults: they may be another model than the file's
-        raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
-                              f"{config_cls.__name__} written by save(), or written by another version")
-    try:
-        config = config_cls(**fields)
-    except (TypeError, ValueError, AttributeError) as e:
-        raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
-    model = model_cls(config)
-    meta = {k: str(arrays.pop(f"__{k}__")) for k in model_cls.META if f"__{k}__" in arrays}  # absent: older file
-    try:
-        model.load_official(arrays)
-    except (TypeError, ValueError) as e:
-        raise CheckpointError(f"{what} {name}: {e}") from e
-    for k, v in meta.items():
-        setattr(model, k, v)
-    model.source = name
-    return model
+        what, name, config_cls = cls.FILE_KIND, os.fspath(path), cls.CONFIG
+        arrays = load_npz(path, what, required=("__config__",))
+        try:
+            fields = json.loads(str(arrays.pop("__config__")))
+        except ValueError as e:
+            raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
+        later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
+        missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields and f.name not in later]
+        if missing:  # never the other defaults: they may be another model than the file's
+            raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
+                                  f"{config_cls.__name__} written by save(), or written by another version")
+        try:
+            model = cls(config_cls(**fields))
+        except (TypeError, ValueError, AttributeError) as e:
+            raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
+        meta = {k: str(arrays.pop(f"__{k}__")) for k in cls.META if f"__{k}__" in arrays}  # absent: older file
+        try:
+            model.load_official(arrays)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"{what} {name}: {e}") from e
+        for k, v in meta.items():
+            setattr(model, k, v)
+        model.source = name
+        return model
