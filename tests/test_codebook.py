@@ -44,16 +44,6 @@ def test_parameter_names_and_shapes_are_the_official_ones():
     assert {n: tuple(p.shape) for n, p in CodebookPort(cfg).named_parameters()} == want
 
 
-def port_forward(P, buffers, images, cfg, codebook_weight, train=True):
-    """torch_codebook.forward's outputs from the nn.Module port (torch_ports.CodebookPort, which
-    has the empty code) called on the parameter dict; the EMA step runs on a copy of the buffers."""
-    new = {k: torch.as_tensor(v).clone() for k, v in buffers.items()}
-    rec, commitment, codes = torch.func.functional_call(CodebookPort(cfg).train(train), {**P, **new}, (images,))
-    rec_loss = (images - rec).abs().mean()
-    return {"reconstruction": rec, "codes": codes, "rec_loss": rec_loss, "commitment_loss": commitment,
-            "loss": rec_loss + codebook_weight * commitment, "buffers": {**new, "quantize.counter": int(new["quantize.counter"])}}
-
-
 def with_empty_patches(images, p):
     """Every other p x p patch of each image made empty: all its pixels the top-left pixel's colour."""
     images[:, :, :p, :p] = images[:, :, :1, :1]
@@ -82,8 +72,7 @@ def test_codebook_matches_torch_over_three_training_steps(config, rng):
         grads = cb.backward()
         for p in P.values():
             p.grad = None
-        oracle = port_forward if cfg.empty_code else torch_codebook.forward
-        ref = oracle(P, buffers, torch.tensor(images), cfg, cfg.codebook_weight, train=True)
+        ref = torch_codebook.forward(P, buffers, torch.tensor(images), cfg, cfg.codebook_weight, train=True)
         ref["loss"].backward()
         np.testing.assert_array_equal(out.codes, ref["codes"].numpy())
         if cfg.empty_code:
@@ -228,7 +217,6 @@ def test_perceptual_term_is_pluggable_and_differentiated(rng):
 
 
 X = np.random.default_rng(0).uniform(-1, 1, (2, 3, 16, 16)).astype(np.float32)  # (B, 3, S, S) in [-1, 1]
-PICTURE = np.round((X + 1) * 127.5).astype(np.uint8).transpose(0, 2, 3, 1).copy()  # (B, S, S, 3) uint8
 
 
 def _run(call, arg):
@@ -252,12 +240,9 @@ def _without(state, name):
     ("forward", X[:, :, :8].copy(), ValueError, "images"),
     ("train", np.full_like(X, np.nan), ValueError, "images"),
     ("train", X * np.float32(1.01) + np.float32(0.02), ValueError, "images"),  # out of [-1, 1]
-    ("encode", np.zeros((0, 3, 16, 16), np.float32), ValueError, "images"),
-    ("encode", PICTURE, TypeError, "images"),  # the uint8 picture as it comes: the message says how to convert
     ("encode", X.transpose(0, 2, 3, 1).copy(), ValueError, "images"),  # channels last
     ("pixel_weights", np.ones((2, 1, 16, 16)), TypeError, "pixel_weights"),  # float64 for float32 images
     ("pixel_weights", np.ones((2, 3, 16, 16), np.float32), ValueError, "pixel_weights"),
-    ("pixel_weights", np.zeros((2, 1, 16, 16), np.float32), ValueError, "pixel_weights"),
     ("pixel_weights", -np.ones((2, 1, 16, 16), np.float32), ValueError, "pixel_weights"),
     ("decode_code", np.full((1, 8, 8), 16), ValueError, "codes"),
     ("decode_code", np.zeros((1, 8, 8), np.float32), TypeError, "codes"),

@@ -1,10 +1,11 @@
-"""Every reference in the repository resolves inside it: relative links of the README and docs/,
-each `math.md §N` (in docs and code) names a section of docs/math.md, and nothing cites a file
-outside the repository (the SPEC of an earlier layout)."""
+"""Every reference in the repository resolves inside it: relative links of the README and docs/
+(to a file, and to a heading of a markdown file),
+and each `math.md §N` (in docs and code) names a section of docs/math.md."""
 
 import os
 import re
 import subprocess
+import unicodedata
 
 import pytest
 
@@ -12,12 +13,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _tracked(*suffixes):
-    out = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True)
-    if out.returncode != 0:  # not a git checkout: walk the tree
-        files = [os.path.relpath(os.path.join(d, f), ROOT) for d, _, fs in os.walk(ROOT) for f in fs
-                 if ".git" not in d and "build" not in d]
-    else:
-        files = out.stdout.split()
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
     return [f for f in files if f.endswith(suffixes)]
 
 
@@ -30,12 +26,24 @@ def test_relative_links_resolve(doc):
         text = f.read()
     bad = []
     for target in re.findall(r"\]\(([^)\s]+)\)", text):
-        if re.match(r"[a-z]+://|#|mailto:", target):
+        if re.match(r"[a-z]+://|mailto:", target):
             continue
-        path = os.path.normpath(os.path.join(ROOT, os.path.dirname(doc), target.split("#")[0]))
-        if not os.path.exists(path):
+        file, _, anchor = target.partition("#")
+        path = os.path.normpath(os.path.join(ROOT, os.path.dirname(doc), file or os.path.basename(doc)))
+        if not os.path.exists(path) or anchor and path.endswith(".md") and anchor not in _anchors(path):
             bad.append(target)
-    assert not bad, f"{doc} links to files the repository does not have: {bad}"
+    assert not bad, f"{doc} links to files or headings the repository does not have: {bad}"
+    assert _anchor("§4 The codebook") == "4-the-codebook"  # GitHub's rule, on a known anchor
+
+
+def _anchor(heading):
+    """GitHub's anchor of a markdown heading: lower case, punctuation dropped, spaces to hyphens."""
+    return "".join(c for c in heading.strip().lower() if c in " -_" or unicodedata.category(c)[0] in "LN").replace(" ", "-")
+
+
+def _anchors(path):
+    with open(path, encoding="utf-8") as f:
+        return {_anchor(h) for h in re.findall(r"^#+ (.+)$", f.read(), flags=re.M)}
 
 
 def test_section_references_name_sections_of_math_md():
@@ -50,6 +58,4 @@ def test_section_references_name_sections_of_math_md():
             refs += 1
             if n not in sections:
                 bad.append((name, n))
-        for old in ("SPEC" + ".md", "SPEC" + " §"):  # spelled apart: this file is scanned too
-            assert old not in text, f"{name} cites {old}, a file outside the repository"
     assert refs > 50 and not bad, bad

@@ -40,17 +40,14 @@ def test_torch_layout_is_nn_linear(rng):
 
 
 def test_tf_dict_with_torch_layout_fails_or_differs(rng):
-    """The published dict said to be in torch's layout: refused naming every non-square kernel, the
-    model unchanged; the square kernels alone cannot tell (they load, transposed)."""
+    """The published dict said to be in torch's layout: refused naming its first non-square kernel,
+    the model unchanged; the square kernels alone cannot tell (they load, transposed)."""
     model = random_model(rng)
     tf = model.state_dict()
     target = pyvf.Transformer(model.config, seed=1)
     before = target.state_dict()
-    with pytest.raises(ValueError) as e:
+    with pytest.raises(ValueError, match="'pose_embedding/c_fc/weight'"):
         target.load_official(tf, layout="torch")
-    for j in range(TINY["n_layer"]):
-        for k in ("attn/c_attn", "mlp/c_fc", "mlp/c_proj"):
-            assert f"'h.{j}/{k}/weight'" in str(e.value)
     for name, value in before.items():  # unchanged
         assert_bitwise_equal(name, target.params[name], value)
     sq = torch_layout(tf)
@@ -145,26 +142,15 @@ def test_codebook_torch_layout_is_nn_conv2d_and_tf_is_channels_last(rng):
                                want.transpose(0, 2, 3, 1), rtol=1e-13, atol=1e-13)  # (round trips: test_model_files.py)
 
 
-def test_codebook_load_names_every_problem_and_changes_nothing(rng):
-    cb = random_codebook(rng)
-    target = pyvf.Codebook(cb.config, seed=5)
+def test_codebook_load_refusal_changes_nothing(rng):
+    """The buffers are checked last: a wrong counter raises naming it, after every parameter passed,
+    and the model is left as it was."""
+    target = pyvf.Codebook(random_codebook(rng).config, seed=5)
     before = target.state_dict()
-    sd = cb.state_dict()
-    bad = dict(sd)
-    del bad["decoder.conv_out.bias"]  # missing
-    bad["loss.discriminator.weight"] = np.zeros(3)  # unexpected
-    bad["quant_conv.weight"] = sd["quant_conv.weight"].transpose(2, 3, 1, 0)  # tf layout given as torch
-    bad["encoder.conv_in.bias"] = np.full(32, np.nan)  # non-finite
-    bad["encoder.conv_out.bias"] = torch.ones(32, dtype=torch.bfloat16)  # numpy cannot hold it
-    bad["model.encoder.conv_in.weight"] = sd["encoder.conv_in.weight"]  # given twice
-    bad["quantize.counter"] = -1
-    with pytest.raises(ValueError) as e:
-        target.load_official(bad)
-    for name in ("decoder.conv_out.bias", "loss.discriminator.weight", "quant_conv.weight", "encoder.conv_in.bias",
-                 "encoder.conv_out.bias", "encoder.conv_in.weight", "quantize.counter"):
-        assert f"'{name}'" in str(e.value), (name, str(e.value))
+    with pytest.raises(ValueError, match=r"quantize\.counter"):
+        target.load_official({**random_codebook(rng).state_dict(), "quantize.counter": -1})
     after = target.state_dict()
-    for k, v in before.items():  # unchanged
+    for k, v in before.items():
         assert_bitwise_equal(k, np.asarray(after[k]), np.asarray(v))
 
 

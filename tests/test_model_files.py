@@ -76,14 +76,13 @@ def test_a_bad_layout_or_shape_raises_naming_it(rng):
     the parameter instead of being transposed or reshaped silently."""
     model = pyvf.Transformer(pyvf.TransformerConfig(**TINY))
     cb = pyvf.Codebook(pyvf.CodebookConfig(**CB))
-    for m, name in ((model, "wte/weight"), (model, "ln_f/gamma"), (cb, "encoder.conv_in.bias")):
-        p = m.params[name]
-        for call in (lambda: m.from_layout(name, p, "TF"), lambda: m.to_layout(name, p, None),
-                     lambda: m.state_dict(layout="jax"), lambda: m.load_official(m.state_dict(), layout="Torch")):
-            with pytest.raises(ValueError, match=r"\blayout\b"):
-                call()
-    for name, a, layout in (("h.0/mlp/c_fc/weight", np.zeros((32, 128)), "torch"),  # the tf kernel, untransposed
-                            ("h.0/attn/c_proj/bias", np.zeros((2, 16)), "torch"), ("ln_f/gamma", np.zeros(31), "tf")):
+    for call in (lambda: model.from_layout("wte/weight", model.params["wte/weight"], "TF"),
+                 lambda: model.to_layout("ln_f/gamma", model.params["ln_f/gamma"], None),
+                 lambda: cb.state_dict(layout="jax"), lambda: cb.load_official(cb.state_dict(), layout="Torch")):
+        with pytest.raises(ValueError, match=r"\blayout\b"):
+            call()
+    # (the tf kernel untransposed in "torch": test_layout_convert's params_from_layout)
+    for name, a, layout in (("h.0/attn/c_proj/bias", np.zeros((2, 16)), "torch"), ("ln_f/gamma", np.zeros(31), "tf")):
         with pytest.raises(ValueError, match=re.escape(repr(name))):
             model.from_layout(name, a, layout)
 
@@ -128,61 +127,45 @@ def _models(dtype):
             pyvf.Codebook(pyvf.CodebookConfig(**CB, dtype=dtype), seed=3)]
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_save_is_atomic_and_appends_npz(dtype, tmp_path, monkeypatch):
-    """save() writes path + '.npz' when the name lacks it (np.savez's rule, kept), returns the path;
-    a save killed before the rename (os.replace raising) or while writing leaves the previous
-    file intact and no temporary file behind."""
-    for m in _models(dtype):
-        cls = type(m)
+def test_save_is_atomic_and_appends_npz(tmp_path, monkeypatch):
+    """save() writes path + '.npz' when the name lacks it (np.savez's rule, kept) and returns the
+    path; a save killed while writing leaves the previous file intact and no temporary file behind
+    (killed before the rename: test_train_loops' checkpoint, the same atomic_savez)."""
+    for m in _models("float32"):
         assert m.save(tmp_path / "model") == str(tmp_path / "model.npz")
         path = tmp_path / "m.npz"
-        assert m.save(path) == str(path)
-        first = path.read_bytes()
-        back = cls.load(path).state_dict()
-        for k, v in m.state_dict().items():
-            assert_bitwise_equal(k, back[k], v)
-        old = {k: v.copy() for k, v in m.params.items()}
-        for k in m.params:
-            m.params[k] = m.params[k] + 1
-        for where in ("replace", "write"):
-            with monkeypatch.context() as mp:
-                if where == "replace":
-                    mp.setattr(os, "replace", lambda *a: (_ for _ in ()).throw(OSError("killed before the rename")))
-                else:
-                    real = np.savez
+        first = path.read_bytes() if m.save(path) == str(path) else None
+        real = np.savez
 
-                    def dying(f, **arrays):
-                        real(f, **{k: arrays[k] for k in list(arrays)[:2]})
-                        raise KeyboardInterrupt("killed while writing")
-                    mp.setattr(np, "savez", dying)
-                with pytest.raises((OSError, KeyboardInterrupt)):
-                    m.save(path)
-            assert path.read_bytes() == first, f"{where}: the previous file was changed"
-            assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz", "model.npz"], "a temporary file was left"
-        m.params = old
+        def dying(f, **arrays):
+            real(f, **{k: arrays[k] for k in list(arrays)[:2]})
+            raise KeyboardInterrupt("killed while writing")
+        monkeypatch.setattr(np, "savez", dying)
+        with pytest.raises(KeyboardInterrupt):
+            m.save(path)
+        monkeypatch.undo()
+        assert path.read_bytes() == first, "the previous file was changed"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz", "model.npz"], "a temporary file was left"
 
 
-@pytest.mark.parametrize("how, names", [
-    ("truncate", []), ("flip", []), ("empty", []),
-    ("shape", ["first"]), ("dtype", ["first"]), ("missing", ["first"]), ("nan", []),
-    ("extra", ["extra/entry"]), ("config", ["__config__"]), ("not json", ["__config__"]),
+@pytest.mark.parametrize("how, names", [  # the entries' values: the load_official tables
+    ("truncate", []), ("flip", []), ("shape", ["first"]), ("missing", ["first"]),
+    ("config", ["__config__"]), ("not json", ["__config__"]),
     ("lacks a field", ["__config__", "dtype"]),  # never the field's default silently: another model
-    ("beyond float32", ["first"]), ("pickled", ["first"]),
+    ("pickled", ["first"]),
 ])
 @pytest.mark.parametrize("which", [0, 1], ids=["transformer", "codebook"])
 def test_load_refuses_a_broken_file_naming_file_and_entry(tmp_path, how, names, which):
-    """Truncated, bytes flipped in its zip headers, empty, an entry of the wrong shape or dtype or
-    with NaN or beyond float32 or pickled, a missing or extra entry, a broken __config__ or one
-    lacking a field: CheckpointError (a ValueError) naming the file and, where one entry is at
-    fault, the entry; nothing written beside it."""
+    """Truncated, bytes flipped in its zip headers, an entry of the wrong shape or pickled, a
+    missing entry, a broken __config__ or one lacking a field: CheckpointError (a ValueError)
+    naming the file and, where one entry is at fault, the entry; nothing written beside it."""
     m = _models("float32")[which]
     path, bad = tmp_path / "model.npz", str(tmp_path / "bad.npz")
     m.save(path)
     raw = path.read_bytes()
     first = sorted(m.state_dict())[0]
-    if how in ("truncate", "flip", "empty"):
-        data = {"truncate": raw[: len(raw) // 2], "empty": b"",
+    if how in ("truncate", "flip"):
+        data = {"truncate": raw[: len(raw) // 2],
                 "flip": bytes(b ^ 0xFF if i < 40 else b for i, b in enumerate(raw))}[how]
         open(bad, "wb").write(data)
     else:
@@ -190,22 +173,14 @@ def test_load_refuses_a_broken_file_naming_file_and_entry(tmp_path, how, names, 
             d = {k: f[k] for k in f.files}
         if how == "shape":
             d[first] = np.concatenate([d[first], d[first][..., :1]], axis=-1)
-        elif how == "dtype":
-            d[first] = d[first].astype(np.int32)
-        elif how == "nan":
-            d[first] = np.full(d[first].shape, np.nan)
         elif how == "missing":
             del d[first]
-        elif how == "extra":
-            d["extra/entry"] = np.zeros(1)
         elif how == "config":
             d["__config__"] = np.array('{"n_embeddings": -1}')
         elif how == "lacks a field":
             cfg = json.loads(str(d["__config__"]))
             del cfg["dtype"]
             d["__config__"] = np.array(json.dumps(cfg))
-        elif how == "beyond float32":
-            d[first] = np.full(d[first].shape, 1e39)
         elif how == "pickled":
             d[first] = np.array([None] * d[first].size, dtype=object)
         else:

@@ -180,9 +180,4 @@ def test_a_codebook_file_from_before_the_empty_code_loads_without_it(tmp_path):
     entries["__config__"] = np.array(json.dumps(config))
     np.savez(tmp_path / "old.npz", **entries)
     old = Codebook.load(tmp_path / "old.npz")
-    assert old.config == cb.config and old.fingerprint() == cb.fingerprint()
-    del config["n_embed"]  # any other field missing is still refused
-    entries["__config__"] = np.array(json.dumps(config))
-    np.savez(tmp_path / "bad.npz", **entries)
-    with pytest.raises(ValueError, match="n_embed"):
-        Codebook.load(tmp_path / "bad.npz")
+    assert old.config == cb.config and old.fingerprint() == cb.fingerprint()  # (another field missing: test_model_files)

@@ -236,7 +236,6 @@ def row_forward(row, params, x):
         return upsample_nearest2x_forward(x)
     if row.kind == "attn":
         return attnblock_forward(x, *P)
-    raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
 
 
 def row_backward(row, dy, cache):
@@ -249,8 +248,6 @@ def row_backward(row, dy, cache):
         dx, *dp = upsample_nearest2x_backward(dy, cache)
     elif row.kind == "attn":
         dx, *dp = attnblock_backward(dy, cache)
-    else:
-        raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
     return dx, dp
 
 
@@ -291,7 +288,6 @@ class Codebook(ModelWeights):
     """
 
     LAYOUTS = LAYOUTS
-    ENTRY_NOUNS = ("names", "names")  # the state dict's names: parameters and buffers
     FILE_KIND = "codebook"
     CONFIG = CodebookConfig
     INPUTS = ("images",)  # the model's inputs (teacher forcing: the first row reads the first)
@@ -358,14 +354,16 @@ class Codebook(ModelWeights):
         checkpoint's `model.` prefix is dropped; its other keys, e.g. `loss.*`, are unexpected:
         `pyvf convert torch-codebook` skips them). The caller states the conv kernels' `layout`,
         so a kernel is never silently transposed; `quantize.embeddings` is (embed_dim, n_embed) in
-        both (codes are columns). Checked as pyvf.models.io says, one error naming every wrong entry."""
+        both (codes are columns). Checked as pyvf.models.io says, the first wrong entry named."""
         self._load(state_dict, layout)
 
-    def _check_buffers(self, entries):
+    def _load_buffers(self, entries):
         prefix = self._buffer_prefix
         buffers, problems = self.quantizer.check_state({k[len(prefix):]: v for k, v in entries.items()},
                                                        prefix=prefix, require_all=False)
-        return (lambda: self.quantizer._assign(buffers)), problems
+        if problems:
+            raise problems[0][0](f"load_official: {problems[0][1]}")
+        self.quantizer._assign(buffers)
 
     # -----------------------------------------------------------------------------------
     # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)

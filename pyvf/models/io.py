@@ -29,7 +29,7 @@ from .. import _checks
 from .._io import CheckpointError, atomic_savez, load_npz
 from .table import parameters
 
-__all__ = ["ROLES", "ModelWeights", "load_model", "save_model"]
+__all__ = ["ROLES", "ModelWeights"]
 
 Role = collections.namedtuple("Role", "layout shapes to_layout from_layout")
 
@@ -53,7 +53,6 @@ class ModelWeights:
 
     LAYOUTS = {}  # layout -> what it holds (for messages); the published layout first
     BUFFERS = ()  # state entries besides the parameters (the codebook's quantizer buffers)
-    ENTRY_NOUNS = ("names", "names")  # what load_official's messages call one, several entries
     FILE_KIND = "model"  # how a model file's errors call it
     CONFIG = None  # the configuration class a model file is read into
     INPUTS = ()  # the names of forward's inputs (teacher forcing's first layer reads the first)
@@ -111,23 +110,21 @@ class ModelWeights:
 
     # loading -----------------------------------------------------------------------------
 
-    def _read_weights(self, weights, layout):
-        """load_official's checks: -> (parameters converted to the model's dtype, in the published
-        order; the BUFFERS entries given, unchecked; a list of (exception class, message))."""
+    def _load(self, weights, layout):
+        """load_official: every entry checked, the first problem raised naming its key (TypeError
+        for a wrong type or dtype, else ValueError); nothing is assigned before all pass."""
         layout = self.check_layout(layout)
         if not isinstance(weights, Mapping):
             raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")
         shapes = self.parameter_shapes()
         hint = "" if layout == next(iter(self.LAYOUTS)) else f" (layout={layout!r}: {self.LAYOUTS[layout]})"
-        problems, loaded, buffers, given_as, unexpected = [], {}, {}, {}, []
-        for raw, arr in weights.items():  # problems in the caller's order
+        loaded, buffers, given_as = {}, {}, {}
+        for raw, arr in weights.items():
             name = self.official_name(raw) if isinstance(raw, str) else raw
             if name not in shapes and name not in self.BUFFERS:
-                unexpected.append(repr(raw))
-                continue
+                raise ValueError(f"load_official: unexpected key {raw!r} (not in this configuration)")
             if name in given_as:
-                problems.append((ValueError, f"{name!r} given twice (as {given_as[name]!r} and {raw!r})"))
-                continue
+                raise ValueError(f"load_official: {name!r} given twice (as {given_as[name]!r} and {raw!r})")
             given_as[name] = raw
             arr, problem = _checks.checkpoint_array(raw, arr)  # torch tensors -> numpy
             if problem is None and name in shapes:
@@ -135,93 +132,58 @@ class ModelWeights:
             if problem is None and name in shapes:  # to the model's dtype; float64 past float32's range refused
                 arr, problem = _checks.converted_weight(raw, self.from_layout(name, arr, layout), self.dtype)
             if problem is not None:
-                problems.append(problem)
-            elif name in shapes:
-                loaded[name] = arr
-            else:
-                buffers[name] = arr
+                raise problem[0](f"load_official: {problem[1]}")
+            (loaded if name in shapes else buffers)[name] = arr
         missing = [k for k in (*shapes, *self.BUFFERS) if k not in given_as]
         if missing:
-            problems.append((ValueError, f"{len(missing)} {self.ENTRY_NOUNS[1]} missing: {missing}"))
-        if unexpected:
-            noun = self.ENTRY_NOUNS[len(unexpected) > 1]
-            names = ", ".join(sorted(unexpected))
-            problems.append((ValueError, f"unexpected {noun} {names} (not in this configuration)"))
-        params = {name: loaded[name] for name in shapes if name in loaded}  # the published order
-        return params, buffers, problems
+            raise ValueError(f"load_official: {len(missing)} entries missing: {missing}")
+        self._load_buffers(buffers)  # checks them first
+        self.params = {name: loaded[name] for name in shapes}  # the published order
 
-    def _check_buffers(self, entries):
-        """The BUFFERS entries given -> (a function assigning them, problems). No buffers here."""
-        return (lambda: None), []
-
-    def _load(self, weights, layout):
-        """load_official: everything checked, one error naming every problem, then everything assigned."""
-        params, buffers, problems = self._read_weights(weights, layout)
-        assign, buffer_problems = self._check_buffers(buffers)
-        problems += buffer_problems
-        if problems:
-            raise _checks.problems_error("load_official", problems)
-        assign()
-        self.params = params
+    def _load_buffers(self, entries):
+        """Check, then assign, the BUFFERS entries given. No buffers here."""
 
     # the model file ----------------------------------------------------------------------
 
     def save(self, path):
-        """Write the configuration and state_dict() (the published layout) to one .npz file.
-
-        path: a str or os.PathLike (".npz" appended when missing, so `load` needs the name with
-        ".npz"), written atomically; see save_model. Returns the path written."""
-        meta = {k: getattr(self, k) for k in self.META if getattr(self, k, None) is not None}
-        return save_model(path, self.config, self.state_dict(), meta)
+        """Write the configuration (JSON, entry __config__), the META strings (entries __name__) and
+        state_dict() (the published layout) to one .npz, atomically. path: a str or os.PathLike,
+        ".npz" appended when missing (as np.savez does), so `load` needs the name with ".npz".
+        Returns the path written."""
+        meta = {f"__{k}__": str(getattr(self, k)) for k in self.META if getattr(self, k, None) is not None}
+        path = os.fsdecode(os.fspath(path))
+        if not path.endswith(".npz"):
+            path += ".npz"
+        atomic_savez(path, __config__=json.dumps(dataclasses.asdict(self.config)), **meta, **self.state_dict())
+        return path
 
     @classmethod
     def load(cls, path):
-        """Read a model written by save(): path as given (no ".npz" appended). A missing file raises FileNotFoundError; a truncated or corrupt file, a bad
-        configuration or any missing, unexpected, wrongly shaped or non-finite entry raises
-        pyvf._io.CheckpointError (a ValueError) naming the file and every wrong entry."""
-        return load_model(path, cls.FILE_KIND, cls.CONFIG, cls)
-
-
-def save_model(path, config, state, meta=None):
-    """ModelWeights.save: the configuration (JSON, entry __config__), the meta strings (name ->
-    str, entries __name__) and the state (name -> array) in one .npz. path: a str or
-    os.PathLike, ".npz" appended when it does not end with it (as np.savez does), written
-    atomically. Returns the path written."""
-    arrays = {"__config__": json.dumps(dataclasses.asdict(config)),
-              **{f"__{k}__": str(v) for k, v in (meta or {}).items()}, **state}
-    path = os.fsdecode(os.fspath(path))
-    if not path.endswith(".npz"):
-        path += ".npz"
-    atomic_savez(path, **arrays)
-    return path
-
-
-def load_model(path, what, config_cls, model_cls):
-    """ModelWeights.load: read the file, build the configuration and the model, load the weights
-    (load_official validates all of them first). A missing file raises FileNotFoundError; every
-    other problem is a CheckpointError naming the file (and the entry)."""
-    name = os.fspath(path)
-    arrays = load_npz(path, what, required=("__config__",))
-    try:
-        fields = json.loads(str(arrays.pop("__config__")))
-    except ValueError as e:
-        raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
-    later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
-    missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields and f.name not in later]
-    if missing:  # never the other defaults: they may be another model than the file's
-        raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
-                              f"{config_cls.__name__} written by save(), or written by another version")
-    try:
-        config = config_cls(**fields)
-    except (TypeError, ValueError, AttributeError) as e:
-        raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
-    model = model_cls(config)
-    meta = {k: str(arrays.pop(f"__{k}__")) for k in model_cls.META if f"__{k}__" in arrays}  # absent: older file
-    try:
-        model.load_official(arrays)
-    except (TypeError, ValueError) as e:
-        raise CheckpointError(f"{what} {name}: {e}") from e
-    for k, v in meta.items():
-        setattr(model, k, v)
-    model.source = name
-    return model
+        """Read a model written by save(): path as given (no ".npz" appended). A missing file raises
+        FileNotFoundError; a truncated or corrupt file, a bad configuration or a missing, unexpected,
+        wrongly shaped or non-finite entry raises pyvf._io.CheckpointError (a ValueError) naming the
+        file and the entry."""
+        what, name, config_cls = cls.FILE_KIND, os.fspath(path), cls.CONFIG
+        arrays = load_npz(path, what, required=("__config__",))
+        try:
+            fields = json.loads(str(arrays.pop("__config__")))
+        except ValueError as e:
+            raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
+        later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
+        missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields and f.name not in later]
+        if missing:  # never the other defaults: they may be another model than the file's
+            raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
+                                  f"{config_cls.__name__} written by save(), or written by another version")
+        try:
+            model = cls(config_cls(**fields))
+        except (TypeError, ValueError, AttributeError) as e:
+            raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
+        meta = {k: str(arrays.pop(f"__{k}__")) for k in cls.META if f"__{k}__" in arrays}  # absent: older file
+        try:
+            model.load_official(arrays)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"{what} {name}: {e}") from e
+        for k, v in meta.items():
+            setattr(model, k, v)
+        model.source = name
+        return model

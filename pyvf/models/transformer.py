@@ -251,7 +251,6 @@ class Transformer(ModelWeights):
     layouts, and teacher forcing's layers read it."""
 
     LAYOUTS = LAYOUTS
-    ENTRY_NOUNS = ("parameter", "parameters")
     FILE_KIND = "transformer"
     CONFIG = TransformerConfig
     INPUTS = ("tokens", "poses")  # the model's inputs (teacher forcing: the first row reads the first)
@@ -297,7 +296,7 @@ class Transformer(ModelWeights):
         `migt/` prefix and `:0` suffix optional), its Dense layers (every `.../weight` but the
         token embedding `wte/weight`, and their biases) in `layout`, which the caller states so
         that a square kernel (`attn/c_proj`) is never silently transposed. Checked as
-        pyvf.models.io says: one error names every wrong entry and the model is left unchanged;
+        pyvf.models.io says: the first wrong entry is named and the model is left unchanged;
         arrays are copied into the model's dtype."""
         self._load(weights, layout)
 
@@ -318,7 +317,6 @@ class Transformer(ModelWeights):
             return mlp_forward(x, *P)
         if row.kind == "logits":  # logits = g @ wte[:V]^T (B, N, L, V), the embedding tied
             return self._logits(x), x
-        raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
 
     def layer_backward(self, row, dy, cache):
         """layer_forward's VJP -> (per input its gradient, None for the model's inputs; the
@@ -337,8 +335,6 @@ class Transformer(ModelWeights):
             dx, dwte = self._logits_backward(dy, cache)
             dp = [np.zeros_like(self.params["wte/weight"])]
             dp[0][:self.config.n_embeddings] = dwte
-        else:
-            raise ValueError(f"layer {row.name!r}: no layer pair for kind {row.kind!r}")
         return [dx], dp
 
     # -----------------------------------------------------------------------------------

@@ -1,9 +1,9 @@
 """Checking pyvf against other implementations, and bringing their weights in.
 
-    torch_transformer   the transformer written again in torch from docs/math.md §3 (the oracle)
-    torch_codebook      the VQ-VAE codebook written again in torch from docs/math.md §4 (the oracle)
-    torch_ports         both models as a port author writes them (nn.Modules named as published),
-                        with the typical port bugs to plant (tests/test_teacher.py, docs/verify.md)
+    torch_ports         both models as a port author writes them (nn.Modules named as published,
+                        from docs/math.md), with the typical port bugs to plant (tests/test_teacher.py)
+    torch_transformer   the port as a function of a parameter dict, and the losses (the oracle, the bench's torch side)
+    torch_codebook      the codebook port as a function of a parameter dict, with the EMA step
     convert_tf          a published TensorFlow transformer checkpoint -> pyvf .npz
     convert_torch       a published torch codebook checkpoint -> pyvf .npz
 

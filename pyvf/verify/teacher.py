@@ -209,7 +209,7 @@ def _is_tree(model, name, row):
 
 
 def _check_params(model, params, layout):
-    """params -> (official name -> tensor, the layout they are in), every problem in one error."""
+    """params -> (official name -> tensor, the layout they are in); the first wrong one raises."""
     if params is None:
         return {}, None
     if layout is None:  # a torch port holds torch's layout: the default only where it is the published one
@@ -218,17 +218,16 @@ def _check_params(model, params, layout):
                              f"{tuple(model.LAYOUTS)}")
         layout = "torch"
     model.check_layout(layout)
-    shapes, out, problems = model.parameter_shapes(), {}, []
+    shapes, out = model.parameter_shapes(), {}
     for raw, t in params.items():
         name = model.official_name(raw)
         if name not in shapes or not getattr(t, "requires_grad", False):
-            problems.append(f"{raw!r} is not a parameter of this model, or not a tensor that requires grad")
-        elif tuple(t.shape) not in model.layout_shapes(name, layout):
-            problems.append(f"{raw!r} has shape {tuple(t.shape)}, not its shape in layout={layout!r}")
-        else:
-            out[name] = t
-    if problems:
-        raise ValueError("teacher_force: params: " + "; ".join(problems))
+            raise ValueError(f"teacher_force: params: {raw!r} is not a parameter of this model, or not a "
+                             "tensor that requires grad")
+        if tuple(t.shape) not in model.layout_shapes(name, layout):
+            raise ValueError(f"teacher_force: params: {raw!r} has shape {tuple(t.shape)}, not its shape in "
+                             f"layout={layout!r}")
+        out[name] = t
     return out, layout
 
 

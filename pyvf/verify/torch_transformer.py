@@ -1,14 +1,19 @@
-"""The ViewFormer transformer written again in torch, as the oracle for pyvf.Transformer.
+"""The ViewFormer transformer in torch as a function of its parameters: the benchmark's torch side
+(pyvf bench transformer) and the losses of the torch engine and of pyvf's trace tests.
 
-Written from docs/math.md §3 independently of pyvf's code: the tree is one flat sequence of
-T = 3*N*L tokens in the order [row][view][token] with a dense boolean mask built here from the
-rule, attention is plain masked softmax (masked logits set to -inf), every layer is torch's own
-(F.layer_norm, F.gelu exact, F.cross_entropy with label_smoothing). Autograd gives the
-gradients.
+It is torch_ports.TransformerPort (written from docs/math.md §3, not from pyvf's code: the tree
+as one flat sequence of T = 3*N*L tokens in [row][view][token] under a dense boolean mask, torch's
+own layers) called on a dict of parameters by their official names in the published ("tf")
+layout, through torch.func.functional_call; the losses are F.cross_entropy (label smoothing)
+and the pose loss of docs/math.md §5. Autograd gives the gradients.
 """
+
+import functools
 
 import torch
 import torch.nn.functional as F
+
+from .torch_ports import TransformerPort, official_name
 
 
 def tree_mask(R, N, L):
@@ -19,59 +24,23 @@ def tree_mask(R, N, L):
     return ((kr == 0) & (kj < qi)) | ((kr == qr) & (kj == qi))
 
 
-def gelu(x):
-    return F.gelu(x, approximate="none")
+@functools.lru_cache(maxsize=8)
+def _port(cfg):
+    port = TransformerPort(cfg)
+    return port, {n: official_name(n) for n in port.state_dict()}
 
 
-def linear(x, P, name):
-    return x @ P[name + "/weight"] + P[name + "/bias"][0]  # published layout: weight (in, out)
-
-
-def mlp(x, P, name):
-    return linear(gelu(linear(x, P, name + "/c_fc")), P, name + "/c_proj")
-
-
-def layer_norm(x, P, name):
-    return F.layer_norm(x, (x.shape[-1],), P[name + "/gamma"], P[name + "/beta"], eps=1e-5)
-
-
-def forward(P, tokens, poses, cfg, sdpa=False):
-    """P: official name -> torch tensor; tokens (B, N, L) long; poses (B, N, 7).
-    Returns logits (B, N, L, V), raw pose (B, N, L, 7), ce (B,), pose loss (B,), loss.
-    sdpa=True uses torch's scaled_dot_product_attention with the boolean mask (the benchmark's
-    choice: the explicit softmax below keeps three (T, T) arrays per layer for autograd)."""
-    V, d, H = cfg.n_embeddings, cfg.d_model, cfg.n_head
-    B, N, L = tokens.shape
-    R, T, dh = 3, 3 * N * L, d // H
-    wte = P["wte/weight"]
-    E = wte[tokens]  # (B, N, L, d)
-    W = P["wpe/embeddings"][:L]
-    pose_in = torch.cat([poses[..., :3] * cfg.pose_multiplier, poses[..., 3:]], dim=-1)
-    Pe = mlp(pose_in, P, "pose_embedding")[:, :, None, :]  # (B, N, 1, d)
-    rows = [E + W + Pe, (wte[V] + W + Pe).expand(B, N, L, d), E + W + wte[V + 1]]
-    x = torch.stack(rows, dim=1).reshape(B, T, d)  # (B, T, d), T in [row][view][token]
-    mask = tree_mask(R, N, L)
-    for j in range(cfg.n_layer):
-        h = f"h.{j}"
-        a = layer_norm(x, P, h + "/ln_1")
-        vqk = linear(a, P, h + "/attn/c_attn")
-        v, q, k = vqk[..., :d], vqk[..., d:2 * d], vqk[..., 2 * d:]  # values, queries, keys
-        q, k, v = (t.reshape(B, T, H, dh).transpose(1, 2) for t in (q, k, v))  # (B, H, T, dh)
-        if sdpa:
-            o = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=cfg.attention_scale)
-        else:
-            s = cfg.attention_scale * (q @ k.transpose(-1, -2))
-            s = s.masked_fill(~mask, float("-inf"))
-            o = torch.softmax(s, dim=-1) @ v  # (B, H, T, dh)
-        x = x + linear(o.transpose(1, 2).reshape(B, T, d), P, h + "/attn/c_proj")
-        x = x + mlp(layer_norm(x, P, h + "/ln_2"), P, h + "/mlp")
-    x = x.reshape(B, R, N, L, d)
-    g = layer_norm(x[:, 1], P, "ln_f")
-    loc = layer_norm(x[:, 2], P, "ln_f")
-    logits = g @ wte[:V].T  # (B, N, L, V)
-    raw = mlp(loc, P, "quaternion_pose_representation/pose_classifier")  # (B, N, L, 7)
-    ce, pl, loss = losses(logits, raw, tokens, poses, cfg)
-    return logits, raw, ce, pl, loss
+def forward(P, tokens, poses, cfg, sdpa=True):
+    """P: official name -> torch tensor in the published layout (Dense kernels (in, out), biases
+    (1, out)); tokens (B, N, L) long; poses (B, N, 7). Returns logits (B, N, L, V), raw pose
+    (B, N, L, 7), ce (B,), pose loss (B,), loss. (sdpa: kept for callers; the port always uses
+    scaled_dot_product_attention with the boolean mask.)"""
+    port, names = _port(cfg)
+    # nn.Linear holds the published Dense kernel (in, out) as (out, in) and its bias (1, out) as (out,)
+    state = {n: P[o].T if o.endswith("/weight") and o != "wte/weight" else P[o][0] if o.endswith("/bias") else P[o]
+             for n, o in names.items()}
+    logits, raw = torch.func.functional_call(port, state, (tokens, poses))
+    return (logits, raw, *losses(logits, raw, tokens, poses, cfg))
 
 
 def losses(logits, raw, tokens, poses, cfg):
