@@ -436,14 +436,6 @@ def test_every_image_pose_pair_re_renders(dataset_dir):
         assert (len(data), hashlib.sha256(data).hexdigest()) == (entry["bytes"], entry["sha256"])
 
 
-def test_dataset_refuses_to_overwrite(damaged):
-    with pytest.raises(FileExistsError, match="overwrite"):
-        sc.write_dataset(damaged, 1, seed=0, views=2, size=8, progress=False)
-    sc.write_dataset(damaged, 1, seed=0, views=2, size=8, progress=False, overwrite=True)
-    assert sorted(os.listdir(damaged)) == ["manifest.json", "shard-00000.npz"]  # the old shard 1 is gone
-    assert sc.load_dataset(damaged).images.shape == (1, 2, 8, 8, 3)
-
-
 def flip(at):
     def damage(data):
         data = bytearray(data)
@@ -515,7 +507,7 @@ def test_interrupted_write_resumes_bitwise(tmp_path, monkeypatch):
         with pytest.raises(KeyboardInterrupt):
             sc.write_dataset(out, 5, seed=3, **SMALL)
         assert sorted(os.listdir(out)) == ["progress.jsonl", "shard-00000.npz"]
-        with pytest.raises(FileNotFoundError, match="did not finish.*resume"):
+        with pytest.raises(FileNotFoundError, match="did not finish"):
             sc.load_dataset(out)
         if damage:
             data = bytearray((out / "shard-00000.npz").read_bytes())
@@ -527,31 +519,37 @@ def test_interrupted_write_resumes_bitwise(tmp_path, monkeypatch):
         assert_same_files(out, want)
 
 
-def test_unfinished_write_of_other_arguments_is_refused(tmp_path, monkeypatch, capsys):
-    """Other arguments do not resume an unfinished write (nor do shards without their progress
-    record): the error says it is unfinished; the command line words the remedy as --overwrite."""
-    out = tmp_path / "ds"
-    interrupt_after(monkeypatch, 3)
-    with pytest.raises(KeyboardInterrupt):
-        sc.write_dataset(out, 5, seed=3, **SMALL)
-    monkeypatch.undo()
-    with pytest.raises(FileExistsError, match=r"unfinished write of another dataset \(seed 3, 5 scenes.*overwrite="):
-        sc.write_dataset(out, 5, seed=4, **SMALL)
+def pyvf_scenes(*argv):
+    """`pyvf scenes *argv --quiet` in this process -> its exit status."""
     parser = argparse.ArgumentParser(prog="pyvf")
     scenes_cli_register(parser.add_subparsers(dest="command"))
-    argv = ["scenes", "--out", str(out), "--scenes", "5", "--seed", "4", "--views", "2", "--size", "16",
-            "--shard-size", "2", "--quiet"]
-    args = parser.parse_args(argv)
-    assert args.func(args) == 2
-    err = capsys.readouterr().err
-    assert "unfinished write" in err and "--overwrite" in err and "overwrite=True" not in err, err
-    assert len(err.strip().splitlines()) == 1, err
-    os.remove(out / "progress.jsonl")
-    with pytest.raises(FileExistsError, match="unfinished write without its progress.jsonl"):
+    args = parser.parse_args(["scenes", *map(str, argv), "--quiet"])
+    return args.func(args)
+
+
+@pytest.mark.parametrize("state", ["finished", "unfinished", "shards without progress"])
+def test_a_folder_holding_another_dataset_is_refused_until_overwrite(state, tmp_path, monkeypatch, capsys):
+    """A finished dataset, an unfinished write of other arguments, or shards without their progress
+    record: write_dataset names out_dir, the command --out and --overwrite (one line, status 2);
+    --overwrite replaces it, its stale shards removed."""
+    out = tmp_path / "ds"
+    if state == "finished":
         sc.write_dataset(out, 5, seed=3, **SMALL)
-    args = parser.parse_args(argv + ["--overwrite"])  # replaces it
-    assert args.func(args) == 0 and sc.load_dataset(out).seed == 4
-    assert sorted(os.listdir(out)) == ["manifest.json", "shard-00000.npz", "shard-00001.npz", "shard-00002.npz"]
+    else:
+        interrupt_after(monkeypatch, 3)
+        with pytest.raises(KeyboardInterrupt):
+            sc.write_dataset(out, 5, seed=3, **SMALL)
+        monkeypatch.undo()
+        if state != "unfinished":
+            os.remove(out / "progress.jsonl")
+    with pytest.raises(FileExistsError, match="out_dir"):
+        sc.write_dataset(out, 1, seed=4, **SMALL)
+    argv = ["--out", out, "--scenes", 1, "--seed", 4, "--views", 2, "--size", 16, "--shard-size", 2]
+    assert pyvf_scenes(*argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pyvf scenes: error: argument --out:") and "--overwrite" in err and err.count("\n") == 1
+    assert pyvf_scenes(*argv, "--overwrite") == 0 and sc.load_dataset(out).seed == 4
+    assert sorted(os.listdir(out)) == ["manifest.json", "shard-00000.npz"]
 
 
 def rng0():
@@ -603,22 +601,17 @@ def test_write_dataset_refusals_write_nothing(tmp_path, name, value):
 
 
 def test_cli_writes_dataset_and_preview(tmp_path, capsys):
-    parser = argparse.ArgumentParser(prog="pyvf")
-    scenes_cli_register(parser.add_subparsers(dest="command"))
     out, png = tmp_path / "ds", tmp_path / "preview.png"
-    args = parser.parse_args(["scenes", "--out", str(out), "--scenes", "2", "--seed", "4", "--views", "3",
-                              "--size", "16", "--shard-size", "1", "--preview", str(png), "--quiet"])
-    assert args.func(args) == 0
+    assert pyvf_scenes("--out", out, "--scenes", 2, "--seed", 4, "--views", 3, "--size", 16, "--shard-size", 1,
+                       "--preview", png) == 0
     ds = sc.load_dataset(out)
     assert ds.images.shape == (2, 3, 16, 16, 3)
     from PIL import Image
     with Image.open(png) as im:
         grid = np.asarray(im.convert("RGB"))
-    want = sc.preview_grid(ds.images)
-    assert_bitwise_equal("preview", grid[::2, ::2], want)  # saved enlarged twice
-    # a bad argument: exit status 2 and the argument's name on stderr, nothing written
-    args = parser.parse_args(["scenes", "--out", str(tmp_path / "bad"), "--scenes", "0", "--seed", "1", "--quiet"])
-    assert args.func(args) == 2
+    assert_bitwise_equal("preview", grid[::2, ::2], sc.preview_grid(ds.images))  # saved enlarged twice
+    # a bad argument: exit status 2 and the argument's name on stderr
+    assert pyvf_scenes("--out", tmp_path / "bad", "--scenes", 0, "--seed", 1) == 2
     assert "n_scenes" in capsys.readouterr().err
 
 
@@ -629,13 +622,10 @@ def test_cli_writes_dataset_and_preview(tmp_path, capsys):
 def test_cli_checks_paths_before_rendering(bad, option, tmp_path, capsys, monkeypatch):
     """A --out or --preview that cannot be written is one line naming the option, status 2,
     before any scene is rendered or any file written."""
-    parser = argparse.ArgumentParser(prog="pyvf")
-    scenes_cli_register(parser.add_subparsers(dest="command"))
     (tmp_path / "afile").write_text("")
     rendered = interrupt_after(monkeypatch, 0, AssertionError("a scene was rendered"))
-    argv = ["scenes", "--out", str(tmp_path / "ds"), "--scenes", "2", "--seed", "0", "--size", "16", "--quiet"]
-    args = parser.parse_args(argv + [a.format(tmp=tmp_path) for a in bad])
-    assert args.func(args) == 2
+    argv = ["--out", tmp_path / "ds", "--scenes", 2, "--seed", 0, "--size", 16]
+    assert pyvf_scenes(*argv, *[a.format(tmp=tmp_path) for a in bad]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"pyvf scenes: error: argument {option}:") and err.count("\n") == 1, err
     assert rendered[0] == 0 and not (tmp_path / "ds").exists()
