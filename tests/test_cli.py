@@ -98,8 +98,7 @@ def test_a_bad_kernel_path_is_one_line_for_the_command(how, tmp_path):
     for args in (["--help"], ["demo", "--quick"]):
         proc = subprocess.run([*argv, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=TIMEOUT)
         assert proc.returncode == 1 and proc.stdout == "", proc
-        assert proc.stderr.splitlines() == ["pyvf: error: PYVF_ISA='avx9' is not a kernel path of this architecture; "
-                                            f"choose one of {', '.join(pyvf._core._order)}"], proc.stderr
+        assert proc.stderr.startswith("pyvf: error: PYVF_ISA='avx9'") and proc.stderr.count("\n") == 1, proc.stderr
     lib = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=TIMEOUT)
     assert lib.returncode == 1 and "Traceback" in lib.stderr and "ImportError: PYVF_ISA='avx9'" in lib.stderr, lib
@@ -283,12 +282,7 @@ def test_convert_mistakes_are_one_line(mistake, tmp_path, monkeypatch, capsys):
     (tmp_path / "cut.ckpt").write_bytes((tmp_path / "model.ckpt").read_bytes()[:5000])
     torch.save({"state_dict": {"other.weight": torch.zeros(2)}}, tmp_path / "other.ckpt")
     (tmp_path / "model.index").write_bytes(b"")
-    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
-                                 sequence_size=5, n_loss_skip=1)
-    (tmp_path / "tf.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
-    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text(textwrap.dedent(FAKE_DAMAGED_TENSORFLOW))
-    fake_tensorflow(monkeypatch, tmp_path)
+    fake_tensorflow(monkeypatch, tmp_path, FAKE_DAMAGED_TENSORFLOW, "tf.json")
     argv, option = CONVERT_MISTAKES[mistake]
     argv = ["convert", *argv] + ([] if "-o" in argv else ["-o", "out.npz"])
     assert status(argv) == 2
@@ -298,8 +292,16 @@ def test_convert_mistakes_are_one_line(mistake, tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "out.npz").exists()
 
 
-def fake_tensorflow(monkeypatch, tmp_path):
-    """tmp_path/fake/tensorflow imported as tensorflow, in this folder."""
+TF_CONFIG = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
+                                   sequence_size=5, n_loss_skip=1)
+
+
+def fake_tensorflow(monkeypatch, tmp_path, module, config="config.json"):
+    """tmp_path/fake/tensorflow (whose __init__.py is `module`) imported as tensorflow, in this
+    folder, and TF_CONFIG written to tmp_path/config."""
+    (tmp_path / config).write_text(json.dumps(dataclasses.asdict(TF_CONFIG)))
+    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
+    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text(textwrap.dedent(module))
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path / "fake"))
     for name in [m for m in sys.modules if m == "tensorflow" or m.startswith("tensorflow.")]:
@@ -345,18 +347,13 @@ class train:
 def test_convert_tf_transformer(tmp_path, monkeypatch, capsys):
     """The command end to end, with a stand-in tensorflow module (tensorflow itself is not a test
     dependency): object-based checkpoint keys, an optimizer slot and the save counter skipped."""
-    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
-                                 sequence_size=5, n_loss_skip=1)
-    want = {k: v.astype(np.float32) for k, v in pyvf.Transformer(cfg, seed=3).state_dict().items()}
+    want = {k: v.astype(np.float32) for k, v in pyvf.Transformer(TF_CONFIG, seed=3).state_dict().items()}
     suffix = "/.ATTRIBUTES/VARIABLE_VALUE"
     ckpt = {"model/migt/" + k + suffix: v for k, v in want.items()}
     ckpt["save_counter" + suffix] = np.array(1)
     ckpt["model/migt/ln_f/gamma/.OPTIMIZER_SLOT/optimizer/m" + suffix] = np.ones(32, np.float32)
     np.savez(tmp_path / "model.npz", **ckpt)
-    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
-    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text(textwrap.dedent(FAKE_TENSORFLOW))
-    fake_tensorflow(monkeypatch, tmp_path)
+    fake_tensorflow(monkeypatch, tmp_path, FAKE_TENSORFLOW)
     assert status(["convert", "tf-transformer", "model", "--config", "config.json", "-o", "model_out.npz"]) == 0
     assert f"wrote model_out.npz: {len(want)} arrays; skipped 2 other keys" in capsys.readouterr().out
     got = pyvf.Transformer.load(tmp_path / "model_out.npz").state_dict()
@@ -369,13 +366,8 @@ def test_convert_tf_transformer_without_tensorflow(tmp_path, monkeypatch, capsys
     """A clear message and exit status 1, not a traceback (tensorflow hidden by a module that fails
     to import, so that the test runs the same whether tensorflow is installed or not). The files
     are there: a missing one is named first (test_convert_mistakes_are_one_line)."""
-    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
-    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text("raise ImportError('no tensorflow here')\n")
     (tmp_path / "model.index").write_bytes(b"")
-    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
-                                 sequence_size=5, n_loss_skip=1)
-    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    fake_tensorflow(monkeypatch, tmp_path)
+    fake_tensorflow(monkeypatch, tmp_path, "raise ImportError('no tensorflow here')\n")
     assert status(["convert", "tf-transformer", "model", "--config", "config.json", "-o", "out.npz"]) == 1
     assert "needs tensorflow" in capsys.readouterr().err
 
