@@ -384,14 +384,6 @@ def _spy_latents(cb, monkeypatch):
     return seen
 
 
-def test_decode_latent_of_the_codes_is_decode_code(models):
-    cb = models[0]
-    k, E = cb.config.token_size, cb.quantizer.embeddings  # E (D, K): the codes are columns
-    codes = np.random.default_rng(1).integers(0, cb.config.n_embed, (3, k, k))
-    z = np.ascontiguousarray(E.T[codes].transpose(0, 3, 1, 2))  # (3, D, k, k)
-    np.testing.assert_array_equal(cb.decode_latent(z), cb.decode_code(codes))  # the same decoder on the same input
-
-
 def test_render_images_expected_is_the_softmax_mean_of_the_codes(models, monkeypatch):
     """decode="expected": each token's latent is sum_j p_j e_j, p the softmax of its logits. The
     oracle here loops over views and tokens and places token t at row t // k, column t % k, so a
@@ -416,8 +408,8 @@ def test_render_images_expected_is_the_softmax_mean_of_the_codes(models, monkeyp
 
 def test_render_images_argmax_and_a_certain_expected_agree(models):
     """A margin of 1e4 makes the softmax exactly one-hot in float64 (exp(-1e4) is 0), so the
-    expected code vector is the code itself and both decodes give the same bytes; argmax is
-    decode_code of each token's largest logit."""
+    expected code vector is the code itself and both decodes give the same bytes (decode_latent of
+    the codes' vectors is decode_code of the codes); argmax is decode_code of each token's largest logit."""
     cb = models[0]
     k, K = cb.config.token_size, cb.config.n_embed
     codes = np.random.default_rng(3).integers(0, K, (5, k * k))
@@ -445,8 +437,7 @@ def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, sm
 
 
 def pose(xyz, axis, degrees):
-    h = np.radians(degrees) / 2
-    return np.concatenate([xyz, [np.cos(h)], np.sin(h) * np.asarray(axis, float)])
+    return np.concatenate([xyz, quat_about(axis, degrees)])
 
 
 def test_pose_metrics_hard_cases_closed_forms():
