@@ -104,12 +104,9 @@ def test_a_bad_kernel_path_is_one_line_for_the_command(how, tmp_path):
     assert lib.returncode == 1 and "Traceback" in lib.stderr and "ImportError: PYVF_ISA='avx9'" in lib.stderr, lib
 
 
-def test_config(capsys):
-    assert main(["config"]) == 0
-    out = capsys.readouterr().out
-    assert "kernel path:" in out and "threads:" in out
-    # the kernels listed come from the compiled module: every one is callable there, and the
-    # codebook's conv2d and the transformer's GELU are among them
+def test_config():
+    """(`pyvf config` itself: test_every_readme_command_without_torch.) The kernels listed come from
+    the compiled module: every one is callable there, the codebook's conv2d and the GELU among them."""
     listed = pyvf._core.config()["kernels"]
     assert {"attn_forward", "conv2d_forward", "gelu", "matmul", "vq_nearest"} <= set(listed)
     assert all(callable(getattr(pyvf._core, name)) for name in listed)

@@ -59,13 +59,6 @@ def wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def rotation_about(axis, angle):
-    """Rodrigues' rotation matrix, written here: I + sin(t) K + (1 - cos(t)) K^2."""
-    x, y, z = axis
-    K = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]], dtype=np.float64)
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * (K @ K)
-
-
 def project(points, pose, H, W):
     """Pinhole projection of world points (N, 3) by a pose (7,), written from the docs' convention:
     camera-frame coordinates c_k = (X - p) . rotate(q, e_k), pixel (x, y) = f c_xy / c_z + (W, H) / 2,
@@ -310,14 +303,6 @@ def test_gqn_matches_the_published_conversion(rng):
     g = np.stack([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
     assert_close("optical axis", quat_rotate(poses[:, 3:], E_Z), np.stack([g[:, 1], -g[:, 2], -g[:, 0]], axis=1),
                  rtol=TOL)
-
-
-def test_pose_matrix_closed_form():
-    """pose_matrix of the quaternion (cos t/2, sin t/2 axis) is Rodrigues' rotation by t about axis."""
-    axis = np.array([2.0, -1.0, 2.0]) / 3
-    t = 0.7
-    q = np.concatenate([[math.cos(t / 2)], math.sin(t / 2) * axis])  # (w, x, y, z)
-    assert_close("pose_matrix", sc.pose_matrix(q), rotation_about(axis, t), rtol=TOL)
 
 
 # ---------------------------------------------------------------------------------------
