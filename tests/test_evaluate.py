@@ -3,7 +3,7 @@ scene, the scene cache against the whole tree, a smoke run of evaluate() and its
 `pyvf demo` / `pyvf evaluate` commands.
 
 The models are tiny and random (16x16 images, 8x8 tokens of 32 codes): what is tested is the
-protocol and the bookkeeping, not the quality of a trained model. About half a minute on 2 cores.
+protocol and the bookkeeping, not the quality of a trained model. About ten seconds on 2 cores.
 """
 
 import importlib.util
