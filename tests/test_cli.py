@@ -98,19 +98,15 @@ def test_a_bad_kernel_path_is_one_line_for_the_command(how, tmp_path):
     for args in (["--help"], ["demo", "--quick"]):
         proc = subprocess.run([*argv, *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=TIMEOUT)
         assert proc.returncode == 1 and proc.stdout == "", proc
-        assert proc.stderr.splitlines() == ["pyvf: error: PYVF_ISA='avx9' is not a kernel path of this architecture; "
-                                            f"choose one of {', '.join(pyvf._core._order)}"], proc.stderr
+        assert proc.stderr.startswith("pyvf: error: PYVF_ISA='avx9'") and proc.stderr.count("\n") == 1, proc.stderr
     lib = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=TIMEOUT)
     assert lib.returncode == 1 and "Traceback" in lib.stderr and "ImportError: PYVF_ISA='avx9'" in lib.stderr, lib
 
 
-def test_config(capsys):
-    assert main(["config"]) == 0
-    out = capsys.readouterr().out
-    assert "kernel path:" in out and "threads:" in out
-    # the kernels listed come from the compiled module: every one is callable there, and the
-    # codebook's conv2d and the transformer's GELU are among them
+def test_config():
+    """(`pyvf config` itself: test_every_readme_command_without_torch.) The kernels listed come from
+    the compiled module: every one is callable there, the codebook's conv2d and the GELU among them."""
     listed = pyvf._core.config()["kernels"]
     assert {"attn_forward", "conv2d_forward", "gelu", "matmul", "vq_nearest"} <= set(listed)
     assert all(callable(getattr(pyvf._core, name)) for name in listed)
@@ -148,8 +144,8 @@ def test_every_readme_command_without_torch(tmp_path):
                 (["scenes", "--out", "s", "--scenes", "2", "--seed", "3", "--size", "16", "--quiet"], ""),
                 (["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
                 (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"),
-                # the dense NumPy points past N=2 skipped as too slow (predicted): seconds, not a minute
-                (["bench", "scaling", "--quick", "--max-point-seconds", "1"], "skipped: torch is not installed"),
+                # one worker per method at N=2, the larger N skipped as too slow (predicted)
+                (["bench", "scaling", "--sizes", "1x8", "--max-point-seconds", "1e-9"], "skipped: torch is not installed"),
                 (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]
     script = textwrap.dedent(f"""
         import contextlib, io, sys
@@ -183,8 +179,7 @@ def test_threads_is_one_option_checked_once(argv, capsys):
     for bad in ("0", "x", "1025"):
         with pytest.raises(SystemExit) as e:
             main(argv + ["--threads", bad])
-        assert e.value.code == 2
-        assert f"argument --threads: expected a positive integer of at most 1024, got '{bad}'" in capsys.readouterr().err
+        assert e.value.code == 2 and "argument --threads:" in capsys.readouterr().err
     if argv[0] == "bench":
         parser = BENCHMARKS[argv[1]][0]()
         assert parser.parse_args(["--threads", "3"]).threads == 3
@@ -226,9 +221,11 @@ def test_good_bench_arguments_parse(tmp_path, monkeypatch):
     assert parse["report"](["--out", "out/docs", "--quick"]).out == "out/docs"
 
 
-def test_bench_forwards_help(tmp_path):
+def test_bench_forwards_help(capsys):
     """`pyvf bench NAME --help` is the benchmark's own help (pyvf/cli/bench.py's parser of it)."""
-    assert_ran(run(["bench", "vq", "--help"], tmp_path), "usage: pyvf bench vq", "--quick")
+    assert status(["bench", "vq", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: pyvf bench vq") and "--quick" in out, out
 
 
 def torch_codebook_files(folder):
@@ -260,20 +257,15 @@ def test_convert_torch_codebook(tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "converted").exists() and (tmp_path / "converted.npz").is_file()
 
 
-# a mistake -> (`pyvf convert` arguments, the one line on stderr after "pyvf convert FORMAT: error: argument ")
+# a mistake -> (`pyvf convert` arguments, the argument its one line on stderr names)
 CONVERT_MISTAKES = {
-    "config missing": (["torch-codebook", "model.ckpt", "--config", "missing.json"],
-                       "--config: 'missing.json' does not exist"),
-    "config not JSON": (["torch-codebook", "model.ckpt", "--config", "model.ckpt"], "--config: 'model.ckpt' is not JSON"),
-    "checkpoint truncated": (["torch-codebook", "cut.ckpt", "--config", "config.json"],
-                             "checkpoint: 'cut.ckpt' is not a torch checkpoint, or is truncated"),
-    "checkpoint of another model": (["torch-codebook", "other.ckpt", "--config", "config.json"],
-                                    "checkpoint: 'other.ckpt' does not hold the model that --config 'config.json' "
-                                    "describes: load_official: 1 problem: 158 names missing"),
+    "config missing": (["torch-codebook", "model.ckpt", "--config", "missing.json"], "--config"),
+    "config not JSON": (["torch-codebook", "model.ckpt", "--config", "model.ckpt"], "--config"),
+    "checkpoint truncated": (["torch-codebook", "cut.ckpt", "--config", "config.json"], "checkpoint"),
+    "checkpoint of another model": (["torch-codebook", "other.ckpt", "--config", "config.json"], "checkpoint"),
     "output folder missing": (["torch-codebook", "model.ckpt", "--config", "config.json", "-o", "nodir/x.npz"],
-                              "-o/--output: cannot write 'nodir/x.npz': the folder 'nodir' does not exist"),
-    "tf checkpoint damaged": (["tf-transformer", "model", "--config", "tf.json"],
-                              "checkpoint: tensorflow cannot read 'model': model.data-00000-of-00001 is truncated"),
+                              "-o/--output"),
+    "tf checkpoint damaged": (["tf-transformer", "model", "--config", "tf.json"], "checkpoint"),
 }
 
 
@@ -287,23 +279,26 @@ def test_convert_mistakes_are_one_line(mistake, tmp_path, monkeypatch, capsys):
     (tmp_path / "cut.ckpt").write_bytes((tmp_path / "model.ckpt").read_bytes()[:5000])
     torch.save({"state_dict": {"other.weight": torch.zeros(2)}}, tmp_path / "other.ckpt")
     (tmp_path / "model.index").write_bytes(b"")
-    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
-                                 sequence_size=5, n_loss_skip=1)
-    (tmp_path / "tf.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
-    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text(textwrap.dedent(FAKE_DAMAGED_TENSORFLOW))
-    fake_tensorflow(monkeypatch, tmp_path)
-    argv, message = CONVERT_MISTAKES[mistake]
+    fake_tensorflow(monkeypatch, tmp_path, FAKE_DAMAGED_TENSORFLOW, "tf.json")
+    argv, option = CONVERT_MISTAKES[mistake]
     argv = ["convert", *argv] + ([] if "-o" in argv else ["-o", "out.npz"])
     assert status(argv) == 2
     out, err = capsys.readouterr()
-    assert err.startswith(f"pyvf convert {argv[1]}: error: argument {message}"), err
+    assert err.startswith(f"pyvf convert {argv[1]}: error: argument {option}: "), err
     assert err.count("\n") == 1 and out == "", err
     assert not (tmp_path / "out.npz").exists()
 
 
-def fake_tensorflow(monkeypatch, tmp_path):
-    """tmp_path/fake/tensorflow imported as tensorflow, in this folder."""
+TF_CONFIG = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
+                                   sequence_size=5, n_loss_skip=1)
+
+
+def fake_tensorflow(monkeypatch, tmp_path, module, config="config.json"):
+    """tmp_path/fake/tensorflow (whose __init__.py is `module`) imported as tensorflow, in this
+    folder, and TF_CONFIG written to tmp_path/config."""
+    (tmp_path / config).write_text(json.dumps(dataclasses.asdict(TF_CONFIG)))
+    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
+    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text(textwrap.dedent(module))
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path / "fake"))
     for name in [m for m in sys.modules if m == "tensorflow" or m.startswith("tensorflow.")]:
@@ -349,18 +344,13 @@ class train:
 def test_convert_tf_transformer(tmp_path, monkeypatch, capsys):
     """The command end to end, with a stand-in tensorflow module (tensorflow itself is not a test
     dependency): object-based checkpoint keys, an optimizer slot and the save counter skipped."""
-    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
-                                 sequence_size=5, n_loss_skip=1)
-    want = {k: v.astype(np.float32) for k, v in pyvf.Transformer(cfg, seed=3).state_dict().items()}
+    want = {k: v.astype(np.float32) for k, v in pyvf.Transformer(TF_CONFIG, seed=3).state_dict().items()}
     suffix = "/.ATTRIBUTES/VARIABLE_VALUE"
     ckpt = {"model/migt/" + k + suffix: v for k, v in want.items()}
     ckpt["save_counter" + suffix] = np.array(1)
     ckpt["model/migt/ln_f/gamma/.OPTIMIZER_SLOT/optimizer/m" + suffix] = np.ones(32, np.float32)
     np.savez(tmp_path / "model.npz", **ckpt)
-    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
-    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text(textwrap.dedent(FAKE_TENSORFLOW))
-    fake_tensorflow(monkeypatch, tmp_path)
+    fake_tensorflow(monkeypatch, tmp_path, FAKE_TENSORFLOW)
     assert status(["convert", "tf-transformer", "model", "--config", "config.json", "-o", "model_out.npz"]) == 0
     assert f"wrote model_out.npz: {len(want)} arrays; skipped 2 other keys" in capsys.readouterr().out
     got = pyvf.Transformer.load(tmp_path / "model_out.npz").state_dict()
@@ -373,13 +363,8 @@ def test_convert_tf_transformer_without_tensorflow(tmp_path, monkeypatch, capsys
     """A clear message and exit status 1, not a traceback (tensorflow hidden by a module that fails
     to import, so that the test runs the same whether tensorflow is installed or not). The files
     are there: a missing one is named first (test_convert_mistakes_are_one_line)."""
-    (tmp_path / "fake" / "tensorflow").mkdir(parents=True)
-    (tmp_path / "fake" / "tensorflow" / "__init__.py").write_text("raise ImportError('no tensorflow here')\n")
     (tmp_path / "model.index").write_bytes(b"")
-    cfg = pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
-                                 sequence_size=5, n_loss_skip=1)
-    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    fake_tensorflow(monkeypatch, tmp_path)
+    fake_tensorflow(monkeypatch, tmp_path, "raise ImportError('no tensorflow here')\n")
     assert status(["convert", "tf-transformer", "model", "--config", "config.json", "-o", "out.npz"]) == 1
     assert "needs tensorflow" in capsys.readouterr().err
 
@@ -391,14 +376,12 @@ def test_out_checked_before_evaluating(command, tmp_path, monkeypatch, capsys):
     files are named; they need not exist: --out is checked first."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "afile").write_text("")
-    cases = {"afile": "'afile' is a file, not a folder",
-             "afile/x": "cannot create the folder 'afile/x': 'afile' is a file, not a folder"}
-    for out, message in cases.items():
+    for out in ("afile", "afile/x"):
         args = ["--quick"] if command == "demo" else ["--scenes", "1", "--context", "1"]
         assert status([command, *args, "--codebook", "cb.npz", "--transformer", "tf.npz", "--no-progress",
                        "--out", out]) == 2
         captured = capsys.readouterr()
-        assert captured.err.startswith(f"pyvf {command}: error: argument --out: {message}"), captured.err
+        assert captured.err.startswith(f"pyvf {command}: error: argument --out: "), captured.err
         assert captured.err.count("\n") == 1 and "evaluating" not in captured.out, captured.err
 
 
@@ -418,9 +401,9 @@ def test_import_from_the_checkout_root_names_the_cause():
         and "pip install --no-build-isolation -e ." in proc.stderr, proc.stderr
 
 
-def test_one_thread_setting_for_the_kernels_and_blas(tmp_path):
-    """pyvf.threads sets the kernels and numpy's BLAS pool together and the block puts both back;
-    a bad value (and a bad PYVF_NUM_THREADS, read at import) names itself."""
+def test_one_thread_setting_for_the_kernels_and_blas():
+    """pyvf.threads sets the kernels and numpy's BLAS pool together and the block puts both back
+    (its refusals, and PYVF_NUM_THREADS's: test_threads.py)."""
     from threadpoolctl import threadpool_info
 
     def blas():
@@ -431,9 +414,3 @@ def test_one_thread_setting_for_the_kernels_and_blas(tmp_path):
     with pyvf.threads(1):
         assert pyvf.num_threads() == 1 and blas() == [1]
     assert pyvf.num_threads() == before_k and blas() == before_b
-    for bad in (0, True, "2"):
-        with pytest.raises(ValueError, match="positive integer"):
-            pyvf.threads(bad)
-    env = dict(os.environ, PYVF_NUM_THREADS="two")
-    out = subprocess.run([sys.executable, "-c", "import pyvf"], cwd=tmp_path, env=env, capture_output=True, text=True)
-    assert out.returncode != 0 and "PYVF_NUM_THREADS='two' is not a positive integer" in out.stderr

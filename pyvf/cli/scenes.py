@@ -22,7 +22,7 @@ def cmd_scenes(args):
         make_dataset(args.out, args.scenes, args.seed, views=args.views, size=args.size, shard_size=args.shard_size,
                      preview=args.preview, progress=not args.quiet, overwrite=args.overwrite)
     except DatasetExistsError as e:
-        return fail("scenes", f"argument --out: {e.folder} {e.holds}; pass --overwrite to replace it")
+        return fail("scenes", f"argument --out: {str(e).replace('overwrite=True', '--overwrite')}")
     except (ValueError, TypeError) as e:
         return fail("scenes", str(e))
     except OSError as e:  # a folder that cannot be written (a read-only or virtual file system, a full disk)

@@ -19,8 +19,8 @@ The protocol (docs/math.md §6 for the metrics, metrics.py for their exact defin
   `nearest_view`, `mean_image` (images), `closest_image_pose`, `mean_pose` (poses).
 * Image metrics are means over all query images, pose metrics medians over all queries.
 * Timing, on the first min(scenes, timing_scenes) scenes at the largest C: one cached render /
-  localization per view (the scene already encoded; all M queries in one call, and one per
-  call), against recomputing, one query per call: Transformer.render
+  localization per view (the scene already encoded; one query per call), against recomputing,
+  one query per call: Transformer.render
   (encode the context again for every query) and Transformer.forward on [context, query]
   (the whole three-row tree; one call gives both a view's logits and its pose, so it is
   compared with one cached render plus one cached localization).
@@ -84,13 +84,10 @@ METHODS = {
 TIMING_KEYS = (
     "context",  # C of the timed scenes (the largest evaluated)
     "scenes",  # scenes timed together (one batch)
-    "queries",  # query views per scene (M): the cached paths are timed on all of them in one call, and on the first
     "repeat",  # timed calls per measurement (the fastest is kept), after one warm-up call
     "codebook_encode_s_per_image",  # over the whole evaluation
     "codebook_decode_s_per_image",
     "encode_scene_s_per_scene",  # Transformer.encode_scene: the trunk over the context, once per scene
-    "render_cached_s_per_view",  # render_scene on the encoded scene, all M queries of a scene in one call, per view
-    "localize_cached_s_per_view",  # localize_scene, the same
     "render_cached_one_s_per_view",  # render_scene, one query per scene per call
     "localize_cached_one_s_per_view",  # localize_scene, one query per scene per call
     "render_reencode_s_per_view",  # Transformer.render (encode_scene again) for one query
@@ -116,23 +113,7 @@ META_KEYS = (
     "codebook",  # the two configurations (dataclass fields)
     "transformer",
     "sources",  # where the models came from, as the caller said (None when not given)
-    "protocol",  # PROTOCOL: the definitions, in words
 )
-PROTOCOL = {
-    "scenes": "pyvf.scenes.generate_scenes(seed, scenes, views, size); training uses seed 0",
-    "context": "views 0..C-1 of each scene",
-    "queries": "the last views of each scene, the same for every C",
-    "images": "uint8; MAE, RMSE on 0..255 per image then the mean over images; PSNR on [0, 1] per image, "
-              "capped at psnr_cap_db for a perfect image, then the mean",
-    "poses": "medians over all queries of the Euclidean position error and the orientation error in degrees",
-    "pyvf": "render: render_scene's logits decoded by the codebook as meta.decode says (DECODES); "
-            "localize: localize_scene on the ground-truth image's tokens",
-    "codebook": "the ground-truth query image encoded and decoded (the same for every C)",
-    "nearest_view": "the context image whose camera position is nearest the query's",
-    "mean_image": "the mean of the context images",
-    "closest_image_pose": "the pose of the context view whose image has the smallest MSE to the query image",
-    "mean_pose": "mean context position; normalised, sign-canonical mean context quaternion",
-}
 SM7_VIEWS = 15
 # how render_images turns a view's logits (L, K) into the codebook's input
 DECODES = {
@@ -280,7 +261,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
         "n_queries": int(n * M), "trained_context": tf_cfg.sequence_size - 1,
         "psnr_cap_db": psnr_cap((S, S, 3)), "decode": decode, "kernel_path": _core.current_path(),
         "kernel_threads": num_threads(), "codebook": dataclasses.asdict(cb_cfg),
-        "transformer": dataclasses.asdict(tf_cfg), "sources": sources, "protocol": PROTOCOL,
+        "transformer": dataclasses.asdict(tf_cfg), "sources": sources,
     }
     # through JSON once: the dict returned is the file's content (tuples become lists), and a
     # NaN or inf anywhere raises here instead of writing a file that strict readers reject
@@ -406,15 +387,12 @@ def _token_scores(logits, tokens, empty):
 
 def _timing(transformer, tokens, poses, C, qidx, repeat):
     """Seconds per view (the fastest call) of the cached and the recomputing paths on these
-    scenes. The cached paths twice: all M queries of a scene in one call (the cost per view of a
-    batch) and one query per scene per call. The speed-ups compare like with like, one query per
-    call on every path: a recomputing call of one query costs a whole context pass, and a cached
-    call of all M at once would add the gain of batching them to the cache's (render() batches M
-    queries over one context pass too). tokens (B, V, L), poses (B, V, 7) float64."""
+    scenes, one query per scene per call on every path (as a server answers queries that arrive
+    apart), so the speed-ups compare like with like. tokens (B, V, L), poses (B, V, 7) float64."""
     dt = transformer.dtype
-    B, M = tokens.shape[0], len(qidx)
+    B = tokens.shape[0]
     ctx_tok, ctx_pose = tokens[:, :C], poses[:, :C].astype(dt)  # (B, C, L), (B, C, 7)
-    q_tok, q_pose = tokens[:, qidx], poses[:, qidx].astype(dt)  # (B, M, L), (B, M, 7)
+    q_tok, q_pose = tokens[:, qidx[:1]], poses[:, qidx[:1]].astype(dt)  # (B, 1, L), (B, 1, 7): the first query
 
     def timed(fn):
         # the fastest of `repeat` calls after a warm-up: other processes only ever add time, and
@@ -423,22 +401,17 @@ def _timing(transformer, tokens, poses, C, qidx, repeat):
 
     t_scene = timed(lambda: transformer.encode_scene(ctx_tok, ctx_pose))
     scene = transformer.encode_scene(ctx_tok, ctx_pose)
-    t_render_all = timed(lambda: transformer.render_scene(scene, q_pose)) / (B * M)
-    t_localize_all = timed(lambda: transformer.localize_scene(scene, q_tok)) / (B * M)
-    # each path on the first query, one per scene per call, as a server answers queries that arrive apart
-    t_render = timed(lambda: transformer.render_scene(scene, q_pose[:, :1])) / B
-    t_localize = timed(lambda: transformer.localize_scene(scene, q_tok[:, :1])) / B
-    t_reencode = timed(lambda: transformer.render(ctx_tok, ctx_pose, q_pose[:, :1])) / B
+    t_render = timed(lambda: transformer.render_scene(scene, q_pose)) / B
+    t_localize = timed(lambda: transformer.localize_scene(scene, q_tok)) / B
+    t_reencode = timed(lambda: transformer.render(ctx_tok, ctx_pose, q_pose)) / B
     t_full = None
     if C + 1 > transformer.config.n_loss_skip:  # forward needs a loss target
-        seq_tok = np.concatenate([ctx_tok, q_tok[:, :1]], axis=1)  # (B, C + 1, L)
-        seq_pose = make_relative(np.concatenate([ctx_pose, q_pose[:, :1]], axis=1))[0]  # (B, C + 1, 7)
+        seq_tok = np.concatenate([ctx_tok, q_tok], axis=1)  # (B, C + 1, L)
+        seq_pose = make_relative(np.concatenate([ctx_pose, q_pose], axis=1))[0]  # (B, C + 1, 7)
         t_full = timed(lambda: transformer.forward(seq_tok, seq_pose)) / B
     return {
-        "context": int(C), "scenes": int(B), "queries": int(M), "repeat": int(repeat),
+        "context": int(C), "scenes": int(B), "repeat": int(repeat),
         "encode_scene_s_per_scene": t_scene / B,
-        "render_cached_s_per_view": t_render_all,
-        "localize_cached_s_per_view": t_localize_all,
         "render_cached_one_s_per_view": t_render,
         "localize_cached_one_s_per_view": t_localize,
         "render_reencode_s_per_view": t_reencode,
@@ -537,19 +510,14 @@ def goal_line(metrics, contexts=GOAL_CONTEXTS):
             f"{word}. " + " ".join(parts))
 
 
-def _timing_rows(M):
-    """(step, TIMING_KEYS key) of metrics.md's timing table, M queries per scene."""
-    return [("codebook: encode an image", "codebook_encode_s_per_image"),
-            ("codebook: decode an image", "codebook_decode_s_per_image"),
-            ("encode_scene (the context trunk, once per scene)", "encode_scene_s_per_scene"),
-            (f"render a view from the cached scene ({M} queries in one call)", "render_cached_s_per_view"),
-            (f"localize a view from the cached scene ({M} queries in one call)", "localize_cached_s_per_view"),
-            ("render a view from the cached scene (one query per call)", "render_cached_one_s_per_view"),
-            ("localize a view from the cached scene (one query per call)", "localize_cached_one_s_per_view"),
-            ("render a view re-encoding the context (Transformer.render, one query per call)",
-             "render_reencode_s_per_view"),
-            ("the whole tree on [context, query] (Transformer.forward, one query per call)",
-             "forward_full_tree_s_per_view")]
+# (step, TIMING_KEYS key) of metrics.md's timing table
+_TIMING_ROWS = [("codebook: encode an image", "codebook_encode_s_per_image"),
+                ("codebook: decode an image", "codebook_decode_s_per_image"),
+                ("encode_scene (the context trunk, once per scene)", "encode_scene_s_per_scene"),
+                ("render a view from the cached scene", "render_cached_one_s_per_view"),
+                ("localize a view from the cached scene", "localize_cached_one_s_per_view"),
+                ("render a view re-encoding the context (Transformer.render)", "render_reencode_s_per_view"),
+                ("the whole tree on [context, query] (Transformer.forward)", "forward_full_tree_s_per_view")]
 
 
 def metrics_markdown(metrics):
@@ -584,10 +552,10 @@ def metrics_markdown(metrics):
     t = timing
     lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} thread"
               f"{'' if meta['kernel_threads'] == 1 else 's'})", "",
-              f"Transformer: {t['scenes']} scenes at context {t['context']}, {t['queries']} queries each, the "
+              f"Transformer: {t['scenes']} scenes at context {t['context']}, one query per scene per call, the "
               f"fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
               "| step | time |", "|---|---:|"]
-    lines += [f"| {step} | {_seconds(t[key])} |" for step, key in _timing_rows(t["queries"])]
+    lines += [f"| {step} | {_seconds(t[key])} |" for step, key in _TIMING_ROWS]
     lines += ["",
               f"Speed-up of the scene cache, one query per call on every path: {_fmt(t['speedup_vs_reencode'], 1)}x "
               f"against re-encoding the context for every query, {_fmt(t['speedup_vs_full_tree'], 1)}x against the "

@@ -80,7 +80,6 @@ def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
     uniform) and u_y^2 <= sin(60 deg)^2 |u|^2 (the elevation band; up is -y), then u / |u|.
     Candidates are drawn in batches of 2n and kept in order, so the result depends only on the
     generator's state. Only exactly rounded operations: no Gaussian (its tails use exp/log)."""
-    _check_rng(rng)
     n = _checks.integer("n", n, 0)
     radius = _checks.real("radius", radius, 0, lo_open=True)
     out = np.empty((0, 3))
@@ -91,12 +90,6 @@ def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
         u, r2 = u[keep], r2[keep]
         out = np.concatenate([out, u / np.sqrt(r2)[:, None]])
     return out[:n] * radius  # (n, 3)
-
-
-def _check_rng(rng):
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)), "
-                        f"got {type(rng).__name__} {rng!r}")
 
 
 def look_at_poses(positions):

@@ -43,7 +43,7 @@ import numpy as np
 from .._io import atomic_write_bytes, fsync_dir
 from . import cameras, render
 from .. import _checks
-from .render import _image_shape, generate_scene
+from .render import generate_scene
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "MANIFEST", "PROGRESS", "DatasetExistsError", "SceneDataset", "write_dataset",
            "load_dataset", "shard_name"]
@@ -61,13 +61,11 @@ def shard_name(k):
 
 
 class DatasetExistsError(FileExistsError):
-    """write_dataset will not write into `folder`, which `holds` another dataset (a phrase: a
-    finished dataset, or an unfinished write that these arguments cannot resume). The message
-    ends with the Python remedy (overwrite=True); the command line words its own (--overwrite)."""
+    """write_dataset will not write into out_dir, which holds another dataset (a finished one, or
+    an unfinished write that these arguments cannot resume); overwrite=True replaces it."""
 
     def __init__(self, folder, holds):
-        self.folder, self.holds = folder, holds
-        super().__init__(f"{folder} {holds}; pass overwrite=True to replace it")
+        super().__init__(f"out_dir {folder} {holds}; overwrite=True replaces it")
 
 
 @dataclasses.dataclass(eq=False)
@@ -122,20 +120,6 @@ def _constants():
         "value": render.VALUE,
         "rng": "numpy.random.default_rng([seed, scene_index])",
     }
-
-
-def _listing(names):
-    """The first few of a folder's dataset files, for a message."""
-    return f"{', '.join(names[:3])}{', ...' if len(names) > 3 else ''}"
-
-
-def _describe(head):
-    """A progress record's arguments in words (head: its first line, a dict), for a message."""
-    try:
-        return (f"seed {head['seed']}, {head['n_scenes']} scenes of {head['views']} views, "
-                f"{head['height']}x{head['width']} pixels, {head['shard_size']} scenes per shard")
-    except (KeyError, TypeError):
-        return "arguments it does not record"
 
 
 def _read_progress(path):
@@ -199,19 +183,14 @@ def _prepare_dir(out_dir, head, layout, overwrite):
         _remove_stale_temps(out_dir, names)
         return {}
     if MANIFEST in names:
-        raise DatasetExistsError(out_dir, f"already holds a finished dataset ({_listing([MANIFEST] + shards)})")
+        raise DatasetExistsError(out_dir, "holds a finished dataset")
     if PROGRESS in names:
         old, entries = _read_progress(os.path.join(out_dir, PROGRESS))
-        if old is None:
-            raise DatasetExistsError(out_dir, f"holds an unfinished write whose {PROGRESS} cannot be read, which "
-                                              "cannot be resumed")
-        if old != json.loads(json.dumps(head)):  # compared as JSON: tuples are lists there
-            raise DatasetExistsError(out_dir, f"holds an unfinished write of another dataset ({_describe(old)}), "
-                                              "which only its own arguments resume")
+        if old != json.loads(json.dumps(head)):  # compared as JSON: tuples are lists there; None: unreadable
+            raise DatasetExistsError(out_dir, "holds an unfinished write that these arguments cannot resume")
         kept = _verified(out_dir, entries, layout)
     elif shards:
-        raise DatasetExistsError(out_dir, f"holds shard files but no {MANIFEST} ({_listing(shards)}): an "
-                                          f"unfinished write without its {PROGRESS}, which cannot be resumed")
+        raise DatasetExistsError(out_dir, f"holds shards without {PROGRESS}, which cannot be resumed")
     else:
         kept = {}
     for name in shards:  # a shard not kept is rendered again; one these arguments do not write, removed
@@ -240,9 +219,7 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
     seed = _checks.integer("seed", seed, 0)
     views = _checks.integer("views", views, 1)
     shard_size = _checks.integer("shard_size", shard_size, 1)
-    if isinstance(size, (bool, np.bool_)) or not isinstance(size, (int, np.integer)):
-        raise TypeError(f"size must be an int (square images), got {size!r}")
-    H, W = _image_shape(size)
+    H = W = size = _checks.integer("size", size, 8)  # square images, at least 8 pixels
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
 
@@ -333,12 +310,8 @@ def _read_shard(path, entry, views, H, W, mpath):
         raise FileNotFoundError(f"{where} is missing")
     with open(path, "rb") as f:
         data = f.read()
-    if len(data) != entry["bytes"]:
-        what = "truncated" if len(data) < entry["bytes"] else "longer than written"
-        raise ValueError(f"{where} is {what}: {len(data)} bytes, the manifest says {entry['bytes']}")
-    digest = hashlib.sha256(data).hexdigest()
-    if digest != entry["sha256"]:
-        raise ValueError(f"{where} is corrupt: sha256 {digest}, the manifest says {entry['sha256']}")
+    if len(data) != entry["bytes"] or hashlib.sha256(data).hexdigest() != entry["sha256"]:
+        raise ValueError(f"{where} is corrupt: its size or sha256 is not the manifest's")
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         arrays = {name: z[name] for name in z.files}
     n, first = entry["n_scenes"], entry["first_scene"]
@@ -363,9 +336,6 @@ def load_dataset(path):
     if not os.path.isdir(root):
         raise FileNotFoundError(f"dataset folder {root} does not exist")
     if not os.path.isfile(mpath):
-        if os.path.isfile(os.path.join(root, PROGRESS)):
-            raise FileNotFoundError(f"{mpath} is missing: the write of this dataset did not finish ({PROGRESS} is "
-                                    "there); the same arguments to `pyvf scenes` (write_dataset) resume it")
         raise FileNotFoundError(f"{mpath} is missing: not a dataset folder, or its write did not finish")
     manifest = _read_manifest(mpath)
     S, V, H, W = (manifest[k] for k in ("n_scenes", "views", "height", "width"))

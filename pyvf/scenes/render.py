@@ -42,7 +42,7 @@ import numpy as np
 from .. import _checks
 
 from ..geometry import _UNIT_TOL, _check_unit
-from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, _check_rng, _rotation, look_at_poses, sample_camera_positions
+from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, _rotation, look_at_poses, sample_camera_positions
 
 __all__ = [
     "N_CUBES",
@@ -104,7 +104,6 @@ def make_object(rng):
     Draws from rng, in this order: for each of cubes 1..6, one integer choosing among the free
     face neighbours of the previous cube (in the order of _STEPS: +x, -x, +y, -y, +z, -z); then
     the 7 hues."""
-    _check_rng(rng)
     cells = [(0, 0, 0)]
     occupied = {cells[0]}
     for _ in range(N_CUBES - 1):
