@@ -56,7 +56,7 @@ def cmd_convert(args):
     """Convert a published checkpoint into the .npz that pyvf loads."""
     command = f"convert {args.format}"
     module, _, config_class = CONVERTERS[args.format]
-    # the name Model.save writes (pyvf.models.io.save_model appends .npz), passed on ending in .npz
+    # the name Model.save writes (it appends .npz), passed on ending in .npz
     output = args.output if args.output.endswith(".npz") else args.output + ".npz"
     # every argument checked before the framework is imported and the checkpoint read
     for option, problem in (("checkpoint", _checkpoint_problem(args.format, args.checkpoint)),
