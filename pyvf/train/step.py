@@ -8,21 +8,8 @@
 pyvf.train.loops runs these steps with checkpoints (train_transformer, train_codebook).
 """
 
-import numpy as np
-
-from .. import _checks
 from ..geometry import make_relative
 from .optim import clip_grad_norm, global_norm
-
-
-def check_clipping(max_grad_norm, clip_mode):
-    """The gradient clipping settings under these names (clip_grad_norm would name its own
-    max_norm and mode, and only when clipping): max_grad_norm None (no clipping) or a finite
-    number > 0, returned as a float; clip_mode "global" or "per_tensor", checked even without
-    clipping (a mistyped mode would otherwise pass unnoticed)."""
-    if clip_mode not in ("global", "per_tensor"):
-        raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {clip_mode!r}")
-    return None if max_grad_norm is None else _checks.real("max_grad_norm", max_grad_norm, lo=0.0, lo_open=True)
 
 
 def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
@@ -30,10 +17,6 @@ def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, cli
     forward before the update, the gradient norm before clipping). See train_step."""
     if optimizer.params is not model.params:
         raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
-    # the settings are checked before the step runs, under these names
-    if not isinstance(relative, (bool, np.bool_)):  # "no" is truthy, None falsy: neither is a choice
-        raise TypeError(f"relative must be True or False, got {type(relative).__name__} {relative!r}")
-    max_grad_norm = check_clipping(max_grad_norm, clip_mode)
     if relative:
         poses = make_relative(poses)[0]
     out = model.forward(tokens, poses)
