@@ -44,7 +44,7 @@ from .batches import codebook_batch, transformer_batch
 from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
 from .torch_codebook_engine import check_codebook_engine, parity_images
-from .torch_engine import Follower, TorchTransformer, check_engine, data_parallel, log_parity, parity_batch
+from .torch_engine import Follower, TorchTransformer, check_engine, check_parity, data_parallel, parity_batch
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
 # configuration (docs/math.md §4) at a quarter of the channels, one ResnetBlock per level and no
@@ -172,12 +172,12 @@ def _warm_start(cls, config, hyper, out_dir, opts):
 
 def _checkpoint(run, step, state, opt, check):
     """The loops' checkpoint after `step`, when due or when Ctrl-C asked the run to stop (then
-    KeyboardInterrupt after the save): the engine's check(out_dir, step) first (the torch engine's
+    KeyboardInterrupt after the save): the engine's check(run, step) first (the torch engine's
     parity: a divergent model is not checkpointed), then run.save."""
     stop = run.stop_requested()  # read once: a Ctrl-C from here on stops after the next step
     if stop or run.checkpoint_due(step):
         if check is not None:
-            check(run.out_dir, step)
+            check(run, step)
         run.save(step, state(), opt)
     if stop:
         raise KeyboardInterrupt
@@ -251,7 +251,7 @@ def _codebook_and_optimiser(run, config, seed, lr, betas, init_state=None):
 def _codebook_engine(engine, model, opt, parity, device, precision):
     """train_codebook's engine: (step(x, w) -> the log's values but lr, reset(x, rng): the
     dead-code restart after the step, state() -> the state dict, current() -> the model, the
-    optimiser the loop reads, check(out_dir, step) before each checkpoint or None). The torch
+    optimiser the loop reads, check(run, step) before each checkpoint or None). The torch
     engine's check is the parity of the torch model and pyvf's on the images `parity`."""
     if engine != "torch":
         def step(x, w):
@@ -267,8 +267,8 @@ def _codebook_engine(engine, model, opt, parity, device, precision):
     from .torch_codebook_engine import TorchCodebook
     eng = TorchCodebook(model, opt, device=device, precision=precision)
 
-    def check(out_dir, step):  # before the save: a divergent model is not checkpointed
-        log_parity(out_dir, step, eng.parity(parity))
+    def check(run, step):  # before the save: a divergent model is not checkpointed
+        check_parity(run, step, eng.parity(parity))
 
     return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, check
 
@@ -488,7 +488,7 @@ def _transformer_and_optimiser(run, config, hyper, schedule, init_state=None):
 def _transformer_engine(opts, model, opt, dp, parity, recipe):
     """train_transformer's engine: (step(tok, pos) -> (loss, mean ce, mean pose loss, grad norm),
     state() -> the state dict, current() -> the model, the optimiser whose lr_at and step count
-    the loop reads, check(out_dir, step) before each checkpoint or None). The torch engine's
+    the loop reads, check(run, step) before each checkpoint or None). The torch engine's
     check is the parity of the torch model and pyvf's on the batch `parity` (tokens, poses)."""
     if opts.engine != "torch":
         def step(tok, pos):
@@ -502,8 +502,8 @@ def _transformer_engine(opts, model, opt, dp, parity, recipe):
     eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision,
                            max_grad_norm=recipe.max_grad_norm, clip_mode=recipe.clip_mode, dp=dp)
 
-    def check(out_dir, step):  # before the save: a divergent model is not checkpointed
-        log_parity(out_dir, step, eng.parity(*parity))
+    def check(run, step):  # before the save: a divergent model is not checkpointed
+        check_parity(run, step, eng.parity(*parity))
 
     return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, check
 

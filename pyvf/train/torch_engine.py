@@ -24,8 +24,6 @@ follow on the summed gradients, the same on every process. Rank 0 alone writes t
 so every process resumes from rank 0's checkpoint.
 """
 
-import csv
-import io
 import math
 import os
 import re
@@ -34,8 +32,6 @@ import numpy as np
 
 from ..verify.compare import compare
 from ..geometry import make_relative
-from .._io import atomic_write_text
-from ._run import resume_point
 from .batches import transformer_batch
 from ..verify.layout import params_from_layout, params_to_layout
 
@@ -47,7 +43,6 @@ from ..verify.layout import params_from_layout, params_to_layout
 # The codebook's engine logs it too: its forward measures 3.8e-6 (the reconstruction). Either is one
 # model's forward in two engines, so it does not grow with the steps a run took to reach the weights.
 PARITY_RTOL = 1e-3
-PARITY_LOG = "parity.csv"
 
 
 def import_torch():
@@ -366,26 +361,11 @@ class TorchTransformer:
         return compare(mine, ref, rtol=PARITY_RTOL)
 
 
-def log_parity(out_dir, step, comparison):
-    """Append the parity check of `step` to out_dir/parity.csv; raise when it failed. As log.csv, the
-    file keeps the rows of the run it continues, those up to out_dir's checkpoint (none before the
-    first): an older run's (a fresh start in the folder) and a resumed run's past its checkpoint go."""
-    path = os.path.join(out_dir, PARITY_LOG)
+def check_parity(run, step, comparison):
+    """Log the parity check of `step` to the run's parity.csv (Run.log_parity); raise when it failed,
+    before the checkpoint: a divergent model is not checkpointed."""
     worst = max(comparison.rows, key=lambda r: (not np.isfinite(r.rel), r.rel))
-    meta = resume_point(out_dir)  # the checkpoint before this step's (Run removed an older run's)
-    rows = []
-    if os.path.exists(path):
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.reader(f))[1:]
-    kept = [r for r in rows if meta is not None and r and r[0].isdigit() and int(r[0]) <= meta["step"]]
-    row = [step, worst.name, repr(float(worst.rel)), repr(PARITY_RTOL)]
-    if rows and kept == rows:
-        with open(path, "a", newline="", encoding="utf-8") as f:
-            csv.writer(f, lineterminator="\n").writerow(row)
-    else:  # a new file, or rows to drop: written whole, atomically
-        text = io.StringIO()
-        csv.writer(text, lineterminator="\n").writerows([["step", "worst", "rel_err", "bound"], *kept, row])
-        atomic_write_text(path, text.getvalue())
+    run.log_parity(step, worst.name, worst.rel, PARITY_RTOL)
     if not comparison.ok:
         raise RuntimeError(f"parity check at step {step}: the torch model and pyvf differ first in "
                            f"{comparison.first!r} (normwise relative error over {PARITY_RTOL}); the "
@@ -399,4 +379,4 @@ def parity_batch(tokens, poses, n_views, seed, dtype):
 
 
 __all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_autocast",
-           "check_engine", "data_parallel", "log_parity", "parity_batch", "world_size"]
+           "check_engine", "check_parity", "data_parallel", "parity_batch", "world_size"]
