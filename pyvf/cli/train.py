@@ -110,9 +110,8 @@ def cmd_train(args):
 
 def cmd_runs(args):
     """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
-    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn. A folder
-    of another program (its config.json not a run's) is skipped with a note; a torn last line of a
-    log (a run killed mid-write) is left out, as the trainers do."""
+    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn. A torn
+    last line of a log (a run killed mid-write) is left out, as the trainers do."""
     def work():
         table, plots = tasks.compare_runs(args.run_dirs, plot=args.plot, step=args.step)
         print(table, end="")

@@ -45,7 +45,7 @@ import numpy as np
 from .. import _core
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
 from .._machine import cpu_name
-from .curves import eval_line
+from .curves import eval_line, plot_eval
 
 CHECKPOINT, LOG, CONFIG, EVAL_LOG, PARITY_LOG = "checkpoint.npz", "log.csv", "config.json", "eval.csv", "parity.csv"
 PARITY_COLUMNS = ["step", "worst", "rel_err", "bound"]
@@ -293,9 +293,10 @@ class Run:
         return bool(every) and (step % every == 0 or step == self.steps_total)
 
     def log_eval(self, step, values):
-        """Append one row of held-out figures to eval.csv (values: column -> float) and print it
-        to stderr beside its baselines (curves.eval_line). The row reads only the model: evaluation
-        never changes the training trajectory."""
+        """Append one row of held-out figures to eval.csv (values: column -> float), print it
+        to stderr beside its baselines (curves.eval_line) and redraw eval.png (the curves so far,
+        the baselines dashed). The row reads only the model: evaluation never changes the training
+        trajectory."""
         row = [str(step)] + [repr(float(values[c])) for c in self.eval_columns[1:-1]] + [f"{self.seconds():.3f}"]
         with open(self.eval_path, "a", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow(row)
@@ -304,6 +305,7 @@ class Run:
             self._bar.write(line, file=sys.stderr)  # above the bar, on the bar's stream
         else:
             print(line, file=sys.stderr)
+        plot_eval(self.out_dir)
 
     def log_parity(self, step, worst, rel_err, bound):
         """Append the torch engine's parity check of `step` (its model against pyvf's, before the

@@ -41,7 +41,6 @@ from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, file_sha256, fingerprint, resume_point
 from .batches import codebook_batch, transformer_batch
-from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
 from .torch_codebook_engine import check_codebook_engine, parity_images
 from .torch_engine import Follower, TorchTransformer, check_engine, check_parity, data_parallel, parity_batch
@@ -198,11 +197,7 @@ def _recipe(recipe, overrides):
         raise TypeError(f"train_codebook got unexpected keyword arguments {unknown}")
     r = {**CODEBOOK_RECIPES[recipe], **{k: v for k, v in overrides.items() if v is not None}}
     lr = _checks.real("lr", r["lr"], lo=0.0)
-    betas = r["betas"]
-    if not isinstance(betas, (tuple, list)) or len(betas) != 2 or not all(0 <= _checks.real("betas", b) < 1
-                                                                        for b in betas):
-        raise ValueError(f"betas must be two numbers in [0, 1), got {betas!r}")
-    betas = (float(betas[0]), float(betas[1]))
+    betas = tuple(_checks.real("betas", b, 0.0, 1.0, hi_open=True) for b in r["betas"])
     reset_dead_codes = _checks.integer("reset_dead_codes", r["reset_dead_codes"], 0)
     object_weight = _checks.real("object_weight", r["object_weight"], lo=0.0, lo_open=True)
     if r["restart"] not in ("batch", "worst"):
@@ -324,7 +319,6 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
         with run:
             if eval_fp is not None and not run.resumed:
                 run.log_eval(0, codebook_health(current(), eval_images))
-                plot_eval(run.out_dir)
             for t in run.steps():
                 x = codebook_batch(flat, B, seed, t, config.dtype, object_weight if weighted else None)
                 x, w = x if weighted else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
@@ -335,7 +329,6 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
                 run.log(t, {**values, "lr": lr_t})
                 if eval_fp is not None and run.eval_due(t, opts.eval_every):
                     run.log_eval(t, codebook_health(current(), eval_images))
-                    plot_eval(run.out_dir)  # eval.png: the curves so far
                 _checkpoint(run, t, state, opt, check)
         run.save_final(state())
         return current()
@@ -436,25 +429,16 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
 
 
 def _transformer_eval(eval_set, eval_every, config):
-    """train_transformer's held-out evaluation, eval_set checked: (its record for config.json,
-    the columns of eval.csv, health(model) -> the row of transformer_health at health_contexts);
-    all None without eval_set or with eval_every 0 (a set not evaluated on is not the run's)."""
-    if eval_set is None:
+    """train_transformer's held-out evaluation: (its record for config.json, the columns of
+    eval.csv, health(model) -> the row of transformer_health at health_contexts); all None without
+    eval_set or with eval_every 0 (a set not evaluated on is not the run's). eval_set: held_out_set's,
+    whose codebook must be the one the run's tokens index (the rest is held_out_set's making)."""
+    if eval_set is None or eval_every == 0:
         return None, None, None
-    if not isinstance(eval_set, dict) or set(eval_set) != {"codebook", "images", "poses", "tokens"}:
-        raise ValueError("eval_set must be a dict of codebook, images, poses and tokens (held_out_set's)")
     cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
-    if not isinstance(cb, Codebook) or (cb.config.n_embed, cb.config.token_size) != (
-            config.n_embeddings, config.token_image_size):
+    if (cb.config.n_embed, cb.config.token_size) != (config.n_embeddings, config.token_image_size):
         raise ValueError("eval_set['codebook'] must be the Codebook the tokens came from: its codes and token "
                          "images those the transformer reads (config.n_embeddings, config.token_image_size)")
-    _check_images(images, cb.config, "eval_set['images']")
-    _check_tokens_poses(tokens, poses, config, ("eval_set['tokens']", "eval_set['poses']"))
-    if images.ndim != 5 or tokens.shape != images.shape[:2] + (config.token_image_size ** 2,):
-        raise ValueError("eval_set['images'] and eval_set['tokens'] must have shapes (scenes, views, S, S, C) and "
-                         "(scenes, views, L) (held_out_set's)")
-    if eval_every == 0:
-        return None, None, None
     contexts = health_contexts(config, images.shape[1])
     if not contexts:
         raise ValueError(f"eval_set's scenes have {images.shape[1]} views: too few for a context and the queries")
@@ -561,7 +545,6 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         with run:
             if evaluating and not run.resumed:
                 run.log_eval(0, health(current()))
-                plot_eval(run.out_dir)
             for t in run.steps():
                 tok, pos = transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)  # (B, N, L), (B, N, 7)
                 lr_t = opt.lr_at(opt.step_count)
@@ -569,7 +552,6 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
                 run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl, "grad_norm": norm, "lr": lr_t})
                 if evaluating and run.eval_due(t, opts.eval_every):
                     run.log_eval(t, health(current()))
-                    plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
                 _checkpoint(run, t, state, opt, check)
         run.save_final(state())
     if dp is not None:

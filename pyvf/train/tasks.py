@@ -25,7 +25,7 @@ from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import CHECKPOINT, read_checkpoint, resume_point
-from .curves import NotARunError, plot_eval, read_log, read_run_config, runs_table
+from .curves import plot_eval, read_log, runs_table
 from .loops import (
     TINY_CODEBOOK,
     TransformerRecipe,
@@ -194,30 +194,12 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
                              codebook_fingerprint=fingerprint)
 
 
-def compare_runs(run_dirs, plot=False, step=None, note=None):
+def compare_runs(run_dirs, plot=False, step=None):
     """`pyvf runs`: (the markdown table of the run folders, runs_table, at `step` when given; with
-    plot, the eval.png redrawn in each folder whose eval.csv has rows). A folder whose config.json
-    is another program's is left out, note(line) saying so (default: printed to stderr); a
-    damaged file raises ValueError naming it (a torn last line of a log is left out, as the
-    trainers do)."""
-    if step is not None and (isinstance(step, (bool, np.bool_)) or not isinstance(step, (int, np.integer))
-                             or step < 0):
-        raise ValueError(f"step must be a non-negative integer, got {step!r}")
-    note = note or (lambda line: print(f"pyvf runs: note: {line}", file=sys.stderr))
-    runs = []
-    for d in run_dirs:
-        if not os.path.exists(os.path.join(d, "config.json")):
-            raise ValueError(f"{d} is not a run folder (no config.json)")
-        try:
-            read_run_config(d)
-        except NotARunError as e:
-            note(f"skipped {d}: {e}")
-            continue
-        runs.append(d)
-    if not runs:
-        raise ValueError(f"no run folder to compare among {', '.join(map(str, run_dirs))}")
-    table = runs_table(runs, step=step)
-    plots = [plot_eval(d) for d in runs if plot and os.path.exists(os.path.join(d, "eval.csv"))
+    plot, the eval.png redrawn in each folder whose eval.csv has rows). A torn last line of a log is
+    left out, as the trainers do."""
+    table = runs_table(run_dirs, step=step)
+    plots = [plot_eval(d) for d in run_dirs if plot and os.path.exists(os.path.join(d, "eval.csv"))
              and len(read_log(d, "eval.csv", empty_ok=True)["step"])]
     return table, plots
 
