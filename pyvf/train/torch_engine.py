@@ -253,7 +253,33 @@ class TorchAdamW:
         return self.ref.state_dict()
 
 
-class TorchTransformer:
+class TorchEngine:
+    """What both torch engines (TorchTransformer, torch_codebook_engine.TorchCodebook) share: the
+    model's torch port (port), its parameters by official name (_names), the update (opt, a
+    TorchAdamW continuing the run's pyvf optimiser), and to_pyvf() -> the pyvf model holding the
+    port's current weights."""
+
+    def state_dict(self):
+        """The weights (and buffers) in pyvf's layout, numpy: what Run.save writes."""
+        return self.to_pyvf().state_dict()
+
+    def _zero_grad(self):
+        for p in self._names.values():
+            p.grad = None
+
+    def _refuse_nonfinite(self, stats, names):
+        """stats: the step's loss figures and gradient norm, numpy; not finite -> ValueError."""
+        if not np.isfinite(stats).all():
+            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
+                             f"({names} = {stats.tolist()}): no update applied; lower the learning rate")
+
+    def _parity(self, mine, out):
+        """pyvf.compare of the torch model's quantities `mine` against the pyvf output's `out` of the
+        same names, at PARITY_RTOL."""
+        return compare(mine, {k: np.asarray(getattr(out, k)) for k in mine}, rtol=PARITY_RTOL)
+
+
+class TorchTransformer(TorchEngine):
     """The torch engine's model and optimiser for train_transformer's loop.
 
     model: the pyvf Transformer holding the starting weights (a fresh one, or restored from a
@@ -292,10 +318,6 @@ class TorchTransformer:
                                       layout="torch")
         return self.pyvf_model
 
-    def state_dict(self):
-        """The weights in pyvf's layout (numpy), as Transformer.state_dict() gives them."""
-        return self.to_pyvf().state_dict()
-
     def _outputs(self, tokens, poses, autocast):
         """tokens (B, N, L) int64, poses (B, N, 7) numpy, poses already relative -> logits,
         raw pose, ce (B,), pose loss (B,), loss, on the device."""
@@ -313,8 +335,7 @@ class TorchTransformer:
         a tensor of the batch's loss, mean ce and mean pose loss)."""
         B = len(tokens)
         lo, hi = (0, B) if self.dp is None else self.dp.shard(B)
-        for p in self._names.values():
-            p.grad = None
+        self._zero_grad()
         _, _, ce, pl, loss = self._outputs(tokens[lo:hi], poses[lo:hi], self.precision == "bf16")
         share = (hi - lo) / B  # loss = mean over the shard: its part of the batch mean is share * loss
         (loss * share).backward()
@@ -332,10 +353,7 @@ class TorchTransformer:
         norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
         total = norms.square().sum().sqrt()
         stats = torch.cat([sums, total[None]]).cpu().numpy()
-        if not np.isfinite(stats).all():
-            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
-                             "(loss, ce, pose loss, grad norm = "
-                             f"{stats.tolist()}): no update applied; lower the learning rate")
+        self._refuse_nonfinite(stats, "loss, ce, pose loss, grad norm")
         if self.max_grad_norm is not None:
             m = float(self.max_grad_norm)
             if self.clip_mode == "per_tensor":  # tf.clip_by_norm per tensor, as pyvf's clip_grad_norm
@@ -355,10 +373,7 @@ class TorchTransformer:
             logits, raw, ce, pl, loss = self._outputs(tokens, pos, False)
         mine = {"logits": logits.cpu().numpy(), "pose_raw": raw.cpu().numpy(), "ce_loss": ce.cpu().numpy(),
                 "pose_loss": pl.cpu().numpy(), "loss": np.asarray(loss.item())}
-        out = self.to_pyvf().forward(tokens, pos.astype(self.pyvf_model.dtype))
-        ref = {"logits": out.logits, "pose_raw": out.pose_raw, "ce_loss": out.ce_loss,
-               "pose_loss": out.pose_loss, "loss": np.asarray(out.loss)}
-        return compare(mine, ref, rtol=PARITY_RTOL)
+        return self._parity(mine, self.to_pyvf().forward(tokens, pos.astype(self.pyvf_model.dtype)))
 
 
 def check_parity(run, step, comparison):
@@ -378,5 +393,5 @@ def parity_batch(tokens, poses, n_views, seed, dtype):
     return transformer_batch(tokens, poses, n_views, 4, seed + 1_000_003, 0, dtype)
 
 
-__all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_autocast",
+__all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchEngine", "TorchTransformer", "PARITY_RTOL", "check_autocast",
            "check_engine", "check_parity", "data_parallel", "parity_batch", "world_size"]
