@@ -131,19 +131,18 @@ def _check_images(images, config, name="images"):
     return images.reshape(-1, S, S, C)
 
 
-def _check_tokens_poses(tokens, poses, config, names=("tokens", "poses")):
+def _check_tokens_poses(tokens, poses, config):
     """tokens ints (scenes, views, ...) in [0, n_embeddings), poses (scenes, views, 7) finite with
     unit quaternions (in the model's dtype, as the batches hold them: checked here rather than at
-    the first step that draws a bad view, which may come thousands of steps in). names: theirs."""
-    t, p = names
-    _checks.int_array(t, tokens)
+    the first step that draws a bad view, which may come thousands of steps in)."""
+    _checks.int_array("tokens", tokens)
     if tokens.size == 0 or tokens.min() < 0 or tokens.max() >= config.n_embeddings:
-        raise ValueError(f"{t} must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
-    _checks.float_array(p, poses)
+        raise ValueError(f"tokens must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
+    _checks.float_array("poses", poses)
     if poses.shape != tokens.shape[:2] + (7,):
-        raise ValueError(f"{p} must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
-    _checks.finite(p, poses)
-    _check_unit(f"the quaternions of {p}", poses[..., 3:].astype(config.dtype))
+        raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
+    _checks.finite("poses", poses)
+    _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))
 
 
 def _warm_start(cls, config, hyper, out_dir, opts):
@@ -537,7 +536,7 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
                       interruptible=dp is None)
         if dp is not None:  # the other processes follow rank 0's run from its start step
             start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
-            run = run if dp.rank == 0 else Follower(start, opts.steps, out_dir)
+            run = run if dp.rank == 0 else Follower(start, opts.steps)
         evaluating = health is not None and not isinstance(run, Follower)
         model, opt = _transformer_and_optimiser(run, config, hyper, schedule, init_state)
         step, state, current, opt, check = _transformer_engine(

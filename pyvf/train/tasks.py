@@ -39,7 +39,7 @@ from .loops import (
 )
 
 __all__ = ["EVAL_VIEWS", "checkpoint_step", "codebook_run", "compare_runs", "export_run", "held_out_scenes",
-           "held_out_views", "read_codebook", "read_config", "read_model", "same_file", "tokenize_dataset",
+           "held_out_views", "read_codebook", "read_config", "same_file", "tokenize_dataset",
            "transformer_run"]
 
 EVAL_VIEWS = 4  # views per held-out scene in a codebook run's evaluation
@@ -65,15 +65,14 @@ def read_config(value, cls, tiny):
                          f"{[f.name for f in dataclasses.fields(cls)]}") from e
 
 
-def read_model(path, cls, what):
-    """cls.load(path) (cls: Codebook or Transformer), its errors as ValueError naming `what`
-    ("codebook", or the option "--init") and the file."""
+def read_codebook(path):
+    """Codebook.load(path), its errors as ValueError naming the codebook file."""
     try:
-        return cls.load(path)
+        return Codebook.load(path)
     except FileNotFoundError as e:
-        raise ValueError(f"{what} {path} does not exist") from e
+        raise ValueError(f"codebook {path} does not exist") from e
     except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
-        raise ValueError(f"{what} {path} is not a readable {cls.FILE_KIND} file: {type(e).__name__}: {e}") from e
+        raise ValueError(f"codebook {path} is not a readable codebook file: {type(e).__name__}: {e}") from e
 
 
 def same_file(a, b):
@@ -92,11 +91,6 @@ def _refuse_input_as_output(out, inputs, option):
         if same_file(out, path):
             raise ValueError(f"{option} {out} is {what} ({path}): writing it would overwrite an input; "
                              "choose another output file")
-
-
-def read_codebook(path):
-    """Codebook.load(path), its errors as ValueError naming the file."""
-    return read_model(path, Codebook, "codebook")
 
 
 def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
@@ -141,8 +135,6 @@ def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1,
     opts.init when given; recipe: train_codebook's recipe and overrides. Returns the trained
     Codebook (out/codebook.npz)."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
-    if opts.init is not None and resume_point(out, opts.resume) is None:  # a resume does not read it
-        read_model(opts.init, Codebook, "--init")  # a missing file or another model's, named as the option
     from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
     data = load_dataset(data)
     held_out = held_out_views(opts.eval_every, eval_scenes, eval_seed, data, config.image_size)
@@ -175,8 +167,6 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
     opts.eval_every steps on held_out_scenes; starting from the transformer file opts.init when
     given. Returns the trained Transformer (out/transformer.npz)."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
-    if opts.init is not None and resume_point(out, opts.resume) is None:  # a resume does not read it
-        read_model(opts.init, Transformer, "--init")  # a missing file or another model's, named as the option
     tokens_path, (tokens, poses, n_embed, fingerprint) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
         raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "

@@ -24,6 +24,7 @@ follow on the summed gradients, the same on every process. Rank 0 alone writes t
 so every process resumes from rank 0's checkpoint.
 """
 
+import contextlib
 import math
 import os
 import re
@@ -68,14 +69,11 @@ def check_engine(engine, device, precision, dtype=None):
     if engine == "pyvf" and (device != "cpu" or precision != "fp32"):
         raise ValueError(f"device={device!r} and precision={precision!r} need engine='torch' "
                          "(pyvf's engine runs on the CPU in the configuration's dtype)")
-    if engine == "torch":
+    if engine == "torch" and device != "cpu":
         torch = import_torch()
-        if device.startswith("cuda") and not torch.cuda.is_available():
-            raise ValueError(f"device={device!r}, but torch sees no CUDA device (torch {torch.__version__})")
-        if device.startswith("cuda:") and int(device[5:]) >= torch.cuda.device_count():
-            n = torch.cuda.device_count()
-            raise ValueError(f"device={device!r}, but torch sees {n} CUDA device{'s' if n > 1 else ''} "
-                             f"(cuda:0{f' to cuda:{n - 1}' if n > 1 else ''})")
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if int(device[5:] or 0) >= n:
+            raise ValueError(f"device={device!r}, but torch sees {n} CUDA devices (torch {torch.__version__})")
     if dtype is not None:
         check_autocast(precision, dtype)
 
@@ -167,38 +165,23 @@ def data_parallel(device, batch_size):
     return DataParallel(dist, torch.device(device), created=not initialised), device
 
 
-class Follower:
+class Follower(contextlib.nullcontext):
     """Run's stand-in on the processes of a data-parallel run other than rank 0: the same steps
     from rank 0's start, nothing read or written (rank 0's Run keeps the folder)."""
 
     resumed, model_state, optimizer_state = False, None, None
 
-    def __init__(self, start, steps_total, out_dir):
-        self.start, self.steps_total, self.out_dir = start, steps_total, out_dir
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
+    def __init__(self, start, steps_total):
+        super().__init__(self)
+        self.start, self.steps_total = start, steps_total
 
     def steps(self):
         return range(self.start + 1, self.steps_total + 1)
 
-    def log(self, step, values):
-        pass
-
-    def eval_due(self, step, every):
+    def _false(self, *args):
         return False
 
-    def checkpoint_due(self, step):
-        return False
-
-    def stop_requested(self):
-        return False
-
-    def save_final(self, arrays):
-        pass
+    eval_due = checkpoint_due = stop_requested = log = save_final = _false
 
 
 class TorchAdamW:
