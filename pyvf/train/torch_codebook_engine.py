@@ -18,11 +18,11 @@ At every checkpoint pyvf loads the torch model's weights and buffers, runs a fix
 (evaluation mode: no EMA update) within torch_engine.PARITY_RTOL; parity.csv logs the worst
 error and a larger one stops the run naming the first divergent quantity. The codes must be
 equal: a code chosen otherwise by a float32 near-tie (two codes equidistant to rounding) would
-stop the run too, and shows as `codes`. The training steps are checked in tests/test_torch_engine.py:
-each equals pyvf's step from the same state to float32 rounding (gradients, Adam, EMA); a free float32
-run drifts further from pyvf's (8.7e-4 of the movement in 20 steps on the tests' model), as Adam
-normalises gradient entries that are below their own rounding error, and pyvf's float32 run drifts as
-far from its float64 one.
+stop the run too, and shows as `codes`. tests/test_torch_engine.py checks a float64 run (gradients,
+Adam, EMA, restarts) against pyvf's to 1e-9 of the weights' movement; a free float32 run drifts
+further from pyvf's (8.7e-4 of the movement in 20 steps on the tests' model), as Adam normalises
+gradient entries that are below their own rounding error, and pyvf's float32 run drifts as far
+from its float64 one.
 
 One process: the EMA statistics are sums over the whole batch (a data-parallel codebook would
 all-reduce them too, which this engine does not).
