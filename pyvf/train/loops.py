@@ -476,7 +476,7 @@ def _transformer_engine(opts, model, opt, dp, parity, recipe):
     if opts.engine != "torch":
         def step(tok, pos):
             out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
-                                         clip_mode=recipe.clip_mode, relative=True)
+                                         clip_mode=recipe.clip_mode)
             if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
                 norm = float(np.sqrt(sum(n * n for n in norm.values())))
             return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm

@@ -12,14 +12,12 @@ from ..geometry import make_relative
 from .optim import clip_grad_norm, global_norm
 
 
-def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
+def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global"):
     """train_step, returning everything a training loop logs: (TransformerOutput of the
     forward before the update, the gradient norm before clipping). See train_step."""
     if optimizer.params is not model.params:
         raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
-    if relative:
-        poses = make_relative(poses)[0]
-    out = model.forward(tokens, poses)
+    out = model.forward(tokens, make_relative(poses)[0])
     grads = model.backward()
     if max_grad_norm is not None:
         norm = clip_grad_norm(grads, max_grad_norm, mode=clip_mode)
@@ -29,19 +27,17 @@ def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, cli
     return out, norm
 
 
-def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
+def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global"):
     """forward, backward, optional clipping, optimiser step.
 
-    tokens (B, N, L) ints, poses (B, N, 7). relative=True makes the poses relative to each
-    sequence's first view first (geometry.make_relative), as the published input pipeline
-    does. max_grad_norm: clip the gradients to this norm (clip_mode "global" as
+    tokens (B, N, L) ints, poses (B, N, 7), made relative to each sequence's first view first
+    (geometry.make_relative), as the published input pipeline does. max_grad_norm: clip the gradients to this norm (clip_mode "global" as
     torch.nn.utils.clip_grad_norm_, or "per_tensor" as tf.clip_by_norm, the published choice).
     optimizer must hold model.params (it updates them in place).
     Returns (loss before the step, the gradient norm before clipping: the global norm (a
     float), or with clip_mode "per_tensor" {name: norm}; the global norm without clipping).
     """
-    out, norm = transformer_step(model, optimizer, tokens, poses, max_grad_norm=max_grad_norm,
-                                 clip_mode=clip_mode, relative=relative)
+    out, norm = transformer_step(model, optimizer, tokens, poses, max_grad_norm=max_grad_norm, clip_mode=clip_mode)
     return out.loss, norm
 
 
