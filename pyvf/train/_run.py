@@ -150,11 +150,7 @@ class Run:
             for t in run.steps():              # run.start + 1 .. steps
                 ...                            # one update
                 run.log(t, {"loss": ...})      # every log_every steps and the last
-                stop = run.stop_requested()    # Ctrl-C: save the step, then stop
-                if stop or run.checkpoint_due(t):
-                    run.save(t, model.state_dict(), optimizer)
-                if stop:
-                    raise KeyboardInterrupt
+                run.checkpoint(t, model.state_dict, optimizer)  # when due; after Ctrl-C, then stops
         run.save_final(model.state_dict())
 
     config and hyper are JSON-able dicts; a resume checks both against the checkpoint's (but
@@ -346,8 +342,8 @@ class Run:
         return False
 
     def _ctrl_c(self, signum, frame):
-        """The first Ctrl-C asks the loop to stop after the step under way (stop_requested); a
-        second raises at once."""
+        """The first Ctrl-C asks the loop to stop after the step under way (checkpoint); a second
+        raises at once."""
         if self._stop:
             raise KeyboardInterrupt
         self._stop = True
@@ -361,18 +357,20 @@ class Run:
             if self._bar is not None:
                 self._bar.update(1)
 
-    def stop_requested(self):
-        """Whether Ctrl-C asked the loop to stop after this step: then it saves the step it just
-        finished and raises KeyboardInterrupt (read once per step, before the checkpoint decision)."""
-        return self._stop
-
-    def checkpoint_due(self, step):
-        return step % self.checkpoint_every == 0 or step == self.steps_total
-
-    def save(self, step, model_state, optimizer):
-        save_checkpoint(self.ckpt_path, kind=self.kind, step=step, config=self.config, hyper=self.hyper,
-                        model_state=model_state, optimizer=optimizer, elapsed=self.seconds(),
-                        eval_fingerprint=self.eval_fingerprint)
+    def checkpoint(self, step, state, optimizer, check=None):
+        """After `step`, when due (every checkpoint_every steps and the last) or when Ctrl-C asked
+        the loop to stop: check(self, step) first (the torch engine's parity: a divergent model is
+        not checkpointed), then the checkpoint of state() and optimizer, written atomically; after
+        Ctrl-C, KeyboardInterrupt once it is saved."""
+        stop = self._stop  # read once: a Ctrl-C from here on stops after the next step
+        if stop or step % self.checkpoint_every == 0 or step == self.steps_total:
+            if check is not None:
+                check(self, step)
+            save_checkpoint(self.ckpt_path, kind=self.kind, step=step, config=self.config, hyper=self.hyper,
+                            model_state=state(), optimizer=optimizer, elapsed=self.seconds(),
+                            eval_fingerprint=self.eval_fingerprint)
+        if stop:
+            raise KeyboardInterrupt
 
     def save_final(self, arrays):
         """The trained model as Codebook.save / Transformer.save write it: __config__ (the

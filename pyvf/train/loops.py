@@ -168,19 +168,6 @@ def _warm_start(cls, config, hyper, out_dir, opts):
     return {**hyper, "init": {"path": os.path.basename(path), "sha256": file_sha256(path)}}, model.state_dict()
 
 
-def _checkpoint(run, step, state, opt, check):
-    """The loops' checkpoint after `step`, when due or when Ctrl-C asked the run to stop (then
-    KeyboardInterrupt after the save): the engine's check(run, step) first (the torch engine's
-    parity: a divergent model is not checkpointed), then run.save."""
-    stop = run.stop_requested()  # read once: a Ctrl-C from here on stops after the next step
-    if stop or run.checkpoint_due(step):
-        if check is not None:
-            check(run, step)
-        run.save(step, state(), opt)
-    if stop:
-        raise KeyboardInterrupt
-
-
 # ---------------------------------------------------------------------------------------
 # the codebook
 
@@ -328,7 +315,7 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
                 run.log(t, {**values, "lr": lr_t})
                 if eval_fp is not None and run.eval_due(t, opts.eval_every):
                     run.log_eval(t, codebook_health(current(), eval_images))
-                _checkpoint(run, t, state, opt, check)
+                run.checkpoint(t, state, opt, check)
         run.save_final(state())
         return current()
 
@@ -551,7 +538,7 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
                 run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl, "grad_norm": norm, "lr": lr_t})
                 if evaluating and run.eval_due(t, opts.eval_every):
                     run.log_eval(t, health(current()))
-                _checkpoint(run, t, state, opt, check)
+                run.checkpoint(t, state, opt, check)
         run.save_final(state())
     if dp is not None:
         dp.close()

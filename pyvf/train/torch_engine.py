@@ -181,7 +181,7 @@ class Follower(contextlib.nullcontext):
     def _false(self, *args):
         return False
 
-    eval_due = checkpoint_due = stop_requested = log = save_final = _false
+    eval_due = checkpoint = log = save_final = _false
 
 
 class TorchAdamW:
