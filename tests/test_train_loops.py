@@ -371,7 +371,6 @@ def _eval(**change):
     (lambda d, out: opts(1, engine="jax"), ValueError, "engine"),
     (lambda d, out: opts(1, device="cuda"), ValueError, "device"),  # needs engine="torch"
     (lambda d, out: opts(1, precision="fp16"), ValueError, "precision"),
-    (lambda d, out: opts(1, init=3), TypeError, "init"),
     (lambda d, out: TransformerRecipe(lr=-1.0), ValueError, "lr"),
     (lambda d, out: TransformerRecipe(max_grad_norm=0), ValueError, "max_grad_norm"),
     (lambda d, out: TransformerRecipe(context=-1), ValueError, "context"),

@@ -19,7 +19,7 @@ import sys
 from ..train import tasks
 from ..train.loops import CODEBOOK_RECIPES, RunOptions, TransformerRecipe
 from ..train.pipeline import PRESETS, train_pipeline
-from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int
+from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int, positive_int
 
 
 def _record(args):
@@ -151,7 +151,7 @@ def _run_options(p, batch, checkpoint_every):
 def _eval_options(p, every, scenes):
     p.add_argument("--eval-every", type=int, default=every,
                    help=f"steps between evaluations on held-out scenes, logged to eval.csv (default {every}; 0: none)")
-    p.add_argument("--eval-scenes", type=int, default=scenes, help=f"held-out scenes evaluated (default {scenes})")
+    p.add_argument("--eval-scenes", type=positive_int, default=scenes, help=f"held-out scenes evaluated (default {scenes})")
     p.add_argument("--eval-seed", type=non_negative_int, default=1,
                    help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000); "
                         "a resume keeps the run's --eval-scenes and --eval-seed (eval.csv is one curve)")

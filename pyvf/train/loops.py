@@ -8,15 +8,11 @@ RunOptions says how a call runs (steps, batch size, seed, checkpoints, logging, 
 configuration and the recipe (train_codebook's recipe and its overrides, train_transformer's
 TransformerRecipe) say what it learns.
 
-Each loop checkpoints its run folder atomically (see _run.py for the layout) every
-`checkpoint_every` steps, at the end, and at Ctrl-C (SIGINT, in the main thread: the step under
-way finishes and is saved, then KeyboardInterrupt; a second Ctrl-C raises at once), and a call
-with resume=True continues from the checkpoint to exactly the parameters, optimiser moments and
-EMA buffers an uninterrupted run reaches, bit for bit, on the same kernel path (pyvf.show_config:
-baseline, avx2 and avx512 may round differently; 1 and 2 threads were measured to give the same
-bits). That needs every batch to be a pure function of (seed, step):
-`codebook_batch` and `transformer_batch` draw from np.random.default_rng([seed, step]), so
-no generator state is saved.
+Each loop checkpoints its run folder (_run.py: its layout, Ctrl-C) every `checkpoint_every` steps,
+at the end and at Ctrl-C, and a call with resume=True continues from the checkpoint to exactly the
+parameters, optimiser moments and EMA buffers an uninterrupted run reaches, bit for bit, on the same
+kernel path (pyvf.show_config: baseline, avx2 and avx512 may round differently; 1 and 2 threads
+were measured to give the same bits): every batch is a pure function of (seed, step) (batches.py).
 """
 
 import dataclasses
@@ -114,10 +110,6 @@ class RunOptions:
             if name != "threads" or self.threads is not None:
                 object.__setattr__(self, name, _checks.integer(name, getattr(self, name), lo))
         check_engine(self.engine, self.device, self.precision)
-        if self.init is not None:
-            if not isinstance(self.init, (str, os.PathLike)):
-                raise TypeError(f"init must be the path of a model file, got {type(self.init).__name__}")
-            object.__setattr__(self, "init", os.fspath(self.init))
 
 
 def _check_images(images, config, name="images"):

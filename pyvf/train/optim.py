@@ -68,20 +68,21 @@ def published_weight_decay(name):
 # the Adam update (docs/math.md §4), one parameter
 
 
-def adam_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras):
+def adam_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras, sqrt=np.sqrt):
     """Update t (1, 2, ...) of p by gradient g with moments m, v -> the new (p, m, v), nothing
-    modified. p, m, v, g: arrays of one shape and dtype; the rest Python floats (wd 0: no decay).
-    Every operation rounds once in p's dtype (a Python float is rounded to it where it meets an
-    array), left to right as written: the torch engine and the tests write the same expressions."""
+    modified. p, m, v, g: arrays of one shape and dtype (numpy's, or torch tensors with
+    sqrt=torch.sqrt: the torch engine's update); the rest Python floats (wd 0: no decay). Every
+    operation rounds once in p's dtype (a Python float is rounded to it where it meets an array),
+    left to right as written."""
     bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t  # bias corrections
     m = m * b1 + (1 - b1) * g
     v = v * b2 + (1 - b2) * g * g
     if keras:  # eps on the raw sqrt(v), the bias corrections folded into the step size
-        u = (m * (lr * math.sqrt(bc2) / bc1)) / (np.sqrt(v) + eps)
+        u = (m * (lr * math.sqrt(bc2) / bc1)) / (sqrt(v) + eps)
     else:  # torch: eps on the bias-corrected sqrt(v / bc2)
-        u = (lr / bc1) * (m / (np.sqrt(v) / math.sqrt(bc2) + eps))
+        u = (lr / bc1) * (m / (sqrt(v) / math.sqrt(bc2) + eps))
     p = (p * (1 - lr * wd) if wd else p) - u  # decoupled weight decay, with the scheduled lr
-    return np.asarray(p), np.asarray(m), np.asarray(v)  # a 0-d parameter's arithmetic gives NumPy scalars
+    return p, m, v
 
 
 class AdamW:
@@ -157,7 +158,7 @@ class AdamW:
                              "overflow of the dtype): no update applied")
         for k, (p1, m1, v1) in new.items():
             np.copyto(self.params[k], p1)  # in place: the caller's arrays are the model's
-            self.exp_avg[k], self.exp_avg_sq[k] = m1, v1
+            self.exp_avg[k], self.exp_avg_sq[k] = np.asarray(m1), np.asarray(v1)  # a 0-d one's are NumPy scalars
         self.step_count = t
         return lr
 

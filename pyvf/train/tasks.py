@@ -99,8 +99,6 @@ def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
     when eval_every is 0. The seed must differ from the training data's (data.seed)."""
     if not eval_every:
         return None
-    if eval_scenes < 1:
-        raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
     if getattr(data, "seed", None) == eval_seed:
         raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
     from ..scenes import generate_scenes
@@ -114,9 +112,6 @@ def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None, train_poses=
     data's poses (scenes, views, 7), when known: held-out scenes that are training scenes (eval_seed
     the training data's seed: scene i of a seed is the same scene in any set of it) raise, as
     held_out_views refuses the training data's seed."""
-
-    if eval_scenes < 1:
-        raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
     codebook = read_codebook(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)

@@ -25,7 +25,6 @@ so every process resumes from rank 0's checkpoint.
 """
 
 import contextlib
-import math
 import os
 import re
 
@@ -34,6 +33,7 @@ import numpy as np
 from ..verify.compare import compare
 from ..geometry import make_relative
 from .batches import transformer_batch
+from .optim import adam_update
 from ..verify.layout import params_from_layout, params_to_layout
 
 # The parity bound: pyvf.compare's normwise relative error, float32 torch against float32 pyvf.
@@ -206,25 +206,17 @@ class TorchAdamW:
         return self.ref.lr_at(step)
 
     def step(self):
-        """One update from the parameters' .grad (finite: the caller checked). Returns the lr."""
-        torch = import_torch()
-        r = self.ref
-        lr = r.lr_at(r.step_count)
-        t = r.step_count + 1
-        b1, b2 = r.betas
-        bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
+        """One update from the parameters' .grad (finite: the caller checked): optim.adam_update, the
+        same expressions on torch tensors. Returns the lr."""
+        torch, r = import_torch(), self.ref
+        lr, t = r.lr_at(r.step_count), r.step_count + 1
         with torch.no_grad():
             for k, p in self.params.items():
-                g, m, v = p.grad, self.exp_avg[k], self.exp_avg_sq[k]
-                m.mul_(b1).add_(g, alpha=1 - b1)  # m = b1 m + (1 - b1) g
-                v.mul_(b2).addcmul_(g, g, value=1 - b2)  # v = b2 v + (1 - b2) g^2
-                if r.eps_convention == "torch":
-                    upd = (lr / bc1) * (m / (v.sqrt() / math.sqrt(bc2) + r.eps))
-                else:
-                    upd = (m * (lr * math.sqrt(bc2) / bc1)) / (v.sqrt() + r.eps)  # Keras' order
-                if r.weight_decay != 0 and k in r.decayed:
-                    p.mul_(1 - lr * r.weight_decay)  # decoupled, before the Adam step
-                p.sub_(upd)
+                wd = r.weight_decay if k in r.decayed else 0.0
+                p1, self.exp_avg[k], self.exp_avg_sq[k] = adam_update(
+                    p, self.exp_avg[k], self.exp_avg_sq[k], p.grad, lr, t, *r.betas, r.eps, wd,
+                    r.eps_convention == "keras", sqrt=torch.sqrt)
+                p.copy_(p1)
         r.step_count = t
         return lr
 
