@@ -139,7 +139,7 @@ def _run_options(p, batch, checkpoint_every):
     p.add_argument("--init", default=None, metavar="FILE",
                    help="start from this model file's weights (Codebook.save / Transformer.save output) instead of "
                         "the seed's initialisation; the optimiser starts fresh. A resume does not read it (the "
-                        "checkpoint holds the run; another file than the run's own is named in a note)")
+                        "checkpoint holds the run)")
     p.add_argument("--checkpoint-every", type=int, default=checkpoint_every,
                    help=f"steps between checkpoints (default {checkpoint_every}; one at the end always)")
     p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")

@@ -221,7 +221,7 @@ class TorchAdamW:
         return lr
 
     def state_dict(self):
-        """pyvf AdamW's state_dict (its layout, numpy): what Run.save writes."""
+        """pyvf AdamW's state_dict (its layout, numpy): what Run.checkpoint writes."""
         for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
             arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
             setattr(self.ref, theirs, params_from_layout(self.model, arrays, "torch"))
@@ -235,7 +235,7 @@ class TorchEngine:
     port's current weights."""
 
     def state_dict(self):
-        """The weights (and buffers) in pyvf's layout, numpy: what Run.save writes."""
+        """The weights (and buffers) in pyvf's layout, numpy: what Run.checkpoint writes."""
         return self.to_pyvf().state_dict()
 
     def _zero_grad(self):
