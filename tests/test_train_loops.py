@@ -368,9 +368,7 @@ def _eval(**change):
     (lambda d, out: opts(2.0), TypeError, "steps"),
     (lambda d, out: opts(1, batch_size=0), ValueError, "batch_size"),
     (lambda d, out: opts(1, eval_every=-1), ValueError, "eval_every"),
-    (lambda d, out: opts(1, engine="jax"), ValueError, "engine"),
     (lambda d, out: opts(1, device="cuda"), ValueError, "device"),  # needs engine="torch"
-    (lambda d, out: opts(1, precision="fp16"), ValueError, "precision"),
     (lambda d, out: TransformerRecipe(lr=-1.0), ValueError, "lr"),
     (lambda d, out: TransformerRecipe(max_grad_norm=0), ValueError, "max_grad_norm"),
     (lambda d, out: TransformerRecipe(context=-1), ValueError, "context"),
