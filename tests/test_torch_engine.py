@@ -250,7 +250,7 @@ def test_torch_codebook_equals_pyvf_and_resumes_across_engines(tmp_path):
     """In float64, 4 steps with object weighting and a dead-code restart: every weight and EMA
     buffer within 1e-9 of its movement (measured 1.3e-12 after 20 steps: float64's u = 1.1e-16
     amplified by training, ~1e4); the same for pyvf's checkpoint at step 3 continued by torch. (In
-    float32 the same amplification of u = 6e-8 leaves ~1e-3: float32 is checked step by step below.)
+    float32 the same amplification of u = 6e-8 leaves ~1e-3: there parity checks the forward, below.)
     The comparison sees an engine that skips the object weighting. (A wrong epsilon convention or EMA
     decay moves the weights or the EMA buffers by far more than 1e-9; a wrong forward fails parity.)"""
     w0 = Codebook(CB64, seed=0).state_dict()
