@@ -285,11 +285,13 @@ def test_clip_zero_gradients(mode):
 
 @pytest.mark.parametrize("mode", ["global", "per_tensor"])
 def test_clip_nonfinite(mode):
-    """NaN/inf gradients raise ValueError naming the tensor, and nothing is modified."""
-    for bad in (np.nan, np.inf):
+    """NaN/inf gradients raise ValueError naming the tensor, and so does a float64 norm that
+    overflows (entries of 1e200): nothing is modified (max_norm / inf would zero the gradients)."""
+    for bad, match in ((np.nan, r"NaN or inf in \['bad'\]"), (np.inf, r"NaN or inf in \['bad'\]"),
+                       (1e200, "overflows float64")):
         grads = {"ok": np.array([30.0, 40.0]), "bad": np.array([1.0, bad])}
         orig = _copy(grads)
-        with pytest.raises(ValueError, match=r"NaN or inf in \['bad'\]"):
+        with pytest.raises(ValueError, match=match):
             optim.clip_grad_norm(grads, 1.0, mode=mode)
         for k in grads:
             assert_bitwise_equal(k, grads[k], orig[k])

@@ -254,7 +254,8 @@ class WarmupCosine:
 def _norm64(g):
     """|g|_2, its squares summed in float64 (NumPy's pairwise sum: the same for any thread count)."""
     x = g.astype(np.float64, copy=False).ravel()  # (n,)
-    return math.sqrt(float(np.square(x).sum()))
+    with np.errstate(over="ignore"):  # inf beyond ~1e154: the callers say so
+        return math.sqrt(float(np.square(x).sum()))
 
 
 def global_norm(grads):
@@ -284,12 +285,14 @@ def clip_grad_norm(grads, max_norm, *, mode="global", eps=1e-6):
     if bad:
         raise ValueError(f"grads contain NaN or inf in {bad}: cannot clip")
     norms = {k: _norm64(g) for k, g in grads.items()}
+    total = math.sqrt(math.fsum(n * n for n in norms.values()))
+    if not math.isfinite(total):  # float64 entries beyond ~1e154: max_norm / inf would zero the gradients
+        raise ValueError("the norm of grads overflows float64: nothing was clipped")
     if mode == "per_tensor":
         for k, g in grads.items():
             if norms[k] > max_norm:
                 g *= max_norm / norms[k]  # tf.clip_by_norm: the coefficient rounded to g's dtype
         return norms
-    total = math.sqrt(math.fsum(n * n for n in norms.values()))
     if total + eps > max_norm:
         for g in grads.values():
             g *= max_norm / (total + eps)
