@@ -148,17 +148,17 @@ def test_transformer_health_is_evaluate_on_the_same_scenes():
     from pyvf.scenes import generate_scenes
 
     cb, tf = load_pretrained()
-    images, poses = generate_scenes(7, 2, size=cb.config.image_size)
+    images, poses = generate_scenes(7, 1, size=cb.config.image_size)
     tokens = np.stack([cb.encode(to_model_images(v, np.float32)).reshape(15, -1) for v in images])
-    h = transformer_health(cb, tf, images, poses, tokens, (1, 3, 5), batch=2)
-    m = evaluate(cb, tf, scenes=2, context=(1, 3, 5), seed=7, batch=2, progress=False, timing_scenes=1, repeat=1,
+    h = transformer_health(cb, tf, images, poses, tokens, (1, 5), batch=2)
+    m = evaluate(cb, tf, scenes=1, context=(1, 5), seed=7, batch=2, progress=False, timing_scenes=1, repeat=1,
                  decode="argmax")  # the health's decode (its docstring says why)
     names = {"mae": ("pyvf", "mae"), "nearest_view_mae": ("nearest_view", "mae"),
              "mean_image_rmse": ("mean_image", "rmse"), "position": ("pyvf", "position_error_median"),
              "orientation": ("pyvf", "orientation_error_median_deg"),
              "closest_image_orientation": ("closest_image_pose", "orientation_error_median_deg"),
              "mean_pose_position": ("mean_pose", "position_error_median")}
-    for C in (1, 3, 5):
+    for C in (1, 5):
         for stem, (method, metric) in names.items():
             assert h[f"{stem}_c{C}"] == m["context"][str(C)][method][metric], (stem, C)
         assert 0 <= h[f"token_accuracy_c{C}"] <= 1 and h[f"ce_c{C}"] > 0

@@ -19,7 +19,7 @@ import sys
 from ..train import tasks
 from ..train.loops import CODEBOOK_RECIPES, RunOptions, TransformerRecipe
 from ..train.pipeline import PRESETS, train_pipeline
-from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int
+from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int, positive_int
 
 
 def _record(args):
@@ -110,9 +110,8 @@ def cmd_train(args):
 
 def cmd_runs(args):
     """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
-    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn. A folder
-    of another program (its config.json not a run's) is skipped with a note; a torn last line of a
-    log (a run killed mid-write) is left out, as the trainers do."""
+    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn. A torn
+    last line of a log (a run killed mid-write) is left out, as the trainers do."""
     def work():
         table, plots = tasks.compare_runs(args.run_dirs, plot=args.plot, step=args.step)
         print(table, end="")
@@ -140,7 +139,7 @@ def _run_options(p, batch, checkpoint_every):
     p.add_argument("--init", default=None, metavar="FILE",
                    help="start from this model file's weights (Codebook.save / Transformer.save output) instead of "
                         "the seed's initialisation; the optimiser starts fresh. A resume does not read it (the "
-                        "checkpoint holds the run; another file than the run's own is named in a note)")
+                        "checkpoint holds the run)")
     p.add_argument("--checkpoint-every", type=int, default=checkpoint_every,
                    help=f"steps between checkpoints (default {checkpoint_every}; one at the end always)")
     p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")
@@ -152,7 +151,7 @@ def _run_options(p, batch, checkpoint_every):
 def _eval_options(p, every, scenes):
     p.add_argument("--eval-every", type=int, default=every,
                    help=f"steps between evaluations on held-out scenes, logged to eval.csv (default {every}; 0: none)")
-    p.add_argument("--eval-scenes", type=int, default=scenes, help=f"held-out scenes evaluated (default {scenes})")
+    p.add_argument("--eval-scenes", type=positive_int, default=scenes, help=f"held-out scenes evaluated (default {scenes})")
     p.add_argument("--eval-seed", type=non_negative_int, default=1,
                    help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000); "
                         "a resume keeps the run's --eval-scenes and --eval-seed (eval.csv is one curve)")

@@ -5,6 +5,7 @@ A run folder holds
     checkpoint.npz   the last checkpoint (atomic): model state, optimiser state, step, config
     log.csv          one row per logged step; rows past the checkpoint are dropped on resume
     eval.csv         with held-out evaluation (eval_columns): one row per evaluation, likewise
+    parity.csv       with the torch engine: its check against pyvf at each checkpoint, likewise
     config.json      the run's configuration, hyperparameters, and each call's command line (atomic)
     <kind>.npz       the trained model, loadable by Codebook.load / Transformer.load (atomic)
 
@@ -44,9 +45,10 @@ import numpy as np
 from .. import _core
 from .._io import CheckpointError, atomic_savez, atomic_write_text, load_npz, remove_stale_temps
 from .._machine import cpu_name
-from .curves import eval_line
+from .curves import eval_line, plot_eval
 
-CHECKPOINT, LOG, CONFIG, EVAL_LOG = "checkpoint.npz", "log.csv", "config.json", "eval.csv"
+CHECKPOINT, LOG, CONFIG, EVAL_LOG, PARITY_LOG = "checkpoint.npz", "log.csv", "config.json", "eval.csv", "parity.csv"
+PARITY_COLUMNS = ["step", "worst", "rel_err", "bound"]
 FORMAT_VERSION = 1
 
 
@@ -137,33 +139,6 @@ def _diff(saved, now):
     return sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
 
 
-class _StopAtStepEnd:
-    """SIGINT (Ctrl-C) inside `with run`: the first sets `requested` and says which step is saved
-    (the loop then saves the step under way and raises KeyboardInterrupt); a second raises at once.
-    Installed only in the main thread where Python's own handler is in place; off for a
-    data-parallel run, whose processes could stop after different steps."""
-
-    def __init__(self, on, say):
-        self.on, self.say, self.requested, self._previous = on, say, False, None
-
-    def __enter__(self):
-        if (self.on and threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
-            self._previous = signal.signal(signal.SIGINT, self._handler)
-        return self
-
-    def __exit__(self, *exc):
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
-            self._previous = None
-
-    def _handler(self, signum, frame):
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-        self.say()
-
-
 class Run:
     """The run folder of one call of a training loop.
 
@@ -175,11 +150,7 @@ class Run:
             for t in run.steps():              # run.start + 1 .. steps
                 ...                            # one update
                 run.log(t, {"loss": ...})      # every log_every steps and the last
-                stop = run.stop_requested()    # Ctrl-C: save the step, then stop
-                if stop or run.checkpoint_due(t):
-                    run.save(t, model.state_dict(), optimizer)
-                if stop:
-                    raise KeyboardInterrupt
+                run.checkpoint(t, model.state_dict, optimizer)  # when due; after Ctrl-C, then stops
         run.save_final(model.state_dict())
 
     config and hyper are JSON-able dicts; a resume checks both against the checkpoint's (but
@@ -196,8 +167,8 @@ class Run:
         self.progress = opts.progress
         self.out_dir = os.fspath(out_dir)
         os.makedirs(self.out_dir, exist_ok=True)
-        self.ckpt_path, self.log_path, self.eval_path, self.config_path, self.final_path = (
-            os.path.join(self.out_dir, name) for name in (CHECKPOINT, LOG, EVAL_LOG, CONFIG, f"{kind}.npz"))
+        self.ckpt_path, self.log_path, self.eval_path, self.config_path, self.final_path, self.parity_path = (
+            os.path.join(self.out_dir, name) for name in (CHECKPOINT, LOG, EVAL_LOG, CONFIG, f"{kind}.npz", PARITY_LOG))
         self.eval_columns = None if eval_columns is None else ["step", *eval_columns, "seconds"]
         for path in (self.ckpt_path, self.log_path, self.config_path, self.final_path, self.eval_path):
             remove_stale_temps(path)  # left by a process killed mid-write
@@ -218,8 +189,13 @@ class Run:
             self._truncate_log(self.eval_path, self.eval_columns)
         elif os.path.exists(self.eval_path) and not self.resumed:
             os.remove(self.eval_path)  # an older run's evaluations
-        self._log_file = self._bar = self._step = self._decided = None  # _decided: the last step stop_requested read
-        self._stop = _StopAtStepEnd(interruptible, self._say_stopping)
+        if os.path.exists(self.parity_path):  # the torch engine's: as log.csv, the rows of the run it continues
+            if self.resumed:
+                self._truncate_log(self.parity_path, PARITY_COLUMNS)
+            else:
+                os.remove(self.parity_path)
+        self._log_file = self._bar = self._previous_handler = None
+        self.interruptible, self._stop = interruptible, False
         self._t0 = time.perf_counter()
 
     def _resume(self):
@@ -313,9 +289,10 @@ class Run:
         return bool(every) and (step % every == 0 or step == self.steps_total)
 
     def log_eval(self, step, values):
-        """Append one row of held-out figures to eval.csv (values: column -> float) and print it
-        to stderr beside its baselines (curves.eval_line). The row reads only the model: evaluation
-        never changes the training trajectory."""
+        """Append one row of held-out figures to eval.csv (values: column -> float), print it
+        to stderr beside its baselines (curves.eval_line) and redraw eval.png (the curves so far,
+        the baselines dashed). The row reads only the model: evaluation never changes the training
+        trajectory."""
         row = [str(step)] + [repr(float(values[c])) for c in self.eval_columns[1:-1]] + [f"{self.seconds():.3f}"]
         with open(self.eval_path, "a", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow(row)
@@ -324,6 +301,17 @@ class Run:
             self._bar.write(line, file=sys.stderr)  # above the bar, on the bar's stream
         else:
             print(line, file=sys.stderr)
+        plot_eval(self.out_dir)
+
+    def log_parity(self, step, worst, rel_err, bound):
+        """Append the torch engine's parity check of `step` (its model against pyvf's, before the
+        checkpoint) to parity.csv: the quantity with the worst relative error, that error, the bound."""
+        new = not os.path.exists(self.parity_path)
+        with open(self.parity_path, "a", newline="", encoding="utf-8") as f:
+            writer = csv.writer(f, lineterminator="\n")
+            if new:
+                writer.writerow(PARITY_COLUMNS)
+            writer.writerow([step, worst, repr(float(rel_err)), repr(float(bound))])
 
     # -----------------------------------------------------------------------------------
     # the loop
@@ -334,50 +322,55 @@ class Run:
             from tqdm.auto import tqdm
             self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}",
                              unit="step", dynamic_ncols=True)
-        self._stop.__enter__()
+        # Ctrl-C: in the main thread where Python's own handler is in place; not in a data-parallel
+        # run, whose processes could stop after different steps
+        if (self.interruptible and threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._previous_handler = signal.signal(signal.SIGINT, self._ctrl_c)
         return self
 
     def __exit__(self, *exc):
-        self._stop.__exit__(*exc)
+        if self._previous_handler is not None:
+            signal.signal(signal.SIGINT, self._previous_handler)
         if self._bar is not None:
             self._bar.close()
         self._log_file.close()
-        if exc[0] is None and self._stop.requested:
+        if exc[0] is None and self._stop:
             # Ctrl-C after the last step's checkpoint was saved: stop here all the same (the
             # caller's next work, e.g. pyvf train's next stage, must not start)
             raise KeyboardInterrupt
         return False
 
+    def _ctrl_c(self, signum, frame):
+        """The first Ctrl-C asks the loop to stop after the step under way (checkpoint); a second
+        raises at once."""
+        if self._stop:
+            raise KeyboardInterrupt
+        self._stop = True
+        print(f"{chr(10) if self._bar is not None else ''}Ctrl-C: finishing the step under way and saving it; "
+              "Ctrl-C again stops at once (losing the steps since the last checkpoint)", file=sys.stderr, flush=True)
+
     def steps(self):
         """The steps still to run, start + 1 .. steps; advances the progress bar."""
         for t in range(self.start + 1, self.steps_total + 1):
-            self._step = t
             yield t
             if self._bar is not None:
                 self._bar.update(1)
 
-    def _say_stopping(self):
-        """At the first Ctrl-C: say on stderr which step is finished and saved: the step under way,
-        or the next one when this step's stop decision was already read (during its checkpoint)."""
-        t = self.start + 1 if self._step is None else self._step
-        if self._decided == t and t < self.steps_total:
-            t += 1
-        print(f"{chr(10) if self._bar is not None else ''}Ctrl-C: finishing step {t} and saving it; Ctrl-C again "
-              "stops at once (losing the steps since the last checkpoint)", file=sys.stderr, flush=True)
-
-    def stop_requested(self):
-        """Whether Ctrl-C asked the loop to stop after this step: then it saves the step it just
-        finished and raises KeyboardInterrupt (read once per step, before the checkpoint decision)."""
-        self._decided = self._step
-        return self._stop.requested
-
-    def checkpoint_due(self, step):
-        return step % self.checkpoint_every == 0 or step == self.steps_total
-
-    def save(self, step, model_state, optimizer):
-        save_checkpoint(self.ckpt_path, kind=self.kind, step=step, config=self.config, hyper=self.hyper,
-                        model_state=model_state, optimizer=optimizer, elapsed=self.seconds(),
-                        eval_fingerprint=self.eval_fingerprint)
+    def checkpoint(self, step, state, optimizer, check=None):
+        """After `step`, when due (every checkpoint_every steps and the last) or when Ctrl-C asked
+        the loop to stop: check(self, step) first (the torch engine's parity: a divergent model is
+        not checkpointed), then the checkpoint of state() and optimizer, written atomically; after
+        Ctrl-C, KeyboardInterrupt once it is saved."""
+        stop = self._stop  # read once: a Ctrl-C from here on stops after the next step
+        if stop or step % self.checkpoint_every == 0 or step == self.steps_total:
+            if check is not None:
+                check(self, step)
+            save_checkpoint(self.ckpt_path, kind=self.kind, step=step, config=self.config, hyper=self.hyper,
+                            model_state=state(), optimizer=optimizer, elapsed=self.seconds(),
+                            eval_fingerprint=self.eval_fingerprint)
+        if stop:
+            raise KeyboardInterrupt
 
     def save_final(self, arrays):
         """The trained model as Codebook.save / Transformer.save write it: __config__ (the

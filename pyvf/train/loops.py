@@ -8,15 +8,11 @@ RunOptions says how a call runs (steps, batch size, seed, checkpoints, logging, 
 configuration and the recipe (train_codebook's recipe and its overrides, train_transformer's
 TransformerRecipe) say what it learns.
 
-Each loop checkpoints its run folder atomically (see _run.py for the layout) every
-`checkpoint_every` steps, at the end, and at Ctrl-C (SIGINT, in the main thread: the step under
-way finishes and is saved, then KeyboardInterrupt; a second Ctrl-C raises at once), and a call
-with resume=True continues from the checkpoint to exactly the parameters, optimiser moments and
-EMA buffers an uninterrupted run reaches, bit for bit, on the same kernel path (pyvf.show_config:
-baseline, avx2 and avx512 may round differently; 1 and 2 threads were measured to give the same
-bits). That needs every batch to be a pure function of (seed, step):
-`codebook_batch` and `transformer_batch` draw from np.random.default_rng([seed, step]), so
-no generator state is saved.
+Each loop checkpoints its run folder (_run.py: its layout, Ctrl-C) every `checkpoint_every` steps,
+at the end and at Ctrl-C, and a call with resume=True continues from the checkpoint to exactly the
+parameters, optimiser moments and EMA buffers an uninterrupted run reaches, bit for bit, on the same
+kernel path (pyvf.show_config: baseline, avx2 and avx512 may round differently; 1 and 2 threads
+were measured to give the same bits): every batch is a pure function of (seed, step) (batches.py).
 """
 
 import dataclasses
@@ -41,10 +37,9 @@ from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, file_sha256, fingerprint, resume_point
 from .batches import codebook_batch, transformer_batch
-from .curves import plot_eval
 from .step import codebook_train_step, transformer_step
 from .torch_codebook_engine import check_codebook_engine, parity_images
-from .torch_engine import Follower, TorchTransformer, check_engine, data_parallel, log_parity, parity_batch
+from .torch_engine import Follower, TorchTransformer, check_engine, check_parity, data_parallel, parity_batch
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
 # configuration (docs/math.md §4) at a quarter of the channels, one ResnetBlock per level and no
@@ -115,10 +110,6 @@ class RunOptions:
             if name != "threads" or self.threads is not None:
                 object.__setattr__(self, name, _checks.integer(name, getattr(self, name), lo))
         check_engine(self.engine, self.device, self.precision)
-        if self.init is not None:
-            if not isinstance(self.init, (str, os.PathLike)):
-                raise TypeError(f"init must be the path of a model file, got {type(self.init).__name__}")
-            object.__setattr__(self, "init", os.fspath(self.init))
 
 
 def _check_images(images, config, name="images"):
@@ -132,19 +123,18 @@ def _check_images(images, config, name="images"):
     return images.reshape(-1, S, S, C)
 
 
-def _check_tokens_poses(tokens, poses, config, names=("tokens", "poses")):
+def _check_tokens_poses(tokens, poses, config):
     """tokens ints (scenes, views, ...) in [0, n_embeddings), poses (scenes, views, 7) finite with
     unit quaternions (in the model's dtype, as the batches hold them: checked here rather than at
-    the first step that draws a bad view, which may come thousands of steps in). names: theirs."""
-    t, p = names
-    _checks.int_array(t, tokens)
+    the first step that draws a bad view, which may come thousands of steps in)."""
+    _checks.int_array("tokens", tokens)
     if tokens.size == 0 or tokens.min() < 0 or tokens.max() >= config.n_embeddings:
-        raise ValueError(f"{t} must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
-    _checks.float_array(p, poses)
+        raise ValueError(f"tokens must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
+    _checks.float_array("poses", poses)
     if poses.shape != tokens.shape[:2] + (7,):
-        raise ValueError(f"{p} must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
-    _checks.finite(p, poses)
-    _check_unit(f"the quaternions of {p}", poses[..., 3:].astype(config.dtype))
+        raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
+    _checks.finite("poses", poses)
+    _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))
 
 
 def _warm_start(cls, config, hyper, out_dir, opts):
@@ -170,19 +160,6 @@ def _warm_start(cls, config, hyper, out_dir, opts):
     return {**hyper, "init": {"path": os.path.basename(path), "sha256": file_sha256(path)}}, model.state_dict()
 
 
-def _checkpoint(run, step, state, opt, check):
-    """The loops' checkpoint after `step`, when due or when Ctrl-C asked the run to stop (then
-    KeyboardInterrupt after the save): the engine's check(out_dir, step) first (the torch engine's
-    parity: a divergent model is not checkpointed), then run.save."""
-    stop = run.stop_requested()  # read once: a Ctrl-C from here on stops after the next step
-    if stop or run.checkpoint_due(step):
-        if check is not None:
-            check(run.out_dir, step)
-        run.save(step, state(), opt)
-    if stop:
-        raise KeyboardInterrupt
-
-
 # ---------------------------------------------------------------------------------------
 # the codebook
 
@@ -198,11 +175,7 @@ def _recipe(recipe, overrides):
         raise TypeError(f"train_codebook got unexpected keyword arguments {unknown}")
     r = {**CODEBOOK_RECIPES[recipe], **{k: v for k, v in overrides.items() if v is not None}}
     lr = _checks.real("lr", r["lr"], lo=0.0)
-    betas = r["betas"]
-    if not isinstance(betas, (tuple, list)) or len(betas) != 2 or not all(0 <= _checks.real("betas", b) < 1
-                                                                        for b in betas):
-        raise ValueError(f"betas must be two numbers in [0, 1), got {betas!r}")
-    betas = (float(betas[0]), float(betas[1]))
+    betas = tuple(_checks.real("betas", b, 0.0, 1.0, hi_open=True) for b in r["betas"])
     reset_dead_codes = _checks.integer("reset_dead_codes", r["reset_dead_codes"], 0)
     object_weight = _checks.real("object_weight", r["object_weight"], lo=0.0, lo_open=True)
     if r["restart"] not in ("batch", "worst"):
@@ -251,7 +224,7 @@ def _codebook_and_optimiser(run, config, seed, lr, betas, init_state=None):
 def _codebook_engine(engine, model, opt, parity, device, precision):
     """train_codebook's engine: (step(x, w) -> the log's values but lr, reset(x, rng): the
     dead-code restart after the step, state() -> the state dict, current() -> the model, the
-    optimiser the loop reads, check(out_dir, step) before each checkpoint or None). The torch
+    optimiser the loop reads, check(run, step) before each checkpoint or None). The torch
     engine's check is the parity of the torch model and pyvf's on the images `parity`."""
     if engine != "torch":
         def step(x, w):
@@ -267,8 +240,8 @@ def _codebook_engine(engine, model, opt, parity, device, precision):
     from .torch_codebook_engine import TorchCodebook
     eng = TorchCodebook(model, opt, device=device, precision=precision)
 
-    def check(out_dir, step):  # before the save: a divergent model is not checkpointed
-        log_parity(out_dir, step, eng.parity(parity))
+    def check(run, step):  # before the save: a divergent model is not checkpointed
+        check_parity(run, step, eng.parity(parity))
 
     return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, check
 
@@ -324,7 +297,6 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
         with run:
             if eval_fp is not None and not run.resumed:
                 run.log_eval(0, codebook_health(current(), eval_images))
-                plot_eval(run.out_dir)
             for t in run.steps():
                 x = codebook_batch(flat, B, seed, t, config.dtype, object_weight if weighted else None)
                 x, w = x if weighted else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
@@ -335,8 +307,7 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
                 run.log(t, {**values, "lr": lr_t})
                 if eval_fp is not None and run.eval_due(t, opts.eval_every):
                     run.log_eval(t, codebook_health(current(), eval_images))
-                    plot_eval(run.out_dir)  # eval.png: the curves so far
-                _checkpoint(run, t, state, opt, check)
+                run.checkpoint(t, state, opt, check)
         run.save_final(state())
         return current()
 
@@ -436,25 +407,16 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
 
 
 def _transformer_eval(eval_set, eval_every, config):
-    """train_transformer's held-out evaluation, eval_set checked: (its record for config.json,
-    the columns of eval.csv, health(model) -> the row of transformer_health at health_contexts);
-    all None without eval_set or with eval_every 0 (a set not evaluated on is not the run's)."""
-    if eval_set is None:
+    """train_transformer's held-out evaluation: (its record for config.json, the columns of
+    eval.csv, health(model) -> the row of transformer_health at health_contexts); all None without
+    eval_set or with eval_every 0 (a set not evaluated on is not the run's). eval_set: held_out_set's,
+    whose codebook must be the one the run's tokens index (the rest is held_out_set's making)."""
+    if eval_set is None or eval_every == 0:
         return None, None, None
-    if not isinstance(eval_set, dict) or set(eval_set) != {"codebook", "images", "poses", "tokens"}:
-        raise ValueError("eval_set must be a dict of codebook, images, poses and tokens (held_out_set's)")
     cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
-    if not isinstance(cb, Codebook) or (cb.config.n_embed, cb.config.token_size) != (
-            config.n_embeddings, config.token_image_size):
+    if (cb.config.n_embed, cb.config.token_size) != (config.n_embeddings, config.token_image_size):
         raise ValueError("eval_set['codebook'] must be the Codebook the tokens came from: its codes and token "
                          "images those the transformer reads (config.n_embeddings, config.token_image_size)")
-    _check_images(images, cb.config, "eval_set['images']")
-    _check_tokens_poses(tokens, poses, config, ("eval_set['tokens']", "eval_set['poses']"))
-    if images.ndim != 5 or tokens.shape != images.shape[:2] + (config.token_image_size ** 2,):
-        raise ValueError("eval_set['images'] and eval_set['tokens'] must have shapes (scenes, views, S, S, C) and "
-                         "(scenes, views, L) (held_out_set's)")
-    if eval_every == 0:
-        return None, None, None
     contexts = health_contexts(config, images.shape[1])
     if not contexts:
         raise ValueError(f"eval_set's scenes have {images.shape[1]} views: too few for a context and the queries")
@@ -488,12 +450,12 @@ def _transformer_and_optimiser(run, config, hyper, schedule, init_state=None):
 def _transformer_engine(opts, model, opt, dp, parity, recipe):
     """train_transformer's engine: (step(tok, pos) -> (loss, mean ce, mean pose loss, grad norm),
     state() -> the state dict, current() -> the model, the optimiser whose lr_at and step count
-    the loop reads, check(out_dir, step) before each checkpoint or None). The torch engine's
+    the loop reads, check(run, step) before each checkpoint or None). The torch engine's
     check is the parity of the torch model and pyvf's on the batch `parity` (tokens, poses)."""
     if opts.engine != "torch":
         def step(tok, pos):
             out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
-                                         clip_mode=recipe.clip_mode, relative=True)
+                                         clip_mode=recipe.clip_mode)
             if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
                 norm = float(np.sqrt(sum(n * n for n in norm.values())))
             return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm
@@ -502,8 +464,8 @@ def _transformer_engine(opts, model, opt, dp, parity, recipe):
     eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision,
                            max_grad_norm=recipe.max_grad_norm, clip_mode=recipe.clip_mode, dp=dp)
 
-    def check(out_dir, step):  # before the save: a divergent model is not checkpointed
-        log_parity(out_dir, step, eng.parity(*parity))
+    def check(run, step):  # before the save: a divergent model is not checkpointed
+        check_parity(run, step, eng.parity(*parity))
 
     return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, check
 
@@ -553,7 +515,7 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
                       interruptible=dp is None)
         if dp is not None:  # the other processes follow rank 0's run from its start step
             start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
-            run = run if dp.rank == 0 else Follower(start, opts.steps, out_dir)
+            run = run if dp.rank == 0 else Follower(start, opts.steps)
         evaluating = health is not None and not isinstance(run, Follower)
         model, opt = _transformer_and_optimiser(run, config, hyper, schedule, init_state)
         step, state, current, opt, check = _transformer_engine(
@@ -561,7 +523,6 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         with run:
             if evaluating and not run.resumed:
                 run.log_eval(0, health(current()))
-                plot_eval(run.out_dir)
             for t in run.steps():
                 tok, pos = transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)  # (B, N, L), (B, N, 7)
                 lr_t = opt.lr_at(opt.step_count)
@@ -569,8 +530,7 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
                 run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl, "grad_norm": norm, "lr": lr_t})
                 if evaluating and run.eval_due(t, opts.eval_every):
                     run.log_eval(t, health(current()))
-                    plot_eval(run.out_dir)  # eval.png: the curves so far, the baselines dashed
-                _checkpoint(run, t, state, opt, check)
+                run.checkpoint(t, state, opt, check)
         run.save_final(state())
     if dp is not None:
         dp.close()

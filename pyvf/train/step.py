@@ -8,35 +8,16 @@
 pyvf.train.loops runs these steps with checkpoints (train_transformer, train_codebook).
 """
 
-import numpy as np
-
-from .. import _checks
 from ..geometry import make_relative
 from .optim import clip_grad_norm, global_norm
 
 
-def check_clipping(max_grad_norm, clip_mode):
-    """The gradient clipping settings under these names (clip_grad_norm would name its own
-    max_norm and mode, and only when clipping): max_grad_norm None (no clipping) or a finite
-    number > 0, returned as a float; clip_mode "global" or "per_tensor", checked even without
-    clipping (a mistyped mode would otherwise pass unnoticed)."""
-    if clip_mode not in ("global", "per_tensor"):
-        raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {clip_mode!r}")
-    return None if max_grad_norm is None else _checks.real("max_grad_norm", max_grad_norm, lo=0.0, lo_open=True)
-
-
-def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
+def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global"):
     """train_step, returning everything a training loop logs: (TransformerOutput of the
     forward before the update, the gradient norm before clipping). See train_step."""
     if optimizer.params is not model.params:
         raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
-    # the settings are checked before the step runs, under these names
-    if not isinstance(relative, (bool, np.bool_)):  # "no" is truthy, None falsy: neither is a choice
-        raise TypeError(f"relative must be True or False, got {type(relative).__name__} {relative!r}")
-    max_grad_norm = check_clipping(max_grad_norm, clip_mode)
-    if relative:
-        poses = make_relative(poses)[0]
-    out = model.forward(tokens, poses)
+    out = model.forward(tokens, make_relative(poses)[0])
     grads = model.backward()
     if max_grad_norm is not None:
         norm = clip_grad_norm(grads, max_grad_norm, mode=clip_mode)
@@ -46,19 +27,17 @@ def transformer_step(model, optimizer, tokens, poses, *, max_grad_norm=None, cli
     return out, norm
 
 
-def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global", relative=True):
+def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global"):
     """forward, backward, optional clipping, optimiser step.
 
-    tokens (B, N, L) ints, poses (B, N, 7). relative=True makes the poses relative to each
-    sequence's first view first (geometry.make_relative), as the published input pipeline
-    does. max_grad_norm: clip the gradients to this norm (clip_mode "global" as
+    tokens (B, N, L) ints, poses (B, N, 7), made relative to each sequence's first view first
+    (geometry.make_relative), as the published input pipeline does. max_grad_norm: clip the gradients to this norm (clip_mode "global" as
     torch.nn.utils.clip_grad_norm_, or "per_tensor" as tf.clip_by_norm, the published choice).
     optimizer must hold model.params (it updates them in place).
     Returns (loss before the step, the gradient norm before clipping: the global norm (a
     float), or with clip_mode "per_tensor" {name: norm}; the global norm without clipping).
     """
-    out, norm = transformer_step(model, optimizer, tokens, poses, max_grad_norm=max_grad_norm,
-                                 clip_mode=clip_mode, relative=relative)
+    out, norm = transformer_step(model, optimizer, tokens, poses, max_grad_norm=max_grad_norm, clip_mode=clip_mode)
     return out.loss, norm
 
 

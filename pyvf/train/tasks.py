@@ -25,7 +25,7 @@ from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import CHECKPOINT, read_checkpoint, resume_point
-from .curves import NotARunError, plot_eval, read_log, read_run_config, runs_table
+from .curves import plot_eval, read_log, runs_table
 from .loops import (
     TINY_CODEBOOK,
     TransformerRecipe,
@@ -39,7 +39,7 @@ from .loops import (
 )
 
 __all__ = ["EVAL_VIEWS", "checkpoint_step", "codebook_run", "compare_runs", "export_run", "held_out_scenes",
-           "held_out_views", "read_codebook", "read_config", "read_model", "same_file", "tokenize_dataset",
+           "held_out_views", "read_codebook", "read_config", "same_file", "tokenize_dataset",
            "transformer_run"]
 
 EVAL_VIEWS = 4  # views per held-out scene in a codebook run's evaluation
@@ -65,15 +65,14 @@ def read_config(value, cls, tiny):
                          f"{[f.name for f in dataclasses.fields(cls)]}") from e
 
 
-def read_model(path, cls, what):
-    """cls.load(path) (cls: Codebook or Transformer), its errors as ValueError naming `what`
-    ("codebook", or the option "--init") and the file."""
+def read_codebook(path):
+    """Codebook.load(path), its errors as ValueError naming the codebook file."""
     try:
-        return cls.load(path)
+        return Codebook.load(path)
     except FileNotFoundError as e:
-        raise ValueError(f"{what} {path} does not exist") from e
+        raise ValueError(f"codebook {path} does not exist") from e
     except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
-        raise ValueError(f"{what} {path} is not a readable {cls.FILE_KIND} file: {type(e).__name__}: {e}") from e
+        raise ValueError(f"codebook {path} is not a readable codebook file: {type(e).__name__}: {e}") from e
 
 
 def same_file(a, b):
@@ -94,19 +93,12 @@ def _refuse_input_as_output(out, inputs, option):
                              "choose another output file")
 
 
-def read_codebook(path):
-    """Codebook.load(path), its errors as ValueError naming the file."""
-    return read_model(path, Codebook, "codebook")
-
-
 def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
     """The held-out views a codebook run evaluates on every eval_every steps: the first EVAL_VIEWS
     views of eval_scenes scenes of eval_seed, (scenes * EVAL_VIEWS, size, size, 3) uint8; None
     when eval_every is 0. The seed must differ from the training data's (data.seed)."""
     if not eval_every:
         return None
-    if eval_scenes < 1:
-        raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
     if getattr(data, "seed", None) == eval_seed:
         raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
     from ..scenes import generate_scenes
@@ -120,9 +112,6 @@ def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None, train_poses=
     data's poses (scenes, views, 7), when known: held-out scenes that are training scenes (eval_seed
     the training data's seed: scene i of a seed is the same scene in any set of it) raise, as
     held_out_views refuses the training data's seed."""
-
-    if eval_scenes < 1:
-        raise ValueError(f"--eval-scenes must be a positive integer, got {eval_scenes}")
     codebook = read_codebook(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
@@ -141,8 +130,6 @@ def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1,
     opts.init when given; recipe: train_codebook's recipe and overrides. Returns the trained
     Codebook (out/codebook.npz)."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
-    if opts.init is not None and resume_point(out, opts.resume) is None:  # a resume does not read it
-        read_model(opts.init, Codebook, "--init")  # a missing file or another model's, named as the option
     from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
     data = load_dataset(data)
     held_out = held_out_views(opts.eval_every, eval_scenes, eval_seed, data, config.image_size)
@@ -175,8 +162,6 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
     opts.eval_every steps on held_out_scenes; starting from the transformer file opts.init when
     given. Returns the trained Transformer (out/transformer.npz)."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
-    if opts.init is not None and resume_point(out, opts.resume) is None:  # a resume does not read it
-        read_model(opts.init, Transformer, "--init")  # a missing file or another model's, named as the option
     tokens_path, (tokens, poses, n_embed, fingerprint) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
         raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "
@@ -194,30 +179,12 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
                              codebook_fingerprint=fingerprint)
 
 
-def compare_runs(run_dirs, plot=False, step=None, note=None):
+def compare_runs(run_dirs, plot=False, step=None):
     """`pyvf runs`: (the markdown table of the run folders, runs_table, at `step` when given; with
-    plot, the eval.png redrawn in each folder whose eval.csv has rows). A folder whose config.json
-    is another program's is left out, note(line) saying so (default: printed to stderr); a
-    damaged file raises ValueError naming it (a torn last line of a log is left out, as the
-    trainers do)."""
-    if step is not None and (isinstance(step, (bool, np.bool_)) or not isinstance(step, (int, np.integer))
-                             or step < 0):
-        raise ValueError(f"step must be a non-negative integer, got {step!r}")
-    note = note or (lambda line: print(f"pyvf runs: note: {line}", file=sys.stderr))
-    runs = []
-    for d in run_dirs:
-        if not os.path.exists(os.path.join(d, "config.json")):
-            raise ValueError(f"{d} is not a run folder (no config.json)")
-        try:
-            read_run_config(d)
-        except NotARunError as e:
-            note(f"skipped {d}: {e}")
-            continue
-        runs.append(d)
-    if not runs:
-        raise ValueError(f"no run folder to compare among {', '.join(map(str, run_dirs))}")
-    table = runs_table(runs, step=step)
-    plots = [plot_eval(d) for d in runs if plot and os.path.exists(os.path.join(d, "eval.csv"))
+    plot, the eval.png redrawn in each folder whose eval.csv has rows). A torn last line of a log is
+    left out, as the trainers do."""
+    table = runs_table(run_dirs, step=step)
+    plots = [plot_eval(d) for d in run_dirs if plot and os.path.exists(os.path.join(d, "eval.csv"))
              and len(read_log(d, "eval.csv", empty_ok=True)["step"])]
     return table, plots
 

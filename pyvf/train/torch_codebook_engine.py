@@ -18,11 +18,11 @@ At every checkpoint pyvf loads the torch model's weights and buffers, runs a fix
 (evaluation mode: no EMA update) within torch_engine.PARITY_RTOL; parity.csv logs the worst
 error and a larger one stops the run naming the first divergent quantity. The codes must be
 equal: a code chosen otherwise by a float32 near-tie (two codes equidistant to rounding) would
-stop the run too, and shows as `codes`. The training steps are checked in tests/test_torch_engine.py:
-each equals pyvf's step from the same state to float32 rounding (gradients, Adam, EMA); a free float32
-run drifts further from pyvf's (8.7e-4 of the movement in 20 steps on the tests' model), as Adam
-normalises gradient entries that are below their own rounding error, and pyvf's float32 run drifts as
-far from its float64 one.
+stop the run too, and shows as `codes`. tests/test_torch_engine.py checks a float64 run (gradients,
+Adam, EMA, restarts) against pyvf's to 1e-9 of the weights' movement; a free float32 run drifts
+further from pyvf's (8.7e-4 of the movement in 20 steps on the tests' model), as Adam normalises
+gradient entries that are below their own rounding error, and pyvf's float32 run drifts as far
+from its float64 one.
 
 One process: the EMA statistics are sums over the whole batch (a data-parallel codebook would
 all-reduce them too, which this engine does not).
@@ -31,9 +31,8 @@ all-reduce them too, which this engine does not).
 import numpy as np
 
 from ..nn.quantizer import code_statistics
-from ..verify.compare import compare
 from .batches import codebook_batch
-from .torch_engine import PARITY_RTOL, TorchAdamW, check_engine, import_torch, world_size
+from .torch_engine import TorchAdamW, TorchEngine, check_engine, import_torch, world_size
 
 _QUANTIZE = "quantize."  # the buffers' prefix in the state dict
 
@@ -47,7 +46,7 @@ def check_codebook_engine(engine, device, precision, dtype):
                          "WORLD_SIZE): run pyvf train-codebook without torchrun")
 
 
-class TorchCodebook:
+class TorchCodebook(TorchEngine):
     """The torch engine's model and optimiser for train_codebook's loop.
 
     model: the pyvf Codebook holding the starting weights and buffers (a fresh one, or restored
@@ -74,10 +73,6 @@ class TorchCodebook:
         self.pyvf_model.load_official({k: v.detach().cpu().numpy() for k, v in self.port.state_dict().items()})
         return self.pyvf_model
 
-    def state_dict(self):
-        """Codebook.state_dict() of the current model (numpy): what Run.save writes."""
-        return self.to_pyvf().state_dict()
-
     def _forward(self, x, autocast):
         """x (B, C, S, S) on the device -> reconstruction (B, C, S, S), commitment loss, codes
         (B, k, k); in training mode the quantizer applies one EMA update (after the lookup)."""
@@ -94,8 +89,7 @@ class TorchCodebook:
         as Codebook.forward's) -> the log's values: loss, rec_loss, commitment, perplexity, usage."""
         torch = self.torch
         x = torch.as_tensor(images).to(self.device)
-        for p in self._names.values():
-            p.grad = None
+        self._zero_grad()
         rec, commitment, codes = self._forward(x, self.precision == "bf16")
         diff = (rec - x).abs()  # (B, C, S, S)
         if pixel_weights is None:
@@ -107,10 +101,7 @@ class TorchCodebook:
         loss.backward()
         norm = torch.stack(torch._foreach_norm([p.grad for p in self._names.values()])).square().sum()
         stats = torch.stack([loss.detach(), rec_loss.detach(), commitment.detach(), norm]).cpu().numpy()
-        if not np.isfinite(stats).all():
-            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
-                             f"(loss, rec_loss, commitment, |g|^2 = {stats.tolist()}): no update applied; "
-                             "lower the learning rate")
+        self._refuse_nonfinite(stats, "loss, rec_loss, commitment, |g|^2")
         self.opt.step()
         counts = torch.bincount(codes.reshape(-1), minlength=self.config.n_embed).cpu().numpy()  # (K,)
         usage, perplexity = code_statistics(counts)
@@ -143,10 +134,7 @@ class TorchCodebook:
         mine = {"codes": codes.cpu().numpy(), "reconstruction": rec.cpu().numpy(),
                 "rec_loss": np.asarray(rec_loss.item()), "commitment_loss": np.asarray(commitment.item()),
                 "loss": np.asarray((rec_loss + self.config.codebook_weight * commitment).item())}
-        out = self.to_pyvf().forward(images)
-        ref = {"codes": out.codes, "reconstruction": out.reconstruction, "rec_loss": np.asarray(out.rec_loss),
-               "commitment_loss": np.asarray(out.commitment_loss), "loss": np.asarray(out.loss)}
-        return compare(mine, ref, rtol=PARITY_RTOL)
+        return self._parity(mine, self.to_pyvf().forward(images))
 
 
 def parity_images(images, seed, dtype):

@@ -24,9 +24,7 @@ follow on the summed gradients, the same on every process. Rank 0 alone writes t
 so every process resumes from rank 0's checkpoint.
 """
 
-import csv
-import io
-import math
+import contextlib
 import os
 import re
 
@@ -34,9 +32,8 @@ import numpy as np
 
 from ..verify.compare import compare
 from ..geometry import make_relative
-from .._io import atomic_write_text
-from ._run import resume_point
 from .batches import transformer_batch
+from .optim import adam_update
 from ..verify.layout import params_from_layout, params_to_layout
 
 # The parity bound: pyvf.compare's normwise relative error, float32 torch against float32 pyvf.
@@ -47,7 +44,6 @@ from ..verify.layout import params_from_layout, params_to_layout
 # The codebook's engine logs it too: its forward measures 3.8e-6 (the reconstruction). Either is one
 # model's forward in two engines, so it does not grow with the steps a run took to reach the weights.
 PARITY_RTOL = 1e-3
-PARITY_LOG = "parity.csv"
 
 
 def import_torch():
@@ -73,14 +69,11 @@ def check_engine(engine, device, precision, dtype=None):
     if engine == "pyvf" and (device != "cpu" or precision != "fp32"):
         raise ValueError(f"device={device!r} and precision={precision!r} need engine='torch' "
                          "(pyvf's engine runs on the CPU in the configuration's dtype)")
-    if engine == "torch":
+    if engine == "torch" and device != "cpu":
         torch = import_torch()
-        if device.startswith("cuda") and not torch.cuda.is_available():
-            raise ValueError(f"device={device!r}, but torch sees no CUDA device (torch {torch.__version__})")
-        if device.startswith("cuda:") and int(device[5:]) >= torch.cuda.device_count():
-            n = torch.cuda.device_count()
-            raise ValueError(f"device={device!r}, but torch sees {n} CUDA device{'s' if n > 1 else ''} "
-                             f"(cuda:0{f' to cuda:{n - 1}' if n > 1 else ''})")
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if int(device[5:] or 0) >= n:
+            raise ValueError(f"device={device!r}, but torch sees {n} CUDA devices (torch {torch.__version__})")
     if dtype is not None:
         check_autocast(precision, dtype)
 
@@ -172,38 +165,23 @@ def data_parallel(device, batch_size):
     return DataParallel(dist, torch.device(device), created=not initialised), device
 
 
-class Follower:
+class Follower(contextlib.nullcontext):
     """Run's stand-in on the processes of a data-parallel run other than rank 0: the same steps
     from rank 0's start, nothing read or written (rank 0's Run keeps the folder)."""
 
     resumed, model_state, optimizer_state = False, None, None
 
-    def __init__(self, start, steps_total, out_dir):
-        self.start, self.steps_total, self.out_dir = start, steps_total, out_dir
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
+    def __init__(self, start, steps_total):
+        super().__init__(self)
+        self.start, self.steps_total = start, steps_total
 
     def steps(self):
         return range(self.start + 1, self.steps_total + 1)
 
-    def log(self, step, values):
-        pass
-
-    def eval_due(self, step, every):
+    def _false(self, *args):
         return False
 
-    def checkpoint_due(self, step):
-        return False
-
-    def stop_requested(self):
-        return False
-
-    def save_final(self, arrays):
-        pass
+    eval_due = checkpoint = log = save_final = _false
 
 
 class TorchAdamW:
@@ -228,37 +206,55 @@ class TorchAdamW:
         return self.ref.lr_at(step)
 
     def step(self):
-        """One update from the parameters' .grad (finite: the caller checked). Returns the lr."""
-        torch = import_torch()
-        r = self.ref
-        lr = r.lr_at(r.step_count)
-        t = r.step_count + 1
-        b1, b2 = r.betas
-        bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
+        """One update from the parameters' .grad (finite: the caller checked): optim.adam_update, the
+        same expressions on torch tensors. Returns the lr."""
+        torch, r = import_torch(), self.ref
+        lr, t = r.lr_at(r.step_count), r.step_count + 1
         with torch.no_grad():
             for k, p in self.params.items():
-                g, m, v = p.grad, self.exp_avg[k], self.exp_avg_sq[k]
-                m.mul_(b1).add_(g, alpha=1 - b1)  # m = b1 m + (1 - b1) g
-                v.mul_(b2).addcmul_(g, g, value=1 - b2)  # v = b2 v + (1 - b2) g^2
-                if r.eps_convention == "torch":
-                    upd = (lr / bc1) * (m / (v.sqrt() / math.sqrt(bc2) + r.eps))
-                else:
-                    upd = (m * (lr * math.sqrt(bc2) / bc1)) / (v.sqrt() + r.eps)  # Keras' order
-                if r.weight_decay != 0 and k in r.decayed:
-                    p.mul_(1 - lr * r.weight_decay)  # decoupled, before the Adam step
-                p.sub_(upd)
+                wd = r.weight_decay if k in r.decayed else 0.0
+                p1, self.exp_avg[k], self.exp_avg_sq[k] = adam_update(
+                    p, self.exp_avg[k], self.exp_avg_sq[k], p.grad, lr, t, *r.betas, r.eps, wd,
+                    r.eps_convention == "keras", sqrt=torch.sqrt)
+                p.copy_(p1)
         r.step_count = t
         return lr
 
     def state_dict(self):
-        """pyvf AdamW's state_dict (its layout, numpy): what Run.save writes."""
+        """pyvf AdamW's state_dict (its layout, numpy): what Run.checkpoint writes."""
         for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
             arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
             setattr(self.ref, theirs, params_from_layout(self.model, arrays, "torch"))
         return self.ref.state_dict()
 
 
-class TorchTransformer:
+class TorchEngine:
+    """What both torch engines (TorchTransformer, torch_codebook_engine.TorchCodebook) share: the
+    model's torch port (port), its parameters by official name (_names), the update (opt, a
+    TorchAdamW continuing the run's pyvf optimiser), and to_pyvf() -> the pyvf model holding the
+    port's current weights."""
+
+    def state_dict(self):
+        """The weights (and buffers) in pyvf's layout, numpy: what Run.checkpoint writes."""
+        return self.to_pyvf().state_dict()
+
+    def _zero_grad(self):
+        for p in self._names.values():
+            p.grad = None
+
+    def _refuse_nonfinite(self, stats, names):
+        """stats: the step's loss figures and gradient norm, numpy; not finite -> ValueError."""
+        if not np.isfinite(stats).all():
+            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
+                             f"({names} = {stats.tolist()}): no update applied; lower the learning rate")
+
+    def _parity(self, mine, out):
+        """pyvf.compare of the torch model's quantities `mine` against the pyvf output's `out` of the
+        same names, at PARITY_RTOL."""
+        return compare(mine, {k: np.asarray(getattr(out, k)) for k in mine}, rtol=PARITY_RTOL)
+
+
+class TorchTransformer(TorchEngine):
     """The torch engine's model and optimiser for train_transformer's loop.
 
     model: the pyvf Transformer holding the starting weights (a fresh one, or restored from a
@@ -297,10 +293,6 @@ class TorchTransformer:
                                       layout="torch")
         return self.pyvf_model
 
-    def state_dict(self):
-        """The weights in pyvf's layout (numpy), as Transformer.state_dict() gives them."""
-        return self.to_pyvf().state_dict()
-
     def _outputs(self, tokens, poses, autocast):
         """tokens (B, N, L) int64, poses (B, N, 7) numpy, poses already relative -> logits,
         raw pose, ce (B,), pose loss (B,), loss, on the device."""
@@ -318,8 +310,7 @@ class TorchTransformer:
         a tensor of the batch's loss, mean ce and mean pose loss)."""
         B = len(tokens)
         lo, hi = (0, B) if self.dp is None else self.dp.shard(B)
-        for p in self._names.values():
-            p.grad = None
+        self._zero_grad()
         _, _, ce, pl, loss = self._outputs(tokens[lo:hi], poses[lo:hi], self.precision == "bf16")
         share = (hi - lo) / B  # loss = mean over the shard: its part of the batch mean is share * loss
         (loss * share).backward()
@@ -337,10 +328,7 @@ class TorchTransformer:
         norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
         total = norms.square().sum().sqrt()
         stats = torch.cat([sums, total[None]]).cpu().numpy()
-        if not np.isfinite(stats).all():
-            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
-                             "(loss, ce, pose loss, grad norm = "
-                             f"{stats.tolist()}): no update applied; lower the learning rate")
+        self._refuse_nonfinite(stats, "loss, ce, pose loss, grad norm")
         if self.max_grad_norm is not None:
             m = float(self.max_grad_norm)
             if self.clip_mode == "per_tensor":  # tf.clip_by_norm per tensor, as pyvf's clip_grad_norm
@@ -360,32 +348,14 @@ class TorchTransformer:
             logits, raw, ce, pl, loss = self._outputs(tokens, pos, False)
         mine = {"logits": logits.cpu().numpy(), "pose_raw": raw.cpu().numpy(), "ce_loss": ce.cpu().numpy(),
                 "pose_loss": pl.cpu().numpy(), "loss": np.asarray(loss.item())}
-        out = self.to_pyvf().forward(tokens, pos.astype(self.pyvf_model.dtype))
-        ref = {"logits": out.logits, "pose_raw": out.pose_raw, "ce_loss": out.ce_loss,
-               "pose_loss": out.pose_loss, "loss": np.asarray(out.loss)}
-        return compare(mine, ref, rtol=PARITY_RTOL)
+        return self._parity(mine, self.to_pyvf().forward(tokens, pos.astype(self.pyvf_model.dtype)))
 
 
-def log_parity(out_dir, step, comparison):
-    """Append the parity check of `step` to out_dir/parity.csv; raise when it failed. As log.csv, the
-    file keeps the rows of the run it continues, those up to out_dir's checkpoint (none before the
-    first): an older run's (a fresh start in the folder) and a resumed run's past its checkpoint go."""
-    path = os.path.join(out_dir, PARITY_LOG)
+def check_parity(run, step, comparison):
+    """Log the parity check of `step` to the run's parity.csv (Run.log_parity); raise when it failed,
+    before the checkpoint: a divergent model is not checkpointed."""
     worst = max(comparison.rows, key=lambda r: (not np.isfinite(r.rel), r.rel))
-    meta = resume_point(out_dir)  # the checkpoint before this step's (Run removed an older run's)
-    rows = []
-    if os.path.exists(path):
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.reader(f))[1:]
-    kept = [r for r in rows if meta is not None and r and r[0].isdigit() and int(r[0]) <= meta["step"]]
-    row = [step, worst.name, repr(float(worst.rel)), repr(PARITY_RTOL)]
-    if rows and kept == rows:
-        with open(path, "a", newline="", encoding="utf-8") as f:
-            csv.writer(f, lineterminator="\n").writerow(row)
-    else:  # a new file, or rows to drop: written whole, atomically
-        text = io.StringIO()
-        csv.writer(text, lineterminator="\n").writerows([["step", "worst", "rel_err", "bound"], *kept, row])
-        atomic_write_text(path, text.getvalue())
+    run.log_parity(step, worst.name, worst.rel, PARITY_RTOL)
     if not comparison.ok:
         raise RuntimeError(f"parity check at step {step}: the torch model and pyvf differ first in "
                            f"{comparison.first!r} (normwise relative error over {PARITY_RTOL}); the "
@@ -398,5 +368,5 @@ def parity_batch(tokens, poses, n_views, seed, dtype):
     return transformer_batch(tokens, poses, n_views, 4, seed + 1_000_003, 0, dtype)
 
 
-__all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchTransformer", "PARITY_RTOL", "check_autocast",
-           "check_engine", "data_parallel", "log_parity", "parity_batch", "world_size"]
+__all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchEngine", "TorchTransformer", "PARITY_RTOL", "check_autocast",
+           "check_engine", "check_parity", "data_parallel", "parity_batch", "world_size"]
