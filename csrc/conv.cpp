@@ -57,20 +57,21 @@
 // the kernel returns kConvNonFinite, which the bindings raise naming the output (a separate pass
 // over a paper codebook's activations from memory cost ~1% of its training step).
 //
-// Plain loops beside it (conv2d_*_plain): one double accumulator per output element, the
-// obviously-correct oracle of the tests.
+// Its reference, the same layer in NumPy: pyvf/nn/conv.py conv2d_forward_numpy and
+// conv2d_backward_numpy (im2col columns times the weights), the tests' plain version.
 //
 // Measured (AMD EPYC, AVX2, one thread's CPU time, B = 16, 32 -> 32 channels, 64x64, 3x3 pad 1,
 // float32): forward 15.1 ms (80 GFLOP/s), backward 31 ms; torch 2.13 15 ms and 70 ms for both.
 // DwGemmTasks (Intel Xeon, AVX-512, 2 threads, B = 2, 3x3 pad 1, float32): the backward of 512 -> 512
 // channels on 8x8 22.6 -> 9.3 ms, 128 -> 128 on 128x128 89.5 -> 86.6 ms (torch 5.4 and 71 ms).
 //
-// Test: pytest tests/test_conv.py (fast vs plain vs NumPy vs torch float64, every shape family
-// and code path, the padding trap, 1 vs 2 threads bitwise, float32 vs float64, sizes refused).
+// Test: pytest tests/test_conv.py (the kernel vs NumPy vs torch float64, every shape family and
+// code path, the padding trap, 1 vs 2 threads bitwise, float32 vs float64).
 // Benchmark: pyvf bench codebook --quick (the time per layer type).
 #include "conv.h"
 
 #include <algorithm>
+#include <cstring>
 #include <memory>
 #include <new>
 #include <vector>
@@ -150,31 +151,6 @@ template <typename T> int64_t tile_pixels(int64_t rows, int64_t P, int64_t bytes
     const int64_t most = std::max(step, bytes / (std::max<int64_t>(rows, 1) * (int64_t)sizeof(T)) / step * step);
     const int64_t np = round_up(ceil_div(P, ceil_div(P, most)), step);
     return std::min(np, std::max<int64_t>(P, 1));
-}
-
-// gemm of simd.h with the rows past the last full MR block done as one block of M % MR rows
-// (simd.h's gemm does them 4 and 1 at a time, which for Co = 32 on AVX2 leaves two rows at a
-// quarter of the FMA rate). Each element of C is the same sum in the same order whatever block
-// its row falls in, so this changes no result, only the speed.
-template <typename T, bool ACC, bool TA = false, bool CONT = false>
-void gemm_mr(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
-    constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
-    const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;
-    int i = 0;
-    for (; i + MR <= M; i += MR)
-        gemm_rows<T, MR, ACC, CONT>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
-    A += i * sa_i;
-    C += i * ldc;
-    switch (M - i) {
-        case 0: break;
-        case 1: gemm_rows<T, 1, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 2: gemm_rows<T, 2, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 3: gemm_rows<T, 3, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 4: if constexpr (MR > 4) gemm_rows<T, 4, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 5: if constexpr (MR > 5) gemm_rows<T, 5, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 6: if constexpr (MR > 6) gemm_rows<T, 6, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 7: if constexpr (MR > 7) gemm_rows<T, 7, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-    }
 }
 
 // out[q] = 0 for q < lo and hi <= q < m, src[q - lo] for lo <= q < hi.
@@ -696,6 +672,23 @@ inline void cols_row_offsets(int64_t* aoff, const ConvDims& d, int64_t nc, bool 
                                                          : ((c * d.kh + i) * d.kw + j) * np;
 }
 
+// The W / WD double vectors of the elements of a T vector, in order (float -> double is exact):
+// whole-vector conversions (filling a double vector lane by lane compiles to a scalar insert per
+// lane, which dominated the sums).
+template <typename T> inline void widen_to_double(typename Simd<T>::V v, typename Simd<double>::V* out) {
+    if constexpr (sizeof(T) == sizeof(double)) {
+        out[0] = v;
+    } else {
+        using VD = typename Simd<double>::V;
+        typedef float H __attribute__((vector_size(Simd<double>::W * sizeof(float))));  // half a float vector
+        H lo, hi;
+        std::memcpy(&lo, &v, sizeof lo);
+        std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
+        out[0] = __builtin_convertvector(lo, VD);
+        out[1] = __builtin_convertvector(hi, VD);
+    }
+}
+
 // db[o] = sum over images and pixels of dy[b, o, :, :], in double (forward was y = ... + b[o]);
 // false when it is not finite.
 template <typename T> bool db_sum(T* db, const T* dy, const ConvDims& d, int64_t o) {
@@ -1099,255 +1092,11 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
     return backward_with<T, DwLanesTasks<T>>(dx, dw, db, x, w, dy, d);
 }
 
-// The products of the AttnBlock (pyvf/nn/conv.py) and of the transformer's linear layers and
-// tied logits (pyvf/nn/layers.py, models/transformer.py): per batch entry b,
-// c_b (M, N) = op(a_b) (M, K) @ op(b_b) (K, N), op = transpose when ta / tb.
-// Blocks: tasks of (entry, kMatRows rows, kMatCols columns), each writing its own block of c;
-// inside a task k runs in chunks of kMatDepth, each chunk continuing the sums of the last
-// (gemm_tile's CONT). A chunk's panel of b (kMatDepth x kMatCols) and of a (kMatRows x
-// kMatDepth) are copied into the order the register tile reads them (a's rows kPackMR at a time,
-// b's columns kPackNV vectors at a time, k outermost), so that its loads are contiguous and b's
-// panel stays in L2 while the block's rows pass over it. Rows past the last full kPackMR and
-// columns past the last full kPackNV vectors run on the unpacked matrices (gemm_mr). Every
-// element of c is one sum in increasing k (on simd.h's register tile, FMA where the path has it;
-// the last N % W columns as scalar sums), or, split along k (kMatMinTasks), its parts' sums added
-// in order, whatever the blocks, the tasks or the thread count: bitwise the same for any thread
-// count. A transposed b (a weight matrix, where pyvf asks for
-// one) is first copied into (K, N) order. A bias (N,), when given, is added to every row after
-// its sums.
-// Here rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
-// milliseconds on the cores this file's OpenMP threads run on (11% of a paper codebook's encode +
-// decode went to that spinning; a 2-thread product right after a 2-thread BLAS call ran at the
-// speed of one thread), and because the BLAS's results change with its thread count for some
-// shapes.
-constexpr int64_t kMatRows = 96;    // whole register tiles on every path (8, 6 and 4 rows)
-constexpr int64_t kMatCols = 192;   // a multiple of the packed tile's columns on every path (96, 48, 16, 8, 4)
-constexpr int64_t kMatDepth = 256;  // panels: b's 256 x 192 (192 KiB of floats), a's 96 x 256 (96 KiB)
-// Split along k: a product with fewer than kMatMinTasks blocks of c and K of at least 2 *
-// kMatSplitDepth (the weight gradients X^T dY of the tiny transformer: c 128 x 512, K = 9216,
-// 6 blocks for 16 threads) is cut into parts of whole kMatDepth chunks, at least kMatSplitDepth
-// deep, as many as make about kMatMinTasks tasks. Each part's block is one sum in increasing k
-// (part 0 into c, the others into a buffer), then c = ((part 0 + part 1) + part 2) + ... in that
-// order. The parts follow from the shapes alone, so the result is still bitwise the same for any
-// thread count.
-constexpr int64_t kMatMinTasks = 64;
-constexpr int64_t kMatSplitDepth = 1024;
-
-// The packed tile's shape: with 32 vector registers (AVX-512) 4 rows x 6 vectors (24
-// accumulators, 6 of b, 1 broadcast: 4 broadcasts per 24 FMAs); with 16 (AVX2) simd.h's 6 x 2,
-// SSE2/NEON 4 x 2.
-constexpr int kPackMR = kVecBytes >= 64 ? 4 : kVecBytes == 32 ? 6 : 4;
-constexpr int kPackNV = kVecBytes >= 64 ? 6 : 2;
-
-// One task's block: c (m, n) (leading dimension ldc) = op(a) @ b over k in [0, K), op(a)[i, k]
-// = A[k * lda + i] when ta, else A[i * lda + k]; b (K, n) with leading dimension ldb; ap and bp
-// the packing buffers (kMatRows * kMatDepth and kMatDepth * kMatCols).
-template <typename T, bool TA>
-void matmul_block(int64_t m, int64_t n, int64_t K, const T* A, long lda, const T* B, long ldb, T* C, long ldc, T* ap,
-                  T* bp) {
-    const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;
-    constexpr int MR = kPackMR;
-    constexpr int NB = kPackNV * kW<T>;
-    const int64_t ng = m / MR, nt = n / NB, mf = ng * MR, nf = nt * NB;
-    for (int64_t k0 = 0; k0 < K; k0 += kMatDepth) {
-        const int kc = (int)std::min(kMatDepth, K - k0);
-        const T* Ak = A + k0 * sa_k;
-        const T* Bk = B + k0 * ldb;
-        for (int64_t t = 0; t < nt; ++t)  // bp[t][k][0:NB] = b[k0 + k, t*NB : (t+1)*NB]
-            for (int k = 0; k < kc; ++k) {
-                T* dst = bp + (t * kc + k) * NB;
-                const T* src = Bk + k * ldb + t * NB;
-                for (int v = 0; v < NB; v += kW<T>) vstore<T>(dst + v, vload<T>(src + v));
-            }
-        for (int64_t g = 0; g < ng; ++g)  // ap[g][k][0:MR] = op(a)[g*MR : (g+1)*MR, k0 + k]
-            for (int k = 0; k < kc; ++k)
-                for (int i = 0; i < MR; ++i) ap[(g * kc + k) * MR + i] = Ak[(g * MR + i) * sa_i + k * sa_k];
-        for (int64_t t = 0; t < nt; ++t)
-            for (int64_t g = 0; g < ng; ++g) {
-                T* c = C + g * MR * ldc + t * NB;
-                const T* At = ap + g * kc * MR;  // op(a)[i, k] at At[k * MR + i]
-                const T* Bt = bp + t * kc * NB;  // b[k, v * W + l] at Bt[k * NB + v * W + l]
-                if (k0 == 0) gemm_tile<T, MR, kPackNV, false>(kc, At, 1, MR, Bt, NB, c, ldc);
-                else gemm_tile<T, MR, kPackNV, false, true>(kc, At, 1, MR, Bt, NB, c, ldc);
-            }
-        // the edges, unpacked: the last rows under the packed columns, then every row of the last columns
-        if (mf < m) {
-            if (k0 == 0) gemm_mr<T, false, TA>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
-            else gemm_mr<T, false, TA, true>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
-        }
-        if (nf < n) {
-            if (k0 == 0) gemm_mr<T, false, TA>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
-            else gemm_mr<T, false, TA, true>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
-        }
-    }
-}
-
-template <typename T>
-int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta, bool tb,
-                   const T* bias) {
-    const int64_t nmb = ceil_div(M, kMatRows), nnb = ceil_div(N, kMatCols), per = nmb * nnb;
-    if (nb == 0 || M == 0 || N == 0) return kConvOk;
-    if (K == 0) {
-        for (int64_t r = 0; r < nb * M; ++r)
-            for (int64_t j = 0; j < N; ++j) c[r * N + j] = bias ? T(0) + bias[j] : T(0);
-        return kConvOk;
-    }
-    std::unique_ptr<T[]> bt;  // a transposed b in (K, N) order: b is a weight matrix where pyvf asks for tb
-    if (tb) {
-        bt.reset(new (std::nothrow) T[nb * K * N]);  // not initialised: every element is written below
-        if (!bt) return kConvOutOfMemory;
-        constexpr int64_t kT = 32;  // tiles of 32 x 32: the reads and the writes both stay in L1
-        const int64_t nj = ceil_div(N, kT);
-#pragma omp parallel num_threads(num_threads()) if (parallel_work(nb * K * N, kParallelFlops / 8))
-        {
-#pragma omp for schedule(static) nowait
-            for (int64_t t = 0; t < nb * nj; ++t) {
-                const int64_t bi = t / nj, j0 = (t % nj) * kT;
-                for (int64_t k0 = 0; k0 < K; k0 += kT)
-                    for (int64_t j = j0; j < std::min(N, j0 + kT); ++j)
-                        for (int64_t k = k0; k < std::min(K, k0 + kT); ++k)
-                            bt[(bi * K + k) * N + j] = b[(bi * N + j) * K + k];
-            }
-        }
-        b = bt.get();
-    }
-    // the parts along k (kMatMinTasks): shapes alone decide them
-    int64_t parts = 1;
-    if (nb * per < kMatMinTasks && K >= 2 * kMatSplitDepth)
-        parts = std::min(K / kMatSplitDepth, ceil_div(kMatMinTasks, nb * per));
-    const int64_t span = round_up(ceil_div(K, parts), kMatDepth);  // k per part, whole chunks
-    parts = ceil_div(K, span);
-    std::unique_ptr<T[]> more;  // parts 1 .. parts - 1, each (nb, M, N)
-    if (parts > 1) {
-        more.reset(new (std::nothrow) T[(parts - 1) * nb * M * N]);
-        if (!more) return kConvOutOfMemory;
-    }
-    // the panels as large as this product needs (a small product zero-fills little)
-    const int64_t rows = std::min(M, kMatRows), depth = std::min(span, kMatDepth), cols = std::min(N, kMatCols);
-    int status = kConvOk;
-#pragma omp parallel num_threads(num_threads()) if (parallel_work(nb * M * N * K, kParallelFlops))
-    {
-        Buf<T> ap, bp;
-        bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, ap.resize(rows * depth); bp.resize(depth * cols); ok = true)
-#pragma omp for schedule(dynamic, 1) nowait
-        for (int64_t t = 0; t < parts * nb * per; ++t) {
-            if (!ok) continue;
-            const int64_t s = t / (nb * per), q = t % (nb * per);  // part s, block q
-            const int64_t bi = q / per, i0 = (q % per % nmb) * kMatRows, j0 = (q % per / nmb) * kMatCols;
-            const int64_t m = std::min(kMatRows, M - i0), n = std::min(kMatCols, N - j0);
-            const int64_t k0 = s * span, kk = std::min(span, K - k0);
-            const T* ab = a + bi * M * K;
-            const T* bb = b + (bi * K + k0) * N + j0;
-            T* cb = (s == 0 ? c : more.get() + (s - 1) * nb * M * N) + (bi * M + i0) * N + j0;
-            // consecutive tasks: the same columns, so that b's panels come from L2 while its rows pass;
-            // op(a)[i, k] = a_b[k, i] (stored (K, M)) when ta, else a_b[i, k] (stored (M, K))
-            if (ta) matmul_block<T, true>(m, n, kk, ab + k0 * M + i0, (long)M, bb, (long)N, cb, (long)N, ap.data(),
-                                          bp.data());
-            else matmul_block<T, false>(m, n, kk, ab + i0 * K + k0, (long)K, bb, (long)N, cb, (long)N, ap.data(),
-                                        bp.data());
-            if (bias && parts == 1)  // the bias after the whole sum: (sum) + bias[j], one rounding each, as NumPy's x @ w + b
-                for (int64_t i = 0; i < m; ++i)
-                    for (int64_t j = 0; j < n; ++j) cb[i * N + j] += bias[j0 + j];
-        }
-        // the parts wait for every task (parts is the same on every thread, so all or none meet
-        // the barrier); after it every thread sees the same status (a worksharing loop must be
-        // met by all threads or none). One part: the region's end is the only barrier.
-        if (parts > 1) {
-#pragma omp barrier
-            if (status == kConvOk) {  // c = ((part 0 + part 1) + part 2) + ... (+ bias), row by row
-#pragma omp for schedule(static) nowait
-                for (int64_t r = 0; r < nb * M; ++r) {
-                    T* cr = c + r * N;
-                    for (int64_t s = 1; s < parts; ++s) {
-                        const T* pr = more.get() + ((s - 1) * nb * M + r) * N;
-                        for (int64_t j = 0; j < N; ++j) cr[j] += pr[j];
-                    }
-                    if (bias)
-                        for (int64_t j = 0; j < N; ++j) cr[j] += bias[j];
-                }
-            }
-        }
-    }
-    return status;
-}
-
-// =========================================================================================
-// Plain loops: the oracle. y[b, o, u, v] = b[o] + sum over c, i, j of w[o, c, i, j] *
-// x[b, c, s*u + i - pt, s*v + j - pl] (terms outside x are the zero padding), in double.
-
-template <typename T>
-int conv2d_forward_plain(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
-    for (int64_t bi = 0; bi < d.B; ++bi)
-        for (int64_t o = 0; o < d.Co; ++o)
-            for (int64_t u = 0; u < d.Ho; ++u)
-                for (int64_t v = 0; v < d.Wo; ++v) {
-                    double s = b[o];
-                    for (int64_t c = 0; c < d.C; ++c)
-                        for (int64_t i = 0; i < d.kh; ++i)
-                            for (int64_t j = 0; j < d.kw; ++j) {
-                                const int64_t yi = d.stride * u + i - d.pt, xi = d.stride * v + j - d.pl;
-                                if (yi < 0 || yi >= d.Hi || xi < 0 || xi >= d.Wi) continue;
-                                s += (double)w[((o * d.C + c) * d.kh + i) * d.kw + j] *
-                                     (double)x[((bi * d.C + c) * d.Hi + yi) * d.Wi + xi];
-                            }
-                    y[((bi * d.Co + o) * d.Ho + u) * d.Wo + v] = (T)s;
-                }
-    return kConvOk;
-}
-
-// The same loops, each term's derivative: dy[b, o, u, v] * w[o, c, i, j] goes to dx, * x to dw,
-// dy itself to db; accumulated in double, rounded once.
-template <typename T>
-int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d) {
-    std::vector<double> gx, gw, gb;
-    try {
-        gx.assign(d.B * d.C * d.Hi * d.Wi, 0.0);
-        gw.assign(d.Co * d.C * d.kh * d.kw, 0.0);
-        gb.assign(d.Co, 0.0);
-    } catch (const std::bad_alloc&) {
-        return kConvOutOfMemory;
-    }
-    for (int64_t bi = 0; bi < d.B; ++bi)
-        for (int64_t o = 0; o < d.Co; ++o)
-            for (int64_t u = 0; u < d.Ho; ++u)
-                for (int64_t v = 0; v < d.Wo; ++v) {
-                    const double g = dy[((bi * d.Co + o) * d.Ho + u) * d.Wo + v];
-                    gb[o] += g;
-                    for (int64_t c = 0; c < d.C; ++c)
-                        for (int64_t i = 0; i < d.kh; ++i)
-                            for (int64_t j = 0; j < d.kw; ++j) {
-                                const int64_t yi = d.stride * u + i - d.pt, xi = d.stride * v + j - d.pl;
-                                if (yi < 0 || yi >= d.Hi || xi < 0 || xi >= d.Wi) continue;
-                                const int64_t iw = ((o * d.C + c) * d.kh + i) * d.kw + j;
-                                const int64_t ix = ((bi * d.C + c) * d.Hi + yi) * d.Wi + xi;
-                                gx[ix] += g * (double)w[iw];
-                                gw[iw] += g * (double)x[ix];
-                            }
-                }
-    for (size_t k = 0; k < gx.size(); ++k) dx[k] = (T)gx[k];
-    for (size_t k = 0; k < gw.size(); ++k) dw[k] = (T)gw[k];
-    for (size_t k = 0; k < gb.size(); ++k) db[k] = (T)gb[k];
-    return backward_status(kConvOk, !finite_run(dx, (int64_t)gx.size()), !finite_run(dw, (int64_t)gw.size()),
-                           !finite_run(db, (int64_t)gb.size()));
-}
-
-template int matmul_batched<float>(float*, const float*, const float*, int64_t, int64_t, int64_t, int64_t, bool,
-                                    bool, const float*);
-template int matmul_batched<double>(double*, const double*, const double*, int64_t, int64_t, int64_t, int64_t,
-                                     bool, bool, const double*);
 template int conv2d_forward<float>(float*, const float*, const float*, const float*, const ConvDims&);
 template int conv2d_forward<double>(double*, const double*, const double*, const double*, const ConvDims&);
 template int conv2d_backward<float>(float*, float*, float*, const float*, const float*, const float*,
                                     const ConvDims&);
 template int conv2d_backward<double>(double*, double*, double*, const double*, const double*, const double*,
                                      const ConvDims&);
-template int conv2d_forward_plain<float>(float*, const float*, const float*, const float*, const ConvDims&);
-template int conv2d_forward_plain<double>(double*, const double*, const double*, const double*,
-                                          const ConvDims&);
-template int conv2d_backward_plain<float>(float*, float*, float*, const float*, const float*, const float*,
-                                          const ConvDims&);
-template int conv2d_backward_plain<double>(double*, double*, double*, const double*, const double*,
-                                           const double*, const ConvDims&);
 
 }  // namespace pyvf

@@ -1,4 +1,4 @@
-// The codebook's conv2d kernel and pyvf's GEMM (conv.cpp);
+// The codebook's conv2d kernel (conv.cpp);
 // declarations shared by the kernels and the bindings (conv_bind.cpp).
 #pragma once
 
@@ -39,20 +39,6 @@ enum ConvStatus : int {
 template <typename T> int conv2d_forward(T* y, const T* x, const T* w, const T* b, const ConvDims& d);
 template <typename T>
 int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d);
-
-// Plain loops, obviously correct, one double accumulator per output element (the sums in double,
-// rounded once): the oracle the tests compare the fast kernels with. Same arguments and outputs.
-// Serial; test sizes only.
-template <typename T> int conv2d_forward_plain(T* y, const T* x, const T* w, const T* b, const ConvDims& d);
-template <typename T>
-int conv2d_backward_plain(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d);
-
-// c (nb, M, N) = op(a) @ op(b) per image: a (nb, M, K), or (nb, K, M) transposed when ta; b (nb, K, N),
-// or (nb, N, K) transposed when tb; c overwritten; bias (N,) or nullptr, added to every row of c
-// after its sum. Every count below 2^31 (the bindings check). Returns kConvOk or kConvOutOfMemory.
-template <typename T>
-int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta, bool tb,
-                   const T* bias = nullptr);
 
 }  // namespace pyvf
 

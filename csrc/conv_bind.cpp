@@ -1,6 +1,5 @@
-// Python bindings of the conv2d and GEMM kernels (conv.cpp), called from module.cpp's
-// PYBIND11_MODULE.
-// The layers that call them are in pyvf/nn/conv.py and pyvf/nn/layers.py;
+// Python bindings of the conv2d kernels (conv.cpp), called from module.cpp's PYBIND11_MODULE.
+// The layers that call them are in pyvf/nn/conv.py;
 // these take arrays of exactly one dtype in C layout (.noconvert(), c_style: a wrong dtype or
 // layout is a TypeError, never a silent cast or copy) and check every size again, since a wrong
 // one would read or write out of bounds.
@@ -9,15 +8,11 @@
 // never accumulated into.
 //     conv2d_forward(y, x, w, b, stride, pt, pb, pl, pr)
 //     conv2d_backward(dx, dw, db, x, w, dy, stride, pt, pb, pl, pr)
-// and the same with _plain: the plain-loop oracle;
-//     matmul(c, a, b, ta, tb=False, bias=None): c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per
-//     image, a (nb, M, K) or (nb, K, M) if ta, b (nb, K, N) or (nb, N, K) if tb
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
 #include <algorithm>
-#include <optional>
 #include <initializer_list>
 #include <limits>
 #include <string>
@@ -89,13 +84,10 @@ void check_shape(const py::array& a, const char* name, std::initializer_list<int
 const char* kConvMemory =
     "conv2d: not enough memory for the kernel's work buffers (per thread about 128 KiB of columns, and w's "
     "size for the flipped kernel of the backward)";
-const char* kMatMemory =
-    "matmul: not enough memory for the transposed copy of b (b's size) and the packed panels (per thread up to "
-    "288 KiB of float32, 576 KiB of float64)";
 
-void raise_status(int status, const char* memory_message = kConvMemory) {
+void raise_status(int status) {
     if (status == kConvOutOfMemory) {
-        PyErr_SetString(PyExc_MemoryError, memory_message);
+        PyErr_SetString(PyExc_MemoryError, kConvMemory);
         throw py::error_already_set();
     }
 }
@@ -112,7 +104,7 @@ template <typename T> void raise_nonfinite(int status, const char* what, const c
     raise_status(status);
 }
 
-template <typename T, bool PLAIN>
+template <typename T>
 void forward(Arr<T> y, Arr<T> x, Arr<T> w, Arr<T> b, int64_t stride, int64_t pt, int64_t pb, int64_t pl,
              int64_t pr) {
     const ConvDims d = dims_of(x, w, stride, pt, pb, pl, pr);
@@ -123,12 +115,12 @@ void forward(Arr<T> y, Arr<T> x, Arr<T> w, Arr<T> b, int64_t stride, int64_t pt,
     int status;
     {
         py::gil_scoped_release nogil;
-        status = PLAIN ? conv2d_forward_plain<T>(py_, px, pw, pbias, d) : conv2d_forward<T>(py_, px, pw, pbias, d);
+        status = conv2d_forward<T>(py_, px, pw, pbias, d);
     }
     raise_nonfinite<T>(status, "conv2d_forward", "y");
 }
 
-template <typename T, bool PLAIN>
+template <typename T>
 void backward(Arr<T> dx, Arr<T> dw, Arr<T> db, Arr<T> x, Arr<T> w, Arr<T> dy, int64_t stride, int64_t pt,
               int64_t pb, int64_t pl, int64_t pr) {
     const ConvDims d = dims_of(x, w, stride, pt, pb, pl, pr);
@@ -141,65 +133,20 @@ void backward(Arr<T> dx, Arr<T> dw, Arr<T> db, Arr<T> x, Arr<T> w, Arr<T> dy, in
     int status;
     {
         py::gil_scoped_release nogil;
-        status = PLAIN ? conv2d_backward_plain<T>(pdx, pdw, pdb, px, pw, pdy, d)
-                       : conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d);
+        status = conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d);
     }
     raise_nonfinite<T>(status, "conv2d_backward", "dx");
 }
 
-template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb, std::optional<Arr<T>> bias) {
-    auto fail = [](const std::string& what) { throw py::value_error("pyvf._core.matmul: " + what); };
-    if (a.ndim() != 3 || b.ndim() != 3 || c.ndim() != 3) fail("a, b and c must be 3-D (batch, rows, columns)");
-    const int64_t nb = a.shape(0), M = ta ? a.shape(2) : a.shape(1), K = ta ? a.shape(1) : a.shape(2);
-    const int64_t N = tb ? b.shape(1) : b.shape(2);
-    auto shape = [](const py::array& x) {
-        std::string s = "(";
-        for (py::ssize_t d = 0; d < x.ndim(); ++d) s += (d ? ", " : "") + std::to_string(x.shape(d));
-        return s + (x.ndim() == 1 ? ",)" : ")");
-    };
-    const std::string want_k = " with a's batch " + std::to_string(nb) + " and K = " + std::to_string(K);
-    if (b.shape(0) != nb || (tb ? b.shape(2) : b.shape(1)) != K)
-        fail(std::string(tb ? "b must have shape (batch, N, K)" : "b must have shape (batch, K, N)") + want_k +
-             ", got " + shape(b));
-    if (c.shape(0) != nb || c.shape(1) != M || c.shape(2) != N)
-        fail("c must have shape (batch, M, N) = (" + std::to_string(nb) + ", " + std::to_string(M) + ", " +
-             std::to_string(N) + "), got " + shape(c));
-    for (int64_t n : {M, N, K})
-        if (n > kIntMax) fail("every side must be below 2^31");
-    check_count("a", "M*K", {M, K});
-    check_count("b", "K*N", {K, N});
-    check_count("c", "M*N", {M, N});
-    if (bias && (bias->ndim() != 1 || bias->shape(0) != N))
-        fail("bias must have shape (N,) = (" + std::to_string(N) + ",), got " + shape(*bias));
-    T* pc = c.mutable_data();
-    const T *pa = a.data(), *pb = b.data(), *pbias = bias ? bias->data() : nullptr;
-    int status;
-    {
-        py::gil_scoped_release nogil;
-        status = matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb, pbias);
-    }
-    raise_status(status, kMatMemory);
-}
-
 template <typename T> void bind_dtype(py::module_& m) {
-    m.def("matmul", &matmul<T>,
-          "c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per image, op = transpose of a if ta, of b if tb; c overwritten",
-          py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(), py::arg("ta"),
-          py::arg("tb") = false, py::arg("bias").noconvert() = py::none());
-    const char* doc_f = "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten";
-    const char* doc_b = "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy";
-    m.def("conv2d_forward", &forward<T, false>, doc_f, py::arg("y").noconvert(), py::arg("x").noconvert(),
-          py::arg("w").noconvert(), py::arg("b").noconvert(), py::arg("stride"), py::arg("pt"), py::arg("pb"),
-          py::arg("pl"), py::arg("pr"));
-    m.def("conv2d_forward_plain", &forward<T, true>, doc_f, py::arg("y").noconvert(), py::arg("x").noconvert(),
-          py::arg("w").noconvert(), py::arg("b").noconvert(), py::arg("stride"), py::arg("pt"), py::arg("pb"),
-          py::arg("pl"), py::arg("pr"));
-    m.def("conv2d_backward", &backward<T, false>, doc_b, py::arg("dx").noconvert(), py::arg("dw").noconvert(),
-          py::arg("db").noconvert(), py::arg("x").noconvert(), py::arg("w").noconvert(), py::arg("dy").noconvert(),
+    m.def("conv2d_forward", &forward<T>,
+          "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten",
+          py::arg("y").noconvert(), py::arg("x").noconvert(), py::arg("w").noconvert(), py::arg("b").noconvert(),
           py::arg("stride"), py::arg("pt"), py::arg("pb"), py::arg("pl"), py::arg("pr"));
-    m.def("conv2d_backward_plain", &backward<T, true>, doc_b, py::arg("dx").noconvert(), py::arg("dw").noconvert(),
-          py::arg("db").noconvert(), py::arg("x").noconvert(), py::arg("w").noconvert(), py::arg("dy").noconvert(),
-          py::arg("stride"), py::arg("pt"), py::arg("pb"), py::arg("pl"), py::arg("pr"));
+    m.def("conv2d_backward", &backward<T>, "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy",
+          py::arg("dx").noconvert(), py::arg("dw").noconvert(), py::arg("db").noconvert(), py::arg("x").noconvert(),
+          py::arg("w").noconvert(), py::arg("dy").noconvert(), py::arg("stride"), py::arg("pt"), py::arg("pb"),
+          py::arg("pl"), py::arg("pr"));
 }
 
 }  // namespace

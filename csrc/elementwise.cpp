@@ -20,6 +20,12 @@
 #include <cstring>
 
 #include "elementwise.h"
+
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#elif defined(__ARM_NEON)
+#include <arm_neon.h>
+#endif
 #include "simd.h"
 #include "threads.h"
 
@@ -175,6 +181,32 @@ constexpr float kInvSqrt2PiF = 0.398942280f;
 using VF = Simd<float>::V;
 using IF = Simd<float>::I;
 constexpr int WF = Simd<float>::W;
+
+// Whether any lane of a float comparison's result (-1 where true, 0 where false) is true: one
+// instruction where the target has one (a generic lane loop goes through memory).
+inline bool any_lane(Simd<float>::I m) {
+#if defined(__AVX512F__)
+    __m512i v;
+    std::memcpy(&v, &m, sizeof v);
+    return _mm512_test_epi32_mask(v, v) != 0;
+#elif defined(__AVX__)
+    __m256 v;
+    std::memcpy(&v, &m, sizeof v);
+    return _mm256_movemask_ps(v) != 0;
+#elif defined(__SSE2__)
+    __m128 v;
+    std::memcpy(&v, &m, sizeof v);
+    return _mm_movemask_ps(v) != 0;
+#elif defined(__ARM_NEON) && defined(__aarch64__)
+    uint32x4_t v;
+    std::memcpy(&v, &m, sizeof v);
+    return vmaxvq_u32(v) != 0;
+#else
+    bool any = false;
+    for (int i = 0; i < Simd<float>::W; ++i) any |= m[i] != 0;
+    return any;
+#endif
+}
 
 // Phi(x) and x phi(x) for float lanes, each x in [-3, inf]; false (outputs unset) if any lane
 // is below -3 or NaN.

@@ -10,6 +10,8 @@
 #include <pybind11/stl.h>
 
 #include <algorithm>
+#include <limits>
+#include <optional>
 #include <memory>
 #include <new>
 #include <stdexcept>
@@ -17,6 +19,7 @@
 
 #include "branching_attention.h"
 #include "conv.h"
+#include "matmul.h"
 #include "vq.h"
 #include "simd.h"
 #include "threads.h"
@@ -153,6 +156,25 @@ template <typename T> int64_t nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T>
     }
 }
 
+// c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per entry (matmul.cpp); a (nb, M, K) or (nb, K, M) if ta,
+// b (nb, K, N) or (nb, N, K) if tb. Sizes checked here, since a wrong one would read out of bounds.
+template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb, std::optional<Arr<T>> bias) {
+    if (a.ndim() != 3 || b.ndim() != 3 || c.ndim() != 3) throw py::value_error("pyvf._core.matmul: a, b and c must be 3-D");
+    const int64_t nb = a.shape(0), M = a.shape(ta ? 2 : 1), K = a.shape(ta ? 1 : 2), N = b.shape(tb ? 1 : 2);
+    const int64_t most = std::numeric_limits<int>::max();  // the register tiles index with int
+    if (b.shape(0) != nb || b.shape(tb ? 2 : 1) != K || c.shape(0) != nb || c.shape(1) != M || c.shape(2) != N ||
+        (bias && (bias->ndim() != 1 || bias->shape(0) != N)) || M * K > most || K * N > most || M * N > most)
+        throw py::value_error("pyvf._core.matmul: the shapes of a, b, c and bias do not agree (or exceed 2^31)");
+    T* pc = c.mutable_data();
+    const T *pa = a.data(), *pb = b.data(), *pbias = bias ? bias->data() : nullptr;
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb, pbias);
+    }
+    if (status == kMatOutOfMemory) throw std::bad_alloc();  // pybind11: MemoryError
+}
+
 template <typename T> void bind_dtype(py::module_& m) {
     m.def("attn_forward", &forward<T, false>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
           py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
@@ -170,6 +192,8 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
     m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
           py::arg("x").noconvert(), py::arg("codes").noconvert());
+    m.def("matmul", &matmul<T>, py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(),
+          py::arg("ta"), py::arg("tb") = false, py::arg("bias").noconvert() = py::none());
 }
 
 // What this CPU (and its operating system) can run, as the compiler's runtime reads it
@@ -200,7 +224,7 @@ PYBIND11_MODULE(PYVF_MODULE, m) {
     bind_dtype<float>(m);
     bind_dtype<double>(m);
     bind_gelu(m);  // gelu.cpp
-    bind_conv(m);  // conv2d and the GEMM (conv_bind.cpp)
+    bind_conv(m);  // conv2d (conv_bind.cpp)
     m.def("num_threads", &num_threads, "threads the kernels use (OpenMP; 1 without OpenMP)");
     m.def("set_num_threads", &set_num_threads, py::arg("n"));
     m.def("set_force_parallel", [](bool on) { g_force_parallel.store(on); }, py::arg("on"),

@@ -17,12 +17,6 @@
 #include <cstring>
 #include <limits>
 
-#if defined(__x86_64__) || defined(__i386__)
-#include <immintrin.h>
-#elif defined(__ARM_NEON)
-#include <arm_neon.h>
-#endif
-
 namespace pyvf {
 
 #if defined(__AVX512F__)
@@ -58,49 +52,6 @@ template <typename T> inline typename Simd<T>::V vset1(T a) {
 template <typename T> inline typename Simd<T>::V vmax(typename Simd<T>::V a, typename Simd<T>::V b) {
     return a > b ? a : b;
 }
-// Whether any lane of a float comparison's result (-1 where true, 0 where false) is true: one
-// instruction where the target has one (a generic lane loop goes through memory).
-inline bool any_lane(Simd<float>::I m) {
-#if defined(__AVX512F__)
-    __m512i v;
-    std::memcpy(&v, &m, sizeof v);
-    return _mm512_test_epi32_mask(v, v) != 0;
-#elif defined(__AVX__)
-    __m256 v;
-    std::memcpy(&v, &m, sizeof v);
-    return _mm256_movemask_ps(v) != 0;
-#elif defined(__SSE2__)
-    __m128 v;
-    std::memcpy(&v, &m, sizeof v);
-    return _mm_movemask_ps(v) != 0;
-#elif defined(__ARM_NEON) && defined(__aarch64__)
-    uint32x4_t v;
-    std::memcpy(&v, &m, sizeof v);
-    return vmaxvq_u32(v) != 0;
-#else
-    bool any = false;
-    for (int i = 0; i < Simd<float>::W; ++i) any |= m[i] != 0;
-    return any;
-#endif
-}
-
-// The W / WD double vectors of the elements of a T vector, in order (float -> double is exact):
-// whole-vector conversions (filling a double vector lane by lane compiles to a scalar insert per
-// lane, which dominated GroupNorm's sums).
-template <typename T> inline void widen_to_double(typename Simd<T>::V v, typename Simd<double>::V* out) {
-    if constexpr (sizeof(T) == sizeof(double)) {
-        out[0] = v;
-    } else {
-        using VD = typename Simd<double>::V;
-        typedef float H __attribute__((vector_size(Simd<double>::W * sizeof(float))));  // half a float vector
-        H lo, hi;
-        std::memcpy(&lo, &v, sizeof lo);
-        std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
-        out[0] = __builtin_convertvector(lo, VD);
-        out[1] = __builtin_convertvector(hi, VD);
-    }
-}
-
 template <typename T> inline T hsum(typename Simd<T>::V v) {
     T s = 0;
     for (int i = 0; i < Simd<T>::W; ++i) s += v[i];
@@ -180,29 +131,6 @@ template <typename T> inline T exp_scalar(T x) {
     return exp_vec(v)[0];
 }
 
-// Whether any lane of a is below lo: one vector compare (a loop over lanes compiled to a scalar
-// compare per lane).
-template <typename T> inline bool any_below(typename Simd<T>::V a, T lo) {
-    if constexpr (sizeof(T) == sizeof(float)) {
-        return any_lane(a < lo);
-    } else {
-        const auto m = a < lo;  // 64-bit lanes: any_lane reads them as pairs of 32-bit ones
-        Simd<float>::I m32;
-        std::memcpy(&m32, &m, sizeof m32);
-        return any_lane(m32);
-    }
-}
-
-// exp of a <= 0 into the subnormals: exp_vec, and std::exp (as NumPy's exp) for the lanes whose
-// result is below the smallest normal, where exp_vec returns 0.
-template <typename T> inline typename Simd<T>::V exp_vec_subnormal(typename Simd<T>::V a) {
-    typename Simd<T>::V z = exp_vec(a);
-    if (any_below<T>(a, ExpConst<T>::lo))
-        for (int l = 0; l < Simd<T>::W; ++l)
-            if (a[l] < ExpConst<T>::lo) z[l] = std::exp(a[l]);
-    return z;
-}
-
 // ---------------------------------------------------------------------------------------
 // gemm: C (M, N) = op(A) (M, K) @ B (K, N)      when ACC is false (C is overwritten),
 //       C (M, N) += op(A) (M, K) @ B (K, N)     when ACC is true;
@@ -276,6 +204,31 @@ inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb
         for (; i + 4 <= M; i += 4)
             gemm_rows<T, 4, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
     for (; i < M; ++i) gemm_rows<T, 1, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
+}
+
+// gemm with the rows past the last full MR block done as one block of M % MR rows
+// (simd.h's gemm does them 4 and 1 at a time, which for Co = 32 on AVX2 leaves two rows at a
+// quarter of the FMA rate). Each element of C is the same sum in the same order whatever block
+// its row falls in, so this changes no result, only the speed.
+template <typename T, bool ACC, bool TA = false, bool CONT = false>
+inline void gemm_mr(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
+    constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
+    const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;
+    int i = 0;
+    for (; i + MR <= M; i += MR)
+        gemm_rows<T, MR, ACC, CONT>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
+    A += i * sa_i;
+    C += i * ldc;
+    switch (M - i) {
+        case 0: break;
+        case 1: gemm_rows<T, 1, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 2: gemm_rows<T, 2, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 3: gemm_rows<T, 3, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 4: if constexpr (MR > 4) gemm_rows<T, 4, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 5: if constexpr (MR > 5) gemm_rows<T, 5, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 6: if constexpr (MR > 6) gemm_rows<T, 6, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 7: if constexpr (MR > 7) gemm_rows<T, 7, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+    }
 }
 
 // Whether p[0:n) is all finite: x * 0 is 0 for finite x, NaN for inf and NaN. Four accumulators,

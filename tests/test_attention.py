@@ -1,6 +1,6 @@
 """Tests of branching attention (docs/math.md §2): the C++ kernel and its NumPy reference against
 torch float64 autograd, the defining property of the tree, the plain loops, hard numerical cases,
-argument checks, reproducibility, the mask, the kernel's vectorised exp and its memory.
+argument checks, reproducibility, the mask, the kernel's vectorised exp (its memory: test_memory.py).
 
 Shapes: q, k, v, do, o (R, B, H, N, L, dh); lse (R, B, H, N, L); flat sequences (B, H, T, dh)
 with T = R*N*L in the order [row][view][token]. Query block (r, i) attends trunk blocks (0, j),
@@ -11,7 +11,6 @@ tolerance carries the reason for its size; the numbers quoted as "measured" are 
 seen on the development machine (AVX-512, FMA, 2 threads).
 """
 
-import os
 
 import numpy as np
 import pytest
@@ -714,8 +713,8 @@ def test_mask_shape_and_block_counts(R, N, L):
 # about 1 ulp (<= 2.2e-16 relative), measured 2.6e-16 (1.65 ulp just above a power of 2): 4e-16,
 # against long double (64-bit mantissa on x86: exact to ~1e-19). A sloppier reduction or
 # polynomial shows up as tens of ulp.
-@pytest.mark.parametrize("dtype, lo, n, bound", [(np.float32, -87.3, 4_000_001, 2.0),
-                                                 (np.float64, -708.0, 2_000_001, 4e-16)])
+@pytest.mark.parametrize("dtype, lo, n, bound", [(np.float32, -87.3, 400_001, 2.0),
+                                                 (np.float64, -708.0, 400_001, 4e-16)])
 def test_exp_accuracy(dtype, lo, n, bound):
     x = np.concatenate([np.linspace(lo, 0, n, dtype=dtype), np.array([-1e-30, -0.0, 0.0], dtype)])
     y = np.empty_like(x)
@@ -744,79 +743,3 @@ def test_exp_underflow_and_minus_inf_give_zero(dtype, lo):
     _core.exp(y, above)
     assert np.all(y >= tiny) and np.all(np.isfinite(y))
     assert_close("exp just above the threshold", y, np.exp(above.astype(np.float64)), 4 * np.finfo(dtype).eps)
-
-
-OOM_WORKER = """
-import resource, sys, numpy as np, pyvf
-assert pyvf.kernel_path() == sys.argv[-1], f"worker runs {pyvf.kernel_path()}, asked for {sys.argv[-1]}"
-H, N, L, dh, headroom = (int(a) for a in sys.argv[1:-1])
-q = np.random.default_rng(0).standard_normal((1, 1, H, N, L, dh)).astype(np.float32)
-o, lse = pyvf.branching_attention_forward(q, q, q)  # threads started, first-call memory taken
-grads = [np.empty_like(q) for _ in range(3)]  # the outputs exist: only the kernel's own buffers are asked for
-vm = int([l for l in open("/proc/self/status") if l.startswith("VmSize")][0].split()[1]) * 1024
-resource.setrlimit(resource.RLIMIT_AS, (vm + headroom, resource.RLIM_INFINITY))
-try:
-    pyvf._core.attn_backward(*grads, lse, q, q, q, o, q, 1.0)
-    print("no error")
-except MemoryError as e:
-    print("MemoryError:", e)
-resource.setrlimit(resource.RLIMIT_AS, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
-small = np.ascontiguousarray(q[:, :, :1, :2, :16, :8])
-print("still running:", pyvf.branching_attention(small, small, small).shape)
-"""
-
-
-@pytest.mark.parametrize("H, N, L, dh, headroom", [
-    (1, 8, 1024, 256, 24 << 20),  # B*H = 1: the backward's per-group dq buffers (7 x 8 MiB) cannot be had
-    (16, 8, 256, 64, 256 << 10),  # B*H = 16: one group; each thread's (1 MiB) buffers fail inside the OpenMP region
-])
-def test_allocation_failure_is_a_memory_error_not_an_abort(H, N, L, dh, headroom, tmp_path, kernel_path):
-    """An allocation that fails inside the kernel, also inside an OpenMP region, raises
-    MemoryError and the interpreter goes on (an exception escaping an OpenMP region would
-    abort the process). The address space is limited in a subprocess so that it fails; the
-    subprocess runs this test's kernel path (PYVF_ISA) and asserts that it does."""
-    import subprocess
-    import sys
-    env = dict(os.environ, PYVF_ISA=kernel_path)
-    args = [str(a) for a in (H, N, L, dh, headroom)] + [kernel_path]
-    proc = subprocess.run([sys.executable, "-c", OOM_WORKER, *args], cwd=tmp_path, env=env,
-                          capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "MemoryError: branching_attention: not enough memory" in proc.stdout, proc.stdout
-    assert "still running: (1, 1, 1, 2, 16, 8)" in proc.stdout
-
-
-MEMORY_WORKER = """
-import sys, numpy as np, pyvf
-from pyvf.bench.common import peak_memory
-assert pyvf.kernel_path() == sys.argv[2], f"worker runs {pyvf.kernel_path()}, asked for {sys.argv[2]}"
-L = int(sys.argv[1])
-pyvf.set_num_threads(4)  # the same count on every machine: each thread holds its own buffers
-q = np.random.default_rng(0).standard_normal((1, 1, 1, 2, L, 1)).astype(np.float32)
-small = np.ascontiguousarray(q[..., :8, :])
-pyvf.branching_attention_backward(small, small, small, small, *pyvf.branching_attention_forward(small, small, small))
-(o, lse), fwd = peak_memory(lambda: pyvf.branching_attention_forward(q, q, q))
-_, bwd = peak_memory(lambda: pyvf.branching_attention_backward(q, q, q, q, o, lse))
-print(fwd, bwd, pyvf.num_threads())
-"""
-
-
-def test_memory_is_bounded_for_long_views(tmp_path, kernel_path):
-    """q of shape (1, 1, 1, 2, L, 1): a per-thread (L, L) logit buffer would be L^2 * 4 bytes
-    (64 MiB at L = 4096, 64 GiB at L = 131072); the kernel works in tiles of 256 x 256, so the
-    extra memory is the outputs plus O(threads x (256^2 + R*N*L*dh)). Measured at L = 4096:
-    0.5 MiB forward, 1.8 MiB backward."""
-    import subprocess
-    import sys
-    L = 4096
-    env = dict(os.environ, PYVF_ISA=kernel_path)  # the worker on this test's path, which it asserts
-    proc = subprocess.run([sys.executable, "-c", MEMORY_WORKER, str(L), kernel_path], cwd=tmp_path, env=env,
-                          capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    fwd, bwd, threads = (int(x) for x in proc.stdout.split())
-    outputs = 2 * L * 4 + 2 * L * 8  # o, lse
-    per_thread = 4 * (8 * 256 * 256 + 6 * 2 * L)  # tiles and per-view buffers, generously
-    # every thread holds its own buffers (the backward measured 0.9 MiB a thread at 16 threads)
-    bound = 3 * outputs + max(4, threads) * per_thread + (4 << 20)
-    assert fwd <= bound and bwd <= bound + 3 * 2 * L * 4, (fwd, bwd, bound)
-    assert bwd < L * L * 4 // 8  # far below one (L, L) buffer

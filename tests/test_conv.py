@@ -7,10 +7,8 @@ every gradient); float32 against float64 on the same inputs; the parity traps sh
 (the Downsample's (0,1,0,1) padding, GroupNorm eps 1e-6, the grouping of channels, a transposed
 kernel, upsample's summing backward); hard numerical cases (constant groups, groups of mean 1e4
 and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised, a 1x1
-image); dtypes. Then the C++
-kernels (sections 4, 5, once per instruction-set path): the conv2d kernel against its plain-loop
-twin, its NumPy reference and torch on every code path, 1 vs 2 vs 5 threads bitwise; the GEMM
-against NumPy.
+image); dtypes. Then the C++ kernel (section 4, once per instruction-set path) against its NumPy
+reference and torch on every code path, 1 vs 2 vs 5 threads bitwise. The GEMM: tests/test_layers.py.
 
 Shapes: images (B, C, Hi, Wi), NCHW; conv weights torch's (Co, C, kh, kw). Channels 5 -> 7 for the
 convs (not multiples of 8, in != out), batch 3, odd and even image sides; 32 groups on 64 and 96
@@ -27,7 +25,6 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from pyvf import _core
 from pyvf.nn import conv
 
 from conftest import assert_bitwise_equal, assert_close, float_arrays, forced_threads
@@ -194,6 +191,7 @@ CASES = [
     ("conv2d", (3, 3), 2, DOWN, (8, 8)),  # the Downsample, even sides (the real case)
     ("conv2d", (3, 3), 1, (2, 0, 1, 3), (6, 5)),  # every side different: the order of the 4-tuple
     ("conv2d", (4, 2), 1, 0, (7, 6)),  # non-square kernel: a transposed kernel cannot even run
+    ("conv2d", (1, 1), 1, 0, (5, 3)),  # the 1x1 convs (nin_shortcut, AttnBlock's q, k, v, proj_out)
     ("groupnorm", 64, 5, 3),  # 2 channels per group
     ("groupnorm", 96, 4, 4),  # 3 channels per group
     ("groupnorm_swish", 64, 5, 3),  # ResnetBlock's norm1/norm2 + swish, norm_out + swish
@@ -475,7 +473,7 @@ def test_conv2d_one_pixel_image(dtype, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 4. the C++ conv2d: fast vs the plain loops (double sums) vs NumPy vs torch, every code path
+# 4. the C++ conv2d vs its NumPy reference vs torch, every code path
 # (each test once per instruction-set path: conftest.kernel_path)
 
 # (B, C, Co, (Hi, Wi), (kh, kw), stride, padding): each family of the codebook and each code path of
@@ -521,17 +519,6 @@ def kernel_inputs(case, rng, dtype):
     return [a.astype(dtype) for a in (x, w, b)], kwargs, f(y.shape).astype(dtype)
 
 
-def plain_run(inputs, kwargs, dy):
-    """The plain loops of csrc/conv.cpp (one double sum per output element, rounded once)."""
-    x, w, b = inputs
-    pad = conv._padding4(kwargs["padding"])
-    y = np.empty(dy.shape, dy.dtype)
-    _core.conv2d_forward_plain(y, x, w, b, kwargs["stride"], *pad)
-    grads = [np.empty_like(a) for a in inputs]
-    _core.conv2d_backward_plain(*grads, x, w, dy, kwargs["stride"], *pad)
-    return y, grads
-
-
 def numpy_run(inputs, kwargs, dy):
     y, cache = conv.conv2d_forward_numpy(*inputs, **kwargs)
     return y, conv.conv2d_backward_numpy(dy, cache)
@@ -556,22 +543,20 @@ def kernel_run_on_1_2_5_threads(inputs, kwargs, dy):
 @pytest.mark.usefixtures("kernel_path")
 @pytest.mark.parametrize("case", KERNEL_CASES, ids=kernel_case_id)
 def test_conv2d_kernel_float64(case, rng):
-    """float64: fast kernel, plain loops, the NumPy path and torch agree to RTOL64 (the same sums
-    in other orders; measured <= 2.5e-15 on the baseline and avx2 paths)."""
+    """float64: the kernel, its NumPy reference and torch agree to RTOL64 (the same sums in other
+    orders; measured <= 2.5e-15 on the baseline and avx2 paths)."""
     inputs, kwargs, dy = kernel_inputs(case, rng, np.float64)
     y, grads = kernel_run_on_1_2_5_threads(inputs, kwargs, dy)
-    runs = {"plain": plain_run(inputs, kwargs, dy), "numpy": numpy_run(inputs, kwargs, dy),
-            "torch": torch_run("conv2d", inputs, kwargs, dy)}
+    runs = {"numpy": numpy_run(inputs, kwargs, dy), "torch": torch_run("conv2d", inputs, kwargs, dy)}
     for name, (y_r, grads_r) in runs.items():
         compare("conv2d", y, grads, y_r, grads_r, RTOL64, f"{kernel_case_id(case)} fast vs {name}")
-    compare("conv2d", *runs["plain"], *runs["torch"], RTOL64, f"{kernel_case_id(case)} plain vs torch")
 
 
-# float32 fast kernel vs the float64 plain loops on the same (float32) inputs: the kernel's float32
-# arithmetic only. y and dx are dot products of K = C*kh*kw <= 171 terms accumulated in float32
-# (FMA where the path has it); dw sums B*Ho*Wo <= 1809 products in W lanes; db sums in double.
-# About sqrt(n) u normwise; measured <= 4.7e-7 (dx of the 3x3 case on 9x67, baseline path; y 3.9e-7,
-# dw 2.7e-7, db 4.3e-8); 2e-6 leaves 4x. The plain loops in float32 measured <= 4.8e-8.
+# float32 kernel vs torch float64 on the same (float32) inputs: the kernel's float32 arithmetic
+# only. y and dx are dot products of K = C*kh*kw <= 171 terms accumulated in float32 (FMA where
+# the path has it); dw sums B*Ho*Wo <= 1809 products in W lanes; db sums in double. About
+# sqrt(n) u normwise; measured <= 4.7e-7 (dx of the 3x3 case on 9x67, baseline path; y 3.9e-7,
+# dw 2.7e-7, db 4.3e-8); 2e-6 leaves 4x.
 RTOL32_KERNEL = 2e-6
 
 
@@ -581,105 +566,5 @@ def test_conv2d_kernel_float32(case, rng):
     inputs, kwargs, dy = kernel_inputs(case, rng, np.float32)
     y, grads = kernel_run_on_1_2_5_threads(inputs, kwargs, dy)
     assert y.dtype == np.float32 and all(g.dtype == np.float32 for g in grads)
-    y64, grads64 = plain_run([a.astype(np.float64) for a in inputs], kwargs, dy.astype(np.float64))
+    y64, grads64 = torch_run("conv2d", inputs, kwargs, dy)
     compare("conv2d", y, grads, y64, grads64, RTOL32_KERNEL, f"{kernel_case_id(case)} f32 vs f64")
-    # the plain loops in float32 round one double sum per element: within an ulp or two of float64
-    y_p, grads_p = plain_run(inputs, kwargs, dy)
-    compare("conv2d", y_p, grads_p, y64, grads64, 2 * float(np.finfo(np.float32).eps),
-            f"{kernel_case_id(case)} f32 plain vs f64")
-
-
-# ---------------------------------------------------------------------------------------
-# 5. pyvf's GEMM (once per instruction-set path) (csrc/conv.cpp matmul_batched: the AttnBlock's products, the transformer's linear
-# layers and tied logits) against NumPy in float64
-
-# (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16, the packed
-# tile's 6), several row blocks of 96 and column blocks of 192, k chunks of 256 with a short last
-# one, the attention's own square case; K = 0 gives zeros, zero rows or columns an empty result;
-# few blocks of c and a long K (a weight gradient's shape) split along k into parts
-# (kMatMinTasks): 2 parts with a short last one, and 9 parts of 1024 (the tiny transformer's X^T dY)
-MATMUL_CASES = [(2, 37, 21, 13), (1, 97, 35, 50), (3, 5, 3, 7), (2, 64, 64, 32), (1, 4, 4, 0), (0, 3, 5, 2),
-                (1, 203, 401, 531), (2, 96, 192, 256), (1, 0, 5, 3), (1, 9, 0, 3), (1, 37, 21, 2500),
-                (1, 101, 67, 9216)]
-
-
-def _mm(a, b, ta, tb):
-    """c (nb, M, N) = op(a) @ op(b) per entry by the kernel."""
-    nb, M, N = a.shape[0], a.shape[2 if ta else 1], b.shape[1 if tb else 2]
-    c = np.full((nb, M, N), np.nan, dtype=a.dtype)  # NaN: an element the kernel skips shows
-    _core.matmul(c, a, b, ta, tb)
-    return c
-
-
-def _operands(rng, case, ta, tb, dtype, draw=None):
-    nb, M, N, K = case
-    draw = draw or (lambda shape: rng.standard_normal(shape))
-    a = draw((nb, K, M) if ta else (nb, M, K)).astype(dtype)
-    b = draw((nb, N, K) if tb else (nb, K, N)).astype(dtype)
-    a64, b64 = a.astype(np.float64), b.astype(np.float64)
-    want = (a64.transpose(0, 2, 1) if ta else a64) @ (b64.transpose(0, 2, 1) if tb else b64)
-    return a, b, want
-
-
-@pytest.mark.usefixtures("kernel_path")
-@pytest.mark.parametrize("tb", [False, True])
-@pytest.mark.parametrize("ta", [False, True])
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("case", MATMUL_CASES, ids=lambda c: "x".join(map(str, c)))
-def test_matmul_kernel(case, dtype, ta, tb, rng):
-    """c = op(a) @ op(b) per entry against NumPy in float64 on the same inputs. Each element is
-    one sum of K products in increasing k (or, split along k, its parts' sums added in order: no
-    larger a bound), so its error is at most K u sum_k |a_ik b_kj| (Higham 3.5) and in practice
-    ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
-    2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1, 2 and 5
-    threads (each element's sum does not depend on which task or thread computes it), every case
-    on the threads whatever its size (forced_threads)."""
-    nb, M, N, K = case
-    a, b, want = _operands(rng, case, ta, tb, dtype)
-    out = {}
-    for n in (1, 2, 5):
-        with forced_threads(n):
-            out[n] = _mm(a, b, ta, tb)
-    c = out[1]
-    assert c.dtype == dtype and c.shape == (nb, M, N)
-    if c.size:  # (the helpers need at least one element)
-        rtol = 1e-13 if dtype == np.float64 else 2e-6 * max(1.0, np.sqrt(K / 50))
-        assert_close("matmul", c, want, rtol=rtol)
-        for n in (2, 5):
-            assert_bitwise_equal(f"matmul, 1 vs {n} threads", out[n], c)
-    if K == 0:
-        assert not c.any(), "a sum of no products must be 0"
-
-
-@pytest.mark.usefixtures("kernel_path")
-@pytest.mark.parametrize("ta, tb", [(False, False), (True, False), (False, True), (True, True)])
-def test_matmul_kernel_exact_on_integers(ta, tb, rng):
-    """Small integers make every partial sum exact in float32 (|sum| <= 3 * 3 * 800 < 2^24), so
-    the kernel must equal the float64 product exactly: a k chunk dropped or counted twice, an
-    edge row or column (past the packed tiles) or an entry computed from the wrong block all
-    show, however small the other errors."""
-    for case in [(2, 2 * 96 + 13, 192 + 96 + 21, 3 * 256 + 31),
-                 (1, 96 + 13, 21, 3 * 1024 + 31)]:  # split along k into 3 parts, the last one short
-        a, b, want = _operands(rng, case, ta, tb, np.float32, draw=lambda s: rng.integers(-3, 4, s))
-        np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32), err_msg=str(case))
-
-
-@pytest.mark.usefixtures("kernel_path")
-@pytest.mark.parametrize("tb", [False, True])
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_matmul_kernel_bias_rounds_as_numpy(dtype, tb, rng):
-    """c = op(a) @ op(b) + bias: the bias is added to each element after its whole sum, one
-    rounding, so the result is bitwise the kernel's product + bias in NumPy (across block, chunk
-    and tile edges, 1 and 2 threads); K = 0 gives the bias itself."""
-    for case in [(2, 101, 203, 300), (1, 37, 45, 2100)]:  # the second split along k: the bias after the parts
-        a, b, _ = _operands(rng, case, False, tb, dtype)
-        bias = rng.standard_normal(case[2]).astype(dtype)
-        want = _mm(a, b, False, tb) + bias
-        for n in (1, 2):
-            with forced_threads(n):
-                c = np.full(want.shape, np.nan, dtype=dtype)
-                _core.matmul(c, a, b, False, tb, bias)
-            assert_bitwise_equal(f"matmul + bias {case}, {n} threads", c, want)
-    c = np.full((1, 3, 4), np.nan, dtype=dtype)
-    _core.matmul(c, np.zeros((1, 3, 0), dtype), np.zeros((1, 0, 4), dtype), False, False, bias[:4])
-    np.testing.assert_array_equal(c, np.broadcast_to(bias[:4], (1, 3, 4)))

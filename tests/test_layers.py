@@ -4,7 +4,7 @@ Each layer is a pair `x_forward(...) -> (out, cache)`, `x_backward(dout, cache) 
 The tests: every layer against PyTorch in float64 under a random upstream gradient; float32
 against float64 on the same inputs; hard numerical cases (LayerNorm rows of large mean and small
 spread, constant rows, huge and tiny rows; the GELU tail against mpmath, its saturated ends;
-repeated embedding ids); dtypes; the GELU kernel's threads; the finiteness scan.
+repeated embedding ids); dtypes; the GEMM against NumPy; the finiteness scan.
 
 Shapes: rows are (..., d) with leading shapes (R, B, N, L) = (3, 2, 5, 4) or a plain 2-D (M, d);
 d = 37 (odd, not a multiple of any SIMD width). Linear weights are in the published layout
@@ -21,10 +21,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import pyvf
+from pyvf import _core
 from pyvf.nn import layers
 
-from conftest import assert_bitwise_equal, assert_close, float_arrays
+from conftest import assert_bitwise_equal, assert_close, float_arrays, forced_threads
 
 EPS = 1e-5  # LayerNorm eps, inside the square root (docs/math.md §3)
 
@@ -396,8 +396,9 @@ def test_gelu_kernel_equals_its_numpy_reference(dtype, rng):
     7e-15), under the kernel's own (RTOL64, or RTOL32["gelu"] in float32)."""
     x = rng.uniform(-8, 8, 4001).astype(dtype)
     dy = rng.standard_normal(x.shape).astype(dtype)
-    y, cache = layers.gelu_forward(x)
-    (dx,) = layers.gelu_backward(dy, cache)
+    with forced_threads(2):  # the parallel loop, on a size below its threshold
+        y, cache = layers.gelu_forward(x)
+        (dx,) = layers.gelu_backward(dy, cache)
     y_ref, cache_ref = layers.gelu_forward_numpy(x)
     (dx_ref,) = layers.gelu_backward_numpy(dy, cache_ref)
     rtol = RTOL32["gelu"] if dtype == np.float32 else RTOL64
@@ -495,27 +496,76 @@ def test_embedding_repeated_ids(dtype, id_dtype, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 4. the kernel's threaded path changes nothing
+# 4. pyvf's GEMM (csrc/matmul.cpp: the linear layers, the tied logits, the convolutions) against
+# NumPy in float64, once per instruction-set path
+
+# (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16), several
+# row blocks of 96 and column blocks of 192, k chunks of 256 with a short last one; K = 0 gives
+# zeros, zero rows or columns an empty result; few blocks of c and a long K (a weight gradient's
+# shape) split along k into parts (kMatMinTasks): 9 parts of 1024 (the tiny transformer's X^T dY)
+MATMUL_CASES = [(2, 37, 21, 13), (1, 97, 35, 50), (1, 4, 4, 0), (0, 3, 5, 2), (1, 203, 401, 531), (1, 9, 0, 3),
+                (1, 101, 67, 9216)]
 
 
-def test_gelu_threaded_path_is_bitwise_the_serial_one(rng):
-    """The kernel goes parallel above 16384 elements (here on 3 threads); chunks of 10000 run
-    serially. Elementwise, threading must not change a bit."""
-    saved = pyvf.num_threads()
-    try:
-        pyvf.set_num_threads(3)
-        for dtype in (np.float64, np.float32):
-            n = 3 * 65536 + 5
-            x, dy = (4 * rng.standard_normal(n)).astype(dtype), rng.standard_normal(n).astype(dtype)
-            y, cache = layers.gelu_forward(x)
-            (dx,) = layers.gelu_backward(dy, cache)
-            chunks = [np.s_[i:i + 10000] for i in range(0, n, 10000)]
-            y_serial = [layers.gelu_forward(x[c])[0] for c in chunks]
-            dx_serial = [layers.gelu_backward(dy[c], layers.gelu_forward(x[c])[1])[0] for c in chunks]
-            assert_bitwise_equal(f"gelu y {dtype.__name__}", y, np.concatenate(y_serial))
-            assert_bitwise_equal(f"gelu dx {dtype.__name__}", dx, np.concatenate(dx_serial))
-    finally:
-        pyvf.set_num_threads(saved)
+def _mm(a, b, ta, tb, bias=None):
+    """c (nb, M, N) = op(a) @ op(b) [+ bias] per entry by the kernel."""
+    nb, M, N = a.shape[0], a.shape[2 if ta else 1], b.shape[1 if tb else 2]
+    c = np.full((nb, M, N), np.nan, dtype=a.dtype)  # NaN: an element the kernel skips shows
+    _core.matmul(c, a, b, ta, tb, bias)
+    return c
+
+
+def _operands(rng, case, ta, tb, dtype, draw=None):
+    nb, M, N, K = case
+    draw = draw or (lambda shape: rng.standard_normal(shape))
+    a = draw((nb, K, M) if ta else (nb, M, K)).astype(dtype)
+    b = draw((nb, N, K) if tb else (nb, K, N)).astype(dtype)
+    want = layers.matmul_numpy(a.astype(np.float64), b.astype(np.float64), ta, tb)
+    return a, b, want
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("ta, tb", [(False, False), (True, False), (False, True), (True, True)])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("case", MATMUL_CASES, ids=lambda c: "x".join(map(str, c)))
+def test_matmul_kernel(case, dtype, ta, tb, rng):
+    """c = op(a) @ op(b) per entry against NumPy in float64 on the same inputs. Each element is
+    one sum of K products in increasing k (or, split along k, its parts' sums added in order: no
+    larger a bound), so its error is at most K u sum_k |a_ik b_kj| (Higham 3.5) and in practice
+    ~sqrt(K) u of the normwise scale: float64 within 1e-13, float32 within
+    2e-6 * max(1, sqrt(K / 50)) (measured <= 3e-7 at K = 50); bitwise the same on 1 and 2 threads
+    (each element's sum does not depend on which task or thread computes it), every case on the
+    threads whatever its size (forced_threads)."""
+    nb, M, N, K = case
+    a, b, want = _operands(rng, case, ta, tb, dtype)
+    out = {}
+    for n in (1, 2):
+        with forced_threads(n):
+            out[n] = _mm(a, b, ta, tb)
+    c = out[1]
+    assert c.dtype == dtype and c.shape == (nb, M, N)
+    if c.size:  # (the helpers need at least one element)
+        rtol = 1e-13 if dtype == np.float64 else 2e-6 * max(1.0, np.sqrt(K / 50))
+        assert_close("matmul", c, want, rtol=rtol)
+        assert_bitwise_equal("matmul, 1 vs 2 threads", out[2], c)
+    if K == 0:
+        assert not c.any(), "a sum of no products must be 0"
+
+
+@pytest.mark.usefixtures("kernel_path")
+@pytest.mark.parametrize("ta, tb", [(False, False), (True, False), (False, True), (True, True)])
+def test_matmul_kernel_exact_on_integers(ta, tb, rng):
+    """Small integers make every partial sum exact in float32 (|sum| <= 3 * 3 * 3200 < 2^24), so
+    the kernel must equal the float64 product exactly: a k chunk dropped or counted twice, an
+    edge row or column (past the packed tiles) or an entry computed from the wrong block all
+    show, however small the other errors. The bias is added after the whole sum, one rounding,
+    as NumPy's a @ b + bias (here too across the parts of a split k)."""
+    for case in [(2, 2 * 96 + 13, 192 + 96 + 21, 3 * 256 + 31),
+                 (1, 96 + 13, 21, 3 * 1024 + 31)]:  # split along k into 3 parts, the last one short
+        a, b, want = _operands(rng, case, ta, tb, np.float32, draw=lambda s: rng.integers(-3, 4, s))
+        np.testing.assert_array_equal(_mm(a, b, ta, tb), want.astype(np.float32), err_msg=str(case))
+        bias = rng.standard_normal(case[2]).astype(np.float32)
+        assert_bitwise_equal(f"matmul + bias {case}", _mm(a, b, ta, tb, bias), want.astype(np.float32) + bias)
 
 
 # ---------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ def matmul(a, b, ta=False, tb=False, bias=None):
     3-D ones (a leading batch axis): a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c
     (M, N); bias (N,) added to every row after its sum (as NumPy's a @ b + bias rounds).
 
-    pyvf's GEMM (csrc/conv.cpp matmul_batched), not NumPy's BLAS: the BLAS's threads spin for
+    pyvf's GEMM (csrc/matmul.cpp), not NumPy's BLAS: the BLAS's threads spin for
     milliseconds after each call on the cores pyvf's kernels need (measured with the tiny
     transformer on 2 busy cores: np.matmul with 2 BLAS threads made its training step 5x slower,
     526 ms against 100 ms). Each element of c is one sum in increasing k, the same for any thread
