@@ -6,9 +6,9 @@ The tests: every layer against PyTorch in float64 under a random upstream gradie
 every gradient); float32 against float64 on the same inputs; the parity traps shown to matter
 (the Downsample's (0,1,0,1) padding, GroupNorm eps 1e-6, the grouping of channels, a transposed
 kernel, upsample's summing backward); hard numerical cases (constant groups, groups of mean 1e4
-and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised, a 1x1
-image); dtypes. Then the C++ kernel (section 3, once per instruction-set path) against its NumPy
-reference and torch on every code path, 1 vs 2 vs 5 threads bitwise. The GEMM: tests/test_layers.py.
+and spread 0.1 against mpmath, swish at +-1000 with every floating-point error raised); dtypes.
+Then the C++ kernel (section 3, once per instruction-set path) against its NumPy reference and
+torch on every code path and a 1x1 image, 1 vs 2 vs 5 threads bitwise. The GEMM: tests/test_layers.py.
 
 Shapes: images (B, C, Hi, Wi), NCHW; conv weights torch's (Co, C, kh, kw). Channels 5 -> 7 for the
 convs (not multiples of 8, in != out), batch 3, odd and even image sides; 32 groups on 64 and 96
@@ -414,32 +414,6 @@ def test_swish_ends_raise_nothing(dtype, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 2. hard cases: conv on a 1x1 image
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_conv2d_one_pixel_image(dtype, rng):
-    """A 1x1 image: 3x3 pad 1 sees only the centre tap (y = w[:, :, 1, 1] @ x + b); 1x1 pad 1 gives
-    a 3x3 output that is b on the border. Against torch, and the centre tap by hand."""
-    x = rng.standard_normal((2, CI, 1, 1)).astype(dtype)
-    rtol = RTOL32["conv2d"] if dtype == np.float32 else RTOL64
-    for (kh, kw), padding in (((3, 3), 1), ((1, 1), 1), ((4, 2), (2, 1, 0, 1))):
-        w = rng.standard_normal((CO, CI, kh, kw)).astype(dtype)
-        b = rng.standard_normal(CO).astype(dtype)
-        y, cache = conv.conv2d_forward(x, w, b, padding=padding)
-        dy = rng.standard_normal(y.shape).astype(dtype)
-        grads = conv.conv2d_backward(dy, cache)
-        y_t, grads_t = torch_run("conv2d", [x, w, b], {"padding": padding}, dy)
-        compare("conv2d", y, grads, y_t, grads_t, rtol, f"1x1 image, kernel {kh}x{kw}, padding {padding}")
-        if (kh, kw) == (3, 3):
-            assert_close("centre tap", y[:, :, 0, 0], x[:, :, 0, 0] @ w[:, :, 1, 1].T + b, rtol)
-        if (kh, kw) == (1, 1):
-            border = np.ones((3, 3), bool)
-            border[1, 1] = False
-            assert_bitwise_equal("border = b", y[:, :, border], np.broadcast_to(b[:, None], (2, CO, 8)).copy())
-
-
-# ---------------------------------------------------------------------------------------
 # 3. the C++ conv2d vs its NumPy reference vs torch, every code path
 # (each test once per instruction-set path: conftest.kernel_path)
 
@@ -454,6 +428,9 @@ KERNEL_CASES = [
     (3, 5, 7, (6, 9), (3, 3), 1, 0),  # 3x3 unpadded
     (3, 5, 7, (9, 8), (3, 3), 2, 1),  # 3x3 stride 2, symmetric padding
     (2, 7, 3, (1, 9), (3, 3), 1, 1),  # one row: every tap row but the centre is padding
+    (2, 5, 7, (1, 1), (3, 3), 1, 1),  # a 1x1 image: only the centre tap sees it
+    (2, 5, 7, (1, 1), (1, 1), 1, 1),  # ... a 3x3 output that is b on the border
+    (2, 5, 7, (1, 1), (4, 2), 1, (2, 1, 0, 1)),  # ... every side padded differently
     (3, 19, 13, (8, 8), (3, 3), 2, DOWN),  # the Downsample: im2col, col2im for dx
     (2, 5, 7, (9, 35), (3, 3), 2, DOWN),  # ... odd height, a width past 2 vectors
     (3, 19, 13, (7, 37), (1, 1), 1, 0),  # 1x1: x read in place (no columns)
