@@ -465,11 +465,6 @@ def kernel_inputs(case, rng, dtype):
     return [a.astype(dtype) for a in (x, w, b)], kwargs, f(y.shape).astype(dtype)
 
 
-def numpy_run(inputs, kwargs, dy):
-    y, cache = conv.conv2d_forward_numpy(*inputs, **kwargs)
-    return y, conv.conv2d_backward_numpy(dy, cache)
-
-
 def kernel_run_on_1_2_5_threads(inputs, kwargs, dy):
     """y and the gradients on 1 thread, asserted bitwise the same on 2 and 5: the tasks depend on
     the shapes only, each output element is summed by one task in one order. 5 threads: the blocks
@@ -498,7 +493,8 @@ def test_conv2d_kernel(case, dtype, rng):
     assert y.dtype == dtype and all(g.dtype == dtype for g in grads)
     runs = {"torch": torch_run("conv2d", inputs, kwargs, dy)}
     if dtype == np.float64:
-        runs["numpy"] = numpy_run(inputs, kwargs, dy)
+        y_n, cache_n = conv.conv2d_forward_numpy(*inputs, **kwargs)
+        runs["numpy"] = (y_n, conv.conv2d_backward_numpy(dy, cache_n))
     rtol = RTOL64 if dtype == np.float64 else RTOL32["conv2d"]
     for name, (y_r, grads_r) in runs.items():
         compare("conv2d", y, grads, y_r, grads_r, rtol, f"{kernel_case_id(case)} {np.dtype(dtype).name} vs {name}")

@@ -122,10 +122,6 @@ def test_state_round_trip(rng):
     np.testing.assert_array_equal(q2.forward(z)[0].codes, q.forward(z)[0].codes)
 
 
-def _state_equal(a, b):
-    return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
-
-
 # ---------------------------------------------------------------------------------------
 # hard cases, each against an independent oracle (the torch EMA step, closed forms, set logic)
 
@@ -250,7 +246,8 @@ def test_refusals_name_the_argument(call, error, name):
     before = q.state_dict()
     with pytest.raises(error, match=rf"\b{name}\b"):
         call(q, Z)
-    assert _state_equal(q.state_dict(), before)
+    after = q.state_dict()
+    assert after.keys() == before.keys() and all(np.array_equal(after[k], before[k]) for k in after)
 
 
 def test_what_the_refusals_take(rng):
