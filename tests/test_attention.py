@@ -35,7 +35,7 @@ RTOL64 = 1e-12
 # pyvf float32 vs a float64 computation on the same float32 inputs, unit-normal q, k, v, do,
 # dh <= 64, scale 1 (logits up to ~40): a logit carries a float32 rounding error of about
 # sqrt(dh) * u * |logit| ~ 2e-5 at worst, which moves each probability by that relative amount;
-# the exp adds <= 2 ulp and the sums over <= 320 keys a few ulp. Measured <= 2.4e-6 (forward
+# the exp adds <= 2 ulp and the sums over <= 192 keys a few ulp. Measured <= 2.4e-6 (forward
 # and every gradient); 1e-5 = 4x margin, and still 5 orders of magnitude below a real bug.
 RTOL32 = 1e-5
 
@@ -71,20 +71,11 @@ def unflat(x, shape):
     return np.moveaxis(x.reshape((B, H, R, N, L) + x.shape[3:]), 2, 0)
 
 
-def dense_attention(q, k, v, scale, mask, sentinel=False):
-    """float64 dense attention on flat (B, H, T, dh) arrays. Returns o (B, H, T, dh) and the
-    log-sum-exp of every row's attended logits (B, H, T). sentinel=True reproduces the published
-    TF code, logits * mask - 1e4 * (1 - mask), instead of the exact exclusion."""
-    s = scale * np.einsum("bhtd,bhud->bhtu", q, k)  # (B, H, T, T)
-    if sentinel:
-        m = mask.astype(np.float64)
-        s = s * m - 1e4 * (1 - m)
-    else:
-        s = np.where(mask, s, -np.inf)
+def dense_lse(q, k, scale, mask):
+    """float64 log-sum-exp of every row's attended logits, from flat (B, H, T, dh) q, k: (B, H, T)."""
+    s = np.where(mask, scale * np.einsum("bhtd,bhud->bhtu", q, k), -np.inf)  # (B, H, T, T)
     m = s.max(axis=-1, keepdims=True)
-    e = np.exp(s - m)
-    z = e.sum(axis=-1, keepdims=True)
-    return np.einsum("bhtu,bhud->bhtd", e / z, v), (m + np.log(z))[..., 0]
+    return (m + np.log(np.exp(s - m).sum(axis=-1, keepdims=True)))[..., 0]
 
 
 def attended_mean(v):
@@ -144,8 +135,8 @@ SHAPES = [
     ((3, 2, 2, 5, 7, 17), "one"),  # the paper's R = 3, odd L
     ((4, 3, 2, 5, 4, 5), "negative"),
     ((3, 2, 2, 2, 16, 64), "inv_sqrt_dh"),  # L a whole number of vectors
+    ((2, 1, 2, 3, 64, 64), "inv_sqrt_dh"),  # the paper's L = 64, dh = 64
     ((2, 2, 1, 2, 33, 17), "negative"),  # L past two float32 vectors plus a tail
-    ((3, 1, 2, 5, 64, 64), "inv_sqrt_dh"),  # the paper's L = 64, dh = 64
 ]
 
 
@@ -171,7 +162,7 @@ def test_matches_torch(shape, scale_kind, make_qkv):
     assert_close("reference o", pyvf.branching_attention_reference(q, k, v, scale), o_t, RTOL64)
     # lse against the log-sum-exp of the masked logits, computed here from the rule
     R, N, L = shape[0], shape[3], shape[4]
-    _, lse_indep = dense_attention(flat(q), flat(k), flat(v), scale, rule_mask(R, N, L))
+    lse_indep = dense_lse(flat(q), flat(k), scale, rule_mask(R, N, L))
     assert_close("lse", lse, unflat(lse_indep, shape), RTOL64)
     for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_vjp(q, k, v, do, scale), grads_t):
         assert g.dtype == np.float64 and g.shape == shape
@@ -268,7 +259,7 @@ def dyadic_large_logits(rng, shape, magnitude):
     q[..., 0] * k[..., 0] = magnitude exactly, the other entries are multiples of 1/4 in [-1, 1],
     and every partial sum is a multiple of 1/16 below 2^20 in size (24 bits). So the kernel
     and the reference start from the same logits, and only the softmax is being tested."""
-    a, b = {1e4: (100.0, 100.0), 1e5: (250.0, 400.0), 1e6: (1000.0, 1000.0)}[abs(magnitude)]
+    a, b = {1e4: (100.0, 100.0), 2e4: (100.0, 200.0), 1e6: (1000.0, 1000.0)}[abs(magnitude)]
     q = rng.integers(-4, 5, shape) / 4.0
     k = rng.integers(-4, 5, shape) / 4.0
     q[..., 0], k[..., 0] = np.sign(magnitude) * a, b
@@ -308,7 +299,9 @@ def assert_within_rounding(name, got, want, size, u, c):
                               f"at {tuple(map(int, worst))}: got {got[worst]!r}, want {want[worst]!r}")
 
 
-@pytest.mark.parametrize("magnitude", [1e4, 1e5, 1e6, -1e6])
+# -2e4: every attended logit near -2e4, where the published -1e4 sentinel would give the masked
+# keys the weight (pyvf excludes them exactly; the hard-case report shows the sentinel's error)
+@pytest.mark.parametrize("magnitude", [1e4, -2e4, 1e6, -1e6])
 def test_large_logits_exact_inputs(magnitude, rng):
     shape = (3, 1, 2, 4, 5, 9)
     q, k = dyadic_large_logits(rng, shape, magnitude)
@@ -438,77 +431,37 @@ def test_large_logits_one_hot_random_inputs(magnitude, rng):
     assert all(np.isfinite(g).all() for g in pyvf.branching_attention_vjp(q32, k32, v32, do32))
 
 
-def test_sentinel_minus_1e4_is_wrong_where_pyvf_is_exact(rng):
-    """Attended logits all near -2e4: the published code's logits*mask - 1e4*(1-mask) gives
-    the masked keys (logit -1e4) almost all the weight; pyvf excludes them exactly."""
-    shape = (2, 1, 2, 3, 4, 5)
-    R, N, L = shape[0], shape[3], shape[4]
-    q = rng.integers(-4, 5, shape) / 4.0
-    k = rng.integers(-4, 5, shape) / 4.0
-    q[..., 0], k[..., 0] = 100.0, -200.0  # every logit = -2e4 + (a few units)
-    v = rng.standard_normal(shape)
-    mask = rule_mask(R, N, L)
-    o_exact, _ = dense_attention(flat(q), flat(k), flat(v), 1.0, mask)
-    o_sentinel, _ = dense_attention(flat(q), flat(k), flat(v), 1.0, mask, sentinel=True)
-    o = pyvf.branching_attention(q, k, v)
-    assert_close("o vs exact exclusion", o, unflat(o_exact, shape), RTOL64)
-    # every query row with a masked key (all of them but the trunk's last view) goes wrong
-    rows_with_masked = ~mask.all(axis=1)
-    err = np.abs(o_sentinel - o_exact).max(axis=-1)[..., rows_with_masked]
-    assert err.min() > 0.1, f"the sentinel should be visibly wrong, min error {err.min():.3g}"
-    # the gradient too (float64, exact logits: see test_large_logits_exact_inputs for the bound)
-    do = rng.standard_normal(shape)
-    for name, g, w in zip(("dq", "dk", "dv"), pyvf.branching_attention_vjp(q, k, v, do),
-                          pyvf.branching_attention_reference_vjp(q, k, v, do)):
-        assert_close(name, g, w, 2 * 2e4 * U64 + RTOL64)
-
-
-def test_near_ties(rng, make_qkv):
-    """Every key of a head equal up to 1e-12: logits tie to ~1e-12, weights ~uniform."""
-    shape = (3, 2, 2, 4, 5, 17)
-    q, _, v, do = make_qkv(shape)
-    base = rng.standard_normal(shape[1:3] + (1, 1, shape[-1]))  # (B, H, 1, 1, dh) per head
-    k = base + 1e-12 * rng.standard_normal(shape)
-    o = pyvf.branching_attention(q, k, v)
-    assert_close("o", o, pyvf.branching_attention_reference(q, k, v), RTOL64)
-    # the weights differ from uniform by ~1e-12 |q| |noise| relative: 1e-10 is generous
-    assert_close("o vs mean of attended values", o, attended_mean(v), 1e-10)
-    dq, dk, dv = pyvf.branching_attention_vjp(q, k, v, do)
-    want = pyvf.branching_attention_reference_vjp(q, k, v, do)
-    assert_close("dk", dk, want[1], RTOL64)
-    assert_close("dv", dv, want[2], RTOL64)
-    # dq = sum_u ds_u k_u = base . sum_u ds_u + 1e-12 sum_u ds_u noise_u, and sum_u ds_u = 0:
-    # the true dq is ~1e-12 of its terms, below the rounding of the sum, in the kernel and the
-    # reference alike. So compare componentwise against the size of the terms (gradient_bound),
-    # c = dh as for any dot product of length dh; measured c <= 1.5.
-    assert_within_rounding("dq", dq, want[0], gradient_bound(q, k, v, do, 1.0)[0], U64, shape[-1])
-
-
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_equal_keys_give_the_mean_of_attended_values(dtype, rng, make_qkv):
-    """All keys equal: every attended logit of a query is the same, the weights are uniform,
-    o is the mean of the attended values (closed form), and dq = scale * sum_u ds_u k_u =
-    scale * c * sum_u ds_u = 0 since the softmax backward's ds sums to 0 over a row."""
+@pytest.mark.parametrize("dtype, noise", [(np.float64, 0.0), (np.float32, 0.0), (np.float64, 1e-12)],
+                         ids=["equal-float64", "equal-float32", "near-ties-float64"])
+def test_equal_or_near_tied_keys_give_the_mean_of_attended_values(dtype, noise, rng, make_qkv):
+    """Every key of a head equal (noise 0) or equal up to 1e-12 (near ties): the attended logits of
+    a query tie (to ~1e-12), the weights are uniform, o is the mean of the attended values (closed
+    form), and dq = scale * sum_u ds_u k_u = scale * k * sum_u ds_u + (noise) = 0 + (noise), since
+    the softmax backward's ds sums to 0 over a row."""
     shape = (3, 2, 2, 4, 3, 17)
     q, v, do = make_qkv(shape, dtype, n=3)
-    k = np.tile(rng.standard_normal(shape[-1]), shape[:-1] + (1,)).astype(dtype)  # one key vector c
+    base = rng.standard_normal(shape[1:3] + (1, 1, shape[-1]))  # (B, H, 1, 1, dh): one key per head
+    k = (base + noise * rng.standard_normal(shape)).astype(dtype)
+    as64 = [x.astype(np.float64) for x in (q, k, v, do)]
     o = pyvf.branching_attention(q, k, v, 0.5)
-    # float64: mean of <= N L = 12 values, measured 1.4e-16. float32: the same (the logits of
-    # one query have identical bits for every key, so the weights are exactly uniform), and the
-    # mean rounds within a few u: measured 6e-8, bound 4 u.
-    tol = 1e-14 if dtype == np.float64 else 4 * U32
-    assert_close("o vs mean of attended values", o, attended_mean(v.astype(np.float64)), tol)
+    # equal keys, float64: mean of <= N L = 12 values, measured 1.4e-16. float32: the same (the
+    # logits of one query have identical bits for every key, so the weights are exactly uniform),
+    # and the mean rounds within a few u: measured 6e-8, bound 4 u. Near ties: the weights differ
+    # from uniform by ~1e-12 |q| |noise| relative: 1e-10 is generous.
+    tol = 1e-10 if noise else (1e-14 if dtype == np.float64 else 4 * U32)
+    assert_close("o vs mean of attended values", o, attended_mean(as64[2]), tol)
+    rtol = RTOL64 if dtype == np.float64 else RTOL32
+    assert_close("o", o, pyvf.branching_attention_reference(*as64[:3], 0.5), rtol)
     dq, dk, dv = pyvf.branching_attention_vjp(q, k, v, do, 0.5)
-    want = pyvf.branching_attention_reference_vjp(*(x.astype(np.float64) for x in (q, k, v, do)), 0.5)
-    assert_close("dv", dv, want[2], RTOL64 if dtype == np.float64 else RTOL32)
-    assert_close("dk", dk, want[1], RTOL64 if dtype == np.float64 else RTOL32)
-    # dq is 0 up to the rounding of sum_u ds_u, a sum of <= N L = 12 terms of the size of dk's
-    # entries each carrying a few u: bound 4 N L u max|dk| (1.1e-14 in float64, 2.9e-6 in
-    # float32); measured 3.8e-16 and 1.4e-7 (float32: D = rowsum(do * o) is rounded from
-    # double while dp = do . v is float32, see test_single_key).
+    want = pyvf.branching_attention_reference_vjp(*as64, 0.5)
+    assert_close("dv", dv, want[2], rtol)
+    assert_close("dk", dk, want[1], rtol)
+    # dq is 0 (or ~1e-12 of its terms), below the rounding of the sum, in the kernel and the
+    # reference alike: compare it componentwise against the size of its terms (gradient_bound),
+    # c = dh as for any dot product of length dh (float32: D = rowsum(do * o) is rounded from
+    # double while dp = do . v is float32, see test_single_key). Measured c <= 1.3.
     u = U64 if dtype == np.float64 else U32
-    assert np.abs(dq).max() <= 4 * 12 * u * np.abs(want[1]).max(), \
-        f"dq should vanish, max |dq| = {np.abs(dq).max():.3g}, max |dk| = {np.abs(want[1]).max():.3g}"
+    assert_within_rounding("dq", dq, want[0], gradient_bound(*as64, 0.5)[0], u, shape[-1])
 
 
 @pytest.mark.parametrize("plain", [False, True], ids=["fast", "plain"])
@@ -586,7 +539,6 @@ strided = lambda x: np.concatenate([x, x], -1)[..., ::2]
 # the refusals of the kernel's public faces: (call, exception, the argument it names)
 BAD_INPUTS = {
     "q int32": (lambda: _fwd(_with(0, lambda x: x.astype(np.int32))), TypeError, "q"),
-    "all float16": (lambda: _fwd([x.astype(np.float16) for x in _qkvdo()]), TypeError, "q"),
     "k float32, q float64": (lambda: _fwd(_with(1, lambda x: x.astype(np.float32))), TypeError, "k"),
     "do float32": (lambda: _vjp(_with(3, lambda x: x.astype(np.float32))), TypeError, "do"),
     "v other shape": (lambda: _fwd(_with(2, lambda x: x[..., :3].copy())), ValueError, "v"),
@@ -594,7 +546,6 @@ BAD_INPUTS = {
     "5 dims": (lambda: _fwd([x[0] for x in _qkvdo()]), ValueError, "q"),
     "zero-size dim": (lambda: _fwd([x[:, :, :, :0] for x in _qkvdo()]), ValueError, "q"),
     "k strided": (lambda: _fwd(_with(1, strided)), ValueError, "k"),
-    "q list": (lambda: _fwd(_with(0, lambda x: x.tolist())), TypeError, "q"),
     "scale nan": (lambda: _fwd(_qkvdo(), scale=float("nan")), ValueError, "scale"),
     "scale str": (lambda: _fwd(_qkvdo(), scale="1"), TypeError, "scale"),
     "q has NaN": (lambda: _vjp(_with(0, _poison)), ValueError, "q"),
@@ -604,16 +555,12 @@ BAD_INPUTS = {
     "backward o float32": (lambda: _bw(4, lambda o: o.astype(np.float32)), TypeError, "o"),
     "backward lse float32": (lambda: _bw(5, lambda lse: lse.astype(np.float32)), TypeError, "lse"),
     "backward lse other shape": (lambda: _bw(5, lambda lse: lse[..., :2].copy()), TypeError, "lse"),
-    "backward lse Fortran order": (lambda: _bw(5, np.asfortranarray), ValueError, "lse"),
     # q, k ~ 1e20: q . k ~ 1e40 overflows float32 whatever the scale (float64 holds it): the kernel
     # says so instead of returning NaN or a made-up softmax
     "float32 logits overflow": (lambda: _fwd([x * np.float32(1e20) for x in _qkvdo(dtype=np.float32)]), ValueError, "overflowed"),
-    "float32 logits overflow, tiny scale": (lambda: _vjp([x * np.float32(1e20) for x in _qkvdo(dtype=np.float32)],
-                                                         scale=1e-30), ValueError, "overflowed"),
     "float64 logits overflow": (lambda: _fwd([x * 1e160 for x in _qkvdo()]), ValueError, "overflowed"),
     "mask R = 0": (lambda: pyvf.branching_mask(0, 2, 2), ValueError, "R"),
     "mask N float": (lambda: pyvf.branching_mask(2, 2.0, 2), TypeError, "N"),
-    "mask L bool": (lambda: pyvf.branching_mask(2, 2, True), TypeError, "L"),
 }
 
 
@@ -675,22 +622,6 @@ def test_backward_reads_nothing_stale(dtype, make_qkv):
 
 # ---------------------------------------------------------------------------------------
 # 7. branching_mask
-
-
-def test_mask_by_hand_R3_N3():
-    # token order (row, view): (0,0) (0,1) (0,2) | (1,0) (1,1) (1,2) | (2,0) (2,1) (2,2)
-    want = np.array([
-        [1, 0, 0, 0, 0, 0, 0, 0, 0],
-        [1, 1, 0, 0, 0, 0, 0, 0, 0],
-        [1, 1, 1, 0, 0, 0, 0, 0, 0],
-        [0, 0, 0, 1, 0, 0, 0, 0, 0],
-        [1, 0, 0, 0, 1, 0, 0, 0, 0],
-        [1, 1, 0, 0, 0, 1, 0, 0, 0],
-        [0, 0, 0, 0, 0, 0, 1, 0, 0],
-        [1, 0, 0, 0, 0, 0, 0, 1, 0],
-        [1, 1, 0, 0, 0, 0, 0, 0, 1],
-    ], dtype=bool)
-    np.testing.assert_array_equal(pyvf.branching_mask(3, 3, 1), want)
 
 
 @pytest.mark.parametrize("R, N, L", [(1, 1, 1), (1, 4, 3), (3, 5, 4), (4, 2, 7), (3, 20, 2)])

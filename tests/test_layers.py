@@ -6,7 +6,7 @@ against float64 on the same inputs; hard numerical cases (LayerNorm rows of larg
 spread, constant rows, huge and tiny rows; the GELU tail against mpmath, its saturated ends;
 repeated embedding ids); dtypes; the GEMM against NumPy; the finiteness scan.
 
-Shapes: rows are (..., d) with leading shapes (R, B, N, L) = (3, 2, 5, 4) or a plain 2-D (M, d);
+Shapes: rows are (..., d), leading shape (R, B, N, L) = (3, 2, 5, 4), or a plain 2-D (M, d) in the hard cases;
 d = 37 (odd, not a multiple of any SIMD width). Linear weights are in the published layout
 (din, dout), bias (1, dout); torch gets the weight transposed explicitly, F.linear(x, w.T, b[0]).
 
@@ -59,7 +59,7 @@ RTOL32 = {
 }
 
 D = 37
-LEADS = [(3, 2, 5, 4), (7,)]
+LEAD = (3, 2, 5, 4)  # (R, B, N, L)
 
 
 # ---------------------------------------------------------------------------------------
@@ -139,7 +139,6 @@ def build(case, rng, lead, dtype):
 
 CASES = [
     ("linear", D, 23),  # non-square both ways: a transposed weight cannot even be multiplied
-    ("linear", 23, D),
     ("linear", D, 3 * D),  # c_attn's (d, 3d)
     ("linear", D, D),  # square: a transpose bug would pass the shapes, not the values
     ("layernorm", D),
@@ -150,7 +149,6 @@ CASES = [
     ("mlp", D, 61, 23),  # din != dh != dout
 ]
 case_id = lambda c: "-".join(map(str, c))
-lead_id = lambda lead: "x".join(map(str, lead))
 
 
 def pyvf_run(name, inputs, dy):
@@ -179,36 +177,25 @@ def compare(name, got_y, got_grads, want_y, want_grads, rtol, label):
 
 
 # ---------------------------------------------------------------------------------------
-# 1. every layer vs torch, float64, random upstream gradient
+# 1. every layer vs torch float64, random upstream gradient; float64 and float32
 
 
-@pytest.mark.parametrize("lead", LEADS, ids=lead_id)
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("case", CASES, ids=case_id)
-def test_matches_torch_float64(case, lead, rng):
-    name, inputs, dy = build(case, rng, lead, np.float64)
-    y, grads, _ = pyvf_run(name, inputs, dy)
-    y_t, grads_t = torch_run(name, inputs, dy)
-    compare(name, y, grads, y_t, grads_t, RTOL64, f"{case_id(case)} f64")
-
-
-# ---------------------------------------------------------------------------------------
-# 2. float32 vs float64 on the same inputs
-
-
-@pytest.mark.parametrize("lead", LEADS, ids=lead_id)
-@pytest.mark.parametrize("case", CASES, ids=case_id)
-def test_float32_matches_float64(case, lead, rng):
-    """Also: float32 in, float32 out, every gradient and every cached array (no silent upcast)."""
-    name, inputs, dy = build(case, rng, lead, np.float32)
+def test_matches_torch(case, dtype, rng):
+    """float32 against torch float64 on the same float32 inputs (pyvf's float32 arithmetic only).
+    Also: the dtype in is the dtype out, of every gradient and every cached array (no silent upcast)."""
+    name, inputs, dy = build(case, rng, LEAD, dtype)
     y, grads, cache = pyvf_run(name, inputs, dy)
-    assert y.dtype == np.float32 and all(g.dtype == np.float32 for g in grads), name
-    assert all(a.dtype == np.float32 for a in float_arrays(cache)), f"{name} caches an upcast array"
-    y_t, grads_t = torch_run(name, inputs, dy)  # float64 on the float32 values
-    compare(name, y, grads, y_t, grads_t, RTOL32[name], f"{case_id(case)} f32")
+    assert y.dtype == dtype and all(g.dtype == dtype for g in grads), name
+    assert all(a.dtype == dtype for a in float_arrays(cache)), f"{name} caches an upcast array"
+    y_t, grads_t = torch_run(name, inputs, dy)  # float64 (on the float32 values, for float32)
+    rtol = RTOL64 if dtype == np.float64 else RTOL32[name]
+    compare(name, y, grads, y_t, grads_t, rtol, f"{case_id(case)} {np.dtype(dtype).name}")
 
 
 # ---------------------------------------------------------------------------------------
-# 3. hard cases: LayerNorm
+# 2. hard cases: LayerNorm
 
 
 def layernorm_mp(x, gamma, beta, dy, eps=EPS, dps=40):
@@ -334,7 +321,7 @@ def test_layernorm_extreme_scale(dtype, scale, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 3. hard cases: GELU's ends
+# 2. hard cases: GELU's ends
 
 
 def gelu_mp(x):
@@ -428,7 +415,7 @@ def test_gelu_float32_within_4_ulp():
     bound 4 ulp for gelu, and for gelu' = Phi + x phi 4 u (Phi + |x| phi) -- relative to its terms,
     since the sum cancels at its root x = -0.7518 (any float32 sum loses as much there)."""
     f32 = np.float32
-    grid = np.linspace(-3, 7, 1601, dtype=f32)
+    grid = np.linspace(-3, 7, 801, dtype=f32)
     want = [gelu_mp(v) for v in grid]
     Y = np.array([float(w[0]) for w in want])
     D = np.array([float(w[1]) for w in want])
@@ -462,7 +449,7 @@ def test_gelu_saturated_ends(dtype):
 
 
 # ---------------------------------------------------------------------------------------
-# 3. hard cases: embedding
+# 2. hard cases: embedding
 
 
 @pytest.mark.parametrize("id_dtype", [np.int64, np.int32])
@@ -496,7 +483,7 @@ def test_embedding_repeated_ids(dtype, id_dtype, rng):
 
 
 # ---------------------------------------------------------------------------------------
-# 4. pyvf's GEMM (csrc/matmul.cpp: the linear layers, the tied logits, the convolutions) against
+# 3. pyvf's GEMM (csrc/matmul.cpp: the linear layers, the tied logits, the convolutions) against
 # NumPy in float64, once per instruction-set path
 
 # (batch, M, N, K): odd sides past every register tile (8, 6, 4 rows; vectors of 2..16), several

@@ -33,11 +33,16 @@ def torch_ema_step(z, emb, hidden_cs, hidden_dw, counter, decay, eps):
     return quantized, idx.reshape(B, h, w), commitment, new_emb, hidden_cs, hidden_dw, counter
 
 
+def torch_buffers(D, K):
+    """The EMA state of a fresh quantizer for torch_ema_step: cluster sizes, dw, counter."""
+    return torch.zeros(K, dtype=torch.float64), torch.zeros(D, K, dtype=torch.float64), 0
+
+
 def test_three_training_steps_match_torch(rng):
     D, K = 8, 16
     q = EMAQuantizer(D, K, dtype="float64", seed=3)
     emb = torch.tensor(q.embeddings)
-    hcs, hdw, counter = torch.zeros(K, dtype=torch.float64), torch.zeros(D, K, dtype=torch.float64), 0
+    hcs, hdw, counter = torch_buffers(D, K)
     for step in range(3):
         z = rng.standard_normal((2, D, 4, 4)) * 1.5
         out, cache = q.forward(z, train=True)
@@ -94,6 +99,8 @@ def test_unused_codes_and_a_single_used_code_give_no_nan(rng):
     n = 4.0  # the smoothing factor at step 1: cs' = (4 + eps) / (4 + K eps) * 4
     cs = (n + 1e-5) / (n + K * 1e-5) * n
     np.testing.assert_allclose(q2.embeddings[:, 2], mean * n / cs, rtol=1e-14)
+    # reset is off by default (the unused codes collapsed above); asked for, it counts those below threshold
+    assert q2.reset_dead_codes(z, threshold=1e-3, rng=0) == K - 1
 
 
 def test_usage_and_perplexity_closed_form():
@@ -106,18 +113,6 @@ def test_usage_and_perplexity_closed_form():
     assert out.usage == 0.5 and abs(out.perplexity - 2.0) < 1e-12
 
 
-def test_dead_code_reset_is_off_by_default_and_restarts_codes(rng):
-    q = EMAQuantizer(4, 6, dtype="float64")
-    q.embeddings[:] = 100.0
-    q.embeddings[:, 0] = 0.0
-    z = rng.standard_normal((1, 4, 3, 3))
-    q.forward(z, train=True)
-    assert (q.embeddings[:, 1:] == 0).all()  # dead codes collapse to 0 without a reset
-    assert q.reset_dead_codes(z, threshold=1e-3, rng=0) == 5  # where to: the next test
-    q.forward(np.zeros((1, 4, 1, 1)) + 1e3, train=True)  # a batch far away: codes 1.. unused
-    assert np.isfinite(q.embeddings).all()
-
-
 def test_state_round_trip(rng):
     q = EMAQuantizer(4, 8, dtype="float32")
     q.forward(rng.standard_normal((1, 4, 2, 2)).astype(np.float32), train=True)
@@ -127,36 +122,8 @@ def test_state_round_trip(rng):
     np.testing.assert_array_equal(q2.forward(z)[0].codes, q.forward(z)[0].codes)
 
 
-def _state_equal(a, b):
-    return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
-
-
 # ---------------------------------------------------------------------------------------
-# hard cases, each against an independent oracle (a plain NumPy EMA step, closed forms, set logic)
-
-
-SMALL = dict(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=8,
-             n_embed=16, image_size=16)
-
-
-
-def numpy_ema_step(flat, emb, hcs, hdw, counter, decay, eps):
-    """docs/math.md §4 in float64 with a brute-force nearest column (ties: smallest index)."""
-    d = ((flat[:, :, None] - emb[None]) ** 2).sum(1)  # (M, K)
-    idx = d.argmin(1)
-    K = emb.shape[1]
-    N = np.bincount(idx, minlength=K).astype(np.float64)
-    S = np.zeros_like(emb)
-    for m, k in enumerate(idx):
-        S[:, k] += flat[m]
-    hcs = hcs + (1 - decay) * (N - hcs)
-    hdw = hdw + (1 - decay) * (S - hdw)
-    counter += 1
-    cs, dw = hcs / (1 - decay ** counter), hdw / (1 - decay ** counter)
-    n = cs.sum()
-    cs = (cs + eps) / (n + K * eps) * n
-    return idx, dw / cs, hcs, hdw, counter
-
+# hard cases, each against an independent oracle (the torch EMA step, closed forms, set logic)
 
 
 def test_reset_dead_codes_moves_each_code_to_a_different_vector(rng):
@@ -180,18 +147,16 @@ def test_reset_dead_codes_moves_each_code_to_a_different_vector(rng):
         assert {tuple(c) for c in q.embeddings.T} == three
 
 
-
-def test_tiny_eps_in_float64_matches_the_numpy_step(rng):
+def test_tiny_eps_in_float64_matches_the_torch_step(rng):
     """eps=1e-50 is a normal float64: accepted, and the step is the formula's (unused codes 0)."""
     D, K = 3, 5
     q = EMAQuantizer(D, K, eps=1e-50, dtype="float64", seed=2)
-    emb, hcs, hdw = q.embeddings.copy(), np.zeros(K), np.zeros((D, K))
+    emb = torch.tensor(q.embeddings)
     z = rng.standard_normal((2, D, 2, 2))
     out, _ = q.forward(z, train=True)
-    idx, emb, hcs, hdw, _ = numpy_ema_step(z.transpose(0, 2, 3, 1).reshape(-1, D), emb, hcs, hdw, 0, 0.99, 1e-50)
-    np.testing.assert_array_equal(out.codes.ravel(), idx)
-    np.testing.assert_allclose(q.embeddings, emb, rtol=1e-13, atol=0)
-
+    _, idx, _, emb, *_ = torch_ema_step(torch.tensor(z), emb, *torch_buffers(D, K), 0.99, 1e-50)
+    np.testing.assert_array_equal(out.codes, idx.numpy())
+    np.testing.assert_allclose(q.embeddings, emb.numpy(), rtol=1e-13, atol=0)
 
 
 def test_commitment_loss_with_a_float32_sum_past_float32_max():
@@ -208,33 +173,34 @@ def test_commitment_loss_with_a_float32_sum_past_float32_max():
         q.forward(np.full((1, 1, 1, 1), 2e19, np.float32))
 
 
-
 def test_batch_of_one_vector_and_a_code_unused_for_many_steps(rng):
-    """One vector per step, float32, 400 steps, the data always on code 0 of 3: against the float64
-    NumPy step (codes, every buffer). The unused codes collapse to 0 (their dw does), away from
+    """One vector per step, float32, 200 steps, the data always on code 0 of 3: against the float64
+    torch step (codes, every buffer). The unused codes collapse to 0 (their dw does), away from
     the data around (10, 10), and stay finite."""
     D, K = 2, 3
     q = EMAQuantizer(D, K, dtype="float32", seed=0)
     q.embeddings[:] = np.array([[10.0, 50.0, -50.0], [10.0, 50.0, 50.0]], np.float32)
-    emb, hcs, hdw, counter = q.embeddings.astype(np.float64), np.zeros(K), np.zeros((D, K)), 0
-    for step in range(400):
+    emb, (hcs, hdw, counter) = torch.tensor(q.embeddings, dtype=torch.float64), torch_buffers(D, K)
+    for step in range(200):
         z = (10 + rng.standard_normal((1, D, 1, 1)) * 0.5).astype(np.float32)
         out, _ = q.forward(z, train=True)
-        idx, emb, hcs, hdw, counter = numpy_ema_step(z.reshape(1, D).astype(np.float64), emb, hcs, hdw, counter,
-                                                     0.99, 1e-5)
-        assert out.codes.shape == (1, 1, 1) and out.codes[0, 0, 0] == idx[0] == 0
+        _, idx, _, emb, hcs, hdw, counter = torch_ema_step(torch.tensor(z, dtype=torch.float64), emb, hcs, hdw,
+                                                           counter, 0.99, 1e-5)
+        assert out.codes.shape == (1, 1, 1) and out.codes[0, 0, 0] == idx[0, 0, 0] == 0
         assert out.usage == 1 / K and out.perplexity == 1.0
+    emb, hcs, hdw = emb.numpy(), hcs.numpy(), hdw.numpy()
     np.testing.assert_allclose(q.embeddings, emb, rtol=0, atol=1e-5 * np.abs(emb).max())
     np.testing.assert_allclose(q.ema_cluster_size_hidden, hcs, rtol=1e-5, atol=0)
     np.testing.assert_allclose(q.ema_dw_hidden, hdw, rtol=0, atol=1e-5 * np.abs(hdw).max())
-    assert (q.embeddings[:, 1:] == 0).all() and q.counter == 400
-
+    assert (q.embeddings[:, 1:] == 0).all() and q.counter == 200
 
 
 # ---------------------------------------------------------------------------------------
 # refusals: one table, the exception type and the argument's name; nothing changed by a refusal
 
 
+SMALL = dict(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=8,
+             n_embed=16, image_size=16)
 Z = np.random.default_rng(0).standard_normal((1, 4, 2, 2)).astype(np.float32)  # (B, D, h, w)
 
 
@@ -254,10 +220,9 @@ def _load(**changes):
     # reset_dead_codes: an all-NaN z wrote NaN into the dead codes, a float64 z was cast silently
     *[(lambda q, z, e=e: q.reset_dead_codes(e(z), rng=0), error, "z") for e, error in [
         (lambda z: np.full_like(z, np.nan), ValueError), (lambda z: z.astype(np.float64), TypeError),
-        (lambda z: z[:, :3].copy(), ValueError), (lambda z: z[0], ValueError), (lambda z: z.tolist(), TypeError),
-        (lambda z: z[:0], ValueError)]],
+        (lambda z: z[:, :3].copy(), ValueError)]],
     *[(lambda q, z, t=t: q.reset_dead_codes(z, threshold=t, rng=0), error, "threshold")
-      for t, error in [(float("nan"), ValueError), (float("inf"), ValueError), (-1.0, ValueError), ("0.1", TypeError)]],
+      for t, error in [(float("nan"), ValueError), (-1.0, ValueError), ("0.1", TypeError)]],
     (lambda q, z: q.reset_dead_codes(z, rng="abc"), TypeError, "rng"),
     (lambda q, z: q.reset_dead_codes(z, rng=-1), ValueError, "rng"),
     (_load(embeddings=np.zeros((8, 4), np.float32)), ValueError, "embeddings"),
@@ -267,7 +232,7 @@ def _load(**changes):
     (_load(embeddings=None), TypeError, "embeddings"),
     (lambda q, z: q.load_state_dict({k: v for k, v in q.state_dict().items() if k != "counter"}), ValueError, "counter"),
     # a counter int64 cannot hold loaded, then state_dict() raised OverflowError
-    *[(_load(counter=big), ValueError, "counter") for big in (np.uint64(2 ** 63), 2 ** 63, np.array(2.0 ** 63))],
+    (_load(counter=2 ** 63), ValueError, "counter"),
     # float32: eps=1e-50 rounds to 0 (an unused code's size 0, its code 0/0), 1e39 is inf; every
     # training step then blamed z
     *[(lambda q, z, e=e: EMAQuantizer(3, 5, eps=e, dtype="float32"), ValueError, "eps") for e in (1e-50, 1e39)],
@@ -281,21 +246,17 @@ def test_refusals_name_the_argument(call, error, name):
     before = q.state_dict()
     with pytest.raises(error, match=rf"\b{name}\b"):
         call(q, Z)
-    assert _state_equal(q.state_dict(), before)
+    after = q.state_dict()
+    assert after.keys() == before.keys() and all(np.array_equal(after[k], before[k]) for k in after)
 
 
 def test_what_the_refusals_take(rng):
-    """Just inside the refusals: NumPy integer sizes (held as int), a Generator, np.bool_, the
-    largest int64 counter, a float counter of an integral value (as torch may store it), float64
-    buffers whose values float32 holds (the largest loads exactly)."""
-    q = EMAQuantizer(np.int64(4), np.int32(8), dtype="float32")
-    assert type(q.embed_dim) is int and type(q.n_embed) is int
+    """Just inside the refusals: a Generator, a float counter of an integral value (as torch may
+    store it), float64 buffers whose values float32 holds (the largest loads exactly)."""
+    q = EMAQuantizer(4, 8, dtype="float32")
     assert q.reset_dead_codes(Z, rng=np.random.default_rng(0)) == 8 and np.isfinite(q.embeddings).all()
-    q.forward(Z, train=np.bool_(True))
+    q.forward(Z, train=True)
     state = q.state_dict()
-    state["counter"] = np.uint64(2 ** 63 - 1)
-    q.load_state_dict(state)
-    assert q.state_dict()["counter"] == 2 ** 63 - 1
     state["counter"] = np.array(1e18)
     state["ema_dw_hidden"] = state["ema_dw_hidden"].astype(np.float64)
     state["ema_dw_hidden"][3, 5] = float(np.finfo(np.float32).max)
