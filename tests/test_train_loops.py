@@ -90,18 +90,20 @@ def _hyper(folder):
     return json.loads(open(os.path.join(folder, "config.json")).read())["hyperparameters"]
 
 
+def _assert_same_arrays(got, want):
+    """The same names, each array bit for bit."""
+    assert sorted(got) == sorted(want)
+    for k in want:
+        assert_bitwise_equal(k, got[k], want[k])
+
+
 def _assert_same_run(a, b, final):
     meta_a, arr_a = _checkpoint(a)
     meta_b, arr_b = _checkpoint(b)
     assert meta_a == meta_b
-    assert sorted(arr_a) == sorted(arr_b)
     assert any(k.startswith("optimizer/exp_avg_sq/") for k in arr_a)
-    for k in arr_a:  # model, EMA buffers, both moments
-        assert_bitwise_equal(k, arr_b[k], arr_a[k])
-    fa, fb = load_npz(os.path.join(a, final)), load_npz(os.path.join(b, final))
-    assert sorted(fa) == sorted(fb)
-    for k in fa:
-        assert np.array_equal(fa[k], fb[k]), k
+    _assert_same_arrays(arr_b, arr_a)  # model, EMA buffers, both moments
+    _assert_same_arrays(load_npz(os.path.join(b, final)), load_npz(os.path.join(a, final)))
     assert _log(a) == _log(b)
     assert [int(r[0]) for r in _log(a)[1:]] == list(range(1, meta_a["step"] + 1))
 
@@ -264,10 +266,7 @@ def test_a_failed_save_leaves_the_previous_checkpoint(tmp_path, rng, monkeypatch
     with pytest.raises(OSError, match="killed"):
         train_codebook(images, CB, run, opts(4, checkpoint_every=1))
     monkeypatch.setattr(pyvf._io.os, "replace", real)
-    after = load_npz(ckpt)
-    assert sorted(after) == sorted(before)
-    for k in before:
-        assert np.array_equal(after[k], before[k]), k
+    _assert_same_arrays(load_npz(ckpt), before)
     assert sorted(os.listdir(run)) == ["checkpoint.npz", "codebook.npz", "config.json", "log.csv"]  # no temporary
     # a temporary file left by a SIGKILL'ed writer is removed by the next run in the folder
     stale = os.path.join(run, ".checkpoint.npz.123.abcd.tmp")
@@ -340,12 +339,6 @@ def _tf(d, out, o=None, recipe=TransformerRecipe(), **kw):
                              recipe, **kw)
 
 
-def _eval(**change):
-    """train_transformer evaluating on the held-out set with some entries changed."""
-    return lambda d, out: _tf(d, out, opts(2, eval_every=1),
-                              eval_set={**d["eval"], **{k: f(d["eval"]) for k, f in change.items()}})
-
-
 @pytest.mark.parametrize("call, error, name", [
     (lambda d, out: opts(0), ValueError, "steps"),
     (lambda d, out: opts(2.0), TypeError, "steps"),
@@ -394,7 +387,8 @@ def test_train_codebook_refusals_name_the_argument(tmp_path, rng, call, error, n
     (lambda d, out: _tf(d, out, opts(5), TransformerRecipe(warmup=5)), ValueError, "warmup"),
     (lambda d, out: _tf(d, out, opts(8), TransformerRecipe(total_steps=4)), ValueError, "total_steps"),
     (lambda d, out: _tf(d, out, opts(1, init=d["cb_file"])), ValueError, "init"),
-    (_eval(codebook=lambda e: Codebook(dataclasses.replace(CB4, n_embed=32), seed=0)), ValueError, "codebook"),
+    (lambda d, out: _tf(d, out, opts(2, eval_every=1), eval_set={  # the held-out set's codebook another one
+        **d["eval"], "codebook": Codebook(dataclasses.replace(CB4, n_embed=32), seed=0)}), ValueError, "codebook"),
     (lambda d, out: tokenize(Codebook(CB), d["images"].astype(np.int64)), TypeError, "images"),
     (lambda d, out: tokenize(Codebook(CB), d["images"], batch_size=0), ValueError, "batch_size"),
 ])
@@ -532,9 +526,7 @@ def test_export_writes_the_checkpoints_model(tmp_path, rng, capsys):
         kind, step, path = export_run(run, tmp_path / f"exported-{name}")
         assert (kind, step) == (name[:-4], 2 if cls is Codebook else 3)
         want, got = load_npz(os.path.join(run, name), "model"), load_npz(path, "model")
-        assert sorted(got) == sorted(want)
-        for k in want:
-            assert_bitwise_equal(k, got[k], want[k])
+        _assert_same_arrays(got, want)
         fresh = cls(cls.CONFIG(**json.loads(str(want["__config__"])))).state_dict()
         assert any(not np.array_equal(fresh[k], want[k]) for k in fresh)  # the test sees training
     run = _cli()
@@ -589,9 +581,7 @@ def test_init_starts_from_the_files_weights(tmp_path, rng, monkeypatch, engine):
             train_transformer(_tokens(rng), _poses(rng), TF, out, opts(1, init=file, engine=engine))
         want = load_npz(file, "model")
         want.pop("__config__")
-        assert sorted(seen["model"]) == sorted(want)
-        for k in want:
-            assert_bitwise_equal(k, seen["model"][k], want[k])
+        _assert_same_arrays(seen["model"], want)
         fresh = (Codebook(CB) if kind == "codebook" else Transformer(TF)).state_dict()  # seed 0's
         assert any(not np.array_equal(fresh[k], want[k]) for k in fresh)  # the check sees init ignored
         opt = seen["optimizer"]
