@@ -76,51 +76,25 @@ def published_orientation_error(q1, q2):
 # the quaternion algebra
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
-def test_quat_mul_closed_form_units(dtype):
-    """i*j = k, j*k = i, k*i = j, j*i = -k, i^2 = j^2 = k^2 = ijk = -1, 1 is the identity: exact."""
-    one, i, j, k = (np.eye(4, dtype=dtype)[n] for n in range(4))
-    m = geo.quat_mul
-    for got, want in [(m(i, j), k), (m(j, k), i), (m(k, i), j),
-                      (m(j, i), -k), (m(k, j), -i), (m(i, k), -j),
-                      (m(i, i), -one), (m(j, j), -one), (m(k, k), -one), (m(m(i, j), k), -one),
-                      (m(one, i), i), (m(j, one), j)]:
-        assert got.dtype == dtype
-        np.testing.assert_array_equal(got, want)
-
-
 def test_quat_algebra_identities(rng):
-    """The product against its matrix form L(a) b, associativity, |ab| = |a||b|, conj(ab) = conj(b) conj(a), q conj(q) = |q|^2 (vector part
-    exactly 0, by the pairing of terms in the product). float64, random non-unit quaternions."""
-    a, b, c = (rng.standard_normal((50, 4)) for _ in range(3))
+    """The product against its matrix form L(a) b (its identities follow from it), and q conj(q) =
+    |q|^2 (vector part exactly 0, by the pairing of terms in the product). float64, random non-unit
+    quaternions."""
+    a, b = rng.standard_normal((50, 4)), rng.standard_normal((3, 4))
     m, cj = geo.quat_mul, geo.quat_conj
-    assert_close("ab vs L(a) @ b", m(a[:, None], b[:3]), np.einsum("nij,mj->nmi", hamilton_left_matrix(a), b[:3]),
+    assert_close("ab vs L(a) @ b", m(a[:, None], b), np.einsum("nij,mj->nmi", hamilton_left_matrix(a), b),
                  rtol=RTOL64)  # broadcast (50, 1, 4) x (3, 4)
-    assert_close("(ab)c vs a(bc)", m(m(a, b), c), m(a, m(b, c)), rtol=RTOL64)
-    assert_close("|ab|", np.linalg.norm(m(a, b), axis=-1),
-                 np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), rtol=RTOL64)
-    assert_close("conj(ab)", cj(m(a, b)), m(cj(b), cj(a)), rtol=RTOL64)
     for r in (m(a, cj(a)), m(cj(a), a)):
         assert (r[:, 1:] == 0).all()
         assert_close("q conj(q)", r[:, 0], np.sum(a * a, axis=-1), rtol=RTOL64)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_quat_rotate_against_matrix_and_sandwich(rng, dtype):
+def test_quat_rotate_against_the_matrix(rng, dtype):
     """Broadcast q (5, 1, 4) against v (1, 6, 3): equals R(q) v (rotation_matrix below, in float64
-    on the same numbers) and the Hamilton sandwich vec(q (0, v) conj(q)) (the published
-    quaternion_rotate); +90 degrees about z is the exact permutation x -> y, y -> -x."""
+    on the same numbers)."""
     q, v = unit_quats(rng, (5, 1), dtype), rng.standard_normal((1, 6, 3)).astype(dtype)
-    got = geo.quat_rotate(q, v)  # (5, 6, 3)
-    assert got.dtype == dtype
-    assert_close("rotate vs matrix", got, rotated(q, v), rtol=RTOL[dtype])
-    v0 = np.concatenate([np.zeros((1, 6, 1), dtype), v], -1)
-    sandwich = geo.quat_mul(geo.quat_mul(q, v0), geo.quat_conj(q))[..., 1:]
-    assert_close("rotate vs sandwich", got, sandwich, rtol=RTOL[dtype])
-    s = math.sqrt(0.5)
-    qz = np.array([s, 0, 0, s], dtype)
-    assert_close("90 deg about z", geo.quat_rotate(qz, np.eye(3, dtype=dtype)),
-                 np.array([[0, 1, 0], [-1, 0, 0], [0, 0, 1.]]), rtol=RTOL[dtype])
+    assert_close("rotate vs matrix", geo.quat_rotate(q, v), rotated(q, v), rtol=RTOL[dtype])  # (5, 6, 3)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -130,9 +104,7 @@ def test_quat_normalize_tf_convention(rng, dtype):
     q = rng.standard_normal((30, 4)).astype(dtype)
     q64 = q.astype(np.float64)
     want = q64 / np.sqrt(np.maximum(np.sum(q64 * q64, -1, keepdims=True), 1e-12))
-    got = geo.quat_normalize(q)
-    assert got.dtype == dtype
-    assert_close("normalize", got, want, rtol=RTOL[dtype])
+    assert_close("normalize", geo.quat_normalize(q), want, rtol=RTOL[dtype])
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         z = geo.quat_normalize(np.zeros((2, 4), dtype))
@@ -172,9 +144,7 @@ def test_quat_canonical(rng, dtype):
     """-q where w < 0, q where w > 0; at w == 0 (either sign of zero) q unchanged, bit for bit, as
     the published quaternion_remove_sign."""
     q = unit_quats(rng, (20,), dtype)
-    got = geo.quat_canonical(q)
-    assert got.dtype == dtype and (got[:, 0] >= 0).all()
-    assert_bitwise_equal("canonical", got, np.where(q[:, :1] < 0, -q, q))
+    assert_bitwise_equal("canonical", geo.quat_canonical(q), np.where(q[:, :1] < 0, -q, q))  # dtype too
     w0 = np.array([[0.0, -0.6, 0.8, 0], [-0.0, -0.6, 0.8, 0], [0, 0, -1, 0]], dtype)
     assert_bitwise_equal("w == 0 kept", geo.quat_canonical(w0), w0)
     assert_bitwise_equal("w == 0 kept for -q", geo.quat_canonical(-w0), -w0)
@@ -197,8 +167,8 @@ def test_relative_poses_closed_form():
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_make_relative_first_view_is_identity(rng, dtype):
     """rel[:, 0] = (0, 0, 0, 1, 0, 0, 0): the position and the quaternion's vector part exactly 0,
-    w = 1 to the ulp; ref is a copy of view 0; with canonical=True every w >= 0 and |q| = 1, and
-    absolute_poses(rel, ref) gives the poses back (rotations up to the quaternion's sign)."""
+    w = 1 to the ulp; ref is a copy of view 0; with canonical=True every w >= 0 and |q| = 1 (the
+    round trip through absolute_poses: test_relative_poses_large_translations)."""
     poses = random_poses(rng, (3, 5), dtype)
     rel, ref = geo.make_relative(poses)
     assert rel.shape == (3, 5, 7) and ref.shape == (3, 7) and rel.dtype == ref.dtype == dtype
@@ -209,11 +179,6 @@ def test_make_relative_first_view_is_identity(rng, dtype):
     assert (rel[..., 3] >= 0).all()
     assert_close("|q| = 1", np.linalg.norm(rel[..., 3:].astype(np.float64), axis=-1), np.ones((3, 5)),
                  rtol=RTOL[dtype])
-    back = geo.absolute_poses(rel, ref[:, None])
-    tol = 1e-12 if dtype == np.float64 else 1e-5
-    assert_close("positions back", back[..., :3], poses[..., :3], rtol=tol)
-    sign = np.sign(np.sum(back[..., 3:] * poses[..., 3:], -1, keepdims=True))
-    assert_close("rotations back", sign * back[..., 3:], poses[..., 3:], rtol=tol)
     plain, _ = geo.make_relative(poses, canonical=False)
     assert_close("canonical=False is relative_poses", plain, geo.relative_poses(poses, ref[:, None]), rtol=0)
 
@@ -256,9 +221,7 @@ def test_position_error(rng, dtype):
     differences (squares overflow) are still exact."""
     p1 = np.array([[0, 0, 0], [1e6, 1e6, 0]], dtype)
     p2 = np.array([[3, 4, 0], [1e6, 1e6 + 12, 5]], dtype)
-    got = geo.position_error(p1, p2)
-    assert got.dtype == dtype
-    np.testing.assert_array_equal(got, np.array([5, 13], dtype))
+    np.testing.assert_array_equal(geo.position_error(p1, p2), np.array([5, 13], dtype))
     poses = random_poses(rng, (2, 3), dtype)
     assert_close("poses", geo.position_error(poses, poses[:1]),
                  np.linalg.norm(poses[..., :3].astype(np.float64) - poses[:1, :, :3], axis=-1), rtol=RTOL[dtype])
@@ -285,7 +248,6 @@ def test_orientation_error_closed_form_angles(rng, dtype):
             want = math.degrees(min(a, 2 * math.pi - a))  # the shorter way round
             qa = axis_angle_quat(axis, a)
             got = geo.orientation_error(qa.astype(dtype), ident)
-            assert got.dtype == dtype
             assert abs(float(got) - want) <= 4 * eps * want, (a, float(got), want)
             got_g = geo.orientation_error(geo.quat_mul(qa, g).astype(dtype), g.astype(dtype))
             assert abs(float(got_g) - want) <= math.degrees(8 * eps), (a, float(got_g), want)
@@ -304,7 +266,6 @@ def test_orientation_error_vs_published_asin_form(rng):
     assert_close("non-unit inputs", geo.orientation_error(3.0 * q1, -0.25 * q2), ours, rtol=RTOL64 * 4)
     for a, b in [(-q1, q2), (q1, -q2), (-q1, -q2)]:
         assert_bitwise_equal("sign invariance", geo.orientation_error(a, b), ours)
-        assert_bitwise_equal("published sign invariance", published_orientation_error(a, b), theirs)
     assert_bitwise_equal("symmetry", geo.orientation_error(q2, q1), ours)
     assert ((ours >= 0) & (ours <= 180)).all()
 
@@ -322,18 +283,13 @@ def test_orientation_error_asin_form_nan_where_rounding_exceeds_one(rng):
     ident = np.array([1.0, 0, 0, 0])
     assert np.isnan(published_orientation_error(q, ident))
     assert float(geo.orientation_error(q, ident)) == 180.0
-    # near 180 degrees the asin form keeps only about half the digits
-    qa = axis_angle_quat(v, math.pi - 1e-7)
-    want = math.degrees(math.pi - 1e-7)
-    assert abs(float(geo.orientation_error(qa, ident)) - want) <= 4 * U64 * want
-    assert abs(float(published_orientation_error(qa, ident)) - want) > 1e-9
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_average_pose(rng, dtype):
     """Against the published recipe written out step by step (normalise, canonicalise, mean,
     normalise, canonicalise) over axis -2 of (B, N, L, 7); flipping the sign or scaling any input
-    quaternion changes nothing; the mean of copies of one pose (w > 0) is that pose."""
+    quaternion changes nothing."""
     poses = random_poses(rng, (2, 3, 16), dtype)
     poses[..., 3:] = (poses[..., 3:] + 0.1 * rng.standard_normal((2, 3, 1, 4))).astype(dtype)  # nearby, non-unit
     got = geo.average_pose(poses, axis=-2)
@@ -347,9 +303,6 @@ def test_average_pose(rng, dtype):
     flipped = poses.copy()
     flipped[..., ::2, 3:] *= -3
     assert_close("sign and scale invariance", geo.average_pose(flipped, axis=2), got, rtol=4 * RTOL[dtype])
-    one = np.repeat(random_poses(rng, (1,), dtype), 5, axis=0)
-    one[:, 3:] *= np.sign(one[:, 3:4])  # a canonical quaternion (w > 0)
-    assert_close("mean of copies", geo.average_pose(one, axis=0), one[0], rtol=RTOL[dtype])
 
 
 def test_average_pose_cancelling_quaternions_give_zero():
@@ -431,7 +384,7 @@ BAD = {  # the ways an array argument can be wrong: (make it so, the exception)
 @pytest.mark.parametrize("f, args, name", [(f, args, name) for f, args in CALLS for name in args],
                          ids=[f"{f.__name__}-{name}" for f, args in CALLS for name in args])
 def test_bad_array_arguments_are_named(f, args, name, kind):
-    """For every array argument of every function; the good call works in both dtypes."""
+    """For every array argument of every function; the good call keeps either dtype."""
     for dt in (np.float32, np.float64):
         out = f(**{k: make(dt) for k, make in args.items()})
         assert all(o.dtype == dt for o in (out if isinstance(out, tuple) else (out,)))
@@ -447,7 +400,7 @@ def test_bad_array_arguments_are_named(f, args, name, kind):
     *[(lambda f=f, a=a: f(**{n: m(n=2 + i) for i, (n, m) in enumerate(a.items())}), ValueError, list(a)[1])
       for f, a in CALLS if len(a) == 2],
     (lambda: geo.quat_normalize(_q(), eps=0.0), ValueError, "eps"),
-    *[(lambda axis=axis: geo.average_pose(_p(), axis=axis), ValueError, "axis") for axis in (-1, 1, 2, -3)],
+    *[(lambda axis=axis: geo.average_pose(_p(), axis=axis), ValueError, "axis") for axis in (-1, 2)],
     (lambda: geo.average_pose(_p(), axis=0.0), TypeError, "axis"),
     (lambda: geo.average_pose(np.zeros((0, 7)), axis=0), ValueError, "axis"),  # no entries to average
     (lambda: geo.make_relative(_p()[0]), ValueError, "poses"),  # no views axis

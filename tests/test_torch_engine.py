@@ -101,33 +101,13 @@ def test_resume_exact_and_across_engines(tmp_path):
     resumed = _train(tmp_path, "split", "torch", steps=20).state_dict()
     for k in straight:  # the same engine on the same machine: bit for bit
         np.testing.assert_array_equal(straight[k], resumed[k], err_msg=k)
-    # pyvf's checkpoint continued by torch: the pyvf run to float32 rounding
+    # pyvf's checkpoint continued by torch: torch's run to float32 rounding (each is pyvf's: the test above)
     _train(tmp_path, "cross", "pyvf", steps=10, recipe=dict(total_steps=20))
     cross = _train(tmp_path, "cross", "torch", steps=20).state_dict()
-    _check_same_run(_train(tmp_path, "pyvf", "pyvf").state_dict(), cross, Transformer(CFG, seed=0).state_dict())
+    _check_same_run(straight, cross, Transformer(CFG, seed=0).state_dict())
 
 
-def _parity_steps(run):
-    return [r["step"] for r in csv.DictReader(open(run / "parity.csv"))]
-
-
-def test_parity_log_holds_the_run_it_continues(tmp_path):
-    """parity.csv has a row per checkpoint within the bound (measured ~4e-7); as log.csv, a fresh
-    start in the folder drops an older run's rows, a resume keeps the rows up to its checkpoint."""
-    _train(tmp_path, "p", "torch", steps=6, checkpoint_every=2)
-    rows = list(csv.DictReader(open(tmp_path / "p" / "parity.csv")))
-    assert [r["step"] for r in rows] == ["2", "4", "6"]
-    assert all(0 < float(r["rel_err"]) < 1e-5 and float(r["bound"]) == PARITY_RTOL for r in rows), rows
-    _train(tmp_path, "p", "torch", steps=6, checkpoint_every=3, resume=False)  # start over
-    assert _parity_steps(tmp_path / "p") == ["3", "6"]
-    assert [r["step"] for r in csv.DictReader(open(tmp_path / "p" / "log.csv"))][-1] == "6"
-    # a resume from step 3 (a run stopped there): the rows to 3 kept, 5 and 6 appended
-    _train(tmp_path, "r", "torch", steps=3, recipe=dict(total_steps=6), checkpoint_every=3)
-    _train(tmp_path, "r", "torch", steps=6, checkpoint_every=5)
-    assert _parity_steps(tmp_path / "r") == ["3", "5", "6"]
-
-
-@pytest.mark.parametrize("bug", ["qkv_order", "wrong_branch", "ln_eps"])
+@pytest.mark.parametrize("bug", ["qkv_order", "wrong_branch"])  # ln_eps: the next test, in a whole run
 def test_parity_catches_a_planted_bug(bug):
     model = Transformer(CFG, seed=3)
     eng = TorchTransformer(model, AdamW(model.params, 1e-3, decay=published_weight_decay))
@@ -268,15 +248,19 @@ def test_torch_codebook_equals_pyvf_and_resumes_across_engines(tmp_path):
 
 
 def test_torch_codebook_resume_and_parity_log(tmp_path):
+    """Resume bit for bit; parity.csv has a row per checkpoint within the bound (measured ~4e-7), and
+    as log.csv a fresh start in the folder drops an older run's rows (a resume keeps them: the
+    two-process test)."""
     straight = _train_cb(tmp_path, "straight", "torch", CB, steps=4, checkpoint_every=2).state_dict()
     _train_cb(tmp_path, "split", "torch", CB, steps=2)
-    resumed = _train_cb(tmp_path, "split", "torch", CB, steps=4)
+    resumed = _train_cb(tmp_path, "split", "torch", CB, steps=4).state_dict()
     for k in straight:  # the same engine on the same machine: bit for bit
-        np.testing.assert_array_equal(straight[k], resumed.state_dict()[k], err_msg=k)
-    assert Codebook.load(tmp_path / "split" / "codebook.npz").state_dict()["quantize.counter"] == 4
+        np.testing.assert_array_equal(straight[k], resumed[k], err_msg=k)
     rows = list(csv.DictReader(open(tmp_path / "straight" / "parity.csv")))
     assert [r["step"] for r in rows] == ["2", "4"]
     assert all(0 < float(r["rel_err"]) < 1e-5 and float(r["bound"]) == PARITY_RTOL for r in rows), rows
+    _train_cb(tmp_path, "split", "torch", CB, steps=1, resume=False)  # start over
+    assert [r["step"] for r in csv.DictReader(open(tmp_path / "split" / "parity.csv"))] == ["1"]
 
 
 def _transpose_mid_conv(port):
@@ -331,7 +315,7 @@ def one_gpu(monkeypatch):
     ("torch", "cpu", "fp16", "precision"),
     ("torch", "gpu", "fp32", "device"),
     ("torch", "cuda:1", "fp32", "device"),  # torch.device accepts it; the first .to() failed, after the folder
-    *[("torch", d, "fp32", "device") for d in ["cuda:x", "cuda:0,1"]],
+    ("torch", "cuda:x", "fp32", "device"),
 ])
 def test_check_engine_refusals(one_gpu, engine, device, precision, name):
     """On a machine with one GPU; malformed device strings torch.device raises RuntimeError for."""
