@@ -16,7 +16,7 @@ import torch
 import pyvf
 import pyvf.verify.teacher
 from pyvf.verify.torch_ports import (CODEBOOK_BUGS, TRANSFORMER_BUGS, CodebookPort, TransformerPort,
-                                     official_name, tree_mask)
+                                     official_name)
 from test_codebook import with_empty_patches
 from test_codebook_trace import SMALL, images_for, random_codebook
 from test_transformer import TINY, random_batch, random_model

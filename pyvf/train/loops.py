@@ -124,10 +124,13 @@ def _check_images(images, config, name="images"):
 
 
 def _check_tokens_poses(tokens, poses, config):
-    """tokens ints (scenes, views, ...) in [0, n_embeddings), poses (scenes, views, 7) finite with
+    """tokens ints (scenes, views, k, k) in [0, n_embeddings), poses (scenes, views, 7) finite with
     unit quaternions (in the model's dtype, as the batches hold them: checked here rather than at
     the first step that draws a bad view, which may come thousands of steps in)."""
     _checks.int_array("tokens", tokens)
+    if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
+        raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
+                         f"got {tokens.shape}")
     if tokens.size == 0 or tokens.min() < 0 or tokens.max() >= config.n_embeddings:
         raise ValueError(f"tokens must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
     _checks.float_array("poses", poses)
@@ -495,9 +498,6 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
     if not isinstance(opts, RunOptions):
         raise TypeError(f"opts must be a RunOptions, got {type(opts).__name__}")
-    if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
-        raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
-                         f"got {tokens.shape}")
     _check_tokens_poses(tokens, poses, config)
     hyper, schedule = _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint)
     B, n_views, seed = opts.batch_size, hyper["views"], opts.seed
