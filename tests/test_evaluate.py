@@ -20,23 +20,9 @@ import pyvf.models
 from pyvf.cli import main
 from conftest import assert_close
 from pyvf.scenes import generate_scenes
-from pyvf.evaluate.metrics import encode_images
-from pyvf.evaluate import (
-    META_KEYS,
-    METHODS,
-    TIMING_KEYS,
-    closest_image_pose,
-    evaluate,
-    image_metrics,
-    mean_image,
-    mean_pose,
-    nearest_view,
-    pose_metrics,
-    psnr_cap,
-    to_model_images,
-    to_uint8,
-)
-from pyvf.evaluate.run import TOKEN_SCORES
+from pyvf.evaluate import METHODS, closest_image_pose, evaluate, image_metrics, mean_image, mean_pose, nearest_view
+from pyvf.evaluate.metrics import pose_metrics, psnr_cap, to_model_images, to_uint8
+from pyvf.evaluate.run import META_KEYS, TIMING_KEYS, TOKEN_SCORES
 
 CODEBOOK = pyvf.CodebookConfig(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(), z_channels=32,
                                embed_dim=16, n_embed=32, image_size=16)
@@ -219,7 +205,7 @@ SMOKE = dict(scenes=2, context=(3, 1), seed=5, progress=False, repeat=1, timing_
 def smoke(models, tmp_path_factory):
     """evaluate() by argmax (as rows_by_hand renders) on 2 scenes at contexts 1 and 3: (metrics, out)."""
     out = tmp_path_factory.mktemp("eval")
-    return evaluate(models[0], models[1], out=str(out), picture_scenes=2, decode="argmax", **SMOKE), out
+    return evaluate(models[0], models[1], out=str(out), decode="argmax", **SMOKE), out
 
 
 def test_evaluate_smoke(models, smoke):
@@ -424,7 +410,7 @@ def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, sm
     """The same scenes through both decodes: the meta and the markdown say which; the poses and
     the baselines do not depend on it; the renderings do (random logits are far from one-hot)."""
     a = smoke[0]
-    b = evaluate(models[0], models[1], out=str(tmp_path / "ev"), pictures=False, **SMOKE)  # the default: expected
+    b = evaluate(models[0], models[1], out=str(tmp_path / "ev"), **SMOKE)  # the default: expected
     assert a["meta"]["decode"] == "argmax" and b["meta"]["decode"] == "expected" == pyvf.evaluate.DEFAULT_DECODE
     assert "(decode=expected)" in (tmp_path / "ev" / "metrics.md").read_text()
     ra, rb = a["context"]["3"], b["context"]["3"]
@@ -465,7 +451,6 @@ def _no_work(monkeypatch):
     monkeypatch.setattr(pyvf.evaluate.run, "generate_scenes", generate)
 
 
-I0 = np.zeros((2, 3, 4, 4, 3), np.uint8)  # (B=2, C=3, 4, 4, 3)
 NAN_X = np.zeros((1, 3, 2, 2))
 NAN_X[0, 1, 1, 0] = np.nan  # a NaN in a decoder's output has no picture: it used to become black
 
@@ -489,8 +474,6 @@ def _logits(cb, bad=None, extra=0, dtype=np.float32):
     # argmax picked a NaN's index and returned an image
     *[(lambda cb, tf, bad=bad, d=d: pyvf.evaluate.render_images(cb, _logits(cb, bad), d), ValueError, "logits")
       for bad in (np.nan, np.inf) for d in ("argmax", "expected")],
-    (lambda cb, tf: pyvf.evaluate.render_images(cb, _logits(cb), batch=0), ValueError, "batch"),
-    (lambda cb, tf: encode_images(cb, I0[0], batch_size=0), ValueError, "batch_size"),
     (lambda cb, tf: evaluate(cb, tf, scenes=1, context=(11,), progress=False), ValueError, "context"),  # 16 views
     # (1, 2.7) was evaluated as (1, 2), (True,) as (1,)
     *[(lambda cb, tf, c=c: evaluate(cb, tf, scenes=1, context=c, progress=False), TypeError, "context")

@@ -1,13 +1,11 @@
 """The work of the `pyvf demo` and `pyvf evaluate` commands (their arguments: pyvf/cli/evaluate.py):
 
-    demo(out="pyvf-demo", quick=True)                           # pyvf demo --quick
+    demo(out="pyvf-demo", quick=True)                                           # pyvf demo --quick
     report("evaluate", out="eval", scenes=200, context=(1, 3, 5), seed=1000)   # pyvf evaluate --out eval
 
-Both load the shipped pretrained pair (pyvf.models.load_pretrained) unless files are given,
-run evaluate() on held-out scenes and print the tables and timings. The demo's defaults are
-sized to finish in about two minutes on 2 cores; --quick is a few seconds' smoke run.
-A model file that is missing (given on the command line, or the shipped one) prints what is
-missing and how to train a pair, and exits with status 1.
+Both load the shipped pretrained pair (pyvf.models.load_pretrained) unless files are given, run
+evaluate() on held-out scenes and print the tables and timings. The demo's defaults finish in
+about two minutes on 2 cores; --quick is a few seconds' smoke run.
 """
 
 import numbers
@@ -20,20 +18,17 @@ from .._threads import set_num_threads
 from ..models import load_pretrained
 from .run import DEFAULT_DECODE, evaluate, metrics_markdown
 
-__all__ = ["DEMO_SCENES", "DEMO_CONTEXT", "QUICK_SCENES", "QUICK_CONTEXT", "MODEL_CARD", "WALKTHROUGH", "demo",
-           "kernel_line", "report"]
+__all__ = ["DEMO_SCENES", "DEMO_CONTEXT", "QUICK_SCENES", "QUICK_CONTEXT", "demo", "report"]
 
 DEMO_SCENES = 20  # held-out scenes of the demo (measured wall time in README/the report)
 DEMO_CONTEXT = (1, 3, 5)
 QUICK_SCENES, QUICK_CONTEXT = 2, (1, 3)
-MODEL_CARD = "docs/models.md"  # the shipped models: training, curves, held-out metrics
-WALKTHROUGH = "docs/walkthrough.md"  # every step from pixels to a rendered view, explained and checked
 
 
 def report(name, *, out, scenes, context, seed, codebook=None, transformer=None, threads=None, progress=True,
            decode=DEFAULT_DECODE, repeat=5):
-    """Load the pair, evaluate (decode, repeat: evaluate()'s), print the tables and timings, write `out`. Returns the
-    exit status: 0, or 1 (printed to stderr) when a model file is missing or does not fit."""
+    """Load the pair, evaluate, print the tables and timings, write `out`. Returns the exit status:
+    0, or 1 (printed to stderr) when a model file is missing or does not fit."""
     print(kernel_line(), flush=True)
     if threads is not None:
         set_num_threads(threads)
@@ -50,7 +45,7 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
           f"images -> {c.token_size}x{c.token_size} tokens of {c.n_embed} codes")
     print(f"transformer: {transformer or 'pretrained (pyvf/models/sm7-transformer.npz)'}: d={t.d_model}, "
           f"{t.n_layer} layers, {t.n_head} heads, trained on up to {t.sequence_size - 1} context views")
-    sizes = (context,) if isinstance(context, numbers.Integral) else context  # one size, as evaluate() takes it
+    sizes = (context,) if isinstance(context, numbers.Integral) else context
     print(f"evaluating {scenes} held-out scenes (seed {seed}), context {', '.join(map(str, sizes))} ...",
           flush=True)
     t0 = time.perf_counter()
@@ -70,20 +65,16 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
 
 def demo(out="pyvf-demo", *, scenes=None, context=None, seed=1000, quick=False, codebook=None, transformer=None,
          threads=None, progress=True, decode=DEFAULT_DECODE):
-    """`pyvf demo`: render novel views and find camera poses of held-out scenes with the
-    pretrained pair (or the files given), against the baselines; report() then where to read
-    more. scenes, context: None for DEMO_SCENES, DEMO_CONTEXT (quick: QUICK_SCENES,
-    QUICK_CONTEXT; quick times each step once after its warm-up, not the fastest of 5). Returns the exit
-    status. Without files, the shipped pair is loaded."""
+    """`pyvf demo`: report() on DEMO_SCENES held-out scenes at DEMO_CONTEXT (quick: QUICK_SCENES,
+    QUICK_CONTEXT, each step timed once), then where to read more. Returns the exit status."""
     scenes = scenes if scenes is not None else (QUICK_SCENES if quick else DEMO_SCENES)
     context = context if context is not None else (QUICK_CONTEXT if quick else DEMO_CONTEXT)
     status = report("demo", out=out, scenes=scenes, context=context, seed=seed, codebook=codebook,
                     transformer=transformer, threads=threads, progress=progress, decode=decode,
                     repeat=1 if quick else 5)
     if status == 0:
-        print(f"\nHow these models were trained, their learning curves and their metrics on 200 held-out "
-              f"scenes: {MODEL_CARD} in the pyvf repository.")
-        print(f"How it works, from pixels to a rendered view, every step run and checked: {WALKTHROUGH} "
-              f"(the same repository).")
+        print("\nHow these models were trained, their learning curves and their metrics on 200 held-out "
+              "scenes: docs/models.md in the pyvf repository.")
+        print("How it works, from pixels to a rendered view, every step run and checked: docs/walkthrough.md "
+              "(the same repository).")
     return status
-

@@ -2,11 +2,6 @@
 
     h = codebook_health(codebook, images)   # images uint8 (M, Hi, Wi, 3): held-out views
     h = transformer_health(codebook, transformer, images, poses, tokens, contexts=(1, 3, 5))
-    # {"ce_c1", "token_accuracy_c1", "mae_c1", "nearest_view_mae_c1", ..., "mean_pose_orientation_c5"}
-    # {"mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_rank", "colour_r2"}
-    effective_rank(z)                       # z (N, D) -> exp(entropy of the normalised singular values)
-    object_mask(images)                     # uint8 (..., Hi, Wi, 3) -> bool (..., Hi, Wi)
-    colour_r2(pred, target, mask)           # the share of the object pixels' chroma variance kept
 
 Why these: a codebook whose latent collapses can keep a falling reconstruction loss, a healthy
 perplexity and most of its codes in use while it loses the colours of the objects (measured on
@@ -26,7 +21,7 @@ figure show such a collapse in the first minutes of a run.
 import numpy as np
 
 from ..nn.quantizer import code_statistics
-from .metrics import empty_entropy, empty_patches, image_metrics, object_mask, to_model_images, to_uint8
+from .metrics import QUERIES, empty_entropy, empty_patches, image_metrics, object_mask, to_model_images, to_uint8
 
 __all__ = ["effective_rank", "chroma", "colour_r2", "codebook_health", "CODEBOOK_HEALTH", "health_contexts",
            "transformer_health", "transformer_health_columns"]  # object_mask and empty_*: metrics', imported here
@@ -70,13 +65,10 @@ def colour_r2(pred, target, mask):
 
 
 def codebook_health(codebook, images, batch=64):
-    """A codebook's health on held-out views: uint8 images (M, Hi, Wi, 3) -> dict of floats,
-    CODEBOOK_HEALTH's keys: reconstruction mae, rmse, psnr (through the codes, on the saved
-    picture's 0..255 scale, the mean over images; evaluate.metrics), codes_in_use (distinct
-    codes the images chose), perplexity (exp of the entropy of their frequencies), latent_rank
-    (effective_rank of the encoder's unquantized output vectors), colour_r2 (of object pixels),
-    empty_entropy (of the codes of empty patches, position by position: empty_entropy).
-    Runs the model for inference only: no EMA buffer, cache or random state is touched."""
+    """A codebook's health on held-out views: uint8 images (M, Hi, Wi, 3) -> {CODEBOOK_HEALTH key:
+    float}: reconstruction mae, rmse, psnr through the codes (metrics.py), codes_in_use,
+    perplexity (exp of the entropy of the codes' frequencies), latent_rank (effective_rank of the
+    encoder's unquantized vectors), colour_r2 (of object pixels), empty_entropy. Inference only."""
     rec = np.empty_like(images)  # (M, Hi, Wi, 3)
     zs, codes = [], []
     for i in range(0, images.shape[0], batch):
@@ -100,7 +92,6 @@ def codebook_health(codebook, images, batch=64):
 # ---------------------------------------------------------------------------------------
 # the transformer
 
-HEALTH_QUERIES = 5  # query views per held-out scene: the last ones, as pyvf evaluate
 _TF_METRICS = (  # (method, metric, column stem) for each context size
     ("pyvf", "ce", "ce"), ("pyvf", "token_accuracy", "token_accuracy"),
     ("pyvf", "ce_empty", "ce_empty"), ("pyvf", "ce_object", "ce_object"),  # tokens of empty / object patches
@@ -117,9 +108,9 @@ _TF_METRICS = (  # (method, metric, column stem) for each context size
 
 
 def health_contexts(transformer_config, views):
-    """The context sizes a training run is evaluated at: 1, 3 and 5 views, those the transformer
-    was trained on (sequence_size - 1) and the scenes leave HEALTH_QUERIES queries for."""
-    top = min(transformer_config.sequence_size - 1, views - HEALTH_QUERIES)
+    """The context sizes a training run is evaluated at: of 1, 3 and 5 views, those the transformer
+    was trained on (sequence_size - 1) and the scenes leave QUERIES queries for."""
+    top = min(transformer_config.sequence_size - 1, views - QUERIES)
     return tuple(c for c in (1, 3, 5) if c <= top) or ((top,) if top >= 1 else ())
 
 
@@ -129,25 +120,16 @@ def transformer_health_columns(contexts):
 
 
 def transformer_health(codebook, transformer, images, poses, tokens, contexts, batch=8):
-    """A transformer's health on held-out scenes, with the baselines beside it.
+    """A transformer's health on held-out scenes, with the baselines beside it: pyvf evaluate's
+    figures (run.score_scenes) for each C in contexts, the queries the last QUERIES views.
 
     images uint8 (n, V, S, S, 3), poses (n, V, 7), tokens (n, V, L) int64 (the codebook's tokens
-    of the images). For each C in contexts: the context is views 0..C-1, the queries the last
-    HEALTH_QUERIES views. Returns {column: float} (transformer_health_columns): the held-out
-    cross-entropy and token accuracy of the queries' tokens (also split into the tokens of empty
-    patches and of object patches, empty_patches), the rendering's MAE and RMSE through
-    the codebook beside the nearest-view and mean-image baselines', and the median position and
-    orientation errors beside the closest-image and mean-pose baselines' (evaluate.run's
-    definitions). The rendering decodes each token's likeliest code (decode="argmax", the model's
-    own prediction), as every run's eval.csv always has, so that runs compare across versions;
-    pyvf evaluate's default decode (DEFAULT_DECODE) scores lower. Inference only: nothing in
-    either model changes."""
+    of the images) -> {column: float} (transformer_health_columns). The rendering decodes by
+    argmax, as every run's eval.csv always has, so that runs compare across versions."""
     from .run import _check_args, score_scenes  # evaluate.run imports the scenes home; only this needs it
     views = images.shape[1]
-    # the queries must not be context views: context + HEALTH_QUERIES <= views
-    checked = _check_args(contexts, images.shape[0], views, HEALTH_QUERIES, batch)
-    qidx = np.arange(views - HEALTH_QUERIES, views)
-    results, _, _ = score_scenes(codebook, transformer, images, poses, tokens, checked, qidx, batch,
-                                 decode="argmax")
+    checked = _check_args(contexts, images.shape[0], views, QUERIES, batch)
+    qidx = np.arange(views - QUERIES, views)
+    results, _ = score_scenes(codebook, transformer, images, poses, tokens, checked, qidx, batch, decode="argmax")
     return {f"{stem}_c{C}": results[str(C)][method][metric]
             for C in contexts for method, metric, stem in _TF_METRICS}

@@ -1,56 +1,28 @@
 """The metrics of docs/math.md §6 and the four baselines pyvf is compared with, in NumPy.
 
-    x = to_model_images(images, np.float32)     # uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) in [-1, 1]
-    codes = encode_images(codebook, images)     # the same, through codebook.encode in batches -> (B, k, k)
-    images = to_uint8(x)                        # the inverse: round((x + 1) * 127.5), clipped to 0..255
-    m = image_metrics(pred, target)             # per image: {"mae", "rmse", "psnr"}, each (...)
-    p = pose_metrics(pred, target)              # per view: {"position_error", "orientation_error_deg"}
-    nearest_view(ctx_images, ctx_poses, query_poses)         # (B, M, Hi, Wi, C) uint8
-    mean_image(ctx_images)                                   # (B, Hi, Wi, C) uint8
-    closest_image_pose(ctx_images, ctx_poses, query_images)  # (B, M, 7)
-    mean_pose(ctx_poses)                                     # (B, 7)
-
-Images here are uint8 (..., Hi, Wi, C), the form a picture is saved in: every method's
-prediction is rounded to uint8 before it is scored, so a score is that of the picture a user
-sees. Definitions (per image; the evaluation then takes the mean over images):
+Images here are uint8 (..., Hi, Wi, C), the form a picture is saved in: every method's prediction
+is rounded to uint8 before it is scored, so a score is that of the picture a user sees.
+Definitions (per image; the evaluation then takes the mean over images):
 
 * MAE  = mean |pred - target| over pixels and channels, on the 0..255 scale.
 * RMSE = sqrt(mean (pred - target)^2) over pixels and channels, on the 0..255 scale: per
   image, then the mean over images (as the paper's tables), not the root of the pooled mean.
-* PSNR = 10 log10(1 / mse) with mse on the [0, 1] scale. A perfect image has mse = 0 and an
-  infinite PSNR; it is given psnr_cap(shape) = the PSNR of one channel of one pixel off by half
-  a level (95.0 dB at 64x64x3), so a mean over images stays finite. That is 20 log10(2) = 6.02 dB
-  above the largest finite PSNR a uint8 image can score (one value off by one level, the
-  smallest non-zero error: 89.0 dB at 64x64x3), so a perfect image scores strictly above every
-  imperfect one.
+* PSNR = 10 log10(1 / mse) with mse on the [0, 1] scale. A perfect image (mse = 0) is given
+  psnr_cap(shape), so that a mean over images stays finite and a perfect image scores strictly
+  above every imperfect one.
 * position error: Euclidean distance of the camera positions (geometry.position_error).
 * orientation error: the angle of q1 * conj(q2) in degrees (geometry.orientation_error).
 """
 
 import numpy as np
 
-from .. import _checks
 from ..geometry import average_pose, orientation_error, position_error
 
-__all__ = [
-    "object_mask",
-    "empty_patches",
-    "empty_entropy",
-    "encode_images",
-    "to_model_images",
-    "to_uint8",
-    "psnr_cap",
-    "image_metrics",
-    "pose_metrics",
-    "nearest_view",
-    "mean_image",
-    "closest_image_pose",
-    "mean_pose",
-]
+__all__ = ["object_mask", "empty_patches", "empty_entropy", "encode_images", "to_model_images", "to_uint8",
+           "psnr_cap", "image_metrics", "pose_metrics", "nearest_view", "mean_image", "closest_image_pose",
+           "mean_pose", "QUERIES"]
 
-
-# ---------------------------------------------------------------------------------------
-# between the picture (uint8, channels last) and the models' images (float, NCHW, [-1, 1])
+QUERIES = 5  # query views per scene, its last ones: in evaluate() and in a training run's health
 
 
 def object_mask(images):
@@ -83,7 +55,6 @@ def empty_entropy(codes, empty):
 
 def to_model_images(images, dtype):
     """uint8 (B, Hi, Wi, C) -> (B, C, Hi, Wi) of dtype in [-1, 1]: x / 127.5 - 1 (as the training data)."""
-    _checks.plain_array("images", images)  # masked pixels would be scored by the values under the mask
     if images.dtype != np.uint8 or images.ndim != 4:
         raise ValueError(f"images must be uint8 (B, Hi, Wi, C), got {images.dtype} {images.shape}")
     dtype = np.dtype(dtype)
@@ -96,8 +67,7 @@ def to_model_images(images, dtype):
 def encode_images(codebook, images, batch_size=64, dtype=np.int64, progress=None):
     """uint8 images (M, Hi, Wi, C) -> codebook.encode's codes (M, k, k) as dtype, batch_size images
     per encoder call (each batch converted by to_model_images: the whole set never is at once).
-    progress: None, or the description of a tqdm progress bar. batch_size must be an integer >= 1."""
-    batch_size = _checks.integer("batch_size", batch_size, lo=1)
+    progress: None, or the description of a tqdm progress bar."""
     k = codebook.config.token_size
     out = np.empty((images.shape[0], k, k), dtype)  # (M, k, k)
     starts = range(0, images.shape[0], batch_size)
@@ -112,10 +82,6 @@ def encode_images(codebook, images, batch_size=64, dtype=np.int64, progress=None
 def to_uint8(x):
     """(B, C, Hi, Wi) floats in [-1, 1] -> uint8 (B, Hi, Wi, C): rint((x + 1) * 127.5) clipped to
     0..255 (a decoder's output can leave [-1, 1]; rint rounds halves to even). NaN raises ValueError."""
-    if not isinstance(x, np.ndarray) or x.dtype.kind != "f" or x.ndim != 4:
-        raise TypeError(f"x must be a float (B, C, Hi, Wi) numpy array, got "
-                        f"{getattr(x, 'dtype', type(x).__name__)} {getattr(x, 'shape', '')}")
-    _checks.plain_array("x", x)
     if np.isnan(x).any():  # NaN has no picture (a cast to uint8 would give 0 silently); +-inf clip
         raise ValueError("x contains NaN")
     v = np.rint((x.astype(np.float64) + 1.0) * 127.5)  # (B, C, Hi, Wi)
@@ -128,8 +94,9 @@ def to_uint8(x):
 
 def psnr_cap(image_shape):
     """The PSNR in dB given to a perfect image of shape (Hi, Wi, C): that of one value off by half
-    a level, 10 log10(4 * 255^2 * Hi * Wi * C). The largest finite PSNR, one value off by one level
-    (mse = 1 / (Hi Wi C) on 0..255), is 10 log10(255^2 * Hi * Wi * C): 6.02 dB below the cap."""
+    a level, 10 log10(4 * 255^2 * Hi * Wi * C) (95.0 dB at 64x64x3). The largest finite PSNR, one
+    value off by one level (mse = 1 / (Hi Wi C) on 0..255), is 10 log10(255^2 * Hi * Wi * C):
+    20 log10(2) = 6.02 dB below the cap."""
     n = int(np.prod(image_shape))
     return float(10.0 * np.log10(4 * 255.0 ** 2 * n))
 
@@ -159,9 +126,7 @@ def pose_metrics(pred, target):
 
 
 def nearest_view(context_images, context_poses, query_poses):
-    """The context image whose camera stands nearest (Euclidean distance of the positions) to
-    each query camera; the first such view on a tie.
-
+    """The context image whose camera stands nearest to each query camera; the first on a tie.
     context_images uint8 (B, C, Hi, Wi, 3), context_poses (B, C, 7), query_poses (B, M, 7)
     -> uint8 (B, M, Hi, Wi, 3)."""
     d = position_error(query_poses[:, :, None, :], context_poses[:, None, :, :])  # (B, M, C)
@@ -176,10 +141,8 @@ def mean_image(context_images):
 
 def closest_image_pose(context_images, context_poses, query_images):
     """The pose of the context view whose image is closest (mean squared difference of the
-    pixels) to each query image; the first on a tie.
-
-    context_images uint8 (B, C, Hi, Wi, 3), context_poses (B, C, 7), query_images uint8
-    (B, M, Hi, Wi, 3) -> (B, M, 7)."""
+    pixels) to each query image; the first on a tie.   context_images uint8 (B, C, Hi, Wi, 3),
+    context_poses (B, C, 7), query_images uint8 (B, M, Hi, Wi, 3) -> (B, M, 7)."""
     ctx = context_images.astype(np.float64)  # (B, C, Hi, Wi, 3)
     qry = query_images.astype(np.float64)  # (B, M, Hi, Wi, 3)
     diff = qry[:, :, None] - ctx[:, None]  # (B, M, C, Hi, Wi, 3)

@@ -3,22 +3,18 @@
     save_views("views.png", picture)   # a row per scene: context | ground truth | codebook | pyvf
     save_poses("poses.png", picture)   # a panel per scene: the cameras seen from above
 
-`picture` is what evaluate() keeps of its first scenes (P of them) at the largest context C:
-    context (P, C, S, S, 3) uint8, context_poses (P, C, 7), truth, codebook, pyvf (P, S, S, 3)
-    uint8 (the first query view), query_poses and estimated_poses (P, M, 7), and C.
-
-The views sheet is laid out like the paper's figures; tiles are enlarged by an integer factor
-with nearest-neighbour (at least 2, about 128 pixels a tile) so 64x64 pixels stay visible.
-The pose panels look down on the scene: the world's up is -y (pyvf.scenes), so the panel shows
-x to the right and z up, a view from above (not mirrored).
+`picture` is what evaluate() keeps of its first P scenes at the largest context C: context
+(P, C, S, S, 3) uint8, context_poses (P, C, 7), truth, codebook, pyvf (P, S, S, 3) uint8 (the
+first query view), query_poses and estimated_poses (P, M, 7), and C. Tiles are enlarged by an
+integer factor (nearest neighbour, about 128 pixels a tile); the pose panels look down on the
+scene (the world's up is -y): x to the right, z up.
 """
-
 
 import numpy as np
 
 from .._io import atomic_write_png
 
-__all__ = ["views_sheet", "poses_sheet", "save_views", "save_poses"]
+__all__ = ["save_views", "save_poses"]
 
 _WHITE, _BLACK, _GREY = (255, 255, 255), (0, 0, 0), (190, 190, 190)
 _CONTEXT, _TRUTH, _ESTIMATE = (40, 90, 220), (20, 150, 40), (220, 30, 30)
@@ -36,8 +32,8 @@ def _centered(draw, font, text, x0, width, y):
     draw.text((x0 + (width - w) / 2, y), text, fill=_BLACK, font=font)
 
 
-def views_sheet(picture):
-    """The views sheet as a PIL image (see the module docstring)."""
+def save_views(path, picture):
+    """The views sheet, a row per scene: context | ground truth | codebook | pyvf, as a PNG."""
     Image, ImageDraw, font = _pil()
     ctx = picture["context"]  # (P, C, S, S, 3)
     P, C, S = ctx.shape[0], ctx.shape[1], ctx.shape[2]
@@ -67,11 +63,11 @@ def views_sheet(picture):
         draw.text((6, _HEAD_H + r * (T + _GAP) + T // 2 - 6), f"scene {r}", fill=_BLACK, font=font)
     for i, line in enumerate(caption):
         draw.text((6, _HEAD_H + P * (T + _GAP) + 2 + 14 * i), line, fill=_BLACK, font=font)
-    return sheet
+    atomic_write_png(path, sheet)
 
 
-def poses_sheet(picture, panel=280):
-    """The camera panels as a PIL image (see the module docstring)."""
+def save_poses(path, picture, panel=280):
+    """The camera panels, one per scene, seen from above, as a PNG."""
     Image, ImageDraw, font = _pil()
     ctx, truth, est = picture["context_poses"], picture["query_poses"], picture["estimated_poses"]
     P = ctx.shape[0]
@@ -112,12 +108,4 @@ def poses_sheet(picture, panel=280):
         if colour is not None:
             draw.ellipse([_GAP, y + 2, _GAP + 8, y + 10], fill=colour)
         draw.text((_GAP + 14, y), label, fill=_BLACK, font=font)
-    return sheet
-
-
-def save_views(path, picture):
-    atomic_write_png(path, views_sheet(picture))
-
-
-def save_poses(path, picture):
-    atomic_write_png(path, poses_sheet(picture))
+    atomic_write_png(path, sheet)

@@ -2,30 +2,23 @@
 
     metrics = evaluate(codebook, transformer, scenes=200, context=(1, 3, 5), seed=1000, out="eval")
 
-The protocol (docs/math.md §6 for the metrics, metrics.py for their exact definitions):
+The protocol (the metrics' definitions: metrics.py, docs/math.md §6):
 
-* Scenes: pyvf.scenes.generate_scenes(seed, scenes, views, size=the codebook's image_size).
-  Training data uses seed 0, so the default seed 1000 gives scenes the models never saw.
-* For each scene and each context size C: the context is views 0..C-1 and the queries are
-  the last `queries` views (10..14 of SM7's 15), the same queries for every C, so the rows of
-  the tables differ only in how much the model was shown.
-* The codebook tokenizes every image used once (batched). The transformer encodes the
-  context once per (batch of scenes, C) (Transformer.encode_scene, the scene cache of docs/math.md
-  §3), then renders every query (render_scene's logits turned into codes by `decode`, decoded
-  by the codebook, rounded to uint8: render_images) and localizes every query from its ground-truth tokens
-  (localize_scene).
-* Methods: `pyvf` (both tasks), `codebook` (the ground-truth query encoded and decoded: the
-  best a rendering through this codebook can be; the same for every C), and the baselines
-  `nearest_view`, `mean_image` (images), `closest_image_pose`, `mean_pose` (poses).
-* Image metrics are means over all query images, pose metrics medians over all queries.
-* Timing, on the first min(scenes, timing_scenes) scenes at the largest C: one cached render /
-  localization per view (the scene already encoded; one query per call), against recomputing,
-  one query per call: Transformer.render
-  (encode the context again for every query) and Transformer.forward on [context, query]
-  (the whole three-row tree; one call gives both a view's logits and its pose, so it is
-  compared with one cached render plus one cached localization).
+* Scenes: pyvf.scenes.generate_scenes(seed, scenes, size=the codebook's image_size). Training
+  data uses seed 0, so the default seed 1000 gives scenes the models never saw.
+* For each scene and context size C: the context is views 0..C-1, the queries the last QUERIES
+  views (10..14 of SM7's 15), the same for every C, so the rows differ only in what the model saw.
+* The codebook tokenizes every used image once. The transformer encodes the context once per
+  (batch of scenes, C) (Transformer.encode_scene, the scene cache of docs/math.md §3), renders
+  every query (render_images) and localizes every query from its ground-truth tokens.
+* Methods: `pyvf` (both tasks), `codebook` (the ground-truth query encoded and decoded: the best
+  a rendering through this codebook can be), and the baselines `nearest_view`, `mean_image`
+  (images), `closest_image_pose`, `mean_pose` (poses). Image metrics and token scores are means
+  over the queries, pose metrics medians.
+* Timing, on the first timing_scenes scenes at the largest C, one query per scene per call: a
+  render from the cached scene against Transformer.render, which encodes the context again.
 
-The result is a dict (JSON-able, the same as out/metrics.json):
+The result (JSON-able, the same as out/metrics.json):
 
     {"context": {"C": {method: {metric: value}}},      # C as a string: "1", "3", "5"
      "timing":  {key: value for key in TIMING_KEYS},
@@ -40,7 +33,6 @@ import time
 import numpy as np
 
 from .._io import atomic_write_text
-from ..geometry import make_relative
 from .. import _checks, _core
 from .._machine import median_time
 from .._threads import num_threads
@@ -49,6 +41,7 @@ from ..models import check_pair
 from ..nn.layers import matmul
 from ..scenes import generate_scenes
 from .metrics import (
+    QUERIES,
     closest_image_pose,
     empty_entropy,
     empty_patches,
@@ -69,8 +62,8 @@ __all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
 POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
-# score_scenes' token figures of pyvf's row, over all tokens and split into
-# the tokens of empty patches (every pixel background: health.empty_patches) and of object patches
+# pyvf's token figures: over all query tokens, and split into the tokens of empty patches (every
+# pixel background: metrics.empty_patches) and of object patches
 TOKEN_SCORES = ("ce", "token_accuracy", "ce_empty", "ce_object", "token_accuracy_empty", "token_accuracy_object")
 # method -> the metrics it has, in the tables' order
 METHODS = {
@@ -85,15 +78,10 @@ TIMING_KEYS = (
     "context",  # C of the timed scenes (the largest evaluated)
     "scenes",  # scenes timed together (one batch)
     "repeat",  # timed calls per measurement (the fastest is kept), after one warm-up call
-    "codebook_encode_s_per_image",  # over the whole evaluation
-    "codebook_decode_s_per_image",
     "encode_scene_s_per_scene",  # Transformer.encode_scene: the trunk over the context, once per scene
     "render_cached_one_s_per_view",  # render_scene, one query per scene per call
-    "localize_cached_one_s_per_view",  # localize_scene, one query per scene per call
     "render_reencode_s_per_view",  # Transformer.render (encode_scene again) for one query
-    "forward_full_tree_s_per_view",  # Transformer.forward on [context, query]; None when it cannot run
-    "speedup_vs_reencode",  # render_reencode / render_cached_one (like for like: one query per call)
-    "speedup_vs_full_tree",  # forward_full_tree / (render_cached_one + localize_cached_one); None when not run
+    "speedup_vs_reencode",  # render_reencode / render_cached_one
     "total_s",  # wall time of the whole evaluate() call
 )
 META_KEYS = (
@@ -115,80 +103,55 @@ META_KEYS = (
     "sources",  # where the models came from, as the caller said (None when not given)
 )
 SM7_VIEWS = 15
+PICTURE_SCENES = 4  # scenes drawn in views.png and poses.png
 # how render_images turns a view's logits (L, K) into the codebook's input
 DECODES = {
-    # the published generation: each token's most likely code (a sharp image of the likeliest codes)
+    # the published generation: each token's most likely code
     "argmax": "each token's most likely code",
-    # the expectation of the code vectors under each token's softmax: the latent of least squared
-    # error given the predicted distribution, so an uncertain token decodes to a blend, not a guess
+    # the latent of least expected squared error under the predicted distribution: an uncertain
+    # token decodes to a blend of codes, not a guess
     "expected": "each token's mean code vector under the softmax of its logits",
 }
-# How evaluate() and `pyvf demo` / `pyvf evaluate` decode unless told: "expected". A small model
-# is unsure of most tokens of a novel view; argmax commits each token to its likeliest code on its
-# own, so one view mixes codes of different guesses, while the mean code vector is the latent of
-# least expected squared error and scores lower MAE and RMSE on held-out scenes (docs/models.md
-# evaluates the shipped pair both ways). "argmax" is the published generation: use it to compare
-# with the paper or with another port of it.
+# The default: a small model is unsure of most tokens of a novel view, and argmax commits each
+# token to its own guess, while the mean code vector scores lower MAE and RMSE (docs/models.md
+# evaluates the shipped pair both ways). "argmax" compares with the paper or another port.
 DEFAULT_DECODE = "expected"
 
 
-def _progress(iterable, total, desc, enabled):
-    if not enabled:
-        return iterable
-    from tqdm.auto import tqdm
-    return tqdm(iterable, total=total, desc=desc, unit="batch")
-
-
 def render_images(codebook, logits, decode="argmax", batch=32):
-    """A transformer's rendered logits -> uint8 images through the codebook.
-
-    logits (..., L, K) with L = token_size**2 tokens of a view over the K = n_embed codes (e.g.
-    render_scene's (B, M, L, K)) -> images (..., S, S, 3) uint8. decode: a key of DECODES:
-    "argmax" decodes each token's most likely code (decode_code); "expected" decodes each token's
-    mean code vector sum_j softmax(logits)_j e_j (decode_latent; softmax in float64). `batch`
-    views per decoder call, an integer >= 1. logits must be finite in both modes (NaN or inf raise
-    ValueError). Empty leading dimensions give empty images: logits (0, L, K) -> (0, S, S, 3)."""
+    """A transformer's rendered logits (..., L, K) (L = token_size**2 tokens over K = n_embed codes,
+    e.g. render_scene's (B, M, L, K)) -> uint8 images (..., S, S, 3) through the codebook, `batch`
+    views per decoder call. decode (DECODES): "argmax" decodes each token's most likely code;
+    "expected" each token's mean code vector sum_j softmax(logits)_j e_j (softmax in float64)."""
     if decode not in DECODES:
         raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
-    batch = _checks.positive_integer("batch", batch)
     k, K = codebook.config.token_size, codebook.config.n_embed
     _checks.float_array("logits", logits)
-    if logits.ndim < 2 or logits.shape[-2:] != (k * k, K):
+    if logits.shape[-2:] != (k * k, K):
         raise ValueError(f"logits must have shape (..., {k * k}, {K}) for this codebook, got {logits.shape}")
     _checks.finite("logits", logits)  # argmax would pick a NaN's index silently
-    lead = logits.shape[:-2]
     flat = logits.reshape(-1, k * k, K)  # (n, L, K)
-    if decode == "argmax":
-        out = _decode(codebook, flat.argmax(axis=-1), batch)  # (n, S, S, out_ch)
-    else:
-        out = _decode(codebook, flat, batch, _expected_latent)  # (n, S, S, out_ch)
-    return out.reshape(*lead, *out.shape[1:])  # (..., S, S, out_ch); no -1: lead may hold a 0
+    out = _decode(codebook, flat.argmax(axis=-1) if decode == "argmax" else flat, batch)  # (n, S, S, 3)
+    return out.reshape(*logits.shape[:-2], *out.shape[1:])  # (..., S, S, 3); no -1: the lead may hold a 0
 
 
-def _expected_latent(codebook, logits):
-    """logits (b, L, K) -> z (b, D, k, k) of the codebook's dtype: each token's sum_j
-    softmax(logits)_j e_j, the softmax in float64."""
-    k = codebook.config.token_size
+def _decode(codebook, inputs, batch):
+    """codes (n, L) ints, or logits (n, L, K) decoded by their expected code vectors -> uint8
+    images (n, S, S, 3), `batch` per decoder call."""
+    k, S = codebook.config.token_size, codebook.config.image_size
     E = codebook.quantizer.embeddings.astype(np.float64)  # (D, K): the codes are columns
-    x = logits.astype(np.float64)
-    p = np.exp(x - x.max(axis=-1, keepdims=True))
-    p /= p.sum(axis=-1, keepdims=True)  # (b, L, K) softmax
-    z = matmul(p.reshape(-1, E.shape[1]), E, tb=True)  # (b*L, D) = p @ E^T
-    z = z.reshape(-1, k, k, E.shape[0]).transpose(0, 3, 1, 2)  # (b, D, k, k)
-    return np.ascontiguousarray(z, dtype=codebook.dtype)
-
-
-def _decode(codebook, inputs, batch, latent=None):
-    """-> uint8 images (n, Hi, Wi, 3), `batch` per decoder call. inputs: codes (n, k*k) ints, or,
-    with latent(codebook, inputs[i:j]) -> z (b, D, k, k), whatever latent reads (decode_latent)."""
-    k = codebook.config.token_size
-    S = codebook.config.image_size
     out = np.empty((inputs.shape[0], S, S, codebook.config.out_ch), np.uint8)
     for i in range(0, inputs.shape[0], batch):
-        if latent is None:
-            images = codebook.decode_code(inputs[i:i + batch].reshape(-1, k, k).astype(np.int64))
+        x = inputs[i:i + batch]
+        if x.ndim == 2:
+            images = codebook.decode_code(x.reshape(-1, k, k).astype(np.int64))
         else:
-            images = codebook.decode_latent(latent(codebook, inputs[i:i + batch]))
+            p = x.astype(np.float64)
+            p = np.exp(p - p.max(axis=-1, keepdims=True))
+            p /= p.sum(axis=-1, keepdims=True)  # (b, L, K) softmax
+            z = matmul(p.reshape(-1, E.shape[1]), E, tb=True)  # (b*L, D) = p @ E^T
+            z = z.reshape(-1, k, k, E.shape[0]).transpose(0, 3, 1, 2)  # (b, D, k, k)
+            images = codebook.decode_latent(np.ascontiguousarray(z, dtype=codebook.dtype))
         out[i:i + batch] = to_uint8(images)
     return out
 
@@ -196,69 +159,51 @@ def _decode(codebook, inputs, batch, latent=None):
 def _check_args(context, scenes, views, queries, batch):
     """The sizes evaluate() and health take, each a positive integer; context: one size or several
     -> them sorted, without repeats."""
-    for name, v in (("scenes", scenes), ("views", views), ("queries", queries), ("batch", batch)):
+    for name, v in (("scenes", scenes), ("batch", batch)):
         _checks.positive_integer(name, v)
     context = (context,) if np.ndim(context) == 0 else tuple(context)
     context = tuple(sorted({_checks.positive_integer("context", c) for c in context}))  # 2.7 is not 2
-    if not context:
-        raise ValueError("context must name at least one size")
-    if context[-1] + queries > views:
-        raise ValueError(f"context {context[-1]} + {queries} queries needs {context[-1] + queries} views "
-                         f"per scene, the scenes have {views}")
+    if not context or context[-1] + queries > views:
+        raise ValueError(f"context must name sizes of at most {views - queries} ({queries} queries of {views} "
+                         f"views per scene), got {context}")
     return context
 
 
-def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000, views=None, queries=5,
-             batch=8, out=None, pictures=True, picture_scenes=4, timing_scenes=4, repeat=5, progress=True,
-             sources=None, decode=DEFAULT_DECODE):
+def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000, batch=8, out=None,
+             timing_scenes=4, repeat=5, progress=True, sources=None, decode=DEFAULT_DECODE):
     """Score the pair on `scenes` held-out scenes for every context size; return the metrics dict
-    (module docstring). views: per scene (None: 15, as SM7); queries: the last `queries` views;
-    batch: scenes per transformer call. out: a folder to write metrics.json, metrics.md and (with
-    pictures) views.png and poses.png of the first `picture_scenes` scenes at the largest C.
-    sources: JSON-able, where the models came from (e.g. their files), kept as meta["sources"].
-    decode: how rendered logits become images, a key of DECODES (render_images; DEFAULT_DECODE says
-    why "expected" is the default)."""
+    (module docstring). batch: scenes per transformer call. out: a folder for metrics.json,
+    metrics.md, views.png and poses.png (the first PICTURE_SCENES scenes at the largest C).
+    sources: JSON-able, where the models came from, kept as meta["sources"]. decode: a key of
+    DECODES (render_images)."""
     t_start = time.perf_counter()
     check_pair(codebook, transformer)
-    views = SM7_VIEWS if views is None else views
-    context = _check_args(context, scenes, views, queries, batch)
-    for name, v in (("timing_scenes", timing_scenes), ("repeat", repeat)):  # used after the scoring
+    context = _check_args(context, scenes, SM7_VIEWS, QUERIES, batch)
+    for name, v in (("timing_scenes", timing_scenes), ("repeat", repeat)):
         _checks.positive_integer(name, v)
     if decode not in DECODES:
         raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
     cb_cfg, tf_cfg = codebook.config, transformer.config
-    Cmax = context[-1]
-    qidx = np.arange(views - queries, views)  # (M,) the query views
+    n, S, Cmax = scenes, cb_cfg.image_size, context[-1]
+    qidx = np.arange(SM7_VIEWS - QUERIES, SM7_VIEWS)  # (M,) the query views
     used = np.concatenate([np.arange(Cmax), qidx])  # the views any method looks at
-    M = queries
+    images, poses = generate_scenes(seed, n, size=S)  # (n, V, S, S, 3), (n, V, 7)
 
-    images, poses = generate_scenes(seed, scenes, views=views, size=cb_cfg.image_size)  # (n, V, S, S, 3), (n, V, 7)
-    n, S = scenes, cb_cfg.image_size
-
-    # tokenize every used image once
-    t0 = time.perf_counter()
-    tokens = np.zeros((n, views, tf_cfg.token_image_size ** 2), np.int64)  # (n, V, L); unused views stay 0
+    tokens = np.zeros((n, SM7_VIEWS, tf_cfg.token_image_size ** 2), np.int64)  # (n, V, L); unused views stay 0
     flat = np.ascontiguousarray(images[:, used]).reshape(-1, S, S, 3)
     tokens[:, used] = encode_images(codebook, flat, 4 * batch).reshape(n, len(used), -1)
-    t_encode = (time.perf_counter() - t0) / flat.shape[0]
-
-    results, picture, dec = score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch,
-                                         picture_scenes=picture_scenes, progress=progress, decode=decode)
-    decode_s, decoded = dec
+    results, picture = score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch,
+                                    progress=progress, decode=decode)
     for table in results.values():  # None, not NaN, where the queries have no patch of that kind
         for row, keys in ((table["pyvf"], TOKEN_SCORES[2:]), (table["codebook"], ("empty_entropy",))):
             row.update({k: None for k in keys if np.isnan(row[k])})
 
     timing = _timing(transformer, tokens[:timing_scenes], poses[:timing_scenes], Cmax, qidx, repeat)
-    timing["codebook_encode_s_per_image"] = t_encode
-    timing["codebook_decode_s_per_image"] = decode_s / decoded
     timing["total_s"] = time.perf_counter() - t_start
-    timing = {k: timing[k] for k in TIMING_KEYS}
-
     meta = {
-        "pyvf_version": __version__, "seed": int(seed), "scenes": int(n), "views": int(views),
+        "pyvf_version": __version__, "seed": int(seed), "scenes": int(n), "views": SM7_VIEWS,
         "image_size": int(S), "context_sizes": list(context), "query_views": [int(i) for i in qidx],
-        "n_queries": int(n * M), "trained_context": tf_cfg.sequence_size - 1,
+        "n_queries": int(n * QUERIES), "trained_context": tf_cfg.sequence_size - 1,
         "psnr_cap_db": psnr_cap((S, S, 3)), "decode": decode, "kernel_path": _core.current_path(),
         "kernel_threads": num_threads(), "codebook": dataclasses.asdict(cb_cfg),
         "transformer": dataclasses.asdict(tf_cfg), "sources": sources,
@@ -268,68 +213,56 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     metrics = json.loads(json.dumps({"context": results, "timing": timing, "meta": meta}, allow_nan=False))
     if out is not None:
         write_metrics(metrics, out)
-        if pictures and picture_scenes > 0:
-            from .pictures import save_poses, save_views  # Pillow, only when pictures are written
-            picture["pyvf"] = np.concatenate(picture["pyvf"])
-            picture["estimated_poses"] = np.concatenate(picture["estimated_poses"])
-            save_views(os.path.join(out, "views.png"), picture)
-            save_poses(os.path.join(out, "poses.png"), picture)
+        from .pictures import save_poses, save_views  # Pillow, only when pictures are written
+        save_views(os.path.join(out, "views.png"), picture)
+        save_poses(os.path.join(out, "poses.png"), picture)
     return metrics
 
 
-def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch, *, picture_scenes=0,
-                 progress=False, decode=DEFAULT_DECODE):
+def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch, *, progress=False,
+                 decode=DEFAULT_DECODE):
     """Score the pair and the baselines on these scenes: for each C in context (ascending), the
     context is views 0..C-1 and the queries the views qidx.
 
     images uint8 (n, V, S, S, 3), poses (n, V, 7) float64, tokens (n, V, L) int64 (the codebook's
-    tokens of at least the views used). Returns (results, picture, (decode seconds, images
-    decoded)): results[str(C)][method][metric] as evaluate()'s; picture the first
-    picture_scenes scenes' views at the largest C. Each C's "pyvf" row has besides its image and
-    pose metrics the mean cross-entropy (nats) of the true query tokens under the rendered logits and
-    the share of tokens whose argmax is right (TOKEN_SCORES, also split into empty and object
-    patches), and to each C's "codebook" row empty_entropy (health.empty_entropy of the queries)."""
-    n, M = images.shape[0], len(qidx)
-    S = images.shape[2]
-    dt = transformer.dtype
-    Cmax = context[-1]
-    gt = images[:, qidx]  # (n, M, S, S, 3)
-    gt_pose = poses[:, qidx]  # (n, M, 7) float64
+    tokens of at least the views used). Returns (results, picture): results[str(C)][method][metric]
+    as evaluate()'s, pyvf's row with TOKEN_SCORES (the cross-entropy in nats of the true query
+    tokens under the rendered logits, the share of tokens whose argmax is right), the codebook's
+    with empty_entropy (of the queries' codes); picture the first PICTURE_SCENES scenes at the
+    largest C (pictures.py)."""
+    n, M, S = images.shape[0], len(qidx), images.shape[2]
+    dt, Cmax, P = transformer.dtype, context[-1], PICTURE_SCENES
+    gt, gt_pose = images[:, qidx], poses[:, qidx]  # (n, M, S, S, 3), (n, M, 7) float64
     side = transformer.config.token_image_size
     empty = empty_patches(gt, side).reshape(n, M, side * side)  # (n, M, L)
     per = {str(C): {m: {} for m in METHODS} for C in context}  # C -> method -> metric -> per-query list
-    decode_s, decoded = 0.0, 0
 
     def add(C, method, values):
         for key, v in values.items():
             per[C][method].setdefault(key, []).append(np.asarray(v).reshape(-1))
 
     # the codebook's reconstruction of the ground truth: independent of C
-    t0 = time.perf_counter()
     recon = _decode(codebook, tokens[:, qidx].reshape(n * M, -1), 4 * batch).reshape(n, M, S, S, 3)
-    decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + n * M
     rec_scores = image_metrics(recon, gt)
-
-    picture = {"context": images[:picture_scenes, :Cmax], "context_poses": poses[:picture_scenes, :Cmax],
-               "truth": gt[:picture_scenes, 0], "codebook": recon[:picture_scenes, 0],
-               "query_poses": gt_pose[:picture_scenes], "C": Cmax}
+    picture = {"context": images[:P, :Cmax], "context_poses": poses[:P, :Cmax], "truth": gt[:P, 0],
+               "codebook": recon[:P, 0], "query_poses": gt_pose[:P], "C": Cmax, "pyvf": [], "estimated_poses": []}
     starts = range(0, n, batch)
-    for b0 in _progress(starts, len(starts), "evaluate", progress):
+    if progress:
+        from tqdm.auto import tqdm
+        starts = tqdm(starts, desc="evaluate", unit="batch")
+    for b0 in starts:
         sl = slice(b0, min(b0 + batch, n))
-        B = sl.stop - sl.start
         q_tok = tokens[sl][:, qidx]  # (B, M, L)
         q_pose = poses[sl][:, qidx].astype(dt)  # (B, M, 7)
+        truth, truth_pose = gt[sl], gt_pose[sl]
         for C in context:
             key = str(C)
             ctx_img, ctx_pose = images[sl, :C], poses[sl, :C]  # (B, C, S, S, 3), (B, C, 7)
             scene = transformer.encode_scene(tokens[sl, :C], ctx_pose.astype(dt))
             logits = transformer.render_scene(scene, q_pose)  # (B, M, L, V)
             add(key, "pyvf", _token_scores(logits, q_tok, empty[sl]))
-            t0 = time.perf_counter()
             rendered = render_images(codebook, logits, decode, 4 * batch)  # (B, M, S, S, 3)
-            decode_s, decoded = decode_s + time.perf_counter() - t0, decoded + B * M
             est = transformer.localize_scene(scene, q_tok).astype(np.float64)  # (B, M, 7)
-            truth, truth_pose = gt[sl], gt_pose[sl]
             add(key, "pyvf", image_metrics(rendered, truth))
             add(key, "pyvf", pose_metrics(est, truth_pose))
             add(key, "codebook", {m: rec_scores[m][sl] for m in IMAGE_METRICS})
@@ -337,16 +270,16 @@ def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, ba
             add(key, "mean_image", image_metrics(np.repeat(mean_image(ctx_img)[:, None], M, axis=1), truth))
             add(key, "closest_image_pose", pose_metrics(closest_image_pose(ctx_img, ctx_pose, truth), truth_pose))
             add(key, "mean_pose", pose_metrics(np.repeat(mean_pose(ctx_pose)[:, None], M, axis=1), truth_pose))
-            if C == Cmax and sl.start < picture_scenes:
-                k = min(picture_scenes, sl.stop) - sl.start
-                picture.setdefault("pyvf", []).append(rendered[:k, 0])
-                picture.setdefault("estimated_poses", []).append(est[:k])
+            if C == Cmax and sl.start < P:
+                picture["pyvf"].append(rendered[:P - sl.start, 0])
+                picture["estimated_poses"].append(est[:P - sl.start])
 
+    picture["pyvf"], picture["estimated_poses"] = (np.concatenate(picture[k]) for k in ("pyvf", "estimated_poses"))
     results = _summaries(per)
     for C in map(str, context):
         results[C]["codebook"]["empty_entropy"] = empty_entropy(tokens[:, qidx].reshape(n * M, side, side),
                                                                 empty.reshape(n * M, side, side))
-    return results, picture, (decode_s, decoded)
+    return results, picture
 
 
 def _summaries(per):
@@ -358,16 +291,12 @@ def _summaries(per):
         results[C] = {}
         for method, names in METHODS.items():
             vals = {k: np.concatenate(v) for k, v in per[C][method].items()}  # per query (n*M,)
-            if method == "pyvf":
-                names = names + TOKEN_SCORES
             row = {}
-            for name in names:
-                if name in IMAGE_METRICS or name in TOKEN_SCORES:  # nan: no token of that kind
-                    row[name] = float(np.mean(vals[name])) if vals[name].size else float("nan")
-                elif name == "position_error_median":
-                    row[name] = float(np.median(vals["position_error"]))
+            for name in names + (TOKEN_SCORES if method == "pyvf" else ()):
+                if name in POSE_METRICS:
+                    row[name] = float(np.median(vals[name.replace("_median", "")]))
                 else:
-                    row[name] = float(np.median(vals["orientation_error_deg"]))
+                    row[name] = float(np.mean(vals[name])) if vals[name].size else float("nan")
             results[C][method] = row
     return results
 
@@ -386,39 +315,23 @@ def _token_scores(logits, tokens, empty):
 
 
 def _timing(transformer, tokens, poses, C, qidx, repeat):
-    """Seconds per view (the fastest call) of the cached and the recomputing paths on these
-    scenes, one query per scene per call on every path (as a server answers queries that arrive
-    apart), so the speed-ups compare like with like. tokens (B, V, L), poses (B, V, 7) float64."""
-    dt = transformer.dtype
-    B = tokens.shape[0]
+    """Seconds per view, the fastest of `repeat` calls after a warm-up (other processes only ever
+    add time), of the cached and the re-encoding render, one query per scene per call on both (as
+    a server answers queries that arrive apart). tokens (B, V, L), poses (B, V, 7) float64."""
+    dt, B = transformer.dtype, tokens.shape[0]
     ctx_tok, ctx_pose = tokens[:, :C], poses[:, :C].astype(dt)  # (B, C, L), (B, C, 7)
-    q_tok, q_pose = tokens[:, qidx[:1]], poses[:, qidx[:1]].astype(dt)  # (B, 1, L), (B, 1, 7): the first query
+    q_pose = poses[:, qidx[:1]].astype(dt)  # (B, 1, 7): the first query
 
     def timed(fn):
-        # the fastest of `repeat` calls after a warm-up: other processes only ever add time, and
-        # on a shared machine a median can still land on a disturbed call
         return min(median_time(fn, repeat=repeat, warmup=1)[1])
 
     t_scene = timed(lambda: transformer.encode_scene(ctx_tok, ctx_pose))
     scene = transformer.encode_scene(ctx_tok, ctx_pose)
     t_render = timed(lambda: transformer.render_scene(scene, q_pose)) / B
-    t_localize = timed(lambda: transformer.localize_scene(scene, q_tok)) / B
     t_reencode = timed(lambda: transformer.render(ctx_tok, ctx_pose, q_pose)) / B
-    t_full = None
-    if C + 1 > transformer.config.n_loss_skip:  # forward needs a loss target
-        seq_tok = np.concatenate([ctx_tok, q_tok], axis=1)  # (B, C + 1, L)
-        seq_pose = make_relative(np.concatenate([ctx_pose, q_pose], axis=1))[0]  # (B, C + 1, 7)
-        t_full = timed(lambda: transformer.forward(seq_tok, seq_pose)) / B
-    return {
-        "context": int(C), "scenes": int(B), "repeat": int(repeat),
-        "encode_scene_s_per_scene": t_scene / B,
-        "render_cached_one_s_per_view": t_render,
-        "localize_cached_one_s_per_view": t_localize,
-        "render_reencode_s_per_view": t_reencode,
-        "forward_full_tree_s_per_view": t_full,
-        "speedup_vs_reencode": t_reencode / t_render,
-        "speedup_vs_full_tree": None if t_full is None else t_full / (t_render + t_localize),
-    }
+    return {"context": int(C), "scenes": int(B), "repeat": int(repeat), "encode_scene_s_per_scene": t_scene / B,
+            "render_cached_one_s_per_view": t_render, "render_reencode_s_per_view": t_reencode,
+            "speedup_vs_reencode": t_reencode / t_render}
 
 
 # ---------------------------------------------------------------------------------------
@@ -431,12 +344,6 @@ _ALL = IMAGE_METRICS + POSE_METRICS
 
 def _fmt(v, digits=2):
     return "—" if v is None else f"{v:.{digits}f}"
-
-
-def _seconds(s):
-    if s is None:
-        return "—"
-    return f"{s * 1e3:.1f} ms" if s < 1 else f"{s:.2f} s"
 
 
 # The paper's SM7 figures (its Table on SM7; 64x64 images, context 3, 1000 scenes), from models
@@ -462,9 +369,8 @@ def _against(me, other, names):
 
 
 def verdict_lines(metrics, context=None, paper=True):
-    """One line per baseline at one context (None: the largest evaluated): pyvf's number beside the
-    baseline's for each metric it is judged on, and whether pyvf beats it on all of them; then,
-    if paper, the paper's SM7 figures. -> list of str."""
+    """One line per baseline at one context (None: the largest evaluated): pyvf's figures beside the
+    baseline's, and whether pyvf beats it on all of them; then, if paper, paper_line(). -> list of str."""
     C = max(metrics["context"], key=int) if context is None else str(context)
     table = metrics["context"][C]
     lines = [f"Does pyvf beat the baselines? (context {C}, {metrics['meta']['scenes']} held-out scenes; "
@@ -490,8 +396,8 @@ def _listed(items):
 
 
 def goal_line(metrics, contexts=GOAL_CONTEXTS):
-    """Whether the project's goal holds: pyvf beats every baseline of VERDICTS on each metric it is
-    judged on, at each of `contexts`; per context, the figures that hold and those that fail. -> str."""
+    """Whether pyvf beats every baseline of VERDICTS on each of its metrics at each of `contexts`;
+    per context, the figures that hold and those that fail. -> str."""
     parts, failing, missing = [], False, False
     for C in map(str, contexts):
         if C not in metrics["context"]:
@@ -510,20 +416,14 @@ def goal_line(metrics, contexts=GOAL_CONTEXTS):
             f"{word}. " + " ".join(parts))
 
 
-# (step, TIMING_KEYS key) of metrics.md's timing table
-_TIMING_ROWS = [("codebook: encode an image", "codebook_encode_s_per_image"),
-                ("codebook: decode an image", "codebook_decode_s_per_image"),
-                ("encode_scene (the context trunk, once per scene)", "encode_scene_s_per_scene"),
-                ("render a view from the cached scene", "render_cached_one_s_per_view"),
-                ("localize a view from the cached scene", "localize_cached_one_s_per_view"),
-                ("render a view re-encoding the context (Transformer.render)", "render_reencode_s_per_view"),
-                ("the whole tree on [context, query] (Transformer.forward)", "forward_full_tree_s_per_view")]
+def _ms(s):
+    return f"{s * 1e3:.1f} ms" if s < 1 else f"{s:.2f} s"
 
 
 def metrics_markdown(metrics):
-    """The metrics dict as markdown: the verdicts (verdict_lines), a table per context size
-    (methods x metrics), then the timings."""
-    meta, timing = metrics["meta"], metrics["timing"]
+    """The metrics dict as markdown: the verdicts, a table per context size (methods x metrics),
+    then the timings."""
+    meta, t = metrics["meta"], metrics["timing"]
     q = meta["query_views"]
     lines = [f"# pyvf evaluation: {meta['scenes']} scenes (seed {meta['seed']}), {meta['image_size']}x"
              f"{meta['image_size']}, {meta['views']} views each",
@@ -549,19 +449,16 @@ def metrics_markdown(metrics):
                   f"(position by position); pyvf's cross-entropy {_fmt(p['ce_empty'])} nats on empty patches, "
                   f"{_fmt(p['ce_object'])} on object patches; accuracy {_fmt(p['token_accuracy_empty'])} and "
                   f"{_fmt(p['token_accuracy_object'])}."]
-    t = timing
     lines += ["", f"## Timing ({meta['kernel_path']} kernels, {meta['kernel_threads']} thread"
               f"{'' if meta['kernel_threads'] == 1 else 's'})", "",
-              f"Transformer: {t['scenes']} scenes at context {t['context']}, one query per scene per call, the "
-              f"fastest of {t['repeat']} calls. Codebook: the whole evaluation's mean.", "",
-              "| step | time |", "|---|---:|"]
-    lines += [f"| {step} | {_seconds(t[key])} |" for step, key in _TIMING_ROWS]
-    lines += ["",
-              f"Speed-up of the scene cache, one query per call on every path: {_fmt(t['speedup_vs_reencode'], 1)}x "
-              f"against re-encoding the context for every query, {_fmt(t['speedup_vs_full_tree'], 1)}x against the "
-              "whole tree for every query "
-              f"(one forward gives a rendering and a pose, so it is compared with one cached render plus one "
-              f"cached localization). Whole evaluation: {t['total_s']:.1f} s."]
+              f"{t['scenes']} scenes at context {t['context']}, one query per scene per call, the fastest of "
+              f"{t['repeat']} calls.", "", "| step | time |", "|---|---:|",
+              f"| encode_scene (the context trunk, once per scene) | {_ms(t['encode_scene_s_per_scene'])} |",
+              f"| render a view from the cached scene | {_ms(t['render_cached_one_s_per_view'])} |",
+              f"| render a view re-encoding the context (Transformer.render) | "
+              f"{_ms(t['render_reencode_s_per_view'])} |", "",
+              f"Speed-up of the scene cache: {_fmt(t['speedup_vs_reencode'], 1)}x against re-encoding the context "
+              f"for every query. Whole evaluation: {t['total_s']:.1f} s."]
     return "\n".join(lines) + "\n"
 
 
