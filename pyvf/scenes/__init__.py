@@ -15,66 +15,19 @@ numpy.random.default_rng([seed, i]), and sampling and rendering use only exactly
 operations (no BLAS, no SIMD trig).
 """
 
-from .cameras import (
-    CAMERA_RADIUS,
-    MAX_ELEVATION_DEG,
-    TAN_HALF_FOV,
-    gqn_to_pose,
-    look_at_poses,
-    pose_matrix,
-    pose_to_gqn,
-    sample_camera_positions,
-)
-from .preview import preview_grid, save_preview
+from .cameras import (CAMERA_RADIUS, MAX_ELEVATION_DEG, TAN_HALF_FOV, gqn_to_pose, look_at_poses, pose_matrix,
+                      pose_to_gqn, sample_camera_positions)
 from .dataset import FORMAT, FORMAT_VERSION, SceneDataset, load_dataset, write_dataset
-from .render import (
-    AMBIENT,
-    BACK,
-    BACKGROUND,
-    DIFFUSE,
-    LIGHT_DIR,
-    N_CUBES,
-    face_shades,
-    generate_scene,
-    generate_scenes,
-    make_object,
-    object_boxes,
-    object_centres,
-    render_views,
-)
+from .make import preview_grid, save_preview
+from .render import (AMBIENT, BACK, BACKGROUND, DIFFUSE, LIGHT_DIR, N_CUBES, face_shades, generate_scene,
+                     generate_scenes, make_object, object_boxes, object_centres, render_views)
 
 __all__ = [
-    # scenes
-    "generate_scene",
-    "generate_scenes",
-    "make_object",
-    "object_centres",
-    "object_boxes",
-    "render_views",
-    "face_shades",
-    # cameras
-    "sample_camera_positions",
-    "look_at_poses",
-    "pose_matrix",
-    "gqn_to_pose",
-    "pose_to_gqn",
-    # dataset
-    "SceneDataset",
-    "write_dataset",
-    "load_dataset",
-    "FORMAT",
-    "FORMAT_VERSION",
-    # command line
-    "preview_grid",
-    "save_preview",
-    # constants
-    "N_CUBES",
-    "CAMERA_RADIUS",
-    "TAN_HALF_FOV",
-    "MAX_ELEVATION_DEG",
-    "LIGHT_DIR",
-    "AMBIENT",
-    "DIFFUSE",
-    "BACK",
+    "generate_scene", "generate_scenes", "make_object", "object_centres", "object_boxes", "render_views",
+    "face_shades",  # scenes
+    "sample_camera_positions", "look_at_poses", "pose_matrix", "gqn_to_pose", "pose_to_gqn",  # cameras
+    "SceneDataset", "write_dataset", "load_dataset", "FORMAT", "FORMAT_VERSION",  # the dataset on disk
+    "preview_grid", "save_preview",  # the command's preview
+    "N_CUBES", "CAMERA_RADIUS", "TAN_HALF_FOV", "MAX_ELEVATION_DEG", "LIGHT_DIR", "AMBIENT", "DIFFUSE", "BACK",
     "BACKGROUND",
 ]

@@ -34,12 +34,8 @@ Conventions (tested in tests/test_scenes.py):
   the cone of half-angle tangent 3.571 / sqrt(100 - 12.75) = 0.382 < 0.39.
 * **GQN form** (x, y, z, yaw, pitch), radians, in GQN's world frame where **z is up**:
   yaw is the azimuth of the viewing direction about GQN's z axis (0 = looking along +x,
-  pi/2 = along +y), pitch its elevation (positive = looking up). The conversion is the
-  published one: position (x, y, z)_GQN -> (y, -z, -x) in pyvf's frame, and
-  q = q_y(pi - yaw) * q_x(pitch) (q_a(t): rotation by t about the axis a), made
-  sign-canonical. pose_to_gqn is its inverse for roll-free cameras (every camera here);
-  a roll about the optical axis has no GQN form and is dropped. yaw comes back in
-  [-pi, pi], pitch in [-pi/2, pi/2].
+  pi/2 = along +y), pitch its elevation (positive = looking up); gqn_to_pose is the published
+  conversion, pose_to_gqn its inverse for roll-free cameras (every camera here).
 
 Determinism: sampling and look-at use only exactly rounded IEEE operations (+ - * /, sqrt,
 comparisons) on the generator's doubles, never a transcendental function or a BLAS call,
@@ -48,19 +44,10 @@ so the same seed gives the same bits on every machine. Only the GQN conversions 
 
 import numpy as np
 
-from .. import _checks
-from ..geometry import _canonical, _check, _check_unit
+from ..geometry import _canonical
 
-__all__ = [
-    "CAMERA_RADIUS",
-    "TAN_HALF_FOV",
-    "MAX_ELEVATION_DEG",
-    "sample_camera_positions",
-    "look_at_poses",
-    "pose_matrix",
-    "gqn_to_pose",
-    "pose_to_gqn",
-]
+__all__ = ["CAMERA_RADIUS", "TAN_HALF_FOV", "MAX_ELEVATION_DEG", "sample_camera_positions", "look_at_poses",
+           "pose_matrix", "gqn_to_pose", "pose_to_gqn"]
 
 CAMERA_RADIUS = 10.0  # distance of every camera from the object's centroid, in cube sides
 TAN_HALF_FOV = 0.39  # tan(vertical field of view / 2): 42.6 degrees, the whole object always fits
@@ -80,8 +67,6 @@ def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
     uniform) and u_y^2 <= sin(60 deg)^2 |u|^2 (the elevation band; up is -y), then u / |u|.
     Candidates are drawn in batches of 2n and kept in order, so the result depends only on the
     generator's state. Only exactly rounded operations: no Gaussian (its tails use exp/log)."""
-    n = _checks.integer("n", n, 0)
-    radius = _checks.real("radius", radius, 0, lo_open=True)
     out = np.empty((0, 3))
     while len(out) < n:
         u = rng.random((2 * n, 3)) * 2 - 1  # (2n, 3) exact: a double in [0, 1) times 2, minus 1
@@ -95,12 +80,12 @@ def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
 def look_at_poses(positions):
     """Poses of cameras at `positions` looking at the origin, without roll.
 
-    positions (..., 3) float64, not on the vertical axis -> poses (..., 7): xyz, then the
-    sign-canonical unit quaternion of the rotation whose columns are the camera's axes in
+    positions (..., 3) float64, not on the vertical axis (ValueError) -> poses (..., 7): xyz,
+    then the sign-canonical unit quaternion of the rotation whose columns are the camera's axes in
     the world, [right, down, forward]:
         forward = -p / |p|,  right = (forward x up) / |.| with up = (0, -1, 0),
         down = forward x right."""
-    p = _check("positions", positions, (3,), "camera positions xyz")
+    p = positions
     px, py, pz = p[..., 0], p[..., 1], p[..., 2]
     horiz2 = px * px + pz * pz  # (...)
     if (horiz2 <= 1e-12 * (horiz2 + py * py)).any():
@@ -145,17 +130,8 @@ def _matrix_to_quat(R):
 
 def pose_matrix(q):
     """The rotation matrix of unit quaternions q (..., 4) -> (..., 3, 3), R[..., i, j] = e_i . rotate(q, e_j).
-
     Written out term by term (no BLAS, no einsum), so every element is the same bits on every
-    machine; the renderer turns camera rays into the world with it. q: a float32/float64
-    ndarray of unit quaternions (pyvf.geometry's tolerance), else a TypeError/ValueError naming q."""
-    _check("q", q, (4,), "quaternions (w, x, y, z)")
-    _check_unit("q", q)
-    return _rotation(q)
-
-
-def _rotation(q):
-    """pose_matrix without its checks (its callers have made them)."""
+    machine; the renderer turns camera rays into the world with it."""
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
@@ -178,8 +154,7 @@ def gqn_to_pose(cams):
     The published conversion (fix_legacy_gqn_cameras): xyz = (y, -z, -x) and
     q = q_y(pi - yaw) * q_x(pitch), with q_y(t) = (cos t/2, 0, sin t/2, 0) and
     q_x(t) = (cos t/2, sin t/2, 0, 0); the product is (cy cx, cy sx, sy cx, -sy sx).
-    Made sign-canonical (w >= 0). Float32 or float64; the result has the input's dtype."""
-    _check("cams", cams, (5,), "GQN cameras (x, y, z, yaw, pitch)")
+    Made sign-canonical (w >= 0). The result has the input's float dtype."""
     x, y, z, yaw, pitch = (cams[..., i] for i in range(5))
     half_y, half_x = (np.pi - yaw) / 2, pitch / 2
     cy, sy, cx, sx = np.cos(half_y), np.sin(half_y), np.cos(half_x), np.sin(half_x)
@@ -193,10 +168,8 @@ def pose_to_gqn(poses):
     Position (x, y, z)_GQN = (-z, x, -y) of the pose; the optical axis f = rotate(q, (0, 0, 1)),
     written in GQN's frame as g = (-f_z, f_x, -f_y), gives yaw = atan2(g_y, g_x) in [-pi, pi]
     and pitch = atan2(g_z, hypot(g_x, g_y)) in [-pi/2, pi/2]. A roll about the optical axis is
-    dropped (GQN cameras have none). The quaternions must be unit (pyvf.geometry's tolerance)."""
-    _check("poses", poses, (7,), "poses: xyz then the quaternion (w, x, y, z)")
-    _check_unit("the quaternions of poses", poses[..., 3:])
-    R = _rotation(poses[..., 3:])  # (..., 3, 3)
+    dropped (GQN cameras have none). The quaternions must be unit."""
+    R = pose_matrix(poses[..., 3:])  # (..., 3, 3)
     f = R[..., :, 2]  # (..., 3) the optical axis in pyvf's world
     gx, gy, gz = -f[..., 2], f[..., 0], -f[..., 1]
     yaw = np.arctan2(gy, gx)

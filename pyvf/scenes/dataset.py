@@ -11,23 +11,18 @@ The format (FORMAT = "pyvf-sm7-scenes", FORMAT_VERSION = 1), in one folder:
   last one fewer), as three arrays: `images` (n, V, H, W, 3) uint8 RGB, `poses` (n, V, 7)
   float64 (xyz + unit quaternion (w, x, y, z), camera to world; conventions in cameras.py),
   `scene_index` (n,) int64, the scenes' global indices (scene i is generate_scene(seed, i)).
-  A zip (deflate) of .npy files that np.load reads, written with a fixed timestamp, so the
-  same arguments give the same bytes (with the same zlib).
+  A zip (deflate) of .npy files with a fixed timestamp, so the same arguments give the same bytes.
 * `manifest.json`, written last: format and version, seed, counts and sizes, the camera and
   render constants, and for each shard its file name, scene range, size in bytes and sha256.
   A folder without a manifest is an unfinished write.
 * `progress.jsonl`, only while a write is unfinished: its first line the manifest without
-  `shards` (the arguments and constants), then one line per shard written (its manifest
-  entry), appended once the shard is on disk; removed once the manifest is written. A write
-  interrupted (Ctrl-C, a crash) is resumed by the same arguments: each shard listed there
-  whose bytes still match its size and sha256 is kept, the others rendered again, so the
+  `shards`. A write interrupted (Ctrl-C, a crash) is resumed by the same arguments: the shards
+  on disk are kept (each was written atomically, so it is whole), the others rendered, and the
   folder ends with the same bytes as an uninterrupted write.
 
-Every file is written to a temporary file in the same folder, flushed and fsynced, then
-renamed over its final name (os.replace, atomic on POSIX), and the folder is fsynced: a crash
-leaves either the old file or the new one, never a torn one. load_dataset checks each shard's
-size, sha256 and array shapes against the manifest and raises FileNotFoundError / ValueError
-naming the file; it never returns a partly read dataset.
+Every file is written to a temporary file, fsynced, then renamed over its final name (pyvf._io):
+a crash leaves either the old file or the new one. load_dataset checks each shard's size, sha256
+and arrays against the manifest and raises FileNotFoundError / ValueError naming the file.
 """
 
 import dataclasses
@@ -45,19 +40,13 @@ from . import cameras, render
 from .. import _checks
 from .render import generate_scene
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "MANIFEST", "PROGRESS", "DatasetExistsError", "SceneDataset", "write_dataset",
-           "load_dataset", "shard_name"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "DatasetExistsError", "SceneDataset", "write_dataset", "load_dataset"]
 
 FORMAT = "pyvf-sm7-scenes"
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 PROGRESS = "progress.jsonl"  # the record of an unfinished write (module docstring)
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # the earliest zip timestamp: the shard's bytes do not depend on the clock
-
-
-def shard_name(k):
-    """File name of shard k: shard-00000.npz, ..."""
-    return f"shard-{k:05d}.npz"
 
 
 class DatasetExistsError(FileExistsError):
@@ -122,99 +111,38 @@ def _constants():
     }
 
 
-def _read_progress(path):
-    """A progress record -> (its first line: a dict, or None when unreadable; the shard entries
-    that follow). A torn last line (a write killed while appending) is left out: that shard is
-    rendered again."""
-    try:
-        with open(path, "rb") as f:
-            lines = f.read().decode("utf-8").splitlines()
-        head = json.loads(lines[0]) if lines else None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return None, []
-    entries = []
-    for line in lines[1:]:
-        try:
-            entries.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return (head if isinstance(head, dict) else None), entries
-
-
-def _verified(out_dir, entries, layout):
-    """The entries of a progress record whose shard is the one these arguments write (the same
-    file name and scene range) and is whole on disk (its size and sha256): shard index -> entry."""
-    kept = {}
-    for entry in entries:
-        name = entry.get("file") if isinstance(entry, dict) else None
-        if name not in layout:
-            continue
-        k, first, n = layout[name]
-        if (entry.get("first_scene"), entry.get("n_scenes")) != (first, n):
-            continue
-        try:
-            with open(os.path.join(out_dir, name), "rb") as f:
-                data = f.read()
-        except OSError:
-            continue
-        digest = hashlib.sha256(data).hexdigest()
-        if len(data) == entry.get("bytes") and digest == entry.get("sha256"):  # as the write loop records it:
-            kept[k] = {"file": name, "first_scene": first, "n_scenes": n, "bytes": len(data), "sha256": digest}
-    return kept
-
-
-def _prepare_dir(out_dir, head, layout, overwrite):
-    """Make out_dir ready for the write whose manifest without shards is `head` (shard file ->
-    (index, first scene, scenes) in `layout`): -> the shards to keep, index -> manifest entry.
-
-    Empty of datasets: nothing kept. An unfinished write of the same arguments: its shards that
-    are whole (_verified), every other shard file removed. A finished dataset, an unfinished
-    write of other arguments, or shards without a progress record: DatasetExistsError, unless
-    overwrite: then all of it is removed, the manifest first (so that the folder is never a
-    complete-looking mixture)."""
+def _prepare_dir(out_dir, head, overwrite):
+    """Make out_dir ready for the write whose manifest without shards is `head`: -> the shard
+    files to keep. An unfinished write of the same arguments keeps its shards; a finished
+    dataset, an unfinished write of other arguments, or shards without a progress record raise
+    DatasetExistsError, unless overwrite: then they are removed, the manifest first."""
     names = sorted(os.listdir(out_dir))
     shards = [n for n in names if n.startswith("shard-") and n.endswith(".npz")]
-    if overwrite:
-        if MANIFEST in names:
-            os.remove(os.path.join(out_dir, MANIFEST))
-            fsync_dir(out_dir)
-        for name in ([PROGRESS] if PROGRESS in names else []) + shards:
-            os.remove(os.path.join(out_dir, name))
-        _remove_stale_temps(out_dir, names)
-        return {}
-    if MANIFEST in names:
+    if not overwrite and MANIFEST in names:
         raise DatasetExistsError(out_dir, "holds a finished dataset")
-    if PROGRESS in names:
-        old, entries = _read_progress(os.path.join(out_dir, PROGRESS))
-        if old != json.loads(json.dumps(head)):  # compared as JSON: tuples are lists there; None: unreadable
+    if not overwrite and PROGRESS in names:
+        try:
+            with open(os.path.join(out_dir, PROGRESS), encoding="utf-8") as f:
+                old = json.loads(f.readline())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            old = None
+        if old != json.loads(json.dumps(head)):  # compared as JSON: tuples are lists there
             raise DatasetExistsError(out_dir, "holds an unfinished write that these arguments cannot resume")
-        kept = _verified(out_dir, entries, layout)
-    elif shards:
+        return set(shards)
+    if not overwrite and shards:
         raise DatasetExistsError(out_dir, f"holds shards without {PROGRESS}, which cannot be resumed")
-    else:
-        kept = {}
-    for name in shards:  # a shard not kept is rendered again; one these arguments do not write, removed
-        if layout.get(name, (None,))[0] not in kept:
-            os.remove(os.path.join(out_dir, name))
-    _remove_stale_temps(out_dir, names)
-    return kept
-
-
-def _remove_stale_temps(out_dir, names):
-    """The temporary files of this folder's atomic writes that a killed write left (pyvf._io)."""
-    for name in names:
-        if name.endswith(".tmp") and name.startswith((".shard-", f".{MANIFEST}.", f".{PROGRESS}.")):
-            os.remove(os.path.join(out_dir, name))
+    for name in [n for n in (MANIFEST, PROGRESS) if n in names] + shards:
+        os.remove(os.path.join(out_dir, name))
+        fsync_dir(out_dir)
+    return set()
 
 
 def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, progress=True, overwrite=False):
-    """Render scenes 0..n_scenes-1 of `seed` into out_dir as .npz shards plus manifest.json.
-
-    out_dir is created if needed. An unfinished write of the same arguments there (interrupted;
-    see PROGRESS in this module's docstring) is resumed: its whole shards are kept, and the
-    result has the same bytes as an uninterrupted write. A finished dataset there, or an
-    unfinished write of other arguments, raises DatasetExistsError (a FileExistsError) unless
-    overwrite=True, which replaces it. progress=True shows a tqdm bar. Returns the manifest (a dict, as written). The format: this module's docstring."""
+    """Render scenes 0..n_scenes-1 of `seed` into out_dir (created if needed) as .npz shards plus
+    manifest.json; returns the manifest. An unfinished write of the same arguments there is
+    resumed; a finished dataset, or an unfinished write of other arguments, raises
+    DatasetExistsError (a FileExistsError) unless overwrite=True, which replaces it.
+    progress=True shows a tqdm bar."""
     n_scenes = _checks.integer("n_scenes", n_scenes, 1)
     seed = _checks.integer("seed", seed, 0)
     views = _checks.integer("views", views, 1)
@@ -239,46 +167,36 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
         },
         "scene": _constants(),
     }
-    layout = {shard_name(k): (k, first, min(shard_size, n_scenes - first))
-              for k, first in enumerate(range(0, n_scenes, shard_size))}
-    kept = _prepare_dir(out_dir, head, layout, overwrite)
+    kept = _prepare_dir(out_dir, head, overwrite)
     # the record of this write, before any shard: a rerun resumes it, other arguments are refused
     record = os.path.join(out_dir, PROGRESS)
-    atomic_write_bytes(record, "".join(json.dumps(x) + "\n" for x in [head, *kept.values()]).encode())
+    atomic_write_bytes(record, (json.dumps(head) + "\n").encode())
 
     from tqdm.auto import tqdm  # a dependency of pyvf; imported here so that `import pyvf` stays light
 
     shards = []
-    with tqdm(total=n_scenes, initial=sum(e["n_scenes"] for e in kept.values()), unit="scene", desc="pyvf scenes",
-              disable=not progress) as bar:
-        for name, (k, first, n) in layout.items():
-            if k in kept:
-                shards.append(kept[k])
-                continue
-            images = np.empty((n, views, H, W, 3), dtype=np.uint8)
-            poses = np.empty((n, views, 7))
-            for i in range(n):
-                images[i], poses[i] = generate_scene(seed, first + i, views, size)
-                bar.update(1)
-            data = _npz_bytes({"images": images, "poses": poses,
-                               "scene_index": np.arange(first, first + n, dtype=np.int64)})
-            atomic_write_bytes(os.path.join(out_dir, name), data)
+    with tqdm(total=n_scenes, unit="scene", desc="pyvf scenes", disable=not progress) as bar:
+        for k, first in enumerate(range(0, n_scenes, shard_size)):
+            n, name = min(shard_size, n_scenes - first), f"shard-{k:05d}.npz"
+            if name in kept:
+                with open(os.path.join(out_dir, name), "rb") as f:
+                    data = f.read()
+            else:
+                images = np.empty((n, views, H, W, 3), dtype=np.uint8)
+                poses = np.empty((n, views, 7))
+                for i in range(n):
+                    images[i], poses[i] = generate_scene(seed, first + i, views, size)
+                data = _npz_bytes({"images": images, "poses": poses,
+                                   "scene_index": np.arange(first, first + n, dtype=np.int64)})
+                atomic_write_bytes(os.path.join(out_dir, name), data)
+            bar.update(n)
             shards.append({"file": name, "first_scene": first, "n_scenes": n,
                            "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
-            _append_line(record, json.dumps(shards[-1]))  # after the shard is on disk: it is whole
 
     manifest = {**head, "shards": shards}
     atomic_write_bytes(os.path.join(out_dir, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode())
     os.remove(record)
     return manifest
-
-
-def _append_line(path, line):
-    """Append one line to `path` and make it durable (a torn line is what a kill can leave)."""
-    with open(path, "a", encoding="utf-8") as f:
-        f.write(line + "\n")
-        f.flush()
-        os.fsync(f.fileno())
 
 
 # ---------------------------------------------------------------------------------------
@@ -291,19 +209,15 @@ def _read_manifest(mpath):
             manifest = json.loads(f.read().decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ValueError(f"{mpath}: not a valid JSON manifest ({e})") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        raise ValueError(f"{mpath}: not a {FORMAT} manifest")
-    if manifest.get("version") != FORMAT_VERSION:
-        raise ValueError(f"{mpath}: format version {manifest.get('version')!r}, "
-                         f"this pyvf reads version {FORMAT_VERSION}")
-    shards = manifest.get("shards")
-    if not isinstance(shards, list) or sum(e["n_scenes"] for e in shards) != manifest["n_scenes"]:
-        raise ValueError(f"{mpath}: its shards do not hold its n_scenes {manifest.get('n_scenes')!r}")
+    if not isinstance(manifest, dict) or (manifest.get("format"), manifest.get("version")) != (FORMAT, FORMAT_VERSION):
+        raise ValueError(f"{mpath}: not a {FORMAT} manifest of version {FORMAT_VERSION}")
+    if sum(e["n_scenes"] for e in manifest["shards"]) != manifest["n_scenes"]:
+        raise ValueError(f"{mpath}: its shards do not hold its n_scenes {manifest['n_scenes']!r}")
     return manifest
 
 
-def _read_shard(path, entry, views, H, W, mpath):
-    """One shard's (images, poses), checked against its manifest entry: size, sha256 (what
+def _read_shard(path, entry, shapes, mpath):
+    """One shard's (images, poses), checked against its manifest entry: size and sha256 (what
     write_dataset wrote, bit for bit), then the arrays' shapes and scene indices."""
     where = f"{path} (an entry of {mpath})"
     if not os.path.isfile(path):
@@ -314,20 +228,17 @@ def _read_shard(path, entry, views, H, W, mpath):
         raise ValueError(f"{where} is corrupt: its size or sha256 is not the manifest's")
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         arrays = {name: z[name] for name in z.files}
-    n, first = entry["n_scenes"], entry["first_scene"]
-    shapes = {"images": (n, views, H, W, 3), "poses": (n, views, 7), "scene_index": (n,)}
+    first = entry["first_scene"]
     if {k: getattr(arrays.get(k), "shape", None) for k in shapes} != shapes or not np.array_equal(
-            arrays["scene_index"], np.arange(first, first + n)):
+            arrays["scene_index"], np.arange(first, first + entry["n_scenes"])):
         raise ValueError(f"{where} does not hold the arrays of its manifest entry: {shapes}, scenes {first}..")
     return arrays["images"], arrays["poses"]
 
 
 def load_dataset(path):
-    """Load and verify a dataset written by write_dataset -> SceneDataset.
-
-    path: the dataset folder (or its manifest.json). Raises FileNotFoundError for a missing
-    folder, manifest or shard, ValueError for a manifest or shard that does not match (wrong
-    size, sha256, arrays), each naming the file."""
+    """Load and verify a dataset written by write_dataset -> SceneDataset. path: the dataset folder
+    (or its manifest.json). A missing folder, manifest or shard raises FileNotFoundError; a
+    manifest or shard that does not match (size, sha256, arrays), ValueError; each names the file."""
     path = os.fspath(path)
     if os.path.basename(path) == MANIFEST and os.path.isfile(path):
         root, mpath = os.path.dirname(path) or ".", path
@@ -341,7 +252,8 @@ def load_dataset(path):
     S, V, H, W = (manifest[k] for k in ("n_scenes", "views", "height", "width"))
     images = np.empty((S, V, H, W, 3), dtype=np.uint8)
     poses = np.empty((S, V, 7))
-    for entry in manifest["shards"]:
-        sl = slice(entry["first_scene"], entry["first_scene"] + entry["n_scenes"])
-        images[sl], poses[sl] = _read_shard(os.path.join(root, entry["file"]), entry, V, H, W, mpath)
+    for e in manifest["shards"]:
+        n, first = e["n_scenes"], e["first_scene"]
+        shapes = {"images": (n, V, H, W, 3), "poses": (n, V, 7), "scene_index": (n,)}
+        images[first:first + n], poses[first:first + n] = _read_shard(os.path.join(root, e["file"]), e, shapes, mpath)
     return SceneDataset(images=images, poses=poses, seed=manifest["seed"], manifest=manifest, path=root)

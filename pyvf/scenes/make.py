@@ -6,20 +6,21 @@ a line saying what was written, and a preview picture.
 
 import time
 
+import numpy as np
+
+from .._io import atomic_write_png
 from .dataset import write_dataset
-from .preview import save_preview
 from .render import generate_scenes
 
-__all__ = ["PREVIEW_SCENES", "make_dataset"]
+__all__ = ["PREVIEW_SCENES", "make_dataset", "preview_grid", "save_preview"]
 
 PREVIEW_SCENES = 8  # rows of the preview: the dataset's first scenes, every view as a column
 
 
 def make_dataset(out, n_scenes, seed, *, views=15, size=64, shard_size=500, preview=None, progress=True,
                  overwrite=False):
-    """write_dataset (dataset.py) into the folder `out`, then print what was written; with preview
-    (a PNG path), save_preview (preview.py) of the first PREVIEW_SCENES scenes. Returns the
-    manifest; a bad argument raises write_dataset's ValueError, TypeError or FileExistsError."""
+    """write_dataset into the folder `out`, then print what was written; with preview (a PNG path),
+    save_preview of the first PREVIEW_SCENES scenes. Returns the manifest."""
     t0 = time.perf_counter()
     manifest = write_dataset(out, n_scenes, seed, views=views, size=size, shard_size=shard_size, progress=progress,
                              overwrite=overwrite)
@@ -33,3 +34,22 @@ def make_dataset(out, n_scenes, seed, *, views=15, size=64, shard_size=500, prev
         save_preview(preview, images)
         print(f"pyvf scenes: preview of the first {len(images)} scenes -> {preview}")
     return manifest
+
+
+def preview_grid(images, gap=2):
+    """Tile views into one picture: images (S, V, H, W, 3) uint8 -> (S*(H+gap)-gap, V*(W+gap)-gap, 3)
+    uint8, scene s in row s, view v in column v, white gaps."""
+    S, V, H, W, _ = images.shape
+    grid = np.full((S * (H + gap) - gap, V * (W + gap) - gap, 3), 255, dtype=np.uint8)
+    for s in range(S):
+        for v in range(V):
+            grid[s * (H + gap):s * (H + gap) + H, v * (W + gap):v * (W + gap) + W] = images[s, v]
+    return grid
+
+
+def save_preview(path, images, scale=2):
+    """Write preview_grid(images), enlarged `scale` times (nearest neighbour), as a PNG."""
+    from PIL import Image  # a dependency of pyvf; imported here so that `import pyvf` stays light
+
+    grid = np.repeat(np.repeat(preview_grid(images), scale, axis=0), scale, axis=1)
+    atomic_write_png(path, Image.fromarray(grid))

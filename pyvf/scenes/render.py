@@ -39,29 +39,11 @@ pin a scene's sha256.
 
 import numpy as np
 
-from .. import _checks
+from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, look_at_poses, pose_matrix, sample_camera_positions
 
-from ..geometry import _UNIT_TOL, _check_unit
-from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, _rotation, look_at_poses, sample_camera_positions
-
-__all__ = [
-    "N_CUBES",
-    "SATURATION",
-    "VALUE",
-    "LIGHT_DIR",
-    "AMBIENT",
-    "DIFFUSE",
-    "BACK",
-    "BACKGROUND",
-    "make_object",
-    "object_centres",
-    "object_boxes",
-    "hue_to_rgb",
-    "face_shades",
-    "render_views",
-    "generate_scene",
-    "generate_scenes",
-]
+__all__ = ["N_CUBES", "SATURATION", "VALUE", "LIGHT_DIR", "AMBIENT", "DIFFUSE", "BACK", "BACKGROUND", "make_object",
+           "object_centres", "object_boxes", "hue_to_rgb", "face_shades", "render_views", "generate_scene",
+           "generate_scenes"]
 
 N_CUBES = 7
 SATURATION = 0.8  # HSV saturation and value of every cube's colour: saturated, never white or black
@@ -116,22 +98,10 @@ def make_object(rng):
     return np.array(cells, dtype=np.int64), colours
 
 
-def _cells(cells):
-    cells = np.asarray(cells)
-    if cells.ndim != 2 or cells.shape[1] != 3 or len(cells) == 0 or cells.dtype.kind not in "iu":
-        raise ValueError(f"cells must be integer lattice cells (K, 3), K >= 1, got {cells.dtype}{cells.shape}")
-    return cells.astype(np.int64)
-
-
-def _centroid(cells):
-    """The centroid of the cells: the sum taken in integers (exact), divided by K once (exactly rounded)."""
-    return cells.sum(axis=0) / len(cells)  # (3,)
-
-
 def object_centres(cells):
-    """Cube centres with their centroid at the origin: cells (K, 3) int -> (K, 3) float64."""
-    cells = _cells(cells)
-    return cells - _centroid(cells)  # (K, 3)
+    """Cube centres with their centroid at the origin: cells (K, 3) int -> (K, 3) float64. The
+    centroid's sum is taken in integers (exact), then divided by K once (exactly rounded)."""
+    return cells - cells.sum(axis=0) / len(cells)  # (K, 3)
 
 
 def object_boxes(cells):
@@ -140,8 +110,7 @@ def object_boxes(cells):
     Computed as (cell -+ 0.5) - centroid: cell -+ 0.5 is exact, so two cubes that share a face
     get bitwise the same coordinate for it (no hairline gap for a ray to slip through), which
     centre -+ 0.5 with a rounded centre would not guarantee."""
-    cells = _cells(cells)
-    m = _centroid(cells)
+    m = cells.sum(axis=0) / len(cells)  # (3,) the centroid, as object_centres
     return (cells - 0.5) - m, (cells + 0.5) - m  # (K, 3), (K, 3)
 
 
@@ -162,19 +131,6 @@ def face_shades():
 def _to_uint8(v):
     """[0, 1] floats -> uint8 by floor(255 clip(v) + 0.5) (round half up, exactly rounded ops)."""
     return np.floor(np.clip(v, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
-
-
-def _image_shape(size):
-    if isinstance(size, (tuple, list)) and len(size) == 2:
-        h, w = size
-    else:
-        h = w = size
-    for name, n in (("size", h), ("size", w)):
-        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
-            raise TypeError(f"{name} must be an int or a pair of ints (height, width), got {size!r}")
-        if n < 8:
-            raise ValueError(f"{name} must be at least 8 pixels, got {size!r}")
-    return int(h), int(w)
 
 
 def _slab(o, d, lo, hi):
@@ -217,34 +173,18 @@ def render_views(cells, colours, poses, size=64):
     """Render unit cubes seen by cameras.
 
     cells (K, 3) integer lattice cells of the cubes, placed with their centroid at the origin
-    (object_boxes), colours (K, 3) float64 RGB in [0, 1], poses (V, 7) camera poses
-    (cameras.py: xyz + camera-to-world unit quaternion, OpenCV camera frame), size: int
-    (square) or (height, width), at least 8 -> images (V, H, W, 3) uint8.
-    The quaternions must be unit (to the tolerance of pyvf.geometry for the poses' dtype) and
-    the cameras outside every (closed) cube: a ValueError names any pose that is not."""
+    (object_boxes), colours (K, 3) RGB in [0, 1], poses (V, 7) float64 camera poses (cameras.py:
+    xyz + camera-to-world unit quaternion, OpenCV camera frame), size: int (square) or (height,
+    width) -> images (V, H, W, 3) uint8. The cameras must stand outside every (closed) cube."""
     lo, hi = object_boxes(cells)  # (K, 3) the boxes
     colours = np.asarray(colours, dtype=np.float64)
-    given = np.asarray(poses)
-    poses = np.asarray(poses, dtype=np.float64)
-    if colours.shape != lo.shape:
-        raise ValueError(f"colours must be (K, 3) for K = {len(lo)} cells, got shape {colours.shape}")
-    if poses.ndim != 2 or poses.shape[1] != 7:
-        raise ValueError(f"poses must be (V, 7), got shape {poses.shape}")
-    _checks.finite("poses", poses)
-    # unit to the tolerance of the poses' own dtype (float32 poses are unit to float32's precision)
-    _check_unit("the quaternions of poses", (given if given.dtype in _UNIT_TOL else poses)[:, 3:])
-    inside = ((poses[:, None, :3] >= lo) & (poses[:, None, :3] <= hi)).all(axis=-1)  # (V, K)
-    if inside.any():
-        v, k = map(int, np.argwhere(inside)[0])
-        raise ValueError(f"poses[{v}] puts the camera at {poses[v, :3].tolist()}, inside cube {k}: "
-                         "the cameras must be outside every cube")
-    H, W = _image_shape(size)
+    H, W = (size, size) if np.ndim(size) == 0 else size
     V = len(poses)
 
     f = (min(H, W) / 2) / TAN_HALF_FOV  # focal length in pixels
     u = (np.arange(W) + 0.5 - W / 2) / f  # (W,) camera-frame x of each column's ray (z = 1)
     v = (np.arange(H) + 0.5 - H / 2) / f  # (H,) camera-frame y of each row's ray
-    R = _rotation(poses[:, 3:])  # (V, 3, 3) camera-to-world
+    R = pose_matrix(poses[:, 3:])  # (V, 3, 3) camera-to-world
     # world direction of pixel (i, j) of view n: R[n] @ (u[j], v[i], 1), written out
     d = (R[:, None, None, :, 0] * u[None, None, :, None]
          + R[:, None, None, :, 1] * v[None, :, None, None]
@@ -281,9 +221,6 @@ def generate_scene(seed, index, views=15, size=64):
     Its random numbers come from np.random.default_rng([seed, index]) alone, so every scene is
     reproducible by itself and independent of the others: first the object (make_object), then
     the camera positions (sample_camera_positions), looking at the origin (look_at_poses)."""
-    seed, index = _checks.integer("seed", seed, 0), _checks.integer("index", index, 0)
-    views = _checks.integer("views", views, 1)
-    _image_shape(size)
     rng = np.random.default_rng([seed, index])
     cells, colours = make_object(rng)
     poses = look_at_poses(sample_camera_positions(rng, views, CAMERA_RADIUS))  # (V, 7)
@@ -291,11 +228,8 @@ def generate_scene(seed, index, views=15, size=64):
 
 
 def generate_scenes(seed, n, views=15, size=64, start=0):
-    """Scenes start .. start+n-1: (images (n, V, H, W, 3) uint8, poses (n, V, 7) float64)."""
-    n = _checks.integer("n", n, 1)
-    start = _checks.integer("start", start, 0)
-    views = _checks.integer("views", views, 1)
-    H, W = _image_shape(size)
+    """Scenes start .. start+n-1: (images (n, V, size, size, 3) uint8, poses (n, V, 7) float64)."""
+    H, W = (size, size) if np.ndim(size) == 0 else size
     images = np.empty((n, views, H, W, 3), dtype=np.uint8)
     poses = np.empty((n, views, 7))
     for i in range(n):
