@@ -93,24 +93,16 @@ def kernel_paths():
 
 class use_kernel_path:
     """Switch every kernel to `path` (one of kernel_paths()) now; as a context manager, switch
-    back on exit. For tests and benchmarks that compare paths in one process:
-
-        with pyvf.use_kernel_path("baseline"):
-            o = pyvf.branching_attention(q, k, v)
-    """
+    back on exit: `with pyvf.use_kernel_path("baseline"): o = pyvf.branching_attention(q, k, v)`."""
 
     def __init__(self, path):
-        self.path, self.previous, self._active = path, _core.use_path(path), True
+        self.previous = _core.use_path(path)
 
     def __enter__(self):
-        if not self._active:  # the object used again after its exit: switch again (it ran on the old path)
-            self.previous, self._active = _core.use_path(self.path), True
         return self
 
     def __exit__(self, *exc):
         _core.use_path(self.previous)
-        self._active = False
-        return False
 
 
 def show_config(file=None):
@@ -138,58 +130,15 @@ _threads.set_from_environment()
 
 
 __all__ = [
-    "reuse_freed_memory",
-    "Comparison",
-    "compare",
-    "rel_err",
-    "flat_to_tree",
-    "tree_to_flat",
-    "params_from_layout",
-    "params_to_layout",
-    "trace_from_flat",
-    "TeacherReport",
-    "teacher_force",
-    "Codebook",
-    "CodebookConfig",
-    "CodebookOutput",
-    "codebook_train_step",
-    "EMAQuantizer",
-    "QuantizerOutput",
-    "vq_nearest",
-    "Adam",
-    "AdamW",
-    "Scene",
-    "Transformer",
-    "TransformerConfig",
-    "TransformerOutput",
-    "WarmupCosine",
-    "absolute_poses",
-    "average_pose",
-    "clip_grad_norm",
-    "make_relative",
-    "orientation_error",
-    "position_error",
-    "published_weight_decay",
-    "quat_canonical",
-    "quat_conj",
-    "quat_mul",
-    "quat_normalize",
-    "quat_rotate",
-    "relative_poses",
-    "train_step",
-    "warmup_cosine_lr",
-    "branching_attention",
-    "branching_attention_backward",
-    "branching_attention_forward",
-    "branching_attention_reference",
-    "branching_attention_reference_vjp",
-    "branching_attention_vjp",
-    "branching_mask",
-    "num_threads",
-    "set_num_threads",
-    "threads",
-    "kernel_path",
-    "kernel_paths",
-    "use_kernel_path",
-    "show_config",
+    "reuse_freed_memory", "Comparison", "compare", "rel_err", "flat_to_tree", "tree_to_flat", "params_from_layout",
+    "params_to_layout", "trace_from_flat", "TeacherReport", "teacher_force",  # verification
+    "Codebook", "CodebookConfig", "CodebookOutput", "codebook_train_step", "EMAQuantizer", "QuantizerOutput",
+    "vq_nearest", "Scene", "Transformer", "TransformerConfig", "TransformerOutput", "train_step",  # the models
+    "Adam", "AdamW", "WarmupCosine", "clip_grad_norm", "published_weight_decay", "warmup_cosine_lr",  # training
+    "absolute_poses", "average_pose", "make_relative", "orientation_error", "position_error", "quat_canonical",
+    "quat_conj", "quat_mul", "quat_normalize", "quat_rotate", "relative_poses",  # geometry
+    "branching_attention", "branching_attention_backward", "branching_attention_forward",
+    "branching_attention_reference", "branching_attention_reference_vjp", "branching_attention_vjp",
+    "branching_mask",  # the attention kernel
+    "num_threads", "set_num_threads", "threads", "kernel_path", "kernel_paths", "use_kernel_path", "show_config",
 ]

@@ -1,20 +1,12 @@
 """Argument checks for pyvf's public entry points (docs/contributing.md): every error names the
-argument; nothing is cast silently. Also the checks of a checkpoint's entries (checkpoint_array,
-weight_problem, converted_weight, problems_error: every wrong entry named in one error), which
-pyvf.models.io's loader and the quantizer share."""
+argument; nothing is cast silently. Also the checks of a checkpoint's entries, every wrong entry
+named in one error (pyvf.models.io's loader and the quantizer)."""
 
 import numpy as np
 
 from . import _core
 
 FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
-
-
-def plain_array(name, a):
-    """Refuse np.matrix (2-D under indexing, * a matrix product) and a masked array with masked
-    elements (pyvf would compute with the values under the mask): TypeError."""
-    if isinstance(a, np.matrix) or (isinstance(a, np.ma.MaskedArray) and np.ma.is_masked(a)):
-        raise TypeError(f"{name} must be a plain numpy array, got a {type(a).__name__}: pass np.asarray({name})")
 
 
 def all_finite(a):
@@ -29,7 +21,6 @@ def float_array(name, a, like=None, like_name="x"):
     """a must be a float32 or float64 ndarray, of like's dtype when like is given."""
     if not isinstance(a, np.ndarray):
         raise TypeError(f"{name} must be a numpy.ndarray, got {type(a).__name__}")
-    plain_array(name, a)
     if a.dtype not in FLOATS:
         raise TypeError(f"{name} must be float32 or float64, got {a.dtype} (pyvf never casts silently)")
     if like is not None and a.dtype != like.dtype:
@@ -53,7 +44,6 @@ def int_array(name, a):
     """a must be an ndarray of a signed or unsigned integer dtype."""
     if not isinstance(a, np.ndarray):
         raise TypeError(f"{name} must be a numpy.ndarray of integers, got {type(a).__name__}")
-    plain_array(name, a)
     if a.dtype.kind not in "iu":
         raise TypeError(f"{name} must be an integer array, got {a.dtype} (pyvf never casts silently)")
     return a
@@ -70,10 +60,7 @@ def integer(name, x, lo=None):
 
 def positive_integer(name, x):
     """x: a Python or NumPy integer (not bool), >= 1 -> int."""
-    x = integer(name, x)
-    if x < 1:
-        raise ValueError(f"{name} must be a positive integer, got {x!r}")
-    return x
+    return integer(name, x, 1)
 
 
 def real(name, x, lo=None, hi=None, lo_open=False, hi_open=False):

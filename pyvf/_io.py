@@ -5,15 +5,11 @@
     atomic_write_png("views.png", Image.fromarray(rgb))              # the same for a picture
     arrays = load_npz("run/checkpoint.npz", "checkpoint", required=("step",))
 
-An atomic write goes to a temporary file in the destination's folder (same file system, so
-the rename is atomic), is flushed and fsync'ed, then os.replace'd over the destination, and
-the folder is fsync'ed so the rename itself is on disk. A process killed at any moment leaves
-either the previous file or the new one, never a mix; an exception (KeyboardInterrupt
-included) removes the temporary file. Only SIGKILL or a power cut can leave one behind:
-remove_stale_temps(path) clears those (they are named `.{name}.{pid}.{random}.tmp`).
-
-A model file (a model's configuration and state) is written and read by pyvf.models.io, on
-these primitives.
+An atomic write goes to a temporary file `.{name}.{pid}.{random}.tmp` in the destination's
+folder (same file system, so the rename is atomic), is fsync'ed, then os.replace'd over the
+destination, and the folder fsync'ed: a process killed at any moment leaves the previous file or
+the new one, never a mix. An exception removes the temporary file; only SIGKILL or a power cut
+leaves one behind, for remove_stale_temps(path).
 """
 
 import io
@@ -41,14 +37,12 @@ def fsync_dir(folder):
     """Make a rename in `folder` durable (POSIX); a no-op where folders cannot be opened."""
     try:
         fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
     except OSError:
         pass
-    finally:
-        os.close(fd)
 
 
 def _atomic_write(path, write):
@@ -76,9 +70,8 @@ def _atomic_write(path, write):
 
 
 def atomic_savez(path, /, **arrays):
-    """np.savez(path, **arrays), atomically; `path` is written as given (no ".npz" appended).
-    Every value must convert to a non-object array (a str becomes a 0-d unicode array), so that
-    the file loads with allow_pickle=False: an object array raises TypeError naming it."""
+    """np.savez(path, **arrays), atomically; `path` is written as given (no ".npz" appended). An
+    object array raises TypeError naming it (the file must load with allow_pickle=False)."""
     arrays = {key: np.asarray(value) for key, value in arrays.items()}
     for key, a in arrays.items():
         if a.dtype.hasobject:
@@ -87,7 +80,7 @@ def atomic_savez(path, /, **arrays):
 
 
 def atomic_write_bytes(path, data):
-    """Write the bytes-like `data` to `path`, atomically (e.g. a PNG encoded into a BytesIO)."""
+    """Write the bytes-like `data` to `path`, atomically."""
     _atomic_write(path, lambda f: f.write(data))
 
 
@@ -105,13 +98,9 @@ def atomic_write_text(path, text, encoding="utf-8"):
 
 
 def load_npz(path, what="file", required=()):
-    """Every array of the .npz at `path`, read now (the file is closed on return): dict name -> array.
-
-    path: a str or os.PathLike.
-    what: how the error messages call the file ("checkpoint", "codebook", ...).
-    required: entries that must be present. A missing file raises FileNotFoundError; a
-    truncated or corrupt one, or a missing entry, CheckpointError (a ValueError); both name
-    the file, and the entry being read when it broke. Opened with allow_pickle=False."""
+    """Every array of the .npz at `path`, read now: dict name -> array. what: how the errors call
+    the file ("checkpoint", ...). A missing file raises FileNotFoundError; a truncated or corrupt
+    one, or one without an entry of `required`, CheckpointError (a ValueError), naming the file."""
     path = name = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{what} {path} does not exist")
@@ -132,9 +121,8 @@ def load_npz(path, what="file", required=()):
 
 
 def remove_stale_temps(path):
-    """Remove the temporary files an atomic write of `path` left behind when its process was
-    killed outright (SIGKILL, power cut). Call it only where no other process writes `path`.
-    Returns the names removed."""
+    """Remove the temporary files atomic writes of `path` left when their process was killed
+    outright; call it only where no other process writes `path`. Returns the names removed."""
     folder, name = os.path.split(os.path.abspath(os.fspath(path)))
     # exactly _temp_name's `.{name}.{pid}.{hex}.tmp`: a looser `.{name}.*.tmp` would also match the
     # temporary files of other paths (".model.npz.1.ab.tmp" for "model"), perhaps being written now
