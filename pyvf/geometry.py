@@ -42,10 +42,7 @@ __all__ = ["quat_mul", "quat_conj", "quat_rotate", "quat_normalize", "quat_canon
 _UNIT_TOL = {np.dtype(np.float32): 1e-5, np.dtype(np.float64): 1e-9}
 
 
-# ---------------------------------------------------------------------------------------
 # argument checks: every error names the argument
-
-
 def _check(name, x, last):
     """x: a finite float32/float64 ndarray whose last dimension is one of `last`."""
     _checks.float_array(name, x)
@@ -70,11 +67,8 @@ def _check_pose(name, p):
     _check_unit(f"the quaternions of {name}", p[..., 3:])
 
 
-# ---------------------------------------------------------------------------------------
 # the quaternion algebra, unchecked: every public function checks its arguments once and
 # then composes these
-
-
 def _pow2_split(q):
     """q (..., 4) = qs * 2^k per quaternion: qs (..., 4) with its largest |component| in [0.5, 1),
     k (..., 1) integers. Exact (but for components that become subnormal: negligible next to the
@@ -160,10 +154,7 @@ def _relative(poses, ref):
     return np.concatenate([xyz, _mul(q0i, poses[..., 3:])], axis=-1)  # (..., 7)
 
 
-# ---------------------------------------------------------------------------------------
 # quaternions
-
-
 def quat_mul(a, b):
     """Hamilton product a * b of any quaternions.   a (..., 4), b (..., 4) -> (..., 4), broadcasting.
     (w, x, y, z) order: 1 = (1, 0, 0, 0), i = (0, 1, 0, 0), j, k; i*j = k, j*i = -k."""
@@ -201,10 +192,7 @@ def quat_canonical(q):
     return _canonical(_check("q", q, (4,)))
 
 
-# ---------------------------------------------------------------------------------------
 # poses
-
-
 def relative_poses(poses, ref):
     """Poses in the frame of the camera ref (docs/math.md §3).   poses (..., 7), ref (..., 7)
     broadcasting against poses (e.g. (B, N, 7) and (B, 1, 7)) -> (..., 7). With (t0, q0) = ref:
@@ -243,10 +231,7 @@ def make_relative(poses):
     return _checks.finite_result("make_relative", rel), ref  # (..., N, 7), (..., 7)
 
 
-# ---------------------------------------------------------------------------------------
 # metrics (docs/math.md §6)
-
-
 def _check_pair(n1, a, n2, b, width):
     """a, b: both (..., width) arrays, or both (..., 7) poses."""
     _check(n1, a, (width, 7))
@@ -288,10 +273,7 @@ def orientation_error(q1, q2):
     return np.degrees(2 * np.arctan2(s, c))  # (...)
 
 
-# ---------------------------------------------------------------------------------------
 # averaging the per-token predictions of a view
-
-
 def _mean(x, axis):
     """x.mean(axis) for finite x, without a spurious overflow: the mean lies between the smallest
     and the largest x, but the sum may overflow (float32 2e38 + 2e38). Where it does, the mean is

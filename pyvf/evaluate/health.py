@@ -89,9 +89,7 @@ def codebook_health(codebook, images, batch=64):
             "colour_r2": colour_r2(rec, images, object_mask(images)), "empty_entropy": empty}
 
 
-# ---------------------------------------------------------------------------------------
 # the transformer
-
 _TF_METRICS = (  # (method, metric, column stem) for each context size
     ("pyvf", "ce", "ce"), ("pyvf", "token_accuracy", "token_accuracy"),
     ("pyvf", "ce_empty", "ce_empty"), ("pyvf", "ce_object", "ce_object"),  # tokens of empty / object patches

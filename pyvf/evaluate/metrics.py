@@ -88,10 +88,7 @@ def to_uint8(x):
     return np.clip(v, 0, 255).astype(np.uint8).transpose(0, 2, 3, 1).copy()  # (B, Hi, Wi, C)
 
 
-# ---------------------------------------------------------------------------------------
 # metrics
-
-
 def psnr_cap(image_shape):
     """The PSNR in dB given to a perfect image of shape (Hi, Wi, C): that of one value off by half
     a level, 10 log10(4 * 255^2 * Hi * Wi * C) (95.0 dB at 64x64x3). The largest finite PSNR, one
@@ -121,10 +118,7 @@ def pose_metrics(pred, target):
             "orientation_error_deg": orientation_error(pred, target)}
 
 
-# ---------------------------------------------------------------------------------------
 # baselines: what the context alone gives, without a model
-
-
 def nearest_view(context_images, context_poses, query_poses):
     """The context image whose camera stands nearest to each query camera; the first on a tie.
     context_images uint8 (B, C, Hi, Wi, 3), context_poses (B, C, 7), query_poses (B, M, 7)

@@ -21,8 +21,8 @@ The protocol (the metrics' definitions: metrics.py, docs/math.md §6):
 The result (JSON-able, the same as out/metrics.json):
 
     {"context": {"C": {method: {metric: value}}},      # C as a string: "1", "3", "5"
-     "timing":  {key: value for key in TIMING_KEYS},
-     "meta":    {key: value for key in META_KEYS}}
+     "timing":  {"render_cached_one_s_per_view": seconds, ...},   # _timing
+     "meta":    {"seed": 1000, "scenes": 200, ...}}                # the run's facts, evaluate()
 """
 
 import dataclasses
@@ -55,8 +55,7 @@ from .metrics import (
     to_uint8,
 )
 
-__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "TIMING_KEYS", "META_KEYS", "PAPER_SM7", "DECODES",
-           "DEFAULT_DECODE", "GOAL_CONTEXTS",
+__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "PAPER_SM7", "DECODES", "DEFAULT_DECODE", "GOAL_CONTEXTS",
            "evaluate", "goal_line", "metrics_markdown", "paper_line", "render_images", "verdict_lines",
            "write_metrics"]
 
@@ -74,34 +73,6 @@ METHODS = {
     "closest_image_pose": POSE_METRICS,
     "mean_pose": POSE_METRICS,
 }
-TIMING_KEYS = (
-    "context",  # C of the timed scenes (the largest evaluated)
-    "scenes",  # scenes timed together (one batch)
-    "repeat",  # timed calls per measurement (the fastest is kept), after one warm-up call
-    "encode_scene_s_per_scene",  # Transformer.encode_scene: the trunk over the context, once per scene
-    "render_cached_one_s_per_view",  # render_scene, one query per scene per call
-    "render_reencode_s_per_view",  # Transformer.render (encode_scene again) for one query
-    "speedup_vs_reencode",  # render_reencode / render_cached_one
-    "total_s",  # wall time of the whole evaluate() call
-)
-META_KEYS = (
-    "pyvf_version",
-    "seed",  # generate_scenes' seed
-    "scenes",
-    "views",  # per scene
-    "image_size",  # S: the codebook's, and so the scenes'
-    "context_sizes",  # the C evaluated, ascending
-    "query_views",  # the indices of the query views in every scene
-    "n_queries",  # scenes * queries: the images (and poses) each number is taken over
-    "trained_context",  # the transformer's sequence_size - 1: larger C were never trained on
-    "psnr_cap_db",  # the PSNR a perfect image is given
-    "decode",  # how rendered logits became images: a key of DECODES
-    "kernel_path",  # _core.current_path() and num_threads() during the run
-    "kernel_threads",
-    "codebook",  # the two configurations (dataclass fields)
-    "transformer",
-    "sources",  # where the models came from, as the caller said (None when not given)
-)
 SM7_VIEWS = 15
 PICTURE_SCENES = 4  # scenes drawn in views.png and poses.png
 # how render_images turns a view's logits (L, K) into the codebook's input
@@ -199,14 +170,16 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
             row.update({k: None for k in keys if np.isnan(row[k])})
 
     timing = _timing(transformer, tokens[:timing_scenes], poses[:timing_scenes], Cmax, qidx, repeat)
-    timing["total_s"] = time.perf_counter() - t_start
+    timing["total_s"] = time.perf_counter() - t_start  # the whole evaluate() call
     meta = {
         "pyvf_version": __version__, "seed": int(seed), "scenes": int(n), "views": SM7_VIEWS,
         "image_size": int(S), "context_sizes": list(context), "query_views": [int(i) for i in qidx],
-        "n_queries": int(n * QUERIES), "trained_context": tf_cfg.sequence_size - 1,
+        "n_queries": int(n * QUERIES),  # the images (and poses) each number is taken over
+        "trained_context": tf_cfg.sequence_size - 1,  # larger C were never trained on
         "psnr_cap_db": psnr_cap((S, S, 3)), "decode": decode, "kernel_path": _core.current_path(),
         "kernel_threads": num_threads(), "codebook": dataclasses.asdict(cb_cfg),
-        "transformer": dataclasses.asdict(tf_cfg), "sources": sources,
+        "transformer": dataclasses.asdict(tf_cfg),
+        "sources": sources,  # where the models came from, as the caller said
     }
     # through JSON once: the dict returned is the file's content (tuples become lists), and a
     # NaN or inf anywhere raises here instead of writing a file that strict readers reject
@@ -329,14 +302,13 @@ def _timing(transformer, tokens, poses, C, qidx, repeat):
     scene = transformer.encode_scene(ctx_tok, ctx_pose)
     t_render = timed(lambda: transformer.render_scene(scene, q_pose)) / B
     t_reencode = timed(lambda: transformer.render(ctx_tok, ctx_pose, q_pose)) / B
-    return {"context": int(C), "scenes": int(B), "repeat": int(repeat), "encode_scene_s_per_scene": t_scene / B,
+    return {"context": int(C), "scenes": int(B), "repeat": int(repeat),  # what was timed
+            "encode_scene_s_per_scene": t_scene / B,  # the trunk over the context, once per scene
             "render_cached_one_s_per_view": t_render, "render_reencode_s_per_view": t_reencode,
             "speedup_vs_reencode": t_reencode / t_render}
 
 
-# ---------------------------------------------------------------------------------------
 # the report
-
 _HEAD = {"mae": "MAE", "rmse": "RMSE", "psnr": "PSNR (dB)", "position_error_median": "position error (median)",
          "orientation_error_median_deg": "orientation error (median, deg)"}
 _ALL = IMAGE_METRICS + POSE_METRICS

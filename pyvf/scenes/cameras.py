@@ -55,10 +55,7 @@ MAX_ELEVATION_DEG = 60  # |elevation| of a camera above the object's horizontal 
 _MAX_SIN2_ELEVATION = 0.75  # sin(60 degrees)^2, exact in binary: the sampler compares with it
 
 
-# ---------------------------------------------------------------------------------------
 # sampling and look-at (exactly rounded operations only)
-
-
 def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
     """n camera positions, uniform on the band |elevation| <= 60 degrees of the sphere |p| = radius.
 
@@ -144,10 +141,7 @@ def pose_matrix(q):
     return R.reshape(q.shape[:-1] + (3, 3))  # (..., 3, 3)
 
 
-# ---------------------------------------------------------------------------------------
 # GQN's camera form (trig allowed here: not on the rendering path)
-
-
 def gqn_to_pose(cams):
     """GQN cameras (..., 5) = (x, y, z, yaw, pitch) in GQN's z-up frame -> poses (..., 7).
 

@@ -72,10 +72,7 @@ class SceneDataset:
         return len(self.images)
 
 
-# ---------------------------------------------------------------------------------------
 # writing
-
-
 def _npz_bytes(arrays):
     """The bytes of an .npz (deflate) holding `arrays` (name -> ndarray), with fixed timestamps."""
     buf = io.BytesIO()
@@ -199,10 +196,7 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
     return manifest
 
 
-# ---------------------------------------------------------------------------------------
 # reading
-
-
 def _read_manifest(mpath):
     try:
         with open(mpath, "rb") as f:

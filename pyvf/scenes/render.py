@@ -1,40 +1,31 @@
 """The Shepard-Metzler object and its renderer: exact ray casting against unit cubes, in NumPy.
 
     cells, colours = make_object(rng)               # (7, 3) int64 lattice cells, (7, 3) RGB in [0, 1]
-    centres = object_centres(cells)                 # (7, 3) cube centres, centroid at the origin
     images = render_views(cells, colours, poses, 64)  # (V, 64, 64, 3) uint8, centroid at the origin
     images, poses = generate_scene(seed, index)     # (15, 64, 64, 3) uint8, (15, 7) float64
     images, poses = generate_scenes(seed, n)        # (n, 15, 64, 64, 3), (n, 15, 7)
 
 The object (docs/math.md §7): N_CUBES = 7 unit cubes on the integer lattice, each attached face
 to face to the previous one by a step along one of +-x, +-y, +-z, chosen uniformly among the
-steps that reach a free cell (self-avoiding; a chain of 7 never runs into a dead end: the last
-cube's neighbours other than its predecessor can only be cubes 3 or 5 steps back). Each cube
-has its own colour: a uniform random hue at saturation SATURATION and value VALUE (HSV to RGB
-by the piecewise-linear formula, no trig). Translated so that the centroid of the 7 cube
-centres is the origin; a cube with centre c is the box [c - 0.5, c + 0.5]^3 (computed from
-the integer cells so that shared faces coincide to the bit: object_boxes).
+steps that reach a free cell (self-avoiding; a chain of 7 never runs into a dead end). Each cube
+has its own colour, a uniform random hue at saturation SATURATION and value VALUE. Translated so
+that the centroid of the cube centres is the origin.
 
-The renderer casts one ray per pixel centre from the camera (pinhole, frame and field of view
-in pyvf/scenes/cameras.py) and intersects it with every cube by the slab method; the nearest
-entry point wins. A pixel that hits a cube gets
+The renderer casts one ray per pixel centre from the camera (pinhole: cameras.py) and intersects
+it with every cube by the slab method; the nearest entry point wins. A pixel that hits a cube gets
 
     colour * (AMBIENT + DIFFUSE * max(0, n.l) + BACK * max(0, -n.l))
 
-with n the outward normal of the face hit (axis-aligned, so n.l is +-one component of l) and
-l = LIGHT_DIR, a fixed directional light pointing from the object towards the light, up and to
-the side. The BACK term is a weak fill light from the opposite direction: with the key light
-alone the three faces turned away from it would all be the same flat AMBIENT, and adjacent
-faces of one cube would merge; with it the six face directions get six different shades
-(face_shades()). A pixel that hits nothing is BACKGROUND. Every value is clipped to [0, 1] and
-stored as uint8 floor(255 v + 0.5). No anti-aliasing, no shadows, no specular light.
+with n the outward normal of the face hit and l = LIGHT_DIR, a directional light up and to the
+side. The BACK term, a weak fill light from the opposite direction, gives the three faces turned
+away from the key light three different shades (face_shades), so adjacent faces never merge. A
+pixel that hits nothing is BACKGROUND. Values are clipped to [0, 1] and stored as uint8
+floor(255 v + 0.5). No anti-aliasing, no shadows, no specular light.
 
 Determinism: the render path uses only exactly rounded IEEE operations (+ - * /, sqrt,
-comparisons, min/max, floor), each written out elementwise (dot products as
-x0*y0 + x1*y1 + x2*y2; no `@`, einsum, BLAS, reductions that sum floats, or numpy's SIMD
-transcendental functions), and the scene's random numbers are the generator's own doubles and
-integers. So a seed gives the same bytes on every machine and every numpy build, and the tests
-pin a scene's sha256.
+comparisons, min/max, floor), written out elementwise (no `@`, einsum, BLAS, float reductions or
+SIMD transcendental functions), and the generator's own doubles and integers: a seed gives the
+same bytes on every machine and numpy build (the tests pin a scene's sha256).
 """
 
 import numpy as np
@@ -61,10 +52,7 @@ _STEPS = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))  
 _RAYS_PER_CHUNK = 1 << 16  # rays cast together (memory: ~20 arrays of rays x cubes float64)
 
 
-# ---------------------------------------------------------------------------------------
 # the object
-
-
 def hue_to_rgb(h, s=SATURATION, v=VALUE):
     """HSV -> RGB, hue h (...) in [0, 1): (...) -> (..., 3) in [0, 1].
 
@@ -114,10 +102,7 @@ def object_boxes(cells):
     return (cells - 0.5) - m, (cells + 0.5) - m  # (K, 3), (K, 3)
 
 
-# ---------------------------------------------------------------------------------------
 # the renderer
-
-
 def face_shades():
     """The shade of each face direction: (3, 2) float64, [axis, 0] for the normal +e_axis and
     [axis, 1] for -e_axis: AMBIENT + DIFFUSE max(0, n.l) + BACK max(0, -n.l), n.l = +-LIGHT_DIR[axis]."""
@@ -211,10 +196,7 @@ def render_views(cells, colours, poses, size=64):
     return _to_uint8(rgb).reshape(V, H, W, 3)
 
 
-# ---------------------------------------------------------------------------------------
 # scenes
-
-
 def generate_scene(seed, index, views=15, size=64):
     """Scene `index` of the family `seed`: (images (V, size, size, 3) uint8, poses (V, 7) float64).
 
