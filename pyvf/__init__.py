@@ -32,29 +32,11 @@ from ._threads import num_threads, set_num_threads, threads  # the kernels' and 
 from ._memory import reuse_freed_memory  # page faults of each step's fresh arrays (every command calls it)
 from ._version import __version__
 
-from .nn.attention import (
-    branching_attention,
-    branching_attention_backward,
-    branching_attention_forward,
-    branching_attention_reference,
-    branching_attention_reference_vjp,
-    branching_attention_vjp,
-    branching_mask,
-)
-
-from .geometry import (
-    absolute_poses,
-    average_pose,
-    make_relative,
-    orientation_error,
-    position_error,
-    quat_canonical,
-    quat_conj,
-    quat_mul,
-    quat_normalize,
-    quat_rotate,
-    relative_poses,
-)
+from .nn.attention import (branching_attention, branching_attention_backward, branching_attention_forward,
+                           branching_attention_reference, branching_attention_reference_vjp, branching_attention_vjp,
+                           branching_mask)
+from .geometry import (absolute_poses, average_pose, make_relative, orientation_error, position_error, quat_canonical,
+                       quat_conj, quat_mul, quat_normalize, quat_rotate, relative_poses)
 from .models.codebook import Codebook, CodebookConfig, CodebookOutput
 from .nn.quantizer import EMAQuantizer, QuantizerOutput, vq_nearest
 from .models.transformer import Scene, Transformer, TransformerConfig, TransformerOutput

@@ -54,12 +54,10 @@ def _check(name, x, last):
 def _check_unit(name, q):
     """q (..., 4) must be a unit quaternion up to _UNIT_TOL."""
     n2 = np.einsum("...i,...i->...", q, q)  # (...) |q|^2
-    dev = np.abs(n2 - 1)
-    if dev.size and dev.max() > _UNIT_TOL[q.dtype]:
-        i = np.unravel_index(np.argmax(dev), dev.shape)
+    if n2.size and np.abs(n2 - 1).max() > _UNIT_TOL[q.dtype]:
         raise ValueError(f"{name} must hold unit quaternions (| |q|^2 - 1 | <= {_UNIT_TOL[q.dtype]:g} in "
-                         f"{q.dtype}), but at index {tuple(map(int, i))} |q|^2 = {float(n2[i])!r}: "
-                         "normalise it first with quat_normalize")
+                         f"{q.dtype}), not |q|^2 = {n2.ravel()[np.argmax(np.abs(n2 - 1))]!r}: normalise it "
+                         "first with quat_normalize")
 
 
 def _check_pose(name, p):
@@ -67,8 +65,7 @@ def _check_pose(name, p):
     _check_unit(f"the quaternions of {name}", p[..., 3:])
 
 
-# the quaternion algebra, unchecked: every public function checks its arguments once and
-# then composes these
+# the quaternion algebra, unchecked: each public function checks its arguments, then composes these
 def _pow2_split(q):
     """q (..., 4) = qs * 2^k per quaternion: qs (..., 4) with its largest |component| in [0.5, 1),
     k (..., 1) integers. Exact (but for components that become subnormal: negligible next to the
@@ -256,12 +253,10 @@ def orientation_error(q1, q2):
 
         angle = 2 * atan2(|vec(r)|, |w(r)|),   r = q1 * conj(q2).
 
-    The published metric is 2 * asin(|vec(r)|): equal for unit inputs, but NaN when rounding
-    makes |vec(r)| > 1 and half its digits lost near 180 degrees (2 acos(w) loses them near 0).
-    atan2 adds no error at any angle; what is left is the rounding of r, a few eps rad absolute.
-    It depends only on the direction of r, so q1 and q2 need not be unit (a zero quaternion
-    raises ValueError); each is first scaled by a power of two to a largest component in
-    [0.5, 1), so quaternions of any size give the angle to full precision."""
+    The published 2 * asin(|vec(r)|) is equal for unit inputs, but NaN when rounding makes
+    |vec(r)| > 1 and loses half its digits near 180 degrees; atan2 adds no error at any angle.
+    Only r's direction counts, so q1, q2 need not be unit (a zero one raises ValueError); each is
+    scaled by a power of two to a largest component in [0.5, 1), so any size keeps full precision."""
     _check_pair("q1", q1, "q2", q2, 4)
     a, b = q1[..., -4:], q2[..., -4:]
     for name, q in (("q1", a), ("q2", b)):

@@ -40,20 +40,8 @@ from .._version import __version__
 from ..models import check_pair
 from ..nn.layers import matmul
 from ..scenes import generate_scenes
-from .metrics import (
-    QUERIES,
-    closest_image_pose,
-    empty_entropy,
-    empty_patches,
-    encode_images,
-    image_metrics,
-    mean_image,
-    mean_pose,
-    nearest_view,
-    pose_metrics,
-    psnr_cap,
-    to_uint8,
-)
+from .metrics import (QUERIES, closest_image_pose, empty_entropy, empty_patches, encode_images, image_metrics,
+                      mean_image, mean_pose, nearest_view, pose_metrics, psnr_cap, to_uint8)
 
 __all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "PAPER_SM7", "DECODES", "DEFAULT_DECODE", "GOAL_CONTEXTS",
            "evaluate", "goal_line", "metrics_markdown", "paper_line", "render_images", "verdict_lines",
@@ -65,14 +53,8 @@ POSE_METRICS = ("position_error_median", "orientation_error_median_deg")
 # pixel background: metrics.empty_patches) and of object patches
 TOKEN_SCORES = ("ce", "token_accuracy", "ce_empty", "ce_object", "token_accuracy_empty", "token_accuracy_object")
 # method -> the metrics it has, in the tables' order
-METHODS = {
-    "pyvf": IMAGE_METRICS + POSE_METRICS,
-    "codebook": IMAGE_METRICS,
-    "nearest_view": IMAGE_METRICS,
-    "mean_image": IMAGE_METRICS,
-    "closest_image_pose": POSE_METRICS,
-    "mean_pose": POSE_METRICS,
-}
+METHODS = {"pyvf": IMAGE_METRICS + POSE_METRICS, "codebook": IMAGE_METRICS, "nearest_view": IMAGE_METRICS,
+           "mean_image": IMAGE_METRICS, "closest_image_pose": POSE_METRICS, "mean_pose": POSE_METRICS}
 SM7_VIEWS = 15
 PICTURE_SCENES = 4  # scenes drawn in views.png and poses.png
 # how render_images turns a view's logits (L, K) into the codebook's input

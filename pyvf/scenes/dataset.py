@@ -15,14 +15,10 @@ The format (FORMAT = "pyvf-sm7-scenes", FORMAT_VERSION = 1), in one folder:
 * `manifest.json`, written last: format and version, seed, counts and sizes, the camera and
   render constants, and for each shard its file name, scene range, size in bytes and sha256.
   A folder without a manifest is an unfinished write.
-* `progress.jsonl`, only while a write is unfinished: its first line the manifest without
-  `shards`. A write interrupted (Ctrl-C, a crash) is resumed by the same arguments: the shards
-  on disk are kept (each was written atomically, so it is whole), the others rendered, and the
-  folder ends with the same bytes as an uninterrupted write.
-
-Every file is written to a temporary file, fsynced, then renamed over its final name (pyvf._io):
-a crash leaves either the old file or the new one. load_dataset checks each shard's size, sha256
-and arrays against the manifest and raises FileNotFoundError / ValueError naming the file.
+* `progress.jsonl`, only while a write is unfinished: the manifest without `shards`. A write
+  interrupted (Ctrl-C, a crash) is resumed by the same arguments: the shards on disk are kept
+  (each written atomically by pyvf._io, so whole), the others rendered, and the folder ends
+  with the same bytes as an uninterrupted write.
 """
 
 import dataclasses
@@ -88,22 +84,14 @@ def _npz_bytes(arrays):
 def _constants():
     """The camera and render constants, recorded in the manifest."""
     return {
-        "n_cubes": render.N_CUBES,
-        "camera_radius": cameras.CAMERA_RADIUS,
-        "tan_half_fov": cameras.TAN_HALF_FOV,
+        "n_cubes": render.N_CUBES, "camera_radius": cameras.CAMERA_RADIUS, "tan_half_fov": cameras.TAN_HALF_FOV,
         "fov_degrees": math.degrees(2 * math.atan(cameras.TAN_HALF_FOV)),
-        "max_elevation_degrees": cameras.MAX_ELEVATION_DEG,
-        "world_up": [0.0, -1.0, 0.0],
+        "max_elevation_degrees": cameras.MAX_ELEVATION_DEG, "world_up": [0.0, -1.0, 0.0],
         "camera_frame": "OpenCV: x right, y down, z forward (optical axis)",
         "pose": "xyz + unit quaternion (w, x, y, z) of the camera-to-world rotation, w >= 0",
-        "light_dir": list(render.LIGHT_DIR),
-        "ambient": render.AMBIENT,
-        "diffuse": render.DIFFUSE,
-        "back": render.BACK,
-        "shading": "colour * (ambient + diffuse * max(0, n.l) + back * max(0, -n.l))",
-        "background": list(render.BACKGROUND),
-        "saturation": render.SATURATION,
-        "value": render.VALUE,
+        "light_dir": list(render.LIGHT_DIR), "ambient": render.AMBIENT, "diffuse": render.DIFFUSE,
+        "back": render.BACK, "shading": "colour * (ambient + diffuse * max(0, n.l) + back * max(0, -n.l))",
+        "background": list(render.BACKGROUND), "saturation": render.SATURATION, "value": render.VALUE,
         "rng": "numpy.random.default_rng([seed, scene_index])",
     }
 
@@ -149,19 +137,10 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
     os.makedirs(out_dir, exist_ok=True)
 
     head = {
-        "format": FORMAT,
-        "version": FORMAT_VERSION,
-        "seed": seed,
-        "n_scenes": n_scenes,
-        "views": views,
-        "height": H,
-        "width": W,
-        "shard_size": shard_size,
-        "arrays": {
-            "images": "uint8 (scenes, views, height, width, 3) RGB",
-            "poses": "float64 (scenes, views, 7)",
-            "scene_index": "int64 (scenes,)",
-        },
+        "format": FORMAT, "version": FORMAT_VERSION, "seed": seed, "n_scenes": n_scenes, "views": views,
+        "height": H, "width": W, "shard_size": shard_size,
+        "arrays": {"images": "uint8 (scenes, views, height, width, 3) RGB", "poses": "float64 (scenes, views, 7)",
+                   "scene_index": "int64 (scenes,)"},
         "scene": _constants(),
     }
     kept = _prepare_dir(out_dir, head, overwrite)
