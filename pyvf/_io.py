@@ -12,6 +12,7 @@ the new one, never a mix. An exception removes the temporary file; only SIGKILL 
 leaves one behind, for remove_stale_temps(path).
 """
 
+import contextlib
 import io
 import os
 import re
@@ -61,10 +62,8 @@ def _atomic_write(path, write):
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        try:
+        with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        except FileNotFoundError:
-            pass
         raise
     fsync_dir(os.path.dirname(os.path.abspath(path)))
 
@@ -104,10 +103,9 @@ def load_npz(path, what="file", required=()):
     path = name = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{what} {path} does not exist")
-    entry = None
+    entry, out = None, {}
     try:
         with np.load(path, allow_pickle=False) as f:
-            out = {}
             for entry in f.files:
                 out[entry] = f[entry]
     except (TypeError, zipfile.BadZipFile, EOFError, ValueError, KeyError, OSError) as e:
@@ -128,15 +126,9 @@ def remove_stale_temps(path):
     # temporary files of other paths (".model.npz.1.ab.tmp" for "model"), perhaps being written now
     own = re.compile(re.escape(f".{name}.") + r"[0-9]+\.[0-9a-f]+\.tmp")
     removed = []
-    try:
-        entries = os.listdir(folder)
-    except FileNotFoundError:
-        return removed
-    for entry in entries:
+    for entry in os.listdir(folder) if os.path.isdir(folder) else []:
         if own.fullmatch(entry):
-            try:
+            with contextlib.suppress(FileNotFoundError):  # another cleaner was first
                 os.unlink(os.path.join(folder, entry))
                 removed.append(entry)
-            except FileNotFoundError:
-                pass
     return removed

@@ -17,13 +17,11 @@ Conventions (tested in tests/test_geometry.py):
 
 * Inputs are float32 or float64 arrays; the result has the input's dtype. Integer arrays, a
   wrong last dimension and NaN/inf raise TypeError/ValueError naming the argument; a result that
-  overflows the dtype (positions 1e308 apart) raises ValueError instead of returning inf.
-  Intermediates that would overflow although the result fits (a float32 vector of 3e38 turned,
-  |q| of 3e38, a mean of 2e38s) are computed on operands scaled by a power of two (exact).
-* A quaternion used as a rotation (quat_rotate, relative_poses, absolute_poses, make_relative)
-  must be unit: | |q|^2 - 1 | <= 1e-5 (float32) or 1e-9 (float64), far above the rounding of
-  any chain of products and far below a quaternion never normalised; else ValueError (for a
-  non-unit q the formula scales by |q|^2, and normalising quietly would hide a data bug).
+  overflows the dtype raises ValueError. Intermediates that would overflow although the result
+  fits (a float32 vector of 3e38 turned, |q| of 3e38) use operands scaled by a power of two.
+* A quaternion used as a rotation must be unit: | |q|^2 - 1 | <= 1e-5 (float32) or 1e-9
+  (float64), far above the rounding of any chain of products; else ValueError (for a non-unit
+  q the formula scales by |q|^2, and normalising quietly would hide a data bug).
 * quat_normalize is TF's l2_normalize, q / sqrt(max(|q|^2, eps)): a zero quaternion maps to
   zero, not NaN (the published pose prediction and average rely on it).
 * quat_canonical multiplies by -1 where w < 0, as the published `quaternion_remove_sign`; at

@@ -4,9 +4,8 @@
     h = transformer_health(codebook, transformer, images, poses, tokens, contexts=(1, 3, 5))
 
 Why these: a codebook whose latent collapses can keep a falling reconstruction loss, a healthy
-perplexity and most of its codes in use while it loses the colours of the objects (measured on
-SM7: the decoder drew every object red or cyan). The latent's effective rank and the colour
-figure show such a collapse in the first minutes of a run.
+perplexity and most of its codes in use while it loses the objects' colours (measured on SM7:
+every object drawn red or cyan); the latent's effective rank and the colour figure show it early.
 
 * effective rank (Roy and Vetterli, 2007): the singular values s_i of the centred latent
   vectors, p_i = s_i / sum(s), rank = exp(-sum p_i log p_i). 1 for a rank-1 latent, D for D
@@ -30,9 +29,8 @@ CODEBOOK_HEALTH = ["mae", "rmse", "psnr", "codes_in_use", "perplexity", "latent_
 
 
 def effective_rank(z):
-    """z (N, D) float -> float in [1, min(N - 1, D)] (the mean row taken out leaves at most N - 1
-    directions): exp of the entropy of the normalised singular values of z minus its mean row. A
-    constant z (no variance) has rank 0 by convention."""
+    """z (N, D) float -> float in [1, min(N - 1, D)]: exp of the entropy of the normalised singular
+    values of z minus its mean row. A constant z (no variance) has rank 0 by convention."""
     if (z == z[:1]).all():  # constant: exactly rank 0 (the mean of equal rows can round off them)
         return 0.0
     zc = z.astype(np.float64) - z.astype(np.float64).mean(axis=0)  # (N, D)
@@ -126,7 +124,7 @@ def transformer_health(codebook, transformer, images, poses, tokens, contexts, b
     argmax, as every run's eval.csv always has, so that runs compare across versions."""
     from .run import _check_args, score_scenes  # evaluate.run imports the scenes home; only this needs it
     views = images.shape[1]
-    checked = _check_args(contexts, images.shape[0], views, QUERIES, batch)
+    checked = _check_args(contexts, images.shape[0], views, batch)
     qidx = np.arange(views - QUERIES, views)
     results, _ = score_scenes(codebook, transformer, images, poses, tokens, checked, qidx, batch, decode="argmax")
     return {f"{stem}_c{C}": results[str(C)][method][metric]

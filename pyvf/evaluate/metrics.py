@@ -7,11 +7,9 @@ Definitions (per image; the evaluation then takes the mean over images):
 * MAE  = mean |pred - target| over pixels and channels, on the 0..255 scale.
 * RMSE = sqrt(mean (pred - target)^2) over pixels and channels, on the 0..255 scale: per
   image, then the mean over images (as the paper's tables), not the root of the pooled mean.
-* PSNR = 10 log10(1 / mse) with mse on the [0, 1] scale. A perfect image (mse = 0) is given
-  psnr_cap(shape), so that a mean over images stays finite and a perfect image scores strictly
-  above every imperfect one.
-* position error: Euclidean distance of the camera positions (geometry.position_error).
-* orientation error: the angle of q1 * conj(q2) in degrees (geometry.orientation_error).
+* PSNR = 10 log10(1 / mse) with mse on the [0, 1] scale; a perfect image (mse = 0) is given
+  psnr_cap(shape), so that a mean stays finite and a perfect image scores above every other.
+* position and orientation errors: geometry.position_error and geometry.orientation_error.
 """
 
 import numpy as np
@@ -34,8 +32,7 @@ def object_mask(images):
 
 
 def empty_patches(images, k):
-    """uint8 (..., Hi, Wi, 3) -> bool (..., k, k): the k x k grid's patches whose every pixel is
-    background (object_mask false), i.e. empty."""
+    """uint8 (..., Hi, Wi, 3) -> bool (..., k, k): the k x k grid's patches all background (object_mask)."""
     m = object_mask(images)  # (..., Hi, Wi)
     p = m.shape[-1] // k
     return ~m.reshape(m.shape[:-2] + (k, p, k, p)).any(axis=(-3, -1))

@@ -27,11 +27,6 @@ def _pil():
     return Image, ImageDraw, ImageFont.load_default()
 
 
-def _centered(draw, font, text, x0, width, y):
-    w = draw.textlength(text, font=font)
-    draw.text((x0 + (width - w) / 2, y), text, fill=_BLACK, font=font)
-
-
 def save_views(path, picture):
     """The views sheet, a row per scene: context | ground truth | codebook | pyvf, as a PNG."""
     Image, ImageDraw, font = _pil()
@@ -55,7 +50,7 @@ def save_views(path, picture):
     sheet = Image.new("RGB", (width, height), _WHITE)
     draw = ImageDraw.Draw(sheet)
     for (label, tiles), x in zip(columns, xs):
-        _centered(draw, font, label, x, T, 3)
+        draw.text((x + (T - draw.textlength(label, font=font)) / 2, 3), label, fill=_BLACK, font=font)  # centred
         for r in range(P):
             tile = np.repeat(np.repeat(tiles[r], scale, axis=0), scale, axis=1)  # (T, T, 3), nearest
             sheet.paste(Image.fromarray(np.ascontiguousarray(tile)), (x, _HEAD_H + r * (T + _GAP)))

@@ -57,14 +57,9 @@ METHODS = {"pyvf": IMAGE_METRICS + POSE_METRICS, "codebook": IMAGE_METRICS, "nea
            "mean_image": IMAGE_METRICS, "closest_image_pose": POSE_METRICS, "mean_pose": POSE_METRICS}
 SM7_VIEWS = 15
 PICTURE_SCENES = 4  # scenes drawn in views.png and poses.png
-# how render_images turns a view's logits (L, K) into the codebook's input
-DECODES = {
-    # the published generation: each token's most likely code
-    "argmax": "each token's most likely code",
-    # the latent of least expected squared error under the predicted distribution: an uncertain
-    # token decodes to a blend of codes, not a guess
-    "expected": "each token's mean code vector under the softmax of its logits",
-}
+# how render_images turns a view's logits (L, K) into the codebook's input (docs/math.md §6)
+DECODES = {"argmax": "each token's most likely code",  # the published generation
+           "expected": "each token's mean code vector under the softmax of its logits"}  # least squared error
 # The default: a small model is unsure of most tokens of a novel view, and argmax commits each
 # token to its own guess, while the mean code vector scores lower MAE and RMSE (docs/models.md
 # evaluates the shipped pair both ways). "argmax" compares with the paper or another port.
@@ -109,15 +104,15 @@ def _decode(codebook, inputs, batch):
     return out
 
 
-def _check_args(context, scenes, views, queries, batch):
+def _check_args(context, scenes, views, batch):
     """The sizes evaluate() and health take, each a positive integer; context: one size or several
     -> them sorted, without repeats."""
     for name, v in (("scenes", scenes), ("batch", batch)):
         _checks.positive_integer(name, v)
     context = (context,) if np.ndim(context) == 0 else tuple(context)
     context = tuple(sorted({_checks.positive_integer("context", c) for c in context}))  # 2.7 is not 2
-    if not context or context[-1] + queries > views:
-        raise ValueError(f"context must name sizes of at most {views - queries} ({queries} queries of {views} "
+    if not context or context[-1] + QUERIES > views:
+        raise ValueError(f"context must name sizes of at most {views - QUERIES} ({QUERIES} queries of {views} "
                          f"views per scene), got {context}")
     return context
 
@@ -131,7 +126,7 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     DECODES (render_images)."""
     t_start = time.perf_counter()
     check_pair(codebook, transformer)
-    context = _check_args(context, scenes, SM7_VIEWS, QUERIES, batch)
+    context = _check_args(context, scenes, SM7_VIEWS, batch)
     for name, v in (("timing_scenes", timing_scenes), ("repeat", repeat)):
         _checks.positive_integer(name, v)
     if decode not in DECODES:

@@ -56,16 +56,12 @@ class DatasetExistsError(FileExistsError):
 @dataclasses.dataclass(eq=False)
 class SceneDataset:
     """A loaded dataset: images (S, V, H, W, 3) uint8, poses (S, V, 7) float64, the seed that
-    generated it, its manifest (the parsed manifest.json) and the folder it came from."""
+    generated it and its manifest (the parsed manifest.json)."""
 
     images: np.ndarray
     poses: np.ndarray
     seed: int
     manifest: dict
-    path: str
-
-    def __len__(self):
-        return len(self.images)
 
 
 # writing
@@ -209,14 +205,10 @@ def _read_shard(path, entry, shapes, mpath):
 
 
 def load_dataset(path):
-    """Load and verify a dataset written by write_dataset -> SceneDataset. path: the dataset folder
-    (or its manifest.json). A missing folder, manifest or shard raises FileNotFoundError; a
-    manifest or shard that does not match (size, sha256, arrays), ValueError; each names the file."""
-    path = os.fspath(path)
-    if os.path.basename(path) == MANIFEST and os.path.isfile(path):
-        root, mpath = os.path.dirname(path) or ".", path
-    else:
-        root, mpath = path, os.path.join(path, MANIFEST)
+    """Load and verify the dataset write_dataset wrote into the folder `path` -> SceneDataset. A
+    missing folder, manifest or shard raises FileNotFoundError; a manifest or shard that does not
+    match (size, sha256, arrays), ValueError; each names the file."""
+    root, mpath = os.fspath(path), os.path.join(path, MANIFEST)
     if not os.path.isdir(root):
         raise FileNotFoundError(f"dataset folder {root} does not exist")
     if not os.path.isfile(mpath):
@@ -229,4 +221,4 @@ def load_dataset(path):
         n, first = e["n_scenes"], e["first_scene"]
         shapes = {"images": (n, V, H, W, 3), "poses": (n, V, 7), "scene_index": (n,)}
         images[first:first + n], poses[first:first + n] = _read_shard(os.path.join(root, e["file"]), e, shapes, mpath)
-    return SceneDataset(images=images, poses=poses, seed=manifest["seed"], manifest=manifest, path=root)
+    return SceneDataset(images=images, poses=poses, seed=manifest["seed"], manifest=manifest)
