@@ -212,7 +212,6 @@ def absolute_poses(rel, ref):
 
 def make_relative(poses):
     """A sequence of views made relative to its first view: the model's pose input.
-
     poses (..., N, 7), N >= 1 -> rel (..., N, 7), ref (..., 7) = poses[..., 0, :] (a copy):
     relative_poses(poses, ref), then the relative quaternions L2-normalised and made sign-canonical,
     as the published input pipeline does (`process_batch`): the pose MLP is not sign-invariant, so
@@ -287,7 +286,6 @@ def _mean(x, axis):
 def average_pose(poses, axis=-2):
     """The mean pose over `axis`, a leading axis (docs/math.md §3, the published
     `reduce`/`quaternion_reduce_mean`).   poses (..., 7) -> the same shape without `axis`.
-
     xyz: the arithmetic mean (_mean). Quaternions (need not be unit): normalised, sign-canonicalised,
     averaged, normalised and canonicalised again. Canonicalised quaternions that cancel (all zero,
     or opposite 180-degree rotations with w == 0) average to the zero quaternion, not NaN, as in

@@ -20,9 +20,9 @@ import pyvf.models
 from pyvf.cli import main
 from conftest import assert_close
 from pyvf.scenes import generate_scenes
-from pyvf.evaluate import METHODS, closest_image_pose, evaluate, image_metrics, mean_image, mean_pose, nearest_view
-from pyvf.evaluate.metrics import pose_metrics, psnr_cap, to_model_images, to_uint8
-from pyvf.evaluate.run import TOKEN_SCORES
+from pyvf.evaluate.metrics import (closest_image_pose, image_metrics, mean_image, mean_pose, nearest_view,
+                                  pose_metrics, psnr_cap, to_model_images, to_uint8)
+from pyvf.evaluate.run import METHODS, TOKEN_SCORES, evaluate
 
 CODEBOOK = pyvf.CodebookConfig(ch=32, ch_mult=(1, 2), num_res_blocks=1, attn_resolutions=(), z_channels=32,
                                embed_dim=16, n_embed=32, image_size=16)

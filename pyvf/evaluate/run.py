@@ -171,15 +171,11 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
 
 def score_scenes(codebook, transformer, images, poses, tokens, context, qidx, batch, *, progress=False,
                  decode=DEFAULT_DECODE):
-    """Score the pair and the baselines on these scenes: for each C in context (ascending), the
-    context is views 0..C-1 and the queries the views qidx.
-
-    images uint8 (n, V, S, S, 3), poses (n, V, 7) float64, tokens (n, V, L) int64 (the codebook's
-    tokens of at least the views used). Returns (results, picture): results[str(C)][method][metric]
-    as evaluate()'s, pyvf's row with TOKEN_SCORES (the cross-entropy in nats of the true query
-    tokens under the rendered logits, the share of tokens whose argmax is right), the codebook's
-    with empty_entropy (of the queries' codes); picture the first PICTURE_SCENES scenes at the
-    largest C (pictures.py)."""
+    """Score the pair and the baselines: for each C in context (ascending), the context is views
+    0..C-1 and the queries the views qidx. images uint8 (n, V, S, S, 3), poses (n, V, 7) float64,
+    tokens (n, V, L) int64 (the codebook's, of at least the views used) -> (results, picture):
+    results[str(C)][method][metric] as evaluate()'s, pyvf's row with TOKEN_SCORES, the codebook's
+    with empty_entropy (of the queries' codes); picture for pictures.py."""
     n, M, S = images.shape[0], len(qidx), images.shape[2]
     dt, Cmax, P = transformer.dtype, context[-1], PICTURE_SCENES
     gt, gt_pose = images[:, qidx], poses[:, qidx]  # (n, M, S, S, 3), (n, M, 7) float64

@@ -58,7 +58,6 @@ _MAX_SIN2_ELEVATION = 0.75  # sin(60 degrees)^2, exact in binary: the sampler co
 # sampling and look-at (exactly rounded operations only)
 def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
     """n camera positions, uniform on the band |elevation| <= 60 degrees of the sphere |p| = radius.
-
     rng: a numpy Generator; -> (n, 3) float64. A direction is drawn by rejection: u uniform in
     the cube [-1, 1]^3, kept when 1e-6 < |u|^2 <= 1 (inside the ball, so its direction is
     uniform) and u_y^2 <= sin(60 deg)^2 |u|^2 (the elevation band; up is -y), then u / |u|.
@@ -76,7 +75,6 @@ def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
 
 def look_at_poses(positions):
     """Poses of cameras at `positions` looking at the origin, without roll.
-
     positions (..., 3) float64, not on the vertical axis (ValueError) -> poses (..., 7): xyz,
     then the sign-canonical unit quaternion of the rotation whose columns are the camera's axes in
     the world, [right, down, forward]:
@@ -104,7 +102,6 @@ def look_at_poses(positions):
 
 def _matrix_to_quat(R):
     """The sign-canonical unit quaternion of a rotation matrix given as nested rows R[i][j] (...).
-
     Shepperd's method: of 4w^2 = 1 + tr, 4x^2 = 1 + R00 - R11 - R22, ..., take the largest (the
     best conditioned square root) and get the other components from the off-diagonal sums and
     differences. Then normalised (the rows are orthonormal only to rounding) and made w >= 0."""
@@ -144,7 +141,6 @@ def pose_matrix(q):
 # GQN's camera form (trig allowed here: not on the rendering path)
 def gqn_to_pose(cams):
     """GQN cameras (..., 5) = (x, y, z, yaw, pitch) in GQN's z-up frame -> poses (..., 7).
-
     The published conversion (fix_legacy_gqn_cameras): xyz = (y, -z, -x) and
     q = q_y(pi - yaw) * q_x(pitch), with q_y(t) = (cos t/2, 0, sin t/2, 0) and
     q_x(t) = (cos t/2, sin t/2, 0, 0); the product is (cy cx, cy sx, sy cx, -sy sx).
@@ -158,7 +154,6 @@ def gqn_to_pose(cams):
 
 def pose_to_gqn(poses):
     """Poses (..., 7) -> GQN cameras (..., 5) = (x, y, z, yaw, pitch), the inverse of gqn_to_pose.
-
     Position (x, y, z)_GQN = (-z, x, -y) of the pose; the optical axis f = rotate(q, (0, 0, 1)),
     written in GQN's frame as g = (-f_z, f_x, -f_y), gives yaw = atan2(g_y, g_x) in [-pi, pi]
     and pitch = atan2(g_z, hypot(g_x, g_y)) in [-pi/2, pi/2]. A roll about the optical axis is

@@ -46,8 +46,7 @@ _ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # the earliest zip timestamp: the shard's byt
 
 
 class DatasetExistsError(FileExistsError):
-    """write_dataset will not write into out_dir, which holds another dataset (a finished one, or
-    an unfinished write that these arguments cannot resume); overwrite=True replaces it."""
+    """out_dir holds another dataset (finished, or a write these arguments cannot resume)."""
 
     def __init__(self, folder, holds):
         super().__init__(f"out_dir {folder} {holds}; overwrite=True replaces it")
@@ -172,19 +171,6 @@ def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, pr
 
 
 # reading
-def _read_manifest(mpath):
-    try:
-        with open(mpath, "rb") as f:
-            manifest = json.loads(f.read().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"{mpath}: not a valid JSON manifest ({e})") from None
-    if not isinstance(manifest, dict) or (manifest.get("format"), manifest.get("version")) != (FORMAT, FORMAT_VERSION):
-        raise ValueError(f"{mpath}: not a {FORMAT} manifest of version {FORMAT_VERSION}")
-    if sum(e["n_scenes"] for e in manifest["shards"]) != manifest["n_scenes"]:
-        raise ValueError(f"{mpath}: its shards do not hold its n_scenes {manifest['n_scenes']!r}")
-    return manifest
-
-
 def _read_shard(path, entry, shapes, mpath):
     """One shard's (images, poses), checked against its manifest entry: size and sha256 (what
     write_dataset wrote, bit for bit), then the arrays' shapes and scene indices."""
@@ -208,17 +194,23 @@ def load_dataset(path):
     """Load and verify the dataset write_dataset wrote into the folder `path` -> SceneDataset. A
     missing folder, manifest or shard raises FileNotFoundError; a manifest or shard that does not
     match (size, sha256, arrays), ValueError; each names the file."""
-    root, mpath = os.fspath(path), os.path.join(path, MANIFEST)
-    if not os.path.isdir(root):
-        raise FileNotFoundError(f"dataset folder {root} does not exist")
+    mpath = os.path.join(path, MANIFEST)
     if not os.path.isfile(mpath):
         raise FileNotFoundError(f"{mpath} is missing: not a dataset folder, or its write did not finish")
-    manifest = _read_manifest(mpath)
+    try:
+        with open(mpath, encoding="utf-8") as f:
+            manifest = json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{mpath}: not a valid JSON manifest ({e})") from None
+    if not isinstance(manifest, dict) or (manifest.get("format"), manifest.get("version")) != (FORMAT, FORMAT_VERSION):
+        raise ValueError(f"{mpath}: not a {FORMAT} manifest of version {FORMAT_VERSION}")
+    if sum(e["n_scenes"] for e in manifest["shards"]) != manifest["n_scenes"]:
+        raise ValueError(f"{mpath}: its shards do not hold its n_scenes {manifest['n_scenes']!r}")
     S, V, H, W = (manifest[k] for k in ("n_scenes", "views", "height", "width"))
     images = np.empty((S, V, H, W, 3), dtype=np.uint8)
     poses = np.empty((S, V, 7))
     for e in manifest["shards"]:
         n, first = e["n_scenes"], e["first_scene"]
         shapes = {"images": (n, V, H, W, 3), "poses": (n, V, 7), "scene_index": (n,)}
-        images[first:first + n], poses[first:first + n] = _read_shard(os.path.join(root, e["file"]), e, shapes, mpath)
+        images[first:first + n], poses[first:first + n] = _read_shard(os.path.join(path, e["file"]), e, shapes, mpath)
     return SceneDataset(images=images, poses=poses, seed=manifest["seed"], manifest=manifest)

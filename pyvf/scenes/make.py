@@ -19,8 +19,7 @@ PREVIEW_SCENES = 8  # rows of the preview: the dataset's first scenes, every vie
 
 def make_dataset(out, n_scenes, seed, *, views=15, size=64, shard_size=500, preview=None, progress=True,
                  overwrite=False):
-    """write_dataset into the folder `out`, then print what was written; with preview (a PNG path),
-    save_preview of the first PREVIEW_SCENES scenes. Returns the manifest."""
+    """write_dataset into `out`, print what was written; save_preview of the first scenes to `preview`."""
     t0 = time.perf_counter()
     manifest = write_dataset(out, n_scenes, seed, views=views, size=size, shard_size=shard_size, progress=progress,
                              overwrite=overwrite)

@@ -54,10 +54,8 @@ _RAYS_PER_CHUNK = 1 << 16  # rays cast together (memory: ~20 arrays of rays x cu
 
 # the object
 def hue_to_rgb(h, s=SATURATION, v=VALUE):
-    """HSV -> RGB, hue h (...) in [0, 1): (...) -> (..., 3) in [0, 1].
-
-    The piecewise-linear formula: channel(n) = v - v s clip(min(k, 4 - k), 0, 1) with
-    k = (n + 6h) mod 6 and n = 5, 3, 1 for R, G, B. Exactly rounded operations only."""
+    """HSV -> RGB, hue h (...) in [0, 1): (...) -> (..., 3) in [0, 1], by the piecewise-linear formula
+    channel(n) = v - v s clip(min(k, 4 - k), 0, 1), k = (n + 6h) mod 6, n = 5, 3, 1 for R, G, B."""
     h6 = np.asarray(h, dtype=np.float64) * 6
     out = []
     for n in (5, 3, 1):
@@ -70,7 +68,6 @@ def hue_to_rgb(h, s=SATURATION, v=VALUE):
 
 def make_object(rng):
     """A random Shepard-Metzler object: (cells (7, 3) int64, colours (7, 3) float64 RGB in [0, 1]).
-
     Draws from rng, in this order: for each of cubes 1..6, one integer choosing among the free
     face neighbours of the previous cube (in the order of _STEPS: +x, -x, +y, -y, +z, -z); then
     the 7 hues."""
@@ -94,7 +91,6 @@ def object_centres(cells):
 
 def object_boxes(cells):
     """The cubes as boxes lo <= x <= hi, centroid at the origin: cells (K, 3) int -> lo, hi (K, 3).
-
     Computed as (cell -+ 0.5) - centroid: cell -+ 0.5 is exact, so two cubes that share a face
     get bitwise the same coordinate for it (no hairline gap for a ray to slip through), which
     centre -+ 0.5 with a rounded centre would not guarantee."""
@@ -120,7 +116,6 @@ def _to_uint8(v):
 
 def _slab(o, d, lo, hi):
     """One axis of the slab test: rays o + t d (o, d (M, 1)) against the slabs lo <= x <= hi (K,).
-
     Returns near, far (M, K): the ray parameters where it enters and leaves the slab. A ray
     parallel to the slab (d == 0) is inside it for all t or for none."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -138,7 +133,6 @@ def _slab(o, d, lo, hi):
 def _cast(o, d, lo, hi):
     """Nearest box hit of each ray.   o, d (M, 3), lo, hi (K, 3) ->
     (hit (M,) bool, box (M,) int, axis (M,) int of the face's normal; valid where hit).
-
     Entry t = max over axes of near, exit = min of far; a box is hit where entry <= exit and
     exit > 0 (cameras are outside every box, so then entry > 0). Ties go to the first box and
     the first axis: np.argmin / the comparisons below pick the lowest index."""
@@ -155,12 +149,10 @@ def _cast(o, d, lo, hi):
 
 
 def render_views(cells, colours, poses, size=64):
-    """Render unit cubes seen by cameras.
-
-    cells (K, 3) integer lattice cells of the cubes, placed with their centroid at the origin
-    (object_boxes), colours (K, 3) RGB in [0, 1], poses (V, 7) float64 camera poses (cameras.py:
-    xyz + camera-to-world unit quaternion, OpenCV camera frame), size: int (square) or (height,
-    width) -> images (V, H, W, 3) uint8. The cameras must stand outside every (closed) cube."""
+    """Render unit cubes seen by cameras: cells (K, 3) integer lattice cells of the cubes, placed
+    with their centroid at the origin (object_boxes), colours (K, 3) RGB in [0, 1], poses (V, 7)
+    float64 camera poses (cameras.py), size: int (square) or (height, width) -> images (V, H, W, 3)
+    uint8. The cameras must stand outside every (closed) cube."""
     lo, hi = object_boxes(cells)  # (K, 3) the boxes
     colours = np.asarray(colours, dtype=np.float64)
     H, W = (size, size) if np.ndim(size) == 0 else size
@@ -199,7 +191,6 @@ def render_views(cells, colours, poses, size=64):
 # scenes
 def generate_scene(seed, index, views=15, size=64):
     """Scene `index` of the family `seed`: (images (V, size, size, 3) uint8, poses (V, 7) float64).
-
     Its random numbers come from np.random.default_rng([seed, index]) alone, so every scene is
     reproducible by itself and independent of the others: first the object (make_object), then
     the camera positions (sample_camera_positions), looking at the origin (look_at_poses)."""
