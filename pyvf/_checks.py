@@ -17,10 +17,18 @@ def all_finite(a):
     return bool(np.isfinite(a).all())
 
 
+def plain_array(name, a):
+    """Refuse np.matrix (2-D under indexing, * a matrix product) and a masked array with masked
+    elements (pyvf would compute with the values under the mask): TypeError."""
+    if isinstance(a, np.matrix) or (isinstance(a, np.ma.MaskedArray) and np.ma.is_masked(a)):
+        raise TypeError(f"{name} must be a plain numpy array, got a {type(a).__name__}: pass np.asarray({name})")
+
+
 def float_array(name, a, like=None, like_name="x"):
     """a must be a float32 or float64 ndarray, of like's dtype when like is given."""
     if not isinstance(a, np.ndarray):
         raise TypeError(f"{name} must be a numpy.ndarray, got {type(a).__name__}")
+    plain_array(name, a)
     if a.dtype not in FLOATS:
         raise TypeError(f"{name} must be float32 or float64, got {a.dtype} (pyvf never casts silently)")
     if like is not None and a.dtype != like.dtype:
@@ -44,6 +52,7 @@ def int_array(name, a):
     """a must be an ndarray of a signed or unsigned integer dtype."""
     if not isinstance(a, np.ndarray):
         raise TypeError(f"{name} must be a numpy.ndarray of integers, got {type(a).__name__}")
+    plain_array(name, a)
     if a.dtype.kind not in "iu":
         raise TypeError(f"{name} must be an integer array, got {a.dtype} (pyvf never casts silently)")
     return a

@@ -7,12 +7,8 @@ and the dataset on disk. Deterministic: a seed gives the same bytes on every mac
     ds = load_dataset("data/sm7")                        # ds.images, ds.poses, ds.seed, ds.manifest
     poses = gqn_to_pose(cams); cams = pose_to_gqn(poses) # GQN's (x, y, z, yaw, pitch)
 
-Each submodule's docstring states its conventions and their reasons: render.py the object, the
-light and the renderer; cameras.py the world frame (up is -y), the camera frame (OpenCV), the
-pose (xyz + sign-canonical camera-to-world quaternion), the cameras of a scene and GQN's form;
-dataset.py the files on disk. Determinism: scene i draws only from
-numpy.random.default_rng([seed, i]), and sampling and rendering use only exactly rounded IEEE
-operations (no BLAS, no SIMD trig).
+The conventions, with their reasons, are in the submodules' docstrings: render.py the object,
+the light and the renderer; cameras.py the frames, the pose and the cameras; dataset.py the files.
 """
 
 from .cameras import (CAMERA_RADIUS, MAX_ELEVATION_DEG, TAN_HALF_FOV, gqn_to_pose, look_at_poses, pose_matrix,

@@ -92,20 +92,11 @@ def look_at_poses(positions):
     rx, rz = fz / h, -fx / h  # right = forward x (0, -1, 0), normalised; its y is 0
     dx, dy, dz = fy * rz, fz * rx - fx * rz, -fy * rx  # down = forward x right
     zero = np.zeros_like(rx)
-    # rows of R (camera-to-world); columns are right, down, forward
-    R = ((rx, dx, fx),
-         (zero, dy, fy),
-         (rz, dz, fz))
-    q = _matrix_to_quat(R)  # (..., 4)
-    return np.concatenate([p, q], axis=-1)  # (..., 7)
-
-
-def _matrix_to_quat(R):
-    """The sign-canonical unit quaternion of a rotation matrix given as nested rows R[i][j] (...).
-    Shepperd's method: of 4w^2 = 1 + tr, 4x^2 = 1 + R00 - R11 - R22, ..., take the largest (the
-    best conditioned square root) and get the other components from the off-diagonal sums and
-    differences. Then normalised (the rows are orthonormal only to rounding) and made w >= 0."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
+    # R (camera-to-world) by rows; its columns are right, down, forward
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = (rx, dx, fx), (zero, dy, fy), (rz, dz, fz)
+    # its quaternion by Shepperd's method: of 4w^2 = 1 + tr, 4x^2 = 1 + R00 - R11 - R22, ..., take
+    # the largest (the best conditioned square root) and get the other components from the
+    # off-diagonal sums and differences; then normalised (R is orthonormal only to rounding), w >= 0
     cands = np.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22,
                       1 + r11 - r00 - r22, 1 + r22 - r00 - r11])  # (4, ...) 4*(w, x, y, z)^2
     k = np.argmax(cands, axis=0)  # (...) which component is largest (first on ties)
@@ -119,7 +110,7 @@ def _matrix_to_quat(R):
         np.choose(k, [c / s, e / s, g / s, s / 4]),
     ], axis=-1)  # (..., 4)
     n = np.sqrt(q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1] + q[..., 2] * q[..., 2] + q[..., 3] * q[..., 3])
-    return _canonical(q / n[..., None])  # (..., 4)
+    return np.concatenate([p, _canonical(q / n[..., None])], axis=-1)  # (..., 7)
 
 
 def pose_matrix(q):
