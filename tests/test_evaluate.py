@@ -423,23 +423,6 @@ def test_evaluate_expected_decode_is_recorded_and_renders_differently(models, sm
     assert ra["pyvf"]["mae"] != rb["pyvf"]["mae"]
 
 
-def pose(xyz, axis, degrees):
-    return np.concatenate([xyz, quat_about(axis, degrees)])
-
-
-def test_pose_metrics_hard_cases_closed_forms():
-    """Identical poses, q against -q, 180 degrees, a 1e-9 rad rotation, zero translation."""
-    a = pose([1, 2, 3], [0, 0, 1], 0)
-    pred = np.stack([a, a * np.r_[1, 1, 1, -1, -1, -1, -1], pose([1, 2, 3], [1, 0, 0], 180),
-                     pose([1, 2, 3], [0, 1, 0], np.degrees(1e-9)), pose([4, 6, 3], [0, 0, 1], 0)])
-    m = pose_metrics(pred, np.broadcast_to(a, pred.shape).copy())
-    np.testing.assert_array_equal(m["position_error"][:4], 0)
-    assert m["position_error"][4] == pytest.approx(5.0, rel=1e-15)
-    np.testing.assert_array_equal(m["orientation_error_deg"][[0, 1, 4]], 0)
-    assert m["orientation_error_deg"][2] == pytest.approx(180.0, rel=1e-15)
-    assert m["orientation_error_deg"][3] == pytest.approx(np.degrees(1e-9), rel=1e-12)
-
-
 # ---------------------------------------------------------------------------------------
 # refusals: one table, the exception type and the argument's name
 

@@ -21,15 +21,11 @@ _CONTEXT, _TRUTH, _ESTIMATE = (40, 90, 220), (20, 150, 40), (220, 30, 30)
 _GAP, _GROUP_GAP, _LABEL_W, _HEAD_H = 4, 14, 64, 18
 
 
-def _pil():
-    from PIL import Image, ImageDraw, ImageFont  # a dependency of pyvf; imported when a picture is drawn
-
-    return Image, ImageDraw, ImageFont.load_default()
-
-
 def save_views(path, picture):
     """The views sheet, a row per scene: context | ground truth | codebook | pyvf, as a PNG."""
-    Image, ImageDraw, font = _pil()
+    from PIL import Image, ImageDraw, ImageFont  # a dependency of pyvf; imported when a picture is drawn
+
+    font = ImageFont.load_default()
     ctx = picture["context"]  # (P, C, S, S, 3)
     P, C, S = ctx.shape[0], ctx.shape[1], ctx.shape[2]
     scale = max(2, 128 // S)
@@ -63,7 +59,9 @@ def save_views(path, picture):
 
 def save_poses(path, picture, panel=280):
     """The camera panels, one per scene, seen from above, as a PNG."""
-    Image, ImageDraw, font = _pil()
+    from PIL import Image, ImageDraw, ImageFont
+
+    font = ImageFont.load_default()
     ctx, truth, est = picture["context_poses"], picture["query_poses"], picture["estimated_poses"]
     P = ctx.shape[0]
     legend = (("context cameras", _CONTEXT), ("true query cameras", _TRUTH),
