@@ -25,8 +25,7 @@ __all__ = ["CheckpointError", "atomic_savez", "atomic_write_text", "load_npz", "
 
 
 class CheckpointError(ValueError):
-    """A file pyvf wrote cannot be read back: truncated, corrupt, or missing an entry.
-    The message names the file (and the entry where one is at fault)."""
+    """A file pyvf wrote cannot be read back (truncated, corrupt, an entry missing); names the file."""
 
 
 def _temp_name(path):

@@ -1,4 +1,3 @@
-"""pyvf's version, in one place for the package (pyproject.toml states the same number; the tests check
-that show_config prints pyproject's)."""
+"""pyvf's version (pyproject.toml states the same number; the tests check that show_config prints it)."""
 
 __version__ = "0.1.0"
