@@ -7,24 +7,14 @@
     images = cb.decode_code(codes)
     out = cb.forward(images, train=True) # reconstruction, codes, rec_loss, commitment_loss, loss
     grads = cb.backward()                # d out.loss / d every parameter, torch names
-
-Traces, for checking a port layer by layer (pyvf.compare):
-
-    out = cb.forward(images, trace=True)
-    out.trace                            # name -> activation, in execution order (trace_names(cfg))
-    g = cb.backward(drec=d)              # a VJP of the reconstruction: activations' gradients
-                                         # (backward order), then the parameters'
+    out = cb.forward(images, trace=True) # out.trace: name -> activation, execution order (pyvf.compare)
 
 Parameters use the published torch names (tests/data/official-codebook-*.json), conv weights
-(out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
-load_official / state_dict also speak channels-last kernels (layout="tf": TF, Flax).
-
-The model is described once, by its layer table (layer_table(config), pyvf.models.table); the
-parameters, the trace's names (each row's name: the published torch module's, a residual block's
-after its children's, then the losses), the forward's walk and teacher forcing's layers are read
-off it. The forward records every row it runs on a tape, (row, cache); the backward replays the
-tape in reverse. pyvf fuses Normalize and swish: `*.norm1`, `*.norm2`, `*.norm_out` are
-swish(GroupNorm(x)), not the torch GroupNorm module's output.
+(out, in, kh, kw); the quantizer's buffers (`quantize.*`) live in an EMAQuantizer. The model is
+its layer table (layer_table(config), pyvf.models.table): the parameters, the trace's names, the
+forward's walk and teacher forcing's layers are read off it. The forward records every row it
+runs on a tape, (row, cache); the backward replays the tape in reverse. pyvf fuses Normalize and
+swish: `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)).
 """
 
 import dataclasses
@@ -60,11 +50,6 @@ PUBLISHED_ORDER = ("encoder", "decoder")
 IMAGE_RANGE_SLACK = 1e-3  # images may leave [-1, 1] by this much (a user's own rounding), no more
 
 
-def _positive_tuple(name, val):
-    """val: a sequence of positive integers -> a tuple of int (JSON-safe, hashable)."""
-    return tuple(_checks.positive_integer(f"{name}[{i}]", v) for i, v in enumerate(val))
-
-
 @dataclasses.dataclass(frozen=True)
 class CodebookConfig:
     ch: int  # channels of the first level
@@ -94,11 +79,11 @@ class CodebookConfig:
         for name in ("ch", "num_res_blocks", "z_channels", "embed_dim", "n_embed", "image_size", "in_channels",
                      "out_ch"):
             object.__setattr__(self, name, _checks.positive_integer(f"CodebookConfig.{name}", getattr(self, name)))
-        object.__setattr__(self, "ch_mult", _positive_tuple("CodebookConfig.ch_mult", self.ch_mult))
+        for name in ("ch_mult", "attn_resolutions"):  # tuples of int (JSON-safe, hashable)
+            object.__setattr__(self, name, tuple(_checks.positive_integer(f"CodebookConfig.{name}[{i}]", v)
+                                                 for i, v in enumerate(getattr(self, name))))
         if not self.ch_mult:
             raise ValueError("CodebookConfig.ch_mult must name at least one level, got ()")
-        object.__setattr__(self, "attn_resolutions",
-                           _positive_tuple("CodebookConfig.attn_resolutions", self.attn_resolutions))
         # real numbers, stored as float; decay and eps in the quantizer's ranges
         for name, kw in (("decay", dict(lo=0.0, hi=1.0, lo_open=True, hi_open=True)),
                          ("eps", dict(lo=0.0, lo_open=True)), ("codebook_weight", {}), ("perceptual_weight", {})):
@@ -276,16 +261,10 @@ def _add_grad(grads, name, g):
 class Codebook(ModelWeights):
     """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward.
 
-    perceptual: the optional perceptual term (LPIPS in the paper, whose pretrained VGG weights
-    are not bundled), any object with `forward(x, x_hat) -> (loss (B,), cache)` and
-    `backward(dloss (B,), cache) -> dx_hat`; weighted by config.perceptual_weight, which must
-    then be positive. Without one, perceptual_weight must be 0: the term is never silently dropped.
-    Its cache may be anything, None included (a module that keeps its state on itself).
-
-    layers: the layer table (default layer_table(config)): the parameters, the forward, the trace
-    and teacher forcing all read it, so a changed table (a layer renamed, another padding) changes
-    them alike.
-    """
+    perceptual: the optional perceptual term (LPIPS in the paper, its VGG weights not bundled):
+    an object with `forward(x, x_hat) -> (loss (B,), cache)` and `backward(dloss (B,), cache) ->
+    dx_hat`, given exactly when config.perceptual_weight is nonzero. layers: the layer table
+    (default layer_table(config))."""
 
     LAYOUTS = LAYOUTS
     FILE_KIND = "codebook"
@@ -315,8 +294,8 @@ class Codebook(ModelWeights):
             self.params[name] = p.astype(self.dtype)
         self.quantizer = EMAQuantizer(config.embed_dim, config.n_embed, config.decay, config.eps,
                                       config.dtype, seed=seed + 1)
-        self._buffer_prefix = self._quantize_row.name + "."
-        self.BUFFERS = tuple(self._buffer_prefix + k for k in self.quantizer.state_dict())  # BUFFERS by default
+        D, K = config.embed_dim, config.n_embed
+        self.BUFFERS = dict(zip(BUFFERS, [(D, K), (K,), (D, K), None]))  # their shapes; None: the EMA count
         self._cache = None
 
     def trace_names(self):
@@ -341,29 +320,20 @@ class Codebook(ModelWeights):
         return h.hexdigest()[:16]
 
     def state_dict(self, layout="torch"):
-        """torch name -> array, the quantizer's buffers included (copies), in `layout` (LAYOUTS):
-        "torch", the published state dict, or "tf", channels-last conv kernels. Every other entry
-        is the same in both."""
+        """torch name -> array (copies), the quantizer's buffers included, in `layout` (LAYOUTS)."""
         state = self._params_in(layout)
-        state.update({self._buffer_prefix + k: v for k, v in self.quantizer.state_dict().items()})
+        state.update({"quantize." + k: v for k, v in self.quantizer.state_dict().items()})
         return state
 
     def load_official(self, state_dict, *, layout="torch"):
         """Load a state dict (name -> array or torch tensor): every parameter and the four
         quantize.* buffers, nothing else, named as the published torch state dict (a Lightning
-        checkpoint's `model.` prefix is dropped; its other keys, e.g. `loss.*`, are unexpected:
-        `pyvf convert torch-codebook` skips them). The caller states the conv kernels' `layout`,
-        so a kernel is never silently transposed; `quantize.embeddings` is (embed_dim, n_embed) in
-        both (codes are columns). Checked as pyvf.models.io says, the first wrong entry named."""
+        checkpoint's `model.` prefix dropped), its conv kernels in `layout`; `quantize.embeddings`
+        is (embed_dim, n_embed) in both (codes are columns). The first wrong entry is named."""
         self._load(state_dict, layout)
 
-    def _load_buffers(self, entries):
-        prefix = self._buffer_prefix
-        buffers, problems = self.quantizer.check_state({k[len(prefix):]: v for k, v in entries.items()},
-                                                       prefix=prefix, require_all=False)
-        if problems:
-            raise problems[0][0](f"load_official: {problems[0][1]}")
-        self.quantizer._assign(buffers)
+    def _set_buffers(self, buffers):
+        self.quantizer.load_state_dict({k[len("quantize."):]: v for k, v in buffers.items()})
 
     # -----------------------------------------------------------------------------------
     # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
@@ -438,31 +408,16 @@ class Codebook(ModelWeights):
         return add(dh, ds, out=dh if in_place else None)
 
     # -----------------------------------------------------------------------------------
-    # encoder and decoder: the table's rows before and after quantize
-
-    def _encoder(self, tape, x, tr=None):
-        """x (B, in_channels, S, S) -> z (B, embed_dim, k, k), after quant_conv."""
-        return self._run(self._encoder_rows, x, tape, tr)
-
-    def _decoder(self, tape, z, tr=None):
-        """z (B, embed_dim, k, k) quantized -> images (B, out_ch, S, S), from post_quant_conv on."""
-        return self._run(self._decoder_rows, z, tape, tr)
-
-    # -----------------------------------------------------------------------------------
     # the model
 
     def _check_images(self, images):
-        """images (B >= 1, in_channels, S, S) of the model's dtype, finite, in [-1, 1] -> C-ordered.
+        """images (B, in_channels, S, S) of the model's dtype, finite, in [-1, 1] -> C-ordered.
         The likely mistake, uint8 pictures (B, S, S, 3), is refused saying how to convert them."""
         cfg, S = self.config, self.config.image_size
-        convert = "convert uint8 pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images"
-        if not isinstance(images, np.ndarray) or images.dtype != self.dtype:
-            raise TypeError(f"images must be a {self.dtype} numpy array in [-1, 1]: {convert}")
-        if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S) or images.shape[0] == 0:
-            raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}: {convert}")
-        _checks.finite("images", images)
+        hint = ": convert uint8 pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images"
+        self._check_array("images", images, ("B", cfg.in_channels, S, S), hint=hint)
         if images.min() < -1 - IMAGE_RANGE_SLACK or images.max() > 1 + IMAGE_RANGE_SLACK:
-            raise ValueError(f"images must be in [-1, 1]: {convert}")
+            raise ValueError(f"images must be in [-1, 1]{hint}")
         return np.ascontiguousarray(images)
 
     def empty_patches(self, images):
@@ -480,63 +435,50 @@ class Codebook(ModelWeights):
         """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64; with
         return_latent=True, (z, codes): also the encoder's unquantized output z (B, D, k, k)."""
         images = self._check_images(images)
-        z = self._encoder(None, images)  # (B, D, k, k)
+        z = self._run(self._encoder_rows, images)  # (B, D, k, k)
         out, _ = self.quantizer.forward(z, train=False, empty=self.empty_patches(images))
         return (z, out.codes) if return_latent else out.codes
 
     def decode_code(self, codes):
         """codes (B, k, k) ints in [0, n_embed) -> images (B, out_ch, S, S)."""
         cfg, k = self.config, self.config.token_size
-        _checks.int_array("codes", codes)
-        if codes.shape[1:] != (k, k):
-            raise ValueError(f"codes must have shape (B, {k}, {k}), got {codes.shape}")
-        if codes.size and (codes.min() < 0 or codes.max() >= cfg.n_embed):
+        self._check_array("codes", codes, ("B", k, k), kind="iu")
+        if codes.min() < 0 or codes.max() >= cfg.n_embed:
             raise ValueError(f"codes must be in [0, {cfg.n_embed})")
         e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
-        return self._decoder(None, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
+        return self._run(self._decoder_rows, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
     def decode_latent(self, z):
-        """z (B, embed_dim, k, k) of the model's dtype, a point of the code space (codes, or a
-        mixture of codes such as their expectation under a transformer's distribution) ->
-        images (B, out_ch, S, S). decode_code(codes) is decode_latent of the codes' columns."""
-        cfg, k = self.config, self.config.token_size
-        if not isinstance(z, np.ndarray) or z.dtype != self.dtype:
-            raise TypeError(f"z must be a {self.dtype} numpy array")
-        if z.ndim != 4 or z.shape[1:] != (cfg.embed_dim, k, k):
-            raise ValueError(f"z must have shape (B, {cfg.embed_dim}, {k}, {k}), got {z.shape}")
-        _checks.finite("z", z)
-        return self._decoder(None, np.ascontiguousarray(z))
+        """z (B, embed_dim, k, k), a point of the code space (codes, or a mixture of codes such as
+        their expectation under a transformer's distribution) -> images (B, out_ch, S, S)."""
+        k = self.config.token_size
+        self._check_array("z", z, ("B", self.config.embed_dim, k, k))
+        return self._run(self._decoder_rows, np.ascontiguousarray(z))
 
     def forward(self, images, train=False, *, trace=False, pixel_weights=None):
         """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers
         (the output uses the codes from before the update). Keeps what backward() needs.
 
         pixel_weights: None (rec_loss = mean |rec - x|, as published), or non-negative weights
-        (B, 1, S, S) of the model's dtype, not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x|
-        / (in_channels * sum w), the weighted mean (equal weights give the plain mean). Any
-        finite scale: the weights are normalised in float64, so the loss and its gradient do
-        not depend on it (weights near float32's largest value included).
+        (B, 1, S, S), not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x| / (in_channels * sum w),
+        normalised in float64 so that any finite scale gives the same loss and gradient.
 
-        trace=True also returns, as `out.trace`, every intermediate activation by name
-        (trace_names(config), in execution order: what the forward keeps anyway, not copies: do
-        not modify them), and makes the next backward() return every activation's
-        gradient."""
+        trace=True also returns, as `out.trace`, every activation by name (trace_names(), in
+        execution order; what the forward keeps anyway, not copies), and makes the next
+        backward() return every activation's gradient."""
         images = self._check_images(images)
         if pixel_weights is not None:
-            _checks.float_array("pixel_weights", pixel_weights, images, "images")
             B, _, S, _ = images.shape
-            if pixel_weights.shape != (B, 1, S, S):
-                raise ValueError(f"pixel_weights must have shape {(B, 1, S, S)}, got {pixel_weights.shape}")
-            _checks.finite("pixel_weights", pixel_weights)
+            self._check_array("pixel_weights", pixel_weights, (B, 1, S, S))
             if (pixel_weights < 0).any() or not pixel_weights.any():
                 raise ValueError("pixel_weights must be non-negative and not all zero")
         enc, dec = [], []
         tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
-        z = self._encoder(enc, images, tr)  # (B, D, k, k)
+        z = self._run(self._encoder_rows, images, enc, tr)  # (B, D, k, k)
         q, c_q = self.quantizer.forward(z, train=train, empty=self.empty_patches(images))
         if tr is not None:
             tr[self._quantize_row.name] = q.quantized
-        rec = self._decoder(dec, q.quantized, tr)  # (B, out_ch, S, S)
+        rec = self._run(self._decoder_rows, q.quantized, dec, tr)  # (B, out_ch, S, S)
         perc = None
         if self.perceptual is not None:  # (the module that ran, its cache): backward differentiates it
             per_image, cache = self.perceptual.forward(images, rec)  # (B,)
@@ -573,26 +515,17 @@ class Codebook(ModelWeights):
             dloss * loss + sum(reconstruction * drec)
 
         (a vector-Jacobian product; a term whose seed is None is left out; with no seed at all,
-        dloss = 1: the gradient of the loss, as training needs). drec (B, out_ch, S, S) is an
-        array of the model's dtype, for out.reconstruction; dloss a real number. The commitment
-        term (the encoder's only gradient besides the straight-through one) comes with dloss only.
-        Seeds whose gradient of the reconstruction overflows the model's dtype (dloss = 1e300 on a
-        float32 model) raise ValueError naming them.
-
-        Returns torch parameter name -> gradient. After forward(..., trace=True) the dict first
-        holds the gradient of every traced activation, in backward order (exactly the reverse of
-        the trace), under the trace's names except the losses; then the parameters'."""
+        dloss = 1). drec (B, out_ch, S, S) for out.reconstruction; dloss a real number. The
+        commitment term (the encoder's only gradient besides the straight-through one) comes with
+        dloss only. Returns torch parameter name -> gradient; after forward(..., trace=True), first
+        every traced activation's gradient (but the losses'), in backward order."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
         enc, dec, c_q, drec_loss, perc, B, rec_shape, traced = self._cache
         if drec is None and dloss is None:
             dloss = 1.0
         if drec is not None:
-            if not isinstance(drec, np.ndarray) or drec.dtype != self.dtype:
-                raise TypeError(f"drec must be a {self.dtype} numpy array (the model's dtype)")
-            if drec.shape != tuple(rec_shape):
-                raise ValueError(f"drec must have the reconstruction's shape {tuple(rec_shape)}, got {drec.shape}")
-            _checks.finite("drec", drec)
+            self._check_array("drec", drec, rec_shape)
         if dloss is not None:
             dloss = _checks.real("dloss", dloss)
         grads = {}  # filled by _add_grad; parameters the model did not use get zeros at the end

@@ -9,15 +9,7 @@ pose predictions and both losses; backward() is the same code read in reverse.
     model = Transformer(cfg, seed=0)
     out = model.forward(tokens, poses)      # tokens (B, N, L) ints in [0, V), poses (B, N, 7)
     grads = model.backward()                # d out.loss / d every parameter, official names
-
-Traces, for checking a port of the model layer by layer (pyvf.compare):
-
-    out = model.forward(tokens, poses, trace=True)
-    out.trace                               # name -> activation, in execution order (TRACE_NAMES)
-    g = model.backward(dlogits=dl, dpose=dp)  # a VJP: activations' gradients (backward order), then parameters'
-
-Without trace=True nothing extra is kept or computed: the trace only names arrays the forward
-already has (its caches), except `blocks.j.attn.c_attn`, rebuilt from q, k, v when traced.
+    out = model.forward(tokens, poses, trace=True)  # out.trace: name -> activation (TRACE_NAMES)
 
 Rows (each (B, N, L, d)), E = wte[tokens], W = wpe[0:L], P = pose_embedding(poses):
     0 trunk:        E + W + P
@@ -246,9 +238,7 @@ class TransformerOutput:
 
 class Transformer(ModelWeights):
     """The model: parameters in `self.params` (official name -> array), forward, backward.
-
-    layers: the layer table (default layer_table(config)): the parameters, their shapes and
-    layouts, and teacher forcing's layers read it."""
+    layers: the layer table (default layer_table(config))."""
 
     LAYOUTS = LAYOUTS
     FILE_KIND = "transformer"
@@ -287,17 +277,14 @@ class Transformer(ModelWeights):
         return official_name(name)
 
     def state_dict(self, layout="tf"):
-        """Official name -> array (copies), in `layout` (LAYOUTS): "tf", the published one, or
-        "torch", nn.Linear's. Embeddings and LayerNorm parameters are the same in both."""
+        """Official name -> array (copies), in `layout` (LAYOUTS)."""
         return self._params_in(layout)
 
     def load_official(self, weights, *, layout="tf"):
         """Load a dict name -> array (or torch tensor) named as the published checkpoint (the
-        `migt/` prefix and `:0` suffix optional), its Dense layers (every `.../weight` but the
-        token embedding `wte/weight`, and their biases) in `layout`, which the caller states so
-        that a square kernel (`attn/c_proj`) is never silently transposed. Checked as
-        pyvf.models.io says: the first wrong entry is named and the model is left unchanged;
-        arrays are copied into the model's dtype."""
+        `migt/` prefix and `:0` suffix optional), its Dense layers in `layout`, which the caller
+        states so that a square kernel (`attn/c_proj`) is never silently transposed. The first
+        wrong entry is named and the model is left unchanged."""
         self._load(weights, layout)
 
     # -----------------------------------------------------------------------------------
@@ -338,32 +325,25 @@ class Transformer(ModelWeights):
         return [dx], dp
 
     # -----------------------------------------------------------------------------------
-    # input checks (the entry points': forward, encode_scene, render_scene, localize_scene)
+    # the entry points' one check of their tokens and poses
 
-    def _check_tokens(self, name, tokens, B=None, L=None):
-        """tokens (B, N, L) integers in [0, V), N >= 1 -> its shape; B, L: the sizes it must have."""
-        _checks.int_array(name, tokens)
-        if tokens.ndim != 3 or 0 in tokens.shape or tokens.shape[2] > MAX_TOKENS_PER_VIEW \
-                or B not in (None, tokens.shape[0]) or L not in (None, tokens.shape[2]):
-            raise ValueError(f"{name} must have shape (B, N >= 1, L <= {MAX_TOKENS_PER_VIEW}) (B={B}, L={L} where "
-                             f"given), got {tokens.shape}")
-        if tokens.min() < 0 or tokens.max() >= self.config.n_embeddings:
-            raise ValueError(f"{name} must be in [0, {self.config.n_embeddings})")
-        return tokens.shape
-
-    def _check_poses(self, name, poses, B, N=None, unit=False):
-        """poses (B, N, 7) finite, of the model's dtype (N >= 1 any, when None); unit: the
-        quaternions must be unit ones (the scene paths make them relative)."""
-        if not isinstance(poses, np.ndarray) or poses.dtype != self.dtype:
-            raise TypeError(f"{name} must be a {self.dtype} numpy array (the model's dtype)")
-        want = (B, poses.shape[1] if N is None else N, 7) if poses.ndim == 3 else None
-        if poses.shape != want or poses.size == 0:
-            raise ValueError(f"{name} must have shape (B={B}, N={N or 'M >= 1'}, 7) (xyz, then quaternion wxyz), "
-                             f"got {poses.shape}")
-        _checks.finite(name, poses)
-        tol = 1e-5 if self.dtype == np.float32 else 1e-9
-        if unit and np.abs(np.einsum("...i,...i->...", poses[..., 3:], poses[..., 3:]) - 1).max() > tol:
-            raise ValueError(f"the quaternions of {name} must be unit quaternions")
+    def _check_inputs(self, B="B", L="L", unit=False, **arrays):
+        """Arrays by the caller's argument names: `*tokens` (B, N, L) ints in [0, V), L <= 256;
+        `*poses` (B, N, 7) finite, of the model's dtype, unit quaternions where unit. B, L: ints
+        the sizes must equal. -> (B, N, L)."""
+        N = "N"
+        for name, a in arrays.items():
+            if name.endswith("tokens"):
+                B, N, L = self._check_array(name, a, (B, N, L), kind="iu")
+                if L > MAX_TOKENS_PER_VIEW or a.min() < 0 or a.max() >= self.config.n_embeddings:
+                    raise ValueError(f"{name} must be in [0, {self.config.n_embeddings}), at most "
+                                     f"{MAX_TOKENS_PER_VIEW} a view")
+                continue
+            B, N, _ = self._check_array(name, a, (B, N, 7))
+            tol = 1e-5 if self.dtype == np.float32 else 1e-9
+            if unit and np.abs(np.einsum("...i,...i->...", a[..., 3:], a[..., 3:]) - 1).max() > tol:
+                raise ValueError(f"the quaternions of {name} must be unit quaternions")
+        return B, N, L
 
     # -----------------------------------------------------------------------------------
     # the tree's input rows
@@ -528,16 +508,12 @@ class Transformer(ModelWeights):
 
     def forward(self, tokens, poses, *, trace=False):
         """tokens (B, N, L) ints in [0, V), poses (B, N, 7) of the model's dtype (xyz, unit
-        quaternion wxyz, in the frame the caller chose: training data is usually made relative
-        to the first view, see geometry.make_relative) -> TransformerOutput. The loss needs at
-        least one view past n_loss_skip. Keeps what backward() needs.
-
-        trace=True also returns, as `out.trace`, every intermediate activation by name
-        (TRACE_NAMES, in execution order: what the forward keeps anyway, not copies: do not
-        modify them), and makes the next backward() return every activation's gradient."""
+        quaternion wxyz, in the caller's frame, usually the first view's: geometry.make_relative)
+        -> TransformerOutput; the loss needs a view past n_loss_skip. Keeps what backward() needs.
+        trace=True also returns, as `out.trace`, every activation by name (TRACE_NAMES, what the
+        forward keeps anyway, not copies), and makes the next backward() return their gradients."""
         cfg = self.config
-        B, N, L = self._check_tokens("tokens", tokens)
-        self._check_poses("poses", poses, B, N)
+        B, N, L = self._check_inputs(tokens=tokens, poses=poses)
         S = cfg.n_loss_skip
         if N <= S:
             raise ValueError(f"tokens has N={N} views but n_loss_skip={S}: no view is a loss target")
@@ -573,28 +549,16 @@ class Transformer(ModelWeights):
         return TransformerOutput(logits=logits, pose_prediction=pred, ce_loss=ce, pose_loss=pl, loss=loss,
                                  pose_raw=raw, trace=tr)
 
-    def _upstream(self, name, a, shape):
-        """An upstream gradient: a finite ndarray of the model's dtype and the output's shape."""
-        if not isinstance(a, np.ndarray) or a.dtype != self.dtype:
-            raise TypeError(f"{name} must be a {self.dtype} numpy array (the model's dtype)")
-        if a.shape != shape:
-            raise ValueError(f"{name} must have the shape of the output it differentiates, {shape}, got {a.shape}")
-        return _checks.finite(name, a)
-
     def backward(self, dlogits=None, dpose=None, *, dloss=None):
         """Differentiate the last forward: the gradient of
 
             dloss * loss + sum(logits * dlogits) + sum(pose_raw * dpose)
 
         (a vector-Jacobian product; a term whose seed is None is left out; with no seed at all,
-        dloss = 1: the gradient of the loss, as training needs). dlogits (B, N, L, V) and dpose
-        (B, N, L, 7) are arrays of the model's dtype, for out.logits and out.pose_raw (the pose
-        head's raw output, not the normalised out.pose_prediction); dloss a real number.
-
-        Returns official parameter name -> gradient. After forward(..., trace=True) the dict
-        first holds the gradient of every traced activation, in backward order (exactly the
-        reverse of the trace: compare a port's gradients in that order), under the trace's names,
-        except attn.lse (nothing downstream uses it) and the losses; then the parameters'."""
+        dloss = 1). dlogits (B, N, L, V) for out.logits, dpose (B, N, L, 7) for out.pose_raw (not
+        the normalised out.pose_prediction); dloss a real number. Returns official parameter name
+        -> gradient; after forward(..., trace=True), first every traced activation's gradient (but
+        attn.lse's and the losses'), in backward order."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
         c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L), traced = self._cache
@@ -617,9 +581,11 @@ class Transformer(ModelWeights):
             dl_total[:, S:] = cross_entropy_backward(dce_tok, c_ce)[0].reshape(B, N - S, L, V)
             draw[:, S:] = pose_loss_backward(dpl_tok, c_pl)[0]
         if dlogits is not None:
-            dl_total += self._upstream("dlogits", dlogits, (B, N, L, V))
+            self._check_array("dlogits", dlogits, (B, N, L, V))
+            dl_total += dlogits
         if dpose is not None:
-            draw += self._upstream("dpose", dpose, (B, N, L, 7))
+            self._check_array("dpose", dpose, (B, N, L, 7))
+            draw += dpose
         g = {"pose": draw} if traced else None  # the activations' gradients, the trace's order reversed
         dhg, dhl = self._heads_backward(dl_total, draw, c_heads, grads, g)
         dx = np.zeros((3, B, N, L, cfg.d_model), dtype=dt)
@@ -639,8 +605,7 @@ class Transformer(ModelWeights):
         context_tokens (B, Nc, L) ints, context_poses (B, Nc, 7) (any frame: they are made
         relative to the first context view here) -> Scene, reused by render_scene and
         localize_scene for any number of queries. Costs one trunk pass (R = 1, block-causal)."""
-        B, Nc, L = self._check_tokens("context_tokens", context_tokens)
-        self._check_poses("context_poses", context_poses, B, Nc, unit=True)
+        B, Nc, L = self._check_inputs(unit=True, context_tokens=context_tokens, context_poses=context_poses)
         rel, ref = make_relative(context_poses)  # (B, Nc, 7), (B, 7)
         x, _ = self._embed_forward(context_tokens, rel)
         x = x[:1]  # (1, B, Nc, L, d): the trunk row only
@@ -677,7 +642,7 @@ class Transformer(ModelWeights):
         query view (the generation branch: image hidden, pose given)."""
         self._check_scene(scene)
         p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
-        self._check_poses("query_poses", query_poses, scene.ref.shape[0], unit=True)
+        self._check_inputs(B=scene.ref.shape[0], unit=True, query_poses=query_poses)
         rel = relative_poses(query_poses, scene.ref[:, None, :])  # (B, M, 7)
         # as make_relative does for the context: the pose MLP is not sign-invariant
         rel[..., 3:] = quat_canonical(quat_normalize(rel[..., 3:]))
@@ -694,7 +659,7 @@ class Transformer(ModelWeights):
         frame: the token predictions averaged (geometry.average_pose)."""
         self._check_scene(scene)
         p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
-        self._check_tokens("query_tokens", query_tokens, scene.ref.shape[0], L)
+        self._check_inputs(B=scene.ref.shape[0], L=L, query_tokens=query_tokens)
         E = p["wte/weight"][query_tokens]  # (B, M, L, d)
         x = E + p["wpe/embeddings"][:L] + p["wte/weight"][V + 1]
         l = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
