@@ -1,18 +1,6 @@
-"""A model's layer table: each layer written once, as a row; everything else is derived from it.
-
-    rows = pyvf.models.codebook.layer_table(config)      # or transformer.layer_table(config)
-    parameters(rows)      # parameter name -> (shape, role), in execution order: the parameters' shapes
-    trace_order(rows)     # the layers' names in execution order: the trace's names
-    Codebook(config, layers=rows)                         # the forward walks the same rows
-
-A row (Layer) names the layer (the published module's name, the trace name of its output), says
-which layer pair computes it (`kind`), lists its parameters with their shapes and roles (how
-load_official's layouts hold them, pyvf.models.io.ROLES) and, for a conv, its stride and padding.
-A residual block is a row whose `body` (the main path) and `shortcut` are rows. Teacher forcing
-(pyvf.verify.teacher) reads its layers off the same rows: a row is a layer of its own, or part of
-the published module `module` (the codebook's Downsample and Upsample), and reads the previous
-row's output unless `calls` says otherwise (the transformer's rows, whose outputs are trace names
-of their own).
+"""A model's layer table: each layer written once, as a row; its parameters (name -> (shape, role)),
+its trace's names, its forward and teacher forcing's layers (pyvf.verify.teacher) are read off it.
+A residual block is a row whose `body` (the main path) and `shortcut` are rows.
 """
 
 import dataclasses

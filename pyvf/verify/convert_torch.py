@@ -1,14 +1,7 @@
-"""Convert a published ViewFormer codebook checkpoint (`model.ckpt`: a torch file whose
-`state_dict` holds the VQ-VAE's parameters and the quantizer's EMA buffers) into the .npz that
-pyvf.Codebook loads.
-
-    pyvf convert torch-codebook path/model.ckpt --config config.json -o codebook.npz
-
---config is a JSON file of CodebookConfig fields (ch, ch_mult, num_res_blocks, attn_resolutions,
-z_channels, embed_dim, n_embed, image_size, ...). Needs torch (only here, inside
-convert_checkpoint: pyvf itself never imports it).
-Keys outside the model (a loss's LPIPS network, a discriminator, optimizer state) are listed and
-skipped; every model name must be present with its shape (pyvf.Codebook.load_official checks).
+"""Convert a published ViewFormer codebook checkpoint (`model.ckpt`, a torch file whose `state_dict`
+holds the VQ-VAE's parameters and the quantizer's buffers) into the .npz that pyvf.Codebook loads:
+`pyvf convert torch-codebook path/model.ckpt --config config.json -o codebook.npz` (needs torch,
+imported only here). Keys outside the model (LPIPS, a discriminator, optimizer state) are skipped.
 """
 
 import json
