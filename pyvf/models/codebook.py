@@ -33,7 +33,6 @@ from ..nn.conv import (
     upsample_nearest2x_backward,
     upsample_nearest2x_forward,
 )
-from ..nn.layers import add
 from ..nn.quantizer import EMAQuantizer
 from .io import ModelWeights
 from .table import Layer, parameters, trace_order
@@ -43,9 +42,6 @@ BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.
 # load_official's layouts: layout -> how it holds the conv kernels, the published one first
 LAYOUTS = {"torch": "nn.Conv2d kernels (out, in, kh, kw), the published state dict",
            "tf": "conv kernels (kh, kw, in, out), channels-last as TF/Keras Conv2D and Flax nn.Conv hold them"}
-
-# the published state dict registers the encoder, then the decoder, then the 1x1 convs around the quantizer
-PUBLISHED_ORDER = ("encoder", "decoder")
 
 IMAGE_RANGE_SLACK = 1e-3  # images may leave [-1, 1] by this much (a user's own rounding), no more
 
@@ -180,11 +176,6 @@ def layer_table(cfg):
     return tuple(rows)
 
 
-def _published_rank(name):
-    top = name.split(".", 1)[0]
-    return PUBLISHED_ORDER.index(top) if top in PUBLISHED_ORDER else len(PUBLISHED_ORDER)
-
-
 def _split(layers):
     """The table -> (the encoder's rows, the quantize row, the decoder's rows)."""
     at = [row.kind for row in layers].index("quantize")
@@ -192,8 +183,10 @@ def _split(layers):
 
 
 def parameter_table(layers):
-    """A table's parameters: torch name -> (shape, role), in the published order."""
-    return dict(sorted(parameters(layers).items(), key=lambda kv: _published_rank(kv[0])))
+    """A table's parameters: torch name -> (shape, role), in the published order: the state dict
+    registers the encoder, then the decoder, then the 1x1 convs around the quantizer."""
+    rank = {"encoder": 0, "decoder": 1}
+    return dict(sorted(parameters(layers).items(), key=lambda kv: rank.get(kv[0].split(".", 1)[0], 2)))
 
 
 def parameter_shapes(cfg):
@@ -210,32 +203,6 @@ def trace_names(cfg):
     return trace_order(layer_table(cfg)) + _losses(cfg)
 
 
-def row_forward(row, params, x):
-    """Run one row of the table (not a residual block): x -> (y, cache), with its parameters from params."""
-    P = [params[n] for n in row.param_names]
-    if row.kind == "conv":
-        return conv2d_forward(x, *P, row.stride, row.padding)
-    if row.kind == "norm_swish":
-        return groupnorm_swish_forward(x, *P)
-    if row.kind == "upsample":
-        return upsample_nearest2x_forward(x)
-    if row.kind == "attn":
-        return attnblock_forward(x, *P)
-
-
-def row_backward(row, dy, cache):
-    """row_forward's VJP: dy -> (dx, the gradients of row.param_names, in order)."""
-    if row.kind == "conv":
-        dx, *dp = conv2d_backward(dy, cache)
-    elif row.kind == "norm_swish":
-        dx, *dp = groupnorm_swish_backward(dy, cache)
-    elif row.kind == "upsample":
-        dx, *dp = upsample_nearest2x_backward(dy, cache)
-    elif row.kind == "attn":
-        dx, *dp = attnblock_backward(dy, cache)
-    return dx, dp
-
-
 @dataclasses.dataclass
 class CodebookOutput:
     reconstruction: np.ndarray  # (B, out_ch, S, S)
@@ -247,15 +214,6 @@ class CodebookOutput:
     perplexity: float
     perceptual_loss: float = None  # mean over images of the perceptual module's loss; None when off
     trace: dict = None  # forward(..., trace=True) only: name -> activation, trace_names(cfg) order
-
-
-def _add_grad(grads, name, g):
-    """grads[name] += g; the first gradient of a parameter is stored as is (a fresh array from the
-    layer's backward: no zero-filled copy of every parameter, 270 MB for the paper's codebook)."""
-    if name in grads:
-        grads[name] += g
-    else:
-        grads[name] = g
 
 
 class Codebook(ModelWeights):
@@ -341,18 +299,32 @@ class Codebook(ModelWeights):
     def layer_forward(self, row, x, images=None):
         """Run the table's row (not a residual block) on x -> (output, cache); images: the
         quantize row's second input under the empty code."""
+        P = [self.params[n] for n in row.param_names]
+        if row.kind == "conv":
+            return conv2d_forward(x, *P, row.stride, row.padding)
+        if row.kind == "norm_swish":
+            return groupnorm_swish_forward(x, *P)
+        if row.kind == "upsample":
+            return upsample_nearest2x_forward(x)
+        if row.kind == "attn":
+            return attnblock_forward(x, *P)
         if row.kind == "quantize":  # the quantized z (no EMA step); its gradient is the straight-through one
             empty = None if images is None else self.empty_patches(images)
-            q, _ = self.quantizer.forward(x, train=False, empty=empty)
-            return q.quantized, None
-        return row_forward(row, self.params, x)
+            return self.quantizer.forward(x, empty=empty)[0].quantized, None
 
     def layer_backward(self, row, dy, cache):
         """layer_forward's VJP -> ([dx], the gradients of row.param_names, in order)."""
-        if row.kind == "quantize":  # forward was quantized = z + sg(e - z): the identity for the gradient
-            return [dy], []
-        dx, dparams = row_backward(row, dy, cache)
-        return [dx], dparams
+        if row.kind == "conv":
+            dx, *dp = conv2d_backward(dy, cache)
+        elif row.kind == "norm_swish":
+            dx, *dp = groupnorm_swish_backward(dy, cache)
+        elif row.kind == "upsample":
+            dx, *dp = upsample_nearest2x_backward(dy, cache)
+        elif row.kind == "attn":
+            dx, *dp = attnblock_backward(dy, cache)
+        elif row.kind == "quantize":  # forward was quantized = z + sg(e - z): the identity for the gradient
+            dx, dp = dy, []
+        return [dx], dp
 
     # -----------------------------------------------------------------------------------
     # the tape
@@ -366,7 +338,7 @@ class Codebook(ModelWeights):
             if row.kind == "res":
                 x, c = self._resblock_forward(row, x, tape is not None, tr)
             else:
-                x, c = row_forward(row, self.params, x)
+                x, c = self.layer_forward(row, x)
             if tape is not None:
                 tape.append((row, c))
             if tr is not None:
@@ -382,9 +354,13 @@ class Codebook(ModelWeights):
             if row.kind == "res":
                 dy = self._resblock_backward(dy, c, grads, g)
                 continue
-            dy, dparams = row_backward(row, dy, c)
+            (dy,), dparams = self.layer_backward(row, dy, c)
             for name, dp in zip(row.param_names, dparams):
-                _add_grad(grads, name, dp)
+                # the first gradient is stored as is (fresh from the layer: no zero-filled copy of every parameter)
+                if name in grads:
+                    grads[name] += dp
+                else:
+                    grads[name] = dp
         return dy
 
     def _resblock_forward(self, row, x, keep, tr):
@@ -394,8 +370,8 @@ class Codebook(ModelWeights):
         h = self._run(row.body, x, main, tr)
         s = self._run(row.shortcut, x, short, tr)
         if tr is None and row.body:  # h, conv2's fresh output, is referenced nowhere else: add in place
-            return add(h, s, out=h), (main, short)
-        return add(s, h), (main, short)  # the trace keeps h itself
+            return np.add(h, s, out=h), (main, short)
+        return s + h, (main, short)  # the trace keeps h itself
 
     def _resblock_backward(self, dy, cache, grads, g=None):
         main, short = cache
@@ -405,7 +381,7 @@ class Codebook(ModelWeights):
         # fresh array for it, 16 MiB at the paper's 128x128, cost 4x the add in page faults); not
         # where dh is dy or ds itself (an empty body)
         in_place = not (np.may_share_memory(dh, dy) or np.may_share_memory(dh, ds))
-        return add(dh, ds, out=dh if in_place else None)
+        return np.add(dh, ds, out=dh if in_place else None)
 
     # -----------------------------------------------------------------------------------
     # the model
@@ -528,7 +504,7 @@ class Codebook(ModelWeights):
             self._check_array("drec", drec, rec_shape)
         if dloss is not None:
             dloss = _checks.real("dloss", dloss)
-        grads = {}  # filled by _add_grad; parameters the model did not use get zeros at the end
+        grads = {}  # filled by _backward; parameters the model did not use get zeros at the end
         total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
         dcommitment = 0.0
         with np.errstate(over="ignore"):  # the seeds are finite, their products may overflow: checked below

@@ -32,7 +32,6 @@ from ..nn.attention import (
 )
 from ..geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
 from ..nn.layers import (
-    add,
     embedding_backward,
     embedding_forward,
     layernorm_backward,
@@ -404,11 +403,11 @@ class Transformer(ModelWeights):
         y, c_attn = attention_layer_forward(a, p[h + "attn/c_attn/weight"], p[h + "attn/c_attn/bias"],
                                             p[h + "attn/c_proj/weight"], p[h + "attn/c_proj/bias"],
                                             self.config.n_head, self.config.attention_scale, context=context)
-        x = add(x, y)  # (R, B, N, L, d)
+        x = x + y  # (R, B, N, L, d)
         m, c_ln2 = layernorm_forward(x, p[h + "ln_2/gamma"], p[h + "ln_2/beta"])
         f, c_mlp = mlp_forward(m, p[h + "mlp/c_fc/weight"], p[h + "mlp/c_fc/bias"],
                                p[h + "mlp/c_proj/weight"], p[h + "mlp/c_proj/bias"])
-        out = add(x, f)  # (R, B, N, L, d)
+        out = x + f  # (R, B, N, L, d)
         if tr is not None:
             b = f"blocks.{j}."
             _, _, q, k, v, o, lse, _, _ = c_attn  # (R, B, H, N, L, dh), lse (R, B, H, N, L)
@@ -431,7 +430,7 @@ class Transformer(ModelWeights):
         # forward was x2 = x1 + mlp(ln_2(x1))
         dm, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dx, c_mlp, g, b + "mlp")
         dx1, dg2, db2 = layernorm_backward(dm, c_ln2)
-        dx = add(dx, dx1)
+        dx = dx + dx1
         if g is not None:
             g[b + "ln_2"] = dm
             g[b + "resid_1"] = g[b + "attn.c_proj"] = dx
@@ -446,7 +445,7 @@ class Transformer(ModelWeights):
                         ("mlp/c_fc/weight", dw_fc), ("mlp/c_fc/bias", db_fc),
                         ("mlp/c_proj/weight", dw_proj), ("mlp/c_proj/bias", db_proj)):
             grads[h + name] += dp
-        return add(dx, dx0)
+        return dx + dx0
 
     # -----------------------------------------------------------------------------------
     # the heads
