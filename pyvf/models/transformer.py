@@ -627,11 +627,13 @@ class Transformer(ModelWeights):
             raise ValueError("scene was encoded by another model (or before its parameters were replaced): "
                              "encode the context again with this model's encode_scene")
 
-    def _query_forward(self, scene, x):
-        """x (M, B, L, d): M query rows of one view each (generation or localization rows) -> after
-        ln_f (M, B, L, d). The training blocks, each attending the scene's cached trunk."""
+    def _query_forward(self, scene, tokens, poses, row):
+        """M query views, tokens (B, M, L) and poses (B, M, 7) in the scene's frame -> their tree
+        row `row` (1 generation, 2 localization) after the training blocks, each attending the
+        scene's cached trunk, and ln_f: (M, B, L, d)."""
         p = self.params
-        x = x[:, :, None]  # (M, B, 1, L, d): rows of the tree, one view each
+        x = self._embed_forward(tokens, poses)[0][row]  # (B, M, L, d)
+        x = np.ascontiguousarray(x.transpose(1, 0, 2, 3))[:, :, None]  # (M, B, 1, L, d): rows of one view each
         for j in range(self.config.n_layer):
             x, _ = self._block_forward(x, j, context=(scene.keys[j], scene.values[j]))
         return layernorm_forward(x[:, :, 0], p["ln_f/gamma"], p["ln_f/beta"])[0]
@@ -640,28 +642,22 @@ class Transformer(ModelWeights):
         """query_poses (B, M, 7), in the context's frame -> token logits (B, M, L, V) of each
         query view (the generation branch: image hidden, pose given)."""
         self._check_scene(scene)
-        p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
         self._check_inputs(B=scene.ref.shape[0], unit=True, query_poses=query_poses)
         rel = relative_poses(query_poses, scene.ref[:, None, :])  # (B, M, 7)
         # as make_relative does for the context: the pose MLP is not sign-invariant
         rel[..., 3:] = quat_canonical(quat_normalize(rel[..., 3:]))
-        pose_in = rel.copy()
-        pose_in[..., :3] *= self.dtype.type(self.config.pose_multiplier)
-        P, _ = mlp_forward(pose_in, p["pose_embedding/c_fc/weight"], p["pose_embedding/c_fc/bias"],
-                           p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, M, d)
-        x = p["wte/weight"][V] + p["wpe/embeddings"][:L] + P[:, :, None, :]  # (B, M, L, d)
-        g = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
+        hidden = np.zeros(rel.shape[:2] + (scene.tokens_per_view,), np.int64)  # (B, M, L): row 1 reads none
+        g = self._query_forward(scene, hidden, rel, 1)  # (M, B, L, d)
         return self._logits(g).transpose(1, 0, 2, 3)  # (B, M, L, V)
 
     def localize_scene(self, scene, query_tokens):
         """query_tokens (B, M, L) ints -> one pose per query view (B, M, 7) in the context's
         frame: the token predictions averaged (geometry.average_pose)."""
         self._check_scene(scene)
-        p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
-        self._check_inputs(B=scene.ref.shape[0], L=L, query_tokens=query_tokens)
-        E = p["wte/weight"][query_tokens]  # (B, M, L, d)
-        x = E + p["wpe/embeddings"][:L] + p["wte/weight"][V + 1]
-        l = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
+        p = self.params
+        self._check_inputs(B=scene.ref.shape[0], L=scene.tokens_per_view, query_tokens=query_tokens)
+        unknown = np.zeros(query_tokens.shape[:2] + (7,), self.dtype)  # (B, M, 7): row 2 reads none
+        l = self._query_forward(scene, query_tokens, unknown, 2)  # (M, B, L, d)
         head = "quaternion_pose_representation/pose_classifier/"
         raw, _ = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
                              p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (M, B, L, 7)
