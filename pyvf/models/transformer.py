@@ -45,6 +45,10 @@ from .io import ModelWeights
 from .table import Layer, parameters
 
 MAX_TOKENS_PER_VIEW = 256  # wpe has 256 rows: token t of every view gets row t
+DENSE_PAIR = ("c_fc/weight", "c_fc/bias", "c_proj/weight", "c_proj/bias")  # an MLP's parameters, mlp_forward's order
+ATTN_PARAMS = ("c_attn/weight", "c_attn/bias", "c_proj/weight", "c_proj/bias")  # attention_layer_forward's order
+NORM = ("gamma", "beta")
+POSE_HEAD = "quaternion_pose_representation/pose_classifier/"
 
 # What forward(..., trace=True) records, in execution order ("{j}": every block). Layouts are the
 # tree's: R = 3 rows (trunk, generation, localization), heads split as the kernel takes them.
@@ -95,6 +99,12 @@ def trace_names(n_layer):
         elif not n.startswith("blocks."):
             names.append(n)
     return names
+
+
+def _accumulate(grads, prefix, names, dparams):
+    """grads[prefix + name] += its gradient, for names and dparams in the layer pair's order."""
+    for name, dp in zip(names, dparams):
+        grads[prefix + name] += dp
 
 
 def _trace_mlp(tr, name, cache, y):
@@ -180,8 +190,8 @@ def _row(name, kind, prefix, params, calls, reads=()):
 
 def _dense(d_in, d_hidden, d_out, prefix=""):
     """An MLP's two Dense layers (c_fc, GELU, c_proj): (suffix, shape) pairs."""
-    return ((prefix + "c_fc/weight", (d_in, d_hidden)), (prefix + "c_fc/bias", (1, d_hidden)),
-            (prefix + "c_proj/weight", (d_hidden, d_out)), (prefix + "c_proj/bias", (1, d_out)))
+    shapes = ((d_in, d_hidden), (1, d_hidden), (d_hidden, d_out), (1, d_out))
+    return tuple((prefix + n, s) for n, s in zip(DENSE_PAIR, shapes))
 
 
 def _one(inp, out):
@@ -194,15 +204,14 @@ def layer_table(cfg):
     function of its inputs only (trace names or the model's inputs), its parameters in the
     published order. The residual additions are not layers (pyvf.compare on a trace covers them)."""
     V, d = cfg.n_embeddings, cfg.d_model
-    norm = (("gamma", (d,)), ("beta", (d,)))
+    norm = tuple((n, (d,)) for n in NORM)
     rows = [_row("embed", "embed", "", (("wte/weight", (V + 2, d)), ("wpe/embeddings", (MAX_TOKENS_PER_VIEW, d)),
                                         *_dense(7, 2 * d, d, "pose_embedding/")),
                  (((("tokens", None), ("poses", None)), "embed.out"),))]
     prev = "embed.out"
     for j in range(cfg.n_layer):
         b, h = f"blocks.{j}.", f"h.{j}/"
-        attn = (("c_attn/weight", (d, 3 * d)), ("c_attn/bias", (1, 3 * d)), ("c_proj/weight", (d, d)),
-                ("c_proj/bias", (1, d)))
+        attn = tuple(zip(ATTN_PARAMS, ((d, 3 * d), (1, 3 * d), (d, d), (1, d))))
         rows += [_row(b + "ln_1", "layernorm", h + "ln_1/", norm, _one(prev, b + "ln_1")),
                  _row(b + "attn", "attention", h + "attn/", attn, _one(b + "ln_1", b + "attn.c_proj")),
                  _row(b + "ln_2", "layernorm", h + "ln_2/", norm, _one(b + "resid_1", b + "ln_2")),
@@ -213,7 +222,7 @@ def layer_table(cfg):
         _row("ln_f", "layernorm", "ln_f/", norm,
              ((((prev, 1),), "ln_f.generation"), (((prev, 2),), "ln_f.localization"))),
         _row("logits", "logits", "", (), _one("ln_f.generation", "logits"), reads=("wte/weight",)),  # tied: wte[:V]
-        _row("pose_head", "mlp", "quaternion_pose_representation/pose_classifier/", _dense(d, 2 * d, 7),
+        _row("pose_head", "mlp", POSE_HEAD, _dense(d, 2 * d, 7),
              _one("ln_f.localization", "pose")),
     ]
     return tuple(rows)
@@ -356,8 +365,7 @@ class Transformer(ModelWeights):
         W = p["wpe/embeddings"][:L]  # (L, d): token t of every view gets row t
         pose_in = poses.copy()  # (B, N, 7)
         pose_in[..., :3] *= self.dtype.type(self.config.pose_multiplier)  # xyz scaled, quaternion unchanged
-        P, c_pose = mlp_forward(pose_in, p["pose_embedding/c_fc/weight"], p["pose_embedding/c_fc/bias"],
-                                p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, N, d)
+        P, c_pose = self._mlp("pose_embedding/", pose_in)  # (B, N, d)
         if tr is not None:
             tr["embed.tokens"], tr["embed.positions"], tr["pose_embedding.input"] = E, W, pose_in
             _trace_mlp(tr, "pose_embedding", c_pose, P)
@@ -382,13 +390,10 @@ class Transformer(ModelWeights):
         dP = (dtrunk + dgen).sum(axis=2)  # (B, N, d): P feeds the trunk and the generation row
         if g is not None:
             g["embed.out"], g["pose_embedding.c_proj"] = dx, dP
-        dpose_in, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dP, c_pose, g, "pose_embedding")
+        dpose_in, *dps = mlp_backward(dP, c_pose, g, "pose_embedding")
         if g is not None:
             g["pose_embedding.input"], g["embed.positions"], g["embed.tokens"] = dpose_in, dW, dE
-        grads["pose_embedding/c_fc/weight"] += dw_fc
-        grads["pose_embedding/c_fc/bias"] += db_fc
-        grads["pose_embedding/c_proj/weight"] += dw_proj
-        grads["pose_embedding/c_proj/bias"] += db_proj
+        _accumulate(grads, "pose_embedding/", DENSE_PAIR, dps)
 
     # -----------------------------------------------------------------------------------
     # one pre-LN block: x = x + attn(ln_1(x)); x = x + mlp(ln_2(x))
@@ -400,13 +405,11 @@ class Transformer(ModelWeights):
         context and itself as the tree's branch row at view Nc does (attention_layer_forward)."""
         p, h = self.params, f"h.{j}/"
         a, c_ln1 = layernorm_forward(x, p[h + "ln_1/gamma"], p[h + "ln_1/beta"])
-        y, c_attn = attention_layer_forward(a, p[h + "attn/c_attn/weight"], p[h + "attn/c_attn/bias"],
-                                            p[h + "attn/c_proj/weight"], p[h + "attn/c_proj/bias"],
+        y, c_attn = attention_layer_forward(a, *(p[h + "attn/" + n] for n in ATTN_PARAMS),
                                             self.config.n_head, self.config.attention_scale, context=context)
         x = x + y  # (R, B, N, L, d)
         m, c_ln2 = layernorm_forward(x, p[h + "ln_2/gamma"], p[h + "ln_2/beta"])
-        f, c_mlp = mlp_forward(m, p[h + "mlp/c_fc/weight"], p[h + "mlp/c_fc/bias"],
-                               p[h + "mlp/c_proj/weight"], p[h + "mlp/c_proj/bias"])
+        f, c_mlp = self._mlp(h + "mlp/", m)
         out = x + f  # (R, B, N, L, d)
         if tr is not None:
             b = f"blocks.{j}."
@@ -428,27 +431,28 @@ class Transformer(ModelWeights):
         if g is not None:
             g[b + "out"] = g[b + "mlp.c_proj"] = dx
         # forward was x2 = x1 + mlp(ln_2(x1))
-        dm, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dx, c_mlp, g, b + "mlp")
-        dx1, dg2, db2 = layernorm_backward(dm, c_ln2)
+        dm, *dmlp = mlp_backward(dx, c_mlp, g, b + "mlp")
+        dx1, *dln2 = layernorm_backward(dm, c_ln2)
         dx = dx + dx1
         if g is not None:
             g[b + "ln_2"] = dm
             g[b + "resid_1"] = g[b + "attn.c_proj"] = dx
         # forward was x1 = x0 + attn(ln_1(x0))
-        da, dw_attn, db_attn, dw_aproj, db_aproj = attention_layer_backward(dx, c_attn, g, b + "attn")
-        dx0, dg1, db1 = layernorm_backward(da, c_ln1)
+        da, *dattn = attention_layer_backward(dx, c_attn, g, b + "attn")
+        dx0, *dln1 = layernorm_backward(da, c_ln1)
         if g is not None:
             g[b + "ln_1"] = da
-        for name, dp in (("ln_1/gamma", dg1), ("ln_1/beta", db1), ("attn/c_attn/weight", dw_attn),
-                        ("attn/c_attn/bias", db_attn), ("attn/c_proj/weight", dw_aproj),
-                        ("attn/c_proj/bias", db_aproj), ("ln_2/gamma", dg2), ("ln_2/beta", db2),
-                        ("mlp/c_fc/weight", dw_fc), ("mlp/c_fc/bias", db_fc),
-                        ("mlp/c_proj/weight", dw_proj), ("mlp/c_proj/bias", db_proj)):
-            grads[h + name] += dp
+        for part, names, dps in (("ln_1/", NORM, dln1), ("attn/", ATTN_PARAMS, dattn), ("ln_2/", NORM, dln2),
+                                 ("mlp/", DENSE_PAIR, dmlp)):
+            _accumulate(grads, h + part, names, dps)
         return dx + dx0
 
     # -----------------------------------------------------------------------------------
     # the heads
+
+    def _mlp(self, prefix, x):
+        """mlp_forward with the parameters named prefix + DENSE_PAIR."""
+        return mlp_forward(x, *(self.params[prefix + n] for n in DENSE_PAIR))
 
     def _logits(self, g):
         """g (..., d): ln_f of generation rows -> logits (..., V), the embedding tied: g @ wte[:V]^T,
@@ -471,9 +475,7 @@ class Transformer(ModelWeights):
         g, c_lng = layernorm_forward(hg, p["ln_f/gamma"], p["ln_f/beta"])  # (B, N, L, d)
         l, c_lnl = layernorm_forward(hl, p["ln_f/gamma"], p["ln_f/beta"])
         logits = self._logits(g)  # (B, N, L, V)
-        head = "quaternion_pose_representation/pose_classifier/"
-        raw, c_head = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
-                                  p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (B, N, L, 7)
+        raw, c_head = self._mlp(POSE_HEAD, l)  # (B, N, L, 7)
         if tr is not None:
             tr["ln_f.generation"], tr["ln_f.localization"], tr["logits"] = g, l, logits
             _trace_mlp(tr, "pose_head", c_head, raw)
@@ -486,14 +488,10 @@ class Transformer(ModelWeights):
         V = self.config.n_embeddings
         dg, dwte = self._logits_backward(dlogits, gen)  # (B, N, L, d), (V, d)
         grads["wte/weight"][:V] += dwte
-        dl, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(draw, c_head, g, "pose_head")
+        dl, *dps = mlp_backward(draw, c_head, g, "pose_head")
         if g is not None:
             g["logits"] = dlogits
-        head = "quaternion_pose_representation/pose_classifier/"
-        grads[head + "c_fc/weight"] += dw_fc
-        grads[head + "c_fc/bias"] += db_fc
-        grads[head + "c_proj/weight"] += dw_proj
-        grads[head + "c_proj/bias"] += db_proj
+        _accumulate(grads, POSE_HEAD, DENSE_PAIR, dps)
         dhg, dgf1, dbf1 = layernorm_backward(dg, c_lng)
         dhl, dgf2, dbf2 = layernorm_backward(dl, c_lnl)
         grads["ln_f/gamma"] += dgf1 + dgf2
@@ -654,13 +652,10 @@ class Transformer(ModelWeights):
         """query_tokens (B, M, L) ints -> one pose per query view (B, M, 7) in the context's
         frame: the token predictions averaged (geometry.average_pose)."""
         self._check_scene(scene)
-        p = self.params
         self._check_inputs(B=scene.ref.shape[0], L=scene.tokens_per_view, query_tokens=query_tokens)
         unknown = np.zeros(query_tokens.shape[:2] + (7,), self.dtype)  # (B, M, 7): row 2 reads none
         l = self._query_forward(scene, query_tokens, unknown, 2)  # (M, B, L, d)
-        head = "quaternion_pose_representation/pose_classifier/"
-        raw, _ = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
-                             p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (M, B, L, 7)
+        raw, _ = self._mlp(POSE_HEAD, l)  # (M, B, L, 7)
         rel = average_pose(pose_prediction(raw, self.config.pose_multiplier), axis=2)  # (M, B, 7)
         return absolute_poses(rel.transpose(1, 0, 2), scene.ref[:, None, :])  # (B, M, 7)
 
