@@ -245,8 +245,7 @@ class TransformerOutput:
 
 
 class Transformer(ModelWeights):
-    """The model: parameters in `self.params` (official name -> array), forward, backward.
-    layers: the layer table (default layer_table(config))."""
+    """The model: parameters in `self.params` (official name -> array), forward, backward."""
 
     LAYOUTS = LAYOUTS
     FILE_KIND = "transformer"
@@ -257,10 +256,10 @@ class Transformer(ModelWeights):
     META = ("codebook_fingerprint",)
     codebook_fingerprint = None
 
-    def __init__(self, config, seed=0, *, layers=None):
+    def __init__(self, config, seed=0):
         self.config = config
         self.dtype = np.dtype(config.dtype)
-        self._describe(layer_table(config) if layers is None else layers)
+        self._describe(layer_table(config))
         rng = np.random.default_rng(seed)
         self.params = {}
         for name, shape in self.parameter_shapes().items():
@@ -602,7 +601,7 @@ class Transformer(ModelWeights):
         context_tokens (B, Nc, L) ints, context_poses (B, Nc, 7) (any frame: they are made
         relative to the first context view here) -> Scene, reused by render_scene and
         localize_scene for any number of queries. Costs one trunk pass (R = 1, block-causal)."""
-        B, Nc, L = self._check_inputs(unit=True, context_tokens=context_tokens, context_poses=context_poses)
+        _, _, L = self._check_inputs(unit=True, context_tokens=context_tokens, context_poses=context_poses)
         rel, ref = make_relative(context_poses)  # (B, Nc, 7), (B, 7)
         x, _ = self._embed_forward(context_tokens, rel)
         x = x[:1]  # (1, B, Nc, L, d): the trunk row only
@@ -612,7 +611,7 @@ class Transformer(ModelWeights):
             _, _, q, k, v, _, _, _, _ = c[1]  # the attention layer's cache: (1, B, H, Nc, L, dh)
             keys.append(k[0])  # (B, H, Nc, L, dh)
             values.append(v[0])
-        return Scene(ref=ref, keys=keys, values=values, n_views=Nc, tokens_per_view=L, config=self.config,
+        return Scene(ref=ref, keys=keys, values=values, tokens_per_view=L, config=self.config,
                      params=dict(self.params))
 
     def _check_scene(self, scene):
@@ -674,7 +673,6 @@ class Scene:
     ref: np.ndarray  # (B, 7) the first context view's pose: the frame the model sees
     keys: list  # per layer (B, H, Nc, L, dh): the trunk's attention keys
     values: list  # per layer (B, H, Nc, L, dh)
-    n_views: int  # Nc
     tokens_per_view: int  # L
     config: "TransformerConfig"  # the encoding model's: render_scene / localize_scene check them
     params: dict = dataclasses.field(repr=False)  # its parameter arrays (references, not copies)

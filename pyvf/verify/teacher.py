@@ -345,20 +345,17 @@ class _Run:
 # the module adapter
 
 
-def torch_modules(port, model, path=None):
+def torch_modules(port, model):
     """{layer name: callable} from a torch module whose children are named as the published
-    modules: for each of layer_names(model), port.get_submodule(path(name)) (default: the name),
-    left out where there is none. A codebook's GroupNorm modules are wrapped in swish, as pyvf
-    fuses them; under the empty code the quantize layer calls port.quantize(z, port.empty_patches(images))."""
+    modules: port.get_submodule(name) for each of layer_names(model) it has. A codebook's GroupNorm
+    modules are wrapped in swish, as pyvf fuses them; under the empty code the quantize layer calls
+    port.quantize(z, port.empty_patches(images))."""
     import torch
 
     out = {}
     for layer in layer_table(model):
-        p = layer.name if path is None else path(layer.name)
-        if p is None:
-            continue
         try:
-            m = port.get_submodule(p)
+            m = port.get_submodule(layer.name)
         except AttributeError:
             continue
         if layer.kind == "norm_swish":
