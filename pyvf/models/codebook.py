@@ -194,13 +194,10 @@ def parameter_shapes(cfg):
     return {name: shape for name, (shape, _) in parameter_table(layer_table(cfg)).items()}
 
 
-def _losses(cfg):
-    return ["rec_loss", "commitment_loss"] + (["perceptual_loss"] if cfg.perceptual_weight else []) + ["loss"]
-
-
 def trace_names(cfg):
     """The names forward(..., trace=True) records for configuration cfg, in execution order."""
-    return trace_order(layer_table(cfg)) + _losses(cfg)
+    losses = ["rec_loss", "commitment_loss"] + (["perceptual_loss"] if cfg.perceptual_weight else []) + ["loss"]
+    return trace_order(layer_table(cfg)) + losses
 
 
 @dataclasses.dataclass
@@ -255,10 +252,6 @@ class Codebook(ModelWeights):
         D, K = config.embed_dim, config.n_embed
         self.BUFFERS = dict(zip(BUFFERS, [(D, K), (K,), (D, K), None]))  # their shapes; None: the EMA count
         self._cache = None
-
-    def trace_names(self):
-        """The names forward(..., trace=True) records, in execution order."""
-        return trace_order(self.layers) + _losses(self.config)
 
     # -----------------------------------------------------------------------------------
     # weights (the mechanism: pyvf.models.io.ModelWeights)
@@ -439,7 +432,7 @@ class Codebook(ModelWeights):
         (B, 1, S, S), not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x| / (in_channels * sum w),
         normalised in float64 so that any finite scale gives the same loss and gradient.
 
-        trace=True also returns, as `out.trace`, every activation by name (trace_names(), in
+        trace=True also returns, as `out.trace`, every activation by name (trace_names(config), in
         execution order; what the forward keeps anyway, not copies), and makes the next
         backward() return every activation's gradient."""
         images = self._check_images(images)

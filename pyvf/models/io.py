@@ -127,20 +127,21 @@ class ModelWeights:
     # loading -----------------------------------------------------------------------------
 
     def _entry(self, raw, name, arr, layout, hint):
-        """One checkpoint entry -> (the array in the published layout and the model's dtype, or a
-        count; None) or (None, (exception class, message naming raw))."""
+        """One checkpoint entry -> the array in the published layout and the model's dtype (or a
+        count); a problem raised naming raw."""
         arr, problem = _checks.checkpoint_array(raw, arr)  # torch tensors -> numpy
+        param = name in self._param_table
+        if problem is None and not param and self.BUFFERS[name] is None:
+            arr, problem = _count(raw, arr)
+        elif problem is None:
+            problem = _checks.weight_problem(raw, arr, self.layout_shapes(name, layout) if param else
+                                             [self.BUFFERS[name]], hint=hint)
+            if problem is None:  # to the model's dtype; float64 past float32's range refused
+                arr, problem = _checks.converted_weight(raw, self.from_layout(name, arr, layout) if param else arr,
+                                                        self.dtype)
         if problem is not None:
-            return None, problem
-        if name in self.BUFFERS and self.BUFFERS[name] is None:
-            return _count(raw, arr)
-        shapes = self.layout_shapes(name, layout) if name in self._param_table else [self.BUFFERS[name]]
-        problem = _checks.weight_problem(raw, arr, shapes, hint=hint)
-        if problem is not None:
-            return None, problem
-        if name in self._param_table:
-            arr = self.from_layout(name, arr, layout)
-        return _checks.converted_weight(raw, arr, self.dtype)  # float64 past float32's range refused
+            raise problem[0](f"load_official: {problem[1]}")
+        return arr
 
     def _load(self, weights, layout):
         """load_official: every entry checked, the first problem raised naming its key (TypeError
@@ -158,9 +159,7 @@ class ModelWeights:
             if name in given_as:
                 raise ValueError(f"load_official: {name!r} given twice (as {given_as[name]!r} and {raw!r})")
             given_as[name] = raw
-            loaded[name], problem = self._entry(raw, name, arr, layout, hint)
-            if problem is not None:
-                raise problem[0](f"load_official: {problem[1]}")
+            loaded[name] = self._entry(raw, name, arr, layout, hint)
         missing = [k for k in wanted if k not in given_as]
         if missing:
             raise ValueError(f"load_official: {len(missing)} entries missing: {missing}")

@@ -51,11 +51,5 @@ def trace_order(rows):
 
 
 def parameters(rows):
-    """Parameter name -> (shape, role) of every row, in execution order. A name two rows claim raises."""
-    out = {}
-    for row in leaves(rows):
-        for full, (_, shape, role) in zip(row.param_names, row.params):
-            if full in out:
-                raise ValueError(f"layer table: parameter {full!r} is declared twice (layer {row.name!r})")
-            out[full] = (tuple(shape), role)
-    return out
+    """Parameter name -> (shape, role) of every row, in execution order."""
+    return {full: (tuple(shape), role) for row in leaves(rows) for full, (_, shape, role) in zip(row.param_names, row.params)}

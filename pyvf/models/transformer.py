@@ -272,10 +272,6 @@ class Transformer(ModelWeights):
             self.params[name] = p.astype(self.dtype)
         self._cache = None
 
-    def trace_names(self):
-        """The names forward(..., trace=True) records, in execution order."""
-        return trace_names(self.config.n_layer)
-
     # -----------------------------------------------------------------------------------
     # weights (the mechanism: pyvf.models.io.ModelWeights)
 
