@@ -258,7 +258,7 @@ class Codebook(ModelWeights):
 
     def official_name(self, name):
         """A Lightning checkpoint's `model.` prefix is dropped."""
-        return name[len("model."):] if name.startswith("model.") else name
+        return name.removeprefix("model.")
 
     def fingerprint(self):
         """What makes this codebook's tokens and images: the sha256 (first 16 hex digits) of every

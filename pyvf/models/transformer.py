@@ -161,11 +161,7 @@ class TransformerConfig:
 
 def official_name(name):
     """'migt/h.0/ln_1/gamma:0' -> 'h.0/ln_1/gamma' (the prefix and suffix are optional)."""
-    if name.startswith("migt/"):
-        name = name[len("migt/"):]
-    if name.endswith(":0"):
-        name = name[:-2]
-    return name
+    return name.removeprefix("migt/").removesuffix(":0")
 
 
 # load_official's layouts: layout -> how it holds the Dense layers, the published one first

@@ -20,10 +20,7 @@ def checkpoint_key_to_name(key):
     """The official name a checkpoint key stands for, or None for keys that are not weights."""
     if any(marker in key for marker in SKIP_MARKERS):
         return None
-    name = key
-    for suffix in ("/.ATTRIBUTES/VARIABLE_VALUE", ":0"):
-        if name.endswith(suffix):
-            name = name[: -len(suffix)]
+    name = key.removesuffix("/.ATTRIBUTES/VARIABLE_VALUE").removesuffix(":0")
     if "migt/" in name:  # drop anything before the model's scope, e.g. "model/" or "transformer/"
         name = name[name.index("migt/") + len("migt/"):]
     return name
