@@ -175,17 +175,13 @@ class EMAQuantizer:
         return new
 
     def reset_dead_codes(self, z, threshold=1e-3, rng=None, restart="batch", reseat=0, empty=None):
-        """Optional (off unless called): codes whose smoothed cluster size is below threshold are
-        moved to vectors of z (B, D, h, w), their EMA statistics restarted there: each to a
-        different vector of z, unless z has fewer vectors than there are dead codes.
-        restart: "batch", vectors drawn uniformly from z; "worst", the vectors the codes represent
-        worst (largest squared distance to their nearest code first, ties to the first vector).
-        reseat: also move up to this many live codes of least utility (code_utility, see
-        low_utility_codes) to the worst-represented vectors not taken by a dead code, each only
-        while its utility is below the squared error of the vector it goes to (the move then lowers
-        the batch's quantization error: the ELBG idea, Patane and Russo 2001).
-        empty: as forward's; code 0, the empty code, never moves, and the other codes move only to
-        vectors of non-empty positions. Returns the number of codes moved."""
+        """Move the codes whose smoothed cluster size is below threshold to vectors of z (B, D, h, w),
+        each to a different one while there are enough, their EMA statistics restarted there ->
+        the number moved. restart: "batch", vectors drawn uniformly; "worst", the worst-represented
+        first. reseat: also move up to this many live codes of least utility (low_utility_codes) to
+        the worst-represented vectors left, each only while the move lowers the batch's
+        quantization error (the ELBG idea, Patane and Russo 2001). empty: as forward's; code 0
+        never moves, the others move only to non-empty positions' vectors."""
         rng = np.random.default_rng(rng)
         empty = None if empty is None else empty.reshape(-1)  # (M,)
         flat = z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim)  # (M, D)
@@ -225,10 +221,9 @@ class EMAQuantizer:
 
     def init_kmeans(self, z, iters, batch, rng=None, empty=None):
         """Codes from data: k-means++ seeding on the vectors of z (B, D, h, w), then `iters` Lloyd
-        iterations (a code no vector chose keeps its place); the EMA statistics set as if one update
-        (counter 1) had seen each code chosen by its cluster's share of a batch of `batch` images,
-        so that the next updates move the codes on from there. empty: as forward's; code 0 then
-        starts at the mean of the empty positions' vectors, k-means places the others on the rest."""
+        iterations; the EMA statistics set as if one update (counter 1) had seen each code chosen
+        by its cluster's share of a batch of `batch` images. empty: as forward's; code 0 then
+        starts at the mean of the empty positions' vectors."""
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim), np.float64)  # (M, D)
         scale = batch / z.shape[0]  # images per batch / images in z
         empty = None if empty is None else empty.reshape(-1)  # (M,)
