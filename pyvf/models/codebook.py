@@ -376,6 +376,14 @@ class Codebook(ModelWeights):
         in_place = not (np.may_share_memory(dh, dy) or np.may_share_memory(dh, ds))
         return np.add(dh, ds, out=dh if in_place else None)
 
+    def _encoder(self, tape, x, tr=None):
+        """x (B, in_channels, S, S) -> z (B, embed_dim, k, k): the table's rows before quantize."""
+        return self._run(self._encoder_rows, x, tape, tr)
+
+    def _decoder(self, tape, z, tr=None):
+        """z (B, embed_dim, k, k) quantized -> images (B, out_ch, S, S): the rows after quantize."""
+        return self._run(self._decoder_rows, z, tape, tr)
+
     # -----------------------------------------------------------------------------------
     # the model
 
@@ -404,7 +412,7 @@ class Codebook(ModelWeights):
         """images (B, in_channels, S, S) in [-1, 1] -> codes (B, k, k) int64; with
         return_latent=True, (z, codes): also the encoder's unquantized output z (B, D, k, k)."""
         images = self._check_images(images)
-        z = self._run(self._encoder_rows, images)  # (B, D, k, k)
+        z = self._encoder(None, images)  # (B, D, k, k)
         out, _ = self.quantizer.forward(z, train=False, empty=self.empty_patches(images))
         return (z, out.codes) if return_latent else out.codes
 
@@ -415,14 +423,14 @@ class Codebook(ModelWeights):
         if codes.min() < 0 or codes.max() >= cfg.n_embed:
             raise ValueError(f"codes must be in [0, {cfg.n_embed})")
         e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
-        return self._run(self._decoder_rows, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
+        return self._decoder(None, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
     def decode_latent(self, z):
         """z (B, embed_dim, k, k), a point of the code space (codes, or a mixture of codes such as
         their expectation under a transformer's distribution) -> images (B, out_ch, S, S)."""
         k = self.config.token_size
         self._check_array("z", z, ("B", self.config.embed_dim, k, k))
-        return self._run(self._decoder_rows, np.ascontiguousarray(z))
+        return self._decoder(None, np.ascontiguousarray(z))
 
     def forward(self, images, train=False, *, trace=False, pixel_weights=None):
         """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers
@@ -443,11 +451,11 @@ class Codebook(ModelWeights):
                 raise ValueError("pixel_weights must be non-negative and not all zero")
         enc, dec = [], []
         tr = {} if trace else None  # None: nothing is recorded, nothing extra is computed
-        z = self._run(self._encoder_rows, images, enc, tr)  # (B, D, k, k)
+        z = self._encoder(enc, images, tr)  # (B, D, k, k)
         q, c_q = self.quantizer.forward(z, train=train, empty=self.empty_patches(images))
         if tr is not None:
             tr[self._quantize_row.name] = q.quantized
-        rec = self._run(self._decoder_rows, q.quantized, dec, tr)  # (B, out_ch, S, S)
+        rec = self._decoder(dec, q.quantized, tr)  # (B, out_ch, S, S)
         perc = None
         if self.perceptual is not None:  # (the module that ran, its cache): backward differentiates it
             per_image, cache = self.perceptual.forward(images, rec)  # (B,)
