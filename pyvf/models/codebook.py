@@ -23,16 +23,8 @@ import hashlib
 import numpy as np
 
 from .. import _checks
-from ..nn.conv import (
-    attnblock_backward,
-    attnblock_forward,
-    conv2d_backward,
-    conv2d_forward,
-    groupnorm_swish_backward,
-    groupnorm_swish_forward,
-    upsample_nearest2x_backward,
-    upsample_nearest2x_forward,
-)
+from ..nn.conv import (attnblock_backward, attnblock_forward, conv2d_backward, conv2d_forward, groupnorm_swish_backward,
+                       groupnorm_swish_forward, upsample_nearest2x_backward, upsample_nearest2x_forward)
 from ..nn.quantizer import EMAQuantizer
 from .io import ModelWeights
 from .table import Layer, parameters, trace_order

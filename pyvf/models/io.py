@@ -1,13 +1,6 @@
 """How a model's weights get in and out, the same for Codebook and Transformer (both ModelWeights):
-
-    model.parameter_shapes()                 # name -> shape, in the published layout and order
-    model.from_layout(name, a, layout)       # an array in `layout` -> the published layout (a view)
-    model.to_layout(name, p, layout)         # a parameter in the published layout -> a copy in `layout`
-    model.load_official(weights, layout=...) # every entry checked before anything is assigned
-    model.save(path); type(model).load(path) # one .npz: the configuration (JSON, __config__) and state_dict()
-
-A layout differs from the published one only in the parameters whose role (the layer table's,
-pyvf.models.table) ROLES lists for it.
+the layouts load_official speaks (a layout differs from the published one only in the parameters
+whose role ROLES lists for it), load_official itself, and the model file (save, load).
 """
 
 import collections
@@ -188,19 +181,16 @@ class ModelWeights:
         anything else wrong, pyvf._io.CheckpointError (a ValueError) naming the file and the entry."""
         what, name, config_cls = cls.FILE_KIND, os.fspath(path), cls.CONFIG
         arrays = load_npz(path, what, required=("__config__",))
+        later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
         try:
             fields = json.loads(str(arrays.pop("__config__")))
-        except ValueError as e:
-            raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
-        later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
-        missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields and f.name not in later]
-        if missing:  # never the other defaults: they may be another model than the file's
-            raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
-                                  f"{config_cls.__name__} written by save(), or written by another version")
-        try:
+            missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in {*fields, *later}]
+            if missing:  # never the other defaults: they may be another model than the file's
+                raise ValueError(f"it lacks the fields {missing}")
             model = cls(config_cls(**fields))
         except (TypeError, ValueError, AttributeError) as e:
-            raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
+            raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__} written by "
+                                  f"save(): {e}") from e
         meta = {k: str(arrays.pop(f"__{k}__")) for k in cls.META if f"__{k}__" in arrays}  # absent: older file
         try:
             model.load_official(arrays)

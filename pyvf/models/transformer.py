@@ -25,21 +25,10 @@ import dataclasses
 import numpy as np
 
 from .. import _checks
-from ..nn.attention import (
-    _fused_heads,
-    attention_layer_backward,
-    attention_layer_forward,
-)
 from ..geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
-from ..nn.layers import (
-    embedding_backward,
-    embedding_forward,
-    layernorm_backward,
-    layernorm_forward,
-    matmul,
-    mlp_backward,
-    mlp_forward,
-)
+from ..nn.attention import _fused_heads, attention_layer_backward, attention_layer_forward
+from ..nn.layers import (embedding_backward, embedding_forward, layernorm_backward, layernorm_forward, matmul,
+                         mlp_backward, mlp_forward)
 from ..nn.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
 from .io import ModelWeights
 from .table import Layer, parameters
