@@ -142,8 +142,8 @@ def test_codebook_torch_layout_is_nn_conv2d_and_tf_is_channels_last(rng):
 
 
 def test_codebook_load_refusal_changes_nothing(rng):
-    """The buffers are checked last: a wrong counter raises naming it, after every parameter passed,
-    and the model is left as it was."""
+    """A wrong counter (the last entry, after every parameter passed) raises naming it, and the
+    model is left as it was: nothing is assigned before every entry passed."""
     target = pyvf.Codebook(random_codebook(rng).config, seed=5)
     before = target.state_dict()
     with pytest.raises(ValueError, match=r"quantize\.counter"):
