@@ -15,7 +15,7 @@ import warnings
 from .codebook import Codebook
 from .transformer import Transformer
 
-__all__ = ["PRETRAINED", "TRAIN_HINT", "check_pair", "load_pretrained", "pretrained_path"]
+__all__ = ["PRETRAINED", "TRAIN_HINT", "check_pair", "load_pretrained"]
 
 # kind -> file name of the shipped model (package data of pyvf.models)
 PRETRAINED = {"codebook": "sm7-codebook.npz", "transformer": "sm7-transformer.npz"}
@@ -30,17 +30,11 @@ train a pair yourself (pyvf's training commands; each resumes when run again):
 then pass them: --codebook runs/cb/codebook.npz --transformer runs/tf/transformer.npz"""
 
 
-def pretrained_path(kind):
-    """The path of the shipped file of `kind` ("codebook" or "transformer"), whether it exists or not."""
-    if kind not in PRETRAINED:
-        raise ValueError(f"kind must be one of {sorted(PRETRAINED)}, got {kind!r}")
-    ref = importlib.resources.files(__name__).joinpath(PRETRAINED[kind])
-    return os.fspath(ref)  # pyvf is installed as files (scikit-build-core wheel), not zipped
-
-
 def _resolve(kind, path):
     """path, or the shipped file when path is None -> an existing path (FileNotFoundError otherwise)."""
-    path = pretrained_path(kind) if path is None else os.fspath(path)
+    if path is None:  # pyvf is installed as files (scikit-build-core wheel), not zipped
+        path = importlib.resources.files(__name__).joinpath(PRETRAINED[kind])
+    path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{kind} file {path} does not exist.\n{TRAIN_HINT}")
     return path
