@@ -1,4 +1,4 @@
-"""Each model is described once, by its layer table (pyvf/models/table.py): a changed table changes
+"""Each model is described once, by its layer table (pyvf/models/io.py): a changed table changes
 the forward and teacher forcing alike. The oracle is independent of the table: the torch port of
 pyvf/verify/torch_ports.py, written from docs/math.md with its own strides and paddings."""
 

@@ -11,7 +11,7 @@
 
 Parameters use the published torch names (tests/data/official-codebook-*.json), conv weights
 (out, in, kh, kw); the quantizer's buffers (`quantize.*`) live in an EMAQuantizer. The model is
-its layer table (layer_table(config), pyvf.models.table): the parameters, the trace's names, the
+its layer table (layer_table(config), pyvf.models.io): the parameters, the trace's names, the
 forward's walk and teacher forcing's layers are read off it. The forward records every row it
 runs on a tape, (row, cache); the backward replays the tape in reverse. pyvf fuses Normalize and
 swish: `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)).
@@ -26,8 +26,7 @@ from .. import _checks
 from ..nn.conv import (attnblock_backward, attnblock_forward, conv2d_backward, conv2d_forward, groupnorm_swish_backward,
                        groupnorm_swish_forward, upsample_nearest2x_backward, upsample_nearest2x_forward)
 from ..nn.quantizer import EMAQuantizer
-from .io import ModelWeights
-from .table import Layer, parameters, trace_order
+from .io import Layer, ModelWeights, parameters, trace_order
 
 BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.ema_dw_hidden", "quantize.counter")
 
@@ -127,7 +126,7 @@ def _mid(part, c):
 
 
 def layer_table(cfg):
-    """The codebook's layers for configuration cfg, in execution order (pyvf.models.table.Layer rows):
+    """The codebook's layers for configuration cfg, in execution order (pyvf.models.io.Layer rows):
     the encoder, quant_conv, quantize, post_quant_conv, the decoder."""
     ch, mult, nres = cfg.ch, cfg.ch_mult, cfg.num_res_blocks
     rows = [_conv("encoder.conv_in", cfg.in_channels, ch, 3, padding=1)]

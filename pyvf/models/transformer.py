@@ -30,8 +30,7 @@ from ..nn.attention import _fused_heads, attention_layer_backward, attention_lay
 from ..nn.layers import (embedding_backward, embedding_forward, layernorm_backward, layernorm_forward, matmul,
                          mlp_backward, mlp_forward)
 from ..nn.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
-from .io import ModelWeights
-from .table import Layer, parameters
+from .io import Layer, ModelWeights, parameters
 
 MAX_TOKENS_PER_VIEW = 256  # wpe has 256 rows: token t of every view gets row t
 DENSE_PAIR = ("c_fc/weight", "c_fc/bias", "c_proj/weight", "c_proj/bias")  # an MLP's parameters, mlp_forward's order
@@ -145,7 +144,7 @@ class TransformerConfig:
 
 
 # ---------------------------------------------------------------------------------------
-# the layer table (pyvf.models.table): the parameters and teacher forcing's layers read it
+# the layer table (pyvf.models.io): the parameters and teacher forcing's layers read it
 
 
 def official_name(name):
@@ -185,7 +184,7 @@ def _one(inp, out):
 
 
 def layer_table(cfg):
-    """The transformer's layers for cfg, in execution order (pyvf.models.table.Layer rows): each a
+    """The transformer's layers for cfg, in execution order (pyvf.models.io.Layer rows): each a
     function of its inputs only (trace names or the model's inputs), its parameters in the
     published order. The residual additions are not layers (pyvf.compare on a trace covers them)."""
     V, d = cfg.n_embeddings, cfg.d_model

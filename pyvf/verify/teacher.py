@@ -8,7 +8,7 @@ the layer that has it (docs/verify.md §2 walks through both models).
     report.wrong      # ["blocks.1.attn"]: the layers whose output or VJP is over tolerance
 
 The layers (layer_names(model), in execution order) are read off the model's layer table
-(model.layers, pyvf.models.table). Tree activations, pyvf's (R, B, N, L, d), reach a port's
+(model.layers, pyvf.models.io). Tree activations, pyvf's (R, B, N, L, d), reach a port's
 callable flat, (B, T, d) with T = R*N*L ordered [row][view][token]; codebook activations NCHW.
 Backward: pyvf's gradient of each layer's output seeds the port's VJP (torch autograd) and pyvf's
 own layer pair on the same input; the gradients of each float input ("d <input name>") and of
