@@ -279,7 +279,7 @@ class _Run:
     def check(self, layer, fn):
         """Run the port's layer on pyvf's inputs, compare its outputs (and VJP) -> LayerCheck."""
         backward = self.grads is not None
-        mine, ins, outs = {}, [], []
+        mine, ins, outs, fwd, stage = {}, [], [], None, ""
         try:
             for inputs, out_name in layer.calls:
                 xs = [self.to_port(n, r) for n, r in inputs]
@@ -291,15 +291,10 @@ class _Run:
                 ins.append(xs)
                 outs.append(y)
                 mine[out_name] = self.from_port(out_name, None, y)
+            fwd, stage = compare(mine, {o: self.trace[o] for _, o in layer.calls}, **self.tol), "backward: "
+            bwd = self.vjp(layer, ins, outs) if backward else None
         except Exception as e:  # noqa: BLE001 - the port's layer failed: report it at this layer
-            return LayerCheck(layer.name, error=f"{type(e).__name__}: {e}")
-        fwd = compare(mine, {o: self.trace[o] for _, o in layer.calls}, **self.tol)
-        if not backward:
-            return LayerCheck(layer.name, forward=fwd)
-        try:
-            bwd = self.vjp(layer, ins, outs)
-        except Exception as e:  # noqa: BLE001
-            return LayerCheck(layer.name, forward=fwd, error=f"backward: {type(e).__name__}: {e}")
+            return LayerCheck(layer.name, forward=fwd, error=f"{stage}{type(e).__name__}: {e}")
         return LayerCheck(layer.name, forward=fwd, backward=bwd)
 
     def vjp(self, layer, ins, outs):
