@@ -260,6 +260,9 @@ def _without(state, name):
     ("load_official", lambda s: {**s, "encoder.conv_in.weight": np.zeros((3, 32, 3, 3), np.float32)}, ValueError,
      "encoder.conv_in.weight"),
     ("load_official", lambda s: {**s, "quantize.counter": np.array(-1)}, ValueError, "quantize.counter"),
+    ("load_official", lambda s: {**s, "quantize.counter": 2 ** 63}, ValueError, "quantize.counter"),  # int64's
+    ("load_official", lambda s: {**s, "quantize.embeddings": np.zeros((16, 8), np.float32)}, ValueError,
+     "quantize.embeddings"),  # transposed
     # float64 past float32's largest into a float32 model: inf (numpy only warns)
     ("load_official", lambda s: {**s, "encoder.conv_in.bias": np.full(32, 1e39)}, ValueError, "encoder.conv_in.bias"),
 ])

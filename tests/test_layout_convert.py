@@ -6,7 +6,6 @@ import pytest
 import torch
 
 import pyvf
-from pyvf.verify import convert_torch
 from conftest import assert_bitwise_equal
 from pyvf.models.transformer import is_dense_kernel
 
@@ -71,9 +70,9 @@ def test_tensors_that_require_grad_load(rng):
     sd = {k: torch.tensor(v) for k, v in model.state_dict().items()}
     with pytest.raises(TypeError, match="'ln_f/beta'"):
         model.load_official({**sd, "ln_f/beta": torch.zeros(32, dtype=torch.bfloat16)})
-    with pytest.raises(TypeError, match="'decoder.conv_out.bias'"):
-        convert_torch.convert({k: torch.tensor(v) for k, v in cb.state_dict().items()}
-                              | {"decoder.conv_out.bias": torch.zeros(3, dtype=torch.bfloat16)}, cb.config)
+    with pytest.raises(TypeError, match="'model.decoder.conv_out.bias'"):
+        cb.load_official({"model." + k: torch.tensor(v) for k, v in cb.state_dict().items()}
+                         | {"model.decoder.conv_out.bias": torch.zeros(3, dtype=torch.bfloat16)})
 
 
 @pytest.mark.parametrize("shape", [(3, 2, 5, 16, 8), (2, 1, 3, 4, 2, 7)])
@@ -143,8 +142,8 @@ def test_codebook_torch_layout_is_nn_conv2d_and_tf_is_channels_last(rng):
 
 
 def test_codebook_load_refusal_changes_nothing(rng):
-    """The buffers are checked last: a wrong counter raises naming it, after every parameter passed,
-    and the model is left as it was."""
+    """A wrong counter (the last entry, after every parameter passed) raises naming it, and the
+    model is left as it was: nothing is assigned before every entry passed."""
     target = pyvf.Codebook(random_codebook(rng).config, seed=5)
     before = target.state_dict()
     with pytest.raises(ValueError, match=r"quantize\.counter"):

@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from conftest import assert_close
 from pyvf.nn.attention import attention_layer_backward, attention_layer_forward
 from pyvf.nn.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
-from pyvf.verify.torch_transformer import tree_mask
+from pyvf.verify.torch_ports import tree_mask
 
 # float64, O(10) roundings per value: measured <= 3e-15; 1e-12 leaves room
 RTOL = 1e-12
@@ -31,7 +31,7 @@ def test_attention_layer_matches_torch(scale, rng):
     h = tx @ t[1] + t[2][0]
     v, q, k = h[..., :d], h[..., d:2 * d], h[..., 2 * d:]  # docs/math.md §3: values, queries, keys
     q, k, v = (a.reshape(B, -1, H, d // H).transpose(1, 2) for a in (q, k, v))
-    o = F.scaled_dot_product_attention(q, k, v, attn_mask=tree_mask(R, N, L), scale=scale)
+    o = F.scaled_dot_product_attention(q, k, v, attn_mask=tree_mask(N, L), scale=scale)
     ty = o.transpose(1, 2).reshape(B, R * N * L, d) @ t[3] + t[4][0]
     ty = ty.reshape(B, R, N, L, d).permute(1, 0, 2, 3, 4)
     (ty * torch.tensor(dy)).sum().backward()

@@ -4,14 +4,8 @@
     codebook, transformer = load_pretrained("runs/cb/codebook.npz", "runs/tf/transformer.npz")
     check_pair(codebook, transformer)                               # ValueError when they do not fit
 
-The shipped pair is two package data files beside this module, `sm7-codebook.npz`
-(Codebook.save) and `sm7-transformer.npz` (Transformer.save), trained on procedural SM7
-scenes of seed 0 (pyvf.scenes). A missing file raises FileNotFoundError naming it and saying
-how to train one (TRAIN_HINT). A transformer reads the codebook's tokens, so the pair must
-agree on the codebook size (n_embeddings == n_embed) and on the token image side
-(token_image_size == token_size), and the transformer must have been trained on this codebook's
-tokens (Transformer.codebook_fingerprint == Codebook.fingerprint(); a file that does not record
-it is paired with a warning); anything else raises ValueError.
+The shipped pair is two package data files beside this module (Codebook.save, Transformer.save
+output), trained on procedural SM7 scenes of seed 0 (pyvf.scenes).
 """
 
 import importlib.resources
@@ -21,7 +15,7 @@ import warnings
 from .codebook import Codebook
 from .transformer import Transformer
 
-__all__ = ["PRETRAINED", "TRAIN_HINT", "check_pair", "load_pretrained", "pretrained_path"]
+__all__ = ["PRETRAINED", "TRAIN_HINT", "check_pair", "load_pretrained"]
 
 # kind -> file name of the shipped model (package data of pyvf.models)
 PRETRAINED = {"codebook": "sm7-codebook.npz", "transformer": "sm7-transformer.npz"}
@@ -36,23 +30,10 @@ train a pair yourself (pyvf's training commands; each resumes when run again):
 then pass them: --codebook runs/cb/codebook.npz --transformer runs/tf/transformer.npz"""
 
 
-def pretrained_path(kind):
-    """The path of the shipped file of `kind` ("codebook" or "transformer"), whether it exists or not."""
-    if kind not in PRETRAINED:
-        raise ValueError(f"kind must be one of {sorted(PRETRAINED)}, got {kind!r}")
-    ref = importlib.resources.files(__name__).joinpath(PRETRAINED[kind])
-    return os.fspath(ref)  # pyvf is installed as files (scikit-build-core wheel), not zipped
-
-
 def _resolve(kind, path):
     """path, or the shipped file when path is None -> an existing path (FileNotFoundError otherwise)."""
-    if path is None:
-        path = pretrained_path(kind)
-        if not os.path.isfile(path):
-            raise FileNotFoundError(
-                f"the pretrained {kind} is not installed: {path} is missing "
-                f"(this build of pyvf ships without trained weights).\n{TRAIN_HINT}")
-        return path
+    if path is None:  # pyvf is installed as files (scikit-build-core wheel), not zipped
+        path = importlib.resources.files(__name__).joinpath(PRETRAINED[kind])
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{kind} file {path} does not exist.\n{TRAIN_HINT}")
@@ -61,8 +42,8 @@ def _resolve(kind, path):
 
 def check_pair(codebook, transformer):
     """ValueError unless the transformer reads this codebook's tokens: the same codebook size V,
-    the same token image side k (L = k*k tokens per view) and the codebook it was trained with
-    (a warning where the transformer does not record it); the errors name both models' files."""
+    the same token image side k and the codebook it was trained with (its fingerprint; a warning
+    where a file does not record it)."""
     cb, tf = codebook.config, transformer.config
     if tf.n_embeddings != cb.n_embed:
         raise ValueError(f"the transformer and the codebook do not fit: the transformer reads "
@@ -85,9 +66,7 @@ def check_pair(codebook, transformer):
 
 
 def load_pretrained(codebook=None, transformer=None):
-    """(Codebook, Transformer): the shipped SM7 pair, or the files given (paths of Codebook.save
-    and Transformer.save output; None takes the shipped one). FileNotFoundError for a missing
-    file (with how to train one), ValueError when the two do not fit (check_pair)."""
+    """(Codebook, Transformer): the shipped SM7 pair, or the files given (None: the shipped one)."""
     cb_path = _resolve("codebook", codebook)
     tf_path = _resolve("transformer", transformer)
     cb = Codebook.load(cb_path)

@@ -7,24 +7,14 @@
     images = cb.decode_code(codes)
     out = cb.forward(images, train=True) # reconstruction, codes, rec_loss, commitment_loss, loss
     grads = cb.backward()                # d out.loss / d every parameter, torch names
-
-Traces, for checking a port layer by layer (pyvf.compare):
-
-    out = cb.forward(images, trace=True)
-    out.trace                            # name -> activation, in execution order (trace_names(cfg))
-    g = cb.backward(drec=d)              # a VJP of the reconstruction: activations' gradients
-                                         # (backward order), then the parameters'
+    out = cb.forward(images, trace=True) # out.trace: name -> activation, execution order (pyvf.compare)
 
 Parameters use the published torch names (tests/data/official-codebook-*.json), conv weights
-(out, in, kh, kw). The quantizer's buffers (`quantize.*`) live in an EMAQuantizer.
-load_official / state_dict also speak channels-last kernels (layout="tf": TF, Flax).
-
-The model is described once, by its layer table (layer_table(config), pyvf.models.table); the
-parameters, the trace's names (each row's name: the published torch module's, a residual block's
-after its children's, then the losses), the forward's walk and teacher forcing's layers are read
-off it. The forward records every row it runs on a tape, (row, cache); the backward replays the
-tape in reverse. pyvf fuses Normalize and swish: `*.norm1`, `*.norm2`, `*.norm_out` are
-swish(GroupNorm(x)), not the torch GroupNorm module's output.
+(out, in, kh, kw); the quantizer's buffers (`quantize.*`) live in an EMAQuantizer. The model is
+its layer table (layer_table(config), pyvf.models.io): the parameters, the trace's names, the
+forward's walk and teacher forcing's layers are read off it. The forward records every row it
+runs on a tape, (row, cache); the backward replays the tape in reverse. pyvf fuses Normalize and
+swish: `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)).
 """
 
 import dataclasses
@@ -33,20 +23,10 @@ import hashlib
 import numpy as np
 
 from .. import _checks
-from ..nn.conv import (
-    attnblock_backward,
-    attnblock_forward,
-    conv2d_backward,
-    conv2d_forward,
-    groupnorm_swish_backward,
-    groupnorm_swish_forward,
-    upsample_nearest2x_backward,
-    upsample_nearest2x_forward,
-)
-from ..nn.layers import add
+from ..nn.conv import (attnblock_backward, attnblock_forward, conv2d_backward, conv2d_forward, groupnorm_swish_backward,
+                       groupnorm_swish_forward, upsample_nearest2x_backward, upsample_nearest2x_forward)
 from ..nn.quantizer import EMAQuantizer
-from .io import ModelWeights
-from .table import Layer, parameters, trace_order
+from .io import Layer, ModelWeights, parameters, trace_order
 
 BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.ema_dw_hidden", "quantize.counter")
 
@@ -54,15 +34,7 @@ BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.
 LAYOUTS = {"torch": "nn.Conv2d kernels (out, in, kh, kw), the published state dict",
            "tf": "conv kernels (kh, kw, in, out), channels-last as TF/Keras Conv2D and Flax nn.Conv hold them"}
 
-# the published state dict registers the encoder, then the decoder, then the 1x1 convs around the quantizer
-PUBLISHED_ORDER = ("encoder", "decoder")
-
 IMAGE_RANGE_SLACK = 1e-3  # images may leave [-1, 1] by this much (a user's own rounding), no more
-
-
-def _positive_tuple(name, val):
-    """val: a sequence of positive integers -> a tuple of int (JSON-safe, hashable)."""
-    return tuple(_checks.positive_integer(f"{name}[{i}]", v) for i, v in enumerate(val))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,11 +66,11 @@ class CodebookConfig:
         for name in ("ch", "num_res_blocks", "z_channels", "embed_dim", "n_embed", "image_size", "in_channels",
                      "out_ch"):
             object.__setattr__(self, name, _checks.positive_integer(f"CodebookConfig.{name}", getattr(self, name)))
-        object.__setattr__(self, "ch_mult", _positive_tuple("CodebookConfig.ch_mult", self.ch_mult))
+        for name in ("ch_mult", "attn_resolutions"):  # tuples of int (JSON-safe, hashable)
+            object.__setattr__(self, name, tuple(_checks.positive_integer(f"CodebookConfig.{name}[{i}]", v)
+                                                 for i, v in enumerate(getattr(self, name))))
         if not self.ch_mult:
             raise ValueError("CodebookConfig.ch_mult must name at least one level, got ()")
-        object.__setattr__(self, "attn_resolutions",
-                           _positive_tuple("CodebookConfig.attn_resolutions", self.attn_resolutions))
         # real numbers, stored as float; decay and eps in the quantizer's ranges
         for name, kw in (("decay", dict(lo=0.0, hi=1.0, lo_open=True, hi_open=True)),
                          ("eps", dict(lo=0.0, lo_open=True)), ("codebook_weight", {}), ("perceptual_weight", {})):
@@ -154,7 +126,7 @@ def _mid(part, c):
 
 
 def layer_table(cfg):
-    """The codebook's layers for configuration cfg, in execution order (pyvf.models.table.Layer rows):
+    """The codebook's layers for configuration cfg, in execution order (pyvf.models.io.Layer rows):
     the encoder, quant_conv, quantize, post_quant_conv, the decoder."""
     ch, mult, nres = cfg.ch, cfg.ch_mult, cfg.num_res_blocks
     rows = [_conv("encoder.conv_in", cfg.in_channels, ch, 3, padding=1)]
@@ -195,11 +167,6 @@ def layer_table(cfg):
     return tuple(rows)
 
 
-def _published_rank(name):
-    top = name.split(".", 1)[0]
-    return PUBLISHED_ORDER.index(top) if top in PUBLISHED_ORDER else len(PUBLISHED_ORDER)
-
-
 def _split(layers):
     """The table -> (the encoder's rows, the quantize row, the decoder's rows)."""
     at = [row.kind for row in layers].index("quantize")
@@ -207,8 +174,10 @@ def _split(layers):
 
 
 def parameter_table(layers):
-    """A table's parameters: torch name -> (shape, role), in the published order."""
-    return dict(sorted(parameters(layers).items(), key=lambda kv: _published_rank(kv[0])))
+    """A table's parameters: torch name -> (shape, role), in the published order: the state dict
+    registers the encoder, then the decoder, then the 1x1 convs around the quantizer."""
+    rank = {"encoder": 0, "decoder": 1}
+    return dict(sorted(parameters(layers).items(), key=lambda kv: rank.get(kv[0].split(".", 1)[0], 2)))
 
 
 def parameter_shapes(cfg):
@@ -216,39 +185,10 @@ def parameter_shapes(cfg):
     return {name: shape for name, (shape, _) in parameter_table(layer_table(cfg)).items()}
 
 
-def _losses(cfg):
-    return ["rec_loss", "commitment_loss"] + (["perceptual_loss"] if cfg.perceptual_weight else []) + ["loss"]
-
-
 def trace_names(cfg):
     """The names forward(..., trace=True) records for configuration cfg, in execution order."""
-    return trace_order(layer_table(cfg)) + _losses(cfg)
-
-
-def row_forward(row, params, x):
-    """Run one row of the table (not a residual block): x -> (y, cache), with its parameters from params."""
-    P = [params[n] for n in row.param_names]
-    if row.kind == "conv":
-        return conv2d_forward(x, *P, row.stride, row.padding)
-    if row.kind == "norm_swish":
-        return groupnorm_swish_forward(x, *P)
-    if row.kind == "upsample":
-        return upsample_nearest2x_forward(x)
-    if row.kind == "attn":
-        return attnblock_forward(x, *P)
-
-
-def row_backward(row, dy, cache):
-    """row_forward's VJP: dy -> (dx, the gradients of row.param_names, in order)."""
-    if row.kind == "conv":
-        dx, *dp = conv2d_backward(dy, cache)
-    elif row.kind == "norm_swish":
-        dx, *dp = groupnorm_swish_backward(dy, cache)
-    elif row.kind == "upsample":
-        dx, *dp = upsample_nearest2x_backward(dy, cache)
-    elif row.kind == "attn":
-        dx, *dp = attnblock_backward(dy, cache)
-    return dx, dp
+    losses = ["rec_loss", "commitment_loss"] + (["perceptual_loss"] if cfg.perceptual_weight else []) + ["loss"]
+    return trace_order(layer_table(cfg)) + losses
 
 
 @dataclasses.dataclass
@@ -264,28 +204,13 @@ class CodebookOutput:
     trace: dict = None  # forward(..., trace=True) only: name -> activation, trace_names(cfg) order
 
 
-def _add_grad(grads, name, g):
-    """grads[name] += g; the first gradient of a parameter is stored as is (a fresh array from the
-    layer's backward: no zero-filled copy of every parameter, 270 MB for the paper's codebook)."""
-    if name in grads:
-        grads[name] += g
-    else:
-        grads[name] = g
-
-
 class Codebook(ModelWeights):
     """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward.
 
-    perceptual: the optional perceptual term (LPIPS in the paper, whose pretrained VGG weights
-    are not bundled), any object with `forward(x, x_hat) -> (loss (B,), cache)` and
-    `backward(dloss (B,), cache) -> dx_hat`; weighted by config.perceptual_weight, which must
-    then be positive. Without one, perceptual_weight must be 0: the term is never silently dropped.
-    Its cache may be anything, None included (a module that keeps its state on itself).
-
-    layers: the layer table (default layer_table(config)): the parameters, the forward, the trace
-    and teacher forcing all read it, so a changed table (a layer renamed, another padding) changes
-    them alike.
-    """
+    perceptual: the optional perceptual term (LPIPS in the paper, its VGG weights not bundled):
+    an object with `forward(x, x_hat) -> (loss (B,), cache)` and `backward(dloss (B,), cache) ->
+    dx_hat`, given exactly when config.perceptual_weight is nonzero. layers: the layer table
+    (default layer_table(config))."""
 
     LAYOUTS = LAYOUTS
     FILE_KIND = "codebook"
@@ -315,20 +240,16 @@ class Codebook(ModelWeights):
             self.params[name] = p.astype(self.dtype)
         self.quantizer = EMAQuantizer(config.embed_dim, config.n_embed, config.decay, config.eps,
                                       config.dtype, seed=seed + 1)
-        self._buffer_prefix = self._quantize_row.name + "."
-        self.BUFFERS = tuple(self._buffer_prefix + k for k in self.quantizer.state_dict())  # BUFFERS by default
+        D, K = config.embed_dim, config.n_embed
+        self.BUFFERS = dict(zip(BUFFERS, [(D, K), (K,), (D, K), None]))  # their shapes; None: the EMA count
         self._cache = None
-
-    def trace_names(self):
-        """The names forward(..., trace=True) records, in execution order."""
-        return trace_order(self.layers) + _losses(self.config)
 
     # -----------------------------------------------------------------------------------
     # weights (the mechanism: pyvf.models.io.ModelWeights)
 
     def official_name(self, name):
         """A Lightning checkpoint's `model.` prefix is dropped."""
-        return name[len("model."):] if name.startswith("model.") else name
+        return name.removeprefix("model.")
 
     def fingerprint(self):
         """What makes this codebook's tokens and images: the sha256 (first 16 hex digits) of every
@@ -341,29 +262,20 @@ class Codebook(ModelWeights):
         return h.hexdigest()[:16]
 
     def state_dict(self, layout="torch"):
-        """torch name -> array, the quantizer's buffers included (copies), in `layout` (LAYOUTS):
-        "torch", the published state dict, or "tf", channels-last conv kernels. Every other entry
-        is the same in both."""
+        """torch name -> array (copies), the quantizer's buffers included, in `layout` (LAYOUTS)."""
         state = self._params_in(layout)
-        state.update({self._buffer_prefix + k: v for k, v in self.quantizer.state_dict().items()})
+        state.update({"quantize." + k: v for k, v in self.quantizer.state_dict().items()})
         return state
 
     def load_official(self, state_dict, *, layout="torch"):
         """Load a state dict (name -> array or torch tensor): every parameter and the four
         quantize.* buffers, nothing else, named as the published torch state dict (a Lightning
-        checkpoint's `model.` prefix is dropped; its other keys, e.g. `loss.*`, are unexpected:
-        `pyvf convert torch-codebook` skips them). The caller states the conv kernels' `layout`,
-        so a kernel is never silently transposed; `quantize.embeddings` is (embed_dim, n_embed) in
-        both (codes are columns). Checked as pyvf.models.io says, the first wrong entry named."""
+        checkpoint's `model.` prefix dropped), its conv kernels in `layout`; `quantize.embeddings`
+        is (embed_dim, n_embed) in both (codes are columns). The first wrong entry is named."""
         self._load(state_dict, layout)
 
-    def _load_buffers(self, entries):
-        prefix = self._buffer_prefix
-        buffers, problems = self.quantizer.check_state({k[len(prefix):]: v for k, v in entries.items()},
-                                                       prefix=prefix, require_all=False)
-        if problems:
-            raise problems[0][0](f"load_official: {problems[0][1]}")
-        self.quantizer._assign(buffers)
+    def _set_buffers(self, buffers):
+        self.quantizer.load_state_dict({k[len("quantize."):]: v for k, v in buffers.items()})
 
     # -----------------------------------------------------------------------------------
     # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
@@ -371,18 +283,32 @@ class Codebook(ModelWeights):
     def layer_forward(self, row, x, images=None):
         """Run the table's row (not a residual block) on x -> (output, cache); images: the
         quantize row's second input under the empty code."""
+        P = [self.params[n] for n in row.param_names]
+        if row.kind == "conv":
+            return conv2d_forward(x, *P, row.stride, row.padding)
+        if row.kind == "norm_swish":
+            return groupnorm_swish_forward(x, *P)
+        if row.kind == "upsample":
+            return upsample_nearest2x_forward(x)
+        if row.kind == "attn":
+            return attnblock_forward(x, *P)
         if row.kind == "quantize":  # the quantized z (no EMA step); its gradient is the straight-through one
             empty = None if images is None else self.empty_patches(images)
-            q, _ = self.quantizer.forward(x, train=False, empty=empty)
-            return q.quantized, None
-        return row_forward(row, self.params, x)
+            return self.quantizer.forward(x, empty=empty)[0].quantized, None
 
     def layer_backward(self, row, dy, cache):
         """layer_forward's VJP -> ([dx], the gradients of row.param_names, in order)."""
-        if row.kind == "quantize":  # forward was quantized = z + sg(e - z): the identity for the gradient
-            return [dy], []
-        dx, dparams = row_backward(row, dy, cache)
-        return [dx], dparams
+        if row.kind == "conv":
+            dx, *dp = conv2d_backward(dy, cache)
+        elif row.kind == "norm_swish":
+            dx, *dp = groupnorm_swish_backward(dy, cache)
+        elif row.kind == "upsample":
+            dx, *dp = upsample_nearest2x_backward(dy, cache)
+        elif row.kind == "attn":
+            dx, *dp = attnblock_backward(dy, cache)
+        elif row.kind == "quantize":  # forward was quantized = z + sg(e - z): the identity for the gradient
+            dx, dp = dy, []
+        return [dx], dp
 
     # -----------------------------------------------------------------------------------
     # the tape
@@ -396,7 +322,7 @@ class Codebook(ModelWeights):
             if row.kind == "res":
                 x, c = self._resblock_forward(row, x, tape is not None, tr)
             else:
-                x, c = row_forward(row, self.params, x)
+                x, c = self.layer_forward(row, x)
             if tape is not None:
                 tape.append((row, c))
             if tr is not None:
@@ -412,9 +338,13 @@ class Codebook(ModelWeights):
             if row.kind == "res":
                 dy = self._resblock_backward(dy, c, grads, g)
                 continue
-            dy, dparams = row_backward(row, dy, c)
+            (dy,), dparams = self.layer_backward(row, dy, c)
             for name, dp in zip(row.param_names, dparams):
-                _add_grad(grads, name, dp)
+                # the first gradient is stored as is (fresh from the layer: no zero-filled copy of every parameter)
+                if name in grads:
+                    grads[name] += dp
+                else:
+                    grads[name] = dp
         return dy
 
     def _resblock_forward(self, row, x, keep, tr):
@@ -424,8 +354,8 @@ class Codebook(ModelWeights):
         h = self._run(row.body, x, main, tr)
         s = self._run(row.shortcut, x, short, tr)
         if tr is None and row.body:  # h, conv2's fresh output, is referenced nowhere else: add in place
-            return add(h, s, out=h), (main, short)
-        return add(s, h), (main, short)  # the trace keeps h itself
+            return np.add(h, s, out=h), (main, short)
+        return s + h, (main, short)  # the trace keeps h itself
 
     def _resblock_backward(self, dy, cache, grads, g=None):
         main, short = cache
@@ -435,34 +365,27 @@ class Codebook(ModelWeights):
         # fresh array for it, 16 MiB at the paper's 128x128, cost 4x the add in page faults); not
         # where dh is dy or ds itself (an empty body)
         in_place = not (np.may_share_memory(dh, dy) or np.may_share_memory(dh, ds))
-        return add(dh, ds, out=dh if in_place else None)
-
-    # -----------------------------------------------------------------------------------
-    # encoder and decoder: the table's rows before and after quantize
+        return np.add(dh, ds, out=dh if in_place else None)
 
     def _encoder(self, tape, x, tr=None):
-        """x (B, in_channels, S, S) -> z (B, embed_dim, k, k), after quant_conv."""
+        """x (B, in_channels, S, S) -> z (B, embed_dim, k, k): the table's rows before quantize."""
         return self._run(self._encoder_rows, x, tape, tr)
 
     def _decoder(self, tape, z, tr=None):
-        """z (B, embed_dim, k, k) quantized -> images (B, out_ch, S, S), from post_quant_conv on."""
+        """z (B, embed_dim, k, k) quantized -> images (B, out_ch, S, S): the rows after quantize."""
         return self._run(self._decoder_rows, z, tape, tr)
 
     # -----------------------------------------------------------------------------------
     # the model
 
     def _check_images(self, images):
-        """images (B >= 1, in_channels, S, S) of the model's dtype, finite, in [-1, 1] -> C-ordered.
+        """images (B, in_channels, S, S) of the model's dtype, finite, in [-1, 1] -> C-ordered.
         The likely mistake, uint8 pictures (B, S, S, 3), is refused saying how to convert them."""
         cfg, S = self.config, self.config.image_size
-        convert = "convert uint8 pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images"
-        if not isinstance(images, np.ndarray) or images.dtype != self.dtype:
-            raise TypeError(f"images must be a {self.dtype} numpy array in [-1, 1]: {convert}")
-        if images.ndim != 4 or images.shape[1:] != (cfg.in_channels, S, S) or images.shape[0] == 0:
-            raise ValueError(f"images must have shape (B, {cfg.in_channels}, {S}, {S}), got {images.shape}: {convert}")
-        _checks.finite("images", images)
+        hint = ": convert uint8 pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images"
+        self._check_array("images", images, ("B", cfg.in_channels, S, S), hint=hint)
         if images.min() < -1 - IMAGE_RANGE_SLACK or images.max() > 1 + IMAGE_RANGE_SLACK:
-            raise ValueError(f"images must be in [-1, 1]: {convert}")
+            raise ValueError(f"images must be in [-1, 1]{hint}")
         return np.ascontiguousarray(images)
 
     def empty_patches(self, images):
@@ -487,24 +410,17 @@ class Codebook(ModelWeights):
     def decode_code(self, codes):
         """codes (B, k, k) ints in [0, n_embed) -> images (B, out_ch, S, S)."""
         cfg, k = self.config, self.config.token_size
-        _checks.int_array("codes", codes)
-        if codes.shape[1:] != (k, k):
-            raise ValueError(f"codes must have shape (B, {k}, {k}), got {codes.shape}")
-        if codes.size and (codes.min() < 0 or codes.max() >= cfg.n_embed):
+        self._check_array("codes", codes, ("B", k, k), kind="iu")
+        if codes.min() < 0 or codes.max() >= cfg.n_embed:
             raise ValueError(f"codes must be in [0, {cfg.n_embed})")
         e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
         return self._decoder(None, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
     def decode_latent(self, z):
-        """z (B, embed_dim, k, k) of the model's dtype, a point of the code space (codes, or a
-        mixture of codes such as their expectation under a transformer's distribution) ->
-        images (B, out_ch, S, S). decode_code(codes) is decode_latent of the codes' columns."""
-        cfg, k = self.config, self.config.token_size
-        if not isinstance(z, np.ndarray) or z.dtype != self.dtype:
-            raise TypeError(f"z must be a {self.dtype} numpy array")
-        if z.ndim != 4 or z.shape[1:] != (cfg.embed_dim, k, k):
-            raise ValueError(f"z must have shape (B, {cfg.embed_dim}, {k}, {k}), got {z.shape}")
-        _checks.finite("z", z)
+        """z (B, embed_dim, k, k), a point of the code space (codes, or a mixture of codes such as
+        their expectation under a transformer's distribution) -> images (B, out_ch, S, S)."""
+        k = self.config.token_size
+        self._check_array("z", z, ("B", self.config.embed_dim, k, k))
         return self._decoder(None, np.ascontiguousarray(z))
 
     def forward(self, images, train=False, *, trace=False, pixel_weights=None):
@@ -512,22 +428,16 @@ class Codebook(ModelWeights):
         (the output uses the codes from before the update). Keeps what backward() needs.
 
         pixel_weights: None (rec_loss = mean |rec - x|, as published), or non-negative weights
-        (B, 1, S, S) of the model's dtype, not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x|
-        / (in_channels * sum w), the weighted mean (equal weights give the plain mean). Any
-        finite scale: the weights are normalised in float64, so the loss and its gradient do
-        not depend on it (weights near float32's largest value included).
+        (B, 1, S, S), not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x| / (in_channels * sum w),
+        normalised in float64 so that any finite scale gives the same loss and gradient.
 
-        trace=True also returns, as `out.trace`, every intermediate activation by name
-        (trace_names(config), in execution order: what the forward keeps anyway, not copies: do
-        not modify them), and makes the next backward() return every activation's
-        gradient."""
+        trace=True also returns, as `out.trace`, every activation by name (trace_names(config), in
+        execution order; what the forward keeps anyway, not copies), and makes the next
+        backward() return every activation's gradient."""
         images = self._check_images(images)
         if pixel_weights is not None:
-            _checks.float_array("pixel_weights", pixel_weights, images, "images")
             B, _, S, _ = images.shape
-            if pixel_weights.shape != (B, 1, S, S):
-                raise ValueError(f"pixel_weights must have shape {(B, 1, S, S)}, got {pixel_weights.shape}")
-            _checks.finite("pixel_weights", pixel_weights)
+            self._check_array("pixel_weights", pixel_weights, (B, 1, S, S))
             if (pixel_weights < 0).any() or not pixel_weights.any():
                 raise ValueError("pixel_weights must be non-negative and not all zero")
         enc, dec = [], []
@@ -573,29 +483,20 @@ class Codebook(ModelWeights):
             dloss * loss + sum(reconstruction * drec)
 
         (a vector-Jacobian product; a term whose seed is None is left out; with no seed at all,
-        dloss = 1: the gradient of the loss, as training needs). drec (B, out_ch, S, S) is an
-        array of the model's dtype, for out.reconstruction; dloss a real number. The commitment
-        term (the encoder's only gradient besides the straight-through one) comes with dloss only.
-        Seeds whose gradient of the reconstruction overflows the model's dtype (dloss = 1e300 on a
-        float32 model) raise ValueError naming them.
-
-        Returns torch parameter name -> gradient. After forward(..., trace=True) the dict first
-        holds the gradient of every traced activation, in backward order (exactly the reverse of
-        the trace), under the trace's names except the losses; then the parameters'."""
+        dloss = 1). drec (B, out_ch, S, S) for out.reconstruction; dloss a real number. The
+        commitment term (the encoder's only gradient besides the straight-through one) comes with
+        dloss only. Returns torch parameter name -> gradient; after forward(..., trace=True), first
+        every traced activation's gradient (but the losses'), in backward order."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
         enc, dec, c_q, drec_loss, perc, B, rec_shape, traced = self._cache
         if drec is None and dloss is None:
             dloss = 1.0
         if drec is not None:
-            if not isinstance(drec, np.ndarray) or drec.dtype != self.dtype:
-                raise TypeError(f"drec must be a {self.dtype} numpy array (the model's dtype)")
-            if drec.shape != tuple(rec_shape):
-                raise ValueError(f"drec must have the reconstruction's shape {tuple(rec_shape)}, got {drec.shape}")
-            _checks.finite("drec", drec)
+            self._check_array("drec", drec, rec_shape)
         if dloss is not None:
             dloss = _checks.real("dloss", dloss)
-        grads = {}  # filled by _add_grad; parameters the model did not use get zeros at the end
+        grads = {}  # filled by _backward; parameters the model did not use get zeros at the end
         total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
         dcommitment = 0.0
         with np.errstate(over="ignore"):  # the seeds are finite, their products may overflow: checked below

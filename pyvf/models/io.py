@@ -1,20 +1,11 @@
-"""How a model's weights get in and out: the layouts load_official speaks, the one loader, the model file.
+"""How a model is described and how its weights get in and out, the same for Codebook and Transformer.
 
-Codebook and Transformer both derive from ModelWeights and describe their parameters in a layer
-table (pyvf.models.table); from it, with the same signatures for both models:
+The layer table: each layer written once, as a row (Layer); the parameters (name -> (shape, role)),
+the trace's names, the forward and teacher forcing's layers (pyvf.verify.teacher) are read off it.
+A residual block is a row whose `body` (the main path) and `shortcut` are rows.
 
-    model.parameter_shapes()                 # name -> shape, in the published layout and order
-    model.layout_shapes(name, layout)        # the shapes `name` may have in `layout`, preferred first
-    model.from_layout(name, a, layout)       # an array in `layout` -> the published layout (a view)
-    model.to_layout(name, p, layout)         # a parameter in the published layout -> a copy in `layout`
-    model.official_name(raw)                 # a checkpoint's key -> the parameter's name
-    model.load_official(weights, layout=...) # every entry checked before anything is assigned
-    model.save(path); type(model).load(path) # one .npz: the configuration (JSON, __config__) and state_dict()
-
-A layout differs from the published one only in the parameters whose role (the table's) ROLES
-lists for it: the codebook's conv kernels in "tf" (channels-last), the transformer's Dense
-kernels and biases in "torch" (nn.Linear's). pyvf.params_from_layout / params_to_layout and
-teacher forcing convert through the same methods.
+ModelWeights: the layouts load_official speaks (a layout differs from the published one only in
+the parameters whose role ROLES lists for it), load_official itself, and the model file (save, load).
 """
 
 import collections
@@ -27,9 +18,58 @@ import numpy as np
 
 from .. import _checks
 from .._io import CheckpointError, atomic_savez, load_npz
-from .table import parameters
 
-__all__ = ["ROLES", "ModelWeights"]
+__all__ = ["Layer", "ROLES", "ModelWeights", "parameters", "trace_order"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Layer:
+    """One row of a model's layer table."""
+    name: str  # the published module's name; the trace name of its output
+    kind: str  # the layer pair that computes it (the model's layer_forward / layer_backward)
+    params: tuple = ()  # (suffix, shape, role) per parameter, in the layer pair's argument order;
+    #                     the parameter is named prefix + suffix; role: see ROLES
+    prefix: str = None  # the parameters' prefix; None: name (the codebook's torch names)
+    stride: int = 1  # conv rows only
+    padding: object = 0  # conv rows only: an int, or (left, right, top, bottom)
+    body: tuple = ()  # kind "res": the main path's rows
+    shortcut: tuple = ()  # kind "res": the shortcut's rows; () the identity
+    module: str = None  # teacher forcing: the published module this row is part of; None: a layer itself
+    calls: tuple = None  # teacher forcing: per call (((input, tree row), ...), output); None: one call
+    #                      on the previous row's output, output `name`
+    reads: tuple = ()  # parameters of other rows this one also reads (tied weights), by full name
+
+    @property
+    def param_names(self):
+        """The full names of the row's own parameters, in params' order."""
+        prefix = self.name if self.prefix is None else self.prefix
+        return tuple(prefix + suffix for suffix, _, _ in self.params)
+
+
+def leaves(rows):
+    """The rows that compute something, in execution order: a residual block's body, then its shortcut."""
+    for row in rows:
+        if row.kind == "res":
+            yield from leaves(row.body)
+            yield from leaves(row.shortcut)
+        else:
+            yield row
+
+
+def trace_order(rows):
+    """Every row's name in execution order, a residual block's own (its output) after its children's."""
+    names = []
+    for row in rows:
+        if row.kind == "res":
+            names += trace_order(row.body) + trace_order(row.shortcut)
+        names.append(row.name)
+    return names
+
+
+def parameters(rows):
+    """Parameter name -> (shape, role) of every row, in execution order."""
+    return {full: (tuple(shape), role) for row in leaves(rows) for full, (_, shape, role) in zip(row.param_names, row.params)}
+
 
 Role = collections.namedtuple("Role", "layout shapes to_layout from_layout")
 
@@ -46,24 +86,48 @@ ROLES = {
 }
 
 
+def _count(name, a):
+    """A count (an integer, or a 0-d array holding one: a torch checkpoint may hold it as a float)
+    -> (int, None), or (None, problem) unless it is a non-negative integer int64 holds."""
+    a = np.asarray(a)
+    if a.shape == () and a.dtype.kind in "iuf" and np.isfinite(a) and a == np.floor(a) \
+            and 0 <= int(a) <= np.iinfo(np.int64).max:
+        return int(a), None
+    return None, (ValueError, f"{name!r} must be a non-negative integer count that int64 holds, got {a!r}")
+
+
 class ModelWeights:
-    """The weight mechanism Codebook and Transformer share (see the module's docstring). A model
-    sets `params` (name -> array, published layout), `config`, `dtype`, and calls
-    _describe(layers) in its __init__."""
+    """The weight mechanism Codebook and Transformer share. A model sets `params` (name -> array,
+    published layout), `config`, `dtype`, and calls _describe(layers) in its __init__."""
 
     LAYOUTS = {}  # layout -> what it holds (for messages); the published layout first
-    BUFFERS = ()  # state entries besides the parameters (the codebook's quantizer buffers)
-    FILE_KIND = "model"  # how a model file's errors call it
+    BUFFERS = {}  # state entries besides the parameters -> shape, None for a count (the quantizer's)
     CONFIG = None  # the configuration class a model file is read into
+    FILE_KIND = "model"  # how a model file's errors call it
     INPUTS = ()  # the names of forward's inputs (teacher forcing's first layer reads the first)
     META = ()  # attributes a model file keeps beside the weights (strings or None), as entries __name__
     source = None  # the file a model was loaded from (load sets it; messages name it)
 
     def _describe(self, layers, table=None):
-        """Take the layer table and its parameters (name -> (shape, role), the published order;
-        default: table.parameters(layers), the execution order)."""
+        """Take the layer table and its parameters (name -> (shape, role); default
+        parameters(layers), the execution order)."""
         self.layers = tuple(layers)
         self._param_table = parameters(self.layers) if table is None else dict(table)
+
+    # the entry points' array check ---------------------------------------------------------
+
+    def _check_array(self, name, a, shape, kind=None, hint=""):
+        """An entry point's array: an ndarray of the model's dtype (kind "iu": of an integer dtype),
+        non-empty, of `shape` (an int: that extent; a letter: any), finite -> its shape."""
+        want = "integer" if kind else str(self.dtype)
+        if not isinstance(a, np.ndarray) or (a.dtype.kind not in kind if kind else a.dtype != self.dtype):
+            raise TypeError(f"{name} must be a numpy array of {want} (the model's), got "
+                            f"{getattr(a, 'dtype', type(a).__name__)}{hint}")
+        if a.ndim != len(shape) or a.size == 0 or any(s != n for s, n in zip(shape, a.shape) if not isinstance(s, str)):
+            raise ValueError(f"{name} must have shape ({', '.join(map(str, shape))}), got {a.shape}{hint}")
+        if not kind:
+            _checks.finite(name, a)
+        return a.shape
 
     # the layouts -------------------------------------------------------------------------
 
@@ -82,8 +146,7 @@ class ModelWeights:
 
     def _role(self, name, layout):
         """The Role that converts parameter `name` in `layout`, None where it is held as published."""
-        layout = self.check_layout(layout)
-        role = ROLES.get(self._param_table[name][1])
+        layout, role = self.check_layout(layout), ROLES.get(self._param_table[name][1])
         return role if role is not None and role.layout == layout else None
 
     def layout_shapes(self, name, layout):
@@ -92,8 +155,8 @@ class ModelWeights:
         return [shape] if role is None else role.shapes(shape)
 
     def from_layout(self, name, a, layout):
-        """An array of parameter `name` in `layout` -> the published layout (a view). An array of
-        none of layout_shapes(name, layout) raises ValueError naming it (never transposed or reshaped)."""
+        """An array of parameter `name` in `layout` -> the published layout (a view); ValueError
+        naming it for none of layout_shapes(name, layout) (never transposed or reshaped)."""
         role, shapes = self._role(name, layout), self.layout_shapes(name, layout)
         if tuple(np.shape(a)) not in shapes:
             raise ValueError(f"{name!r} has shape {tuple(np.shape(a))}, expected {' or '.join(map(str, shapes))} "
@@ -110,46 +173,55 @@ class ModelWeights:
 
     # loading -----------------------------------------------------------------------------
 
+    def _entry(self, raw, name, arr, layout, hint):
+        """One checkpoint entry -> the array in the published layout and the model's dtype (or a
+        count); a problem raised naming raw."""
+        arr, problem = _checks.checkpoint_array(raw, arr)  # torch tensors -> numpy
+        param = name in self._param_table
+        if problem is None and not param and self.BUFFERS[name] is None:
+            arr, problem = _count(raw, arr)
+        elif problem is None:
+            problem = _checks.weight_problem(raw, arr, self.layout_shapes(name, layout) if param else
+                                             [self.BUFFERS[name]], hint=hint)
+            if problem is None:  # to the model's dtype; float64 past float32's range refused
+                arr, problem = _checks.converted_weight(raw, self.from_layout(name, arr, layout) if param else arr,
+                                                        self.dtype)
+        if problem is not None:
+            raise problem[0](f"load_official: {problem[1]}")
+        return arr
+
     def _load(self, weights, layout):
         """load_official: every entry checked, the first problem raised naming its key (TypeError
         for a wrong type or dtype, else ValueError); nothing is assigned before all pass."""
         layout = self.check_layout(layout)
         if not isinstance(weights, Mapping):
             raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")
-        shapes = self.parameter_shapes()
+        wanted = [*self._param_table, *self.BUFFERS]
         hint = "" if layout == next(iter(self.LAYOUTS)) else f" (layout={layout!r}: {self.LAYOUTS[layout]})"
-        loaded, buffers, given_as = {}, {}, {}
+        loaded, given_as = {}, {}
         for raw, arr in weights.items():
             name = self.official_name(raw) if isinstance(raw, str) else raw
-            if name not in shapes and name not in self.BUFFERS:
+            if name not in wanted:
                 raise ValueError(f"load_official: unexpected key {raw!r} (not in this configuration)")
             if name in given_as:
                 raise ValueError(f"load_official: {name!r} given twice (as {given_as[name]!r} and {raw!r})")
             given_as[name] = raw
-            arr, problem = _checks.checkpoint_array(raw, arr)  # torch tensors -> numpy
-            if problem is None and name in shapes:
-                problem = _checks.weight_problem(raw, arr, self.layout_shapes(name, layout), hint=hint)
-            if problem is None and name in shapes:  # to the model's dtype; float64 past float32's range refused
-                arr, problem = _checks.converted_weight(raw, self.from_layout(name, arr, layout), self.dtype)
-            if problem is not None:
-                raise problem[0](f"load_official: {problem[1]}")
-            (loaded if name in shapes else buffers)[name] = arr
-        missing = [k for k in (*shapes, *self.BUFFERS) if k not in given_as]
+            loaded[name] = self._entry(raw, name, arr, layout, hint)
+        missing = [k for k in wanted if k not in given_as]
         if missing:
             raise ValueError(f"load_official: {len(missing)} entries missing: {missing}")
-        self._load_buffers(buffers)  # checks them first
-        self.params = {name: loaded[name] for name in shapes}  # the published order
+        self.params = {name: loaded[name] for name in self._param_table}  # the published order
+        self._set_buffers({name: loaded[name] for name in self.BUFFERS})
 
-    def _load_buffers(self, entries):
-        """Check, then assign, the BUFFERS entries given. No buffers here."""
+    def _set_buffers(self, buffers):
+        """Assign the checked BUFFERS entries. No buffers here."""
 
     # the model file ----------------------------------------------------------------------
 
     def save(self, path):
         """Write the configuration (JSON, entry __config__), the META strings (entries __name__) and
-        state_dict() (the published layout) to one .npz, atomically. path: a str or os.PathLike,
-        ".npz" appended when missing (as np.savez does), so `load` needs the name with ".npz".
-        Returns the path written."""
+        state_dict() (the published layout) to one .npz, atomically; ".npz" appended when missing
+        (as np.savez does). Returns the path written."""
         meta = {f"__{k}__": str(getattr(self, k)) for k in self.META if getattr(self, k, None) is not None}
         path = os.fsdecode(os.fspath(path))
         if not path.endswith(".npz"):
@@ -159,25 +231,20 @@ class ModelWeights:
 
     @classmethod
     def load(cls, path):
-        """Read a model written by save(): path as given (no ".npz" appended). A missing file raises
-        FileNotFoundError; a truncated or corrupt file, a bad configuration or a missing, unexpected,
-        wrongly shaped or non-finite entry raises pyvf._io.CheckpointError (a ValueError) naming the
-        file and the entry."""
+        """Read a model written by save() (path as given). A missing file raises FileNotFoundError;
+        anything else wrong, pyvf._io.CheckpointError (a ValueError) naming the file and the entry."""
         what, name, config_cls = cls.FILE_KIND, os.fspath(path), cls.CONFIG
         arrays = load_npz(path, what, required=("__config__",))
+        later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
         try:
             fields = json.loads(str(arrays.pop("__config__")))
-        except ValueError as e:
-            raise CheckpointError(f"{what} {name}: entry '__config__' is not a configuration: {e}") from e
-        later = getattr(config_cls, "ADDED_FIELDS", ())  # newer than some files: their defaults are what those did
-        missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in fields and f.name not in later]
-        if missing:  # never the other defaults: they may be another model than the file's
-            raise CheckpointError(f"{what} {name}: entry '__config__' lacks the fields {missing}: not a "
-                                  f"{config_cls.__name__} written by save(), or written by another version")
-        try:
+            missing = [f.name for f in dataclasses.fields(config_cls) if f.init and f.name not in {*fields, *later}]
+            if missing:  # never the other defaults: they may be another model than the file's
+                raise ValueError(f"it lacks the fields {missing}")
             model = cls(config_cls(**fields))
         except (TypeError, ValueError, AttributeError) as e:
-            raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__}: {e}") from e
+            raise CheckpointError(f"{what} {name}: entry '__config__' is not a {config_cls.__name__} written by "
+                                  f"save(): {e}") from e
         meta = {k: str(arrays.pop(f"__{k}__")) for k in cls.META if f"__{k}__" in arrays}  # absent: older file
         try:
             model.load_official(arrays)

@@ -9,15 +9,7 @@ pose predictions and both losses; backward() is the same code read in reverse.
     model = Transformer(cfg, seed=0)
     out = model.forward(tokens, poses)      # tokens (B, N, L) ints in [0, V), poses (B, N, 7)
     grads = model.backward()                # d out.loss / d every parameter, official names
-
-Traces, for checking a port of the model layer by layer (pyvf.compare):
-
-    out = model.forward(tokens, poses, trace=True)
-    out.trace                               # name -> activation, in execution order (TRACE_NAMES)
-    g = model.backward(dlogits=dl, dpose=dp)  # a VJP: activations' gradients (backward order), then parameters'
-
-Without trace=True nothing extra is kept or computed: the trace only names arrays the forward
-already has (its caches), except `blocks.j.attn.c_attn`, rebuilt from q, k, v when traced.
+    out = model.forward(tokens, poses, trace=True)  # out.trace: name -> activation (TRACE_NAMES)
 
 Rows (each (B, N, L, d)), E = wte[tokens], W = wpe[0:L], P = pose_embedding(poses):
     0 trunk:        E + W + P
@@ -33,27 +25,18 @@ import dataclasses
 import numpy as np
 
 from .. import _checks
-from ..nn.attention import (
-    _fused_heads,
-    attention_layer_backward,
-    attention_layer_forward,
-)
 from ..geometry import absolute_poses, average_pose, make_relative, quat_canonical, quat_normalize, relative_poses
-from ..nn.layers import (
-    add,
-    embedding_backward,
-    embedding_forward,
-    layernorm_backward,
-    layernorm_forward,
-    matmul,
-    mlp_backward,
-    mlp_forward,
-)
+from ..nn.attention import _fused_heads, attention_layer_backward, attention_layer_forward
+from ..nn.layers import (embedding_backward, embedding_forward, layernorm_backward, layernorm_forward, matmul,
+                         mlp_backward, mlp_forward)
 from ..nn.losses import cross_entropy_backward, cross_entropy_forward, pose_loss_backward, pose_loss_forward
-from .io import ModelWeights
-from .table import Layer, parameters
+from .io import Layer, ModelWeights, parameters
 
 MAX_TOKENS_PER_VIEW = 256  # wpe has 256 rows: token t of every view gets row t
+DENSE_PAIR = ("c_fc/weight", "c_fc/bias", "c_proj/weight", "c_proj/bias")  # an MLP's parameters, mlp_forward's order
+ATTN_PARAMS = ("c_attn/weight", "c_attn/bias", "c_proj/weight", "c_proj/bias")  # attention_layer_forward's order
+NORM = ("gamma", "beta")
+POSE_HEAD = "quaternion_pose_representation/pose_classifier/"
 
 # What forward(..., trace=True) records, in execution order ("{j}": every block). Layouts are the
 # tree's: R = 3 rows (trunk, generation, localization), heads split as the kernel takes them.
@@ -106,6 +89,12 @@ def trace_names(n_layer):
     return names
 
 
+def _accumulate(grads, prefix, names, dparams):
+    """grads[prefix + name] += its gradient, for names and dparams in the layer pair's order."""
+    for name, dp in zip(names, dparams):
+        grads[prefix + name] += dp
+
+
 def _trace_mlp(tr, name, cache, y):
     """Record an mlp_forward's hidden layer, its GELU and its output (the cache keeps the first two)."""
     (_, _), h, (a, _) = cache  # ((x, w_fc), h, (a, w_proj))
@@ -155,16 +144,12 @@ class TransformerConfig:
 
 
 # ---------------------------------------------------------------------------------------
-# the layer table (pyvf.models.table): the parameters and teacher forcing's layers read it
+# the layer table (pyvf.models.io): the parameters and teacher forcing's layers read it
 
 
 def official_name(name):
     """'migt/h.0/ln_1/gamma:0' -> 'h.0/ln_1/gamma' (the prefix and suffix are optional)."""
-    if name.startswith("migt/"):
-        name = name[len("migt/"):]
-    if name.endswith(":0"):
-        name = name[:-2]
-    return name
+    return name.removeprefix("migt/").removesuffix(":0")
 
 
 # load_official's layouts: layout -> how it holds the Dense layers, the published one first
@@ -189,8 +174,8 @@ def _row(name, kind, prefix, params, calls, reads=()):
 
 def _dense(d_in, d_hidden, d_out, prefix=""):
     """An MLP's two Dense layers (c_fc, GELU, c_proj): (suffix, shape) pairs."""
-    return ((prefix + "c_fc/weight", (d_in, d_hidden)), (prefix + "c_fc/bias", (1, d_hidden)),
-            (prefix + "c_proj/weight", (d_hidden, d_out)), (prefix + "c_proj/bias", (1, d_out)))
+    shapes = ((d_in, d_hidden), (1, d_hidden), (d_hidden, d_out), (1, d_out))
+    return tuple((prefix + n, s) for n, s in zip(DENSE_PAIR, shapes))
 
 
 def _one(inp, out):
@@ -199,19 +184,18 @@ def _one(inp, out):
 
 
 def layer_table(cfg):
-    """The transformer's layers for cfg, in execution order (pyvf.models.table.Layer rows): each a
+    """The transformer's layers for cfg, in execution order (pyvf.models.io.Layer rows): each a
     function of its inputs only (trace names or the model's inputs), its parameters in the
     published order. The residual additions are not layers (pyvf.compare on a trace covers them)."""
     V, d = cfg.n_embeddings, cfg.d_model
-    norm = (("gamma", (d,)), ("beta", (d,)))
+    norm = tuple((n, (d,)) for n in NORM)
     rows = [_row("embed", "embed", "", (("wte/weight", (V + 2, d)), ("wpe/embeddings", (MAX_TOKENS_PER_VIEW, d)),
                                         *_dense(7, 2 * d, d, "pose_embedding/")),
                  (((("tokens", None), ("poses", None)), "embed.out"),))]
     prev = "embed.out"
     for j in range(cfg.n_layer):
         b, h = f"blocks.{j}.", f"h.{j}/"
-        attn = (("c_attn/weight", (d, 3 * d)), ("c_attn/bias", (1, 3 * d)), ("c_proj/weight", (d, d)),
-                ("c_proj/bias", (1, d)))
+        attn = tuple(zip(ATTN_PARAMS, ((d, 3 * d), (1, 3 * d), (d, d), (1, d))))
         rows += [_row(b + "ln_1", "layernorm", h + "ln_1/", norm, _one(prev, b + "ln_1")),
                  _row(b + "attn", "attention", h + "attn/", attn, _one(b + "ln_1", b + "attn.c_proj")),
                  _row(b + "ln_2", "layernorm", h + "ln_2/", norm, _one(b + "resid_1", b + "ln_2")),
@@ -222,7 +206,7 @@ def layer_table(cfg):
         _row("ln_f", "layernorm", "ln_f/", norm,
              ((((prev, 1),), "ln_f.generation"), (((prev, 2),), "ln_f.localization"))),
         _row("logits", "logits", "", (), _one("ln_f.generation", "logits"), reads=("wte/weight",)),  # tied: wte[:V]
-        _row("pose_head", "mlp", "quaternion_pose_representation/pose_classifier/", _dense(d, 2 * d, 7),
+        _row("pose_head", "mlp", POSE_HEAD, _dense(d, 2 * d, 7),
              _one("ln_f.localization", "pose")),
     ]
     return tuple(rows)
@@ -245,10 +229,7 @@ class TransformerOutput:
 
 
 class Transformer(ModelWeights):
-    """The model: parameters in `self.params` (official name -> array), forward, backward.
-
-    layers: the layer table (default layer_table(config)): the parameters, their shapes and
-    layouts, and teacher forcing's layers read it."""
+    """The model: parameters in `self.params` (official name -> array), forward, backward."""
 
     LAYOUTS = LAYOUTS
     FILE_KIND = "transformer"
@@ -259,10 +240,10 @@ class Transformer(ModelWeights):
     META = ("codebook_fingerprint",)
     codebook_fingerprint = None
 
-    def __init__(self, config, seed=0, *, layers=None):
+    def __init__(self, config, seed=0):
         self.config = config
         self.dtype = np.dtype(config.dtype)
-        self._describe(layer_table(config) if layers is None else layers)
+        self._describe(layer_table(config))
         rng = np.random.default_rng(seed)
         self.params = {}
         for name, shape in self.parameter_shapes().items():
@@ -275,10 +256,6 @@ class Transformer(ModelWeights):
             self.params[name] = p.astype(self.dtype)
         self._cache = None
 
-    def trace_names(self):
-        """The names forward(..., trace=True) records, in execution order."""
-        return trace_names(self.config.n_layer)
-
     # -----------------------------------------------------------------------------------
     # weights (the mechanism: pyvf.models.io.ModelWeights)
 
@@ -287,17 +264,14 @@ class Transformer(ModelWeights):
         return official_name(name)
 
     def state_dict(self, layout="tf"):
-        """Official name -> array (copies), in `layout` (LAYOUTS): "tf", the published one, or
-        "torch", nn.Linear's. Embeddings and LayerNorm parameters are the same in both."""
+        """Official name -> array (copies), in `layout` (LAYOUTS)."""
         return self._params_in(layout)
 
     def load_official(self, weights, *, layout="tf"):
         """Load a dict name -> array (or torch tensor) named as the published checkpoint (the
-        `migt/` prefix and `:0` suffix optional), its Dense layers (every `.../weight` but the
-        token embedding `wte/weight`, and their biases) in `layout`, which the caller states so
-        that a square kernel (`attn/c_proj`) is never silently transposed. Checked as
-        pyvf.models.io says: the first wrong entry is named and the model is left unchanged;
-        arrays are copied into the model's dtype."""
+        `migt/` prefix and `:0` suffix optional), its Dense layers in `layout`, which the caller
+        states so that a square kernel (`attn/c_proj`) is never silently transposed. The first
+        wrong entry is named and the model is left unchanged."""
         self._load(weights, layout)
 
     # -----------------------------------------------------------------------------------
@@ -338,32 +312,25 @@ class Transformer(ModelWeights):
         return [dx], dp
 
     # -----------------------------------------------------------------------------------
-    # input checks (the entry points': forward, encode_scene, render_scene, localize_scene)
+    # the entry points' one check of their tokens and poses
 
-    def _check_tokens(self, name, tokens, B=None, L=None):
-        """tokens (B, N, L) integers in [0, V), N >= 1 -> its shape; B, L: the sizes it must have."""
-        _checks.int_array(name, tokens)
-        if tokens.ndim != 3 or 0 in tokens.shape or tokens.shape[2] > MAX_TOKENS_PER_VIEW \
-                or B not in (None, tokens.shape[0]) or L not in (None, tokens.shape[2]):
-            raise ValueError(f"{name} must have shape (B, N >= 1, L <= {MAX_TOKENS_PER_VIEW}) (B={B}, L={L} where "
-                             f"given), got {tokens.shape}")
-        if tokens.min() < 0 or tokens.max() >= self.config.n_embeddings:
-            raise ValueError(f"{name} must be in [0, {self.config.n_embeddings})")
-        return tokens.shape
-
-    def _check_poses(self, name, poses, B, N=None, unit=False):
-        """poses (B, N, 7) finite, of the model's dtype (N >= 1 any, when None); unit: the
-        quaternions must be unit ones (the scene paths make them relative)."""
-        if not isinstance(poses, np.ndarray) or poses.dtype != self.dtype:
-            raise TypeError(f"{name} must be a {self.dtype} numpy array (the model's dtype)")
-        want = (B, poses.shape[1] if N is None else N, 7) if poses.ndim == 3 else None
-        if poses.shape != want or poses.size == 0:
-            raise ValueError(f"{name} must have shape (B={B}, N={N or 'M >= 1'}, 7) (xyz, then quaternion wxyz), "
-                             f"got {poses.shape}")
-        _checks.finite(name, poses)
-        tol = 1e-5 if self.dtype == np.float32 else 1e-9
-        if unit and np.abs(np.einsum("...i,...i->...", poses[..., 3:], poses[..., 3:]) - 1).max() > tol:
-            raise ValueError(f"the quaternions of {name} must be unit quaternions")
+    def _check_inputs(self, B="B", L="L", unit=False, **arrays):
+        """Arrays by the caller's argument names: `*tokens` (B, N, L) ints in [0, V), L <= 256;
+        `*poses` (B, N, 7) finite, of the model's dtype, unit quaternions where unit. B, L: ints
+        the sizes must equal. -> (B, N, L)."""
+        N = "N"
+        for name, a in arrays.items():
+            if name.endswith("tokens"):
+                B, N, L = self._check_array(name, a, (B, N, L), kind="iu")
+                if L > MAX_TOKENS_PER_VIEW or a.min() < 0 or a.max() >= self.config.n_embeddings:
+                    raise ValueError(f"{name} must be in [0, {self.config.n_embeddings}), at most "
+                                     f"{MAX_TOKENS_PER_VIEW} a view")
+                continue
+            B, N, _ = self._check_array(name, a, (B, N, 7))
+            tol = 1e-5 if self.dtype == np.float32 else 1e-9
+            if unit and np.abs(np.einsum("...i,...i->...", a[..., 3:], a[..., 3:]) - 1).max() > tol:
+                raise ValueError(f"the quaternions of {name} must be unit quaternions")
+        return B, N, L
 
     # -----------------------------------------------------------------------------------
     # the tree's input rows
@@ -377,8 +344,7 @@ class Transformer(ModelWeights):
         W = p["wpe/embeddings"][:L]  # (L, d): token t of every view gets row t
         pose_in = poses.copy()  # (B, N, 7)
         pose_in[..., :3] *= self.dtype.type(self.config.pose_multiplier)  # xyz scaled, quaternion unchanged
-        P, c_pose = mlp_forward(pose_in, p["pose_embedding/c_fc/weight"], p["pose_embedding/c_fc/bias"],
-                                p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, N, d)
+        P, c_pose = self._mlp("pose_embedding/", pose_in)  # (B, N, d)
         if tr is not None:
             tr["embed.tokens"], tr["embed.positions"], tr["pose_embedding.input"] = E, W, pose_in
             _trace_mlp(tr, "pose_embedding", c_pose, P)
@@ -403,13 +369,10 @@ class Transformer(ModelWeights):
         dP = (dtrunk + dgen).sum(axis=2)  # (B, N, d): P feeds the trunk and the generation row
         if g is not None:
             g["embed.out"], g["pose_embedding.c_proj"] = dx, dP
-        dpose_in, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dP, c_pose, g, "pose_embedding")
+        dpose_in, *dps = mlp_backward(dP, c_pose, g, "pose_embedding")
         if g is not None:
             g["pose_embedding.input"], g["embed.positions"], g["embed.tokens"] = dpose_in, dW, dE
-        grads["pose_embedding/c_fc/weight"] += dw_fc
-        grads["pose_embedding/c_fc/bias"] += db_fc
-        grads["pose_embedding/c_proj/weight"] += dw_proj
-        grads["pose_embedding/c_proj/bias"] += db_proj
+        _accumulate(grads, "pose_embedding/", DENSE_PAIR, dps)
 
     # -----------------------------------------------------------------------------------
     # one pre-LN block: x = x + attn(ln_1(x)); x = x + mlp(ln_2(x))
@@ -421,14 +384,12 @@ class Transformer(ModelWeights):
         context and itself as the tree's branch row at view Nc does (attention_layer_forward)."""
         p, h = self.params, f"h.{j}/"
         a, c_ln1 = layernorm_forward(x, p[h + "ln_1/gamma"], p[h + "ln_1/beta"])
-        y, c_attn = attention_layer_forward(a, p[h + "attn/c_attn/weight"], p[h + "attn/c_attn/bias"],
-                                            p[h + "attn/c_proj/weight"], p[h + "attn/c_proj/bias"],
+        y, c_attn = attention_layer_forward(a, *(p[h + "attn/" + n] for n in ATTN_PARAMS),
                                             self.config.n_head, self.config.attention_scale, context=context)
-        x = add(x, y)  # (R, B, N, L, d)
+        x = x + y  # (R, B, N, L, d)
         m, c_ln2 = layernorm_forward(x, p[h + "ln_2/gamma"], p[h + "ln_2/beta"])
-        f, c_mlp = mlp_forward(m, p[h + "mlp/c_fc/weight"], p[h + "mlp/c_fc/bias"],
-                               p[h + "mlp/c_proj/weight"], p[h + "mlp/c_proj/bias"])
-        out = add(x, f)  # (R, B, N, L, d)
+        f, c_mlp = self._mlp(h + "mlp/", m)
+        out = x + f  # (R, B, N, L, d)
         if tr is not None:
             b = f"blocks.{j}."
             _, _, q, k, v, o, lse, _, _ = c_attn  # (R, B, H, N, L, dh), lse (R, B, H, N, L)
@@ -449,27 +410,28 @@ class Transformer(ModelWeights):
         if g is not None:
             g[b + "out"] = g[b + "mlp.c_proj"] = dx
         # forward was x2 = x1 + mlp(ln_2(x1))
-        dm, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(dx, c_mlp, g, b + "mlp")
-        dx1, dg2, db2 = layernorm_backward(dm, c_ln2)
-        dx = add(dx, dx1)
+        dm, *dmlp = mlp_backward(dx, c_mlp, g, b + "mlp")
+        dx1, *dln2 = layernorm_backward(dm, c_ln2)
+        dx = dx + dx1
         if g is not None:
             g[b + "ln_2"] = dm
             g[b + "resid_1"] = g[b + "attn.c_proj"] = dx
         # forward was x1 = x0 + attn(ln_1(x0))
-        da, dw_attn, db_attn, dw_aproj, db_aproj = attention_layer_backward(dx, c_attn, g, b + "attn")
-        dx0, dg1, db1 = layernorm_backward(da, c_ln1)
+        da, *dattn = attention_layer_backward(dx, c_attn, g, b + "attn")
+        dx0, *dln1 = layernorm_backward(da, c_ln1)
         if g is not None:
             g[b + "ln_1"] = da
-        for name, dp in (("ln_1/gamma", dg1), ("ln_1/beta", db1), ("attn/c_attn/weight", dw_attn),
-                        ("attn/c_attn/bias", db_attn), ("attn/c_proj/weight", dw_aproj),
-                        ("attn/c_proj/bias", db_aproj), ("ln_2/gamma", dg2), ("ln_2/beta", db2),
-                        ("mlp/c_fc/weight", dw_fc), ("mlp/c_fc/bias", db_fc),
-                        ("mlp/c_proj/weight", dw_proj), ("mlp/c_proj/bias", db_proj)):
-            grads[h + name] += dp
-        return add(dx, dx0)
+        for part, names, dps in (("ln_1/", NORM, dln1), ("attn/", ATTN_PARAMS, dattn), ("ln_2/", NORM, dln2),
+                                 ("mlp/", DENSE_PAIR, dmlp)):
+            _accumulate(grads, h + part, names, dps)
+        return dx + dx0
 
     # -----------------------------------------------------------------------------------
     # the heads
+
+    def _mlp(self, prefix, x):
+        """mlp_forward with the parameters named prefix + DENSE_PAIR."""
+        return mlp_forward(x, *(self.params[prefix + n] for n in DENSE_PAIR))
 
     def _logits(self, g):
         """g (..., d): ln_f of generation rows -> logits (..., V), the embedding tied: g @ wte[:V]^T,
@@ -492,9 +454,7 @@ class Transformer(ModelWeights):
         g, c_lng = layernorm_forward(hg, p["ln_f/gamma"], p["ln_f/beta"])  # (B, N, L, d)
         l, c_lnl = layernorm_forward(hl, p["ln_f/gamma"], p["ln_f/beta"])
         logits = self._logits(g)  # (B, N, L, V)
-        head = "quaternion_pose_representation/pose_classifier/"
-        raw, c_head = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
-                                  p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (B, N, L, 7)
+        raw, c_head = self._mlp(POSE_HEAD, l)  # (B, N, L, 7)
         if tr is not None:
             tr["ln_f.generation"], tr["ln_f.localization"], tr["logits"] = g, l, logits
             _trace_mlp(tr, "pose_head", c_head, raw)
@@ -507,14 +467,10 @@ class Transformer(ModelWeights):
         V = self.config.n_embeddings
         dg, dwte = self._logits_backward(dlogits, gen)  # (B, N, L, d), (V, d)
         grads["wte/weight"][:V] += dwte
-        dl, dw_fc, db_fc, dw_proj, db_proj = mlp_backward(draw, c_head, g, "pose_head")
+        dl, *dps = mlp_backward(draw, c_head, g, "pose_head")
         if g is not None:
             g["logits"] = dlogits
-        head = "quaternion_pose_representation/pose_classifier/"
-        grads[head + "c_fc/weight"] += dw_fc
-        grads[head + "c_fc/bias"] += db_fc
-        grads[head + "c_proj/weight"] += dw_proj
-        grads[head + "c_proj/bias"] += db_proj
+        _accumulate(grads, POSE_HEAD, DENSE_PAIR, dps)
         dhg, dgf1, dbf1 = layernorm_backward(dg, c_lng)
         dhl, dgf2, dbf2 = layernorm_backward(dl, c_lnl)
         grads["ln_f/gamma"] += dgf1 + dgf2
@@ -528,16 +484,12 @@ class Transformer(ModelWeights):
 
     def forward(self, tokens, poses, *, trace=False):
         """tokens (B, N, L) ints in [0, V), poses (B, N, 7) of the model's dtype (xyz, unit
-        quaternion wxyz, in the frame the caller chose: training data is usually made relative
-        to the first view, see geometry.make_relative) -> TransformerOutput. The loss needs at
-        least one view past n_loss_skip. Keeps what backward() needs.
-
-        trace=True also returns, as `out.trace`, every intermediate activation by name
-        (TRACE_NAMES, in execution order: what the forward keeps anyway, not copies: do not
-        modify them), and makes the next backward() return every activation's gradient."""
+        quaternion wxyz, in the caller's frame, usually the first view's: geometry.make_relative)
+        -> TransformerOutput; the loss needs a view past n_loss_skip. Keeps what backward() needs.
+        trace=True also returns, as `out.trace`, every activation by name (TRACE_NAMES, what the
+        forward keeps anyway, not copies), and makes the next backward() return their gradients."""
         cfg = self.config
-        B, N, L = self._check_tokens("tokens", tokens)
-        self._check_poses("poses", poses, B, N)
+        B, N, L = self._check_inputs(tokens=tokens, poses=poses)
         S = cfg.n_loss_skip
         if N <= S:
             raise ValueError(f"tokens has N={N} views but n_loss_skip={S}: no view is a loss target")
@@ -573,28 +525,16 @@ class Transformer(ModelWeights):
         return TransformerOutput(logits=logits, pose_prediction=pred, ce_loss=ce, pose_loss=pl, loss=loss,
                                  pose_raw=raw, trace=tr)
 
-    def _upstream(self, name, a, shape):
-        """An upstream gradient: a finite ndarray of the model's dtype and the output's shape."""
-        if not isinstance(a, np.ndarray) or a.dtype != self.dtype:
-            raise TypeError(f"{name} must be a {self.dtype} numpy array (the model's dtype)")
-        if a.shape != shape:
-            raise ValueError(f"{name} must have the shape of the output it differentiates, {shape}, got {a.shape}")
-        return _checks.finite(name, a)
-
     def backward(self, dlogits=None, dpose=None, *, dloss=None):
         """Differentiate the last forward: the gradient of
 
             dloss * loss + sum(logits * dlogits) + sum(pose_raw * dpose)
 
         (a vector-Jacobian product; a term whose seed is None is left out; with no seed at all,
-        dloss = 1: the gradient of the loss, as training needs). dlogits (B, N, L, V) and dpose
-        (B, N, L, 7) are arrays of the model's dtype, for out.logits and out.pose_raw (the pose
-        head's raw output, not the normalised out.pose_prediction); dloss a real number.
-
-        Returns official parameter name -> gradient. After forward(..., trace=True) the dict
-        first holds the gradient of every traced activation, in backward order (exactly the
-        reverse of the trace: compare a port's gradients in that order), under the trace's names,
-        except attn.lse (nothing downstream uses it) and the losses; then the parameters'."""
+        dloss = 1). dlogits (B, N, L, V) for out.logits, dpose (B, N, L, 7) for out.pose_raw (not
+        the normalised out.pose_prediction); dloss a real number. Returns official parameter name
+        -> gradient; after forward(..., trace=True), first every traced activation's gradient (but
+        attn.lse's and the losses'), in backward order."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
         c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L), traced = self._cache
@@ -617,9 +557,11 @@ class Transformer(ModelWeights):
             dl_total[:, S:] = cross_entropy_backward(dce_tok, c_ce)[0].reshape(B, N - S, L, V)
             draw[:, S:] = pose_loss_backward(dpl_tok, c_pl)[0]
         if dlogits is not None:
-            dl_total += self._upstream("dlogits", dlogits, (B, N, L, V))
+            self._check_array("dlogits", dlogits, (B, N, L, V))
+            dl_total += dlogits
         if dpose is not None:
-            draw += self._upstream("dpose", dpose, (B, N, L, 7))
+            self._check_array("dpose", dpose, (B, N, L, 7))
+            draw += dpose
         g = {"pose": draw} if traced else None  # the activations' gradients, the trace's order reversed
         dhg, dhl = self._heads_backward(dl_total, draw, c_heads, grads, g)
         dx = np.zeros((3, B, N, L, cfg.d_model), dtype=dt)
@@ -639,8 +581,7 @@ class Transformer(ModelWeights):
         context_tokens (B, Nc, L) ints, context_poses (B, Nc, 7) (any frame: they are made
         relative to the first context view here) -> Scene, reused by render_scene and
         localize_scene for any number of queries. Costs one trunk pass (R = 1, block-causal)."""
-        B, Nc, L = self._check_tokens("context_tokens", context_tokens)
-        self._check_poses("context_poses", context_poses, B, Nc, unit=True)
+        _, _, L = self._check_inputs(unit=True, context_tokens=context_tokens, context_poses=context_poses)
         rel, ref = make_relative(context_poses)  # (B, Nc, 7), (B, 7)
         x, _ = self._embed_forward(context_tokens, rel)
         x = x[:1]  # (1, B, Nc, L, d): the trunk row only
@@ -650,7 +591,7 @@ class Transformer(ModelWeights):
             _, _, q, k, v, _, _, _, _ = c[1]  # the attention layer's cache: (1, B, H, Nc, L, dh)
             keys.append(k[0])  # (B, H, Nc, L, dh)
             values.append(v[0])
-        return Scene(ref=ref, keys=keys, values=values, n_views=Nc, tokens_per_view=L, config=self.config,
+        return Scene(ref=ref, keys=keys, values=values, tokens_per_view=L, config=self.config,
                      params=dict(self.params))
 
     def _check_scene(self, scene):
@@ -663,11 +604,13 @@ class Transformer(ModelWeights):
             raise ValueError("scene was encoded by another model (or before its parameters were replaced): "
                              "encode the context again with this model's encode_scene")
 
-    def _query_forward(self, scene, x):
-        """x (M, B, L, d): M query rows of one view each (generation or localization rows) -> after
-        ln_f (M, B, L, d). The training blocks, each attending the scene's cached trunk."""
+    def _query_forward(self, scene, tokens, poses, row):
+        """M query views, tokens (B, M, L) and poses (B, M, 7) in the scene's frame -> their tree
+        row `row` (1 generation, 2 localization) after the training blocks, each attending the
+        scene's cached trunk, and ln_f: (M, B, L, d)."""
         p = self.params
-        x = x[:, :, None]  # (M, B, 1, L, d): rows of the tree, one view each
+        x = self._embed_forward(tokens, poses)[0][row]  # (B, M, L, d)
+        x = np.ascontiguousarray(x.transpose(1, 0, 2, 3))[:, :, None]  # (M, B, 1, L, d): rows of one view each
         for j in range(self.config.n_layer):
             x, _ = self._block_forward(x, j, context=(scene.keys[j], scene.values[j]))
         return layernorm_forward(x[:, :, 0], p["ln_f/gamma"], p["ln_f/beta"])[0]
@@ -676,31 +619,22 @@ class Transformer(ModelWeights):
         """query_poses (B, M, 7), in the context's frame -> token logits (B, M, L, V) of each
         query view (the generation branch: image hidden, pose given)."""
         self._check_scene(scene)
-        p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
-        self._check_poses("query_poses", query_poses, scene.ref.shape[0], unit=True)
+        self._check_inputs(B=scene.ref.shape[0], unit=True, query_poses=query_poses)
         rel = relative_poses(query_poses, scene.ref[:, None, :])  # (B, M, 7)
         # as make_relative does for the context: the pose MLP is not sign-invariant
         rel[..., 3:] = quat_canonical(quat_normalize(rel[..., 3:]))
-        pose_in = rel.copy()
-        pose_in[..., :3] *= self.dtype.type(self.config.pose_multiplier)
-        P, _ = mlp_forward(pose_in, p["pose_embedding/c_fc/weight"], p["pose_embedding/c_fc/bias"],
-                           p["pose_embedding/c_proj/weight"], p["pose_embedding/c_proj/bias"])  # (B, M, d)
-        x = p["wte/weight"][V] + p["wpe/embeddings"][:L] + P[:, :, None, :]  # (B, M, L, d)
-        g = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
+        hidden = np.zeros(rel.shape[:2] + (scene.tokens_per_view,), np.int64)  # (B, M, L): row 1 reads none
+        g = self._query_forward(scene, hidden, rel, 1)  # (M, B, L, d)
         return self._logits(g).transpose(1, 0, 2, 3)  # (B, M, L, V)
 
     def localize_scene(self, scene, query_tokens):
         """query_tokens (B, M, L) ints -> one pose per query view (B, M, 7) in the context's
         frame: the token predictions averaged (geometry.average_pose)."""
         self._check_scene(scene)
-        p, V, L = self.params, self.config.n_embeddings, scene.tokens_per_view
-        self._check_tokens("query_tokens", query_tokens, scene.ref.shape[0], L)
-        E = p["wte/weight"][query_tokens]  # (B, M, L, d)
-        x = E + p["wpe/embeddings"][:L] + p["wte/weight"][V + 1]
-        l = self._query_forward(scene, np.ascontiguousarray(x.transpose(1, 0, 2, 3)))  # (M, B, L, d)
-        head = "quaternion_pose_representation/pose_classifier/"
-        raw, _ = mlp_forward(l, p[head + "c_fc/weight"], p[head + "c_fc/bias"],
-                             p[head + "c_proj/weight"], p[head + "c_proj/bias"])  # (M, B, L, 7)
+        self._check_inputs(B=scene.ref.shape[0], L=scene.tokens_per_view, query_tokens=query_tokens)
+        unknown = np.zeros(query_tokens.shape[:2] + (7,), self.dtype)  # (B, M, 7): row 2 reads none
+        l = self._query_forward(scene, query_tokens, unknown, 2)  # (M, B, L, d)
+        raw, _ = self._mlp(POSE_HEAD, l)  # (M, B, L, 7)
         rel = average_pose(pose_prediction(raw, self.config.pose_multiplier), axis=2)  # (M, B, 7)
         return absolute_poses(rel.transpose(1, 0, 2), scene.ref[:, None, :])  # (B, M, 7)
 
@@ -719,7 +653,6 @@ class Scene:
     ref: np.ndarray  # (B, 7) the first context view's pose: the frame the model sees
     keys: list  # per layer (B, H, Nc, L, dh): the trunk's attention keys
     values: list  # per layer (B, H, Nc, L, dh)
-    n_views: int  # Nc
     tokens_per_view: int  # L
     config: "TransformerConfig"  # the encoding model's: render_scene / localize_scene check them
     params: dict = dataclasses.field(repr=False)  # its parameter arrays (references, not copies)

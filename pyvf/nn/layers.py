@@ -1,12 +1,6 @@
-"""The transformer's small layers as forward/backward pairs (docs/math.md §3).
-
-Every layer is two functions: `x_forward(x, *params) -> (out, cache)` and
-`x_backward(dout, cache) -> (dx, *dparams)`, gradients in the order of the forward's
-arguments. `cache` holds only what the backward needs; each says what it saves. Arrays keep
-their dtype (float32 or float64) throughout; nothing is cast. These are internal layers: they
-trust their callers (the models check their inputs once, at their boundary).
-
-Shapes: `...` is any leading shape (e.g. (R, B, N, L)); d the model width.
+"""The transformer's small layers as forward/backward pairs (docs/math.md §3):
+`x_forward(x, *params) -> (out, cache)`, `x_backward(dout, cache) -> (dx, *dparams)`. Arrays keep
+their dtype throughout. `...` is any leading shape (e.g. (R, B, N, L)); d the model width.
 """
 
 import math
@@ -17,19 +11,16 @@ from .. import _core
 
 
 # ---------------------------------------------------------------------------------------
-# matmul and add, in the forms the models call
+# matmul, in the forms the layers call
 
 
 def matmul(a, b, ta=False, tb=False, bias=None):
     """c = op(a) @ op(b) [+ bias], op = transpose when ta / tb, for 2-D operands or per entry of
     3-D ones (a leading batch axis): a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c
     (M, N); bias (N,) added to every row after its sum (as NumPy's a @ b + bias rounds).
-
-    pyvf's GEMM (csrc/matmul.cpp), not NumPy's BLAS: the BLAS's threads spin for
-    milliseconds after each call on the cores pyvf's kernels need (measured with the tiny
-    transformer on 2 busy cores: np.matmul with 2 BLAS threads made its training step 5x slower,
-    526 ms against 100 ms). Each element of c is one sum in increasing k, the same for any thread
-    count. Its reference is matmul_numpy, the expression itself (tests/test_layers.py)."""
+    pyvf's GEMM (csrc/matmul.cpp): each element one sum in increasing k, the same for any thread
+    count, and no BLAS threads spinning on the cores the other kernels need. Its reference is
+    matmul_numpy."""
     a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
     one = a.ndim == 2  # 2-D: one entry of the batched kernel
     a3, b3 = (a[None], b[None]) if one else (a, b)
@@ -45,20 +36,13 @@ def matmul_numpy(a, b, ta=False, tb=False, bias=None):
     return c if bias is None else c + bias
 
 
-def add(a, b, out=None):
-    """a + b (np.add; out as np.add's, a or b itself included). Kept as the models' name for the
-    residual adds."""
-    return np.add(a, b, out=out)
-
-
 # ---------------------------------------------------------------------------------------
 # linear, published layout: weight (din, dout), bias (1, dout)
 
 
 def linear_forward(x, w, b):
-    """y = x @ w + b.   x (..., din), w (din, dout), b (1, dout) -> y (..., dout).
-    One matmul over all rows (np.matmul on (..., din) would run one small product per leading
-    index). cache: x and w (no copies)."""
+    """y = x @ w + b.   x (..., din), w (din, dout), b (1, dout) -> y (..., dout), one matmul
+    over all rows. cache: x and w (no copies)."""
     din, dout = w.shape
     M = math.prod(x.shape[:-1])  # rows; explicit rather than -1, so that din = 0 works
     y = matmul(x.reshape(M, din), w, bias=b[0])  # (M, dout)
@@ -85,10 +69,9 @@ def linear_backward(dy, cache):
 def layernorm_forward(x, gamma, beta, eps=1e-5):
     """y = (x - mean) / sqrt(var + eps) * gamma + beta.   x (..., d), gamma, beta (d,).
 
-    Two-pass: the mean is accumulated in float64 and rounded, the row centred twice (the second
-    time by the centred row's own residual mean), then the variance is the mean square of it, so
-    a row of mean 1e4 and spread 0.1 keeps its digits and a constant row gives y = beta exactly.
-    cache: xhat (..., d), rstd (..., 1), gamma."""
+    Two-pass: the row centred twice (by its float64 mean rounded, then by the residual mean), the
+    variance the mean square of that, so a row of mean 1e4 and spread 0.1 keeps its digits and a
+    constant row gives y = beta exactly. cache: xhat (..., d), rstd (..., 1), gamma."""
     xc = x - x.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (..., d)
     xc -= xc.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # the rounded mean's residual
     var = np.einsum("...i,...i->...", xc, xc)[..., None] / x.shape[-1]  # (..., 1): mean of xc^2
@@ -166,9 +149,8 @@ def embedding_forward(ids, table):
 
 def sum_rows_by_id(ids, rows, n):
     """out[k] = the sum of rows[i] over every i with ids[i] == k, in the order of i.
-    ids (m,) integers in [0, n), rows (m, d) -> out (n, d), rows' dtype; rows no id names are 0.
-    The ids sorted (stably) into runs, each run summed by np.add.reduceat: np.add.at does the same
-    one element at a time, 2-4x slower."""
+    ids (m,) integers in [0, n), rows (m, d) -> out (n, d), rows' dtype. The ids sorted (stably)
+    into runs, each run summed by np.add.reduceat (np.add.at: 2-4x slower)."""
     out = np.zeros((n, rows.shape[1]), dtype=rows.dtype)
     if ids.size:
         order = np.argsort(ids, kind="stable")
@@ -200,9 +182,8 @@ def mlp_forward(x, w_fc, b_fc, w_proj, b_proj):
 
 
 def mlp_backward(dy, cache, trace=None, name=""):
-    """-> dx, dw_fc, db_fc, dw_proj, db_proj. trace: a dict that also receives the gradients
-    of the GELU's output and input, as trace[name + ".gelu"] and trace[name + ".c_fc"] (the
-    models' backward after forward(trace=True))."""
+    """-> dx, dw_fc, db_fc, dw_proj, db_proj. trace: None, or a dict that also receives the
+    gradients of the GELU's output and input, as trace[name + ".gelu"] and trace[name + ".c_fc"]."""
     c_fc, h, c_proj = cache
     da, dw_proj, db_proj = linear_backward(dy, c_proj)  # forward was y = a @ w_proj + b_proj
     (dh,) = gelu_backward(da, h)  # forward was a = gelu(h)

@@ -1,10 +1,5 @@
-"""The transformer's losses as forward/backward pairs (docs/math.md §3).
-
-Both return a loss per row (per token); the model takes the means over views, tokens and the
-batch itself, so that what is averaged over is visible where it happens.
-
-Internal layers, as pyvf.nn.layers': they trust their callers (the model checks its inputs).
-Inputs are never modified.
+"""The transformer's losses as forward/backward pairs (docs/math.md §3). Both return a loss per
+row (per token); the model takes the means itself, so that what is averaged is visible there.
 """
 
 import numpy as np

@@ -1,24 +1,18 @@
 """The codebook's vector quantizer (docs/math.md §4): the exact nearest-code lookup and the EMA quantizer.
 
-    indices, sq_distances = vq_nearest(x, codes)    # x (M, D), codes (K, D)
-
+    indices, sq_distances = vq_nearest(x, codes)    # x (M, D), codes (K, D): codes as rows
     q = EMAQuantizer(embed_dim=D, n_embed=K, seed=0)
     out, cache = q.forward(z, train=True)           # z (B, D, h, w): out.quantized, out.codes, ...
     (dz,) = q.backward(dquantized, dcommitment, cache)
 
-indices (M,) int64: for each row of x the index of the nearest code in squared Euclidean
-distance, exactly (the argmin of sum_i (x_i - e_i)^2 computed in float64 from the given
-values, ties to the smallest index), whatever the size of the vectors; sq_distances (M,) of
-x's dtype: that distance, never negative. The C++ kernel (csrc/vq.cpp) scores codes by a fast
-product and re-ranks exactly every code that its rounding-error bound cannot rule out.
-
-Note the layouts: the published quantizer stores codes as the columns of
-`quantize.embeddings` (embed_dim, n_embed); this function takes them as rows (K, D), i.e.
-`embeddings.T` made contiguous.
+vq_nearest: for each row of x the index of the nearest code in squared Euclidean distance,
+exactly (the argmin computed in float64 from the given values, ties to the smallest index), and
+that distance. The C++ kernel (csrc/vq.cpp) scores codes by a fast product and re-ranks exactly
+every code its rounding-error bound cannot rule out. The published quantizer stores codes as
+the COLUMNS of `quantize.embeddings` (D, K); vq_nearest takes them as rows.
 """
 
 import dataclasses
-from collections.abc import Mapping
 
 import numpy as np
 
@@ -37,18 +31,6 @@ def _check_2d(name, a, like=None):
         raise ValueError(f"{name} has width {a.shape[1]} but x has width {like.shape[1]}")
     _checks.contiguous(name, a)
     _checks.finite(name, a)
-
-
-COUNTER_MAX = np.iinfo(np.int64).max  # state_dict() stores the counter as int64
-
-
-def _counter(a):
-    """An EMA update count (an integer, or a 0-d array holding one, as a torch checkpoint may
-    store it as a float) -> int, or None when it is not a non-negative integer int64 holds."""
-    a = np.asarray(a)
-    if a.shape != () or a.dtype.kind not in "iuf" or not np.isfinite(a) or a != np.floor(a):
-        return None
-    return int(a) if 0 <= int(a) <= COUNTER_MAX else None
 
 
 def vq_nearest(x, codes):
@@ -99,18 +81,8 @@ class EMAQuantizer:
     """
 
     def __init__(self, embed_dim, n_embed, decay=0.99, eps=1e-5, dtype="float32", seed=0):
-        embed_dim = _checks.positive_integer("embed_dim", embed_dim)  # numpy integers too, stored as int
-        n_embed = _checks.positive_integer("n_embed", n_embed)
-        decay = _checks.real("decay", decay, 0.0, 1.0, lo_open=True, hi_open=True)
-        eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
-        if dtype not in ("float32", "float64"):
-            raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         self.embed_dim, self.n_embed, self.decay, self.eps = embed_dim, n_embed, decay, eps
         self.dtype = np.dtype(dtype)
-        lo, hi = float(np.finfo(self.dtype).tiny), float(np.finfo(self.dtype).max) / n_embed
-        if not lo <= eps <= hi:  # the smoothing adds eps and n_embed * eps in the dtype: no underflow, no overflow
-            raise ValueError(f"eps must be in [{lo:.4g}, {hi:.4g}] for dtype {dtype} and n_embed={n_embed} "
-                             f"(eps and n_embed * eps must be normal {dtype} numbers), got {eps!r}")
         rng = np.random.default_rng(seed)
         lim = np.sqrt(3.0)
         self.embeddings = rng.uniform(-lim, lim, (embed_dim, n_embed)).astype(self.dtype)
@@ -122,80 +94,12 @@ class EMAQuantizer:
         return {"embeddings": self.embeddings.copy(), "ema_cluster_size_hidden": self.ema_cluster_size_hidden.copy(),
                 "ema_dw_hidden": self.ema_dw_hidden.copy(), "counter": np.array(self.counter, np.int64)}
 
-    def check_state(self, state, prefix="", require_all=True):
-        """Validate a state_dict() without loading it -> (buffers, problems): the converted
-        buffers (new arrays of the quantizer's dtype; counter an int) and a list of
-        (exception class, message), one per missing, unexpected or wrong entry (names carry
-        `prefix`, e.g. "quantize."). Arrays: float32/float64 of the buffer's shape, finite also
-        once converted; counter: see _counter. require_all=False does not report missing
-        entries (a caller that reports them itself)."""
-        want = {"embeddings": (self.embed_dim, self.n_embed), "ema_cluster_size_hidden": (self.n_embed,),
-                "ema_dw_hidden": (self.embed_dim, self.n_embed), "counter": ()}
-        problems, out = [], {}
-        if not isinstance(state, Mapping):
-            return out, [(TypeError, f"the quantizer state must be a dict name -> array, got {type(state).__name__}")]
-        missing = [prefix + k for k in want if k not in state]
-        unexpected = sorted(prefix + str(k) for k in state if k not in want)
-        if missing and require_all:
-            problems.append((ValueError, f"missing {missing}"))
-        if unexpected:
-            problems.append((ValueError, f"unexpected {unexpected}"))
-        for name, shape in want.items():
-            if name not in state:
-                continue
-            a, full = state[name], prefix + name
-            if name == "counter":
-                c = _counter(a)
-                if c is None:
-                    problems.append((ValueError, f"{full!r} must be a non-negative integer (the number of "
-                                                 f"EMA updates, at most {COUNTER_MAX}), got {a!r}"))
-                else:
-                    out[name] = c
-                continue
-            problem = _checks.weight_problem(full, a, shape)
-            if problem is None:  # float64 values past float32's range would become inf: refused
-                a, problem = _checks.converted_weight(full, a, self.dtype)
-            if problem is not None:
-                problems.append(problem)
-            else:
-                out[name] = a
-        return out, problems
-
     def load_state_dict(self, state):
-        """Restore a state_dict() (copied in). Every entry is checked before anything is
-        assigned (see check_state): on any problem, ValueError (TypeError when only dtypes are
-        wrong) listing all of them, and the quantizer is left unchanged."""
-        buffers, problems = self.check_state(state)
-        if problems:
-            raise _checks.problems_error("quantizer state", problems)
-        self._assign(buffers)
-
-    def _assign(self, buffers):
-        self.embeddings = buffers["embeddings"]
-        self.ema_cluster_size_hidden = buffers["ema_cluster_size_hidden"]
-        self.ema_dw_hidden = buffers["ema_dw_hidden"]
-        self.counter = buffers["counter"]
-
-    def _check_z(self, z):
-        """z: a finite, non-empty (B, D, h, w) array of the quantizer's dtype (nothing is cast)."""
-        if not isinstance(z, np.ndarray) or z.dtype != self.dtype:
-            raise TypeError(f"z must be a {self.dtype} numpy array, got {getattr(z, 'dtype', type(z).__name__)}")
-        if z.ndim != 4 or z.shape[1] != self.embed_dim:
-            raise ValueError(f"z must have shape (B, {self.embed_dim}, h, w), got {z.shape}")
-        if z.size == 0:
-            raise ValueError(f"z is empty: shape {z.shape}")
-        _checks.finite("z", z)
-
-    def _check_empty(self, empty, z):
-        """empty: None, or bool (B, h, w) as z's positions, for a quantizer of at least 2 codes."""
-        if empty is None:
-            return None
-        if not isinstance(empty, np.ndarray) or empty.dtype != bool or empty.shape != z.shape[:1] + z.shape[2:]:
-            raise ValueError(f"empty must be a bool array of shape {z.shape[:1] + z.shape[2:]}, got "
-                             f"{getattr(empty, 'dtype', type(empty).__name__)} {getattr(empty, 'shape', '')}")
-        if self.n_embed < 2:
-            raise ValueError("empty needs n_embed >= 2: code 0 is the empty code, the others the rest")
-        return empty.reshape(-1)
+        """Restore a state_dict() (copies; checked where a file enters: Codebook.load_official)."""
+        self.embeddings = np.array(state["embeddings"], self.dtype)
+        self.ema_cluster_size_hidden = np.array(state["ema_cluster_size_hidden"], self.dtype)
+        self.ema_dw_hidden = np.array(state["ema_dw_hidden"], self.dtype)
+        self.counter = int(state["counter"])
 
     def nearest(self, flat, empty=None):
         """flat (M, D) -> codes (M,) int64: each vector's nearest code (codes are columns). With
@@ -210,20 +114,12 @@ class EMAQuantizer:
         return idx
 
     def forward(self, z, train=False, empty=None):
-        """z (B, D, h, w) of the quantizer's dtype -> (QuantizerOutput, cache).
-
-        train=True applies one EMA update (the output uses the codes from before it). z must be
-        finite; an update or a loss that would overflow the dtype raises ValueError, and a call
-        that raises leaves every buffer unchanged.
-        empty: None (published: every vector takes its nearest code), or bool (B, h, w): the
-        positions whose patch is empty background take code 0, the others their nearest of the
-        rest (see nearest). Code 0's EMA then averages the empty positions' vectors."""
-        if not isinstance(train, (bool, np.bool_)):
-            raise TypeError(f"train must be True or False, got {type(train).__name__} "
-                            f"{getattr(train, 'shape', train)!r}")
-        self._check_z(z)
-        empty = self._check_empty(empty, z)
+        """z (B, D, h, w) -> (QuantizerOutput, cache). train=True applies one EMA update (the
+        output uses the codes from before it); an update or a loss that would overflow the dtype
+        raises ValueError and leaves every buffer unchanged. empty: None (published), or bool
+        (B, h, w): the empty positions take code 0, the others their nearest of the rest."""
         B, D, h, w = z.shape
+        empty = None if empty is None else empty.reshape(-1)  # (M,)
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, D))  # (M, D)
         idx = self.nearest(flat, empty)  # (M,)
         e = self.embeddings.T[idx]  # (M, D): the codes from before any update
@@ -242,20 +138,14 @@ class EMAQuantizer:
         out = QuantizerOutput(quantized=np.ascontiguousarray(quantized), codes=idx.reshape(B, h, w),
                               commitment_loss=commitment, usage=usage, perplexity=perplexity)
         if update is not None:
-            self._assign(update)
+            self.load_state_dict(update)
         return out, (diff, z.shape)
 
     def backward(self, dquantized, dcommitment, cache):
         """dquantized (B, D, h, w), dcommitment (the loss's weight on the commitment loss) -> (dz,).
         Forward was quantized = z + sg(e - z) (identity for the gradient) and
         commitment = mean((sg(e) - z)^2), so dz = dquantized - dcommitment * 2 (e - z) / numel."""
-        diff, shape = cache
-        _checks.float_array("dquantized", dquantized, diff, "z")
-        if dquantized.shape != tuple(shape):
-            raise ValueError(f"dquantized must have z's shape {tuple(shape)}, got {dquantized.shape}")
-        _checks.finite("dquantized", dquantized)
-        dcommitment = _checks.real("dcommitment", dcommitment)
-        B, D, h, w = shape
+        diff, (B, D, h, w) = cache
         with np.errstate(over="ignore", invalid="ignore"):  # checked below
             dflat = -2.0 * dcommitment / diff.size * diff  # (M, D)
             dz = dquantized + dflat.reshape(B, h, w, D).transpose(0, 3, 1, 2).astype(diff.dtype)
@@ -285,33 +175,15 @@ class EMAQuantizer:
         return new
 
     def reset_dead_codes(self, z, threshold=1e-3, rng=None, restart="batch", reseat=0, empty=None):
-        """Optional (off unless called): codes whose smoothed cluster size is below threshold are
-        moved to vectors of z (B, D, h, w), their EMA statistics restarted there: each to a
-        different vector of z, unless z has fewer vectors than there are dead codes.
-        restart: "batch", vectors drawn uniformly from z; "worst", the vectors the codes represent
-        worst (largest squared distance to their nearest code first, ties to the first vector).
-        reseat: also move up to this many live codes of least utility (code_utility, see
-        low_utility_codes) to the worst-represented vectors not taken by a dead code, each only
-        while its utility is below the squared error of the vector it goes to (the move then lowers
-        the batch's quantization error: the ELBG idea, Patane and Russo 2001).
-        empty: as forward's; code 0, the empty code, never moves, and the other codes move only to
-        vectors of non-empty positions.
-        Returns the number of codes moved.
-
-        z: a finite, non-empty array of the quantizer's dtype (as forward's); threshold: a finite
-        real >= 0 (0 resets nothing: cluster sizes are never negative). A wrong argument raises
-        TypeError / ValueError naming it, before any buffer changes."""
-        self._check_z(z)
-        threshold = _checks.real("threshold", threshold, lo=0.0)
-        if restart not in ("batch", "worst"):
-            raise ValueError(f"restart must be 'batch' or 'worst', got {restart!r}")
-        reseat = _checks.integer("reseat", reseat, lo=0)
-        try:
-            rng = np.random.default_rng(rng)
-        except (TypeError, ValueError) as e:
-            raise type(e)(f"rng must be None, a non-negative integer seed or a numpy Generator, got {rng!r} "
-                          f"({e})") from None
-        empty = self._check_empty(empty, z)
+        """Move the codes whose smoothed cluster size is below threshold to vectors of z (B, D, h, w),
+        each to a different one while there are enough, their EMA statistics restarted there ->
+        the number moved. restart: "batch", vectors drawn uniformly; "worst", the worst-represented
+        first. reseat: also move up to this many live codes of least utility (low_utility_codes) to
+        the worst-represented vectors left, each only while the move lowers the batch's
+        quantization error (the ELBG idea, Patane and Russo 2001). empty: as forward's; code 0
+        never moves, the others move only to non-empty positions' vectors."""
+        rng = np.random.default_rng(rng)
+        empty = None if empty is None else empty.reshape(-1)  # (M,)
         flat = z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim)  # (M, D)
         first = 0 if empty is None else 1  # the codes before `first` never move
         if empty is not None:
@@ -349,13 +221,12 @@ class EMAQuantizer:
 
     def init_kmeans(self, z, iters, batch, rng=None, empty=None):
         """Codes from data: k-means++ seeding on the vectors of z (B, D, h, w), then `iters` Lloyd
-        iterations (a code no vector chose keeps its place); the EMA statistics set as if one update
-        (counter 1) had seen each code chosen by its cluster's share of a batch of `batch` images,
-        so that the next updates move the codes on from there. empty: as forward's; code 0 then
-        starts at the mean of the empty positions' vectors, k-means places the others on the rest."""
+        iterations; the EMA statistics set as if one update (counter 1) had seen each code chosen
+        by its cluster's share of a batch of `batch` images. empty: as forward's; code 0 then
+        starts at the mean of the empty positions' vectors."""
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim), np.float64)  # (M, D)
         scale = batch / z.shape[0]  # images per batch / images in z
-        empty = self._check_empty(empty, z)
+        empty = None if empty is None else empty.reshape(-1)  # (M,)
         if empty is not None:
             e0, n0 = (flat[empty].mean(axis=0), empty.sum() * scale) if empty.any() else (self.embeddings[:, 0], 0.0)
             flat = flat[~empty]

@@ -2,38 +2,26 @@
 
     out = model.forward(tokens, poses, trace=True)       # pyvf: name -> activation, execution order
     report = pyvf.compare(my_trace, out.trace)           # yours first, the reference second
-    print(report)                                        # the first divergence, then a table
     report.first                                         # e.g. "blocks.1.attn.q" (None: all agree)
 
-Both sides are mappings name -> array: anything np.asarray accepts, and objects with
-`.detach()` (torch tensors, also ones that require grad: `.detach().cpu().numpy()` is called;
-torch is never imported here). The walk follows `ref`'s order, so give pyvf's trace as `ref`
-for the forward (execution order) and the dict `Transformer.backward()` returns for the
-gradients (backward order): the first quantity over tolerance in that order is where a bug
-starts; everything after it inherits the error.
+Both sides map names to arrays (or torch tensors, read through .detach()). The walk follows
+`ref`'s order (pyvf's trace: execution order; backward()'s dict: backward order), so the first
+quantity over tolerance is where a bug starts. The error is normwise, rel_err = max|x - ref| /
+max|ref| in float64: an elementwise relative error is meaningless where ref is near zero.
 
-The error measure is normwise: rel_err(x, ref) = max|x - ref| / max|ref| (below), in
-float64. An elementwise relative error is meaningless where ref has entries near zero, and a
-wrong layer shows as a normwise error of order 1e-3..1, far above rounding.
-
-Default tolerances (DEFAULT_RTOL), from the dtype of the less precise side (or `dtype=`). Why these
-values: rounding in a length-n dot product leaves a relative error of about sqrt(n) * u
-(u = unit roundoff, half of eps; typical, not worst-case n * u), n up to 4d (~3000 for the paper's
-model, so sqrt(n) ~ 60); layers compound it and LayerNorm (dividing by a small std) and unscaled
-softmax logits amplify it, by 10-100x over a dozen blocks. Measured on the tiny model: float64
-pyvf vs float64 torch agree to 2e-14, float32 pyvf vs float64 to 1.6e-6 (logits) and 1.7e-5
-(gradients). Each default sits a few orders above the rounding of a deep model in that dtype
-and below what a wrong layer gives:
+Default tolerances, from the dtype of the less precise side (or `dtype=`): rounding in a length-n
+dot product leaves about sqrt(n) u (u the unit roundoff), n up to 4d (sqrt(n) ~ 60 for the paper's
+model), amplified 10-100x by LayerNorm and unscaled softmax logits over a dozen blocks. Measured
+on the tiny model: float64 pyvf vs torch agree to 2e-14, float32 to 1.6e-6 (logits) and 1.7e-5
+(gradients). Each default sits orders above that and below what a wrong layer gives (1e-3..1):
 
     float64   u = 1.1e-16   rtol 1e-10
     float32   u = 6.0e-8    rtol 1e-3
     float16   u = 4.9e-4    rtol 2e-2
-    bfloat16  u = 3.9e-3    rtol 5e-2   (one rounding of every input is already u; only gross bugs
-                                         show in bf16: compare in float32 or float64 to find subtle ones)
+    bfloat16  u = 3.9e-3    rtol 5e-2   (only gross bugs show: compare in float32 or float64)
 
-Integer and boolean arrays (token ids) must match exactly. The dtype is read from the arrays, so
-pass dtype= when a float64 array holds values computed in a lower precision (pyvf's attn.lse is
-float64 even in a float32 model: compare a float32 run with dtype="float32").
+Integer and boolean arrays (token ids) must match exactly. Pass dtype= when a float64 array holds
+values computed in a lower precision (pyvf's attn.lse is float64 even in a float32 model).
 """
 
 import dataclasses
@@ -49,11 +37,9 @@ _PRECISION = ("float64", "float32", "float16", "bfloat16")  # most precise first
 
 
 def rel_err(x, ref):
-    """max |x - ref| / max |ref|: the largest error relative to the largest reference entry
-    (an elementwise relative error is meaningless where ref is near 0). Computed in float64, of
-    both scaled by one power of two (exact but for subnormals far below the largest entry), so
-    that x - ref does not overflow: rel_err([1e308], [-1e308]) is 2. 0 for empty arrays; the
-    absolute error max |x| where ref is all zero. x, ref: real (float, integer or bool) arrays."""
+    """max |x - ref| / max |ref| in float64, both scaled by one power of two first so that x - ref
+    does not overflow (rel_err([1e308], [-1e308]) is 2). 0 for empty arrays; max |x| where ref is
+    all zero."""
     x, ref = np.asarray(x, dtype=np.float64), np.asarray(ref, dtype=np.float64)
     if x.shape != ref.shape:
         raise ValueError(f"shapes differ: {x.shape} vs {ref.shape}")
@@ -159,18 +145,11 @@ def _tolerance(dt_mine, dt_ref, dtype, rtol):
 
 
 def compare(mine, ref, *, dtype=None, rtol=None, atol=0.0):
-    """Compare two mappings name -> array; see the module's docstring.
-
-    mine: your port's quantities; ref: the reference's (pyvf's trace or gradients), whose order
-    is walked. dtype: the dtype whose default tolerance applies (default: the less precise of
-    the two arrays'); rtol: a normwise relative tolerance for every quantity (overrides dtype).
-    atol: an absolute error accepted whatever the relative one (default 0), for quantities that
-    are exactly zero in exact arithmetic, whose relative error is rounding over rounding: e.g. the
-    gradient of a conv bias feeding a GroupNorm with one channel per group (the tiny codebook's
-    first level). Give it relative to the scale of the neighbouring quantities, e.g.
-    atol = 1e-10 * max|ref gradient| over a model's gradients (pyvf.teacher_force does that per layer).
-    Returns a Comparison: .first (the first name over tolerance, or None), .rows, .only_mine,
-    .only_ref, .ok; str() of it is the report."""
+    """Compare two mappings name -> array, walking ref's order -> Comparison (.first, .rows, .ok;
+    str() is the report). dtype: whose default tolerance applies (default: the less precise
+    side's); rtol: one normwise tolerance for every quantity. atol: an absolute error accepted
+    whatever the relative one, for quantities zero in exact arithmetic (a conv bias feeding a
+    GroupNorm of one channel per group), e.g. 1e-10 * max|ref gradient|."""
     if rtol is not None:
         rtol = _checks.real("rtol", rtol, lo=0.0)
     atol = _checks.real("atol", atol, lo=0.0)

@@ -1,19 +1,9 @@
 """Convert a published ViewFormer transformer checkpoint (TensorFlow: model.index, model.data-*)
-into the .npz that pyvf.Transformer loads.
-
-    pyvf convert tf-transformer path/to/checkpoint/model --config config.json -o model.npz
-
---config is a JSON file of TransformerConfig fields (n_embeddings, n_head, d_model, n_layer,
-token_image_size, sequence_size, n_loss_skip, ...). Needs tensorflow (only here, inside
-convert_checkpoint: pyvf itself never imports it). The checkpoint's keys are matched to the official names of
-tests/data/official-transformer-tiny.json, whichever way TensorFlow wrote them:
-
-    name-based (tf.compat.v1 Saver):   migt/h.0/attn/c_attn/weight
-    object-based (Keras save_weights): migt/h.0/attn/c_attn/weight/.ATTRIBUTES/VARIABLE_VALUE
-
-Every official name must be found exactly once with its shape; anything else (optimizer slots,
-the step counter, the save counter) is listed and skipped. pyvf.Transformer.load_official then
-checks names, shapes and values again.
+into the .npz that pyvf.Transformer loads: `pyvf convert tf-transformer path/model --config
+config.json -o model.npz` (--config: TransformerConfig fields as JSON; needs tensorflow, imported
+only here). Keys match the official names whichever way TensorFlow wrote them (name-based
+`migt/h.0/attn/c_attn/weight`, object-based `.../.ATTRIBUTES/VARIABLE_VALUE`); every official name
+must be found once with its shape, anything else (optimizer slots, counters) is skipped.
 """
 
 import json
@@ -30,10 +20,7 @@ def checkpoint_key_to_name(key):
     """The official name a checkpoint key stands for, or None for keys that are not weights."""
     if any(marker in key for marker in SKIP_MARKERS):
         return None
-    name = key
-    for suffix in ("/.ATTRIBUTES/VARIABLE_VALUE", ":0"):
-        if name.endswith(suffix):
-            name = name[: -len(suffix)]
+    name = key.removesuffix("/.ATTRIBUTES/VARIABLE_VALUE").removesuffix(":0")
     if "migt/" in name:  # drop anything before the model's scope, e.g. "model/" or "transformer/"
         name = name[name.index("migt/") + len("migt/"):]
     return name

@@ -1,41 +1,20 @@
-"""Convert a published ViewFormer codebook checkpoint (`model.ckpt`: a torch file whose
-`state_dict` holds the VQ-VAE's parameters and the quantizer's EMA buffers) into the .npz that
-pyvf.Codebook loads.
-
-    pyvf convert torch-codebook path/model.ckpt --config config.json -o codebook.npz
-
---config is a JSON file of CodebookConfig fields (ch, ch_mult, num_res_blocks, attn_resolutions,
-z_channels, embed_dim, n_embed, image_size, ...). Needs torch (only here, inside
-convert_checkpoint: pyvf itself never imports it).
-Keys outside the model (a loss's LPIPS network, a discriminator, optimizer state) are listed and
-skipped; every model name must be present with its shape (pyvf.Codebook.load_official checks).
+"""Convert a published ViewFormer codebook checkpoint (`model.ckpt`, a torch file whose `state_dict`
+holds the VQ-VAE's parameters and the quantizer's buffers) into the .npz that pyvf.Codebook loads:
+`pyvf convert torch-codebook path/model.ckpt --config config.json -o codebook.npz` (needs torch,
+imported only here). Keys outside the model (LPIPS, a discriminator, optimizer state) are skipped.
 """
 
 import json
 
-import numpy as np
-
-from pyvf import _checks
 from pyvf.models.codebook import BUFFERS, Codebook, CodebookConfig, parameter_shapes
 
 
 def convert(state_dict, config):
-    """state_dict: name -> tensor or array (a leading 'model.' is dropped; a name given both with
-    and without it raises). Returns (the model's name -> numpy array, skipped names)."""
+    """state_dict: name -> tensor or array -> (the model's entries, as given, for load_official,
+    which drops a leading 'model.' and checks each; the keys skipped, outside the model)."""
     want = set(parameter_shapes(config)) | set(BUFFERS)
-    out, keys, skipped = {}, {}, []
-    for key, value in state_dict.items():
-        name = key[len("model."):] if key.startswith("model.") else key
-        if name not in want:
-            skipped.append(key)
-            continue
-        if name in out:
-            raise ValueError(f"two state_dict keys map to {name!r}: {keys[name]!r} and {key!r}")
-        value, problem = _checks.checkpoint_array(key, value)  # a tensor numpy cannot hold: named
-        if problem is not None:
-            raise problem[0](problem[1])
-        out[name], keys[name] = np.asarray(value), key
-    return out, skipped
+    weights = {k: v for k, v in state_dict.items() if k.removeprefix("model.") in want}
+    return weights, [k for k in state_dict if k not in weights]
 
 
 def convert_checkpoint(checkpoint, config_json, output):
@@ -54,6 +33,6 @@ def convert_checkpoint(checkpoint, config_json, output):
                          "state_dict, or a state_dict)")
     weights, skipped = convert(ckpt.get("state_dict", ckpt), config)
     model = Codebook(config)
-    model.load_official(weights)  # every name and shape checked
+    model.load_official(weights)  # every entry checked, named
     model.save(output)
     return len(weights), skipped

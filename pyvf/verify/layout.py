@@ -1,19 +1,7 @@
-"""Token layouts: pyvf's tree layout and the flat layout most ports hold.
-
-pyvf runs the transformer on the tree of docs/math.md §2: every activation is (R, B, N, L, ...) with
-R tree rows (the trunk and its branches), B the batch, N views, L tokens per view. A port
-usually holds one flat sequence per batch element, (B, T, ...) with T = R*N*L, ordered
-[row][view][token]:
-
-    flat[b, r*N*L + n*L + l, ...] == tree[r, b, n, l, ...]
-
-tree_to_flat and flat_to_tree convert between the two (always a new C-contiguous array; the
-caller's is never aliased). Any dtype: activations, gradients or integer tokens.
-
-trace_from_flat converts a whole trace (the names of pyvf.models.transformer.TRACE_NAMES).
-params_from_layout / params_to_layout convert parameter-shaped arrays (a port's gradients)
-between pyvf's layout and the conventions load_official speaks (layout="tf" | "torch"), through
-the models' own mechanism (model.layout_shapes, from_layout, to_layout: pyvf.models.io).
+"""Token layouts: pyvf's tree layout (R, B, N, L, ...) and the flat one most ports hold, (B, T, ...)
+with T = R*N*L ordered [row][view][token]: flat[b, r*N*L + n*L + l] == tree[r, b, n, l]; and
+parameter layouts: a port's parameter-shaped arrays (its gradients) to and from the conventions
+load_official speaks, through the models' own from_layout / to_layout (pyvf.models.io).
 """
 
 import numpy as np
@@ -22,7 +10,7 @@ from .. import _checks
 
 
 def tree_to_flat(x):
-    """x (R, B, N, L, ...) -> (B, R*N*L, ...), the sequence ordered [row][view][token]."""
+    """x (R, B, N, L, ...) -> (B, R*N*L, ...), a new C-contiguous array."""
     R, B, N, L = x.shape[:4]
     flat = np.moveaxis(x, 1, 0)  # (B, R, N, L, ...)
     return flat.copy(order="C").reshape(B, R * N * L, *x.shape[4:])  # (B, T, ...)
@@ -41,14 +29,10 @@ _PER_HEAD = (".attn.q", ".attn.k", ".attn.v", ".attn.out", ".attn.lse")  # (R, B
 
 
 def trace_from_flat(trace, N, L, R=3):
-    """A port's transformer trace (or its gradients) in the flat layout -> pyvf's tree layout,
-    to compare with out.trace: name -> array (numpy, or torch tensors: read through .detach()).
-
-    Whole-tree activations (embed.out and blocks.*) of shape (B, T, ...), T = R*N*L ordered
-    [row][view][token], become (R, B, N, L, ...); the attention's per-head ones (blocks.j.attn.q,
-    .k, .v, .out) given as (B, H, T, dh), and .lse as (B, H, T), become pyvf's (R, B, H, N, L[, dh]).
-    Every other entry (the heads' rows (B, N, L, ...), losses) is returned as it is, as numpy.
-    None values (a tensor without a gradient) are dropped. Always new arrays."""
+    """A port's transformer trace (or its gradients) in the flat layout -> pyvf's, new arrays:
+    embed.out and blocks.* (B, T, ...) -> (R, B, N, L, ...); the per-head blocks.j.attn.q, .k, .v,
+    .out (B, H, T, dh) and .lse (B, H, T) -> (R, B, H, N, L[, dh]); other entries as numpy; None
+    values (a tensor without a gradient) dropped."""
     out = {}
     for name, a in trace.items():
         if a is None:
@@ -70,11 +54,6 @@ def trace_from_flat(trace, N, L, R=3):
         out[name] = a
     return out
 
-# ---------------------------------------------------------------------------------------
-# parameter layouts: the conventions load_official / state_dict speak, for any parameter-shaped
-# arrays (a port's gradients, to compare with backward()'s)
-
-
 def _readable(name, a):
     """A numpy array, or a torch tensor (also one that requires grad) -> a numpy array."""
     a, problem = _checks.checkpoint_array(name, a)
@@ -84,15 +63,9 @@ def _readable(name, a):
 
 
 def params_from_layout(model, arrays, layout):
-    """arrays: name -> array (numpy, or torch tensors) -> a new dict in pyvf's layout (the
-    published one, model.params'): the entries named as the model's parameters (Transformer:
-    official names, `migt/` and `:0` optional) are transposed from `layout` as load_official
-    does ("tf" | "torch" for a Transformer, "torch" | "tf" for a Codebook), every other entry
-    (activations) passes unchanged. For a port's parameter gradients:
-
-        pyvf.compare(pyvf.params_from_layout(model, port_grads, "torch"), model.backward(...))
-
-    A parameter of the wrong shape for `layout` raises ValueError naming it."""
+    """arrays: name -> array (or torch tensor) -> a new dict whose entries named as the model's
+    parameters are converted from `layout` to pyvf's as load_official does; other entries pass
+    unchanged. E.g. pyvf.compare(pyvf.params_from_layout(model, port_grads, "torch"), model.backward())."""
     shapes, out = model.parameter_shapes(), {}
     for raw, a in arrays.items():
         name = model.official_name(raw) if isinstance(raw, str) else raw
@@ -101,8 +74,7 @@ def params_from_layout(model, arrays, layout):
 
 
 def params_to_layout(model, arrays, layout):
-    """The inverse of params_from_layout: arrays in pyvf's layout (e.g. backward()'s gradients)
-    -> a new dict whose parameters are in `layout` (copies); other entries pass unchanged."""
+    """The inverse of params_from_layout (copies)."""
     shapes, out = model.parameter_shapes(), {}
     for raw, a in arrays.items():
         name = model.official_name(raw) if isinstance(raw, str) else raw

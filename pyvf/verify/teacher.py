@@ -1,34 +1,18 @@
 """Teacher forcing: run a port's own layers, each on **pyvf's** input to that layer, and compare
-each output (and, given upstream gradients, each layer's VJP) with pyvf's. A bug then shows at
-exactly the layer that has it, instead of in everything after it (as in pyvf.compare's table).
+each output (and, given upstream gradients, each layer's VJP) with pyvf's, so that a bug shows at
+the layer that has it (docs/verify.md §2 walks through both models).
 
     report = pyvf.teacher_force(model, (tokens, poses), layers,          # Transformer
                                 params=params, layout="torch", upstream=dict(dlogits=dl, dpose=dp))
     report = pyvf.teacher_force(cb, images, layers, params=params, upstream=dict(drec=d))  # Codebook
     report.wrong      # ["blocks.1.attn"]: the layers whose output or VJP is over tolerance
-    print(report)     # one row per layer, then every wrong layer's comparison
 
-layers: a dict layer name -> callable (a function or a torch nn.Module) taking the layer's
-inputs as torch tensors and returning its output (a tuple's first element is taken);
-`torch_modules(port, model)` builds it from a module whose children are named as the published
-modules. params (for the backward): the port's own parameter tensors by pyvf's official name, in
-`layout`; each layer's parameters' gradients are compared with that layer's contribution (a tied
-weight, wte, gets one per layer that reads it). docs/verify.md §2 walks through both models.
-
-The layers (`layer_table(model)`, `layer_names(model)`, in execution order) are read off the
-model's own layer table (model.layers, pyvf.models.table), each a function of its inputs only:
-the transformer's embed, per block ln_1, attn, ln_2, mlp, then ln_f (called on rows 1 and 2 of
-the last block's output), logits (the tied wte) and pose_head; the codebook's every leaf module
-of the published tree (convs, norm+swish, AttnBlocks, Downsample, Upsample, quantize). The
-residual additions and the losses are not layers (compare on a trace covers them). Tree
-activations, pyvf's (R, B, N, L, d), reach a callable flat, (B, T, d) with T = R*N*L ordered
-[row][view][token]; codebook activations are NCHW; both in pyvf's dtype.
-
-Backward: upstream holds model.backward's seeds (a Codebook's drec only: the quantize layer's
-commitment loss is a second output no layer VJP sees). pyvf's gradient of each layer's output
-seeds the port's VJP (torch autograd) and pyvf's own layer pair on the same input; the gradients
-of each float input ("d <input name>", the model's inputs get none) and of each parameter are
-compared. The parameters' .grad are cleared per layer (and left holding the last layer's).
+The layers (layer_names(model), in execution order) are read off the model's layer table
+(model.layers, pyvf.models.io). Tree activations, pyvf's (R, B, N, L, d), reach a port's
+callable flat, (B, T, d) with T = R*N*L ordered [row][view][token]; codebook activations NCHW.
+Backward: pyvf's gradient of each layer's output seeds the port's VJP (torch autograd) and pyvf's
+own layer pair on the same input; the gradients of each float input ("d <input name>") and of
+each parameter are compared (the parameters' .grad are cleared per layer).
 """
 
 import dataclasses
@@ -233,19 +217,16 @@ def _check_params(model, params, layout):
 
 def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=None, train=False,
                   dtype=None, rtol=None):
-    """Run each of the port's layers on pyvf's input to it; see the module's docstring.
+    """Run each of the port's layers on pyvf's input to it -> TeacherReport.
 
-    model: a pyvf.Transformer or pyvf.Codebook holding the port's weights. inputs: (tokens,
-    poses) for a Transformer, images for a Codebook (numpy arrays as model.forward takes them).
-    layers: dict layer name -> callable (names from layer_names(model); an unknown name raises).
-    params: optional dict official parameter name -> the port's torch tensor (requires grad), in
-    `layout` ("tf" | "torch" for a Transformer, required with params; "torch" (default) | "tf" for
-    a Codebook): their per-layer gradients are compared. upstream: optional dict of
-    model.backward's seeds; with it every layer's VJP is checked too. train: the codebook's
-    forward mode (the quantizer's EMA step; the model's buffers are restored afterwards).
-    dtype, rtol: compare's tolerance arguments.
-    The model's last forward stays the caller's: a model.backward() after this call differentiates
-    it, not teacher forcing's run. Returns a TeacherReport (.wrong: the wrong layers' names)."""
+    model: a pyvf.Transformer or pyvf.Codebook holding the port's weights; inputs: (tokens, poses)
+    or images, as model.forward takes them. layers: layer name -> callable (a function or torch
+    module) taking the layer's inputs as torch tensors, returning its output (of a tuple, the
+    first). params: optional official parameter name -> the port's tensor (requires grad), in
+    `layout` (required for a Transformer; a Codebook's default "torch"). upstream: optional
+    model.backward seeds (a Codebook's drec only); with it every layer's VJP is checked too.
+    train: the codebook's EMA step (its buffers restored afterwards). dtype, rtol: compare's.
+    The model's last forward stays the caller's."""
     table = layer_table(model)
     unknown = [n for n in layers if n not in {l.name for l in table}]  # a misspelt name: silently unchecked
     if unknown:
@@ -254,8 +235,6 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     if upstream is not None and model.INPUTS == ("images",) and set(upstream) - {"drec"}:
         raise ValueError(f"upstream for a Codebook takes drec only, got {sorted(upstream)}: the commitment "
                          "loss (dloss) is a second output of the quantize layer, which no layer VJP sees")
-    if train and model.INPUTS[0] == "tokens":
-        raise ValueError("train=True is for a Codebook (its EMA step); the transformer has no training mode")
     inputs = tuple(inputs) if model.INPUTS[0] == "tokens" else (inputs,)
     cache = model._cache  # the user's last forward: a model.backward() after this call differentiates it
     saved = model.quantizer.state_dict() if train else None  # (copies)
@@ -300,7 +279,7 @@ class _Run:
     def check(self, layer, fn):
         """Run the port's layer on pyvf's inputs, compare its outputs (and VJP) -> LayerCheck."""
         backward = self.grads is not None
-        mine, ins, outs = {}, [], []
+        mine, ins, outs, fwd, stage = {}, [], [], None, ""
         try:
             for inputs, out_name in layer.calls:
                 xs = [self.to_port(n, r) for n, r in inputs]
@@ -312,15 +291,10 @@ class _Run:
                 ins.append(xs)
                 outs.append(y)
                 mine[out_name] = self.from_port(out_name, None, y)
+            fwd, stage = compare(mine, {o: self.trace[o] for _, o in layer.calls}, **self.tol), "backward: "
+            bwd = self.vjp(layer, ins, outs) if backward else None
         except Exception as e:  # noqa: BLE001 - the port's layer failed: report it at this layer
-            return LayerCheck(layer.name, error=f"{type(e).__name__}: {e}")
-        fwd = compare(mine, {o: self.trace[o] for _, o in layer.calls}, **self.tol)
-        if not backward:
-            return LayerCheck(layer.name, forward=fwd)
-        try:
-            bwd = self.vjp(layer, ins, outs)
-        except Exception as e:  # noqa: BLE001
-            return LayerCheck(layer.name, forward=fwd, error=f"backward: {type(e).__name__}: {e}")
+            return LayerCheck(layer.name, forward=fwd, error=f"{stage}{type(e).__name__}: {e}")
         return LayerCheck(layer.name, forward=fwd, backward=bwd)
 
     def vjp(self, layer, ins, outs):
@@ -366,23 +340,17 @@ class _Run:
 # the module adapter
 
 
-def torch_modules(port, model, path=None):
+def torch_modules(port, model):
     """{layer name: callable} from a torch module whose children are named as the published
-    modules: for each of layer_names(model), the submodule port.get_submodule(path(name)) (path
-    default: the name itself, which is the published module's name in the codebook), left out
-    where there is none (or path returns None). A codebook's norm layers (GroupNorm modules) are
-    wrapped in swish, as pyvf fuses them; under the empty code the quantize layer takes (z,
-    images) and calls port.quantize(z, port.empty_patches(images)). The transformer's attention
-    usually takes the tree mask too, and its embedding is rarely one module: give those as functions."""
+    modules: port.get_submodule(name) for each of layer_names(model) it has. A codebook's GroupNorm
+    modules are wrapped in swish, as pyvf fuses them; under the empty code the quantize layer calls
+    port.quantize(z, port.empty_patches(images))."""
     import torch
 
     out = {}
     for layer in layer_table(model):
-        p = layer.name if path is None else path(layer.name)
-        if p is None:
-            continue
         try:
-            m = port.get_submodule(p)
+            m = port.get_submodule(layer.name)
         except AttributeError:
             continue
         if layer.kind == "norm_swish":

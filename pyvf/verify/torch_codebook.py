@@ -1,9 +1,6 @@
-"""The ViewFormer codebook in torch as a function of its parameters: the oracle pyvf's codebook is
-checked against (tests/test_codebook.py) and the benchmark's torch side (pyvf bench codebook).
-
-It is torch_ports.CodebookPort (written from docs/math.md §4, not from pyvf's code) called on a
-dict of parameters by their official torch names, through torch.func.functional_call: autograd
-gives the gradients, the EMA step runs without gradient on a copy of the buffers.
+"""The torch port of pyvf.verify.torch_ports.CodebookPort as a function of a parameter dict by the
+official torch names (torch.func.functional_call; the EMA step runs on a copy of the buffers): the
+oracle of tests/test_codebook.py and the benchmark's torch side (pyvf bench codebook).
 """
 
 import functools

@@ -12,6 +12,8 @@ pyvf's code. Module and parameter names:
     CodebookPort: the published torch state dict's names exactly (taming-transformers' tree).
 """
 
+from collections import OrderedDict
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -173,31 +175,17 @@ class AttnBlock(nn.Module):
         return x + self.proj_out((v @ w.transpose(1, 2)).reshape(B, C, H, W))
 
 
-class Downsample(nn.Module):
-    def __init__(self, c, pad=(0, 1, 0, 1)):
-        super().__init__()
-        self.conv, self.pad = nn.Conv2d(c, c, 3, stride=2), pad
-
-    def forward(self, x):
-        return self.conv(F.pad(x, self.pad))  # docs/math.md §4: right and bottom only
+def Downsample(c, pad=(0, 1, 0, 1)):  # docs/math.md §4: zero-pad right and bottom only, then 3x3 stride 2
+    return nn.Sequential(OrderedDict(pad=nn.ZeroPad2d(pad), conv=nn.Conv2d(c, c, 3, stride=2)))
 
 
-class Upsample(nn.Module):
-    def __init__(self, c):
-        super().__init__()
-        self.conv = nn.Conv2d(c, c, 3, padding=1)
-
-    def forward(self, x):
-        return self.conv(F.interpolate(x, scale_factor=2, mode="nearest"))
+def Upsample(c):
+    return nn.Sequential(OrderedDict(interp=nn.Upsample(scale_factor=2, mode="nearest"),
+                                     conv=nn.Conv2d(c, c, 3, padding=1)))
 
 
-class Mid(nn.Module):
-    def __init__(self, c):
-        super().__init__()
-        self.block_1, self.attn_1, self.block_2 = ResnetBlock(c, c), AttnBlock(c), ResnetBlock(c, c)
-
-    def forward(self, x):
-        return self.block_2(self.attn_1(self.block_1(x)))
+def Mid(c):
+    return nn.Sequential(OrderedDict(block_1=ResnetBlock(c, c), attn_1=AttnBlock(c), block_2=ResnetBlock(c, c)))
 
 
 class Level(nn.Module):
