@@ -21,8 +21,8 @@ from pyvf.train import torch_engine
 from pyvf.train._run import read_checkpoint
 from pyvf.train.loops import (TINY_TRANSFORMER, RunOptions, TransformerRecipe, save_tokens,
                               train_codebook, train_transformer)
-from pyvf.train.torch_codebook_engine import TorchCodebook, parity_images
-from pyvf.train.torch_engine import PARITY_RTOL, TorchTransformer, check_engine, data_parallel, parity_batch
+from pyvf.train.torch_engine import (PARITY_RTOL, TorchCodebook, TorchTransformer, check_engine, data_parallel,
+                                     parity_batch, parity_images)
 from pyvf.train.optim import Adam, AdamW, published_weight_decay
 from pyvf.models.transformer import Transformer
 from pyvf.verify import torch_ports
