@@ -23,9 +23,8 @@ def cmd_demo(args):
 
 
 def _into_folder(command, out, run):
-    """run() (-> exit status) writing into the folder `out`, created first (a path that cannot be
-    one is reported before minutes of evaluation, not after); a folder made here and left empty by
-    a run that failed (a model file missing) is removed again."""
+    """run() (-> exit status) writing into the folder `out`, created first; a folder made here and
+    left empty by a run that failed (a model file missing) is removed again."""
     made = not os.path.lexists(out)
     if problem := make_folder(out):
         return fail(command, f"argument --out: {problem}")
@@ -51,9 +50,8 @@ def _common(p):
     p.add_argument("--transformer", default=None, metavar="FILE",
                    help="a transformer .npz (Transformer.save); default: the pretrained one")
     p.add_argument("--decode", choices=sorted(DECODES), default=DEFAULT_DECODE,
-                   help="how a rendered view's token logits become an image: expected (each token's mean code "
-                        "vector, the latent of least expected squared error; default) or argmax (each token's "
-                        "most likely code, the published generation)")
+                   help="a rendered token's latent: expected (its mean code vector; default) or argmax (its most "
+                        "likely code, as published)")
     add_threads(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
