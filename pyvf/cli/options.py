@@ -8,49 +8,30 @@ import tempfile
 
 from .._threads import MAX_THREADS
 
-KERNEL_THREADS = "threads for pyvf's C++ kernels"
 INTERRUPTED = 130  # a command's exit status after Ctrl-C: the shell's for a process ended by SIGINT (128 + 2)
 
 
-def _integer(text, lo, expected, hi=None):
-    """argparse's types below: an integer in [lo, hi], else an error naming the option."""
-    try:
-        v = int(text)
-    except ValueError:
-        v = lo - 1
-    if v < lo or (hi is not None and v > hi):
-        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
-    return v
+def _number(cast, lo, expected, hi=float("inf")):
+    """An argparse type: text -> cast(text) in [lo, hi] (NaN and inf refused), else an error naming
+    the option."""
+    def parse(text):
+        try:
+            v = cast(text)
+        except ValueError:
+            v = float("nan")
+        if not lo <= v <= hi or abs(v) == float("inf"):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return v
+    return parse
 
 
-def positive_int(text):
-    return _integer(text, 1, "a positive integer")
+positive_int = _number(int, 1, "a positive integer")
+non_negative_int = _number(int, 0, "a non-negative integer")
+non_negative_float = _number(float, 0, "a finite number >= 0")
+thread_count = _number(int, 1, f"a positive integer of at most {MAX_THREADS}", MAX_THREADS)  # pyvf.threads'
 
 
-def _number(text, ok, expected):
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not (v == v and abs(v) != float("inf") and ok(v)):  # NaN and inf refused too
-        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
-    return v
-
-
-def non_negative_float(text):
-    return _number(text, lambda v: v >= 0, "a finite number >= 0")
-
-
-def non_negative_int(text):
-    return _integer(text, 0, "a non-negative integer")
-
-
-def thread_count(text):
-    """argparse type: a thread count, a positive integer of at most pyvf's MAX_THREADS."""
-    return _integer(text, 1, f"a positive integer of at most {MAX_THREADS}", hi=MAX_THREADS)
-
-
-def add_threads(parser, default=None, help=KERNEL_THREADS):
+def add_threads(parser, default=None, help="threads for pyvf's C++ kernels"):
     """--threads: a thread count for the kernels and numpy's BLAS together (pyvf.threads)."""
     parser.add_argument("--threads", type=thread_count, default=default, help=help)
 

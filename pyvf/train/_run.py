@@ -164,7 +164,7 @@ class Run:
             self._truncate_log(self.eval_path, self.eval_columns)
         if self.resumed and os.path.exists(self.parity_path):  # the torch engine's
             self._truncate_log(self.parity_path, PARITY_COLUMNS)
-        self._log_file = self._bar = self._previous_handler = None
+        self._bar = self._previous_handler = None
         self.interruptible, self._stop = interruptible, False
         self._t0 = time.perf_counter()
 
@@ -239,10 +239,7 @@ class Run:
             self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
         if step % self.log_every and step != self.steps_total:
             return
-        # repr: floats round-trip exactly, so two runs' logs compare bit for bit
-        row = [str(step)] + [repr(float(values[c])) for c in self.columns[1:-1]] + [f"{self.seconds():.3f}"]
-        csv.writer(self._log_file, lineterminator="\n").writerow(row)
-        self._log_file.flush()
+        self._append(self.log_path, step, values, self.columns)
 
     def eval_due(self, step, every):
         """Every `every` steps (0: never) and at the last step."""
@@ -251,9 +248,7 @@ class Run:
     def log_eval(self, step, values):
         """Append one row of held-out figures to eval.csv, print it to stderr (curves.eval_line)
         and redraw eval.png."""
-        row = [str(step)] + [repr(float(values[c])) for c in self.eval_columns[1:-1]] + [f"{self.seconds():.3f}"]
-        with open(self.eval_path, "a", newline="", encoding="utf-8") as f:
-            csv.writer(f, lineterminator="\n").writerow(row)
+        self._append(self.eval_path, step, values, self.eval_columns)
         line = f"{self.kind} held-out at step {step}: {eval_line(values)}"  # as it trains, not only at the end
         if self._bar is not None:
             self._bar.write(line, file=sys.stderr)  # above the bar, on the bar's stream
@@ -261,17 +256,21 @@ class Run:
             print(line, file=sys.stderr)
         plot_eval(self.out_dir)
 
+    def _append(self, path, step, values, columns):
+        """Append the row of `step` (values: column -> float) to a CSV log; repr: floats round-trip
+        exactly, so two runs' logs compare bit for bit."""
+        row = [str(step)] + [repr(float(values[c])) for c in columns[1:-1]] + [f"{self.seconds():.3f}"]
+        with open(path, "a", newline="", encoding="utf-8") as f:
+            csv.writer(f, lineterminator="\n").writerow(row)
+
     def log_parity(self, step, worst, rel_err, bound):
         """Append the torch engine's parity check of `step` to parity.csv."""
-        new = not os.path.exists(self.parity_path)
+        if not os.path.exists(self.parity_path):
+            atomic_write_text(self.parity_path, ",".join(PARITY_COLUMNS) + "\n")
         with open(self.parity_path, "a", newline="", encoding="utf-8") as f:
-            writer = csv.writer(f, lineterminator="\n")
-            if new:
-                writer.writerow(PARITY_COLUMNS)
-            writer.writerow([step, worst, repr(float(rel_err)), repr(float(bound))])
+            csv.writer(f, lineterminator="\n").writerow([step, worst, repr(float(rel_err)), repr(float(bound))])
 
     def __enter__(self):
-        self._log_file = open(self.log_path, "a", newline="", encoding="utf-8")
         if self.progress:
             from tqdm.auto import tqdm
             self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}",
@@ -288,7 +287,6 @@ class Run:
             signal.signal(signal.SIGINT, self._previous_handler)
         if self._bar is not None:
             self._bar.close()
-        self._log_file.close()
         if exc[0] is None and self._stop:
             # Ctrl-C after the last step's checkpoint was saved: stop here all the same (the
             # caller's next work, e.g. pyvf train's next stage, must not start)

@@ -25,8 +25,6 @@ from ._run import file_sha256
 from .loops import (TINY_CODEBOOK, TINY_TRANSFORMER, RunOptions, TransformerRecipe, held_out_set, load_tokens,
                     save_tokens, tokenize, train_codebook, train_transformer)
 
-__all__ = ["PRESETS", "Preset", "train_pipeline"]
-
 TRAIN_SEED, HEALTH_SEED, EVAL_SEED = 0, 1, 1000
 
 
@@ -68,7 +66,8 @@ PRESETS = {
 
 
 def _scenes(folder, n, size, progress):
-    """The training scenes: loaded when the folder's manifest exists and matches, else written."""
+    """The training scenes: loaded when the folder's manifest matches, else written (an interrupted
+    write of the same arguments resumes, one of others is replaced)."""
     from ..scenes import load_dataset, write_dataset
     from ..scenes.dataset import DatasetExistsError
 
@@ -78,9 +77,9 @@ def _scenes(folder, n, size, progress):
             return data
         raise ValueError(f"{folder} holds another dataset ({data.images.shape[0]} scenes of seed {data.seed}, "
                          f"{data.images.shape[2]} px): use another --out")
-    try:  # an unfinished write of the same arguments (interrupted) resumes, its whole shards kept
+    try:
         write_dataset(folder, n, TRAIN_SEED, size=size, progress=progress)
-    except DatasetExistsError:  # an unfinished write of other arguments (a preset changed): replaced
+    except DatasetExistsError:
         write_dataset(folder, n, TRAIN_SEED, size=size, progress=progress, overwrite=True)
     return load_dataset(folder)
 

@@ -1,23 +1,14 @@
-"""The torch engines of train_transformer and train_codebook (docs/howto-torch-engine.md): the same
-loop, batches, schedule, optimiser, clipping, run folder and checkpoints as pyvf's engine, with the
-model and the update in torch, on a CPU or a GPU.
+"""The torch engines of train_transformer and train_codebook (docs/howto-torch-engine.md): pyvf's
+loop, batches, schedule, optimiser, clipping, run folder and checkpoints, with the model (pyvf.verify's
+ports, loaded with the pyvf model's weights and buffers) and the update (optim.adam_update on torch
+tensors, the moments saved in pyvf's layout) in torch: a checkpoint of either engine resumes in the
+other. bf16 autocasts the arithmetic (not the codebook's lookup and EMA); weights and moments stay float32.
 
-The models are pyvf.verify's ports (TransformerPort, CodebookPort), loaded with the pyvf model's
-weights (and the codebook's EMA buffers), so both engines start alike. TorchAdamW is optim.adam_update
-on torch tensors, its moments saved in pyvf's layout, so a checkpoint of either engine resumes in the
-other. precision "bf16" autocasts the arithmetic (not the codebook's lookup and EMA update); the
-weights and moments stay float32. The codebook's dead-code restart is pyvf's own, on the port's buffers.
-
-At every checkpoint pyvf loads the torch model's weights, runs a fixed batch, and its outputs must
-equal the torch model's (evaluated without autocast) within PARITY_RTOL; the worst error is appended
-to parity.csv, and a larger one stops the run naming the first divergent quantity (the codebook's
-codes must be equal).
-
-Data-parallel, the transformer only (`torchrun --nproc-per-node N`): every process draws the same
-batch of (seed, step) and runs its shard of the rows; each shard's mean loss is weighted by its share
-of the batch, so the gradients summed in one all-reduce are the whole batch's mean-loss gradient;
-clipping and the update follow, the same on every process. Rank 0 alone writes the run folder (Run);
-the others follow (Follower), from rank 0's broadcast weights, moments and step.
+At every checkpoint pyvf runs a fixed batch with the torch model's weights: the outputs must agree
+within PARITY_RTOL (the codebook's codes exactly); the worst error goes to parity.csv, a larger one
+stops the run. Data-parallel (the transformer, under torchrun): every process draws the batch of
+(seed, step) and runs its shard of the rows, its mean loss weighted by its share of the batch, so the
+all-reduced gradients are the batch's; rank 0 alone writes the run folder, the others follow.
 """
 
 import contextlib
@@ -75,22 +66,21 @@ def check_engine(engine, device, precision, dtype=None, one_process=False):
 
 
 class DataParallel:
-    """The processes of a data-parallel run: this one's rank, the world size, the collectives.
-    Made by data_parallel(); `created`: whether it initialised the process group (close() ends it)."""
+    """This process's rank in a data-parallel run, the world size, the collectives. `created`: whether
+    data_parallel() initialised the process group (close() ends it)."""
 
     def __init__(self, dist, device, created):
         self.dist, self.device, self.created = dist, device, created
         self.rank, self.world = dist.get_rank(), dist.get_world_size()
 
     def shard(self, batch_size):
-        """This process's rows lo:hi of a batch: contiguous shards in rank order, sizes differing
-        by at most one (batch_size 5 on 2 processes: 3 and 2)."""
+        """This process's rows lo:hi of a batch: contiguous shards, sizes differing by at most one."""
         base, extra = divmod(batch_size, self.world)
         lo = self.rank * base + min(self.rank, extra)
         return lo, lo + base + (self.rank < extra)
 
     def all_reduce(self, tensors):
-        """Sum each tensor across the processes, in place, in one all-reduce of their concatenation."""
+        """Sum each tensor across the processes, in place, in one all-reduce."""
         torch = import_torch()
         flat = torch.cat([t.reshape(-1) for t in tensors])
         self.dist.all_reduce(flat)
@@ -98,7 +88,6 @@ class DataParallel:
             t.copy_(summed.view_as(t))
 
     def broadcast(self, tensors):
-        """Rank 0's values of the tensors into every process's, in place."""
         with import_torch().no_grad():
             for t in tensors:
                 self.dist.broadcast(t, 0)
@@ -124,9 +113,8 @@ def world_size():
 
 
 def data_parallel(device, batch_size):
-    """(DataParallel or None, the device this process trains on). None in a single process. Else the
-    caller's process group, or one initialised here from torchrun's environment (gloo on the CPU,
-    nccl on GPUs; device 'cuda' becomes cuda:LOCAL_RANK)."""
+    """(DataParallel, or None in a single process; the device this process trains on): the caller's
+    process group, or one made from torchrun's environment (gloo on the CPU, nccl on cuda:LOCAL_RANK)."""
     torch = import_torch()
     import torch.distributed as dist
     initialised, world = dist.is_available() and dist.is_initialized(), world_size()
@@ -146,8 +134,7 @@ def data_parallel(device, batch_size):
 
 
 class Follower(contextlib.nullcontext):
-    """Run's stand-in on the processes of a data-parallel run other than rank 0: the same steps
-    from rank 0's start, nothing read or written."""
+    """Run's stand-in on the processes other than rank 0: the same steps, nothing read or written."""
 
     resumed, model_state, optimizer_state = False, None, None
 
@@ -165,9 +152,8 @@ class Follower(contextlib.nullcontext):
 
 
 class TorchAdamW:
-    """pyvf.train.optim.AdamW.step on torch tensors. ref: the pyvf AdamW (or Adam) whose
-    hyperparameters, schedule and decayed set it applies and whose state_dict format it saves; its
-    moments are kept here, in the torch parameters' layout. params: official name -> torch Parameter."""
+    """AdamW.step on torch tensors. params: official name -> torch Parameter; ref: the pyvf AdamW (or
+    Adam) whose settings and schedule it applies and whose state_dict it saves."""
 
     def __init__(self, params, ref, model):
         self.params, self.ref, self.model = params, ref, model
@@ -207,13 +193,11 @@ class TorchAdamW:
 
 
 class TorchEngine:
-    """What both torch engines share: the model's torch port (port), its parameters by official name
-    (_names), the update (opt, a TorchAdamW continuing the run's pyvf optimiser), the fixed batch of
-    the parity checks (parity_batch, a tuple of parity()'s arguments), and to_pyvf() -> the pyvf model
-    holding the port's current weights."""
+    """What both torch engines share: the port, its parameters by official name (_names), the update
+    (opt: a TorchAdamW), parity()'s arguments (parity_batch), to_pyvf() -> the pyvf model holding the
+    port's current weights."""
 
     def state_dict(self):
-        """The weights (and buffers) in pyvf's layout, numpy: what Run.checkpoint writes."""
         return self.to_pyvf().state_dict()
 
     def _zero_grad(self):
@@ -221,18 +205,15 @@ class TorchEngine:
             p.grad = None
 
     def _refuse_nonfinite(self, stats, names):
-        """stats: the step's loss figures and gradient norm, numpy; not finite -> ValueError."""
         if not np.isfinite(stats).all():
             raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
                              f"({names} = {stats.tolist()}): no update applied; lower the learning rate")
 
     def _parity(self, mine, out):
-        """pyvf.compare of the torch model's quantities `mine` against the pyvf output's `out`."""
         return compare(mine, {k: np.asarray(getattr(out, k)) for k in mine}, rtol=PARITY_RTOL)
 
     def check(self, run, step):
-        """Before the checkpoint of `step`: the parity on parity_batch, logged to the run's
-        parity.csv; a failed one raises, so a divergent model is not checkpointed."""
+        """Before the checkpoint of `step`: the parity, logged to parity.csv; a failure raises."""
         comparison = self.parity(*self.parity_batch)
         worst = max(comparison.rows, key=lambda r: (not np.isfinite(r.rel), r.rel))
         run.log_parity(step, worst.name, worst.rel, PARITY_RTOL)
@@ -247,10 +228,8 @@ def _torch_dtype(torch, model):
 
 
 class TorchTransformer(TorchEngine):
-    """train_transformer's torch engine. model: the pyvf Transformer holding the starting weights;
-    opt_ref: the pyvf AdamW built on model.params, whose state this engine continues. dp: a
-    DataParallel (rank 0's weights, moments and step count are broadcast to every process) or None.
-    parity_batch: (tokens, poses) of check()."""
+    """train_transformer's torch engine, continuing the pyvf Transformer `model` and its AdamW
+    `opt_ref`. dp: a DataParallel (rank 0's state is broadcast to every process) or None."""
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", max_grad_norm=None,
                  clip_mode="per_tensor", dp=None, parity_batch=None):
@@ -271,7 +250,6 @@ class TorchTransformer(TorchEngine):
             opt_ref.step_count = dp.broadcast_int(opt_ref.step_count)
 
     def to_pyvf(self):
-        """The pyvf Transformer, given the torch model's current weights."""
         self.pyvf_model.load_official({k: p.detach().cpu().numpy() for k, p in self._names.items()},
                                       layout="torch")
         return self.pyvf_model
@@ -335,10 +313,8 @@ class TorchTransformer(TorchEngine):
 
 
 class TorchCodebook(TorchEngine):
-    """train_codebook's torch engine, one process. model: the pyvf Codebook holding the starting
-    weights and EMA buffers; opt_ref: the pyvf Adam built on model.params. parity_batch: (images,)
-    of check(). The port's quantizer does the EMA update (docs/math.md §4) in training mode, after
-    the lookup, in the model's dtype whatever the precision."""
+    """train_codebook's torch engine (one process), continuing the pyvf Codebook `model` and its Adam
+    `opt_ref`. The port's quantizer does the EMA update in training mode, in the model's dtype."""
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", parity_batch=None):
         torch = import_torch()
@@ -352,7 +328,6 @@ class TorchCodebook(TorchEngine):
         self.opt = TorchAdamW(self._names, opt_ref, model)
 
     def to_pyvf(self):
-        """The pyvf Codebook, given the torch model's current weights and buffers."""
         self.pyvf_model.load_official({k: v.detach().cpu().numpy() for k, v in self.port.state_dict().items()})
         return self.pyvf_model
 
