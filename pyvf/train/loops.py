@@ -8,7 +8,7 @@ RunOptions says how a call runs (steps, batches, checkpoints, engine...); the co
 recipe say what it learns. Each loop checkpoints its run folder (_run.py) every `checkpoint_every`
 steps, at the end and at Ctrl-C; a call with resume=True continues to exactly the parameters,
 optimiser moments and EMA buffers an uninterrupted run reaches, bit for bit, on the same kernel path
-(pyvf.show_config), as every batch is a pure function of (seed, step) (batches.py).
+(pyvf.show_config), as every batch is a pure function of (seed, step).
 """
 
 import dataclasses
@@ -26,16 +26,14 @@ from ..evaluate.health import (
     transformer_health,
     transformer_health_columns,
 )
-from ..evaluate.metrics import encode_images
+from ..evaluate.metrics import encode_images, object_mask, to_model_images
 from ..geometry import _check_unit
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, file_sha256, fingerprint, resume_point
-from .batches import codebook_batch, transformer_batch
 from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from .step import codebook_train_step, transformer_step
-from .torch_engine import (Follower, TorchCodebook, TorchTransformer, check_engine, data_parallel, parity_batch,
-                           parity_images)
+from .torch_engine import Follower, TorchCodebook, TorchTransformer, check_engine, data_parallel
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
 # configuration (docs/math.md §4) at a quarter of the channels, one ResnetBlock per level and no
@@ -99,6 +97,42 @@ class RunOptions:
             if name != "threads" or self.threads is not None:
                 object.__setattr__(self, name, _checks.integer(name, getattr(self, name), lo))
         check_engine(self.engine, self.device, self.precision)
+
+
+# ---------------------------------------------------------------------------------------
+# the batches: each a pure function of (seed, step), so that a resumed run draws the same ones and
+# both engines train on the same ones; the torch engine's parity checks draw theirs from seed + PARITY_SEED
+
+
+PARITY_SEED = 1_000_003
+
+
+def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weight=None):
+    """Batch of step `step`: batch_size views drawn uniformly (with replacement) from the
+    (M, Hi, Wi, C) uint8 images -> (B, C, Hi, Wi) in [-1, 1]. A pure function of (seed, step).
+    With object_weight (a float), also the pixel weights (B, 1, Hi, Wi): object_weight on the
+    pixels health.object_mask marks, 1 on the background."""
+    rng = np.random.default_rng([seed, step])
+    idx = rng.integers(0, images.shape[0], size=batch_size)  # (B,)
+    x = to_model_images(images[idx], np.dtype(dtype))
+    if object_weight is None:
+        return x
+    w = np.where(object_mask(images[idx]), object_weight, 1.0).astype(dtype)[:, None]  # (B, 1, Hi, Wi)
+    return x, w
+
+
+def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="float32"):
+    """Batch of step `step`: per sample a scene drawn uniformly, then n_views distinct views
+    of it in random order. tokens (scenes, views, k, k), poses (scenes, views, 7) ->
+    tokens (B, N, L) int64, poses (B, N, 7) of dtype. A pure function of (seed, step)."""
+    rng = np.random.default_rng([seed, step])
+    n_scenes, n_avail = tokens.shape[:2]
+    scenes = rng.integers(0, n_scenes, size=batch_size)  # (B,)
+    order = rng.permuted(np.tile(np.arange(n_avail), (batch_size, 1)), axis=1)  # (B, views): a permutation per row
+    views = order[:, :n_views]  # (B, N)
+    tok = tokens[scenes[:, None], views].reshape(batch_size, n_views, -1).astype(np.int64)  # (B, N, L)
+    pos = poses[scenes[:, None], views].astype(dtype)  # (B, N, 7)
+    return tok, pos
 
 
 def _check_images(images, config, name="images"):
@@ -196,7 +230,7 @@ def _codebook_engine(opts, model, opt, flat):
     each checkpoint or None)."""
     if opts.engine == "torch":
         eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
-                            parity_batch=(parity_images(flat, opts.seed, model.config.dtype),))
+                            parity_batch=(codebook_batch(flat, 4, opts.seed + PARITY_SEED, 0, model.config.dtype),))
         return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
 
     def step(x, w):
@@ -441,8 +475,8 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
         opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=1e-8, weight_decay=hyper[
             "weight_decay"], decay=published_weight_decay, eps_convention="keras"), init_state)
-        step, state, current, opt, check = _transformer_engine(
-            opts, model, opt, dp, recipe, parity_batch(tokens, poses, n_views, seed, config.dtype))
+        parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
+        step, state, current, opt, check = _transformer_engine(opts, model, opt, dp, recipe, parity)
         with run:
             if evaluating and not run.resumed:
                 run.log_eval(0, health(current()))

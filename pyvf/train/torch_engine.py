@@ -21,7 +21,6 @@ from ..geometry import make_relative
 from ..nn.quantizer import code_statistics
 from ..verify.compare import compare
 from ..verify.layout import params_from_layout, params_to_layout
-from .batches import codebook_batch, transformer_batch
 from .optim import adam_update
 
 # The parity bound: pyvf.compare's normwise relative error, float32 torch against float32 pyvf.
@@ -31,7 +30,6 @@ from .optim import adam_update
 # default: two orders above that, below what one wrong layer gives (>= 1e-2). One model's forward in
 # two engines: it does not grow with the steps a run took to reach the weights.
 PARITY_RTOL = 1e-3
-PARITY_SEED = 1_000_003  # the parity batch's seed offset: a seed no training run of `seed` draws batches from
 
 
 def import_torch():
@@ -393,13 +391,3 @@ class TorchCodebook(TorchEngine):
                 "rec_loss": np.asarray(rec_loss.item()), "commitment_loss": np.asarray(commitment.item()),
                 "loss": np.asarray((rec_loss + self.config.codebook_weight * commitment).item())}
         return self._parity(mine, self.to_pyvf().forward(images))
-
-
-def parity_batch(tokens, poses, n_views, seed, dtype):
-    """The transformer's parity batch: 4 samples drawn as transformer_batch draws, seed + PARITY_SEED."""
-    return transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, dtype)
-
-
-def parity_images(images, seed, dtype):
-    """The codebook's parity batch: 4 views (M, S, S, C) uint8 drawn as codebook_batch draws."""
-    return codebook_batch(images, 4, seed + PARITY_SEED, 0, dtype)
