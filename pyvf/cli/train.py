@@ -3,7 +3,7 @@
     pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE] [--init F]
     pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
     pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--codebook F] [--init F]
-    pyvf runs runs/cb runs/cb2 [--plot] [--step N]   # compare runs: their last held-out evaluation
+    pyvf runs runs/cb runs/cb2 [--step N]         # compare runs: their last held-out evaluation
     pyvf export runs/tf -o tf-now.npz     # the model of a run's last checkpoint, while it trains
     pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
 
@@ -16,6 +16,7 @@ import os
 import sys
 
 from ..train import tasks
+from ..train.curves import runs_table
 from ..train.loops import CODEBOOK_RECIPES, RunOptions, TransformerRecipe
 from ..train.pipeline import PRESETS, train_pipeline
 from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int, positive_int
@@ -26,18 +27,23 @@ def _record(args):
     return {"argv": list(sys.argv), "args": {k: v for k, v in vars(args).items() if k != "func"}}
 
 
-def _guarded(name, work, interrupted=lambda: "interrupted"):
-    """Run work(); a ValueError, TypeError or OSError is printed, status 1; Ctrl-C prints the line
-    interrupted() makes, status 130."""
-    try:
-        work()
-    except (ValueError, TypeError, OSError) as e:
-        print(f"pyvf {name}: error: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"pyvf {name}: {interrupted()}", file=sys.stderr)
-        return INTERRUPTED
-    return 0
+def _command(subparsers, name, cmd, help, interrupted=lambda args: "interrupted"):
+    """The parser of `pyvf name`, whose handler runs cmd(args): a ValueError, TypeError or OSError is
+    printed, status 1; Ctrl-C prints the line interrupted(args) makes, status 130."""
+    def handler(args):
+        try:
+            cmd(args)
+        except (ValueError, TypeError, OSError) as e:
+            print(f"pyvf {name}: error: {e}", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:
+            print(f"pyvf {name}: {interrupted(args)}", file=sys.stderr)
+            return INTERRUPTED
+        return 0
+
+    p = subparsers.add_parser(name, help=help, description=cmd.__doc__)
+    p.set_defaults(func=handler)
+    return p
 
 
 def _resume_hint(args):
@@ -65,64 +71,49 @@ def _run(args):
 
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
-    def work():
-        opts, held_out = _run(args)
-        tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr, betas=args.betas,
-                           reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
-                           restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
-        print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
-    return _guarded("train-codebook", work, lambda: _resume_hint(args))
+    opts, held_out = _run(args)
+    tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr,
+                       reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
+                       restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
+    print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
 
 
 def cmd_tokenize(args):
     """Encode a dataset's images into token images with a trained codebook."""
-    def work():
-        tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, batch_size=args.batch,
-                                        progress=not args.no_progress, threads=args.threads)
-        print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
-    return _guarded("tokenize", work, lambda: f"interrupted; {args.out} not written: rerun the same command")
+    tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, batch_size=args.batch,
+                                    progress=not args.no_progress, threads=args.threads)
+    print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
 
 
 def cmd_train_transformer(args):
     """Train the transformer on a tokenized dataset; resumable."""
-    def work():
-        opts, held_out = _run(args)
-        recipe = TransformerRecipe(context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
-                                   weight_decay=args.weight_decay, max_grad_norm=args.max_grad_norm or None)  # 0: off
-        tasks.transformer_run(args.tokens, args.out, opts, recipe, codebook=args.codebook, **held_out)
-        print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
-    return _guarded("train-transformer", work, lambda: _resume_hint(args))
+    opts, held_out = _run(args)
+    recipe = TransformerRecipe(context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
+                               max_grad_norm=args.max_grad_norm or None)  # 0: off
+    tasks.transformer_run(args.tokens, args.out, opts, recipe, codebook=args.codebook, **held_out)
+    print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
 
 
 def cmd_train(args):
     """The whole pipeline, resumable stage by stage: training scenes, codebook, tokens,
     transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
-    def work():
-        train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
-                       command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
-        print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
-              f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
-    return _guarded("train", work, lambda: _stages_hint(args))
+    train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
+                   command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
+    print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
+          f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
 
 
 def cmd_runs(args):
     """Compare training runs: each run's steps, wall time, changed hyperparameters and last held-out
-    evaluation, as a markdown table; with --plot, each run's eval.png redrawn."""
-    def work():
-        table, plots = tasks.compare_runs(args.run_dirs, plot=args.plot, step=args.step)
-        print(table, end="")
-        for path in plots:
-            print(f"wrote {path}")
-    return _guarded("runs", work)
+    evaluation, as a markdown table."""
+    print(runs_table(args.run_dirs, step=args.step), end="")
 
 
 def cmd_export(args):
     """Write the model of a training run's last checkpoint, as the run writes its final model at the
     end: evaluate or ship a run while it trains."""
-    def work():
-        kind, step, path = tasks.export_run(args.run, args.output)
-        print(f"{kind} at step {step}: {path}")
-    return _guarded("export", work)
+    kind, step, path = tasks.export_run(args.run, args.output)
+    print(f"{kind} at step {step}: {path}")
 
 
 def _run_options(p, every, scenes):
@@ -152,15 +143,15 @@ def _engine_options(p):
                    help="the torch engine's arithmetic: fp32 (default) or bf16 autocast")
 
 
-def _train_codebook(subparsers):
-    p = subparsers.add_parser("train-codebook", help="train the codebook (VQ-VAE) on a dataset; resumable",
-                              description=cmd_train_codebook.__doc__)
+def register(subparsers):
+    """Add train-codebook, tokenize, train-transformer, train, runs and export to argparse subparsers."""
+    p = _command(subparsers, "train-codebook", cmd_train_codebook, "train the codebook (VQ-VAE) on a dataset; "
+                 "resumable", _resume_hint)
     p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
     _run_options(p, every=100, scenes=32)
     p.add_argument("--recipe", default="small-batch", choices=sorted(CODEBOOK_RECIPES),
                    help="the defaults of the options below (default small-batch; published: the published code's)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate")
-    p.add_argument("--betas", type=float, nargs=2, default=None, metavar=("B1", "B2"), help="Adam's betas")
     p.add_argument("--reset-dead-codes", type=int, default=None, metavar="EVERY",
                    help="every EVERY steps move unused codes to encoder outputs (0: never)")
     p.add_argument("--object-weight", type=float, default=None, help="loss weight of object pixels (background: 1)")
@@ -170,24 +161,18 @@ def _train_codebook(subparsers):
                    help="each reset also moves up to N codes of least utility")
     p.add_argument("--kmeans", type=int, default=None, metavar="ITERS",
                    help="initialise the codes by ITERS k-means iterations on encoder outputs (0: uniform)")
-    p.set_defaults(func=cmd_train_codebook)
 
-
-def _tokenize(subparsers):
-    p = subparsers.add_parser("tokenize", help="encode a dataset into token images with a codebook",
-                              description=cmd_tokenize.__doc__)
+    p = _command(subparsers, "tokenize", cmd_tokenize, "encode a dataset into token images with a codebook",
+                 lambda args: f"interrupted; {args.out} not written: rerun the same command")
     p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
     p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
     p.add_argument("--out", required=True, help="tokens .npz to write")
     p.add_argument("--batch", type=int, default=64, help="images per encoder call (default 64)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
-    p.set_defaults(func=cmd_tokenize)
 
-
-def _train_transformer(subparsers):
-    p = subparsers.add_parser("train-transformer", help="train the transformer on a tokens file; resumable",
-                              description=cmd_train_transformer.__doc__)
+    p = _command(subparsers, "train-transformer", cmd_train_transformer, "train the transformer on a tokens file; "
+                 "resumable", _resume_hint)
     p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
     p.add_argument("--codebook", default=None, help="the tokens' codebook .npz: the held-out evaluation needs it")
     _run_options(p, every=200, scenes=16)
@@ -195,43 +180,23 @@ def _train_transformer(subparsers):
     p.add_argument("--lr", type=float, default=1e-4, help="peak learning rate (default 1e-4)")
     p.add_argument("--warmup", type=int, default=None, help="warmup steps (default min(2000, total/10))")
     p.add_argument("--total-steps", type=int, default=None, help="length of the cosine schedule (default --steps)")
-    p.add_argument("--weight-decay", type=float, default=0.01, help="AdamW decay (default 0.01)")
     p.add_argument("--max-grad-norm", type=non_negative_float, default=1.0,
                    help="per-tensor clipping norm (default 1.0; 0: off)")
-    p.set_defaults(func=cmd_train_transformer)
 
-
-def _train(subparsers):
-    p = subparsers.add_parser("train", help="train a ViewFormer pair from scratch, every stage resumable",
-                              description=cmd_train.__doc__)
+    p = _command(subparsers, "train", cmd_train, "train a ViewFormer pair from scratch, every stage resumable",
+                 _stages_hint)
     p.add_argument("--out", required=True, help="folder of the stages; run again to resume")
     p.add_argument("--preset", default="quick", choices=sorted(PRESETS),
                    help="sizes and steps of every stage: quick (default, ~15 min on 2 cores), full, smoke (seconds)")
     add_threads(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     _engine_options(p)
-    p.set_defaults(func=cmd_train)
 
-
-def _runs(subparsers):
-    p = subparsers.add_parser("runs", help="compare training runs' last held-out evaluations",
-                              description=cmd_runs.__doc__)
+    p = _command(subparsers, "runs", cmd_runs, "compare training runs' last held-out evaluations")
     p.add_argument("run_dirs", nargs="+", metavar="RUN", help="run folders")
-    p.add_argument("--plot", action="store_true", help="also redraw each run's eval.png")
     p.add_argument("--step", type=int, default=None, help="each run's last evaluation at or before STEP")
-    p.set_defaults(func=cmd_runs)
 
-
-def _export(subparsers):
-    p = subparsers.add_parser("export", help="the model of a training run's last checkpoint, as a model file",
-                              description=cmd_export.__doc__)
+    p = _command(subparsers, "export", cmd_export, "the model of a training run's last checkpoint, as a model file")
     p.add_argument("run", metavar="RUN", help="a run folder or its checkpoint.npz")
     p.add_argument("-o", "--output", required=True, help="the model .npz to write")
-    p.set_defaults(func=cmd_export)
-
-
-def register(subparsers):
-    """Add train-codebook, tokenize, train-transformer, train, runs and export to argparse subparsers."""
-    for add in (_train_codebook, _tokenize, _train_transformer, _train, _runs, _export):
-        add(subparsers)
     return subparsers

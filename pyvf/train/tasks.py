@@ -4,7 +4,6 @@ folder or a tokens file in, a run folder out.
     codebook_run("data/sm7", "runs/cb", RunOptions(steps=20000, eval_every=100))  # pyvf train-codebook
     tokenize_dataset("runs/cb/codebook.npz", "data/sm7", "runs/tokens.npz")      # pyvf tokenize
     transformer_run("runs/tokens.npz", "runs/tf", RunOptions(steps=50000), codebook="runs/cb/codebook.npz")
-    print(compare_runs(["runs/cb", "runs/cb2"])[0])                               # pyvf runs
     export_run("runs/tf", "tf-now.npz")   # pyvf export: the model of a run's last checkpoint
 
 config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the configuration's fields,
@@ -22,7 +21,6 @@ from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import CHECKPOINT, read_checkpoint, resume_point
-from .curves import plot_eval, read_log, runs_table
 from .loops import (TINY_CODEBOOK, TINY_TRANSFORMER, TransformerRecipe, held_out_set, load_tokens, save_tokens,
                     tokenize, train_codebook, train_transformer)
 
@@ -129,15 +127,6 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
         print("pyvf train-transformer: no --codebook, so no held-out evaluation", file=sys.stderr)
     return train_transformer(tokens, poses, config, out, opts, recipe, eval_set=eval_set,
                              codebook_fingerprint=fingerprint)
-
-
-def compare_runs(run_dirs, plot=False, step=None):
-    """`pyvf runs`: (runs_table of the run folders at `step`, with plot the eval.png redrawn in each
-    folder whose eval.csv has rows)."""
-    table = runs_table(run_dirs, step=step)
-    plots = [plot_eval(d) for d in run_dirs if plot and os.path.exists(os.path.join(d, "eval.csv"))
-             and len(read_log(d, "eval.csv", empty_ok=True)["step"])]
-    return table, plots
 
 
 def checkpoint_step(run_dir):
