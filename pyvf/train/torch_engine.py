@@ -79,21 +79,20 @@ class DataParallel:
 
     def all_reduce(self, tensors):
         """Sum each tensor across the processes, in place, in one all-reduce."""
-        torch = import_torch()
-        flat = torch.cat([t.reshape(-1) for t in tensors])
+        flat = import_torch().cat([t.reshape(-1) for t in tensors])
         self.dist.all_reduce(flat)
         for t, summed in zip(tensors, flat.split([t.numel() for t in tensors])):
             t.copy_(summed.view_as(t))
 
     def broadcast(self, tensors):
+        """Rank 0's values of the tensors into every process's, in place."""
         with import_torch().no_grad():
             for t in tensors:
                 self.dist.broadcast(t, 0)
 
     def broadcast_int(self, value):
-        torch = import_torch()
-        t = torch.tensor([int(value)], dtype=torch.int64, device=self.device)
-        self.dist.broadcast(t, 0)
+        t = import_torch().tensor([int(value)], device=self.device)
+        self.broadcast([t])
         return int(t.item())
 
     def close(self):
