@@ -198,6 +198,22 @@ def _restore(run, model, make_optimiser, init_state):
     return opt
 
 
+def _loop(run, opt, step, state, check, health, eval_every):
+    """The loop both trainings run: step(t) -> the log's values but lr (one update); health() -> the
+    held-out figures (None: no evaluation), before the first step of a fresh run, every eval_every
+    steps and at the last; the checkpoints (check(run, t) first, when not None); the final model."""
+    with run:
+        if health is not None and not run.resumed:
+            run.log_eval(0, health())
+        for t in run.steps():
+            lr_t = opt.lr_at(opt.step_count)
+            run.log(t, {**step(t), "lr": lr_t})
+            if health is not None and run.eval_due(t, eval_every):
+                run.log_eval(t, health())
+            run.checkpoint(t, state, opt, check)
+    run.save_final(state())
+
+
 # ---------------------------------------------------------------------------------------
 # the codebook
 
@@ -288,21 +304,17 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
                                         rng=np.random.default_rng([seed, 0, 2]), empty=model.empty_patches(x))
         step, reset, state, current, opt, check = _codebook_engine(opts, model, opt, flat)
         weight = r["object_weight"] if r["object_weight"] != 1.0 else None
-        with run:
-            if eval_fp is not None and not run.resumed:
-                run.log_eval(0, codebook_health(current(), eval_images))
-            for t in run.steps():
-                x = codebook_batch(flat, B, seed, t, config.dtype, weight)
-                x, w = x if weight else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
-                lr_t = opt.lr_at(opt.step_count)
-                values = step(x, w)
-                if r["reset_dead_codes"] and t % r["reset_dead_codes"] == 0:
-                    reset(x, np.random.default_rng([seed, t, 1]), restart=r["restart"], reseat=r["reseat"])
-                run.log(t, {**values, "lr": lr_t})
-                if eval_fp is not None and run.eval_due(t, opts.eval_every):
-                    run.log_eval(t, codebook_health(current(), eval_images))
-                run.checkpoint(t, state, opt, check)
-        run.save_final(state())
+
+        def step_t(t):
+            x = codebook_batch(flat, B, seed, t, config.dtype, weight)
+            x, w = x if weight else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
+            values = step(x, w)
+            if r["reset_dead_codes"] and t % r["reset_dead_codes"] == 0:
+                reset(x, np.random.default_rng([seed, t, 1]), restart=r["restart"], reseat=r["reseat"])
+            return values
+
+        health = None if eval_fp is None else lambda: codebook_health(current(), eval_images)
+        _loop(run, opt, step_t, state, check, health, opts.eval_every)
         return current()
 
 
@@ -416,7 +428,7 @@ def _transformer_eval(eval_set, eval_every, config):
 
 
 def _transformer_engine(opts, model, opt, dp, recipe, parity):
-    """-> (step(tok, pos) -> (loss, mean ce, mean pose loss, grad norm), state() -> the state dict,
+    """-> (step(tok, pos) -> the log's values but lr, state() -> the state dict,
     current() -> the model, the optimiser, check(run, step) before each checkpoint or None)."""
     if opts.engine == "torch":
         eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp, parity_batch=parity,
@@ -428,7 +440,8 @@ def _transformer_engine(opts, model, opt, dp, recipe, parity):
                                      clip_mode=recipe.clip_mode)
         if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
             norm = float(np.sqrt(sum(n * n for n in norm.values())))
-        return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm
+        return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)), "pose_loss": float(np.mean(out.pose_loss)),
+                "grad_norm": norm}
 
     return step, model.state_dict, lambda: model, opt, None
 
@@ -470,25 +483,15 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         if dp is not None:  # the other processes follow rank 0's run from its start step
             start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
             run = run if dp.rank == 0 else Follower(start, opts.steps)
-        evaluating = health is not None and not isinstance(run, Follower)
         model = Transformer(config, seed=seed)
         model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
         opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=1e-8, weight_decay=hyper[
             "weight_decay"], decay=published_weight_decay, eps_convention="keras"), init_state)
         parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
         step, state, current, opt, check = _transformer_engine(opts, model, opt, dp, recipe, parity)
-        with run:
-            if evaluating and not run.resumed:
-                run.log_eval(0, health(current()))
-            for t in run.steps():
-                tok, pos = transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)  # (B, N, L), (B, N, 7)
-                lr_t = opt.lr_at(opt.step_count)
-                loss, ce, pl, norm = step(tok, pos)
-                run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl, "grad_norm": norm, "lr": lr_t})
-                if evaluating and run.eval_due(t, opts.eval_every):
-                    run.log_eval(t, health(current()))
-                run.checkpoint(t, state, opt, check)
-        run.save_final(state())
+        evaluate = None if health is None or isinstance(run, Follower) else lambda: health(current())
+        _loop(run, opt, lambda t: step(*transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)), state,
+              check, evaluate, opts.eval_every)  # batches (B, N, L), (B, N, 7)
     if dp is not None:
         dp.close()
     return current()

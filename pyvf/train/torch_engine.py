@@ -279,8 +279,8 @@ class TorchTransformer(TorchEngine):
         return grads, sums
 
     def step(self, tokens, poses):
-        """One update on a batch (poses in any frame: made relative here, as pyvf's engine).
-        Returns (loss, mean ce, mean pose loss, the global gradient norm before clipping)."""
+        """One update on a batch (poses in any frame: made relative here, as pyvf's engine) -> the
+        log's loss, mean ce, mean pose loss and global gradient norm before clipping."""
         torch = self.torch
         grads, sums = self._gradients(tokens, make_relative(poses)[0])
         norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
@@ -295,7 +295,7 @@ class TorchTransformer(TorchEngine):
             elif stats[3] + 1e-6 > m:  # global: torch.nn.utils.clip_grad_norm_
                 torch._foreach_mul_(grads, m / (float(stats[3]) + 1e-6))
         self.opt.step()
-        return float(stats[0]), float(stats[1]), float(stats[2]), float(stats[3])
+        return dict(zip(("loss", "ce_loss", "pose_loss", "grad_norm"), map(float, stats)))
 
     def parity(self, tokens, poses):
         """pyvf against the torch model (float32, no autocast) on one batch: pyvf.compare's
