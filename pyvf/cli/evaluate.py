@@ -10,7 +10,7 @@ import os
 
 from ..evaluate import demo as work
 from ..evaluate.run import DECODES, DEFAULT_DECODE
-from .options import add_threads, context_sizes, fail, make_folder, positive_int
+from .options import add_threads, context_sizes, fail, folder_to_make, positive_int
 
 
 def cmd_demo(args):
@@ -26,8 +26,12 @@ def _into_folder(command, out, run):
     """run() (-> exit status) writing into the folder `out`, created first; a folder made here and
     left empty by a run that failed (a model file missing) is removed again."""
     made = not os.path.lexists(out)
-    if problem := make_folder(out):
-        return fail(command, f"argument --out: {problem}")
+    try:
+        if problem := folder_to_make(out):
+            return fail(command, f"argument --out: {problem}")
+        os.makedirs(out, exist_ok=True)
+    except OSError as e:  # a read-only or virtual file system (/proc), no permission
+        return fail(command, f"argument --out: cannot create the folder {out!r}: {e.strerror}")
     status = run()
     if status and made and os.path.isdir(out) and not os.listdir(out):
         os.rmdir(out)

@@ -70,17 +70,6 @@ def folder_to_make(path):
     return None
 
 
-def make_folder(path):
-    """Create the folder `path` (and its parents) now: None, or why it cannot be."""
-    if problem := folder_to_make(path):
-        return problem
-    try:
-        os.makedirs(path, exist_ok=True)
-    except OSError as e:  # a read-only or virtual file system (/proc), no permission
-        return f"cannot create the folder {path!r}: {e.strerror}"
-    return None
-
-
 def file_to_write(path):
     """A file the command will write: None when its folder exists and takes a new file now (a
     temporary file made and removed there finds read-only and virtual file systems)."""

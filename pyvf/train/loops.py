@@ -263,18 +263,15 @@ def _codebook_engine(opts, model, opt, flat):
 
 def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="small-batch", **overrides):
     """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4) into the run folder out_dir
-    (checkpoint.npz, log.csv, config.json, and at the end codebook.npz, which Codebook.load reads).
+    (_run.py; at the end codebook.npz) -> the trained Codebook.
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
-    opts: RunOptions. init: a fresh run starts from the file's weights and EMA buffers, Adam fresh.
-    eval_images: None, or held-out uint8 views (M, Hi, Wi, C): health.codebook_health on them is
-        appended to eval.csv before the first step of a fresh run, every opts.eval_every steps and
-        at the last (it reads the model only).
+    opts: RunOptions (init: a fresh run starts from the file's weights and EMA buffers, Adam fresh).
+    eval_images: None, or held-out uint8 views (M, Hi, Wi, C) whose health.codebook_health goes to eval.csv.
     recipe: a name of CODEBOOK_RECIPES; overrides (each not None replaces the recipe's): lr, betas,
         reset_dead_codes (every this many steps codes whose EMA cluster size fell below 1e-3 move to
         the step's encoder outputs; 0: never), object_weight (the loss weight of object pixels
-        against 1 for the background), restart, reseat, kmeans (see CODEBOOK_RECIPES).
-    Returns the trained Codebook."""
+        against 1 for the background), restart, reseat, kmeans (see CODEBOOK_RECIPES)."""
     if not isinstance(config, CodebookConfig):
         raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
     if not isinstance(opts, RunOptions):
@@ -449,18 +446,15 @@ def _transformer_engine(opts, model, opt, dp, recipe, parity):
 def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRecipe(), *, eval_set=None,
                       codebook_fingerprint=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
-    (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5).
+    (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5), into the
+    run folder out_dir (at the end transformer.npz) -> the trained Transformer.
 
     tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: float (scenes, views, 7),
         xyz and a unit quaternion wxyz, in any frame (each sample is made relative to its first view).
-    opts: RunOptions, as train_codebook's; the final model is out_dir/transformer.npz. engine
-        "torch": the model in torch, checked against pyvf's at every checkpoint, data-parallel under
-        torchrun (docs/howto-torch-engine.md). A checkpoint of either engine resumes in the other.
-    recipe: TransformerRecipe. eval_set: None, or held_out_set's held-out scenes: their health
-        (health.transformer_health) is appended to eval.csv as train_codebook's.
+    opts: RunOptions, as train_codebook's (engine "torch": data-parallel under torchrun too).
+    eval_set: None, or held_out_set's scenes whose health.transformer_health goes to eval.csv.
     codebook_fingerprint: the fingerprint of the codebook the tokens came from (load_tokens'):
-        recorded in config.json and the model, whose pairings then check it (models.check_pair).
-    Returns the trained Transformer."""
+        recorded in config.json and the model, whose pairings then check it (models.check_pair)."""
     if not isinstance(config, TransformerConfig):
         raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
     if not isinstance(opts, RunOptions):
