@@ -71,20 +71,6 @@ def _machine():
             "kernel_path": _core.current_path(), "kernel_threads": int(_core.num_threads())}
 
 
-def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed, eval_fingerprint=None):
-    """Write the checkpoint atomically: a killed process leaves the previous one intact."""
-    opt = optimizer.state_dict()
-    meta = {"format": "pyvf-checkpoint", "version": FORMAT_VERSION, "kind": kind, "step": int(step),
-            "config": config, "hyper": hyper, "elapsed": float(elapsed),
-            "optimizer": {"step": int(opt["step"]), "hyperparameters": opt["hyperparameters"]},
-            "eval": eval_fingerprint}
-    arrays = {"__meta__": json.dumps(meta)}
-    arrays.update({"model/" + k: v for k, v in model_state.items()})
-    for key in ("exp_avg", "exp_avg_sq"):
-        arrays.update({f"optimizer/{key}/{k}": v for k, v in opt[key].items()})
-    atomic_savez(path, **arrays)
-
-
 def read_checkpoint(path, kind):
     """-> (meta, model state dict, optimizer state dict). kind: "codebook", "transformer" (another
     raises ValueError) or None for either. Not a pyvf checkpoint: CheckpointError naming the file."""
@@ -314,9 +300,15 @@ class Run:
         if stop or step % self.checkpoint_every == 0 or step == self.steps_total:
             if check is not None:
                 check(self, step)
-            save_checkpoint(self.ckpt_path, kind=self.kind, step=step, config=self.config, hyper=self.hyper,
-                            model_state=state(), optimizer=optimizer, elapsed=self.seconds(),
-                            eval_fingerprint=self.eval_fingerprint)
+            model, elapsed, opt = state(), self.seconds(), optimizer.state_dict()
+            meta = {"format": "pyvf-checkpoint", "version": FORMAT_VERSION, "kind": self.kind, "step": int(step),
+                    "config": self.config, "hyper": self.hyper, "elapsed": float(elapsed),
+                    "optimizer": {"step": int(opt["step"]), "hyperparameters": opt["hyperparameters"]},
+                    "eval": self.eval_fingerprint}
+            arrays = {"__meta__": json.dumps(meta), **{"model/" + k: v for k, v in model.items()}}
+            for key in ("exp_avg", "exp_avg_sq"):
+                arrays.update({f"optimizer/{key}/{k}": v for k, v in opt[key].items()})
+            atomic_savez(self.ckpt_path, **arrays)  # atomic: a killed process leaves the previous one intact
         if stop:
             raise KeyboardInterrupt
 
