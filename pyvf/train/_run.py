@@ -116,12 +116,13 @@ class Run:
         run.save_final(model.state_dict())
 
     A resume checks config and hyper (JSON-able dicts) against the checkpoint's. call: what
-    config.json records of this call. eval_fingerprint: the held-out set whose rows log_eval
-    appends; a resume refuses another. interruptible: False for data-parallel runs.
+    config.json records of this call. evaluation: None, or (eval.csv's columns, the fingerprint of
+    the held-out set log_eval's rows come from; a resume refuses another). interruptible: False for
+    data-parallel runs.
     """
 
-    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, eval_columns=None,
-                 eval_fingerprint=None, interruptible=True):
+    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, evaluation=None,
+                 interruptible=True):
         self.steps_total, self.checkpoint_every, self.log_every = opts.steps, opts.checkpoint_every, opts.log_every
         self.kind, self.config, self.hyper = kind, jsonable(config), jsonable(hyper)
         self.columns = ["step", *columns, "seconds"]
@@ -130,12 +131,12 @@ class Run:
         os.makedirs(self.out_dir, exist_ok=True)
         self.ckpt_path, self.log_path, self.eval_path, self.config_path, self.final_path, self.parity_path = (
             os.path.join(self.out_dir, name) for name in (CHECKPOINT, LOG, EVAL_LOG, CONFIG, f"{kind}.npz", PARITY_LOG))
+        eval_columns, self.eval_fingerprint = evaluation or (None, None)
         self.eval_columns = None if eval_columns is None else ["step", *eval_columns, "seconds"]
         for path in (self.ckpt_path, self.log_path, self.config_path, self.final_path, self.eval_path):
             remove_stale_temps(path)  # left by a process killed mid-write
 
         self.start, self.elapsed0 = 0, 0.0
-        self.eval_fingerprint = eval_fingerprint if eval_columns is not None else None
         self.model_state = self.optimizer_state = None
         if opts.resume and os.path.exists(self.ckpt_path):
             self._resume()

@@ -292,7 +292,7 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
             "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, opts, call=call,
-                  eval_columns=None if eval_fp is None else CODEBOOK_HEALTH, eval_fingerprint=eval_fp)
+                  evaluation=None if eval_fp is None else (CODEBOOK_HEALTH, eval_fp))
         model = Codebook(config, seed=seed)
         opt = _restore(run, model, lambda params: Adam(params, r["lr"], betas=r["betas"]), init_state)
         if not run.resumed and init_state is None and r["kmeans"]:  # the codes by k-means on step 0's batches
@@ -472,7 +472,7 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         if dp is None or dp.rank == 0:
             run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, opts, call=call,
-                      eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint"),
+                      evaluation=eval_record and (eval_columns, eval_record["fingerprint"]),
                       interruptible=dp is None)
         if dp is not None:  # the other processes follow rank 0's run from its start step
             start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
