@@ -1,11 +1,5 @@
-"""pyvf's command line: the console script `pyvf <command>`, or `python -m pyvf <command>`.
-
-    pyvf demo | evaluate                        # the models on held-out scenes (evaluate.py)
-    pyvf config                                 # the kernels' instruction-set path, threads
-    pyvf bench NAME [--quick]                   # benchmarks and reports (bench.py)
-    pyvf convert tf-transformer path/model --config config.json -o model.npz
-    pyvf convert torch-codebook model.ckpt --config config.json -o codebook.npz
-    pyvf scenes | train-codebook | tokenize | train-transformer | train | runs | export   # scenes.py, train.py
+"""pyvf's command line: the console script `pyvf <command>`, or `python -m pyvf <command>`; the
+commands of each home are in a module of their own (evaluate.py, bench.py, scenes.py, train.py).
 
 Only this package parses arguments: each command is a function `cmd_<name>(args) -> exit status`
 that calls one library function, so a test calls the same function a user's command does. A mistake

@@ -1,10 +1,4 @@
-"""`pyvf demo` and `pyvf evaluate`: their arguments; the work is pyvf.evaluate.demo's.
-
-    pyvf demo [--out DIR] [--scenes N] [--context C[,C...]] [--seed S] [--quick]
-              [--codebook FILE --transformer FILE] [--threads T]
-    pyvf evaluate --scenes N --context C[,C...] --seed S --out DIR [--codebook FILE --transformer FILE]
-    both: [--decode argmax|expected]
-"""
+"""`pyvf demo` and `pyvf evaluate`: their arguments; the work is pyvf.evaluate.demo's."""
 
 import os
 

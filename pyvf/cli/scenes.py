@@ -1,8 +1,4 @@
-"""`pyvf scenes`: its arguments; the work is pyvf.scenes.make.make_dataset.
-
-    pyvf scenes --out data/sm7 --scenes 2000 --seed 0 [--views 15] [--size 64] [--shard-size 500]
-                [--preview sm7.png] [--overwrite] [--quiet]
-"""
+"""`pyvf scenes`: its arguments; the work is pyvf.scenes.make.make_dataset."""
 
 import sys
 

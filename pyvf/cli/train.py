@@ -1,16 +1,7 @@
-"""The training commands' arguments; the work is pyvf.train.tasks' (and train_pipeline's).
-
-    pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE] [--init F]
-    pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
-    pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--codebook F] [--init F]
-    pyvf runs runs/cb runs/cb2 [--step N]         # compare runs: their last held-out evaluation
-    pyvf export runs/tf -o tf-now.npz     # the model of a run's last checkpoint, while it trains
-    pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
-
-Run again with the same arguments to resume from the run folder's checkpoint (--no-resume starts
-over). Each handler returns an exit status: 0, or 1 after printing the error, or 130 after Ctrl-C
-(a training run first saves the step under way; one line says where a rerun resumes).
-"""
+"""The training commands' arguments (train-codebook, tokenize, train-transformer, train, runs,
+export); the work is pyvf.train.tasks' and train_pipeline's. A handler prints an error and returns 1,
+or after Ctrl-C (a training run first saves the step under way) prints where a rerun resumes and
+returns 130."""
 
 import os
 import sys

@@ -1,13 +1,7 @@
 """The work of the training commands (their arguments: pyvf/cli/train.py), on files: a dataset
-folder or a tokens file in, a run folder out.
-
-    codebook_run("data/sm7", "runs/cb", RunOptions(steps=20000, eval_every=100))  # pyvf train-codebook
-    tokenize_dataset("runs/cb/codebook.npz", "data/sm7", "runs/tokens.npz")      # pyvf tokenize
-    transformer_run("runs/tokens.npz", "runs/tf", RunOptions(steps=50000), codebook="runs/cb/codebook.npz")
-    export_run("runs/tf", "tf-now.npz")   # pyvf export: the model of a run's last checkpoint
-
-config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the configuration's fields,
-or a run's config.json. A bad argument or file raises ValueError, TypeError or OSError naming it.
+folder or a tokens file in, a run folder out. config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER)
+or a JSON file: the configuration's fields, or a run's config.json. A bad argument or file raises
+ValueError, TypeError or OSError naming it.
 """
 
 import json
