@@ -7,7 +7,6 @@ ValueError, TypeError or OSError naming it.
 import json
 import os
 import sys
-import zipfile
 
 import numpy as np
 
@@ -34,14 +33,6 @@ def read_config(value, cls, tiny):
         raise ValueError(f"--config {value}: not a JSON file of {cls.__name__} fields ({e})") from e
 
 
-def read_codebook(path):
-    """Codebook.load(path), its errors as ValueError naming the codebook file."""
-    try:
-        return Codebook.load(path)
-    except (OSError, zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
-        raise ValueError(f"codebook {path} is not a readable codebook file: {type(e).__name__}: {e}") from e
-
-
 def _refuse_input_as_output(out, inputs, option):
     """out (the file a command writes) must be none of inputs ((what, path) pairs)."""
     for what, path in inputs:
@@ -66,7 +57,7 @@ def held_out_scenes(codebook, eval_scenes, eval_seed, threads, train_poses):
     """A transformer run's held-out scenes: eval_scenes whole scenes of eval_seed, tokenized by the
     codebook file -> train_transformer's eval_set. Scenes whose poses are the training data's
     (train_poses: scene i of a seed is the same scene in any set of it) raise."""
-    codebook = read_codebook(codebook)
+    codebook = Codebook.load(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
     n, views = min(len(poses), len(train_poses)), min(poses.shape[1], train_poses.shape[1])
@@ -92,7 +83,7 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
     dataset = os.listdir(data) if os.path.isdir(data) else []  # the dataset's files are inputs too
     _refuse_input_as_output(out, [("the codebook", codebook),
                                   *(("a file of the dataset", os.path.join(data, f)) for f in dataset)], "--out")
-    codebook = read_codebook(codebook)
+    codebook = Codebook.load(codebook)
     from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
     data = load_dataset(data)
     with kernel_threads(threads):
@@ -111,7 +102,7 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
     if config.n_embeddings != n_embed:
         raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "
                          f"was made by a codebook of {n_embed} codes")
-    if codebook and fingerprint is not None and (given := read_codebook(codebook).fingerprint()) != fingerprint:
+    if codebook and fingerprint is not None and (given := Codebook.load(codebook).fingerprint()) != fingerprint:
         raise ValueError(f"--codebook {codebook} is not the codebook that made {tokens_path} (fingerprints {given} "
                          f"and {fingerprint})")
     eval_set = None
