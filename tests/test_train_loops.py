@@ -531,7 +531,8 @@ def test_export_writes_the_checkpoints_model(tmp_path, rng, capsys):
     run = _cli()
     assert run("export", os.path.join(tf_run, "checkpoint.npz"), "-o", tmp_path / "t") == 0
     assert capsys.readouterr().out.strip() == f"transformer at step 3: {tmp_path / 't.npz'}"
-    assert run("export", tmp_path, "-o", tmp_path / "x") == 1 and "no checkpoint" in capsys.readouterr().err
+    assert run("export", tmp_path, "-o", tmp_path / "x") == 1
+    assert "checkpoint.npz does not exist" in capsys.readouterr().err
     ckpt = os.path.join(cb_run, "checkpoint.npz")
     assert run("export", cb_run, "-o", os.path.join(cb_run, "checkpoint")) == 1
     assert f"is the run's checkpoint ({ckpt})" in capsys.readouterr().err

@@ -128,8 +128,6 @@ def export_run(run, out):
     the run writes its final model, so that a run can be evaluated, or shipped, while it trains.
     Returns (the run's kind, its step, the path written)."""
     path = os.path.join(run, CHECKPOINT) if os.path.isdir(run) else os.fspath(run)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"run {os.fspath(run)!r}: no checkpoint ({path} does not exist)")
     written = os.fspath(out) + ("" if os.fspath(out).endswith(".npz") else ".npz")  # as Model.save names it
     _refuse_input_as_output(written, [("the run's checkpoint", path)], "-o")
     meta, state, _ = read_checkpoint(path, None)
