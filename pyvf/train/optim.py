@@ -219,7 +219,6 @@ class WarmupCosine:
         return warmup_cosine_lr(step, self.peak_lr, self.warmup_steps, self.total_steps, self.min_lr_ratio)
 
 
-
 def _norm64(g):
     """|g|_2, its squares summed in float64 (NumPy's pairwise sum: the same for any thread count)."""
     x = g.astype(np.float64, copy=False).ravel()  # (n,)
