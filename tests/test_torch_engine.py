@@ -21,8 +21,8 @@ from pyvf.train import torch_engine
 from pyvf.train._run import read_checkpoint
 from pyvf.train.loops import (TINY_TRANSFORMER, RunOptions, TransformerRecipe, save_tokens,
                               train_codebook, train_transformer)
-from pyvf.train.torch_codebook_engine import TorchCodebook, parity_images
-from pyvf.train.torch_engine import PARITY_RTOL, TorchTransformer, check_engine, data_parallel, parity_batch
+from pyvf.train.loops import codebook_batch, transformer_batch
+from pyvf.train.torch_engine import PARITY_RTOL, TorchCodebook, TorchTransformer, check_engine, data_parallel
 from pyvf.train.optim import Adam, AdamW, published_weight_decay
 from pyvf.models.transformer import Transformer
 from pyvf.verify import torch_ports
@@ -115,7 +115,7 @@ def test_parity_catches_a_planted_bug(bug):
     bad.load_state_dict(eng.port.state_dict())
     eng.port = bad  # the same weights (pyvf reads them from the engine's own): only the math differs
     tokens, poses = _data()
-    comparison = eng.parity(*parity_batch(tokens, poses, 4, 0, "float32"))
+    comparison = eng.parity(*transformer_batch(tokens, poses, 4, 4, 0, 0))
     assert not comparison.ok, comparison
 
 
@@ -284,7 +284,7 @@ def test_codebook_parity_catches_a_planted_bug(bug):
     if callable(bug):
         bug(bad)
     eng.port = bad  # the same weights (pyvf reads them from the engine's own): only the math differs
-    comparison = eng.parity(parity_images(_images().reshape(-1, 16, 16, 3), 0, "float32"))
+    comparison = eng.parity(codebook_batch(_images().reshape(-1, 16, 16, 3), 4, 0, 0))
     assert not comparison.ok, comparison
 
 

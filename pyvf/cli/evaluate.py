@@ -1,16 +1,10 @@
-"""`pyvf demo` and `pyvf evaluate`: their arguments; the work is pyvf.evaluate.demo's.
-
-    pyvf demo [--out DIR] [--scenes N] [--context C[,C...]] [--seed S] [--quick]
-              [--codebook FILE --transformer FILE] [--threads T]
-    pyvf evaluate --scenes N --context C[,C...] --seed S --out DIR [--codebook FILE --transformer FILE]
-    both: [--decode argmax|expected]
-"""
+"""`pyvf demo` and `pyvf evaluate`: their arguments; the work is pyvf.evaluate.demo's."""
 
 import os
 
 from ..evaluate import demo as work
 from ..evaluate.run import DECODES, DEFAULT_DECODE
-from .options import add_threads, context_sizes, fail, make_folder, positive_int
+from .options import add_threads, context_sizes, fail, folder_to_make, positive_int
 
 
 def cmd_demo(args):
@@ -23,12 +17,15 @@ def cmd_demo(args):
 
 
 def _into_folder(command, out, run):
-    """run() (-> exit status) writing into the folder `out`, created first (a path that cannot be
-    one is reported before minutes of evaluation, not after); a folder made here and left empty by
-    a run that failed (a model file missing) is removed again."""
+    """run() (-> exit status) writing into the folder `out`, created first; a folder made here and
+    left empty by a run that failed (a model file missing) is removed again."""
     made = not os.path.lexists(out)
-    if problem := make_folder(out):
-        return fail(command, f"argument --out: {problem}")
+    try:
+        if problem := folder_to_make(out):
+            return fail(command, f"argument --out: {problem}")
+        os.makedirs(out, exist_ok=True)
+    except OSError as e:  # a read-only or virtual file system (/proc), no permission
+        return fail(command, f"argument --out: cannot create the folder {out!r}: {e.strerror}")
     status = run()
     if status and made and os.path.isdir(out) and not os.listdir(out):
         os.rmdir(out)
@@ -51,9 +48,8 @@ def _common(p):
     p.add_argument("--transformer", default=None, metavar="FILE",
                    help="a transformer .npz (Transformer.save); default: the pretrained one")
     p.add_argument("--decode", choices=sorted(DECODES), default=DEFAULT_DECODE,
-                   help="how a rendered view's token logits become an image: expected (each token's mean code "
-                        "vector, the latent of least expected squared error; default) or argmax (each token's "
-                        "most likely code, the published generation)")
+                   help="a rendered token's latent: expected (its mean code vector; default) or argmax (its most "
+                        "likely code, as published)")
     add_threads(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -8,55 +8,31 @@ import tempfile
 
 from .._threads import MAX_THREADS
 
-KERNEL_THREADS = "threads for pyvf's C++ kernels"
 INTERRUPTED = 130  # a command's exit status after Ctrl-C: the shell's for a process ended by SIGINT (128 + 2)
 
 
-def _integer(text, lo, expected, hi=None):
-    try:
-        v = int(text)
-    except ValueError:
-        v = lo - 1
-    if v < lo or (hi is not None and v > hi):
-        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
-    return v
+def _number(cast, lo, expected, hi=float("inf")):
+    """An argparse type: text -> cast(text) in [lo, hi] (NaN and inf refused), else an error naming
+    the option."""
+    def parse(text):
+        try:
+            v = cast(text)
+        except ValueError:
+            v = float("nan")
+        if not lo <= v <= hi or abs(v) == float("inf"):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return v
+    return parse
 
 
-def positive_int(text):
-    """argparse type: a positive integer (an error naming the option otherwise)."""
-    return _integer(text, 1, "a positive integer")
+positive_int = _number(int, 1, "a positive integer")
+non_negative_int = _number(int, 0, "a non-negative integer")
+non_negative_float = _number(float, 0, "a finite number >= 0")
+thread_count = _number(int, 1, f"a positive integer of at most {MAX_THREADS}", MAX_THREADS)  # pyvf.threads'
 
 
-def _number(text, ok, expected):
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not (v == v and abs(v) != float("inf") and ok(v)):  # NaN and inf refused too
-        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
-    return v
-
-
-def non_negative_float(text):
-    """argparse type: a finite number >= 0."""
-    return _number(text, lambda v: v >= 0, "a finite number >= 0")
-
-
-def non_negative_int(text):
-    """argparse type: an integer >= 0."""
-    return _integer(text, 0, "a non-negative integer")
-
-
-def thread_count(text):
-    """argparse type: a thread count, a positive integer of at most pyvf's MAX_THREADS (refused
-    here, before the command's work, rather than by set_num_threads after it)."""
-    return _integer(text, 1, f"a positive integer of at most {MAX_THREADS}", hi=MAX_THREADS)
-
-
-def add_threads(parser, default=None, help=KERNEL_THREADS):
-    """--threads: a thread count (thread_count), or `default`. The command applies it through
-    pyvf.set_num_threads or pyvf.threads (the kernels and numpy's BLAS together), or hands it to
-    the library function that does."""
+def add_threads(parser, default=None, help="threads for pyvf's C++ kernels"):
+    """--threads: a thread count for the kernels and numpy's BLAS together (pyvf.threads)."""
     parser.add_argument("--threads", type=thread_count, default=default, help=help)
 
 
@@ -71,64 +47,38 @@ def context_sizes(text):
     return sizes
 
 
-# ---------------------------------------------------------------------------------------
-# paths: checked before a command's work starts, so that a mistake costs no minutes of it.
-# Each check returns None, or what is wrong as a phrase naming the path; the command passes
-# that to fail() with the option's name.
+# paths: checked before a command's work starts, so that a mistake costs no minutes of it. Each check
+# returns None, or what is wrong as a phrase naming the path, which the command passes to fail().
 
 
 def fail(command, message):
-    """A mistake in a command's arguments found after parsing (a path that cannot be written, a
-    file that is no checkpoint): one line on stderr, `pyvf COMMAND: error: MESSAGE`, as argparse
-    words its own errors, and argparse's exit status 2, which the command returns."""
+    """A mistake in a command's arguments found after parsing: one line on stderr, as argparse words
+    its own errors, and argparse's exit status 2, which the command returns."""
     print(f"pyvf {command}: error: {message}", file=sys.stderr)
     return 2
-
-
-def _file_in_the_way(path):
-    """The nearest existing path at or above `path` (a file, when a folder cannot be made there)."""
-    path = os.path.normpath(path)
-    while path and not os.path.lexists(path) and os.path.dirname(path) != path:
-        path = os.path.dirname(path)
-    return path
 
 
 def folder_to_make(path):
     """A folder the command will create (or write into): None unless a file is in the way."""
     if not path:
         return "expected a folder, got an empty path"
-    if os.path.lexists(path) and not os.path.isdir(path):
-        return f"{path!r} is a file, not a folder"
-    above = _file_in_the_way(path)
-    if os.path.lexists(above) and not os.path.isdir(above):
+    above = os.path.abspath(path)
+    while not os.path.lexists(above):  # the nearest existing path at or above it
+        above = os.path.dirname(above)
+    if not os.path.isdir(above):
         return f"cannot create the folder {path!r}: {above!r} is a file, not a folder"
-    return None
-
-
-def make_folder(path):
-    """Create the folder `path` (and its parents) now: None, or why it cannot be."""
-    if problem := folder_to_make(path):
-        return problem
-    try:
-        os.makedirs(path, exist_ok=True)
-    except OSError as e:  # a read-only or virtual file system (/proc), no permission
-        return f"cannot create the folder {path!r}: {e.strerror}"
     return None
 
 
 def file_to_write(path):
     """A file the command will write: None when its folder exists and takes a new file now (a
-    temporary file is made and removed there: that alone finds read-only and virtual file
-    systems), else why not. The file itself is not touched."""
+    temporary file made and removed there finds read-only and virtual file systems)."""
     if not path:
         return "expected a file, got an empty path"
     if os.path.isdir(path):
         return f"{path!r} is a folder, not a file"
     folder = os.path.dirname(path) or "."
     if not os.path.isdir(folder):
-        above = _file_in_the_way(folder)
-        if os.path.lexists(above) and not os.path.isdir(above):
-            return f"cannot write {path!r}: {above!r} is a file, not a folder"
         return f"cannot write {path!r}: the folder {folder!r} does not exist"
     try:
         with tempfile.TemporaryFile(dir=folder):
@@ -140,23 +90,15 @@ def file_to_write(path):
 
 def file_to_read(path):
     """A file the command will read: None when it exists, is a file and opens, else why not."""
-    if not path:
-        return "expected a file, got an empty path"
-    if not os.path.exists(path):
-        return f"{path!r} does not exist"
-    if os.path.isdir(path):
-        return f"{path!r} is a folder, not a file"
     try:
         with open(path, "rb"):
-            pass
-    except OSError as e:
+            return None
+    except OSError as e:  # missing, a folder, no permission
         return f"cannot read {path!r}: {e.strerror}"
-    return None
 
 
 def output_file(text):
-    """argparse type: a file a command writes at its end, checked when parsed (file_to_write), so
-    that a run is not lost at its last step."""
+    """argparse type: a file a command writes at its end, checked when parsed (file_to_write)."""
     if problem := file_to_write(text):
         raise argparse.ArgumentTypeError(problem)
     return text

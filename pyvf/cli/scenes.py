@@ -1,8 +1,4 @@
-"""`pyvf scenes`: its arguments; the work is pyvf.scenes.make.make_dataset.
-
-    pyvf scenes --out data/sm7 --scenes 2000 --seed 0 [--views 15] [--size 64] [--shard-size 500]
-                [--preview sm7.png] [--overwrite] [--quiet]
-"""
+"""`pyvf scenes`: its arguments; the work is pyvf.scenes.make.make_dataset."""
 
 import sys
 
@@ -36,7 +32,6 @@ def cmd_scenes(args):
 
 
 def register(subparsers):
-    """Add the `scenes` subcommand to an argparse subparsers object; returns its parser."""
     p = subparsers.add_parser("scenes", help="render a Shepard-Metzler-7 dataset (.npz shards + manifest)",
                               description=cmd_scenes.__doc__)
     p.add_argument("--out", required=True, metavar="DIR", help="folder to write the shards and manifest.json into")
@@ -48,8 +43,7 @@ def register(subparsers):
     p.add_argument("--shard-size", type=int, default=500, metavar="N", help="scenes per shard (default 500)")
     p.add_argument("--preview", default=None, metavar="PNG",
                    help=f"also write a PNG grid of the first {PREVIEW_SCENES} scenes' views")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace a dataset already in --out (without it, the same command resumes an unfinished one)")
+    p.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_scenes)
     return p

@@ -1,22 +1,13 @@
-"""The training commands' arguments; the work is pyvf.train.tasks' (and train_pipeline's).
-
-    pyvf train-codebook    --data DIR --out runs/cb --steps 20000 [--batch 16] [--config tiny|FILE] [--init F]
-    pyvf tokenize          --codebook runs/cb/codebook.npz --data DIR --out runs/tokens.npz
-    pyvf train-transformer --tokens runs/tokens.npz --out runs/tf --steps 50000 [--batch 16] [--codebook F] [--init F]
-    pyvf runs runs/cb runs/cb2 [--plot] [--step N]   # compare runs: their last held-out evaluation
-    pyvf export runs/tf -o tf-now.npz     # the model of a run's last checkpoint, while it trains
-    pyvf train --out runs/quick [--preset quick|full|smoke]   # every stage, resumable
-
-Run again with the same arguments to resume from the run folder's checkpoint (--no-resume
-starts over). Each handler returns an exit status: 0, or 1 after printing the error, or 130 after
-Ctrl-C (a training run first finishes and saves the step under way; one line: the step a rerun
-resumes from).
-"""
+"""The training commands' arguments (train-codebook, tokenize, train-transformer, train, runs,
+export); the work is pyvf.train.tasks' and train_pipeline's. A handler prints an error and returns 1,
+or after Ctrl-C (a training run first saves the step under way) prints where a rerun resumes and
+returns 130."""
 
 import os
 import sys
 
 from ..train import tasks
+from ..train.curves import runs_table
 from ..train.loops import CODEBOOK_RECIPES, RunOptions, TransformerRecipe
 from ..train.pipeline import PRESETS, train_pipeline
 from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int, positive_int
@@ -27,22 +18,26 @@ def _record(args):
     return {"argv": list(sys.argv), "args": {k: v for k, v in vars(args).items() if k != "func"}}
 
 
-def _guarded(name, work, interrupted=lambda: "interrupted"):
-    """Run work(); a ValueError, TypeError or OSError (bad arguments or files) is printed, status 1;
-    Ctrl-C (KeyboardInterrupt) prints the line interrupted() makes (what a rerun does), status 130."""
-    try:
-        work()
-    except (ValueError, TypeError, OSError) as e:
-        print(f"pyvf {name}: error: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"pyvf {name}: {interrupted()}", file=sys.stderr)
-        return INTERRUPTED
-    return 0
+def _command(subparsers, name, cmd, help, interrupted=lambda args: "interrupted"):
+    """The parser of `pyvf name`, whose handler runs cmd(args): a ValueError, TypeError or OSError is
+    printed, status 1; Ctrl-C prints the line interrupted(args) makes, status 130."""
+    def handler(args):
+        try:
+            cmd(args)
+        except (ValueError, TypeError, OSError) as e:
+            print(f"pyvf {name}: error: {e}", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:
+            print(f"pyvf {name}: {interrupted(args)}", file=sys.stderr)
+            return INTERRUPTED
+        return 0
+
+    p = subparsers.add_parser(name, help=help, description=cmd.__doc__)
+    p.set_defaults(func=handler)
+    return p
 
 
 def _resume_hint(args):
-    """The line after Ctrl-C of a training run: where the same command resumes."""
     step = tasks.checkpoint_step(args.out)
     if step is None:
         return "interrupted before the first checkpoint; rerun the same command to start again"
@@ -51,7 +46,6 @@ def _resume_hint(args):
 
 
 def _stages_hint(args):
-    """The line after Ctrl-C of `pyvf train`: its stages resume where their checkpoints are."""
     at = [f"{stage} at step {step}" for stage in ("codebook", "transformer")
           if (step := tasks.checkpoint_step(os.path.join(args.out, stage))) is not None]
     return "interrupted; rerun the same command to resume" + (f" ({', '.join(at)})" if at else "")
@@ -68,208 +62,132 @@ def _run(args):
 
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
-    def work():
-        opts, held_out = _run(args)
-        tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr, betas=args.betas,
-                           reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
-                           restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
-        print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
-    return _guarded("train-codebook", work, lambda: _resume_hint(args))
+    opts, held_out = _run(args)
+    tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr,
+                       reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
+                       restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
+    print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
 
 
 def cmd_tokenize(args):
     """Encode a dataset's images into token images with a trained codebook."""
-    def work():
-        tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, batch_size=args.batch,
-                                        progress=not args.no_progress, threads=args.threads)
-        print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
-    return _guarded("tokenize", work, lambda: f"interrupted; {args.out} not written: rerun the same command")
+    tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, batch_size=args.batch,
+                                    progress=not args.no_progress, threads=args.threads)
+    print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
 
 
 def cmd_train_transformer(args):
     """Train the transformer on a tokenized dataset; resumable."""
-    def work():
-        opts, held_out = _run(args)
-        recipe = TransformerRecipe(context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
-                                   weight_decay=args.weight_decay, max_grad_norm=args.max_grad_norm or None)  # 0: off
-        tasks.transformer_run(args.tokens, args.out, opts, recipe, codebook=args.codebook, **held_out)
-        print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
-    return _guarded("train-transformer", work, lambda: _resume_hint(args))
+    opts, held_out = _run(args)
+    recipe = TransformerRecipe(context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
+                               max_grad_norm=args.max_grad_norm or None)  # 0: off
+    tasks.transformer_run(args.tokens, args.out, opts, recipe, codebook=args.codebook, **held_out)
+    print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
 
 
 def cmd_train(args):
     """The whole pipeline, resumable stage by stage: training scenes, codebook, tokens,
     transformer (both runs evaluated on held-out scenes as they train), then pyvf evaluate."""
-    def work():
-        train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
-                       command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
-        print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
-              f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
-    return _guarded("train", work, lambda: _stages_hint(args))
+    train_pipeline(args.out, args.preset, threads=args.threads, progress=not args.no_progress,
+                   command=_record(args), engine=args.engine, device=args.device, precision=args.precision)
+    print(f"pyvf train: done; the runs' curves: {os.path.join(args.out, 'codebook', 'eval.png')}, "
+          f"{os.path.join(args.out, 'transformer', 'eval.png')}; the pictures: {os.path.join(args.out, 'eval')}")
 
 
 def cmd_runs(args):
-    """Compare training runs: each run folder's steps, wall time, changed hyperparameters and last
-    held-out evaluation, as a markdown table; with --plot, each folder's eval.png redrawn. A torn
-    last line of a log (a run killed mid-write) is left out, as the trainers do."""
-    def work():
-        table, plots = tasks.compare_runs(args.run_dirs, plot=args.plot, step=args.step)
-        print(table, end="")
-        for path in plots:
-            print(f"wrote {path}")
-    return _guarded("runs", work)
+    """Compare training runs: each run's steps, wall time, changed hyperparameters and last held-out
+    evaluation, as a markdown table."""
+    print(runs_table(args.run_dirs, step=args.step), end="")
 
 
 def cmd_export(args):
-    """Write the model that a training run's last checkpoint holds, as the run writes its final
-    model at the end (codebook.npz, transformer.npz): evaluate or ship a run while it trains.
-    The run is not disturbed (its checkpoints are written atomically)."""
-    def work():
-        kind, step, path = tasks.export_run(args.run, args.output)
-        print(f"{kind} at step {step}: {path}")
-    return _guarded("export", work)
+    """Write the model of a training run's last checkpoint, as the run writes its final model at the
+    end: evaluate or ship a run while it trains."""
+    kind, step, path = tasks.export_run(args.run, args.output)
+    print(f"{kind} at step {step}: {path}")
 
 
-def _run_options(p, batch, checkpoint_every):
+def _run_options(p, every, scenes):
     p.add_argument("--out", required=True, help="run folder: checkpoint.npz, log.csv, config.json, the final model")
     p.add_argument("--steps", type=int, required=True, help="total updates (a resumed run continues to it)")
-    p.add_argument("--batch", type=int, default=batch, help=f"batch size (default {batch})")
+    p.add_argument("--batch", type=int, default=16, help="batch size (default 16)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="initialisation and batches (default 0)")
     p.add_argument("--config", default="tiny", help='"tiny" (default) or a JSON file of the configuration')
-    p.add_argument("--init", default=None, metavar="FILE",
-                   help="start from this model file's weights (Codebook.save / Transformer.save output) instead of "
-                        "the seed's initialisation; the optimiser starts fresh. A resume does not read it (the "
-                        "checkpoint holds the run)")
-    p.add_argument("--checkpoint-every", type=int, default=checkpoint_every,
-                   help=f"steps between checkpoints (default {checkpoint_every}; one at the end always)")
+    p.add_argument("--init", default=None, metavar="FILE", help="a fresh run starts from this model file's weights")
+    p.add_argument("--checkpoint-every", type=int, default=200, help="steps between checkpoints (default 200)")
     p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")
     p.add_argument("--no-resume", action="store_true", help="start over even if the run folder has a checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
-
-
-def _eval_options(p, every, scenes):
     p.add_argument("--eval-every", type=int, default=every,
-                   help=f"steps between evaluations on held-out scenes, logged to eval.csv (default {every}; 0: none)")
-    p.add_argument("--eval-scenes", type=positive_int, default=scenes, help=f"held-out scenes evaluated (default {scenes})")
-    p.add_argument("--eval-seed", type=non_negative_int, default=1,
-                   help="their pyvf.scenes seed, not the training data's (default 1; pyvf evaluate uses 1000); "
-                        "a resume keeps the run's --eval-scenes and --eval-seed (eval.csv is one curve)")
+                   help=f"steps between evaluations on held-out scenes (eval.csv; default {every}; 0: none)")
+    p.add_argument("--eval-scenes", type=positive_int, default=scenes, help=f"held-out scenes (default {scenes})")
+    p.add_argument("--eval-seed", type=non_negative_int, default=1, help="their seed, not the data's (default 1)")
+    _engine_options(p)
 
 
-def _engine_options(p, more=""):
+def _engine_options(p):
     p.add_argument("--engine", default="pyvf", choices=["pyvf", "torch"],
-                   help="pyvf's kernels (default) or torch (pip install 'pyvf[torch]'): the same run, the model in "
-                        f"torch, checked against pyvf at every checkpoint (parity.csv){more}")
+                   help="pyvf's kernels (default) or torch, checked against pyvf at every checkpoint")
     p.add_argument("--device", default="cpu", help="the torch engine's device: cpu (default), cuda or cuda:N")
     p.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
-                   help="the torch engine's arithmetic: fp32 (default) or bf16 autocast (weights stay float32)")
-
-
-def _train_codebook(subparsers):
-    p = subparsers.add_parser("train-codebook", help="train the codebook (VQ-VAE) on a dataset; resumable",
-                              description=cmd_train_codebook.__doc__)
-    p.add_argument("--data", required=True, help="dataset folder (pyvf.scenes.load_dataset)")
-    _run_options(p, batch=16, checkpoint_every=200)
-    p.add_argument("--recipe", default="small-batch", choices=sorted(CODEBOOK_RECIPES),
-                   help="the defaults of --lr, --betas, --reset-dead-codes and --object-weight: "
-                        + "; ".join(f"{k}: {v}" for k, v in CODEBOOK_RECIPES.items())
-                        + " (default small-batch; published is the published code's, for exactness work)")
-    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: the recipe's)")
-    p.add_argument("--betas", type=float, nargs=2, default=None, metavar=("B1", "B2"),
-                   help="Adam's betas (default: the recipe's)")
-    p.add_argument("--reset-dead-codes", type=int, default=None, metavar="EVERY",
-                   help="every EVERY steps move unused codes to random encoder outputs (0: never, as "
-                        "published; default: the recipe's)")
-    p.add_argument("--object-weight", type=float, default=None,
-                   help="loss weight of object pixels against 1 for the background (default: the recipe's)")
-    p.add_argument("--restart", default=None, choices=["batch", "worst"],
-                   help="where dead codes restart: random encoder outputs (batch) or the worst represented ones "
-                        "(default: the recipe's)")
-    p.add_argument("--reseat", type=int, default=None, metavar="N",
-                   help="each reset also moves up to N codes of least utility to the worst represented outputs "
-                        "(default: the recipe's)")
-    p.add_argument("--kmeans", type=int, default=None, metavar="ITERS",
-                   help="initialise the codes by k-means (ITERS Lloyd iterations) on the first batches' encoder "
-                        "outputs; 0: uniform (default: the recipe's)")
-    _eval_options(p, every=100, scenes=32)
-    _engine_options(p)
-    p.set_defaults(func=cmd_train_codebook)
-
-
-def _tokenize(subparsers):
-    p = subparsers.add_parser("tokenize", help="encode a dataset into token images with a codebook",
-                              description=cmd_tokenize.__doc__)
-    p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
-    p.add_argument("--data", required=True, help="dataset folder (pyvf.scenes.load_dataset)")
-    p.add_argument("--out", required=True, help="tokens .npz to write: tokens, poses, n_embed (not the codebook "
-                                                "nor a file of the dataset)")
-    p.add_argument("--batch", type=int, default=64, help="images per encoder call (default 64)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_threads(p)
-    p.set_defaults(func=cmd_tokenize)
-
-
-def _train_transformer(subparsers):
-    p = subparsers.add_parser("train-transformer", help="train the transformer on a tokens file; resumable",
-                              description=cmd_train_transformer.__doc__)
-    p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
-    _run_options(p, batch=16, checkpoint_every=200)
-    p.add_argument("--context", type=int, default=None,
-                   help="most context views per sample (default: the configuration's sequence_size - 1)")
-    p.add_argument("--lr", type=float, default=1e-4, help="peak learning rate (default 1e-4, SM7)")
-    p.add_argument("--warmup", type=int, default=None, help="warmup steps (default min(2000, total/10))")
-    p.add_argument("--total-steps", type=int, default=None,
-                   help="length of the cosine schedule (default --steps; keep it when extending a run; at least "
-                        "--steps: past it the learning rate is 0)")
-    p.add_argument("--weight-decay", type=float, default=0.01, help="AdamW decay (default 0.01)")
-    p.add_argument("--max-grad-norm", type=non_negative_float, default=1.0,
-                   help="per-tensor clipping norm (default 1.0); 0 turns it off")
-    p.add_argument("--codebook", default=None,
-                   help="the codebook .npz the tokens came from: the held-out evaluation renders through it "
-                        "(without it, no evaluation)")
-    _eval_options(p, every=200, scenes=16)
-    _engine_options(p, "; data-parallel under torchrun --nproc-per-node N")
-    p.set_defaults(func=cmd_train_transformer)
-
-
-def _train(subparsers):
-    p = subparsers.add_parser("train", help="train a ViewFormer pair from scratch, every stage resumable "
-                              "(--preset quick: about 15 minutes on 2 cores)", description=cmd_train.__doc__)
-    p.add_argument("--out", required=True, help="folder of the stages (scenes/, codebook/, tokens.npz, "
-                                                "transformer/, eval/); run again to resume")
-    p.add_argument("--preset", default="quick", choices=sorted(PRESETS),
-                   help="sizes and steps of every stage: quick (default, ~15 min on 2 cores), full (the shipped "
-                        "models' sizes, many hours), smoke (seconds)")
-    add_threads(p)
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    _engine_options(p, "; both stages")
-    p.set_defaults(func=cmd_train)
-
-
-def _runs(subparsers):
-    p = subparsers.add_parser("runs", help="compare training runs: a markdown table of their last held-out "
-                              "evaluations", description=cmd_runs.__doc__)
-    p.add_argument("run_dirs", nargs="+", metavar="RUN", help="run folders (train-codebook's or train-transformer's --out)")
-    p.add_argument("--plot", action="store_true", help="also redraw each run's eval.png")
-    p.add_argument("--step", type=int, default=None,
-                   help="compare at equal steps: each run's last evaluation at or before STEP (default: its last)")
-    p.set_defaults(func=cmd_runs)
-
-
-def _export(subparsers):
-    p = subparsers.add_parser("export", help="the model of a training run's last checkpoint, as a model file",
-                              description=cmd_export.__doc__)
-    p.add_argument("run", metavar="RUN", help="a run folder (train-codebook's or train-transformer's --out) "
-                                               "or its checkpoint.npz")
-    p.add_argument("-o", "--output", required=True, help="the model .npz to write (.npz appended when missing; "
-                                                          "not the run's checkpoint)")
-    p.set_defaults(func=cmd_export)
+                   help="the torch engine's arithmetic: fp32 (default) or bf16 autocast")
 
 
 def register(subparsers):
-    """Add train-codebook, tokenize, train-transformer, train, runs and export to an argparse subparsers
-    object."""
-    for add in (_train_codebook, _tokenize, _train_transformer, _train, _runs, _export):
-        add(subparsers)
+    """Add train-codebook, tokenize, train-transformer, train, runs and export to argparse subparsers."""
+    p = _command(subparsers, "train-codebook", cmd_train_codebook, "train the codebook (VQ-VAE) on a dataset; "
+                 "resumable", _resume_hint)
+    p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
+    _run_options(p, every=100, scenes=32)
+    p.add_argument("--recipe", default="small-batch", choices=sorted(CODEBOOK_RECIPES),
+                   help="the defaults of the options below (default small-batch; published: the published code's)")
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate")
+    p.add_argument("--reset-dead-codes", type=int, default=None, metavar="EVERY",
+                   help="every EVERY steps move unused codes to encoder outputs (0: never)")
+    p.add_argument("--object-weight", type=float, default=None, help="loss weight of object pixels (background: 1)")
+    p.add_argument("--restart", default=None, choices=["batch", "worst"],
+                   help="dead codes restart at random encoder outputs (batch) or the worst represented ones")
+    p.add_argument("--reseat", type=int, default=None, metavar="N",
+                   help="each reset also moves up to N codes of least utility")
+    p.add_argument("--kmeans", type=int, default=None, metavar="ITERS",
+                   help="initialise the codes by ITERS k-means iterations on encoder outputs (0: uniform)")
+
+    p = _command(subparsers, "tokenize", cmd_tokenize, "encode a dataset into token images with a codebook",
+                 lambda args: f"interrupted; {args.out} not written: rerun the same command")
+    p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
+    p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
+    p.add_argument("--out", required=True, help="tokens .npz to write")
+    p.add_argument("--batch", type=int, default=64, help="images per encoder call (default 64)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_threads(p)
+
+    p = _command(subparsers, "train-transformer", cmd_train_transformer, "train the transformer on a tokens file; "
+                 "resumable", _resume_hint)
+    p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
+    p.add_argument("--codebook", default=None, help="the tokens' codebook .npz: the held-out evaluation needs it")
+    _run_options(p, every=200, scenes=16)
+    p.add_argument("--context", type=int, default=None, help="most context views per sample (default sequence_size-1)")
+    p.add_argument("--lr", type=float, default=1e-4, help="peak learning rate (default 1e-4)")
+    p.add_argument("--warmup", type=int, default=None, help="warmup steps (default min(2000, total/10))")
+    p.add_argument("--total-steps", type=int, default=None, help="length of the cosine schedule (default --steps)")
+    p.add_argument("--max-grad-norm", type=non_negative_float, default=1.0,
+                   help="per-tensor clipping norm (default 1.0; 0: off)")
+
+    p = _command(subparsers, "train", cmd_train, "train a ViewFormer pair from scratch, every stage resumable",
+                 _stages_hint)
+    p.add_argument("--out", required=True, help="folder of the stages; run again to resume")
+    p.add_argument("--preset", default="quick", choices=sorted(PRESETS),
+                   help="sizes and steps of every stage: quick (default, ~15 min on 2 cores), full, smoke (seconds)")
+    add_threads(p)
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    _engine_options(p)
+
+    p = _command(subparsers, "runs", cmd_runs, "compare training runs' last held-out evaluations")
+    p.add_argument("run_dirs", nargs="+", metavar="RUN", help="run folders")
+    p.add_argument("--step", type=int, default=None, help="each run's last evaluation at or before STEP")
+
+    p = _command(subparsers, "export", cmd_export, "the model of a training run's last checkpoint, as a model file")
+    p.add_argument("run", metavar="RUN", help="a run folder or its checkpoint.npz")
+    p.add_argument("-o", "--output", required=True, help="the model .npz to write")
     return subparsers

@@ -1,37 +1,11 @@
-"""Training: the optimisers and schedules (optim.py), one step (step.py), the loops that
-checkpoint and resume exactly (loops.py), the torch engine (torch_engine.py), the whole
-pipeline (pipeline.py). The run folder's files are described in _run.py. What the `pyvf`
-training commands do on files (tasks.py) is imported by pyvf.cli only (their arguments:
-pyvf/cli/train.py)."""
+"""Training: optimisers and schedules (optim.py), one step (step.py), the loops that checkpoint
+and resume exactly (loops.py, the run folder: _run.py), the torch engines (torch_engine.py), the
+commands' work on files (tasks.py) and the whole pipeline (pipeline.py)."""
 
-from .loops import (
-    TINY_CODEBOOK,
-    TINY_TRANSFORMER,
-    RunOptions,
-    TransformerRecipe,
-    codebook_batch,
-    load_tokens,
-    save_tokens,
-    tokenize,
-    train_codebook,
-    train_transformer,
-    transformer_batch,
-)
+from .loops import (TINY_CODEBOOK, TINY_TRANSFORMER, RunOptions, TransformerRecipe, codebook_batch, load_tokens,
+                    save_tokens, tokenize, train_codebook, train_transformer, transformer_batch)
 from .step import codebook_train_step, train_step, transformer_step
 
-__all__ = [
-    "TINY_CODEBOOK",
-    "TINY_TRANSFORMER",
-    "RunOptions",
-    "TransformerRecipe",
-    "codebook_batch",
-    "codebook_train_step",
-    "load_tokens",
-    "save_tokens",
-    "tokenize",
-    "train_codebook",
-    "train_step",
-    "train_transformer",
-    "transformer_batch",
-    "transformer_step",
-]
+__all__ = ["TINY_CODEBOOK", "TINY_TRANSFORMER", "RunOptions", "TransformerRecipe", "codebook_batch",
+           "codebook_train_step", "load_tokens", "save_tokens", "tokenize", "train_codebook", "train_step",
+           "train_transformer", "transformer_batch", "transformer_step"]

@@ -1,33 +1,22 @@
-"""What every training loop shares: the run folder, its checkpoint, log, config and progress bar.
+"""The run folder every training loop writes: its checkpoint, logs, config and progress bar.
 
-A run folder holds
-
-    checkpoint.npz   the last checkpoint (atomic): model state, optimiser state, step, config
+    checkpoint.npz   the last checkpoint (atomic): __meta__ (JSON: kind, step, config, hyper, the
+                     optimiser's step and hyperparameters, elapsed seconds, the held-out set's
+                     fingerprint), model/<name> (state_dict, EMA buffers included),
+                     optimizer/exp_avg/<name> and optimizer/exp_avg_sq/<name> (Adam's moments)
     log.csv          one row per logged step; rows past the checkpoint are dropped on resume
-    eval.csv         with held-out evaluation (eval_columns): one row per evaluation, likewise
+    eval.csv         with held-out evaluation: one row per evaluation, likewise
     parity.csv       with the torch engine: its check against pyvf at each checkpoint, likewise
-    config.json      the run's configuration, hyperparameters, and each call's command line (atomic)
+    config.json      the configuration, hyperparameters, and each call's command line (atomic)
     <kind>.npz       the trained model, loadable by Codebook.load / Transformer.load (atomic)
 
-Ctrl-C (SIGINT) while a loop runs: the step under way finishes, a checkpoint of it is saved, and
-then KeyboardInterrupt is raised, so the same call resumes with no step lost; a second Ctrl-C
-raises at once (the steps since the last checkpoint are lost, never half an update saved).
+Resuming is exact because nothing else carries state between steps: every batch is a pure function
+of (seed, step) and the schedule of the optimiser's step count. `hyper` holds everything else the
+trajectory depends on (learning rate, batch size, seed, the data's fingerprint...): a resume with
+other values raises. Its "init" (the model file a fresh run started from) counts at step 0 only.
 
-Checkpoint layout (one .npz, allow_pickle=False):
-
-    __meta__                     JSON: kind, step, config, hyper, optimizer step and
-                                 hyperparameters, elapsed seconds, the held-out set's fingerprint
-    model/<name>                 the model's state_dict() (the codebook's EMA buffers included)
-    optimizer/exp_avg/<name>     Adam's first moments
-    optimizer/exp_avg_sq/<name>  Adam's second moments
-
-Resuming is exact because nothing else carries state between steps: every batch is a pure
-function of (seed, step) and the schedule a pure function of the optimiser's step count.
-`hyper` holds everything else the trajectory depends on (learning rate, batch size, seed,
-a fingerprint of the data...): a resume with other values raises instead of silently
-continuing another run. Its "init" (the model file a fresh run started from) counts at step 0
-only: a resume keeps the checkpoint's record. `__meta__`'s "eval" is the fingerprint of the
-held-out set whose rows eval.csv holds: a resume that would append another set's rows raises.
+Ctrl-C while a loop runs: the step under way finishes and is checkpointed, then KeyboardInterrupt;
+a second Ctrl-C raises at once (the steps since the last checkpoint are lost, never half an update).
 """
 
 import csv
@@ -77,30 +66,14 @@ def file_sha256(path):
 
 
 def _machine():
-    """Where a call runs, for config.json: CPU count, processor, the kernels' instruction-set path
-    and thread count (a resumed run's calls may run on different machines)."""
+    """Where a call runs, for config.json (a resumed run's calls may run on different machines)."""
     return {"cpus": os.cpu_count(), "processor": cpu_name(),
             "kernel_path": _core.current_path(), "kernel_threads": int(_core.num_threads())}
 
 
-def save_checkpoint(path, *, kind, step, config, hyper, model_state, optimizer, elapsed, eval_fingerprint=None):
-    """Write the checkpoint atomically: a killed process leaves the previous one intact."""
-    opt = optimizer.state_dict()
-    meta = {"format": "pyvf-checkpoint", "version": FORMAT_VERSION, "kind": kind, "step": int(step),
-            "config": config, "hyper": hyper, "elapsed": float(elapsed),
-            "optimizer": {"step": int(opt["step"]), "hyperparameters": opt["hyperparameters"]},
-            "eval": eval_fingerprint}
-    arrays = {"__meta__": json.dumps(meta)}
-    arrays.update({"model/" + k: v for k, v in model_state.items()})
-    for key in ("exp_avg", "exp_avg_sq"):
-        arrays.update({f"optimizer/{key}/{k}": v for k, v in opt[key].items()})
-    atomic_savez(path, **arrays)
-
-
 def read_checkpoint(path, kind):
-    """-> (meta dict, model state dict, optimizer state dict for load_state_dict). kind: the run's
-    kind ("codebook" or "transformer"; another raises ValueError), or None for either. A file that
-    is not a pyvf checkpoint raises CheckpointError naming it."""
+    """-> (meta, model state dict, optimizer state dict). kind: "codebook", "transformer" (another
+    raises ValueError) or None for either. Not a pyvf checkpoint: CheckpointError naming the file."""
     arrays = load_npz(path, "checkpoint", required=("__meta__",))
     try:
         meta = json.loads(str(arrays.pop("__meta__")))
@@ -123,29 +96,18 @@ def read_checkpoint(path, kind):
 
 
 def resume_point(out_dir, resume=True):
-    """The __meta__ of the checkpoint that a run in out_dir resumes from (its arrays left unread),
-    or None when the run starts afresh (resume False, or no checkpoint yet)."""
+    """The __meta__ of the checkpoint a run in out_dir resumes from, or None (a fresh start)."""
     path = os.path.join(os.fspath(out_dir), CHECKPOINT)
     if not (resume and os.path.exists(path)):
         return None
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            return json.loads(str(f["__meta__"]))
-    except Exception:  # noqa: BLE001 -- damaged: read_checkpoint raises naming what is wrong
-        return read_checkpoint(path, None)[0]
-
-
-def _diff(saved, now):
-    return sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+    return read_checkpoint(path, None)[0]
 
 
 class Run:
     """The run folder of one call of a training loop.
 
         run = Run(out_dir, "codebook", config_dict, hyper, LOG_COLUMNS, opts)   # opts: loops.RunOptions
-        if run.resumed: run.restore("model", model.load_official, run.model_state)
-        optimizer = Adam(model.params, ...)                          # after: load_official replaces params
-        if run.resumed: run.restore("optimizer", optimizer.load_state_dict, run.optimizer_state)
+        (restore the model and optimiser from run.model_state, run.optimizer_state when run.resumed)
         with run:
             for t in run.steps():              # run.start + 1 .. steps
                 ...                            # one update
@@ -153,14 +115,14 @@ class Run:
                 run.checkpoint(t, model.state_dict, optimizer)  # when due; after Ctrl-C, then stops
         run.save_final(model.state_dict())
 
-    config and hyper are JSON-able dicts; a resume checks both against the checkpoint's (but
-    hyper["init"]: the checkpoint's record is kept). call: what config.json records of this call.
-    eval_fingerprint: the held-out set whose rows log_eval appends; a resume refuses another.
-    interruptible: Ctrl-C ends the loop after the step under way (False for data-parallel runs).
+    A resume checks config and hyper (JSON-able dicts) against the checkpoint's. call: what
+    config.json records of this call. evaluation: None, or (eval.csv's columns, the fingerprint of
+    the held-out set log_eval's rows come from; a resume refuses another). interruptible: False for
+    data-parallel runs.
     """
 
-    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, eval_columns=None,
-                 eval_fingerprint=None, interruptible=True):
+    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, evaluation=None,
+                 interruptible=True):
         self.steps_total, self.checkpoint_every, self.log_every = opts.steps, opts.checkpoint_every, opts.log_every
         self.kind, self.config, self.hyper = kind, jsonable(config), jsonable(hyper)
         self.columns = ["step", *columns, "seconds"]
@@ -169,38 +131,32 @@ class Run:
         os.makedirs(self.out_dir, exist_ok=True)
         self.ckpt_path, self.log_path, self.eval_path, self.config_path, self.final_path, self.parity_path = (
             os.path.join(self.out_dir, name) for name in (CHECKPOINT, LOG, EVAL_LOG, CONFIG, f"{kind}.npz", PARITY_LOG))
+        eval_columns, self.eval_fingerprint = evaluation or (None, None)
         self.eval_columns = None if eval_columns is None else ["step", *eval_columns, "seconds"]
         for path in (self.ckpt_path, self.log_path, self.config_path, self.final_path, self.eval_path):
             remove_stale_temps(path)  # left by a process killed mid-write
 
         self.start, self.elapsed0 = 0, 0.0
-        self.eval_fingerprint = eval_fingerprint if eval_columns is not None else None
         self.model_state = self.optimizer_state = None
         if opts.resume and os.path.exists(self.ckpt_path):
             self._resume()
         self.resumed = self.model_state is not None
-        if not self.resumed:  # starting over: an older run's checkpoint must not be resumed later, nor its model kept
-            for path in (self.ckpt_path, self.final_path):
+        if not self.resumed:  # starting over: an older run's files must not be resumed later, nor kept
+            for path in (self.ckpt_path, self.final_path, self.eval_path, self.parity_path):
                 if os.path.exists(path):
                     os.remove(path)
         self._write_config(call)
         self._truncate_log(self.log_path, self.columns)
         if self.eval_columns is not None:
             self._truncate_log(self.eval_path, self.eval_columns)
-        elif os.path.exists(self.eval_path) and not self.resumed:
-            os.remove(self.eval_path)  # an older run's evaluations
-        if os.path.exists(self.parity_path):  # the torch engine's: as log.csv, the rows of the run it continues
-            if self.resumed:
-                self._truncate_log(self.parity_path, PARITY_COLUMNS)
-            else:
-                os.remove(self.parity_path)
-        self._log_file = self._bar = self._previous_handler = None
+        if self.resumed and os.path.exists(self.parity_path):  # the torch engine's
+            self._truncate_log(self.parity_path, PARITY_COLUMNS)
+        self._bar = self._previous_handler = None
         self.interruptible, self._stop = interruptible, False
         self._t0 = time.perf_counter()
 
     def _resume(self):
-        """Read the checkpoint; raise when it is another run's (configuration, hyperparameters,
-        a step past steps, another held-out set)."""
+        """Read the checkpoint; raise when it is another run's."""
         meta, self.model_state, self.optimizer_state = read_checkpoint(self.ckpt_path, self.kind)
         self.hyper = {k: v for k, v in self.hyper.items() if k != "init"}  # the model file counts at step 0 only
         if "init" in meta["hyper"]:
@@ -208,34 +164,29 @@ class Run:
         for what, saved, now in (("configuration", meta["config"], self.config),
                                  ("hyperparameters", meta["hyper"], self.hyper)):
             if saved != now:
-                differ = _diff(saved, now)
+                differ = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
                 raise ValueError(
-                    f"checkpoint {self.ckpt_path} was written with another {what} (differs in {differ}): "
-                    f"resuming would not continue that run. Pass the saved values "
-                    f"{{{', '.join(f'{k}: {saved.get(k)!r}' for k in differ)}}}, another output folder, "
-                    "or resume=False (--no-resume) to start over")
+                    f"checkpoint {self.ckpt_path} was written with another {what} (differs in {differ}: saved "
+                    f"{ {k: saved.get(k) for k in differ} }): pass the saved values, another output folder, or "
+                    "resume=False (--no-resume) to start over")
         self.start, self.elapsed0 = int(meta["step"]), float(meta["elapsed"])
         if self.start > self.steps_total:
-            raise ValueError(f"checkpoint {self.ckpt_path} is at step {self.start}, past steps={self.steps_total}: "
-                             "ask for at least as many steps, or start over with resume=False")
+            raise ValueError(f"checkpoint {self.ckpt_path} is at step {self.start}, past steps={self.steps_total}")
         saved = meta.get("eval")
         if saved is not None and self.eval_fingerprint is not None and saved != self.eval_fingerprint:
-            raise ValueError(f"{self.eval_path} holds evaluations on another held-out set than this call's: its "
-                             "curve would mix two sets. Resume with the run's held-out set (the same --eval-scenes, "
-                             "--eval-seed and --codebook), without evaluation (--eval-every 0), or start over")
+            raise ValueError(f"{self.eval_path} holds evaluations on another held-out set than this call's: "
+                             "resume with the run's one, or without evaluation (--eval-every 0)")
         self.eval_fingerprint = self.eval_fingerprint or saved
 
     def restore(self, what, load, state):
-        """load(state) (model.load_official, optimizer.load_state_dict): a state that does not
-        fit raises CheckpointError naming the checkpoint."""
+        """load(state); a state that does not fit raises CheckpointError naming the checkpoint."""
         try:
             load(state)
         except (ValueError, TypeError) as e:
             raise CheckpointError(f"checkpoint {self.ckpt_path}: its {what} does not load: {e}") from e
 
     def _write_config(self, call):
-        """config.json: the configuration, hyperparameters, and one entry per call of the run
-        (a resume appends one: its command line, steps, the step it resumed from)."""
+        """config.json: the configuration, hyperparameters, and one entry per call of the run."""
         calls = []
         if self.resumed and os.path.exists(self.config_path):
             try:
@@ -251,12 +202,9 @@ class Run:
             {"kind": self.kind, "config": self.config, "hyperparameters": self.hyper, "calls": calls},
             indent=2) + "\n")
 
-    # -----------------------------------------------------------------------------------
-    # the log
-
     def _truncate_log(self, path, columns):
-        """Keep the header and the rows up to the checkpoint's step (none on a fresh start);
-        a torn last line (a process killed mid-write) is dropped with the rows past it."""
+        """Keep the header and the rows up to the checkpoint's step (none on a fresh start); a
+        torn line (a process killed mid-write) is dropped with the rows past it."""
         kept = []
         if self.resumed and os.path.exists(path):
             with open(path, newline="", encoding="utf-8", errors="replace") as f:
@@ -273,29 +221,21 @@ class Run:
         return self.elapsed0 + (time.perf_counter() - self._t0)
 
     def log(self, step, values):
-        """values: column -> float. Written every log_every steps and at the last step;
-        the progress bar shows values["loss"] every step."""
+        """values: column -> float, written every log_every steps and at the last."""
         if self._bar is not None:
             self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
         if step % self.log_every and step != self.steps_total:
             return
-        # repr: floats round-trip exactly, so two runs' logs compare bit for bit
-        row = [str(step)] + [repr(float(values[c])) for c in self.columns[1:-1]] + [f"{self.seconds():.3f}"]
-        csv.writer(self._log_file, lineterminator="\n").writerow(row)
-        self._log_file.flush()
+        self._append(self.log_path, step, values, self.columns)
 
     def eval_due(self, step, every):
-        """Whether to evaluate after `step`: every `every` steps (0: never) and at the last step."""
+        """Every `every` steps (0: never) and at the last step."""
         return bool(every) and (step % every == 0 or step == self.steps_total)
 
     def log_eval(self, step, values):
-        """Append one row of held-out figures to eval.csv (values: column -> float), print it
-        to stderr beside its baselines (curves.eval_line) and redraw eval.png (the curves so far,
-        the baselines dashed). The row reads only the model: evaluation never changes the training
-        trajectory."""
-        row = [str(step)] + [repr(float(values[c])) for c in self.eval_columns[1:-1]] + [f"{self.seconds():.3f}"]
-        with open(self.eval_path, "a", newline="", encoding="utf-8") as f:
-            csv.writer(f, lineterminator="\n").writerow(row)
+        """Append one row of held-out figures to eval.csv, print it to stderr (curves.eval_line)
+        and redraw eval.png."""
+        self._append(self.eval_path, step, values, self.eval_columns)
         line = f"{self.kind} held-out at step {step}: {eval_line(values)}"  # as it trains, not only at the end
         if self._bar is not None:
             self._bar.write(line, file=sys.stderr)  # above the bar, on the bar's stream
@@ -303,21 +243,21 @@ class Run:
             print(line, file=sys.stderr)
         plot_eval(self.out_dir)
 
-    def log_parity(self, step, worst, rel_err, bound):
-        """Append the torch engine's parity check of `step` (its model against pyvf's, before the
-        checkpoint) to parity.csv: the quantity with the worst relative error, that error, the bound."""
-        new = not os.path.exists(self.parity_path)
-        with open(self.parity_path, "a", newline="", encoding="utf-8") as f:
-            writer = csv.writer(f, lineterminator="\n")
-            if new:
-                writer.writerow(PARITY_COLUMNS)
-            writer.writerow([step, worst, repr(float(rel_err)), repr(float(bound))])
+    def _append(self, path, step, values, columns):
+        """Append the row of `step` (values: column -> float) to a CSV log; repr: floats round-trip
+        exactly, so two runs' logs compare bit for bit."""
+        row = [str(step)] + [repr(float(values[c])) for c in columns[1:-1]] + [f"{self.seconds():.3f}"]
+        with open(path, "a", newline="", encoding="utf-8") as f:
+            csv.writer(f, lineterminator="\n").writerow(row)
 
-    # -----------------------------------------------------------------------------------
-    # the loop
+    def log_parity(self, step, worst, rel_err, bound):
+        """Append the torch engine's parity check of `step` to parity.csv."""
+        if not os.path.exists(self.parity_path):
+            atomic_write_text(self.parity_path, ",".join(PARITY_COLUMNS) + "\n")
+        with open(self.parity_path, "a", newline="", encoding="utf-8") as f:
+            csv.writer(f, lineterminator="\n").writerow([step, worst, repr(float(rel_err)), repr(float(bound))])
 
     def __enter__(self):
-        self._log_file = open(self.log_path, "a", newline="", encoding="utf-8")
         if self.progress:
             from tqdm.auto import tqdm
             self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}",
@@ -334,7 +274,6 @@ class Run:
             signal.signal(signal.SIGINT, self._previous_handler)
         if self._bar is not None:
             self._bar.close()
-        self._log_file.close()
         if exc[0] is None and self._stop:
             # Ctrl-C after the last step's checkpoint was saved: stop here all the same (the
             # caller's next work, e.g. pyvf train's next stage, must not start)
@@ -342,8 +281,6 @@ class Run:
         return False
 
     def _ctrl_c(self, signum, frame):
-        """The first Ctrl-C asks the loop to stop after the step under way (checkpoint); a second
-        raises at once."""
         if self._stop:
             raise KeyboardInterrupt
         self._stop = True
@@ -351,31 +288,34 @@ class Run:
               "Ctrl-C again stops at once (losing the steps since the last checkpoint)", file=sys.stderr, flush=True)
 
     def steps(self):
-        """The steps still to run, start + 1 .. steps; advances the progress bar."""
+        """start + 1 .. steps; advances the progress bar."""
         for t in range(self.start + 1, self.steps_total + 1):
             yield t
             if self._bar is not None:
                 self._bar.update(1)
 
     def checkpoint(self, step, state, optimizer, check=None):
-        """After `step`, when due (every checkpoint_every steps and the last) or when Ctrl-C asked
-        the loop to stop: check(self, step) first (the torch engine's parity: a divergent model is
-        not checkpointed), then the checkpoint of state() and optimizer, written atomically; after
-        Ctrl-C, KeyboardInterrupt once it is saved."""
+        """After `step`, when due or after Ctrl-C: check(self, step) (the torch engine's parity),
+        then the checkpoint of state() and optimizer; after Ctrl-C, KeyboardInterrupt once saved."""
         stop = self._stop  # read once: a Ctrl-C from here on stops after the next step
         if stop or step % self.checkpoint_every == 0 or step == self.steps_total:
             if check is not None:
                 check(self, step)
-            save_checkpoint(self.ckpt_path, kind=self.kind, step=step, config=self.config, hyper=self.hyper,
-                            model_state=state(), optimizer=optimizer, elapsed=self.seconds(),
-                            eval_fingerprint=self.eval_fingerprint)
+            model, elapsed, opt = state(), self.seconds(), optimizer.state_dict()
+            meta = {"format": "pyvf-checkpoint", "version": FORMAT_VERSION, "kind": self.kind, "step": int(step),
+                    "config": self.config, "hyper": self.hyper, "elapsed": float(elapsed),
+                    "optimizer": {"step": int(opt["step"]), "hyperparameters": opt["hyperparameters"]},
+                    "eval": self.eval_fingerprint}
+            arrays = {"__meta__": json.dumps(meta), **{"model/" + k: v for k, v in model.items()}}
+            for key in ("exp_avg", "exp_avg_sq"):
+                arrays.update({f"optimizer/{key}/{k}": v for k, v in opt[key].items()})
+            atomic_savez(self.ckpt_path, **arrays)  # atomic: a killed process leaves the previous one intact
         if stop:
             raise KeyboardInterrupt
 
     def save_final(self, arrays):
-        """The trained model as Codebook.save / Transformer.save write it: __config__ (the
-        configuration as JSON), the codebook's fingerprint when the run's hyperparameters record
-        it (a transformer's) and the state dict. Returns its path."""
-        meta = {"__codebook_fingerprint__": self.hyper["codebook_fingerprint"]} if "codebook_fingerprint" in self.hyper else {}
+        """The trained model as Codebook.save / Transformer.save write it. Returns its path."""
+        fp = self.hyper.get("codebook_fingerprint")  # a transformer's
+        meta = {} if fp is None else {"__codebook_fingerprint__": fp}
         atomic_savez(self.final_path, __config__=json.dumps(self.config), **meta, **arrays)
         return self.final_path

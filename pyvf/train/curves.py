@@ -1,15 +1,10 @@
-"""Learning curves from a run folder's log.csv and eval.csv, drawn with Pillow (no plotting
-library needed), and a table that compares runs.
+"""Learning curves from a run folder's log.csv and eval.csv, drawn with Pillow, and a table that
+compares runs.
 
     rows = read_log("runs/codebook")                        # {column: np.ndarray}
     plot_curves("runs/codebook", "curves.png", ["rec_loss", "commitment"])
     plot_eval("runs/codebook")                              # runs/codebook/eval.png: held-out health
     print(runs_table(["runs/a", "runs/b"]))                 # markdown: each run's last evaluation
-
-One panel per column, x = step, y on a linear axis (log axis with log_y=True), min and max
-labelled; the last value printed in the panel's title. A panel's baselines (eval.csv columns
-of the baselines' scores) are drawn as dashed horizontal lines at their mean: a model's curve
-must cross below them.
 """
 
 import csv
@@ -25,10 +20,9 @@ BASELINE_COLOURS = [(214, 39, 40), (44, 160, 44), (148, 103, 189)]
 
 
 def read_log(run_dir, name="log.csv", empty_ok=False):
-    """run_dir/log.csv (or another of its CSV files) -> {column: float64 array}, rows in file order.
-    A torn last line (a process killed mid-write: too few fields, a cut number) is left out, as a
-    resuming trainer drops it (_run.Run._truncate_log); any other bad row raises ValueError naming
-    the file and line. A file of a header alone raises, or with empty_ok gives empty arrays."""
+    """run_dir/log.csv (or another of its CSV files) -> {column: float64 array}. A torn last line (a
+    process killed mid-write) is left out, as a resuming trainer drops it; another bad row raises
+    ValueError naming the line. A header alone raises, or with empty_ok gives empty arrays."""
     path = os.path.join(run_dir, name)
     try:
         with open(path, newline="", encoding="utf-8") as f:
@@ -54,8 +48,9 @@ def read_log(run_dir, name="log.csv", empty_ok=False):
 
 
 def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), name="log.csv", baselines=None):
-    """Write a PNG of `columns` of run_dir/<name> against the step, one panel each, side by side.
-    baselines: {column: [baseline columns]}, each drawn as a dashed line at its mean."""
+    """Write a PNG of `columns` of run_dir/<name> against the step, one panel each, side by side (log
+    axis for the columns of log_y, min and max labelled, the last value in the title). baselines:
+    {column: [baseline columns]}, each a dashed line at its mean: a model's curve must cross below."""
     from PIL import Image, ImageDraw
 
     log = read_log(run_dir, name)
@@ -107,10 +102,6 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), na
     return png
 
 
-# ---------------------------------------------------------------------------------------
-# held-out evaluation (eval.csv): the panels and their baselines
-
-
 def eval_panels(columns):
     """eval.csv's columns -> (panels, baselines) for plot_curves: the codebook's health, or the
     transformer's figures at its largest evaluated context with their baselines."""
@@ -126,8 +117,8 @@ def eval_panels(columns):
 
 
 def eval_line(values):
-    """One held-out evaluation (column -> value) as a line for the console: each panel's value
-    (eval_panels), its baselines in brackets beside it."""
+    """One held-out evaluation (column -> value) as a console line: each panel's value, its baselines
+    in brackets."""
     panels, baselines = eval_panels(list(values))
     return ", ".join(f"{c} {values[c]:.4g}" + (" [" + ", ".join(f"{b} {values[b]:.4g}" for b in baselines[c]) + "]"
                                                if c in baselines else "") for c in panels)
@@ -145,18 +136,15 @@ def plot_eval(run_dir, png=None):
 
 
 def _last_at(steps, step):
-    """The index of the last entry of steps at or before step (the last entry when step is None),
-    or None when there is none."""
-    k = len(steps) - 1 if step is None else int(np.searchsorted(steps, step, side="right")) - 1  # steps ascend
+    """The index of the last of the ascending steps at or before step (None: the last), or None."""
+    k = len(steps) - 1 if step is None else int(np.searchsorted(steps, step, side="right")) - 1
     return k if k >= 0 else None
 
 
 def runs_table(run_dirs, columns=None, step=None):
-    """Markdown: one row per run folder: its name, steps, wall seconds (the log's), what its
-    hyperparameters change against the first run's of its kind (codebook, transformer), and its
-    last held-out evaluation (`columns` of eval.csv, default the panels of eval_panels); with
-    step, the last evaluation at or before that step (runs compared at equal steps; "-" for a run
-    with none), steps and wall seconds then also the log's at that step."""
+    """Markdown: one row per run folder: its name, steps, wall seconds, what its hyperparameters
+    change against the first run's of its kind, and its last held-out evaluation (`columns` of
+    eval.csv, default eval_panels'); with step, all at or before that step."""
     rows, firsts = [], {}
     for d in run_dirs:
         path = os.path.join(d, "config.json")

@@ -4,15 +4,11 @@
     tokens = tokenize(cb, images)                                                     # (scenes, views, k, k) int16
     tf = train_transformer(tokens, poses, TINY_TRANSFORMER, "runs/tf", RunOptions(steps=50_000))
 
-RunOptions says how a call runs (steps, batch size, seed, checkpoints, logging, engine...); the
-configuration and the recipe (train_codebook's recipe and its overrides, train_transformer's
-TransformerRecipe) say what it learns.
-
-Each loop checkpoints its run folder (_run.py: its layout, Ctrl-C) every `checkpoint_every` steps,
-at the end and at Ctrl-C, and a call with resume=True continues from the checkpoint to exactly the
-parameters, optimiser moments and EMA buffers an uninterrupted run reaches, bit for bit, on the same
-kernel path (pyvf.show_config: baseline, avx2 and avx512 may round differently; 1 and 2 threads
-were measured to give the same bits): every batch is a pure function of (seed, step) (batches.py).
+RunOptions says how a call runs (steps, batches, checkpoints, engine...); the configuration and the
+recipe say what it learns. Each loop checkpoints its run folder (_run.py) every `checkpoint_every`
+steps, at the end and at Ctrl-C; a call with resume=True continues to exactly the parameters,
+optimiser moments and EMA buffers an uninterrupted run reaches, bit for bit, on the same kernel path
+(pyvf.show_config), as every batch is a pure function of (seed, step).
 """
 
 import dataclasses
@@ -23,7 +19,6 @@ import numpy as np
 from .. import _checks
 from .._io import atomic_savez, load_npz
 from .._threads import threads as kernel_threads
-from ..models.codebook import Codebook, CodebookConfig
 from ..evaluate.health import (
     CODEBOOK_HEALTH,
     codebook_health,
@@ -31,15 +26,14 @@ from ..evaluate.health import (
     transformer_health,
     transformer_health_columns,
 )
-from ..evaluate.metrics import encode_images
+from ..evaluate.metrics import encode_images, object_mask, to_model_images
 from ..geometry import _check_unit
-from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
+from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, file_sha256, fingerprint, resume_point
-from .batches import codebook_batch, transformer_batch
+from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
 from .step import codebook_train_step, transformer_step
-from .torch_codebook_engine import check_codebook_engine, parity_images
-from .torch_engine import Follower, TorchTransformer, check_engine, check_parity, data_parallel, parity_batch
+from .torch_engine import Follower, TorchCodebook, TorchTransformer, check_engine, data_parallel
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
 # configuration (docs/math.md §4) at a quarter of the channels, one ResnetBlock per level and no
@@ -59,18 +53,12 @@ TINY_TRANSFORMER = TransformerConfig(
     pose_multiplier=0.2,  # SM7: positions scaled by 0.2 (docs/math.md §5)
 )
 
-# Codebook training recipes: Adam's settings, dead-code restarts and the loss weight of object
-# pixels. "published" is the published code's (docs/math.md §4), kept for exactness work: it pairs
-# lr 1.584e-3 and betas (0.5, 0.9) with a batch of 352. With the batches of 16 a CPU affords
-# the same settings collapse the latent (measured on SM7: 9 to 31 codes in use in the first 300
-# steps, the decoded colours on one line); "small-batch", the default, is chosen by the
-# ablations in docs/models-remarks.md: at 1000 steps on SM7 its Adam settings kept 252 codes
-# and a latent of effective rank 27 where the published ones kept 11 and 5, and weighting the
-# objects' pixels 4 times the background's (a tenth of an SM7 image is object) raised the
-# objects' colour_r2 from 0.45 to 0.79 and lowered the whole image's MAE from 5.5 to 4.9.
-# restart, reseat and kmeans (issue 48): where dead codes restart ("batch": vectors drawn uniformly,
-# "worst": the worst represented), how many low-utility codes each reset moves as well, and the
-# Lloyd iterations of a k-means initialisation of the codes from data (0: the uniform one); see
+# Codebook training recipes: Adam's settings, dead-code restarts, the loss weight of object pixels.
+# "published" is the published code's (docs/math.md §4), whose lr and betas serve a batch of 352:
+# at the batches of 16 a CPU affords they collapse the latent on SM7. "small-batch", the default,
+# is chosen by the ablations of docs/models-remarks.md. restart, reseat, kmeans (issue 48): where
+# dead codes restart ("batch" or "worst"), how many low-utility codes each reset moves as well, and
+# the Lloyd iterations of a k-means initialisation of the codes (0: uniform); see
 # EMAQuantizer.reset_dead_codes and init_kmeans.
 _CODES = {"restart": "batch", "reseat": 0, "kmeans": 0}
 CODEBOOK_RECIPES = {
@@ -79,22 +67,21 @@ CODEBOOK_RECIPES = {
 }
 KMEANS_BATCHES = 4  # the k-means initialisation clusters the encoder's outputs of this many batches
 
-
 CODEBOOK_LOG = ["loss", "rec_loss", "commitment", "perplexity", "usage", "lr"]
 TRANSFORMER_LOG = ["loss", "ce_loss", "pose_loss", "grad_norm", "lr"]
 
 
 @dataclasses.dataclass(frozen=True)
 class RunOptions:
-    """How a training call runs: its length, batches, checkpoints, logging and engine (what it
-    learns is the configuration's and the recipe's). Checked when made; an error names the field."""
+    """How a training call runs (what it learns is the configuration's and the recipe's). Checked
+    when made; an error names the field."""
 
     steps: int  # the total number of updates; a resumed run continues to it from its checkpoint
     batch_size: int = 16
     seed: int = 0  # the initialisation and every batch (np.random.default_rng([seed, step]))
     checkpoint_every: int = 200  # steps between checkpoints; one at the end and at Ctrl-C always
     log_every: int = 10  # steps between log.csv rows (and the last step)
-    eval_every: int = 0  # steps between held-out evaluations (0: none; then the set is not the run's)
+    eval_every: int = 0  # steps between held-out evaluations (0: none)
     resume: bool = True  # continue from out_dir/checkpoint.npz when there is one; False starts over
     progress: bool = True  # a progress bar on stderr
     threads: int | None = None  # the kernels' and BLAS' threads during the call (None: as they are)
@@ -112,21 +99,56 @@ class RunOptions:
         check_engine(self.engine, self.device, self.precision)
 
 
+# ---------------------------------------------------------------------------------------
+# the batches: each a pure function of (seed, step), so that a resumed run draws the same ones and
+# both engines train on the same ones; the torch engine's parity checks draw theirs from seed + PARITY_SEED
+
+
+PARITY_SEED = 1_000_003
+
+
+def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weight=None):
+    """Batch of step `step`: batch_size views drawn uniformly (with replacement) from the
+    (M, Hi, Wi, C) uint8 images -> (B, C, Hi, Wi) in [-1, 1]. A pure function of (seed, step).
+    With object_weight (a float), also the pixel weights (B, 1, Hi, Wi): object_weight on the
+    pixels health.object_mask marks, 1 on the background."""
+    rng = np.random.default_rng([seed, step])
+    idx = rng.integers(0, images.shape[0], size=batch_size)  # (B,)
+    x = to_model_images(images[idx], np.dtype(dtype))
+    if object_weight is None:
+        return x
+    w = np.where(object_mask(images[idx]), object_weight, 1.0).astype(dtype)[:, None]  # (B, 1, Hi, Wi)
+    return x, w
+
+
+def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="float32"):
+    """Batch of step `step`: per sample a scene drawn uniformly, then n_views distinct views
+    of it in random order. tokens (scenes, views, k, k), poses (scenes, views, 7) ->
+    tokens (B, N, L) int64, poses (B, N, 7) of dtype. A pure function of (seed, step)."""
+    rng = np.random.default_rng([seed, step])
+    n_scenes, n_avail = tokens.shape[:2]
+    scenes = rng.integers(0, n_scenes, size=batch_size)  # (B,)
+    order = rng.permuted(np.tile(np.arange(n_avail), (batch_size, 1)), axis=1)  # (B, views): a permutation per row
+    views = order[:, :n_views]  # (B, N)
+    tok = tokens[scenes[:, None], views].reshape(batch_size, n_views, -1).astype(np.int64)  # (B, N, L)
+    pos = poses[scenes[:, None], views].astype(dtype)  # (B, N, 7)
+    return tok, pos
+
+
 def _check_images(images, config, name="images"):
     """images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C) -> a (M, Hi, Wi, C) view."""
     if not isinstance(images, np.ndarray) or images.dtype != np.uint8:
         raise TypeError(f"{name} must be a uint8 numpy array, got {getattr(images, 'dtype', type(images).__name__)}")
     S, C = config.image_size, config.in_channels
     if images.ndim not in (4, 5) or images.shape[-3:] != (S, S, C) or images.size == 0:
-        raise ValueError(f"{name} must have shape (scenes, views, {S}, {S}, {C}) or (M, {S}, {S}, {C}) "
-                         f"for this codebook, got {images.shape}")
+        raise ValueError(f"{name} must have shape (scenes, views, {S}, {S}, {C}) or (M, {S}, {S}, {C}), "
+                         f"got {images.shape}")
     return images.reshape(-1, S, S, C)
 
 
 def _check_tokens_poses(tokens, poses, config):
     """tokens ints (scenes, views, k, k) in [0, n_embeddings), poses (scenes, views, 7) finite with
-    unit quaternions (in the model's dtype, as the batches hold them: checked here rather than at
-    the first step that draws a bad view, which may come thousands of steps in)."""
+    unit quaternions in the model's dtype: checked here, not at the step that draws a bad view."""
     _checks.int_array("tokens", tokens)
     if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
         raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
@@ -141,11 +163,9 @@ def _check_tokens_poses(tokens, poses, config):
 
 
 def _warm_start(cls, config, hyper, out_dir, opts):
-    """opts.init: None, or a cls.save file whose weights have the shapes of the run's configuration
-    (other fields, such as empty_code or the loss weights, may differ: a fine-tuning). Returns (hyper with the
-    file's record {"path", "sha256"}, its state_dict()), or (hyper, None) without one. The file
-    counts at step 0 only: a run that resumes from out_dir's checkpoint does not read it (the
-    checkpoint holds the run's state, and Run keeps the record). Errors name init."""
+    """opts.init: None, or a cls.save file whose weights have the run's shapes (other fields, such
+    as empty_code, may differ: a fine-tuning) -> (hyper with the file's {"path", "sha256"}, its
+    state_dict()), or (hyper, None). Only a fresh run reads it: a resume's checkpoint holds the run."""
     path = opts.init
     if path is None or resume_point(out_dir, opts.resume) is not None:
         return hyper, None
@@ -154,13 +174,44 @@ def _warm_start(cls, config, hyper, out_dir, opts):
     except FileNotFoundError as e:
         raise FileNotFoundError(f"init {path}: no such file") from e
     except ValueError as e:  # CheckpointError: corrupt, or another kind of model
-        raise ValueError(f"init {path} is not a {cls.FILE_KIND} model file ({cls.__name__}.save's): {e}") from e
+        raise ValueError(f"init {path} is not a {cls.FILE_KIND} model file: {e}") from e
     got, want = model.state_dict(), cls(config).state_dict()
     shapes = sorted(k for k in got.keys() | want.keys() if np.shape(got.get(k)) != np.shape(want.get(k)))
-    if shapes:  # a configuration that shapes the weights alike (e.g. another empty_code or loss weight) may differ
-        raise ValueError(f"init {path} holds a {cls.__name__} whose weights are shaped unlike the run's "
-                         f"configuration's (in {shapes[:4]}): start from a model of the run's configuration")
+    if shapes:
+        raise ValueError(f"init {path} holds a {cls.__name__} shaped unlike the run's configuration (in {shapes[:4]})")
     return {**hyper, "init": {"path": os.path.basename(path), "sha256": file_sha256(path)}}, model.state_dict()
+
+
+def _restore(run, model, make_optimiser, init_state):
+    """The model as the run's checkpoint left it (or init_state's, a fresh run's warm start), then
+    make_optimiser(model.params), its state the checkpoint's (a warm start's optimiser is fresh).
+    A codebook's init_state holds the quantizer's EMA buffers and counter too, so its codes move
+    on by EMA steps from the file's: zeroed averages at counter 1 would set each code to one batch's
+    mean of the vectors that chose it (docs/math.md §4)."""
+    if run.resumed:
+        run.restore("model", model.load_official, run.model_state)  # replaces model.params
+    elif init_state is not None:
+        model.load_official(init_state)
+    opt = make_optimiser(model.params)  # after the restore: on the params it put in place
+    if run.resumed:
+        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+    return opt
+
+
+def _loop(run, opt, step, state, check, health, eval_every):
+    """The loop both trainings run: step(t) -> the log's values but lr (one update); health() -> the
+    held-out figures (None: no evaluation), before the first step of a fresh run, every eval_every
+    steps and at the last; the checkpoints (check(run, t) first, when not None); the final model."""
+    with run:
+        if health is not None and not run.resumed:
+            run.log_eval(0, health())
+        for t in run.steps():
+            lr_t = opt.lr_at(opt.step_count)
+            run.log(t, {**step(t), "lr": lr_t})
+            if health is not None and run.eval_due(t, eval_every):
+                run.log_eval(t, health())
+            run.checkpoint(t, state, opt, check)
+    run.save_final(state())
 
 
 # ---------------------------------------------------------------------------------------
@@ -168,150 +219,99 @@ def _warm_start(cls, config, hyper, out_dir, opts):
 
 
 def _recipe(recipe, overrides):
-    """train_codebook's recipe (a name of CODEBOOK_RECIPES) with the overrides not None, each
-    checked -> (lr, betas, reset_dead_codes, object_weight, codes, what the run records beyond the
-    base hyperparameters)."""
+    """train_codebook's recipe with the overrides not None, checked -> (the settings, what the run
+    records beyond the base hyperparameters: object_weight and _CODES where not at their defaults,
+    so that runs from before these options resume as they were)."""
     if recipe not in CODEBOOK_RECIPES:
         raise ValueError(f"recipe must be one of {sorted(CODEBOOK_RECIPES)}, got {recipe!r}")
     unknown = sorted(set(overrides) - set(CODEBOOK_RECIPES[recipe]))
     if unknown:
         raise TypeError(f"train_codebook got unexpected keyword arguments {unknown}")
     r = {**CODEBOOK_RECIPES[recipe], **{k: v for k, v in overrides.items() if v is not None}}
-    lr = _checks.real("lr", r["lr"], lo=0.0)
-    betas = tuple(_checks.real("betas", b, 0.0, 1.0, hi_open=True) for b in r["betas"])
-    reset_dead_codes = _checks.integer("reset_dead_codes", r["reset_dead_codes"], 0)
-    object_weight = _checks.real("object_weight", r["object_weight"], lo=0.0, lo_open=True)
+    r["lr"] = _checks.real("lr", r["lr"], lo=0.0)
+    r["betas"] = tuple(_checks.real("betas", b, 0.0, 1.0, hi_open=True) for b in r["betas"])
+    for name in ("reset_dead_codes", "reseat", "kmeans"):
+        r[name] = _checks.integer(name, r[name], 0)
+    r["object_weight"] = _checks.real("object_weight", r["object_weight"], lo=0.0, lo_open=True)
     if r["restart"] not in ("batch", "worst"):
         raise ValueError(f"restart must be 'batch' or 'worst', got {r['restart']!r}")
-    codes = {"restart": r["restart"], "reseat": _checks.integer("reseat", r["reseat"], 0),
-             "kmeans": _checks.integer("kmeans", r["kmeans"], 0)}
-    # what the run records beyond the base hyperparameters: absent at their defaults (object_weight
-    # 1.0, _CODES), so that runs from before these options resume as they were
-    recorded = {"object_weight": object_weight} if object_weight != 1.0 else {}
-    recorded.update({k: v for k, v in codes.items() if v != _CODES[k]})
-    return lr, betas, reset_dead_codes, object_weight, codes, recorded
+    recorded = {"object_weight": r["object_weight"]} if r["object_weight"] != 1.0 else {}
+    recorded.update({k: r[k] for k in _CODES if r[k] != _CODES[k]})
+    return r, recorded
 
 
-def _kmeans_start(model, flat, iters, batch_size, seed):
-    """A fresh run's codes by k-means (EMAQuantizer.init_kmeans, `iters` Lloyd iterations; 0 keeps
-    the uniform initialisation) on the encoder's outputs of KMEANS_BATCHES batches drawn as step 0's."""
-    if iters:
-        x = codebook_batch(flat, KMEANS_BATCHES * batch_size, seed, 0, model.config.dtype)  # (B, C, Hi, Wi)
-        z = model._encoder(None, x)
-        model.quantizer.init_kmeans(z, iters, batch_size, rng=np.random.default_rng([seed, 0, 2]),
-                                    empty=model.empty_patches(x))
+def _codebook_engine(opts, model, opt, flat):
+    """-> (step(x, w) -> the log's values but lr, reset(x, rng, **codes): the dead-code restart after
+    a step, state() -> the state dict, current() -> the model, the optimiser, check(run, step) before
+    each checkpoint or None)."""
+    if opts.engine == "torch":
+        eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
+                            parity_batch=(codebook_batch(flat, 4, opts.seed + PARITY_SEED, 0, model.config.dtype),))
+        return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
 
+    def step(x, w):
+        out = codebook_train_step(model, opt, x, pixel_weights=w)
+        return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
+                "perplexity": out.perplexity, "usage": out.usage}
 
-def _codebook_and_optimiser(run, config, seed, lr, betas, init_state=None):
-    """A new Codebook and its Adam; both as the run's checkpoint left them when it resumes. A fresh
-    run with init_state (_warm_start's) starts from its parameters and EMA buffers, its Adam fresh
-    (zero moments, step 0); a resumed run ignores init_state: the checkpoint holds the run's state."""
-    model = Codebook(config, seed=seed)
-    if run.resumed:
-        run.restore("model", model.load_official, run.model_state)  # replaces model.params
-    elif init_state is not None:
-        # Codebook.save writes the quantizer's four buffers and Codebook.load requires them, so
-        # the EMA state is the file's too: the hidden cluster sizes and sums with the counter
-        # whose bias correction 1 - decay^counter they were accumulated under (docs/math.md §4).
-        # The codes then move from the file's by EMA steps, as in the run that wrote it. Zeroed
-        # averages and counter would not: at counter 1 the correction undoes the (1 - decay)
-        # weight, so the first update would set every code to that batch's mean of the vectors
-        # that chose it, and every code the batch left unused to 0.
-        model.load_official(init_state)  # replaces model.params and the quantizer's buffers
-    opt = Adam(model.params, lr, betas=betas)  # after the restore: on the params it put in place
-    if run.resumed:
-        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
-    return model, opt
+    def reset(x, rng, **codes):
+        z = model._encoder([], x)  # (B, D, k, k) with the updated weights
+        return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
 
-
-def _codebook_engine(engine, model, opt, parity, device, precision):
-    """train_codebook's engine: (step(x, w) -> the log's values but lr, reset(x, rng): the
-    dead-code restart after the step, state() -> the state dict, current() -> the model, the
-    optimiser the loop reads, check(run, step) before each checkpoint or None). The torch
-    engine's check is the parity of the torch model and pyvf's on the images `parity`."""
-    if engine != "torch":
-        def step(x, w):
-            out = codebook_train_step(model, opt, x, pixel_weights=w)
-            return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
-                    "perplexity": out.perplexity, "usage": out.usage}
-
-        def reset(x, rng, **codes):
-            z = model._encoder([], x)  # (B, D, k, k) with the updated weights
-            return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
-
-        return step, reset, model.state_dict, lambda: model, opt, None
-    from .torch_codebook_engine import TorchCodebook
-    eng = TorchCodebook(model, opt, device=device, precision=precision)
-
-    def check(run, step):  # before the save: a divergent model is not checkpointed
-        check_parity(run, step, eng.parity(parity))
-
-    return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, check
+    return step, reset, model.state_dict, lambda: model, opt, None
 
 
 def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="small-batch", **overrides):
-    """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4).
+    """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4) into the run folder out_dir
+    (_run.py; at the end codebook.npz) -> the trained Codebook.
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
-    out_dir: the run folder (created): checkpoint.npz, log.csv, config.json, and at the end
-        codebook.npz (Codebook.load reads it).
-    opts: RunOptions (steps, batch_size, seed, checkpoints, engine, init, ...). init: a fresh run
-        starts from the file's weights and EMA buffers, Adam fresh; a resume does not read it.
-        engine "torch": torch_codebook_engine.TorchCodebook, parity.csv at every checkpoint.
-    eval_images: None, or held-out uint8 views (M, Hi, Wi, C): every opts.eval_every steps, at the
-        last step and before the first of a fresh run, health.codebook_health on them is appended
-        to out_dir/eval.csv (it reads the model only).
-    recipe: a name of CODEBOOK_RECIPES, the defaults of the overrides: lr, betas (Adam's),
-        reset_dead_codes, object_weight, restart, reseat, kmeans; each given (not None) overrides
-        the recipe's. object_weight: the loss weight of object pixels (health.object_mask)
-        against 1 for the background. reset_dead_codes: every this many steps (0: never, as
-        published) codes whose EMA cluster size fell below 1e-3 move to encoder outputs of the
-        step's batch (EMAQuantizer.reset_dead_codes, random from (seed, step): resumes stay
-        exact); restart, reseat: where they restart ("batch" or "worst") and how many low-utility
-        codes each reset moves too; kmeans: 0, or the Lloyd iterations of a fresh run's k-means
-        initialisation of the codes on the encoder's outputs of KMEANS_BATCHES batches.
-    Returns the trained Codebook."""
+    opts: RunOptions (init: a fresh run starts from the file's weights and EMA buffers, Adam fresh).
+    eval_images: None, or held-out uint8 views (M, Hi, Wi, C) whose health.codebook_health goes to eval.csv.
+    recipe: a name of CODEBOOK_RECIPES; overrides (each not None replaces the recipe's): lr, betas,
+        reset_dead_codes (every this many steps codes whose EMA cluster size fell below 1e-3 move to
+        the step's encoder outputs; 0: never), object_weight (the loss weight of object pixels
+        against 1 for the background), restart, reseat, kmeans (see CODEBOOK_RECIPES)."""
     if not isinstance(config, CodebookConfig):
         raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
     if not isinstance(opts, RunOptions):
         raise TypeError(f"opts must be a RunOptions, got {type(opts).__name__}")
     flat = _check_images(images, config)  # (M, Hi, Wi, C)
-    lr, betas, reset_dead_codes, object_weight, codes, recorded = _recipe(recipe, overrides)
+    r, recorded = _recipe(recipe, overrides)
     if eval_images is not None:
         eval_images = _check_images(eval_images, config, "eval_images")
     eval_fp = fingerprint(eval_images) if eval_images is not None and opts.eval_every else None
     B, seed = opts.batch_size, opts.seed
-    hyper = {"batch_size": B, "lr": lr, "betas": betas, "seed": seed, "reset_dead_codes": reset_dead_codes,
+    hyper = {"batch_size": B, "lr": r["lr"], "betas": r["betas"], "seed": seed,
+             "reset_dead_codes": r["reset_dead_codes"],
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}, **recorded}
-    check_codebook_engine(opts.engine, opts.device, opts.precision, config.dtype)
+    check_engine(opts.engine, opts.device, opts.precision, config.dtype, one_process=True)
     hyper, init_state = _warm_start(Codebook, config, hyper, out_dir, opts)
     call = {"command": opts.command, "threads": opts.threads, "recipe": recipe, "engine": opts.engine,
             "device": opts.device, "precision": opts.precision,
             "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, opts, call=call,
-                  eval_columns=None if eval_fp is None else CODEBOOK_HEALTH, eval_fingerprint=eval_fp)
-        model, opt = _codebook_and_optimiser(run, config, seed, lr, betas, init_state)
-        if not run.resumed and init_state is None:
-            _kmeans_start(model, flat, codes["kmeans"], B, seed)
-        step, reset, state, current, opt, check = _codebook_engine(
-            opts.engine, model, opt, parity_images(flat, seed, config.dtype), opts.device, opts.precision)
-        weighted = object_weight != 1.0
-        with run:
-            if eval_fp is not None and not run.resumed:
-                run.log_eval(0, codebook_health(current(), eval_images))
-            for t in run.steps():
-                x = codebook_batch(flat, B, seed, t, config.dtype, object_weight if weighted else None)
-                x, w = x if weighted else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
-                lr_t = opt.lr_at(opt.step_count)
-                values = step(x, w)
-                if reset_dead_codes and t % reset_dead_codes == 0:
-                    reset(x, np.random.default_rng([seed, t, 1]), restart=codes["restart"], reseat=codes["reseat"])
-                run.log(t, {**values, "lr": lr_t})
-                if eval_fp is not None and run.eval_due(t, opts.eval_every):
-                    run.log_eval(t, codebook_health(current(), eval_images))
-                run.checkpoint(t, state, opt, check)
-        run.save_final(state())
+                  evaluation=None if eval_fp is None else (CODEBOOK_HEALTH, eval_fp))
+        model = Codebook(config, seed=seed)
+        opt = _restore(run, model, lambda params: Adam(params, r["lr"], betas=r["betas"]), init_state)
+        if not run.resumed and init_state is None and r["kmeans"]:  # the codes by k-means on step 0's batches
+            x = codebook_batch(flat, KMEANS_BATCHES * B, seed, 0, config.dtype)  # (B', C, Hi, Wi)
+            model.quantizer.init_kmeans(model._encoder(None, x), r["kmeans"], B,
+                                        rng=np.random.default_rng([seed, 0, 2]), empty=model.empty_patches(x))
+        step, reset, state, current, opt, check = _codebook_engine(opts, model, opt, flat)
+        weight = r["object_weight"] if r["object_weight"] != 1.0 else None
+
+        def step_t(t):
+            x = codebook_batch(flat, B, seed, t, config.dtype, weight)
+            x, w = x if weight else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
+            values = step(x, w)
+            if r["reset_dead_codes"] and t % r["reset_dead_codes"] == 0:
+                reset(x, np.random.default_rng([seed, t, 1]), restart=r["restart"], reseat=r["reseat"])
+            return values
+
+        health = None if eval_fp is None else lambda: codebook_health(current(), eval_images)
+        _loop(run, opt, step_t, state, check, health, opts.eval_every)
         return current()
 
 
@@ -384,9 +384,8 @@ class TransformerRecipe:
 
 
 def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint):
-    """train_transformer's run checked against its data: (the run's hyperparameters, the
-    WarmupCosine schedule); the hyperparameters hold batch_size, views (N), lr, warmup,
-    total_steps, weight_decay, clipping, seed, the data's fingerprint and the codebook's."""
+    """train_transformer's run checked against its data -> (the run's hyperparameters, the
+    WarmupCosine schedule)."""
     r = recipe
     n_views = 1 + (config.sequence_size - 1 if r.context is None else r.context)  # N
     if not config.n_loss_skip < n_views <= tokens.shape[1]:
@@ -394,12 +393,11 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
                          f"{config.n_loss_skip} views) and fit the {tokens.shape[1]} views a scene has")
     total_steps = opts.steps if r.total_steps is None else r.total_steps
     if total_steps < opts.steps:
-        raise ValueError(f"steps={opts.steps} runs past total_steps={total_steps}, the schedule's end (learning "
-                         "rate 0 from there): ask for at most total_steps steps, or a longer schedule")
+        raise ValueError(f"steps={opts.steps} runs past total_steps={total_steps}, the schedule's end: ask for at "
+                         "most total_steps steps, or a longer schedule")
     warmup = min(2000, total_steps // 10) if r.warmup is None else r.warmup
     if warmup >= total_steps:
-        raise ValueError(f"warmup={warmup} must be less than total_steps={total_steps} (total_steps is steps when "
-                         "not given)")
+        raise ValueError(f"warmup={warmup} must be less than total_steps={total_steps}")
     hyper = {"batch_size": opts.batch_size, "views": n_views, "lr": r.lr, "warmup": warmup,
              "total_steps": total_steps, "weight_decay": r.weight_decay, "eps": 1e-8, "eps_convention": "keras",
              "max_grad_norm": r.max_grad_norm, "clip_mode": r.clip_mode, "seed": opts.seed,
@@ -410,90 +408,53 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
 
 
 def _transformer_eval(eval_set, eval_every, config):
-    """train_transformer's held-out evaluation: (its record for config.json, the columns of
-    eval.csv, health(model) -> the row of transformer_health at health_contexts); all None without
-    eval_set or with eval_every 0 (a set not evaluated on is not the run's). eval_set: held_out_set's,
-    whose codebook must be the one the run's tokens index (the rest is held_out_set's making)."""
+    """-> (the held-out evaluation's record for config.json, eval.csv's columns, health(model) ->
+    its row), all None without eval_set or with eval_every 0. eval_set: held_out_set's."""
     if eval_set is None or eval_every == 0:
         return None, None, None
     cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
     if (cb.config.n_embed, cb.config.token_size) != (config.n_embeddings, config.token_image_size):
-        raise ValueError("eval_set['codebook'] must be the Codebook the tokens came from: its codes and token "
-                         "images those the transformer reads (config.n_embeddings, config.token_image_size)")
+        raise ValueError("eval_set['codebook'] must be the Codebook the tokens came from (its n_embed and "
+                         "token_size those of the configuration)")
     contexts = health_contexts(config, images.shape[1])
     if not contexts:
         raise ValueError(f"eval_set's scenes have {images.shape[1]} views: too few for a context and the queries")
-
-    def health(model):
-        return transformer_health(cb, model, images, poses, tokens, contexts)
-
     record = {"every": eval_every, "contexts": contexts, "fingerprint": fingerprint(tokens)}
-    return record, transformer_health_columns(contexts), health
+    return record, transformer_health_columns(contexts), lambda model: transformer_health(
+        cb, model, images, poses, tokens, contexts)
 
 
-def _transformer_and_optimiser(run, config, hyper, schedule, init_state=None):
-    """A new Transformer (of hyper's seed, recording hyper's codebook fingerprint) and its
-    optimiser, the published one (optim.py: HF AdamWeightDecay over Keras Adam, hyper's weight
-    decay); both as the run's checkpoint left them when it resumes. A fresh run with init_state
-    (_warm_start's) starts from its parameters, the optimiser fresh (zero moments, step 0, the
-    schedule from its start)."""
-    model = Transformer(config, seed=hyper["seed"])
-    model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
-    if run.resumed:
-        run.restore("model", model.load_official, run.model_state)  # replaces model.params
-    elif init_state is not None:
-        model.load_official(init_state)  # replaces model.params
-    opt = AdamW(model.params, lr=schedule, eps=1e-8, weight_decay=hyper["weight_decay"], decay=published_weight_decay,
-                eps_convention="keras")  # after the restore: on the params it put in place
-    if run.resumed:
-        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
-    return model, opt
+def _transformer_engine(opts, model, opt, dp, recipe, parity):
+    """-> (step(tok, pos) -> the log's values but lr, state() -> the state dict,
+    current() -> the model, the optimiser, check(run, step) before each checkpoint or None)."""
+    if opts.engine == "torch":
+        eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp, parity_batch=parity,
+                               max_grad_norm=recipe.max_grad_norm, clip_mode=recipe.clip_mode)
+        return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
 
+    def step(tok, pos):
+        out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
+                                     clip_mode=recipe.clip_mode)
+        if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
+            norm = float(np.sqrt(sum(n * n for n in norm.values())))
+        return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)), "pose_loss": float(np.mean(out.pose_loss)),
+                "grad_norm": norm}
 
-def _transformer_engine(opts, model, opt, dp, parity, recipe):
-    """train_transformer's engine: (step(tok, pos) -> (loss, mean ce, mean pose loss, grad norm),
-    state() -> the state dict, current() -> the model, the optimiser whose lr_at and step count
-    the loop reads, check(run, step) before each checkpoint or None). The torch engine's
-    check is the parity of the torch model and pyvf's on the batch `parity` (tokens, poses)."""
-    if opts.engine != "torch":
-        def step(tok, pos):
-            out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
-                                         clip_mode=recipe.clip_mode)
-            if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
-                norm = float(np.sqrt(sum(n * n for n in norm.values())))
-            return out.loss, float(np.mean(out.ce_loss)), float(np.mean(out.pose_loss)), norm
-
-        return step, model.state_dict, lambda: model, opt, None
-    eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision,
-                           max_grad_norm=recipe.max_grad_norm, clip_mode=recipe.clip_mode, dp=dp)
-
-    def check(run, step):  # before the save: a divergent model is not checkpointed
-        check_parity(run, step, eng.parity(*parity))
-
-    return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, check
+    return step, model.state_dict, lambda: model, opt, None
 
 
 def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRecipe(), *, eval_set=None,
                       codebook_fingerprint=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
-    (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5).
+    (the branching tree, docs/math.md §2-3), with the published optimiser (docs/math.md §5), into the
+    run folder out_dir (at the end transformer.npz) -> the trained Transformer.
 
-    tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: float32 or float64
-        (scenes, views, 7), xyz and a unit quaternion wxyz (in config.dtype, checked at the
-        start), in any frame (each sample is made relative to its first view).
-    opts: RunOptions, as train_codebook's (init: a Transformer.save file); the final model is
-        out_dir/transformer.npz (Transformer.load reads it). engine "torch" on opts.device at
-        opts.precision: the same run with the model in torch, checked against pyvf's at every
-        checkpoint, data-parallel under torchrun (torch_engine's docstring,
-        docs/howto-torch-engine.md). A checkpoint of either engine resumes in the other.
-    recipe: TransformerRecipe (context, lr, warmup, total_steps, weight_decay, clipping).
-    eval_set: None, or held-out scenes {"codebook": the Codebook the tokens came from, "images":
-        uint8 (n, V, S, S, 3), "poses": float64 (n, V, 7), "tokens": (n, V, L) their codes}
-        (held_out_set's): every opts.eval_every steps, at the last step and before the first of a
-        fresh run, health.transformer_health at health.health_contexts is appended to eval.csv.
+    tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: float (scenes, views, 7),
+        xyz and a unit quaternion wxyz, in any frame (each sample is made relative to its first view).
+    opts: RunOptions, as train_codebook's (engine "torch": data-parallel under torchrun too).
+    eval_set: None, or held_out_set's scenes whose health.transformer_health goes to eval.csv.
     codebook_fingerprint: the fingerprint of the codebook the tokens came from (load_tokens'):
-        recorded in config.json and the model, whose pairings then check it (models.check_pair).
-    Returns the trained Transformer."""
+        recorded in config.json and the model, whose pairings then check it (models.check_pair)."""
     if not isinstance(config, TransformerConfig):
         raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
     if not isinstance(opts, RunOptions):
@@ -511,27 +472,20 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         if dp is None or dp.rank == 0:
             run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, opts, call=call,
-                      eval_columns=eval_columns, eval_fingerprint=(eval_record or {}).get("fingerprint"),
+                      evaluation=eval_record and (eval_columns, eval_record["fingerprint"]),
                       interruptible=dp is None)
         if dp is not None:  # the other processes follow rank 0's run from its start step
             start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
             run = run if dp.rank == 0 else Follower(start, opts.steps)
-        evaluating = health is not None and not isinstance(run, Follower)
-        model, opt = _transformer_and_optimiser(run, config, hyper, schedule, init_state)
-        step, state, current, opt, check = _transformer_engine(
-            opts, model, opt, dp, parity_batch(tokens, poses, n_views, seed, config.dtype), recipe)
-        with run:
-            if evaluating and not run.resumed:
-                run.log_eval(0, health(current()))
-            for t in run.steps():
-                tok, pos = transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)  # (B, N, L), (B, N, 7)
-                lr_t = opt.lr_at(opt.step_count)
-                loss, ce, pl, norm = step(tok, pos)
-                run.log(t, {"loss": loss, "ce_loss": ce, "pose_loss": pl, "grad_norm": norm, "lr": lr_t})
-                if evaluating and run.eval_due(t, opts.eval_every):
-                    run.log_eval(t, health(current()))
-                run.checkpoint(t, state, opt, check)
-        run.save_final(state())
+        model = Transformer(config, seed=seed)
+        model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
+        opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=1e-8, weight_decay=hyper[
+            "weight_decay"], decay=published_weight_decay, eps_convention="keras"), init_state)
+        parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
+        step, state, current, opt, check = _transformer_engine(opts, model, opt, dp, recipe, parity)
+        evaluate = None if health is None or isinstance(run, Follower) else lambda: health(current())
+        _loop(run, opt, lambda t: step(*transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)), state,
+              check, evaluate, opts.eval_every)  # batches (B, N, L), (B, N, 7)
     if dp is not None:
         dp.close()
     return current()

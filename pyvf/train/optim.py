@@ -5,16 +5,11 @@
     opt.step(grads)                                          # params updated in place
     ckpt = opt.state_dict(); opt2.load_state_dict(ckpt)      # checkpointing
 
-params and grads are dicts name -> numpy array (float32 or float64; a gradient has its
-parameter's shape and dtype). Parameters are updated in place and keep their dtype; the
-moments live in the optimiser, in the parameters' dtype. Nothing is cast.
-
-The published training (docs/math.md §5) maps to these pieces as follows. Transformer: the
-HuggingFace `AdamWeightDecay` over Keras Adam, i.e. AdamW(eps_convention="keras",
-eps=1e-8, decay=published_weight_decay) (Keras Adam without decay when weight_decay is 0),
-2000 warmup steps then cosine decay to 0 (WarmupCosine), and `tf.clip_by_norm` per tensor
-when clipping (clip_grad_norm(mode="per_tensor")). Codebook: torch Adam with betas
-(0.5, 0.9): Adam(params, 1.584e-3, betas=(0.5, 0.9)).
+params and grads are dicts name -> float32/float64 array; the moments live in the optimiser, in
+the parameters' dtype; nothing is cast. The published transformer's optimiser is the HuggingFace
+`AdamWeightDecay` over Keras Adam: AdamW(eps_convention="keras", eps=1e-8,
+decay=published_weight_decay), WarmupCosine, clip_grad_norm(mode="per_tensor"); the published
+codebook's is torch Adam: Adam(params, 1.584e-3, betas=(0.5, 0.9)).
 """
 
 import math
@@ -24,20 +19,12 @@ import numpy as np
 
 from .. import _checks
 
-__all__ = [
-    "AdamW",
-    "Adam",
-    "WarmupCosine",
-    "warmup_cosine_lr",
-    "clip_grad_norm",
-    "global_norm",
-    "published_weight_decay",
-]
+__all__ = ["AdamW", "Adam", "WarmupCosine", "warmup_cosine_lr", "clip_grad_norm", "global_norm",
+           "published_weight_decay"]
 
 
 def _check_grads(grads, params=None):
-    """grads: dict name -> float32/float64 array (with params' names, dtypes and shapes): the
-    optimisers' and clip_grad_norm's boundary; errors name grads[name]."""
+    """grads: dict name -> float array (with params' names, dtypes and shapes); errors name grads[name]."""
     if params is not None and set(grads) != set(params):
         raise ValueError(f"grads must have exactly the parameters' names, got {sorted(set(grads) ^ set(params))} "
                          "extra or missing")
@@ -55,25 +42,18 @@ _PUBLISHED_NO_DECAY = re.compile("LayerNorm|layer_norm|bias")
 
 
 def published_weight_decay(name):
-    """True where the published transformer optimiser decays the parameter `name`.
-
-    The HuggingFace `AdamWeightDecay` used by ViewFormer excludes names matching the regexes
-    "LayerNorm", "layer_norm" and "bias" (re.search). With the published names that excludes
-    only the biases: the LayerNorm parameters are `h.{j}/ln_1/gamma` etc., which match none
-    of the patterns, so they are decayed (as are wte, wpe). Pass as AdamW(decay=...)."""
+    """True where the published transformer optimiser decays the parameter `name`: HuggingFace's
+    `AdamWeightDecay` excludes names matching "LayerNorm", "layer_norm" and "bias" (re.search), which
+    with the published names excludes only the biases: `h.{j}/ln_1/gamma` matches none, so the
+    LayerNorms are decayed (as are wte, wpe). Pass as AdamW(decay=...)."""
     return _PUBLISHED_NO_DECAY.search(name) is None
-
-
-# ---------------------------------------------------------------------------------------
-# the Adam update (docs/math.md §4), one parameter
 
 
 def adam_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras, sqrt=np.sqrt):
     """Update t (1, 2, ...) of p by gradient g with moments m, v -> the new (p, m, v), nothing
-    modified. p, m, v, g: arrays of one shape and dtype (numpy's, or torch tensors with
-    sqrt=torch.sqrt: the torch engine's update); the rest Python floats (wd 0: no decay). Every
-    operation rounds once in p's dtype (a Python float is rounded to it where it meets an array),
-    left to right as written."""
+    modified (AdamW's docstring has the math). p, m, v, g: arrays of one shape and dtype (numpy's,
+    or torch tensors with sqrt=torch.sqrt: the torch engine's); the rest Python floats (wd 0: no
+    decay). Every operation rounds once in p's dtype, left to right as written."""
     bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t  # bias corrections
     m = m * b1 + (1 - b1) * g
     v = v * b2 + (1 - b2) * g * g
@@ -204,10 +184,6 @@ class Adam(AdamW):
         super().__init__(params, lr, betas, eps, 0.0, eps_convention=eps_convention)
 
 
-# ---------------------------------------------------------------------------------------
-# learning-rate schedule
-
-
 def warmup_cosine_lr(step, peak_lr, warmup_steps, total_steps, min_lr_ratio=0.0):
     """Linear warmup then cosine decay (docs/math.md §5), as the published HuggingFace `WarmUp`
     over Keras `CosineDecay(peak_lr, total_steps - warmup_steps, alpha=min_lr_ratio)`.
@@ -241,14 +217,6 @@ class WarmupCosine:
 
     def __call__(self, step):
         return warmup_cosine_lr(step, self.peak_lr, self.warmup_steps, self.total_steps, self.min_lr_ratio)
-
-    def __repr__(self):
-        return (f"WarmupCosine(peak_lr={self.peak_lr!r}, warmup_steps={self.warmup_steps}, "
-                f"total_steps={self.total_steps}, min_lr_ratio={self.min_lr_ratio!r})")
-
-
-# ---------------------------------------------------------------------------------------
-# gradient clipping
 
 
 def _norm64(g):

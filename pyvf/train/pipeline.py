@@ -22,20 +22,8 @@ from .._io import atomic_write_text
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import TransformerConfig
 from ._run import file_sha256
-from .loops import (
-    TINY_CODEBOOK,
-    TINY_TRANSFORMER,
-    held_out_set,
-    RunOptions,
-    TransformerRecipe,
-    load_tokens,
-    save_tokens,
-    tokenize,
-    train_codebook,
-    train_transformer,
-)
-
-__all__ = ["PRESETS", "Preset", "train_pipeline"]
+from .loops import (TINY_CODEBOOK, TINY_TRANSFORMER, RunOptions, TransformerRecipe, held_out_set, load_tokens,
+                    save_tokens, tokenize, train_codebook, train_transformer)
 
 TRAIN_SEED, HEALTH_SEED, EVAL_SEED = 0, 1, 1000
 
@@ -78,7 +66,8 @@ PRESETS = {
 
 
 def _scenes(folder, n, size, progress):
-    """The training scenes: loaded when the folder's manifest exists and matches, else written."""
+    """The training scenes: loaded when the folder's manifest matches, else written (an interrupted
+    write of the same arguments resumes, one of others is replaced)."""
     from ..scenes import load_dataset, write_dataset
     from ..scenes.dataset import DatasetExistsError
 
@@ -88,9 +77,9 @@ def _scenes(folder, n, size, progress):
             return data
         raise ValueError(f"{folder} holds another dataset ({data.images.shape[0]} scenes of seed {data.seed}, "
                          f"{data.images.shape[2]} px): use another --out")
-    try:  # an unfinished write of the same arguments (interrupted) resumes, its whole shards kept
+    try:
         write_dataset(folder, n, TRAIN_SEED, size=size, progress=progress)
-    except DatasetExistsError:  # an unfinished write of other arguments (a preset changed): replaced
+    except DatasetExistsError:
         write_dataset(folder, n, TRAIN_SEED, size=size, progress=progress, overwrite=True)
     return load_dataset(folder)
 
@@ -110,20 +99,18 @@ def _tokens(path, codebook_path, images, poses, progress):
     return load_tokens(path)
 
 
-def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=print, command=None, engine="pyvf",
-                   device="cpu", precision="fp32"):
-    """Run (or resume) every stage of `preset` in the folder `out` (module docstring); returns
-    the final evaluation's metrics dict (pyvf.evaluate.evaluate's). log: a function printing
-    one line per stage; command: the command line, recorded in both runs' config.json; engine,
-    device, precision: both training stages' (train_codebook's and train_transformer's)."""
+def train_pipeline(out, preset="quick", *, log=print, progress=True, **options):
+    """Run (or resume) every stage of `preset` in the folder `out` (module docstring); returns the
+    final evaluation's metrics dict (pyvf.evaluate.evaluate's). log: a function printing one line per
+    stage; options: both runs' RunOptions fields (threads, command, engine, device, precision)."""
     from ..evaluate.run import evaluate, metrics_markdown
     from ..scenes import generate_scenes
 
     if preset not in PRESETS:
         raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
     p = PRESETS[preset]
-    run = RunOptions(steps=1, progress=progress, threads=threads, command=command, engine=engine, device=device,
-                     precision=precision, eval_every=p.eval_every, checkpoint_every=max(1, p.eval_every))
+    run = RunOptions(steps=1, progress=progress, eval_every=p.eval_every, checkpoint_every=max(1, p.eval_every),
+                     **options)
     os.makedirs(out, exist_ok=True)  # after the options' checks: a bad combination costs no rendering
 
     log(f"[1/5] scenes: {p.scenes} training scenes x 15 views of {p.size}x{p.size} (seed {TRAIN_SEED})")
@@ -138,8 +125,8 @@ def train_pipeline(out, preset="quick", *, threads=None, progress=True, log=prin
                               eval_images=held_images[:, :4].reshape(-1, p.size, p.size, 3))
 
     log("[3/5] tokens: every training view through the codebook")
-    tokens, poses, _, fingerprint = _tokens(os.path.join(out, "tokens.npz"), os.path.join(cb_dir, "codebook.npz"), data.images,
-                               data.poses, progress)
+    tokens, poses, _, fingerprint = _tokens(os.path.join(out, "tokens.npz"), os.path.join(cb_dir, "codebook.npz"),
+                                            data.images, data.poses, progress)
 
     log(f"[4/5] transformer: {p.transformer_steps} steps of {p.transformer_batch} scenes, evaluated every "
         f"{p.eval_every} steps on the held-out scenes against the baselines")

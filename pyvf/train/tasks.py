@@ -1,23 +1,12 @@
 """The work of the training commands (their arguments: pyvf/cli/train.py), on files: a dataset
-folder or a tokens file in, a run folder out.
-
-    codebook_run("data/sm7", "runs/cb", RunOptions(steps=20000, eval_every=100))  # pyvf train-codebook
-    tokenize_dataset("runs/cb/codebook.npz", "data/sm7", "runs/tokens.npz")      # pyvf tokenize
-    transformer_run("runs/tokens.npz", "runs/tf", RunOptions(steps=50000), codebook="runs/cb/codebook.npz")
-    print(compare_runs(["runs/cb", "runs/cb2"])[0])                         # pyvf runs
-    export_run("runs/tf", "tf-now.npz")   # pyvf export: the model of a run's last checkpoint
-
-A run resumes from its folder's checkpoint when there is one (resume=False starts over).
-config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER) or a JSON file: the configuration's
-fields, or a run's config.json (its "config" is used). A bad argument or file raises
+folder or a tokens file in, a run folder out. config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER)
+or a JSON file: the configuration's fields, or a run's config.json. A bad argument or file raises
 ValueError, TypeError or OSError naming it.
 """
 
-import dataclasses
 import json
 import os
 import sys
-import zipfile
 
 import numpy as np
 
@@ -25,22 +14,8 @@ from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import CHECKPOINT, read_checkpoint, resume_point
-from .curves import plot_eval, read_log, runs_table
-from .loops import (
-    TINY_CODEBOOK,
-    TransformerRecipe,
-    TINY_TRANSFORMER,
-    held_out_set,
-    load_tokens,
-    save_tokens,
-    tokenize,
-    train_codebook,
-    train_transformer,
-)
-
-__all__ = ["EVAL_VIEWS", "checkpoint_step", "codebook_run", "compare_runs", "export_run", "held_out_scenes",
-           "held_out_views", "read_codebook", "read_config", "same_file", "tokenize_dataset",
-           "transformer_run"]
+from .loops import (TINY_CODEBOOK, TINY_TRANSFORMER, TransformerRecipe, held_out_set, load_tokens, save_tokens,
+                    tokenize, train_codebook, train_transformer)
 
 EVAL_VIEWS = 4  # views per held-out scene in a codebook run's evaluation
 
@@ -52,51 +27,23 @@ def read_config(value, cls, tiny):
     try:
         with open(value, encoding="utf-8") as f:
             d = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"--config {value}: cannot read a JSON configuration ({e})") from e
-    if isinstance(d, dict) and isinstance(d.get("config"), dict):  # a run's config.json
-        d = d["config"]
-    if not isinstance(d, dict):
-        raise ValueError(f"--config {value}: expected a JSON object of {cls.__name__} fields")
-    try:
+        d = d["config"] if isinstance(d, dict) and isinstance(d.get("config"), dict) else d  # a run's config.json
         return cls(**d)
-    except TypeError as e:  # unknown or missing fields
-        raise ValueError(f"--config {value}: not a {cls.__name__} ({e}); its fields are "
-                         f"{[f.name for f in dataclasses.fields(cls)]}") from e
-
-
-def read_codebook(path):
-    """Codebook.load(path), its errors as ValueError naming the codebook file."""
-    try:
-        return Codebook.load(path)
-    except FileNotFoundError as e:
-        raise ValueError(f"codebook {path} does not exist") from e
-    except (zipfile.BadZipFile, EOFError, KeyError, ValueError) as e:
-        raise ValueError(f"codebook {path} is not a readable codebook file: {type(e).__name__}: {e}") from e
-
-
-def same_file(a, b):
-    """Whether the paths a and b name one file: os.path.samefile where both exist (links and other
-    spellings of the path too), else their real paths compared."""
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return os.path.realpath(a) == os.path.realpath(b)
+    except (OSError, ValueError, TypeError) as e:  # unreadable, not JSON, unknown or missing fields
+        raise ValueError(f"--config {value}: not a JSON file of {cls.__name__} fields ({e})") from e
 
 
 def _refuse_input_as_output(out, inputs, option):
-    """out (the file a command writes) must be none of inputs ((what, path) pairs): writing it
-    would destroy an input (a run's checkpoint, the codebook), so it raises before any work."""
+    """out (the file a command writes) must be none of inputs ((what, path) pairs)."""
     for what, path in inputs:
-        if same_file(out, path):
-            raise ValueError(f"{option} {out} is {what} ({path}): writing it would overwrite an input; "
-                             "choose another output file")
+        if os.path.realpath(out) == os.path.realpath(path):
+            raise ValueError(f"{option} {out} is {what} ({path}): writing it would overwrite an input")
 
 
 def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
-    """The held-out views a codebook run evaluates on every eval_every steps: the first EVAL_VIEWS
-    views of eval_scenes scenes of eval_seed, (scenes * EVAL_VIEWS, size, size, 3) uint8; None
-    when eval_every is 0. The seed must differ from the training data's (data.seed)."""
+    """A codebook run's held-out views: the first EVAL_VIEWS views of eval_scenes scenes of eval_seed
+    (another seed than the training data's), (scenes * EVAL_VIEWS, size, size, 3) uint8; None when
+    eval_every is 0."""
     if not eval_every:
         return None
     if getattr(data, "seed", None) == eval_seed:
@@ -106,29 +53,23 @@ def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
     return images.reshape(-1, size, size, images.shape[-1])
 
 
-def held_out_scenes(codebook, eval_scenes, eval_seed, threads=None, train_poses=None):
-    """A transformer run's held-out scenes: eval_scenes whole scenes of eval_seed (all 15 views),
-    tokenized by the codebook file -> train_transformer's eval_set. train_poses: the training
-    data's poses (scenes, views, 7), when known: held-out scenes that are training scenes (eval_seed
-    the training data's seed: scene i of a seed is the same scene in any set of it) raise, as
-    held_out_views refuses the training data's seed."""
-    codebook = read_codebook(codebook)
+def held_out_scenes(codebook, eval_scenes, eval_seed, threads, train_poses):
+    """A transformer run's held-out scenes: eval_scenes whole scenes of eval_seed, tokenized by the
+    codebook file -> train_transformer's eval_set. Scenes whose poses are the training data's
+    (train_poses: scene i of a seed is the same scene in any set of it) raise."""
+    codebook = Codebook.load(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
-    if train_poses is not None:
-        n, views = min(len(poses), len(train_poses)), min(poses.shape[1], train_poses.shape[1])
-        if n and np.allclose(poses[:n, :views], train_poses[:n, :views], rtol=0, atol=1e-6):
-            raise ValueError(f"--eval-seed {eval_seed} is the training data's seed (its held-out scenes are the "
-                             "tokens' training scenes): held-out scenes need another seed")
+    n, views = min(len(poses), len(train_poses)), min(poses.shape[1], train_poses.shape[1])
+    if n and np.allclose(poses[:n, :views], train_poses[:n, :views], rtol=0, atol=1e-6):
+        raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
     with kernel_threads(threads):
         return held_out_set(codebook, images, poses)
 
 
 def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1, **recipe):
-    """train_codebook on the dataset folder `data` into the run folder `out` (opts: RunOptions),
-    evaluated every opts.eval_every steps on held_out_views, starting from the codebook file
-    opts.init when given; recipe: train_codebook's recipe and overrides. Returns the trained
-    Codebook (out/codebook.npz)."""
+    """train_codebook on the dataset folder `data` into the run folder `out`, evaluated every
+    opts.eval_every steps on held_out_views; recipe: train_codebook's recipe and overrides."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
     from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
     data = load_dataset(data)
@@ -138,14 +79,11 @@ def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1,
 
 def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threads=None):
     """The dataset folder `data` encoded by the codebook file into the tokens file `out`
-    (save_tokens: tokens, poses, n_embed; its folder created). Returns the tokens."""
-
-    if os.path.isdir(out):
-        raise ValueError(f"--out {out} is a folder: name the tokens file to write")
+    (save_tokens'; its folder created). Returns the tokens."""
     dataset = os.listdir(data) if os.path.isdir(data) else []  # the dataset's files are inputs too
     _refuse_input_as_output(out, [("the codebook", codebook),
                                   *(("a file of the dataset", os.path.join(data, f)) for f in dataset)], "--out")
-    codebook = read_codebook(codebook)
+    codebook = Codebook.load(codebook)
     from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
     data = load_dataset(data)
     with kernel_threads(threads):
@@ -157,41 +95,27 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
 
 def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="tiny", codebook=None, eval_scenes=16,
                     eval_seed=1):
-    """train_transformer on the tokens file into the run folder `out` (opts: RunOptions, recipe:
-    TransformerRecipe); with codebook (the file the tokens came from), evaluated every
-    opts.eval_every steps on held_out_scenes; starting from the transformer file opts.init when
-    given. Returns the trained Transformer (out/transformer.npz)."""
+    """train_transformer on the tokens file into the run folder `out`; with codebook (the file the
+    tokens came from), evaluated every opts.eval_every steps on held_out_scenes."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
     tokens_path, (tokens, poses, n_embed, fingerprint) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
         raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "
                          f"was made by a codebook of {n_embed} codes")
-    if codebook and fingerprint is not None and (given := read_codebook(codebook).fingerprint()) != fingerprint:
+    if codebook and fingerprint is not None and (given := Codebook.load(codebook).fingerprint()) != fingerprint:
         raise ValueError(f"--codebook {codebook} is not the codebook that made {tokens_path} (fingerprints {given} "
-                         f"and {fingerprint}): pass the --codebook of the `pyvf tokenize` that wrote it")
+                         f"and {fingerprint})")
     eval_set = None
     if opts.eval_every and codebook:
-        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, opts.threads, train_poses=poses)
+        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, opts.threads, poses)
     elif opts.eval_every:
-        print("pyvf train-transformer: no --codebook, so no held-out evaluation (it renders through the "
-              "codebook)", file=sys.stderr)
+        print("pyvf train-transformer: no --codebook, so no held-out evaluation", file=sys.stderr)
     return train_transformer(tokens, poses, config, out, opts, recipe, eval_set=eval_set,
                              codebook_fingerprint=fingerprint)
 
 
-def compare_runs(run_dirs, plot=False, step=None):
-    """`pyvf runs`: (the markdown table of the run folders, runs_table, at `step` when given; with
-    plot, the eval.png redrawn in each folder whose eval.csv has rows). A torn last line of a log is
-    left out, as the trainers do."""
-    table = runs_table(run_dirs, step=step)
-    plots = [plot_eval(d) for d in run_dirs if plot and os.path.exists(os.path.join(d, "eval.csv"))
-             and len(read_log(d, "eval.csv", empty_ok=True)["step"])]
-    return table, plots
-
-
 def checkpoint_step(run_dir):
-    """The step of the run folder's checkpoint, where the same command resumes; None when it has
-    none yet or it cannot be read (what a command says after Ctrl-C)."""
+    """The step of the run folder's checkpoint, None when it has none or cannot be read."""
     try:
         meta = resume_point(run_dir)
     except (ValueError, OSError):
@@ -199,31 +123,16 @@ def checkpoint_step(run_dir):
     return None if meta is None else int(meta["step"])
 
 
-MODELS = {"codebook": Codebook, "transformer": Transformer}  # a run's kind -> its model class
-
-
 def export_run(run, out):
-    """The model that a run's last checkpoint holds, written to `out` as the run writes its final
-    model at the end (Codebook.save / Transformer.save; .load reads it), so that a run can be
-    evaluated, or shipped, while it trains. run: a run folder or its checkpoint.npz (read as it is
-    now: checkpoints are written atomically). Every array is validated by loading it into the
-    model first. Returns (the run's kind, its step, the path written)."""
-    path = os.fspath(run)
-    if os.path.isdir(path):
-        path = os.path.join(path, CHECKPOINT)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"run {os.fspath(run)!r}: no checkpoint ({path} does not exist)")
-    written = os.fsdecode(os.fspath(out))
-    written += "" if written.endswith(".npz") else ".npz"  # as Model.save names it
+    """The model of a run's last checkpoint (run: its folder or checkpoint.npz), written to `out` as
+    the run writes its final model, so that a run can be evaluated, or shipped, while it trains.
+    Returns (the run's kind, its step, the path written)."""
+    path = os.path.join(run, CHECKPOINT) if os.path.isdir(run) else os.fspath(run)
+    written = os.fspath(out) + ("" if os.fspath(out).endswith(".npz") else ".npz")  # as Model.save names it
     _refuse_input_as_output(written, [("the run's checkpoint", path)], "-o")
     meta, state, _ = read_checkpoint(path, None)
-    cls = MODELS.get(meta["kind"])
-    if cls is None:
-        raise ValueError(f"checkpoint {path} is a {meta['kind']!r} run; pyvf exports {sorted(MODELS)}")
-    try:
-        model = cls(cls.CONFIG(**meta["config"]))
-        model.load_official(state)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"checkpoint {path}: its {meta['kind']} does not load: {e}") from e
+    cls = {"codebook": Codebook, "transformer": Transformer}[meta["kind"]]
+    model = cls(cls.CONFIG(**meta["config"]))
+    model.load_official(state)
     model.codebook_fingerprint = meta["hyper"].get("codebook_fingerprint")  # a transformer's
     return meta["kind"], int(meta["step"]), model.save(out)

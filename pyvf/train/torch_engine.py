@@ -1,27 +1,14 @@
-"""The torch engine of train_transformer: the same loop, batches, schedule, optimiser, clipping,
-run folder and checkpoints as pyvf's engine, with the model and the update in torch, on a CPU or
-a GPU (docs/howto-torch-engine.md).
+"""The torch engines of train_transformer and train_codebook (docs/howto-torch-engine.md): pyvf's
+loop, batches, schedule, optimiser, clipping, run folder and checkpoints, with the model (pyvf.verify's
+ports, loaded with the pyvf model's weights and buffers) and the update (optim.adam_update on torch
+tensors, the moments saved in pyvf's layout) in torch: a checkpoint of either engine resumes in the
+other. bf16 autocasts the arithmetic (not the codebook's lookup and EMA); weights and moments stay float32.
 
-The model is pyvf.verify's TransformerPort (written from docs/math.md, tested against pyvf to
-float32 rounding), initialised from pyvf's Transformer(config, seed), so both engines start from
-the same weights. TorchAdamW is pyvf.train.optim.AdamW's update written with torch operations (the
-Keras epsilon convention, decoupled decay on the parameters published_weight_decay names); its
-moments are saved in pyvf's layout, so a checkpoint of either engine resumes in the other.
-precision "bf16" autocasts the arithmetic; the weights and the moments stay float32.
-
-At every checkpoint the torch model is checked against pyvf (`parity`): pyvf loads the weights,
-runs a fixed batch, and its logits, pose predictions and losses must equal the torch model's
-(evaluated in float32, whatever the training precision) within PARITY_RTOL; the worst error is
-appended to parity.csv, and a larger one stops the run naming the first divergent quantity.
-
-Data-parallel (`torchrun --nproc-per-node N pyvf train-transformer --engine torch ...`, or a
-process group the caller initialised): every process draws the same batch of (seed, step) and
-runs its shard of the rows (DataParallel.shard: contiguous, sizes differing by at most one);
-each shard's mean loss is weighted by its share of the batch, so the gradients summed across the
-processes (one all-reduce) are the whole batch's mean-loss gradient; clipping and the update
-follow on the summed gradients, the same on every process. Rank 0 alone writes the run folder
-(Run); the others follow (Follower), their weights, moments and start step broadcast from rank 0,
-so every process resumes from rank 0's checkpoint.
+At every checkpoint pyvf runs a fixed batch with the torch model's weights: the outputs must agree
+within PARITY_RTOL (the codebook's codes exactly); the worst error goes to parity.csv, a larger one
+stops the run. Data-parallel (the transformer, under torchrun): every process draws the batch of
+(seed, step) and runs its shard of the rows, its mean loss weighted by its share of the batch, so the
+all-reduced gradients are the batch's; rank 0 alone writes the run folder, the others follow.
 """
 
 import contextlib
@@ -30,19 +17,18 @@ import re
 
 import numpy as np
 
-from ..verify.compare import compare
 from ..geometry import make_relative
-from .batches import transformer_batch
-from .optim import adam_update
+from ..nn.quantizer import code_statistics
+from ..verify.compare import compare
 from ..verify.layout import params_from_layout, params_to_layout
+from .optim import adam_update
 
 # The parity bound: pyvf.compare's normwise relative error, float32 torch against float32 pyvf.
 # Both round every dot product (length up to 4d) to float32 (u = 6e-8) in another order: about
 # sqrt(4d) * u = 1.4e-6 per layer at d = 128, compounded over the blocks and amplified by the
-# LayerNorms; the tiny model measures 1e-6 to 1e-5 (tests/test_torch_engine.py). 1e-3 is
-# compare's float32 default: two orders above that, below what one wrong layer gives (>= 1e-2).
-# The codebook's engine logs it too: its forward measures 3.8e-6 (the reconstruction). Either is one
-# model's forward in two engines, so it does not grow with the steps a run took to reach the weights.
+# LayerNorms; the tiny model measures 1e-6 to 1e-5, the codebook 3.8e-6. 1e-3 is compare's float32
+# default: two orders above that, below what one wrong layer gives (>= 1e-2). One model's forward in
+# two engines: it does not grow with the steps a run took to reach the weights.
 PARITY_RTOL = 1e-3
 
 
@@ -50,63 +36,50 @@ def import_torch():
     try:
         import torch
     except ImportError as e:
-        raise ImportError("engine='torch' needs torch: pip install 'pyvf[torch]' (or a torch build for your "
-                          "GPU, see pytorch.org)") from e
+        raise ImportError("engine='torch' needs torch: pip install 'pyvf[torch]'") from e
     return torch
 
 
-def check_engine(engine, device, precision, dtype=None):
-    """engine 'pyvf' | 'torch'; device 'cpu' | 'cuda' | 'cuda:N' and precision 'fp32' | 'bf16'
-    (the torch engine's only: pyvf's engine runs in the configuration's dtype on the CPU); with
-    the configuration's dtype, also check_autocast (the loops check all of it before they touch
-    the run folder)."""
+def check_engine(engine, device, precision, dtype=None, one_process=False):
+    """engine 'pyvf' | 'torch'; device 'cpu' | 'cuda' | 'cuda:N' and precision 'fp32' | 'bf16' (the
+    torch engine's only). With the configuration's dtype: bf16 autocasts float32 arithmetic only, so
+    a float64 model is refused. one_process: torchrun's WORLD_SIZE > 1 is refused (the codebook)."""
     if engine not in ("pyvf", "torch"):
         raise ValueError(f"engine must be 'pyvf' or 'torch', got {engine!r}")
     if precision not in ("fp32", "bf16"):
         raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
     if not isinstance(device, str) or not re.fullmatch(r"cpu|cuda|cuda:(0|[1-9][0-9]*)", device):
-        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N' (N = 0, 1, ...), got {device!r}")
+        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
     if engine == "pyvf" and (device != "cpu" or precision != "fp32"):
-        raise ValueError(f"device={device!r} and precision={precision!r} need engine='torch' "
-                         "(pyvf's engine runs on the CPU in the configuration's dtype)")
+        raise ValueError(f"device={device!r} and precision={precision!r} need engine='torch'")
     if engine == "torch" and device != "cpu":
         torch = import_torch()
         n = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if int(device[5:] or 0) >= n:
-            raise ValueError(f"device={device!r}, but torch sees {n} CUDA devices (torch {torch.__version__})")
-    if dtype is not None:
-        check_autocast(precision, dtype)
-
-
-def check_autocast(precision, dtype):
-    """precision 'bf16' autocasts float32 arithmetic only: a float64 model (dtype, numpy's or
-    torch's) would train in float64, its outputs rounded to float32, so it is refused."""
-    name = str(dtype).removeprefix("torch.")
-    if precision == "bf16" and name != "float32":
-        raise ValueError(f"precision='bf16' (--precision bf16) autocasts float32 arithmetic, but the configuration's "
-                         f"dtype is {name}, which autocast leaves as it is: use precision='fp32', or a float32 "
-                         "configuration")
+            raise ValueError(f"device={device!r}, but torch sees {n} CUDA devices")
+    if dtype is not None and precision == "bf16" and str(dtype) != "float32":
+        raise ValueError(f"precision='bf16' autocasts float32 arithmetic, but the configuration's dtype is {dtype}")
+    if one_process and engine == "torch" and world_size() > 1:
+        raise ValueError(f"the codebook's torch engine runs in one process, got {world_size()} (torchrun's WORLD_SIZE)")
 
 
 class DataParallel:
-    """The processes of a data-parallel run: this one's rank, the world size, the collectives.
-    Made by data_parallel(); `created`: whether it initialised the process group (close() ends it)."""
+    """This process's rank in a data-parallel run, the world size, the collectives. `created`: whether
+    data_parallel() initialised the process group (close() ends it)."""
 
     def __init__(self, dist, device, created):
         self.dist, self.device, self.created = dist, device, created
         self.rank, self.world = dist.get_rank(), dist.get_world_size()
 
     def shard(self, batch_size):
-        """This process's rows lo:hi of a batch: contiguous shards in rank order, sizes differing
-        by at most one (batch_size 5 on 2 processes: 3 and 2)."""
+        """This process's rows lo:hi of a batch: contiguous shards, sizes differing by at most one."""
         base, extra = divmod(batch_size, self.world)
         lo = self.rank * base + min(self.rank, extra)
         return lo, lo + base + (self.rank < extra)
 
     def all_reduce(self, tensors):
-        """Sum each tensor across the processes, in place, in one all-reduce of their concatenation."""
-        torch = import_torch()
-        flat = torch.cat([t.reshape(-1) for t in tensors])
+        """Sum each tensor across the processes, in place, in one all-reduce."""
+        flat = import_torch().cat([t.reshape(-1) for t in tensors])
         self.dist.all_reduce(flat)
         for t, summed in zip(tensors, flat.split([t.numel() for t in tensors])):
             t.copy_(summed.view_as(t))
@@ -118,10 +91,8 @@ class DataParallel:
                 self.dist.broadcast(t, 0)
 
     def broadcast_int(self, value):
-        """Rank 0's integer -> every process."""
-        torch = import_torch()
-        t = torch.tensor([int(value)], dtype=torch.int64, device=self.device)
-        self.dist.broadcast(t, 0)
+        t = import_torch().tensor([int(value)], device=self.device)
+        self.broadcast([t])
         return int(t.item())
 
     def close(self):
@@ -139,23 +110,17 @@ def world_size():
 
 
 def data_parallel(device, batch_size):
-    """(DataParallel or None, the device this process trains on). None in a single process: no
-    process group and WORLD_SIZE (torchrun's) unset or 1. Else the caller's process group, or one
-    initialised here from torchrun's environment (gloo on the CPU, nccl on GPUs; device 'cuda'
-    becomes cuda:LOCAL_RANK)."""
+    """(DataParallel, or None in a single process; the device this process trains on): the caller's
+    process group, or one made from torchrun's environment (gloo on the CPU, nccl on cuda:LOCAL_RANK)."""
     torch = import_torch()
     import torch.distributed as dist
     initialised, world = dist.is_available() and dist.is_initialized(), world_size()
     if world <= 1:
         return None, device
     if device.startswith("cuda:"):
-        raise ValueError(f"device={device!r} names one GPU for {world} processes: pass device 'cuda' (--device "
-                         "cuda), each process takes cuda:LOCAL_RANK")
+        raise ValueError(f"device={device!r} names one GPU for {world} processes: pass device 'cuda'")
     if batch_size < world:
-        raise ValueError(f"batch_size={batch_size} (--batch) is smaller than the {world} processes (the world "
-                         "size): every process needs at least one sample of the batch")
-    if not dist.is_available():
-        raise ValueError(f"WORLD_SIZE={world}, but this torch build has no torch.distributed")
+        raise ValueError(f"batch_size={batch_size} is smaller than the {world} processes")
     if device == "cuda":
         local = int(os.environ.get("LOCAL_RANK", dist.get_rank() if initialised else 0))
         device = f"cuda:{local % torch.cuda.device_count()}"
@@ -166,8 +131,7 @@ def data_parallel(device, batch_size):
 
 
 class Follower(contextlib.nullcontext):
-    """Run's stand-in on the processes of a data-parallel run other than rank 0: the same steps
-    from rank 0's start, nothing read or written (rank 0's Run keeps the folder)."""
+    """Run's stand-in on the processes other than rank 0: the same steps, nothing read or written."""
 
     resumed, model_state, optimizer_state = False, None, None
 
@@ -185,9 +149,8 @@ class Follower(contextlib.nullcontext):
 
 
 class TorchAdamW:
-    """pyvf.train.optim.AdamW.step on torch tensors. ref: the pyvf AdamW whose hyperparameters,
-    schedule and decayed set it applies, and whose state_dict format it saves (its moments are
-    kept here, in the torch parameters' layout). params: official name -> torch Parameter."""
+    """AdamW.step on torch tensors. params: official name -> torch Parameter; ref: the pyvf AdamW (or
+    Adam) whose settings and schedule it applies and whose state_dict it saves."""
 
     def __init__(self, params, ref, model):
         self.params, self.ref, self.model = params, ref, model
@@ -206,8 +169,7 @@ class TorchAdamW:
         return self.ref.lr_at(step)
 
     def step(self):
-        """One update from the parameters' .grad (finite: the caller checked): optim.adam_update, the
-        same expressions on torch tensors. Returns the lr."""
+        """One update from the parameters' .grad (finite: the caller checked): optim.adam_update."""
         torch, r = import_torch(), self.ref
         lr, t = r.lr_at(r.step_count), r.step_count + 1
         with torch.no_grad():
@@ -218,7 +180,6 @@ class TorchAdamW:
                     r.eps_convention == "keras", sqrt=torch.sqrt)
                 p.copy_(p1)
         r.step_count = t
-        return lr
 
     def state_dict(self):
         """pyvf AdamW's state_dict (its layout, numpy): what Run.checkpoint writes."""
@@ -229,13 +190,11 @@ class TorchAdamW:
 
 
 class TorchEngine:
-    """What both torch engines (TorchTransformer, torch_codebook_engine.TorchCodebook) share: the
-    model's torch port (port), its parameters by official name (_names), the update (opt, a
-    TorchAdamW continuing the run's pyvf optimiser), and to_pyvf() -> the pyvf model holding the
+    """What both torch engines share: the port, its parameters by official name (_names), the update
+    (opt: a TorchAdamW), parity()'s arguments (parity_batch), to_pyvf() -> the pyvf model holding the
     port's current weights."""
 
     def state_dict(self):
-        """The weights (and buffers) in pyvf's layout, numpy: what Run.checkpoint writes."""
         return self.to_pyvf().state_dict()
 
     def _zero_grad(self):
@@ -243,52 +202,51 @@ class TorchEngine:
             p.grad = None
 
     def _refuse_nonfinite(self, stats, names):
-        """stats: the step's loss figures and gradient norm, numpy; not finite -> ValueError."""
         if not np.isfinite(stats).all():
             raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
                              f"({names} = {stats.tolist()}): no update applied; lower the learning rate")
 
     def _parity(self, mine, out):
-        """pyvf.compare of the torch model's quantities `mine` against the pyvf output's `out` of the
-        same names, at PARITY_RTOL."""
         return compare(mine, {k: np.asarray(getattr(out, k)) for k in mine}, rtol=PARITY_RTOL)
+
+    def check(self, run, step):
+        """Before the checkpoint of `step`: the parity, logged to parity.csv; a failure raises."""
+        comparison = self.parity(*self.parity_batch)
+        worst = max(comparison.rows, key=lambda r: (not np.isfinite(r.rel), r.rel))
+        run.log_parity(step, worst.name, worst.rel, PARITY_RTOL)
+        if not comparison.ok:
+            raise RuntimeError(f"parity check at step {step}: the torch model and pyvf differ first in "
+                               f"{comparison.first!r} (normwise relative error over {PARITY_RTOL}); the "
+                               f"checkpoint before it is intact. Comparison:\n{comparison}")
+
+
+def _torch_dtype(torch, model):
+    return {"float32": torch.float32, "float64": torch.float64}[str(model.dtype)]
 
 
 class TorchTransformer(TorchEngine):
-    """The torch engine's model and optimiser for train_transformer's loop.
-
-    model: the pyvf Transformer holding the starting weights (a fresh one, or restored from a
-    checkpoint); opt_ref: the pyvf AdamW built on model.params (restored too), whose state this
-    engine continues. dp: a DataParallel (its rank 0's weights, moments and step count are
-    broadcast to every process here) or None."""
+    """train_transformer's torch engine, continuing the pyvf Transformer `model` and its AdamW
+    `opt_ref`. dp: a DataParallel (rank 0's state is broadcast to every process) or None."""
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", max_grad_norm=None,
-                 clip_mode="per_tensor", dp=None):
+                 clip_mode="per_tensor", dp=None, parity_batch=None):
         torch = import_torch()
         from ..verify.torch_ports import TransformerPort, official_name
         from ..verify.torch_transformer import losses
         self.torch, self.config, self.pyvf_model, self._losses = torch, model.config, model, losses
-        self.device, self.precision = torch.device(device), precision
-        self.max_grad_norm, self.clip_mode = max_grad_norm, clip_mode
-        dtype = {"float32": torch.float32, "float64": torch.float64}[str(model.dtype)]
-        check_autocast(precision, dtype)
-        self.port = TransformerPort(model.config).to(self.device, dtype)
+        self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
+        self.max_grad_norm, self.clip_mode, self.dp = max_grad_norm, clip_mode, dp
+        self.port = TransformerPort(model.config).to(self.device, _torch_dtype(torch, model))
         self._names = {official_name(n): p for n, p in self.port.named_parameters()}
-        self.load(model.state_dict(layout="torch"))
+        with torch.no_grad():
+            for k, a in model.state_dict(layout="torch").items():
+                self._names[k].copy_(torch.as_tensor(a))
         self.opt = TorchAdamW(self._names, opt_ref, model)
-        self.dp = dp
         if dp is not None:  # every process continues rank 0's state (a fresh start, or its checkpoint)
             dp.broadcast([*self._names.values(), *self.opt.exp_avg.values(), *self.opt.exp_avg_sq.values()])
             opt_ref.step_count = dp.broadcast_int(opt_ref.step_count)
 
-    def load(self, state):
-        """state: official name -> array in the torch layout."""
-        with self.torch.no_grad():
-            for k, p in self._names.items():
-                p.copy_(self.torch.as_tensor(state[k]))
-
     def to_pyvf(self):
-        """The pyvf Transformer, given the torch model's current weights."""
         self.pyvf_model.load_official({k: p.detach().cpu().numpy() for k, p in self._names.items()},
                                       layout="torch")
         return self.pyvf_model
@@ -321,8 +279,8 @@ class TorchTransformer(TorchEngine):
         return grads, sums
 
     def step(self, tokens, poses):
-        """One update on a batch (poses in any frame: made relative here, as pyvf's engine).
-        Returns (loss, mean ce, mean pose loss, the global gradient norm before clipping)."""
+        """One update on a batch (poses in any frame: made relative here, as pyvf's engine) -> the
+        log's loss, mean ce, mean pose loss and global gradient norm before clipping."""
         torch = self.torch
         grads, sums = self._gradients(tokens, make_relative(poses)[0])
         norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
@@ -337,7 +295,7 @@ class TorchTransformer(TorchEngine):
             elif stats[3] + 1e-6 > m:  # global: torch.nn.utils.clip_grad_norm_
                 torch._foreach_mul_(grads, m / (float(stats[3]) + 1e-6))
         self.opt.step()
-        return float(stats[0]), float(stats[1]), float(stats[2]), float(stats[3])
+        return dict(zip(("loss", "ce_loss", "pose_loss", "grad_norm"), map(float, stats)))
 
     def parity(self, tokens, poses):
         """pyvf against the torch model (float32, no autocast) on one batch: pyvf.compare's
@@ -351,22 +309,84 @@ class TorchTransformer(TorchEngine):
         return self._parity(mine, self.to_pyvf().forward(tokens, pos.astype(self.pyvf_model.dtype)))
 
 
-def check_parity(run, step, comparison):
-    """Log the parity check of `step` to the run's parity.csv (Run.log_parity); raise when it failed,
-    before the checkpoint: a divergent model is not checkpointed."""
-    worst = max(comparison.rows, key=lambda r: (not np.isfinite(r.rel), r.rel))
-    run.log_parity(step, worst.name, worst.rel, PARITY_RTOL)
-    if not comparison.ok:
-        raise RuntimeError(f"parity check at step {step}: the torch model and pyvf differ first in "
-                           f"{comparison.first!r} (normwise relative error over {PARITY_RTOL}); the "
-                           f"checkpoint before it is intact. Comparison:\n{comparison}")
+class TorchCodebook(TorchEngine):
+    """train_codebook's torch engine (one process), continuing the pyvf Codebook `model` and its Adam
+    `opt_ref`. The port's quantizer does the EMA update in training mode, in the model's dtype."""
 
+    def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", parity_batch=None):
+        torch = import_torch()
+        from ..verify.torch_ports import CodebookPort
+        self.torch, self.config, self.pyvf_model = torch, model.config, model
+        self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
+        self.dtype = _torch_dtype(torch, model)
+        self.port = CodebookPort(model.config).to(self.device, self.dtype)  # training mode: EMA updates
+        self._names = dict(self.port.named_parameters())  # the published names, as model.params'
+        self.port.load_state_dict({k: torch.as_tensor(v) for k, v in model.state_dict().items()})
+        self.opt = TorchAdamW(self._names, opt_ref, model)
 
-def parity_batch(tokens, poses, n_views, seed, dtype):
-    """The fixed batch the parity checks run: 4 samples drawn as transformer_batch draws, from a
-    seed no training run of `seed` uses for its batches."""
-    return transformer_batch(tokens, poses, n_views, 4, seed + 1_000_003, 0, dtype)
+    def to_pyvf(self):
+        self.pyvf_model.load_official({k: v.detach().cpu().numpy() for k, v in self.port.state_dict().items()})
+        return self.pyvf_model
 
+    def _forward(self, x, autocast):
+        """x (B, C, S, S) on the device -> reconstruction (B, C, S, S), commitment loss, codes
+        (B, k, k); in training mode the quantizer applies one EMA update (after the lookup)."""
+        port, torch = self.port, self.torch
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
+            z = port.quant_conv(port.encoder(x))  # (B, D, k, k)
+        q, commitment, codes = port.quantize(z.to(self.dtype))  # the lookup and the EMA never in bf16
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
+            rec = port.decoder(port.post_quant_conv(q))
+        return rec.to(self.dtype), commitment, codes
 
-__all__ = ["DataParallel", "Follower", "TorchAdamW", "TorchEngine", "TorchTransformer", "PARITY_RTOL", "check_autocast",
-           "check_engine", "check_parity", "data_parallel", "parity_batch", "world_size"]
+    def step(self, images, pixel_weights=None):
+        """One update on images (B, C, S, S) in [-1, 1] (numpy; pixel_weights (B, 1, S, S) or None,
+        as Codebook.forward's) -> the log's values: loss, rec_loss, commitment, perplexity, usage."""
+        torch = self.torch
+        x = torch.as_tensor(images).to(self.device)
+        self._zero_grad()
+        rec, commitment, codes = self._forward(x, self.precision == "bf16")
+        diff = (rec - x).abs()  # (B, C, S, S)
+        if pixel_weights is None:
+            rec_loss = diff.mean()
+        else:  # sum w |rec - x| / (C sum w): Codebook.forward's weighted mean
+            w = torch.as_tensor(pixel_weights).to(self.device)  # (B, 1, S, S)
+            rec_loss = (w * diff).sum() / (diff.shape[1] * w.sum())
+        loss = rec_loss + self.config.codebook_weight * commitment
+        loss.backward()
+        norm = torch.stack(torch._foreach_norm([p.grad for p in self._names.values()])).square().sum()
+        stats = torch.stack([loss.detach(), rec_loss.detach(), commitment.detach(), norm]).cpu().numpy()
+        self._refuse_nonfinite(stats, "loss, rec_loss, commitment, |g|^2")
+        self.opt.step()
+        counts = torch.bincount(codes.reshape(-1), minlength=self.config.n_embed).cpu().numpy()  # (K,)
+        usage, perplexity = code_statistics(counts)
+        return {"loss": float(stats[0]), "rec_loss": float(stats[1]), "commitment": float(stats[2]),
+                "perplexity": perplexity, "usage": usage}
+
+    def reset_dead_codes(self, images, rng, **codes):
+        """pyvf's EMAQuantizer.reset_dead_codes on the port's buffers, with the encoder's output
+        z of images (B, C, S, S) by the updated weights, as pyvf's loop. Returns the codes reset."""
+        torch, quantizer = self.torch, self.pyvf_model.quantizer
+        with torch.no_grad():
+            z = self.port.quant_conv(self.port.encoder(torch.as_tensor(images).to(self.device)))  # (B, D, k, k)
+        quantizer.load_state_dict({k: v.cpu().numpy() for k, v in self.port.quantize.state_dict().items()})
+        n = quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng, **codes)
+        self.port.quantize.load_state_dict({k: torch.as_tensor(v) for k, v in quantizer.state_dict().items()})
+        return n
+
+    def parity(self, images):
+        """pyvf against the torch model (evaluation mode, no autocast) on images (B, C, S, S):
+        pyvf.compare's Comparison of codes, reconstruction, losses."""
+        torch = self.torch
+        x = torch.as_tensor(images).to(self.device)
+        self.port.eval()  # no EMA update
+        try:
+            with torch.no_grad():
+                rec, commitment, codes = self._forward(x, False)
+        finally:
+            self.port.train()
+        rec_loss = (rec - x).abs().mean()
+        mine = {"codes": codes.cpu().numpy(), "reconstruction": rec.cpu().numpy(),
+                "rec_loss": np.asarray(rec_loss.item()), "commitment_loss": np.asarray(commitment.item()),
+                "loss": np.asarray((rec_loss + self.config.codebook_weight * commitment).item())}
+        return self._parity(mine, self.to_pyvf().forward(images))
