@@ -4,11 +4,9 @@ and the same for torch and the textbook NumPy formula.
     pyvf bench accuracy            # ~1 minute on 2 cores
     pyvf bench accuracy --quick    # small sizes, seconds
 
-The ops (the time is of what the outputs need: `attention_backward` is the backward alone, given
-the forward's o and lse; a layer's op its forward and backward):
+The ops, each timed forward and backward:
 
-    attention_forward   pyvf.branching_attention_forward               o
-    attention_backward  pyvf.branching_attention_backward              dq, dk, dv
+    attention           pyvf.branching_attention_forward/_backward     o, dq, dk, dv
     vq_nearest          pyvf.vq_nearest                                squared distance to the code chosen
     layernorm           pyvf.nn.layers.layernorm_forward/_backward     y, dx, dgamma, dbeta
     cross_entropy       pyvf.nn.losses.cross_entropy_forward/_backward loss, dlogits
@@ -32,13 +30,13 @@ import os
 import numpy as np
 
 import pyvf
-from pyvf.bench.attention import flat, unflat
+from pyvf.bench import attention
 from pyvf.bench.common import machine, median_time, ms, pyplot, save_figure, table, torch_or_none, validate
 from pyvf.bench.vq import brute_force
 from pyvf.nn import conv, layers, losses
 
 U32, U64 = 2.0 ** -24, 2.0 ** -53  # unit roundoff
-SIZES = {  # by --quick; attention: both of its ops
+SIZES = {  # by --quick
     False: dict(attention=(3, 1, 4, 8, 64, 64), vq_nearest=(8192, 1024, 64), layernorm=(4096, 256),
                 cross_entropy=(2048, 1024), gelu=8192, conv2d=(4, 64, 64, 32, 32)),
     True: dict(attention=(3, 1, 2, 4, 32, 32), vq_nearest=(2048, 256, 32), layernorm=(512, 128),
@@ -46,8 +44,7 @@ SIZES = {  # by --quick; attention: both of its ops
 }
 # pyvf's bounds (normwise relative, every output; float32, float64), the tests' where they have one:
 BOUNDS = {
-    "attention_forward": (1e-5, 1e-12),  # tests/test_attention.py RTOL32, RTOL64
-    "attention_backward": (1e-5, 1e-12),
+    "attention": (attention.BOUND32, attention.BOUND64),
     # the distance is summed in float64 from the chosen code and rounded once; in float64 a D-term
     # sum in another order than the reference's: D u = 7e-15 at D = 64
     "vq_nearest": (2 * U32, 1e-14),
@@ -96,36 +93,13 @@ def _torch_vjp(f, dy, *args):
     return fn
 
 
-def attention_op(size, rng, backward):
-    R, B, H, N, L, dh = size
-    x = dict(zip("qkvd", _round32(*(rng.standard_normal(size) for _ in range(4)))))
-    mask = pyvf.branching_mask(R, N, L)
-
-    def pyvf_fn(x):
-        if not backward:
-            return lambda: [pyvf.branching_attention_forward(x["q"], x["k"], x["v"])[0]]
-        o, lse = pyvf.branching_attention_forward(x["q"], x["k"], x["v"])  # the forward is not timed
-        return lambda: list(pyvf.branching_attention_backward(x["d"], x["q"], x["k"], x["v"], o, lse))
-
-    def numpy_fn(x):  # the dense reference; its vjp recomputes the probabilities: forward + backward
-        if not backward:
-            return lambda: [pyvf.branching_attention_reference(x["q"], x["k"], x["v"])]
-        return lambda: list(pyvf.branching_attention_reference_vjp(x["q"], x["k"], x["v"], x["d"]))
-
-    def torch_fn(x):
-        import torch
-        import torch.nn.functional as F
-
-        leaves = [torch.from_numpy(flat(x[n])).requires_grad_(backward) for n in "qkv"]
-        sdpa = lambda: F.scaled_dot_product_attention(*leaves, attn_mask=torch.from_numpy(mask), scale=1.0)  # noqa: E731
-        if not backward:
-            return lambda: [unflat(sdpa().numpy(), size)]
-        o, d = sdpa(), torch.from_numpy(flat(x["d"]))  # the forward is not timed; its graph is kept
-        return lambda: [unflat(g.numpy(), size) for g in torch.autograd.grad(o, leaves, d, retain_graph=True)]
-
-    ref = numpy_fn(x)()
-    return dict(outputs=("dq", "dk", "dv") if backward else ("o",), inputs=x, reference=ref, pyvf=pyvf_fn,
-                numpy=numpy_fn, torch=torch_fn)
+def attention_op(size, rng):
+    """Branching attention forward + backward (pyvf bench attention's contenders): o, dq, dk, dv."""
+    x = _round32(*(rng.standard_normal(size) for _ in range(4)))  # q, k, v, do
+    outs = lambda contender: lambda x: contender(*x.values())["outs"]  # noqa: E731
+    return dict(outputs=attention.NAMES, inputs=dict(zip("qkvd", x)), reference=attention.reference64(*x),
+                pyvf=outs(attention.pyvf_contender), numpy=outs(attention.reference_contender),
+                torch=outs(attention.torch_contender))
 
 
 def vq_op(size, rng):
@@ -264,16 +238,14 @@ def conv2d_op(size, rng):
                 torch=torch_fn, numpy=lambda x: lambda: conv_windows(*x.values()))
 
 
-OPS = {"attention_forward": functools.partial(attention_op, backward=False),
-       "attention_backward": functools.partial(attention_op, backward=True),
-       "vq_nearest": vq_op, "layernorm": layernorm_op, "cross_entropy": cross_entropy_op, "gelu": gelu_op,
-       "conv2d": conv2d_op}  # name -> its function (size, rng)
+OPS = {"attention": attention_op, "vq_nearest": vq_op, "layernorm": layernorm_op, "cross_entropy": cross_entropy_op,
+       "gelu": gelu_op, "conv2d": conv2d_op}  # name -> its function (size, rng)
 
 
 def run_op(name, quick=False, repeat=5, with_torch=True, log=print):
     """Every variant of one op, validated, then timed: {op, size, variants: [{name, backend, bound,
     rel (the error), seconds (if validated) or fail}]}."""
-    size = SIZES[quick][name.split("_")[0] if name.startswith("attention_") else name]
+    size = SIZES[quick][name]
     op, (b32, b64) = OPS[name](size, np.random.default_rng(0)), BOUNDS[name]
     res = dict(op=name, size=size, variants=[])
     for vname, backend, dtype, bound in (("pyvf float32", "pyvf", np.float32, b32), ("pyvf float64", "pyvf", np.float64, b64),

@@ -1,26 +1,23 @@
 """Attention memory and time as the number of views N grows: pyvf's branching kernel against the
-approaches it replaces (docs/math.md §2).
+approaches it replaces (docs/math.md §2), float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1.
 
     pyvf bench scaling            # N = 2, 4, ..., 64; H=12 dh=64 and H=4 dh=32; long
     pyvf bench scaling --quick    # N = 2, 4, 8; H=4 dh=32
 
-Methods (float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1):
-  pyvf         pyvf's branching kernel, (R, B, H, N, L, dh): O(T*dh) memory, T = R*N*L
-  naive_pyvf   the naive approach the paper avoids: one sequence per query view (the trunk, and for
-               each branch r and view i the trunk views 0..i-1, then the branch's view i, then zero
-               views up to N), stacked along the batch: S = 1 + (R-1)*N sequences of N*L tokens,
-               run by pyvf's kernel at R=1. The padding comes after every real token: no real
-               query sees it
-  dense_sdpa   torch SDPA on the flat (B, H, T, dh) sequence with the (T, T) branching mask
-  dense_numpy  pyvf.branching_attention_reference: the NumPy dense reference, (T, T) logits
+    pyvf         pyvf's branching kernel, (R, B, H, N, L, dh): O(T*dh) memory, T = R*N*L
+    naive_pyvf   one sequence per query view, the approach the paper avoids: the trunk, and for each
+                 branch r and view i the trunk views 0..i-1, then the branch's view i, then zero
+                 views (after every real token: no real query sees them); S = 1 + (R-1)*N
+                 sequences of N*L tokens stacked along the batch, run by pyvf's kernel at R=1
+    dense_sdpa   torch SDPA on the flat (B, H, T, dh) sequence with the (T, T) branching mask
+    dense_numpy  pyvf.branching_attention_reference: the dense NumPy reference, (T, T) logits
 
-Every point (method, size, N) runs in a process of its own: at the first N of each size it
-validates its output and gradients against the float64 dense reference, then measures one call's
-extra peak memory beside the memory expected (attention.expected_memory) and the median time of
-5 calls, forward and forward+backward. A point whose time, predicted from the method's previous N
-by the FLOPs it computes, exceeds --max-point-seconds is skipped, and so are its larger N. The
-slopes of log(memory) and log(time) against log(N) are fitted, tabled and plotted. Theory: pyvf's
-memory ~N; the dense mask's ~N^2; the naive stacked approach ~N^2 in memory and ~N^3 in time.
+Each point (method, size, N) runs in a process of its own: at the first N it validates its output
+and gradients against the float64 reference, then measures one call's extra peak memory beside the
+memory expected and the median time, forward and forward+backward. A point predicted (from the
+method's previous N, by the FLOPs it computes) to take more than --max-point-seconds is skipped,
+and so are its larger N. The slopes of log(memory) and log(time) against log(N) are fitted: in
+theory pyvf's memory ~N; the dense mask's ~N^2; the naive approach's ~N^2 and its time ~N^3.
 """
 
 import os

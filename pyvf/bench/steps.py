@@ -1,18 +1,14 @@
-"""One training step, pyvf against the same model in torch, side by side in one run: time and
-memory, after checking that both compute the same step.
+"""One training step of the tiny models, pyvf against the same model in torch, timed side by side in
+one run after checking that both compute the same step.
 
-    pyvf bench transformer           # the tiny transformer: forward, backward, AdamW; 20 steps
-    pyvf bench transformer --quick   # 5 steps
-    pyvf bench codebook              # the tiny codebook at `pyvf train-codebook`'s batch: forward with
-                                     # the EMA update, backward, Adam; 10 steps
-    pyvf bench codebook --quick      # on a batch of two 32x32 images, 5 steps
+    pyvf bench transformer [--quick]   # forward, backward, AdamW; 20 steps (5 quick)
+    pyvf bench codebook [--quick]      # forward with the EMA update, backward, Adam, at `pyvf
+                                       # train-codebook`'s batch; 10 steps (5 on two 32x32 images)
 
 The torch models are pyvf/verify/torch_transformer.py (SDPA with a boolean mask) and
-torch_codebook.py. Each framework runs in a worker process of its own, so that neither's thread
-pool waits on the other's. Before anything is timed, the first step's loss and gradients of pyvf
-and torch (same weights, same batch) and the loss after their first update are compared
-(first_step_differs). Memory: the peak resident memory of one step above what was resident
-before it, after a first step (which makes the optimizer's moments).
+torch_codebook.py; each framework runs in a worker process of its own, so that neither's thread
+pool waits on the other's. Before any time is reported, the first step's loss and gradients (same
+weights, same batch) and the loss after the first update are compared (first_step_differs).
 """
 
 import zlib
@@ -20,7 +16,7 @@ import zlib
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import format_bytes, machine, median_time, ms, peak_memory, run_worker, table, worker_main
+from pyvf.bench.common import machine, median_time, ms, run_worker, worker_main
 
 WORKER = "pyvf.bench.steps"  # this module, run as `python -m WORKER SPEC` (worker_main)
 
@@ -70,12 +66,10 @@ def first_step_differs(p, t):
 
 
 def step_figures(loss, gradients, step, steps):
-    """The first step's loss and gradient checksums, then step() (-> the loss before its update)'s
-    figures: a warm-up call (it makes the optimizer's moments), the next one under peak_memory (its
-    loss, after one update, checks the optimizer), then the median time of `steps`."""
+    """The first step's loss and gradient checksums, then step() (-> the loss before its update): a
+    warm-up call, the next one's loss (after one update: it checks the optimizer), the median time."""
     step()
-    after, memory = peak_memory(step)
-    return dict(loss=loss, gradients=checksums(gradients), loss_after_update=after, memory=memory,
+    return dict(loss=loss, gradients=checksums(gradients), loss_after_update=step(),
                 time=median_time(step, steps, warmup=0)[0])
 
 
@@ -180,9 +174,8 @@ FRAMEWORKS = {("transformer", "pyvf"): transformer_pyvf, ("transformer", "torch"
 
 
 def run(model, quick=False, threads=2):
-    """pyvf's and torch's training step of `model` ("transformer", "codebook"), each framework in a
-    worker process, their first steps compared before anything is printed. -> {config, results
-    {"pyvf", "torch"}, torch_over_pyvf (the time ratio), failures}."""
+    """pyvf's and torch's step of `model` ("transformer", "codebook") (module docstring): {config,
+    machine, results {"pyvf", "torch"}, torch_over_pyvf (the time ratio), failures}."""
     config = "codebook-quick" if quick and model == "codebook" else model
     steps = 5 if quick else 20 if model == "transformer" else 10
     report = dict(config=dict(model=model, config=config, steps=steps, threads=threads), machine=machine(threads),
@@ -193,12 +186,10 @@ def run(model, quick=False, threads=2):
     if differs:
         report["failures"].append(f"the first steps of pyvf and torch differ in {differs}: not timed")
         return report
-    print(f"## the {model}: {CONFIGS[config]}, float32, {threads} threads, median of {steps} steps, each framework "
-          f"in its own process\nfirst-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the gradients, "
-          "and the loss after an update, agree)\n")
-    print(table(["", "step time", "peak memory of a step"],
-                [["pyvf", ms(p["time"]), format_bytes(p["memory"])], ["torch", ms(t["time"]), format_bytes(t["memory"])],
-                 ["torch / pyvf", f"{t['time'] / p['time']:.2f}", f"{t['memory'] / p['memory']:.2f}"]]))
+    print(f"the {model}: {CONFIGS[config]}, float32, {threads} threads, each framework in its own process\n"
+          f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the gradients, and the loss after an "
+          f"update, agree)\nmedian step time of {steps}: pyvf {ms(p['time'])}, torch {ms(t['time'])}; "
+          f"torch / pyvf {t['time'] / p['time']:.2f}")
     report.update(results=dict(pyvf=p, torch=t), torch_over_pyvf=t["time"] / p["time"])
     return report
 
