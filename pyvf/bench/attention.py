@@ -1,30 +1,39 @@
-"""Branching attention (docs/math.md §2), forward and forward+backward: pyvf's C++ kernel against
-torch's scaled_dot_product_attention with the dense (T, T) mask and the dense NumPy reference.
+"""Branching attention (docs/math.md §2), forward and forward+backward, at one size: pyvf's C++
+kernel against torch's scaled_dot_product_attention with the dense (T, T) mask and the dense
+NumPy reference; also the measurement of one point of `pyvf bench scaling` (worker()).
 
     pyvf bench attention           # paper size R=3, B=1, H=12, N=20, L=64, dh=64
     pyvf bench attention --quick   # H=2, N=4, dh=32
 
-Each contender's output and gradients (float32; pyvf float64 too) are first compared with the
-NumPy reference in float64, normwise (max|x - ref| / max|ref|); if one is outside its bound nothing
-is timed. Then each one's extra peak memory (beside the memory expected) and median time, with the
-useful GFLOP/s (attended block pairs only) and its share of the machine's float32 GEMM rate.
-Inputs unit-normal, scale 1 (the published model's unscaled logits); torch and the reference
-take the flat (B, H, T, dh) sequence, T = R*N*L in the order [row][view][token].
+Each method runs in a process of its own (worker()): its output and gradients (float32) are first
+compared with the NumPy reference in float64, normwise (max|x - ref| / max|ref|), and one outside
+its bound is not timed; then one call's extra peak memory, beside the memory expected, and the
+median time of 5 calls. The table gives the useful GFLOP/s (attended block pairs only) and its
+share of the machine's float32 GEMM rate. Inputs unit-normal, scale 1 (the published model's
+unscaled logits); torch and the reference take the flat (B, H, T, dh) sequence, T = R*N*L in the
+order [row][view][token].
 """
 
 import numpy as np
 
 import pyvf
 from pyvf.bench.common import (MEMORY_METHOD, TORCH_MISSING, format_bytes, machine, median_time, ms, peak_memory,
-                               table, torch_or_none, validate)
+                               run_worker, table, torch_or_none, validate, worker_main)
 
+WORKER = "pyvf.bench.attention"  # this module, run as `python -m WORKER SPEC` (worker_main)
+R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
 # pyvf's bounds, tests/test_attention.py's RTOL64 and RTOL32 (their reasons written out there); torch
 # SDPA and the reference in float32 round the logits in their own order (measured ~3.3e-6): a wrong
 # mask or layout is an O(1) error
 BOUND64, BOUND32, BOUND_OTHERS = 1e-12, 1e-5, 1e-4
 NAMES = ("o", "dq", "dk", "dv")
-PAPER = dict(R=3, B=1, H=12, N=20, L=64, dh=64)
-QUICK = dict(R=3, B=1, H=2, N=4, L=64, dh=32)
+METHODS = {
+    "pyvf": "pyvf branching kernel",
+    "naive_pyvf": "naive stacked, pyvf kernel at R=1",
+    "dense_sdpa": "dense (T,T) mask, torch SDPA",
+    "dense_numpy": "dense (T,T) mask, NumPy reference",
+}
+REPEAT = 5  # timed calls of each pass
 
 
 def flat(x):
@@ -39,12 +48,6 @@ def unflat(x, shape):
     return x.reshape(B, H, R, N, L, dh).transpose(2, 0, 1, 3, 4, 5)
 
 
-def make_inputs(R, B, H, N, L, dh, seed=0):
-    """q, k, v, do: unit-normal float32 arrays of shape (R, B, H, N, L, dh)."""
-    rng = np.random.default_rng(seed)
-    return [rng.standard_normal((R, B, H, N, L, dh), dtype=np.float32) for _ in range(4)]
-
-
 def attended_pairs(R, N):
     """Block pairs one (b, h) attends: trunk N(N+1)/2, each branch N(N-1)/2 + N (docs/math.md §2)."""
     return N * (N + 1) // 2 + (R - 1) * (N * (N - 1) // 2 + N)
@@ -56,9 +59,9 @@ def expected_memory(method, R, B, H, N, L, dh, threads):
     "pyvf" (csrc/branching_attention.cpp): o like q, lse (R, B, H, N, L) float64, per thread q^T and
     the accumulator (L, dh), s^T (L, L) and five L-vectors; the backward dq, dk, dv like q, per
     thread q^T and do^T of one head (R*N*L, dh) and three (L, L) buffers, and G-1 more dq, G =
-    min(ceil(16 / (B*H)), 8, R*N) key groups where B*H < 16. "sdpa" (bool mask): the float32
-    additive mask (4 T^2), then o (and dq, dk, dv). "numpy": s, p and p / sum(p), three (B, H, T, T)
-    arrays, beside its (T, T) bool mask."""
+    min(ceil(16 / (B*H)), 8, R*N) key groups where B*H < 16. "dense_sdpa" (bool mask): the float32
+    additive mask (4 T^2), then o (and dq, dk, dv). "dense_numpy": s, p and p / sum(p), three
+    (B, H, T, T) arrays, beside its (T, T) bool mask."""
     S = R * B * H * N * L * dh * 4  # one array like q
     T = R * N * L
     if method == "pyvf":
@@ -67,7 +70,7 @@ def expected_memory(method, R, B, H, N, L, dh, threads):
         lse, fwd_thread = R * B * H * N * L * 8, threads * (2 * Lt * dh + Lt * Lt + 5 * Lt) * 4
         bwd_thread = threads * (2 * T * dh + 3 * T + 3 * Lt * Lt) * 4
         return S + lse + fwd_thread, S + lse + max(fwd_thread, (2 + G) * S + bwd_thread)
-    if method == "sdpa":
+    if method == "dense_sdpa":
         return 4 * T * T + S, 4 * T * T + 4 * S
     logits = B * H * T * T * 4
     return T * T + 3 * logits + S, T * T + 3 * logits + 3 * S
@@ -122,63 +125,122 @@ def reference64(q, k, v, do):
     return [pyvf.branching_attention_reference(*x64[:3]), *pyvf.branching_attention_reference_vjp(*x64)]
 
 
-def figures(c, repeat, warmup=1):
-    """A contender's extra peak memory of one call and median time, forward and forward+backward
-    (a call before, its validation, took the one-time costs); also each point of scaling.py's."""
-    out = {}
-    for name in ("fwd", "fb"):
-        _, out[f"{name}_bytes"] = peak_memory(c[name])
-        out[f"{name}_seconds"] = median_time(c[name], repeat, warmup)[0]
+def stack_naive(x, queries_only=False):
+    """(R, B, H, N, L, dh) -> (S, B, H, N, L, dh), S = 1 + (R-1)*N: sequence 0 is the trunk;
+    sequence 1 + (r-1)*N + i holds the trunk views 0..i-1, then branch r's view i, then zero views.
+    queries_only (the upstream gradient): zeros in place of the trunk copies, whose outputs the
+    naive approach throws away."""
+    R, B, H, N, L, dh = x.shape
+    out = np.zeros((1 + (R - 1) * N,) + x.shape[1:], dtype=x.dtype)
+    out[0] = x[0]
+    for r in range(1, R):
+        for i in range(N):
+            if not queries_only:
+                out[1 + (r - 1) * N + i, :, :, :i] = x[0, :, :, :i]
+            out[1 + (r - 1) * N + i, :, :, i] = x[r, :, :, i]
     return out
 
 
-def run(quick=False, threads=2, size=None, repeat=5):
-    """The benchmark (module docstring) at `size` (a dict R, B, H, N, L, dh; default PAPER, QUICK
-    with quick): prints its tables, returns the report; report["failures"] lists the contenders
-    outside their bound, and then nothing is timed."""
-    size = size or (QUICK if quick else PAPER)
-    shape, (R, N, L, dh) = tuple(size.values()), (size["R"], size["N"], size["L"], size["dh"])
+def unstack_naive(st, R, keys=False):
+    """stack_naive's inverse for an output or a gradient: a query token is in one sequence only (o,
+    dq); a trunk key in the trunk and in every later branch sequence, so its gradient (dk, dv:
+    keys=True) is the sum over them."""
+    N = st.shape[3]
+    out = np.zeros((R,) + st.shape[1:], dtype=st.dtype)
+    out[0] = st[0]
+    for r in range(1, R):
+        for i in range(N):
+            out[r, :, :, i] = st[1 + (r - 1) * N + i, :, :, i]
+            if keys:
+                out[0, :, :, :i] += st[1 + (r - 1) * N + i, :, :, :i]
+    return out
+
+
+def naive_contender(q, k, v, do):
+    """pyvf's kernel at R=1 on the stacked sequences, seen as one row of S*B batch entries."""
+    st = [stack_naive(x) for x in (q, k, v)] + [stack_naive(do, queries_only=True)]
+    S = st[0].shape[0]
+    c = pyvf_contender(*(x.reshape((1, S * B) + x.shape[2:]) for x in st))
+    outs = c["outs"]
+    c["outs"] = lambda: [unstack_naive(x.reshape(st[0].shape), R, keys) for x, keys in zip(outs(), (False, False, True, True))]
+    return c
+
+
+def theory(method, H, N, dh, threads):
+    """{block_pairs computed per head, computed_flops (forward), expected_fwd, expected_fb (bytes)}."""
+    if method == "naive_pyvf":
+        S = 1 + (R - 1) * N
+        pairs = S * N * (N + 1) // 2
+        fwd, fb = expected_memory("pyvf", 1, S * B, H, N, L, dh, threads)
+    else:
+        pairs = attended_pairs(R, N) if method == "pyvf" else (R * N) ** 2
+        fwd, fb = expected_memory(method, R, B, H, N, L, dh, threads)
+    return dict(block_pairs=pairs, computed_flops=4 * L * L * dh * pairs * B * H, expected_fwd=fwd, expected_fb=fb)
+
+
+def worker(spec):
+    """One point, {method, H, dh, N, threads, validate} -> its measurements (a dict)."""
+    method, H, dh, N = spec["method"], spec["H"], spec["dh"], spec["N"]
+    pyvf.set_num_threads(spec["threads"])
+    q, k, v, do = np.random.default_rng(N).standard_normal((4, R, B, H, N, L, dh), dtype=np.float32)
+    if method == "dense_sdpa":
+        torch_or_none().set_num_threads(spec["threads"])
+    make = dict(pyvf=pyvf_contender, naive_pyvf=naive_contender, dense_sdpa=torch_contender,
+                dense_numpy=reference_contender)[method]
+    c, out = make(q, k, v, do), {}
+    if spec["validate"]:
+        bound = BOUND32 if "pyvf" in method else BOUND_OTHERS
+        out["errors"], ok = validate(c["outs"](), reference64(q, k, v, do), NAMES, bound)
+        if not ok:
+            return dict(out, error=f"validation failed: max rel. error {max(out['errors'].values()):.2e} > {bound:g}")
+    for name in ("fwd", "fb"):  # a warm-up call (thread pools), then one call's extra peak memory, then the time
+        c[name]()
+        _, out[f"{name}_bytes"] = peak_memory(c[name])
+        out[f"{name}_seconds"] = median_time(c[name], REPEAT, warmup=0)[0]
+    return out
+
+
+def run(quick=False, threads=2, size=None):
+    """The benchmark (module docstring) at size (H, dh, N) (default 12, 64, 20; 2, 32, 4 with quick):
+    prints its tables, returns the report; report["failures"] lists the methods outside their bound."""
+    H, dh, N = size or ((2, 32, 4) if quick else (12, 64, 20))
     torch = torch_or_none()
-    pyvf.set_num_threads(threads)
-    if torch is not None:
-        torch.set_num_threads(threads)
-    report = dict(config=dict(size, threads=threads, repeat=repeat), machine=machine(threads), errors={}, failures=[])
-    print(f"# Branching attention: {size} (T={R * N * L}), float32, scale 1, {threads} threads\n"
-          f"machine: {report['machine']['processor']}; memory: {MEMORY_METHOD}\n")
-    q, k, v, do = make_inputs(*shape)
-    contenders = {"pyvf (C++ kernel)": (pyvf_contender(q, k, v, do), BOUND32, "pyvf")}
-    if torch is not None:
-        contenders["torch SDPA, dense bool mask"] = (torch_contender(q, k, v, do), BOUND_OTHERS, "sdpa")
-    contenders["NumPy dense reference"] = (reference_contender(q, k, v, do), BOUND_OTHERS, "numpy")
-    ref = reference64(q, k, v, do)
-    checks = [("pyvf float64", pyvf_contender(*(x.astype(np.float64) for x in (q, k, v, do))), BOUND64)]
-    for name, c, bound in checks + [(n, c, b) for n, (c, b, _) in contenders.items()]:
-        report["errors"][name], ok = validate(c["outs"](), ref, NAMES, bound)
-        report["failures"] += [] if ok else [f"{name} above {bound:g}: not timed"]
-    print(table(["max rel. error vs float64 reference"] + list(NAMES),
-                [[n] + [f"{e[c]:.2e}" for c in NAMES] for n, e in report["errors"].items()]) + "\n")
+    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, threads=threads), machine=machine(threads), points=[],
+                  failures=[])
+    print(f"# Branching attention: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={R * N * L}), float32, scale 1, {threads} "
+          f"threads, each method in its own process\nmachine: {report['machine']['processor']}; memory: {MEMORY_METHOD}\n")
+    for m in ("pyvf", "dense_sdpa", "dense_numpy") if torch else ("pyvf", "dense_numpy"):
+        p = dict(method=m, theory=theory(m, H, N, dh, threads),
+                 **run_worker(WORKER, dict(method=m, H=H, dh=dh, N=N, threads=threads, validate=True)))
+        report["points"].append(p)
+        report["failures"] += [f"{METHODS[m]}: {p['error']}: not timed"] if "error" in p else []
+    print(table(["max rel. error vs float64 reference", *NAMES],
+                [[METHODS[p["method"]]] + [f"{p['errors'][n]:.2e}" for n in NAMES] for p in report["points"]]) + "\n")
     if report["failures"]:
         return report
+    pyvf.set_num_threads(threads)
     a, b = np.random.default_rng(1).standard_normal((2, 1024, 1024), dtype=np.float32)
-    gemm = report["gemm_gflops"] = 2 * 1024 ** 3 / median_time(lambda: a @ b, repeat)[0] / 1e9
-    f_fwd = 4 * L * L * dh * attended_pairs(R, N) * size["B"] * size["H"]  # q k^T and p v per block pair
+    gemm = report["gemm_gflops"] = 2 * 1024 ** 3 / median_time(lambda: a @ b, REPEAT)[0] / 1e9  # float32 GEMM rate
+    f_fwd = 4 * L * L * dh * attended_pairs(R, N) * B * H  # useful flops: q k^T and p v per attended block pair
     f_fb = 3.5 * f_fwd  # the backward: q k^T recomputed, dv, dp, dq, dk
-    rows, res = [], report.setdefault("results", {})
-    for name, (c, _, method) in contenders.items():
-        r = res[name] = figures(c, repeat, 0 if method == "numpy" else 1)
-        r["expected_fwd_bytes"], r["expected_fb_bytes"] = expected_memory(method, *shape, threads)
-        r["fb_of_gemm"] = f_fb / r["fb_seconds"] / 1e9 / gemm
-        rows.append([name, ms(r["fwd_seconds"]), f"{f_fwd / r['fwd_seconds'] / 1e9:.1f}", ms(r["fb_seconds"]),
-                     f"{f_fb / r['fb_seconds'] / 1e9:.1f}", f"{r['fb_of_gemm']:.0%}",
-                     f"{format_bytes(r['fwd_bytes'])} / {format_bytes(r['expected_fwd_bytes'])}",
-                     f"{format_bytes(r['fb_bytes'])} / {format_bytes(r['expected_fb_bytes'])}"])
+    rows = []
+    for p in report["points"]:
+        p["fb_of_gemm"] = f_fb / p["fb_seconds"] / 1e9 / gemm
+        rows.append([METHODS[p["method"]], ms(p["fwd_seconds"]), f"{f_fwd / p['fwd_seconds'] / 1e9:.1f}",
+                     ms(p["fb_seconds"]), f"{f_fb / p['fb_seconds'] / 1e9:.1f}", f"{p['fb_of_gemm']:.0%}",
+                     f"{format_bytes(p['fwd_bytes'])} / {format_bytes(p['theory']['expected_fwd'])}",
+                     f"{format_bytes(p['fb_bytes'])} / {format_bytes(p['theory']['expected_fb'])}"])
     print(table(["", "forward", "GFLOP/s", "forward+backward", "GFLOP/s", "% of GEMM",
                  "memory fwd (measured / expected)", "memory fwd+bwd"], rows))
-    print(f"\nmedian of {repeat} calls; GFLOP/s: useful flops ({attended_pairs(R, N)} of {(R * N) ** 2} block pairs "
+    print(f"\nmedian of {REPEAT} calls; GFLOP/s: useful flops ({attended_pairs(R, N)} of {(R * N) ** 2} block pairs "
           f"per head) / time; GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s")
-    pyvf_fb = res["pyvf (C++ kernel)"]["fb_seconds"]
     if torch is None:
         print(f"torch SDPA: {TORCH_MISSING}")
-    print("forward+backward time over pyvf's: " + ", ".join(f"{n} {r['fb_seconds'] / pyvf_fb:.2f}x"
-                                                            for n, r in res.items() if not n.startswith("pyvf")))
+    pyvf_fb = report["points"][0]["fb_seconds"]
+    print("forward+backward time over pyvf's: " + ", ".join(f"{METHODS[p['method']]} {p['fb_seconds'] / pyvf_fb:.2f}x"
+                                                            for p in report["points"][1:]))
     return report
+
+
+if __name__ == "__main__":  # a worker: `python -m pyvf.bench.attention SPEC`
+    worker_main(worker)

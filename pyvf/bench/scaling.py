@@ -24,98 +24,13 @@ import os
 
 import numpy as np
 
-import pyvf
-from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, NAMES, attended_pairs, expected_memory, figures,
-                                  make_inputs, pyvf_contender, reference64, reference_contender, torch_contender)
+from pyvf.bench.attention import B, L, METHODS, R, REPEAT, WORKER, theory
 from pyvf.bench.common import (MEMORY_METHOD, format_bytes, machine, ms, pyplot, run_worker, save_figure, table,
-                               torch_or_none, validate, worker_main)
+                               torch_or_none)
 
-WORKER = "pyvf.bench.scaling"  # this module, run as `python -m WORKER SPEC` (worker_main)
-R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
 SIZES, QUICK_SIZES = ((12, 64), (4, 32)), ((4, 32),)  # (H, dh): the paper's, and a small one
 VIEWS, QUICK_VIEWS = (2, 4, 8, 16, 32, 64), (2, 4, 8)
-METHODS = {
-    "pyvf": "pyvf branching kernel",
-    "naive_pyvf": "naive stacked, pyvf kernel at R=1",
-    "dense_sdpa": "dense (T,T) mask, torch SDPA",
-    "dense_numpy": "dense (T,T) mask, NumPy reference",
-}
-REPEAT = 5  # timed calls of each pass
 MAX_POINT_SECONDS = 120  # the naive approach's time grows as N^3: at N=64, H=12, minutes per call
-
-
-def stack_naive(x, queries_only=False):
-    """(R, B, H, N, L, dh) -> (S, B, H, N, L, dh), S = 1 + (R-1)*N: sequence 0 is the trunk;
-    sequence 1 + (r-1)*N + i holds the trunk views 0..i-1, then branch r's view i, then zero views.
-    queries_only (the upstream gradient): zeros in place of the trunk copies, whose outputs the
-    naive approach throws away."""
-    R, B, H, N, L, dh = x.shape
-    out = np.zeros((1 + (R - 1) * N,) + x.shape[1:], dtype=x.dtype)
-    out[0] = x[0]
-    for r in range(1, R):
-        for i in range(N):
-            if not queries_only:
-                out[1 + (r - 1) * N + i, :, :, :i] = x[0, :, :, :i]
-            out[1 + (r - 1) * N + i, :, :, i] = x[r, :, :, i]
-    return out
-
-
-def unstack_naive(st, R, keys=False):
-    """stack_naive's inverse for an output or a gradient: a query token is in one sequence only (o,
-    dq); a trunk key in the trunk and in every later branch sequence, so its gradient (dk, dv:
-    keys=True) is the sum over them."""
-    N = st.shape[3]
-    out = np.zeros((R,) + st.shape[1:], dtype=st.dtype)
-    out[0] = st[0]
-    for r in range(1, R):
-        for i in range(N):
-            out[r, :, :, i] = st[1 + (r - 1) * N + i, :, :, i]
-            if keys:
-                out[0, :, :, :i] += st[1 + (r - 1) * N + i, :, :, :i]
-    return out
-
-
-def naive_contender(q, k, v, do):
-    """pyvf's kernel at R=1 on the stacked sequences, seen as one row of S*B batch entries."""
-    st = [stack_naive(x) for x in (q, k, v)] + [stack_naive(do, queries_only=True)]
-    S = st[0].shape[0]
-    c = pyvf_contender(*(x.reshape((1, S * B) + x.shape[2:]) for x in st))
-    outs = c["outs"]
-    c["outs"] = lambda: [unstack_naive(x.reshape(st[0].shape), R, keys) for x, keys in zip(outs(), (False, False, True, True))]
-    return c
-
-
-def theory(method, H, N, dh, threads):
-    """{block_pairs computed per head, computed_flops (forward), expected_fwd, expected_fb (bytes)}."""
-    if method == "naive_pyvf":
-        S = 1 + (R - 1) * N
-        pairs = S * N * (N + 1) // 2
-        fwd, fb = expected_memory("pyvf", 1, S * B, H, N, L, dh, threads)
-    else:
-        pairs = attended_pairs(R, N) if method == "pyvf" else (R * N) ** 2
-        fwd, fb = expected_memory(dict(dense_sdpa="sdpa", dense_numpy="numpy").get(method, method),
-                                  R, B, H, N, L, dh, threads)
-    return dict(block_pairs=pairs, computed_flops=4 * L * L * dh * pairs * B * H, expected_fwd=fwd, expected_fb=fb)
-
-
-def worker(spec):
-    """One point, {method, H, dh, N, threads, validate} -> its measurements (a dict)."""
-    method, H, dh, N = spec["method"], spec["H"], spec["dh"], spec["N"]
-    pyvf.set_num_threads(spec["threads"])
-    q, k, v, do = make_inputs(R, B, H, N, L, dh, seed=N)
-    if method == "dense_sdpa":
-        torch_or_none().set_num_threads(spec["threads"])
-    make = dict(pyvf=pyvf_contender, naive_pyvf=naive_contender, dense_sdpa=torch_contender,
-                dense_numpy=reference_contender)[method]
-    c, out = make(q, k, v, do), {}
-    if spec["validate"]:
-        bound = BOUND32 if "pyvf" in method else BOUND_OTHERS
-        out["errors"], ok = validate(c["outs"](), reference64(q, k, v, do), NAMES, bound)
-        if not ok:
-            return dict(out, error=f"validation failed: max rel. error {max(out['errors'].values()):.2e} > {bound:g}")
-    for name in ("fwd", "fb"):
-        c[name]()  # a warm-up call: thread pools
-    return {**out, **figures(c, REPEAT, warmup=0)}
 
 
 def _note(p):
@@ -250,7 +165,3 @@ def run(quick=False, threads=2, sizes=None, views=None, methods=tuple(METHODS), 
         log("plots need matplotlib: pip install pyvf[plots]" if report["plots"] is None
             else "wrote " + ", ".join(report["plots"]))
     return report
-
-
-if __name__ == "__main__":  # a worker: `python -m pyvf.bench.scaling SPEC` (run_points)
-    worker_main(worker)
