@@ -25,7 +25,7 @@ def scaling_report(laws=LAWS):
     points = []
     for N in VIEWS:
         for m, (cm, pm, ct, pt, top) in laws.items():
-            p = dict(method=m, H=4, dh=32, N=N, theory=dict(block_pairs=N, expected_fwd=N, expected_fb=N))
+            p = dict(method=m, H=4, dh=32, N=N)
             if N > top:
                 p["skipped"] = "predicted 99 s > --max-point-seconds 30"
             else:
@@ -45,7 +45,7 @@ def test_scaling_line_states_the_measured_slopes_and_ratios(kind):
     want = [(f"{law[p]:.2f}", f"{law[c] * 16 ** law[p] / (LAWS['pyvf'][c] * 16 ** LAWS['pyvf'][p]):.3g}")
             for m, law in LAWS.items() if m in ("naive_pyvf", "dense_sdpa")]
     assert re.findall(r"N\^([\d.]+), ([\d.]+)x pyvf's", line) == want, line
-    assert "Not measured: dense masked (NumPy): predicted 99 s" in line, line
+    assert "Not measured: dense (T,T) mask, NumPy reference: predicted 99 s" in line, line
     # planted: a slope or a measurement that is not the law's changes the line
     rep = scaling_report()
     rep["slopes"]["4x32"]["naive_pyvf"][f"fb_{kind}"] += 0.1

@@ -22,8 +22,6 @@ from pyvf.bench.common import MEMORY_METHOD, write_json
 # the scaling runs: the command line that repeats each (in the documents), and scaling.run's options
 SCALING_FULL = [("--sizes 12x64 --max-point-seconds 30", dict(sizes=((12, 64),), max_point_seconds=30)),
                 ("--sizes 4x32 --max-point-seconds 60", dict(sizes=((4, 32),), max_point_seconds=60))]
-SHORT = dict(pyvf="pyvf", naive_pyvf="naive stacked prefixes (pyvf kernel)", dense_sdpa="dense masked (torch SDPA)",
-             dense_numpy="dense masked (NumPy)")
 
 
 def scaling_line(scal, kind):
@@ -45,10 +43,10 @@ def scaling_line(scal, kind):
             f"(N={min(vals['pyvf'])}..{max(vals['pyvf'])}; H={H} dh={dh}, R=3, B=1, L=64, float32)")
     if n is not None and len(vals) > 1:
         line += f"; at N={n}, the largest N every method measured: " + "; ".join(
-            f"{SHORT[m]} N^{scaling._s(fit[m][key])}, {v[n] / vals['pyvf'][n]:.3g}x pyvf's"
+            f"{scaling.METHODS[m]} N^{scaling._s(fit[m][key])}, {v[n] / vals['pyvf'][n]:.3g}x pyvf's"
             for m, v in vals.items() if m != "pyvf")
     if missing:
-        line += ". Not measured: " + "; ".join(f"{SHORT[m]}: {why}" for m, why in missing.items())
+        line += ". Not measured: " + "; ".join(f"{scaling.METHODS[m]}: {why}" for m, why in missing.items())
     return line + "."
 
 
@@ -93,12 +91,9 @@ def performance_md(out, quick, m, total, scalings, acc, jsons):
          "## The machine", "", machine_lines(m, total), "", "Every timed result was validated first.", "",
          "## Attention memory and time against the number of views", ""]
     for args, rep in scalings:
-        blocks = scaling.tables(rep["points"], rep["slopes"], [tuple(x) for x in rep["config"]["sizes"]],
-                                rep["config"]["methods"])
         s += [f"`pyvf bench scaling {args}`: each point in its own process; memory: the extra peak of one call "
-              f"({MEMORY_METHOD}).", ""] + [_img(p, out) + "\n" for p in rep.get("plots") or [None]]
-        s += [blocks[0], "", blocks[1], "", "<details><summary>every point</summary>", "", blocks[2], "", blocks[3],
-              "", "</details>", ""]
+              f"({MEMORY_METHOD}); every point in the JSON.", ""] + [_img(p, out) + "\n" for p in rep.get("plots") or [None]]
+        s += scaling.tables(rep["slopes"], [tuple(x) for x in rep["config"]["sizes"]], rep["config"]["methods"]) + [""]
     return "\n".join(s)
 
 

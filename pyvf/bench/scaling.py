@@ -30,13 +30,8 @@ from pyvf.bench.common import (MEMORY_METHOD, format_bytes, machine, ms, pyplot,
 
 SIZES, QUICK_SIZES = ((12, 64), (4, 32)), ((4, 32),)  # (H, dh): the paper's, and a small one
 VIEWS, QUICK_VIEWS = (2, 4, 8, 16, 32, 64), (2, 4, 8)
+KEYS = ("fwd_bytes", "fb_bytes", "fwd_seconds", "fb_seconds")  # what is measured, and fitted
 MAX_POINT_SECONDS = 120  # the naive approach's time grows as N^3: at N=64, H=12, minutes per call
-
-
-def _note(p):
-    if "skipped" in p or "error" in p:
-        return "skipped: " + p["skipped"] if "skipped" in p else "FAILED: " + p["error"].splitlines()[0][:100]
-    return "validated" if "errors" in p else ""
 
 
 def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
@@ -62,9 +57,13 @@ def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
                                                          validate=N == views[0])))
                     except RuntimeError as e:  # a crashed worker: written down, the study carries on
                         p["error"] = str(e)[-2000:]
-                log(f"  H={H} dh={dh} N={N:>2} {method:<12} " + (_note(p) if "skipped" in p or "error" in p else
-                    f"fwd {format_bytes(p['fwd_bytes'])} {ms(p['fwd_seconds'])}, fwd+bwd "
-                    f"{format_bytes(p['fb_bytes'])} {ms(p['fb_seconds'])}"), flush=True)
+                t = p["theory"]
+                log(f"  H={H} dh={dh} N={N:>2} {method:<12} " + (
+                    f"skipped: {p['skipped']}" if "skipped" in p else f"FAILED: {p['error'].splitlines()[0][:100]}"
+                    if "error" in p else f"memory (measured / expected) fwd {format_bytes(p['fwd_bytes'])} / "
+                    f"{format_bytes(t['expected_fwd'])}, fwd+bwd {format_bytes(p['fb_bytes'])} / "
+                    f"{format_bytes(t['expected_fb'])}; time fwd {ms(p['fwd_seconds'])}, fwd+bwd {ms(p['fb_seconds'])}"),
+                    flush=True)
                 points.append(p)
                 prev[method] = p
     return points
@@ -87,8 +86,7 @@ def fits(points, sizes, methods):
         out[f"{H}x{dh}"] = per = {}
         for method in methods:
             pts = [p for p in points if (p["method"], p["H"], p["dh"]) == (method, H, dh) and "fb_seconds" in p]
-            per[method] = {key: fit_slope([p["N"] for p in pts], [p[key] for p in pts])
-                           for key in ("fwd_bytes", "fb_bytes", "fwd_seconds", "fb_seconds")}
+            per[method] = {key: fit_slope([p["N"] for p in pts], [p[key] for p in pts]) for key in KEYS}
             per[method]["N"] = [p["N"] for p in pts]
     return out
 
@@ -97,22 +95,15 @@ def _s(x):
     return "-" if x is None else f"{x:.2f}"
 
 
-def tables(points, fit, sizes, methods):
-    """Per size, markdown: the fitted slopes, then every point."""
+def tables(fit, sizes, methods):
+    """Per size, markdown: the fitted slopes."""
     out = []
     for H, dh in sizes:
         f = fit[f"{H}x{dh}"]
-        out += [f"### H={H} dh={dh} (R={R} B={B} L={L}, float32): slopes of log(memory) and log(time) against log(N)",
-                table(["method", "memory fwd", "memory fwd+bwd", "time fwd", "time fwd+bwd", "N measured"],
-                      [[m, _s(f[m]["fwd_bytes"]), _s(f[m]["fb_bytes"]), _s(f[m]["fwd_seconds"]), _s(f[m]["fb_seconds"]),
-                        ",".join(map(str, f[m]["N"]))] for m in methods]),
-                "Every point: block pairs computed per head, memory expected / measured, median time:",
-                table(["N", "method", "block pairs", "fwd memory", "fwd+bwd memory", "fwd time", "fwd+bwd time", "note"],
-                      [[p["N"], p["method"], p["theory"]["block_pairs"],
-                        f"{format_bytes(p['theory']['expected_fwd'])} / {format_bytes(p.get('fwd_bytes'))}",
-                        f"{format_bytes(p['theory']['expected_fb'])} / {format_bytes(p.get('fb_bytes'))}",
-                        ms(p.get("fwd_seconds")), ms(p.get("fb_seconds")), _note(p)]
-                       for p in points if (p["H"], p["dh"]) == (H, dh)])]
+        rows = [[m, *(_s(f[m][k]) for k in KEYS), ",".join(map(str, f[m]["N"]))] for m in methods]
+        out.append(f"### H={H} dh={dh} (R={R} B={B} L={L}, float32): slopes of log(memory) and log(time) against "
+                   "log(N)\n\n" + table(["method", "memory fwd", "memory fwd+bwd", "time fwd", "time fwd+bwd",
+                                          "N measured"], rows))
     return out
 
 
@@ -155,7 +146,7 @@ def run(quick=False, threads=2, sizes=None, views=None, methods=tuple(METHODS), 
         f"{threads} threads\nmemory: {MEMORY_METHOD}\n")
     points = run_points(sizes, views, methods, threads, max_point_seconds, log=log)
     fit = fits(points, sizes, methods)
-    log("\n" + "\n\n".join(tables(points, fit, sizes, methods)))
+    log("\n" + "\n\n".join(tables(fit, sizes, methods)))
     report = dict(config=dict(views=list(views), sizes=[list(s) for s in sizes], threads=threads, methods=list(methods),
                               max_point_seconds=max_point_seconds), machine=machine(threads), points=points, slopes=fit,
                   failures=[f"H={p['H']} dh={p['dh']} N={p['N']} {p['method']}: {p['error']}" for p in points
