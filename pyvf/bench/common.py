@@ -80,9 +80,7 @@ def peak_memory(fn):
 
 
 def format_bytes(n):
-    """1536 -> '1.5 KiB'; powers of 1024, three significant figures; None -> '-'."""
-    if n is None:
-        return "-"
+    """1536 -> '1.5 KiB'; powers of 1024, three significant figures."""
     for unit in ("B", "KiB", "MiB", "GiB"):
         if abs(n) < 1024 or unit == "GiB":
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"

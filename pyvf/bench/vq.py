@@ -33,7 +33,7 @@ def brute_force(x, codes, chunk=512):
 
 
 def methods():
-    """name -> fn(x, codes) -> indices; the torch ones where torch is installed."""
+    """name -> fn(x, codes) -> indices (torch's where torch is installed)."""
     def numpy_expanded(x, codes):
         return ((x ** 2).sum(1, keepdims=True) - 2 * x @ codes.T + (codes ** 2).sum(1)).argmin(axis=1)
 

@@ -1,11 +1,6 @@
-"""`pyvf bench NAME [options]`: parses a benchmark's options and calls the run() of its module in
-pyvf.bench, which prints its tables and returns its report; the exit status is 1 when the report
-lists a failure (a result outside its bound, which is then not timed).
-
-    pyvf bench attention|vq|transformer|codebook [--quick] [--threads N] [--json F]
-    pyvf bench scaling [--quick] [--sizes 12x64,4x32] [--max-point-seconds S] [--json F] [--plots DIR]
-    pyvf bench accuracy|hardcases [--quick] [--json F] [--plots DIR]
-    pyvf bench report [--quick] [--out DIR]     # docs/performance.md and docs/accuracy.md, regenerated
+"""`pyvf bench NAME [--quick] [--threads N] [options]`: parses a benchmark's options and calls the
+run() of its module in pyvf.bench (`pyvf bench NAME --help`: its options); the exit status is 1
+when its report lists a failure (a result outside its bound, which is then not timed).
 """
 
 import argparse
