@@ -12,8 +12,6 @@ from pyvf.bench import accuracy, attention, common, hardcases, scaling, steps, v
 from pyvf.nn import layers
 
 QUIET = dict(log=lambda *a, **k: None)
-
-
 SMOKE = dict(attention=(3, 1, 2, 2, 16, 16), vq_nearest=(256, 64, 16), layernorm=(64, 64), cross_entropy=(64, 128),
              gelu=256, conv2d=(1, 8, 8, 8, 8))
 
@@ -25,19 +23,6 @@ def _keep_threads():
     yield
     pyvf.set_num_threads(n)
     torch.set_num_threads(nt)
-
-
-@pytest.fixture
-def nan_dq(monkeypatch):
-    """pyvf's attention backward with a NaN in dq (the other gradients right)."""
-    backward = pyvf.branching_attention_backward
-
-    def planted(*args, **kwargs):
-        dq, dk, dv = backward(*args, **kwargs)
-        dq = dq.copy()
-        dq.flat[0] = np.nan
-        return dq, dk, dv
-    monkeypatch.setattr(pyvf, "branching_attention_backward", planted)
 
 
 def test_validate_rejects_nan_shape_missing_and_error_above_the_bound():
@@ -57,11 +42,16 @@ def test_attention_validates_then_times_every_method():
     assert all(p["fb_seconds"] > 0 and p["fb_bytes"] >= 0 for p in report["points"])
 
 
-@pytest.mark.parametrize("plant, who", [("nan_dq", "pyvf"), ("transposed_mask", "torch SDPA")])
-def test_attention_does_not_time_a_wrong_method(plant, who, request, monkeypatch):
+@pytest.mark.parametrize("who", ["pyvf", "torch SDPA"])
+def test_attention_does_not_time_a_wrong_method(who, monkeypatch):
     """A NaN in pyvf's dq; torch given the transposed mask (the workers run in this process)."""
-    if plant == "nan_dq":
-        request.getfixturevalue("nan_dq")
+    if who == "pyvf":
+        backward = pyvf.branching_attention_backward
+
+        def planted(*args):
+            dq, dk, dv = backward(*args)
+            return np.where(dq == dq.flat[0], np.nan, dq), dk, dv
+        monkeypatch.setattr(pyvf, "branching_attention_backward", planted)
     else:
         mask = pyvf.branching_mask
         monkeypatch.setattr(pyvf, "branching_mask", lambda R, N, L: mask(R, N, L).T.copy())
@@ -71,18 +61,12 @@ def test_attention_does_not_time_a_wrong_method(plant, who, request, monkeypatch
     assert not any("fb_seconds" in p for p in report["points"] if "error" in p)
 
 
-@pytest.mark.parametrize("method", list(attention.METHODS))
-def test_scaling_point_validates_every_method(method):
-    """In process, at the smallest size: the naive stacked prefixes unstacked give back the
-    branching output and gradients (the stacking is right), the dense ones the same."""
-    out = attention.worker(dict(method=method, H=1, dh=8, N=2, threads=2, validate=True))
-    assert "error" not in out and max(out["errors"].values()) <= attention.BOUND_OTHERS, out
+def test_naive_stacked_prefixes_give_the_branching_output_and_gradients():
+    """In process, at the smallest size: the naive sequences, unstacked, give back the branching
+    output and gradients (the stacking is right)."""
+    out = attention.worker(dict(method="naive_pyvf", H=1, dh=8, N=2, threads=2, validate=True))
+    assert "error" not in out and max(out["errors"].values()) <= attention.BOUND32, out
     assert out["fb_bytes"] > 0 and out["fb_seconds"] > 0
-
-
-def test_scaling_point_with_a_nan_gradient_fails_validation(nan_dq):
-    out = attention.worker(dict(method="pyvf", H=1, dh=8, N=2, threads=2, validate=True))
-    assert out["error"].startswith("validation failed") and "fb_seconds" not in out, out
 
 
 def test_scaling_run_in_workers():
