@@ -23,7 +23,6 @@ SANITY (a wrong mask or layout is an O(1) error); one outside its bound is not t
 Time: the median of 5 calls (3 with --quick) after a warm-up.
 """
 
-import functools
 import math
 import os
 
@@ -306,5 +305,5 @@ def run(quick=False, threads=2, ops=tuple(OPS), plots=None, log=print):
         if plots and pyplot():
             os.makedirs(plots, exist_ok=True)
             res["plot"] = plot_op(res, plots)
-    return dict(config=dict(quick=quick, repeat=repeat), machine=machine(threads), results=results,
-                failures=[f"{res['op']} / {r['name']}: {r['fail']}" for res in results for r in res["variants"] if "fail" in r])
+    failures = [f"{res['op']} / {r['name']}: {r['fail']}" for res in results for r in res["variants"] if "fail" in r]
+    return dict(config=dict(quick=quick, repeat=repeat), machine=machine(threads), results=results, failures=failures)

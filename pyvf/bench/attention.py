@@ -161,8 +161,8 @@ def naive_contender(q, k, v, do):
     st = [stack_naive(x) for x in (q, k, v)] + [stack_naive(do, queries_only=True)]
     S = st[0].shape[0]
     c = pyvf_contender(*(x.reshape((1, S * B) + x.shape[2:]) for x in st))
-    outs = c["outs"]
-    c["outs"] = lambda: [unstack_naive(x.reshape(st[0].shape), R, keys) for x, keys in zip(outs(), (False, False, True, True))]
+    outs, keys = c["outs"], (False, False, True, True)  # o, dq are queries' (one sequence each); dk, dv keys'
+    c["outs"] = lambda: [unstack_naive(x.reshape(st[0].shape), R, key) for x, key in zip(outs(), keys)]
     return c
 
 

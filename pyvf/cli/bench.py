@@ -34,9 +34,9 @@ def _head_sizes(text):
 
 
 def _parser(name):
-    """A benchmark's parser; its module docstring's first paragraph as description, all of it as epilog."""
-    doc = _module(name).__doc__
-    p = argparse.ArgumentParser(prog=f"pyvf bench {name}", description=doc.split("\n\n")[0], epilog=doc,
+    """A benchmark's parser; its module docstring's first paragraph as description, the rest as epilog."""
+    doc = _module(name).__doc__.strip().split("\n\n")
+    p = argparse.ArgumentParser(prog=f"pyvf bench {name}", description=doc[0], epilog="\n\n".join(doc[1:]),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help=QUICK[name])
     add_threads(p, 2, "threads for pyvf and torch (default 2)")
@@ -49,7 +49,7 @@ def _parser(name):
     if name == "scaling":
         p.add_argument("--sizes", type=_head_sizes, help="comma-separated HxDH (default 12x64,4x32; 4x32 with --quick)")
         p.add_argument("--max-point-seconds", type=non_negative_float, default=_module(name).MAX_POINT_SECONDS,
-                       help="skip a point predicted to take longer (0: never)")
+                       help="skip a point predicted to take longer (default %(default)s; 0: never)")
     return p
 
 
