@@ -35,7 +35,9 @@ def test_validate_rejects_nan_shape_missing_and_error_above_the_bound():
         assert not ok and errs["b"] == np.inf, wrong
 
 
-def test_attention_validates_then_times_every_method():
+def test_attention_validates_then_times_every_method(monkeypatch):
+    """The workers in this process (worker processes: test_scaling_run_in_workers)."""
+    monkeypatch.setattr(attention, "run_worker", lambda module, spec: attention.worker(spec))
     report = attention.run(size=(1, 8, 2))
     assert report["failures"] == [] and [p["method"] for p in report["points"]] == ["pyvf", "dense_sdpa", "dense_numpy"]
     assert max(report["points"][0]["errors"].values()) <= attention.BOUND32
