@@ -25,7 +25,7 @@ def scaling_report(laws=LAWS):
     points = []
     for N in VIEWS:
         for m, (cm, pm, ct, pt, top) in laws.items():
-            p = dict(method=m, H=4, dh=32, N=N, theory=dict(block_pairs=N, expected_fwd=N, expected_fb=N))
+            p = dict(method=m, H=4, dh=32, N=N)
             if N > top:
                 p["skipped"] = "predicted 99 s > --max-point-seconds 30"
             else:
@@ -45,7 +45,7 @@ def test_scaling_line_states_the_measured_slopes_and_ratios(kind):
     want = [(f"{law[p]:.2f}", f"{law[c] * 16 ** law[p] / (LAWS['pyvf'][c] * 16 ** LAWS['pyvf'][p]):.3g}")
             for m, law in LAWS.items() if m in ("naive_pyvf", "dense_sdpa")]
     assert re.findall(r"N\^([\d.]+), ([\d.]+)x pyvf's", line) == want, line
-    assert "Not measured: dense masked (NumPy): predicted 99 s" in line, line
+    assert "Not measured: dense (T,T) mask, NumPy reference: predicted 99 s" in line, line
     # planted: a slope or a measurement that is not the law's changes the line
     rep = scaling_report()
     rep["slopes"]["4x32"]["naive_pyvf"][f"fb_{kind}"] += 0.1
@@ -64,11 +64,11 @@ def accuracy_report():
     """Two ops: on `fast` pyvf is 4x faster than torch at half its error; on `slow` 2x slower at
     the same error."""
     def variants(times, rels):
-        return [dict(name=n, backend=n.split()[0], bound=1e-3, seconds=t, rel=e, errors={"y": e})
+        return [dict(name=n, backend=n.split()[0], bound=1e-3, seconds=t, rel=e)
                 for n, t, e in zip(("pyvf float32", "pyvf float64", "torch float32", "numpy float32"), times, rels)]
     return dict(machine=dict(common.machine(2), generated="today"), config=dict(repeat=3), failures=[],
-                results=[dict(op="fast", size=[8], outputs=["y"], variants=variants((1, 2, 4, 9), (1e-7, 0, 2e-7, 3e-7))),
-                         dict(op="slow", size=[8], outputs=["y"], variants=variants((2, 3, 1, 1), (1e-7, 0, 1e-7, 1e-7)))])
+                results=[dict(op="fast", size=[8], variants=variants((1, 2, 4, 9), (1e-7, 0, 2e-7, 3e-7))),
+                         dict(op="slow", size=[8], variants=variants((2, 3, 1, 1), (1e-7, 0, 1e-7, 1e-7)))])
 
 
 def test_speed_error_line_states_the_time_and_error_ratios():
@@ -83,21 +83,23 @@ def test_speed_error_line_states_the_time_and_error_ratios():
 def test_report_writes_both_documents_plots_and_json(tmp_path, monkeypatch):
     """The runs replaced by made-up reports: the documents say what those measured, every image
     they show exists, every JSON is written."""
-    def fake_scaling(plots, json_path, **kw):
-        rep = scaling_report()
+    def fake_scaling(quick, threads, plots, **kw):
+        rep = dict(scaling_report(), failures=[])
         rep["plots"] = scaling.plot(rep["points"], rep["slopes"], [(4, 32)], rep["config"]["methods"], plots)
-        common.write_json(json_path, rep)
         return rep
 
     sweep = dict(name="layernorm", title="LayerNorm", xlabel="s", ylabel="error", x=[1.0, 10.0], bound_text="1e-6",
                  lines={"pyvf float32": [1e-7, 0.0], "one-pass float32": [1e-7, np.inf]},
                  bounds={"pyvf float32": [1e-6, 1e-6]})
     sweep["check"], sweep["breaks"] = hardcases.check(sweep)
+    acc = accuracy_report()
     monkeypatch.setattr(scaling, "run", fake_scaling)
-    monkeypatch.setattr(accuracy, "run", lambda *a, **k: accuracy_report())
-    monkeypatch.setattr(hardcases, "run", lambda *a, **k: dict(sweeps=[sweep], failures=[]))
+    monkeypatch.setattr(accuracy, "run", lambda quick, threads, plots, **k: dict(acc, results=[
+        dict(res, plot=accuracy.plot_op(res, plots)) for res in acc["results"]]))
+    monkeypatch.setattr(hardcases, "run", lambda quick, threads, plots, **k: dict(
+        sweeps=[dict(sweep, plot=hardcases.plot_sweep(sweep, plots))], failures=[]))
     out = tmp_path / "docs"
-    rep = report.run(quick=True, out=str(out), log=lambda *a, **k: None)
+    rep = report.run(True, out=str(out), log=lambda *a, **k: None)
     assert rep["failures"] == [] and rep["files"] == [str(out / "performance.md"), str(out / "accuracy.md")]
     perf, acc = (out / "performance.md").read_text(), (out / "accuracy.md").read_text()
     for doc in (perf, acc):

@@ -3,8 +3,6 @@ timing it: a bug planted in a timed computation (a NaN gradient, a transposed ma
 output off by 1e-3, a wrong code) must stop it or record a failure instead of printing a time.
 """
 
-import json
-
 import numpy as np
 import pytest
 import torch
@@ -13,7 +11,9 @@ import pyvf
 from pyvf.bench import accuracy, attention, common, hardcases, scaling, steps, vq
 from pyvf.nn import layers
 
-TINY = (3, 1, 1, 2, 8, 8)  # (R, B, H, N, L, dh)
+QUIET = dict(log=lambda *a, **k: None)
+SMOKE = dict(attention=(3, 1, 2, 2, 16, 16), vq_nearest=(256, 64, 16), layernorm=(64, 64), cross_entropy=(64, 128),
+             gelu=256, conv2d=(1, 8, 8, 8, 8))
 
 
 @pytest.fixture(autouse=True)
@@ -23,19 +23,6 @@ def _keep_threads():
     yield
     pyvf.set_num_threads(n)
     torch.set_num_threads(nt)
-
-
-@pytest.fixture
-def nan_dq(monkeypatch):
-    """pyvf's attention backward with a NaN in dq (the other gradients right)."""
-    backward = pyvf.branching_attention_backward
-
-    def planted(*args, **kwargs):
-        dq, dk, dv = backward(*args, **kwargs)
-        dq = dq.copy()
-        dq.flat[0] = np.nan
-        return dq, dk, dv
-    monkeypatch.setattr(pyvf, "branching_attention_backward", planted)
 
 
 def test_validate_rejects_nan_shape_missing_and_error_above_the_bound():
@@ -48,46 +35,46 @@ def test_validate_rejects_nan_shape_missing_and_error_above_the_bound():
         assert not ok and errs["b"] == np.inf, wrong
 
 
-def test_attention_validates_then_times_every_contender():
-    report = attention.run(*TINY, threads=2, repeat=3)
-    assert "aborted" not in report and set(report["results"]) == {"pyvf (C++ kernel)", "torch SDPA, dense bool mask",
-                                                                 "NumPy dense reference"}
-    assert max(report["errors"]["pyvf (C++ kernel)"].values()) <= attention.BOUND32
-    assert all(r["fb_seconds"] > 0 and r["fb_bytes"] >= 0 for r in report["results"].values())
+def test_attention_validates_then_times_every_method(monkeypatch):
+    """The workers in this process (worker processes: test_scaling_run_in_workers)."""
+    monkeypatch.setattr(attention, "run_worker", lambda module, spec: attention.worker(spec))
+    report = attention.run(size=(1, 8, 2))
+    assert report["failures"] == [] and [p["method"] for p in report["points"]] == ["pyvf", "dense_sdpa", "dense_numpy"]
+    assert max(report["points"][0]["errors"].values()) <= attention.BOUND32
+    assert all(p["fb_seconds"] > 0 and p["fb_bytes"] >= 0 for p in report["points"])
 
 
-@pytest.mark.parametrize("plant, who", [("nan_dq", "pyvf (C++ kernel)"), ("transposed_mask", "torch SDPA")])
-def test_attention_aborts_before_timing_a_wrong_contender(plant, who, request, monkeypatch):
-    """A NaN in pyvf's dq; torch given the transposed mask."""
-    if plant == "nan_dq":
-        request.getfixturevalue("nan_dq")
+@pytest.mark.parametrize("who", ["pyvf", "torch SDPA"])
+def test_attention_does_not_time_a_wrong_method(who, monkeypatch):
+    """A NaN in pyvf's dq; torch given the transposed mask (the workers run in this process)."""
+    if who == "pyvf":
+        backward = pyvf.branching_attention_backward
+
+        def planted(*args):
+            dq, dk, dv = backward(*args)
+            return np.where(dq == dq.flat[0], np.nan, dq), dk, dv
+        monkeypatch.setattr(pyvf, "branching_attention_backward", planted)
     else:
         mask = pyvf.branching_mask
         monkeypatch.setattr(pyvf, "branching_mask", lambda R, N, L: mask(R, N, L).T.copy())
-    report = attention.run(*TINY, threads=2, repeat=3)
-    assert who in report["aborted"] and "results" not in report
+    monkeypatch.setattr(attention, "run_worker", lambda module, spec: attention.worker(spec))
+    report = attention.run(size=(1, 8, 2))
+    assert len(report["failures"]) == 1 and who in report["failures"][0] and "gemm_gflops" not in report
+    assert not any("fb_seconds" in p for p in report["points"] if "error" in p)
 
 
-@pytest.mark.parametrize("method", list(scaling.METHODS))
-def test_scaling_point_validates_every_method(method):
-    """In process, at the smallest size: the naive stacked prefixes unstacked give back the
-    branching output and gradients (the stacking is right), the dense ones the same."""
-    out = scaling.worker(dict(method=method, H=1, dh=8, N=2, threads=2, repeat=1, validate=True))
-    assert "error" not in out and max(out["errors"].values()) <= scaling.BOUND_OTHERS, out
+def test_naive_stacked_prefixes_give_the_branching_output_and_gradients():
+    """In process, at the smallest size: the naive sequences, unstacked, give back the branching
+    output and gradients (the stacking is right)."""
+    out = attention.worker(dict(method="naive_pyvf", H=1, dh=8, N=2, threads=2, validate=True))
+    assert "error" not in out and max(out["errors"].values()) <= attention.BOUND32, out
     assert out["fb_bytes"] > 0 and out["fb_seconds"] > 0
 
 
-def test_scaling_point_with_a_nan_gradient_fails_validation(nan_dq):
-    out = scaling.worker(dict(method="pyvf", H=1, dh=8, N=2, threads=2, repeat=1, validate=True))
-    assert out["error"].startswith("validation failed") and "fb_seconds" not in out, out
-
-
-def test_scaling_run_in_workers_writes_its_json(tmp_path):
+def test_scaling_run_in_workers():
     """(The plots: test_bench_report.py.)"""
-    rep = scaling.run(((1, 8),), (2, 4), ("pyvf",), threads=2, repeat=1, json_path=str(tmp_path / "s.json"),
-                      log=lambda *a, **k: None)
-    assert not scaling.validation_failed(rep) and json.loads((tmp_path / "s.json").read_text())["points"]
-    assert [p.get("error") for p in rep["points"]] == [None] * 2
+    rep = scaling.run(sizes=((1, 8),), views=(2, 4), methods=("pyvf",), **QUIET)
+    assert rep["failures"] == [] and [p.get("error") for p in rep["points"]] == [None] * 2
     assert rep["slopes"]["1x8"]["pyvf"]["N"] == [2, 4]
 
 
@@ -101,8 +88,8 @@ def test_fit_slope_recovers_exact_power_laws(p):
 
 @pytest.mark.parametrize("op", list(accuracy.OPS))
 def test_accuracy_op_validates_and_times_every_variant(op, monkeypatch):
-    monkeypatch.setitem(accuracy.SIZES, "quick", accuracy.SIZES["smoke"])
-    res = accuracy.run_op(op, "quick", repeat=1, log=lambda *a, **k: None)
+    monkeypatch.setitem(accuracy.SIZES, True, SMOKE)
+    res = accuracy.run_op(op, True, repeat=1, **QUIET)
     assert [r["name"] for r in res["variants"]] == ["pyvf float32", "pyvf float64", "torch float32", "numpy float32"]
     for r in res["variants"]:
         assert "fail" not in r and r["rel"] <= r["bound"] and r["seconds"] > 0, r
@@ -113,15 +100,15 @@ def test_accuracy_variant_outside_its_bound_is_not_timed(monkeypatch):
     """pyvf's LayerNorm made 1e-3 off: both pyvf variants fail, untimed; torch and NumPy pass."""
     forward = layers.layernorm_forward
     monkeypatch.setattr(layers, "layernorm_forward", lambda *a, **k: (lambda y, c: (y * (1 + 1e-3), c))(*forward(*a, **k)))
-    monkeypatch.setitem(accuracy.SIZES, "quick", accuracy.SIZES["smoke"])
-    report = accuracy.run("quick", ops=("layernorm",), log=lambda *a, **k: None)
+    monkeypatch.setitem(accuracy.SIZES, True, SMOKE)
+    report = accuracy.run(True, ops=("layernorm",), **QUIET)
     assert [f.split(":")[0] for f in report["failures"]] == ["layernorm / pyvf float32", "layernorm / pyvf float64"]
     assert ["seconds" in r for r in report["results"][0]["variants"]] == [False, False, True, True]
 
 
 def test_hardcases_hold_and_the_naive_formulas_break_where_the_sweeps_say():
     """(The plots: test_bench_report.py.)"""
-    report = hardcases.run("quick", log=lambda *a, **k: None)
+    report = hardcases.run(True, **QUIET)
     assert report["failures"] == []
     brk = {sw["name"]: sw["breaks"] for sw in report["sweeps"]}
     assert 1e2 <= brk["attention-spread"]["naive exp (no max) float32"] <= 1e3
@@ -140,7 +127,7 @@ def test_hardcase_sweep_fails_when_pyvf_leaves_its_bound(monkeypatch):
         return (x - m) / np.sqrt((x * x).mean(-1, keepdims=True) - m * m + eps) * gamma + beta, None
     monkeypatch.setattr(layers, "layernorm_forward", one_pass)
     with np.errstate(invalid="ignore"):
-        report = hardcases.run("quick", names=("layernorm",), log=lambda *a, **k: None)
+        report = hardcases.run(True, names=("layernorm",), **QUIET)
     c = report["sweeps"][0]["check"]["pyvf float32"]
     assert not c["ok"] and c["first_x_out"] <= 1e2 and "layernorm / pyvf float32" in report["failures"][0]
     sw = dict(x=[1, 2], lines={"pyvf float32": [0.0, float("nan")]}, bounds={"pyvf float32": [1.0, 1.0]})
@@ -148,14 +135,15 @@ def test_hardcase_sweep_fails_when_pyvf_leaves_its_bound(monkeypatch):
 
 
 def test_vq_runs_and_refuses_to_time_a_wrong_method(monkeypatch):
-    assert vq.run(512, 64, 16, repeat=3, checked_rows=256)["failures"] == []
+    small = dict(quick=True, size=dict(M=512, K=64, D=16), checked_rows=256)
+    assert vq.run(**small)["failures"] == []
     methods = vq.methods
     monkeypatch.setattr(vq, "methods", lambda: dict(methods(), **{"torch cdist + argmin": lambda x, c: np.zeros(
         len(x), dtype=np.int64)}))
-    report = vq.run(512, 64, 16, repeat=3, checked_rows=256)
-    assert any("torch cdist" in f for f in report["failures"]) and "torch cdist + argmin" not in report["methods"]
+    report = vq.run(**small)
+    assert any("torch cdist" in f for f in report["failures"]) and report["methods"]["torch cdist + argmin"]["seconds"] is None
     monkeypatch.setattr(vq, "vq_nearest", lambda x, c: (np.zeros(len(x), dtype=np.int64), None))
-    assert "pyvf disagrees" in vq.run(512, 64, 16, repeat=3, checked_rows=256)["failures"][0]
+    assert "pyvf disagrees" in vq.run(**small)["failures"][0]
 
 
 def test_first_step_differs_on_nan_and_missing():
@@ -170,8 +158,8 @@ def test_first_step_differs_on_nan_and_missing():
 
 
 def test_transformer_backward_and_optimizer_bugs_are_caught_before_timing(monkeypatch):
-    t = steps.transformer_torch("tiny", 1)
-    assert steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t) is None
+    t = steps.transformer_torch("transformer", 1)
+    assert steps.first_step_differs(steps.transformer_pyvf("transformer", 1), t) is None
     with monkeypatch.context() as m:  # a square weight's gradient transposed
         backward = pyvf.Transformer.backward
 
@@ -180,15 +168,15 @@ def test_transformer_backward_and_optimizer_bugs_are_caught_before_timing(monkey
             name = next(n for n, x in g.items() if x.ndim == 2 and x.shape[0] == x.shape[1])
             return dict(g, **{name: np.ascontiguousarray(g[name].T)})
         m.setattr(pyvf.Transformer, "backward", transposed)
-        assert "gradients" in steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t)
+        assert "gradients" in steps.first_step_differs(steps.transformer_pyvf("transformer", 1), t)
     step = pyvf.AdamW.step  # uphill
     monkeypatch.setattr(pyvf.AdamW, "step", lambda self, grads: step(self, {k: -g for k, g in grads.items()}))
-    assert "after update" in steps.first_step_differs(steps.transformer_pyvf("tiny", 1), t)
+    assert "after update" in steps.first_step_differs(steps.transformer_pyvf("transformer", 1), t)
 
 
 def test_codebook_optimizer_bug_is_caught_before_timing(monkeypatch):
-    t = steps.codebook_torch("quick", 1)
-    assert steps.first_step_differs(steps.codebook_pyvf("quick", 1), t) is None
+    t = steps.codebook_torch("codebook-quick", 1)
+    assert steps.first_step_differs(steps.codebook_pyvf("codebook-quick", 1), t) is None
     step = pyvf.Adam.step
     monkeypatch.setattr(pyvf.Adam, "step", lambda self, grads: step(self, {k: -g for k, g in grads.items()}))
-    assert "after update" in steps.first_step_differs(steps.codebook_pyvf("quick", 1), t)
+    assert "after update" in steps.first_step_differs(steps.codebook_pyvf("codebook-quick", 1), t)

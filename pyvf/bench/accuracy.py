@@ -1,68 +1,55 @@
 """Speed against error: each op of pyvf, its error against a float64 reference beside its time,
 and the same for torch and the textbook NumPy formula.
 
-    pyvf bench accuracy                       # the sizes below; ~1 minute on 2 cores
-    pyvf bench accuracy --quick               # small sizes, seconds
-    pyvf bench accuracy --json F --plots DIR  # every number; a time-against-error plot per op
+    pyvf bench accuracy            # ~1 minute on 2 cores
+    pyvf bench accuracy --quick    # small sizes, seconds
 
-Ops (the time is of what the outputs need: `layernorm` is forward + backward, `attention_backward`
-the backward alone, given the forward's o and lse):
+The ops, each timed forward and backward:
 
-    attention_forward   pyvf.branching_attention_forward               o
-    attention_backward  pyvf.branching_attention_backward              dq, dk, dv
+    attention           pyvf.branching_attention_forward/_backward     o, dq, dk, dv
     vq_nearest          pyvf.vq_nearest                                squared distance to the code chosen
     layernorm           pyvf.nn.layers.layernorm_forward/_backward     y, dx, dgamma, dbeta
-    groupnorm           pyvf.nn.conv.groupnorm_forward/_backward       y, dx, dgamma, dbeta
     cross_entropy       pyvf.nn.losses.cross_entropy_forward/_backward loss, dlogits
     gelu                pyvf.nn.layers.gelu_forward/_backward          y, dx
     conv2d              pyvf.nn.conv.conv2d_forward/_backward          y, dx, dw, db
 
-Variants: pyvf float32 and float64, torch float32 (where torch is installed) and the NumPy
-textbook formula in float32 (the dense masked softmax, the expanded |x|^2 - 2 x.e + |e|^2
-distance, two-pass moments, softmax then log, 0.5 (1 + erf), shifted-window conv). Every variant
-gets the same numbers, drawn in float64 and rounded to float32, and is compared with a float64
-reference on them (NumPy float64 formulas written here; mpmath for GELU, whose float64 erf form
-loses every digit in the tail): the normwise error max|x - ref| / max|ref|, the largest over the
-op's outputs. Each variant is validated before it is timed: pyvf against the bound its tests
-state (BOUNDS), torch and NumPy against SANITY (the same function: a wrong mask or layout is an
-O(1) error). A variant outside its bound is not timed; the command then exits with status 1.
-Time: the median of 5 calls (3 with --quick) after a warm-up, on --threads threads.
+Variants: pyvf float32 and float64, torch float32 and the textbook NumPy formula in float32 (the
+dense masked softmax, the expanded |x|^2 - 2 x.e + |e|^2 distance, two-pass moments, softmax then
+log, 0.5 (1 + erf), shifted-window conv), all on the same numbers (drawn in float64, rounded to
+float32). Error: max|x - ref| / max|ref|, the largest over the op's outputs, against a float64
+reference (mpmath for GELU, whose float64 erf form loses every digit in the tail). Each variant is
+validated before it is timed: pyvf against its tests' bound (BOUNDS), torch and NumPy against
+SANITY (a wrong mask or layout is an O(1) error); one outside its bound is not timed, a failure.
+Time: the median of 5 calls (3 with --quick) after a warm-up.
 """
 
-import functools
 import math
 import os
-import time
 
 import numpy as np
 
 import pyvf
-from pyvf.bench.attention import flat, unflat
+from pyvf.bench import attention
 from pyvf.bench.common import machine, median_time, ms, pyplot, save_figure, table, torch_or_none, validate
 from pyvf.bench.vq import brute_force
 from pyvf.nn import conv, layers, losses
 
 U32, U64 = 2.0 ** -24, 2.0 ** -53  # unit roundoff
-SIZES = {
-    "full": dict(attention=(3, 1, 4, 8, 64, 64), vq=(8192, 1024, 64), layernorm=(4096, 256),
-                 groupnorm=(4, 128, 32, 32), cross_entropy=(2048, 1024), gelu=8192, conv2d=(4, 64, 64, 32, 32)),
-    "quick": dict(attention=(3, 1, 2, 4, 32, 32), vq=(2048, 256, 32), layernorm=(512, 128),
-                  groupnorm=(2, 64, 16, 16), cross_entropy=(256, 512), gelu=2048, conv2d=(2, 16, 16, 16, 16)),
-    "smoke": dict(attention=(3, 1, 2, 2, 16, 16), vq=(256, 64, 16), layernorm=(64, 64),  # the tests'
-                  groupnorm=(1, 64, 8, 8), cross_entropy=(64, 128), gelu=256, conv2d=(1, 8, 8, 8, 8)),
+SIZES = {  # by --quick
+    False: dict(attention=(3, 1, 4, 8, 64, 64), vq_nearest=(8192, 1024, 64), layernorm=(4096, 256),
+                cross_entropy=(2048, 1024), gelu=8192, conv2d=(4, 64, 64, 32, 32)),
+    True: dict(attention=(3, 1, 2, 4, 32, 32), vq_nearest=(2048, 256, 32), layernorm=(512, 128),
+               cross_entropy=(256, 512), gelu=2048, conv2d=(2, 16, 16, 16, 16)),
 }
 # pyvf's bounds (normwise relative, every output; float32, float64), the tests' where they have one:
 BOUNDS = {
-    "attention_forward": (1e-5, 1e-12),  # tests/test_attention.py RTOL32, RTOL64
-    "attention_backward": (1e-5, 1e-12),
+    "attention": (attention.BOUND32, attention.BOUND64),
     # the distance is summed in float64 from the chosen code and rounded once; in float64 a D-term
     # sum in another order than the reference's: D u = 7e-15 at D = 64
     "vq_nearest": (2 * U32, 1e-14),
     # dgamma and dbeta are float32 sums of 4096 rows of random-signed terms: ~12 u sqrt(n) = 4.6e-5
     # at worst, measured 2.1e-6 (NumPy's own float32 sum too): 1e-5
     "layernorm": (1e-5, 1e-13),
-    # groups of up to 4096 numbers, summed in float64: measured <= 1.5e-7
-    "groupnorm": (1e-6, 1e-13),
     # the log-sum-exp of V terms and one exp per dlogit: a few u on O(1) outputs; measured 2.3e-7
     "cross_entropy": (1e-6, 1e-13),
     "gelu": (4e-7, 1e-13),  # tests/test_layers.py RTOL32["gelu"], RTOL64
@@ -70,14 +57,13 @@ BOUNDS = {
     "conv2d": (2e-6, 1e-13),
 }
 # torch and NumPy compute the same function in float32 in their own order: a wiring error (mask,
-# layout, eps 1e-5 for GroupNorm's 1e-6) is O(1e-2..1); their rounding 1e-4 at most
+# layout, eps) is O(1e-2..1); their rounding 1e-4 at most
 SANITY = 1e-3
 
 
-# ---------------------------------------------------------------------------------------
 # ops: each a function (size, rng) -> dict(outputs, inputs (float64 arrays of float32 values),
-# reference (a list of float64 outputs), and pyvf, numpy, torch: x (inputs in the variant's dtype)
-# -> fn() -> the outputs)
+# reference (a list of float64 outputs), and pyvf, numpy, torch: x (the inputs in the variant's
+# dtype) -> fn() -> the outputs)
 
 
 def _round32(*arrays):
@@ -106,36 +92,13 @@ def _torch_vjp(f, dy, *args):
     return fn
 
 
-def attention_op(size, rng, backward):
-    R, B, H, N, L, dh = size
-    x = dict(zip("qkvd", _round32(*(rng.standard_normal(size) for _ in range(4)))))
-    mask = pyvf.branching_mask(R, N, L)
-
-    def pyvf_fn(x):
-        if not backward:
-            return lambda: [pyvf.branching_attention_forward(x["q"], x["k"], x["v"])[0]]
-        o, lse = pyvf.branching_attention_forward(x["q"], x["k"], x["v"])  # the forward is not timed
-        return lambda: list(pyvf.branching_attention_backward(x["d"], x["q"], x["k"], x["v"], o, lse))
-
-    def numpy_fn(x):  # the dense reference; its vjp recomputes the probabilities: forward + backward
-        if not backward:
-            return lambda: [pyvf.branching_attention_reference(x["q"], x["k"], x["v"])]
-        return lambda: list(pyvf.branching_attention_reference_vjp(x["q"], x["k"], x["v"], x["d"]))
-
-    def torch_fn(x):
-        import torch
-        import torch.nn.functional as F
-
-        leaves = [torch.from_numpy(flat(x[n])).requires_grad_(backward) for n in "qkv"]
-        sdpa = lambda: F.scaled_dot_product_attention(*leaves, attn_mask=torch.from_numpy(mask), scale=1.0)  # noqa: E731
-        if not backward:
-            return lambda: [unflat(sdpa().numpy(), size)]
-        o, d = sdpa(), torch.from_numpy(flat(x["d"]))  # the forward is not timed; its graph is kept
-        return lambda: [unflat(g.numpy(), size) for g in torch.autograd.grad(o, leaves, d, retain_graph=True)]
-
-    ref = numpy_fn(x)()
-    return dict(outputs=("dq", "dk", "dv") if backward else ("o",), inputs=x, reference=ref, pyvf=pyvf_fn,
-                numpy=numpy_fn, torch=torch_fn)
+def attention_op(size, rng):
+    """Branching attention forward + backward (pyvf bench attention's contenders): o, dq, dk, dv."""
+    x = _round32(*(rng.standard_normal(size) for _ in range(4)))  # q, k, v, do
+    outs = lambda contender: lambda x: contender(*x.values())["outs"]  # noqa: E731
+    return dict(outputs=attention.NAMES, inputs=dict(zip("qkvd", x)), reference=attention.reference64(*x),
+                pyvf=outs(attention.pyvf_contender), numpy=outs(attention.reference_contender),
+                torch=outs(attention.torch_contender))
 
 
 def vq_op(size, rng):
@@ -159,49 +122,29 @@ def vq_op(size, rng):
                 pyvf=lambda x: lambda: [pyvf.vq_nearest(x["x"], x["codes"])[1]], numpy=numpy_fn, torch=torch_fn)
 
 
-def _norm(xg, gamma, beta, dy, eps):
-    """The textbook two-pass norm over the last axis of xg (rows, n), gamma/beta per element: (y, dx, xhat)."""
-    xc = xg - xg.mean(-1, keepdims=True)
-    rstd = 1 / np.sqrt((xc * xc).mean(-1, keepdims=True) + eps)
-    xhat = xc * rstd
-    dxhat = dy * gamma
-    return xhat * gamma + beta, rstd * (dxhat - dxhat.mean(-1, keepdims=True) - xhat * (dxhat * xhat).mean(
-        -1, keepdims=True)), xhat
+def layernorm_op(size, rng):
+    """LayerNorm over the rows of (M, d), forward + backward: y, dx, dgamma, dbeta."""
+    M, d = size
+    x = rng.standard_normal(size) * rng.uniform(0.1, 3, (M, 1)) + rng.uniform(-3, 3, (M, 1))  # rows' own scale, offset
+    x = dict(zip(("x", "gamma", "beta", "dy"), _round32(x, 1 + 0.1 * rng.standard_normal(d),
+                                                         0.1 * rng.standard_normal(d), rng.standard_normal(size))))
 
-
-def norm_op(size, rng, groups):
-    """LayerNorm (groups None: rows of (M, d)) or GroupNorm (32 groups of (B, C, Hi, Wi), eps 1e-6,
-    the codebook's) forward + backward: y, dx, dgamma, dbeta."""
-    C = size[-1] if groups is None else size[1]
-    per_c = (1, C) if groups is None else (1, C, 1, 1)
-    eps = 1e-5 if groups is None else 1e-6
-    lead = (size[0], 1) if groups is None else (size[0], C, 1, 1)  # each row's (channel's) own scale and offset
-    x = rng.standard_normal(size) * rng.uniform(0.1, 3, lead) + rng.uniform(-3, 3, lead)
-    x = dict(zip(("x", "gamma", "beta", "dy"), _round32(x, 1 + 0.1 * rng.standard_normal(C),
-                                                         0.1 * rng.standard_normal(C), rng.standard_normal(size))))
-
-    def numpy_fn(x, eps=eps):
+    def numpy_fn(x):  # the textbook two-pass moments
         def fn():
-            g = (lambda a: a) if groups is None else (lambda a: a.reshape(size[0], groups, -1))  # noqa: E731
-            full = [np.broadcast_to(x[n].reshape(per_c), size) for n in ("gamma", "beta")]
-            y, dx, xhat = _norm(g(x["x"]), g(full[0]), g(full[1]), g(x["dy"]), x["x"].dtype.type(eps))
-            axes = (0,) if groups is None else (0, 2, 3)
-            return [y.reshape(size), dx.reshape(size), (x["dy"] * xhat.reshape(size)).sum(axes), x["dy"].sum(axes)]
+            xc = x["x"] - x["x"].mean(-1, keepdims=True)
+            rstd = 1 / np.sqrt((xc * xc).mean(-1, keepdims=True) + x["x"].dtype.type(1e-5))
+            xhat, dxhat = xc * rstd, x["dy"] * x["gamma"]
+            dx = rstd * (dxhat - dxhat.mean(-1, keepdims=True) - xhat * (dxhat * xhat).mean(-1, keepdims=True))
+            return [xhat * x["gamma"] + x["beta"], dx, (x["dy"] * xhat).sum(0), x["dy"].sum(0)]
         return fn
-
-    def pyvf_fn(x):
-        if groups is None:
-            return _pair(layers.layernorm_forward, layers.layernorm_backward, x["dy"], x["x"], x["gamma"], x["beta"], eps)
-        return _pair(conv.groupnorm_forward, conv.groupnorm_backward, x["dy"], x["x"], x["gamma"], x["beta"], groups, eps)
 
     def torch_fn(x):
         from torch.nn import functional as F
-        norm = (lambda *a: F.layer_norm(a[0], (C,), *a[1:], eps)) if groups is None else (
-            lambda *a: F.group_norm(a[0], groups, *a[1:], eps))
-        return _torch_vjp(norm, x["dy"], x["x"], x["gamma"], x["beta"])
+        return _torch_vjp(lambda *a: F.layer_norm(a[0], (d,), *a[1:], 1e-5), x["dy"], x["x"], x["gamma"], x["beta"])
 
-    return dict(outputs=("y", "dx", "dgamma", "dbeta"), inputs=x, reference=numpy_fn(x)(), pyvf=pyvf_fn,
-                numpy=numpy_fn, torch=torch_fn)
+    return dict(outputs=("y", "dx", "dgamma", "dbeta"), inputs=x, reference=numpy_fn(x)(), numpy=numpy_fn, torch=torch_fn,
+                pyvf=lambda x: _pair(layers.layernorm_forward, layers.layernorm_backward, x["dy"], x["x"], x["gamma"],
+                                     x["beta"], 1e-5))
 
 
 def cross_entropy_op(size, rng):
@@ -294,38 +237,24 @@ def conv2d_op(size, rng):
                 torch=torch_fn, numpy=lambda x: lambda: conv_windows(*x.values()))
 
 
-OPS = {  # name -> (its function (size, rng), its key in SIZES)
-    "attention_forward": (functools.partial(attention_op, backward=False), "attention"),
-    "attention_backward": (functools.partial(attention_op, backward=True), "attention"),
-    "vq_nearest": (vq_op, "vq"),
-    "layernorm": (functools.partial(norm_op, groups=None), "layernorm"),
-    "groupnorm": (functools.partial(norm_op, groups=32), "groupnorm"),
-    "cross_entropy": (cross_entropy_op, "cross_entropy"),
-    "gelu": (gelu_op, "gelu"),
-    "conv2d": (conv2d_op, "conv2d"),
-}
+OPS = {"attention": attention_op, "vq_nearest": vq_op, "layernorm": layernorm_op, "cross_entropy": cross_entropy_op,
+       "gelu": gelu_op, "conv2d": conv2d_op}  # name -> its function (size, rng)
 
 
-# ---------------------------------------------------------------------------------------
-# the benchmark
-
-
-def run_op(name, size="full", repeat=5, with_torch=True, log=print):
-    """Every variant of one op, validated, then timed: {op, size, outputs, variants: [{name,
-    backend, bound, errors, rel, seconds (if validated) or fail}]}."""
-    make, key = OPS[name]
-    op = make(SIZES[size][key], np.random.default_rng(0))
-    b32, b64 = BOUNDS[name]
-    res = dict(op=name, size=SIZES[size][key], outputs=list(op["outputs"]), variants=[])
+def run_op(name, quick=False, repeat=5, with_torch=True, log=print):
+    """Every variant of one op, validated, then timed: {op, size, variants: [{name, backend, bound,
+    rel (the error), seconds (if validated) or fail}]}."""
+    size = SIZES[quick][name]
+    op, (b32, b64) = OPS[name](size, np.random.default_rng(0)), BOUNDS[name]
+    res = dict(op=name, size=size, variants=[])
     for vname, backend, dtype, bound in (("pyvf float32", "pyvf", np.float32, b32), ("pyvf float64", "pyvf", np.float64, b64),
                                          ("torch float32", "torch", np.float32, SANITY),
                                          ("numpy float32", "numpy", np.float32, SANITY)):
         if backend == "torch" and not with_torch:
             continue
         fn = op[backend]({k: v.astype(dtype) for k, v in op["inputs"].items()})
-        r = dict(name=vname, backend=backend, bound=bound)
-        r["errors"], ok = validate(fn(), op["reference"], op["outputs"], bound)
-        r["rel"] = max(r["errors"].values())
+        errors, ok = validate(fn(), op["reference"], op["outputs"], bound)
+        r = dict(name=vname, backend=backend, bound=bound, rel=max(errors.values()))
         if ok:
             r["seconds"] = median_time(fn, repeat)[0]
         else:
@@ -342,51 +271,39 @@ def op_table(res):
                    f"FAIL: {r['fail']}" if "fail" in r else "ok"] for r in res["variants"]])
 
 
-def plot_all(report, folder):
-    """accuracy-<op>.png per op in folder: each variant a point (time, error), the unit roundoffs
-    dotted (an output's own rounding: the floor), an error of 0 drawn at 1e-17. The files, or None
-    without matplotlib."""
-    plt = pyplot()
-    if plt is None:
-        return None
+def plot_op(res, folder):
+    """accuracy-<op>.png in folder: each variant a point (time, error), the unit roundoffs dotted
+    (an output's own rounding: the floor), an error of 0 drawn at 1e-17. The path."""
     from matplotlib.ticker import NullFormatter
-    os.makedirs(folder, exist_ok=True)
-    files = []
-    for res in report["results"]:
-        fig, ax = plt.subplots(figsize=(8.4, 4.4), layout="constrained")
-        for r in res["variants"]:
-            if "seconds" in r:
-                ax.loglog(r["seconds"] * 1e3, max(r["rel"], 1e-17), dict(pyvf="o", torch="s", numpy="^")[r["backend"]],
-                          ms=8, label=r["name"])
-        for u in (U32, U64):
-            ax.axhline(u, color="0.4", ls=":", lw=1.0, label=f"unit roundoff, float32 {U32:.1e} / float64 {U64:.1e}")
-        ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.set(xlabel="median time (ms)", ylabel="normwise relative error vs float64 reference",
-               title=f"{res['op']}, size {res['size']}")
-        ax.grid(True, which="both", alpha=0.3)
-        res["plot"] = os.path.join(folder, f"accuracy-{res['op'].replace('_', '-')}.png")
-        save_figure(fig, res["plot"])
-        files.append(res["plot"])
-    return files
+    fig, ax = pyplot().subplots(figsize=(8.4, 4.4), layout="constrained")
+    for r in res["variants"]:
+        if "seconds" in r:
+            ax.loglog(r["seconds"] * 1e3, max(r["rel"], 1e-17), dict(pyvf="o", torch="s", numpy="^")[r["backend"]],
+                      ms=8, label=r["name"])
+    for u in (U32, U64):
+        ax.axhline(u, color="0.4", ls=":", lw=1.0, label=f"unit roundoff, float32 {U32:.1e} / float64 {U64:.1e}")
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set(xlabel="median time (ms)", ylabel="normwise relative error vs float64 reference",
+           title=f"{res['op']}, size {res['size']}")
+    ax.grid(True, which="both", alpha=0.3)
+    path = os.path.join(folder, f"accuracy-{res['op'].replace('_', '-')}.png")
+    save_figure(fig, path)
+    return path
 
 
-def run(mode="full", threads=2, ops=tuple(OPS), log=print):
-    """The whole benchmark ("full" or "quick" sizes; the median of 5 calls, 3 quick): {config,
-    machine, results (run_op's, per op), failures, total_seconds}."""
-    t0 = time.perf_counter()
-    repeat = 5 if mode == "full" else 3
+def run(quick=False, threads=2, ops=tuple(OPS), plots=None, log=print):
+    """The whole benchmark: prints each op's table, plots them in `plots` (a folder) if given and
+    matplotlib is installed (res["plot"]): {config, machine, results (run_op's), failures}."""
+    repeat = 3 if quick else 5
     pyvf.set_num_threads(threads)
     torch = torch_or_none()
     if torch is not None:
         torch.set_num_threads(threads)
-    results = [run_op(name, mode, repeat, torch is not None, log=log) for name in ops]
-    return dict(config=dict(mode=mode, repeat=repeat, bounds=BOUNDS, sanity=SANITY), machine=machine(threads),
-                results=results, failures=[f"{res['op']} / {r['name']}: {r['fail']}" for res in results
-                                           for r in res["variants"] if "fail" in r],
-                total_seconds=time.perf_counter() - t0)
-
-
-def print_report(report):
-    """Each op's table of variants (op_table)."""
-    for res in report["results"]:
-        print(f"\n## {res['op']}, size {res['size']}\n\n{op_table(res)}")
+    results = [run_op(name, quick, repeat, torch is not None, log=log) for name in ops]
+    for res in results:
+        log(f"\n## {res['op']}, size {res['size']}\n\n{op_table(res)}")
+        if plots and pyplot():
+            os.makedirs(plots, exist_ok=True)
+            res["plot"] = plot_op(res, plots)
+    failures = [f"{res['op']} / {r['name']}: {r['fail']}" for res in results for r in res["variants"] if "fail" in r]
+    return dict(config=dict(quick=quick, repeat=repeat), machine=machine(threads), results=results, failures=failures)

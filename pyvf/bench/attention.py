@@ -1,43 +1,39 @@
-"""Benchmark branching attention (docs/math.md §2): pyvf's C++ kernel against torch's
-scaled_dot_product_attention with the dense (T, T) mask and against the dense NumPy reference.
+"""Branching attention (docs/math.md §2), forward and forward+backward, at one size: pyvf's C++
+kernel against torch's scaled_dot_product_attention with the dense (T, T) mask and the dense
+NumPy reference; also the measurement of one point of `pyvf bench scaling` (worker()).
 
-    pyvf bench attention                   # paper size R=3, B=1, H=12, N=20, L=64, dh=64
-    pyvf bench attention --quick           # smaller sizes
-    pyvf bench attention --json out.json   # every number, machine-readable
+    pyvf bench attention           # paper size R=3, B=1, H=12, N=20, L=64, dh=64
+    pyvf bench attention --quick   # H=2, N=4, dh=32
 
-1. validates: each contender's output and gradients (float32) against the NumPy reference in
-   float64 on the same numbers, normwise (max|x - ref| / max|ref|), and pyvf float64 too; exits
-   with status 1, nothing timed, if pyvf is outside its bound or another outside BOUND_OTHERS (its
-   time would be that of another computation);
-2. measures the extra peak memory of one call of each, beside the memory expected for it;
-3. times forward and forward+backward of each (median of 5 calls), with the useful
-   GFLOP/s (attended block pairs only) and its share of the machine's float32 GEMM rate.
-
-Inputs are unit-normal, scale = 1 (the published model's unscaled logits). pyvf takes (R, B, H, N,
-L, dh); torch and the reference's flat sequence are (B, H, T, dh), T = R*N*L in the order
-[row][view][token]. Without torch, pyvf is timed against the dense NumPy reference alone.
+Each method runs in a process of its own (worker()): its output and gradients (float32) are first
+compared with the NumPy reference in float64, normwise (max|x - ref| / max|ref|), and one outside
+its bound is not timed; then one call's extra peak memory, beside the memory expected, and the
+median time of 5 calls. The table gives the useful GFLOP/s (attended block pairs only) and its
+share of the machine's float32 GEMM rate. Inputs unit-normal, scale 1 (the published model's
+unscaled logits); torch and the reference take the flat (B, H, T, dh) sequence, T = R*N*L in the
+order [row][view][token].
 """
-
-import time
 
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import (TORCH_MISSING, format_bytes, machine, median_time, memory_method, ms, peak_memory,
-                               table, torch_or_none, validate)
+from pyvf.bench.common import (MEMORY_METHOD, TORCH_MISSING, format_bytes, machine, median_time, ms, peak_memory,
+                               run_worker, table, torch_or_none, validate, worker_main)
 
-# pyvf's bounds, tests/test_attention.py's (RTOL64, RTOL32), where their reasons are written out:
-# float64 sums the reference's O(1) terms in another order (measured ~4e-15); float32 on unit-normal
-# inputs with scale 1 (logits up to ~40): a logit's rounding, sqrt(dh) 2^-24 |logit| ~ 2e-5 at
-# worst, moves each probability by that relative amount (measured ~2.5e-6); a bug is O(1).
-BOUND64, BOUND32 = 1e-12, 1e-5
-# torch SDPA and the reference in float32 round the logits in their own order (measured ~3.3e-6 at
-# the paper size): what is checked is that each computes the same function, where a wrong mask or
-# layout is an O(1) error
-BOUND_OTHERS = 1e-4
+WORKER = "pyvf.bench.attention"  # this module, run as `python -m WORKER SPEC` (worker_main)
+R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
+# pyvf's bounds, tests/test_attention.py's RTOL64 and RTOL32 (their reasons written out there); torch
+# SDPA and the reference in float32 round the logits in their own order (measured ~3.3e-6): a wrong
+# mask or layout is an O(1) error
+BOUND64, BOUND32, BOUND_OTHERS = 1e-12, 1e-5, 1e-4
 NAMES = ("o", "dq", "dk", "dv")
-PAPER = dict(R=3, B=1, H=12, N=20, L=64, dh=64)
-QUICK = dict(R=3, B=1, H=2, N=4, L=64, dh=32)
+METHODS = {
+    "pyvf": "pyvf branching kernel",
+    "naive_pyvf": "naive stacked, pyvf kernel at R=1",
+    "dense_sdpa": "dense (T,T) mask, torch SDPA",
+    "dense_numpy": "dense (T,T) mask, NumPy reference",
+}
+REPEAT = 5  # timed calls of each pass
 
 
 def flat(x):
@@ -52,34 +48,20 @@ def unflat(x, shape):
     return x.reshape(B, H, R, N, L, dh).transpose(2, 0, 1, 3, 4, 5)
 
 
-def make_inputs(R, B, H, N, L, dh, seed=0):
-    """q, k, v, do: unit-normal float32 arrays of shape (R, B, H, N, L, dh)."""
-    rng = np.random.default_rng(seed)
-    return [rng.standard_normal((R, B, H, N, L, dh), dtype=np.float32) for _ in range(4)]
-
-
 def attended_pairs(R, N):
     """Block pairs one (b, h) attends: trunk N(N+1)/2, each branch N(N-1)/2 + N (docs/math.md §2)."""
     return N * (N + 1) // 2 + (R - 1) * (N * (N - 1) // 2 + N)
 
 
-def useful_flops(R, B, H, N, L, dh):
-    """(forward, forward+backward) flops of the attended blocks: per block pair the forward is two
-    (L, L, dh) matmuls, q k^T and p v; the backward five more (q k^T recomputed, dv, dp, dq, dk)."""
-    fwd = 4 * L * L * dh * attended_pairs(R, N) * B * H
-    return fwd, 3.5 * fwd
-
-
 def expected_memory(method, R, B, H, N, L, dh, threads):
     """Bytes a float32 call should need above its inputs, outputs included: (forward, forward+backward).
 
-    "pyvf" (csrc/branching_attention.cpp): o like q and lse (R, B, H, N, L) float64, plus per thread
-    q^T and the accumulator (L, dh), s^T (L, L) and five L-vectors; the backward dq, dk, dv like q,
-    per thread q^T and do^T of one head (R*N*L, dh) and three (L, L) buffers, and (G-1) more dq,
-    G = min(ceil(16 / (B*H)), 8, R*N) key groups where B*H < 16. "sdpa", torch SDPA with the bool
-    mask: the mask made a float32 additive one (4 T^2), then o (and dq, dk, dv); its flash kernel
-    holds no logits. "numpy", the dense reference: s, p and p / sum(p), three (B, H, T, T) arrays,
-    beside its (T, T) bool mask."""
+    "pyvf" (csrc/branching_attention.cpp): o like q, lse (R, B, H, N, L) float64, per thread q^T and
+    the accumulator (L, dh), s^T (L, L) and five L-vectors; the backward dq, dk, dv like q, per
+    thread q^T and do^T of one head (R*N*L, dh) and three (L, L) buffers, and G-1 more dq, G =
+    min(ceil(16 / (B*H)), 8, R*N) key groups where B*H < 16. "dense_sdpa" (bool mask): the float32
+    additive mask (4 T^2), then o (and dq, dk, dv). "dense_numpy": s, p and p / sum(p), three
+    (B, H, T, T) arrays, beside its (T, T) bool mask."""
     S = R * B * H * N * L * dh * 4  # one array like q
     T = R * N * L
     if method == "pyvf":
@@ -88,35 +70,28 @@ def expected_memory(method, R, B, H, N, L, dh, threads):
         lse, fwd_thread = R * B * H * N * L * 8, threads * (2 * Lt * dh + Lt * Lt + 5 * Lt) * 4
         bwd_thread = threads * (2 * T * dh + 3 * T + 3 * Lt * Lt) * 4
         return S + lse + fwd_thread, S + lse + max(fwd_thread, (2 + G) * S + bwd_thread)
-    if method == "sdpa":
+    if method == "dense_sdpa":
         return 4 * T * T + S, 4 * T * T + 4 * S
     logits = B * H * T * T * 4
     return T * T + 3 * logits + S, T * T + 3 * logits + 3 * S
 
 
-# ---------------------------------------------------------------------------------------
 # the contenders: {fwd, fb (forward+backward), outs (-> [o, dq, dk, dv] in pyvf's layout)}
 
 
 def pyvf_contender(q, k, v, do):
     def fb():
         o, lse = pyvf.branching_attention_forward(q, k, v)
-        return o, pyvf.branching_attention_backward(do, q, k, v, o, lse)
-
-    def outs():
-        o, grads = fb()
-        return [o, *grads]
-    return dict(fwd=lambda: pyvf.branching_attention_forward(q, k, v)[0], fb=fb, outs=outs)
+        return [o, *pyvf.branching_attention_backward(do, q, k, v, o, lse)]
+    return dict(fwd=lambda: pyvf.branching_attention_forward(q, k, v)[0], fb=fb, outs=fb)
 
 
 def torch_contender(q, k, v, do):
-    """SDPA on the flat (B, H, T, dh) layout with the boolean (T, T) mask (True = attend), scale
-    1.0; the backward through autograd with the upstream gradient do."""
+    """SDPA on (B, H, T, dh) with the bool (T, T) mask (True = attend), scale 1; backward by autograd."""
     import torch
     import torch.nn.functional as F
 
-    R, N, L = q.shape[0], q.shape[3], q.shape[4]
-    mask = torch.from_numpy(pyvf.branching_mask(R, N, L))
+    mask = torch.from_numpy(pyvf.branching_mask(q.shape[0], q.shape[3], q.shape[4]))
     leaves = [torch.from_numpy(flat(x)).requires_grad_(True) for x in (q, k, v)]
     dot = torch.from_numpy(flat(do))
 
@@ -135,8 +110,7 @@ def torch_contender(q, k, v, do):
 
 
 def reference_contender(q, k, v, do):
-    """The dense NumPy reference; its forward+backward is branching_attention_reference_vjp, which
-    recomputes the probabilities and returns the gradients."""
+    """The dense NumPy reference; its vjp recomputes the probabilities."""
     def fwd():
         return pyvf.branching_attention_reference(q, k, v)
 
@@ -151,74 +125,122 @@ def reference64(q, k, v, do):
     return [pyvf.branching_attention_reference(*x64[:3]), *pyvf.branching_attention_reference_vjp(*x64)]
 
 
-def figures(c, repeat, warmup=1):
-    """A contender's extra peak memory of one call and median time, forward and forward+backward
-    (a call before, its validation or a warm-up, took the one-time costs: thread pools). The one
-    timer of the attention benchmarks: this one's and each point of scaling.py."""
-    out = {}
-    for name in ("fwd", "fb"):
-        _, out[f"{name}_bytes"] = peak_memory(c[name])
-        out[f"{name}_seconds"] = median_time(c[name], repeat, warmup)[0]
+def stack_naive(x, queries_only=False):
+    """(R, B, H, N, L, dh) -> (S, B, H, N, L, dh), S = 1 + (R-1)*N: sequence 0 is the trunk;
+    sequence 1 + (r-1)*N + i holds the trunk views 0..i-1, then branch r's view i, then zero views.
+    queries_only (the upstream gradient): zeros in place of the trunk copies, whose outputs the
+    naive approach throws away."""
+    R, B, H, N, L, dh = x.shape
+    out = np.zeros((1 + (R - 1) * N,) + x.shape[1:], dtype=x.dtype)
+    out[0] = x[0]
+    for r in range(1, R):
+        for i in range(N):
+            if not queries_only:
+                out[1 + (r - 1) * N + i, :, :, :i] = x[0, :, :, :i]
+            out[1 + (r - 1) * N + i, :, :, i] = x[r, :, :, i]
     return out
 
 
-# ---------------------------------------------------------------------------------------
-# the benchmark
+def unstack_naive(st, R, keys=False):
+    """stack_naive's inverse for an output or a gradient: a query token is in one sequence only (o,
+    dq); a trunk key in the trunk and in every later branch sequence, so its gradient (dk, dv:
+    keys=True) is the sum over them."""
+    N = st.shape[3]
+    out = np.zeros((R,) + st.shape[1:], dtype=st.dtype)
+    out[0] = st[0]
+    for r in range(1, R):
+        for i in range(N):
+            out[r, :, :, i] = st[1 + (r - 1) * N + i, :, :, i]
+            if keys:
+                out[0, :, :, :i] += st[1 + (r - 1) * N + i, :, :, :i]
+    return out
 
 
-def run(R, B, H, N, L, dh, threads=2, repeat=5):
-    """The benchmark at one size (the module docstring's steps): prints its tables and returns the
-    report. When a contender fails validation nothing is timed and report["aborted"] says so."""
-    t_start = time.perf_counter()
+def naive_contender(q, k, v, do):
+    """pyvf's kernel at R=1 on the stacked sequences, seen as one row of S*B batch entries."""
+    st = [stack_naive(x) for x in (q, k, v)] + [stack_naive(do, queries_only=True)]
+    S = st[0].shape[0]
+    c = pyvf_contender(*(x.reshape((1, S * B) + x.shape[2:]) for x in st))
+    outs, keys = c["outs"], (False, False, True, True)  # o, dq are queries' (one sequence each); dk, dv keys'
+    c["outs"] = lambda: [unstack_naive(x.reshape(st[0].shape), R, key) for x, key in zip(outs(), keys)]
+    return c
+
+
+def theory(method, H, N, dh, threads):
+    """{block_pairs computed per head, computed_flops (forward), expected_fwd, expected_fb (bytes)}."""
+    if method == "naive_pyvf":
+        S = 1 + (R - 1) * N
+        pairs = S * N * (N + 1) // 2
+        fwd, fb = expected_memory("pyvf", 1, S * B, H, N, L, dh, threads)
+    else:
+        pairs = attended_pairs(R, N) if method == "pyvf" else (R * N) ** 2
+        fwd, fb = expected_memory(method, R, B, H, N, L, dh, threads)
+    return dict(block_pairs=pairs, computed_flops=4 * L * L * dh * pairs * B * H, expected_fwd=fwd, expected_fb=fb)
+
+
+def worker(spec):
+    """One point, {method, H, dh, N, threads, validate} -> its measurements (a dict)."""
+    method, H, dh, N = spec["method"], spec["H"], spec["dh"], spec["N"]
+    pyvf.set_num_threads(spec["threads"])
+    q, k, v, do = np.random.default_rng(N).standard_normal((4, R, B, H, N, L, dh), dtype=np.float32)
+    if method == "dense_sdpa":
+        torch_or_none().set_num_threads(spec["threads"])
+    make = dict(pyvf=pyvf_contender, naive_pyvf=naive_contender, dense_sdpa=torch_contender,
+                dense_numpy=reference_contender)[method]
+    c, out = make(q, k, v, do), {}
+    if spec["validate"]:
+        bound = BOUND32 if "pyvf" in method else BOUND_OTHERS
+        out["errors"], ok = validate(c["outs"](), reference64(q, k, v, do), NAMES, bound)
+        if not ok:
+            return dict(out, error=f"validation failed: max rel. error {max(out['errors'].values()):.2e} > {bound:g}")
+    for name in ("fwd", "fb"):  # a warm-up call (thread pools), then one call's extra peak memory, then the time
+        c[name]()
+        _, out[f"{name}_bytes"] = peak_memory(c[name])
+        out[f"{name}_seconds"] = median_time(c[name], REPEAT, warmup=0)[0]
+    return out
+
+
+def run(quick=False, threads=2, size=None):
+    """The benchmark (module docstring) at size (H, dh, N) (default 12, 64, 20; 2, 32, 4 with quick):
+    prints its tables, returns the report; report["failures"] lists the methods outside their bound."""
+    H, dh, N = size or ((2, 32, 4) if quick else (12, 64, 20))
     torch = torch_or_none()
-    shape = (R, B, H, N, L, dh)
-    pyvf.set_num_threads(threads)
-    if torch is not None:
-        torch.set_num_threads(threads)
-    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, T=R * N * L, threads=threads, repeat=repeat),
-                  machine=dict(machine(threads), pyvf_threads=pyvf.num_threads()), memory_method=memory_method())
-    print(f"# Branching attention: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={R * N * L}), float32, scale 1, "
-          f"{threads} threads\nmachine: {report['machine']['processor']}; memory: {memory_method()}\n")
-    q, k, v, do = make_inputs(*shape)
-    ref = reference64(q, k, v, do)
-    contenders = {"pyvf (C++ kernel)": (pyvf_contender(q, k, v, do), BOUND32, "pyvf")}
-    if torch is not None:
-        contenders["torch SDPA, dense bool mask"] = (torch_contender(q, k, v, do), BOUND_OTHERS, "sdpa")
-    contenders["NumPy dense reference"] = (reference_contender(q, k, v, do), BOUND_OTHERS, "numpy")
-    report["errors"], failed = {}, []
-    checks = [("pyvf float64", pyvf_contender(*(x.astype(np.float64) for x in (q, k, v, do))), BOUND64)]
-    for name, c, bound in checks + [(n, c, b) for n, (c, b, _) in contenders.items()]:
-        report["errors"][name], ok = validate(c["outs"](), ref, NAMES, bound)
-        failed += [] if ok else [f"{name} above {bound:g}"]
-    print(table(["max rel. error vs float64 reference"] + list(NAMES),
-                [[n] + [f"{e[c]:.2e}" for c in NAMES] for n, e in report["errors"].items()]))
-    if failed:
-        report["aborted"] = "; ".join(failed)
-        print(f"\nvalidation failed: {report['aborted']}; nothing is timed", flush=True)
+    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, threads=threads), machine=machine(threads), points=[],
+                  failures=[])
+    print(f"# Branching attention: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={R * N * L}), float32, scale 1, {threads} "
+          f"threads, each method in its own process\nmachine: {report['machine']['processor']}; memory: {MEMORY_METHOD}\n")
+    for m in ("pyvf", "dense_sdpa", "dense_numpy") if torch else ("pyvf", "dense_numpy"):
+        p = dict(method=m, theory=theory(m, H, N, dh, threads),
+                 **run_worker(WORKER, dict(method=m, H=H, dh=dh, N=N, threads=threads, validate=True)))
+        report["points"].append(p)
+        report["failures"] += [f"{METHODS[m]}: {p['error']}: not timed"] if "error" in p else []
+    print(table(["max rel. error vs float64 reference", *NAMES],
+                [[METHODS[p["method"]]] + [f"{p['errors'][n]:.2e}" for n in NAMES] for p in report["points"]]) + "\n")
+    if report["failures"]:
         return report
-    print(f"\npyvf within {BOUND32:g} (float32) and {BOUND64:g} (float64), the others within {BOUND_OTHERS:g}: OK\n")
+    pyvf.set_num_threads(threads)
     a, b = np.random.default_rng(1).standard_normal((2, 1024, 1024), dtype=np.float32)
-    gemm = 2 * 1024 ** 3 / median_time(lambda: a @ b, repeat)[0] / 1e9  # the machine's float32 GEMM rate, GFLOP/s
-    f_fwd, f_fb = useful_flops(*shape)
-    rows, report["results"] = [], {}
-    for name, (c, _, method) in contenders.items():
-        r = report["results"][name] = figures(c, repeat, 0 if method == "numpy" else 1)
-        r["expected_fwd_bytes"], r["expected_fb_bytes"] = expected_memory(method, *shape, threads)
-        rows.append([name, ms(r["fwd_seconds"]), f"{f_fwd / r['fwd_seconds'] / 1e9:.1f}", ms(r["fb_seconds"]),
-                     f"{f_fb / r['fb_seconds'] / 1e9:.1f}", f"{f_fb / r['fb_seconds'] / 1e9 / gemm:.0%}",
-                     f"{format_bytes(r['fwd_bytes'])} / {format_bytes(r['expected_fwd_bytes'])}",
-                     f"{format_bytes(r['fb_bytes'])} / {format_bytes(r['expected_fb_bytes'])}"])
-    print(table(["", "forward", "GFLOP/s", "forward+backward", "GFLOP/s", "% of GEMM", "memory fwd (measured / "
-                 "expected)", "memory fwd+bwd"], rows))
-    print(f"\nmedian of {repeat} calls; GFLOP/s: useful flops (attended block pairs only, {attended_pairs(R, N)} of "
-          f"{(R * N) ** 2} per head) / time; GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s; memory: "
-          "the extra peak of one call, inputs excluded, outputs included")
-    res, pyvf_fb = report["results"], report["results"]["pyvf (C++ kernel)"]["fb_seconds"]
-    report["gemm_gflops"], report["ratio_over_pyvf"] = gemm, {n: r["fb_seconds"] / pyvf_fb for n, r in res.items()}
+    gemm = report["gemm_gflops"] = 2 * 1024 ** 3 / median_time(lambda: a @ b, REPEAT)[0] / 1e9  # float32 GEMM rate
+    f_fwd = 4 * L * L * dh * attended_pairs(R, N) * B * H  # useful flops: q k^T and p v per attended block pair
+    f_fb = 3.5 * f_fwd  # the backward: q k^T recomputed, dv, dp, dq, dk
+    rows = []
+    for p in report["points"]:
+        p["fb_of_gemm"] = f_fb / p["fb_seconds"] / 1e9 / gemm
+        rows.append([METHODS[p["method"]], ms(p["fwd_seconds"]), f"{f_fwd / p['fwd_seconds'] / 1e9:.1f}",
+                     ms(p["fb_seconds"]), f"{f_fb / p['fb_seconds'] / 1e9:.1f}", f"{p['fb_of_gemm']:.0%}",
+                     f"{format_bytes(p['fwd_bytes'])} / {format_bytes(p['theory']['expected_fwd'])}",
+                     f"{format_bytes(p['fb_bytes'])} / {format_bytes(p['theory']['expected_fb'])}"])
+    print(table(["", "forward", "GFLOP/s", "forward+backward", "GFLOP/s", "% of GEMM",
+                 "memory fwd (measured / expected)", "memory fwd+bwd"], rows))
+    print(f"\nmedian of {REPEAT} calls; GFLOP/s: useful flops ({attended_pairs(R, N)} of {(R * N) ** 2} block pairs "
+          f"per head) / time; GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s")
     if torch is None:
         print(f"torch SDPA: {TORCH_MISSING}")
-    print("forward+backward time over pyvf's: " + ", ".join(f"{n} {x:.2f}x" for n, x in report["ratio_over_pyvf"]
-                                                            .items() if not n.startswith("pyvf")))
-    report["total_seconds"] = time.perf_counter() - t_start
+    pyvf_fb = report["points"][0]["fb_seconds"]
+    print("forward+backward time over pyvf's: " + ", ".join(f"{METHODS[p['method']]} {p['fb_seconds'] / pyvf_fb:.2f}x"
+                                                            for p in report["points"][1:]))
     return report
 
+
+if __name__ == "__main__":  # a worker: `python -m pyvf.bench.attention SPEC`
+    worker_main(worker)

@@ -1,16 +1,8 @@
-"""What every benchmark shares: the one timer and the one validator, memory measured, the
-machine's name, worker processes, tables, JSON and plots. NumPy and the standard library only
-(matplotlib where a plot is asked for, torch where a benchmark compares with it).
+"""What the benchmarks share: the validator, the memory measurement, the machine's name, worker
+processes, tables, JSON and plots. The timer is pyvf/_machine.py's median_time (re-exported).
 
-    seconds, times = median_time(fn, repeat=5, warmup=1)   # the one timer (pyvf/_machine.py)
-    errs, ok = validate(outs, refs, names, bound)        # the one validator: normwise errors vs float64
-    result, extra = peak_memory(fn)   # bytes of resident memory fn() needed above what was resident before
-    print(table(header, rows)); write_json(path, report)
-
-peak_memory measures the process's resident memory (Linux VmHWM: Linux only), so it covers every
-allocation the call makes: NumPy arrays, C++ workspace, torch tensors. It counts the call's
-outputs (alive when fn returns), and nothing allocated before the call: allocate the inputs
-first, then measure.
+    errs, ok = validate(outs, refs, names, bound)   # normwise errors against float64 references
+    result, extra = peak_memory(fn)                 # bytes resident at fn()'s peak above before it
 """
 
 import gc
@@ -23,13 +15,13 @@ import numpy as np
 from .._io import atomic_write_text
 from .._machine import cpu_name, median_time  # noqa: F401  (re-exported: the benchmarks import them from here)
 from .._memory import map_fresh_pages
-from .._threads import blas_num_threads
 
 TORCH_MISSING = "torch is not installed (the torch extra: pip install 'pyvf[torch]')"
+MEMORY_METHOD = "resident memory (Linux VmHWM): every allocation counts, NumPy, C++ workspace and torch; outputs included"
 
 
 def torch_or_none():
-    """torch, or None where it is not installed (its column then says TORCH_MISSING)."""
+    """torch, or None where it is not installed."""
     try:
         import torch
     except ImportError:
@@ -38,26 +30,20 @@ def torch_or_none():
 
 
 def machine(threads):
-    """The machine a report ran on: CPU, versions, pyvf's kernel path, the threads (numpy's BLAS
-    pool's too: pyvf.set_num_threads, which every benchmark calls, sets it with the kernels')."""
+    """The machine a report ran on: CPU, versions, pyvf's kernel path, the threads."""
     import platform
 
     import pyvf
     torch = torch_or_none()
     return dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
                 python=platform.python_version(), numpy=np.__version__, torch=torch and torch.__version__,
-                pyvf=pyvf.__version__, kernel_path=pyvf.kernel_path(), kernel_paths=pyvf.kernel_paths(),
-                threads=threads, blas_threads=blas_num_threads())
-
-
-# ---------------------------------------------------------------------------------------
-# the validator
+                pyvf=pyvf.__version__, kernel_path=pyvf.kernel_path(), kernel_paths=pyvf.kernel_paths(), threads=threads)
 
 
 def validate(outs, refs, names, bound):
     """Each output against its float64 reference: ({name: max|x - ref| / max|ref|}, worst <= bound).
-    An output holding a NaN or an inf, of another shape, or missing is an error of inf: a NaN
-    compares False with every bound, so it would otherwise pass unseen."""
+    An output holding a NaN or an inf, of another shape, or missing is an error of inf (a NaN
+    compares False with every bound, so it would otherwise pass unseen)."""
     outs = list(outs)
     errs = {}
     for i, (name, ref) in enumerate(zip(names, refs)):
@@ -69,10 +55,6 @@ def validate(outs, refs, names, bound):
     return errs, max(errs.values()) <= bound
 
 
-# ---------------------------------------------------------------------------------------
-# memory
-
-
 def _status_bytes(field):
     """A memory field of /proc/self/status ("VmRSS", "VmHWM"), in bytes."""
     with open("/proc/self/status") as f:
@@ -82,35 +64,23 @@ def _status_bytes(field):
     raise OSError(field)
 
 
-def _reset_hwm():
-    """Reset the kernel's peak-resident counter VmHWM to the current VmRSS (Linux >= 4.0)."""
-    with open("/proc/self/clear_refs", "w") as f:
-        f.write("5")
-
-
-def memory_method():
-    """One line saying how peak_memory measures."""
-    return "resident memory (Linux VmHWM): every allocation counts, NumPy, C++ workspace and torch; outputs included"
-
-
 def peak_memory(fn):
-    """Run fn() once: (result, the peak resident memory while it ran minus the resident memory just
-    before). Page granularity; the kernel's per-CPU counters lag by a few dozen pages, so below
-    ~1 MiB it is approximate. Call fn once before to keep one-time costs (thread pools) out.
-    Frees go back to the system from here on (pyvf._memory.map_fresh_pages), so that a call cannot
-    reuse what an earlier one freed and look as if it needed nothing."""
+    """Run fn() once: (result, peak resident memory while it ran minus the resident memory just
+    before), Linux only. Page granularity, approximate below ~1 MiB. It counts fn's outputs, not
+    what was allocated before: make the inputs first, and call fn once before (thread pools).
+    Frees go back to the system from here on (map_fresh_pages), so that a call cannot reuse what an
+    earlier one freed and look as if it needed nothing."""
     gc.collect()
     map_fresh_pages()
     before = _status_bytes("VmRSS")
-    _reset_hwm()
+    with open("/proc/self/clear_refs", "w") as f:  # VmHWM reset to VmRSS (Linux >= 4.0)
+        f.write("5")
     result = fn()
     return result, max(_status_bytes("VmHWM") - before, 0)
 
 
 def format_bytes(n):
-    """1536 -> '1.5 KiB'; powers of 1024, three significant figures; None -> '-'."""
-    if n is None:
-        return "-"
+    """1536 -> '1.5 KiB'; powers of 1024, three significant figures."""
     for unit in ("B", "KiB", "MiB", "GiB"):
         if abs(n) < 1024 or unit == "GiB":
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
@@ -118,19 +88,14 @@ def format_bytes(n):
 
 
 def ms(seconds):
-    """0.0123 -> '12.3 ms'; three significant figures, whole milliseconds from a second on; None -> '-'."""
+    """0.0123 -> '12.3 ms'; None -> '-'."""
     return "-" if seconds is None else f"{seconds * 1e3:.3g} ms" if seconds < 1 else f"{seconds * 1e3:.0f} ms"
 
 
-# ---------------------------------------------------------------------------------------
-# worker processes
-
-
 def run_worker(module, spec):
-    """Run `python -m module SPEC` (SPEC the JSON of the dict spec) in a fresh process and return
-    the JSON object printed on its last line (worker_main): each framework's thread pool, or each
-    point's memory, in a process of its own. It starts in the folder that holds this pyvf package,
-    so that it imports the same pyvf, not a source tree in the working folder."""
+    """`python -m module JSON(spec)` in a fresh process (each framework's thread pool, or each
+    point's memory, in a process of its own): the JSON object on its last line (worker_main). It
+    starts in the folder above this pyvf package, so that it imports the same pyvf."""
     import subprocess
 
     import pyvf
@@ -147,10 +112,6 @@ def worker_main(work):
     print(json.dumps(work(json.loads(sys.argv[1]))))
 
 
-# ---------------------------------------------------------------------------------------
-# tables, files, plots
-
-
 def table(header, rows):
     """A markdown table of str()-able cells, each column as wide as its widest cell."""
     widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
@@ -159,13 +120,12 @@ def table(header, rows):
 
 
 def write_json(path, report):
-    """A benchmark's report as JSON, written whole or not at all."""
+    """A report as JSON, written whole or not at all."""
     atomic_write_text(path, json.dumps(report, indent=1))
 
 
 def pyplot():
-    """matplotlib.pyplot on the file-only Agg backend, or None where matplotlib (the `plots`
-    extra, `pip install pyvf[plots]`) is not installed."""
+    """matplotlib.pyplot on the Agg backend, or None where matplotlib (the `plots` extra) is missing."""
     try:
         import matplotlib
 
@@ -177,8 +137,7 @@ def pyplot():
 
 
 def save_figure(fig, path, where="right upper", ncol=1):
-    """One legend for every axes of fig, outside them (fig made with layout="constrained"), then
-    fig written to path and closed."""
+    """One legend for every axes of fig, outside them (layout="constrained"); fig written and closed."""
     seen = {}
     for ax in fig.axes:
         for handle, label in zip(*ax.get_legend_handles_labels()):

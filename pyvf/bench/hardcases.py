@@ -2,35 +2,30 @@
 showing where the textbook formula breaks and that pyvf stays within its stated bound over the
 whole range.
 
-    pyvf bench hardcases                       # every sweep; ~1 minute on 2 cores
-    pyvf bench hardcases --quick               # fewer points, smaller problems
-    pyvf bench hardcases --json F --plots DIR  # every number; one plot per sweep (hardcase-*.png)
+    pyvf bench hardcases           # ~1 minute on 2 cores
+    pyvf bench hardcases --quick   # fewer points, smaller problems
 
-Each sweep has a line per variant (its error against a reference at every point) and pyvf's bound
-as a function of the swept quantity. The reference is computed on the very numbers the variants
-see: float64 where that is exact enough, long double for the norm, mpmath for GELU and the
-cross-entropy. A pyvf line that leaves its bound anywhere fails the sweep, and the command exits
-with status 1; a NaN or inf counts as an error of inf. (The nearest-code search's cancellation far
-from the origin is `pyvf bench vq`'s table of offsets; the quaternion hard cases are tests in
-tests/test_geometry.py.)
+Each sweep has a line per variant (its error against a reference at every point, computed on the
+very numbers the variants see: float64, long double for the norm, mpmath for GELU and the
+cross-entropy) and pyvf's bound as a function of the swept quantity. A pyvf line that leaves its
+bound anywhere (a NaN or an inf counts as an error of inf) is a failure. The nearest code's
+cancellation far from the origin is `pyvf bench vq`'s table of offsets.
 
-Sweeps:
-  attention-spread  logits of size s = 1..1e6 (random q, k): float32 softmax without the max
-                    subtracted overflows at s ~ 88; pyvf, torch and the max-subtracted reference
-                    are limited by the logits' own float32 rounding, delta ~ dh u s
-  attention-mask    attended logits near -s, s = 1..1e6: the published mask, logits * mask - 1e4 *
-                    (1 - mask), puts the weight on the masked keys once s > 1e4; pyvf excludes them
-  layernorm         rows of mean s times their spread, s = 1..1e6: the one-pass variance
-                    E[x^2] - E[x]^2 cancels; pyvf's two passes do not
-  gelu              x in [-40, 0], error in ulps of the true value: 0.5 (1 + erf(x/sqrt 2)) (torch's
-                    exact GELU) cancels from x ~ -6 and is 0 past -8.4 (float64)
-  cross-entropy     target logit s = 1..1e4 below the row's maximum: -log(softmax) gives inf once
-                    the probability underflows; the log-sum-exp form does not
+    attention-spread  logits of size s = 1..1e6 (random q, k): float32 softmax without the max
+                      subtracted overflows at s ~ 88; pyvf, torch and the max-subtracted reference
+                      are limited by the logits' own float32 rounding, delta ~ dh u s
+    attention-mask    attended logits near -s, s = 1..1e6: the published mask, logits * mask - 1e4 *
+                      (1 - mask), puts the weight on the masked keys once s > 1e4; pyvf excludes them
+    layernorm         rows of mean s times their spread, s = 1..1e6: the one-pass variance
+                      E[x^2] - E[x]^2 cancels; pyvf's two passes do not
+    gelu              x in [-40, 0], error in ulps of the true value: 0.5 (1 + erf(x/sqrt 2)) (torch's
+                      exact GELU) cancels from x ~ -6 and is 0 past -8.4 (float64)
+    cross-entropy     target logit s = 1..1e4 below the row's maximum: -log(softmax) gives inf once
+                      the probability underflows; the log-sum-exp form does not
 """
 
 import math
 import os
-import time
 
 import numpy as np
 
@@ -58,12 +53,12 @@ def _dense(q, k, v, mask, sentinel=False, subtract_max=True):
         return p / p.sum(-1, keepdims=True) @ v
 
 
-def attention_sweep(name, mode, rng):
+def attention_sweep(name, quick, rng):
     """attention-spread or attention-mask. Error: max|o - o_ref| / max|v| (o is a weighted mean of
     v). pyvf float32's bound: (e^(2 delta) - 1) + 1e-5, delta = dh u max sum|q k|, the largest
     rounding a float32 logit can carry (tests/test_attention.py); float64's 4 s u64 + 1e-12, s the
     largest |logit|."""
-    shape = (3, 1, 2, 4, 16, 32) if mode == "full" else (3, 1, 2, 3, 8, 16)  # (R, B, H, N, L, dh)
+    shape = (3, 1, 2, 3, 8, 16) if quick else (3, 1, 2, 4, 16, 32)  # (R, B, H, N, L, dh)
     R, B, H, N, L, dh = shape
     mask = pyvf.branching_mask(R, N, L)
     torch = torch_or_none()
@@ -71,7 +66,7 @@ def attention_sweep(name, mode, rng):
                              "published -1e4 mask float32", "published -1e4 mask float64")
              + (("torch SDPA float32",) if torch else ())}
     bounds = {"pyvf float32": [], "pyvf float64": []}
-    values = np.logspace(0, 6, 13 if mode == "full" else 7)
+    values = np.logspace(0, 6, 7 if quick else 13)
     for s in values:
         q, k, v = (rng.standard_normal(shape) for _ in range(3))
         if name == "attention-spread":  # |logit| up to s
@@ -105,15 +100,15 @@ def attention_sweep(name, mode, rng):
                                           "float32 rounding); float64: 4 s u64 + 1e-12")
 
 
-def layernorm_sweep(mode, rng):
+def layernorm_sweep(quick, rng):
     """Rows of mean +-s and spread 1, gamma = 1, beta = 0 (y = xhat). Error: max|y - y_ref| /
     max|y_ref|, y_ref in long double. pyvf's bound: its tests' for ordinary rows, whatever s (the
     second centring pass makes the large mean cost nothing)."""
-    shape, eps = ((256, 256) if mode == "full" else (64, 64)), 1e-5
+    shape, eps = ((64, 64) if quick else (256, 256)), 1e-5
     torch = torch_or_none()
     lines = {n: [] for n in ("pyvf float32", "pyvf float64", "one-pass float32", "one-pass float64",
                              "numpy two-pass float32") + (("torch float32",) if torch else ())}
-    values = np.logspace(0, 6, 13 if mode == "full" else 7)
+    values = np.logspace(0, 6, 7 if quick else 13)
     for s in values:
         x = s * rng.choice([-1.0, 1.0], (shape[0], 1)) + rng.standard_normal(shape)
         for dtype, tag in ((np.float32, "float32"), (np.float64, "float64")):
@@ -140,11 +135,11 @@ def layernorm_sweep(mode, rng):
                 bound_text="float32 1e-6, float64 1e-13 (the tests' bounds for ordinary rows), at every s")
 
 
-def gelu_sweep(mode, rng):
+def gelu_sweep(quick, rng):
     """x on [-40, 0]; error in ulps of the true value (np.spacing of the rounded true value: the
     subnormal step below the normal range). pyvf's bound (tests/test_layers.py): 4 ulp plus, where
     Phi(x) is subnormal, the |x| * (smallest subnormal) its rounding can cost the product."""
-    x64 = np.linspace(0, -40, 161 if mode == "full" else 21)
+    x64 = np.linspace(0, -40, 21 if quick else 161)
     want = np.array([[float(a), float(b)] for a, b in map(gelu_mp, x64)])  # (n, 2): gelu, gelu'
     torch = torch_or_none()
     lines, bounds = {}, {}
@@ -172,14 +167,14 @@ def gelu_sweep(mode, rng):
                            "gelu': 4 ulp of |Phi| + |x phi| (its two terms cancel near x = -0.75)")
 
 
-def cross_entropy_sweep(mode, rng):
+def cross_entropy_sweep(quick, rng):
     """Rows of V logits N(0, 1), the target's logit s below the row's maximum. Error: max over rows of
     |loss - loss_ref| / loss_ref (mpmath log-sum-exp on the same numbers). pyvf's bound: (V + 4) u:
     the V-term sum of exponentials, the log, and the one rounding of the target logit's difference."""
     import mpmath
 
-    M, V = (16, 1024) if mode == "full" else (4, 256)
-    values = np.logspace(0, 4, 9 if mode == "full" else 5)
+    M, V = (4, 256) if quick else (16, 1024)
+    values = np.logspace(0, 4, 5 if quick else 9)
     torch = torch_or_none()
     lines = {n: [] for n in ("pyvf float32", "pyvf float64", "naive -log(softmax) float32",
                              "naive -log(softmax) float64") + (("torch float32",) if torch else ())}
@@ -206,8 +201,8 @@ def cross_entropy_sweep(mode, rng):
 
 
 SWEEPS = {
-    "attention-spread": lambda mode, rng: attention_sweep("attention-spread", mode, rng),
-    "attention-mask": lambda mode, rng: attention_sweep("attention-mask", mode, rng),
+    "attention-spread": lambda quick, rng: attention_sweep("attention-spread", quick, rng),
+    "attention-mask": lambda quick, rng: attention_sweep("attention-mask", quick, rng),
     "layernorm": layernorm_sweep,
     "gelu": gelu_sweep,
     "cross-entropy": cross_entropy_sweep,
@@ -235,12 +230,8 @@ def check(sw):
 
 def plot_sweep(sw, folder):
     """hardcase-<name>.png: a line per variant, pyvf's bounds dashed, non-finite errors drawn as x at
-    the top; errors below the floor (0 among them) drawn at it. The path, or None without matplotlib."""
-    plt = pyplot()
-    if plt is None:
-        return None
-    os.makedirs(folder, exist_ok=True)
-    fig, ax = plt.subplots(figsize=(9.6, 4.8), layout="constrained")
+    the top; errors below the floor (0 among them) drawn at it. The path."""
+    fig, ax = pyplot().subplots(figsize=(9.6, 4.8), layout="constrained")
     x = np.asarray(sw["x"], dtype=np.float64)
     finite = [v for vals in sw["lines"].values() for v in vals if np.isfinite(v) and v > 0]
     floor, top = min(finite) / 10, max(finite) * 10
@@ -272,29 +263,19 @@ def sweep_summary(sw):
     return "\n".join(out)
 
 
-def run(mode="full", threads=2, names=tuple(SWEEPS), log=print):
-    """Every sweep named: {config, machine, sweeps (each with its check and breaks), failures}."""
-    t0 = time.perf_counter()
+def run(quick=False, threads=2, names=tuple(SWEEPS), plots=None, log=print):
+    """Every sweep named, each checked, printed and plotted in `plots` (a folder) if given and
+    matplotlib is installed (sw["plot"]): {config, machine, sweeps, failures}."""
     pyvf.set_num_threads(threads)
     sweeps = []
     for name in names:
-        sw = SWEEPS[name](mode, np.random.default_rng(0))
+        sw = SWEEPS[name](quick, np.random.default_rng(0))
         sw["check"], sw["breaks"] = check(sw)
-        log(f"  {name:<16} {'PASS' if all(c['ok'] for c in sw['check'].values()) else 'FAIL'}", flush=True)
+        log(f"\n## {sw['title']}\n\n{sweep_summary(sw)}", flush=True)
+        if plots and pyplot():
+            os.makedirs(plots, exist_ok=True)
+            sw["plot"] = plot_sweep(sw, plots)
         sweeps.append(sw)
     failures = [f"{sw['name']} / {n}: first out at x = {c['first_x_out']:.3g} (worst error / bound "
                 f"{c['worst_ratio']:.2g})" for sw in sweeps for n, c in sw["check"].items() if not c["ok"]]
-    return dict(config=dict(mode=mode, sweeps=list(names)), machine=machine(threads), sweeps=sweeps,
-                failures=failures, total_seconds=time.perf_counter() - t0)
-
-
-def plot_all(report, folder):
-    """plot_sweep of each sweep (its path in sw["plot"]): the files, or None without matplotlib."""
-    for sw in report["sweeps"]:
-        sw["plot"] = plot_sweep(sw, folder)
-    return None if any(sw["plot"] is None for sw in report["sweeps"]) else [sw["plot"] for sw in report["sweeps"]]
-
-
-def print_report(report):
-    for sw in report["sweeps"]:
-        print(f"\n## {sw['title']}\n\n{sweep_summary(sw)}")
+    return dict(config=dict(quick=quick, sweeps=list(names)), machine=machine(threads), sweeps=sweeps, failures=failures)

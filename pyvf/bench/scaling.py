@@ -1,147 +1,49 @@
 """Attention memory and time as the number of views N grows: pyvf's branching kernel against the
-approaches it replaces (docs/math.md §2).
+approaches it replaces (docs/math.md §2), float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1.
 
-    pyvf bench scaling                             # N = 2, 4, ..., 64; H=12 dh=64 and H=4 dh=32; long
-    pyvf bench scaling --quick                     # N = 2, 4, 8; H=4 dh=32
-    pyvf bench scaling --json out.json --plots plots/
+    pyvf bench scaling            # N = 2, 4, ..., 64; H=12 dh=64 and H=4 dh=32; long
+    pyvf bench scaling --quick    # N = 2, 4, 8; H=4 dh=32
 
-Methods (float32, R=3 tree rows, B=1, L=64 tokens per view, scale 1):
-  pyvf         pyvf's branching kernel, (R, B, H, N, L, dh): O(T*dh) memory, T = R*N*L
-  naive_pyvf   the naive approach the paper avoids: one sequence per query view (the trunk, and
-               for each branch r and view i the trunk views 0..i-1 followed by the branch's view
-               i), padded with zero views to N*L tokens and stacked along the batch: S = 1 +
-               (R-1)*N sequences, run by pyvf's kernel at R=1 (block-causal attention over views).
-               Padding comes after every real token, so no real query sees it
-  dense_sdpa   torch SDPA on the flat (B, H, T, dh) sequence with the (T, T) branching mask
-  dense_numpy  pyvf.branching_attention_reference: the NumPy dense reference, (T, T) logits
+    pyvf         pyvf's branching kernel, (R, B, H, N, L, dh): O(T*dh) memory, T = R*N*L
+    naive_pyvf   one sequence per query view, the approach the paper avoids: the trunk, and for each
+                 branch r and view i the trunk views 0..i-1, then the branch's view i, then zero
+                 views (after every real token: no real query sees them); S = 1 + (R-1)*N
+                 sequences of N*L tokens stacked along the batch, run by pyvf's kernel at R=1
+    dense_sdpa   torch SDPA on the flat (B, H, T, dh) sequence with the (T, T) branching mask
+    dense_numpy  pyvf.branching_attention_reference: the dense NumPy reference, (T, T) logits
 
-Every point (method, size, N) runs in a process of its own (worker()): at the first N of each
-size it validates its output and gradients against the float64 dense reference, then measures
-one call's extra peak memory (inputs excluded, outputs included) beside the memory expected
-(attention.expected_memory), forward and forward+backward, then the median times of 5
-calls. A point whose run time, predicted from the same method's previous N by the FLOPs it
-computes, exceeds --max-point-seconds is skipped, and so are the larger N of that method.
-
-The slope of log(memory) and log(time) against log(N) per method is fitted, tabled and plotted
-(--plots DIR, matplotlib). Theory: pyvf's memory ~N^1; the dense mask's ~N^2; the naive stacked
-approach ~N^2 in memory and ~N^3 in time (S sequences of N*L tokens).
+Each point (method, size, N) runs in a process of its own: at the first N it validates its output
+and gradients against the float64 reference, then measures one call's extra peak memory beside the
+memory expected and the median time, forward and forward+backward. A point predicted (from the
+method's previous N, by the FLOPs it computes) to take more than --max-point-seconds is skipped,
+and so are its larger N. The slopes of log(memory) and log(time) against log(N) are fitted: in
+theory pyvf's memory ~N; the dense mask's ~N^2; the naive approach's ~N^2 and its time ~N^3.
 """
 
 import os
-import time
 
 import numpy as np
 
-import pyvf
-from pyvf.bench.attention import (BOUND32, BOUND_OTHERS, NAMES, attended_pairs, expected_memory, figures,
-                                  make_inputs, pyvf_contender, reference64, reference_contender, torch_contender)
-from pyvf.bench.common import (format_bytes, machine, memory_method, ms, pyplot, run_worker, save_figure, table,
-                               torch_or_none, validate, worker_main, write_json)
+from pyvf.bench.attention import B, L, METHODS, R, REPEAT, WORKER, theory
+from pyvf.bench.common import (MEMORY_METHOD, format_bytes, machine, ms, pyplot, run_worker, save_figure, table,
+                               torch_or_none)
 
-WORKER = "pyvf.bench.scaling"  # this module, run as `python -m WORKER SPEC` (worker_main)
-R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
 SIZES, QUICK_SIZES = ((12, 64), (4, 32)), ((4, 32),)  # (H, dh): the paper's, and a small one
 VIEWS, QUICK_VIEWS = (2, 4, 8, 16, 32, 64), (2, 4, 8)
-METHODS = {
-    "pyvf": "pyvf branching kernel",
-    "naive_pyvf": "naive stacked, pyvf kernel at R=1",
-    "dense_sdpa": "dense (T,T) mask, torch SDPA",
-    "dense_numpy": "dense (T,T) mask, NumPy reference",
-}
+KEYS = ("fwd_bytes", "fb_bytes", "fwd_seconds", "fb_seconds")  # what is measured, and fitted
 MAX_POINT_SECONDS = 120  # the naive approach's time grows as N^3: at N=64, H=12, minutes per call
 
 
-# ---------------------------------------------------------------------------------------
-# the naive approach: one sequence per query view, stacked along the batch
-
-
-def stack_naive(x, queries_only=False):
-    """(R, B, H, N, L, dh) -> (S, B, H, N, L, dh), S = 1 + (R-1)*N: sequence 0 is the trunk;
-    sequence 1 + (r-1)*N + i holds the trunk views 0..i-1, then branch r's view i, then zero views.
-    queries_only (for the upstream gradient): zeros in place of the trunk copies, whose outputs
-    the naive approach throws away."""
-    R, B, H, N, L, dh = x.shape
-    out = np.zeros((1 + (R - 1) * N,) + x.shape[1:], dtype=x.dtype)
-    out[0] = x[0]
-    for r in range(1, R):
-        for i in range(N):
-            if not queries_only:
-                out[1 + (r - 1) * N + i, :, :, :i] = x[0, :, :, :i]
-            out[1 + (r - 1) * N + i, :, :, i] = x[r, :, :, i]
-    return out
-
-
-def unstack_naive(st, R, keys=False):
-    """stack_naive's inverse for an output or a gradient: a query token is in one sequence only (o,
-    dq); a trunk key in the trunk and in every later branch sequence, so its gradient (dk, dv:
-    keys=True) is the sum over them."""
-    N = st.shape[3]
-    out = np.zeros((R,) + st.shape[1:], dtype=st.dtype)
-    out[0] = st[0]
-    for r in range(1, R):
-        for i in range(N):
-            out[r, :, :, i] = st[1 + (r - 1) * N + i, :, :, i]
-            if keys:
-                out[0, :, :, :i] += st[1 + (r - 1) * N + i, :, :, :i]
-    return out
-
-
-def naive_contender(q, k, v, do):
-    """pyvf's kernel at R=1 on the stacked sequences, seen as one row of S*B batch entries."""
-    st = [stack_naive(x) for x in (q, k, v)] + [stack_naive(do, queries_only=True)]
-    S = st[0].shape[0]
-    c = pyvf_contender(*(x.reshape((1, S * B) + x.shape[2:]) for x in st))
-    back = lambda x, keys=False: unstack_naive(x.reshape(st[0].shape), R, keys)  # noqa: E731
-    outs = c["outs"]
-    c["outs"] = lambda: [back(x, keys) for x, keys in zip(outs(), (False, False, True, True))]
-    return c
-
-
-def theory(method, H, N, dh, threads):
-    """{block_pairs computed per head, computed_flops (forward), expected_fwd, expected_fb (bytes)}."""
-    if method == "naive_pyvf":
-        S = 1 + (R - 1) * N
-        pairs = S * N * (N + 1) // 2
-        fwd, fb = expected_memory("pyvf", 1, S * B, H, N, L, dh, threads)
-    else:
-        pairs = attended_pairs(R, N) if method == "pyvf" else (R * N) ** 2
-        fwd, fb = expected_memory({"dense_sdpa": "sdpa", "dense_numpy": "numpy"}.get(method, method),
-                                  R, B, H, N, L, dh, threads)
-    return dict(block_pairs=pairs, computed_flops=4 * L * L * dh * pairs * B * H, expected_fwd=fwd, expected_fb=fb)
-
-
-def worker(spec):
-    """One point, {method, H, dh, N, threads, repeat, validate} -> its measurements (a dict)."""
-    method, H, dh, N = spec["method"], spec["H"], spec["dh"], spec["N"]
-    pyvf.set_num_threads(spec["threads"])
-    q, k, v, do = make_inputs(R, B, H, N, L, dh, seed=N)
-    if method == "dense_sdpa":
-        torch_or_none().set_num_threads(spec["threads"])
-    make = dict(pyvf=pyvf_contender, naive_pyvf=naive_contender, dense_sdpa=torch_contender,
-                dense_numpy=reference_contender)[method]
-    c, out = make(q, k, v, do), {}
-    if spec["validate"]:
-        bound = BOUND32 if "pyvf" in method else BOUND_OTHERS
-        out["errors"], ok = validate(c["outs"](), reference64(q, k, v, do), NAMES, bound)
-        if not ok:
-            out["error"] = f"validation failed: max rel. error {max(out['errors'].values()):.2e} > {bound:g}"
-            return out
-    for name in ("fwd", "fb"):
-        c[name]()  # a warm-up call: thread pools
-    return {**out, **figures(c, spec["repeat"], warmup=0)}
-
-
-def run_points(sizes, views, methods, threads, repeat, max_point_seconds, log=print):
+def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
     """Every point, each in a worker process (or skipped, with the reason): a list of dicts."""
     points, torch = [], torch_or_none()
     for H, dh in sizes:
         prev = {}
         for N in views:
             for method in methods:
-                p = dict(method=method, H=H, dh=dh, N=N, theory=theory(method, H, N, dh, threads))
-                last = prev.get(method)
-                est = None if last is None or "fb_seconds" not in last else (
-                    (repeat + 3) * (last["fwd_seconds"] + last["fb_seconds"])
+                p, last = dict(method=method, H=H, dh=dh, N=N, theory=theory(method, H, N, dh, threads)), prev.get(method)
+                est = None if last is None or "fb_seconds" not in last else (  # memory, warm-up, timed calls
+                    (REPEAT + 3) * (last["fwd_seconds"] + last["fb_seconds"])
                     * p["theory"]["computed_flops"] / last["theory"]["computed_flops"])
                 if method == "dense_sdpa" and torch is None:
                     p["skipped"] = "torch is not installed"
@@ -150,23 +52,26 @@ def run_points(sizes, views, methods, threads, repeat, max_point_seconds, log=pr
                 elif max_point_seconds and est is not None and est > max_point_seconds:
                     p["skipped"] = f"predicted {est:.0f} s > --max-point-seconds {max_point_seconds:g}"
                 else:
-                    spec = dict(method=method, H=H, dh=dh, N=N, threads=threads, repeat=repeat, validate=N == views[0])
                     try:
-                        p.update(run_worker(WORKER, spec))
+                        p.update(run_worker(WORKER, dict(method=method, H=H, dh=dh, N=N, threads=threads,
+                                                         validate=N == views[0])))
                     except RuntimeError as e:  # a crashed worker: written down, the study carries on
                         p["error"] = str(e)[-2000:]
-                what = _note(p) if "skipped" in p or "error" in p else (
-                    f"fwd {format_bytes(p['fwd_bytes'])} {ms(p['fwd_seconds'])}, fwd+bwd "
-                    f"{format_bytes(p['fb_bytes'])} {ms(p['fb_seconds'])}")
-                log(f"  H={H} dh={dh} N={N:>2} {method:<12} {what}", flush=True)
-                prev[method] = p
+                t = p["theory"]
+                log(f"  H={H} dh={dh} N={N:>2} {method:<12} " + (
+                    f"skipped: {p['skipped']}" if "skipped" in p else f"FAILED: {p['error'].splitlines()[0][:100]}"
+                    if "error" in p else f"memory (measured / expected) fwd {format_bytes(p['fwd_bytes'])} / "
+                    f"{format_bytes(t['expected_fwd'])}, fwd+bwd {format_bytes(p['fb_bytes'])} / "
+                    f"{format_bytes(t['expected_fb'])}; time fwd {ms(p['fwd_seconds'])}, fwd+bwd {ms(p['fb_seconds'])}"),
+                    flush=True)
                 points.append(p)
+                prev[method] = p
     return points
 
 
 def fit_slope(Ns, values):
-    """The least-squares slope of log(value) against log(N), the p of value ~ c N^p; values of
-    None or <= 0 left out; None with fewer than two points."""
+    """The least-squares slope p of log(value) = p log(N) + c; values None or <= 0 left out; None
+    with fewer than two points."""
     pts = [(n, v) for n, v in zip(Ns, values) if v is not None and v > 0]
     if len(pts) < 2:
         return None
@@ -181,8 +86,7 @@ def fits(points, sizes, methods):
         out[f"{H}x{dh}"] = per = {}
         for method in methods:
             pts = [p for p in points if (p["method"], p["H"], p["dh"]) == (method, H, dh) and "fb_seconds" in p]
-            per[method] = {key: fit_slope([p["N"] for p in pts], [p[key] for p in pts])
-                           for key in ("fwd_bytes", "fb_bytes", "fwd_seconds", "fb_seconds")}
+            per[method] = {key: fit_slope([p["N"] for p in pts], [p[key] for p in pts]) for key in KEYS}
             per[method]["N"] = [p["N"] for p in pts]
     return out
 
@@ -191,44 +95,27 @@ def _s(x):
     return "-" if x is None else f"{x:.2f}"
 
 
-def _note(p):
-    if "skipped" in p or "error" in p:
-        return "skipped: " + p["skipped"] if "skipped" in p else "FAILED: " + p["error"].splitlines()[0][:100]
-    return "validated" if "errors" in p else ""
-
-
-def tables(points, fit, sizes, methods):
-    """Per size: the fitted slopes, then every point (markdown, as a list of text blocks)."""
+def tables(fit, sizes, methods):
+    """Per size, markdown: the fitted slopes."""
     out = []
     for H, dh in sizes:
         f = fit[f"{H}x{dh}"]
-        out += [f"### H={H} dh={dh} (R={R} B={B} L={L}, float32)",
-                table(["method", "memory fwd", "memory fwd+bwd", "time fwd", "time fwd+bwd", "N measured"],
-                      [[m, _s(f[m]["fwd_bytes"]), _s(f[m]["fb_bytes"]), _s(f[m]["fwd_seconds"]), _s(f[m]["fb_seconds"]),
-                        ",".join(map(str, f[m]["N"]))] for m in methods]),
-                "The slopes of log(memory) and log(time) against log(N) over the N measured. Every point: the block "
-                "pairs computed per head, the memory expected / measured (the extra peak of one call, inputs "
-                "excluded, outputs included), the median time:",
-                table(["N", "method", "block pairs", "fwd memory", "fwd+bwd memory", "fwd time", "fwd+bwd time", "note"],
-                      [[p["N"], p["method"], p["theory"]["block_pairs"],
-                        f"{format_bytes(p['theory']['expected_fwd'])} / {format_bytes(p.get('fwd_bytes'))}",
-                        f"{format_bytes(p['theory']['expected_fb'])} / {format_bytes(p.get('fb_bytes'))}",
-                        ms(p.get("fwd_seconds")), ms(p.get("fb_seconds")),
-                        _note(p)]
-                       for p in points if (p["H"], p["dh"]) == (H, dh)])]
+        rows = [[m, *(_s(f[m][k]) for k in KEYS), ",".join(map(str, f[m]["N"]))] for m in methods]
+        out.append(f"### H={H} dh={dh} (R={R} B={B} L={L}, float32): slopes of log(memory) and log(time) against "
+                   "log(N)\n\n" + table(["method", "memory fwd", "memory fwd+bwd", "time fwd", "time fwd+bwd",
+                                          "N measured"], rows))
     return out
 
 
 def plot(points, fit, sizes, methods, folder):
-    """scaling-memory-H<h>-dh<d>.png and scaling-time-H<h>-dh<d>.png in folder: log-log against N, a
-    panel per pass, a line per method, the fitted slopes in the legend. The files, or None without
-    matplotlib."""
+    """scaling-{memory,time}-H<h>-dh<d>.png in folder: log-log against N, a panel per pass, a line
+    per method, the fitted slopes in the legend. The files, or None without matplotlib."""
     plt = pyplot()
     if plt is None:
         return None
     from matplotlib.ticker import NullFormatter
     os.makedirs(folder, exist_ok=True)
-    files = []
+    files, Ns = [], sorted({p["N"] for p in points})
     for H, dh in sizes:
         for what, unit, scale in (("memory", "MiB", 2 ** 20), ("time", "ms", 1e-3)):
             keys = ("fwd_bytes", "fb_bytes") if what == "memory" else ("fwd_seconds", "fb_seconds")
@@ -240,7 +127,7 @@ def plot(points, fit, sizes, methods, folder):
                     if pts:
                         ax.loglog([p["N"] for p in pts], [p[key] / scale for p in pts], "o-", color=f"C{i}",
                                   label=f"{METHODS[m]} (slope {slopes})")
-                ax.set_xticks(sorted({p["N"] for p in points}), [str(n) for n in sorted({p["N"] for p in points})])
+                ax.set_xticks(Ns, [str(n) for n in Ns])
                 ax.xaxis.set_minor_formatter(NullFormatter())
                 ax.set(title=f"{what}, {title}: H={H} dh={dh} R={R} L={L}", xlabel="N (views)")
                 ax.grid(True, which="both", alpha=0.3)
@@ -250,34 +137,22 @@ def plot(points, fit, sizes, methods, folder):
     return files
 
 
-def run(sizes=SIZES, views=VIEWS, methods=tuple(METHODS), threads=2, repeat=5, max_point_seconds=MAX_POINT_SECONDS,
-        plots=None, json_path=None, log=print):
-    """The whole study (module docstring): the report, every number; a point whose validation
-    failed has an "error" starting "validation failed" (validation_failed(report))."""
-    t0 = time.perf_counter()
+def run(quick=False, threads=2, sizes=None, views=None, methods=tuple(METHODS), max_point_seconds=MAX_POINT_SECONDS,
+        plots=None, log=print):
+    """The whole study (module docstring): the report, every number. report["failures"]: the points
+    whose validation failed (a crashed or skipped point is only written down)."""
+    sizes, views = sizes or (QUICK_SIZES if quick else SIZES), views or (QUICK_VIEWS if quick else VIEWS)
     log(f"# Attention memory and time against the number of views N: R={R} B={B} L={L}, float32, scale 1, "
-        f"{threads} threads\nmemory: {memory_method()}\n")
-    points = run_points(sizes, views, methods, threads, repeat, max_point_seconds, log=log)
+        f"{threads} threads\nmemory: {MEMORY_METHOD}\n")
+    points = run_points(sizes, views, methods, threads, max_point_seconds, log=log)
     fit = fits(points, sizes, methods)
-    log("\n" + "\n\n".join(tables(points, fit, sizes, methods)))
-    report = dict(config=dict(R=R, B=B, L=L, views=list(views), sizes=[list(s) for s in sizes], threads=threads,
-                              repeat=repeat, methods=list(methods), max_point_seconds=max_point_seconds),
-                  machine=machine(threads), memory_method=memory_method(), points=points, slopes=fit)
+    log("\n" + "\n\n".join(tables(fit, sizes, methods)))
+    report = dict(config=dict(views=list(views), sizes=[list(s) for s in sizes], threads=threads, methods=list(methods),
+                              max_point_seconds=max_point_seconds), machine=machine(threads), points=points, slopes=fit,
+                  failures=[f"H={p['H']} dh={p['dh']} N={p['N']} {p['method']}: {p['error']}" for p in points
+                            if p.get("error", "").startswith("validation failed")])
     if plots:
         report["plots"] = plot(points, fit, sizes, methods, plots)
         log("plots need matplotlib: pip install pyvf[plots]" if report["plots"] is None
             else "wrote " + ", ".join(report["plots"]))
-    report["total_seconds"] = time.perf_counter() - t0
-    if json_path:
-        write_json(json_path, report)
-        log(f"wrote {json_path}")
     return report
-
-
-def validation_failed(report):
-    """True when a point's validation failed (a crashed or skipped point is only written down)."""
-    return any(p.get("error", "").startswith("validation failed") for p in report["points"])
-
-
-if __name__ == "__main__":  # a worker: `python -m pyvf.bench.scaling SPEC` (run_points)
-    worker_main(worker)

@@ -1,43 +1,45 @@
-"""One training step, pyvf against the same model in torch: time and memory, after checking that
-both compute the same step (`pyvf bench transformer`, `pyvf bench codebook`).
+"""One training step of the tiny models, pyvf against the same model in torch, timed side by side in
+one run after checking that both compute the same step.
 
-    pyvf bench transformer           # the tiny and the paper configuration (forward, backward, AdamW)
-    pyvf bench transformer --quick   # the tiny one, 5 steps
-    pyvf bench codebook              # forward with the EMA update, backward, Adam: `pyvf train-codebook`'s step
-    pyvf bench codebook --quick      # the tiny one on a batch of two 32x32 images, 5 steps
+    pyvf bench transformer [--quick]   # forward, backward, AdamW; 20 steps (5 quick)
+    pyvf bench codebook [--quick]      # forward with the EMA update, backward, Adam, at `pyvf
+                                       # train-codebook`'s batch; 10 steps (5 on two 32x32 images)
 
 The torch models are pyvf/verify/torch_transformer.py (SDPA with a boolean mask) and
-torch_codebook.py. Each framework runs in its own worker process, so that neither's thread pool
-waits on the other's. Before timing, the first step's loss and gradients of pyvf and torch (same
-weights, same batch) and the loss after their first update are compared (first_step_differs); the
-tool stops if they differ. Memory: the peak resident memory of one step above what was resident
-before it, after a first step (which makes the optimizer's moments). torch is imported only in the
-torch worker.
+torch_codebook.py; each framework runs in a worker process of its own, so that neither's thread
+pool waits on the other's. Before any time is reported, the first step's loss and gradients (same
+weights, same batch) and the loss after the first update are compared (first_step_differs).
 """
 
-import sys
 import zlib
 
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import format_bytes, median_time, ms, peak_memory, run_worker, table, worker_main
+from pyvf.bench.common import machine, median_time, ms, run_worker, worker_main
 
 WORKER = "pyvf.bench.steps"  # this module, run as `python -m WORKER SPEC` (worker_main)
-FULL = ("tiny", "paper")
 
-# pyvf's and torch's first step, compared before any time is printed: the loss and the loss after
-# the first update to LOSS_RTOL (float32 both, the same weights and batch); each gradient's
-# checksums to CHECK_RTOL of its norm (measured: 3e-5 at most, the paper codebook). A gradient
+# the first steps, compared: the loss and the loss after the first update to LOSS_RTOL (float32
+# both); each gradient's checksums to CHECK_RTOL of its norm (measured: 3e-5 at most). A gradient
 # below CHECK_FLOOR of the largest one's norm is compared at that level: the biases that feed a
 # normalisation have a gradient of exactly 0, computed as rounding noise.
 LOSS_RTOL, CHECK_RTOL, CHECK_FLOOR = 1e-4, 1e-3, 1e-3
 
+CONFIGS = {  # the tiny models; the codebook at `pyvf train-codebook`'s batch
+    "transformer": dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5,
+                        n_loss_skip=1, batch=8),
+    "codebook": dict(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32,
+                     embed_dim=32, n_embed=64, image_size=64, batch=16),
+}
+CONFIGS["codebook-quick"] = dict(CONFIGS["codebook"], image_size=32, batch=2)
+LR, BETAS = 1.584e-3, (0.5, 0.9)  # the published codebook's Adam
+
 
 def checksums(arrays):
-    """{name: [2-norm, projection]} of each array, the projection its dot product with unit-normal
-    numbers seeded by its name (the same in every process): what a worker sends of a gradient. An
-    array zeroed, transposed or missing a term moves the projection by about its norm."""
+    """{name: [2-norm, projection]}, the projection onto unit-normal numbers seeded by the name (the
+    same in every process): what a worker sends of a gradient. A gradient zeroed, transposed or
+    missing a term moves the projection by about its norm."""
     out = {}
     for name, a in arrays.items():
         a = np.asarray(a, dtype=np.float64).ravel()
@@ -63,147 +65,89 @@ def first_step_differs(p, t):
     return None
 
 
-def step_figures(step, steps):
-    """A training step's figures (step() -> the loss before its update): a warm-up call (it makes
-    the optimizer's moments, resident from then on as the weights are), the next one under
-    peak_memory (its loss, after one update, checks the optimizer), then the median of `steps`."""
+def step_figures(loss, gradients, step, steps):
+    """The first step's loss and gradient checksums, then step() (-> the loss before its update): a
+    warm-up call, the next one's loss (after one update: it checks the optimizer), the median time."""
     step()
-    after, memory = peak_memory(step)
-    return dict(loss_after_update=after, memory=memory, time=median_time(step, steps, warmup=0)[0])
+    return dict(loss=loss, gradients=checksums(gradients), loss_after_update=step(),
+                time=median_time(step, steps, warmup=0)[0])
 
 
-def run(model, configs, steps=None, threads=2):
-    """pyvf's and torch's training step of MODELS[model] on each configuration named, each framework
-    in a worker process; their first steps compared (first_step_differs) before any time is
-    printed. steps: timed steps (default the model's, 3 for the paper's). -> {config, results
-    {name: {"pyvf", "torch"}}, failures}: a configuration whose steps differ is a failure, and
-    nothing after it runs."""
-    m = MODELS[model]
-    report = dict(config=dict(configs=list(configs), threads=threads), results={}, failures=[])
-    for name in configs:
-        n = steps or (3 if name == "paper" else m["steps"])
-        p, t = (run_worker(WORKER, dict(model=model, framework=f, config=name, steps=n, threads=threads))
-                for f in ("pyvf", "torch"))
-        differs = first_step_differs(p, t)
-        if differs:
-            print(f"{name}: pyvf and torch differ in {differs}", file=sys.stderr)
-            report["failures"].append(f"{name}: the first steps of pyvf and torch differ")
-            break
-        print(f"\n## {name}: {m['describe'](name)}, float32, {threads} threads, median of {n} steps, each "
-              "framework in its own process")
-        print(f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the gradients, and the loss after "
-              "an update, agree)\n")
-        print(table(["", "step time", "peak memory of a step"],
-                    [["pyvf", ms(p["time"]), format_bytes(p["memory"])],
-                     ["torch", ms(t["time"]), format_bytes(t["memory"])],
-                     ["torch / pyvf", f"{t['time'] / p['time']:.2f}", f"{t['memory'] / p['memory']:.2f}"]]))
-        report["results"][name] = {"pyvf": p, "torch": t}
-    return report
-
-
-# ---------------------------------------------------------------------------------------
-# the transformer
-
-TRANSFORMER = {
-    "tiny": dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5,
-                 n_loss_skip=1, batch=8),
-    # the paper's InteriorNet model: GPT-2 base, 20 views of 8x8 tokens, B = 1
-    "paper": dict(n_embeddings=1024, n_head=12, d_model=768, n_layer=12, token_image_size=8, sequence_size=20,
-                  n_loss_skip=4, batch=1),
-}
-
-
-def transformer_setup(name, seed=0):
-    spec = dict(TRANSFORMER[name])
+def _config(name):
+    """(the model's config, the batch) of CONFIGS[name]."""
+    spec = dict(CONFIGS[name])
     B = spec.pop("batch")
-    cfg = pyvf.TransformerConfig(**spec)
-    rng = np.random.default_rng(seed)
+    return (pyvf.TransformerConfig if name == "transformer" else pyvf.CodebookConfig)(**spec), B
+
+
+def transformer_setup(config):
+    cfg, B = _config(config)
+    rng = np.random.default_rng(0)
     tokens = rng.integers(0, cfg.n_embeddings, (B, cfg.sequence_size, cfg.L))
     poses = rng.normal(size=(B, cfg.sequence_size, 7))
     poses[..., 3:] /= np.linalg.norm(poses[..., 3:], axis=-1, keepdims=True)
-    return cfg, tokens, pyvf.make_relative(poses)[0].astype(np.float32), pyvf.Transformer(cfg, seed=seed)
+    return cfg, tokens, pyvf.make_relative(poses)[0].astype(np.float32), pyvf.Transformer(cfg, seed=0)
 
 
-def transformer_pyvf(name, steps):
-    cfg, tokens, poses, model = transformer_setup(name)
+def transformer_pyvf(config, steps):
+    cfg, tokens, poses, model = transformer_setup(config)
     loss = model.forward(tokens, poses).loss  # the first step's loss and gradients, for the cross-check
-    gradients = checksums(model.backward())
+    gradients = model.backward()
     opt = pyvf.AdamW(model.params, lr=1e-4, weight_decay=0.01)
 
-    def step():  # -> the loss before its update
+    def step():
         loss = model.forward(tokens, poses).loss
         opt.step(model.backward())
         return loss
-    return dict(loss=loss, gradients=gradients, **step_figures(step, steps))
+    return step_figures(loss, gradients, step, steps)
 
 
-def transformer_torch(name, steps):
+def transformer_torch(config, steps):
     import torch
 
     from pyvf.verify import torch_transformer
 
     torch.set_num_threads(pyvf.num_threads())
-    cfg, tokens, poses, model = transformer_setup(name)
+    cfg, tokens, poses, model = transformer_setup(config)
     P = {k: torch.tensor(v.copy(), requires_grad=True) for k, v in model.params.items()}
     opt = torch.optim.AdamW(P.values(), lr=1e-4, weight_decay=0.01)
     t_tokens, t_poses = torch.tensor(tokens), torch.tensor(poses)
     out = torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1]
     out.backward()
-    gradients = checksums({k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()})
+    gradients = {k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()}
 
-    def step():  # -> the loss before its update
+    def step():
         opt.zero_grad()
         loss = torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1]
         loss.backward()
         opt.step()
         return loss.item()
-    return dict(loss=out.item(), gradients=gradients, **step_figures(step, steps))
+    return step_figures(out.item(), gradients, step, steps)
 
 
-def transformer_describe(name):
-    s = TRANSFORMER[name]
-    return (f"d={s['d_model']}, H={s['n_head']}, {s['n_layer']} layers, N={s['sequence_size']}, "
-            f"L={s['token_image_size'] ** 2}, V={s['n_embeddings']}, B={s['batch']}")
-
-
-# ---------------------------------------------------------------------------------------
-# the codebook
-
-CODEBOOK = {  # the tiny one at pyvf train-codebook's batch
-    "tiny": dict(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32, embed_dim=32,
-                 n_embed=64, image_size=64, batch=16),
-    "paper": dict(ch=128, ch_mult=(1, 1, 2, 2, 4), num_res_blocks=2, attn_resolutions=(16,), z_channels=256,
-                  embed_dim=256, n_embed=1024, image_size=128, batch=2),
-}
-CODEBOOK["quick"] = dict(CODEBOOK["tiny"], image_size=32, batch=2)  # --quick: the tiny one on a small batch
-LR, BETAS = 1.584e-3, (0.5, 0.9)  # the published codebook's Adam
-
-
-def codebook_setup(name):
-    spec = dict(CODEBOOK[name])
-    B = spec.pop("batch")
-    cfg = pyvf.CodebookConfig(**spec)
+def codebook_setup(config):
+    cfg, B = _config(config)
     images = np.tanh(np.random.default_rng(0).standard_normal((B, 3, cfg.image_size, cfg.image_size)))
     return cfg, pyvf.Codebook(cfg, seed=0), images.astype(np.float32)
 
 
-def codebook_pyvf(name, steps):
-    _, cb, images = codebook_setup(name)
+def codebook_pyvf(config, steps):
+    _, cb, images = codebook_setup(config)
     loss = float(cb.forward(images, train=True).loss)  # the first step's loss and gradients
-    gradients = checksums(cb.backward())
-    _, cb, images = codebook_setup(name)  # a fresh model: the forward above moved the EMA
+    gradients = cb.backward()
+    _, cb, images = codebook_setup(config)  # a fresh model: the forward above moved the EMA
     opt = pyvf.Adam(cb.params, LR, betas=BETAS)
     step = lambda: float(pyvf.codebook_train_step(cb, opt, images).loss)  # noqa: E731  (the loss before its update)
-    return dict(loss=loss, gradients=gradients, **step_figures(step, steps))
+    return step_figures(loss, gradients, step, steps)
 
 
-def codebook_torch(name, steps):
+def codebook_torch(config, steps):
     import torch
 
     from pyvf.verify import torch_codebook
 
     torch.set_num_threads(pyvf.num_threads())
-    cfg, cb, images = codebook_setup(name)
+    cfg, cb, images = codebook_setup(config)
     P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
     q = cb.quantizer
     state = {"buffers": {"quantize.embeddings": torch.tensor(q.embeddings),
@@ -212,37 +156,48 @@ def codebook_torch(name, steps):
     x = torch.tensor(images)
     out = torch_codebook.forward(P, state["buffers"], x, cfg, train=True)
     out["loss"].backward()
-    loss = out["loss"].item()
-    gradients = checksums({k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()})
+    gradients = {k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()}
     opt = torch.optim.Adam(P.values(), LR, betas=BETAS)
 
-    def step():  # -> the loss before its update, from the weights and buffers the forward above started from
+    def step():  # from the weights and buffers the forward above started from
         opt.zero_grad()
         out = torch_codebook.forward(P, state["buffers"], x, cfg, train=True)
         out["loss"].backward()
         opt.step()
         state["buffers"] = out["buffers"]  # the EMA update kept, as pyvf's codebook keeps it
         return out["loss"].item()
-    return dict(loss=loss, gradients=gradients, **step_figures(step, steps))
+    return step_figures(out["loss"].item(), gradients, step, steps)
 
 
-def codebook_describe(name):
-    s = CODEBOOK[name]
-    return (f"ch={s['ch']}, ch_mult={s['ch_mult']}, {s['num_res_blocks']} res blocks, {s['image_size']}x"
-            f"{s['image_size']} images, K={s['n_embed']}, D={s['embed_dim']}, batch {s['batch']}")
+FRAMEWORKS = {("transformer", "pyvf"): transformer_pyvf, ("transformer", "torch"): transformer_torch,
+              ("codebook", "pyvf"): codebook_pyvf, ("codebook", "torch"): codebook_torch}
 
 
-MODELS = {
-    "transformer": dict(configs=TRANSFORMER, pyvf=transformer_pyvf, torch=transformer_torch,
-                        describe=transformer_describe, steps=20),
-    "codebook": dict(configs=CODEBOOK, pyvf=codebook_pyvf, torch=codebook_torch, describe=codebook_describe, steps=10),
-}
+def run(model, quick=False, threads=2):
+    """pyvf's and torch's step of `model` ("transformer", "codebook") (module docstring): {config,
+    machine, results {"pyvf", "torch"}, torch_over_pyvf (the time ratio), failures}."""
+    config = "codebook-quick" if quick and model == "codebook" else model
+    steps = 5 if quick else 20 if model == "transformer" else 10
+    report = dict(config=dict(model=model, config=config, steps=steps, threads=threads), machine=machine(threads),
+                  failures=[])
+    p, t = (run_worker(WORKER, dict(model=model, framework=f, config=config, steps=steps, threads=threads))
+            for f in ("pyvf", "torch"))
+    differs = first_step_differs(p, t)
+    if differs:
+        report["failures"].append(f"the first steps of pyvf and torch differ in {differs}: not timed")
+        return report
+    print(f"the {model}: {CONFIGS[config]}, float32, {threads} threads, each framework in its own process\n"
+          f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the gradients, and the loss after an "
+          f"update, agree)\nmedian step time of {steps}: pyvf {ms(p['time'])}, torch {ms(t['time'])}; "
+          f"torch / pyvf {t['time'] / p['time']:.2f}")
+    report.update(results=dict(pyvf=p, torch=t), torch_over_pyvf=t["time"] / p["time"])
+    return report
 
 
 def worker(spec):
     """One framework's step: {model, framework: "pyvf" | "torch", config, steps, threads}."""
     pyvf.set_num_threads(spec["threads"])
-    return MODELS[spec["model"]][spec["framework"]](spec["config"], spec["steps"])
+    return FRAMEWORKS[spec["model"], spec["framework"]](spec["config"], spec["steps"])
 
 
 if __name__ == "__main__":  # a worker: `python -m pyvf.bench.steps SPEC`

@@ -1,31 +1,26 @@
-"""Nearest-code lookup at the paper's size: pyvf.vq_nearest against torch (cdist + argmin, and the
-expanded |x|^2 - 2 x.e + |e|^2 matmul the published quantizer uses) and numpy, side by side.
+"""Nearest-code lookup: pyvf.vq_nearest against torch (cdist + argmin, and the expanded
+|x|^2 - 2 x.e + |e|^2 matmul the published quantizer uses) and NumPy's expanded matmul.
 
-    pyvf bench vq            # M = 352*64, K = 1024, D = 256, float32, 2 threads
-    pyvf bench vq --quick    # M = 4096, K = 256, D = 64, median of 3: seconds
+    pyvf bench vq            # M = 352*64, K = 1024, D = 256, float32
+    pyvf bench vq --quick    # M = 4096, K = 256, D = 64
 
-Each method's answers are compared with float64 brute force (exact distances, first minimum)
-before timing: on unit-normal data (pyvf must be exact, the others nearly: SANITY_WRONG), and on
-the cancellation cases (data offset by 1e2..1e4 from the origin) where the expanded formula
-picks wrong codes. The offset cases also time pyvf, which re-ranks exactly every code its error
-bound cannot exclude. torch is imported inside the functions that use it.
+Each method's codes are first compared with float64 brute force (exact distances, first minimum)
+on unit-normal data, where the time is measured, and far from the origin (data offset by
+1e2..1e4), where the expanded formula cancels: pyvf must be exact at every offset, the others may
+miss SANITY_WRONG of the codes at offset 0 (near ties), else they are not timed. pyvf, which
+re-ranks exactly every code its error bound cannot exclude, is also timed at the offsets.
 """
-
-import sys
 
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import TORCH_MISSING, median_time, torch_or_none
+from pyvf.bench.common import TORCH_MISSING, machine, median_time, torch_or_none
 from pyvf.nn.quantizer import vq_nearest
 
-PAPER = dict(M=352 * 64, K=1024, D=256, repeat=5, checked_rows=4096)
-QUICK = dict(M=4096, K=256, D=64, repeat=3, checked_rows=1024)
-# The share of wrong codes allowed at offset 0 (unit-normal data, where the time is measured) to
-# the other methods: their float32 distances are right there but for near ties (measured: none
-# wrong at either size); a wrong axis or layout picks wrong codes nearly everywhere. Over it a
-# method is not timed.
-SANITY_WRONG = 0.01
+PAPER = dict(M=352 * 64, K=1024, D=256)
+QUICK = dict(M=4096, K=256, D=64)
+OFFSETS = (0.0, 1e2, 1e3, 1e4)
+SANITY_WRONG = 0.01  # measured: none wrong at offset 0; a wrong axis or layout is wrong nearly everywhere
 
 
 def brute_force(x, codes, chunk=512):
@@ -33,79 +28,64 @@ def brute_force(x, codes, chunk=512):
     c = codes.astype(np.float64)
     out = np.empty(len(x), dtype=np.int64)
     for i in range(0, len(x), chunk):
-        xs = x[i:i + chunk].astype(np.float64)
-        d = ((xs[:, None, :] - c[None]) ** 2).sum(axis=-1)
-        out[i:i + chunk] = d.argmin(axis=1)
+        out[i:i + chunk] = ((x[i:i + chunk, None, :].astype(np.float64) - c[None]) ** 2).sum(-1).argmin(1)
     return out
 
 
 def methods():
-    """name -> fn(x, codes) -> indices; the torch rows only where torch is installed."""
+    """name -> fn(x, codes) -> indices (torch's where torch is installed)."""
     def numpy_expanded(x, codes):
-        d = (x ** 2).sum(1, keepdims=True) - 2 * x @ codes.T + (codes ** 2).sum(1)
-        return d.argmin(axis=1)
+        return ((x ** 2).sum(1, keepdims=True) - 2 * x @ codes.T + (codes ** 2).sum(1)).argmin(axis=1)
 
-    pyvf_numpy = {"pyvf.vq_nearest": lambda x, c: vq_nearest(x, c)[0], "numpy expanded matmul": numpy_expanded}
+    out = {"pyvf.vq_nearest": lambda x, c: vq_nearest(x, c)[0], "numpy expanded matmul": numpy_expanded}
     torch = torch_or_none()
-    if torch is None:
-        return pyvf_numpy
+    if torch is not None:
+        def torch_expanded(x, codes):
+            tx, tc = torch.from_numpy(x), torch.from_numpy(codes)
+            return ((tx ** 2).sum(1, keepdim=True) - 2 * tx @ tc.T + (tc ** 2).sum(1)).argmin(dim=1).numpy()
 
-    def torch_cdist(x, codes):
-        return torch.cdist(torch.from_numpy(x), torch.from_numpy(codes)).argmin(dim=1).numpy()
-
-    def torch_expanded(x, codes):
-        tx, tc = torch.from_numpy(x), torch.from_numpy(codes)
-        d = (tx ** 2).sum(1, keepdim=True) - 2 * tx @ tc.T + (tc ** 2).sum(1)
-        return d.argmin(dim=1).numpy()
-
-    return {**pyvf_numpy, "torch cdist + argmin": torch_cdist, "torch expanded matmul": torch_expanded}
+        out["torch cdist + argmin"] = lambda x, c: torch.cdist(torch.from_numpy(x), torch.from_numpy(c)).argmin(1).numpy()
+        out["torch expanded matmul"] = torch_expanded
+    return out
 
 
-def run(M, K, D, repeat=5, checked_rows=4096, threads=2):
-    """The table (module docstring) for M points, K codes of width D: each method's median time
-    of `repeat` calls and its share of wrong codes at each offset (on the first checked_rows
-    points), then pyvf's time at the offsets. Returns the report; report["failures"] is not
-    empty when pyvf disagrees with brute force (then nothing more is timed) or another method
-    picks more than SANITY_WRONG wrong codes at offset 0 (that one is not timed)."""
+def run(quick=False, threads=2, size=None, checked_rows=4096):
+    """The table (module docstring) for M points, K codes of width D (size; default PAPER, QUICK
+    with quick): median times of 5 calls (3 quick), wrong codes on the first checked_rows points.
+    report["failures"]: pyvf not exact (then nothing is timed), or another method over SANITY_WRONG."""
+    M, K, D = (size or (QUICK if quick else PAPER)).values()
+    repeat, checked_rows = 3 if quick else 5, min(checked_rows, M)
     torch = torch_or_none()
     if torch is not None:
         torch.set_num_threads(threads)
     pyvf.set_num_threads(threads)
     rng = np.random.default_rng(0)
-    checked_rows = min(checked_rows, M)
-    report = dict(config=dict(M=M, K=K, D=D, repeat=repeat, checked_rows=checked_rows, threads=threads),
-                  offsets=[0.0, 1e2, 1e3, 1e4], methods={}, pyvf_offset_seconds={}, failures=[])
+    report = dict(config=dict(M=M, K=K, D=D, threads=threads), machine=machine(threads), methods={}, failures=[])
     print(f"# nearest code: M={M} K={K} D={D}, float32, {threads} threads, median of {repeat}\n")
-    print("| method | time (unit normal data) | wrong, offset 0 | wrong, 1e2 | wrong, 1e3 | wrong, 1e4 |")
-    print("|---|---|---|---|---|---|")
-    base_x = rng.standard_normal((M, D)).astype(np.float32)
-    base_c = rng.standard_normal((K, D)).astype(np.float32)
-    truth = {}
-    for off in report["offsets"]:  # a subset of rows is enough for the disagreement rates
-        xs, cs = base_x[:checked_rows] + np.float32(off), base_c + np.float32(off)
-        truth[off] = (xs, cs, brute_force(xs, cs))
-    results = report["methods"]
+    print("| method | time | wrong codes at offset " + " | ".join(f"{o:g}" for o in OFFSETS) + " |\n|---|---|"
+          + "---|" * len(OFFSETS))
+    x, codes = rng.standard_normal((M, D)).astype(np.float32), rng.standard_normal((K, D)).astype(np.float32)
+    cases = [(x[:checked_rows] + np.float32(o), codes + np.float32(o)) for o in OFFSETS]
+    truth = [brute_force(*case) for case in cases]
     for name, fn in methods().items():
-        wrong = [float((fn(xs, cs) != want).mean()) for xs, cs, want in truth.values()]
+        wrong = [float((fn(*case) != want).mean()) for case, want in zip(cases, truth)]
         if name.startswith("pyvf") and any(wrong):
-            print(f"pyvf disagrees with brute force: {wrong}", file=sys.stderr)
             report["failures"].append(f"pyvf disagrees with brute force: {wrong}")
             return report
-        if not wrong[0] <= SANITY_WRONG:  # not the nearest-code lookup: its time would mean nothing
-            print(f"| {name} | not timed | " + " | ".join(f"{w:.2%}" for w in wrong) + " |")
+        ok = wrong[0] <= SANITY_WRONG  # else not the nearest-code lookup: its time would mean nothing
+        if not ok:
             report["failures"].append(f"{name}: {wrong[0]:.2%} wrong codes at offset 0 > {SANITY_WRONG:.0%}")
-            continue
-        t, _ = median_time(lambda: fn(base_x, base_c), repeat=repeat)
-        results[name] = dict(seconds=t, wrong=wrong)
-        print(f"| {name} | {t * 1e3:.1f} ms | " + " | ".join(f"{w:.2%}" for w in wrong) + " |")
-    t0 = results["pyvf.vq_nearest"]["seconds"]
-    print("\n" + ("; ".join(f"{name} / pyvf time: {results[name]['seconds'] / t0:.2f}x"
-                            for name in ("torch cdist + argmin", "torch expanded matmul") if name in results)
-                  if torch is not None else f"torch: {TORCH_MISSING}"))
-    print("\npyvf at the cancellation offsets (exact re-rank of the codes the bound cannot exclude):")
-    for off in (1e2, 1e3, 1e4):
-        xs, cs = base_x + np.float32(off), base_c + np.float32(off)
-        t, _ = median_time(lambda: vq_nearest(xs, cs), repeat=1)
-        report["pyvf_offset_seconds"][f"{off:g}"] = t
-        print(f"  offset {off:g}: {t * 1e3:.0f} ms")
+        t = median_time(lambda: fn(x, codes), repeat)[0] if ok else None
+        report["methods"][name] = dict(seconds=t, wrong=wrong)
+        print(f"| {name} | {'not timed' if t is None else f'{t * 1e3:.1f} ms'} | "
+              + " | ".join(f"{w:.2%}" for w in wrong) + " |")
+    t0 = report["methods"]["pyvf.vq_nearest"]["seconds"]
+    print("\n" + ("; ".join(f"{n} / pyvf time: {r['seconds'] / t0:.2f}x" for n, r in report["methods"].items()
+                            if n.startswith("torch") and r["seconds"]) if torch is not None else f"torch: {TORCH_MISSING}"))
+    report["pyvf_offset_seconds"] = {}
+    for o in OFFSETS[1:]:
+        xo, co = x + np.float32(o), codes + np.float32(o)
+        report["pyvf_offset_seconds"][f"{o:g}"] = median_time(lambda: vq_nearest(xo, co), 1)[0]
+    print("pyvf at the offsets (exact re-rank of the codes its bound cannot exclude): "
+          + ", ".join(f"{o}: {t * 1e3:.0f} ms" for o, t in report["pyvf_offset_seconds"].items()))
     return report
