@@ -17,8 +17,7 @@ Conventions (tested in tests/test_geometry.py):
 
 * Inputs are float32 or float64 arrays; the result has the input's dtype. Integer arrays, a
   wrong last dimension and NaN/inf raise TypeError/ValueError naming the argument; a result that
-  overflows the dtype raises ValueError. Intermediates that would overflow although the result
-  fits (a float32 vector of 3e38 turned, |q| of 3e38) use operands scaled by a power of two.
+  overflows the dtype raises ValueError.
 * A quaternion used as a rotation must be unit: | |q|^2 - 1 | <= 1e-5 (float32) or 1e-9
   (float64), far above the rounding of any chain of products; else ValueError (for a non-unit
   q the formula scales by |q|^2, and normalising quietly would hide a data bug).
@@ -64,14 +63,6 @@ def _check_pose(name, p):
 
 
 # the quaternion algebra, unchecked: each public function checks its arguments, then composes these
-def _pow2_split(q):
-    """q (..., 4) = qs * 2^k per quaternion: qs (..., 4) with its largest |component| in [0.5, 1),
-    k (..., 1) integers. Exact (but for components that become subnormal: negligible next to the
-    largest). A zero quaternion gives qs = 0, k = 0."""
-    k = np.frexp(np.abs(q).max(axis=-1, keepdims=True))[1]  # (..., 1)
-    return np.ldexp(q, -k).astype(q.dtype, copy=False), k  # (..., 4), (..., 1)
-
-
 def _norm3(v):
     """|v| over the last axis of (..., 3), by hypot: no overflow or underflow of the squares."""
     return np.hypot(np.hypot(v[..., 0], v[..., 1]), v[..., 2])
@@ -96,43 +87,18 @@ def _conj(q):
 
 def _rotate(q, v):
     """vec(q * (0, v) * conj(q)) for unit q, (..., 4) x (..., 3) -> (..., 3), broadcasting,
-    expanded: with u = vec(q), t = 2 u x v, the rotated vector is v + w t + u x t.
-
-    t reaches 2 |v|, so a v near the dtype's largest value can overflow in between although its
-    rotation fits: those vectors are rotated again as v / 16 and scaled back (powers of two: exact);
-    every intermediate then stays below max / 1.8. A rotation that does not fit stays inf, for the
-    caller's finite_result."""
+    expanded: with u = vec(q), t = 2 u x v, the rotated vector is v + w t + u x t."""
     w, u = q[..., :1], q[..., 1:]  # (..., 1), (..., 3)
-
-    def expanded(v):
-        t = 2 * np.cross(u, v)  # (..., 3)
-        return v + w * t + np.cross(u, t)  # (..., 3)
-
-    with np.errstate(over="ignore", invalid="ignore"):
-        out = expanded(v)  # (..., 3)
-    over = ~np.isfinite(out).all(axis=-1, keepdims=True)  # (..., 1)
-    if over.any():
-        with np.errstate(over="ignore", under="ignore"):
-            small = expanded(np.ldexp(v, -4).astype(v.dtype, copy=False))
-            out = np.where(over, np.ldexp(small, 4).astype(v.dtype, copy=False), out)
-    return out
+    t = 2 * np.cross(u, v)  # (..., 3)
+    return v + w * t + np.cross(u, t)  # (..., 3)
 
 
 def _normalize(q, eps):
-    """TF's l2_normalize q / sqrt(max(|q|^2, eps)) = q / max(|q|, floor), floor = sqrt(eps), for
-    any finite q (..., 4). |q| may overflow (float32 components of 3e38) or be subnormal, so it is
-    taken of qs = q / 2^k (_pow2_split): |q| >= floor <=> |qs| >= floor / 2^k, and there the result
-    is qs / |qs| (a power of two cancels: bit for bit the plain formula wherever |q| is
-    representable). Below the floor it is q / floor, as in TF; a zero quaternion gives zero."""
-    qs, k = _pow2_split(q)  # (..., 4), (..., 1)  q = qs 2^k
-    ns = np.hypot(np.hypot(qs[..., 0:1], qs[..., 1:2]), np.hypot(qs[..., 2:3], qs[..., 3:4]))  # (..., 1) |q| / 2^k
-    # floor in q's dtype (as TF's eps), and at least the smallest subnormal, so zero maps to zero
-    floor = max(q.dtype.type(np.sqrt(eps)), np.finfo(q.dtype).smallest_subnormal)
-    with np.errstate(over="ignore"):  # floor / 2^k = inf: then |q| is far below the floor, as compared
-        above = ns >= np.ldexp(floor, -k)  # (..., 1)  |q| >= floor
-    unit = qs / np.where(above, ns, 1)  # (..., 4)  q / |q| where above
-    small = np.where(above, 0, q) / floor  # (..., 4)  q / floor elsewhere
-    return np.where(above, unit, small)  # (..., 4)
+    """TF's l2_normalize q / sqrt(max(|q|^2, eps)) = q / max(|q|, sqrt(eps)), q (..., 4); |q| by
+    hypot (no underflow of the squares). A zero quaternion gives zero."""
+    n = np.hypot(np.hypot(q[..., 0:1], q[..., 1:2]), np.hypot(q[..., 2:3], q[..., 3:4]))  # (..., 1) |q|
+    floor = max(q.dtype.type(np.sqrt(eps)), np.finfo(q.dtype).smallest_subnormal)  # > 0: zero maps to zero
+    return q / np.maximum(n, floor)  # (..., 4)
 
 
 def _canonical(q):
@@ -252,41 +218,22 @@ def orientation_error(q1, q2):
 
     The published 2 * asin(|vec(r)|) is equal for unit inputs, but NaN when rounding makes
     |vec(r)| > 1 and loses half its digits near 180 degrees; atan2 adds no error at any angle.
-    Only r's direction counts, so q1, q2 need not be unit (a zero one raises ValueError); each is
-    scaled by a power of two to a largest component in [0.5, 1), so any size keeps full precision."""
+    Only r's direction counts, so q1, q2 need not be unit (a zero one raises ValueError)."""
     _check_pair("q1", q1, "q2", q2, 4)
     a, b = q1[..., -4:], q2[..., -4:]
     for name, q in (("q1", a), ("q2", b)):
         if (q == 0).all(axis=-1).any():
             raise ValueError(f"{name} contains a zero quaternion: it is no rotation, the angle is undefined")
-    with np.errstate(under="ignore"):  # components far below the largest may become subnormal: negligible
-        r = _mul(_pow2_split(a)[0], _conj(_pow2_split(b)[0]))  # (..., 4)
-    s, c = _norm3(r[..., 1:]), np.abs(r[..., 0])  # (...) |vec(r)|, |w(r)| >= 1/16 together: never 0/0
+    r = _mul(a, _conj(b))  # (..., 4)
+    s, c = _norm3(r[..., 1:]), np.abs(r[..., 0])  # (...) |vec(r)|, |w(r)|
     return np.degrees(2 * np.arctan2(s, c))  # (...)
 
 
 # averaging the per-token predictions of a view
-def _mean(x, axis):
-    """x.mean(axis) for finite x, without a spurious overflow: the mean lies between the smallest
-    and the largest x, but the sum may overflow (float32 2e38 + 2e38). Where it does, the mean is
-    taken again of x / 2^c with 2^c >= 2n (n = x.shape[axis]), every partial sum then below max/2,
-    and scaled back (exact). Elsewhere it is x.mean itself."""
-    with np.errstate(over="ignore", invalid="ignore"):  # the overflowed entries are replaced below
-        m = x.mean(axis=axis)  # x's shape without axis
-    over = ~np.isfinite(m)
-    if over.any():
-        c = (2 * x.shape[axis] - 1).bit_length()  # 2^c >= 2n
-        with np.errstate(under="ignore"):
-            m_scaled = np.ldexp(x, -c).astype(x.dtype, copy=False).mean(axis=axis)
-        with np.errstate(over="ignore"):  # only rounding at the dtype's very top could overflow: finite_result
-            m = np.where(over, np.ldexp(m_scaled, c).astype(x.dtype, copy=False), m)
-    return m
-
-
 def average_pose(poses, axis=-2):
     """The mean pose over `axis`, a leading axis (docs/math.md §3, the published
     `reduce`/`quaternion_reduce_mean`).   poses (..., 7) -> the same shape without `axis`.
-    xyz: the arithmetic mean (_mean). Quaternions (need not be unit): normalised, sign-canonicalised,
+    xyz: the arithmetic mean. Quaternions (need not be unit): normalised, sign-canonicalised,
     averaged, normalised and canonicalised again. Canonicalised quaternions that cancel (all zero,
     or opposite 180-degree rotations with w == 0) average to the zero quaternion, not NaN, as in
     the published code. Near w == 0 the sign rule splits nearby rotations into opposite
@@ -294,7 +241,7 @@ def average_pose(poses, axis=-2):
     _check("poses", poses, (7,))
     if not -poses.ndim <= axis < poses.ndim - 1 or axis == -1:
         raise ValueError(f"axis must name one of the leading axes of poses {poses.shape}, got {axis}")
-    xyz = _mean(poses[..., :3], axis)  # (..., 3)
+    xyz = poses[..., :3].mean(axis=axis)  # (..., 3)
     q = _canonical(_normalize(poses[..., 3:], 1e-12))  # (..., 4)
     q = _canonical(_normalize(q.mean(axis=axis), 1e-12))  # (..., 4)
     return _checks.finite_result("average_pose", np.concatenate([xyz, q], axis=-1))  # (..., 7)
