@@ -6,10 +6,9 @@
     arrays = load_npz("run/checkpoint.npz", "checkpoint", required=("step",))
 
 An atomic write goes to a temporary file `.{name}.{pid}.{random}.tmp` in the destination's
-folder (same file system, so the rename is atomic), is fsync'ed, then os.replace'd over the
-destination, and the folder fsync'ed: a process killed at any moment leaves the previous file or
-the new one, never a mix. An exception removes the temporary file; only SIGKILL or a power cut
-leaves one behind, for remove_stale_temps(path).
+folder, is fsync'ed, then os.replace'd over the destination: a process killed at any moment leaves
+the previous file or the new one. Only SIGKILL or a power cut leaves a temporary file behind, for
+remove_stale_temps(path).
 """
 
 import contextlib
@@ -49,11 +48,7 @@ def _atomic_write(path, write):
     """Call write(binary file object) on a temporary file, then move it over `path`."""
     path = os.fspath(path)
     tmp = _temp_name(path)
-    # os.open with 0o666 honours the umask, as open(path, "wb") would (mkstemp would force 0600)
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    except OSError as e:  # a missing folder, a file in the path, no permission: name the destination
-        raise type(e)(e.errno, f"cannot write {path}: {e.strerror} (creating its temporary file {tmp})") from e
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # 0o666 honours the umask (mkstemp: 0600)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -68,12 +63,7 @@ def _atomic_write(path, write):
 
 
 def atomic_savez(path, /, **arrays):
-    """np.savez(path, **arrays), atomically; `path` is written as given (no ".npz" appended). An
-    object array raises TypeError naming it (the file must load with allow_pickle=False)."""
-    arrays = {key: np.asarray(value) for key, value in arrays.items()}
-    for key, a in arrays.items():
-        if a.dtype.hasobject:
-            raise TypeError(f"atomic_savez: {key!r} is an object array (it would need pickle)")
+    """np.savez(path, **arrays), atomically; `path` is written as given (no ".npz" appended)."""
     _atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
@@ -89,17 +79,16 @@ def atomic_write_png(path, image):
     atomic_write_bytes(path, buf.getvalue())
 
 
-def atomic_write_text(path, text, encoding="utf-8"):
-    """Write the str `text` to `path`, atomically."""
-    data = text.encode(encoding)
-    _atomic_write(path, lambda f: f.write(data))
+def atomic_write_text(path, text):
+    """Write the str `text` to `path` (UTF-8), atomically."""
+    atomic_write_bytes(path, text.encode())
 
 
 def load_npz(path, what="file", required=()):
     """Every array of the .npz at `path`, read now: dict name -> array. what: how the errors call
     the file ("checkpoint", ...). A missing file raises FileNotFoundError; a truncated or corrupt
     one, or one without an entry of `required`, CheckpointError (a ValueError), naming the file."""
-    path = name = os.fspath(path)
+    path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{what} {path} does not exist")
     entry, out = None, {}
@@ -109,10 +98,10 @@ def load_npz(path, what="file", required=()):
                 out[entry] = f[entry]
     except (TypeError, zipfile.BadZipFile, EOFError, ValueError, KeyError, OSError) as e:
         where = f" (entry {entry!r})" if entry is not None else ""
-        raise CheckpointError(f"{what} {name} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
+        raise CheckpointError(f"{what} {path} is truncated or corrupt{where}: {type(e).__name__}: {e}") from e
     missing = [k for k in required if k not in out]
     if missing:
-        raise CheckpointError(f"{what} {name} lacks the entries {missing}: not a {what} written by pyvf, "
+        raise CheckpointError(f"{what} {path} lacks the entries {missing}: not a {what} written by pyvf, "
                               "or written by another version")
     return out
 
@@ -121,8 +110,7 @@ def remove_stale_temps(path):
     """Remove the temporary files atomic writes of `path` left when their process was killed
     outright; call it only where no other process writes `path`. Returns the names removed."""
     folder, name = os.path.split(os.path.abspath(os.fspath(path)))
-    # exactly _temp_name's `.{name}.{pid}.{hex}.tmp`: a looser `.{name}.*.tmp` would also match the
-    # temporary files of other paths (".model.npz.1.ab.tmp" for "model"), perhaps being written now
+    # exactly _temp_name's form: `.{name}.*.tmp` would also match other paths' (".model.npz.1.ab.tmp")
     own = re.compile(re.escape(f".{name}.") + r"[0-9]+\.[0-9a-f]+\.tmp")
     removed = []
     for entry in os.listdir(folder) if os.path.isdir(folder) else []:

@@ -359,10 +359,10 @@ def test_scenes_differ_and_batch_equals_single():
     img2, pose2 = sc.generate_scene(8, 0, views=4, size=16)
     assert not np.array_equal(img0, img1) and not np.array_equal(pose0, pose1)
     assert not np.array_equal(img0, img2) and not np.array_equal(pose0, pose2)
-    imgs, poses = sc.generate_scenes(7, 1, views=4, size=16, start=1)
-    assert imgs.shape == (1, 4, 16, 16, 3) and imgs.dtype == np.uint8 and poses.shape == (1, 4, 7)
-    assert_bitwise_equal("scene 1 in a batch", imgs[0], img1)
-    assert_bitwise_equal("poses 1 in a batch", poses[0], pose1)
+    imgs, poses = sc.generate_scenes(7, 2, views=4, size=16)
+    assert imgs.shape == (2, 4, 16, 16, 3) and imgs.dtype == np.uint8 and poses.shape == (2, 4, 7)
+    assert_bitwise_equal("scene 1 in a batch", imgs[1], img1)
+    assert_bitwise_equal("poses 1 in a batch", poses[1], pose1)
 
 
 # ---------------------------------------------------------------------------------------

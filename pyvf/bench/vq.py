@@ -7,8 +7,7 @@
 Each method's codes are first compared with float64 brute force (exact distances, first minimum)
 on unit-normal data, where the time is measured, and far from the origin (data offset by
 1e2..1e4), where the expanded formula cancels: pyvf must be exact at every offset, the others may
-miss SANITY_WRONG of the codes at offset 0 (near ties), else they are not timed. pyvf, which
-re-ranks exactly every code its error bound cannot exclude, is also timed at the offsets.
+miss SANITY_WRONG of the codes at offset 0 (near ties), else they are not timed.
 """
 
 import numpy as np
@@ -82,10 +81,4 @@ def run(quick=False, threads=2, size=None, checked_rows=4096):
     t0 = report["methods"]["pyvf.vq_nearest"]["seconds"]
     print("\n" + ("; ".join(f"{n} / pyvf time: {r['seconds'] / t0:.2f}x" for n, r in report["methods"].items()
                             if n.startswith("torch") and r["seconds"]) if torch is not None else f"torch: {TORCH_MISSING}"))
-    report["pyvf_offset_seconds"] = {}
-    for o in OFFSETS[1:]:
-        xo, co = x + np.float32(o), codes + np.float32(o)
-        report["pyvf_offset_seconds"][f"{o:g}"] = median_time(lambda: vq_nearest(xo, co), 1)[0]
-    print("pyvf at the offsets (exact re-rank of the codes its bound cannot exclude): "
-          + ", ".join(f"{o}: {t * 1e3:.0f} ms" for o, t in report["pyvf_offset_seconds"].items()))
     return report

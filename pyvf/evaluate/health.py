@@ -35,10 +35,7 @@ def effective_rank(z):
         return 0.0
     zc = z.astype(np.float64) - z.astype(np.float64).mean(axis=0)  # (N, D)
     s = np.linalg.svd(zc, compute_uv=False)  # (min(N, D),)
-    total = s.sum()
-    if not total > 0:
-        return 0.0
-    p = s[s > 0] / total
+    p = s[s > 0] / s.sum()
     return float(np.exp(-(p * np.log(p)).sum()))
 
 
@@ -122,10 +119,10 @@ def transformer_health(codebook, transformer, images, poses, tokens, contexts, b
     images uint8 (n, V, S, S, 3), poses (n, V, 7), tokens (n, V, L) int64 (the codebook's tokens
     of the images) -> {column: float} (transformer_health_columns). The rendering decodes by
     argmax, as every run's eval.csv always has, so that runs compare across versions."""
-    from .run import _check_args, score_scenes  # evaluate.run imports the scenes home; only this needs it
+    from .run import score_scenes  # evaluate.run imports the scenes home; only this needs it
     views = images.shape[1]
-    checked = _check_args(contexts, images.shape[0], views, batch)
     qidx = np.arange(views - QUERIES, views)
-    results, _ = score_scenes(codebook, transformer, images, poses, tokens, checked, qidx, batch, decode="argmax")
+    results, _ = score_scenes(codebook, transformer, images, poses, tokens, sorted(contexts), qidx, batch,
+                              decode="argmax")
     return {f"{stem}_c{C}": results[str(C)][method][metric]
             for C in contexts for method, metric, stem in _TF_METRICS}

@@ -5,9 +5,7 @@
 
 `picture` is what evaluate() keeps of its first P scenes at the largest context C: context
 (P, C, S, S, 3) uint8, context_poses (P, C, 7), truth, codebook, pyvf (P, S, S, 3) uint8 (the
-first query view), query_poses and estimated_poses (P, M, 7), and C. Tiles are enlarged by an
-integer factor (nearest neighbour, about 128 pixels a tile); the pose panels look down on the
-scene (the world's up is -y): x to the right, z up.
+first query view), query_poses and estimated_poses (P, M, 7), and C.
 """
 
 import numpy as np

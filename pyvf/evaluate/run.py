@@ -2,27 +2,18 @@
 
     metrics = evaluate(codebook, transformer, scenes=200, context=(1, 3, 5), seed=1000, out="eval")
 
-The protocol (the metrics' definitions: metrics.py, docs/math.md §6):
-
-* Scenes: pyvf.scenes.generate_scenes(seed, scenes, size=the codebook's image_size). Training
-  data uses seed 0, so the default seed 1000 gives scenes the models never saw.
-* For each scene and context size C: the context is views 0..C-1, the queries the last QUERIES
-  views (10..14 of SM7's 15), the same for every C, so the rows differ only in what the model saw.
-* The codebook tokenizes every used image once. The transformer encodes the context once per
-  (batch of scenes, C) (Transformer.encode_scene, the scene cache of docs/math.md §3), renders
-  every query (render_images) and localizes every query from its ground-truth tokens.
-* Methods: `pyvf` (both tasks), `codebook` (the ground-truth query encoded and decoded: the best
-  a rendering through this codebook can be), and the baselines `nearest_view`, `mean_image`
-  (images), `closest_image_pose`, `mean_pose` (poses). Image metrics and token scores are means
-  over the queries, pose metrics medians.
-* Timing, on the first timing_scenes scenes at the largest C, one query per scene per call: a
-  render from the cached scene against Transformer.render, which encodes the context again.
-
-The result (JSON-able, the same as out/metrics.json):
+The protocol (the metrics: metrics.py, docs/math.md §6): scenes generate_scenes(seed, scenes) (the
+training data uses seed 0, so seed 1000 gives scenes the models never saw). For each scene and
+context size C the context is views 0..C-1, the queries the last QUERIES views, the same for every
+C. The transformer encodes the context once per (batch, C) (the scene cache of docs/math.md §3),
+renders and localizes every query. Methods: `pyvf`, `codebook` (the ground truth encoded and
+decoded: the best a rendering through this codebook can be), the baselines `nearest_view`,
+`mean_image`, `closest_image_pose`, `mean_pose`. Image metrics and token scores are means over the
+queries, pose metrics medians. The result, also out/metrics.json:
 
     {"context": {"C": {method: {metric: value}}},      # C as a string: "1", "3", "5"
-     "timing":  {"render_cached_one_s_per_view": seconds, ...},   # _timing
-     "meta":    {"seed": 1000, "scenes": 200, ...}}                # the run's facts, evaluate()
+     "timing":  {"render_cached_one_s_per_view": seconds, ...},   # _timing: cached vs re-encoding render
+     "meta":    {"seed": 1000, "scenes": 200, ...}}
 """
 
 import dataclasses
@@ -104,19 +95,6 @@ def _decode(codebook, inputs, batch):
     return out
 
 
-def _check_args(context, scenes, views, batch):
-    """The sizes evaluate() and health take, each a positive integer; context: one size or several
-    -> them sorted, without repeats."""
-    for name, v in (("scenes", scenes), ("batch", batch)):
-        _checks.positive_integer(name, v)
-    context = (context,) if np.ndim(context) == 0 else tuple(context)
-    context = tuple(sorted({_checks.positive_integer("context", c) for c in context}))  # 2.7 is not 2
-    if not context or context[-1] + QUERIES > views:
-        raise ValueError(f"context must name sizes of at most {views - QUERIES} ({QUERIES} queries of {views} "
-                         f"views per scene), got {context}")
-    return context
-
-
 def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000, batch=8, out=None,
              timing_scenes=4, repeat=5, progress=True, sources=None, decode=DEFAULT_DECODE):
     """Score the pair on `scenes` held-out scenes for every context size; return the metrics dict
@@ -126,9 +104,13 @@ def evaluate(codebook, transformer, *, scenes=200, context=(1, 3, 5), seed=1000,
     DECODES (render_images)."""
     t_start = time.perf_counter()
     check_pair(codebook, transformer)
-    context = _check_args(context, scenes, SM7_VIEWS, batch)
-    for name, v in (("timing_scenes", timing_scenes), ("repeat", repeat)):
+    for name, v in (("scenes", scenes), ("batch", batch), ("timing_scenes", timing_scenes), ("repeat", repeat)):
         _checks.positive_integer(name, v)
+    context = (context,) if np.ndim(context) == 0 else context
+    context = tuple(sorted({_checks.positive_integer("context", c) for c in context}))  # 2.7 is not 2
+    if not context or context[-1] + QUERIES > SM7_VIEWS:
+        raise ValueError(f"context must name sizes of at most {SM7_VIEWS - QUERIES} ({QUERIES} queries of "
+                         f"{SM7_VIEWS} views per scene), got {context}")
     if decode not in DECODES:
         raise ValueError(f"decode must be one of {sorted(DECODES)}, got {decode!r}")
     cb_cfg, tf_cfg = codebook.config, transformer.config

@@ -5,10 +5,9 @@ and the dataset on disk. Deterministic: a seed gives the same bytes on every mac
     images, poses = generate_scenes(seed, n)             # (n, 15, 64, 64, 3), (n, 15, 7)
     write_dataset("data/sm7", n_scenes=2000, seed=0)     # shard-00000.npz ..., manifest.json
     ds = load_dataset("data/sm7")                        # ds.images, ds.poses, ds.seed, ds.manifest
-    poses = gqn_to_pose(cams); cams = pose_to_gqn(poses) # GQN's (x, y, z, yaw, pitch)
 
-The conventions, with their reasons, are in the submodules' docstrings: render.py the object,
-the light and the renderer; cameras.py the frames, the pose and the cameras; dataset.py the files.
+The conventions are in the submodules' docstrings: render.py the object and the renderer,
+cameras.py the frames and the cameras, dataset.py the files.
 """
 
 from .cameras import (CAMERA_RADIUS, MAX_ELEVATION_DEG, TAN_HALF_FOV, gqn_to_pose, look_at_poses, pose_matrix,

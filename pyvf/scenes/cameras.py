@@ -57,12 +57,10 @@ _MAX_SIN2_ELEVATION = 0.75  # sin(60 degrees)^2, exact in binary: the sampler co
 
 # sampling and look-at (exactly rounded operations only)
 def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
-    """n camera positions, uniform on the band |elevation| <= 60 degrees of the sphere |p| = radius.
-    rng: a numpy Generator; -> (n, 3) float64. A direction is drawn by rejection: u uniform in
-    the cube [-1, 1]^3, kept when 1e-6 < |u|^2 <= 1 (inside the ball, so its direction is
-    uniform) and u_y^2 <= sin(60 deg)^2 |u|^2 (the elevation band; up is -y), then u / |u|.
-    Candidates are drawn in batches of 2n and kept in order, so the result depends only on the
-    generator's state. Only exactly rounded operations: no Gaussian (its tails use exp/log)."""
+    """n camera positions (n, 3), uniform on the band |elevation| <= 60 degrees of |p| = radius.
+    By rejection: u uniform in [-1, 1]^3, kept when 1e-6 < |u|^2 <= 1 (inside the ball: a uniform
+    direction) and u_y^2 <= sin(60 deg)^2 |u|^2 (up is -y), then u / |u|; drawn in batches of 2n,
+    kept in order. No Gaussian: its tails use exp/log, not exactly rounded."""
     out = np.empty((0, 3))
     while len(out) < n:
         u = rng.random((2 * n, 3)) * 2 - 1  # (2n, 3) exact: a double in [0, 1) times 2, minus 1

@@ -1,9 +1,7 @@
 """A Shepard-Metzler dataset on disk: .npz shards and a manifest, written atomically, verified on load.
 
     manifest = write_dataset("data/sm7", n_scenes=2000, seed=0)   # shards, then manifest.json
-    ds = load_dataset("data/sm7")                                 # every shard checked
-    ds.images   # (S, V, H, W, 3) uint8
-    ds.poses    # (S, V, 7) float64
+    ds = load_dataset("data/sm7")     # every shard checked: ds.images (S, V, H, W, 3) uint8, ds.poses (S, V, 7)
 
 The format (FORMAT = "pyvf-sm7-scenes", FORMAT_VERSION = 1), in one folder:
 
@@ -93,9 +91,8 @@ def _constants():
 
 def _prepare_dir(out_dir, head, overwrite):
     """Make out_dir ready for the write whose manifest without shards is `head`: -> the shard
-    files to keep. An unfinished write of the same arguments keeps its shards; a finished
-    dataset, an unfinished write of other arguments, or shards without a progress record raise
-    DatasetExistsError, unless overwrite: then they are removed, the manifest first."""
+    files to keep (an unfinished write of the same arguments'); else DatasetExistsError, unless
+    overwrite: then the old files are removed, the manifest first."""
     names = sorted(os.listdir(out_dir))
     shards = [n for n in names if n.startswith("shard-") and n.endswith(".npz")]
     if not overwrite and MANIFEST in names:
@@ -120,9 +117,7 @@ def _prepare_dir(out_dir, head, overwrite):
 def write_dataset(out_dir, n_scenes, seed, views=15, size=64, shard_size=500, progress=True, overwrite=False):
     """Render scenes 0..n_scenes-1 of `seed` into out_dir (created if needed) as .npz shards plus
     manifest.json; returns the manifest. An unfinished write of the same arguments there is
-    resumed; a finished dataset, or an unfinished write of other arguments, raises
-    DatasetExistsError (a FileExistsError) unless overwrite=True, which replaces it.
-    progress=True shows a tqdm bar."""
+    resumed; another dataset raises DatasetExistsError unless overwrite=True."""
     n_scenes = _checks.integer("n_scenes", n_scenes, 1)
     seed = _checks.integer("seed", seed, 0)
     views = _checks.integer("views", views, 1)
@@ -192,8 +187,7 @@ def _read_shard(path, entry, shapes, mpath):
 
 def load_dataset(path):
     """Load and verify the dataset write_dataset wrote into the folder `path` -> SceneDataset. A
-    missing folder, manifest or shard raises FileNotFoundError; a manifest or shard that does not
-    match (size, sha256, arrays), ValueError; each names the file."""
+    missing file raises FileNotFoundError, one that does not match its manifest ValueError."""
     mpath = os.path.join(path, MANIFEST)
     if not os.path.isfile(mpath):
         raise FileNotFoundError(f"{mpath} is missing: not a dataset folder, or its write did not finish")

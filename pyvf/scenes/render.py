@@ -1,10 +1,5 @@
 """The Shepard-Metzler object and its renderer: exact ray casting against unit cubes, in NumPy.
 
-    cells, colours = make_object(rng)               # (7, 3) int64 lattice cells, (7, 3) RGB in [0, 1]
-    images = render_views(cells, colours, poses, 64)  # (V, 64, 64, 3) uint8, centroid at the origin
-    images, poses = generate_scene(seed, index)     # (15, 64, 64, 3) uint8, (15, 7) float64
-    images, poses = generate_scenes(seed, n)        # (n, 15, 64, 64, 3), (n, 15, 7)
-
 The object (docs/math.md §7): N_CUBES = 7 unit cubes on the integer lattice, each attached face
 to face to the previous one by a step along one of +-x, +-y, +-z, chosen uniformly among the
 steps that reach a free cell (self-avoiding; a chain of 7 never runs into a dead end). Each cube
@@ -68,9 +63,8 @@ def hue_to_rgb(h, s=SATURATION, v=VALUE):
 
 def make_object(rng):
     """A random Shepard-Metzler object: (cells (7, 3) int64, colours (7, 3) float64 RGB in [0, 1]).
-    Draws from rng, in this order: for each of cubes 1..6, one integer choosing among the free
-    face neighbours of the previous cube (in the order of _STEPS: +x, -x, +y, -y, +z, -z); then
-    the 7 hues."""
+    Draws from rng: for each of cubes 1..6 one integer choosing among the free face neighbours of
+    the previous cube (in _STEPS' order); then the 7 hues."""
     cells = [(0, 0, 0)]
     occupied = {cells[0]}
     for _ in range(N_CUBES - 1):
@@ -84,8 +78,8 @@ def make_object(rng):
 
 
 def object_centres(cells):
-    """Cube centres with their centroid at the origin: cells (K, 3) int -> (K, 3) float64. The
-    centroid's sum is taken in integers (exact), then divided by K once (exactly rounded)."""
+    """Cube centres with their centroid at the origin: cells (K, 3) int -> (K, 3) float64 (the
+    sum in integers, exact, then divided by K once)."""
     return cells - cells.sum(axis=0) / len(cells)  # (K, 3)
 
 
@@ -190,21 +184,18 @@ def render_views(cells, colours, poses, size=64):
 
 # scenes
 def generate_scene(seed, index, views=15, size=64):
-    """Scene `index` of the family `seed`: (images (V, size, size, 3) uint8, poses (V, 7) float64).
-    Its random numbers come from np.random.default_rng([seed, index]) alone, so every scene is
-    reproducible by itself and independent of the others: first the object (make_object), then
-    the camera positions (sample_camera_positions), looking at the origin (look_at_poses)."""
+    """Scene `index` of the family `seed`: (images (V, size, size, 3) uint8, poses (V, 7) float64),
+    from np.random.default_rng([seed, index]) alone: the object, then the cameras."""
     rng = np.random.default_rng([seed, index])
     cells, colours = make_object(rng)
     poses = look_at_poses(sample_camera_positions(rng, views, CAMERA_RADIUS))  # (V, 7)
     return render_views(cells, colours, poses, size), poses
 
 
-def generate_scenes(seed, n, views=15, size=64, start=0):
-    """Scenes start .. start+n-1: (images (n, V, size, size, 3) uint8, poses (n, V, 7) float64)."""
-    H, W = (size, size) if np.ndim(size) == 0 else size
-    images = np.empty((n, views, H, W, 3), dtype=np.uint8)
+def generate_scenes(seed, n, views=15, size=64):
+    """Scenes 0..n-1: (images (n, V, size, size, 3) uint8, poses (n, V, 7) float64)."""
+    images = np.empty((n, views, size, size, 3), dtype=np.uint8)
     poses = np.empty((n, views, 7))
     for i in range(n):
-        images[i], poses[i] = generate_scene(seed, start + i, views, size)
+        images[i], poses[i] = generate_scene(seed, i, views, size)
     return images, poses
