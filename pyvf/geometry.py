@@ -21,11 +21,8 @@ Conventions (tested in tests/test_geometry.py):
 * A quaternion used as a rotation must be unit: | |q|^2 - 1 | <= 1e-5 (float32) or 1e-9
   (float64), far above the rounding of any chain of products; else ValueError (for a non-unit
   q the formula scales by |q|^2, and normalising quietly would hide a data bug).
-* quat_normalize is TF's l2_normalize, q / sqrt(max(|q|^2, eps)): a zero quaternion maps to
-  zero, not NaN (the published pose prediction and average rely on it).
-* quat_canonical multiplies by -1 where w < 0, as the published `quaternion_remove_sign`; at
-  w == 0 (either sign of zero) q is left unchanged, so q and -q there stay different arrays
-  (kept for parity: the model's pose predictions and average_pose are defined by it).
+* quat_canonical multiplies by -1 where w < 0 only, as the published `quaternion_remove_sign`:
+  at w == 0 q and -q stay different (the model's pose predictions and average_pose rely on it).
 """
 
 import numpy as np
@@ -40,16 +37,14 @@ _UNIT_TOL = {np.dtype(np.float32): 1e-5, np.dtype(np.float64): 1e-9}
 
 
 # argument checks: every error names the argument
-def _check(name, x, last):
-    """x: a finite float32/float64 ndarray whose last dimension is one of `last`."""
+def _check(name, x, last):  # a finite float32/float64 ndarray whose last dimension is one of `last`
     _checks.float_array(name, x)
     if x.ndim == 0 or x.shape[-1] not in last:
         raise ValueError(f"{name} must have last dimension {' or '.join(map(str, last))}, got shape {x.shape}")
     return _checks.finite(name, x)
 
 
-def _check_unit(name, q):
-    """q (..., 4) must be a unit quaternion up to _UNIT_TOL."""
+def _check_unit(name, q):  # q (..., 4): unit quaternions up to _UNIT_TOL
     n2 = np.einsum("...i,...i->...", q, q)  # (...) |q|^2
     if n2.size and np.abs(n2 - 1).max() > _UNIT_TOL[q.dtype]:
         raise ValueError(f"{name} must hold unit quaternions (| |q|^2 - 1 | <= {_UNIT_TOL[q.dtype]:g} in "

@@ -317,16 +317,16 @@ def test_object_is_a_self_avoiding_chain(index):
     assert len({tuple(c) for c in cells.tolist()}) == sc.N_CUBES  # distinct cells
     steps = np.abs(np.diff(cells, axis=0))
     assert (steps.sum(axis=1) == 1).all()  # each cube shares a face with the previous one
-    centres = sc.object_centres(cells)
+    lo, hi = sc.object_boxes(cells)
+    centres = (lo + hi) / 2
     assert np.abs(centres.mean(axis=0)).max() < 1e-15 * 8
     assert_close("centre differences", np.diff(centres, axis=0), np.diff(cells, axis=0).astype(np.float64), rtol=TOL)
+    assert_close("unit boxes", hi - lo, np.ones((sc.N_CUBES, 3)), rtol=TOL)
     # the face two neighbours share is one float: no hairline gap between them
-    lo, hi = sc.object_boxes(cells)
     for k in range(sc.N_CUBES - 1):
         a = int(np.flatnonzero(cells[k + 1] != cells[k])[0])
         shared = (hi[k, a], lo[k + 1, a]) if cells[k + 1, a] > cells[k, a] else (lo[k, a], hi[k + 1, a])
         assert shared[0] == shared[1]
-    assert_close("box centres", (lo + hi) / 2, centres, rtol=TOL)
     # saturated colours: HSV value 1, saturation 0.8, so max channel 1 and min channel 0.2
     assert colours.shape == (sc.N_CUBES, 3)
     assert_close("max channel", colours.max(axis=1), np.ones(sc.N_CUBES), rtol=TOL)

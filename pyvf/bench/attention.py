@@ -5,13 +5,11 @@ NumPy reference; also the measurement of one point of `pyvf bench scaling` (work
     pyvf bench attention           # paper size R=3, B=1, H=12, N=20, L=64, dh=64
     pyvf bench attention --quick   # H=2, N=4, dh=32
 
-Each method runs in a process of its own (worker()): its output and gradients (float32) are first
-compared with the NumPy reference in float64, normwise (max|x - ref| / max|ref|), and one outside
-its bound is not timed; then one call's extra peak memory, beside the memory expected, and the
-median time of 5 calls. The table gives the useful GFLOP/s (attended block pairs only) and its
-share of the machine's float32 GEMM rate. Inputs unit-normal, scale 1 (the published model's
-unscaled logits); torch and the reference take the flat (B, H, T, dh) sequence, T = R*N*L in the
-order [row][view][token].
+Each method runs in a process of its own (worker()): validated against the float64 reference
+(one outside its bound is not timed), then one call's extra peak memory beside the memory
+expected, and the median time of 5 calls; GFLOP/s count the attended block pairs only. Inputs
+unit-normal, scale 1 (the published model's unscaled logits); torch and the reference take the
+flat (B, H, T, dh) sequence, T = R*N*L in the order [row][view][token].
 """
 
 import numpy as np
@@ -77,8 +75,6 @@ def expected_memory(method, R, B, H, N, L, dh, threads):
 
 
 # the contenders: {fwd, fb (forward+backward), outs (-> [o, dq, dk, dv] in pyvf's layout)}
-
-
 def pyvf_contender(q, k, v, do):
     def fb():
         o, lse = pyvf.branching_attention_forward(q, k, v)
@@ -111,11 +107,8 @@ def torch_contender(q, k, v, do):
 
 def reference_contender(q, k, v, do):
     """The dense NumPy reference; its vjp recomputes the probabilities."""
-    def fwd():
-        return pyvf.branching_attention_reference(q, k, v)
-
-    def fb():
-        return pyvf.branching_attention_reference_vjp(q, k, v, do)
+    fwd = lambda: pyvf.branching_attention_reference(q, k, v)  # noqa: E731
+    fb = lambda: pyvf.branching_attention_reference_vjp(q, k, v, do)  # noqa: E731
     return dict(fwd=fwd, fb=fb, outs=lambda: [fwd(), *fb()])
 
 

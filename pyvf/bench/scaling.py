@@ -12,12 +12,10 @@ approaches it replaces (docs/math.md §2), float32, R=3 tree rows, B=1, L=64 tok
     dense_sdpa   torch SDPA on the flat (B, H, T, dh) sequence with the (T, T) branching mask
     dense_numpy  pyvf.branching_attention_reference: the dense NumPy reference, (T, T) logits
 
-Each point (method, size, N) runs in a process of its own: at the first N it validates its output
-and gradients against the float64 reference, then measures one call's extra peak memory beside the
-memory expected and the median time, forward and forward+backward. A point predicted (from the
-method's previous N, by the FLOPs it computes) to take more than --max-point-seconds is skipped,
-and so are its larger N. The slopes of log(memory) and log(time) against log(N) are fitted: in
-theory pyvf's memory ~N; the dense mask's ~N^2; the naive approach's ~N^2 and its time ~N^3.
+Each point (method, size, N) is `pyvf bench attention`'s worker, validated at the first N. A
+point predicted (from the method's previous N, by its FLOPs) to take more than --max-point-seconds
+is skipped, and so are its larger N. The slopes of log(memory) and log(time) against log(N) are
+fitted: in theory pyvf's memory ~N; the dense mask's ~N^2; the naive approach's ~N^2, time ~N^3.
 """
 
 import os

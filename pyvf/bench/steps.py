@@ -5,10 +5,9 @@ one run after checking that both compute the same step.
     pyvf bench codebook [--quick]      # forward with the EMA update, backward, Adam, at `pyvf
                                        # train-codebook`'s batch; 10 steps (5 on two 32x32 images)
 
-The torch models are pyvf/verify/torch_transformer.py (SDPA with a boolean mask) and
-torch_codebook.py; each framework runs in a worker process of its own, so that neither's thread
-pool waits on the other's. Before any time is reported, the first step's loss and gradients (same
-weights, same batch) and the loss after the first update are compared (first_step_differs).
+The torch models are pyvf/verify's; each framework runs in a worker process of its own (neither's
+thread pool waits on the other's). Before any time is reported, the first step's loss and
+gradients (same weights, same batch) and the loss after the first update are compared.
 """
 
 import zlib

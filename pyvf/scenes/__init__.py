@@ -15,10 +15,10 @@ from .cameras import (CAMERA_RADIUS, MAX_ELEVATION_DEG, TAN_HALF_FOV, gqn_to_pos
 from .dataset import FORMAT, FORMAT_VERSION, SceneDataset, load_dataset, write_dataset
 from .make import preview_grid, save_preview
 from .render import (AMBIENT, BACK, BACKGROUND, DIFFUSE, LIGHT_DIR, N_CUBES, face_shades, generate_scene,
-                     generate_scenes, make_object, object_boxes, object_centres, render_views)
+                     generate_scenes, make_object, object_boxes, render_views)
 
 __all__ = [
-    "generate_scene", "generate_scenes", "make_object", "object_centres", "object_boxes", "render_views",
+    "generate_scene", "generate_scenes", "make_object", "object_boxes", "render_views",
     "face_shades",  # scenes
     "sample_camera_positions", "look_at_poses", "pose_matrix", "gqn_to_pose", "pose_to_gqn",  # cameras
     "SceneDataset", "write_dataset", "load_dataset", "FORMAT", "FORMAT_VERSION",  # the dataset on disk

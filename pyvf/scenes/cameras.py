@@ -9,19 +9,16 @@
 Conventions (tested in tests/test_scenes.py):
 
 * **World frame (pyvf's, the published ViewFormer's):** right-handed, units of one cube
-  side, the object's centroid at the origin, **up is -y** (gravity along +y). This is the
-  frame the published code converts GQN's cameras into (`fix_legacy_gqn_cameras` in
-  viewformer/data/tfrecord_dataset.py), so a model trained on these poses sees the same
-  convention as one trained on the real SM7.
+  side, the object's centroid at the origin, **up is -y**: the frame the published code converts
+  GQN's cameras into (`fix_legacy_gqn_cameras`), as for the real SM7.
 * **Camera frame (OpenCV):** x right, y down, z forward (the optical axis, the camera looks
   along its local +z). A pixel (row i, column j) of an H x W image looks along
   ((j + 0.5 - W/2) / f, (i + 0.5 - H/2) / f, 1) in the camera frame, with the focal length
   f = (min(H, W) / 2) / TAN_HALF_FOV pixels: square pixels, TAN_HALF_FOV fixes the field of
   view across the shorter side (both sides of the default square images).
-* **Pose:** camera position xyz (world), then the unit quaternion (w, x, y, z) of the
-  camera-to-world rotation (Hamilton product, pyvf.geometry): a camera-frame vector v
-  points along quat_rotate(q, v) in the world; the optical axis is quat_rotate(q, (0, 0, 1)).
-  Quaternions are sign-canonical (w >= 0).
+* **Pose:** camera position xyz (world), then the sign-canonical (w >= 0) unit quaternion
+  (w, x, y, z) of the camera-to-world rotation: a camera-frame vector v points along
+  quat_rotate(q, v) in the world.
 * **Cameras of a scene:** on the sphere of radius CAMERA_RADIUS = 10 around the origin,
   looking at the origin, no roll (the camera's x axis is horizontal, its y axis points
   down as far as it can), elevation within +-MAX_ELEVATION_DEG = 60 degrees, direction
@@ -38,8 +35,7 @@ Conventions (tested in tests/test_scenes.py):
   conversion, pose_to_gqn its inverse for roll-free cameras (every camera here).
 
 Determinism: sampling and look-at use only exactly rounded IEEE operations (+ - * /, sqrt,
-comparisons) on the generator's doubles, never a transcendental function or a BLAS call,
-so the same seed gives the same bits on every machine. Only the GQN conversions use trig.
+comparisons), never a transcendental function or a BLAS call: the same bits on every machine.
 """
 
 import numpy as np
@@ -72,10 +68,8 @@ def sample_camera_positions(rng, n, radius=CAMERA_RADIUS):
 
 
 def look_at_poses(positions):
-    """Poses of cameras at `positions` looking at the origin, without roll.
-    positions (..., 3) float64, not on the vertical axis (ValueError) -> poses (..., 7): xyz,
-    then the sign-canonical unit quaternion of the rotation whose columns are the camera's axes in
-    the world, [right, down, forward]:
+    """Poses (..., 7) of cameras at `positions` (..., 3), not on the vertical axis, looking at the
+    origin without roll; the rotation's columns are the camera's axes [right, down, forward]:
         forward = -p / |p|,  right = (forward x up) / |.| with up = (0, -1, 0),
         down = forward x right."""
     p = positions
@@ -112,9 +106,8 @@ def look_at_poses(positions):
 
 
 def pose_matrix(q):
-    """The rotation matrix of unit quaternions q (..., 4) -> (..., 3, 3), R[..., i, j] = e_i . rotate(q, e_j).
-    Written out term by term (no BLAS, no einsum), so every element is the same bits on every
-    machine; the renderer turns camera rays into the world with it."""
+    """The rotation matrix of unit quaternions q (..., 4) -> (..., 3, 3), R[..., i, j] = e_i . rotate(q, e_j),
+    written out term by term (no BLAS: the same bits on every machine)."""
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
@@ -129,11 +122,9 @@ def pose_matrix(q):
 
 # GQN's camera form (trig allowed here: not on the rendering path)
 def gqn_to_pose(cams):
-    """GQN cameras (..., 5) = (x, y, z, yaw, pitch) in GQN's z-up frame -> poses (..., 7).
-    The published conversion (fix_legacy_gqn_cameras): xyz = (y, -z, -x) and
-    q = q_y(pi - yaw) * q_x(pitch), with q_y(t) = (cos t/2, 0, sin t/2, 0) and
-    q_x(t) = (cos t/2, sin t/2, 0, 0); the product is (cy cx, cy sx, sy cx, -sy sx).
-    Made sign-canonical (w >= 0). The result has the input's float dtype."""
+    """GQN cameras (..., 5) = (x, y, z, yaw, pitch) in GQN's z-up frame -> poses (..., 7), the
+    published conversion (fix_legacy_gqn_cameras): xyz = (y, -z, -x) and q = q_y(pi - yaw) *
+    q_x(pitch), q_y(t) = (cos t/2, 0, sin t/2, 0), q_x(t) = (cos t/2, sin t/2, 0, 0), made w >= 0."""
     x, y, z, yaw, pitch = (cams[..., i] for i in range(5))
     half_y, half_x = (np.pi - yaw) / 2, pitch / 2
     cy, sy, cx, sx = np.cos(half_y), np.sin(half_y), np.cos(half_x), np.sin(half_x)
@@ -145,8 +136,7 @@ def pose_to_gqn(poses):
     """Poses (..., 7) -> GQN cameras (..., 5) = (x, y, z, yaw, pitch), the inverse of gqn_to_pose.
     Position (x, y, z)_GQN = (-z, x, -y) of the pose; the optical axis f = rotate(q, (0, 0, 1)),
     written in GQN's frame as g = (-f_z, f_x, -f_y), gives yaw = atan2(g_y, g_x) in [-pi, pi]
-    and pitch = atan2(g_z, hypot(g_x, g_y)) in [-pi/2, pi/2]. A roll about the optical axis is
-    dropped (GQN cameras have none). The quaternions must be unit."""
+    and pitch = atan2(g_z, hypot(g_x, g_y)) in [-pi/2, pi/2] (GQN cameras have no roll)."""
     R = pose_matrix(poses[..., 3:])  # (..., 3, 3)
     f = R[..., :, 2]  # (..., 3) the optical axis in pyvf's world
     gx, gy, gz = -f[..., 2], f[..., 0], -f[..., 1]

@@ -28,7 +28,7 @@ import numpy as np
 from .cameras import CAMERA_RADIUS, TAN_HALF_FOV, look_at_poses, pose_matrix, sample_camera_positions
 
 __all__ = ["N_CUBES", "SATURATION", "VALUE", "LIGHT_DIR", "AMBIENT", "DIFFUSE", "BACK", "BACKGROUND", "make_object",
-           "object_centres", "object_boxes", "hue_to_rgb", "face_shades", "render_views", "generate_scene",
+           "object_boxes", "hue_to_rgb", "face_shades", "render_views", "generate_scene",
            "generate_scenes"]
 
 N_CUBES = 7
@@ -77,18 +77,12 @@ def make_object(rng):
     return np.array(cells, dtype=np.int64), colours
 
 
-def object_centres(cells):
-    """Cube centres with their centroid at the origin: cells (K, 3) int -> (K, 3) float64 (the
-    sum in integers, exact, then divided by K once)."""
-    return cells - cells.sum(axis=0) / len(cells)  # (K, 3)
-
-
 def object_boxes(cells):
     """The cubes as boxes lo <= x <= hi, centroid at the origin: cells (K, 3) int -> lo, hi (K, 3).
     Computed as (cell -+ 0.5) - centroid: cell -+ 0.5 is exact, so two cubes that share a face
     get bitwise the same coordinate for it (no hairline gap for a ray to slip through), which
     centre -+ 0.5 with a rounded centre would not guarantee."""
-    m = cells.sum(axis=0) / len(cells)  # (3,) the centroid, as object_centres
+    m = cells.sum(axis=0) / len(cells)  # (3,) the centroid: the sum in integers (exact), divided once
     return (cells - 0.5) - m, (cells + 0.5) - m  # (K, 3), (K, 3)
 
 
