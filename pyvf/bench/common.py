@@ -1,8 +1,5 @@
 """What the benchmarks share: the validator, the memory measurement, the machine's name, worker
 processes, tables, JSON and plots. The timer is pyvf/_machine.py's median_time (re-exported).
-
-    errs, ok = validate(outs, refs, names, bound)   # normwise errors against float64 references
-    result, extra = peak_memory(fn)                 # bytes resident at fn()'s peak above before it
 """
 
 import gc
@@ -42,8 +39,7 @@ def machine(threads):
 
 def validate(outs, refs, names, bound):
     """Each output against its float64 reference: ({name: max|x - ref| / max|ref|}, worst <= bound).
-    An output holding a NaN or an inf, of another shape, or missing is an error of inf (a NaN
-    compares False with every bound, so it would otherwise pass unseen)."""
+    An output holding a NaN or an inf, of another shape, or missing is an error of inf."""
     outs = list(outs)
     errs = {}
     for i, (name, ref) in enumerate(zip(names, refs)):
@@ -66,9 +62,8 @@ def _status_bytes(field):
 
 def peak_memory(fn):
     """Run fn() once: (result, peak resident memory while it ran minus the resident memory just
-    before), Linux only. Page granularity, approximate below ~1 MiB. It counts fn's outputs, not
-    what was allocated before: make the inputs first, and call fn once before (thread pools).
-    Frees go back to the system from here on (map_fresh_pages), so that a call cannot reuse what an
+    before), Linux only, page granularity. Make the inputs and call fn once before (thread pools).
+    Frees go back to the system from here on (map_fresh_pages): a call cannot reuse what an
     earlier one freed and look as if it needed nothing."""
     gc.collect()
     map_fresh_pages()
@@ -93,9 +88,8 @@ def ms(seconds):
 
 
 def run_worker(module, spec):
-    """`python -m module JSON(spec)` in a fresh process (each framework's thread pool, or each
-    point's memory, in a process of its own): the JSON object on its last line (worker_main). It
-    starts in the folder above this pyvf package, so that it imports the same pyvf."""
+    """`python -m module JSON(spec)` in a fresh process: the JSON object on its last line
+    (worker_main). It starts in the folder above this pyvf package, so that it imports this pyvf."""
     import subprocess
 
     import pyvf

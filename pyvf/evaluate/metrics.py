@@ -63,8 +63,7 @@ def to_model_images(images, dtype):
 
 def encode_images(codebook, images, batch_size=64, dtype=np.int64, progress=None):
     """uint8 images (M, Hi, Wi, C) -> codebook.encode's codes (M, k, k) as dtype, batch_size images
-    per encoder call (each batch converted by to_model_images: the whole set never is at once).
-    progress: None, or the description of a tqdm progress bar."""
+    per encoder call. progress: None, or the description of a tqdm progress bar."""
     k = codebook.config.token_size
     out = np.empty((images.shape[0], k, k), dtype)  # (M, k, k)
     starts = range(0, images.shape[0], batch_size)
@@ -88,9 +87,8 @@ def to_uint8(x):
 # metrics
 def psnr_cap(image_shape):
     """The PSNR in dB given to a perfect image of shape (Hi, Wi, C): that of one value off by half
-    a level, 10 log10(4 * 255^2 * Hi * Wi * C) (95.0 dB at 64x64x3). The largest finite PSNR, one
-    value off by one level (mse = 1 / (Hi Wi C) on 0..255), is 10 log10(255^2 * Hi * Wi * C):
-    20 log10(2) = 6.02 dB below the cap."""
+    a level, 10 log10(4 * 255^2 * Hi * Wi * C) (95.0 dB at 64x64x3), 6.02 dB above one value off
+    by one level, the largest finite PSNR."""
     n = int(np.prod(image_shape))
     return float(10.0 * np.log10(4 * 255.0 ** 2 * n))
 
