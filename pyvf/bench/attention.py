@@ -194,8 +194,7 @@ def worker(spec):
 
 
 def run(quick=False, threads=2, size=None):
-    """The benchmark (module docstring) at size (H, dh, N) (default 12, 64, 20; 2, 32, 4 with quick):
-    prints its tables, returns the report; report["failures"] lists the methods outside their bound."""
+    """The benchmark (module docstring) at size (H, dh, N): prints its tables, returns the report."""
     H, dh, N = size or ((2, 32, 4) if quick else (12, 64, 20))
     torch = torch_or_none()
     report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, threads=threads), machine=machine(threads), points=[],

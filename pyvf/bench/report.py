@@ -3,12 +3,9 @@
     pyvf bench report                   # the full runs into docs/
     pyvf bench report --quick --out D   # the --quick runs into D/ (a few minutes)
 
-Runs on --threads threads `pyvf bench scaling` (full: --sizes 12x64 --max-point-seconds 30, then
---sizes 4x32 --max-point-seconds 60), `accuracy` and `hardcases`; writes OUT/performance.md (the
-conclusions, each number computed from the same run's measurements: how the attention's memory
-and time grow with N, pyvf's time and error against torch's per op; then the evidence),
-OUT/accuracy.md (every op's variants and the hard cases), their plots in OUT/img/ and every number
-in OUT/measurements/. The guardrails' speed ratios are `pyvf bench attention|transformer|codebook`'s.
+Runs `pyvf bench scaling` (SCALING_FULL), `accuracy` and `hardcases`; writes OUT/performance.md
+(the conclusions, each number computed from the same run's measurements, then the evidence),
+OUT/accuracy.md, their plots in OUT/img/ and every number in OUT/measurements/.
 """
 
 import datetime

@@ -68,8 +68,7 @@ def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
 
 
 def fit_slope(Ns, values):
-    """The least-squares slope p of log(value) = p log(N) + c; values None or <= 0 left out; None
-    with fewer than two points."""
+    """The least-squares slope p of log(value) = p log(N) + c over the values > 0 (None: < 2 of them)."""
     pts = [(n, v) for n, v in zip(Ns, values) if v is not None and v > 0]
     if len(pts) < 2:
         return None
@@ -137,8 +136,7 @@ def plot(points, fit, sizes, methods, folder):
 
 def run(quick=False, threads=2, sizes=None, views=None, methods=tuple(METHODS), max_point_seconds=MAX_POINT_SECONDS,
         plots=None, log=print):
-    """The whole study (module docstring): the report, every number. report["failures"]: the points
-    whose validation failed (a crashed or skipped point is only written down)."""
+    """The study (module docstring) -> its report; failures: the points whose validation failed."""
     sizes, views = sizes or (QUICK_SIZES if quick else SIZES), views or (QUICK_VIEWS if quick else VIEWS)
     log(f"# Attention memory and time against the number of views N: R={R} B={B} L={L}, float32, scale 1, "
         f"{threads} threads\nmemory: {MEMORY_METHOD}\n")

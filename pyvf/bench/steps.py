@@ -65,8 +65,8 @@ def first_step_differs(p, t):
 
 
 def step_figures(loss, gradients, step, steps):
-    """The first step's loss and gradient checksums, then step() (-> the loss before its update): a
-    warm-up call, the next one's loss (after one update: it checks the optimizer), the median time."""
+    """The first step's loss and gradient checksums; step() (-> the loss before its update) once to
+    warm up, once for the loss after an update, then timed."""
     step()
     return dict(loss=loss, gradients=checksums(gradients), loss_after_update=step(),
                 time=median_time(step, steps, warmup=0)[0])

@@ -49,9 +49,8 @@ def methods():
 
 
 def run(quick=False, threads=2, size=None, checked_rows=4096):
-    """The table (module docstring) for M points, K codes of width D (size; default PAPER, QUICK
-    with quick): median times of 5 calls (3 quick), wrong codes on the first checked_rows points.
-    report["failures"]: pyvf not exact (then nothing is timed), or another method over SANITY_WRONG."""
+    """The table (module docstring) for size dict(M, K, D): median times of 5 calls (3 quick),
+    wrong codes on the first checked_rows points."""
     M, K, D = (size or (QUICK if quick else PAPER)).values()
     repeat, checked_rows = 3 if quick else 5, min(checked_rows, M)
     torch = torch_or_none()

@@ -20,7 +20,7 @@ from .run import DEFAULT_DECODE, evaluate, metrics_markdown
 
 __all__ = ["DEMO_SCENES", "DEMO_CONTEXT", "QUICK_SCENES", "QUICK_CONTEXT", "demo", "report"]
 
-DEMO_SCENES = 20  # held-out scenes of the demo (measured wall time in README/the report)
+DEMO_SCENES = 20  # held-out scenes of the demo
 DEMO_CONTEXT = (1, 3, 5)
 QUICK_SCENES, QUICK_CONTEXT = 2, (1, 3)
 
@@ -34,10 +34,7 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
         set_num_threads(threads)
     try:
         cb, tf = load_pretrained(codebook, transformer)
-    except FileNotFoundError as e:
-        print(f"pyvf {name}: {e}", file=sys.stderr)
-        return 1
-    except (ValueError, TypeError, KeyError, OSError) as e:  # a file that is no model, or a pair that does not fit
+    except (ValueError, TypeError, KeyError, OSError) as e:  # missing, no model, or a pair that does not fit
         print(f"pyvf {name}: cannot load the models: {e}", file=sys.stderr)
         return 1
     c, t = cb.config, tf.config

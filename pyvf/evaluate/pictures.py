@@ -30,18 +30,11 @@ def save_views(path, picture):
     T = S * scale  # tile side in pixels
     columns = [(f"context {i + 1}", ctx[:, i]) for i in range(C)]
     columns += [("ground truth", picture["truth"]), ("codebook", picture["codebook"]), ("pyvf", picture["pyvf"])]
-    xs, x = [], _LABEL_W
-    for j in range(len(columns)):
-        if j == C:
-            x += _GROUP_GAP - _GAP  # a wider gap between the context and the query's columns
-        xs.append(x)
-        x += T + _GAP
+    # a wider gap between the context's columns and the query's
+    xs = [_LABEL_W + j * (T + _GAP) + (_GROUP_GAP if j >= C else 0) for j in range(len(columns))]
     caption = ("codebook: the ground truth encoded and decoded (the best a rendering can be).",
                f"pyvf: rendered from the {C} context views and the query's pose.")
-    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    width = max(x, 12 + int(max(probe.textlength(c, font=font) for c in caption)))
-    height = _HEAD_H + P * (T + _GAP) + 32
-    sheet = Image.new("RGB", (width, height), _WHITE)
+    sheet = Image.new("RGB", (max(xs[-1] + T + _GAP, 500), _HEAD_H + P * (T + _GAP) + 32), _WHITE)
     draw = ImageDraw.Draw(sheet)
     for (label, tiles), x in zip(columns, xs):
         draw.text((x + (T - draw.textlength(label, font=font)) / 2, 3), label, fill=_BLACK, font=font)  # centred
@@ -80,8 +73,6 @@ def save_poses(path, picture, panel=280):
         cx, cy = px((0.0, 0.0, 0.0))
         draw.line([cx - 4, cy, cx + 4, cy], fill=_BLACK)  # the object at the origin
         draw.line([cx, cy - 4, cx, cy + 4], fill=_BLACK)
-        draw.text((x0 + panel - 12, cy - 14), "x", fill=_GREY, font=font)
-        draw.text((cx + 4, head + 2), "z", fill=_GREY, font=font)
         for p in ctx[s]:
             x, y = px(p)
             draw.ellipse([x - 4, y - 4, x + 4, y + 4], fill=_CONTEXT)
