@@ -85,19 +85,13 @@ def codebook_health(codebook, images, batch=64):
 
 
 # the transformer
-_TF_METRICS = (  # (method, metric, column stem) for each context size
-    ("pyvf", "ce", "ce"), ("pyvf", "token_accuracy", "token_accuracy"),
-    ("pyvf", "ce_empty", "ce_empty"), ("pyvf", "ce_object", "ce_object"),  # tokens of empty / object patches
-    ("pyvf", "token_accuracy_empty", "token_accuracy_empty"), ("pyvf", "token_accuracy_object", "token_accuracy_object"),
-    ("pyvf", "mae", "mae"), ("pyvf", "rmse", "rmse"),
-    ("nearest_view", "mae", "nearest_view_mae"), ("mean_image", "mae", "mean_image_mae"),
-    ("nearest_view", "rmse", "nearest_view_rmse"), ("mean_image", "rmse", "mean_image_rmse"),
-    ("pyvf", "position_error_median", "position"), ("pyvf", "orientation_error_median_deg", "orientation"),
-    ("closest_image_pose", "position_error_median", "closest_image_position"),
-    ("closest_image_pose", "orientation_error_median_deg", "closest_image_orientation"),
-    ("mean_pose", "position_error_median", "mean_pose_position"),
-    ("mean_pose", "orientation_error_median_deg", "mean_pose_orientation"),
-)
+_TF_METRICS = tuple(  # (method, metric, column stem) for each context size, in eval.csv's order
+    [("pyvf", m, m) for m in ("ce", "token_accuracy", "ce_empty", "ce_object", "token_accuracy_empty",
+                              "token_accuracy_object", "mae", "rmse")]  # tokens of all, empty, object patches
+    + [(base, m, f"{base}_{m}") for m in ("mae", "rmse") for base in ("nearest_view", "mean_image")]
+    + [(method, metric, prefix + stem)
+       for method, prefix in (("pyvf", ""), ("closest_image_pose", "closest_image_"), ("mean_pose", "mean_pose_"))
+       for metric, stem in (("position_error_median", "position"), ("orientation_error_median_deg", "orientation"))])
 
 
 def health_contexts(transformer_config, views):
