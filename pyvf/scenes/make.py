@@ -39,11 +39,9 @@ def preview_grid(images, gap=2):
     """Tile views into one picture: images (S, V, H, W, 3) uint8 -> (S*(H+gap)-gap, V*(W+gap)-gap, 3)
     uint8, scene s in row s, view v in column v, white gaps."""
     S, V, H, W, _ = images.shape
-    grid = np.full((S * (H + gap) - gap, V * (W + gap) - gap, 3), 255, dtype=np.uint8)
-    for s in range(S):
-        for v in range(V):
-            grid[s * (H + gap):s * (H + gap) + H, v * (W + gap):v * (W + gap) + W] = images[s, v]
-    return grid
+    padded = np.pad(images, ((0, 0), (0, 0), (0, gap), (0, gap), (0, 0)), constant_values=255)  # white gaps
+    grid = padded.transpose(0, 2, 1, 3, 4).reshape(S * (H + gap), V * (W + gap), 3)  # scene s in row s
+    return grid[:grid.shape[0] - gap, :grid.shape[1] - gap]  # no gap after the last row and column
 
 
 def save_preview(path, images, scale=2):
