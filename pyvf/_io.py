@@ -34,14 +34,12 @@ def _temp_name(path):
 
 def fsync_dir(folder):
     """Make a rename in `folder` durable (POSIX); a no-op where folders cannot be opened."""
-    try:
+    with contextlib.suppress(OSError):
         fd = os.open(folder, os.O_RDONLY)
         try:
             os.fsync(fd)
         finally:
             os.close(fd)
-    except OSError:
-        pass
 
 
 def _atomic_write(path, write):
