@@ -253,7 +253,6 @@ def _without(state, name):
     ("backward", dict(drec=np.ones((2, 3, 16, 8), np.float32)), ValueError, "drec"),
     ("backward", dict(drec=np.full((2, 3, 16, 16), np.nan, np.float32)), ValueError, "drec"),
     ("backward", dict(dloss=float("nan")), ValueError, "dloss"),
-    ("backward", dict(dloss=1e300), ValueError, "dloss"),  # overflows float32 times the loss's gradient
     ("load_official", lambda s: _without(s, "encoder.conv_in.bias"), ValueError, "encoder.conv_in.bias"),
     ("load_official", lambda s: {**s, "encoder.extra.weight": np.zeros(3, np.float32)}, ValueError,
      "encoder.extra.weight"),

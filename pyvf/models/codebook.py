@@ -209,22 +209,21 @@ class Codebook(ModelWeights):
 
     perceptual: the optional perceptual term (LPIPS in the paper, its VGG weights not bundled):
     an object with `forward(x, x_hat) -> (loss (B,), cache)` and `backward(dloss (B,), cache) ->
-    dx_hat`, given exactly when config.perceptual_weight is nonzero. layers: the layer table
-    (default layer_table(config))."""
+    dx_hat`, given exactly when config.perceptual_weight is nonzero."""
 
     LAYOUTS = LAYOUTS
     FILE_KIND = "codebook"
     CONFIG = CodebookConfig
     INPUTS = ("images",)  # the model's inputs (teacher forcing: the first row reads the first)
 
-    def __init__(self, config, seed=0, perceptual=None, *, layers=None):
+    def __init__(self, config, seed=0, perceptual=None):
         if (perceptual is None) != (config.perceptual_weight == 0):
             raise ValueError(f"perceptual_weight={config.perceptual_weight} needs a perceptual module, and a "
                              "perceptual module needs perceptual_weight > 0 (LPIPS weights are not bundled)")
         self.perceptual = perceptual
         self.config = config
         self.dtype = np.dtype(config.dtype)
-        layers = layer_table(config) if layers is None else tuple(layers)
+        layers = layer_table(config)
         self._describe(layers, parameter_table(layers))
         self._encoder_rows, self._quantize_row, self._decoder_rows = _split(self.layers)
         rng = np.random.default_rng(seed)
@@ -499,20 +498,16 @@ class Codebook(ModelWeights):
         grads = {}  # filled by _backward; parameters the model did not use get zeros at the end
         total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
         dcommitment = 0.0
-        with np.errstate(over="ignore"):  # the seeds are finite, their products may overflow: checked below
-            if dloss is not None:
-                # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
-                total = (dloss * drec_loss).astype(self.dtype)
-                if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
-                    module, cache = perc
-                    dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
-                    total = total + module.backward(dl, cache)  # (B, out_ch, S, S)
-                dcommitment = dloss * self.config.codebook_weight
-            if drec is not None:
-                total = total + drec
-        if not _checks.all_finite(total):
-            raise ValueError(f"dloss = {dloss!r} (or drec) times the loss's gradient overflows {self.dtype}, or the "
-                             "perceptual module's gradient is not finite")
+        if dloss is not None:
+            # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
+            total = (dloss * drec_loss).astype(self.dtype)
+            if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
+                module, cache = perc
+                dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
+                total = total + module.backward(dl, cache)  # (B, out_ch, S, S)
+            dcommitment = dloss * self.config.codebook_weight
+        if drec is not None:
+            total = total + drec
         g = {} if traced else None  # the activations' gradients, the trace's order reversed
         dq = self._backward(dec, total, grads, g)
         if g is not None:
