@@ -180,8 +180,14 @@ class ModelWeights:
         role = self._role(name, layout)
         return np.array(p if role is None else role.to_layout(p), order="C", copy=True)
 
-    def _params_in(self, layout):
-        return {name: self.to_layout(name, p, layout) for name, p in self.params.items()}
+    def state_dict(self, layout=None):
+        """Official name -> array (copies), the parameters in `layout` (None: the published one),
+        then the buffers."""
+        layout = next(iter(self.LAYOUTS)) if layout is None else layout
+        return {**{name: self.to_layout(name, p, layout) for name, p in self.params.items()}, **self._buffers()}
+
+    def _buffers(self):
+        return {}
 
     # loading -----------------------------------------------------------------------------
 
@@ -204,10 +210,13 @@ class ModelWeights:
             raise ValueError(f"{raw!r} contains NaN or inf, or a value beyond {self.dtype}'s range")
         return out
 
-    def _load(self, weights, layout):
-        """load_official: every entry checked, the first problem raised naming its key (TypeError
-        for a wrong type or dtype, else ValueError); nothing is assigned before all pass."""
-        layout = self.check_layout(layout)
+    def load_official(self, weights, *, layout=None):
+        """Load a dict name -> array (or torch tensor) named as the published checkpoint (its
+        prefixes optional: official_name), every parameter and buffer, the parameters in `layout`
+        (None: the published one; stated, so that a square kernel is never silently transposed).
+        The first wrong entry raises naming its key (TypeError for a wrong type or dtype, else
+        ValueError); nothing is assigned before all pass."""
+        layout = self.check_layout(next(iter(self.LAYOUTS)) if layout is None else layout)
         if not isinstance(weights, Mapping):
             raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")
         wanted = [*self._param_table, *self.BUFFERS]

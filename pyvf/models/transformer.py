@@ -263,17 +263,6 @@ class Transformer(ModelWeights):
         """The published checkpoint's `migt/` prefix and `:0` suffix are dropped."""
         return official_name(name)
 
-    def state_dict(self, layout="tf"):
-        """Official name -> array (copies), in `layout` (LAYOUTS)."""
-        return self._params_in(layout)
-
-    def load_official(self, weights, *, layout="tf"):
-        """Load a dict name -> array (or torch tensor) named as the published checkpoint (the
-        `migt/` prefix and `:0` suffix optional), its Dense layers in `layout`, which the caller
-        states so that a square kernel (`attn/c_proj`) is never silently transposed. The first
-        wrong entry is named and the model is left unchanged."""
-        self._load(weights, layout)
-
     # -----------------------------------------------------------------------------------
     # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
 
