@@ -256,12 +256,7 @@ class Transformer(ModelWeights):
             self.params[name] = p.astype(self.dtype)
         self._cache = None
 
-    # -----------------------------------------------------------------------------------
-    # weights (the mechanism: pyvf.models.io.ModelWeights)
-
-    def official_name(self, name):
-        """The published checkpoint's `migt/` prefix and `:0` suffix are dropped."""
-        return official_name(name)
+    official_name = staticmethod(official_name)  # the published checkpoint's `migt/`, `:0` dropped
 
     # -----------------------------------------------------------------------------------
     # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
