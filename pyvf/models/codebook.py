@@ -165,12 +165,6 @@ def layer_table(cfg):
     return tuple(rows)
 
 
-def _split(layers):
-    """The table -> (the encoder's rows, the quantize row, the decoder's rows)."""
-    at = [row.kind for row in layers].index("quantize")
-    return layers[:at], layers[at], layers[at + 1:]
-
-
 def parameter_table(layers):
     """A table's parameters: torch name -> (shape, role), in the published order: the state dict
     registers the encoder, then the decoder, then the 1x1 convs around the quantizer."""
@@ -223,7 +217,8 @@ class Codebook(ModelWeights):
         self.dtype = np.dtype(config.dtype)
         layers = layer_table(config)
         self._describe(layers, parameter_table(layers))
-        self._encoder_rows, self._quantize_row, self._decoder_rows = _split(self.layers)
+        at = [row.kind for row in layers].index("quantize")  # the encoder's rows, quantize, the decoder's
+        self._encoder_rows, self._quantize_row, self._decoder_rows = layers[:at], layers[at], layers[at + 1:]
         rng = np.random.default_rng(seed)
         self.params = {}
         for name, (shape, role) in self._param_table.items():
