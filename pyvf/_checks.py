@@ -1,6 +1,5 @@
 """Argument checks for pyvf's public entry points (docs/contributing.md): every error names the
-argument; nothing is cast silently. Also the checks of a checkpoint's entries, every wrong entry
-named in one error (pyvf.models.io's loader and the quantizer)."""
+argument; nothing is cast silently."""
 
 import numpy as np
 
@@ -90,49 +89,3 @@ def finite_result(what, a, name="the result"):
     if not all_finite(a):
         raise ValueError(f"{what}: {name} is not finite: it overflowed {a.dtype} (rescale the inputs, or use float64)")
     return a
-
-
-def checkpoint_array(name, a):
-    """A checkpoint's entry -> (numpy array or `a` unchanged, problem or None). Anything with
-    `.detach()` (a torch tensor, on any device) becomes `a.detach().cpu().numpy()` (pyvf never
-    imports torch); a tensor numpy cannot hold (bfloat16) is a TypeError problem naming `name`."""
-    if hasattr(a, "detach") and not isinstance(a, np.ndarray):
-        try:
-            return a.detach().cpu().numpy(), None
-        except (TypeError, RuntimeError, AttributeError) as e:
-            return a, (TypeError, f"{name!r} ({type(a).__name__}) cannot become a numpy array: {e}")
-    return a, None
-
-
-def weight_problem(name, a, shape, *, hint=""):
-    """What is wrong with a checkpoint's array for parameter `name`: None when it is a finite
-    float32/float64 array of `shape` (or of one of a list of shapes), else (TypeError or
-    ValueError, message). Only float32 <-> float64 converts (converted_weight), on purpose."""
-    shapes = [tuple(s) for s in shape] if isinstance(shape, list) else [tuple(shape)]
-    if not isinstance(a, np.ndarray) or a.dtype not in FLOATS:
-        return TypeError, f"{name!r} is {getattr(a, 'dtype', type(a).__name__)}, expected a float32 or float64 array"
-    if a.shape not in shapes:
-        return ValueError, f"{name!r} has shape {a.shape}, expected {' or '.join(map(str, shapes))}{hint}"
-    if not all_finite(a):
-        return ValueError, f"{name!r} contains NaN or inf"
-    return None
-
-
-def problems_error(what, problems):
-    """One exception naming every problem, a list of (exception class, message): TypeError when
-    every problem is a TypeError, else ValueError."""
-    kind = TypeError if all(k is TypeError for k, _ in problems) else ValueError
-    n = len(problems)
-    return kind(f"{what}: {n} problem{'s' if n > 1 else ''}: " + "; ".join(m for _, m in problems))
-
-
-def converted_weight(name, a, dtype):
-    """A finite float array (weight_problem accepted it) -> (a C-ordered copy of dtype, None); or
-    (None, (ValueError, message naming `name`)) when a value is beyond dtype's range (float64 ->
-    float32 would make it inf)."""
-    with np.errstate(over="ignore"):  # checked below
-        out = np.array(a, dtype=dtype, order="C", copy=True)
-    if not all_finite(out):
-        return None, (ValueError, f"{name!r} holds a value of magnitude {float(np.max(np.abs(a))):.4g}, "
-                                  f"beyond {np.dtype(dtype)}'s range")
-    return out, None

@@ -1,4 +1,4 @@
-"""The whole codebook against the torch oracle written from docs/math.md §4 (tests/torch_codebook.py):
+"""The whole codebook against the torch oracle written from docs/math.md §4 (pyvf/verify/torch_ports.py):
 codes, reconstructions, losses, every parameter gradient, the EMA buffers over three training
 steps; official names; encode/decode; bad input."""
 
@@ -12,8 +12,8 @@ import torch
 
 from conftest import assert_close
 from pyvf.models.codebook import Codebook, CodebookConfig, parameter_shapes
-from pyvf.verify import convert_torch, torch_codebook
-from pyvf.verify.torch_ports import CodebookPort
+from pyvf.verify import convert_torch
+from pyvf.verify.torch_ports import CodebookPort, codebook_forward
 from test_codebook_trace import SMALL, random_codebook
 
 SPEC = os.path.join(os.path.dirname(__file__), "data", "official-codebook-tiny.json")
@@ -72,7 +72,7 @@ def test_codebook_matches_torch_over_three_training_steps(config, rng):
         grads = cb.backward()
         for p in P.values():
             p.grad = None
-        ref = torch_codebook.forward(P, buffers, torch.tensor(images), cfg, cfg.codebook_weight, train=True)
+        ref = codebook_forward(P, buffers, torch.tensor(images), cfg)
         ref["loss"].backward()
         np.testing.assert_array_equal(out.codes, ref["codes"].numpy())
         if cfg.empty_code:
@@ -253,7 +253,6 @@ def _without(state, name):
     ("backward", dict(drec=np.ones((2, 3, 16, 8), np.float32)), ValueError, "drec"),
     ("backward", dict(drec=np.full((2, 3, 16, 16), np.nan, np.float32)), ValueError, "drec"),
     ("backward", dict(dloss=float("nan")), ValueError, "dloss"),
-    ("backward", dict(dloss=1e300), ValueError, "dloss"),  # overflows float32 times the loss's gradient
     ("load_official", lambda s: _without(s, "encoder.conv_in.bias"), ValueError, "encoder.conv_in.bias"),
     ("load_official", lambda s: {**s, "encoder.extra.weight": np.zeros(3, np.float32)}, ValueError,
      "encoder.extra.weight"),

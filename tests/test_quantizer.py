@@ -3,7 +3,6 @@ steps: codes, outputs, losses, every buffer), its gradients, and the hard cases:
 every vector on one code, state round trip, bad input."""
 
 import numpy as np
-import pytest
 import torch
 
 from conftest import assert_close
@@ -161,16 +160,13 @@ def test_tiny_eps_in_float64_matches_the_torch_step(rng):
 
 def test_commitment_loss_with_a_float32_sum_past_float32_max():
     """Every (e - z)^2 = (1.5e19)^2 = 2.25e38 < float32 max: the mean is representable, but its
-    float32 sum over 16 elements is not; forward raised "the commitment loss overflows"."""
+    float32 sum over 16 elements is not: the loss is summed in float64."""
     q = EMAQuantizer(1, 1, dtype="float32")
     q.embeddings[:] = 0
     z = np.full((1, 1, 4, 4), 1.5e19, np.float32)
     out, _ = q.forward(z)
     want = float(np.float32(1.5e19)) ** 2
     assert abs(out.commitment_loss - want) <= 1e-7 * want
-    # past float32's range the loss itself overflows: still refused
-    with pytest.raises(ValueError, match="commitment"):
-        q.forward(np.full((1, 1, 1, 1), 2e19, np.float32))
 
 
 def test_batch_of_one_vector_and_a_code_unused_for_many_steps(rng):

@@ -11,8 +11,7 @@ import torch
 import pyvf
 from conftest import assert_bitwise_equal, assert_close
 from pyvf.models.transformer import trace_names
-from pyvf.verify import torch_transformer as tt
-from pyvf.verify.torch_ports import TransformerPort, official_name, tree_mask
+from pyvf.verify.torch_ports import TransformerPort, official_name, transformer_forward, transformer_losses, tree_mask
 from test_transformer import TINY, random_batch, random_model
 
 NO_GRAD = {"ce_loss", "pose_loss", "loss"}  # traced, but the seed of backward, not differentiated
@@ -24,7 +23,7 @@ def no_grad_names(n_layer):
 
 # ---------------------------------------------------------------------------------------
 # the torch oracle, traced: the port of pyvf/verify/torch_ports.py (written from docs/math.md) with
-# module hooks, as a port author traces theirs (tests/test_teacher.py), its losses torch_transformer's
+# module hooks, as a port author traces theirs (tests/test_teacher.py), its losses transformer_losses
 
 
 def trace_name(module):
@@ -62,7 +61,7 @@ def torch_trace(model, tokens, poses, dlogits=None, dpose=None, dloss=None):
     t_tokens, t_poses = torch.tensor(tokens), torch.tensor(poses, requires_grad=True)
     rec["logits"], raw = port(t_tokens, t_poses)
     [h.remove() for h in handles]
-    ce, pl, loss = tt.losses(rec["logits"], raw, t_tokens, t_poses, cfg)
+    ce, pl, loss = transformer_losses(rec["logits"], raw, t_tokens, t_poses, cfg)
     [t.retain_grad() for t in rec.values()]
     total = sum(t for t in (None if dloss is None else dloss * loss,
                             None if dlogits is None else (rec["logits"] * torch.tensor(dlogits)).sum(),
@@ -172,8 +171,8 @@ def test_trace_and_every_gradient_match_torch_float64(case, rng):
     assert report.ok, str(report)
     # the functional form (pyvf bench's torch side): the same port on the published layout
     P = {k: torch.tensor(v) for k, v in model.params.items()}
-    logits, raw, ce, pl, loss = tt.forward(P, torch.tensor(tokens), torch.tensor(poses), model.config)
-    assert_close("tt.forward logits", logits.detach().numpy(), out.logits, rtol=1e-11)
+    logits, raw, ce, pl, loss = transformer_forward(P, torch.tensor(tokens), torch.tensor(poses), model.config)
+    assert_close("transformer_forward logits", logits.detach().numpy(), out.logits, rtol=1e-11)
     assert abs(loss.item() - out.loss) <= 1e-12 * abs(out.loss)
 
 

@@ -178,7 +178,6 @@ REFUSALS = [
     ("backward", lambda kw: dict(dpose=np.ones(GRAD[:3] + (6,), np.float32)), ValueError, "dpose"),
     ("backward", lambda kw: dict(dloss=float("inf")), ValueError, "dloss"),
     ("backward", lambda kw: dict(dloss="1"), TypeError, "dloss"),
-    ("backward", lambda kw: dict(dloss=-1e300), ValueError, "dloss"),  # finite, but its per-token share is not a float32
     ("encode_scene", _set("context_tokens", lambda t: t + 64), ValueError, "context_tokens"),
     ("encode_scene", _set("context_poses", lambda p: 2 * p), ValueError, "context_poses"),  # not unit quaternions
     ("render_scene", _set("query_poses", lambda p: p[:1]), ValueError, "query_poses"),  # another B
@@ -306,18 +305,4 @@ def test_backward_ignores_arrays_changed_after_forward(rng, B, skip):
     poses[...] = poses[::-1]
     for a in (out.logits, out.pose_raw, out.pose_prediction, out.ce_loss, out.pose_loss):
         a *= 2
-    assert_same_grads(m.backward(), want)
-
-
-def test_loss_that_overflows_raises_and_keeps_the_last_forward(rng):
-    """A loss weight that makes each batch element's weighted loss 0.75 of float32's largest
-    value: the batch mean fits, the sum NumPy's mean takes first does not (out.loss was inf,
-    silently). A ValueError naming the loss; what backward() differentiates is unchanged."""
-    tokens, poses = random_batch(rng, 1, 3, 4, 16, np.float32)
-    pl = float(small_model("float32").forward(tokens, poses).pose_loss[0])
-    m = small_model("float32", localization_weight=0.75 * float(np.finfo(np.float32).max) / pl)
-    m.forward(tokens, poses)  # one element: its weighted loss fits float32
-    want = m.backward()
-    with pytest.raises(ValueError, match=r"\bloss\b"):
-        m.forward(np.concatenate([tokens, tokens]), np.concatenate([poses, poses]))  # the sum of two does not
     assert_same_grads(m.backward(), want)

@@ -5,9 +5,10 @@ one run after checking that both compute the same step.
     pyvf bench codebook [--quick]      # forward with the EMA update, backward, Adam, at `pyvf
                                        # train-codebook`'s batch; 10 steps (5 on two 32x32 images)
 
-The torch models are pyvf/verify's; each framework runs in a worker process of its own (neither's
-thread pool waits on the other's). Before any time is reported, the first step's loss and
-gradients (same weights, same batch) and the loss after the first update are compared.
+The torch models are pyvf/verify/torch_ports.py's transformer_forward and codebook_forward; each
+framework runs in a worker process of its own (neither's thread pool waits on the other's). Before
+any time is reported, the first step's loss and gradients (same weights, same batch) and the loss
+after the first update are compared.
 """
 
 import zlib
@@ -104,20 +105,20 @@ def transformer_pyvf(config, steps):
 def transformer_torch(config, steps):
     import torch
 
-    from pyvf.verify import torch_transformer
+    from pyvf.verify.torch_ports import transformer_forward
 
     torch.set_num_threads(pyvf.num_threads())
     cfg, tokens, poses, model = transformer_setup(config)
     P = {k: torch.tensor(v.copy(), requires_grad=True) for k, v in model.params.items()}
     opt = torch.optim.AdamW(P.values(), lr=1e-4, weight_decay=0.01)
     t_tokens, t_poses = torch.tensor(tokens), torch.tensor(poses)
-    out = torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1]
+    out = transformer_forward(P, t_tokens, t_poses, cfg)[-1]
     out.backward()
     gradients = {k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()}
 
     def step():
         opt.zero_grad()
-        loss = torch_transformer.forward(P, t_tokens, t_poses, cfg, sdpa=True)[-1]
+        loss = transformer_forward(P, t_tokens, t_poses, cfg)[-1]
         loss.backward()
         opt.step()
         return loss.item()
@@ -143,7 +144,7 @@ def codebook_pyvf(config, steps):
 def codebook_torch(config, steps):
     import torch
 
-    from pyvf.verify import torch_codebook
+    from pyvf.verify.torch_ports import codebook_forward
 
     torch.set_num_threads(pyvf.num_threads())
     cfg, cb, images = codebook_setup(config)
@@ -153,14 +154,14 @@ def codebook_torch(config, steps):
                          "quantize.ema_cluster_size_hidden": torch.tensor(q.ema_cluster_size_hidden),
                          "quantize.ema_dw_hidden": torch.tensor(q.ema_dw_hidden), "quantize.counter": q.counter}}
     x = torch.tensor(images)
-    out = torch_codebook.forward(P, state["buffers"], x, cfg, train=True)
+    out = codebook_forward(P, state["buffers"], x, cfg)
     out["loss"].backward()
     gradients = {k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()}
     opt = torch.optim.Adam(P.values(), LR, betas=BETAS)
 
     def step():  # from the weights and buffers the forward above started from
         opt.zero_grad()
-        out = torch_codebook.forward(P, state["buffers"], x, cfg, train=True)
+        out = codebook_forward(P, state["buffers"], x, cfg)
         out["loss"].backward()
         opt.step()
         state["buffers"] = out["buffers"]  # the EMA update kept, as pyvf's codebook keeps it

@@ -9,12 +9,10 @@
     grads = cb.backward()                # d out.loss / d every parameter, torch names
     out = cb.forward(images, trace=True) # out.trace: name -> activation, execution order (pyvf.compare)
 
-Parameters use the published torch names (tests/data/official-codebook-*.json), conv weights
-(out, in, kh, kw); the quantizer's buffers (`quantize.*`) live in an EMAQuantizer. The model is
-its layer table (layer_table(config), pyvf.models.io): the parameters, the trace's names, the
-forward's walk and teacher forcing's layers are read off it. The forward records every row it
-runs on a tape, (row, cache); the backward replays the tape in reverse. pyvf fuses Normalize and
-swish: `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)).
+Parameters use the published torch names, conv weights (out, in, kh, kw); the quantizer's
+buffers (`quantize.*`) live in an EMAQuantizer. The model is its layer table (layer_table(config),
+pyvf.models.io). The forward records every row it runs on a tape, (row, cache); the backward
+replays the tape in reverse. `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)), fused.
 """
 
 import dataclasses
@@ -167,12 +165,6 @@ def layer_table(cfg):
     return tuple(rows)
 
 
-def _split(layers):
-    """The table -> (the encoder's rows, the quantize row, the decoder's rows)."""
-    at = [row.kind for row in layers].index("quantize")
-    return layers[:at], layers[at], layers[at + 1:]
-
-
 def parameter_table(layers):
     """A table's parameters: torch name -> (shape, role), in the published order: the state dict
     registers the encoder, then the decoder, then the 1x1 convs around the quantizer."""
@@ -209,24 +201,24 @@ class Codebook(ModelWeights):
 
     perceptual: the optional perceptual term (LPIPS in the paper, its VGG weights not bundled):
     an object with `forward(x, x_hat) -> (loss (B,), cache)` and `backward(dloss (B,), cache) ->
-    dx_hat`, given exactly when config.perceptual_weight is nonzero. layers: the layer table
-    (default layer_table(config))."""
+    dx_hat`, given exactly when config.perceptual_weight is nonzero."""
 
     LAYOUTS = LAYOUTS
     FILE_KIND = "codebook"
     CONFIG = CodebookConfig
     INPUTS = ("images",)  # the model's inputs (teacher forcing: the first row reads the first)
 
-    def __init__(self, config, seed=0, perceptual=None, *, layers=None):
+    def __init__(self, config, seed=0, perceptual=None):
         if (perceptual is None) != (config.perceptual_weight == 0):
             raise ValueError(f"perceptual_weight={config.perceptual_weight} needs a perceptual module, and a "
                              "perceptual module needs perceptual_weight > 0 (LPIPS weights are not bundled)")
         self.perceptual = perceptual
         self.config = config
         self.dtype = np.dtype(config.dtype)
-        layers = layer_table(config) if layers is None else tuple(layers)
+        layers = layer_table(config)
         self._describe(layers, parameter_table(layers))
-        self._encoder_rows, self._quantize_row, self._decoder_rows = _split(self.layers)
+        at = [row.kind for row in layers].index("quantize")  # the encoder's rows, quantize, the decoder's
+        self._encoder_rows, self._quantize_row, self._decoder_rows = layers[:at], layers[at], layers[at + 1:]
         rng = np.random.default_rng(seed)
         self.params = {}
         for name, (shape, role) in self._param_table.items():
@@ -261,18 +253,8 @@ class Codebook(ModelWeights):
             h.update(np.ascontiguousarray(a).tobytes())
         return h.hexdigest()[:16]
 
-    def state_dict(self, layout="torch"):
-        """torch name -> array (copies), the quantizer's buffers included, in `layout` (LAYOUTS)."""
-        state = self._params_in(layout)
-        state.update({"quantize." + k: v for k, v in self.quantizer.state_dict().items()})
-        return state
-
-    def load_official(self, state_dict, *, layout="torch"):
-        """Load a state dict (name -> array or torch tensor): every parameter and the four
-        quantize.* buffers, nothing else, named as the published torch state dict (a Lightning
-        checkpoint's `model.` prefix dropped), its conv kernels in `layout`; `quantize.embeddings`
-        is (embed_dim, n_embed) in both (codes are columns). The first wrong entry is named."""
-        self._load(state_dict, layout)
+    def _buffers(self):  # quantize.embeddings is (embed_dim, n_embed) in every layout: codes are columns
+        return {"quantize." + k: v for k, v in self.quantizer.state_dict().items()}
 
     def _set_buffers(self, buffers):
         self.quantizer.load_state_dict({k[len("quantize."):]: v for k, v in buffers.items()})
@@ -315,9 +297,7 @@ class Codebook(ModelWeights):
 
     def _run(self, rows, x, tape=None, tr=None):
         """Run rows of the table in turn on x, each recorded on the tape as (row, cache) and in
-        the trace tr (name -> output; None: not traced). tape None: inference, no backward will
-        follow; nothing is kept, so each activation is freed once the next row has read it
-        (encode and decode_code: peak memory a few activations, not the whole network's)."""
+        the trace tr (name -> output; None: not traced). tape None: inference, nothing is kept."""
         for row in rows:
             if row.kind == "res":
                 x, c = self._resblock_forward(row, x, tape is not None, tr)
@@ -330,7 +310,7 @@ class Codebook(ModelWeights):
         return x
 
     def _backward(self, tape, dy, grads, g=None):
-        """Replay a tape in reverse: dy is the gradient of its last output; returns that of its input.
+        """Replay a tape in reverse: dy is the gradient of its last output -> that of its input.
         g: None, or a dict each op's output gradient is recorded in (by the op's name)."""
         for row, c in reversed(tape):
             if g is not None:
@@ -348,8 +328,7 @@ class Codebook(ModelWeights):
         return dy
 
     def _resblock_forward(self, row, x, keep, tr):
-        """ResnetBlock: its body (norm1, swish, conv1, norm2, swish, conv2) + x (or its shortcut,
-        nin_shortcut(x)). keep False: inference (see _run), nothing recorded."""
+        """ResnetBlock: its body + x (or nin_shortcut(x)). keep False: inference, nothing recorded."""
         main, short = ([], []) if keep else (None, None)
         h = self._run(row.body, x, main, tr)
         s = self._run(row.shortcut, x, short, tr)
@@ -370,10 +349,6 @@ class Codebook(ModelWeights):
     def _encoder(self, tape, x, tr=None):
         """x (B, in_channels, S, S) -> z (B, embed_dim, k, k): the table's rows before quantize."""
         return self._run(self._encoder_rows, x, tape, tr)
-
-    def _decoder(self, tape, z, tr=None):
-        """z (B, embed_dim, k, k) quantized -> images (B, out_ch, S, S): the rows after quantize."""
-        return self._run(self._decoder_rows, z, tape, tr)
 
     # -----------------------------------------------------------------------------------
     # the model
@@ -414,26 +389,22 @@ class Codebook(ModelWeights):
         if codes.min() < 0 or codes.max() >= cfg.n_embed:
             raise ValueError(f"codes must be in [0, {cfg.n_embed})")
         e = self.quantizer.embeddings.T[codes]  # (B, k, k, D): the codes are columns
-        return self._decoder(None, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
+        return self._run(self._decoder_rows, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
     def decode_latent(self, z):
         """z (B, embed_dim, k, k), a point of the code space (codes, or a mixture of codes such as
         their expectation under a transformer's distribution) -> images (B, out_ch, S, S)."""
         k = self.config.token_size
         self._check_array("z", z, ("B", self.config.embed_dim, k, k))
-        return self._decoder(None, np.ascontiguousarray(z))
+        return self._run(self._decoder_rows, np.ascontiguousarray(z))
 
     def forward(self, images, train=False, *, trace=False, pixel_weights=None):
         """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers
         (the output uses the codes from before the update). Keeps what backward() needs.
-
         pixel_weights: None (rec_loss = mean |rec - x|, as published), or non-negative weights
-        (B, 1, S, S), not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x| / (in_channels * sum w),
-        normalised in float64 so that any finite scale gives the same loss and gradient.
-
-        trace=True also returns, as `out.trace`, every activation by name (trace_names(config), in
-        execution order; what the forward keeps anyway, not copies), and makes the next
-        backward() return every activation's gradient."""
+        (B, 1, S, S), not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x| / (in_channels * sum w).
+        trace=True also returns every activation by name as `out.trace` (trace_names(config)), and
+        makes the next backward() return every activation's gradient."""
         images = self._check_images(images)
         if pixel_weights is not None:
             B, _, S, _ = images.shape
@@ -446,7 +417,7 @@ class Codebook(ModelWeights):
         q, c_q = self.quantizer.forward(z, train=train, empty=self.empty_patches(images))
         if tr is not None:
             tr[self._quantize_row.name] = q.quantized
-        rec = self._decoder(dec, q.quantized, tr)  # (B, out_ch, S, S)
+        rec = self._run(self._decoder_rows, q.quantized, dec, tr)  # (B, out_ch, S, S)
         perc = None
         if self.perceptual is not None:  # (the module that ran, its cache): backward differentiates it
             per_image, cache = self.perceptual.forward(images, rec)  # (B,)
@@ -499,20 +470,16 @@ class Codebook(ModelWeights):
         grads = {}  # filled by _backward; parameters the model did not use get zeros at the end
         total = np.zeros(rec_shape, dtype=self.dtype)  # (B, out_ch, S, S)
         dcommitment = 0.0
-        with np.errstate(over="ignore"):  # the seeds are finite, their products may overflow: checked below
-            if dloss is not None:
-                # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
-                total = (dloss * drec_loss).astype(self.dtype)
-                if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
-                    module, cache = perc
-                    dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
-                    total = total + module.backward(dl, cache)  # (B, out_ch, S, S)
-                dcommitment = dloss * self.config.codebook_weight
-            if drec is not None:
-                total = total + drec
-        if not _checks.all_finite(total):
-            raise ValueError(f"dloss = {dloss!r} (or drec) times the loss's gradient overflows {self.dtype}, or the "
-                             "perceptual module's gradient is not finite")
+        if dloss is not None:
+            # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
+            total = (dloss * drec_loss).astype(self.dtype)
+            if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
+                module, cache = perc
+                dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
+                total = total + module.backward(dl, cache)  # (B, out_ch, S, S)
+            dcommitment = dloss * self.config.codebook_weight
+        if drec is not None:
+            total = total + drec
         g = {} if traced else None  # the activations' gradients, the trace's order reversed
         dq = self._backward(dec, total, grads, g)
         if g is not None:

@@ -86,14 +86,26 @@ ROLES = {
 }
 
 
+def checkpoint_array(name, a):
+    """A checkpoint's entry -> a numpy array (or `a` as given, for the caller to refuse): anything
+    with `.detach()` (a torch tensor, on any device) through `a.detach().cpu().numpy()` (pyvf never
+    imports torch). A tensor numpy cannot hold (bfloat16) is a TypeError naming `name`."""
+    if hasattr(a, "detach") and not isinstance(a, np.ndarray):
+        try:
+            return a.detach().cpu().numpy()
+        except (TypeError, RuntimeError) as e:
+            raise TypeError(f"{name!r} ({type(a).__name__}) cannot become a numpy array: {e}") from None
+    return a
+
+
 def _count(name, a):
     """A count (an integer, or a 0-d array holding one: a torch checkpoint may hold it as a float)
-    -> (int, None), or (None, problem) unless it is a non-negative integer int64 holds."""
+    -> int; ValueError unless it is a non-negative integer int64 holds."""
     a = np.asarray(a)
     if a.shape == () and a.dtype.kind in "iuf" and np.isfinite(a) and a == np.floor(a) \
             and 0 <= int(a) <= np.iinfo(np.int64).max:
-        return int(a), None
-    return None, (ValueError, f"{name!r} must be a non-negative integer count that int64 holds, got {a!r}")
+        return int(a)
+    raise ValueError(f"{name!r} must be a non-negative integer count that int64 holds, got {a!r}")
 
 
 class ModelWeights:
@@ -168,36 +180,46 @@ class ModelWeights:
         role = self._role(name, layout)
         return np.array(p if role is None else role.to_layout(p), order="C", copy=True)
 
-    def _params_in(self, layout):
-        return {name: self.to_layout(name, p, layout) for name, p in self.params.items()}
+    def state_dict(self, layout=None):
+        """Official name -> array (copies), the parameters in `layout` (None: the published one),
+        then the buffers."""
+        layout = next(iter(self.LAYOUTS)) if layout is None else layout
+        return {**{name: self.to_layout(name, p, layout) for name, p in self.params.items()}, **self._buffers()}
+
+    def _buffers(self):
+        return {}
 
     # loading -----------------------------------------------------------------------------
 
-    def _entry(self, raw, name, arr, layout, hint):
-        """One checkpoint entry -> the array in the published layout and the model's dtype (or a
-        count); a problem raised naming raw."""
-        arr, problem = _checks.checkpoint_array(raw, arr)  # torch tensors -> numpy
-        param = name in self._param_table
-        if problem is None and not param and self.BUFFERS[name] is None:
-            arr, problem = _count(raw, arr)
-        elif problem is None:
-            problem = _checks.weight_problem(raw, arr, self.layout_shapes(name, layout) if param else
-                                             [self.BUFFERS[name]], hint=hint)
-            if problem is None:  # to the model's dtype; float64 past float32's range refused
-                arr, problem = _checks.converted_weight(raw, self.from_layout(name, arr, layout) if param else arr,
-                                                        self.dtype)
-        if problem is not None:
-            raise problem[0](f"load_official: {problem[1]}")
-        return arr
+    def _entry(self, raw, name, a, layout):
+        """One checkpoint entry named raw -> a count (int), or a new C-ordered array in the published
+        layout and the model's dtype: a finite float32 or float64 array of its shape in `layout`,
+        finite in the model's dtype too (float64 -> float32 may overflow); else an error naming it."""
+        a = checkpoint_array(raw, a)
+        if name in self.BUFFERS and self.BUFFERS[name] is None:
+            return _count(raw, a)
+        if not isinstance(a, np.ndarray) or a.dtype not in _checks.FLOATS:
+            raise TypeError(f"{raw!r} is {getattr(a, 'dtype', type(a).__name__)}, expected a float32 or float64 array")
+        if name in self._param_table:
+            a = self.from_layout(name, a, layout)  # ValueError for a shape it does not have in layout
+        elif a.shape != self.BUFFERS[name]:
+            raise ValueError(f"{raw!r} has shape {a.shape}, expected {self.BUFFERS[name]}")
+        with np.errstate(over="ignore"):  # checked below
+            out = np.array(a, self.dtype, order="C")
+        if not _checks.all_finite(out):
+            raise ValueError(f"{raw!r} contains NaN or inf, or a value beyond {self.dtype}'s range")
+        return out
 
-    def _load(self, weights, layout):
-        """load_official: every entry checked, the first problem raised naming its key (TypeError
-        for a wrong type or dtype, else ValueError); nothing is assigned before all pass."""
-        layout = self.check_layout(layout)
+    def load_official(self, weights, *, layout=None):
+        """Load a dict name -> array (or torch tensor) named as the published checkpoint (its
+        prefixes optional: official_name), every parameter and buffer, the parameters in `layout`
+        (None: the published one; stated, so that a square kernel is never silently transposed).
+        The first wrong entry raises naming its key (TypeError for a wrong type or dtype, else
+        ValueError); nothing is assigned before all pass."""
+        layout = self.check_layout(next(iter(self.LAYOUTS)) if layout is None else layout)
         if not isinstance(weights, Mapping):
             raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")
         wanted = [*self._param_table, *self.BUFFERS]
-        hint = "" if layout == next(iter(self.LAYOUTS)) else f" (layout={layout!r}: {self.LAYOUTS[layout]})"
         loaded, given_as = {}, {}
         for raw, arr in weights.items():
             name = self.official_name(raw) if isinstance(raw, str) else raw
@@ -206,7 +228,7 @@ class ModelWeights:
             if name in given_as:
                 raise ValueError(f"load_official: {name!r} given twice (as {given_as[name]!r} and {raw!r})")
             given_as[name] = raw
-            loaded[name] = self._entry(raw, name, arr, layout, hint)
+            loaded[name] = self._entry(raw, name, arr, layout)
         missing = [k for k in wanted if k not in given_as]
         if missing:
             raise ValueError(f"load_official: {len(missing)} entries missing: {missing}")

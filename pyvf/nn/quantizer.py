@@ -115,30 +115,24 @@ class EMAQuantizer:
 
     def forward(self, z, train=False, empty=None):
         """z (B, D, h, w) -> (QuantizerOutput, cache). train=True applies one EMA update (the
-        output uses the codes from before it); an update or a loss that would overflow the dtype
-        raises ValueError and leaves every buffer unchanged. empty: None (published), or bool
-        (B, h, w): the empty positions take code 0, the others their nearest of the rest."""
+        output uses the codes from before it). empty: None (published), or bool (B, h, w): the
+        empty positions take code 0, the others their nearest of the rest."""
         B, D, h, w = z.shape
         empty = None if empty is None else empty.reshape(-1)  # (M,)
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, D))  # (M, D)
         idx = self.nearest(flat, empty)  # (M,)
-        e = self.embeddings.T[idx]  # (M, D): the codes from before any update
+        e = self.embeddings.T[idx]  # (M, D): the codes from before any update (a copy)
         counts = np.bincount(idx, minlength=self.n_embed)  # (K,) N_k
-        update = self._ema_update(flat, idx, counts) if train else None  # computed, not yet assigned
-        with np.errstate(over="ignore", invalid="ignore"):  # checked below
-            diff = e - flat  # (M, D)
-            # summed in float64: a float32 sum overflows where the mean of finite squares does not
-            commitment = float(np.mean(diff * diff, dtype=np.float64))
-        if not (_checks.all_finite(diff) and np.isfinite(commitment)):
-            raise ValueError(f"EMAQuantizer.forward: the commitment loss overflows {self.dtype} "
-                             "(z is too far from the codes); the buffers are unchanged")
+        diff = e - flat  # (M, D)
+        # summed in float64: a float32 sum overflows where the mean of finite squares does not
+        commitment = float(np.mean(diff * diff, dtype=np.float64))
         # straight-through: the published z + sg(e - z), whose value is e up to one rounding
         quantized = (flat + diff).reshape(B, h, w, D).transpose(0, 3, 1, 2)  # (B, D, h, w)
+        if train:
+            self._ema_update(flat, idx, counts)
         usage, perplexity = code_statistics(counts)
         out = QuantizerOutput(quantized=np.ascontiguousarray(quantized), codes=idx.reshape(B, h, w),
                               commitment_loss=commitment, usage=usage, perplexity=perplexity)
-        if update is not None:
-            self.load_state_dict(update)
         return out, (diff, z.shape)
 
     def backward(self, dquantized, dcommitment, cache):
@@ -146,33 +140,24 @@ class EMAQuantizer:
         Forward was quantized = z + sg(e - z) (identity for the gradient) and
         commitment = mean((sg(e) - z)^2), so dz = dquantized - dcommitment * 2 (e - z) / numel."""
         diff, (B, D, h, w) = cache
-        with np.errstate(over="ignore", invalid="ignore"):  # checked below
-            dflat = -2.0 * dcommitment / diff.size * diff  # (M, D)
-            dz = dquantized + dflat.reshape(B, h, w, D).transpose(0, 3, 1, 2).astype(diff.dtype)
-        return (_checks.finite_result("EMAQuantizer.backward", dz, "dz"),)
+        dflat = -2.0 * dcommitment / diff.size * diff  # (M, D)
+        return (dquantized + dflat.reshape(B, h, w, D).transpose(0, 3, 1, 2).astype(diff.dtype),)
 
     def _ema_update(self, flat, idx, counts):
-        """The buffers after one EMA update, as new arrays (assigned by the caller once
-        everything succeeded). ValueError if any would not be finite."""
+        """One EMA update of the buffers (the class docstring's formulas)."""
         K, dt = self.n_embed, self.dtype
         a = dt.type(1.0 - self.decay)
-        with np.errstate(over="ignore", invalid="ignore"):  # checked below
-            S = sum_rows_by_id(idx, flat, K).T  # (D, K), S_k: the sum of the vectors that chose k
-            hcs = self.ema_cluster_size_hidden + a * (counts.astype(dt) - self.ema_cluster_size_hidden)
-            hdw = self.ema_dw_hidden + a * (S - self.ema_dw_hidden)
-            counter = self.counter + 1
-            debias = dt.type(1.0 - self.decay ** counter)
-            cs = hcs / debias  # (K,)
-            dw = hdw / debias  # (D, K)
-            n = cs.sum()
-            cs = (cs + dt.type(self.eps)) / (n + K * dt.type(self.eps)) * n  # Laplace smoothing: > 0
-            embeddings = dw / cs  # (D, K)
-        new = {"embeddings": embeddings, "ema_cluster_size_hidden": hcs, "ema_dw_hidden": hdw, "counter": counter}
-        bad = [k for k, v in new.items() if k != "counter" and not _checks.all_finite(v)]
-        if bad:
-            raise ValueError(f"EMAQuantizer.forward: the EMA update overflows {dt} in {bad} (z is too large "
-                             "for the dtype); the buffers are unchanged")
-        return new
+        S = sum_rows_by_id(idx, flat, K).T  # (D, K), S_k: the sum of the vectors that chose k
+        hcs, hdw = self.ema_cluster_size_hidden, self.ema_dw_hidden
+        self.ema_cluster_size_hidden = hcs + a * (counts.astype(dt) - hcs)  # (K,)
+        self.ema_dw_hidden = hdw + a * (S - hdw)  # (D, K)
+        self.counter += 1
+        debias = dt.type(1.0 - self.decay ** self.counter)
+        cs = self.ema_cluster_size_hidden / debias  # (K,)
+        dw = self.ema_dw_hidden / debias  # (D, K)
+        n = cs.sum()
+        cs = (cs + dt.type(self.eps)) / (n + K * dt.type(self.eps)) * n  # Laplace smoothing: > 0
+        self.embeddings = dw / cs  # (D, K)
 
     def reset_dead_codes(self, z, threshold=1e-3, rng=None, restart="batch", reseat=0, empty=None):
         """Move the codes whose smoothed cluster size is below threshold to vectors of z (B, D, h, w),

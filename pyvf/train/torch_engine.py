@@ -232,7 +232,7 @@ class TorchTransformer(TorchEngine):
                  clip_mode="per_tensor", dp=None, parity_batch=None):
         torch = import_torch()
         from ..verify.torch_ports import TransformerPort, official_name
-        from ..verify.torch_transformer import losses
+        from ..verify.torch_ports import transformer_losses as losses
         self.torch, self.config, self.pyvf_model, self._losses = torch, model.config, model, losses
         self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
         self.max_grad_norm, self.clip_mode, self.dp = max_grad_norm, clip_mode, dp

@@ -114,15 +114,11 @@ def _to_numpy(name, side, x):
     """-> (ndarray, dtype name). torch tensors through .detach().cpu(); bfloat16 (which numpy
     lacks) widened to float32 exactly, its name kept for the tolerance."""
     if hasattr(x, "detach"):
-        x = x.detach()
-        if hasattr(x, "cpu"):
-            x = x.cpu()
-        if str(getattr(x, "dtype", "")) == "torch.bfloat16":
+        x = x.detach().cpu()
+        if str(x.dtype) == "torch.bfloat16":
             return x.float().numpy(), "bfloat16"
-        x = x.numpy() if hasattr(x, "numpy") else x
+        x = x.numpy()
     a = np.asarray(x)
-    if a.dtype.name == "bfloat16":  # ml_dtypes (JAX): exact in float32
-        return a.astype(np.float32), "bfloat16"
     if a.dtype.kind not in "fiub":
         raise TypeError(f"compare: {side}[{name!r}] must be a real numeric array, got dtype {a.dtype}")
     return a, a.dtype.name

@@ -6,7 +6,7 @@ load_official speaks, through the models' own from_layout / to_layout (pyvf.mode
 
 import numpy as np
 
-from .. import _checks
+from ..models.io import checkpoint_array
 
 
 def tree_to_flat(x):
@@ -56,10 +56,7 @@ def trace_from_flat(trace, N, L, R=3):
 
 def _readable(name, a):
     """A numpy array, or a torch tensor (also one that requires grad) -> a numpy array."""
-    a, problem = _checks.checkpoint_array(name, a)
-    if problem is not None:
-        raise problem[0](problem[1])
-    return np.asarray(a)
+    return np.asarray(checkpoint_array(name, a))
 
 
 def params_from_layout(model, arrays, layout):

@@ -215,8 +215,7 @@ def _check_params(model, params, layout):
     return out, layout
 
 
-def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=None, train=False,
-                  dtype=None, rtol=None):
+def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=None, train=False):
     """Run each of the port's layers on pyvf's input to it -> TeacherReport.
 
     model: a pyvf.Transformer or pyvf.Codebook holding the port's weights; inputs: (tokens, poses)
@@ -225,8 +224,8 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     first). params: optional official parameter name -> the port's tensor (requires grad), in
     `layout` (required for a Transformer; a Codebook's default "torch"). upstream: optional
     model.backward seeds (a Codebook's drec only); with it every layer's VJP is checked too.
-    train: the codebook's EMA step (its buffers restored afterwards). dtype, rtol: compare's.
-    The model's last forward stays the caller's."""
+    train: the codebook's EMA step (its buffers restored afterwards). Tolerances: compare's
+    defaults. The model's last forward stays the caller's."""
     table = layer_table(model)
     unknown = [n for n in layers if n not in {l.name for l in table}]  # a misspelt name: silently unchecked
     if unknown:
@@ -246,7 +245,7 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
         model._cache = cache
         if saved is not None:
             model.quantizer.load_state_dict(saved)
-    run = _Run(model, trace, grads, params, layout, dtype, rtol)
+    run = _Run(model, trace, grads, params, layout)
     return TeacherReport(checks=[run.check(l, layers[l.name]) for l in table if l.name in layers],
                          unchecked=[l.name for l in table if l.name not in layers])
 
@@ -254,11 +253,11 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
 class _Run:
     """One teacher_force call: pyvf's trace and gradients, and the port's parameters."""
 
-    def __init__(self, model, trace, grads, params, layout, dtype, rtol):
+    def __init__(self, model, trace, grads, params, layout):
         import torch  # only here: pyvf itself never needs it
 
         self.torch, self.model, self.trace, self.grads = torch, model, trace, grads
-        self.params, self.layout, self.tol = params, layout, dict(dtype=dtype, rtol=rtol)
+        self.params, self.layout = params, layout
         self.sizes = trace["tokens"].shape[1:] if "tokens" in trace else None  # (N, L) of the tree
 
     def to_port(self, name, row, a=None):
@@ -291,7 +290,7 @@ class _Run:
                 ins.append(xs)
                 outs.append(y)
                 mine[out_name] = self.from_port(out_name, None, y)
-            fwd, stage = compare(mine, {o: self.trace[o] for _, o in layer.calls}, **self.tol), "backward: "
+            fwd, stage = compare(mine, {o: self.trace[o] for _, o in layer.calls}), "backward: "
             bwd = self.vjp(layer, ins, outs) if backward else None
         except Exception as e:  # noqa: BLE001 - the port's layer failed: report it at this layer
             return LayerCheck(layer.name, forward=fwd, error=f"{stage}{type(e).__name__}: {e}")
@@ -326,11 +325,11 @@ class _Run:
         # conv bias feeding a GroupNorm of one channel per group) is rounding on both sides, its own
         # relative error meaningless. A parameter's gradient sums over every token, so its scale
         # (larger with the batch) would hide an input gradient wrong by several times rtol.
-        dinputs = compare(dins, dins_ref, **self.tol)
-        dparams = compare(mine_p, ref_p, **self.tol)
+        dinputs = compare(dins, dins_ref)
+        dparams = compare(mine_p, ref_p)
         scale = max((float(np.abs(a).max()) for a in ref_p.values() if np.size(a)), default=0.0)
         if dparams.rows and scale > 0:
-            dparams = compare(mine_p, ref_p, **self.tol, atol=min(r.rtol for r in dparams.rows) * scale)
+            dparams = compare(mine_p, ref_p, atol=min(r.rtol for r in dparams.rows) * scale)
         rows = dinputs.rows + dparams.rows
         return Comparison(first=next((r.name for r in rows if not r.ok), None), rows=rows,
                           only_mine=dinputs.only_mine + dparams.only_mine, only_ref=dinputs.only_ref + dparams.only_ref)

@@ -10,8 +10,13 @@ pyvf's code. Module and parameter names:
     c_proj}, ln_2, mlp.{c_fc, gelu, c_proj}}, ln_f, pose_head.{c_fc, gelu, c_proj}; nn.Linear
     weights (out, in): load pyvf's with model.state_dict(layout="torch") and official_name().
     CodebookPort: the published torch state dict's names exactly (taming-transformers' tree).
+
+transformer_forward and codebook_forward run the ports as functions of a parameter dict by the
+official names (torch.func.functional_call): the oracles of the tests, the torch side of `pyvf bench
+transformer` / `codebook`; transformer_losses is also the torch engine's.
 """
 
+import functools
 from collections import OrderedDict
 
 import torch
@@ -309,3 +314,52 @@ class CodebookPort(nn.Module):
         empty = self.empty_patches(x) if self.empty_code else None
         q, commitment, codes = self.quantize(self.quant_conv(self.encoder(x)), empty)
         return self.decoder(self.post_quant_conv(q)), commitment, codes
+
+
+# ---------------------------------------------------------------------------------------
+# the ports as functions of a parameter dict by the official names
+
+
+@functools.lru_cache(maxsize=8)
+def _transformer_port(cfg):
+    port = TransformerPort(cfg)
+    return port, {n: official_name(n) for n in port.state_dict()}
+
+
+def transformer_forward(P, tokens, poses, cfg):
+    """P: official name -> tensor, the published "tf" layout (Dense kernels (in, out), biases (1, out));
+    tokens (B, N, L) long; poses (B, N, 7) -> logits (B, N, L, V), raw pose (B, N, L, 7), ce (B,),
+    pose loss (B,), loss."""
+    port, names = _transformer_port(cfg)
+    # nn.Linear holds the published Dense kernel (in, out) as (out, in) and its bias (1, out) as (out,)
+    state = {n: P[o].T if o.endswith("/weight") and o != "wte/weight" else P[o][0] if o.endswith("/bias") else P[o]
+             for n, o in names.items()}
+    logits, raw = torch.func.functional_call(port, state, (tokens, poses))
+    return (logits, raw, *transformer_losses(logits, raw, tokens, poses, cfg))
+
+
+def transformer_losses(logits, raw, tokens, poses, cfg):
+    """(docs/math.md §3) -> the cross-entropy (B,) (label smoothing), the pose loss (B,), both over
+    views >= n_loss_skip, and the weighted batch mean."""
+    B, V, S = logits.shape[0], logits.shape[-1], cfg.n_loss_skip
+    ce = F.cross_entropy(logits[:, S:].reshape(-1, V), tokens[:, S:].reshape(-1), reduction="none",
+                         label_smoothing=cfg.label_smoothing).reshape(B, -1).mean(dim=1)
+    target = poses[:, S:, None, :]
+    pl = (((cfg.pose_multiplier * target[..., :3] - raw[:, S:, :, :3]) ** 2).mean(-1)
+          + ((target[..., 3:] - raw[:, S:, :, 3:]) ** 2).mean(-1)).reshape(B, -1).mean(dim=1)
+    return ce, pl, (cfg.image_generation_weight * ce + cfg.localization_weight * pl).mean()
+
+
+_codebook_port = functools.lru_cache(maxsize=8)(CodebookPort)
+
+
+def codebook_forward(P, buffers, images, cfg):
+    """P: torch name -> tensor; buffers: the four quantize.* entries; images (B, C, S, S) -> dict:
+    reconstruction, codes (B, k, k), rec_loss, commitment_loss, loss (with cfg.codebook_weight) and
+    buffers after one EMA step (new tensors: the ones given are left as they were)."""
+    new = {k: torch.as_tensor(v).clone() for k, v in buffers.items()}  # the EMA step writes into these
+    rec, commitment, codes = torch.func.functional_call(_codebook_port(cfg).train(), {**P, **new}, (images,))
+    rec_loss = F.l1_loss(rec, images)
+    new["quantize.counter"] = int(new["quantize.counter"])
+    return {"reconstruction": rec, "codes": codes, "rec_loss": rec_loss, "commitment_loss": commitment,
+            "loss": rec_loss + cfg.codebook_weight * commitment, "buffers": new}
