@@ -108,17 +108,17 @@ void matmul_block(int64_t m, int64_t n, int64_t K, const T* A, long lda, const T
                 T* c = C + g * MR * ldc + t * NB;
                 const T* At = ap + g * kc * MR;  // op(a)[i, k] at At[k * MR + i]
                 const T* Bt = bp + t * kc * NB;  // b[k, v * W + l] at Bt[k * NB + v * W + l]
-                if (k0 == 0) gemm_tile<T, MR, kPackNV, false>(kc, At, 1, MR, Bt, NB, c, ldc);
-                else gemm_tile<T, MR, kPackNV, false, true>(kc, At, 1, MR, Bt, NB, c, ldc);
+                if (k0 == 0) gemm_tile<T, MR, kPackNV, false, false>(kc, MatA<T>{At, 1, MR}, MatB<T>{Bt, NB}, c, ldc);
+                else gemm_tile<T, MR, kPackNV, false, true>(kc, MatA<T>{At, 1, MR}, MatB<T>{Bt, NB}, c, ldc);
             }
         // the edges, unpacked: the last rows under the packed columns, then every row of the last columns
         if (mf < m) {
-            if (k0 == 0) gemm_mr<T, false, TA>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
-            else gemm_mr<T, false, TA, true>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
+            if (k0 == 0) gemm<T, false, TA>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
+            else gemm<T, false, TA, true>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
         }
         if (nf < n) {
-            if (k0 == 0) gemm_mr<T, false, TA>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
-            else gemm_mr<T, false, TA, true>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
+            if (k0 == 0) gemm<T, false, TA>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
+            else gemm<T, false, TA, true>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
         }
     }
 }
