@@ -141,7 +141,8 @@ template <typename T> inline void copy_between_zeros(T* out, const T* src, int64
 }
 
 // tile[c, rr, cc] = x[c0 + c, u0 + rr - pt, cc - pl] for c < nc, rr < nrr, cc < Wp, 0 outside x:
-// the zero-padded input rows that output rows u0.. of a stride-1 conv read. tile is (nc, Rp, Wp).
+// the zero-padded input rows that output rows u0.. of a stride-1 conv read (a negative padding, the
+// dx conv's, crops). tile is (nc, Rp, Wp).
 template <typename T>
 void pad_rows(T* tile, const T* x, const ConvDims& d, int64_t c0, int64_t nc, int64_t u0, int64_t nrr, int64_t Rp,
               int64_t Wp) {
@@ -171,7 +172,6 @@ inline void inside(const ConvDims& d, int64_t s, int64_t j, int64_t v, int64_t m
 // cols (nc*kh*kw, n), rows ld apart: the im2col rows of channels [c0, c0 + nc) of one image x (C, Hi, Wi), for
 // the n output pixels p0 .. p0 + n (p = u*Wo + v):
 //     cols[(c - c0, i, j), p - p0] = x[c, stride*u + i - pt, stride*v + j - pl], 0 outside x.
-// Works for negative padding too (the stride-1 dx conv's, which crops).
 template <typename T>
 void im2col(T* cols, const T* x, const ConvDims& d, int64_t c0, int64_t nc, int64_t p0, int64_t n, int64_t ld) {
     const int64_t s = d.stride, HWi = d.Hi * d.Wi, u0 = p0 / d.Wo, v0 = p0 % d.Wo;
@@ -180,8 +180,7 @@ void im2col(T* cols, const T* x, const ConvDims& d, int64_t c0, int64_t nc, int6
             for (int64_t j = 0; j < d.kw; ++j) {
                 T* row = cols + ((c * d.kh + i) * d.kw + j) * ld;
                 const T* xc = x + (c0 + c) * HWi;
-                // one segment of output row u per step (no division in the loop: it would cost
-                // more than a segment's copy)
+                // one segment of output row u per step
                 for (int64_t p = p0, u = u0, v = v0; p < p0 + n; p += d.Wo - v, v = 0, ++u) {
                     const int64_t m = std::min(d.Wo - v, p0 + n - p);
                     T* out = row + (p - p0);
@@ -193,13 +192,9 @@ void im2col(T* cols, const T* x, const ConvDims& d, int64_t c0, int64_t nc, int6
                         int64_t lo, hi;
                         inside(d, s, j, v, m, lo, hi);
                         const T* xr = xc + yi * d.Wi + (s * (v + lo) + j - d.pl);
-                        if (s == 1) {  // one copy between two runs of zeros
-                            copy_between_zeros(out, xr, lo, hi, m);
-                        } else {
-                            std::fill(out, out + lo, T(0));
-                            for (int64_t q = lo; q < hi; ++q) out[q] = xr[s * (q - lo)];
-                            std::fill(out + hi, out + m, T(0));
-                        }
+                        std::fill(out, out + lo, T(0));
+                        for (int64_t q = lo; q < hi; ++q) out[q] = xr[s * (q - lo)];
+                        std::fill(out + hi, out + m, T(0));
                     }
                 }
             }

@@ -56,14 +56,10 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     padding=1 gives the same output size on even images but shifts every window by one pixel;
     (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
 
-    The C++ kernel (csrc/conv.cpp): implicit GEMM, y_b = w2 @ cols_b + b with w2 = w as (Co, K),
-    the im2col columns cols_b (K, Ho*Wo) built a cache-sized tile at a time and never stored
-    whole. conv2d_forward_numpy below is the same layer in NumPy, its reference. The kernel stays
-    because NumPy's form needs the BLAS on 2 threads to keep up, and the BLAS's spinning threads
-    made the tiny codebook's training step 12x slower on a busy 2-core machine (46 s against 3.9 s
-    for torch; 7 s on one BLAS thread: below 0.75x torch, pyvf bench codebook --quick); on pyvf's
-    own GEMM (layers.matmul, one product per image) the step measured 0.50x torch, against 1.51x
-    with this kernel (pyvf bench codebook, tiny, side by side on the same loaded 2-core machine).
+    The C++ kernel (csrc/conv.cpp): implicit GEMM, y_b = w2 @ cols_b + b with w2 = w as (Co, K) and
+    the im2col columns cols_b (K, Ho*Wo) never stored whole; conv2d_forward_numpy is its reference.
+    The kernel stays because NumPy's form needs the BLAS's threads, which spin on a busy machine:
+    the tiny codebook's training step measured 0.50x torch on pyvf's GEMM, 1.51x with this kernel.
     cache: x and w (C-ordered), stride, padding; the columns are recomputed in the backward."""
     pad = _padding4(padding)
     pt, pb, pl, pr = pad
