@@ -59,8 +59,6 @@ constexpr int64_t kTileBytes = 128 << 10;     // an im2col tile, or the dw's pad
 constexpr int64_t kRowTileBytes = 256 << 10;  // the forward's padded-row tile
 constexpr int64_t kCB = 8;                    // input channels per dw and strided-dx task
 constexpr int64_t kDwChunk = 256;             // pixels per register sum of the dw
-// Below this many multiply-adds (about 50 us on one core) a call runs on one thread.
-constexpr int64_t kParallelFlops = 1 << 20;
 
 // An exception must not leave an OpenMP region (the process would abort): allocations inside
 // one are caught, recorded, and the kernel returns kConvOutOfMemory.
@@ -77,12 +75,6 @@ constexpr int64_t kParallelFlops = 1 << 20;
     } catch (const std::bad_alloc&) {         \
         return kConvOutOfMemory;              \
     }
-
-template <typename T> constexpr int64_t kW = Simd<T>::W;
-
-inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
-
-inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
 
 // The register tile's operands found through tables (simd.h's gemm_ops):
 template <typename T> struct ColTableA {  // A(i, k) = p[i * ld + off[k]]: the flipped weights wf, in place in w

@@ -39,6 +39,11 @@ template <> struct Simd<double> {
     static constexpr int W = kVecBytes / 8;
 };
 
+template <typename T> constexpr int64_t kW = Simd<T>::W;
+
+inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
+inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
+
 template <typename T> inline typename Simd<T>::V vload(const T* p) {
     typename Simd<T>::V v;
     std::memcpy(&v, p, sizeof v);
