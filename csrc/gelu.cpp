@@ -7,11 +7,11 @@
 // accurate to a few ulp.
 //     forward:  y  = x * Phi(x)
 //     backward: dx = dy * (Phi(x) + x * phi(x)),   phi(x) = exp(-x^2 / 2) / sqrt(2 pi)
-// Arrays are flat, any size, one dtype. Two evaluations:
-//   float64, and a float32 vector with a lane below -3 (or NaN): scalar, std::erfc with its
-//                     argument compensated (below), in double; float32 rounded once;
+// Arrays are flat, any size, one dtype. Three evaluations:
+//   float64:          scalar, std::erfc with its argument compensated (below);
+//   float32, x < -3:  double lanes, Cody's erfc, rounded once (<= 0.5 ulp down to the underflow);
 //   float32, x >= -3: float lanes, fitted polynomials, no division (<= 4 ulp; the bulk of any
-//                     activation tensor).
+//                     activation tensor, 1/5 the time of the double lanes).
 // Test: tests/test_layers.py (torch's exact gelu, mpmath on the float-lane range and in the tail,
 // where torch's own erf form returns 0). Time against torch: pyvf bench accuracy --ops gelu.
 #include <algorithm>
@@ -44,10 +44,6 @@ constexpr double kInvSqrt2Pi = 0.3989422804014327;
 // x^2 = h + l exactly (fma), and e^(-(h + l)/2) = e^(-h/2) (1 - l/2). Without these, for x ~ -37
 // the relative error of Phi is x^2 * eps = 1400 ulp (the conditioning of erfc at its argument).
 inline void normal_cdf_pdf(double x, double& cdf, double& pdf) {
-    if (x > 40.0) {  // 1 - Phi(x) < 2^-1100 and phi(x) = 0 (also for x = inf, where dz would be NaN)
-        cdf = 1.0, pdf = 0.0;
-        return;
-    }
     const double z = -x * kS_hi;
     const double dz = std::fma(-x, kS_hi, -z) - x * kS_lo;
     cdf = 0.5 * (std::erfc(z) - k2_SqrtPi * std::exp(-z * z) * dz);
@@ -55,6 +51,89 @@ inline void normal_cdf_pdf(double x, double& cdf, double& pdf) {
     const double l = std::fma(x, x, -h);
     // e^(-h/2) underflows to 0 for h > 1490; past that (and where h overflows) pdf is 0
     pdf = h > 1500.0 ? 0.0 : kInvSqrt2Pi * std::exp(-0.5 * h) * (1.0 - 0.5 * l);
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------
+// float32 below x = -3 (the float-lane path further down covers the rest): evaluated in double,
+// W_double lanes at a time, and rounded once. erfc by W. J. Cody's rational Chebyshev
+// approximations (Math. Comp. 23, 1969; the coefficients of his CALERF), one per range of
+// z = |x| / sqrt(2):
+//     z <= 0.46875:     erfc(z) = 1 - z P_a(z^2) / Q_b(z^2)
+//     0.46875 < z <= 4: erfc(z) = exp(-z^2) P_c(z) / Q_d(z)
+//     z > 4:            erfc(z) = exp(-z^2) (1/sqrt(pi) - w P_p(w) / Q_q(w)) / z,  w = 1 / z^2
+// each accurate to about 1e-16 relative, and exp(-z^2) by the kernels' vectorised exp (~1 ulp
+// of double; the rounding of z^2, relative z^2 2^-53, is 1e-14 at the float32 underflow z ~ 9.2):
+// far below float32's ulp (6e-8), so the result is float32's correctly rounded value but for
+// rare double-rounding ties (tests/test_layers.py: <= 4 ulp against mpmath over the tail, as the
+// scalar path). Where every lane of a vector lies in one range only that range is evaluated.
+// float64 keeps the scalar, compensated path above (it needs every digit of double).
+
+namespace {
+
+constexpr double kA[5] = {3.16112374387056560e00, 1.13864154151050156e02, 3.77485237685302021e02,
+                          3.20937758913846947e03, 1.85777706184603153e-1};
+constexpr double kB[4] = {2.36012909523441209e01, 2.44024637934444173e02, 1.28261652607737228e03,
+                          2.84423683343917062e03};
+constexpr double kC[9] = {5.64188496988670089e-1, 8.88314979438837594e00, 6.61191906371416295e01,
+                          2.98635138197400131e02, 8.81952221241769090e02, 1.71204761263407058e03,
+                          2.05107837782607147e03, 1.23033935479799725e03, 2.15311535474403846e-8};
+constexpr double kD[8] = {1.57449261107098347e01, 1.17693950891312499e02, 5.37181101862009858e02,
+                          1.62138957456669019e03, 3.29079923573345963e03, 4.36261909014324716e03,
+                          3.43936767414372164e03, 1.23033935480374942e03};
+constexpr double kP[6] = {3.05326634961232344e-1, 3.60344899949804439e-1, 1.25781726111229246e-1,
+                          1.60837851487422766e-2, 6.58749161529837803e-4, 1.63153871373020978e-2};
+constexpr double kQ[5] = {2.56852019228982242e00, 1.87295284992346047e00, 5.27905102951428412e-1,
+                          6.05183413124413191e-2, 2.33520497626869185e-3};
+constexpr double kInvSqrtPi = 0.56418958354775628695;
+
+using VD = Simd<double>::V;
+constexpr int WD = Simd<double>::W;
+
+// Phi(x) and phi(x) = exp(-x^2/2) / sqrt(2 pi) for W_double lanes (x finite).
+inline void normal_cdf_pdf_vec(VD x, VD& cdf, VD& pdf) {
+    const VD z = (x < 0.0 ? -x : x) * 0.70710678118654752440;  // |x| / sqrt 2
+    const VD zz = z * z;
+    const VD e = exp_vec(-zz);  // exp(-z^2) = exp(-x^2 / 2)
+    pdf = e * kInvSqrt2Pi;
+    bool lo = false, mid = false, hi = false;
+    for (int l = 0; l < WD; ++l) {
+        lo |= z[l] <= 0.46875;
+        mid |= z[l] > 0.46875 && z[l] <= 4.0;
+        hi |= z[l] > 4.0;
+    }
+    VD erfc = {};
+    if (lo) {
+        VD num = kA[4] * zz, den = zz;
+        for (int i = 0; i < 3; ++i) {
+            num = (num + kA[i]) * zz;
+            den = (den + kB[i]) * zz;
+        }
+        const VD r = 1.0 - z * (num + kA[3]) / (den + kB[3]);
+        erfc = z <= 0.46875 ? r : erfc;
+    }
+    if (mid) {
+        VD num = kC[8] * z, den = z;
+        for (int i = 0; i < 7; ++i) {
+            num = (num + kC[i]) * z;
+            den = (den + kD[i]) * z;
+        }
+        const VD r = e * ((num + kC[7]) / (den + kD[7]));
+        erfc = (z > 0.46875) & (z <= 4.0) ? r : erfc;
+    }
+    if (hi) {
+        const VD zs = z > 4.0 ? z : vset1<double>(5.0);  // keep the other lanes finite
+        const VD w = 1.0 / (zs * zs);
+        VD num = kP[5] * w, den = w;
+        for (int i = 0; i < 4; ++i) {
+            num = (num + kP[i]) * w;
+            den = (den + kQ[i]) * w;
+        }
+        const VD r = e * ((kInvSqrtPi - w * (num + kP[4]) / (den + kQ[4])) / zs);
+        erfc = z > 4.0 ? r : erfc;
+    }
+    cdf = x < 0.0 ? 0.5 * erfc : 1.0 - 0.5 * erfc;  // Phi(x) = erfc(-x / sqrt 2) / 2
 }
 
 }  // namespace
@@ -74,9 +153,9 @@ inline void normal_cdf_pdf(double x, double& cdf, double& pdf) {
 // products: gelu within 4 ulp over [-3, inf) (tests/test_layers.py, against mpmath on a dense
 // grid); gelu' = Phi + x phi within 4 u (Phi + |x| phi) -- relative to the terms, since the sum
 // cancels at its root x = -0.7518, where torch's float32 (and any float32 sum) loses as much.
-// A vector with a lane below x = -3 (or NaN) takes the double path above, lane by lane, whose
-// compensated tail keeps gelu within 0.5 ulp down to the underflow: a vector of N(0, 1)
-// activations goes there with probability W * 0.13%.
+// Below x = -3 (and for NaN) the vector takes the double path above, whose compensated tail
+// keeps gelu within 0.5 ulp down to the underflow: a vector of N(0, 1) activations goes there
+// with probability W * 0.13%.
 
 namespace {
 
@@ -166,11 +245,16 @@ inline bool normal_cdf_xpdf_f(VF x, VF& cdf, VF& xpdf) {
 
 // Phi(x) and x phi(x) for float lanes by the double path (any x; NaN gives NaN).
 inline void normal_cdf_xpdf_d(VF x, VF& cdf, VF& xpdf) {
-    for (int l = 0; l < WF; ++l) {
-        double c, p;
-        normal_cdf_pdf((double)x[l], c, p);
-        cdf[l] = (float)c;
-        xpdf[l] = (float)(p * (double)x[l]);
+    for (int half = 0; half < WF; half += WD) {
+        VD xd;
+        for (int l = 0; l < WD; ++l) xd[l] = x[half + l];
+        VD c, p;
+        normal_cdf_pdf_vec(xd, c, p);
+        p *= xd;
+        for (int l = 0; l < WD; ++l) {
+            cdf[half + l] = (float)c[l];
+            xpdf[half + l] = (float)p[l];
+        }
     }
 }
 

@@ -147,7 +147,7 @@ template <typename T> bool all_finite(Arr<T> x) {
     return ok;
 }
 
-template <typename T> int64_t nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T> x, Arr<T> codes) {
+template <typename T> void nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T> x, Arr<T> codes) {
     if (x.ndim() != 2 || codes.ndim() != 2 || x.shape(1) != codes.shape(1) || codes.shape(0) < 1)
         throw std::invalid_argument("pyvf._core.vq_nearest: x (M, D) and codes (K >= 1, D)");
     if (index.ndim() != 1 || sq_dist.ndim() != 1 || index.shape(0) != x.shape(0) || sq_dist.shape(0) != x.shape(0))
@@ -157,7 +157,7 @@ template <typename T> int64_t nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T>
     const T *px = x.data(), *pc = codes.data();
     const int64_t M = x.shape(0), K = codes.shape(0), D = x.shape(1);
     py::gil_scoped_release nogil;
-    return vq_nearest<T>(pi, pd, px, pc, M, K, D);  // std::bad_alloc: MemoryError
+    vq_nearest<T>(pi, pd, px, pc, M, K, D);  // std::bad_alloc: MemoryError
 }
 
 // c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per entry (matmul.cpp); a (nb, M, K) or (nb, K, M) if ta,

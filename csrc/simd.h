@@ -71,18 +71,10 @@ template <typename T> inline T hsum(typename Simd<T>::V v) {
 // < 1.2e-38 in float32, < 2.3e-308 in float64: invisible beside the softmax's own max term,
 // which is exp(0) = 1). -inf gives 0. NaN never reaches it (the kernels check logits first).
 
-template <typename T> struct ExpConst;
-template <> struct ExpConst<float> {
-    static constexpr float lo = -87.33654f;  // exp(lo) = 2^-126, the smallest normal float
-};
-template <> struct ExpConst<double> {
-    static constexpr double lo = -708.3964185322641;  // 2^-1022
-};
-
 inline Simd<float>::V exp_vec(Simd<float>::V x) {
     using V = Simd<float>::V;
     using I = Simd<float>::I;
-    const V lo = vset1<float>(ExpConst<float>::lo);
+    const V lo = vset1<float>(-87.33654f);  // exp(lo) = 2^-126, the smallest normal float
     const V xc = x > lo ? x : lo;
     // n = round(x / ln2): adding 1.5*2^23 rounds to an integer in the mantissa
     const V magic = vset1<float>(12582912.0f);
@@ -106,7 +98,7 @@ inline Simd<float>::V exp_vec(Simd<float>::V x) {
 inline Simd<double>::V exp_vec(Simd<double>::V x) {
     using V = Simd<double>::V;
     using I = Simd<double>::I;
-    const V lo = vset1<double>(ExpConst<double>::lo);
+    const V lo = vset1<double>(-708.3964185322641);  // 2^-1022
     const V xc = x > lo ? x : lo;
     const V magic = vset1<double>(6755399441055744.0);  // 1.5*2^52
     const V n = (xc * 1.4426950408889634073599 + magic) - magic;
