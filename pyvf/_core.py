@@ -38,14 +38,10 @@ if not _built_paths:
     _here = os.path.dirname(os.path.abspath(__file__))
     if os.path.exists(os.path.join(os.path.dirname(_here), "csrc")):  # a source checkout, not an installed copy
         raise ImportError(
-            f"Python imported pyvf from the source tree {_here}, which has no compiled kernels: Python was "
-            "started in the repository root (or sys.path names it), so the checkout shadows any installed "
-            "pyvf. To work from the checkout, install it editable, which builds the kernels and imports "
-            "these sources (the README's development setup): `pip install scikit-build-core pybind11 cmake ninja "
-            "&& pip install --no-build-isolation -e .`; or run Python from another folder after `pip install .`")
-    raise ImportError(
-        "pyvf's compiled extension (pyvf._core_<path>) is missing from this installation: install pyvf "
-        "with `pip install .` (it compiles csrc/)")
+            f"Python imported pyvf from the source tree {_here}, which has no compiled kernels (the checkout "
+            "shadows any installed pyvf): install it editable, which builds them (`pip install scikit-build-core "
+            "pybind11 cmake ninja && pip install --no-build-isolation -e .`), or run Python from another folder")
+    raise ImportError("pyvf's compiled extension (pyvf._core_<path>) is missing: install pyvf with `pip install .`")
 _base = importlib.import_module(f"pyvf._core_{_built_paths[0]}")
 _features = dict(_base.cpu_features())
 _runs = tuple(p for p in _built_paths if all(_features.get(f, False) for f in _NEEDS.get(p, ())))
