@@ -7,13 +7,10 @@
 
 namespace pyvf {
 
-// Work buffers start on a cache line (the column rows' vector stores are then aligned; malloc
-// gives 16 bytes). Allocation failure throws std::bad_alloc, as std::vector's does. A Buf's resize
-// zeroes the new elements, as std::vector's does; a RawBuf's leaves them unset, for a buffer made
-// before a parallel region whose every element read is written in it first (conv's dyT and wf, the
-// attention backward's dq_extra): a zeroing there is one thread's pass over memory while the
-// others wait (a paper codebook's 128-channel 128x128 backward zeroed 19 MiB of dyT so, on the
-// calling thread).
+// Work buffers start on a cache line (malloc gives 16 bytes). Allocation failure throws std::bad_alloc.
+// A Buf's resize zeroes the new elements, as std::vector's does; a RawBuf's leaves them unset, for a
+// buffer whose every element read is first written inside a parallel region (a zeroing before it
+// would be one thread's pass over memory while the others wait).
 template <typename T, bool Zero = true> struct Aligned64 {
     typedef T value_type;
     template <typename U> struct rebind {

@@ -1,5 +1,5 @@
-// The codebook's conv2d kernel (conv.cpp);
-// declarations shared by the kernels and the bindings (conv_bind.cpp).
+// The codebook's conv2d kernel (conv.cpp): declarations shared by the kernel and its bindings
+// (module.cpp).
 #pragma once
 
 #include <cstdint>
@@ -18,12 +18,8 @@ struct ConvDims {
     int64_t B, C, Hi, Wi, Co, kh, kw, stride, pt, pb, pl, pr, Ho, Wo;
 };
 
-// Status codes returned by the kernels (0 = ok); the bindings raise kConvOutOfMemory as MemoryError
-// and kConvNonFinite (conv2d and GroupNorm: y, or the backward's dx, not finite: finite inputs
-// overflowed, or an input held NaN or inf; each task checks what it wrote while it is still in
-// cache), kConvNonFiniteDw and kConvNonFiniteDb (the conv2d backward's dw, db, checked the same
-// way; dx first, then dw, then db) as ValueError, naming the output (pyvf/conv.py then names the
-// input, if one is to blame).
+// Status codes (0 = ok): out of memory (MemoryError), or y (the backward: dx, then dw, then db) not
+// finite: finite inputs overflowed, or an input held NaN or inf (ValueError naming the output).
 enum ConvStatus : int {
     kConvOk = 0,
     kConvOutOfMemory = 2,
@@ -32,20 +28,10 @@ enum ConvStatus : int {
     kConvNonFiniteDb = 5,
 };
 
-// Fast kernels: implicit GEMM on the gemm micro-kernel of simd.h, OpenMP over (image, pixel
-// tile) or (channel block) tasks; results bitwise the same for any thread count.
-//   forward:  y (B, Co, Ho, Wo) overwritten.
-//   backward: dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,) overwritten (never accumulated).
+// The kernels (implicit GEMM, bitwise the same results for any thread count): forward overwrites y
+// (B, Co, Ho, Wo); backward overwrites dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,).
 template <typename T> int conv2d_forward(T* y, const T* x, const T* w, const T* b, const ConvDims& d);
 template <typename T>
 int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, const ConvDims& d);
 
 }  // namespace pyvf
-
-// The Python bindings (conv_bind.cpp), called from module.cpp's PYBIND11_MODULE. Declared only
-// where pybind11 is already included, so the kernels above stay plain C++.
-#ifdef PYBIND11_VERSION_MAJOR
-namespace pyvf {
-void bind_conv(pybind11::module_& m);
-}
-#endif

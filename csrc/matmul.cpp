@@ -1,15 +1,21 @@
-// pyvf's GEMM: c (nb, M, N) = op(a) @ op(b) [+ bias] per batch entry, float32 and float64; the
-// products of the transformer's linear layers and tied logits (pyvf/nn/layers.py matmul) and of
-// the codebook's convolutions (pyvf/nn/conv.py: im2col columns times the weights) and AttnBlock.
-// Its reference is the expression itself, pyvf/nn/layers.py matmul_numpy.
-//
+// pyvf's GEMM: c (nb, M, N) = op(a) @ op(b) [+ bias] per batch entry, float32 and float64: the
+// products of the transformer's linear layers and tied logits and of the codebook's AttnBlock
+// (pyvf/nn/layers.py matmul; its reference is the expression itself, matmul_numpy).
 // Here rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
-// milliseconds on the cores the kernels' OpenMP threads run on (the tiny transformer's training
-// step on 2 busy cores: 5x slower with np.matmul on 2 BLAS threads, 526 ms against 100 ms), and
-// because the BLAS's results change with its thread count for some shapes.
+// milliseconds on the cores the kernels' threads run on (the tiny transformer's training step on 2
+// busy cores: 526 ms with np.matmul on 2 BLAS threads, 100 ms with this), and because the BLAS's
+// results change with its thread count for some shapes.
 //
-// Test: pytest tests/test_layers.py -k matmul (against NumPy, every path, 1 and 2 threads bitwise).
-// Benchmark: pyvf bench transformer, pyvf bench codebook (the training steps it is most of).
+// Blocks: tasks of (entry, kMatRows rows, kMatCols columns), each writing its own block of c;
+// inside a task k runs in chunks of kMatDepth, each continuing the last one's sums (gemm_tile's
+// CONT). A chunk's panels of a and b are copied into the order the register tile reads them, so
+// that its loads are contiguous and b's panel stays in L2 while the block's rows pass over it; the
+// rows and columns past the last whole packed tile run on the unpacked matrices. Every element of
+// c is one sum in increasing k (FMA where the path has it), or, split along k, its parts' sums
+// added in order: bitwise the same for any thread count. A transposed b is first copied into
+// (K, N) order. A bias (N,) is added to every row after its sums.
+//
+// Test: pytest tests/test_layers.py -k matmul. Benchmark: pyvf bench transformer.
 #include "matmul.h"
 
 #include <algorithm>
@@ -24,59 +30,19 @@ namespace pyvf {
 
 namespace {
 
-template <typename T> constexpr int64_t kW = Simd<T>::W;
 
-inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
-
-inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
-
-// Below this many multiply-adds (about 50 us on one core) a call runs on one thread: starting the
-// team costs microseconds on a quiet machine, and on a busy one each parallel region can wait a
-// scheduler time slice for a descheduled thread.
-constexpr int64_t kParallelFlops = 1 << 20;
-
-// out[q] = 0 for q < lo and hi <= q < m, src[q - lo] for lo <= q < hi.
-// Inline vector copy: the rows are short (an image row), a memcpy call costs more than the copy;
-// the last partial vector is stored overlapping the one before (same values, no scalar tail).
-
-
-// The products of the AttnBlock (pyvf/nn/conv.py) and of the transformer's linear layers and
-// tied logits (pyvf/nn/layers.py, models/transformer.py): per batch entry b,
-// c_b (M, N) = op(a_b) (M, K) @ op(b_b) (K, N), op = transpose when ta / tb.
-// Blocks: tasks of (entry, kMatRows rows, kMatCols columns), each writing its own block of c;
-// inside a task k runs in chunks of kMatDepth, each chunk continuing the sums of the last
-// (gemm_tile's CONT). A chunk's panel of b (kMatDepth x kMatCols) and of a (kMatRows x
-// kMatDepth) are copied into the order the register tile reads them (a's rows kPackMR at a time,
-// b's columns kPackNV vectors at a time, k outermost), so that its loads are contiguous and b's
-// panel stays in L2 while the block's rows pass over it. Rows past the last full kPackMR and
-// columns past the last full kPackNV vectors run on the unpacked matrices (gemm_mr). Every
-// element of c is one sum in increasing k (on simd.h's register tile, FMA where the path has it;
-// the last N % W columns as scalar sums), or, split along k (kMatMinTasks), its parts' sums added
-// in order, whatever the blocks, the tasks or the thread count: bitwise the same for any thread
-// count. A transposed b (a weight matrix, where pyvf asks for
-// one) is first copied into (K, N) order. A bias (N,), when given, is added to every row after
-// its sums.
-// Here rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
-// milliseconds on the cores this file's OpenMP threads run on (11% of a paper codebook's encode +
-// decode went to that spinning; a 2-thread product right after a 2-thread BLAS call ran at the
-// speed of one thread), and because the BLAS's results change with its thread count for some
-// shapes.
 constexpr int64_t kMatRows = 96;    // whole register tiles on every path (8, 6 and 4 rows)
 constexpr int64_t kMatCols = 192;   // a multiple of the packed tile's columns on every path (96, 48, 16, 8, 4)
 constexpr int64_t kMatDepth = 256;  // panels: b's 256 x 192 (192 KiB of floats), a's 96 x 256 (96 KiB)
 // Split along k: a product with fewer than kMatMinTasks blocks of c and K of at least 2 *
-// kMatSplitDepth (the weight gradients X^T dY of the tiny transformer: c 128 x 512, K = 9216,
-// 6 blocks for 16 threads) is cut into parts of whole kMatDepth chunks, at least kMatSplitDepth
-// deep, as many as make about kMatMinTasks tasks. Each part's block is one sum in increasing k
-// (part 0 into c, the others into a buffer), then c = ((part 0 + part 1) + part 2) + ... in that
-// order. The parts follow from the shapes alone, so the result is still bitwise the same for any
-// thread count.
+// kMatSplitDepth (the tiny transformer's weight gradients: c 128 x 512, K = 9216) is cut into
+// parts of whole kMatDepth chunks, at least kMatSplitDepth deep, about kMatMinTasks tasks in all;
+// c = ((part 0 + part 1) + part 2) + ... The parts follow from the shapes alone.
 constexpr int64_t kMatMinTasks = 64;
 constexpr int64_t kMatSplitDepth = 1024;
 
-// The packed tile's shape: with 32 vector registers (AVX-512) 4 rows x 6 vectors (24
-// accumulators, 6 of b, 1 broadcast: 4 broadcasts per 24 FMAs); with 16 (AVX2) simd.h's 6 x 2,
-// SSE2/NEON 4 x 2.
+// The packed tile: AVX-512's 32 registers hold 4 rows x 6 vectors (4 broadcasts per 24 FMAs);
+// AVX2 6 x 2, SSE2/NEON 4 x 2.
 constexpr int kPackMR = kVecBytes >= 64 ? 4 : kVecBytes == 32 ? 6 : 4;
 constexpr int kPackNV = kVecBytes >= 64 ? 6 : 2;
 
@@ -108,17 +74,17 @@ void matmul_block(int64_t m, int64_t n, int64_t K, const T* A, long lda, const T
                 T* c = C + g * MR * ldc + t * NB;
                 const T* At = ap + g * kc * MR;  // op(a)[i, k] at At[k * MR + i]
                 const T* Bt = bp + t * kc * NB;  // b[k, v * W + l] at Bt[k * NB + v * W + l]
-                if (k0 == 0) gemm_tile<T, MR, kPackNV, false>(kc, At, 1, MR, Bt, NB, c, ldc);
-                else gemm_tile<T, MR, kPackNV, false, true>(kc, At, 1, MR, Bt, NB, c, ldc);
+                if (k0 == 0) gemm_tile<T, MR, kPackNV, false, false>(kc, MatA<T>{At, 1, MR}, MatB<T>{Bt, NB}, c, ldc);
+                else gemm_tile<T, MR, kPackNV, false, true>(kc, MatA<T>{At, 1, MR}, MatB<T>{Bt, NB}, c, ldc);
             }
         // the edges, unpacked: the last rows under the packed columns, then every row of the last columns
         if (mf < m) {
-            if (k0 == 0) gemm_mr<T, false, TA>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
-            else gemm_mr<T, false, TA, true>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
+            if (k0 == 0) gemm<T, false, TA>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
+            else gemm<T, false, TA, true>((int)(m - mf), (int)nf, kc, Ak + mf * sa_i, lda, Bk, ldb, C + mf * ldc, ldc);
         }
         if (nf < n) {
-            if (k0 == 0) gemm_mr<T, false, TA>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
-            else gemm_mr<T, false, TA, true>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
+            if (k0 == 0) gemm<T, false, TA>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
+            else gemm<T, false, TA, true>((int)m, (int)(n - nf), kc, Ak, lda, Bk + nf, ldb, C + nf, ldc);
         }
     }
 }

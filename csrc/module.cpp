@@ -1,7 +1,8 @@
-// pyvf._core: the compiled kernels. The user-facing functions, with argument checks and
-// clear errors, are in pyvf/attention.py; these bindings take arrays that are already
-// checked and still refuse (TypeError) anything that is not exactly the dtype and C layout
-// asked for: .noconvert() and c_style mean no silent cast and no silent copy.
+// pyvf._core: the compiled kernels' bindings. The user-facing functions, with argument checks and
+// clear errors, are in pyvf/ (nn/attention.py, nn/conv.py, nn/layers.py, nn/quantizer.py); these
+// take arrays that are already checked and still refuse (TypeError) anything that is not exactly
+// the dtype and C layout asked for (.noconvert(), c_style: no silent cast, no silent copy), and
+// check the sizes, since a wrong one would read or write out of bounds.
 //
 // Argument order (STYLE.md): outputs, saved buffers, inputs, then scalars. Outputs are
 // overwritten, never accumulated into.
@@ -10,6 +11,7 @@
 #include <pybind11/stl.h>
 
 #include <algorithm>
+#include <initializer_list>
 #include <limits>
 #include <optional>
 #include <memory>
@@ -19,6 +21,7 @@
 
 #include "branching_attention.h"
 #include "conv.h"
+#include "gelu.h"
 #include "matmul.h"
 #include "vq.h"
 #include "simd.h"
@@ -26,8 +29,6 @@
 
 namespace py = pybind11;
 using namespace pyvf;
-
-void bind_gelu(py::module_& m);  // gelu.cpp
 
 namespace {
 
@@ -41,12 +42,6 @@ AttnDims dims_of(const py::array& a) {
     if (d.L > (1 << 20) || d.dh > (1 << 20))
         throw std::invalid_argument("pyvf._core: L and dh must be below 2^20");
     return d;
-}
-
-void same_shape(const py::array& a, const py::array& b, const char* name) {
-    bool same = a.ndim() == b.ndim();
-    for (py::ssize_t i = 0; same && i < a.ndim(); ++i) same = a.shape(i) == b.shape(i);
-    if (!same) throw std::invalid_argument(std::string("pyvf._core: ") + name + " has the wrong shape");
 }
 
 void check_lse(const py::array& lse, const AttnDims& d) {
@@ -69,12 +64,19 @@ void raise_status(int status) {
             "the softmax of such logits cannot be represented: rescale q or k, or use float64");
 }
 
+// every array's shape that of q
+void same_shape(const py::array& q, std::initializer_list<py::array> arrays) {
+    for (const py::array& a : arrays) {
+        bool same = a.ndim() == q.ndim();
+        for (py::ssize_t i = 0; same && i < a.ndim(); ++i) same = a.shape(i) == q.shape(i);
+        if (!same) throw std::invalid_argument("pyvf._core: q, k, v, o, do, dq, dk, dv must have one shape");
+    }
+}
+
 template <typename T, bool PLAIN>
 void forward(Arr<T> o, Arr<double> lse, Arr<T> q, Arr<T> k, Arr<T> v, double scale) {
     const AttnDims d = dims_of(q);
-    same_shape(q, k, "k");
-    same_shape(q, v, "v");
-    same_shape(q, o, "o");
+    same_shape(q, {k, v, o});
     check_lse(lse, d);
     T* po = o.mutable_data();
     double* pl = lse.mutable_data();
@@ -92,13 +94,7 @@ template <typename T, bool PLAIN>
 void backward(Arr<T> dq, Arr<T> dk, Arr<T> dv, Arr<double> lse, Arr<T> q, Arr<T> k, Arr<T> v,
               Arr<T> o, Arr<T> dout, double scale) {
     const AttnDims d = dims_of(q);
-    same_shape(q, k, "k");
-    same_shape(q, v, "v");
-    same_shape(q, o, "o");
-    same_shape(q, dout, "do");
-    same_shape(q, dq, "dq");
-    same_shape(q, dk, "dk");
-    same_shape(q, dv, "dv");
+    same_shape(q, {k, v, o, dout, dq, dk, dv});
     check_lse(lse, d);
     T *pdq = dq.mutable_data(), *pdk = dk.mutable_data(), *pdv = dv.mutable_data();
     const double* pl = lse.data();
@@ -110,6 +106,22 @@ void backward(Arr<T> dq, Arr<T> dk, Arr<T> dv, Arr<double> lse, Arr<T> q, Arr<T>
                        : attn_backward<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale);
     }
     raise_status(status);
+}
+
+// GELU (gelu.cpp): y = gelu(x); dx = dy * gelu'(x); flat, one size, overwritten
+template <typename T> void gelu(Arr<T> y, Arr<T> x) {
+    if (y.size() != x.size()) throw std::invalid_argument("pyvf._core.gelu: x and y differ in size");
+    T* py_ = y.mutable_data();
+    py::gil_scoped_release nogil;
+    gelu_forward<T>(py_, x.data(), x.size());
+}
+
+template <typename T> void gelu_bwd(Arr<T> dx, Arr<T> dy, Arr<T> x) {
+    if (dx.size() != x.size() || dy.size() != x.size())
+        throw std::invalid_argument("pyvf._core.gelu_backward: dx, dy and x differ in size");
+    T* pdx = dx.mutable_data();
+    py::gil_scoped_release nogil;
+    gelu_backward<T>(pdx, dy.data(), x.data(), x.size());
 }
 
 // y = exp(x) by the kernels' vectorised exp (for x <= 0), to test its accuracy.
@@ -135,7 +147,7 @@ template <typename T> bool all_finite(Arr<T> x) {
     return ok;
 }
 
-template <typename T> int64_t nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T> x, Arr<T> codes) {
+template <typename T> void nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T> x, Arr<T> codes) {
     if (x.ndim() != 2 || codes.ndim() != 2 || x.shape(1) != codes.shape(1) || codes.shape(0) < 1)
         throw std::invalid_argument("pyvf._core.vq_nearest: x (M, D) and codes (K >= 1, D)");
     if (index.ndim() != 1 || sq_dist.ndim() != 1 || index.shape(0) != x.shape(0) || sq_dist.shape(0) != x.shape(0))
@@ -144,16 +156,8 @@ template <typename T> int64_t nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T>
     T* pd = sq_dist.mutable_data();
     const T *px = x.data(), *pc = codes.data();
     const int64_t M = x.shape(0), K = codes.shape(0), D = x.shape(1);
-    try {
-        py::gil_scoped_release nogil;
-        return vq_nearest<T>(pi, pd, px, pc, M, K, D);
-    } catch (const std::bad_alloc&) {
-        const std::string msg = "vq_nearest: not enough memory for the work buffers of codes with K = " +
-                                std::to_string(K) + ", D = " + std::to_string(D) +
-                                " (about 2 * codes.nbytes + 8 * K bytes, plus per thread 64 * (D + 2048) elements)";
-        PyErr_SetString(PyExc_MemoryError, msg.c_str());
-        throw py::error_already_set();
-    }
+    py::gil_scoped_release nogil;
+    vq_nearest<T>(pi, pd, px, pc, M, K, D);  // std::bad_alloc: MemoryError
 }
 
 // c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per entry (matmul.cpp); a (nb, M, K) or (nb, K, M) if ta,
@@ -175,7 +179,96 @@ template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb
     if (status == kMatOutOfMemory) throw std::bad_alloc();  // pybind11: MemoryError
 }
 
+// conv2d (conv.cpp): conv2d_forward(y, x, w, b, stride, pt, pb, pl, pr),
+// conv2d_backward(dx, dw, db, x, w, dy, stride, pt, pb, pl, pr)
+[[noreturn]] void conv_bad(const std::string& what) { throw py::value_error("pyvf._core.conv2d: " + what); }
+
+// The sizes of (x, w, stride, padding); every count the kernels index with int below 2^31.
+ConvDims conv_dims(const py::array& x, const py::array& w, int64_t stride, int64_t pt, int64_t pb, int64_t pl,
+                   int64_t pr) {
+    if (x.ndim() != 4 || w.ndim() != 4 || w.shape(1) != x.shape(1))
+        conv_bad("x (B, C, Hi, Wi) and w (Co, C, kh, kw) must be 4-D with the same C");
+    ConvDims d{x.shape(0), x.shape(1), x.shape(2), x.shape(3), w.shape(0), w.shape(2), w.shape(3),
+               stride,     pt,         pb,         pl,         pr,         0,          0};
+    const double most = std::numeric_limits<int>::max();
+    auto over = [&](std::initializer_list<int64_t> factors) {  // in double: a product cannot wrap
+        double n = 1;
+        for (int64_t f : factors) n *= (double)f;
+        return n > most;
+    };
+    if (stride < 1 || std::min({pt, pb, pl, pr}) < 0 || over({stride}) || over({std::max({pt, pb, pl, pr})}))
+        conv_bad("stride must be in [1, 2^31), every padding in [0, 2^31)");
+    if (d.kh < 1 || d.kw < 1 || d.Hi + pt + pb < d.kh || d.Wi + pl + pr < d.kw)
+        conv_bad("w: the kernel must be at least 1x1 and fit the padded image");
+    d.Ho = (d.Hi + pt + pb - d.kh) / stride + 1;
+    d.Wo = (d.Wi + pl + pr - d.kw) / stride + 1;
+    if (over({d.C, d.kh, d.kw}) || over({d.Co}) || over({d.Hi}) || over({d.Wi}) || over({d.Hi, d.Wi}) ||
+        over({d.Ho, d.Wo}))
+        conv_bad("C*kh*kw, Co, Hi*Wi and Ho*Wo must be below 2^31, the kernel's int indexing");
+    return d;
+}
+
+void conv_shape(const py::array& a, const char* name, std::initializer_list<int64_t> want) {
+    bool ok = a.ndim() == (py::ssize_t)want.size();
+    int k = 0;
+    for (int64_t n : want) ok = ok && a.shape(k++) == n;
+    if (!ok) conv_bad(std::string(name) + " has the wrong shape");
+}
+
+// The kernel's status as an exception: MemoryError, or ValueError naming the output not finite.
+template <typename T> void conv_raise(int status, const char* what, const char* name) {
+    if (status == kConvOutOfMemory) throw std::bad_alloc();  // pybind11: MemoryError
+    if (status == kConvNonFiniteDw) name = "dw";
+    if (status == kConvNonFiniteDb) name = "db";
+    if (status != kConvOk)
+        throw py::value_error(std::string(what) + ": " + name + " is not finite: it overflowed " +
+                              (sizeof(T) == 4 ? "float32" : "float64") +
+                              " (inputs too large for the dtype; rescale them, or use float64)");
+}
+
+template <typename T>
+void conv_forward(Arr<T> y, Arr<T> x, Arr<T> w, Arr<T> b, int64_t stride, int64_t pt, int64_t pb, int64_t pl,
+                  int64_t pr) {
+    const ConvDims d = conv_dims(x, w, stride, pt, pb, pl, pr);
+    conv_shape(b, "b", {d.Co});
+    conv_shape(y, "y", {d.B, d.Co, d.Ho, d.Wo});
+    T* py_ = y.mutable_data();
+    const T *px = x.data(), *pw = w.data(), *pbias = b.data();
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = conv2d_forward<T>(py_, px, pw, pbias, d);
+    }
+    conv_raise<T>(status, "conv2d_forward", "y");
+}
+
+template <typename T>
+void conv_backward(Arr<T> dx, Arr<T> dw, Arr<T> db, Arr<T> x, Arr<T> w, Arr<T> dy, int64_t stride, int64_t pt,
+                   int64_t pb, int64_t pl, int64_t pr) {
+    const ConvDims d = conv_dims(x, w, stride, pt, pb, pl, pr);
+    conv_shape(dy, "dy", {d.B, d.Co, d.Ho, d.Wo});
+    conv_shape(dx, "dx", {d.B, d.C, d.Hi, d.Wi});
+    conv_shape(dw, "dw", {d.Co, d.C, d.kh, d.kw});
+    conv_shape(db, "db", {d.Co});
+    T *pdx = dx.mutable_data(), *pdw = dw.mutable_data(), *pdb = db.mutable_data();
+    const T *px = x.data(), *pw = w.data(), *pdy = dy.data();
+    int status;
+    {
+        py::gil_scoped_release nogil;
+        status = conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d);
+    }
+    conv_raise<T>(status, "conv2d_backward", "dx");
+}
+
 template <typename T> void bind_dtype(py::module_& m) {
+    m.def("conv2d_forward", &conv_forward<T>,
+          "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten",
+          py::arg("y").noconvert(), py::arg("x").noconvert(), py::arg("w").noconvert(), py::arg("b").noconvert(),
+          py::arg("stride"), py::arg("pt"), py::arg("pb"), py::arg("pl"), py::arg("pr"));
+    m.def("conv2d_backward", &conv_backward<T>, "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy",
+          py::arg("dx").noconvert(), py::arg("dw").noconvert(), py::arg("db").noconvert(), py::arg("x").noconvert(),
+          py::arg("w").noconvert(), py::arg("dy").noconvert(), py::arg("stride"), py::arg("pt"), py::arg("pb"),
+          py::arg("pl"), py::arg("pr"));
     m.def("attn_forward", &forward<T, false>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
           py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
     m.def("attn_forward_plain", &forward<T, true>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
@@ -192,6 +285,9 @@ template <typename T> void bind_dtype(py::module_& m) {
     m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
     m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
           py::arg("x").noconvert(), py::arg("codes").noconvert());
+    m.def("gelu", &gelu<T>, "y = gelu(x), overwritten", py::arg("y").noconvert(), py::arg("x").noconvert());
+    m.def("gelu_backward", &gelu_bwd<T>, "dx = dy * gelu'(x), overwritten", py::arg("dx").noconvert(),
+          py::arg("dy").noconvert(), py::arg("x").noconvert());
     m.def("matmul", &matmul<T>, py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(),
           py::arg("ta"), py::arg("tb") = false, py::arg("bias").noconvert() = py::none());
 }
@@ -223,8 +319,6 @@ PYBIND11_MODULE(PYVF_MODULE, m) {
     m.def("cpu_features", &cpu_features, "what the CPU supports: {feature: bool} (x86-64; empty elsewhere)");
     bind_dtype<float>(m);
     bind_dtype<double>(m);
-    bind_gelu(m);  // gelu.cpp
-    bind_conv(m);  // conv2d (conv_bind.cpp)
     m.def("num_threads", &num_threads, "threads the kernels use (OpenMP; 1 without OpenMP)");
     m.def("set_num_threads", &set_num_threads, py::arg("n"));
     m.def("set_force_parallel", [](bool on) { g_force_parallel.store(on); }, py::arg("on"),

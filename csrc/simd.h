@@ -8,8 +8,8 @@
 // Rounding: no -ffast-math anywhere. GCC's default -ffp-contract=fast may fuse a*b+c into one
 // fused multiply-add (one rounding instead of two), never reassociates a sum.
 //
-// Also here: the small matrix product the attention kernels are made of (gemm), and an exp
-// that vectorises (exp_vec), since std::exp does not without -ffast-math.
+// Also here: the matrix product's register tile (gemm) the kernels are made of, and an exp that
+// vectorises (exp_vec), since std::exp does not without -ffast-math.
 #pragma once
 
 #include <cmath>
@@ -39,6 +39,11 @@ template <> struct Simd<double> {
     static constexpr int W = kVecBytes / 8;
 };
 
+template <typename T> constexpr int64_t kW = Simd<T>::W;
+
+inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
+inline int64_t round_up(int64_t a, int64_t b) { return ceil_div(a, b) * b; }
+
 template <typename T> inline typename Simd<T>::V vload(const T* p) {
     typename Simd<T>::V v;
     std::memcpy(&v, p, sizeof v);
@@ -66,18 +71,10 @@ template <typename T> inline T hsum(typename Simd<T>::V v) {
 // < 1.2e-38 in float32, < 2.3e-308 in float64: invisible beside the softmax's own max term,
 // which is exp(0) = 1). -inf gives 0. NaN never reaches it (the kernels check logits first).
 
-template <typename T> struct ExpConst;
-template <> struct ExpConst<float> {
-    static constexpr float lo = -87.33654f;  // exp(lo) = 2^-126, the smallest normal float
-};
-template <> struct ExpConst<double> {
-    static constexpr double lo = -708.3964185322641;  // 2^-1022
-};
-
 inline Simd<float>::V exp_vec(Simd<float>::V x) {
     using V = Simd<float>::V;
     using I = Simd<float>::I;
-    const V lo = vset1<float>(ExpConst<float>::lo);
+    const V lo = vset1<float>(-87.33654f);  // exp(lo) = 2^-126, the smallest normal float
     const V xc = x > lo ? x : lo;
     // n = round(x / ln2): adding 1.5*2^23 rounds to an integer in the mantissa
     const V magic = vset1<float>(12582912.0f);
@@ -101,7 +98,7 @@ inline Simd<float>::V exp_vec(Simd<float>::V x) {
 inline Simd<double>::V exp_vec(Simd<double>::V x) {
     using V = Simd<double>::V;
     using I = Simd<double>::I;
-    const V lo = vset1<double>(ExpConst<double>::lo);
+    const V lo = vset1<double>(-708.3964185322641);  // 2^-1022
     const V xc = x > lo ? x : lo;
     const V magic = vset1<double>(6755399441055744.0);  // 1.5*2^52
     const V n = (xc * 1.4426950408889634073599 + magic) - magic;
@@ -132,21 +129,30 @@ template <typename T> inline T exp_scalar(T x) {
 }
 
 // ---------------------------------------------------------------------------------------
-// gemm: C (M, N) = op(A) (M, K) @ B (K, N)      when ACC is false (C is overwritten),
-//       C (M, N) += op(A) (M, K) @ B (K, N)     when ACC is true;
-// op(A) = A, stored (M, K) with leading dimension lda, when TA is false;
-// op(A) = A^T, A stored (K, M) with leading dimension lda, when TA is true.
-// B and C row-major with ldb, ldc. Sizes are those of one attention block (L, dh ~ 16..128):
-// A, B stay in L1/L2. Register tile: MR rows of C times NV vectors. For each k the tile does
-// C[i, j..j+NV*W) += op(A)[i, k] * B[k, j..j+NV*W), one broadcast scalar times a vector, so
-// the sum over k runs in increasing k for every element whatever the tile or TA, and a
-// transposed A costs nothing (the scalar is read down a column instead of along a row).
+// gemm: C (M, N) = op(A) (M, K) @ B (K, N), overwritten (ACC false) or added to (ACC true).
+// The operands are read through accessors, so that the kernels pass matrices found through
+// tables (conv.cpp's padded-row tiles and row pointers) to the same register tile: A(i, k) is
+// op(A)'s element, A.from(i) the matrix from row i on; B(k) points to row k, B.at(j) is the
+// matrix from column j on. Register tile: MR rows of C times NV vectors; for each k the tile does
+// C[i, j..j+NV*W) += A(i, k) * B(k)[j..j+NV*W), so every element is one sum in increasing k
+// whatever the tile (a row's sums are the same in any row tile, a column's in any column tile).
+// CONT (continue): the accumulators start from C, so a product split along k into chunks gives
+// every element of C the same sum, bitwise, as the unsplit product.
+template <typename T> struct MatA {  // op(A)[i, k] = p[i * si + k * sk]: A (sk = 1) or a transposed A (si = 1)
+    const T* p;
+    long si, sk;
+    T operator()(int i, int k) const { return p[i * si + k * sk]; }
+    MatA from(int i) const { return {p + i * si, si, sk}; }
+};
+template <typename T> struct MatB {  // row k at p + k * ld
+    const T* p;
+    long ld;
+    const T* operator()(int k) const { return p + k * ld; }
+    MatB at(int j) const { return {p + j, ld}; }
+};
 
-// CONT (continue): the accumulators start from C instead of zero and C is overwritten, so that a
-// product split along k into chunks, each chunk continuing the last one's sums, gives every
-// element of C the same one sum in increasing k, bitwise, as the unsplit product.
-template <typename T, int MR, int NV, bool ACC, bool CONT = false>
-inline void gemm_tile(int K, const T* A, long sa_i, long sa_k, const T* B, long ldb, T* C, long ldc) {
+template <typename T, int MR, int NV, bool ACC, bool CONT, typename A_, typename B_>
+inline void gemm_tile(int K, A_ A, B_ B, T* C, long ldc) {
     using V = typename Simd<T>::V;
     constexpr int W = Simd<T>::W;
     V acc[MR][NV];
@@ -155,12 +161,13 @@ inline void gemm_tile(int K, const T* A, long sa_i, long sa_k, const T* B, long 
 #pragma GCC unroll 8
         for (int v = 0; v < NV; ++v) acc[i][v] = CONT ? vload<T>(C + i * ldc + v * W) : V{};
     for (int k = 0; k < K; ++k) {
+        const T* bk = B(k);
         V b[NV];
 #pragma GCC unroll 8
-        for (int v = 0; v < NV; ++v) b[v] = vload<T>(B + k * ldb + v * W);
+        for (int v = 0; v < NV; ++v) b[v] = vload<T>(bk + v * W);
 #pragma GCC unroll 16
         for (int i = 0; i < MR; ++i) {
-            const T a = A[i * sa_i + k * sa_k];
+            const T a = A(i, k);
 #pragma GCC unroll 8
             for (int v = 0; v < NV; ++v) acc[i][v] += a * b[v];
         }
@@ -174,61 +181,51 @@ inline void gemm_tile(int K, const T* A, long sa_i, long sa_k, const T* B, long 
         }
 }
 
-template <typename T, int MR, bool ACC, bool CONT = false>
-inline void gemm_rows(int N, int K, const T* A, long sa_i, long sa_k, const T* B, long ldb, T* C, long ldc) {
+template <typename T, int MR, bool ACC, bool CONT, typename A_, typename B_>
+inline void gemm_rows(int N, int K, A_ A, B_ B, T* C, long ldc) {
     constexpr int W = Simd<T>::W;
     int j = 0;
-    for (; j + 2 * W <= N; j += 2 * W) gemm_tile<T, MR, 2, ACC, CONT>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
-    for (; j + W <= N; j += W) gemm_tile<T, MR, 1, ACC, CONT>(K, A, sa_i, sa_k, B + j, ldb, C + j, ldc);
-    // columns past the last full vector: scalar sums in increasing k, each product rounded or
-    // fused as the compiler chooses (not necessarily as the vector tile's FMA), the same choice
-    // for any block or thread count
+    for (; j + 2 * W <= N; j += 2 * W) gemm_tile<T, MR, 2, ACC, CONT>(K, A, B.at(j), C + j, ldc);
+    for (; j + W <= N; j += W) gemm_tile<T, MR, 1, ACC, CONT>(K, A, B.at(j), C + j, ldc);
+    // columns past the last full vector: scalar sums in increasing k
     for (; j < N; ++j)
         for (int i = 0; i < MR; ++i) {
             T s = CONT ? C[i * ldc + j] : T(0);
-            for (int k = 0; k < K; ++k) s += A[i * sa_i + k * sa_k] * B[k * ldb + j];
+            for (int k = 0; k < K; ++k) s += A(i, k) * B(k)[j];
             C[i * ldc + j] = ACC && !CONT ? C[i * ldc + j] + s : s;
         }
 }
 
-template <typename T, bool ACC, bool TA = false>
-inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
-    // 2*MR accumulators and 2 vectors of B: 16 + 2 of the 32 AVX-512 registers; with 16
-    // registers (AVX2) 12 + 2 + the broadcast; SSE2/NEON keep 4 rows.
-    constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
-    const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;  // where op(A)[i, k] is
-    int i = 0;
-    for (; i + MR <= M; i += MR)
-        gemm_rows<T, MR, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
-    if (MR > 4)
-        for (; i + 4 <= M; i += 4)
-            gemm_rows<T, 4, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
-    for (; i < M; ++i) gemm_rows<T, 1, ACC>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
-}
+// Rows in tiles of MR (2*MR accumulators and 2 vectors of B: AVX-512's 32 registers hold 8 rows,
+// AVX2's 16 hold 6, SSE2/NEON 4), the rest as one tile of M % MR rows.
+constexpr int kGemmMR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
 
-// gemm with the rows past the last full MR block done as one block of M % MR rows
-// (simd.h's gemm does them 4 and 1 at a time, which for Co = 32 on AVX2 leaves two rows at a
-// quarter of the FMA rate). Each element of C is the same sum in the same order whatever block
-// its row falls in, so this changes no result, only the speed.
-template <typename T, bool ACC, bool TA = false, bool CONT = false>
-inline void gemm_mr(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
-    constexpr int MR = kVecBytes >= 64 ? 8 : kVecBytes == 32 ? 6 : 4;
-    const long sa_i = TA ? 1 : lda, sa_k = TA ? lda : 1;
+template <typename T, bool ACC, bool CONT = false, int MR = kGemmMR, typename A_, typename B_>
+inline void gemm_ops(int M, int N, int K, A_ A, B_ B, T* C, long ldc) {
     int i = 0;
-    for (; i + MR <= M; i += MR)
-        gemm_rows<T, MR, ACC, CONT>(N, K, A + i * sa_i, sa_i, sa_k, B, ldb, C + i * ldc, ldc);
-    A += i * sa_i;
+    for (; i + MR <= M; i += MR) gemm_rows<T, MR, ACC, CONT>(N, K, A.from(i), B, C + i * ldc, ldc);
+    A = A.from(i);
     C += i * ldc;
     switch (M - i) {
         case 0: break;
-        case 1: gemm_rows<T, 1, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 2: gemm_rows<T, 2, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 3: gemm_rows<T, 3, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 4: if constexpr (MR > 4) gemm_rows<T, 4, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 5: if constexpr (MR > 5) gemm_rows<T, 5, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 6: if constexpr (MR > 6) gemm_rows<T, 6, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
-        case 7: if constexpr (MR > 7) gemm_rows<T, 7, ACC, CONT>(N, K, A, sa_i, sa_k, B, ldb, C, ldc); break;
+        case 1: gemm_rows<T, 1, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 2: gemm_rows<T, 2, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 3: gemm_rows<T, 3, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 4: if constexpr (MR > 4) gemm_rows<T, 4, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 5: if constexpr (MR > 5) gemm_rows<T, 5, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 6: if constexpr (MR > 6) gemm_rows<T, 6, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 7: if constexpr (MR > 7) gemm_rows<T, 7, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 8: if constexpr (MR > 8) gemm_rows<T, 8, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 9: if constexpr (MR > 9) gemm_rows<T, 9, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 10: if constexpr (MR > 10) gemm_rows<T, 10, ACC, CONT>(N, K, A, B, C, ldc); break;
+        case 11: if constexpr (MR > 11) gemm_rows<T, 11, ACC, CONT>(N, K, A, B, C, ldc); break;
     }
+}
+
+// gemm_ops on row-major matrices: op(A) = A, stored (M, K), or A^T (TA), A stored (K, M); B (K, N).
+template <typename T, bool ACC, bool TA = false, bool CONT = false>
+inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb, T* C, long ldc) {
+    gemm_ops<T, ACC, CONT>(M, N, K, MatA<T>{A, TA ? 1 : lda, TA ? lda : 1}, MatB<T>{B, ldb}, C, ldc);
 }
 
 // Whether p[0:n) is all finite: x * 0 is 0 for finite x, NaN for inf and NaN. Four accumulators,

@@ -31,6 +31,8 @@ inline void set_num_threads(int n) { g_num_threads.store(n > 0 ? n : 0, std::mem
 // is the same on any thread count. For the tests, g_force_parallel runs every call with any work
 // on the threads, so that their small shapes run the parallel loops too (one flag per module).
 inline std::atomic<bool> g_force_parallel{false};
+// Below this many multiply-adds (about 50 us on one core) a product runs on one thread.
+constexpr int64_t kParallelFlops = 1 << 20;
 inline bool parallel_work(int64_t work, int64_t threshold) {
     return g_force_parallel.load(std::memory_order_relaxed) ? work > 0 : work >= threshold;
 }

@@ -60,7 +60,7 @@ template <> constexpr double unit_roundoff<double>() { return 0x1p-53; }
 }  // namespace
 
 template <typename T>
-int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t M, int64_t K, int64_t D) {
+void vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t M, int64_t K, int64_t D) {
     using V = typename Simd<T>::V;
     using VD = Simd<double>::V;
     constexpr int W = Simd<T>::W, WD = Simd<double>::W;
@@ -107,10 +107,9 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
     en_max = std::sqrt(e2_max);
     esh_max = std::sqrt(esh_max);
 
-    int64_t reranked = 0;  // how many exact distances were computed beyond one per row
     const int64_t nblocks = (M + MB - 1) / MB;
     int failed = 0;
-#pragma omp parallel num_threads(num_threads()) reduction(+ : reranked) if (parallel_work(M * K * D, (1 << 22) + 1))
+#pragma omp parallel num_threads(num_threads()) if (parallel_work(M * K * D, (1 << 22) + 1))
     {
         std::vector<T> xs, s;  // a block of shifted rows (MB, D); its scores against a chunk (MB, KC)
         std::vector<double> thr2(MB), best(MB);
@@ -230,7 +229,6 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
                         bi = k;
                     }
                 }
-                reranked += ncand - 1;
                 index[m0 + r] = bi;
                 sq_dist[m0 + r] = scaled ? (T)std::ldexp(bd, 2 * ex) : (T)bd;
             }
@@ -241,10 +239,9 @@ int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64
         }
     }
     if (failed) throw std::bad_alloc();
-    return reranked;
 }
 
-template int64_t vq_nearest<float>(int64_t*, float*, const float*, const float*, int64_t, int64_t, int64_t);
-template int64_t vq_nearest<double>(int64_t*, double*, const double*, const double*, int64_t, int64_t, int64_t);
+template void vq_nearest<float>(int64_t*, float*, const float*, const float*, int64_t, int64_t, int64_t);
+template void vq_nearest<double>(int64_t*, double*, const double*, const double*, int64_t, int64_t, int64_t);
 
 }  // namespace pyvf

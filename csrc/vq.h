@@ -1,6 +1,5 @@
-// Nearest code (vq.cpp): outputs index (M,) int64 and sq_dist (M,), inputs x (M, D), codes (K, D).
-// Returns how many exact distances were computed beyond one per row (0 when every fast score
-// certified its winner). Outputs are overwritten.
+// Nearest code (vq.cpp): outputs index (M,) int64 and sq_dist (M,), overwritten; inputs x (M, D),
+// codes (K, D).
 #pragma once
 
 #include <cstdint>
@@ -8,7 +7,7 @@
 namespace pyvf {
 
 template <typename T>
-int64_t vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t M, int64_t K, int64_t D);
+void vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t M, int64_t K, int64_t D);
 
 // The re-rank's exact distance sum_i (x_i - e_i)^2 in double, every operation rounded once, and
 // the same of both vectors times 2^p (vq_exact.cpp, compiled without fused multiply-adds).

@@ -1,21 +1,14 @@
 """pyvf's compiled kernels, on the instruction-set path this process uses.
 
-The C++ kernels (csrc/) are compiled once per path into separate extension modules,
-`pyvf._core_<path>` (CMakeLists.txt says why separate modules):
+csrc/ is compiled once per path into its own extension module, `pyvf._core_<path>`
+(CMakeLists.txt says why): x86-64 baseline (SSE2), avx2 (AVX2 + FMA), avx512 (AVX-512 F/DQ/BW/VL
++ FMA); aarch64 neon. At import the base module (which runs on any CPU of the architecture) asks
+the CPU what it supports, and the best path built that the CPU runs is used, unless PYVF_ISA names
+another (then that one; a path this CPU cannot run, or not built, is an ImportError).
 
-    x86-64:   baseline (SSE2, 16-byte vectors)   avx2 (AVX2 + FMA, 32 bytes)
-              avx512 (AVX-512 F/DQ/BW/VL + FMA, 64 bytes)
-    aarch64:  neon (16 bytes)
-
-At import, the base module (which runs on any CPU of the architecture) asks the CPU what it
-supports; the best path that was built and that the CPU runs is used, unless the environment
-variable PYVF_ISA names another (a lower one, or the same): then that one, for the whole
-process. Naming a path this CPU cannot run, or one that was not built, is an ImportError, never
-a silent fall-back.
-
-Everything else in pyvf calls `_core.<kernel>(...)`; this module forwards the attribute to the
-module of the current path (PEP 562 module __getattr__), so `use_path` switches every kernel at
-once (the tests run each kernel test once per path this way).
+Everything else in pyvf calls `_core.<kernel>(...)`, which this module forwards to the current
+path's module (PEP 562 __getattr__), so `use_path` switches every kernel at once (the tests run
+each kernel test once per path so).
 """
 
 import importlib
@@ -45,14 +38,10 @@ if not _built_paths:
     _here = os.path.dirname(os.path.abspath(__file__))
     if os.path.exists(os.path.join(os.path.dirname(_here), "csrc")):  # a source checkout, not an installed copy
         raise ImportError(
-            f"Python imported pyvf from the source tree {_here}, which has no compiled kernels: Python was "
-            "started in the repository root (or sys.path names it), so the checkout shadows any installed "
-            "pyvf. To work from the checkout, install it editable, which builds the kernels and imports "
-            "these sources (the README's development setup): `pip install scikit-build-core pybind11 cmake ninja "
-            "&& pip install --no-build-isolation -e .`; or run Python from another folder after `pip install .`")
-    raise ImportError(
-        "pyvf's compiled extension (pyvf._core_<path>) is missing from this installation: install pyvf "
-        "with `pip install .` (it compiles csrc/)")
+            f"Python imported pyvf from the source tree {_here}, which has no compiled kernels (the checkout "
+            "shadows any installed pyvf): install it editable, which builds them (`pip install scikit-build-core "
+            "pybind11 cmake ninja && pip install --no-build-isolation -e .`), or run Python from another folder")
+    raise ImportError("pyvf's compiled extension (pyvf._core_<path>) is missing: install pyvf with `pip install .`")
 _base = importlib.import_module(f"pyvf._core_{_built_paths[0]}")
 _features = dict(_base.cpu_features())
 _runs = tuple(p for p in _built_paths if all(_features.get(f, False) for f in _NEEDS.get(p, ())))
@@ -85,9 +74,8 @@ def _module(path):
 
 
 def set_num_threads(n):
-    """The kernels' threads, for the whole process (whichever thread calls a kernel) and every
-    path: each path's module keeps its own count, so every module loaded gets it, and any loaded
-    later (use_path). pyvf.set_num_threads, which also sets numpy's BLAS pool, is the public call."""
+    """The kernels' threads, for the whole process and every path module, loaded or loaded later
+    (each keeps its own count). pyvf.set_num_threads, which also sets numpy's BLAS, is the public call."""
     global _threads_set
     for m in _modules.values():
         m.set_num_threads(n)
@@ -95,8 +83,7 @@ def set_num_threads(n):
 
 
 def num_threads():
-    """The kernels' threads: set_num_threads's count, else OpenMP's default (the CPUs of the
-    process's affinity, or OMP_NUM_THREADS)."""
+    """The kernels' threads: set_num_threads's count, else OpenMP's default."""
     return _impl.num_threads()
 
 
@@ -128,23 +115,21 @@ _NOT_KERNELS = {"cpu_features", "num_threads", "set_num_threads", "openmp", "pat
 
 
 def kernels():
-    """The compiled kernels of the current path, read from its module: its public functions
-    other than the settings (_NOT_KERNELS), a *_plain reference variant folded into its kernel."""
+    """The compiled kernels of the current path: its module's functions other than the settings
+    (_NOT_KERNELS) and the *_plain reference variants."""
     names = [n for n in dir(_impl) if not n.startswith("_") and n not in _NOT_KERNELS and callable(getattr(_impl, n))]
     return sorted(n for n in names if not n.endswith("_plain"))
 
 
 def _describe(path):
-    """A path in the words of what selects it and what it was compiled for: the CPU features it
-    needs (_NEEDS, the table the choice at import reads) and its module's vector width."""
+    """A path's CPU features (_NEEDS) and its module's vector width."""
     needs = _NEEDS.get(path)
     cpu = f"needs {', '.join(needs)}" if needs else f"any {platform.machine()} CPU"
     return f"{cpu}; {_module(path).simd_bytes}-byte vectors"
 
 
 def config():
-    """What show_config prints, as a dict: every entry read from the compiled modules or from the
-    tables above that choose among them."""
+    """What show_config prints, as a dict."""
     return {
         "path": _current,
         "path_description": _describe(_current),

@@ -1,12 +1,5 @@
-"""The machine's facts and a timer: what every home needs to say where and how fast it ran
-(the benchmarks' pyvf/bench/common.py re-exports these beside its memory and report helpers).
-The standard library and the compiled kernels' module only, so that any home
-may import it.
-
-    seconds, times = median_time(fn, repeat=5, warmup=1)   # the one timing helper
-    cpu_name()      # the processor's model name
-    kernel_line()   # the line every demo starts with: the kernels' instruction-set path
-"""
+"""The machine's facts and a timer, for every home that says where and how fast it ran
+(pyvf/bench/common.py re-exports them): the standard library and _core only."""
 
 import platform
 import statistics
@@ -45,7 +38,6 @@ def cpu_name():
 
 
 def kernel_line():
-    """The line every pyvf demo starts with: which instruction-set path the C++ kernels run
-    (pyvf.kernel_path() and pyvf.kernel_paths(), read from _core as they do)."""
+    """The line every pyvf demo starts with: the instruction-set path the C++ kernels run."""
     return (f"pyvf kernels: path {_core.current_path()} (this CPU runs {', '.join(_core.available_paths())}; "
             "PYVF_ISA=<path> forces one; `pyvf config` for details)")

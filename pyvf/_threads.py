@@ -1,27 +1,24 @@
 """The threads of this process's numerical work: pyvf's C++ kernels (OpenMP) and numpy's BLAS pool,
-set together so that the two never run more threads than asked for between them. Re-exported by
-pyvf (`pyvf.set_num_threads`, `with pyvf.threads(n):`, `pyvf.num_threads`); a root helper, so that
-any home may use it without importing the public facade.
-"""
+set together (`pyvf.set_num_threads`, `with pyvf.threads(n):`, `pyvf.num_threads`)."""
 
 import numbers
 import os
+
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from . import _core
 
 __all__ = ["blas_num_threads", "cores", "cpu_limits_text", "num_threads", "set_from_environment", "set_num_threads", "threads"]
 
-# The most threads a count may ask for: the OpenMP runtime ends the process where it cannot create
-# them, so a count beyond any machine pyvf runs on is refused when it is set.
+# The most threads a count may ask for: the OpenMP runtime ends the process where it cannot create them.
 MAX_THREADS = 1024
 
 
 def cores():
-    """The CPUs in this process's affinity mask (a container's or taskset's share, not the
-    machine's count; os.cpu_count() where the platform has none)."""
+    """The CPUs in this process's affinity mask (os.cpu_count() where the platform has none)."""
     try:
         return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
+    except AttributeError:  # pragma: no cover - not Linux
         return os.cpu_count() or 1
 
 
@@ -35,13 +32,6 @@ def num_threads():
     return _core.num_threads()
 
 
-def _blas_limit(n):
-    """Limit numpy's BLAS pool to n threads; returns threadpoolctl's limiter (a context whose
-    restore_original_limits() puts the previous counts back)."""
-    from threadpoolctl import threadpool_limits  # a dependency; imported when threads are set
-    return threadpool_limits(limits=n, user_api="blas")
-
-
 def _count(n):
     """n: a thread count, a Python or NumPy integer (not bool) in [1, MAX_THREADS] -> int."""
     if isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 1 <= n <= MAX_THREADS:
@@ -50,26 +40,24 @@ def _count(n):
 
 
 def set_num_threads(n):
-    """Set the threads of this process's numerical work: pyvf's C++ kernels and numpy's BLAS pool
-    together (BLAS threads left at the core count spin against the kernels' on a busy machine).
-    For a block only: `with pyvf.threads(n): ...`."""
+    """Set the threads of pyvf's C++ kernels and numpy's BLAS pool together (BLAS threads left at
+    the core count spin against the kernels' on a busy machine)."""
     n = _count(n)
     _core.set_num_threads(n)
-    _blas_limit(n)
+    threadpool_limits(limits=n, user_api="blas")
 
 
 def blas_num_threads():
     """Threads of numpy's BLAS pool now (the largest if several BLAS are loaded)."""
-    from threadpoolctl import threadpool_info
     return max((i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"), default=1)
 
 
 def set_from_environment(environ=None):
-    """pyvf's threads at import (pyvf/__init__.py calls it once): PYVF_NUM_THREADS sets the
-    kernels and numpy's BLAS pool (a value that is not a positive integer is an ImportError naming
-    it); without it, and unless OMP_NUM_THREADS chose the kernels' count, both are kept to cores()
-    where either runs more (numpy's BLAS counted the CPUs when numpy was imported, which may have
-    been before this process was pinned to fewer). Returns the count set, or None."""
+    """pyvf's threads at import: PYVF_NUM_THREADS sets the kernels and numpy's BLAS (a value that is
+    not a positive integer is an ImportError naming it); without it, and unless OMP_NUM_THREADS chose
+    the kernels' count, both are kept to cores() where either runs more (numpy's BLAS counted the
+    CPUs when numpy was imported, perhaps before this process was pinned to fewer). Returns the
+    count set, or None."""
     environ = os.environ if environ is None else environ
     value = environ.get("PYVF_NUM_THREADS", "").strip()
     if value:
@@ -88,7 +76,7 @@ def set_from_environment(environ=None):
 
 class threads:
     """`with pyvf.threads(n):` pyvf's kernels and numpy's BLAS on n threads inside the block, both
-    put back as they were after it. n=None changes nothing."""
+    put back after it. n=None changes nothing."""
 
     def __init__(self, n):
         self.n, self._old, self._blas = None if n is None else _count(n), None, None
@@ -97,7 +85,7 @@ class threads:
         if self.n is not None:
             self._old = _core.num_threads()
             _core.set_num_threads(self.n)
-            self._blas = _blas_limit(self.n)
+            self._blas = threadpool_limits(limits=self.n, user_api="blas")
         return self
 
     def __exit__(self, *exc):

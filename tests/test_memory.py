@@ -33,14 +33,11 @@ print(json.dumps({"off": off, "on": on, "again": pyvf.reuse_freed_memory(), "fau
 
 
 def test_reuse_freed_memory_removes_the_page_faults_of_a_second_allocation(tmp_path):
-    """64 MiB written three times: without the setting every round faults in its pages again (at
-    least 16 Ki 4-KiB pages' worth... or, with huge pages, at least 32 faults of 2 MiB); with it,
-    rounds two and three reuse the first round's pages (at most 1% of the first round's faults, or
-    8, for Python's own small allocations).
-    And the call reports that it is in effect, twice. Where the C library is not glibc it changes
-    nothing and says so (False)."""
-    # from a folder of its own: `python -c` puts the working folder first on sys.path, and from the
-    # source tree it would import the unbuilt package
+    """64 MiB written three times: without the setting every round faults its pages in again (at
+    least 32 faults, 2-MiB huge pages or not); with it, rounds two and three reuse the first
+    round's pages (at most 1% of its faults, or 8, for Python's own small allocations). Where the
+    C library is not glibc it changes nothing and says so (False). From tmp_path: `python -c`
+    from the source tree would import the unbuilt package."""
     out = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, check=True, cwd=tmp_path)
     on = json.loads(out.stdout.strip().splitlines()[-1])
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
@@ -134,9 +131,8 @@ for K, D in ((1 << 20, 1), (16384, 256)):
 
 def test_vq_extra_memory_is_bounded_by_the_codes(tmp_path):
     """Peak extra memory of one call, measured in a fresh process: the packed codes (as large as
-    the codes), one double per code, and per thread (64, D + 2048) float32 buffers. Before the
-    rewrite: ~580 bytes per code at D = 1 (2.3 GiB at K = 2^22). The buffers are the same on
-    every kernel path: one tested."""
+    the codes), one double per code, and per thread (64, D + 2048) float32 buffers. The buffers
+    are the same on every kernel path: one tested."""
     proc = subprocess.run([sys.executable, "-c", VQ_WORKER], cwd=tmp_path, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     for line in proc.stdout.strip().splitlines():

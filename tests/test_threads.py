@@ -16,10 +16,6 @@ import pyvf
 from pyvf import _core, _threads
 
 
-def test_cores_are_the_affinity():
-    assert _threads.cores() == len(os.sched_getaffinity(0))
-
-
 @pytest.fixture
 def restore_threads():
     from threadpoolctl import threadpool_info, threadpool_limits

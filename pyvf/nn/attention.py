@@ -129,11 +129,9 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     and values V likewise, computed transposed as the kernel does (keys as rows):
         s^T = scale * K q^T (T, L),  p^T = exp(s^T - max_keys s^T),  o = (p^T)^T V / sum_keys p^T,
     the context's part for the R queries of a head in one product with the cached keys (not
-    copied). Only the attended blocks are computed, Nc + 1 block pairs per query; the kernel
-    would visit every block of a tree (1, R*B, H, Nc + 1, L, dh): (Nc+1)(Nc+2)/2 pairs, 3.5
-    times the work at Nc = 5. The products are NumPy's (layers.matmul); the softmax is one pass instead of the
-    kernel's online one, so o agrees with the kernel's up to rounding (tests/test_scene_cache.py
-    bounds it).
+    copied): Nc + 1 block pairs per query, where the kernel on a tree would visit (Nc+1)(Nc+2)/2.
+    The softmax is one pass instead of the kernel's online one, so o agrees with the kernel's up
+    to rounding (tests/test_scene_cache.py bounds it).
     """
     R, B, H, _, L, dh = q.shape
     C, G, n = k_ctx.shape[2] * L, B * H, R * B * H  # context keys, heads, query blocks
@@ -165,16 +163,11 @@ def branching_mask(R, N, L):
     """Boolean (T, T) mask, T = R*N*L, flat order [row][view][token]: mask[t, u] is True where
     query token t attends key token u."""
     R, N, L = (_checks.positive_integer(name, n) for name, n in (("R", R), ("N", N), ("L", L)))
-    T = R * N * L  # Python ints: numpy's uint8 20 * 20 wraps around
-    try:
-        r = np.repeat(np.arange(R), N)  # (R*N,) row of each block
-        i = np.tile(np.arange(N), R)  # (R*N,) view of each block
-        rq, iq, rk, ik = r[:, None], i[:, None], r[None, :], i[None, :]
-        blocks = ((rk == 0) & (ik < iq)) | ((rk == rq) & (ik == iq))  # (R*N, R*N)
-        return np.kron(blocks, np.ones((L, L), dtype=bool))  # (T, T)
-    except MemoryError:
-        raise MemoryError(f"branching_mask: R*N*L = {T} tokens (R={R}, N={N}, L={L}) need a ({T}, {T}) mask "
-                          f"of {T * T / 2 ** 30:.3g} GiB") from None
+    r = np.repeat(np.arange(R), N)  # (R*N,) row of each block
+    i = np.tile(np.arange(N), R)  # (R*N,) view of each block
+    rq, iq, rk, ik = r[:, None], i[:, None], r[None, :], i[None, :]
+    blocks = ((rk == 0) & (ik < iq)) | ((rk == rq) & (ik == iq))  # (R*N, R*N)
+    return np.kron(blocks, np.ones((L, L), dtype=bool))  # (T, T)
 
 
 def _flat(x):

@@ -56,14 +56,10 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     padding=1 gives the same output size on even images but shifts every window by one pixel;
     (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
 
-    The C++ kernel (csrc/conv.cpp): implicit GEMM, y_b = w2 @ cols_b + b with w2 = w as (Co, K),
-    the im2col columns cols_b (K, Ho*Wo) built a cache-sized tile at a time and never stored
-    whole. conv2d_forward_numpy below is the same layer in NumPy, its reference. The kernel stays
-    because NumPy's form needs the BLAS on 2 threads to keep up, and the BLAS's spinning threads
-    made the tiny codebook's training step 12x slower on a busy 2-core machine (46 s against 3.9 s
-    for torch; 7 s on one BLAS thread: below 0.75x torch, pyvf bench codebook --quick); on pyvf's
-    own GEMM (layers.matmul, one product per image) the step measured 0.50x torch, against 1.51x
-    with this kernel (pyvf bench codebook, tiny, side by side on the same loaded 2-core machine).
+    The C++ kernel (csrc/conv.cpp): implicit GEMM, y_b = w2 @ cols_b + b with w2 = w as (Co, K) and
+    the im2col columns cols_b (K, Ho*Wo) never stored whole; conv2d_forward_numpy is its reference.
+    The kernel stays because NumPy's form needs the BLAS's threads, which spin on a busy machine:
+    the tiny codebook's training step measured 0.50x torch on pyvf's GEMM, 1.51x with this kernel.
     cache: x and w (C-ordered), stride, padding; the columns are recomputed in the backward."""
     pad = _padding4(padding)
     pt, pb, pl, pr = pad
@@ -87,19 +83,15 @@ def conv2d_forward_numpy(x, w, b, stride=1, padding=0):
     """conv2d_forward in NumPy, its reference: same arguments, output and cache.
 
     One matmul over the whole batch: y[o, (b, u, v)] = sum_k w2[o, k] cols[k, (b, u, v)], w2 = w as
-    (Co, K), cols the im2col columns (K, B*Ho*Wo); a 1x1 conv with stride 1 and no padding is
-    that matmul on x itself, per image. cache: x and w (no copies), stride, padding; the columns
-    are recomputed in the backward (they are kh*kw times the size of x)."""
+    (Co, K), cols the im2col columns (K, B*Ho*Wo). cache: x and w (no copies), stride, padding;
+    the columns are recomputed in the backward (they are kh*kw times the size of x)."""
     pad = _padding4(padding)
-    B, C, Hi, Wi = x.shape
+    B, C = x.shape[:2]
     Co, _, kh, kw = w.shape
     w2 = w.reshape(Co, C * kh * kw)  # (Co, K), columns in (c, i, j) order
-    if kh == kw == 1 and stride == 1 and not any(pad):
-        y = (w2 @ x.reshape(B, C, Hi * Wi)).reshape(B, Co, Hi, Wi)  # y[b,o,p] = sum_c w[o,c] x[b,c,p]
-    else:
-        cols = _im2col(x, kh, kw, stride, pad)  # (K, B, Ho, Wo)
-        Ho, Wo = cols.shape[2:]
-        y = (w2 @ cols.reshape(C * kh * kw, B * Ho * Wo)).reshape(Co, B, Ho, Wo).transpose(1, 0, 2, 3)  # (B, Co, Ho, Wo)
+    cols = _im2col(x, kh, kw, stride, pad)  # (K, B, Ho, Wo)
+    Ho, Wo = cols.shape[2:]
+    y = (w2 @ cols.reshape(C * kh * kw, B * Ho * Wo)).reshape(Co, B, Ho, Wo).transpose(1, 0, 2, 3)  # (B, Co, Ho, Wo)
     y = y + b[:, None, None]  # (B, Co, Ho, Wo), C-ordered
     return y, (x, w, stride, pad)
 
@@ -117,12 +109,6 @@ def conv2d_backward_numpy(dy, cache):
     Ho, Wo = dy.shape[2:]
     w2 = w.reshape(Co, C * kh * kw)  # (Co, K)
     db = dy.sum(axis=(0, 2, 3))  # (Co,): forward was y = ... + b[o]
-    if kh == kw == 1 and stride == 1 and not any(pad):
-        dy2, x2 = dy.reshape(B, Co, Hi * Wi), x.reshape(B, C, Hi * Wi)  # (B, Co, P), (B, C, P)
-        # forward was y_b = w2 @ x_b, so dx_b = w2^T @ dy_b and dw = sum_b dy_b @ x_b^T
-        dx = (w2.T @ dy2).reshape(x.shape)  # (B, C, Hi, Wi)
-        dw = np.einsum("bop,bcp->oc", dy2, x2, optimize=True).reshape(w.shape)  # (Co, C, 1, 1)
-        return dx, dw, db
     dyT = dy.transpose(1, 0, 2, 3).reshape(Co, B * Ho * Wo)  # (Co, B*Ho*Wo), a copy
     cols = _im2col(x, kh, kw, stride, pad).reshape(C * kh * kw, B * Ho * Wo)  # (K, B*Ho*Wo), recomputed
     # forward was y = w2 @ cols, so dw = dy @ cols^T, dcols = w2^T @ dy

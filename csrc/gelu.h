@@ -1,4 +1,4 @@
-// Elementwise kernels (elementwise.cpp). Flat arrays of n elements; outputs overwritten.
+// GELU (gelu.cpp). Flat arrays of n elements; outputs overwritten.
 #pragma once
 
 #include <cstdint>
