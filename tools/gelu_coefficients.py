@@ -1,4 +1,4 @@
-"""Fit the float32 GELU kernel's polynomials (csrc/elementwise.cpp) and print them as C++.
+"""Fit the float32 GELU kernel's polynomials (csrc/gelu.cpp) and print them as C++.
 
     python tools/gelu_coefficients.py
 
