@@ -1,7 +1,5 @@
 """The training commands' arguments (train-codebook, tokenize, train-transformer, train, runs,
-export); the work is pyvf.train.tasks' and train_pipeline's. A handler prints an error and returns 1,
-or after Ctrl-C (a training run first saves the step under way) prints where a rerun resumes and
-returns 130."""
+export); the work is pyvf.train.tasks' and train_pipeline's."""
 
 import os
 import sys
@@ -18,7 +16,10 @@ def _record(args):
     return {"argv": list(sys.argv), "args": {k: v for k, v in vars(args).items() if k != "func"}}
 
 
-def _command(subparsers, name, cmd, help, interrupted=lambda args: "interrupted"):
+RESUME = "interrupted; rerun the same command to resume from the last checkpoint"
+
+
+def _command(subparsers, name, cmd, help, interrupted=lambda args: RESUME):
     """The parser of `pyvf name`, whose handler runs cmd(args): a ValueError, TypeError or OSError is
     printed, status 1; Ctrl-C prints the line interrupted(args) makes, status 130."""
     def handler(args):
@@ -37,26 +38,12 @@ def _command(subparsers, name, cmd, help, interrupted=lambda args: "interrupted"
     return p
 
 
-def _resume_hint(args):
-    step = tasks.checkpoint_step(args.out)
-    if step is None:
-        return "interrupted before the first checkpoint; rerun the same command to start again"
-    same = "the same command without --no-resume" if args.no_resume else "the same command"
-    return f"interrupted; rerun {same} to resume from step {step}"
-
-
-def _stages_hint(args):
-    at = [f"{stage} at step {step}" for stage in ("codebook", "transformer")
-          if (step := tasks.checkpoint_step(os.path.join(args.out, stage))) is not None]
-    return "interrupted; rerun the same command to resume" + (f" ({', '.join(at)})" if at else "")
-
-
 def _run(args):
     """The options every training run takes: (RunOptions, the held-out scenes' keywords)."""
     opts = RunOptions(steps=args.steps, batch_size=args.batch, seed=args.seed, checkpoint_every=args.checkpoint_every,
-                      log_every=args.log_every, eval_every=args.eval_every, resume=not args.no_resume,
-                      progress=not args.no_progress, threads=args.threads, command=_record(args), engine=args.engine,
-                      device=args.device, precision=args.precision, init=args.init)
+                      eval_every=args.eval_every, resume=not args.no_resume, progress=not args.no_progress,
+                      threads=args.threads, command=_record(args), engine=args.engine, device=args.device,
+                      precision=args.precision, init=args.init)
     return opts, dict(config=args.config, eval_scenes=args.eval_scenes, eval_seed=args.eval_seed)
 
 
@@ -115,7 +102,6 @@ def _run_options(p, every, scenes):
     p.add_argument("--config", default="tiny", help='"tiny" (default) or a JSON file of the configuration')
     p.add_argument("--init", default=None, metavar="FILE", help="a fresh run starts from this model file's weights")
     p.add_argument("--checkpoint-every", type=int, default=200, help="steps between checkpoints (default 200)")
-    p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")
     p.add_argument("--no-resume", action="store_true", help="start over even if the run folder has a checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
@@ -137,7 +123,7 @@ def _engine_options(p):
 def register(subparsers):
     """Add train-codebook, tokenize, train-transformer, train, runs and export to argparse subparsers."""
     p = _command(subparsers, "train-codebook", cmd_train_codebook, "train the codebook (VQ-VAE) on a dataset; "
-                 "resumable", _resume_hint)
+                 "resumable")
     p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
     _run_options(p, every=100, scenes=32)
     p.add_argument("--recipe", default="small-batch", choices=sorted(CODEBOOK_RECIPES),
@@ -163,7 +149,7 @@ def register(subparsers):
     add_threads(p)
 
     p = _command(subparsers, "train-transformer", cmd_train_transformer, "train the transformer on a tokens file; "
-                 "resumable", _resume_hint)
+                 "resumable")
     p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
     p.add_argument("--codebook", default=None, help="the tokens' codebook .npz: the held-out evaluation needs it")
     _run_options(p, every=200, scenes=16)
@@ -174,8 +160,7 @@ def register(subparsers):
     p.add_argument("--max-grad-norm", type=non_negative_float, default=1.0,
                    help="per-tensor clipping norm (default 1.0; 0: off)")
 
-    p = _command(subparsers, "train", cmd_train, "train a ViewFormer pair from scratch, every stage resumable",
-                 _stages_hint)
+    p = _command(subparsers, "train", cmd_train, "train a ViewFormer pair from scratch, every stage resumable")
     p.add_argument("--out", required=True, help="folder of the stages; run again to resume")
     p.add_argument("--preset", default="quick", choices=sorted(PRESETS),
                    help="sizes and steps of every stage: quick (default, ~15 min on 2 cores), full, smoke (seconds)")

@@ -1,7 +1,6 @@
 """The work of the training commands (their arguments: pyvf/cli/train.py), on files: a dataset
-folder or a tokens file in, a run folder out. config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER)
-or a JSON file: the configuration's fields, or a run's config.json. A bad argument or file raises
-ValueError, TypeError or OSError naming it.
+folder or a tokens file in, a run folder out. config: "tiny" or a JSON file of the configuration's
+fields (or a run's config.json).
 """
 
 import json
@@ -13,7 +12,7 @@ import numpy as np
 from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import CHECKPOINT, read_checkpoint, resume_point
+from ._run import CHECKPOINT, read_checkpoint
 from .loops import (TINY_CODEBOOK, TINY_TRANSFORMER, TransformerRecipe, held_out_set, load_tokens, save_tokens,
                     tokenize, train_codebook, train_transformer)
 
@@ -33,17 +32,9 @@ def read_config(value, cls, tiny):
         raise ValueError(f"--config {value}: not a JSON file of {cls.__name__} fields ({e})") from e
 
 
-def _refuse_input_as_output(out, inputs, option):
-    """out (the file a command writes) must be none of inputs ((what, path) pairs)."""
-    for what, path in inputs:
-        if os.path.realpath(out) == os.path.realpath(path):
-            raise ValueError(f"{option} {out} is {what} ({path}): writing it would overwrite an input")
-
-
 def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
-    """A codebook run's held-out views: the first EVAL_VIEWS views of eval_scenes scenes of eval_seed
-    (another seed than the training data's), (scenes * EVAL_VIEWS, size, size, 3) uint8; None when
-    eval_every is 0."""
+    """A codebook run's held-out views, (eval_scenes * EVAL_VIEWS, size, size, 3) uint8, of eval_seed
+    (not the training data's); None when eval_every is 0."""
     if not eval_every:
         return None
     if getattr(data, "seed", None) == eval_seed:
@@ -54,9 +45,8 @@ def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
 
 
 def held_out_scenes(codebook, eval_scenes, eval_seed, threads, train_poses):
-    """A transformer run's held-out scenes: eval_scenes whole scenes of eval_seed, tokenized by the
-    codebook file -> train_transformer's eval_set. Scenes whose poses are the training data's
-    (train_poses: scene i of a seed is the same scene in any set of it) raise."""
+    """A transformer run's held-out scenes of eval_seed, tokenized by the codebook file ->
+    train_transformer's eval_set. Scenes whose poses are the training data's raise."""
     codebook = Codebook.load(codebook)
     from ..scenes import generate_scenes
     images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
@@ -78,11 +68,7 @@ def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1,
 
 
 def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threads=None):
-    """The dataset folder `data` encoded by the codebook file into the tokens file `out`
-    (save_tokens'; its folder created). Returns the tokens."""
-    dataset = os.listdir(data) if os.path.isdir(data) else []  # the dataset's files are inputs too
-    _refuse_input_as_output(out, [("the codebook", codebook),
-                                  *(("a file of the dataset", os.path.join(data, f)) for f in dataset)], "--out")
+    """The dataset folder `data` encoded by the codebook file into the tokens file `out` -> the tokens."""
     codebook = Codebook.load(codebook)
     from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
     data = load_dataset(data)
@@ -114,22 +100,10 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
                              codebook_fingerprint=fingerprint)
 
 
-def checkpoint_step(run_dir):
-    """The step of the run folder's checkpoint, None when it has none or cannot be read."""
-    try:
-        meta = resume_point(run_dir)
-    except (ValueError, OSError):
-        return None
-    return None if meta is None else int(meta["step"])
-
-
 def export_run(run, out):
-    """The model of a run's last checkpoint (run: its folder or checkpoint.npz), written to `out` as
-    the run writes its final model, so that a run can be evaluated, or shipped, while it trains.
-    Returns (the run's kind, its step, the path written)."""
+    """The model of a run's last checkpoint (run: its folder or checkpoint.npz) written to `out` ->
+    (the run's kind, its step, the path written)."""
     path = os.path.join(run, CHECKPOINT) if os.path.isdir(run) else os.fspath(run)
-    written = os.fspath(out) + ("" if os.fspath(out).endswith(".npz") else ".npz")  # as Model.save names it
-    _refuse_input_as_output(written, [("the run's checkpoint", path)], "-o")
     meta, state, _ = read_checkpoint(path, None)
     cls = {"codebook": Codebook, "transformer": Transformer}[meta["kind"]]
     model = cls(cls.CONFIG(**meta["config"]))
