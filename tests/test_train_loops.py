@@ -438,11 +438,11 @@ def test_commands_end_to_end(tmp_path, rng, monkeypatch, capsys):
     assert np.array_equal(tokens, tokenize(cb, images)) and np.array_equal(saved_poses, poses) and n_embed == 16
     assert fingerprint == cb.fingerprint()
     tf = ["train-transformer", "--tokens", d / "tok" / "tokens.npz", "--out", d / "tf", "--total-steps", 3,
-          "--batch", 2, "--no-progress", "--lr", 1e-3, "--max-grad-norm", 0]
+          "--batch", 2, "--no-progress", "--lr", 1e-3]
     assert run(*tf, "--steps", 2, "--config", tf_json) == 0
     Transformer.load(str(d / "tf" / "transformer.npz"))
     hyper = _hyper(d / "tf")
-    assert (hyper["lr"], hyper["total_steps"], hyper["max_grad_norm"]) == (1e-3, 3, None)  # 0: off
+    assert (hyper["lr"], hyper["total_steps"], hyper["max_grad_norm"]) == (1e-3, 3, 1.0)
     # a run's config.json is a valid --config; a resume is one more call in config.json
     assert run(*tf, "--steps", 3, "--config", d / "tf" / "config.json") == 0
     calls = json.loads((d / "tf" / "config.json").read_text())["calls"]
@@ -465,19 +465,18 @@ def test_commands_end_to_end(tmp_path, rng, monkeypatch, capsys):
     assert not os.path.exists(d / "x")
 
 
-def test_commands_refuse_held_out_scenes_of_the_training_seed(tmp_path, capsys):
-    """Held-out scenes of the training data's seed: status 1 naming the option, nothing written;
-    --eval-seed 1 trains."""
+def test_tasks_refuse_held_out_scenes_of_the_training_seed(tmp_path):
+    """Held-out scenes of the training data's seed raise naming eval_seed, nothing written; seed 1 trains."""
     run, codebook = _smoke_files(tmp_path)
-    capsys.readouterr()
-    tf = ["train-transformer", "--tokens", tmp_path / "tok.npz", "--out", tmp_path / "tf", "--batch", 2, "--config",
-          tmp_path / "tf.json", "--no-progress", "--codebook", codebook, "--eval-scenes", 1, "--steps", 2]
-    for command in (tf, ["train-codebook", "--data", tmp_path / "d16", "--out", tmp_path / "tf", "--config",
-                         tmp_path / "cb.json", "--eval-scenes", 1, "--no-progress", "--steps", 2]):
-        assert run(*command, "--eval-seed", 0) == 1
-        assert "--eval-seed 0 is the training data's seed" in capsys.readouterr().err
-    assert not os.path.exists(tmp_path / "tf")
-    assert run(*tf, "--eval-seed", 1) == 0
+    o, out = opts(2, batch_size=2, eval_every=1), str(tmp_path / "tf")
+    for call in (lambda seed: pyvf.train.tasks.transformer_run(str(tmp_path / "tok.npz"), out, o, config=str(
+                     tmp_path / "tf.json"), codebook=codebook, eval_scenes=1, eval_seed=seed),
+                 lambda seed: pyvf.train.tasks.codebook_run(str(tmp_path / "d16"), out, o, config=str(
+                     tmp_path / "cb.json"), eval_scenes=1, eval_seed=seed)):
+        with pytest.raises(ValueError, match=r"\beval_seed\b"):
+            call(0)
+    assert not os.path.exists(out)
+    call(1)
 
 
 def test_runs_table_and_eval_plot(tmp_path, rng, capsys):

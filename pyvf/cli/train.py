@@ -8,7 +8,7 @@ from ..train import tasks
 from ..train.curves import runs_table
 from ..train.loops import CODEBOOK_RECIPES, RunOptions, TransformerRecipe
 from ..train.pipeline import PRESETS, train_pipeline
-from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int, positive_int
+from .options import INTERRUPTED, add_threads, non_negative_int, positive_int
 
 
 def _record(args):
@@ -44,30 +44,28 @@ def _run(args):
                       eval_every=args.eval_every, resume=not args.no_resume, progress=not args.no_progress,
                       threads=args.threads, command=_record(args), engine=args.engine, device=args.device,
                       precision=args.precision, init=args.init)
-    return opts, dict(config=args.config, eval_scenes=args.eval_scenes, eval_seed=args.eval_seed)
+    return opts, dict(config=args.config, eval_scenes=args.eval_scenes)
 
 
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
     opts, held_out = _run(args)
-    tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr,
-                       reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
+    tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr, object_weight=args.object_weight,
                        restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
     print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
 
 
 def cmd_tokenize(args):
     """Encode a dataset's images into token images with a trained codebook."""
-    tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, batch_size=args.batch,
-                                    progress=not args.no_progress, threads=args.threads)
+    tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, progress=not args.no_progress,
+                                    threads=args.threads)
     print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
 
 
 def cmd_train_transformer(args):
     """Train the transformer on a tokenized dataset; resumable."""
     opts, held_out = _run(args)
-    recipe = TransformerRecipe(context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
-                               max_grad_norm=args.max_grad_norm or None)  # 0: off
+    recipe = TransformerRecipe(lr=args.lr, warmup=args.warmup, total_steps=args.total_steps)
     tasks.transformer_run(args.tokens, args.out, opts, recipe, codebook=args.codebook, **held_out)
     print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
 
@@ -108,7 +106,6 @@ def _run_options(p, every, scenes):
     p.add_argument("--eval-every", type=int, default=every,
                    help=f"steps between evaluations on held-out scenes (eval.csv; default {every}; 0: none)")
     p.add_argument("--eval-scenes", type=positive_int, default=scenes, help=f"held-out scenes (default {scenes})")
-    p.add_argument("--eval-seed", type=non_negative_int, default=1, help="their seed, not the data's (default 1)")
     _engine_options(p)
 
 
@@ -129,8 +126,6 @@ def register(subparsers):
     p.add_argument("--recipe", default="small-batch", choices=sorted(CODEBOOK_RECIPES),
                    help="the defaults of the options below (default small-batch; published: the published code's)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate")
-    p.add_argument("--reset-dead-codes", type=int, default=None, metavar="EVERY",
-                   help="every EVERY steps move unused codes to encoder outputs (0: never)")
     p.add_argument("--object-weight", type=float, default=None, help="loss weight of object pixels (background: 1)")
     p.add_argument("--restart", default=None, choices=["batch", "worst"],
                    help="dead codes restart at random encoder outputs (batch) or the worst represented ones")
@@ -144,7 +139,6 @@ def register(subparsers):
     p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
     p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
     p.add_argument("--out", required=True, help="tokens .npz to write")
-    p.add_argument("--batch", type=int, default=64, help="images per encoder call (default 64)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
 
@@ -153,12 +147,9 @@ def register(subparsers):
     p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
     p.add_argument("--codebook", default=None, help="the tokens' codebook .npz: the held-out evaluation needs it")
     _run_options(p, every=200, scenes=16)
-    p.add_argument("--context", type=int, default=None, help="most context views per sample (default sequence_size-1)")
     p.add_argument("--lr", type=float, default=1e-4, help="peak learning rate (default 1e-4)")
     p.add_argument("--warmup", type=int, default=None, help="warmup steps (default min(2000, total/10))")
     p.add_argument("--total-steps", type=int, default=None, help="length of the cosine schedule (default --steps)")
-    p.add_argument("--max-grad-norm", type=non_negative_float, default=1.0,
-                   help="per-tensor clipping norm (default 1.0; 0: off)")
 
     p = _command(subparsers, "train", cmd_train, "train a ViewFormer pair from scratch, every stage resumable")
     p.add_argument("--out", required=True, help="folder of the stages; run again to resume")

@@ -164,13 +164,6 @@ class Run:
                              "resume with the run's one, or without evaluation (--eval-every 0)")
         self.eval_fingerprint = self.eval_fingerprint or saved
 
-    def restore(self, what, load, state):
-        """load(state); a state that does not fit raises CheckpointError naming the checkpoint."""
-        try:
-            load(state)
-        except (ValueError, TypeError) as e:
-            raise CheckpointError(f"checkpoint {self.ckpt_path}: its {what} does not load: {e}") from e
-
     def _write_config(self, call):
         """config.json: the configuration, hyperparameters, and one entry per call of the run."""
         calls = []
@@ -220,10 +213,7 @@ class Run:
         and redraw eval.png."""
         self._append(self.eval_path, step, values, self.eval_columns)
         line = f"{self.kind} held-out at step {step}: {eval_line(values)}"  # as it trains, not only at the end
-        if self._bar is not None:
-            self._bar.write(line, file=sys.stderr)  # above the bar, on the bar's stream
-        else:
-            print(line, file=sys.stderr)
+        (print if self._bar is None else self._bar.write)(line, file=sys.stderr)  # above the bar, if any
         plot_eval(self.out_dir)
 
     def _append(self, path, step, values, columns):

@@ -172,13 +172,11 @@ def _restore(run, model, make_optimiser, init_state):
     """The model as the run's checkpoint (or init_state) left it, then make_optimiser(model.params),
     its state the checkpoint's. A codebook's init_state holds the EMA buffers and counter too: zeroed
     averages at counter 1 would set each code to one batch's mean (docs/math.md §4)."""
-    if run.resumed:
-        run.restore("model", model.load_official, run.model_state)  # replaces model.params
-    elif init_state is not None:
-        model.load_official(init_state)
+    if run.resumed or init_state is not None:
+        model.load_official(run.model_state if run.resumed else init_state)  # replaces model.params
     opt = make_optimiser(model.params)  # after the restore: on the params it put in place
     if run.resumed:
-        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+        opt.load_state_dict(run.optimizer_state)
     return opt
 
 

@@ -32,48 +32,27 @@ def read_config(value, cls, tiny):
         raise ValueError(f"--config {value}: not a JSON file of {cls.__name__} fields ({e})") from e
 
 
-def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
-    """A codebook run's held-out views, (eval_scenes * EVAL_VIEWS, size, size, 3) uint8, of eval_seed
-    (not the training data's); None when eval_every is 0."""
-    if not eval_every:
-        return None
-    if getattr(data, "seed", None) == eval_seed:
-        raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
-    from ..scenes import generate_scenes
-    images, _ = generate_scenes(eval_seed, eval_scenes, views=EVAL_VIEWS, size=size)
-    return images.reshape(-1, size, size, images.shape[-1])
-
-
-def held_out_scenes(codebook, eval_scenes, eval_seed, threads, train_poses):
-    """A transformer run's held-out scenes of eval_seed, tokenized by the codebook file ->
-    train_transformer's eval_set. Scenes whose poses are the training data's raise."""
-    codebook = Codebook.load(codebook)
-    from ..scenes import generate_scenes
-    images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
-    n, views = min(len(poses), len(train_poses)), min(poses.shape[1], train_poses.shape[1])
-    if n and np.allclose(poses[:n, :views], train_poses[:n, :views], rtol=0, atol=1e-6):
-        raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
-    with kernel_threads(threads):
-        return held_out_set(codebook, images, poses)
-
-
 def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1, **recipe):
     """train_codebook on the dataset folder `data` into the run folder `out`, evaluated every
-    opts.eval_every steps on held_out_views; recipe: train_codebook's recipe and overrides."""
+    opts.eval_every steps on the first EVAL_VIEWS views of eval_scenes scenes of eval_seed (not the
+    data's); recipe: train_codebook's recipe and overrides."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
-    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
-    data = load_dataset(data)
-    held_out = held_out_views(opts.eval_every, eval_scenes, eval_seed, data, config.image_size)
+    from ..scenes import generate_scenes, load_dataset  # at the call: tests stand a fake module in
+    data, held_out, S = load_dataset(data), None, config.image_size
+    if opts.eval_every:
+        if getattr(data, "seed", None) == eval_seed:
+            raise ValueError(f"eval_seed {eval_seed} is the training data's seed: held-out scenes need another seed")
+        held_out = generate_scenes(eval_seed, eval_scenes, views=EVAL_VIEWS, size=S)[0].reshape(-1, S, S, 3)
     return train_codebook(data.images, config, out, opts, eval_images=held_out, **recipe)
 
 
-def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threads=None):
+def tokenize_dataset(codebook, data, out, *, progress=True, threads=None):
     """The dataset folder `data` encoded by the codebook file into the tokens file `out` -> the tokens."""
     codebook = Codebook.load(codebook)
     from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
     data = load_dataset(data)
     with kernel_threads(threads):
-        tokens = tokenize(codebook, data.images, batch_size=batch_size, progress=progress)
+        tokens = tokenize(codebook, data.images, progress=progress)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     save_tokens(out, tokens, data.poses, codebook.config.n_embed, codebook.fingerprint())
     return tokens
@@ -82,7 +61,8 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
 def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="tiny", codebook=None, eval_scenes=16,
                     eval_seed=1):
     """train_transformer on the tokens file into the run folder `out`; with codebook (the file the
-    tokens came from), evaluated every opts.eval_every steps on held_out_scenes."""
+    tokens came from), evaluated every opts.eval_every steps on eval_scenes scenes of eval_seed,
+    refused when their poses are the training data's."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
     tokens_path, (tokens, poses, n_embed, fingerprint) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
@@ -93,7 +73,14 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
                          f"and {fingerprint})")
     eval_set = None
     if opts.eval_every and codebook:
-        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, opts.threads, poses)
+        from ..scenes import generate_scenes
+        cb = Codebook.load(codebook)
+        images, held_poses = generate_scenes(eval_seed, eval_scenes, size=cb.config.image_size)
+        n, views = min(len(held_poses), len(poses)), min(held_poses.shape[1], poses.shape[1])
+        if n and np.allclose(held_poses[:n, :views], poses[:n, :views], rtol=0, atol=1e-6):
+            raise ValueError(f"eval_seed {eval_seed} is the training data's seed: held-out scenes need another seed")
+        with kernel_threads(opts.threads):
+            eval_set = held_out_set(cb, images, held_poses)
     elif opts.eval_every:
         print("pyvf train-transformer: no --codebook, so no held-out evaluation", file=sys.stderr)
     return train_transformer(tokens, poses, config, out, opts, recipe, eval_set=eval_set,
