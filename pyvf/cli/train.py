@@ -16,12 +16,9 @@ def _record(args):
     return {"argv": list(sys.argv), "args": {k: v for k, v in vars(args).items() if k != "func"}}
 
 
-RESUME = "interrupted; rerun the same command to resume from the last checkpoint"
-
-
-def _command(subparsers, name, cmd, help, interrupted=lambda args: RESUME):
+def _command(subparsers, name, cmd, help):
     """The parser of `pyvf name`, whose handler runs cmd(args): a ValueError, TypeError or OSError is
-    printed, status 1; Ctrl-C prints the line interrupted(args) makes, status 130."""
+    printed, status 1; Ctrl-C prints one line, status 130."""
     def handler(args):
         try:
             cmd(args)
@@ -29,7 +26,8 @@ def _command(subparsers, name, cmd, help, interrupted=lambda args: RESUME):
             print(f"pyvf {name}: error: {e}", file=sys.stderr)
             return 1
         except KeyboardInterrupt:
-            print(f"pyvf {name}: {interrupted(args)}", file=sys.stderr)
+            print(f"pyvf {name}: interrupted; rerun the same command (a training run resumes from its last "
+                  "checkpoint)", file=sys.stderr)
             return INTERRUPTED
         return 0
 
@@ -134,8 +132,7 @@ def register(subparsers):
     p.add_argument("--kmeans", type=int, default=None, metavar="ITERS",
                    help="initialise the codes by ITERS k-means iterations on encoder outputs (0: uniform)")
 
-    p = _command(subparsers, "tokenize", cmd_tokenize, "encode a dataset into token images with a codebook",
-                 lambda args: f"interrupted; {args.out} not written: rerun the same command")
+    p = _command(subparsers, "tokenize", cmd_tokenize, "encode a dataset into token images with a codebook")
     p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
     p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
     p.add_argument("--out", required=True, help="tokens .npz to write")

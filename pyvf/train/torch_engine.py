@@ -215,10 +215,6 @@ class TorchEngine:
                                f"checkpoint before it is intact. Comparison:\n{comparison}")
 
 
-def _torch_dtype(torch, model):
-    return {"float32": torch.float32, "float64": torch.float64}[str(model.dtype)]
-
-
 class TorchTransformer(TorchEngine):
     """train_transformer's torch engine, continuing the pyvf Transformer `model` and its AdamW
     `opt_ref`. dp: a DataParallel (rank 0's state is broadcast to every process) or None."""
@@ -231,7 +227,7 @@ class TorchTransformer(TorchEngine):
         self.torch, self.config, self.pyvf_model, self._losses = torch, model.config, model, losses
         self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
         self.max_grad_norm, self.dp = max_grad_norm, dp
-        self.port = TransformerPort(model.config).to(self.device, _torch_dtype(torch, model))
+        self.port = TransformerPort(model.config).to(self.device, getattr(torch, str(model.dtype)))
         self._names = {official_name(n): p for n, p in self.port.named_parameters()}
         with torch.no_grad():
             for k, a in model.state_dict(layout="torch").items():
@@ -307,7 +303,7 @@ class TorchCodebook(TorchEngine):
         from ..verify.torch_ports import CodebookPort
         self.torch, self.config, self.pyvf_model = torch, model.config, model
         self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
-        self.dtype = _torch_dtype(torch, model)
+        self.dtype = getattr(torch, str(model.dtype))  # torch.float32 or torch.float64
         self.port = CodebookPort(model.config).to(self.device, self.dtype)  # training mode: EMA updates
         self._names = dict(self.port.named_parameters())  # the published names, as model.params'
         self.port.load_state_dict({k: torch.as_tensor(v) for k, v in model.state_dict().items()})
