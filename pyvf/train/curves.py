@@ -49,20 +49,20 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), na
     if title:
         draw.text((6, 6), title, fill="black")
     step = log["step"]
+    smin, smax = float(step.min()), float(step.max())
+    smax = smax if smax > smin else smin + 1.0
     for i, col in enumerate(columns):
         y = log[col]
-        lines = [float(np.nanmean(log[b])) for b in baselines.get(col, ())]  # horizontal baselines
-        use_log = col in log_y and (y > 0).all() and all(v > 0 for v in lines)
-        yv = np.log10(y) if use_log else y
-        lv = [np.log10(v) if use_log else v for v in lines]
+        lines = np.array([np.nanmean(log[b]) for b in baselines.get(col, ())])  # horizontal baselines
+        use_log = col in log_y and (y > 0).all() and (lines > 0).all()
+        yv, lv = (np.log10(y), np.log10(lines)) if use_log else (y, lines)
         x0, y0, x1, y1 = i * w + 46, top + 22, (i + 1) * w - 10, top + h - 22  # plot area
         draw.rectangle([x0, y0, x1, y1], outline="gray")
-        finite = np.concatenate([yv[np.isfinite(yv)], np.array([v for v in lv if np.isfinite(v)])])
+        both = np.concatenate([yv, lv])
+        finite = both[np.isfinite(both)]
         lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
         hi = hi if hi > lo else lo + 1.0
         lo, hi = lo - 0.04 * (hi - lo), hi + 0.04 * (hi - lo)  # a margin: no line on the frame
-        smin, smax = float(step.min()), float(step.max())
-        smax = smax if smax > smin else smin + 1.0
         px = x0 + (step - smin) / (smax - smin) * (x1 - x0)
         py = y1 - (yv - lo) / (hi - lo) * (y1 - y0)
         for k, (b, v) in enumerate(zip(baselines.get(col, ()), lv)):
