@@ -82,8 +82,6 @@ class AdamW:
     def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2, *,
                  decay=None, eps_convention="torch"):
         self.lr = lr if callable(lr) else _checks.real("lr", lr, lo=0.0)
-        if len(betas) != 2:
-            raise ValueError(f"betas must be a pair (beta1, beta2), got {betas!r}")
         self.betas = tuple(_checks.real("betas", b, 0.0, 1.0, hi_open=True) for b in betas)
         # eps > 0: with eps = 0 a parameter whose gradients have all been 0 gets 0 / 0
         self.eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
@@ -146,9 +144,8 @@ class AdamW:
 
 
 class Adam(AdamW):
-    """Adam without weight decay: AdamW with weight_decay = 0 (no L2 term either; torch's
-    Adam(weight_decay=...) adds wd * p to the gradient, which this does not offer).
-    The codebook (docs/math.md §4): Adam(params, 1.584e-3, betas=(0.5, 0.9))."""
+    """Adam without weight decay (nor torch Adam's L2 term): AdamW with weight_decay = 0. The
+    codebook's (docs/math.md §4): Adam(params, 1.584e-3, betas=(0.5, 0.9))."""
 
     def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, *, eps_convention="torch"):
         super().__init__(params, lr, betas, eps, 0.0, eps_convention=eps_convention)
