@@ -330,8 +330,8 @@ def test_state_round_trip_continues_bitwise(rng, conv, dtype):
 
 def test_state_dict_is_a_copy_and_load_checks(rng):
     """state_dict() is independent of later steps, and load_state_dict copies in; loading into an
-    optimiser with other hyperparameters, shapes or dtypes raises ValueError; the lists a JSON
-    round trip gives are the saved tuple and names, and load."""
+    optimiser with other hyperparameters raises ValueError; the lists a JSON round trip gives are
+    the saved tuple and names, and load."""
     params = make_params(rng)
     opt = optim.AdamW(_copy(params), lr=0.1)
     opt.step(make_grads(rng))
@@ -348,10 +348,6 @@ def test_state_dict_is_a_copy_and_load_checks(rng):
     for kw, what in [(dict(betas=(0.9, 0.99)), "betas"), (dict(decay={"wte/weight"}), "decayed")]:
         with pytest.raises(ValueError, match=f"other hyperparameters.*{what}"):
             optim.AdamW(_copy(params), lr=0.1, **kw).load_state_dict(opt.state_dict())
-    other = _copy(params)
-    other["wte/weight"] = np.zeros((11, 6))
-    with pytest.raises(ValueError, match=r"state\['exp_avg'\]"):
-        optim.AdamW(other, lr=0.1).load_state_dict(opt.state_dict())
 
 
 @pytest.mark.parametrize("call, error, name", [

@@ -68,11 +68,10 @@ def _check_same_run(a, b, w0):
         assert err < 1e-4, (k, err)
 
 
-@pytest.mark.parametrize("clip", [dict(max_grad_norm=None), dict(max_grad_norm=0.02),
-                                  dict(max_grad_norm=0.1, clip_mode="global")])
+@pytest.mark.parametrize("clip", [dict(max_grad_norm=None), dict(max_grad_norm=0.02)])
 def test_torch_engine_equals_pyvf_after_20_steps(tmp_path, clip):
-    """clip: none, a per-tensor norm of 0.02 (clips most tensors: at step 1 their norms are 0.002 to
-    0.66) and a global norm of 0.1 (step 1's is 1.35). The weights, the logged losses and gradient
+    """clip: none, or a per-tensor norm of 0.02 (clips most tensors: at step 1 their norms are 0.002
+    to 0.66). The weights, the logged losses and gradient
     norms (logged without clipping too), and the checkpoint's moments, step count and
     hyperparameters: each moment tensor normwise within 1e-4 of pyvf's (measured <= 1.4e-6: float32
     rounding in another order, ~1e-6 per step as the weights')."""
@@ -173,17 +172,17 @@ def test_two_processes_equal_one_and_resume(tmp_path):
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "two_calls.py",
            "train-transformer", "--engine", "torch", "--tokens", "tokens.npz", "--config", "config.json",
            "--out", str(two), "--lr", "1e-3", "--warmup", "2", "--eval-every", "0", "--no-progress",
-           "--log-every", "1", "--batch", "5", "--checkpoint-every", "3"]
+           "--batch", "5", "--checkpoint-every", "3"]
     # from tmp_path, as every command test: the installed pyvf, never a checkout on sys.path
     done = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
-    one = _train(tmp_path, "one", "torch", steps=6, batch_size=5, log_every=1).state_dict()
+    one = _train(tmp_path, "one", "torch", steps=6, batch_size=5).state_dict()
     _check_same_run(one, Transformer.load(two / "transformer.npz").state_dict(), Transformer(CFG, seed=0).state_dict())
-    # rank 0 alone wrote the folder: one row per step, the parity checks at both checkpoints
+    # rank 0 alone wrote the folder: a row at each call's last step, the parity checks at both checkpoints
     logs = [list(csv.DictReader(open(d / "log.csv"))) for d in (tmp_path / "one", two)]
-    assert [r["step"] for r in logs[1]] == [str(t) for t in range(1, 7)]
-    for ra, rb in zip(*logs):
-        assert ra["lr"] == rb["lr"] and abs(float(ra["loss"]) - float(rb["loss"])) < 1e-5 * float(ra["loss"])
+    assert [r["step"] for r in logs[1]] == ["3", "6"]
+    ra, rb = logs[0][-1], logs[1][-1]
+    assert ra["lr"] == rb["lr"] and abs(float(ra["loss"]) - float(rb["loss"])) < 1e-5 * float(ra["loss"])
     assert [r["step"] for r in csv.DictReader(open(two / "parity.csv"))] == ["3", "6"]
     calls = json.loads((two / "config.json").read_text())["calls"]
     assert [c["processes"] for c in calls] == [2, 2] and calls[1]["resumed_from_step"] == 3

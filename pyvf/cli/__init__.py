@@ -1,10 +1,7 @@
-"""pyvf's command line: the console script `pyvf <command>`, or `python -m pyvf <command>`; the
-commands of each home are in a module of their own (evaluate.py, bench.py, scenes.py, train.py).
-
-Only this package parses arguments: each command is a function `cmd_<name>(args) -> exit status`
-that calls one library function, so a test calls the same function a user's command does. A mistake
-in the arguments is one line, `pyvf COMMAND: error: ...`, exit status 2, before the work starts.
-Nothing here imports torch.
+"""pyvf's command line, `pyvf <command>` or `python -m pyvf <command>`; each home's commands in a
+module of their own. Each command is a function `cmd_<name>(args) -> exit status` that calls one
+library function. A mistake in the arguments is one line, `pyvf COMMAND: error: ...`, exit status
+2, before the work starts.
 """
 
 import argparse

@@ -1,10 +1,9 @@
-"""Options more than one command takes, defined and checked here once; and the checks of the
-paths a command reads and writes, run before its work, with the one-line error they print."""
+"""Options more than one command takes, and the checks of the paths a command reads and writes,
+run before its work, with the one-line error they print."""
 
 import argparse
 import os
 import sys
-import tempfile
 
 from .._threads import MAX_THREADS
 
@@ -47,13 +46,12 @@ def context_sizes(text):
     return sizes
 
 
-# paths: checked before a command's work starts, so that a mistake costs no minutes of it. Each check
-# returns None, or what is wrong as a phrase naming the path, which the command passes to fail().
+# paths: checked before a command's work starts. Each check returns None, or what is wrong as a
+# phrase naming the path, which the command passes to fail().
 
 
 def fail(command, message):
-    """A mistake in a command's arguments found after parsing: one line on stderr, as argparse words
-    its own errors, and argparse's exit status 2, which the command returns."""
+    """A mistake in a command's arguments found after parsing: one line on stderr, exit status 2."""
     print(f"pyvf {command}: error: {message}", file=sys.stderr)
     return 2
 
@@ -71,8 +69,7 @@ def folder_to_make(path):
 
 
 def file_to_write(path):
-    """A file the command will write: None when its folder exists and takes a new file now (a
-    temporary file made and removed there finds read-only and virtual file systems)."""
+    """A file the command will write: None when its folder exists and is writable."""
     if not path:
         return "expected a file, got an empty path"
     if os.path.isdir(path):
@@ -80,11 +77,8 @@ def file_to_write(path):
     folder = os.path.dirname(path) or "."
     if not os.path.isdir(folder):
         return f"cannot write {path!r}: the folder {folder!r} does not exist"
-    try:
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as e:
-        return f"cannot write {path!r}: {e.strerror} (in {folder!r})"
+    if not os.access(folder, os.W_OK):
+        return f"cannot write {path!r}: the folder {folder!r} is not writable"
     return None
 
 
@@ -98,14 +92,14 @@ def file_to_read(path):
 
 
 def output_file(text):
-    """argparse type: a file a command writes at its end, checked when parsed (file_to_write)."""
+    """argparse type: a file a command writes at its end (file_to_write)."""
     if problem := file_to_write(text):
         raise argparse.ArgumentTypeError(problem)
     return text
 
 
 def output_dir(text):
-    """argparse type: a folder a command writes into, created when missing (folder_to_make)."""
+    """argparse type: a folder a command writes into (folder_to_make)."""
     if problem := folder_to_make(text):
         raise argparse.ArgumentTypeError(problem)
     return text

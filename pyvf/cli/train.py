@@ -1,7 +1,5 @@
 """The training commands' arguments (train-codebook, tokenize, train-transformer, train, runs,
-export); the work is pyvf.train.tasks' and train_pipeline's. A handler prints an error and returns 1,
-or after Ctrl-C (a training run first saves the step under way) prints where a rerun resumes and
-returns 130."""
+export); the work is pyvf.train.tasks' and train_pipeline's."""
 
 import os
 import sys
@@ -10,7 +8,7 @@ from ..train import tasks
 from ..train.curves import runs_table
 from ..train.loops import CODEBOOK_RECIPES, RunOptions, TransformerRecipe
 from ..train.pipeline import PRESETS, train_pipeline
-from .options import INTERRUPTED, add_threads, non_negative_float, non_negative_int, positive_int
+from .options import INTERRUPTED, add_threads, non_negative_int, positive_int
 
 
 def _record(args):
@@ -18,9 +16,9 @@ def _record(args):
     return {"argv": list(sys.argv), "args": {k: v for k, v in vars(args).items() if k != "func"}}
 
 
-def _command(subparsers, name, cmd, help, interrupted=lambda args: "interrupted"):
+def _command(subparsers, name, cmd, help):
     """The parser of `pyvf name`, whose handler runs cmd(args): a ValueError, TypeError or OSError is
-    printed, status 1; Ctrl-C prints the line interrupted(args) makes, status 130."""
+    printed, status 1; Ctrl-C prints one line, status 130."""
     def handler(args):
         try:
             cmd(args)
@@ -28,7 +26,8 @@ def _command(subparsers, name, cmd, help, interrupted=lambda args: "interrupted"
             print(f"pyvf {name}: error: {e}", file=sys.stderr)
             return 1
         except KeyboardInterrupt:
-            print(f"pyvf {name}: {interrupted(args)}", file=sys.stderr)
+            print(f"pyvf {name}: interrupted; rerun the same command (a training run resumes from its last "
+                  "checkpoint)", file=sys.stderr)
             return INTERRUPTED
         return 0
 
@@ -37,50 +36,34 @@ def _command(subparsers, name, cmd, help, interrupted=lambda args: "interrupted"
     return p
 
 
-def _resume_hint(args):
-    step = tasks.checkpoint_step(args.out)
-    if step is None:
-        return "interrupted before the first checkpoint; rerun the same command to start again"
-    same = "the same command without --no-resume" if args.no_resume else "the same command"
-    return f"interrupted; rerun {same} to resume from step {step}"
-
-
-def _stages_hint(args):
-    at = [f"{stage} at step {step}" for stage in ("codebook", "transformer")
-          if (step := tasks.checkpoint_step(os.path.join(args.out, stage))) is not None]
-    return "interrupted; rerun the same command to resume" + (f" ({', '.join(at)})" if at else "")
-
-
 def _run(args):
     """The options every training run takes: (RunOptions, the held-out scenes' keywords)."""
     opts = RunOptions(steps=args.steps, batch_size=args.batch, seed=args.seed, checkpoint_every=args.checkpoint_every,
-                      log_every=args.log_every, eval_every=args.eval_every, resume=not args.no_resume,
-                      progress=not args.no_progress, threads=args.threads, command=_record(args), engine=args.engine,
-                      device=args.device, precision=args.precision, init=args.init)
-    return opts, dict(config=args.config, eval_scenes=args.eval_scenes, eval_seed=args.eval_seed)
+                      eval_every=args.eval_every, resume=not args.no_resume, progress=not args.no_progress,
+                      threads=args.threads, command=_record(args), engine=args.engine, device=args.device,
+                      precision=args.precision, init=args.init)
+    return opts, dict(config=args.config, eval_scenes=args.eval_scenes)
 
 
 def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
     opts, held_out = _run(args)
-    tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr,
-                       reset_dead_codes=args.reset_dead_codes, object_weight=args.object_weight,
+    tasks.codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr, object_weight=args.object_weight,
                        restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
     print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
 
 
 def cmd_tokenize(args):
     """Encode a dataset's images into token images with a trained codebook."""
-    tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, batch_size=args.batch,
-                                    progress=not args.no_progress, threads=args.threads)
+    tokens = tasks.tokenize_dataset(args.codebook, args.data, args.out, progress=not args.no_progress,
+                                    threads=args.threads)
     print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
 
 
 def cmd_train_transformer(args):
     """Train the transformer on a tokenized dataset; resumable."""
     opts, held_out = _run(args)
-    recipe = TransformerRecipe(context=args.context, lr=args.lr, warmup=args.warmup, total_steps=args.total_steps,
-                               max_grad_norm=args.max_grad_norm or None)  # 0: off
+    recipe = TransformerRecipe(lr=args.lr, warmup=args.warmup, total_steps=args.total_steps)
     tasks.transformer_run(args.tokens, args.out, opts, recipe, codebook=args.codebook, **held_out)
     print(f"transformer: {os.path.join(args.out, 'transformer.npz')}")
 
@@ -115,14 +98,12 @@ def _run_options(p, every, scenes):
     p.add_argument("--config", default="tiny", help='"tiny" (default) or a JSON file of the configuration')
     p.add_argument("--init", default=None, metavar="FILE", help="a fresh run starts from this model file's weights")
     p.add_argument("--checkpoint-every", type=int, default=200, help="steps between checkpoints (default 200)")
-    p.add_argument("--log-every", type=int, default=10, help="steps between log.csv rows (default 10)")
     p.add_argument("--no-resume", action="store_true", help="start over even if the run folder has a checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
     p.add_argument("--eval-every", type=int, default=every,
                    help=f"steps between evaluations on held-out scenes (eval.csv; default {every}; 0: none)")
     p.add_argument("--eval-scenes", type=positive_int, default=scenes, help=f"held-out scenes (default {scenes})")
-    p.add_argument("--eval-seed", type=non_negative_int, default=1, help="their seed, not the data's (default 1)")
     _engine_options(p)
 
 
@@ -137,14 +118,12 @@ def _engine_options(p):
 def register(subparsers):
     """Add train-codebook, tokenize, train-transformer, train, runs and export to argparse subparsers."""
     p = _command(subparsers, "train-codebook", cmd_train_codebook, "train the codebook (VQ-VAE) on a dataset; "
-                 "resumable", _resume_hint)
+                 "resumable")
     p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
     _run_options(p, every=100, scenes=32)
     p.add_argument("--recipe", default="small-batch", choices=sorted(CODEBOOK_RECIPES),
                    help="the defaults of the options below (default small-batch; published: the published code's)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate")
-    p.add_argument("--reset-dead-codes", type=int, default=None, metavar="EVERY",
-                   help="every EVERY steps move unused codes to encoder outputs (0: never)")
     p.add_argument("--object-weight", type=float, default=None, help="loss weight of object pixels (background: 1)")
     p.add_argument("--restart", default=None, choices=["batch", "worst"],
                    help="dead codes restart at random encoder outputs (batch) or the worst represented ones")
@@ -153,29 +132,23 @@ def register(subparsers):
     p.add_argument("--kmeans", type=int, default=None, metavar="ITERS",
                    help="initialise the codes by ITERS k-means iterations on encoder outputs (0: uniform)")
 
-    p = _command(subparsers, "tokenize", cmd_tokenize, "encode a dataset into token images with a codebook",
-                 lambda args: f"interrupted; {args.out} not written: rerun the same command")
+    p = _command(subparsers, "tokenize", cmd_tokenize, "encode a dataset into token images with a codebook")
     p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")
     p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
     p.add_argument("--out", required=True, help="tokens .npz to write")
-    p.add_argument("--batch", type=int, default=64, help="images per encoder call (default 64)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
 
     p = _command(subparsers, "train-transformer", cmd_train_transformer, "train the transformer on a tokens file; "
-                 "resumable", _resume_hint)
+                 "resumable")
     p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
     p.add_argument("--codebook", default=None, help="the tokens' codebook .npz: the held-out evaluation needs it")
     _run_options(p, every=200, scenes=16)
-    p.add_argument("--context", type=int, default=None, help="most context views per sample (default sequence_size-1)")
     p.add_argument("--lr", type=float, default=1e-4, help="peak learning rate (default 1e-4)")
     p.add_argument("--warmup", type=int, default=None, help="warmup steps (default min(2000, total/10))")
     p.add_argument("--total-steps", type=int, default=None, help="length of the cosine schedule (default --steps)")
-    p.add_argument("--max-grad-norm", type=non_negative_float, default=1.0,
-                   help="per-tensor clipping norm (default 1.0; 0: off)")
 
-    p = _command(subparsers, "train", cmd_train, "train a ViewFormer pair from scratch, every stage resumable",
-                 _stages_hint)
+    p = _command(subparsers, "train", cmd_train, "train a ViewFormer pair from scratch, every stage resumable")
     p.add_argument("--out", required=True, help="folder of the stages; run again to resume")
     p.add_argument("--preset", default="quick", choices=sorted(PRESETS),
                    help="sizes and steps of every stage: quick (default, ~15 min on 2 cores), full, smoke (seconds)")

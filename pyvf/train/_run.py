@@ -2,21 +2,17 @@
 
     checkpoint.npz   the last checkpoint (atomic): __meta__ (JSON: kind, step, config, hyper, the
                      optimiser's step and hyperparameters, elapsed seconds, the held-out set's
-                     fingerprint), model/<name> (state_dict, EMA buffers included),
-                     optimizer/exp_avg/<name> and optimizer/exp_avg_sq/<name> (Adam's moments)
-    log.csv          one row per logged step; rows past the checkpoint are dropped on resume
+                     fingerprint), model/<name>, optimizer/exp_avg/<name>, optimizer/exp_avg_sq/<name>
+    log.csv          a row every LOG_EVERY steps and at the last; rows past the checkpoint are dropped on resume
     eval.csv         with held-out evaluation: one row per evaluation, likewise
     parity.csv       with the torch engine: its check against pyvf at each checkpoint, likewise
-    config.json      the configuration, hyperparameters, and each call's command line (atomic)
-    <kind>.npz       the trained model, loadable by Codebook.load / Transformer.load (atomic)
+    config.json      the configuration, hyperparameters, and each call's command line
+    <kind>.npz       the trained model, loadable by Codebook.load / Transformer.load
 
-Resuming is exact because nothing else carries state between steps: every batch is a pure function
-of (seed, step) and the schedule of the optimiser's step count. `hyper` holds everything else the
-trajectory depends on (learning rate, batch size, seed, the data's fingerprint...): a resume with
-other values raises. Its "init" (the model file a fresh run started from) counts at step 0 only.
-
-Ctrl-C while a loop runs: the step under way finishes and is checkpointed, then KeyboardInterrupt;
-a second Ctrl-C raises at once (the steps since the last checkpoint are lost, never half an update).
+`hyper` holds everything the trajectory depends on besides the configuration (learning rate, batch
+size, seed, the data's fingerprint...): a resume with other values raises. Its "init" (the model
+file a fresh run started from) counts at step 0 only. Ctrl-C: the step under way finishes and is
+checkpointed, then KeyboardInterrupt; a second Ctrl-C raises at once.
 """
 
 import csv
@@ -39,6 +35,7 @@ from .curves import eval_line, plot_eval
 CHECKPOINT, LOG, CONFIG, EVAL_LOG, PARITY_LOG = "checkpoint.npz", "log.csv", "config.json", "eval.csv", "parity.csv"
 PARITY_COLUMNS = ["step", "worst", "rel_err", "bound"]
 FORMAT_VERSION = 1
+LOG_EVERY = 10  # steps between log.csv rows
 
 
 def jsonable(x):
@@ -75,24 +72,17 @@ def read_checkpoint(path, kind):
     """-> (meta, model state dict, optimizer state dict). kind: "codebook", "transformer" (another
     raises ValueError) or None for either. Not a pyvf checkpoint: CheckpointError naming the file."""
     arrays = load_npz(path, "checkpoint", required=("__meta__",))
-    try:
-        meta = json.loads(str(arrays.pop("__meta__")))
-    except json.JSONDecodeError as e:
-        raise CheckpointError(f"checkpoint {path}: entry '__meta__' is not valid JSON ({e})") from e
-    if not isinstance(meta, dict) or meta.get("format") != "pyvf-checkpoint" or meta.get("version") != FORMAT_VERSION:
+    meta = json.loads(str(arrays.pop("__meta__")))
+    if meta.get("format") != "pyvf-checkpoint" or meta.get("version") != FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {path}: not a pyvf checkpoint of format version {FORMAT_VERSION}")
-    if kind is not None and meta.get("kind") != kind:
-        raise ValueError(f"checkpoint {path} is a {meta.get('kind')!r} run, not a {kind!r} run: "
-                         "use another output folder")
-    model, opt = {}, {"exp_avg": {}, "exp_avg_sq": {}}
-    for name, a in arrays.items():
-        group = next((g for g in ("model/", "optimizer/exp_avg/", "optimizer/exp_avg_sq/") if name.startswith(g)), None)
-        if group is None:
-            raise CheckpointError(f"checkpoint {path}: unexpected entry {name!r}")
-        (model if group == "model/" else opt[group.split("/")[1]])[name[len(group):]] = a
-    opt["step"] = meta["optimizer"]["step"]
-    opt["hyperparameters"] = meta["optimizer"]["hyperparameters"]
-    return meta, model, opt
+    if kind is not None and meta["kind"] != kind:
+        raise ValueError(f"checkpoint {path} is a {meta['kind']!r} run, not a {kind!r} run: use another output folder")
+
+    def group(prefix):
+        return {k[len(prefix):]: a for k, a in arrays.items() if k.startswith(prefix)}
+
+    opt = {"exp_avg": group("optimizer/exp_avg/"), "exp_avg_sq": group("optimizer/exp_avg_sq/"), **meta["optimizer"]}
+    return meta, group("model/"), opt
 
 
 def resume_point(out_dir, resume=True):
@@ -111,19 +101,17 @@ class Run:
         with run:
             for t in run.steps():              # run.start + 1 .. steps
                 ...                            # one update
-                run.log(t, {"loss": ...})      # every log_every steps and the last
+                run.log(t, {"loss": ...})
                 run.checkpoint(t, model.state_dict, optimizer)  # when due; after Ctrl-C, then stops
         run.save_final(model.state_dict())
 
-    A resume checks config and hyper (JSON-able dicts) against the checkpoint's. call: what
-    config.json records of this call. evaluation: None, or (eval.csv's columns, the fingerprint of
-    the held-out set log_eval's rows come from; a resume refuses another). interruptible: False for
-    data-parallel runs.
+    call: what config.json records of this call. evaluation: None, or (eval.csv's columns, the
+    fingerprint of the held-out set; a resume refuses another). interruptible: False for data-parallel runs.
     """
 
     def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, evaluation=None,
                  interruptible=True):
-        self.steps_total, self.checkpoint_every, self.log_every = opts.steps, opts.checkpoint_every, opts.log_every
+        self.steps_total, self.checkpoint_every = opts.steps, opts.checkpoint_every
         self.kind, self.config, self.hyper = kind, jsonable(config), jsonable(hyper)
         self.columns = ["step", *columns, "seconds"]
         self.progress = opts.progress
@@ -164,11 +152,9 @@ class Run:
         for what, saved, now in (("configuration", meta["config"], self.config),
                                  ("hyperparameters", meta["hyper"], self.hyper)):
             if saved != now:
-                differ = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
-                raise ValueError(
-                    f"checkpoint {self.ckpt_path} was written with another {what} (differs in {differ}: saved "
-                    f"{ {k: saved.get(k) for k in differ} }): pass the saved values, another output folder, or "
-                    "resume=False (--no-resume) to start over")
+                differ = {k: saved.get(k) for k in set(saved) | set(now) if saved.get(k) != now.get(k)}
+                raise ValueError(f"checkpoint {self.ckpt_path} was written with another {what} (saved: {differ}): "
+                                 "pass the saved values, another output folder, or --no-resume to start over")
         self.start, self.elapsed0 = int(meta["step"]), float(meta["elapsed"])
         if self.start > self.steps_total:
             raise ValueError(f"checkpoint {self.ckpt_path} is at step {self.start}, past steps={self.steps_total}")
@@ -178,25 +164,15 @@ class Run:
                              "resume with the run's one, or without evaluation (--eval-every 0)")
         self.eval_fingerprint = self.eval_fingerprint or saved
 
-    def restore(self, what, load, state):
-        """load(state); a state that does not fit raises CheckpointError naming the checkpoint."""
-        try:
-            load(state)
-        except (ValueError, TypeError) as e:
-            raise CheckpointError(f"checkpoint {self.ckpt_path}: its {what} does not load: {e}") from e
-
     def _write_config(self, call):
         """config.json: the configuration, hyperparameters, and one entry per call of the run."""
         calls = []
         if self.resumed and os.path.exists(self.config_path):
-            try:
-                with open(self.config_path, encoding="utf-8") as f:
-                    calls = list(json.load(f)["calls"])
-            except (OSError, ValueError, KeyError, TypeError):
-                calls = []  # unreadable: the checkpoint, not this file, is the run's state
+            with open(self.config_path, encoding="utf-8") as f:
+                calls = json.load(f)["calls"]
         calls.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "steps": self.steps_total,
                       "resumed_from_step": self.start if self.resumed else None,
-                      "checkpoint_every": self.checkpoint_every, "log_every": self.log_every,
+                      "checkpoint_every": self.checkpoint_every,
                       "numpy": np.__version__, "machine": _machine(), **jsonable(call or {})})
         atomic_write_text(self.config_path, json.dumps(
             {"kind": self.kind, "config": self.config, "hyperparameters": self.hyper, "calls": calls},
@@ -221,10 +197,10 @@ class Run:
         return self.elapsed0 + (time.perf_counter() - self._t0)
 
     def log(self, step, values):
-        """values: column -> float, written every log_every steps and at the last."""
+        """values: column -> float, written every LOG_EVERY steps and at the last."""
         if self._bar is not None:
             self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
-        if step % self.log_every and step != self.steps_total:
+        if step % LOG_EVERY and step != self.steps_total:
             return
         self._append(self.log_path, step, values, self.columns)
 
@@ -237,10 +213,7 @@ class Run:
         and redraw eval.png."""
         self._append(self.eval_path, step, values, self.eval_columns)
         line = f"{self.kind} held-out at step {step}: {eval_line(values)}"  # as it trains, not only at the end
-        if self._bar is not None:
-            self._bar.write(line, file=sys.stderr)  # above the bar, on the bar's stream
-        else:
-            print(line, file=sys.stderr)
+        (print if self._bar is None else self._bar.write)(line, file=sys.stderr)  # above the bar, if any
         plot_eval(self.out_dir)
 
     def _append(self, path, step, values, columns):

@@ -21,29 +21,16 @@ BASELINE_COLOURS = [(214, 39, 40), (44, 160, 44), (148, 103, 189)]
 
 def read_log(run_dir, name="log.csv", empty_ok=False):
     """run_dir/log.csv (or another of its CSV files) -> {column: float64 array}. A torn last line (a
-    process killed mid-write) is left out, as a resuming trainer drops it; another bad row raises
-    ValueError naming the line. A header alone raises, or with empty_ok gives empty arrays."""
+    process killed mid-write) is left out, as a resuming trainer drops it. A header alone raises,
+    or with empty_ok gives empty arrays."""
     path = os.path.join(run_dir, name)
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.reader(f))
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{path} is not a CSV log of pyvf's (not UTF-8 text: {e})") from None
-    if not rows:
-        raise ValueError(f"{path} is empty: no header")
-    header, body, values = rows[0], rows[1:], []
-    for i, row in enumerate(body):
-        try:
-            if len(row) != len(header):
-                raise ValueError(f"{len(row)} fields where the header has {len(header)}")
-            values.append([float(v) for v in row])
-        except ValueError as e:
-            if i == len(body) - 1:
-                break  # torn: the trainers drop it too
-            raise ValueError(f"{path}, line {i + 2}: {e}") from None
-    if not values and not empty_ok:
+    with open(path, newline="", encoding="utf-8") as f:
+        header, *rows = csv.reader(f)
+    if rows and len(rows[-1]) != len(header):
+        rows.pop()  # torn
+    if not rows and not empty_ok:
         raise ValueError(f"{path} has no rows")
-    table = np.array(values, dtype=np.float64).reshape(len(values), len(header))
+    table = np.array(rows, dtype=np.float64).reshape(len(rows), len(header))
     return {k: table[:, j] for j, k in enumerate(header)}
 
 
@@ -55,9 +42,6 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), na
 
     log = read_log(run_dir, name)
     baselines = baselines or {}
-    missing = [c for c in columns + [b for c in columns for b in baselines.get(c, ())] if c not in log]
-    if missing:
-        raise ValueError(f"columns {missing} are not in {os.path.join(run_dir, name)} (it has {list(log)})")
     w, h = size
     top = 24 if title else 0
     img = Image.new("RGB", (w * len(columns), h + top), "white")
@@ -65,20 +49,20 @@ def plot_curves(run_dir, png, columns, title=None, log_y=(), size=(360, 220), na
     if title:
         draw.text((6, 6), title, fill="black")
     step = log["step"]
+    smin, smax = float(step.min()), float(step.max())
+    smax = smax if smax > smin else smin + 1.0
     for i, col in enumerate(columns):
         y = log[col]
-        lines = [float(np.nanmean(log[b])) for b in baselines.get(col, ())]  # horizontal baselines
-        use_log = col in log_y and (y > 0).all() and all(v > 0 for v in lines)
-        yv = np.log10(y) if use_log else y
-        lv = [np.log10(v) if use_log else v for v in lines]
+        lines = np.array([np.nanmean(log[b]) for b in baselines.get(col, ())])  # horizontal baselines
+        use_log = col in log_y and (y > 0).all() and (lines > 0).all()
+        yv, lv = (np.log10(y), np.log10(lines)) if use_log else (y, lines)
         x0, y0, x1, y1 = i * w + 46, top + 22, (i + 1) * w - 10, top + h - 22  # plot area
         draw.rectangle([x0, y0, x1, y1], outline="gray")
-        finite = np.concatenate([yv[np.isfinite(yv)], np.array([v for v in lv if np.isfinite(v)])])
+        both = np.concatenate([yv, lv])
+        finite = both[np.isfinite(both)]
         lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
         hi = hi if hi > lo else lo + 1.0
         lo, hi = lo - 0.04 * (hi - lo), hi + 0.04 * (hi - lo)  # a margin: no line on the frame
-        smin, smax = float(step.min()), float(step.max())
-        smax = smax if smax > smin else smin + 1.0
         px = x0 + (step - smin) / (smax - smin) * (x1 - x0)
         py = y1 - (yv - lo) / (hi - lo) * (y1 - y0)
         for k, (b, v) in enumerate(zip(baselines.get(col, ()), lv)):
@@ -141,35 +125,32 @@ def _last_at(steps, step):
     return k if k >= 0 else None
 
 
-def runs_table(run_dirs, columns=None, step=None):
+def runs_table(run_dirs, step=None):
     """Markdown: one row per run folder: its name, steps, wall seconds, what its hyperparameters
-    change against the first run's of its kind, and its last held-out evaluation (`columns` of
-    eval.csv, default eval_panels'); with step, all at or before that step."""
+    change against the first run's of its kind, and its last held-out evaluation (eval_panels'
+    columns of eval.csv); with step, all at or before that step."""
     rows, firsts = [], {}
     for d in run_dirs:
-        path = os.path.join(d, "config.json")
-        try:
-            with open(path, encoding="utf-8") as f:
-                cfg = json.load(f)
-        except FileNotFoundError:
-            raise ValueError(f"{d} is not a run folder (no config.json)") from None
+        if not os.path.exists(os.path.join(d, "config.json")):
+            raise ValueError(f"{d} is not a run folder (no config.json)")
+        with open(os.path.join(d, "config.json"), encoding="utf-8") as f:
+            cfg = json.load(f)
         flat = {**{f"config.{k}": v for k, v in cfg["config"].items()},
                 **{k: v for k, v in cfg["hyperparameters"].items() if k != "data"}}
-        first = firsts.setdefault(cfg.get("kind"), flat)
+        first = firsts.setdefault(cfg["kind"], flat)
         changed = ", ".join(f"{k.removeprefix('config.')}={flat.get(k)}" for k in sorted(set(flat) | set(first))
-                            if flat.get(k) != first.get(k)) or f"(the first {cfg.get('kind', 'run')} run)"
+                            if flat.get(k) != first.get(k)) or f"(the first {cfg['kind']} run)"
         log = read_log(d, empty_ok=True)  # a header alone: a run before its first logged step
         ev = read_log(d, "eval.csv", empty_ok=True) if os.path.exists(os.path.join(d, "eval.csv")) else {}
-        cols = columns or (eval_panels(list(ev))[0] if ev else [])
-        i = _last_at(log["step"], step)
-        j = _last_at(ev["step"], step) if ev else None
+        i, j = _last_at(log["step"], step), _last_at(ev["step"], step) if ev else None
+        last = {c: f"{ev[c][j]:.4g} ({int(ev['step'][j])})" for c in ev if j is not None}
+        panels = eval_panels(list(ev))[0] if ev else []
         rows.append((os.path.basename(os.path.normpath(d)), int(log["step"][i]) if i is not None else 0,
-                     float(log["seconds"][i]) if i is not None else 0.0, changed,
-                     {c: (float(ev[c][j]), int(ev["step"][j])) for c in cols if c in ev and j is not None}, cols))
-    cols = columns or list(dict.fromkeys(c for r in rows for c in r[5]))  # the first run's order first
+                     float(log["seconds"][i]) if i is not None else 0.0, changed, last, panels))
+    cols = list(dict.fromkeys(c for r in rows for c in r[5]))  # the first run's order first
     head = ["run", "steps", "wall (s)", "changes"] + [f"{c} (step)" for c in cols]
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name, steps, secs, changed, ev, _ in rows:
-        vals = [f"{ev[c][0]:.4g} ({ev[c][1]})" if c in ev else "-" for c in cols]
+    for name, steps, secs, changed, last, _ in rows:
+        vals = [last.get(c, "-") for c in cols]
         out.append("| " + " | ".join([name, str(steps), f"{secs:.0f}", changed] + vals) + " |")
     return "\n".join(out) + "\n"

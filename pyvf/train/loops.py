@@ -4,11 +4,10 @@
     tokens = tokenize(cb, images)                                                     # (scenes, views, k, k) int16
     tf = train_transformer(tokens, poses, TINY_TRANSFORMER, "runs/tf", RunOptions(steps=50_000))
 
-RunOptions says how a call runs (steps, batches, checkpoints, engine...); the configuration and the
-recipe say what it learns. Each loop checkpoints its run folder (_run.py) every `checkpoint_every`
-steps, at the end and at Ctrl-C; a call with resume=True continues to exactly the parameters,
-optimiser moments and EMA buffers an uninterrupted run reaches, bit for bit, on the same kernel path
-(pyvf.show_config), as every batch is a pure function of (seed, step).
+RunOptions says how a call runs, the configuration and the recipe what it learns. A call with
+resume=True continues from the run folder's checkpoint (_run.py) to exactly the state an
+uninterrupted run reaches, bit for bit on the same kernel path: every batch is a pure function of
+(seed, step).
 """
 
 import dataclasses
@@ -53,13 +52,10 @@ TINY_TRANSFORMER = TransformerConfig(
     pose_multiplier=0.2,  # SM7: positions scaled by 0.2 (docs/math.md §5)
 )
 
-# Codebook training recipes: Adam's settings, dead-code restarts, the loss weight of object pixels.
-# "published" is the published code's (docs/math.md §4), whose lr and betas serve a batch of 352:
-# at the batches of 16 a CPU affords they collapse the latent on SM7. "small-batch", the default,
-# is chosen by the ablations of docs/models-remarks.md. restart, reseat, kmeans (issue 48): where
-# dead codes restart ("batch" or "worst"), how many low-utility codes each reset moves as well, and
-# the Lloyd iterations of a k-means initialisation of the codes (0: uniform); see
-# EMAQuantizer.reset_dead_codes and init_kmeans.
+# Codebook training recipes. "published" is the published code's (docs/math.md §4), whose lr and
+# betas serve a batch of 352: at batches of 16 they collapse the latent on SM7. "small-batch", the
+# default, is chosen by the ablations of docs/models-remarks.md. restart, reseat, kmeans:
+# EMAQuantizer.reset_dead_codes' and init_kmeans' (0: a uniform initialisation).
 _CODES = {"restart": "batch", "reseat": 0, "kmeans": 0}
 CODEBOOK_RECIPES = {
     "published": {"lr": 1.584e-3, "betas": (0.5, 0.9), "reset_dead_codes": 0, "object_weight": 1.0, **_CODES},
@@ -73,14 +69,12 @@ TRANSFORMER_LOG = ["loss", "ce_loss", "pose_loss", "grad_norm", "lr"]
 
 @dataclasses.dataclass(frozen=True)
 class RunOptions:
-    """How a training call runs (what it learns is the configuration's and the recipe's). Checked
-    when made; an error names the field."""
+    """How a training call runs. Checked when made; an error names the field."""
 
     steps: int  # the total number of updates; a resumed run continues to it from its checkpoint
     batch_size: int = 16
     seed: int = 0  # the initialisation and every batch (np.random.default_rng([seed, step]))
     checkpoint_every: int = 200  # steps between checkpoints; one at the end and at Ctrl-C always
-    log_every: int = 10  # steps between log.csv rows (and the last step)
     eval_every: int = 0  # steps between held-out evaluations (0: none)
     resume: bool = True  # continue from out_dir/checkpoint.npz when there is one; False starts over
     progress: bool = True  # a progress bar on stderr
@@ -92,26 +86,24 @@ class RunOptions:
     init: str | None = None  # a Codebook.save / Transformer.save file a fresh run starts from
 
     def __post_init__(self):
-        for name, lo in (("steps", 1), ("batch_size", 1), ("seed", 0), ("checkpoint_every", 1), ("log_every", 1),
-                         ("eval_every", 0), ("threads", 1)):
+        for name, lo in (("steps", 1), ("batch_size", 1), ("seed", 0), ("checkpoint_every", 1), ("eval_every", 0),
+                         ("threads", 1)):
             if name != "threads" or self.threads is not None:
                 object.__setattr__(self, name, _checks.integer(name, getattr(self, name), lo))
         check_engine(self.engine, self.device, self.precision)
 
 
 # ---------------------------------------------------------------------------------------
-# the batches: each a pure function of (seed, step), so that a resumed run draws the same ones and
-# both engines train on the same ones; the torch engine's parity checks draw theirs from seed + PARITY_SEED
+# the batches: each a pure function of (seed, step); the parity checks' from seed + PARITY_SEED
 
 
 PARITY_SEED = 1_000_003
 
 
 def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weight=None):
-    """Batch of step `step`: batch_size views drawn uniformly (with replacement) from the
-    (M, Hi, Wi, C) uint8 images -> (B, C, Hi, Wi) in [-1, 1]. A pure function of (seed, step).
-    With object_weight (a float), also the pixel weights (B, 1, Hi, Wi): object_weight on the
-    pixels health.object_mask marks, 1 on the background."""
+    """batch_size views drawn uniformly (with replacement) from the (M, Hi, Wi, C) uint8 images ->
+    (B, C, Hi, Wi) in [-1, 1]; with object_weight also the pixel weights (B, 1, Hi, Wi):
+    object_weight on the pixels health.object_mask marks, 1 on the background."""
     rng = np.random.default_rng([seed, step])
     idx = rng.integers(0, images.shape[0], size=batch_size)  # (B,)
     x = to_model_images(images[idx], np.dtype(dtype))
@@ -122,9 +114,8 @@ def codebook_batch(images, batch_size, seed, step, dtype="float32", object_weigh
 
 
 def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="float32"):
-    """Batch of step `step`: per sample a scene drawn uniformly, then n_views distinct views
-    of it in random order. tokens (scenes, views, k, k), poses (scenes, views, 7) ->
-    tokens (B, N, L) int64, poses (B, N, 7) of dtype. A pure function of (seed, step)."""
+    """Per sample a scene drawn uniformly, then n_views distinct views of it in random order.
+    tokens (scenes, views, k, k), poses (scenes, views, 7) -> tokens (B, N, L) int64, poses (B, N, 7)."""
     rng = np.random.default_rng([seed, step])
     n_scenes, n_avail = tokens.shape[:2]
     scenes = rng.integers(0, n_scenes, size=batch_size)  # (B,)
@@ -148,7 +139,7 @@ def _check_images(images, config, name="images"):
 
 def _check_tokens_poses(tokens, poses, config):
     """tokens ints (scenes, views, k, k) in [0, n_embeddings), poses (scenes, views, 7) finite with
-    unit quaternions in the model's dtype: checked here, not at the step that draws a bad view."""
+    unit quaternions: checked here, not at the step that draws a bad view."""
     _checks.int_array("tokens", tokens)
     if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
         raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
@@ -163,45 +154,36 @@ def _check_tokens_poses(tokens, poses, config):
 
 
 def _warm_start(cls, config, hyper, out_dir, opts):
-    """opts.init: None, or a cls.save file whose weights have the run's shapes (other fields, such
-    as empty_code, may differ: a fine-tuning) -> (hyper with the file's {"path", "sha256"}, its
-    state_dict()), or (hyper, None). Only a fresh run reads it: a resume's checkpoint holds the run."""
+    """opts.init, a cls.save file with the run's shapes (other fields, such as empty_code, may
+    differ) -> (hyper with the file's {"path", "sha256"}, its state_dict()); None or a resume ->
+    (hyper, None)."""
     path = opts.init
     if path is None or resume_point(out_dir, opts.resume) is not None:
         return hyper, None
     try:
         model = cls.load(path)
-    except FileNotFoundError as e:
-        raise FileNotFoundError(f"init {path}: no such file") from e
-    except ValueError as e:  # CheckpointError: corrupt, or another kind of model
-        raise ValueError(f"init {path} is not a {cls.FILE_KIND} model file: {e}") from e
-    got, want = model.state_dict(), cls(config).state_dict()
-    shapes = sorted(k for k in got.keys() | want.keys() if np.shape(got.get(k)) != np.shape(want.get(k)))
-    if shapes:
-        raise ValueError(f"init {path} holds a {cls.__name__} shaped unlike the run's configuration (in {shapes[:4]})")
+        cls(config).load_official(model.state_dict())  # the run's shapes, or an error naming the first weight
+    except (OSError, ValueError) as e:
+        raise type(e)(f"init {path}: {e}") from e
     return {**hyper, "init": {"path": os.path.basename(path), "sha256": file_sha256(path)}}, model.state_dict()
 
 
 def _restore(run, model, make_optimiser, init_state):
-    """The model as the run's checkpoint left it (or init_state's, a fresh run's warm start), then
-    make_optimiser(model.params), its state the checkpoint's (a warm start's optimiser is fresh).
-    A codebook's init_state holds the quantizer's EMA buffers and counter too, so its codes move
-    on by EMA steps from the file's: zeroed averages at counter 1 would set each code to one batch's
-    mean of the vectors that chose it (docs/math.md §4)."""
-    if run.resumed:
-        run.restore("model", model.load_official, run.model_state)  # replaces model.params
-    elif init_state is not None:
-        model.load_official(init_state)
+    """The model as the run's checkpoint (or init_state) left it, then make_optimiser(model.params),
+    its state the checkpoint's. A codebook's init_state holds the EMA buffers and counter too: zeroed
+    averages at counter 1 would set each code to one batch's mean (docs/math.md §4)."""
+    if run.resumed or init_state is not None:
+        model.load_official(run.model_state if run.resumed else init_state)  # replaces model.params
     opt = make_optimiser(model.params)  # after the restore: on the params it put in place
     if run.resumed:
-        run.restore("optimizer", opt.load_state_dict, run.optimizer_state)
+        opt.load_state_dict(run.optimizer_state)
     return opt
 
 
 def _loop(run, opt, step, state, check, health, eval_every):
-    """The loop both trainings run: step(t) -> the log's values but lr (one update); health() -> the
-    held-out figures (None: no evaluation), before the first step of a fresh run, every eval_every
-    steps and at the last; the checkpoints (check(run, t) first, when not None); the final model."""
+    """The loop both trainings run: step(t) -> the log's values but lr; health() -> the held-out
+    figures (None: no evaluation), at step 0 of a fresh run, every eval_every steps and at the
+    last; check(run, t) before each checkpoint (None: none); the final model."""
     with run:
         if health is not None and not run.resumed:
             run.log_eval(0, health())
@@ -219,9 +201,8 @@ def _loop(run, opt, step, state, check, health, eval_every):
 
 
 def _recipe(recipe, overrides):
-    """train_codebook's recipe with the overrides not None, checked -> (the settings, what the run
-    records beyond the base hyperparameters: object_weight and _CODES where not at their defaults,
-    so that runs from before these options resume as they were)."""
+    """The recipe with the overrides not None, checked -> (the settings, the hyperparameters a run
+    records beyond the base ones: those of object_weight and _CODES not at their defaults)."""
     if recipe not in CODEBOOK_RECIPES:
         raise ValueError(f"recipe must be one of {sorted(CODEBOOK_RECIPES)}, got {recipe!r}")
     unknown = sorted(set(overrides) - set(CODEBOOK_RECIPES[recipe]))
@@ -241,9 +222,8 @@ def _recipe(recipe, overrides):
 
 
 def _codebook_engine(opts, model, opt, flat):
-    """-> (step(x, w) -> the log's values but lr, reset(x, rng, **codes): the dead-code restart after
-    a step, state() -> the state dict, current() -> the model, the optimiser, check(run, step) before
-    each checkpoint or None)."""
+    """-> (step(x, w), reset(x, rng, **codes): the dead-code restart, state() -> the state dict,
+    current() -> the model, the optimiser, check or None), as _loop takes them."""
     if opts.engine == "torch":
         eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
                             parity_batch=(codebook_batch(flat, 4, opts.seed + PARITY_SEED, 0, model.config.dtype),))
@@ -266,16 +246,10 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
     (_run.py; at the end codebook.npz) -> the trained Codebook.
 
     images: uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C), Hi = Wi = config.image_size.
-    opts: RunOptions (init: a fresh run starts from the file's weights and EMA buffers, Adam fresh).
-    eval_images: None, or held-out uint8 views (M, Hi, Wi, C) whose health.codebook_health goes to eval.csv.
+    eval_images: None, or held-out uint8 views (M, Hi, Wi, C) whose codebook_health goes to eval.csv.
     recipe: a name of CODEBOOK_RECIPES; overrides (each not None replaces the recipe's): lr, betas,
-        reset_dead_codes (every this many steps codes whose EMA cluster size fell below 1e-3 move to
-        the step's encoder outputs; 0: never), object_weight (the loss weight of object pixels
-        against 1 for the background), restart, reseat, kmeans (see CODEBOOK_RECIPES)."""
-    if not isinstance(config, CodebookConfig):
-        raise TypeError(f"config must be a CodebookConfig, got {type(config).__name__}")
-    if not isinstance(opts, RunOptions):
-        raise TypeError(f"opts must be a RunOptions, got {type(opts).__name__}")
+        reset_dead_codes (every this many steps dead codes move to encoder outputs; 0: never),
+        object_weight (the loss weight of object pixels, 1 for the background), restart, reseat, kmeans."""
     flat = _check_images(images, config)  # (M, Hi, Wi, C)
     r, recorded = _recipe(recipe, overrides)
     if eval_images is not None:
@@ -318,8 +292,6 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
 def tokenize(codebook, images, batch_size=64, progress=False):
     """images uint8 (scenes, views, Hi, Wi, C) or (M, Hi, Wi, C) -> codebook.encode's codes,
     (scenes, views, k, k) or (M, k, k), as int16 (int32 when n_embed > 32768)."""
-    if not isinstance(codebook, Codebook):
-        raise TypeError(f"codebook must be a Codebook, got {type(codebook).__name__}")
     flat = _check_images(images, codebook.config)  # (M, Hi, Wi, C)
     batch_size = _checks.integer("batch_size", batch_size, 1)
     dtype = np.int16 if codebook.config.n_embed <= np.iinfo(np.int16).max + 1 else np.int32
@@ -357,9 +329,8 @@ def load_tokens(path):
 
 @dataclasses.dataclass(frozen=True)
 class TransformerRecipe:
-    """What train_transformer trains with beside the configuration: the samples' context and the
-    published optimiser (docs/math.md §5: HF AdamWeightDecay over Keras Adam, warmup then cosine
-    decay, tf.clip_by_norm per tensor). Checked when made; an error names the field."""
+    """train_transformer's samples' context and the published optimiser (docs/math.md §5). Checked
+    when made; an error names the field."""
 
     context: int | None = None  # the most context views a sample has: N = context + 1 distinct views of a
     # scene (None: config.sequence_size - 1); the tree trains the contexts n_loss_skip..N-1 in one step
@@ -367,8 +338,7 @@ class TransformerRecipe:
     warmup: int | None = None  # None: min(2000, total_steps // 10), the paper's 2000 shortened for short runs
     total_steps: int | None = None  # None: the run's steps; part of the run: keep it to extend a run
     weight_decay: float = 0.01  # AdamW's decoupled decay on what published_weight_decay selects (not biases)
-    max_grad_norm: float | None = 1.0  # gradient clipping (None: off); the logged grad_norm is the global norm
-    clip_mode: str = "per_tensor"  # "per_tensor": the published tf.clip_by_norm; "global": torch's clip_grad_norm_
+    max_grad_norm: float | None = 1.0  # tf.clip_by_norm per tensor (None: off); the logged grad_norm is the global norm
 
     def __post_init__(self):
         for name, lo in (("context", 0), ("warmup", 0), ("total_steps", 1)):
@@ -379,8 +349,6 @@ class TransformerRecipe:
         if self.max_grad_norm is not None:
             object.__setattr__(self, "max_grad_norm", _checks.real("max_grad_norm", self.max_grad_norm, lo=0.0,
                                                                    lo_open=True))
-        if self.clip_mode not in ("global", "per_tensor"):
-            raise ValueError(f"clip_mode must be 'global' or 'per_tensor', got {self.clip_mode!r}")
 
 
 def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint):
@@ -400,7 +368,7 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
         raise ValueError(f"warmup={warmup} must be less than total_steps={total_steps}")
     hyper = {"batch_size": opts.batch_size, "views": n_views, "lr": r.lr, "warmup": warmup,
              "total_steps": total_steps, "weight_decay": r.weight_decay, "eps": 1e-8, "eps_convention": "keras",
-             "max_grad_norm": r.max_grad_norm, "clip_mode": r.clip_mode, "seed": opts.seed,
+             "max_grad_norm": r.max_grad_norm, "clip_mode": "per_tensor", "seed": opts.seed,
              "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
     if codebook_fingerprint is not None:
         hyper["codebook_fingerprint"] = str(codebook_fingerprint)
@@ -408,14 +376,11 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
 
 
 def _transformer_eval(eval_set, eval_every, config):
-    """-> (the held-out evaluation's record for config.json, eval.csv's columns, health(model) ->
-    its row), all None without eval_set or with eval_every 0. eval_set: held_out_set's."""
+    """-> (the evaluation's record for config.json, eval.csv's columns, health(model) -> its row),
+    all None without eval_set or with eval_every 0."""
     if eval_set is None or eval_every == 0:
         return None, None, None
     cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
-    if (cb.config.n_embed, cb.config.token_size) != (config.n_embeddings, config.token_image_size):
-        raise ValueError("eval_set['codebook'] must be the Codebook the tokens came from (its n_embed and "
-                         "token_size those of the configuration)")
     contexts = health_contexts(config, images.shape[1])
     if not contexts:
         raise ValueError(f"eval_set's scenes have {images.shape[1]} views: too few for a context and the queries")
@@ -425,17 +390,15 @@ def _transformer_eval(eval_set, eval_every, config):
 
 
 def _transformer_engine(opts, model, opt, dp, recipe, parity):
-    """-> (step(tok, pos) -> the log's values but lr, state() -> the state dict,
-    current() -> the model, the optimiser, check(run, step) before each checkpoint or None)."""
+    """-> (step(tok, pos), state(), current(), the optimiser, check or None), as _loop takes them."""
     if opts.engine == "torch":
         eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp, parity_batch=parity,
-                               max_grad_norm=recipe.max_grad_norm, clip_mode=recipe.clip_mode)
+                               max_grad_norm=recipe.max_grad_norm)
         return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
 
     def step(tok, pos):
-        out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
-                                     clip_mode=recipe.clip_mode)
-        if isinstance(norm, dict):  # per_tensor: {name: |g|} -> the global norm
+        out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm, clip_mode="per_tensor")
+        if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
             norm = float(np.sqrt(sum(n * n for n in norm.values())))
         return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)), "pose_loss": float(np.mean(out.pose_loss)),
                 "grad_norm": norm}
@@ -450,15 +413,9 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
     run folder out_dir (at the end transformer.npz) -> the trained Transformer.
 
     tokens: ints (scenes, views, k, k) in [0, config.n_embeddings); poses: float (scenes, views, 7),
-        xyz and a unit quaternion wxyz, in any frame (each sample is made relative to its first view).
-    opts: RunOptions, as train_codebook's (engine "torch": data-parallel under torchrun too).
-    eval_set: None, or held_out_set's scenes whose health.transformer_health goes to eval.csv.
-    codebook_fingerprint: the fingerprint of the codebook the tokens came from (load_tokens'):
-        recorded in config.json and the model, whose pairings then check it (models.check_pair)."""
-    if not isinstance(config, TransformerConfig):
-        raise TypeError(f"config must be a TransformerConfig, got {type(config).__name__}")
-    if not isinstance(opts, RunOptions):
-        raise TypeError(f"opts must be a RunOptions, got {type(opts).__name__}")
+        xyz and a unit quaternion wxyz, in any frame. Engine "torch": data-parallel under torchrun too.
+    eval_set: None, or held_out_set's scenes whose transformer_health goes to eval.csv.
+    codebook_fingerprint: the tokens' codebook's (load_tokens'), recorded in config.json and the model."""
     _check_tokens_poses(tokens, poses, config)
     hyper, schedule = _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint)
     B, n_views, seed = opts.batch_size, hyper["views"], opts.seed

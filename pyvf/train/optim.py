@@ -3,13 +3,11 @@
     opt = AdamW(params, lr=WarmupCosine(1e-4, 2000, 120_000), weight_decay=0.01)
     norm = clip_grad_norm(grads, 1.0, mode="per_tensor")   # in place
     opt.step(grads)                                          # params updated in place
-    ckpt = opt.state_dict(); opt2.load_state_dict(ckpt)      # checkpointing
 
-params and grads are dicts name -> float32/float64 array; the moments live in the optimiser, in
-the parameters' dtype; nothing is cast. The published transformer's optimiser is the HuggingFace
-`AdamWeightDecay` over Keras Adam: AdamW(eps_convention="keras", eps=1e-8,
+params and grads are dicts name -> float32/float64 array, the moments in the parameters' dtype.
+The published transformer's optimiser: AdamW(eps_convention="keras", eps=1e-8,
 decay=published_weight_decay), WarmupCosine, clip_grad_norm(mode="per_tensor"); the published
-codebook's is torch Adam: Adam(params, 1.584e-3, betas=(0.5, 0.9)).
+codebook's: Adam(params, 1.584e-3, betas=(0.5, 0.9)).
 """
 
 import math
@@ -21,17 +19,6 @@ from .. import _checks
 
 __all__ = ["AdamW", "Adam", "WarmupCosine", "warmup_cosine_lr", "clip_grad_norm", "global_norm",
            "published_weight_decay"]
-
-
-def _check_grads(grads, params=None):
-    """grads: dict name -> float array (with params' names, dtypes and shapes); errors name grads[name]."""
-    if params is not None and set(grads) != set(params):
-        raise ValueError(f"grads must have exactly the parameters' names, got {sorted(set(grads) ^ set(params))} "
-                         "extra or missing")
-    for k, g in grads.items():
-        _checks.float_array(f"grads[{k!r}]", g, None if params is None else params[k], "its parameter")
-        if params is not None and g.shape != params[k].shape:
-            raise ValueError(f"grads[{k!r}] has shape {g.shape} but its parameter {params[k].shape}")
 
 
 def _nonfinite(grads):
@@ -68,11 +55,9 @@ def adam_update(p, m, v, g, lr, t, b1, b2, eps, wd, keras, sqrt=np.sqrt):
 class AdamW:
     """Adam with decoupled weight decay (Loshchilov & Hutter), PyTorch semantics by default.
 
-    params: dict name -> float32/float64 array, updated in place by step(); no two may share
-        memory (a tied parameter is listed once).
+    params: dict name -> float32/float64 array, updated in place by step().
     lr: a float, or a schedule: a callable step -> float called with the number of updates
-        already applied (0 for the first update), as Keras calls its schedules with
-        `optimizer.iterations` and torch's LambdaLR starts at lambda(0).
+        already applied (0 for the first update), as Keras and torch's LambdaLR do.
     betas, eps, weight_decay: as torch.optim.AdamW (defaults 0.9, 0.999; 1e-8; 0.01).
     decay: which parameters get weight decay: None (all), a collection of names, or a
         predicate name -> bool (e.g. published_weight_decay).
@@ -90,21 +75,13 @@ class AdamW:
     the published transformer used) adds it to the raw sqrt(v) and folds the bias corrections
     into the step size. Keras therefore equals torch with eps replaced by
     eps / sqrt(1 - b2^t): a larger epsilon early on (31.6x at t = 1 with b2 = 0.999, 3.2x at
-    t = 100) that tends to the same one as t grows. The two agree exactly when eps is
-    negligible against sqrt(v_hat). Weight decay is decoupled in both (the published
-    `AdamWeightDecay` subtracts lr * wd * p before the Adam step, as torch multiplies by
-    1 - lr * wd); it uses the scheduled lr, not the bias-corrected step size.
-
-    All arithmetic is in the parameters' dtype (adam_update). state_dict()/load_state_dict()
-    save and restore the step count and the moments, so that a run that is saved, loaded and
-    continued matches an uninterrupted run bit for bit.
+    t = 100) that tends to the same one as t grows. Weight decay is decoupled in both (the
+    published `AdamWeightDecay` subtracts lr * wd * p before the Adam step), with the scheduled lr.
     """
 
     def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-2, *,
                  decay=None, eps_convention="torch"):
         self.lr = lr if callable(lr) else _checks.real("lr", lr, lo=0.0)
-        if len(betas) != 2:
-            raise ValueError(f"betas must be a pair (beta1, beta2), got {betas!r}")
         self.betas = tuple(_checks.real("betas", b, 0.0, 1.0, hi_open=True) for b in betas)
         # eps > 0: with eps = 0 a parameter whose gradients have all been 0 gets 0 / 0
         self.eps = _checks.real("eps", eps, lo=0.0, lo_open=True)
@@ -126,7 +103,6 @@ class AdamW:
         """Apply one update. grads: dict name -> array of its parameter's shape and dtype, not
         modified. An update that is not finite (a NaN or inf gradient, or one that overflows
         the dtype) raises ValueError naming the tensors, nothing updated. Returns the lr used."""
-        _check_grads(grads, self.params)
         lr, t = self.lr_at(self.step_count), self.step_count + 1
         with np.errstate(over="ignore", invalid="ignore"):  # checked below, before anything is written
             new = {k: adam_update(p, self.exp_avg[k], self.exp_avg_sq[k], grads[k], lr, t, *self.betas, self.eps,
@@ -148,37 +124,28 @@ class AdamW:
 
     def state_dict(self):
         """{'step': int, 'exp_avg': {name: array}, 'exp_avg_sq': {name: array},
-        'hyperparameters': {...}}: copies, independent of later updates. The learning rate
-        (possibly a callable) is not saved: the schedule is a function of 'step'."""
+        'hyperparameters': {...}}: copies. The learning rate is not saved: the schedule is a function of 'step'."""
         return {"step": self.step_count,
                 "exp_avg": {k: a.copy() for k, a in self.exp_avg.items()},
                 "exp_avg_sq": {k: a.copy() for k, a in self.exp_avg_sq.items()},
                 "hyperparameters": self._hyper()}
 
     def load_state_dict(self, state):
-        """Restore a state_dict() (copied in). The hyperparameters and the moments' names, shapes
-        and dtypes must be the saved ones, else ValueError: the moments mean nothing under others.
-        The parameters themselves are checkpointed separately."""
+        """Restore a state_dict() (copied in); its hyperparameters must be this optimiser's, else
+        ValueError: the moments mean nothing under others."""
         hyper = dict(state["hyperparameters"])
         # a JSON round trip gives lists: betas and decayed are compared as a tuple and a sorted list
         hyper["betas"], hyper["decayed"] = tuple(hyper["betas"]), sorted(hyper["decayed"])
         if hyper != self._hyper():
-            diff = sorted(k for k in hyper if hyper[k] != self._hyper().get(k))
-            raise ValueError(f"state was saved with other hyperparameters ({diff}): construct the "
-                             f"optimiser with the saved ones {hyper}")
-        want = {k: (p.dtype, p.shape) for k, p in self.params.items()}
-        for key in ("exp_avg", "exp_avg_sq"):
-            if {k: (a.dtype, a.shape) for k, a in state[key].items()} != want:
-                raise ValueError(f"state[{key!r}] does not hold the parameters' names, dtypes and shapes")
+            raise ValueError(f"state was saved with other hyperparameters {hyper}: construct the optimiser with them")
         self.step_count = int(state["step"])
         self.exp_avg = {k: np.array(state["exp_avg"][k]) for k in self.params}
         self.exp_avg_sq = {k: np.array(state["exp_avg_sq"][k]) for k in self.params}
 
 
 class Adam(AdamW):
-    """Adam without weight decay: AdamW with weight_decay = 0 (no L2 term either; torch's
-    Adam(weight_decay=...) adds wd * p to the gradient, which this does not offer).
-    The codebook (docs/math.md §4): Adam(params, 1.584e-3, betas=(0.5, 0.9))."""
+    """Adam without weight decay (nor torch Adam's L2 term): AdamW with weight_decay = 0. The
+    codebook's (docs/math.md §4): Adam(params, 1.584e-3, betas=(0.5, 0.9))."""
 
     def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, *, eps_convention="torch"):
         super().__init__(params, lr, betas, eps, 0.0, eps_convention=eps_convention)
@@ -245,7 +212,6 @@ def clip_grad_norm(grads, max_norm, *, mode="global", eps=1e-6):
         published transformer does with `gradient_clip_val`): a tensor with |g| > max_norm
         becomes g * (max_norm / |g|); the others are left untouched. Returns {name: |g|}.
     All-zero gradients are left as they are (no 0/0)."""
-    _check_grads(grads)
     max_norm = _checks.real("max_norm", max_norm, lo=0.0, lo_open=True)
     if mode not in ("global", "per_tensor"):
         raise ValueError(f"mode must be 'global' or 'per_tensor', got {mode!r}")

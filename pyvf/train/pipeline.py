@@ -67,7 +67,7 @@ PRESETS = {
 
 def _scenes(folder, n, size, progress):
     """The training scenes: loaded when the folder's manifest matches, else written (an interrupted
-    write of the same arguments resumes, one of others is replaced)."""
+    write resumes, another dataset's is replaced)."""
     from ..scenes import load_dataset, write_dataset
     from ..scenes.dataset import DatasetExistsError
 
@@ -100,9 +100,8 @@ def _tokens(path, codebook_path, images, poses, progress):
 
 
 def train_pipeline(out, preset="quick", *, log=print, progress=True, **options):
-    """Run (or resume) every stage of `preset` in the folder `out` (module docstring); returns the
-    final evaluation's metrics dict (pyvf.evaluate.evaluate's). log: a function printing one line per
-    stage; options: both runs' RunOptions fields (threads, command, engine, device, precision)."""
+    """Run (or resume) every stage of `preset` in the folder `out` -> the final evaluation's metrics
+    dict. log: prints one line per stage; options: both runs' RunOptions fields."""
     from ..evaluate.run import evaluate, metrics_markdown
     from ..scenes import generate_scenes
 

@@ -1,7 +1,6 @@
 """The work of the training commands (their arguments: pyvf/cli/train.py), on files: a dataset
-folder or a tokens file in, a run folder out. config takes "tiny" (TINY_CODEBOOK / TINY_TRANSFORMER)
-or a JSON file: the configuration's fields, or a run's config.json. A bad argument or file raises
-ValueError, TypeError or OSError naming it.
+folder or a tokens file in, a run folder out. config: "tiny" or a JSON file of the configuration's
+fields (or a run's config.json).
 """
 
 import json
@@ -13,7 +12,7 @@ import numpy as np
 from .._threads import threads as kernel_threads
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import CHECKPOINT, read_checkpoint, resume_point
+from ._run import CHECKPOINT, read_checkpoint
 from .loops import (TINY_CODEBOOK, TINY_TRANSFORMER, TransformerRecipe, held_out_set, load_tokens, save_tokens,
                     tokenize, train_codebook, train_transformer)
 
@@ -33,61 +32,27 @@ def read_config(value, cls, tiny):
         raise ValueError(f"--config {value}: not a JSON file of {cls.__name__} fields ({e})") from e
 
 
-def _refuse_input_as_output(out, inputs, option):
-    """out (the file a command writes) must be none of inputs ((what, path) pairs)."""
-    for what, path in inputs:
-        if os.path.realpath(out) == os.path.realpath(path):
-            raise ValueError(f"{option} {out} is {what} ({path}): writing it would overwrite an input")
-
-
-def held_out_views(eval_every, eval_scenes, eval_seed, data, size):
-    """A codebook run's held-out views: the first EVAL_VIEWS views of eval_scenes scenes of eval_seed
-    (another seed than the training data's), (scenes * EVAL_VIEWS, size, size, 3) uint8; None when
-    eval_every is 0."""
-    if not eval_every:
-        return None
-    if getattr(data, "seed", None) == eval_seed:
-        raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
-    from ..scenes import generate_scenes
-    images, _ = generate_scenes(eval_seed, eval_scenes, views=EVAL_VIEWS, size=size)
-    return images.reshape(-1, size, size, images.shape[-1])
-
-
-def held_out_scenes(codebook, eval_scenes, eval_seed, threads, train_poses):
-    """A transformer run's held-out scenes: eval_scenes whole scenes of eval_seed, tokenized by the
-    codebook file -> train_transformer's eval_set. Scenes whose poses are the training data's
-    (train_poses: scene i of a seed is the same scene in any set of it) raise."""
-    codebook = Codebook.load(codebook)
-    from ..scenes import generate_scenes
-    images, poses = generate_scenes(eval_seed, eval_scenes, size=codebook.config.image_size)
-    n, views = min(len(poses), len(train_poses)), min(poses.shape[1], train_poses.shape[1])
-    if n and np.allclose(poses[:n, :views], train_poses[:n, :views], rtol=0, atol=1e-6):
-        raise ValueError(f"--eval-seed {eval_seed} is the training data's seed: held-out scenes need another seed")
-    with kernel_threads(threads):
-        return held_out_set(codebook, images, poses)
-
-
 def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1, **recipe):
     """train_codebook on the dataset folder `data` into the run folder `out`, evaluated every
-    opts.eval_every steps on held_out_views; recipe: train_codebook's recipe and overrides."""
+    opts.eval_every steps on the first EVAL_VIEWS views of eval_scenes scenes of eval_seed (not the
+    data's); recipe: train_codebook's recipe and overrides."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
-    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
-    data = load_dataset(data)
-    held_out = held_out_views(opts.eval_every, eval_scenes, eval_seed, data, config.image_size)
+    from ..scenes import generate_scenes, load_dataset  # at the call: tests stand a fake module in
+    data, held_out, S = load_dataset(data), None, config.image_size
+    if opts.eval_every:
+        if getattr(data, "seed", None) == eval_seed:
+            raise ValueError(f"eval_seed {eval_seed} is the training data's seed: held-out scenes need another seed")
+        held_out = generate_scenes(eval_seed, eval_scenes, views=EVAL_VIEWS, size=S)[0].reshape(-1, S, S, 3)
     return train_codebook(data.images, config, out, opts, eval_images=held_out, **recipe)
 
 
-def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threads=None):
-    """The dataset folder `data` encoded by the codebook file into the tokens file `out`
-    (save_tokens'; its folder created). Returns the tokens."""
-    dataset = os.listdir(data) if os.path.isdir(data) else []  # the dataset's files are inputs too
-    _refuse_input_as_output(out, [("the codebook", codebook),
-                                  *(("a file of the dataset", os.path.join(data, f)) for f in dataset)], "--out")
+def tokenize_dataset(codebook, data, out, *, progress=True, threads=None):
+    """The dataset folder `data` encoded by the codebook file into the tokens file `out` -> the tokens."""
     codebook = Codebook.load(codebook)
     from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
     data = load_dataset(data)
     with kernel_threads(threads):
-        tokens = tokenize(codebook, data.images, batch_size=batch_size, progress=progress)
+        tokens = tokenize(codebook, data.images, progress=progress)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     save_tokens(out, tokens, data.poses, codebook.config.n_embed, codebook.fingerprint())
     return tokens
@@ -96,7 +61,8 @@ def tokenize_dataset(codebook, data, out, *, batch_size=64, progress=True, threa
 def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="tiny", codebook=None, eval_scenes=16,
                     eval_seed=1):
     """train_transformer on the tokens file into the run folder `out`; with codebook (the file the
-    tokens came from), evaluated every opts.eval_every steps on held_out_scenes."""
+    tokens came from), evaluated every opts.eval_every steps on eval_scenes scenes of eval_seed,
+    refused when their poses are the training data's."""
     config = read_config(config, TransformerConfig, TINY_TRANSFORMER)
     tokens_path, (tokens, poses, n_embed, fingerprint) = tokens, load_tokens(tokens)
     if config.n_embeddings != n_embed:
@@ -107,29 +73,24 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
                          f"and {fingerprint})")
     eval_set = None
     if opts.eval_every and codebook:
-        eval_set = held_out_scenes(codebook, eval_scenes, eval_seed, opts.threads, poses)
+        from ..scenes import generate_scenes
+        cb = Codebook.load(codebook)
+        images, held_poses = generate_scenes(eval_seed, eval_scenes, size=cb.config.image_size)
+        n, views = min(len(held_poses), len(poses)), min(held_poses.shape[1], poses.shape[1])
+        if n and np.allclose(held_poses[:n, :views], poses[:n, :views], rtol=0, atol=1e-6):
+            raise ValueError(f"eval_seed {eval_seed} is the training data's seed: held-out scenes need another seed")
+        with kernel_threads(opts.threads):
+            eval_set = held_out_set(cb, images, held_poses)
     elif opts.eval_every:
         print("pyvf train-transformer: no --codebook, so no held-out evaluation", file=sys.stderr)
     return train_transformer(tokens, poses, config, out, opts, recipe, eval_set=eval_set,
                              codebook_fingerprint=fingerprint)
 
 
-def checkpoint_step(run_dir):
-    """The step of the run folder's checkpoint, None when it has none or cannot be read."""
-    try:
-        meta = resume_point(run_dir)
-    except (ValueError, OSError):
-        return None
-    return None if meta is None else int(meta["step"])
-
-
 def export_run(run, out):
-    """The model of a run's last checkpoint (run: its folder or checkpoint.npz), written to `out` as
-    the run writes its final model, so that a run can be evaluated, or shipped, while it trains.
-    Returns (the run's kind, its step, the path written)."""
+    """The model of a run's last checkpoint (run: its folder or checkpoint.npz) written to `out` ->
+    (the run's kind, its step, the path written)."""
     path = os.path.join(run, CHECKPOINT) if os.path.isdir(run) else os.fspath(run)
-    written = os.fspath(out) + ("" if os.fspath(out).endswith(".npz") else ".npz")  # as Model.save names it
-    _refuse_input_as_output(written, [("the run's checkpoint", path)], "-o")
     meta, state, _ = read_checkpoint(path, None)
     cls = {"codebook": Codebook, "transformer": Transformer}[meta["kind"]]
     model = cls(cls.CONFIG(**meta["config"]))

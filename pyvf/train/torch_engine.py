@@ -1,14 +1,12 @@
 """The torch engines of train_transformer and train_codebook (docs/howto-torch-engine.md): pyvf's
-loop, batches, schedule, optimiser, clipping, run folder and checkpoints, with the model (pyvf.verify's
-ports, loaded with the pyvf model's weights and buffers) and the update (optim.adam_update on torch
-tensors, the moments saved in pyvf's layout) in torch: a checkpoint of either engine resumes in the
-other. bf16 autocasts the arithmetic (not the codebook's lookup and EMA); weights and moments stay float32.
+loop, batches, schedule and run folder, with the model (pyvf.verify's ports) and the update
+(optim.adam_update on torch tensors, the moments saved in pyvf's layout) in torch: a checkpoint of
+either engine resumes in the other. bf16 autocasts the arithmetic (not the codebook's lookup and EMA).
 
-At every checkpoint pyvf runs a fixed batch with the torch model's weights: the outputs must agree
-within PARITY_RTOL (the codebook's codes exactly); the worst error goes to parity.csv, a larger one
-stops the run. Data-parallel (the transformer, under torchrun): every process draws the batch of
-(seed, step) and runs its shard of the rows, its mean loss weighted by its share of the batch, so the
-all-reduced gradients are the batch's; rank 0 alone writes the run folder, the others follow.
+At every checkpoint pyvf runs a fixed batch with the torch model's weights: the worst error goes
+to parity.csv, one over PARITY_RTOL stops the run. Data-parallel (the transformer, under torchrun):
+every process draws the batch of (seed, step) and runs its shard of the rows, its mean loss weighted
+by its share of the batch; rank 0 alone writes the run folder.
 """
 
 import contextlib
@@ -42,8 +40,7 @@ def import_torch():
 
 def check_engine(engine, device, precision, dtype=None, one_process=False):
     """engine 'pyvf' | 'torch'; device 'cpu' | 'cuda' | 'cuda:N' and precision 'fp32' | 'bf16' (the
-    torch engine's only). With the configuration's dtype: bf16 autocasts float32 arithmetic only, so
-    a float64 model is refused. one_process: torchrun's WORLD_SIZE > 1 is refused (the codebook)."""
+    torch engine's only); bf16 with a float64 dtype, and with one_process a torchrun, are refused."""
     if engine not in ("pyvf", "torch"):
         raise ValueError(f"engine must be 'pyvf' or 'torch', got {engine!r}")
     if precision not in ("fp32", "bf16"):
@@ -64,8 +61,7 @@ def check_engine(engine, device, precision, dtype=None, one_process=False):
 
 
 class DataParallel:
-    """This process's rank in a data-parallel run, the world size, the collectives. `created`: whether
-    data_parallel() initialised the process group (close() ends it)."""
+    """This process's rank in a data-parallel run, the world size, the collectives."""
 
     def __init__(self, dist, device, created):
         self.dist, self.device, self.created = dist, device, created
@@ -110,8 +106,8 @@ def world_size():
 
 
 def data_parallel(device, batch_size):
-    """(DataParallel, or None in a single process; the device this process trains on): the caller's
-    process group, or one made from torchrun's environment (gloo on the CPU, nccl on cuda:LOCAL_RANK)."""
+    """-> (DataParallel or None, the device this process trains on): the caller's process group, or
+    one made from torchrun's environment (gloo on the CPU, nccl on cuda:LOCAL_RANK)."""
     torch = import_torch()
     import torch.distributed as dist
     initialised, world = dist.is_available() and dist.is_initialized(), world_size()
@@ -149,8 +145,8 @@ class Follower(contextlib.nullcontext):
 
 
 class TorchAdamW:
-    """AdamW.step on torch tensors. params: official name -> torch Parameter; ref: the pyvf AdamW (or
-    Adam) whose settings and schedule it applies and whose state_dict it saves."""
+    """AdamW.step on torch tensors (params: official name -> Parameter) with the settings, schedule
+    and state_dict of ref, the pyvf AdamW or Adam."""
 
     def __init__(self, params, ref, model):
         self.params, self.ref, self.model = params, ref, model
@@ -169,7 +165,7 @@ class TorchAdamW:
         return self.ref.lr_at(step)
 
     def step(self):
-        """One update from the parameters' .grad (finite: the caller checked): optim.adam_update."""
+        """One update from the parameters' .grad (finite: the caller checked)."""
         torch, r = import_torch(), self.ref
         lr, t = r.lr_at(r.step_count), r.step_count + 1
         with torch.no_grad():
@@ -182,7 +178,7 @@ class TorchAdamW:
         r.step_count = t
 
     def state_dict(self):
-        """pyvf AdamW's state_dict (its layout, numpy): what Run.checkpoint writes."""
+        """pyvf AdamW's state_dict (its layout, numpy)."""
         for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
             arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
             setattr(self.ref, theirs, params_from_layout(self.model, arrays, "torch"))
@@ -190,9 +186,8 @@ class TorchAdamW:
 
 
 class TorchEngine:
-    """What both torch engines share: the port, its parameters by official name (_names), the update
-    (opt: a TorchAdamW), parity()'s arguments (parity_batch), to_pyvf() -> the pyvf model holding the
-    port's current weights."""
+    """What both torch engines share: the port's parameters by official name (_names), the update
+    (opt), parity()'s arguments (parity_batch), to_pyvf() -> the pyvf model with the port's weights."""
 
     def state_dict(self):
         return self.to_pyvf().state_dict()
@@ -220,23 +215,19 @@ class TorchEngine:
                                f"checkpoint before it is intact. Comparison:\n{comparison}")
 
 
-def _torch_dtype(torch, model):
-    return {"float32": torch.float32, "float64": torch.float64}[str(model.dtype)]
-
-
 class TorchTransformer(TorchEngine):
     """train_transformer's torch engine, continuing the pyvf Transformer `model` and its AdamW
     `opt_ref`. dp: a DataParallel (rank 0's state is broadcast to every process) or None."""
 
-    def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", max_grad_norm=None,
-                 clip_mode="per_tensor", dp=None, parity_batch=None):
+    def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", max_grad_norm=None, dp=None,
+                 parity_batch=None):
         torch = import_torch()
         from ..verify.torch_ports import TransformerPort, official_name
         from ..verify.torch_ports import transformer_losses as losses
         self.torch, self.config, self.pyvf_model, self._losses = torch, model.config, model, losses
         self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
-        self.max_grad_norm, self.clip_mode, self.dp = max_grad_norm, clip_mode, dp
-        self.port = TransformerPort(model.config).to(self.device, _torch_dtype(torch, model))
+        self.max_grad_norm, self.dp = max_grad_norm, dp
+        self.port = TransformerPort(model.config).to(self.device, getattr(torch, str(model.dtype)))
         self._names = {official_name(n): p for n, p in self.port.named_parameters()}
         with torch.no_grad():
             for k, a in model.state_dict(layout="torch").items():
@@ -263,9 +254,8 @@ class TorchTransformer(TorchEngine):
         return (logits, raw, *self._losses(logits, raw, tok, pos, self.config))
 
     def _gradients(self, tokens, poses):
-        """The gradients of the whole batch's mean loss, in the parameters' .grad (summed across
-        the processes of a data-parallel run, each having run its shard) -> (the list of them,
-        a tensor of the batch's loss, mean ce and mean pose loss)."""
+        """The gradients of the batch's mean loss in the parameters' .grad (summed across the
+        processes) -> (the list of them, a tensor of the batch's loss, mean ce and mean pose loss)."""
         B = len(tokens)
         lo, hi = (0, B) if self.dp is None else self.dp.shard(B)
         self._zero_grad()
@@ -279,27 +269,22 @@ class TorchTransformer(TorchEngine):
         return grads, sums
 
     def step(self, tokens, poses):
-        """One update on a batch (poses in any frame: made relative here, as pyvf's engine) -> the
-        log's loss, mean ce, mean pose loss and global gradient norm before clipping."""
+        """One update on a batch (poses made relative here) -> the log's values but lr."""
         torch = self.torch
         grads, sums = self._gradients(tokens, make_relative(poses)[0])
         norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
         total = norms.square().sum().sqrt()
         stats = torch.cat([sums, total[None]]).cpu().numpy()
         self._refuse_nonfinite(stats, "loss, ce, pose loss, grad norm")
-        if self.max_grad_norm is not None:
+        if self.max_grad_norm is not None:  # tf.clip_by_norm per tensor, as pyvf's clip_grad_norm
             m = float(self.max_grad_norm)
-            if self.clip_mode == "per_tensor":  # tf.clip_by_norm per tensor, as pyvf's clip_grad_norm
-                scale = torch.where(norms > m, m / norms, torch.ones_like(norms))
-                torch._foreach_mul_(grads, list(scale.unbind()))
-            elif stats[3] + 1e-6 > m:  # global: torch.nn.utils.clip_grad_norm_
-                torch._foreach_mul_(grads, m / (float(stats[3]) + 1e-6))
+            scale = torch.where(norms > m, m / norms, torch.ones_like(norms))
+            torch._foreach_mul_(grads, list(scale.unbind()))
         self.opt.step()
         return dict(zip(("loss", "ce_loss", "pose_loss", "grad_norm"), map(float, stats)))
 
     def parity(self, tokens, poses):
-        """pyvf against the torch model (float32, no autocast) on one batch: pyvf.compare's
-        Comparison of logits, pose predictions, losses."""
+        """pyvf.compare's Comparison of the torch model (no autocast) against pyvf on one batch."""
         torch = self.torch
         pos = make_relative(poses)[0]
         with torch.no_grad():
@@ -311,14 +296,14 @@ class TorchTransformer(TorchEngine):
 
 class TorchCodebook(TorchEngine):
     """train_codebook's torch engine (one process), continuing the pyvf Codebook `model` and its Adam
-    `opt_ref`. The port's quantizer does the EMA update in training mode, in the model's dtype."""
+    `opt_ref`. The port's quantizer does the EMA update in training mode."""
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", parity_batch=None):
         torch = import_torch()
         from ..verify.torch_ports import CodebookPort
         self.torch, self.config, self.pyvf_model = torch, model.config, model
         self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
-        self.dtype = _torch_dtype(torch, model)
+        self.dtype = getattr(torch, str(model.dtype))  # torch.float32 or torch.float64
         self.port = CodebookPort(model.config).to(self.device, self.dtype)  # training mode: EMA updates
         self._names = dict(self.port.named_parameters())  # the published names, as model.params'
         self.port.load_state_dict({k: torch.as_tensor(v) for k, v in model.state_dict().items()})
@@ -340,8 +325,7 @@ class TorchCodebook(TorchEngine):
         return rec.to(self.dtype), commitment, codes
 
     def step(self, images, pixel_weights=None):
-        """One update on images (B, C, S, S) in [-1, 1] (numpy; pixel_weights (B, 1, S, S) or None,
-        as Codebook.forward's) -> the log's values: loss, rec_loss, commitment, perplexity, usage."""
+        """One update on images (B, C, S, S) (pixel_weights: Codebook.forward's) -> the log's values but lr."""
         torch = self.torch
         x = torch.as_tensor(images).to(self.device)
         self._zero_grad()
@@ -364,8 +348,7 @@ class TorchCodebook(TorchEngine):
                 "perplexity": perplexity, "usage": usage}
 
     def reset_dead_codes(self, images, rng, **codes):
-        """pyvf's EMAQuantizer.reset_dead_codes on the port's buffers, with the encoder's output
-        z of images (B, C, S, S) by the updated weights, as pyvf's loop. Returns the codes reset."""
+        """pyvf's EMAQuantizer.reset_dead_codes on the port's buffers and the encoder's output of images."""
         torch, quantizer = self.torch, self.pyvf_model.quantizer
         with torch.no_grad():
             z = self.port.quant_conv(self.port.encoder(torch.as_tensor(images).to(self.device)))  # (B, D, k, k)
@@ -375,8 +358,7 @@ class TorchCodebook(TorchEngine):
         return n
 
     def parity(self, images):
-        """pyvf against the torch model (evaluation mode, no autocast) on images (B, C, S, S):
-        pyvf.compare's Comparison of codes, reconstruction, losses."""
+        """pyvf.compare's Comparison of the torch model (evaluation mode) against pyvf on images."""
         torch = self.torch
         x = torch.as_tensor(images).to(self.device)
         self.port.eval()  # no EMA update
