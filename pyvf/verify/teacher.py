@@ -51,7 +51,7 @@ def _collect(rows, prev, out):
             prev = row.name
             continue
         calls = row.calls if row.calls is not None else ((((prev, None),), row.name),)
-        params = row.param_names + row.reads
+        params = row.param_names
         last = out[-1] if out else None
         if row.module is not None and last is not None and last.name == row.module:  # the module's next row
             out[-1] = Layer(last.name, f"{last.kind}+{row.kind}", ((last.calls[0][0], row.name),),
@@ -95,7 +95,7 @@ def _reference_vjp(model, layer, xs, douts):
             x = (y,)
         for row, c in zip(reversed(layer.rows), reversed(caches)):
             dx, dps = model.layer_backward(row, dy, c)
-            for n, g in zip(row.param_names + row.reads, dps):
+            for n, g in zip(row.param_names, dps):
                 dparams[n] += g
             dy = dx[0]
         dxs.append(dx)
