@@ -28,7 +28,8 @@ class Layer:
     name: str  # the published module's name; the trace name of its output
     kind: str  # the layer pair that computes it (the model's layer_forward / layer_backward)
     params: tuple = ()  # (suffix, shape, role) per parameter, in the layer pair's argument order;
-    #                     the parameter is named prefix + suffix; role: see ROLES
+    #                     the parameter is named prefix + suffix; role: see ROLES; a tied one is
+    #                     listed by every row that reads it (the parameter table keeps the first)
     prefix: str = None  # the parameters' prefix; None: name (the codebook's torch names)
     stride: int = 1  # conv rows only
     padding: object = 0  # conv rows only: an int, or (left, right, top, bottom)
@@ -37,7 +38,6 @@ class Layer:
     module: str = None  # teacher forcing: the published module this row is part of; None: a layer itself
     calls: tuple = None  # teacher forcing: per call (((input, tree row), ...), output); None: one call
     #                      on the previous row's output, output `name`
-    reads: tuple = ()  # parameters of other rows this one also reads (tied weights), by full name
 
     @property
     def param_names(self):

@@ -164,12 +164,12 @@ def is_dense_kernel(name):
     return name.endswith("/weight") and name != "wte/weight"
 
 
-def _row(name, kind, prefix, params, calls, reads=()):
+def _row(name, kind, prefix, params, calls):
     """A row whose parameters prefix + suffix take their role (pyvf.models.io.ROLES) from their name."""
     # Dense biases are (1, out) in the published checkpoint, (out,) in torch's layout
     role = lambda n: "dense_kernel" if is_dense_kernel(n) else "dense_bias" if n.endswith("/bias") else None  # noqa: E731
     return Layer(name, kind, tuple((s, shape, role(prefix + s)) for s, shape in params), prefix=prefix,
-                 calls=calls, reads=reads)
+                 calls=calls)
 
 
 def _dense(d_in, d_hidden, d_out, prefix=""):
@@ -205,7 +205,7 @@ def layer_table(cfg):
         # ln_f runs twice: on the generation row (1) and the localization row (2) of the last block
         _row("ln_f", "layernorm", "ln_f/", norm,
              ((((prev, 1),), "ln_f.generation"), (((prev, 2),), "ln_f.localization"))),
-        _row("logits", "logits", "", (), _one("ln_f.generation", "logits"), reads=("wte/weight",)),  # tied: wte[:V]
+        _row("logits", "logits", "", (("wte/weight", (V + 2, d)),), _one("ln_f.generation", "logits")),  # tied: wte[:V]
         _row("pose_head", "mlp", POSE_HEAD, _dense(d, 2 * d, 7),
              _one("ln_f.localization", "pose")),
     ]
@@ -263,7 +263,7 @@ class Transformer(ModelWeights):
 
     def layer_forward(self, row, *xs):
         """Run the table's row on its inputs (the arrays its call names) -> (output, cache)."""
-        P = [self.params[n] for n in row.param_names + row.reads]
+        P = [self.params[n] for n in row.param_names]
         if row.kind == "embed":  # tokens, poses -> the three rows (3, B, N, L, d)
             return self._embed_forward(*xs)
         (x,) = xs
@@ -278,7 +278,7 @@ class Transformer(ModelWeights):
 
     def layer_backward(self, row, dy, cache):
         """layer_forward's VJP -> (per input its gradient, None for the model's inputs; the
-        gradients of row.param_names + row.reads, in order)."""
+        gradients of row.param_names, in order)."""
         if row.kind == "embed":
             grads = {n: np.zeros_like(self.params[n]) for n in row.param_names}
             self._embed_backward(dy, cache, grads)

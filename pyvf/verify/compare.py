@@ -9,19 +9,9 @@ Both sides map names to arrays (or torch tensors, read through .detach()). The w
 quantity over tolerance is where a bug starts. The error is normwise, rel_err = max|x - ref| /
 max|ref| in float64: an elementwise relative error is meaningless where ref is near zero.
 
-Default tolerances, from the dtype of the less precise side (or `dtype=`): rounding in a length-n
-dot product leaves about sqrt(n) u (u the unit roundoff), n up to 4d (sqrt(n) ~ 60 for the paper's
-model), amplified 10-100x by LayerNorm and unscaled softmax logits over a dozen blocks. Measured
-on the tiny model: float64 pyvf vs torch agree to 2e-14, float32 to 1.6e-6 (logits) and 1.7e-5
-(gradients). Each default sits orders above that and below what a wrong layer gives (1e-3..1):
-
-    float64   u = 1.1e-16   rtol 1e-10
-    float32   u = 6.0e-8    rtol 1e-3
-    float16   u = 4.9e-4    rtol 2e-2
-    bfloat16  u = 3.9e-3    rtol 5e-2   (only gross bugs show: compare in float32 or float64)
-
-Integer and boolean arrays (token ids) must match exactly. Pass dtype= when a float64 array holds
-values computed in a lower precision (pyvf's attn.lse is float64 even in a float32 model).
+Default tolerances (DEFAULT_RTOL) follow the dtype of the less precise side (or `dtype=`), a
+few orders above rounding and below what a wrong layer gives; docs/verify.md (Tolerances) says
+why. Integer and boolean arrays (token ids) must match exactly.
 """
 
 import dataclasses

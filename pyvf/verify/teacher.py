@@ -8,11 +8,7 @@ the layer that has it (docs/verify.md §2 walks through both models).
     report.wrong      # ["blocks.1.attn"]: the layers whose output or VJP is over tolerance
 
 The layers (layer_names(model), in execution order) are read off the model's layer table
-(model.layers, pyvf.models.io). Tree activations, pyvf's (R, B, N, L, d), reach a port's
-callable flat, (B, T, d) with T = R*N*L ordered [row][view][token]; codebook activations NCHW.
-Backward: pyvf's gradient of each layer's output seeds the port's VJP (torch autograd) and pyvf's
-own layer pair on the same input; the gradients of each float input ("d <input name>") and of
-each parameter are compared (the parameters' .grad are cleared per layer).
+(model.layers, pyvf.models.io); teacher_force's docstring says what is compared.
 """
 
 import dataclasses
@@ -55,7 +51,7 @@ def _collect(rows, prev, out):
             prev = row.name
             continue
         calls = row.calls if row.calls is not None else ((((prev, None),), row.name),)
-        params = row.param_names + row.reads
+        params = row.param_names
         last = out[-1] if out else None
         if row.module is not None and last is not None and last.name == row.module:  # the module's next row
             out[-1] = Layer(last.name, f"{last.kind}+{row.kind}", ((last.calls[0][0], row.name),),
@@ -99,7 +95,7 @@ def _reference_vjp(model, layer, xs, douts):
             x = (y,)
         for row, c in zip(reversed(layer.rows), reversed(caches)):
             dx, dps = model.layer_backward(row, dy, c)
-            for n, g in zip(row.param_names + row.reads, dps):
+            for n, g in zip(row.param_names, dps):
                 dparams[n] += g
             dy = dx[0]
         dxs.append(dx)
@@ -126,9 +122,7 @@ class LayerCheck:
 
     @staticmethod
     def _worst(c):
-        """The largest relative error of the rows judged by it (not those accepted by atol); nan
-        where one is nan (Python's max keeps a nan only when it comes first); None where nothing
-        was compared."""
+        """The largest relative error of the rows not accepted by atol (nan if any); None: none."""
         if c is None or not c.rows:
             return None
         rels = [r.rel for r in c.rows if r.rel <= r.rtol or not r.ok]
@@ -221,9 +215,10 @@ def teacher_force(model, inputs, layers, *, params=None, layout=None, upstream=N
     model: a pyvf.Transformer or pyvf.Codebook holding the port's weights; inputs: (tokens, poses)
     or images, as model.forward takes them. layers: layer name -> callable (a function or torch
     module) taking the layer's inputs as torch tensors, returning its output (of a tuple, the
-    first). params: optional official parameter name -> the port's tensor (requires grad), in
+    first); the tree's activations reach it flat, (B, T, d) (tree_to_flat). params: optional official parameter name -> the port's tensor (requires grad), in
     `layout` (required for a Transformer; a Codebook's default "torch"). upstream: optional
-    model.backward seeds (a Codebook's drec only); with it every layer's VJP is checked too.
+    model.backward seeds (a Codebook's drec only); with it every layer's VJP is checked too:
+    the gradients of its float inputs ("d <input>") and of its parameters.
     train: the codebook's EMA step (its buffers restored afterwards). Tolerances: compare's
     defaults. The model's last forward stays the caller's."""
     table = layer_table(model)
