@@ -102,20 +102,14 @@ def test_section_1_codebook_claims(sections):
 
 
 def test_section_2_tree_claims(sections):
-    """Each '#' of the printed mask is a 4x4 square with 4 tokens per view; the scaling report
-    counts (1 + 2n) n L tokens for the stacked sequences and 3 n L for the tree, and its fitted
-    memory slopes are about 1 (tree) and 2 (stacked), as the text says."""
+    """Each '#' of the printed mask is a 4x4 square with 4 tokens per view; the scaling report's
+    fitted memory slopes (forward+backward bytes against the number of views) are about 1 for the
+    tree and 2 for the stacked sequences, as the text says."""
     ns = sections[2][2]
     assert int(ns["m4"].sum()) == 16 * int(ns["m"].sum())
     with open(os.path.join(DOCS, "measurements", "scaling-H4-dh32.json"), encoding="utf-8") as f:
-        report = json.load(f)
-    R, L = report["config"]["R"], report["config"]["L"]
-    point = {(p["method"], p["N"]): p for p in report["points"]}
-    for n in report["config"]["views"]:
-        assert point["pyvf", n]["theory"]["tokens"] == R * n * L
-        assert point["naive_pyvf", n]["theory"]["tokens"] == (1 + (R - 1) * n) * n * L
-    slopes = report["slopes"]["4x32"]
-    assert 0.8 < slopes["pyvf"]["fwd_bwd_bytes"] < 1.25 and 1.75 < slopes["naive_pyvf"]["fwd_bwd_bytes"] < 2.25
+        slopes = json.load(f)["slopes"]["4x32"]
+    assert 0.8 < slopes["pyvf"]["fb_bytes"] < 1.25 and 1.75 < slopes["naive_pyvf"]["fb_bytes"] < 2.25
 
 
 def test_section_4_transformer_claims(sections):
