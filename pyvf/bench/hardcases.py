@@ -25,7 +25,6 @@ cancellation far from the origin is `pyvf bench vq`'s table of offsets.
 """
 
 import math
-import os
 
 import numpy as np
 
@@ -245,10 +244,7 @@ def plot_sweep(sw, folder):
     ax.plot([], [], "x", color="gray", label="NaN / inf (drawn at the top)")
     ax.set(yscale="log", xscale="log" if sw.get("logx", True) else "linear", xlabel=sw["xlabel"],
            ylabel=sw["ylabel"] + f"\n(below {floor:.0e}, 0 included, drawn at {floor:.0e})", title=sw["title"])
-    ax.grid(True, which="both", alpha=0.3)
-    path = os.path.join(folder, f"hardcase-{sw['name']}.png")
-    save_figure(fig, path)
-    return path
+    return save_figure(fig, folder, f"hardcase-{sw['name']}.png")
 
 
 def sweep_summary(sw):
@@ -273,7 +269,6 @@ def run(quick=False, threads=2, names=tuple(SWEEPS), plots=None, log=print):
         sw["check"], sw["breaks"] = check(sw)
         log(f"\n## {sw['title']}\n\n{sweep_summary(sw)}", flush=True)
         if plots and pyplot():
-            os.makedirs(plots, exist_ok=True)
             sw["plot"] = plot_sweep(sw, plots)
         sweeps.append(sw)
     failures = [f"{sw['name']} / {n}: first out at x = {c['first_x_out']:.3g} (worst error / bound "
