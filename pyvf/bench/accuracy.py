@@ -135,7 +135,8 @@ def layernorm_op(size, rng):
         dx = rstd * (dxhat - dxhat.mean(-1, keepdims=True) - xhat * (dxhat * xhat).mean(-1, keepdims=True))
         return [xhat * x["gamma"] + x["beta"], dx, (x["dy"] * xhat).sum(0), x["dy"].sum(0)]
 
-    return dict(outputs=("y", "dx", "dgamma", "dbeta"), inputs=x, reference=numpy_fn(x), numpy=lambda x: lambda: numpy_fn(x),
+    return dict(outputs=("y", "dx", "dgamma", "dbeta"), inputs=x, reference=numpy_fn(x),
+                numpy=lambda x: lambda: numpy_fn(x),
                 torch=lambda x: _torch_vjp(lambda F, *a: F.layer_norm(a[0], (d,), *a[1:], 1e-5), x["dy"], x["x"],
                                            x["gamma"], x["beta"]),
                 pyvf=lambda x: _pair(layers.layernorm_forward, layers.layernorm_backward, x["dy"], x["x"], x["gamma"],
