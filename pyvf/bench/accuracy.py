@@ -24,7 +24,6 @@ Time: the median of 5 calls (3 with --quick) after a warm-up.
 """
 
 import math
-import os
 
 import numpy as np
 
@@ -79,14 +78,15 @@ def _pair(forward, backward, dy, *args):
 
 
 def _torch_vjp(f, dy, *args):
-    """fn() -> [y, *gradients] of y = f(*tensors) by torch autograd with upstream gradient dy: the
-    gradient of each float array of args, the others (ints) passed as they are."""
+    """fn() -> [y, *gradients] of y = f(torch.nn.functional, *tensors) by torch autograd with upstream
+    gradient dy: the gradient of each float array of args, the others (ints) passed as they are."""
     import torch
+    from torch.nn import functional as F
 
     ts = [torch.from_numpy(a).requires_grad_(a.dtype.kind == "f") for a in args]
 
     def fn():
-        y = f(*ts)
+        y = f(F, *ts)
         return [y.detach().numpy()] + [g.numpy() for g in torch.autograd.grad(
             y, [t for t in ts if t.requires_grad], torch.from_numpy(dy))]
     return fn
@@ -108,10 +108,8 @@ def vq_op(size, rng):
     best = brute_force(x, codes)  # float64 direct differences, the first minimum
 
     def numpy_fn(x):  # the published quantizer's expanded formula
-        def fn():
-            d = (x["x"] ** 2).sum(1, keepdims=True) - 2 * x["x"] @ x["codes"].T + (x["codes"] ** 2).sum(1)  # (M, K)
-            return [d[np.arange(M), d.argmin(1)]]
-        return fn
+        d = (x["x"] ** 2).sum(1, keepdims=True) - 2 * x["x"] @ x["codes"].T + (x["codes"] ** 2).sum(1)  # (M, K)
+        return [d[np.arange(M), d.argmin(1)]]
 
     def torch_fn(x):
         import torch
@@ -119,7 +117,8 @@ def vq_op(size, rng):
         return lambda: [(torch.cdist(xt, ct).min(dim=1)[0] ** 2).numpy()]
 
     return dict(outputs=("sq_dist",), inputs=dict(x=x, codes=codes), reference=[((x - codes[best]) ** 2).sum(1)],
-                pyvf=lambda x: lambda: [pyvf.vq_nearest(x["x"], x["codes"])[1]], numpy=numpy_fn, torch=torch_fn)
+                pyvf=lambda x: lambda: [pyvf.vq_nearest(x["x"], x["codes"])[1]], numpy=lambda x: lambda: numpy_fn(x),
+                torch=torch_fn)
 
 
 def layernorm_op(size, rng):
@@ -130,19 +129,16 @@ def layernorm_op(size, rng):
                                                          0.1 * rng.standard_normal(d), rng.standard_normal(size))))
 
     def numpy_fn(x):  # the textbook two-pass moments
-        def fn():
-            xc = x["x"] - x["x"].mean(-1, keepdims=True)
-            rstd = 1 / np.sqrt((xc * xc).mean(-1, keepdims=True) + x["x"].dtype.type(1e-5))
-            xhat, dxhat = xc * rstd, x["dy"] * x["gamma"]
-            dx = rstd * (dxhat - dxhat.mean(-1, keepdims=True) - xhat * (dxhat * xhat).mean(-1, keepdims=True))
-            return [xhat * x["gamma"] + x["beta"], dx, (x["dy"] * xhat).sum(0), x["dy"].sum(0)]
-        return fn
+        xc = x["x"] - x["x"].mean(-1, keepdims=True)
+        rstd = 1 / np.sqrt((xc * xc).mean(-1, keepdims=True) + x["x"].dtype.type(1e-5))
+        xhat, dxhat = xc * rstd, x["dy"] * x["gamma"]
+        dx = rstd * (dxhat - dxhat.mean(-1, keepdims=True) - xhat * (dxhat * xhat).mean(-1, keepdims=True))
+        return [xhat * x["gamma"] + x["beta"], dx, (x["dy"] * xhat).sum(0), x["dy"].sum(0)]
 
-    def torch_fn(x):
-        from torch.nn import functional as F
-        return _torch_vjp(lambda *a: F.layer_norm(a[0], (d,), *a[1:], 1e-5), x["dy"], x["x"], x["gamma"], x["beta"])
-
-    return dict(outputs=("y", "dx", "dgamma", "dbeta"), inputs=x, reference=numpy_fn(x)(), numpy=numpy_fn, torch=torch_fn,
+    return dict(outputs=("y", "dx", "dgamma", "dbeta"), inputs=x, reference=numpy_fn(x),
+                numpy=lambda x: lambda: numpy_fn(x),
+                torch=lambda x: _torch_vjp(lambda F, *a: F.layer_norm(a[0], (d,), *a[1:], 1e-5), x["dy"], x["x"],
+                                           x["gamma"], x["beta"]),
                 pyvf=lambda x: _pair(layers.layernorm_forward, layers.layernorm_backward, x["dy"], x["x"], x["gamma"],
                                      x["beta"], 1e-5))
 
@@ -153,23 +149,19 @@ def cross_entropy_op(size, rng):
     t = rng.integers(0, V, M)
 
     def numpy_fn(x, log_softmax=False):  # the textbook form: softmax, then the log (the reference: log-sum-exp)
-        def fn():
-            z = x["logits"] - x["logits"].max(1, keepdims=True)
-            logp = z - np.log(np.exp(z).sum(1, keepdims=True)) if log_softmax else np.log(
-                np.exp(z) / np.exp(z).sum(1, keepdims=True))
-            d = np.exp(logp)
-            d[np.arange(M), t] -= 1
-            return [-logp[np.arange(M), t], d * x["dloss"][:, None]]
-        return fn
-
-    def torch_fn(x):
-        from torch.nn import functional as F
-        return _torch_vjp(lambda z, t: F.cross_entropy(z, t, reduction="none"), x["dloss"], x["logits"], t)
+        z = x["logits"] - x["logits"].max(1, keepdims=True)
+        logp = z - np.log(np.exp(z).sum(1, keepdims=True)) if log_softmax else np.log(
+            np.exp(z) / np.exp(z).sum(1, keepdims=True))
+        d = np.exp(logp)
+        d[np.arange(M), t] -= 1
+        return [-logp[np.arange(M), t], d * x["dloss"][:, None]]
 
     x = dict(logits=logits, dloss=dloss)
-    return dict(outputs=("loss", "dlogits"), inputs=x, reference=numpy_fn(x, log_softmax=True)(), numpy=numpy_fn,
+    return dict(outputs=("loss", "dlogits"), inputs=x, reference=numpy_fn(x, log_softmax=True),
+                numpy=lambda x: lambda: numpy_fn(x),
                 pyvf=lambda x: _pair(losses.cross_entropy_forward, losses.cross_entropy_backward, x["dloss"], x["logits"], t),
-                torch=torch_fn)
+                torch=lambda x: _torch_vjp(lambda F, z, t: F.cross_entropy(z, t, reduction="none"), x["dloss"],
+                                           x["logits"], t))
 
 
 def gelu_mp(x):
@@ -193,17 +185,12 @@ def gelu_op(n, rng):
     dy = _round32(rng.standard_normal(n))[0]
     ys = [gelu_mp(v) for v in x]
 
-    def torch_fn(x):
-        from torch.nn import functional as F
-        return _torch_vjp(F.gelu, x["dy"], x["x"])
-
     def numpy_fn(x):
-        def fn():
-            y, d = gelu_naive(x["x"])
-            return [y, d * x["dy"]]
-        return fn
+        y, d = gelu_naive(x["x"])
+        return [y, d * x["dy"]]
 
-    return dict(outputs=("y", "dx"), inputs=dict(x=x, dy=dy), torch=torch_fn, numpy=numpy_fn,
+    return dict(outputs=("y", "dx"), inputs=dict(x=x, dy=dy), torch=lambda x: _torch_vjp(
+        lambda F, a: F.gelu(a), x["dy"], x["x"]), numpy=lambda x: lambda: numpy_fn(x),
                 pyvf=lambda x: _pair(layers.gelu_forward, layers.gelu_backward, x["dy"], x["x"]),
                 reference=[np.array([float(a) for a, _ in ys]), np.array([float(b) for _, b in ys]) * dy])
 
@@ -228,13 +215,10 @@ def conv2d_op(size, rng):
                                                  rng.standard_normal((Co, C, 3, 3)) / math.sqrt(9 * C),
                                                  rng.standard_normal(Co), rng.standard_normal((B, Co, Hi, Wi)))))
 
-    def torch_fn(x):
-        from torch.nn import functional as F
-        return _torch_vjp(lambda *a: F.conv2d(*a, padding=1), x["dy"], x["x"], x["w"], x["b"])
-
     return dict(outputs=("y", "dx", "dw", "db"), inputs=x, reference=conv_windows(*x.values()),
                 pyvf=lambda x: _pair(conv.conv2d_forward, conv.conv2d_backward, x["dy"], x["x"], x["w"], x["b"], 1, 1),
-                torch=torch_fn, numpy=lambda x: lambda: conv_windows(*x.values()))
+                torch=lambda x: _torch_vjp(lambda F, *a: F.conv2d(*a, padding=1), x["dy"], x["x"], x["w"], x["b"]),
+                numpy=lambda x: lambda: conv_windows(*x.values()))
 
 
 OPS = {"attention": attention_op, "vq_nearest": vq_op, "layernorm": layernorm_op, "cross_entropy": cross_entropy_op,
@@ -285,10 +269,7 @@ def plot_op(res, folder):
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set(xlabel="median time (ms)", ylabel="normwise relative error vs float64 reference",
            title=f"{res['op']}, size {res['size']}")
-    ax.grid(True, which="both", alpha=0.3)
-    path = os.path.join(folder, f"accuracy-{res['op'].replace('_', '-')}.png")
-    save_figure(fig, path)
-    return path
+    return save_figure(fig, folder, f"accuracy-{res['op'].replace('_', '-')}.png")
 
 
 def run(quick=False, threads=2, ops=tuple(OPS), plots=None, log=print):
@@ -303,7 +284,6 @@ def run(quick=False, threads=2, ops=tuple(OPS), plots=None, log=print):
     for res in results:
         log(f"\n## {res['op']}, size {res['size']}\n\n{op_table(res)}")
         if plots and pyplot():
-            os.makedirs(plots, exist_ok=True)
             res["plot"] = plot_op(res, plots)
     failures = [f"{res['op']} / {r['name']}: {r['fail']}" for res in results for r in res["variants"] if "fail" in r]
     return dict(config=dict(quick=quick, repeat=repeat), machine=machine(threads), results=results, failures=failures)

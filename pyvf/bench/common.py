@@ -130,12 +130,16 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path, where="right upper", ncol=1):
-    """One legend for every axes of fig, outside them (layout="constrained"); fig written and closed."""
+def save_figure(fig, folder, name, where="right upper", ncol=1):
+    """Every axes of fig gridded, one legend for them all outside them (layout="constrained"); fig
+    written to folder/name and closed. The path."""
     seen = {}
     for ax in fig.axes:
+        ax.grid(True, which="both", alpha=0.3)
         for handle, label in zip(*ax.get_legend_handles_labels()):
             seen.setdefault(label, handle)
     fig.legend(list(seen.values()), list(seen), loc=f"outside {where}", fontsize=7, ncol=ncol)
-    fig.savefig(path, dpi=100)
+    os.makedirs(folder, exist_ok=True)
+    fig.savefig(os.path.join(folder, name), dpi=100)
     pyplot().close(fig)
+    return os.path.join(folder, name)

@@ -24,8 +24,8 @@ cancellation far from the origin is `pyvf bench vq`'s table of offsets.
                       the probability underflows; the log-sum-exp form does not
 """
 
+import functools
 import math
-import os
 
 import numpy as np
 
@@ -55,17 +55,13 @@ def _dense(q, k, v, mask, sentinel=False, subtract_max=True):
 
 def attention_sweep(name, quick, rng):
     """attention-spread or attention-mask. Error: max|o - o_ref| / max|v| (o is a weighted mean of
-    v). pyvf float32's bound: (e^(2 delta) - 1) + 1e-5, delta = dh u max sum|q k|, the largest
-    rounding a float32 logit can carry (tests/test_attention.py); float64's 4 s u64 + 1e-12, s the
-    largest |logit|."""
+    v). delta in pyvf float32's bound is the largest rounding a float32 logit can carry
+    (tests/test_attention.py)."""
     shape = (3, 1, 2, 3, 8, 16) if quick else (3, 1, 2, 4, 16, 32)  # (R, B, H, N, L, dh)
     R, B, H, N, L, dh = shape
     mask = pyvf.branching_mask(R, N, L)
     torch = torch_or_none()
-    lines = {k: [] for k in ("pyvf float32", "pyvf float64", "numpy exact float32", "naive exp (no max) float32",
-                             "published -1e4 mask float32", "published -1e4 mask float64")
-             + (("torch SDPA float32",) if torch else ())}
-    bounds = {"pyvf float32": [], "pyvf float64": []}
+    lines, bounds = {}, {"pyvf float32": [], "pyvf float64": []}
     values = np.logspace(0, 6, 7 if quick else 13)
     for s in values:
         q, k, v = (rng.standard_normal(shape) for _ in range(3))
@@ -78,17 +74,16 @@ def attention_sweep(name, quick, rng):
         x64 = [a.astype(np.float64) for a in x32]
         ref = flat(pyvf.branching_attention_reference(*x64))
         f32, f64 = [flat(a) for a in x32], [flat(a) for a in x64]
-        vmax = np.abs(x64[2]).max()
-        lines["pyvf float32"].append(_err(flat(pyvf.branching_attention(*x32)), ref, vmax))
-        lines["pyvf float64"].append(_err(flat(pyvf.branching_attention(*x64)), ref, vmax))
+        outs = {"pyvf float32": flat(pyvf.branching_attention(*x32)),
+                "pyvf float64": flat(pyvf.branching_attention(*x64)), "numpy exact float32": _dense(*f32, mask),
+                "naive exp (no max) float32": _dense(*f32, mask, subtract_max=False),
+                "published -1e4 mask float32": _dense(*f32, mask, sentinel=True),
+                "published -1e4 mask float64": _dense(*f64, mask, sentinel=True)}
         if torch:
-            o = torch.nn.functional.scaled_dot_product_attention(*map(torch.from_numpy, f32),
-                                                                 attn_mask=torch.from_numpy(mask), scale=1.0)
-            lines["torch SDPA float32"].append(_err(o.numpy(), ref, vmax))
-        lines["numpy exact float32"].append(_err(_dense(*f32, mask), ref, vmax))
-        lines["naive exp (no max) float32"].append(_err(_dense(*f32, mask, subtract_max=False), ref, vmax))
-        lines["published -1e4 mask float32"].append(_err(_dense(*f32, mask, sentinel=True), ref, vmax))
-        lines["published -1e4 mask float64"].append(_err(_dense(*f64, mask, sentinel=True), ref, vmax))
+            outs["torch SDPA float32"] = torch.nn.functional.scaled_dot_product_attention(
+                *map(torch.from_numpy, f32), attn_mask=torch.from_numpy(mask), scale=1.0).numpy()
+        for line, o in outs.items():
+            lines.setdefault(line, []).append(_err(o, ref, np.abs(x64[2]).max()))
         logits = np.where(mask, np.abs(f64[0]) @ np.abs(f64[1]).swapaxes(-1, -2), 0)
         bounds["pyvf float32"].append(float(np.expm1(2 * dh * U32 / (1 - dh * U32) * logits.max()) + 1e-5))
         bounds["pyvf float64"].append(float(4 * np.abs(np.where(mask, f64[0] @ f64[1].swapaxes(-1, -2), 0)).max()
@@ -102,8 +97,7 @@ def attention_sweep(name, quick, rng):
 
 def layernorm_sweep(quick, rng):
     """Rows of mean +-s and spread 1, gamma = 1, beta = 0 (y = xhat). Error: max|y - y_ref| /
-    max|y_ref|, y_ref in long double. pyvf's bound: its tests' for ordinary rows, whatever s (the
-    second centring pass makes the large mean cost nothing)."""
+    max|y_ref|, y_ref in long double. pyvf's second centring pass makes the large mean cost nothing."""
     shape, eps = ((64, 64) if quick else (256, 256)), 1e-5
     torch = torch_or_none()
     lines = {n: [] for n in ("pyvf float32", "pyvf float64", "one-pass float32", "one-pass float64",
@@ -200,13 +194,9 @@ def cross_entropy_sweep(quick, rng):
                 bound_text=f"(V + 4) u relative, V = {V}")
 
 
-SWEEPS = {
-    "attention-spread": lambda quick, rng: attention_sweep("attention-spread", quick, rng),
-    "attention-mask": lambda quick, rng: attention_sweep("attention-mask", quick, rng),
-    "layernorm": layernorm_sweep,
-    "gelu": gelu_sweep,
-    "cross-entropy": cross_entropy_sweep,
-}
+SWEEPS = {"attention-spread": functools.partial(attention_sweep, "attention-spread"),
+          "attention-mask": functools.partial(attention_sweep, "attention-mask"),
+          "layernorm": layernorm_sweep, "gelu": gelu_sweep, "cross-entropy": cross_entropy_sweep}
 
 
 def check(sw):
@@ -245,10 +235,7 @@ def plot_sweep(sw, folder):
     ax.plot([], [], "x", color="gray", label="NaN / inf (drawn at the top)")
     ax.set(yscale="log", xscale="log" if sw.get("logx", True) else "linear", xlabel=sw["xlabel"],
            ylabel=sw["ylabel"] + f"\n(below {floor:.0e}, 0 included, drawn at {floor:.0e})", title=sw["title"])
-    ax.grid(True, which="both", alpha=0.3)
-    path = os.path.join(folder, f"hardcase-{sw['name']}.png")
-    save_figure(fig, path)
-    return path
+    return save_figure(fig, folder, f"hardcase-{sw['name']}.png")
 
 
 def sweep_summary(sw):
@@ -273,7 +260,6 @@ def run(quick=False, threads=2, names=tuple(SWEEPS), plots=None, log=print):
         sw["check"], sw["breaks"] = check(sw)
         log(f"\n## {sw['title']}\n\n{sweep_summary(sw)}", flush=True)
         if plots and pyplot():
-            os.makedirs(plots, exist_ok=True)
             sw["plot"] = plot_sweep(sw, plots)
         sweeps.append(sw)
     failures = [f"{sw['name']} / {n}: first out at x = {c['first_x_out']:.3g} (worst error / bound "

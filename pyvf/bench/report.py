@@ -47,16 +47,11 @@ def scaling_line(scal, kind):
     return line + "."
 
 
-def against(res):
-    """One op of the accuracy report: (pyvf float32's variant, the one it is compared with: torch
-    float32, else NumPy float32), each None where it failed validation or was not run."""
-    timed = {r["name"]: r for r in res["variants"] if "seconds" in r}
-    return timed.get("pyvf float32"), timed.get("torch float32") or timed.get("numpy float32")
-
-
 def speed_error_line(acc):
-    """The speed-against-error conclusion: per op, pyvf float32's time and error over the other's."""
-    pairs = [(res["op"], *against(res)) for res in acc["results"]]
+    """The speed-against-error conclusion: per op, pyvf float32's time and error over torch float32's
+    (else NumPy float32's); an op where either failed validation or was not run is left out."""
+    timed = [(res["op"], {r["name"]: r for r in res["variants"] if "seconds" in r}) for res in acc["results"]]
+    pairs = [(op, t.get("pyvf float32"), t.get("torch float32") or t.get("numpy float32")) for op, t in timed]
     done = [(op, p, r) for op, p, r in pairs if p and r]
     return (f"* **Speed against error**: pyvf float32 (kernel path {acc['machine']['kernel_path']}) against "
             f"{done[0][2]['name'] if done else 'no other variant'}, time ratio / error ratio: "

@@ -18,8 +18,6 @@ is skipped, and so are its larger N. The slopes of log(memory) and log(time) aga
 fitted: in theory pyvf's memory ~N; the dense mask's ~N^2; the naive approach's ~N^2, time ~N^3.
 """
 
-import os
-
 import numpy as np
 
 from pyvf.bench.attention import B, L, METHODS, R, REPEAT, WORKER, theory
@@ -111,7 +109,6 @@ def plot(points, fit, sizes, methods, folder):
     if plt is None:
         return None
     from matplotlib.ticker import NullFormatter
-    os.makedirs(folder, exist_ok=True)
     files, Ns = [], sorted({p["N"] for p in points})
     for H, dh in sizes:
         for what, unit, scale in (("memory", "MiB", 2 ** 20), ("time", "ms", 1e-3)):
@@ -127,10 +124,8 @@ def plot(points, fit, sizes, methods, folder):
                 ax.set_xticks(Ns, [str(n) for n in Ns])
                 ax.xaxis.set_minor_formatter(NullFormatter())
                 ax.set(title=f"{what}, {title}: H={H} dh={dh} R={R} L={L}", xlabel="N (views)")
-                ax.grid(True, which="both", alpha=0.3)
             axes[0].set_ylabel(f"extra peak memory ({unit})" if what == "memory" else f"median time ({unit})")
-            files.append(os.path.join(folder, f"scaling-{what}-H{H}-dh{dh}.png"))
-            save_figure(fig, files[-1], "lower center", ncol=2)
+            files.append(save_figure(fig, folder, f"scaling-{what}-H{H}-dh{dh}.png", "lower center", ncol=2))
     return files
 
 

@@ -102,27 +102,35 @@ def transformer_pyvf(config, steps):
     return step_figures(loss, gradients, step, steps)
 
 
+def torch_figures(P, opt, loss_of, steps):
+    """step_figures of a torch model: P {name: leaf tensor}, its optimizer, loss_of() -> the loss
+    tensor at the current parameters."""
+    import torch
+
+    torch.set_num_threads(pyvf.num_threads())
+    loss = loss_of()
+    loss.backward()
+    gradients = {k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()}
+
+    def step():
+        opt.zero_grad()
+        loss = loss_of()
+        loss.backward()
+        opt.step()
+        return loss.item()
+    return step_figures(loss.item(), gradients, step, steps)
+
+
 def transformer_torch(config, steps):
     import torch
 
     from pyvf.verify.torch_ports import transformer_forward
 
-    torch.set_num_threads(pyvf.num_threads())
     cfg, tokens, poses, model = transformer_setup(config)
     P = {k: torch.tensor(v.copy(), requires_grad=True) for k, v in model.params.items()}
-    opt = torch.optim.AdamW(P.values(), lr=1e-4, weight_decay=0.01)
     t_tokens, t_poses = torch.tensor(tokens), torch.tensor(poses)
-    out = transformer_forward(P, t_tokens, t_poses, cfg)[-1]
-    out.backward()
-    gradients = {k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()}
-
-    def step():
-        opt.zero_grad()
-        loss = transformer_forward(P, t_tokens, t_poses, cfg)[-1]
-        loss.backward()
-        opt.step()
-        return loss.item()
-    return step_figures(out.item(), gradients, step, steps)
+    return torch_figures(P, torch.optim.AdamW(P.values(), lr=1e-4, weight_decay=0.01),
+                         lambda: transformer_forward(P, t_tokens, t_poses, cfg)[-1], steps)
 
 
 def codebook_setup(config):
@@ -133,9 +141,8 @@ def codebook_setup(config):
 
 def codebook_pyvf(config, steps):
     _, cb, images = codebook_setup(config)
-    loss = float(cb.forward(images, train=True).loss)  # the first step's loss and gradients
+    loss = float(cb.forward(images, train=True).loss)  # the first step's loss and gradients (and EMA update)
     gradients = cb.backward()
-    _, cb, images = codebook_setup(config)  # a fresh model: the forward above moved the EMA
     opt = pyvf.Adam(cb.params, LR, betas=BETAS)
     step = lambda: float(pyvf.codebook_train_step(cb, opt, images).loss)  # noqa: E731  (the loss before its update)
     return step_figures(loss, gradients, step, steps)
@@ -146,27 +153,18 @@ def codebook_torch(config, steps):
 
     from pyvf.verify.torch_ports import codebook_forward
 
-    torch.set_num_threads(pyvf.num_threads())
     cfg, cb, images = codebook_setup(config)
     P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
-    q = cb.quantizer
+    q, x = cb.quantizer, torch.tensor(images)
     state = {"buffers": {"quantize.embeddings": torch.tensor(q.embeddings),
                          "quantize.ema_cluster_size_hidden": torch.tensor(q.ema_cluster_size_hidden),
                          "quantize.ema_dw_hidden": torch.tensor(q.ema_dw_hidden), "quantize.counter": q.counter}}
-    x = torch.tensor(images)
-    out = codebook_forward(P, state["buffers"], x, cfg)
-    out["loss"].backward()
-    gradients = {k: p.grad.numpy() if p.grad is not None else np.zeros(p.shape) for k, p in P.items()}
-    opt = torch.optim.Adam(P.values(), LR, betas=BETAS)
 
-    def step():  # from the weights and buffers the forward above started from
-        opt.zero_grad()
+    def loss_of():
         out = codebook_forward(P, state["buffers"], x, cfg)
-        out["loss"].backward()
-        opt.step()
         state["buffers"] = out["buffers"]  # the EMA update kept, as pyvf's codebook keeps it
-        return out["loss"].item()
-    return step_figures(out["loss"].item(), gradients, step, steps)
+        return out["loss"]
+    return torch_figures(P, torch.optim.Adam(P.values(), LR, betas=BETAS), loss_of, steps)
 
 
 FRAMEWORKS = {("transformer", "pyvf"): transformer_pyvf, ("transformer", "torch"): transformer_torch,
