@@ -225,25 +225,27 @@ def _check_same_codebook(a, b, w0, rtol):
             assert err < rtol, (k, err)
 
 
-def test_torch_codebook_equals_pyvf_and_resumes_across_engines(tmp_path):
-    """In float64, 4 steps with object weighting and a dead-code restart: every weight and EMA
+@pytest.mark.parametrize("empty_code", [False, True])
+def test_torch_codebook_equals_pyvf_and_resumes_across_engines(tmp_path, empty_code):
+    """In float64 (with and without the empty code, whose patches a restart never draws from), 4 steps with object weighting and a dead-code restart: every weight and EMA
     buffer within 1e-9 of its movement (measured 1.3e-12 after 20 steps: float64's u = 1.1e-16
     amplified by training, ~1e4); the same for pyvf's checkpoint at step 3 continued by torch. (In
     float32 the same amplification of u = 6e-8 leaves ~1e-3: there parity checks the forward, below.)
     The comparison sees an engine that skips the object weighting. (A wrong epsilon convention or EMA
     decay moves the weights or the EMA buffers by far more than 1e-9; a wrong forward fails parity.)"""
-    w0 = Codebook(CB64, seed=0).state_dict()
-    a = _train_cb(tmp_path, "pyvf", "pyvf").state_dict()
-    b = _train_cb(tmp_path, "torch", "torch").state_dict()
+    cfg = dataclasses.replace(CB64, empty_code=empty_code)
+    w0 = Codebook(cfg, seed=0).state_dict()
+    a = _train_cb(tmp_path, "pyvf", "pyvf", cfg).state_dict()
+    b = _train_cb(tmp_path, "torch", "torch", cfg).state_dict()
     _check_same_codebook(a, b, w0, 1e-9)
     logs = [list(csv.DictReader(open(tmp_path / n / "log.csv"))) for n in ("pyvf", "torch")]
     for ra, rb in zip(*logs):
         assert ra["lr"] == rb["lr"] and ra["usage"] == rb["usage"], (ra, rb)
         assert abs(float(ra["loss"]) - float(rb["loss"])) < 1e-12 * float(ra["loss"])
-    _train_cb(tmp_path, "cross", "pyvf", steps=3)
-    _check_same_codebook(a, _train_cb(tmp_path, "cross", "torch").state_dict(), w0, 1e-9)
+    _train_cb(tmp_path, "cross", "pyvf", cfg, steps=3)
+    _check_same_codebook(a, _train_cb(tmp_path, "cross", "torch", cfg).state_dict(), w0, 1e-9)
     with pytest.raises(AssertionError):
-        _check_same_codebook(a, _train_cb(tmp_path, "w1", "torch", object_weight=1.0).state_dict(), w0, 1e-9)
+        _check_same_codebook(a, _train_cb(tmp_path, "w1", "torch", cfg, object_weight=1.0).state_dict(), w0, 1e-9)
 
 
 def test_torch_codebook_resume_and_parity_log(tmp_path):

@@ -319,7 +319,8 @@ class TorchCodebook(TorchEngine):
         port, torch = self.port, self.torch
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
             z = port.quant_conv(port.encoder(x))  # (B, D, k, k)
-        q, commitment, codes = port.quantize(z.to(self.dtype))  # the lookup and the EMA never in bf16
+        empty = port.empty_patches(x) if port.empty_code else None  # (B, k, k): patches that take code 0
+        q, commitment, codes = port.quantize(z.to(self.dtype), empty)  # the lookup and the EMA never in bf16
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
             rec = port.decoder(port.post_quant_conv(q))
         return rec.to(self.dtype), commitment, codes
@@ -353,7 +354,8 @@ class TorchCodebook(TorchEngine):
         with torch.no_grad():
             z = self.port.quant_conv(self.port.encoder(torch.as_tensor(images).to(self.device)))  # (B, D, k, k)
         quantizer.load_state_dict({k: v.cpu().numpy() for k, v in self.port.quantize.state_dict().items()})
-        n = quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng, **codes)
+        empty = self.pyvf_model.empty_patches(images)  # None without the empty code
+        n = quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng, empty=empty, **codes)
         self.port.quantize.load_state_dict({k: torch.as_tensor(v) for k, v in quantizer.state_dict().items()})
         return n
 
