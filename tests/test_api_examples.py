@@ -47,7 +47,7 @@ def _check_transformer(ns, out):
     # train_step's loss is forward's on the relative poses, and its norm (global clipping: one norm)
     # that of backward's gradients: the same parameters, forward and backward change none.
     # float32 sums in other orders: 1e-5
-    assert ns["loss"] == pytest.approx(float(ns["out"].loss), rel=1e-5)
+    assert ns["step"].loss == pytest.approx(float(ns["out"].loss), rel=1e-5)
     norm = np.sqrt(sum((g.astype(np.float64) ** 2).sum() for g in ns["grads"].values()))
     assert ns["norm"] == pytest.approx(norm, rel=1e-5)
 

@@ -56,9 +56,9 @@ def assert_ran(proc, *expected):
 def test_import_pyvf_is_the_installed_package_and_imports_no_torch_or_command_code(tmp_path):
     """`import pyvf` from outside the source tree imports the installed package, and neither torch
     nor the command line: the library's modules that do a command's work (every benchmark, the
-    demo, the training tasks, the scenes) do not import argparse; only pyvf.cli parses arguments."""
+    scenes) do not import argparse; only pyvf.cli parses arguments."""
     library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
-               "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, pyvf.evaluate.demo, pyvf.train.tasks, "
+               "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, "
                "pyvf.scenes.make, pyvf.bench.common, pyvf.verify.convert_tf, pyvf.verify.convert_torch")
     code = (f"import sys, pyvf, {library}; assert 'torch' not in sys.modules, 'pyvf imported torch'; "
             "print(sorted(m for m in sys.modules if m == 'argparse' or m.startswith('pyvf.cli') or "

@@ -310,8 +310,15 @@ def test_verdicts_at_each_context_and_the_goal_at_contexts_3_and_5():
     on every figure; at context 5 it loses mean_image's MAE (2.0 vs 1.5) and closest_image_pose's
     orientation (10 vs 8). verdict_lines(context=C) reads that context, not the largest; goal_line
     names exactly the figures that hold and fail (an inverted comparison or a swapped baseline
-    would move them); the model card's section (tools/model_card.py) has every context, then them."""
-    from pyvf.evaluate.run import goal_line, verdict_lines
+    would move them); the model card's section (tools/model_card.py, goal_line's home) has every
+    context, then them."""
+    from pyvf.evaluate.run import verdict_lines
+    spec = importlib.util.spec_from_file_location(
+        "model_card", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools",
+                                   "model_card.py"))
+    card = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(card)
+    goal_line = card.goal_line
 
     def row(mae=None, rmse=None, pos=None, ori=None):
         return {k: v for k, v in (("mae", mae), ("rmse", rmse), ("position_error_median", pos),
@@ -322,13 +329,13 @@ def test_verdicts_at_each_context_and_the_goal_at_contexts_3_and_5():
     c5 = {"pyvf": row(2.0, 9.0, 1.0, 10.0), "nearest_view": row(3.0, 10.0), "mean_image": row(1.5, 11.0),
           "closest_image_pose": row(pos=2.0, ori=8.0), "mean_pose": row(pos=3.0, ori=14.0)}
     metrics = {"context": {"3": c3, "5": c5, "10": c3}, "meta": {"scenes": 7}}
-    lines = verdict_lines(metrics, context=5, paper=False)
+    lines = verdict_lines(metrics, context=5)
     assert lines == ["Does pyvf beat the baselines? (context 5, 7 held-out scenes; lower is better)",
                      "- nearest_view: yes (MAE 2.00 vs 3.00, RMSE 9.00 vs 10.00)",
                      "- mean_image: partly (MAE 2.00 vs 1.50, RMSE 9.00 vs 11.00)",
                      "- closest_image_pose: partly (position 1.00 vs 2.00, orientation (deg) 10.00 vs 8.00)",
                      "- mean_pose: yes (position 1.00 vs 3.00, orientation (deg) 10.00 vs 14.00)"]
-    assert all(" yes (" in x for x in verdict_lines(metrics, context="3", paper=False)[1:])
+    assert all(" yes (" in x for x in verdict_lines(metrics, context="3")[1:])
     every = ("nearest_view (MAE, RMSE), mean_image (MAE, RMSE), closest_image_pose (position, orientation), "
              "mean_pose (position, orientation)")
     assert goal_line(metrics) == (
@@ -340,11 +347,6 @@ def test_verdicts_at_each_context_and_the_goal_at_contexts_3_and_5():
     assert ": not shown (a context is missing). Context 3: " in goal_line({"context": {"3": c3}})
     assert goal_line({"context": {"3": c3}}).endswith("Context 5: not evaluated.")
 
-    spec = importlib.util.spec_from_file_location(
-        "model_card", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools",
-                                   "model_card.py"))
-    card = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(card)
     section = card._baselines(metrics)
     assert section[0] == "## Against the baselines"
     heads = [x for x in section if x.startswith("Does pyvf beat")]

@@ -368,11 +368,11 @@ def test_refusals_name_the_argument(rng, call, error, name):
 
 
 # ---------------------------------------------------------------------------------------
-# the norm transformer_step logs
+# the norm train_step logs
 
 
 def test_global_norm_is_the_float64_norm_and_says_nan_or_inf():
-    """global_norm (transformer_step's norm without clipping) against NumPy in float64: float32
+    """global_norm (train_step's norm without clipping) against NumPy in float64: float32
     tensors whose squares overflow float32, an empty tensor, all zeros; NaN and inf named as nan
     and inf; the gradients are not modified. Per tensor, float32 values near the float32 maximum."""
     from pyvf.train.optim import global_norm

@@ -31,9 +31,8 @@ from pyvf.models.codebook import Codebook, CodebookConfig
 from pyvf.models.transformer import Transformer, TransformerConfig
 from pyvf.train import codebook_batch, load_tokens, tokenize, train_codebook, train_transformer, transformer_batch
 from pyvf.train.loops import RunOptions, TransformerRecipe
-from pyvf.cli.train import register as cli_register
+from pyvf.cli.train import export_run, register as cli_register
 from pyvf.train.curves import runs_table
-from pyvf.train.tasks import export_run
 
 # 16x16 images -> 8x8 tokens (one downsampling), 16 codes
 CB = CodebookConfig(ch=32, ch_mult=(1, 1), num_res_blocks=1, attn_resolutions=(), z_channels=8, embed_dim=8,
@@ -469,9 +468,9 @@ def test_tasks_refuse_held_out_scenes_of_the_training_seed(tmp_path):
     """Held-out scenes of the training data's seed raise naming eval_seed, nothing written; seed 1 trains."""
     run, codebook = _smoke_files(tmp_path)
     o, out = opts(2, batch_size=2, eval_every=1), str(tmp_path / "tf")
-    for call in (lambda seed: pyvf.train.tasks.transformer_run(str(tmp_path / "tok.npz"), out, o, config=str(
+    for call in (lambda seed: pyvf.cli.train.transformer_run(str(tmp_path / "tok.npz"), out, o, config=str(
                      tmp_path / "tf.json"), codebook=codebook, eval_scenes=1, eval_seed=seed),
-                 lambda seed: pyvf.train.tasks.codebook_run(str(tmp_path / "d16"), out, o, config=str(
+                 lambda seed: pyvf.cli.train.codebook_run(str(tmp_path / "d16"), out, o, config=str(
                      tmp_path / "cb.json"), eval_scenes=1, eval_seed=seed)):
         with pytest.raises(ValueError, match=r"\beval_seed\b"):
             call(0)
@@ -658,7 +657,7 @@ def test_ctrl_c_in_train_transformer_and_tokenize(tmp_path, monkeypatch, capsys)
     def tokenize(*args, **kw):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pyvf.train.tasks, "tokenize", tokenize)
+    monkeypatch.setattr(pyvf.cli.train, "tokenize", tokenize)
     assert run("tokenize", "--codebook", cb, "--data", tmp_path / "d16", "--out", tmp_path / "t2.npz",
                "--no-progress") == 130
     assert capsys.readouterr().err.startswith("pyvf tokenize: interrupted; rerun the same command")

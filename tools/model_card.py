@@ -17,8 +17,39 @@ import shutil
 import sys
 
 from pyvf._io import atomic_write_text
-from pyvf.evaluate.run import goal_line, paper_line, verdict_lines
+from pyvf.evaluate.run import _SHORT, VERDICTS, _against, paper_line, verdict_lines
 from pyvf.train.curves import eval_panels, plot_curves, plot_eval, read_log
+
+
+_NAME = {m: short.removesuffix(" (deg)") for m, short in _SHORT.items()}  # in lists, without units
+# The project's goal: pyvf beats every baseline of VERDICTS on each of its metrics at these contexts
+GOAL_CONTEXTS = (3, 5)
+
+
+def _listed(items):
+    """{baseline: [metric, ...]} -> "nearest_view (MAE, RMSE), mean_pose (position)"."""
+    return ", ".join(f"{b} ({', '.join(_NAME[m] for m in ms)})" for b, ms in items.items() if ms) or "none"
+
+
+def goal_line(metrics, contexts=GOAL_CONTEXTS):
+    """Whether pyvf beats every baseline of VERDICTS on each of its metrics at each of `contexts`;
+    per context, the figures that hold and those that fail. -> str."""
+    parts, failing, missing = [], False, False
+    for C in map(str, contexts):
+        if C not in metrics["context"]:
+            parts.append(f"Context {C}: not evaluated.")
+            missing = True
+            continue
+        table = metrics["context"][C]
+        held, failed = {}, {}
+        for base, names in VERDICTS.items():
+            held[base], failed[base], _ = _against(table["pyvf"], table[base], names)
+        failing = failing or any(failed.values())
+        parts.append(f"Context {C}: beats {_listed(held)}" + (f"; does not beat {_listed(failed)}."
+                                                                if any(failed.values()) else " (all)."))
+    word = "not met" if failing else ("not shown (a context is missing)" if missing else "met")
+    return (f"- the goal, at contexts {' and '.join(map(str, contexts))}: pyvf beats {_listed(VERDICTS)}: "
+            f"{word}. " + " ".join(parts))
 
 
 def _snapshot(run_dir, step, tmp):
@@ -124,7 +155,7 @@ def _baselines(metrics):
     lines = ["## Against the baselines", "",
              "Computed from the evaluation's metrics.json: every figure as in the tables above, lower is better."]
     for C in sorted(metrics["context"], key=int):
-        lines += [""] + verdict_lines(metrics, context=C, paper=False)
+        lines += [""] + verdict_lines(metrics, context=C)
     return lines + ["", "Summary:", "", goal_line(metrics), paper_line(), ""]
 
 

@@ -34,8 +34,8 @@ from ..scenes import generate_scenes
 from .metrics import (QUERIES, closest_image_pose, empty_entropy, empty_patches, encode_images, image_metrics,
                       mean_image, mean_pose, nearest_view, pose_metrics, psnr_cap, to_uint8)
 
-__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "PAPER_SM7", "DECODES", "DEFAULT_DECODE", "GOAL_CONTEXTS",
-           "evaluate", "goal_line", "metrics_markdown", "paper_line", "render_images", "verdict_lines",
+__all__ = ["IMAGE_METRICS", "POSE_METRICS", "METHODS", "PAPER_SM7", "DECODES", "DEFAULT_DECODE",
+           "evaluate", "metrics_markdown", "paper_line", "render_images", "verdict_lines",
            "write_metrics"]
 
 IMAGE_METRICS = ("mae", "rmse", "psnr")
@@ -282,9 +282,6 @@ VERDICTS = {"nearest_view": ("mae", "rmse"), "mean_image": ("mae", "rmse"),
             "mean_pose": ("position_error_median", "orientation_error_median_deg")}
 _SHORT = {"mae": "MAE", "rmse": "RMSE", "position_error_median": "position",
           "orientation_error_median_deg": "orientation (deg)"}
-_NAME = {m: short.removesuffix(" (deg)") for m, short in _SHORT.items()}  # in lists, without units
-# The project's goal: pyvf beats every baseline of VERDICTS on each of its metrics at these contexts
-GOAL_CONTEXTS = (3, 5)
 
 
 def _against(me, other, names):
@@ -295,9 +292,9 @@ def _against(me, other, names):
     return won, [m for m in names if m not in won], pairs
 
 
-def verdict_lines(metrics, context=None, paper=True):
+def verdict_lines(metrics, context=None):
     """One line per baseline at one context (None: the largest evaluated): pyvf's figures beside the
-    baseline's, and whether pyvf beats it on all of them; then, if paper, paper_line(). -> list of str."""
+    baseline's, and whether pyvf beats it on all of them. -> list of str."""
     C = max(metrics["context"], key=int) if context is None else str(context)
     table = metrics["context"][C]
     lines = [f"Does pyvf beat the baselines? (context {C}, {metrics['meta']['scenes']} held-out scenes; "
@@ -306,8 +303,6 @@ def verdict_lines(metrics, context=None, paper=True):
         won, lost, pairs = _against(table["pyvf"], table[base], names)
         word = "no" if not won else ("partly" if lost else "yes")
         lines.append(f"- {base}: {word} ({pairs})")
-    if paper:
-        lines.append(paper_line())
     return lines
 
 
@@ -315,32 +310,6 @@ def paper_line():
     """The paper's SM7 figures (PAPER_SM7), for scale."""
     return ("- for scale, the paper's SM7 models (hundreds of GPU-hours; context 3; its own scenes, "
             "positions in its units): " + ", ".join(f"{_SHORT[m]} {_fmt(v)}" for m, v in PAPER_SM7.items()))
-
-
-def _listed(items):
-    """{baseline: [metric, ...]} -> "nearest_view (MAE, RMSE), mean_pose (position)"."""
-    return ", ".join(f"{b} ({', '.join(_NAME[m] for m in ms)})" for b, ms in items.items() if ms) or "none"
-
-
-def goal_line(metrics, contexts=GOAL_CONTEXTS):
-    """Whether pyvf beats every baseline of VERDICTS on each of its metrics at each of `contexts`;
-    per context, the figures that hold and those that fail. -> str."""
-    parts, failing, missing = [], False, False
-    for C in map(str, contexts):
-        if C not in metrics["context"]:
-            parts.append(f"Context {C}: not evaluated.")
-            missing = True
-            continue
-        table = metrics["context"][C]
-        held, failed = {}, {}
-        for base, names in VERDICTS.items():
-            held[base], failed[base], _ = _against(table["pyvf"], table[base], names)
-        failing = failing or any(failed.values())
-        parts.append(f"Context {C}: beats {_listed(held)}" + (f"; does not beat {_listed(failed)}."
-                                                                if any(failed.values()) else " (all)."))
-    word = "not met" if failing else ("not shown (a context is missing)" if missing else "met")
-    return (f"- the goal, at contexts {' and '.join(map(str, contexts))}: pyvf beats {_listed(VERDICTS)}: "
-            f"{word}. " + " ".join(parts))
 
 
 def _ms(s):
@@ -362,7 +331,7 @@ def metrics_markdown(metrics):
              f"sides (cameras stand 10 from the object), orientations in degrees. `codebook` is the ground truth "
              f"encoded and decoded: the best any rendering through this codebook can be. pyvf's renderings "
              f"decode {DECODES[meta['decode']]} (decode={meta['decode']}).", ""]
-    lines += verdict_lines(metrics)
+    lines += verdict_lines(metrics) + [paper_line()]
     for C, table in metrics["context"].items():
         lines += ["", f"## Context {C} view{'s' if C != '1' else ''}"]
         if int(C) > meta["trained_context"]:

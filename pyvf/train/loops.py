@@ -26,12 +26,11 @@ from ..evaluate.health import (
     transformer_health_columns,
 )
 from ..evaluate.metrics import encode_images, object_mask, to_model_images
-from ..geometry import _check_unit
+from ..geometry import _check_unit, make_relative
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
 from ._run import Run, file_sha256, fingerprint, resume_point
-from .optim import Adam, AdamW, WarmupCosine, published_weight_decay
-from .step import codebook_train_step, transformer_step
+from .optim import Adam, AdamW, WarmupCosine, clip_grad_norm, global_norm, published_weight_decay
 from .torch_engine import Follower, TorchCodebook, TorchTransformer, check_engine, data_parallel
 
 # 64x64 images -> 8x8 tokens (3 downsamplings, where the paper's 128x128 needs 4); the paper's
@@ -124,6 +123,43 @@ def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="flo
     tok = tokens[scenes[:, None], views].reshape(batch_size, n_views, -1).astype(np.int64)  # (B, N, L)
     pos = poses[scenes[:, None], views].astype(dtype)  # (B, N, 7)
     return tok, pos
+
+
+def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global"):
+    """One transformer step: forward, backward, optional clipping, optimiser step (docs/math.md §5).
+    tokens (B, N, L) ints, poses (B, N, 7), made relative to each sequence's first view first
+    (geometry.make_relative), as the published input pipeline does. max_grad_norm: clip_grad_norm's
+    (clip_mode "global" as torch's clip_grad_norm_, "per_tensor" as tf.clip_by_norm, the published
+    choice). optimizer holds model.params. Returns (the TransformerOutput of the forward before the
+    update, the gradient norm before clipping: a float, or {name: norm} with clip_mode "per_tensor")."""
+    if optimizer.params is not model.params:
+        raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
+    out = model.forward(tokens, make_relative(poses)[0])
+    grads = model.backward()
+    if max_grad_norm is not None:
+        norm = clip_grad_norm(grads, max_grad_norm, mode=clip_mode)
+    else:  # no clipping: the global norm all the same (nan or inf where a gradient is not finite)
+        norm = global_norm(grads)
+    optimizer.step(grads)
+    return out, norm
+
+
+def codebook_train_step(codebook, optimizer, images, pixel_weights=None):
+    """One codebook step: forward with the EMA update (train=True), backward, optimiser step, e.g.
+    with the published `Adam(codebook.params, 1.584e-3, betas=(0.5, 0.9))` (the codes are not
+    parameters: the EMA moves them). pixel_weights: Codebook.forward's. Returns the step's
+    CodebookOutput. A step that raises leaves the codebook as it was: the EMA buffers the forward
+    moved are put back (a retried step would otherwise move them twice)."""
+    if optimizer.params is not codebook.params:
+        raise ValueError("optimizer must be built on codebook.params (Adam(codebook.params, ...))")
+    saved = codebook.quantizer.state_dict()  # copies; the buffers are (D, K): small beside the step
+    out = codebook.forward(images, train=True, pixel_weights=pixel_weights)  # puts them back itself if it raises
+    try:
+        optimizer.step(codebook.backward())
+    except BaseException:
+        codebook.quantizer.load_state_dict(saved)
+        raise
+    return out
 
 
 def _check_images(images, config, name="images"):
@@ -397,7 +433,7 @@ def _transformer_engine(opts, model, opt, dp, recipe, parity):
         return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
 
     def step(tok, pos):
-        out, norm = transformer_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm, clip_mode="per_tensor")
+        out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm, clip_mode="per_tensor")
         if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
             norm = float(np.sqrt(sum(n * n for n in norm.values())))
         return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)), "pose_loss": float(np.mean(out.pose_loss)),

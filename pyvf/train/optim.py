@@ -195,7 +195,7 @@ def _norm64(g):
 
 def global_norm(grads):
     """sqrt(sum over tensors of |g|^2), accumulated in float64, nothing modified: nan where a
-    gradient holds a NaN, inf where one holds an inf (transformer_step's norm without clipping,
+    gradient holds a NaN, inf where one holds an inf (train_step's norm without clipping,
     so that a run logs the same quantity with clipping off)."""
     return math.sqrt(math.fsum(_norm64(g) ** 2 for g in grads.values()))
 
