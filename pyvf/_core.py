@@ -16,19 +16,10 @@ _ARCH_PATHS = {"x86_64": ("baseline", "avx2", "avx512"), "aarch64": ("neon",)}
 # CPU features (cpu_features() names) each path needs.
 _NEEDS = {"avx2": ("avx2", "fma"), "avx512": ("avx512f", "avx512dq", "avx512bw", "avx512vl", "avx2", "fma")}
 
-
-def _arch_paths():
-    machine = platform.machine().lower()
-    machine = {"amd64": "x86_64", "x64": "x86_64", "arm64": "aarch64"}.get(machine, machine)
-    return _ARCH_PATHS.get(machine, ("baseline",))
-
-
-def _built(path):
-    return importlib.util.find_spec(f"pyvf._core_{path}") is not None
-
-
-_order = _arch_paths()
-_built_paths = tuple(p for p in _order if _built(p))
+_machine = platform.machine().lower()
+_machine = {"amd64": "x86_64", "x64": "x86_64", "arm64": "aarch64"}.get(_machine, _machine)
+_order = _ARCH_PATHS.get(_machine, ("baseline",))
+_built_paths = tuple(p for p in _order if importlib.util.find_spec(f"pyvf._core_{p}") is not None)
 if not _built_paths:
     _here = os.path.dirname(os.path.abspath(__file__))
     if os.path.exists(os.path.join(os.path.dirname(_here), "csrc")):  # a source checkout, not an installed copy
