@@ -1,14 +1,9 @@
 // Branching attention kernels (docs/math.md §2).
 //
-// Shapes: q, k, v, o, do are (R, B, H, N, L, dh), C order; block (r, i) of head (b, h) is the
-// (L, dh) matrix at ((((r*B + b)*H + h)*N + i) * L*dh. lse is (R, B, H, N, L) float64.
-//
-// Which keys a query sees. Query block (r, i) attends, every key of each block fully:
-//     trunk blocks (0, j) for j < i,   and its own block (r, i).
-// For the trunk (r = 0) that is blocks 0..i (block-causal); for a branch r >= 1 it is the
-// strictly earlier trunk blocks and branch r's own block i. Every other key is excluded
-// exactly: it is never computed, not given a -1e4 logit. So the work is the attended blocks
-// only: N(N+1)/2 block pairs for the trunk and for each branch, against (R*N)^2 dense.
+// Shapes (kernels.h): block (r, i) of head (b, h) is the (L, dh) matrix at ((((r*B + b)*H + h)*N
+// + i) * L*dh. Query block (r, i) attends every key of trunk blocks (0, j), j < i, and of its own
+// block (r, i) (attends() below); every other key is never computed (exact exclusion), so the work
+// is N(N+1)/2 block pairs for the trunk and for each branch, against (R*N)^2 dense.
 //
 // Everything is computed transposed, keys as rows and queries as columns (s^T = k q^T):
 // then each query's softmax statistics live in a column and the max, exp, sum and rescale
@@ -29,14 +24,11 @@
 // Precision of the float32 path: every dot product (q.k, p.v and the backward products) is
 // accumulated in float32, in increasing index order, with FMA where the CPU has it; the
 // running max, the exp and the softmax denominator l are float32; lse is computed and kept
-// in float64 (m + log l). It is float64 because with unscaled logits of size 1e6 one float32
-// ulp of lse is 0.06, i.e. a 6% error in every recomputed probability; the backward splits
-// it into a float32 hi + lo pair so that (s - hi) - lo is exact where it matters. The error
-// this gives is measured by `pyvf bench attention` and bounded in tests/test_attention.py.
+// in float64 (m + log l): with logits of size 1e6 one float32 ulp of lse is a 6% error in every
+// recomputed probability. The backward splits it into a float32 hi + lo pair, (s - hi) - lo.
 //
-// Test: tests/test_attention.py (NumPy dense reference, torch, finite differences, the
-// plain loops below). Benchmark: pyvf bench attention.
-#include "branching_attention.h"
+// Test: tests/test_attention.py. Benchmark: pyvf bench attention.
+#include "kernels.h"
 
 #include <algorithm>
 #include <cmath>
@@ -66,8 +58,7 @@ struct Layout {
     int64_t nblk() const { return R * B * H * N; }
 };
 
-// Threads cost a wake-up of some microseconds per parallel region: worth it only when the
-// attended block pairs hold enough multiply-adds (here at least ~4M, a few hundred us).
+// Threads only when the attended block pairs hold at least ~4M multiply-adds (a wake-up costs us).
 inline bool worth_threads(const Layout& d) {
     const double pairs = (double)d.B * d.H * d.R * d.N * (d.N + 1) / 2;  // attended block pairs
     return parallel_work((int64_t)(pairs * d.L * d.L * d.dh), 4000000);
@@ -164,14 +155,12 @@ template <typename T> inline bool all_finite(const typename Simd<T>::V& chk) {
 // Tiles, groups, and allocation failures
 
 // A block of L tokens is processed in tiles of at most kTile queries times kTile keys, so the
-// per-thread buffers are O(kTile^2 + kTile*dh) whatever L is (an (L, L) buffer would be 64 GiB
-// at L = 131072). For L <= kTile (the model's L = 64) a tile is the whole block and the
-// arithmetic is exactly the untiled one.
+// per-thread buffers are O(kTile^2 + kTile*dh) whatever L is. For L <= kTile (the model's 64) a
+// tile is the whole block.
 constexpr int64_t kTile = 256;
 
-// Thrown inside a parallel region by any allocation is caught there (an exception must not
-// leave an OpenMP region: the process would abort); the region records it and the kernel
-// returns kAttnOutOfMemory, which the bindings raise as MemoryError.
+// An allocation's exception is caught inside the parallel region (leaving it would abort the
+// process) and the kernel returns kAttnOutOfMemory.
 #define PYVF_TRY_ALLOC(status, ...)                       \
     try {                                                 \
         __VA_ARGS__;                                      \

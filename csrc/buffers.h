@@ -7,10 +7,8 @@
 
 namespace pyvf {
 
-// Work buffers start on a cache line (malloc gives 16 bytes). Allocation failure throws std::bad_alloc.
-// A Buf's resize zeroes the new elements, as std::vector's does; a RawBuf's leaves them unset, for a
-// buffer whose every element read is first written inside a parallel region (a zeroing before it
-// would be one thread's pass over memory while the others wait).
+// Work buffers on a cache line; failure throws std::bad_alloc. A Buf's resize zeroes new elements;
+// a RawBuf's leaves them unset, for buffers first written inside a parallel region.
 template <typename T, bool Zero = true> struct Aligned64 {
     typedef T value_type;
     template <typename U> struct rebind {
@@ -20,9 +18,7 @@ template <typename T, bool Zero = true> struct Aligned64 {
     template <typename U> Aligned64(const Aligned64<U, Zero>&) {}
     T* allocate(size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
     void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
-    // resize's construction of each new element: value-initialised (0) or default-initialised
-    // (for an arithmetic T, nothing at all); a construction with arguments, which this does not
-    // declare, is std::allocator_traits' own placement new
+    // resize's construction of a new element: value-initialised (0) or default (nothing)
     template <typename U> void construct(U* p) {
         if constexpr (Zero)
             ::new ((void*)p) U();

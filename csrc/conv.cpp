@@ -2,7 +2,7 @@
 // stride and per-side zero padding (the codebook's: 3x3 stride 1 pad 1, the Downsample's 3x3
 // stride 2 padded (0, 1, 0, 1), 1x1), docs/math.md §4.
 //
-// Shapes (conv.h, ConvDims): x (B, C, Hi, Wi), w (Co, C, kh, kw), b (Co,), y (B, Co, Ho, Wo);
+// Shapes (kernels.h, ConvDims): x (B, C, Hi, Wi), w (Co, C, kh, kw), b (Co,), y (B, Co, Ho, Wo);
 // K = C*kh*kw, P = Ho*Wo. w is read as the matrix w2 (Co, K), columns in (c, i, j) order, and
 // cols_b (K, P), cols_b[(c,i,j), (u,v)] = xpad[b, c, stride*u + i, stride*v + j], is the im2col
 // matrix of image b, xpad x with its zero padding.
@@ -31,15 +31,12 @@
 //            fresh register sum per chunk. Task = (block of kCB input channels, block of output
 //            channels).
 //   db       sum over images and pixels of dy, in double.
-// Threads: one OpenMP region per call (each wakes the sleeping threads); the backward's runs the dw
-// and dx tasks as one dynamic loop, so that the dx tasks fill the threads the dw tasks leave idle.
-// The tiles depend on the shapes only and every output element is written by one task in one
-// fixed order: the results are bitwise the same for any number of threads (tests/test_conv.py).
-// Each task checks what it wrote for overflow while it is in cache (kConvNonFinite).
-//
+// Threads: one OpenMP region per call; the backward's runs the dw and dx tasks as one dynamic loop.
+// The tiles depend on the shapes only and every output element is written by one task in one fixed
+// order: bitwise the same for any thread count. Each task checks what it wrote for overflow.
 // Reference: pyvf/nn/conv.py conv2d_forward_numpy, conv2d_backward_numpy.
 // Test: pytest tests/test_conv.py. Benchmark: pyvf bench codebook.
-#include "conv.h"
+#include "kernels.h"
 
 #include <algorithm>
 #include <cstring>
@@ -414,7 +411,7 @@ template <typename T> struct DwTasks {
         ow = round_up(std::max<int64_t>(ceil_div(d.Co, nob_want), 1), W), nob = ceil_div(d.Co, ow);
         ntask = ncb * nob;
         // rows ldt apart, one vector more than Cv: rows 2^n bytes apart would fall into a few sets
-        // of the L1 cache (that alone made the 8x8, 512-channel dw 2x slower)
+        // of the L1 cache
         ldt = Cv + W;
         nprep = d.B * d.Ho;
         dyT.resize(d.B * d.Ho * Wq * ldt);

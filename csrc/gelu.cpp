@@ -1,10 +1,6 @@
-// GELU, the one elementwise kernel NumPy cannot do accurately by itself (it has no erfc).
-//
-// GELU, exact erf form (docs/math.md §3): gelu(x) = x * Phi(x), Phi the standard normal CDF.
-// Phi is computed as 0.5 * erfc(-x / sqrt(2)), never as 0.5 * (1 + erf(x / sqrt(2))): for
-// x <= -6 the latter loses every digit (Phi(-6) = 9.9e-10, Phi(-9) = 1e-19 < eps) while erfc
-// keeps its relative accuracy down to the underflow. NumPy has no erf/erfc; std::erfc (C99) is
-// accurate to a few ulp.
+// GELU, exact erf form (docs/math.md §3): gelu(x) = x * Phi(x), Phi the standard normal CDF,
+// computed as 0.5 * erfc(-x / sqrt(2)), never 0.5 * (1 + erf(x / sqrt(2))), which loses every
+// digit for x <= -6 (Phi(-9) = 1e-19 < eps). NumPy has no erfc; std::erfc is a few ulp.
 //     forward:  y  = x * Phi(x)
 //     backward: dx = dy * (Phi(x) + x * phi(x)),   phi(x) = exp(-x^2 / 2) / sqrt(2 pi)
 // Arrays are flat, any size, one dtype. Three evaluations:
@@ -12,14 +8,13 @@
 //   float32, x < -3:  double lanes, Cody's erfc, rounded once (<= 0.5 ulp down to the underflow);
 //   float32, x >= -3: float lanes, fitted polynomials, no division (<= 4 ulp; the bulk of any
 //                     activation tensor, 1/5 the time of the double lanes).
-// Test: tests/test_layers.py (torch's exact gelu, mpmath on the float-lane range and in the tail,
-// where torch's own erf form returns 0). Time against torch: pyvf bench accuracy --ops gelu.
+// Test: tests/test_layers.py (torch, mpmath). Time against torch: pyvf bench accuracy --ops gelu.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
 
-#include "gelu.h"
+#include "kernels.h"
 
 #if defined(__x86_64__) || defined(__i386__)
 #include <immintrin.h>
@@ -63,12 +58,9 @@ inline void normal_cdf_pdf(double x, double& cdf, double& pdf) {
 //     z <= 0.46875:     erfc(z) = 1 - z P_a(z^2) / Q_b(z^2)
 //     0.46875 < z <= 4: erfc(z) = exp(-z^2) P_c(z) / Q_d(z)
 //     z > 4:            erfc(z) = exp(-z^2) (1/sqrt(pi) - w P_p(w) / Q_q(w)) / z,  w = 1 / z^2
-// each accurate to about 1e-16 relative, and exp(-z^2) by the kernels' vectorised exp (~1 ulp
-// of double; the rounding of z^2, relative z^2 2^-53, is 1e-14 at the float32 underflow z ~ 9.2):
-// far below float32's ulp (6e-8), so the result is float32's correctly rounded value but for
-// rare double-rounding ties (tests/test_layers.py: <= 4 ulp against mpmath over the tail, as the
-// scalar path). Where every lane of a vector lies in one range only that range is evaluated.
-// float64 keeps the scalar, compensated path above (it needs every digit of double).
+// each about 1e-16 relative, and exp(-z^2) by the vectorised exp (the rounding of z^2 is 1e-14 at
+// the float32 underflow): far below float32's ulp, so float32's correctly rounded value but for rare
+// double-rounding ties. Where every lane of a vector lies in one range only that range is evaluated.
 
 namespace {
 

@@ -1,22 +1,18 @@
 // pyvf's GEMM: c (nb, M, N) = op(a) @ op(b) [+ bias] per batch entry, float32 and float64: the
 // products of the transformer's linear layers and tied logits and of the codebook's AttnBlock
 // (pyvf/nn/layers.py matmul; its reference is the expression itself, matmul_numpy).
-// Here rather than NumPy's BLAS because a BLAS call wakes the BLAS threads, which then spin for
-// milliseconds on the cores the kernels' threads run on (the tiny transformer's training step on 2
-// busy cores: 526 ms with np.matmul on 2 BLAS threads, 100 ms with this), and because the BLAS's
-// results change with its thread count for some shapes.
+// Not NumPy's BLAS: its threads spin on the cores the kernels' threads run on, and its results
+// change with its thread count for some shapes.
 //
-// Blocks: tasks of (entry, kMatRows rows, kMatCols columns), each writing its own block of c;
-// inside a task k runs in chunks of kMatDepth, each continuing the last one's sums (gemm_tile's
-// CONT). A chunk's panels of a and b are copied into the order the register tile reads them, so
-// that its loads are contiguous and b's panel stays in L2 while the block's rows pass over it; the
-// rows and columns past the last whole packed tile run on the unpacked matrices. Every element of
-// c is one sum in increasing k (FMA where the path has it), or, split along k, its parts' sums
-// added in order: bitwise the same for any thread count. A transposed b is first copied into
-// (K, N) order. A bias (N,) is added to every row after its sums.
+// Tasks of (entry, kMatRows rows, kMatCols columns), each writing its own block of c; inside a
+// task k runs in chunks of kMatDepth, each continuing the last one's sums (CONT). A chunk's panels
+// of a and b are packed in the register tile's order (contiguous loads, b's panel in L2); the edges
+// past the last packed tile run unpacked. Every element of c is one sum in increasing k, or, split
+// along k, its parts' sums added in order: bitwise the same for any thread count. A transposed b
+// is first copied into (K, N) order; a bias is added to every row after its sums.
 //
 // Test: pytest tests/test_layers.py -k matmul. Benchmark: pyvf bench transformer.
-#include "matmul.h"
+#include "kernels.h"
 
 #include <algorithm>
 #include <memory>

@@ -1,11 +1,6 @@
-// pyvf._core: the compiled kernels' bindings. The user-facing functions, with argument checks and
-// clear errors, are in pyvf/ (nn/attention.py, nn/conv.py, nn/layers.py, nn/quantizer.py); these
-// take arrays that are already checked and still refuse (TypeError) anything that is not exactly
-// the dtype and C layout asked for (.noconvert(), c_style: no silent cast, no silent copy), and
-// check the sizes, since a wrong one would read or write out of bounds.
-//
-// Argument order (STYLE.md): outputs, saved buffers, inputs, then scalars. Outputs are
-// overwritten, never accumulated into.
+// pyvf._core: the kernels' bindings. pyvf/ checks the arguments; these refuse (TypeError) any array
+// not exactly of the dtype and C layout asked for, and check the sizes (a wrong one would read or
+// write out of bounds). Order (STYLE.md): outputs (overwritten), saved buffers, inputs, scalars.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
@@ -14,16 +9,11 @@
 #include <initializer_list>
 #include <limits>
 #include <optional>
-#include <memory>
 #include <new>
 #include <stdexcept>
 #include <string>
 
-#include "branching_attention.h"
-#include "conv.h"
-#include "gelu.h"
-#include "matmul.h"
-#include "vq.h"
+#include "kernels.h"
 #include "simd.h"
 #include "threads.h"
 
@@ -33,6 +23,12 @@ using namespace pyvf;
 namespace {
 
 template <typename T> using Arr = py::array_t<T, py::array::c_style>;
+
+// f() with the GIL released: the kernels touch no Python object
+template <typename F> int nogil(F f) {
+    py::gil_scoped_release released;
+    return f();
+}
 
 AttnDims dims_of(const py::array& a) {
     if (a.ndim() != 6) throw std::invalid_argument("pyvf._core: expected a 6-d array (R, B, H, N, L, dh)");
@@ -81,13 +77,10 @@ void forward(Arr<T> o, Arr<double> lse, Arr<T> q, Arr<T> k, Arr<T> v, double sca
     T* po = o.mutable_data();
     double* pl = lse.mutable_data();
     const T *pq = q.data(), *pk = k.data(), *pv = v.data();
-    int status;
-    {
-        py::gil_scoped_release nogil;
-        status = PLAIN ? attn_forward_plain<T>(po, pl, pq, pk, pv, d, (T)scale)
-                       : attn_forward<T>(po, pl, pq, pk, pv, d, (T)scale);
-    }
-    raise_status(status);
+    raise_status(nogil([&] {
+        return PLAIN ? attn_forward_plain<T>(po, pl, pq, pk, pv, d, (T)scale)
+                     : attn_forward<T>(po, pl, pq, pk, pv, d, (T)scale);
+    }));
 }
 
 template <typename T, bool PLAIN>
@@ -99,20 +92,17 @@ void backward(Arr<T> dq, Arr<T> dk, Arr<T> dv, Arr<double> lse, Arr<T> q, Arr<T>
     T *pdq = dq.mutable_data(), *pdk = dk.mutable_data(), *pdv = dv.mutable_data();
     const double* pl = lse.data();
     const T *pq = q.data(), *pk = k.data(), *pv = v.data(), *po = o.data(), *pd = dout.data();
-    int status;
-    {
-        py::gil_scoped_release nogil;
-        status = PLAIN ? attn_backward_plain<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale)
-                       : attn_backward<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale);
-    }
-    raise_status(status);
+    raise_status(nogil([&] {
+        return PLAIN ? attn_backward_plain<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale)
+                     : attn_backward<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale);
+    }));
 }
 
 // GELU (gelu.cpp): y = gelu(x); dx = dy * gelu'(x); flat, one size, overwritten
 template <typename T> void gelu(Arr<T> y, Arr<T> x) {
     if (y.size() != x.size()) throw std::invalid_argument("pyvf._core.gelu: x and y differ in size");
     T* py_ = y.mutable_data();
-    py::gil_scoped_release nogil;
+    py::gil_scoped_release released;
     gelu_forward<T>(py_, x.data(), x.size());
 }
 
@@ -120,7 +110,7 @@ template <typename T> void gelu_bwd(Arr<T> dx, Arr<T> dy, Arr<T> x) {
     if (dx.size() != x.size() || dy.size() != x.size())
         throw std::invalid_argument("pyvf._core.gelu_backward: dx, dy and x differ in size");
     T* pdx = dx.mutable_data();
-    py::gil_scoped_release nogil;
+    py::gil_scoped_release released;
     gelu_backward<T>(pdx, dy.data(), x.data(), x.size());
 }
 
@@ -132,13 +122,12 @@ template <typename T> void exp_kernel(Arr<T> y, Arr<T> x) {
     for (py::ssize_t i = 0; i < x.size(); ++i) py_[i] = exp_scalar<T>(px[i]);
 }
 
-// True when every element is finite; a scan that allocates nothing (np.isfinite(x).all()
-// would allocate a bool array as large as x). Blocks of 64 Ki elements, on the threads when
-// there are at least 4 of them (the activations of a paper-size codebook are 4 Mi elements).
+// True when every element is finite, allocating nothing (np.isfinite(x).all() would allocate a
+// bool array as large as x). Blocks of 64 Ki elements, on the threads from 4 blocks on.
 template <typename T> bool all_finite(Arr<T> x) {
     const T* p = x.data();
     const int64_t n = x.size();
-    py::gil_scoped_release nogil;
+    py::gil_scoped_release released;
     constexpr int64_t kBlock = 1 << 16;
     const int64_t blocks = (n + kBlock - 1) / kBlock;
     bool ok = true;
@@ -156,12 +145,11 @@ template <typename T> void nearest(Arr<int64_t> index, Arr<T> sq_dist, Arr<T> x,
     T* pd = sq_dist.mutable_data();
     const T *px = x.data(), *pc = codes.data();
     const int64_t M = x.shape(0), K = codes.shape(0), D = x.shape(1);
-    py::gil_scoped_release nogil;
+    py::gil_scoped_release released;
     vq_nearest<T>(pi, pd, px, pc, M, K, D);  // std::bad_alloc: MemoryError
 }
 
-// c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per entry (matmul.cpp); a (nb, M, K) or (nb, K, M) if ta,
-// b (nb, K, N) or (nb, N, K) if tb. Sizes checked here, since a wrong one would read out of bounds.
+// c (nb, M, N) = op(a) @ op(b) [+ bias (N,)] per entry (kernels.h)
 template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb, std::optional<Arr<T>> bias) {
     if (a.ndim() != 3 || b.ndim() != 3 || c.ndim() != 3) throw py::value_error("pyvf._core.matmul: a, b and c must be 3-D");
     const int64_t nb = a.shape(0), M = a.shape(ta ? 2 : 1), K = a.shape(ta ? 1 : 2), N = b.shape(tb ? 1 : 2);
@@ -171,16 +159,9 @@ template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb
         throw py::value_error("pyvf._core.matmul: the shapes of a, b, c and bias do not agree (or exceed 2^31)");
     T* pc = c.mutable_data();
     const T *pa = a.data(), *pb = b.data(), *pbias = bias ? bias->data() : nullptr;
-    int status;
-    {
-        py::gil_scoped_release nogil;
-        status = matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb, pbias);
-    }
-    if (status == kMatOutOfMemory) throw std::bad_alloc();  // pybind11: MemoryError
+    if (nogil([&] { return matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb, pbias); }) == kMatOutOfMemory) throw std::bad_alloc();  // pybind11: MemoryError
 }
 
-// conv2d (conv.cpp): conv2d_forward(y, x, w, b, stride, pt, pb, pl, pr),
-// conv2d_backward(dx, dw, db, x, w, dy, stride, pt, pb, pl, pr)
 [[noreturn]] void conv_bad(const std::string& what) { throw py::value_error("pyvf._core.conv2d: " + what); }
 
 // The sizes of (x, w, stride, padding); every count the kernels index with int below 2^31.
@@ -234,12 +215,7 @@ void conv_forward(Arr<T> y, Arr<T> x, Arr<T> w, Arr<T> b, int64_t stride, int64_
     conv_shape(y, "y", {d.B, d.Co, d.Ho, d.Wo});
     T* py_ = y.mutable_data();
     const T *px = x.data(), *pw = w.data(), *pbias = b.data();
-    int status;
-    {
-        py::gil_scoped_release nogil;
-        status = conv2d_forward<T>(py_, px, pw, pbias, d);
-    }
-    conv_raise<T>(status, "conv2d_forward", "y");
+    conv_raise<T>(nogil([&] { return conv2d_forward<T>(py_, px, pw, pbias, d); }), "conv2d_forward", "y");
 }
 
 template <typename T>
@@ -252,49 +228,34 @@ void conv_backward(Arr<T> dx, Arr<T> dw, Arr<T> db, Arr<T> x, Arr<T> w, Arr<T> d
     conv_shape(db, "db", {d.Co});
     T *pdx = dx.mutable_data(), *pdw = dw.mutable_data(), *pdb = db.mutable_data();
     const T *px = x.data(), *pw = w.data(), *pdy = dy.data();
-    int status;
-    {
-        py::gil_scoped_release nogil;
-        status = conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d);
-    }
-    conv_raise<T>(status, "conv2d_backward", "dx");
+    conv_raise<T>(nogil([&] { return conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d); }), "conv2d_backward", "dx");
 }
+
+py::arg nc(const char* name) { return py::arg(name).noconvert(); }  // no cast, no copy
 
 template <typename T> void bind_dtype(py::module_& m) {
     m.def("conv2d_forward", &conv_forward<T>,
-          "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten",
-          py::arg("y").noconvert(), py::arg("x").noconvert(), py::arg("w").noconvert(), py::arg("b").noconvert(),
-          py::arg("stride"), py::arg("pt"), py::arg("pb"), py::arg("pl"), py::arg("pr"));
+          "y (B, Co, Ho, Wo) = conv2d(x (B, C, Hi, Wi), w (Co, C, kh, kw)) + b (Co,), overwritten", nc("y"), nc("x"),
+          nc("w"), nc("b"), py::arg("stride"), py::arg("pt"), py::arg("pb"), py::arg("pl"), py::arg("pr"));
     m.def("conv2d_backward", &conv_backward<T>, "dx, dw, db (overwritten) of y = conv2d(x, w) + b under the upstream gradient dy",
-          py::arg("dx").noconvert(), py::arg("dw").noconvert(), py::arg("db").noconvert(), py::arg("x").noconvert(),
-          py::arg("w").noconvert(), py::arg("dy").noconvert(), py::arg("stride"), py::arg("pt"), py::arg("pb"),
+          nc("dx"), nc("dw"), nc("db"), nc("x"), nc("w"), nc("dy"), py::arg("stride"), py::arg("pt"), py::arg("pb"),
           py::arg("pl"), py::arg("pr"));
-    m.def("attn_forward", &forward<T, false>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
-          py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
-    m.def("attn_forward_plain", &forward<T, true>, py::arg("o").noconvert(), py::arg("lse").noconvert(),
-          py::arg("q").noconvert(), py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("scale"));
-    m.def("attn_backward", &backward<T, false>, py::arg("dq").noconvert(), py::arg("dk").noconvert(),
-          py::arg("dv").noconvert(), py::arg("lse").noconvert(), py::arg("q").noconvert(),
-          py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("o").noconvert(),
-          py::arg("do").noconvert(), py::arg("scale"));
-    m.def("attn_backward_plain", &backward<T, true>, py::arg("dq").noconvert(), py::arg("dk").noconvert(),
-          py::arg("dv").noconvert(), py::arg("lse").noconvert(), py::arg("q").noconvert(),
-          py::arg("k").noconvert(), py::arg("v").noconvert(), py::arg("o").noconvert(),
-          py::arg("do").noconvert(), py::arg("scale"));
-    m.def("exp", &exp_kernel<T>, py::arg("y").noconvert(), py::arg("x").noconvert());
-    m.def("all_finite", &all_finite<T>, py::arg("x").noconvert());
-    m.def("vq_nearest", &nearest<T>, py::arg("index").noconvert(), py::arg("sq_dist").noconvert(),
-          py::arg("x").noconvert(), py::arg("codes").noconvert());
-    m.def("gelu", &gelu<T>, "y = gelu(x), overwritten", py::arg("y").noconvert(), py::arg("x").noconvert());
-    m.def("gelu_backward", &gelu_bwd<T>, "dx = dy * gelu'(x), overwritten", py::arg("dx").noconvert(),
-          py::arg("dy").noconvert(), py::arg("x").noconvert());
-    m.def("matmul", &matmul<T>, py::arg("c").noconvert(), py::arg("a").noconvert(), py::arg("b").noconvert(),
-          py::arg("ta"), py::arg("tb") = false, py::arg("bias").noconvert() = py::none());
+    m.def("attn_forward", &forward<T, false>, nc("o"), nc("lse"), nc("q"), nc("k"), nc("v"), py::arg("scale"));
+    m.def("attn_forward_plain", &forward<T, true>, nc("o"), nc("lse"), nc("q"), nc("k"), nc("v"), py::arg("scale"));
+    m.def("attn_backward", &backward<T, false>, nc("dq"), nc("dk"), nc("dv"), nc("lse"), nc("q"), nc("k"), nc("v"),
+          nc("o"), nc("do"), py::arg("scale"));
+    m.def("attn_backward_plain", &backward<T, true>, nc("dq"), nc("dk"), nc("dv"), nc("lse"), nc("q"), nc("k"),
+          nc("v"), nc("o"), nc("do"), py::arg("scale"));
+    m.def("exp", &exp_kernel<T>, nc("y"), nc("x"));
+    m.def("all_finite", &all_finite<T>, nc("x"));
+    m.def("vq_nearest", &nearest<T>, nc("index"), nc("sq_dist"), nc("x"), nc("codes"));
+    m.def("gelu", &gelu<T>, "y = gelu(x), overwritten", nc("y"), nc("x"));
+    m.def("gelu_backward", &gelu_bwd<T>, "dx = dy * gelu'(x), overwritten", nc("dx"), nc("dy"), nc("x"));
+    m.def("matmul", &matmul<T>, nc("c"), nc("a"), nc("b"), py::arg("ta"), py::arg("tb") = false,
+          nc("bias") = py::none());
 }
 
-// What this CPU (and its operating system) can run, as the compiler's runtime reads it
-// (cpuid, and xgetbv for the vector registers' state). Called from the baseline module only,
-// which runs anywhere, before any other path's module is imported.
+// What this CPU and its operating system can run (cpuid, xgetbv); called from the baseline module.
 py::dict cpu_features() {
     py::dict f;
 #if defined(__x86_64__) || defined(__i386__)

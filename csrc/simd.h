@@ -1,15 +1,7 @@
-// simd.h: the few vector primitives pyvf's kernels are written in.
-//
-// A vector is a GCC/Clang vector extension of the widest width the build target has
-// (64 bytes with AVX-512, 32 with AVX, 16 otherwise), so the same source compiles on any
-// x86-64 or ARM machine. Arithmetic on vectors is the plain C++ operators; loads and stores
-// go through memcpy (unaligned, no aliasing trouble).
-//
-// Rounding: no -ffast-math anywhere. GCC's default -ffp-contract=fast may fuse a*b+c into one
-// fused multiply-add (one rounding instead of two), never reassociates a sum.
-//
-// Also here: the matrix product's register tile (gemm) the kernels are made of, and an exp that
-// vectorises (exp_vec), since std::exp does not without -ffast-math.
+// simd.h: the vector primitives of the kernels. A vector is a GCC/Clang vector extension of the
+// target's widest width (64 bytes with AVX-512, 32 with AVX, 16 otherwise), operated on with the
+// plain C++ operators, loaded and stored through memcpy (unaligned, no aliasing trouble). Also the
+// register tile (gemm) and an exp that vectorises (exp_vec; std::exp does not without fast-math).
 #pragma once
 
 #include <cmath>
@@ -66,10 +58,8 @@ template <typename T> inline T hsum(typename Simd<T>::V v) {
 // exp for x <= 0 (all the softmax needs: x = logit - running max), vectorised.
 // Cody-Waite range reduction x = n*ln2 + r, |r| <= ln2/2, then a polynomial (float: the
 // Cephes expf minimax polynomial, degree 6; double: the Cephes exp Pade form), then 2^n
-// built in the exponent bits. Accuracy: about 1 ulp (tests/test_attention.py measures it
-// against numpy's exp). Below the smallest normal result it returns 0 (the true value is
-// < 1.2e-38 in float32, < 2.3e-308 in float64: invisible beside the softmax's own max term,
-// which is exp(0) = 1). -inf gives 0. NaN never reaches it (the kernels check logits first).
+// built in the exponent bits. About 1 ulp (tests/test_attention.py). Below the smallest normal
+// result it returns 0 (invisible beside the softmax's max term, exp(0) = 1); -inf gives 0.
 
 inline Simd<float>::V exp_vec(Simd<float>::V x) {
     using V = Simd<float>::V;
@@ -130,14 +120,11 @@ template <typename T> inline T exp_scalar(T x) {
 
 // ---------------------------------------------------------------------------------------
 // gemm: C (M, N) = op(A) (M, K) @ B (K, N), overwritten (ACC false) or added to (ACC true).
-// The operands are read through accessors, so that the kernels pass matrices found through
-// tables (conv.cpp's padded-row tiles and row pointers) to the same register tile: A(i, k) is
-// op(A)'s element, A.from(i) the matrix from row i on; B(k) points to row k, B.at(j) is the
-// matrix from column j on. Register tile: MR rows of C times NV vectors; for each k the tile does
-// C[i, j..j+NV*W) += A(i, k) * B(k)[j..j+NV*W), so every element is one sum in increasing k
-// whatever the tile (a row's sums are the same in any row tile, a column's in any column tile).
-// CONT (continue): the accumulators start from C, so a product split along k into chunks gives
-// every element of C the same sum, bitwise, as the unsplit product.
+// Operands through accessors (conv.cpp passes matrices found through tables): A(i, k) is op(A)'s
+// element, A.from(i) the matrix from row i on; B(k) points to row k, B.at(j) is the matrix from
+// column j on. Register tile: MR rows of C times NV vectors; for each k, C[i, j..j+NV*W) +=
+// A(i, k) * B(k)[j..j+NV*W): every element one sum in increasing k whatever the tile. CONT: the
+// accumulators start from C, so a product split along k is bitwise the unsplit one.
 template <typename T> struct MatA {  // op(A)[i, k] = p[i * si + k * sk]: A (sk = 1) or a transposed A (si = 1)
     const T* p;
     long si, sk;
@@ -229,7 +216,7 @@ inline void gemm(int M, int N, int K, const T* A, long lda, const T* B, long ldb
 }
 
 // Whether p[0:n) is all finite: x * 0 is 0 for finite x, NaN for inf and NaN. Four accumulators,
-// so that the adds' latency does not bound the scan (one chain ran at a third of the bandwidth).
+// so that the adds' latency does not bound the scan.
 template <typename T> inline bool finite_run(const T* p, int64_t n) {
     constexpr int W = Simd<T>::W;
     typename Simd<T>::V a0 = {}, a1 = {}, a2 = {}, a3 = {};

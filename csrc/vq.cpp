@@ -17,10 +17,8 @@
 //      plus the double roundings, what rounding the shifted vectors to the dtype can move the
 //      distance, the dtype's underflow (D smallest subnormals), and a factor 2 of margin;
 //   3. every code with s_k <= min_j s_j + 2 err may be the nearest: those candidates are
-//      re-ranked by their exact distances. Well separated data has one candidate (its exact
-//      distance is computed anyway, to return it); data far from the codes widens the window
-//      and more codes are re-ranked, up to all of them: slower, never wrong. A row whose scores
-//      overflow (NaN or inf anywhere) re-ranks every code.
+//      re-ranked by their exact distances (one on well separated data; up to all of them far
+//      from the codes: slower, never wrong; all where a score overflows).
 //   The re-rank reads the original values: exactness never depends on the shift. Its exact
 //   distance is sum_i (x_i - e_i)^2 in double, every operation rounded once (vq_exact.cpp, no
 //   fused multiply-add, so the same on every path); where the vectors' largest component is beyond
@@ -28,16 +26,11 @@
 //   comparison neither overflows nor underflows. The returned distance is that sum rounded to
 //   the dtype: inf exactly when the true distance exceeds the dtype's range (float32 vectors
 //   ~1e20 apart, float64 ~1e154), 0 when it is below the smallest subnormal.
-// Memory: the packed shifted codes (as large as the codes) and one double per code; per thread
-// a block of shifted rows (64, D), its scores against a chunk of at most 2048 codes, and each
-// row's candidates (a few on separated data; at most K in the worst case). At K = 2^22, D = 1
-// (16 MiB of codes) that is ~90 MiB, at K = 65536, D = 256 ~66 MiB (tests/test_vq.py measures).
-// Rows are split across threads; each row is computed by one thread in a fixed order, so the
-// result is the same for any thread count. An allocation failure raises MemoryError.
-//
-// Test: tests/test_vq.py (float64 brute force, cancellation cases, exact ties, duplicated
-// codes). Benchmark: pyvf bench vq.
-#include "vq.h"
+// Memory: the packed shifted codes and one double per code; per thread a block of shifted rows
+// (64, D), its scores against a chunk of at most 2048 codes, and each row's candidates (at most
+// K). Each row is computed by one thread in a fixed order: the same for any thread count.
+// Test: tests/test_vq.py. Benchmark: pyvf bench vq.
+#include "kernels.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,14 +1,9 @@
 """pyvf's compiled kernels, on the instruction-set path this process uses.
 
-csrc/ is compiled once per path into its own extension module, `pyvf._core_<path>`
-(CMakeLists.txt says why): x86-64 baseline (SSE2), avx2 (AVX2 + FMA), avx512 (AVX-512 F/DQ/BW/VL
-+ FMA); aarch64 neon. At import the base module (which runs on any CPU of the architecture) asks
-the CPU what it supports, and the best path built that the CPU runs is used, unless PYVF_ISA names
-another (then that one; a path this CPU cannot run, or not built, is an ImportError).
-
-Everything else in pyvf calls `_core.<kernel>(...)`, which this module forwards to the current
-path's module (PEP 562 __getattr__), so `use_path` switches every kernel at once (the tests run
-each kernel test once per path so).
+csrc/ is compiled once per path into `pyvf._core_<path>`: x86-64 baseline (SSE2), avx2 (AVX2 +
+FMA), avx512 (AVX-512 F/DQ/BW/VL + FMA); aarch64 neon. The base module asks the CPU what it
+supports; the best path built that it runs is used, unless PYVF_ISA names another. `_core.<kernel>`
+is the current path's (PEP 562 __getattr__), so `use_path` switches every kernel at once.
 """
 
 import importlib
@@ -21,19 +16,10 @@ _ARCH_PATHS = {"x86_64": ("baseline", "avx2", "avx512"), "aarch64": ("neon",)}
 # CPU features (cpu_features() names) each path needs.
 _NEEDS = {"avx2": ("avx2", "fma"), "avx512": ("avx512f", "avx512dq", "avx512bw", "avx512vl", "avx2", "fma")}
 
-
-def _arch_paths():
-    machine = platform.machine().lower()
-    machine = {"amd64": "x86_64", "x64": "x86_64", "arm64": "aarch64"}.get(machine, machine)
-    return _ARCH_PATHS.get(machine, ("baseline",))
-
-
-def _built(path):
-    return importlib.util.find_spec(f"pyvf._core_{path}") is not None
-
-
-_order = _arch_paths()
-_built_paths = tuple(p for p in _order if _built(p))
+_machine = platform.machine().lower()
+_machine = {"amd64": "x86_64", "x64": "x86_64", "arm64": "aarch64"}.get(_machine, _machine)
+_order = _ARCH_PATHS.get(_machine, ("baseline",))
+_built_paths = tuple(p for p in _order if importlib.util.find_spec(f"pyvf._core_{p}") is not None)
 if not _built_paths:
     _here = os.path.dirname(os.path.abspath(__file__))
     if os.path.exists(os.path.join(os.path.dirname(_here), "csrc")):  # a source checkout, not an installed copy
@@ -74,8 +60,7 @@ def _module(path):
 
 
 def set_num_threads(n):
-    """The kernels' threads, for the whole process and every path module, loaded or loaded later
-    (each keeps its own count). pyvf.set_num_threads, which also sets numpy's BLAS, is the public call."""
+    """The kernels' threads in every path module, loaded or loaded later (pyvf.set_num_threads is public)."""
     global _threads_set
     for m in _modules.values():
         m.set_num_threads(n)
@@ -91,8 +76,7 @@ _impl = _module(_current)
 
 
 def available_paths():
-    """The kernel paths this process can use, lowest first: built, run by this CPU, and not
-    above PYVF_ISA when it is set."""
+    """The kernel paths this process can use, lowest first: built, run by this CPU, not above PYVF_ISA."""
     return _allowed
 
 
@@ -115,24 +99,18 @@ _NOT_KERNELS = {"cpu_features", "num_threads", "set_num_threads", "openmp", "pat
 
 
 def kernels():
-    """The compiled kernels of the current path: its module's functions other than the settings
-    (_NOT_KERNELS) and the *_plain reference variants."""
+    """The current path's kernels: its functions but the settings and the *_plain references."""
     names = [n for n in dir(_impl) if not n.startswith("_") and n not in _NOT_KERNELS and callable(getattr(_impl, n))]
     return sorted(n for n in names if not n.endswith("_plain"))
 
 
-def _describe(path):
-    """A path's CPU features (_NEEDS) and its module's vector width."""
-    needs = _NEEDS.get(path)
-    cpu = f"needs {', '.join(needs)}" if needs else f"any {platform.machine()} CPU"
-    return f"{cpu}; {_module(path).simd_bytes}-byte vectors"
-
-
 def config():
     """What show_config prints, as a dict."""
+    needs = _NEEDS.get(_current)
+    cpu = f"needs {', '.join(needs)}" if needs else f"any {platform.machine()} CPU"
     return {
         "path": _current,
-        "path_description": _describe(_current),
+        "path_description": f"{cpu}; {_impl.simd_bytes}-byte vectors",
         "kernels": kernels(),
         "forced_by_PYVF_ISA": _forced,
         "available_paths": list(_allowed),

@@ -11,10 +11,7 @@ __all__ = ["median_time", "cpu_name", "kernel_line"]
 
 
 def median_time(fn, repeat=5, warmup=1):
-    """Median wall time in seconds of `repeat` calls of fn(), after `warmup` untimed calls.
-
-    Returns (median, times), times the list of every timed call's seconds (time.perf_counter).
-    """
+    """(median, times): the wall seconds of `repeat` calls of fn() after `warmup` untimed calls."""
     for _ in range(warmup):
         fn()
     times = []

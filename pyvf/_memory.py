@@ -1,12 +1,6 @@
-"""glibc malloc's policy for the memory a process frees: kept for its next allocations
-(reuse_freed_memory, for speed; every pyvf command calls it), or mapped fresh for each
-(map_fresh_pages, for measuring the memory a call needs).
-
-Why: glibc serves each allocation above 32 MiB (and smaller ones once the heap's free top passes
-its trim threshold) with a fresh mmap and unmaps it on free, so every training step page-faults its
-large activations in again (a paper-size transformer step on 2 cores: 2.9 s of its 17 s, 0.3 s
-with reuse_freed_memory on).
-"""
+"""glibc malloc's policy for freed memory: kept for the next allocations (reuse_freed_memory, for
+speed: every pyvf command calls it; else glibc unmaps large blocks on free and every training step
+page-faults its activations in again), or mapped fresh (map_fresh_pages, for measuring memory)."""
 
 import ctypes
 import platform
@@ -30,10 +24,8 @@ def _glibc():
 
 
 def reuse_freed_memory():
-    """Keep the memory this process frees for its next allocations: large blocks from the heap,
-    not fresh mmaps, and the heap's free top never returned (mallopt M_MMAP_MAX = 0,
-    M_TRIM_THRESHOLD = -1); the resident memory stays at its peak. Returns True when in effect,
-    False where the C library is not glibc (nothing changed)."""
+    """Large blocks from the heap, never returned (mallopt M_MMAP_MAX = 0, M_TRIM_THRESHOLD = -1):
+    resident memory stays at its peak. Returns True when in effect, False where libc is not glibc."""
     if _state["on"]:
         return True
     libc = _glibc()
@@ -45,11 +37,9 @@ def reuse_freed_memory():
 
 
 def map_fresh_pages():
-    """For measuring the memory a call needs (pyvf.bench.common.peak_memory): every block of 128 KiB
-    or more mapped fresh and unmapped on free, and the heap's free pages returned now, so that a
-    call cannot reuse what an earlier one freed and look as if it needed nothing. glibc's defaults
-    back, the mmap threshold fixed at 128 KiB (glibc grows it as blocks are freed), for the rest of
-    the process (reuse_freed_memory undone). A no-op where the C library is not glibc."""
+    """For pyvf.bench.common.peak_memory: blocks of 128 KiB or more mmapped fresh (the threshold
+    fixed) and the heap's free pages returned now, so that a call cannot reuse what an earlier one
+    freed. For the rest of the process (reuse_freed_memory undone); a no-op without glibc."""
     libc = _glibc()
     if libc is None:
         return

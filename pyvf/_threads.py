@@ -40,8 +40,7 @@ def _count(n):
 
 
 def set_num_threads(n):
-    """Set the threads of pyvf's C++ kernels and numpy's BLAS pool together (BLAS threads left at
-    the core count spin against the kernels' on a busy machine)."""
+    """Set the threads of pyvf's kernels and numpy's BLAS together (idle BLAS threads spin against the kernels')."""
     n = _count(n)
     _core.set_num_threads(n)
     threadpool_limits(limits=n, user_api="blas")
@@ -53,11 +52,8 @@ def blas_num_threads():
 
 
 def set_from_environment(environ=None):
-    """pyvf's threads at import: PYVF_NUM_THREADS sets the kernels and numpy's BLAS (a value that is
-    not a positive integer is an ImportError naming it); without it, and unless OMP_NUM_THREADS chose
-    the kernels' count, both are kept to cores() where either runs more (numpy's BLAS counted the
-    CPUs when numpy was imported, perhaps before this process was pinned to fewer). Returns the
-    count set, or None."""
+    """pyvf's threads at import: PYVF_NUM_THREADS (else, unless OMP_NUM_THREADS is set, cores() where
+    the kernels or BLAS run more: BLAS counted the CPUs before any pinning). Returns the count set, or None."""
     environ = os.environ if environ is None else environ
     value = environ.get("PYVF_NUM_THREADS", "").strip()
     if value:
@@ -75,8 +71,7 @@ def set_from_environment(environ=None):
 
 
 class threads:
-    """`with pyvf.threads(n):` pyvf's kernels and numpy's BLAS on n threads inside the block, both
-    put back after it. n=None changes nothing."""
+    """`with pyvf.threads(n):` kernels and BLAS on n threads inside the block (n=None: unchanged)."""
 
     def __init__(self, n):
         self.n, self._old, self._blas = None if n is None else _count(n), None, None

@@ -45,8 +45,7 @@ __all__ = [
 
 
 def _check_qkv(q, k, v, scale, **more):
-    """q: a finite C-contiguous float32/float64 array of 6 non-zero dimensions; k, v and `more`
-    (name=array) finite arrays like it; scale a finite real -> float(scale)."""
+    """q: finite, C-contiguous, float, 6 non-zero dimensions; k, v, `more` like it -> float(scale)."""
     _checks.float_array("q", q)
     if q.ndim != 6 or 0 in q.shape:
         raise ValueError(f"q must have 6 non-zero dimensions (R, B, H, N, L, dh), got shape {q.shape}")
@@ -73,11 +72,9 @@ def _check_finite_result(name, *arrays):
 def branching_attention_forward(q, k, v, scale=1.0, *, plain=False):
     """Forward that also returns what the backward needs.
 
-    q, k, v: (R, B, H, N, L, dh), float32 or float64, C-contiguous, one dtype.
-    Returns o (R, B, H, N, L, dh) of q's dtype and lse (R, B, H, N, L) float64, the log-sum-exp
-    of each query row's attended logits (float64 even for float32 inputs: with unscaled logits
-    of size 1e6 one float32 ulp of lse would be a 6% error in every recomputed probability).
-    plain=True runs the plain C++ loops (slow, double accumulators) instead of the fast kernel.
+    q, k, v: (R, B, H, N, L, dh), float32 or float64, C-contiguous, one dtype. Returns o of q's
+    shape and dtype and lse (R, B, H, N, L) float64 (also for float32: csrc says why), the
+    log-sum-exp of each query's attended logits. plain=True: the plain C++ loops (the oracle).
     """
     scale = _check_qkv(q, k, v, scale)
     o = np.empty_like(q)
@@ -128,10 +125,9 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     Per query block q (L, dh), with its T = (Nc + 1) L keys K = [context keys; own keys] (T, dh)
     and values V likewise, computed transposed as the kernel does (keys as rows):
         s^T = scale * K q^T (T, L),  p^T = exp(s^T - max_keys s^T),  o = (p^T)^T V / sum_keys p^T,
-    the context's part for the R queries of a head in one product with the cached keys (not
-    copied): Nc + 1 block pairs per query, where the kernel on a tree would visit (Nc+1)(Nc+2)/2.
-    The softmax is one pass instead of the kernel's online one, so o agrees with the kernel's up
-    to rounding (tests/test_scene_cache.py bounds it).
+    the context's part for the R queries of a head in one product with the cached keys: Nc + 1
+    block pairs per query, not the tree's (Nc+1)(Nc+2)/2. One softmax pass, so o agrees with the
+    kernel's up to rounding (tests/test_scene_cache.py bounds it).
     """
     R, B, H, _, L, dh = q.shape
     C, G, n = k_ctx.shape[2] * L, B * H, R * B * H  # context keys, heads, query blocks

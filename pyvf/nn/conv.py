@@ -56,10 +56,7 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     padding=1 gives the same output size on even images but shifts every window by one pixel;
     (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
 
-    The C++ kernel (csrc/conv.cpp): implicit GEMM, y_b = w2 @ cols_b + b with w2 = w as (Co, K) and
-    the im2col columns cols_b (K, Ho*Wo) never stored whole; conv2d_forward_numpy is its reference.
-    The kernel stays because NumPy's form needs the BLAS's threads, which spin on a busy machine:
-    the tiny codebook's training step measured 0.50x torch on pyvf's GEMM, 1.51x with this kernel.
+    The C++ kernel (csrc/conv.cpp, implicit GEMM); conv2d_forward_numpy is its reference.
     cache: x and w (C-ordered), stride, padding; the columns are recomputed in the backward."""
     pad = _padding4(padding)
     pt, pb, pl, pr = pad
@@ -97,11 +94,7 @@ def conv2d_forward_numpy(x, w, b, stride=1, padding=0):
 
 
 def conv2d_backward_numpy(dy, cache):
-    """-> dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,).
-
-    forward was y = w2 @ cols + b, so dw = dy @ cols^T, dcols = w2^T @ dy (scattered back onto x
-    by col2im: each kernel offset adds its slab onto a strided slice of the padded image), db = the
-    sum of dy over b, u, v."""
+    """-> dx (B, C, Hi, Wi), dw (Co, C, kh, kw), db (Co,) (the math in the comments below)."""
     x, w, stride, pad = cache
     B, C, Hi, Wi = x.shape
     Co, _, kh, kw = w.shape
