@@ -11,7 +11,7 @@ import sys
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-BUDGETS = {"source": 16_600, "tests": 10_000}
+BUDGETS = {"source": 12_600, "tests": 10_000}
 
 
 def lines(folder, suffixes):
