@@ -70,13 +70,13 @@ def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="ti
     if config.n_embeddings != n_embed:
         raise ValueError(f"the configuration has n_embeddings={config.n_embeddings} but {tokens_path} "
                          f"was made by a codebook of {n_embed} codes")
-    if codebook and fingerprint is not None and (given := Codebook.load(codebook).fingerprint()) != fingerprint:
+    cb = Codebook.load(codebook) if codebook else None
+    if cb is not None and fingerprint is not None and (given := cb.fingerprint()) != fingerprint:
         raise ValueError(f"--codebook {codebook} is not the codebook that made {tokens_path} (fingerprints {given} "
                          f"and {fingerprint})")
     eval_set = None
-    if opts.eval_every and codebook:
+    if opts.eval_every and cb is not None:
         from ..scenes import generate_scenes
-        cb = Codebook.load(codebook)
         images, held_poses = generate_scenes(eval_seed, eval_scenes, size=cb.config.image_size)
         n, views = min(len(held_poses), len(poses)), min(held_poses.shape[1], poses.shape[1])
         if n and np.allclose(held_poses[:n, :views], poses[:n, :views], rtol=0, atol=1e-6):
