@@ -319,8 +319,7 @@ class TorchCodebook(TorchEngine):
         port, torch = self.port, self.torch
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
             z = port.quant_conv(port.encoder(x))  # (B, D, k, k)
-        empty = port.empty_patches(x) if port.empty_code else None  # (B, k, k): patches that take code 0
-        q, commitment, codes = port.quantize(z.to(self.dtype), empty)  # the lookup and the EMA never in bf16
+        q, commitment, codes = port.quantize(z.to(self.dtype), port.empty_patches(x))  # lookup and EMA never bf16
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=autocast):
             rec = port.decoder(port.post_quant_conv(q))
         return rec.to(self.dtype), commitment, codes

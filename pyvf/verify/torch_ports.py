@@ -306,13 +306,14 @@ class CodebookPort(nn.Module):
         self.empty_code, self.k = getattr(cfg, "empty_code", False), cfg.token_size
 
     def empty_patches(self, x):  # (B, C, S, S) -> (B, k, k): every pixel of the patch is the top-left pixel's colour
+        if not self.empty_code:  # as pyvf's Codebook.empty_patches: None without the empty code
+            return None
         B, _, S, _ = x.shape
         p = S // self.k
         return ~(x != x[:, :, :1, :1]).any(1).reshape(B, self.k, p, self.k, p).any(4).any(2)
 
     def forward(self, x):  # -> reconstruction, commitment loss, codes
-        empty = self.empty_patches(x) if self.empty_code else None
-        q, commitment, codes = self.quantize(self.quant_conv(self.encoder(x)), empty)
+        q, commitment, codes = self.quantize(self.quant_conv(self.encoder(x)), self.empty_patches(x))
         return self.decoder(self.post_quant_conv(q)), commitment, codes
 
 
