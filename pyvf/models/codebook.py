@@ -32,6 +32,12 @@ BUFFERS = ("quantize.embeddings", "quantize.ema_cluster_size_hidden", "quantize.
 LAYOUTS = {"torch": "nn.Conv2d kernels (out, in, kh, kw), the published state dict",
            "tf": "conv kernels (kh, kw, in, out), channels-last as TF/Keras Conv2D and Flax nn.Conv hold them"}
 
+# row kind -> its layer pair (forward, backward); "quantize" is the model's own
+LAYER_PAIRS = {"conv": (conv2d_forward, conv2d_backward),
+               "norm_swish": (groupnorm_swish_forward, groupnorm_swish_backward),
+               "upsample": (upsample_nearest2x_forward, upsample_nearest2x_backward),
+               "attn": (attnblock_forward, attnblock_backward)}
+
 IMAGE_RANGE_SLACK = 1e-3  # images may leave [-1, 1] by this much (a user's own rounding), no more
 
 
@@ -49,8 +55,8 @@ class CodebookConfig:
     out_ch: int = 3
     decay: float = 0.99  # EMA decay of the quantizer
     eps: float = 1e-5  # Laplace smoothing of the EMA cluster sizes
-    codebook_weight: float = 1.0  # loss = rec_loss + perceptual_weight * perceptual + codebook_weight * commitment
-    perceptual_weight: float = 0.0  # the LPIPS term (docs/math.md §4): needs a perceptual module, see Codebook
+    codebook_weight: float = 1.0  # loss = rec_loss + codebook_weight * commitment
+    perceptual_weight: float = 0.0  # the published LPIPS term's weight: not implemented, must be 0 (docs/math.md §4)
     dtype: str = "float32"
     # pyvf's own, not published: code 0 stands for the empty patch, whose every pixel has the colour
     # of the image's top-left pixel (a flat background, as SM7's); such patches take code 0 and no
@@ -73,6 +79,8 @@ class CodebookConfig:
         for name, kw in (("decay", dict(lo=0.0, hi=1.0, lo_open=True, hi_open=True)),
                          ("eps", dict(lo=0.0, lo_open=True)), ("codebook_weight", {}), ("perceptual_weight", {})):
             object.__setattr__(self, name, _checks.real(f"CodebookConfig.{name}", getattr(self, name), **kw))
+        if self.perceptual_weight:
+            raise ValueError("CodebookConfig.perceptual_weight must be 0: pyvf has no LPIPS term (docs/math.md §4)")
         if self.image_size % 2 ** (len(self.ch_mult) - 1):
             raise ValueError(f"CodebookConfig.image_size={self.image_size} is not divisible by 2^{len(self.ch_mult) - 1}")
         if any((self.ch * m) % 32 for m in self.ch_mult):
@@ -179,8 +187,7 @@ def parameter_shapes(cfg):
 
 def trace_names(cfg):
     """The names forward(..., trace=True) records for configuration cfg, in execution order."""
-    losses = ["rec_loss", "commitment_loss"] + (["perceptual_loss"] if cfg.perceptual_weight else []) + ["loss"]
-    return trace_order(layer_table(cfg)) + losses
+    return trace_order(layer_table(cfg)) + ["rec_loss", "commitment_loss", "loss"]
 
 
 @dataclasses.dataclass
@@ -189,30 +196,21 @@ class CodebookOutput:
     codes: np.ndarray  # (B, k, k) int64
     rec_loss: float  # mean |x - x_hat|
     commitment_loss: float  # mean (sg(e) - z)^2
-    loss: float  # rec_loss + perceptual_weight * perceptual_loss + codebook_weight * commitment_loss
+    loss: float  # rec_loss + codebook_weight * commitment_loss
     usage: float  # fraction of codes used by the batch
     perplexity: float
-    perceptual_loss: float = None  # mean over images of the perceptual module's loss; None when off
     trace: dict = None  # forward(..., trace=True) only: name -> activation, trace_names(cfg) order
 
 
 class Codebook(ModelWeights):
-    """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward.
-
-    perceptual: the optional perceptual term (LPIPS in the paper, its VGG weights not bundled):
-    an object with `forward(x, x_hat) -> (loss (B,), cache)` and `backward(dloss (B,), cache) ->
-    dx_hat`, given exactly when config.perceptual_weight is nonzero."""
+    """The VQ-VAE: `params` (torch name -> array), `quantizer` (the EMA buffers), forward, backward."""
 
     LAYOUTS = LAYOUTS
     FILE_KIND = "codebook"
     CONFIG = CodebookConfig
     INPUTS = ("images",)  # the model's inputs (teacher forcing: the first row reads the first)
 
-    def __init__(self, config, seed=0, perceptual=None):
-        if (perceptual is None) != (config.perceptual_weight == 0):
-            raise ValueError(f"perceptual_weight={config.perceptual_weight} needs a perceptual module, and a "
-                             "perceptual module needs perceptual_weight > 0 (LPIPS weights are not bundled)")
-        self.perceptual = perceptual
+    def __init__(self, config, seed=0):
         self.config = config
         self.dtype = np.dtype(config.dtype)
         layers = layer_table(config)
@@ -268,28 +266,16 @@ class Codebook(ModelWeights):
         P = [self.params[n] for n in row.param_names]
         if row.kind == "conv":
             return conv2d_forward(x, *P, row.stride, row.padding)
-        if row.kind == "norm_swish":
-            return groupnorm_swish_forward(x, *P)
-        if row.kind == "upsample":
-            return upsample_nearest2x_forward(x)
-        if row.kind == "attn":
-            return attnblock_forward(x, *P)
         if row.kind == "quantize":  # the quantized z (no EMA step); its gradient is the straight-through one
             empty = None if images is None else self.empty_patches(images)
             return self.quantizer.forward(x, empty=empty)[0].quantized, None
+        return LAYER_PAIRS[row.kind][0](x, *P)
 
     def layer_backward(self, row, dy, cache):
         """layer_forward's VJP -> ([dx], the gradients of row.param_names, in order)."""
-        if row.kind == "conv":
-            dx, *dp = conv2d_backward(dy, cache)
-        elif row.kind == "norm_swish":
-            dx, *dp = groupnorm_swish_backward(dy, cache)
-        elif row.kind == "upsample":
-            dx, *dp = upsample_nearest2x_backward(dy, cache)
-        elif row.kind == "attn":
-            dx, *dp = attnblock_backward(dy, cache)
-        elif row.kind == "quantize":  # forward was quantized = z + sg(e - z): the identity for the gradient
-            dx, dp = dy, []
+        if row.kind == "quantize":  # forward was quantized = z + sg(e - z): the identity for the gradient
+            return [dy], []
+        dx, *dp = LAYER_PAIRS[row.kind][1](dy, cache)
         return [dx], dp
 
     # -----------------------------------------------------------------------------------
@@ -418,10 +404,6 @@ class Codebook(ModelWeights):
         if tr is not None:
             tr[self._quantize_row.name] = q.quantized
         rec = self._run(self._decoder_rows, q.quantized, dec, tr)  # (B, out_ch, S, S)
-        perc = None
-        if self.perceptual is not None:  # (the module that ran, its cache): backward differentiates it
-            per_image, cache = self.perceptual.forward(images, rec)  # (B,)
-            perc = (self.perceptual, cache)
         diff = rec - images
         if pixel_weights is None:
             rec_loss = float(np.mean(np.abs(diff)))
@@ -434,19 +416,13 @@ class Codebook(ModelWeights):
             rec_loss = float(np.sum(wn * np.abs(diff), dtype=np.float64))
             drec_loss = np.sign(diff) * wn.astype(self.dtype)  # (B, C, S, S)
         loss = rec_loss + self.config.codebook_weight * q.commitment_loss
-        perceptual = None
-        if perc is not None:
-            perceptual = float(np.mean(per_image))
-            loss += self.config.perceptual_weight * perceptual
         if tr is not None:
             tr["rec_loss"] = self.dtype.type(rec_loss)
             tr["commitment_loss"] = self.dtype.type(q.commitment_loss)
-            if perceptual is not None:
-                tr["perceptual_loss"] = self.dtype.type(perceptual)
             tr["loss"] = self.dtype.type(loss)
-        self._cache = (enc, dec, c_q, drec_loss, perc, images.shape[0], rec.shape, trace)
+        self._cache = (enc, dec, c_q, drec_loss, rec.shape, trace)
         return CodebookOutput(reconstruction=rec, codes=q.codes, rec_loss=rec_loss, commitment_loss=q.commitment_loss,
-                              loss=loss, usage=q.usage, perplexity=q.perplexity, perceptual_loss=perceptual, trace=tr)
+                              loss=loss, usage=q.usage, perplexity=q.perplexity, trace=tr)
 
     def backward(self, drec=None, *, dloss=None):
         """Differentiate the last forward: the gradient of
@@ -460,7 +436,7 @@ class Codebook(ModelWeights):
         every traced activation's gradient (but the losses'), in backward order."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
-        enc, dec, c_q, drec_loss, perc, B, rec_shape, traced = self._cache
+        enc, dec, c_q, drec_loss, rec_shape, traced = self._cache
         if drec is None and dloss is None:
             dloss = 1.0
         if drec is not None:
@@ -473,10 +449,6 @@ class Codebook(ModelWeights):
         if dloss is not None:
             # forward was rec_loss = mean |rec - x|, so drec = sign(rec - x) / numel (weighted: w / (C sum w))
             total = (dloss * drec_loss).astype(self.dtype)
-            if perc is not None:  # + perceptual_weight * mean_b perceptual(x, rec)_b
-                module, cache = perc
-                dl = np.full(B, dloss * self.config.perceptual_weight / B, dtype=self.dtype)
-                total = total + module.backward(dl, cache)  # (B, out_ch, S, S)
             dcommitment = dloss * self.config.codebook_weight
         if drec is not None:
             total = total + drec
