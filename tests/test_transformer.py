@@ -126,7 +126,7 @@ def test_load_official_names_and_shapes(rng):
     state = model.state_dict()
     assert set(state) == {n[len("migt/"):-2] for n in weights}
     for name, arr in weights.items():
-        got = state[pyvf.models.transformer.official_name(name)]
+        got = state[model.official_name(name)]
         assert got.dtype == np.float64 and np.array_equal(got, arr.astype(np.float64))
     model2 = pyvf.Transformer(cfg)
     model2.load_official(state)  # plain names load too
@@ -267,7 +267,7 @@ def test_tf_converter_maps_checkpoint_keys(style, rng, tmp_path):
     got, skipped = convert_tf.convert(FakeReader(tensors), cfg)
     assert len(skipped) == 2 and set(got) == set(pyvf.models.transformer.parameter_shapes(cfg))
     for name, w in weights.items():
-        assert np.array_equal(got[pyvf.models.transformer.official_name(name)], w)
+        assert np.array_equal(got[name[len("migt/"):-2]], w)
     del tensors["migt/wte/weight" + suffix]
     with pytest.raises(ValueError, match="1 weights not found"):
         convert_tf.convert(FakeReader(tensors), cfg)

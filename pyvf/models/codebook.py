@@ -211,10 +211,8 @@ class Codebook(ModelWeights):
     INPUTS = ("images",)  # the model's inputs (teacher forcing: the first row reads the first)
 
     def __init__(self, config, seed=0):
-        self.config = config
-        self.dtype = np.dtype(config.dtype)
         layers = layer_table(config)
-        self._describe(layers, parameter_table(layers))
+        self._describe(config, layers, parameter_table(layers))
         at = [row.kind for row in layers].index("quantize")  # the encoder's rows, quantize, the decoder's
         self._encoder_rows, self._quantize_row, self._decoder_rows = layers[:at], layers[at], layers[at + 1:]
         rng = np.random.default_rng(seed)
@@ -232,7 +230,6 @@ class Codebook(ModelWeights):
                                       config.dtype, seed=seed + 1)
         D, K = config.embed_dim, config.n_embed
         self.BUFFERS = dict(zip(BUFFERS, [(D, K), (K,), (D, K), None]))  # their shapes; None: the EMA count
-        self._cache = None
 
     # -----------------------------------------------------------------------------------
     # weights (the mechanism: pyvf.models.io.ModelWeights)
@@ -242,9 +239,8 @@ class Codebook(ModelWeights):
         return name.removeprefix("model.")
 
     def fingerprint(self):
-        """What makes this codebook's tokens and images: the sha256 (first 16 hex digits) of every
-        parameter and the codes, in name order (the EMA statistics left out). A transformer
-        records the fingerprint of the codebook it was trained with (Transformer.codebook_fingerprint)."""
+        """The sha256 (first 16 hex digits) of every parameter and the codes, in name order (not the
+        EMA statistics): what makes the tokens, recorded by Transformer.codebook_fingerprint."""
         h = hashlib.sha256()
         for name, a in sorted({**self.params, "quantize.embeddings": self.quantizer.embeddings}.items()):
             h.update(f"{name} {a.dtype.str} {a.shape}".encode())
@@ -282,8 +278,8 @@ class Codebook(ModelWeights):
     # the tape
 
     def _run(self, rows, x, tape=None, tr=None):
-        """Run rows of the table in turn on x, each recorded on the tape as (row, cache) and in
-        the trace tr (name -> output; None: not traced). tape None: inference, nothing is kept."""
+        """Run rows of the table in turn on x, each recorded on the tape as (row, cache) (None:
+        inference, nothing kept) and in the trace tr (name -> output; None: not traced)."""
         for row in rows:
             if row.kind == "res":
                 x, c = self._resblock_forward(row, x, tape is not None, tr)
@@ -340,8 +336,7 @@ class Codebook(ModelWeights):
     # the model
 
     def _check_images(self, images):
-        """images (B, in_channels, S, S) of the model's dtype, finite, in [-1, 1] -> C-ordered.
-        The likely mistake, uint8 pictures (B, S, S, 3), is refused saying how to convert them."""
+        """images (B, in_channels, S, S) of the model's dtype, finite, in [-1, 1] -> C-ordered."""
         cfg, S = self.config, self.config.image_size
         hint = ": convert uint8 pictures (B, S, S, 3) with pyvf.evaluate.metrics.to_model_images"
         self._check_array("images", images, ("B", cfg.in_channels, S, S), hint=hint)
@@ -378,19 +373,17 @@ class Codebook(ModelWeights):
         return self._run(self._decoder_rows, np.ascontiguousarray(e.transpose(0, 3, 1, 2)))
 
     def decode_latent(self, z):
-        """z (B, embed_dim, k, k), a point of the code space (codes, or a mixture of codes such as
-        their expectation under a transformer's distribution) -> images (B, out_ch, S, S)."""
+        """z (B, embed_dim, k, k), a point of the code space (e.g. the codes' expectation under a
+        transformer's distribution) -> images (B, out_ch, S, S)."""
         k = self.config.token_size
         self._check_array("z", z, ("B", self.config.embed_dim, k, k))
         return self._run(self._decoder_rows, np.ascontiguousarray(z))
 
     def forward(self, images, train=False, *, trace=False, pixel_weights=None):
         """images (B, in_channels, S, S) -> CodebookOutput; train=True updates the EMA buffers
-        (the output uses the codes from before the update). Keeps what backward() needs.
-        pixel_weights: None (rec_loss = mean |rec - x|, as published), or non-negative weights
-        (B, 1, S, S), not all zero: rec_loss = sum_b,c,y,x w_b,y,x |rec - x| / (in_channels * sum w).
-        trace=True also returns every activation by name as `out.trace` (trace_names(config)), and
-        makes the next backward() return every activation's gradient."""
+        (the output uses the codes from before the update). pixel_weights: None (rec_loss = mean
+        |rec - x|, as published), or (B, 1, S, S) >= 0, not all zero: rec_loss = sum w |rec - x| /
+        (in_channels sum w). trace=True: also every activation as `out.trace` (trace_names(config))."""
         images = self._check_images(images)
         if pixel_weights is not None:
             B, _, S, _ = images.shape
@@ -425,15 +418,10 @@ class Codebook(ModelWeights):
                               loss=loss, usage=q.usage, perplexity=q.perplexity, trace=tr)
 
     def backward(self, drec=None, *, dloss=None):
-        """Differentiate the last forward: the gradient of
-
-            dloss * loss + sum(reconstruction * drec)
-
-        (a vector-Jacobian product; a term whose seed is None is left out; with no seed at all,
-        dloss = 1). drec (B, out_ch, S, S) for out.reconstruction; dloss a real number. The
-        commitment term (the encoder's only gradient besides the straight-through one) comes with
-        dloss only. Returns torch parameter name -> gradient; after forward(..., trace=True), first
-        every traced activation's gradient (but the losses'), in backward order."""
+        """The gradient of the last forward's dloss * loss + sum(reconstruction * drec), a term whose
+        seed is None left out (no seed at all: dloss = 1) -> torch parameter name -> gradient; after
+        forward(..., trace=True), first every traced activation's gradient (but the losses'), in
+        backward order."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
         enc, dec, c_q, drec_loss, rec_shape, traced = self._cache

@@ -87,9 +87,8 @@ ROLES = {
 
 
 def checkpoint_array(name, a):
-    """A checkpoint's entry -> a numpy array (or `a` as given, for the caller to refuse): anything
-    with `.detach()` (a torch tensor, on any device) through `a.detach().cpu().numpy()` (pyvf never
-    imports torch). A tensor numpy cannot hold (bfloat16) is a TypeError naming `name`."""
+    """A checkpoint's entry -> a numpy array (a torch tensor, on any device, through its .detach()),
+    or `a` as given, for the caller to refuse; TypeError naming `name` for a bfloat16 tensor."""
     if hasattr(a, "detach") and not isinstance(a, np.ndarray):
         try:
             return a.detach().cpu().numpy()
@@ -98,19 +97,9 @@ def checkpoint_array(name, a):
     return a
 
 
-def _count(name, a):
-    """A count (an integer, or a 0-d array holding one: a torch checkpoint may hold it as a float)
-    -> int; ValueError unless it is a non-negative integer int64 holds."""
-    a = np.asarray(a)
-    if a.shape == () and a.dtype.kind in "iuf" and np.isfinite(a) and a == np.floor(a) \
-            and 0 <= int(a) <= np.iinfo(np.int64).max:
-        return int(a)
-    raise ValueError(f"{name!r} must be a non-negative integer count that int64 holds, got {a!r}")
-
-
 class ModelWeights:
-    """The weight mechanism Codebook and Transformer share. A model sets `params` (name -> array,
-    published layout), `config`, `dtype`, and calls _describe(layers) in its __init__."""
+    """The weight mechanism Codebook and Transformer share. A model calls _describe in its
+    __init__, then sets `params` (name -> array, published layout)."""
 
     LAYOUTS = {}  # layout -> what it holds (for messages); the published layout first
     BUFFERS = {}  # state entries besides the parameters -> shape, None for a count (the quantizer's)
@@ -120,9 +109,10 @@ class ModelWeights:
     META = ()  # attributes a model file keeps beside the weights (strings or None), as entries __name__
     source = None  # the file a model was loaded from (load sets it; messages name it)
 
-    def _describe(self, layers, table=None):
-        """Take the layer table and its parameters (name -> (shape, role); default
-        parameters(layers), the execution order)."""
+    def _describe(self, config, layers, table=None):
+        """Take the configuration, the layer table and its parameters (name -> (shape, role);
+        default parameters(layers), the execution order); no forward yet."""
+        self.config, self.dtype, self._cache = config, np.dtype(config.dtype), None
         self.layers = tuple(layers)
         self._param_table = parameters(self.layers) if table is None else dict(table)
 
@@ -142,10 +132,6 @@ class ModelWeights:
         return a.shape
 
     # the layouts -------------------------------------------------------------------------
-
-    def official_name(self, name):
-        """A checkpoint's key -> the parameter's name (the models strip their checkpoints' prefixes)."""
-        return name
 
     def parameter_shapes(self):
         """Parameter name -> shape, in the published layout and order (not the buffers)."""
@@ -193,11 +179,14 @@ class ModelWeights:
 
     def _entry(self, raw, name, a, layout):
         """One checkpoint entry named raw -> a count (int), or a new C-ordered array in the published
-        layout and the model's dtype: a finite float32 or float64 array of its shape in `layout`,
-        finite in the model's dtype too (float64 -> float32 may overflow); else an error naming it."""
+        layout and the model's dtype, finite there too (float64 -> float32 may overflow)."""
         a = checkpoint_array(raw, a)
-        if name in self.BUFFERS and self.BUFFERS[name] is None:
-            return _count(raw, a)
+        if name in self.BUFFERS and self.BUFFERS[name] is None:  # a torch checkpoint may hold it as a float
+            n = np.asarray(a)
+            if n.shape != () or n.dtype.kind not in "iuf" or not (np.isfinite(n) and n == np.floor(n)
+                                                                 and 0 <= int(n) <= np.iinfo(np.int64).max):
+                raise ValueError(f"{raw!r} must be a non-negative integer count that int64 holds, got {a!r}")
+            return int(n)
         if not isinstance(a, np.ndarray) or a.dtype not in _checks.FLOATS:
             raise TypeError(f"{raw!r} is {getattr(a, 'dtype', type(a).__name__)}, expected a float32 or float64 array")
         if name in self._param_table:

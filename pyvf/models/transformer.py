@@ -147,11 +147,6 @@ class TransformerConfig:
 # the layer table (pyvf.models.io): the parameters and teacher forcing's layers read it
 
 
-def official_name(name):
-    """'migt/h.0/ln_1/gamma:0' -> 'h.0/ln_1/gamma' (the prefix and suffix are optional)."""
-    return name.removeprefix("migt/").removesuffix(":0")
-
-
 # load_official's layouts: layout -> how it holds the Dense layers, the published one first
 LAYOUTS = {"tf": "the published TF Dense layout: kernel (in, out), bias (1, out)",
            "torch": "nn.Linear's kernel (out, in), bias (out,)"}
@@ -241,9 +236,7 @@ class Transformer(ModelWeights):
     codebook_fingerprint = None
 
     def __init__(self, config, seed=0):
-        self.config = config
-        self.dtype = np.dtype(config.dtype)
-        self._describe(layer_table(config))
+        self._describe(config, layer_table(config))
         rng = np.random.default_rng(seed)
         self.params = {}
         for name, shape in self.parameter_shapes().items():
@@ -254,9 +247,10 @@ class Transformer(ModelWeights):
             else:  # GPT-2's initialisation: normal(0, 0.02)
                 p = rng.normal(0.0, 0.02, size=shape)
             self.params[name] = p.astype(self.dtype)
-        self._cache = None
 
-    official_name = staticmethod(official_name)  # the published checkpoint's `migt/`, `:0` dropped
+    def official_name(self, name):
+        """A checkpoint's key -> the parameter's name: 'migt/h.0/ln_1/gamma:0' -> 'h.0/ln_1/gamma'."""
+        return name.removeprefix("migt/").removesuffix(":0")
 
     # -----------------------------------------------------------------------------------
     # one row of the table at a time (teacher forcing's reference, pyvf.verify.teacher)
@@ -363,9 +357,7 @@ class Transformer(ModelWeights):
 
     def _block_forward(self, x, j, tr=None, context=None):
         """x (R, B, N, L, d) -> block j's output (R, B, N, L, d), cache; tr: None or the trace dict.
-        context: None (x is the whole tree), or a scene's cached trunk keys and values of block j,
-        (k, v) each (B, H, Nc, L, dh): then x (R, B, 1, L, d) holds query rows, each attending the
-        context and itself as the tree's branch row at view Nc does (attention_layer_forward)."""
+        context: None, or a scene's cached trunk (k, v) of block j (attention_layer_forward)."""
         p, h = self.params, f"h.{j}/"
         a, c_ln1 = layernorm_forward(x, p[h + "ln_1/gamma"], p[h + "ln_1/beta"])
         y, c_attn = attention_layer_forward(a, *(p[h + "attn/" + n] for n in ATTN_PARAMS),
@@ -424,8 +416,7 @@ class Transformer(ModelWeights):
         return matmul(g.reshape(-1, d), self.params["wte/weight"][:V], tb=True).reshape(*g.shape[:-1], V)
 
     def _logits_backward(self, dlogits, g):
-        """_logits' VJP: forward was logits = g @ wte[:V]^T, so dg = dlogits @ wte[:V] (..., d)
-        and the gradient of wte[:V] is dlogits^T @ g (V, d)."""
+        """forward was logits = g @ wte[:V]^T -> dg = dlogits @ wte[:V] (..., d), dwte[:V] = dlogits^T @ g (V, d)."""
         V, d = self.config.n_embeddings, g.shape[-1]
         dl2 = dlogits.reshape(-1, V)  # (M, V)
         return (matmul(dl2, self.params["wte/weight"][:V]).reshape(g.shape),  # dg = dlogits @ wte[:V]
@@ -508,15 +499,10 @@ class Transformer(ModelWeights):
                                  pose_raw=raw, trace=tr)
 
     def backward(self, dlogits=None, dpose=None, *, dloss=None):
-        """Differentiate the last forward: the gradient of
-
-            dloss * loss + sum(logits * dlogits) + sum(pose_raw * dpose)
-
-        (a vector-Jacobian product; a term whose seed is None is left out; with no seed at all,
-        dloss = 1). dlogits (B, N, L, V) for out.logits, dpose (B, N, L, 7) for out.pose_raw (not
-        the normalised out.pose_prediction); dloss a real number. Returns official parameter name
-        -> gradient; after forward(..., trace=True), first every traced activation's gradient (but
-        attn.lse's and the losses'), in backward order."""
+        """The gradient of the last forward's dloss * loss + sum(logits * dlogits) + sum(pose_raw * dpose),
+        a term whose seed is None left out (no seed at all: dloss = 1); dpose is for out.pose_raw.
+        -> official parameter name -> gradient; after forward(..., trace=True), first every traced
+        activation's gradient (but attn.lse's and the losses'), in backward order."""
         if self._cache is None:
             raise RuntimeError("backward() needs a forward() first (and differentiates the last one)")
         c_embed, c_blocks, c_heads, c_ce, c_pl, (B, N, L), traced = self._cache
@@ -551,16 +537,13 @@ class Transformer(ModelWeights):
         self._embed_backward(dx, c_embed, grads, g)
         return grads if g is None else {**g, **grads}
 
-
     # -----------------------------------------------------------------------------------
     # inference: only what a scene needs
 
     def encode_scene(self, context_tokens, context_poses):
-        """Run the trunk over the context views once and keep each layer's keys and values.
-
-        context_tokens (B, Nc, L) ints, context_poses (B, Nc, 7) (any frame: they are made
-        relative to the first context view here) -> Scene, reused by render_scene and
-        localize_scene for any number of queries. Costs one trunk pass (R = 1, block-causal)."""
+        """context_tokens (B, Nc, L) ints, context_poses (B, Nc, 7) (any frame: made relative to the
+        first context view) -> Scene, each layer's trunk keys and values, for render_scene and
+        localize_scene to reuse for any number of queries. One trunk pass (R = 1, block-causal)."""
         _, _, L = self._check_inputs(unit=True, context_tokens=context_tokens, context_poses=context_poses)
         rel, ref = make_relative(context_poses)  # (B, Nc, 7), (B, 7)
         x, _ = self._embed_forward(context_tokens, rel)
@@ -575,8 +558,7 @@ class Transformer(ModelWeights):
                      params=dict(self.params))
 
     def _check_scene(self, scene):
-        """scene: encoded by this model with its present parameters: another model's trunk (or
-        this one's before load_official) would be attended silently."""
+        """scene: encoded by this model with its present parameters (another trunk would be attended silently)."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a Scene from encode_scene, got {type(scene).__name__}")
         if scene.config != self.config or scene.params.keys() != self.params.keys() \
@@ -585,9 +567,8 @@ class Transformer(ModelWeights):
                              "encode the context again with this model's encode_scene")
 
     def _query_forward(self, scene, tokens, poses, row):
-        """M query views, tokens (B, M, L) and poses (B, M, 7) in the scene's frame -> their tree
-        row `row` (1 generation, 2 localization) after the training blocks, each attending the
-        scene's cached trunk, and ln_f: (M, B, L, d)."""
+        """tokens (B, M, L), poses (B, M, 7) of M query views in the scene's frame -> ln_f of their
+        tree row `row` (1 generation, 2 localization), each attending the scene's trunk: (M, B, L, d)."""
         p = self.params
         x = self._embed_forward(tokens, poses)[0][row]  # (B, M, L, d)
         x = np.ascontiguousarray(x.transpose(1, 0, 2, 3))[:, :, None]  # (M, B, 1, L, d): rows of one view each
@@ -640,8 +621,7 @@ class Scene:
 
 def pose_prediction(raw, pose_multiplier=1.0):
     """raw (..., 7) from the pose head -> (..., 7): xyz_raw / pose_multiplier and the raw
-    quaternion L2-normalised (eps 1e-12, TF's convention) and sign-canonicalised (w >= 0).
-    pose_multiplier: TransformerConfig's (nonzero)."""
+    quaternion L2-normalised (eps 1e-12, TF's convention) and sign-canonicalised (w >= 0)."""
     xyz = raw[..., :3] / raw.dtype.type(pose_multiplier)
     q = quat_canonical(quat_normalize(raw[..., 3:], eps=1e-12))
     return np.concatenate([xyz, q], axis=-1)

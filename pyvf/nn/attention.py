@@ -70,12 +70,9 @@ def _check_finite_result(name, *arrays):
 
 
 def branching_attention_forward(q, k, v, scale=1.0, *, plain=False):
-    """Forward that also returns what the backward needs.
-
-    q, k, v: (R, B, H, N, L, dh), float32 or float64, C-contiguous, one dtype. Returns o of q's
-    shape and dtype and lse (R, B, H, N, L) float64 (also for float32: csrc says why), the
-    log-sum-exp of each query's attended logits. plain=True: the plain C++ loops (the oracle).
-    """
+    """q, k, v: (R, B, H, N, L, dh), float32 or float64, C-contiguous, one dtype -> o of q's shape
+    and dtype, lse (R, B, H, N, L) float64 (also for float32: csrc says why), the log-sum-exp of
+    each query's attended logits. plain=True: the plain C++ loops (the oracle)."""
     scale = _check_qkv(q, k, v, scale)
     o = np.empty_like(q)
     lse = np.empty(q.shape[:5], dtype=np.float64)
@@ -85,11 +82,8 @@ def branching_attention_forward(q, k, v, scale=1.0, *, plain=False):
 
 
 def branching_attention_backward(do, q, k, v, o, lse, scale=1.0, *, plain=False):
-    """Gradient of sum(o * do) with respect to q, k, v, given the forward's o and lse.
-
-    do, o: like q; lse: (R, B, H, N, L) float64 as returned by branching_attention_forward.
-    Returns new arrays dq, dk, dv of q's shape and dtype.
-    """
+    """Gradient of sum(o * do) with respect to q, k, v, given the forward's o and lse (as
+    branching_attention_forward returned them) -> new arrays dq, dk, dv of q's shape and dtype."""
     scale = _check_qkv(q, k, v, scale, do=do, o=o)
     if not isinstance(lse, np.ndarray) or lse.dtype != np.float64 or lse.shape != q.shape[:5]:
         raise TypeError(f"lse must be the float64 array of shape {q.shape[:5]} that branching_attention_forward "
@@ -117,17 +111,11 @@ def context_attention_forward(q, k, v, k_ctx, v_ctx, scale=1.0):
     """Branch blocks against a cached trunk: the scene cache's attention (docs/math.md §3).
 
     q, k, v (R, B, H, 1, L, dh): R query rows of one view each; k_ctx, v_ctx (B, H, Nc, L, dh):
-    the trunk's keys and values of Nc context views, one dtype throughout. Query block (r, b, h)
-    attends every context block (b, h, 0..Nc-1) and its own block (r, b, h), nothing else: what
-    branch block (r, Nc) attends in the tree over [context, query] (module docstring). Returns o
-    (R, B, H, 1, L, dh) and lse (R, B, H, 1, L) float64, as branching_attention_forward does.
-
-    Per query block q (L, dh), with its T = (Nc + 1) L keys K = [context keys; own keys] (T, dh)
-    and values V likewise, computed transposed as the kernel does (keys as rows):
-        s^T = scale * K q^T (T, L),  p^T = exp(s^T - max_keys s^T),  o = (p^T)^T V / sum_keys p^T,
-    the context's part for the R queries of a head in one product with the cached keys: Nc + 1
-    block pairs per query, not the tree's (Nc+1)(Nc+2)/2. One softmax pass, so o agrees with the
-    kernel's up to rounding (tests/test_scene_cache.py bounds it).
+    the trunk's keys and values of Nc context views. Query block (r, b, h) attends every context
+    block (b, h, 0..Nc-1) and its own block, nothing else: what branch block (r, Nc) attends in
+    the tree over [context, query]. -> o (R, B, H, 1, L, dh), lse (R, B, H, 1, L) float64, as
+    branching_attention_forward; Nc + 1 block pairs per query, not the tree's (Nc+1)(Nc+2)/2, and
+    o equal to the kernel's up to rounding (tests/test_scene_cache.py bounds it).
     """
     R, B, H, _, L, dh = q.shape
     C, G, n = k_ctx.shape[2] * L, B * H, R * B * H  # context keys, heads, query blocks
@@ -248,14 +236,12 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
     """Branching self-attention over the rows of the tree.
 
     x (R, B, N, L, d); w_attn (d, 3d), b_attn (1, 3d); w_proj (d, d), b_proj (1, d) -> y (R, B, N, L, d).
-    cache: both linear caches, q, k, v, o (R, B, H, N, L, dh), lse, scale and context: the
-    kernel's backward needs them and recomputes the probabilities from lse.
+    cache: both linear caches, q, k, v, o (R, B, H, N, L, dh), lse (the kernel's backward
+    recomputes the probabilities from it), scale, context.
 
-    context: None (x is the whole tree), or a scene's cached trunk keys and values of this
-    layer, (k_ctx, v_ctx) each (B, H, Nc, L, dh) (the cache's k, v of the trunk's forward);
-    then x (R, B, 1, L, d) holds R query rows of one view each, every one attending the Nc
-    context blocks and itself, as the tree's branch row at view Nc (context_attention_forward).
-    Inference only: such a cache has no backward.
+    context: None (x is the whole tree), or a scene's cached trunk (k_ctx, v_ctx) of this layer,
+    each (B, H, Nc, L, dh): then x (R, B, 1, L, d) holds R query rows of one view each
+    (context_attention_forward), for inference only.
     """
     d = x.shape[-1]
     h, c_attn = linear_forward(x, w_attn, b_attn)  # (R, B, N, L, 3d)
@@ -274,10 +260,8 @@ def attention_layer_forward(x, w_attn, b_attn, w_proj, b_proj, n_head, scale=1.0
 
 
 def attention_layer_backward(dy, cache, trace=None, name=""):
-    """dy (R, B, N, L, d) -> dx, dw_attn, db_attn, dw_proj, db_proj. trace: a dict that also
-    receives the gradients of the attention's output, v, k, q and the fused projection, as
-    trace[name + ".out"], ".v", ".k", ".q", ".c_attn" (the transformer's backward after
-    forward(trace=True))."""
+    """dy (R, B, N, L, d) -> dx, dw_attn, db_attn, dw_proj, db_proj. trace: None, or a dict that
+    also receives the gradients of name + ".out", ".v", ".k", ".q", ".c_attn"."""
     c_attn, c_proj, q, k, v, o, lse, scale, context = cache
     n_head = q.shape[2]
     do, dw_proj, db_proj = linear_backward(dy, c_proj)  # (R, B, N, L, d)

@@ -1,15 +1,11 @@
 """The codebook's image layers as forward/backward pairs (docs/math.md §4): conv2d, GroupNorm,
 swish, nearest-neighbour x2 upsampling, and the 2D attention block built from them.
-
-Every layer is two functions: `x_forward(x, *params) -> (out, cache)` and
-`x_backward(dout, cache) -> (dx, *dparams)`, gradients in the order of the forward's
-arguments. `cache` holds only what the backward needs; each says what it saves and what it
-recomputes. Arrays keep their dtype (float32 or float64) throughout. These are internal layers:
-they trust their callers (the models check their inputs once, at their boundary).
+`x_forward(x, *params) -> (out, cache)`, `x_backward(dout, cache) -> (dx, *dparams)`; arrays keep
+their dtype throughout.
 
 Shapes: images are NCHW, (B, C, Hi, Wi); conv weights are torch's (Co, C, kh, kw), biases
-(Co,), so an official `state_dict` loads as is. Co, Ho, Wo are a conv's output channels and
-size; P = Hi * Wi pixels; K = C * kh * kw the length of one im2col column.
+(Co,). Co, Ho, Wo are a conv's output channels and size; P = Hi * Wi pixels; K = C * kh * kw
+the length of one im2col column.
 """
 
 import numpy as np
@@ -46,18 +42,16 @@ def conv2d_forward(x, w, b, stride=1, padding=0):
     """y = conv2d(x, w) + b, torch's cross-correlation (no kernel flip).
 
     x (B, C, Hi, Wi), w (Co, C, kh, kw), b (Co,) -> y (B, Co, Ho, Wo),
-    Ho = (Hi + top + bottom - kh) // stride + 1, Wo likewise.
-    padding: an int (the same zeros on all four sides, torch's `padding=p`) or
+    Ho = (Hi + top + bottom - kh) // stride + 1, Wo likewise. padding: an int (all four sides) or
     (top, bottom, left, right).
 
     Padding trap (docs/math.md §4): the Downsample pads only the right and the bottom, by one pixel,
     then convolves 3x3 stride 2 with padding 0: padding=(0, 1, 0, 1) here, F.pad(x, (0, 1, 0, 1))
-    in torch (whose order is (left, right, top, bottom); with these numbers both orders agree).
-    padding=1 gives the same output size on even images but shifts every window by one pixel;
-    (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
+    in torch. padding=1 gives the same output size on even images but shifts every window by one
+    pixel; (1, 0, 1, 0) pads the wrong corner. Neither raises: only the values tell.
 
     The C++ kernel (csrc/conv.cpp, implicit GEMM); conv2d_forward_numpy is its reference.
-    cache: x and w (C-ordered), stride, padding; the columns are recomputed in the backward."""
+    cache: x and w (C-ordered), stride, padding."""
     pad = _padding4(padding)
     pt, pb, pl, pr = pad
     x, w, b = np.ascontiguousarray(x), np.ascontiguousarray(w), np.ascontiguousarray(b)
@@ -77,11 +71,9 @@ def conv2d_backward(dy, cache):
 
 
 def conv2d_forward_numpy(x, w, b, stride=1, padding=0):
-    """conv2d_forward in NumPy, its reference: same arguments, output and cache.
-
-    One matmul over the whole batch: y[o, (b, u, v)] = sum_k w2[o, k] cols[k, (b, u, v)], w2 = w as
-    (Co, K), cols the im2col columns (K, B*Ho*Wo). cache: x and w (no copies), stride, padding;
-    the columns are recomputed in the backward (they are kh*kw times the size of x)."""
+    """conv2d_forward in NumPy, its reference: same arguments, output and cache. One matmul:
+    y[o, (b, u, v)] = sum_k w2[o, k] cols[k, (b, u, v)], w2 = w as (Co, K), cols the im2col columns
+    (K, B*Ho*Wo), recomputed in the backward (kh*kw times the size of x)."""
     pad = _padding4(padding)
     B, C = x.shape[:2]
     Co, _, kh, kw = w.shape
@@ -128,15 +120,14 @@ def groupnorm_forward(x, gamma, beta, groups=32, eps=1e-6):
 
     x (B, C, Hi, Wi), gamma, beta (C,) -> y (B, C, Hi, Wi).
 
-    Parity trap (docs/math.md §4): the codebook's Normalize uses eps = 1e-6, not torch's
-    nn.GroupNorm / F.group_norm default 1e-5. On groups of variance ~1e-5 the two differ by
-    tens of percent.
+    Parity trap (docs/math.md §4): the codebook's Normalize uses eps = 1e-6, not torch's default
+    1e-5; on groups of variance ~1e-5 the two differ by tens of percent.
 
-    Two-pass: the mean is accumulated in float64 and rounded, the group centred twice (the second
-    time by the centred group's own residual mean), then the variance is the mean square of it.
-    So a group of mean 1e4 and spread 0.1 keeps its digits, and a constant group gives y = beta
-    exactly (xhat = 0 even when the rounded mean is an ulp off, which 1/sqrt(eps) = 1000 would
-    amplify). cache: xhat (B, C, Hi, Wi), rstd (B, G, 1), gamma, groups."""
+    Two-pass, as layernorm_forward: the group centred by its float64 mean rounded, then by the
+    residual mean, the variance the mean square of that; so a group of mean 1e4 and spread 0.1
+    keeps its digits and a constant group gives y = beta exactly (xhat = 0 even when the rounded
+    mean is an ulp off, which 1/sqrt(eps) = 1000 would amplify).
+    cache: xhat (B, C, Hi, Wi), rstd (B, G, 1), gamma, groups."""
     B, C, Hi, Wi = x.shape
     xg = x.reshape(B, groups, C // groups * Hi * Wi)  # (B, G, M): a group's channels are consecutive
     xc = xg - xg.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (B, G, M)
@@ -166,11 +157,8 @@ def groupnorm_backward(dy, cache):
 
 
 def groupnorm_swish_forward(x, gamma, beta, groups=32, eps=1e-6):
-    """z = swish(groupnorm(x)): the Normalize + swish pair of the codebook (ResnetBlock's norm1 and
-    norm2, and norm_out before conv_out, docs/math.md §4).
-
-    x (B, C, Hi, Wi), gamma, beta (C,) -> z (B, C, Hi, Wi). eps 1e-6: the parity trap of
-    groupnorm_forward. cache: the two children's caches."""
+    """z = swish(groupnorm(x)): the codebook's Normalize + swish (norm1, norm2, norm_out).
+    x (B, C, Hi, Wi), gamma, beta (C,) -> z (B, C, Hi, Wi). cache: the two children's caches."""
     y, c_norm = groupnorm_forward(x, gamma, beta, groups, eps)
     z, c_swish = swish_forward(y)
     return z, (c_norm, c_swish)
@@ -189,10 +177,8 @@ def groupnorm_swish_backward(dz, cache):
 
 def _sigmoids(x):
     """(sigmoid(|x|), sigmoid(-|x|), x >= 0), without overflow or cancellation: z = exp(-|x|) is
-    in (0, 1], so exp never overflows; sigmoid(|x|) = 1 / (1 + z) and sigmoid(-|x|) = z / (1 + z),
-    each assigned by the sign of x. sigmoid(-x) is computed, not taken as 1 - sigmoid(x), which
-    would cancel to 0 for x >~ 17 (float64) and lose the gradient's tail. In place, one temporary
-    each: these passes are most of the codebook's swish time."""
+    in (0, 1]; sigmoid(|x|) = 1 / (1 + z) and sigmoid(-|x|) = z / (1 + z) (not 1 - sigmoid(|x|),
+    which cancels to 0 for x >~ 17 and loses the gradient's tail). In place: most of swish's time."""
     z = np.abs(x)
     np.negative(z, out=z)
     with np.errstate(under="ignore"):  # e^-|x| underflowing for large |x| is the correctly rounded value
