@@ -10,9 +10,8 @@
     out = cb.forward(images, trace=True) # out.trace: name -> activation, execution order (pyvf.compare)
 
 Parameters use the published torch names, conv weights (out, in, kh, kw); the quantizer's
-buffers (`quantize.*`) live in an EMAQuantizer. The model is its layer table (layer_table(config),
-pyvf.models.io). The forward records every row it runs on a tape, (row, cache); the backward
-replays the tape in reverse. `*.norm1`, `*.norm2`, `*.norm_out` are swish(GroupNorm(x)), fused.
+buffers (`quantize.*`) live in an EMAQuantizer. The model is its layer table (layer_table(config)):
+the forward records every row it runs on a tape, (row, cache), the backward replays it in reverse.
 """
 
 import dataclasses

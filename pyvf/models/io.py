@@ -154,7 +154,7 @@ class ModelWeights:
 
     def from_layout(self, name, a, layout):
         """An array of parameter `name` in `layout` -> the published layout (a view); ValueError
-        naming it for none of layout_shapes(name, layout) (never transposed or reshaped)."""
+        naming it for a shape not in layout_shapes(name, layout)."""
         role, shapes = self._role(name, layout), self.layout_shapes(name, layout)
         if tuple(np.shape(a)) not in shapes:
             raise ValueError(f"{name!r} has shape {tuple(np.shape(a))}, expected {' or '.join(map(str, shapes))} "
@@ -200,11 +200,10 @@ class ModelWeights:
         return out
 
     def load_official(self, weights, *, layout=None):
-        """Load a dict name -> array (or torch tensor) named as the published checkpoint (its
-        prefixes optional: official_name), every parameter and buffer, the parameters in `layout`
-        (None: the published one; stated, so that a square kernel is never silently transposed).
-        The first wrong entry raises naming its key (TypeError for a wrong type or dtype, else
-        ValueError); nothing is assigned before all pass."""
+        """Load a dict name -> array (or torch tensor) named as the published checkpoint (prefixes
+        optional: official_name), every parameter and buffer, the parameters in `layout` (None: the
+        published one; stated, so that a square kernel is never silently transposed). The first
+        wrong entry raises naming its key; nothing is assigned before all pass."""
         layout = self.check_layout(next(iter(self.LAYOUTS)) if layout is None else layout)
         if not isinstance(weights, Mapping):
             raise TypeError(f"load_official: weights must be a dict name -> array, got {type(weights).__name__}")

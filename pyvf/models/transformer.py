@@ -36,6 +36,9 @@ MAX_TOKENS_PER_VIEW = 256  # wpe has 256 rows: token t of every view gets row t
 DENSE_PAIR = ("c_fc/weight", "c_fc/bias", "c_proj/weight", "c_proj/bias")  # an MLP's parameters, mlp_forward's order
 ATTN_PARAMS = ("c_attn/weight", "c_attn/bias", "c_proj/weight", "c_proj/bias")  # attention_layer_forward's order
 NORM = ("gamma", "beta")
+# row kind -> its layer pair (forward, backward); "embed" and "logits" are the model's own
+LAYER_PAIRS = {"layernorm": (layernorm_forward, layernorm_backward), "mlp": (mlp_forward, mlp_backward),
+               "attention": (attention_layer_forward, attention_layer_backward)}
 POSE_HEAD = "quaternion_pose_representation/pose_classifier/"
 
 # What forward(..., trace=True) records, in execution order ("{j}": every block). Layouts are the
@@ -79,14 +82,9 @@ TRACE_NAMES = (
 
 def trace_names(n_layer):
     """TRACE_NAMES with "{j}" expanded for blocks 0..n_layer-1: forward's trace keys, in order."""
-    names = []
     block = [n for n in TRACE_NAMES if n.startswith("blocks.")]
-    for n in TRACE_NAMES:
-        if n == block[0]:
-            names += [b.format(j=j) for j in range(n_layer) for b in block]
-        elif not n.startswith("blocks."):
-            names.append(n)
-    return names
+    at = TRACE_NAMES.index(block[0])  # the block's names are contiguous
+    return [*TRACE_NAMES[:at], *(b.format(j=j) for j in range(n_layer) for b in block), *TRACE_NAMES[at + len(block):]]
 
 
 def _accumulate(grads, prefix, names, dparams):
@@ -261,14 +259,11 @@ class Transformer(ModelWeights):
         if row.kind == "embed":  # tokens, poses -> the three rows (3, B, N, L, d)
             return self._embed_forward(*xs)
         (x,) = xs
-        if row.kind == "layernorm":
-            return layernorm_forward(x, *P)
         if row.kind == "attention":
-            return attention_layer_forward(x, *P, self.config.n_head, self.config.attention_scale)
-        if row.kind == "mlp":
-            return mlp_forward(x, *P)
+            P += [self.config.n_head, self.config.attention_scale]
         if row.kind == "logits":  # logits = g @ wte[:V]^T (B, N, L, V), the embedding tied
             return self._logits(x), x
+        return LAYER_PAIRS[row.kind][0](x, *P)
 
     def layer_backward(self, row, dy, cache):
         """layer_forward's VJP -> (per input its gradient, None for the model's inputs; the
@@ -277,16 +272,12 @@ class Transformer(ModelWeights):
             grads = {n: np.zeros_like(self.params[n]) for n in row.param_names}
             self._embed_backward(dy, cache, grads)
             return [None, None], [grads[n] for n in row.param_names]  # tokens and poses get none
-        if row.kind == "layernorm":
-            dx, *dp = layernorm_backward(dy, cache)
-        elif row.kind == "attention":
-            dx, *dp = attention_layer_backward(dy, cache)
-        elif row.kind == "mlp":
-            dx, *dp = mlp_backward(dy, cache)
-        elif row.kind == "logits":  # g = cache (B, N, L, d); wte's rows past V get no gradient here
+        if row.kind == "logits":  # g = cache (B, N, L, d); wte's rows past V get no gradient here
             dx, dwte = self._logits_backward(dy, cache)
             dp = [np.zeros_like(self.params["wte/weight"])]
             dp[0][:self.config.n_embeddings] = dwte
+        else:
+            dx, *dp = LAYER_PAIRS[row.kind][1](dy, cache)
         return [dx], dp
 
     # -----------------------------------------------------------------------------------

@@ -16,11 +16,9 @@ from .. import _core
 
 def matmul(a, b, ta=False, tb=False, bias=None):
     """c = op(a) @ op(b) [+ bias], op = transpose when ta / tb, for 2-D operands or per entry of
-    3-D ones (a leading batch axis): a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c
-    (M, N); bias (N,) added to every row after its sum (as NumPy's a @ b + bias rounds).
-    pyvf's GEMM (csrc/matmul.cpp): each element one sum in increasing k, the same for any thread
-    count, and no BLAS threads spinning on the cores the other kernels need. Its reference is
-    matmul_numpy."""
+    3-D ones: a (M, K), or (K, M) when ta; b (K, N), or (N, K) when tb; c (M, N); bias (N,) added
+    after the sum. pyvf's GEMM (csrc/matmul.cpp; reference matmul_numpy): each element one sum in
+    increasing k, the same for any thread count, no BLAS threads spinning on the kernels' cores."""
     a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
     one = a.ndim == 2  # 2-D: one entry of the batched kernel
     a3, b3 = (a[None], b[None]) if one else (a, b)
@@ -68,10 +66,9 @@ def linear_backward(dy, cache):
 
 def layernorm_forward(x, gamma, beta, eps=1e-5):
     """y = (x - mean) / sqrt(var + eps) * gamma + beta.   x (..., d), gamma, beta (d,).
-
-    Two-pass: the row centred twice (by its float64 mean rounded, then by the residual mean), the
-    variance the mean square of that, so a row of mean 1e4 and spread 0.1 keeps its digits and a
-    constant row gives y = beta exactly. cache: xhat (..., d), rstd (..., 1), gamma."""
+    Two-pass: the row centred by its float64 mean rounded, then by the residual mean, the variance
+    the mean square of that: a row of mean 1e4 and spread 0.1 keeps its digits and a constant row
+    gives y = beta exactly. cache: xhat (..., d), rstd (..., 1), gamma."""
     xc = x - x.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # (..., d)
     xc -= xc.mean(axis=-1, keepdims=True, dtype=np.float64).astype(x.dtype)  # the rounded mean's residual
     var = np.einsum("...i,...i->...", xc, xc)[..., None] / x.shape[-1]  # (..., 1): mean of xc^2
@@ -121,9 +118,8 @@ _erfc = np.frompyfunc(math.erfc, 1, 1)  # C99's erfc, one element at a time (Num
 
 
 def gelu_forward_numpy(x):
-    """gelu_forward's math in NumPy, the reference the C++ kernel is tested against: in float64,
-    Phi(x) = erfc(-x / sqrt(2)) / 2 (erfc, not 1 + erf(x / sqrt(2)), which loses every digit of
-    Phi for x <= -6), y = x * Phi(x), rounded once. Slow (Python's erfc per element)."""
+    """gelu_forward in NumPy, the C++ kernel's reference: in float64, Phi(x) = erfc(-x / sqrt(2)) / 2
+    (not (1 + erf(x / sqrt(2))) / 2, which loses every digit for x <= -6), y = x * Phi(x) rounded once."""
     x64 = x.astype(np.float64)  # (...)
     Phi = 0.5 * _erfc(-x64 / math.sqrt(2)).astype(np.float64)  # (...)
     return (x64 * Phi).astype(x.dtype), x

@@ -6,14 +6,12 @@ import numpy as np
 
 
 def cross_entropy_forward(logits, targets, label_smoothing=0.0):
-    """Per-row cross-entropy from the log-sum-exp.
+    """Per-row cross-entropy from the log-sum-exp: logits (M, V), targets (M,) in [0, V) -> loss (M,).
 
-    logits (M, V) float, targets (M,) integers in [0, V) -> loss (M,).
-    Target distribution q = (1 - eps) * onehot(target) + eps / V, loss = -sum_v q_v log p_v,
-    log p = z - logsumexp(z), z = logits - max: logits of any size give a finite loss.
-    label_smoothing in [0, 1]. In float64, the loss rounded to the logits' dtype once.
-    cache: the logits (not copied: do not modify them before the backward), each row's max and
-    log-sum (float64), the targets, eps.
+    Target q = (1 - eps) * onehot(target) + eps / V, eps = label_smoothing in [0, 1]; loss =
+    -sum_v q_v log p_v, log p = z - logsumexp(z), z = logits - max: finite for logits of any size.
+    In float64, rounded to the logits' dtype once. cache: the logits (not copied), each row's max
+    and log-sum (float64), the targets, eps.
     """
     M, V = logits.shape
     eps = label_smoothing
@@ -48,10 +46,9 @@ def cross_entropy_backward(dloss, cache):
 def pose_loss_forward(raw, target, pose_multiplier=1.0):
     """The pose loss on the head's raw output (docs/math.md §3: the raw quaternion, not the normalised one).
 
-    raw (..., 7) = [xyz_raw, q_raw]; target (..., 7) = [xyz, q] in input units, broadcast to raw.
-    loss (...) = mean over xyz of (pose_multiplier * xyz - xyz_raw)^2 + mean over wxyz of (q - q_raw)^2.
-    The loss has raw's shape without the last axis: target may broadcast to raw, never beyond.
-    cache: the two residuals.
+    raw (..., 7) = [xyz_raw, q_raw]; target (..., 7) = [xyz, q] in input units, broadcast to raw
+    -> loss (...) = mean over xyz of (pose_multiplier * xyz - xyz_raw)^2 + mean over wxyz of
+    (q - q_raw)^2. cache: the two residuals.
     """
     rxyz = raw[..., :3] - raw.dtype.type(pose_multiplier) * target[..., :3]  # (..., 3)
     rq = raw[..., 3:] - target[..., 3:]  # (..., 4)

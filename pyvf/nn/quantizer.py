@@ -5,11 +5,10 @@
     out, cache = q.forward(z, train=True)           # z (B, D, h, w): out.quantized, out.codes, ...
     (dz,) = q.backward(dquantized, dcommitment, cache)
 
-vq_nearest: for each row of x the index of the nearest code in squared Euclidean distance,
-exactly (the argmin computed in float64 from the given values, ties to the smallest index), and
-that distance. The C++ kernel (csrc/vq.cpp) scores codes by a fast product and re-ranks exactly
-every code its rounding-error bound cannot rule out. The published quantizer stores codes as
-the COLUMNS of `quantize.embeddings` (D, K); vq_nearest takes them as rows.
+vq_nearest: each row's nearest code in squared Euclidean distance, exactly (the argmin in
+float64 of the given values, ties to the smallest index), and that distance; the C++ kernel
+(csrc/vq.cpp) re-ranks exactly every code its fast product's error bound cannot rule out. The
+published quantizer stores codes as the COLUMNS of `quantize.embeddings` (D, K).
 """
 
 import dataclasses
@@ -101,18 +100,6 @@ class EMAQuantizer:
         self.ema_dw_hidden = np.array(state["ema_dw_hidden"], self.dtype)
         self.counter = int(state["counter"])
 
-    def nearest(self, flat, empty=None):
-        """flat (M, D) -> codes (M,) int64: each vector's nearest code (codes are columns). With
-        empty (M,) bool, code 0 is the empty code: the vectors marked empty take it, the others
-        their nearest of codes 1..K-1."""
-        codes = np.ascontiguousarray(self.embeddings.T)  # (K, D)
-        if empty is None:
-            return vq_nearest(flat, codes)[0]
-        idx = np.zeros(len(flat), np.int64)
-        if not empty.all():
-            idx[~empty] = vq_nearest(np.ascontiguousarray(flat[~empty]), codes[1:])[0] + 1
-        return idx
-
     def forward(self, z, train=False, empty=None):
         """z (B, D, h, w) -> (QuantizerOutput, cache). train=True applies one EMA update (the
         output uses the codes from before it). empty: None (published), or bool (B, h, w): the
@@ -120,7 +107,13 @@ class EMAQuantizer:
         B, D, h, w = z.shape
         empty = None if empty is None else empty.reshape(-1)  # (M,)
         flat = np.ascontiguousarray(z.transpose(0, 2, 3, 1).reshape(-1, D))  # (M, D)
-        idx = self.nearest(flat, empty)  # (M,)
+        codes = np.ascontiguousarray(self.embeddings.T)  # (K, D): the codes are columns
+        if empty is None:
+            idx = vq_nearest(flat, codes)[0]  # (M,)
+        else:  # code 0 is the empty code: the empty vectors take it, the others their nearest of 1..K-1
+            idx = np.zeros(len(flat), np.int64)
+            if not empty.all():
+                idx[~empty] = vq_nearest(np.ascontiguousarray(flat[~empty]), codes[1:])[0] + 1
         e = self.embeddings.T[idx]  # (M, D): the codes from before any update (a copy)
         counts = np.bincount(idx, minlength=self.n_embed)  # (K,) N_k
         diff = e - flat  # (M, D)
@@ -161,12 +154,11 @@ class EMAQuantizer:
 
     def reset_dead_codes(self, z, threshold=1e-3, rng=None, restart="batch", reseat=0, empty=None):
         """Move the codes whose smoothed cluster size is below threshold to vectors of z (B, D, h, w),
-        each to a different one while there are enough, their EMA statistics restarted there ->
-        the number moved. restart: "batch", vectors drawn uniformly; "worst", the worst-represented
-        first. reseat: also move up to this many live codes of least utility (low_utility_codes) to
-        the worst-represented vectors left, each only while the move lowers the batch's
-        quantization error (the ELBG idea, Patane and Russo 2001). empty: as forward's; code 0
-        never moves, the others move only to non-empty positions' vectors."""
+        distinct while there are enough, their EMA statistics restarted there -> the number moved.
+        restart: "batch", vectors drawn uniformly; "worst", the worst-represented first. reseat:
+        also move up to this many live codes of least utility (low_utility_codes) to the worst-
+        represented vectors left, while it lowers the batch's error (ELBG, Patane and Russo 2001).
+        empty: as forward's; code 0 never moves, the others only to non-empty positions' vectors."""
         rng = np.random.default_rng(rng)
         empty = None if empty is None else empty.reshape(-1)  # (M,)
         flat = z.transpose(0, 2, 3, 1).reshape(-1, self.embed_dim)  # (M, D)
