@@ -59,7 +59,7 @@ def test_import_pyvf_is_the_installed_package_and_imports_no_torch_or_command_co
     scenes) do not import argparse; only pyvf.cli parses arguments."""
     library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
                "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, "
-               "pyvf.scenes.make, pyvf.bench.common, pyvf.verify.convert_tf, pyvf.verify.convert_torch")
+               "pyvf.scenes.dataset, pyvf.bench.common, pyvf.verify.convert_tf, pyvf.verify.convert_torch")
     code = (f"import sys, pyvf, {library}; assert 'torch' not in sys.modules, 'pyvf imported torch'; "
             "print(sorted(m for m in sys.modules if m == 'argparse' or m.startswith('pyvf.cli') or "
             "(m.startswith('pyvf') and m.rsplit('.', 1)[-1] in ('commands', 'pipeline')))); print(pyvf.__file__)")
