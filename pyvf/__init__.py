@@ -88,26 +88,12 @@ class use_kernel_path:
 
 
 def show_config(file=None):
-    """Print which instruction-set path the kernels use, the paths this CPU and build offer,
+    """Print the version, the kernels' instruction-set path, the paths this CPU and build offer,
     and the threads: the first thing to include in a bug report or a benchmark."""
-    c, n = _core.config(), _threads.cores()
-    forced = f", forced by PYVF_ISA={c['forced_by_PYVF_ISA']}" if c["forced_by_PYVF_ISA"] else ""
-    features = ", ".join(k for k, v in c["cpu_features"].items() if v) or "-"
-    lines = [
-        f"pyvf {__version__}",
-        f"kernel path: {c['path']} ({c['path_description']}){forced}",
-        f"  kernels on it: {', '.join(c['kernels'])}",
-        f"paths this process can use: {', '.join(c['available_paths'])}",
-        f"paths built: {', '.join(c['built_paths'])}",
-        f"cpu features: {features}",
-        f"threads: {c['threads']} (OpenMP {'on' if c['openmp'] else 'off'}; this process may use "
-        f"{n} CPU{'' if n == 1 else 's'}: {_threads.cpu_limits_text()})",
-    ]
-    print("\n".join(lines), file=file)
+    print("\n".join([f"pyvf {__version__}", *_core.config_lines()]), file=file)
 
 
-# PYVF_NUM_THREADS for the kernels and numpy's BLAS; without it, no more threads than the CPUs in this
-# process's affinity
+# PYVF_NUM_THREADS for the kernels and numpy's BLAS
 _threads.set_from_environment()
 
 

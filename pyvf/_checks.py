@@ -83,9 +83,3 @@ def real(name, x, lo=None, hi=None, lo_open=False, hi_open=False):
                          f"{'inf' if hi is None else hi}{')' if hi_open else ']'}, got {x!r}")
     return x
 
-
-def finite_result(what, a, name="the result"):
-    """Raise ValueError when `a`, computed from finite inputs, is not finite: it overflowed."""
-    if not all_finite(a):
-        raise ValueError(f"{what}: {name} is not finite: it overflowed {a.dtype} (rescale the inputs, or use float64)")
-    return a

@@ -31,48 +31,27 @@ if not _built_paths:
 _base = importlib.import_module(f"pyvf._core_{_built_paths[0]}")
 _features = dict(_base.cpu_features())
 _runs = tuple(p for p in _built_paths if all(_features.get(f, False) for f in _NEEDS.get(p, ())))
-_modules = {_built_paths[0]: _base}
 
 _forced = os.environ.get("PYVF_ISA", "").strip() or None
-if _forced is not None:
-    if _forced not in _order:
-        raise ImportError(f"PYVF_ISA={_forced!r} is not a kernel path of this architecture; "
-                          f"choose one of {', '.join(_order)}")
-    if _forced not in _built_paths:
-        raise ImportError(f"PYVF_ISA={_forced!r}: that path was not built (the compiler could not target it); "
-                          f"built: {', '.join(_built_paths)}")
-    if _forced not in _runs:
-        raise ImportError(f"PYVF_ISA={_forced!r}: this CPU cannot run that path; it runs {', '.join(_runs)}")
+if _forced is not None and _forced not in _runs:
+    raise ImportError(f"PYVF_ISA={_forced!r} is not a kernel path this build and CPU run: choose one of "
+                      f"{', '.join(_runs)} (built: {', '.join(_built_paths)})")
 _current = _forced or _runs[-1]
-# the paths this process may use: those the CPU runs, up to the forced one
-_allowed = _runs[: _runs.index(_current) + 1] if _forced else _runs
-
-
-_threads_set = None  # the kernels' thread count set by set_num_threads (None: OpenMP's default)
-
-
-def _module(path):
-    if path not in _modules:
-        _modules[path] = importlib.import_module(f"pyvf._core_{path}")
-        if _threads_set is not None:
-            _modules[path].set_num_threads(_threads_set)
-    return _modules[path]
+# the paths this process may use: those the CPU runs, up to the forced one; each module loaded now
+_allowed = _runs[: _runs.index(_current) + 1]
+_modules = {p: importlib.import_module(f"pyvf._core_{p}") for p in _allowed}
+_impl = _modules[_current]
 
 
 def set_num_threads(n):
-    """The kernels' threads in every path module, loaded or loaded later (pyvf.set_num_threads is public)."""
-    global _threads_set
+    """The kernels' threads in every path module (pyvf.set_num_threads is public)."""
     for m in _modules.values():
         m.set_num_threads(n)
-    _threads_set = n
 
 
 def num_threads():
     """The kernels' threads: set_num_threads's count, else OpenMP's default."""
     return _impl.num_threads()
-
-
-_impl = _module(_current)
 
 
 def available_paths():
@@ -90,36 +69,20 @@ def use_path(path):
     if path not in _allowed:
         raise ValueError(f"path must be one of {', '.join(_allowed)} (the kernel paths this process can use), "
                          f"got {path!r}")
-    previous, _current, _impl = _current, path, _module(path)
+    previous, _current, _impl = _current, path, _modules[path]
     return previous
 
 
-_NOT_KERNELS = {"cpu_features", "num_threads", "set_num_threads", "openmp", "path", "simd_bytes", "force_parallel",
-                "set_force_parallel"}
-
-
-def kernels():
-    """The current path's kernels: its functions but the settings and the *_plain references."""
-    names = [n for n in dir(_impl) if not n.startswith("_") and n not in _NOT_KERNELS and callable(getattr(_impl, n))]
-    return sorted(n for n in names if not n.endswith("_plain"))
-
-
-def config():
-    """What show_config prints, as a dict."""
+def config_lines():
+    """What show_config prints after the version: the path, the paths, the CPU's features, the threads."""
     needs = _NEEDS.get(_current)
     cpu = f"needs {', '.join(needs)}" if needs else f"any {platform.machine()} CPU"
-    return {
-        "path": _current,
-        "path_description": f"{cpu}; {_impl.simd_bytes}-byte vectors",
-        "kernels": kernels(),
-        "forced_by_PYVF_ISA": _forced,
-        "available_paths": list(_allowed),
-        "built_paths": list(_built_paths),
-        "cpu_features": _features,
-        "simd_bytes": _impl.simd_bytes,
-        "openmp": bool(_impl.openmp),
-        "threads": _impl.num_threads(),
-    }
+    forced = f", forced by PYVF_ISA={_forced}" if _forced else ""
+    return [f"kernel path: {_current} ({cpu}; {_impl.simd_bytes}-byte vectors){forced}",
+            f"paths this process can use: {', '.join(_allowed)}",
+            f"paths built: {', '.join(_built_paths)}",
+            f"cpu features: {', '.join(k for k, v in _features.items() if v) or '-'}",
+            f"threads: {_impl.num_threads()} (OpenMP {'on' if _impl.openmp else 'off'})"]
 
 
 def __getattr__(name):  # any kernel: the current path's

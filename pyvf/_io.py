@@ -1,10 +1,5 @@
 """Files that survive a killed process: atomic writes, and reads that name the broken file.
 
-    atomic_savez("run/checkpoint.npz", step=np.array(3), w=w)     # all or nothing
-    atomic_write_text("run/config.json", json.dumps(cfg))
-    atomic_write_png("views.png", Image.fromarray(rgb))              # the same for a picture
-    arrays = load_npz("run/checkpoint.npz", "checkpoint", required=("step",))
-
 An atomic write goes to a temporary file `.{name}.{pid}.{random}.tmp` in the destination's
 folder, is fsync'ed, then os.replace'd over the destination: a process killed at any moment leaves
 the previous file or the new one. Only SIGKILL or a power cut leaves a temporary file behind, for

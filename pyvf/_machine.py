@@ -1,13 +1,11 @@
 """The machine's facts and a timer, for every home that says where and how fast it ran
-(pyvf/bench/common.py re-exports them): the standard library and _core only."""
+(pyvf/bench/common.py re-exports them): the standard library only."""
 
 import platform
 import statistics
 import time
 
-from . import _core
-
-__all__ = ["median_time", "cpu_name", "kernel_line"]
+__all__ = ["median_time", "cpu_name"]
 
 
 def median_time(fn, repeat=5, warmup=1):
@@ -33,8 +31,3 @@ def cpu_name():
         pass
     return platform.processor() or platform.machine() or "unknown CPU"
 
-
-def kernel_line():
-    """The line every pyvf demo starts with: the instruction-set path the C++ kernels run."""
-    return (f"pyvf kernels: path {_core.current_path()} (this CPU runs {', '.join(_core.available_paths())}; "
-            "PYVF_ISA=<path> forces one; `pyvf config` for details)")

@@ -11,8 +11,6 @@ __all__ = ["reuse_freed_memory", "map_fresh_pages"]
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4
 _DEFAULT_THRESHOLD, _DEFAULT_MMAP_MAX = 128 * 1024, 65536
 
-_state = {"on": False, "fresh": False}
-
 
 def _glibc():
     """This process's C library when it is glibc (its mallopt typed), else None."""
@@ -26,14 +24,8 @@ def _glibc():
 def reuse_freed_memory():
     """Large blocks from the heap, never returned (mallopt M_MMAP_MAX = 0, M_TRIM_THRESHOLD = -1):
     resident memory stays at its peak. Returns True when in effect, False where libc is not glibc."""
-    if _state["on"]:
-        return True
     libc = _glibc()
-    if libc is None:
-        return False
-    _state["on"] = libc.mallopt(_M_MMAP_MAX, 0) == 1 and libc.mallopt(_M_TRIM_THRESHOLD, -1) == 1
-    _state["fresh"] = False
-    return _state["on"]
+    return libc is not None and libc.mallopt(_M_MMAP_MAX, 0) == 1 and libc.mallopt(_M_TRIM_THRESHOLD, -1) == 1
 
 
 def map_fresh_pages():
@@ -41,11 +33,8 @@ def map_fresh_pages():
     fixed) and the heap's free pages returned now, so that a call cannot reuse what an earlier one
     freed. For the rest of the process (reuse_freed_memory undone); a no-op without glibc."""
     libc = _glibc()
-    if libc is None:
-        return
-    if not _state["fresh"]:
+    if libc is not None:
         for param, value in ((_M_MMAP_MAX, _DEFAULT_MMAP_MAX), (_M_MMAP_THRESHOLD, _DEFAULT_THRESHOLD),
                              (_M_TRIM_THRESHOLD, _DEFAULT_THRESHOLD)):
             libc.mallopt(param, value)
-        _state["fresh"], _state["on"] = True, False
-    libc.malloc_trim(0)
+        libc.malloc_trim(0)

@@ -4,27 +4,14 @@ set together (`pyvf.set_num_threads`, `with pyvf.threads(n):`, `pyvf.num_threads
 import numbers
 import os
 
-from threadpoolctl import threadpool_info, threadpool_limits
+from threadpoolctl import threadpool_limits
 
 from . import _core
 
-__all__ = ["blas_num_threads", "cores", "cpu_limits_text", "num_threads", "set_from_environment", "set_num_threads", "threads"]
+__all__ = ["num_threads", "set_from_environment", "set_num_threads", "threads"]
 
 # The most threads a count may ask for: the OpenMP runtime ends the process where it cannot create them.
 MAX_THREADS = 1024
-
-
-def cores():
-    """The CPUs in this process's affinity mask (os.cpu_count() where the platform has none)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-def cpu_limits_text():
-    """Where cores() is taken from, for `pyvf config`."""
-    return f"{cores()} in its affinity"
 
 
 def num_threads():
@@ -46,28 +33,16 @@ def set_num_threads(n):
     threadpool_limits(limits=n, user_api="blas")
 
 
-def blas_num_threads():
-    """Threads of numpy's BLAS pool now (the largest if several BLAS are loaded)."""
-    return max((i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"), default=1)
-
-
 def set_from_environment(environ=None):
-    """pyvf's threads at import: PYVF_NUM_THREADS (else, unless OMP_NUM_THREADS is set, cores() where
-    the kernels or BLAS run more: BLAS counted the CPUs before any pinning). Returns the count set, or None."""
-    environ = os.environ if environ is None else environ
-    value = environ.get("PYVF_NUM_THREADS", "").strip()
-    if value:
-        if not value.isdecimal() or not 1 <= int(value) <= MAX_THREADS:  # isdecimal: int() refuses '³'
-            raise ImportError(f"PYVF_NUM_THREADS={value!r} is not a positive integer of at most {MAX_THREADS}")
-        n = int(value)
-    elif environ.get("OMP_NUM_THREADS", "").strip():
+    """pyvf's threads at import: PYVF_NUM_THREADS, where set (else OpenMP's and BLAS's defaults, one
+    thread per CPU of the process's affinity). Returns the count set, or None."""
+    value = (os.environ if environ is None else environ).get("PYVF_NUM_THREADS", "").strip()
+    if not value:
         return None
-    else:
-        n = cores()
-        if n >= _core.num_threads() and n >= blas_num_threads():
-            return None
-    set_num_threads(n)
-    return n
+    if not value.isdecimal() or not 1 <= int(value) <= MAX_THREADS:  # isdecimal: int() refuses '³'
+        raise ImportError(f"PYVF_NUM_THREADS={value!r} is not a positive integer of at most {MAX_THREADS}")
+    set_num_threads(int(value))
+    return int(value)
 
 
 class threads:

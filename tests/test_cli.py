@@ -59,7 +59,7 @@ def test_import_pyvf_is_the_installed_package_and_imports_no_torch_or_command_co
     scenes) do not import argparse; only pyvf.cli parses arguments."""
     library = ("pyvf.bench.attention, pyvf.bench.vq, pyvf.bench.steps, pyvf.bench.scaling, "
                "pyvf.bench.accuracy, pyvf.bench.hardcases, pyvf.bench.report, "
-               "pyvf.scenes.make, pyvf.bench.common, pyvf.verify.convert_tf, pyvf.verify.convert_torch")
+               "pyvf.scenes.dataset, pyvf.bench.common, pyvf.verify.convert_tf, pyvf.verify.convert_torch")
     code = (f"import sys, pyvf, {library}; assert 'torch' not in sys.modules, 'pyvf imported torch'; "
             "print(sorted(m for m in sys.modules if m == 'argparse' or m.startswith('pyvf.cli') or "
             "(m.startswith('pyvf') and m.rsplit('.', 1)[-1] in ('commands', 'pipeline')))); print(pyvf.__file__)")
@@ -105,16 +105,11 @@ def test_a_bad_kernel_path_is_one_line_for_the_command(how, tmp_path):
 
 
 def test_config():
-    """(`pyvf config` itself: test_every_readme_command_without_torch.) The kernels listed come from
-    the compiled module: every one is callable there, the codebook's conv2d and the GELU among them."""
-    listed = pyvf._core.config()["kernels"]
-    assert {"attn_forward", "conv2d_forward", "gelu", "matmul", "vq_nearest"} <= set(listed)
-    assert all(callable(getattr(pyvf._core, name)) for name in listed)
-    assert not {"num_threads", "cpu_features"} & set(listed)
-    # the path's description too: the features that select it and its module's vector width
-    c = pyvf._core.config()
-    assert f"{pyvf._core._impl.simd_bytes}-byte vectors" in c["path_description"]
-    assert all(f in c["path_description"] for f in pyvf._core._NEEDS.get(c["path"], ()))
+    """(`pyvf config` itself: test_every_readme_command_without_torch.) The path's line names the
+    features that select it and its module's vector width."""
+    line = pyvf._core.config_lines()[0]
+    assert f"{pyvf._core._impl.simd_bytes}-byte vectors" in line
+    assert all(f in line for f in pyvf._core._NEEDS.get(pyvf.kernel_path(), ()))
 
 
 def status(argv):

@@ -349,9 +349,6 @@ def test_bad_array_arguments_are_named(f, args, name, kind):
 
 @pytest.mark.parametrize("call, error, name", [
     *[(lambda axis=axis: geo.average_pose(_p(), axis=axis), ValueError, "axis") for axis in (-1, 1, 2)],
-    (lambda: geo.make_relative(_p()[0]), ValueError, "poses"),  # no views axis
-    (lambda: geo.position_error(_v(), _p()), ValueError, "p2"),  # a position against a pose
-    (lambda: geo.orientation_error(_q(), _p()), ValueError, "q2"),
     (lambda: geo.orientation_error(_q(), np.zeros((2, 4))), ValueError, "q2"),  # a zero quaternion
     # unit quaternions required (the zero quaternion too), named by the argument that holds them
     (lambda: geo.quat_rotate(1.001 * _q(), _v()), ValueError, "q"),
@@ -378,17 +375,3 @@ def rotation_matrix(q):
 def rotated(q, v):
     """R(q) v in float64 (float32 inputs of 3e38 are far from float64's limit)."""
     return np.einsum("...ij,...j->...i", rotation_matrix(q), np.asarray(v, np.float64))
-
-
-@pytest.mark.parametrize("dtype", DTYPES)
-def test_results_beyond_the_dtype_range_raise(dtype):
-    """A result that overflows the dtype raises ValueError naming the function, never a silent inf:
-    a vector of 0.88 max turned 90 degrees (its expanded formula's t = 2 u x v overflows), |q| of
-    and positions whose mean sum overflows."""
-    big = 0.88 * float(np.finfo(dtype).max)
-    s = math.sqrt(0.5)
-    qz, v = np.array([s, 0, 0, s], dtype), np.array([big, big, 0], dtype)
-    with np.errstate(over="ignore", invalid="ignore"), pytest.raises(ValueError, match="quat_rotate"):
-        geo.quat_rotate(qz, v)
-    with np.errstate(over="ignore"), pytest.raises(ValueError, match="average_pose"):
-        geo.average_pose(np.array([[big, 0, 0, 1, 0, 0, 0]] * 2, dtype), axis=0)

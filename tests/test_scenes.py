@@ -11,7 +11,6 @@ pair, damage, Ctrl-C and resume, refusals), and the command.
 Shapes: images (V, H, W, 3) uint8, poses (V, 7) = xyz + unit quaternion (w, x, y, z).
 """
 
-import argparse
 import hashlib
 import json
 import math
@@ -24,7 +23,7 @@ import pytest
 from pyvf import quat_mul, quat_rotate
 from pyvf import scenes as sc
 from pyvf.scenes import dataset as dataset_module
-from pyvf.cli.scenes import register as scenes_cli_register
+from pyvf.cli import build_parser
 
 from conftest import assert_bitwise_equal, assert_close
 
@@ -491,9 +490,7 @@ def test_interrupted_write_resumes_bitwise(tmp_path, monkeypatch):
 
 def pyvf_scenes(*argv):
     """`pyvf scenes *argv --quiet` in this process -> its exit status."""
-    parser = argparse.ArgumentParser(prog="pyvf")
-    scenes_cli_register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["scenes", *map(str, argv), "--quiet"])
+    args = build_parser().parse_args(["scenes", *map(str, argv), "--quiet"])
     return args.func(args)
 
 

@@ -7,7 +7,7 @@ import os
 import sys
 import time
 
-from .._machine import kernel_line
+from .. import _core
 from .._threads import set_num_threads
 from ..evaluate.run import DECODES, DEFAULT_DECODE, evaluate, metrics_markdown
 from ..models import load_pretrained
@@ -22,7 +22,8 @@ def report(name, *, out, scenes, context, seed, codebook=None, transformer=None,
            decode=DEFAULT_DECODE, repeat=5):
     """Load the pair, evaluate, print the tables and timings, write `out`. Returns the exit status:
     0, or 1 (printed to stderr) when a model file is missing or does not fit."""
-    print(kernel_line(), flush=True)
+    print(f"pyvf kernels: path {_core.current_path()} (this CPU runs {', '.join(_core.available_paths())}; "
+          "PYVF_ISA=<path> forces one; `pyvf config` for details)", flush=True)
     if threads is not None:
         set_num_threads(threads)
     try:

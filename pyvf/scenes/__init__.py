@@ -12,8 +12,7 @@ cameras.py the frames and the cameras, dataset.py the files.
 
 from .cameras import (CAMERA_RADIUS, MAX_ELEVATION_DEG, TAN_HALF_FOV, gqn_to_pose, look_at_poses, pose_matrix,
                       pose_to_gqn, sample_camera_positions)
-from .dataset import FORMAT, FORMAT_VERSION, SceneDataset, load_dataset, write_dataset
-from .make import preview_grid, save_preview
+from .dataset import FORMAT, FORMAT_VERSION, SceneDataset, load_dataset, preview_grid, save_preview, write_dataset
 from .render import (AMBIENT, BACK, BACKGROUND, DIFFUSE, LIGHT_DIR, N_CUBES, face_shades, generate_scene,
                      generate_scenes, make_object, object_boxes, render_views)
 

@@ -28,9 +28,6 @@ def convert_checkpoint(checkpoint, config_json, output):
     with open(config_json) as f:
         config = CodebookConfig(**json.load(f))
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    if not isinstance(ckpt, dict):
-        raise ValueError(f"{checkpoint} holds a {type(ckpt).__name__}, not a checkpoint (a dict with a "
-                         "state_dict, or a state_dict)")
     weights, skipped = convert(ckpt.get("state_dict", ckpt), config)
     model = Codebook(config)
     model.load_official(weights)  # every entry checked, named

@@ -18,10 +18,7 @@ def tree_to_flat(x):
 
 def flat_to_tree(x, R, N, L):
     """x (B, T, ...) with T = R*N*L ordered [row][view][token] -> (R, B, N, L, ...)."""
-    B, T = x.shape[:2]
-    if T != R * N * L:
-        raise ValueError(f"x has T = {T} tokens (shape {x.shape}), but R*N*L = {R}*{N}*{L} = {R * N * L}")
-    tree = x.reshape(B, R, N, L, *x.shape[2:])  # (B, R, N, L, ...)
+    tree = x.reshape(x.shape[0], R, N, L, *x.shape[2:])  # (B, R, N, L, ...)
     return np.moveaxis(tree, 1, 0).copy(order="C")  # (R, B, N, L, ...)
 
 
@@ -39,16 +36,13 @@ def trace_from_flat(trace, N, L, R=3):
             continue
         a = _readable(name, a)
         if name == "embed.out" or name.startswith("blocks."):
-            if name.endswith(_PER_HEAD) and a.ndim in (3, 4):  # (B, H, T[, dh]) -> (R, B, H, N, L[, dh])
-                B, H, T = a.shape[:3]
-                if T != R * N * L:
-                    raise ValueError(f"{name!r} has shape {a.shape}: T = {T}, but R*N*L = {R * N * L}")
-                a = np.moveaxis(a.reshape(B, H, R, N, L, *a.shape[3:]), 2, 0).copy(order="C")
-            else:
-                try:
+            try:  # numpy's reshape refuses T != R*N*L; the error names the entry
+                if name.endswith(_PER_HEAD) and a.ndim in (3, 4):  # (B, H, T[, dh]) -> (R, B, H, N, L[, dh])
+                    a = np.moveaxis(a.reshape(*a.shape[:2], R, N, L, *a.shape[3:]), 2, 0).copy(order="C")
+                else:
                     a = flat_to_tree(a, R, N, L)
-                except ValueError as e:
-                    raise ValueError(f"{name!r}: {e}") from None
+            except ValueError as e:
+                raise ValueError(f"{name!r}: {e}") from None
         else:
             a = np.array(a)
         out[name] = a

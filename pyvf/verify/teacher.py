@@ -33,10 +33,6 @@ class Layer:
     rows: tuple = ()  # the model's layer-table rows it runs (model.layers), in order
 
 
-def _label(name, row):
-    return name if row is None else f"{name}[{row}]"
-
-
 # ---------------------------------------------------------------------------------------
 # the layers of each model
 
@@ -309,8 +305,9 @@ class _Run:
         for (inputs, _), xs, dxs in zip(layer.calls, ins, dxs_ref):
             for (n, r), x, dx in zip(inputs, xs, dxs):
                 if dx is not None and n not in MODEL_INPUTS:
-                    dins_ref[f"d {_label(n, r)}"] = dx
-                    dins[f"d {_label(n, r)}"] = self.from_port(n, r, x.grad if x.grad is not None else 0 * x)
+                    label = f"d {n}" if r is None else f"d {n}[{r}]"
+                    dins_ref[label] = dx
+                    dins[label] = self.from_port(n, r, x.grad if x.grad is not None else 0 * x)
         ref_p = {n: g for n, g in dparams_ref.items() if n in mine_params}
         mine_p = {n: self.model.from_layout(n, t.grad.detach().cpu().numpy() if t.grad is not None
                                             else np.zeros(tuple(t.shape)), self.layout)
