@@ -143,30 +143,12 @@ template <typename T> inline void row_mul(T* y, const T* x, int64_t n) {
     for (; c < n; ++c) y[c] *= x[c];
 }
 
-template <typename T> inline bool all_finite(const typename Simd<T>::V& chk) {
-    for (int i = 0; i < Simd<T>::W; ++i)
-        if (chk[i] != 0) return false;
-    return true;
-}
-
 }  // namespace
-
-// =========================================================================================
-// Tiles, groups, and allocation failures
 
 // A block of L tokens is processed in tiles of at most kTile queries times kTile keys, so the
 // per-thread buffers are O(kTile^2 + kTile*dh) whatever L is. For L <= kTile (the model's 64) a
 // tile is the whole block.
 constexpr int64_t kTile = 256;
-
-// An allocation's exception is caught inside the parallel region (leaving it would abort the
-// process) and the kernel returns kAttnOutOfMemory.
-#define PYVF_TRY_ALLOC(status, ...)                       \
-    try {                                                 \
-        __VA_ARGS__;                                      \
-    } catch (const std::bad_alloc&) {                     \
-        _Pragma("omp atomic write") status = kAttnOutOfMemory; \
-    }
 
 // =========================================================================================
 // Fast forward
@@ -179,7 +161,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
     const int64_t ntile = (L + TQ - 1) / TQ;  // query tiles per block
     const int64_t ntask = d.nblk() * ntile;
 
-    int status = kAttnOk;
+    int status = kOk;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
         // per thread: q^T (dh, TQ); s^T, then p^T (TK, TQ); the accumulator acc (TQ, dh); per
@@ -242,7 +224,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
                 lse_q[a] = (double)m[a] + std::log((double)l[a]);
             }
         }
-        if (!all_finite<T>(chk)) {
+        if (hsum<T>(chk) != 0) {  // a lane of chk is NaN
 #pragma omp atomic write
             status = kAttnLogitOverflow;
         }
@@ -298,14 +280,9 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
     const int64_t G = key_groups(d);
     std::vector<int> group;
     RawBuf<T> dq_extra;  // (B*H, G-1, head): the dq of groups 1..G-1, each block zeroed by its task
-    try {
-        group = assign_groups(d, G);
-        dq_extra.resize((size_t)(B * H * (G - 1) * head));
-    } catch (const std::bad_alloc&) {
-        return kAttnOutOfMemory;
-    }
+    PYVF_OR_OOM(group = assign_groups(d, G); dq_extra.resize((size_t)(B * H * (G - 1) * head)))
 
-    int status = kAttnOk;
+    int status = kOk;
     const bool threads = worth_threads(d);
 #pragma omp parallel num_threads(num_threads()) if (threads)
     {
@@ -404,7 +381,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                     }
                 }
         }
-        if (!all_finite<T>(chk)) {
+        if (hsum<T>(chk) != 0) {  // a lane of chk is NaN
 #pragma omp atomic write
             status = kAttnLogitOverflow;
         }
@@ -414,7 +391,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
         // (16 or more heads): the region's end is the only barrier.
         if (G > 1) {
 #pragma omp barrier
-            if (status == kAttnOk) {
+            if (status == kOk) {
 #pragma omp for schedule(static) nowait
                 for (int64_t t = 0; t < B * H * RN; ++t) {
                     const int64_t bh = t / RN, y = t % RN;
@@ -472,7 +449,7 @@ int attn_forward_plain(T* o, double* lse, const T* q, const T* k, const T* v, At
                         for (int64_t e = 0; e < dh; ++e) o[row * dh + e] = (T)(acc[e] / sum);
                         lse[row] = m + std::log(sum);
                     }
-    return kAttnOk;
+    return kOk;
 }
 
 template <typename T>
@@ -520,7 +497,7 @@ int attn_backward_plain(T* dq, T* dk, T* dv, const double* lse, const T* q, cons
         dk[x] = (T)gk[x];
         dv[x] = (T)gv[x];
     }
-    return kAttnOk;
+    return kOk;
 }
 
 #define PYVF_INSTANTIATE(T)                                                                        \
