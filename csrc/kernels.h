@@ -16,6 +16,10 @@ enum Status : int { kOk, kAttnLogitOverflow, kOutOfMemory, kConvNonFinite, kConv
 // the attended keys.
 struct AttnDims {
     int64_t R, B, H, N, L, dh;
+    // index of block (r, b, h, i); multiply by L*dh for q/k/v, by L for lse
+    int64_t blk(int64_t r, int64_t b, int64_t h, int64_t i) const { return ((r * B + b) * H + h) * N + i; }
+    int64_t bs() const { return L * dh; }
+    int64_t nblk() const { return R * B * H * N; }
 };
 template <typename T>
 int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims d, T scale);
