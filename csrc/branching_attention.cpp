@@ -49,17 +49,8 @@ inline bool attends(int64_t r, int64_t i, int64_t kr, int64_t j) {
     return (kr == 0 && j < i) || (kr == r && j == i);
 }
 
-struct Layout {
-    int64_t R, B, H, N, L, dh;
-    explicit Layout(AttnDims d) : R(d.R), B(d.B), H(d.H), N(d.N), L(d.L), dh(d.dh) {}
-    // index of block (r, b, h, i); multiply by L*dh for q/k/v, by L for lse
-    int64_t blk(int64_t r, int64_t b, int64_t h, int64_t i) const { return ((r * B + b) * H + h) * N + i; }
-    int64_t bs() const { return L * dh; }
-    int64_t nblk() const { return R * B * H * N; }
-};
-
 // Threads only when the attended block pairs hold at least ~4M multiply-adds (a wake-up costs us).
-inline bool worth_threads(const Layout& d) {
+inline bool worth_threads(const AttnDims& d) {
     const double pairs = (double)d.B * d.H * d.R * d.N * (d.N + 1) / 2;  // attended block pairs
     return parallel_work((int64_t)(pairs * d.L * d.L * d.dh), 4000000);
 }
@@ -143,43 +134,24 @@ template <typename T> inline void row_mul(T* y, const T* x, int64_t n) {
     for (; c < n; ++c) y[c] *= x[c];
 }
 
-template <typename T> inline bool all_finite(const typename Simd<T>::V& chk) {
-    for (int i = 0; i < Simd<T>::W; ++i)
-        if (chk[i] != 0) return false;
-    return true;
-}
-
 }  // namespace
-
-// =========================================================================================
-// Tiles, groups, and allocation failures
 
 // A block of L tokens is processed in tiles of at most kTile queries times kTile keys, so the
 // per-thread buffers are O(kTile^2 + kTile*dh) whatever L is. For L <= kTile (the model's 64) a
 // tile is the whole block.
 constexpr int64_t kTile = 256;
 
-// An allocation's exception is caught inside the parallel region (leaving it would abort the
-// process) and the kernel returns kAttnOutOfMemory.
-#define PYVF_TRY_ALLOC(status, ...)                       \
-    try {                                                 \
-        __VA_ARGS__;                                      \
-    } catch (const std::bad_alloc&) {                     \
-        _Pragma("omp atomic write") status = kAttnOutOfMemory; \
-    }
-
 // =========================================================================================
 // Fast forward
 
 template <typename T>
-int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims dims, T scale) {
-    const Layout d(dims);
+int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims d, T scale) {
     const int64_t L = d.L, dh = d.dh, bs = d.bs(), N = d.N, R = d.R, H = d.H;
     const int64_t TQ = std::min(L, kTile), TK = TQ;
     const int64_t ntile = (L + TQ - 1) / TQ;  // query tiles per block
     const int64_t ntask = d.nblk() * ntile;
 
-    int status = kAttnOk;
+    int status = kOk;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
         // per thread: q^T (dh, TQ); s^T, then p^T (TK, TQ); the accumulator acc (TQ, dh); per
@@ -242,7 +214,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
                 lse_q[a] = (double)m[a] + std::log((double)l[a]);
             }
         }
-        if (!all_finite<T>(chk)) {
+        if (hsum<T>(chk) != 0) {  // a lane of chk is NaN
 #pragma omp atomic write
             status = kAttnLogitOverflow;
         }
@@ -259,7 +231,7 @@ int attn_forward(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims
 // thread count. Group g > 0 accumulates its dq into a buffer of its own (one head's dq), added
 // to dq in the order g = 1, 2, ... after all groups finish: (G-1)*B*H*R*N*L*dh extra elements,
 // at most 7 times dq (and none when B*H >= 16).
-inline int64_t key_groups(const Layout& d) {
+inline int64_t key_groups(const AttnDims& d) {
     const int64_t bh = d.B * d.H;
     int64_t g = bh >= 16 ? 1 : (16 + bh - 1) / bh;
     return std::max<int64_t>(1, std::min<int64_t>({g, 8, d.R * d.N}));
@@ -268,7 +240,7 @@ inline int64_t key_groups(const Layout& d) {
 // group[x] for each key block x = kr*N + j of a head: balanced by the number of query blocks
 // that attend it (trunk block j: (N - j) trunk + (R-1)(N-1-j) branch views; a branch block: 1),
 // largest first, each to the least loaded group (ties: the lower group).
-inline std::vector<int> assign_groups(const Layout& d, int64_t G) {
+inline std::vector<int> assign_groups(const AttnDims& d, int64_t G) {
     const int64_t nk = d.R * d.N;
     std::vector<int64_t> cost(nk), order(nk);
     for (int64_t kr = 0; kr < d.R; ++kr)
@@ -288,24 +260,18 @@ inline std::vector<int> assign_groups(const Layout& d, int64_t G) {
 
 template <typename T>
 int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k, const T* v,
-                  const T* o, const T* dout, AttnDims dims, T scale) {
+                  const T* o, const T* dout, AttnDims d, T scale) {
     using V = typename Simd<T>::V;
     constexpr int W = Simd<T>::W;
-    const Layout d(dims);
     const int64_t L = d.L, dh = d.dh, bs = d.bs(), N = d.N, R = d.R, H = d.H, B = d.B;
     const int64_t RN = R * N, head = RN * bs;  // one head's elements in q (and dq)
     const int64_t TQ = std::min(L, kTile), TK = TQ;
     const int64_t G = key_groups(d);
     std::vector<int> group;
     RawBuf<T> dq_extra;  // (B*H, G-1, head): the dq of groups 1..G-1, each block zeroed by its task
-    try {
-        group = assign_groups(d, G);
-        dq_extra.resize((size_t)(B * H * (G - 1) * head));
-    } catch (const std::bad_alloc&) {
-        return kAttnOutOfMemory;
-    }
+    PYVF_OR_OOM(group = assign_groups(d, G); dq_extra.resize((size_t)(B * H * (G - 1) * head)))
 
-    int status = kAttnOk;
+    int status = kOk;
     const bool threads = worth_threads(d);
 #pragma omp parallel num_threads(num_threads()) if (threads)
     {
@@ -404,7 +370,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
                     }
                 }
         }
-        if (!all_finite<T>(chk)) {
+        if (hsum<T>(chk) != 0) {  // a lane of chk is NaN
 #pragma omp atomic write
             status = kAttnLogitOverflow;
         }
@@ -414,7 +380,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
         // (16 or more heads): the region's end is the only barrier.
         if (G > 1) {
 #pragma omp barrier
-            if (status == kAttnOk) {
+            if (status == kOk) {
 #pragma omp for schedule(static) nowait
                 for (int64_t t = 0; t < B * H * RN; ++t) {
                     const int64_t bh = t / RN, y = t % RN;
@@ -432,8 +398,7 @@ int attn_backward(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k
 // Plain loops: one query row at a time, every key tested with attends(), double accumulators.
 
 template <typename T>
-int attn_forward_plain(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims dims, T scale) {
-    const Layout d(dims);
+int attn_forward_plain(T* o, double* lse, const T* q, const T* k, const T* v, AttnDims d, T scale) {
     const int64_t L = d.L, dh = d.dh;
     std::vector<double> logit(d.R * d.N * L), acc(dh);
     for (int64_t b = 0; b < d.B; ++b)
@@ -472,13 +437,12 @@ int attn_forward_plain(T* o, double* lse, const T* q, const T* k, const T* v, At
                         for (int64_t e = 0; e < dh; ++e) o[row * dh + e] = (T)(acc[e] / sum);
                         lse[row] = m + std::log(sum);
                     }
-    return kAttnOk;
+    return kOk;
 }
 
 template <typename T>
 int attn_backward_plain(T* dq, T* dk, T* dv, const double* lse, const T* q, const T* k,
-                        const T* v, const T* o, const T* dout, AttnDims dims, T scale) {
-    const Layout d(dims);
+                        const T* v, const T* o, const T* dout, AttnDims d, T scale) {
     const int64_t L = d.L, dh = d.dh, n = d.nblk() * L * dh;
     std::vector<double> gq(n, 0.0), gk(n, 0.0), gv(n, 0.0);
     for (int64_t b = 0; b < d.B; ++b)
@@ -520,7 +484,7 @@ int attn_backward_plain(T* dq, T* dk, T* dv, const double* lse, const T* q, cons
         dk[x] = (T)gk[x];
         dv[x] = (T)gv[x];
     }
-    return kAttnOk;
+    return kOk;
 }
 
 #define PYVF_INSTANTIATE(T)                                                                        \

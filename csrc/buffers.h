@@ -1,11 +1,29 @@
-// Aligned work buffers of the kernels (conv.cpp, branching_attention.cpp).
+// Aligned work buffers of the kernels, and their allocation failures.
 #pragma once
 
 #include <cstddef>
 #include <new>
 #include <vector>
 
+#include "kernels.h"
+
 namespace pyvf {
+
+// An exception must not leave an OpenMP region (the process would abort): an allocation failure
+// inside one is caught and recorded, and the kernel returns kOutOfMemory.
+#define PYVF_TRY_ALLOC(status, ...)                         \
+    try {                                                   \
+        __VA_ARGS__;                                        \
+    } catch (const std::bad_alloc&) {                       \
+        _Pragma("omp atomic write") status = kOutOfMemory;  \
+    }
+// The same outside a region: the kernel returns kOutOfMemory.
+#define PYVF_OR_OOM(...)                                    \
+    try {                                                   \
+        __VA_ARGS__;                                        \
+    } catch (const std::bad_alloc&) {                       \
+        return kOutOfMemory;                                \
+    }
 
 // Work buffers on a cache line; failure throws std::bad_alloc. A Buf's resize zeroes new elements;
 // a RawBuf's leaves them unset, for buffers first written inside a parallel region.

@@ -57,22 +57,6 @@ constexpr int64_t kRowTileBytes = 256 << 10;  // the forward's padded-row tile
 constexpr int64_t kCB = 8;                    // input channels per dw and strided-dx task
 constexpr int64_t kDwChunk = 256;             // pixels per register sum of the dw
 
-// An exception must not leave an OpenMP region (the process would abort): allocations inside
-// one are caught, recorded, and the kernel returns kConvOutOfMemory.
-#define PYVF_CONV_TRY_ALLOC(status, ...)                        \
-    try {                                                       \
-        __VA_ARGS__;                                            \
-    } catch (const std::bad_alloc&) {                           \
-        _Pragma("omp atomic write") status = kConvOutOfMemory;  \
-    }
-// The same outside a region: the kernel returns kConvOutOfMemory.
-#define PYVF_CONV_OR_OOM(...)                 \
-    try {                                     \
-        __VA_ARGS__;                          \
-    } catch (const std::bad_alloc&) {         \
-        return kConvOutOfMemory;              \
-    }
-
 // The register tile's operands found through tables (simd.h's gemm_ops):
 template <typename T> struct ColTableA {  // A(i, k) = p[i * ld + off[k]]: the flipped weights wf, in place in w
     const T* p;
@@ -516,15 +500,15 @@ template <typename T> struct StridedDxTasks {
 
 // A backward's status: the allocations', then dx's, dw's, db's finiteness.
 inline int backward_status(int status, int nonfinite_dx, int nonfinite_dw, int nonfinite_db) {
-    if (status != kConvOk) return status;
-    return nonfinite_dx ? kConvNonFinite : nonfinite_dw ? kConvNonFiniteDw : nonfinite_db ? kConvNonFiniteDb : kConvOk;
+    if (status != kOk) return status;
+    return nonfinite_dx ? kConvNonFinite : nonfinite_dw ? kConvNonFiniteDw : nonfinite_db ? kConvNonFiniteDb : kOk;
 }
 
 // The backward in one parallel region: dyT, one barrier, then the dw and dx tasks as one dynamic
 // loop (the set with fewer, so longer, tasks first, the other's filling the threads' tails), and db.
 template <typename T, typename Dx>
 int backward_tasks(const Dx& dxt, DwTasks<T>& dwt, T* db, const T* dy, const ConvDims& d) {
-    int status = kConvOk, nonfinite = 0, nonfinite_dw = 0, nonfinite_db = 0;
+    int status = kOk, nonfinite = 0, nonfinite_dw = 0, nonfinite_db = 0;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
 #pragma omp for schedule(static) nowait
@@ -532,7 +516,7 @@ int backward_tasks(const Dx& dxt, DwTasks<T>& dwt, T* db, const T* dy, const Con
         typename Dx::Scratch sx;
         typename DwTasks<T>::Scratch sw;
         bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, dxt.scratch(sx); dwt.scratch(sw); ok = true)
+        PYVF_TRY_ALLOC(status, dxt.scratch(sx); dwt.scratch(sw); ok = true)
 #pragma omp barrier
         const bool dw_first = dwt.ntask <= dxt.ntask;
         const int64_t first = dw_first ? dwt.ntask : dxt.ntask;  // tasks t < first: the first set's
@@ -564,13 +548,13 @@ int backward_tasks(const Dx& dxt, DwTasks<T>& dwt, T* db, const T* dy, const Con
 
 template <typename T> int conv2d_forward(T* y, const T* x, const T* w, const T* b, const ConvDims& d) {
     std::unique_ptr<ConvTasks<T>> p;
-    PYVF_CONV_OR_OOM(p.reset(new ConvTasks<T>(y, x, w, b, d)))
-    int status = kConvOk, nonfinite = 0;
+    PYVF_OR_OOM(p.reset(new ConvTasks<T>(y, x, w, b, d)))
+    int status = kOk, nonfinite = 0;
 #pragma omp parallel num_threads(num_threads()) if (worth_threads(d))
     {
         typename ConvTasks<T>::Scratch s;
         bool ok = false;
-        PYVF_CONV_TRY_ALLOC(status, p->scratch(s); ok = true)
+        PYVF_TRY_ALLOC(status, p->scratch(s); ok = true)
 #pragma omp for schedule(dynamic, 1) nowait
         for (int64_t t = 0; t < p->ntask; ++t)
             if (ok && !p->run(t, s)) {
@@ -589,10 +573,10 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
         std::fill(dw, dw + d.Co * d.C * d.kh * d.kw, T(0));
         int nonfinite_db = 0;
         for (int64_t o = 0; o < d.Co; ++o) nonfinite_db |= !db_sum(db, dy, d, o);
-        return backward_status(kConvOk, 0, 0, nonfinite_db);
+        return backward_status(kOk, 0, 0, nonfinite_db);
     }
     std::unique_ptr<DwTasks<T>> dwt;
-    PYVF_CONV_OR_OOM(dwt.reset(new DwTasks<T>(dw, x, dy, d)))
+    PYVF_OR_OOM(dwt.reset(new DwTasks<T>(dw, x, dy, d)))
     if (d.stride == 1) {
         // forward was y[o, u, v] = sum w[o, c, i, j] x[c, u + i - pt, v + j - pl], so
         // dx[c, yy, xx] = sum over o, i, j of w[o, c, i, j] dy[o, yy + pt - i, xx + pl - j]
@@ -601,11 +585,11 @@ int conv2d_backward(T* dx, T* dw, T* db, const T* x, const T* w, const T* dy, co
         const ConvDims t{d.B,  d.Co, d.Ho, d.Wo, d.C, d.kh, d.kw, 1, d.kh - 1 - d.pt, d.kh - 1 - d.pb,
                          d.kw - 1 - d.pl, d.kw - 1 - d.pr, d.Hi, d.Wi};
         std::unique_ptr<ConvTasks<T>> dxt;
-        PYVF_CONV_OR_OOM(dxt.reset(new ConvTasks<T>(dx, dy, w, nullptr, t, true)))
+        PYVF_OR_OOM(dxt.reset(new ConvTasks<T>(dx, dy, w, nullptr, t, true)))
         return backward_tasks(*dxt, *dwt, db, dy, d);
     }
     std::unique_ptr<StridedDxTasks<T>> dxt;
-    PYVF_CONV_OR_OOM(dxt.reset(new StridedDxTasks<T>(dx, w, dy, d)))
+    PYVF_OR_OOM(dxt.reset(new StridedDxTasks<T>(dx, w, dy, d)))
     return backward_tasks(*dxt, *dwt, db, dy, d);
 }
 

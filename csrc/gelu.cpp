@@ -272,55 +272,38 @@ inline void store_f(float* p, VF v, int64_t m) {
     std::memcpy(p, &v, m * sizeof(float));
 }
 
-}  // namespace
-
-template <> void gelu_forward<float>(float* y, const float* x, int64_t n) {
+// out = gelu(x) (BWD false), or dy * gelu'(x) (BWD true)
+template <bool BWD> void gelu_float(float* out, const float* dy, const float* x, int64_t n) {
     map_float(n, [&](int64_t i, int64_t m) {
         const VF xv = load_f(x + i, m);
         VF cdf, xpdf;
         if (!normal_cdf_xpdf_f(xv, cdf, xpdf)) normal_cdf_xpdf_d(xv, cdf, xpdf);
-        const VF r = xv * cdf;
-        store_f(y + i, r, m);
-    });
-}
-
-template <> void gelu_backward<float>(float* dx, const float* dy, const float* x, int64_t n) {
-    map_float(n, [&](int64_t i, int64_t m) {
-        const VF xv = load_f(x + i, m);
-        VF cdf, xpdf;
-        if (!normal_cdf_xpdf_f(xv, cdf, xpdf)) normal_cdf_xpdf_d(xv, cdf, xpdf);
-        const VF r = load_f(dy + i, m) * (cdf + xpdf);
-        store_f(dx + i, r, m);
+        store_f(out + i, BWD ? load_f(dy + i, m) * (cdf + xpdf) : xv * cdf, m);
     });
 }
 
 // float64: the scalar path, compensated as above.
-template <typename T> void gelu_forward(T* y, const T* x, int64_t n) {
+template <bool BWD> void gelu_double(double* out, const double* dy, const double* x, int64_t n) {
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 65537))
     {
 #pragma omp for schedule(static) nowait
         for (int64_t i = 0; i < n; ++i) {
             double cdf, pdf;
-            normal_cdf_pdf((double)x[i], cdf, pdf);
-            y[i] = (T)((double)x[i] * cdf);
+            normal_cdf_pdf(x[i], cdf, pdf);
+            out[i] = BWD ? dy[i] * (cdf + x[i] * pdf) : x[i] * cdf;
         }
     }
 }
 
-template <typename T> void gelu_backward(T* dx, const T* dy, const T* x, int64_t n) {
-#pragma omp parallel num_threads(num_threads()) if (parallel_work(n, 65537))
-    {
-#pragma omp for schedule(static) nowait
-        for (int64_t i = 0; i < n; ++i) {
-            const double xi = x[i];
-            double cdf, pdf;
-            normal_cdf_pdf(xi, cdf, pdf);
-            dx[i] = (T)((double)dy[i] * (cdf + xi * pdf));
-        }
-    }
-}
+}  // namespace
 
-template void gelu_forward<double>(double*, const double*, int64_t);
-template void gelu_backward<double>(double*, const double*, const double*, int64_t);
+template <> void gelu_forward<float>(float* y, const float* x, int64_t n) { gelu_float<false>(y, nullptr, x, n); }
+template <> void gelu_backward<float>(float* dx, const float* dy, const float* x, int64_t n) {
+    gelu_float<true>(dx, dy, x, n);
+}
+template <> void gelu_forward<double>(double* y, const double* x, int64_t n) { gelu_double<false>(y, nullptr, x, n); }
+template <> void gelu_backward<double>(double* dx, const double* dy, const double* x, int64_t n) {
+    gelu_double<true>(dx, dy, x, n);
+}
 
 }  // namespace pyvf

@@ -91,16 +91,16 @@ template <typename T>
 int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t N, int64_t K, bool ta, bool tb,
                    const T* bias) {
     const int64_t nmb = ceil_div(M, kMatRows), nnb = ceil_div(N, kMatCols), per = nmb * nnb;
-    if (nb == 0 || M == 0 || N == 0) return kMatOk;
+    if (nb == 0 || M == 0 || N == 0) return kOk;
     if (K == 0) {
         for (int64_t r = 0; r < nb * M; ++r)
             for (int64_t j = 0; j < N; ++j) c[r * N + j] = bias ? T(0) + bias[j] : T(0);
-        return kMatOk;
+        return kOk;
     }
     std::unique_ptr<T[]> bt;  // a transposed b in (K, N) order: b is a weight matrix where pyvf asks for tb
     if (tb) {
         bt.reset(new (std::nothrow) T[nb * K * N]);  // not initialised: every element is written below
-        if (!bt) return kMatOutOfMemory;
+        if (!bt) return kOutOfMemory;
         constexpr int64_t kT = 32;  // tiles of 32 x 32: the reads and the writes both stay in L1
         const int64_t nj = ceil_div(N, kT);
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(nb * K * N, kParallelFlops / 8))
@@ -125,23 +125,16 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
     std::unique_ptr<T[]> more;  // parts 1 .. parts - 1, each (nb, M, N)
     if (parts > 1) {
         more.reset(new (std::nothrow) T[(parts - 1) * nb * M * N]);
-        if (!more) return kMatOutOfMemory;
+        if (!more) return kOutOfMemory;
     }
     // the panels as large as this product needs (a small product zero-fills little)
     const int64_t rows = std::min(M, kMatRows), depth = std::min(span, kMatDepth), cols = std::min(N, kMatCols);
-    int status = kMatOk;
+    int status = kOk;
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(nb * M * N * K, kParallelFlops))
     {
         Buf<T> ap, bp;
         bool ok = false;
-        try {  // an exception must not leave an OpenMP region (the process would abort)
-            ap.resize(rows * depth);
-            bp.resize(depth * cols);
-            ok = true;
-        } catch (const std::bad_alloc&) {
-#pragma omp atomic write
-            status = kMatOutOfMemory;
-        }
+        PYVF_TRY_ALLOC(status, ap.resize(rows * depth); bp.resize(depth * cols); ok = true)
 #pragma omp for schedule(dynamic, 1) nowait
         for (int64_t t = 0; t < parts * nb * per; ++t) {
             if (!ok) continue;
@@ -167,7 +160,7 @@ int matmul_batched(T* c, const T* a, const T* b, int64_t nb, int64_t M, int64_t 
         // met by all threads or none). One part: the region's end is the only barrier.
         if (parts > 1) {
 #pragma omp barrier
-            if (status == kMatOk) {  // c = ((part 0 + part 1) + part 2) + ... (+ bias), row by row
+            if (status == kOk) {  // c = ((part 0 + part 1) + part 2) + ... (+ bias), row by row
 #pragma omp for schedule(static) nowait
                 for (int64_t r = 0; r < nb * M; ++r) {
                     T* cr = c + r * N;

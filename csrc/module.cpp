@@ -40,62 +40,61 @@ AttnDims dims_of(const py::array& a) {
     return d;
 }
 
-void check_lse(const py::array& lse, const AttnDims& d) {
-    const py::ssize_t want[5] = {d.R, d.B, d.H, d.N, d.L};
-    bool ok = lse.ndim() == 5;
-    for (int i = 0; ok && i < 5; ++i) ok = lse.shape(i) == want[i];
-    if (!ok) throw std::invalid_argument("pyvf._core: lse must have shape (R, B, H, N, L)");
+bool has_shape(const py::array& a, std::initializer_list<int64_t> want) {
+    bool ok = a.ndim() == (py::ssize_t)want.size();
+    int k = 0;
+    for (int64_t n : want) ok = ok && a.shape(k++) == n;
+    return ok;
 }
 
-void raise_status(int status) {
-    if (status == kAttnOutOfMemory) {
-        PyErr_SetString(PyExc_MemoryError,
-                        "branching_attention: not enough memory for the kernel's work buffers (per thread "
-                        "O(256^2 + R*N*L*dh) elements, and up to 7x dq in the backward when B*H < 16)");
+// every array's shape (R, B, H, N, L, dh), lse's (R, B, H, N, L)
+void attn_shapes(const AttnDims& d, const py::array& lse, std::initializer_list<py::array> arrays) {
+    for (const py::array& a : arrays)
+        if (!has_shape(a, {d.R, d.B, d.H, d.N, d.L, d.dh}))
+            throw std::invalid_argument("pyvf._core: q, k, v, o, do, dq, dk, dv must have one shape");
+    if (!has_shape(lse, {d.R, d.B, d.H, d.N, d.L}))
+        throw std::invalid_argument("pyvf._core: lse must have shape (R, B, H, N, L)");
+}
+
+// A kernel's status as an exception: MemoryError, or ValueError naming what is not finite.
+template <typename T> void raise_status(int status, const std::string& what, const char* name) {
+    if (status == kOutOfMemory) {
+        PyErr_SetString(PyExc_MemoryError, (what + ": not enough memory for the kernel's work buffers").c_str());
         throw py::error_already_set();
     }
-    if (status == kAttnLogitOverflow)
-        throw py::value_error(
-            "branching_attention: a logit scale * (q . k) is not finite (it overflowed the dtype); "
-            "the softmax of such logits cannot be represented: rescale q or k, or use float64");
-}
-
-// every array's shape that of q
-void same_shape(const py::array& q, std::initializer_list<py::array> arrays) {
-    for (const py::array& a : arrays) {
-        bool same = a.ndim() == q.ndim();
-        for (py::ssize_t i = 0; same && i < a.ndim(); ++i) same = a.shape(i) == q.shape(i);
-        if (!same) throw std::invalid_argument("pyvf._core: q, k, v, o, do, dq, dk, dv must have one shape");
-    }
+    if (status == kConvNonFiniteDw) name = "dw";
+    if (status == kConvNonFiniteDb) name = "db";
+    if (status != kOk)
+        throw py::value_error(what + ": " + name + " is not finite: it overflowed " +
+                              (sizeof(T) == 4 ? "float32" : "float64") +
+                              " (inputs too large for the dtype; rescale them, or use float64)");
 }
 
 template <typename T, bool PLAIN>
 void forward(Arr<T> o, Arr<double> lse, Arr<T> q, Arr<T> k, Arr<T> v, double scale) {
     const AttnDims d = dims_of(q);
-    same_shape(q, {k, v, o});
-    check_lse(lse, d);
+    attn_shapes(d, lse, {k, v, o});
     T* po = o.mutable_data();
     double* pl = lse.mutable_data();
     const T *pq = q.data(), *pk = k.data(), *pv = v.data();
-    raise_status(nogil([&] {
+    raise_status<T>(nogil([&] {
         return PLAIN ? attn_forward_plain<T>(po, pl, pq, pk, pv, d, (T)scale)
                      : attn_forward<T>(po, pl, pq, pk, pv, d, (T)scale);
-    }));
+    }), "branching_attention", "a logit scale * (q . k)");
 }
 
 template <typename T, bool PLAIN>
 void backward(Arr<T> dq, Arr<T> dk, Arr<T> dv, Arr<double> lse, Arr<T> q, Arr<T> k, Arr<T> v,
               Arr<T> o, Arr<T> dout, double scale) {
     const AttnDims d = dims_of(q);
-    same_shape(q, {k, v, o, dout, dq, dk, dv});
-    check_lse(lse, d);
+    attn_shapes(d, lse, {k, v, o, dout, dq, dk, dv});
     T *pdq = dq.mutable_data(), *pdk = dk.mutable_data(), *pdv = dv.mutable_data();
     const double* pl = lse.data();
     const T *pq = q.data(), *pk = k.data(), *pv = v.data(), *po = o.data(), *pd = dout.data();
-    raise_status(nogil([&] {
+    raise_status<T>(nogil([&] {
         return PLAIN ? attn_backward_plain<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale)
                      : attn_backward<T>(pdq, pdk, pdv, pl, pq, pk, pv, po, pd, d, (T)scale);
-    }));
+    }), "branching_attention", "a logit scale * (q . k)");
 }
 
 // GELU (gelu.cpp): y = gelu(x); dx = dy * gelu'(x); flat, one size, overwritten
@@ -159,7 +158,7 @@ template <typename T> void matmul(Arr<T> c, Arr<T> a, Arr<T> b, bool ta, bool tb
         throw py::value_error("pyvf._core.matmul: the shapes of a, b, c and bias do not agree (or exceed 2^31)");
     T* pc = c.mutable_data();
     const T *pa = a.data(), *pb = b.data(), *pbias = bias ? bias->data() : nullptr;
-    if (nogil([&] { return matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb, pbias); }) == kMatOutOfMemory) throw std::bad_alloc();  // pybind11: MemoryError
+    raise_status<T>(nogil([&] { return matmul_batched<T>(pc, pa, pb, nb, M, N, K, ta, tb, pbias); }), "matmul", "c");
 }
 
 [[noreturn]] void conv_bad(const std::string& what) { throw py::value_error("pyvf._core.conv2d: " + what); }
@@ -190,21 +189,7 @@ ConvDims conv_dims(const py::array& x, const py::array& w, int64_t stride, int64
 }
 
 void conv_shape(const py::array& a, const char* name, std::initializer_list<int64_t> want) {
-    bool ok = a.ndim() == (py::ssize_t)want.size();
-    int k = 0;
-    for (int64_t n : want) ok = ok && a.shape(k++) == n;
-    if (!ok) conv_bad(std::string(name) + " has the wrong shape");
-}
-
-// The kernel's status as an exception: MemoryError, or ValueError naming the output not finite.
-template <typename T> void conv_raise(int status, const char* what, const char* name) {
-    if (status == kConvOutOfMemory) throw std::bad_alloc();  // pybind11: MemoryError
-    if (status == kConvNonFiniteDw) name = "dw";
-    if (status == kConvNonFiniteDb) name = "db";
-    if (status != kConvOk)
-        throw py::value_error(std::string(what) + ": " + name + " is not finite: it overflowed " +
-                              (sizeof(T) == 4 ? "float32" : "float64") +
-                              " (inputs too large for the dtype; rescale them, or use float64)");
+    if (!has_shape(a, want)) conv_bad(std::string(name) + " has the wrong shape");
 }
 
 template <typename T>
@@ -215,7 +200,7 @@ void conv_forward(Arr<T> y, Arr<T> x, Arr<T> w, Arr<T> b, int64_t stride, int64_
     conv_shape(y, "y", {d.B, d.Co, d.Ho, d.Wo});
     T* py_ = y.mutable_data();
     const T *px = x.data(), *pw = w.data(), *pbias = b.data();
-    conv_raise<T>(nogil([&] { return conv2d_forward<T>(py_, px, pw, pbias, d); }), "conv2d_forward", "y");
+    raise_status<T>(nogil([&] { return conv2d_forward<T>(py_, px, pw, pbias, d); }), "conv2d_forward", "y");
 }
 
 template <typename T>
@@ -228,7 +213,7 @@ void conv_backward(Arr<T> dx, Arr<T> dw, Arr<T> db, Arr<T> x, Arr<T> w, Arr<T> d
     conv_shape(db, "db", {d.Co});
     T *pdx = dx.mutable_data(), *pdw = dw.mutable_data(), *pdb = db.mutable_data();
     const T *px = x.data(), *pw = w.data(), *pdy = dy.data();
-    conv_raise<T>(nogil([&] { return conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d); }), "conv2d_backward", "dx");
+    raise_status<T>(nogil([&] { return conv2d_backward<T>(pdx, pdw, pdb, px, pw, pdy, d); }), "conv2d_backward", "dx");
 }
 
 py::arg nc(const char* name) { return py::arg(name).noconvert(); }  // no cast, no copy

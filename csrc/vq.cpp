@@ -39,6 +39,7 @@
 #include <utility>
 #include <vector>
 
+#include "buffers.h"
 #include "simd.h"
 #include "threads.h"
 
@@ -101,7 +102,7 @@ void vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t 
     esh_max = std::sqrt(esh_max);
 
     const int64_t nblocks = (M + MB - 1) / MB;
-    int failed = 0;
+    int status = kOk;
 #pragma omp parallel num_threads(num_threads()) if (parallel_work(M * K * D, (1 << 22) + 1))
     {
         std::vector<T> xs, s;  // a block of shifted rows (MB, D); its scores against a chunk (MB, KC)
@@ -109,14 +110,7 @@ void vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t 
         std::vector<std::vector<std::pair<double, int64_t>>> cand(MB);  // per row: (score, k)
         std::vector<char> wild(MB);
         bool ok = false;
-        try {
-            xs.resize(MB * D);
-            s.resize(MB * KC);
-            ok = true;
-        } catch (const std::bad_alloc&) {
-#pragma omp atomic write
-            failed = 1;
-        }
+        PYVF_TRY_ALLOC(status, xs.resize(MB * D); s.resize(MB * KC); ok = true)
 #pragma omp for schedule(dynamic, 1) nowait
         for (int64_t blk = 0; blk < nblocks; ++blk) {
             if (!ok) continue;
@@ -227,11 +221,11 @@ void vq_nearest(int64_t* index, T* sq_dist, const T* x, const T* codes, int64_t 
             }
             } catch (const std::bad_alloc&) {
 #pragma omp atomic write
-                failed = 1;
+                status = kOutOfMemory;
             }
         }
     }
-    if (failed) throw std::bad_alloc();
+    if (status != kOk) throw std::bad_alloc();
 }
 
 template void vq_nearest<float>(int64_t*, float*, const float*, const float*, int64_t, int64_t, int64_t);
