@@ -37,7 +37,7 @@ def test_validate_rejects_nan_shape_missing_and_error_above_the_bound():
 
 def test_attention_validates_then_times_every_method(monkeypatch):
     """The workers in this process (worker processes: test_scaling_run_in_workers)."""
-    monkeypatch.setattr(attention, "run_worker", lambda module, spec: attention.worker(spec))
+    monkeypatch.setattr(attention, "run_worker", lambda work, spec: work(spec))
     report = attention.run(size=(1, 8, 2))
     assert report["failures"] == [] and [p["method"] for p in report["points"]] == ["pyvf", "dense_sdpa", "dense_numpy"]
     assert max(report["points"][0]["errors"].values()) <= attention.BOUND32
@@ -57,7 +57,7 @@ def test_attention_does_not_time_a_wrong_method(who, monkeypatch):
     else:
         mask = pyvf.branching_mask
         monkeypatch.setattr(pyvf, "branching_mask", lambda R, N, L: mask(R, N, L).T.copy())
-    monkeypatch.setattr(attention, "run_worker", lambda module, spec: attention.worker(spec))
+    monkeypatch.setattr(attention, "run_worker", lambda work, spec: work(spec))
     report = attention.run(size=(1, 8, 2))
     assert len(report["failures"]) == 1 and who in report["failures"][0] and "gemm_gflops" not in report
     assert not any("fb_seconds" in p for p in report["points"] if "error" in p)

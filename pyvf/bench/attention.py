@@ -5,11 +5,10 @@ NumPy reference; also the measurement of one point of `pyvf bench scaling` (work
     pyvf bench attention           # paper size R=3, B=1, H=12, N=20, L=64, dh=64
     pyvf bench attention --quick   # H=2, N=4, dh=32
 
-Each method runs in a process of its own (worker()): validated against the float64 reference
-(one outside its bound is not timed), then one call's extra peak memory beside the memory
-expected, and the median time of 5 calls; GFLOP/s count the attended block pairs only. Inputs
-unit-normal, scale 1 (the published model's unscaled logits); torch and the reference take the
-flat (B, H, T, dh) sequence, T = R*N*L in the order [row][view][token].
+Each method in a process of its own: validated against the float64 reference (else not timed),
+then one call's extra peak memory beside the memory expected, and the median time of 5 calls.
+GFLOP/s count the attended block pairs only. Inputs unit-normal, scale 1 (the published model's
+unscaled logits); torch and the reference take the flat (B, H, T, dh) sequence, T = R*N*L.
 """
 
 import numpy as np
@@ -18,7 +17,6 @@ import pyvf
 from pyvf.bench.common import (MEMORY_METHOD, TORCH_MISSING, format_bytes, machine, median_time, ms, peak_memory,
                                run_worker, table, torch_or_none, validate, worker_main)
 
-WORKER = "pyvf.bench.attention"  # this module, run as `python -m WORKER SPEC` (worker_main)
 R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
 # pyvf's bounds, tests/test_attention.py's RTOL64 and RTOL32 (their reasons written out there); torch
 # SDPA and the reference in float32 round the logits in their own order (measured ~3.3e-6): a wrong
@@ -160,7 +158,7 @@ def naive_contender(q, k, v, do):
 
 
 def theory(method, H, N, dh, threads):
-    """{block_pairs computed per head, computed_flops (forward), expected_fwd, expected_fb (bytes)}."""
+    """{computed_flops (forward), expected_fwd, expected_fb (bytes)} of a point."""
     if method == "naive_pyvf":
         S = 1 + (R - 1) * N
         pairs = S * N * (N + 1) // 2
@@ -168,7 +166,7 @@ def theory(method, H, N, dh, threads):
     else:
         pairs = attended_pairs(R, N) if method == "pyvf" else (R * N) ** 2
         fwd, fb = expected_memory(method, R, B, H, N, L, dh, threads)
-    return dict(block_pairs=pairs, computed_flops=4 * L * L * dh * pairs * B * H, expected_fwd=fwd, expected_fb=fb)
+    return dict(computed_flops=4 * L * L * dh * pairs * B * H, expected_fwd=fwd, expected_fb=fb)
 
 
 def worker(spec):
@@ -193,44 +191,69 @@ def worker(spec):
     return out
 
 
+def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
+    """Every point (method, (H, dh) of sizes, N of views), each in a worker process, validated at the
+    first N, or skipped (with the reason) when predicted by its FLOPs from the method's previous N
+    to take more than max_point_seconds (0: never): a list of dicts."""
+    points, torch = [], torch_or_none()
+    for H, dh in sizes:
+        prev = {}
+        for N in views:
+            for method in methods:
+                p, last = dict(method=method, H=H, dh=dh, N=N, theory=theory(method, H, N, dh, threads)), prev.get(method)
+                est = None if last is None or "fb_seconds" not in last else (  # memory, warm-up, timed calls
+                    (REPEAT + 3) * (last["fwd_seconds"] + last["fb_seconds"])
+                    * p["theory"]["computed_flops"] / last["theory"]["computed_flops"])
+                if method == "dense_sdpa" and torch is None:
+                    p["skipped"] = "torch is not installed"
+                elif last is not None and "skipped" in last:
+                    p["skipped"] = "a smaller N of this method was skipped"
+                elif max_point_seconds and est is not None and est > max_point_seconds:
+                    p["skipped"] = f"predicted {est:.0f} s > --max-point-seconds {max_point_seconds:g}"
+                else:
+                    try:
+                        p.update(run_worker(worker, dict(method=method, H=H, dh=dh, N=N, threads=threads,
+                                                         validate=N == views[0])))
+                    except RuntimeError as e:  # a crashed worker: written down, the study carries on
+                        p["error"] = str(e)[-2000:]
+                t = p["theory"]
+                log(f"  H={H} dh={dh} N={N:>2} {method:<12} " + (
+                    f"skipped: {p['skipped']}" if "skipped" in p else f"FAILED: {p['error'].splitlines()[0][:100]}"
+                    if "error" in p else f"memory (measured / expected) fwd {format_bytes(p['fwd_bytes'])} / "
+                    f"{format_bytes(t['expected_fwd'])}, fwd+bwd {format_bytes(p['fb_bytes'])} / "
+                    f"{format_bytes(t['expected_fb'])}; time fwd {ms(p['fwd_seconds'])}, fwd+bwd {ms(p['fb_seconds'])}"),
+                    flush=True)
+                points.append(p)
+                prev[method] = p
+    return points
+
+
 def run(quick=False, threads=2, size=None):
     """The benchmark (module docstring) at size (H, dh, N): prints its tables, returns the report."""
     H, dh, N = size or ((2, 32, 4) if quick else (12, 64, 20))
     torch = torch_or_none()
-    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, threads=threads), machine=machine(threads), points=[],
-                  failures=[])
+    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, threads=threads), machine=machine(threads))
     print(f"# Branching attention: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={R * N * L}), float32, scale 1, {threads} "
           f"threads, each method in its own process\nmachine: {report['machine']['processor']}; memory: {MEMORY_METHOD}\n")
-    for m in ("pyvf", "dense_sdpa", "dense_numpy") if torch else ("pyvf", "dense_numpy"):
-        p = dict(method=m, theory=theory(m, H, N, dh, threads),
-                 **run_worker(WORKER, dict(method=m, H=H, dh=dh, N=N, threads=threads, validate=True)))
-        report["points"].append(p)
-        report["failures"] += [f"{METHODS[m]}: {p['error']}: not timed"] if "error" in p else []
-    print(table(["max rel. error vs float64 reference", *NAMES],
-                [[METHODS[p["method"]]] + [f"{p['errors'][n]:.2e}" for n in NAMES] for p in report["points"]]) + "\n")
+    points = report["points"] = run_points([(H, dh)], [N], ("pyvf", "dense_sdpa", "dense_numpy") if torch else
+                                           ("pyvf", "dense_numpy"), threads, 0)
+    report["failures"] = [f"{METHODS[p['method']]}: {p['error']}: not timed" for p in points if "error" in p]
     if report["failures"]:
         return report
-    pyvf.set_num_threads(threads)
     a, b = np.random.default_rng(1).standard_normal((2, 1024, 1024), dtype=np.float32)
     gemm = report["gemm_gflops"] = 2 * 1024 ** 3 / median_time(lambda: a @ b, REPEAT)[0] / 1e9  # float32 GEMM rate
     f_fwd = 4 * L * L * dh * attended_pairs(R, N) * B * H  # useful flops: q k^T and p v per attended block pair
     f_fb = 3.5 * f_fwd  # the backward: q k^T recomputed, dv, dp, dq, dk
-    rows = []
-    for p in report["points"]:
-        p["fb_of_gemm"] = f_fb / p["fb_seconds"] / 1e9 / gemm
-        rows.append([METHODS[p["method"]], ms(p["fwd_seconds"]), f"{f_fwd / p['fwd_seconds'] / 1e9:.1f}",
-                     ms(p["fb_seconds"]), f"{f_fb / p['fb_seconds'] / 1e9:.1f}", f"{p['fb_of_gemm']:.0%}",
-                     f"{format_bytes(p['fwd_bytes'])} / {format_bytes(p['theory']['expected_fwd'])}",
-                     f"{format_bytes(p['fb_bytes'])} / {format_bytes(p['theory']['expected_fb'])}"])
-    print(table(["", "forward", "GFLOP/s", "forward+backward", "GFLOP/s", "% of GEMM",
-                 "memory fwd (measured / expected)", "memory fwd+bwd"], rows))
-    print(f"\nmedian of {REPEAT} calls; GFLOP/s: useful flops ({attended_pairs(R, N)} of {(R * N) ** 2} block pairs "
-          f"per head) / time; GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s")
+    print("\n" + table(["", "max rel. error", "forward", "GFLOP/s", "forward+backward", "GFLOP/s", "% of GEMM",
+                        "fwd+bwd time / pyvf's"], [
+        [METHODS[p["method"]], f"{max(p['errors'].values()):.2e}", ms(p["fwd_seconds"]),
+         f"{f_fwd / p['fwd_seconds'] / 1e9:.1f}", ms(p["fb_seconds"]), f"{f_fb / p['fb_seconds'] / 1e9:.1f}",
+         f"{f_fb / p['fb_seconds'] / 1e9 / gemm:.0%}", f"{p['fb_seconds'] / points[0]['fb_seconds']:.2f}"] for p in points]))
+    print(f"\nmedian of {REPEAT} calls; error: the largest of {', '.join(NAMES)} against the float64 reference; "
+          f"GFLOP/s: useful flops ({attended_pairs(R, N)} of {(R * N) ** 2} block pairs per head) / time; GEMM: "
+          f"numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s")
     if torch is None:
         print(f"torch SDPA: {TORCH_MISSING}")
-    pyvf_fb = report["points"][0]["fb_seconds"]
-    print("forward+backward time over pyvf's: " + ", ".join(f"{METHODS[p['method']]} {p['fb_seconds'] / pyvf_fb:.2f}x"
-                                                            for p in report["points"][1:]))
     return report
 
 

@@ -1,6 +1,5 @@
 """Numerical stability on hard inputs: sweeps that push one quantity across orders of magnitude,
-showing where the textbook formula breaks and that pyvf stays within its stated bound over the
-whole range.
+showing where the textbook formula breaks and that pyvf stays within its stated bound throughout.
 
     pyvf bench hardcases           # ~1 minute on 2 cores
     pyvf bench hardcases --quick   # fewer points, smaller problems
@@ -32,7 +31,7 @@ import numpy as np
 import pyvf
 from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive
 from pyvf.bench.attention import flat
-from pyvf.bench.common import machine, pyplot, save_figure, torch_or_none
+from pyvf.bench.common import machine, save_plot, torch_or_none
 from pyvf.nn import layers, losses
 
 
@@ -54,9 +53,7 @@ def _dense(q, k, v, mask, sentinel=False, subtract_max=True):
 
 
 def attention_sweep(name, quick, rng):
-    """attention-spread or attention-mask. Error: max|o - o_ref| / max|v| (o is a weighted mean of
-    v). delta in pyvf float32's bound is the largest rounding a float32 logit can carry
-    (tests/test_attention.py)."""
+    """attention-spread or attention-mask; the error relative to max|v| (o is a weighted mean of v)."""
     shape = (3, 1, 2, 3, 8, 16) if quick else (3, 1, 2, 4, 16, 32)  # (R, B, H, N, L, dh)
     R, B, H, N, L, dh = shape
     mask = pyvf.branching_mask(R, N, L)
@@ -96,8 +93,7 @@ def attention_sweep(name, quick, rng):
 
 
 def layernorm_sweep(quick, rng):
-    """Rows of mean +-s and spread 1, gamma = 1, beta = 0 (y = xhat). Error: max|y - y_ref| /
-    max|y_ref|, y_ref in long double. pyvf's second centring pass makes the large mean cost nothing."""
+    """Rows of mean +-s and spread 1, gamma = 1, beta = 0 (y = xhat); the reference in long double."""
     shape, eps = ((64, 64) if quick else (256, 256)), 1e-5
     torch = torch_or_none()
     lines = {n: [] for n in ("pyvf float32", "pyvf float64", "one-pass float32", "one-pass float64",
@@ -130,9 +126,8 @@ def layernorm_sweep(quick, rng):
 
 
 def gelu_sweep(quick, rng):
-    """x on [-40, 0]; error in ulps of the true value (np.spacing of the rounded true value: the
-    subnormal step below the normal range). pyvf's bound (tests/test_layers.py): 4 ulp plus, where
-    Phi(x) is subnormal, the |x| * (smallest subnormal) its rounding can cost the product."""
+    """x on [-40, 0]; the error in ulps of the true value (np.spacing of the rounded true value: the
+    subnormal step below the normal range). pyvf's bound: tests/test_layers.py's."""
     x64 = np.linspace(0, -40, 21 if quick else 161)
     want = np.array([[float(a), float(b)] for a, b in map(gelu_mp, x64)])  # (n, 2): gelu, gelu'
     torch = torch_or_none()
@@ -162,9 +157,8 @@ def gelu_sweep(quick, rng):
 
 
 def cross_entropy_sweep(quick, rng):
-    """Rows of V logits N(0, 1), the target's logit s below the row's maximum. Error: max over rows of
-    |loss - loss_ref| / loss_ref (mpmath log-sum-exp on the same numbers). pyvf's bound: (V + 4) u:
-    the V-term sum of exponentials, the log, and the one rounding of the target logit's difference."""
+    """Rows of V logits N(0, 1), the target's logit s below the row's maximum; the reference: mpmath's
+    log-sum-exp on the same numbers."""
     import mpmath
 
     M, V = (4, 256) if quick else (16, 1024)
@@ -191,7 +185,8 @@ def cross_entropy_sweep(quick, rng):
     return dict(name="cross-entropy", title=f"cross-entropy: target logit s below the row's maximum (V={V})",
                 xlabel="s = max logit - target logit", ylabel="max |loss - loss_ref| / loss_ref", x=list(values),
                 lines=lines, bounds={"pyvf float32": [(V + 4) * U32] * len(values), "pyvf float64": [(V + 4) * U64] * len(values)},
-                bound_text=f"(V + 4) u relative, V = {V}")
+                bound_text=f"(V + 4) u relative, V = {V}: the V-term sum of exponentials, the log, and the one "
+                           "rounding of the target logit's difference")
 
 
 SWEEPS = {"attention-spread": functools.partial(attention_sweep, "attention-spread"),
@@ -219,23 +214,12 @@ def check(sw):
 
 
 def plot_sweep(sw, folder):
-    """hardcase-<name>.png: a line per variant, pyvf's bounds dashed, non-finite errors drawn as x at
-    the top; errors below the floor (0 among them) drawn at it. The path."""
-    fig, ax = pyplot().subplots(figsize=(9.6, 4.8), layout="constrained")
-    x = np.asarray(sw["x"], dtype=np.float64)
-    finite = [v for vals in sw["lines"].values() for v in vals if np.isfinite(v) and v > 0]
-    floor, top = min(finite) / 10, max(finite) * 10
-    for name, vals in sw["lines"].items():
-        v = np.array(vals, dtype=np.float64)
-        (ln,) = ax.plot(x, np.where(np.isfinite(v), np.maximum(v, floor), np.nan), "o-" if name.startswith("pyvf")
-                        else ".-", lw=2.0 if name.startswith("pyvf") else 1.0, ms=4, label=name)
-        ax.plot(x[~np.isfinite(v)], np.full((~np.isfinite(v)).sum(), top), "x", color=ln.get_color(), ms=7)
-    for b in sw["bounds"].values():
-        ax.plot(x, np.maximum(b, floor), "--", lw=1.2, color="k", alpha=0.7, label="pyvf's bound(s)")
-    ax.plot([], [], "x", color="gray", label="NaN / inf (drawn at the top)")
-    ax.set(yscale="log", xscale="log" if sw.get("logx", True) else "linear", xlabel=sw["xlabel"],
-           ylabel=sw["ylabel"] + f"\n(below {floor:.0e}, 0 included, drawn at {floor:.0e})", title=sw["title"])
-    return save_figure(fig, folder, f"hardcase-{sw['name']}.png")
+    """hardcase-<name>.png in folder: a line per variant, pyvf's bounds dashed. The path, or None
+    without matplotlib."""
+    lines = {name: (sw["x"], v, "o-" if name.startswith("pyvf") else ".-") for name, v in sw["lines"].items()}
+    lines.update({f"bound of {name}": (sw["x"], b, "k--") for name, b in sw["bounds"].items()})
+    return save_plot(folder, f"hardcase-{sw['name']}.png", lines, sw["title"], sw["xlabel"], sw["ylabel"],
+                     sw.get("logx", True))
 
 
 def sweep_summary(sw):
@@ -253,15 +237,14 @@ def sweep_summary(sw):
 def run(quick=False, threads=2, names=tuple(SWEEPS), plots=None, log=print):
     """Every sweep named, each checked, printed and plotted in `plots` (a folder) if given and
     matplotlib is installed (sw["plot"]): {config, machine, sweeps, failures}."""
-    pyvf.set_num_threads(threads)
-    sweeps = []
+    report = dict(config=dict(quick=quick, sweeps=list(names)), machine=machine(threads), sweeps=[])
     for name in names:
         sw = SWEEPS[name](quick, np.random.default_rng(0))
         sw["check"], sw["breaks"] = check(sw)
         log(f"\n## {sw['title']}\n\n{sweep_summary(sw)}", flush=True)
-        if plots and pyplot():
+        if plots:
             sw["plot"] = plot_sweep(sw, plots)
-        sweeps.append(sw)
-    failures = [f"{sw['name']} / {n}: first out at x = {c['first_x_out']:.3g} (worst error / bound "
-                f"{c['worst_ratio']:.2g})" for sw in sweeps for n, c in sw["check"].items() if not c["ok"]]
-    return dict(config=dict(quick=quick, sweeps=list(names)), machine=machine(threads), sweeps=sweeps, failures=failures)
+        report["sweeps"].append(sw)
+    report["failures"] = [f"{sw['name']} / {n}: first out at x = {c['first_x_out']:.3g} (worst error / bound "
+                          f"{c['worst_ratio']:.2g})" for sw in report["sweeps"] for n, c in sw["check"].items() if not c["ok"]]
+    return report

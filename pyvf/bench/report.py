@@ -133,5 +133,6 @@ def run(quick=False, threads=2, out="docs", log=print):
     files = [os.path.join(out, "performance.md"), os.path.join(out, "accuracy.md")]
     atomic_write_text(files[0], performance_md(out, q, m, total, scalings, reps["accuracy"], jsons) + "\n")
     atomic_write_text(files[1], accuracy_md(out, q, m, total, reps["accuracy"], reps["hardcases"], jsons[-2:]) + "\n")
+    log("wrote " + ", ".join(files))
     return dict(failures=[f for rep in [r for _, r in scalings] + list(reps.values()) for f in rep["failures"]],
                 files=files)
