@@ -6,9 +6,10 @@ and the same for torch and the textbook NumPy formula.
 
 The ops, forward and backward, every output compared: attention (pyvf.branching_attention_forward
 and _backward), vq_nearest (pyvf.vq_nearest: the squared distance to the code chosen), layernorm
-and gelu (pyvf.nn.layers), cross_entropy (pyvf.nn.losses), conv2d (pyvf.nn.conv). Variants: pyvf float32 and float64, torch float32 and the textbook NumPy formula in float32 (the
-dense masked softmax, the expanded |x|^2 - 2 x.e + |e|^2 distance, two-pass moments, softmax then
-log, 0.5 (1 + erf), shifted-window conv), all on the same numbers (drawn in float64, rounded to
+and gelu (pyvf.nn.layers), cross_entropy (pyvf.nn.losses), conv2d (pyvf.nn.conv). Variants: pyvf
+float32 and float64, torch float32 and the textbook NumPy formula in float32 (the dense masked
+softmax, the expanded |x|^2 - 2 x.e + |e|^2 distance, two-pass moments, softmax then log,
+0.5 (1 + erf), shifted-window conv), all on the same numbers (drawn in float64, rounded to
 float32). Error: max|x - ref| / max|ref|, the largest over the op's outputs, against a float64
 reference (mpmath for GELU, whose float64 erf form loses every digit in the tail). Each variant is
 validated before it is timed: pyvf against its tests' bound (BOUNDS), torch and NumPy against
@@ -262,8 +263,7 @@ def plot_op(res, folder):
 
 
 def run(quick=False, threads=2, ops=tuple(OPS), plots=None, log=print):
-    """The whole benchmark: prints each op's table, plots them in `plots` (a folder) if given and
-    matplotlib is installed (res["plot"]): {config, machine, results (run_op's), failures}."""
+    """Every op named, printed and plotted into the folder plots: {config, machine, results (run_op's), failures}."""
     repeat = 3 if quick else 5
     report = dict(config=dict(quick=quick, repeat=repeat), machine=machine(threads))
     results = report["results"] = [run_op(name, quick, repeat, log=log) for name in ops]

@@ -7,8 +7,7 @@ NumPy reference; also the measurement of one point of `pyvf bench scaling` (work
 
 Each method in a process of its own: validated against the float64 reference (else not timed),
 then one call's extra peak memory beside the memory expected, and the median time of 5 calls.
-GFLOP/s count the attended block pairs only. Inputs unit-normal, scale 1 (the published model's
-unscaled logits); torch and the reference take the flat (B, H, T, dh) sequence, T = R*N*L.
+Inputs unit-normal, scale 1 (the published model's unscaled logits).
 """
 
 import numpy as np
@@ -38,12 +37,6 @@ def flat(x):
     return np.ascontiguousarray(x.transpose(1, 2, 0, 3, 4, 5).reshape(B, H, R * N * L, dh))
 
 
-def unflat(x, shape):
-    """(B, H, T, dh) -> (R, B, H, N, L, dh)."""
-    R, B, H, N, L, dh = shape
-    return x.reshape(B, H, R, N, L, dh).transpose(2, 0, 1, 3, 4, 5)
-
-
 def attended_pairs(R, N):
     """Block pairs one (b, h) attends: trunk N(N+1)/2, each branch N(N-1)/2 + N (docs/math.md §2)."""
     return N * (N + 1) // 2 + (R - 1) * (N * (N - 1) // 2 + N)
@@ -51,18 +44,16 @@ def attended_pairs(R, N):
 
 def expected_memory(method, R, B, H, N, L, dh, threads):
     """Bytes a float32 call should need above its inputs, outputs included: (forward, forward+backward).
-
     "pyvf" (csrc/branching_attention.cpp): o like q, lse (R, B, H, N, L) float64, per thread q^T and
     the accumulator (L, dh), s^T (L, L) and five L-vectors; the backward dq, dk, dv like q, per
-    thread q^T and do^T of one head (R*N*L, dh) and three (L, L) buffers, and G-1 more dq, G =
-    min(ceil(16 / (B*H)), 8, R*N) key groups where B*H < 16. "dense_sdpa" (bool mask): the float32
-    additive mask (4 T^2), then o (and dq, dk, dv). "dense_numpy": s, p and p / sum(p), three
-    (B, H, T, T) arrays, beside its (T, T) bool mask."""
+    thread q^T and do^T of one head (R*N*L, dh) and three (L, L), and G-1 more dq (G key groups).
+    "dense_sdpa" (bool mask): the float32 additive mask (4 T^2), then o (and dq, dk, dv).
+    "dense_numpy": s, p and p / sum(p), three (B, H, T, T) arrays, beside its (T, T) bool mask."""
     S = R * B * H * N * L * dh * 4  # one array like q
     T = R * N * L
     if method == "pyvf":
         Lt = min(L, 256)  # the kernel's tile
-        G = 1 if B * H >= 16 else min(-(-16 // (B * H)), 8, R * N)
+        G = 1 if B * H >= 16 else min(-(-16 // (B * H)), 8, R * N)  # key groups: ceil(16 / (B*H)), at most 8
         lse, fwd_thread = R * B * H * N * L * 8, threads * (2 * Lt * dh + Lt * Lt + 5 * Lt) * 4
         bwd_thread = threads * (2 * T * dh + 3 * T + 3 * Lt * Lt) * 4
         return S + lse + fwd_thread, S + lse + max(fwd_thread, (2 + G) * S + bwd_thread)
@@ -85,6 +76,7 @@ def torch_contender(q, k, v, do):
     import torch
     import torch.nn.functional as F
 
+    torch.set_num_threads(pyvf.num_threads())
     mask = torch.from_numpy(pyvf.branching_mask(q.shape[0], q.shape[3], q.shape[4]))
     leaves = [torch.from_numpy(flat(x)).requires_grad_(True) for x in (q, k, v)]
     dot = torch.from_numpy(flat(do))
@@ -97,9 +89,10 @@ def torch_contender(q, k, v, do):
         o = F.scaled_dot_product_attention(*leaves, attn_mask=mask, scale=1.0)
         return o.detach(), torch.autograd.grad(o, leaves, dot)
 
-    def outs():
+    def outs():  # (B, H, T, dh) -> pyvf's (R, B, H, N, L, dh)
         o, grads = fb()
-        return [unflat(x.numpy(), q.shape) for x in (o, *grads)]
+        return [x.numpy().reshape(q.shape[1:3] + q.shape[:1] + q.shape[3:]).transpose(2, 0, 1, 3, 4, 5)
+                for x in (o, *grads)]
     return dict(fwd=fwd, fb=fb, outs=outs)
 
 
@@ -174,8 +167,6 @@ def worker(spec):
     method, H, dh, N = spec["method"], spec["H"], spec["dh"], spec["N"]
     pyvf.set_num_threads(spec["threads"])
     q, k, v, do = np.random.default_rng(N).standard_normal((4, R, B, H, N, L, dh), dtype=np.float32)
-    if method == "dense_sdpa":
-        torch_or_none().set_num_threads(spec["threads"])
     make = dict(pyvf=pyvf_contender, naive_pyvf=naive_contender, dense_sdpa=torch_contender,
                 dense_numpy=reference_contender)[method]
     c, out = make(q, k, v, do), {}
@@ -205,7 +196,7 @@ def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
                     (REPEAT + 3) * (last["fwd_seconds"] + last["fb_seconds"])
                     * p["theory"]["computed_flops"] / last["theory"]["computed_flops"])
                 if method == "dense_sdpa" and torch is None:
-                    p["skipped"] = "torch is not installed"
+                    p["skipped"] = TORCH_MISSING
                 elif last is not None and "skipped" in last:
                     p["skipped"] = "a smaller N of this method was skipped"
                 elif max_point_seconds and est is not None and est > max_point_seconds:
@@ -231,12 +222,11 @@ def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
 def run(quick=False, threads=2, size=None):
     """The benchmark (module docstring) at size (H, dh, N): prints its tables, returns the report."""
     H, dh, N = size or ((2, 32, 4) if quick else (12, 64, 20))
-    torch = torch_or_none()
     report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, threads=threads), machine=machine(threads))
     print(f"# Branching attention: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={R * N * L}), float32, scale 1, {threads} "
           f"threads, each method in its own process\nmachine: {report['machine']['processor']}; memory: {MEMORY_METHOD}\n")
-    points = report["points"] = run_points([(H, dh)], [N], ("pyvf", "dense_sdpa", "dense_numpy") if torch else
-                                           ("pyvf", "dense_numpy"), threads, 0)
+    report["points"] = run_points([(H, dh)], [N], ("pyvf", "dense_sdpa", "dense_numpy"), threads, 0)
+    points = [p for p in report["points"] if "skipped" not in p]  # torch SDPA without torch
     report["failures"] = [f"{METHODS[p['method']]}: {p['error']}: not timed" for p in points if "error" in p]
     if report["failures"]:
         return report
@@ -252,8 +242,6 @@ def run(quick=False, threads=2, size=None):
     print(f"\nmedian of {REPEAT} calls; error: the largest of {', '.join(NAMES)} against the float64 reference; "
           f"GFLOP/s: useful flops ({attended_pairs(R, N)} of {(R * N) ** 2} block pairs per head) / time; GEMM: "
           f"numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s")
-    if torch is None:
-        print(f"torch SDPA: {TORCH_MISSING}")
     return report
 
 

@@ -54,10 +54,7 @@ def validate(outs, refs, names, bound):
 def _status_bytes(field):
     """A memory field of /proc/self/status ("VmRSS", "VmHWM"), in bytes."""
     with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) * 1024
-    raise OSError(field)
+        return int(next(line for line in f if line.startswith(field + ":")).split()[1]) * 1024
 
 
 def peak_memory(fn):
@@ -121,8 +118,8 @@ def write_json(path, report):
 def save_plot(folder, name, lines, title, xlabel, ylabel, logx=True, xticks=None):
     """folder/name, a PNG: log y (and log x unless not logx) against x, a line per label of lines
     {label: (x, y, matplotlib format)}, the legend outside on the right; a y of 0 drawn at a tenth
-    of the smallest y > 0, a NaN or an inf as an x at the top. The path, or None where matplotlib
-    (the `plots` extra) is missing."""
+    of the smallest y > 0, a NaN or an inf at ten times the largest. The path, or None where
+    matplotlib (the `plots` extra) is missing."""
     try:
         import matplotlib
 
@@ -136,12 +133,10 @@ def save_plot(folder, name, lines, title, xlabel, ylabel, logx=True, xticks=None
     floor, top = positive.min() / 10, positive.max() * 10
     fig, ax = plt.subplots(figsize=(9.6, 4.8), layout="constrained")
     for (label, (x, _, fmt)), y in zip(lines.items(), ys):
-        (line,) = ax.plot(x, np.where(np.isfinite(y), np.maximum(y, floor), np.nan), fmt, label=label)
-        ax.plot(np.asarray(x)[~np.isfinite(y)], np.full((~np.isfinite(y)).sum(), top), "x", color=line.get_color())
-    if any((~np.isfinite(y)).any() for y in ys):
-        ax.plot([], [], "x", color="gray", label="NaN / inf (drawn at the top)")
-    zero = f"\n(0 drawn at {floor:.0e})" if any((y == 0).any() for y in ys) else ""
-    ax.set(xscale="log" if logx else "linear", yscale="log", title=title, xlabel=xlabel, ylabel=ylabel + zero)
+        ax.plot(x, np.where(np.isfinite(y), np.maximum(y, floor), top), fmt, label=label)
+    if any((~(y > 0) | (y == np.inf)).any() for y in ys):
+        ylabel += f"\n(0 drawn at {floor:.0e}, NaN and inf at {top:.0e})"
+    ax.set(xscale="log" if logx else "linear", yscale="log", title=title, xlabel=xlabel, ylabel=ylabel)
     if xticks:
         ax.set_xticks(xticks, [str(t) for t in xticks])
     ax.xaxis.set_minor_formatter(NullFormatter())

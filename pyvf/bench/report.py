@@ -3,9 +3,9 @@
     pyvf bench report                   # the full runs into docs/
     pyvf bench report --quick --out D   # the --quick runs into D/ (a few minutes)
 
-Runs `pyvf bench scaling` (SCALING_FULL), `accuracy` and `hardcases`; writes OUT/performance.md
-(the conclusions, each number computed from the same run's measurements, then the evidence),
-OUT/accuracy.md, their plots in OUT/img/ and every number in OUT/measurements/.
+Runs `pyvf bench scaling` (SCALING_FULL), `accuracy` and `hardcases`: OUT/performance.md (the
+conclusions, computed from the measurements, then the evidence), OUT/accuracy.md, the plots in
+OUT/img/, every number in OUT/measurements/.
 """
 
 import datetime

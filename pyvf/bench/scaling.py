@@ -4,14 +4,11 @@ approaches it replaces (docs/math.md §2), float32, R=3 tree rows, B=1, L=64 tok
     pyvf bench scaling            # N = 2, 4, ..., 64; H=12 dh=64 and H=4 dh=32; long
     pyvf bench scaling --quick    # N = 2, 4, 8; H=4 dh=32
 
-The methods: pyvf's kernel, O(T dh) memory, T = R N L; naive_pyvf, the approach the paper avoids:
-one sequence per query view (its branch's view after the trunk views before it), S = 1 + (R-1) N
-sequences of N L tokens, by pyvf's kernel at R=1; dense_sdpa, torch SDPA with the (T, T) mask;
-dense_numpy, the dense NumPy reference. Each point is `pyvf bench attention`'s worker, validated
-at the first N; one predicted (by its FLOPs, from the method's previous N) to take more than
---max-point-seconds is skipped, and so are its larger N. The slopes of log(memory) and log(time)
-against log(N) are fitted: in theory pyvf's memory ~N, the dense mask's ~N^2, the naive
-approach's ~N^2 and its time ~N^3.
+The methods (attention.METHODS): pyvf's kernel; the naive approach the paper avoids, one sequence
+per query view (attention.stack_naive); the (T, T) mask in torch SDPA and in the NumPy reference.
+Each point is `pyvf bench attention`'s worker, validated at the first N, skipped (and its larger N)
+when predicted to take more than --max-point-seconds. Fitted: the slopes of log(memory) and
+log(time) against log(N); in theory pyvf's memory ~N, the others' ~N^2, the naive time ~N^3.
 """
 
 import numpy as np

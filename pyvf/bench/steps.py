@@ -146,10 +146,8 @@ def codebook_torch(config, steps):
 
     cfg, cb, images = codebook_setup(config)
     P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
-    q, x = cb.quantizer, torch.tensor(images)
-    state = {"buffers": {"quantize.embeddings": torch.tensor(q.embeddings),
-                         "quantize.ema_cluster_size_hidden": torch.tensor(q.ema_cluster_size_hidden),
-                         "quantize.ema_dw_hidden": torch.tensor(q.ema_dw_hidden), "quantize.counter": q.counter}}
+    x = torch.tensor(images)
+    state = {"buffers": {f"quantize.{k}": torch.as_tensor(v) for k, v in cb.quantizer.state_dict().items()}}
 
     def loss_of():
         out = codebook_forward(P, state["buffers"], x, cfg)

@@ -12,7 +12,7 @@ the others miss at most SANITY_WRONG of the codes at offset 0 (near ties), else 
 import numpy as np
 
 import pyvf
-from pyvf.bench.common import TORCH_MISSING, machine, median_time, torch_or_none
+from pyvf.bench.common import TORCH_MISSING, machine, median_time, ms, table, torch_or_none
 from pyvf.nn.quantizer import vq_nearest
 
 PAPER = dict(M=352 * 64, K=1024, D=256)
@@ -52,12 +52,9 @@ def run(quick=False, threads=2, size=None, checked_rows=4096):
     wrong codes on the first checked_rows points."""
     M, K, D = (size or (QUICK if quick else PAPER)).values()
     repeat, checked_rows = 3 if quick else 5, min(checked_rows, M)
-    torch = torch_or_none()
     rng = np.random.default_rng(0)
     report = dict(config=dict(M=M, K=K, D=D, threads=threads), machine=machine(threads), methods={}, failures=[])
     print(f"# nearest code: M={M} K={K} D={D}, float32, {threads} threads, median of {repeat}\n")
-    print("| method | time | wrong codes at offset " + " | ".join(f"{o:g}" for o in OFFSETS) + " |\n|---|---|"
-          + "---|" * len(OFFSETS))
     x, codes = rng.standard_normal((M, D)).astype(np.float32), rng.standard_normal((K, D)).astype(np.float32)
     cases = [(x[:checked_rows] + np.float32(o), codes + np.float32(o)) for o in OFFSETS]
     truth = [brute_force(*case) for case in cases]
@@ -71,9 +68,10 @@ def run(quick=False, threads=2, size=None, checked_rows=4096):
             report["failures"].append(f"{name}: {wrong[0]:.2%} wrong codes at offset 0 > {SANITY_WRONG:.0%}")
         t = median_time(lambda: fn(x, codes), repeat)[0] if ok else None
         report["methods"][name] = dict(seconds=t, wrong=wrong)
-        print(f"| {name} | {'not timed' if t is None else f'{t * 1e3:.1f} ms'} | "
-              + " | ".join(f"{w:.2%}" for w in wrong) + " |")
     t0 = report["methods"]["pyvf.vq_nearest"]["seconds"]
-    print("\n" + ("; ".join(f"{n} / pyvf time: {r['seconds'] / t0:.2f}x" for n, r in report["methods"].items()
-                            if n.startswith("torch") and r["seconds"]) if torch is not None else f"torch: {TORCH_MISSING}"))
+    print(table(["method", "time", "time / pyvf's", *(f"wrong codes at offset {o:g}" for o in OFFSETS)], [
+        [n, ms(r["seconds"]) if r["seconds"] else "not timed", f"{r['seconds'] / t0:.2f}" if r["seconds"] else "-",
+         *(f"{w:.2%}" for w in r["wrong"])] for n, r in report["methods"].items()]))
+    if torch_or_none() is None:
+        print(f"\ntorch: {TORCH_MISSING}")
     return report

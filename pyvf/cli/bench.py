@@ -2,7 +2,6 @@
 bench NAME --help`); the exit status is 1 when its report lists a failure (a result not timed)."""
 
 import argparse
-import functools
 import importlib
 import sys
 
@@ -25,7 +24,7 @@ def _head_sizes(text):
     return tuple(tuple(map(int, s)) for s in sizes)
 
 
-def _parser(name):
+def parser(name):
     """A benchmark's parser; its module docstring's first paragraph as description, the rest as epilog."""
     doc = _module(name).__doc__.strip().split("\n\n")
     p = argparse.ArgumentParser(prog=f"pyvf bench {name}", description=doc[0], epilog="\n\n".join(doc[1:]),
@@ -45,8 +44,10 @@ def _parser(name):
     return p
 
 
-def _handler(name, args):
-    """Run the benchmark; its failures printed, its report written to --json."""
+def cmd_bench(args):
+    """Run one benchmark of pyvf.bench on --threads threads (pyvf's kernels, numpy's BLAS, torch's);
+    the arguments after its name go to its parser. Its failures printed, its report written to --json."""
+    name, args = args.name, parser(args.name).parse_args(args.args)
     if name in NEEDS_TORCH and torch_or_none() is None:
         print(f"pyvf bench {name}: needs torch, the oracle its first step is checked against before both are "
               f"timed: {TORCH_MISSING}", file=sys.stderr)
@@ -61,22 +62,11 @@ def _handler(name, args):
     return 1 if report["failures"] else 0
 
 
-# name -> (its parser function, its handler)
-BENCHMARKS = {name: (functools.partial(_parser, name), functools.partial(_handler, name)) for name in NAMES}
-
-
-def cmd_bench(args):
-    """Run one benchmark of pyvf.bench on --threads threads (pyvf's kernels, numpy's BLAS, torch's);
-    the arguments after its name go to its parser."""
-    make_parser, handler = BENCHMARKS[args.name]
-    return handler(make_parser().parse_args(args.args))
-
-
 def register(subparsers):
     """Add `bench` to an argparse subparsers object."""
-    p = subparsers.add_parser("bench", help=f"a benchmark: {', '.join(BENCHMARKS)} (--quick: a few minutes at most)",
+    p = subparsers.add_parser("bench", help=f"a benchmark: {', '.join(NAMES)} (--quick: a few minutes at most)",
                               description=cmd_bench.__doc__ + " `pyvf bench NAME --help` lists its options.")
-    p.add_argument("name", choices=tuple(BENCHMARKS), help="which benchmark")
+    p.add_argument("name", choices=NAMES, help="which benchmark")
     p.add_argument("args", nargs=argparse.REMAINDER, help="the benchmark's own options, e.g. --quick")
     p.set_defaults(func=cmd_bench)
     return p
