@@ -72,8 +72,7 @@ def _pair(forward, backward, dy, *args):
 
 
 def _torch_vjp(f, dy, *args):
-    """fn() -> [y, *gradients] of y = f(torch.nn.functional, *tensors) by torch autograd with upstream
-    gradient dy: the gradient of each float array of args, the others (ints) passed as they are."""
+    """fn() -> [y, *the gradients of args' float arrays] of y = f(F, *args) by torch autograd, upstream dy."""
     import torch
     from torch.nn import functional as F
 
@@ -90,9 +89,9 @@ def attention_op(size, rng):
     """Branching attention forward + backward (pyvf bench attention's contenders): o, dq, dk, dv."""
     x = _round32(*(rng.standard_normal(size) for _ in range(4)))  # q, k, v, do
     outs = lambda contender: lambda x: contender(*x.values())["outs"]  # noqa: E731
-    return dict(outputs=attention.NAMES, inputs=dict(zip("qkvd", x)), reference=attention.reference64(*x),
-                pyvf=outs(attention.pyvf_contender), numpy=outs(attention.reference_contender),
-                torch=outs(attention.torch_contender))
+    return dict(outputs=attention.NAMES, inputs=dict(zip("qkvd", x)), pyvf=outs(attention.pyvf_contender),
+                reference=attention.reference_contender(*x)["outs"](),  # in float64: the oracle
+                numpy=outs(attention.reference_contender), torch=outs(attention.torch_contender))
 
 
 def vq_op(size, rng):
@@ -220,8 +219,7 @@ OPS = {"attention": attention_op, "vq_nearest": vq_op, "layernorm": layernorm_op
 
 
 def run_op(name, quick=False, repeat=5, log=print):
-    """Every variant of one op, validated, then timed: {op, size, variants: [{name, backend, bound,
-    rel (the error), seconds (if validated) or fail}]}."""
+    """One op's variants, each validated, then timed: {op, size, variants: [{name, backend, bound, rel, seconds or fail}]}."""
     size = SIZES[quick][name]
     op, (b32, b64) = OPS[name](size, np.random.default_rng(0)), BOUNDS[name]
     res = dict(op=name, size=size, variants=[])
@@ -250,8 +248,7 @@ def op_table(res):
 
 
 def plot_op(res, folder):
-    """accuracy-<op>.png in folder: each variant timed a point (time, error), the unit roundoffs (an
-    output's own rounding: the floor) as dotted lines. The path, or None without matplotlib."""
+    """accuracy-<op>.png in folder: a point (time, error) per variant timed, the unit roundoffs dotted."""
     done = [r for r in res["variants"] if "seconds" in r]
     t = [r["seconds"] * 1e3 for r in done] or [1.0]
     lines = {r["name"]: ([r["seconds"] * 1e3], [r["rel"]], dict(pyvf="o", torch="s", numpy="^")[r["backend"]])

@@ -103,12 +103,6 @@ def reference_contender(q, k, v, do):
     return dict(fwd=fwd, fb=fb, outs=lambda: [fwd(), *fb()])
 
 
-def reference64(q, k, v, do):
-    """[o, dq, dk, dv] of the dense reference in float64 on the same numbers: the oracle."""
-    x64 = [x.astype(np.float64) for x in (q, k, v, do)]
-    return [pyvf.branching_attention_reference(*x64[:3]), *pyvf.branching_attention_reference_vjp(*x64)]
-
-
 def stack_naive(x, queries_only=False):
     """(R, B, H, N, L, dh) -> (S, B, H, N, L, dh), S = 1 + (R-1)*N: sequence 0 is the trunk;
     sequence 1 + (r-1)*N + i holds the trunk views 0..i-1, then branch r's view i, then zero views.
@@ -172,7 +166,8 @@ def worker(spec):
     c, out = make(q, k, v, do), {}
     if spec["validate"]:
         bound = BOUND32 if "pyvf" in method else BOUND_OTHERS
-        out["errors"], ok = validate(c["outs"](), reference64(q, k, v, do), NAMES, bound)
+        oracle = reference_contender(*(x.astype(np.float64) for x in (q, k, v, do)))["outs"]()  # float64, same numbers
+        out["errors"], ok = validate(c["outs"](), oracle, NAMES, bound)
         if not ok:
             return dict(out, error=f"validation failed: max rel. error {max(out['errors'].values()):.2e} > {bound:g}")
     for name in ("fwd", "fb"):  # a warm-up call (thread pools), then one call's extra peak memory, then the time

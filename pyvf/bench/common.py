@@ -26,8 +26,7 @@ def torch_or_none():
 
 
 def machine(threads):
-    """Sets pyvf's threads (numpy's BLAS follows them) and torch's; the machine a report runs on:
-    CPU, versions, pyvf's kernel path, the threads."""
+    """Sets pyvf's threads (numpy's BLAS too) and torch's: the machine a report runs on, as a dict."""
     import platform
 
     import pyvf
@@ -125,7 +124,6 @@ def save_plot(folder, name, lines, title, xlabel, ylabel, logx=True, xticks=None
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-        from matplotlib.ticker import NullFormatter
     except ImportError:
         return None
     ys = [np.asarray(y, dtype=np.float64) for _, y, _ in lines.values()]
@@ -139,7 +137,7 @@ def save_plot(folder, name, lines, title, xlabel, ylabel, logx=True, xticks=None
     ax.set(xscale="log" if logx else "linear", yscale="log", title=title, xlabel=xlabel, ylabel=ylabel)
     if xticks:
         ax.set_xticks(xticks, [str(t) for t in xticks])
-    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.xaxis.set_minor_formatter("")  # no minor tick labels
     ax.grid(True, which="both", alpha=0.3)
     fig.legend(loc="outside right upper", fontsize=7)
     os.makedirs(folder, exist_ok=True)

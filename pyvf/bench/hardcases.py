@@ -122,8 +122,7 @@ def layernorm_sweep(quick, rng):
 
 
 def gelu_sweep(quick, rng):
-    """x on [-40, 0]; the error in ulps of the true value (np.spacing of the rounded true value: the
-    subnormal step below the normal range). pyvf's bound: tests/test_layers.py's."""
+    """x on [-40, 0]; the error in ulps (np.spacing) of the true value; pyvf's bound: tests/test_layers.py's."""
     x64 = np.linspace(0, -40, 21 if quick else 161)
     want = np.array([[float(a), float(b)] for a, b in map(gelu_mp, x64)])  # (n, 2): gelu, gelu'
     torch = torch_or_none()
@@ -153,8 +152,7 @@ def gelu_sweep(quick, rng):
 
 
 def cross_entropy_sweep(quick, rng):
-    """Rows of V logits N(0, 1), the target's logit s below the row's maximum; the reference: mpmath's
-    log-sum-exp on the same numbers."""
+    """Rows of V logits N(0, 1), the target's s below the row's maximum; the reference: mpmath's log-sum-exp."""
     import mpmath
 
     M, V = (4, 256) if quick else (16, 1024)
@@ -204,8 +202,7 @@ def check(sw):
 
 
 def plot_sweep(sw, folder):
-    """hardcase-<name>.png in folder: a line per variant, pyvf's bounds dashed. The path, or None
-    without matplotlib."""
+    """hardcase-<name>.png in folder: a line per variant, pyvf's bounds dashed."""
     lines = {name: (sw["x"], v, "o-" if name.startswith("pyvf") else ".-") for name, v in sw["lines"].items()}
     lines.update({f"bound of {name}": (sw["x"], b, "k--") for name, b in sw["bounds"].items()})
     return save_plot(folder, f"hardcase-{sw['name']}.png", lines, sw["title"], sw["xlabel"], sw["ylabel"],

@@ -60,8 +60,7 @@ def tables(fit, sizes, methods):
 
 
 def plot(points, fit, sizes, methods, folder):
-    """scaling-{memory,time}-H<h>-dh<d>.png in folder: log-log against N, a line per method and pass
-    (forward dashed), the fitted slopes in the legend. The files, or None without matplotlib."""
+    """scaling-{memory,time}-H<h>-dh<d>.png in folder: a line per method and pass (forward dashed)."""
     files = []
     for H, dh in sizes:
         for what, unit, scale in (("memory", "extra peak memory (MiB)", 2 ** 20), ("time", "median time (ms)", 1e-3)):

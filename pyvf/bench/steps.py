@@ -35,9 +35,8 @@ LR, BETAS = 1.584e-3, (0.5, 0.9)  # the published codebook's Adam
 
 
 def checksums(arrays):
-    """{name: [2-norm, projection]}, the projection onto unit-normal numbers seeded by the name (the
-    same in every process): what a worker sends of a gradient. A gradient zeroed, transposed or
-    missing a term moves the projection by about its norm."""
+    """{name: [2-norm, projection onto unit-normal numbers seeded by the name]}: what a worker sends of a
+    gradient. A gradient zeroed, transposed or missing a term moves the projection by about its norm."""
     out = {}
     for name, a in arrays.items():
         a = np.asarray(a, dtype=np.float64).ravel()

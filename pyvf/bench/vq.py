@@ -11,7 +11,6 @@ the others miss at most SANITY_WRONG of the codes at offset 0 (near ties), else 
 
 import numpy as np
 
-import pyvf
 from pyvf.bench.common import TORCH_MISSING, machine, median_time, ms, table, torch_or_none
 from pyvf.nn.quantizer import vq_nearest
 
@@ -48,8 +47,7 @@ def methods():
 
 
 def run(quick=False, threads=2, size=None, checked_rows=4096):
-    """The table (module docstring) for size dict(M, K, D): median times of 5 calls (3 quick),
-    wrong codes on the first checked_rows points."""
+    """The table (module docstring) at size dict(M, K, D), wrong codes counted on the first checked_rows."""
     M, K, D = (size or (QUICK if quick else PAPER)).values()
     repeat, checked_rows = 3 if quick else 5, min(checked_rows, M)
     rng = np.random.default_rng(0)
