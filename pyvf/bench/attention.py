@@ -89,7 +89,7 @@ def torch_contender(q, k, v, do):
         o = F.scaled_dot_product_attention(*leaves, attn_mask=mask, scale=1.0)
         return o.detach(), torch.autograd.grad(o, leaves, dot)
 
-    def outs():  # (B, H, T, dh) -> pyvf's (R, B, H, N, L, dh)
+    def outs():  # (B, H, T, dh) -> (B, H, R, N, L, dh) -> pyvf's (R, B, H, N, L, dh)
         o, grads = fb()
         return [x.numpy().reshape(q.shape[1:3] + q.shape[:1] + q.shape[3:]).transpose(2, 0, 1, 3, 4, 5)
                 for x in (o, *grads)]
