@@ -19,7 +19,7 @@ import pytest
 
 import pyvf
 from pyvf.cli import main
-from pyvf.cli.bench import BENCHMARKS
+from pyvf.cli.bench import NAMES, parser
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TIMEOUT = 300  # seconds per command: a hung benchmark fails instead of stalling the run
@@ -137,8 +137,8 @@ def test_every_readme_command_without_torch(tmp_path):
                 (["train", "--preset", "smoke", "--out", "r", "--no-progress"], "pyvf train: done"),
                 (["runs", "r/codebook", "r/transformer"], "|"), (["export", "r/transformer", "-o", "now.npz"], "now.npz"),
                 (["scenes", "--out", "s", "--scenes", "2", "--seed", "3", "--size", "16", "--quiet"], ""),
-                (["bench", "attention", "--quick"], "torch SDPA: torch is not installed"),
-                (["bench", "vq", "--quick"], "| pyvf.vq_nearest |"),
+                (["bench", "attention", "--quick"], "dense_sdpa   skipped: torch is not installed"),
+                (["bench", "vq", "--quick"], "| pyvf.vq_nearest "),
                 # one worker per method at N=2, the larger N skipped as too slow (predicted)
                 (["bench", "scaling", "--sizes", "1x8", "--max-point-seconds", "1e-9"], "skipped: torch is not installed"),
                 (["bench", "accuracy", "--quick"], "PASS"), (["bench", "hardcases", "--quick"], "PASS")]
@@ -167,7 +167,7 @@ THREADS_COMMANDS = [["demo"], ["evaluate", "--out", "e"], ["tokenize", "--codebo
                     ["train-transformer", "--tokens", "t", "--out", "o", "--steps", "1"], ["train", "--out", "o"]]
 
 
-@pytest.mark.parametrize("argv", THREADS_COMMANDS + [["bench", name] for name in BENCHMARKS], ids=" ".join)
+@pytest.mark.parametrize("argv", THREADS_COMMANDS + [["bench", name] for name in NAMES], ids=" ".join)
 def test_threads_is_one_option_checked_once(argv, capsys):
     """--threads is the same option everywhere (pyvf/cli/options.py): a positive integer of at most
     1024 (MAX_THREADS), anything else the parser's error naming it, before any work starts."""
@@ -176,8 +176,7 @@ def test_threads_is_one_option_checked_once(argv, capsys):
             main(argv + ["--threads", bad])
         assert e.value.code == 2 and "argument --threads:" in capsys.readouterr().err
     if argv[0] == "bench":
-        parser = BENCHMARKS[argv[1]][0]()
-        assert parser.parse_args(["--threads", "3"]).threads == 3
+        assert parser(argv[1]).parse_args(["--threads", "3"]).threads == 3
     else:
         from pyvf.cli import build_parser
         assert build_parser().parse_args(argv + ["--threads", "3"]).threads == 3
@@ -210,7 +209,7 @@ def test_a_bad_bench_argument_is_the_parsers_one_line_error(argv, option, tmp_pa
 def test_good_bench_arguments_parse(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "out").mkdir()
-    parse = {name: make().parse_args for name, (make, _) in BENCHMARKS.items()}
+    parse = {name: parser(name).parse_args for name in NAMES}
     s = parse["scaling"](["--sizes", "12x64,4x32", "--max-point-seconds", "0", "--plots", "new/plots", "--json", "s.json"])
     assert (s.sizes, s.max_point_seconds, s.plots, s.json) == (((12, 64), (4, 32)), 0.0, "new/plots", "s.json")
     assert parse["report"](["--out", "out/docs", "--quick"]).out == "out/docs"

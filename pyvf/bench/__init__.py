@@ -1,4 +1,2 @@
-"""pyvf's benchmarks, each a module whose run(quick, threads, ...) prints its tables and returns its
-report (a JSON-able dict with a list of failures), called by `pyvf bench NAME` (pyvf/cli/bench.py).
-Each validates its results before it times them. torch is imported only where it is used.
-"""
+"""pyvf's benchmarks: each module's run(quick, threads, ...) validates, then times, prints its tables
+and returns its report (a JSON-able dict, its failures listed); `pyvf bench NAME` calls it."""

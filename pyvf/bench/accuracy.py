@@ -4,18 +4,12 @@ and the same for torch and the textbook NumPy formula.
     pyvf bench accuracy            # ~1 minute on 2 cores
     pyvf bench accuracy --quick    # small sizes, seconds
 
-The ops, each timed forward and backward:
-
-    attention           pyvf.branching_attention_forward/_backward     o, dq, dk, dv
-    vq_nearest          pyvf.vq_nearest                                squared distance to the code chosen
-    layernorm           pyvf.nn.layers.layernorm_forward/_backward     y, dx, dgamma, dbeta
-    cross_entropy       pyvf.nn.losses.cross_entropy_forward/_backward loss, dlogits
-    gelu                pyvf.nn.layers.gelu_forward/_backward          y, dx
-    conv2d              pyvf.nn.conv.conv2d_forward/_backward          y, dx, dw, db
-
-Variants: pyvf float32 and float64, torch float32 and the textbook NumPy formula in float32 (the
-dense masked softmax, the expanded |x|^2 - 2 x.e + |e|^2 distance, two-pass moments, softmax then
-log, 0.5 (1 + erf), shifted-window conv), all on the same numbers (drawn in float64, rounded to
+The ops, forward and backward, every output compared: attention (pyvf.branching_attention_forward
+and _backward), vq_nearest (pyvf.vq_nearest: the squared distance to the code chosen), layernorm
+and gelu (pyvf.nn.layers), cross_entropy (pyvf.nn.losses), conv2d (pyvf.nn.conv). Variants: pyvf
+float32 and float64, torch float32 and the textbook NumPy formula in float32 (the dense masked
+softmax, the expanded |x|^2 - 2 x.e + |e|^2 distance, two-pass moments, softmax then log,
+0.5 (1 + erf), shifted-window conv), all on the same numbers (drawn in float64, rounded to
 float32). Error: max|x - ref| / max|ref|, the largest over the op's outputs, against a float64
 reference (mpmath for GELU, whose float64 erf form loses every digit in the tail). Each variant is
 validated before it is timed: pyvf against its tests' bound (BOUNDS), torch and NumPy against
@@ -29,7 +23,7 @@ import numpy as np
 
 import pyvf
 from pyvf.bench import attention
-from pyvf.bench.common import machine, median_time, ms, pyplot, save_figure, table, torch_or_none, validate
+from pyvf.bench.common import machine, median_time, ms, save_plot, table, torch_or_none, validate
 from pyvf.bench.vq import brute_force
 from pyvf.nn import conv, layers, losses
 
@@ -78,8 +72,7 @@ def _pair(forward, backward, dy, *args):
 
 
 def _torch_vjp(f, dy, *args):
-    """fn() -> [y, *gradients] of y = f(torch.nn.functional, *tensors) by torch autograd with upstream
-    gradient dy: the gradient of each float array of args, the others (ints) passed as they are."""
+    """fn() -> [y, *the gradients of args' float arrays] of y = f(F, *args) by torch autograd, upstream dy."""
     import torch
     from torch.nn import functional as F
 
@@ -96,9 +89,9 @@ def attention_op(size, rng):
     """Branching attention forward + backward (pyvf bench attention's contenders): o, dq, dk, dv."""
     x = _round32(*(rng.standard_normal(size) for _ in range(4)))  # q, k, v, do
     outs = lambda contender: lambda x: contender(*x.values())["outs"]  # noqa: E731
-    return dict(outputs=attention.NAMES, inputs=dict(zip("qkvd", x)), reference=attention.reference64(*x),
-                pyvf=outs(attention.pyvf_contender), numpy=outs(attention.reference_contender),
-                torch=outs(attention.torch_contender))
+    return dict(outputs=attention.NAMES, inputs=dict(zip("qkvd", x)), pyvf=outs(attention.pyvf_contender),
+                reference=attention.reference_contender(*x)["outs"](),  # in float64: the oracle
+                numpy=outs(attention.reference_contender), torch=outs(attention.torch_contender))
 
 
 def vq_op(size, rng):
@@ -225,16 +218,15 @@ OPS = {"attention": attention_op, "vq_nearest": vq_op, "layernorm": layernorm_op
        "gelu": gelu_op, "conv2d": conv2d_op}  # name -> its function (size, rng)
 
 
-def run_op(name, quick=False, repeat=5, with_torch=True, log=print):
-    """Every variant of one op, validated, then timed: {op, size, variants: [{name, backend, bound,
-    rel (the error), seconds (if validated) or fail}]}."""
+def run_op(name, quick=False, repeat=5, log=print):
+    """One op's variants, each validated, then timed: {op, size, variants: [{name, backend, bound, rel, seconds or fail}]}."""
     size = SIZES[quick][name]
     op, (b32, b64) = OPS[name](size, np.random.default_rng(0)), BOUNDS[name]
     res = dict(op=name, size=size, variants=[])
     for vname, backend, dtype, bound in (("pyvf float32", "pyvf", np.float32, b32), ("pyvf float64", "pyvf", np.float64, b64),
                                          ("torch float32", "torch", np.float32, SANITY),
                                          ("numpy float32", "numpy", np.float32, SANITY)):
-        if backend == "torch" and not with_torch:
+        if backend == "torch" and torch_or_none() is None:
             continue
         fn = op[backend]({k: v.astype(dtype) for k, v in op["inputs"].items()})
         errors, ok = validate(fn(), op["reference"], op["outputs"], bound)
@@ -256,34 +248,26 @@ def op_table(res):
 
 
 def plot_op(res, folder):
-    """accuracy-<op>.png in folder: each variant a point (time, error), the unit roundoffs dotted
-    (an output's own rounding: the floor), an error of 0 drawn at 1e-17. The path."""
-    from matplotlib.ticker import NullFormatter
-    fig, ax = pyplot().subplots(figsize=(8.4, 4.4), layout="constrained")
-    for r in res["variants"]:
-        if "seconds" in r:
-            ax.loglog(r["seconds"] * 1e3, max(r["rel"], 1e-17), dict(pyvf="o", torch="s", numpy="^")[r["backend"]],
-                      ms=8, label=r["name"])
-    for u in (U32, U64):
-        ax.axhline(u, color="0.4", ls=":", lw=1.0, label=f"unit roundoff, float32 {U32:.1e} / float64 {U64:.1e}")
-    ax.xaxis.set_minor_formatter(NullFormatter())
-    ax.set(xlabel="median time (ms)", ylabel="normwise relative error vs float64 reference",
-           title=f"{res['op']}, size {res['size']}")
-    return save_figure(fig, folder, f"accuracy-{res['op'].replace('_', '-')}.png")
+    """accuracy-<op>.png in folder: a point (time, error) per variant timed, the unit roundoffs dotted."""
+    done = [r for r in res["variants"] if "seconds" in r]
+    t = [r["seconds"] * 1e3 for r in done] or [1.0]
+    lines = {r["name"]: ([r["seconds"] * 1e3], [r["rel"]], dict(pyvf="o", torch="s", numpy="^")[r["backend"]])
+             for r in done}
+    lines.update({f"unit roundoff, {n} {u:.1e}": ([min(t), max(t)], [u, u], "k:") for n, u in (("float32", U32),
+                                                                                            ("float64", U64))})
+    return save_plot(folder, f"accuracy-{res['op'].replace('_', '-')}.png", lines, f"{res['op']}, size {res['size']}",
+                     "median time (ms)", "normwise relative error vs float64 reference")
 
 
 def run(quick=False, threads=2, ops=tuple(OPS), plots=None, log=print):
-    """The whole benchmark: prints each op's table, plots them in `plots` (a folder) if given and
-    matplotlib is installed (res["plot"]): {config, machine, results (run_op's), failures}."""
+    """Every op named, printed and plotted into the folder plots: {config, machine, results (run_op's), failures}."""
     repeat = 3 if quick else 5
-    pyvf.set_num_threads(threads)
-    torch = torch_or_none()
-    if torch is not None:
-        torch.set_num_threads(threads)
-    results = [run_op(name, quick, repeat, torch is not None, log=log) for name in ops]
+    report = dict(config=dict(quick=quick, repeat=repeat), machine=machine(threads))
+    results = report["results"] = [run_op(name, quick, repeat, log=log) for name in ops]
     for res in results:
         log(f"\n## {res['op']}, size {res['size']}\n\n{op_table(res)}")
-        if plots and pyplot():
+        if plots:
             res["plot"] = plot_op(res, plots)
-    failures = [f"{res['op']} / {r['name']}: {r['fail']}" for res in results for r in res["variants"] if "fail" in r]
-    return dict(config=dict(quick=quick, repeat=repeat), machine=machine(threads), results=results, failures=failures)
+    report["failures"] = [f"{res['op']} / {r['name']}: {r['fail']}" for res in results for r in res["variants"]
+                          if "fail" in r]
+    return report

@@ -5,11 +5,9 @@ NumPy reference; also the measurement of one point of `pyvf bench scaling` (work
     pyvf bench attention           # paper size R=3, B=1, H=12, N=20, L=64, dh=64
     pyvf bench attention --quick   # H=2, N=4, dh=32
 
-Each method runs in a process of its own (worker()): validated against the float64 reference
-(one outside its bound is not timed), then one call's extra peak memory beside the memory
-expected, and the median time of 5 calls; GFLOP/s count the attended block pairs only. Inputs
-unit-normal, scale 1 (the published model's unscaled logits); torch and the reference take the
-flat (B, H, T, dh) sequence, T = R*N*L in the order [row][view][token].
+Each method in a process of its own: validated against the float64 reference (else not timed),
+then one call's extra peak memory beside the memory expected, and the median time of 5 calls.
+Inputs unit-normal, scale 1 (the published model's unscaled logits).
 """
 
 import numpy as np
@@ -18,7 +16,6 @@ import pyvf
 from pyvf.bench.common import (MEMORY_METHOD, TORCH_MISSING, format_bytes, machine, median_time, ms, peak_memory,
                                run_worker, table, torch_or_none, validate, worker_main)
 
-WORKER = "pyvf.bench.attention"  # this module, run as `python -m WORKER SPEC` (worker_main)
 R, B, L = 3, 1, 64  # tree rows, batch, tokens per view (docs/math.md §1)
 # pyvf's bounds, tests/test_attention.py's RTOL64 and RTOL32 (their reasons written out there); torch
 # SDPA and the reference in float32 round the logits in their own order (measured ~3.3e-6): a wrong
@@ -40,12 +37,6 @@ def flat(x):
     return np.ascontiguousarray(x.transpose(1, 2, 0, 3, 4, 5).reshape(B, H, R * N * L, dh))
 
 
-def unflat(x, shape):
-    """(B, H, T, dh) -> (R, B, H, N, L, dh)."""
-    R, B, H, N, L, dh = shape
-    return x.reshape(B, H, R, N, L, dh).transpose(2, 0, 1, 3, 4, 5)
-
-
 def attended_pairs(R, N):
     """Block pairs one (b, h) attends: trunk N(N+1)/2, each branch N(N-1)/2 + N (docs/math.md §2)."""
     return N * (N + 1) // 2 + (R - 1) * (N * (N - 1) // 2 + N)
@@ -53,18 +44,16 @@ def attended_pairs(R, N):
 
 def expected_memory(method, R, B, H, N, L, dh, threads):
     """Bytes a float32 call should need above its inputs, outputs included: (forward, forward+backward).
-
     "pyvf" (csrc/branching_attention.cpp): o like q, lse (R, B, H, N, L) float64, per thread q^T and
     the accumulator (L, dh), s^T (L, L) and five L-vectors; the backward dq, dk, dv like q, per
-    thread q^T and do^T of one head (R*N*L, dh) and three (L, L) buffers, and G-1 more dq, G =
-    min(ceil(16 / (B*H)), 8, R*N) key groups where B*H < 16. "dense_sdpa" (bool mask): the float32
-    additive mask (4 T^2), then o (and dq, dk, dv). "dense_numpy": s, p and p / sum(p), three
-    (B, H, T, T) arrays, beside its (T, T) bool mask."""
+    thread q^T and do^T of one head (R*N*L, dh) and three (L, L), and G-1 more dq (G key groups).
+    "dense_sdpa" (bool mask): the float32 additive mask (4 T^2), then o (and dq, dk, dv).
+    "dense_numpy": s, p and p / sum(p), three (B, H, T, T) arrays, beside its (T, T) bool mask."""
     S = R * B * H * N * L * dh * 4  # one array like q
     T = R * N * L
     if method == "pyvf":
         Lt = min(L, 256)  # the kernel's tile
-        G = 1 if B * H >= 16 else min(-(-16 // (B * H)), 8, R * N)
+        G = 1 if B * H >= 16 else min(-(-16 // (B * H)), 8, R * N)  # key groups: ceil(16 / (B*H)), at most 8
         lse, fwd_thread = R * B * H * N * L * 8, threads * (2 * Lt * dh + Lt * Lt + 5 * Lt) * 4
         bwd_thread = threads * (2 * T * dh + 3 * T + 3 * Lt * Lt) * 4
         return S + lse + fwd_thread, S + lse + max(fwd_thread, (2 + G) * S + bwd_thread)
@@ -87,6 +76,7 @@ def torch_contender(q, k, v, do):
     import torch
     import torch.nn.functional as F
 
+    torch.set_num_threads(pyvf.num_threads())
     mask = torch.from_numpy(pyvf.branching_mask(q.shape[0], q.shape[3], q.shape[4]))
     leaves = [torch.from_numpy(flat(x)).requires_grad_(True) for x in (q, k, v)]
     dot = torch.from_numpy(flat(do))
@@ -99,9 +89,10 @@ def torch_contender(q, k, v, do):
         o = F.scaled_dot_product_attention(*leaves, attn_mask=mask, scale=1.0)
         return o.detach(), torch.autograd.grad(o, leaves, dot)
 
-    def outs():
+    def outs():  # (B, H, T, dh) -> (B, H, R, N, L, dh) -> pyvf's (R, B, H, N, L, dh)
         o, grads = fb()
-        return [unflat(x.numpy(), q.shape) for x in (o, *grads)]
+        return [x.numpy().reshape(q.shape[1:3] + q.shape[:1] + q.shape[3:]).transpose(2, 0, 1, 3, 4, 5)
+                for x in (o, *grads)]
     return dict(fwd=fwd, fb=fb, outs=outs)
 
 
@@ -110,12 +101,6 @@ def reference_contender(q, k, v, do):
     fwd = lambda: pyvf.branching_attention_reference(q, k, v)  # noqa: E731
     fb = lambda: pyvf.branching_attention_reference_vjp(q, k, v, do)  # noqa: E731
     return dict(fwd=fwd, fb=fb, outs=lambda: [fwd(), *fb()])
-
-
-def reference64(q, k, v, do):
-    """[o, dq, dk, dv] of the dense reference in float64 on the same numbers: the oracle."""
-    x64 = [x.astype(np.float64) for x in (q, k, v, do)]
-    return [pyvf.branching_attention_reference(*x64[:3]), *pyvf.branching_attention_reference_vjp(*x64)]
 
 
 def stack_naive(x, queries_only=False):
@@ -160,7 +145,7 @@ def naive_contender(q, k, v, do):
 
 
 def theory(method, H, N, dh, threads):
-    """{block_pairs computed per head, computed_flops (forward), expected_fwd, expected_fb (bytes)}."""
+    """{computed_flops (forward), expected_fwd, expected_fb (bytes)} of a point."""
     if method == "naive_pyvf":
         S = 1 + (R - 1) * N
         pairs = S * N * (N + 1) // 2
@@ -168,7 +153,7 @@ def theory(method, H, N, dh, threads):
     else:
         pairs = attended_pairs(R, N) if method == "pyvf" else (R * N) ** 2
         fwd, fb = expected_memory(method, R, B, H, N, L, dh, threads)
-    return dict(block_pairs=pairs, computed_flops=4 * L * L * dh * pairs * B * H, expected_fwd=fwd, expected_fb=fb)
+    return dict(computed_flops=4 * L * L * dh * pairs * B * H, expected_fwd=fwd, expected_fb=fb)
 
 
 def worker(spec):
@@ -176,14 +161,13 @@ def worker(spec):
     method, H, dh, N = spec["method"], spec["H"], spec["dh"], spec["N"]
     pyvf.set_num_threads(spec["threads"])
     q, k, v, do = np.random.default_rng(N).standard_normal((4, R, B, H, N, L, dh), dtype=np.float32)
-    if method == "dense_sdpa":
-        torch_or_none().set_num_threads(spec["threads"])
     make = dict(pyvf=pyvf_contender, naive_pyvf=naive_contender, dense_sdpa=torch_contender,
                 dense_numpy=reference_contender)[method]
     c, out = make(q, k, v, do), {}
     if spec["validate"]:
         bound = BOUND32 if "pyvf" in method else BOUND_OTHERS
-        out["errors"], ok = validate(c["outs"](), reference64(q, k, v, do), NAMES, bound)
+        oracle = reference_contender(*(x.astype(np.float64) for x in (q, k, v, do)))["outs"]()  # float64, same numbers
+        out["errors"], ok = validate(c["outs"](), oracle, NAMES, bound)
         if not ok:
             return dict(out, error=f"validation failed: max rel. error {max(out['errors'].values()):.2e} > {bound:g}")
     for name in ("fwd", "fb"):  # a warm-up call (thread pools), then one call's extra peak memory, then the time
@@ -193,44 +177,66 @@ def worker(spec):
     return out
 
 
+def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
+    """Every point (method, (H, dh) of sizes, N of views), each in a worker process, validated at the
+    first N, or skipped (with the reason) when predicted by its FLOPs from the method's previous N
+    to take more than max_point_seconds (0: never): a list of dicts."""
+    points, torch = [], torch_or_none()
+    for H, dh in sizes:
+        prev = {}
+        for N in views:
+            for method in methods:
+                p, last = dict(method=method, H=H, dh=dh, N=N, theory=theory(method, H, N, dh, threads)), prev.get(method)
+                est = None if last is None or "fb_seconds" not in last else (  # memory, warm-up, timed calls
+                    (REPEAT + 3) * (last["fwd_seconds"] + last["fb_seconds"])
+                    * p["theory"]["computed_flops"] / last["theory"]["computed_flops"])
+                if method == "dense_sdpa" and torch is None:
+                    p["skipped"] = TORCH_MISSING
+                elif last is not None and "skipped" in last:
+                    p["skipped"] = "a smaller N of this method was skipped"
+                elif max_point_seconds and est is not None and est > max_point_seconds:
+                    p["skipped"] = f"predicted {est:.0f} s > --max-point-seconds {max_point_seconds:g}"
+                else:
+                    try:
+                        p.update(run_worker(worker, dict(method=method, H=H, dh=dh, N=N, threads=threads,
+                                                         validate=N == views[0])))
+                    except RuntimeError as e:  # a crashed worker: written down, the study carries on
+                        p["error"] = str(e)[-2000:]
+                t = p["theory"]
+                log(f"  H={H} dh={dh} N={N:>2} {method:<12} " + (
+                    f"skipped: {p['skipped']}" if "skipped" in p else f"FAILED: {p['error'].splitlines()[0][:100]}"
+                    if "error" in p else f"memory (measured / expected) fwd {format_bytes(p['fwd_bytes'])} / "
+                    f"{format_bytes(t['expected_fwd'])}, fwd+bwd {format_bytes(p['fb_bytes'])} / "
+                    f"{format_bytes(t['expected_fb'])}; time fwd {ms(p['fwd_seconds'])}, fwd+bwd {ms(p['fb_seconds'])}"),
+                    flush=True)
+                points.append(p)
+                prev[method] = p
+    return points
+
+
 def run(quick=False, threads=2, size=None):
     """The benchmark (module docstring) at size (H, dh, N): prints its tables, returns the report."""
     H, dh, N = size or ((2, 32, 4) if quick else (12, 64, 20))
-    torch = torch_or_none()
-    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, threads=threads), machine=machine(threads), points=[],
-                  failures=[])
+    report = dict(config=dict(R=R, B=B, H=H, N=N, L=L, dh=dh, threads=threads), machine=machine(threads))
     print(f"# Branching attention: R={R} B={B} H={H} N={N} L={L} dh={dh} (T={R * N * L}), float32, scale 1, {threads} "
           f"threads, each method in its own process\nmachine: {report['machine']['processor']}; memory: {MEMORY_METHOD}\n")
-    for m in ("pyvf", "dense_sdpa", "dense_numpy") if torch else ("pyvf", "dense_numpy"):
-        p = dict(method=m, theory=theory(m, H, N, dh, threads),
-                 **run_worker(WORKER, dict(method=m, H=H, dh=dh, N=N, threads=threads, validate=True)))
-        report["points"].append(p)
-        report["failures"] += [f"{METHODS[m]}: {p['error']}: not timed"] if "error" in p else []
-    print(table(["max rel. error vs float64 reference", *NAMES],
-                [[METHODS[p["method"]]] + [f"{p['errors'][n]:.2e}" for n in NAMES] for p in report["points"]]) + "\n")
+    report["points"] = run_points([(H, dh)], [N], ("pyvf", "dense_sdpa", "dense_numpy"), threads, 0)
+    points = [p for p in report["points"] if "skipped" not in p]  # torch SDPA without torch
+    report["failures"] = [f"{METHODS[p['method']]}: {p['error']}: not timed" for p in points if "error" in p]
     if report["failures"]:
         return report
-    pyvf.set_num_threads(threads)
     a, b = np.random.default_rng(1).standard_normal((2, 1024, 1024), dtype=np.float32)
     gemm = report["gemm_gflops"] = 2 * 1024 ** 3 / median_time(lambda: a @ b, REPEAT)[0] / 1e9  # float32 GEMM rate
     f_fwd = 4 * L * L * dh * attended_pairs(R, N) * B * H  # useful flops: q k^T and p v per attended block pair
     f_fb = 3.5 * f_fwd  # the backward: q k^T recomputed, dv, dp, dq, dk
-    rows = []
-    for p in report["points"]:
-        p["fb_of_gemm"] = f_fb / p["fb_seconds"] / 1e9 / gemm
-        rows.append([METHODS[p["method"]], ms(p["fwd_seconds"]), f"{f_fwd / p['fwd_seconds'] / 1e9:.1f}",
-                     ms(p["fb_seconds"]), f"{f_fb / p['fb_seconds'] / 1e9:.1f}", f"{p['fb_of_gemm']:.0%}",
-                     f"{format_bytes(p['fwd_bytes'])} / {format_bytes(p['theory']['expected_fwd'])}",
-                     f"{format_bytes(p['fb_bytes'])} / {format_bytes(p['theory']['expected_fb'])}"])
-    print(table(["", "forward", "GFLOP/s", "forward+backward", "GFLOP/s", "% of GEMM",
-                 "memory fwd (measured / expected)", "memory fwd+bwd"], rows))
-    print(f"\nmedian of {REPEAT} calls; GFLOP/s: useful flops ({attended_pairs(R, N)} of {(R * N) ** 2} block pairs "
-          f"per head) / time; GEMM: numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s")
-    if torch is None:
-        print(f"torch SDPA: {TORCH_MISSING}")
-    pyvf_fb = report["points"][0]["fb_seconds"]
-    print("forward+backward time over pyvf's: " + ", ".join(f"{METHODS[p['method']]} {p['fb_seconds'] / pyvf_fb:.2f}x"
-                                                            for p in report["points"][1:]))
+    print("\n" + table(["", "max rel. error", "forward", "GFLOP/s", "forward+backward", "GFLOP/s", "% of GEMM",
+                        "fwd+bwd time / pyvf's"], [
+        [METHODS[p["method"]], f"{max(p['errors'].values()):.2e}", ms(p["fwd_seconds"]),
+         f"{f_fwd / p['fwd_seconds'] / 1e9:.1f}", ms(p["fb_seconds"]), f"{f_fb / p['fb_seconds'] / 1e9:.1f}",
+         f"{f_fb / p['fb_seconds'] / 1e9 / gemm:.0%}", f"{p['fb_seconds'] / points[0]['fb_seconds']:.2f}"] for p in points]))
+    print(f"\nmedian of {REPEAT} calls; error: the largest of {', '.join(NAMES)} against the float64 reference; "
+          f"GFLOP/s: useful flops ({attended_pairs(R, N)} of {(R * N) ** 2} block pairs per head) / time; GEMM: "
+          f"numpy float32 matmul 1024x1024, {gemm:.1f} GFLOP/s")
     return report
 
 

@@ -1,6 +1,5 @@
-"""What the benchmarks share: the validator, the memory measurement, the machine's name, worker
-processes, tables, JSON and plots. The timer is pyvf/_machine.py's median_time (re-exported).
-"""
+"""What the benchmarks share: the validator, the memory measurement, the machine, worker processes,
+tables, JSON and plots; the timer is pyvf/_machine.py's median_time (re-exported)."""
 
 import gc
 import json
@@ -27,11 +26,14 @@ def torch_or_none():
 
 
 def machine(threads):
-    """The machine a report ran on: CPU, versions, pyvf's kernel path, the threads."""
+    """Sets pyvf's threads (numpy's BLAS too) and torch's: the machine a report runs on, as a dict."""
     import platform
 
     import pyvf
     torch = torch_or_none()
+    pyvf.set_num_threads(threads)
+    if torch is not None:
+        torch.set_num_threads(threads)
     return dict(platform=platform.platform(), processor=cpu_name(), cpu_count=os.cpu_count(),
                 python=platform.python_version(), numpy=np.__version__, torch=torch and torch.__version__,
                 pyvf=pyvf.__version__, kernel_path=pyvf.kernel_path(), kernel_paths=pyvf.kernel_paths(), threads=threads)
@@ -40,24 +42,18 @@ def machine(threads):
 def validate(outs, refs, names, bound):
     """Each output against its float64 reference: ({name: max|x - ref| / max|ref|}, worst <= bound).
     An output holding a NaN or an inf, of another shape, or missing is an error of inf."""
-    outs = list(outs)
     errs = {}
-    for i, (name, ref) in enumerate(zip(names, refs)):
-        x = np.asarray(outs[i], dtype=np.float64) if len(outs) == len(names) else None
-        if x is None or x.shape != ref.shape or not np.isfinite(x).all():
-            errs[name] = float("inf")
-        else:
-            errs[name] = float(np.abs(x - ref).max(initial=0) / (np.abs(ref).max(initial=0) or 1.0))
+    for name, ref, x in zip(names, refs, list(outs) + [None] * len(names)):
+        x = None if x is None else np.asarray(x, dtype=np.float64)
+        ok = x is not None and x.shape == ref.shape and np.isfinite(x).all()
+        errs[name] = float(np.abs(x - ref).max(initial=0) / (np.abs(ref).max(initial=0) or 1.0)) if ok else float("inf")
     return errs, max(errs.values()) <= bound
 
 
 def _status_bytes(field):
     """A memory field of /proc/self/status ("VmRSS", "VmHWM"), in bytes."""
     with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) * 1024
-    raise OSError(field)
+        return int(next(line for line in f if line.startswith(field + ":")).split()[1]) * 1024
 
 
 def peak_memory(fn):
@@ -87,13 +83,13 @@ def ms(seconds):
     return "-" if seconds is None else f"{seconds * 1e3:.3g} ms" if seconds < 1 else f"{seconds * 1e3:.0f} ms"
 
 
-def run_worker(module, spec):
-    """`python -m module JSON(spec)` in a fresh process: the JSON object on its last line
-    (worker_main). It starts in the folder above this pyvf package, so that it imports this pyvf."""
+def run_worker(work, spec):
+    """work(spec) in a fresh process, `python -m work's module JSON(spec)` (worker_main): its JSON
+    answer. It starts in the folder above this pyvf package, so that it imports this pyvf."""
     import subprocess
 
     import pyvf
-    cmd = [sys.executable, "-m", module, json.dumps(spec)]
+    cmd = [sys.executable, "-m", work.__module__, json.dumps(spec)]
     proc = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL,
                           cwd=os.path.dirname(os.path.dirname(os.path.abspath(pyvf.__file__))))
     if proc.returncode:
@@ -118,8 +114,11 @@ def write_json(path, report):
     atomic_write_text(path, json.dumps(report, indent=1))
 
 
-def pyplot():
-    """matplotlib.pyplot on the Agg backend, or None where matplotlib (the `plots` extra) is missing."""
+def save_plot(folder, name, lines, title, xlabel, ylabel, logx=True, xticks=None):
+    """folder/name, a PNG: log y (and log x unless not logx) against x, a line per label of lines
+    {label: (x, y, matplotlib format)}, the legend outside on the right; a y of 0 drawn at a tenth
+    of the smallest y > 0, a NaN or an inf at ten times the largest. The path, or None where
+    matplotlib (the `plots` extra) is missing."""
     try:
         import matplotlib
 
@@ -127,19 +126,21 @@ def pyplot():
         import matplotlib.pyplot as plt
     except ImportError:
         return None
-    return plt
-
-
-def save_figure(fig, folder, name, where="right upper", ncol=1):
-    """Every axes of fig gridded, one legend for them all outside them (layout="constrained"); fig
-    written to folder/name and closed. The path."""
-    seen = {}
-    for ax in fig.axes:
-        ax.grid(True, which="both", alpha=0.3)
-        for handle, label in zip(*ax.get_legend_handles_labels()):
-            seen.setdefault(label, handle)
-    fig.legend(list(seen.values()), list(seen), loc=f"outside {where}", fontsize=7, ncol=ncol)
+    ys = [np.asarray(y, dtype=np.float64) for _, y, _ in lines.values()]
+    positive = np.concatenate([y[np.isfinite(y) & (y > 0)] for y in ys])
+    floor, top = positive.min() / 10, positive.max() * 10
+    fig, ax = plt.subplots(figsize=(9.6, 4.8), layout="constrained")
+    for (label, (x, _, fmt)), y in zip(lines.items(), ys):
+        ax.plot(x, np.where(np.isfinite(y), np.maximum(y, floor), top), fmt, label=label)
+    if any((~(y > 0) | (y == np.inf)).any() for y in ys):
+        ylabel += f"\n(0 drawn at {floor:.0e}, NaN and inf at {top:.0e})"
+    ax.set(xscale="log" if logx else "linear", yscale="log", title=title, xlabel=xlabel, ylabel=ylabel)
+    if xticks:
+        ax.set_xticks(xticks, [str(t) for t in xticks])
+    ax.xaxis.set_minor_formatter("")  # no minor tick labels
+    ax.grid(True, which="both", alpha=0.3)
+    fig.legend(loc="outside right upper", fontsize=7)
     os.makedirs(folder, exist_ok=True)
     fig.savefig(os.path.join(folder, name), dpi=100)
-    pyplot().close(fig)
+    plt.close(fig)
     return os.path.join(folder, name)

@@ -1,6 +1,5 @@
 """Numerical stability on hard inputs: sweeps that push one quantity across orders of magnitude,
-showing where the textbook formula breaks and that pyvf stays within its stated bound over the
-whole range.
+showing where the textbook formula breaks and that pyvf stays within its stated bound throughout.
 
     pyvf bench hardcases           # ~1 minute on 2 cores
     pyvf bench hardcases --quick   # fewer points, smaller problems
@@ -32,7 +31,7 @@ import numpy as np
 import pyvf
 from pyvf.bench.accuracy import U32, U64, gelu_mp, gelu_naive
 from pyvf.bench.attention import flat
-from pyvf.bench.common import machine, pyplot, save_figure, torch_or_none
+from pyvf.bench.common import machine, save_plot, torch_or_none
 from pyvf.nn import layers, losses
 
 
@@ -54,9 +53,7 @@ def _dense(q, k, v, mask, sentinel=False, subtract_max=True):
 
 
 def attention_sweep(name, quick, rng):
-    """attention-spread or attention-mask. Error: max|o - o_ref| / max|v| (o is a weighted mean of
-    v). delta in pyvf float32's bound is the largest rounding a float32 logit can carry
-    (tests/test_attention.py)."""
+    """attention-spread or attention-mask; the error relative to max|v| (o is a weighted mean of v)."""
     shape = (3, 1, 2, 3, 8, 16) if quick else (3, 1, 2, 4, 16, 32)  # (R, B, H, N, L, dh)
     R, B, H, N, L, dh = shape
     mask = pyvf.branching_mask(R, N, L)
@@ -96,12 +93,9 @@ def attention_sweep(name, quick, rng):
 
 
 def layernorm_sweep(quick, rng):
-    """Rows of mean +-s and spread 1, gamma = 1, beta = 0 (y = xhat). Error: max|y - y_ref| /
-    max|y_ref|, y_ref in long double. pyvf's second centring pass makes the large mean cost nothing."""
+    """Rows of mean +-s and spread 1, gamma = 1, beta = 0 (y = xhat); the reference in long double."""
     shape, eps = ((64, 64) if quick else (256, 256)), 1e-5
-    torch = torch_or_none()
-    lines = {n: [] for n in ("pyvf float32", "pyvf float64", "one-pass float32", "one-pass float64",
-                             "numpy two-pass float32") + (("torch float32",) if torch else ())}
+    torch, lines = torch_or_none(), {}
     values = np.logspace(0, 6, 7 if quick else 13)
     for s in values:
         x = s * rng.choice([-1.0, 1.0], (shape[0], 1)) + rng.standard_normal(shape)
@@ -111,18 +105,16 @@ def layernorm_sweep(quick, rng):
             xc = xl - xl.mean(-1, keepdims=True)
             xc -= xc.mean(-1, keepdims=True)
             ref = (xc / np.sqrt((xc * xc).mean(-1, keepdims=True) + np.longdouble(eps))).astype(np.float64)
-            one, zero = np.ones(shape[1], dtype), np.zeros(shape[1], dtype)
-            lines[f"pyvf {tag}"].append(_err(layers.layernorm_forward(xd, one, zero, eps)[0], ref, np.abs(ref).max()))
-            m = xd.mean(-1, keepdims=True)
+            ys = {f"pyvf {tag}": layers.layernorm_forward(xd, np.ones(shape[1], dtype), np.zeros(shape[1], dtype), eps)[0]}
+            m, eps_d = xd.mean(-1, keepdims=True), dtype(eps)
             with np.errstate(all="ignore"):
-                one_pass = (xd - m) / np.sqrt(np.maximum((xd * xd).mean(-1, keepdims=True) - m * m, 0) + dtype(eps))
-            lines[f"one-pass {tag}"].append(_err(one_pass, ref, np.abs(ref).max()))
+                ys[f"one-pass {tag}"] = (xd - m) / np.sqrt(np.maximum((xd * xd).mean(-1, keepdims=True) - m * m, 0) + eps_d)
             if tag == "float32":
-                two_pass = (xd - m) / np.sqrt(xd.var(-1, keepdims=True) + dtype(eps))
-                lines["numpy two-pass float32"].append(_err(two_pass, ref, np.abs(ref).max()))
+                ys["numpy two-pass float32"] = (xd - m) / np.sqrt(xd.var(-1, keepdims=True) + eps_d)
                 if torch:
-                    y = torch.nn.functional.layer_norm(torch.from_numpy(xd), (shape[1],), eps=eps)
-                    lines["torch float32"].append(_err(y.numpy(), ref, np.abs(ref).max()))
+                    ys["torch float32"] = torch.nn.functional.layer_norm(torch.from_numpy(xd), (shape[1],), eps=eps).numpy()
+            for name, y in ys.items():
+                lines.setdefault(name, []).append(_err(y, ref, np.abs(ref).max()))
     return dict(name="layernorm", title=f"LayerNorm: rows of mean +-s, spread 1 ({shape[0]} rows of d={shape[1]})",
                 xlabel="s = |mean| / spread", ylabel="max |y - y_ref| / max |y_ref|", x=list(values), lines=lines,
                 bounds={"pyvf float32": [1e-6] * len(values), "pyvf float64": [1e-13] * len(values)},
@@ -130,9 +122,7 @@ def layernorm_sweep(quick, rng):
 
 
 def gelu_sweep(quick, rng):
-    """x on [-40, 0]; error in ulps of the true value (np.spacing of the rounded true value: the
-    subnormal step below the normal range). pyvf's bound (tests/test_layers.py): 4 ulp plus, where
-    Phi(x) is subnormal, the |x| * (smallest subnormal) its rounding can cost the product."""
+    """x on [-40, 0]; the error in ulps (np.spacing) of the true value; pyvf's bound: tests/test_layers.py's."""
     x64 = np.linspace(0, -40, 21 if quick else 161)
     want = np.array([[float(a), float(b)] for a, b in map(gelu_mp, x64)])  # (n, 2): gelu, gelu'
     torch = torch_or_none()
@@ -162,16 +152,12 @@ def gelu_sweep(quick, rng):
 
 
 def cross_entropy_sweep(quick, rng):
-    """Rows of V logits N(0, 1), the target's logit s below the row's maximum. Error: max over rows of
-    |loss - loss_ref| / loss_ref (mpmath log-sum-exp on the same numbers). pyvf's bound: (V + 4) u:
-    the V-term sum of exponentials, the log, and the one rounding of the target logit's difference."""
+    """Rows of V logits N(0, 1), the target's s below the row's maximum; the reference: mpmath's log-sum-exp."""
     import mpmath
 
     M, V = (4, 256) if quick else (16, 1024)
     values = np.logspace(0, 4, 5 if quick else 9)
-    torch = torch_or_none()
-    lines = {n: [] for n in ("pyvf float32", "pyvf float64", "naive -log(softmax) float32",
-                             "naive -log(softmax) float64") + (("torch float32",) if torch else ())}
+    torch, lines = torch_or_none(), {}
     targets = rng.integers(0, V, M)
     for s in values:
         base = rng.standard_normal((M, V))
@@ -180,18 +166,20 @@ def cross_entropy_sweep(quick, rng):
             logits = base.astype(dtype)
             ref = np.array([float(mpmath.log(mpmath.fsum(mpmath.exp(mpmath.mpf(float(v))) for v in row))
                                   - mpmath.mpf(float(row[t]))) for row, t in zip(logits, targets)])
-            err = lambda loss: _err(np.asarray(loss, np.float64) / ref, 1.0, 1.0)  # noqa: E731
-            lines[f"pyvf {tag}"].append(err(losses.cross_entropy_forward(logits, targets)[0]))
+            ys = {f"pyvf {tag}": losses.cross_entropy_forward(logits, targets)[0]}
             with np.errstate(all="ignore"):
                 e = np.exp(logits - logits.max(1, keepdims=True))
-                lines[f"naive -log(softmax) {tag}"].append(err(-np.log((e / e.sum(1, keepdims=True))[np.arange(M), targets])))
+                ys[f"naive -log(softmax) {tag}"] = -np.log((e / e.sum(1, keepdims=True))[np.arange(M), targets])
             if torch and tag == "float32":
-                loss = torch.nn.functional.cross_entropy(torch.from_numpy(logits), torch.from_numpy(targets), reduction="none")
-                lines["torch float32"].append(err(loss.numpy()))
+                ys["torch float32"] = torch.nn.functional.cross_entropy(torch.from_numpy(logits), torch.from_numpy(targets),
+                                                                        reduction="none").numpy()
+            for name, loss in ys.items():
+                lines.setdefault(name, []).append(_err(np.asarray(loss, np.float64) / ref, 1.0, 1.0))
     return dict(name="cross-entropy", title=f"cross-entropy: target logit s below the row's maximum (V={V})",
                 xlabel="s = max logit - target logit", ylabel="max |loss - loss_ref| / loss_ref", x=list(values),
                 lines=lines, bounds={"pyvf float32": [(V + 4) * U32] * len(values), "pyvf float64": [(V + 4) * U64] * len(values)},
-                bound_text=f"(V + 4) u relative, V = {V}")
+                bound_text=f"(V + 4) u relative, V = {V}: the V-term sum of exponentials, the log, and the one "
+                           "rounding of the target logit's difference")
 
 
 SWEEPS = {"attention-spread": functools.partial(attention_sweep, "attention-spread"),
@@ -200,68 +188,52 @@ SWEEPS = {"attention-spread": functools.partial(attention_sweep, "attention-spre
 
 
 def check(sw):
-    """{pyvf line: {ok, worst_ratio (error / bound), first_x_out}} and {other line: the first x
-    where it leaves the loosest pyvf bound of its precision, or None}."""
-    x = np.asarray(sw["x"])
-    out, breaks = {}, {}
-    for name, bound in sw["bounds"].items():
-        vals, b = np.array(sw["lines"][name], dtype=np.float64), np.array(bound)
-        outside = ~(vals <= b)  # NaN and inf are outside
-        out[name] = dict(ok=not outside.any(), worst_ratio=float(np.max(vals / b)),
-                         first_x_out=float(x[outside][0]) if outside.any() else None)
-    b32 = next(np.array(b) for n, b in sw["bounds"].items() if "float32" in n)
-    b64 = next((np.array(b) for n, b in sw["bounds"].items() if "float64" in n), b32)
+    """{line: {first_x_out: the first x where it leaves its bound, or None; worst_ratio: error / bound}}:
+    a pyvf line against its own bound, another against the first pyvf bound of its precision."""
+    x, bounds = np.asarray(sw["x"]), {n: np.array(b) for n, b in sw["bounds"].items()}
+    b32 = next(b for n, b in bounds.items() if "float32" in n)
+    b64 = next((b for n, b in bounds.items() if "float64" in n), b32)
+    out = {}
     for name, vals in sw["lines"].items():
-        if name not in sw["bounds"]:
-            outside = ~(np.array(vals, dtype=np.float64) <= (b64 if "float64" in name else b32))
-            breaks[name] = float(x[outside][0]) if outside.any() else None
-    return out, breaks
+        vals, b = np.array(vals, dtype=np.float64), bounds.get(name, b64 if "float64" in name else b32)
+        outside = ~(vals <= b)  # NaN and inf are outside
+        out[name] = dict(first_x_out=float(x[outside][0]) if outside.any() else None, worst_ratio=float(np.max(vals / b)))
+    return out
 
 
 def plot_sweep(sw, folder):
-    """hardcase-<name>.png: a line per variant, pyvf's bounds dashed, non-finite errors drawn as x at
-    the top; errors below the floor (0 among them) drawn at it. The path."""
-    fig, ax = pyplot().subplots(figsize=(9.6, 4.8), layout="constrained")
-    x = np.asarray(sw["x"], dtype=np.float64)
-    finite = [v for vals in sw["lines"].values() for v in vals if np.isfinite(v) and v > 0]
-    floor, top = min(finite) / 10, max(finite) * 10
-    for name, vals in sw["lines"].items():
-        v = np.array(vals, dtype=np.float64)
-        (ln,) = ax.plot(x, np.where(np.isfinite(v), np.maximum(v, floor), np.nan), "o-" if name.startswith("pyvf")
-                        else ".-", lw=2.0 if name.startswith("pyvf") else 1.0, ms=4, label=name)
-        ax.plot(x[~np.isfinite(v)], np.full((~np.isfinite(v)).sum(), top), "x", color=ln.get_color(), ms=7)
-    for b in sw["bounds"].values():
-        ax.plot(x, np.maximum(b, floor), "--", lw=1.2, color="k", alpha=0.7, label="pyvf's bound(s)")
-    ax.plot([], [], "x", color="gray", label="NaN / inf (drawn at the top)")
-    ax.set(yscale="log", xscale="log" if sw.get("logx", True) else "linear", xlabel=sw["xlabel"],
-           ylabel=sw["ylabel"] + f"\n(below {floor:.0e}, 0 included, drawn at {floor:.0e})", title=sw["title"])
-    return save_figure(fig, folder, f"hardcase-{sw['name']}.png")
+    """hardcase-<name>.png in folder: a line per variant, pyvf's bounds dashed."""
+    lines = {name: (sw["x"], v, "o-" if name.startswith("pyvf") else ".-") for name, v in sw["lines"].items()}
+    lines.update({f"bound of {name}": (sw["x"], b, "k--") for name, b in sw["bounds"].items()})
+    return save_plot(folder, f"hardcase-{sw['name']}.png", lines, sw["title"], sw["xlabel"], sw["ylabel"],
+                     sw.get("logx", True))
 
 
 def sweep_summary(sw):
     """Markdown lines: pyvf's bound, PASS/FAIL per pyvf line, where each other line leaves it."""
     out = [f"bound: {sw['bound_text']}", ""]
-    for name, c in sw["check"].items():
-        out.append(f"* {'PASS' if c['ok'] else 'FAIL'} {name}: worst error / bound {c['worst_ratio']:.2g}"
-                   + ("" if c["ok"] else f", first out at x = {c['first_x_out']:.3g}"))
-    for name, x in sw["breaks"].items():
-        out.append(f"* {name}: " + ("within pyvf's bound over the range" if x is None else
-                                    f"leaves pyvf's bound at x = {x:.3g}"))
+    for name, c in sorted(sw["check"].items(), key=lambda item: item[0] not in sw["bounds"]):  # pyvf's first
+        x = c["first_x_out"]
+        if name in sw["bounds"]:
+            out.append(f"* {'PASS' if x is None else 'FAIL'} {name}: worst error / bound {c['worst_ratio']:.2g}"
+                       + ("" if x is None else f", first out at x = {x:.3g}"))
+        else:
+            out.append(f"* {name}: " + ("within pyvf's bound over the range" if x is None else
+                                        f"leaves pyvf's bound at x = {x:.3g}"))
     return "\n".join(out)
 
 
 def run(quick=False, threads=2, names=tuple(SWEEPS), plots=None, log=print):
-    """Every sweep named, each checked, printed and plotted in `plots` (a folder) if given and
-    matplotlib is installed (sw["plot"]): {config, machine, sweeps, failures}."""
-    pyvf.set_num_threads(threads)
-    sweeps = []
+    """Every sweep named, checked, printed and plotted into the folder plots: {config, machine, sweeps, failures}."""
+    report = dict(config=dict(quick=quick, sweeps=list(names)), machine=machine(threads), sweeps=[])
     for name in names:
         sw = SWEEPS[name](quick, np.random.default_rng(0))
-        sw["check"], sw["breaks"] = check(sw)
+        sw["check"] = check(sw)
         log(f"\n## {sw['title']}\n\n{sweep_summary(sw)}", flush=True)
-        if plots and pyplot():
+        if plots:
             sw["plot"] = plot_sweep(sw, plots)
-        sweeps.append(sw)
-    failures = [f"{sw['name']} / {n}: first out at x = {c['first_x_out']:.3g} (worst error / bound "
-                f"{c['worst_ratio']:.2g})" for sw in sweeps for n, c in sw["check"].items() if not c["ok"]]
-    return dict(config=dict(quick=quick, sweeps=list(names)), machine=machine(threads), sweeps=sweeps, failures=failures)
+        report["sweeps"].append(sw)
+    report["failures"] = [f"{sw['name']} / {n}: first out at x = {c['first_x_out']:.3g} (worst error / bound "
+                          f"{c['worst_ratio']:.2g})" for sw in report["sweeps"] for n, c in sw["check"].items()
+                          if n in sw["bounds"] and c["first_x_out"] is not None]
+    return report

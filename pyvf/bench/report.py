@@ -3,9 +3,9 @@
     pyvf bench report                   # the full runs into docs/
     pyvf bench report --quick --out D   # the --quick runs into D/ (a few minutes)
 
-Runs `pyvf bench scaling` (SCALING_FULL), `accuracy` and `hardcases`; writes OUT/performance.md
-(the conclusions, each number computed from the same run's measurements, then the evidence),
-OUT/accuracy.md, their plots in OUT/img/ and every number in OUT/measurements/.
+Runs `pyvf bench scaling` (SCALING_FULL), `accuracy` and `hardcases`: OUT/performance.md (the
+conclusions, computed from the measurements, then the evidence), OUT/accuracy.md, the plots in
+OUT/img/, every number in OUT/measurements/.
 """
 
 import datetime
@@ -133,5 +133,6 @@ def run(quick=False, threads=2, out="docs", log=print):
     files = [os.path.join(out, "performance.md"), os.path.join(out, "accuracy.md")]
     atomic_write_text(files[0], performance_md(out, q, m, total, scalings, reps["accuracy"], jsons) + "\n")
     atomic_write_text(files[1], accuracy_md(out, q, m, total, reps["accuracy"], reps["hardcases"], jsons[-2:]) + "\n")
+    log("wrote " + ", ".join(files))
     return dict(failures=[f for rep in [r for _, r in scalings] + list(reps.values()) for f in rep["failures"]],
                 files=files)

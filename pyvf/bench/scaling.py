@@ -4,65 +4,22 @@ approaches it replaces (docs/math.md §2), float32, R=3 tree rows, B=1, L=64 tok
     pyvf bench scaling            # N = 2, 4, ..., 64; H=12 dh=64 and H=4 dh=32; long
     pyvf bench scaling --quick    # N = 2, 4, 8; H=4 dh=32
 
-    pyvf         pyvf's branching kernel, (R, B, H, N, L, dh): O(T*dh) memory, T = R*N*L
-    naive_pyvf   one sequence per query view, the approach the paper avoids: the trunk, and for each
-                 branch r and view i the trunk views 0..i-1, then the branch's view i, then zero
-                 views (after every real token: no real query sees them); S = 1 + (R-1)*N
-                 sequences of N*L tokens stacked along the batch, run by pyvf's kernel at R=1
-    dense_sdpa   torch SDPA on the flat (B, H, T, dh) sequence with the (T, T) branching mask
-    dense_numpy  pyvf.branching_attention_reference: the dense NumPy reference, (T, T) logits
-
-Each point (method, size, N) is `pyvf bench attention`'s worker, validated at the first N. A
-point predicted (from the method's previous N, by its FLOPs) to take more than --max-point-seconds
-is skipped, and so are its larger N. The slopes of log(memory) and log(time) against log(N) are
-fitted: in theory pyvf's memory ~N; the dense mask's ~N^2; the naive approach's ~N^2, time ~N^3.
+The methods (attention.METHODS): pyvf's kernel; the naive approach the paper avoids, one sequence
+per query view (attention.stack_naive); the (T, T) mask in torch SDPA and in the NumPy reference.
+Each point is `pyvf bench attention`'s worker, validated at the first N, skipped (and its larger N)
+when predicted to take more than --max-point-seconds. Fitted: the slopes of log(memory) and
+log(time) against log(N); in theory pyvf's memory ~N, the others' ~N^2, the naive time ~N^3.
 """
 
 import numpy as np
 
-from pyvf.bench.attention import B, L, METHODS, R, REPEAT, WORKER, theory
-from pyvf.bench.common import (MEMORY_METHOD, format_bytes, machine, ms, pyplot, run_worker, save_figure, table,
-                               torch_or_none)
+from pyvf.bench.attention import B, L, METHODS, R, run_points
+from pyvf.bench.common import MEMORY_METHOD, machine, save_plot, table
 
 SIZES, QUICK_SIZES = ((12, 64), (4, 32)), ((4, 32),)  # (H, dh): the paper's, and a small one
 VIEWS, QUICK_VIEWS = (2, 4, 8, 16, 32, 64), (2, 4, 8)
 KEYS = ("fwd_bytes", "fb_bytes", "fwd_seconds", "fb_seconds")  # what is measured, and fitted
 MAX_POINT_SECONDS = 120  # the naive approach's time grows as N^3: at N=64, H=12, minutes per call
-
-
-def run_points(sizes, views, methods, threads, max_point_seconds, log=print):
-    """Every point, each in a worker process (or skipped, with the reason): a list of dicts."""
-    points, torch = [], torch_or_none()
-    for H, dh in sizes:
-        prev = {}
-        for N in views:
-            for method in methods:
-                p, last = dict(method=method, H=H, dh=dh, N=N, theory=theory(method, H, N, dh, threads)), prev.get(method)
-                est = None if last is None or "fb_seconds" not in last else (  # memory, warm-up, timed calls
-                    (REPEAT + 3) * (last["fwd_seconds"] + last["fb_seconds"])
-                    * p["theory"]["computed_flops"] / last["theory"]["computed_flops"])
-                if method == "dense_sdpa" and torch is None:
-                    p["skipped"] = "torch is not installed"
-                elif last is not None and "skipped" in last:
-                    p["skipped"] = "a smaller N of this method was skipped"
-                elif max_point_seconds and est is not None and est > max_point_seconds:
-                    p["skipped"] = f"predicted {est:.0f} s > --max-point-seconds {max_point_seconds:g}"
-                else:
-                    try:
-                        p.update(run_worker(WORKER, dict(method=method, H=H, dh=dh, N=N, threads=threads,
-                                                         validate=N == views[0])))
-                    except RuntimeError as e:  # a crashed worker: written down, the study carries on
-                        p["error"] = str(e)[-2000:]
-                t = p["theory"]
-                log(f"  H={H} dh={dh} N={N:>2} {method:<12} " + (
-                    f"skipped: {p['skipped']}" if "skipped" in p else f"FAILED: {p['error'].splitlines()[0][:100]}"
-                    if "error" in p else f"memory (measured / expected) fwd {format_bytes(p['fwd_bytes'])} / "
-                    f"{format_bytes(t['expected_fwd'])}, fwd+bwd {format_bytes(p['fb_bytes'])} / "
-                    f"{format_bytes(t['expected_fb'])}; time fwd {ms(p['fwd_seconds'])}, fwd+bwd {ms(p['fb_seconds'])}"),
-                    flush=True)
-                points.append(p)
-                prev[method] = p
-    return points
 
 
 def fit_slope(Ns, values):
@@ -103,30 +60,20 @@ def tables(fit, sizes, methods):
 
 
 def plot(points, fit, sizes, methods, folder):
-    """scaling-{memory,time}-H<h>-dh<d>.png in folder: log-log against N, a panel per pass, a line
-    per method, the fitted slopes in the legend. The files, or None without matplotlib."""
-    plt = pyplot()
-    if plt is None:
-        return None
-    from matplotlib.ticker import NullFormatter
-    files, Ns = [], sorted({p["N"] for p in points})
+    """scaling-{memory,time}-H<h>-dh<d>.png in folder: a line per method and pass (forward dashed)."""
+    files = []
     for H, dh in sizes:
-        for what, unit, scale in (("memory", "MiB", 2 ** 20), ("time", "ms", 1e-3)):
-            keys = ("fwd_bytes", "fb_bytes") if what == "memory" else ("fwd_seconds", "fb_seconds")
-            fig, axes = plt.subplots(1, 2, figsize=(12, 5.4), sharey=True, layout="constrained")
-            for ax, key, title in zip(axes, keys, ("forward", "forward+backward")):
+        for what, unit, scale in (("memory", "extra peak memory (MiB)", 2 ** 20), ("time", "median time (ms)", 1e-3)):
+            lines = {}
+            for key in [k for k in KEYS if k.endswith("bytes" if what == "memory" else "seconds")]:
                 for i, m in enumerate(methods):
                     pts = [p for p in points if (p["method"], p["H"], p["dh"]) == (m, H, dh) and p.get(key)]
-                    slopes = ", ".join(f"{t} {_s(fit[f'{H}x{dh}'][m][k])}" for t, k in zip(("fwd", "fwd+bwd"), keys))
-                    if pts:
-                        ax.loglog([p["N"] for p in pts], [p[key] / scale for p in pts], "o-", color=f"C{i}",
-                                  label=f"{METHODS[m]} (slope {slopes})")
-                ax.set_xticks(Ns, [str(n) for n in Ns])
-                ax.xaxis.set_minor_formatter(NullFormatter())
-                ax.set(title=f"{what}, {title}: H={H} dh={dh} R={R} L={L}", xlabel="N (views)")
-            axes[0].set_ylabel(f"extra peak memory ({unit})" if what == "memory" else f"median time ({unit})")
-            files.append(save_figure(fig, folder, f"scaling-{what}-H{H}-dh{dh}.png", "lower center", ncol=2))
-    return files
+                    fb = key.startswith("fb")
+                    lines[f"{METHODS[m]}, {'fwd+bwd' if fb else 'fwd'} (slope {_s(fit[f'{H}x{dh}'][m][key])})"] = (
+                        [p["N"] for p in pts], [p[key] / scale for p in pts], f"C{i}o{'-' if fb else '--'}")
+            files.append(save_plot(folder, f"scaling-{what}-H{H}-dh{dh}.png", lines, f"{what}: H={H} dh={dh} R={R} "
+                                   f"L={L}", "N (views)", unit, xticks=sorted({p["N"] for p in points})))
+    return None if None in files else files
 
 
 def run(quick=False, threads=2, sizes=None, views=None, methods=tuple(METHODS), max_point_seconds=MAX_POINT_SECONDS,

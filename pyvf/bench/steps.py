@@ -5,12 +5,12 @@ one run after checking that both compute the same step.
     pyvf bench codebook [--quick]      # forward with the EMA update, backward, Adam, at `pyvf
                                        # train-codebook`'s batch; 10 steps (5 on two 32x32 images)
 
-The torch models are pyvf/verify/torch_ports.py's transformer_forward and codebook_forward; each
-framework runs in a worker process of its own (neither's thread pool waits on the other's). Before
-any time is reported, the first step's loss and gradients (same weights, same batch) and the loss
-after the first update are compared.
+The torch side: pyvf/verify/torch_ports.py. Each framework runs in a worker process of its own
+(neither's thread pool waits on the other's). Before any time is reported, the first step's loss
+and gradients (same weights, same batch) and the loss after the first update are compared.
 """
 
+import dataclasses
 import zlib
 
 import numpy as np
@@ -18,28 +18,25 @@ import numpy as np
 import pyvf
 from pyvf.bench.common import machine, median_time, ms, run_worker, worker_main
 
-WORKER = "pyvf.bench.steps"  # this module, run as `python -m WORKER SPEC` (worker_main)
-
 # the first steps, compared: the loss and the loss after the first update to LOSS_RTOL (float32
 # both); each gradient's checksums to CHECK_RTOL of its norm (measured: 3e-5 at most). A gradient
 # below CHECK_FLOOR of the largest one's norm is compared at that level: the biases that feed a
 # normalisation have a gradient of exactly 0, computed as rounding noise.
 LOSS_RTOL, CHECK_RTOL, CHECK_FLOOR = 1e-4, 1e-3, 1e-3
 
-CONFIGS = {  # the tiny models; the codebook at `pyvf train-codebook`'s batch
-    "transformer": dict(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4, sequence_size=5,
-                        n_loss_skip=1, batch=8),
-    "codebook": dict(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,), z_channels=32,
-                     embed_dim=32, n_embed=64, image_size=64, batch=16),
+CONFIGS = {  # (the tiny model, the batch); the codebook at `pyvf train-codebook`'s batch
+    "transformer": (pyvf.TransformerConfig(n_embeddings=64, n_head=2, d_model=32, n_layer=2, token_image_size=4,
+                                           sequence_size=5, n_loss_skip=1), 8),
+    "codebook": (pyvf.CodebookConfig(ch=32, ch_mult=(1, 1, 2, 2), num_res_blocks=1, attn_resolutions=(8,),
+                                     z_channels=32, embed_dim=32, n_embed=64, image_size=64), 16),
 }
-CONFIGS["codebook-quick"] = dict(CONFIGS["codebook"], image_size=32, batch=2)
+CONFIGS["codebook-quick"] = (dataclasses.replace(CONFIGS["codebook"][0], image_size=32), 2)
 LR, BETAS = 1.584e-3, (0.5, 0.9)  # the published codebook's Adam
 
 
 def checksums(arrays):
-    """{name: [2-norm, projection]}, the projection onto unit-normal numbers seeded by the name (the
-    same in every process): what a worker sends of a gradient. A gradient zeroed, transposed or
-    missing a term moves the projection by about its norm."""
+    """{name: [2-norm, projection onto unit-normal numbers seeded by the name]}: what a worker sends of a
+    gradient. A gradient zeroed, transposed or missing a term moves the projection by about its norm."""
     out = {}
     for name, a in arrays.items():
         a = np.asarray(a, dtype=np.float64).ravel()
@@ -73,15 +70,8 @@ def step_figures(loss, gradients, step, steps):
                 time=median_time(step, steps, warmup=0)[0])
 
 
-def _config(name):
-    """(the model's config, the batch) of CONFIGS[name]."""
-    spec = dict(CONFIGS[name])
-    B = spec.pop("batch")
-    return (pyvf.TransformerConfig if name == "transformer" else pyvf.CodebookConfig)(**spec), B
-
-
 def transformer_setup(config):
-    cfg, B = _config(config)
+    cfg, B = CONFIGS[config]
     rng = np.random.default_rng(0)
     tokens = rng.integers(0, cfg.n_embeddings, (B, cfg.sequence_size, cfg.L))
     poses = rng.normal(size=(B, cfg.sequence_size, 7))
@@ -134,7 +124,7 @@ def transformer_torch(config, steps):
 
 
 def codebook_setup(config):
-    cfg, B = _config(config)
+    cfg, B = CONFIGS[config]
     images = np.tanh(np.random.default_rng(0).standard_normal((B, 3, cfg.image_size, cfg.image_size)))
     return cfg, pyvf.Codebook(cfg, seed=0), images.astype(np.float32)
 
@@ -155,10 +145,8 @@ def codebook_torch(config, steps):
 
     cfg, cb, images = codebook_setup(config)
     P = {k: torch.tensor(v, requires_grad=True) for k, v in cb.params.items()}
-    q, x = cb.quantizer, torch.tensor(images)
-    state = {"buffers": {"quantize.embeddings": torch.tensor(q.embeddings),
-                         "quantize.ema_cluster_size_hidden": torch.tensor(q.ema_cluster_size_hidden),
-                         "quantize.ema_dw_hidden": torch.tensor(q.ema_dw_hidden), "quantize.counter": q.counter}}
+    x = torch.tensor(images)
+    state = {"buffers": {f"quantize.{k}": torch.as_tensor(v) for k, v in cb.quantizer.state_dict().items()}}
 
     def loss_of():
         out = codebook_forward(P, state["buffers"], x, cfg)
@@ -178,13 +166,13 @@ def run(model, quick=False, threads=2):
     steps = 5 if quick else 20 if model == "transformer" else 10
     report = dict(config=dict(model=model, config=config, steps=steps, threads=threads), machine=machine(threads),
                   failures=[])
-    p, t = (run_worker(WORKER, dict(model=model, framework=f, config=config, steps=steps, threads=threads))
+    p, t = (run_worker(worker, dict(model=model, framework=f, config=config, steps=steps, threads=threads))
             for f in ("pyvf", "torch"))
     differs = first_step_differs(p, t)
     if differs:
         report["failures"].append(f"the first steps of pyvf and torch differ in {differs}: not timed")
         return report
-    print(f"the {model}: {CONFIGS[config]}, float32, {threads} threads, each framework in its own process\n"
+    print(f"{CONFIGS[config][0]}, batch {CONFIGS[config][1]}, float32, {threads} threads, each framework in its own process\n"
           f"first-step loss: pyvf {p['loss']:.6f}, torch {t['loss']:.6f} (and the gradients, and the loss after an "
           f"update, agree)\nmedian step time of {steps}: pyvf {ms(p['time'])}, torch {ms(t['time'])}; "
           f"torch / pyvf {t['time'] / p['time']:.2f}")

@@ -4,16 +4,14 @@
     pyvf bench vq            # M = 352*64, K = 1024, D = 256, float32
     pyvf bench vq --quick    # M = 4096, K = 256, D = 64
 
-Each method's codes are first compared with float64 brute force (exact distances, first minimum)
-on unit-normal data, where the time is measured, and far from the origin (data offset by
-1e2..1e4), where the expanded formula cancels: pyvf must be exact at every offset, the others may
-miss SANITY_WRONG of the codes at offset 0 (near ties), else they are not timed.
+Each method's codes are compared with float64 brute force on unit-normal data (where it is timed)
+and offset by 1e2..1e4, where the expanded formula cancels: pyvf must be exact at every offset,
+the others miss at most SANITY_WRONG of the codes at offset 0 (near ties), else they are not timed.
 """
 
 import numpy as np
 
-import pyvf
-from pyvf.bench.common import TORCH_MISSING, machine, median_time, torch_or_none
+from pyvf.bench.common import TORCH_MISSING, machine, median_time, ms, table, torch_or_none
 from pyvf.nn.quantizer import vq_nearest
 
 PAPER = dict(M=352 * 64, K=1024, D=256)
@@ -49,19 +47,12 @@ def methods():
 
 
 def run(quick=False, threads=2, size=None, checked_rows=4096):
-    """The table (module docstring) for size dict(M, K, D): median times of 5 calls (3 quick),
-    wrong codes on the first checked_rows points."""
+    """The table (module docstring) at size dict(M, K, D), wrong codes counted on the first checked_rows."""
     M, K, D = (size or (QUICK if quick else PAPER)).values()
     repeat, checked_rows = 3 if quick else 5, min(checked_rows, M)
-    torch = torch_or_none()
-    if torch is not None:
-        torch.set_num_threads(threads)
-    pyvf.set_num_threads(threads)
     rng = np.random.default_rng(0)
     report = dict(config=dict(M=M, K=K, D=D, threads=threads), machine=machine(threads), methods={}, failures=[])
     print(f"# nearest code: M={M} K={K} D={D}, float32, {threads} threads, median of {repeat}\n")
-    print("| method | time | wrong codes at offset " + " | ".join(f"{o:g}" for o in OFFSETS) + " |\n|---|---|"
-          + "---|" * len(OFFSETS))
     x, codes = rng.standard_normal((M, D)).astype(np.float32), rng.standard_normal((K, D)).astype(np.float32)
     cases = [(x[:checked_rows] + np.float32(o), codes + np.float32(o)) for o in OFFSETS]
     truth = [brute_force(*case) for case in cases]
@@ -75,9 +66,10 @@ def run(quick=False, threads=2, size=None, checked_rows=4096):
             report["failures"].append(f"{name}: {wrong[0]:.2%} wrong codes at offset 0 > {SANITY_WRONG:.0%}")
         t = median_time(lambda: fn(x, codes), repeat)[0] if ok else None
         report["methods"][name] = dict(seconds=t, wrong=wrong)
-        print(f"| {name} | {'not timed' if t is None else f'{t * 1e3:.1f} ms'} | "
-              + " | ".join(f"{w:.2%}" for w in wrong) + " |")
     t0 = report["methods"]["pyvf.vq_nearest"]["seconds"]
-    print("\n" + ("; ".join(f"{n} / pyvf time: {r['seconds'] / t0:.2f}x" for n, r in report["methods"].items()
-                            if n.startswith("torch") and r["seconds"]) if torch is not None else f"torch: {TORCH_MISSING}"))
+    print(table(["method", "time", "time / pyvf's", *(f"wrong codes at offset {o:g}" for o in OFFSETS)], [
+        [n, ms(r["seconds"]) if r["seconds"] else "not timed", f"{r['seconds'] / t0:.2f}" if r["seconds"] else "-",
+         *(f"{w:.2%}" for w in r["wrong"])] for n, r in report["methods"].items()]))
+    if torch_or_none() is None:
+        print(f"\ntorch: {TORCH_MISSING}")
     return report

@@ -1,21 +1,15 @@
-"""`pyvf bench NAME [--quick] [--threads N] [options]`: parses a benchmark's options and calls the
-run() of its module in pyvf.bench (`pyvf bench NAME --help`: its options); the exit status is 1
-when its report lists a failure (a result outside its bound, which is then not timed).
-"""
+"""`pyvf bench NAME [--quick] [--threads N] [options]`: runs the benchmark pyvf.bench.NAME (`pyvf
+bench NAME --help`); the exit status is 1 when its report lists a failure (a result not timed)."""
 
 import argparse
-import functools
 import importlib
 import sys
 
 from ..bench.common import TORCH_MISSING, torch_or_none, write_json
 from .options import add_threads, non_negative_float, output_dir, output_file
 
+NAMES = ("attention", "vq", "transformer", "codebook", "scaling", "accuracy", "hardcases", "report")
 NEEDS_TORCH = ("transformer", "codebook")  # the oracle their first step is checked against before timing
-QUICK = {"attention": "a small size (H=2, N=4, dh=32)", "vq": "smaller sizes (M=4096, K=256, D=64)",
-         "transformer": "5 steps", "codebook": "a batch of two 32x32 images, 5 steps",
-         "scaling": "N = 2, 4, 8 at H=4 dh=32", "accuracy": "small sizes", "hardcases": "fewer points, smaller problems",
-         "report": "every run in its --quick mode"}
 
 
 def _module(name):
@@ -24,21 +18,18 @@ def _module(name):
 
 def _head_sizes(text):
     """argparse type of --sizes: comma-separated HxDH pairs of positive integers, e.g. 12x64,4x32."""
-    try:
-        sizes = tuple(tuple(int(y) for y in x.lower().split("x")) for x in text.split(","))
-    except ValueError:
-        sizes = ()
-    if not sizes or any(len(s) != 2 or min(s) < 1 for s in sizes):
+    sizes = [x.lower().split("x") for x in text.split(",")]
+    if not all(len(s) == 2 and all(y.isdigit() and int(y) > 0 for y in s) for s in sizes):
         raise argparse.ArgumentTypeError(f"expected HxDH pairs of positive integers, e.g. 12x64,4x32; got {text!r}")
-    return sizes
+    return tuple(tuple(map(int, s)) for s in sizes)
 
 
-def _parser(name):
+def parser(name):
     """A benchmark's parser; its module docstring's first paragraph as description, the rest as epilog."""
     doc = _module(name).__doc__.strip().split("\n\n")
     p = argparse.ArgumentParser(prog=f"pyvf bench {name}", description=doc[0], epilog="\n\n".join(doc[1:]),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true", help=QUICK[name])
+    p.add_argument("--quick", action="store_true", help="smaller sizes, fewer steps (below): a few minutes at most")
     add_threads(p, 2, "threads for pyvf and torch (default 2)")
     if name == "report":
         p.add_argument("--out", default="docs", type=output_dir, help="the folder of the documents (default docs)")
@@ -53,16 +44,16 @@ def _parser(name):
     return p
 
 
-def _handler(name, args):
-    """Run the benchmark; its failures printed, its report written to --json."""
+def cmd_bench(args):
+    """Run one benchmark of pyvf.bench on --threads threads (pyvf's kernels, numpy's BLAS, torch's);
+    the arguments after its name go to its parser. Its failures printed, its report written to --json."""
+    name, args = args.name, parser(args.name).parse_args(args.args)
     if name in NEEDS_TORCH and torch_or_none() is None:
         print(f"pyvf bench {name}: needs torch, the oracle its first step is checked against before both are "
               f"timed: {TORCH_MISSING}", file=sys.stderr)
         return 1
     options = {k: v for k, v in vars(args).items() if k not in ("quick", "threads", "json") and v is not None}
     report = _module(name).run(*([name] if name in NEEDS_TORCH else []), args.quick, args.threads, **options)
-    if name == "report":
-        print("wrote " + ", ".join(report["files"]))
     if getattr(args, "json", None):
         write_json(args.json, report)
     for f in report["failures"]:
@@ -71,22 +62,11 @@ def _handler(name, args):
     return 1 if report["failures"] else 0
 
 
-# name -> (its parser function, its handler)
-BENCHMARKS = {name: (functools.partial(_parser, name), functools.partial(_handler, name)) for name in QUICK}
-
-
-def cmd_bench(args):
-    """Run one benchmark of pyvf.bench on --threads threads (pyvf's kernels, numpy's BLAS, torch's);
-    the arguments after its name go to its parser."""
-    make_parser, handler = BENCHMARKS[args.name]
-    return handler(make_parser().parse_args(args.args))
-
-
 def register(subparsers):
     """Add `bench` to an argparse subparsers object."""
-    p = subparsers.add_parser("bench", help=f"a benchmark: {', '.join(BENCHMARKS)} (--quick: a few minutes at most)",
+    p = subparsers.add_parser("bench", help=f"a benchmark: {', '.join(NAMES)} (--quick: a few minutes at most)",
                               description=cmd_bench.__doc__ + " `pyvf bench NAME --help` lists its options.")
-    p.add_argument("name", choices=tuple(BENCHMARKS), help="which benchmark")
+    p.add_argument("name", choices=NAMES, help="which benchmark")
     p.add_argument("args", nargs=argparse.REMAINDER, help="the benchmark's own options, e.g. --quick")
     p.set_defaults(func=cmd_bench)
     return p
