@@ -11,8 +11,8 @@
 
 `hyper` holds everything the trajectory depends on besides the configuration (learning rate, batch
 size, seed, the data's fingerprint...): a resume with other values raises. Its "init" (the model
-file a fresh run started from) counts at step 0 only. Ctrl-C: the step under way finishes and is
-checkpointed, then KeyboardInterrupt; a second Ctrl-C raises at once.
+file a fresh run started from) counts at step 0 only. An interrupted run resumes from its last
+checkpoint (the steps after it are trained again, to the same bits).
 """
 
 import csv
@@ -20,9 +20,7 @@ import hashlib
 import io
 import json
 import os
-import signal
 import sys
-import threading
 import time
 
 import numpy as np
@@ -36,6 +34,7 @@ CHECKPOINT, LOG, CONFIG, EVAL_LOG, PARITY_LOG = "checkpoint.npz", "log.csv", "co
 PARITY_COLUMNS = ["step", "worst", "rel_err", "bound"]
 FORMAT_VERSION = 1
 LOG_EVERY = 10  # steps between log.csv rows
+RECORDED = ("command", "threads", "engine", "device", "precision")  # the RunOptions config.json records
 
 
 def jsonable(x):
@@ -85,14 +84,6 @@ def read_checkpoint(path, kind):
     return meta, group("model/"), opt
 
 
-def resume_point(out_dir, resume=True):
-    """The __meta__ of the checkpoint a run in out_dir resumes from, or None (a fresh start)."""
-    path = os.path.join(os.fspath(out_dir), CHECKPOINT)
-    if not (resume and os.path.exists(path)):
-        return None
-    return read_checkpoint(path, None)[0]
-
-
 class Run:
     """The run folder of one call of a training loop.
 
@@ -102,15 +93,14 @@ class Run:
             for t in run.steps():              # run.start + 1 .. steps
                 ...                            # one update
                 run.log(t, {"loss": ...})
-                run.checkpoint(t, model.state_dict, optimizer)  # when due; after Ctrl-C, then stops
+                run.checkpoint(t, model.state_dict, optimizer)  # when due
         run.save_final(model.state_dict())
 
-    call: what config.json records of this call. evaluation: None, or (eval.csv's columns, the
-    fingerprint of the held-out set; a resume refuses another). interruptible: False for data-parallel runs.
+    call: what config.json records of this call beside opts' RECORDED fields. evaluation: None, or
+    (eval.csv's columns, the fingerprint of the held-out set; a resume refuses another).
     """
 
-    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, evaluation=None,
-                 interruptible=True):
+    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, evaluation=None):
         self.steps_total, self.checkpoint_every = opts.steps, opts.checkpoint_every
         self.kind, self.config, self.hyper = kind, jsonable(config), jsonable(hyper)
         self.columns = ["step", *columns, "seconds"]
@@ -133,14 +123,13 @@ class Run:
             for path in (self.ckpt_path, self.final_path, self.eval_path, self.parity_path):
                 if os.path.exists(path):
                     os.remove(path)
-        self._write_config(call)
+        self._write_config(call, opts)
         self._truncate_log(self.log_path, self.columns)
         if self.eval_columns is not None:
             self._truncate_log(self.eval_path, self.eval_columns)
         if self.resumed and os.path.exists(self.parity_path):  # the torch engine's
             self._truncate_log(self.parity_path, PARITY_COLUMNS)
-        self._bar = self._previous_handler = None
-        self.interruptible, self._stop = interruptible, False
+        self._bar = None
         self._t0 = time.perf_counter()
 
     def _resume(self):
@@ -164,7 +153,7 @@ class Run:
                              "resume with the run's one, or without evaluation (--eval-every 0)")
         self.eval_fingerprint = self.eval_fingerprint or saved
 
-    def _write_config(self, call):
+    def _write_config(self, call, opts):
         """config.json: the configuration, hyperparameters, and one entry per call of the run."""
         calls = []
         if self.resumed and os.path.exists(self.config_path):
@@ -172,8 +161,8 @@ class Run:
                 calls = json.load(f)["calls"]
         calls.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "steps": self.steps_total,
                       "resumed_from_step": self.start if self.resumed else None,
-                      "checkpoint_every": self.checkpoint_every,
-                      "numpy": np.__version__, "machine": _machine(), **jsonable(call or {})})
+                      "checkpoint_every": self.checkpoint_every, "numpy": np.__version__, "machine": _machine(),
+                      **jsonable({**{k: getattr(opts, k) for k in RECORDED}, **(call or {})})})
         atomic_write_text(self.config_path, json.dumps(
             {"kind": self.kind, "config": self.config, "hyperparameters": self.hyper, "calls": calls},
             indent=2) + "\n")
@@ -235,30 +224,12 @@ class Run:
             from tqdm.auto import tqdm
             self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}",
                              unit="step", dynamic_ncols=True)
-        # Ctrl-C: in the main thread where Python's own handler is in place; not in a data-parallel
-        # run, whose processes could stop after different steps
-        if (self.interruptible and threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
-            self._previous_handler = signal.signal(signal.SIGINT, self._ctrl_c)
         return self
 
     def __exit__(self, *exc):
-        if self._previous_handler is not None:
-            signal.signal(signal.SIGINT, self._previous_handler)
         if self._bar is not None:
             self._bar.close()
-        if exc[0] is None and self._stop:
-            # Ctrl-C after the last step's checkpoint was saved: stop here all the same (the
-            # caller's next work, e.g. pyvf train's next stage, must not start)
-            raise KeyboardInterrupt
         return False
-
-    def _ctrl_c(self, signum, frame):
-        if self._stop:
-            raise KeyboardInterrupt
-        self._stop = True
-        print(f"{chr(10) if self._bar is not None else ''}Ctrl-C: finishing the step under way and saving it; "
-              "Ctrl-C again stops at once (losing the steps since the last checkpoint)", file=sys.stderr, flush=True)
 
     def steps(self):
         """start + 1 .. steps; advances the progress bar."""
@@ -268,10 +239,9 @@ class Run:
                 self._bar.update(1)
 
     def checkpoint(self, step, state, optimizer, check=None):
-        """After `step`, when due or after Ctrl-C: check(self, step) (the torch engine's parity),
-        then the checkpoint of state() and optimizer; after Ctrl-C, KeyboardInterrupt once saved."""
-        stop = self._stop  # read once: a Ctrl-C from here on stops after the next step
-        if stop or step % self.checkpoint_every == 0 or step == self.steps_total:
+        """After `step`, when due: check(self, step) (the torch engine's parity), then the
+        checkpoint of state() and optimizer."""
+        if step % self.checkpoint_every == 0 or step == self.steps_total:
             if check is not None:
                 check(self, step)
             model, elapsed, opt = state(), self.seconds(), optimizer.state_dict()
@@ -283,8 +253,6 @@ class Run:
             for key in ("exp_avg", "exp_avg_sq"):
                 arrays.update({f"optimizer/{key}/{k}": v for k, v in opt[key].items()})
             atomic_savez(self.ckpt_path, **arrays)  # atomic: a killed process leaves the previous one intact
-        if stop:
-            raise KeyboardInterrupt
 
     def save_final(self, arrays):
         """The trained model as Codebook.save / Transformer.save write it. Returns its path."""

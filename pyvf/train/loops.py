@@ -29,7 +29,7 @@ from ..evaluate.metrics import encode_images, object_mask, to_model_images
 from ..geometry import _check_unit, make_relative
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import Run, file_sha256, fingerprint, resume_point
+from ._run import CHECKPOINT, Run, file_sha256, fingerprint
 from .optim import Adam, AdamW, WarmupCosine, clip_grad_norm, global_norm, published_weight_decay
 from .torch_engine import Follower, TorchCodebook, TorchTransformer, check_engine, data_parallel
 
@@ -73,7 +73,7 @@ class RunOptions:
     steps: int  # the total number of updates; a resumed run continues to it from its checkpoint
     batch_size: int = 16
     seed: int = 0  # the initialisation and every batch (np.random.default_rng([seed, step]))
-    checkpoint_every: int = 200  # steps between checkpoints; one at the end and at Ctrl-C always
+    checkpoint_every: int = 200  # steps between checkpoints (and one at the end): where a stopped run resumes
     eval_every: int = 0  # steps between held-out evaluations (0: none)
     resume: bool = True  # continue from out_dir/checkpoint.npz when there is one; False starts over
     progress: bool = True  # a progress bar on stderr
@@ -148,17 +148,11 @@ def codebook_train_step(codebook, optimizer, images, pixel_weights=None):
     """One codebook step: forward with the EMA update (train=True), backward, optimiser step, e.g.
     with the published `Adam(codebook.params, 1.584e-3, betas=(0.5, 0.9))` (the codes are not
     parameters: the EMA moves them). pixel_weights: Codebook.forward's. Returns the step's
-    CodebookOutput. A step that raises leaves the codebook as it was: the EMA buffers the forward
-    moved are put back (a retried step would otherwise move them twice)."""
+    CodebookOutput."""
     if optimizer.params is not codebook.params:
         raise ValueError("optimizer must be built on codebook.params (Adam(codebook.params, ...))")
-    saved = codebook.quantizer.state_dict()  # copies; the buffers are (D, K): small beside the step
-    out = codebook.forward(images, train=True, pixel_weights=pixel_weights)  # puts them back itself if it raises
-    try:
-        optimizer.step(codebook.backward())
-    except BaseException:
-        codebook.quantizer.load_state_dict(saved)
-        raise
+    out = codebook.forward(images, train=True, pixel_weights=pixel_weights)
+    optimizer.step(codebook.backward())
     return out
 
 
@@ -194,7 +188,7 @@ def _warm_start(cls, config, hyper, out_dir, opts):
     differ) -> (hyper with the file's {"path", "sha256"}, its state_dict()); None or a resume ->
     (hyper, None)."""
     path = opts.init
-    if path is None or resume_point(out_dir, opts.resume) is not None:
+    if path is None or opts.resume and os.path.exists(os.path.join(out_dir, CHECKPOINT)):
         return hyper, None
     try:
         model = cls.load(path)
@@ -216,10 +210,12 @@ def _restore(run, model, make_optimiser, init_state):
     return opt
 
 
-def _loop(run, opt, step, state, check, health, eval_every):
-    """The loop both trainings run: step(t) -> the log's values but lr; health() -> the held-out
-    figures (None: no evaluation), at step 0 of a fresh run, every eval_every steps and at the
-    last; check(run, t) before each checkpoint (None: none); the final model."""
+def _loop(run, opt, step, current, check, health, eval_every):
+    """The loop both trainings run: step(t) -> the log's values but lr; current() -> the model (and
+    opt, the pyvf optimiser) as the engine has them; health() -> the held-out figures (None: no
+    evaluation), at step 0 of a fresh run, every eval_every steps and at the last; check(run, t)
+    before each checkpoint (None: none); the final model."""
+    state = lambda: current().state_dict()  # noqa: E731
     with run:
         if health is not None and not run.resumed:
             run.log_eval(0, health())
@@ -258,12 +254,12 @@ def _recipe(recipe, overrides):
 
 
 def _codebook_engine(opts, model, opt, flat):
-    """-> (step(x, w), reset(x, rng, **codes): the dead-code restart, state() -> the state dict,
-    current() -> the model, the optimiser, check or None), as _loop takes them."""
+    """-> (step(x, w), reset(x, rng, **codes): the dead-code restart, current() -> the model, check
+    or None), as _loop takes them."""
     if opts.engine == "torch":
         eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
                             parity_batch=(codebook_batch(flat, 4, opts.seed + PARITY_SEED, 0, model.config.dtype),))
-        return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
+        return eng.step, eng.reset_dead_codes, eng.to_pyvf, eng.check
 
     def step(x, w):
         out = codebook_train_step(model, opt, x, pixel_weights=w)
@@ -274,7 +270,7 @@ def _codebook_engine(opts, model, opt, flat):
         z = model._encoder([], x)  # (B, D, k, k) with the updated weights
         return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
 
-    return step, reset, model.state_dict, lambda: model, opt, None
+    return step, reset, lambda: model, None
 
 
 def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="small-batch", **overrides):
@@ -297,9 +293,7 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}, **recorded}
     check_engine(opts.engine, opts.device, opts.precision, config.dtype, one_process=True)
     hyper, init_state = _warm_start(Codebook, config, hyper, out_dir, opts)
-    call = {"command": opts.command, "threads": opts.threads, "recipe": recipe, "engine": opts.engine,
-            "device": opts.device, "precision": opts.precision,
-            "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
+    call = {"recipe": recipe, "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, opts, call=call,
                   evaluation=None if eval_fp is None else (CODEBOOK_HEALTH, eval_fp))
@@ -309,7 +303,7 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
             x = codebook_batch(flat, KMEANS_BATCHES * B, seed, 0, config.dtype)  # (B', C, Hi, Wi)
             model.quantizer.init_kmeans(model._encoder(None, x), r["kmeans"], B,
                                         rng=np.random.default_rng([seed, 0, 2]), empty=model.empty_patches(x))
-        step, reset, state, current, opt, check = _codebook_engine(opts, model, opt, flat)
+        step, reset, current, check = _codebook_engine(opts, model, opt, flat)
         weight = r["object_weight"] if r["object_weight"] != 1.0 else None
 
         def step_t(t):
@@ -321,7 +315,7 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
             return values
 
         health = None if eval_fp is None else lambda: codebook_health(current(), eval_images)
-        _loop(run, opt, step_t, state, check, health, opts.eval_every)
+        _loop(run, opt, step_t, current, check, health, opts.eval_every)
         return current()
 
 
@@ -426,11 +420,11 @@ def _transformer_eval(eval_set, eval_every, config):
 
 
 def _transformer_engine(opts, model, opt, dp, recipe, parity):
-    """-> (step(tok, pos), state(), current(), the optimiser, check or None), as _loop takes them."""
+    """-> (step(tok, pos), current() -> the model, check or None), as _loop takes them."""
     if opts.engine == "torch":
         eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp, parity_batch=parity,
                                max_grad_norm=recipe.max_grad_norm)
-        return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
+        return eng.step, eng.to_pyvf, eng.check
 
     def step(tok, pos):
         out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm, clip_mode="per_tensor")
@@ -439,7 +433,7 @@ def _transformer_engine(opts, model, opt, dp, recipe, parity):
         return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)), "pose_loss": float(np.mean(out.pose_loss)),
                 "grad_norm": norm}
 
-    return step, model.state_dict, lambda: model, opt, None
+    return step, lambda: model, None
 
 
 def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRecipe(), *, eval_set=None,
@@ -460,13 +454,11 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
     hyper, init_state = _warm_start(Transformer, config, hyper, out_dir, opts)
     dp, device = data_parallel(opts.device, B) if opts.engine == "torch" else (None, opts.device)
     opts = dataclasses.replace(opts, device=device)
-    call = {"command": opts.command, "threads": opts.threads, "engine": opts.engine, "device": device,
-            "precision": opts.precision, "processes": 1 if dp is None else dp.world, "eval": eval_record}
+    call = {"processes": 1 if dp is None else dp.world, "eval": eval_record}
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         if dp is None or dp.rank == 0:
             run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, opts, call=call,
-                      evaluation=eval_record and (eval_columns, eval_record["fingerprint"]),
-                      interruptible=dp is None)
+                      evaluation=eval_record and (eval_columns, eval_record["fingerprint"]))
         if dp is not None:  # the other processes follow rank 0's run from its start step
             start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
             run = run if dp.rank == 0 else Follower(start, opts.steps)
@@ -475,9 +467,9 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=1e-8, weight_decay=hyper[
             "weight_decay"], decay=published_weight_decay, eps_convention="keras"), init_state)
         parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
-        step, state, current, opt, check = _transformer_engine(opts, model, opt, dp, recipe, parity)
+        step, current, check = _transformer_engine(opts, model, opt, dp, recipe, parity)
         evaluate = None if health is None or isinstance(run, Follower) else lambda: health(current())
-        _loop(run, opt, lambda t: step(*transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)), state,
+        _loop(run, opt, lambda t: step(*transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)), current,
               check, evaluate, opts.eval_every)  # batches (B, N, L), (B, N, 7)
     if dp is not None:
         dp.close()

@@ -146,7 +146,7 @@ class Follower(contextlib.nullcontext):
 
 class TorchAdamW:
     """AdamW.step on torch tensors (params: official name -> Parameter) with the settings, schedule
-    and state_dict of ref, the pyvf AdamW or Adam."""
+    and step count of ref, the pyvf AdamW or Adam; sync() copies the moments into ref's."""
 
     def __init__(self, params, ref, model):
         self.params, self.ref, self.model = params, ref, model
@@ -156,13 +156,6 @@ class TorchAdamW:
         torch = import_torch()
         arrays = params_to_layout(self.model, arrays, "torch")  # pyvf's layout -> nn.Linear's
         return {k: torch.as_tensor(arrays[k]).to(p.device, p.dtype).contiguous() for k, p in self.params.items()}
-
-    @property
-    def step_count(self):
-        return self.ref.step_count
-
-    def lr_at(self, step):
-        return self.ref.lr_at(step)
 
     def step(self):
         """One update from the parameters' .grad (finite: the caller checked)."""
@@ -177,20 +170,16 @@ class TorchAdamW:
                 p.copy_(p1)
         r.step_count = t
 
-    def state_dict(self):
-        """pyvf AdamW's state_dict (its layout, numpy)."""
+    def sync(self):
         for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
             arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
-            setattr(self.ref, theirs, params_from_layout(self.model, arrays, "torch"))
-        return self.ref.state_dict()
+            setattr(self.ref, theirs, params_from_layout(self.model, arrays, "torch"))  # pyvf's layout, numpy
 
 
 class TorchEngine:
     """What both torch engines share: the port's parameters by official name (_names), the update
-    (opt), parity()'s arguments (parity_batch), to_pyvf() -> the pyvf model with the port's weights."""
-
-    def state_dict(self):
-        return self.to_pyvf().state_dict()
+    (opt), parity()'s arguments (parity_batch), to_pyvf() -> the pyvf model with the port's weights
+    (and its optimiser with the engine's moments)."""
 
     def _zero_grad(self):
         for p in self._names.values():
@@ -198,7 +187,7 @@ class TorchEngine:
 
     def _refuse_nonfinite(self, stats, names):
         if not np.isfinite(stats).all():
-            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
+            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.ref.step_count + 1} "
                              f"({names} = {stats.tolist()}): no update applied; lower the learning rate")
 
     def _parity(self, mine, out):
@@ -238,6 +227,7 @@ class TorchTransformer(TorchEngine):
             opt_ref.step_count = dp.broadcast_int(opt_ref.step_count)
 
     def to_pyvf(self):
+        self.opt.sync()
         self.pyvf_model.load_official({k: p.detach().cpu().numpy() for k, p in self._names.items()},
                                       layout="torch")
         return self.pyvf_model
@@ -310,6 +300,7 @@ class TorchCodebook(TorchEngine):
         self.opt = TorchAdamW(self._names, opt_ref, model)
 
     def to_pyvf(self):
+        self.opt.sync()
         self.pyvf_model.load_official({k: v.detach().cpu().numpy() for k, v in self.port.state_dict().items()})
         return self.pyvf_model
 
