@@ -351,7 +351,6 @@ def _tf(d, out, o=None, recipe=TransformerRecipe(), **kw):
     (lambda: opts(1, device="cuda"), ValueError, "device"),  # needs engine="torch"
     (lambda: TransformerRecipe(lr=-1.0), ValueError, "lr"),
     (lambda: TransformerRecipe(max_grad_norm=0), ValueError, "max_grad_norm"),
-    (lambda: TransformerRecipe(context=-1), ValueError, "context"),
 ])
 def test_the_options_refusals_name_the_field(call, error, name):
     with pytest.raises(error, match=rf"\b{name}\b"):
@@ -385,7 +384,7 @@ def test_train_codebook_refusals_name_the_argument(tmp_path, rng, call, error, n
     (lambda d, out: _tf(d, out, poses=d["poses"][:, :4]), ValueError, "poses"),
     (lambda d, out: _tf(d, out, poses=d["poses"] * [1, 1, 1, 1.01, 1, 1, 1]), ValueError, "poses"),  # not unit
     (lambda d, out: _tf(d, out, poses=d["poses"] * np.nan), ValueError, "poses"),
-    (lambda d, out: _tf(d, out, recipe=TransformerRecipe(context=5)), ValueError, "context"),
+    (lambda d, out: _tf(d, out, tokens=d["tokens"][:, :2], poses=d["poses"][:, :2]), ValueError, "tokens"),
     (lambda d, out: _tf(d, out, opts(5), TransformerRecipe(warmup=5)), ValueError, "warmup"),
     (lambda d, out: _tf(d, out, opts(8), TransformerRecipe(total_steps=4)), ValueError, "total_steps"),
     (lambda d, out: _tf(d, out, opts(1, init=d["cb_file"])), ValueError, "init"),

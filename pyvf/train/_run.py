@@ -89,11 +89,10 @@ class Run:
 
         run = Run(out_dir, "codebook", config_dict, hyper, LOG_COLUMNS, opts)   # opts: loops.RunOptions
         (restore the model and optimiser from run.model_state, run.optimizer_state when run.resumed)
-        with run:
-            for t in run.steps():              # run.start + 1 .. steps
-                ...                            # one update
-                run.log(t, {"loss": ...})
-                run.checkpoint(t, model.state_dict, optimizer)  # when due
+        for t in run.steps():              # run.start + 1 .. steps
+            ...                            # one update
+            run.log(t, {"loss": ...})
+            run.checkpoint(t, model.state_dict, optimizer)  # when due
         run.save_final(model.state_dict())
 
     call: what config.json records of this call beside opts' RECORDED fields. evaluation: None, or
@@ -187,15 +186,10 @@ class Run:
 
     def log(self, step, values):
         """values: column -> float, written every LOG_EVERY steps and at the last."""
-        if self._bar is not None:
-            self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
+        self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
         if step % LOG_EVERY and step != self.steps_total:
             return
         self._append(self.log_path, step, values, self.columns)
-
-    def eval_due(self, step, every):
-        """Every `every` steps (0: never) and at the last step."""
-        return bool(every) and (step % every == 0 or step == self.steps_total)
 
     def log_eval(self, step, values):
         """Append one row of held-out figures to eval.csv, print it to stderr (curves.eval_line)
@@ -219,23 +213,14 @@ class Run:
         with open(self.parity_path, "a", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow([step, worst, repr(float(rel_err)), repr(float(bound))])
 
-    def __enter__(self):
-        if self.progress:
-            from tqdm.auto import tqdm
-            self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}",
-                             unit="step", dynamic_ncols=True)
-        return self
-
-    def __exit__(self, *exc):
-        if self._bar is not None:
-            self._bar.close()
-        return False
-
     def steps(self):
-        """start + 1 .. steps; advances the progress bar."""
-        for t in range(self.start + 1, self.steps_total + 1):
-            yield t
-            if self._bar is not None:
+        """start + 1 .. steps, with a progress bar on stderr (opts.progress)."""
+        from tqdm.auto import tqdm
+        self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}", unit="step",
+                         dynamic_ncols=True, disable=not self.progress)
+        with self._bar:
+            for t in range(self.start + 1, self.steps_total + 1):
+                yield t
                 self._bar.update(1)
 
     def checkpoint(self, step, state, optimizer, check=None):

@@ -216,15 +216,14 @@ def _loop(run, opt, step, current, check, health, eval_every):
     evaluation), at step 0 of a fresh run, every eval_every steps and at the last; check(run, t)
     before each checkpoint (None: none); the final model."""
     state = lambda: current().state_dict()  # noqa: E731
-    with run:
-        if health is not None and not run.resumed:
-            run.log_eval(0, health())
-        for t in run.steps():
-            lr_t = opt.lr_at(opt.step_count)
-            run.log(t, {**step(t), "lr": lr_t})
-            if health is not None and run.eval_due(t, eval_every):
-                run.log_eval(t, health())
-            run.checkpoint(t, state, opt, check)
+    if health is not None and not run.resumed:
+        run.log_eval(0, health())
+    for t in run.steps():
+        lr_t = opt.lr_at(opt.step_count)
+        run.log(t, {**step(t), "lr": lr_t})
+        if health is not None and eval_every and (t % eval_every == 0 or t == run.steps_total):
+            run.log_eval(t, health())
+        run.checkpoint(t, state, opt, check)
     run.save_final(state())
 
 
@@ -359,23 +358,19 @@ def load_tokens(path):
 
 @dataclasses.dataclass(frozen=True)
 class TransformerRecipe:
-    """train_transformer's samples' context and the published optimiser (docs/math.md §5). Checked
-    when made; an error names the field."""
+    """train_transformer's published optimiser (docs/math.md §5); AdamW's weight decay is the published
+    0.01. Checked when made; an error names the field."""
 
-    context: int | None = None  # the most context views a sample has: N = context + 1 distinct views of a
-    # scene (None: config.sequence_size - 1); the tree trains the contexts n_loss_skip..N-1 in one step
     lr: float = 1e-4  # WarmupCosine's peak: linear warmup from 0, then cosine decay to 0 at total_steps
     warmup: int | None = None  # None: min(2000, total_steps // 10), the paper's 2000 shortened for short runs
     total_steps: int | None = None  # None: the run's steps; part of the run: keep it to extend a run
-    weight_decay: float = 0.01  # AdamW's decoupled decay on what published_weight_decay selects (not biases)
     max_grad_norm: float | None = 1.0  # tf.clip_by_norm per tensor (None: off); the logged grad_norm is the global norm
 
     def __post_init__(self):
-        for name, lo in (("context", 0), ("warmup", 0), ("total_steps", 1)):
+        for name, lo in (("warmup", 0), ("total_steps", 1)):
             if getattr(self, name) is not None:
                 object.__setattr__(self, name, _checks.integer(name, getattr(self, name), lo))
-        for name in ("lr", "weight_decay"):
-            object.__setattr__(self, name, _checks.real(name, getattr(self, name), lo=0.0))
+        object.__setattr__(self, "lr", _checks.real("lr", self.lr, lo=0.0))
         if self.max_grad_norm is not None:
             object.__setattr__(self, "max_grad_norm", _checks.real("max_grad_norm", self.max_grad_norm, lo=0.0,
                                                                    lo_open=True))
@@ -384,11 +379,10 @@ class TransformerRecipe:
 def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint):
     """train_transformer's run checked against its data -> (the run's hyperparameters, the
     WarmupCosine schedule)."""
-    r = recipe
-    n_views = 1 + (config.sequence_size - 1 if r.context is None else r.context)  # N
+    r, n_views = recipe, config.sequence_size  # N distinct views of a scene: the tree trains every context at once
     if not config.n_loss_skip < n_views <= tokens.shape[1]:
-        raise ValueError(f"context={n_views - 1} must leave a loss target (more than n_loss_skip="
-                         f"{config.n_loss_skip} views) and fit the {tokens.shape[1]} views a scene has")
+        raise ValueError(f"config.sequence_size={n_views} must leave a loss target (more than n_loss_skip="
+                         f"{config.n_loss_skip} views) and fit the {tokens.shape[1]} views a scene has (tokens)")
     total_steps = opts.steps if r.total_steps is None else r.total_steps
     if total_steps < opts.steps:
         raise ValueError(f"steps={opts.steps} runs past total_steps={total_steps}, the schedule's end: ask for at "
@@ -397,7 +391,7 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
     if warmup >= total_steps:
         raise ValueError(f"warmup={warmup} must be less than total_steps={total_steps}")
     hyper = {"batch_size": opts.batch_size, "views": n_views, "lr": r.lr, "warmup": warmup,
-             "total_steps": total_steps, "weight_decay": r.weight_decay, "eps": 1e-8, "eps_convention": "keras",
+             "total_steps": total_steps, "weight_decay": 0.01, "eps": 1e-8, "eps_convention": "keras",
              "max_grad_norm": r.max_grad_norm, "clip_mode": "per_tensor", "seed": opts.seed,
              "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
     if codebook_fingerprint is not None:

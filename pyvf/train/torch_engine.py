@@ -9,7 +9,6 @@ every process draws the batch of (seed, step) and runs its shard of the rows, it
 by its share of the batch; rank 0 alone writes the run folder.
 """
 
-import contextlib
 import os
 import re
 
@@ -126,60 +125,60 @@ def data_parallel(device, batch_size):
     return DataParallel(dist, torch.device(device), created=not initialised), device
 
 
-class Follower(contextlib.nullcontext):
+class Follower:
     """Run's stand-in on the processes other than rank 0: the same steps, nothing read or written."""
 
     resumed, model_state, optimizer_state = False, None, None
 
     def __init__(self, start, steps_total):
-        super().__init__(self)
         self.start, self.steps_total = start, steps_total
 
     def steps(self):
         return range(self.start + 1, self.steps_total + 1)
 
-    def _false(self, *args):
-        return False
+    def checkpoint(self, *args):
+        pass
 
-    eval_due = checkpoint = log = save_final = _false
-
-
-class TorchAdamW:
-    """AdamW.step on torch tensors (params: official name -> Parameter) with the settings, schedule
-    and step count of ref, the pyvf AdamW or Adam; sync() copies the moments into ref's."""
-
-    def __init__(self, params, ref, model):
-        self.params, self.ref, self.model = params, ref, model
-        self.exp_avg, self.exp_avg_sq = self._to_torch(ref.exp_avg), self._to_torch(ref.exp_avg_sq)
-
-    def _to_torch(self, arrays):
-        torch = import_torch()
-        arrays = params_to_layout(self.model, arrays, "torch")  # pyvf's layout -> nn.Linear's
-        return {k: torch.as_tensor(arrays[k]).to(p.device, p.dtype).contiguous() for k, p in self.params.items()}
-
-    def step(self):
-        """One update from the parameters' .grad (finite: the caller checked)."""
-        torch, r = import_torch(), self.ref
-        lr, t = r.lr_at(r.step_count), r.step_count + 1
-        with torch.no_grad():
-            for k, p in self.params.items():
-                wd = r.weight_decay if k in r.decayed else 0.0
-                p1, self.exp_avg[k], self.exp_avg_sq[k] = adam_update(
-                    p, self.exp_avg[k], self.exp_avg_sq[k], p.grad, lr, t, *r.betas, r.eps, wd,
-                    r.eps_convention == "keras", sqrt=torch.sqrt)
-                p.copy_(p1)
-        r.step_count = t
-
-    def sync(self):
-        for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
-            arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
-            setattr(self.ref, theirs, params_from_layout(self.model, arrays, "torch"))  # pyvf's layout, numpy
+    log = save_final = checkpoint
 
 
 class TorchEngine:
-    """What both torch engines share: the port's parameters by official name (_names), the update
-    (opt), parity()'s arguments (parity_batch), to_pyvf() -> the pyvf model with the port's weights
-    (and its optimiser with the engine's moments)."""
+    """What both torch engines share: the port's parameters by official name (_names), the update:
+    optim.adam_update on torch tensors, with the settings, schedule and step count of opt (the pyvf
+    AdamW or Adam; _sync() copies the moments into it), parity()'s arguments (parity_batch), and
+    to_pyvf() -> the pyvf model with the port's weights (its optimiser with the engine's moments)."""
+
+    def __init__(self, model, opt, device, precision, parity_batch):
+        self.torch = torch = import_torch()
+        self.config, self.pyvf_model, self.opt = model.config, model, opt
+        self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
+        self.dtype = getattr(torch, str(model.dtype))  # torch.float32 or torch.float64
+
+    def _load_moments(self):
+        """The optimiser's moments as tensors beside the port's parameters (_names)."""
+        def on_device(arrays):
+            arrays = params_to_layout(self.pyvf_model, arrays, "torch")  # pyvf's layout -> nn.Linear's
+            return {k: self.torch.as_tensor(arrays[k]).to(p.device, p.dtype).contiguous()
+                    for k, p in self._names.items()}
+        self.exp_avg, self.exp_avg_sq = on_device(self.opt.exp_avg), on_device(self.opt.exp_avg_sq)
+
+    def _update(self):
+        """AdamW.step from the parameters' .grad (finite: the caller checked)."""
+        r = self.opt
+        lr, t = r.lr_at(r.step_count), r.step_count + 1
+        with self.torch.no_grad():
+            for k, p in self._names.items():
+                wd = r.weight_decay if k in r.decayed else 0.0
+                p1, self.exp_avg[k], self.exp_avg_sq[k] = adam_update(
+                    p, self.exp_avg[k], self.exp_avg_sq[k], p.grad, lr, t, *r.betas, r.eps, wd,
+                    r.eps_convention == "keras", sqrt=self.torch.sqrt)
+                p.copy_(p1)
+        r.step_count = t
+
+    def _sync(self):
+        for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
+            arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
+            setattr(self.opt, theirs, params_from_layout(self.pyvf_model, arrays, "torch"))  # pyvf's layout, numpy
 
     def _zero_grad(self):
         for p in self._names.values():
@@ -187,7 +186,7 @@ class TorchEngine:
 
     def _refuse_nonfinite(self, stats, names):
         if not np.isfinite(stats).all():
-            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.ref.step_count + 1} "
+            raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
                              f"({names} = {stats.tolist()}): no update applied; lower the learning rate")
 
     def _parity(self, mine, out):
@@ -210,24 +209,21 @@ class TorchTransformer(TorchEngine):
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", max_grad_norm=None, dp=None,
                  parity_batch=None):
-        torch = import_torch()
-        from ..verify.torch_ports import TransformerPort, official_name
-        from ..verify.torch_ports import transformer_losses as losses
-        self.torch, self.config, self.pyvf_model, self._losses = torch, model.config, model, losses
-        self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
-        self.max_grad_norm, self.dp = max_grad_norm, dp
-        self.port = TransformerPort(model.config).to(self.device, getattr(torch, str(model.dtype)))
+        super().__init__(model, opt_ref, device, precision, parity_batch)
+        from ..verify.torch_ports import TransformerPort, official_name, transformer_losses
+        self.max_grad_norm, self.dp, self._losses = max_grad_norm, dp, transformer_losses
+        self.port = TransformerPort(model.config).to(self.device, self.dtype)
         self._names = {official_name(n): p for n, p in self.port.named_parameters()}
-        with torch.no_grad():
+        with self.torch.no_grad():
             for k, a in model.state_dict(layout="torch").items():
-                self._names[k].copy_(torch.as_tensor(a))
-        self.opt = TorchAdamW(self._names, opt_ref, model)
+                self._names[k].copy_(self.torch.as_tensor(a))
+        self._load_moments()
         if dp is not None:  # every process continues rank 0's state (a fresh start, or its checkpoint)
-            dp.broadcast([*self._names.values(), *self.opt.exp_avg.values(), *self.opt.exp_avg_sq.values()])
+            dp.broadcast([*self._names.values(), *self.exp_avg.values(), *self.exp_avg_sq.values()])
             opt_ref.step_count = dp.broadcast_int(opt_ref.step_count)
 
     def to_pyvf(self):
-        self.opt.sync()
+        self._sync()
         self.pyvf_model.load_official({k: p.detach().cpu().numpy() for k, p in self._names.items()},
                                       layout="torch")
         return self.pyvf_model
@@ -270,7 +266,7 @@ class TorchTransformer(TorchEngine):
             m = float(self.max_grad_norm)
             scale = torch.where(norms > m, m / norms, torch.ones_like(norms))
             torch._foreach_mul_(grads, list(scale.unbind()))
-        self.opt.step()
+        self._update()
         return dict(zip(("loss", "ce_loss", "pose_loss", "grad_norm"), map(float, stats)))
 
     def parity(self, tokens, poses):
@@ -289,18 +285,15 @@ class TorchCodebook(TorchEngine):
     `opt_ref`. The port's quantizer does the EMA update in training mode."""
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", parity_batch=None):
-        torch = import_torch()
+        super().__init__(model, opt_ref, device, precision, parity_batch)
         from ..verify.torch_ports import CodebookPort
-        self.torch, self.config, self.pyvf_model = torch, model.config, model
-        self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
-        self.dtype = getattr(torch, str(model.dtype))  # torch.float32 or torch.float64
         self.port = CodebookPort(model.config).to(self.device, self.dtype)  # training mode: EMA updates
         self._names = dict(self.port.named_parameters())  # the published names, as model.params'
-        self.port.load_state_dict({k: torch.as_tensor(v) for k, v in model.state_dict().items()})
-        self.opt = TorchAdamW(self._names, opt_ref, model)
+        self.port.load_state_dict({k: self.torch.as_tensor(v) for k, v in model.state_dict().items()})
+        self._load_moments()
 
     def to_pyvf(self):
-        self.opt.sync()
+        self._sync()
         self.pyvf_model.load_official({k: v.detach().cpu().numpy() for k, v in self.port.state_dict().items()})
         return self.pyvf_model
 
@@ -332,7 +325,7 @@ class TorchCodebook(TorchEngine):
         norm = torch.stack(torch._foreach_norm([p.grad for p in self._names.values()])).square().sum()
         stats = torch.stack([loss.detach(), rec_loss.detach(), commitment.detach(), norm]).cpu().numpy()
         self._refuse_nonfinite(stats, "loss, rec_loss, commitment, |g|^2")
-        self.opt.step()
+        self._update()
         counts = torch.bincount(codes.reshape(-1), minlength=self.config.n_embed).cpu().numpy()  # (K,)
         usage, perplexity = code_statistics(counts)
         return {"loss": float(stats[0]), "rec_loss": float(stats[1]), "commitment": float(stats[2]),
