@@ -494,7 +494,7 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     run = _cli()
     assert "codebook held-out at step 2: mae " in capsys.readouterr().err  # printed as the runs trained
     assert run("runs", a, b) == 0 and capsys.readouterr().out.splitlines() == table
-    assert run("runs", str(tmp_path)) == 1 and "is not a run folder" in capsys.readouterr().err
+    assert run("runs", str(tmp_path)) == 1 and "config.json" in capsys.readouterr().err  # not a run folder
     torn = tmp_path / "torn"
     shutil.copytree(a, torn)
     for name in ("eval.csv", "log.csv"):
