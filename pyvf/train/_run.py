@@ -126,7 +126,7 @@ class Run:
         self._truncate_log(self.log_path, self.columns)
         if self.eval_columns is not None:
             self._truncate_log(self.eval_path, self.eval_columns)
-        if self.resumed and os.path.exists(self.parity_path):  # the torch engine's
+        if opts.engine == "torch":
             self._truncate_log(self.parity_path, PARITY_COLUMNS)
         self._bar = None
         self._t0 = time.perf_counter()
@@ -208,8 +208,6 @@ class Run:
 
     def log_parity(self, step, worst, rel_err, bound):
         """Append the torch engine's parity check of `step` to parity.csv."""
-        if not os.path.exists(self.parity_path):
-            atomic_write_text(self.parity_path, ",".join(PARITY_COLUMNS) + "\n")
         with open(self.parity_path, "a", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow([step, worst, repr(float(rel_err)), repr(float(bound))])
 

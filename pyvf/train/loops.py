@@ -167,22 +167,6 @@ def _check_images(images, config, name="images"):
     return images.reshape(-1, S, S, C)
 
 
-def _check_tokens_poses(tokens, poses, config):
-    """tokens ints (scenes, views, k, k) in [0, n_embeddings), poses (scenes, views, 7) finite with
-    unit quaternions: checked here, not at the step that draws a bad view."""
-    _checks.int_array("tokens", tokens)
-    if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
-        raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
-                         f"got {tokens.shape}")
-    if tokens.size == 0 or tokens.min() < 0 or tokens.max() >= config.n_embeddings:
-        raise ValueError(f"tokens must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
-    _checks.float_array("poses", poses)
-    if poses.shape != tokens.shape[:2] + (7,):
-        raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
-    _checks.finite("poses", poses)
-    _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))
-
-
 def _warm_start(cls, config, hyper, out_dir, opts):
     """opts.init, a cls.save file with the run's shapes (other fields, such as empty_code, may
     differ) -> (hyper with the file's {"path", "sha256"}, its state_dict()); None or a resume ->
@@ -377,8 +361,20 @@ class TransformerRecipe:
 
 
 def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint):
-    """train_transformer's run checked against its data -> (the run's hyperparameters, the
-    WarmupCosine schedule)."""
+    """train_transformer's data and run checked (tokens ints (scenes, views, k, k) in [0, n_embeddings),
+    poses (scenes, views, 7) finite with unit quaternions: here, not at the step that draws a bad
+    view) -> (the run's hyperparameters, the WarmupCosine schedule)."""
+    _checks.int_array("tokens", tokens)
+    if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
+        raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
+                         f"got {tokens.shape}")
+    if tokens.size == 0 or tokens.min() < 0 or tokens.max() >= config.n_embeddings:
+        raise ValueError(f"tokens must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
+    _checks.float_array("poses", poses)
+    if poses.shape != tokens.shape[:2] + (7,):
+        raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
+    _checks.finite("poses", poses)
+    _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))
     r, n_views = recipe, config.sequence_size  # N distinct views of a scene: the tree trains every context at once
     if not config.n_loss_skip < n_views <= tokens.shape[1]:
         raise ValueError(f"config.sequence_size={n_views} must leave a loss target (more than n_loss_skip="
@@ -440,7 +436,6 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         xyz and a unit quaternion wxyz, in any frame. Engine "torch": data-parallel under torchrun too.
     eval_set: None, or held_out_set's scenes whose transformer_health goes to eval.csv.
     codebook_fingerprint: the tokens' codebook's (load_tokens'), recorded in config.json and the model."""
-    _check_tokens_poses(tokens, poses, config)
     hyper, schedule = _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint)
     B, n_views, seed = opts.batch_size, hyper["views"], opts.seed
     check_engine(opts.engine, opts.device, opts.precision, config.dtype)

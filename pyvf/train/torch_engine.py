@@ -239,25 +239,20 @@ class TorchTransformer(TorchEngine):
         logits, raw = logits.float() if autocast else logits, raw.float() if autocast else raw
         return (logits, raw, *self._losses(logits, raw, tok, pos, self.config))
 
-    def _gradients(self, tokens, poses):
-        """The gradients of the batch's mean loss in the parameters' .grad (summed across the
-        processes) -> (the list of them, a tensor of the batch's loss, mean ce and mean pose loss)."""
-        B = len(tokens)
+    def step(self, tokens, poses):
+        """One update on a batch (poses made relative here) -> the log's values but lr. The
+        gradients are the batch's mean loss's, summed across the processes before the clipping."""
+        torch, B = self.torch, len(tokens)
         lo, hi = (0, B) if self.dp is None else self.dp.shard(B)
         self._zero_grad()
+        poses = make_relative(poses)[0]
         _, _, ce, pl, loss = self._outputs(tokens[lo:hi], poses[lo:hi], self.precision == "bf16")
         share = (hi - lo) / B  # loss = mean over the shard: its part of the batch mean is share * loss
         (loss * share).backward()
         grads = [p.grad for p in self._names.values()]
-        sums = self.torch.stack([loss.detach() * share, ce.detach().sum() / B, pl.detach().sum() / B])
+        sums = torch.stack([loss.detach() * share, ce.detach().sum() / B, pl.detach().sum() / B])
         if self.dp is not None:
-            self.dp.all_reduce([*grads, sums])  # before the clipping: it sees the batch's gradient
-        return grads, sums
-
-    def step(self, tokens, poses):
-        """One update on a batch (poses made relative here) -> the log's values but lr."""
-        torch = self.torch
-        grads, sums = self._gradients(tokens, make_relative(poses)[0])
+            self.dp.all_reduce([*grads, sums])
         norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
         total = norms.square().sum().sqrt()
         stats = torch.cat([sums, total[None]]).cpu().numpy()
@@ -347,11 +342,9 @@ class TorchCodebook(TorchEngine):
         torch = self.torch
         x = torch.as_tensor(images).to(self.device)
         self.port.eval()  # no EMA update
-        try:
-            with torch.no_grad():
-                rec, commitment, codes = self._forward(x, False)
-        finally:
-            self.port.train()
+        with torch.no_grad():
+            rec, commitment, codes = self._forward(x, False)
+        self.port.train()
         rec_loss = (rec - x).abs().mean()
         mine = {"codes": codes.cpu().numpy(), "reconstruction": rec.cpu().numpy(),
                 "rec_loss": np.asarray(rec_loss.item()), "commitment_loss": np.asarray(commitment.item()),
