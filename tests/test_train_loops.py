@@ -530,19 +530,16 @@ def test_export_writes_the_checkpoints_model(tmp_path, rng, capsys):
     assert not os.path.exists(tmp_path / "x.npz")
 
 
-def _engine_spy(monkeypatch, kind):
-    """Record what the loop's engine starts from: the model's state dict (through the engine, so
-    the torch engine's own copy) and the optimiser's state, before the first update."""
-    name, at = ("_codebook_engine", 2) if kind == "codebook" else ("_transformer_engine", 1)
-    real, seen = getattr(loops, name), {}
+def _engine_spy(monkeypatch):
+    """Record what the loop starts from: the model's state dict (through the engine's current(), so
+    the torch engine's own copy) and the optimiser's state (its moments synced by current())."""
+    real, seen = loops._loop, {}
 
-    def spy(opts, model, opt, *args):
-        out = real(opts, model, opt, *args)
-        seen["model"] = out[at]().state_dict()  # current(): the engine's model, its moments synced into opt
-        seen["optimizer"] = opt.state_dict()
-        return out
+    def spy(run, opt, step, current, *args):
+        seen["model"], seen["optimizer"] = current().state_dict(), opt.state_dict()
+        return real(run, opt, step, current, *args)
 
-    monkeypatch.setattr(loops, name, spy)
+    monkeypatch.setattr(loops, "_loop", spy)
     return seen
 
 
@@ -563,7 +560,7 @@ def test_init_starts_from_the_files_weights(tmp_path, rng, monkeypatch, engine):
     and sha256 among its hyperparameters."""
     cb_file, tf_file = _trained_model_files(tmp_path, rng)
     for kind, file in (("codebook", cb_file), ("transformer", tf_file)):
-        seen = _engine_spy(monkeypatch, kind)
+        seen = _engine_spy(monkeypatch)
         out = str(tmp_path / f"{engine}-{kind}")
         if kind == "codebook":
             train_codebook(_images(rng), CB, out, opts(1, init=file, engine=engine))

@@ -236,26 +236,6 @@ def _recipe(recipe, overrides):
     return r, recorded
 
 
-def _codebook_engine(opts, model, opt, flat):
-    """-> (step(x, w), reset(x, rng, **codes): the dead-code restart, current() -> the model, check
-    or None), as _loop takes them."""
-    if opts.engine == "torch":
-        eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
-                            parity_batch=(codebook_batch(flat, 4, opts.seed + PARITY_SEED, 0, model.config.dtype),))
-        return eng.step, eng.reset_dead_codes, eng.to_pyvf, eng.check
-
-    def step(x, w):
-        out = codebook_train_step(model, opt, x, pixel_weights=w)
-        return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
-                "perplexity": out.perplexity, "usage": out.usage}
-
-    def reset(x, rng, **codes):
-        z = model._encoder([], x)  # (B, D, k, k) with the updated weights
-        return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
-
-    return step, reset, lambda: model, None
-
-
 def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="small-batch", **overrides):
     """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4) into the run folder out_dir
     (_run.py; at the end codebook.npz) -> the trained Codebook.
@@ -286,13 +266,27 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
             x = codebook_batch(flat, KMEANS_BATCHES * B, seed, 0, config.dtype)  # (B', C, Hi, Wi)
             model.quantizer.init_kmeans(model._encoder(None, x), r["kmeans"], B,
                                         rng=np.random.default_rng([seed, 0, 2]), empty=model.empty_patches(x))
-        step, reset, current, check = _codebook_engine(opts, model, opt, flat)
         weight = r["object_weight"] if r["object_weight"] != 1.0 else None
+
+        def step(x, w):  # the pyvf engine's update -> the log's values but lr
+            out = codebook_train_step(model, opt, x, pixel_weights=w)
+            return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
+                    "perplexity": out.perplexity, "usage": out.usage}
+
+        def reset(x, rng, **codes):  # the dead-code restart
+            z = model._encoder([], x)  # (B, D, k, k) with the updated weights
+            return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
+
+        current, check = (lambda: model), None  # the model as the engine has it; the parity check
+        if opts.engine == "torch":
+            eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
+                                parity_batch=(codebook_batch(flat, 4, seed + PARITY_SEED, 0, config.dtype),))
+            step, reset, current, check = eng.step, eng.reset_dead_codes, eng.to_pyvf, eng.check
 
         def step_t(t):
             x = codebook_batch(flat, B, seed, t, config.dtype, weight)
-            x, w = x if weight else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
-            values = step(x, w)
+            x, w = x if weight else (x, None)
+            values = step(x, w)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
             if r["reset_dead_codes"] and t % r["reset_dead_codes"] == 0:
                 reset(x, np.random.default_rng([seed, t, 1]), restart=r["restart"], reseat=r["reseat"])
             return values
@@ -409,23 +403,6 @@ def _transformer_eval(eval_set, eval_every, config):
         cb, model, images, poses, tokens, contexts)
 
 
-def _transformer_engine(opts, model, opt, dp, recipe, parity):
-    """-> (step(tok, pos), current() -> the model, check or None), as _loop takes them."""
-    if opts.engine == "torch":
-        eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp, parity_batch=parity,
-                               max_grad_norm=recipe.max_grad_norm)
-        return eng.step, eng.to_pyvf, eng.check
-
-    def step(tok, pos):
-        out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm, clip_mode="per_tensor")
-        if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
-            norm = float(np.sqrt(sum(n * n for n in norm.values())))
-        return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)), "pose_loss": float(np.mean(out.pose_loss)),
-                "grad_norm": norm}
-
-    return step, lambda: model, None
-
-
 def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRecipe(), *, eval_set=None,
                       codebook_fingerprint=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
@@ -455,8 +432,20 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
         opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=1e-8, weight_decay=hyper[
             "weight_decay"], decay=published_weight_decay, eps_convention="keras"), init_state)
-        parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
-        step, current, check = _transformer_engine(opts, model, opt, dp, recipe, parity)
+        current, check = (lambda: model), None  # the model as the engine has it; the parity check
+
+        def step(tok, pos):  # the pyvf engine's update -> the log's values but lr
+            out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm, clip_mode="per_tensor")
+            if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
+                norm = float(np.sqrt(sum(n * n for n in norm.values())))
+            return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)),
+                    "pose_loss": float(np.mean(out.pose_loss)), "grad_norm": norm}
+
+        if opts.engine == "torch":
+            parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
+            eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp,
+                                   parity_batch=parity, max_grad_norm=recipe.max_grad_norm)
+            step, current, check = eng.step, eng.to_pyvf, eng.check
         evaluate = None if health is None or isinstance(run, Follower) else lambda: health(current())
         _loop(run, opt, lambda t: step(*transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)), current,
               check, evaluate, opts.eval_every)  # batches (B, N, L), (B, N, 7)
