@@ -46,18 +46,6 @@ def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1,
     return train_codebook(data.images, config, out, opts, eval_images=held_out, **recipe)
 
 
-def tokenize_dataset(codebook, data, out, *, progress=True, threads=None):
-    """The dataset folder `data` encoded by the codebook file into the tokens file `out` -> the tokens."""
-    codebook = Codebook.load(codebook)
-    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
-    data = load_dataset(data)
-    with kernel_threads(threads):
-        tokens = tokenize(codebook, data.images, progress=progress)
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    save_tokens(out, tokens, data.poses, codebook.config.n_embed, codebook.fingerprint())
-    return tokens
-
-
 def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="tiny", codebook=None, eval_scenes=16,
                     eval_seed=1):
     """train_transformer on the tokens file into the run folder `out`; with codebook (the file the
@@ -143,8 +131,13 @@ def cmd_train_codebook(args):
 
 def cmd_tokenize(args):
     """Encode a dataset's images into token images with a trained codebook."""
-    tokens = tokenize_dataset(args.codebook, args.data, args.out, progress=not args.no_progress,
-                                    threads=args.threads)
+    codebook = Codebook.load(args.codebook)
+    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
+    data = load_dataset(args.data)
+    with kernel_threads(args.threads):
+        tokens = tokenize(codebook, data.images, progress=not args.no_progress)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    save_tokens(args.out, tokens, data.poses, codebook.config.n_embed, codebook.fingerprint())
     print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
 
 

@@ -389,20 +389,6 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
     return hyper, WarmupCosine(r.lr, warmup, total_steps)
 
 
-def _transformer_eval(eval_set, eval_every, config):
-    """-> (the evaluation's record for config.json, eval.csv's columns, health(model) -> its row),
-    all None without eval_set or with eval_every 0."""
-    if eval_set is None or eval_every == 0:
-        return None, None, None
-    cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
-    contexts = health_contexts(config, images.shape[1])
-    if not contexts:
-        raise ValueError(f"eval_set's scenes have {images.shape[1]} views: too few for a context and the queries")
-    record = {"every": eval_every, "contexts": contexts, "fingerprint": fingerprint(tokens)}
-    return record, transformer_health_columns(contexts), lambda model: transformer_health(
-        cb, model, images, poses, tokens, contexts)
-
-
 def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRecipe(), *, eval_set=None,
                       codebook_fingerprint=None):
     """Train a Transformer on token images and poses, every context size and both tasks at once
@@ -416,7 +402,16 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
     hyper, schedule = _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint)
     B, n_views, seed = opts.batch_size, hyper["views"], opts.seed
     check_engine(opts.engine, opts.device, opts.precision, config.dtype)
-    eval_record, eval_columns, health = _transformer_eval(eval_set, opts.eval_every, config)
+    eval_record = evaluation = health = None  # config.json's record, Run's evaluation, health(model)
+    if eval_set is not None and opts.eval_every:
+        e = eval_set
+        contexts = health_contexts(config, e["images"].shape[1])
+        if not contexts:
+            raise ValueError(f"eval_set's scenes have {e['images'].shape[1]} views: too few for a context and queries")
+        eval_record = {"every": opts.eval_every, "contexts": contexts, "fingerprint": fingerprint(e["tokens"])}
+        evaluation = (transformer_health_columns(contexts), eval_record["fingerprint"])
+        health = lambda model: transformer_health(  # noqa: E731
+            e["codebook"], model, e["images"], e["poses"], e["tokens"], contexts)
     hyper, init_state = _warm_start(Transformer, config, hyper, out_dir, opts)
     dp, device = data_parallel(opts.device, B) if opts.engine == "torch" else (None, opts.device)
     opts = dataclasses.replace(opts, device=device)
@@ -424,7 +419,7 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         if dp is None or dp.rank == 0:
             run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, opts, call=call,
-                      evaluation=eval_record and (eval_columns, eval_record["fingerprint"]))
+                      evaluation=evaluation)
         if dp is not None:  # the other processes follow rank 0's run from its start step
             start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
             run = run if dp.rank == 0 else Follower(start, opts.steps)
