@@ -61,12 +61,6 @@ def file_sha256(path):
     return h.hexdigest()
 
 
-def _machine():
-    """Where a call runs, for config.json (a resumed run's calls may run on different machines)."""
-    return {"cpus": os.cpu_count(), "processor": cpu_name(),
-            "kernel_path": _core.current_path(), "kernel_threads": int(_core.num_threads())}
-
-
 def read_checkpoint(path, kind):
     """-> (meta, model state dict, optimizer state dict). kind: "codebook", "transformer" (another
     raises ValueError) or None for either. Not a pyvf checkpoint: CheckpointError naming the file."""
@@ -153,14 +147,17 @@ class Run:
         self.eval_fingerprint = self.eval_fingerprint or saved
 
     def _write_config(self, call, opts):
-        """config.json: the configuration, hyperparameters, and one entry per call of the run."""
+        """config.json: the configuration, hyperparameters, and one entry per call of the run, with
+        the machine it ran on (a resumed run's calls may run on different machines)."""
         calls = []
         if self.resumed and os.path.exists(self.config_path):
             with open(self.config_path, encoding="utf-8") as f:
                 calls = json.load(f)["calls"]
         calls.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "steps": self.steps_total,
                       "resumed_from_step": self.start if self.resumed else None,
-                      "checkpoint_every": self.checkpoint_every, "numpy": np.__version__, "machine": _machine(),
+                      "checkpoint_every": self.checkpoint_every, "numpy": np.__version__,
+                      "machine": {"cpus": os.cpu_count(), "processor": cpu_name(), "kernel_path": _core.current_path(),
+                                  "kernel_threads": int(_core.num_threads())},
                       **jsonable({**{k: getattr(opts, k) for k in RECORDED}, **(call or {})})})
         atomic_write_text(self.config_path, json.dumps(
             {"kind": self.kind, "config": self.config, "hyperparameters": self.hyper, "calls": calls},
@@ -192,8 +189,7 @@ class Run:
         self._append(self.log_path, step, values, self.columns)
 
     def log_eval(self, step, values):
-        """Append one row of held-out figures to eval.csv, print it to stderr (curves.eval_line)
-        and redraw eval.png."""
+        """Append one row of held-out figures to eval.csv, print it (curves.eval_line), redraw eval.png."""
         self._append(self.eval_path, step, values, self.eval_columns)
         line = f"{self.kind} held-out at step {step}: {eval_line(values)}"  # as it trains, not only at the end
         (print if self._bar is None else self._bar.write)(line, file=sys.stderr)  # above the bar, if any
@@ -222,8 +218,7 @@ class Run:
                 self._bar.update(1)
 
     def checkpoint(self, step, state, optimizer, check=None):
-        """After `step`, when due: check(self, step) (the torch engine's parity), then the
-        checkpoint of state() and optimizer."""
+        """After `step`, when due: check(self, step) (the torch engine's parity), then the checkpoint."""
         if step % self.checkpoint_every == 0 or step == self.steps_total:
             if check is not None:
                 check(self, step)

@@ -4,10 +4,9 @@
     tokens = tokenize(cb, images)                                                     # (scenes, views, k, k) int16
     tf = train_transformer(tokens, poses, TINY_TRANSFORMER, "runs/tf", RunOptions(steps=50_000))
 
-RunOptions says how a call runs, the configuration and the recipe what it learns. A call with
-resume=True continues from the run folder's checkpoint (_run.py) to exactly the state an
-uninterrupted run reaches, bit for bit on the same kernel path: every batch is a pure function of
-(seed, step).
+RunOptions says how a call runs, the configuration and the recipe what it learns. A call resumes
+from the run folder's checkpoint (_run.py) to exactly the state an uninterrupted run reaches, bit
+for bit on the same kernel path: every batch is a pure function of (seed, step).
 """
 
 import dataclasses
@@ -126,12 +125,10 @@ def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="flo
 
 
 def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global"):
-    """One transformer step: forward, backward, optional clipping, optimiser step (docs/math.md §5).
-    tokens (B, N, L) ints, poses (B, N, 7), made relative to each sequence's first view first
-    (geometry.make_relative), as the published input pipeline does. max_grad_norm: clip_grad_norm's
-    (clip_mode "global" as torch's clip_grad_norm_, "per_tensor" as tf.clip_by_norm, the published
-    choice). optimizer holds model.params. Returns (the TransformerOutput of the forward before the
-    update, the gradient norm before clipping: a float, or {name: norm} with clip_mode "per_tensor")."""
+    """One transformer step: forward, backward, optional clipping (clip_grad_norm's; "per_tensor" is
+    the published choice), optimiser step (docs/math.md §5). tokens (B, N, L) ints, poses (B, N, 7),
+    made relative to each sequence's first view (geometry.make_relative), as the published input
+    pipeline does. -> (the TransformerOutput before the update, clip_grad_norm's norm(s))."""
     if optimizer.params is not model.params:
         raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
     out = model.forward(tokens, make_relative(poses)[0])
@@ -145,9 +142,8 @@ def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode
 
 
 def codebook_train_step(codebook, optimizer, images, pixel_weights=None):
-    """One codebook step: forward with the EMA update (train=True), backward, optimiser step, e.g.
-    with the published `Adam(codebook.params, 1.584e-3, betas=(0.5, 0.9))` (the codes are not
-    parameters: the EMA moves them). pixel_weights: Codebook.forward's. Returns the step's
+    """One codebook step: forward with the EMA update (train=True), backward, optimiser step (the
+    codes are not parameters: the EMA moves them). pixel_weights: Codebook.forward's. -> the step's
     CodebookOutput."""
     if optimizer.params is not codebook.params:
         raise ValueError("optimizer must be built on codebook.params (Adam(codebook.params, ...))")
@@ -168,9 +164,8 @@ def _check_images(images, config, name="images"):
 
 
 def _warm_start(cls, config, hyper, out_dir, opts):
-    """opts.init, a cls.save file with the run's shapes (other fields, such as empty_code, may
-    differ) -> (hyper with the file's {"path", "sha256"}, its state_dict()); None or a resume ->
-    (hyper, None)."""
+    """opts.init, a cls.save file with the run's shapes (empty_code may differ) -> (hyper with the
+    file's {"path", "sha256"}, its state_dict()); None or a resume -> (hyper, None)."""
     path = opts.init
     if path is None or opts.resume and os.path.exists(os.path.join(out_dir, CHECKPOINT)):
         return hyper, None
@@ -315,9 +310,8 @@ def held_out_set(codebook, images, poses):
 
 
 def save_tokens(path, tokens, poses, n_embed, codebook_fingerprint=None):
-    """Write a tokenized dataset atomically: tokens (scenes, views, k, k) ints in [0, n_embed),
-    poses (scenes, views, 7) floats, n_embed (the codebook size the tokens index) and the
-    codebook's fingerprint (Codebook.fingerprint; None: not recorded)."""
+    """Write a tokenized dataset atomically: tokens (scenes, views, k, k) ints in [0, n_embed), poses
+    (scenes, views, 7) floats, n_embed and the codebook's fingerprint (None: not recorded)."""
     extra = {} if codebook_fingerprint is None else {"codebook_fingerprint": str(codebook_fingerprint)}
     atomic_savez(path, tokens=tokens, poses=poses, n_embed=np.int64(n_embed), **extra)
 

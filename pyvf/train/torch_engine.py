@@ -143,10 +143,9 @@ class Follower:
 
 
 class TorchEngine:
-    """What both torch engines share: the port's parameters by official name (_names), the update:
-    optim.adam_update on torch tensors, with the settings, schedule and step count of opt (the pyvf
-    AdamW or Adam; _sync() copies the moments into it), parity()'s arguments (parity_batch), and
-    to_pyvf() -> the pyvf model with the port's weights (its optimiser with the engine's moments)."""
+    """What both torch engines share: the port's parameters by official name (_names); the update
+    (optim.adam_update on torch tensors, with opt's settings, schedule and step count; _sync() puts
+    the moments in opt); the parity check; to_pyvf() -> the pyvf model and opt as the engine has them."""
 
     def __init__(self, model, opt, device, precision, parity_batch):
         self.torch = torch = import_torch()
@@ -333,9 +332,8 @@ class TorchCodebook(TorchEngine):
             z = self.port.quant_conv(self.port.encoder(torch.as_tensor(images).to(self.device)))  # (B, D, k, k)
         quantizer.load_state_dict({k: v.cpu().numpy() for k, v in self.port.quantize.state_dict().items()})
         empty = self.pyvf_model.empty_patches(images)  # None without the empty code
-        n = quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng, empty=empty, **codes)
+        quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng, empty=empty, **codes)
         self.port.quantize.load_state_dict({k: torch.as_tensor(v) for k, v in quantizer.state_dict().items()})
-        return n
 
     def parity(self, images):
         """pyvf.compare's Comparison of the torch model (evaluation mode) against pyvf on images."""
