@@ -183,9 +183,8 @@ def _norm64(g):
 
 
 def global_norm(grads):
-    """sqrt(sum over tensors of |g|^2), accumulated in float64, nothing modified: nan where a
-    gradient holds a NaN, inf where one holds an inf (train_step's norm without clipping,
-    so that a run logs the same quantity with clipping off)."""
+    """sqrt(sum over tensors of |g|^2) in float64, nothing modified; nan or inf where a gradient
+    holds one (train_step's norm without clipping: a run logs the same quantity either way)."""
     return math.sqrt(math.fsum(_norm64(g) ** 2 for g in grads.values()))
 
 
