@@ -184,9 +184,8 @@ class Run:
     def log(self, step, values):
         """values: column -> float, written every LOG_EVERY steps and at the last."""
         self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
-        if step % LOG_EVERY and step != self.steps_total:
-            return
-        self._append(self.log_path, step, values, self.columns)
+        if step % LOG_EVERY == 0 or step == self.steps_total:
+            self._append(self.log_path, step, values, self.columns)
 
     def log_eval(self, step, values):
         """Append one row of held-out figures to eval.csv, print it (curves.eval_line), redraw eval.png."""

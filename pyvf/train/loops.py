@@ -263,20 +263,21 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
                                         rng=np.random.default_rng([seed, 0, 2]), empty=model.empty_patches(x))
         weight = r["object_weight"] if r["object_weight"] != 1.0 else None
 
-        def step(x, w):  # the pyvf engine's update -> the log's values but lr
-            out = codebook_train_step(model, opt, x, pixel_weights=w)
-            return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
-                    "perplexity": out.perplexity, "usage": out.usage}
-
-        def reset(x, rng, **codes):  # the dead-code restart
-            z = model._encoder([], x)  # (B, D, k, k) with the updated weights
-            return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
-
-        current, check = (lambda: model), None  # the model as the engine has it; the parity check
-        if opts.engine == "torch":
+        if opts.engine == "torch":  # step, the dead-code reset, the model as the engine has it, the parity check
             eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
                                 parity_batch=(codebook_batch(flat, 4, seed + PARITY_SEED, 0, config.dtype),))
             step, reset, current, check = eng.step, eng.reset_dead_codes, eng.to_pyvf, eng.check
+        else:
+            def step(x, w):  # the update -> the log's values but lr
+                out = codebook_train_step(model, opt, x, pixel_weights=w)
+                return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
+                        "perplexity": out.perplexity, "usage": out.usage}
+
+            def reset(x, rng, **codes):
+                z = model._encoder([], x)  # (B, D, k, k) with the updated weights
+                return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
+
+            current, check = (lambda: model), None
 
         def step_t(t):
             x = codebook_batch(flat, B, seed, t, config.dtype, weight)
@@ -421,20 +422,21 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
         opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=1e-8, weight_decay=hyper[
             "weight_decay"], decay=published_weight_decay, eps_convention="keras"), init_state)
-        current, check = (lambda: model), None  # the model as the engine has it; the parity check
-
-        def step(tok, pos):  # the pyvf engine's update -> the log's values but lr
-            out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm, clip_mode="per_tensor")
-            if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
-                norm = float(np.sqrt(sum(n * n for n in norm.values())))
-            return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)),
-                    "pose_loss": float(np.mean(out.pose_loss)), "grad_norm": norm}
-
-        if opts.engine == "torch":
+        if opts.engine == "torch":  # step, the model as the engine has it, the parity check
             parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
             eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp,
                                    parity_batch=parity, max_grad_norm=recipe.max_grad_norm)
             step, current, check = eng.step, eng.to_pyvf, eng.check
+        else:
+            def step(tok, pos):  # the update -> the log's values but lr
+                out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
+                                       clip_mode="per_tensor")
+                if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
+                    norm = float(np.sqrt(sum(n * n for n in norm.values())))
+                return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)),
+                        "pose_loss": float(np.mean(out.pose_loss)), "grad_norm": norm}
+
+            current, check = (lambda: model), None
         evaluate = None if health is None or isinstance(run, Follower) else lambda: health(current())
         _loop(run, opt, lambda t: step(*transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)), current,
               check, evaluate, opts.eval_every)  # batches (B, N, L), (B, N, 7)

@@ -179,10 +179,6 @@ class TorchEngine:
             arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
             setattr(self.opt, theirs, params_from_layout(self.pyvf_model, arrays, "torch"))  # pyvf's layout, numpy
 
-    def _zero_grad(self):
-        for p in self._names.values():
-            p.grad = None
-
     def _refuse_nonfinite(self, stats, names):
         if not np.isfinite(stats).all():
             raise ValueError(f"the gradients or the loss are not finite at step {self.opt.step_count + 1} "
@@ -243,7 +239,7 @@ class TorchTransformer(TorchEngine):
         gradients are the batch's mean loss's, summed across the processes before the clipping."""
         torch, B = self.torch, len(tokens)
         lo, hi = (0, B) if self.dp is None else self.dp.shard(B)
-        self._zero_grad()
+        self.port.zero_grad(set_to_none=True)
         poses = make_relative(poses)[0]
         _, _, ce, pl, loss = self._outputs(tokens[lo:hi], poses[lo:hi], self.precision == "bf16")
         share = (hi - lo) / B  # loss = mean over the shard: its part of the batch mean is share * loss
@@ -306,7 +302,7 @@ class TorchCodebook(TorchEngine):
         """One update on images (B, C, S, S) (pixel_weights: Codebook.forward's) -> the log's values but lr."""
         torch = self.torch
         x = torch.as_tensor(images).to(self.device)
-        self._zero_grad()
+        self.port.zero_grad(set_to_none=True)
         rec, commitment, codes = self._forward(x, self.precision == "bf16")
         diff = (rec - x).abs()  # (B, C, S, S)
         if pixel_weights is None:
