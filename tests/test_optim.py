@@ -124,9 +124,9 @@ def test_adamw_decay_subset_matches_torch_param_groups(rng):
 
 def test_schedule_as_lr_matches_torch_lambda_lr(rng):
     """lr = WarmupCosine(...) is called with the number of updates already applied, as torch's
-    LambdaLR (lambda(0) for the first step): 30 steps through warmup (5), cosine and the floor
+    LambdaLR (lambda(0) for the first step): 30 steps through warmup (5), cosine and the end at 0
     (total 25), against torch AdamW + LambdaLR(schedule / peak)."""
-    sched = optim.WarmupCosine(peak_lr=0.05, warmup_steps=5, total_steps=25, min_lr_ratio=0.1)
+    sched = optim.WarmupCosine(peak_lr=0.05, warmup_steps=5, total_steps=25)
     params = make_params(rng)
     grad_seq = [make_grads(rng) for _ in range(30)]
     got, _, lrs = pyvf_run(params, grad_seq, optim.AdamW, lr=sched, weight_decay=0.1)
@@ -160,20 +160,19 @@ def test_keras_convention_first_step_closed_form():
 
 
 def test_warmup_cosine_key_steps():
-    """W = 2000, T = 120000 (the SM7 run), peak 1e-4, floor ratio 0.1: 0 at step 0, linear
-    (peak/2 at W/2), peak exactly at W, half way between peak and floor at (W + T)/2, the floor
-    exactly at T and after. W = 0 starts at the peak. The published run (ratio 0) ends at 0."""
+    """W = 2000, T = 120000 (the SM7 run), peak 1e-4: 0 at step 0, linear (peak/2 at W/2), peak
+    exactly at W, half the peak at (W + T)/2, 0 exactly at T and after. W = 0 starts at the peak."""
     f = optim.warmup_cosine_lr
-    kw = dict(peak_lr=1e-4, warmup_steps=2000, total_steps=120_000, min_lr_ratio=0.1)
+    kw = dict(peak_lr=1e-4, warmup_steps=2000, total_steps=120_000)
     assert f(0, **kw) == 0.0
     assert f(1000, **kw) == 5e-5
     assert f(2000, **kw) == 1e-4
-    assert abs(f(61_000, **kw) - 0.55e-4) <= 1e-16 * 1e-4
+    assert abs(f(61_000, **kw) - 0.5e-4) <= 1e-16 * 1e-4
     q = 2000 + 118_000 // 4  # a quarter into the decay: cos(pi/4)
-    assert abs(f(q, **kw) - (1e-5 + 0.9e-4 * (1 + math.sqrt(0.5)) / 2)) <= 1e-15 * 1e-4
-    assert f(120_000, **kw) == 1e-4 * 0.1 and f(10 ** 9, **kw) == 1e-4 * 0.1
+    assert abs(f(q, **kw) - 1e-4 * (1 + math.sqrt(0.5)) / 2) <= 1e-15 * 1e-4
+    assert f(120_000, **kw) == 0.0 and f(10 ** 9, **kw) == 0.0
     assert f(0, 1e-3, 0, 100) == 1e-3 and f(100, 1e-3, 0, 100) == 0.0
-    sched = optim.WarmupCosine(1e-4, 2000, 120_000, 0.1)
+    sched = optim.WarmupCosine(1e-4, 2000, 120_000)
     assert [sched(s) for s in (0, 2000, 61_000, 120_000)] == [f(s, **kw) for s in (0, 2000, 61_000, 120_000)]
     lrs = np.array([f(s, **kw) for s in range(2000, 120_001, 500)])
     assert (np.diff(lrs) <= 0).all()  # monotone decay
@@ -231,24 +230,24 @@ def test_clip_per_tensor_by_hand():
 
 @pytest.mark.parametrize("mode", ["global", "per_tensor"])
 def test_clip_zero_gradients(mode):
-    """All-zero gradients: norm 0, nothing changed, no warning, no NaN (even with eps = 0)."""
+    """All-zero gradients: norm 0, nothing changed, no warning, no NaN."""
     grads = {"a": np.zeros((3, 2)), "b": np.zeros(4, np.float32)}
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         with np.errstate(all="raise"):
-            out = optim.clip_grad_norm(grads, 1.0, mode=mode, eps=0.0)
+            out = optim.clip_grad_norm(grads, 1.0, mode=mode)
     assert out == (0.0 if mode == "global" else {"a": 0.0, "b": 0.0})
     assert all((g == 0).all() and not np.signbit(g).any() for g in grads.values())
 
 
 @pytest.mark.parametrize("mode", ["global", "per_tensor"])
 def test_clip_nonfinite(mode):
-    """NaN/inf gradients raise ValueError naming the tensor, and so does a float64 norm that
-    overflows (entries of 1e200): nothing is modified (max_norm / inf would zero the gradients)."""
-    for bad, match in ((np.inf, r"NaN or inf in \['bad'\]"), (1e200, "overflows float64")):
+    """NaN/inf gradients raise ValueError naming grads, and so does a float64 norm that overflows
+    (entries of 1e200): nothing is modified (max_norm / inf would zero the gradients)."""
+    for bad in (np.nan, np.inf, 1e200):
         grads = {"ok": np.array([30.0, 40.0]), "bad": np.array([1.0, bad])}
         orig = _copy(grads)
-        with pytest.raises(ValueError, match=match):
+        with pytest.raises(ValueError, match=r"\bgrads\b"):
             optim.clip_grad_norm(grads, 1.0, mode=mode)
         for k in grads:
             assert_bitwise_equal(k, grads[k], orig[k])
@@ -308,7 +307,7 @@ def test_state_round_trip_continues_bitwise(rng, conv, dtype):
     the parameters and moments are bitwise those of the uninterrupted run."""
     params = make_params(rng, dtype)
     grad_seq = [make_grads(rng, dtype) for _ in range(12)]
-    kw = dict(lr=optim.WarmupCosine(0.05, 3, 10, 0.1), weight_decay=0.1, eps_convention=conv,
+    kw = dict(lr=optim.WarmupCosine(0.05, 3, 10), weight_decay=0.1, eps_convention=conv,
               decay=optim.published_weight_decay)
     full, opt_full, _ = pyvf_run(params, grad_seq, optim.AdamW, **kw)
     half, opt_half, _ = pyvf_run(params, grad_seq[:5], optim.AdamW, **kw)
@@ -357,7 +356,6 @@ def test_state_dict_is_a_copy_and_load_checks(rng):
     (lambda p: optim.AdamW(p, weight_decay=-0.1), ValueError, "weight_decay"),
     (lambda p: optim.AdamW(p, eps_convention="tf"), ValueError, "eps_convention"),
     (lambda p: optim.WarmupCosine(1e-3, 100, 100), ValueError, "total_steps"),
-    (lambda p: optim.WarmupCosine(1e-3, 10, 100, 1.5), ValueError, "min_lr_ratio"),
     (lambda p: optim.WarmupCosine(float("nan"), 10, 100), ValueError, "peak_lr"),
     (lambda p: optim.clip_grad_norm(p, 0.0), ValueError, "max_norm"),
     (lambda p: optim.clip_grad_norm(p, 1.0, mode="tensor"), ValueError, "mode"),

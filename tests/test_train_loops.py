@@ -2,7 +2,8 @@
 an uninterrupted one bit for bit (parameters, optimiser moments, EMA buffers, log), with or without
 held-out evaluation (which only reads); a killed save leaves the previous checkpoint; a corrupt one
 raises naming the file; training lowers the loss; tokenize equals Codebook.encode; the commands
-run end to end; bad arguments raise naming the argument; Ctrl-C saves the step under way.
+run end to end; bad arguments raise naming the argument; an interrupted run resumes from its
+last checkpoint.
 
 Tiny models and a handful of steps: the whole file runs in seconds."""
 
@@ -13,9 +14,7 @@ import hashlib
 import json
 import os
 import shutil
-import signal
 import sys
-import time
 import types
 
 import numpy as np
@@ -352,7 +351,6 @@ def _tf(d, out, o=None, recipe=TransformerRecipe(), **kw):
     (lambda: opts(1, device="cuda"), ValueError, "device"),  # needs engine="torch"
     (lambda: TransformerRecipe(lr=-1.0), ValueError, "lr"),
     (lambda: TransformerRecipe(max_grad_norm=0), ValueError, "max_grad_norm"),
-    (lambda: TransformerRecipe(context=-1), ValueError, "context"),
 ])
 def test_the_options_refusals_name_the_field(call, error, name):
     with pytest.raises(error, match=rf"\b{name}\b"):
@@ -386,7 +384,7 @@ def test_train_codebook_refusals_name_the_argument(tmp_path, rng, call, error, n
     (lambda d, out: _tf(d, out, poses=d["poses"][:, :4]), ValueError, "poses"),
     (lambda d, out: _tf(d, out, poses=d["poses"] * [1, 1, 1, 1.01, 1, 1, 1]), ValueError, "poses"),  # not unit
     (lambda d, out: _tf(d, out, poses=d["poses"] * np.nan), ValueError, "poses"),
-    (lambda d, out: _tf(d, out, recipe=TransformerRecipe(context=5)), ValueError, "context"),
+    (lambda d, out: _tf(d, out, tokens=d["tokens"][:, :2], poses=d["poses"][:, :2]), ValueError, "tokens"),
     (lambda d, out: _tf(d, out, opts(5), TransformerRecipe(warmup=5)), ValueError, "warmup"),
     (lambda d, out: _tf(d, out, opts(8), TransformerRecipe(total_steps=4)), ValueError, "total_steps"),
     (lambda d, out: _tf(d, out, opts(1, init=d["cb_file"])), ValueError, "init"),
@@ -496,7 +494,7 @@ def test_runs_table_and_eval_plot(tmp_path, rng, capsys):
     run = _cli()
     assert "codebook held-out at step 2: mae " in capsys.readouterr().err  # printed as the runs trained
     assert run("runs", a, b) == 0 and capsys.readouterr().out.splitlines() == table
-    assert run("runs", str(tmp_path)) == 1 and "is not a run folder" in capsys.readouterr().err
+    assert run("runs", str(tmp_path)) == 1 and "config.json" in capsys.readouterr().err  # not a run folder
     torn = tmp_path / "torn"
     shutil.copytree(a, torn)
     for name in ("eval.csv", "log.csv"):
@@ -532,18 +530,16 @@ def test_export_writes_the_checkpoints_model(tmp_path, rng, capsys):
     assert not os.path.exists(tmp_path / "x.npz")
 
 
-def _engine_spy(monkeypatch, kind):
-    """Record what the loop's engine starts from: the model's state dict (through the engine, so
-    the torch engine's own copy) and the optimiser's state, before the first update."""
-    name, at = ("_codebook_engine", (2, 4)) if kind == "codebook" else ("_transformer_engine", (1, 3))
-    real, seen = getattr(loops, name), {}
+def _engine_spy(monkeypatch):
+    """Record what the loop starts from: the model's state dict (through the engine's current(), so
+    the torch engine's own copy) and the optimiser's state (its moments synced by current())."""
+    real, seen = loops._loop, {}
 
-    def spy(*args):
-        out = real(*args)
-        seen["model"], seen["optimizer"] = out[at[0]](), out[at[1]].state_dict()
-        return out
+    def spy(run, opt, step, current, *args):
+        seen["model"], seen["optimizer"] = current().state_dict(), opt.state_dict()
+        return real(run, opt, step, current, *args)
 
-    monkeypatch.setattr(loops, name, spy)
+    monkeypatch.setattr(loops, "_loop", spy)
     return seen
 
 
@@ -564,7 +560,7 @@ def test_init_starts_from_the_files_weights(tmp_path, rng, monkeypatch, engine):
     and sha256 among its hyperparameters."""
     cb_file, tf_file = _trained_model_files(tmp_path, rng)
     for kind, file in (("codebook", cb_file), ("transformer", tf_file)):
-        seen = _engine_spy(monkeypatch, kind)
+        seen = _engine_spy(monkeypatch)
         out = str(tmp_path / f"{engine}-{kind}")
         if kind == "codebook":
             train_codebook(_images(rng), CB, out, opts(1, init=file, engine=engine))
@@ -592,41 +588,25 @@ def test_init_may_differ_in_what_does_not_shape_the_weights(tmp_path, rng):
     assert Codebook.load(os.path.join(out, "codebook.npz")).config.empty_code
 
 
-def _sigint_in_step(monkeypatch, at, times=1):
-    """Make loops.codebook_batch (which each step calls first) send this process SIGINT `times`
-    times while it makes step `at`'s batch: Ctrl-C during that step."""
-    real = loops.codebook_batch
-
-    def batch_with_ctrl_c(*args, **kwargs):
-        if args[3] == at:  # the step
-            for _ in range(times):
-                os.kill(os.getpid(), signal.SIGINT)
-                time.sleep(0.01)  # the handler runs in the main thread between two bytecodes
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(loops, "codebook_batch", batch_with_ctrl_c)
-
-
-@pytest.mark.parametrize("times", [1, 2])
-def test_ctrl_c_saves_the_step_under_way_and_the_run_resumes_bitwise(tmp_path, rng, monkeypatch, capsys, times):
-    """Ctrl-C (a real SIGINT) during step 3 of a codebook run checkpointed every 2 steps: step 3 is
-    finished and checkpointed, then KeyboardInterrupt. Ctrl-C twice during step 4 stops at once, as
-    a kill would: the checkpoint is step 2's and log.csv's row 3, past it, goes on resume. Either
-    way resuming gives the uninterrupted run bit for bit, and Python's handler is back. (The stop is
-    Run's, shared by the transformer loop: its resume from a step off the checkpoint schedule is
-    test_transformer_resume_..., its Ctrl-C the command's test below.)"""
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # else this test cannot tell
-    images = _images(rng)
-    saved, at = (3, 3) if times == 1 else (2, 4)
+def test_an_interrupted_run_resumes_from_its_last_checkpoint_bitwise(tmp_path, rng, monkeypatch):
+    """KeyboardInterrupt (Ctrl-C, or any kill) during step 4 of a codebook run checkpointed every 2
+    steps: the checkpoint is step 2's, and log.csv's row 3, past it, goes on resume; resuming gives
+    the uninterrupted run bit for bit. (The transformer loop is the same Run: its resume is
+    test_transformer_resume_..., its interrupted command the test below.)"""
+    images, real = _images(rng), loops.codebook_batch
     a, b = str(tmp_path / "a"), str(tmp_path / "b")
     train_codebook(images, CB, a, opts(5, checkpoint_every=2))
+
+    def interrupted(*args, **kwargs):
+        if args[3] == 4:  # the step
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
     with monkeypatch.context() as m:
-        _sigint_in_step(m, at, times)
+        m.setattr(loops, "codebook_batch", interrupted)
         with pytest.raises(KeyboardInterrupt):
             train_codebook(images, CB, b, opts(5, checkpoint_every=2))
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    assert capsys.readouterr().err.startswith("Ctrl-C: finishing the step under way and saving it; Ctrl-C again")
-    assert _checkpoint(b)[0]["step"] == saved and not os.path.exists(os.path.join(b, "codebook.npz"))
+    assert _checkpoint(b)[0]["step"] == 2 and not os.path.exists(os.path.join(b, "codebook.npz"))
     assert [r[0] for r in _log(b)[1:]] == ["1", "2", "3"]
     train_codebook(images, CB, b, opts(5, checkpoint_every=2))
     _assert_same_run(a, b, "codebook.npz")

@@ -91,15 +91,14 @@ def file_to_read(path):
         return f"cannot read {path!r}: {e.strerror}"
 
 
-def output_file(text):
-    """argparse type: a file a command writes at its end (file_to_write)."""
-    if problem := file_to_write(text):
-        raise argparse.ArgumentTypeError(problem)
-    return text
+def _path_type(check):
+    """An argparse type: text, refused with check(text)'s problem, if any."""
+    def parse(text):
+        if problem := check(text):
+            raise argparse.ArgumentTypeError(problem)
+        return text
+    return parse
 
 
-def output_dir(text):
-    """argparse type: a folder a command writes into (folder_to_make)."""
-    if problem := folder_to_make(text):
-        raise argparse.ArgumentTypeError(problem)
-    return text
+output_file = _path_type(file_to_write)  # a file a command writes at its end
+output_dir = _path_type(folder_to_make)  # a folder a command writes into

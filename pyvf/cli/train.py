@@ -18,8 +18,6 @@ from ..train.loops import (CODEBOOK_RECIPES, TINY_CODEBOOK, TINY_TRANSFORMER, Ru
 from ..train.pipeline import PRESETS, train_pipeline
 from .options import INTERRUPTED, add_threads, non_negative_int, positive_int
 
-EVAL_VIEWS = 4  # views per held-out scene in a codebook run's evaluation
-
 
 def read_config(value, cls, tiny):
     """config: "tiny" or a JSON file -> a cls instance (ValueError naming the file)."""
@@ -36,28 +34,16 @@ def read_config(value, cls, tiny):
 
 def codebook_run(data, out, opts, *, config="tiny", eval_scenes=32, eval_seed=1, **recipe):
     """train_codebook on the dataset folder `data` into the run folder `out`, evaluated every
-    opts.eval_every steps on the first EVAL_VIEWS views of eval_scenes scenes of eval_seed (not the
-    data's); recipe: train_codebook's recipe and overrides."""
+    opts.eval_every steps on the first 4 views of eval_scenes scenes of eval_seed (not the data's);
+    recipe: train_codebook's recipe and overrides."""
     config = read_config(config, CodebookConfig, TINY_CODEBOOK)
     from ..scenes import generate_scenes, load_dataset  # at the call: tests stand a fake module in
     data, held_out, S = load_dataset(data), None, config.image_size
     if opts.eval_every:
         if getattr(data, "seed", None) == eval_seed:
             raise ValueError(f"eval_seed {eval_seed} is the training data's seed: held-out scenes need another seed")
-        held_out = generate_scenes(eval_seed, eval_scenes, views=EVAL_VIEWS, size=S)[0].reshape(-1, S, S, 3)
+        held_out = generate_scenes(eval_seed, eval_scenes, views=4, size=S)[0].reshape(-1, S, S, 3)
     return train_codebook(data.images, config, out, opts, eval_images=held_out, **recipe)
-
-
-def tokenize_dataset(codebook, data, out, *, progress=True, threads=None):
-    """The dataset folder `data` encoded by the codebook file into the tokens file `out` -> the tokens."""
-    codebook = Codebook.load(codebook)
-    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
-    data = load_dataset(data)
-    with kernel_threads(threads):
-        tokens = tokenize(codebook, data.images, progress=progress)
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    save_tokens(out, tokens, data.poses, codebook.config.n_embed, codebook.fingerprint())
-    return tokens
 
 
 def transformer_run(tokens, out, opts, recipe=TransformerRecipe(), *, config="tiny", codebook=None, eval_scenes=16,
@@ -136,7 +122,7 @@ def _run(args):
 
 
 def cmd_train_codebook(args):
-    """Train the codebook (VQ-VAE) on a dataset's images; resumable."""
+    """Train the codebook (VQ-VAE) on a dataset's images; rerun to resume from the last checkpoint."""
     opts, held_out = _run(args)
     codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr, object_weight=args.object_weight,
                        restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
@@ -145,13 +131,18 @@ def cmd_train_codebook(args):
 
 def cmd_tokenize(args):
     """Encode a dataset's images into token images with a trained codebook."""
-    tokens = tokenize_dataset(args.codebook, args.data, args.out, progress=not args.no_progress,
-                                    threads=args.threads)
+    codebook = Codebook.load(args.codebook)
+    from ..scenes import load_dataset  # at the call: tests stand a fake dataset reader in
+    data = load_dataset(args.data)
+    with kernel_threads(args.threads):
+        tokens = tokenize(codebook, data.images, progress=not args.no_progress)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    save_tokens(args.out, tokens, data.poses, codebook.config.n_embed, codebook.fingerprint())
     print(f"tokens {tokens.shape} {tokens.dtype}: {args.out}")
 
 
 def cmd_train_transformer(args):
-    """Train the transformer on a tokenized dataset; resumable."""
+    """Train the transformer on a tokenized dataset; rerun to resume from the last checkpoint."""
     opts, held_out = _run(args)
     recipe = TransformerRecipe(lr=args.lr, warmup=args.warmup, total_steps=args.total_steps)
     transformer_run(args.tokens, args.out, opts, recipe, codebook=args.codebook, **held_out)
@@ -187,7 +178,8 @@ def _run_options(p, every, scenes):
     p.add_argument("--seed", type=non_negative_int, default=0, help="initialisation and batches (default 0)")
     p.add_argument("--config", default="tiny", help='"tiny" (default) or a JSON file of the configuration')
     p.add_argument("--init", default=None, metavar="FILE", help="a fresh run starts from this model file's weights")
-    p.add_argument("--checkpoint-every", type=int, default=200, help="steps between checkpoints (default 200)")
+    p.add_argument("--checkpoint-every", type=int, default=200,
+                   help="steps between checkpoints, where an interrupted run resumes (default 200)")
     p.add_argument("--no-resume", action="store_true", help="start over even if the run folder has a checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
@@ -207,8 +199,7 @@ def _engine_options(p):
 
 def register(subparsers):
     """Add train-codebook, tokenize, train-transformer, train, runs and export to argparse subparsers."""
-    p = _command(subparsers, "train-codebook", cmd_train_codebook, "train the codebook (VQ-VAE) on a dataset; "
-                 "resumable")
+    p = _command(subparsers, "train-codebook", cmd_train_codebook, "train the codebook (VQ-VAE) on a dataset")
     p.add_argument("--data", required=True, help="dataset folder (pyvf scenes)")
     _run_options(p, every=100, scenes=32)
     p.add_argument("--recipe", default="small-batch", choices=sorted(CODEBOOK_RECIPES),
@@ -229,8 +220,7 @@ def register(subparsers):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads(p)
 
-    p = _command(subparsers, "train-transformer", cmd_train_transformer, "train the transformer on a tokens file; "
-                 "resumable")
+    p = _command(subparsers, "train-transformer", cmd_train_transformer, "train the transformer on a tokens file")
     p.add_argument("--tokens", required=True, help="tokens .npz (from pyvf tokenize)")
     p.add_argument("--codebook", default=None, help="the tokens' codebook .npz: the held-out evaluation needs it")
     _run_options(p, every=200, scenes=16)

@@ -11,8 +11,8 @@
 
 `hyper` holds everything the trajectory depends on besides the configuration (learning rate, batch
 size, seed, the data's fingerprint...): a resume with other values raises. Its "init" (the model
-file a fresh run started from) counts at step 0 only. Ctrl-C: the step under way finishes and is
-checkpointed, then KeyboardInterrupt; a second Ctrl-C raises at once.
+file a fresh run started from) counts at step 0 only. An interrupted run resumes from its last
+checkpoint (the steps after it are trained again, to the same bits).
 """
 
 import csv
@@ -20,9 +20,7 @@ import hashlib
 import io
 import json
 import os
-import signal
 import sys
-import threading
 import time
 
 import numpy as np
@@ -36,6 +34,7 @@ CHECKPOINT, LOG, CONFIG, EVAL_LOG, PARITY_LOG = "checkpoint.npz", "log.csv", "co
 PARITY_COLUMNS = ["step", "worst", "rel_err", "bound"]
 FORMAT_VERSION = 1
 LOG_EVERY = 10  # steps between log.csv rows
+RECORDED = ("command", "threads", "engine", "device", "precision")  # the RunOptions config.json records
 
 
 def jsonable(x):
@@ -62,12 +61,6 @@ def file_sha256(path):
     return h.hexdigest()
 
 
-def _machine():
-    """Where a call runs, for config.json (a resumed run's calls may run on different machines)."""
-    return {"cpus": os.cpu_count(), "processor": cpu_name(),
-            "kernel_path": _core.current_path(), "kernel_threads": int(_core.num_threads())}
-
-
 def read_checkpoint(path, kind):
     """-> (meta, model state dict, optimizer state dict). kind: "codebook", "transformer" (another
     raises ValueError) or None for either. Not a pyvf checkpoint: CheckpointError naming the file."""
@@ -85,32 +78,22 @@ def read_checkpoint(path, kind):
     return meta, group("model/"), opt
 
 
-def resume_point(out_dir, resume=True):
-    """The __meta__ of the checkpoint a run in out_dir resumes from, or None (a fresh start)."""
-    path = os.path.join(os.fspath(out_dir), CHECKPOINT)
-    if not (resume and os.path.exists(path)):
-        return None
-    return read_checkpoint(path, None)[0]
-
-
 class Run:
     """The run folder of one call of a training loop.
 
         run = Run(out_dir, "codebook", config_dict, hyper, LOG_COLUMNS, opts)   # opts: loops.RunOptions
         (restore the model and optimiser from run.model_state, run.optimizer_state when run.resumed)
-        with run:
-            for t in run.steps():              # run.start + 1 .. steps
-                ...                            # one update
-                run.log(t, {"loss": ...})
-                run.checkpoint(t, model.state_dict, optimizer)  # when due; after Ctrl-C, then stops
+        for t in run.steps():              # run.start + 1 .. steps
+            ...                            # one update
+            run.log(t, {"loss": ...})
+            run.checkpoint(t, model.state_dict, optimizer)  # when due
         run.save_final(model.state_dict())
 
-    call: what config.json records of this call. evaluation: None, or (eval.csv's columns, the
-    fingerprint of the held-out set; a resume refuses another). interruptible: False for data-parallel runs.
+    call: what config.json records of this call beside opts' RECORDED fields. evaluation: None, or
+    (eval.csv's columns, the fingerprint of the held-out set; a resume refuses another).
     """
 
-    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, evaluation=None,
-                 interruptible=True):
+    def __init__(self, out_dir, kind, config, hyper, columns, opts, *, call=None, evaluation=None):
         self.steps_total, self.checkpoint_every = opts.steps, opts.checkpoint_every
         self.kind, self.config, self.hyper = kind, jsonable(config), jsonable(hyper)
         self.columns = ["step", *columns, "seconds"]
@@ -133,14 +116,13 @@ class Run:
             for path in (self.ckpt_path, self.final_path, self.eval_path, self.parity_path):
                 if os.path.exists(path):
                     os.remove(path)
-        self._write_config(call)
+        self._write_config(call, opts)
         self._truncate_log(self.log_path, self.columns)
         if self.eval_columns is not None:
             self._truncate_log(self.eval_path, self.eval_columns)
-        if self.resumed and os.path.exists(self.parity_path):  # the torch engine's
+        if opts.engine == "torch":
             self._truncate_log(self.parity_path, PARITY_COLUMNS)
-        self._bar = self._previous_handler = None
-        self.interruptible, self._stop = interruptible, False
+        self._bar = None
         self._t0 = time.perf_counter()
 
     def _resume(self):
@@ -164,16 +146,19 @@ class Run:
                              "resume with the run's one, or without evaluation (--eval-every 0)")
         self.eval_fingerprint = self.eval_fingerprint or saved
 
-    def _write_config(self, call):
-        """config.json: the configuration, hyperparameters, and one entry per call of the run."""
+    def _write_config(self, call, opts):
+        """config.json: the configuration, hyperparameters, and one entry per call of the run, with
+        the machine it ran on (a resumed run's calls may run on different machines)."""
         calls = []
         if self.resumed and os.path.exists(self.config_path):
             with open(self.config_path, encoding="utf-8") as f:
                 calls = json.load(f)["calls"]
         calls.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "steps": self.steps_total,
                       "resumed_from_step": self.start if self.resumed else None,
-                      "checkpoint_every": self.checkpoint_every,
-                      "numpy": np.__version__, "machine": _machine(), **jsonable(call or {})})
+                      "checkpoint_every": self.checkpoint_every, "numpy": np.__version__,
+                      "machine": {"cpus": os.cpu_count(), "processor": cpu_name(), "kernel_path": _core.current_path(),
+                                  "kernel_threads": int(_core.num_threads())},
+                      **jsonable({**{k: getattr(opts, k) for k in RECORDED}, **(call or {})})})
         atomic_write_text(self.config_path, json.dumps(
             {"kind": self.kind, "config": self.config, "hyperparameters": self.hyper, "calls": calls},
             indent=2) + "\n")
@@ -198,19 +183,12 @@ class Run:
 
     def log(self, step, values):
         """values: column -> float, written every LOG_EVERY steps and at the last."""
-        if self._bar is not None:
-            self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
-        if step % LOG_EVERY and step != self.steps_total:
-            return
-        self._append(self.log_path, step, values, self.columns)
-
-    def eval_due(self, step, every):
-        """Every `every` steps (0: never) and at the last step."""
-        return bool(every) and (step % every == 0 or step == self.steps_total)
+        self._bar.set_postfix(loss=f"{values['loss']:.4f}", refresh=False)
+        if step % LOG_EVERY == 0 or step == self.steps_total:
+            self._append(self.log_path, step, values, self.columns)
 
     def log_eval(self, step, values):
-        """Append one row of held-out figures to eval.csv, print it to stderr (curves.eval_line)
-        and redraw eval.png."""
+        """Append one row of held-out figures to eval.csv, print it (curves.eval_line), redraw eval.png."""
         self._append(self.eval_path, step, values, self.eval_columns)
         line = f"{self.kind} held-out at step {step}: {eval_line(values)}"  # as it trains, not only at the end
         (print if self._bar is None else self._bar.write)(line, file=sys.stderr)  # above the bar, if any
@@ -225,53 +203,22 @@ class Run:
 
     def log_parity(self, step, worst, rel_err, bound):
         """Append the torch engine's parity check of `step` to parity.csv."""
-        if not os.path.exists(self.parity_path):
-            atomic_write_text(self.parity_path, ",".join(PARITY_COLUMNS) + "\n")
         with open(self.parity_path, "a", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow([step, worst, repr(float(rel_err)), repr(float(bound))])
 
-    def __enter__(self):
-        if self.progress:
-            from tqdm.auto import tqdm
-            self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}",
-                             unit="step", dynamic_ncols=True)
-        # Ctrl-C: in the main thread where Python's own handler is in place; not in a data-parallel
-        # run, whose processes could stop after different steps
-        if (self.interruptible and threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
-            self._previous_handler = signal.signal(signal.SIGINT, self._ctrl_c)
-        return self
-
-    def __exit__(self, *exc):
-        if self._previous_handler is not None:
-            signal.signal(signal.SIGINT, self._previous_handler)
-        if self._bar is not None:
-            self._bar.close()
-        if exc[0] is None and self._stop:
-            # Ctrl-C after the last step's checkpoint was saved: stop here all the same (the
-            # caller's next work, e.g. pyvf train's next stage, must not start)
-            raise KeyboardInterrupt
-        return False
-
-    def _ctrl_c(self, signum, frame):
-        if self._stop:
-            raise KeyboardInterrupt
-        self._stop = True
-        print(f"{chr(10) if self._bar is not None else ''}Ctrl-C: finishing the step under way and saving it; "
-              "Ctrl-C again stops at once (losing the steps since the last checkpoint)", file=sys.stderr, flush=True)
-
     def steps(self):
-        """start + 1 .. steps; advances the progress bar."""
-        for t in range(self.start + 1, self.steps_total + 1):
-            yield t
-            if self._bar is not None:
+        """start + 1 .. steps, with a progress bar on stderr (opts.progress)."""
+        from tqdm.auto import tqdm
+        self._bar = tqdm(total=self.steps_total, initial=self.start, desc=f"train {self.kind}", unit="step",
+                         dynamic_ncols=True, disable=not self.progress)
+        with self._bar:
+            for t in range(self.start + 1, self.steps_total + 1):
+                yield t
                 self._bar.update(1)
 
     def checkpoint(self, step, state, optimizer, check=None):
-        """After `step`, when due or after Ctrl-C: check(self, step) (the torch engine's parity),
-        then the checkpoint of state() and optimizer; after Ctrl-C, KeyboardInterrupt once saved."""
-        stop = self._stop  # read once: a Ctrl-C from here on stops after the next step
-        if stop or step % self.checkpoint_every == 0 or step == self.steps_total:
+        """After `step`, when due: check(self, step) (the torch engine's parity), then the checkpoint."""
+        if step % self.checkpoint_every == 0 or step == self.steps_total:
             if check is not None:
                 check(self, step)
             model, elapsed, opt = state(), self.seconds(), optimizer.state_dict()
@@ -283,8 +230,6 @@ class Run:
             for key in ("exp_avg", "exp_avg_sq"):
                 arrays.update({f"optimizer/{key}/{k}": v for k, v in opt[key].items()})
             atomic_savez(self.ckpt_path, **arrays)  # atomic: a killed process leaves the previous one intact
-        if stop:
-            raise KeyboardInterrupt
 
     def save_final(self, arrays):
         """The trained model as Codebook.save / Transformer.save write it. Returns its path."""

@@ -19,17 +19,13 @@ from .._io import atomic_write_png
 BASELINE_COLOURS = [(214, 39, 40), (44, 160, 44), (148, 103, 189)]
 
 
-def read_log(run_dir, name="log.csv", empty_ok=False):
+def read_log(run_dir, name="log.csv"):
     """run_dir/log.csv (or another of its CSV files) -> {column: float64 array}. A torn last line (a
-    process killed mid-write) is left out, as a resuming trainer drops it. A header alone raises,
-    or with empty_ok gives empty arrays."""
-    path = os.path.join(run_dir, name)
-    with open(path, newline="", encoding="utf-8") as f:
+    process killed mid-write) is left out, as a resuming trainer drops it."""
+    with open(os.path.join(run_dir, name), newline="", encoding="utf-8") as f:
         header, *rows = csv.reader(f)
     if rows and len(rows[-1]) != len(header):
         rows.pop()  # torn
-    if not rows and not empty_ok:
-        raise ValueError(f"{path} has no rows")
     table = np.array(rows, dtype=np.float64).reshape(len(rows), len(header))
     return {k: table[:, j] for j, k in enumerate(header)}
 
@@ -131,8 +127,6 @@ def runs_table(run_dirs, step=None):
     columns of eval.csv); with step, all at or before that step."""
     rows, firsts = [], {}
     for d in run_dirs:
-        if not os.path.exists(os.path.join(d, "config.json")):
-            raise ValueError(f"{d} is not a run folder (no config.json)")
         with open(os.path.join(d, "config.json"), encoding="utf-8") as f:
             cfg = json.load(f)
         flat = {**{f"config.{k}": v for k, v in cfg["config"].items()},
@@ -140,8 +134,8 @@ def runs_table(run_dirs, step=None):
         first = firsts.setdefault(cfg["kind"], flat)
         changed = ", ".join(f"{k.removeprefix('config.')}={flat.get(k)}" for k in sorted(set(flat) | set(first))
                             if flat.get(k) != first.get(k)) or f"(the first {cfg['kind']} run)"
-        log = read_log(d, empty_ok=True)  # a header alone: a run before its first logged step
-        ev = read_log(d, "eval.csv", empty_ok=True) if os.path.exists(os.path.join(d, "eval.csv")) else {}
+        log = read_log(d)  # a header alone: a run before its first logged step
+        ev = read_log(d, "eval.csv") if os.path.exists(os.path.join(d, "eval.csv")) else {}
         i, j = _last_at(log["step"], step), _last_at(ev["step"], step) if ev else None
         last = {c: f"{ev[c][j]:.4g} ({int(ev['step'][j])})" for c in ev if j is not None}
         panels = eval_panels(list(ev))[0] if ev else []

@@ -4,10 +4,9 @@
     tokens = tokenize(cb, images)                                                     # (scenes, views, k, k) int16
     tf = train_transformer(tokens, poses, TINY_TRANSFORMER, "runs/tf", RunOptions(steps=50_000))
 
-RunOptions says how a call runs, the configuration and the recipe what it learns. A call with
-resume=True continues from the run folder's checkpoint (_run.py) to exactly the state an
-uninterrupted run reaches, bit for bit on the same kernel path: every batch is a pure function of
-(seed, step).
+RunOptions says how a call runs, the configuration and the recipe what it learns. A call resumes
+from the run folder's checkpoint (_run.py) to exactly the state an uninterrupted run reaches, bit
+for bit on the same kernel path: every batch is a pure function of (seed, step).
 """
 
 import dataclasses
@@ -29,7 +28,7 @@ from ..evaluate.metrics import encode_images, object_mask, to_model_images
 from ..geometry import _check_unit, make_relative
 from ..models.codebook import Codebook, CodebookConfig
 from ..models.transformer import Transformer, TransformerConfig
-from ._run import Run, file_sha256, fingerprint, resume_point
+from ._run import CHECKPOINT, Run, file_sha256, fingerprint
 from .optim import Adam, AdamW, WarmupCosine, clip_grad_norm, global_norm, published_weight_decay
 from .torch_engine import Follower, TorchCodebook, TorchTransformer, check_engine, data_parallel
 
@@ -73,7 +72,7 @@ class RunOptions:
     steps: int  # the total number of updates; a resumed run continues to it from its checkpoint
     batch_size: int = 16
     seed: int = 0  # the initialisation and every batch (np.random.default_rng([seed, step]))
-    checkpoint_every: int = 200  # steps between checkpoints; one at the end and at Ctrl-C always
+    checkpoint_every: int = 200  # steps between checkpoints (and one at the end): where a stopped run resumes
     eval_every: int = 0  # steps between held-out evaluations (0: none)
     resume: bool = True  # continue from out_dir/checkpoint.npz when there is one; False starts over
     progress: bool = True  # a progress bar on stderr
@@ -126,12 +125,10 @@ def transformer_batch(tokens, poses, n_views, batch_size, seed, step, dtype="flo
 
 
 def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode="global"):
-    """One transformer step: forward, backward, optional clipping, optimiser step (docs/math.md §5).
-    tokens (B, N, L) ints, poses (B, N, 7), made relative to each sequence's first view first
-    (geometry.make_relative), as the published input pipeline does. max_grad_norm: clip_grad_norm's
-    (clip_mode "global" as torch's clip_grad_norm_, "per_tensor" as tf.clip_by_norm, the published
-    choice). optimizer holds model.params. Returns (the TransformerOutput of the forward before the
-    update, the gradient norm before clipping: a float, or {name: norm} with clip_mode "per_tensor")."""
+    """One transformer step: forward, backward, optional clipping (clip_grad_norm's; "per_tensor" is
+    the published choice), optimiser step (docs/math.md §5). tokens (B, N, L) ints, poses (B, N, 7),
+    made relative to each sequence's first view (geometry.make_relative), as the published input
+    pipeline does. -> (the TransformerOutput before the update, clip_grad_norm's norm(s))."""
     if optimizer.params is not model.params:
         raise ValueError("optimizer must be built on model.params (AdamW(model.params, ...))")
     out = model.forward(tokens, make_relative(poses)[0])
@@ -145,20 +142,13 @@ def train_step(model, optimizer, tokens, poses, *, max_grad_norm=None, clip_mode
 
 
 def codebook_train_step(codebook, optimizer, images, pixel_weights=None):
-    """One codebook step: forward with the EMA update (train=True), backward, optimiser step, e.g.
-    with the published `Adam(codebook.params, 1.584e-3, betas=(0.5, 0.9))` (the codes are not
-    parameters: the EMA moves them). pixel_weights: Codebook.forward's. Returns the step's
-    CodebookOutput. A step that raises leaves the codebook as it was: the EMA buffers the forward
-    moved are put back (a retried step would otherwise move them twice)."""
+    """One codebook step: forward with the EMA update (train=True), backward, optimiser step (the
+    codes are not parameters: the EMA moves them). pixel_weights: Codebook.forward's. -> the step's
+    CodebookOutput."""
     if optimizer.params is not codebook.params:
         raise ValueError("optimizer must be built on codebook.params (Adam(codebook.params, ...))")
-    saved = codebook.quantizer.state_dict()  # copies; the buffers are (D, K): small beside the step
-    out = codebook.forward(images, train=True, pixel_weights=pixel_weights)  # puts them back itself if it raises
-    try:
-        optimizer.step(codebook.backward())
-    except BaseException:
-        codebook.quantizer.load_state_dict(saved)
-        raise
+    out = codebook.forward(images, train=True, pixel_weights=pixel_weights)
+    optimizer.step(codebook.backward())
     return out
 
 
@@ -173,28 +163,11 @@ def _check_images(images, config, name="images"):
     return images.reshape(-1, S, S, C)
 
 
-def _check_tokens_poses(tokens, poses, config):
-    """tokens ints (scenes, views, k, k) in [0, n_embeddings), poses (scenes, views, 7) finite with
-    unit quaternions: checked here, not at the step that draws a bad view."""
-    _checks.int_array("tokens", tokens)
-    if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
-        raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
-                         f"got {tokens.shape}")
-    if tokens.size == 0 or tokens.min() < 0 or tokens.max() >= config.n_embeddings:
-        raise ValueError(f"tokens must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
-    _checks.float_array("poses", poses)
-    if poses.shape != tokens.shape[:2] + (7,):
-        raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
-    _checks.finite("poses", poses)
-    _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))
-
-
 def _warm_start(cls, config, hyper, out_dir, opts):
-    """opts.init, a cls.save file with the run's shapes (other fields, such as empty_code, may
-    differ) -> (hyper with the file's {"path", "sha256"}, its state_dict()); None or a resume ->
-    (hyper, None)."""
+    """opts.init, a cls.save file with the run's shapes (empty_code may differ) -> (hyper with the
+    file's {"path", "sha256"}, its state_dict()); None or a resume -> (hyper, None)."""
     path = opts.init
-    if path is None or resume_point(out_dir, opts.resume) is not None:
+    if path is None or opts.resume and os.path.exists(os.path.join(out_dir, CHECKPOINT)):
         return hyper, None
     try:
         model = cls.load(path)
@@ -216,19 +189,20 @@ def _restore(run, model, make_optimiser, init_state):
     return opt
 
 
-def _loop(run, opt, step, state, check, health, eval_every):
-    """The loop both trainings run: step(t) -> the log's values but lr; health() -> the held-out
-    figures (None: no evaluation), at step 0 of a fresh run, every eval_every steps and at the
-    last; check(run, t) before each checkpoint (None: none); the final model."""
-    with run:
-        if health is not None and not run.resumed:
-            run.log_eval(0, health())
-        for t in run.steps():
-            lr_t = opt.lr_at(opt.step_count)
-            run.log(t, {**step(t), "lr": lr_t})
-            if health is not None and run.eval_due(t, eval_every):
-                run.log_eval(t, health())
-            run.checkpoint(t, state, opt, check)
+def _loop(run, opt, step, current, check, health, eval_every):
+    """The loop both trainings run: step(t) -> the log's values but lr; current() -> the model (and
+    opt, the pyvf optimiser) as the engine has them; health() -> the held-out figures (None: no
+    evaluation), at step 0 of a fresh run, every eval_every steps and at the last; check(run, t)
+    before each checkpoint (None: none); the final model."""
+    state = lambda: current().state_dict()  # noqa: E731
+    if health is not None and not run.resumed:
+        run.log_eval(0, health())
+    for t in run.steps():
+        lr_t = opt.lr_at(opt.step_count)
+        run.log(t, {**step(t), "lr": lr_t})
+        if health is not None and eval_every and (t % eval_every == 0 or t == run.steps_total):
+            run.log_eval(t, health())
+        run.checkpoint(t, state, opt, check)
     run.save_final(state())
 
 
@@ -257,26 +231,6 @@ def _recipe(recipe, overrides):
     return r, recorded
 
 
-def _codebook_engine(opts, model, opt, flat):
-    """-> (step(x, w), reset(x, rng, **codes): the dead-code restart, state() -> the state dict,
-    current() -> the model, the optimiser, check or None), as _loop takes them."""
-    if opts.engine == "torch":
-        eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
-                            parity_batch=(codebook_batch(flat, 4, opts.seed + PARITY_SEED, 0, model.config.dtype),))
-        return eng.step, eng.reset_dead_codes, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
-
-    def step(x, w):
-        out = codebook_train_step(model, opt, x, pixel_weights=w)
-        return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
-                "perplexity": out.perplexity, "usage": out.usage}
-
-    def reset(x, rng, **codes):
-        z = model._encoder([], x)  # (B, D, k, k) with the updated weights
-        return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
-
-    return step, reset, model.state_dict, lambda: model, opt, None
-
-
 def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="small-batch", **overrides):
     """Train a Codebook with Adam and the EMA quantizer (docs/math.md §4) into the run folder out_dir
     (_run.py; at the end codebook.npz) -> the trained Codebook.
@@ -297,9 +251,7 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}, **recorded}
     check_engine(opts.engine, opts.device, opts.precision, config.dtype, one_process=True)
     hyper, init_state = _warm_start(Codebook, config, hyper, out_dir, opts)
-    call = {"command": opts.command, "threads": opts.threads, "recipe": recipe, "engine": opts.engine,
-            "device": opts.device, "precision": opts.precision,
-            "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
+    call = {"recipe": recipe, "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, opts, call=call,
                   evaluation=None if eval_fp is None else (CODEBOOK_HEALTH, eval_fp))
@@ -309,19 +261,34 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
             x = codebook_batch(flat, KMEANS_BATCHES * B, seed, 0, config.dtype)  # (B', C, Hi, Wi)
             model.quantizer.init_kmeans(model._encoder(None, x), r["kmeans"], B,
                                         rng=np.random.default_rng([seed, 0, 2]), empty=model.empty_patches(x))
-        step, reset, state, current, opt, check = _codebook_engine(opts, model, opt, flat)
         weight = r["object_weight"] if r["object_weight"] != 1.0 else None
+
+        if opts.engine == "torch":  # step, the dead-code reset, the model as the engine has it, the parity check
+            eng = TorchCodebook(model, opt, device=opts.device, precision=opts.precision,
+                                parity_batch=(codebook_batch(flat, 4, seed + PARITY_SEED, 0, config.dtype),))
+            step, reset, current, check = eng.step, eng.reset_dead_codes, eng.to_pyvf, eng.check
+        else:
+            def step(x, w):  # the update -> the log's values but lr
+                out = codebook_train_step(model, opt, x, pixel_weights=w)
+                return {"loss": out.loss, "rec_loss": out.rec_loss, "commitment": out.commitment_loss,
+                        "perplexity": out.perplexity, "usage": out.usage}
+
+            def reset(x, rng, **codes):
+                z = model._encoder([], x)  # (B, D, k, k) with the updated weights
+                return model.quantizer.reset_dead_codes(z, rng=rng, empty=model.empty_patches(x), **codes)
+
+            current, check = (lambda: model), None
 
         def step_t(t):
             x = codebook_batch(flat, B, seed, t, config.dtype, weight)
-            x, w = x if weight else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
-            values = step(x, w)
+            x, w = x if weight else (x, None)
+            values = step(x, w)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
             if r["reset_dead_codes"] and t % r["reset_dead_codes"] == 0:
                 reset(x, np.random.default_rng([seed, t, 1]), restart=r["restart"], reseat=r["reseat"])
             return values
 
         health = None if eval_fp is None else lambda: codebook_health(current(), eval_images)
-        _loop(run, opt, step_t, state, check, health, opts.eval_every)
+        _loop(run, opt, step_t, current, check, health, opts.eval_every)
         return current()
 
 
@@ -344,9 +311,8 @@ def held_out_set(codebook, images, poses):
 
 
 def save_tokens(path, tokens, poses, n_embed, codebook_fingerprint=None):
-    """Write a tokenized dataset atomically: tokens (scenes, views, k, k) ints in [0, n_embed),
-    poses (scenes, views, 7) floats, n_embed (the codebook size the tokens index) and the
-    codebook's fingerprint (Codebook.fingerprint; None: not recorded)."""
+    """Write a tokenized dataset atomically: tokens (scenes, views, k, k) ints in [0, n_embed), poses
+    (scenes, views, 7) floats, n_embed and the codebook's fingerprint (None: not recorded)."""
     extra = {} if codebook_fingerprint is None else {"codebook_fingerprint": str(codebook_fingerprint)}
     atomic_savez(path, tokens=tokens, poses=poses, n_embed=np.int64(n_embed), **extra)
 
@@ -365,36 +331,43 @@ def load_tokens(path):
 
 @dataclasses.dataclass(frozen=True)
 class TransformerRecipe:
-    """train_transformer's samples' context and the published optimiser (docs/math.md §5). Checked
-    when made; an error names the field."""
+    """train_transformer's published optimiser (docs/math.md §5); AdamW's weight decay is the published
+    0.01. Checked when made; an error names the field."""
 
-    context: int | None = None  # the most context views a sample has: N = context + 1 distinct views of a
-    # scene (None: config.sequence_size - 1); the tree trains the contexts n_loss_skip..N-1 in one step
     lr: float = 1e-4  # WarmupCosine's peak: linear warmup from 0, then cosine decay to 0 at total_steps
     warmup: int | None = None  # None: min(2000, total_steps // 10), the paper's 2000 shortened for short runs
     total_steps: int | None = None  # None: the run's steps; part of the run: keep it to extend a run
-    weight_decay: float = 0.01  # AdamW's decoupled decay on what published_weight_decay selects (not biases)
     max_grad_norm: float | None = 1.0  # tf.clip_by_norm per tensor (None: off); the logged grad_norm is the global norm
 
     def __post_init__(self):
-        for name, lo in (("context", 0), ("warmup", 0), ("total_steps", 1)):
+        for name, lo in (("warmup", 0), ("total_steps", 1)):
             if getattr(self, name) is not None:
                 object.__setattr__(self, name, _checks.integer(name, getattr(self, name), lo))
-        for name in ("lr", "weight_decay"):
-            object.__setattr__(self, name, _checks.real(name, getattr(self, name), lo=0.0))
+        object.__setattr__(self, "lr", _checks.real("lr", self.lr, lo=0.0))
         if self.max_grad_norm is not None:
             object.__setattr__(self, "max_grad_norm", _checks.real("max_grad_norm", self.max_grad_norm, lo=0.0,
                                                                    lo_open=True))
 
 
 def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint):
-    """train_transformer's run checked against its data -> (the run's hyperparameters, the
-    WarmupCosine schedule)."""
-    r = recipe
-    n_views = 1 + (config.sequence_size - 1 if r.context is None else r.context)  # N
+    """train_transformer's data and run checked (tokens ints (scenes, views, k, k) in [0, n_embeddings),
+    poses (scenes, views, 7) finite with unit quaternions: here, not at the step that draws a bad
+    view) -> (the run's hyperparameters, the WarmupCosine schedule)."""
+    _checks.int_array("tokens", tokens)
+    if tokens.ndim != 4 or tokens.shape[2:] != (config.token_image_size,) * 2:
+        raise ValueError(f"tokens must have shape (scenes, views, k, k), k = {config.token_image_size}, "
+                         f"got {tokens.shape}")
+    if tokens.size == 0 or tokens.min() < 0 or tokens.max() >= config.n_embeddings:
+        raise ValueError(f"tokens must be non-empty and in [0, {config.n_embeddings}) (config.n_embeddings)")
+    _checks.float_array("poses", poses)
+    if poses.shape != tokens.shape[:2] + (7,):
+        raise ValueError(f"poses must have shape (scenes, views, 7) = {tokens.shape[:2] + (7,)}, got {poses.shape}")
+    _checks.finite("poses", poses)
+    _check_unit("the quaternions of poses", poses[..., 3:].astype(config.dtype))
+    r, n_views = recipe, config.sequence_size  # N distinct views of a scene: the tree trains every context at once
     if not config.n_loss_skip < n_views <= tokens.shape[1]:
-        raise ValueError(f"context={n_views - 1} must leave a loss target (more than n_loss_skip="
-                         f"{config.n_loss_skip} views) and fit the {tokens.shape[1]} views a scene has")
+        raise ValueError(f"config.sequence_size={n_views} must leave a loss target (more than n_loss_skip="
+                         f"{config.n_loss_skip} views) and fit the {tokens.shape[1]} views a scene has (tokens)")
     total_steps = opts.steps if r.total_steps is None else r.total_steps
     if total_steps < opts.steps:
         raise ValueError(f"steps={opts.steps} runs past total_steps={total_steps}, the schedule's end: ask for at "
@@ -403,43 +376,12 @@ def _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint
     if warmup >= total_steps:
         raise ValueError(f"warmup={warmup} must be less than total_steps={total_steps}")
     hyper = {"batch_size": opts.batch_size, "views": n_views, "lr": r.lr, "warmup": warmup,
-             "total_steps": total_steps, "weight_decay": r.weight_decay, "eps": 1e-8, "eps_convention": "keras",
+             "total_steps": total_steps, "weight_decay": 0.01, "eps": 1e-8, "eps_convention": "keras",
              "max_grad_norm": r.max_grad_norm, "clip_mode": "per_tensor", "seed": opts.seed,
              "data": {"shape": tokens.shape, "fingerprint": fingerprint(tokens, poses)}}
     if codebook_fingerprint is not None:
         hyper["codebook_fingerprint"] = str(codebook_fingerprint)
     return hyper, WarmupCosine(r.lr, warmup, total_steps)
-
-
-def _transformer_eval(eval_set, eval_every, config):
-    """-> (the evaluation's record for config.json, eval.csv's columns, health(model) -> its row),
-    all None without eval_set or with eval_every 0."""
-    if eval_set is None or eval_every == 0:
-        return None, None, None
-    cb, images, poses, tokens = (eval_set[k] for k in ("codebook", "images", "poses", "tokens"))
-    contexts = health_contexts(config, images.shape[1])
-    if not contexts:
-        raise ValueError(f"eval_set's scenes have {images.shape[1]} views: too few for a context and the queries")
-    record = {"every": eval_every, "contexts": contexts, "fingerprint": fingerprint(tokens)}
-    return record, transformer_health_columns(contexts), lambda model: transformer_health(
-        cb, model, images, poses, tokens, contexts)
-
-
-def _transformer_engine(opts, model, opt, dp, recipe, parity):
-    """-> (step(tok, pos), state(), current(), the optimiser, check or None), as _loop takes them."""
-    if opts.engine == "torch":
-        eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp, parity_batch=parity,
-                               max_grad_norm=recipe.max_grad_norm)
-        return eng.step, eng.state_dict, eng.to_pyvf, eng.opt, eng.check
-
-    def step(tok, pos):
-        out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm, clip_mode="per_tensor")
-        if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
-            norm = float(np.sqrt(sum(n * n for n in norm.values())))
-        return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)), "pose_loss": float(np.mean(out.pose_loss)),
-                "grad_norm": norm}
-
-    return step, model.state_dict, lambda: model, opt, None
 
 
 def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRecipe(), *, eval_set=None,
@@ -452,21 +394,27 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         xyz and a unit quaternion wxyz, in any frame. Engine "torch": data-parallel under torchrun too.
     eval_set: None, or held_out_set's scenes whose transformer_health goes to eval.csv.
     codebook_fingerprint: the tokens' codebook's (load_tokens'), recorded in config.json and the model."""
-    _check_tokens_poses(tokens, poses, config)
     hyper, schedule = _transformer_hyper(tokens, poses, config, opts, recipe, codebook_fingerprint)
     B, n_views, seed = opts.batch_size, hyper["views"], opts.seed
     check_engine(opts.engine, opts.device, opts.precision, config.dtype)
-    eval_record, eval_columns, health = _transformer_eval(eval_set, opts.eval_every, config)
+    eval_record = evaluation = health = None  # config.json's record, Run's evaluation, health(model)
+    if eval_set is not None and opts.eval_every:
+        e = eval_set
+        contexts = health_contexts(config, e["images"].shape[1])
+        if not contexts:
+            raise ValueError(f"eval_set's scenes have {e['images'].shape[1]} views: too few for a context and queries")
+        eval_record = {"every": opts.eval_every, "contexts": contexts, "fingerprint": fingerprint(e["tokens"])}
+        evaluation = (transformer_health_columns(contexts), eval_record["fingerprint"])
+        health = lambda model: transformer_health(  # noqa: E731
+            e["codebook"], model, e["images"], e["poses"], e["tokens"], contexts)
     hyper, init_state = _warm_start(Transformer, config, hyper, out_dir, opts)
     dp, device = data_parallel(opts.device, B) if opts.engine == "torch" else (None, opts.device)
     opts = dataclasses.replace(opts, device=device)
-    call = {"command": opts.command, "threads": opts.threads, "engine": opts.engine, "device": device,
-            "precision": opts.precision, "processes": 1 if dp is None else dp.world, "eval": eval_record}
+    call = {"processes": 1 if dp is None else dp.world, "eval": eval_record}
     with kernel_threads(opts.threads):  # before the Run: config.json records the threads the run uses
         if dp is None or dp.rank == 0:
             run = Run(out_dir, "transformer", dataclasses.asdict(config), hyper, TRANSFORMER_LOG, opts, call=call,
-                      evaluation=eval_record and (eval_columns, eval_record["fingerprint"]),
-                      interruptible=dp is None)
+                      evaluation=evaluation)
         if dp is not None:  # the other processes follow rank 0's run from its start step
             start = dp.broadcast_int(run.start if dp.rank == 0 else 0)
             run = run if dp.rank == 0 else Follower(start, opts.steps)
@@ -474,10 +422,23 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
         opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=1e-8, weight_decay=hyper[
             "weight_decay"], decay=published_weight_decay, eps_convention="keras"), init_state)
-        parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
-        step, state, current, opt, check = _transformer_engine(opts, model, opt, dp, recipe, parity)
+        if opts.engine == "torch":  # step, the model as the engine has it, the parity check
+            parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
+            eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp,
+                                   parity_batch=parity, max_grad_norm=recipe.max_grad_norm)
+            step, current, check = eng.step, eng.to_pyvf, eng.check
+        else:
+            def step(tok, pos):  # the update -> the log's values but lr
+                out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
+                                       clip_mode="per_tensor")
+                if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
+                    norm = float(np.sqrt(sum(n * n for n in norm.values())))
+                return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)),
+                        "pose_loss": float(np.mean(out.pose_loss)), "grad_norm": norm}
+
+            current, check = (lambda: model), None
         evaluate = None if health is None or isinstance(run, Follower) else lambda: health(current())
-        _loop(run, opt, lambda t: step(*transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)), state,
+        _loop(run, opt, lambda t: step(*transformer_batch(tokens, poses, n_views, B, seed, t, config.dtype)), current,
               check, evaluate, opts.eval_every)  # batches (B, N, L), (B, N, 7)
     if dp is not None:
         dp.close()

@@ -17,13 +17,6 @@ import numpy as np
 
 from .. import _checks
 
-__all__ = ["AdamW", "Adam", "WarmupCosine", "warmup_cosine_lr", "clip_grad_norm", "global_norm",
-           "published_weight_decay"]
-
-
-def _nonfinite(grads):
-    return [k for k, g in grads.items() if not _checks.all_finite(g)]
-
 
 _PUBLISHED_NO_DECAY = re.compile("LayerNorm|layer_norm|bias")
 
@@ -71,11 +64,9 @@ class AdamW:
         torch:  p -= lr / (1 - b1^t) * m / (sqrt(v) / sqrt(1 - b2^t) + eps)
         keras:  p -= lr * sqrt(1 - b2^t) / (1 - b1^t) * m / (sqrt(v) + eps)
 
-    torch adds eps to the bias-corrected sqrt(v_hat); Keras/TF (`ResourceApplyAdam`, which
-    the published transformer used) adds it to the raw sqrt(v) and folds the bias corrections
-    into the step size. Keras therefore equals torch with eps replaced by
-    eps / sqrt(1 - b2^t): a larger epsilon early on (31.6x at t = 1 with b2 = 0.999, 3.2x at
-    t = 100) that tends to the same one as t grows. Weight decay is decoupled in both (the
+    Keras/TF (`ResourceApplyAdam`, the published transformer's) therefore equals torch with eps
+    replaced by eps / sqrt(1 - b2^t): a larger epsilon early on (31.6x at t = 1 with b2 = 0.999,
+    3.2x at t = 100) that tends to the same one as t grows. Weight decay is decoupled in both (the
     published `AdamWeightDecay` subtracts lr * wd * p before the Adam step), with the scheduled lr.
     """
 
@@ -108,9 +99,9 @@ class AdamW:
             new = {k: adam_update(p, self.exp_avg[k], self.exp_avg_sq[k], grads[k], lr, t, *self.betas, self.eps,
                                   self.weight_decay if k in self.decayed else 0.0, self.eps_convention == "keras")
                    for k, p in self.params.items()}
-        bad = _nonfinite({k: p1 for k, (p1, _, _) in new.items()}) + _nonfinite({k: v1 for k, (_, _, v1) in new.items()})
+        bad = [k for k, (p1, _, v1) in new.items() if not (_checks.all_finite(p1) and _checks.all_finite(v1))]
         if bad:  # (an inf v gives a finite p: both are checked)
-            raise ValueError(f"the update of {sorted(set(bad))} is not finite (NaN or inf in grads, or an "
+            raise ValueError(f"the update of {sorted(bad)} is not finite (NaN or inf in grads, or an "
                              "overflow of the dtype): no update applied")
         for k, (p1, m1, v1) in new.items():
             np.copyto(self.params[k], p1)  # in place: the caller's arrays are the model's
@@ -147,43 +138,41 @@ class Adam(AdamW):
     """Adam without weight decay (nor torch Adam's L2 term): AdamW with weight_decay = 0. The
     codebook's (docs/math.md §4): Adam(params, 1.584e-3, betas=(0.5, 0.9))."""
 
-    def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8, *, eps_convention="torch"):
-        super().__init__(params, lr, betas, eps, 0.0, eps_convention=eps_convention)
+    def __init__(self, params, lr=1e-3, betas=(0.9, 0.999), eps=1e-8):
+        super().__init__(params, lr, betas, eps, 0.0)
 
 
-def warmup_cosine_lr(step, peak_lr, warmup_steps, total_steps, min_lr_ratio=0.0):
-    """Linear warmup then cosine decay (docs/math.md §5), as the published HuggingFace `WarmUp`
-    over Keras `CosineDecay(peak_lr, total_steps - warmup_steps, alpha=min_lr_ratio)`.
+def warmup_cosine_lr(step, peak_lr, warmup_steps, total_steps):
+    """Linear warmup then cosine decay to 0 (docs/math.md §5), as the published HuggingFace `WarmUp`
+    over Keras `CosineDecay(peak_lr, total_steps - warmup_steps)`.
 
     step: updates already applied (0 for the first update; see AdamW). With W = warmup_steps,
-    T = total_steps, final = peak_lr * min_lr_ratio:
+    T = total_steps:
 
         step <= W:      peak_lr * step / W            (0 at step 0, peak_lr at step W exactly)
-        W < step < T:   final + (peak_lr - final) * (1 + cos(pi * (step - W) / (T - W))) / 2
-        step >= T:      final                         (exactly)
+        W < step < T:   peak_lr * (1 + cos(pi * (step - W) / (T - W))) / 2
+        step >= T:      0
 
-    With W = 0 the schedule starts at peak_lr. The published run used W = 2000 and
-    min_lr_ratio = 0, so its first update has lr 0 (the moments still accumulate)."""
+    With W = 0 the schedule starts at peak_lr. The published run used W = 2000, so its first
+    update has lr 0 (the moments still accumulate)."""
     if step <= warmup_steps and warmup_steps > 0:
         return peak_lr * (step / warmup_steps)
     if step >= total_steps:
-        return peak_lr * min_lr_ratio
+        return 0.0
     frac = (step - warmup_steps) / (total_steps - warmup_steps)  # in [0, 1)
-    # Keras CosineDecay: peak * ((1 - alpha) * c + alpha), c = (1 + cos(pi frac)) / 2
-    return peak_lr * ((1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * frac)) + min_lr_ratio)
+    return peak_lr * (0.5 * (1 + math.cos(math.pi * frac)))
 
 
 class WarmupCosine:
     """warmup_cosine_lr as a callable step -> lr, for AdamW(lr=...); arguments checked here."""
 
-    def __init__(self, peak_lr, warmup_steps, total_steps, min_lr_ratio=0.0):
+    def __init__(self, peak_lr, warmup_steps, total_steps):
         self.peak_lr = _checks.real("peak_lr", peak_lr, lo=0.0)
         self.warmup_steps = _checks.integer("warmup_steps", warmup_steps, 0)
         self.total_steps = _checks.integer("total_steps", total_steps, self.warmup_steps + 1)
-        self.min_lr_ratio = _checks.real("min_lr_ratio", min_lr_ratio, 0.0, 1.0)
 
     def __call__(self, step):
-        return warmup_cosine_lr(step, self.peak_lr, self.warmup_steps, self.total_steps, self.min_lr_ratio)
+        return warmup_cosine_lr(step, self.peak_lr, self.warmup_steps, self.total_steps)
 
 
 def _norm64(g):
@@ -194,20 +183,19 @@ def _norm64(g):
 
 
 def global_norm(grads):
-    """sqrt(sum over tensors of |g|^2), accumulated in float64, nothing modified: nan where a
-    gradient holds a NaN, inf where one holds an inf (train_step's norm without clipping,
-    so that a run logs the same quantity with clipping off)."""
+    """sqrt(sum over tensors of |g|^2) in float64, nothing modified; nan or inf where a gradient
+    holds one (train_step's norm without clipping: a run logs the same quantity either way)."""
     return math.sqrt(math.fsum(_norm64(g) ** 2 for g in grads.values()))
 
 
-def clip_grad_norm(grads, max_norm, *, mode="global", eps=1e-6):
+def clip_grad_norm(grads, max_norm, *, mode="global"):
     """Clip gradients in place; returns the norm(s) before clipping, accumulated in float64.
 
-    grads: dict name -> float32/float64 array, finite (else ValueError naming the tensors,
-        nothing modified).
+    grads: dict name -> float32/float64 array, finite, its norm finite in float64 (else
+        ValueError, nothing modified: max_norm / inf would zero the gradients).
     mode="global": torch.nn.utils.clip_grad_norm_. total = sqrt(sum over tensors of |g|^2);
-        if total + eps > max_norm every gradient is multiplied by max_norm / (total + eps)
-        (torch's eps = 1e-6; eps=0 gives tf.clip_by_global_norm). Returns total (a float).
+        if total + eps > max_norm (torch's eps = 1e-6) every gradient is multiplied by
+        max_norm / (total + eps). Returns total (a float).
     mode="per_tensor": tf.clip_by_norm on each tensor alone (Keras `clipnorm`, and what the
         published transformer does with `gradient_clip_val`): a tensor with |g| > max_norm
         becomes g * (max_norm / |g|); the others are left untouched. Returns {name: |g|}.
@@ -215,19 +203,16 @@ def clip_grad_norm(grads, max_norm, *, mode="global", eps=1e-6):
     max_norm = _checks.real("max_norm", max_norm, lo=0.0, lo_open=True)
     if mode not in ("global", "per_tensor"):
         raise ValueError(f"mode must be 'global' or 'per_tensor', got {mode!r}")
-    bad = _nonfinite(grads)
-    if bad:
-        raise ValueError(f"grads contain NaN or inf in {bad}: cannot clip")
     norms = {k: _norm64(g) for k, g in grads.items()}
     total = math.sqrt(math.fsum(n * n for n in norms.values()))
-    if not math.isfinite(total):  # float64 entries beyond ~1e154: max_norm / inf would zero the gradients
-        raise ValueError("the norm of grads overflows float64: nothing was clipped")
+    if not math.isfinite(total):  # a NaN or inf, or float64 entries beyond ~1e154
+        raise ValueError("grads hold a NaN or inf, or their norm overflows float64: nothing was clipped")
     if mode == "per_tensor":
         for k, g in grads.items():
             if norms[k] > max_norm:
                 g *= max_norm / norms[k]  # tf.clip_by_norm: the coefficient rounded to g's dtype
         return norms
-    if total + eps > max_norm:
+    if total + 1e-6 > max_norm:  # torch's eps
         for g in grads.values():
-            g *= max_norm / (total + eps)
+            g *= max_norm / (total + 1e-6)
     return total

@@ -9,7 +9,6 @@ every process draws the batch of (seed, step) and runs its shard of the rows, it
 by its share of the batch; rank 0 alone writes the run folder.
 """
 
-import contextlib
 import os
 import re
 
@@ -126,75 +125,59 @@ def data_parallel(device, batch_size):
     return DataParallel(dist, torch.device(device), created=not initialised), device
 
 
-class Follower(contextlib.nullcontext):
+class Follower:
     """Run's stand-in on the processes other than rank 0: the same steps, nothing read or written."""
 
     resumed, model_state, optimizer_state = False, None, None
 
     def __init__(self, start, steps_total):
-        super().__init__(self)
         self.start, self.steps_total = start, steps_total
 
     def steps(self):
         return range(self.start + 1, self.steps_total + 1)
 
-    def _false(self, *args):
-        return False
+    def checkpoint(self, *args):
+        pass
 
-    eval_due = checkpoint = log = save_final = _false
-
-
-class TorchAdamW:
-    """AdamW.step on torch tensors (params: official name -> Parameter) with the settings, schedule
-    and state_dict of ref, the pyvf AdamW or Adam."""
-
-    def __init__(self, params, ref, model):
-        self.params, self.ref, self.model = params, ref, model
-        self.exp_avg, self.exp_avg_sq = self._to_torch(ref.exp_avg), self._to_torch(ref.exp_avg_sq)
-
-    def _to_torch(self, arrays):
-        torch = import_torch()
-        arrays = params_to_layout(self.model, arrays, "torch")  # pyvf's layout -> nn.Linear's
-        return {k: torch.as_tensor(arrays[k]).to(p.device, p.dtype).contiguous() for k, p in self.params.items()}
-
-    @property
-    def step_count(self):
-        return self.ref.step_count
-
-    def lr_at(self, step):
-        return self.ref.lr_at(step)
-
-    def step(self):
-        """One update from the parameters' .grad (finite: the caller checked)."""
-        torch, r = import_torch(), self.ref
-        lr, t = r.lr_at(r.step_count), r.step_count + 1
-        with torch.no_grad():
-            for k, p in self.params.items():
-                wd = r.weight_decay if k in r.decayed else 0.0
-                p1, self.exp_avg[k], self.exp_avg_sq[k] = adam_update(
-                    p, self.exp_avg[k], self.exp_avg_sq[k], p.grad, lr, t, *r.betas, r.eps, wd,
-                    r.eps_convention == "keras", sqrt=torch.sqrt)
-                p.copy_(p1)
-        r.step_count = t
-
-    def state_dict(self):
-        """pyvf AdamW's state_dict (its layout, numpy)."""
-        for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
-            arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
-            setattr(self.ref, theirs, params_from_layout(self.model, arrays, "torch"))
-        return self.ref.state_dict()
+    log = save_final = checkpoint
 
 
 class TorchEngine:
-    """What both torch engines share: the port's parameters by official name (_names), the update
-    (opt), parity()'s arguments (parity_batch), to_pyvf() -> the pyvf model with the port's weights."""
+    """What both torch engines share: the port's parameters by official name (_names); the update
+    (optim.adam_update on torch tensors, with opt's settings, schedule and step count; _sync() puts
+    the moments in opt); the parity check; to_pyvf() -> the pyvf model and opt as the engine has them."""
 
-    def state_dict(self):
-        return self.to_pyvf().state_dict()
+    def __init__(self, model, opt, device, precision, parity_batch):
+        self.torch = torch = import_torch()
+        self.config, self.pyvf_model, self.opt = model.config, model, opt
+        self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
+        self.dtype = getattr(torch, str(model.dtype))  # torch.float32 or torch.float64
 
-    def _zero_grad(self):
-        for p in self._names.values():
-            p.grad = None
+    def _load_moments(self):
+        """The optimiser's moments as tensors beside the port's parameters (_names)."""
+        def on_device(arrays):
+            arrays = params_to_layout(self.pyvf_model, arrays, "torch")  # pyvf's layout -> nn.Linear's
+            return {k: self.torch.as_tensor(arrays[k]).to(p.device, p.dtype).contiguous()
+                    for k, p in self._names.items()}
+        self.exp_avg, self.exp_avg_sq = on_device(self.opt.exp_avg), on_device(self.opt.exp_avg_sq)
+
+    def _update(self):
+        """AdamW.step from the parameters' .grad (finite: the caller checked)."""
+        r = self.opt
+        lr, t = r.lr_at(r.step_count), r.step_count + 1
+        with self.torch.no_grad():
+            for k, p in self._names.items():
+                wd = r.weight_decay if k in r.decayed else 0.0
+                p1, self.exp_avg[k], self.exp_avg_sq[k] = adam_update(
+                    p, self.exp_avg[k], self.exp_avg_sq[k], p.grad, lr, t, *r.betas, r.eps, wd,
+                    r.eps_convention == "keras", sqrt=self.torch.sqrt)
+                p.copy_(p1)
+        r.step_count = t
+
+    def _sync(self):
+        for mine, theirs in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq")):
+            arrays = {k: a.detach().cpu().numpy() for k, a in mine.items()}
+            setattr(self.opt, theirs, params_from_layout(self.pyvf_model, arrays, "torch"))  # pyvf's layout, numpy
 
     def _refuse_nonfinite(self, stats, names):
         if not np.isfinite(stats).all():
@@ -221,23 +204,21 @@ class TorchTransformer(TorchEngine):
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", max_grad_norm=None, dp=None,
                  parity_batch=None):
-        torch = import_torch()
-        from ..verify.torch_ports import TransformerPort, official_name
-        from ..verify.torch_ports import transformer_losses as losses
-        self.torch, self.config, self.pyvf_model, self._losses = torch, model.config, model, losses
-        self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
-        self.max_grad_norm, self.dp = max_grad_norm, dp
-        self.port = TransformerPort(model.config).to(self.device, getattr(torch, str(model.dtype)))
+        super().__init__(model, opt_ref, device, precision, parity_batch)
+        from ..verify.torch_ports import TransformerPort, official_name, transformer_losses
+        self.max_grad_norm, self.dp, self._losses = max_grad_norm, dp, transformer_losses
+        self.port = TransformerPort(model.config).to(self.device, self.dtype)
         self._names = {official_name(n): p for n, p in self.port.named_parameters()}
-        with torch.no_grad():
+        with self.torch.no_grad():
             for k, a in model.state_dict(layout="torch").items():
-                self._names[k].copy_(torch.as_tensor(a))
-        self.opt = TorchAdamW(self._names, opt_ref, model)
+                self._names[k].copy_(self.torch.as_tensor(a))
+        self._load_moments()
         if dp is not None:  # every process continues rank 0's state (a fresh start, or its checkpoint)
-            dp.broadcast([*self._names.values(), *self.opt.exp_avg.values(), *self.opt.exp_avg_sq.values()])
+            dp.broadcast([*self._names.values(), *self.exp_avg.values(), *self.exp_avg_sq.values()])
             opt_ref.step_count = dp.broadcast_int(opt_ref.step_count)
 
     def to_pyvf(self):
+        self._sync()
         self.pyvf_model.load_official({k: p.detach().cpu().numpy() for k, p in self._names.items()},
                                       layout="torch")
         return self.pyvf_model
@@ -253,25 +234,20 @@ class TorchTransformer(TorchEngine):
         logits, raw = logits.float() if autocast else logits, raw.float() if autocast else raw
         return (logits, raw, *self._losses(logits, raw, tok, pos, self.config))
 
-    def _gradients(self, tokens, poses):
-        """The gradients of the batch's mean loss in the parameters' .grad (summed across the
-        processes) -> (the list of them, a tensor of the batch's loss, mean ce and mean pose loss)."""
-        B = len(tokens)
+    def step(self, tokens, poses):
+        """One update on a batch (poses made relative here) -> the log's values but lr. The
+        gradients are the batch's mean loss's, summed across the processes before the clipping."""
+        torch, B = self.torch, len(tokens)
         lo, hi = (0, B) if self.dp is None else self.dp.shard(B)
-        self._zero_grad()
+        self.port.zero_grad(set_to_none=True)
+        poses = make_relative(poses)[0]
         _, _, ce, pl, loss = self._outputs(tokens[lo:hi], poses[lo:hi], self.precision == "bf16")
         share = (hi - lo) / B  # loss = mean over the shard: its part of the batch mean is share * loss
         (loss * share).backward()
         grads = [p.grad for p in self._names.values()]
-        sums = self.torch.stack([loss.detach() * share, ce.detach().sum() / B, pl.detach().sum() / B])
+        sums = torch.stack([loss.detach() * share, ce.detach().sum() / B, pl.detach().sum() / B])
         if self.dp is not None:
-            self.dp.all_reduce([*grads, sums])  # before the clipping: it sees the batch's gradient
-        return grads, sums
-
-    def step(self, tokens, poses):
-        """One update on a batch (poses made relative here) -> the log's values but lr."""
-        torch = self.torch
-        grads, sums = self._gradients(tokens, make_relative(poses)[0])
+            self.dp.all_reduce([*grads, sums])
         norms = torch.stack(torch._foreach_norm(grads))  # (n_params,) each tensor's |g|
         total = norms.square().sum().sqrt()
         stats = torch.cat([sums, total[None]]).cpu().numpy()
@@ -280,7 +256,7 @@ class TorchTransformer(TorchEngine):
             m = float(self.max_grad_norm)
             scale = torch.where(norms > m, m / norms, torch.ones_like(norms))
             torch._foreach_mul_(grads, list(scale.unbind()))
-        self.opt.step()
+        self._update()
         return dict(zip(("loss", "ce_loss", "pose_loss", "grad_norm"), map(float, stats)))
 
     def parity(self, tokens, poses):
@@ -299,17 +275,15 @@ class TorchCodebook(TorchEngine):
     `opt_ref`. The port's quantizer does the EMA update in training mode."""
 
     def __init__(self, model, opt_ref, *, device="cpu", precision="fp32", parity_batch=None):
-        torch = import_torch()
+        super().__init__(model, opt_ref, device, precision, parity_batch)
         from ..verify.torch_ports import CodebookPort
-        self.torch, self.config, self.pyvf_model = torch, model.config, model
-        self.device, self.precision, self.parity_batch = torch.device(device), precision, parity_batch
-        self.dtype = getattr(torch, str(model.dtype))  # torch.float32 or torch.float64
         self.port = CodebookPort(model.config).to(self.device, self.dtype)  # training mode: EMA updates
         self._names = dict(self.port.named_parameters())  # the published names, as model.params'
-        self.port.load_state_dict({k: torch.as_tensor(v) for k, v in model.state_dict().items()})
-        self.opt = TorchAdamW(self._names, opt_ref, model)
+        self.port.load_state_dict({k: self.torch.as_tensor(v) for k, v in model.state_dict().items()})
+        self._load_moments()
 
     def to_pyvf(self):
+        self._sync()
         self.pyvf_model.load_official({k: v.detach().cpu().numpy() for k, v in self.port.state_dict().items()})
         return self.pyvf_model
 
@@ -328,7 +302,7 @@ class TorchCodebook(TorchEngine):
         """One update on images (B, C, S, S) (pixel_weights: Codebook.forward's) -> the log's values but lr."""
         torch = self.torch
         x = torch.as_tensor(images).to(self.device)
-        self._zero_grad()
+        self.port.zero_grad(set_to_none=True)
         rec, commitment, codes = self._forward(x, self.precision == "bf16")
         diff = (rec - x).abs()  # (B, C, S, S)
         if pixel_weights is None:
@@ -341,7 +315,7 @@ class TorchCodebook(TorchEngine):
         norm = torch.stack(torch._foreach_norm([p.grad for p in self._names.values()])).square().sum()
         stats = torch.stack([loss.detach(), rec_loss.detach(), commitment.detach(), norm]).cpu().numpy()
         self._refuse_nonfinite(stats, "loss, rec_loss, commitment, |g|^2")
-        self.opt.step()
+        self._update()
         counts = torch.bincount(codes.reshape(-1), minlength=self.config.n_embed).cpu().numpy()  # (K,)
         usage, perplexity = code_statistics(counts)
         return {"loss": float(stats[0]), "rec_loss": float(stats[1]), "commitment": float(stats[2]),
@@ -354,20 +328,17 @@ class TorchCodebook(TorchEngine):
             z = self.port.quant_conv(self.port.encoder(torch.as_tensor(images).to(self.device)))  # (B, D, k, k)
         quantizer.load_state_dict({k: v.cpu().numpy() for k, v in self.port.quantize.state_dict().items()})
         empty = self.pyvf_model.empty_patches(images)  # None without the empty code
-        n = quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng, empty=empty, **codes)
+        quantizer.reset_dead_codes(z.cpu().numpy(), rng=rng, empty=empty, **codes)
         self.port.quantize.load_state_dict({k: torch.as_tensor(v) for k, v in quantizer.state_dict().items()})
-        return n
 
     def parity(self, images):
         """pyvf.compare's Comparison of the torch model (evaluation mode) against pyvf on images."""
         torch = self.torch
         x = torch.as_tensor(images).to(self.device)
         self.port.eval()  # no EMA update
-        try:
-            with torch.no_grad():
-                rec, commitment, codes = self._forward(x, False)
-        finally:
-            self.port.train()
+        with torch.no_grad():
+            rec, commitment, codes = self._forward(x, False)
+        self.port.train()
         rec_loss = (rec - x).abs().mean()
         mine = {"codes": codes.cpu().numpy(), "reconstruction": rec.cpu().numpy(),
                 "rec_loss": np.asarray(rec_loss.item()), "commitment_loss": np.asarray(commitment.item()),
