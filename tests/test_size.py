@@ -1,8 +1,8 @@
 """The brake on growth (docs/contributing.md): pyvf's source (its .py files and csrc/) and its tests
 stay within their line budgets, counted as `wc -l` counts them (docstrings and comments included).
 
-Raising a budget is a decision in the diff. The goal (issue "a minimal reference again"): 12,000
-lines of source and 10,000 of tests; each change on the way lowers these numbers.
+Raising a budget is a decision in the diff: the issue "a minimal reference again" set them, half
+the code with every capability kept.
 """
 
 import os
@@ -11,7 +11,7 @@ import sys
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-BUDGETS = {"source": 12_600, "tests": 10_000}
+BUDGETS = {"source": 12_000, "tests": 10_000}
 
 
 def lines(folder, suffixes):
