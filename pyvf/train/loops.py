@@ -281,8 +281,8 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
 
         def step_t(t):
             x = codebook_batch(flat, B, seed, t, config.dtype, weight)
-            x, w = x if weight else (x, None)
-            values = step(x, w)  # (B, C, Hi, Wi), (B, 1, Hi, Wi)
+            x, w = x if weight else (x, None)  # (B, C, Hi, Wi), (B, 1, Hi, Wi) or None
+            values = step(x, w)
             if r["reset_dead_codes"] and t % r["reset_dead_codes"] == 0:
                 reset(x, np.random.default_rng([seed, t, 1]), restart=r["restart"], reseat=r["reseat"])
             return values
@@ -420,8 +420,8 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
             run = run if dp.rank == 0 else Follower(start, opts.steps)
         model = Transformer(config, seed=seed)
         model.codebook_fingerprint = hyper.get("codebook_fingerprint")  # both engines return this model
-        opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=1e-8, weight_decay=hyper[
-            "weight_decay"], decay=published_weight_decay, eps_convention="keras"), init_state)
+        opt = _restore(run, model, lambda params: AdamW(params, lr=schedule, eps=hyper["eps"], weight_decay=hyper[
+            "weight_decay"], decay=published_weight_decay, eps_convention=hyper["eps_convention"]), init_state)
         if opts.engine == "torch":  # step, the model as the engine has it, the parity check
             parity = transformer_batch(tokens, poses, n_views, 4, seed + PARITY_SEED, 0, config.dtype)
             eng = TorchTransformer(model, opt, device=opts.device, precision=opts.precision, dp=dp,
@@ -430,7 +430,7 @@ def train_transformer(tokens, poses, config, out_dir, opts, recipe=TransformerRe
         else:
             def step(tok, pos):  # the update -> the log's values but lr
                 out, norm = train_step(model, opt, tok, pos, max_grad_norm=recipe.max_grad_norm,
-                                       clip_mode="per_tensor")
+                                       clip_mode=hyper["clip_mode"])
                 if isinstance(norm, dict):  # clipped: {name: |g|} -> the global norm
                     norm = float(np.sqrt(sum(n * n for n in norm.values())))
                 return {"loss": out.loss, "ce_loss": float(np.mean(out.ce_loss)),
