@@ -29,7 +29,7 @@ from pyvf.evaluate.health import CODEBOOK_HEALTH, codebook_health, transformer_h
 from pyvf.models.codebook import Codebook, CodebookConfig
 from pyvf.models.transformer import Transformer, TransformerConfig
 from pyvf.train import codebook_batch, load_tokens, tokenize, train_codebook, train_transformer, transformer_batch
-from pyvf.train.loops import RunOptions, TransformerRecipe
+from pyvf.train.loops import CODEBOOK_LOG, RunOptions, TransformerRecipe
 from pyvf.cli.train import export_run, register as cli_register
 from pyvf.train.curves import runs_table
 
@@ -198,6 +198,11 @@ def test_resume_refuses_another_run(tmp_path, rng):
         train_codebook(images[:2], CB, cb, opts(4))
     with pytest.raises(ValueError, match="past steps=1"):
         train_codebook(images, CB, cb, opts(1))
+    train_codebook(images, CB, cb + "-cos", opts(6), schedule="cosine")  # the codebook's lr: a cosine to 0 at step 6
+    lr = [float(r[CODEBOOK_LOG.index("lr") + 1]) for r in _log(cb + "-cos", "log.csv")[1:]]  # update t: lr(t - 1)
+    np.testing.assert_allclose(lr, [3e-4 * (1 + np.cos(np.pi * t / 6)) / 2 for t in range(6)], rtol=1e-12)
+    with pytest.raises(ValueError, match="total_steps"):  # more steps would end the cosine elsewhere
+        train_codebook(images, CB, cb + "-cos", opts(8), schedule="cosine")
     with pytest.raises(ValueError, match="'codebook' run"):
         train_transformer(tokens, poses, TF, cb, opts(4))
     # the schedule's length is part of the run: extending one needs its total_steps
@@ -365,6 +370,7 @@ def test_the_options_refusals_name_the_field(call, error, name):
     (lambda d, out: _cb(d, out, betas=(0.9, 1.0)), ValueError, "betas"),
     (lambda d, out: _cb(d, out, object_weight=0), ValueError, "object_weight"),
     (lambda d, out: _cb(d, out, restart="best"), ValueError, "restart"),
+    (lambda d, out: _cb(d, out, schedule="linear"), ValueError, "schedule"),
     (lambda d, out: _cb(d, out, opts(1, init=d["tf_file"])), ValueError, "init"),  # another kind of model
     (lambda d, out: _cb(d, out, opts(1, init=d["cb8_file"])), ValueError, "init"),  # another configuration
     (lambda d, out: _cb(d, out, opts(1, init=out + ".npz")), FileNotFoundError, "init"),
@@ -421,14 +427,14 @@ def test_commands_end_to_end(tmp_path, rng, monkeypatch, capsys):
     tf_json.write_text(json.dumps(dataclasses.asdict(dataclasses.replace(TF, token_image_size=8))))
     run, d = _cli(), tmp_path
     assert run("train-codebook", "--data", d / "data", "--out", d / "cb", "--steps", 3, "--batch", 2,
-               "--config", cb_json, "--no-progress", "--restart", "worst") == 0
+               "--config", cb_json, "--no-progress", "--restart", "worst", "--schedule", "cosine") == 0
     cb = Codebook.load(str(d / "cb" / "codebook.npz"))
     # evaluated on held-out scenes (seed 1, 4 views each) before the first step and after the last
     assert held_out == [(1, 32, 4, 16)]
     assert [r[0] for r in _log(str(d / "cb"), "eval.csv")[1:]] == ["0", "3"]
     recorded = json.loads((d / "cb" / "config.json").read_text())
     assert recorded["calls"][0]["command"]["args"]["steps"] == 3 and recorded["config"]["image_size"] == 16
-    assert recorded["hyperparameters"]["restart"] == "worst"
+    assert (recorded["hyperparameters"]["restart"], recorded["hyperparameters"]["schedule"]) == ("worst", "cosine")
     assert run("tokenize", "--codebook", d / "cb" / "codebook.npz", "--data", d / "data",
                "--out", d / "tok" / "tokens.npz", "--no-progress") == 0
     tokens, saved_poses, n_embed, fingerprint = load_tokens(str(d / "tok" / "tokens.npz"))

@@ -125,7 +125,7 @@ def cmd_train_codebook(args):
     """Train the codebook (VQ-VAE) on a dataset's images; rerun to resume from the last checkpoint."""
     opts, held_out = _run(args)
     codebook_run(args.data, args.out, opts, recipe=args.recipe, lr=args.lr, object_weight=args.object_weight,
-                       restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, **held_out)
+                 restart=args.restart, reseat=args.reseat, kmeans=args.kmeans, schedule=args.schedule, **held_out)
     print(f"codebook: {os.path.join(args.out, 'codebook.npz')}")
 
 
@@ -212,6 +212,8 @@ def register(subparsers):
                    help="each reset also moves up to N codes of least utility")
     p.add_argument("--kmeans", type=int, default=None, metavar="ITERS",
                    help="initialise the codes by ITERS k-means iterations on encoder outputs (0: uniform)")
+    p.add_argument("--schedule", default=None, choices=["constant", "cosine"],
+                   help="the learning rate: constant, or a cosine from --lr to 0 at the last step")
 
     p = _command(subparsers, "tokenize", cmd_tokenize, "encode a dataset into token images with a codebook")
     p.add_argument("--codebook", required=True, help="codebook .npz (train-codebook's codebook.npz)")

@@ -53,8 +53,9 @@ TINY_TRANSFORMER = TransformerConfig(
 # Codebook training recipes. "published" is the published code's (docs/math.md §4), whose lr and
 # betas serve a batch of 352: at batches of 16 they collapse the latent on SM7. "small-batch", the
 # default, is chosen by the ablations of docs/models-remarks.md. restart, reseat, kmeans:
-# EMAQuantizer.reset_dead_codes' and init_kmeans' (0: a uniform initialisation).
-_CODES = {"restart": "batch", "reseat": 0, "kmeans": 0}
+# EMAQuantizer.reset_dead_codes' and init_kmeans' (0: a uniform initialisation); schedule: the lr
+# "constant", or "cosine" from lr at the first step to 0 at the last (WarmupCosine without warmup).
+_CODES = {"restart": "batch", "reseat": 0, "kmeans": 0, "schedule": "constant"}
 CODEBOOK_RECIPES = {
     "published": {"lr": 1.584e-3, "betas": (0.5, 0.9), "reset_dead_codes": 0, "object_weight": 1.0, **_CODES},
     "small-batch": {"lr": 3e-4, "betas": (0.9, 0.99), "reset_dead_codes": 20, "object_weight": 4.0, **_CODES},
@@ -226,6 +227,8 @@ def _recipe(recipe, overrides):
     r["object_weight"] = _checks.real("object_weight", r["object_weight"], lo=0.0, lo_open=True)
     if r["restart"] not in ("batch", "worst"):
         raise ValueError(f"restart must be 'batch' or 'worst', got {r['restart']!r}")
+    if r["schedule"] not in ("constant", "cosine"):
+        raise ValueError(f"schedule must be 'constant' or 'cosine', got {r['schedule']!r}")
     recorded = {"object_weight": r["object_weight"]} if r["object_weight"] != 1.0 else {}
     recorded.update({k: r[k] for k in _CODES if r[k] != _CODES[k]})
     return r, recorded
@@ -239,7 +242,8 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
     eval_images: None, or held-out uint8 views (M, Hi, Wi, C) whose codebook_health goes to eval.csv.
     recipe: a name of CODEBOOK_RECIPES; overrides (each not None replaces the recipe's): lr, betas,
         reset_dead_codes (every this many steps dead codes move to encoder outputs; 0: never),
-        object_weight (the loss weight of object pixels, 1 for the background), restart, reseat, kmeans."""
+        object_weight (the loss weight of object pixels, 1 for the background), restart, reseat, kmeans,
+        schedule (the cosine's end is opts.steps, recorded: a resume must ask for the same steps)."""
     flat = _check_images(images, config)  # (M, Hi, Wi, C)
     r, recorded = _recipe(recipe, overrides)
     if eval_images is not None:
@@ -249,6 +253,9 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
     hyper = {"batch_size": B, "lr": r["lr"], "betas": r["betas"], "seed": seed,
              "reset_dead_codes": r["reset_dead_codes"],
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}, **recorded}
+    if r["schedule"] == "cosine":
+        hyper["total_steps"] = opts.steps
+    lr = WarmupCosine(r["lr"], 0, opts.steps) if r["schedule"] == "cosine" else r["lr"]
     check_engine(opts.engine, opts.device, opts.precision, config.dtype, one_process=True)
     hyper, init_state = _warm_start(Codebook, config, hyper, out_dir, opts)
     call = {"recipe": recipe, "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
@@ -256,7 +263,7 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
         run = Run(out_dir, "codebook", dataclasses.asdict(config), hyper, CODEBOOK_LOG, opts, call=call,
                   evaluation=None if eval_fp is None else (CODEBOOK_HEALTH, eval_fp))
         model = Codebook(config, seed=seed)
-        opt = _restore(run, model, lambda params: Adam(params, r["lr"], betas=r["betas"]), init_state)
+        opt = _restore(run, model, lambda params: Adam(params, lr, betas=r["betas"]), init_state)
         if not run.resumed and init_state is None and r["kmeans"]:  # the codes by k-means on step 0's batches
             x = codebook_batch(flat, KMEANS_BATCHES * B, seed, 0, config.dtype)  # (B', C, Hi, Wi)
             model.quantizer.init_kmeans(model._encoder(None, x), r["kmeans"], B,
