@@ -5,8 +5,8 @@
 
 For each candidate, in out/<name>/: a codebook trained for --codebook-minutes of the process's
 CPU time at one thread (equal compute: the machine is shared, and wall time would charge a
-candidate for another's load; the step it reaches is recorded; stopped through the run's own
-Ctrl-C path, so its checkpoint is exact), the training scenes tokenized, a fixed transformer run (same configuration, steps, batch,
+candidate for another's load; the model of its last checkpoint before the budget ran out is kept,
+and its step recorded), the training scenes tokenized, a fixed transformer run (same configuration, steps, batch,
 lr and seed for all), then one judgement on --scenes held-out scenes of --seed (never 1000, the
 final evaluation's): reconstruction (whole image and object pixels), the empty-patch code entropy,
 the transformer's held-out cross-entropy (empty / object patches) and rendering MAE beside the
@@ -63,6 +63,8 @@ TRANSFORMERS = {
     "l2-lr1e-3": ({"n_layer": 2}, 8, 1e-3, None),
     "l2-lr5e-4": ({"n_layer": 2}, 8, 5e-4, None),
     "d96-l3-lr1e-3": ({"d_model": 96, "n_layer": 3}, 8, 1e-3, None),
+    "l2-lr5e-4-sqrt": ({"n_layer": 2, "attention_scale": 32 ** -0.5}, 8, 5e-4, None),  # logits / sqrt(dh)
+    "l2-lr1e-3-sqrt": ({"n_layer": 2, "attention_scale": 32 ** -0.5}, 8, 1e-3, None),
 }
 TF_COLUMNS = [("steps", "steps", 0), ("ce_c3", "CE c3", 3), ("ce_object_c3", "CE object c3", 3),
               ("token_accuracy_object_c3", "acc object c3", 3), ("mae_c3", "MAE c3", 2),
@@ -79,8 +81,8 @@ COLUMNS = [("steps", "codebook steps", 0), ("codebook_seconds", "wall s", 0), ("
 
 def train_codebook_for(seconds, images, config, out, opts, **kw):
     """train_codebook until `seconds` of this process's CPU time (ITIMER_PROF: user + system; at one
-    thread, the compute spent), stopped by the run's Ctrl-C path (SIGINT when the timer fires), then
-    its final model written at the step it reached. A run resumed after a kill counts its checkpoint's
+    thread, the compute spent), interrupted by SIGINT when the timer fires, then its final model
+    written from its last checkpoint (opts.checkpoint_every). A run resumed after a kill counts its checkpoint's
     wall time as spent (at least the CPU time it had). Returns the Codebook."""
     ckpt = os.path.join(out, CHECKPOINT)
     done = read_checkpoint(ckpt, "codebook")[0]["elapsed"] if os.path.exists(ckpt) else 0.0
