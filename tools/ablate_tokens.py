@@ -50,6 +50,9 @@ CANDIDATES = {  # in the order they run: the likeliest to matter first
     "empty": ({}, {"empty_code": True}),
     "empty-worst-reseat": ({"restart": "worst", "reseat": 32}, {"empty_code": True}),
     "empty-kmeans-worst-reseat": ({"restart": "worst", "reseat": 32, "kmeans": 10}, {"empty_code": True}),
+    "empty-kmeans-worst": ({"restart": "worst", "kmeans": 10}, {"empty_code": True}),
+    "empty-kmeans-worst-n128": ({"restart": "worst", "kmeans": 10}, {"empty_code": True, "n_embed": 128}),
+    "empty-kmeans-worst-decay0.95": ({"restart": "worst", "kmeans": 10}, {"empty_code": True, "decay": 0.95}),
     "worst-reseat-n128": ({"restart": "worst", "reseat": 32}, {"n_embed": 128}),
     "worst-reseat-decay0.95": ({"restart": "worst", "reseat": 32}, {"decay": 0.95}),
 }
@@ -123,7 +126,7 @@ def run_candidate(name, args, data, held):
         cb = Codebook.load(cb_path)
     else:
         cb = train_codebook_for(60 * args.codebook_minutes, data.images, cb_config, os.path.join(folder, "codebook"),
-                                RunOptions(steps=1, threads=1, progress=False, checkpoint_every=25), **kw)
+                                RunOptions(steps=1, threads=1, progress=False, checkpoint_every=5), **kw)
     tokens_path = os.path.join(folder, "tokens.npz")
     if not os.path.exists(tokens_path):
         save_tokens(tokens_path, tokenize(cb, data.images), data.poses, cb_config.n_embed)
