@@ -55,10 +55,11 @@ TINY_TRANSFORMER = TransformerConfig(
 # default, is chosen by the ablations of docs/models-remarks.md. restart, reseat, kmeans:
 # EMAQuantizer.reset_dead_codes' and init_kmeans' (0: a uniform initialisation); schedule: the lr
 # "constant", or "cosine" from lr at the first step to 0 at the last (WarmupCosine without warmup).
-_CODES = {"restart": "batch", "reseat": 0, "kmeans": 0, "schedule": "constant"}
+# Options newer than the first runs: a run's config.json records them only away from these defaults.
+_LATER_OPTIONS = {"restart": "batch", "reseat": 0, "kmeans": 0, "schedule": "constant"}
 CODEBOOK_RECIPES = {
-    "published": {"lr": 1.584e-3, "betas": (0.5, 0.9), "reset_dead_codes": 0, "object_weight": 1.0, **_CODES},
-    "small-batch": {"lr": 3e-4, "betas": (0.9, 0.99), "reset_dead_codes": 20, "object_weight": 4.0, **_CODES},
+    "published": {"lr": 1.584e-3, "betas": (0.5, 0.9), "reset_dead_codes": 0, "object_weight": 1.0, **_LATER_OPTIONS},
+    "small-batch": {"lr": 3e-4, "betas": (0.9, 0.99), "reset_dead_codes": 20, "object_weight": 4.0, **_LATER_OPTIONS},
 }
 KMEANS_BATCHES = 4  # the k-means initialisation clusters the encoder's outputs of this many batches
 
@@ -213,7 +214,7 @@ def _loop(run, opt, step, current, check, health, eval_every):
 
 def _recipe(recipe, overrides):
     """The recipe with the overrides not None, checked -> (the settings, the hyperparameters a run
-    records beyond the base ones: those of object_weight and _CODES not at their defaults)."""
+    records beyond the base ones: those of object_weight and _LATER_OPTIONS not at their defaults)."""
     if recipe not in CODEBOOK_RECIPES:
         raise ValueError(f"recipe must be one of {sorted(CODEBOOK_RECIPES)}, got {recipe!r}")
     unknown = sorted(set(overrides) - set(CODEBOOK_RECIPES[recipe]))
@@ -230,7 +231,7 @@ def _recipe(recipe, overrides):
     if r["schedule"] not in ("constant", "cosine"):
         raise ValueError(f"schedule must be 'constant' or 'cosine', got {r['schedule']!r}")
     recorded = {"object_weight": r["object_weight"]} if r["object_weight"] != 1.0 else {}
-    recorded.update({k: r[k] for k in _CODES if r[k] != _CODES[k]})
+    recorded.update({k: r[k] for k in _LATER_OPTIONS if r[k] != _LATER_OPTIONS[k]})
     return r, recorded
 
 
