@@ -68,6 +68,8 @@ TRANSFORMERS = {
     "d96-l3-lr1e-3": ({"d_model": 96, "n_layer": 3}, 8, 1e-3, None),
     "l2-lr5e-4-sqrt": ({"n_layer": 2, "attention_scale": 32 ** -0.5}, 8, 5e-4, None),  # logits / sqrt(dh)
     "l2-lr1e-3-sqrt": ({"n_layer": 2, "attention_scale": 32 ** -0.5}, 8, 1e-3, None),
+    "l2-b4-lr5e-4": ({"n_layer": 2}, 4, 5e-4, None),  # more, smaller steps in the same CPU time
+    "l2-b2-lr5e-4": ({"n_layer": 2}, 2, 5e-4, None),
 }
 TF_COLUMNS = [("steps", "steps", 0), ("ce_c3", "CE c3", 3), ("ce_object_c3", "CE object c3", 3),
               ("token_accuracy_object_c3", "acc object c3", 3), ("mae_c3", "MAE c3", 2),
