@@ -5,13 +5,14 @@
 
 For each candidate, in out/<name>/: a codebook trained for --codebook-minutes of the process's
 CPU time at one thread (equal compute: the machine is shared, and wall time would charge a
-candidate for another's load; the model of its last checkpoint before the budget ran out is kept,
-and its step recorded), the training scenes tokenized, a fixed transformer run (same configuration, steps, batch,
-lr and seed for all), then one judgement on --scenes held-out scenes of --seed (never 1000, the
-final evaluation's): reconstruction (whole image and object pixels), the empty-patch code entropy,
-the transformer's held-out cross-entropy (empty / object patches) and rendering MAE beside the
-nearest-view baseline's. Every stage is skipped when its output exists and resumes from its
-checkpoint otherwise. out/ablation.json and out/ablation.md gather the candidates' results.
+candidate for another's load; the model of its last checkpoint before the budget ran out is
+kept, and its step recorded), the training scenes tokenized, a fixed transformer run (same
+configuration, steps, batch, lr and seed for all), then one judgement on --scenes held-out
+scenes of --seed (never 1000, the final evaluation's): reconstruction (whole image and object
+pixels), the empty-patch code entropy, the transformer's held-out cross-entropy (empty / object
+patches) and rendering MAE beside the nearest-view baseline's. Every stage is skipped when its
+output exists and resumes from its checkpoint otherwise. out/ablation.json and out/ablation.md
+gather the candidates' results.
 
 The transformer's recipe (issue 48), on one codebook candidate's tokens:
 
@@ -53,8 +54,6 @@ CANDIDATES = {  # in the order they run: the likeliest to matter first
     "empty-kmeans-worst": ({"restart": "worst", "kmeans": 10}, {"empty_code": True}),
     "empty-kmeans-worst-n128": ({"restart": "worst", "kmeans": 10}, {"empty_code": True, "n_embed": 128}),
     "empty-kmeans-worst-decay0.95": ({"restart": "worst", "kmeans": 10}, {"empty_code": True, "decay": 0.95}),
-    "worst-reseat-n128": ({"restart": "worst", "reseat": 32}, {"n_embed": 128}),
-    "worst-reseat-decay0.95": ({"restart": "worst", "reseat": 32}, {"decay": 0.95}),
 }
 # name -> (TransformerConfig changes, batch, lr, warmup (None: train_transformer's default)); each
 # trained on one codebook candidate's tokens (--tokens-from) for the same CPU time
@@ -87,8 +86,8 @@ COLUMNS = [("steps", "codebook steps", 0), ("codebook_seconds", "wall s", 0), ("
 def train_codebook_for(seconds, images, config, out, opts, **kw):
     """train_codebook until `seconds` of this process's CPU time (ITIMER_PROF: user + system; at one
     thread, the compute spent), interrupted by SIGINT when the timer fires, then its final model
-    written from its last checkpoint (opts.checkpoint_every). A run resumed after a kill counts its checkpoint's
-    wall time as spent (at least the CPU time it had). Returns the Codebook."""
+    written from its last checkpoint (opts.checkpoint_every). A run resumed after a kill counts its
+    checkpoint's wall time as spent (at least the CPU time it had). Returns the Codebook."""
     ckpt = os.path.join(out, CHECKPOINT)
     done = read_checkpoint(ckpt, "codebook")[0]["elapsed"] if os.path.exists(ckpt) else 0.0
     if seconds > done:

@@ -254,9 +254,9 @@ def train_codebook(images, config, out_dir, opts, *, eval_images=None, recipe="s
     hyper = {"batch_size": B, "lr": r["lr"], "betas": r["betas"], "seed": seed,
              "reset_dead_codes": r["reset_dead_codes"],
              "data": {"shape": images.shape, "fingerprint": fingerprint(images)}, **recorded}
-    if r["schedule"] == "cosine":
-        hyper["total_steps"] = opts.steps
-    lr = WarmupCosine(r["lr"], 0, opts.steps) if r["schedule"] == "cosine" else r["lr"]
+    lr = r["lr"]
+    if r["schedule"] == "cosine":  # its end recorded: a resume must ask for the same steps
+        hyper["total_steps"], lr = opts.steps, WarmupCosine(r["lr"], 0, opts.steps)
     check_engine(opts.engine, opts.device, opts.precision, config.dtype, one_process=True)
     hyper, init_state = _warm_start(Codebook, config, hyper, out_dir, opts)
     call = {"recipe": recipe, "eval": None if eval_fp is None else {"every": opts.eval_every, "fingerprint": eval_fp}}
