@@ -54,6 +54,8 @@ CANDIDATES = {  # in the order they run: the likeliest to matter first
     "empty-kmeans-worst": ({"restart": "worst", "kmeans": 10}, {"empty_code": True}),
     "empty-kmeans-worst-n128": ({"restart": "worst", "kmeans": 10}, {"empty_code": True, "n_embed": 128}),
     "empty-kmeans-worst-decay0.95": ({"restart": "worst", "kmeans": 10}, {"empty_code": True, "decay": 0.95}),
+    "empty-kmeans-worst-d16": ({"restart": "worst", "kmeans": 10}, {"empty_code": True, "embed_dim": 16}),  # narrow codes
+    "empty-kmeans-worst-d8": ({"restart": "worst", "kmeans": 10}, {"empty_code": True, "embed_dim": 8}),
 }
 # name -> (TransformerConfig changes, batch, lr, warmup (None: train_transformer's default)); each
 # trained on one codebook candidate's tokens (--tokens-from) for the same CPU time
@@ -69,6 +71,8 @@ TRANSFORMERS = {
     "l2-lr1e-3-sqrt": ({"n_layer": 2, "attention_scale": 32 ** -0.5}, 8, 1e-3, None),
     "l2-b4-lr5e-4": ({"n_layer": 2}, 4, 5e-4, None),  # more, smaller steps in the same CPU time
     "l2-b2-lr5e-4": ({"n_layer": 2}, 2, 5e-4, None),
+    "l2-b2-lr5e-4-w0": ({"n_layer": 2}, 2, 5e-4, 0),  # warmup: none, and a third of the steps (default a tenth)
+    "l2-b2-lr5e-4-w1000": ({"n_layer": 2}, 2, 5e-4, 1000),
 }
 TF_COLUMNS = [("steps", "steps", 0), ("ce_c3", "CE c3", 3), ("ce_object_c3", "CE object c3", 3),
               ("token_accuracy_object_c3", "acc object c3", 3), ("mae_c3", "MAE c3", 2),
