@@ -115,16 +115,23 @@ def test_cross_entropy_hard_cases(dtype):
     assert d[0, 1] == np.exp(gap) and d[0, 1] > 0, d
 
 
-def test_pose_loss_matches_torch_and_uses_the_raw_quaternion(rng):
+@pytest.mark.parametrize("sign_invariant", [False, True])
+def test_pose_loss_matches_torch_and_uses_the_raw_quaternion(rng, sign_invariant):
     raw = rng.standard_normal((2, 3, 5, 7)) * 2  # a quaternion of norm ~4: not normalised
-    target = rng.standard_normal((2, 3, 1, 7))  # broadcast over the tokens
+    target = rng.standard_normal((2, 3, 1, 7))  # broadcast over the tokens; q . q_raw of both signs
     dloss = rng.standard_normal((2, 3, 5))
     m = 0.2
-    loss, cache = pose_loss_forward(raw, target, m)
+    loss, cache = pose_loss_forward(raw, target, m, sign_invariant)
     (draw,) = pose_loss_backward(dloss, cache)
     tr = torch.tensor(raw, requires_grad=True)
     tt = torch.tensor(target)
-    tloss = ((m * tt[..., :3] - tr[..., :3]) ** 2).mean(-1) + ((tt[..., 3:] - tr[..., 3:]) ** 2).mean(-1)
+    tq = ((tt[..., 3:] - tr[..., 3:]) ** 2).mean(-1)
+    if sign_invariant:  # the oracle: the smaller loss of q and -q, autograd through the smaller
+        tq = torch.minimum(tq, ((-tt[..., 3:] - tr[..., 3:]) ** 2).mean(-1))
+    tloss = ((m * tt[..., :3] - tr[..., :3]) ** 2).mean(-1) + tq
     (tloss * torch.tensor(dloss)).sum().backward()
     assert_close("pose loss", loss, tloss.detach().numpy(), rtol=RTOL)
     assert_close("draw", draw, tr.grad.numpy(), rtol=RTOL)
+    flipped = np.concatenate([target[..., :3], -target[..., 3:]], axis=-1)  # the same rotations
+    same = pose_loss_forward(raw, flipped, m, sign_invariant)[0] == loss
+    assert same.all() if sign_invariant else not same.any()

@@ -136,8 +136,8 @@ SAME = dict(attention_scale=0.5, pose_multiplier=0.2, label_smoothing=0.1)
 CASES = {  # configuration, backward's seeds
     "dlogits_only": (SAME, dict(dlogits=True)),
     "loss_and_vjp": (SAME, dict(dlogits=True, dpose=True, dloss=0.7)),
-    "weights": (dict(pose_multiplier=0.2, localization_weight=5.0, image_generation_weight=0.7, label_smoothing=0.1),
-                dict(dloss=1.0)),
+    "weights": (dict(pose_multiplier=0.2, localization_weight=5.0, image_generation_weight=0.7, label_smoothing=0.1,
+                     sign_invariant_pose=True), dict(dloss=1.0)),
     "scaled": (dict(attention_scale=1 / 4, n_loss_skip=2, n_layer=3, n_head=4), dict(dloss=1.0)),
     "no_skip": (dict(n_loss_skip=0, n_head=1, d_model=24), dict(dloss=1.0)),
 }

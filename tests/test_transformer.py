@@ -235,6 +235,7 @@ def test_load_official_refusals_name_the_weight(rng, edit, error, name):
     ("n_head", 2.0, TypeError),
     ("pose_multiplier", 0.0, ValueError),  # predictions are divided by it
     ("attention_scale", [1.0], TypeError),
+    ("sign_invariant_pose", 1, TypeError),  # a bool, as JSON writes it
 ])
 def test_config_refusals(field, value, error):
     with pytest.raises(error, match=rf"\b{field}\b"):

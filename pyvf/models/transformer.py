@@ -116,6 +116,12 @@ class TransformerConfig:
     label_smoothing: float = 0.0  # eps: the CE target is (1 - eps) onehot + eps / V
     attention_scale: float = 1.0  # logit = scale * q.k; the published model uses 1, not 1/sqrt(dh)
     dtype: str = "float32"  # parameters and activations: "float32" or "float64"
+    # pyvf's own, not published: the pose loss takes the sign of the target quaternion nearer the
+    # prediction (pose_loss_forward), as q and -q are one rotation. False: the published loss, whose
+    # sign-canonical targets (w >= 0) flip near half-turns, where a network's fit shrinks to small angles.
+    sign_invariant_pose: bool = False
+
+    ADDED_FIELDS = ("sign_invariant_pose",)  # newer than some saved files; a file without it loads with the default
 
     def __post_init__(self):
         # Python or NumPy numbers, stored as int and float: the configuration is saved as JSON
@@ -131,6 +137,8 @@ class TransformerConfig:
         if self.token_image_size ** 2 > MAX_TOKENS_PER_VIEW:
             raise ValueError(f"TransformerConfig.token_image_size={self.token_image_size}: wpe has "
                              f"{MAX_TOKENS_PER_VIEW} rows")
+        if not isinstance(self.sign_invariant_pose, bool):
+            raise TypeError(f"TransformerConfig.sign_invariant_pose must be a bool, got {self.sign_invariant_pose!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"TransformerConfig.dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if self.pose_multiplier == 0:  # predictions are divided by it
@@ -476,7 +484,8 @@ class Transformer(ModelWeights):
         if np.may_share_memory(lg, logits):  # B = 1 or S = 0: a view; the cache must not be out.logits,
             lg = lg.copy()  # which is the caller's to change (otherwise the reshape copied already)
         ce_tok, c_ce = cross_entropy_forward(lg, tokens[:, S:].reshape(-1), cfg.label_smoothing)  # (B*(N-S)*L,)
-        pl_tok, c_pl = pose_loss_forward(raw[:, S:], poses[:, S:, None, :], cfg.pose_multiplier)  # (B, N-S, L)
+        pl_tok, c_pl = pose_loss_forward(raw[:, S:], poses[:, S:, None, :], cfg.pose_multiplier,
+                                          cfg.sign_invariant_pose)  # (B, N-S, L)
         ce = ce_tok.reshape(B, -1).mean(axis=1)  # (B,)
         pl = pl_tok.reshape(B, -1).mean(axis=1)  # (B,)
         loss = float(np.mean(cfg.image_generation_weight * ce + cfg.localization_weight * pl))

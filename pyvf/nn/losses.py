@@ -43,15 +43,20 @@ def cross_entropy_backward(dloss, cache):
     return (dlogits,)
 
 
-def pose_loss_forward(raw, target, pose_multiplier=1.0):
+def pose_loss_forward(raw, target, pose_multiplier=1.0, sign_invariant=False):
     """The pose loss on the head's raw output (docs/math.md §3: the raw quaternion, not the normalised one).
 
     raw (..., 7) = [xyz_raw, q_raw]; target (..., 7) = [xyz, q] in input units, broadcast to raw
     -> loss (...) = mean over xyz of (pose_multiplier * xyz - xyz_raw)^2 + mean over wxyz of
-    (q - q_raw)^2. cache: the two residuals.
+    (q - q_raw)^2. sign_invariant: q is replaced by -q where q . q_raw < 0 (the same rotation; the
+    sign nearer the prediction), so a prediction never has to jump where the target's sign flips.
+    cache: the two residuals (the gradient holds the chosen sign fixed).
     """
     rxyz = raw[..., :3] - raw.dtype.type(pose_multiplier) * target[..., :3]  # (..., 3)
-    rq = raw[..., 3:] - target[..., 3:]  # (..., 4)
+    q = target[..., 3:]
+    if sign_invariant:
+        q = np.where((q * raw[..., 3:]).sum(axis=-1, keepdims=True) < 0, -q, q)  # (..., 4)
+    rq = raw[..., 3:] - q  # (..., 4)
     loss = (rxyz * rxyz).mean(axis=-1) + (rq * rq).mean(axis=-1)  # (...)
     return loss, (rxyz, rq)
 

@@ -339,9 +339,12 @@ def transformer_losses(logits, raw, tokens, poses, cfg):
     B, V, S = logits.shape[0], logits.shape[-1], cfg.n_loss_skip
     ce = F.cross_entropy(logits[:, S:].reshape(-1, V), tokens[:, S:].reshape(-1), reduction="none",
                          label_smoothing=cfg.label_smoothing).reshape(B, -1).mean(dim=1)
-    target = poses[:, S:, None, :]
+    target, q_raw = poses[:, S:, None, :], raw[:, S:, :, 3:]
+    q = target[..., 3:]
+    if cfg.sign_invariant_pose:  # the sign of q nearer the prediction
+        q = torch.where((q * q_raw).sum(-1, keepdim=True) < 0, -q, q)
     pl = (((cfg.pose_multiplier * target[..., :3] - raw[:, S:, :, :3]) ** 2).mean(-1)
-          + ((target[..., 3:] - raw[:, S:, :, 3:]) ** 2).mean(-1)).reshape(B, -1).mean(dim=1)
+          + ((q - q_raw) ** 2).mean(-1)).reshape(B, -1).mean(dim=1)
     return ce, pl, (cfg.image_generation_weight * ce + cfg.localization_weight * pl).mean()
 
 
