@@ -87,15 +87,19 @@ COLUMNS = [("steps", "codebook steps", 0), ("codebook_seconds", "wall s", 0), ("
            ("nearest_view_mae_c3", "nearest c3", 2), ("mae_c5", "MAE c5", 2), ("nearest_view_mae_c5", "nearest c5", 2)]
 
 
+def _out_of_time(signum, frame):
+    raise KeyboardInterrupt  # raised here, not by sending SIGINT: a job started in the background ignores SIGINT
+
+
 def train_codebook_for(seconds, images, config, out, opts, **kw):
     """train_codebook until `seconds` of this process's CPU time (ITIMER_PROF: user + system; at one
-    thread, the compute spent), interrupted by SIGINT when the timer fires, then its final model
+    thread, the compute spent), interrupted when the timer fires, then its final model
     written from its last checkpoint (opts.checkpoint_every). A run resumed after a kill counts its
     checkpoint's wall time as spent (at least the CPU time it had). Returns the Codebook."""
     ckpt = os.path.join(out, CHECKPOINT)
     done = read_checkpoint(ckpt, "codebook")[0]["elapsed"] if os.path.exists(ckpt) else 0.0
     if seconds > done:
-        old = signal.signal(signal.SIGPROF, lambda *_: os.kill(os.getpid(), signal.SIGINT))
+        old = signal.signal(signal.SIGPROF, _out_of_time)
         signal.setitimer(signal.ITIMER_PROF, seconds - done)
         try:
             return train_codebook(images, config, out, dataclasses.replace(opts, steps=10 ** 7), **kw)  # the timer stops it
