@@ -2,9 +2,9 @@
 pose estimates, and of the closest-image baseline's, by how far the query is turned from the first
 context view (the frame the model predicts in), with the median rotation the model predicts there.
 
-    python tools/orientation_by_angle.py --pair shipped=SHIPPED --pair si=CB.npz,TF.npz [--scenes 60 --seed 2]
+    python tools/orientation_by_angle.py --pair shipped=shipped --pair si=CB.npz,TF.npz [--scenes 60 --seed 2]
 
-SHIPPED: pyvf's shipped pair; otherwise a codebook and a transformer file. Held-out scenes of
+NAME=shipped: pyvf's shipped pair; otherwise a codebook and a transformer file. Held-out scenes of
 --seed (never 1000, the final evaluation's), contexts views 0..C-1, queries views 10..14. Prints a
 markdown table.
 """
@@ -26,7 +26,7 @@ QUERIES = np.arange(10, 15)
 
 
 def turn(poses, ref):
-    """The angle (degrees) of each pose's rotation relative to ref (..., 7)."""
+    """poses (n, M, 7), ref (n, 7) -> (n, M): the angle (degrees) of each pose's rotation relative to its ref."""
     rel = make_relative(np.concatenate([ref[:, None], poses], axis=1))[0][:, 1:]  # (n, M, 7)
     return orientation_error(rel, np.array([0, 0, 0, 1.0, 0, 0, 0]))
 
@@ -44,23 +44,23 @@ def main():
     head = "| pair | C | position | orientation | " + " | ".join(f"{a}-{min(b, 180)} deg" for a, b in BINS)
     rows = [head + " | predicted turn at 135-180 |", "|---|---:|" + "---:|" * (len(BINS) + 3)]
     counts = [int(((true_turn >= a) & (true_turn < b)).sum()) for a, b in BINS]
+    pairs = {}  # name -> (transformer, the scenes' tokens by its codebook), loaded and tokenized once
+    for pair in args.pair:
+        name, files = pair.split("=")
+        cb, tf = load_pretrained() if files == "shipped" else (Codebook.load(files.split(",")[0]),
+                                                                Transformer.load(files.split(",")[1]))
+        pairs[name] = tf, tokenize(cb, images).reshape(args.scenes, 15, -1).astype(np.int64)
     for C in map(int, args.context.split(",")):
-        base = closest_image_pose(images[:, :C], poses[:, :C], images[:, QUERIES])
-        estimates = {"closest image": base}
-        for pair in args.pair:
-            name, files = pair.split("=")
-            cb, tf = load_pretrained() if files == "shipped" else (Codebook.load(files.split(",")[0]),
-                                                                    Transformer.load(files.split(",")[1]))
-            tok = tokenize(cb, images).reshape(args.scenes, 15, -1).astype(np.int64)
+        estimates = {"closest image": closest_image_pose(images[:, :C], poses[:, :C], images[:, QUERIES])}
+        for name, (tf, tok) in pairs.items():
             est = tf.localize(tok[:, :C], poses[:, :C].astype(tf.dtype), tok[:, QUERIES]).astype(np.float64)
             est[..., 3:] = quat_normalize(est[..., 3:])
             estimates[name] = est
         for name, est in estimates.items():
             err, got = orientation_error(est, truth), turn(est, poses[:, 0])
             cells = [f"{np.median(err[(true_turn >= a) & (true_turn < b)]):.1f}" for a, b in BINS]
-            last = (true_turn >= BINS[-1][0])
             rows.append(f"| {name} | {C} | {np.median(position_error(est, truth)):.2f} | {np.median(err):.1f} | "
-                        + " | ".join(cells) + f" | {np.median(got[last]):.1f} |")
+                        + " | ".join(cells) + f" | {np.median(got[true_turn >= BINS[-1][0]]):.1f} |")
     print(f"{args.scenes} scenes of seed {args.seed}, queries views 10-14; queries per bin: {counts}\n")
     print("\n".join(rows))
 
