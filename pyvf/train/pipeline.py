@@ -26,6 +26,10 @@ from .loops import (TINY_CODEBOOK, TINY_TRANSFORMER, RunOptions, TransformerReci
                     save_tokens, tokenize, train_codebook, train_transformer)
 
 TRAIN_SEED, HEALTH_SEED, EVAL_SEED = 0, 1, 1000
+# every preset's codebook: the background's patches take one code (empty_code), the codes start at k-means
+# of the first batches' encodings and dead ones restart at the worst represented (docs/models.md's ablation)
+CODEBOOK_RECIPE = {"restart": "worst", "kmeans": 10}
+TINY_EMPTY = dataclasses.replace(TINY_CODEBOOK, empty_code=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,15 +52,15 @@ PRESETS = {
     # a pair trained from scratch in about 15 minutes on 2 cores (a 2-core AMD EPYC, avx2: a codebook
     # step of 16 images 0.5-0.6 s, a transformer step of 8 scenes ~0.9 s; 900 codebook steps took
     # 16 min in all); too short to beat the baselines: it shows the pipeline and the curves moving
-    "quick": Preset(scenes=400, codebook=TINY_CODEBOOK, codebook_steps=800, transformer=TINY_TRANSFORMER,
+    "quick": Preset(scenes=400, codebook=TINY_EMPTY, codebook_steps=800, transformer=TINY_TRANSFORMER,
                     transformer_steps=300, transformer_batch=8, transformer_lr=5e-4, eval_scenes=30,
                     health_scenes=8, eval_every=250),
     # the shipped models' sizes: many hours of a 2-core machine (run in the background; resumable)
-    "full": Preset(scenes=4000, codebook=TINY_CODEBOOK, codebook_steps=20000, transformer=TINY_TRANSFORMER,
+    "full": Preset(scenes=4000, codebook=TINY_EMPTY, codebook_steps=20000, transformer=TINY_TRANSFORMER,
                    transformer_steps=20000, transformer_batch=16, transformer_lr=5e-4, eval_scenes=200,
                    health_scenes=16, eval_every=500),
     # seconds: every stage runs, for the tests and a first look at the files
-    "smoke": Preset(scenes=3, codebook=dataclasses.replace(TINY_CODEBOOK, ch=32, ch_mult=(1, 1), image_size=16,
+    "smoke": Preset(scenes=3, codebook=dataclasses.replace(TINY_EMPTY, ch=32, ch_mult=(1, 1), image_size=16,
                                                            z_channels=8, embed_dim=8, n_embed=16),
                     codebook_steps=2, transformer=dataclasses.replace(TINY_TRANSFORMER, n_embeddings=16, d_model=32,
                                                                       n_head=2, n_layer=1),
@@ -121,7 +125,7 @@ def train_pipeline(out, preset="quick", *, log=print, progress=True, **options):
     cb_dir = os.path.join(out, "codebook")
     codebook = train_codebook(data.images, p.codebook, cb_dir,
                               dataclasses.replace(run, steps=p.codebook_steps, batch_size=p.codebook_batch),
-                              eval_images=held_images[:, :4].reshape(-1, p.size, p.size, 3))
+                              eval_images=held_images[:, :4].reshape(-1, p.size, p.size, 3), **CODEBOOK_RECIPE)
 
     log("[3/5] tokens: every training view through the codebook")
     tokens, poses, _, fingerprint = _tokens(os.path.join(out, "tokens.npz"), os.path.join(cb_dir, "codebook.npz"),
