@@ -94,20 +94,21 @@ def _out_of_time(signum, frame):
 def train_codebook_for(seconds, images, config, out, opts, **kw):
     """train_codebook until `seconds` of this process's CPU time (ITIMER_PROF: user + system; at one
     thread, the compute spent), interrupted when the timer fires, then its final model
-    written from its last checkpoint (opts.checkpoint_every). A run resumed after a kill counts its
-    checkpoint's wall time as spent (at least the CPU time it had). Returns the Codebook."""
+    written from its last checkpoint (opts.checkpoint_every). A run killed before its budget ran
+    out starts again from nothing: its CPU time is not recorded, and its wall time would charge it
+    for the machine's load (a run resumed so had 45 steps where the others had 400). -> Codebook."""
     ckpt = os.path.join(out, CHECKPOINT)
-    done = read_checkpoint(ckpt, "codebook")[0]["elapsed"] if os.path.exists(ckpt) else 0.0
-    if seconds > done:
-        old = signal.signal(signal.SIGPROF, _out_of_time)
-        signal.setitimer(signal.ITIMER_PROF, seconds - done)
-        try:
-            return train_codebook(images, config, out, dataclasses.replace(opts, steps=10 ** 7), **kw)  # the timer stops it
-        except KeyboardInterrupt:
-            pass
-        finally:
-            signal.setitimer(signal.ITIMER_PROF, 0)
-            signal.signal(signal.SIGPROF, old)
+    if os.path.exists(ckpt):
+        shutil.rmtree(out)
+    old = signal.signal(signal.SIGPROF, _out_of_time)
+    signal.setitimer(signal.ITIMER_PROF, seconds)
+    try:
+        return train_codebook(images, config, out, dataclasses.replace(opts, steps=10 ** 7), **kw)  # the timer stops it
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0)
+        signal.signal(signal.SIGPROF, old)
     step = read_checkpoint(ckpt, "codebook")[0]["step"]
     return train_codebook(images, config, out, dataclasses.replace(opts, steps=step), **kw)  # the final model
 
