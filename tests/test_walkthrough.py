@@ -70,15 +70,18 @@ def test_walkthrough_runs_section_by_section(sections, tmp_path):
 
 
 def test_section_1_codebook_claims(sections):
-    """The tokens are the C++ kernel's nearest codes; the loss is rec + weight * L_c, and L_c's
+    """The tokens are code 0 where a patch is pure background (the view has both kinds) and the C++
+    kernel's nearest of codes 1..V-1 elsewhere; the loss is rec + weight * L_c, and L_c's
     gradient joins the straight-through one; the EMA step follows math.md §4 line by line."""
     import pyvf
 
     ns = sections[2][1]
-    codebook, x, out, E = ns["codebook"], ns["x"], ns["out"], ns["E"]
+    codebook, x, out, E, empty = ns["codebook"], ns["x"], ns["out"], ns["E"], ns["empty"].reshape(8, 8)
     cells = np.ascontiguousarray(ns["z"].reshape(64, 64).T)  # the kernel takes C-contiguous (M, D) and (V, D)
-    nearest, _ = pyvf.vq_nearest(cells, np.ascontiguousarray(E.T))
-    assert np.array_equal(nearest.reshape(8, 8), out.codes[0]) and np.array_equal(ns["tokens"][0], out.codes[0])
+    nearest, _ = pyvf.vq_nearest(cells, np.ascontiguousarray(E[:, 1:].T))
+    assert empty.any() and not empty.all()
+    assert np.array_equal(np.where(empty, 0, 1 + nearest.reshape(8, 8)), out.codes[0])
+    assert np.array_equal(ns["tokens"][0], out.codes[0])
     assert ns["tokens"].shape == (15, 8, 8) and 0 <= ns["tokens"].min() and ns["tokens"].max() < 256
     w = codebook.config.codebook_weight
     assert np.isclose(out.loss, out.rec_loss + w * out.commitment_loss)  # float32 sums: default rtol

@@ -111,8 +111,10 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=
         lines[-1] += (f" The run is planned for {planned} steps (its learning-rate schedule's length) and trains "
                       f"on: the shipped model is its state at step {steps}, written by `pyvf export`.")
     init = config["hyperparameters"].get("init")
-    if init:  # a fine-tuning (--init): where its starting weights came from
-        lines[-1] += (f" It started (`--init`) from `{init['path']}` (sha256 {init['sha256'][:12]}...)"
+    if init:  # a fine-tuning (--init): where its starting weights came from, as the first call named it
+        given = ((config.get("calls") or [{}])[0].get("command") or {}).get("args", {}).get("init") or init["path"]
+        given = os.path.basename(given) if os.path.isabs(given) else given  # as _commands names files
+        lines[-1] += (f" It started (`--init`) from `{given}` (sha256 {init['sha256'][:12]}...)"
                       + (f", the {name} of the pair described in [{os.path.basename(previous)}]"
                          f"({os.path.basename(previous)})." if previous else "."))
     lines += ["", "| call started | resumed from step | machine (CPUs, processor, kernel path, threads) |",
