@@ -63,8 +63,11 @@ def test_pipeline_runs_every_stage_and_resumes(tmp_path, monkeypatch, capsys):
     assert again["context"] == first["context"]
     assert os.path.getmtime(run / "tokens.npz") == stamps["tokens.npz"]
     assert os.path.getmtime(run / "scenes/manifest.json") == stamps["scenes/manifest.json"]
-    calls = json.loads((run / "codebook" / "config.json").read_text())["calls"]
-    assert [c["resumed_from_step"] for c in calls][-1] == PRESETS["smoke"].codebook_steps
+    cb_config = json.loads((run / "codebook" / "config.json").read_text())
+    assert [c["resumed_from_step"] for c in cb_config["calls"]][-1] == PRESETS["smoke"].codebook_steps
+    # every preset's codebook recipe (docs/models.md's ablation): the empty code, k-means, worst restarts
+    assert cb_config["config"]["empty_code"] and {"restart": "worst", "kmeans": 10}.items() <= cb_config[
+        "hyperparameters"].items()
 
     # a codebook file that changed makes the tokens stale: they are made again from it
     stamp = json.loads((run / "tokens.json").read_text())
