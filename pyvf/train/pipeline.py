@@ -49,9 +49,9 @@ class Preset:
 
 
 PRESETS = {
-    # a pair trained from scratch in about 15 minutes on 2 cores (a 2-core AMD EPYC, avx2: a codebook
-    # step of 16 images 0.5-0.6 s, a transformer step of 8 scenes ~0.9 s; 900 codebook steps took
-    # 16 min in all); too short to beat the baselines: it shows the pipeline and the curves moving
+    # a pair trained from scratch in about 15 minutes on 2 cores where a codebook step of 16 images takes
+    # 0.5-0.6 s and a transformer step of 8 scenes ~0.9 s (another 2-core AVX2 machine: 1.3 s a codebook
+    # step, 25 min in all, docs/models.md); too short to beat the baselines: it shows the pipeline at work
     "quick": Preset(scenes=400, codebook=TINY_EMPTY, codebook_steps=800, transformer=TINY_TRANSFORMER,
                     transformer_steps=300, transformer_batch=8, transformer_lr=5e-4, eval_scenes=30,
                     health_scenes=8, eval_every=250),
