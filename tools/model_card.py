@@ -76,14 +76,19 @@ def _run(run_dir):
     return config, log
 
 
+def _as_typed(path):
+    """A path of a run's command line as the card shows it: an absolute one by its last name (not one
+    machine's folders), a relative one as typed."""
+    return os.path.basename(path.rstrip("/")) if os.path.isabs(path) else path
+
+
 def _commands(config):
     """The command lines of every call of a run, as a user would type them."""
     out = []
     for call in config.get("calls", []):
         argv = (call.get("command") or {}).get("argv")
         if argv:  # folders by their names, not one machine's paths
-            out.append(" ".join(["pyvf"] + [os.path.basename(a.rstrip("/")) if os.path.isabs(a) else a
-                                             for a in argv[1:]]))
+            out.append(" ".join(["pyvf"] + [_as_typed(a) for a in argv[1:]]))
     return out
 
 
@@ -94,9 +99,8 @@ def _tokenize_command(config, data_dir):
     args = (calls[0].get("command") or {}).get("args") or {}
     if not (data_dir and args.get("tokens") and args.get("codebook")):
         return None
-    name = lambda a: os.path.basename(a.rstrip("/")) if os.path.isabs(a) else a  # as _commands names folders
-    return (f"pyvf tokenize --codebook {name(args['codebook'])} --data {os.path.basename(os.path.normpath(data_dir))} "
-            f"--out {name(args['tokens'])}")
+    return (f"pyvf tokenize --codebook {_as_typed(args['codebook'])} --data {os.path.basename(os.path.normpath(data_dir))} "
+            f"--out {_as_typed(args['tokens'])}")
 
 
 def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=None, before=None, previous=None):
@@ -113,8 +117,7 @@ def _section(name, run_dir, config, log, columns, img_dir, log_y=(), where_note=
     init = config["hyperparameters"].get("init")
     if init:  # a fine-tuning (--init): where its starting weights came from, as the first call named it
         given = ((config.get("calls") or [{}])[0].get("command") or {}).get("args", {}).get("init") or init["path"]
-        given = os.path.basename(given) if os.path.isabs(given) else given  # as _commands names files
-        lines[-1] += (f" It started (`--init`) from `{given}` (sha256 {init['sha256'][:12]}...)"
+        lines[-1] += (f" It started (`--init`) from `{_as_typed(given)}` (sha256 {init['sha256'][:12]}...)"
                       + (f", the {name} of the pair described in [{os.path.basename(previous)}]"
                          f"({os.path.basename(previous)})." if previous else "."))
     lines += ["", "| call started | resumed from step | machine (CPUs, processor, kernel path, threads) |",
